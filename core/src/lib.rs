@@ -1,0 +1,34 @@
+//! Device math for string-based haptic devices of the SPIDAR family.
+//!
+//! `no_std`, no embassy: the firmware, the virtual device and the host link
+//! this crate, so that host and device compute bit-identical string lengths,
+//! positions and corrections.
+//!
+//! The calibration model is the spine (see `docs/design.md`):
+//! - [`model`]: the physical model the host fits, in f64 and physical units;
+//! - [`blob`]: its compiled, fixed-point form that the device evaluates;
+//! - [`string_law`]: string length from encoder counts (winding law + effects);
+//! - [`kinematics`]: forward kinematics from 8 strings with faulty-string rejection;
+//! - [`correction`]: fixed-point NN / SVR position corrections;
+//! - [`tension`], [`guidance`], [`safety`]: force rendering and its limits;
+//! - [`control`]: one control-loop iteration wiring all of the above.
+#![cfg_attr(not(test), no_std)]
+#![forbid(unsafe_code)]
+
+#[cfg(feature = "alloc")]
+extern crate alloc;
+
+/// Number of strings (and motors, encoders) of a Scalable-SPIDAR.
+pub const STRINGS: usize = 8;
+
+pub mod blob;
+pub mod control;
+pub mod correction;
+pub mod encoder;
+pub mod fixed;
+pub mod guidance;
+pub mod kinematics;
+pub mod model;
+pub mod safety;
+pub mod string_law;
+pub mod tension;

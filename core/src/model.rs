@@ -1,0 +1,111 @@
+//! The calibration model in physical units: what the host identifies and what
+//! [`crate::blob`] compiles into fixed point for the device.
+//!
+//! A calibration is (see `../shared/notes/model-spine.md`):
+//! 1. a [`Frame`]: anchors, home and the room-from-device transform;
+//! 2. one [`StringLaw`] per string plus an ordered list of [`EffectTerm`]s:
+//!    the string length as a function of what the device knows at run time
+//!    ([`StringInputs`]);
+//! 3. an optional position [`crate::correction`] (NN or SVR).
+//!
+//! Forward kinematics turns the string lengths into a device-frame position,
+//! the frame maps it to the room, and the position correction is applied last.
+
+use serde::{Deserialize, Serialize};
+
+use crate::STRINGS;
+
+/// A point or vector in millimetres, `[x, y, z]`.
+pub type Vec3<F> = [F; 3];
+
+/// Geometry of the device: where the strings leave the frame, where the
+/// end-effector was at initialization, and how the device frame sits in the
+/// tracker's room frame.
+///
+/// Generic over the float type: the device runs `Frame<f32>`, the host
+/// identifies `Frame<f64>`. This is the one geometry type of the project.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Frame<F> {
+    /// String exit points (device frame, mm), index = encoder index.
+    pub anchors: [Vec3<F>; STRINGS],
+    /// End-effector position at initialization (device frame, mm).
+    pub home: Vec3<F>,
+    /// Rotation part of `p_room = scale * R * p_device + t`, row-major.
+    pub room_rotation: [[F; 3]; 3],
+    /// Translation `t` of `p_room = scale * R * p_device + t` (mm), the paper's eq. 6.
+    pub room_translation: Vec3<F>,
+    /// Scale of the tracker relative to the device (1 for a well calibrated tracker).
+    pub room_scale: F,
+}
+
+/// What the device knows about one string at run time, besides geometry.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct StringInputs {
+    /// Encoder counts since initialization (home); increases as string is paid out.
+    pub counts: [i32; STRINGS],
+    /// Direction of the last motion of each string: +1 paying out, -1 reeling
+    /// in, 0 unknown (no motion since home). See [`crate::encoder::DirectionTracker`].
+    pub direction: [i8; STRINGS],
+    /// Commanded tension of each string, in millinewtons.
+    pub tension_mn: [u16; STRINGS],
+    /// Time since initialization, milliseconds.
+    pub time_ms: u32,
+}
+
+/// Highest power of the pulley angle in a winding law.
+pub const WINDING_ORDER: usize = 4;
+
+/// Base winding law of one string: the length paid out since home as a
+/// polynomial in the pulley angle `theta = 2 pi counts / counts_per_rev` (rad):
+///
+/// `payout(theta) = sum_{k=1..=WINDING_ORDER} winding_mm[k-1] * theta^k`.
+///
+/// For a pulley whose winding radius shrinks linearly as string is paid out
+/// (`r(theta) = r_home - d^2/(2 pi) theta`, string of diameter `d` in level
+/// layers) the law is exactly quadratic: `winding_mm = [r_home, -d^2/(4 pi), 0, 0]`.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct StringLaw {
+    /// Quadrature counts per pulley revolution.
+    pub counts_per_rev: u32,
+    /// Coefficients of theta^1 .. theta^WINDING_ORDER, mm / rad^k.
+    pub winding_mm: [f64; WINDING_ORDER],
+}
+
+/// One physically meaningful correction term of one string's length.
+///
+/// Each variant names the run-time variable it depends on; its contribution is
+/// added to the string length given by the frame and the base winding law.
+/// `payout` below means the base winding law's output (mm paid out since home).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Effect {
+    /// Constant length error, e.g. a string not taut when home was declared: `+ mm`.
+    Offset { mm: f64 },
+    /// Relative error of the payout, e.g. a pulley of another diameter or an
+    /// encoder of another resolution: `+ relative * payout`.
+    Scale { relative: f64 },
+    /// Extra winding-law order, e.g. uneven layering: `+ mm_per_rad_pow * theta^power`.
+    Winding { power: u8, mm_per_rad_pow: f64 },
+    /// Pulley eccentricity, periodic in the pulley angle:
+    /// `+ sin_mm * sin(theta) + cos_mm * (cos(theta) - 1)`.
+    Eccentricity { sin_mm: f64, cos_mm: f64 },
+    /// String elasticity, stretch proportional to tension times free length:
+    /// `+ per_newton * tension_N * (home_length + payout)`.
+    Elasticity { per_newton: f64 },
+    /// Direction-dependent backlash / hysteresis: `+ half_width_mm * direction`.
+    Backlash { half_width_mm: f64 },
+    /// Drift with time since initialization (creep, temperature): `+ mm_per_s * t`.
+    Drift { mm_per_s: f64 },
+    /// String slip: a step at a time since initialization: `+ mm * [t >= at_s]`.
+    Slip { at_s: f64, mm: f64 },
+}
+
+/// An [`Effect`] applied to one string.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct EffectTerm {
+    /// Encoder index of the string, `0..STRINGS`.
+    pub string: u8,
+    pub effect: Effect,
+}
+
+/// Most effect terms a calibration may carry (the blob's fixed capacity).
+pub const MAX_EFFECTS: usize = 32;

@@ -1,0 +1,2 @@
+//! Host side of the SPIDAR stack: datasets, simulation, identification,
+//! learned corrections, diagnosis, reports, and the device link.
