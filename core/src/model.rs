@@ -109,3 +109,24 @@ pub struct EffectTerm {
 
 /// Most effect terms a calibration may carry (the blob's fixed capacity).
 pub const MAX_EFFECTS: usize = 32;
+
+#[cfg(feature = "alloc")]
+pub use whole::Calibration;
+
+#[cfg(feature = "alloc")]
+mod whole {
+    use super::*;
+    use crate::correction::CorrectionModel;
+    use alloc::vec::Vec;
+
+    /// A whole calibration in physical units: what `spidar calibrate` writes
+    /// and `blob::compile` turns into the device's fixed-point blob.
+    #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+    pub struct Calibration {
+        pub frame: Frame<f64>,
+        pub strings: [StringLaw; STRINGS],
+        /// Applied in order; at most [`MAX_EFFECTS`].
+        pub effects: Vec<EffectTerm>,
+        pub correction: CorrectionModel,
+    }
+}
