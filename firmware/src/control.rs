@@ -15,7 +15,9 @@ use spidar_core::STRINGS;
 use crate::clocks::SYSCLK_HZ;
 use crate::encoders::Encoders;
 use crate::motors::Motors;
-use crate::shared::{self, faults, Command, ModelUpdate, Telemetry, COMMANDS, MODEL, MODEL_IN_USE, NO_SLOT};
+use crate::shared::{
+    self, faults, Command, ModelUpdate, Telemetry, COMMANDS, MODEL, MODEL_IN_USE, NO_SLOT,
+};
 use crate::watchdog;
 
 /// Loop rate.
@@ -42,10 +44,10 @@ impl Extender {
     }
 
     fn update(&mut self, raw: [u16; STRINGS]) -> [i32; STRINGS] {
-        for i in 0..STRINGS {
-            let delta = raw[i].wrapping_sub(self.last[i]) as i16 as i32;
-            self.counts[i] = self.counts[i].wrapping_add(delta);
-            self.last[i] = raw[i];
+        for ((&r, last), count) in raw.iter().zip(&mut self.last).zip(&mut self.counts) {
+            let delta = r.wrapping_sub(*last) as i16 as i32;
+            *count = count.wrapping_add(delta);
+            *last = r;
         }
         self.counts
     }

@@ -39,7 +39,10 @@ pub fn usb(
     otg: Peri<'static, USB_OTG_HS>,
     dp: Peri<'static, PA12>,
     dm: Peri<'static, PA11>,
-) -> (UsbDevice<'static, UsbDriver>, CdcAcmClass<'static, UsbDriver>) {
+) -> (
+    UsbDevice<'static, UsbDriver>,
+    CdcAcmClass<'static, UsbDriver>,
+) {
     static EP_OUT: StaticCell<[u8; 256]> = StaticCell::new();
     static CONFIG_DESC: StaticCell<[u8; 256]> = StaticCell::new();
     static BOS_DESC: StaticCell<[u8; 256]> = StaticCell::new();
@@ -137,11 +140,17 @@ impl FrameSplitter {
 ///
 /// PLACEHOLDER: decodes nothing yet (see the module comment).
 fn dispatch(frame: &[u8], _storage: &mut Storage, _out: &mut [u8]) -> usize {
-    defmt::debug!("link: frame of {} bytes (protocol decoding pending)", frame.len());
+    defmt::debug!(
+        "link: frame of {} bytes (protocol decoding pending)",
+        frame.len()
+    );
     0
 }
 
-async fn send(class: &mut CdcAcmClass<'static, UsbDriver>, bytes: &[u8]) -> Result<(), EndpointError> {
+async fn send(
+    class: &mut CdcAcmClass<'static, UsbDriver>,
+    bytes: &[u8],
+) -> Result<(), EndpointError> {
     for chunk in bytes.chunks(PACKET as usize) {
         class.write_packet(chunk).await?;
     }

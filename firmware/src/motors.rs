@@ -28,7 +28,7 @@ use embassy_stm32::pac::timer::vals::{Bkp, FilterValue, Ossi, Ossr};
 use embassy_stm32::peripherals::*;
 use embassy_stm32::time::khz;
 use embassy_stm32::timer::simple_pwm::{PwmPin, SimplePwm};
-use embassy_stm32::timer::{Channel, low_level::CountingMode};
+use embassy_stm32::timer::{low_level::CountingMode, Channel};
 use embassy_stm32::Peri;
 
 use spidar_core::STRINGS;
@@ -119,8 +119,24 @@ impl Motors {
             f,
             mode,
         );
-        let mut tim16 = SimplePwm::new(p.tim16, Some(PwmPin::new(p.pf6, pp)), None, None, None, f, mode);
-        let mut tim17 = SimplePwm::new(p.tim17, Some(PwmPin::new(p.pf7, pp)), None, None, None, f, mode);
+        let mut tim16 = SimplePwm::new(
+            p.tim16,
+            Some(PwmPin::new(p.pf6, pp)),
+            None,
+            None,
+            None,
+            f,
+            mode,
+        );
+        let mut tim17 = SimplePwm::new(
+            p.tim17,
+            Some(PwmPin::new(p.pf7, pp)),
+            None,
+            None,
+            None,
+            f,
+            mode,
+        );
 
         let break_pins = [
             break_pin(Flex::new(p.bk_tim1), 1),
@@ -153,7 +169,16 @@ impl Motors {
             tim15,
             tim16,
             tim17,
-            dir: [out(d0), out(d1), out(d2), out(d3), out(d4), out(d5), out(d6), out(d7)],
+            dir: [
+                out(d0),
+                out(d1),
+                out(d2),
+                out(d3),
+                out(d4),
+                out(d5),
+                out(d6),
+                out(d7),
+            ],
             enable: Output::new(p.enable, Level::Low, Speed::Low),
             break_pins,
             armed: false,
@@ -227,7 +252,11 @@ impl Motors {
     pub fn set_duty(&mut self, motor: usize, duty_q15: i16) {
         let mag = duty_q15.unsigned_abs().min(DUTY_FULL as u16) as u32;
         if let Some(d) = self.dir.get_mut(motor) {
-            d.set_level(if duty_q15 < 0 { Level::High } else { Level::Low });
+            d.set_level(if duty_q15 < 0 {
+                Level::High
+            } else {
+                Level::Low
+            });
         }
         match motor {
             0..=3 => {
@@ -236,7 +265,11 @@ impl Motors {
                 self.tim1.channel(ch).set_duty_cycle(scale(mag, max));
             }
             4 | 5 => {
-                let ch = if motor == 4 { Channel::Ch1 } else { Channel::Ch2 };
+                let ch = if motor == 4 {
+                    Channel::Ch1
+                } else {
+                    Channel::Ch2
+                };
                 let max = self.tim15.max_duty_cycle();
                 self.tim15.channel(ch).set_duty_cycle(scale(mag, max));
             }
@@ -268,8 +301,13 @@ fn scale(mag_q15: u32, max: u32) -> u32 {
 /// torque (negative duty = reel in); the gain is duty per newton at the
 /// motor's winding radius, measured per device (docs/hardware.md). Open loop
 /// on voltage until the drivers give current control.
+#[allow(dead_code)] // used by the control step once spidar_core::control lands
 pub fn tension_to_duty_q15(tension_n: f32, duty_per_newton: f32) -> i16 {
-    let t = if tension_n.is_finite() { tension_n.max(0.0) } else { 0.0 };
+    let t = if tension_n.is_finite() {
+        tension_n.max(0.0)
+    } else {
+        0.0
+    };
     let d = (t * duty_per_newton * DUTY_FULL as f32).min(DUTY_FULL as f32);
     -(d as i16)
 }

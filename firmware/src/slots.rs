@@ -300,7 +300,11 @@ mod tests {
         for &b in data {
             c ^= b as u32;
             for _ in 0..8 {
-                c = if c & 1 != 0 { (c >> 1) ^ 0xEDB8_8320 } else { c >> 1 };
+                c = if c & 1 != 0 {
+                    (c >> 1) ^ 0xEDB8_8320
+                } else {
+                    c >> 1
+                };
             }
         }
         !c
@@ -348,14 +352,23 @@ mod tests {
         assert_eq!(select_active(None, None), None);
         assert_eq!(select_active(Some(rec(3)), None), Some((Slot::A, rec(3))));
         assert_eq!(select_active(None, Some(rec(3))), Some((Slot::B, rec(3))));
-        assert_eq!(select_active(Some(rec(3)), Some(rec(4))), Some((Slot::B, rec(4))));
-        assert_eq!(select_active(Some(rec(5)), Some(rec(4))), Some((Slot::A, rec(5))));
+        assert_eq!(
+            select_active(Some(rec(3)), Some(rec(4))),
+            Some((Slot::B, rec(4)))
+        );
+        assert_eq!(
+            select_active(Some(rec(5)), Some(rec(4))),
+            Some((Slot::A, rec(5)))
+        );
         // Wrap-around: u32::MAX then 0.
         assert_eq!(
             select_active(Some(rec(u32::MAX)), Some(rec(0))),
             Some((Slot::B, rec(0)))
         );
-        assert_eq!(select_active(Some(rec(9)), Some(rec(9))), Some((Slot::A, rec(9))));
+        assert_eq!(
+            select_active(Some(rec(9)), Some(rec(9))),
+            Some((Slot::A, rec(9)))
+        );
     }
 
     /// Walks an upload through every point where it could be interrupted and
@@ -401,7 +414,10 @@ mod tests {
                 got: 41
             })
         );
-        assert_eq!(u.chunk(90, 20), Err(UploadError::PastEnd { total_len: 100 }));
+        assert_eq!(
+            u.chunk(90, 20),
+            Err(UploadError::PastEnd { total_len: 100 })
+        );
         assert_eq!(
             u.chunk(u32::MAX, 20),
             Err(UploadError::PastEnd { total_len: 100 })
@@ -424,7 +440,13 @@ mod tests {
         );
         // Same blob again resumes; another blob starts over.
         assert_eq!(Upload::begin(Some(u), Slot::B, 100, 0xAB, 1), Ok((u, true)));
-        assert_eq!(Upload::begin(Some(u), Slot::B, 100, 0xAC, 1).unwrap().0.received, 0);
+        assert_eq!(
+            Upload::begin(Some(u), Slot::B, 100, 0xAC, 1)
+                .unwrap()
+                .0
+                .received,
+            0
+        );
         assert!(Upload::begin(None, Slot::A, 0, 0, 0).is_err());
         assert!(Upload::begin(None, Slot::A, MAX_BLOB_LEN + 1, 0, 0).is_err());
         assert!(Upload::begin(None, Slot::A, MAX_BLOB_LEN, 0, 0).is_ok());

@@ -53,7 +53,7 @@ fn slot_bytes(slot: Slot, len: u32) -> &'static [u8] {
     unsafe { core::slice::from_raw_parts(addr as *const u8, len) }
 }
 
-#[derive(Clone, Copy, Debug, PartialEq, defmt::Format)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub enum StorageError {
     /// Motors armed: flash programming would stall the control loop.
     Armed,
@@ -62,9 +62,18 @@ pub enum StorageError {
     Upload(UploadError),
     Flash(FlashErrorKind),
     /// Read-back CRC of the staged blob differs from the announced one.
-    Verify { expected: u32, computed: u32 },
+    Verify {
+        expected: u32,
+        computed: u32,
+    },
     /// The staged blob's header or body does not check (protocol::blob).
     Blob(blob::BlobError),
+}
+
+impl defmt::Format for StorageError {
+    fn format(&self, f: defmt::Formatter) {
+        defmt::write!(f, "{}", defmt::Debug2Format(self))
+    }
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, defmt::Format)]
@@ -132,7 +141,11 @@ impl Storage {
             return None;
         }
         if let Err(e) = blob::split_blob(bytes) {
-            defmt::warn!("model slot {}: blob rejected ({})", slot, defmt::Debug2Format(&e));
+            defmt::warn!(
+                "model slot {}: blob rejected ({})",
+                slot,
+                defmt::Debug2Format(&e)
+            );
             return None;
         }
         Some(r)
