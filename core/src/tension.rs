@@ -61,9 +61,11 @@
 //! search (16 divisions, an insertion sort of at most 16 values). Measured
 //! over 20 000 random cases (positions in the central 1 m cube of a 2.2 m
 //! frame, t in [0.5, 20] N): feasible forces (|F_i| <= 3 N) take 1 to 3
-//! iterations; scaled forces (|F_i| <= 300 N) mostly 2 to 7, with a tail
-//! up to the cap only when the end-effector is within ~0.3 mm of a plane
-//! through 4 anchors (and those still converge, through the refinement).
+//! iterations; scaled forces (|F_i| <= 300 N) 2 to 7 in 99.7 % of cases,
+//! 8 to 12 in 12 of 9 987, and the cap (25 = 24 + 1 refinement) once, with
+//! the end-effector 0.26 mm from a plane through 4 anchors (it still
+//! converged, through the refinement). Max resultant error 1.0e-4 N, max
+//! direction error of a scaled force 5e-6 rad (`sweep_records_iterations_and_errors`).
 //!
 //! Only `+ - * /`, `sqrt`, `abs` and comparisons, in a fixed order: in `f32`
 //! the host and the Cortex-M7 compute the same bits. Generic over
