@@ -410,7 +410,7 @@ fn rad_per_x(counts_per_rev: u32) -> f64 {
 // Fixed-point kernels
 // ---------------------------------------------------------------------------
 
-/// Saturates a value with `frac` fractional bits... shifted left by `k` bits.
+/// `v * 2^k`, saturated to i64.
 #[inline]
 fn shl_sat(v: i64, k: u32) -> i64 {
     if k == 0 {
@@ -656,9 +656,13 @@ pub enum CompiledEffect {
 /// What a compiled effect of one string depends on, in device units.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct FixedContext {
+    /// Counts since home.
     pub counts: i32,
+    /// Direction of the last motion (only the sign is used).
     pub direction: i8,
+    /// Commanded tension, mN.
     pub tension_mn: u16,
+    /// Time since home, ms.
     pub time_ms: u32,
     /// Q47.16 mm.
     pub home_length_q16: i64,
