@@ -18,7 +18,7 @@
 //! chosen by the compiler to use the full `i32` range.
 //!
 //! NN, per hidden neuron `h`:
-//! `x_h = ((sum_i (p_i - mean_i) * w1[h][i]) >> (w1_frac - 11)) + b1[h]`, with
+//! `x_h = sat((sum_i (p_i - mean_i) * w1[h][i]) >> (w1_frac - 11)) + b1[h]` (saturating), with
 //! `p - mean` saturated to `i32` Q15.16, `w1 = W1 / std_in` in Q(`w1_frac`) per
 //! mm, an `i64` accumulator, `x_h` and `b1` in Q4.27 ([`PREACTIVATION_FRAC`]);
 //! `t_h = tanh(x_h)` in Q1.30 ([`crate::fixed::tanh_q27`]); output
@@ -104,8 +104,8 @@ mod f64_models {
 }
 
 use crate::fixed::{
-    exp2_neg_q22_below_cutoff, le_i32, read_i32, sat_i32, shr_i64, shr_round_i64, tanh_q27,
-    EXP2_CUTOFF_Q22,
+    exp2_neg_q22_below_cutoff, le_i32, read_i32, sat_i32, shr_i64, shr_round_i64,
+    shr_sat_i64_to_i32, tanh_q27, EXP2_CUTOFF_Q22,
 };
 use spidar_protocol::blob::{BlobError, CorrectionKind};
 
@@ -133,8 +133,11 @@ pub const W1_MAX: i32 = 1 << 29;
 /// coefficients, so that the `i64` accumulator of `weight x Q1.30` products
 /// never overflows.
 pub const OUTPUT_ABS_SUM_MAX: u64 = (1 << 33) - 2;
-/// Range of `w1_frac` / `scale_frac` (fractional bits of first-layer weights
-/// and SVR input scales, per mm).
+/// Range of `w1_frac` (fractional bits of NN first-layer weights, per mm): the
+/// pre-activation shift `w1_frac - 11` stays within `1..=31`, a cheap 32-bit
+/// shift pair on the device.
+pub const W1_FRAC_RANGE: core::ops::RangeInclusive<u8> = 12..=42;
+/// Range of `scale_frac` (fractional bits of the SVR input scales, per mm).
 pub const INPUT_FRAC_RANGE: core::ops::RangeInclusive<u8> = 11..=60;
 /// Range of `w2_frac` / `coef_frac` (fractional bits of output weights and SVR
 /// coefficients, mm).
@@ -149,7 +152,7 @@ pub const SUPPORT_MAX: i32 = 1 << 30;
 /// ```text
 /// offset size  field
 ///  0     1     mode          0 absolute, 1 residual
-///  1     1     w1_frac       fractional bits of w1 (per mm), 11..=60
+///  1     1     w1_frac       fractional bits of w1 (per mm), 12..=42
 ///  2     3     w2_frac[3]    fractional bits of w2 per output axis (mm), 0..=48
 ///  5     3     reserved      0
 ///  8     12    mean[3]       i32 Q15.16 mm: input mean
@@ -177,6 +180,8 @@ pub const NN_NEURON_LEN: usize = 28;
 pub const SVR_HEADER_LEN: usize = 44;
 /// Bytes per support vector in the SVR body.
 pub const SVR_RECORD_LEN: usize = 24;
+/// Support vectors per block of the SVR evaluation (kernel buffer on the stack).
+const SVR_BLOCK: usize = 32;
 
 fn len_u32(n: usize) -> u32 {
     u32::try_from(n).unwrap_or(u32::MAX)
@@ -280,7 +285,7 @@ impl<'a> NnView<'a> {
         }
         let mode = mode_from_byte(bytes[0], "nn.mode")?;
         let w1_frac = bytes[1];
-        if !INPUT_FRAC_RANGE.contains(&w1_frac) {
+        if !W1_FRAC_RANGE.contains(&w1_frac) {
             return Err(BlobError::Body {
                 field: "nn.w1_frac",
             });
@@ -351,7 +356,7 @@ impl<'a> NnView<'a> {
             let pre = (d0 * le_i32::<NN_NEURON_LEN, 0>(rec) as i64)
                 .wrapping_add(d1 * le_i32::<NN_NEURON_LEN, 4>(rec) as i64)
                 .wrapping_add(d2 * le_i32::<NN_NEURON_LEN, 8>(rec) as i64);
-            let x = sat_i32(shr_i64(pre, sh).wrapping_add(le_i32::<NN_NEURON_LEN, 12>(rec) as i64));
+            let x = shr_sat_i64_to_i32(pre, sh).saturating_add(le_i32::<NN_NEURON_LEN, 12>(rec));
             let t = tanh_q27(x) as i64;
             acc[0] = acc[0].wrapping_add(le_i32::<NN_NEURON_LEN, 16>(rec) as i64 * t);
             acc[1] = acc[1].wrapping_add(le_i32::<NN_NEURON_LEN, 20>(rec) as i64 * t);
@@ -483,35 +488,65 @@ impl<'a> SvrView<'a> {
     /// only, saturating, never panics.
     pub fn evaluate(&self, p: [i32; 3]) -> [i32; 3] {
         let [q0, q1, q2] = self.scaled(p);
-        let mut acc0 = 0i64;
-        let mut acc1 = 0i64;
-        let mut acc2 = 0i64;
-        for rec in self.records.chunks_exact(SVR_RECORD_LEN) {
-            let Ok(rec) = <&[u8; SVR_RECORD_LEN]>::try_from(rec) else {
-                continue;
-            };
-            let d0 = q0.saturating_sub(le_i32::<SVR_RECORD_LEN, 0>(rec)) as i64;
-            let d1 = q1.saturating_sub(le_i32::<SVR_RECORD_LEN, 4>(rec)) as i64;
-            let d2 = q2.saturating_sub(le_i32::<SVR_RECORD_LEN, 8>(rec)) as i64;
-            // Each square <= 2^62; the sum < 2^64 as an unsigned bit pattern.
-            let u = ((d0 * d0) as u64)
-                .wrapping_add((d1 * d1) as u64)
-                .wrapping_add((d2 * d2) as u64);
-            let u_hi = (u >> 32) as u32; // Q10.22 (u in Q54)
-            if u_hi >= EXP2_CUTOFF_Q22 {
-                continue;
-            }
-            let k = exp2_neg_q22_below_cutoff(u_hi) as i64; // Q1.30
-            acc0 = acc0.wrapping_add(le_i32::<SVR_RECORD_LEN, 12>(rec) as i64 * k);
-            acc1 = acc1.wrapping_add(le_i32::<SVR_RECORD_LEN, 16>(rec) as i64 * k);
-            acc2 = acc2.wrapping_add(le_i32::<SVR_RECORD_LEN, 20>(rec) as i64 * k);
+        let mut acc = [0i64; 3];
+        // Two passes per block of support vectors: kernels into a small
+        // buffer, then the three axes. Separate (not inlined) loops, so each
+        // fits the Cortex-M7's registers: one loop would need q, six
+        // accumulator words and the exp temporaries at once, and spills.
+        let mut kernels = [0i32; SVR_BLOCK];
+        for block in self.records.chunks(SVR_RECORD_LEN * SVR_BLOCK) {
+            svr_kernels(block, [q0, q1, q2], &mut kernels);
+            svr_accumulate(block, &kernels, &mut acc);
         }
+        let [acc0, acc1, acc2] = acc;
         [
             finish(acc0, self.coef_frac[0], self.offset[0], self.mode, p[0]),
             finish(acc1, self.coef_frac[1], self.offset[1], self.mode, p[1]),
             finish(acc2, self.coef_frac[2], self.offset[2], self.mode, p[2]),
         ]
     }
+}
+
+/// SVR pass 1: the kernel `2^-|q - s_j|^2` (Q1.30) of each support vector of
+/// `block` (at most [`SVR_BLOCK`]), 0 beyond the cutoff.
+#[inline(never)]
+fn svr_kernels(block: &[u8], q: [i32; 3], kernels: &mut [i32; SVR_BLOCK]) {
+    let [q0, q1, q2] = q;
+    for (rec, k) in block.chunks_exact(SVR_RECORD_LEN).zip(kernels.iter_mut()) {
+        let Ok(rec) = <&[u8; SVR_RECORD_LEN]>::try_from(rec) else {
+            continue;
+        };
+        let d0 = q0.saturating_sub(le_i32::<SVR_RECORD_LEN, 0>(rec)) as i64;
+        let d1 = q1.saturating_sub(le_i32::<SVR_RECORD_LEN, 4>(rec)) as i64;
+        let d2 = q2.saturating_sub(le_i32::<SVR_RECORD_LEN, 8>(rec)) as i64;
+        // Each square <= 2^62; the sum < 2^64 as an unsigned bit pattern.
+        let u = ((d0 * d0) as u64)
+            .wrapping_add((d1 * d1) as u64)
+            .wrapping_add((d2 * d2) as u64);
+        let u_hi = (u >> 32) as u32; // Q10.22 (u in Q54)
+        *k = if u_hi < EXP2_CUTOFF_Q22 {
+            exp2_neg_q22_below_cutoff(u_hi) // Q1.30
+        } else {
+            0
+        };
+    }
+}
+
+/// SVR pass 2: `acc_a += coef_a K` over the support vectors of `block`
+/// (`i64`, Q(30 + coef_frac_a) mm).
+#[inline(never)]
+fn svr_accumulate(block: &[u8], kernels: &[i32; SVR_BLOCK], acc: &mut [i64; 3]) {
+    let [mut acc0, mut acc1, mut acc2] = *acc;
+    for (rec, &k) in block.chunks_exact(SVR_RECORD_LEN).zip(kernels.iter()) {
+        let Ok(rec) = <&[u8; SVR_RECORD_LEN]>::try_from(rec) else {
+            continue;
+        };
+        let k = k as i64;
+        acc0 = acc0.wrapping_add(le_i32::<SVR_RECORD_LEN, 12>(rec) as i64 * k);
+        acc1 = acc1.wrapping_add(le_i32::<SVR_RECORD_LEN, 16>(rec) as i64 * k);
+        acc2 = acc2.wrapping_add(le_i32::<SVR_RECORD_LEN, 20>(rec) as i64 * k);
+    }
+    *acc = [acc0, acc1, acc2];
 }
 
 // ---------------------------------------------------------------------------
@@ -862,11 +897,11 @@ mod host {
                 .as_flattened()
                 .iter()
                 .fold(0f64, |m, v| m.max(libm::fabs(*v)));
-            let w1_frac = best_frac(w1_max, W1_MAX as f64, INPUT_FRAC_RANGE).ok_or_else(|| {
+            let w1_frac = best_frac(w1_max, W1_MAX as f64, W1_FRAC_RANGE).ok_or_else(|| {
                 largest(
                     "w1",
                     w1.as_flattened().iter().copied(),
-                    "i32 Q(11) per mm within 2^29 (w1 / input.std)",
+                    "i32 Q(12) per mm within 2^29 (w1 / input.std)",
                 )
             })?;
             // Output weights with the output scale folded in (mm).

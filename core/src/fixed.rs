@@ -186,6 +186,25 @@ pub fn shr_round_i64(v: i64, sh: u32) -> i64 {
     }
 }
 
+/// `v >> sh` saturated to `i32`, for `sh` in `1..=31` (taken modulo 32; 0 is
+/// not meaningful). A handful of 32-bit instructions instead of a generic
+/// 64-bit variable shift: `(lo >> sh) | (hi << (32 - sh))`, then a sign check.
+#[inline(always)]
+pub fn shr_sat_i64_to_i32(v: i64, sh: u32) -> i32 {
+    let sh = sh & 31;
+    let lo = v as u32;
+    let hi = (v >> 32) as i32;
+    let x_lo = (lo >> sh) | ((hi as u32) << (32u32.wrapping_sub(sh) & 31));
+    let x_hi = hi >> sh;
+    if x_hi == (x_lo as i32) >> 31 {
+        x_lo as i32
+    } else if hi < 0 {
+        i32::MIN
+    } else {
+        i32::MAX
+    }
+}
+
 /// Reads a little-endian `i32` at byte offset `AT` of a fixed-size record.
 /// The record may sit at any address (flash blobs are not aligned); on the
 /// Cortex-M7 this is one unaligned `ldr`.
@@ -365,6 +384,20 @@ mod tests {
         assert_eq!(sat_i32(1 << 40), i32::MAX);
         assert_eq!(sat_i32(-(1 << 40)), i32::MIN);
         assert_eq!(shr_round_i64(5, 1), 3);
+        for v in [
+            0i64,
+            1,
+            -1,
+            12345678901,
+            -98765432109,
+            i64::MAX,
+            i64::MIN,
+            1 << 40,
+        ] {
+            for sh in 1..32 {
+                assert_eq!(shr_sat_i64_to_i32(v, sh), sat_i32(v >> sh), "{v} >> {sh}");
+            }
+        }
         assert_eq!(shr_round_i64(-5, 1), -2);
         assert_eq!(to_q_i32(1.5, 16), Some(98_304));
         assert_eq!(to_q_i32(40_000.0, 16), None);
