@@ -72,12 +72,13 @@ pub enum PayloadError {
     BadBool,
     /// An `Option` tag that is neither 0 nor 1.
     BadOption,
-    /// An enum tag with no variant (unknown message or field variant).
+    /// An enum tag that is not a valid varint.
     BadEnum,
     /// A string that is not UTF-8.
     BadUtf8,
-    /// A length that does not fit its container (e.g. a name too long).
-    BadLength,
+    /// A value serde refused: an unknown enum variant (message or field), a
+    /// name longer than its capacity.
+    BadValue,
     /// Any other postcard error.
     Other,
 }
@@ -92,7 +93,7 @@ impl From<postcard::Error> for PayloadError {
             E::DeserializeBadOption => Self::BadOption,
             E::DeserializeBadEnum => Self::BadEnum,
             E::DeserializeBadUtf8 | E::DeserializeBadChar => Self::BadUtf8,
-            E::SerdeDeCustom => Self::BadLength,
+            E::SerdeDeCustom => Self::BadValue,
             _ => Self::Other,
         }
     }
@@ -240,22 +241,23 @@ where
     if stored != computed {
         return Err(FrameError::Crc { stored, computed });
     }
-    match postcard::take_from_bytes::<Packet<T>>(body) {
-        Ok((packet, rest)) => {
-            if !rest.is_empty() {
-                return Err(FrameError::TrailingBytes { extra: rest.len() });
-            }
+    let undecodable = match postcard::take_from_bytes::<Packet<T>>(body) {
+        Ok((packet, [])) => {
             packet.msg.validate()?;
-            Ok(packet)
+            return Ok(packet);
         }
-        Err(e) => match version_after_seq::<T>(body) {
-            Some((seq, peer)) if peer != PROTOCOL_VERSION => Err(FrameError::VersionMismatch {
-                peer,
-                ours: PROTOCOL_VERSION,
-                seq,
-            }),
-            _ => Err(FrameError::Payload(e.into())),
-        },
+        Ok((_, rest)) => FrameError::TrailingBytes { extra: rest.len() },
+        Err(e) => FrameError::Payload(e.into()),
+    };
+    // A frame that does not decode with this version but starts like the
+    // peer's frozen Hello/HelloAck of another version: say so.
+    match version_after_seq::<T>(body) {
+        Some((seq, peer)) if peer != PROTOCOL_VERSION => Err(FrameError::VersionMismatch {
+            peer,
+            ours: PROTOCOL_VERSION,
+            seq,
+        }),
+        _ => Err(undecodable),
     }
 }
 

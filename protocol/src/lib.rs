@@ -47,30 +47,33 @@
 //! after every check passed, so a failed or interrupted upload leaves the old
 //! model active.
 //!
-//! # Sizes (postcard bytes of the message alone, worst case)
+//! # Sizes (bytes, worst case: every varint at its longest)
 //!
-//! The largest message is `UploadChunk` with [`MAX_CHUNK`] bytes; the test
-//! `worst_case_sizes` builds the largest value of every variant, checks that
-//! its frame fits [`MAX_FRAME`] and prints the table:
+//! The test `worst_case_sizes` (in `tests/frames.rs`) builds the longest value
+//! of every variant, checks its frame against [`MAX_FRAME`] and prints this
+//! table (`cargo test -p spidar-protocol --test frames -- --nocapture`):
 //!
-//! | message | worst-case message bytes |
-//! |---|---|
-//! | `Request::UploadChunk` (256 data bytes) | 264 |
-//! | `Request::SetStringModel` | 181 |
-//! | `Request::SetGuidanceTarget` | 21 |
-//! | `Request::SetLimits` | 12 |
-//! | `Request::UploadBegin` | 16 |
-//! | other requests | <= 6 |
-//! | `DeviceMessage::State` | 130 |
-//! | `DeviceMessage::Reply(Stats)` | 77 |
-//! | `DeviceMessage::Reply(Info)` | 58 |
-//! | `DeviceMessage::Reply(HelloAck)` | 41 |
-//! | `DeviceMessage::Reply(Error(..))` | <= 40 |
-//! | other device messages | <= 22 |
+//! | message | message | frame on the wire |
+//! |---|---|---|
+//! | `Request::UploadChunk` ([`MAX_CHUNK`] data bytes) | 264 | 274 = [`MAX_FRAME`] |
+//! | `Request::SetStringModel` | 181 | 190 |
+//! | `Request::SetGuidanceTarget` | 21 | 30 |
+//! | `Request::UploadBegin` | 16 | 25 |
+//! | `Request::SetForceTarget` | 13 | 22 |
+//! | `Request::SetLimits` | 12 | 21 |
+//! | other requests | <= 6 | <= 15 |
+//! | `DeviceMessage::State` | 129 | 138 |
+//! | `Reply(Stats)` | 72 | 81 |
+//! | `Reply(Info(Some))` | 46 | 55 |
+//! | `Reply(HelloAck)` | 43 | 52 |
+//! | `Reply(Error(..))` | <= 39 | <= 48 |
+//! | other device messages | <= 23 | <= 32 |
 //!
-//! A frame adds the `seq` varint (1-3 bytes), the CRC (4), COBS (1 byte per
-//! started 254 bytes, +1) and the `0x00` delimiter (1): a typical `State`
-//! frame is its message plus 8 or 9 bytes (test `state_frame_overhead`).
+//! A frame adds to its message the `seq` varint (1-3 bytes), the CRC (4),
+//! COBS (1 byte per started 254 bytes) and the `0x00` delimiter (1). A typical
+//! `State` frame (test `state_frame_overhead`): `State` 96 bytes, frame 105
+//! bytes, protocol overhead 9 bytes (message tag 1, seq 2, CRC 4, COBS 1,
+//! delimiter 1); 10 bytes at worst.
 #![cfg_attr(not(test), no_std)]
 #![forbid(unsafe_code)]
 
