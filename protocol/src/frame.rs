@@ -48,9 +48,11 @@ pub enum FrameError {
     Payload(PayloadError),
     /// The message decoded but bytes were left after it.
     TrailingBytes { extra: usize },
-    /// The message decoded but a field is out of range (non-finite float, a
-    /// string index >= 8, an empty or overlong chunk, ...).
-    Invalid { field: &'static str },
+    /// The message decoded (or was to be encoded) but `field` is out of range
+    /// (a non-finite float, a string index >= 8, an empty or overlong chunk,
+    /// ...). `seq` is the frame's, so a device can answer the request with
+    /// `DeviceError::InvalidArgument`.
+    Invalid { field: &'static str, seq: u16 },
     /// More than the decoder's capacity arrived without a `0x00`; the bytes
     /// up to the next `0x00` are dropped.
     Overlong { limit: usize },
@@ -116,7 +118,7 @@ impl fmt::Display for FrameError {
             Self::TrailingBytes { extra } => {
                 write!(f, "undecodable message: {extra} bytes after it")
             }
-            Self::Invalid { field } => write!(f, "message field `{field}` out of range"),
+            Self::Invalid { field, .. } => write!(f, "message field `{field}` out of range"),
             Self::Overlong { limit } => {
                 write!(f, "frame longer than {limit} bytes dropped")
             }
@@ -186,7 +188,8 @@ pub fn encode<'b, T: Message>(
     msg: &T,
     out: &'b mut [u8],
 ) -> Result<&'b [u8], FrameError> {
-    msg.validate()?;
+    msg.validate()
+        .map_err(|field| FrameError::Invalid { field, seq })?;
     let capacity = out.len();
     let full = |e| match e {
         postcard::Error::SerializeBufferFull => FrameError::BufferTooSmall { capacity },
@@ -243,7 +246,10 @@ where
     }
     let undecodable = match postcard::take_from_bytes::<Packet<T>>(body) {
         Ok((packet, [])) => {
-            packet.msg.validate()?;
+            packet.msg.validate().map_err(|field| FrameError::Invalid {
+                field,
+                seq: packet.seq,
+            })?;
             return Ok(packet);
         }
         Ok((_, rest)) => FrameError::TrailingBytes { extra: rest.len() },

@@ -21,6 +21,45 @@
 //! bad ([`FrameDecoder`], [`DecodeStats`]) and resynchronizes at the next
 //! `0x00`; a sender may send a lone `0x00` first to flush the peer's decoder.
 //!
+//! ```
+//! use spidar_protocol::*;
+//!
+//! // Host: encode a request into a stack buffer.
+//! let mut tx = [0u8; MAX_FRAME];
+//! let frame = encode_request(7, &Request::Hello { protocol_version: PROTOCOL_VERSION }, &mut tx)?;
+//!
+//! // Device: feed whatever the USB endpoint delivered, answer each request.
+//! let mut rx: FrameDecoder = FrameDecoder::new();
+//! let mut reply = [0u8; MAX_FRAME];
+//! let mut reply_len = 0;
+//! rx.feed_requests(frame, |r| match r {
+//!     Ok(Packet { seq, msg: Request::Hello { .. } }) => {
+//!         let ack = DeviceMessage::Reply(Response::HelloAck(HelloAck {
+//!             protocol_version: PROTOCOL_VERSION,
+//!             firmware_version: [0, 1, 0],
+//!             device_id: [0; 12],
+//!             capabilities: Capabilities::FORCE,
+//!             max_chunk: MAX_CHUNK as u16,
+//!             max_blob_len: 64 * 1024,
+//!             loop_period_us: 250,
+//!         }));
+//!         reply_len = encode_device_message(seq, &ack, &mut reply).unwrap().len();
+//!     }
+//!     Ok(_) => {}
+//!     Err(e) => panic!("{e}"), // a real device counts it (rx.stats()) and goes on
+//! });
+//!
+//! // Host: decode the reply.
+//! let mut host_rx: FrameDecoder = FrameDecoder::new();
+//! let mut got = None;
+//! host_rx.feed_device_messages(&reply[..reply_len], |r| got = Some(r));
+//! let Some(Ok(Packet { seq: 7, msg: DeviceMessage::Reply(Response::HelloAck(ack)) })) = got else {
+//!     panic!("no HelloAck")
+//! };
+//! assert_eq!(ack.protocol_version, PROTOCOL_VERSION);
+//! # Ok::<(), FrameError>(())
+//! ```
+//!
 //! # Sessions, heartbeat, safety
 //!
 //! The host opens with `Hello{PROTOCOL_VERSION}`; the device answers

@@ -19,7 +19,6 @@ use core::fmt;
 use serde::{Deserialize, Serialize};
 
 use crate::blob::{BlobError, ModelHeader};
-use crate::frame::FrameError;
 use crate::{MAX_CHUNK, MAX_NAME, STRINGS};
 
 /// A short name sent on the wire (a field name in an error), at most
@@ -596,11 +595,13 @@ pub enum Event {
 // ---------------------------------------------------------------------------
 
 /// A message type that can travel in a frame. The encoder and decoder call
-/// [`Message::validate`], so a frame that decodes also carries sane values.
+/// [`Message::validate`], so a frame that decodes also carries sane values
+/// (else [`crate::FrameError::Invalid`]).
 pub trait Message: Serialize {
     /// Checks the invariants postcard cannot express (finite floats where a
-    /// command needs them, string indices, chunk lengths), naming the field.
-    fn validate(&self) -> Result<(), FrameError>;
+    /// command needs them, string indices, chunk lengths); `Err` names the
+    /// first field out of range.
+    fn validate(&self) -> Result<(), &'static str>;
 
     /// If `payload` (a frame's postcard bytes after the sequence number) is
     /// this direction's frozen `Hello`/`HelloAck` prefix, the protocol version
@@ -609,40 +610,36 @@ pub trait Message: Serialize {
     fn peek_protocol_version(payload: &[u8]) -> Option<u16>;
 }
 
-fn invalid(field: &'static str) -> FrameError {
-    FrameError::Invalid { field }
-}
-
-fn finite(v: &[f32], field: &'static str) -> Result<(), FrameError> {
+fn finite(v: &[f32], field: &'static str) -> Result<(), &'static str> {
     if v.iter().all(|x| x.is_finite()) {
         Ok(())
     } else {
-        Err(invalid(field))
+        Err(field)
     }
 }
 
 impl Message for Request<'_> {
-    fn validate(&self) -> Result<(), FrameError> {
+    fn validate(&self) -> Result<(), &'static str> {
         match self {
             Request::SetStringModel(m) => {
                 if m.counts_per_rev.contains(&0) {
-                    return Err(invalid("counts_per_rev"));
+                    return Err("counts_per_rev");
                 }
                 if !m.pulley_radius_mm.iter().all(|r| r.is_finite() && *r > 0.0) {
-                    return Err(invalid("pulley_radius_mm"));
+                    return Err("pulley_radius_mm");
                 }
                 finite(m.anchors_mm.as_flattened(), "anchors_mm")?;
                 finite(&m.home_mm, "home_mm")
             }
             Request::SetLimits(l) => {
                 if !(l.pre_tension_n.is_finite() && l.pre_tension_n >= 0.0) {
-                    return Err(invalid("pre_tension_n"));
+                    return Err("pre_tension_n");
                 }
                 if !(l.max_tension_n.is_finite() && l.max_tension_n >= l.pre_tension_n) {
-                    return Err(invalid("max_tension_n"));
+                    return Err("max_tension_n");
                 }
                 if l.heartbeat_timeout_ms == 0 {
-                    return Err(invalid("heartbeat_timeout_ms"));
+                    return Err("heartbeat_timeout_ms");
                 }
                 Ok(())
             }
@@ -654,21 +651,21 @@ impl Message for Request<'_> {
             } => {
                 finite(target_mm, "target_mm")?;
                 if !(d_min_mm.is_finite() && *d_min_mm >= 0.0) {
-                    return Err(invalid("d_min_mm"));
+                    return Err("d_min_mm");
                 }
                 if !(f_max_n.is_finite() && *f_max_n >= 0.0) {
-                    return Err(invalid("f_max_n"));
+                    return Err("f_max_n");
                 }
                 Ok(())
             }
-            Request::StreamOn { decimation } if *decimation == 0 => Err(invalid("decimation")),
+            Request::StreamOn { decimation } if *decimation == 0 => Err("decimation"),
             Request::UploadChunk { offset, data } => {
                 if data.is_empty() || data.len() > MAX_CHUNK {
-                    return Err(invalid("data"));
+                    return Err("data");
                 }
                 // `data.len() <= MAX_CHUNK` so the cast is exact.
                 if offset.checked_add(data.len() as u32).is_none() {
-                    return Err(invalid("offset"));
+                    return Err("offset");
                 }
                 Ok(())
             }
@@ -686,15 +683,15 @@ impl Message for Request<'_> {
 }
 
 impl Message for DeviceMessage {
-    fn validate(&self) -> Result<(), FrameError> {
+    fn validate(&self) -> Result<(), &'static str> {
         match self {
             DeviceMessage::State(s) => match s.excluded {
-                Some(i) if usize::from(i) >= STRINGS => Err(invalid("excluded")),
+                Some(i) if usize::from(i) >= STRINGS => Err("excluded"),
                 _ => Ok(()),
             },
             DeviceMessage::Reply(Response::HelloAck(h)) => {
                 if h.max_chunk == 0 || usize::from(h.max_chunk) > MAX_CHUNK {
-                    Err(invalid("max_chunk"))
+                    Err("max_chunk")
                 } else {
                     Ok(())
                 }

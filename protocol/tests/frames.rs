@@ -279,7 +279,13 @@ fn rejection_reasons_are_named() {
     s.excluded = Some(9);
     let mut payload = to_vec(&(1u16, DeviceMessage::State(s)));
     let r = decode_stream(&mut dec, &raw_frame(&payload));
-    assert_eq!(r, vec![Err(FrameError::Invalid { field: "excluded" })]);
+    assert_eq!(
+        r,
+        vec![Err(FrameError::Invalid {
+            field: "excluded",
+            seq: 1
+        })]
+    );
     // Bad CRC.
     let mut f = raw_frame(&payload);
     payload.clear();
@@ -367,14 +373,14 @@ fn invalid_values_are_refused_when_encoding_and_decoding() {
     for (r, field) in cases {
         assert_eq!(
             encode_request(1, &r, &mut buf),
-            Err(FrameError::Invalid { field })
+            Err(FrameError::Invalid { field, seq: 1 })
         );
         // Sent anyway by a broken peer: the decoder refuses it too.
         let payload = to_vec(&(1u16, r));
         let mut f = raw_frame(&payload);
         assert_eq!(
             decode::<Request>(&mut f),
-            Err(FrameError::Invalid { field })
+            Err(FrameError::Invalid { field, seq: 1 })
         );
     }
     let mut m = string_model(4096);
@@ -382,7 +388,8 @@ fn invalid_values_are_refused_when_encoding_and_decoding() {
     assert_eq!(
         encode_request(1, &Request::SetStringModel(m), &mut buf),
         Err(FrameError::Invalid {
-            field: "pulley_radius_mm"
+            field: "pulley_radius_mm",
+            seq: 1
         })
     );
     let mut m = string_model(4096);
@@ -390,7 +397,8 @@ fn invalid_values_are_refused_when_encoding_and_decoding() {
     assert_eq!(
         encode_request(1, &Request::SetStringModel(m), &mut buf),
         Err(FrameError::Invalid {
-            field: "anchors_mm"
+            field: "anchors_mm",
+            seq: 1
         })
     );
 }
