@@ -2,3 +2,5 @@
 //! learned corrections, diagnosis, reports, and the device link.
 
 pub mod dataset;
+pub mod figures;
+pub mod stats;
