@@ -4,3 +4,4 @@
 pub mod dataset;
 pub mod figures;
 pub mod stats;
+pub mod sim;
