@@ -16,7 +16,7 @@
 //! check the blob bit for bit before flashing.
 
 use serde::{Deserialize, Serialize};
-use spidar_protocol::blob::{split_blob, BlobError, CorrectionKind, ModelHeader};
+use spidar_protocol::blob::{split_blob, BlobError, ModelHeader};
 
 use crate::correction::{check_header_formats, Correction, POSITION_FRAC};
 use crate::model::{Frame, MAX_EFFECTS};
@@ -288,6 +288,7 @@ mod tests {
     use super::*;
     use crate::correction::CorrectionModel;
     use crate::model::{Calibration, Effect, EffectTerm, StringLaw};
+    use spidar_protocol::blob::CorrectionKind;
 
     fn calibration() -> Calibration {
         let h = 1100.0;
