@@ -8,7 +8,9 @@ use spidar_core::model::{EffectTerm, Frame, StringLaw, Vec3, WINDING_ORDER};
 use spidar_core::STRINGS;
 
 use super::config::SimConfig;
-use super::effects::{effect_length_mm, parse_effects, EffectInputs, InjectedEffect};
+use spidar_core::string_law::EffectContext;
+
+use super::effects::{parse_effects, InjectedEffect};
 use super::SimError;
 use crate::dataset::Geometry;
 
@@ -226,11 +228,11 @@ impl Device {
     }
 
     /// Sum of the injected model-family terms of `string`.
-    pub fn effects_mm(&self, string: usize, x: &EffectInputs) -> f64 {
+    pub fn effects_mm(&self, string: usize, ctx: &EffectContext) -> f64 {
         self.effects
             .iter()
             .filter(|t| usize::from(t.string) == string)
-            .map(|t| effect_length_mm(&t.effect, x))
+            .map(|t| t.effect.contribution_f64(ctx))
             .sum()
     }
 
@@ -276,13 +278,13 @@ impl Device {
         if has_terms {
             let mut converged = false;
             for _ in 0..200 {
-                let x = EffectInputs {
+                let x = EffectContext {
                     theta,
                     payout_mm: self.payout_mm(string, theta),
                     home_length_mm,
                     direction,
                     tension_n,
-                    t_s,
+                    time_s: t_s,
                 };
                 let next = self
                     .theta_for_payout(string, target - self.effects_mm(string, &x))

@@ -1,8 +1,10 @@
 //! Injected ("undeclared") effects for the loop-closing tests.
 //!
-//! Model families use exactly the definitions of [`spidar_core::model::Effect`]
-//! (evaluated by [`effect_length_mm`]), so that identification can recover
-//! them: the simulated string obeys
+//! Model families use exactly the definitions of [`spidar_core::model::Effect`],
+//! evaluated by the core's own f64 reference
+//! ([`Effect::contribution_f64`](spidar_core::model::Effect) with
+//! [`spidar_core::string_law::EffectContext`]), so that identification can
+//! recover them: the simulated string obeys
 //!
 //! `true length = |home - anchor| + payout(theta) + sum of effect terms`
 //!
@@ -51,50 +53,6 @@ pub enum InjectedEffect {
     AnchorShift { string: u8, mm: Vec3<f64> },
     /// Geometry: the tracker scale is multiplied by `1 + relative`.
     TrackerScale { relative: f64 },
-}
-
-/// The run-time values a length term may depend on (true values in the simulator).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct EffectInputs {
-    /// Pulley angle since home, `2 pi counts / counts_per_rev`, rad.
-    pub theta: f64,
-    /// Output of the base winding law at `theta`, mm.
-    pub payout_mm: f64,
-    /// `|home - anchor|` of the string, mm.
-    pub home_length_mm: f64,
-    /// Direction of the last motion: +1 paying out, -1 reeling in, 0 unknown.
-    pub direction: i8,
-    /// Commanded tension, N.
-    pub tension_n: f64,
-    /// Time since initialization, s.
-    pub t_s: f64,
-}
-
-/// Length contribution (mm) of one [`Effect`], as `model::Effect` documents it.
-pub fn effect_length_mm(effect: &Effect, x: &EffectInputs) -> f64 {
-    match *effect {
-        Effect::Offset { mm } => mm,
-        Effect::Scale { relative } => relative * x.payout_mm,
-        Effect::Winding {
-            power,
-            mm_per_rad_pow,
-        } => mm_per_rad_pow * x.theta.powi(i32::from(power)),
-        Effect::Eccentricity { sin_mm, cos_mm } => {
-            sin_mm * x.theta.sin() + cos_mm * (x.theta.cos() - 1.0)
-        }
-        Effect::Elasticity { per_newton } => {
-            per_newton * x.tension_n * (x.home_length_mm + x.payout_mm)
-        }
-        Effect::Backlash { half_width_mm } => half_width_mm * f64::from(x.direction),
-        Effect::Drift { mm_per_s } => mm_per_s * x.t_s,
-        Effect::Slip { at_s, mm } => {
-            if x.t_s >= at_s {
-                mm
-            } else {
-                0.0
-            }
-        }
-    }
 }
 
 fn spec_error(spec: &str, problem: impl Into<String>) -> SimError {

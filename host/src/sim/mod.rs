@@ -34,7 +34,7 @@ use spidar_core::STRINGS;
 
 pub use config::SimConfig;
 pub use device::Device;
-pub use effects::{effect_length_mm, parse_effect, EffectInputs, InjectedEffect};
+pub use effects::{parse_effect, parse_effects, InjectedEffect};
 pub use truth::Truth;
 
 use crate::dataset::{DatasetError, Sample, Session};
@@ -192,7 +192,7 @@ pub fn simulate_session_with_truth(
             let am = &cfg.abnormal_motor;
             if am.enabled && usize::from(am.string) == i && length < am.region_length_mm {
                 let spread = 1.0 - am.jitter * abnormal_rng.random_range(0.0..1.0);
-                abnormal_mm = -am.gain * (am.region_length_mm - length) * spread;
+                abnormal_mm = -(am.step_mm + am.gain * (am.region_length_mm - length)) * spread;
                 extra += abnormal_mm;
             }
             let tension_n = f64::from(tension_mn[i]) / 1000.0;
