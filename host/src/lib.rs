@@ -1,5 +1,7 @@
 //! Host side of the SPIDAR stack: datasets, simulation, identification,
 //! learned corrections, diagnosis, reports, and the device link.
 
+pub mod dataset;
 pub mod figures;
 pub mod stats;
+pub mod sim;

@@ -1,0 +1,784 @@
+//! The one reader and writer of the project's data formats.
+//!
+//! Two formats, fixed because other tools write them:
+//!
+//! - **Geometry** (TOML, [`Geometry`]): the device as designed (nominal).
+//!   Keys: `counts_per_rev`, `pulley_radius_mm` (one number or an array of 8),
+//!   `home_mm`, `anchors_mm` (8 x `[x, y, z]`, index = encoder index) and
+//!   `room_from_device_translation_mm` (`p_room = p_device + t`, the paper's
+//!   eq. 6). An unknown key is an error that names it.
+//! - **Session** (CSV with a header, [`Session`]): one row per capture.
+//!   Columns are found by name, in any order:
+//!   `t_s`, `enc0`..`enc7` (required); `ots_x`, `ots_y`, `ots_z` (required
+//!   columns; all three empty while the marker is occluded); optional groups
+//!   `dev_x`, `dev_y`, `dev_z` (legacy controller position, device frame) and
+//!   `tension0`..`tension7` (commanded tensions, N).
+//!
+//! Decisions (strict where data could be lost or misread):
+//! - A missing required column, a duplicate column, or an optional group with
+//!   only some of its columns is an error.
+//! - An **unknown column is ignored** and listed in
+//!   [`Session::ignored_columns`], so that tools may add columns of their own;
+//!   a misspelt known column still fails, because its group is then incomplete.
+//! - Within a row, each group (tracker, legacy, tensions) is all filled or all
+//!   empty (`None`); a partially empty group is an error. Time and counts are
+//!   always required.
+//! - `t_s` must be finite, non-negative and **non-decreasing**: a time going
+//!   backwards is an error (time-dependent effects such as drift and slip are
+//!   fitted against it). Equal consecutive times are allowed.
+//! - Counts must be integers within the `i32` range; every other value must be
+//!   a finite number.
+//! - Occluded rows (no tracker) are kept: they serve diagnosis, not fitting.
+//!
+//! Every error names the file, the line (1-based, header = line 1) and the
+//! column. Writing checks the same rules, so a written file always reads back,
+//! and floats are written in their shortest exact form, so a round trip is
+//! lossless.
+
+use std::fmt::Write as _;
+use std::fs;
+use std::io;
+use std::path::{Path, PathBuf};
+
+use serde::de::{self, Deserializer, SeqAccess, Visitor};
+use serde::Deserialize;
+use spidar_core::model::{Frame, StringLaw, Vec3, WINDING_ORDER};
+use spidar_core::STRINGS;
+
+/// Name of the time column.
+pub const TIME_COLUMN: &str = "t_s";
+/// Names of the encoder-count columns, index = encoder index.
+pub const ENCODER_COLUMNS: [&str; STRINGS] = [
+    "enc0", "enc1", "enc2", "enc3", "enc4", "enc5", "enc6", "enc7",
+];
+/// Names of the optical-tracker columns (room frame, mm).
+pub const TRACKER_COLUMNS: [&str; 3] = ["ots_x", "ots_y", "ots_z"];
+/// Names of the legacy-controller columns (device frame, mm).
+pub const LEGACY_COLUMNS: [&str; 3] = ["dev_x", "dev_y", "dev_z"];
+/// Names of the commanded-tension columns (N), index = encoder index.
+pub const TENSION_COLUMNS: [&str; STRINGS] = [
+    "tension0", "tension1", "tension2", "tension3", "tension4", "tension5", "tension6", "tension7",
+];
+
+/// Why one value of a session file is rejected.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ValueProblem {
+    #[error("empty, but a value is required")]
+    Empty,
+    #[error("`{0}` is not a number")]
+    NotANumber(String),
+    #[error("`{0}` is not a finite number")]
+    NotFinite(String),
+    #[error("`{0}` is not an integer count")]
+    NotAnInteger(String),
+    #[error("`{0}` is outside the range of a 32-bit count")]
+    CountOutOfRange(String),
+    #[error("negative time {0} s (time is counted from the start of the session)")]
+    NegativeTime(f64),
+    #[error("time goes backwards: {value} s after {previous} s on line {previous_line}")]
+    TimeDecreasing {
+        value: f64,
+        previous: f64,
+        previous_line: u64,
+    },
+    #[error("empty while `{filled}` is filled: the group {group} must be all empty or all filled")]
+    PartialGroup { filled: String, group: String },
+}
+
+/// Any failure to read or write a geometry or session file.
+#[derive(Debug, thiserror::Error)]
+pub enum DatasetError {
+    #[error("{}: {action}: {source}", file.display())]
+    Io {
+        file: PathBuf,
+        action: &'static str,
+        source: io::Error,
+    },
+    /// TOML syntax, a wrong type, or an unknown key (the message names it and its line).
+    #[error("{}: {message}", file.display())]
+    Toml { file: PathBuf, message: String },
+    /// A geometry field that parses but is not usable.
+    #[error("{}: field `{field}`: {problem}", file.display())]
+    GeometryField {
+        file: PathBuf,
+        field: String,
+        problem: String,
+    },
+    #[error("{}: line 1: the file is empty (a header line is required)", file.display())]
+    Empty { file: PathBuf },
+    #[error("{}: line 1: missing required column `{column}`", file.display())]
+    MissingColumn { file: PathBuf, column: String },
+    #[error("{}: line 1: duplicate column `{column}` (fields {first} and {second})", file.display())]
+    DuplicateColumn {
+        file: PathBuf,
+        column: String,
+        first: usize,
+        second: usize,
+    },
+    #[error("{}: line 1: column `{missing}` is missing but `{present}` of the same group is present", file.display())]
+    IncompleteGroup {
+        file: PathBuf,
+        present: String,
+        missing: String,
+    },
+    /// Malformed CSV, e.g. a row with another number of fields than the header.
+    #[error("{}: line {line}: {message}", file.display())]
+    Csv {
+        file: PathBuf,
+        line: u64,
+        message: String,
+    },
+    #[error("{}: line {line}, column `{column}`: {problem}", file.display())]
+    Value {
+        file: PathBuf,
+        line: u64,
+        column: String,
+        problem: ValueProblem,
+    },
+}
+
+fn io_error(file: &Path, action: &'static str, source: io::Error) -> DatasetError {
+    DatasetError::Io {
+        file: file.to_path_buf(),
+        action,
+        source,
+    }
+}
+
+// ---------------------------------------------------------------------------
+// Geometry
+// ---------------------------------------------------------------------------
+
+/// Nominal geometry of a device, as its designers give it (never as built).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Geometry {
+    /// Quadrature counts per pulley revolution.
+    pub counts_per_rev: u32,
+    /// Nominal pulley radius of each string (mm), index = encoder index.
+    pub pulley_radius_mm: [f64; STRINGS],
+    /// End-effector position at initialization (device frame, mm).
+    pub home_mm: Vec3<f64>,
+    /// String exit points (device frame, mm), index = encoder index.
+    pub anchors_mm: [Vec3<f64>; STRINGS],
+    /// `t` of `p_room = p_device + t` (mm), the paper's eq. 6.
+    pub room_from_device_translation_mm: Vec3<f64>,
+}
+
+/// `pulley_radius_mm`: one number for all pulleys, or one per pulley.
+#[derive(Debug)]
+enum RadiusSpec {
+    One(f64),
+    Each(Vec<f64>),
+}
+
+impl<'de> Deserialize<'de> for RadiusSpec {
+    fn deserialize<D: Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
+        struct RadiusVisitor;
+        impl<'de> Visitor<'de> for RadiusVisitor {
+            type Value = RadiusSpec;
+            fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+                write!(f, "a number (mm) or an array of {STRINGS} numbers")
+            }
+            fn visit_f64<E: de::Error>(self, v: f64) -> Result<RadiusSpec, E> {
+                Ok(RadiusSpec::One(v))
+            }
+            fn visit_i64<E: de::Error>(self, v: i64) -> Result<RadiusSpec, E> {
+                Ok(RadiusSpec::One(v as f64))
+            }
+            fn visit_u64<E: de::Error>(self, v: u64) -> Result<RadiusSpec, E> {
+                Ok(RadiusSpec::One(v as f64))
+            }
+            fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<RadiusSpec, A::Error> {
+                let mut radii = Vec::new();
+                while let Some(r) = seq.next_element::<f64>()? {
+                    radii.push(r);
+                }
+                Ok(RadiusSpec::Each(radii))
+            }
+        }
+        deserializer.deserialize_any(RadiusVisitor)
+    }
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct GeometryFile {
+    counts_per_rev: u32,
+    pulley_radius_mm: RadiusSpec,
+    home_mm: Vec3<f64>,
+    anchors_mm: Vec<Vec3<f64>>,
+    room_from_device_translation_mm: Vec3<f64>,
+}
+
+fn field_error(file: &Path, field: impl Into<String>, problem: impl Into<String>) -> DatasetError {
+    DatasetError::GeometryField {
+        file: file.to_path_buf(),
+        field: field.into(),
+        problem: problem.into(),
+    }
+}
+
+fn check_finite3(file: &Path, field: &str, v: &Vec3<f64>) -> Result<(), DatasetError> {
+    for (axis, x) in v.iter().enumerate() {
+        if !x.is_finite() {
+            return Err(field_error(
+                file,
+                format!("{field}[{axis}]"),
+                format!("{x} is not a finite number"),
+            ));
+        }
+    }
+    Ok(())
+}
+
+impl Geometry {
+    /// Read a geometry TOML file.
+    pub fn load(path: impl AsRef<Path>) -> Result<Self, DatasetError> {
+        let path = path.as_ref();
+        let text = fs::read_to_string(path).map_err(|e| io_error(path, "cannot read", e))?;
+        Self::from_toml_str(&text, path)
+    }
+
+    /// Parse geometry TOML text; `file` names it in errors.
+    pub fn from_toml_str(text: &str, file: &Path) -> Result<Self, DatasetError> {
+        let raw: GeometryFile = toml::from_str(text).map_err(|e| DatasetError::Toml {
+            file: file.to_path_buf(),
+            message: e.to_string().trim_end().to_string(),
+        })?;
+        let pulley_radius_mm = match raw.pulley_radius_mm {
+            RadiusSpec::One(r) => [r; STRINGS],
+            RadiusSpec::Each(v) => v.try_into().map_err(|v: Vec<f64>| {
+                field_error(
+                    file,
+                    "pulley_radius_mm",
+                    format!("{} radii given, {STRINGS} expected (or one number for all)", v.len()),
+                )
+            })?,
+        };
+        let anchors_mm: [Vec3<f64>; STRINGS] = raw.anchors_mm.try_into().map_err(|v: Vec<_>| {
+            field_error(
+                file,
+                "anchors_mm",
+                format!("{} anchors given, {STRINGS} expected", v.len()),
+            )
+        })?;
+        let geometry = Geometry {
+            counts_per_rev: raw.counts_per_rev,
+            pulley_radius_mm,
+            home_mm: raw.home_mm,
+            anchors_mm,
+            room_from_device_translation_mm: raw.room_from_device_translation_mm,
+        };
+        geometry.validate(file)?;
+        Ok(geometry)
+    }
+
+    /// Check the values: positive counts per revolution and radii, finite
+    /// coordinates, anchors apart from home. `file` names the file in errors.
+    pub fn validate(&self, file: &Path) -> Result<(), DatasetError> {
+        if self.counts_per_rev == 0 {
+            return Err(field_error(file, "counts_per_rev", "must be positive"));
+        }
+        for (i, r) in self.pulley_radius_mm.iter().enumerate() {
+            if !(r.is_finite() && *r > 0.0) {
+                return Err(field_error(
+                    file,
+                    format!("pulley_radius_mm[{i}]"),
+                    format!("{r} is not a positive finite radius"),
+                ));
+            }
+        }
+        check_finite3(file, "home_mm", &self.home_mm)?;
+        check_finite3(
+            file,
+            "room_from_device_translation_mm",
+            &self.room_from_device_translation_mm,
+        )?;
+        for (i, a) in self.anchors_mm.iter().enumerate() {
+            let field = format!("anchors_mm[{i}]");
+            check_finite3(file, &field, a)?;
+            if distance(a, &self.home_mm) == 0.0 {
+                return Err(field_error(file, field, "the anchor coincides with home_mm"));
+            }
+        }
+        Ok(())
+    }
+
+    /// TOML text of this geometry, in the layout of the shared example.
+    pub fn to_toml_string(&self) -> String {
+        let mut s = String::from("# Nominal geometry of the device (as designed, not as built)\n");
+        let _ = writeln!(s, "counts_per_rev = {}", self.counts_per_rev);
+        let r0 = self.pulley_radius_mm[0];
+        if self.pulley_radius_mm.iter().all(|r| *r == r0) {
+            let _ = writeln!(s, "pulley_radius_mm = {r0:?}");
+        } else {
+            let _ = writeln!(s, "pulley_radius_mm = {:?}", self.pulley_radius_mm);
+        }
+        let _ = writeln!(s, "home_mm = {:?}", self.home_mm);
+        s.push_str("anchors_mm = [\n");
+        for a in &self.anchors_mm {
+            let _ = writeln!(s, "  {a:?},");
+        }
+        s.push_str("]\n");
+        let _ = writeln!(
+            s,
+            "room_from_device_translation_mm = {:?}",
+            self.room_from_device_translation_mm
+        );
+        s
+    }
+
+    /// Write this geometry as TOML (after [`Geometry::validate`]).
+    pub fn write(&self, path: impl AsRef<Path>) -> Result<(), DatasetError> {
+        let path = path.as_ref();
+        self.validate(path)?;
+        fs::write(path, self.to_toml_string()).map_err(|e| io_error(path, "cannot write", e))
+    }
+
+    /// The nominal frame: nominal anchors and home, identity rotation, unit
+    /// scale and the eq. 6 translation.
+    pub fn nominal_frame(&self) -> Frame<f64> {
+        Frame {
+            anchors: self.anchors_mm,
+            home: self.home_mm,
+            room_rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            room_translation: self.room_from_device_translation_mm,
+            room_scale: 1.0,
+        }
+    }
+
+    /// The nominal string laws: a constant winding radius, the nominal pulley
+    /// radius (`winding_mm = [r, 0, 0, 0]`).
+    pub fn nominal_string_laws(&self) -> [StringLaw; STRINGS] {
+        core::array::from_fn(|i| {
+            let mut winding_mm = [0.0; WINDING_ORDER];
+            winding_mm[0] = self.pulley_radius_mm[i];
+            StringLaw {
+                counts_per_rev: self.counts_per_rev,
+                winding_mm,
+            }
+        })
+    }
+
+    /// Nominal string length of each string at home (mm).
+    pub fn home_lengths_mm(&self) -> [f64; STRINGS] {
+        core::array::from_fn(|i| distance(&self.anchors_mm[i], &self.home_mm))
+    }
+}
+
+fn distance(a: &Vec3<f64>, b: &Vec3<f64>) -> f64 {
+    let d = [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
+    (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt()
+}
+
+// ---------------------------------------------------------------------------
+// Session
+// ---------------------------------------------------------------------------
+
+/// One capture.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Sample {
+    /// Seconds since the session started.
+    pub t_s: f64,
+    /// Encoder counts relative to initialization; increase as string is paid out.
+    pub counts: [i32; STRINGS],
+    /// Tracker position of the marker (room frame, mm); `None` while occluded.
+    pub tracker: Option<Vec3<f64>>,
+    /// Position reported by a legacy controller (device frame, mm), if any.
+    pub legacy: Option<Vec3<f64>>,
+    /// Commanded tensions (N), if recorded.
+    pub tension_n: Option<[f64; STRINGS]>,
+}
+
+/// A recorded (or simulated) session: captures in time order.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Session {
+    pub samples: Vec<Sample>,
+    /// Columns found in the file that this reader does not know; they were
+    /// ignored. Empty for sessions not read from a file.
+    pub ignored_columns: Vec<String>,
+}
+
+/// Where each known column sits in a header.
+struct Layout {
+    time: usize,
+    counts: [usize; STRINGS],
+    tracker: [usize; 3],
+    legacy: Option<[usize; 3]>,
+    tension: Option<[usize; STRINGS]>,
+}
+
+fn find_group<const N: usize>(
+    file: &Path,
+    index_of: &dyn Fn(&str) -> Option<usize>,
+    names: &[&str; N],
+    required: bool,
+) -> Result<Option<[usize; N]>, DatasetError> {
+    let found: Vec<Option<usize>> = names.iter().map(|n| index_of(n)).collect();
+    let present = found.iter().position(Option::is_some);
+    let missing = found.iter().position(Option::is_none);
+    match (present, missing) {
+        (_, None) => Ok(Some(core::array::from_fn(|k| found[k].unwrap_or(0)))),
+        (None, Some(_)) if !required => Ok(None),
+        (Some(p), Some(m)) if !required => Err(DatasetError::IncompleteGroup {
+            file: file.to_path_buf(),
+            present: names[p].to_string(),
+            missing: names[m].to_string(),
+        }),
+        (_, Some(m)) => Err(DatasetError::MissingColumn {
+            file: file.to_path_buf(),
+            column: names[m].to_string(),
+        }),
+    }
+}
+
+impl Layout {
+    fn from_header(file: &Path, header: &csv::StringRecord) -> Result<(Layout, Vec<String>), DatasetError> {
+        if header.is_empty() || (header.len() == 1 && header[0].is_empty()) {
+            return Err(DatasetError::Empty {
+                file: file.to_path_buf(),
+            });
+        }
+        let names: Vec<&str> = header.iter().collect();
+        for (second, name) in names.iter().enumerate() {
+            if let Some(first) = names[..second].iter().position(|n| n == name) {
+                return Err(DatasetError::DuplicateColumn {
+                    file: file.to_path_buf(),
+                    column: name.to_string(),
+                    first: first + 1,
+                    second: second + 1,
+                });
+            }
+        }
+        let index_of = |name: &str| names.iter().position(|n| *n == name);
+        let time = index_of(TIME_COLUMN).ok_or_else(|| DatasetError::MissingColumn {
+            file: file.to_path_buf(),
+            column: TIME_COLUMN.to_string(),
+        })?;
+        let counts = find_group(file, &index_of, &ENCODER_COLUMNS, true)?.unwrap_or_default();
+        let tracker = find_group(file, &index_of, &TRACKER_COLUMNS, true)?.unwrap_or_default();
+        let legacy = find_group(file, &index_of, &LEGACY_COLUMNS, false)?;
+        let tension = find_group(file, &index_of, &TENSION_COLUMNS, false)?;
+        let known = |n: &str| {
+            n == TIME_COLUMN
+                || ENCODER_COLUMNS.contains(&n)
+                || TRACKER_COLUMNS.contains(&n)
+                || LEGACY_COLUMNS.contains(&n)
+                || TENSION_COLUMNS.contains(&n)
+        };
+        let ignored = names
+            .iter()
+            .filter(|n| !known(n))
+            .map(|n| n.to_string())
+            .collect();
+        Ok((
+            Layout {
+                time,
+                counts,
+                tracker,
+                legacy,
+                tension,
+            },
+            ignored,
+        ))
+    }
+}
+
+struct RowReader<'a> {
+    file: &'a Path,
+    line: u64,
+    header: &'a csv::StringRecord,
+    record: &'a csv::StringRecord,
+}
+
+impl RowReader<'_> {
+    fn error(&self, index: usize, problem: ValueProblem) -> DatasetError {
+        DatasetError::Value {
+            file: self.file.to_path_buf(),
+            line: self.line,
+            column: self.header.get(index).unwrap_or("?").to_string(),
+            problem,
+        }
+    }
+
+    fn text(&self, index: usize) -> &str {
+        self.record.get(index).unwrap_or("")
+    }
+
+    fn float(&self, index: usize) -> Result<f64, DatasetError> {
+        parse_float(self.text(index)).map_err(|p| self.error(index, p))
+    }
+
+    fn count(&self, index: usize) -> Result<i32, DatasetError> {
+        let text = self.text(index);
+        if text.is_empty() {
+            return Err(self.error(index, ValueProblem::Empty));
+        }
+        match text.parse::<i64>() {
+            Ok(v) => i32::try_from(v)
+                .map_err(|_| self.error(index, ValueProblem::CountOutOfRange(text.to_string()))),
+            Err(_) => {
+                let problem = match text.parse::<f64>() {
+                    Ok(v) if v.is_finite() && v.fract() == 0.0 => {
+                        ValueProblem::CountOutOfRange(text.to_string())
+                    }
+                    Ok(_) => ValueProblem::NotAnInteger(text.to_string()),
+                    Err(_) => ValueProblem::NotANumber(text.to_string()),
+                };
+                Err(self.error(index, problem))
+            }
+        }
+    }
+
+    /// A group that is all filled (`Some`) or all empty (`None`).
+    fn group<const N: usize>(&self, indices: &[usize; N], group: &str) -> Result<Option<[f64; N]>, DatasetError> {
+        let filled = indices.iter().position(|&k| !self.text(k).is_empty());
+        let empty = indices.iter().position(|&k| self.text(k).is_empty());
+        match (filled, empty) {
+            (None, _) => Ok(None),
+            (Some(_), None) => {
+                let mut out = [0.0; N];
+                for (o, &k) in out.iter_mut().zip(indices) {
+                    *o = self.float(k)?;
+                }
+                Ok(Some(out))
+            }
+            (Some(f), Some(e)) => Err(self.error(
+                indices[e],
+                ValueProblem::PartialGroup {
+                    filled: self.header.get(indices[f]).unwrap_or("?").to_string(),
+                    group: group.to_string(),
+                },
+            )),
+        }
+    }
+}
+
+fn parse_float(text: &str) -> Result<f64, ValueProblem> {
+    if text.is_empty() {
+        return Err(ValueProblem::Empty);
+    }
+    match text.parse::<f64>() {
+        Ok(v) if v.is_finite() => Ok(v),
+        Ok(_) => Err(ValueProblem::NotFinite(text.to_string())),
+        Err(_) => Err(ValueProblem::NotANumber(text.to_string())),
+    }
+}
+
+fn csv_error(file: &Path, e: csv::Error) -> DatasetError {
+    let line = e.position().map(|p| p.line()).unwrap_or(0);
+    match e.into_kind() {
+        csv::ErrorKind::Io(source) => io_error(file, "cannot read", source),
+        csv::ErrorKind::UnequalLengths { expected_len, len, .. } => DatasetError::Csv {
+            file: file.to_path_buf(),
+            line,
+            message: format!("{len} fields, but the header has {expected_len}"),
+        },
+        csv::ErrorKind::Utf8 { err, .. } => DatasetError::Csv {
+            file: file.to_path_buf(),
+            line,
+            message: format!("invalid UTF-8 in field {}", err.field() + 1),
+        },
+        other => DatasetError::Csv {
+            file: file.to_path_buf(),
+            line,
+            message: format!("{other:?}"),
+        },
+    }
+}
+
+impl Session {
+    /// Read a session CSV file.
+    pub fn load(path: impl AsRef<Path>) -> Result<Self, DatasetError> {
+        let path = path.as_ref();
+        let f = fs::File::open(path).map_err(|e| io_error(path, "cannot open", e))?;
+        Self::read_from(io::BufReader::new(f), path)
+    }
+
+    /// Read a session from any reader; `file` names it in errors.
+    pub fn read_from<R: io::Read>(reader: R, file: &Path) -> Result<Self, DatasetError> {
+        let mut csv = csv::ReaderBuilder::new()
+            .has_headers(true)
+            .flexible(false)
+            .trim(csv::Trim::All)
+            .from_reader(reader);
+        let header = csv.headers().map_err(|e| csv_error(file, e))?.clone();
+        let (layout, ignored_columns) = Layout::from_header(file, &header)?;
+        let mut samples = Vec::new();
+        let mut record = csv::StringRecord::new();
+        let mut previous: Option<(f64, u64)> = None;
+        loop {
+            match csv.read_record(&mut record) {
+                Ok(true) => {}
+                Ok(false) => break,
+                Err(e) => return Err(csv_error(file, e)),
+            }
+            let line = record.position().map(|p| p.line()).unwrap_or(0);
+            let row = RowReader {
+                file,
+                line,
+                header: &header,
+                record: &record,
+            };
+            let t_s = row.float(layout.time)?;
+            if t_s < 0.0 {
+                return Err(row.error(layout.time, ValueProblem::NegativeTime(t_s)));
+            }
+            if let Some((prev, prev_line)) = previous {
+                if t_s < prev {
+                    return Err(row.error(
+                        layout.time,
+                        ValueProblem::TimeDecreasing {
+                            value: t_s,
+                            previous: prev,
+                            previous_line: prev_line,
+                        },
+                    ));
+                }
+            }
+            previous = Some((t_s, line));
+            let mut counts = [0i32; STRINGS];
+            for (c, &k) in counts.iter_mut().zip(&layout.counts) {
+                *c = row.count(k)?;
+            }
+            let tracker = row.group(&layout.tracker, "ots_x, ots_y, ots_z")?;
+            let legacy = match &layout.legacy {
+                Some(ix) => row.group(ix, "dev_x, dev_y, dev_z")?,
+                None => None,
+            };
+            let tension_n = match &layout.tension {
+                Some(ix) => row.group(ix, "tension0..tension7")?,
+                None => None,
+            };
+            samples.push(Sample {
+                t_s,
+                counts,
+                tracker,
+                legacy,
+                tension_n,
+            });
+        }
+        Ok(Session {
+            samples,
+            ignored_columns,
+        })
+    }
+
+    /// True if any sample has a legacy position (the `dev_*` columns are written).
+    pub fn has_legacy(&self) -> bool {
+        self.samples.iter().any(|s| s.legacy.is_some())
+    }
+
+    /// True if any sample has tensions (the `tension*` columns are written).
+    pub fn has_tension(&self) -> bool {
+        self.samples.iter().any(|s| s.tension_n.is_some())
+    }
+
+    /// Check what [`Session::read_from`] would check, naming the line and
+    /// column each sample would be written at.
+    pub fn validate(&self, file: &Path) -> Result<(), DatasetError> {
+        let value_error = |line: u64, column: &str, problem| DatasetError::Value {
+            file: file.to_path_buf(),
+            line,
+            column: column.to_string(),
+            problem,
+        };
+        let finite = |line: u64, column: &str, v: f64| {
+            if v.is_finite() {
+                Ok(())
+            } else {
+                Err(value_error(line, column, ValueProblem::NotFinite(v.to_string())))
+            }
+        };
+        let mut previous: Option<(f64, u64)> = None;
+        for (row, s) in self.samples.iter().enumerate() {
+            let line = row as u64 + 2;
+            finite(line, TIME_COLUMN, s.t_s)?;
+            if s.t_s < 0.0 {
+                return Err(value_error(line, TIME_COLUMN, ValueProblem::NegativeTime(s.t_s)));
+            }
+            if let Some((prev, prev_line)) = previous {
+                if s.t_s < prev {
+                    return Err(value_error(
+                        line,
+                        TIME_COLUMN,
+                        ValueProblem::TimeDecreasing {
+                            value: s.t_s,
+                            previous: prev,
+                            previous_line: prev_line,
+                        },
+                    ));
+                }
+            }
+            previous = Some((s.t_s, line));
+            for (group, names) in [(&s.tracker, &TRACKER_COLUMNS), (&s.legacy, &LEGACY_COLUMNS)] {
+                if let Some(v) = group {
+                    for (x, name) in v.iter().zip(names) {
+                        finite(line, name, *x)?;
+                    }
+                }
+            }
+            if let Some(v) = &s.tension_n {
+                for (x, name) in v.iter().zip(&TENSION_COLUMNS) {
+                    finite(line, name, *x)?;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Write the session as CSV (after [`Session::validate`]).
+    pub fn write(&self, path: impl AsRef<Path>) -> Result<(), DatasetError> {
+        let path = path.as_ref();
+        self.validate(path)?;
+        let f = fs::File::create(path).map_err(|e| io_error(path, "cannot create", e))?;
+        self.write_to(io::BufWriter::new(f), path)
+    }
+
+    /// Write the session as CSV to any writer; `file` names it in errors.
+    /// Columns: `t_s`, `enc0..7`, `ots_*`, then `dev_*` if any sample has a
+    /// legacy position and `tension0..7` if any has tensions.
+    pub fn write_to<W: io::Write>(&self, writer: W, file: &Path) -> Result<(), DatasetError> {
+        self.validate(file)?;
+        let legacy = self.has_legacy();
+        let tension = self.has_tension();
+        let mut header: Vec<&str> = vec![TIME_COLUMN];
+        header.extend(ENCODER_COLUMNS);
+        header.extend(TRACKER_COLUMNS);
+        if legacy {
+            header.extend(LEGACY_COLUMNS);
+        }
+        if tension {
+            header.extend(TENSION_COLUMNS);
+        }
+        let write_error = |e: csv::Error| match e.into_kind() {
+            csv::ErrorKind::Io(source) => io_error(file, "cannot write", source),
+            other => DatasetError::Csv {
+                file: file.to_path_buf(),
+                line: 0,
+                message: format!("{other:?}"),
+            },
+        };
+        let mut w = csv::WriterBuilder::new().from_writer(writer);
+        w.write_record(&header).map_err(write_error)?;
+        let mut fields: Vec<String> = Vec::with_capacity(header.len());
+        let push_group = |fields: &mut Vec<String>, g: Option<&[f64]>, n: usize| match g {
+            Some(v) => fields.extend(v.iter().map(|x| x.to_string())),
+            None => fields.extend(std::iter::repeat_n(String::new(), n)),
+        };
+        for s in &self.samples {
+            fields.clear();
+            fields.push(s.t_s.to_string());
+            fields.extend(s.counts.iter().map(|c| c.to_string()));
+            push_group(&mut fields, s.tracker.as_ref().map(|v| &v[..]), 3);
+            if legacy {
+                push_group(&mut fields, s.legacy.as_ref().map(|v| &v[..]), 3);
+            }
+            if tension {
+                push_group(&mut fields, s.tension_n.as_ref().map(|v| &v[..]), STRINGS);
+            }
+            w.write_record(&fields).map_err(write_error)?;
+        }
+        w.flush().map_err(|e| io_error(file, "cannot write", e))
+    }
+}

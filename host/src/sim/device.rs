@@ -1,0 +1,332 @@
+//! The as-built device: its true parameters, drawn once per device seed, and
+//! the string physics (true length -> encoder counts).
+
+use rand::rngs::ChaCha8Rng;
+use rand::SeedableRng;
+use rand_distr::{Distribution, Normal};
+use spidar_core::model::{EffectTerm, Frame, StringLaw, Vec3, WINDING_ORDER};
+use spidar_core::STRINGS;
+
+use super::config::SimConfig;
+use spidar_core::string_law::EffectContext;
+
+use super::effects::{parse_effects, InjectedEffect};
+use super::SimError;
+use crate::dataset::Geometry;
+
+/// Independent random streams derived from one seed (splitmix64), so that
+/// e.g. switching tracker occlusion off does not change the trajectory.
+pub(crate) fn stream(seed: u64, purpose: u64) -> ChaCha8Rng {
+    let mut z = seed ^ purpose.wrapping_mul(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^= z >> 31;
+    ChaCha8Rng::seed_from_u64(z)
+}
+
+/// `N(0, sigma)`; `field` names the configuration key in the error.
+pub(crate) fn normal(field: &str, sigma: f64) -> Result<Normal<f64>, SimError> {
+    Normal::new(0.0, sigma).map_err(|e| SimError::Config {
+        field: field.to_string(),
+        problem: format!("{sigma} is not a standard deviation: {e}"),
+    })
+}
+
+pub(crate) fn sub(a: &Vec3<f64>, b: &Vec3<f64>) -> Vec3<f64> {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+pub(crate) fn norm(a: &Vec3<f64>) -> f64 {
+    (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt()
+}
+
+pub(crate) fn dot(a: &Vec3<f64>, b: &Vec3<f64>) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+/// `R v`.
+pub(crate) fn rotate(r: &[[f64; 3]; 3], v: &Vec3<f64>) -> Vec3<f64> {
+    core::array::from_fn(|i| dot(&r[i], v))
+}
+
+/// `R^T v`.
+pub(crate) fn rotate_back(r: &[[f64; 3]; 3], v: &Vec3<f64>) -> Vec3<f64> {
+    core::array::from_fn(|i| r[0][i] * v[0] + r[1][i] * v[1] + r[2][i] * v[2])
+}
+
+/// Rotation by `angle` rad about the unit vector `axis` (Rodrigues).
+fn axis_angle(axis: Vec3<f64>, angle: f64) -> [[f64; 3]; 3] {
+    let (s, c) = angle.sin_cos();
+    let [x, y, z] = axis;
+    let t = 1.0 - c;
+    [
+        [c + x * x * t, x * y * t - z * s, x * z * t + y * s],
+        [y * x * t + z * s, c + y * y * t, y * z * t - x * s],
+        [z * x * t - y * s, z * y * t + x * s, c + z * z * t],
+    ]
+}
+
+/// One simulated device as built. The same device gives any number of
+/// sessions (train and test) with the same as-built errors.
+#[derive(Clone, Debug)]
+pub struct Device {
+    pub config: SimConfig,
+    /// The device seed.
+    pub seed: u64,
+    /// The design, as written to `geometry.toml`.
+    pub nominal: Geometry,
+    /// True anchors, true home, true room-from-device transform.
+    pub frame: Frame<f64>,
+    /// True base winding law of each string: `[r_home, -d^2/(4 pi), 0, 0]`.
+    pub laws: [StringLaw; STRINGS],
+    /// True bare pulley radius `r0`, mm.
+    pub bare_radius_mm: [f64; STRINGS],
+    /// String wound on each pulley at initialization, `w_home`, mm.
+    pub home_wound_mm: [f64; STRINGS],
+    /// True total length of each string, mm.
+    pub string_total_mm: [f64; STRINGS],
+    /// All injected effects, resolved per string, in order.
+    pub injected: Vec<InjectedEffect>,
+    /// The model-family terms among them, in order (what identification should find).
+    pub effects: Vec<EffectTerm>,
+}
+
+impl Device {
+    /// Build the device: draw its as-built errors from `seed`, apply the
+    /// configured injected effects.
+    pub fn new(config: &SimConfig, seed: u64) -> Result<Device, SimError> {
+        config.validate()?;
+        let nominal = config.nominal.geometry();
+        let ab = &config.as_built;
+
+        let mut rng = stream(seed, 1);
+        let anchor_noise = normal("as_built.anchor_sigma_mm", ab.anchor_sigma_mm)?;
+        let mut anchors = nominal.anchors_mm;
+        for a in anchors.iter_mut() {
+            for x in a.iter_mut() {
+                *x += anchor_noise.sample(&mut rng);
+            }
+        }
+
+        let mut rng = stream(seed, 2);
+        let home_noise = normal("as_built.home_sigma_mm", ab.home_sigma_mm)?;
+        let home: Vec3<f64> = core::array::from_fn(|k| nominal.home_mm[k] + home_noise.sample(&mut rng));
+
+        let mut rng = stream(seed, 3);
+        let shared = 1.0 + normal("as_built.pulley_radius_shared_sigma", ab.pulley_radius_shared_sigma)?.sample(&mut rng);
+        let each = normal("as_built.pulley_radius_each_sigma", ab.pulley_radius_each_sigma)?;
+        let bare_radius_mm: [f64; STRINGS] =
+            core::array::from_fn(|i| nominal.pulley_radius_mm[i] * shared * (1.0 + each.sample(&mut rng)));
+
+        let mut rng = stream(seed, 4);
+        let total_noise = normal("as_built.string_total_sigma_mm", ab.string_total_sigma_mm)?;
+        let string_total_mm: [f64; STRINGS] =
+            core::array::from_fn(|_| ab.string_total_mm + total_noise.sample(&mut rng));
+
+        let mut rng = stream(seed, 5);
+        let tr = &config.tracker;
+        let axis_draw = normal("tracker.rotation_deg", 1.0)?;
+        let mut axis: Vec3<f64> = core::array::from_fn(|_| axis_draw.sample(&mut rng));
+        let n = norm(&axis);
+        axis = if n > 0.0 { axis.map(|x| x / n) } else { [0.0, 0.0, 1.0] };
+        let room_rotation = axis_angle(axis, tr.rotation_deg.to_radians());
+        let t_noise = normal("tracker.translation_sigma_mm", tr.translation_sigma_mm)?;
+        let room_translation: Vec3<f64> =
+            core::array::from_fn(|k| nominal.room_from_device_translation_mm[k] + t_noise.sample(&mut rng));
+
+        let mut frame = Frame {
+            anchors,
+            home,
+            room_rotation,
+            room_translation,
+            room_scale: tr.scale,
+        };
+
+        let injected = parse_effects(&config.effects)?;
+        let mut effects = Vec::new();
+        for e in &injected {
+            match *e {
+                InjectedEffect::Model(term) => effects.push(term),
+                InjectedEffect::AnchorShift { string, mm } => {
+                    let a = &mut frame.anchors[usize::from(string)];
+                    for k in 0..3 {
+                        a[k] += mm[k];
+                    }
+                }
+                InjectedEffect::TrackerScale { relative } => frame.room_scale *= 1.0 + relative,
+                InjectedEffect::Speed { .. } => {}
+            }
+        }
+
+        let d = ab.string_diameter_mm;
+        let mut home_wound_mm = [0.0; STRINGS];
+        let mut laws = [StringLaw {
+            counts_per_rev: nominal.counts_per_rev,
+            winding_mm: [0.0; WINDING_ORDER],
+        }; STRINGS];
+        for i in 0..STRINGS {
+            let home_length = norm(&sub(&frame.home, &frame.anchors[i]));
+            let wound = string_total_mm[i] - home_length;
+            if wound <= 0.0 {
+                return Err(SimError::Config {
+                    field: "as_built.string_total_mm".into(),
+                    problem: format!(
+                        "string {i} ({:.1} mm) is shorter than its home length {home_length:.1} mm",
+                        string_total_mm[i]
+                    ),
+                });
+            }
+            home_wound_mm[i] = wound;
+            let r0 = bare_radius_mm[i];
+            laws[i].winding_mm = if ab.winding_growth {
+                let pi = std::f64::consts::PI;
+                [(r0 * r0 + wound * d * d / pi).sqrt(), -d * d / (4.0 * pi), 0.0, 0.0]
+            } else {
+                [r0, 0.0, 0.0, 0.0]
+            };
+        }
+
+        Ok(Device {
+            config: config.clone(),
+            seed,
+            nominal,
+            frame,
+            laws,
+            bare_radius_mm,
+            home_wound_mm,
+            string_total_mm,
+            injected,
+            effects,
+        })
+    }
+
+    /// True `|home - anchor_i|`, mm.
+    pub fn home_length_mm(&self, string: usize) -> f64 {
+        norm(&sub(&self.frame.home, &self.frame.anchors[string]))
+    }
+
+    /// Winding radius at initialization, `r_home`, mm.
+    pub fn home_winding_radius_mm(&self, string: usize) -> f64 {
+        self.laws[string].winding_mm[0]
+    }
+
+    /// Pulley angle of `counts`, rad.
+    pub fn theta(&self, counts: i32) -> f64 {
+        2.0 * std::f64::consts::PI * f64::from(counts) / f64::from(self.nominal.counts_per_rev)
+    }
+
+    /// The true base winding law: string paid out since home at angle `theta`, mm.
+    pub fn payout_mm(&self, string: usize, theta: f64) -> f64 {
+        let w = &self.laws[string].winding_mm;
+        w[0] * theta + w[1] * theta * theta
+    }
+
+    /// True string length the base law gives for `counts` (no effects):
+    /// `|home - anchor| + payout(theta(counts))`, mm.
+    pub fn base_length_mm(&self, string: usize, counts: i32) -> f64 {
+        self.home_length_mm(string) + self.payout_mm(string, self.theta(counts))
+    }
+
+    /// Sum of the injected model-family terms of `string`.
+    pub fn effects_mm(&self, string: usize, ctx: &EffectContext) -> f64 {
+        self.effects
+            .iter()
+            .filter(|t| usize::from(t.string) == string)
+            .map(|t| t.effect.contribution_f64(ctx))
+            .sum()
+    }
+
+    /// Inverse of the base law: the angle at which `payout` mm are paid out.
+    fn theta_for_payout(&self, string: usize, payout: f64) -> Option<f64> {
+        if payout > self.home_wound_mm[string] {
+            return None; // the pulley would be empty
+        }
+        let [r, b, ..] = self.laws[string].winding_mm;
+        if b == 0.0 {
+            return Some(payout / r);
+        }
+        let disc = r * r + 4.0 * b * payout;
+        if disc < 0.0 {
+            return None;
+        }
+        Some(2.0 * payout / (r + disc.sqrt()))
+    }
+
+    /// Encoder counts of `string` when its true length is `length_mm`,
+    /// with `extra_mm` of length not explained by the model families (speed,
+    /// abnormal motor) and the model terms evaluated at the true angle. Solves
+    /// `length = home_length + payout(theta) + extra + effects(theta)` by
+    /// fixed-point iteration, then quantizes to whole counts.
+    pub(crate) fn counts_for_length(
+        &self,
+        string: usize,
+        length_mm: f64,
+        extra_mm: f64,
+        direction: i8,
+        tension_n: f64,
+        t_s: f64,
+    ) -> Result<i32, SimError> {
+        let home_length_mm = self.home_length_mm(string);
+        let target = length_mm - home_length_mm - extra_mm;
+        let exhausted = || SimError::StringExhausted {
+            string,
+            length_mm,
+            t_s,
+        };
+        let mut theta = self.theta_for_payout(string, target).ok_or_else(exhausted)?;
+        let has_terms = self.effects.iter().any(|t| usize::from(t.string) == string);
+        if has_terms {
+            let mut converged = false;
+            for _ in 0..200 {
+                let x = EffectContext {
+                    theta,
+                    payout_mm: self.payout_mm(string, theta),
+                    home_length_mm,
+                    direction,
+                    tension_n,
+                    time_s: t_s,
+                };
+                let next = self
+                    .theta_for_payout(string, target - self.effects_mm(string, &x))
+                    .ok_or_else(exhausted)?;
+                let step = (next - theta).abs();
+                theta = next;
+                if step <= 1e-12 * (1.0 + theta.abs()) {
+                    converged = true;
+                    break;
+                }
+            }
+            if !converged {
+                return Err(SimError::NoConvergence { string, t_s });
+            }
+        }
+        let counts = (theta * f64::from(self.nominal.counts_per_rev) / (2.0 * std::f64::consts::PI)).round();
+        if counts.abs() > f64::from(i32::MAX) {
+            return Err(exhausted());
+        }
+        Ok(counts as i32)
+    }
+
+    /// Room position (tracker frame) of a device-frame position.
+    pub fn room_from_device(&self, p: &Vec3<f64>) -> Vec3<f64> {
+        let r = rotate(&self.frame.room_rotation, p);
+        core::array::from_fn(|k| self.frame.room_scale * r[k] + self.frame.room_translation[k])
+    }
+
+    /// Device-frame position of a room (tracker frame) position.
+    pub fn device_from_room(&self, p: &Vec3<f64>) -> Vec3<f64> {
+        let d = sub(p, &self.frame.room_translation);
+        rotate_back(&self.frame.room_rotation, &d).map(|x| x / self.frame.room_scale)
+    }
+
+    /// Device-frame velocity of a room-frame velocity.
+    pub fn device_velocity_from_room(&self, v: &Vec3<f64>) -> Vec3<f64> {
+        rotate_back(&self.frame.room_rotation, v).map(|x| x / self.frame.room_scale)
+    }
+
+    /// Centre of the sampled volume in the room frame: the nominal room image
+    /// of the nominal home (what the experimenters would display).
+    pub fn volume_centre_room(&self) -> Vec3<f64> {
+        core::array::from_fn(|k| self.nominal.home_mm[k] + self.nominal.room_from_device_translation_mm[k])
+    }
+}

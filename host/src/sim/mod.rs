@@ -1,0 +1,389 @@
+//! Physical simulator of an 8-string Scalable-SPIDAR and an optical tracker.
+//!
+//! A [`Device`] is one device as built: true anchors (a few mm off the
+//! design), true home (the built-in initialization is a few cm off), true
+//! pulleys (shared machining error) on which the string winds in level
+//! layers (the winding radius shrinks linearly as string is paid out), the
+//! true room-from-device transform of the tracker (small rotation, eq. 6
+//! translation), the paper's abnormal motor, and any injected effects
+//! ([`effects`]). [`simulate_session`] moves the end-effector along a path
+//! ([`SessionKind`]) and records one [`Sample`](crate::dataset::Sample) per
+//! capture: quantized encoder counts from the true winding law, commanded
+//! tensions, the tracker position (noisy, sometimes occluded) and what a
+//! legacy controller would report.
+//!
+//! The same device gives a train and a test session with the same as-built
+//! errors: build it once, call [`simulate_session`] twice with other seeds.
+//!
+//! `spidar simulate` ([`run_simulate`]) writes `geometry.toml` (the NOMINAL
+//! geometry, never the true one), the session CSV and `truth.toml` (the true
+//! parameters, for tests and benchmarks only).
+
+pub mod config;
+pub mod device;
+pub mod effects;
+mod legacy;
+mod trajectory;
+pub mod truth;
+
+use std::path::PathBuf;
+
+use rand::RngExt;
+use spidar_core::model::{StringInputs, Vec3};
+use spidar_core::STRINGS;
+
+pub use config::SimConfig;
+pub use device::Device;
+pub use effects::{parse_effect, parse_effects, InjectedEffect};
+pub use truth::Truth;
+
+use crate::dataset::{DatasetError, Sample, Session};
+use device::{dot, norm, normal, stream, sub};
+use rand_distr::Distribution;
+
+/// Any failure of the simulator; each names the file, field or string concerned.
+#[derive(Debug, thiserror::Error)]
+pub enum SimError {
+    #[error("{}: {action}: {source}", file.display())]
+    Io {
+        file: PathBuf,
+        action: &'static str,
+        source: std::io::Error,
+    },
+    /// The configuration TOML does not parse (the message names the key and line).
+    #[error("{}: {message}", file.display())]
+    ConfigFile { file: PathBuf, message: String },
+    #[error("simulator configuration: `{field}`: {problem}")]
+    Config { field: String, problem: String },
+    #[error("effect `{spec}`: {problem}")]
+    EffectSpec { spec: String, problem: String },
+    #[error("string {string}: its pulley would run empty at a length of {length_mm:.1} mm (t = {t_s} s)")]
+    StringExhausted {
+        string: usize,
+        length_mm: f64,
+        t_s: f64,
+    },
+    #[error("string {string}: the injected effects are too strong to solve for the encoder angle (t = {t_s} s)")]
+    NoConvergence { string: usize, t_s: f64 },
+    #[error("{0}")]
+    Dataset(#[from] DatasetError),
+}
+
+/// Which path the end-effector follows.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SessionKind {
+    /// The paper's lattice protocol (`[lattice]` of the configuration):
+    /// 13^3 = 2197 cells over a 1 m cube, plane by plane from the front.
+    Lattice,
+    /// Random trajectories of sequential points through the same volume.
+    Random { points: usize },
+}
+
+impl SessionKind {
+    /// Default file stem of the session.
+    pub fn name(&self) -> &'static str {
+        match self {
+            SessionKind::Lattice => "lattice",
+            SessionKind::Random { .. } => "random",
+        }
+    }
+}
+
+/// What really happened at one capture (for tests and benchmarks).
+#[derive(Clone, Debug, PartialEq)]
+pub struct SampleTruth {
+    /// True end-effector position, device frame, mm.
+    pub device_mm: Vec3<f64>,
+    /// True marker position, room (tracker) frame, mm.
+    pub room_mm: Vec3<f64>,
+    /// True velocity, device frame, mm/s.
+    pub velocity_device_mm_s: Vec3<f64>,
+    /// True geometric string lengths `|p - anchor_i|`, mm.
+    pub lengths_mm: [f64; STRINGS],
+    /// `dL_i/dt`, mm/s.
+    pub string_speed_mm_s: [f64; STRINGS],
+    /// The string-law inputs with the TRUE direction of motion of each string.
+    pub inputs: StringInputs,
+    /// Length error of the abnormal motor at this capture (0 outside its region), mm.
+    pub abnormal_mm: f64,
+    /// Lattice cell `[ix, iy, iz]` (lattice sessions).
+    pub cell: Option<[u32; 3]>,
+}
+
+/// Simulate one session of `device` (see [`simulate_session_with_truth`]).
+pub fn simulate_session(device: &Device, kind: SessionKind, seed: u64) -> Result<Session, SimError> {
+    simulate_session_with_truth(device, kind, seed).map(|(s, _)| s)
+}
+
+fn round_to(x: f64, per_unit: f64) -> f64 {
+    (x * per_unit).round() / per_unit
+}
+
+/// Simulate one session of `device`; `seed` draws the path, the tensions,
+/// the tracker noise, the occlusions and the abnormal motor's jitter (each
+/// from its own stream). Times are whole milliseconds, tensions whole
+/// millinewtons, positions whole micrometres, as written to the CSV.
+pub fn simulate_session_with_truth(
+    device: &Device,
+    kind: SessionKind,
+    seed: u64,
+) -> Result<(Session, Vec<SampleTruth>), SimError> {
+    let cfg = &device.config;
+    let centre = device.volume_centre_room();
+    let start = device.room_from_device(&device.frame.home);
+    let mut path_rng = stream(seed, 10);
+    let captures = match kind {
+        SessionKind::Lattice => trajectory::lattice(&cfg.lattice, &cfg.tracker, centre, start, &mut path_rng)?,
+        SessionKind::Random { points } => {
+            if points == 0 {
+                return Err(SimError::Config {
+                    field: "random.points".into(),
+                    problem: "must be positive".into(),
+                });
+            }
+            trajectory::random(&cfg.random, &cfg.lattice, centre, start, points, &mut path_rng)?
+        }
+    };
+
+    let mut tension_rng = stream(seed, 11);
+    let mut noise_rng = stream(seed, 12);
+    let mut occlusion_rng = stream(seed, 13);
+    let mut abnormal_rng = stream(seed, 14);
+    let noise = normal("tracker.noise_sigma_mm", cfg.tracker.noise_sigma_mm)?;
+    let legacy = legacy::LegacyController::new(&device.nominal);
+
+    let mut direction = [0i8; STRINGS];
+    let mut occluded = false;
+    let mut samples = Vec::with_capacity(captures.len());
+    let mut truths = Vec::with_capacity(captures.len());
+    for c in &captures {
+        let t_s = f64::from(c.t_ms) / 1000.0;
+        let p = device.device_from_room(&c.room);
+        let v = device.device_velocity_from_room(&c.velocity);
+
+        let ts = &cfg.tension;
+        let tension_mn: [u16; STRINGS] = core::array::from_fn(|_| {
+            let mut t = ts.pretension_n + ts.jitter_n * tension_rng.random_range(0.0..1.0);
+            if tension_rng.random_bool(ts.active_probability) {
+                t += ts.active_max_n * tension_rng.random_range(0.0..1.0);
+            }
+            (t * 1000.0).round().clamp(0.0, f64::from(u16::MAX)) as u16
+        });
+
+        let mut counts = [0i32; STRINGS];
+        let mut lengths = [0.0; STRINGS];
+        let mut speeds = [0.0; STRINGS];
+        let mut abnormal_mm = 0.0;
+        for i in 0..STRINGS {
+            let to_anchor = sub(&p, &device.frame.anchors[i]);
+            let length = norm(&to_anchor);
+            let speed = if length > 0.0 { dot(&v, &to_anchor) / length } else { 0.0 };
+            if speed.abs() > 1e-9 {
+                direction[i] = if speed > 0.0 { 1 } else { -1 };
+            }
+            let mut extra = 0.0;
+            for e in &device.injected {
+                if let InjectedEffect::Speed { string, latency_s } = *e {
+                    if usize::from(string) == i {
+                        extra += latency_s * speed;
+                    }
+                }
+            }
+            let am = &cfg.abnormal_motor;
+            if am.enabled && usize::from(am.string) == i && length < am.region_length_mm {
+                let spread = 1.0 - am.jitter * abnormal_rng.random_range(0.0..1.0);
+                abnormal_mm = -(am.step_mm + am.gain * (am.region_length_mm - length)) * spread;
+                extra += abnormal_mm;
+            }
+            let tension_n = f64::from(tension_mn[i]) / 1000.0;
+            counts[i] = device.counts_for_length(i, length, extra, direction[i], tension_n, t_s)?;
+            lengths[i] = length;
+            speeds[i] = speed;
+        }
+
+        let tr = &cfg.tracker;
+        occluded = if occluded {
+            !occlusion_rng.random_bool(1.0 / tr.occlusion_mean_rows)
+        } else {
+            occlusion_rng.random_bool(tr.occlusion_probability)
+        };
+        let measured: Vec3<f64> = core::array::from_fn(|k| round_to(c.room[k] + noise.sample(&mut noise_rng), 1000.0));
+        let tracker = (!occluded).then_some(measured);
+
+        let legacy_position = if cfg.legacy.enabled {
+            legacy.position(&counts).map(|q| q.map(|x| round_to(x, 1000.0)))
+        } else {
+            None
+        };
+
+        samples.push(Sample {
+            t_s,
+            counts,
+            tracker,
+            legacy: legacy_position,
+            tension_n: Some(tension_mn.map(|t| f64::from(t) / 1000.0)),
+        });
+        truths.push(SampleTruth {
+            device_mm: p,
+            room_mm: c.room,
+            velocity_device_mm_s: v,
+            lengths_mm: lengths,
+            string_speed_mm_s: speeds,
+            inputs: StringInputs {
+                counts,
+                direction,
+                tension_mn,
+                time_ms: c.t_ms,
+            },
+            abnormal_mm,
+            cell: c.cell,
+        });
+    }
+    Ok((
+        Session {
+            samples,
+            ignored_columns: Vec::new(),
+        },
+        truths,
+    ))
+}
+
+/// `spidar simulate`: write a simulated device's nominal geometry, one session
+/// and the truth.
+#[derive(Clone, Debug, clap::Args)]
+pub struct SimulateArgs {
+    /// Output directory (created if missing).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Device seed: the same seed gives the same device (as-built errors)
+    /// whatever the session kind, so a lattice and a random session of one
+    /// device are two runs with the same seed.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Simulator configuration TOML (every key optional).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Path of the end-effector.
+    #[arg(long, value_enum, default_value_t = KindArg::Lattice)]
+    pub kind: KindArg,
+    /// Number of captures of a random session (default: `random.points`).
+    #[arg(long)]
+    pub points: Option<usize>,
+    /// Injected effect, e.g. `offset:3:mm=10` (repeatable; see `sim::effects`).
+    #[arg(long = "effect", value_name = "SPEC")]
+    pub effects: Vec<String>,
+    /// File stem of the session CSV (default: `lattice` or `random`).
+    #[arg(long)]
+    pub name: Option<String>,
+    /// Session seed (default: the device seed + 1 for lattice, + 2 for random).
+    #[arg(long)]
+    pub session_seed: Option<u64>,
+}
+
+/// `--kind`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum KindArg {
+    Lattice,
+    Random,
+}
+
+/// What [`run_simulate`] wrote, and the legacy controller's raw error.
+#[derive(Clone, Debug)]
+pub struct SimulateReport {
+    pub geometry: PathBuf,
+    pub session: PathBuf,
+    pub truth: PathBuf,
+    pub rows: usize,
+    pub occluded_rows: usize,
+    /// Eq. 7 error of the legacy position (mapped to the room by eq. 6) against
+    /// the tracker, over rows with both.
+    pub legacy_raw_error: Option<crate::stats::ErrorStats>,
+}
+
+impl std::fmt::Display for SimulateReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        writeln!(f, "wrote {}", self.geometry.display())?;
+        writeln!(
+            f,
+            "wrote {} ({} rows, {} occluded)",
+            self.session.display(),
+            self.rows,
+            self.occluded_rows
+        )?;
+        writeln!(f, "wrote {} (ground truth: not for calibration)", self.truth.display())?;
+        if let Some(s) = &self.legacy_raw_error {
+            writeln!(
+                f,
+                "legacy controller vs tracker (eq. 7): mean {:.1} mm, sd {:.1} mm, max {:.1} mm over {} rows",
+                s.mean_mm, s.sd_mm, s.max_mm, s.n
+            )?;
+        }
+        Ok(())
+    }
+}
+
+/// Eq. 7 error of the legacy positions (eq. 6 to the room with the nominal
+/// translation) against the tracker, over the rows that have both.
+pub fn legacy_raw_errors(session: &Session, geometry: &crate::dataset::Geometry) -> Vec<f64> {
+    let t = geometry.room_from_device_translation_mm;
+    session
+        .samples
+        .iter()
+        .filter_map(|s| {
+            let (d, o) = (s.legacy?, s.tracker?);
+            Some(crate::stats::position_error([d[0] + t[0], d[1] + t[1], d[2] + t[2]], o))
+        })
+        .collect()
+}
+
+/// Run `spidar simulate`.
+pub fn run_simulate(args: &SimulateArgs) -> Result<SimulateReport, SimError> {
+    let mut config = match &args.config {
+        Some(path) => SimConfig::load(path)?,
+        None => SimConfig::default(),
+    };
+    config.effects.extend(args.effects.iter().cloned());
+    let kind = match args.kind {
+        KindArg::Lattice => {
+            if args.points.is_some() {
+                return Err(SimError::Config {
+                    field: "--points".into(),
+                    problem: "applies to --kind random only".into(),
+                });
+            }
+            SessionKind::Lattice
+        }
+        KindArg::Random => SessionKind::Random {
+            points: args.points.unwrap_or(config.random.points),
+        },
+    };
+    let device = Device::new(&config, args.seed)?;
+    let session_seed = args.session_seed.unwrap_or(match kind {
+        SessionKind::Lattice => args.seed.wrapping_add(1),
+        SessionKind::Random { .. } => args.seed.wrapping_add(2),
+    });
+    let session = simulate_session(&device, kind, session_seed)?;
+
+    std::fs::create_dir_all(&args.out).map_err(|source| SimError::Io {
+        file: args.out.clone(),
+        action: "cannot create the output directory",
+        source,
+    })?;
+    let geometry = args.out.join("geometry.toml");
+    device.nominal.write(&geometry)?;
+    let stem = args.name.clone().unwrap_or_else(|| kind.name().to_string());
+    let session_path = args.out.join(format!("{stem}.csv"));
+    session.write(&session_path)?;
+    let truth = args.out.join("truth.toml");
+    Truth::of(&device).write(&truth)?;
+
+    let errors = legacy_raw_errors(&session, &device.nominal);
+    Ok(SimulateReport {
+        geometry,
+        session: session_path,
+        truth,
+        rows: session.samples.len(),
+        occluded_rows: session.samples.iter().filter(|s| s.tracker.is_none()).count(),
+        legacy_raw_error: (!errors.is_empty()).then(|| crate::stats::ErrorStats::of(&errors)),
+    })
+}

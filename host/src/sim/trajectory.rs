@@ -1,0 +1,179 @@
+//! Paths of the end-effector (room frame, the tracker's coordinates) and the
+//! captures along them. Each capture carries the position and the velocity
+//! of the hand at that instant; the path between two captures is a straight
+//! segment travelled at that speed, so the direction of motion of every
+//! string and its speed agree with the positions.
+
+use rand::rngs::ChaCha8Rng;
+use rand::RngExt;
+use rand_distr::{Distribution, Exp1};
+use spidar_core::model::Vec3;
+
+use super::config::{LatticeConfig, RandomConfig, TrackerConfig};
+use super::device::{norm, sub};
+use super::SimError;
+
+/// One capture on the path.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) struct Capture {
+    /// Time since the session started (= since initialization), ms.
+    pub t_ms: u32,
+    /// True marker position, room frame, mm.
+    pub room: Vec3<f64>,
+    /// True marker velocity, room frame, mm/s.
+    pub velocity: Vec3<f64>,
+    /// Lattice cell `[ix, iy, iz]` of the capture (lattice sessions only).
+    pub cell: Option<[u32; 3]>,
+}
+
+fn to_ms(t_s: f64) -> Result<u32, SimError> {
+    let ms = (t_s * 1000.0).round();
+    if !(0.0..=f64::from(u32::MAX)).contains(&ms) {
+        return Err(SimError::Config {
+            field: "session duration".into(),
+            problem: format!("{t_s} s does not fit the 49-day time-since-home counter"),
+        });
+    }
+    Ok(ms as u32)
+}
+
+/// Cells in the paper's order: plane by plane from the front (`-y`) to the
+/// back; within an x-z plane, rows along x. Rows alternate direction and
+/// planes alternate between bottom-up and top-down, so that consecutive
+/// cells always share a face (the path a user naturally takes).
+pub(crate) fn lattice_order(n: u32) -> Vec<[u32; 3]> {
+    let mut cells = Vec::with_capacity((n * n * n) as usize);
+    let mut x_forward = true;
+    for iy in 0..n {
+        for kz in 0..n {
+            let iz = if iy % 2 == 0 { kz } else { n - 1 - kz };
+            for kx in 0..n {
+                let ix = if x_forward { kx } else { n - 1 - kx };
+                cells.push([ix, iy, iz]);
+            }
+            x_forward = !x_forward;
+        }
+    }
+    cells
+}
+
+/// Smallest `s` in `[0, 1]` with `p + s (q - p)` inside the box `[lo, hi]`
+/// (`q` is inside the box).
+fn entry_parameter(p: &Vec3<f64>, q: &Vec3<f64>, lo: &Vec3<f64>, hi: &Vec3<f64>) -> f64 {
+    let mut s_in: f64 = 0.0;
+    for k in 0..3 {
+        let d = q[k] - p[k];
+        if d > 0.0 && p[k] < lo[k] {
+            s_in = s_in.max((lo[k] - p[k]) / d);
+        } else if d < 0.0 && p[k] > hi[k] {
+            s_in = s_in.max((hi[k] - p[k]) / d);
+        }
+    }
+    s_in.clamp(0.0, 1.0)
+}
+
+/// The paper's lattice protocol: the user moves the marker, cell after cell,
+/// towards a point near the highlighted cell's centre; the capture is taken
+/// at the first tracker frame after the marker enters the cell, so it lies
+/// inside the cell on the side the marker came from. Times are scaled to the
+/// configured session duration with random pauses (searching the next cell).
+pub(crate) fn lattice(
+    cfg: &LatticeConfig,
+    tracker: &TrackerConfig,
+    centre: Vec3<f64>,
+    start: Vec3<f64>,
+    rng: &mut ChaCha8Rng,
+) -> Result<Vec<Capture>, SimError> {
+    let n = cfg.cells_per_axis;
+    let cell = cfg.size_mm / f64::from(n);
+    let lo0: Vec3<f64> = core::array::from_fn(|k| centre[k] - cfg.size_mm / 2.0);
+    let margin = (0.5f64).min(cell / 10.0);
+    let frame_dt = 1.0 / tracker.frame_rate_hz;
+
+    let mut previous = start;
+    let mut points = Vec::new(); // (position, speed, travel time, cell)
+    for c in lattice_order(n) {
+        let lo: Vec3<f64> = core::array::from_fn(|k| lo0[k] + f64::from(c[k]) * cell);
+        let hi: Vec3<f64> = core::array::from_fn(|k| lo[k] + cell);
+        let target: Vec3<f64> = core::array::from_fn(|k| {
+            lo[k] + cell * (0.5 + cfg.target_jitter * rng.random_range(-1.0..=1.0))
+        });
+        let speed = rng.random_range(cfg.speed_mm_s[0]..=cfg.speed_mm_s[1]);
+        let s = entry_parameter(&previous, &target, &lo, &hi);
+        let d = sub(&target, &previous);
+        let len = norm(&d);
+        let unit = if len > 0.0 { d.map(|x| x / len) } else { [0.0; 3] };
+        // Marker travel between entering the cell and the next tracker frame.
+        let depth = (margin + rng.random_range(0.0..1.0) * speed * frame_dt).min(len * (1.0 - s));
+        let p: Vec3<f64> = core::array::from_fn(|k| {
+            (previous[k] + s * d[k] + depth * unit[k]).clamp(lo[k] + margin, hi[k] - margin)
+        });
+        let travel = norm(&sub(&p, &previous));
+        points.push((p, speed, travel / speed, c, sub(&p, &previous)));
+        previous = p;
+    }
+
+    let travel_total: f64 = points.iter().map(|p| p.2).sum();
+    let pause_total = (cfg.duration_s - travel_total).max(0.0);
+    let weights: Vec<f64> = points.iter().map(|_| Exp1.sample(rng)).collect();
+    let weight_total: f64 = weights.iter().sum();
+
+    let mut t = 0.0;
+    let mut captures = Vec::with_capacity(points.len());
+    for ((p, speed, travel_s, c, step), w) in points.into_iter().zip(weights) {
+        t += travel_s + pause_total * w / weight_total.max(f64::MIN_POSITIVE);
+        let len = norm(&step);
+        let velocity = if len > 0.0 { step.map(|x| x * speed / len) } else { [0.0; 3] };
+        captures.push(Capture {
+            t_ms: to_ms(t)?,
+            room: p,
+            velocity,
+            cell: Some(c),
+        });
+    }
+    Ok(captures)
+}
+
+/// Test sessions: the hand moves along straight legs between random
+/// waypoints in the lattice's volume, each leg at its own speed; a capture is
+/// taken every `capture_interval_s`.
+pub(crate) fn random(
+    cfg: &RandomConfig,
+    lattice: &LatticeConfig,
+    centre: Vec3<f64>,
+    start: Vec3<f64>,
+    points: usize,
+    rng: &mut ChaCha8Rng,
+) -> Result<Vec<Capture>, SimError> {
+    let half = lattice.size_mm / 2.0;
+    let waypoint = |rng: &mut ChaCha8Rng| -> Vec3<f64> {
+        core::array::from_fn(|k| centre[k] + rng.random_range(-half..=half))
+    };
+    let mut from = start;
+    let mut to = waypoint(rng);
+    let mut speed = rng.random_range(cfg.speed_mm_s[0]..=cfg.speed_mm_s[1]);
+    let mut leg_start_s = 0.0;
+    let mut captures = Vec::with_capacity(points);
+    for k in 1..=points {
+        let t = k as f64 * cfg.capture_interval_s;
+        let mut leg = sub(&to, &from);
+        let mut len = norm(&leg);
+        while leg_start_s + len / speed < t {
+            leg_start_s += len / speed;
+            from = to;
+            to = waypoint(rng);
+            speed = rng.random_range(cfg.speed_mm_s[0]..=cfg.speed_mm_s[1]);
+            leg = sub(&to, &from);
+            len = norm(&leg);
+        }
+        let unit = if len > 0.0 { leg.map(|x| x / len) } else { [0.0; 3] };
+        let along = (t - leg_start_s) * speed;
+        captures.push(Capture {
+            t_ms: to_ms(t)?,
+            room: core::array::from_fn(|i| from[i] + along * unit[i]),
+            velocity: unit.map(|x| x * speed),
+            cell: None,
+        });
+    }
+    Ok(captures)
+}

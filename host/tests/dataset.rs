@@ -1,0 +1,325 @@
+//! Reader/writer of the geometry and session formats: the shared examples
+//! written by another tool, round trips, and one test per error kind.
+
+use std::path::{Path, PathBuf};
+
+use spidar::dataset::{DatasetError, Geometry, Sample, Session, ValueProblem};
+
+fn shared(file: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../shared/examples")
+        .join(file)
+}
+
+fn tmp(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("spidar-dataset-test-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    dir.join(name)
+}
+
+const HEADER: &str = "t_s,enc0,enc1,enc2,enc3,enc4,enc5,enc6,enc7,ots_x,ots_y,ots_z";
+
+fn read(text: &str) -> Result<Session, DatasetError> {
+    Session::read_from(text.as_bytes(), Path::new("mem/session.csv"))
+}
+
+/// The message names the file, the line and the column; returns the problem.
+fn value_error(text: &str, line: u64, column: &str) -> ValueProblem {
+    let err = read(text).expect_err("must be rejected");
+    let msg = err.to_string();
+    assert!(msg.contains("mem/session.csv"), "{msg}");
+    assert!(msg.contains(&format!("line {line}")), "{msg}");
+    assert!(msg.contains(&format!("`{column}`")), "{msg}");
+    match err {
+        DatasetError::Value {
+            line: l,
+            column: c,
+            problem,
+            ..
+        } => {
+            assert_eq!((l, c.as_str()), (line, column), "{msg}");
+            problem
+        }
+        other => panic!("expected a value error, got {other:?}"),
+    }
+}
+
+#[test]
+fn reads_the_shared_geometry() {
+    let g = Geometry::load(shared("geometry.toml")).unwrap();
+    assert_eq!(g.counts_per_rev, 4096);
+    assert_eq!(g.pulley_radius_mm, [7.5; 8]);
+    assert_eq!(g.home_mm, [0.0; 3]);
+    assert_eq!(g.anchors_mm[6], [1100.0, 1100.0, 1100.0]);
+    assert_eq!(g.room_from_device_translation_mm, [0.0, 0.0, 1500.0]);
+    let frame = g.nominal_frame();
+    assert_eq!(frame.anchors, g.anchors_mm);
+    assert_eq!(frame.room_scale, 1.0);
+    assert_eq!(frame.room_translation, [0.0, 0.0, 1500.0]);
+    let laws = g.nominal_string_laws();
+    assert_eq!(laws[3].winding_mm, [7.5, 0.0, 0.0, 0.0]);
+    assert_eq!(laws[3].counts_per_rev, 4096);
+}
+
+#[test]
+fn reads_the_shared_session() {
+    let s = Session::load(shared("session-head.csv")).unwrap();
+    assert!(s.samples.len() >= 10);
+    assert!(s.ignored_columns.is_empty());
+    let first = &s.samples[0];
+    assert_eq!(first.t_s, 1.530);
+    assert_eq!(first.counts[0], -40371);
+    assert_eq!(first.tracker, None, "the first row is occluded");
+    assert_eq!(first.legacy, Some([-259.079, -280.452, -276.065]));
+    assert_eq!(first.tension_n.unwrap()[6], 2.832);
+    assert_eq!(s.samples[1].tracker, Some([-354.707, -448.060, 1003.830]));
+    assert!(s.samples.iter().any(|x| x.tracker.is_none()));
+    assert!(s.samples.iter().filter(|x| x.tracker.is_some()).count() > 5);
+}
+
+#[test]
+fn geometry_round_trip_and_per_string_radii() {
+    let mut g = Geometry::load(shared("geometry.toml")).unwrap();
+    let path = tmp("geometry.toml");
+    g.write(&path).unwrap();
+    assert_eq!(Geometry::load(&path).unwrap(), g);
+    g.pulley_radius_mm[5] = 7.25;
+    g.anchors_mm[2][1] = 1099.875;
+    g.write(&path).unwrap();
+    assert_eq!(Geometry::load(&path).unwrap(), g);
+}
+
+#[test]
+fn session_round_trip_is_lossless() {
+    let s = Session::load(shared("session-head.csv")).unwrap();
+    let path = tmp("round.csv");
+    s.write(&path).unwrap();
+    assert_eq!(Session::load(&path).unwrap(), s);
+
+    // Awkward values: exact floats, extremes of counts, mixed None groups.
+    let mut samples = vec![Sample {
+        t_s: 0.1 + 0.2,
+        counts: [i32::MIN, i32::MAX, 0, -1, 1, 2, 3, 4],
+        tracker: Some([1e-9, -123456.789012345, 1.0 / 3.0]),
+        legacy: None,
+        tension_n: Some([1.0, 2.5, 0.001, 3.0, 4.0, 5.0, 6.0, 7.0]),
+    }];
+    samples.push(Sample {
+        t_s: 0.3 + 1e-12,
+        counts: [5; 8],
+        tracker: None,
+        legacy: Some([1.5, -2.5, 3.25]),
+        tension_n: None,
+    });
+    let s = Session {
+        samples,
+        ignored_columns: vec![],
+    };
+    s.write(&path).unwrap();
+    assert_eq!(Session::load(&path).unwrap(), s);
+}
+
+#[test]
+fn columns_in_any_order_and_unknown_columns_are_listed() {
+    let text = "ots_z,enc7,enc6,enc5,quality,enc4,enc3,enc2,enc1,enc0,ots_y,ots_x,t_s\n\
+                3,7,6,5,good,4,3,2,1,0,2,1,0.5\n";
+    let s = read(text).unwrap();
+    assert_eq!(s.samples[0].counts, [0, 1, 2, 3, 4, 5, 6, 7]);
+    assert_eq!(s.samples[0].tracker, Some([1.0, 2.0, 3.0]));
+    assert_eq!(s.samples[0].t_s, 0.5);
+    assert_eq!(s.ignored_columns, vec!["quality".to_string()]);
+}
+
+#[test]
+fn error_missing_column() {
+    let text = "t_s,enc0,enc1,enc2,enc3,enc4,enc5,enc7,ots_x,ots_y,ots_z\n";
+    let err = read(text).unwrap_err();
+    let msg = err.to_string();
+    assert!(matches!(err, DatasetError::MissingColumn { ref column, .. } if column == "enc6"));
+    assert!(msg.contains("mem/session.csv") && msg.contains("line 1") && msg.contains("`enc6`"));
+}
+
+#[test]
+fn error_duplicate_column() {
+    let text = format!("{HEADER},enc3\n");
+    let err = read(&text).unwrap_err();
+    let msg = err.to_string();
+    assert!(matches!(err, DatasetError::DuplicateColumn { ref column, .. } if column == "enc3"));
+    assert!(msg.contains("mem/session.csv") && msg.contains("line 1") && msg.contains("`enc3`"));
+}
+
+#[test]
+fn error_incomplete_optional_group() {
+    let text = format!("{HEADER},dev_x,dev_z\n");
+    let err = read(&text).unwrap_err();
+    let msg = err.to_string();
+    assert!(matches!(err, DatasetError::IncompleteGroup { ref missing, .. } if missing == "dev_y"));
+    assert!(msg.contains("mem/session.csv") && msg.contains("line 1") && msg.contains("`dev_y`"));
+}
+
+#[test]
+fn error_empty_file() {
+    let err = read("").unwrap_err();
+    assert!(matches!(err, DatasetError::Empty { .. }), "{err}");
+    assert!(err.to_string().contains("mem/session.csv"));
+}
+
+#[test]
+fn error_wrong_number_of_fields() {
+    let text = format!("{HEADER}\n0,1,2,3,4,5,6,7,8,1,2,3\n1,1,2,3\n");
+    let err = read(&text).unwrap_err();
+    let msg = err.to_string();
+    assert!(matches!(err, DatasetError::Csv { line: 3, .. }), "{msg}");
+    assert!(msg.contains("mem/session.csv") && msg.contains("line 3"), "{msg}");
+}
+
+#[test]
+fn error_non_numeric_value() {
+    let text = format!("{HEADER}\n0,1,2,3,4,5,6,7,8,1,2,3\n1,1,2,3,4,5,6,7,8,1,abc,3\n");
+    let p = value_error(&text, 3, "ots_y");
+    assert_eq!(p, ValueProblem::NotANumber("abc".into()));
+}
+
+#[test]
+fn error_nan_and_infinite_values() {
+    let text = format!("{HEADER},tension0,tension1,tension2,tension3,tension4,tension5,tension6,tension7\n\
+                        0,1,2,3,4,5,6,7,8,1,2,3,1,1,1,1,NaN,1,1,1\n");
+    let p = value_error(&text, 2, "tension4");
+    assert_eq!(p, ValueProblem::NotFinite("NaN".into()));
+    let text = format!("{HEADER}\n0,1,2,3,4,5,6,7,8,inf,2,3\n");
+    assert_eq!(value_error(&text, 2, "ots_x"), ValueProblem::NotFinite("inf".into()));
+}
+
+#[test]
+fn error_partially_empty_tracker() {
+    let text = format!("{HEADER}\n0,1,2,3,4,5,6,7,8,,,\n1,1,2,3,4,5,6,7,8,1.5,,3\n");
+    let p = value_error(&text, 3, "ots_y");
+    assert!(matches!(p, ValueProblem::PartialGroup { ref filled, .. } if filled == "ots_x"));
+}
+
+#[test]
+fn error_partially_empty_legacy() {
+    let text = format!("{HEADER},dev_x,dev_y,dev_z\n0,1,2,3,4,5,6,7,8,1,2,3,,4,\n");
+    let p = value_error(&text, 2, "dev_x");
+    assert!(matches!(p, ValueProblem::PartialGroup { .. }));
+}
+
+#[test]
+fn error_time_going_backwards() {
+    let text = format!("{HEADER}\n1,1,2,3,4,5,6,7,8,1,2,3\n1,1,2,3,4,5,6,7,8,1,2,3\n0.5,1,2,3,4,5,6,7,8,1,2,3\n");
+    let p = value_error(&text, 4, "t_s");
+    assert_eq!(
+        p,
+        ValueProblem::TimeDecreasing {
+            value: 0.5,
+            previous: 1.0,
+            previous_line: 3
+        }
+    );
+}
+
+#[test]
+fn error_negative_time() {
+    let text = format!("{HEADER}\n-0.5,1,2,3,4,5,6,7,8,1,2,3\n");
+    assert_eq!(value_error(&text, 2, "t_s"), ValueProblem::NegativeTime(-0.5));
+}
+
+#[test]
+fn error_empty_time_and_counts() {
+    let text = format!("{HEADER}\n,1,2,3,4,5,6,7,8,1,2,3\n");
+    assert_eq!(value_error(&text, 2, "t_s"), ValueProblem::Empty);
+    let text = format!("{HEADER}\n0,1,2,,4,5,6,7,8,1,2,3\n");
+    assert_eq!(value_error(&text, 2, "enc2"), ValueProblem::Empty);
+}
+
+#[test]
+fn error_count_out_of_range_or_not_integer() {
+    let text = format!("{HEADER}\n0,1,2,3,4,5,6,2147483648,8,1,2,3\n");
+    assert_eq!(
+        value_error(&text, 2, "enc6"),
+        ValueProblem::CountOutOfRange("2147483648".into())
+    );
+    let text = format!("{HEADER}\n0,1,2,3,4,5,6,7,-99999999999999999999999,1,2,3\n");
+    assert!(matches!(
+        value_error(&text, 2, "enc7"),
+        ValueProblem::CountOutOfRange(_)
+    ));
+    let text = format!("{HEADER}\n0,1.5,2,3,4,5,6,7,8,1,2,3\n");
+    assert_eq!(value_error(&text, 2, "enc0"), ValueProblem::NotAnInteger("1.5".into()));
+    let text = format!("{HEADER}\n0,x1,2,3,4,5,6,7,8,1,2,3\n");
+    assert_eq!(value_error(&text, 2, "enc0"), ValueProblem::NotANumber("x1".into()));
+}
+
+#[test]
+fn error_missing_file_names_it() {
+    let err = Session::load("/nonexistent/dir/s.csv").unwrap_err();
+    assert!(err.to_string().contains("/nonexistent/dir/s.csv"));
+    let err = Geometry::load("/nonexistent/dir/g.toml").unwrap_err();
+    assert!(err.to_string().contains("/nonexistent/dir/g.toml"));
+}
+
+#[test]
+fn writing_rejects_what_reading_would_reject() {
+    let s = Session {
+        samples: vec![Sample {
+            t_s: 0.0,
+            counts: [0; 8],
+            tracker: Some([0.0, f64::NAN, 0.0]),
+            legacy: None,
+            tension_n: None,
+        }],
+        ignored_columns: vec![],
+    };
+    let err = s.write(tmp("bad.csv")).unwrap_err();
+    assert!(matches!(err, DatasetError::Value { line: 2, ref column, .. } if column == "ots_y"), "{err}");
+}
+
+const GEOMETRY: &str = "counts_per_rev = 4096\npulley_radius_mm = 7.5\nhome_mm = [0, 0, 0]\n\
+anchors_mm = [[-1100, -1100, -1100], [1100, -1100, -1100], [1100, 1100, -1100], [-1100, 1100, -1100],\n\
+[-1100, -1100, 1100], [1100, -1100, 1100], [1100, 1100, 1100], [-1100, 1100, 1100]]\n\
+room_from_device_translation_mm = [0, 0, 1500]\n";
+
+fn geometry(text: &str) -> Result<Geometry, DatasetError> {
+    Geometry::from_toml_str(text, Path::new("mem/geometry.toml"))
+}
+
+#[test]
+fn geometry_accepts_integers() {
+    let g = geometry(GEOMETRY).unwrap();
+    assert_eq!(g, Geometry::load(shared("geometry.toml")).unwrap());
+}
+
+#[test]
+fn geometry_error_unknown_key_names_it() {
+    let err = geometry(&format!("{GEOMETRY}pulley_radius = 7\n")).unwrap_err();
+    let msg = err.to_string();
+    assert!(msg.contains("mem/geometry.toml") && msg.contains("pulley_radius"), "{msg}");
+    assert!(msg.contains("line 7"), "{msg}");
+}
+
+#[test]
+fn geometry_error_missing_key_and_bad_values() {
+    let text = GEOMETRY.replace("counts_per_rev = 4096\n", "");
+    let msg = geometry(&text).unwrap_err().to_string();
+    assert!(msg.contains("counts_per_rev"), "{msg}");
+
+    let text = GEOMETRY.replace("pulley_radius_mm = 7.5", "pulley_radius_mm = [7.5, 7.5]");
+    let err = geometry(&text).unwrap_err();
+    assert!(matches!(err, DatasetError::GeometryField { ref field, .. } if field == "pulley_radius_mm"));
+
+    let text = GEOMETRY.replace("pulley_radius_mm = 7.5", "pulley_radius_mm = -1.0");
+    let err = geometry(&text).unwrap_err();
+    assert!(err.to_string().contains("pulley_radius_mm[0]"), "{err}");
+
+    let text = GEOMETRY.replace("home_mm = [0, 0, 0]", "home_mm = [0, nan, 0]");
+    let err = geometry(&text).unwrap_err();
+    assert!(err.to_string().contains("home_mm[1]"), "{err}");
+
+    let text = GEOMETRY.replace("[-1100, 1100, 1100]]", "]");
+    let err = geometry(&text).unwrap_err();
+    assert!(matches!(err, DatasetError::GeometryField { ref field, .. } if field == "anchors_mm"));
+
+    let text = GEOMETRY.replace("counts_per_rev = 4096", "counts_per_rev = \"many\"");
+    let msg = geometry(&text).unwrap_err().to_string();
+    assert!(msg.contains("counts_per_rev") || msg.contains("line 1"), "{msg}");
+}
