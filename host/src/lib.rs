@@ -1,2 +1,5 @@
 //! Host side of the SPIDAR stack: datasets, simulation, identification,
 //! learned corrections, diagnosis, reports, and the device link.
+
+pub mod figures;
+pub mod stats;

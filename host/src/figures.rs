@@ -1,0 +1,347 @@
+//! Figures of the calibration report, as PNG files (plotters, bitmap backend).
+//!
+//! The paper's figures: spatial error map (figs. 9, 14, 16), error against
+//! distance to the origin before and after (figs. 15, 17), histogram (fig. 11),
+//! error in collection order (fig. 10), mean error against hidden neurons
+//! (fig. 13); and the diagnosis figure: a residual against the variable it
+//! follows.
+//!
+//! Text is drawn with a font compiled into the binary (the Ubuntu Light face
+//! that `epaint_default_fonts` ships), so figures need no system font stack.
+
+use std::path::{Path, PathBuf};
+use std::sync::Once;
+
+use plotters::prelude::*;
+
+/// A figure that could not be written; names the file.
+#[derive(Debug, thiserror::Error)]
+#[error("cannot draw figure {path}: {message}")]
+pub struct FigureError {
+    pub path: PathBuf,
+    pub message: String,
+}
+
+const SIZE: (u32, u32) = (900, 640);
+
+fn register_font() {
+    static ONCE: Once = Once::new();
+    ONCE.call_once(|| {
+        // The font bytes are a valid TTF shipped by the crate; registration
+        // can only fail on malformed data, which would show as missing text.
+        let _ = plotters::style::register_font(
+            "sans-serif",
+            FontStyle::Normal,
+            epaint_default_fonts::UBUNTU_LIGHT,
+        );
+    });
+}
+
+fn fail(path: &Path, e: impl std::fmt::Display) -> FigureError {
+    FigureError {
+        path: path.to_path_buf(),
+        message: e.to_string(),
+    }
+}
+
+/// Range of finite values with a margin; (0, 1) when there are none.
+fn span(values: impl Iterator<Item = f64>) -> (f64, f64) {
+    let (lo, hi) = values
+        .filter(|v| v.is_finite())
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), v| {
+            (lo.min(v), hi.max(v))
+        });
+    if !lo.is_finite() {
+        return (0.0, 1.0);
+    }
+    let pad = ((hi - lo) * 0.05).max(1e-9);
+    (lo - pad, hi + pad)
+}
+
+fn palette(i: usize) -> RGBColor {
+    const COLORS: [RGBColor; 6] = [
+        RGBColor(200, 40, 40),
+        RGBColor(30, 90, 200),
+        RGBColor(20, 150, 60),
+        RGBColor(200, 120, 0),
+        RGBColor(120, 40, 170),
+        RGBColor(0, 150, 160),
+    ];
+    COLORS[i % COLORS.len()]
+}
+
+/// Error magnitude to colour: blue (low) to red (high), as the paper's maps.
+fn heat(t: f64) -> RGBColor {
+    let t = t.clamp(0.0, 1.0);
+    let r = (255.0 * (1.5 * t).min(1.0)) as u8;
+    let b = (255.0 * (1.5 * (1.0 - t)).min(1.0)) as u8;
+    let g = (255.0 * (1.0 - (2.0 * t - 1.0).abs()) * 0.8) as u8;
+    RGBColor(r, g, b)
+}
+
+/// Spatial error map (paper figs. 9, 14, 16): each reference position as a
+/// point in 3D coloured by its error.
+pub fn spatial_error_map(
+    path: &Path,
+    title: &str,
+    positions: &[[f64; 3]],
+    errors_mm: &[f64],
+) -> Result<(), FigureError> {
+    register_font();
+    let root = BitMapBackend::new(path, SIZE).into_drawing_area();
+    root.fill(&WHITE).map_err(|e| fail(path, e))?;
+    let (main, bar) = root.split_horizontally(SIZE.0 - 110);
+    let x = span(positions.iter().map(|p| p[0]));
+    let y = span(positions.iter().map(|p| p[1]));
+    let z = span(positions.iter().map(|p| p[2]));
+    let (_, emax) = span(errors_mm.iter().copied());
+    let emax = emax.max(1e-9);
+    let mut chart = ChartBuilder::on(&main)
+        .caption(title, ("sans-serif", 22))
+        .margin(10)
+        .build_cartesian_3d(x.0..x.1, z.0..z.1, y.0..y.1)
+        .map_err(|e| fail(path, e))?;
+    chart.with_projection(|mut p| {
+        p.pitch = 0.35;
+        p.yaw = 0.6;
+        p.scale = 0.85;
+        p.into_matrix()
+    });
+    chart
+        .configure_axes()
+        .x_formatter(&|v| format!("x {v:.0}"))
+        .y_formatter(&|v| format!("z {v:.0}"))
+        .z_formatter(&|v| format!("y {v:.0}"))
+        .draw()
+        .map_err(|e| fail(path, e))?;
+    chart
+        .draw_series(
+            positions
+                .iter()
+                .zip(errors_mm)
+                .map(|(p, e)| Circle::new((p[0], p[2], p[1]), 2, heat(e / emax).filled())),
+        )
+        .map_err(|e| fail(path, e))?;
+    // Colour bar.
+    let steps = 50;
+    let mut bar_chart = ChartBuilder::on(&bar)
+        .margin_top(60)
+        .margin_bottom(60)
+        .y_label_area_size(60)
+        .caption("error mm", ("sans-serif", 14))
+        .build_cartesian_2d(0.0..1.0, 0.0..emax)
+        .map_err(|e| fail(path, e))?;
+    bar_chart
+        .configure_mesh()
+        .disable_x_mesh()
+        .disable_x_axis()
+        .y_labels(8)
+        .draw()
+        .map_err(|e| fail(path, e))?;
+    bar_chart
+        .draw_series((0..steps).map(|i| {
+            let lo = emax * i as f64 / steps as f64;
+            let hi = emax * (i + 1) as f64 / steps as f64;
+            Rectangle::new(
+                [(0.0, lo), (1.0, hi)],
+                heat(i as f64 / steps as f64).filled(),
+            )
+        }))
+        .map_err(|e| fail(path, e))?;
+    root.present().map_err(|e| fail(path, e))
+}
+
+/// One named set of (x, y) points of a scatter or line figure.
+pub struct Series<'a> {
+    pub label: &'a str,
+    pub x: &'a [f64],
+    pub y: &'a [f64],
+}
+
+/// Scatter of several series (e.g. error against distance to the origin
+/// before and after calibration, paper figs. 15 and 17).
+pub fn scatter(
+    path: &Path,
+    title: &str,
+    x_label: &str,
+    y_label: &str,
+    series: &[Series<'_>],
+) -> Result<(), FigureError> {
+    register_font();
+    let root = BitMapBackend::new(path, SIZE).into_drawing_area();
+    root.fill(&WHITE).map_err(|e| fail(path, e))?;
+    let x = span(series.iter().flat_map(|s| s.x.iter().copied()));
+    let y = span(series.iter().flat_map(|s| s.y.iter().copied()));
+    let mut chart = ChartBuilder::on(&root)
+        .caption(title, ("sans-serif", 22))
+        .margin(15)
+        .x_label_area_size(45)
+        .y_label_area_size(65)
+        .build_cartesian_2d(x.0..x.1, y.0..y.1)
+        .map_err(|e| fail(path, e))?;
+    chart
+        .configure_mesh()
+        .x_desc(x_label)
+        .y_desc(y_label)
+        .draw()
+        .map_err(|e| fail(path, e))?;
+    for (i, s) in series.iter().enumerate() {
+        let color = palette(i);
+        chart
+            .draw_series(
+                s.x.iter()
+                    .zip(s.y)
+                    .map(move |(&a, &b)| Circle::new((a, b), 2, color.filled())),
+            )
+            .map_err(|e| fail(path, e))?
+            .label(s.label)
+            .legend(move |(a, b)| Circle::new((a + 8, b), 4, color.filled()));
+    }
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .draw()
+        .map_err(|e| fail(path, e))?;
+    root.present().map_err(|e| fail(path, e))
+}
+
+/// Lines with markers (e.g. error in collection order, paper fig. 10; mean
+/// error against hidden neurons, fig. 13).
+pub fn lines(
+    path: &Path,
+    title: &str,
+    x_label: &str,
+    y_label: &str,
+    series: &[Series<'_>],
+) -> Result<(), FigureError> {
+    register_font();
+    let root = BitMapBackend::new(path, SIZE).into_drawing_area();
+    root.fill(&WHITE).map_err(|e| fail(path, e))?;
+    let x = span(series.iter().flat_map(|s| s.x.iter().copied()));
+    let y = span(series.iter().flat_map(|s| s.y.iter().copied()));
+    let mut chart = ChartBuilder::on(&root)
+        .caption(title, ("sans-serif", 22))
+        .margin(15)
+        .x_label_area_size(45)
+        .y_label_area_size(65)
+        .build_cartesian_2d(x.0..x.1, y.0..y.1)
+        .map_err(|e| fail(path, e))?;
+    chart
+        .configure_mesh()
+        .x_desc(x_label)
+        .y_desc(y_label)
+        .draw()
+        .map_err(|e| fail(path, e))?;
+    for (i, s) in series.iter().enumerate() {
+        let color = palette(i);
+        let points: Vec<(f64, f64)> = s.x.iter().copied().zip(s.y.iter().copied()).collect();
+        let markers = points.len() <= 60;
+        chart
+            .draw_series(LineSeries::new(points.clone(), color.stroke_width(1)))
+            .map_err(|e| fail(path, e))?
+            .label(s.label)
+            .legend(move |(a, b)| PathElement::new(vec![(a, b), (a + 16, b)], color));
+        if markers {
+            chart
+                .draw_series(
+                    points
+                        .into_iter()
+                        .map(move |p| Circle::new(p, 3, color.filled())),
+                )
+                .map_err(|e| fail(path, e))?;
+        }
+    }
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .draw()
+        .map_err(|e| fail(path, e))?;
+    root.present().map_err(|e| fail(path, e))
+}
+
+/// Frequency histogram of errors (paper fig. 11).
+pub fn histogram(
+    path: &Path,
+    title: &str,
+    x_label: &str,
+    values: &[f64],
+    bins: usize,
+) -> Result<(), FigureError> {
+    register_font();
+    let bins = bins.max(1);
+    let (lo, hi) = span(values.iter().copied());
+    let width = (hi - lo) / bins as f64;
+    let mut counts = vec![0usize; bins];
+    for v in values.iter().filter(|v| v.is_finite()) {
+        let b = (((v - lo) / width) as usize).min(bins - 1);
+        counts[b] += 1;
+    }
+    let top = counts.iter().copied().max().unwrap_or(1).max(1) as f64 * 1.05;
+    let root = BitMapBackend::new(path, SIZE).into_drawing_area();
+    root.fill(&WHITE).map_err(|e| fail(path, e))?;
+    let mut chart = ChartBuilder::on(&root)
+        .caption(title, ("sans-serif", 22))
+        .margin(15)
+        .x_label_area_size(45)
+        .y_label_area_size(65)
+        .build_cartesian_2d(lo..hi, 0.0..top)
+        .map_err(|e| fail(path, e))?;
+    chart
+        .configure_mesh()
+        .x_desc(x_label)
+        .y_desc("count")
+        .draw()
+        .map_err(|e| fail(path, e))?;
+    chart
+        .draw_series(counts.iter().enumerate().map(|(i, &c)| {
+            let a = lo + width * i as f64;
+            Rectangle::new([(a, 0.0), (a + width, c as f64)], palette(1).filled())
+        }))
+        .map_err(|e| fail(path, e))?;
+    root.present().map_err(|e| fail(path, e))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_figure_is_written() {
+        let dir = std::env::temp_dir().join(format!("spidar-fig-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let pos: Vec<[f64; 3]> = (0..100)
+            .map(|i| [i as f64, (i * 7 % 13) as f64, (i * 3 % 11) as f64])
+            .collect();
+        let err: Vec<f64> = (0..100).map(|i| (i % 17) as f64).collect();
+        let idx: Vec<f64> = (0..100).map(|i| i as f64).collect();
+        spatial_error_map(&dir.join("map.png"), "map", &pos, &err).unwrap();
+        let s = [Series {
+            label: "raw",
+            x: &idx,
+            y: &err,
+        }];
+        scatter(&dir.join("s.png"), "scatter", "x", "y", &s).unwrap();
+        lines(&dir.join("l.png"), "lines", "x", "y", &s).unwrap();
+        histogram(&dir.join("h.png"), "hist", "mm", &err, 20).unwrap();
+        for f in ["map.png", "s.png", "l.png", "h.png"] {
+            let len = std::fs::metadata(dir.join(f)).unwrap().len();
+            assert!(len > 1000, "{f} is {len} bytes");
+        }
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    #[test]
+    fn unwritable_path_is_an_error_naming_it() {
+        let e = histogram(
+            Path::new("/nonexistent-dir/x.png"),
+            "t",
+            "mm",
+            &[1.0, 2.0],
+            4,
+        )
+        .unwrap_err();
+        assert!(e.to_string().contains("/nonexistent-dir/x.png"));
+    }
+}

@@ -1,0 +1,131 @@
+//! Error statistics: the one place every report computes them.
+//!
+//! The absolute position error of the paper's eq. 7 is the Euclidean distance
+//! between a position and its reference (the tracker), in mm; reports give its
+//! mean, standard deviation and maximum (tables 1-6).
+
+use serde::{Deserialize, Serialize};
+
+/// Eq. 7: `|p - reference|`, in mm.
+pub fn position_error(p: [f64; 3], reference: [f64; 3]) -> f64 {
+    let d = [
+        p[0] - reference[0],
+        p[1] - reference[1],
+        p[2] - reference[2],
+    ];
+    (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt()
+}
+
+/// Eq. 7 for paired lists of positions.
+pub fn position_errors(positions: &[[f64; 3]], references: &[[f64; 3]]) -> Vec<f64> {
+    positions
+        .iter()
+        .zip(references)
+        .map(|(p, r)| position_error(*p, *r))
+        .collect()
+}
+
+/// Summary of a set of absolute errors (mm), as in the paper's tables.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ErrorStats {
+    /// Number of errors summarized.
+    pub n: usize,
+    pub mean_mm: f64,
+    /// Sample standard deviation (n - 1 in the denominator); 0 for n < 2.
+    pub sd_mm: f64,
+    pub max_mm: f64,
+    /// Median and 95th percentile (nearest rank), for robust reading.
+    pub median_mm: f64,
+    pub p95_mm: f64,
+}
+
+impl ErrorStats {
+    /// Statistics of `errors`; non-finite values are not summarized but
+    /// counted by the caller (see [`error_stats_checked`]).
+    pub fn of(errors: &[f64]) -> ErrorStats {
+        let n = errors.len();
+        if n == 0 {
+            return ErrorStats {
+                n: 0,
+                mean_mm: f64::NAN,
+                sd_mm: f64::NAN,
+                max_mm: f64::NAN,
+                median_mm: f64::NAN,
+                p95_mm: f64::NAN,
+            };
+        }
+        let mean = errors.iter().sum::<f64>() / n as f64;
+        let sd = if n > 1 {
+            (errors.iter().map(|e| (e - mean) * (e - mean)).sum::<f64>() / (n - 1) as f64).sqrt()
+        } else {
+            0.0
+        };
+        let mut sorted = errors.to_vec();
+        sorted.sort_by(f64::total_cmp);
+        let rank = |q: f64| sorted[(((q * n as f64).ceil() as usize).max(1) - 1).min(n - 1)];
+        ErrorStats {
+            n,
+            mean_mm: mean,
+            sd_mm: sd,
+            max_mm: sorted[n - 1],
+            median_mm: rank(0.5),
+            p95_mm: rank(0.95),
+        }
+    }
+}
+
+/// Errors that make statistics meaningless.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum StatsError {
+    #[error("{what}: no errors to summarize")]
+    Empty { what: String },
+    #[error("{what}: error #{index} is not finite ({value})")]
+    NonFinite {
+        what: String,
+        index: usize,
+        value: f64,
+    },
+}
+
+/// [`ErrorStats::of`], refusing empty or non-finite input with an error that
+/// names `what` (e.g. "identified, test session") and the offending index.
+pub fn error_stats_checked(what: &str, errors: &[f64]) -> Result<ErrorStats, StatsError> {
+    if errors.is_empty() {
+        return Err(StatsError::Empty {
+            what: what.to_string(),
+        });
+    }
+    if let Some((index, &value)) = errors.iter().enumerate().find(|(_, e)| !e.is_finite()) {
+        return Err(StatsError::NonFinite {
+            what: what.to_string(),
+            index,
+            value,
+        });
+    }
+    Ok(ErrorStats::of(errors))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn eq7_and_summary() {
+        assert_eq!(position_error([3.0, 4.0, 12.0], [0.0, 0.0, 0.0]), 13.0);
+        let s = ErrorStats::of(&[1.0, 2.0, 3.0, 4.0]);
+        assert_eq!(s.n, 4);
+        assert_eq!(s.mean_mm, 2.5);
+        assert!((s.sd_mm - 1.2909944487358056).abs() < 1e-12);
+        assert_eq!(s.max_mm, 4.0);
+        assert_eq!(s.median_mm, 2.0);
+        assert_eq!(s.p95_mm, 4.0);
+    }
+
+    #[test]
+    fn refuses_empty_and_nan_by_name() {
+        let e = error_stats_checked("raw, train", &[]).unwrap_err();
+        assert!(e.to_string().contains("raw, train"));
+        let e = error_stats_checked("nn, test", &[1.0, f64::NAN]).unwrap_err();
+        assert_eq!(e.to_string(), "nn, test: error #1 is not finite (NaN)");
+    }
+}
