@@ -1,1 +1,606 @@
-//! (being written: see docs/design.md)
+//! Safety rules of the device as a latched fault state.
+//!
+//! The [`SafetyMonitor`] sits between the tension distribution and the motor
+//! drivers. Every control-loop iteration the firmware calls
+//! [`SafetyMonitor::check`] (heartbeat, slack, forward kinematics, non-finite
+//! lengths), passes the commanded force through
+//! [`SafetyMonitor::limit_force`] and the tensions through
+//! [`SafetyMonitor::apply`].
+//!
+//! # Latching
+//!
+//! Every fault in [`Faults`] except [`Faults::OVERFORCE`] is **latched**: once
+//! set it stays set, and the device is disarmed, until the host clears it
+//! explicitly with [`SafetyMonitor::clear`] (the host's arm command does
+//! `clear()` then `arm()`). Nothing clears a fault by itself: a heartbeat that
+//! resumes, a string that becomes taut again or a consistent position do not.
+//! Two faults reflect an input that is still present and survive `clear()`
+//! while it is: [`Faults::ESTOP`] (while the emergency-stop input is active)
+//! and [`Faults::MODEL_INVALID`] (while the calibration model is flagged
+//! invalid).
+//!
+//! [`Faults::OVERFORCE`] is not a fault but a warning: a commanded force above
+//! `f_max` is clamped (direction preserved), which is normal operation; the
+//! bit reports, in [`SafetyMonitor::warnings`], whether the last
+//! `limit_force` clamped.
+//!
+//! While any fault is latched or the device is disarmed, every string gets
+//! the pre-tension only (strings stay taut, no force is rendered).
+//!
+//! f32 only; no allocation, no panics.
+
+use core::ops::{BitOr, BitOrAssign};
+
+use serde::{Deserialize, Serialize};
+
+use crate::STRINGS;
+
+/// A set of safety faults, one bit each (see the module doc for which latch).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub struct Faults(u16);
+
+impl Faults {
+    /// No fault.
+    pub const NONE: Faults = Faults(0);
+    /// No heartbeat from the host for longer than `heartbeat_timeout_ms`. Latched.
+    pub const HEARTBEAT_LOST: Faults = Faults(1 << 0);
+    /// A string is slack: measured longer than its geometric length by more
+    /// than `slack_threshold_mm` (which strings: [`SafetyMonitor::slack_mask`]). Latched.
+    pub const SLACK: Faults = Faults(1 << 1);
+    /// Forward kinematics found no consistent position. Latched.
+    pub const FK_FAULT: Faults = Faults(1 << 2);
+    /// A NaN or infinity in lengths, force or tensions. Latched.
+    pub const NON_FINITE: Faults = Faults(1 << 3);
+    /// The last commanded force exceeded `f_max` and was clamped. Warning
+    /// only, never latched.
+    pub const OVERFORCE: Faults = Faults(1 << 4);
+    /// Hardware emergency-stop input active. Latched; survives `clear()`
+    /// while the input is still active.
+    pub const ESTOP: Faults = Faults(1 << 5);
+    /// The calibration model is invalid (e.g. blob failed to load). Latched;
+    /// survives `clear()` while the model is still flagged invalid.
+    pub const MODEL_INVALID: Faults = Faults(1 << 6);
+
+    /// Every defined bit.
+    pub const ALL: Faults = Faults(0x7f);
+
+    /// The raw bits.
+    pub const fn bits(self) -> u16 {
+        self.0
+    }
+
+    /// From raw bits; undefined bits are dropped.
+    pub const fn from_bits_truncate(bits: u16) -> Faults {
+        Faults(bits & Self::ALL.0)
+    }
+
+    /// Whether no bit is set.
+    pub const fn is_empty(self) -> bool {
+        self.0 == 0
+    }
+
+    /// Whether every bit of `other` is set in `self`.
+    pub const fn contains(self, other: Faults) -> bool {
+        self.0 & other.0 == other.0
+    }
+
+    /// Whether any bit of `other` is set in `self`.
+    pub const fn intersects(self, other: Faults) -> bool {
+        self.0 & other.0 != 0
+    }
+
+    /// Sets the bits of `other`.
+    pub fn insert(&mut self, other: Faults) {
+        self.0 |= other.0;
+    }
+
+    /// Clears the bits of `other`.
+    pub fn remove(&mut self, other: Faults) {
+        self.0 &= !other.0;
+    }
+}
+
+impl BitOr for Faults {
+    type Output = Faults;
+    fn bitor(self, rhs: Faults) -> Faults {
+        Faults(self.0 | rhs.0)
+    }
+}
+
+impl BitOrAssign for Faults {
+    fn bitor_assign(&mut self, rhs: Faults) {
+        self.0 |= rhs.0;
+    }
+}
+
+/// Safety limits of the device.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SafetyConfig {
+    /// Lowest tension (N) passed to the motors while armed.
+    pub t_min: f32,
+    /// Highest tension (N) passed to the motors.
+    pub t_max: f32,
+    /// Largest force (N) on the end-effector that may be commanded.
+    pub f_max: f32,
+    /// Tension (N) of every string while disarmed or faulted, in `[0, t_max]`.
+    pub pretension_n: f32,
+    /// Longest time (ms) without a host heartbeat, in `1..=i32::MAX`.
+    pub heartbeat_timeout_ms: u32,
+    /// A string measured longer than its geometric length by more than this
+    /// (mm) is slack.
+    pub slack_threshold_mm: f32,
+}
+
+/// Why a [`SafetyConfig`] was rejected.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum SafetyConfigError {
+    /// A field is NaN or infinite.
+    NonFinite,
+    /// Not `0 <= t_min <= t_max`.
+    TensionLimits,
+    /// `f_max < 0`.
+    ForceLimit,
+    /// `pretension_n` not in `[0, t_max]`.
+    Pretension,
+    /// `heartbeat_timeout_ms` is 0 or above `i32::MAX`.
+    HeartbeatTimeout,
+    /// `slack_threshold_mm < 0`.
+    SlackThreshold,
+}
+
+impl SafetyConfig {
+    /// Checks the invariants documented on the fields.
+    pub fn validate(&self) -> Result<(), SafetyConfigError> {
+        let values = [
+            self.t_min,
+            self.t_max,
+            self.f_max,
+            self.pretension_n,
+            self.slack_threshold_mm,
+        ];
+        if !values.iter().all(|v| v.is_finite()) {
+            return Err(SafetyConfigError::NonFinite);
+        }
+        if self.t_min < 0.0 || self.t_min > self.t_max {
+            return Err(SafetyConfigError::TensionLimits);
+        }
+        if self.f_max < 0.0 {
+            return Err(SafetyConfigError::ForceLimit);
+        }
+        if self.pretension_n < 0.0 || self.pretension_n > self.t_max {
+            return Err(SafetyConfigError::Pretension);
+        }
+        if self.heartbeat_timeout_ms == 0 || self.heartbeat_timeout_ms > i32::MAX as u32 {
+            return Err(SafetyConfigError::HeartbeatTimeout);
+        }
+        if self.slack_threshold_mm < 0.0 {
+            return Err(SafetyConfigError::SlackThreshold);
+        }
+        Ok(())
+    }
+}
+
+/// The latched safety state of the device. Starts disarmed with no fault.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SafetyMonitor {
+    config: SafetyConfig,
+    faults: Faults,
+    warnings: Faults,
+    slack_mask: u8,
+    armed: bool,
+    last_heartbeat_ms: Option<u32>,
+    estop_active: bool,
+    model_valid: bool,
+}
+
+impl SafetyMonitor {
+    /// A disarmed monitor with no fault, or the reason `config` is invalid.
+    pub fn new(config: SafetyConfig) -> Result<Self, SafetyConfigError> {
+        config.validate()?;
+        Ok(Self {
+            config,
+            faults: Faults::NONE,
+            warnings: Faults::NONE,
+            slack_mask: 0,
+            armed: false,
+            last_heartbeat_ms: None,
+            estop_active: false,
+            model_valid: true,
+        })
+    }
+
+    /// The limits in force.
+    pub fn config(&self) -> &SafetyConfig {
+        &self.config
+    }
+
+    /// Records a host heartbeat at `now_ms` (ms, any monotonic u32 clock that
+    /// may wrap). Does not clear a latched `HEARTBEAT_LOST`.
+    pub fn heartbeat(&mut self, now_ms: u32) {
+        self.last_heartbeat_ms = Some(now_ms);
+    }
+
+    /// Sets the hardware emergency-stop input; active latches `ESTOP` at once.
+    pub fn set_estop(&mut self, active: bool) {
+        self.estop_active = active;
+        if active {
+            self.latch(Faults::ESTOP);
+        }
+    }
+
+    /// Flags the calibration model valid or not; invalid latches `MODEL_INVALID` at once.
+    pub fn set_model_valid(&mut self, valid: bool) {
+        self.model_valid = valid;
+        if !valid {
+            self.latch(Faults::MODEL_INVALID);
+        }
+    }
+
+    /// One control-loop check at `now_ms` (ms). `measured_lengths_mm` are the
+    /// string lengths from the encoders (mm), `geometric_lengths_mm` the
+    /// distances from the estimated position to the anchors (mm), `fk_ok`
+    /// whether forward kinematics found a consistent position. Latches:
+    /// `HEARTBEAT_LOST` if the last heartbeat is older than the timeout (or,
+    /// while armed, if there never was one); `NON_FINITE` for any NaN or
+    /// infinite length; `FK_FAULT` if `!fk_ok`; `SLACK` with the strings'
+    /// bits in the slack mask for `measured - geometric > slack_threshold_mm`
+    /// (checked only when `fk_ok`: otherwise the geometric lengths are
+    /// meaningless); `ESTOP`/`MODEL_INVALID` while their inputs are active.
+    /// Returns the latched faults.
+    pub fn check(
+        &mut self,
+        now_ms: u32,
+        measured_lengths_mm: &[f32; STRINGS],
+        geometric_lengths_mm: &[f32; STRINGS],
+        fk_ok: bool,
+    ) -> Faults {
+        match self.last_heartbeat_ms {
+            Some(last) => {
+                // Wrapping difference; a heartbeat stamped after `now_ms`
+                // (negative age) counts as fresh.
+                let age = now_ms.wrapping_sub(last) as i32;
+                if age > self.config.heartbeat_timeout_ms as i32 {
+                    self.latch(Faults::HEARTBEAT_LOST);
+                }
+            }
+            None => {
+                if self.armed {
+                    self.latch(Faults::HEARTBEAT_LOST);
+                }
+            }
+        }
+        if !fk_ok {
+            self.latch(Faults::FK_FAULT);
+        }
+        let mut slack = 0u8;
+        for i in 0..STRINGS {
+            let (m, g) = (measured_lengths_mm[i], geometric_lengths_mm[i]);
+            if !(m.is_finite() && g.is_finite()) {
+                self.latch(Faults::NON_FINITE);
+            } else if fk_ok && m - g > self.config.slack_threshold_mm {
+                slack |= 1 << i;
+            }
+        }
+        if slack != 0 {
+            self.slack_mask |= slack;
+            self.latch(Faults::SLACK);
+        }
+        if self.estop_active {
+            self.latch(Faults::ESTOP);
+        }
+        if !self.model_valid {
+            self.latch(Faults::MODEL_INVALID);
+        }
+        self.faults
+    }
+
+    /// Clamps the magnitude of a commanded force (N) to `f_max`, preserving
+    /// its direction, and sets or clears the `OVERFORCE` warning. A non-finite
+    /// force becomes zero and latches `NON_FINITE`.
+    pub fn limit_force(&mut self, force: [f32; 3]) -> [f32; 3] {
+        if !force.iter().all(|f| f.is_finite()) {
+            self.latch(Faults::NON_FINITE);
+            return [0.0; 3];
+        }
+        // Scaled norm: no overflow for any finite force.
+        let m = force
+            .iter()
+            .fold(0.0f32, |m, f| if f.abs() > m { f.abs() } else { m });
+        if m <= 0.0 {
+            self.warnings.remove(Faults::OVERFORCE);
+            return force;
+        }
+        let w = [force[0] / m, force[1] / m, force[2] / m];
+        let w_norm = libm::sqrtf(w[0] * w[0] + w[1] * w[1] + w[2] * w[2]);
+        let norm = m * w_norm; // may be +inf for huge finite forces
+        if norm > self.config.f_max {
+            self.warnings.insert(Faults::OVERFORCE);
+            let scale = self.config.f_max / w_norm;
+            [w[0] * scale, w[1] * scale, w[2] * scale]
+        } else {
+            self.warnings.remove(Faults::OVERFORCE);
+            force
+        }
+    }
+
+    /// The tensions (N) to send to the motors: the pre-tension on every
+    /// string while any fault is latched or the device is disarmed, otherwise
+    /// each tension clamped to `[t_min, t_max]`. Any non-finite tension
+    /// latches `NON_FINITE` (and so gives the pre-tension).
+    pub fn apply(&mut self, tensions: [f32; STRINGS]) -> [f32; STRINGS] {
+        if !tensions.iter().all(|t| t.is_finite()) {
+            self.latch(Faults::NON_FINITE);
+        }
+        if !self.faults.is_empty() || !self.armed {
+            return [self.config.pretension_n; STRINGS];
+        }
+        let (lo, hi) = (self.config.t_min, self.config.t_max);
+        tensions.map(|t| {
+            if t < lo {
+                lo
+            } else if t > hi {
+                hi
+            } else {
+                t
+            }
+        })
+    }
+
+    /// Arms the device (tensions pass through `apply`). Refused, returning the
+    /// blocking faults, while any fault is latched or before the first
+    /// heartbeat (`HEARTBEAT_LOST`).
+    pub fn arm(&mut self) -> Result<(), Faults> {
+        if !self.faults.is_empty() {
+            return Err(self.faults);
+        }
+        if self.last_heartbeat_ms.is_none() {
+            return Err(Faults::HEARTBEAT_LOST);
+        }
+        self.armed = true;
+        Ok(())
+    }
+
+    /// Disarms the device: pre-tension only.
+    pub fn disarm(&mut self) {
+        self.armed = false;
+    }
+
+    /// Whether the device is armed (faults latched or not).
+    pub fn is_armed(&self) -> bool {
+        self.armed
+    }
+
+    /// The latched faults.
+    pub fn faults(&self) -> Faults {
+        self.faults
+    }
+
+    /// Warnings of the last call (`OVERFORCE`), not latched.
+    pub fn warnings(&self) -> Faults {
+        self.warnings
+    }
+
+    /// Strings found slack since the last `clear()`, bit `i` = string `i`.
+    pub fn slack_mask(&self) -> u8 {
+        self.slack_mask
+    }
+
+    /// Clears the latched faults and the slack mask, except `ESTOP` and
+    /// `MODEL_INVALID` while their inputs are still active. Does not arm.
+    /// Returns the faults still latched.
+    pub fn clear(&mut self) -> Faults {
+        let mut keep = Faults::NONE;
+        if self.estop_active {
+            keep.insert(Faults::ESTOP);
+        }
+        if !self.model_valid {
+            keep.insert(Faults::MODEL_INVALID);
+        }
+        self.faults = Faults::from_bits_truncate(self.faults.bits() & keep.bits());
+        self.slack_mask = 0;
+        self.faults
+    }
+
+    /// Latches `fault` and disarms.
+    fn latch(&mut self, fault: Faults) {
+        self.faults.insert(fault);
+        self.armed = false;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const CONFIG: SafetyConfig = SafetyConfig {
+        t_min: 0.5,
+        t_max: 20.0,
+        f_max: 10.0,
+        pretension_n: 1.0,
+        heartbeat_timeout_ms: 100,
+        slack_threshold_mm: 5.0,
+    };
+
+    const LENGTHS: [f32; STRINGS] = [1000.0; STRINGS];
+
+    fn armed_monitor() -> SafetyMonitor {
+        let mut m = SafetyMonitor::new(CONFIG).unwrap();
+        m.heartbeat(0);
+        m.arm().unwrap();
+        m
+    }
+
+    #[test]
+    fn heartbeat_timeout_latches_until_clear() {
+        let mut m = armed_monitor();
+        let t = [5.0; STRINGS];
+        assert_eq!(m.check(50, &LENGTHS, &LENGTHS, true), Faults::NONE);
+        assert_eq!(m.apply(t), t);
+        m.heartbeat(90);
+        assert_eq!(m.check(190, &LENGTHS, &LENGTHS, true), Faults::NONE); // exactly the timeout
+        assert_eq!(
+            m.check(191, &LENGTHS, &LENGTHS, true),
+            Faults::HEARTBEAT_LOST
+        );
+        assert!(!m.is_armed());
+        assert_eq!(m.apply(t), [CONFIG.pretension_n; STRINGS]);
+        // Heartbeats resume: still latched, still pre-tension only.
+        m.heartbeat(200);
+        assert_eq!(
+            m.check(210, &LENGTHS, &LENGTHS, true),
+            Faults::HEARTBEAT_LOST
+        );
+        assert_eq!(m.apply(t), [CONFIG.pretension_n; STRINGS]);
+        assert_eq!(m.arm(), Err(Faults::HEARTBEAT_LOST));
+        // The host's arm command: clear, then arm.
+        assert_eq!(m.clear(), Faults::NONE);
+        assert_eq!(m.apply(t), [CONFIG.pretension_n; STRINGS]); // cleared but not armed
+        m.arm().unwrap();
+        assert_eq!(m.check(220, &LENGTHS, &LENGTHS, true), Faults::NONE);
+        assert_eq!(m.apply(t), t);
+    }
+
+    #[test]
+    fn heartbeat_age_wraps_with_the_clock() {
+        let mut m = SafetyMonitor::new(CONFIG).unwrap();
+        m.heartbeat(u32::MAX - 10);
+        m.arm().unwrap();
+        assert_eq!(m.check(20, &LENGTHS, &LENGTHS, true), Faults::NONE); // 31 ms later
+        assert_eq!(m.check(89, &LENGTHS, &LENGTHS, true), Faults::NONE); // 100 ms later
+        assert_eq!(
+            m.check(90, &LENGTHS, &LENGTHS, true),
+            Faults::HEARTBEAT_LOST
+        ); // 101 ms
+    }
+
+    #[test]
+    fn arming_needs_a_heartbeat() {
+        let mut m = SafetyMonitor::new(CONFIG).unwrap();
+        assert_eq!(m.arm(), Err(Faults::HEARTBEAT_LOST));
+        // Disarmed and never heard from the host: idle, no fault.
+        assert_eq!(m.check(10_000, &LENGTHS, &LENGTHS, true), Faults::NONE);
+        assert_eq!(m.apply([5.0; STRINGS]), [CONFIG.pretension_n; STRINGS]);
+    }
+
+    #[test]
+    fn slack_is_detected_on_the_right_string() {
+        let mut m = armed_monitor();
+        let mut measured = LENGTHS;
+        measured[5] = 1006.0; // 6 mm longer than geometric: slack
+        measured[3] = 1004.0; // 4 mm: within threshold
+        measured[1] = 980.0; // shorter (stretched estimate): not slack
+        assert_eq!(m.check(10, &measured, &LENGTHS, true), Faults::SLACK);
+        assert_eq!(m.slack_mask(), 0b0010_0000);
+        assert_eq!(m.apply([5.0; STRINGS]), [CONFIG.pretension_n; STRINGS]);
+        // Taut again: still latched, mask kept.
+        assert_eq!(m.check(20, &LENGTHS, &LENGTHS, true), Faults::SLACK);
+        assert_eq!(m.slack_mask(), 0b0010_0000);
+        m.clear();
+        assert_eq!(m.slack_mask(), 0);
+        // Without a consistent position the slack test is skipped; FK_FAULT latches.
+        assert_eq!(m.check(30, &measured, &LENGTHS, false), Faults::FK_FAULT);
+        assert_eq!(m.slack_mask(), 0);
+    }
+
+    #[test]
+    fn tensions_and_force_are_clamped() {
+        let mut m = armed_monitor();
+        let t = [-1.0, 0.1, 0.5, 10.0, 20.0, 25.0, 1e9, 3.0];
+        assert_eq!(m.apply(t), [0.5, 0.5, 0.5, 10.0, 20.0, 20.0, 20.0, 3.0]);
+        // |(30, 40, 0)| = 50 N > 10 N: scaled to (6, 8, 0).
+        let f = m.limit_force([30.0, 40.0, 0.0]);
+        assert!((f[0] - 6.0).abs() < 1e-6 && (f[1] - 8.0).abs() < 1e-6 && f[2] == 0.0);
+        assert!(m.warnings().contains(Faults::OVERFORCE));
+        assert!(m.faults().is_empty() && m.is_armed()); // a warning, not a fault
+        assert_eq!(m.limit_force([1.0, -2.0, 2.0]), [1.0, -2.0, 2.0]);
+        assert!(m.warnings().is_empty());
+        assert_eq!(m.limit_force([0.0; 3]), [0.0; 3]);
+        let f = m.limit_force([f32::MAX, f32::MAX, 0.0]);
+        assert!(f.iter().all(|x| x.is_finite()));
+        assert!((f[0] - 10.0 / 2.0f32.sqrt()).abs() < 1e-5);
+    }
+
+    #[test]
+    fn nan_gives_pretension_and_latches() {
+        let mut m = armed_monitor();
+        let mut t = [5.0; STRINGS];
+        t[2] = f32::NAN;
+        assert_eq!(m.apply(t), [CONFIG.pretension_n; STRINGS]);
+        assert_eq!(m.faults(), Faults::NON_FINITE);
+        assert_eq!(m.apply([5.0; STRINGS]), [CONFIG.pretension_n; STRINGS]);
+        m.clear();
+        m.arm().unwrap();
+        assert_eq!(m.limit_force([f32::NAN, 0.0, 0.0]), [0.0; 3]);
+        assert_eq!(m.faults(), Faults::NON_FINITE);
+        m.clear();
+        m.arm().unwrap();
+        let mut measured = LENGTHS;
+        measured[7] = f32::INFINITY;
+        assert_eq!(m.check(10, &measured, &LENGTHS, true), Faults::NON_FINITE);
+        assert_eq!(m.slack_mask(), 0);
+    }
+
+    #[test]
+    fn estop_and_model_survive_clear_while_active() {
+        let mut m = armed_monitor();
+        m.set_estop(true);
+        assert!(!m.is_armed());
+        assert_eq!(m.clear(), Faults::ESTOP);
+        assert_eq!(m.arm(), Err(Faults::ESTOP));
+        m.set_estop(false);
+        assert_eq!(m.faults(), Faults::ESTOP); // still latched
+        assert_eq!(m.clear(), Faults::NONE);
+        m.set_model_valid(false);
+        assert_eq!(m.clear(), Faults::MODEL_INVALID);
+        assert_eq!(m.check(10, &LENGTHS, &LENGTHS, true), Faults::MODEL_INVALID);
+        m.set_model_valid(true);
+        assert_eq!(m.clear(), Faults::NONE);
+        m.arm().unwrap();
+        assert!(m.is_armed());
+        m.disarm();
+        assert_eq!(m.apply([5.0; STRINGS]), [CONFIG.pretension_n; STRINGS]);
+    }
+
+    #[test]
+    fn faults_bit_set() {
+        let mut f = Faults::SLACK | Faults::ESTOP;
+        assert!(f.contains(Faults::SLACK) && f.intersects(Faults::ESTOP | Faults::FK_FAULT));
+        assert!(!f.contains(Faults::SLACK | Faults::FK_FAULT));
+        f.remove(Faults::SLACK);
+        assert_eq!(f, Faults::ESTOP);
+        f |= Faults::NON_FINITE;
+        assert_eq!(f.bits(), (1 << 5) | (1 << 3));
+        assert_eq!(Faults::from_bits_truncate(0xffff), Faults::ALL);
+    }
+
+    #[test]
+    fn invalid_config_is_rejected() {
+        let bad = |f: fn(&mut SafetyConfig)| {
+            let mut c = CONFIG;
+            f(&mut c);
+            SafetyMonitor::new(c).err()
+        };
+        assert_eq!(
+            bad(|c| c.t_max = f32::NAN),
+            Some(SafetyConfigError::NonFinite)
+        );
+        assert_eq!(
+            bad(|c| c.t_min = 30.0),
+            Some(SafetyConfigError::TensionLimits)
+        );
+        assert_eq!(bad(|c| c.f_max = -1.0), Some(SafetyConfigError::ForceLimit));
+        assert_eq!(
+            bad(|c| c.pretension_n = 25.0),
+            Some(SafetyConfigError::Pretension)
+        );
+        assert_eq!(
+            bad(|c| c.heartbeat_timeout_ms = 0),
+            Some(SafetyConfigError::HeartbeatTimeout)
+        );
+        assert_eq!(
+            bad(|c| c.slack_threshold_mm = -1.0),
+            Some(SafetyConfigError::SlackThreshold)
+        );
+        assert_eq!(bad(|_| ()), None);
+    }
+}

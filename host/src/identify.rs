@@ -1,0 +1,1030 @@
+//! Kinematic identification: Levenberg-Marquardt on anchors, home, the winding
+//! law and the tracker frame (plus any effect terms the diagnosis loop added),
+//! from a session with tracker positions.
+//!
+//! ## Formulation
+//! The tracker gives the true end-effector position in the room; mapped into
+//! the device frame it gives each string's true geometric length
+//! `|p - anchor_i|`. The model gives the same length from the counts
+//! (`spidar_core::string_law::string_lengths_f64`). Identification minimizes
+//! the string-space residuals
+//!
+//! `r_ki = |p_k - anchor_i| - L_i(counts_k, direction_k, tension_k, t_k)`
+//!
+//! (8 per captured row; 2197 x 8 for a lattice) plus prior terms. String space
+//! keeps every residual explicit (no forward kinematics inside the fit) and
+//! attributes errors to strings, which is what diagnosis needs next.
+//!
+//! ## Winding law
+//! A string wound in level layers on a pulley of bare radius r0 has a winding
+//! radius that shrinks linearly as it is paid out, so the payout is exactly
+//! quadratic in the pulley angle (`model::StringLaw`). All pulleys and strings
+//! are the same parts, so two shared parameters describe all eight laws: the
+//! winding radius at home `r_home` for a string of the mean home length, and
+//! `kappa = d^2 / (4 pi)` (string diameter d). A string whose home length is
+//! shorter has more string wound at home and so a larger radius:
+//! `r_home_i^2 = r_home^2 + 4 kappa (mean_home_length - home_length_i)`.
+//! Per-string departures (another pulley, a longer string) are effects the
+//! diagnosis loop adds when the data show them.
+//!
+//! ## Gauge and priors
+//! Moving all anchors and home rigidly can be undone by the tracker frame, so
+//! the anchors' centroid and mean orientation are pinned to the nominal design
+//! (six tight prior rows). Each anchor coordinate has a prior around its
+//! nominal value with the as-built tolerance (`Priors::anchor_sd_mm`); home
+//! and the tracker frame have wide priors. A parameter whose posterior
+//! standard deviation is close to its prior's is reported as not determined by
+//! the data.
+//!
+//! ## Robustness
+//! Iteratively reweighted least squares: a plain least-squares round, a Huber
+//! round, then Tukey biweight rounds with the scale from the median absolute
+//! deviation, so residuals of a misbehaving motor (the paper's outliers) stop
+//! pulling on the fit. Weights are per string and row: one bad string does not
+//! discard the other seven.
+
+use nalgebra::{DMatrix, DVector, Dyn, Owned};
+use serde::{Deserialize, Serialize};
+use spidar_core::model::{Effect, EffectTerm, Frame, StringLaw, WINDING_ORDER};
+use spidar_core::string_law::{string_lengths_f64, EffectContext};
+use spidar_core::STRINGS;
+
+use crate::observe::Observation;
+
+/// Prior standard deviations of the geometry.
+#[derive(Clone, Copy, Debug, Serialize, Deserialize)]
+pub struct Priors {
+    /// As-built tolerance of each anchor coordinate, mm.
+    pub anchor_sd_mm: f64,
+    /// Home (initialization point) tolerance, mm.
+    pub home_sd_mm: f64,
+    /// Tracker frame rotation tolerance, rad.
+    pub rotation_sd_rad: f64,
+    /// Tracker frame translation tolerance, mm.
+    pub translation_sd_mm: f64,
+}
+
+impl Default for Priors {
+    fn default() -> Self {
+        Priors {
+            anchor_sd_mm: 15.0,
+            home_sd_mm: 200.0,
+            rotation_sd_rad: 0.2,
+            translation_sd_mm: 500.0,
+        }
+    }
+}
+
+/// Which parameters are free: the base model plus what diagnosis added.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct Structure {
+    pub priors: Priors,
+    /// Per-anchor prior sd (mm), overriding `priors.anchor_sd_mm` for anchors
+    /// the geometry family released (e.g. a bracket mounted in the wrong hole).
+    pub anchor_sd_override_mm: [Option<f64>; STRINGS],
+    /// Whether the tracker's scale relative to the device is free.
+    pub fit_room_scale: bool,
+    /// Effect terms with their starting values; their parameters are free
+    /// (a slip's time is not: it is chosen by the diagnosis search).
+    pub effects: Vec<EffectTerm>,
+}
+
+impl Default for Structure {
+    fn default() -> Self {
+        Structure {
+            priors: Priors::default(),
+            anchor_sd_override_mm: [None; STRINGS],
+            fit_room_scale: false,
+            effects: Vec::new(),
+        }
+    }
+}
+
+/// The shared winding physics of the eight strings (see the module doc).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct WindingPhysics {
+    /// Winding radius at home of a string of `mean_home_length_mm`, mm.
+    pub r_home_mm: f64,
+    /// `d^2 / (4 pi)`, mm/rad^2: how fast the radius shrinks with payout.
+    pub kappa_mm: f64,
+    /// Reference home length (mean of the nominal home lengths), mm.
+    pub mean_home_length_mm: f64,
+    pub counts_per_rev: u32,
+}
+
+impl WindingPhysics {
+    /// Winding radius at home of a string whose home length is `home_length`;
+    /// `None` when the parameters give no real radius.
+    pub fn radius_at_home(&self, home_length: f64) -> Option<f64> {
+        let r2 = self.r_home_mm * self.r_home_mm
+            + 4.0 * self.kappa_mm * (self.mean_home_length_mm - home_length);
+        (r2 > 0.0 && r2.is_finite()).then(|| r2.sqrt())
+    }
+
+    /// The per-string laws this physics gives for `frame`.
+    pub fn laws(&self, frame: &Frame<f64>) -> Option<[StringLaw; STRINGS]> {
+        let mut laws = [StringLaw {
+            counts_per_rev: self.counts_per_rev,
+            winding_mm: [0.0; WINDING_ORDER],
+        }; STRINGS];
+        for (i, law) in laws.iter_mut().enumerate() {
+            let r = self.radius_at_home(dist(frame.home, frame.anchors[i]))?;
+            law.winding_mm[0] = r;
+            law.winding_mm[1] = -self.kappa_mm;
+        }
+        Some(laws)
+    }
+}
+
+/// One identified parameter with its uncertainty.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct ParameterEstimate {
+    pub name: String,
+    pub unit: &'static str,
+    pub value: f64,
+    /// Posterior standard deviation (from the Gauss-Newton covariance).
+    pub sd: f64,
+    /// Prior standard deviation, when the parameter has a prior.
+    pub prior_sd: Option<f64>,
+    /// False when the data do not determine the parameter (see warnings).
+    pub determined: bool,
+}
+
+/// Result of an identification.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct Identification {
+    pub frame: Frame<f64>,
+    pub winding: WindingPhysics,
+    pub laws: [StringLaw; STRINGS],
+    pub effects: Vec<EffectTerm>,
+    pub parameters: Vec<ParameterEstimate>,
+    pub warnings: Vec<String>,
+    /// Robust scale of the string-space residuals, mm.
+    pub residual_scale_mm: f64,
+    /// Share of (row, string) residuals the robust weights rejected (weight < 0.1).
+    pub rejected_fraction: f64,
+    /// LM evaluations over all robust rounds.
+    pub evaluations: usize,
+}
+
+/// Why an identification failed.
+#[derive(Debug, thiserror::Error)]
+pub enum IdentifyError {
+    #[error("identification needs at least {needed} rows with tracker positions, the session has {got}")]
+    TooFewRows { needed: usize, got: usize },
+    #[error("identification diverged: {0}")]
+    Diverged(String),
+}
+
+fn dist(a: [f64; 3], b: [f64; 3]) -> f64 {
+    let d = [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
+    (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt()
+}
+
+fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+
+fn mat_vec(m: &[[f64; 3]; 3], v: [f64; 3]) -> [f64; 3] {
+    [
+        m[0][0] * v[0] + m[0][1] * v[1] + m[0][2] * v[2],
+        m[1][0] * v[0] + m[1][1] * v[1] + m[1][2] * v[2],
+        m[2][0] * v[0] + m[2][1] * v[1] + m[2][2] * v[2],
+    ]
+}
+
+fn mat_t_vec(m: &[[f64; 3]; 3], v: [f64; 3]) -> [f64; 3] {
+    [
+        m[0][0] * v[0] + m[1][0] * v[1] + m[2][0] * v[2],
+        m[0][1] * v[0] + m[1][1] * v[1] + m[2][1] * v[2],
+        m[0][2] * v[0] + m[1][2] * v[1] + m[2][2] * v[2],
+    ]
+}
+
+fn mat_mul(a: &[[f64; 3]; 3], b: &[[f64; 3]; 3]) -> [[f64; 3]; 3] {
+    let mut m = [[0.0; 3]; 3];
+    for (i, row) in m.iter_mut().enumerate() {
+        for (j, v) in row.iter_mut().enumerate() {
+            *v = (0..3).map(|k| a[i][k] * b[k][j]).sum();
+        }
+    }
+    m
+}
+
+/// Rotation matrix of a rotation vector (Rodrigues).
+pub fn rotation_from_vector(w: [f64; 3]) -> [[f64; 3]; 3] {
+    let angle = (w[0] * w[0] + w[1] * w[1] + w[2] * w[2]).sqrt();
+    if angle < 1e-15 {
+        return [[1.0, -w[2], w[1]], [w[2], 1.0, -w[0]], [-w[1], w[0], 1.0]];
+    }
+    let k = [w[0] / angle, w[1] / angle, w[2] / angle];
+    let (s, c) = angle.sin_cos();
+    let v = 1.0 - c;
+    [
+        [
+            c + k[0] * k[0] * v,
+            k[0] * k[1] * v - k[2] * s,
+            k[0] * k[2] * v + k[1] * s,
+        ],
+        [
+            k[1] * k[0] * v + k[2] * s,
+            c + k[1] * k[1] * v,
+            k[1] * k[2] * v - k[0] * s,
+        ],
+        [
+            k[2] * k[0] * v - k[1] * s,
+            k[2] * k[1] * v + k[0] * s,
+            c + k[2] * k[2] * v,
+        ],
+    ]
+}
+
+/// Rotation vector of a rotation matrix (inverse of [`rotation_from_vector`]).
+pub fn vector_from_rotation(r: &[[f64; 3]; 3]) -> [f64; 3] {
+    let cos = ((r[0][0] + r[1][1] + r[2][2] - 1.0) / 2.0).clamp(-1.0, 1.0);
+    let angle = cos.acos();
+    let axis = [r[2][1] - r[1][2], r[0][2] - r[2][0], r[1][0] - r[0][1]];
+    let s = angle.sin();
+    if s.abs() < 1e-12 {
+        return [axis[0] / 2.0, axis[1] / 2.0, axis[2] / 2.0];
+    }
+    let f = angle / (2.0 * s);
+    [axis[0] * f, axis[1] * f, axis[2] * f]
+}
+
+/// Device-frame position of a room-frame point under `frame`.
+pub fn device_from_room(frame: &Frame<f64>, room: [f64; 3]) -> [f64; 3] {
+    let v = mat_t_vec(&frame.room_rotation, sub(room, frame.room_translation));
+    [
+        v[0] / frame.room_scale,
+        v[1] / frame.room_scale,
+        v[2] / frame.room_scale,
+    ]
+}
+
+/// Room-frame position of a device-frame point under `frame`.
+pub fn room_from_device(frame: &Frame<f64>, device: [f64; 3]) -> [f64; 3] {
+    let v = mat_vec(&frame.room_rotation, device);
+    [
+        frame.room_scale * v[0] + frame.room_translation[0],
+        frame.room_scale * v[1] + frame.room_translation[1],
+        frame.room_scale * v[2] + frame.room_translation[2],
+    ]
+}
+
+/// Names, typical sizes (used to scale the LM variables) and units of an
+/// effect's free parameters, in the order of `Effect::parameters`.
+pub fn effect_parameter_info(effect: &Effect) -> &'static [(&'static str, f64, &'static str)] {
+    match *effect {
+        Effect::Offset { .. } => &[("offset", 1.0, "mm")],
+        Effect::Scale { .. } => &[("scale", 1e-3, "1")],
+        Effect::Winding { power: 2, .. } => &[("winding2", 2.5e-5, "mm/rad^2")],
+        Effect::Winding { power: 3, .. } => &[("winding3", 1.25e-7, "mm/rad^3")],
+        Effect::Winding { .. } => &[("winding", 6e-10, "mm/rad^k")],
+        Effect::Eccentricity { .. } => &[
+            ("eccentricity_sin", 0.1, "mm"),
+            ("eccentricity_cos", 0.1, "mm"),
+        ],
+        Effect::Elasticity { .. } => &[("elasticity", 1e-5, "1/N")],
+        Effect::Backlash { .. } => &[("backlash", 0.1, "mm")],
+        Effect::Drift { .. } => &[("drift", 1e-4, "mm/s")],
+        Effect::Slip { .. } => &[("slip", 1.0, "mm")],
+    }
+}
+
+/// Everything the fit varies, in physical units.
+#[derive(Clone, Debug)]
+struct State {
+    frame: Frame<f64>,
+    winding: WindingPhysics,
+    effects: Vec<EffectTerm>,
+}
+
+/// Layout of the LM parameter vector.
+struct Layout {
+    fit_scale: bool,
+    /// (effect index, parameter index within the effect) per effect column.
+    effect_columns: Vec<(usize, usize)>,
+    /// Typical size of each column's parameter (LM variable = value / scale).
+    scale: Vec<f64>,
+}
+
+const ANCHORS: usize = 0;
+const HOME: usize = 24;
+const ROTATION: usize = 27;
+const TRANSLATION: usize = 30;
+const SCALE: usize = 33;
+
+impl Layout {
+    fn new(structure: &Structure) -> Layout {
+        let fit_scale = structure.fit_room_scale;
+        let mut scale = vec![1.0; 27];
+        scale.extend([1e-3; 3]);
+        scale.extend([1.0; 3]);
+        if fit_scale {
+            scale.push(1e-4);
+        }
+        scale.push(0.1); // r_home
+        scale.push(1e-3); // kappa
+        let mut effect_columns = Vec::new();
+        for (e, term) in structure.effects.iter().enumerate() {
+            for (p, (_, s, _)) in effect_parameter_info(&term.effect).iter().enumerate() {
+                effect_columns.push((e, p));
+                scale.push(*s);
+            }
+        }
+        Layout {
+            fit_scale,
+            effect_columns,
+            scale,
+        }
+    }
+    fn r_home(&self) -> usize {
+        SCALE + usize::from(self.fit_scale)
+    }
+    fn kappa(&self) -> usize {
+        self.r_home() + 1
+    }
+    fn first_effect(&self) -> usize {
+        self.kappa() + 1
+    }
+    fn len(&self) -> usize {
+        self.scale.len()
+    }
+}
+
+/// The LM problem for one robust round: rotation is linearized around
+/// `base_rotation` (the columns 27..30 are a small rotation vector on top).
+struct Problem<'a> {
+    observations: &'a [&'a Observation],
+    weights: &'a [[f64; STRINGS]],
+    residual_sd: f64,
+    structure: &'a Structure,
+    nominal: &'a Frame<f64>,
+    layout: &'a Layout,
+    base_rotation: [[f64; 3]; 3],
+    /// Fixed fields of the winding physics (reference length, counts per rev).
+    winding_template: WindingPhysics,
+    /// Current LM variables (scaled).
+    x: DVector<f64>,
+}
+
+impl Problem<'_> {
+    fn state(&self) -> State {
+        let v: Vec<f64> = self
+            .x
+            .iter()
+            .zip(&self.layout.scale)
+            .map(|(x, s)| x * s)
+            .collect();
+        let mut frame = *self.nominal;
+        for i in 0..STRINGS {
+            for c in 0..3 {
+                frame.anchors[i][c] = v[ANCHORS + 3 * i + c];
+            }
+        }
+        frame.home = [v[HOME], v[HOME + 1], v[HOME + 2]];
+        frame.room_rotation = mat_mul(
+            &self.base_rotation,
+            &rotation_from_vector([v[ROTATION], v[ROTATION + 1], v[ROTATION + 2]]),
+        );
+        frame.room_translation = [v[TRANSLATION], v[TRANSLATION + 1], v[TRANSLATION + 2]];
+        frame.room_scale = if self.layout.fit_scale {
+            1.0 + v[SCALE]
+        } else {
+            self.nominal.room_scale
+        };
+        let winding = WindingPhysics {
+            r_home_mm: v[self.layout.r_home()],
+            kappa_mm: v[self.layout.kappa()],
+            ..self.winding_template
+        };
+        let mut effects = self.structure.effects.clone();
+        let first = self.layout.first_effect();
+        let mut col = first;
+        for term in effects.iter_mut() {
+            let n = term.effect.parameters().len();
+            if let Some(e) = term.effect.with_parameters(&v[col..col + n]) {
+                term.effect = e;
+            }
+            col += n;
+        }
+        State {
+            frame,
+            winding,
+            effects,
+        }
+    }
+
+    fn anchor_sd(&self, i: usize) -> f64 {
+        self.structure.anchor_sd_override_mm[i].unwrap_or(self.structure.priors.anchor_sd_mm)
+    }
+
+    /// Prior rows: (row value, gradient over physical parameters as (column, d)).
+    fn prior_rows(&self, state: &State) -> Vec<(f64, Vec<(usize, f64)>)> {
+        let p = &self.structure.priors;
+        let nominal = self.nominal;
+        let mut rows = Vec::new();
+        for i in 0..STRINGS {
+            let sd = self.anchor_sd(i);
+            for c in 0..3 {
+                rows.push((
+                    (state.frame.anchors[i][c] - nominal.anchors[i][c]) / sd,
+                    vec![(ANCHORS + 3 * i + c, 1.0 / sd)],
+                ));
+            }
+        }
+        for c in 0..3 {
+            rows.push((
+                (state.frame.home[c] - nominal.home[c]) / p.home_sd_mm,
+                vec![(HOME + c, 1.0 / p.home_sd_mm)],
+            ));
+            rows.push((
+                (state.frame.room_translation[c] - nominal.room_translation[c])
+                    / p.translation_sd_mm,
+                vec![(TRANSLATION + c, 1.0 / p.translation_sd_mm)],
+            ));
+        }
+        let total_rotation = vector_from_rotation(&mat_mul(
+            &transpose(&nominal.room_rotation),
+            &state.frame.room_rotation,
+        ));
+        for c in 0..3 {
+            rows.push((
+                total_rotation[c] / p.rotation_sd_rad,
+                vec![(ROTATION + c, 1.0 / p.rotation_sd_rad)],
+            ));
+        }
+        // Gauge: the anchors' centroid and mean orientation stay nominal.
+        const GAUGE_SD_MM: f64 = 0.01;
+        let centroid_nominal = centroid(&nominal.anchors);
+        let centroid_now = centroid(&state.frame.anchors);
+        for c in 0..3 {
+            let grad = (0..STRINGS)
+                .map(|i| (ANCHORS + 3 * i + c, 1.0 / (STRINGS as f64 * GAUGE_SD_MM)))
+                .collect();
+            rows.push(((centroid_now[c] - centroid_nominal[c]) / GAUGE_SD_MM, grad));
+        }
+        let spread: f64 = nominal
+            .anchors
+            .iter()
+            .map(|a| {
+                let d = sub(*a, centroid_nominal);
+                d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+            })
+            .sum();
+        // Small-rotation gauge: sum_i (a0_i - c0) x (a_i - a0_i) / spread = 0.
+        let mut value = [0.0; 3];
+        let mut grads: [Vec<(usize, f64)>; 3] = Default::default();
+        for i in 0..STRINGS {
+            let r = sub(nominal.anchors[i], centroid_nominal);
+            let d = sub(state.frame.anchors[i], nominal.anchors[i]);
+            let x = cross(r, d);
+            for c in 0..3 {
+                value[c] += x[c] / spread;
+            }
+            // d(r x d)/dd = [r]x
+            let rx = [[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]];
+            for c in 0..3 {
+                for k in 0..3 {
+                    if rx[c][k] != 0.0 {
+                        grads[c].push((ANCHORS + 3 * i + k, rx[c][k] / spread));
+                    }
+                }
+            }
+        }
+        // Angle tolerance equivalent to GAUGE_SD_MM at the frame's size.
+        let angle_sd = GAUGE_SD_MM / (spread / STRINGS as f64).sqrt();
+        for c in 0..3 {
+            let g = grads[c].iter().map(|&(j, d)| (j, d / angle_sd)).collect();
+            rows.push((value[c] / angle_sd, g));
+        }
+        rows
+    }
+
+    fn n_rows(&self) -> usize {
+        self.observations.len() * STRINGS + 24 + 9 + 6
+    }
+
+    /// String-space residuals of one observation (geometric minus model).
+    fn string_residuals(state: &State, laws: &[StringLaw; STRINGS], o: &Observation) -> [f64; 8] {
+        let p = device_from_room(&state.frame, o.tracker.unwrap_or([0.0; 3]));
+        let lengths = string_lengths_f64(&state.frame, laws, &state.effects, &o.inputs);
+        let mut r = [0.0; STRINGS];
+        for i in 0..STRINGS {
+            r[i] = dist(p, state.frame.anchors[i]) - lengths[i];
+        }
+        r
+    }
+}
+
+fn transpose(m: &[[f64; 3]; 3]) -> [[f64; 3]; 3] {
+    [
+        [m[0][0], m[1][0], m[2][0]],
+        [m[0][1], m[1][1], m[2][1]],
+        [m[0][2], m[1][2], m[2][2]],
+    ]
+}
+
+fn centroid(points: &[[f64; 3]; STRINGS]) -> [f64; 3] {
+    let mut c = [0.0; 3];
+    for p in points {
+        for k in 0..3 {
+            c[k] += p[k] / STRINGS as f64;
+        }
+    }
+    c
+}
+
+impl levenberg_marquardt::LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
+    type ResidualStorage = Owned<f64, Dyn>;
+    type JacobianStorage = Owned<f64, Dyn, Dyn>;
+    type ParameterStorage = Owned<f64, Dyn>;
+
+    fn set_params(&mut self, x: &DVector<f64>) {
+        self.x.copy_from(x);
+    }
+
+    fn params(&self) -> DVector<f64> {
+        self.x.clone()
+    }
+
+    fn residuals(&self) -> Option<DVector<f64>> {
+        let state = self.state();
+        let laws = state.winding.laws(&state.frame)?;
+        let mut r = DVector::zeros(self.n_rows());
+        for (k, o) in self.observations.iter().enumerate() {
+            let res = Problem::string_residuals(&state, &laws, o);
+            for i in 0..STRINGS {
+                r[k * STRINGS + i] = self.weights[k][i].sqrt() * res[i] / self.residual_sd;
+            }
+        }
+        let base = self.observations.len() * STRINGS;
+        for (j, (value, _)) in self.prior_rows(&state).into_iter().enumerate() {
+            r[base + j] = value;
+        }
+        r.iter().all(|v| v.is_finite()).then_some(r)
+    }
+
+    fn jacobian(&self) -> Option<DMatrix<f64>> {
+        let state = self.state();
+        let laws = state.winding.laws(&state.frame)?;
+        let layout = self.layout;
+        let n = layout.len();
+        let mut jac = DMatrix::zeros(self.n_rows(), n);
+        let frame = &state.frame;
+        let w = &state.winding;
+        let home_lengths: Vec<f64> = (0..STRINGS)
+            .map(|i| dist(frame.home, frame.anchors[i]))
+            .collect();
+        let radii: Vec<f64> = home_lengths
+            .iter()
+            .map(|&l| w.radius_at_home(l))
+            .collect::<Option<Vec<_>>>()?;
+        let two_pi = 2.0 * std::f64::consts::PI;
+        for (k, o) in self.observations.iter().enumerate() {
+            let p = device_from_room(frame, o.tracker.unwrap_or([0.0; 3]));
+            // Effect columns: analytic gradients of the terms (each term
+            // touches only its own string).
+            let mut effect_grad = vec![[0.0; STRINGS]; layout.effect_columns.len()];
+            for (c, &(e, pi)) in layout.effect_columns.iter().enumerate() {
+                let term = &state.effects[e];
+                let s = usize::from(term.string);
+                if let Some(ctx) = EffectContext::for_string(frame, &laws, &o.inputs, s) {
+                    if let Some(g) = term.effect.gradient_f64(&ctx).get(pi) {
+                        effect_grad[c][s] = -g;
+                    }
+                }
+            }
+            for i in 0..STRINGS {
+                let row = k * STRINGS + i;
+                let f = self.weights[k][i].sqrt() / self.residual_sd;
+                if f == 0.0 {
+                    continue;
+                }
+                let a = frame.anchors[i];
+                let geo = dist(p, a);
+                let up = {
+                    let d = sub(p, a);
+                    [d[0] / geo, d[1] / geo, d[2] / geo]
+                };
+                let lh = home_lengths[i];
+                let uh = {
+                    let d = sub(frame.home, a);
+                    [d[0] / lh, d[1] / lh, d[2] / lh]
+                };
+                let theta = two_pi * o.inputs.counts[i] as f64 / w.counts_per_rev as f64;
+                let rh = radii[i];
+                let dpay_dlh = theta * (-2.0 * w.kappa_mm / rh);
+                let g = 1.0 + dpay_dlh;
+                for c in 0..3 {
+                    jac[(row, ANCHORS + 3 * i + c)] = f * (-up[c] + g * uh[c]);
+                    jac[(row, HOME + c)] = f * (-g * uh[c]);
+                }
+                let rup = mat_vec(&frame.room_rotation, up);
+                let wgrad = cross(up, p);
+                for c in 0..3 {
+                    jac[(row, TRANSLATION + c)] = f * (-rup[c] / frame.room_scale);
+                    jac[(row, ROTATION + c)] = f * wgrad[c];
+                }
+                if layout.fit_scale {
+                    let dot = up[0] * p[0] + up[1] * p[1] + up[2] * p[2];
+                    jac[(row, SCALE)] = f * (-dot / frame.room_scale);
+                }
+                jac[(row, layout.r_home())] = f * (-theta * w.r_home_mm / rh);
+                jac[(row, layout.kappa())] =
+                    f * (-(theta * 2.0 * (w.mean_home_length_mm - lh) / rh - theta * theta));
+                for c in 0..layout.effect_columns.len() {
+                    jac[(row, layout.first_effect() + c)] = f * effect_grad[c][i];
+                }
+            }
+        }
+        let base = self.observations.len() * STRINGS;
+        for (j, (_, grad)) in self.prior_rows(&state).into_iter().enumerate() {
+            for (col, d) in grad {
+                jac[(base + j, col)] += d;
+            }
+        }
+        // To the scaled LM variables.
+        for c in 0..n {
+            let s = layout.scale[c];
+            jac.column_mut(c).scale_mut(s);
+        }
+        jac.iter().all(|v| v.is_finite()).then_some(jac)
+    }
+}
+
+/// LM variables of a state (rotation encoded as zero on top of the state's own).
+fn encode(state: &State, layout: &Layout) -> DVector<f64> {
+    let mut x = DVector::zeros(layout.len());
+    let mut put = |i: usize, v: f64| x[i] = v / layout.scale[i];
+    for i in 0..STRINGS {
+        for c in 0..3 {
+            put(ANCHORS + 3 * i + c, state.frame.anchors[i][c]);
+        }
+    }
+    for c in 0..3 {
+        put(HOME + c, state.frame.home[c]);
+        put(TRANSLATION + c, state.frame.room_translation[c]);
+    }
+    if layout.fit_scale {
+        put(SCALE, state.frame.room_scale - 1.0);
+    }
+    put(layout.r_home(), state.winding.r_home_mm);
+    put(layout.kappa(), state.winding.kappa_mm);
+    let mut col = layout.first_effect();
+    for term in &state.effects {
+        for v in term.effect.parameters() {
+            put(col, v);
+            col += 1;
+        }
+    }
+    x
+}
+
+fn median(values: &mut [f64]) -> f64 {
+    values.sort_by(f64::total_cmp);
+    let n = values.len();
+    if n == 0 {
+        return 0.0;
+    }
+    if n % 2 == 1 {
+        values[n / 2]
+    } else {
+        0.5 * (values[n / 2 - 1] + values[n / 2])
+    }
+}
+
+/// Robust scale (1.4826 MAD) of residuals.
+fn robust_scale(residuals: &[[f64; STRINGS]]) -> f64 {
+    let mut all: Vec<f64> = residuals.iter().flatten().copied().collect();
+    let m = median(&mut all.clone());
+    for v in all.iter_mut() {
+        *v = (*v - m).abs();
+    }
+    1.4826 * median(&mut all)
+}
+
+#[derive(Clone, Copy)]
+enum Round {
+    LeastSquares,
+    Huber,
+    Tukey,
+}
+
+fn weight(round: Round, r: f64, scale: f64) -> f64 {
+    match round {
+        Round::LeastSquares => 1.0,
+        Round::Huber => {
+            let c = 1.345 * scale;
+            if r.abs() <= c {
+                1.0
+            } else {
+                c / r.abs()
+            }
+        }
+        Round::Tukey => {
+            let c = 4.685 * scale;
+            if r.abs() >= c {
+                0.0
+            } else {
+                let u = r / c;
+                (1.0 - u * u) * (1.0 - u * u)
+            }
+        }
+    }
+}
+
+/// Starting point of an identification: the nominal geometry, and the winding
+/// physics of the nominal pulley (`r_home` = nominal radius, no growth) unless
+/// a previous identification is given.
+#[derive(Clone, Debug)]
+pub struct Start {
+    pub frame: Frame<f64>,
+    pub winding: WindingPhysics,
+}
+
+impl Start {
+    /// From the nominal design: `nominal_radius_mm` is the geometry file's pulley radius.
+    pub fn nominal(frame: Frame<f64>, nominal_radius_mm: f64, counts_per_rev: u32) -> Start {
+        let mean_home_length_mm = (0..STRINGS)
+            .map(|i| dist(frame.home, frame.anchors[i]))
+            .sum::<f64>()
+            / STRINGS as f64;
+        Start {
+            frame,
+            winding: WindingPhysics {
+                r_home_mm: nominal_radius_mm,
+                kappa_mm: 0.0,
+                mean_home_length_mm,
+                counts_per_rev,
+            },
+        }
+    }
+
+    /// Continue from an earlier identification (the diagnosis loop refits).
+    pub fn from_identification(id: &Identification) -> Start {
+        Start {
+            frame: id.frame,
+            winding: id.winding,
+        }
+    }
+}
+
+/// Identifies the model of `structure` from the observations that have a
+/// tracker position. `nominal` is the design geometry (the priors' centre and
+/// the gauge); `start` the starting point.
+pub fn identify(
+    observations: &[Observation],
+    nominal: &Frame<f64>,
+    start: &Start,
+    structure: &Structure,
+) -> Result<Identification, IdentifyError> {
+    let used: Vec<&Observation> = observations
+        .iter()
+        .filter(|o| o.tracker.is_some())
+        .collect();
+    let layout = Layout::new(structure);
+    let needed = (layout.len() / 4).max(20);
+    if used.len() < needed {
+        return Err(IdentifyError::TooFewRows {
+            needed,
+            got: used.len(),
+        });
+    }
+
+    let mut state = State {
+        frame: start.frame,
+        winding: start.winding,
+        effects: structure.effects.clone(),
+    };
+    let mut weights = vec![[1.0; STRINGS]; used.len()];
+    let mut residual_sd = 1.0;
+    let mut evaluations = 0;
+    let rounds = [
+        Round::LeastSquares,
+        Round::Huber,
+        Round::Tukey,
+        Round::Tukey,
+        Round::Tukey,
+    ];
+    for (n, &round) in rounds.iter().enumerate() {
+        // Weights from the current state's residuals.
+        let laws = state
+            .winding
+            .laws(&state.frame)
+            .ok_or_else(|| IdentifyError::Diverged("winding radius became imaginary".into()))?;
+        let residuals: Vec<[f64; STRINGS]> = used
+            .iter()
+            .map(|o| Problem::string_residuals(&state, &laws, o))
+            .collect();
+        let scale = robust_scale(&residuals).max(1e-3);
+        let new_weights: Vec<[f64; STRINGS]> = residuals
+            .iter()
+            .map(|r| r.map(|v| weight(round, v, scale)))
+            .collect();
+        let changed = new_weights
+            .iter()
+            .flatten()
+            .zip(weights.iter().flatten())
+            .any(|(a, b)| (a - b).abs() > 1e-3);
+        if n >= 3 && !changed {
+            break;
+        }
+        weights = new_weights;
+        residual_sd = scale;
+        let base_rotation = state.frame.room_rotation;
+        let x = encode(&state, &layout);
+        let problem = Problem {
+            observations: &used,
+            weights: &weights,
+            residual_sd,
+            structure,
+            nominal,
+            layout: &layout,
+            base_rotation,
+            winding_template: start.winding,
+            x,
+        };
+        let (problem, report) = levenberg_marquardt::LevenbergMarquardt::new()
+            .with_patience(200)
+            .minimize(problem);
+        evaluations += report.number_of_evaluations;
+        if !report.objective_function.is_finite() {
+            return Err(IdentifyError::Diverged(format!(
+                "robust round {n}: {:?}",
+                report.termination
+            )));
+        }
+        state = problem.state();
+    }
+
+    // Final residuals, weights and covariance.
+    let laws = state
+        .winding
+        .laws(&state.frame)
+        .ok_or_else(|| IdentifyError::Diverged("winding radius became imaginary".into()))?;
+    let residuals: Vec<[f64; STRINGS]> = used
+        .iter()
+        .map(|o| Problem::string_residuals(&state, &laws, o))
+        .collect();
+    let scale = robust_scale(&residuals).max(1e-6);
+    let rejected = weights.iter().flatten().filter(|&&w| w < 0.1).count();
+    let rejected_fraction = rejected as f64 / (weights.len() * STRINGS) as f64;
+
+    // Covariance from the last round's problem at the solution, with the
+    // residual scale re-estimated from the weighted residuals.
+    let weighted_ss: f64 = residuals
+        .iter()
+        .zip(&weights)
+        .flat_map(|(r, w)| r.iter().zip(w).map(|(r, w)| w * r * r))
+        .sum();
+    let weight_sum: f64 = weights.iter().flatten().sum();
+    let sigma = (weighted_ss / (weight_sum - layout.len() as f64).max(1.0)).sqrt();
+    let problem = {
+        let x = encode(&state, &layout);
+        Problem {
+            observations: &used,
+            weights: &weights,
+            residual_sd: sigma.max(1e-6),
+            structure,
+            nominal,
+            layout: &layout,
+            base_rotation: state.frame.room_rotation,
+            winding_template: start.winding,
+            x,
+        }
+    };
+    use levenberg_marquardt::LeastSquaresProblem;
+    let jac = problem
+        .jacobian()
+        .ok_or_else(|| IdentifyError::Diverged("Jacobian not finite at the solution".into()))?;
+    let info = jac.transpose() * &jac;
+    let cov = info.clone().try_inverse();
+    let mut parameters = Vec::new();
+    let mut warnings = Vec::new();
+    let names = parameter_names(&layout, structure);
+    for (c, (name, unit, prior_sd)) in names.into_iter().enumerate() {
+        let s = layout.scale[c];
+        let value = match c {
+            _ if c < HOME => state.frame.anchors[(c - ANCHORS) / 3][(c - ANCHORS) % 3],
+            _ if c < ROTATION => state.frame.home[c - HOME],
+            _ if c < TRANSLATION => vector_from_rotation(&state.frame.room_rotation)[c - ROTATION],
+            _ if c < SCALE => state.frame.room_translation[c - TRANSLATION],
+            _ if layout.fit_scale && c == SCALE => state.frame.room_scale,
+            _ if c == layout.r_home() => state.winding.r_home_mm,
+            _ if c == layout.kappa() => state.winding.kappa_mm,
+            _ => {
+                let (e, p) = layout.effect_columns[c - layout.first_effect()];
+                state.effects[e].effect.parameters()[p]
+            }
+        };
+        let sd = cov
+            .as_ref()
+            .map(|m| m[(c, c)].max(0.0).sqrt() * s)
+            .unwrap_or(f64::INFINITY);
+        let determined = match prior_sd {
+            Some(p) => sd < 0.7 * p,
+            None => sd.is_finite() && sd < 10.0 * s.max(value.abs()),
+        };
+        if !determined {
+            warnings.push(match prior_sd {
+                Some(p) => format!(
+                    "{name}: the data do not determine it (posterior sd {sd:.3} {unit} vs prior sd {p:.3} {unit}); its value comes from the nominal design"
+                ),
+                None => format!("{name}: the data do not determine it (sd {sd:.3e} {unit})"),
+            });
+        }
+        parameters.push(ParameterEstimate {
+            name,
+            unit,
+            value,
+            sd,
+            prior_sd,
+            determined,
+        });
+    }
+    if cov.is_none() {
+        warnings.push("the information matrix is singular: some parameters are not determined by the data".into());
+    }
+    Ok(Identification {
+        frame: state.frame,
+        winding: state.winding,
+        laws,
+        effects: state.effects,
+        parameters,
+        warnings,
+        residual_scale_mm: scale,
+        rejected_fraction,
+        evaluations,
+    })
+}
+
+fn parameter_names(
+    layout: &Layout,
+    structure: &Structure,
+) -> Vec<(String, &'static str, Option<f64>)> {
+    let p = &structure.priors;
+    let mut names = Vec::new();
+    for i in 0..STRINGS {
+        let sd = structure.anchor_sd_override_mm[i].unwrap_or(p.anchor_sd_mm);
+        for c in ["x", "y", "z"] {
+            names.push((format!("anchor{i}.{c}"), "mm", Some(sd)));
+        }
+    }
+    for c in ["x", "y", "z"] {
+        names.push((format!("home.{c}"), "mm", Some(p.home_sd_mm)));
+    }
+    for c in ["x", "y", "z"] {
+        names.push((format!("room_rotation.{c}"), "rad", Some(p.rotation_sd_rad)));
+    }
+    for c in ["x", "y", "z"] {
+        names.push((
+            format!("room_translation.{c}"),
+            "mm",
+            Some(p.translation_sd_mm),
+        ));
+    }
+    if layout.fit_scale {
+        names.push(("room_scale".into(), "1", None));
+    }
+    names.push(("winding.r_home".into(), "mm", None));
+    names.push(("winding.kappa".into(), "mm/rad^2", None));
+    for term in &structure.effects {
+        for (pname, _, unit) in effect_parameter_info(&term.effect) {
+            names.push((format!("string{}.{pname}", term.string), *unit, None));
+        }
+    }
+    names
+}
+
+/// String-space residuals (geometric minus model, mm) of every observation
+/// with a tracker position under an identified model; `None` for occluded rows.
+pub fn string_residuals(
+    frame: &Frame<f64>,
+    laws: &[StringLaw; STRINGS],
+    effects: &[EffectTerm],
+    observations: &[Observation],
+) -> Vec<Option<[f64; STRINGS]>> {
+    observations
+        .iter()
+        .map(|o| {
+            let room = o.tracker?;
+            let p = device_from_room(frame, room);
+            let lengths = string_lengths_f64(frame, laws, effects, &o.inputs);
+            let mut r = [0.0; STRINGS];
+            for i in 0..STRINGS {
+                r[i] = dist(p, frame.anchors[i]) - lengths[i];
+            }
+            Some(r)
+        })
+        .collect()
+}
