@@ -64,13 +64,6 @@ pub fn measure_overhead() {
     measure("(marker overhead)", None, 16, |_| ());
     measure("(self-check: 100 nops)", None, 4, |_| {
         // SAFETY: no-ops.
-        unsafe {
-            core::arch::asm!(
-                ".rept 100",
-                "nop",
-                ".endr",
-                options(nomem, nostack, preserves_flags)
-            )
-        }
+        unsafe { core::arch::asm!(".rept 100", "nop", ".endr", options(nomem, nostack, preserves_flags)) }
     });
 }

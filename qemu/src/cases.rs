@@ -103,6 +103,23 @@ pub trait Out {
             self.i64(x)
         }
     }
+    /// FNV-1a 64 of the `Debug` text: covers every field of a result struct
+    /// or enum (f32 `Debug` prints the shortest round-trip decimal, so equal
+    /// bits give equal text) without naming its fields here.
+    fn debug(&mut self, v: &dyn core::fmt::Debug) {
+        struct Fnv(u64);
+        impl core::fmt::Write for Fnv {
+            fn write_str(&mut self, s: &str) -> core::fmt::Result {
+                for b in s.bytes() {
+                    self.0 = (self.0 ^ b as u64).wrapping_mul(0x0000_0100_0000_01B3);
+                }
+                Ok(())
+            }
+        }
+        let mut h = Fnv(0xCBF2_9CE4_8422_2325);
+        let _ = core::fmt::write(&mut h, format_args!("{v:?}"));
+        self.word(h.0)
+    }
 }
 
 /// Data the cases need besides random inputs: compiled model blobs, made by
@@ -138,17 +155,59 @@ pub fn rng_for(case: &Case, vector: u32) -> Rng {
 
 /// Every case of the bit-identity test. One line per function under test.
 pub const CASES: &[Case] = &[
-    Case {
-        name: "protocol::blob::CRC32",
-        vectors: 16,
-        run: blob_crc32,
-    },
-    Case {
-        name: "rng::f32_in",
-        vectors: 4,
-        run: rng_f32,
-    },
+    case("protocol::blob::CRC32", 16, blob_crc32),
+    case("rng::f32_in", 4, rng_f32),
+    case("tension::distribute (feasible)", 48, tension_feasible),
+    case("tension::distribute (scaled)", 48, tension_scaled),
+    case("tension::distribute_warm", 24, tension_warm),
+    case("guidance", 48, guidance),
+    case("safety::SafetyMonitor", 32, safety),
 ];
+
+/// Shorthand of [`CASES`]: name, number of vectors, function.
+const fn case(name: &'static str, vectors: u32, run: fn(&Fixtures, &mut Rng, &mut dyn Out)) -> Case {
+    Case { name, vectors, run }
+}
+
+// ---------------------------------------------------------------------------
+// Shared inputs (also used by the benchmarks).
+
+/// Half the side of the cube whose corners are the anchors (mm): a 2.2 m frame.
+pub const FRAME_HALF_MM: f32 = 1100.0;
+
+/// The 8 anchors at the corners of the 2.2 m cube (device frame, mm).
+pub fn cube_anchors() -> [[f32; 3]; spidar_core::STRINGS] {
+    let h = FRAME_HALF_MM;
+    let mut a = [[0.0; 3]; spidar_core::STRINGS];
+    for (i, p) in a.iter_mut().enumerate() {
+        *p = [if i & 1 == 0 { -h } else { h }, if i & 2 == 0 { -h } else { h }, if i & 4 == 0 { -h } else { h }];
+    }
+    a
+}
+
+/// A position in the central 1 m cube (mm).
+pub fn central_position(rng: &mut Rng) -> [f32; 3] {
+    [rng.f32_in(-500.0, 500.0), rng.f32_in(-500.0, 500.0), rng.f32_in(-500.0, 500.0)]
+}
+
+/// A force with components in `[-max, max]` (N).
+pub fn force(rng: &mut Rng, max: f32) -> [f32; 3] {
+    [rng.f32_in(-max, max), rng.f32_in(-max, max), rng.f32_in(-max, max)]
+}
+
+/// Tension limits of the benchmarks and vectors: 0.5 to 20 N.
+pub fn tension_limits() -> spidar_core::tension::TensionLimits<f32> {
+    spidar_core::tension::TensionLimits { t_min: 0.5, t_max: 20.0 }
+}
+
+fn tension_solution(out: &mut dyn Out, s: &spidar_core::tension::TensionSolution<f32>) {
+    out.f32s(&s.tensions);
+    out.f32(s.rendered_fraction);
+    out.f32(s.residual_n);
+    out.f32s(&s.multiplier);
+    out.u32(s.iterations as u32);
+    out.debug(s);
+}
 
 // ---------------------------------------------------------------------------
 // The cases.
@@ -169,4 +228,85 @@ fn rng_f32(_: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
         out.f32(rng.f32_in(-1500.0, 1500.0));
     }
     out.f64(rng.f64_in(-1.0, 1.0));
+}
+
+fn tension_case(rng: &mut Rng, out: &mut dyn Out, max_force: f32) {
+    use spidar_core::tension::{distribute, TensionConfig};
+    let p = central_position(rng);
+    let f = force(rng, max_force);
+    let s = distribute(&cube_anchors(), p, f, tension_limits(), &TensionConfig::default());
+    tension_solution(out, &s);
+}
+
+/// Feasible forces (|F_i| <= 3 N) at central positions.
+fn tension_feasible(_: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    tension_case(rng, out, 3.0)
+}
+
+/// Mostly infeasible forces (|F_i| <= 300 N): scaled back, more iterations.
+fn tension_scaled(_: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    tension_case(rng, out, 300.0)
+}
+
+/// Warm start from the previous solution's multiplier, along a short path.
+fn tension_warm(_: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    use spidar_core::tension::{distribute_warm, TensionConfig};
+    let mut p = central_position(rng);
+    let f = force(rng, 30.0);
+    let mut lambda = [0.0f32; 3];
+    for _ in 0..4 {
+        let s = distribute_warm(&cube_anchors(), p, f, tension_limits(), &TensionConfig::default(), lambda);
+        tension_solution(out, &s);
+        lambda = s.multiplier;
+        for x in p.iter_mut() {
+            *x += rng.f32_in(-0.5, 0.5);
+        }
+    }
+}
+
+/// Guidance cue (eqs. 2-5): `libm::expf`, a division, a square root.
+fn guidance(_: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    use spidar_core::guidance::*;
+    let d_min = rng.f32_in(1.0, 200.0);
+    let d = rng.f32_in(-10.0, 250.0);
+    out.f32(closeness(d, d_min));
+    out.f32(beep_frequency_hz(d, d_min));
+    out.f32(guidance_profile(d, d_min));
+    let v = [rng.f32_in(-300.0, 300.0), rng.f32_in(-300.0, 300.0), rng.f32_in(-300.0, 300.0)];
+    out.f32s(&guidance_force(v, d_min, rng.f32_in(0.0, 10.0)));
+}
+
+/// Safety monitor: force and tension clamps, slack and fault latching.
+fn safety(_: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    use spidar_core::safety::{SafetyConfig, SafetyMonitor};
+    let config = SafetyConfig {
+        t_min: 0.5,
+        t_max: 20.0,
+        f_max: 10.0,
+        pretension_n: 1.0,
+        heartbeat_timeout_ms: 100,
+        slack_threshold_mm: 5.0,
+    };
+    let Ok(mut m) = SafetyMonitor::new(config) else {
+        out.u32(u32::MAX);
+        return;
+    };
+    m.heartbeat(0);
+    out.debug(&m.arm());
+    let mut measured = [0.0f32; spidar_core::STRINGS];
+    let mut geometric = [0.0f32; spidar_core::STRINGS];
+    for i in 0..spidar_core::STRINGS {
+        geometric[i] = rng.f32_in(300.0, 2500.0);
+        measured[i] = geometric[i] + rng.f32_in(-6.0, 6.0);
+    }
+    let faults = m.check(rng.i32_in(0, 150) as u32, &measured, &geometric, rng.i32_in(0, 7) != 0);
+    out.u32(faults.bits() as u32);
+    out.f32s(&m.limit_force(force(rng, 15.0)));
+    let mut t = [0.0f32; spidar_core::STRINGS];
+    for x in t.iter_mut() {
+        *x = rng.f32_in(-5.0, 25.0);
+    }
+    out.f32s(&m.apply(t));
+    out.u32(m.warnings().bits() as u32);
+    out.u32(m.slack_mask() as u32);
 }

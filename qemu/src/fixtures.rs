@@ -8,16 +8,12 @@ struct Aligned<B: ?Sized>(B);
 
 macro_rules! out_bytes {
     ($file:literal) => {{
-        static BYTES: &Aligned<[u8]> =
-            &Aligned(*include_bytes!(concat!(env!("OUT_DIR"), "/", $file)));
+        static BYTES: &Aligned<[u8]> = &Aligned(*include_bytes!(concat!(env!("OUT_DIR"), "/", $file)));
         &BYTES.0
     }};
 }
 
 /// The fixtures of this build.
 pub fn fixtures() -> Fixtures<'static> {
-    Fixtures {
-        nn_blob: out_bytes!("nn.blob"),
-        svr_blob: out_bytes!("svr.blob"),
-    }
+    Fixtures { nn_blob: out_bytes!("nn.blob"), svr_blob: out_bytes!("svr.blob") }
 }

@@ -23,11 +23,7 @@ use cortex_m_semihosting::debug;
 
 /// Ends the QEMU run: exit code 0 if `pass`, 1 otherwise.
 pub fn exit(pass: bool) -> ! {
-    debug::exit(if pass {
-        debug::EXIT_SUCCESS
-    } else {
-        debug::EXIT_FAILURE
-    });
+    debug::exit(if pass { debug::EXIT_SUCCESS } else { debug::EXIT_FAILURE });
     // Only reached without semihosting (e.g. on real hardware).
     loop {
         cortex_m::asm::bkpt();

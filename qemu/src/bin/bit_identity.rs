@@ -64,11 +64,7 @@ fn main() -> ! {
         exit(false);
     }
     if expected::CASE_NAMES.len() != CASES.len() {
-        hprintln!(
-            "FAIL: host table has {} cases, device {}",
-            expected::CASE_NAMES.len(),
-            CASES.len()
-        );
+        hprintln!("FAIL: host table has {} cases, device {}", expected::CASE_NAMES.len(), CASES.len());
         exit(false);
     }
     let fx = fixtures();
@@ -82,13 +78,7 @@ fn main() -> ! {
         let mut bad_vectors = 0;
         let mut words = 0;
         for v in 0..case.vectors {
-            let mut check = Check {
-                case: case.name,
-                vector: v,
-                expected: table[v as usize],
-                at: 0,
-                mismatches: 0,
-            };
+            let mut check = Check { case: case.name, vector: v, expected: table[v as usize], at: 0, mismatches: 0 };
             let mut rng = cases::rng_for(case, v);
             (case.run)(&fx, &mut rng, &mut check);
             if check.at < check.expected.len() {
@@ -108,20 +98,10 @@ fn main() -> ! {
         }
         if bad_vectors == 0 {
             passed += 1;
-            hprintln!(
-                "ok   {} ({} vectors, {} words)",
-                case.name,
-                case.vectors,
-                words
-            );
+            hprintln!("ok   {} ({} vectors, {} words)", case.name, case.vectors, words);
         } else {
             failed += 1;
-            hprintln!(
-                "FAIL {} ({} of {} vectors differ)",
-                case.name,
-                bad_vectors,
-                case.vectors
-            );
+            hprintln!("FAIL {} ({} of {} vectors differ)", case.name, bad_vectors, case.vectors);
         }
     }
     hprintln!("bit_identity: {} passed, {} failed", passed, failed);
