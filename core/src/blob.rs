@@ -1,1 +1,361 @@
-//! (being written: see docs/design.md)
+//! The compiled calibration: one versioned blob that the device evaluates.
+//!
+//! ```text
+//! blob = protocol::blob header (40 bytes: magic, version, kind, dimensions, Q formats, CRCs)
+//!      + body
+//! body = postcard(BlobHead { frame: Frame<f32>, laws: [CompiledStringLaw; 8],
+//!                            effects: heapless::Vec<CompiledEffect, MAX_EFFECTS> })
+//!      + correction bytes (layout in `correction`, read in place, zero-copy)
+//! ```
+//!
+//! The device parses a blob once at load ([`CompiledCalibration::from_blob`]:
+//! every dimension, Q format and parameter range is checked, and a blob it
+//! does not understand is refused with a [`BlobError`] naming the field), then
+//! evaluates it every control-loop iteration. The host compiles a
+//! [`crate::model::Calibration`] with [`compile`] and links the same parser to
+//! check the blob bit for bit before flashing.
+
+use serde::{Deserialize, Serialize};
+use spidar_protocol::blob::{split_blob, BlobError, ModelHeader};
+
+use crate::correction::{check_header_formats, Correction, POSITION_FRAC};
+use crate::model::{Frame, MAX_EFFECTS};
+use crate::string_law::{CompiledEffect, CompiledStringLaw};
+use crate::STRINGS;
+
+/// Fractional bits of string lengths in the blob (header `q_length`): Q47.16 mm.
+pub const LENGTH_FRAC: u8 = 16;
+
+/// The string-model part of the body.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct BlobHead {
+    /// Geometry for forward kinematics and the room transform, f32 (mm).
+    pub frame: Frame<f32>,
+    pub laws: [CompiledStringLaw; STRINGS],
+    pub effects: heapless::Vec<CompiledEffect, MAX_EFFECTS>,
+}
+
+/// A parsed, checked blob, borrowing the correction's parameters from the
+/// blob bytes (in flash on the device).
+#[derive(Clone, Debug, PartialEq)]
+pub struct CompiledCalibration<'a> {
+    pub header: ModelHeader,
+    pub head: BlobHead,
+    pub correction: Correction<'a>,
+}
+
+fn frame_is_finite(frame: &Frame<f32>) -> bool {
+    let mut values = frame
+        .anchors
+        .iter()
+        .flatten()
+        .chain(frame.home.iter())
+        .chain(frame.room_rotation.iter().flatten())
+        .chain(frame.room_translation.iter());
+    values.all(|v| v.is_finite()) && frame.room_scale.is_finite() && frame.room_scale > 0.0
+}
+
+impl<'a> CompiledCalibration<'a> {
+    /// Checks and parses a whole blob (header, CRCs, dimensions, Q formats,
+    /// every parameter). Never panics, whatever the bytes.
+    pub fn from_blob(bytes: &'a [u8]) -> Result<CompiledCalibration<'a>, BlobError> {
+        let (header, body) = split_blob(bytes)?;
+        if header.strings as usize != STRINGS {
+            return Err(BlobError::Dimension {
+                field: "strings",
+                found: header.strings as u32,
+                expected: STRINGS as u32,
+            });
+        }
+        if header.q_length != LENGTH_FRAC {
+            return Err(BlobError::Dimension {
+                field: "q_length",
+                found: header.q_length as u32,
+                expected: LENGTH_FRAC as u32,
+            });
+        }
+        check_header_formats(header.q_position, header.q_weight)?;
+        let (head, correction_bytes): (BlobHead, &[u8]) =
+            postcard::take_from_bytes(body).map_err(|_| BlobError::Body {
+                field: "string model",
+            })?;
+        if head.effects.len() != header.effects as usize {
+            return Err(BlobError::Dimension {
+                field: "effects",
+                found: head.effects.len() as u32,
+                expected: header.effects as u32,
+            });
+        }
+        if !frame_is_finite(&head.frame) {
+            return Err(BlobError::Body { field: "frame" });
+        }
+        for (i, law) in head.laws.iter().enumerate() {
+            law.validate(i)
+                .map_err(|_| BlobError::Body { field: "laws" })?;
+        }
+        for effect in head.effects.iter() {
+            effect
+                .validate()
+                .map_err(|_| BlobError::Body { field: "effects" })?;
+        }
+        let correction = Correction::parse(
+            header.kind,
+            header.hidden,
+            header.support_vectors,
+            correction_bytes,
+        )?;
+        Ok(CompiledCalibration {
+            header,
+            head,
+            correction,
+        })
+    }
+}
+
+#[cfg(feature = "alloc")]
+pub use host::{compile, CompileError};
+
+#[cfg(feature = "alloc")]
+mod host {
+    use super::*;
+    use crate::model::Calibration;
+    use crate::string_law::{compile_effect, compile_string_law};
+    use alloc::vec::Vec;
+    use spidar_protocol::blob::{write_blob, FORMAT_VERSION, HEADER_LEN};
+
+    /// Why a calibration does not compile into a blob; names the part.
+    #[derive(Clone, Copy, Debug, PartialEq)]
+    pub enum CompileError {
+        /// A frame value that is not finite or does not fit f32.
+        Frame { field: &'static str },
+        StringLaw(crate::string_law::CompileError),
+        TooManyEffects { found: usize, max: usize },
+        Correction(crate::correction::CompileError),
+        /// The body could not be encoded (should not happen).
+        Encode,
+    }
+
+    impl core::fmt::Display for CompileError {
+        fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+            match self {
+                CompileError::Frame { field } => {
+                    write!(f, "frame field `{field}` is not a finite f32")
+                }
+                CompileError::StringLaw(e) => write!(f, "string model: {e}"),
+                CompileError::TooManyEffects { found, max } => {
+                    write!(f, "{found} effect terms, a blob carries at most {max}")
+                }
+                CompileError::Correction(e) => write!(f, "position correction: {e:?}"),
+                CompileError::Encode => write!(f, "blob body could not be encoded"),
+            }
+        }
+    }
+
+    fn to_f32(v: f64, field: &'static str) -> Result<f32, CompileError> {
+        let x = v as f32;
+        if x.is_finite() {
+            Ok(x)
+        } else {
+            Err(CompileError::Frame { field })
+        }
+    }
+
+    fn frame_f32(frame: &Frame<f64>) -> Result<Frame<f32>, CompileError> {
+        let mut out = Frame {
+            anchors: [[0.0f32; 3]; STRINGS],
+            home: [0.0; 3],
+            room_rotation: [[0.0; 3]; 3],
+            room_translation: [0.0; 3],
+            room_scale: to_f32(frame.room_scale, "room_scale")?,
+        };
+        for (o, a) in out.anchors.iter_mut().zip(&frame.anchors) {
+            for c in 0..3 {
+                o[c] = to_f32(a[c], "anchors")?;
+            }
+        }
+        for c in 0..3 {
+            out.home[c] = to_f32(frame.home[c], "home")?;
+            out.room_translation[c] = to_f32(frame.room_translation[c], "room_translation")?;
+            for r in 0..3 {
+                out.room_rotation[r][c] = to_f32(frame.room_rotation[r][c], "room_rotation")?;
+            }
+        }
+        if out.room_scale <= 0.0 {
+            return Err(CompileError::Frame {
+                field: "room_scale",
+            });
+        }
+        Ok(out)
+    }
+
+    /// Compiles a calibration into a model blob (header + body).
+    pub fn compile(
+        calibration: &Calibration,
+        model_id: u32,
+        created_unix_s: u32,
+    ) -> Result<Vec<u8>, CompileError> {
+        let frame = frame_f32(&calibration.frame)?;
+        let mut laws = [CompiledStringLaw::default(); STRINGS];
+        for (i, law) in calibration.strings.iter().enumerate() {
+            laws[i] = compile_string_law(&calibration.frame, i, law)
+                .map_err(CompileError::StringLaw)?;
+        }
+        if calibration.effects.len() > MAX_EFFECTS {
+            return Err(CompileError::TooManyEffects {
+                found: calibration.effects.len(),
+                max: MAX_EFFECTS,
+            });
+        }
+        let mut effects = heapless::Vec::new();
+        for term in &calibration.effects {
+            let e = compile_effect(term, &calibration.strings).map_err(CompileError::StringLaw)?;
+            effects.push(e).map_err(|_| CompileError::TooManyEffects {
+                found: calibration.effects.len(),
+                max: MAX_EFFECTS,
+            })?;
+        }
+        let head = BlobHead {
+            frame,
+            laws,
+            effects,
+        };
+        let correction = calibration
+            .correction
+            .compile()
+            .map_err(CompileError::Correction)?;
+        let mut body = postcard::to_allocvec(&head).map_err(|_| CompileError::Encode)?;
+        body.extend_from_slice(&correction.bytes);
+        let header = ModelHeader {
+            format_version: FORMAT_VERSION,
+            kind: correction.kind,
+            strings: STRINGS as u8,
+            effects: head.effects.len() as u8,
+            q_length: LENGTH_FRAC,
+            q_position: correction.q_position,
+            q_weight: correction.q_weight,
+            hidden: correction.hidden,
+            support_vectors: correction.support_vectors,
+            body_len: 0,
+            body_crc32: 0,
+            model_id,
+            created_unix_s,
+        };
+        let mut out = alloc::vec![0u8; HEADER_LEN + body.len()];
+        let n = write_blob(&header, &body, &mut out).ok_or(CompileError::Encode)?;
+        out.truncate(n);
+        Ok(out)
+    }
+}
+
+/// Position in Q15.16 mm from f32 mm, saturating; NaN maps to 0 (the caller
+/// flags non-finite positions as a fault before using the result).
+pub fn position_q16(p: [f32; 3]) -> [i32; 3] {
+    let scale = (1u32 << POSITION_FRAC) as f32;
+    p.map(|v| {
+        if v.is_nan() {
+            0
+        } else {
+            // `as` saturates out-of-range floats.
+            (v * scale).round_ties_even_compat() as i32
+        }
+    })
+}
+
+/// f32 mm from Q15.16 mm.
+pub fn position_mm(p: [i32; 3]) -> [f32; 3] {
+    let scale = (1u32 << POSITION_FRAC) as f32;
+    p.map(|v| v as f32 / scale)
+}
+
+trait RoundCompat {
+    fn round_ties_even_compat(self) -> Self;
+}
+
+impl RoundCompat for f32 {
+    /// Round half away from zero with + - only, identical on every target
+    /// (no libm call, no FPU rounding-mode dependence).
+    fn round_ties_even_compat(self) -> f32 {
+        if self >= 0.0 {
+            libm::floorf(self + 0.5)
+        } else {
+            -libm::floorf(-self + 0.5)
+        }
+    }
+}
+
+#[cfg(all(test, feature = "alloc"))]
+mod tests {
+    use super::*;
+    use crate::correction::CorrectionModel;
+    use crate::model::{Calibration, Effect, EffectTerm, StringLaw};
+    use spidar_protocol::blob::CorrectionKind;
+
+    fn calibration() -> Calibration {
+        let h = 1100.0;
+        let mut anchors = [[0.0; 3]; STRINGS];
+        for (i, a) in anchors.iter_mut().enumerate() {
+            *a = [
+                if i & 1 == 0 { -h } else { h },
+                if i & 2 == 0 { -h } else { h },
+                if i & 4 == 0 { -h } else { h },
+            ];
+        }
+        Calibration {
+            frame: Frame {
+                anchors,
+                home: [1.0, -2.0, 3.0],
+                room_rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+                room_translation: [0.0, 0.0, 1500.0],
+                room_scale: 1.0,
+            },
+            strings: [StringLaw {
+                counts_per_rev: 4096,
+                winding_mm: [12.0, -0.02, 0.0, 0.0],
+            }; STRINGS],
+            effects: alloc::vec![
+                EffectTerm {
+                    string: 3,
+                    effect: Effect::Offset { mm: 4.5 },
+                },
+                EffectTerm {
+                    string: 5,
+                    effect: Effect::Backlash { half_width_mm: 0.7 },
+                },
+            ],
+            correction: CorrectionModel::None,
+        }
+    }
+
+    #[test]
+    fn compiled_blob_parses_back() {
+        let blob = compile(&calibration(), 7, 0).unwrap();
+        let c = CompiledCalibration::from_blob(&blob).unwrap();
+        assert_eq!(c.header.effects, 2);
+        assert_eq!(c.header.model_id, 7);
+        assert_eq!(c.head.frame.home, [1.0, -2.0, 3.0]);
+        assert_eq!(c.correction.kind(), CorrectionKind::None);
+    }
+
+    #[test]
+    fn any_corruption_or_truncation_is_refused_not_panicking() {
+        let blob = compile(&calibration(), 7, 0).unwrap();
+        for cut in 0..blob.len() {
+            assert!(CompiledCalibration::from_blob(&blob[..cut]).is_err());
+        }
+        for i in 0..blob.len() {
+            let mut bad = blob.clone();
+            bad[i] ^= 0x40;
+            assert!(CompiledCalibration::from_blob(&bad).is_err(), "byte {i}");
+        }
+    }
+
+    #[test]
+    fn nan_frame_does_not_compile() {
+        let mut cal = calibration();
+        cal.frame.home[1] = f64::NAN;
+        assert_eq!(
+            compile(&cal, 0, 0),
+            Err(CompileError::Frame { field: "home" })
+        );
+    }
+}

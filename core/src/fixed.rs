@@ -1,1 +1,410 @@
-//! (being written: see docs/design.md)
+//! Fixed-point helpers shared by the device evaluators: Q-format conversions,
+//! saturating narrowing, little-endian reads from unaligned flash bytes, and
+//! the two transcendental functions of the position corrections:
+//!
+//! - [`tanh_q27`]: `tanh` of a Q4.27 argument, Q1.30 result, by odd symmetry
+//!   from a table of 512 cubic Hermite segments over `[0, 16)` (segment width
+//!   1/32, derivative `1 - tanh^2` at both ends), evaluated in three
+//!   `smmla`-style steps. Absolute error about 1e-9 (see the tests).
+//! - [`exp2_neg_q22`]: `2^-u` of a Q10.22 exponent (`u32`), Q1.30 result: the
+//!   integer part of `u` is a right shift, the fraction comes from a table of
+//!   1024 linear segments with a `32x32->64` multiply. Relative error about
+//!   1e-7.
+//!
+//! Both tables are computed by `const fn`s at compile time. Const evaluation is
+//! done by the compiler with software IEEE arithmetic, so the host build and the
+//! `thumbv7em-none-eabihf` build embed the very same table bits, and the
+//! evaluators are integer-only at run time: host and device results are
+//! bit-identical by construction.
+//!
+//! Notation: `Qm.n` is a two's complement integer with `n` fractional bits
+//! (value = integer / 2^n) and `m` integer bits including the sign.
+
+/// `ln 2`.
+const LN2: f64 = core::f64::consts::LN_2;
+
+/// Fractional bits of the argument of [`tanh_q27`] (Q4.27, range ±16).
+pub const TANH_IN_FRAC: u32 = 27;
+/// Fractional bits of the result of [`tanh_q27`] (Q1.30).
+pub const TANH_OUT_FRAC: u32 = 30;
+/// Segments per unit of the tanh table (segment width 1/32).
+const TANH_SEG_PER_UNIT_LOG2: u32 = 5;
+/// Segments of the tanh table: `[0, 16)` in steps of 1/32.
+pub const TANH_SEGMENTS: usize = 512;
+
+/// Fractional bits of the exponent `u` of [`exp2_neg_q22`] (Q10.22, `u32`).
+pub const EXP2_IN_FRAC: u32 = 22;
+/// Fractional bits of the result of [`exp2_neg_q22`] (Q1.30).
+pub const EXP2_OUT_FRAC: u32 = 30;
+/// Index bits of the exp2 table (1024 segments over one octave).
+const EXP2_INDEX_BITS: u32 = 10;
+/// Segments of the exp2 table.
+pub const EXP2_SEGMENTS: usize = 1 << EXP2_INDEX_BITS;
+/// Bits of `u` below the table index: the interpolation fraction.
+const EXP2_FRAC_BITS: u32 = EXP2_IN_FRAC - EXP2_INDEX_BITS;
+/// Smallest exponent `u` (Q10.22) for which [`exp2_neg_q22`] returns 0: `2^-31`
+/// is below half the resolution of Q1.30.
+pub const EXP2_CUTOFF_Q22: u32 = 31 << EXP2_IN_FRAC;
+
+// ---------------------------------------------------------------------------
+// Const-evaluated elementary functions (compile time only).
+
+/// Nearest integer, ties away from zero (const).
+const fn round_i64(x: f64) -> i64 {
+    if x >= 0.0 {
+        (x + 0.5) as i64
+    } else {
+        (x - 0.5) as i64
+    }
+}
+
+/// `e^x` for `x` in about `[-700, 700]` (const): `2^k e^r` with `|r| <= ln2/2`
+/// and a 27-term Taylor series; relative error a few ulp.
+const fn exp_const(x: f64) -> f64 {
+    let kf = x / LN2;
+    let k = round_i64(kf);
+    let r = x - (k as f64) * LN2;
+    let mut term = 1.0;
+    let mut sum = 1.0;
+    let mut i = 1;
+    while i < 28 {
+        term = term * r / (i as f64);
+        sum += term;
+        i += 1;
+    }
+    sum * f64::from_bits(((k + 1023) as u64) << 52)
+}
+
+/// `tanh x` for `x >= 0` (const).
+const fn tanh_const(x: f64) -> f64 {
+    let e = exp_const(-2.0 * x);
+    (1.0 - e) / (1.0 + e)
+}
+
+/// The tanh table: per segment `[c0, c1, c2, c3]` of
+/// `tanh(x0 + t/32) = c0 + t (c1 + t (c2 + t c3))`, `t in [0, 1)`, with
+/// `c0` in Q1.30, `c1` in Q0.31, `c2` in Q32 and `c3` in Q33 (each Horner step
+/// is one `(a * t_q31) >> 32`). Cubic Hermite: values and derivatives
+/// `1 - tanh^2` match at both ends of the segment.
+const fn tanh_table() -> [[i32; 4]; TANH_SEGMENTS] {
+    let mut t = [[0i32; 4]; TANH_SEGMENTS];
+    let h = 1.0 / (1u32 << TANH_SEG_PER_UNIT_LOG2) as f64;
+    let mut i = 0;
+    while i < TANH_SEGMENTS {
+        let x0 = i as f64 * h;
+        let y0 = tanh_const(x0);
+        let y1 = tanh_const(x0 + h);
+        let d0 = h * (1.0 - y0 * y0);
+        let d1 = h * (1.0 - y1 * y1);
+        let c0 = y0;
+        let c1 = d0;
+        let c2 = 3.0 * (y1 - y0) - 2.0 * d0 - d1;
+        let c3 = 2.0 * (y0 - y1) + d0 + d1;
+        t[i] = [
+            round_i64(c0 * (1u64 << 30) as f64) as i32,
+            round_i64(c1 * (1u64 << 31) as f64) as i32,
+            round_i64(c2 * (1u64 << 32) as f64) as i32,
+            round_i64(c3 * (1u64 << 33) as f64) as i32,
+        ];
+        i += 1;
+    }
+    t
+}
+
+/// The exp2 table: per segment `j` of `[0, 1)` (width `w = 1/1024`),
+/// `[c0, slope]` in Q1.30 with `2^-(j w + f w) ~= c0 - slope * f`, `f in [0, 1)`.
+///
+/// The exponent reaching the table is truncated to Q22, so the segment is
+/// centred half a Q22 step later (`+2^-23`), and `c0` is lowered by the mean
+/// error of the chord (2/3 of its sag; the chord of a convex function lies
+/// above it): the error then averages to zero over a segment instead of being
+/// biased, which matters when hundreds of kernels are summed.
+const fn exp2_table() -> [[u32; 2]; EXP2_SEGMENTS] {
+    let mut t = [[0u32; 2]; EXP2_SEGMENTS];
+    let w = 1.0 / EXP2_SEGMENTS as f64;
+    let half_lsb = 1.0 / (1u64 << (EXP2_IN_FRAC + 1)) as f64;
+    let one = (1u64 << EXP2_OUT_FRAC) as f64;
+    let mut j = 0;
+    while j < EXP2_SEGMENTS {
+        let a = j as f64 * w + half_lsb;
+        let ya = exp_const(-a * LN2);
+        let yb = exp_const(-(a + w) * LN2);
+        // Chord minus curve at the middle of the segment.
+        let mid = exp_const(-(a + 0.5 * w) * LN2);
+        let sag = 0.5 * (ya + yb) - mid;
+        t[j] = [
+            round_i64((ya - sag * (2.0 / 3.0)) * one) as u32,
+            round_i64((ya - yb) * one) as u32,
+        ];
+        j += 1;
+    }
+    t
+}
+
+/// Cubic Hermite segments of `tanh` over `[0, 16)`; see [`tanh_q27`].
+pub static TANH_TABLE: [[i32; 4]; TANH_SEGMENTS] = tanh_table();
+
+/// Linear segments of `2^-u` over `u in [0, 1)`; see [`exp2_neg_q22`].
+pub static EXP2_TABLE: [[u32; 2]; EXP2_SEGMENTS] = exp2_table();
+
+// ---------------------------------------------------------------------------
+// Run-time helpers (integer only).
+
+/// High word of the signed 64-bit product: `(a * b) >> 32` (floor), one
+/// `smmul` on Cortex-M7.
+#[inline(always)]
+pub fn mul_hi(a: i32, b: i32) -> i32 {
+    ((a as i64 * b as i64) >> 32) as i32
+}
+
+/// Saturates an `i64` to the `i32` range.
+#[inline(always)]
+pub fn sat_i32(v: i64) -> i32 {
+    if v > i32::MAX as i64 {
+        i32::MAX
+    } else if v < i32::MIN as i64 {
+        i32::MIN
+    } else {
+        v as i32
+    }
+}
+
+/// Arithmetic right shift of an `i64` by `sh` (taken modulo 64), flooring.
+#[inline(always)]
+pub fn shr_i64(v: i64, sh: u32) -> i64 {
+    v >> (sh & 63)
+}
+
+/// Arithmetic right shift of an `i64` by `sh` (modulo 64), rounding half up.
+#[inline(always)]
+pub fn shr_round_i64(v: i64, sh: u32) -> i64 {
+    let sh = sh & 63;
+    if sh == 0 {
+        v
+    } else {
+        (v >> (sh - 1)).wrapping_add(1) >> 1
+    }
+}
+
+/// `v >> sh` saturated to `i32`, for `sh` in `1..=31` (taken modulo 32; 0 is
+/// not meaningful). A handful of 32-bit instructions instead of a generic
+/// 64-bit variable shift: `(lo >> sh) | (hi << (32 - sh))`, then a sign check.
+#[inline(always)]
+pub fn shr_sat_i64_to_i32(v: i64, sh: u32) -> i32 {
+    let sh = sh & 31;
+    let lo = v as u32;
+    let hi = (v >> 32) as i32;
+    let x_lo = (lo >> sh) | ((hi as u32) << (32u32.wrapping_sub(sh) & 31));
+    let x_hi = hi >> sh;
+    if x_hi == (x_lo as i32) >> 31 {
+        x_lo as i32
+    } else if hi < 0 {
+        i32::MIN
+    } else {
+        i32::MAX
+    }
+}
+
+/// Reads a little-endian `i32` at byte offset `AT` of a fixed-size record.
+/// The record may sit at any address (flash blobs are not aligned); on the
+/// Cortex-M7 this is one unaligned `ldr`.
+#[inline(always)]
+pub fn le_i32<const N: usize, const AT: usize>(rec: &[u8; N]) -> i32 {
+    i32::from_le_bytes([rec[AT], rec[AT + 1], rec[AT + 2], rec[AT + 3]])
+}
+
+/// Reads a little-endian `i32` at `at` of a slice, `None` past its end.
+#[inline]
+pub fn read_i32(bytes: &[u8], at: usize) -> Option<i32> {
+    let end = at.checked_add(4)?;
+    let b = bytes.get(at..end)?;
+    Some(i32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+}
+
+/// Converts a value to a Q format with `frac` fractional bits, rounding to
+/// nearest; `None` if it is not finite or does not fit an `i32`.
+pub fn to_q_i32(v: f64, frac: u32) -> Option<i32> {
+    if !v.is_finite() || frac > 62 {
+        return None;
+    }
+    let s = v * (1u64 << frac) as f64;
+    let r = libm::round(s);
+    if (-2_147_483_648.0..2_147_483_648.0).contains(&r) {
+        Some(r as i32)
+    } else {
+        None
+    }
+}
+
+/// Converts a Q15.16 position (mm) to f64 mm.
+#[inline]
+pub fn q16_to_mm(v: i32) -> f64 {
+    v as f64 / 65536.0
+}
+
+/// Converts f64 mm to a Q15.16 position, rounding and saturating (NaN gives 0).
+pub fn mm_to_q16(mm: f64) -> i32 {
+    if mm.is_nan() {
+        return 0;
+    }
+    let r = libm::round(mm * 65536.0);
+    if r >= i32::MAX as f64 {
+        i32::MAX
+    } else if r <= i32::MIN as f64 {
+        i32::MIN
+    } else {
+        r as i32
+    }
+}
+
+/// `tanh` in fixed point: Q4.27 argument (range ±16), Q1.30 result.
+///
+/// Odd symmetry; `|x|` selects one of 512 cubic Hermite segments of width
+/// 1/32 over `[0, 16)`; the 22 bits below the index are the position `t` in
+/// the segment, used as Q0.31. Beyond 16 (only `i32::MIN`) the result is the
+/// last segment's end, `tanh(16)`, which is 1 in Q1.30. Integer only, never
+/// panics, `|result| <= 2^30`.
+#[inline(always)]
+pub fn tanh_q27(x: i32) -> i32 {
+    let ax = x.unsigned_abs().min(i32::MAX as u32);
+    let idx = (ax >> (TANH_IN_FRAC - TANH_SEG_PER_UNIT_LOG2)) as usize;
+    let frac_bits = TANH_IN_FRAC - TANH_SEG_PER_UNIT_LOG2; // 22
+    let t = ((ax & ((1 << frac_bits) - 1)) << (31 - frac_bits)) as i32; // Q0.31
+    let c = &TANH_TABLE[idx & (TANH_SEGMENTS - 1)];
+    let a = c[2].wrapping_add(mul_hi(c[3], t)); // Q32
+    let a = c[1].wrapping_add(mul_hi(a, t)); // Q31
+    let y = c[0].wrapping_add(mul_hi(a, t)); // Q30
+    if x < 0 {
+        y.wrapping_neg()
+    } else {
+        y
+    }
+}
+
+/// `2^-u` in fixed point: `u` in Q10.22 (`u32`, `u >= 0`), result Q1.30
+/// (`<= 2^30`). Returns 0 for `u >= 31` ([`EXP2_CUTOFF_Q22`]).
+///
+/// `u = n + j/1024 + f/2^22`: `n` (bits 22..) is a right shift, `j` (bits
+/// 12..22) indexes [`EXP2_TABLE`], `f` (bits 0..12) interpolates linearly with
+/// one `32x32->64` multiply. Never panics.
+#[inline(always)]
+pub fn exp2_neg_q22(u: u32) -> i32 {
+    if u >= EXP2_CUTOFF_Q22 {
+        return 0;
+    }
+    exp2_neg_q22_below_cutoff(u)
+}
+
+/// [`exp2_neg_q22`] without the cutoff test, for callers that tested
+/// `u < EXP2_CUTOFF_Q22` already (the shift is masked, so any `u` is safe).
+#[inline(always)]
+pub fn exp2_neg_q22_below_cutoff(u: u32) -> i32 {
+    let n = u >> EXP2_IN_FRAC;
+    let j = ((u >> EXP2_FRAC_BITS) as usize) & (EXP2_SEGMENTS - 1);
+    let f = u << (32 - EXP2_FRAC_BITS); // fraction of the segment, Q0.32
+    let [c0, slope] = EXP2_TABLE[j];
+    let k0 = c0.wrapping_sub(((slope as u64 * f as u64) >> 32) as u32);
+    (k0 >> (n & 31)) as i32
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn const_exp_matches_libm() {
+        for i in 0..2000 {
+            let x = -40.0 + i as f64 * 0.0213;
+            let a = exp_const(x);
+            let b = libm::exp(x);
+            assert!(((a - b) / b).abs() < 1e-14, "x {x}: {a} vs {b}");
+        }
+    }
+
+    #[test]
+    fn tanh_q27_accuracy() {
+        let mut max_err = 0f64;
+        // Dense sweep of the argument range, both signs.
+        let mut x: i64 = -(1i64 << 31) + 1;
+        while x < (1i64 << 31) {
+            let xi = x as i32;
+            let got = tanh_q27(xi) as f64 / (1u64 << 30) as f64;
+            let want = libm::tanh(xi as f64 / (1u64 << 27) as f64);
+            max_err = max_err.max((got - want).abs());
+            x += 9_973; // prime step: covers every segment at many positions
+        }
+        eprintln!("tanh: max abs error {max_err:e}");
+        assert!(max_err < 1.5e-8, "tanh max error {max_err}");
+        assert_eq!(tanh_q27(0), 0);
+        assert_eq!(tanh_q27(i32::MAX), 1 << 30);
+        assert_eq!(tanh_q27(i32::MIN), -(1 << 30));
+        for x in [1, 12345, 1 << 27, 5 << 26, i32::MAX] {
+            assert_eq!(tanh_q27(-x), -tanh_q27(x));
+        }
+    }
+
+    #[test]
+    fn exp2_accuracy() {
+        let mut max_rel = 0f64;
+        let mut max_abs = 0f64;
+        let mut sum_rel = 0f64;
+        let mut count = 0;
+        let mut u: u64 = 0;
+        while u < (31u64 << 22) {
+            let got = exp2_neg_q22(u as u32) as f64 / (1u64 << 30) as f64;
+            // The input stands for the Q22 bin [u, u+1): compare at its centre.
+            let want = libm::exp2(-((u as f64 + 0.5) / (1u64 << 22) as f64));
+            let abs = (got - want).abs();
+            max_abs = max_abs.max(abs);
+            // Relative error of the first octave (the table itself); below it
+            // the right shift adds an absolute error under 2^-30.
+            if want > 0.5 {
+                let rel = (got - want) / want;
+                max_rel = max_rel.max(rel.abs());
+                sum_rel += rel;
+                count += 1;
+            }
+            u += 1_237;
+        }
+        eprintln!("exp2: max rel {max_rel:e}, max abs {max_abs:e}");
+        assert!(max_rel < 1.3e-7, "exp2 max relative error {max_rel}");
+        assert!(max_abs < 1.3e-7, "exp2 max absolute error {max_abs}");
+        assert!(
+            (sum_rel / count as f64).abs() < 5e-9,
+            "exp2 bias {}",
+            sum_rel / count as f64
+        );
+        assert_eq!(exp2_neg_q22(EXP2_CUTOFF_Q22), 0);
+        assert_eq!(exp2_neg_q22(u32::MAX), 0);
+        assert!(exp2_neg_q22(0) <= 1 << 30);
+    }
+
+    #[test]
+    fn q_helpers() {
+        assert_eq!(sat_i32(1 << 40), i32::MAX);
+        assert_eq!(sat_i32(-(1 << 40)), i32::MIN);
+        assert_eq!(shr_round_i64(5, 1), 3);
+        for v in [
+            0i64,
+            1,
+            -1,
+            12345678901,
+            -98765432109,
+            i64::MAX,
+            i64::MIN,
+            1 << 40,
+        ] {
+            for sh in 1..32 {
+                assert_eq!(shr_sat_i64_to_i32(v, sh), sat_i32(v >> sh), "{v} >> {sh}");
+            }
+        }
+        assert_eq!(shr_round_i64(-5, 1), -2);
+        assert_eq!(to_q_i32(1.5, 16), Some(98_304));
+        assert_eq!(to_q_i32(40_000.0, 16), None);
+        assert_eq!(to_q_i32(f64::NAN, 16), None);
+        assert_eq!(mm_to_q16(1e12), i32::MAX);
+        assert_eq!(read_i32(&[1, 0, 0, 0, 9], 0), Some(1));
+        assert_eq!(read_i32(&[1, 0, 0, 0, 9], 2), None);
+        assert_eq!(read_i32(&[1, 0, 0, 0], usize::MAX), None);
+    }
+}

@@ -1,1 +1,659 @@
-//! (being written: see docs/design.md)
+//! Kinematics of an 8-string SPIDAR: string lengths from a position (inverse)
+//! and a position from string lengths (forward, damped Gauss-Newton /
+//! Levenberg-Marquardt) with faulty-string rejection.
+//!
+//! Generic over [`num_traits::Float`]: the device runs `f32`, the host `f64`.
+//! Only `+ - * /` and `sqrt` are used, always in the same order, so `f32`
+//! results are bit-identical on x86_64 (SSE) and on the Cortex-M7 FPU: all
+//! five are correctly rounded IEEE 754 operations on both, Rust never
+//! contracts `a * b + c` into an FMA, and `sqrt` is `libm::sqrtf`/`sqrt`
+//! (no_std) or the hardware instruction (std), both correctly rounded.
+//! Comparisons and `abs`/`is_finite` are exact.
+//!
+//! Units: millimetres, device frame.
+
+use num_traits::Float;
+
+use crate::model::Vec3;
+use crate::STRINGS;
+
+/// `x` as `F` (constants only; every `f64` converts to `f32`/`f64`).
+#[inline]
+fn lit<F: Float>(x: f64) -> F {
+    F::from(x).unwrap_or_else(F::zero)
+}
+
+/// Geometric string lengths `|position - anchor_i|` (mm), computed as
+/// `sqrt(dx*dx + dy*dy + dz*dz)` in that order.
+pub fn inverse_kinematics<F: Float>(
+    anchors: &[Vec3<F>; STRINGS],
+    position: Vec3<F>,
+) -> [F; STRINGS] {
+    let mut out = [F::zero(); STRINGS];
+    for (o, a) in out.iter_mut().zip(anchors.iter()) {
+        let dx = position[0] - a[0];
+        let dy = position[1] - a[1];
+        let dz = position[2] - a[2];
+        *o = (dx * dx + dy * dy + dz * dz).sqrt();
+    }
+    out
+}
+
+/// Tuning of [`forward_kinematics`].
+///
+/// Worst case, the solver runs `max_iterations + STRINGS *
+/// exclusion_max_iterations` iterations (110 with the defaults); each
+/// iteration is one pass over the strings (8 `sqrt`, 8 divisions, ~120 other
+/// flops) and one 3x3 solve (~40 flops, 3 divisions).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FkConfig<F> {
+    /// Iteration limit of the solve with all strings (default 30).
+    pub max_iterations: u32,
+    /// Iteration limit of each leave-one-string-out solve (default 10; these
+    /// start next to the solution).
+    pub exclusion_max_iterations: u32,
+    /// Converged when the proposed step is shorter than this (mm, default 1e-3).
+    pub step_tolerance_mm: F,
+    /// Steps shorter than this (mm, default 0.5) are accepted without
+    /// checking that the cost decreased: within it the residuals are linear
+    /// in the position to ~step^2 / (2 string length) < 1e-4 mm, while in f32
+    /// the cost near the minimum is only known to ~1e-4 mm^2, so a cost test
+    /// would reject good steps and stall. Larger steps must decrease the cost.
+    pub trusted_step_mm: F,
+    /// RMS string-length residual (mm) above which the strings are considered
+    /// inconsistent and a faulty string is looked for (default 2 mm: a
+    /// calibrated device with 0.1-0.5 mm length noise stays well below; a
+    /// 10 mm error on one string typically raises the RMS to ~3 mm).
+    pub fault_threshold_mm: F,
+    /// Initial Levenberg-Marquardt damping (dimensionless, relative to
+    /// `J^T J` whose eigenvalues are ~1-4 for unit Jacobian rows; default 1e-3).
+    pub initial_damping: F,
+}
+
+impl<F: Float> Default for FkConfig<F> {
+    /// Sensible for a ~2.2 m frame in millimetres.
+    fn default() -> Self {
+        Self {
+            max_iterations: 30,
+            exclusion_max_iterations: 10,
+            step_tolerance_mm: lit(1e-3),
+            trusted_step_mm: lit(0.5),
+            fault_threshold_mm: lit(2.0),
+            initial_damping: lit(1e-3),
+        }
+    }
+}
+
+impl<F: Float> FkConfig<F> {
+    /// Worst-case iteration count of [`forward_kinematics`] with this config.
+    pub fn worst_case_iterations(&self) -> u32 {
+        self.max_iterations
+            .saturating_add(self.exclusion_max_iterations.saturating_mul(STRINGS as u32))
+    }
+}
+
+/// Outcome of [`forward_kinematics`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FkStatus {
+    /// All strings agree (RMS residual <= `fault_threshold_mm`), converged.
+    Ok,
+    /// One string disagreed with the others; the position is solved from the
+    /// other 7 and `excluded` names it.
+    FaultyStringExcluded,
+    /// The strings disagree and no single exclusion explains it (two or more
+    /// faulty strings, or a bad calibration). The position is the 8-string
+    /// least-squares compromise: do not trust it.
+    Inconsistent,
+    /// The iteration limit was reached before convergence; the position is
+    /// the best found.
+    NotConverged,
+    /// A string length is NaN, infinite or negative, or an anchor is not
+    /// finite. The position is `start` (or the anchors' centroid, or 0).
+    InvalidInput,
+}
+
+/// Result of [`forward_kinematics`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FkSolution<F> {
+    /// Device-frame position (mm). Finite whenever the inputs are finite.
+    pub position: Vec3<F>,
+    pub status: FkStatus,
+    /// Encoder index of the string left out, with [`FkStatus::FaultyStringExcluded`].
+    pub excluded: Option<u8>,
+    /// RMS of `|position - anchor_i| - length_i` over the strings used (mm);
+    /// infinite with [`FkStatus::InvalidInput`] or when it overflows.
+    pub rms_residual_mm: F,
+    /// Iterations run in total, fault handling included (see
+    /// [`FkConfig::worst_case_iterations`]).
+    pub iterations: u32,
+}
+
+/// Sum of squared residuals, normal matrix `J^T J` (upper triangle
+/// `[00, 01, 02, 11, 12, 22]`) and gradient `J^T r` at `p`, skipping string
+/// `skip`.
+struct Eval<F> {
+    cost: F,
+    jtj: [F; 6],
+    jtr: [F; 3],
+}
+
+fn evaluate<F: Float>(
+    anchors: &[Vec3<F>; STRINGS],
+    lengths: &[F; STRINGS],
+    skip: Option<usize>,
+    p: Vec3<F>,
+) -> Eval<F> {
+    let mut e = Eval {
+        cost: F::zero(),
+        jtj: [F::zero(); 6],
+        jtr: [F::zero(); 3],
+    };
+    for i in 0..STRINGS {
+        if skip == Some(i) {
+            continue;
+        }
+        let a = anchors[i];
+        let dx = p[0] - a[0];
+        let dy = p[1] - a[1];
+        let dz = p[2] - a[2];
+        let dist = (dx * dx + dy * dy + dz * dz).sqrt();
+        let r = dist - lengths[i];
+        e.cost = e.cost + r * r;
+        // At an anchor the residual has no direction: no Jacobian row.
+        if dist > F::zero() {
+            let ux = dx / dist;
+            let uy = dy / dist;
+            let uz = dz / dist;
+            e.jtj[0] = e.jtj[0] + ux * ux;
+            e.jtj[1] = e.jtj[1] + ux * uy;
+            e.jtj[2] = e.jtj[2] + ux * uz;
+            e.jtj[3] = e.jtj[3] + uy * uy;
+            e.jtj[4] = e.jtj[4] + uy * uz;
+            e.jtj[5] = e.jtj[5] + uz * uz;
+            e.jtr[0] = e.jtr[0] + ux * r;
+            e.jtr[1] = e.jtr[1] + uy * r;
+            e.jtr[2] = e.jtr[2] + uz * r;
+        }
+    }
+    e
+}
+
+/// Solves `(J^T J + lambda I) delta = -J^T r` by cofactors; `None` when the
+/// matrix is singular or something is not finite.
+fn damped_step<F: Float>(e: &Eval<F>, lambda: F) -> Option<Vec3<F>> {
+    let m00 = e.jtj[0] + lambda;
+    let m01 = e.jtj[1];
+    let m02 = e.jtj[2];
+    let m11 = e.jtj[3] + lambda;
+    let m12 = e.jtj[4];
+    let m22 = e.jtj[5] + lambda;
+    let c00 = m11 * m22 - m12 * m12;
+    let c01 = m02 * m12 - m01 * m22;
+    let c02 = m01 * m12 - m02 * m11;
+    let c11 = m00 * m22 - m02 * m02;
+    let c12 = m01 * m02 - m00 * m12;
+    let c22 = m00 * m11 - m01 * m01;
+    let det = m00 * c00 + m01 * c01 + m02 * c02;
+    if det <= F::zero() || !det.is_finite() {
+        return None;
+    }
+    let b0 = -e.jtr[0];
+    let b1 = -e.jtr[1];
+    let b2 = -e.jtr[2];
+    let d = [
+        (c00 * b0 + c01 * b1 + c02 * b2) / det,
+        (c01 * b0 + c11 * b1 + c12 * b2) / det,
+        (c02 * b0 + c12 * b1 + c22 * b2) / det,
+    ];
+    if d[0].is_finite() && d[1].is_finite() && d[2].is_finite() {
+        Some(d)
+    } else {
+        None
+    }
+}
+
+struct Solve<F> {
+    position: Vec3<F>,
+    cost: F,
+    iterations: u32,
+    converged: bool,
+}
+
+/// Levenberg-Marquardt from `start` with at most `max_iterations` trials
+/// (each trial = one evaluation and one 3x3 solve).
+fn solve<F: Float>(
+    anchors: &[Vec3<F>; STRINGS],
+    lengths: &[F; STRINGS],
+    skip: Option<usize>,
+    start: Vec3<F>,
+    max_iterations: u32,
+    config: &FkConfig<F>,
+) -> Solve<F> {
+    let ten: F = lit(10.0);
+    let tol2 = config.step_tolerance_mm * config.step_tolerance_mm;
+    let trust2 = config.trusted_step_mm * config.trusted_step_mm;
+    let mut p = start;
+    let mut cur = evaluate(anchors, lengths, skip, p);
+    let mut lambda = config.initial_damping;
+    let mut iterations = 0;
+    let mut converged = false;
+    while iterations < max_iterations {
+        iterations += 1;
+        let Some(d) = damped_step(&cur, lambda) else {
+            lambda = lambda * ten;
+            continue;
+        };
+        let step2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+        let q = [p[0] + d[0], p[1] + d[1], p[2] + d[2]];
+        let next = evaluate(anchors, lengths, skip, q);
+        // Short steps are taken without the cost test: there the model is
+        // linear far below float resolution, while the cost difference of a
+        // millimetre-scale step drowns in f32 rounding near the minimum.
+        if next.cost < cur.cost || step2 <= trust2 {
+            p = q;
+            cur = next;
+            lambda = lambda / ten;
+            if step2 <= tol2 {
+                converged = true;
+                break;
+            }
+        } else {
+            lambda = lambda * ten;
+        }
+    }
+    Solve {
+        position: p,
+        cost: cur.cost,
+        iterations,
+        converged,
+    }
+}
+
+fn rms<F: Float>(cost: F, n: usize) -> F {
+    let r = (cost / lit(n as f64)).sqrt();
+    if r.is_finite() {
+        r
+    } else {
+        F::infinity()
+    }
+}
+
+fn finite3<F: Float>(v: &Vec3<F>) -> bool {
+    v[0].is_finite() && v[1].is_finite() && v[2].is_finite()
+}
+
+/// Position (mm, device frame) from the 8 string lengths, warm-started from
+/// `start` (the previous position; the frame centre on a cold start).
+///
+/// 1. Damped Gauss-Newton (Levenberg-Marquardt) on the 8 residuals
+///    `|p - anchor_i| - length_i`, at most `config.max_iterations` iterations.
+/// 2. If the RMS residual exceeds `config.fault_threshold_mm`, the 8 solves
+///    leaving one string out (7 strings) are run, each from the better of
+///    `start` and the 8-string solution, at most
+///    `config.exclusion_max_iterations` iterations each; the one with the
+///    lowest RMS is kept if it is converged and below the threshold
+///    ([`FkStatus::FaultyStringExcluded`]), else [`FkStatus::Inconsistent`].
+///
+/// Never panics; never returns a NaN position or RMS (a non-finite `start`
+/// is replaced by the anchors' centroid).
+pub fn forward_kinematics<F: Float>(
+    anchors: &[Vec3<F>; STRINGS],
+    lengths: &[F; STRINGS],
+    start: Vec3<F>,
+    config: &FkConfig<F>,
+) -> FkSolution<F> {
+    let anchors_ok = anchors.iter().all(finite3);
+    let start = if finite3(&start) {
+        start
+    } else if anchors_ok {
+        let mut c = [F::zero(); 3];
+        for a in anchors {
+            c = [c[0] + a[0], c[1] + a[1], c[2] + a[2]];
+        }
+        let n: F = lit(STRINGS as f64);
+        [c[0] / n, c[1] / n, c[2] / n]
+    } else {
+        [F::zero(); 3]
+    };
+    let lengths_ok = lengths.iter().all(|l| l.is_finite() && *l >= F::zero());
+    if !anchors_ok || !lengths_ok {
+        return FkSolution {
+            position: start,
+            status: FkStatus::InvalidInput,
+            excluded: None,
+            rms_residual_mm: F::infinity(),
+            iterations: 0,
+        };
+    }
+
+    let all = solve(anchors, lengths, None, start, config.max_iterations, config);
+    let all_rms = rms(all.cost, STRINGS);
+    let mut iterations = all.iterations;
+    // An infinite RMS (overflow) is not below the threshold: fault handling.
+    if all_rms <= config.fault_threshold_mm {
+        return FkSolution {
+            position: all.position,
+            status: if all.converged {
+                FkStatus::Ok
+            } else {
+                FkStatus::NotConverged
+            },
+            excluded: None,
+            rms_residual_mm: all_rms,
+            iterations,
+        };
+    }
+
+    let mut best: Option<(usize, Solve<F>)> = None;
+    for k in 0..STRINGS {
+        let skip = Some(k);
+        // Start from whichever of the previous position and the 8-string
+        // solution fits the 7 strings better.
+        let c_start = evaluate(anchors, lengths, skip, start).cost;
+        let c_all = evaluate(anchors, lengths, skip, all.position).cost;
+        let from = if c_start < c_all { start } else { all.position };
+        let s = solve(
+            anchors,
+            lengths,
+            skip,
+            from,
+            config.exclusion_max_iterations,
+            config,
+        );
+        iterations = iterations.saturating_add(s.iterations);
+        let better = match &best {
+            None => true,
+            Some((_, b)) => s.cost < b.cost,
+        };
+        if better {
+            best = Some((k, s));
+        }
+    }
+    if let Some((k, s)) = best {
+        let r = rms(s.cost, STRINGS - 1);
+        if s.converged && r <= config.fault_threshold_mm {
+            return FkSolution {
+                position: s.position,
+                status: FkStatus::FaultyStringExcluded,
+                excluded: Some(k as u8),
+                rms_residual_mm: r,
+                iterations,
+            };
+        }
+    }
+    FkSolution {
+        position: all.position,
+        status: if all.converged {
+            FkStatus::Inconsistent
+        } else {
+            FkStatus::NotConverged
+        },
+        excluded: None,
+        rms_residual_mm: all_rms,
+        iterations,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn anchors<F: Float>() -> [Vec3<F>; STRINGS] {
+        let h: F = lit(1100.0);
+        let mut a = [[F::zero(); 3]; STRINGS];
+        for (i, v) in a.iter_mut().enumerate() {
+            *v = [
+                if i & 1 == 0 { -h } else { h },
+                if i & 2 == 0 { -h } else { h },
+                if i & 4 == 0 { -h } else { h },
+            ];
+        }
+        a
+    }
+
+    /// Points of a 1 m cube centred in the frame, `n` per axis.
+    fn cube(n: usize) -> Vec<[f64; 3]> {
+        let mut out = Vec::new();
+        for i in 0..n {
+            for j in 0..n {
+                for k in 0..n {
+                    let c = |m: usize| -500.0 + 1000.0 * m as f64 / (n - 1) as f64;
+                    out.push([c(i), c(j), c(k)]);
+                }
+            }
+        }
+        out
+    }
+
+    fn dist(a: [f64; 3], b: [f64; 3]) -> f64 {
+        ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
+    }
+
+    fn to_f64<F: Float>(p: Vec3<F>) -> [f64; 3] {
+        [
+            p[0].to_f64().unwrap(),
+            p[1].to_f64().unwrap(),
+            p[2].to_f64().unwrap(),
+        ]
+    }
+
+    /// Round trip position -> lengths -> position; returns (max error mm, max iterations).
+    fn round_trip<F: Float + core::fmt::Debug>(warm: bool) -> (f64, u32) {
+        let a = anchors::<F>();
+        let config = FkConfig::<F>::default();
+        let mut max_err = 0.0f64;
+        let mut max_it = 0;
+        for p in cube(11) {
+            let pf = [lit::<F>(p[0]), lit(p[1]), lit(p[2])];
+            // Lengths from the exact f64 geometry, rounded to F once.
+            let a64 = anchors::<f64>();
+            let l64 = inverse_kinematics(&a64, p);
+            let l: [F; STRINGS] = core::array::from_fn(|i| lit(l64[i]));
+            let start = if warm {
+                [pf[0] + lit(3.0), pf[1] - lit(2.0), pf[2] + lit(1.5)]
+            } else {
+                [F::zero(); 3]
+            };
+            let s = forward_kinematics(&a, &l, start, &config);
+            assert_eq!(s.status, FkStatus::Ok, "{p:?}: {s:?}");
+            max_err = max_err.max(dist(to_f64(s.position), p));
+            max_it = max_it.max(s.iterations);
+        }
+        (max_err, max_it)
+    }
+
+    #[test]
+    fn round_trip_f64_cold_and_warm() {
+        let (e, it) = round_trip::<f64>(false);
+        println!("f64 cold: max error {e:.2e} mm, max iterations {it}");
+        assert!(e < 1e-6, "cold f64 error {e} mm");
+        assert!(it <= 10, "cold f64 iterations {it}");
+        let (e, it) = round_trip::<f64>(true);
+        println!("f64 warm: max error {e:.2e} mm, max iterations {it}");
+        assert!(e < 1e-6, "warm f64 error {e} mm");
+        assert!(it <= 5, "warm f64 iterations {it}");
+    }
+
+    #[test]
+    fn round_trip_f32_cold_and_warm() {
+        let (e, it) = round_trip::<f32>(false);
+        println!("f32 cold: max error {e:.2e} mm, max iterations {it}");
+        assert!(e < 0.01, "cold f32 error {e} mm");
+        assert!(it <= 12, "cold f32 iterations {it}");
+        let (e, it) = round_trip::<f32>(true);
+        println!("f32 warm: max error {e:.2e} mm, max iterations {it}");
+        assert!(e < 0.01, "warm f32 error {e} mm");
+        assert!(it <= 6, "warm f32 iterations {it}");
+    }
+
+    #[test]
+    fn inverse_kinematics_at_centre() {
+        let l = inverse_kinematics(&anchors::<f64>(), [0.0; 3]);
+        for v in l {
+            assert!((v - 1100.0 * 3f64.sqrt()).abs() < 1e-9);
+        }
+    }
+
+    fn check_single_fault<F: Float + core::fmt::Debug>() -> (f64, u32) {
+        let mut max_err = 0.0f64;
+        let mut max_it = 0;
+        let a = anchors::<F>();
+        let a64 = anchors::<f64>();
+        let config = FkConfig::<F>::default();
+        for (n, p) in cube(5).into_iter().enumerate() {
+            let bad = n % STRINGS;
+            let mut l64 = inverse_kinematics(&a64, p);
+            l64[bad] += 40.0;
+            let l: [F; STRINGS] = core::array::from_fn(|i| lit(l64[i]));
+            for start in [[F::zero(); 3], [lit(p[0]), lit(p[1]), lit(p[2])]] {
+                let s = forward_kinematics(&a, &l, start, &config);
+                assert_eq!(
+                    s.status,
+                    FkStatus::FaultyStringExcluded,
+                    "{p:?} bad {bad}: {s:?}"
+                );
+                assert_eq!(s.excluded, Some(bad as u8));
+                let err = dist(to_f64(s.position), p);
+                assert!(err < 0.5, "{p:?}: error {err} mm");
+                assert!(s.iterations <= config.worst_case_iterations());
+                max_err = max_err.max(err);
+                max_it = max_it.max(s.iterations);
+            }
+        }
+        (max_err, max_it)
+    }
+
+    #[test]
+    fn one_faulty_string_is_excluded() {
+        let (e, it) = check_single_fault::<f64>();
+        println!("+40 mm on one string, f64: max error {e:.2e} mm, max iterations {it}");
+        let (e, it) = check_single_fault::<f32>();
+        println!("+40 mm on one string, f32: max error {e:.2e} mm, max iterations {it}");
+    }
+
+    #[test]
+    fn two_faulty_strings_are_inconsistent() {
+        let a = anchors::<f64>();
+        let config = FkConfig::default();
+        for (n, p) in cube(5).into_iter().enumerate() {
+            let b1 = n % STRINGS;
+            let b2 = (n + 3) % STRINGS;
+            let mut l = inverse_kinematics(&a, p);
+            l[b1] += 40.0;
+            l[b2] -= 30.0;
+            let s = forward_kinematics(&a, &l, p, &config);
+            assert_eq!(
+                s.status,
+                FkStatus::Inconsistent,
+                "{p:?} bad {b1},{b2}: {s:?}"
+            );
+            assert_eq!(s.excluded, None);
+            assert!(s.rms_residual_mm > config.fault_threshold_mm);
+        }
+    }
+
+    /// Deterministic Gaussian-ish noise (sum of 12 uniforms - 6).
+    struct Noise(u64);
+    impl Noise {
+        fn gauss(&mut self) -> f64 {
+            let mut s = 0.0;
+            for _ in 0..12 {
+                self.0 ^= self.0 << 13;
+                self.0 ^= self.0 >> 7;
+                self.0 ^= self.0 << 17;
+                s += (self.0 >> 11) as f64 / (1u64 << 53) as f64;
+            }
+            s - 6.0
+        }
+    }
+
+    #[test]
+    fn length_noise_gives_sub_mm_position_error() {
+        let mut noise = Noise(0x1234_5678);
+        let a = anchors::<f64>();
+        let af = anchors::<f32>();
+        let config = FkConfig::default();
+        let configf = FkConfig::<f32>::default();
+        let mut max64 = 0.0f64;
+        let mut max32 = 0.0f64;
+        for p in cube(7) {
+            let mut l = inverse_kinematics(&a, p);
+            for v in l.iter_mut() {
+                *v += 0.1 * noise.gauss();
+            }
+            let s = forward_kinematics(&a, &l, [0.0; 3], &config);
+            assert_eq!(s.status, FkStatus::Ok, "{s:?}");
+            max64 = max64.max(dist(s.position, p));
+            let lf: [f32; STRINGS] = core::array::from_fn(|i| l[i] as f32);
+            let s = forward_kinematics(&af, &lf, [0.0; 3], &configf);
+            assert_eq!(s.status, FkStatus::Ok, "{s:?}");
+            max32 = max32.max(dist(to_f64(s.position), p));
+        }
+        println!("0.1 mm length noise: max position error f64 {max64:.3} mm, f32 {max32:.3} mm");
+        assert!(max64 < 1.0 && max32 < 1.0, "{max64} {max32}");
+    }
+
+    #[test]
+    fn invalid_inputs() {
+        let a = anchors::<f32>();
+        let config = FkConfig::default();
+        let good = inverse_kinematics(&a, [10.0, 20.0, 30.0]);
+        for bad in [f32::NAN, f32::INFINITY, -1.0] {
+            let mut l = good;
+            l[4] = bad;
+            let s = forward_kinematics(&a, &l, [1.0, 2.0, 3.0], &config);
+            assert_eq!(s.status, FkStatus::InvalidInput);
+            assert_eq!(s.position, [1.0, 2.0, 3.0]);
+            assert!(!s.rms_residual_mm.is_nan());
+        }
+        let mut na = a;
+        na[2][1] = f32::NAN;
+        let s = forward_kinematics(&na, &good, [0.0; 3], &config);
+        assert_eq!(s.status, FkStatus::InvalidInput);
+        // A NaN start is replaced by the centroid and still solves.
+        let s = forward_kinematics(&a, &good, [f32::NAN; 3], &config);
+        assert_eq!(s.status, FkStatus::Ok);
+        assert!((s.position[0] - 10.0).abs() < 0.01);
+    }
+
+    #[test]
+    fn at_an_anchor_and_degenerate() {
+        let a = anchors::<f64>();
+        let config = FkConfig::default();
+        // Start exactly on an anchor.
+        let l = inverse_kinematics(&a, [100.0, 0.0, 0.0]);
+        let s = forward_kinematics(&a, &l, a[0], &config);
+        assert_eq!(s.status, FkStatus::Ok);
+        // All anchors at one point: no position can be found, but no NaN.
+        let same = [[0.0; 3]; STRINGS];
+        let s = forward_kinematics(&same, &[100.0; STRINGS], [0.0; 3], &config);
+        assert!(s.position.iter().all(|v| v.is_finite()));
+        assert!(!s.rms_residual_mm.is_nan());
+    }
+
+    proptest! {
+        /// Finite inputs never give a NaN or a panic, whatever their values.
+        #[test]
+        fn finite_inputs_never_nan(l in proptest::array::uniform8(0.0f32..1e30),
+                                   start in proptest::array::uniform3(-1e30f32..1e30),
+                                   scale in prop_oneof![Just(1.0f32), Just(1e-30), Just(1e20)]) {
+            let mut a = anchors::<f32>();
+            for v in a.iter_mut() { for c in v.iter_mut() { *c *= scale; } }
+            let s = forward_kinematics(&a, &l, start, &FkConfig::default());
+            prop_assert!(s.position.iter().all(|v| v.is_finite()), "{:?}", s);
+            prop_assert!(!s.rms_residual_mm.is_nan());
+            prop_assert!(s.iterations <= FkConfig::<f32>::default().worst_case_iterations());
+        }
+
+        #[test]
+        fn realistic_lengths_round_trip(p in proptest::array::uniform3(-500.0f64..500.0),
+                                        s in proptest::array::uniform3(-600.0f64..600.0)) {
+            let a = anchors::<f64>();
+            let l = inverse_kinematics(&a, p);
+            let sol = forward_kinematics(&a, &l, s, &FkConfig::default());
+            prop_assert_eq!(sol.status, FkStatus::Ok);
+            prop_assert!(dist(sol.position, p) < 1e-6);
+        }
+    }
+}

@@ -1,1 +1,1545 @@
-//! (being written: see docs/design.md)
+//! String length from what the device knows: the base winding law of each
+//! string plus its effect terms (see `docs/design.md`, [`StringLaw`],
+//! [`Effect`]):
+//!
+//! ```text
+//! L_i = |home - anchor_i| + payout_i(theta_i) + sum of the effect terms of string i
+//! theta_i = 2 pi counts_i / counts_per_rev_i
+//! ```
+//!
+//! Two implementations of the same law:
+//! - **f64 reference** ([`string_lengths_f64`], [`payout_f64`],
+//!   [`Effect::contribution_f64`], [`Effect::gradient_f64`]): what the host
+//!   fits and the yardstick of the fixed-point error;
+//! - **fixed point** ([`CompiledStringLaw`], [`CompiledEffect`],
+//!   [`string_lengths`]): integer only, what the device runs every control-loop
+//!   iteration, bit-identical on host and MCU by construction.
+//!
+//! # Fixed-point formats (also in `docs/fixed-point.md`, "String law")
+//!
+//! | quantity | type | format |
+//! |---|---|---|
+//! | counts since home | `i32` | integer counts; the polynomial variable is `x = counts / 2^COUNTS_SHIFT` ([`COUNTS_SHIFT`] = 18) |
+//! | winding coefficient `k` (of `x^k`) | `i64` | Q31.32 mm: `round(winding_mm[k-1] (2 pi 2^18 / counts_per_rev)^k 2^32)` |
+//! | internal sums (home + payout + effects) | `i64` | Q31.32 mm, saturating |
+//! | home length, effect amplitudes (offset, eccentricity, backlash, slip) | `i64` | Q47.16 mm |
+//! | output string length | `i64` | Q47.16 mm (`round(Q31.32 / 2^16)`) |
+//! | scale | `i32` | Q1.30 (relative, `|relative| < 2`) |
+//! | extra winding term | `i64` | Q31.32 mm per `x^power`, like the base law |
+//! | elasticity | `i64` | Q16.47 per millinewton; strain `per_mn * tension_mn` in Q0.31 |
+//! | drift | `i64` | Q15.48 mm per millisecond |
+//! | slip time | `u32` | ms since home |
+//! | pulley phase (eccentricity) | `u32` | Q0.32 turns, from `counts mod counts_per_rev` |
+//! | sine table | `i32` | Q1.30, 512 segments per quarter turn, linear interpolation |
+//!
+//! Every product is `i64 x i32 -> 96 bits`, rounded (half up) and shifted back
+//! to `i64`, saturating; every sum saturates. No input or compiled parameter
+//! can make [`string_lengths`] panic.
+
+use core::f64::consts::TAU;
+use core::fmt;
+
+use serde::{Deserialize, Serialize};
+
+use crate::model::{Effect, EffectTerm, Frame, StringInputs, StringLaw, WINDING_ORDER};
+use crate::STRINGS;
+
+/// The winding polynomial is evaluated in `x = counts / 2^COUNTS_SHIFT`, so
+/// `|x| <= 1` for `|counts| <= 262144`.
+pub const COUNTS_SHIFT: u32 = 18;
+
+/// Highest power of an extra winding effect term ([`Effect::Winding`]).
+pub const MAX_EFFECT_WINDING_POWER: u8 = 8;
+
+/// Largest `|per_newton|` of an elasticity term: the strain at the largest
+/// commanded tension (65.535 N) must fit Q0.31.
+pub const MAX_ELASTICITY_PER_NEWTON: f64 = 0.015;
+
+// ---------------------------------------------------------------------------
+// f64 reference
+// ---------------------------------------------------------------------------
+
+/// Pulley angle `theta = 2 pi counts / counts_per_rev` (rad). Not finite when
+/// `counts_per_rev` is 0.
+pub fn pulley_angle(law: &StringLaw, counts: i32) -> f64 {
+    TAU * f64::from(counts) / f64::from(law.counts_per_rev)
+}
+
+/// Base winding law: length paid out since home (mm) at `counts`,
+/// `sum_k winding_mm[k-1] theta^k` (Horner).
+pub fn payout_f64(law: &StringLaw, counts: i32) -> f64 {
+    let t = pulley_angle(law, counts);
+    let w = &law.winding_mm;
+    let mut acc = 0.0;
+    for k in (0..WINDING_ORDER).rev() {
+        acc = (acc + w[k]) * t;
+    }
+    acc
+}
+
+/// `|home - anchor_string|` (mm); `None` when `string >= STRINGS`.
+pub fn home_length_f64(frame: &Frame<f64>, string: usize) -> Option<f64> {
+    let a = frame.anchors.get(string)?;
+    let d = [
+        frame.home[0] - a[0],
+        frame.home[1] - a[1],
+        frame.home[2] - a[2],
+    ];
+    Some(libm::sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]))
+}
+
+/// What an effect term of one string depends on, in physical units (f64).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct EffectContext {
+    /// Pulley angle (rad), [`pulley_angle`].
+    pub theta: f64,
+    /// Base winding law output (mm), [`payout_f64`].
+    pub payout_mm: f64,
+    /// `|home - anchor|` (mm).
+    pub home_length_mm: f64,
+    /// Commanded tension (N) = `tension_mn / 1000`.
+    pub tension_n: f64,
+    /// Direction of the last motion; only its sign is used (+1, -1, 0).
+    pub direction: i8,
+    /// Time since home (s) = `time_ms / 1000`.
+    pub time_s: f64,
+}
+
+impl EffectContext {
+    /// The context of `string` for `inputs`; `None` when `string >= STRINGS`.
+    pub fn for_string(
+        frame: &Frame<f64>,
+        laws: &[StringLaw; STRINGS],
+        inputs: &StringInputs,
+        string: usize,
+    ) -> Option<Self> {
+        let law = laws.get(string)?;
+        let counts = *inputs.counts.get(string)?;
+        Some(Self {
+            theta: pulley_angle(law, counts),
+            payout_mm: payout_f64(law, counts),
+            home_length_mm: home_length_f64(frame, string)?,
+            tension_n: f64::from(*inputs.tension_mn.get(string)?) / 1000.0,
+            direction: *inputs.direction.get(string)?,
+            time_s: f64::from(inputs.time_ms) / 1000.0,
+        })
+    }
+}
+
+fn direction_sign(direction: i8) -> f64 {
+    f64::from(direction.signum())
+}
+
+fn powi_f64(x: f64, power: u8) -> f64 {
+    let mut r = 1.0;
+    for _ in 0..power {
+        r *= x;
+    }
+    r
+}
+
+fn one(v: f64) -> heapless::Vec<f64, 2> {
+    let mut out = heapless::Vec::new();
+    let _ = out.push(v);
+    out
+}
+
+fn two(a: f64, b: f64) -> heapless::Vec<f64, 2> {
+    let mut out = heapless::Vec::new();
+    let _ = out.push(a);
+    let _ = out.push(b);
+    out
+}
+
+impl Effect {
+    /// Contribution of this term to the string length (mm), f64 reference.
+    pub fn contribution_f64(&self, ctx: &EffectContext) -> f64 {
+        match *self {
+            Effect::Offset { mm } => mm,
+            Effect::Scale { relative } => relative * ctx.payout_mm,
+            Effect::Winding {
+                power,
+                mm_per_rad_pow,
+            } => mm_per_rad_pow * powi_f64(ctx.theta, power),
+            Effect::Eccentricity { sin_mm, cos_mm } => {
+                sin_mm * libm::sin(ctx.theta) + cos_mm * (libm::cos(ctx.theta) - 1.0)
+            }
+            Effect::Elasticity { per_newton } => {
+                per_newton * ctx.tension_n * (ctx.home_length_mm + ctx.payout_mm)
+            }
+            Effect::Backlash { half_width_mm } => half_width_mm * direction_sign(ctx.direction),
+            Effect::Drift { mm_per_s } => mm_per_s * ctx.time_s,
+            Effect::Slip { at_s, mm } => {
+                if ctx.time_s >= at_s {
+                    mm
+                } else {
+                    0.0
+                }
+            }
+        }
+    }
+
+    /// Derivative of [`contribution_f64`](Self::contribution_f64) with respect
+    /// to each free parameter, in the order of [`parameters`](Self::parameters):
+    ///
+    /// | effect | free parameters | gradient |
+    /// |---|---|---|
+    /// | Offset | `mm` | `[1]` |
+    /// | Scale | `relative` | `[payout]` |
+    /// | Winding | `mm_per_rad_pow` (`power` is structural) | `[theta^power]` |
+    /// | Eccentricity | `sin_mm, cos_mm` | `[sin theta, cos theta - 1]` |
+    /// | Elasticity | `per_newton` | `[tension_N (home_length + payout)]` |
+    /// | Backlash | `half_width_mm` | `[sign(direction)]` |
+    /// | Drift | `mm_per_s` | `[t]` |
+    /// | Slip | `mm` (`at_s` is held fixed: a step is not differentiable in its time; search it separately) | `[t >= at_s ? 1 : 0]` |
+    pub fn gradient_f64(&self, ctx: &EffectContext) -> heapless::Vec<f64, 2> {
+        match *self {
+            Effect::Offset { .. } => one(1.0),
+            Effect::Scale { .. } => one(ctx.payout_mm),
+            Effect::Winding { power, .. } => one(powi_f64(ctx.theta, power)),
+            Effect::Eccentricity { .. } => two(libm::sin(ctx.theta), libm::cos(ctx.theta) - 1.0),
+            Effect::Elasticity { .. } => one(ctx.tension_n * (ctx.home_length_mm + ctx.payout_mm)),
+            Effect::Backlash { .. } => one(direction_sign(ctx.direction)),
+            Effect::Drift { .. } => one(ctx.time_s),
+            Effect::Slip { at_s, .. } => one(if ctx.time_s >= at_s { 1.0 } else { 0.0 }),
+        }
+    }
+
+    /// The free parameters, in the order of [`gradient_f64`](Self::gradient_f64).
+    pub fn parameters(&self) -> heapless::Vec<f64, 2> {
+        match *self {
+            Effect::Offset { mm } => one(mm),
+            Effect::Scale { relative } => one(relative),
+            Effect::Winding { mm_per_rad_pow, .. } => one(mm_per_rad_pow),
+            Effect::Eccentricity { sin_mm, cos_mm } => two(sin_mm, cos_mm),
+            Effect::Elasticity { per_newton } => one(per_newton),
+            Effect::Backlash { half_width_mm } => one(half_width_mm),
+            Effect::Drift { mm_per_s } => one(mm_per_s),
+            Effect::Slip { mm, .. } => one(mm),
+        }
+    }
+
+    /// This effect with its free parameters replaced by `p` (order of
+    /// [`parameters`](Self::parameters)); `None` when `p` has the wrong length.
+    pub fn with_parameters(&self, p: &[f64]) -> Option<Effect> {
+        let n = self.parameters().len();
+        if p.len() != n {
+            return None;
+        }
+        Some(match *self {
+            Effect::Offset { .. } => Effect::Offset { mm: p[0] },
+            Effect::Scale { .. } => Effect::Scale { relative: p[0] },
+            Effect::Winding { power, .. } => Effect::Winding {
+                power,
+                mm_per_rad_pow: p[0],
+            },
+            Effect::Eccentricity { .. } => Effect::Eccentricity {
+                sin_mm: p[0],
+                cos_mm: p[1],
+            },
+            Effect::Elasticity { .. } => Effect::Elasticity { per_newton: p[0] },
+            Effect::Backlash { .. } => Effect::Backlash {
+                half_width_mm: p[0],
+            },
+            Effect::Drift { .. } => Effect::Drift { mm_per_s: p[0] },
+            Effect::Slip { at_s, .. } => Effect::Slip { at_s, mm: p[0] },
+        })
+    }
+}
+
+/// String lengths (mm), f64 reference of [`string_lengths`]. Effect terms whose
+/// `string` is out of range are ignored (compiling them is an error).
+pub fn string_lengths_f64(
+    frame: &Frame<f64>,
+    laws: &[StringLaw; STRINGS],
+    effects: &[EffectTerm],
+    inputs: &StringInputs,
+) -> [f64; STRINGS] {
+    let mut ctx = [None; STRINGS];
+    let mut out = [0.0; STRINGS];
+    for i in 0..STRINGS {
+        ctx[i] = EffectContext::for_string(frame, laws, inputs, i);
+        if let Some(c) = &ctx[i] {
+            out[i] = c.home_length_mm + c.payout_mm;
+        }
+    }
+    for term in effects {
+        let s = usize::from(term.string);
+        if let Some(Some(c)) = ctx.get(s) {
+            out[s] += term.effect.contribution_f64(c);
+        }
+    }
+    out
+}
+
+// ---------------------------------------------------------------------------
+// Compilation errors
+// ---------------------------------------------------------------------------
+
+/// Why a string law or an effect term cannot be compiled to fixed point (or a
+/// compiled one is invalid). Fields are named as in [`StringLaw`], [`Effect`]
+/// and [`Frame`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum CompileError {
+    /// The string index is not in `0..STRINGS`.
+    StringOutOfRange { string: usize },
+    /// A parameter is NaN or infinite.
+    NotFinite { string: usize, field: &'static str },
+    /// A parameter, scaled to its fixed-point format, does not fit it.
+    DoesNotFit {
+        string: usize,
+        field: &'static str,
+        value: f64,
+        format: &'static str,
+    },
+    /// A parameter is outside its allowed range.
+    OutOfRange {
+        string: usize,
+        field: &'static str,
+        value: f64,
+        min: f64,
+        max: f64,
+    },
+}
+
+impl fmt::Display for CompileError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match *self {
+            CompileError::StringOutOfRange { string } => {
+                write!(f, "string {string} is out of range 0..{STRINGS}")
+            }
+            CompileError::NotFinite { string, field } => {
+                write!(f, "string {string}: {field} is not finite")
+            }
+            CompileError::DoesNotFit {
+                string,
+                field,
+                value,
+                format,
+            } => write!(
+                f,
+                "string {string}: {field} = {value} does not fit {format}"
+            ),
+            CompileError::OutOfRange {
+                string,
+                field,
+                value,
+                min,
+                max,
+            } => write!(
+                f,
+                "string {string}: {field} = {value} is outside [{min}, {max}]"
+            ),
+        }
+    }
+}
+
+const WINDING_FIELDS: [&str; WINDING_ORDER] = [
+    "winding_mm[0]",
+    "winding_mm[1]",
+    "winding_mm[2]",
+    "winding_mm[3]",
+];
+
+fn finite(string: usize, field: &'static str, v: f64) -> Result<f64, CompileError> {
+    if v.is_finite() {
+        Ok(v)
+    } else {
+        Err(CompileError::NotFinite { string, field })
+    }
+}
+
+/// `round(v * 2^frac)` as i64, or an error naming `field`.
+fn to_fixed(
+    string: usize,
+    field: &'static str,
+    v: f64,
+    frac: i32,
+    format: &'static str,
+) -> Result<i64, CompileError> {
+    let v = finite(string, field, v)?;
+    let scaled = libm::round(v * libm::exp2(f64::from(frac)));
+    // 2^63 is exactly representable; i64::MAX is not.
+    const TWO_63: f64 = 9_223_372_036_854_775_808.0;
+    if !(-TWO_63..TWO_63).contains(&scaled) {
+        return Err(CompileError::DoesNotFit {
+            string,
+            field,
+            value: v,
+            format,
+        });
+    }
+    Ok(scaled as i64)
+}
+
+fn to_fixed_i32(
+    string: usize,
+    field: &'static str,
+    v: f64,
+    frac: i32,
+    format: &'static str,
+) -> Result<i32, CompileError> {
+    let q = to_fixed(string, field, v, frac, format)?;
+    i32::try_from(q).map_err(|_| CompileError::DoesNotFit {
+        string,
+        field,
+        value: v,
+        format,
+    })
+}
+
+fn check_counts_per_rev(string: usize, counts_per_rev: u32) -> Result<(), CompileError> {
+    if counts_per_rev == 0 || counts_per_rev > i32::MAX as u32 {
+        return Err(CompileError::OutOfRange {
+            string,
+            field: "counts_per_rev",
+            value: f64::from(counts_per_rev),
+            min: 1.0,
+            max: f64::from(i32::MAX),
+        });
+    }
+    Ok(())
+}
+
+/// `2 pi 2^COUNTS_SHIFT / counts_per_rev`: rad per unit of `x`.
+fn rad_per_x(counts_per_rev: u32) -> f64 {
+    TAU * libm::exp2(f64::from(COUNTS_SHIFT)) / f64::from(counts_per_rev)
+}
+
+// ---------------------------------------------------------------------------
+// Fixed-point kernels
+// ---------------------------------------------------------------------------
+
+/// `v * 2^k`, saturated to i64.
+#[inline]
+fn shl_sat(v: i64, k: u32) -> i64 {
+    if k == 0 {
+        return v;
+    }
+    let lim = i64::MAX >> k;
+    if v > lim {
+        i64::MAX
+    } else if v < -lim - 1 {
+        i64::MIN
+    } else {
+        v << k
+    }
+}
+
+#[inline]
+fn clamp_i128(v: i128) -> i64 {
+    if v > i128::from(i64::MAX) {
+        i64::MAX
+    } else if v < i128::from(i64::MIN) {
+        i64::MIN
+    } else {
+        v as i64
+    }
+}
+
+/// `round_half_up(a * b / 2^s)` saturated to i64, for `1 <= s <= 32`
+/// (`s` outside is clamped into it). Two 32x32->64 multiplies, no 128-bit
+/// multiply (which is a library call on Cortex-M).
+#[inline]
+pub(crate) fn mul_i32_shr(a: i64, b: i32, s: u32) -> i64 {
+    let s = s.clamp(1, 32);
+    let lo = (a as u64 & 0xFFFF_FFFF) as i64; // 0 ..= 2^32 - 1
+    let hi = a >> 32; // i32 range
+    let b = i64::from(b);
+    // |lo * b| <= (2^32 - 1) 2^31 < 2^63 - 2^31: room for the rounding half.
+    let low = (lo * b + (1i64 << (s - 1))) >> s;
+    let high = hi * b; // |.| <= 2^62
+    clamp_i128((i128::from(high) << (32 - s)) + i128::from(low))
+}
+
+/// `round_half_up(a * b / 2^s)` saturated to i64, for `1 <= s <= 32`.
+#[inline]
+pub(crate) fn mul_u32_shr(a: i64, b: u32, s: u32) -> i64 {
+    let s = s.clamp(1, 32);
+    let lo = a as u64 & 0xFFFF_FFFF;
+    let hi = a >> 32;
+    // lo * b <= (2^32 - 1)^2 = 2^64 - 2^33 + 1: room for the rounding half.
+    let low = (lo * u64::from(b) + (1u64 << (s - 1))) >> s;
+    let high = hi * i64::from(b); // |.| < 2^63
+    clamp_i128((i128::from(high) << (32 - s)) + i128::from(low))
+}
+
+/// Q47.16 -> Q31.32, saturating.
+#[inline]
+fn q16_to_q32(v: i64) -> i64 {
+    shl_sat(v, 16)
+}
+
+/// Q31.32 -> Q47.16, rounding half up (never overflows).
+#[inline]
+fn q32_to_q16(v: i64) -> i64 {
+    (v >> 16) + ((v >> 15) & 1)
+}
+
+/// Segments of the sine table per quarter turn (power of two).
+const SIN_SEGMENTS_LOG2: u32 = 9;
+const SIN_SEGMENTS: usize = 1 << SIN_SEGMENTS_LOG2;
+/// round(pi/2 * 2^62).
+const HALF_PI_Q62: i128 = 7_244_019_458_077_122_842;
+
+/// `sin(k pi / (2 SIN_SEGMENTS))` in Q1.30 for `k = 0..=SIN_SEGMENTS + 1`
+/// (one entry past the quarter so that interpolation never reads out of
+/// bounds), computed at compile time with an integer Taylor series in Q62:
+/// the same bits on every target.
+static SIN_TABLE_Q30: [i32; SIN_SEGMENTS + 2] = build_sin_table();
+
+const fn build_sin_table() -> [i32; SIN_SEGMENTS + 2] {
+    let mut table = [0i32; SIN_SEGMENTS + 2];
+    let mut k = 0;
+    while k < SIN_SEGMENTS + 2 {
+        let x = HALF_PI_Q62 * (k as i128) / (SIN_SEGMENTS as i128); // Q62, <= 1.58
+        let x2 = (x * x) >> 62;
+        let mut term = x;
+        let mut sum = x;
+        let mut n: i128 = 1;
+        while n < 16 {
+            term = -((term * x2) >> 62) / ((2 * n) * (2 * n + 1));
+            sum += term;
+            n += 1;
+        }
+        table[k] = ((sum + (1i128 << 31)) >> 32) as i32;
+        k += 1;
+    }
+    table
+}
+
+/// `sin(2 pi phase / 2^32)` in Q1.30, `phase` in Q0.32 turns. Linear
+/// interpolation in a quarter-wave table: max error 1.2e-6 (measured in tests).
+#[inline]
+pub(crate) fn sin_q30(phase: u32) -> i32 {
+    let quadrant = phase >> 30;
+    let f = phase & 0x3FFF_FFFF; // Q0.30 of a quarter turn
+    let g = if quadrant & 1 == 1 {
+        (1u32 << 30) - f
+    } else {
+        f
+    }; // 0..=2^30
+    const FRAC_BITS: u32 = 30 - SIN_SEGMENTS_LOG2;
+    let idx = (g >> FRAC_BITS) as usize; // 0..=SIN_SEGMENTS
+    let frac = i64::from(g & ((1 << FRAC_BITS) - 1));
+    let (y0, y1) = match (SIN_TABLE_Q30.get(idx), SIN_TABLE_Q30.get(idx + 1)) {
+        (Some(&a), Some(&b)) => (i64::from(a), i64::from(b)),
+        _ => (1 << 30, 1 << 30),
+    };
+    let y = y0 + (((y1 - y0) * frac + (1 << (FRAC_BITS - 1))) >> FRAC_BITS);
+    let y = if quadrant >= 2 { -y } else { y };
+    y as i32
+}
+
+// ---------------------------------------------------------------------------
+// Compiled string law
+// ---------------------------------------------------------------------------
+
+/// The fixed-point form of one string's base law: home length plus the
+/// winding polynomial in `x = counts / 2^COUNTS_SHIFT`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CompiledStringLaw {
+    /// `|home - anchor|`, Q47.16 mm.
+    pub home_length_q16: i64,
+    /// Quadrature counts per pulley revolution (for reference; the
+    /// coefficients already include it).
+    pub counts_per_rev: u32,
+    /// Coefficient of `x^k` at index `k-1`, Q31.32 mm:
+    /// `round(winding_mm[k-1] (2 pi 2^18 / counts_per_rev)^k 2^32)`.
+    pub winding_q32: [i64; WINDING_ORDER],
+}
+
+/// Compiles string `string`'s base law (home length from `frame`).
+pub fn compile_string_law(
+    frame: &Frame<f64>,
+    string: usize,
+    law: &StringLaw,
+) -> Result<CompiledStringLaw, CompileError> {
+    let anchor = frame
+        .anchors
+        .get(string)
+        .ok_or(CompileError::StringOutOfRange { string })?;
+    for v in anchor {
+        finite(string, "anchor", *v)?;
+    }
+    for v in &frame.home {
+        finite(string, "home", *v)?;
+    }
+    let home = home_length_f64(frame, string).ok_or(CompileError::StringOutOfRange { string })?;
+    let home_length_q16 = to_fixed(string, "home", home, 16, "Q47.16 mm")?;
+    check_counts_per_rev(string, law.counts_per_rev)?;
+    let r = rad_per_x(law.counts_per_rev);
+    let mut winding_q32 = [0i64; WINDING_ORDER];
+    let mut scale = 1.0;
+    for k in 0..WINDING_ORDER {
+        scale *= r;
+        let a = finite(string, WINDING_FIELDS[k], law.winding_mm[k])?;
+        winding_q32[k] = to_fixed(
+            string,
+            WINDING_FIELDS[k],
+            a * scale,
+            32,
+            "Q31.32 mm per x^k",
+        )?;
+    }
+    Ok(CompiledStringLaw {
+        home_length_q16,
+        counts_per_rev: law.counts_per_rev,
+        winding_q32,
+    })
+}
+
+impl CompiledStringLaw {
+    /// Base winding law output (payout since home) at `counts`, Q31.32 mm,
+    /// by Horner in `x = counts / 2^18`, saturating.
+    #[inline]
+    pub fn payout_q32(&self, counts: i32) -> i64 {
+        let mut acc: i64 = 0;
+        for k in (0..WINDING_ORDER).rev() {
+            acc = acc.saturating_add(self.winding_q32[k]);
+            acc = mul_i32_shr(acc, counts, COUNTS_SHIFT);
+        }
+        acc
+    }
+
+    /// Checks a compiled law read from a blob.
+    pub fn validate(&self, string: usize) -> Result<(), CompileError> {
+        if string >= STRINGS {
+            return Err(CompileError::StringOutOfRange { string });
+        }
+        check_counts_per_rev(string, self.counts_per_rev)
+    }
+}
+
+// ---------------------------------------------------------------------------
+// Compiled effects
+// ---------------------------------------------------------------------------
+
+/// The fixed-point form of one [`EffectTerm`]: one variant per [`Effect`],
+/// `string` is the encoder index (`0..STRINGS`). Formats in the field docs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum CompiledEffect {
+    /// `+ mm_q16` (Q47.16 mm).
+    Offset { string: u8, mm_q16: i64 },
+    /// `+ relative_q30 * payout` (Q1.30).
+    Scale { string: u8, relative_q30: i32 },
+    /// `+ coeff_q32 * x^power`, `x = counts / 2^18`; Q31.32 mm,
+    /// `round(mm_per_rad_pow (2 pi 2^18 / counts_per_rev)^power 2^32)`.
+    /// `power` in `1..=MAX_EFFECT_WINDING_POWER` (larger values evaluate as
+    /// that maximum).
+    Winding {
+        string: u8,
+        power: u8,
+        coeff_q32: i64,
+    },
+    /// `+ sin_q16 sin(theta) + cos_q16 (cos(theta) - 1)` (amplitudes Q47.16
+    /// mm); the phase is `(counts mod counts_per_rev) * turns_per_count_q48 /
+    /// 2^16` in Q0.32 turns, `turns_per_count_q48 = round(2^48 / counts_per_rev)`.
+    Eccentricity {
+        string: u8,
+        sin_q16: i64,
+        cos_q16: i64,
+        counts_per_rev: u32,
+        turns_per_count_q48: u64,
+    },
+    /// `+ strain * (home_length + payout)`, strain = `per_mn_q47 * tension_mn`
+    /// rounded to Q0.31 and saturated (Q16.47 per millinewton).
+    Elasticity { string: u8, per_mn_q47: i64 },
+    /// `+ half_width_q16 * sign(direction)` (Q47.16 mm).
+    Backlash { string: u8, half_width_q16: i64 },
+    /// `+ mm_per_ms_q48 * time_ms` (Q15.48 mm per ms).
+    Drift { string: u8, mm_per_ms_q48: i64 },
+    /// `+ mm_q16` when `time_ms >= at_ms` (Q47.16 mm, ms since home).
+    Slip { string: u8, at_ms: u32, mm_q16: i64 },
+}
+
+/// What a compiled effect of one string depends on, in device units.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct FixedContext {
+    /// Counts since home.
+    pub counts: i32,
+    /// Direction of the last motion (only the sign is used).
+    pub direction: i8,
+    /// Commanded tension, mN.
+    pub tension_mn: u16,
+    /// Time since home, ms.
+    pub time_ms: u32,
+    /// Q47.16 mm.
+    pub home_length_q16: i64,
+    /// Q31.32 mm, [`CompiledStringLaw::payout_q32`].
+    pub payout_q32: i64,
+}
+
+/// Compiles one effect term; `laws` gives the counts per revolution of its
+/// string (winding and eccentricity terms).
+pub fn compile_effect(
+    term: &EffectTerm,
+    laws: &[StringLaw; STRINGS],
+) -> Result<CompiledEffect, CompileError> {
+    let s = usize::from(term.string);
+    let law = laws
+        .get(s)
+        .ok_or(CompileError::StringOutOfRange { string: s })?;
+    let string = term.string;
+    Ok(match term.effect {
+        Effect::Offset { mm } => CompiledEffect::Offset {
+            string,
+            mm_q16: to_fixed(s, "mm", mm, 16, "Q47.16 mm")?,
+        },
+        Effect::Scale { relative } => CompiledEffect::Scale {
+            string,
+            relative_q30: to_fixed_i32(s, "relative", relative, 30, "Q1.30")?,
+        },
+        Effect::Winding {
+            power,
+            mm_per_rad_pow,
+        } => {
+            if power == 0 || power > MAX_EFFECT_WINDING_POWER {
+                return Err(CompileError::OutOfRange {
+                    string: s,
+                    field: "power",
+                    value: f64::from(power),
+                    min: 1.0,
+                    max: f64::from(MAX_EFFECT_WINDING_POWER),
+                });
+            }
+            check_counts_per_rev(s, law.counts_per_rev)?;
+            let c = finite(s, "mm_per_rad_pow", mm_per_rad_pow)?;
+            let scaled = c * powi_f64(rad_per_x(law.counts_per_rev), power);
+            CompiledEffect::Winding {
+                string,
+                power,
+                coeff_q32: to_fixed(s, "mm_per_rad_pow", scaled, 32, "Q31.32 mm per x^power")?,
+            }
+        }
+        Effect::Eccentricity { sin_mm, cos_mm } => {
+            check_counts_per_rev(s, law.counts_per_rev)?;
+            CompiledEffect::Eccentricity {
+                string,
+                sin_q16: to_fixed(s, "sin_mm", sin_mm, 16, "Q47.16 mm")?,
+                cos_q16: to_fixed(s, "cos_mm", cos_mm, 16, "Q47.16 mm")?,
+                counts_per_rev: law.counts_per_rev,
+                turns_per_count_q48: turns_per_count_q48(law.counts_per_rev),
+            }
+        }
+        Effect::Elasticity { per_newton } => {
+            let e = finite(s, "per_newton", per_newton)?;
+            if e.abs() > MAX_ELASTICITY_PER_NEWTON {
+                return Err(CompileError::DoesNotFit {
+                    string: s,
+                    field: "per_newton",
+                    value: e,
+                    format: "strain Q0.31 at 65.535 N",
+                });
+            }
+            CompiledEffect::Elasticity {
+                string,
+                per_mn_q47: to_fixed(s, "per_newton", e / 1000.0, 47, "Q16.47 per mN")?,
+            }
+        }
+        Effect::Backlash { half_width_mm } => CompiledEffect::Backlash {
+            string,
+            half_width_q16: to_fixed(s, "half_width_mm", half_width_mm, 16, "Q47.16 mm")?,
+        },
+        Effect::Drift { mm_per_s } => CompiledEffect::Drift {
+            string,
+            mm_per_ms_q48: to_fixed(s, "mm_per_s", mm_per_s / 1000.0, 48, "Q15.48 mm per ms")?,
+        },
+        Effect::Slip { at_s, mm } => {
+            let at = finite(s, "at_s", at_s)?;
+            let at_ms = libm::ceil(at * 1000.0);
+            if !(0.0..=f64::from(u32::MAX)).contains(&at_ms) {
+                return Err(CompileError::OutOfRange {
+                    string: s,
+                    field: "at_s",
+                    value: at,
+                    min: 0.0,
+                    max: f64::from(u32::MAX) / 1000.0,
+                });
+            }
+            CompiledEffect::Slip {
+                string,
+                at_ms: at_ms as u32,
+                mm_q16: to_fixed(s, "mm", mm, 16, "Q47.16 mm")?,
+            }
+        }
+    })
+}
+
+/// `round(2^48 / counts_per_rev)` (0 for 0).
+fn turns_per_count_q48(counts_per_rev: u32) -> u64 {
+    if counts_per_rev == 0 {
+        return 0;
+    }
+    let n = u64::from(counts_per_rev);
+    ((1u64 << 48) + n / 2) / n
+}
+
+impl CompiledEffect {
+    /// Encoder index of the string this term applies to.
+    pub fn string(&self) -> u8 {
+        match *self {
+            CompiledEffect::Offset { string, .. }
+            | CompiledEffect::Scale { string, .. }
+            | CompiledEffect::Winding { string, .. }
+            | CompiledEffect::Eccentricity { string, .. }
+            | CompiledEffect::Elasticity { string, .. }
+            | CompiledEffect::Backlash { string, .. }
+            | CompiledEffect::Drift { string, .. }
+            | CompiledEffect::Slip { string, .. } => string,
+        }
+    }
+
+    /// Checks a compiled term read from a blob: string in range, winding
+    /// power in range, eccentricity counts per revolution consistent.
+    pub fn validate(&self) -> Result<(), CompileError> {
+        let s = usize::from(self.string());
+        if s >= STRINGS {
+            return Err(CompileError::StringOutOfRange { string: s });
+        }
+        match *self {
+            CompiledEffect::Winding { power, .. }
+                if power == 0 || power > MAX_EFFECT_WINDING_POWER =>
+            {
+                Err(CompileError::OutOfRange {
+                    string: s,
+                    field: "power",
+                    value: f64::from(power),
+                    min: 1.0,
+                    max: f64::from(MAX_EFFECT_WINDING_POWER),
+                })
+            }
+            CompiledEffect::Eccentricity {
+                counts_per_rev,
+                turns_per_count_q48: t,
+                ..
+            } => {
+                check_counts_per_rev(s, counts_per_rev)?;
+                if t != turns_per_count_q48(counts_per_rev) {
+                    return Err(CompileError::OutOfRange {
+                        string: s,
+                        field: "turns_per_count_q48",
+                        value: t as f64,
+                        min: turns_per_count_q48(counts_per_rev) as f64,
+                        max: turns_per_count_q48(counts_per_rev) as f64,
+                    });
+                }
+                Ok(())
+            }
+            _ => Ok(()),
+        }
+    }
+
+    /// Contribution of this term (Q31.32 mm), integer only, saturating.
+    #[inline]
+    pub fn contribution_q32(&self, ctx: &FixedContext) -> i64 {
+        match *self {
+            CompiledEffect::Offset { mm_q16, .. } => q16_to_q32(mm_q16),
+            CompiledEffect::Scale { relative_q30, .. } => {
+                mul_i32_shr(ctx.payout_q32, relative_q30, 30)
+            }
+            CompiledEffect::Winding {
+                power, coeff_q32, ..
+            } => {
+                let mut t = coeff_q32;
+                for _ in 0..power.min(MAX_EFFECT_WINDING_POWER) {
+                    t = mul_i32_shr(t, ctx.counts, COUNTS_SHIFT);
+                }
+                t
+            }
+            CompiledEffect::Eccentricity {
+                sin_q16,
+                cos_q16,
+                counts_per_rev,
+                turns_per_count_q48,
+                ..
+            } => {
+                let phase = pulley_phase_q32(ctx.counts, counts_per_rev, turns_per_count_q48);
+                let sin = sin_q30(phase);
+                let cos = sin_q30(phase.wrapping_add(1 << 30));
+                let cos_m1 = (i64::from(cos) - (1 << 30)).clamp(i64::from(i32::MIN), 0) as i32;
+                mul_i32_shr(sin_q16, sin, 14).saturating_add(mul_i32_shr(cos_q16, cos_m1, 14))
+            }
+            CompiledEffect::Elasticity { per_mn_q47, .. } => {
+                let strain_q47 = per_mn_q47.saturating_mul(i64::from(ctx.tension_mn));
+                let strain_q31 = ((strain_q47 >> 16) + ((strain_q47 >> 15) & 1))
+                    .clamp(i64::from(i32::MIN), i64::from(i32::MAX))
+                    as i32;
+                let free = q16_to_q32(ctx.home_length_q16).saturating_add(ctx.payout_q32);
+                mul_i32_shr(free, strain_q31, 31)
+            }
+            CompiledEffect::Backlash { half_width_q16, .. } => {
+                let h = q16_to_q32(half_width_q16);
+                match ctx.direction.signum() {
+                    1 => h,
+                    -1 => h.saturating_neg(),
+                    _ => 0,
+                }
+            }
+            CompiledEffect::Drift { mm_per_ms_q48, .. } => {
+                mul_u32_shr(mm_per_ms_q48, ctx.time_ms, 16)
+            }
+            CompiledEffect::Slip { at_ms, mm_q16, .. } => {
+                if ctx.time_ms >= at_ms {
+                    q16_to_q32(mm_q16)
+                } else {
+                    0
+                }
+            }
+        }
+    }
+}
+
+/// Pulley phase in Q0.32 turns from `counts mod counts_per_rev` (exact for
+/// any count); 0 when `counts_per_rev` is not in `1..=i32::MAX`.
+#[inline]
+fn pulley_phase_q32(counts: i32, counts_per_rev: u32, turns_per_count_q48: u64) -> u32 {
+    let Ok(n) = i32::try_from(counts_per_rev) else {
+        return 0;
+    };
+    if n == 0 {
+        return 0;
+    }
+    let m = counts.rem_euclid(n) as u32 as u64; // 0..n
+    (m.wrapping_mul(turns_per_count_q48) >> 16) as u32
+}
+
+/// String lengths (Q47.16 mm) from the compiled laws and effect terms: what
+/// the device runs every control-loop iteration. Integer only, saturating,
+/// never panics; terms whose `string` is out of range are skipped.
+pub fn string_lengths(
+    laws: &[CompiledStringLaw; STRINGS],
+    effects: &[CompiledEffect],
+    inputs: &StringInputs,
+) -> [i64; STRINGS] {
+    let mut payout = [0i64; STRINGS];
+    let mut acc = [0i64; STRINGS];
+    for i in 0..STRINGS {
+        payout[i] = laws[i].payout_q32(inputs.counts[i]);
+        acc[i] = q16_to_q32(laws[i].home_length_q16).saturating_add(payout[i]);
+    }
+    for e in effects {
+        let s = usize::from(e.string());
+        if s >= STRINGS {
+            continue;
+        }
+        let ctx = FixedContext {
+            counts: inputs.counts[s],
+            direction: inputs.direction[s],
+            tension_mn: inputs.tension_mn[s],
+            time_ms: inputs.time_ms,
+            home_length_q16: laws[s].home_length_q16,
+            payout_q32: payout[s],
+        };
+        acc[s] = acc[s].saturating_add(e.contribution_q32(&ctx));
+    }
+    let mut out = [0i64; STRINGS];
+    for i in 0..STRINGS {
+        out[i] = q32_to_q16(acc[i]);
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    /// Deterministic xorshift64* so that the measured error is reproducible.
+    struct Rng(u64);
+    impl Rng {
+        fn next_u64(&mut self) -> u64 {
+            self.0 ^= self.0 >> 12;
+            self.0 ^= self.0 << 25;
+            self.0 ^= self.0 >> 27;
+            self.0.wrapping_mul(0x2545_F491_4F6C_DD1D)
+        }
+        /// Uniform in [lo, hi).
+        fn uniform(&mut self, lo: f64, hi: f64) -> f64 {
+            let u = (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64;
+            lo + (hi - lo) * u
+        }
+        fn int(&mut self, lo: i64, hi: i64) -> i64 {
+            lo + (self.next_u64() % ((hi - lo + 1) as u64)) as i64
+        }
+    }
+
+    fn frame(home: [f64; 3]) -> Frame<f64> {
+        let h = 1100.0;
+        let mut anchors = [[0.0; 3]; STRINGS];
+        for (i, a) in anchors.iter_mut().enumerate() {
+            *a = [
+                if i & 1 == 0 { -h } else { h },
+                if i & 2 == 0 { -h } else { h },
+                if i & 4 == 0 { -h } else { h },
+            ];
+        }
+        Frame {
+            anchors,
+            home,
+            room_rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            room_translation: [0.0, 0.0, 1500.0],
+            room_scale: 1.0,
+        }
+    }
+
+    fn compile_all(
+        frame: &Frame<f64>,
+        laws: &[StringLaw; STRINGS],
+        effects: &[EffectTerm],
+    ) -> ([CompiledStringLaw; STRINGS], Vec<CompiledEffect>) {
+        let mut cl = [CompiledStringLaw::default(); STRINGS];
+        for i in 0..STRINGS {
+            cl[i] = compile_string_law(frame, i, &laws[i]).expect("law compiles");
+        }
+        let ce = effects
+            .iter()
+            .map(|e| compile_effect(e, laws).expect("effect compiles"))
+            .collect();
+        (cl, ce)
+    }
+
+    #[test]
+    fn sine_table_accuracy() {
+        let mut max = 0.0f64;
+        let mut phase: u32 = 0;
+        for _ in 0..200_000 {
+            let exact = libm::sin(TAU * f64::from(phase) / 4_294_967_296.0);
+            let got = f64::from(sin_q30(phase)) / f64::from(1u32 << 30);
+            max = max.max((got - exact).abs());
+            phase = phase.wrapping_add(21_474_853); // ~1/200000 turn, not a divisor
+        }
+        for p in [0u32, 1 << 30, 2 << 30, 3 << 30, u32::MAX] {
+            let exact = libm::sin(TAU * f64::from(p) / 4_294_967_296.0);
+            max = max.max((f64::from(sin_q30(p)) / f64::from(1u32 << 30) - exact).abs());
+        }
+        assert!(max < 1.3e-6, "sine table error {max}");
+        assert_eq!(sin_q30(1 << 30), 1 << 30);
+        assert_eq!(sin_q30(0), 0);
+    }
+
+    proptest! {
+        #[test]
+        fn mul_i32_shr_matches_i128(a in any::<i64>(), b in any::<i32>(), s in 1u32..=32) {
+            let exact = (i128::from(a) * i128::from(b) + (1i128 << (s - 1))) >> s;
+            let want = exact.clamp(i128::from(i64::MIN), i128::from(i64::MAX)) as i64;
+            prop_assert_eq!(mul_i32_shr(a, b, s), want);
+        }
+
+        #[test]
+        fn mul_u32_shr_matches_i128(a in any::<i64>(), b in any::<u32>(), s in 1u32..=32) {
+            let exact = (i128::from(a) * i128::from(b) + (1i128 << (s - 1))) >> s;
+            let want = exact.clamp(i128::from(i64::MIN), i128::from(i64::MAX)) as i64;
+            prop_assert_eq!(mul_u32_shr(a, b, s), want);
+        }
+    }
+
+    #[test]
+    fn quadratic_law_at_known_points() {
+        // r = 10 mm, 4096 counts/rev, d^2/(4 pi) = 0.02: one turn pays out
+        // 2 pi 10 - 0.02 (2 pi)^2 mm.
+        let law = StringLaw {
+            counts_per_rev: 4096,
+            winding_mm: [10.0, -0.02, 0.0, 0.0],
+        };
+        let want = TAU * 10.0 - 0.02 * TAU * TAU;
+        assert!((payout_f64(&law, 4096) - want).abs() < 1e-12);
+        let f = frame([0.0; 3]);
+        let c = compile_string_law(&f, 0, &law).unwrap();
+        let got = c.payout_q32(4096) as f64 / 4_294_967_296.0;
+        assert!((got - want).abs() < 1e-8, "{got} vs {want}");
+        assert_eq!(
+            c.home_length_q16,
+            (libm::sqrt(3.0) * 1100.0 * 65536.0).round() as i64
+        );
+    }
+
+    /// A realistic calibration: anchors at the corners of a 2.2 m frame, every
+    /// effect family on some string with realistic amplitudes.
+    fn realistic(rng: &mut Rng) -> (Frame<f64>, [StringLaw; STRINGS], Vec<EffectTerm>) {
+        let f = frame([
+            rng.uniform(-300.0, 300.0),
+            rng.uniform(-300.0, 300.0),
+            rng.uniform(-300.0, 300.0),
+        ]);
+        let mut laws = [StringLaw {
+            counts_per_rev: 1,
+            winding_mm: [0.0; 4],
+        }; STRINGS];
+        let mut effects = Vec::new();
+        for (i, law) in laws.iter_mut().enumerate() {
+            let n = rng.int(2000, 20000) as u32;
+            let theta_max = TAU * 250_000.0 / f64::from(n);
+            *law = StringLaw {
+                counts_per_rev: n,
+                winding_mm: [
+                    rng.uniform(7.5, 20.0),
+                    rng.uniform(-0.03, -0.01),
+                    rng.uniform(-10.0, 10.0) / theta_max.powi(3),
+                    rng.uniform(-10.0, 10.0) / theta_max.powi(4),
+                ],
+            };
+            let s = i as u8;
+            let mut push = |effect| effects.push(EffectTerm { string: s, effect });
+            push(Effect::Offset {
+                mm: rng.uniform(-50.0, 50.0),
+            });
+            push(Effect::Scale {
+                relative: rng.uniform(-0.05, 0.05),
+            });
+            let power = rng.int(5, 8) as u8;
+            push(Effect::Winding {
+                power,
+                mm_per_rad_pow: rng.uniform(-5.0, 5.0) / theta_max.powi(i32::from(power)),
+            });
+            push(Effect::Eccentricity {
+                sin_mm: rng.uniform(-2.0, 2.0),
+                cos_mm: rng.uniform(-2.0, 2.0),
+            });
+            push(Effect::Elasticity {
+                per_newton: rng.uniform(0.0, 2e-4),
+            });
+            push(Effect::Backlash {
+                half_width_mm: rng.uniform(-3.0, 3.0),
+            });
+            push(Effect::Drift {
+                mm_per_s: rng.uniform(-0.01, 0.01),
+            });
+            push(Effect::Slip {
+                at_s: rng.uniform(0.0, 7200.0),
+                mm: rng.uniform(-30.0, 30.0),
+            });
+        }
+        (f, laws, effects)
+    }
+
+    fn random_inputs(rng: &mut Rng) -> StringInputs {
+        let mut inputs = StringInputs::default();
+        for i in 0..STRINGS {
+            inputs.counts[i] = rng.int(-250_000, 250_000) as i32;
+            inputs.direction[i] = rng.int(-1, 1) as i8;
+            inputs.tension_mn[i] = rng.int(0, 20_000) as u16;
+        }
+        inputs.time_ms = rng.int(0, 7_200_000) as u32;
+        inputs
+    }
+
+    /// Largest |fixed - f64| (mm) over `sets` calibrations x `per_set` inputs,
+    /// keeping the effect terms for which `keep` holds.
+    fn measure(seed: u64, sets: usize, per_set: usize, keep: fn(&Effect) -> bool) -> f64 {
+        let mut rng = Rng(seed);
+        let mut max_err = 0.0f64;
+        for _ in 0..sets {
+            let (f, laws, mut effects) = realistic(&mut rng);
+            effects.retain(|t| keep(&t.effect));
+            let (cl, ce) = compile_all(&f, &laws, &effects);
+            for k in 0..per_set {
+                let mut inputs = random_inputs(&mut rng);
+                if k < 4 {
+                    // The ends of the range, both ways.
+                    let c = [250_000, -250_000, 0, 1][k];
+                    inputs.counts = [c; STRINGS];
+                }
+                let want = string_lengths_f64(&f, &laws, &effects, &inputs);
+                let got = string_lengths(&cl, &ce, &inputs);
+                for i in 0..STRINGS {
+                    let err = (got[i] as f64 / 65536.0 - want[i]).abs();
+                    max_err = max_err.max(err);
+                }
+            }
+        }
+        max_err
+    }
+
+    /// The error budget: fixed point against the f64 reference over counts in
+    /// +-250,000 with every effect family at realistic amplitudes. Measured
+    /// maximum recorded in docs/fixed-point.md ("String law"); run with
+    /// `cargo test -p spidar-core --release fixed_point_error_budget -- --nocapture`.
+    #[test]
+    fn fixed_point_error_budget() {
+        let max_err = measure(0x5EED_0001, 400, 500, |_| true);
+        println!("string law: max |fixed - f64| = {max_err:.3e} mm (400 calibrations x 500 inputs x 8 strings)");
+        type Keep = fn(&Effect) -> bool;
+        let families: [(&str, Keep); 9] = [
+            ("no effect", |_| false),
+            ("offset", |e| matches!(e, Effect::Offset { .. })),
+            ("scale", |e| matches!(e, Effect::Scale { .. })),
+            ("winding", |e| matches!(e, Effect::Winding { .. })),
+            ("eccentricity", |e| matches!(e, Effect::Eccentricity { .. })),
+            ("elasticity", |e| matches!(e, Effect::Elasticity { .. })),
+            ("backlash", |e| matches!(e, Effect::Backlash { .. })),
+            ("drift", |e| matches!(e, Effect::Drift { .. })),
+            ("slip", |e| matches!(e, Effect::Slip { .. })),
+        ];
+        for (name, keep) in families {
+            let e = measure(0x5EED_0002, 100, 200, keep);
+            println!("  base law + {name}: {e:.3e} mm");
+            assert!(e < 1e-4, "{name}: {e} mm");
+        }
+        assert!(max_err < 1e-4, "fixed-point error {max_err} mm");
+    }
+
+    #[test]
+    fn f64_gradients_match_finite_differences() {
+        let mut rng = Rng(7);
+        let (f, laws, effects) = realistic(&mut rng);
+        let inputs = random_inputs(&mut rng);
+        for term in &effects {
+            let ctx =
+                EffectContext::for_string(&f, &laws, &inputs, usize::from(term.string)).unwrap();
+            let g = term.effect.gradient_f64(&ctx);
+            let p = term.effect.parameters();
+            assert_eq!(g.len(), p.len());
+            for j in 0..p.len() {
+                let h = 1e-6 * p[j].abs().max(1e-9);
+                let mut plus = p.clone();
+                plus[j] += h;
+                let mut minus = p.clone();
+                minus[j] -= h;
+                let e_plus = term.effect.with_parameters(&plus).unwrap();
+                let e_minus = term.effect.with_parameters(&minus).unwrap();
+                let fd =
+                    (e_plus.contribution_f64(&ctx) - e_minus.contribution_f64(&ctx)) / (2.0 * h);
+                assert!(
+                    (fd - g[j]).abs() <= 1e-6 * g[j].abs().max(1.0),
+                    "{:?} param {j}: fd {fd} vs {}",
+                    term.effect,
+                    g[j]
+                );
+            }
+            assert!(term.effect.with_parameters(&[1.0, 2.0, 3.0]).is_none());
+        }
+    }
+
+    #[test]
+    fn compile_errors_name_the_field() {
+        let f = frame([0.0; 3]);
+        let law = StringLaw {
+            counts_per_rev: 4096,
+            winding_mm: [10.0, -0.02, 0.0, 0.0],
+        };
+        let laws = [law; STRINGS];
+        assert_eq!(
+            compile_string_law(&f, 8, &law),
+            Err(CompileError::StringOutOfRange { string: 8 })
+        );
+        let bad = StringLaw {
+            counts_per_rev: 0,
+            ..law
+        };
+        assert!(matches!(
+            compile_string_law(&f, 1, &bad),
+            Err(CompileError::OutOfRange {
+                string: 1,
+                field: "counts_per_rev",
+                ..
+            })
+        ));
+        let bad = StringLaw {
+            winding_mm: [10.0, f64::NAN, 0.0, 0.0],
+            ..law
+        };
+        assert_eq!(
+            compile_string_law(&f, 2, &bad),
+            Err(CompileError::NotFinite {
+                string: 2,
+                field: "winding_mm[1]"
+            })
+        );
+        let bad = StringLaw {
+            winding_mm: [10.0, 0.0, 0.0, 1e6],
+            ..law
+        };
+        assert!(matches!(
+            compile_string_law(&f, 3, &bad),
+            Err(CompileError::DoesNotFit {
+                string: 3,
+                field: "winding_mm[3]",
+                ..
+            })
+        ));
+        let mut nf = f;
+        nf.home[1] = f64::INFINITY;
+        assert_eq!(
+            compile_string_law(&nf, 0, &law),
+            Err(CompileError::NotFinite {
+                string: 0,
+                field: "home"
+            })
+        );
+        let mut nf = f;
+        nf.anchors[5][2] = f64::NAN;
+        assert_eq!(
+            compile_string_law(&nf, 5, &law),
+            Err(CompileError::NotFinite {
+                string: 5,
+                field: "anchor"
+            })
+        );
+
+        let term = |string, effect| EffectTerm { string, effect };
+        assert_eq!(
+            compile_effect(&term(8, Effect::Offset { mm: 1.0 }), &laws),
+            Err(CompileError::StringOutOfRange { string: 8 })
+        );
+        assert!(matches!(
+            compile_effect(&term(0, Effect::Scale { relative: 2.5 }), &laws),
+            Err(CompileError::DoesNotFit {
+                field: "relative",
+                ..
+            })
+        ));
+        assert!(matches!(
+            compile_effect(
+                &term(
+                    0,
+                    Effect::Winding {
+                        power: 0,
+                        mm_per_rad_pow: 1.0
+                    }
+                ),
+                &laws
+            ),
+            Err(CompileError::OutOfRange { field: "power", .. })
+        ));
+        assert!(matches!(
+            compile_effect(&term(0, Effect::Elasticity { per_newton: 0.1 }), &laws),
+            Err(CompileError::DoesNotFit {
+                field: "per_newton",
+                ..
+            })
+        ));
+        assert!(matches!(
+            compile_effect(
+                &term(
+                    0,
+                    Effect::Slip {
+                        at_s: -1.0,
+                        mm: 1.0
+                    }
+                ),
+                &laws
+            ),
+            Err(CompileError::OutOfRange { field: "at_s", .. })
+        ));
+        assert!(matches!(
+            compile_effect(
+                &term(
+                    0,
+                    Effect::Slip {
+                        at_s: 1.0,
+                        mm: f64::NAN
+                    }
+                ),
+                &laws
+            ),
+            Err(CompileError::NotFinite { field: "mm", .. })
+        ));
+        assert!(matches!(
+            compile_effect(&term(0, Effect::Drift { mm_per_s: 1e30 }), &laws),
+            Err(CompileError::DoesNotFit {
+                field: "mm_per_s",
+                ..
+            })
+        ));
+        let zero = [StringLaw {
+            counts_per_rev: 0,
+            ..law
+        }; STRINGS];
+        assert!(matches!(
+            compile_effect(
+                &term(
+                    0,
+                    Effect::Eccentricity {
+                        sin_mm: 1.0,
+                        cos_mm: 0.0
+                    }
+                ),
+                &zero
+            ),
+            Err(CompileError::OutOfRange {
+                field: "counts_per_rev",
+                ..
+            })
+        ));
+        let msg = format!(
+            "{}",
+            CompileError::NotFinite {
+                string: 2,
+                field: "winding_mm[1]"
+            }
+        );
+        assert_eq!(msg, "string 2: winding_mm[1] is not finite");
+    }
+
+    #[test]
+    fn compiled_effects_validate() {
+        let mut rng = Rng(11);
+        let (_, laws, effects) = realistic(&mut rng);
+        for e in &effects {
+            compile_effect(e, &laws).unwrap().validate().unwrap();
+        }
+        assert!(CompiledEffect::Offset {
+            string: 9,
+            mm_q16: 0
+        }
+        .validate()
+        .is_err());
+        assert!(CompiledEffect::Winding {
+            string: 0,
+            power: 9,
+            coeff_q32: 0
+        }
+        .validate()
+        .is_err());
+        assert!(CompiledEffect::Eccentricity {
+            string: 0,
+            sin_q16: 0,
+            cos_q16: 0,
+            counts_per_rev: 4096,
+            turns_per_count_q48: 3,
+        }
+        .validate()
+        .is_err());
+    }
+
+    #[test]
+    fn slip_step_time_is_consistent() {
+        let laws = [StringLaw {
+            counts_per_rev: 4096,
+            winding_mm: [10.0, 0.0, 0.0, 0.0],
+        }; STRINGS];
+        let f = frame([0.0; 3]);
+        for at_s in [0.0, 0.1, 0.3, 1.0005, 17.25, 3600.0001] {
+            let terms = [EffectTerm {
+                string: 3,
+                effect: Effect::Slip { at_s, mm: 10.0 },
+            }];
+            let (cl, ce) = compile_all(&f, &laws, &terms);
+            let at_ms = match ce[0] {
+                CompiledEffect::Slip { at_ms, .. } => at_ms,
+                _ => unreachable!(),
+            };
+            for t in [at_ms.saturating_sub(1), at_ms, at_ms + 1] {
+                let inputs = StringInputs {
+                    time_ms: t,
+                    ..Default::default()
+                };
+                let want = string_lengths_f64(&f, &laws, &terms, &inputs)[3];
+                let got = string_lengths(&cl, &ce, &inputs)[3] as f64 / 65536.0;
+                assert!(
+                    (want - got).abs() < 1e-4,
+                    "at_s {at_s} t {t}: {want} vs {got}"
+                );
+            }
+        }
+    }
+
+    fn arb_effect() -> impl Strategy<Value = CompiledEffect> {
+        let s = any::<u8>();
+        prop_oneof![
+            (s, any::<i64>())
+                .prop_map(|(string, mm_q16)| CompiledEffect::Offset { string, mm_q16 }),
+            (s, any::<i32>()).prop_map(|(string, relative_q30)| CompiledEffect::Scale {
+                string,
+                relative_q30
+            }),
+            (s, any::<u8>(), any::<i64>()).prop_map(|(string, power, coeff_q32)| {
+                CompiledEffect::Winding {
+                    string,
+                    power,
+                    coeff_q32,
+                }
+            }),
+            (s, any::<i64>(), any::<i64>(), any::<u32>(), any::<u64>()).prop_map(
+                |(string, sin_q16, cos_q16, counts_per_rev, turns_per_count_q48)| {
+                    CompiledEffect::Eccentricity {
+                        string,
+                        sin_q16,
+                        cos_q16,
+                        counts_per_rev,
+                        turns_per_count_q48,
+                    }
+                }
+            ),
+            (s, any::<i64>())
+                .prop_map(|(string, per_mn_q47)| CompiledEffect::Elasticity { string, per_mn_q47 }),
+            (s, any::<i64>()).prop_map(|(string, half_width_q16)| CompiledEffect::Backlash {
+                string,
+                half_width_q16
+            }),
+            (s, any::<i64>()).prop_map(|(string, mm_per_ms_q48)| CompiledEffect::Drift {
+                string,
+                mm_per_ms_q48
+            }),
+            (s, any::<u32>(), any::<i64>()).prop_map(|(string, at_ms, mm_q16)| {
+                CompiledEffect::Slip {
+                    string,
+                    at_ms,
+                    mm_q16,
+                }
+            }),
+        ]
+    }
+
+    fn arb_law() -> impl Strategy<Value = CompiledStringLaw> {
+        (any::<i64>(), any::<u32>(), any::<[i64; WINDING_ORDER]>()).prop_map(
+            |(home_length_q16, counts_per_rev, winding_q32)| CompiledStringLaw {
+                home_length_q16,
+                counts_per_rev,
+                winding_q32,
+            },
+        )
+    }
+
+    fn arb_inputs() -> impl Strategy<Value = StringInputs> {
+        (
+            any::<[i32; STRINGS]>(),
+            any::<[i8; STRINGS]>(),
+            any::<[u16; STRINGS]>(),
+            any::<u32>(),
+        )
+            .prop_map(|(counts, direction, tension_mn, time_ms)| StringInputs {
+                counts,
+                direction,
+                tension_mn,
+                time_ms,
+            })
+    }
+
+    proptest! {
+        /// No input and no compiled parameter makes the hot path panic.
+        #[test]
+        fn string_lengths_never_panics(laws in proptest::array::uniform8(arb_law()),
+                                       effects in proptest::collection::vec(arb_effect(), 0..40),
+                                       inputs in arb_inputs()) {
+            let a = string_lengths(&laws, &effects, &inputs);
+            let b = string_lengths(&laws, &effects, &inputs);
+            prop_assert_eq!(a, b);
+        }
+
+        /// Compiling arbitrary f64 parameters either fails with a named field or
+        /// gives a term that validates.
+        #[test]
+        fn compile_never_panics(v in any::<f64>(), w in any::<f64>(), string in any::<u8>(),
+                                power in any::<u8>(), n in any::<u32>()) {
+            let laws = [StringLaw { counts_per_rev: n, winding_mm: [v, w, v, w] }; STRINGS];
+            let f = frame([v, w, 0.0]);
+            let _ = compile_string_law(&f, usize::from(string), &laws[0]);
+            for effect in [
+                Effect::Offset { mm: v },
+                Effect::Scale { relative: v },
+                Effect::Winding { power, mm_per_rad_pow: v },
+                Effect::Eccentricity { sin_mm: v, cos_mm: w },
+                Effect::Elasticity { per_newton: v },
+                Effect::Backlash { half_width_mm: v },
+                Effect::Drift { mm_per_s: v },
+                Effect::Slip { at_s: v, mm: w },
+            ] {
+                if let Ok(c) = compile_effect(&EffectTerm { string, effect }, &laws) {
+                    prop_assert!(c.validate().is_ok());
+                }
+            }
+        }
+    }
+}
