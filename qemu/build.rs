@@ -11,6 +11,7 @@ use std::path::PathBuf;
 
 #[path = "src/cases.rs"]
 mod cases;
+// Host only; uses `crate::cases::Rng`.
 #[path = "src/models.rs"]
 mod models;
 

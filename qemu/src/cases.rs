@@ -162,6 +162,16 @@ pub const CASES: &[Case] = &[
     case("tension::distribute_warm", 24, tension_warm),
     case("guidance", 48, guidance),
     case("safety::SafetyMonitor", 32, safety),
+    case("blob::CompiledCalibration::from_blob", 1, blob_parse),
+    case("blob::position_q16/position_mm", 32, positions),
+    case("fixed::tanh_q27/exp2_neg_q22", 64, fixed_functions),
+    case("encoder::EncoderExtender/DirectionTracker", 16, encoder),
+    case("string_law::string_lengths", 48, string_lengths),
+    case("kinematics::inverse_kinematics::<f32>", 32, inverse_kinematics),
+    case("kinematics::forward_kinematics::<f32> (warm)", 48, fk_warm),
+    case("kinematics::forward_kinematics::<f32> (cold, faulty string)", 24, fk_faulty),
+    case("correction::NnView::evaluate (3-20-3)", 48, nn_evaluate),
+    case("correction::SvrView::evaluate (1000 SV)", 16, svr_evaluate),
 ];
 
 /// Shorthand of [`CASES`]: name, number of vectors, function.
@@ -198,6 +208,33 @@ pub fn force(rng: &mut Rng, max: f32) -> [f32; 3] {
 /// Tension limits of the benchmarks and vectors: 0.5 to 20 N.
 pub fn tension_limits() -> spidar_core::tension::TensionLimits<f32> {
     spidar_core::tension::TensionLimits { t_min: 0.5, t_max: 20.0 }
+}
+
+/// The compiled calibration of a fixture blob (`nn` or `svr`).
+pub fn calibration<'a>(fx: &Fixtures<'a>, svr: bool) -> Option<spidar_core::blob::CompiledCalibration<'a>> {
+    spidar_core::blob::CompiledCalibration::from_blob(if svr { fx.svr_blob } else { fx.nn_blob }).ok()
+}
+
+/// Run-time string inputs over the whole workspace: up to +-30 pulley turns
+/// (4096 counts per turn), any direction, 0 to 20 N, up to an hour.
+pub fn string_inputs(rng: &mut Rng) -> spidar_core::model::StringInputs {
+    let mut s = spidar_core::model::StringInputs::default();
+    for i in 0..spidar_core::STRINGS {
+        s.counts[i] = rng.i32_in(-30 * 4096, 30 * 4096);
+        s.direction[i] = rng.i32_in(-1, 1) as i8;
+        s.tension_mn[i] = rng.i32_in(0, 20_000) as u16;
+    }
+    s.time_ms = rng.next_u32() % 3_600_000;
+    s
+}
+
+/// Exact string lengths from a position, with +-`noise` mm on each (f32).
+pub fn lengths_at(p: [f32; 3], rng: &mut Rng, noise: f32) -> [f32; spidar_core::STRINGS] {
+    let mut l = spidar_core::kinematics::inverse_kinematics(&cube_anchors(), p);
+    for x in l.iter_mut() {
+        *x += rng.f32_in(-noise, noise);
+    }
+    l
 }
 
 fn tension_solution(out: &mut dyn Out, s: &spidar_core::tension::TensionSolution<f32>) {
@@ -309,4 +346,100 @@ fn safety(_: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
     out.f32s(&m.apply(t));
     out.u32(m.warnings().bits() as u32);
     out.u32(m.slack_mask() as u32);
+}
+
+/// The device's parse of both fixture blobs (header, f32 frame, compiled
+/// laws and effects, correction kind).
+fn blob_parse(fx: &Fixtures, _: &mut Rng, out: &mut dyn Out) {
+    for svr in [false, true] {
+        match calibration(fx, svr) {
+            Some(c) => {
+                out.debug(&c.header);
+                out.debug(&c.head);
+                out.debug(&c.correction.kind());
+            }
+            None => out.u32(u32::MAX),
+        }
+    }
+}
+
+fn positions(_: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    let p = [rng.f32_in(-2000.0, 2000.0), rng.f32_in(-1.0, 1.0), rng.f32_in(-40000.0, 40000.0)];
+    let q = spidar_core::blob::position_q16(p);
+    out.i32s(&q);
+    out.f32s(&spidar_core::blob::position_mm(q));
+}
+
+fn fixed_functions(_: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    use spidar_core::fixed::*;
+    for _ in 0..8 {
+        out.i32(tanh_q27(rng.next_u32() as i32 >> rng.i32_in(0, 6)));
+        out.i32(exp2_neg_q22(rng.next_u32() >> rng.i32_in(0, 8)));
+    }
+}
+
+/// 16-bit counter wrap-around and direction hysteresis along a random walk.
+fn encoder(_: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    use spidar_core::encoder::{DirectionTracker, EncoderExtender};
+    let mut raw = rng.next_u32() as u16;
+    let mut ext = EncoderExtender::new(raw);
+    let mut dir = DirectionTracker::new(rng.i32_in(0, 8) as u32);
+    for _ in 0..32 {
+        raw = raw.wrapping_add(rng.i32_in(-3000, 3000) as u16);
+        let c = ext.update(raw);
+        out.i32(c);
+        out.i32(dir.update(c) as i32);
+    }
+}
+
+fn string_lengths(fx: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    let Some(c) = calibration(fx, false) else { return out.u32(u32::MAX) };
+    let inputs = string_inputs(rng);
+    out.i64s(&spidar_core::string_law::string_lengths(&c.head.laws, &c.head.effects, &inputs));
+}
+
+fn inverse_kinematics(_: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    let p = central_position(rng);
+    out.f32s(&spidar_core::kinematics::inverse_kinematics(&cube_anchors(), p));
+}
+
+fn fk_solution(out: &mut dyn Out, s: &spidar_core::kinematics::FkSolution<f32>) {
+    out.f32s(&s.position);
+    out.f32(s.rms_residual_mm);
+    out.u32(s.iterations);
+    out.debug(s);
+}
+
+/// Warm start 0.05-2 mm from the answer (the previous iteration's position),
+/// 0.3 mm length noise.
+fn fk_warm(_: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    use spidar_core::kinematics::{forward_kinematics, FkConfig};
+    let p = central_position(rng);
+    let lengths = lengths_at(p, rng, 0.3);
+    let start = [p[0] + rng.f32_in(-2.0, 2.0), p[1] + rng.f32_in(-2.0, 2.0), p[2] + rng.f32_in(-2.0, 2.0)];
+    fk_solution(out, &forward_kinematics(&cube_anchors(), &lengths, start, &FkConfig::default()));
+}
+
+/// Cold start (frame centre) with one string 5-40 mm off: the exclusion path.
+fn fk_faulty(_: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    use spidar_core::kinematics::{forward_kinematics, FkConfig};
+    let p = central_position(rng);
+    let mut lengths = lengths_at(p, rng, 0.2);
+    let bad = rng.i32_in(0, spidar_core::STRINGS as i32 - 1) as usize;
+    lengths[bad] += rng.f32_in(5.0, 40.0);
+    fk_solution(out, &forward_kinematics(&cube_anchors(), &lengths, [0.0; 3], &FkConfig::default()));
+}
+
+fn correction_case(fx: &Fixtures, svr: bool, rng: &mut Rng, out: &mut dyn Out) {
+    let Some(c) = calibration(fx, svr) else { return out.u32(u32::MAX) };
+    let p = spidar_core::blob::position_q16(central_position(rng));
+    out.i32s(&c.correction.evaluate(p));
+}
+
+fn nn_evaluate(fx: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    correction_case(fx, false, rng, out)
+}
+
+fn svr_evaluate(fx: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    correction_case(fx, true, rng, out)
 }
