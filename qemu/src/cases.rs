@@ -172,6 +172,8 @@ pub const CASES: &[Case] = &[
     case("kinematics::forward_kinematics::<f32> (cold, faulty string)", 24, fk_faulty),
     case("correction::NnView::evaluate (3-20-3)", 48, nn_evaluate),
     case("correction::SvrView::evaluate (1000 SV)", 16, svr_evaluate),
+    case("control::Controller::step (NN, 8 steps)", 6, control_nn),
+    case("control::Controller::step (SVR, 8 steps)", 4, control_svr),
 ];
 
 /// Shorthand of [`CASES`]: name, number of vectors, function.
@@ -442,4 +444,45 @@ fn nn_evaluate(fx: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
 
 fn svr_evaluate(fx: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
     correction_case(fx, true, rng, out)
+}
+
+/// Eight control-loop iterations from home with random encoder motion (so
+/// FK also meets inconsistent lengths), a random target kind; every output
+/// field of every step.
+fn control_case(fx: &Fixtures, svr: bool, rng: &mut Rng, out: &mut dyn Out) {
+    use spidar_core::control::{ControlConfig, Controller, LoopInput, Target};
+    let Some(cal) = calibration(fx, svr) else { return out.u32(u32::MAX) };
+    let mut raw: [u16; spidar_core::STRINGS] = core::array::from_fn(|_| rng.next_u32() as u16);
+    let Ok(mut ctl) = Controller::new(ControlConfig::default(), &cal, raw, 5) else { return out.u32(u32::MAX - 1) };
+    ctl.set_target(match rng.i32_in(0, 2) {
+        0 => Target::Idle,
+        1 => Target::Force(force(rng, 20.0)),
+        _ => Target::Guidance { target_mm: central_position(rng), d_min_mm: rng.f32_in(10.0, 300.0), f_max_n: 5.0 },
+    });
+    ctl.safety().heartbeat(5);
+    out.debug(&ctl.safety().arm());
+    for step in 0..8u32 {
+        for r in raw.iter_mut() {
+            *r = r.wrapping_add(rng.i32_in(-400, 400) as u16);
+        }
+        let now = 5 + step;
+        if rng.i32_in(0, 3) != 0 {
+            ctl.safety().heartbeat(now);
+        }
+        let o = ctl.step(&cal, &LoopInput { raw_counts: raw, now_ms: now, estop: rng.i32_in(0, 15) == 0 });
+        out.f32s(&o.string_lengths_mm);
+        out.f32s(&o.position_mm);
+        out.i32s(&o.corrected_q16);
+        out.f32s(&o.force_n);
+        out.f32s(&o.tensions_n);
+        out.debug(&o);
+    }
+}
+
+fn control_nn(fx: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    control_case(fx, false, rng, out)
+}
+
+fn control_svr(fx: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    control_case(fx, true, rng, out)
 }

@@ -8,6 +8,7 @@
 #![allow(clippy::needless_range_loop)]
 
 use core::hint::black_box;
+use spidar_core::control::{ControlConfig, Controller, LoopInput, Target};
 use spidar_core::kinematics::{forward_kinematics, inverse_kinematics, FkConfig};
 use spidar_core::tension::{distribute, distribute_warm, TensionConfig};
 use spidar_core::STRINGS;
@@ -136,13 +137,34 @@ fn main() -> ! {
         (f, monitor.apply(tensions))
     });
 
-    // One control-loop iteration, composed here from the parts as the design's
-    // pipeline (docs/design.md) while `control` is not on main: encoders ->
+    // One control-loop iteration: control::Controller::step, the firmware's
+    // code, armed, guidance cue toward a room target, the end-effector moving
+    // 0.1 mm per iteration from home (consistent encoder readings: FK Ok).
+    for (name, cal) in
+        [("control::Controller::step (NN 3-20-3)", &nn_cal), ("control::Controller::step (SVR 1,000 SV)", &svr_cal)]
+    {
+        let raw = controller_path(cal);
+        let Ok(mut ctl) = Controller::new(ControlConfig::default(), cal, [0; STRINGS], 0) else { exit(false) };
+        ctl.set_target(Target::Guidance { target_mm: [100.0, -50.0, 1600.0], d_min_mm: 150.0, f_max_n: 5.0 });
+        ctl.safety().heartbeat(0);
+        let armed = ctl.safety().arm().is_ok();
+        let mut fk_ok = 0;
+        measure(name, Some(55_000), N as u32, |i| {
+            ctl.safety().heartbeat(i / 10);
+            let out = ctl.step(cal, &LoopInput { raw_counts: raw[at(i)], now_ms: i / 10, estop: false });
+            fk_ok += (out.fk_status == spidar_core::kinematics::FkStatus::Ok) as u32;
+            out.tensions_n
+        });
+        hprintln!("INFO\t{}: armed {}, FK status Ok in {} of {} iterations", name, armed, fk_ok, N);
+    }
+
+    // The same pipeline composed here from the parts (measured before
+    // `control` landed; kept to show what the parts add up to): encoders ->
     // string law -> FK (warm) -> room transform -> correction -> guidance ->
     // safety -> tension distribution (warm) -> safety clamp.
     for (name, cal) in [
-        ("control-loop iteration, composed of the parts (NN 3-20-3)", &nn_cal),
-        ("control-loop iteration, composed of the parts (SVR 1,000 SV)", &svr_cal),
+        ("pipeline composed in bench.rs from the parts (NN 3-20-3)", &nn_cal),
+        ("pipeline composed in bench.rs from the parts (SVR 1,000 SV)", &svr_cal),
     ] {
         // Dry run (not measured): find the encoder readings that give the
         // path's string lengths under the inputs the loop itself will present.
@@ -157,7 +179,7 @@ fn main() -> ! {
         }
         let mut lp = Loop::new(cal, config);
         let mut fk_ok = 0;
-        measure(name, Some(55_000), N as u32, |i| {
+        measure(name, None, N as u32, |i| {
             let ok = lp.step(cal, raw[at(i)], i, &fk_cfg, lim, &cfg);
             fk_ok += ok as u32;
             lp.tensions
@@ -260,4 +282,37 @@ impl Loop {
         }
         counts.map(|c| c as u16)
     }
+}
+
+/// Raw encoder readings along a path from home (0.1 mm per iteration) for
+/// which `Controller::step` itself, with the state it will have, computes
+/// the path's string lengths: each reading is refined on a clone of a dry-run
+/// controller (setup, not measured).
+fn controller_path(cal: &spidar_core::blob::CompiledCalibration) -> [[u16; STRINGS]; N] {
+    let Ok(mut ctl) = Controller::new(ControlConfig::default(), cal, [0; STRINGS], 0) else { exit(false) };
+    ctl.set_target(Target::Guidance { target_mm: [100.0, -50.0, 1600.0], d_min_mm: 150.0, f_max_n: 5.0 });
+    ctl.safety().heartbeat(0);
+    let _ = ctl.safety().arm();
+    let home = cal.head.frame.home;
+    let mut raw = [[0u16; STRINGS]; N];
+    let mut counts = [0i32; STRINGS];
+    for k in 0..N {
+        let t = k as f32;
+        let want =
+            inverse_kinematics(&cal.head.frame.anchors, [home[0] + 0.1 * t, home[1] - 0.05 * t, home[2] + 0.03 * t]);
+        let now = k as u32 / 10;
+        for _ in 0..8 {
+            let mut trial = ctl.clone();
+            trial.safety().heartbeat(now);
+            let out = trial.step(cal, &LoopInput { raw_counts: counts.map(|c| c as u16), now_ms: now, estop: false });
+            for s in 0..STRINGS {
+                // ~0.0184 mm per count (12 mm radius, 4096 counts per turn).
+                counts[s] = out.counts[s] + ((want[s] - out.string_lengths_mm[s]) / 0.0184) as i32;
+            }
+        }
+        raw[k] = counts.map(|c| c as u16);
+        ctl.safety().heartbeat(now);
+        ctl.step(cal, &LoopInput { raw_counts: raw[k], now_ms: now, estop: false });
+    }
+    raw
 }
