@@ -3,7 +3,8 @@
 
 pub mod dataset;
 pub mod figures;
-pub mod stats;
-pub mod sim;
 pub mod identify;
 pub mod observe;
+pub mod predict;
+pub mod sim;
+pub mod stats;
