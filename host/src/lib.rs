@@ -1,2 +1,3 @@
 //! Host side of the SPIDAR stack: datasets, simulation, identification,
 //! learned corrections, diagnosis, reports, and the device link.
+pub mod learn;
