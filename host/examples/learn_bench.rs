@@ -17,6 +17,22 @@ use spidar::learn::search::{self, SvrSearchConfig, SweepConfig};
 use spidar::learn::svr::{self, SolverConfig, SvrConfig, SvrParams};
 use spidar::learn::{synthetic, ErrorStats, OutputMode};
 
+/// Process CPU seconds (user + system) from /proc, to tell contention from
+/// work on a shared machine; None where /proc is missing.
+fn cpu_seconds() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    let fields: Vec<&str> = stat.rsplit(')').next()?.split_whitespace().collect();
+    let ticks: f64 = fields.get(11)?.parse::<f64>().ok()? + fields.get(12)?.parse::<f64>().ok()?;
+    Some(ticks / 100.0)
+}
+
+fn cpu_since(c0: Option<f64>) -> String {
+    match (c0, cpu_seconds()) {
+        (Some(a), Some(b)) => format!("{:.2} s CPU", b - a),
+        _ => "CPU n/a".into(),
+    }
+}
+
 fn line(name: &str, s: &ErrorStats) {
     println!(
         "  {name:<28} mean {:7.3} mm  sd {:7.3}  max {:8.3}  (n = {})",
@@ -64,7 +80,9 @@ fn main() {
     // SVR at the notes' reference point.
     println!("\nSVR C = 100, gamma = 1/3, epsilon = 0.01 (standardized), tol 1e-3:");
     let cfg = SvrConfig::default();
+    let c0 = cpu_seconds();
     let fit = svr::train(&train.inputs, &train.targets, &cfg).expect("svr");
+    println!("  ({})", cpu_since(c0));
     let t = search::evaluate(|p| svr::predict(&fit.model, p), &test.inputs, &test.targets);
     println!(
         "  fit {:.3} s (kernel {:.3} s), support vectors {} (union), per axis {:?}, iterations {:?}, converged {:?}",
@@ -145,7 +163,9 @@ fn main() {
         sweep_cfg.final_lm.max_epochs,
         sweep_cfg.final_restarts
     );
+    let c0 = cpu_seconds();
     let sweep = search::nn_sweep(&train.inputs, &train.targets, &sweep_cfg).expect("sweep");
+    println!("  ({} for sweep + final)", cpu_since(c0));
     for p in &sweep.curve {
         println!(
             "    H = {:2}: validation mean {:7.3} mm, train mean {:7.3} mm, {:3} epochs ({:?})",
@@ -182,7 +202,9 @@ fn main() {
         "\nSVR search C {:?} x epsilon {:?} x gamma {:?}, {:?}:",
         scfg.c, scfg.epsilon, scfg.gamma, scfg.validation
     );
+    let c0 = cpu_seconds();
     let s = search::svr_search(&train.inputs, &train.targets, &scfg).expect("search");
+    println!("  ({} for search + refit)", cpu_since(c0));
     for c in &s.candidates {
         println!(
             "    C {:6.1} eps {:.3} gamma {:.2}: validation {:>8} mm, SVs {:4}, {:.3} s",
@@ -195,7 +217,11 @@ fn main() {
             c.seconds
         );
     }
-    let t = search::evaluate(|p| svr::predict(&s.fit.model, p), &test.inputs, &test.targets);
+    let t = search::evaluate(
+        |p| svr::predict(&s.fit.model, p),
+        &test.inputs,
+        &test.targets,
+    );
     println!(
         "  best {:?}: search {:.3} s, refit {:.3} s",
         s.best, s.search_seconds, s.refit_seconds

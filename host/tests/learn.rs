@@ -98,11 +98,17 @@ fn svr_matches_libsvm() {
         };
         for (a, ax) in case.axes.iter().enumerate() {
             let z: Vec<f64> = fx.y_train.iter().map(|y| y[a]).collect();
-            let sol = svr::solve_epsilon_svr(&k, &z, case.c, case.epsilon, &solver, Deadline::none())
-                .unwrap();
+            let sol =
+                svr::solve_epsilon_svr(&k, &z, case.c, case.epsilon, &solver, Deadline::none())
+                    .unwrap();
             assert!(sol.converged, "{} axis {a} did not converge", case.name);
             let mut worst: f64 = 0.0;
-            for (x, p) in fx.x_train.iter().zip(&ax.pred_train).chain(fx.x_test.iter().zip(&ax.pred_test)) {
+            for (x, p) in fx
+                .x_train
+                .iter()
+                .zip(&ax.pred_train)
+                .chain(fx.x_test.iter().zip(&ax.pred_test))
+            {
                 let ours = rbf_predict(&fx.x_train, &sol.coef, sol.bias, case.gamma, x);
                 worst = worst.max((ours - p).abs());
             }
@@ -127,8 +133,16 @@ fn svr_matches_libsvm() {
                 (sol.bias - ax.intercept).abs(),
                 sol.iterations
             );
-            assert!(worst < pred_tol, "{} axis {a}: prediction differs by {worst}", case.name);
-            assert!(rel_obj < obj_tol, "{} axis {a}: objective rel diff {rel_obj}", case.name);
+            assert!(
+                worst < pred_tol,
+                "{} axis {a}: prediction differs by {worst}",
+                case.name
+            );
+            assert!(
+                rel_obj < obj_tol,
+                "{} axis {a}: objective rel diff {rel_obj}",
+                case.name
+            );
             // Ours is a minimization to the same tolerance: never much worse.
             assert!(obj <= ax.objective + obj_tol * ax.objective.abs());
         }
@@ -172,7 +186,10 @@ fn svr_corrects_synthetic_field() {
     };
     let fit = svr::train(&train.inputs, &train.targets, &cfg).unwrap();
     let t = search::evaluate(|p| svr::predict(&fit.model, p), &test.inputs, &test.targets);
-    eprintln!("SVR residual: test {:.3} ± {:.3} (max {:.2}) mm", t.mean, t.sd, t.max);
+    eprintln!(
+        "SVR residual: test {:.3} ± {:.3} (max {:.2}) mm",
+        t.mean, t.sd, t.max
+    );
     // Measured 0.54 mm.
     assert!(t.mean < 0.8, "SVR residual test mean {}", t.mean);
 }
@@ -230,7 +247,10 @@ fn hidden_sweep_gives_a_curve_and_the_best_size() {
     let hs: Vec<usize> = res.curve.iter().map(|p| p.hidden).collect();
     assert_eq!(hs, vec![3, 8, 16]);
     for p in &res.curve {
-        eprintln!("sweep H={}: validation {:.3} mm", p.hidden, p.validation_mean_mm);
+        eprintln!(
+            "sweep H={}: validation {:.3} mm",
+            p.hidden, p.validation_mean_mm
+        );
     }
     let best = res
         .curve
@@ -243,7 +263,11 @@ fn hidden_sweep_gives_a_curve_and_the_best_size() {
     assert!(res.curve[0].validation_mean_mm > 2.0 * res.curve[2].validation_mean_mm);
     // The final training never loses to the sweep's network.
     assert!(res.fit.validation.mean <= best.validation_mean_mm + 1e-9);
-    let t = search::evaluate(|p| nn::predict(&res.fit.model, p), &test.inputs, &test.targets);
+    let t = search::evaluate(
+        |p| nn::predict(&res.fit.model, p),
+        &test.inputs,
+        &test.targets,
+    );
     assert!(t.mean < 2.0, "swept NN test mean {}", t.mean);
 }
 
@@ -270,7 +294,11 @@ fn svr_search_picks_the_best_candidate() {
     assert_eq!(best.1, res.best);
     // The wide tube is clearly worse on this field.
     assert_eq!(res.best.epsilon, 0.01);
-    let t = search::evaluate(|p| svr::predict(&res.fit.model, p), &test.inputs, &test.targets);
+    let t = search::evaluate(
+        |p| svr::predict(&res.fit.model, p),
+        &test.inputs,
+        &test.targets,
+    );
     eprintln!("SVR search best {:?}: test {:.3} mm", res.best, t.mean);
     assert!(t.mean < 4.0);
 }
@@ -331,8 +359,8 @@ fn standardization_is_eq_10() {
         assert!(m.abs() < 1e-12 && (v - 1.0).abs() < 1e-12);
     }
     let back = standardize::invert(&s, &n[17]);
-    for a in 0..3 {
-        assert!((back[a] - train.targets[17][a]).abs() < 1e-9);
+    for (b, t) in back.iter().zip(&train.targets[17]) {
+        assert!((b - t).abs() < 1e-9);
     }
 }
 
@@ -378,7 +406,11 @@ fn bad_input_gives_typed_errors() {
     );
     assert!(matches!(
         svr::train(&train.inputs, &nan, &SvrConfig::default()),
-        Err(LearnError::NonFinite { index: 42, axis: 1, .. })
+        Err(LearnError::NonFinite {
+            index: 42,
+            axis: 1,
+            ..
+        })
     ));
     assert!(matches!(
         outliers::tukey(&train.inputs, &nan),
@@ -393,7 +425,11 @@ fn bad_input_gives_typed_errors() {
         Err(LearnError::LengthMismatch { .. })
     ));
     assert!(matches!(
-        svr::train(&train.inputs[..2], &train.targets[..2], &SvrConfig::default()),
+        svr::train(
+            &train.inputs[..2],
+            &train.targets[..2],
+            &SvrConfig::default()
+        ),
         Err(LearnError::TooFewPoints { .. })
     ));
     let bad = SvrConfig {
@@ -415,10 +451,19 @@ fn bad_input_gives_typed_errors() {
             axis: 1
         }
     );
-    let err = nn::train(&train.inputs, &nan, &cfg).unwrap_err().to_string();
+    let err = nn::train(&train.inputs, &nan, &cfg)
+        .unwrap_err()
+        .to_string();
     assert!(err.contains("point 42") && err.contains("y"), "{err}");
     assert!(matches!(
-        search::nn_sweep(&train.inputs, &train.targets, &SweepConfig { sizes: vec![], ..SweepConfig::default() }),
+        search::nn_sweep(
+            &train.inputs,
+            &train.targets,
+            &SweepConfig {
+                sizes: vec![],
+                ..SweepConfig::default()
+            }
+        ),
         Err(LearnError::InvalidParameter { name: "sizes", .. })
     ));
     assert!(matches!(

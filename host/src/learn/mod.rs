@@ -55,10 +55,7 @@ pub enum LearnError {
     /// A model whose shape is inconsistent (e.g. `w1` and `b1` lengths differ).
     MalformedModel { what: &'static str },
     /// Nothing could be trained within the time budget.
-    OutOfTime {
-        what: &'static str,
-        budget_s: f64,
-    },
+    OutOfTime { what: &'static str, budget_s: f64 },
     /// The dense kernel matrix would not fit in the allowed memory.
     TooLarge {
         what: &'static str,

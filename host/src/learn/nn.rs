@@ -169,13 +169,7 @@ pub fn train(
 ) -> Result<NnFit, LearnError> {
     let start = Instant::now();
     check_config(cfg)?;
-    let data = Prepared::new(
-        inputs,
-        targets,
-        cfg.mode,
-        cfg.validation_fraction,
-        cfg.seed,
-    )?;
+    let data = Prepared::new(inputs, targets, cfg.mode, cfg.validation_fraction, cfg.seed)?;
     let deadline = Deadline::after(cfg.time_limit);
     let pb = progress(
         (cfg.restarts * cfg.lm.max_epochs) as u64,
@@ -421,7 +415,12 @@ fn sse(l: Layout, w: &[f64], x: &[[f64; 3]], y: &[[f64; 3]]) -> f64 {
         }
         for (k, tk) in t.iter().enumerate() {
             let o = l.out(k);
-            let f: f64 = w[o..o + l.h].iter().zip(&act).map(|(a, b)| a * b).sum::<f64>() + w[o + l.h];
+            let f: f64 = w[o..o + l.h]
+                .iter()
+                .zip(&act)
+                .map(|(a, b)| a * b)
+                .sum::<f64>()
+                + w[o + l.h];
             let e = tk - f;
             s += e * e;
         }
@@ -517,7 +516,17 @@ impl Work {
         }
         gemm_tn(q, q, n, &self.v, n, &self.v, n, &mut self.vtv, q);
         gemm_tn(q, h + 1, n, &self.v, n, &self.a, n, &mut self.vta, q);
-        gemm_tn(h + 1, h + 1, n, &self.a, n, &self.a, n, &mut self.ata, h + 1);
+        gemm_tn(
+            h + 1,
+            h + 1,
+            n,
+            &self.a,
+            n,
+            &self.a,
+            n,
+            &mut self.ata,
+            h + 1,
+        );
         let wdim = l.len();
         let jtj = self.jtj.as_mut_slice();
         // First-layer block.
@@ -611,7 +620,10 @@ fn gemm_tn(
     }
     // The extents matrixmultiply will touch; a violation is a bug here, and
     // asserting keeps the unsafe call sound.
-    assert!(k <= lda && k <= ldb && m <= ldc, "gemm_tn: leading dimensions");
+    assert!(
+        k <= lda && k <= ldb && m <= ldc,
+        "gemm_tn: leading dimensions"
+    );
     assert!(a.len() >= (m - 1) * lda + k, "gemm_tn: A too short");
     assert!(b.len() >= (n - 1) * ldb + k, "gemm_tn: B too short");
     assert!(c.len() >= (n - 1) * ldc + m, "gemm_tn: C too short");

@@ -102,7 +102,11 @@ pub fn tukey_values(values: &[f64], whisker: f64) -> Result<OutlierReport, Learn
 /// device positions and the tracker positions.
 pub fn tukey(inputs: &[[f64; 3]], targets: &[[f64; 3]]) -> Result<OutlierReport, LearnError> {
     validate_pairs("outlier box plot", inputs, targets, 4)?;
-    let errors: Vec<f64> = inputs.iter().zip(targets).map(|(a, b)| dist(a, b)).collect();
+    let errors: Vec<f64> = inputs
+        .iter()
+        .zip(targets)
+        .map(|(a, b)| dist(a, b))
+        .collect();
     tukey_values(&errors, 1.5)
 }
 

@@ -36,7 +36,8 @@ pub fn fit(what: &'static str, points: &[[f64; 3]]) -> Result<Standardization, L
     for a in 0..3 {
         std[a] = (var[a] / n).sqrt();
         let scale = mean[a].abs().max(1.0);
-        if !(std[a] > MIN_REL_SPREAD * scale) {
+        // Also catches NaN (cannot happen after validation, but cheap).
+        if std[a].is_nan() || std[a] <= MIN_REL_SPREAD * scale {
             return Err(LearnError::ZeroSpread { what, axis: a });
         }
     }

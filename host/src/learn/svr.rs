@@ -373,7 +373,8 @@ impl<'a> Solver<'a> {
                     }
                     if grad_diff > 0.0 {
                         let quad = qdi + self.qd[j] - 2.0 * yi * self.buf_i[j];
-                        let obj_diff = -(grad_diff * grad_diff) / if quad > 0.0 { quad } else { TAU };
+                        let obj_diff =
+                            -(grad_diff * grad_diff) / if quad > 0.0 { quad } else { TAU };
                         if obj_diff <= obj_diff_min {
                             gmin_idx = Some(j);
                             obj_diff_min = obj_diff;
