@@ -79,7 +79,10 @@ fn main() {
 
     // SVR at the notes' reference point.
     println!("\nSVR C = 100, gamma = 1/3, epsilon = 0.01 (standardized), tol 1e-3:");
-    let cfg = SvrConfig::default();
+    let cfg = SvrConfig {
+        quiet,
+        ..SvrConfig::default()
+    };
     let c0 = cpu_seconds();
     let fit = svr::train(&train.inputs, &train.targets, &cfg).expect("svr");
     println!("  ({})", cpu_since(c0));

@@ -478,6 +478,7 @@ pub fn svr_search(
             mode: cfg.mode,
             time_limit: None,
             max_dense_points: cfg.max_dense_points,
+            quiet: cfg.quiet,
         },
     )?;
     let refit_seconds = fit.seconds;

@@ -86,6 +86,8 @@ pub struct SvrConfig {
     pub mode: OutputMode,
     pub time_limit: Option<Duration>,
     pub max_dense_points: usize,
+    /// Hide the progress spinner.
+    pub quiet: bool,
 }
 
 impl Default for SvrConfig {
@@ -100,6 +102,7 @@ impl Default for SvrConfig {
             mode: OutputMode::Absolute,
             time_limit: None,
             max_dense_points: DEFAULT_MAX_DENSE_POINTS,
+            quiet: true,
         }
     }
 }
@@ -733,7 +736,28 @@ pub fn train(
     let kernel = KernelMatrix::rbf(&x, cfg.params.gamma, cfg.max_dense_points)?;
     let kernel_seconds = start.elapsed().as_secs_f64();
     let deadline = Deadline::after(cfg.time_limit);
-    let sols = solve_axes(&kernel, &y, &cfg.params, &cfg.solver, deadline)?;
+    // Small epsilon can take the SMO from a fraction of a second to minutes:
+    // show that it is working.
+    let pb = super::progress(3, "SVR axes", cfg.quiet);
+    pb.enable_steady_tick(Duration::from_millis(200));
+    let sols: Result<Vec<AxisSolution>, LearnError> = (0..3)
+        .into_par_iter()
+        .map(|a| {
+            let z: Vec<f64> = y.iter().map(|p| p[a]).collect();
+            let r = solve_epsilon_svr(
+                &kernel,
+                &z,
+                cfg.params.c,
+                cfg.params.epsilon,
+                &cfg.solver,
+                deadline,
+            );
+            pb.inc(1);
+            r
+        })
+        .collect();
+    pb.finish_and_clear();
+    let sols = sols?;
     let model = assemble(input, output, cfg.params.gamma, cfg.mode, &x, &sols);
     let pred = predict_all(&model, inputs);
     Ok(SvrFit {
