@@ -4,6 +4,7 @@
 pub mod dataset;
 pub mod figures;
 pub mod identify;
+pub mod learn;
 pub mod observe;
 pub mod predict;
 pub mod sim;
