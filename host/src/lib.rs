@@ -3,5 +3,5 @@
 
 pub mod dataset;
 pub mod figures;
-pub mod stats;
 pub mod sim;
+pub mod stats;
