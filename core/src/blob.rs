@@ -127,9 +127,14 @@ mod host {
     #[derive(Clone, Copy, Debug, PartialEq)]
     pub enum CompileError {
         /// A frame value that is not finite or does not fit f32.
-        Frame { field: &'static str },
+        Frame {
+            field: &'static str,
+        },
         StringLaw(crate::string_law::CompileError),
-        TooManyEffects { found: usize, max: usize },
+        TooManyEffects {
+            found: usize,
+            max: usize,
+        },
         Correction(crate::correction::CompileError),
         /// The body could not be encoded (should not happen).
         Encode,
@@ -197,8 +202,8 @@ mod host {
         let frame = frame_f32(&calibration.frame)?;
         let mut laws = [CompiledStringLaw::default(); STRINGS];
         for (i, law) in calibration.strings.iter().enumerate() {
-            laws[i] = compile_string_law(&calibration.frame, i, law)
-                .map_err(CompileError::StringLaw)?;
+            laws[i] =
+                compile_string_law(&calibration.frame, i, law).map_err(CompileError::StringLaw)?;
         }
         if calibration.effects.len() > MAX_EFFECTS {
             return Err(CompileError::TooManyEffects {

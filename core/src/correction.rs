@@ -195,6 +195,7 @@ fn mode_from_byte(b: u8, field: &'static str) -> Result<OutputMode, BlobError> {
     }
 }
 
+#[cfg(feature = "alloc")]
 fn mode_byte(mode: OutputMode) -> u8 {
     match mode {
         OutputMode::Absolute => 0,

@@ -140,7 +140,7 @@ impl WindingPhysics {
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct ParameterEstimate {
     pub name: String,
-    pub unit: &'static str,
+    pub unit: String,
     pub value: f64,
     /// Posterior standard deviation (from the Gauss-Newton covariance).
     pub sd: f64,
@@ -807,7 +807,6 @@ pub fn identify(
         effects: structure.effects.clone(),
     };
     let mut weights = vec![[1.0; STRINGS]; used.len()];
-    let mut residual_sd = 1.0;
     let mut evaluations = 0;
     let rounds = [
         Round::LeastSquares,
@@ -840,7 +839,7 @@ pub fn identify(
             break;
         }
         weights = new_weights;
-        residual_sd = scale;
+        let residual_sd = scale;
         let base_rotation = state.frame.room_rotation;
         let x = encode(&state, &layout);
         let problem = Problem {
@@ -945,7 +944,7 @@ pub fn identify(
         }
         parameters.push(ParameterEstimate {
             name,
-            unit,
+            unit: unit.to_string(),
             value,
             sd,
             prior_sd,

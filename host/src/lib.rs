@@ -3,5 +3,7 @@
 
 pub mod dataset;
 pub mod figures;
+pub mod identify;
+pub mod observe;
 pub mod sim;
 pub mod stats;

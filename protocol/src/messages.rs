@@ -1,0 +1,711 @@
+//! The messages: [`Request`] (host -> device) and [`DeviceMessage`]
+//! (device -> host: replies, the [`State`] stream and [`Event`]s).
+//!
+//! All types are plain serde types encoded with postcard (varints for
+//! integers, 4-byte little-endian `f32`, enum tags as varints). Their
+//! worst-case encoded sizes are listed in the crate documentation and checked
+//! by the tests against [`crate::MAX_FRAME`].
+//!
+//! **Frozen layout.** So that a protocol version mismatch is always reported
+//! as such and never as an undecodable frame, these never change between
+//! protocol versions: `Request::Hello` is variant 0 of [`Request`] and its only
+//! field is `protocol_version: u16`; `DeviceMessage::Reply` is variant 0 of
+//! [`DeviceMessage`], `Response::HelloAck` is variant 0 of [`Response`] and
+//! `protocol_version: u16` is the first field of [`HelloAck`]. Everything else
+//! may change when [`crate::PROTOCOL_VERSION`] changes.
+
+use core::fmt;
+
+use serde::{Deserialize, Serialize};
+
+use crate::blob::{BlobError, ModelHeader};
+use crate::{MAX_CHUNK, MAX_NAME, STRINGS};
+
+/// A short name sent on the wire (a field name in an error), at most
+/// [`MAX_NAME`] bytes of UTF-8.
+pub type Name = heapless::String<MAX_NAME>;
+
+/// Builds a [`Name`], cutting `s` at a character boundary if it is longer
+/// than [`MAX_NAME`] bytes.
+pub fn name(s: &str) -> Name {
+    let mut n = Name::new();
+    for c in s.chars() {
+        if n.push(c).is_err() {
+            break;
+        }
+    }
+    n
+}
+
+// ---------------------------------------------------------------------------
+// Host -> device
+// ---------------------------------------------------------------------------
+
+/// A request from the host. The device answers every request with exactly one
+/// [`DeviceMessage::Reply`] carrying the request's sequence number.
+///
+/// Any valid request also counts as a heartbeat (see [`Limits`]).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Request<'a> {
+    /// Opens a session. Frozen: variant 0, one field. The device answers
+    /// [`Response::HelloAck`] with its own version whatever the host's; if the
+    /// versions differ it answers every other request with
+    /// [`DeviceError::VersionMismatch`] until a matching `Hello`.
+    Hello {
+        /// [`crate::PROTOCOL_VERSION`] of the host.
+        protocol_version: u16,
+    },
+    /// Keeps the device armed: without a valid request for
+    /// [`Limits::heartbeat_timeout_ms`] an armed device drops every tension to
+    /// [`Limits::pre_tension_n`], raises [`Faults::HEARTBEAT_LOST`] and sends
+    /// [`Event::HeartbeatLost`]. Answered by [`Response::Ack`].
+    Heartbeat,
+    /// Describes the active model: answered by [`Response::Info`].
+    GetInfo,
+    /// Link and loop counters: answered by [`Response::Stats`].
+    GetStats,
+    /// Nominal geometry and string law, used when no model blob is loaded (a
+    /// loaded blob's calibration takes precedence). Refused while armed.
+    SetStringModel(StringModel),
+    /// Safety limits. Refused while armed.
+    SetLimits(Limits),
+    /// Force mode: render this force at the end-effector. Answered by `Ack`.
+    SetForceTarget {
+        /// Force on the end-effector, device frame, newtons.
+        force_n: [f32; 3],
+    },
+    /// Guidance mode: pull the end-effector towards a target point.
+    SetGuidanceTarget {
+        /// Target point, room frame (after correction), millimetres.
+        target_mm: [f32; 3],
+        /// Dead zone: no force closer than this to the target, millimetres (>= 0).
+        d_min_mm: f32,
+        /// Largest guidance force, newtons (>= 0).
+        f_max_n: f32,
+    },
+    /// Enables the motors (at pre-tension until a target is set).
+    Arm,
+    /// Disables the motors.
+    Disarm,
+    /// Clears latched [`Faults`] whose cause has gone.
+    ClearFaults,
+    /// Starts the [`State`] stream.
+    StreamOn {
+        /// One state frame every `decimation` control-loop iterations (>= 1);
+        /// the loop period is [`HelloAck::loop_period_us`].
+        decimation: u16,
+    },
+    /// Stops the [`State`] stream.
+    StreamOff,
+    /// Starts (or resumes) a model upload into the staging slot. If an upload
+    /// with the same `total_len`, `crc32` and `model_id` is in progress the
+    /// device keeps what it has; otherwise it starts over. Answered by
+    /// [`Response::ChunkAck`] with the offset to send next (0 for a new upload).
+    UploadBegin {
+        /// Length of the whole blob (header + body), bytes.
+        total_len: u32,
+        /// CRC-32 ([`crate::blob::CRC32`]) of the whole blob.
+        crc32: u32,
+        /// `model_id` of the blob's header.
+        model_id: u32,
+    },
+    /// Bytes `offset..offset + data.len()` of the blob. `offset` must be the
+    /// device's `next_offset`; a chunk that lies wholly before it (a resend
+    /// after a lost ack) is acknowledged without effect; anything else gets
+    /// [`DeviceError::OutOfOrder`]. Answered by [`Response::ChunkAck`].
+    UploadChunk {
+        /// Byte offset of `data` in the blob.
+        offset: u32,
+        /// At most [`MAX_CHUNK`] bytes (and at most [`HelloAck::max_chunk`]).
+        data: &'a [u8],
+    },
+    /// Checks the staged blob (length, whole-blob CRC, header, body CRC,
+    /// dimensions) and makes it the active model atomically: answered by
+    /// [`Response::Committed`], or by an error and the old model stays.
+    UploadCommit {
+        /// CRC-32 of the whole blob, as in `UploadBegin`.
+        crc32: u32,
+    },
+    /// Drops the staged upload. Answered by `Ack`.
+    UploadAbort,
+    /// Where the upload stands: answered by [`Response::UploadStatus`].
+    UploadStatus,
+    /// Erases the active model (the device falls back to [`StringModel`]).
+    /// Refused while armed.
+    ClearModel,
+}
+
+/// Nominal geometry and string law of the device.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct StringModel {
+    /// Quadrature encoder counts per pulley revolution, per string (> 0).
+    pub counts_per_rev: [u32; STRINGS],
+    /// Pulley winding radius per string, millimetres (> 0).
+    pub pulley_radius_mm: [f32; STRINGS],
+    /// String exit points, device frame, millimetres; index = encoder index.
+    pub anchors_mm: [[f32; 3]; STRINGS],
+    /// End-effector position at initialization, device frame, millimetres.
+    pub home_mm: [f32; 3],
+}
+
+/// Safety limits.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Limits {
+    /// Tension every string keeps when armed and idle, and drops to on
+    /// heartbeat loss, newtons (>= 0).
+    pub pre_tension_n: f32,
+    /// Largest tension of any string, newtons (>= `pre_tension_n`).
+    pub max_tension_n: f32,
+    /// Longest silence from the host while armed, milliseconds (> 0).
+    pub heartbeat_timeout_ms: u16,
+}
+
+// ---------------------------------------------------------------------------
+// Device -> host
+// ---------------------------------------------------------------------------
+
+/// Everything the device sends.
+///
+/// The frame's sequence number is the request's for `Reply`; `State` and
+/// `Event` share one counter of their own, incremented per frame sent, so the
+/// host counts lost stream frames from its gaps ([`crate::SeqTracker`]).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum DeviceMessage {
+    /// The answer to a request. Frozen: variant 0.
+    Reply(Response),
+    /// One sample of the device state (while the stream is on).
+    State(State),
+    /// Something the host did not ask about.
+    Event(Event),
+}
+
+/// The answer to a [`Request`].
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Response {
+    /// Answer to `Hello`. Frozen: variant 0.
+    HelloAck(HelloAck),
+    /// The request was carried out.
+    Ack,
+    /// Answer to `GetInfo`: the active model, or `None` if there is none.
+    Info(Option<ModelInfo>),
+    /// Answer to `GetStats`.
+    Stats(LinkStats),
+    /// Answer to `UploadBegin` and `UploadChunk`: the device holds bytes
+    /// `0..next_offset` of the blob; send from there.
+    ChunkAck { next_offset: u32 },
+    /// The blob passed every check and is now the active model.
+    Committed { model_id: u32 },
+    /// Answer to `UploadStatus`.
+    UploadStatus(UploadState),
+    /// The request was refused; nothing changed.
+    Error(DeviceError),
+}
+
+/// Answer to `Hello`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct HelloAck {
+    /// [`crate::PROTOCOL_VERSION`] of the device. Frozen: first field.
+    pub protocol_version: u16,
+    /// Firmware version, `[major, minor, patch]`.
+    pub firmware_version: [u16; 3],
+    /// Unique device id (the STM32 96-bit UID, little-endian words).
+    pub device_id: [u8; 12],
+    /// What this firmware supports.
+    pub capabilities: Capabilities,
+    /// Largest `UploadChunk::data` the device accepts, bytes (1..=[`MAX_CHUNK`]).
+    pub max_chunk: u16,
+    /// Largest model blob the device can store, bytes.
+    pub max_blob_len: u32,
+    /// Control-loop period, microseconds.
+    pub loop_period_us: u32,
+}
+
+/// Feature bits of [`HelloAck::capabilities`].
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(transparent)]
+pub struct Capabilities(pub u32);
+
+impl Capabilities {
+    /// Force rendering (`SetForceTarget`).
+    pub const FORCE: Self = Self(1 << 0);
+    /// Guidance (`SetGuidanceTarget`).
+    pub const GUIDANCE: Self = Self(1 << 1);
+    /// Evaluates NN position corrections.
+    pub const MODEL_NN: Self = Self(1 << 2);
+    /// Evaluates SVR position corrections.
+    pub const MODEL_SVR: Self = Self(1 << 3);
+    /// Keeps an interrupted upload across a reconnect (`UploadBegin` resumes).
+    pub const UPLOAD_RESUME: Self = Self(1 << 4);
+
+    /// `true` if every bit of `other` is set.
+    pub const fn contains(self, other: Self) -> bool {
+        self.0 & other.0 == other.0
+    }
+    /// Both sets of bits.
+    pub const fn union(self, other: Self) -> Self {
+        Self(self.0 | other.0)
+    }
+}
+
+/// The active model, as stored on the device.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ModelInfo {
+    /// Storage slot the model was loaded from (A/B slots: 0 or 1).
+    pub slot: u8,
+    /// The blob's checked header (kind, dimensions, Q formats, body CRC, model id).
+    pub header: ModelHeader,
+    /// CRC-32 of the whole blob (header + body), as given to `UploadCommit`.
+    pub blob_crc32: u32,
+}
+
+/// Where a model upload stands.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum UploadState {
+    /// No upload in progress.
+    Idle,
+    /// An upload was begun and not committed or aborted.
+    InProgress {
+        model_id: u32,
+        /// Announced blob length, bytes.
+        total_len: u32,
+        /// Announced whole-blob CRC-32.
+        crc32: u32,
+        /// Bytes `0..next_offset` are staged.
+        next_offset: u32,
+    },
+}
+
+/// Counters of the device's side of the link and of its control loop. All
+/// counters wrap.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct LinkStats {
+    /// The device's frame decoder: frames accepted and rejected, by reason.
+    pub rx: crate::frame::DecodeStats,
+    /// Frames sent.
+    pub tx_frames: u32,
+    /// Stream frames dropped because the link was busy.
+    pub tx_dropped: u32,
+    /// Control-loop iterations that overran their period.
+    pub loop_overruns: u32,
+    /// Times the heartbeat was lost while armed.
+    pub heartbeat_losses: u32,
+    /// Time since boot, microseconds.
+    pub uptime_us: u64,
+}
+
+/// Why the device refused a request. Each variant names what was wrong.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum DeviceError {
+    /// The host's `Hello` named another protocol version.
+    VersionMismatch {
+        /// The device's [`crate::PROTOCOL_VERSION`].
+        device: u16,
+        /// The version the host announced.
+        host: u16,
+    },
+    /// The request is not allowed in the device's present state.
+    BadState(BadState),
+    /// The request was well formed but an argument is out of the device's range.
+    InvalidArgument { field: Name },
+    /// The device does not implement this request (see [`Capabilities`]).
+    Unsupported,
+    /// The blob does not fit the device's storage.
+    TooLarge {
+        /// Announced blob length, bytes.
+        total_len: u32,
+        /// Largest blob the device stores, bytes.
+        capacity: u32,
+    },
+    /// A chunk that does not start at the device's `next_offset`.
+    OutOfOrder {
+        /// Where the next chunk must start.
+        expected_offset: u32,
+    },
+    /// A chunk that ends past the announced `total_len`.
+    PastEnd { end: u32, total_len: u32 },
+    /// `UploadCommit` before all bytes arrived.
+    Incomplete { next_offset: u32, total_len: u32 },
+    /// The whole-blob CRC-32 of what was staged (or of `UploadCommit`) is not
+    /// the announced one.
+    CrcMismatch { expected: u32, computed: u32 },
+    /// The blob's header or body failed a check.
+    BlobRejected(BlobRejection),
+    /// Writing or erasing flash failed.
+    Storage {
+        /// Flash controller status bits.
+        code: u32,
+    },
+}
+
+/// Which state forbids a request.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum BadState {
+    /// The request needs the motors disarmed (geometry, limits, model changes).
+    Armed,
+    /// The request needs the device armed.
+    NotArmed,
+    /// A latched fault must be cleared first.
+    Faulted,
+    /// `UploadChunk`/`UploadCommit` without `UploadBegin`.
+    NoUpload,
+    /// The request needs a geometry (`SetStringModel` or a model blob).
+    NoGeometry,
+}
+
+/// A [`BlobError`] as it travels on the wire: field names are carried as
+/// [`Name`]s instead of `&'static str`, so the host can decode it from a
+/// transient buffer.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum BlobRejection {
+    Truncated {
+        needed: u32,
+        got: u32,
+    },
+    TrailingBytes {
+        extra: u32,
+    },
+    BadMagic,
+    UnsupportedVersion {
+        found: u16,
+        supported: u16,
+    },
+    UnknownKind {
+        found: u8,
+    },
+    HeaderCrc {
+        stored: u32,
+        computed: u32,
+    },
+    BodyCrc {
+        stored: u32,
+        computed: u32,
+    },
+    Dimension {
+        field: Name,
+        found: u32,
+        expected: u32,
+    },
+    Body {
+        field: Name,
+    },
+}
+
+impl From<BlobError> for BlobRejection {
+    fn from(e: BlobError) -> Self {
+        match e {
+            BlobError::Truncated { needed, got } => Self::Truncated { needed, got },
+            BlobError::TrailingBytes { extra } => Self::TrailingBytes { extra },
+            BlobError::BadMagic => Self::BadMagic,
+            BlobError::UnsupportedVersion { found, supported } => {
+                Self::UnsupportedVersion { found, supported }
+            }
+            BlobError::UnknownKind { found } => Self::UnknownKind { found },
+            BlobError::HeaderCrc { stored, computed } => Self::HeaderCrc { stored, computed },
+            BlobError::BodyCrc { stored, computed } => Self::BodyCrc { stored, computed },
+            BlobError::Dimension {
+                field,
+                found,
+                expected,
+            } => Self::Dimension {
+                field: name(field),
+                found,
+                expected,
+            },
+            BlobError::Body { field } => Self::Body { field: name(field) },
+        }
+    }
+}
+
+impl fmt::Display for BlobRejection {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::Truncated { needed, got } => {
+                write!(f, "model blob truncated: needs {needed} bytes, got {got}")
+            }
+            Self::TrailingBytes { extra } => {
+                write!(f, "model blob has {extra} bytes after its body")
+            }
+            Self::BadMagic => write!(f, "not a model blob (magic is not \"SPDM\")"),
+            Self::UnsupportedVersion { found, supported } => write!(
+                f,
+                "model blob format version {found} is not supported (the device reads version {supported})"
+            ),
+            Self::UnknownKind { found } => {
+                write!(f, "model blob has unknown correction kind {found}")
+            }
+            Self::HeaderCrc { stored, computed } => write!(
+                f,
+                "model blob header CRC mismatch: stored {stored:#010x}, computed {computed:#010x}"
+            ),
+            Self::BodyCrc { stored, computed } => write!(
+                f,
+                "model blob body CRC mismatch: stored {stored:#010x}, computed {computed:#010x}"
+            ),
+            Self::Dimension {
+                field,
+                found,
+                expected,
+            } => write!(
+                f,
+                "model blob field `{field}` is {found}, the device's evaluator needs {expected}"
+            ),
+            Self::Body { field } => {
+                write!(f, "model blob body does not decode at field `{field}`")
+            }
+        }
+    }
+}
+
+impl fmt::Display for DeviceError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::VersionMismatch { device, host } => write!(
+                f,
+                "protocol version mismatch: device speaks {device}, host speaks {host}"
+            ),
+            Self::BadState(s) => write!(f, "refused in this state: {s:?}"),
+            Self::InvalidArgument { field } => write!(f, "invalid argument `{field}`"),
+            Self::Unsupported => write!(f, "request not supported by this firmware"),
+            Self::TooLarge {
+                total_len,
+                capacity,
+            } => write!(
+                f,
+                "model blob of {total_len} bytes does not fit the device's {capacity} bytes"
+            ),
+            Self::OutOfOrder { expected_offset } => {
+                write!(
+                    f,
+                    "upload chunk out of order: device expects offset {expected_offset}"
+                )
+            }
+            Self::PastEnd { end, total_len } => write!(
+                f,
+                "upload chunk ends at {end}, past the announced length {total_len}"
+            ),
+            Self::Incomplete {
+                next_offset,
+                total_len,
+            } => write!(
+                f,
+                "upload incomplete: {next_offset} of {total_len} bytes received"
+            ),
+            Self::CrcMismatch { expected, computed } => write!(
+                f,
+                "model blob CRC mismatch: expected {expected:#010x}, computed {computed:#010x}"
+            ),
+            Self::BlobRejected(r) => write!(f, "model blob rejected: {r}"),
+            Self::Storage { code } => write!(f, "flash storage error (status {code:#010x})"),
+        }
+    }
+}
+
+/// One sample of the device state, taken at the end of a control-loop
+/// iteration.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct State {
+    /// Time since boot, microseconds.
+    pub time_us: u64,
+    /// Encoder counts since home, per string (extended to 32 bits).
+    pub counts: [i32; STRINGS],
+    /// End-effector position from forward kinematics, device frame, millimetres.
+    pub position_mm: [f32; 3],
+    /// Corrected end-effector position, room frame, **Q15.16 millimetres**
+    /// (divide by 65536, see [`q16_to_mm`]). This is the bit-exact output of
+    /// the fixed-point correction (or the room transform alone when the model
+    /// has no correction), so the host can compare it bit for bit with its
+    /// own evaluation; Q15.16 is also finer than `f32` beyond 512 mm and no
+    /// longer on the wire (varint: 4 bytes up to ±2048 mm).
+    pub corrected_mm: [i32; 3],
+    /// Commanded tension per string after the safety clamp, newtons.
+    pub tensions_n: [f32; STRINGS],
+    /// Latched and present faults.
+    pub faults: Faults,
+    /// Bit `i` set: string `i` is slack.
+    pub slack: u8,
+    /// String left out of forward kinematics by fault detection, `0..STRINGS`.
+    pub excluded: Option<u8>,
+    /// Duration of the last control-loop iteration, microseconds (saturating).
+    pub loop_us: u16,
+    /// Longest iteration since the previous state frame, microseconds (saturating).
+    pub loop_max_us: u16,
+    /// Motors enabled.
+    pub armed: bool,
+    /// `model_id` of the active model blob, `None` without one.
+    pub model_id: Option<u32>,
+}
+
+/// Converts a Q15.16 millimetre value (as in [`State::corrected_mm`]) to millimetres.
+pub fn q16_to_mm(v: i32) -> f64 {
+    f64::from(v) / 65536.0
+}
+
+/// Fault bits of [`State::faults`]. Faults latch until `ClearFaults`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(transparent)]
+pub struct Faults(pub u16);
+
+impl Faults {
+    /// No valid request for `heartbeat_timeout_ms` while armed; tensions are at pre-tension.
+    pub const HEARTBEAT_LOST: Self = Self(1 << 0);
+    /// An encoder count jumped by more than is physically possible.
+    pub const ENCODER: Self = Self(1 << 1);
+    /// Forward kinematics did not converge.
+    pub const KINEMATICS: Self = Self(1 << 2);
+    /// A tension was clamped at `max_tension_n`.
+    pub const TENSION_CLAMPED: Self = Self(1 << 3);
+    /// A control-loop iteration overran its period.
+    pub const LOOP_OVERRUN: Self = Self(1 << 4);
+    /// The stored model failed its checks at boot and is not used.
+    pub const MODEL_INVALID: Self = Self(1 << 5);
+    /// A motor driver reported a fault.
+    pub const DRIVER: Self = Self(1 << 6);
+    /// The emergency stop input is active.
+    pub const ESTOP: Self = Self(1 << 7);
+    /// The end-effector left the workspace spanned by the anchors.
+    pub const WORKSPACE: Self = Self(1 << 8);
+
+    /// No fault.
+    pub const fn is_empty(self) -> bool {
+        self.0 == 0
+    }
+    /// `true` if every bit of `other` is set.
+    pub const fn contains(self, other: Self) -> bool {
+        self.0 & other.0 == other.0
+    }
+    /// Both sets of bits.
+    pub const fn union(self, other: Self) -> Self {
+        Self(self.0 | other.0)
+    }
+}
+
+/// Unsolicited news from the device.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Event {
+    /// The heartbeat was lost while armed; tensions dropped to pre-tension.
+    HeartbeatLost,
+    /// New fault bits were raised.
+    Fault { raised: Faults },
+    /// The device disarmed itself because of these faults.
+    Disarmed { faults: Faults },
+}
+
+// ---------------------------------------------------------------------------
+// Validation
+// ---------------------------------------------------------------------------
+
+/// A message type that can travel in a frame. The encoder and decoder call
+/// [`Message::validate`], so a frame that decodes also carries sane values
+/// (else [`crate::FrameError::Invalid`]).
+pub trait Message: Serialize {
+    /// Checks the invariants postcard cannot express (finite floats where a
+    /// command needs them, string indices, chunk lengths); `Err` names the
+    /// first field out of range.
+    fn validate(&self) -> Result<(), &'static str>;
+
+    /// If `payload` (a frame's postcard bytes after the sequence number) is
+    /// this direction's frozen `Hello`/`HelloAck` prefix, the protocol version
+    /// it names. Used to report a version mismatch instead of an undecodable
+    /// frame.
+    fn peek_protocol_version(payload: &[u8]) -> Option<u16>;
+}
+
+fn finite(v: &[f32], field: &'static str) -> Result<(), &'static str> {
+    if v.iter().all(|x| x.is_finite()) {
+        Ok(())
+    } else {
+        Err(field)
+    }
+}
+
+impl Message for Request<'_> {
+    fn validate(&self) -> Result<(), &'static str> {
+        match self {
+            Request::SetStringModel(m) => {
+                if m.counts_per_rev.contains(&0) {
+                    return Err("counts_per_rev");
+                }
+                if !m.pulley_radius_mm.iter().all(|r| r.is_finite() && *r > 0.0) {
+                    return Err("pulley_radius_mm");
+                }
+                finite(m.anchors_mm.as_flattened(), "anchors_mm")?;
+                finite(&m.home_mm, "home_mm")
+            }
+            Request::SetLimits(l) => {
+                if !(l.pre_tension_n.is_finite() && l.pre_tension_n >= 0.0) {
+                    return Err("pre_tension_n");
+                }
+                if !(l.max_tension_n.is_finite() && l.max_tension_n >= l.pre_tension_n) {
+                    return Err("max_tension_n");
+                }
+                if l.heartbeat_timeout_ms == 0 {
+                    return Err("heartbeat_timeout_ms");
+                }
+                Ok(())
+            }
+            Request::SetForceTarget { force_n } => finite(force_n, "force_n"),
+            Request::SetGuidanceTarget {
+                target_mm,
+                d_min_mm,
+                f_max_n,
+            } => {
+                finite(target_mm, "target_mm")?;
+                if !(d_min_mm.is_finite() && *d_min_mm >= 0.0) {
+                    return Err("d_min_mm");
+                }
+                if !(f_max_n.is_finite() && *f_max_n >= 0.0) {
+                    return Err("f_max_n");
+                }
+                Ok(())
+            }
+            Request::StreamOn { decimation } if *decimation == 0 => Err("decimation"),
+            Request::UploadChunk { offset, data } => {
+                if data.is_empty() || data.len() > MAX_CHUNK {
+                    return Err("data");
+                }
+                // `data.len() <= MAX_CHUNK` so the cast is exact.
+                if offset.checked_add(data.len() as u32).is_none() {
+                    return Err("offset");
+                }
+                Ok(())
+            }
+            _ => Ok(()),
+        }
+    }
+
+    fn peek_protocol_version(payload: &[u8]) -> Option<u16> {
+        // Request::Hello = tag 0, then protocol_version.
+        match postcard::take_from_bytes::<(u32, u16)>(payload) {
+            Ok(((0, v), _)) => Some(v),
+            _ => None,
+        }
+    }
+}
+
+impl Message for DeviceMessage {
+    fn validate(&self) -> Result<(), &'static str> {
+        match self {
+            DeviceMessage::State(s) => match s.excluded {
+                Some(i) if usize::from(i) >= STRINGS => Err("excluded"),
+                _ => Ok(()),
+            },
+            DeviceMessage::Reply(Response::HelloAck(h)) => {
+                if h.max_chunk == 0 || usize::from(h.max_chunk) > MAX_CHUNK {
+                    Err("max_chunk")
+                } else {
+                    Ok(())
+                }
+            }
+            _ => Ok(()),
+        }
+    }
+
+    fn peek_protocol_version(payload: &[u8]) -> Option<u16> {
+        // DeviceMessage::Reply = tag 0, Response::HelloAck = tag 0, then
+        // HelloAck::protocol_version.
+        match postcard::take_from_bytes::<(u32, u32, u16)>(payload) {
+            Ok(((0, 0, v), _)) => Some(v),
+            _ => None,
+        }
+    }
+}
