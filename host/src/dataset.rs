@@ -251,7 +251,10 @@ impl Geometry {
                 field_error(
                     file,
                     "pulley_radius_mm",
-                    format!("{} radii given, {STRINGS} expected (or one number for all)", v.len()),
+                    format!(
+                        "{} radii given, {STRINGS} expected (or one number for all)",
+                        v.len()
+                    ),
                 )
             })?,
         };
@@ -298,7 +301,11 @@ impl Geometry {
             let field = format!("anchors_mm[{i}]");
             check_finite3(file, &field, a)?;
             if distance(a, &self.home_mm) == 0.0 {
-                return Err(field_error(file, field, "the anchor coincides with home_mm"));
+                return Err(field_error(
+                    file,
+                    field,
+                    "the anchor coincides with home_mm",
+                ));
             }
         }
         Ok(())
@@ -433,7 +440,10 @@ fn find_group<const N: usize>(
 }
 
 impl Layout {
-    fn from_header(file: &Path, header: &csv::StringRecord) -> Result<(Layout, Vec<String>), DatasetError> {
+    fn from_header(
+        file: &Path,
+        header: &csv::StringRecord,
+    ) -> Result<(Layout, Vec<String>), DatasetError> {
         if header.is_empty() || (header.len() == 1 && header[0].is_empty()) {
             return Err(DatasetError::Empty {
                 file: file.to_path_buf(),
@@ -531,7 +541,11 @@ impl RowReader<'_> {
     }
 
     /// A group that is all filled (`Some`) or all empty (`None`).
-    fn group<const N: usize>(&self, indices: &[usize; N], group: &str) -> Result<Option<[f64; N]>, DatasetError> {
+    fn group<const N: usize>(
+        &self,
+        indices: &[usize; N],
+        group: &str,
+    ) -> Result<Option<[f64; N]>, DatasetError> {
         let filled = indices.iter().position(|&k| !self.text(k).is_empty());
         let empty = indices.iter().position(|&k| self.text(k).is_empty());
         match (filled, empty) {
@@ -569,7 +583,9 @@ fn csv_error(file: &Path, e: csv::Error) -> DatasetError {
     let line = e.position().map(|p| p.line()).unwrap_or(0);
     match e.into_kind() {
         csv::ErrorKind::Io(source) => io_error(file, "cannot read", source),
-        csv::ErrorKind::UnequalLengths { expected_len, len, .. } => DatasetError::Csv {
+        csv::ErrorKind::UnequalLengths {
+            expected_len, len, ..
+        } => DatasetError::Csv {
             file: file.to_path_buf(),
             line,
             message: format!("{len} fields, but the header has {expected_len}"),
@@ -687,7 +703,11 @@ impl Session {
             if v.is_finite() {
                 Ok(())
             } else {
-                Err(value_error(line, column, ValueProblem::NotFinite(v.to_string())))
+                Err(value_error(
+                    line,
+                    column,
+                    ValueProblem::NotFinite(v.to_string()),
+                ))
             }
         };
         let mut previous: Option<(f64, u64)> = None;
@@ -695,7 +715,11 @@ impl Session {
             let line = row as u64 + 2;
             finite(line, TIME_COLUMN, s.t_s)?;
             if s.t_s < 0.0 {
-                return Err(value_error(line, TIME_COLUMN, ValueProblem::NegativeTime(s.t_s)));
+                return Err(value_error(
+                    line,
+                    TIME_COLUMN,
+                    ValueProblem::NegativeTime(s.t_s),
+                ));
             }
             if let Some((prev, prev_line)) = previous {
                 if s.t_s < prev {

@@ -16,16 +16,15 @@
 //! attributes errors to strings, which is what diagnosis needs next.
 //!
 //! ## Winding law
-//! A string wound in level layers on a pulley of bare radius r0 has a winding
-//! radius that shrinks linearly as it is paid out, so the payout is exactly
-//! quadratic in the pulley angle (`model::StringLaw`). All pulleys and strings
-//! are the same parts, so two shared parameters describe all eight laws: the
-//! winding radius at home `r_home` for a string of the mean home length, and
-//! `kappa = d^2 / (4 pi)` (string diameter d). A string whose home length is
-//! shorter has more string wound at home and so a larger radius:
-//! `r_home_i^2 = r_home^2 + 4 kappa (mean_home_length - home_length_i)`.
-//! Per-string departures (another pulley, a longer string) are effects the
-//! diagnosis loop adds when the data show them.
+//! A string wound in level layers on a pulley has a winding radius that
+//! shrinks linearly as it is paid out, so the payout is exactly quadratic in
+//! the pulley angle (`model::StringLaw`): `payout_i = r_home_i theta - kappa
+//! theta^2`. The radius at home differs per string (each pulley holds its own
+//! amount of string at home, and pulleys differ by their machining), so it is
+//! a per-string parameter; `kappa = d^2 / (4 pi)` depends only on the string
+//! diameter d and is shared. What a string needs beyond this law (a constant
+//! offset, a payout-proportional scale error, a higher order, ...) is an
+//! effect the diagnosis loop adds when the data show it.
 //!
 //! ## Gauge and priors
 //! Moving all anchors and home rigidly can be undone by the tracker frame, so
@@ -100,39 +99,31 @@ impl Default for Structure {
     }
 }
 
-/// The shared winding physics of the eight strings (see the module doc).
+/// The winding laws of the eight strings (see the module doc): a per-string
+/// winding radius at home and one shared thinning rate.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct WindingPhysics {
-    /// Winding radius at home of a string of `mean_home_length_mm`, mm.
-    pub r_home_mm: f64,
-    /// `d^2 / (4 pi)`, mm/rad^2: how fast the radius shrinks with payout.
+    /// Winding radius at home of each string, mm: each pulley holds its own
+    /// amount of string at home, and pulleys differ slightly.
+    pub r_home_mm: [f64; STRINGS],
+    /// `d^2 / (4 pi)`, mm/rad^2: how fast the radius shrinks with payout
+    /// (string diameter d, the same string on every pulley).
     pub kappa_mm: f64,
-    /// Reference home length (mean of the nominal home lengths), mm.
-    pub mean_home_length_mm: f64,
     pub counts_per_rev: u32,
 }
 
 impl WindingPhysics {
-    /// Winding radius at home of a string whose home length is `home_length`;
-    /// `None` when the parameters give no real radius.
-    pub fn radius_at_home(&self, home_length: f64) -> Option<f64> {
-        let r2 = self.r_home_mm * self.r_home_mm
-            + 4.0 * self.kappa_mm * (self.mean_home_length_mm - home_length);
-        (r2 > 0.0 && r2.is_finite()).then(|| r2.sqrt())
-    }
-
-    /// The per-string laws this physics gives for `frame`.
-    pub fn laws(&self, frame: &Frame<f64>) -> Option<[StringLaw; STRINGS]> {
+    /// The per-string laws: `payout = r_home_i theta - kappa theta^2`.
+    pub fn laws(&self) -> [StringLaw; STRINGS] {
         let mut laws = [StringLaw {
             counts_per_rev: self.counts_per_rev,
             winding_mm: [0.0; WINDING_ORDER],
         }; STRINGS];
         for (i, law) in laws.iter_mut().enumerate() {
-            let r = self.radius_at_home(dist(frame.home, frame.anchors[i]))?;
-            law.winding_mm[0] = r;
+            law.winding_mm[0] = self.r_home_mm[i];
             law.winding_mm[1] = -self.kappa_mm;
         }
-        Some(laws)
+        laws
     }
 }
 
@@ -140,7 +131,7 @@ impl WindingPhysics {
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct ParameterEstimate {
     pub name: String,
-    pub unit: &'static str,
+    pub unit: String,
     pub value: f64,
     /// Posterior standard deviation (from the Gauss-Newton covariance).
     pub sd: f64,
@@ -170,7 +161,9 @@ pub struct Identification {
 /// Why an identification failed.
 #[derive(Debug, thiserror::Error)]
 pub enum IdentifyError {
-    #[error("identification needs at least {needed} rows with tracker positions, the session has {got}")]
+    #[error(
+        "identification needs at least {needed} rows with tracker positions, the session has {got}"
+    )]
     TooFewRows { needed: usize, got: usize },
     #[error("identification diverged: {0}")]
     Diverged(String),
@@ -332,7 +325,7 @@ impl Layout {
         if fit_scale {
             scale.push(1e-4);
         }
-        scale.push(0.1); // r_home
+        scale.extend([0.1; STRINGS]); // r_home per string
         scale.push(1e-3); // kappa
         let mut effect_columns = Vec::new();
         for (e, term) in structure.effects.iter().enumerate() {
@@ -351,7 +344,7 @@ impl Layout {
         SCALE + usize::from(self.fit_scale)
     }
     fn kappa(&self) -> usize {
-        self.r_home() + 1
+        self.r_home() + STRINGS
     }
     fn first_effect(&self) -> usize {
         self.kappa() + 1
@@ -371,8 +364,7 @@ struct Problem<'a> {
     nominal: &'a Frame<f64>,
     layout: &'a Layout,
     base_rotation: [[f64; 3]; 3],
-    /// Fixed fields of the winding physics (reference length, counts per rev).
-    winding_template: WindingPhysics,
+    counts_per_rev: u32,
     /// Current LM variables (scaled).
     x: DVector<f64>,
 }
@@ -402,10 +394,12 @@ impl Problem<'_> {
         } else {
             self.nominal.room_scale
         };
+        let mut r_home_mm = [0.0; STRINGS];
+        r_home_mm.copy_from_slice(&v[self.layout.r_home()..self.layout.r_home() + STRINGS]);
         let winding = WindingPhysics {
-            r_home_mm: v[self.layout.r_home()],
+            r_home_mm,
             kappa_mm: v[self.layout.kappa()],
-            ..self.winding_template
+            counts_per_rev: self.counts_per_rev,
         };
         let mut effects = self.structure.effects.clone();
         let first = self.layout.first_effect();
@@ -559,7 +553,7 @@ impl levenberg_marquardt::LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
 
     fn residuals(&self) -> Option<DVector<f64>> {
         let state = self.state();
-        let laws = state.winding.laws(&state.frame)?;
+        let laws = state.winding.laws();
         let mut r = DVector::zeros(self.n_rows());
         for (k, o) in self.observations.iter().enumerate() {
             let res = Problem::string_residuals(&state, &laws, o);
@@ -576,7 +570,7 @@ impl levenberg_marquardt::LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
 
     fn jacobian(&self) -> Option<DMatrix<f64>> {
         let state = self.state();
-        let laws = state.winding.laws(&state.frame)?;
+        let laws = state.winding.laws();
         let layout = self.layout;
         let n = layout.len();
         let mut jac = DMatrix::zeros(self.n_rows(), n);
@@ -585,10 +579,6 @@ impl levenberg_marquardt::LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
         let home_lengths: Vec<f64> = (0..STRINGS)
             .map(|i| dist(frame.home, frame.anchors[i]))
             .collect();
-        let radii: Vec<f64> = home_lengths
-            .iter()
-            .map(|&l| w.radius_at_home(l))
-            .collect::<Option<Vec<_>>>()?;
         let two_pi = 2.0 * std::f64::consts::PI;
         for (k, o) in self.observations.iter().enumerate() {
             let p = device_from_room(frame, o.tracker.unwrap_or([0.0; 3]));
@@ -622,12 +612,9 @@ impl levenberg_marquardt::LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
                     [d[0] / lh, d[1] / lh, d[2] / lh]
                 };
                 let theta = two_pi * o.inputs.counts[i] as f64 / w.counts_per_rev as f64;
-                let rh = radii[i];
-                let dpay_dlh = theta * (-2.0 * w.kappa_mm / rh);
-                let g = 1.0 + dpay_dlh;
                 for c in 0..3 {
-                    jac[(row, ANCHORS + 3 * i + c)] = f * (-up[c] + g * uh[c]);
-                    jac[(row, HOME + c)] = f * (-g * uh[c]);
+                    jac[(row, ANCHORS + 3 * i + c)] = f * (-up[c] + uh[c]);
+                    jac[(row, HOME + c)] = f * (-uh[c]);
                 }
                 let rup = mat_vec(&frame.room_rotation, up);
                 let wgrad = cross(up, p);
@@ -639,9 +626,8 @@ impl levenberg_marquardt::LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
                     let dot = up[0] * p[0] + up[1] * p[1] + up[2] * p[2];
                     jac[(row, SCALE)] = f * (-dot / frame.room_scale);
                 }
-                jac[(row, layout.r_home())] = f * (-theta * w.r_home_mm / rh);
-                jac[(row, layout.kappa())] =
-                    f * (-(theta * 2.0 * (w.mean_home_length_mm - lh) / rh - theta * theta));
+                jac[(row, layout.r_home() + i)] = f * (-theta);
+                jac[(row, layout.kappa())] = f * (theta * theta);
                 for c in 0..layout.effect_columns.len() {
                     jac[(row, layout.first_effect() + c)] = f * effect_grad[c][i];
                 }
@@ -678,7 +664,9 @@ fn encode(state: &State, layout: &Layout) -> DVector<f64> {
     if layout.fit_scale {
         put(SCALE, state.frame.room_scale - 1.0);
     }
-    put(layout.r_home(), state.winding.r_home_mm);
+    for i in 0..STRINGS {
+        put(layout.r_home() + i, state.winding.r_home_mm[i]);
+    }
     put(layout.kappa(), state.winding.kappa_mm);
     let mut col = layout.first_effect();
     for term in &state.effects {
@@ -753,18 +741,17 @@ pub struct Start {
 }
 
 impl Start {
-    /// From the nominal design: `nominal_radius_mm` is the geometry file's pulley radius.
-    pub fn nominal(frame: Frame<f64>, nominal_radius_mm: f64, counts_per_rev: u32) -> Start {
-        let mean_home_length_mm = (0..STRINGS)
-            .map(|i| dist(frame.home, frame.anchors[i]))
-            .sum::<f64>()
-            / STRINGS as f64;
+    /// From the nominal design: the geometry file's pulley radii, no growth.
+    pub fn nominal(
+        frame: Frame<f64>,
+        nominal_radius_mm: [f64; STRINGS],
+        counts_per_rev: u32,
+    ) -> Start {
         Start {
             frame,
             winding: WindingPhysics {
                 r_home_mm: nominal_radius_mm,
                 kappa_mm: 0.0,
-                mean_home_length_mm,
                 counts_per_rev,
             },
         }
@@ -807,7 +794,6 @@ pub fn identify(
         effects: structure.effects.clone(),
     };
     let mut weights = vec![[1.0; STRINGS]; used.len()];
-    let mut residual_sd = 1.0;
     let mut evaluations = 0;
     let rounds = [
         Round::LeastSquares,
@@ -818,10 +804,7 @@ pub fn identify(
     ];
     for (n, &round) in rounds.iter().enumerate() {
         // Weights from the current state's residuals.
-        let laws = state
-            .winding
-            .laws(&state.frame)
-            .ok_or_else(|| IdentifyError::Diverged("winding radius became imaginary".into()))?;
+        let laws = state.winding.laws();
         let residuals: Vec<[f64; STRINGS]> = used
             .iter()
             .map(|o| Problem::string_residuals(&state, &laws, o))
@@ -840,7 +823,7 @@ pub fn identify(
             break;
         }
         weights = new_weights;
-        residual_sd = scale;
+        let residual_sd = scale;
         let base_rotation = state.frame.room_rotation;
         let x = encode(&state, &layout);
         let problem = Problem {
@@ -851,7 +834,7 @@ pub fn identify(
             nominal,
             layout: &layout,
             base_rotation,
-            winding_template: start.winding,
+            counts_per_rev: start.winding.counts_per_rev,
             x,
         };
         let (problem, report) = levenberg_marquardt::LevenbergMarquardt::new()
@@ -868,10 +851,7 @@ pub fn identify(
     }
 
     // Final residuals, weights and covariance.
-    let laws = state
-        .winding
-        .laws(&state.frame)
-        .ok_or_else(|| IdentifyError::Diverged("winding radius became imaginary".into()))?;
+    let laws = state.winding.laws();
     let residuals: Vec<[f64; STRINGS]> = used
         .iter()
         .map(|o| Problem::string_residuals(&state, &laws, o))
@@ -899,7 +879,7 @@ pub fn identify(
             nominal,
             layout: &layout,
             base_rotation: state.frame.room_rotation,
-            winding_template: start.winding,
+            counts_per_rev: start.winding.counts_per_rev,
             x,
         }
     };
@@ -920,7 +900,9 @@ pub fn identify(
             _ if c < TRANSLATION => vector_from_rotation(&state.frame.room_rotation)[c - ROTATION],
             _ if c < SCALE => state.frame.room_translation[c - TRANSLATION],
             _ if layout.fit_scale && c == SCALE => state.frame.room_scale,
-            _ if c == layout.r_home() => state.winding.r_home_mm,
+            _ if c >= layout.r_home() && c < layout.kappa() => {
+                state.winding.r_home_mm[c - layout.r_home()]
+            }
             _ if c == layout.kappa() => state.winding.kappa_mm,
             _ => {
                 let (e, p) = layout.effect_columns[c - layout.first_effect()];
@@ -945,7 +927,7 @@ pub fn identify(
         }
         parameters.push(ParameterEstimate {
             name,
-            unit,
+            unit: unit.to_string(),
             value,
             sd,
             prior_sd,
@@ -953,7 +935,10 @@ pub fn identify(
         });
     }
     if cov.is_none() {
-        warnings.push("the information matrix is singular: some parameters are not determined by the data".into());
+        warnings.push(
+            "the information matrix is singular: some parameters are not determined by the data"
+                .into(),
+        );
     }
     Ok(Identification {
         frame: state.frame,
@@ -996,7 +981,9 @@ fn parameter_names(
     if layout.fit_scale {
         names.push(("room_scale".into(), "1", None));
     }
-    names.push(("winding.r_home".into(), "mm", None));
+    for i in 0..STRINGS {
+        names.push((format!("string{i}.r_home"), "mm", None));
+    }
     names.push(("winding.kappa".into(), "mm/rad^2", None));
     for term in &structure.effects {
         for (pname, _, unit) in effect_parameter_info(&term.effect) {

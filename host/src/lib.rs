@@ -3,5 +3,9 @@
 
 pub mod dataset;
 pub mod figures;
-pub mod stats;
+pub mod identify;
+pub mod learn;
+pub mod observe;
+pub mod predict;
 pub mod sim;
+pub mod stats;

@@ -3,7 +3,11 @@
 use clap::{Parser, Subcommand};
 
 #[derive(Debug, Parser)]
-#[command(name = "spidar", version, about = "Simulate, calibrate and diagnose string-based haptic devices (Scalable-SPIDAR)")]
+#[command(
+    name = "spidar",
+    version,
+    about = "Simulate, calibrate and diagnose string-based haptic devices (Scalable-SPIDAR)"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,

@@ -47,7 +47,8 @@ pub fn observations(samples: &[Sample]) -> Vec<Observation> {
             };
             for i in 0..STRINGS {
                 inputs.direction[i] = trackers[i].update(s.counts[i]);
-                inputs.tension_mn[i] = (tension_n[i] * 1000.0).round().clamp(0.0, u16::MAX as f64) as u16;
+                inputs.tension_mn[i] =
+                    (tension_n[i] * 1000.0).round().clamp(0.0, u16::MAX as f64) as u16;
             }
             Observation {
                 row,

@@ -170,7 +170,10 @@ fn error_wrong_number_of_fields() {
     let err = read(&text).unwrap_err();
     let msg = err.to_string();
     assert!(matches!(err, DatasetError::Csv { line: 3, .. }), "{msg}");
-    assert!(msg.contains("mem/session.csv") && msg.contains("line 3"), "{msg}");
+    assert!(
+        msg.contains("mem/session.csv") && msg.contains("line 3"),
+        "{msg}"
+    );
 }
 
 #[test]
@@ -182,12 +185,17 @@ fn error_non_numeric_value() {
 
 #[test]
 fn error_nan_and_infinite_values() {
-    let text = format!("{HEADER},tension0,tension1,tension2,tension3,tension4,tension5,tension6,tension7\n\
-                        0,1,2,3,4,5,6,7,8,1,2,3,1,1,1,1,NaN,1,1,1\n");
+    let text = format!(
+        "{HEADER},tension0,tension1,tension2,tension3,tension4,tension5,tension6,tension7\n\
+                        0,1,2,3,4,5,6,7,8,1,2,3,1,1,1,1,NaN,1,1,1\n"
+    );
     let p = value_error(&text, 2, "tension4");
     assert_eq!(p, ValueProblem::NotFinite("NaN".into()));
     let text = format!("{HEADER}\n0,1,2,3,4,5,6,7,8,inf,2,3\n");
-    assert_eq!(value_error(&text, 2, "ots_x"), ValueProblem::NotFinite("inf".into()));
+    assert_eq!(
+        value_error(&text, 2, "ots_x"),
+        ValueProblem::NotFinite("inf".into())
+    );
 }
 
 #[test]
@@ -206,7 +214,9 @@ fn error_partially_empty_legacy() {
 
 #[test]
 fn error_time_going_backwards() {
-    let text = format!("{HEADER}\n1,1,2,3,4,5,6,7,8,1,2,3\n1,1,2,3,4,5,6,7,8,1,2,3\n0.5,1,2,3,4,5,6,7,8,1,2,3\n");
+    let text = format!(
+        "{HEADER}\n1,1,2,3,4,5,6,7,8,1,2,3\n1,1,2,3,4,5,6,7,8,1,2,3\n0.5,1,2,3,4,5,6,7,8,1,2,3\n"
+    );
     let p = value_error(&text, 4, "t_s");
     assert_eq!(
         p,
@@ -221,7 +231,10 @@ fn error_time_going_backwards() {
 #[test]
 fn error_negative_time() {
     let text = format!("{HEADER}\n-0.5,1,2,3,4,5,6,7,8,1,2,3\n");
-    assert_eq!(value_error(&text, 2, "t_s"), ValueProblem::NegativeTime(-0.5));
+    assert_eq!(
+        value_error(&text, 2, "t_s"),
+        ValueProblem::NegativeTime(-0.5)
+    );
 }
 
 #[test]
@@ -245,9 +258,15 @@ fn error_count_out_of_range_or_not_integer() {
         ValueProblem::CountOutOfRange(_)
     ));
     let text = format!("{HEADER}\n0,1.5,2,3,4,5,6,7,8,1,2,3\n");
-    assert_eq!(value_error(&text, 2, "enc0"), ValueProblem::NotAnInteger("1.5".into()));
+    assert_eq!(
+        value_error(&text, 2, "enc0"),
+        ValueProblem::NotAnInteger("1.5".into())
+    );
     let text = format!("{HEADER}\n0,x1,2,3,4,5,6,7,8,1,2,3\n");
-    assert_eq!(value_error(&text, 2, "enc0"), ValueProblem::NotANumber("x1".into()));
+    assert_eq!(
+        value_error(&text, 2, "enc0"),
+        ValueProblem::NotANumber("x1".into())
+    );
 }
 
 #[test]
@@ -271,7 +290,10 @@ fn writing_rejects_what_reading_would_reject() {
         ignored_columns: vec![],
     };
     let err = s.write(tmp("bad.csv")).unwrap_err();
-    assert!(matches!(err, DatasetError::Value { line: 2, ref column, .. } if column == "ots_y"), "{err}");
+    assert!(
+        matches!(err, DatasetError::Value { line: 2, ref column, .. } if column == "ots_y"),
+        "{err}"
+    );
 }
 
 const GEOMETRY: &str = "counts_per_rev = 4096\npulley_radius_mm = 7.5\nhome_mm = [0, 0, 0]\n\
@@ -293,7 +315,10 @@ fn geometry_accepts_integers() {
 fn geometry_error_unknown_key_names_it() {
     let err = geometry(&format!("{GEOMETRY}pulley_radius = 7\n")).unwrap_err();
     let msg = err.to_string();
-    assert!(msg.contains("mem/geometry.toml") && msg.contains("pulley_radius"), "{msg}");
+    assert!(
+        msg.contains("mem/geometry.toml") && msg.contains("pulley_radius"),
+        "{msg}"
+    );
     assert!(msg.contains("line 7"), "{msg}");
 }
 
@@ -305,7 +330,9 @@ fn geometry_error_missing_key_and_bad_values() {
 
     let text = GEOMETRY.replace("pulley_radius_mm = 7.5", "pulley_radius_mm = [7.5, 7.5]");
     let err = geometry(&text).unwrap_err();
-    assert!(matches!(err, DatasetError::GeometryField { ref field, .. } if field == "pulley_radius_mm"));
+    assert!(
+        matches!(err, DatasetError::GeometryField { ref field, .. } if field == "pulley_radius_mm")
+    );
 
     let text = GEOMETRY.replace("pulley_radius_mm = 7.5", "pulley_radius_mm = -1.0");
     let err = geometry(&text).unwrap_err();
@@ -321,5 +348,8 @@ fn geometry_error_missing_key_and_bad_values() {
 
     let text = GEOMETRY.replace("counts_per_rev = 4096", "counts_per_rev = \"many\"");
     let msg = geometry(&text).unwrap_err().to_string();
-    assert!(msg.contains("counts_per_rev") || msg.contains("line 1"), "{msg}");
+    assert!(
+        msg.contains("counts_per_rev") || msg.contains("line 1"),
+        "{msg}"
+    );
 }

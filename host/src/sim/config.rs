@@ -346,8 +346,14 @@ impl SimConfig {
         let a = &self.as_built;
         non_negative("as_built.anchor_sigma_mm", a.anchor_sigma_mm)?;
         non_negative("as_built.home_sigma_mm", a.home_sigma_mm)?;
-        non_negative("as_built.pulley_radius_shared_sigma", a.pulley_radius_shared_sigma)?;
-        non_negative("as_built.pulley_radius_each_sigma", a.pulley_radius_each_sigma)?;
+        non_negative(
+            "as_built.pulley_radius_shared_sigma",
+            a.pulley_radius_shared_sigma,
+        )?;
+        non_negative(
+            "as_built.pulley_radius_each_sigma",
+            a.pulley_radius_each_sigma,
+        )?;
         positive("as_built.string_diameter_mm", a.string_diameter_mm)?;
         positive("as_built.string_total_mm", a.string_total_mm)?;
         non_negative("as_built.string_total_sigma_mm", a.string_total_sigma_mm)?;
@@ -358,12 +364,18 @@ impl SimConfig {
         positive("tracker.scale", t.scale)?;
         probability("tracker.occlusion_probability", t.occlusion_probability)?;
         if !(t.occlusion_mean_rows.is_finite() && t.occlusion_mean_rows >= 1.0) {
-            return Err(bad("tracker.occlusion_mean_rows", "must be a finite number >= 1"));
+            return Err(bad(
+                "tracker.occlusion_mean_rows",
+                "must be a finite number >= 1",
+            ));
         }
         positive("tracker.frame_rate_hz", t.frame_rate_hz)?;
         let m = &self.abnormal_motor;
         if usize::from(m.string) >= STRINGS {
-            return Err(bad("abnormal_motor.string", format!("{} is not an encoder index 0..7", m.string)));
+            return Err(bad(
+                "abnormal_motor.string",
+                format!("{} is not an encoder index 0..7", m.string),
+            ));
         }
         non_negative("abnormal_motor.region_length_mm", m.region_length_mm)?;
         non_negative("abnormal_motor.step_mm", m.step_mm)?;
@@ -376,17 +388,26 @@ impl SimConfig {
         non_negative("tension.active_max_n", s.active_max_n)?;
         let max_n = s.pretension_n + s.jitter_n + s.active_max_n;
         if max_n > 65.0 {
-            return Err(bad("tension", format!("tensions up to {max_n} N exceed the 65 N a u16 in mN holds")));
+            return Err(bad(
+                "tension",
+                format!("tensions up to {max_n} N exceed the 65 N a u16 in mN holds"),
+            ));
         }
         let l = &self.lattice;
         if l.cells_per_axis == 0 || l.cells_per_axis > 1000 {
-            return Err(bad("lattice.cells_per_axis", format!("{} is not in 1..=1000", l.cells_per_axis)));
+            return Err(bad(
+                "lattice.cells_per_axis",
+                format!("{} is not in 1..=1000", l.cells_per_axis),
+            ));
         }
         positive("lattice.size_mm", l.size_mm)?;
         non_negative("lattice.duration_s", l.duration_s)?;
         speed_range("lattice.speed_mm_s", l.speed_mm_s)?;
         if !(0.0..0.5).contains(&l.target_jitter) {
-            return Err(bad("lattice.target_jitter", format!("{} is not in [0, 0.5)", l.target_jitter)));
+            return Err(bad(
+                "lattice.target_jitter",
+                format!("{} is not in [0, 0.5)", l.target_jitter),
+            ));
         }
         let r = &self.random;
         if r.points == 0 {

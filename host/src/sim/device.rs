@@ -110,13 +110,23 @@ impl Device {
 
         let mut rng = stream(seed, 2);
         let home_noise = normal("as_built.home_sigma_mm", ab.home_sigma_mm)?;
-        let home: Vec3<f64> = core::array::from_fn(|k| nominal.home_mm[k] + home_noise.sample(&mut rng));
+        let home: Vec3<f64> =
+            core::array::from_fn(|k| nominal.home_mm[k] + home_noise.sample(&mut rng));
 
         let mut rng = stream(seed, 3);
-        let shared = 1.0 + normal("as_built.pulley_radius_shared_sigma", ab.pulley_radius_shared_sigma)?.sample(&mut rng);
-        let each = normal("as_built.pulley_radius_each_sigma", ab.pulley_radius_each_sigma)?;
-        let bare_radius_mm: [f64; STRINGS] =
-            core::array::from_fn(|i| nominal.pulley_radius_mm[i] * shared * (1.0 + each.sample(&mut rng)));
+        let shared = 1.0
+            + normal(
+                "as_built.pulley_radius_shared_sigma",
+                ab.pulley_radius_shared_sigma,
+            )?
+            .sample(&mut rng);
+        let each = normal(
+            "as_built.pulley_radius_each_sigma",
+            ab.pulley_radius_each_sigma,
+        )?;
+        let bare_radius_mm: [f64; STRINGS] = core::array::from_fn(|i| {
+            nominal.pulley_radius_mm[i] * shared * (1.0 + each.sample(&mut rng))
+        });
 
         let mut rng = stream(seed, 4);
         let total_noise = normal("as_built.string_total_sigma_mm", ab.string_total_sigma_mm)?;
@@ -128,11 +138,16 @@ impl Device {
         let axis_draw = normal("tracker.rotation_deg", 1.0)?;
         let mut axis: Vec3<f64> = core::array::from_fn(|_| axis_draw.sample(&mut rng));
         let n = norm(&axis);
-        axis = if n > 0.0 { axis.map(|x| x / n) } else { [0.0, 0.0, 1.0] };
+        axis = if n > 0.0 {
+            axis.map(|x| x / n)
+        } else {
+            [0.0, 0.0, 1.0]
+        };
         let room_rotation = axis_angle(axis, tr.rotation_deg.to_radians());
         let t_noise = normal("tracker.translation_sigma_mm", tr.translation_sigma_mm)?;
-        let room_translation: Vec3<f64> =
-            core::array::from_fn(|k| nominal.room_from_device_translation_mm[k] + t_noise.sample(&mut rng));
+        let room_translation: Vec3<f64> = core::array::from_fn(|k| {
+            nominal.room_from_device_translation_mm[k] + t_noise.sample(&mut rng)
+        });
 
         let mut frame = Frame {
             anchors,
@@ -180,7 +195,12 @@ impl Device {
             let r0 = bare_radius_mm[i];
             laws[i].winding_mm = if ab.winding_growth {
                 let pi = std::f64::consts::PI;
-                [(r0 * r0 + wound * d * d / pi).sqrt(), -d * d / (4.0 * pi), 0.0, 0.0]
+                [
+                    (r0 * r0 + wound * d * d / pi).sqrt(),
+                    -d * d / (4.0 * pi),
+                    0.0,
+                    0.0,
+                ]
             } else {
                 [r0, 0.0, 0.0, 0.0]
             };
@@ -273,7 +293,9 @@ impl Device {
             length_mm,
             t_s,
         };
-        let mut theta = self.theta_for_payout(string, target).ok_or_else(exhausted)?;
+        let mut theta = self
+            .theta_for_payout(string, target)
+            .ok_or_else(exhausted)?;
         let has_terms = self.effects.iter().any(|t| usize::from(t.string) == string);
         if has_terms {
             let mut converged = false;
@@ -300,7 +322,8 @@ impl Device {
                 return Err(SimError::NoConvergence { string, t_s });
             }
         }
-        let counts = (theta * f64::from(self.nominal.counts_per_rev) / (2.0 * std::f64::consts::PI)).round();
+        let counts =
+            (theta * f64::from(self.nominal.counts_per_rev) / (2.0 * std::f64::consts::PI)).round();
         if counts.abs() > f64::from(i32::MAX) {
             return Err(exhausted());
         }
@@ -327,6 +350,8 @@ impl Device {
     /// Centre of the sampled volume in the room frame: the nominal room image
     /// of the nominal home (what the experimenters would display).
     pub fn volume_centre_room(&self) -> Vec3<f64> {
-        core::array::from_fn(|k| self.nominal.home_mm[k] + self.nominal.room_from_device_translation_mm[k])
+        core::array::from_fn(|k| {
+            self.nominal.home_mm[k] + self.nominal.room_from_device_translation_mm[k]
+        })
     }
 }

@@ -80,7 +80,10 @@ impl<'a> Params<'a> {
                 .parse()
                 .map_err(|_| spec_error(spec, format!("`{name}`: `{value}` is not a number")))?;
             if !v.is_finite() {
-                return Err(spec_error(spec, format!("`{name}`: `{value}` is not finite")));
+                return Err(spec_error(
+                    spec,
+                    format!("`{name}`: `{value}` is not finite"),
+                ));
             }
             if items.iter().any(|(n, _, _)| *n == name) {
                 return Err(spec_error(spec, format!("`{name}` given twice")));
@@ -91,10 +94,13 @@ impl<'a> Params<'a> {
     }
 
     fn take(&mut self, name: &str) -> Option<f64> {
-        self.items.iter_mut().find(|(n, _, _)| *n == name).map(|item| {
-            item.2 = true;
-            item.1
-        })
+        self.items
+            .iter_mut()
+            .find(|(n, _, _)| *n == name)
+            .map(|item| {
+                item.2 = true;
+                item.1
+            })
     }
 
     fn required(&mut self, name: &str) -> Result<f64, SimError> {
@@ -133,13 +139,21 @@ pub fn parse_effect(spec: &str) -> Result<Vec<InjectedEffect>, SimError> {
         return Ok(vec![InjectedEffect::TrackerScale { relative }]);
     }
     if parts.len() != 3 {
-        return Err(spec_error(spec, "expected KIND:STRING:NAME=VALUE,... (STRING 0..7 or *)"));
+        return Err(spec_error(
+            spec,
+            "expected KIND:STRING:NAME=VALUE,... (STRING 0..7 or *)",
+        ));
     }
     let strings: Vec<u8> = match parts[1] {
         "*" => (0..STRINGS as u8).collect(),
         s => match s.parse::<u8>() {
             Ok(i) if usize::from(i) < STRINGS => vec![i],
-            _ => return Err(spec_error(spec, format!("`{s}` is not a string index 0..7 or *"))),
+            _ => {
+                return Err(spec_error(
+                    spec,
+                    format!("`{s}` is not a string index 0..7 or *"),
+                ))
+            }
         },
     };
     let mut p = Params::parse(spec, parts[2])?;
@@ -155,7 +169,10 @@ pub fn parse_effect(spec: &str) -> Result<Vec<InjectedEffect>, SimError> {
         "winding" => {
             let power = p.required("power")?;
             if !(power.fract() == 0.0 && (1.0..=16.0).contains(&power)) {
-                return Err(spec_error(spec, format!("`power`: {power} is not an integer 1..=16")));
+                return Err(spec_error(
+                    spec,
+                    format!("`power`: {power} is not an integer 1..=16"),
+                ));
             }
             let mm_per_rad_pow = p.required("mm_per_rad_pow")?;
             Ok(model(Effect::Winding {
@@ -187,13 +204,22 @@ pub fn parse_effect(spec: &str) -> Result<Vec<InjectedEffect>, SimError> {
         }
         "speed" => {
             let latency_s = p.required("latency_s")?;
-            Ok(Box::new(move |string| InjectedEffect::Speed { string, latency_s }))
+            Ok(Box::new(move |string| InjectedEffect::Speed {
+                string,
+                latency_s,
+            }))
         }
         "anchor" => {
             let mm = [p.optional("dx"), p.optional("dy"), p.optional("dz")];
-            Ok(Box::new(move |string| InjectedEffect::AnchorShift { string, mm }))
+            Ok(Box::new(move |string| InjectedEffect::AnchorShift {
+                string,
+                mm,
+            }))
         }
-        other => Err(spec_error(spec, format!("unknown kind `{other}` (kinds: {KINDS})"))),
+        other => Err(spec_error(
+            spec,
+            format!("unknown kind `{other}` (kinds: {KINDS})"),
+        )),
     };
     let one = one?;
     p.finish()?;

@@ -111,7 +111,11 @@ pub struct SampleTruth {
 }
 
 /// Simulate one session of `device` (see [`simulate_session_with_truth`]).
-pub fn simulate_session(device: &Device, kind: SessionKind, seed: u64) -> Result<Session, SimError> {
+pub fn simulate_session(
+    device: &Device,
+    kind: SessionKind,
+    seed: u64,
+) -> Result<Session, SimError> {
     simulate_session_with_truth(device, kind, seed).map(|(s, _)| s)
 }
 
@@ -133,7 +137,9 @@ pub fn simulate_session_with_truth(
     let start = device.room_from_device(&device.frame.home);
     let mut path_rng = stream(seed, 10);
     let captures = match kind {
-        SessionKind::Lattice => trajectory::lattice(&cfg.lattice, &cfg.tracker, centre, start, &mut path_rng)?,
+        SessionKind::Lattice => {
+            trajectory::lattice(&cfg.lattice, &cfg.tracker, centre, start, &mut path_rng)?
+        }
         SessionKind::Random { points } => {
             if points == 0 {
                 return Err(SimError::Config {
@@ -141,7 +147,14 @@ pub fn simulate_session_with_truth(
                     problem: "must be positive".into(),
                 });
             }
-            trajectory::random(&cfg.random, &cfg.lattice, centre, start, points, &mut path_rng)?
+            trajectory::random(
+                &cfg.random,
+                &cfg.lattice,
+                centre,
+                start,
+                points,
+                &mut path_rng,
+            )?
         }
     };
 
@@ -177,7 +190,11 @@ pub fn simulate_session_with_truth(
         for i in 0..STRINGS {
             let to_anchor = sub(&p, &device.frame.anchors[i]);
             let length = norm(&to_anchor);
-            let speed = if length > 0.0 { dot(&v, &to_anchor) / length } else { 0.0 };
+            let speed = if length > 0.0 {
+                dot(&v, &to_anchor) / length
+            } else {
+                0.0
+            };
             if speed.abs() > 1e-9 {
                 direction[i] = if speed > 0.0 { 1 } else { -1 };
             }
@@ -207,11 +224,14 @@ pub fn simulate_session_with_truth(
         } else {
             occlusion_rng.random_bool(tr.occlusion_probability)
         };
-        let measured: Vec3<f64> = core::array::from_fn(|k| round_to(c.room[k] + noise.sample(&mut noise_rng), 1000.0));
+        let measured: Vec3<f64> =
+            core::array::from_fn(|k| round_to(c.room[k] + noise.sample(&mut noise_rng), 1000.0));
         let tracker = (!occluded).then_some(measured);
 
         let legacy_position = if cfg.legacy.enabled {
-            legacy.position(&counts).map(|q| q.map(|x| round_to(x, 1000.0)))
+            legacy
+                .position(&counts)
+                .map(|q| q.map(|x| round_to(x, 1000.0)))
         } else {
             None
         };
@@ -310,7 +330,11 @@ impl std::fmt::Display for SimulateReport {
             self.rows,
             self.occluded_rows
         )?;
-        writeln!(f, "wrote {} (ground truth: not for calibration)", self.truth.display())?;
+        writeln!(
+            f,
+            "wrote {} (ground truth: not for calibration)",
+            self.truth.display()
+        )?;
         if let Some(s) = &self.legacy_raw_error {
             writeln!(
                 f,
@@ -331,7 +355,10 @@ pub fn legacy_raw_errors(session: &Session, geometry: &crate::dataset::Geometry)
         .iter()
         .filter_map(|s| {
             let (d, o) = (s.legacy?, s.tracker?);
-            Some(crate::stats::position_error([d[0] + t[0], d[1] + t[1], d[2] + t[2]], o))
+            Some(crate::stats::position_error(
+                [d[0] + t[0], d[1] + t[1], d[2] + t[2]],
+                o,
+            ))
         })
         .collect()
 }
@@ -383,7 +410,11 @@ pub fn run_simulate(args: &SimulateArgs) -> Result<SimulateReport, SimError> {
         session: session_path,
         truth,
         rows: session.samples.len(),
-        occluded_rows: session.samples.iter().filter(|s| s.tracker.is_none()).count(),
+        occluded_rows: session
+            .samples
+            .iter()
+            .filter(|s| s.tracker.is_none())
+            .count(),
         legacy_raw_error: (!errors.is_empty()).then(|| crate::stats::ErrorStats::of(&errors)),
     })
 }

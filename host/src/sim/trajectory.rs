@@ -102,7 +102,11 @@ pub(crate) fn lattice(
         let s = entry_parameter(&previous, &target, &lo, &hi);
         let d = sub(&target, &previous);
         let len = norm(&d);
-        let unit = if len > 0.0 { d.map(|x| x / len) } else { [0.0; 3] };
+        let unit = if len > 0.0 {
+            d.map(|x| x / len)
+        } else {
+            [0.0; 3]
+        };
         // Marker travel between entering the cell and the next tracker frame.
         let depth = (margin + rng.random_range(0.0..1.0) * speed * frame_dt).min(len * (1.0 - s));
         let p: Vec3<f64> = core::array::from_fn(|k| {
@@ -123,7 +127,11 @@ pub(crate) fn lattice(
     for ((p, speed, travel_s, c, step), w) in points.into_iter().zip(weights) {
         t += travel_s + pause_total * w / weight_total.max(f64::MIN_POSITIVE);
         let len = norm(&step);
-        let velocity = if len > 0.0 { step.map(|x| x * speed / len) } else { [0.0; 3] };
+        let velocity = if len > 0.0 {
+            step.map(|x| x * speed / len)
+        } else {
+            [0.0; 3]
+        };
         captures.push(Capture {
             t_ms: to_ms(t)?,
             room: p,
@@ -166,7 +174,11 @@ pub(crate) fn random(
             leg = sub(&to, &from);
             len = norm(&leg);
         }
-        let unit = if len > 0.0 { leg.map(|x| x / len) } else { [0.0; 3] };
+        let unit = if len > 0.0 {
+            leg.map(|x| x / len)
+        } else {
+            [0.0; 3]
+        };
         let along = (t - leg_start_s) * speed;
         captures.push(Capture {
             t_ms: to_ms(t)?,

@@ -1,0 +1,318 @@
+//! Instruction-count benchmarks of spidar-core on the Cortex-M7. Run with
+//! `scripts/qemu-bench` (QEMU + the icount plugin); alone, it just runs.
+//! One `measure(...)` line per measured function; the targets are the issue's.
+//! Inputs are drawn before measuring (same generators as the bit-identity
+//! vectors, `spidar_qemu::cases`).
+#![no_std]
+#![no_main]
+#![allow(clippy::needless_range_loop)]
+
+use core::hint::black_box;
+use spidar_core::control::{ControlConfig, Controller, LoopInput, Target};
+use spidar_core::kinematics::{forward_kinematics, inverse_kinematics, FkConfig};
+use spidar_core::tension::{distribute, distribute_warm, TensionConfig};
+use spidar_core::STRINGS;
+use spidar_qemu::bench::{measure, measure_overhead};
+use spidar_qemu::cases::{
+    calibration, central_position, cube_anchors, force, lengths_at, string_inputs, tension_limits, Rng,
+};
+use spidar_qemu::fixtures::fixtures;
+use spidar_qemu::{exit, hprintln};
+
+spidar_qemu::fault_handlers!();
+
+/// Calls per benchmark (each with its own input).
+const N: usize = 32;
+
+#[cortex_m_rt::entry]
+fn main() -> ! {
+    if !spidar_qemu::fpu_enabled() {
+        hprintln!("FAIL: FPU not enabled (CPACR)");
+        exit(false);
+    }
+    measure_overhead();
+    let mut rng = Rng::new(0x5EED);
+    let anchors = cube_anchors();
+    let positions: [[f32; 3]; N] = core::array::from_fn(|_| central_position(&mut rng));
+    let small_forces: [[f32; 3]; N] = core::array::from_fn(|_| force(&mut rng, 3.0));
+    let large_forces: [[f32; 3]; N] = core::array::from_fn(|_| force(&mut rng, 300.0));
+    let cfg = TensionConfig::default();
+    let lim = tension_limits();
+    let at = |i: u32| i as usize % N;
+
+    let fx = fixtures();
+    let (Some(nn_cal), Some(svr_cal)) = (calibration(&fx, false), calibration(&fx, true)) else {
+        hprintln!("FAIL: fixture blobs do not parse");
+        exit(false)
+    };
+    let nn = &nn_cal.correction;
+    let svr = &svr_cal.correction;
+    let laws = &nn_cal.head.laws;
+    let effects = &nn_cal.head.effects;
+    let fk_cfg = FkConfig::default();
+
+    // Correction kinds (targets of the issue).
+    let q_positions: [[i32; 3]; N] = core::array::from_fn(|k| spidar_core::blob::position_q16(positions[k]));
+    measure("correction: NN 3-20-3 (NnView::evaluate)", Some(1_500), N as u32, |i| nn.evaluate(q_positions[at(i)]));
+    measure("correction: SVR 1,000 SV (SvrView::evaluate)", Some(25_000), 8, |i| svr.evaluate(q_positions[at(i)]));
+
+    // Pipeline stages.
+    let inputs: [spidar_core::model::StringInputs; N] = core::array::from_fn(|_| string_inputs(&mut rng));
+    measure("string_law::string_lengths (8 strings, 8 effects)", None, N as u32, |i| {
+        spidar_core::string_law::string_lengths(laws, effects, &inputs[at(i)])
+    });
+    measure("kinematics::inverse_kinematics f32", None, N as u32, |i| inverse_kinematics(&anchors, positions[at(i)]));
+    // Warm start as in the control loop: the previous position, ~0.1 mm away
+    // (1 m/s at 10 kHz), 0.3 mm length noise.
+    let mut path = [[0.0f32; 3]; N];
+    let mut path_lengths = [[0.0f32; STRINGS]; N];
+    for k in 0..N {
+        path[k] =
+            if k == 0 { positions[0] } else { [path[k - 1][0] + 0.1, path[k - 1][1] - 0.05, path[k - 1][2] + 0.03] };
+        path_lengths[k] = lengths_at(path[k], &mut rng, 0.3);
+    }
+    let mut prev = path[0];
+    measure("kinematics::forward_kinematics f32 (warm start)", None, N as u32, |i| {
+        let s = forward_kinematics(&anchors, &path_lengths[at(i)], prev, &fk_cfg);
+        prev = s.position;
+        s.position
+    });
+    let mut faulty = [[0.0f32; STRINGS]; N];
+    for k in 0..N {
+        faulty[k] = lengths_at(positions[k], &mut rng, 0.2);
+        faulty[k][k % STRINGS] += 20.0;
+    }
+    measure("kinematics::forward_kinematics f32 (cold, one faulty string)", None, 8, |i| {
+        forward_kinematics(&anchors, &faulty[at(i)], [0.0; 3], &fk_cfg).position
+    });
+    measure("blob::CompiledCalibration::from_blob (SVR blob, at load)", None, 2, |_| {
+        spidar_core::blob::CompiledCalibration::from_blob(black_box(fx.svr_blob)).is_ok()
+    });
+
+    let mut body = [0u8; 256];
+    rng.fill_bytes(&mut body);
+    measure("blob CRC-32 (256 B, model upload check)", None, 4, |_| {
+        spidar_protocol::blob::CRC32.checksum(black_box(&body))
+    });
+
+    measure("tension::distribute f32 (feasible, |F_i| <= 3 N)", None, N as u32, |i| {
+        distribute(&anchors, positions[at(i)], small_forces[at(i)], lim, &cfg).tensions
+    });
+    measure("tension::distribute f32 (scaled, |F_i| <= 300 N)", None, N as u32, |i| {
+        distribute(&anchors, positions[at(i)], large_forces[at(i)], lim, &cfg).tensions
+    });
+    // Control-loop use: warm start from the previous multiplier, 0.1 mm steps.
+    let mut lambda = [0.0f32; 3];
+    let mut p = positions[0];
+    measure("tension::distribute_warm f32 (path, 30 N)", None, N as u32, |i| {
+        p[(i % 3) as usize] += 0.1;
+        let s = distribute_warm(&anchors, p, [10.0, -20.0, 30.0], lim, &cfg, lambda);
+        lambda = s.multiplier;
+        s.tensions
+    });
+
+    measure("guidance::guidance_force", None, N as u32, |i| {
+        spidar_core::guidance::guidance_force(large_forces[at(i)], 150.0, 5.0)
+    });
+
+    let geometric: [f32; STRINGS] = core::array::from_fn(|_| rng.f32_in(300.0, 2500.0));
+    let measured: [f32; STRINGS] = core::array::from_fn(|k| geometric[k] + rng.f32_in(-1.0, 1.0));
+    let tensions: [f32; STRINGS] = core::array::from_fn(|_| rng.f32_in(-5.0, 25.0));
+    let config = spidar_core::safety::SafetyConfig {
+        t_min: 0.5,
+        t_max: 20.0,
+        f_max: 10.0,
+        pretension_n: 1.0,
+        heartbeat_timeout_ms: 100,
+        slack_threshold_mm: 5.0,
+    };
+    let Ok(mut monitor) = spidar_core::safety::SafetyMonitor::new(config) else {
+        hprintln!("FAIL: safety config rejected");
+        exit(false)
+    };
+    monitor.heartbeat(0);
+    measure("safety: check + limit_force + apply", None, N as u32, |i| {
+        monitor.check(i, &measured, &geometric, true);
+        let f = monitor.limit_force(small_forces[at(i)]);
+        (f, monitor.apply(tensions))
+    });
+
+    // One control-loop iteration: control::Controller::step, the firmware's
+    // code, armed, guidance cue toward a room target, the end-effector moving
+    // 0.1 mm per iteration from home (consistent encoder readings: FK Ok).
+    for (name, cal) in
+        [("control::Controller::step (NN 3-20-3)", &nn_cal), ("control::Controller::step (SVR 1,000 SV)", &svr_cal)]
+    {
+        let raw = controller_path(cal);
+        let Ok(mut ctl) = Controller::new(ControlConfig::default(), cal, [0; STRINGS], 0) else { exit(false) };
+        ctl.set_target(Target::Guidance { target_mm: [100.0, -50.0, 1600.0], d_min_mm: 150.0, f_max_n: 5.0 });
+        ctl.safety().heartbeat(0);
+        let armed = ctl.safety().arm().is_ok();
+        let mut fk_ok = 0;
+        measure(name, Some(55_000), N as u32, |i| {
+            ctl.safety().heartbeat(i / 10);
+            let out = ctl.step(cal, &LoopInput { raw_counts: raw[at(i)], now_ms: i / 10, estop: false });
+            fk_ok += (out.fk_status == spidar_core::kinematics::FkStatus::Ok) as u32;
+            out.tensions_n
+        });
+        hprintln!("INFO\t{}: armed {}, FK status Ok in {} of {} iterations", name, armed, fk_ok, N);
+    }
+
+    // The same pipeline composed here from the parts (measured before
+    // `control` landed; kept to show what the parts add up to): encoders ->
+    // string law -> FK (warm) -> room transform -> correction -> guidance ->
+    // safety -> tension distribution (warm) -> safety clamp.
+    for (name, cal) in [
+        ("pipeline composed in bench.rs from the parts (NN 3-20-3)", &nn_cal),
+        ("pipeline composed in bench.rs from the parts (SVR 1,000 SV)", &svr_cal),
+    ] {
+        // Dry run (not measured): find the encoder readings that give the
+        // path's string lengths under the inputs the loop itself will present.
+        // The path starts at home (counts 0) and moves 0.1 mm per iteration.
+        let home = cal.head.frame.home;
+        let mut dry = Loop::new(cal, config);
+        let mut raw = [[0u16; STRINGS]; N];
+        for k in 0..N {
+            let t = k as f32;
+            raw[k] = dry.encoder_readings(cal, [home[0] + 0.1 * t, home[1] - 0.05 * t, home[2] + 0.03 * t]);
+            dry.step(cal, raw[k], k as u32, &fk_cfg, lim, &cfg);
+        }
+        let mut lp = Loop::new(cal, config);
+        let mut fk_ok = 0;
+        measure(name, None, N as u32, |i| {
+            let ok = lp.step(cal, raw[at(i)], i, &fk_cfg, lim, &cfg);
+            fk_ok += ok as u32;
+            lp.tensions
+        });
+        hprintln!("INFO\t{}: FK status Ok in {} of {} iterations", name, fk_ok, N);
+    }
+
+    hprintln!("BENCH_DONE");
+    exit(true)
+}
+
+/// State of the composed control loop.
+#[derive(Clone)]
+struct Loop {
+    counts: [i32; STRINGS],
+    ext: [spidar_core::encoder::EncoderExtender; STRINGS],
+    dir: [spidar_core::encoder::DirectionTracker; STRINGS],
+    position: [f32; 3],
+    lambda: [f32; 3],
+    tensions: [f32; STRINGS],
+    monitor: spidar_core::safety::SafetyMonitor,
+}
+
+impl Loop {
+    fn new(cal: &spidar_core::blob::CompiledCalibration, config: spidar_core::safety::SafetyConfig) -> Self {
+        let Ok(mut monitor) = spidar_core::safety::SafetyMonitor::new(config) else { exit(false) };
+        monitor.heartbeat(0);
+        Loop {
+            counts: [0; STRINGS],
+            ext: [spidar_core::encoder::EncoderExtender::new(0); STRINGS],
+            dir: [spidar_core::encoder::DirectionTracker::new(2); STRINGS],
+            position: cal.head.frame.home,
+            lambda: [0.0; 3],
+            tensions: [1.0; STRINGS],
+            monitor,
+        }
+    }
+
+    /// One iteration; returns whether FK found all strings consistent.
+    #[inline(always)]
+    fn step(
+        &mut self,
+        cal: &spidar_core::blob::CompiledCalibration,
+        raw: [u16; STRINGS],
+        now_ms: u32,
+        fk_cfg: &FkConfig<f32>,
+        lim: spidar_core::tension::TensionLimits<f32>,
+        cfg: &TensionConfig<f32>,
+    ) -> bool {
+        let inputs = self.inputs(raw, now_ms);
+        let frame = &cal.head.frame;
+        let lengths_q16 = spidar_core::string_law::string_lengths(&cal.head.laws, &cal.head.effects, &inputs);
+        let lengths: [f32; STRINGS] = core::array::from_fn(|s| lengths_q16[s] as f32 / 65536.0);
+        let fk = forward_kinematics(&frame.anchors, &lengths, self.position, fk_cfg);
+        self.position = fk.position;
+        let p = self.position;
+        let r = &frame.room_rotation;
+        let room: [f32; 3] = core::array::from_fn(|a| {
+            frame.room_scale * (r[a][0] * p[0] + r[a][1] * p[1] + r[a][2] * p[2]) + frame.room_translation[a]
+        });
+        let corrected = spidar_core::blob::position_mm(cal.correction.evaluate(spidar_core::blob::position_q16(room)));
+        let target = [100.0f32, -50.0, 1600.0];
+        let v = [target[0] - corrected[0], target[1] - corrected[1], target[2] - corrected[2]];
+        let f = self.monitor.limit_force(spidar_core::guidance::guidance_force(v, 150.0, 5.0));
+        let geometric = inverse_kinematics(&frame.anchors, p);
+        let fk_ok = fk.status == spidar_core::kinematics::FkStatus::Ok;
+        self.monitor.check(now_ms, &lengths, &geometric, fk_ok);
+        let sol = distribute_warm(&frame.anchors, p, f, lim, cfg, self.lambda);
+        self.lambda = sol.multiplier;
+        self.tensions = self.monitor.apply(sol.tensions);
+        fk_ok
+    }
+
+    #[inline(always)]
+    fn inputs(&mut self, raw: [u16; STRINGS], now_ms: u32) -> spidar_core::model::StringInputs {
+        let mut inputs = spidar_core::model::StringInputs { time_ms: now_ms, ..Default::default() };
+        for s in 0..STRINGS {
+            inputs.counts[s] = self.ext[s].update(raw[s]);
+            self.counts[s] = inputs.counts[s];
+            inputs.direction[s] = self.dir[s].update(inputs.counts[s]);
+            inputs.tension_mn[s] = (self.tensions[s] * 1000.0) as u16;
+        }
+        inputs
+    }
+
+    /// Raw 16-bit encoder readings (home = 0) for which the string law,
+    /// under the inputs this loop will present next (its directions and
+    /// commanded tensions), gives the string lengths at `p`. Setup only.
+    fn encoder_readings(&self, cal: &spidar_core::blob::CompiledCalibration, p: [f32; 3]) -> [u16; STRINGS] {
+        let want = inverse_kinematics(&cal.head.frame.anchors, p);
+        let mut counts = self.counts;
+        for _ in 0..8 {
+            let inputs = self.clone().inputs(counts.map(|c| c as u16), 0);
+            let got = spidar_core::string_law::string_lengths(&cal.head.laws, &cal.head.effects, &inputs);
+            for s in 0..STRINGS {
+                // ~0.0184 mm per count (12 mm radius, 4096 counts per turn).
+                let err_mm = want[s] - got[s] as f32 / 65536.0;
+                counts[s] = inputs.counts[s] + (err_mm / 0.0184) as i32;
+            }
+        }
+        counts.map(|c| c as u16)
+    }
+}
+
+/// Raw encoder readings along a path from home (0.1 mm per iteration) for
+/// which `Controller::step` itself, with the state it will have, computes
+/// the path's string lengths: each reading is refined on a clone of a dry-run
+/// controller (setup, not measured).
+fn controller_path(cal: &spidar_core::blob::CompiledCalibration) -> [[u16; STRINGS]; N] {
+    let Ok(mut ctl) = Controller::new(ControlConfig::default(), cal, [0; STRINGS], 0) else { exit(false) };
+    ctl.set_target(Target::Guidance { target_mm: [100.0, -50.0, 1600.0], d_min_mm: 150.0, f_max_n: 5.0 });
+    ctl.safety().heartbeat(0);
+    let _ = ctl.safety().arm();
+    let home = cal.head.frame.home;
+    let mut raw = [[0u16; STRINGS]; N];
+    let mut counts = [0i32; STRINGS];
+    for k in 0..N {
+        let t = k as f32;
+        let want =
+            inverse_kinematics(&cal.head.frame.anchors, [home[0] + 0.1 * t, home[1] - 0.05 * t, home[2] + 0.03 * t]);
+        let now = k as u32 / 10;
+        for _ in 0..8 {
+            let mut trial = ctl.clone();
+            trial.safety().heartbeat(now);
+            let out = trial.step(cal, &LoopInput { raw_counts: counts.map(|c| c as u16), now_ms: now, estop: false });
+            for s in 0..STRINGS {
+                // ~0.0184 mm per count (12 mm radius, 4096 counts per turn).
+                counts[s] = out.counts[s] + ((want[s] - out.string_lengths_mm[s]) / 0.0184) as i32;
+            }
+        }
+        raw[k] = counts.map(|c| c as u16);
+        ctl.safety().heartbeat(now);
+        ctl.step(cal, &LoopInput { raw_counts: raw[k], now_ms: now, estop: false });
+    }
+    raw
+}

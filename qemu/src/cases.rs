@@ -1,0 +1,488 @@
+//! Test vectors of the bit-identity test, shared by `build.rs` (compiled for
+//! the host, where it computes the expected outputs) and the `bit_identity`
+//! binary (compiled for the Cortex-M7, where it recomputes and compares them).
+//! Both sides include this very file and link the same `spidar-core`.
+//!
+//! A [`Case`] draws its inputs from a deterministic [`Rng`] seeded by (case,
+//! vector) and writes every output word to an [`Out`]: floats as their IEEE
+//! bits, integers as they are. To cover a new function, write one `fn` and add
+//! one line to [`CASES`].
+//!
+//! Keep this file `no_std`-clean: only `core`, `spidar_core` and
+//! `spidar_protocol`.
+
+#![allow(dead_code)]
+
+/// xorshift64* (Vigna): tiny, deterministic, same sequence on every target.
+#[derive(Clone, Debug)]
+pub struct Rng(u64);
+
+impl Rng {
+    pub fn new(seed: u64) -> Self {
+        // Never the all-zero state; mix the seed a little (splitmix64 step).
+        let mut z = seed.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^= z >> 31;
+        Rng(if z == 0 { 1 } else { z })
+    }
+
+    pub fn next_u64(&mut self) -> u64 {
+        let mut x = self.0;
+        x ^= x >> 12;
+        x ^= x << 25;
+        x ^= x >> 27;
+        self.0 = x;
+        x.wrapping_mul(0x2545_F491_4F6C_DD1D)
+    }
+
+    pub fn next_u32(&mut self) -> u32 {
+        (self.next_u64() >> 32) as u32
+    }
+
+    /// Uniform in `[lo, hi]` (inclusive), integer arithmetic only.
+    pub fn i32_in(&mut self, lo: i32, hi: i32) -> i32 {
+        let span = (hi as i64 - lo as i64 + 1) as u64;
+        (lo as i64 + (self.next_u64() % span) as i64) as i32
+    }
+
+    /// Uniform in `[lo, hi)`. Built from 24 random bits with exact f32
+    /// operations (power-of-two scaling, then one `*` and one `+`), so host
+    /// and device draw the same bits.
+    pub fn f32_in(&mut self, lo: f32, hi: f32) -> f32 {
+        let unit = (self.next_u32() >> 8) as f32 * (1.0 / 16_777_216.0);
+        lo + (hi - lo) * unit
+    }
+
+    /// Uniform in `[lo, hi)` in f64 (53 random bits).
+    pub fn f64_in(&mut self, lo: f64, hi: f64) -> f64 {
+        let unit = (self.next_u64() >> 11) as f64 * (1.0 / 9_007_199_254_740_992.0);
+        lo + (hi - lo) * unit
+    }
+
+    pub fn fill_bytes(&mut self, out: &mut [u8]) {
+        for chunk in out.chunks_mut(8) {
+            let w = self.next_u64().to_le_bytes();
+            chunk.copy_from_slice(&w[..chunk.len()]);
+        }
+    }
+}
+
+/// Where a case writes its outputs. One word per scalar: floats as their
+/// IEEE bits ([`f32::to_bits`], [`f64::to_bits`]), integers sign-extended.
+pub trait Out {
+    fn word(&mut self, w: u64);
+
+    fn u32(&mut self, v: u32) {
+        self.word(v as u64)
+    }
+    fn i32(&mut self, v: i32) {
+        self.word(v as i64 as u64)
+    }
+    fn i64(&mut self, v: i64) {
+        self.word(v as u64)
+    }
+    fn f32(&mut self, v: f32) {
+        self.word(v.to_bits() as u64)
+    }
+    fn f64(&mut self, v: f64) {
+        self.word(v.to_bits())
+    }
+    fn f32s(&mut self, v: &[f32]) {
+        for &x in v {
+            self.f32(x)
+        }
+    }
+    fn i32s(&mut self, v: &[i32]) {
+        for &x in v {
+            self.i32(x)
+        }
+    }
+    fn i64s(&mut self, v: &[i64]) {
+        for &x in v {
+            self.i64(x)
+        }
+    }
+    /// FNV-1a 64 of the `Debug` text: covers every field of a result struct
+    /// or enum (f32 `Debug` prints the shortest round-trip decimal, so equal
+    /// bits give equal text) without naming its fields here.
+    fn debug(&mut self, v: &dyn core::fmt::Debug) {
+        struct Fnv(u64);
+        impl core::fmt::Write for Fnv {
+            fn write_str(&mut self, s: &str) -> core::fmt::Result {
+                for b in s.bytes() {
+                    self.0 = (self.0 ^ b as u64).wrapping_mul(0x0000_0100_0000_01B3);
+                }
+                Ok(())
+            }
+        }
+        let mut h = Fnv(0xCBF2_9CE4_8422_2325);
+        let _ = core::fmt::write(&mut h, format_args!("{v:?}"));
+        self.word(h.0)
+    }
+}
+
+/// Data the cases need besides random inputs: compiled model blobs, made by
+/// `build.rs` on the host and embedded in the device binary (empty until the
+/// core can compile them).
+#[derive(Clone, Copy, Debug)]
+pub struct Fixtures<'a> {
+    /// Compiled calibration blob with an NN 3-20-3 correction.
+    pub nn_blob: &'a [u8],
+    /// Compiled calibration blob with an SVR correction of 1,000 support vectors.
+    pub svr_blob: &'a [u8],
+}
+
+/// One function under test.
+pub struct Case {
+    /// Printed on a mismatch; unique.
+    pub name: &'static str,
+    /// Number of vectors (each with its own seeded [`Rng`]).
+    pub vectors: u32,
+    /// Draws one vector's inputs from the rng, evaluates, writes the outputs.
+    pub run: fn(&Fixtures, &mut Rng, &mut dyn Out),
+}
+
+/// The seed of vector `vector` of case `case`.
+pub fn rng_for(case: &Case, vector: u32) -> Rng {
+    // FNV-1a of the name, so adding or reordering cases keeps other vectors.
+    let mut h: u64 = 0xCBF2_9CE4_8422_2325;
+    for b in case.name.bytes() {
+        h = (h ^ b as u64).wrapping_mul(0x0000_0100_0000_01B3);
+    }
+    Rng::new(h ^ ((vector as u64) << 32))
+}
+
+/// Every case of the bit-identity test. One line per function under test.
+pub const CASES: &[Case] = &[
+    case("protocol::blob::CRC32", 16, blob_crc32),
+    case("rng::f32_in", 4, rng_f32),
+    case("tension::distribute (feasible)", 48, tension_feasible),
+    case("tension::distribute (scaled)", 48, tension_scaled),
+    case("tension::distribute_warm", 24, tension_warm),
+    case("guidance", 48, guidance),
+    case("safety::SafetyMonitor", 32, safety),
+    case("blob::CompiledCalibration::from_blob", 1, blob_parse),
+    case("blob::position_q16/position_mm", 32, positions),
+    case("fixed::tanh_q27/exp2_neg_q22", 64, fixed_functions),
+    case("encoder::EncoderExtender/DirectionTracker", 16, encoder),
+    case("string_law::string_lengths", 48, string_lengths),
+    case("kinematics::inverse_kinematics::<f32>", 32, inverse_kinematics),
+    case("kinematics::forward_kinematics::<f32> (warm)", 48, fk_warm),
+    case("kinematics::forward_kinematics::<f32> (cold, faulty string)", 24, fk_faulty),
+    case("correction::NnView::evaluate (3-20-3)", 48, nn_evaluate),
+    case("correction::SvrView::evaluate (1000 SV)", 16, svr_evaluate),
+    case("control::Controller::step (NN, 8 steps)", 6, control_nn),
+    case("control::Controller::step (SVR, 8 steps)", 4, control_svr),
+];
+
+/// Shorthand of [`CASES`]: name, number of vectors, function.
+const fn case(name: &'static str, vectors: u32, run: fn(&Fixtures, &mut Rng, &mut dyn Out)) -> Case {
+    Case { name, vectors, run }
+}
+
+// ---------------------------------------------------------------------------
+// Shared inputs (also used by the benchmarks).
+
+/// Half the side of the cube whose corners are the anchors (mm): a 2.2 m frame.
+pub const FRAME_HALF_MM: f32 = 1100.0;
+
+/// The 8 anchors at the corners of the 2.2 m cube (device frame, mm).
+pub fn cube_anchors() -> [[f32; 3]; spidar_core::STRINGS] {
+    let h = FRAME_HALF_MM;
+    let mut a = [[0.0; 3]; spidar_core::STRINGS];
+    for (i, p) in a.iter_mut().enumerate() {
+        *p = [if i & 1 == 0 { -h } else { h }, if i & 2 == 0 { -h } else { h }, if i & 4 == 0 { -h } else { h }];
+    }
+    a
+}
+
+/// A position in the central 1 m cube (mm).
+pub fn central_position(rng: &mut Rng) -> [f32; 3] {
+    [rng.f32_in(-500.0, 500.0), rng.f32_in(-500.0, 500.0), rng.f32_in(-500.0, 500.0)]
+}
+
+/// A force with components in `[-max, max]` (N).
+pub fn force(rng: &mut Rng, max: f32) -> [f32; 3] {
+    [rng.f32_in(-max, max), rng.f32_in(-max, max), rng.f32_in(-max, max)]
+}
+
+/// Tension limits of the benchmarks and vectors: 0.5 to 20 N.
+pub fn tension_limits() -> spidar_core::tension::TensionLimits<f32> {
+    spidar_core::tension::TensionLimits { t_min: 0.5, t_max: 20.0 }
+}
+
+/// The compiled calibration of a fixture blob (`nn` or `svr`).
+pub fn calibration<'a>(fx: &Fixtures<'a>, svr: bool) -> Option<spidar_core::blob::CompiledCalibration<'a>> {
+    spidar_core::blob::CompiledCalibration::from_blob(if svr { fx.svr_blob } else { fx.nn_blob }).ok()
+}
+
+/// Run-time string inputs over the whole workspace: up to +-30 pulley turns
+/// (4096 counts per turn), any direction, 0 to 20 N, up to an hour.
+pub fn string_inputs(rng: &mut Rng) -> spidar_core::model::StringInputs {
+    let mut s = spidar_core::model::StringInputs::default();
+    for i in 0..spidar_core::STRINGS {
+        s.counts[i] = rng.i32_in(-30 * 4096, 30 * 4096);
+        s.direction[i] = rng.i32_in(-1, 1) as i8;
+        s.tension_mn[i] = rng.i32_in(0, 20_000) as u16;
+    }
+    s.time_ms = rng.next_u32() % 3_600_000;
+    s
+}
+
+/// Exact string lengths from a position, with +-`noise` mm on each (f32).
+pub fn lengths_at(p: [f32; 3], rng: &mut Rng, noise: f32) -> [f32; spidar_core::STRINGS] {
+    let mut l = spidar_core::kinematics::inverse_kinematics(&cube_anchors(), p);
+    for x in l.iter_mut() {
+        *x += rng.f32_in(-noise, noise);
+    }
+    l
+}
+
+fn tension_solution(out: &mut dyn Out, s: &spidar_core::tension::TensionSolution<f32>) {
+    out.f32s(&s.tensions);
+    out.f32(s.rendered_fraction);
+    out.f32(s.residual_n);
+    out.f32s(&s.multiplier);
+    out.u32(s.iterations as u32);
+    out.debug(s);
+}
+
+// ---------------------------------------------------------------------------
+// The cases.
+
+/// CRC-32 of blob bodies (checked by the device at load): random lengths
+/// 0..=300, random bytes.
+fn blob_crc32(_: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    let mut buf = [0u8; 300];
+    let len = rng.i32_in(0, buf.len() as i32) as usize;
+    rng.fill_bytes(&mut buf[..len]);
+    out.u32(len as u32);
+    out.u32(spidar_protocol::blob::CRC32.checksum(&buf[..len]));
+}
+
+/// The input generator itself (f32 path): guards the other cases' inputs.
+fn rng_f32(_: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    for _ in 0..8 {
+        out.f32(rng.f32_in(-1500.0, 1500.0));
+    }
+    out.f64(rng.f64_in(-1.0, 1.0));
+}
+
+fn tension_case(rng: &mut Rng, out: &mut dyn Out, max_force: f32) {
+    use spidar_core::tension::{distribute, TensionConfig};
+    let p = central_position(rng);
+    let f = force(rng, max_force);
+    let s = distribute(&cube_anchors(), p, f, tension_limits(), &TensionConfig::default());
+    tension_solution(out, &s);
+}
+
+/// Feasible forces (|F_i| <= 3 N) at central positions.
+fn tension_feasible(_: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    tension_case(rng, out, 3.0)
+}
+
+/// Mostly infeasible forces (|F_i| <= 300 N): scaled back, more iterations.
+fn tension_scaled(_: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    tension_case(rng, out, 300.0)
+}
+
+/// Warm start from the previous solution's multiplier, along a short path.
+fn tension_warm(_: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    use spidar_core::tension::{distribute_warm, TensionConfig};
+    let mut p = central_position(rng);
+    let f = force(rng, 30.0);
+    let mut lambda = [0.0f32; 3];
+    for _ in 0..4 {
+        let s = distribute_warm(&cube_anchors(), p, f, tension_limits(), &TensionConfig::default(), lambda);
+        tension_solution(out, &s);
+        lambda = s.multiplier;
+        for x in p.iter_mut() {
+            *x += rng.f32_in(-0.5, 0.5);
+        }
+    }
+}
+
+/// Guidance cue (eqs. 2-5): `libm::expf`, a division, a square root.
+fn guidance(_: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    use spidar_core::guidance::*;
+    let d_min = rng.f32_in(1.0, 200.0);
+    let d = rng.f32_in(-10.0, 250.0);
+    out.f32(closeness(d, d_min));
+    out.f32(beep_frequency_hz(d, d_min));
+    out.f32(guidance_profile(d, d_min));
+    let v = [rng.f32_in(-300.0, 300.0), rng.f32_in(-300.0, 300.0), rng.f32_in(-300.0, 300.0)];
+    out.f32s(&guidance_force(v, d_min, rng.f32_in(0.0, 10.0)));
+}
+
+/// Safety monitor: force and tension clamps, slack and fault latching.
+fn safety(_: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    use spidar_core::safety::{SafetyConfig, SafetyMonitor};
+    let config = SafetyConfig {
+        t_min: 0.5,
+        t_max: 20.0,
+        f_max: 10.0,
+        pretension_n: 1.0,
+        heartbeat_timeout_ms: 100,
+        slack_threshold_mm: 5.0,
+    };
+    let Ok(mut m) = SafetyMonitor::new(config) else {
+        out.u32(u32::MAX);
+        return;
+    };
+    m.heartbeat(0);
+    out.debug(&m.arm());
+    let mut measured = [0.0f32; spidar_core::STRINGS];
+    let mut geometric = [0.0f32; spidar_core::STRINGS];
+    for i in 0..spidar_core::STRINGS {
+        geometric[i] = rng.f32_in(300.0, 2500.0);
+        measured[i] = geometric[i] + rng.f32_in(-6.0, 6.0);
+    }
+    let faults = m.check(rng.i32_in(0, 150) as u32, &measured, &geometric, rng.i32_in(0, 7) != 0);
+    out.u32(faults.bits() as u32);
+    out.f32s(&m.limit_force(force(rng, 15.0)));
+    let mut t = [0.0f32; spidar_core::STRINGS];
+    for x in t.iter_mut() {
+        *x = rng.f32_in(-5.0, 25.0);
+    }
+    out.f32s(&m.apply(t));
+    out.u32(m.warnings().bits() as u32);
+    out.u32(m.slack_mask() as u32);
+}
+
+/// The device's parse of both fixture blobs (header, f32 frame, compiled
+/// laws and effects, correction kind).
+fn blob_parse(fx: &Fixtures, _: &mut Rng, out: &mut dyn Out) {
+    for svr in [false, true] {
+        match calibration(fx, svr) {
+            Some(c) => {
+                out.debug(&c.header);
+                out.debug(&c.head);
+                out.debug(&c.correction.kind());
+            }
+            None => out.u32(u32::MAX),
+        }
+    }
+}
+
+fn positions(_: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    let p = [rng.f32_in(-2000.0, 2000.0), rng.f32_in(-1.0, 1.0), rng.f32_in(-40000.0, 40000.0)];
+    let q = spidar_core::blob::position_q16(p);
+    out.i32s(&q);
+    out.f32s(&spidar_core::blob::position_mm(q));
+}
+
+fn fixed_functions(_: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    use spidar_core::fixed::*;
+    for _ in 0..8 {
+        out.i32(tanh_q27(rng.next_u32() as i32 >> rng.i32_in(0, 6)));
+        out.i32(exp2_neg_q22(rng.next_u32() >> rng.i32_in(0, 8)));
+    }
+}
+
+/// 16-bit counter wrap-around and direction hysteresis along a random walk.
+fn encoder(_: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    use spidar_core::encoder::{DirectionTracker, EncoderExtender};
+    let mut raw = rng.next_u32() as u16;
+    let mut ext = EncoderExtender::new(raw);
+    let mut dir = DirectionTracker::new(rng.i32_in(0, 8) as u32);
+    for _ in 0..32 {
+        raw = raw.wrapping_add(rng.i32_in(-3000, 3000) as u16);
+        let c = ext.update(raw);
+        out.i32(c);
+        out.i32(dir.update(c) as i32);
+    }
+}
+
+fn string_lengths(fx: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    let Some(c) = calibration(fx, false) else { return out.u32(u32::MAX) };
+    let inputs = string_inputs(rng);
+    out.i64s(&spidar_core::string_law::string_lengths(&c.head.laws, &c.head.effects, &inputs));
+}
+
+fn inverse_kinematics(_: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    let p = central_position(rng);
+    out.f32s(&spidar_core::kinematics::inverse_kinematics(&cube_anchors(), p));
+}
+
+fn fk_solution(out: &mut dyn Out, s: &spidar_core::kinematics::FkSolution<f32>) {
+    out.f32s(&s.position);
+    out.f32(s.rms_residual_mm);
+    out.u32(s.iterations);
+    out.debug(s);
+}
+
+/// Warm start 0.05-2 mm from the answer (the previous iteration's position),
+/// 0.3 mm length noise.
+fn fk_warm(_: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    use spidar_core::kinematics::{forward_kinematics, FkConfig};
+    let p = central_position(rng);
+    let lengths = lengths_at(p, rng, 0.3);
+    let start = [p[0] + rng.f32_in(-2.0, 2.0), p[1] + rng.f32_in(-2.0, 2.0), p[2] + rng.f32_in(-2.0, 2.0)];
+    fk_solution(out, &forward_kinematics(&cube_anchors(), &lengths, start, &FkConfig::default()));
+}
+
+/// Cold start (frame centre) with one string 5-40 mm off: the exclusion path.
+fn fk_faulty(_: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    use spidar_core::kinematics::{forward_kinematics, FkConfig};
+    let p = central_position(rng);
+    let mut lengths = lengths_at(p, rng, 0.2);
+    let bad = rng.i32_in(0, spidar_core::STRINGS as i32 - 1) as usize;
+    lengths[bad] += rng.f32_in(5.0, 40.0);
+    fk_solution(out, &forward_kinematics(&cube_anchors(), &lengths, [0.0; 3], &FkConfig::default()));
+}
+
+fn correction_case(fx: &Fixtures, svr: bool, rng: &mut Rng, out: &mut dyn Out) {
+    let Some(c) = calibration(fx, svr) else { return out.u32(u32::MAX) };
+    let p = spidar_core::blob::position_q16(central_position(rng));
+    out.i32s(&c.correction.evaluate(p));
+}
+
+fn nn_evaluate(fx: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    correction_case(fx, false, rng, out)
+}
+
+fn svr_evaluate(fx: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    correction_case(fx, true, rng, out)
+}
+
+/// Eight control-loop iterations from home with random encoder motion (so
+/// FK also meets inconsistent lengths), a random target kind; every output
+/// field of every step.
+fn control_case(fx: &Fixtures, svr: bool, rng: &mut Rng, out: &mut dyn Out) {
+    use spidar_core::control::{ControlConfig, Controller, LoopInput, Target};
+    let Some(cal) = calibration(fx, svr) else { return out.u32(u32::MAX) };
+    let mut raw: [u16; spidar_core::STRINGS] = core::array::from_fn(|_| rng.next_u32() as u16);
+    let Ok(mut ctl) = Controller::new(ControlConfig::default(), &cal, raw, 5) else { return out.u32(u32::MAX - 1) };
+    ctl.set_target(match rng.i32_in(0, 2) {
+        0 => Target::Idle,
+        1 => Target::Force(force(rng, 20.0)),
+        _ => Target::Guidance { target_mm: central_position(rng), d_min_mm: rng.f32_in(10.0, 300.0), f_max_n: 5.0 },
+    });
+    ctl.safety().heartbeat(5);
+    out.debug(&ctl.safety().arm());
+    for step in 0..8u32 {
+        for r in raw.iter_mut() {
+            *r = r.wrapping_add(rng.i32_in(-400, 400) as u16);
+        }
+        let now = 5 + step;
+        if rng.i32_in(0, 3) != 0 {
+            ctl.safety().heartbeat(now);
+        }
+        let o = ctl.step(&cal, &LoopInput { raw_counts: raw, now_ms: now, estop: rng.i32_in(0, 15) == 0 });
+        out.f32s(&o.string_lengths_mm);
+        out.f32s(&o.position_mm);
+        out.i32s(&o.corrected_q16);
+        out.f32s(&o.force_n);
+        out.f32s(&o.tensions_n);
+        out.debug(&o);
+    }
+}
+
+fn control_nn(fx: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    control_case(fx, false, rng, out)
+}
+
+fn control_svr(fx: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    control_case(fx, true, rng, out)
+}

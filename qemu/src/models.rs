@@ -1,0 +1,128 @@
+//! Host only (`build.rs`): the deterministic calibrations whose compiled blobs
+//! the device binaries embed. Both have the 2.2 m cube frame, a quadratic
+//! winding law per string and one effect term of every family; one carries an
+//! NN 3-20-3 correction, the other an RBF SVR with 1,000 support vectors (the
+//! issue's benchmark sizes). Weights are shaped like trained ones (see
+//! `spidar_core::correction`'s tests): realistic magnitudes, random values.
+
+use spidar_core::correction::{CorrectionModel, NnModel, OutputMode, Standardization, SvrModel};
+use spidar_core::model::{Calibration, Effect, EffectTerm, Frame, StringLaw};
+use spidar_core::STRINGS;
+
+use crate::cases::Rng;
+
+/// Hidden neurons of the benchmark NN.
+pub const NN_HIDDEN: usize = 20;
+/// Support vectors of the benchmark SVR.
+pub const SVR_SUPPORT: usize = 1000;
+
+fn normal(rng: &mut Rng) -> f64 {
+    // Box-Muller; host only, the blob (not this) is what both sides share.
+    let u1 = rng.f64_in(1e-12, 1.0);
+    let u2 = rng.f64_in(0.0, 1.0);
+    (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+}
+
+fn input_std() -> Standardization {
+    Standardization { mean: [3.2, -7.9, 11.4], std: [288.1, 291.7, 286.9] }
+}
+
+fn output_std() -> Standardization {
+    Standardization { mean: [1.9, -4.3, 8.8], std: [301.3, 297.8, 305.2] }
+}
+
+fn calibration(correction: CorrectionModel) -> Calibration {
+    let h = 1100.0;
+    let mut anchors = [[0.0; 3]; STRINGS];
+    for (i, a) in anchors.iter_mut().enumerate() {
+        *a = [if i & 1 == 0 { -h } else { h }, if i & 2 == 0 { -h } else { h }, if i & 4 == 0 { -h } else { h }];
+    }
+    let effects = vec![
+        EffectTerm { string: 0, effect: Effect::Offset { mm: 4.5 } },
+        EffectTerm { string: 1, effect: Effect::Scale { relative: 0.003 } },
+        EffectTerm { string: 2, effect: Effect::Winding { power: 3, mm_per_rad_pow: 1.5e-6 } },
+        EffectTerm { string: 3, effect: Effect::Eccentricity { sin_mm: 0.12, cos_mm: -0.05 } },
+        EffectTerm { string: 4, effect: Effect::Elasticity { per_newton: 2e-4 } },
+        EffectTerm { string: 5, effect: Effect::Backlash { half_width_mm: 0.7 } },
+        EffectTerm { string: 6, effect: Effect::Drift { mm_per_s: 1e-4 } },
+        EffectTerm { string: 7, effect: Effect::Slip { at_s: 600.0, mm: 1.2 } },
+    ];
+    Calibration {
+        frame: Frame {
+            anchors,
+            home: [1.0, -2.0, 3.0],
+            room_rotation: [[0.9998, -0.0175, 0.0], [0.0175, 0.9998, 0.0], [0.0, 0.0, 1.0]],
+            room_translation: [12.0, -40.0, 1500.0],
+            room_scale: 1.001,
+        },
+        strings: [StringLaw { counts_per_rev: 4096, winding_mm: [12.0, -0.02, 0.0, 0.0] }; STRINGS],
+        effects,
+        correction,
+    }
+}
+
+fn nn_model() -> NnModel {
+    let mut rng = Rng::new(0x4E4E);
+    let (mut w1, mut b1) = (Vec::new(), Vec::new());
+    let mut w2: [Vec<f64>; 3] = [Vec::new(), Vec::new(), Vec::new()];
+    for h in 0..NN_HIDDEN {
+        if h % 2 == 1 {
+            // Pairs of close neurons with opposite output weights, as LM training makes.
+            let prev: [f64; 3] = w1[h - 1];
+            w1.push(prev.map(|v| v * (1.0 + 0.08 * normal(&mut rng))));
+            b1.push(b1[h - 1] + 0.1 * normal(&mut rng));
+            for w in w2.iter_mut() {
+                let prev = w[h - 1];
+                w.push(-prev * (1.0 + 0.05 * normal(&mut rng)));
+            }
+        } else {
+            w1.push([1.5 * normal(&mut rng), 1.5 * normal(&mut rng), 1.5 * normal(&mut rng)]);
+            b1.push(rng.f64_in(-1.5, 1.5));
+            for w in w2.iter_mut() {
+                w.push(rng.f64_in(-12.0, 12.0));
+            }
+        }
+    }
+    let out = output_std();
+    for (a, w) in w2.iter_mut().enumerate() {
+        let s: f64 = w.iter().map(|v| v.abs()).sum::<f64>() * out.std[a];
+        w.iter_mut().for_each(|v| *v *= 37_000.0 / s);
+    }
+    NnModel { input: input_std(), output: out, w1, b1, w2, b2: [0.03, -0.02, 0.05], mode: OutputMode::Residual }
+}
+
+fn svr_model() -> SvrModel {
+    let mut rng = Rng::new(0x5356);
+    let lim = 500.0 / 288.7;
+    let support = (0..SVR_SUPPORT).map(|_| [0; 3].map(|_: i32| rng.f64_in(-lim, lim))).collect();
+    let mut coef: [Vec<f64>; 3] = [Vec::new(), Vec::new(), Vec::new()];
+    for c in coef.iter_mut() {
+        *c = (0..SVR_SUPPORT).map(|_| rng.f64_in(-1.0, 1.0)).collect();
+        let s: f64 = c.iter().map(|v| v.abs()).sum();
+        c.iter_mut().for_each(|v| *v *= 845.0 / s);
+    }
+    SvrModel {
+        input: input_std(),
+        output: output_std(),
+        gamma: 1.0 / 3.0,
+        support,
+        coef,
+        bias: [0.01, -0.04, 0.02],
+        mode: OutputMode::Residual,
+    }
+}
+
+fn compile(c: &Calibration, id: u32) -> Vec<u8> {
+    spidar_core::blob::compile(c, id, 0)
+        .unwrap_or_else(|e| panic!("benchmark calibration {id} does not compile: {e:?}"))
+}
+
+/// The compiled blob with the NN 3-20-3 correction.
+pub fn nn_blob() -> Vec<u8> {
+    compile(&calibration(CorrectionModel::Nn(nn_model())), 1)
+}
+
+/// The compiled blob with the 1,000-SV SVR correction.
+pub fn svr_blob() -> Vec<u8> {
+    compile(&calibration(CorrectionModel::Svr(svr_model())), 2)
+}
