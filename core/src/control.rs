@@ -273,8 +273,8 @@ impl Controller {
             [self.config.safety.pretension_n; STRINGS]
         };
         let tensions = self.safety.apply(wanted);
-        for i in 0..STRINGS {
-            self.tensions_mn[i] = (tensions[i] * 1000.0).clamp(0.0, u16::MAX as f32) as u16;
+        for (mn, t) in self.tensions_mn.iter_mut().zip(tensions) {
+            *mn = (t * 1000.0).clamp(0.0, u16::MAX as f32) as u16;
         }
         LoopOutput {
             counts: inputs.counts,

@@ -42,6 +42,9 @@
 //! pulling on the fit. Weights are per string and row: one bad string does not
 //! discard the other seven.
 
+// Vector algebra indexes several 3-vectors by the same axis; index loops read best.
+#![allow(clippy::needless_range_loop)]
+
 use nalgebra::{DMatrix, DVector, Dyn, Owned};
 use serde::{Deserialize, Serialize};
 use spidar_core::model::{Effect, EffectTerm, Frame, StringLaw, WINDING_ORDER};
