@@ -137,8 +137,8 @@ fn parse_model(bytes: &[u8]) -> Result<ParsedModel, BlobError> {
     // `from_blob` accepted it, so this re-split cannot fail; it only finds
     // where the correction bytes start.
     let (_, body) = spidar_protocol::blob::split_blob(bytes)?;
-    let (_, rest): (BlobHead, &[u8]) = postcard::take_from_bytes(body)
-        .map_err(|_| BlobError::Body {
+    let (_, rest): (BlobHead, &[u8]) =
+        postcard::take_from_bytes(body).map_err(|_| BlobError::Body {
             field: "string model",
         })?;
     Ok(ParsedModel {
@@ -253,7 +253,10 @@ pub fn protocol_faults(out: &LoopOutput, loop_overrun: bool) -> Faults {
         Faults::KINEMATICS,
     );
     set(f.contains(SafetyFaults::ESTOP), Faults::ESTOP);
-    set(f.contains(SafetyFaults::MODEL_INVALID), Faults::MODEL_INVALID);
+    set(
+        f.contains(SafetyFaults::MODEL_INVALID),
+        Faults::MODEL_INVALID,
+    );
     set(
         out.armed && out.tension_status == TensionStatus::Scaled,
         Faults::TENSION_CLAMPED,
@@ -587,8 +590,10 @@ impl<'m, F: ModelFlash> Device<'m, F> {
         }
     }
 
+    /// Geometry, limits and model changes need the motors off: not armed, and
+    /// not holding pre-tension after a fault (a flash erase stalls the loop).
     fn refuse_if_armed(&mut self) -> Result<(), DeviceError> {
-        if self.armed() {
+        if self.energized || self.armed() {
             Err(DeviceError::BadState(BadState::Armed))
         } else {
             Ok(())
@@ -609,7 +614,11 @@ impl<'m, F: ModelFlash> Device<'m, F> {
         }
     }
 
-    fn handle_inner(&mut self, request: &Request<'_>, now_us: u64) -> Result<Response, DeviceError> {
+    fn handle_inner(
+        &mut self,
+        request: &Request<'_>,
+        now_us: u64,
+    ) -> Result<Response, DeviceError> {
         let now_ms = ms(now_us);
         if let Request::Hello { protocol_version } = *request {
             self.host_version = Some(protocol_version);
@@ -639,9 +648,8 @@ impl<'m, F: ModelFlash> Device<'m, F> {
             }
             Request::SetStringModel(ref m) => {
                 self.refuse_if_armed()?;
-                let cal = nominal_calibration(m).map_err(|field| DeviceError::InvalidArgument {
-                    field: name(field),
-                })?;
+                let cal = nominal_calibration(m)
+                    .map_err(|field| DeviceError::InvalidArgument { field: name(field) })?;
                 self.nominal = Some(cal);
                 self.ensure_controller();
                 Ok(Response::Ack)
@@ -1482,8 +1490,8 @@ mod tests {
         assert_eq!(last.counts, out.counts);
         assert_eq!(last.corrected_mm, out.corrected_q16);
         assert_eq!(last.loop_us, 40);
-        for c in 0..3 {
-            assert!((last.position_mm[c] - p[c] as f32).abs() < 0.05);
+        for (got, want) in last.position_mm.iter().zip(p) {
+            assert!((got - want as f32).abs() < 0.05);
         }
         // No model change while armed.
         assert_eq!(b.request(&begin), bad_state(BadState::Armed));
@@ -1557,6 +1565,8 @@ mod tests {
         assert!(events.contains(&Event::Fault {
             raised: Faults::HEARTBEAT_LOST
         }));
+        // Still holding pre-tension: no flash work until Disarm.
+        assert_eq!(b.request(&begin), bad_state(BadState::Armed));
         let last = b
             .stream
             .iter()
@@ -1641,7 +1651,10 @@ mod tests {
         let blob2 = compile(&calibration(nn(8)), 2, 0).unwrap();
         let (mut ram, mut spare) = ([0u8; SLOT], [0u8; SLOT]);
         let mut b = Bench::new(Flash::new(), &mut ram, &mut spare);
-        assert_eq!(b.upload(&blob1, 1, 256), Response::Committed { model_id: 1 });
+        assert_eq!(
+            b.upload(&blob1, 1, 256),
+            Response::Committed { model_id: 1 }
+        );
         b.request(&Request::StreamOn { decimation: 1 });
         // Half of model 2, then the loop still runs model 1.
         let crc2 = CRC32.checksum(&blob2);
@@ -1677,7 +1690,10 @@ mod tests {
         assert_eq!(b.request(&Request::Arm), Response::Ack);
         b.request(&Request::Disarm);
         // Commit model 2, power cycle: model 2 in slot B.
-        assert_eq!(b.upload(&blob2, 2, 100), Response::Committed { model_id: 2 });
+        assert_eq!(
+            b.upload(&blob2, 2, 100),
+            Response::Committed { model_id: 2 }
+        );
         let flash = b.dev.into_flash();
         let (mut ram, mut spare) = ([0u8; SLOT], [0u8; SLOT]);
         let mut b = Bench::new(flash, &mut ram, &mut spare);
@@ -1868,11 +1884,14 @@ mod tests {
         let p = [-150.0, 80.0, 30.0];
         let out = b.tick_at(raw_at(p));
         assert!(out.armed, "{out:?}");
-        for c in 0..3 {
-            assert!((out.position_mm[c] - p[c] as f32).abs() < 0.05, "{out:?}");
+        for (got, want) in out.position_mm.iter().zip(p) {
+            assert!((got - want as f32).abs() < 0.05, "{out:?}");
         }
         // Idle: the distribution's internal tension level, within the limits.
-        assert!(out.tensions_n.iter().all(|&t| (0.5..=20.0).contains(&t)), "{out:?}");
+        assert!(
+            out.tensions_n.iter().all(|&t| (0.5..=20.0).contains(&t)),
+            "{out:?}"
+        );
         // The new heartbeat timeout: 50 ms (Arm at T, ticks at T+1..=T+50).
         for _ in 0..49 {
             assert!(b.tick_at(raw_at(p)).armed);

@@ -359,7 +359,9 @@ pub struct ModelStore<F: ModelFlash> {
 impl<F: ModelFlash> ModelStore<F> {
     /// Compile-time check of the flash geometry.
     const GEOMETRY_OK: () = assert!(
-        F::SLOT_LEN > RECORD_LEN && F::SLOT_LEN % FLASH_WORD == 0 && F::SLOT_LEN <= u32::MAX as usize,
+        F::SLOT_LEN > RECORD_LEN
+            && F::SLOT_LEN % FLASH_WORD == 0
+            && F::SLOT_LEN <= u32::MAX as usize,
         "ModelFlash::SLOT_LEN must be a multiple of FLASH_WORD larger than RECORD_LEN"
     );
 
@@ -1076,10 +1078,7 @@ mod tests {
             let mut f = flash.clone();
             f.cut_after(cut);
             let mut store = Store::open(f);
-            assert_eq!(
-                store.clear(),
-                Err(StoreError::Flash(FlashError::PowerLost))
-            );
+            assert_eq!(store.clear(), Err(StoreError::Flash(FlashError::PowerLost)));
             let mut f = store.into_flash();
             f.power_cycle();
             let store = Store::open(f);
