@@ -579,6 +579,13 @@ impl<'m, F: ModelFlash> Device<'m, F> {
             m.set_estop(self.estop);
             m.set_model_valid(!self.model_invalid);
             *c.safety() = m;
+            c.set_tension_limits(
+                crate::tension::TensionLimits {
+                    t_min: cfg.t_min,
+                    t_max: cfg.t_max,
+                },
+                cfg.pretension_n,
+            );
         }
         self.pending_safety = None;
     }

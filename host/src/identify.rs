@@ -615,9 +615,23 @@ impl levenberg_marquardt::LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
                     [d[0] / lh, d[1] / lh, d[2] / lh]
                 };
                 let theta = two_pi * o.inputs.counts[i] as f64 / w.counts_per_rev as f64;
+                // Effects that scale with the payout or the home length
+                // (scale, elasticity) carry those derivatives along.
+                let (mut d_payout, mut d_home) = (1.0, 1.0);
+                for term in state.effects.iter().filter(|t| usize::from(t.string) == i) {
+                    match term.effect {
+                        Effect::Scale { relative } => d_payout += relative,
+                        Effect::Elasticity { per_newton } => {
+                            let t = f64::from(o.inputs.tension_mn[i]) / 1000.0;
+                            d_payout += per_newton * t;
+                            d_home += per_newton * t;
+                        }
+                        _ => {}
+                    }
+                }
                 for c in 0..3 {
-                    jac[(row, ANCHORS + 3 * i + c)] = f * (-up[c] + uh[c]);
-                    jac[(row, HOME + c)] = f * (-uh[c]);
+                    jac[(row, ANCHORS + 3 * i + c)] = f * (-up[c] + d_home * uh[c]);
+                    jac[(row, HOME + c)] = f * (-d_home * uh[c]);
                 }
                 let rup = mat_vec(&frame.room_rotation, up);
                 let wgrad = cross(up, p);
@@ -629,8 +643,8 @@ impl levenberg_marquardt::LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
                     let dot = up[0] * p[0] + up[1] * p[1] + up[2] * p[2];
                     jac[(row, SCALE)] = f * (-dot / frame.room_scale);
                 }
-                jac[(row, layout.r_home() + i)] = f * (-theta);
-                jac[(row, layout.kappa())] = f * (theta * theta);
+                jac[(row, layout.r_home() + i)] = f * (-theta * d_payout);
+                jac[(row, layout.kappa())] = f * (theta * theta * d_payout);
                 for c in 0..layout.effect_columns.len() {
                     jac[(row, layout.first_effect() + c)] = f * effect_grad[c][i];
                 }
@@ -852,7 +866,7 @@ pub fn identify(
             x,
         };
         let (problem, report) = levenberg_marquardt::LevenbergMarquardt::new()
-            .with_patience(200)
+            .with_patience(30)
             .minimize(problem);
         evaluations += report.number_of_evaluations;
         if !report.objective_function.is_finite() {
