@@ -104,8 +104,7 @@ mod f64_models {
 }
 
 use crate::fixed::{
-    exp2_neg_q22, le_i32, read_i32, sat_i32, shr_i64, shr_round_i64, shr_sat_i64_to_i32,
-    tanh_q27,
+    exp2_neg_q22, le_i32, read_i32, sat_i32, shr_i64, shr_round_i64, shr_sat_i64_to_i32, tanh_q27,
 };
 use spidar_protocol::blob::{BlobError, CorrectionKind};
 
