@@ -2,6 +2,7 @@
 //! learned corrections, diagnosis, reports, and the device link.
 
 pub mod dataset;
+pub mod diagnose;
 pub mod figures;
 pub mod identify;
 pub mod learn;
