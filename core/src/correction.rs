@@ -104,7 +104,8 @@ mod f64_models {
 }
 
 use crate::fixed::{
-    exp2_neg_q22, le_i32, read_i32, sat_i32, shr_i64, shr_round_i64, shr_sat_i64_to_i32, tanh_q27,
+    exp2_neg_q22_with, le_i32, read_i32, sat_i32, shr_i64, shr_round_i64, shr_sat_i64_to_i32,
+    tanh_q27, EXP2_FRACTION_ENTRIES, EXP2_HIGH, EXP2_INTEGER, EXP2_INTEGER_ENTRIES, EXP2_LOW,
 };
 use spidar_protocol::blob::{BlobError, CorrectionKind};
 
@@ -501,7 +502,13 @@ impl<'a> SvrView<'a> {
         let q = self.scaled(p);
         let mut acc = [0i64; 3];
         for block in self.records.chunks(SVR_RECORD_LEN * SVR_BLOCK) {
-            let part = svr_block(block, q);
+            let part = svr_block(
+                block,
+                q,
+                core::hint::black_box(&EXP2_HIGH),
+                core::hint::black_box(&EXP2_LOW),
+                core::hint::black_box(&EXP2_INTEGER),
+            );
             for a in 0..3 {
                 acc[a] = acc[a].wrapping_add(part[a] as i64);
             }
@@ -530,14 +537,20 @@ fn mul_hi_round_acc(acc: i32, a: i32, b: i32) -> i32 {
 /// Not inlined, so that the register allocation of this loop does not depend
 /// on the caller.
 #[inline(never)]
-fn svr_block(block: &[u8], q: [i32; 3]) -> [i32; 3] {
+fn svr_block(
+    block: &[u8],
+    q: [i32; 3],
+    high: &[u32; EXP2_FRACTION_ENTRIES],
+    low: &[u32; EXP2_FRACTION_ENTRIES],
+    integer: &[u32; EXP2_INTEGER_ENTRIES],
+) -> [i32; 3] {
     let mut acc = [0i32; 3];
     for rec in block.chunks_exact(SVR_RECORD_LEN) {
         // An empty barrier (no instruction: an empty `asm` with a memory
         // clobber): LLVM does not unroll a loop containing it. Unrolled (and
         // interleaved), this loop no longer fits the registers and spills.
         core::hint::black_box(());
-        acc = svr_term(rec, q, acc);
+        acc = svr_term(rec, q, acc, (high, low, integer));
     }
     acc
 }
@@ -545,19 +558,30 @@ fn svr_block(block: &[u8], q: [i32; 3]) -> [i32; 3] {
 /// Adds one support vector's terms (`rec`, [`SVR_RECORD_LEN`] bytes; any
 /// other length adds nothing) to the block accumulators.
 #[inline(always)]
-fn svr_term(rec: &[u8], q: [i32; 3], acc: [i32; 3]) -> [i32; 3] {
+fn svr_term(
+    rec: &[u8],
+    q: [i32; 3],
+    acc: [i32; 3],
+    tables: (
+        &[u32; EXP2_FRACTION_ENTRIES],
+        &[u32; EXP2_FRACTION_ENTRIES],
+        &[u32; EXP2_INTEGER_ENTRIES],
+    ),
+) -> [i32; 3] {
     let Ok(rec) = <&[u8; SVR_RECORD_LEN]>::try_from(rec) else {
         return acc;
     };
     let d0 = q[0].saturating_sub(le_i32::<SVR_RECORD_LEN, 0>(rec)) as i64;
     let d1 = q[1].saturating_sub(le_i32::<SVR_RECORD_LEN, 4>(rec)) as i64;
     let d2 = q[2].saturating_sub(le_i32::<SVR_RECORD_LEN, 8>(rec)) as i64;
-    // Each square <= 2^62; the sum < 2^64 as an unsigned bit pattern.
+    // Each square <= 2^62; the sum < 2^64 as an unsigned bit pattern. Its
+    // high word is u in Q10.22 (truncated).
     let u = ((d0 * d0) as u64)
         .wrapping_add((d1 * d1) as u64)
         .wrapping_add((d2 * d2) as u64);
-    // High word: u in Q10.22; K = 0 at and beyond the cutoff (u >= 31).
-    let k = exp2_neg_q22((u >> 32) as u32);
+    let u = (u >> 32) as u32;
+    // K = 0 at and beyond the cutoff (u >= 31).
+    let k = exp2_neg_q22_with(u, tables.0, tables.1, tables.2);
     [
         mul_hi_round_acc(acc[0], le_i32::<SVR_RECORD_LEN, 12>(rec), k),
         mul_hi_round_acc(acc[1], le_i32::<SVR_RECORD_LEN, 16>(rec), k),

@@ -141,7 +141,12 @@ const fn exp2_tables() -> Exp2Tables {
         let a = (i << EXP2_SPLIT_BITS) as f64 / q22;
         t.high[i] = round_i64(exp_const(-a * LN2) * (1u64 << 31) as f64) as u32;
         let b = (i as f64 + 0.5) / q22;
-        t.low[i] = round_i64(exp_const(-b * LN2) * (1u64 << 32) as f64) as u32;
+        let low = round_i64(exp_const(-b * LN2) * (1u64 << 32) as f64);
+        t.low[i] = if low > u32::MAX as i64 {
+            u32::MAX
+        } else {
+            low as u32
+        };
         i += 1;
     }
     let mut n = 0;
@@ -309,10 +314,24 @@ pub fn tanh_q27(x: i32) -> i32 {
 /// absolute error below 2^-30 beyond.
 #[inline(always)]
 pub fn exp2_neg_q22(u: u32) -> i32 {
+    exp2_neg_q22_with(u, &EXP2_HIGH, &EXP2_LOW, &EXP2_INTEGER)
+}
+
+/// [`exp2_neg_q22`] with the tables passed in (always [`EXP2_HIGH`],
+/// [`EXP2_LOW`], [`EXP2_INTEGER`]): in a loop the caller holds their
+/// addresses in registers (or spills them) instead of rebuilding each with
+/// two instructions per use.
+#[inline(always)]
+pub fn exp2_neg_q22_with(
+    u: u32,
+    high: &[u32; EXP2_FRACTION_ENTRIES],
+    low: &[u32; EXP2_FRACTION_ENTRIES],
+    integer: &[u32; EXP2_INTEGER_ENTRIES],
+) -> i32 {
     let mask = EXP2_FRACTION_ENTRIES - 1;
-    let high = EXP2_HIGH[(u >> EXP2_SPLIT_BITS) as usize & mask];
-    let low = EXP2_LOW[u as usize & mask];
-    let integer = EXP2_INTEGER[(u >> EXP2_IN_FRAC) as usize & (EXP2_INTEGER_ENTRIES - 1)];
+    let high = high[(u >> EXP2_SPLIT_BITS) as usize & mask];
+    let low = low[u as usize & mask];
+    let integer = integer[(u >> EXP2_IN_FRAC) as usize & (EXP2_INTEGER_ENTRIES - 1)];
     let k = ((high as u64 * low as u64) >> 32) as u32; // Q1.31
     ((k as u64 * integer as u64) >> 32) as i32 // Q1.30
 }
