@@ -32,10 +32,14 @@
 //! support vectors are stored in the same space, so per support vector
 //! `u = sum_i (q_i - s_i)^2` is three `32x32->64` multiply-accumulates, its
 //! high word is `u` in Q10.22, and the kernel is `2^-u` in Q1.30
-//! ([`crate::fixed::exp2_neg_q22`]); support vectors with `u >= 31` are
-//! skipped (their kernel is below the Q1.30 resolution). The kernel is shared
-//! by the three axes: `out_a = round((sum_j coef[a][j] K_j) >> (coef_frac[a]
-//! + 14)) + offset[a]`, `coef = alpha * std_out` in Q(`coef_frac[a]`) mm.
+//! ([`crate::fixed::exp2_neg_q22`], a product of three table entries; 0 for
+//! `u >= 31`, below the Q1.30 resolution). The kernel is shared by the three
+//! axes. Support vectors are taken in blocks of [`SVR_BLOCK`]: within a block
+//! each axis sums `round(coef[a][j] K_j / 2^32)` in an `i32` (in mm with
+//! `coef_frac[a] - 2` fractional bits), the block sums are added in `i64`, and `out_a = round(acc_a >>
+//! (coef_frac[a] - 18)) + offset[a]` (`+ p_a` in residual mode), `coef =
+//! alpha * std_out` in Q(`coef_frac[a]`) mm, the fractional bits chosen so
+//! that every block's `sum |coef|` stays within [`SVR_BLOCK_ABS_SUM_MAX`].
 
 use serde::{Deserialize, Serialize};
 
@@ -532,10 +536,12 @@ fn mul_hi_round_acc(acc: i32, a: i32, b: i32) -> i32 {
 
 /// One block of at most [`SVR_BLOCK`] support vectors: per axis
 /// `sum_j round(coef_a K_j / 2^32)`, `K_j = 2^-|q - s_j|^2` (Q1.30), in
-/// Q(`coef_frac_a` - 2) mm. One pass, everything in registers: q (3), three
-/// `i32` accumulators, the record pointer and end, and four temporaries.
-/// Not inlined, so that the register allocation of this loop does not depend
-/// on the caller.
+/// Q(`coef_frac_a` - 2) mm. One pass: q (3), three `i32` accumulators, the
+/// record pointer and count and the exp2 tables (`high`, `low`, `integer`:
+/// always [`EXP2_HIGH`], [`EXP2_LOW`], [`EXP2_INTEGER`], passed in so that
+/// LLVM keeps their addresses in registers or reloads them, instead of
+/// rebuilding each from a `movw`/`movt` pair per use). Not inlined, so that
+/// the register allocation of this loop does not depend on the caller.
 #[inline(never)]
 fn svr_block(
     block: &[u8],
