@@ -10,7 +10,8 @@ fn main() {
         .nth(1)
         .map(|s| s.parse().unwrap())
         .unwrap_or(1);
-    let config = SimConfig::default();
+    let mut config = SimConfig::default();
+    config.effects = std::env::args().skip(2).collect();
     let device = Device::new(&config, seed).unwrap();
     let geometry = config.nominal.geometry();
     let t0 = std::time::Instant::now();
@@ -54,6 +55,12 @@ fn main() {
         id.rejected_fraction
     );
     report("identified", &id.frame, &id.laws, &id.effects);
+    for p in id.parameters.iter().take(12).skip(9) {
+        println!(
+            "  {:24} {:12.3} ± {:.3} (nominal {:.1}, true {:.1})",
+            p.name, p.value, p.sd, nominal.anchors[3][0], device.frame.anchors[3][0]
+        );
+    }
     for p in id.parameters.iter().skip(24) {
         println!("  {:24} {:12.6} ± {:.6} {}", p.name, p.value, p.sd, p.unit);
     }
