@@ -304,6 +304,12 @@ impl Evidence {
     }
 }
 
+/// Turns fitted coefficients into the model change a candidate proposes.
+type BuildChange = Box<dyn Fn(&[f64]) -> Change>;
+
+/// A variable of the residual and how to read it off a row.
+type VariableOf = (Variable, fn(&Row) -> f64);
+
 /// A candidate effect: its regressors over all rows and what adding it means.
 struct Candidate {
     family: Family,
@@ -312,7 +318,7 @@ struct Candidate {
     columns: Vec<Vec<f64>>,
     /// Extra chi-square demanded for a searched parameter (a slip's time).
     search_penalty: f64,
-    build: Box<dyn Fn(&[f64]) -> Change>,
+    build: BuildChange,
     describe: String,
 }
 
@@ -331,7 +337,7 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
             .iter()
             .any(|t| t.string as usize == string && f(&t.effect))
     };
-    for i in 0..STRINGS {
+    for (i, split) in time_split.iter().enumerate().take(STRINGS) {
         let s = i as u8;
         let term = move |effect: Effect| Change::Effect(EffectTerm { string: s, effect });
         if !has_effect(i, |e| matches!(e, Effect::Offset { .. })) {
@@ -442,7 +448,7 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
                 describe: format!("string {i}'s length drifts with time since initialization"),
             });
         }
-        if let Some(at_s) = time_split[i] {
+        if let Some(at_s) = *split {
             if !has_effect(i, |e| matches!(e, Effect::Slip { .. })) {
                 let n = rows.iter().filter(|r| r.string == i).count().max(2) as f64;
                 out.push(Candidate {
@@ -635,7 +641,7 @@ pub fn unexplained(
     let Some(ev) = Evidence::gather(id, observations, nominal, structure) else {
         return Vec::new();
     };
-    let variables: [(Variable, fn(&Row) -> f64); 10] = [
+    let variables: [VariableOf; 10] = [
         (Variable::Length, |r| r.length),
         (Variable::WoundLength, |r| r.ctx.payout_mm),
         (Variable::PulleyAngle, |r| pulley_turn_angle(r.ctx.theta)),
