@@ -9,7 +9,8 @@ use spidar_core::string_law::{payout_f64, EffectContext};
 use spidar_core::STRINGS;
 
 use crate::identify::{
-    data_jacobian, device_from_room, identify, Identification, IdentifyError, Start, Structure,
+    data_jacobian, device_from_room, identify, DataJacobian, Identification, IdentifyError, Start,
+    Structure,
 };
 use crate::observe::Observation;
 use crate::predict::{paired_with_tracker, predict, StringModel};
@@ -195,7 +196,11 @@ impl Evidence {
         nominal: &Frame<f64>,
         structure: &Structure,
     ) -> Option<Evidence> {
-        let (jac, weighted, weights) = data_jacobian(id, observations, nominal, structure)?;
+        let DataJacobian {
+            jacobian: jac,
+            residuals: weighted,
+            weights,
+        } = data_jacobian(id, observations, nominal, structure)?;
         let used: Vec<usize> = observations
             .iter()
             .enumerate()

@@ -1121,7 +1121,7 @@ pub fn data_jacobian(
     observations: &[Observation],
     nominal: &Frame<f64>,
     structure: &Structure,
-) -> Option<(DMatrix<f64>, DVector<f64>, Vec<[f64; STRINGS]>)> {
+) -> Option<DataJacobian> {
     let used: Vec<&Observation> = observations
         .iter()
         .filter(|o| o.tracker.is_some())
@@ -1160,9 +1160,19 @@ pub fn data_jacobian(
     let jac = problem.jacobian()?;
     let residuals = problem.residuals()?;
     let rows = used.len() * STRINGS;
-    Some((
-        jac.rows(0, rows).into_owned(),
-        residuals.rows(0, rows).into_owned(),
+    Some(DataJacobian {
+        jacobian: jac.rows(0, rows).into_owned(),
+        residuals: residuals.rows(0, rows).into_owned(),
         weights,
-    ))
+    })
+}
+
+/// See [`data_jacobian`].
+pub struct DataJacobian {
+    /// Weighted Jacobian of the string residuals (scaled parameters).
+    pub jacobian: DMatrix<f64>,
+    /// Weighted string residuals, mm.
+    pub residuals: DVector<f64>,
+    /// Per observation with a tracker position, per string: 1 or 0 (gross).
+    pub weights: Vec<[f64; STRINGS]>,
 }
