@@ -12,8 +12,10 @@ use spidar::sim::{simulate_session, Device, SessionKind};
 /// Runs the loop on a device of `seed` with `effects` injected; returns the
 /// result and the held-out (test session) mean error of the final model.
 fn run(seed: u64, effects: &[&str]) -> (LoopResult, f64) {
-    let mut config = SimConfig::default();
-    config.effects = effects.iter().map(|s| s.to_string()).collect();
+    let config = SimConfig {
+        effects: effects.iter().map(|s| s.to_string()).collect(),
+        ..SimConfig::default()
+    };
     let device = Device::new(&config, seed).expect("device");
     let geometry = config.nominal.geometry();
     let train = simulate_session(&device, SessionKind::Lattice, seed + 100).expect("lattice");
