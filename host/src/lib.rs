@@ -10,3 +10,4 @@ pub mod observe;
 pub mod predict;
 pub mod sim;
 pub mod stats;
+pub mod tracker;
