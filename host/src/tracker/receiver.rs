@@ -95,15 +95,18 @@ impl Reorder {
     /// Take one frame as it arrives.
     pub fn push(&mut self, frame: TrackerFrame, out: &mut VecDeque<TrackerFrame>) {
         let f = frame.frame;
+        if self.highest.is_some_and(|h| h > f && h - f > RESTART_GAP) {
+            // DTrack restarted its frame counter: what is buffered belongs
+            // to the old run and goes out first.
+            self.flush(out);
+            self.next = None;
+            self.highest = None;
+            self.given_up.clear();
+            self.stats.restarts += 1;
+        }
         if let Some(next) = self.next {
             if f < next {
-                if next - f > RESTART_GAP {
-                    self.flush(out);
-                    self.next = None;
-                    self.highest = None;
-                    self.given_up.clear();
-                    self.stats.restarts += 1;
-                } else if self.given_up.remove(&f) {
+                if self.given_up.remove(&f) {
                     self.stats.late += 1;
                     return;
                 } else {

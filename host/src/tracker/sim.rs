@@ -199,6 +199,11 @@ impl SimSender {
         Ok(SimSender { handle })
     }
 
+    /// True once the sender has sent everything (or stopped).
+    pub fn is_finished(&self) -> bool {
+        self.handle.is_finished()
+    }
+
     /// Wait for the sender to finish and get its report.
     pub fn join(self) -> Result<SimReport, TrackerError> {
         self.handle

@@ -348,6 +348,15 @@ fn coarse(
     let st: Vec<Option<f64>> = (0..n + 2 * lmax)
         .map(|k| tracker.speed(base + (k as f64 - lmax as f64) * h, h))
         .collect();
+    let valid = |v: &[Option<f64>]| v.iter().flatten().count();
+    if valid(&sd) < MIN_LAG_PAIRS || valid(&st) < MIN_LAG_PAIRS {
+        // Nothing to correlate: the tracker stream lies outside the search
+        // range, or the streams are all gaps.
+        return Err(SyncError::NoOverlap {
+            pairs: valid(&sd).min(valid(&st)),
+            need: MIN_LAG_PAIRS,
+        });
+    }
     if variance(sd.iter().flatten().copied()) <= 1e-12 {
         return Err(SyncError::NoMotion { stream: "device" });
     }
