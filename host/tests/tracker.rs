@@ -126,7 +126,11 @@ fn malformed_known_records_name_the_field() {
         ("fr 1\r\n6d\r\n".into(), 2, "6d count"),
         (format!("fr 1\r\n6d 2 {body}\r\n"), 2, "6d count"),
         (format!("fr 1\r\n6d 1 {body} x\r\n"), 2, "6d bodies"),
-        ("fr 1\r\n6d 1 [0 1.0][1 2 3 0 0 0][1 0 0\r\n".into(), 2, "6d bodies"),
+        (
+            "fr 1\r\n6d 1 [0 1.0][1 2 3 0 0 0][1 0 0\r\n".into(),
+            2,
+            "6d bodies",
+        ),
         (
             "fr 1\r\n6d 1 [0 1.0][1 2 3 0 0 0][1 0 0]\r\n".into(),
             2,
@@ -357,15 +361,24 @@ fn bad_datagrams_are_counted_and_skipped() {
     let mut rx = receiver(4, 30);
     let tx = UdpSocket::bind(loopback()).unwrap();
     let to = rx.local_addr();
-    let good = |n: u32| format!("fr {n}\r\nts {}.5\r\n6d 1 [0 1.0][1 2 3 0 0 0][1 0 0 0 1 0 0 0 1]\r\n", n);
+    let good = |n: u32| {
+        format!(
+            "fr {n}\r\nts {}.5\r\n6d 1 [0 1.0][1 2 3 0 0 0][1 0 0 0 1 0 0 0 1]\r\n",
+            n
+        )
+    };
     tx.send_to(good(1).as_bytes(), to).unwrap();
     tx.send_to(b"\x00\x01garbage\xff", to).unwrap();
-    tx.send_to(b"fr 2\r\n6d 1 [0 1.0][1 2 3][1 0 0]\r\n", to).unwrap();
+    tx.send_to(b"fr 2\r\n6d 1 [0 1.0][1 2 3][1 0 0]\r\n", to)
+        .unwrap();
     tx.send_to(b"fr 3\r\n6d 0\r\n", to).unwrap(); // no ts
     tx.send_to(good(2).as_bytes(), to).unwrap();
     tx.send_to(good(3).as_bytes(), to).unwrap();
     let frames = collect(&mut rx, 3, Duration::from_secs(5)).unwrap();
-    assert_eq!(frames.iter().map(|f| f.frame).collect::<Vec<_>>(), [1, 2, 3]);
+    assert_eq!(
+        frames.iter().map(|f| f.frame).collect::<Vec<_>>(),
+        [1, 2, 3]
+    );
     let stats = rx.receiver_stats();
     assert_eq!(stats.datagrams, 6);
     assert_eq!(stats.source.malformed, 3);
@@ -448,7 +461,10 @@ fn timestamp_unwraps_at_midnight_and_counter_restarts() {
     rx.accept(frame_text(2, 0.03).as_bytes(), now);
     let frames = rx.drain();
     let ts: Vec<f64> = frames.iter().map(|f| f.ts_s).collect();
-    assert_eq!(frames.iter().map(|f| f.frame).collect::<Vec<_>>(), [5000, 5001, 1, 2]);
+    assert_eq!(
+        frames.iter().map(|f| f.frame).collect::<Vec<_>>(),
+        [5000, 5001, 1, 2]
+    );
     assert!((ts[1] - 86_400.01).abs() < 1e-6, "{ts:?}");
     assert!((ts[3] - 86_400.03).abs() < 1e-6, "{ts:?}");
     let s = rx.stats();
@@ -468,7 +484,10 @@ fn simulated_sender_refuses_other_than_loopback() {
         circle,
     )
     .unwrap_err();
-    assert!(matches!(err, TrackerError::Config { field: "loss", .. }), "{err}");
+    assert!(
+        matches!(err, TrackerError::Config { field: "loss", .. }),
+        "{err}"
+    );
 }
 
 #[test]
@@ -531,16 +550,31 @@ fn replay_paced_in_real_time() {
     let took = start.elapsed();
     assert_eq!(frames.len(), 20);
     let span = frames[19].ts_s - frames[0].ts_s;
-    assert!(took >= Duration::from_secs_f64(span / 1500.0 * 0.9), "{took:?}");
+    assert!(
+        took >= Duration::from_secs_f64(span / 1500.0 * 0.9),
+        "{took:?}"
+    );
     for w in frames.windows(2) {
         assert!(w[1].received_at >= w[0].received_at);
     }
     // A timeout shorter than the next frame's due time gives Timeout.
     let mut slow = ReplaySource::load(session_head(), Pacing::RealTime { speed: 1.0 }).unwrap();
-    assert!(matches!(slow.next_frame(Duration::ZERO).unwrap(), Next::Frame(_)));
-    assert_eq!(slow.next_frame(Duration::from_millis(5)).unwrap(), Next::Timeout);
+    assert!(matches!(
+        slow.next_frame(Duration::ZERO).unwrap(),
+        Next::Frame(_)
+    ));
+    assert_eq!(
+        slow.next_frame(Duration::from_millis(5)).unwrap(),
+        Next::Timeout
+    );
     let err = ReplaySource::load(session_head(), Pacing::RealTime { speed: 0.0 }).unwrap_err();
-    assert!(matches!(err, TrackerError::Config { field: "pacing.speed", .. }));
+    assert!(matches!(
+        err,
+        TrackerError::Config {
+            field: "pacing.speed",
+            ..
+        }
+    ));
 }
 
 #[test]
@@ -621,14 +655,22 @@ fn time_shift_recovered_through_the_simulated_tracker() {
     )
     .unwrap();
     let error = shift.offset_s - (DAY_TIME + OFFSET);
-    eprintln!("DBG {error:e} {shift:?}");
     assert!(error.abs() < 0.003, "{shift:?}");
-    assert!((shift.coarse_offset_s - (DAY_TIME + OFFSET)).abs() < 0.02, "{shift:?}");
-    assert!(shift.offset_std_s > 0.0 && shift.offset_std_s < 0.003, "{shift:?}");
+    assert!(
+        (shift.coarse_offset_s - (DAY_TIME + OFFSET)).abs() < 0.02,
+        "{shift:?}"
+    );
+    assert!(
+        shift.offset_std_s > 0.0 && shift.offset_std_s < 0.003,
+        "{shift:?}"
+    );
     assert!(error.abs() < 5.0 * shift.offset_std_s + 1e-4, "{shift:?}");
     assert!(shift.correlation > 0.9, "{shift:?}");
     for k in 0..3 {
-        assert!((shift.bias_mm[k] - [8.0, -5.0, 14.0][k]).abs() < 0.5, "{shift:?}");
+        assert!(
+            (shift.bias_mm[k] - [8.0, -5.0, 14.0][k]).abs() < 0.5,
+            "{shift:?}"
+        );
     }
     assert!(shift.rms_residual_mm < 3.0, "{shift:?}");
     // The map and its inverse.
@@ -692,13 +734,22 @@ fn time_shift_errors_name_the_problem() {
     bad[4].position_mm[1] = f64::NAN;
     assert!(matches!(
         estimate_time_shift(&bad, &device, &cfg),
-        Err(SyncError::NotFinite { stream: "device", index: 4, field: "position_mm[1]", .. })
+        Err(SyncError::NotFinite {
+            stream: "device",
+            index: 4,
+            field: "position_mm[1]",
+            ..
+        })
     ));
     let mut back = device.clone();
     back[7].t_s = 0.0;
     assert!(matches!(
         estimate_time_shift(&device, &back, &cfg),
-        Err(SyncError::TimeDecreasing { stream: "tracker", index: 7, .. })
+        Err(SyncError::TimeDecreasing {
+            stream: "tracker",
+            index: 7,
+            ..
+        })
     ));
     // Tracker an hour away from the prior: nothing overlaps.
     let far: Vec<TimedPosition> = device
@@ -711,7 +762,17 @@ fn time_shift_errors_name_the_problem() {
     let r = estimate_time_shift(&device, &far, &cfg);
     assert!(matches!(r, Err(SyncError::NoOverlap { .. })), "{r:?}");
     assert!(matches!(
-        estimate_time_shift(&device, &device, &ShiftConfig { max_gap_s: 0.0, ..cfg.clone() }),
-        Err(SyncError::Config { field: "max_gap_s", .. })
+        estimate_time_shift(
+            &device,
+            &device,
+            &ShiftConfig {
+                max_gap_s: 0.0,
+                ..cfg.clone()
+            }
+        ),
+        Err(SyncError::Config {
+            field: "max_gap_s",
+            ..
+        })
     ));
 }

@@ -495,7 +495,7 @@ fn solve(a: [[f64; 2]; 2], b: [f64; 2], p: usize) -> Option<[f64; 2]> {
         return (a[0][0] > 0.0).then(|| [b[0] / a[0][0], 0.0]);
     }
     let det = a[0][0] * a[1][1] - a[0][1] * a[1][0];
-    if !(det.abs() > 1e-300) || !det.is_finite() {
+    if !det.is_finite() || det.abs() <= 1e-300 {
         return None;
     }
     Some([
@@ -555,7 +555,7 @@ pub fn estimate_time_shift(
     }
     let span = device[device.len() - 1].t_s - device[0].t_s;
     let grid = span / h + 2.0 * config.max_shift_s / h;
-    if !(grid < MAX_GRID as f64) {
+    if !grid.is_finite() || grid >= MAX_GRID as f64 {
         return cfg_err(
             "grid_step_s",
             format!("{h} s gives more than {MAX_GRID} grid points over the stream and search"),
