@@ -278,7 +278,8 @@ fn point_errors(
             pe.rows.push(o.row);
             pe.tracker.push(t);
             let d = device_from_room(frame, t);
-            pe.distance_mm.push((d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt());
+            pe.distance_mm
+                .push((d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt());
             pe.errors.push(crate::stats::position_error(*p, t));
         }
     }
@@ -340,7 +341,12 @@ fn session_info(s: NamedSession<'_>) -> Result<report::SessionInfo, CalibrateErr
     })
 }
 
-fn stage(name: &str, kind: report::StageKind, train: ErrorStats, test: ErrorStats) -> report::Stage {
+fn stage(
+    name: &str,
+    kind: report::StageKind,
+    train: ErrorStats,
+    test: ErrorStats,
+) -> report::Stage {
     report::Stage {
         name: name.to_string(),
         kind,
@@ -396,11 +402,7 @@ pub fn calibrate(
     // 2-3. Identification and the diagnosis loop.
     let t = Instant::now();
     let pb = spinner("identification and diagnosis", cfg.quiet);
-    let start = Start::nominal(
-        nominal,
-        geometry.pulley_radius_mm,
-        geometry.counts_per_rev,
-    );
+    let start = Start::nominal(nominal, geometry.pulley_radius_mm, geometry.counts_per_rev);
     let loop_result = close_loop(&tr, Some(&te), &nominal, &start, &cfg.loop_config);
     pb.finish_and_clear();
     let loop_result = loop_result?;
@@ -413,7 +415,8 @@ pub fn calibrate(
     };
     let id_tr = room_positions(base_model, &tr);
     let id_te = room_positions(base_model, &te);
-    let (id_tr_pe, id_tr_s) = point_errors("identified, training session", &tr, &id_tr, &base.frame)?;
+    let (id_tr_pe, id_tr_s) =
+        point_errors("identified, training session", &tr, &id_tr, &base.frame)?;
     let (id_te_pe, id_te_s) = point_errors("identified, test session", &te, &id_te, &base.frame)?;
     stages.push(stage(
         "identified",
@@ -432,12 +435,23 @@ pub fn calibrate(
     let (fin_tr, fin_te) = if loop_result.stages.is_empty() {
         (id_tr.clone(), id_te.clone())
     } else {
-        (room_positions(fin_model, &tr), room_positions(fin_model, &te))
+        (
+            room_positions(fin_model, &tr),
+            room_positions(fin_model, &te),
+        )
     };
-    let (fin_tr_pe, fin_tr_s) =
-        point_errors("identified with effects, training session", &tr, &fin_tr, &fin.frame)?;
-    let (fin_te_pe, fin_te_s) =
-        point_errors("identified with effects, test session", &te, &fin_te, &fin.frame)?;
+    let (fin_tr_pe, fin_tr_s) = point_errors(
+        "identified with effects, training session",
+        &tr,
+        &fin_tr,
+        &fin.frame,
+    )?;
+    let (fin_te_pe, fin_te_s) = point_errors(
+        "identified with effects, test session",
+        &te,
+        &fin_te,
+        &fin.frame,
+    )?;
     let n_effects = loop_result.stages.len();
     for (k, s) in loop_result.stages.iter().enumerate() {
         // The last effect stage is the final identified model: its statistics
@@ -547,7 +561,8 @@ pub fn calibrate(
         |name: String, corr: &CorrectionModel, kind| -> Result<(), CalibrateError> {
             let ptr: Vec<[f64; 3]> = fin_tr.iter().map(|p| corr.evaluate(*p)).collect();
             let pte: Vec<[f64; 3]> = fin_te.iter().map(|p| corr.evaluate(*p)).collect();
-            let (a, sa) = point_errors(&format!("{name}, training session"), &tr, &ptr, &fin.frame)?;
+            let (a, sa) =
+                point_errors(&format!("{name}, training session"), &tr, &ptr, &fin.frame)?;
             let (b, sb) = point_errors(&format!("{name}, test session"), &te, &pte, &fin.frame)?;
             stages.push(stage(&name, kind, sa, sb));
             points.push(StagePoints {
@@ -590,7 +605,10 @@ pub fn calibrate(
     let residual = report::Corrections {
         mode: "residual",
         input: "final identified model, room position (mm)",
-        outliers: report::Outliers::of(&outl, "final identified model vs tracker, training session"),
+        outliers: report::Outliers::of(
+            &outl,
+            "final identified model vs tracker, training session",
+        ),
         nn: report::NnReport::of(&sweep),
         svr: report::SvrReport::of(&svr_search),
     };
@@ -700,34 +718,49 @@ fn blackbox(
     let (rows_tr, x_tr, y_tr) = legacy_pairs(geometry, train.session);
     let (rows_te, x_te, y_te) = legacy_pairs(geometry, test.session);
     let nominal = geometry.nominal_frame();
-    let outl = outliers::tukey(&x_tr, &y_tr).map_err(learn("black-box outliers (Tukey box plot)"))?;
+    let outl =
+        outliers::tukey(&x_tr, &y_tr).map_err(learn("black-box outliers (Tukey box plot)"))?;
     let (xk, yk) = outliers::select(&outl, &x_tr, &y_tr);
-    let sweep = search::nn_sweep(&xk, &yk, &cfg.blackbox_nn).map_err(learn("black-box NN sweep"))?;
+    let sweep =
+        search::nn_sweep(&xk, &yk, &cfg.blackbox_nn).map_err(learn("black-box NN sweep"))?;
     let svr_search =
         search::svr_search(&xk, &yk, &cfg.blackbox_svr).map_err(learn("black-box SVR search"))?;
     let nn_corr = CorrectionModel::Nn(sweep.fit.model.clone());
     let svr_corr = CorrectionModel::Svr(svr_search.fit.model.clone());
     let mut stages = Vec::new();
-    let pe = |rows: &[usize], x: &[[f64; 3]], y: &[[f64; 3]], corr: &CorrectionModel, what: &str| {
-        let mut p = PointErrors::default();
-        for ((row, xi), yi) in rows.iter().zip(x).zip(y) {
-            p.rows.push(*row);
-            p.tracker.push(*yi);
-            let d = device_from_room(&nominal, *yi);
-            p.distance_mm
-                .push((d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt());
-            p.errors
-                .push(crate::stats::position_error(corr.evaluate(*xi), *yi));
-        }
-        error_stats_checked(what, &p.errors).map(|s| (p, s))
-    };
+    let pe =
+        |rows: &[usize], x: &[[f64; 3]], y: &[[f64; 3]], corr: &CorrectionModel, what: &str| {
+            let mut p = PointErrors::default();
+            for ((row, xi), yi) in rows.iter().zip(x).zip(y) {
+                p.rows.push(*row);
+                p.tracker.push(*yi);
+                let d = device_from_room(&nominal, *yi);
+                p.distance_mm
+                    .push((d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt());
+                p.errors
+                    .push(crate::stats::position_error(corr.evaluate(*xi), *yi));
+            }
+            error_stats_checked(what, &p.errors).map(|s| (p, s))
+        };
     for (name, corr) in [
         ("legacy", &CorrectionModel::None),
         ("blackbox nn", &nn_corr),
         ("blackbox svr", &svr_corr),
     ] {
-        let (a, sa) = pe(&rows_tr, &x_tr, &y_tr, corr, &format!("{name}, training session"))?;
-        let (b, sb) = pe(&rows_te, &x_te, &y_te, corr, &format!("{name}, test session"))?;
+        let (a, sa) = pe(
+            &rows_tr,
+            &x_tr,
+            &y_tr,
+            corr,
+            &format!("{name}, training session"),
+        )?;
+        let (b, sb) = pe(
+            &rows_te,
+            &x_te,
+            &y_te,
+            corr,
+            &format!("{name}, test session"),
+        )?;
         let kind = if name == "legacy" {
             report::StageKind::Raw
         } else {

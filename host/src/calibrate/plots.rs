@@ -140,12 +140,24 @@ pub(super) fn draw_all(c: &Calibrated, dir: &Path) -> Result<Vec<Figure>, Calibr
     if let Some(raw) = get("raw") {
         let title = "raw absolute position error, training session";
         let path = out.file("histogram_raw", Some("11"), title);
-        figures::histogram(&path, title, "absolute position error, mm", &raw.train.errors, 40)?;
+        figures::histogram(
+            &path,
+            title,
+            "absolute position error, mm",
+            &raw.train.errors,
+            40,
+        )?;
     }
     if let Some(fin) = get(final_name) {
         let title = format!("{final_name}: absolute position error, test session");
         let path = out.file("histogram_final", None, &title);
-        figures::histogram(&path, &title, "absolute position error, mm", &fin.test.errors, 40)?;
+        figures::histogram(
+            &path,
+            &title,
+            "absolute position error, mm",
+            &fin.test.errors,
+            40,
+        )?;
     }
 
     // Error in collection order (fig. 10).
@@ -222,7 +234,13 @@ pub(super) fn draw_all(c: &Calibrated, dir: &Path) -> Result<Vec<Figure>, Calibr
             )?;
             let title = "legacy controller: absolute position error, training session";
             let path = out.file("blackbox_histogram_legacy", Some("11"), title);
-            figures::histogram(&path, title, "absolute position error, mm", &l.train.errors, 40)?;
+            figures::histogram(
+                &path,
+                title,
+                "absolute position error, mm",
+                &l.train.errors,
+                40,
+            )?;
             let title = "legacy controller: absolute position error in collection order";
             let x = order(&l.train);
             let path = out.file("blackbox_error_order_legacy", Some("10"), title);

@@ -333,9 +333,7 @@ fn stage_table(out: &mut String, stages: &[Stage]) {
         .max()
         .unwrap_or(5)
         .max(5);
-    let (ntr, nte) = stages
-        .first()
-        .map_or((0, 0), |s| (s.train.n, s.test.n));
+    let (ntr, nte) = stages.first().map_or((0, 0), |s| (s.train.n, s.test.n));
     let _ = writeln!(
         out,
         "  {:width$}  {:>27}  {:>27}",
