@@ -44,6 +44,13 @@ pub struct CalibrateArgs {
     /// No progress bars.
     #[arg(long)]
     pub quiet: bool,
+    /// Write the learners' data to DIR as `x,y,z,tx,ty,tz` CSVs (input and
+    /// tracker, mm), for `scripts/reference/reference.py`:
+    /// residual_{train,test}.csv and, when the sessions have dev_* columns,
+    /// blackbox_{train,test}.csv. Training files hold the pairs left after
+    /// outlier removal, test files every tracked row.
+    #[arg(long, value_name = "DIR")]
+    pub export_pairs: Option<PathBuf>,
 }
 
 /// What `spidar calibrate` prints.
@@ -94,6 +101,12 @@ pub fn run_calibrate(args: &CalibrateArgs) -> Result<CalibrateOutput, CalibrateE
              for comparison"
                 .into(),
         );
+    }
+    if let Some(dir) = &args.export_pairs {
+        calibrated.pairs.residual.write(dir, "residual")?;
+        if let Some(bb) = &calibrated.pairs.blackbox {
+            bb.write(dir, "blackbox")?;
+        }
     }
     write_outputs(
         &mut calibrated,
@@ -183,6 +196,7 @@ pub fn run_demo(args: &DemoArgs) -> Result<String, CalibrateError> {
         quick: args.quick,
         no_figures: false,
         quiet: args.quiet,
+        export_pairs: None,
     })?;
     text.push_str(&output.summary);
     Ok(text)

@@ -241,6 +241,67 @@ pub struct Calibrated {
     /// final; black-box legacy, nn, svr).
     pub points: Vec<StagePoints>,
     pub loop_result: LoopResult,
+    /// The learners' data: residual pairs, and black-box pairs when both
+    /// sessions have `dev_*` columns (whether or not the black-box ran).
+    pub pairs: Pairs,
+}
+
+/// (input, tracker) pairs in mm: the training pairs after Tukey's outlier
+/// removal (what the learners train on), the test pairs all tracked rows.
+#[derive(Clone, Debug, Default)]
+pub struct PairSet {
+    pub train_inputs: Vec<[f64; 3]>,
+    pub train_targets: Vec<[f64; 3]>,
+    pub test_inputs: Vec<[f64; 3]>,
+    pub test_targets: Vec<[f64; 3]>,
+}
+
+impl PairSet {
+    /// Write `DIR/{stem}_train.csv` and `DIR/{stem}_test.csv` in the layout
+    /// `scripts/reference/reference.py` reads (`x,y,z,tx,ty,tz`).
+    pub fn write(&self, dir: &Path, stem: &str) -> Result<[PathBuf; 2], CalibrateError> {
+        std::fs::create_dir_all(dir).map_err(|source| CalibrateError::Io {
+            file: dir.to_path_buf(),
+            action: "cannot create the directory",
+            source,
+        })?;
+        let write = |name: String, x: &[[f64; 3]], t: &[[f64; 3]]| {
+            let path = dir.join(name);
+            let mut text = String::from("x,y,z,tx,ty,tz\n");
+            for (a, b) in x.iter().zip(t) {
+                text.push_str(&format!(
+                    "{},{},{},{},{},{}\n",
+                    a[0], a[1], a[2], b[0], b[1], b[2]
+                ));
+            }
+            std::fs::write(&path, text).map_err(|source| CalibrateError::Io {
+                file: path.clone(),
+                action: "cannot write",
+                source,
+            })?;
+            Ok::<PathBuf, CalibrateError>(path)
+        };
+        Ok([
+            write(
+                format!("{stem}_train.csv"),
+                &self.train_inputs,
+                &self.train_targets,
+            )?,
+            write(
+                format!("{stem}_test.csv"),
+                &self.test_inputs,
+                &self.test_targets,
+            )?,
+        ])
+    }
+}
+
+#[derive(Clone, Debug, Default)]
+pub struct Pairs {
+    /// Final identified model's room position -> tracker.
+    pub residual: PairSet,
+    /// Legacy `dev_*` + eq. 6 translation -> tracker.
+    pub blackbox: Option<PairSet>,
 }
 
 impl Calibrated {
@@ -468,6 +529,16 @@ pub fn calibrate(
     let (x_all, t_all) = tracked_pairs(&tr, &fin_tr);
     let outl = outliers::tukey(&x_all, &t_all).map_err(learn("outliers (Tukey box plot)"))?;
     let (x_kept, t_kept) = outliers::select(&outl, &x_all, &t_all);
+    let (xt_all, tt_all) = tracked_pairs(&te, &fin_te);
+    let mut pairs = Pairs {
+        residual: PairSet {
+            train_inputs: x_kept.clone(),
+            train_targets: t_kept.clone(),
+            test_inputs: xt_all,
+            test_targets: tt_all,
+        },
+        blackbox: None,
+    };
     let (fit_idx, sel_idx) = split_indices(x_kept.len(), cfg.selection_fraction, cfg.seed);
     let (x_fit, t_fit) = (subset(&x_kept, &fit_idx), subset(&t_kept, &fit_idx));
     let (x_sel, t_sel) = (subset(&x_kept, &sel_idx), subset(&t_kept, &sel_idx));
@@ -614,10 +685,13 @@ pub fn calibrate(
     };
 
     // Black-box comparison.
+    let legacy = (train_info.has_legacy && test_info.has_legacy)
+        .then(|| blackbox_pairs(geometry, train.session, test.session))
+        .transpose()?;
     let blackbox = if cfg.blackbox {
-        if train_info.has_legacy && test_info.has_legacy {
+        if let Some(lp) = &legacy {
             let t = Instant::now();
-            let bb = blackbox(geometry, train, test, &cfg, &mut points)?;
+            let bb = blackbox(lp, &cfg, &mut points)?;
             timings.blackbox_s = Some(t.elapsed().as_secs_f64());
             Some(bb)
         } else {
@@ -680,11 +754,13 @@ pub fn calibrate(
         figures: Vec::new(),
         files: report::Files::default(),
     };
+    pairs.blackbox = legacy.map(|l| l.kept);
     Ok(Calibrated {
         report,
         calibration,
         points,
         loop_result,
+        pairs,
     })
 }
 
@@ -708,56 +784,90 @@ fn legacy_pairs(
     (rows, x, y)
 }
 
-fn blackbox(
+/// The black-box data: all legacy pairs of both sessions (with their rows),
+/// Tukey's box plot on the training ones, and the kept training pairs.
+struct LegacyPairs {
+    rows_tr: Vec<usize>,
+    x_tr: Vec<[f64; 3]>,
+    y_tr: Vec<[f64; 3]>,
+    rows_te: Vec<usize>,
+    outliers: outliers::OutlierReport,
+    kept: PairSet,
+    nominal: spidar_core::model::Frame<f64>,
+}
+
+fn blackbox_pairs(
     geometry: &Geometry,
-    train: NamedSession<'_>,
-    test: NamedSession<'_>,
-    cfg: &CalibrateConfig,
-    points: &mut Vec<StagePoints>,
-) -> Result<report::Blackbox, CalibrateError> {
-    let (rows_tr, x_tr, y_tr) = legacy_pairs(geometry, train.session);
-    let (rows_te, x_te, y_te) = legacy_pairs(geometry, test.session);
-    let nominal = geometry.nominal_frame();
+    train: &Session,
+    test: &Session,
+) -> Result<LegacyPairs, CalibrateError> {
+    let (rows_tr, x_tr, y_tr) = legacy_pairs(geometry, train);
+    let (rows_te, x_te, y_te) = legacy_pairs(geometry, test);
     let outl =
         outliers::tukey(&x_tr, &y_tr).map_err(learn("black-box outliers (Tukey box plot)"))?;
     let (xk, yk) = outliers::select(&outl, &x_tr, &y_tr);
-    let sweep =
-        search::nn_sweep(&xk, &yk, &cfg.blackbox_nn).map_err(learn("black-box NN sweep"))?;
+    Ok(LegacyPairs {
+        rows_tr,
+        x_tr,
+        y_tr,
+        rows_te,
+        outliers: outl,
+        kept: PairSet {
+            train_inputs: xk,
+            train_targets: yk,
+            test_inputs: x_te,
+            test_targets: y_te,
+        },
+        nominal: geometry.nominal_frame(),
+    })
+}
+
+fn blackbox(
+    lp: &LegacyPairs,
+    cfg: &CalibrateConfig,
+    points: &mut Vec<StagePoints>,
+) -> Result<report::Blackbox, CalibrateError> {
+    let (xk, yk) = (&lp.kept.train_inputs, &lp.kept.train_targets);
+    let sweep = search::nn_sweep(xk, yk, &cfg.blackbox_nn).map_err(learn("black-box NN sweep"))?;
     let svr_search =
-        search::svr_search(&xk, &yk, &cfg.blackbox_svr).map_err(learn("black-box SVR search"))?;
+        search::svr_search(xk, yk, &cfg.blackbox_svr).map_err(learn("black-box SVR search"))?;
     let nn_corr = CorrectionModel::Nn(sweep.fit.model.clone());
     let svr_corr = CorrectionModel::Svr(svr_search.fit.model.clone());
     let mut stages = Vec::new();
-    let pe =
-        |rows: &[usize], x: &[[f64; 3]], y: &[[f64; 3]], corr: &CorrectionModel, what: &str| {
-            let mut p = PointErrors::default();
-            for ((row, xi), yi) in rows.iter().zip(x).zip(y) {
-                p.rows.push(*row);
-                p.tracker.push(*yi);
-                let d = device_from_room(&nominal, *yi);
-                p.distance_mm
-                    .push((d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt());
-                p.errors
-                    .push(crate::stats::position_error(corr.evaluate(*xi), *yi));
-            }
-            error_stats_checked(what, &p.errors).map(|s| (p, s))
-        };
+    let pe = |rows: &[usize],
+              x: &[[f64; 3]],
+              y: &[[f64; 3]],
+              corr: &CorrectionModel,
+              what: &str| {
+        let mut p = PointErrors::default();
+        for ((row, xi), yi) in rows.iter().zip(x).zip(y) {
+            p.rows.push(*row);
+            p.tracker.push(*yi);
+            let d = device_from_room(&lp.nominal, *yi);
+            p.distance_mm
+                .push((d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt());
+            p.errors
+                .push(crate::stats::position_error(corr.evaluate(*xi), *yi));
+        }
+        error_stats_checked(what, &p.errors).map(|s| (p, s))
+    };
+    let (x_te, y_te) = (&lp.kept.test_inputs, &lp.kept.test_targets);
     for (name, corr) in [
         ("legacy", &CorrectionModel::None),
         ("blackbox nn", &nn_corr),
         ("blackbox svr", &svr_corr),
     ] {
         let (a, sa) = pe(
-            &rows_tr,
-            &x_tr,
-            &y_tr,
+            &lp.rows_tr,
+            &lp.x_tr,
+            &lp.y_tr,
             corr,
             &format!("{name}, training session"),
         )?;
         let (b, sb) = pe(
-            &rows_te,
-            &x_te,
-            &y_te,
+            &lp.rows_te,
+            x_te,
+            y_te,
             corr,
             &format!("{name}, test session"),
         )?;
@@ -777,7 +887,10 @@ fn blackbox(
         mode: "absolute",
         input: "legacy controller position dev_x, dev_y, dev_z + eq. 6 translation (mm)",
         stages,
-        outliers: report::Outliers::of(&outl, "legacy position vs tracker, training session"),
+        outliers: report::Outliers::of(
+            &lp.outliers,
+            "legacy position vs tracker, training session",
+        ),
         nn: report::NnReport::of(&sweep),
         svr: report::SvrReport::of(&svr_search),
     })
