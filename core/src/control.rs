@@ -207,6 +207,18 @@ impl Controller {
         &self.config
     }
 
+    /// New tension bounds for the distribution (the host's `SetLimits`), so
+    /// the distribution and the safety clamp agree and the rendered force
+    /// stays exact. The safety monitor's own limits are set with it by the
+    /// caller.
+    pub fn set_tension_limits(&mut self, limits: TensionLimits<f32>, pretension_n: f32) {
+        self.config.tension_limits = limits;
+        self.config.safety.t_min = limits.t_min;
+        self.config.safety.t_max = limits.t_max;
+        self.config.safety.pretension_n = pretension_n;
+        self.multiplier = [0.0; 3];
+    }
+
     /// One iteration.
     pub fn step(&mut self, calibration: &CompiledCalibration<'_>, input: &LoopInput) -> LoopOutput {
         let frame = &calibration.head.frame;

@@ -32,10 +32,14 @@
 //! support vectors are stored in the same space, so per support vector
 //! `u = sum_i (q_i - s_i)^2` is three `32x32->64` multiply-accumulates, its
 //! high word is `u` in Q10.22, and the kernel is `2^-u` in Q1.30
-//! ([`crate::fixed::exp2_neg_q22`]); support vectors with `u >= 31` are
-//! skipped (their kernel is below the Q1.30 resolution). The kernel is shared
-//! by the three axes: `out_a = round((sum_j coef[a][j] K_j) >> (coef_frac[a]
-//! + 14)) + offset[a]`, `coef = alpha * std_out` in Q(`coef_frac[a]`) mm.
+//! ([`crate::fixed::exp2_neg_q22`], a product of three table entries; 0 for
+//! `u >= 31`, below the Q1.30 resolution). The kernel is shared by the three
+//! axes. Support vectors are taken in blocks of [`SVR_BLOCK`]: within a block
+//! each axis sums `round(coef[a][j] K_j / 2^32)` in an `i32` (in mm with
+//! `coef_frac[a] - 2` fractional bits), the block sums are added in `i64`, and `out_a = round(acc_a >>
+//! (coef_frac[a] - 18)) + offset[a]` (`+ p_a` in residual mode), `coef =
+//! alpha * std_out` in Q(`coef_frac[a]`) mm, the fractional bits chosen so
+//! that every block's `sum |coef|` stays within [`SVR_BLOCK_ABS_SUM_MAX`].
 
 use serde::{Deserialize, Serialize};
 
@@ -104,8 +108,8 @@ mod f64_models {
 }
 
 use crate::fixed::{
-    exp2_neg_q22_below_cutoff, le_i32, read_i32, sat_i32, shr_i64, shr_round_i64,
-    shr_sat_i64_to_i32, tanh_q27, EXP2_CUTOFF_Q22,
+    exp2_neg_q22_with, le_i32, read_i32, sat_i32, shr_i64, shr_round_i64, shr_sat_i64_to_i32,
+    tanh_q27, EXP2_FRACTION_ENTRIES, EXP2_HIGH, EXP2_INTEGER, EXP2_INTEGER_ENTRIES, EXP2_LOW,
 };
 use spidar_protocol::blob::{BlobError, CorrectionKind};
 
@@ -180,8 +184,15 @@ pub const NN_NEURON_LEN: usize = 28;
 pub const SVR_HEADER_LEN: usize = 44;
 /// Bytes per support vector in the SVR body.
 pub const SVR_RECORD_LEN: usize = 24;
-/// Support vectors per block of the SVR evaluation (kernel buffer on the stack).
-const SVR_BLOCK: usize = 32;
+/// Support vectors per block of the SVR evaluation: within a block each axis
+/// accumulates in an `i32` (one rounding multiply-accumulate per term), and
+/// the block sums are added in `i64`.
+pub const SVR_BLOCK: usize = 64;
+/// Largest sum, over one axis and one block of [`SVR_BLOCK`] consecutive
+/// support vectors, of the magnitudes of the stored coefficients: each term
+/// `round(coef K / 2^32)` is at most `|coef| / 4 + 1` (`K <= 2^30`), so the
+/// block's `i32` accumulator stays within `2^31 - 1`.
+pub const SVR_BLOCK_ABS_SUM_MAX: u64 = (1 << 33) - 4 * SVR_BLOCK as u64 - 4;
 
 fn len_u32(n: usize) -> u32 {
     u32::try_from(n).unwrap_or(u32::MAX)
@@ -398,7 +409,8 @@ impl<'a> SvrView<'a> {
     /// Checks and wraps a compiled SVR of `support_vectors` support vectors
     /// (the blob header's count): exact length, mode, Q formats in range,
     /// support vectors within [`SUPPORT_MAX`], every axis' coefficients
-    /// within [`OUTPUT_ABS_SUM_MAX`]. O(support_vectors), done once at load.
+    /// within [`SVR_BLOCK_ABS_SUM_MAX`] per block of [`SVR_BLOCK`].
+    /// O(support_vectors), done once at load.
     pub fn parse(bytes: &'a [u8], support_vectors: u32) -> Result<SvrView<'a>, BlobError> {
         let expected = (SVR_HEADER_LEN as u64)
             .saturating_add((SVR_RECORD_LEN as u64).saturating_mul(support_vectors as u64));
@@ -432,7 +444,10 @@ impl<'a> SvrView<'a> {
         let offset = read3(bytes, 32, "svr.offset")?;
         let records = &bytes[SVR_HEADER_LEN..];
         let mut sums = [0u64; 3];
-        for rec in records.chunks_exact(SVR_RECORD_LEN) {
+        for (j, rec) in records.chunks_exact(SVR_RECORD_LEN).enumerate() {
+            if j % SVR_BLOCK == 0 {
+                sums = [0; 3];
+            }
             for i in 0..3 {
                 let s = read_i32(rec, 4 * i).ok_or(BlobError::Body {
                     field: "svr.support",
@@ -446,7 +461,7 @@ impl<'a> SvrView<'a> {
             for (a, sum) in sums.iter_mut().enumerate() {
                 let c = read_i32(rec, 12 + 4 * a).ok_or(BlobError::Body { field: "svr.coef" })?;
                 *sum += c.unsigned_abs() as u64;
-                if *sum > OUTPUT_ABS_SUM_MAX {
+                if *sum > SVR_BLOCK_ABS_SUM_MAX {
                     return Err(BlobError::Body { field: "svr.coef" });
                 }
             }
@@ -488,66 +503,126 @@ impl<'a> SvrView<'a> {
     /// Corrected position (Q15.16 mm) of a position `p` (Q15.16 mm). Integer
     /// only, saturating, never panics.
     pub fn evaluate(&self, p: [i32; 3]) -> [i32; 3] {
-        let [q0, q1, q2] = self.scaled(p);
+        let q = self.scaled(p);
         let mut acc = [0i64; 3];
-        // Two passes per block of support vectors: kernels into a small
-        // buffer, then the three axes. Separate (not inlined) loops, so each
-        // fits the Cortex-M7's registers: one loop would need q, six
-        // accumulator words and the exp temporaries at once, and spills.
-        let mut kernels = [0i32; SVR_BLOCK];
         for block in self.records.chunks(SVR_RECORD_LEN * SVR_BLOCK) {
-            svr_kernels(block, [q0, q1, q2], &mut kernels);
-            svr_accumulate(block, &kernels, &mut acc);
+            let part = svr_block(
+                block,
+                q,
+                core::hint::black_box(&EXP2_HIGH),
+                core::hint::black_box(&EXP2_LOW),
+                core::hint::black_box(&EXP2_INTEGER),
+            );
+            for a in 0..3 {
+                acc[a] = acc[a].wrapping_add(part[a] as i64);
+            }
         }
-        let [acc0, acc1, acc2] = acc;
         [
-            finish(acc0, self.coef_frac[0], self.offset[0], self.mode, p[0]),
-            finish(acc1, self.coef_frac[1], self.offset[1], self.mode, p[1]),
-            finish(acc2, self.coef_frac[2], self.offset[2], self.mode, p[2]),
+            svr_finish(acc[0], self.coef_frac[0], self.offset[0], self.mode, p[0]),
+            svr_finish(acc[1], self.coef_frac[1], self.offset[1], self.mode, p[1]),
+            svr_finish(acc[2], self.coef_frac[2], self.offset[2], self.mode, p[2]),
         ]
     }
 }
 
-/// SVR pass 1: the kernel `2^-|q - s_j|^2` (Q1.30) of each support vector of
-/// `block` (at most [`SVR_BLOCK`]), 0 beyond the cutoff.
-#[inline(never)]
-fn svr_kernels(block: &[u8], q: [i32; 3], kernels: &mut [i32; SVR_BLOCK]) {
-    let [q0, q1, q2] = q;
-    for (rec, k) in block.chunks_exact(SVR_RECORD_LEN).zip(kernels.iter_mut()) {
-        let Ok(rec) = <&[u8; SVR_RECORD_LEN]>::try_from(rec) else {
-            continue;
-        };
-        let d0 = q0.saturating_sub(le_i32::<SVR_RECORD_LEN, 0>(rec)) as i64;
-        let d1 = q1.saturating_sub(le_i32::<SVR_RECORD_LEN, 4>(rec)) as i64;
-        let d2 = q2.saturating_sub(le_i32::<SVR_RECORD_LEN, 8>(rec)) as i64;
-        // Each square <= 2^62; the sum < 2^64 as an unsigned bit pattern.
-        let u = ((d0 * d0) as u64)
-            .wrapping_add((d1 * d1) as u64)
-            .wrapping_add((d2 * d2) as u64);
-        let u_hi = (u >> 32) as u32; // Q10.22 (u in Q54)
-        *k = if u_hi < EXP2_CUTOFF_Q22 {
-            exp2_neg_q22_below_cutoff(u_hi) // Q1.30
-        } else {
-            0
-        };
-    }
+/// `acc + round(a b / 2^32)` (wrapping), one `smmlar` on the Cortex-M7.
+#[inline(always)]
+fn mul_hi_round_acc(acc: i32, a: i32, b: i32) -> i32 {
+    ((((acc as i64) << 32)
+        .wrapping_add(a as i64 * b as i64)
+        .wrapping_add(1 << 31))
+        >> 32) as i32
 }
 
-/// SVR pass 2: `acc_a += coef_a K` over the support vectors of `block`
-/// (`i64`, Q(30 + coef_frac_a) mm).
+/// One block of at most [`SVR_BLOCK`] support vectors: per axis
+/// `sum_j round(coef_a K_j / 2^32)`, `K_j = 2^-|q - s_j|^2` (Q1.30), in
+/// Q(`coef_frac_a` - 2) mm. One pass: q (3), three `i32` accumulators, the
+/// record pointer and count and the exp2 tables (`high`, `low`, `integer`:
+/// always [`EXP2_HIGH`], [`EXP2_LOW`], [`EXP2_INTEGER`], passed in so that
+/// LLVM keeps their addresses in registers or reloads them, instead of
+/// rebuilding each from a `movw`/`movt` pair per use). Not inlined, so that
+/// the register allocation of this loop does not depend on the caller.
 #[inline(never)]
-fn svr_accumulate(block: &[u8], kernels: &[i32; SVR_BLOCK], acc: &mut [i64; 3]) {
-    let [mut acc0, mut acc1, mut acc2] = *acc;
-    for (rec, &k) in block.chunks_exact(SVR_RECORD_LEN).zip(kernels.iter()) {
-        let Ok(rec) = <&[u8; SVR_RECORD_LEN]>::try_from(rec) else {
-            continue;
-        };
-        let k = k as i64;
-        acc0 = acc0.wrapping_add(le_i32::<SVR_RECORD_LEN, 12>(rec) as i64 * k);
-        acc1 = acc1.wrapping_add(le_i32::<SVR_RECORD_LEN, 16>(rec) as i64 * k);
-        acc2 = acc2.wrapping_add(le_i32::<SVR_RECORD_LEN, 20>(rec) as i64 * k);
+fn svr_block(
+    block: &[u8],
+    q: [i32; 3],
+    high: &[u32; EXP2_FRACTION_ENTRIES],
+    low: &[u32; EXP2_FRACTION_ENTRIES],
+    integer: &[u32; EXP2_INTEGER_ENTRIES],
+) -> [i32; 3] {
+    let mut acc = [0i32; 3];
+    for rec in block.chunks_exact(SVR_RECORD_LEN) {
+        // An empty barrier (no instruction: an empty `asm` with a memory
+        // clobber): LLVM does not unroll a loop containing it. Unrolled (and
+        // interleaved), this loop no longer fits the registers and spills.
+        core::hint::black_box(());
+        acc = svr_term(rec, q, acc, (high, low, integer));
     }
-    *acc = [acc0, acc1, acc2];
+    acc
+}
+
+/// Adds one support vector's terms (`rec`, [`SVR_RECORD_LEN`] bytes; any
+/// other length adds nothing) to the block accumulators.
+#[inline(always)]
+fn svr_term(
+    rec: &[u8],
+    q: [i32; 3],
+    acc: [i32; 3],
+    tables: (
+        &[u32; EXP2_FRACTION_ENTRIES],
+        &[u32; EXP2_FRACTION_ENTRIES],
+        &[u32; EXP2_INTEGER_ENTRIES],
+    ),
+) -> [i32; 3] {
+    let Ok(rec) = <&[u8; SVR_RECORD_LEN]>::try_from(rec) else {
+        return acc;
+    };
+    let d0 = q[0].saturating_sub(le_i32::<SVR_RECORD_LEN, 0>(rec)) as i64;
+    let d1 = q[1].saturating_sub(le_i32::<SVR_RECORD_LEN, 4>(rec)) as i64;
+    let d2 = q[2].saturating_sub(le_i32::<SVR_RECORD_LEN, 8>(rec)) as i64;
+    // Each square <= 2^62; the sum < 2^64 as an unsigned bit pattern. Its
+    // high word is u in Q10.22 (truncated).
+    let u = ((d0 * d0) as u64)
+        .wrapping_add((d1 * d1) as u64)
+        .wrapping_add((d2 * d2) as u64);
+    let u = (u >> 32) as u32;
+    // K = 0 at and beyond the cutoff (u >= 31).
+    let k = exp2_neg_q22_with(u, tables.0, tables.1, tables.2);
+    [
+        mul_hi_round_acc(acc[0], le_i32::<SVR_RECORD_LEN, 12>(rec), k),
+        mul_hi_round_acc(acc[1], le_i32::<SVR_RECORD_LEN, 16>(rec), k),
+        mul_hi_round_acc(acc[2], le_i32::<SVR_RECORD_LEN, 20>(rec), k),
+    ]
+}
+
+/// SVR output step: accumulator in Q(`frac` - 2) mm to Q15.16 (a rounding
+/// right shift, or a saturating left shift for `frac < 18`), plus offset,
+/// plus the input in residual mode, saturated.
+#[inline(always)]
+fn svr_finish(acc: i64, frac: u8, offset: i32, mode: OutputMode, p: i32) -> i32 {
+    const ACC_FRAC_BELOW_COEF: u32 = 32 - ACTIVATION_FRAC as u32; // 2
+    let acc_frac = frac as i32 - ACC_FRAC_BELOW_COEF as i32;
+    let sh = acc_frac - POSITION_FRAC as i32; // -18..=30
+    let y = if sh >= 0 {
+        shr_round_i64(acc, sh as u32)
+    } else {
+        let l = sh.unsigned_abs();
+        // |acc| < 2^47 (at most 2^26 blocks of 2^31): no overflow below 2^16.
+        if acc.unsigned_abs() >> (62 - l) != 0 {
+            if acc < 0 {
+                i64::MIN
+            } else {
+                i64::MAX
+            }
+        } else {
+            acc << l
+        }
+    };
+    let base = match mode {
+        OutputMode::Absolute => 0,
+        OutputMode::Residual => p as i64,
+    };
+    sat_i32(y.saturating_add(offset as i64).saturating_add(base))
 }
 
 // ---------------------------------------------------------------------------
@@ -772,6 +847,22 @@ mod host {
             let s = pow2(f as u32);
             libm::round(max * s) <= i32::MAX as f64
                 && sum * s + w.len() as f64 <= OUTPUT_ABS_SUM_MAX as f64
+        })
+    }
+
+    /// Fractional bits for one axis of SVR coefficients (`i32` each, the sum
+    /// of magnitudes of every block of [`SVR_BLOCK`] within
+    /// [`SVR_BLOCK_ABS_SUM_MAX`] after rounding).
+    fn svr_coef_frac(c: &[f64]) -> Option<u8> {
+        let max = c.iter().fold(0f64, |m, v| m.max(libm::fabs(*v)));
+        let block_sum = c
+            .chunks(SVR_BLOCK)
+            .map(|b| b.iter().map(|v| libm::fabs(*v)).sum::<f64>())
+            .fold(0f64, f64::max);
+        OUTPUT_FRAC_RANGE.rev().find(|&f| {
+            let s = pow2(f as u32);
+            libm::round(max * s) <= i32::MAX as f64
+                && block_sum * s + SVR_BLOCK as f64 <= SVR_BLOCK_ABS_SUM_MAX as f64
         })
     }
 
@@ -1067,11 +1158,11 @@ mod host {
                     .iter()
                     .map(|c| c * self.output.std[a])
                     .collect();
-                coef_frac[a] = output_frac(&coef[a]).ok_or_else(|| {
+                coef_frac[a] = svr_coef_frac(&coef[a]).ok_or_else(|| {
                     largest(
                         COEF[a],
                         coef[a].iter().copied(),
-                        "i32 Q(0) mm, sum of magnitudes within 2^32 (coef * output.std)",
+                        "i32 Q(0) mm, sum of magnitudes per block of 64 within 2^33 (coef * output.std)",
                     )
                 })?;
             }

@@ -7,11 +7,11 @@
 //!   1/32, derivative `1 - tanh^2` at both ends), evaluated in three
 //!   `smmla`-style steps. Absolute error about 1e-9 (see the tests).
 //! - [`exp2_neg_q22`]: `2^-u` of a Q10.22 exponent (`u32`), Q1.30 result: the
-//!   integer part of `u` is a right shift, the fraction comes from a table of
-//!   1024 linear segments with a `32x32->64` multiply. Relative error about
-//!   1e-7.
+//!   product of three table entries (11 high and 11 low fraction bits, the
+//!   integer part), two `32x32->64` multiplies, no branch. Relative error
+//!   below 1e-7 (the argument's Q22 resolution).
 //!
-//! Both tables are computed by `const fn`s at compile time. Const evaluation is
+//! The tables are computed by `const fn`s at compile time. Const evaluation is
 //! done by the compiler with software IEEE arithmetic, so the host build and the
 //! `thumbv7em-none-eabihf` build embed the very same table bits, and the
 //! evaluators are integer-only at run time: host and device results are
@@ -36,12 +36,13 @@ pub const TANH_SEGMENTS: usize = 512;
 pub const EXP2_IN_FRAC: u32 = 22;
 /// Fractional bits of the result of [`exp2_neg_q22`] (Q1.30).
 pub const EXP2_OUT_FRAC: u32 = 30;
-/// Index bits of the exp2 table (1024 segments over one octave).
-const EXP2_INDEX_BITS: u32 = 10;
-/// Segments of the exp2 table.
-pub const EXP2_SEGMENTS: usize = 1 << EXP2_INDEX_BITS;
-/// Bits of `u` below the table index: the interpolation fraction.
-const EXP2_FRAC_BITS: u32 = EXP2_IN_FRAC - EXP2_INDEX_BITS;
+/// Bits of `u` per factor of the exp2 tables: `u = n 2^22 + a 2^11 + b`.
+const EXP2_SPLIT_BITS: u32 = 11;
+/// Entries of each of the two fraction tables of [`exp2_neg_q22`] (`2^11`).
+pub const EXP2_FRACTION_ENTRIES: usize = 1 << EXP2_SPLIT_BITS;
+/// Entries of the integer-part table of [`exp2_neg_q22`]: every `n = u >> 22`
+/// of a `u32` (`0..1024`), so the lookup needs neither a test nor a mask.
+pub const EXP2_INTEGER_ENTRIES: usize = 1 << (32 - EXP2_IN_FRAC);
 /// Smallest exponent `u` (Q10.22) for which [`exp2_neg_q22`] returns 0: `2^-31`
 /// is below half the resolution of Q1.30.
 pub const EXP2_CUTOFF_Q22: u32 = 31 << EXP2_IN_FRAC;
@@ -111,32 +112,47 @@ const fn tanh_table() -> [[i32; 4]; TANH_SEGMENTS] {
     t
 }
 
-/// The exp2 table: per segment `j` of `[0, 1)` (width `w = 1/1024`),
-/// `[c0, slope]` in Q1.30 with `2^-(j w + f w) ~= c0 - slope * f`, `f in [0, 1)`.
+/// The exp2 tables of [`exp2_neg_q22`], for `u = n 2^22 + a 2^11 + b` (Q10.22):
 ///
-/// The exponent reaching the table is truncated to Q22, so the segment is
-/// centred half a Q22 step later (`+2^-23`), and `c0` is lowered by the mean
-/// error of the chord (2/3 of its sag; the chord of a convex function lies
-/// above it): the error then averages to zero over a segment instead of being
-/// biased, which matters when hundreds of kernels are summed.
-const fn exp2_table() -> [[u32; 2]; EXP2_SEGMENTS] {
-    let mut t = [[0u32; 2]; EXP2_SEGMENTS];
-    let w = 1.0 / EXP2_SEGMENTS as f64;
-    let half_lsb = 1.0 / (1u64 << (EXP2_IN_FRAC + 1)) as f64;
-    let one = (1u64 << EXP2_OUT_FRAC) as f64;
-    let mut j = 0;
-    while j < EXP2_SEGMENTS {
-        let a = j as f64 * w + half_lsb;
-        let ya = exp_const(-a * LN2);
-        let yb = exp_const(-(a + w) * LN2);
-        // Chord minus curve at the middle of the segment.
-        let mid = exp_const(-(a + 0.5 * w) * LN2);
-        let sag = 0.5 * (ya + yb) - mid;
-        t[j] = [
-            round_i64((ya - sag * (2.0 / 3.0)) * one) as u32,
-            round_i64((ya - yb) * one) as u32,
-        ];
-        j += 1;
+/// - `high[a] = 2^-(a 2^11 / 2^22)` in Q1.31 (`high[0] = 2^31`);
+/// - `low[b] = 2^-((b + 1/2) / 2^22)` in Q0.32: the exponent reaching the
+///   table is truncated to Q22, so the value is taken at the centre of its
+///   bin (zero-mean error instead of a bias when hundreds of kernels add up);
+/// - `integer[n] = 2^(31 - n)` for `n < 31`, else 0 (the cutoff: `2^-31` is
+///   below half the resolution of Q1.30).
+///
+/// Each entry is exact to its rounding (relative 2^-31 or better): no
+/// interpolation error.
+pub struct Exp2Tables {
+    pub high: [u32; EXP2_FRACTION_ENTRIES],
+    pub low: [u32; EXP2_FRACTION_ENTRIES],
+    pub integer: [u32; EXP2_INTEGER_ENTRIES],
+}
+
+const fn exp2_tables() -> Exp2Tables {
+    let mut t = Exp2Tables {
+        high: [0; EXP2_FRACTION_ENTRIES],
+        low: [0; EXP2_FRACTION_ENTRIES],
+        integer: [0; EXP2_INTEGER_ENTRIES],
+    };
+    let q22 = (1u64 << EXP2_IN_FRAC) as f64;
+    let mut i = 0;
+    while i < EXP2_FRACTION_ENTRIES {
+        let a = (i << EXP2_SPLIT_BITS) as f64 / q22;
+        t.high[i] = round_i64(exp_const(-a * LN2) * (1u64 << 31) as f64) as u32;
+        let b = (i as f64 + 0.5) / q22;
+        let low = round_i64(exp_const(-b * LN2) * (1u64 << 32) as f64);
+        t.low[i] = if low > u32::MAX as i64 {
+            u32::MAX
+        } else {
+            low as u32
+        };
+        i += 1;
+    }
+    let mut n = 0;
+    while n < 31 {
+        t.integer[n] = 1 << (31 - n);
+        n += 1;
     }
     t
 }
@@ -144,8 +160,14 @@ const fn exp2_table() -> [[u32; 2]; EXP2_SEGMENTS] {
 /// Cubic Hermite segments of `tanh` over `[0, 16)`; see [`tanh_q27`].
 pub static TANH_TABLE: [[i32; 4]; TANH_SEGMENTS] = tanh_table();
 
-/// Linear segments of `2^-u` over `u in [0, 1)`; see [`exp2_neg_q22`].
-pub static EXP2_TABLE: [[u32; 2]; EXP2_SEGMENTS] = exp2_table();
+const EXP2_TABLES: Exp2Tables = exp2_tables();
+/// `high` factors of `2^-u` ([`Exp2Tables`], [`exp2_neg_q22`]), 8 KiB. Three
+/// separate statics, so that each is a base address of its own.
+pub static EXP2_HIGH: [u32; EXP2_FRACTION_ENTRIES] = EXP2_TABLES.high;
+/// `low` factors of `2^-u`, 8 KiB.
+pub static EXP2_LOW: [u32; EXP2_FRACTION_ENTRIES] = EXP2_TABLES.low;
+/// `integer` factors of `2^-u` (the cutoff), 4 KiB.
+pub static EXP2_INTEGER: [u32; EXP2_INTEGER_ENTRIES] = EXP2_TABLES.integer;
 
 // ---------------------------------------------------------------------------
 // Run-time helpers (integer only).
@@ -284,27 +306,34 @@ pub fn tanh_q27(x: i32) -> i32 {
 /// `2^-u` in fixed point: `u` in Q10.22 (`u32`, `u >= 0`), result Q1.30
 /// (`<= 2^30`). Returns 0 for `u >= 31` ([`EXP2_CUTOFF_Q22`]).
 ///
-/// `u = n + j/1024 + f/2^22`: `n` (bits 22..) is a right shift, `j` (bits
-/// 12..22) indexes [`EXP2_TABLE`], `f` (bits 0..12) interpolates linearly with
-/// one `32x32->64` multiply. Never panics.
+/// `u = n 2^22 + a 2^11 + b`: `2^-u = high[a] low[b] integer[n]` (see
+/// [`Exp2Tables`]), two `32x32->64` multiplies keeping the high word. No
+/// branch and no mask: the cutoff is in the `integer` table, which has an
+/// entry for every `n` of a `u32`. Never panics. Relative error below 1e-7
+/// within the first octave (the Q22 truncation of the argument, centred),
+/// absolute error below 2^-30 beyond.
 #[inline(always)]
 pub fn exp2_neg_q22(u: u32) -> i32 {
-    if u >= EXP2_CUTOFF_Q22 {
-        return 0;
-    }
-    exp2_neg_q22_below_cutoff(u)
+    exp2_neg_q22_with(u, &EXP2_HIGH, &EXP2_LOW, &EXP2_INTEGER)
 }
 
-/// [`exp2_neg_q22`] without the cutoff test, for callers that tested
-/// `u < EXP2_CUTOFF_Q22` already (the shift is masked, so any `u` is safe).
+/// [`exp2_neg_q22`] with the tables passed in (always [`EXP2_HIGH`],
+/// [`EXP2_LOW`], [`EXP2_INTEGER`]): in a loop the caller holds their
+/// addresses in registers (or spills them) instead of rebuilding each with
+/// two instructions per use.
 #[inline(always)]
-pub fn exp2_neg_q22_below_cutoff(u: u32) -> i32 {
-    let n = u >> EXP2_IN_FRAC;
-    let j = ((u >> EXP2_FRAC_BITS) as usize) & (EXP2_SEGMENTS - 1);
-    let f = u << (32 - EXP2_FRAC_BITS); // fraction of the segment, Q0.32
-    let [c0, slope] = EXP2_TABLE[j];
-    let k0 = c0.wrapping_sub(((slope as u64 * f as u64) >> 32) as u32);
-    (k0 >> (n & 31)) as i32
+pub fn exp2_neg_q22_with(
+    u: u32,
+    high: &[u32; EXP2_FRACTION_ENTRIES],
+    low: &[u32; EXP2_FRACTION_ENTRIES],
+    integer: &[u32; EXP2_INTEGER_ENTRIES],
+) -> i32 {
+    let mask = EXP2_FRACTION_ENTRIES - 1;
+    let high = high[(u >> EXP2_SPLIT_BITS) as usize & mask];
+    let low = low[u as usize & mask];
+    let integer = integer[(u >> EXP2_IN_FRAC) as usize & (EXP2_INTEGER_ENTRIES - 1)];
+    let k = ((high as u64 * low as u64) >> 32) as u32; // Q1.31
+    ((k as u64 * integer as u64) >> 32) as i32 // Q1.30
 }
 
 #[cfg(test)]

@@ -269,6 +269,29 @@ fn solve<F: Float>(
     }
 }
 
+/// Index of the string with the largest `| |p - anchor_i| - length_i |` (the
+/// first one on ties; 0 if every residual is NaN).
+fn largest_residual<F: Float>(
+    anchors: &[Vec3<F>; STRINGS],
+    lengths: &[F; STRINGS],
+    p: Vec3<F>,
+) -> usize {
+    let mut worst = 0;
+    let mut worst_r = F::neg_infinity();
+    for i in 0..STRINGS {
+        let a = anchors[i];
+        let dx = p[0] - a[0];
+        let dy = p[1] - a[1];
+        let dz = p[2] - a[2];
+        let r = ((dx * dx + dy * dy + dz * dz).sqrt() - lengths[i]).abs();
+        if r > worst_r {
+            worst = i;
+            worst_r = r;
+        }
+    }
+    worst
+}
+
 fn rms<F: Float>(cost: F, n: usize) -> F {
     let r = (cost / lit(n as f64)).sqrt();
     if r.is_finite() {
@@ -287,12 +310,14 @@ fn finite3<F: Float>(v: &Vec3<F>) -> bool {
 ///
 /// 1. Damped Gauss-Newton (Levenberg-Marquardt) on the 8 residuals
 ///    `|p - anchor_i| - length_i`, at most `config.max_iterations` iterations.
-/// 2. If the RMS residual exceeds `config.fault_threshold_mm`, the 8 solves
-///    leaving one string out (7 strings) are run, each from the better of
-///    `start` and the 8-string solution, at most
-///    `config.exclusion_max_iterations` iterations each; the one with the
-///    lowest RMS is kept if it is converged and below the threshold
-///    ([`FkStatus::FaultyStringExcluded`]), else [`FkStatus::Inconsistent`].
+/// 2. If the RMS residual exceeds `config.fault_threshold_mm`, solves leaving
+///    one string out (7 strings) are run, each from the better of `start`
+///    and the 8-string solution, at most `config.exclusion_max_iterations`
+///    iterations each. The string with the largest residual at the 8-string
+///    solution goes first; if leaving it out converges within the threshold
+///    it is the answer ([`FkStatus::FaultyStringExcluded`]). Otherwise the
+///    other 7 are run too and the one with the lowest RMS is kept if it is
+///    converged and below the threshold, else [`FkStatus::Inconsistent`].
 ///
 /// Never panics; never returns a NaN position or RMS (a non-finite `start`
 /// is replaced by the anchors' centroid).
@@ -344,22 +369,43 @@ pub fn forward_kinematics<F: Float>(
         };
     }
 
-    let mut best: Option<(usize, Solve<F>)> = None;
-    for k in 0..STRINGS {
+    // The string with the largest residual at the 8-string solution is the
+    // likeliest culprit: its exclusion is tried first and kept at once if it
+    // explains the lengths (converged, RMS within the threshold), which
+    // spares the other 7 solves in the common single-fault case. Otherwise
+    // every exclusion is tried and the best one kept.
+    let first = largest_residual(anchors, lengths, all.position);
+    let exclude = |k: usize| {
         let skip = Some(k);
         // Start from whichever of the previous position and the 8-string
         // solution fits the 7 strings better.
         let c_start = evaluate(anchors, lengths, skip, start).cost;
         let c_all = evaluate(anchors, lengths, skip, all.position).cost;
         let from = if c_start < c_all { start } else { all.position };
-        let s = solve(
+        solve(
             anchors,
             lengths,
             skip,
             from,
             config.exclusion_max_iterations,
             config,
-        );
+        )
+    };
+    let s = exclude(first);
+    iterations = iterations.saturating_add(s.iterations);
+    let r = rms(s.cost, STRINGS - 1);
+    if s.converged && r <= config.fault_threshold_mm {
+        return FkSolution {
+            position: s.position,
+            status: FkStatus::FaultyStringExcluded,
+            excluded: Some(first as u8),
+            rms_residual_mm: r,
+            iterations,
+        };
+    }
+    let mut best: Option<(usize, Solve<F>)> = Some((first, s));
+    for k in (0..STRINGS).filter(|&k| k != first) {
+        let s = exclude(k);
         iterations = iterations.saturating_add(s.iterations);
         let better = match &best {
             None => true,

@@ -11,7 +11,9 @@
 //! - [`kinematics`]: forward kinematics from 8 strings with faulty-string rejection;
 //! - [`correction`]: fixed-point NN / SVR position corrections;
 //! - [`tension`], [`guidance`], [`safety`]: force rendering and its limits;
-//! - [`control`]: one control-loop iteration wiring all of the above.
+//! - [`control`]: one control-loop iteration wiring all of the above;
+//! - [`model_store`]: two flash slots holding the model blob, power-loss safe uploads;
+//! - [`device`]: the device behind the link: requests, uploads, the loop, the state stream.
 #![cfg_attr(not(test), no_std)]
 #![forbid(unsafe_code)]
 
@@ -24,11 +26,13 @@ pub const STRINGS: usize = 8;
 pub mod blob;
 pub mod control;
 pub mod correction;
+pub mod device;
 pub mod encoder;
 pub mod fixed;
 pub mod guidance;
 pub mod kinematics;
 pub mod model;
+pub mod model_store;
 pub mod safety;
 pub mod string_law;
 pub mod tension;

@@ -423,10 +423,41 @@ pub fn distribute_warm<F: Float>(
     }
 }
 
+/// `x > hm * sqrt(n2)` without the square root (`n2 >= 0`).
+#[inline(always)]
+fn beyond_margin<F: Float>(x: F, hm: F, n2: F) -> bool {
+    let hm2n2 = hm * hm * n2;
+    if hm >= F::zero() {
+        x > F::zero() && x * x > hm2n2
+    } else {
+        x >= F::zero() || x * x < hm2n2
+    }
+}
+
+/// Index of the pair `(i, j)`, `i < j`, in lexicographic order (`0..28`):
+/// `PAIR_BASE[i] + j - i - 1`.
+const PAIR_BASE: [usize; STRINGS] = [0, 7, 13, 18, 22, 25, 27, 28];
+
+/// Per-pair arrays are 32 long and indexed modulo 32 (no bounds checks).
+const PAIR_SLOTS: usize = 32;
+
 /// The largest `alpha` in `[0, 1]` such that `alpha * force` is renderable
 /// with tensions in `limits` along directions `u`, after checking that the
 /// end-effector is strictly inside the anchors' hull and that zero force is
 /// renderable. Exact up to rounding: 28 zonotope facet pairs.
+///
+/// For the pair `(i, j)` each other string `k` enters through the triple
+/// product `s = (u_i x u_j) . u_k`, which is shared by the three pairs of its
+/// strings (`det(u_i, u_j, u_k)` is `s` for `(i, j)` and `(j, k)`, `-s` for
+/// `(i, k)`): one pass over the 56 triples `i < j < k` gives every pair's sum
+/// and sum of magnitudes of `s` (the direct form takes 168 dot products).
+///
+/// Hull test (some string beyond `hull_margin |n|` on each side of every
+/// pair's plane): with 6 other strings, `sum max(s, 0) > 6 margin` implies
+/// that one of them is beyond the margin, and `sum max(s, 0) = (sum_abs +
+/// sum) / 2`; only a pair failing this sufficient test (near the hull
+/// boundary) is checked string by string. Margins are compared on squares:
+/// no square root.
 fn feasible_fraction<F: Float>(
     u: &[Vec3<F>; STRINGS],
     limits: TensionLimits<F>,
@@ -437,37 +468,44 @@ fn feasible_fraction<F: Float>(
     let radius = (limits.t_max - limits.t_min) * lit(0.5);
     // Pairs of (nearly) parallel strings span no plane: skipped (|n|^2 below).
     let min_pair2: F = lit(1e-8);
+    let others: F = lit(2.0 * (STRINGS - 2) as f64);
+    let mut sum = [F::zero(); PAIR_SLOTS];
+    let mut sum_abs = [F::zero(); PAIR_SLOTS];
     let mut alpha = F::one();
     let mut pairs_used = 0u8;
     for i in 0..STRINGS {
         for j in (i + 1)..STRINGS {
+            let pij = (PAIR_BASE[i] + j - i - 1) % PAIR_SLOTS;
             let n = cross(u[i], u[j]);
+            // Triples (i, j, k > j): this pair's sums are complete after
+            // this loop (k < j came from earlier pairs).
+            let mut s_ij = sum[pij];
+            let mut a_ij = sum_abs[pij];
+            for k in (j + 1)..STRINGS {
+                let d = dot(n, u[k]);
+                let a = d.abs();
+                let pik = (PAIR_BASE[i] + k - i - 1) % PAIR_SLOTS;
+                let pjk = (PAIR_BASE[j] + k - j - 1) % PAIR_SLOTS;
+                s_ij = s_ij + d;
+                a_ij = a_ij + a;
+                sum[pik] = sum[pik] - d;
+                sum_abs[pik] = sum_abs[pik] + a;
+                sum[pjk] = sum[pjk] + d;
+                sum_abs[pjk] = sum_abs[pjk] + a;
+            }
             let n2 = dot(n, n);
             if n2.is_nan() || n2 <= min_pair2 {
                 continue;
             }
             pairs_used += 1;
-            let margin = hull_margin * n2.sqrt();
-            let mut sum = F::zero();
-            let mut sum_abs = F::zero();
-            let mut above = false;
-            let mut below = false;
-            for k in 0..STRINGS {
-                if k == i || k == j {
-                    continue;
-                }
-                let s = dot(n, u[k]);
-                sum = sum + s;
-                sum_abs = sum_abs + s.abs();
-                above |= s > margin;
-                below |= s < -margin;
-            }
-            if !(above && below) {
+            let sufficient = beyond_margin(a_ij + s_ij, others * hull_margin, n2)
+                && beyond_margin(a_ij - s_ij, others * hull_margin, n2);
+            if !sufficient && !strings_on_both_sides(u, i, j, n, hull_margin, n2) {
                 return Err(TensionStatus::OutsideAnchorHull);
             }
             // Facet pair: |alpha n.F - n.c| <= r sum_k |n.u_k|, c = mid sum_k u_k.
-            let reach = radius * sum_abs;
-            let centre = mid * sum;
+            let reach = radius * a_ij;
+            let centre = mid * s_ij;
             if centre.abs() > reach {
                 return Err(TensionStatus::NoFeasibleTension);
             }
@@ -486,6 +524,30 @@ fn feasible_fraction<F: Float>(
         return Err(TensionStatus::OutsideAnchorHull);
     }
     Ok(alpha)
+}
+
+/// Whether some string other than `i`, `j` lies beyond `hull_margin |n|` on
+/// each side of the plane with normal `n = u_i x u_j` (`|n|^2 = n2`).
+#[inline(never)]
+fn strings_on_both_sides<F: Float>(
+    u: &[Vec3<F>; STRINGS],
+    i: usize,
+    j: usize,
+    n: Vec3<F>,
+    hull_margin: F,
+    n2: F,
+) -> bool {
+    let mut above = false;
+    let mut below = false;
+    for k in 0..STRINGS {
+        if k == i || k == j {
+            continue;
+        }
+        let s = dot(n, u[k]);
+        above |= beyond_margin(s, hull_margin, n2);
+        below |= beyond_margin(-s, hull_margin, n2);
+    }
+    above && below
 }
 
 /// One evaluation of the inner minimizer at `lambda`.

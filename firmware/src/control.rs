@@ -1,179 +1,125 @@
-//! The fixed-rate control loop: encoders -> counts -> (string law, FK,
-//! correction, tension distribution, safety: spidar-core) -> PWM.
+//! The fixed-rate control loop: encoders -> `Device::tick` (spidar-core:
+//! encoder extension, string law, forward kinematics, correction, tension
+//! distribution, safety) -> PWM.
 //!
 //! Runs in a high-priority interrupt executor, woken by an `embassy_time`
 //! ticker at [`LOOP_HZ`]; measures its own body time with the DWT cycle
-//! counter, feeds the watchdog, publishes [`Telemetry`].
-
-use core::sync::atomic::Ordering;
+//! counter, feeds the watchdog, hands state frames and events to the link.
 
 use cortex_m::peripheral::DWT;
-use embassy_time::{Duration, Ticker};
+use embassy_time::{Duration, Instant, Ticker};
 
+use spidar_core::device::TickInput;
 use spidar_core::STRINGS;
 
 use crate::clocks::SYSCLK_HZ;
 use crate::encoders::Encoders;
-use crate::motors::Motors;
-use crate::shared::{
-    self, faults, Command, ModelUpdate, Telemetry, COMMANDS, MODEL, MODEL_IN_USE, NO_SLOT,
-};
+use crate::motors::{tension_to_duty_q15, Motors};
+use crate::shared::{with_device, SharedDevice, StreamItem, STREAM};
 use crate::watchdog;
 
 /// Loop rate.
 pub const LOOP_HZ: u64 = 10_000;
+/// Loop period, µs.
+pub const PERIOD_US: u32 = (1_000_000 / LOOP_HZ) as u32;
 /// CPU cycles in one period.
 pub const PERIOD_CYCLES: u32 = (SYSCLK_HZ as u64 / LOOP_HZ) as u32;
+/// CPU cycles per µs.
+const CYCLES_PER_US: u32 = SYSCLK_HZ / 1_000_000;
 
-/// Extends 16-bit hardware counts to i32 counts since home (boot).
-///
-/// PLACEHOLDER for `spidar_core::encoder::EncoderExtender` (not on main yet):
-/// the same rule, a signed 16-bit difference per iteration, which is exact as
-/// long as an encoder moves less than 32767 counts per period.
-struct Extender {
-    last: [u16; STRINGS],
-    counts: [i32; STRINGS],
-}
+/// Duty (fraction of full scale) per newton of string tension, per motor:
+/// depends on the motor, its driver and the pulley radius; measure per
+/// device (docs/hardware.md). 1/25: full scale at 25 N.
+pub const DUTY_PER_NEWTON: [f32; STRINGS] = [1.0 / 25.0; STRINGS];
 
-impl Extender {
-    fn new(first: [u16; STRINGS]) -> Self {
-        Self {
-            last: first,
-            counts: [0; STRINGS],
-        }
-    }
-
-    fn update(&mut self, raw: [u16; STRINGS]) -> [i32; STRINGS] {
-        for ((&r, last), count) in raw.iter().zip(&mut self.last).zip(&mut self.counts) {
-            let delta = r.wrapping_sub(*last) as i16 as i32;
-            *count = count.wrapping_add(delta);
-            *last = r;
-        }
-        self.counts
-    }
-}
-
-/// What the loop renders.
-#[derive(Clone, Copy)]
-struct Targets {
-    force_n: [f32; 3],
-}
-
-/// One control step: counts + model + targets -> signed duties.
-///
-/// PLACEHOLDER until `spidar_core::control` lands: it must run string law ->
-/// forward kinematics -> correction -> tension distribution -> safety and
-/// return per-string tensions, which `motors::tension_to_duty_q15` turns into
-/// duties. Until then it commands zero on every motor (safe: no torque).
-fn control_step(
-    _counts: &[i32; STRINGS],
-    _model: Option<&'static [u8]>,
-    _targets: &Targets,
-) -> [i16; STRINGS] {
-    [0; STRINGS]
-}
+/// After a stall longer than this (flash erase), restart the ticker rather
+/// than running the missed iterations back to back.
+const STALL: Duration = Duration::from_millis(5);
 
 #[embassy_executor::task]
-pub async fn control_task(encoders: Encoders, mut motors: Motors, model: Option<ModelUpdate>) {
-    let mut extender = Extender::new(encoders.read());
-    let mut targets = Targets { force_n: [0.0; 3] };
-    let mut model_blob: Option<&'static [u8]> = None;
-    if let Some(m) = model {
-        use_model(m, &mut model_blob);
-    }
-    let mut t = Telemetry::default();
+pub async fn control_task(encoders: Encoders, mut motors: Motors, device: &'static SharedDevice) {
     let mut ticker = Ticker::every(Duration::from_hz(LOOP_HZ));
+    let mut iterations: u32 = 0;
     let mut report_at = LOOP_HZ as u32;
+    let mut last_us: u16 = 0;
+    let mut max_cycles: u32 = 0;
+    let mut previous = Instant::now();
     loop {
         ticker.next().await;
         let start = DWT::cycle_count();
+        let now = Instant::now();
+        if now.saturating_duration_since(previous) > STALL {
+            ticker.reset();
+        }
+        previous = now;
 
-        // 1. Encoders.
-        let raw = encoders.read();
-        let counts = extender.update(raw);
-
-        // 2. Commands and model switches from the link.
-        while let Ok(cmd) = COMMANDS.try_receive() {
-            match cmd {
-                Command::Arm => {
-                    if t.faults & faults::ESTOP != 0 || !motors.arm() {
-                        defmt::warn!("arm refused: emergency stop");
-                    }
+        let input = TickInput {
+            raw_counts: encoders.read(),
+            now_us: now.as_micros(),
+            estop: motors.estop(),
+        };
+        // The critical section: tick, and collect what the link streams.
+        let result = with_device(device, |d| {
+            d.record_loop_time(last_us);
+            let out = d.tick(&input);
+            while let Some(e) = d.take_event() {
+                if STREAM.try_send(StreamItem::Event(e)).is_err() {
+                    d.count_stream_dropped();
                 }
-                Command::Disarm => motors.disarm(),
-                Command::SetForce(f) => targets.force_n = f,
-                Command::ClearFaults => {
-                    if !motors.estop() {
-                        t.faults &= !faults::ESTOP;
-                    }
-                    t.faults &= !faults::LOOP_OVERRUN;
+            }
+            if let Some(s) = d.state_frame() {
+                if STREAM.try_send(StreamItem::State(s)).is_err() {
+                    d.count_stream_dropped();
+                }
+            }
+            (out, d.motors_enabled())
+        });
+
+        // Motors: enabled while the device says so (pre-tension after a
+        // fault); the break inputs cut the PWM in hardware on an e-stop.
+        let mut duty = [0i16; STRINGS];
+        match result {
+            Some((out, true)) => {
+                if !motors.armed() && !motors.arm() {
+                    defmt::warn!("motors: enable refused (emergency stop)");
+                }
+                for (d, (&t, &k)) in duty
+                    .iter_mut()
+                    .zip(out.tensions_n.iter().zip(&DUTY_PER_NEWTON))
+                {
+                    *d = tension_to_duty_q15(t, k);
+                }
+            }
+            _ => {
+                if motors.armed() {
+                    motors.disarm();
                 }
             }
         }
-        if let Some(m) = MODEL.try_take() {
-            use_model(m, &mut model_blob);
-        }
-
-        // 3. Safety: the break inputs already cut the PWM in hardware; latch.
-        if motors.estop() {
-            if t.faults & faults::ESTOP == 0 {
-                defmt::error!("emergency stop");
-            }
-            t.faults |= faults::ESTOP;
-            motors.disarm();
-        }
-
-        // 4. Control step and PWM.
-        let duty = control_step(&counts, model_blob, &targets);
         motors.set_all(&duty);
-
         watchdog::feed();
 
-        // 5. Timing and telemetry.
+        // Timing.
         let cycles = DWT::cycle_count().wrapping_sub(start);
-        t.iterations = t.iterations.wrapping_add(1);
-        t.raw_counts = raw;
-        t.counts = counts;
-        t.duty_q15 = if motors.armed() { duty } else { [0; STRINGS] };
-        t.armed = motors.armed();
-        t.loop_cycles_last = cycles;
-        t.loop_cycles_max = t.loop_cycles_max.max(cycles);
-        if cycles > PERIOD_CYCLES {
-            t.overruns += 1;
-            t.faults |= faults::LOOP_OVERRUN;
-        }
-        shared::TELEMETRY.lock(|c| c.set(t));
-
-        if t.iterations >= report_at {
-            report_at = t.iterations.wrapping_add(LOOP_HZ as u32);
+        max_cycles = max_cycles.max(cycles);
+        last_us = u16::try_from(cycles / CYCLES_PER_US).unwrap_or(u16::MAX);
+        iterations = iterations.wrapping_add(1);
+        if iterations >= report_at {
+            report_at = iterations.wrapping_add(LOOP_HZ as u32);
+            let faults = result.map_or(0, |(o, _)| o.faults.bits());
             defmt::info!(
-                "loop: {} it, body last {} max {} cycles ({} ns max of {} ns), {} overruns, armed {}, faults {=u16:#x}",
-                t.iterations,
-                t.loop_cycles_last,
-                t.loop_cycles_max,
-                (t.loop_cycles_max as u64 * 1_000_000_000 / SYSCLK_HZ as u64) as u32,
+                "loop: {} it, body last {} max {} cycles ({} ns max of {} ns), motors {}, faults {=u16:#x}",
+                iterations,
+                cycles,
+                max_cycles,
+                (max_cycles as u64 * 1_000_000_000 / SYSCLK_HZ as u64) as u32,
                 (1_000_000_000 / LOOP_HZ) as u32,
-                t.overruns,
-                t.armed,
-                t.faults
+                motors.armed(),
+                faults
             );
         }
     }
 }
 
-fn use_model(m: ModelUpdate, model_blob: &mut Option<&'static [u8]>) {
-    match m {
-        ModelUpdate::Use { slot, blob } => {
-            // PLACEHOLDER: parse with `spidar_core::blob` (CompiledCalibration)
-            // once it lands; until then the blob is only held.
-            *model_blob = Some(blob);
-            MODEL_IN_USE.store(slot.index(), Ordering::Release);
-            defmt::info!("control: model in slot {} ({} bytes)", slot, blob.len());
-        }
-        ModelUpdate::None => {
-            *model_blob = None;
-            MODEL_IN_USE.store(NO_SLOT, Ordering::Release);
-            defmt::info!("control: no model");
-        }
-    }
-}
+/// `PERIOD_CYCLES` is for reference in logs and docs.
+const _: () = assert!(PERIOD_CYCLES > 0 && PERIOD_US > 0);

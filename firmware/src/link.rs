@@ -1,26 +1,33 @@
 //! USB CDC-ACM link to the host.
 //!
-//! Bytes from the host go through a frame decoder (frames end with 0x00, as
-//! COBS frames do); every complete frame goes to [`dispatch`], whose replies
-//! are written back as USB packets.
+//! Two tasks share the CDC-ACM class (split into receiver and sender):
+//! - [`link_reader`]: bytes from the host go through
+//!   `spidar_core::device::DeviceLink` (COBS frames, CRC, decoding); each
+//!   request is answered by `Device::handle` under the device lock, and the
+//!   encoded reply goes to the writer;
+//! - [`link_writer`]: sends replies, and the state frames and events the
+//!   control loop streams (with their own sequence counter).
 //!
-//! PLACEHOLDER until `spidar_protocol::frame` / `messages` land on main: the
-//! decoder here only splits frames, and `dispatch` logs them and answers
-//! nothing. Wiring then means: `protocol::frame::FrameDecoder::push` instead
-//! of `FrameSplitter::push`, a `match` on `Request` in `dispatch` calling
-//! [`Storage`] (UploadBegin/Chunk/Commit/Abort/ClearModel) and sending
-//! [`crate::shared::Command`]s (Arm/Disarm/SetForceTarget/ClearFaults), and
-//! `protocol::frame::encode` for the reply.
+//! Everything between bytes and replies is `spidar-core`, the code the
+//! virtual device runs on the host.
 
+use embassy_futures::select::{select, Either};
 use embassy_stm32::peripherals::{PA11, PA12, USB_OTG_HS};
 use embassy_stm32::usb::Driver;
 use embassy_stm32::{bind_interrupts, usb, Peri};
-use embassy_usb::class::cdc_acm::{CdcAcmClass, State};
+use embassy_usb::class::cdc_acm::{CdcAcmClass, Receiver, Sender, State};
 use embassy_usb::driver::EndpointError;
 use embassy_usb::{Builder, UsbDevice};
 use static_cell::StaticCell;
 
-use crate::storage::Storage;
+use core::sync::atomic::Ordering;
+use embassy_time::Instant;
+use spidar_core::device::{DeviceLink, LinkCounters};
+use spidar_protocol::{encode_device_message, DeviceMessage};
+
+use crate::shared::{
+    with_device, Frame, SharedDevice, StreamItem, REPLIES, STREAM, STREAM_FRAMES_SENT,
+};
 
 bind_interrupts!(struct Irqs {
     OTG_HS => usb::InterruptHandler<USB_OTG_HS>;
@@ -30,8 +37,6 @@ pub type UsbDriver = Driver<'static, USB_OTG_HS>;
 
 /// Full-speed bulk packet size.
 const PACKET: u16 = 64;
-/// Longest frame the link accepts (a 256-byte upload chunk plus framing).
-pub const MAX_FRAME: usize = 320;
 
 /// Builds the USB device (full speed on the OTG_HS core's internal PHY,
 /// PA11/PA12 = the Nucleo's user USB connector CN13) with one CDC-ACM port.
@@ -81,117 +86,90 @@ pub async fn usb_task(mut device: UsbDevice<'static, UsbDriver>) -> ! {
     device.run().await
 }
 
-/// Splits a byte stream into 0x00-terminated frames, at most `MAX_FRAME`
-/// bytes each; overlong frames are dropped up to the next 0x00. Same shape as
-/// `spidar_protocol::frame::FrameDecoder::push`, which replaces it.
-pub struct FrameSplitter {
-    buf: [u8; MAX_FRAME],
-    len: usize,
-    skipping: bool,
-    pub dropped: u32,
-}
-
-impl FrameSplitter {
-    pub const fn new() -> Self {
-        Self {
-            buf: [0; MAX_FRAME],
-            len: 0,
-            skipping: false,
-            dropped: 0,
-        }
-    }
-
-    pub fn reset(&mut self) {
-        self.len = 0;
-        self.skipping = false;
-    }
-
-    /// Consumes input up to the end of the first frame in it; returns the
-    /// bytes consumed (>= 1 for non-empty input) and the frame, if one ended.
-    pub fn push(&mut self, input: &[u8]) -> (usize, Option<&[u8]>) {
-        let zero = input.iter().position(|&b| b == 0);
-        let segment = &input[..zero.unwrap_or(input.len())];
-        let consumed = zero.map_or(input.len(), |z| z + 1);
-        if self.skipping {
-            self.skipping = zero.is_none();
-            return (consumed, None);
-        }
-        if segment.len() > MAX_FRAME - self.len {
-            self.dropped += 1;
-            self.len = 0;
-            self.skipping = zero.is_none();
-            return (consumed, None);
-        }
-        self.buf[self.len..self.len + segment.len()].copy_from_slice(segment);
-        self.len += segment.len();
-        if zero.is_none() {
-            return (consumed, None);
-        }
-        let len = core::mem::replace(&mut self.len, 0);
-        if len == 0 {
-            return (consumed, None);
-        }
-        (consumed, Some(&self.buf[..len]))
-    }
-}
-
-/// Handles one frame; writes the reply frame into `out` and returns its
-/// length (0 = no reply).
-///
-/// PLACEHOLDER: decodes nothing yet (see the module comment).
-fn dispatch(frame: &[u8], _storage: &mut Storage, _out: &mut [u8]) -> usize {
-    defmt::debug!(
-        "link: frame of {} bytes (protocol decoding pending)",
-        frame.len()
-    );
-    0
-}
-
-async fn send(
-    class: &mut CdcAcmClass<'static, UsbDriver>,
-    bytes: &[u8],
-) -> Result<(), EndpointError> {
+async fn send(sender: &mut Sender<'static, UsbDriver>, bytes: &[u8]) -> Result<(), EndpointError> {
     for chunk in bytes.chunks(PACKET as usize) {
-        class.write_packet(chunk).await?;
+        sender.write_packet(chunk).await?;
     }
     if !bytes.is_empty() && bytes.len() % PACKET as usize == 0 {
         // A full last packet: end the transfer with a zero-length packet.
-        class.write_packet(&[]).await?;
+        sender.write_packet(&[]).await?;
     }
     Ok(())
 }
 
 #[embassy_executor::task]
-pub async fn link_task(mut class: CdcAcmClass<'static, UsbDriver>, mut storage: Storage) -> ! {
-    static SPLITTER: StaticCell<FrameSplitter> = StaticCell::new();
-    let frames = SPLITTER.init(FrameSplitter::new());
+pub async fn link_reader(
+    mut receiver: Receiver<'static, UsbDriver>,
+    device: &'static SharedDevice,
+) -> ! {
+    let mut link = DeviceLink::new();
     let mut rx = [0u8; PACKET as usize];
-    let mut reply = [0u8; MAX_FRAME];
-    match storage.active() {
-        Some(a) => defmt::info!("link: active model {} in slot {}", a.record, a.slot),
-        None => defmt::info!("link: no stored model"),
-    }
     loop {
-        class.wait_connection().await;
+        receiver.wait_connection().await;
         defmt::info!("link: host connected");
-        frames.reset();
-        'connected: loop {
-            let n = match class.read_packet(&mut rx).await {
+        link.reset();
+        loop {
+            let n = match receiver.read_packet(&mut rx).await {
                 Ok(n) => n,
-                Err(_) => break 'connected,
+                Err(_) => break,
             };
-            let mut rest = &rx[..n];
+            let mut rest = rx.get(..n).unwrap_or(&[]);
             while !rest.is_empty() {
-                let (used, frame) = frames.push(rest);
-                rest = &rest[used..];
-                if let Some(frame) = frame {
-                    let len = dispatch(frame, &mut storage, &mut reply);
-                    if len > 0 && send(&mut class, &reply[..len]).await.is_err() {
-                        break 'connected;
+                let now_us = Instant::now().as_micros();
+                let (used, reply) = link.push(rest, |request, counters| {
+                    let counters = LinkCounters {
+                        tx_frames: counters
+                            .tx_frames
+                            .wrapping_add(STREAM_FRAMES_SENT.load(Ordering::Relaxed)),
+                        ..counters
+                    };
+                    with_device(device, |d| {
+                        d.set_link_counters(counters);
+                        d.handle(request, now_us)
+                    })
+                    .unwrap_or(spidar_protocol::Response::Error(
+                        spidar_protocol::DeviceError::Unsupported,
+                    ))
+                });
+                rest = rest.get(used..).unwrap_or(&[]);
+                if let Some(reply) = reply {
+                    if let Ok(frame) = Frame::from_slice(reply) {
+                        REPLIES.send(frame).await;
                     }
                 }
             }
         }
         defmt::info!("link: host disconnected");
+    }
+}
+
+#[embassy_executor::task]
+pub async fn link_writer(mut sender: Sender<'static, UsbDriver>) -> ! {
+    let mut buf = [0u8; spidar_protocol::MAX_FRAME];
+    let mut stream_seq: u16 = 0;
+    loop {
+        sender.wait_connection().await;
+        loop {
+            let sent = match select(REPLIES.receive(), STREAM.receive()).await {
+                Either::First(reply) => send(&mut sender, &reply).await,
+                Either::Second(item) => {
+                    let msg = match item {
+                        StreamItem::State(s) => DeviceMessage::State(s),
+                        StreamItem::Event(e) => DeviceMessage::Event(e),
+                    };
+                    match encode_device_message(stream_seq, &msg, &mut buf) {
+                        Ok(frame) => {
+                            stream_seq = stream_seq.wrapping_add(1);
+                            STREAM_FRAMES_SENT.fetch_add(1, Ordering::Relaxed);
+                            send(&mut sender, frame).await
+                        }
+                        Err(_) => Ok(()),
+                    }
+                }
+            };
+            if sent.is_err() {
+                break;
+            }
+        }
     }
 }

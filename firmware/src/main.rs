@@ -1,10 +1,12 @@
 //! Firmware of a Scalable-SPIDAR controller on an STM32H723ZG (Nucleo-H723ZG).
 //!
-//! Tasks:
+//! The binary only wires peripherals and tasks to `spidar_core::device`:
 //! - `control::control_task` (high-priority interrupt executor, 10 kHz
-//!   ticker): encoders, control step, PWM, watchdog, telemetry;
-//! - `link::usb_task` + `link::link_task` (thread executor): USB CDC-ACM,
-//!   frames, requests, model uploads into flash (`storage`).
+//!   ticker): encoders -> `Device::tick` -> PWM, watchdog, stream;
+//! - `link::usb_task`, `link::link_reader`, `link::link_writer` (thread
+//!   executor): USB CDC-ACM, `DeviceLink` frames, `Device::handle`;
+//! - `storage::H7Flash`: the model slots in internal flash for
+//!   `spidar_core::model_store`.
 //!
 //! Pin map, timers, flash layout and board changes: docs/hardware.md.
 #![no_std]
@@ -15,15 +17,11 @@ mod control;
 mod encoders;
 mod link;
 mod motors;
-// Parts of these are only reached through `link::dispatch`, which decodes
-// requests once spidar-protocol's messages land on main (see link.rs).
-#[allow(dead_code)]
 mod shared;
-#[allow(dead_code)]
-mod slots;
-#[allow(dead_code)]
 mod storage;
 mod watchdog;
+
+use core::cell::RefCell;
 
 use cortex_m::peripheral::DWT;
 use defmt_rtt as _;
@@ -31,12 +29,46 @@ use embassy_executor::{InterruptExecutor, Spawner};
 use embassy_stm32::flash::Flash;
 use embassy_stm32::interrupt;
 use embassy_stm32::interrupt::{InterruptExt, Priority};
+use embassy_sync::blocking_mutex::Mutex;
+use embassy_time::Instant;
 use panic_probe as _;
+use spidar_core::control::ControlConfig;
+use spidar_core::device::{Device, DeviceConfig};
+use static_cell::{ConstStaticCell, StaticCell};
 
 use crate::encoders::{EncoderPins, Encoders};
 use crate::motors::{MotorPins, Motors};
-use crate::shared::ModelUpdate;
-use crate::storage::Storage;
+use crate::shared::SharedDevice;
+use crate::storage::H7Flash;
+
+/// RAM copy of the active model blob, and the buffer a commit validates the
+/// next one in (they swap on commit). Bounds the model blob the device takes
+/// (`HelloAck::max_blob_len`); an NN of 64 neurons is ~2.2 KiB, an SVR of
+/// 500 support vectors ~12.5 KiB.
+const MODEL_RAM_LEN: usize = 24 * 1024;
+static MODEL_RAM: ConstStaticCell<[u8; MODEL_RAM_LEN]> = ConstStaticCell::new([0; MODEL_RAM_LEN]);
+static SPARE_RAM: ConstStaticCell<[u8; MODEL_RAM_LEN]> = ConstStaticCell::new([0; MODEL_RAM_LEN]);
+static DEVICE: StaticCell<SharedDevice> = StaticCell::new();
+
+/// `[major, minor, patch]` of this crate.
+const FIRMWARE_VERSION: [u16; 3] = [
+    parse_u16(env!("CARGO_PKG_VERSION_MAJOR")),
+    parse_u16(env!("CARGO_PKG_VERSION_MINOR")),
+    parse_u16(env!("CARGO_PKG_VERSION_PATCH")),
+];
+
+const fn parse_u16(s: &str) -> u16 {
+    let b = s.as_bytes();
+    let mut v: u16 = 0;
+    let mut i = 0;
+    while i < b.len() {
+        v = v
+            .wrapping_mul(10)
+            .wrapping_add((b[i].wrapping_sub(b'0')) as u16);
+        i += 1;
+    }
+    v
+}
 
 /// Executor of the control loop, preempting the thread-mode tasks.
 static EXECUTOR_HIGH: InterruptExecutor = InterruptExecutor::new();
@@ -59,12 +91,6 @@ async fn main(spawner: Spawner) {
         DWT::unlock();
         cp.DWT.enable_cycle_counter();
     }
-
-    let storage = Storage::new(Flash::new_blocking(p.FLASH));
-    let model = storage.active().map(|a| ModelUpdate::Use {
-        slot: a.slot,
-        blob: a.blob(),
-    });
 
     let encoders = Encoders::new(EncoderPins {
         tim2: p.TIM2,
@@ -122,13 +148,45 @@ async fn main(spawner: Spawner) {
         bk_tim17: p.PG6,
     });
 
+    // Boot the device: model store scan, active model into RAM, home here.
+    let config = DeviceConfig {
+        firmware_version: FIRMWARE_VERSION,
+        device_id: embassy_stm32::uid::uid(),
+        loop_period_us: control::PERIOD_US,
+        control: ControlConfig::default(),
+    };
+    let device = match Device::new(
+        config,
+        H7Flash::new(Flash::new_blocking(p.FLASH)),
+        MODEL_RAM.take(),
+        SPARE_RAM.take(),
+        encoders.read(),
+        Instant::now().as_micros(),
+    ) {
+        Ok(d) => d,
+        Err(e) => {
+            // Only a bad constant ControlConfig gets here; motors stay off.
+            defmt::error!("invalid control config: {}", defmt::Debug2Format(&e));
+            loop {
+                cortex_m::asm::wfi();
+            }
+        }
+    };
+    defmt::info!(
+        "device: models up to {} bytes",
+        device.hello_ack().max_blob_len
+    );
+    let device: &'static SharedDevice = DEVICE.init(Mutex::new(RefCell::new(device)));
+
     // The watchdog starts just before the loop that feeds it.
     watchdog::start(watchdog::NORMAL_TIMEOUT_MS);
     interrupt::UART4.set_priority(Priority::P6);
     let high = EXECUTOR_HIGH.start(interrupt::UART4);
-    high.spawn(control::control_task(encoders, motors, model).expect("control task"));
+    high.spawn(control::control_task(encoders, motors, device).expect("control task"));
 
-    let (device, class) = link::usb(p.USB_OTG_HS, p.PA12, p.PA11);
-    spawner.spawn(link::usb_task(device).expect("usb task"));
-    spawner.spawn(link::link_task(class, storage).expect("link task"));
+    let (usb, class) = link::usb(p.USB_OTG_HS, p.PA12, p.PA11);
+    let (sender, receiver) = class.split();
+    spawner.spawn(link::usb_task(usb).expect("usb task"));
+    spawner.spawn(link::link_reader(receiver, device).expect("link reader"));
+    spawner.spawn(link::link_writer(sender).expect("link writer"));
 }

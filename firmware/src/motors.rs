@@ -301,7 +301,6 @@ fn scale(mag_q15: u32, max: u32) -> u32 {
 /// torque (negative duty = reel in); the gain is duty per newton at the
 /// motor's winding radius, measured per device (docs/hardware.md). Open loop
 /// on voltage until the drivers give current control.
-#[allow(dead_code)] // used by the control step once spidar_core::control lands
 pub fn tension_to_duty_q15(tension_n: f32, duty_per_newton: f32) -> i16 {
     let t = if tension_n.is_finite() {
         tension_n.max(0.0)

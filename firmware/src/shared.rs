@@ -1,85 +1,63 @@
-//! State shared between tasks, all through embassy-sync primitives.
+//! State shared between the control loop (interrupt executor) and the link
+//! tasks (thread executor), all through embassy-sync.
+//!
+//! The [`Device`] sits in a blocking mutex over a critical section. Why a
+//! critical section, and why it is short enough for the 10 kHz loop:
+//! - the loop runs in an interrupt executor that preempts the link; a lock
+//!   that the loop could find taken would make it skip iterations (or
+//!   deadlock if it waited), so the link's `handle` must not be preemptible
+//!   by the loop while it mutates the device: a critical section does that;
+//! - `Device::tick` (the loop's side) and ordinary requests take a few to
+//!   tens of µs, so the loop's start jitters by at most one request's
+//!   handling (< the 100 µs period);
+//! - the long requests (erase, programming, commit read-back) are only
+//!   accepted while disarmed, and on this single-bank flash they stall every
+//!   instruction fetch, the loop's included, whether or not interrupts are
+//!   masked; the hardware e-stop (timer break inputs) works regardless.
+//!
+//! Stream frames go the other way through a channel, so the loop never waits
+//! for USB.
 
-use core::cell::Cell;
-use core::sync::atomic::AtomicU8;
+use core::cell::RefCell;
+use core::sync::atomic::AtomicU32;
 
 use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
 use embassy_sync::blocking_mutex::Mutex;
 use embassy_sync::channel::Channel;
-use embassy_sync::signal::Signal;
+use spidar_core::device::Device;
+use spidar_protocol::{Event, State, MAX_FRAME};
 
-use spidar_core::STRINGS;
+use crate::storage::H7Flash;
 
-use crate::slots::Slot;
+/// The device, shared by the control loop and the link.
+pub type SharedDevice = Mutex<CriticalSectionRawMutex, RefCell<Device<'static, H7Flash>>>;
 
-/// What the link asks the control loop to do.
-#[derive(Clone, Copy, Debug, PartialEq, defmt::Format)]
-pub enum Command {
-    /// Enable the motor drivers (refused while the emergency stop is active).
-    Arm,
-    /// Zero every duty and disable the motor drivers.
-    Disarm,
-    /// Render this force at the end-effector (N, device frame).
-    SetForce([f32; 3]),
-    /// Clear latched faults whose cause has gone.
-    ClearFaults,
+/// Locks the device for `f` (a short critical section). `None` only if the
+/// device is already borrowed, which the critical section rules out.
+pub fn with_device<R>(
+    device: &SharedDevice,
+    f: impl FnOnce(&mut Device<'static, H7Flash>) -> R,
+) -> Option<R> {
+    device.lock(|d| d.try_borrow_mut().ok().map(|mut d| f(&mut d)))
 }
 
-/// Commands from the link task to the control loop (drained every iteration).
-pub static COMMANDS: Channel<CriticalSectionRawMutex, Command, 8> = Channel::new();
-
-/// The model the control loop should evaluate: a blob in a flash slot, or none.
-#[derive(Clone, Copy, Debug, PartialEq, defmt::Format)]
-pub enum ModelUpdate {
-    Use { slot: Slot, blob: &'static [u8] },
-    None,
+/// What the loop hands to the link to stream.
+#[derive(Clone, Copy, Debug)]
+pub enum StreamItem {
+    State(State),
+    Event(Event),
 }
 
-/// Storage -> control loop: switch models (taken at the next iteration).
-pub static MODEL: Signal<CriticalSectionRawMutex, ModelUpdate> = Signal::new();
+/// Control loop -> link writer. Full: the item is dropped and counted
+/// (`LinkStats::tx_dropped`).
+pub static STREAM: Channel<CriticalSectionRawMutex, StreamItem, 8> = Channel::new();
 
-/// Slot whose blob the control loop currently reads (`NO_SLOT` for none).
-/// Storage never erases this slot.
-pub static MODEL_IN_USE: AtomicU8 = AtomicU8::new(NO_SLOT);
-pub const NO_SLOT: u8 = 0xFF;
+/// A reply frame on its way to USB.
+pub type Frame = heapless::Vec<u8, MAX_FRAME>;
 
-/// Latched fault bits (mirror `spidar_protocol` `Faults` once it lands).
-pub mod faults {
-    pub const ESTOP: u16 = 1 << 7;
-    pub const LOOP_OVERRUN: u16 = 1 << 4;
-    pub const MODEL_INVALID: u16 = 1 << 5;
-}
+/// Link reader -> link writer: encoded reply frames.
+pub static REPLIES: Channel<CriticalSectionRawMutex, Frame, 2> = Channel::new();
 
-/// A snapshot the control loop publishes every iteration for the link.
-#[derive(Clone, Copy, Debug, Default, defmt::Format)]
-pub struct Telemetry {
-    pub iterations: u32,
-    pub raw_counts: [u16; STRINGS],
-    pub counts: [i32; STRINGS],
-    /// Signed duty per motor, in 1/32767 of full scale.
-    pub duty_q15: [i16; STRINGS],
-    pub armed: bool,
-    pub faults: u16,
-    /// Loop body time in CPU cycles: last and worst since boot.
-    pub loop_cycles_last: u32,
-    pub loop_cycles_max: u32,
-    /// Iterations whose body took longer than the period.
-    pub overruns: u32,
-}
-
-pub static TELEMETRY: Mutex<CriticalSectionRawMutex, Cell<Telemetry>> =
-    Mutex::new(Cell::new(Telemetry {
-        iterations: 0,
-        raw_counts: [0; STRINGS],
-        counts: [0; STRINGS],
-        duty_q15: [0; STRINGS],
-        armed: false,
-        faults: 0,
-        loop_cycles_last: 0,
-        loop_cycles_max: 0,
-        overruns: 0,
-    }));
-
-pub fn telemetry() -> Telemetry {
-    TELEMETRY.lock(|t| t.get())
-}
+/// Stream frames the writer sent (replies are counted by the reader's
+/// `DeviceLink`).
+pub static STREAM_FRAMES_SENT: AtomicU32 = AtomicU32::new(0);

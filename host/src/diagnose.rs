@@ -2,10 +2,15 @@
 //! residual, trace it to a physical effect, add the effect, refit, and keep it
 //! only if it helps on data it was not fitted on.
 
+use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
-use spidar_core::model::{EffectTerm, Frame};
+use spidar_core::model::{Effect, EffectTerm, Frame};
+use spidar_core::string_law::{payout_f64, EffectContext};
+use spidar_core::STRINGS;
 
-use crate::identify::{identify, Identification, IdentifyError, Start, Structure};
+use crate::identify::{
+    data_jacobian, device_from_room, identify, Identification, IdentifyError, Start, Structure,
+};
 use crate::observe::Observation;
 use crate::predict::{paired_with_tracker, predict, StringModel};
 use crate::stats::{position_errors, ErrorStats};
@@ -48,6 +53,8 @@ pub enum Change {
     Effect(EffectTerm),
     /// Free the tracker's scale relative to the device.
     RoomScale,
+    /// Release an anchor from its design tolerance (it was built elsewhere).
+    ReleaseAnchor(u8),
 }
 
 /// One thing diagnosis found in the residual.
@@ -89,7 +96,7 @@ impl Default for LoopConfig {
         LoopConfig {
             max_effects: 8,
             chi2_threshold: 40.0,
-            min_relative_gain: 0.02,
+            min_relative_gain: 0.005,
         }
     }
 }
@@ -140,26 +147,705 @@ pub fn model_errors(id: &Identification, observations: &[Observation]) -> ErrorS
     ErrorStats::of(&position_errors(&p, &t))
 }
 
+// ---------------------------------------------------------------------------
+// Diagnosis: score tests of candidate effects on the string-space residual.
+
+/// What one (row, string) residual depends on.
+#[derive(Clone, Copy, Debug)]
+struct Row {
+    /// Index into the observations.
+    obs: usize,
+    string: usize,
+    /// Weight of the robust fit (0 for rejected residuals).
+    weight: f64,
+    /// Residual (geometric minus model), mm, unweighted.
+    residual: f64,
+    ctx: EffectContext,
+    /// Geometric length from the tracker, mm.
+    length: f64,
+    /// String speed `d payout / dt` since the previous row, mm/s.
+    speed: f64,
+    /// Device-frame position from the tracker, mm.
+    position: [f64; 3],
+    /// `d residual / d room_scale` (frame-wide geometry regressor).
+    scale_gradient: f64,
+}
+
+/// Everything diagnosis needs about the current fit.
+struct Evidence {
+    rows: Vec<Row>,
+    /// Orthonormal basis of the model's (weighted) Jacobian columns.
+    basis: DMatrix<f64>,
+    /// Weighted residual with the model's directions projected out.
+    residual: DVector<f64>,
+    /// Residual variance per unit weight, mm^2.
+    sigma2: f64,
+    /// Weighted residual sum of squares, mm^2.
+    rss: f64,
+}
+
+fn pulley_turn_angle(theta: f64) -> f64 {
+    theta.rem_euclid(2.0 * std::f64::consts::PI)
+}
+
+impl Evidence {
+    fn gather(
+        id: &Identification,
+        observations: &[Observation],
+        nominal: &Frame<f64>,
+        structure: &Structure,
+    ) -> Option<Evidence> {
+        let (jac, weighted, weights) = data_jacobian(id, observations, nominal, structure)?;
+        let used: Vec<usize> = observations
+            .iter()
+            .enumerate()
+            .filter(|(_, o)| o.tracker.is_some())
+            .map(|(k, _)| k)
+            .collect();
+        let mut rows = Vec::with_capacity(used.len() * STRINGS);
+        for (u, &k) in used.iter().enumerate() {
+            let o = &observations[k];
+            let p = device_from_room(&id.frame, o.tracker?);
+            let prev = k.checked_sub(1).map(|j| &observations[j]);
+            for i in 0..STRINGS {
+                let ctx = EffectContext::for_string(&id.frame, &id.laws, &o.inputs, i)?;
+                let d = [
+                    p[0] - id.frame.anchors[i][0],
+                    p[1] - id.frame.anchors[i][1],
+                    p[2] - id.frame.anchors[i][2],
+                ];
+                let length = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+                let up = [d[0] / length, d[1] / length, d[2] / length];
+                let speed = match prev {
+                    Some(q) if o.t_s > q.t_s => {
+                        let before = payout_f64(&id.laws[i], q.inputs.counts[i]);
+                        (ctx.payout_mm - before) / (o.t_s - q.t_s)
+                    }
+                    _ => 0.0,
+                };
+                let w = weights[u][i];
+                rows.push(Row {
+                    obs: k,
+                    string: i,
+                    weight: w,
+                    residual: if w > 0.0 {
+                        weighted[u * STRINGS + i] / w.sqrt()
+                    } else {
+                        0.0
+                    },
+                    ctx,
+                    length,
+                    speed,
+                    position: p,
+                    scale_gradient: -(up[0] * p[0] + up[1] * p[1] + up[2] * p[2])
+                        / id.frame.room_scale,
+                });
+            }
+        }
+        // Orthonormal basis of the column space from the eigenvectors of J^T J
+        // (the data Jacobian alone is rank deficient: the gauge is fixed by priors).
+        let gram = jac.transpose() * &jac;
+        let eig = gram.symmetric_eigen();
+        let max = eig.eigenvalues.iter().cloned().fold(0.0, f64::max);
+        let keep: Vec<usize> = (0..eig.eigenvalues.len())
+            .filter(|&j| eig.eigenvalues[j] > 1e-10 * max)
+            .collect();
+        let mut basis = DMatrix::zeros(jac.nrows(), keep.len());
+        for (c, &j) in keep.iter().enumerate() {
+            let v = eig.eigenvectors.column(j);
+            let u = &jac * v / eig.eigenvalues[j].sqrt();
+            basis.set_column(c, &u);
+        }
+        let residual = &weighted - &basis * (basis.transpose() * &weighted);
+        let rss = residual.norm_squared();
+        let effective = weights.iter().flatten().filter(|&&w| w > 0.0).count();
+        let dof = (effective as f64 - keep.len() as f64).max(1.0);
+        Some(Evidence {
+            rows,
+            basis,
+            residual,
+            sigma2: rss / dof,
+            rss,
+        })
+    }
+
+    /// Projects weighted regressor columns (one value per row) off the model.
+    /// `None` when a column lies (almost) in the model's span: the current
+    /// model already absorbs that effect, so the data cannot show it.
+    fn project(&self, columns: &[Vec<f64>]) -> Option<DMatrix<f64>> {
+        const MIN_OUTSIDE_SPAN: f64 = 1e-2;
+        let n = self.rows.len();
+        let mut x = DMatrix::zeros(n, columns.len());
+        for (c, col) in columns.iter().enumerate() {
+            for (r, row) in self.rows.iter().enumerate() {
+                x[(r, c)] = col[r] * row.weight.sqrt();
+            }
+        }
+        let coef = self.basis.transpose() * &x;
+        let projected = &x - &self.basis * coef;
+        for c in 0..columns.len() {
+            let before = x.column(c).norm();
+            if before == 0.0 || projected.column(c).norm() < MIN_OUTSIDE_SPAN * before {
+                return None;
+            }
+        }
+        Some(projected)
+    }
+
+    /// Least-squares fit of projected regressors to the projected residual:
+    /// (coefficients, explained sum of squares).
+    fn fit(&self, projected: &DMatrix<f64>) -> Option<(Vec<f64>, f64)> {
+        let gram = projected.transpose() * projected;
+        let rhs = projected.transpose() * &self.residual;
+        let beta = gram.clone().cholesky()?.solve(&rhs);
+        let explained = beta.dot(&rhs);
+        (explained.is_finite() && explained >= 0.0).then(|| (beta.iter().copied().collect(), explained))
+    }
+}
+
+/// A candidate effect: its regressors over all rows and what adding it means.
+struct Candidate {
+    family: Family,
+    strings: Vec<u8>,
+    variable: Variable,
+    columns: Vec<Vec<f64>>,
+    /// Extra chi-square demanded for a searched parameter (a slip's time).
+    search_penalty: f64,
+    build: Box<dyn Fn(&[f64]) -> Change>,
+    describe: String,
+}
+
+fn string_column(rows: &[Row], string: usize, f: impl Fn(&Row) -> f64) -> Vec<f64> {
+    rows.iter()
+        .map(|r| if r.string == string { f(r) } else { 0.0 })
+        .collect()
+}
+
+fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) -> Vec<Candidate> {
+    let rows = &ev.rows;
+    let mut out = Vec::new();
+    let has_effect = |string: usize, f: fn(&Effect) -> bool| {
+        structure
+            .effects
+            .iter()
+            .any(|t| t.string as usize == string && f(&t.effect))
+    };
+    for i in 0..STRINGS {
+        let s = i as u8;
+        let term = move |effect: Effect| Change::Effect(EffectTerm { string: s, effect });
+        if !has_effect(i, |e| matches!(e, Effect::Offset { .. })) {
+            out.push(Candidate {
+                family: Family::Offset,
+                strings: vec![s],
+                variable: Variable::Length,
+                columns: vec![string_column(rows, i, |_| 1.0)],
+                search_penalty: 0.0,
+                build: Box::new(move |b| term(Effect::Offset { mm: b[0] })),
+                describe: format!("string {i} reads a constant length error (its home length is off)"),
+            });
+        }
+        if !has_effect(i, |e| matches!(e, Effect::Scale { .. })) {
+            out.push(Candidate {
+                family: Family::Scale,
+                strings: vec![s],
+                variable: Variable::WoundLength,
+                columns: vec![string_column(rows, i, |r| r.ctx.payout_mm)],
+                search_penalty: 0.0,
+                build: Box::new(move |b| term(Effect::Scale { relative: b[0] })),
+                describe: format!("string {i}'s payout is off in proportion to the string wound out"),
+            });
+        }
+        if !has_effect(i, |e| matches!(e, Effect::Winding { power: 3, .. })) {
+            out.push(Candidate {
+                family: Family::Winding,
+                strings: vec![s],
+                variable: Variable::WoundLength,
+                columns: vec![string_column(rows, i, |r| r.ctx.theta.powi(3))],
+                search_penalty: 0.0,
+                build: Box::new(move |b| {
+                    term(Effect::Winding {
+                        power: 3,
+                        mm_per_rad_pow: b[0],
+                    })
+                }),
+                describe: format!("string {i}'s winding law needs a third-order term (uneven layers)"),
+            });
+        }
+        if !has_effect(i, |e| matches!(e, Effect::Eccentricity { .. })) {
+            out.push(Candidate {
+                family: Family::Eccentricity,
+                strings: vec![s],
+                variable: Variable::PulleyAngle,
+                columns: vec![
+                    string_column(rows, i, |r| r.ctx.theta.sin()),
+                    string_column(rows, i, |r| r.ctx.theta.cos() - 1.0),
+                ],
+                search_penalty: 3.0,
+                build: Box::new(move |b| {
+                    term(Effect::Eccentricity {
+                        sin_mm: b[0],
+                        cos_mm: b[1],
+                    })
+                }),
+                describe: format!("string {i}'s error is periodic in its pulley angle (eccentric pulley)"),
+            });
+        }
+        if !has_effect(i, |e| matches!(e, Effect::Elasticity { .. })) {
+            out.push(Candidate {
+                family: Family::Elasticity,
+                strings: vec![s],
+                variable: Variable::Tension,
+                columns: vec![string_column(rows, i, |r| {
+                    r.ctx.tension_n * (r.ctx.home_length_mm + r.ctx.payout_mm)
+                })],
+                search_penalty: 0.0,
+                build: Box::new(move |b| term(Effect::Elasticity { per_newton: b[0] })),
+                describe: format!("string {i} stretches with its tension (elastic string)"),
+            });
+        }
+        if !has_effect(i, |e| matches!(e, Effect::Backlash { .. })) {
+            out.push(Candidate {
+                family: Family::Backlash,
+                strings: vec![s],
+                variable: Variable::Direction,
+                columns: vec![string_column(rows, i, |r| f64::from(r.ctx.direction.signum()))],
+                search_penalty: 0.0,
+                build: Box::new(move |b| term(Effect::Backlash { half_width_mm: b[0] })),
+                describe: format!("string {i}'s error depends on its direction of motion (backlash)"),
+            });
+        }
+        if !has_effect(i, |e| matches!(e, Effect::Drift { .. })) {
+            out.push(Candidate {
+                family: Family::Drift,
+                strings: vec![s],
+                variable: Variable::Time,
+                columns: vec![string_column(rows, i, |r| r.ctx.time_s)],
+                search_penalty: 0.0,
+                build: Box::new(move |b| term(Effect::Drift { mm_per_s: b[0] })),
+                describe: format!("string {i}'s length drifts with time since initialization"),
+            });
+        }
+        if let Some(at_s) = time_split[i] {
+            if !has_effect(i, |e| matches!(e, Effect::Slip { .. })) {
+                let n = rows.iter().filter(|r| r.string == i).count().max(2) as f64;
+                out.push(Candidate {
+                    family: Family::Slip,
+                    strings: vec![s],
+                    variable: Variable::Time,
+                    columns: vec![string_column(rows, i, |r| {
+                        if r.ctx.time_s >= at_s {
+                            1.0
+                        } else {
+                            0.0
+                        }
+                    })],
+                    search_penalty: 2.0 * n.ln(),
+                    build: Box::new(move |b| term(Effect::Slip { at_s, mm: b[0] })),
+                    describe: format!("string {i} slipped at t = {at_s:.1} s (a step in its length)"),
+                });
+            }
+        }
+    }
+    if !structure.fit_room_scale {
+        out.push(Candidate {
+            family: Family::Geometry,
+            strings: Vec::new(),
+            variable: Variable::Position,
+            columns: vec![rows.iter().map(|r| r.scale_gradient).collect()],
+            search_penalty: 0.0,
+            build: Box::new(|_| Change::RoomScale),
+            describe: "the tracker's scale differs from the device's (frame error)".into(),
+        });
+    }
+    out
+}
+
+/// The most likely slip time of each string: the split of its residuals (in
+/// time order) with the largest two-sample mean difference, or `None` when
+/// the string has too few rows.
+fn slip_times(ev: &Evidence) -> Vec<Option<f64>> {
+    const MIN_SIDE: usize = 20;
+    (0..STRINGS)
+        .map(|i| {
+            let r: Vec<(f64, f64)> = ev
+                .rows
+                .iter()
+                .filter(|r| r.string == i && r.weight > 0.0)
+                .map(|r| (r.ctx.time_s, r.residual))
+                .collect();
+            let n = r.len();
+            if n < 2 * MIN_SIDE {
+                return None;
+            }
+            let total: f64 = r.iter().map(|x| x.1).sum();
+            let mut prefix = 0.0;
+            let mut best = (0.0, None);
+            for j in 1..n {
+                prefix += r[j - 1].1;
+                if j < MIN_SIDE || n - j < MIN_SIDE || r[j].0 == r[j - 1].0 {
+                    continue;
+                }
+                let (a, b) = (j as f64, (n - j) as f64);
+                let diff = prefix / a - (total - prefix) / b;
+                let stat = diff * diff * a * b / n as f64;
+                if stat > best.0 {
+                    best = (stat, Some(0.5 * (r[j - 1].0 + r[j].0)));
+                }
+            }
+            best.1
+        })
+        .collect()
+}
+
+fn chi2_threshold(config: &LoopConfig, dof: usize, penalty: f64) -> f64 {
+    config.chi2_threshold + 3.0 * (dof.saturating_sub(1)) as f64 + penalty
+}
+
+/// Significant candidate effects of the current fit, strongest first.
+pub fn diagnose(
+    id: &Identification,
+    observations: &[Observation],
+    nominal: &Frame<f64>,
+    structure: &Structure,
+    config: &LoopConfig,
+) -> Vec<Finding> {
+    let Some(ev) = Evidence::gather(id, observations, nominal, structure) else {
+        return Vec::new();
+    };
+    let splits = slip_times(&ev);
+    let mut findings: Vec<Finding> = candidates(&ev, structure, &splits)
+        .into_iter()
+        .filter_map(|c| {
+            let projected = ev.project(&c.columns)?;
+            let (beta, explained) = ev.fit(&projected)?;
+            let chi2 = explained / ev.sigma2;
+            if chi2 < chi2_threshold(config, c.columns.len(), c.search_penalty) {
+                return None;
+            }
+            let amplitude_mm = ev
+                .rows
+                .iter()
+                .enumerate()
+                .filter(|(_, r)| r.weight > 0.1)
+                .map(|(k, _)| {
+                    c.columns
+                        .iter()
+                        .zip(&beta)
+                        .map(|(col, b)| col[k] * b)
+                        .sum::<f64>()
+                        .abs()
+                })
+                .fold(0.0, f64::max);
+            Some(Finding {
+                family: c.family,
+                strings: c.strings.clone(),
+                variable: c.variable,
+                amplitude_mm,
+                explained: explained / ev.rss.max(1e-12),
+                added: false,
+                chi2,
+                description: c.describe.clone(),
+                change: Some((c.build)(&beta)),
+            })
+        })
+        .collect();
+    findings.extend(anchors_beyond_tolerance(id, nominal, structure, config));
+    findings.sort_by(|a, b| b.chi2.total_cmp(&a.chi2));
+    findings
+}
+
+/// Prior sd (mm) of an anchor the geometry family released.
+pub const RELEASED_ANCHOR_SD_MM: f64 = 1000.0;
+
+/// Anchors the data pull far beyond their design tolerance: the fit moved
+/// them more than 3 prior standard deviations in some coordinate, so the
+/// prior is fighting the data (a bracket mounted in another hole, a frame
+/// built off the drawing). Releasing the prior is the geometry change.
+fn anchors_beyond_tolerance(
+    id: &Identification,
+    nominal: &Frame<f64>,
+    structure: &Structure,
+    config: &LoopConfig,
+) -> Vec<Finding> {
+    (0..STRINGS)
+        .filter(|&i| structure.anchor_sd_override_mm[i].is_none())
+        .filter_map(|i| {
+            let sd = structure.priors.anchor_sd_mm;
+            let d = [
+                id.frame.anchors[i][0] - nominal.anchors[i][0],
+                id.frame.anchors[i][1] - nominal.anchors[i][1],
+                id.frame.anchors[i][2] - nominal.anchors[i][2],
+            ];
+            let chi2 = d.iter().map(|v| (v / sd).powi(2)).sum::<f64>();
+            let worst = d.iter().map(|v| v.abs()).fold(0.0, f64::max);
+            (worst > 3.0 * sd && chi2 > config.chi2_threshold.min(27.0)).then(|| Finding {
+                family: Family::Geometry,
+                strings: vec![i as u8],
+                variable: Variable::Position,
+                amplitude_mm: (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt(),
+                explained: 0.0,
+                added: false,
+                chi2,
+                description: format!(
+                    "anchor {i} sits {:.1} mm from its design position ({:+.1}, {:+.1}, {:+.1}), beyond the {sd} mm tolerance",
+                    (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt(),
+                    d[0],
+                    d[1],
+                    d[2]
+                ),
+                change: Some(Change::ReleaseAnchor(i as u8)),
+            })
+        })
+        .collect()
+}
+
+/// Structure left in the residual that no family explains: per string, the
+/// residual binned by each variable; a variable whose bin means differ beyond
+/// chance is reported, naming it. Position-dependent structure is what the
+/// learned correction (NN/SVR) takes next.
+pub fn unexplained(
+    id: &Identification,
+    observations: &[Observation],
+    nominal: &Frame<f64>,
+    structure: &Structure,
+    config: &LoopConfig,
+) -> Vec<Finding> {
+    const BINS: usize = 8;
+    let Some(ev) = Evidence::gather(id, observations, nominal, structure) else {
+        return Vec::new();
+    };
+    let variables: [(Variable, fn(&Row) -> f64); 10] = [
+        (Variable::Length, |r| r.length),
+        (Variable::WoundLength, |r| r.ctx.payout_mm),
+        (Variable::PulleyAngle, |r| pulley_turn_angle(r.ctx.theta)),
+        (Variable::Tension, |r| r.ctx.tension_n),
+        (Variable::Direction, |r| f64::from(r.ctx.direction)),
+        (Variable::Speed, |r| r.speed),
+        (Variable::Time, |r| r.ctx.time_s),
+        (Variable::Order, |r| r.obs as f64),
+        (Variable::Position, |r| r.position[0]),
+        (Variable::Position, |r| r.position[2]),
+    ];
+    let sigma2 = ev.sigma2;
+    let threshold = chi2_threshold(config, BINS, 15.0);
+    let mut by_variable: Vec<(Variable, Vec<u8>, f64, f64, f64)> = Vec::new();
+    for i in 0..STRINGS {
+        let rows: Vec<(usize, &Row)> = ev
+            .rows
+            .iter()
+            .enumerate()
+            .filter(|(_, r)| r.string == i && r.weight > 0.1)
+            .collect();
+        if rows.len() < 4 * BINS {
+            continue;
+        }
+        let mut best: Option<(Variable, f64, f64, f64)> = None;
+        for (variable, value) in variables.iter() {
+            let mut v: Vec<(f64, f64, f64)> = rows
+                .iter()
+                .map(|(k, r)| (value(r), ev.residual[*k], r.weight.sqrt()))
+                .collect();
+            v.sort_by(|a, b| a.0.total_cmp(&b.0));
+            let mut between = 0.0;
+            let mut peak: f64 = 0.0;
+            let per = v.len() / BINS;
+            for b in 0..BINS {
+                let part = &v[b * per..if b + 1 == BINS { v.len() } else { (b + 1) * per }];
+                let sum: f64 = part.iter().map(|x| x.1).sum();
+                let n = part.len() as f64;
+                between += sum * sum / n;
+                let w: f64 = part.iter().map(|x| x.2).sum::<f64>() / n;
+                peak = peak.max((sum / n / w.max(1e-9)).abs());
+            }
+            let total: f64 = v.iter().map(|x| x.1).sum();
+            between -= total * total / v.len() as f64;
+            let chi2 = between / sigma2;
+            if chi2 > threshold && best.is_none_or(|b| chi2 > b.1) {
+                best = Some((*variable, chi2, peak, between));
+            }
+        }
+        if let Some((variable, chi2, peak, between)) = best {
+            match by_variable.iter_mut().find(|e| e.0 == variable) {
+                Some(e) => {
+                    e.1.push(i as u8);
+                    e.2 = e.2.max(chi2);
+                    e.3 = e.3.max(peak);
+                    e.4 += between;
+                }
+                None => by_variable.push((variable, vec![i as u8], chi2, peak, between)),
+            }
+        }
+    }
+    by_variable
+        .into_iter()
+        .map(|(variable, strings, chi2, peak, between)| Finding {
+            family: Family::Unexplained,
+            description: format!(
+                "strings {strings:?}: residual follows {} but fits no known effect{}",
+                variable_name(variable),
+                if variable == Variable::Position {
+                    "; the learned position correction takes it"
+                } else {
+                    ""
+                }
+            ),
+            strings,
+            variable,
+            amplitude_mm: peak,
+            explained: between / ev.rss.max(1e-12),
+            added: false,
+            chi2,
+            change: None,
+        })
+        .collect()
+}
+
+/// The report's name of a variable.
+pub fn variable_name(v: Variable) -> &'static str {
+    match v {
+        Variable::Position => "position",
+        Variable::Length => "length",
+        Variable::WoundLength => "wound_length",
+        Variable::PulleyAngle => "pulley_angle",
+        Variable::Tension => "tension",
+        Variable::Direction => "direction",
+        Variable::Speed => "speed",
+        Variable::Time => "time",
+        Variable::Order => "order",
+    }
+}
+
+/// The report's name of a family.
+pub fn family_name(f: Family) -> &'static str {
+    match f {
+        Family::Offset => "offset",
+        Family::Scale => "scale",
+        Family::Winding => "winding",
+        Family::Eccentricity => "eccentricity",
+        Family::Elasticity => "elasticity",
+        Family::Backlash => "backlash",
+        Family::Drift => "drift",
+        Family::Slip => "slip",
+        Family::Geometry => "geometry",
+        Family::Unexplained => "unexplained",
+    }
+}
+
+fn stage_name(f: &Finding) -> String {
+    match (f.family, f.strings.as_slice()) {
+        (Family::Geometry, []) => "geometry (tracker scale)".into(),
+        (Family::Geometry, [s]) => format!("geometry anchor {s}"),
+        (family, [s]) => format!("{} string {s}", family_name(family)),
+        (family, s) => format!("{} strings {s:?}", family_name(family)),
+    }
+}
+
+impl Structure {
+    /// This structure with `change` applied.
+    pub fn with(&self, change: Change) -> Structure {
+        let mut s = self.clone();
+        match change {
+            Change::Effect(term) => s.effects.push(term),
+            Change::RoomScale => s.fit_room_scale = true,
+            Change::ReleaseAnchor(i) => {
+                if let Some(sd) = s.anchor_sd_override_mm.get_mut(i as usize) {
+                    *sd = Some(RELEASED_ANCHOR_SD_MM);
+                }
+            }
+        }
+        s
+    }
+}
+
+/// Mean position error on data each fit did not see: two interleaved folds,
+/// each fitted (warm, from `from`) on the other.
+pub fn cross_validated_error(
+    train: &[Observation],
+    nominal: &Frame<f64>,
+    from: &Identification,
+    structure: &Structure,
+) -> Result<f64, IdentifyError> {
+    let fold = |parity: usize| -> Result<(f64, usize), IdentifyError> {
+        let fit: Vec<Observation> = train
+            .iter()
+            .enumerate()
+            .filter(|(k, _)| k % 2 != parity)
+            .map(|(_, o)| o.clone())
+            .collect();
+        let held: Vec<Observation> = train
+            .iter()
+            .enumerate()
+            .filter(|(k, _)| k % 2 == parity)
+            .map(|(_, o)| o.clone())
+            .collect();
+        let id = identify(&fit, nominal, &Start::from_identification(from), structure)?;
+        let s = model_errors(&id, &held);
+        Ok((s.mean_mm * s.n as f64, s.n))
+    };
+    let (a, b) = rayon::join(|| fold(0), || fold(1));
+    let (a, b) = (a?, b?);
+    Ok((a.0 + b.0) / (a.1 + b.1).max(1) as f64)
+}
+
 /// Runs the loop: identify, diagnose, add the strongest significant effect,
-/// refit, repeat until nothing significant that helps remains.
+/// refit, repeat until nothing significant that helps on held-out data
+/// remains; then report the structure no family explains.
 pub fn close_loop(
     train: &[Observation],
     test: Option<&[Observation]>,
     nominal: &Frame<f64>,
     start: &Start,
-    _config: &LoopConfig,
+    config: &LoopConfig,
 ) -> Result<LoopResult, IdentifyError> {
-    let structure = Structure::default();
+    let mut structure = Structure::default();
     let base = identify(train, nominal, start, &structure)?;
     let base_train = model_errors(&base, train);
     let base_test = test.map(|t| model_errors(&base, t));
+    let mut id = base.clone();
+    let mut validation = cross_validated_error(train, nominal, &id, &structure)?;
+    let mut stages = Vec::new();
+    let mut findings: Vec<Finding> = Vec::new();
+    let same = |a: &Finding, b: &Finding| a.family == b.family && a.strings == b.strings;
+    'outer: while stages.len() < config.max_effects {
+        let proposals = diagnose(&id, train, nominal, &structure, config);
+        for mut finding in proposals.into_iter().take(3) {
+            let Some(change) = finding.change else {
+                continue;
+            };
+            let candidate = structure.with(change);
+            let after = cross_validated_error(train, nominal, &id, &candidate)?;
+            if after < validation * (1.0 - config.min_relative_gain) {
+                let refit = identify(train, nominal, &Start::from_identification(&id), &candidate)?;
+                finding.added = true;
+                findings.retain(|f| !same(f, &finding));
+                findings.push(finding.clone());
+                stages.push(LoopStage {
+                    name: stage_name(&finding),
+                    train: model_errors(&refit, train),
+                    test: test.map(|t| model_errors(&refit, t)),
+                    finding,
+                    validation_before_mm: validation,
+                    validation_after_mm: after,
+                });
+                validation = after;
+                structure = candidate;
+                id = refit;
+                continue 'outer;
+            }
+            if !findings.iter().any(|f| same(f, &finding)) {
+                findings.push(finding);
+            }
+        }
+        break;
+    }
+    findings.extend(unexplained(&id, train, nominal, &structure, config));
     Ok(LoopResult {
-        identification: base.clone(),
         base,
         base_train,
         base_test,
+        identification: id,
         structure,
-        stages: Vec::new(),
-        findings: Vec::new(),
+        stages,
+        findings,
     })
 }

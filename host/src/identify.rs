@@ -615,9 +615,23 @@ impl levenberg_marquardt::LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
                     [d[0] / lh, d[1] / lh, d[2] / lh]
                 };
                 let theta = two_pi * o.inputs.counts[i] as f64 / w.counts_per_rev as f64;
+                // Effects that scale with the payout or the home length
+                // (scale, elasticity) carry those derivatives along.
+                let (mut d_payout, mut d_home) = (1.0, 1.0);
+                for term in state.effects.iter().filter(|t| usize::from(t.string) == i) {
+                    match term.effect {
+                        Effect::Scale { relative } => d_payout += relative,
+                        Effect::Elasticity { per_newton } => {
+                            let t = f64::from(o.inputs.tension_mn[i]) / 1000.0;
+                            d_payout += per_newton * t;
+                            d_home += per_newton * t;
+                        }
+                        _ => {}
+                    }
+                }
                 for c in 0..3 {
-                    jac[(row, ANCHORS + 3 * i + c)] = f * (-up[c] + uh[c]);
-                    jac[(row, HOME + c)] = f * (-uh[c]);
+                    jac[(row, ANCHORS + 3 * i + c)] = f * (-up[c] + d_home * uh[c]);
+                    jac[(row, HOME + c)] = f * (-d_home * uh[c]);
                 }
                 let rup = mat_vec(&frame.room_rotation, up);
                 let wgrad = cross(up, p);
@@ -629,8 +643,8 @@ impl levenberg_marquardt::LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
                     let dot = up[0] * p[0] + up[1] * p[1] + up[2] * p[2];
                     jac[(row, SCALE)] = f * (-dot / frame.room_scale);
                 }
-                jac[(row, layout.r_home() + i)] = f * (-theta);
-                jac[(row, layout.kappa())] = f * (theta * theta);
+                jac[(row, layout.r_home() + i)] = f * (-theta * d_payout);
+                jac[(row, layout.kappa())] = f * (theta * theta * d_payout);
                 for c in 0..layout.effect_columns.len() {
                     jac[(row, layout.first_effect() + c)] = f * effect_grad[c][i];
                 }
@@ -741,6 +755,9 @@ fn weight(round: Round, r: f64, scale: f64) -> f64 {
 pub struct Start {
     pub frame: Frame<f64>,
     pub winding: WindingPhysics,
+    /// Starting close to the solution (a refit): skip the least-squares and
+    /// Huber rounds, whose only job is to get near it robustly.
+    pub warm: bool,
 }
 
 impl Start {
@@ -757,6 +774,7 @@ impl Start {
                 kappa_mm: 0.0,
                 counts_per_rev,
             },
+            warm: false,
         }
     }
 
@@ -765,6 +783,7 @@ impl Start {
         Start {
             frame: id.frame,
             winding: id.winding,
+            warm: true,
         }
     }
 }
@@ -798,13 +817,19 @@ pub fn identify(
     };
     let mut weights = vec![[1.0; STRINGS]; used.len()];
     let mut evaluations = 0;
-    let rounds = [
+    let cold = [
         Round::LeastSquares,
         Round::Huber,
         Round::Tukey,
         Round::Tukey,
         Round::Tukey,
     ];
+    let warm = [Round::Tukey, Round::Tukey, Round::Tukey];
+    let (rounds, settled_after): (&[Round], usize) = if start.warm {
+        (&warm, 1)
+    } else {
+        (&cold, 3)
+    };
     for (n, &round) in rounds.iter().enumerate() {
         // Weights from the current state's residuals.
         let laws = state.winding.laws();
@@ -822,7 +847,7 @@ pub fn identify(
             .flatten()
             .zip(weights.iter().flatten())
             .any(|(a, b)| (a - b).abs() > 1e-3);
-        if n >= 3 && !changed {
+        if n >= settled_after && !changed {
             break;
         }
         weights = new_weights;
@@ -841,7 +866,7 @@ pub fn identify(
             x,
         };
         let (problem, report) = levenberg_marquardt::LevenbergMarquardt::new()
-            .with_patience(200)
+            .with_patience(30)
             .minimize(problem);
         evaluations += report.number_of_evaluations;
         if !report.objective_function.is_finite() {
@@ -1017,4 +1042,64 @@ pub fn string_residuals(
             Some(r)
         })
         .collect()
+}
+
+/// String residuals larger than this (mm) are gross failures (a string off
+/// its pulley, a jammed motor), not calibration effects: diagnosis leaves them
+/// out. Everything smaller stays in, even what the robust fit down-weighted:
+/// a systematic effect the model lacks (a slip, say) looks like outliers to
+/// the fit, and diagnosis must see it to name it.
+pub const GROSS_RESIDUAL_MM: f64 = 25.0;
+
+/// The weighted Jacobian of the string-space residuals at an identified
+/// solution (rows `k * STRINGS + i` for the k-th observation with a tracker
+/// position and string i; weight 1, or 0 for residuals beyond
+/// [`GROSS_RESIDUAL_MM`]; prior rows left out), the matching weighted
+/// residuals, and the weights. Diagnosis projects candidate effects on the
+/// complement of its columns: what the current model can already absorb is
+/// not evidence of an effect.
+pub fn data_jacobian(
+    id: &Identification,
+    observations: &[Observation],
+    nominal: &Frame<f64>,
+    structure: &Structure,
+) -> Option<(DMatrix<f64>, DVector<f64>, Vec<[f64; STRINGS]>)> {
+    let used: Vec<&Observation> = observations
+        .iter()
+        .filter(|o| o.tracker.is_some())
+        .collect();
+    let layout = Layout::new(structure);
+    let state = State {
+        frame: id.frame,
+        winding: id.winding,
+        effects: id.effects.clone(),
+    };
+    let laws = state.winding.laws();
+    let weights: Vec<[f64; STRINGS]> = used
+        .iter()
+        .map(|o| {
+            Problem::string_residuals(&state, &laws, o)
+                .map(|r| if r.abs() <= GROSS_RESIDUAL_MM { 1.0 } else { 0.0 })
+        })
+        .collect();
+    let problem = Problem {
+        observations: &used,
+        weights: &weights,
+        residual_sd: 1.0,
+        structure,
+        nominal,
+        layout: &layout,
+        base_rotation: state.frame.room_rotation,
+        counts_per_rev: state.winding.counts_per_rev,
+        x: encode(&state, &layout),
+    };
+    use levenberg_marquardt::LeastSquaresProblem;
+    let jac = problem.jacobian()?;
+    let residuals = problem.residuals()?;
+    let rows = used.len() * STRINGS;
+    Some((
+        jac.rows(0, rows).into_owned(),
+        residuals.rows(0, rows).into_owned(),
+        weights,
+    ))
 }

@@ -1,0 +1,1123 @@
+//! Two-slot model storage: which stored model is active, and uploads that
+//! never put it at risk. Pure logic over a small flash trait, [`ModelFlash`];
+//! the firmware implements it on the STM32H7's internal flash, the host and
+//! the virtual device on [`RamFlash`], which can also cut the power at any
+//! write.
+//!
+//! # Layout of a slot
+//!
+//! ```text
+//! offset        size   content
+//! 0             32     commit record (one flash word), written LAST
+//! 32            len    the model blob (protocol::blob header + body)
+//! ```
+//!
+//! The commit record says "the blob in this slot is complete and checked":
+//!
+//! ```text
+//! offset size field
+//!  0     4    magic        b"SPDC"
+//!  4     2    version      RECORD_VERSION
+//!  6     2    reserved     0xFFFF
+//!  8     4    sequence     newer commit = larger (wrapping) sequence
+//! 12     4    blob_len     bytes of the blob after the record
+//! 16     4    blob_crc32   CRC-32 (protocol::blob::CRC32) of the whole blob
+//! 20     4    model_id     the blob header's model_id
+//! 24     4    reserved     0xFFFF_FFFF
+//! 28     4    record_crc32 CRC-32 of bytes 0..28
+//! ```
+//!
+//! # Rules
+//!
+//! - **Boot** ([`ModelStore::open`]): a slot counts if its record decodes and
+//!   its blob matches the record's length and CRC; of the slots that count,
+//!   the newest sequence is active.
+//! - **Upload** ([`ModelStore::begin`], [`ModelStore::chunk`],
+//!   [`ModelStore::commit`]): the blob goes into the *staging* slot, never the
+//!   active one: erase, program the chunks word by word, then at commit read
+//!   the whole blob back, check its CRC and let the caller validate it
+//!   (`CompiledCalibration::from_blob`), and only then program the record,
+//!   with the active sequence + 1, and read it back through the boot checks.
+//!   Until the record's last byte is programmed the staging slot has no valid
+//!   record, so an upload cut at any point (a chunk boundary, mid-chunk,
+//!   mid-word, during the erase or the record) leaves the previous model
+//!   active and intact at the next boot.
+//! - **Clear** ([`ModelStore::clear`]): erases the staging slot first, then
+//!   the active one, so a cut clear never brings an older model back.
+//!
+//! # Flash words
+//!
+//! The store programs only whole [`FLASH_WORD`]s (32 bytes, the STM32H7's
+//! flash word), at offsets that are multiples of 32, and each word at most
+//! once between erases (the H7 refuses to reprogram a word: its ECC covers
+//! the whole word). Bytes of a chunk that do not complete a word wait in RAM
+//! until the next chunk (or the commit) completes it. Any flash whose
+//! programming unit divides 32 bytes fits.
+
+use spidar_protocol::blob::CRC32;
+
+/// Programming unit of the store: every write is whole words at word-aligned
+/// offsets (the STM32H7's 256-bit flash word).
+pub const FLASH_WORD: usize = 32;
+/// Length of the commit record at the start of a slot (one flash word).
+pub const RECORD_LEN: usize = FLASH_WORD;
+/// Offset of the blob inside a slot.
+pub const BLOB_OFFSET: usize = RECORD_LEN;
+/// Magic of a commit record.
+pub const RECORD_MAGIC: [u8; 4] = *b"SPDC";
+/// Layout version of the commit record.
+pub const RECORD_VERSION: u16 = 1;
+
+/// Bytes read at a time when checking a stored blob's CRC.
+const READ_CHUNK: usize = 64;
+
+/// One of the two model slots.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Slot {
+    A,
+    B,
+}
+
+impl Slot {
+    /// The other slot.
+    pub const fn other(self) -> Slot {
+        match self {
+            Slot::A => Slot::B,
+            Slot::B => Slot::A,
+        }
+    }
+
+    /// 0 for A, 1 for B (as in `protocol::ModelInfo::slot`).
+    pub const fn index(self) -> u8 {
+        match self {
+            Slot::A => 0,
+            Slot::B => 1,
+        }
+    }
+}
+
+/// Why a flash operation failed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FlashError {
+    /// `offset..offset + len` does not lie inside the slot.
+    OutOfBounds { offset: u32, len: u32 },
+    /// A write not made of whole [`FLASH_WORD`]s at a word-aligned offset.
+    Misaligned { offset: u32, len: u32 },
+    /// A write to a word that is not erased (the H7 cannot reprogram a word).
+    NotErased { offset: u32 },
+    /// The flash controller reported an error: its status bits.
+    Hardware { code: u32 },
+    /// The power went (simulated by [`RamFlash`]); nothing works until
+    /// [`RamFlash::power_cycle`].
+    PowerLost,
+}
+
+impl FlashError {
+    /// A number for `protocol::DeviceError::Storage { code }`: the hardware
+    /// status bits, or `0x8000_0000 | kind` for the other kinds.
+    pub fn code(&self) -> u32 {
+        match *self {
+            FlashError::Hardware { code } => code,
+            FlashError::OutOfBounds { .. } => 0x8000_0001,
+            FlashError::Misaligned { .. } => 0x8000_0002,
+            FlashError::NotErased { .. } => 0x8000_0003,
+            FlashError::PowerLost => 0x8000_0004,
+        }
+    }
+}
+
+/// The flash holding the two model slots.
+///
+/// Contract the store relies on:
+/// - `write` is only called with `offset` and `data.len()` multiples of
+///   [`FLASH_WORD`], on words erased since their last write;
+/// - after `erase(slot)` every byte of the slot reads `0xFF`;
+/// - `read` returns what was programmed (a word whose programming was cut by
+///   a power loss may read as anything; see `docs/hardware.md` for the H7's
+///   ECC caveat).
+pub trait ModelFlash {
+    /// Bytes per slot (a multiple of [`FLASH_WORD`], more than [`RECORD_LEN`]).
+    const SLOT_LEN: usize;
+
+    /// Reads `buf.len()` bytes of `slot` at `offset`.
+    fn read(&mut self, slot: Slot, offset: usize, buf: &mut [u8]) -> Result<(), FlashError>;
+
+    /// Erases the whole slot to `0xFF`.
+    fn erase(&mut self, slot: Slot) -> Result<(), FlashError>;
+
+    /// Programs whole flash words of `slot` at `offset` (see the contract).
+    fn write(&mut self, slot: Slot, offset: usize, data: &[u8]) -> Result<(), FlashError>;
+}
+
+/// The commit record of a slot (layout in the module doc).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct CommitRecord {
+    pub sequence: u32,
+    pub blob_len: u32,
+    pub blob_crc32: u32,
+    pub model_id: u32,
+}
+
+fn le_u32(b: &[u8; RECORD_LEN], at: usize) -> u32 {
+    let mut w = [0u8; 4];
+    for (i, x) in w.iter_mut().enumerate() {
+        *x = b.get(at + i).copied().unwrap_or(0xFF);
+    }
+    u32::from_le_bytes(w)
+}
+
+fn crc32(data: &[u8]) -> u32 {
+    CRC32.checksum(data)
+}
+
+impl CommitRecord {
+    /// The record's bytes.
+    pub fn encode(&self) -> [u8; RECORD_LEN] {
+        let mut b = [0xFFu8; RECORD_LEN];
+        b[0..4].copy_from_slice(&RECORD_MAGIC);
+        b[4..6].copy_from_slice(&RECORD_VERSION.to_le_bytes());
+        b[8..12].copy_from_slice(&self.sequence.to_le_bytes());
+        b[12..16].copy_from_slice(&self.blob_len.to_le_bytes());
+        b[16..20].copy_from_slice(&self.blob_crc32.to_le_bytes());
+        b[20..24].copy_from_slice(&self.model_id.to_le_bytes());
+        let c = crc32(&b[0..28]);
+        b[28..32].copy_from_slice(&c.to_le_bytes());
+        b
+    }
+
+    /// Decodes a record; `None` for erased flash (all `0xFF`), a torn write,
+    /// a foreign layout, or a length that is 0 or above `max_blob_len`.
+    pub fn decode(b: &[u8; RECORD_LEN], max_blob_len: u32) -> Option<CommitRecord> {
+        if b[0..4] != RECORD_MAGIC || b[4..6] != RECORD_VERSION.to_le_bytes() {
+            return None;
+        }
+        if le_u32(b, 28) != crc32(&b[0..28]) {
+            return None;
+        }
+        let r = CommitRecord {
+            sequence: le_u32(b, 8),
+            blob_len: le_u32(b, 12),
+            blob_crc32: le_u32(b, 16),
+            model_id: le_u32(b, 20),
+        };
+        (r.blob_len > 0 && r.blob_len <= max_blob_len).then_some(r)
+    }
+}
+
+/// `a` was committed after `b` (sequence numbers compare with wrap-around).
+pub fn is_newer(a: u32, b: u32) -> bool {
+    (a.wrapping_sub(b) as i32) > 0
+}
+
+/// Picks the active slot from the two slots' checked records (record decoded
+/// and blob CRC matched): the newest. Equal sequences (never written by the
+/// store) resolve to slot A.
+pub fn select_active(
+    a: Option<CommitRecord>,
+    b: Option<CommitRecord>,
+) -> Option<(Slot, CommitRecord)> {
+    match (a, b) {
+        (Some(ra), Some(rb)) => {
+            if is_newer(rb.sequence, ra.sequence) {
+                Some((Slot::B, rb))
+            } else {
+                Some((Slot::A, ra))
+            }
+        }
+        (Some(ra), None) => Some((Slot::A, ra)),
+        (None, Some(rb)) => Some((Slot::B, rb)),
+        (None, None) => None,
+    }
+}
+
+/// The slot an upload goes to: never the active one.
+pub fn staging_slot(active: Option<Slot>) -> Slot {
+    match active {
+        Some(s) => s.other(),
+        None => Slot::A,
+    }
+}
+
+/// Sequence number of the next commit.
+pub fn next_sequence(active: Option<&CommitRecord>) -> u32 {
+    match active {
+        Some(r) => r.sequence.wrapping_add(1),
+        None => 1,
+    }
+}
+
+/// The active model as stored: its slot and commit record.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct StoredModel {
+    pub slot: Slot,
+    pub record: CommitRecord,
+}
+
+/// Progress of one upload into the staging slot.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Upload {
+    pub slot: Slot,
+    pub total_len: u32,
+    pub crc32: u32,
+    pub model_id: u32,
+    /// Bytes received so far = offset of the next chunk. The last
+    /// `received % FLASH_WORD` of them wait in RAM for their word to fill.
+    pub received: u32,
+}
+
+/// What to do with a chunk.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ChunkAction {
+    /// Append `data[skip..]` at `received` (a chunk overlapping what was
+    /// received has its old part skipped).
+    Append { skip: usize },
+    /// A resend of bytes already stored: acknowledge without effect.
+    Duplicate,
+}
+
+impl Upload {
+    /// Classifies a chunk of `len` bytes at `offset`.
+    pub fn classify(&self, offset: u32, len: usize) -> Result<ChunkAction, StoreError> {
+        let len = u32::try_from(len).unwrap_or(u32::MAX);
+        let end = offset.saturating_add(len);
+        if end > self.total_len {
+            return Err(StoreError::PastEnd {
+                end,
+                total_len: self.total_len,
+            });
+        }
+        if end <= self.received {
+            return Ok(ChunkAction::Duplicate);
+        }
+        if offset > self.received {
+            return Err(StoreError::OutOfOrder {
+                expected_offset: self.received,
+            });
+        }
+        Ok(ChunkAction::Append {
+            skip: (self.received - offset) as usize,
+        })
+    }
+}
+
+/// Why a store operation was refused. On every error the active model is
+/// unchanged.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum StoreError {
+    /// The flash failed; an upload in progress is dropped (begin again).
+    Flash(FlashError),
+    /// `UploadBegin` with `total_len` 0.
+    EmptyBlob,
+    /// The blob does not fit a slot (or the caller's buffer).
+    TooLarge { total_len: u32, capacity: u32 },
+    /// `chunk`/`commit` without `begin`.
+    NoUpload,
+    /// A chunk that neither continues the upload nor repeats an old chunk.
+    OutOfOrder { expected_offset: u32 },
+    /// A chunk ending past `total_len`.
+    PastEnd { end: u32, total_len: u32 },
+    /// Commit before every byte arrived.
+    Incomplete { next_offset: u32, total_len: u32 },
+    /// The CRC at commit is not the one announced at begin (`computed` is
+    /// the commit's), or the blob read back from flash does not match the
+    /// announced CRC (`computed` is the read-back's).
+    CrcMismatch { expected: u32, computed: u32 },
+    /// The commit record did not read back through the boot checks.
+    RecordVerify,
+}
+
+impl From<FlashError> for StoreError {
+    fn from(e: FlashError) -> Self {
+        StoreError::Flash(e)
+    }
+}
+
+/// Why a commit failed: the store's checks, or the caller's validation of
+/// the staged blob.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum CommitError<E> {
+    Store(StoreError),
+    /// The caller's validation refused the blob; the upload is dropped.
+    Rejected(E),
+}
+
+impl<E> From<StoreError> for CommitError<E> {
+    fn from(e: StoreError) -> Self {
+        CommitError::Store(e)
+    }
+}
+
+/// The two-slot model store over a [`ModelFlash`].
+pub struct ModelStore<F: ModelFlash> {
+    flash: F,
+    active: Option<StoredModel>,
+    upload: Option<Upload>,
+    /// Bytes of the upload not yet making a whole flash word.
+    pending: [u8; FLASH_WORD],
+}
+
+impl<F: ModelFlash> ModelStore<F> {
+    /// Compile-time check of the flash geometry.
+    const GEOMETRY_OK: () = assert!(
+        F::SLOT_LEN > RECORD_LEN
+            && F::SLOT_LEN % FLASH_WORD == 0
+            && F::SLOT_LEN <= u32::MAX as usize,
+        "ModelFlash::SLOT_LEN must be a multiple of FLASH_WORD larger than RECORD_LEN"
+    );
+
+    /// Largest blob a slot holds, bytes.
+    pub const MAX_BLOB_LEN: u32 = (F::SLOT_LEN - BLOB_OFFSET) as u32;
+
+    /// Scans both slots (boot) and picks the active model. Flash errors make
+    /// a slot not count.
+    pub fn open(flash: F) -> Self {
+        #[allow(clippy::let_unit_value)]
+        let () = Self::GEOMETRY_OK;
+        let mut s = ModelStore {
+            flash,
+            active: None,
+            upload: None,
+            pending: [0xFF; FLASH_WORD],
+        };
+        let a = s.check_slot(Slot::A);
+        let b = s.check_slot(Slot::B);
+        s.active = select_active(a, b).map(|(slot, record)| StoredModel { slot, record });
+        s
+    }
+
+    /// The flash, e.g. to power-cycle a [`RamFlash`] (`ModelStore::open`
+    /// again on it) in tests.
+    pub fn into_flash(self) -> F {
+        self.flash
+    }
+
+    /// The flash, borrowed.
+    pub fn flash_mut(&mut self) -> &mut F {
+        &mut self.flash
+    }
+
+    /// The active model.
+    pub fn active(&self) -> Option<StoredModel> {
+        self.active
+    }
+
+    /// The upload in progress.
+    pub fn upload(&self) -> Option<Upload> {
+        self.upload
+    }
+
+    /// The slot's record if it decodes and its blob matches it.
+    fn check_slot(&mut self, slot: Slot) -> Option<CommitRecord> {
+        let mut rec = [0u8; RECORD_LEN];
+        self.flash.read(slot, 0, &mut rec).ok()?;
+        let r = CommitRecord::decode(&rec, Self::MAX_BLOB_LEN)?;
+        let crc = self.stored_crc(slot, r.blob_len).ok()?;
+        (crc == r.blob_crc32).then_some(r)
+    }
+
+    /// CRC-32 of the first `len` blob bytes of `slot`, read in small pieces.
+    fn stored_crc(&mut self, slot: Slot, len: u32) -> Result<u32, FlashError> {
+        let mut digest = CRC32.digest();
+        let mut buf = [0u8; READ_CHUNK];
+        let mut at = 0usize;
+        let len = len as usize;
+        while at < len {
+            let n = (len - at).min(READ_CHUNK);
+            let piece = &mut buf[..n];
+            self.flash.read(slot, BLOB_OFFSET + at, piece)?;
+            digest.update(piece);
+            at += n;
+        }
+        Ok(digest.finalize())
+    }
+
+    /// Reads the active blob into `buf`; returns the bytes read.
+    pub fn read_active<'b>(&mut self, buf: &'b mut [u8]) -> Result<&'b [u8], StoreError> {
+        let active = self.active.ok_or(StoreError::NoUpload)?;
+        let len = active.record.blob_len;
+        let capacity = u32::try_from(buf.len()).unwrap_or(u32::MAX);
+        let out = buf.get_mut(..len as usize).ok_or(StoreError::TooLarge {
+            total_len: len,
+            capacity,
+        })?;
+        self.flash.read(active.slot, BLOB_OFFSET, out)?;
+        let computed = crc32(out);
+        if computed != active.record.blob_crc32 {
+            return Err(StoreError::CrcMismatch {
+                expected: active.record.blob_crc32,
+                computed,
+            });
+        }
+        Ok(out)
+    }
+
+    fn staging(&self) -> Slot {
+        staging_slot(self.active.map(|a| a.slot))
+    }
+
+    /// Starts an upload of a `total_len`-byte blob (erasing the staging slot),
+    /// or resumes the one in progress if it is the same blob (same length, CRC
+    /// and model id). `capacity` is the caller's own limit (its RAM buffer).
+    /// Returns the offset the host sends next.
+    pub fn begin(
+        &mut self,
+        total_len: u32,
+        crc32: u32,
+        model_id: u32,
+        capacity: u32,
+    ) -> Result<u32, StoreError> {
+        if total_len == 0 {
+            return Err(StoreError::EmptyBlob);
+        }
+        let capacity = capacity.min(Self::MAX_BLOB_LEN);
+        if total_len > capacity {
+            return Err(StoreError::TooLarge {
+                total_len,
+                capacity,
+            });
+        }
+        let staging = self.staging();
+        if let Some(u) = self.upload {
+            if u.slot == staging
+                && u.total_len == total_len
+                && u.crc32 == crc32
+                && u.model_id == model_id
+            {
+                return Ok(u.received);
+            }
+        }
+        self.upload = None;
+        self.pending = [0xFF; FLASH_WORD];
+        self.flash.erase(staging)?;
+        self.upload = Some(Upload {
+            slot: staging,
+            total_len,
+            crc32,
+            model_id,
+            received: 0,
+        });
+        Ok(0)
+    }
+
+    /// Stores one chunk at `offset`; returns the offset the host sends next.
+    pub fn chunk(&mut self, offset: u32, data: &[u8]) -> Result<u32, StoreError> {
+        let mut u = self.upload.ok_or(StoreError::NoUpload)?;
+        let skip = match u.classify(offset, data.len())? {
+            ChunkAction::Duplicate => return Ok(u.received),
+            ChunkAction::Append { skip } => skip,
+        };
+        let mut rest = data.get(skip..).unwrap_or(&[]);
+        while !rest.is_empty() {
+            let fill = u.received as usize % FLASH_WORD;
+            let n = (FLASH_WORD - fill).min(rest.len());
+            let (now, later) = rest.split_at(n);
+            self.pending[fill..fill + n].copy_from_slice(now);
+            rest = later;
+            if fill + n == FLASH_WORD {
+                let word_start = u.received as usize - fill;
+                if let Err(e) = self.program_pending(u.slot, word_start) {
+                    self.upload = None;
+                    return Err(e.into());
+                }
+            }
+            u.received += n as u32;
+            self.upload = Some(u);
+        }
+        Ok(u.received)
+    }
+
+    /// Programs the pending word (padded with `0xFF`) at blob offset
+    /// `word_start`.
+    fn program_pending(&mut self, slot: Slot, word_start: usize) -> Result<(), FlashError> {
+        let word = core::mem::replace(&mut self.pending, [0xFF; FLASH_WORD]);
+        self.flash.write(slot, BLOB_OFFSET + word_start, &word)
+    }
+
+    /// Finishes the upload: programs the last partial word, reads the whole
+    /// blob back into `buf` and checks its CRC, runs `validate` on it, then
+    /// programs the commit record and reads it back through the boot checks.
+    /// On success the new model is active and `buf` holds its blob (`buf`
+    /// must hold `total_len` bytes). On any error the previous model stays
+    /// active; the upload is kept only for `Incomplete` and a commit CRC that
+    /// differs from the announced one (the host may still fix those).
+    pub fn commit<T, E>(
+        &mut self,
+        crc32: u32,
+        buf: &mut [u8],
+        validate: impl FnOnce(&[u8]) -> Result<T, E>,
+    ) -> Result<(StoredModel, T), CommitError<E>> {
+        let u = self.upload.ok_or(StoreError::NoUpload)?;
+        if crc32 != u.crc32 {
+            return Err(StoreError::CrcMismatch {
+                expected: u.crc32,
+                computed: crc32,
+            }
+            .into());
+        }
+        if u.received != u.total_len {
+            return Err(StoreError::Incomplete {
+                next_offset: u.received,
+                total_len: u.total_len,
+            }
+            .into());
+        }
+        // From here on the upload is consumed whatever happens.
+        self.upload = None;
+        let fill = u.received as usize % FLASH_WORD;
+        if fill != 0 {
+            self.program_pending(u.slot, u.received as usize - fill)
+                .map_err(StoreError::Flash)?;
+        }
+        let capacity = u32::try_from(buf.len()).unwrap_or(u32::MAX);
+        let staged = buf
+            .get_mut(..u.total_len as usize)
+            .ok_or(StoreError::TooLarge {
+                total_len: u.total_len,
+                capacity,
+            })?;
+        self.flash
+            .read(u.slot, BLOB_OFFSET, staged)
+            .map_err(StoreError::Flash)?;
+        let computed = CRC32.checksum(staged);
+        if computed != u.crc32 {
+            return Err(StoreError::CrcMismatch {
+                expected: u.crc32,
+                computed,
+            }
+            .into());
+        }
+        let validated = validate(staged).map_err(CommitError::Rejected)?;
+        let record = CommitRecord {
+            sequence: next_sequence(self.active.as_ref().map(|a| &a.record)),
+            blob_len: u.total_len,
+            blob_crc32: u.crc32,
+            model_id: u.model_id,
+        };
+        self.flash
+            .write(u.slot, 0, &record.encode())
+            .map_err(StoreError::Flash)?;
+        let checked = self.check_slot(u.slot).ok_or(StoreError::RecordVerify)?;
+        let stored = StoredModel {
+            slot: u.slot,
+            record: checked,
+        };
+        self.active = Some(stored);
+        Ok((stored, validated))
+    }
+
+    /// Drops the upload in progress (the staging slot keeps no valid record).
+    pub fn abort(&mut self) {
+        self.upload = None;
+        self.pending = [0xFF; FLASH_WORD];
+    }
+
+    /// Forgets every stored model: erases the staging slot, then the active
+    /// one (so a cut clear never brings an older model back).
+    pub fn clear(&mut self) -> Result<(), StoreError> {
+        self.abort();
+        let staging = self.staging();
+        self.flash.erase(staging)?;
+        self.flash.erase(staging.other())?;
+        self.active = None;
+        Ok(())
+    }
+}
+
+/// Model slots in RAM, `SLOT_LEN` bytes each: the host's and the virtual
+/// device's [`ModelFlash`], with the H7's rules (whole 32-byte words, each
+/// programmed once after erase) and simulated power loss: after
+/// [`RamFlash::cut_after`] `n` more operations (word writes and erases), the
+/// next one is torn (a word gets only its first half; an erase clears only
+/// the first half of the slot) and every operation fails with
+/// [`FlashError::PowerLost`] until [`RamFlash::power_cycle`].
+///
+/// Plain arrays, no allocation (put a large one in a `Box` on the host).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct RamFlash<const SLOT_LEN: usize> {
+    slots: [[u8; SLOT_LEN]; 2],
+    ops_left: Option<usize>,
+    powered: bool,
+    ops: usize,
+}
+
+impl<const SLOT_LEN: usize> Default for RamFlash<SLOT_LEN> {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl<const SLOT_LEN: usize> RamFlash<SLOT_LEN> {
+    /// Both slots erased, power on, no cut planned.
+    pub const fn new() -> Self {
+        RamFlash {
+            slots: [[0xFF; SLOT_LEN]; 2],
+            ops_left: None,
+            powered: true,
+            ops: 0,
+        }
+    }
+
+    /// Lets `ops` more word writes / erases succeed; the one after is torn
+    /// and the power goes.
+    pub fn cut_after(&mut self, ops: usize) {
+        self.ops_left = Some(ops);
+    }
+
+    /// Power back on, no cut planned (RAM state of the store is lost: open a
+    /// new `ModelStore` on this flash).
+    pub fn power_cycle(&mut self) {
+        self.powered = true;
+        self.ops_left = None;
+    }
+
+    /// Word writes and erases carried out so far (torn ones included).
+    pub fn operations(&self) -> usize {
+        self.ops
+    }
+
+    /// A slot's bytes.
+    pub fn slot(&self, slot: Slot) -> &[u8; SLOT_LEN] {
+        &self.slots[slot.index() as usize]
+    }
+
+    /// Whether the power holds for one more operation; tears it if not.
+    fn spend(&mut self) -> Result<bool, FlashError> {
+        if !self.powered {
+            return Err(FlashError::PowerLost);
+        }
+        self.ops += 1;
+        match self.ops_left {
+            Some(0) => {
+                self.powered = false;
+                Ok(false)
+            }
+            Some(n) => {
+                self.ops_left = Some(n - 1);
+                Ok(true)
+            }
+            None => Ok(true),
+        }
+    }
+
+    fn range(offset: usize, len: usize) -> Result<core::ops::Range<usize>, FlashError> {
+        let end = offset.checked_add(len).filter(|&e| e <= SLOT_LEN);
+        end.map(|end| offset..end).ok_or(FlashError::OutOfBounds {
+            offset: u32::try_from(offset).unwrap_or(u32::MAX),
+            len: u32::try_from(len).unwrap_or(u32::MAX),
+        })
+    }
+}
+
+impl<const SLOT_LEN: usize> ModelFlash for RamFlash<SLOT_LEN> {
+    const SLOT_LEN: usize = SLOT_LEN;
+
+    fn read(&mut self, slot: Slot, offset: usize, buf: &mut [u8]) -> Result<(), FlashError> {
+        if !self.powered {
+            return Err(FlashError::PowerLost);
+        }
+        let r = Self::range(offset, buf.len())?;
+        buf.copy_from_slice(&self.slots[slot.index() as usize][r]);
+        Ok(())
+    }
+
+    fn erase(&mut self, slot: Slot) -> Result<(), FlashError> {
+        let whole = self.spend()?;
+        let s = &mut self.slots[slot.index() as usize];
+        if whole {
+            s.fill(0xFF);
+            Ok(())
+        } else {
+            s[..SLOT_LEN / 2].fill(0xFF);
+            Err(FlashError::PowerLost)
+        }
+    }
+
+    fn write(&mut self, slot: Slot, offset: usize, data: &[u8]) -> Result<(), FlashError> {
+        if !self.powered {
+            return Err(FlashError::PowerLost);
+        }
+        let r = Self::range(offset, data.len())?;
+        if offset % FLASH_WORD != 0 || data.len() % FLASH_WORD != 0 {
+            return Err(FlashError::Misaligned {
+                offset: offset as u32,
+                len: data.len() as u32,
+            });
+        }
+        for (k, word) in data.chunks_exact(FLASH_WORD).enumerate() {
+            let at = r.start + k * FLASH_WORD;
+            let target = &self.slots[slot.index() as usize][at..at + FLASH_WORD];
+            if target.iter().any(|&b| b != 0xFF) {
+                return Err(FlashError::NotErased { offset: at as u32 });
+            }
+            let whole = self.spend()?;
+            let target = &mut self.slots[slot.index() as usize][at..at + FLASH_WORD];
+            if whole {
+                target.copy_from_slice(word);
+            } else {
+                target[..FLASH_WORD / 2].copy_from_slice(&word[..FLASH_WORD / 2]);
+                return Err(FlashError::PowerLost);
+            }
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const SLOT: usize = 4096;
+    type Flash = RamFlash<SLOT>;
+    type Store = ModelStore<Flash>;
+
+    fn rec(seq: u32) -> CommitRecord {
+        CommitRecord {
+            sequence: seq,
+            blob_len: 1000,
+            blob_crc32: 0x1234_5678,
+            model_id: 7,
+        }
+    }
+
+    /// A test blob of `len` bytes; any bytes do (the store does not parse).
+    fn blob(len: usize, seed: u8) -> std::vec::Vec<u8> {
+        (0..len)
+            .map(|i| (i as u8).wrapping_mul(31).wrapping_add(seed))
+            .collect()
+    }
+
+    fn accept(_: &[u8]) -> Result<(), ()> {
+        Ok(())
+    }
+
+    /// Uploads `data` in `chunk`-byte chunks and commits it.
+    fn upload(store: &mut Store, data: &[u8], chunk: usize, id: u32) -> Result<(), StoreError> {
+        let crc = crc32(data);
+        let mut next = store.begin(data.len() as u32, crc, id, u32::MAX)?;
+        while (next as usize) < data.len() {
+            let end = (next as usize + chunk).min(data.len());
+            next = store.chunk(next, &data[next as usize..end])?;
+        }
+        let mut buf = [0u8; SLOT];
+        match store.commit(crc, &mut buf, accept) {
+            Ok(_) => Ok(()),
+            Err(CommitError::Store(e)) => Err(e),
+            Err(CommitError::Rejected(())) => Err(StoreError::RecordVerify),
+        }
+    }
+
+    fn active_blob(store: &mut Store) -> Option<(u32, std::vec::Vec<u8>)> {
+        let a = store.active()?;
+        let mut buf = [0u8; SLOT];
+        let b = store.read_active(&mut buf).ok()?.to_vec();
+        Some((a.record.model_id, b))
+    }
+
+    #[test]
+    fn crc_is_iso_hdlc() {
+        assert_eq!(crc32(b"123456789"), 0xCBF4_3926);
+    }
+
+    #[test]
+    fn record_round_trip_and_rejections() {
+        let r = rec(42);
+        let b = r.encode();
+        assert_eq!(CommitRecord::decode(&b, 4000), Some(r));
+        assert_eq!(CommitRecord::decode(&[0xFF; RECORD_LEN], 4000), None);
+        assert_eq!(CommitRecord::decode(&[0x00; RECORD_LEN], 4000), None);
+        for i in 0..RECORD_LEN {
+            let mut bad = b;
+            bad[i] ^= 0x01;
+            assert_eq!(CommitRecord::decode(&bad, 4000), None, "flip at {i}");
+        }
+        // A torn write: the first half programmed, the rest still erased.
+        let mut torn = [0xFFu8; RECORD_LEN];
+        torn[..16].copy_from_slice(&b[..16]);
+        assert_eq!(CommitRecord::decode(&torn, 4000), None);
+        assert_eq!(CommitRecord::decode(&b, 999), None); // longer than a slot
+        let mut empty = rec(1);
+        empty.blob_len = 0;
+        assert_eq!(CommitRecord::decode(&empty.encode(), 4000), None);
+    }
+
+    #[test]
+    fn newest_valid_slot_wins() {
+        assert_eq!(select_active(None, None), None);
+        assert_eq!(select_active(Some(rec(3)), None), Some((Slot::A, rec(3))));
+        assert_eq!(select_active(None, Some(rec(3))), Some((Slot::B, rec(3))));
+        assert_eq!(
+            select_active(Some(rec(3)), Some(rec(4))),
+            Some((Slot::B, rec(4)))
+        );
+        assert_eq!(
+            select_active(Some(rec(5)), Some(rec(4))),
+            Some((Slot::A, rec(5)))
+        );
+        // Wrap-around: u32::MAX then 0.
+        assert_eq!(
+            select_active(Some(rec(u32::MAX)), Some(rec(0))),
+            Some((Slot::B, rec(0)))
+        );
+        assert_eq!(
+            select_active(Some(rec(9)), Some(rec(9))),
+            Some((Slot::A, rec(9)))
+        );
+        assert_eq!(staging_slot(None), Slot::A);
+        assert_eq!(staging_slot(Some(Slot::A)), Slot::B);
+        assert_eq!(next_sequence(None), 1);
+        assert_eq!(next_sequence(Some(&rec(u32::MAX))), 0);
+    }
+
+    #[test]
+    fn chunk_classification() {
+        let mut u = Upload {
+            slot: Slot::B,
+            total_len: 100,
+            crc32: 0xAB,
+            model_id: 1,
+            received: 0,
+        };
+        assert_eq!(u.classify(0, 40), Ok(ChunkAction::Append { skip: 0 }));
+        u.received = 40;
+        assert_eq!(u.classify(0, 40), Ok(ChunkAction::Duplicate));
+        assert_eq!(u.classify(20, 40), Ok(ChunkAction::Append { skip: 20 }));
+        assert_eq!(
+            u.classify(41, 10),
+            Err(StoreError::OutOfOrder {
+                expected_offset: 40
+            })
+        );
+        assert_eq!(
+            u.classify(90, 20),
+            Err(StoreError::PastEnd {
+                end: 110,
+                total_len: 100
+            })
+        );
+        assert_eq!(
+            u.classify(u32::MAX, 20),
+            Err(StoreError::PastEnd {
+                end: u32::MAX,
+                total_len: 100
+            })
+        );
+    }
+
+    #[test]
+    fn upload_commit_and_reboot() {
+        let mut store = Store::open(Flash::new());
+        assert_eq!(store.active(), None);
+        let a = blob(1000, 1);
+        upload(&mut store, &a, 256, 11).unwrap();
+        assert_eq!(store.active().map(|s| s.slot), Some(Slot::A));
+        assert_eq!(active_blob(&mut store), Some((11, a.clone())));
+        let b = blob(777, 2);
+        upload(&mut store, &b, 100, 12).unwrap();
+        let s = store.active().unwrap();
+        assert_eq!((s.slot, s.record.sequence), (Slot::B, 2));
+        // Reboot: the newest commit wins and reads back intact.
+        let mut store = Store::open(store.into_flash());
+        assert_eq!(active_blob(&mut store), Some((12, b)));
+        // The next upload goes to A again, never to the active B.
+        store.begin(10, 0, 0, u32::MAX).unwrap();
+        assert_eq!(store.upload().map(|u| u.slot), Some(Slot::A));
+    }
+
+    #[test]
+    fn upload_errors_keep_the_active_model() {
+        let mut store = Store::open(Flash::new());
+        let a = blob(300, 3);
+        upload(&mut store, &a, 64, 1).unwrap();
+        let b = blob(200, 4);
+        let crc = crc32(&b);
+        let mut buf = [0u8; SLOT];
+        assert_eq!(store.chunk(0, &b), Err(StoreError::NoUpload));
+        assert_eq!(store.begin(0, crc, 2, u32::MAX), Err(StoreError::EmptyBlob));
+        assert_eq!(
+            store.begin(SLOT as u32, crc, 2, u32::MAX),
+            Err(StoreError::TooLarge {
+                total_len: SLOT as u32,
+                capacity: (SLOT - RECORD_LEN) as u32
+            })
+        );
+        assert_eq!(
+            store.begin(200, crc, 2, 100),
+            Err(StoreError::TooLarge {
+                total_len: 200,
+                capacity: 100
+            })
+        );
+        assert_eq!(store.begin(200, crc, 2, u32::MAX), Ok(0));
+        assert_eq!(store.chunk(0, &b[..50]), Ok(50));
+        // Resend of an acked chunk, overlap, gap.
+        assert_eq!(store.chunk(0, &b[..50]), Ok(50));
+        assert_eq!(store.chunk(40, &b[40..70]), Ok(70));
+        assert_eq!(
+            store.chunk(80, &b[80..90]),
+            Err(StoreError::OutOfOrder {
+                expected_offset: 70
+            })
+        );
+        // Same blob again resumes where it stands.
+        assert_eq!(store.begin(200, crc, 2, u32::MAX), Ok(70));
+        assert_eq!(
+            store.commit(crc, &mut buf, accept),
+            Err(CommitError::Store(StoreError::Incomplete {
+                next_offset: 70,
+                total_len: 200
+            }))
+        );
+        assert_eq!(store.chunk(70, &b[70..]), Ok(200));
+        assert_eq!(
+            store.commit(crc ^ 1, &mut buf, accept),
+            Err(CommitError::Store(StoreError::CrcMismatch {
+                expected: crc,
+                computed: crc ^ 1
+            }))
+        );
+        // The caller's validation refuses it: old model stays, upload gone.
+        assert_eq!(
+            store.commit(crc, &mut buf, |_| Err::<(), _>("bad")),
+            Err(CommitError::Rejected("bad"))
+        );
+        assert_eq!(store.upload(), None);
+        assert_eq!(active_blob(&mut store), Some((1, a.clone())));
+        let mut store = Store::open(store.into_flash());
+        assert_eq!(active_blob(&mut store), Some((1, a.clone())));
+        // Announced CRC that does not match the bytes: refused at read-back.
+        let wrong = crc ^ 0x8000_0000;
+        store.begin(200, wrong, 2, u32::MAX).unwrap();
+        store.chunk(0, &b).unwrap();
+        assert_eq!(
+            store.commit(wrong, &mut buf, accept),
+            Err(CommitError::Store(StoreError::CrcMismatch {
+                expected: wrong,
+                computed: crc
+            }))
+        );
+        assert_eq!(active_blob(&mut store), Some((1, a)));
+    }
+
+    /// The heart of the store: an upload (erase, every chunk, every word,
+    /// the commit record) cut by a power loss at each flash operation, then a
+    /// power cycle, leaves the previous model active and intact; the commit
+    /// that completes survives a power cycle.
+    #[test]
+    fn power_loss_at_every_operation_keeps_the_previous_model() {
+        // Chunk sizes: word multiples (cuts at chunk boundaries are between
+        // words) and odd ones (a chunk ends mid-word, the word completes in
+        // the next chunk).
+        for chunk in [64usize, 100, 256] {
+            for old_in in [Slot::A, Slot::B] {
+                let old = blob(700, 5);
+                let new = blob(1111, 6);
+                let mut flash = Flash::new();
+                {
+                    let mut store = Store::open(flash);
+                    if old_in == Slot::B {
+                        upload(&mut store, &blob(50, 9), 64, 99).unwrap();
+                    }
+                    upload(&mut store, &old, chunk, 1).unwrap();
+                    assert_eq!(store.active().unwrap().slot, old_in);
+                    flash = store.into_flash();
+                }
+                // Count the operations of a whole upload.
+                let total = {
+                    let mut store = Store::open(flash.clone());
+                    let before = store.flash_mut().operations();
+                    upload(&mut store, &new, chunk, 2).unwrap();
+                    store.flash_mut().operations() - before
+                };
+                // erase + ceil(1111 / 32) words + record.
+                assert_eq!(total, 1 + 1111usize.div_ceil(FLASH_WORD) + 1);
+                for cut in 0..total {
+                    let mut f = flash.clone();
+                    f.cut_after(cut);
+                    let mut store = Store::open(f);
+                    let r = upload(&mut store, &new, chunk, 2);
+                    assert_eq!(
+                        r,
+                        Err(StoreError::Flash(FlashError::PowerLost)),
+                        "chunk {chunk}, cut {cut}"
+                    );
+                    let mut f = store.into_flash();
+                    f.power_cycle();
+                    let mut store = Store::open(f);
+                    assert_eq!(
+                        active_blob(&mut store),
+                        Some((1, old.clone())),
+                        "chunk {chunk}, cut {cut}"
+                    );
+                    assert_eq!(store.active().unwrap().slot, old_in);
+                    // And the device can upload again after the cut.
+                    upload(&mut store, &new, chunk, 2).unwrap();
+                    let mut f = store.into_flash();
+                    f.power_cycle();
+                    let mut store = Store::open(f);
+                    assert_eq!(active_blob(&mut store), Some((2, new.clone())));
+                }
+                // No cut: the new model survives a power cycle.
+                let mut store = Store::open(flash.clone());
+                upload(&mut store, &new, chunk, 2).unwrap();
+                let mut f = store.into_flash();
+                f.power_cycle();
+                let mut store = Store::open(f);
+                assert_eq!(active_blob(&mut store), Some((2, new.clone())));
+                assert_eq!(store.active().unwrap().slot, old_in.other());
+            }
+        }
+    }
+
+    #[test]
+    fn power_loss_during_clear_never_revives_an_older_model() {
+        let mut store = Store::open(Flash::new());
+        upload(&mut store, &blob(100, 1), 64, 1).unwrap();
+        upload(&mut store, &blob(100, 2), 64, 2).unwrap();
+        let flash = store.into_flash();
+        for cut in 0..2 {
+            let mut f = flash.clone();
+            f.cut_after(cut);
+            let mut store = Store::open(f);
+            assert_eq!(store.clear(), Err(StoreError::Flash(FlashError::PowerLost)));
+            let mut f = store.into_flash();
+            f.power_cycle();
+            let store = Store::open(f);
+            let id = store.active().map(|a| a.record.model_id);
+            // Either the newest model or none, never model 1.
+            assert!(id == Some(2) || id.is_none(), "cut {cut}: {id:?}");
+        }
+        let mut store = Store::open(flash);
+        store.clear().unwrap();
+        assert_eq!(store.active(), None);
+        assert_eq!(Store::open(store.into_flash()).active(), None);
+    }
+
+    #[test]
+    fn ram_flash_keeps_the_h7_rules() {
+        let mut f = Flash::new();
+        assert_eq!(
+            f.write(Slot::A, 16, &[0; 32]),
+            Err(FlashError::Misaligned {
+                offset: 16,
+                len: 32
+            })
+        );
+        assert_eq!(
+            f.write(Slot::A, 0, &[0; 20]),
+            Err(FlashError::Misaligned { offset: 0, len: 20 })
+        );
+        f.write(Slot::A, 32, &[1; 32]).unwrap();
+        assert_eq!(
+            f.write(Slot::A, 32, &[1; 32]),
+            Err(FlashError::NotErased { offset: 32 })
+        );
+        assert!(matches!(
+            f.write(Slot::A, SLOT, &[1; 32]),
+            Err(FlashError::OutOfBounds { .. })
+        ));
+        let mut b = [0u8; 4];
+        assert!(f.read(Slot::B, SLOT - 2, &mut b).is_err());
+        f.erase(Slot::A).unwrap();
+        assert!(f.slot(Slot::A).iter().all(|&x| x == 0xFF));
+    }
+}
