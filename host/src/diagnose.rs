@@ -299,7 +299,8 @@ impl Evidence {
         let rhs = projected.transpose() * &self.residual;
         let beta = gram.clone().cholesky()?.solve(&rhs);
         let explained = beta.dot(&rhs);
-        (explained.is_finite() && explained >= 0.0).then(|| (beta.iter().copied().collect(), explained))
+        (explained.is_finite() && explained >= 0.0)
+            .then(|| (beta.iter().copied().collect(), explained))
     }
 }
 
@@ -341,7 +342,9 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
                 columns: vec![string_column(rows, i, |_| 1.0)],
                 search_penalty: 0.0,
                 build: Box::new(move |b| term(Effect::Offset { mm: b[0] })),
-                describe: format!("string {i} reads a constant length error (its home length is off)"),
+                describe: format!(
+                    "string {i} reads a constant length error (its home length is off)"
+                ),
             });
         }
         if !has_effect(i, |e| matches!(e, Effect::Scale { .. })) {
@@ -352,7 +355,9 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
                 columns: vec![string_column(rows, i, |r| r.ctx.payout_mm)],
                 search_penalty: 0.0,
                 build: Box::new(move |b| term(Effect::Scale { relative: b[0] })),
-                describe: format!("string {i}'s payout is off in proportion to the string wound out"),
+                describe: format!(
+                    "string {i}'s payout is off in proportion to the string wound out"
+                ),
             });
         }
         if !has_effect(i, |e| matches!(e, Effect::Winding { power: 3, .. })) {
@@ -368,7 +373,9 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
                         mm_per_rad_pow: b[0],
                     })
                 }),
-                describe: format!("string {i}'s winding law needs a third-order term (uneven layers)"),
+                describe: format!(
+                    "string {i}'s winding law needs a third-order term (uneven layers)"
+                ),
             });
         }
         if !has_effect(i, |e| matches!(e, Effect::Eccentricity { .. })) {
@@ -387,7 +394,9 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
                         cos_mm: b[1],
                     })
                 }),
-                describe: format!("string {i}'s error is periodic in its pulley angle (eccentric pulley)"),
+                describe: format!(
+                    "string {i}'s error is periodic in its pulley angle (eccentric pulley)"
+                ),
             });
         }
         if !has_effect(i, |e| matches!(e, Effect::Elasticity { .. })) {
@@ -408,10 +417,18 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
                 family: Family::Backlash,
                 strings: vec![s],
                 variable: Variable::Direction,
-                columns: vec![string_column(rows, i, |r| f64::from(r.ctx.direction.signum()))],
+                columns: vec![string_column(rows, i, |r| {
+                    f64::from(r.ctx.direction.signum())
+                })],
                 search_penalty: 0.0,
-                build: Box::new(move |b| term(Effect::Backlash { half_width_mm: b[0] })),
-                describe: format!("string {i}'s error depends on its direction of motion (backlash)"),
+                build: Box::new(move |b| {
+                    term(Effect::Backlash {
+                        half_width_mm: b[0],
+                    })
+                }),
+                describe: format!(
+                    "string {i}'s error depends on its direction of motion (backlash)"
+                ),
             });
         }
         if !has_effect(i, |e| matches!(e, Effect::Drift { .. })) {
@@ -441,7 +458,9 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
                     })],
                     search_penalty: 2.0 * n.ln(),
                     build: Box::new(move |b| term(Effect::Slip { at_s, mm: b[0] })),
-                    describe: format!("string {i} slipped at t = {at_s:.1} s (a step in its length)"),
+                    describe: format!(
+                        "string {i} slipped at t = {at_s:.1} s (a step in its length)"
+                    ),
                 });
             }
         }
@@ -650,7 +669,11 @@ pub fn unexplained(
             let mut peak: f64 = 0.0;
             let per = v.len() / BINS;
             for b in 0..BINS {
-                let part = &v[b * per..if b + 1 == BINS { v.len() } else { (b + 1) * per }];
+                let part = &v[b * per..if b + 1 == BINS {
+                    v.len()
+                } else {
+                    (b + 1) * per
+                }];
                 let sum: f64 = part.iter().map(|x| x.1).sum();
                 let n = part.len() as f64;
                 between += sum * sum / n;

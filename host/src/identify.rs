@@ -825,11 +825,8 @@ pub fn identify(
         Round::Tukey,
     ];
     let warm = [Round::Tukey, Round::Tukey, Round::Tukey];
-    let (rounds, settled_after): (&[Round], usize) = if start.warm {
-        (&warm, 1)
-    } else {
-        (&cold, 3)
-    };
+    let (rounds, settled_after): (&[Round], usize) =
+        if start.warm { (&warm, 1) } else { (&cold, 3) };
     for (n, &round) in rounds.iter().enumerate() {
         // Weights from the current state's residuals.
         let laws = state.winding.laws();
@@ -1078,8 +1075,13 @@ pub fn data_jacobian(
     let weights: Vec<[f64; STRINGS]> = used
         .iter()
         .map(|o| {
-            Problem::string_residuals(&state, &laws, o)
-                .map(|r| if r.abs() <= GROSS_RESIDUAL_MM { 1.0 } else { 0.0 })
+            Problem::string_residuals(&state, &laws, o).map(|r| {
+                if r.abs() <= GROSS_RESIDUAL_MM {
+                    1.0
+                } else {
+                    0.0
+                }
+            })
         })
         .collect();
     let problem = Problem {

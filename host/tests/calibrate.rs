@@ -387,3 +387,51 @@ fn demo_simulates_and_calibrates() {
     }
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn a_chosen_correction_is_refitted_and_stored() {
+    // On the default device the identified model is at the tracker's noise
+    // floor and no correction earns its place; accept any (gain -100 %) to
+    // exercise the choice and the refit on all kept points.
+    let config = SimConfig::default();
+    let device = Device::new(&config, 3).unwrap();
+    let geometry = config.nominal.geometry();
+    let train = simulate_session(&device, SessionKind::Lattice, 5).unwrap();
+    let test = simulate_session(&device, SessionKind::Random { points: 300 }, 6).unwrap();
+    let mut cfg = CalibrateConfig::quick();
+    cfg.quiet = true;
+    cfg.min_correction_gain = -1.0;
+    let c = calibrate(
+        &geometry,
+        Path::new("g.toml"),
+        NamedSession {
+            path: Path::new("train.csv"),
+            session: &train,
+        },
+        NamedSession {
+            path: Path::new("test.csv"),
+            session: &test,
+        },
+        &cfg,
+    )
+    .unwrap();
+    let r = &c.report;
+    let v = r.selection.validation_mean_mm;
+    let expected = if v.svr <= v.nn { "svr" } else { "nn" };
+    assert_eq!(r.selection.correction, expected);
+    assert_eq!(r.stages.last().unwrap().name, format!("final ({expected})"));
+    match &c.calibration.correction {
+        spidar_core::correction::CorrectionModel::Svr(m) => {
+            assert_eq!(Some(m.support.len()), r.selection.final_support_vectors);
+            // Refitted on all kept points, not only the fit split.
+            assert!(m.support.len() > r.corrections.svr.support_vectors);
+        }
+        spidar_core::correction::CorrectionModel::Nn(m) => {
+            assert_eq!(Some(m.w1.len()), r.selection.final_hidden);
+            assert_eq!(m.w1.len(), r.corrections.nn.best_hidden);
+        }
+        spidar_core::correction::CorrectionModel::None => panic!("a correction was chosen"),
+    }
+    let last = r.stages.last().unwrap();
+    assert!(last.test.mean_mm <= TEST_MEAN_MAX_MM && last.test.max_mm <= TEST_MAX_MAX_MM);
+}

@@ -834,23 +834,20 @@ fn blackbox(
     let nn_corr = CorrectionModel::Nn(sweep.fit.model.clone());
     let svr_corr = CorrectionModel::Svr(svr_search.fit.model.clone());
     let mut stages = Vec::new();
-    let pe = |rows: &[usize],
-              x: &[[f64; 3]],
-              y: &[[f64; 3]],
-              corr: &CorrectionModel,
-              what: &str| {
-        let mut p = PointErrors::default();
-        for ((row, xi), yi) in rows.iter().zip(x).zip(y) {
-            p.rows.push(*row);
-            p.tracker.push(*yi);
-            let d = device_from_room(&lp.nominal, *yi);
-            p.distance_mm
-                .push((d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt());
-            p.errors
-                .push(crate::stats::position_error(corr.evaluate(*xi), *yi));
-        }
-        error_stats_checked(what, &p.errors).map(|s| (p, s))
-    };
+    let pe =
+        |rows: &[usize], x: &[[f64; 3]], y: &[[f64; 3]], corr: &CorrectionModel, what: &str| {
+            let mut p = PointErrors::default();
+            for ((row, xi), yi) in rows.iter().zip(x).zip(y) {
+                p.rows.push(*row);
+                p.tracker.push(*yi);
+                let d = device_from_room(&lp.nominal, *yi);
+                p.distance_mm
+                    .push((d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt());
+                p.errors
+                    .push(crate::stats::position_error(corr.evaluate(*xi), *yi));
+            }
+            error_stats_checked(what, &p.errors).map(|s| (p, s))
+        };
     let (x_te, y_te) = (&lp.kept.test_inputs, &lp.kept.test_targets);
     for (name, corr) in [
         ("legacy", &CorrectionModel::None),

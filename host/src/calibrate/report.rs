@@ -465,10 +465,20 @@ impl Report {
             c.svr.best.gamma,
             c.svr.support_vectors
         );
+        let why = match s.choice {
+            Choice::Identified => format!(
+                "the identified model alone: no correction lowered its error by {} on",
+                pct(s.min_correction_gain)
+            ),
+            Choice::Nn => "the NN correction, refitted on all kept points; lowest error on".into(),
+            Choice::Svr => {
+                "the SVR correction, refitted on all kept points; lowest error on".into()
+            }
+        };
         let _ = writeln!(
             o,
-            "  final model: {} (mean error on a {}-point selection split of the training session: \
-             identified {}, nn {}, svr {} mm)",
+            "  final model ({}): {why} a {}-point selection split of the training session \
+             (identified {}, nn {}, svr {} mm)",
             s.stage,
             s.selection_points,
             num(s.validation_mean_mm.identified),
