@@ -23,9 +23,22 @@ fn main() {
         use spidar::diagnose::diagnose;
         use spidar::identify::{identify, Structure};
         let id = identify(&tr, &nominal, &start, &Structure::default()).unwrap();
-        let cfg = LoopConfig { chi2_threshold: 0.0, ..LoopConfig::default() };
-        for f in diagnose(&id, &tr, &nominal, &Structure::default(), &cfg).iter().take(12) {
-            println!("cand {:12} {:?} chi2 {:.1} amp {:.3} {}", family_name(f.family), f.strings, f.chi2, f.amplitude_mm, f.description);
+        let cfg = LoopConfig {
+            chi2_threshold: 0.0,
+            ..LoopConfig::default()
+        };
+        for f in diagnose(&id, &tr, &nominal, &Structure::default(), &cfg)
+            .iter()
+            .take(12)
+        {
+            println!(
+                "cand {:12} {:?} chi2 {:.1} amp {:.3} {}",
+                family_name(f.family),
+                f.strings,
+                f.chi2,
+                f.amplitude_mm,
+                f.description
+            );
         }
         return;
     }
@@ -33,12 +46,34 @@ fn main() {
     let r = close_loop(&tr, Some(&te), &nominal, &start, &LoopConfig::default()).unwrap();
     println!("loop {:?}", t0.elapsed());
     let t = r.base_test.unwrap();
-    println!("{:28} train {:.3}/{:.3} test {:.3}/{:.3}", "identified", r.base_train.mean_mm, r.base_train.max_mm, t.mean_mm, t.max_mm);
+    println!(
+        "{:28} train {:.3}/{:.3} test {:.3}/{:.3}",
+        "identified", r.base_train.mean_mm, r.base_train.max_mm, t.mean_mm, t.max_mm
+    );
     for s in &r.stages {
         let t = s.test.unwrap();
-        println!("{:28} train {:.3}/{:.3} test {:.3}/{:.3}  cv {:.4} -> {:.4}", s.name, s.train.mean_mm, s.train.max_mm, t.mean_mm, t.max_mm, s.validation_before_mm, s.validation_after_mm);
+        println!(
+            "{:28} train {:.3}/{:.3} test {:.3}/{:.3}  cv {:.4} -> {:.4}",
+            s.name,
+            s.train.mean_mm,
+            s.train.max_mm,
+            t.mean_mm,
+            t.max_mm,
+            s.validation_before_mm,
+            s.validation_after_mm
+        );
     }
     for f in &r.findings {
-        println!("finding {:12} strings {:?} {:12} amp {:.3} mm explained {:.3} chi2 {:.0} added {}  {}", family_name(f.family), f.strings, variable_name(f.variable), f.amplitude_mm, f.explained, f.chi2, f.added, f.description);
+        println!(
+            "finding {:12} strings {:?} {:12} amp {:.3} mm explained {:.3} chi2 {:.0} added {}  {}",
+            family_name(f.family),
+            f.strings,
+            variable_name(f.variable),
+            f.amplitude_mm,
+            f.explained,
+            f.chi2,
+            f.added,
+            f.description
+        );
     }
 }
