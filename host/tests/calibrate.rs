@@ -435,3 +435,69 @@ fn a_chosen_correction_is_refitted_and_stored() {
     let last = r.stages.last().unwrap();
     assert!(last.test.mean_mm <= TEST_MEAN_MAX_MM && last.test.max_mm <= TEST_MAX_MAX_MM);
 }
+
+#[test]
+fn effects_found_by_the_loop_become_stages_and_json_effects() {
+    let config = SimConfig {
+        effects: vec!["backlash:3:half_width_mm=0.5".into()],
+        ..SimConfig::default()
+    };
+    let device = Device::new(&config, 1).unwrap();
+    let geometry = config.nominal.geometry();
+    let train = simulate_session(&device, SessionKind::Lattice, 2).unwrap();
+    let test = simulate_session(&device, SessionKind::Random { points: 300 }, 3).unwrap();
+    let mut cfg = CalibrateConfig::quick();
+    cfg.quiet = true;
+    let c = calibrate(
+        &geometry,
+        Path::new("g.toml"),
+        NamedSession {
+            path: Path::new("train.csv"),
+            session: &train,
+        },
+        NamedSession {
+            path: Path::new("test.csv"),
+            session: &test,
+        },
+        &cfg,
+    )
+    .unwrap();
+    let r = &c.report;
+    let added: Vec<_> = r.effects.iter().filter(|f| f.added).collect();
+    assert!(!added.is_empty(), "{:?}", r.effects);
+    // One stage per added effect, between `identified` and the corrections,
+    // named after the loop's stages.
+    let effect_stages: Vec<&str> = r
+        .stages
+        .iter()
+        .filter(|s| s.kind == StageKind::Effect)
+        .map(|s| s.name.as_str())
+        .collect();
+    let loop_names: Vec<&str> = c
+        .loop_result
+        .stages
+        .iter()
+        .map(|s| s.name.as_str())
+        .collect();
+    assert_eq!(effect_stages, loop_names);
+    assert_eq!(r.stages[2].name, effect_stages[0]);
+    assert!(effect_stages[0].contains("backlash"), "{effect_stages:?}");
+    // Adding the effect lowered the training error.
+    assert!(r.stages[2].train.mean_mm < r.stages[1].train.mean_mm);
+    // The calibration carries the effect terms; the JSON the keys.
+    assert_eq!(c.calibration.effects.len(), effect_stages.len());
+    let json = serde_json::to_value(r).unwrap();
+    let e = &json["effects"][0];
+    for k in [
+        "family",
+        "strings",
+        "variable",
+        "amplitude_mm",
+        "explained",
+        "added",
+    ] {
+        assert!(!e[k].is_null(), "{k}: {e}");
+    }
+    let last = r.stages.last().unwrap();
+    assert!(last.test.mean_mm <= TEST_MEAN_MAX_MM && last.test.max_mm <= TEST_MAX_MAX_MM);
+}

@@ -372,6 +372,14 @@ fn num(v: f64) -> String {
     }
 }
 
+/// The JSON name of an enum value (e.g. `pulley_angle`).
+fn label<T: Serialize>(value: &T) -> String {
+    match serde_json::to_value(value) {
+        Ok(serde_json::Value::String(s)) => s,
+        _ => "?".into(),
+    }
+}
+
 fn pct(v: f64) -> String {
     format!("{:.0} %", 100.0 * v)
 }
@@ -429,10 +437,10 @@ impl Report {
             };
             let _ = writeln!(
                 o,
-                "  {} {:?} ({strings}) against {:?}: amplitude {:.3} mm, explains {}{}",
-                if f.added { "added  " } else { "not added" },
-                f.family,
-                f.variable,
+                "  {:9} {} ({strings}) against {}: amplitude {:.3} mm, explains {}{}",
+                if f.added { "added" } else { "not added" },
+                label(&f.family),
+                label(&f.variable),
                 f.amplitude_mm,
                 pct(f.explained),
                 if f.description.is_empty() {
@@ -477,7 +485,7 @@ impl Report {
         };
         let _ = writeln!(
             o,
-            "  final model ({}): {why} a {}-point selection split of the training session \
+            "  final stage `{}`: {why} a {}-point selection split of the training session \
              (identified {}, nn {}, svr {} mm)",
             s.stage,
             s.selection_points,
