@@ -14,6 +14,7 @@ use rand::{RngExt, SeedableRng};
 use spidar::tracker::dtrack::{
     format_datagram, parse_datagram, BodyPose, DtrackError, DtrackFrame, FieldProblem,
 };
+use spidar::tracker::receiver::Reorder;
 use spidar::tracker::{
     collect, estimate_time_shift, DtrackReceiver, Next, Pacing, ReceiverConfig, ReplaySource,
     ShiftConfig, SimReport, SimSender, SimSenderConfig, SyncError, TimedPosition, TrackerError,
@@ -421,6 +422,38 @@ fn reordering_rules_on_a_fixed_sequence() {
     assert!(rx.drain().is_empty());
 }
 
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(256))]
+
+    /// Whatever the arrival order: frames come out once each, in order;
+    /// every arrival is delivered, a duplicate or late; every number in the
+    /// delivered range is delivered or lost.
+    #[test]
+    fn reorder_accounts_for_every_arrival(
+        arrivals in prop::collection::vec(0u32..60, 1..200),
+        window in 0u32..10,
+    ) {
+        let mut r = Reorder::new(window, Duration::from_secs(3600));
+        let now = Instant::now();
+        let mut out = std::collections::VecDeque::new();
+        for &n in &arrivals {
+            let frame = TrackerFrame { frame: n, ts_s: f64::from(n), received_at: now, body: None };
+            r.push(frame, &mut out);
+            r.release(now, &mut out);
+        }
+        r.flush(&mut out);
+        let got: Vec<u32> = out.iter().map(|f| f.frame).collect();
+        prop_assert!(got.windows(2).all(|w| w[0] < w[1]), "{got:?}");
+        let s = r.stats().clone();
+        prop_assert_eq!(s.delivered as usize, got.len());
+        prop_assert_eq!(s.delivered + s.duplicates + s.late, arrivals.len() as u64);
+        let span = u64::from(got[got.len() - 1] - got[0]) + 1;
+        prop_assert_eq!(s.delivered + s.lost, span);
+        prop_assert_eq!(s.occluded, s.delivered);
+        prop_assert_eq!(s.restarts, 0);
+    }
+}
+
 #[test]
 fn gaps_are_given_up_after_the_window_or_the_delay() {
     // Window: frame 2 never comes; 3..=6 arrive; with a window of 4 the
@@ -634,13 +667,15 @@ fn time_shift_recovered_through_the_simulated_tracker() {
         clock_offset_s: OFFSET,
         loss: 0.05,
         reorder: 0.05,
-        send_interval: Duration::from_micros(250),
+        send_interval: Duration::from_micros(500),
         seed: 11,
         ..SimSenderConfig::new(rx.local_addr())
     };
     let sender = SimSender::spawn(cfg, wander_with_occlusion).unwrap();
     let (frames, report) = receive_all(&mut rx, sender);
-    assert_eq!(rx.stats().lost, report.expected_lost());
+    // (Exact loss accounting is tested above; here a starved receiver's
+    // kernel buffer may drop a few more, which the estimate must survive.)
+    assert!(rx.stats().lost >= report.expected_lost());
     assert!(frames.iter().any(|f| f.body.is_none()));
     let tracker = TimedPosition::from_frames(&frames);
     let device = device_samples(500.0, 20.0, [8.0, -5.0, 14.0], 1.0);
