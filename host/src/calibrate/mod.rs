@@ -463,7 +463,7 @@ pub fn calibrate(
     // 2-3. Identification and the diagnosis loop.
     let t = Instant::now();
     let pb = spinner("identification and diagnosis", cfg.quiet);
-    let start = Start::nominal(nominal, geometry.pulley_radius_mm, geometry.counts_per_rev);
+    let start = Start::from_geometry(geometry);
     let loop_result = close_loop(&tr, Some(&te), &nominal, &start, &cfg.loop_config);
     pb.finish_and_clear();
     let loop_result = loop_result?;
