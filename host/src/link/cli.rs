@@ -250,8 +250,8 @@ pub fn run_device(args: &DeviceArgs) -> Result<String, Box<dyn std::error::Error
                 },
                 |s| writeln!(lock, "{}", state_csv(s)).is_ok(),
             )?;
-            let _ = writeln!(
-                out,
+            // On stderr: stdout is the CSV (and may be a closed pipe).
+            eprintln!(
                 "# {} frames in {:.2} s, {} lost, {} rejected, {} bytes",
                 report.frames,
                 report.elapsed.as_secs_f64(),

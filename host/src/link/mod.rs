@@ -97,6 +97,8 @@ pub struct ClientOptions {
     pub retries: u32,
     /// Baud rate (ignored by USB CDC and pseudo-terminals).
     pub baud: u32,
+    /// Largest upload chunk, bytes (the device's `max_chunk` caps it).
+    pub max_chunk: usize,
 }
 
 impl Default for ClientOptions {
@@ -105,6 +107,7 @@ impl Default for ClientOptions {
             timeout: Duration::from_millis(250),
             retries: 3,
             baud: 921_600,
+            max_chunk: MAX_CHUNK,
         }
     }
 }
@@ -619,6 +622,7 @@ impl Client {
         let chunk_len = self
             .hello
             .map_or(MAX_CHUNK, |h| usize::from(h.max_chunk))
+            .min(self.options.max_chunk)
             .clamp(1, MAX_CHUNK);
         let t0 = Instant::now();
         let mut offset = self.chunk_ack(&Request::UploadBegin {
