@@ -343,7 +343,7 @@ pub fn run_compile(args: &CompileArgs) -> Result<CompileReport, CompileCmdError>
         budget_mm: args.budget_mm,
     };
     if let Some(e) = &report.error {
-        if !(e.corrected.mean_mm <= args.budget_mm) {
+        if e.corrected.mean_mm.is_nan() || e.corrected.mean_mm > args.budget_mm {
             return Err(CompileCmdError::OverBudget {
                 mean_mm: e.corrected.mean_mm,
                 budget_mm: args.budget_mm,

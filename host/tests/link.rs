@@ -7,9 +7,7 @@ use std::time::Duration;
 
 use spidar::link::{Client, ClientOptions, FlashPhase, LinkError, StreamOptions};
 use spidar::sim::{self, SimConfig};
-use spidar::virtual_device::{
-    spawn, Pace, Plant, Trajectory, VirtualDevice, VirtualDeviceConfig,
-};
+use spidar::virtual_device::{spawn, Pace, Plant, Trajectory, VirtualDevice, VirtualDeviceConfig};
 use spidar_core::blob::compile;
 use spidar_core::correction::{CorrectionModel, NnModel, OutputMode, Standardization};
 use spidar_core::model::Calibration;
@@ -195,7 +193,7 @@ fn upload_cut_at_every_flash_operation_keeps_the_previous_model() {
         assert!(cut < 200, "the upload never completes");
     }
     // erase + one op per 32-byte word + the record
-    assert!(cuts_survived >= 1 + new.len() / 32, "{cuts_survived} cuts");
+    assert!(cuts_survived > new.len() / 32, "{cuts_survived} cuts");
     vd.power_cycle().unwrap();
     let mut c = Client::open(vd.port_path()).unwrap();
     let info = c.info().unwrap().unwrap();
@@ -297,7 +295,9 @@ fn corrupted_frames_are_rejected_and_counted() {
     let mut c = Client::open(vd.port_path()).unwrap();
     let before = c.stats().unwrap().rx;
     let mut tx = [0u8; MAX_FRAME];
-    let good = encode_request(77, &Request::GetInfo, &mut tx).unwrap().to_vec();
+    let good = encode_request(77, &Request::GetInfo, &mut tx)
+        .unwrap()
+        .to_vec();
     // One flipped bit: CRC (or COBS) error.
     let mut flipped = good.clone();
     flipped[2] ^= 0x04;
@@ -320,7 +320,8 @@ fn heartbeat_loss_drops_tensions_to_pretension_within_30_ms() {
     let dev = sim_device();
     let vd = virtual_device(Trajectory::Hold);
     let mut c = Client::open(vd.port_path()).unwrap();
-    c.flash(&blob(&dev, CorrectionModel::None, 9), |_| {}).unwrap();
+    c.flash(&blob(&dev, CorrectionModel::None, 9), |_| {})
+        .unwrap();
     c.arm().unwrap();
     c.set_force([0.0, 0.0, 3.0]).unwrap();
     // Heartbeats: the force is rendered.
@@ -390,7 +391,8 @@ fn streamed_positions_follow_the_plant() {
     // The end-effector moves while the model is flashed, and the first
     // geometry homes the device where it is: boot again with the model (the
     // end-effector at home, as the firmware expects at power-up).
-    c.flash(&blob(&dev, CorrectionModel::None, 4), |_| {}).unwrap();
+    c.flash(&blob(&dev, CorrectionModel::None, 4), |_| {})
+        .unwrap();
     drop(c);
     vd.power_cycle().unwrap();
     let mut c = Client::open(vd.port_path()).unwrap();
@@ -405,7 +407,9 @@ fn streamed_positions_follow_the_plant() {
             |s| {
                 let truth = vd.truth_room_mm(s.time_us);
                 let e = (0..3)
-                    .map(|k| (spidar_protocol::messages::q16_to_mm(s.corrected_mm[k]) - truth[k]).powi(2))
+                    .map(|k| {
+                        (spidar_protocol::messages::q16_to_mm(s.corrected_mm[k]) - truth[k]).powi(2)
+                    })
                     .sum::<f64>()
                     .sqrt();
                 worst = worst.max(e);
@@ -463,7 +467,7 @@ fn missing_busy_silent_and_mismatched_ports_are_named() {
                     seqs.push(p.seq)
                 }
             });
-            for seq in seqs {
+            if let Some(&seq) = seqs.first() {
                 let ack = DeviceMessage::Reply(Response::HelloAck(HelloAck {
                     protocol_version: 99,
                     firmware_version: [9, 9, 9],

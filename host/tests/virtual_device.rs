@@ -22,7 +22,10 @@ use spidar_protocol::{
 fn sim_device(seed: u64) -> sim::Device {
     let mut config = SimConfig::default();
     config.abnormal_motor.enabled = false;
-    config.effects = vec!["offset:2:mm=3".into(), "backlash:5:half_width_mm=0.4".into()];
+    config.effects = vec![
+        "offset:2:mm=3".into(),
+        "backlash:5:half_width_mm=0.4".into(),
+    ];
     sim::Device::new(&config, seed).expect("simulated device")
 }
 

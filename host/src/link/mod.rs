@@ -53,7 +53,11 @@ pub enum LinkError {
         timeout_ms: u64,
     },
     #[error("serial port {port}: protocol version mismatch: the device speaks {device}, this host speaks {host}")]
-    VersionMismatch { port: String, device: u16, host: u16 },
+    VersionMismatch {
+        port: String,
+        device: u16,
+        host: u16,
+    },
     #[error("serial port {port}: the device refused `{request}`: {reason}")]
     Rejected {
         port: String,

@@ -67,7 +67,10 @@ pub enum VirtualDeviceError {
     #[error("virtual device: cannot start its thread: {0}")]
     Thread(std::io::Error),
     #[error("virtual device: `{field}`: {problem}")]
-    Config { field: &'static str, problem: String },
+    Config {
+        field: &'static str,
+        problem: String,
+    },
     #[error("virtual device: the device thread has stopped")]
     Stopped,
     #[error("virtual device: no reboot within {0:?}")]
@@ -214,7 +217,10 @@ pub struct VirtualDevice {
 
 /// Starts a virtual device: opens a pseudo-terminal pair, boots the device
 /// (erased flash, the plant at home) and runs it in a thread.
-pub fn spawn(config: VirtualDeviceConfig, plant: Plant) -> Result<VirtualDevice, VirtualDeviceError> {
+pub fn spawn(
+    config: VirtualDeviceConfig,
+    plant: Plant,
+) -> Result<VirtualDevice, VirtualDeviceError> {
     if config.blob_capacity == 0 || config.blob_capacity > SLOT_LEN - RECORD_LEN {
         return Err(VirtualDeviceError::Config {
             field: "blob_capacity",
@@ -272,7 +278,14 @@ pub fn spawn(config: VirtualDeviceConfig, plant: Plant) -> Result<VirtualDevice,
             // Keep the slave side open so the master never sees a hang-up
             // between two clients.
             let _slave = slave;
-            run(master, config, thread_plant, rx, thread_status, thread_flash);
+            run(
+                master,
+                config,
+                thread_plant,
+                rx,
+                thread_status,
+                thread_flash,
+            );
         })
         .map_err(VirtualDeviceError::Thread)?;
     let vd = VirtualDevice {
@@ -515,11 +528,11 @@ fn run_boot(
         anchor.0 + Duration::from_secs_f64(t_us.saturating_sub(anchor.1) as f64 / 1e6 / speed)
     };
     let publish = |dev: &Device<'_, VirtualFlash>,
-                       link: &DeviceLink,
-                       now_us: u64,
-                       ticks: u64,
-                       tx_dropped: u32,
-                       plant: &Plant| {
+                   link: &DeviceLink,
+                   now_us: u64,
+                   ticks: u64,
+                   tx_dropped: u32,
+                   plant: &Plant| {
         if let Ok(mut s) = status.lock() {
             s.boots = boots;
             s.device_time_us = now_us;
@@ -739,7 +752,10 @@ pub fn run_virtual_device(args: &VirtualDeviceArgs) -> Result<String, VirtualDev
     let t0 = Instant::now();
     loop {
         std::thread::sleep(Duration::from_millis(100));
-        if args.seconds.is_some_and(|s| t0.elapsed().as_secs_f64() >= s) {
+        if args
+            .seconds
+            .is_some_and(|s| t0.elapsed().as_secs_f64() >= s)
+        {
             break;
         }
         if vd.thread.as_ref().is_none_or(|t| t.is_finished()) {

@@ -167,7 +167,12 @@ impl Plant {
 
     /// Advances to `t_us` with the motors commanded to `commanded_n` (0 when
     /// `enabled` is false) and returns the raw 16-bit counters.
-    pub fn step(&mut self, t_us: u64, commanded_n: &[f32; STRINGS], enabled: bool) -> [u16; STRINGS] {
+    pub fn step(
+        &mut self,
+        t_us: u64,
+        commanded_n: &[f32; STRINGS],
+        enabled: bool,
+    ) -> [u16; STRINGS] {
         let dt_s = t_us.saturating_sub(self.prev_t_us) as f64 / 1e6;
         let alpha = if self.motor_tau_s > 0.0 {
             1.0 - (-dt_s / self.motor_tau_s).exp()
@@ -224,8 +229,6 @@ impl Plant {
         }
         self.prev_length = Some(lengths);
         self.prev_t_us = t_us;
-        core::array::from_fn(|i| {
-            (i32::from(self.raw_home[i]).wrapping_add(self.counts[i])) as u16
-        })
+        core::array::from_fn(|i| (i32::from(self.raw_home[i]).wrapping_add(self.counts[i])) as u16)
     }
 }
