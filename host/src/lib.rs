@@ -1,6 +1,7 @@
 //! Host side of the SPIDAR stack: datasets, simulation, identification,
 //! learned corrections, diagnosis, reports, and the device link.
 
+pub mod calibrate;
 pub mod compile;
 pub mod dataset;
 pub mod diagnose;
