@@ -499,7 +499,7 @@ fn missing_busy_silent_and_mismatched_ports_are_named() {
 }
 
 /// Benchmarks of docs/benchmarks.md ("Link"):
-/// `cargo test -p spidar --release --test link -- --ignored --nocapture link_benchmarks`
+/// `cargo test -p spidar --test link -- --ignored --nocapture link_benchmarks`
 #[test]
 #[ignore]
 fn link_benchmarks() {
