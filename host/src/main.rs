@@ -18,6 +18,14 @@ struct Cli {
 enum Command {
     /// Simulate a device and write its nominal geometry, one session and the truth.
     Simulate(spidar::sim::SimulateArgs),
+    /// Compile a calibration into the device's model blob and measure its fixed-point error.
+    Compile(spidar::compile::CompileArgs),
+    /// Upload a model blob to a device (chunks, retry, resume, CRC, atomic commit, read-back).
+    Flash(spidar::link::cli::FlashArgs),
+    /// Talk to a device: info, stream, arm, disarm, force.
+    Device(spidar::link::cli::DeviceArgs),
+    /// Run a virtual device (firmware logic + simulated plant) behind a pseudo-terminal.
+    VirtualDevice(spidar::virtual_device::VirtualDeviceArgs),
     /// Calibrate a device from a training and a test session: identification,
     /// diagnosis, NN and SVR corrections, error statistics, figures, JSON report.
     Calibrate(spidar::calibrate::CalibrateArgs),
@@ -48,6 +56,22 @@ fn main() {
             Err(e) => fail(&e),
         },
         Command::Demo(args) => match spidar::calibrate::run_demo(args) {
+            Ok(text) => print!("{text}"),
+            Err(e) => fail(&e),
+        },
+        Command::Compile(args) => match spidar::compile::run_compile(args) {
+            Ok(report) => print!("{report}"),
+            Err(e) => fail(&e),
+        },
+        Command::Flash(args) => match spidar::link::cli::run_flash(args) {
+            Ok(text) => print!("{text}"),
+            Err(e) => fail(e.as_ref()),
+        },
+        Command::Device(args) => match spidar::link::cli::run_device(args) {
+            Ok(text) => print!("{text}"),
+            Err(e) => fail(e.as_ref()),
+        },
+        Command::VirtualDevice(args) => match spidar::virtual_device::run_virtual_device(args) {
             Ok(text) => print!("{text}"),
             Err(e) => fail(&e),
         },
