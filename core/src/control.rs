@@ -237,7 +237,12 @@ impl Controller {
 
         let fk = forward_kinematics(&frame.anchors, &lengths, self.position, &self.config.fk);
         let fk_ok = matches!(fk.status, FkStatus::Ok | FkStatus::FaultyStringExcluded);
-        if fk_ok {
+        // An inconsistent or unconverged solve is still the best estimate of
+        // the position (the least-squares compromise, what a plain controller
+        // reports); it is flagged (FK_FAULT latches, tensions drop to
+        // pre-tension) rather than replaced by a stale position. Only
+        // invalid lengths (NaN, negative) keep the last position.
+        if fk.status != FkStatus::InvalidInput {
             self.position = fk.position;
         }
         let room_q16 = position_q16(room_from_device(frame, self.position));

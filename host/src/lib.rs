@@ -4,6 +4,7 @@
 pub mod calibrate;
 pub mod compile;
 pub mod dataset;
+pub mod device_run;
 pub mod diagnose;
 pub mod figures;
 pub mod identify;

@@ -158,6 +158,9 @@ pub struct DemoArgs {
     /// No progress bars.
     #[arg(long)]
     pub quiet: bool,
+    /// Skip the last act (flash and measure on the virtual device).
+    #[arg(long)]
+    pub no_device: bool,
 }
 
 /// Run `spidar demo`; returns the text to print.
@@ -185,6 +188,7 @@ pub fn run_demo(args: &DemoArgs) -> Result<String, CalibrateError> {
         lattice.truth.display(),
     );
     let out = args.out.join("calibration");
+    let out_dir = out.clone();
     let output = run_calibrate(&CalibrateArgs {
         geometry: lattice.geometry.clone(),
         train: lattice.session.clone(),
@@ -199,5 +203,77 @@ pub fn run_demo(args: &DemoArgs) -> Result<String, CalibrateError> {
         export_pairs: None,
     })?;
     text.push_str(&output.summary);
+    if !args.no_device {
+        text.push_str(&run_on_virtual_device(args, &lattice.geometry, &out_dir)?);
+    }
     Ok(text)
+}
+
+/// The demo's last act: compile the nominal and the calibrated model, flash
+/// each to a virtual device whose plant follows the test trajectory, and
+/// measure what the device reports against the true position.
+fn run_on_virtual_device(
+    args: &DemoArgs,
+    geometry_path: &Path,
+    calibration_dir: &Path,
+) -> Result<String, CalibrateError> {
+    use crate::device_run::measure_on_virtual_device;
+    use crate::sim::{simulate_session_with_truth, Device, SessionKind, SimConfig};
+    use spidar_core::correction::CorrectionModel;
+    use spidar_core::model::Calibration;
+
+    let mut config = match &args.config {
+        Some(path) => SimConfig::load(path)?,
+        None => SimConfig::default(),
+    };
+    config.effects.extend(args.effects.iter().cloned());
+    let device = Device::new(&config, args.seed)?;
+    // The test session's trajectory (run_simulate's seed rule for random sessions).
+    let (_, truths) = simulate_session_with_truth(
+        &device,
+        SessionKind::Random {
+            points: config.random.points,
+        },
+        args.seed.wrapping_add(2),
+    )?;
+    let geometry = Geometry::load(geometry_path)?;
+    let nominal = Calibration {
+        frame: geometry.nominal_frame(),
+        strings: geometry.nominal_string_laws(),
+        effects: Vec::new(),
+        correction: CorrectionModel::None,
+    };
+    let calibrated = crate::compile::load_calibration(&calibration_dir.join("calibration.json"))?;
+    let blob = |what: &'static str, c: &Calibration| {
+        spidar_core::blob::compile(c, crate::compile::model_id_of(c), 0).map_err(|e| {
+            CalibrateError::Blob {
+                what,
+                message: e.to_string(),
+            }
+        })
+    };
+    let before =
+        measure_on_virtual_device(&device, &truths, &blob("the nominal model", &nominal)?)?;
+    let after =
+        measure_on_virtual_device(&device, &truths, &blob("the calibration", &calibrated)?)?;
+    let row = |name: &str, r: &crate::device_run::DeviceRun| {
+        format!(
+            "  {name:<22} {:>9.3} {:>8.3} {:>9.3} {:>8} {:>6} {:>8}\n",
+            r.error.mean_mm, r.error.sd_mm, r.error.max_mm, r.frames, r.lost, r.blob_len
+        )
+    };
+    Ok(format!(
+        "\nOn the virtual device (flashed over its serial link, test trajectory replayed by the plant;\n\
+         error of the position the device reports against the true position, room frame, mm):\n\
+         \x20 {:<22} {:>9} {:>8} {:>9} {:>8} {:>6} {:>8}\n{}{}",
+        "model",
+        "mean",
+        "sd",
+        "max",
+        "frames",
+        "lost",
+        "blob B",
+        row("before (nominal)", &before),
+        row("after (calibrated)", &after),
+    ))
 }

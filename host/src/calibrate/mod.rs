@@ -90,6 +90,12 @@ pub enum CalibrateError {
     },
     #[error("{0}")]
     Simulate(#[from] crate::sim::SimError),
+    #[error("{0}")]
+    Compile(#[from] crate::compile::CompileCmdError),
+    #[error("model blob of {what}: {message}")]
+    Blob { what: &'static str, message: String },
+    #[error("{0}")]
+    Device(#[from] crate::device_run::DeviceRunError),
 }
 
 fn learn(step: &'static str) -> impl FnOnce(LearnError) -> CalibrateError {
