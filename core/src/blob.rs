@@ -5,8 +5,14 @@
 //!      + body
 //! body = postcard(BlobHead { frame: Frame<f32>, laws: [CompiledStringLaw; 8],
 //!                            effects: heapless::Vec<CompiledEffect, MAX_EFFECTS> })
+//!      + 0 to 3 zero bytes, so that the correction starts at a multiple of
+//!        CORRECTION_ALIGN = 4 bytes from the blob start (format version 2)
 //!      + correction bytes (layout in `correction`, read in place, zero-copy)
 //! ```
+//!
+//! The padding lets a device that keeps the blob in a 4-byte aligned buffer
+//! read the SVR records as aligned words (see `docs/fixed-point.md`); a blob
+//! at any other address still parses and evaluates the same, more slowly.
 //!
 //! The device parses a blob once at load ([`CompiledCalibration::from_blob`]:
 //! every dimension, Q format and parameter range is checked, and a blob it
@@ -16,7 +22,7 @@
 //! check the blob bit for bit before flashing.
 
 use serde::{Deserialize, Serialize};
-use spidar_protocol::blob::{split_blob, BlobError, ModelHeader};
+use spidar_protocol::blob::{split_blob, BlobError, ModelHeader, HEADER_LEN};
 
 use crate::correction::{check_header_formats, Correction, POSITION_FRAC};
 use crate::model::{Frame, MAX_EFFECTS};
@@ -25,6 +31,31 @@ use crate::STRINGS;
 
 /// Fractional bits of string lengths in the blob (header `q_length`): Q47.16 mm.
 pub const LENGTH_FRAC: u8 = 16;
+
+/// Alignment, from the blob start, of the correction bytes in the body: the
+/// compiler pads the body after the string model with zero bytes up to it.
+pub const CORRECTION_ALIGN: usize = 4;
+
+/// Zero bytes between the string model, which ends `offset` bytes after the
+/// blob start, and the correction.
+pub const fn correction_padding(offset: usize) -> usize {
+    (CORRECTION_ALIGN - offset % CORRECTION_ALIGN) % CORRECTION_ALIGN
+}
+
+/// Splits a blob body (as returned by `split_blob`) into its decoded string
+/// model and its correction bytes, checking the padding between them (present
+/// and zero). Does not check the string model's values.
+pub fn split_body(body: &[u8]) -> Result<(BlobHead, &[u8]), BlobError> {
+    let (head, rest): (BlobHead, &[u8]) =
+        postcard::take_from_bytes(body).map_err(|_| BlobError::Body {
+            field: "string model",
+        })?;
+    let pad = correction_padding(HEADER_LEN + (body.len() - rest.len()));
+    match rest.split_at_checked(pad) {
+        Some((padding, correction)) if padding.iter().all(|&b| b == 0) => Ok((head, correction)),
+        _ => Err(BlobError::Body { field: "padding" }),
+    }
+}
 
 /// The string-model part of the body.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -75,10 +106,7 @@ impl<'a> CompiledCalibration<'a> {
             });
         }
         check_header_formats(header.q_position, header.q_weight)?;
-        let (head, correction_bytes): (BlobHead, &[u8]) =
-            postcard::take_from_bytes(body).map_err(|_| BlobError::Body {
-                field: "string model",
-            })?;
+        let (head, correction_bytes) = split_body(body)?;
         if head.effects.len() != header.effects as usize {
             return Err(BlobError::Dimension {
                 field: "effects",
@@ -121,7 +149,7 @@ mod host {
     use crate::model::Calibration;
     use crate::string_law::{compile_effect, compile_string_law};
     use alloc::vec::Vec;
-    use spidar_protocol::blob::{write_blob, FORMAT_VERSION, HEADER_LEN};
+    use spidar_protocol::blob::{write_blob, FORMAT_VERSION};
 
     /// Why a calibration does not compile into a blob; names the part.
     #[derive(Clone, Copy, Debug, PartialEq)]
@@ -229,6 +257,7 @@ mod host {
             .compile()
             .map_err(CompileError::Correction)?;
         let mut body = postcard::to_allocvec(&head).map_err(|_| CompileError::Encode)?;
+        body.resize(body.len() + correction_padding(HEADER_LEN + body.len()), 0);
         body.extend_from_slice(&correction.bytes);
         let header = ModelHeader {
             format_version: FORMAT_VERSION,

@@ -108,8 +108,8 @@ mod f64_models {
 }
 
 use crate::fixed::{
-    exp2_neg_q22_with, le_i32, read_i32, sat_i32, shr_i64, shr_round_i64, shr_sat_i64_to_i32,
-    tanh_q27, EXP2_FRACTION_ENTRIES, EXP2_HIGH, EXP2_INTEGER, EXP2_INTEGER_ENTRIES, EXP2_LOW,
+    exp2_neg_q22_below_2p31_with, exp2_neg_q22_with, le_i32, read_i32, sat_i32, shr_i64,
+    shr_round_i64, shr_sat_i64_to_i32, tanh_q27, EXP2_FRACTION_ENTRIES, EXP2_HIGH, EXP2_LOW,
 };
 use spidar_protocol::blob::{BlobError, CorrectionKind};
 
@@ -385,6 +385,35 @@ impl<'a> NnView<'a> {
 // ---------------------------------------------------------------------------
 // SVR view.
 
+/// The support-vector records of an [`SvrView`], as the evaluator reads them.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum SvrRecords<'a> {
+    /// The records start at a 4-byte aligned address (a version-2 blob in a
+    /// 4-aligned buffer) on a little-endian target: viewed as words
+    /// `[s0, s1, s2, coef0, coef1, coef2]`, read with word-pair loads.
+    Words(&'a [[i32; 6]]),
+    /// Any other placement: `support_vectors * SVR_RECORD_LEN` bytes, read
+    /// with single (unaligned) word loads. Same results, bit for bit.
+    Bytes(&'a [u8]),
+}
+
+impl<'a> SvrRecords<'a> {
+    fn new(bytes: &'a [u8]) -> Self {
+        #[cfg(target_endian = "little")]
+        if let Ok(words) = bytemuck::try_cast_slice::<u8, [i32; 6]>(bytes) {
+            return SvrRecords::Words(words);
+        }
+        SvrRecords::Bytes(bytes)
+    }
+
+    fn len(&self) -> usize {
+        match self {
+            SvrRecords::Words(w) => w.len(),
+            SvrRecords::Bytes(b) => b.len() / SVR_RECORD_LEN,
+        }
+    }
+}
+
 /// A compiled RBF SVR with three outputs sharing their support vectors, read
 /// in place from its bytes (see [`SVR_HEADER_LEN`] for the layout). Positions
 /// in and out are Q15.16 mm.
@@ -401,8 +430,10 @@ pub struct SvrView<'a> {
     scale: [i32; 3],
     /// `bias * std_out + mean_out`, Q15.16 mm.
     offset: [i32; 3],
-    /// `support_vectors * SVR_RECORD_LEN` bytes.
-    records: &'a [u8],
+    /// Largest `|s_i|` over the support vectors, per axis (Q4.27, at most
+    /// [`SUPPORT_MAX`]): bounds the kernel exponent of an input.
+    support_abs_max: [u32; 3],
+    records: SvrRecords<'a>,
 }
 
 impl<'a> SvrView<'a> {
@@ -410,7 +441,9 @@ impl<'a> SvrView<'a> {
     /// (the blob header's count): exact length, mode, Q formats in range,
     /// support vectors within [`SUPPORT_MAX`], every axis' coefficients
     /// within [`SVR_BLOCK_ABS_SUM_MAX`] per block of [`SVR_BLOCK`].
-    /// O(support_vectors), done once at load.
+    /// O(support_vectors), done once at load. The records are read as words
+    /// when they start at a 4-byte aligned address (see `docs/fixed-point.md`),
+    /// else as bytes; the results are the same.
     pub fn parse(bytes: &'a [u8], support_vectors: u32) -> Result<SvrView<'a>, BlobError> {
         let expected = (SVR_HEADER_LEN as u64)
             .saturating_add((SVR_RECORD_LEN as u64).saturating_mul(support_vectors as u64));
@@ -444,11 +477,12 @@ impl<'a> SvrView<'a> {
         let offset = read3(bytes, 32, "svr.offset")?;
         let records = &bytes[SVR_HEADER_LEN..];
         let mut sums = [0u64; 3];
+        let mut support_abs_max = [0u32; 3];
         for (j, rec) in records.chunks_exact(SVR_RECORD_LEN).enumerate() {
             if j % SVR_BLOCK == 0 {
                 sums = [0; 3];
             }
-            for i in 0..3 {
+            for (i, m) in support_abs_max.iter_mut().enumerate() {
                 let s = read_i32(rec, 4 * i).ok_or(BlobError::Body {
                     field: "svr.support",
                 })?;
@@ -457,6 +491,7 @@ impl<'a> SvrView<'a> {
                         field: "svr.support",
                     });
                 }
+                *m = (*m).max(s.unsigned_abs());
             }
             for (a, sum) in sums.iter_mut().enumerate() {
                 let c = read_i32(rec, 12 + 4 * a).ok_or(BlobError::Body { field: "svr.coef" })?;
@@ -473,18 +508,25 @@ impl<'a> SvrView<'a> {
             mean,
             scale,
             offset,
-            records,
+            support_abs_max,
+            records: SvrRecords::new(records),
         })
     }
 
     /// Number of support vectors.
     pub fn support_vectors(&self) -> usize {
-        self.records.len() / SVR_RECORD_LEN
+        self.records.len()
     }
 
     /// Output mode of the regressor.
     pub fn mode(&self) -> OutputMode {
         self.mode
+    }
+
+    /// Whether the records are read as aligned words (else as bytes; the
+    /// results are the same, only the speed differs).
+    pub fn reads_words(&self) -> bool {
+        matches!(self.records, SvrRecords::Words(_))
     }
 
     /// Maps a Q15.16 mm position into the scaled space (Q4.27, saturated).
@@ -500,21 +542,45 @@ impl<'a> SvrView<'a> {
         q
     }
 
+    /// Whether every kernel exponent of the scaled input `q` is below `2^31`
+    /// in Q10.22 (i.e. `|q - s|^2 < 512`): then [`exp2_neg_q22_below_2p31_with`]
+    /// is exact. `|sat(q_i - s_i)| <= |q_i| + max_j |s_ji|`, and the sum of
+    /// the three squares of these bounds is below `2^63` in Q54.
+    #[inline(always)]
+    fn exponents_below_2p31(&self, q: [i32; 3]) -> bool {
+        let mut bound = 0u64;
+        for (qi, m) in q.iter().zip(self.support_abs_max) {
+            let d = qi.unsigned_abs() as u64 + m as u64; // <= 3 * 2^30
+            bound = bound.saturating_add(d * d); // each < 2^64
+        }
+        bound < 1 << 63
+    }
+
     /// Corrected position (Q15.16 mm) of a position `p` (Q15.16 mm). Integer
     /// only, saturating, never panics.
     pub fn evaluate(&self, p: [i32; 3]) -> [i32; 3] {
-        let q = self.scaled(p);
+        let pass = SvrPass {
+            q: self.scaled(p),
+            high: core::hint::black_box(&EXP2_HIGH),
+            low: core::hint::black_box(&EXP2_LOW),
+        };
         let mut acc = [0i64; 3];
-        for block in self.records.chunks(SVR_RECORD_LEN * SVR_BLOCK) {
-            let part = svr_block(
-                block,
-                q,
-                core::hint::black_box(&EXP2_HIGH),
-                core::hint::black_box(&EXP2_LOW),
-                core::hint::black_box(&EXP2_INTEGER),
-            );
-            for a in 0..3 {
-                acc[a] = acc[a].wrapping_add(part[a] as i64);
+        match self.records {
+            SvrRecords::Words(records) => {
+                if self.exponents_below_2p31(pass.q) {
+                    for block in records.chunks(SVR_BLOCK) {
+                        svr_block_words::<true>(block, &pass.q, pass.high, pass.low, &mut acc);
+                    }
+                } else {
+                    for block in records.chunks(SVR_BLOCK) {
+                        svr_block_words::<false>(block, &pass.q, pass.high, pass.low, &mut acc);
+                    }
+                }
+            }
+            SvrRecords::Bytes(records) => {
+                for block in records.chunks(SVR_RECORD_LEN * SVR_BLOCK) {
+                    svr_block_bytes(block, &pass.q, pass.high, pass.low, &mut acc);
+                }
             }
         }
         [
@@ -522,6 +588,26 @@ impl<'a> SvrView<'a> {
             svr_finish(acc[1], self.coef_frac[1], self.offset[1], self.mode, p[1]),
             svr_finish(acc[2], self.coef_frac[2], self.offset[2], self.mode, p[2]),
         ]
+    }
+}
+
+/// What every support vector of one SVR evaluation needs besides its record:
+/// the scaled input and the exp2 tables (always [`EXP2_HIGH`], [`EXP2_LOW`],
+/// passed in so that LLVM keeps their addresses in registers or reloads them,
+/// instead of rebuilding each from a `movw`/`movt` pair per use). One
+/// pointer argument: the block functions take all their arguments in
+/// registers.
+struct SvrPass<'t> {
+    q: [i32; 3],
+    high: &'t [u32; EXP2_FRACTION_ENTRIES],
+    low: &'t [u32; EXP2_FRACTION_ENTRIES],
+}
+
+/// Adds a block's `i32` sums to the `i64` totals.
+#[inline(always)]
+fn add_block(total: &mut [i64; 3], block: [i32; 3]) {
+    for a in 0..3 {
+        total[a] = total[a].wrapping_add(block[a] as i64);
     }
 }
 
@@ -534,64 +620,103 @@ fn mul_hi_round_acc(acc: i32, a: i32, b: i32) -> i32 {
         >> 32) as i32
 }
 
-/// One block of at most [`SVR_BLOCK`] support vectors: per axis
-/// `sum_j round(coef_a K_j / 2^32)`, `K_j = 2^-|q - s_j|^2` (Q1.30), in
-/// Q(`coef_frac_a` - 2) mm. One pass: q (3), three `i32` accumulators, the
-/// record pointer and count and the exp2 tables (`high`, `low`, `integer`:
-/// always [`EXP2_HIGH`], [`EXP2_LOW`], [`EXP2_INTEGER`], passed in so that
-/// LLVM keeps their addresses in registers or reloads them, instead of
-/// rebuilding each from a `movw`/`movt` pair per use). Not inlined, so that
-/// the register allocation of this loop does not depend on the caller.
+/// One block of at most [`SVR_BLOCK`] support vectors read as aligned words:
+/// adds to `total[a]` the block's `sum_j round(coef_a K_j / 2^32)`, `K_j =
+/// 2^-|q - s_j|^2` (Q1.30), in Q(`coef_frac_a` - 2) mm, summed in an `i32`.
+/// One pass: q (3), three `i32` accumulators, the record pointer and count
+/// and the two table addresses (one reloaded per support vector: 14
+/// registers for 13). `NARROW`: the caller checked that every exponent is
+/// below `2^31` (`SvrView::exponents_below_2p31`), so the saturated shift of
+/// the kernel is one `usat`; the results are the same as without. Not
+/// inlined, so that the register allocation of this loop does not depend on
+/// the caller.
 #[inline(never)]
-fn svr_block(
-    block: &[u8],
-    q: [i32; 3],
+fn svr_block_words<const NARROW: bool>(
+    block: &[[i32; 6]],
+    q: &[i32; 3],
     high: &[u32; EXP2_FRACTION_ENTRIES],
     low: &[u32; EXP2_FRACTION_ENTRIES],
-    integer: &[u32; EXP2_INTEGER_ENTRIES],
-) -> [i32; 3] {
+    total: &mut [i64; 3],
+) {
+    let q = *q;
     let mut acc = [0i32; 3];
-    for rec in block.chunks_exact(SVR_RECORD_LEN) {
+    // An index loop: LLVM counts down and steps the pointer in the first
+    // load (2 instructions of loop control; an iterator compares pointers, 3).
+    for i in 0..block.len() {
         // An empty barrier (no instruction: an empty `asm` with a memory
         // clobber): LLVM does not unroll a loop containing it. Unrolled (and
         // interleaved), this loop no longer fits the registers and spills.
         core::hint::black_box(());
-        acc = svr_term(rec, q, acc, (high, low, integer));
+        let [s0, s1, s2, c0, c1, c2] = block[i];
+        acc = svr_term::<NARROW>([s0, s1, s2], [c0, c1, c2], q, acc, high, low);
     }
-    acc
+    add_block(total, acc);
 }
 
-/// Adds one support vector's terms (`rec`, [`SVR_RECORD_LEN`] bytes; any
-/// other length adds nothing) to the block accumulators.
+/// [`svr_block_words`] for records at any address (`block` holds whole
+/// [`SVR_RECORD_LEN`]-byte records; a trailing partial record adds nothing),
+/// read with single little-endian word loads. Always the general saturated
+/// shift: the same results as the word path, bit for bit.
+#[inline(never)]
+fn svr_block_bytes(
+    block: &[u8],
+    q: &[i32; 3],
+    high: &[u32; EXP2_FRACTION_ENTRIES],
+    low: &[u32; EXP2_FRACTION_ENTRIES],
+    total: &mut [i64; 3],
+) {
+    let q = *q;
+    let mut acc = [0i32; 3];
+    for rec in block.chunks_exact(SVR_RECORD_LEN) {
+        core::hint::black_box(());
+        let Ok(rec) = <&[u8; SVR_RECORD_LEN]>::try_from(rec) else {
+            continue;
+        };
+        let s = [
+            le_i32::<SVR_RECORD_LEN, 0>(rec),
+            le_i32::<SVR_RECORD_LEN, 4>(rec),
+            le_i32::<SVR_RECORD_LEN, 8>(rec),
+        ];
+        let c = [
+            le_i32::<SVR_RECORD_LEN, 12>(rec),
+            le_i32::<SVR_RECORD_LEN, 16>(rec),
+            le_i32::<SVR_RECORD_LEN, 20>(rec),
+        ];
+        acc = svr_term::<false>(s, c, q, acc, high, low);
+    }
+    add_block(total, acc);
+}
+
+/// Adds one support vector's terms (support vector `s`, coefficients `c`)
+/// to the block accumulators. `NARROW`: see [`svr_block_words`].
 #[inline(always)]
-fn svr_term(
-    rec: &[u8],
+fn svr_term<const NARROW: bool>(
+    s: [i32; 3],
+    c: [i32; 3],
     q: [i32; 3],
     acc: [i32; 3],
-    tables: (
-        &[u32; EXP2_FRACTION_ENTRIES],
-        &[u32; EXP2_FRACTION_ENTRIES],
-        &[u32; EXP2_INTEGER_ENTRIES],
-    ),
+    high: &[u32; EXP2_FRACTION_ENTRIES],
+    low: &[u32; EXP2_FRACTION_ENTRIES],
 ) -> [i32; 3] {
-    let Ok(rec) = <&[u8; SVR_RECORD_LEN]>::try_from(rec) else {
-        return acc;
-    };
-    let d0 = q[0].saturating_sub(le_i32::<SVR_RECORD_LEN, 0>(rec)) as i64;
-    let d1 = q[1].saturating_sub(le_i32::<SVR_RECORD_LEN, 4>(rec)) as i64;
-    let d2 = q[2].saturating_sub(le_i32::<SVR_RECORD_LEN, 8>(rec)) as i64;
+    let d0 = q[0].saturating_sub(s[0]) as i64;
+    let d1 = q[1].saturating_sub(s[1]) as i64;
+    let d2 = q[2].saturating_sub(s[2]) as i64;
     // Each square <= 2^62; the sum < 2^64 as an unsigned bit pattern. Its
     // high word is u in Q10.22 (truncated).
     let u = ((d0 * d0) as u64)
         .wrapping_add((d1 * d1) as u64)
         .wrapping_add((d2 * d2) as u64);
     let u = (u >> 32) as u32;
-    // K = 0 at and beyond the cutoff (u >= 31).
-    let k = exp2_neg_q22_with(u, tables.0, tables.1, tables.2);
+    // K = 0 from u >= 30 on (the saturated shift).
+    let k = if NARROW {
+        exp2_neg_q22_below_2p31_with(u, high, low)
+    } else {
+        exp2_neg_q22_with(u, high, low)
+    };
     [
-        mul_hi_round_acc(acc[0], le_i32::<SVR_RECORD_LEN, 12>(rec), k),
-        mul_hi_round_acc(acc[1], le_i32::<SVR_RECORD_LEN, 16>(rec), k),
-        mul_hi_round_acc(acc[2], le_i32::<SVR_RECORD_LEN, 20>(rec), k),
+        mul_hi_round_acc(acc[0], c[0], k),
+        mul_hi_round_acc(acc[1], c[1], k),
+        mul_hi_round_acc(acc[2], c[2], k),
     ]
 }
 

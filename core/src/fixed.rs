@@ -7,9 +7,10 @@
 //!   1/32, derivative `1 - tanh^2` at both ends), evaluated in three
 //!   `smmla`-style steps. Absolute error about 1e-9 (see the tests).
 //! - [`exp2_neg_q22`]: `2^-u` of a Q10.22 exponent (`u32`), Q1.30 result: the
-//!   product of three table entries (11 high and 11 low fraction bits, the
-//!   integer part), two `32x32->64` multiplies, no branch. Relative error
-//!   below 1e-7 (the argument's Q22 resolution).
+//!   product of two table entries (11 high and 11 low fraction bits), one
+//!   `32x32->64` multiply, then a right shift by the integer part (saturated
+//!   at 31, the cutoff). Relative error below 1e-7 (the argument's Q22
+//!   resolution).
 //!
 //! The tables are computed by `const fn`s at compile time. Const evaluation is
 //! done by the compiler with software IEEE arithmetic, so the host build and the
@@ -40,12 +41,14 @@ pub const EXP2_OUT_FRAC: u32 = 30;
 const EXP2_SPLIT_BITS: u32 = 11;
 /// Entries of each of the two fraction tables of [`exp2_neg_q22`] (`2^11`).
 pub const EXP2_FRACTION_ENTRIES: usize = 1 << EXP2_SPLIT_BITS;
-/// Entries of the integer-part table of [`exp2_neg_q22`]: every `n = u >> 22`
-/// of a `u32` (`0..1024`), so the lookup needs neither a test nor a mask.
-pub const EXP2_INTEGER_ENTRIES: usize = 1 << (32 - EXP2_IN_FRAC);
-/// Smallest exponent `u` (Q10.22) for which [`exp2_neg_q22`] returns 0: `2^-31`
-/// is below half the resolution of Q1.30.
-pub const EXP2_CUTOFF_Q22: u32 = 31 << EXP2_IN_FRAC;
+/// Largest right shift of [`exp2_neg_q22`]: the integer part `n = u >> 22` is
+/// saturated to it. The fraction product is below `2^30`, so a shift by 31
+/// (indeed by 30) gives 0: the cutoff.
+pub const EXP2_MAX_SHIFT: u32 = 31;
+/// Smallest exponent `u` (Q10.22) for which [`exp2_neg_q22`] returns 0 through
+/// the saturated shift (`2^-31` is below half the resolution of Q1.30; the
+/// product already underflows from `u = 30`).
+pub const EXP2_CUTOFF_Q22: u32 = EXP2_MAX_SHIFT << EXP2_IN_FRAC;
 
 // ---------------------------------------------------------------------------
 // Const-evaluated elementary functions (compile time only).
@@ -114,32 +117,29 @@ const fn tanh_table() -> [[i32; 4]; TANH_SEGMENTS] {
 
 /// The exp2 tables of [`exp2_neg_q22`], for `u = n 2^22 + a 2^11 + b` (Q10.22):
 ///
-/// - `high[a] = 2^-(a 2^11 / 2^22)` in Q1.31 (`high[0] = 2^31`);
+/// - `high[a] = 2^-(a 2^11 / 2^22)` in Q1.30 (`high[0] = 2^30`);
 /// - `low[b] = 2^-((b + 1/2) / 2^22)` in Q0.32: the exponent reaching the
 ///   table is truncated to Q22, so the value is taken at the centre of its
-///   bin (zero-mean error instead of a bias when hundreds of kernels add up);
-/// - `integer[n] = 2^(31 - n)` for `n < 31`, else 0 (the cutoff: `2^-31` is
-///   below half the resolution of Q1.30).
+///   bin (zero-mean error instead of a bias when hundreds of kernels add up).
 ///
-/// Each entry is exact to its rounding (relative 2^-31 or better): no
+/// The integer part `n` is a right shift of the product (no table). Each
+/// entry is exact to its rounding (relative 2^-31 or better): no
 /// interpolation error.
 pub struct Exp2Tables {
     pub high: [u32; EXP2_FRACTION_ENTRIES],
     pub low: [u32; EXP2_FRACTION_ENTRIES],
-    pub integer: [u32; EXP2_INTEGER_ENTRIES],
 }
 
 const fn exp2_tables() -> Exp2Tables {
     let mut t = Exp2Tables {
         high: [0; EXP2_FRACTION_ENTRIES],
         low: [0; EXP2_FRACTION_ENTRIES],
-        integer: [0; EXP2_INTEGER_ENTRIES],
     };
     let q22 = (1u64 << EXP2_IN_FRAC) as f64;
     let mut i = 0;
     while i < EXP2_FRACTION_ENTRIES {
         let a = (i << EXP2_SPLIT_BITS) as f64 / q22;
-        t.high[i] = round_i64(exp_const(-a * LN2) * (1u64 << 31) as f64) as u32;
+        t.high[i] = round_i64(exp_const(-a * LN2) * (1u64 << EXP2_OUT_FRAC) as f64) as u32;
         let b = (i as f64 + 0.5) / q22;
         let low = round_i64(exp_const(-b * LN2) * (1u64 << 32) as f64);
         t.low[i] = if low > u32::MAX as i64 {
@@ -149,11 +149,6 @@ const fn exp2_tables() -> Exp2Tables {
         };
         i += 1;
     }
-    let mut n = 0;
-    while n < 31 {
-        t.integer[n] = 1 << (31 - n);
-        n += 1;
-    }
     t
 }
 
@@ -161,13 +156,11 @@ const fn exp2_tables() -> Exp2Tables {
 pub static TANH_TABLE: [[i32; 4]; TANH_SEGMENTS] = tanh_table();
 
 const EXP2_TABLES: Exp2Tables = exp2_tables();
-/// `high` factors of `2^-u` ([`Exp2Tables`], [`exp2_neg_q22`]), 8 KiB. Three
+/// `high` factors of `2^-u` ([`Exp2Tables`], [`exp2_neg_q22`]), 8 KiB. Two
 /// separate statics, so that each is a base address of its own.
 pub static EXP2_HIGH: [u32; EXP2_FRACTION_ENTRIES] = EXP2_TABLES.high;
 /// `low` factors of `2^-u`, 8 KiB.
 pub static EXP2_LOW: [u32; EXP2_FRACTION_ENTRIES] = EXP2_TABLES.low;
-/// `integer` factors of `2^-u` (the cutoff), 4 KiB.
-pub static EXP2_INTEGER: [u32; EXP2_INTEGER_ENTRIES] = EXP2_TABLES.integer;
 
 // ---------------------------------------------------------------------------
 // Run-time helpers (integer only).
@@ -304,36 +297,58 @@ pub fn tanh_q27(x: i32) -> i32 {
 }
 
 /// `2^-u` in fixed point: `u` in Q10.22 (`u32`, `u >= 0`), result Q1.30
-/// (`<= 2^30`). Returns 0 for `u >= 31` ([`EXP2_CUTOFF_Q22`]).
+/// (`< 2^30`). Returns 0 for `u >= 30` (and so at and beyond
+/// [`EXP2_CUTOFF_Q22`]).
 ///
-/// `u = n 2^22 + a 2^11 + b`: `2^-u = high[a] low[b] integer[n]` (see
-/// [`Exp2Tables`]), two `32x32->64` multiplies keeping the high word. No
-/// branch and no mask: the cutoff is in the `integer` table, which has an
-/// entry for every `n` of a `u32`. Never panics. Relative error below 1e-7
-/// within the first octave (the Q22 truncation of the argument, centred),
-/// absolute error below 2^-30 beyond.
+/// `u = n 2^22 + a 2^11 + b`: `2^-u = (high[a] low[b] / 2^32) >> min(n, 31)`
+/// (see [`Exp2Tables`]): one `32x32->64` multiply keeping the high word
+/// (below `2^30`), then the integer part as a right shift, saturated at
+/// [`EXP2_MAX_SHIFT`] (a shift by 30 or 31 gives 0). Never panics. Relative
+/// error below 1e-7 within the first octave (the Q22 truncation of the
+/// argument, centred), absolute error below 2^-30 beyond.
 #[inline(always)]
 pub fn exp2_neg_q22(u: u32) -> i32 {
-    exp2_neg_q22_with(u, &EXP2_HIGH, &EXP2_LOW, &EXP2_INTEGER)
+    exp2_neg_q22_with(u, &EXP2_HIGH, &EXP2_LOW)
 }
 
 /// [`exp2_neg_q22`] with the tables passed in (always [`EXP2_HIGH`],
-/// [`EXP2_LOW`], [`EXP2_INTEGER`]): in a loop the caller holds their
-/// addresses in registers (or spills them) instead of rebuilding each with
-/// two instructions per use.
+/// [`EXP2_LOW`]): in a loop the caller holds their addresses in registers (or
+/// spills them) instead of rebuilding each with two instructions per use.
 #[inline(always)]
 pub fn exp2_neg_q22_with(
     u: u32,
     high: &[u32; EXP2_FRACTION_ENTRIES],
     low: &[u32; EXP2_FRACTION_ENTRIES],
-    integer: &[u32; EXP2_INTEGER_ENTRIES],
+) -> i32 {
+    exp2_fraction(u, high, low) >> (u >> EXP2_IN_FRAC).min(EXP2_MAX_SHIFT)
+}
+
+/// [`exp2_neg_q22_with`] for an exponent below `2^31` (`u as i32 >= 0`, i.e.
+/// `u < 512`): the saturated shift is then one `usat` (`(u as i32 >> 22)`
+/// clamped to `0..=31`). For `u >= 2^31` the result is wrong (the signed
+/// view is negative, the shift 0): the caller must guarantee the bound; for
+/// `u < 2^31` the result equals [`exp2_neg_q22_with`] bit for bit.
+#[inline(always)]
+pub fn exp2_neg_q22_below_2p31_with(
+    u: u32,
+    high: &[u32; EXP2_FRACTION_ENTRIES],
+    low: &[u32; EXP2_FRACTION_ENTRIES],
+) -> i32 {
+    let sh = ((u as i32) >> EXP2_IN_FRAC).clamp(0, EXP2_MAX_SHIFT as i32) as u32;
+    exp2_fraction(u, high, low) >> sh
+}
+
+/// `high[a] low[b] / 2^32` (Q1.30, below `2^30`) of the fraction bits of `u`.
+#[inline(always)]
+fn exp2_fraction(
+    u: u32,
+    high: &[u32; EXP2_FRACTION_ENTRIES],
+    low: &[u32; EXP2_FRACTION_ENTRIES],
 ) -> i32 {
     let mask = EXP2_FRACTION_ENTRIES - 1;
     let high = high[(u >> EXP2_SPLIT_BITS) as usize & mask];
     let low = low[u as usize & mask];
-    let integer = integer[(u >> EXP2_IN_FRAC) as usize & (EXP2_INTEGER_ENTRIES - 1)];
-    let k = ((high as u64 * low as u64) >> 32) as u32; // Q1.31
-    ((k as u64 * integer as u64) >> 32) as i32 // Q1.30
+    ((high as u64 * low as u64) >> 32) as i32 // Q1.30, < 2^30
 }
 
 #[cfg(test)]

@@ -26,8 +26,13 @@ use serde::{Deserialize, Serialize};
 
 /// Magic bytes at the start of every model blob.
 pub const MAGIC: [u8; 4] = *b"SPDM";
-/// Blob format this crate reads and writes.
-pub const FORMAT_VERSION: u16 = 1;
+/// Blob format this crate reads and writes. Version 2 (version 1 and any
+/// other are refused with [`BlobError::UnsupportedVersion`]): the body pads
+/// the string model with zero bytes so that the correction starts at a
+/// multiple of 4 bytes from the blob start (`spidar-core::blob`), which lets
+/// the device read the SVR records as aligned words. Version 1 had no
+/// padding.
+pub const FORMAT_VERSION: u16 = 2;
 /// Size of the header in bytes.
 pub const HEADER_LEN: usize = 40;
 
