@@ -9,7 +9,8 @@ use spidar_core::string_law::{payout_f64, EffectContext};
 use spidar_core::STRINGS;
 
 use crate::identify::{
-    data_jacobian, device_from_room, identify, Identification, IdentifyError, Start, Structure,
+    data_jacobian, device_from_room, identify, DataJacobian, Identification, IdentifyError, Start,
+    Structure,
 };
 use crate::observe::Observation;
 use crate::predict::{paired_with_tracker, predict, StringModel};
@@ -195,7 +196,11 @@ impl Evidence {
         nominal: &Frame<f64>,
         structure: &Structure,
     ) -> Option<Evidence> {
-        let (jac, weighted, weights) = data_jacobian(id, observations, nominal, structure)?;
+        let DataJacobian {
+            jacobian: jac,
+            residuals: weighted,
+            weights,
+        } = data_jacobian(id, observations, nominal, structure)?;
         let used: Vec<usize> = observations
             .iter()
             .enumerate()
@@ -299,9 +304,16 @@ impl Evidence {
         let rhs = projected.transpose() * &self.residual;
         let beta = gram.clone().cholesky()?.solve(&rhs);
         let explained = beta.dot(&rhs);
-        (explained.is_finite() && explained >= 0.0).then(|| (beta.iter().copied().collect(), explained))
+        (explained.is_finite() && explained >= 0.0)
+            .then(|| (beta.iter().copied().collect(), explained))
     }
 }
+
+/// Turns fitted coefficients into the model change a candidate proposes.
+type BuildChange = Box<dyn Fn(&[f64]) -> Change>;
+
+/// A variable of the residual and how to read it off a row.
+type VariableOf = (Variable, fn(&Row) -> f64);
 
 /// A candidate effect: its regressors over all rows and what adding it means.
 struct Candidate {
@@ -311,7 +323,7 @@ struct Candidate {
     columns: Vec<Vec<f64>>,
     /// Extra chi-square demanded for a searched parameter (a slip's time).
     search_penalty: f64,
-    build: Box<dyn Fn(&[f64]) -> Change>,
+    build: BuildChange,
     describe: String,
 }
 
@@ -330,7 +342,7 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
             .iter()
             .any(|t| t.string as usize == string && f(&t.effect))
     };
-    for i in 0..STRINGS {
+    for (i, split) in time_split.iter().enumerate().take(STRINGS) {
         let s = i as u8;
         let term = move |effect: Effect| Change::Effect(EffectTerm { string: s, effect });
         if !has_effect(i, |e| matches!(e, Effect::Offset { .. })) {
@@ -341,7 +353,9 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
                 columns: vec![string_column(rows, i, |_| 1.0)],
                 search_penalty: 0.0,
                 build: Box::new(move |b| term(Effect::Offset { mm: b[0] })),
-                describe: format!("string {i} reads a constant length error (its home length is off)"),
+                describe: format!(
+                    "string {i} reads a constant length error (its home length is off)"
+                ),
             });
         }
         if !has_effect(i, |e| matches!(e, Effect::Scale { .. })) {
@@ -352,7 +366,9 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
                 columns: vec![string_column(rows, i, |r| r.ctx.payout_mm)],
                 search_penalty: 0.0,
                 build: Box::new(move |b| term(Effect::Scale { relative: b[0] })),
-                describe: format!("string {i}'s payout is off in proportion to the string wound out"),
+                describe: format!(
+                    "string {i}'s payout is off in proportion to the string wound out"
+                ),
             });
         }
         if !has_effect(i, |e| matches!(e, Effect::Winding { power: 3, .. })) {
@@ -368,7 +384,9 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
                         mm_per_rad_pow: b[0],
                     })
                 }),
-                describe: format!("string {i}'s winding law needs a third-order term (uneven layers)"),
+                describe: format!(
+                    "string {i}'s winding law needs a third-order term (uneven layers)"
+                ),
             });
         }
         if !has_effect(i, |e| matches!(e, Effect::Eccentricity { .. })) {
@@ -387,7 +405,9 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
                         cos_mm: b[1],
                     })
                 }),
-                describe: format!("string {i}'s error is periodic in its pulley angle (eccentric pulley)"),
+                describe: format!(
+                    "string {i}'s error is periodic in its pulley angle (eccentric pulley)"
+                ),
             });
         }
         if !has_effect(i, |e| matches!(e, Effect::Elasticity { .. })) {
@@ -408,10 +428,18 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
                 family: Family::Backlash,
                 strings: vec![s],
                 variable: Variable::Direction,
-                columns: vec![string_column(rows, i, |r| f64::from(r.ctx.direction.signum()))],
+                columns: vec![string_column(rows, i, |r| {
+                    f64::from(r.ctx.direction.signum())
+                })],
                 search_penalty: 0.0,
-                build: Box::new(move |b| term(Effect::Backlash { half_width_mm: b[0] })),
-                describe: format!("string {i}'s error depends on its direction of motion (backlash)"),
+                build: Box::new(move |b| {
+                    term(Effect::Backlash {
+                        half_width_mm: b[0],
+                    })
+                }),
+                describe: format!(
+                    "string {i}'s error depends on its direction of motion (backlash)"
+                ),
             });
         }
         if !has_effect(i, |e| matches!(e, Effect::Drift { .. })) {
@@ -425,7 +453,7 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
                 describe: format!("string {i}'s length drifts with time since initialization"),
             });
         }
-        if let Some(at_s) = time_split[i] {
+        if let Some(at_s) = *split {
             if !has_effect(i, |e| matches!(e, Effect::Slip { .. })) {
                 let n = rows.iter().filter(|r| r.string == i).count().max(2) as f64;
                 out.push(Candidate {
@@ -441,7 +469,9 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
                     })],
                     search_penalty: 2.0 * n.ln(),
                     build: Box::new(move |b| term(Effect::Slip { at_s, mm: b[0] })),
-                    describe: format!("string {i} slipped at t = {at_s:.1} s (a step in its length)"),
+                    describe: format!(
+                        "string {i} slipped at t = {at_s:.1} s (a step in its length)"
+                    ),
                 });
             }
         }
@@ -549,7 +579,7 @@ pub fn diagnose(
             })
         })
         .collect();
-    findings.extend(anchors_beyond_tolerance(id, nominal, structure, config));
+    findings.extend(anchors_beyond_tolerance(id, nominal, structure));
     findings.sort_by(|a, b| b.chi2.total_cmp(&a.chi2));
     findings
 }
@@ -557,15 +587,15 @@ pub fn diagnose(
 /// Prior sd (mm) of an anchor the geometry family released.
 pub const RELEASED_ANCHOR_SD_MM: f64 = 1000.0;
 
-/// Anchors the data pull far beyond their design tolerance: the fit moved
-/// them more than 3 prior standard deviations in some coordinate, so the
-/// prior is fighting the data (a bracket mounted in another hole, a frame
+/// Anchors the data pull far beyond their design tolerance: the fitted
+/// anchor's distance from its design position, in prior standard deviations,
+/// is beyond what the tolerance explains (chi-square, 3 dof, p = 0.001), so
+/// the prior is fighting the data (a bracket mounted in another hole, a frame
 /// built off the drawing). Releasing the prior is the geometry change.
 fn anchors_beyond_tolerance(
     id: &Identification,
     nominal: &Frame<f64>,
     structure: &Structure,
-    config: &LoopConfig,
 ) -> Vec<Finding> {
     (0..STRINGS)
         .filter(|&i| structure.anchor_sd_override_mm[i].is_none())
@@ -577,8 +607,10 @@ fn anchors_beyond_tolerance(
                 id.frame.anchors[i][2] - nominal.anchors[i][2],
             ];
             let chi2 = d.iter().map(|v| (v / sd).powi(2)).sum::<f64>();
-            let worst = d.iter().map(|v| v.abs()).fold(0.0, f64::max);
-            (worst > 3.0 * sd && chi2 > config.chi2_threshold.min(27.0)).then(|| Finding {
+            // Mahalanobis distance under the prior beyond chi-square(3 dof)
+            // at p = 0.001: the as-built tolerance does not explain it.
+            const CHI2_3DOF_P001: f64 = 16.27;
+            (chi2 > CHI2_3DOF_P001).then(|| Finding {
                 family: Family::Geometry,
                 strings: vec![i as u8],
                 variable: Variable::Position,
@@ -614,7 +646,7 @@ pub fn unexplained(
     let Some(ev) = Evidence::gather(id, observations, nominal, structure) else {
         return Vec::new();
     };
-    let variables: [(Variable, fn(&Row) -> f64); 10] = [
+    let variables: [VariableOf; 10] = [
         (Variable::Length, |r| r.length),
         (Variable::WoundLength, |r| r.ctx.payout_mm),
         (Variable::PulleyAngle, |r| pulley_turn_angle(r.ctx.theta)),
@@ -650,7 +682,11 @@ pub fn unexplained(
             let mut peak: f64 = 0.0;
             let per = v.len() / BINS;
             for b in 0..BINS {
-                let part = &v[b * per..if b + 1 == BINS { v.len() } else { (b + 1) * per }];
+                let part = &v[b * per..if b + 1 == BINS {
+                    v.len()
+                } else {
+                    (b + 1) * per
+                }];
                 let sum: f64 = part.iter().map(|x| x.1).sum();
                 let n = part.len() as f64;
                 between += sum * sum / n;

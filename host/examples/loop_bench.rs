@@ -1,0 +1,150 @@
+//! Benchmark of the loop-closing targets on the project's simulated sessions:
+//! for each effect family, in how many seeds diagnosis names the right
+//! family, strings and variable, and the held-out error after the loop
+//! relative to the same device without the effect; and how many effects the
+//! loop adds on clean sessions (false positives).
+//!
+//! `cargo run --release -p spidar --example loop_bench -- [SEEDS] [CLEAN_SEEDS]`
+//! (defaults 5 and 20).
+
+use spidar::diagnose::{close_loop, family_name, variable_name, Family, LoopConfig, Variable};
+use spidar::identify::Start;
+use spidar::observe::observations;
+use spidar::sim::config::SimConfig;
+use spidar::sim::{simulate_session, Device, SessionKind};
+
+struct Outcome {
+    found: bool,
+    test_after_mm: f64,
+    added: usize,
+    seconds: f64,
+}
+
+fn run(seed: u64, effects: &[&str], expect: Option<(Family, &[u8], Variable)>) -> Outcome {
+    let config = SimConfig {
+        effects: effects.iter().map(|s| s.to_string()).collect(),
+        ..SimConfig::default()
+    };
+    let device = Device::new(&config, seed).expect("device");
+    let geometry = config.nominal.geometry();
+    let train = simulate_session(&device, SessionKind::Lattice, seed + 100).expect("lattice");
+    let test = simulate_session(&device, SessionKind::Random { points: 500 }, seed + 200)
+        .expect("test session");
+    let train = observations(&train.samples);
+    let test = observations(&test.samples);
+    let nominal = geometry.nominal_frame();
+    let start = Start::nominal(nominal, geometry.pulley_radius_mm, geometry.counts_per_rev);
+    let t0 = std::time::Instant::now();
+    let r = close_loop(
+        &train,
+        Some(&test),
+        &nominal,
+        &start,
+        &LoopConfig::default(),
+    )
+    .expect("loop");
+    let seconds = t0.elapsed().as_secs_f64();
+    let found = expect.is_some_and(|(family, strings, variable)| {
+        r.findings
+            .iter()
+            .any(|f| f.family == family && f.strings == strings && f.variable == variable)
+    });
+    let test_after_mm = r
+        .stages
+        .last()
+        .and_then(|s| s.test)
+        .or(r.base_test)
+        .map(|s| s.mean_mm)
+        .unwrap_or(f64::NAN);
+    Outcome {
+        found,
+        test_after_mm,
+        added: r.stages.len(),
+        seconds,
+    }
+}
+
+fn main() {
+    let mut args = std::env::args().skip(1);
+    let seeds: u64 = args.next().and_then(|s| s.parse().ok()).unwrap_or(5);
+    let clean_seeds: u64 = args.next().and_then(|s| s.parse().ok()).unwrap_or(20);
+    let cases: [(&str, Family, &[u8], Variable); 10] = [
+        ("offset:3:mm=8", Family::Offset, &[3], Variable::Length),
+        (
+            "scale:5:relative=0.03",
+            Family::Scale,
+            &[5],
+            Variable::WoundLength,
+        ),
+        (
+            "winding:2:power=3,mm_per_rad_pow=0.00002",
+            Family::Winding,
+            &[2],
+            Variable::WoundLength,
+        ),
+        (
+            "eccentricity:1:sin_mm=0.8,cos_mm=0.5",
+            Family::Eccentricity,
+            &[1],
+            Variable::PulleyAngle,
+        ),
+        (
+            "elasticity:6:per_newton=0.0003",
+            Family::Elasticity,
+            &[6],
+            Variable::Tension,
+        ),
+        (
+            "backlash:0:half_width_mm=1.0",
+            Family::Backlash,
+            &[0],
+            Variable::Direction,
+        ),
+        (
+            "drift:7:mm_per_s=0.001",
+            Family::Drift,
+            &[7],
+            Variable::Time,
+        ),
+        ("slip:2:at_s=2000,mm=5", Family::Slip, &[2], Variable::Time),
+        (
+            "anchor:3:dx=80,dy=-60,dz=30",
+            Family::Geometry,
+            &[3],
+            Variable::Position,
+        ),
+        (
+            "speed:3:latency_s=0.02",
+            Family::Unexplained,
+            &[3],
+            Variable::Speed,
+        ),
+    ];
+    let baselines: Vec<f64> = (1..=seeds)
+        .map(|s| run(s, &[], None).test_after_mm)
+        .collect();
+    println!("| family | injected | variable | found | worst after / baseline | mean loop s |");
+    println!("|---|---|---|---|---|---|");
+    for (spec, family, strings, variable) in cases {
+        let mut found = 0;
+        let mut worst: f64 = 0.0;
+        let mut seconds = 0.0;
+        for (k, seed) in (1..=seeds).enumerate() {
+            let o = run(seed, &[spec], Some((family, strings, variable)));
+            found += usize::from(o.found);
+            worst = worst.max(o.test_after_mm / baselines[k]);
+            seconds += o.seconds;
+        }
+        println!(
+            "| {} | `{spec}` | {} | {found}/{seeds} | {worst:.2} | {:.1} |",
+            family_name(family),
+            variable_name(variable),
+            seconds / seeds as f64
+        );
+    }
+    let mut false_positives = 0;
+    for seed in 1..=clean_seeds {
+        false_positives += run(seed, &[], None).added;
+    }
+    println!("\nclean sessions: {false_positives} effects added in {clean_seeds} seeds");
+}

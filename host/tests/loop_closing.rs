@@ -1,0 +1,190 @@
+//! The loop on data with an undeclared effect: the simulator injects an effect
+//! the calibration model does not start with; diagnosis must name the right
+//! family, strings and variable, and after adding it the held-out error must
+//! fall to within 1.3 times that of the same device without the effect.
+
+use spidar::diagnose::{close_loop, Family, LoopConfig, LoopResult, Variable};
+use spidar::identify::Start;
+use spidar::observe::observations;
+use spidar::sim::config::SimConfig;
+use spidar::sim::{simulate_session, Device, SessionKind};
+
+/// Runs the loop on a device of `seed` with `effects` injected; returns the
+/// result and the held-out (test session) mean error of the final model.
+fn run(seed: u64, effects: &[&str]) -> (LoopResult, f64) {
+    let config = SimConfig {
+        effects: effects.iter().map(|s| s.to_string()).collect(),
+        ..SimConfig::default()
+    };
+    let device = Device::new(&config, seed).expect("device");
+    let geometry = config.nominal.geometry();
+    let train = simulate_session(&device, SessionKind::Lattice, seed + 100).expect("lattice");
+    let test = simulate_session(&device, SessionKind::Random { points: 500 }, seed + 200)
+        .expect("test session");
+    let train = observations(&train.samples);
+    let test = observations(&test.samples);
+    let nominal = geometry.nominal_frame();
+    let start = Start::nominal(nominal, geometry.pulley_radius_mm, geometry.counts_per_rev);
+    let result = close_loop(
+        &train,
+        Some(&test),
+        &nominal,
+        &start,
+        &LoopConfig::default(),
+    )
+    .expect("loop");
+    let after = result
+        .stages
+        .last()
+        .and_then(|s| s.test)
+        .or(result.base_test)
+        .expect("test stats")
+        .mean_mm;
+    (result, after)
+}
+
+/// The held-out error of the same device without any injected effect.
+fn baseline(seed: u64) -> f64 {
+    run(seed, &[]).1
+}
+
+fn assert_found(result: &LoopResult, family: Family, strings: &[u8], variable: Variable) {
+    let found = result
+        .findings
+        .iter()
+        .any(|f| f.family == family && f.strings == strings && f.variable == variable);
+    assert!(
+        found,
+        "expected {family:?} on strings {strings:?} following {variable:?}; findings: {:#?}",
+        result
+            .findings
+            .iter()
+            .map(|f| (f.family, f.strings.clone(), f.variable, f.added))
+            .collect::<Vec<_>>()
+    );
+}
+
+fn check_family(spec: &str, family: Family, strings: &[u8], variable: Variable) {
+    let seed = 1;
+    let (result, after) = run(seed, &[spec]);
+    assert_found(&result, family, strings, variable);
+    let base = baseline(seed);
+    assert!(
+        after <= 1.3 * base,
+        "{spec}: held-out mean {after:.3} mm after the loop, {base:.3} mm without the effect"
+    );
+}
+
+#[test]
+fn offset() {
+    check_family("offset:3:mm=8", Family::Offset, &[3], Variable::Length);
+}
+
+#[test]
+fn scale() {
+    check_family(
+        "scale:5:relative=0.03",
+        Family::Scale,
+        &[5],
+        Variable::WoundLength,
+    );
+}
+
+#[test]
+fn winding_order() {
+    check_family(
+        "winding:2:power=3,mm_per_rad_pow=0.00002",
+        Family::Winding,
+        &[2],
+        Variable::WoundLength,
+    );
+}
+
+#[test]
+fn eccentricity() {
+    check_family(
+        "eccentricity:1:sin_mm=0.8,cos_mm=0.5",
+        Family::Eccentricity,
+        &[1],
+        Variable::PulleyAngle,
+    );
+}
+
+#[test]
+fn elasticity() {
+    check_family(
+        "elasticity:6:per_newton=0.0003",
+        Family::Elasticity,
+        &[6],
+        Variable::Tension,
+    );
+}
+
+#[test]
+fn backlash() {
+    check_family(
+        "backlash:0:half_width_mm=1.0",
+        Family::Backlash,
+        &[0],
+        Variable::Direction,
+    );
+}
+
+#[test]
+fn drift() {
+    check_family(
+        "drift:7:mm_per_s=0.001",
+        Family::Drift,
+        &[7],
+        Variable::Time,
+    );
+}
+
+#[test]
+fn slip() {
+    check_family("slip:2:at_s=2000,mm=5", Family::Slip, &[2], Variable::Time);
+}
+
+#[test]
+fn geometry_anchor_off_its_drawing() {
+    check_family(
+        "anchor:3:dx=80,dy=-60,dz=30",
+        Family::Geometry,
+        &[3],
+        Variable::Position,
+    );
+}
+
+#[test]
+fn two_effects_at_once() {
+    let seed = 2;
+    let (result, after) = run(seed, &["offset:3:mm=8", "backlash:6:half_width_mm=0.8"]);
+    assert_found(&result, Family::Offset, &[3], Variable::Length);
+    assert_found(&result, Family::Backlash, &[6], Variable::Direction);
+    let added: Vec<_> = result.stages.iter().map(|s| s.finding.family).collect();
+    assert_eq!(added, [Family::Offset, Family::Backlash]);
+    let base = baseline(seed);
+    assert!(
+        after <= 1.3 * base,
+        "after {after:.3} mm, baseline {base:.3} mm"
+    );
+}
+
+#[test]
+fn structure_no_family_explains_is_reported_by_variable() {
+    // Encoder latency: an error proportional to the string's speed.
+    let (result, _) = run(1, &["speed:3:latency_s=0.02"]);
+    assert_found(&result, Family::Unexplained, &[3], Variable::Speed);
+}
+
+#[test]
+fn clean_sessions_add_nothing() {
+    for seed in 1..=3 {
+        let (result, _) = run(seed, &[]);
+        assert!(
+            result.stages.is_empty(),
+            "seed {seed}: added {:?}",
+            result.stages.iter().map(|s| &s.name).collect::<Vec<_>>()
+        );
+    }
+}
