@@ -109,7 +109,7 @@ mod f64_models {
 
 use crate::fixed::{
     exp2_neg_q22_below_2p31_with, exp2_neg_q22_with, le_i32, read_i32, sat_i32, shr_i64,
-    shr_round_i64, shr_sat_i64_to_i32, tanh_q27, EXP2_FRACTION_ENTRIES, EXP2_HIGH, EXP2_LOW,
+    shr_round_i64, shr_sat_i64_to_i32, tanh_q27, EXP2_BASE, EXP2_FRACTION_ENTRIES, EXP2_SLOPE,
 };
 use spidar_protocol::blob::{BlobError, CorrectionKind};
 
@@ -475,32 +475,15 @@ impl<'a> SvrView<'a> {
         let mean = read3(bytes, 8, "svr.mean")?;
         let scale = read3(bytes, 20, "svr.scale")?;
         let offset = read3(bytes, 32, "svr.offset")?;
-        let records = &bytes[SVR_HEADER_LEN..];
-        let mut sums = [0u64; 3];
-        let mut support_abs_max = [0u32; 3];
-        for (j, rec) in records.chunks_exact(SVR_RECORD_LEN).enumerate() {
-            if j % SVR_BLOCK == 0 {
-                sums = [0; 3];
-            }
-            for (i, m) in support_abs_max.iter_mut().enumerate() {
-                let s = read_i32(rec, 4 * i).ok_or(BlobError::Body {
-                    field: "svr.support",
-                })?;
-                if s.unsigned_abs() > SUPPORT_MAX as u32 {
-                    return Err(BlobError::Body {
-                        field: "svr.support",
-                    });
-                }
-                *m = (*m).max(s.unsigned_abs());
-            }
-            for (a, sum) in sums.iter_mut().enumerate() {
-                let c = read_i32(rec, 12 + 4 * a).ok_or(BlobError::Body { field: "svr.coef" })?;
-                *sum += c.unsigned_abs() as u64;
-                if *sum > SVR_BLOCK_ABS_SUM_MAX {
-                    return Err(BlobError::Body { field: "svr.coef" });
-                }
-            }
-        }
+        let records = SvrRecords::new(&bytes[SVR_HEADER_LEN..]);
+        let support_abs_max = match records {
+            SvrRecords::Words(words) => check_svr_records(words.chunks(SVR_BLOCK), |r| *r),
+            SvrRecords::Bytes(b) => check_svr_records(
+                b.chunks(SVR_RECORD_LEN * SVR_BLOCK)
+                    .map(|block| block.chunks_exact(SVR_RECORD_LEN)),
+                |r| core::array::from_fn(|i| read_i32(r, 4 * i).unwrap_or(i32::MIN)),
+            ),
+        }?;
         Ok(SvrView {
             mode,
             scale_frac,
@@ -509,7 +492,7 @@ impl<'a> SvrView<'a> {
             scale,
             offset,
             support_abs_max,
-            records: SvrRecords::new(records),
+            records,
         })
     }
 
@@ -548,12 +531,12 @@ impl<'a> SvrView<'a> {
     /// the three squares of these bounds is below `2^63` in Q54.
     #[inline(always)]
     fn exponents_below_2p31(&self, q: [i32; 3]) -> bool {
-        let mut bound = 0u64;
-        for (qi, m) in q.iter().zip(self.support_abs_max) {
-            let d = qi.unsigned_abs() as u64 + m as u64; // <= 3 * 2^30
-            bound = bound.saturating_add(d * d); // each < 2^64
-        }
-        bound < 1 << 63
+        // |q_i| <= 2^31 and max |s_i| <= 2^30: the bound fits a u32.
+        let d = |i: usize| (q[i].unsigned_abs() + self.support_abs_max[i]) as u64;
+        (d(0) * d(0))
+            .checked_add(d(1) * d(1))
+            .and_then(|s| s.checked_add(d(2) * d(2)))
+            .is_some_and(|s| s < 1 << 63)
     }
 
     /// Corrected position (Q15.16 mm) of a position `p` (Q15.16 mm). Integer
@@ -561,25 +544,28 @@ impl<'a> SvrView<'a> {
     pub fn evaluate(&self, p: [i32; 3]) -> [i32; 3] {
         let pass = SvrPass {
             q: self.scaled(p),
-            high: core::hint::black_box(&EXP2_HIGH),
-            low: core::hint::black_box(&EXP2_LOW),
+            base: core::hint::black_box(&EXP2_BASE),
+            slope: core::hint::black_box(&EXP2_SLOPE),
         };
         let mut acc = [0i64; 3];
         match self.records {
             SvrRecords::Words(records) => {
+                // Whole blocks, then the rest (a constant length per call).
+                let blocks = records.chunks_exact(SVR_BLOCK);
+                let rest = blocks.remainder();
                 if self.exponents_below_2p31(pass.q) {
-                    for block in records.chunks(SVR_BLOCK) {
-                        svr_block_words::<true>(block, &pass.q, pass.high, pass.low, &mut acc);
+                    for block in blocks.chain(core::iter::once(rest)) {
+                        svr_block_words::<true>(block, &pass.q, pass.base, pass.slope, &mut acc);
                     }
                 } else {
-                    for block in records.chunks(SVR_BLOCK) {
-                        svr_block_words::<false>(block, &pass.q, pass.high, pass.low, &mut acc);
+                    for block in blocks.chain(core::iter::once(rest)) {
+                        svr_block_words::<false>(block, &pass.q, pass.base, pass.slope, &mut acc);
                     }
                 }
             }
             SvrRecords::Bytes(records) => {
                 for block in records.chunks(SVR_RECORD_LEN * SVR_BLOCK) {
-                    svr_block_bytes(block, &pass.q, pass.high, pass.low, &mut acc);
+                    svr_block_bytes(block, &pass.q, pass.base, pass.slope, &mut acc);
                 }
             }
         }
@@ -592,15 +578,15 @@ impl<'a> SvrView<'a> {
 }
 
 /// What every support vector of one SVR evaluation needs besides its record:
-/// the scaled input and the exp2 tables (always [`EXP2_HIGH`], [`EXP2_LOW`],
+/// the scaled input and the exp2 tables (always [`EXP2_BASE`], [`EXP2_SLOPE`],
 /// passed in so that LLVM keeps their addresses in registers or reloads them,
 /// instead of rebuilding each from a `movw`/`movt` pair per use). One
 /// pointer argument: the block functions take all their arguments in
 /// registers.
 struct SvrPass<'t> {
     q: [i32; 3],
-    high: &'t [u32; EXP2_FRACTION_ENTRIES],
-    low: &'t [u32; EXP2_FRACTION_ENTRIES],
+    base: &'t [i32; EXP2_FRACTION_ENTRIES],
+    slope: &'t [i32; EXP2_FRACTION_ENTRIES],
 }
 
 /// Adds a block's `i32` sums to the `i64` totals.
@@ -609,6 +595,41 @@ fn add_block(total: &mut [i64; 3], block: [i32; 3]) {
     for a in 0..3 {
         total[a] = total[a].wrapping_add(block[a] as i64);
     }
+}
+
+/// The record checks of [`SvrView::parse`] over blocks of [`SVR_BLOCK`]
+/// records (`record` reads one as `[s0, s1, s2, coef0, coef1, coef2]`):
+/// `|s| <= SUPPORT_MAX`, per axis and block `sum |coef| <=
+/// SVR_BLOCK_ABS_SUM_MAX`. Returns the largest `|s|` per axis.
+fn check_svr_records<R, B, I>(
+    blocks: B,
+    record: impl Fn(R) -> [i32; 6],
+) -> Result<[u32; 3], BlobError>
+where
+    B: Iterator<Item = I>,
+    I: IntoIterator<Item = R>,
+{
+    let mut support_abs_max = [0u32; 3];
+    for block in blocks {
+        let mut sums = [0u64; 3];
+        for rec in block {
+            let rec = record(rec);
+            for i in 0..3 {
+                let s = rec[i].unsigned_abs();
+                if s > SUPPORT_MAX as u32 {
+                    return Err(BlobError::Body {
+                        field: "svr.support",
+                    });
+                }
+                support_abs_max[i] = support_abs_max[i].max(s);
+                sums[i] += rec[3 + i].unsigned_abs() as u64;
+            }
+            if sums.iter().any(|&sum| sum > SVR_BLOCK_ABS_SUM_MAX) {
+                return Err(BlobError::Body { field: "svr.coef" });
+            }
+        }
+    }
+    Ok(support_abs_max)
 }
 
 /// `acc + round(a b / 2^32)` (wrapping), one `smmlar` on the Cortex-M7.
@@ -634,8 +655,8 @@ fn mul_hi_round_acc(acc: i32, a: i32, b: i32) -> i32 {
 fn svr_block_words<const NARROW: bool>(
     block: &[[i32; 6]],
     q: &[i32; 3],
-    high: &[u32; EXP2_FRACTION_ENTRIES],
-    low: &[u32; EXP2_FRACTION_ENTRIES],
+    base: &[i32; EXP2_FRACTION_ENTRIES],
+    slope: &[i32; EXP2_FRACTION_ENTRIES],
     total: &mut [i64; 3],
 ) {
     let q = *q;
@@ -648,7 +669,7 @@ fn svr_block_words<const NARROW: bool>(
         // interleaved), this loop no longer fits the registers and spills.
         core::hint::black_box(());
         let [s0, s1, s2, c0, c1, c2] = block[i];
-        acc = svr_term::<NARROW>([s0, s1, s2], [c0, c1, c2], q, acc, high, low);
+        acc = svr_term::<NARROW>([s0, s1, s2], [c0, c1, c2], q, acc, base, slope);
     }
     add_block(total, acc);
 }
@@ -661,8 +682,8 @@ fn svr_block_words<const NARROW: bool>(
 fn svr_block_bytes(
     block: &[u8],
     q: &[i32; 3],
-    high: &[u32; EXP2_FRACTION_ENTRIES],
-    low: &[u32; EXP2_FRACTION_ENTRIES],
+    base: &[i32; EXP2_FRACTION_ENTRIES],
+    slope: &[i32; EXP2_FRACTION_ENTRIES],
     total: &mut [i64; 3],
 ) {
     let q = *q;
@@ -682,7 +703,7 @@ fn svr_block_bytes(
             le_i32::<SVR_RECORD_LEN, 16>(rec),
             le_i32::<SVR_RECORD_LEN, 20>(rec),
         ];
-        acc = svr_term::<false>(s, c, q, acc, high, low);
+        acc = svr_term::<false>(s, c, q, acc, base, slope);
     }
     add_block(total, acc);
 }
@@ -695,8 +716,8 @@ fn svr_term<const NARROW: bool>(
     c: [i32; 3],
     q: [i32; 3],
     acc: [i32; 3],
-    high: &[u32; EXP2_FRACTION_ENTRIES],
-    low: &[u32; EXP2_FRACTION_ENTRIES],
+    base: &[i32; EXP2_FRACTION_ENTRIES],
+    slope: &[i32; EXP2_FRACTION_ENTRIES],
 ) -> [i32; 3] {
     let d0 = q[0].saturating_sub(s[0]) as i64;
     let d1 = q[1].saturating_sub(s[1]) as i64;
@@ -709,9 +730,9 @@ fn svr_term<const NARROW: bool>(
     let u = (u >> 32) as u32;
     // K = 0 from u >= 30 on (the saturated shift).
     let k = if NARROW {
-        exp2_neg_q22_below_2p31_with(u, high, low)
+        exp2_neg_q22_below_2p31_with(u, base, slope)
     } else {
-        exp2_neg_q22_with(u, high, low)
+        exp2_neg_q22_with(u, base, slope)
     };
     [
         mul_hi_round_acc(acc[0], c[0], k),
