@@ -383,6 +383,72 @@ mod tests {
         }
     }
 
+    /// Format 2: whatever the length of the string model, the correction
+    /// starts at a multiple of 4 bytes from the blob start, after zero
+    /// padding that the parser checks.
+    #[test]
+    fn correction_is_4_aligned_and_padding_checked() {
+        let svr = crate::correction::SvrModel {
+            input: crate::correction::Standardization {
+                mean: [0.0; 3],
+                std: [300.0; 3],
+            },
+            output: crate::correction::Standardization {
+                mean: [0.0; 3],
+                std: [1.0; 3],
+            },
+            gamma: 0.5,
+            support: alloc::vec![[0.1, 0.2, 0.3], [-0.5, 0.0, 0.25]],
+            coef: [
+                alloc::vec![0.5, -0.25],
+                alloc::vec![0.1, 0.2],
+                alloc::vec![-0.3, 0.0],
+            ],
+            bias: [0.0; 3],
+            mode: crate::correction::OutputMode::Residual,
+        };
+        let mut paddings = [false; 4];
+        for extra in 0..8 {
+            let mut cal = calibration();
+            cal.correction = CorrectionModel::Svr(svr.clone());
+            for i in 0..extra {
+                cal.effects.push(EffectTerm {
+                    string: (i % STRINGS) as u8,
+                    effect: Effect::Offset {
+                        mm: 1.0 + i as f64 * 0.37,
+                    },
+                });
+            }
+            let blob = compile(&cal, 7, 0).unwrap();
+            let (_, body) = split_blob(&blob).unwrap();
+            let (_, rest): (BlobHead, &[u8]) = postcard::take_from_bytes(body).unwrap();
+            let (_, correction) = split_body(body).unwrap();
+            let at = blob.len() - correction.len();
+            assert_eq!(at % CORRECTION_ALIGN, 0, "{extra} effects");
+            let pad = rest.len() - correction.len();
+            assert!(pad < CORRECTION_ALIGN);
+            paddings[pad] = true;
+            let c = CompiledCalibration::from_blob(&blob).unwrap();
+            assert_eq!(c.correction.kind(), CorrectionKind::Svr);
+            if pad > 0 {
+                // A non-zero padding byte, with the CRCs made valid again.
+                let mut bad = blob.clone();
+                bad[at - 1] = 1;
+                let mut h = ModelHeader::parse(&bad).unwrap();
+                h.body_crc32 = 0;
+                let body = bad[HEADER_LEN..].to_vec();
+                let n = spidar_protocol::blob::write_blob(&h, &body, &mut bad).unwrap();
+                assert_eq!(n, blob.len());
+                assert_eq!(
+                    CompiledCalibration::from_blob(&bad),
+                    Err(BlobError::Body { field: "padding" })
+                );
+            }
+        }
+        // The effect counts above give every padding length.
+        assert!(paddings.iter().filter(|&&p| p).count() >= 2, "{paddings:?}");
+    }
+
     #[test]
     fn nan_frame_does_not_compile() {
         let mut cal = calibration();

@@ -1616,6 +1616,53 @@ mod tests {
         }
     }
 
+    /// Records at a 4-aligned address are read as words, else as bytes; the
+    /// word path with the one-`usat` shift (inputs near the support vectors)
+    /// and with the general one (far inputs) and the byte path give the same
+    /// bits.
+    #[test]
+    fn svr_word_and_byte_paths_agree() {
+        let m = svr_model(1000, 12, OutputMode::Residual);
+        let bytes = m.compile().expect("compiles");
+        let mut words = vec![0u32; bytes.len().div_ceil(4)];
+        let aligned = &mut bytemuck::cast_slice_mut::<u32, u8>(&mut words)[..bytes.len()];
+        aligned.copy_from_slice(&bytes);
+        let mut store = vec![0u32; bytes.len() / 4 + 2];
+        let shifted = &mut bytemuck::cast_slice_mut::<u32, u8>(&mut store)[1..=bytes.len()];
+        shifted.copy_from_slice(&bytes);
+        let w = SvrView::parse(aligned, 1000).expect("parses");
+        let b = SvrView::parse(shifted, 1000).expect("parses");
+        assert!(w.reads_words());
+        assert!(!b.reads_words());
+        assert_eq!(w.support_vectors(), b.support_vectors());
+        let mut rng = Rng(77);
+        let mut points = workspace_points();
+        points.truncate(3000);
+        let (mut narrow, mut wide) = (0, 0);
+        for k in 0..3000 {
+            let far = match k % 3 {
+                0 => [
+                    rng.next_u64() as i32,
+                    rng.next_u64() as i32,
+                    rng.next_u64() as i32,
+                ],
+                1 => [i32::MIN, i32::MAX, (rng.next_u64() as i32) >> 8],
+                _ => [(rng.next_u64() as i32) >> 4, 0, 0],
+            };
+            points.push(far);
+        }
+        for p in points {
+            let q = w.scaled(p);
+            if w.exponents_below_2p31(q) {
+                narrow += 1;
+            } else {
+                wide += 1;
+            }
+            assert_eq!(w.evaluate(p), b.evaluate(p), "p {p:?}");
+        }
+        assert!(narrow > 1000 && wide > 1000, "narrow {narrow}, wide {wide}");
+    }
+
     #[test]
     fn correction_enum_and_header_checks() {
         let nn = nn_model(4, 5, OutputMode::Absolute);
@@ -1912,7 +1959,16 @@ mod tests {
             for b in &mut svr[2..5] { *b %= 49; }
             svr[5..8].fill(0);
             if let Ok(v) = SvrView::parse(&svr, svs) {
-                let _ = v.evaluate(p);
+                // The same records at an odd address (byte path): same bits.
+                let mut store = vec![0u32; svr.len() / 4 + 2];
+                let shifted = &mut bytemuck::cast_slice_mut::<u32, u8>(&mut store)[1..=svr.len()];
+                shifted.copy_from_slice(&svr);
+                let shifted: &[u8] = shifted;
+                let u = SvrView::parse(shifted, svs);
+                prop_assert_eq!(u, Ok(SvrView { records: SvrRecords::Bytes(&shifted[SVR_HEADER_LEN..]), ..v }));
+                if let Ok(u) = u {
+                    prop_assert_eq!(v.evaluate(p), u.evaluate(p));
+                }
             }
         }
 

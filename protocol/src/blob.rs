@@ -334,6 +334,21 @@ mod tests {
     }
 
     #[test]
+    fn version_1_is_refused_by_name() {
+        let mut bytes = header().to_bytes();
+        bytes[4..6].copy_from_slice(&1u16.to_le_bytes());
+        let crc = CRC32.checksum(&bytes[0..36]);
+        bytes[36..40].copy_from_slice(&crc.to_le_bytes());
+        assert_eq!(
+            ModelHeader::parse(&bytes),
+            Err(BlobError::UnsupportedVersion {
+                found: 1,
+                supported: 2
+            })
+        );
+    }
+
+    #[test]
     fn newer_version_is_refused_by_name() {
         let mut bytes = header().to_bytes();
         bytes[4] = 9;
