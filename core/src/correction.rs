@@ -32,14 +32,19 @@
 //! support vectors are stored in the same space, so per support vector
 //! `u = sum_i (q_i - s_i)^2` is three `32x32->64` multiply-accumulates, its
 //! high word is `u` in Q10.22, and the kernel is `2^-u` in Q1.30
-//! ([`crate::fixed::exp2_neg_q22`], a product of three table entries; 0 for
-//! `u >= 31`, below the Q1.30 resolution). The kernel is shared by the three
+//! ([`crate::fixed::exp2_neg_q22`]: a least-squares line per segment of the
+//! fraction, one `smlawb`, shifted right by the integer part; 0 for
+//! `u >= 30`, below the Q1.30 resolution). The kernel is shared by the three
 //! axes. Support vectors are taken in blocks of [`SVR_BLOCK`]: within a block
 //! each axis sums `round(coef[a][j] K_j / 2^32)` in an `i32` (in mm with
-//! `coef_frac[a] - 2` fractional bits), the block sums are added in `i64`, and `out_a = round(acc_a >>
-//! (coef_frac[a] - 18)) + offset[a]` (`+ p_a` in residual mode), `coef =
+//! `coef_frac[a] - 2` fractional bits), the block sums are added in `i64`,
+//! and `out_a = round(acc_a >> (coef_frac[a] - 18)) + offset[a]` (`+ p_a` in
+//! residual mode), `coef =
 //! alpha * std_out` in Q(`coef_frac[a]`) mm, the fractional bits chosen so
 //! that every block's `sum |coef|` stays within [`SVR_BLOCK_ABS_SUM_MAX`].
+//! In a blob of format version 2 the correction bytes start 4-byte aligned
+//! (`crate::blob::CORRECTION_ALIGN`): in an aligned buffer [`SvrView`] reads
+//! the records as words, elsewhere as bytes, with the same results.
 
 use serde::{Deserialize, Serialize};
 
@@ -663,6 +668,7 @@ fn svr_block_words<const NARROW: bool>(
     let mut acc = [0i32; 3];
     // An index loop: LLVM counts down and steps the pointer in the first
     // load (2 instructions of loop control; an iterator compares pointers, 3).
+    #[allow(clippy::needless_range_loop)]
     for i in 0..block.len() {
         // An empty barrier (no instruction: an empty `asm` with a memory
         // clobber): LLVM does not unroll a loop containing it. Unrolled (and

@@ -318,8 +318,9 @@ pub fn tanh_q27(x: i32) -> i32 {
 /// (`< 2^30`). Returns 0 for `u >= 30` (and so at and beyond
 /// [`EXP2_CUTOFF_Q22`]).
 ///
-/// `u = n 2^22 + a 2^11 + b`: `2^-u = (base[a] + ((slope[a] s16(u)) >> 16))
-/// >> min(n, 31)` (see [`Exp2Tables`]): one 32x16 multiply-accumulate
+/// `u = n 2^22 + a 2^11 + b`:
+/// `2^-u = (base[a] + ((slope[a] s16(u)) >> 16)) >> min(n, 31)`
+/// (see [`Exp2Tables`]): one 32x16 multiply-accumulate
 /// (`smlawb`), then the integer part as a right shift, saturated at
 /// [`EXP2_MAX_SHIFT`] (a shift by 30 or 31 gives 0). Never panics. Relative
 /// error below 1e-7 within the first octave (the Q22 truncation of the
