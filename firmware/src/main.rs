@@ -47,8 +47,10 @@ use crate::storage::H7Flash;
 /// 500 support vectors ~12.5 KiB. Aligned (`ModelBuffer`): the SVR records of
 /// a blob at the start of the buffer are then read as aligned words.
 const MODEL_RAM_LEN: usize = 24 * 1024;
-static MODEL_RAM: ConstStaticCell<ModelBuffer<MODEL_RAM_LEN>> = ConstStaticCell::new(ModelBuffer::new());
-static SPARE_RAM: ConstStaticCell<ModelBuffer<MODEL_RAM_LEN>> = ConstStaticCell::new(ModelBuffer::new());
+static MODEL_RAM: ConstStaticCell<ModelBuffer<MODEL_RAM_LEN>> =
+    ConstStaticCell::new(ModelBuffer::new());
+static SPARE_RAM: ConstStaticCell<ModelBuffer<MODEL_RAM_LEN>> =
+    ConstStaticCell::new(ModelBuffer::new());
 static DEVICE: StaticCell<SharedDevice> = StaticCell::new();
 
 /// `[major, minor, patch]` of this crate.
