@@ -33,7 +33,7 @@ fn run(seed: u64, effects: &[&str], expect: Option<(Family, &[u8], Variable)>) -
     let train = observations(&train.samples);
     let test = observations(&test.samples);
     let nominal = geometry.nominal_frame();
-    let start = Start::nominal(nominal, geometry.pulley_radius_mm, geometry.counts_per_rev);
+    let start = Start::from_geometry(&geometry);
     let t0 = std::time::Instant::now();
     let r = close_loop(
         &train,

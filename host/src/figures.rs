@@ -136,6 +136,7 @@ pub fn spatial_error_map(
         .disable_x_mesh()
         .disable_x_axis()
         .y_labels(8)
+        .y_label_style(("sans-serif", 14))
         .draw()
         .map_err(|e| fail(path, e))?;
     bar_chart

@@ -846,6 +846,15 @@ impl Start {
         }
     }
 
+    /// From a geometry file: its nominal frame and pulley radii.
+    pub fn from_geometry(geometry: &crate::dataset::Geometry) -> Start {
+        Start::nominal(
+            geometry.nominal_frame(),
+            geometry.pulley_radius_mm,
+            geometry.counts_per_rev,
+        )
+    }
+
     /// Continue from an earlier identification (the diagnosis loop refits).
     pub fn from_identification(id: &Identification) -> Start {
         Start {

@@ -18,20 +18,62 @@ struct Cli {
 enum Command {
     /// Simulate a device and write its nominal geometry, one session and the truth.
     Simulate(spidar::sim::SimulateArgs),
+    /// Compile a calibration into the device's model blob and measure its fixed-point error.
+    Compile(spidar::compile::CompileArgs),
+    /// Upload a model blob to a device (chunks, retry, resume, CRC, atomic commit, read-back).
+    Flash(spidar::link::cli::FlashArgs),
+    /// Talk to a device: info, stream, arm, disarm, force.
+    Device(spidar::link::cli::DeviceArgs),
+    /// Run a virtual device (firmware logic + simulated plant) behind a pseudo-terminal.
+    VirtualDevice(spidar::virtual_device::VirtualDeviceArgs),
+    /// Calibrate a device from a training and a test session: identification,
+    /// diagnosis, NN and SVR corrections, error statistics, figures, JSON report.
+    Calibrate(spidar::calibrate::CalibrateArgs),
+    /// Simulate a device with a lattice and a test session, and calibrate it.
+    Demo(spidar::calibrate::DemoArgs),
+}
+
+fn fail(e: &dyn std::error::Error) -> ! {
+    eprintln!("spidar: {e}");
+    std::process::exit(1);
 }
 
 fn main() {
     let cli = Cli::parse();
-    let result: Result<String, Box<dyn std::error::Error>> = match &cli.command {
-        Command::Simulate(args) => spidar::sim::run_simulate(args)
-            .map(|report| report.to_string())
-            .map_err(Into::into),
-    };
-    match result {
-        Ok(text) => print!("{text}"),
-        Err(e) => {
-            eprintln!("spidar: {e}");
-            std::process::exit(1);
-        }
+    match &cli.command {
+        Command::Simulate(args) => match spidar::sim::run_simulate(args) {
+            Ok(report) => print!("{report}"),
+            Err(e) => fail(&e),
+        },
+        Command::Calibrate(args) => match spidar::calibrate::run_calibrate(args) {
+            Ok(out) => match out.json_stdout {
+                Some(json) => {
+                    eprint!("{}", out.summary);
+                    println!("{json}");
+                }
+                None => print!("{}", out.summary),
+            },
+            Err(e) => fail(&e),
+        },
+        Command::Demo(args) => match spidar::calibrate::run_demo(args) {
+            Ok(text) => print!("{text}"),
+            Err(e) => fail(&e),
+        },
+        Command::Compile(args) => match spidar::compile::run_compile(args) {
+            Ok(report) => print!("{report}"),
+            Err(e) => fail(&e),
+        },
+        Command::Flash(args) => match spidar::link::cli::run_flash(args) {
+            Ok(text) => print!("{text}"),
+            Err(e) => fail(e.as_ref()),
+        },
+        Command::Device(args) => match spidar::link::cli::run_device(args) {
+            Ok(text) => print!("{text}"),
+            Err(e) => fail(e.as_ref()),
+        },
+        Command::VirtualDevice(args) => match spidar::virtual_device::run_virtual_device(args) {
+            Ok(text) => print!("{text}"),
+            Err(e) => fail(&e),
+        },
     }
 }

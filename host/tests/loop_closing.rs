@@ -24,7 +24,7 @@ fn run(seed: u64, effects: &[&str]) -> (LoopResult, f64) {
     let train = observations(&train.samples);
     let test = observations(&test.samples);
     let nominal = geometry.nominal_frame();
-    let start = Start::nominal(nominal, geometry.pulley_radius_mm, geometry.counts_per_rev);
+    let start = Start::from_geometry(&geometry);
     let result = close_loop(
         &train,
         Some(&test),

@@ -1,0 +1,203 @@
+//! `spidar calibrate` and `spidar demo`.
+
+use std::path::{Path, PathBuf};
+
+use super::{calibrate, write_outputs, CalibrateConfig, CalibrateError, NamedSession};
+use crate::dataset::{Geometry, Session};
+use crate::sim::{run_simulate, KindArg, SimulateArgs};
+
+/// `spidar calibrate`: identify the model, diagnose it, train the NN and SVR
+/// corrections, and report every stage on the training and test sessions.
+#[derive(Clone, Debug, clap::Args)]
+pub struct CalibrateArgs {
+    /// Nominal geometry (TOML).
+    #[arg(long)]
+    pub geometry: PathBuf,
+    /// Training session (CSV), e.g. the lattice.
+    #[arg(long)]
+    pub train: PathBuf,
+    /// Separate test session (CSV): the generalization figures.
+    #[arg(long)]
+    pub test: PathBuf,
+    /// Output directory: calibration.json, report.json, figures/.
+    #[arg(long, default_value = "calibration")]
+    pub out: PathBuf,
+    /// Also write the JSON report here (`-`: to stdout, the summary then goes
+    /// to stderr).
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+    /// Seed of the selection split, NN initializations and SVR folds.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Also run the paper's black-box procedure (legacy dev_* position in,
+    /// tracker out) when both sessions have dev_* columns. Slow: its SVR
+    /// alone takes tens of seconds.
+    #[arg(long)]
+    pub blackbox: bool,
+    /// Reduced NN sweep and SVR grid (for tests and smoke runs), instead of
+    /// the paper's full procedure.
+    #[arg(long)]
+    pub quick: bool,
+    /// Do not draw the figures.
+    #[arg(long)]
+    pub no_figures: bool,
+    /// No progress bars.
+    #[arg(long)]
+    pub quiet: bool,
+    /// Write the learners' data to DIR as `x,y,z,tx,ty,tz` CSVs (input and
+    /// tracker, mm), for `scripts/reference/reference.py`:
+    /// residual_{train,test}.csv and, when the sessions have dev_* columns,
+    /// blackbox_{train,test}.csv. Training files hold the pairs left after
+    /// outlier removal, test files every tracked row.
+    #[arg(long, value_name = "DIR")]
+    pub export_pairs: Option<PathBuf>,
+}
+
+/// What `spidar calibrate` prints.
+#[derive(Clone, Debug)]
+pub struct CalibrateOutput {
+    /// The readable summary.
+    pub summary: String,
+    /// The JSON report when `--json -` asked for it on stdout.
+    pub json_stdout: Option<String>,
+}
+
+impl CalibrateArgs {
+    fn config(&self) -> CalibrateConfig {
+        let mut c = if self.quick {
+            CalibrateConfig::quick()
+        } else {
+            CalibrateConfig::full()
+        };
+        c.seed = self.seed;
+        c.blackbox = self.blackbox;
+        c.quiet = self.quiet;
+        c
+    }
+}
+
+/// Run `spidar calibrate`.
+pub fn run_calibrate(args: &CalibrateArgs) -> Result<CalibrateOutput, CalibrateError> {
+    let geometry = Geometry::load(&args.geometry)?;
+    let train = Session::load(&args.train)?;
+    let test = Session::load(&args.test)?;
+    let config = args.config();
+    let mut calibrated = calibrate(
+        &geometry,
+        &args.geometry,
+        NamedSession {
+            path: &args.train,
+            session: &train,
+        },
+        NamedSession {
+            path: &args.test,
+            session: &test,
+        },
+        &config,
+    )?;
+    if !config.blackbox && train.has_legacy() && test.has_legacy() {
+        calibrated.report.warnings.push(
+            "the sessions have dev_* columns: --blackbox adds the paper's black-box NN and SVR \
+             for comparison"
+                .into(),
+        );
+    }
+    if let Some(dir) = &args.export_pairs {
+        calibrated.pairs.residual.write(dir, "residual")?;
+        if let Some(bb) = &calibrated.pairs.blackbox {
+            bb.write(dir, "blackbox")?;
+        }
+    }
+    write_outputs(
+        &mut calibrated,
+        &args.out,
+        args.json.as_deref(),
+        !args.no_figures,
+        args.quiet,
+    )?;
+    let json_stdout = match args.json.as_deref() {
+        Some(p) if p == Path::new("-") => Some(
+            serde_json::to_string_pretty(&calibrated.report).map_err(|source| {
+                CalibrateError::Json {
+                    file: PathBuf::from("-"),
+                    source,
+                }
+            })?,
+        ),
+        _ => None,
+    };
+    Ok(CalibrateOutput {
+        summary: calibrated.report.summary(),
+        json_stdout,
+    })
+}
+
+/// `spidar demo`: simulate a device, its lattice and a test session, and
+/// calibrate it.
+#[derive(Clone, Debug, clap::Args)]
+pub struct DemoArgs {
+    /// Output directory: geometry.toml, lattice.csv, test.csv, truth.toml and
+    /// calibration/ (report, calibration, figures).
+    #[arg(long, default_value = "out/demo")]
+    pub out: PathBuf,
+    /// Device seed (the simulated device's as-built errors).
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Simulator configuration TOML (default: the built-in device).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Injected effect, e.g. `offset:3:mm=10` (repeatable; see `spidar simulate`).
+    #[arg(long = "effect", value_name = "SPEC")]
+    pub effects: Vec<String>,
+    /// Also run the paper's black-box procedure (slow, see `calibrate --blackbox`).
+    #[arg(long)]
+    pub blackbox: bool,
+    /// Reduced NN sweep and SVR grid.
+    #[arg(long)]
+    pub quick: bool,
+    /// No progress bars.
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+/// Run `spidar demo`; returns the text to print.
+pub fn run_demo(args: &DemoArgs) -> Result<String, CalibrateError> {
+    let simulate = |kind: KindArg, name: &str| SimulateArgs {
+        out: args.out.clone(),
+        seed: args.seed,
+        config: args.config.clone(),
+        kind,
+        points: None,
+        effects: args.effects.clone(),
+        name: Some(name.to_string()),
+        session_seed: None,
+    };
+    let lattice = run_simulate(&simulate(KindArg::Lattice, "lattice"))?;
+    let test = run_simulate(&simulate(KindArg::Random, "test"))?;
+    let mut text = format!(
+        "simulated device (seed {}): {}, {} ({} rows), {} ({} rows), {} (the truth, not used)\n\n",
+        args.seed,
+        lattice.geometry.display(),
+        lattice.session.display(),
+        lattice.rows,
+        test.session.display(),
+        test.rows,
+        lattice.truth.display(),
+    );
+    let out = args.out.join("calibration");
+    let output = run_calibrate(&CalibrateArgs {
+        geometry: lattice.geometry.clone(),
+        train: lattice.session.clone(),
+        test: test.session.clone(),
+        json: Some(out.join("report.json")),
+        out,
+        seed: 1,
+        blackbox: args.blackbox,
+        quick: args.quick,
+        no_figures: false,
+        quiet: args.quiet,
+        export_pairs: None,
+    })?;
+    text.push_str(&output.summary);
+    Ok(text)
+}

@@ -1,0 +1,297 @@
+//! `spidar flash` and `spidar device ...`: the link's command line.
+
+use std::fmt::Write as _;
+use std::io::Write as _;
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use spidar_protocol::messages::q16_to_mm;
+use spidar_protocol::State;
+
+use super::{Client, ClientOptions, FlashPhase, LinkError, StreamOptions};
+
+/// Port and link settings shared by the device commands.
+#[derive(Clone, Debug, clap::Args)]
+pub struct PortArgs {
+    /// Serial port of the device (e.g. /dev/ttyACM0, or the path
+    /// `spidar virtual-device` prints).
+    #[arg(long)]
+    pub port: String,
+    /// Reply timeout, ms.
+    #[arg(long, default_value_t = 250)]
+    pub timeout_ms: u64,
+    /// Resends of a request that got no reply.
+    #[arg(long, default_value_t = 3)]
+    pub retries: u32,
+}
+
+impl PortArgs {
+    pub fn options(&self) -> ClientOptions {
+        ClientOptions {
+            timeout: Duration::from_millis(self.timeout_ms.max(1)),
+            retries: self.retries,
+            ..ClientOptions::default()
+        }
+    }
+
+    pub fn open(&self) -> Result<Client, LinkError> {
+        Client::open_with(&self.port, self.options())
+    }
+}
+
+/// `spidar flash --port PORT MODEL`.
+#[derive(Clone, Debug, clap::Args)]
+pub struct FlashArgs {
+    #[command(flatten)]
+    pub port: PortArgs,
+    /// Model blob written by `spidar compile`.
+    pub model: PathBuf,
+}
+
+/// `spidar device ...`.
+#[derive(Clone, Debug, clap::Args)]
+pub struct DeviceArgs {
+    #[command(flatten)]
+    pub port: PortArgs,
+    #[command(subcommand)]
+    pub command: DeviceCommand,
+}
+
+/// The device subcommands.
+#[derive(Clone, Debug, clap::Subcommand)]
+pub enum DeviceCommand {
+    /// Firmware, protocol, active model, link counters.
+    Info,
+    /// Print the state stream (CSV on stdout).
+    Stream {
+        /// One frame every N loop iterations.
+        #[arg(long, default_value_t = 10)]
+        decimation: u16,
+        /// Stop after this many frames.
+        #[arg(long)]
+        frames: Option<u64>,
+        /// Stop after this many seconds.
+        #[arg(long, default_value_t = 1.0)]
+        seconds: f64,
+    },
+    /// Arm the motors (pre-tension). The device needs a request at least
+    /// every heartbeat timeout (20 ms) while armed: this command keeps the
+    /// heartbeat for --hold seconds; after it, the device drops to
+    /// pre-tension and latches HEARTBEAT_LOST until `disarm`/`arm`.
+    Arm {
+        #[arg(long, default_value_t = 0.0)]
+        hold: f64,
+    },
+    /// Disarm the motors.
+    Disarm,
+    /// Arm and render a force (device frame, N) for --hold seconds, then
+    /// go back to no force and disarm.
+    Force {
+        #[arg(allow_hyphen_values = true)]
+        fx: f32,
+        #[arg(allow_hyphen_values = true)]
+        fy: f32,
+        #[arg(allow_hyphen_values = true)]
+        fz: f32,
+        #[arg(long, default_value_t = 1.0)]
+        hold: f64,
+    },
+}
+
+fn seconds(s: f64, field: &'static str) -> Result<Duration, LinkError> {
+    Duration::try_from_secs_f64(s).map_err(|_| LinkError::Unexpected {
+        port: String::new(),
+        request: field,
+        got: format!("{s} is not a duration in seconds"),
+    })
+}
+
+/// Runs `spidar flash`.
+pub fn run_flash(args: &FlashArgs) -> Result<String, Box<dyn std::error::Error>> {
+    let blob = std::fs::read(&args.model)
+        .map_err(|e| format!("{}: cannot read the model blob: {e}", args.model.display()))?;
+    let mut client = args.port.open()?;
+    let hello = client.device().copied();
+    let mut last = Instant::now();
+    let report = client.flash(&blob, |p| {
+        let now = Instant::now();
+        if p.phase != FlashPhase::Upload || now - last > Duration::from_millis(200) {
+            eprint!("\r{:?}: {} / {} bytes   ", p.phase, p.sent, p.total);
+            let _ = std::io::stderr().flush();
+            last = now;
+        }
+    });
+    eprintln!();
+    let report = report.map_err(|e| format!("{}: {e}", args.model.display()))?;
+    let mut out = String::new();
+    if let Some(h) = hello {
+        let _ = writeln!(
+            out,
+            "device {} firmware {}.{}.{}, protocol {}, blob capacity {} bytes",
+            hex(&h.device_id),
+            h.firmware_version[0],
+            h.firmware_version[1],
+            h.firmware_version[2],
+            h.protocol_version,
+            h.max_blob_len
+        );
+    }
+    let _ = writeln!(
+        out,
+        "flashed {} ({} bytes, CRC {:#010x}, model id {:#010x}) into slot {}",
+        args.model.display(),
+        report.blob_len,
+        report.blob_crc32,
+        report.model_id,
+        report.slot
+    );
+    let _ = writeln!(
+        out,
+        "upload {:.1} ms ({} chunks, {} resent, resumed at byte {}), commit {:.1} ms, read-back {:.1} ms: verified",
+        report.upload.as_secs_f64() * 1e3,
+        report.chunks,
+        report.resends,
+        report.resumed_at,
+        report.commit.as_secs_f64() * 1e3,
+        report.verify.as_secs_f64() * 1e3
+    );
+    Ok(out)
+}
+
+fn hex(bytes: &[u8]) -> String {
+    bytes.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+/// CSV header of `spidar device stream`.
+pub const STREAM_HEADER: &str = "time_us,x_mm,y_mm,z_mm,room_x_mm,room_y_mm,room_z_mm,t0_n,t1_n,t2_n,t3_n,t4_n,t5_n,t6_n,t7_n,faults,armed,model_id";
+
+/// One CSV line of a state frame.
+pub fn state_csv(s: &State) -> String {
+    let mut line = format!(
+        "{},{},{},{},{},{},{}",
+        s.time_us,
+        s.position_mm[0],
+        s.position_mm[1],
+        s.position_mm[2],
+        q16_to_mm(s.corrected_mm[0]),
+        q16_to_mm(s.corrected_mm[1]),
+        q16_to_mm(s.corrected_mm[2])
+    );
+    for t in s.tensions_n {
+        let _ = write!(line, ",{t}");
+    }
+    let _ = write!(
+        line,
+        ",{:#06x},{},{}",
+        s.faults.0,
+        u8::from(s.armed),
+        s.model_id.map_or(String::new(), |m| format!("{m:#010x}"))
+    );
+    line
+}
+
+/// Runs `spidar device ...`.
+pub fn run_device(args: &DeviceArgs) -> Result<String, Box<dyn std::error::Error>> {
+    let mut client = args.port.open()?;
+    let mut out = String::new();
+    match &args.command {
+        DeviceCommand::Info => {
+            if let Some(h) = client.device().copied() {
+                let _ = writeln!(
+                    out,
+                    "device id {}\nfirmware {}.{}.{}\nprotocol {}\ncapabilities {:#06x}\nmax chunk {} bytes\nmax blob {} bytes\nloop period {} us",
+                    hex(&h.device_id),
+                    h.firmware_version[0],
+                    h.firmware_version[1],
+                    h.firmware_version[2],
+                    h.protocol_version,
+                    h.capabilities.0,
+                    h.max_chunk,
+                    h.max_blob_len,
+                    h.loop_period_us
+                );
+            }
+            match client.info()? {
+                Some(i) => {
+                    let _ = writeln!(
+                        out,
+                        "model id {:#010x} in slot {}: {:?} correction, {} effects, blob {} bytes, CRC {:#010x}, created {}",
+                        i.header.model_id,
+                        i.slot,
+                        i.header.kind,
+                        i.header.effects,
+                        i.header.blob_len(),
+                        i.blob_crc32,
+                        i.header.created_unix_s
+                    );
+                }
+                None => {
+                    let _ = writeln!(out, "no model blob (nominal string model, if any)");
+                }
+            }
+            let s = client.stats()?;
+            let _ = writeln!(out, "link: {s:?}");
+        }
+        DeviceCommand::Stream {
+            decimation,
+            frames,
+            seconds: secs,
+        } => {
+            let duration = seconds(*secs, "--seconds")?;
+            let stdout = std::io::stdout();
+            let mut lock = stdout.lock();
+            let _ = writeln!(lock, "{STREAM_HEADER}");
+            let report = client.stream(
+                StreamOptions {
+                    decimation: *decimation,
+                    duration: Some(duration),
+                    max_frames: *frames,
+                    ..StreamOptions::default()
+                },
+                |s| writeln!(lock, "{}", state_csv(s)).is_ok(),
+            )?;
+            // On stderr: stdout is the CSV (and may be a closed pipe).
+            eprintln!(
+                "# {} frames in {:.2} s, {} lost, {} rejected, {} bytes",
+                report.frames,
+                report.elapsed.as_secs_f64(),
+                report.lost,
+                report.rejected,
+                report.bytes
+            );
+        }
+        DeviceCommand::Arm { hold } => {
+            let hold = seconds(*hold, "--hold")?;
+            client.arm()?;
+            hold_heartbeat(&mut client, hold)?;
+            let _ = writeln!(out, "armed");
+        }
+        DeviceCommand::Disarm => {
+            client.disarm()?;
+            let _ = writeln!(out, "disarmed");
+        }
+        DeviceCommand::Force { fx, fy, fz, hold } => {
+            let hold = seconds(*hold, "--hold")?;
+            client.arm()?;
+            client.set_force([*fx, *fy, *fz])?;
+            hold_heartbeat(&mut client, hold)?;
+            client.set_force([0.0; 3])?;
+            client.disarm()?;
+            let _ = writeln!(
+                out,
+                "rendered [{fx}, {fy}, {fz}] N for {:.1} s, disarmed",
+                hold.as_secs_f64()
+            );
+        }
+    }
+    Ok(out)
+}
+
+fn hold_heartbeat(client: &mut Client, hold: Duration) -> Result<(), LinkError> {
+    let t0 = Instant::now();
+    while t0.elapsed() < hold {
+        client.heartbeat()?;
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    Ok(())
+}

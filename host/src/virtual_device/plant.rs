@@ -1,0 +1,234 @@
+//! The physical side of the virtual device: a simulated SPIDAR
+//! ([`crate::sim::Device`]: true anchors, home, winding laws and injected
+//! effects) whose end-effector follows a [`Trajectory`], motors whose string
+//! tension follows the commanded tension with a first-order lag, and 16-bit
+//! encoder counters that read the true string lengths (and wrap).
+
+use spidar_core::STRINGS;
+
+use crate::sim::device::{norm, sub};
+use crate::sim::{Device as SimDevice, InjectedEffect, SampleTruth};
+
+/// A point of a [`Trajectory::Waypoints`] path.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Waypoint {
+    /// Device time, µs since boot.
+    pub t_us: u64,
+    /// End-effector position, device frame, mm.
+    pub device_mm: [f64; 3],
+}
+
+/// Where the end-effector is at each instant of device time (since boot; the
+/// device boots with the end-effector at its true home).
+#[derive(Clone, Debug, PartialEq)]
+pub enum Trajectory {
+    /// Resting at home.
+    Hold,
+    /// Straight segments between waypoints (sorted by time), resting at the
+    /// last one afterwards; before the first, between home and it.
+    Waypoints(Vec<Waypoint>),
+    /// A slow loop through home: `home + [r (cos wt - 1), r sin wt, r/3 sin 2wt]`.
+    Orbit { radius_mm: f64, period_s: f64 },
+}
+
+impl Trajectory {
+    /// The path of a simulated session (its captures' true positions and
+    /// times; sessions start at initialization, so times since home are
+    /// device times).
+    pub fn from_truth(truths: &[SampleTruth]) -> Trajectory {
+        Trajectory::Waypoints(
+            truths
+                .iter()
+                .map(|t| Waypoint {
+                    t_us: u64::from(t.inputs.time_ms) * 1000,
+                    device_mm: t.device_mm,
+                })
+                .collect(),
+        )
+    }
+
+    /// Device time of the end of the path (None: endless or resting).
+    pub fn end_us(&self) -> Option<u64> {
+        match self {
+            Trajectory::Waypoints(w) => w.last().map(|p| p.t_us),
+            _ => None,
+        }
+    }
+
+    /// End-effector position at `t_us`, device frame, mm.
+    pub fn position_at(&self, home: [f64; 3], t_us: u64) -> [f64; 3] {
+        match self {
+            Trajectory::Hold => home,
+            Trajectory::Orbit {
+                radius_mm,
+                period_s,
+            } => {
+                let period = if period_s.is_finite() && *period_s > 0.0 {
+                    *period_s
+                } else {
+                    1.0
+                };
+                let w = 2.0 * std::f64::consts::PI / period * (t_us as f64 / 1e6);
+                let r = *radius_mm;
+                [
+                    home[0] + r * (w.cos() - 1.0),
+                    home[1] + r * w.sin(),
+                    home[2] + r / 3.0 * (2.0 * w).sin(),
+                ]
+            }
+            Trajectory::Waypoints(points) => {
+                let after = points.partition_point(|p| p.t_us <= t_us);
+                let (a, b) = match (after.checked_sub(1).map(|i| points[i]), points.get(after)) {
+                    (None, None) => return home,
+                    (Some(a), None) => return a.device_mm,
+                    (None, Some(b)) => (
+                        Waypoint {
+                            t_us: 0,
+                            device_mm: home,
+                        },
+                        *b,
+                    ),
+                    (Some(a), Some(b)) => (a, *b),
+                };
+                let span = b.t_us.saturating_sub(a.t_us);
+                if span == 0 {
+                    return b.device_mm;
+                }
+                let s = (t_us.saturating_sub(a.t_us)) as f64 / span as f64;
+                core::array::from_fn(|k| a.device_mm[k] + s * (b.device_mm[k] - a.device_mm[k]))
+            }
+        }
+    }
+}
+
+/// The plant: strings, end-effector, motors, encoders.
+#[derive(Clone, Debug)]
+pub struct Plant {
+    pub device: SimDevice,
+    pub trajectory: Trajectory,
+    /// Time constant of the motors' tension response, s.
+    pub motor_tau_s: f64,
+    /// Raw counter readings at home (the device's zero).
+    pub raw_home: [u16; STRINGS],
+    tension_n: [f64; STRINGS],
+    direction: [i8; STRINGS],
+    prev_length: Option<[f64; STRINGS]>,
+    prev_t_us: u64,
+    counts: [i32; STRINGS],
+    error: Option<String>,
+}
+
+impl Plant {
+    /// A plant at home, motors off; counters read `raw_home` there.
+    pub fn new(device: SimDevice, trajectory: Trajectory) -> Plant {
+        Plant {
+            device,
+            trajectory,
+            motor_tau_s: 0.002,
+            raw_home: core::array::from_fn(|i| (40_000 + 1_000 * i) as u16),
+            tension_n: [0.0; STRINGS],
+            direction: [0; STRINGS],
+            prev_length: None,
+            prev_t_us: 0,
+            counts: [0; STRINGS],
+            error: None,
+        }
+    }
+
+    /// Back to home at time 0, motors off (power cycle: the user holds the
+    /// end-effector at home while the device boots).
+    pub fn reset(&mut self) {
+        self.tension_n = [0.0; STRINGS];
+        self.direction = [0; STRINGS];
+        self.prev_length = None;
+        self.prev_t_us = 0;
+        self.counts = [0; STRINGS];
+    }
+
+    /// True end-effector position at `t_us`, device frame, mm.
+    pub fn device_mm_at(&self, t_us: u64) -> [f64; 3] {
+        self.trajectory.position_at(self.device.frame.home, t_us)
+    }
+
+    /// True end-effector position at `t_us`, room (tracker) frame, mm.
+    pub fn room_mm_at(&self, t_us: u64) -> [f64; 3] {
+        self.device.room_from_device(&self.device_mm_at(t_us))
+    }
+
+    /// Actual string tensions, N.
+    pub fn tensions_n(&self) -> [f64; STRINGS] {
+        self.tension_n
+    }
+
+    /// Why the last counts could not be computed (a pulley ran empty, ...).
+    pub fn error(&self) -> Option<&str> {
+        self.error.as_deref()
+    }
+
+    /// Advances to `t_us` with the motors commanded to `commanded_n` (0 when
+    /// `enabled` is false) and returns the raw 16-bit counters.
+    pub fn step(
+        &mut self,
+        t_us: u64,
+        commanded_n: &[f32; STRINGS],
+        enabled: bool,
+    ) -> [u16; STRINGS] {
+        let dt_s = t_us.saturating_sub(self.prev_t_us) as f64 / 1e6;
+        let alpha = if self.motor_tau_s > 0.0 {
+            1.0 - (-dt_s / self.motor_tau_s).exp()
+        } else {
+            1.0
+        };
+        for (t, c) in self.tension_n.iter_mut().zip(commanded_n) {
+            let target = if enabled && c.is_finite() {
+                f64::from(*c).max(0.0)
+            } else {
+                0.0
+            };
+            *t += (target - *t) * alpha;
+        }
+        let p = self.device_mm_at(t_us);
+        let t_s = t_us as f64 / 1e6;
+        let mut lengths = [0.0; STRINGS];
+        for (i, l) in lengths.iter_mut().enumerate() {
+            *l = norm(&sub(&p, &self.device.frame.anchors[i]));
+        }
+        for i in 0..STRINGS {
+            let speed = match self.prev_length {
+                Some(prev) if dt_s > 0.0 => (lengths[i] - prev[i]) / dt_s,
+                _ => 0.0,
+            };
+            if speed.abs() * dt_s > 1e-9 {
+                self.direction[i] = if speed > 0.0 { 1 } else { -1 };
+            }
+            let mut extra = 0.0;
+            for e in &self.device.injected {
+                if let InjectedEffect::Speed { string, latency_s } = *e {
+                    if usize::from(string) == i {
+                        extra += latency_s * speed;
+                    }
+                }
+            }
+            let am = &self.device.config.abnormal_motor;
+            if am.enabled && usize::from(am.string) == i && lengths[i] < am.region_length_mm {
+                // The session simulator draws the jitter; here its mean.
+                let spread = 1.0 - am.jitter / 2.0;
+                extra -= (am.step_mm + am.gain * (am.region_length_mm - lengths[i])) * spread;
+            }
+            match self.device.counts_for_length(
+                i,
+                lengths[i],
+                extra,
+                self.direction[i],
+                self.tension_n[i],
+                t_s,
+            ) {
+                Ok(c) => self.counts[i] = c,
+                Err(e) => self.error = Some(e.to_string()),
+            }
+        }
+        self.prev_length = Some(lengths);
+        self.prev_t_us = t_us;
+        core::array::from_fn(|i| (i32::from(self.raw_home[i]).wrapping_add(self.counts[i])) as u16)
+    }
+}

@@ -1,0 +1,571 @@
+//! The device link end to end, through the same serial path as a real
+//! device: `link::Client` (serialport crate) on the slave side of the
+//! virtual device's pseudo-terminal, the firmware's `Device`/`DeviceLink` on
+//! the master side.
+
+use std::time::Duration;
+
+use spidar::link::{Client, ClientOptions, FlashPhase, LinkError, StreamOptions};
+use spidar::sim::{self, SimConfig};
+use spidar::virtual_device::{spawn, Pace, Plant, Trajectory, VirtualDevice, VirtualDeviceConfig};
+use spidar_core::blob::compile;
+use spidar_core::correction::{CorrectionModel, NnModel, OutputMode, Standardization};
+use spidar_core::model::Calibration;
+use spidar_protocol::blob::{split_blob, write_blob, CRC32};
+use spidar_protocol::{
+    encode_device_message, encode_request, BlobRejection, DeviceError, DeviceMessage, Event,
+    Faults, FrameDecoder, HelloAck, Request, Response, State, MAX_FRAME,
+};
+
+/// The simulated device as built (no injected effects, no abnormal motor, so
+/// its true parameters are an exact calibration).
+fn sim_device() -> sim::Device {
+    let mut config = SimConfig::default();
+    config.abnormal_motor.enabled = false;
+    config.effects.clear();
+    sim::Device::new(&config, 7).expect("simulated device")
+}
+
+fn nn(hidden: usize) -> CorrectionModel {
+    let s = Standardization {
+        mean: [0.0, 0.0, 1000.0],
+        std: [500.0; 3],
+    };
+    let w = |k: usize| ((k * 37 % 17) as f64 - 8.0) / 20.0;
+    CorrectionModel::Nn(NnModel {
+        input: s,
+        output: s,
+        w1: (0..hidden).map(|h| [w(h), w(h + 1), w(h + 2)]).collect(),
+        b1: (0..hidden).map(|h| w(h + 3) / 4.0).collect(),
+        w2: [0, 1, 2].map(|a| (0..hidden).map(|h| w(h + a + 5) / 1000.0).collect()),
+        b2: [0.0; 3],
+        mode: OutputMode::Residual,
+    })
+}
+
+/// The device's true calibration with an optional correction.
+fn calibration(device: &sim::Device, correction: CorrectionModel) -> Calibration {
+    Calibration {
+        frame: device.frame,
+        strings: device.laws,
+        effects: device.effects.clone(),
+        correction,
+    }
+}
+
+fn blob(device: &sim::Device, correction: CorrectionModel, model_id: u32) -> Vec<u8> {
+    compile(&calibration(device, correction), model_id, 0).expect("compiles")
+}
+
+fn virtual_device(trajectory: Trajectory) -> VirtualDevice {
+    spawn(
+        VirtualDeviceConfig::default(),
+        Plant::new(sim_device(), trajectory),
+    )
+    .expect("virtual device starts")
+}
+
+fn quick() -> ClientOptions {
+    ClientOptions {
+        timeout: Duration::from_millis(40),
+        retries: 0,
+        ..ClientOptions::default()
+    }
+}
+
+#[test]
+fn flash_commits_reads_back_and_the_stream_reports_the_model() {
+    let dev = sim_device();
+    let vd = virtual_device(Trajectory::Hold);
+    let mut c = Client::open(vd.port_path()).unwrap();
+    assert!(c.info().unwrap().is_none());
+    let b = blob(&dev, nn(6), 0xA11C_E001);
+    let mut phases = Vec::new();
+    let report = c.flash(&b, |p| phases.push(p)).unwrap();
+    assert_eq!(report.model_id, 0xA11C_E001);
+    assert_eq!(report.blob_crc32, CRC32.checksum(&b));
+    assert_eq!(report.resumed_at, 0);
+    assert_eq!(report.chunks as usize, b.len().div_ceil(256));
+    assert_eq!(phases.first().unwrap().phase, FlashPhase::Begin);
+    assert_eq!(phases.last().unwrap().phase, FlashPhase::Verified);
+    assert!(phases.windows(2).all(|w| w[0].sent <= w[1].sent));
+    let info = c.info().unwrap().unwrap();
+    assert_eq!(info.blob_crc32, CRC32.checksum(&b));
+    let mut states = Vec::new();
+    let r = c
+        .stream(
+            StreamOptions {
+                decimation: 5,
+                max_frames: Some(10),
+                ..StreamOptions::default()
+            },
+            |s| {
+                states.push(*s);
+                true
+            },
+        )
+        .unwrap();
+    assert_eq!(r.frames, 10);
+    assert_eq!(r.lost, 0);
+    assert!(states.iter().all(|s| s.model_id == Some(0xA11C_E001)));
+}
+
+#[test]
+fn upload_resumes_where_the_device_stands() {
+    let dev = sim_device();
+    let vd = virtual_device(Trajectory::Hold);
+    let mut c = Client::open(vd.port_path()).unwrap();
+    let b = blob(&dev, nn(40), 42);
+    assert!(b.len() > 1024);
+    let crc32 = CRC32.checksum(&b);
+    let total_len = b.len() as u32;
+    // Three chunks, then the host "crashes" and a new session resumes.
+    let r = c
+        .request(&Request::UploadBegin {
+            total_len,
+            crc32,
+            model_id: 42,
+        })
+        .unwrap();
+    assert_eq!(r, Response::ChunkAck { next_offset: 0 });
+    for k in 0..3u32 {
+        let at = (k * 256) as usize;
+        c.request(&Request::UploadChunk {
+            offset: k * 256,
+            data: &b[at..at + 256],
+        })
+        .unwrap();
+    }
+    // A resent chunk (lost ack) is acknowledged again without effect.
+    let again = c
+        .request(&Request::UploadChunk {
+            offset: 256,
+            data: &b[256..512],
+        })
+        .unwrap();
+    assert_eq!(again, Response::ChunkAck { next_offset: 768 });
+    drop(c);
+    let mut c = Client::open(vd.port_path()).unwrap();
+    let report = c.flash(&b, |_| {}).unwrap();
+    assert_eq!(report.resumed_at, 768);
+    assert_eq!(c.info().unwrap().unwrap().header.model_id, 42);
+}
+
+/// Cuts the power at every flash operation of an upload (erase, every word
+/// of every chunk: chunk boundaries and mid-chunk, each torn half-way, and
+/// the commit record): after the power cycle the previous model is active
+/// and intact, and the upload finally goes through.
+#[test]
+fn upload_cut_at_every_flash_operation_keeps_the_previous_model() {
+    let dev = sim_device();
+    let vd = virtual_device(Trajectory::Hold);
+    let old = blob(&dev, CorrectionModel::None, 1);
+    let new = blob(&dev, nn(4), 2);
+    let opts = ClientOptions {
+        max_chunk: 64,
+        ..quick()
+    };
+    let mut c = Client::open_with(vd.port_path(), opts).unwrap();
+    c.flash(&old, |_| {}).unwrap();
+    let old_info = c.info().unwrap().unwrap();
+    drop(c);
+    let mut cut = 0usize;
+    let mut cuts_survived = 0;
+    loop {
+        let mut c = Client::open_with(vd.port_path(), opts).unwrap();
+        vd.cut_flash_after(cut);
+        match c.flash(&new, |_| {}) {
+            Ok(r) => {
+                assert_eq!(r.model_id, 2);
+                break;
+            }
+            Err(LinkError::Timeout { .. }) => {}
+            Err(e) => panic!("cut {cut}: {e}"),
+        }
+        assert!(vd.status().power_lost, "cut {cut}: the power went");
+        drop(c);
+        vd.power_cycle().unwrap();
+        let mut c = Client::open_with(vd.port_path(), opts).unwrap();
+        let info = c.info().unwrap().expect("a model after the cut");
+        assert_eq!(info, old_info, "cut after {cut} operations");
+        cuts_survived += 1;
+        cut += 1;
+        assert!(cut < 200, "the upload never completes");
+    }
+    // erase + one op per 32-byte word + the record
+    assert!(cuts_survived > new.len() / 32, "{cuts_survived} cuts");
+    vd.power_cycle().unwrap();
+    let mut c = Client::open(vd.port_path()).unwrap();
+    let info = c.info().unwrap().unwrap();
+    assert_eq!(info.header.model_id, 2);
+    assert_eq!(info.blob_crc32, CRC32.checksum(&new));
+}
+
+/// The link drops mid-chunk (half a frame on the wire) and the device
+/// power-cycles: old model intact, the half frame is not a request.
+#[test]
+fn half_a_chunk_frame_then_a_power_cycle() {
+    let dev = sim_device();
+    let vd = virtual_device(Trajectory::Hold);
+    let old = blob(&dev, CorrectionModel::None, 10);
+    let new = blob(&dev, nn(4), 11);
+    let mut c = Client::open(vd.port_path()).unwrap();
+    c.flash(&old, |_| {}).unwrap();
+    let old_info = c.info().unwrap().unwrap();
+    c.request(&Request::UploadBegin {
+        total_len: new.len() as u32,
+        crc32: CRC32.checksum(&new),
+        model_id: 11,
+    })
+    .unwrap();
+    let mut tx = [0u8; MAX_FRAME];
+    let frame = encode_request(
+        900,
+        &Request::UploadChunk {
+            offset: 0,
+            data: &new[..256],
+        },
+        &mut tx,
+    )
+    .unwrap();
+    c.write_raw(&frame[..frame.len() / 2]).unwrap();
+    drop(c);
+    vd.power_cycle().unwrap();
+    let mut c = Client::open(vd.port_path()).unwrap();
+    assert_eq!(c.info().unwrap().unwrap(), old_info);
+    let r = c.flash(&new, |_| {}).unwrap();
+    assert_eq!(r.resumed_at, 0);
+    assert_eq!(c.info().unwrap().unwrap().header.model_id, 11);
+}
+
+#[test]
+fn a_blob_the_device_refuses_leaves_the_old_model() {
+    let dev = sim_device();
+    let vd = virtual_device(Trajectory::Hold);
+    let mut c = Client::open(vd.port_path()).unwrap();
+    let good = blob(&dev, CorrectionModel::None, 5);
+    c.flash(&good, |_| {}).unwrap();
+    // Header and CRCs fine, but 7 strings: the device's parser refuses it.
+    let (mut h, body) = split_blob(&good).unwrap();
+    h.strings = 7;
+    h.model_id = 6;
+    let mut bad = vec![0u8; good.len()];
+    let n = write_blob(&h, body, &mut bad).unwrap();
+    bad.truncate(n);
+    let e = c.flash(&bad, |_| {}).unwrap_err();
+    match e.device_error() {
+        Some(DeviceError::BlobRejected(BlobRejection::Dimension { field, .. })) => {
+            assert_eq!(field.as_str(), "strings")
+        }
+        _ => panic!("{e}"),
+    }
+    assert!(e.to_string().contains("strings"), "{e}");
+    assert_eq!(c.info().unwrap().unwrap().header.model_id, 5);
+    // A local check before anything is sent: not a blob at all.
+    assert!(matches!(
+        c.flash(b"not a blob", |_| {}),
+        Err(LinkError::InvalidBlob(_))
+    ));
+}
+
+#[test]
+fn a_blob_larger_than_the_firmware_capacity_is_refused() {
+    let dev = sim_device();
+    let vd = spawn(
+        VirtualDeviceConfig {
+            blob_capacity: spidar::virtual_device::FIRMWARE_BLOB_CAPACITY,
+            ..VirtualDeviceConfig::default()
+        },
+        Plant::new(dev.clone(), Trajectory::Hold),
+    )
+    .unwrap();
+    let mut c = Client::open(vd.port_path()).unwrap();
+    let big = blob(&dev, nn(1200), 3);
+    assert!(big.len() > 24 * 1024);
+    let e = c.flash(&big, |_| {}).unwrap_err();
+    assert!(
+        matches!(e.device_error(), Some(DeviceError::TooLarge { capacity, .. }) if *capacity == 24 * 1024),
+        "{e}"
+    );
+}
+
+#[test]
+fn corrupted_frames_are_rejected_and_counted() {
+    let vd = virtual_device(Trajectory::Hold);
+    let mut c = Client::open(vd.port_path()).unwrap();
+    let before = c.stats().unwrap().rx;
+    let mut tx = [0u8; MAX_FRAME];
+    let good = encode_request(77, &Request::GetInfo, &mut tx)
+        .unwrap()
+        .to_vec();
+    // One flipped bit: CRC (or COBS) error.
+    let mut flipped = good.clone();
+    flipped[2] ^= 0x04;
+    c.write_raw(&flipped).unwrap();
+    // Garbage.
+    c.write_raw(&[0x13, 0x37, 0x42, 0x99, 0x01, 0x00]).unwrap();
+    // Longer than any frame.
+    c.write_raw(&[0x55; 600]).unwrap();
+    c.write_raw(&[0x00]).unwrap();
+    // Still answering, nothing answered for the bad frames.
+    let after = c.stats().unwrap().rx;
+    assert_eq!(after.rejected() - before.rejected(), 3, "{after:?}");
+    assert!(after.crc + after.cobs > before.crc + before.cobs);
+    assert_eq!(after.overlong - before.overlong, 1);
+    assert_eq!(vd.status().rx.rejected(), after.rejected());
+}
+
+#[test]
+fn heartbeat_loss_drops_tensions_to_pretension_within_30_ms() {
+    let dev = sim_device();
+    let vd = virtual_device(Trajectory::Hold);
+    let mut c = Client::open(vd.port_path()).unwrap();
+    c.flash(&blob(&dev, CorrectionModel::None, 9), |_| {})
+        .unwrap();
+    c.arm().unwrap();
+    c.set_force([0.0, 0.0, 3.0]).unwrap();
+    // Heartbeats: the force is rendered.
+    let mut live = Vec::new();
+    c.stream(
+        StreamOptions {
+            max_frames: Some(30),
+            ..StreamOptions::default()
+        },
+        |s| {
+            live.push(*s);
+            true
+        },
+    )
+    .unwrap();
+    let last = live.last().unwrap();
+    assert!(last.armed && last.faults.is_empty(), "{last:?}");
+    let pre = spidar_core::control::ControlConfig::default()
+        .safety
+        .pretension_n;
+    assert!(last.tensions_n.iter().any(|&t| t > pre + 0.1), "{last:?}");
+    // StreamOn is the last request: no heartbeat after it.
+    let mut silent: Vec<State> = Vec::new();
+    c.stream(
+        StreamOptions {
+            heartbeat: None,
+            duration: Some(Duration::from_millis(120)),
+            ..StreamOptions::default()
+        },
+        |s| {
+            silent.push(*s);
+            true
+        },
+    )
+    .unwrap();
+    // StreamOn was handled at the device time of the tick before the
+    // first frame.
+    let t_last_request = silent[0].time_us - 1000;
+    let dropped = silent
+        .iter()
+        .find(|s| {
+            s.faults.contains(Faults::HEARTBEAT_LOST) && s.tensions_n.iter().all(|&t| t == pre)
+        })
+        .expect("tensions drop to pre-tension");
+    let delay = dropped.time_us - t_last_request;
+    assert!(delay <= 30_000, "dropped after {delay} us of device time");
+    assert!(silent[0].tensions_n.iter().any(|&t| t > pre + 0.1));
+    assert!(c.take_events().contains(&Event::HeartbeatLost));
+    // The plant's tensions follow within a few motor time constants.
+    std::thread::sleep(Duration::from_millis(20));
+    assert!(vd
+        .status()
+        .plant_tensions_n
+        .iter()
+        .all(|&t| (t - f64::from(pre)).abs() < 0.05));
+    c.disarm().unwrap();
+}
+
+#[test]
+fn streamed_positions_follow_the_plant() {
+    let dev = sim_device();
+    let vd = virtual_device(Trajectory::Orbit {
+        radius_mm: 100.0,
+        period_s: 2.0,
+    });
+    let mut c = Client::open(vd.port_path()).unwrap();
+    // The end-effector moves while the model is flashed, and the first
+    // geometry homes the device where it is: boot again with the model (the
+    // end-effector at home, as the firmware expects at power-up).
+    c.flash(&blob(&dev, CorrectionModel::None, 4), |_| {})
+        .unwrap();
+    drop(c);
+    vd.power_cycle().unwrap();
+    let mut c = Client::open(vd.port_path()).unwrap();
+    let mut worst: f64 = 0.0;
+    let r = c
+        .stream(
+            StreamOptions {
+                decimation: 2,
+                duration: Some(Duration::from_millis(200)),
+                ..StreamOptions::default()
+            },
+            |s| {
+                let truth = vd.truth_room_mm(s.time_us);
+                let e = (0..3)
+                    .map(|k| {
+                        (spidar_protocol::messages::q16_to_mm(s.corrected_mm[k]) - truth[k]).powi(2)
+                    })
+                    .sum::<f64>()
+                    .sqrt();
+                worst = worst.max(e);
+                true
+            },
+        )
+        .unwrap();
+    assert!(r.frames >= 40, "{r:?}");
+    assert_eq!(r.lost, 0);
+    // One count is 2 pi r / 4096, about 0.02 mm of string.
+    assert!(worst < 0.1, "worst {worst} mm");
+}
+
+#[test]
+fn missing_busy_silent_and_mismatched_ports_are_named() {
+    match Client::open("/dev/spidar-does-not-exist") {
+        Err(LinkError::PortMissing { port }) => assert_eq!(port, "/dev/spidar-does-not-exist"),
+        Err(e) => panic!("{e}"),
+        Ok(_) => panic!("opened a missing port"),
+    }
+    let vd = virtual_device(Trajectory::Hold);
+    let _first = Client::open(vd.port_path()).unwrap();
+    match Client::open(vd.port_path()) {
+        Err(LinkError::PortBusy { port }) => assert_eq!(port, vd.port_path()),
+        Err(e) => panic!("{e}"),
+        Ok(_) => panic!("opened a busy port"),
+    }
+
+    // A port with nothing behind it.
+    let (_master, slave) = serialport::TTYPort::pair().unwrap();
+    let path = serialport::SerialPort::name(&slave).unwrap();
+    match Client::open_with(&path, quick()) {
+        Err(LinkError::Timeout {
+            request, attempts, ..
+        }) => {
+            assert_eq!(request, "Hello");
+            assert_eq!(attempts, 1);
+        }
+        Err(e) => panic!("{e}"),
+        Ok(_) => panic!("a silent port answered"),
+    }
+
+    // A device of protocol version 99.
+    let (mut master, slave) = serialport::TTYPort::pair().unwrap();
+    let path = serialport::SerialPort::name(&slave).unwrap();
+    let responder = std::thread::spawn(move || {
+        use std::io::{Read, Write};
+        let mut rx: FrameDecoder = FrameDecoder::new();
+        let mut buf = [0u8; 512];
+        for _ in 0..200 {
+            let n = master.read(&mut buf).unwrap_or(0);
+            let mut seqs = Vec::new();
+            rx.feed_requests(&buf[..n], |r| {
+                if let Ok(p) = r {
+                    seqs.push(p.seq)
+                }
+            });
+            if let Some(&seq) = seqs.first() {
+                let ack = DeviceMessage::Reply(Response::HelloAck(HelloAck {
+                    protocol_version: 99,
+                    firmware_version: [9, 9, 9],
+                    device_id: [0; 12],
+                    capabilities: Default::default(),
+                    max_chunk: 256,
+                    max_blob_len: 1024,
+                    loop_period_us: 1000,
+                }));
+                let mut tx = [0u8; MAX_FRAME];
+                let f = encode_device_message(seq, &ack, &mut tx).unwrap();
+                master.write_all(f).unwrap();
+                // Keep the master open until the client has read the reply.
+                return Some(master);
+            }
+        }
+        None
+    });
+    match Client::open_with(&path, quick()) {
+        Err(LinkError::VersionMismatch { device, host, .. }) => {
+            assert_eq!(device, 99);
+            assert_eq!(host, spidar_protocol::PROTOCOL_VERSION);
+        }
+        Err(e) => panic!("{e}"),
+        Ok(_) => panic!("accepted protocol 99"),
+    }
+    drop(responder.join().unwrap());
+    drop(slave);
+}
+
+/// Benchmarks of docs/benchmarks.md ("Link"):
+/// `cargo test -p spidar --test link -- --ignored --nocapture link_benchmarks`
+#[test]
+#[ignore]
+fn link_benchmarks() {
+    let dev = sim_device();
+    // A ~32 KB blob: NN with enough hidden neurons.
+    let mut hidden = 1000;
+    let mut big = blob(&dev, nn(hidden), 32);
+    while big.len() < 32 * 1024 {
+        hidden += 20;
+        big = blob(&dev, nn(hidden), 32);
+    }
+    let vd = spawn(
+        VirtualDeviceConfig {
+            pace: Pace::Fast,
+            ..VirtualDeviceConfig::default()
+        },
+        Plant::new(dev.clone(), Trajectory::Hold),
+    )
+    .unwrap();
+    let mut c = Client::open(vd.port_path()).unwrap();
+    let mut runs = Vec::new();
+    for _ in 0..5 {
+        c.clear_model().unwrap();
+        runs.push(c.flash(&big, |_| {}).unwrap());
+    }
+    let med = |f: &dyn Fn(&spidar::link::FlashReport) -> f64| {
+        let mut v: Vec<f64> = runs.iter().map(f).collect();
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    println!(
+        "blob {} bytes (NN hidden {hidden}), {} chunks: upload {:.1} ms, commit {:.2} ms, read-back {:.2} ms (median of {})",
+        big.len(),
+        runs[0].chunks,
+        med(&|r| r.upload.as_secs_f64() * 1e3),
+        med(&|r| r.commit.as_secs_f64() * 1e3),
+        med(&|r| r.verify.as_secs_f64() * 1e3),
+        runs.len()
+    );
+    // Protocol overhead of a state frame: frame bytes minus postcard(State).
+    let mut sizes = Vec::new();
+    let r = c
+        .stream(
+            StreamOptions {
+                decimation: 1,
+                duration: Some(Duration::from_secs(1)),
+                ..StreamOptions::default()
+            },
+            |s| {
+                let msg = postcard::to_allocvec(&DeviceMessage::State(*s)).unwrap();
+                sizes.push(msg.len() - 1);
+                true
+            },
+        )
+        .unwrap();
+    let state = sizes.iter().sum::<usize>() as f64 / sizes.len() as f64;
+    let per_frame = r.bytes as f64 / r.frames as f64;
+    println!(
+        "state stream (Pace::Fast, decimation 1): {} frames in {:.2} s = {:.0} frames/s, {} lost, {} rejected; {:.1} bytes/frame on the wire, State {:.1} bytes, overhead {:.1} bytes/frame",
+        r.frames,
+        r.elapsed.as_secs_f64(),
+        r.frames as f64 / r.elapsed.as_secs_f64(),
+        r.lost,
+        r.rejected,
+        per_frame,
+        state,
+        per_frame - state
+    );
+}
