@@ -5,8 +5,14 @@
 //!      + body
 //! body = postcard(BlobHead { frame: Frame<f32>, laws: [CompiledStringLaw; 8],
 //!                            effects: heapless::Vec<CompiledEffect, MAX_EFFECTS> })
+//!      + 0 to 3 zero bytes, so that the correction starts at a multiple of
+//!        CORRECTION_ALIGN = 4 bytes from the blob start (format version 2)
 //!      + correction bytes (layout in `correction`, read in place, zero-copy)
 //! ```
+//!
+//! The padding lets a device that keeps the blob in a 4-byte aligned buffer
+//! read the SVR records as aligned words (see `docs/fixed-point.md`); a blob
+//! at any other address still parses and evaluates the same, more slowly.
 //!
 //! The device parses a blob once at load ([`CompiledCalibration::from_blob`]:
 //! every dimension, Q format and parameter range is checked, and a blob it
@@ -16,7 +22,7 @@
 //! check the blob bit for bit before flashing.
 
 use serde::{Deserialize, Serialize};
-use spidar_protocol::blob::{split_blob, BlobError, ModelHeader};
+use spidar_protocol::blob::{split_blob, BlobError, ModelHeader, HEADER_LEN};
 
 use crate::correction::{check_header_formats, Correction, POSITION_FRAC};
 use crate::model::{Frame, MAX_EFFECTS};
@@ -25,6 +31,31 @@ use crate::STRINGS;
 
 /// Fractional bits of string lengths in the blob (header `q_length`): Q47.16 mm.
 pub const LENGTH_FRAC: u8 = 16;
+
+/// Alignment, from the blob start, of the correction bytes in the body: the
+/// compiler pads the body after the string model with zero bytes up to it.
+pub const CORRECTION_ALIGN: usize = 4;
+
+/// Zero bytes between the string model, which ends `offset` bytes after the
+/// blob start, and the correction.
+pub const fn correction_padding(offset: usize) -> usize {
+    (CORRECTION_ALIGN - offset % CORRECTION_ALIGN) % CORRECTION_ALIGN
+}
+
+/// Splits a blob body (as returned by `split_blob`) into its decoded string
+/// model and its correction bytes, checking the padding between them (present
+/// and zero). Does not check the string model's values.
+pub fn split_body(body: &[u8]) -> Result<(BlobHead, &[u8]), BlobError> {
+    let (head, rest): (BlobHead, &[u8]) =
+        postcard::take_from_bytes(body).map_err(|_| BlobError::Body {
+            field: "string model",
+        })?;
+    let pad = correction_padding(HEADER_LEN + (body.len() - rest.len()));
+    match rest.split_at_checked(pad) {
+        Some((padding, correction)) if padding.iter().all(|&b| b == 0) => Ok((head, correction)),
+        _ => Err(BlobError::Body { field: "padding" }),
+    }
+}
 
 /// The string-model part of the body.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -75,10 +106,7 @@ impl<'a> CompiledCalibration<'a> {
             });
         }
         check_header_formats(header.q_position, header.q_weight)?;
-        let (head, correction_bytes): (BlobHead, &[u8]) =
-            postcard::take_from_bytes(body).map_err(|_| BlobError::Body {
-                field: "string model",
-            })?;
+        let (head, correction_bytes) = split_body(body)?;
         if head.effects.len() != header.effects as usize {
             return Err(BlobError::Dimension {
                 field: "effects",
@@ -121,7 +149,7 @@ mod host {
     use crate::model::Calibration;
     use crate::string_law::{compile_effect, compile_string_law};
     use alloc::vec::Vec;
-    use spidar_protocol::blob::{write_blob, FORMAT_VERSION, HEADER_LEN};
+    use spidar_protocol::blob::{write_blob, FORMAT_VERSION};
 
     /// Why a calibration does not compile into a blob; names the part.
     #[derive(Clone, Copy, Debug, PartialEq)]
@@ -229,6 +257,7 @@ mod host {
             .compile()
             .map_err(CompileError::Correction)?;
         let mut body = postcard::to_allocvec(&head).map_err(|_| CompileError::Encode)?;
+        body.resize(body.len() + correction_padding(HEADER_LEN + body.len()), 0);
         body.extend_from_slice(&correction.bytes);
         let header = ModelHeader {
             format_version: FORMAT_VERSION,
@@ -352,6 +381,72 @@ mod tests {
             bad[i] ^= 0x40;
             assert!(CompiledCalibration::from_blob(&bad).is_err(), "byte {i}");
         }
+    }
+
+    /// Format 2: whatever the length of the string model, the correction
+    /// starts at a multiple of 4 bytes from the blob start, after zero
+    /// padding that the parser checks.
+    #[test]
+    fn correction_is_4_aligned_and_padding_checked() {
+        let svr = crate::correction::SvrModel {
+            input: crate::correction::Standardization {
+                mean: [0.0; 3],
+                std: [300.0; 3],
+            },
+            output: crate::correction::Standardization {
+                mean: [0.0; 3],
+                std: [1.0; 3],
+            },
+            gamma: 0.5,
+            support: alloc::vec![[0.1, 0.2, 0.3], [-0.5, 0.0, 0.25]],
+            coef: [
+                alloc::vec![0.5, -0.25],
+                alloc::vec![0.1, 0.2],
+                alloc::vec![-0.3, 0.0],
+            ],
+            bias: [0.0; 3],
+            mode: crate::correction::OutputMode::Residual,
+        };
+        let mut paddings = [false; 4];
+        for extra in 0..8 {
+            let mut cal = calibration();
+            cal.correction = CorrectionModel::Svr(svr.clone());
+            for i in 0..extra {
+                cal.effects.push(EffectTerm {
+                    string: (i % STRINGS) as u8,
+                    effect: Effect::Offset {
+                        mm: 1.0 + i as f64 * 0.37,
+                    },
+                });
+            }
+            let blob = compile(&cal, 7, 0).unwrap();
+            let (_, body) = split_blob(&blob).unwrap();
+            let (_, rest): (BlobHead, &[u8]) = postcard::take_from_bytes(body).unwrap();
+            let (_, correction) = split_body(body).unwrap();
+            let at = blob.len() - correction.len();
+            assert_eq!(at % CORRECTION_ALIGN, 0, "{extra} effects");
+            let pad = rest.len() - correction.len();
+            assert!(pad < CORRECTION_ALIGN);
+            paddings[pad] = true;
+            let c = CompiledCalibration::from_blob(&blob).unwrap();
+            assert_eq!(c.correction.kind(), CorrectionKind::Svr);
+            if pad > 0 {
+                // A non-zero padding byte, with the CRCs made valid again.
+                let mut bad = blob.clone();
+                bad[at - 1] = 1;
+                let mut h = ModelHeader::parse(&bad).unwrap();
+                h.body_crc32 = 0;
+                let body = bad[HEADER_LEN..].to_vec();
+                let n = spidar_protocol::blob::write_blob(&h, &body, &mut bad).unwrap();
+                assert_eq!(n, blob.len());
+                assert_eq!(
+                    CompiledCalibration::from_blob(&bad),
+                    Err(BlobError::Body { field: "padding" })
+                );
+            }
+        }
+        // The effect counts above give every padding length.
+        assert!(paddings.iter().filter(|&&p| p).count() >= 2, "{paddings:?}");
     }
 
     #[test]

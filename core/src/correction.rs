@@ -32,14 +32,19 @@
 //! support vectors are stored in the same space, so per support vector
 //! `u = sum_i (q_i - s_i)^2` is three `32x32->64` multiply-accumulates, its
 //! high word is `u` in Q10.22, and the kernel is `2^-u` in Q1.30
-//! ([`crate::fixed::exp2_neg_q22`], a product of three table entries; 0 for
-//! `u >= 31`, below the Q1.30 resolution). The kernel is shared by the three
+//! ([`crate::fixed::exp2_neg_q22`]: a least-squares line per segment of the
+//! fraction, one `smlawb`, shifted right by the integer part; 0 for
+//! `u >= 30`, below the Q1.30 resolution). The kernel is shared by the three
 //! axes. Support vectors are taken in blocks of [`SVR_BLOCK`]: within a block
 //! each axis sums `round(coef[a][j] K_j / 2^32)` in an `i32` (in mm with
-//! `coef_frac[a] - 2` fractional bits), the block sums are added in `i64`, and `out_a = round(acc_a >>
-//! (coef_frac[a] - 18)) + offset[a]` (`+ p_a` in residual mode), `coef =
+//! `coef_frac[a] - 2` fractional bits), the block sums are added in `i64`,
+//! and `out_a = round(acc_a >> (coef_frac[a] - 18)) + offset[a]` (`+ p_a` in
+//! residual mode), `coef =
 //! alpha * std_out` in Q(`coef_frac[a]`) mm, the fractional bits chosen so
 //! that every block's `sum |coef|` stays within [`SVR_BLOCK_ABS_SUM_MAX`].
+//! In a blob of format version 2 the correction bytes start 4-byte aligned
+//! (`crate::blob::CORRECTION_ALIGN`): in an aligned buffer [`SvrView`] reads
+//! the records as words, elsewhere as bytes, with the same results.
 
 use serde::{Deserialize, Serialize};
 
@@ -108,8 +113,8 @@ mod f64_models {
 }
 
 use crate::fixed::{
-    exp2_neg_q22_with, le_i32, read_i32, sat_i32, shr_i64, shr_round_i64, shr_sat_i64_to_i32,
-    tanh_q27, EXP2_FRACTION_ENTRIES, EXP2_HIGH, EXP2_INTEGER, EXP2_INTEGER_ENTRIES, EXP2_LOW,
+    exp2_neg_q22_below_2p31_with, exp2_neg_q22_with, le_i32, read_i32, sat_i32, shr_i64,
+    shr_round_i64, shr_sat_i64_to_i32, tanh_q27, EXP2_BASE, EXP2_FRACTION_ENTRIES, EXP2_SLOPE,
 };
 use spidar_protocol::blob::{BlobError, CorrectionKind};
 
@@ -385,6 +390,35 @@ impl<'a> NnView<'a> {
 // ---------------------------------------------------------------------------
 // SVR view.
 
+/// The support-vector records of an [`SvrView`], as the evaluator reads them.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum SvrRecords<'a> {
+    /// The records start at a 4-byte aligned address (a version-2 blob in a
+    /// 4-aligned buffer) on a little-endian target: viewed as words
+    /// `[s0, s1, s2, coef0, coef1, coef2]`, read with word-pair loads.
+    Words(&'a [[i32; 6]]),
+    /// Any other placement: `support_vectors * SVR_RECORD_LEN` bytes, read
+    /// with single (unaligned) word loads. Same results, bit for bit.
+    Bytes(&'a [u8]),
+}
+
+impl<'a> SvrRecords<'a> {
+    fn new(bytes: &'a [u8]) -> Self {
+        #[cfg(target_endian = "little")]
+        if let Ok(words) = bytemuck::try_cast_slice::<u8, [i32; 6]>(bytes) {
+            return SvrRecords::Words(words);
+        }
+        SvrRecords::Bytes(bytes)
+    }
+
+    fn len(&self) -> usize {
+        match self {
+            SvrRecords::Words(w) => w.len(),
+            SvrRecords::Bytes(b) => b.len() / SVR_RECORD_LEN,
+        }
+    }
+}
+
 /// A compiled RBF SVR with three outputs sharing their support vectors, read
 /// in place from its bytes (see [`SVR_HEADER_LEN`] for the layout). Positions
 /// in and out are Q15.16 mm.
@@ -401,8 +435,10 @@ pub struct SvrView<'a> {
     scale: [i32; 3],
     /// `bias * std_out + mean_out`, Q15.16 mm.
     offset: [i32; 3],
-    /// `support_vectors * SVR_RECORD_LEN` bytes.
-    records: &'a [u8],
+    /// Largest `|s_i|` over the support vectors, per axis (Q4.27, at most
+    /// [`SUPPORT_MAX`]): bounds the kernel exponent of an input.
+    support_abs_max: [u32; 3],
+    records: SvrRecords<'a>,
 }
 
 impl<'a> SvrView<'a> {
@@ -410,7 +446,9 @@ impl<'a> SvrView<'a> {
     /// (the blob header's count): exact length, mode, Q formats in range,
     /// support vectors within [`SUPPORT_MAX`], every axis' coefficients
     /// within [`SVR_BLOCK_ABS_SUM_MAX`] per block of [`SVR_BLOCK`].
-    /// O(support_vectors), done once at load.
+    /// O(support_vectors), done once at load. The records are read as words
+    /// when they start at a 4-byte aligned address (see `docs/fixed-point.md`),
+    /// else as bytes; the results are the same.
     pub fn parse(bytes: &'a [u8], support_vectors: u32) -> Result<SvrView<'a>, BlobError> {
         let expected = (SVR_HEADER_LEN as u64)
             .saturating_add((SVR_RECORD_LEN as u64).saturating_mul(support_vectors as u64));
@@ -442,30 +480,15 @@ impl<'a> SvrView<'a> {
         let mean = read3(bytes, 8, "svr.mean")?;
         let scale = read3(bytes, 20, "svr.scale")?;
         let offset = read3(bytes, 32, "svr.offset")?;
-        let records = &bytes[SVR_HEADER_LEN..];
-        let mut sums = [0u64; 3];
-        for (j, rec) in records.chunks_exact(SVR_RECORD_LEN).enumerate() {
-            if j % SVR_BLOCK == 0 {
-                sums = [0; 3];
-            }
-            for i in 0..3 {
-                let s = read_i32(rec, 4 * i).ok_or(BlobError::Body {
-                    field: "svr.support",
-                })?;
-                if s.unsigned_abs() > SUPPORT_MAX as u32 {
-                    return Err(BlobError::Body {
-                        field: "svr.support",
-                    });
-                }
-            }
-            for (a, sum) in sums.iter_mut().enumerate() {
-                let c = read_i32(rec, 12 + 4 * a).ok_or(BlobError::Body { field: "svr.coef" })?;
-                *sum += c.unsigned_abs() as u64;
-                if *sum > SVR_BLOCK_ABS_SUM_MAX {
-                    return Err(BlobError::Body { field: "svr.coef" });
-                }
-            }
-        }
+        let records = SvrRecords::new(&bytes[SVR_HEADER_LEN..]);
+        let support_abs_max = match records {
+            SvrRecords::Words(words) => check_svr_records(words.chunks(SVR_BLOCK), |r| *r),
+            SvrRecords::Bytes(b) => check_svr_records(
+                b.chunks(SVR_RECORD_LEN * SVR_BLOCK)
+                    .map(|block| block.chunks_exact(SVR_RECORD_LEN)),
+                |r| core::array::from_fn(|i| read_i32(r, 4 * i).unwrap_or(i32::MIN)),
+            ),
+        }?;
         Ok(SvrView {
             mode,
             scale_frac,
@@ -473,18 +496,25 @@ impl<'a> SvrView<'a> {
             mean,
             scale,
             offset,
+            support_abs_max,
             records,
         })
     }
 
     /// Number of support vectors.
     pub fn support_vectors(&self) -> usize {
-        self.records.len() / SVR_RECORD_LEN
+        self.records.len()
     }
 
     /// Output mode of the regressor.
     pub fn mode(&self) -> OutputMode {
         self.mode
+    }
+
+    /// Whether the records are read as aligned words (else as bytes; the
+    /// results are the same, only the speed differs).
+    pub fn reads_words(&self) -> bool {
+        matches!(self.records, SvrRecords::Words(_))
     }
 
     /// Maps a Q15.16 mm position into the scaled space (Q4.27, saturated).
@@ -500,21 +530,48 @@ impl<'a> SvrView<'a> {
         q
     }
 
+    /// Whether every kernel exponent of the scaled input `q` is below `2^31`
+    /// in Q10.22 (i.e. `|q - s|^2 < 512`): then [`exp2_neg_q22_below_2p31_with`]
+    /// is exact. `|sat(q_i - s_i)| <= |q_i| + max_j |s_ji|`, and the sum of
+    /// the three squares of these bounds is below `2^63` in Q54.
+    #[inline(always)]
+    fn exponents_below_2p31(&self, q: [i32; 3]) -> bool {
+        // |q_i| <= 2^31 and max |s_i| <= 2^30: the bound fits a u32.
+        let d = |i: usize| (q[i].unsigned_abs() + self.support_abs_max[i]) as u64;
+        (d(0) * d(0))
+            .checked_add(d(1) * d(1))
+            .and_then(|s| s.checked_add(d(2) * d(2)))
+            .is_some_and(|s| s < 1 << 63)
+    }
+
     /// Corrected position (Q15.16 mm) of a position `p` (Q15.16 mm). Integer
     /// only, saturating, never panics.
     pub fn evaluate(&self, p: [i32; 3]) -> [i32; 3] {
-        let q = self.scaled(p);
+        let pass = SvrPass {
+            q: self.scaled(p),
+            base: core::hint::black_box(&EXP2_BASE),
+            slope: core::hint::black_box(&EXP2_SLOPE),
+        };
         let mut acc = [0i64; 3];
-        for block in self.records.chunks(SVR_RECORD_LEN * SVR_BLOCK) {
-            let part = svr_block(
-                block,
-                q,
-                core::hint::black_box(&EXP2_HIGH),
-                core::hint::black_box(&EXP2_LOW),
-                core::hint::black_box(&EXP2_INTEGER),
-            );
-            for a in 0..3 {
-                acc[a] = acc[a].wrapping_add(part[a] as i64);
+        match self.records {
+            SvrRecords::Words(records) => {
+                // Whole blocks, then the rest (a constant length per call).
+                let blocks = records.chunks_exact(SVR_BLOCK);
+                let rest = blocks.remainder();
+                if self.exponents_below_2p31(pass.q) {
+                    for block in blocks.chain(core::iter::once(rest)) {
+                        svr_block_words::<true>(block, &pass.q, pass.base, pass.slope, &mut acc);
+                    }
+                } else {
+                    for block in blocks.chain(core::iter::once(rest)) {
+                        svr_block_words::<false>(block, &pass.q, pass.base, pass.slope, &mut acc);
+                    }
+                }
+            }
+            SvrRecords::Bytes(records) => {
+                for block in records.chunks(SVR_RECORD_LEN * SVR_BLOCK) {
+                    svr_block_bytes(block, &pass.q, pass.base, pass.slope, &mut acc);
+                }
             }
         }
         [
@@ -523,6 +580,61 @@ impl<'a> SvrView<'a> {
             svr_finish(acc[2], self.coef_frac[2], self.offset[2], self.mode, p[2]),
         ]
     }
+}
+
+/// What every support vector of one SVR evaluation needs besides its record:
+/// the scaled input and the exp2 tables (always [`EXP2_BASE`], [`EXP2_SLOPE`],
+/// passed in so that LLVM keeps their addresses in registers or reloads them,
+/// instead of rebuilding each from a `movw`/`movt` pair per use). One
+/// pointer argument: the block functions take all their arguments in
+/// registers.
+struct SvrPass<'t> {
+    q: [i32; 3],
+    base: &'t [i32; EXP2_FRACTION_ENTRIES],
+    slope: &'t [i32; EXP2_FRACTION_ENTRIES],
+}
+
+/// Adds a block's `i32` sums to the `i64` totals.
+#[inline(always)]
+fn add_block(total: &mut [i64; 3], block: [i32; 3]) {
+    for a in 0..3 {
+        total[a] = total[a].wrapping_add(block[a] as i64);
+    }
+}
+
+/// The record checks of [`SvrView::parse`] over blocks of [`SVR_BLOCK`]
+/// records (`record` reads one as `[s0, s1, s2, coef0, coef1, coef2]`):
+/// `|s| <= SUPPORT_MAX`, per axis and block `sum |coef| <=
+/// SVR_BLOCK_ABS_SUM_MAX`. Returns the largest `|s|` per axis.
+fn check_svr_records<R, B, I>(
+    blocks: B,
+    record: impl Fn(R) -> [i32; 6],
+) -> Result<[u32; 3], BlobError>
+where
+    B: Iterator<Item = I>,
+    I: IntoIterator<Item = R>,
+{
+    let mut support_abs_max = [0u32; 3];
+    for block in blocks {
+        let mut sums = [0u64; 3];
+        for rec in block {
+            let rec = record(rec);
+            for i in 0..3 {
+                let s = rec[i].unsigned_abs();
+                if s > SUPPORT_MAX as u32 {
+                    return Err(BlobError::Body {
+                        field: "svr.support",
+                    });
+                }
+                support_abs_max[i] = support_abs_max[i].max(s);
+                sums[i] += rec[3 + i].unsigned_abs() as u64;
+            }
+            if sums.iter().any(|&sum| sum > SVR_BLOCK_ABS_SUM_MAX) {
+                return Err(BlobError::Body { field: "svr.coef" });
+            }
+        }
+    }
+    Ok(support_abs_max)
 }
 
 /// `acc + round(a b / 2^32)` (wrapping), one `smmlar` on the Cortex-M7.
@@ -534,64 +646,104 @@ fn mul_hi_round_acc(acc: i32, a: i32, b: i32) -> i32 {
         >> 32) as i32
 }
 
-/// One block of at most [`SVR_BLOCK`] support vectors: per axis
-/// `sum_j round(coef_a K_j / 2^32)`, `K_j = 2^-|q - s_j|^2` (Q1.30), in
-/// Q(`coef_frac_a` - 2) mm. One pass: q (3), three `i32` accumulators, the
-/// record pointer and count and the exp2 tables (`high`, `low`, `integer`:
-/// always [`EXP2_HIGH`], [`EXP2_LOW`], [`EXP2_INTEGER`], passed in so that
-/// LLVM keeps their addresses in registers or reloads them, instead of
-/// rebuilding each from a `movw`/`movt` pair per use). Not inlined, so that
-/// the register allocation of this loop does not depend on the caller.
+/// One block of at most [`SVR_BLOCK`] support vectors read as aligned words:
+/// adds to `total[a]` the block's `sum_j round(coef_a K_j / 2^32)`, `K_j =
+/// 2^-|q - s_j|^2` (Q1.30), in Q(`coef_frac_a` - 2) mm, summed in an `i32`.
+/// One pass: q (3), three `i32` accumulators, the record pointer and count
+/// and the two table addresses (one reloaded per support vector: 14
+/// registers for 13). `NARROW`: the caller checked that every exponent is
+/// below `2^31` (`SvrView::exponents_below_2p31`), so the saturated shift of
+/// the kernel is one `usat`; the results are the same as without. Not
+/// inlined, so that the register allocation of this loop does not depend on
+/// the caller.
 #[inline(never)]
-fn svr_block(
-    block: &[u8],
-    q: [i32; 3],
-    high: &[u32; EXP2_FRACTION_ENTRIES],
-    low: &[u32; EXP2_FRACTION_ENTRIES],
-    integer: &[u32; EXP2_INTEGER_ENTRIES],
-) -> [i32; 3] {
+fn svr_block_words<const NARROW: bool>(
+    block: &[[i32; 6]],
+    q: &[i32; 3],
+    base: &[i32; EXP2_FRACTION_ENTRIES],
+    slope: &[i32; EXP2_FRACTION_ENTRIES],
+    total: &mut [i64; 3],
+) {
+    let q = *q;
     let mut acc = [0i32; 3];
-    for rec in block.chunks_exact(SVR_RECORD_LEN) {
+    // An index loop: LLVM counts down and steps the pointer in the first
+    // load (2 instructions of loop control; an iterator compares pointers, 3).
+    #[allow(clippy::needless_range_loop)]
+    for i in 0..block.len() {
         // An empty barrier (no instruction: an empty `asm` with a memory
         // clobber): LLVM does not unroll a loop containing it. Unrolled (and
         // interleaved), this loop no longer fits the registers and spills.
         core::hint::black_box(());
-        acc = svr_term(rec, q, acc, (high, low, integer));
+        let [s0, s1, s2, c0, c1, c2] = block[i];
+        acc = svr_term::<NARROW>([s0, s1, s2], [c0, c1, c2], q, acc, base, slope);
     }
-    acc
+    add_block(total, acc);
 }
 
-/// Adds one support vector's terms (`rec`, [`SVR_RECORD_LEN`] bytes; any
-/// other length adds nothing) to the block accumulators.
+/// [`svr_block_words`] for records at any address (`block` holds whole
+/// [`SVR_RECORD_LEN`]-byte records; a trailing partial record adds nothing),
+/// read with single little-endian word loads. Always the general saturated
+/// shift: the same results as the word path, bit for bit.
+#[inline(never)]
+fn svr_block_bytes(
+    block: &[u8],
+    q: &[i32; 3],
+    base: &[i32; EXP2_FRACTION_ENTRIES],
+    slope: &[i32; EXP2_FRACTION_ENTRIES],
+    total: &mut [i64; 3],
+) {
+    let q = *q;
+    let mut acc = [0i32; 3];
+    for rec in block.chunks_exact(SVR_RECORD_LEN) {
+        core::hint::black_box(());
+        let Ok(rec) = <&[u8; SVR_RECORD_LEN]>::try_from(rec) else {
+            continue;
+        };
+        let s = [
+            le_i32::<SVR_RECORD_LEN, 0>(rec),
+            le_i32::<SVR_RECORD_LEN, 4>(rec),
+            le_i32::<SVR_RECORD_LEN, 8>(rec),
+        ];
+        let c = [
+            le_i32::<SVR_RECORD_LEN, 12>(rec),
+            le_i32::<SVR_RECORD_LEN, 16>(rec),
+            le_i32::<SVR_RECORD_LEN, 20>(rec),
+        ];
+        acc = svr_term::<false>(s, c, q, acc, base, slope);
+    }
+    add_block(total, acc);
+}
+
+/// Adds one support vector's terms (support vector `s`, coefficients `c`)
+/// to the block accumulators. `NARROW`: see [`svr_block_words`].
 #[inline(always)]
-fn svr_term(
-    rec: &[u8],
+fn svr_term<const NARROW: bool>(
+    s: [i32; 3],
+    c: [i32; 3],
     q: [i32; 3],
     acc: [i32; 3],
-    tables: (
-        &[u32; EXP2_FRACTION_ENTRIES],
-        &[u32; EXP2_FRACTION_ENTRIES],
-        &[u32; EXP2_INTEGER_ENTRIES],
-    ),
+    base: &[i32; EXP2_FRACTION_ENTRIES],
+    slope: &[i32; EXP2_FRACTION_ENTRIES],
 ) -> [i32; 3] {
-    let Ok(rec) = <&[u8; SVR_RECORD_LEN]>::try_from(rec) else {
-        return acc;
-    };
-    let d0 = q[0].saturating_sub(le_i32::<SVR_RECORD_LEN, 0>(rec)) as i64;
-    let d1 = q[1].saturating_sub(le_i32::<SVR_RECORD_LEN, 4>(rec)) as i64;
-    let d2 = q[2].saturating_sub(le_i32::<SVR_RECORD_LEN, 8>(rec)) as i64;
+    let d0 = q[0].saturating_sub(s[0]) as i64;
+    let d1 = q[1].saturating_sub(s[1]) as i64;
+    let d2 = q[2].saturating_sub(s[2]) as i64;
     // Each square <= 2^62; the sum < 2^64 as an unsigned bit pattern. Its
     // high word is u in Q10.22 (truncated).
     let u = ((d0 * d0) as u64)
         .wrapping_add((d1 * d1) as u64)
         .wrapping_add((d2 * d2) as u64);
     let u = (u >> 32) as u32;
-    // K = 0 at and beyond the cutoff (u >= 31).
-    let k = exp2_neg_q22_with(u, tables.0, tables.1, tables.2);
+    // K = 0 from u >= 30 on (the saturated shift).
+    let k = if NARROW {
+        exp2_neg_q22_below_2p31_with(u, base, slope)
+    } else {
+        exp2_neg_q22_with(u, base, slope)
+    };
     [
-        mul_hi_round_acc(acc[0], le_i32::<SVR_RECORD_LEN, 12>(rec), k),
-        mul_hi_round_acc(acc[1], le_i32::<SVR_RECORD_LEN, 16>(rec), k),
-        mul_hi_round_acc(acc[2], le_i32::<SVR_RECORD_LEN, 20>(rec), k),
+        mul_hi_round_acc(acc[0], c[0], k),
+        mul_hi_round_acc(acc[1], c[1], k),
+        mul_hi_round_acc(acc[2], c[2], k),
     ]
 }
 
@@ -1470,6 +1622,53 @@ mod tests {
         }
     }
 
+    /// Records at a 4-aligned address are read as words, else as bytes; the
+    /// word path with the one-`usat` shift (inputs near the support vectors)
+    /// and with the general one (far inputs) and the byte path give the same
+    /// bits.
+    #[test]
+    fn svr_word_and_byte_paths_agree() {
+        let m = svr_model(1000, 12, OutputMode::Residual);
+        let bytes = m.compile().expect("compiles");
+        let mut words = vec![0u32; bytes.len().div_ceil(4)];
+        let aligned = &mut bytemuck::cast_slice_mut::<u32, u8>(&mut words)[..bytes.len()];
+        aligned.copy_from_slice(&bytes);
+        let mut store = vec![0u32; bytes.len() / 4 + 2];
+        let shifted = &mut bytemuck::cast_slice_mut::<u32, u8>(&mut store)[1..=bytes.len()];
+        shifted.copy_from_slice(&bytes);
+        let w = SvrView::parse(aligned, 1000).expect("parses");
+        let b = SvrView::parse(shifted, 1000).expect("parses");
+        assert!(w.reads_words());
+        assert!(!b.reads_words());
+        assert_eq!(w.support_vectors(), b.support_vectors());
+        let mut rng = Rng(77);
+        let mut points = workspace_points();
+        points.truncate(3000);
+        let (mut narrow, mut wide) = (0, 0);
+        for k in 0..3000 {
+            let far = match k % 3 {
+                0 => [
+                    rng.next_u64() as i32,
+                    rng.next_u64() as i32,
+                    rng.next_u64() as i32,
+                ],
+                1 => [i32::MIN, i32::MAX, (rng.next_u64() as i32) >> 8],
+                _ => [(rng.next_u64() as i32) >> 4, 0, 0],
+            };
+            points.push(far);
+        }
+        for p in points {
+            let q = w.scaled(p);
+            if w.exponents_below_2p31(q) {
+                narrow += 1;
+            } else {
+                wide += 1;
+            }
+            assert_eq!(w.evaluate(p), b.evaluate(p), "p {p:?}");
+        }
+        assert!(narrow > 1000 && wide > 1000, "narrow {narrow}, wide {wide}");
+    }
+
     #[test]
     fn correction_enum_and_header_checks() {
         let nn = nn_model(4, 5, OutputMode::Absolute);
@@ -1766,7 +1965,16 @@ mod tests {
             for b in &mut svr[2..5] { *b %= 49; }
             svr[5..8].fill(0);
             if let Ok(v) = SvrView::parse(&svr, svs) {
-                let _ = v.evaluate(p);
+                // The same records at an odd address (byte path): same bits.
+                let mut store = vec![0u32; svr.len() / 4 + 2];
+                let shifted = &mut bytemuck::cast_slice_mut::<u32, u8>(&mut store)[1..=svr.len()];
+                shifted.copy_from_slice(&svr);
+                let shifted: &[u8] = shifted;
+                let u = SvrView::parse(shifted, svs);
+                prop_assert_eq!(u, Ok(SvrView { records: SvrRecords::Bytes(&shifted[SVR_HEADER_LEN..]), ..v }));
+                if let Ok(u) = u {
+                    prop_assert_eq!(v.evaluate(p), u.evaluate(p));
+                }
             }
         }
 

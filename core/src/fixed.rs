@@ -6,10 +6,11 @@
 //!   from a table of 512 cubic Hermite segments over `[0, 16)` (segment width
 //!   1/32, derivative `1 - tanh^2` at both ends), evaluated in three
 //!   `smmla`-style steps. Absolute error about 1e-9 (see the tests).
-//! - [`exp2_neg_q22`]: `2^-u` of a Q10.22 exponent (`u32`), Q1.30 result: the
-//!   product of three table entries (11 high and 11 low fraction bits, the
-//!   integer part), two `32x32->64` multiplies, no branch. Relative error
-//!   below 1e-7 (the argument's Q22 resolution).
+//! - [`exp2_neg_q22`]: `2^-u` of a Q10.22 exponent (`u32`), Q1.30 result:
+//!   per segment of 2^11 Q22 steps (the 11 bits above the low 11), a line
+//!   (intercept and slope from two tables, one `smlawb` with the low half
+//!   word of `u`), then a right shift by the integer part (saturated at 31,
+//!   the cutoff). Relative error below 1e-7 (the argument's Q22 resolution).
 //!
 //! The tables are computed by `const fn`s at compile time. Const evaluation is
 //! done by the compiler with software IEEE arithmetic, so the host build and the
@@ -36,16 +37,20 @@ pub const TANH_SEGMENTS: usize = 512;
 pub const EXP2_IN_FRAC: u32 = 22;
 /// Fractional bits of the result of [`exp2_neg_q22`] (Q1.30).
 pub const EXP2_OUT_FRAC: u32 = 30;
-/// Bits of `u` per factor of the exp2 tables: `u = n 2^22 + a 2^11 + b`.
+/// Bits of `u` below the segment index of the exp2 tables: `u = n 2^22 + a
+/// 2^11 + b`.
 const EXP2_SPLIT_BITS: u32 = 11;
-/// Entries of each of the two fraction tables of [`exp2_neg_q22`] (`2^11`).
+/// Segments (entries of each of the two tables) of [`exp2_neg_q22`]: every
+/// `a` of `u = n 2^22 + a 2^11 + b` (`2^11`).
 pub const EXP2_FRACTION_ENTRIES: usize = 1 << EXP2_SPLIT_BITS;
-/// Entries of the integer-part table of [`exp2_neg_q22`]: every `n = u >> 22`
-/// of a `u32` (`0..1024`), so the lookup needs neither a test nor a mask.
-pub const EXP2_INTEGER_ENTRIES: usize = 1 << (32 - EXP2_IN_FRAC);
-/// Smallest exponent `u` (Q10.22) for which [`exp2_neg_q22`] returns 0: `2^-31`
-/// is below half the resolution of Q1.30.
-pub const EXP2_CUTOFF_Q22: u32 = 31 << EXP2_IN_FRAC;
+/// Largest right shift of [`exp2_neg_q22`]: the integer part `n = u >> 22` is
+/// saturated to it. The fraction value is below `2^30`, so a shift by 31
+/// (indeed by 30) gives 0: the cutoff.
+pub const EXP2_MAX_SHIFT: u32 = 31;
+/// Smallest exponent `u` (Q10.22) for which [`exp2_neg_q22`] returns 0 through
+/// the saturated shift (`2^-31` is below half the resolution of Q1.30; the
+/// product already underflows from `u = 30`).
+pub const EXP2_CUTOFF_Q22: u32 = EXP2_MAX_SHIFT << EXP2_IN_FRAC;
 
 // ---------------------------------------------------------------------------
 // Const-evaluated elementary functions (compile time only).
@@ -112,47 +117,55 @@ const fn tanh_table() -> [[i32; 4]; TANH_SEGMENTS] {
     t
 }
 
-/// The exp2 tables of [`exp2_neg_q22`], for `u = n 2^22 + a 2^11 + b` (Q10.22):
+/// The exp2 tables of [`exp2_neg_q22`], for `u = n 2^22 + a 2^11 + b` (Q10.22).
 ///
-/// - `high[a] = 2^-(a 2^11 / 2^22)` in Q1.31 (`high[0] = 2^31`);
-/// - `low[b] = 2^-((b + 1/2) / 2^22)` in Q0.32: the exponent reaching the
-///   table is truncated to Q22, so the value is taken at the centre of its
-///   bin (zero-mean error instead of a bias when hundreds of kernels add up);
-/// - `integer[n] = 2^(31 - n)` for `n < 31`, else 0 (the cutoff: `2^-31` is
-///   below half the resolution of Q1.30).
+/// On segment `a` (`b` in `0..2048`), `f(b) = 2^30 2^-((a 2^11 + b + 1/2) /
+/// 2^22)` (Q1.30; the exponent reaching the table is truncated to Q22, so
+/// the value is taken at the centre of its bin: a zero-mean error instead
+/// of a bias when hundreds of kernels add up) is replaced by its
+/// least-squares line `alpha + beta b` (the segment spans a relative change
+/// of 3.4e-4; the line's error is below 1e-8 relative, zero-mean). The
+/// device evaluates the line as
 ///
-/// Each entry is exact to its rounding (relative 2^-31 or better): no
-/// interpolation error.
+/// `k = base[a] + ((slope[a] * s16(u)) >> 16)` (one `smlawb`)
+///
+/// where `s16(u)` is the low half word of `u` as an `i16`: `b + C_a` with
+/// `C_a = 2^11 (a mod 32) - 2^16 [a mod 32 >= 16]`, a constant of the
+/// segment, so no masking of `b` is needed: `slope = round(beta 2^16)` and
+/// `base` absorbs `C_a` and the mean of the floor. The integer part `n` is a
+/// right shift of `k` (no table). `k` is within `[2^29, 2^30)`.
 pub struct Exp2Tables {
-    pub high: [u32; EXP2_FRACTION_ENTRIES],
-    pub low: [u32; EXP2_FRACTION_ENTRIES],
-    pub integer: [u32; EXP2_INTEGER_ENTRIES],
+    pub base: [i32; EXP2_FRACTION_ENTRIES],
+    pub slope: [i32; EXP2_FRACTION_ENTRIES],
 }
 
 const fn exp2_tables() -> Exp2Tables {
     let mut t = Exp2Tables {
-        high: [0; EXP2_FRACTION_ENTRIES],
-        low: [0; EXP2_FRACTION_ENTRIES],
-        integer: [0; EXP2_INTEGER_ENTRIES],
+        base: [0; EXP2_FRACTION_ENTRIES],
+        slope: [0; EXP2_FRACTION_ENTRIES],
     };
-    let q22 = (1u64 << EXP2_IN_FRAC) as f64;
-    let mut i = 0;
-    while i < EXP2_FRACTION_ENTRIES {
-        let a = (i << EXP2_SPLIT_BITS) as f64 / q22;
-        t.high[i] = round_i64(exp_const(-a * LN2) * (1u64 << 31) as f64) as u32;
-        let b = (i as f64 + 0.5) / q22;
-        let low = round_i64(exp_const(-b * LN2) * (1u64 << 32) as f64);
-        t.low[i] = if low > u32::MAX as i64 {
-            u32::MAX
-        } else {
-            low as u32
-        };
-        i += 1;
-    }
-    let mut n = 0;
-    while n < 31 {
-        t.integer[n] = 1 << (31 - n);
-        n += 1;
+    // Per Q22 step of b: f(x) = F e^(-c x), x = b + 1/2 over 0.5..N-0.5.
+    let c = LN2 / (1u64 << EXP2_IN_FRAC) as f64;
+    let n = EXP2_FRACTION_ENTRIES as f64;
+    let m = n / 2.0; // mean of x
+    let var = (n * n - 1.0) / 12.0; // variance of x
+    let mut a = 0;
+    while a < EXP2_FRACTION_ENTRIES {
+        let f = exp_const(-((a << EXP2_SPLIT_BITS) as f64 / (1u64 << EXP2_IN_FRAC) as f64) * LN2)
+            * (1u64 << EXP2_OUT_FRAC) as f64;
+        // e^(-c x) = 1 - c x + c^2 x^2 / 2 - ... (c x < 3.4e-4; the cubic term
+        // is below 1e-11). The least-squares line of x^2 over the x values is
+        // 2 m x - m^2 + var, so that of f is F (1 + c^2 (var - m^2) / 2) +
+        // F (c^2 m - c) x.
+        let beta = f * (c * c * m - c);
+        let alpha = f * (1.0 + c * c * (var - m * m) / 2.0) + beta * 0.5; // at b = 0
+        let slope = round_i64(beta * 65536.0);
+        let lo = (a & 31) as i64;
+        let c_a = 2048 * lo - if lo >= 16 { 65536 } else { 0 };
+        // floor(slope (b + C_a) / 2^16) is slope (b + C_a) / 2^16 - 1/2 on average.
+        t.base[a] = round_i64(alpha - (slope * c_a) as f64 / 65536.0 + 0.5) as i32;
+        t.slope[a] = slope as i32;
+        a += 1;
     }
     t
 }
@@ -161,13 +174,11 @@ const fn exp2_tables() -> Exp2Tables {
 pub static TANH_TABLE: [[i32; 4]; TANH_SEGMENTS] = tanh_table();
 
 const EXP2_TABLES: Exp2Tables = exp2_tables();
-/// `high` factors of `2^-u` ([`Exp2Tables`], [`exp2_neg_q22`]), 8 KiB. Three
-/// separate statics, so that each is a base address of its own.
-pub static EXP2_HIGH: [u32; EXP2_FRACTION_ENTRIES] = EXP2_TABLES.high;
-/// `low` factors of `2^-u`, 8 KiB.
-pub static EXP2_LOW: [u32; EXP2_FRACTION_ENTRIES] = EXP2_TABLES.low;
-/// `integer` factors of `2^-u` (the cutoff), 4 KiB.
-pub static EXP2_INTEGER: [u32; EXP2_INTEGER_ENTRIES] = EXP2_TABLES.integer;
+/// Segment intercepts of `2^-u` ([`Exp2Tables`], [`exp2_neg_q22`]), 8 KiB.
+/// Two separate statics, so that each is a base address of its own.
+pub static EXP2_BASE: [i32; EXP2_FRACTION_ENTRIES] = EXP2_TABLES.base;
+/// Segment slopes of `2^-u` (Q16 per Q22 step, negative), 8 KiB.
+pub static EXP2_SLOPE: [i32; EXP2_FRACTION_ENTRIES] = EXP2_TABLES.slope;
 
 // ---------------------------------------------------------------------------
 // Run-time helpers (integer only).
@@ -304,36 +315,62 @@ pub fn tanh_q27(x: i32) -> i32 {
 }
 
 /// `2^-u` in fixed point: `u` in Q10.22 (`u32`, `u >= 0`), result Q1.30
-/// (`<= 2^30`). Returns 0 for `u >= 31` ([`EXP2_CUTOFF_Q22`]).
+/// (`< 2^30`). Returns 0 for `u >= 30` (and so at and beyond
+/// [`EXP2_CUTOFF_Q22`]).
 ///
-/// `u = n 2^22 + a 2^11 + b`: `2^-u = high[a] low[b] integer[n]` (see
-/// [`Exp2Tables`]), two `32x32->64` multiplies keeping the high word. No
-/// branch and no mask: the cutoff is in the `integer` table, which has an
-/// entry for every `n` of a `u32`. Never panics. Relative error below 1e-7
-/// within the first octave (the Q22 truncation of the argument, centred),
-/// absolute error below 2^-30 beyond.
+/// `u = n 2^22 + a 2^11 + b`:
+/// `2^-u = (base[a] + ((slope[a] s16(u)) >> 16)) >> min(n, 31)`
+/// (see [`Exp2Tables`]): one 32x16 multiply-accumulate
+/// (`smlawb`), then the integer part as a right shift, saturated at
+/// [`EXP2_MAX_SHIFT`] (a shift by 30 or 31 gives 0). Never panics. Relative
+/// error below 1e-7 within the first octave (the Q22 truncation of the
+/// argument, centred), absolute error below 2^-30 beyond.
 #[inline(always)]
 pub fn exp2_neg_q22(u: u32) -> i32 {
-    exp2_neg_q22_with(u, &EXP2_HIGH, &EXP2_LOW, &EXP2_INTEGER)
+    exp2_neg_q22_with(u, &EXP2_BASE, &EXP2_SLOPE)
 }
 
-/// [`exp2_neg_q22`] with the tables passed in (always [`EXP2_HIGH`],
-/// [`EXP2_LOW`], [`EXP2_INTEGER`]): in a loop the caller holds their
-/// addresses in registers (or spills them) instead of rebuilding each with
-/// two instructions per use.
+/// [`exp2_neg_q22`] with the tables passed in (always [`EXP2_BASE`],
+/// [`EXP2_SLOPE`]): in a loop the caller holds their addresses in registers
+/// (or reloads them) instead of rebuilding each with two instructions per
+/// use.
 #[inline(always)]
 pub fn exp2_neg_q22_with(
     u: u32,
-    high: &[u32; EXP2_FRACTION_ENTRIES],
-    low: &[u32; EXP2_FRACTION_ENTRIES],
-    integer: &[u32; EXP2_INTEGER_ENTRIES],
+    base: &[i32; EXP2_FRACTION_ENTRIES],
+    slope: &[i32; EXP2_FRACTION_ENTRIES],
 ) -> i32 {
-    let mask = EXP2_FRACTION_ENTRIES - 1;
-    let high = high[(u >> EXP2_SPLIT_BITS) as usize & mask];
-    let low = low[u as usize & mask];
-    let integer = integer[(u >> EXP2_IN_FRAC) as usize & (EXP2_INTEGER_ENTRIES - 1)];
-    let k = ((high as u64 * low as u64) >> 32) as u32; // Q1.31
-    ((k as u64 * integer as u64) >> 32) as i32 // Q1.30
+    exp2_fraction(u, base, slope) >> (u >> EXP2_IN_FRAC).min(EXP2_MAX_SHIFT)
+}
+
+/// [`exp2_neg_q22_with`] for an exponent below `2^31` (`u as i32 >= 0`, i.e.
+/// `u < 512`): the saturated shift is then one `usat` (`(u as i32 >> 22)`
+/// clamped to `0..=31`). For `u >= 2^31` the result is wrong (the signed
+/// view is negative, the shift 0): the caller must guarantee the bound; for
+/// `u < 2^31` the result equals [`exp2_neg_q22_with`] bit for bit.
+#[inline(always)]
+pub fn exp2_neg_q22_below_2p31_with(
+    u: u32,
+    base: &[i32; EXP2_FRACTION_ENTRIES],
+    slope: &[i32; EXP2_FRACTION_ENTRIES],
+) -> i32 {
+    let sh = ((u as i32) >> EXP2_IN_FRAC).clamp(0, EXP2_MAX_SHIFT as i32) as u32;
+    exp2_fraction(u, base, slope) >> sh
+}
+
+/// The segment line of the fraction bits of `u`: `2^-(u mod 2^22)` in Q1.30,
+/// within `[2^29, 2^30)`.
+#[inline(always)]
+fn exp2_fraction(
+    u: u32,
+    base: &[i32; EXP2_FRACTION_ENTRIES],
+    slope: &[i32; EXP2_FRACTION_ENTRIES],
+) -> i32 {
+    let a = (u >> EXP2_SPLIT_BITS) as usize & (EXP2_FRACTION_ENTRIES - 1);
+    // |slope| < 2^24 and |s16| <= 2^15: the product fits 40 bits, the
+    // shifted term 24 (one `smlawb`).
+    let s16 = u as u16 as i16 as i64;
+    base[a].wrapping_add(((slope[a] as i64 * s16) >> 16) as i32)
 }
 
 #[cfg(test)]
@@ -403,9 +440,45 @@ mod tests {
             "exp2 bias {}",
             sum_rel / count as f64
         );
+        assert_eq!(exp2_neg_q22(30 << 22), 0);
         assert_eq!(exp2_neg_q22(EXP2_CUTOFF_Q22), 0);
         assert_eq!(exp2_neg_q22(u32::MAX), 0);
         assert!(exp2_neg_q22(0) <= 1 << 30);
+    }
+
+    #[test]
+    fn exp2_segments_and_narrow_shift() {
+        // Every segment line stays within [2^29, 2^30) over its 2^11 steps
+        // (the bound the SVR's block sums rely on), for every low half word.
+        for a in 0..EXP2_FRACTION_ENTRIES as u32 {
+            for b in [0u32, 1, 1023, 1024, 2046, 2047] {
+                let k = exp2_neg_q22((a << 11) | b);
+                assert!((1 << 29..1 << 30).contains(&k), "a {a} b {b}: {k}");
+            }
+        }
+        // The `usat` form equals the general one below 2^31; the general one
+        // is 0 from 30 on, whatever the fraction bits.
+        let mut u: u64 = 0;
+        while u < 1 << 31 {
+            let v = u as u32;
+            assert_eq!(
+                exp2_neg_q22_below_2p31_with(v, &EXP2_BASE, &EXP2_SLOPE),
+                exp2_neg_q22(v),
+                "u {v:#x}"
+            );
+            u += 65_521;
+        }
+        for n in 30..1024u32 {
+            assert_eq!(exp2_neg_q22((n << 22) | 0x3f_ffff), 0);
+            assert_eq!(exp2_neg_q22(n << 22), 0);
+        }
+        // Monotone non-increasing over the first octave (sampled).
+        let mut prev = i32::MAX;
+        for u in (0..1u32 << 22).step_by(97) {
+            let k = exp2_neg_q22(u);
+            assert!(k <= prev, "u {u}");
+            prev = k;
+        }
     }
 
     #[test]

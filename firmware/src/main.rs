@@ -33,7 +33,7 @@ use embassy_sync::blocking_mutex::Mutex;
 use embassy_time::Instant;
 use panic_probe as _;
 use spidar_core::control::ControlConfig;
-use spidar_core::device::{Device, DeviceConfig};
+use spidar_core::device::{Device, DeviceConfig, ModelBuffer};
 use static_cell::{ConstStaticCell, StaticCell};
 
 use crate::encoders::{EncoderPins, Encoders};
@@ -44,10 +44,13 @@ use crate::storage::H7Flash;
 /// RAM copy of the active model blob, and the buffer a commit validates the
 /// next one in (they swap on commit). Bounds the model blob the device takes
 /// (`HelloAck::max_blob_len`); an NN of 64 neurons is ~2.2 KiB, an SVR of
-/// 500 support vectors ~12.5 KiB.
+/// 500 support vectors ~12.5 KiB. Aligned (`ModelBuffer`): the SVR records of
+/// a blob at the start of the buffer are then read as aligned words.
 const MODEL_RAM_LEN: usize = 24 * 1024;
-static MODEL_RAM: ConstStaticCell<[u8; MODEL_RAM_LEN]> = ConstStaticCell::new([0; MODEL_RAM_LEN]);
-static SPARE_RAM: ConstStaticCell<[u8; MODEL_RAM_LEN]> = ConstStaticCell::new([0; MODEL_RAM_LEN]);
+static MODEL_RAM: ConstStaticCell<ModelBuffer<MODEL_RAM_LEN>> =
+    ConstStaticCell::new(ModelBuffer::new());
+static SPARE_RAM: ConstStaticCell<ModelBuffer<MODEL_RAM_LEN>> =
+    ConstStaticCell::new(ModelBuffer::new());
 static DEVICE: StaticCell<SharedDevice> = StaticCell::new();
 
 /// `[major, minor, patch]` of this crate.
@@ -158,8 +161,8 @@ async fn main(spawner: Spawner) {
     let device = match Device::new(
         config,
         H7Flash::new(Flash::new_blocking(p.FLASH)),
-        MODEL_RAM.take(),
-        SPARE_RAM.take(),
+        MODEL_RAM.take().bytes(),
+        SPARE_RAM.take().bytes(),
         encoders.read(),
         Instant::now().as_micros(),
     ) {

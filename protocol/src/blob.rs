@@ -26,8 +26,13 @@ use serde::{Deserialize, Serialize};
 
 /// Magic bytes at the start of every model blob.
 pub const MAGIC: [u8; 4] = *b"SPDM";
-/// Blob format this crate reads and writes.
-pub const FORMAT_VERSION: u16 = 1;
+/// Blob format this crate reads and writes. Version 2 (version 1 and any
+/// other are refused with [`BlobError::UnsupportedVersion`]): the body pads
+/// the string model with zero bytes so that the correction starts at a
+/// multiple of 4 bytes from the blob start (`spidar-core::blob`), which lets
+/// the device read the SVR records as aligned words. Version 1 had no
+/// padding.
+pub const FORMAT_VERSION: u16 = 2;
 /// Size of the header in bytes.
 pub const HEADER_LEN: usize = 40;
 
@@ -326,6 +331,21 @@ mod tests {
             bad[i] ^= 0x10;
             assert!(split_blob(&bad[..n]).is_err(), "flip at byte {i}");
         }
+    }
+
+    #[test]
+    fn version_1_is_refused_by_name() {
+        let mut bytes = header().to_bytes();
+        bytes[4..6].copy_from_slice(&1u16.to_le_bytes());
+        let crc = CRC32.checksum(&bytes[0..36]);
+        bytes[36..40].copy_from_slice(&crc.to_le_bytes());
+        assert_eq!(
+            ModelHeader::parse(&bytes),
+            Err(BlobError::UnsupportedVersion {
+                found: 1,
+                supported: 2
+            })
+        );
     }
 
     #[test]

@@ -131,6 +131,9 @@ pub struct Fixtures<'a> {
     pub nn_blob: &'a [u8],
     /// Compiled calibration blob with an SVR correction of 1,000 support vectors.
     pub svr_blob: &'a [u8],
+    /// The same SVR blob at an address 1 mod 4: its records are read as
+    /// bytes (the fallback path), `svr_blob`'s as aligned words.
+    pub svr_blob_odd: &'a [u8],
 }
 
 /// One function under test.
@@ -172,6 +175,7 @@ pub const CASES: &[Case] = &[
     case("kinematics::forward_kinematics::<f32> (cold, faulty string)", 24, fk_faulty),
     case("correction::NnView::evaluate (3-20-3)", 48, nn_evaluate),
     case("correction::SvrView::evaluate (1000 SV)", 16, svr_evaluate),
+    case("correction::SvrView::evaluate (1000 SV, words/bytes, near/far)", 24, svr_paths),
     case("control::Controller::step (NN, 8 steps)", 6, control_nn),
     case("control::Controller::step (SVR, 8 steps)", 4, control_svr),
 ];
@@ -444,6 +448,28 @@ fn nn_evaluate(fx: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
 
 fn svr_evaluate(fx: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
     correction_case(fx, true, rng, out)
+}
+
+/// The SVR read as aligned words and as bytes (blob at an odd address), at a
+/// position of the central cube (one-`usat` kernel shift) or anywhere in the
+/// `i32` range (mostly the general shift): both results, and which path each
+/// view took.
+fn svr_paths(fx: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    use spidar_core::correction::Correction;
+    let (Some(words), Ok(bytes)) =
+        (calibration(fx, true), spidar_core::blob::CompiledCalibration::from_blob(fx.svr_blob_odd))
+    else {
+        return out.u32(u32::MAX);
+    };
+    let p = if rng.next_u32() & 1 == 0 {
+        spidar_core::blob::position_q16(central_position(rng))
+    } else {
+        [rng.next_u32() as i32, rng.next_u32() as i32, rng.next_u32() as i32]
+    };
+    for c in [&words.correction, &bytes.correction] {
+        out.u32(matches!(c, Correction::Svr(v) if v.reads_words()) as u32);
+        out.i32s(&c.evaluate(p));
+    }
 }
 
 /// Eight control-loop iterations from home with random encoder motion (so

@@ -1,5 +1,6 @@
 //! The fixtures `build.rs` wrote into `OUT_DIR` (compiled model blobs), as the
-//! device sees them: bytes in flash, 8-byte aligned.
+//! device sees them: bytes in flash, 8-byte aligned (and one copy of the SVR
+//! blob deliberately misaligned).
 
 use crate::cases::Fixtures;
 
@@ -15,5 +16,11 @@ macro_rules! out_bytes {
 
 /// The fixtures of this build.
 pub fn fixtures() -> Fixtures<'static> {
-    Fixtures { nn_blob: out_bytes!("nn.blob"), svr_blob: out_bytes!("svr.blob") }
+    // svr_odd.blob is svr.blob after one zero byte: at offset 1 of an 8-aligned
+    // buffer, the blob (and its SVR records) sit at an address 1 mod 4.
+    Fixtures {
+        nn_blob: out_bytes!("nn.blob"),
+        svr_blob: out_bytes!("svr.blob"),
+        svr_blob_odd: &out_bytes!("svr_odd.blob")[1..],
+    }
 }
