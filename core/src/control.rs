@@ -15,7 +15,8 @@
 //! The string law reads the tensions commanded by the previous iteration
 //! (the elasticity term), so one iteration never depends on its own output.
 
-use crate::blob::{position_mm, position_q16, CompiledCalibration};
+use crate::blob::{position_mm, position_q16, BlobHead, CompiledCalibration};
+use crate::correction::Correction;
 use crate::encoder::{DirectionTracker, EncoderExtender};
 use crate::guidance::guidance_force;
 use crate::kinematics::{forward_kinematics, inverse_kinematics, FkConfig, FkStatus};
@@ -221,7 +222,19 @@ impl Controller {
 
     /// One iteration.
     pub fn step(&mut self, calibration: &CompiledCalibration<'_>, input: &LoopInput) -> LoopOutput {
-        let frame = &calibration.head.frame;
+        self.step_with(&calibration.head, &calibration.correction, input)
+    }
+
+    /// One iteration, with the string model and the correction held apart
+    /// (the device keeps the string model parsed and rebuilds the correction
+    /// view over its RAM copy of the blob: nothing is copied per tick).
+    pub fn step_with(
+        &mut self,
+        head: &BlobHead,
+        correction: &Correction<'_>,
+        input: &LoopInput,
+    ) -> LoopOutput {
+        let frame = &head.frame;
         let mut inputs = StringInputs {
             tension_mn: self.tensions_mn,
             time_ms: input.now_ms.wrapping_sub(self.home_ms),
@@ -231,8 +244,7 @@ impl Controller {
             inputs.counts[i] = self.encoders[i].update(input.raw_counts[i]);
             inputs.direction[i] = self.directions[i].update(inputs.counts[i]);
         }
-        let lengths_q16 =
-            string_lengths(&calibration.head.laws, &calibration.head.effects, &inputs);
+        let lengths_q16 = string_lengths(&head.laws, &head.effects, &inputs);
         let lengths = lengths_q16.map(|l| l as f32 / 65536.0);
 
         let fk = forward_kinematics(&frame.anchors, &lengths, self.position, &self.config.fk);
@@ -246,7 +258,7 @@ impl Controller {
             self.position = fk.position;
         }
         let room_q16 = position_q16(room_from_device(frame, self.position));
-        let corrected_q16 = calibration.correction.evaluate(room_q16);
+        let corrected_q16 = correction.evaluate(room_q16);
 
         let geometric = inverse_kinematics(&frame.anchors, self.position);
         self.safety.set_estop(input.estop);

@@ -422,6 +422,20 @@ impl<'a> SvrRecords<'a> {
 /// A compiled RBF SVR with three outputs sharing their support vectors, read
 /// in place from its bytes (see [`SVR_HEADER_LEN`] for the layout). Positions
 /// in and out are Q15.16 mm.
+/// The checked, borrow-free part of an [`SvrView`] (see
+/// [`SvrView::from_summary`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct SvrSummary {
+    mode: OutputMode,
+    scale_frac: u8,
+    coef_frac: [u8; 3],
+    mean: [i32; 3],
+    scale: [i32; 3],
+    offset: [i32; 3],
+    support_abs_max: [u32; 3],
+    support_vectors: u32,
+}
+
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct SvrView<'a> {
     mode: OutputMode,
@@ -504,6 +518,48 @@ impl<'a> SvrView<'a> {
     /// Number of support vectors.
     pub fn support_vectors(&self) -> usize {
         self.records.len()
+    }
+
+    /// What [`parse`](Self::parse) established, without the borrow.
+    pub fn summary(&self) -> SvrSummary {
+        SvrSummary {
+            mode: self.mode,
+            scale_frac: self.scale_frac,
+            coef_frac: self.coef_frac,
+            mean: self.mean,
+            scale: self.scale,
+            offset: self.offset,
+            support_abs_max: self.support_abs_max,
+            support_vectors: self.records.len() as u32,
+        }
+    }
+
+    /// The view again over the same bytes, in O(1): for a caller that parsed
+    /// these bytes once and has not changed them since (the device keeps the
+    /// active blob in RAM and rebuilds the view every control-loop tick;
+    /// re-running [`parse`](Self::parse) would scan every support vector).
+    /// Only the length is checked; different bytes give different (still
+    /// saturated, never panicking) results, not an error.
+    pub fn from_summary(summary: &SvrSummary, bytes: &'a [u8]) -> Result<SvrView<'a>, BlobError> {
+        let expected = (SVR_HEADER_LEN as u64)
+            .saturating_add((SVR_RECORD_LEN as u64).saturating_mul(summary.support_vectors as u64));
+        if bytes.len() as u64 != expected {
+            return Err(BlobError::Dimension {
+                field: "svr.body_len",
+                found: len_u32(bytes.len()),
+                expected: u32::try_from(expected).unwrap_or(u32::MAX),
+            });
+        }
+        Ok(SvrView {
+            mode: summary.mode,
+            scale_frac: summary.scale_frac,
+            coef_frac: summary.coef_frac,
+            mean: summary.mean,
+            scale: summary.scale,
+            offset: summary.offset,
+            support_abs_max: summary.support_abs_max,
+            records: SvrRecords::new(&bytes[SVR_HEADER_LEN..]),
+        })
     }
 
     /// Output mode of the regressor.
@@ -789,7 +845,44 @@ pub enum Correction<'a> {
     Svr(SvrView<'a>),
 }
 
+/// What parsing a correction established, without the borrow of its bytes:
+/// kept by a caller that holds the bytes unchanged and rebuilds the view
+/// often ([`Correction::from_summary`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum CorrectionSummary {
+    None,
+    /// An NN re-parses in O(hidden), cheap enough to keep it simple.
+    Nn {
+        hidden: u16,
+    },
+    Svr(SvrSummary),
+}
+
 impl<'a> Correction<'a> {
+    /// The borrow-free summary of this view.
+    pub fn summary(&self) -> CorrectionSummary {
+        match self {
+            Correction::None => CorrectionSummary::None,
+            Correction::Nn(nn) => CorrectionSummary::Nn {
+                hidden: nn.hidden() as u16,
+            },
+            Correction::Svr(svr) => CorrectionSummary::Svr(svr.summary()),
+        }
+    }
+
+    /// The view again over bytes that were parsed into `summary` and have not
+    /// changed since; O(1) for an SVR (see [`SvrView::from_summary`]).
+    pub fn from_summary(
+        summary: &CorrectionSummary,
+        bytes: &'a [u8],
+    ) -> Result<Correction<'a>, BlobError> {
+        match summary {
+            CorrectionSummary::None => Ok(Correction::None),
+            CorrectionSummary::Nn { hidden } => Ok(Correction::Nn(NnView::parse(bytes, *hidden)?)),
+            CorrectionSummary::Svr(s) => Ok(Correction::Svr(SvrView::from_summary(s, bytes)?)),
+        }
+    }
+
     /// Checks and wraps the correction bytes of a blob given the header's
     /// `kind`, `hidden` and `support_vectors` (which must be 0 for the kinds
     /// that do not use them; `None` must have no bytes).
@@ -1602,6 +1695,24 @@ mod tests {
             eprintln!("NN 3-20-3 seed {seed} {mode:?}: mean {mean:.6} mm, max {max:.6} mm");
             assert!(mean < 0.001, "NN mean error {mean} mm");
             assert!(max < 0.002, "NN max error {max} mm");
+        }
+    }
+
+    #[test]
+    fn view_rebuilt_from_its_summary_evaluates_the_same() {
+        for model in [
+            CorrectionModel::Svr(svr_model(200, 5, OutputMode::Residual)),
+            CorrectionModel::Svr(svr_model(70, 6, OutputMode::Absolute)),
+        ] {
+            let c = model.compile().expect("compiles");
+            let parsed =
+                Correction::parse(c.kind, c.hidden, c.support_vectors, &c.bytes).expect("parses");
+            let rebuilt = Correction::from_summary(&parsed.summary(), &c.bytes).expect("rebuilds");
+            assert_eq!(rebuilt, parsed);
+            // A summary does not fit bytes of another length.
+            assert!(
+                Correction::from_summary(&parsed.summary(), &c.bytes[..c.bytes.len() - 1]).is_err()
+            );
         }
     }
 

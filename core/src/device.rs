@@ -65,7 +65,7 @@ use spidar_protocol::{
 
 use crate::blob::{split_body, BlobHead, CompiledCalibration, LENGTH_FRAC};
 use crate::control::{ControlConfig, Controller, LoopInput, LoopOutput, Target};
-use crate::correction::{Correction, ACTIVATION_FRAC, POSITION_FRAC};
+use crate::correction::{Correction, CorrectionSummary, ACTIVATION_FRAC, POSITION_FRAC};
 use crate::kinematics::FkStatus;
 use crate::model::{Frame, StringLaw};
 use crate::model_store::{CommitError, ModelFlash, ModelStore, StoreError, StoredModel};
@@ -144,6 +144,9 @@ struct ActiveModel {
     stored: StoredModel,
     /// Header, frame, laws, effects; `correction` is always `None` here.
     calibration: CompiledCalibration<'static>,
+    /// The correction as checked at load; its view is rebuilt over
+    /// `model_ram[correction_at..len]` every tick in O(1).
+    correction: CorrectionSummary,
     /// The blob's correction bytes are `model_ram[correction_at..len]`.
     correction_at: usize,
     len: usize,
@@ -152,6 +155,9 @@ struct ActiveModel {
 /// A blob checked by `from_blob`, before it is active.
 struct ParsedModel {
     calibration: CompiledCalibration<'static>,
+    /// The correction as checked at load; the view is rebuilt from it over
+    /// the RAM copy every tick in O(1).
+    correction: CorrectionSummary,
     correction_at: usize,
     len: usize,
 }
@@ -165,6 +171,7 @@ fn parse_model(bytes: &[u8]) -> Result<ParsedModel, BlobError> {
     let (_, body) = spidar_protocol::blob::split_blob(bytes)?;
     let (_, rest) = split_body(body)?;
     Ok(ParsedModel {
+        correction: c.correction.summary(),
         calibration: CompiledCalibration {
             header: c.header,
             head: c.head,
@@ -438,6 +445,7 @@ impl<'m, F: ModelFlash> Device<'m, F> {
                 Some(p) => {
                     active = Some(ActiveModel {
                         stored,
+                        correction: p.correction,
                         calibration: p.calibration,
                         correction_at: p.correction_at,
                         len: p.len,
@@ -876,6 +884,7 @@ impl<'m, F: ModelFlash> Device<'m, F> {
         let model_id = parsed.calibration.header.model_id;
         self.active = Some(ActiveModel {
             stored,
+            correction: parsed.correction,
             calibration: parsed.calibration,
             correction_at: parsed.correction_at,
             len: parsed.len,
@@ -919,15 +928,9 @@ impl<'m, F: ModelFlash> Device<'m, F> {
                             c.step(&a.calibration, &loop_input)
                         } else {
                             let bytes = model_ram.get(a.correction_at..a.len).unwrap_or(&[]);
-                            let h = &a.calibration.header;
-                            match Correction::parse(kind, h.hidden, h.support_vectors, bytes) {
+                            match Correction::from_summary(&a.correction, bytes) {
                                 Ok(correction) => {
-                                    let cal = CompiledCalibration {
-                                        header: a.calibration.header,
-                                        head: a.calibration.head.clone(),
-                                        correction,
-                                    };
-                                    c.step(&cal, &loop_input)
+                                    c.step_with(&a.calibration.head, &correction, &loop_input)
                                 }
                                 Err(_) => {
                                     // The RAM copy no longer checks: fault,
