@@ -37,9 +37,11 @@
 //! string laws, effects: a `CompiledCalibration<'static>` with
 //! `Correction::None`) and where the correction bytes start. Each tick:
 //! - no correction: the cached calibration is passed as it is (no work);
-//! - NN/SVR: a `Correction<'_>` view over the RAM copy is rebuilt with
-//!   `Correction::parse` (O(parameters) range checks, no CRC, no postcard)
-//!   and put next to a copy of the owned part. Measured on the host: see the
+//! - NN/SVR: a `Correction<'_>` view over the RAM copy is rebuilt from the
+//!   `CorrectionSummary` taken when it was checked at load
+//!   (`Correction::from_summary`: O(1) for an SVR, O(hidden) for an NN; the
+//!   bytes cannot change between commits) and passed with the owned string
+//!   model to `Controller::step_with`; nothing is copied. Measured on the host: see the
 //!   test `tick_cost` (`cargo test -p spidar-core --release --lib
 //!   device::tests::tick_cost -- --ignored --nocapture`) and
 //!   `docs/hardware.md`.
