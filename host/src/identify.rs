@@ -982,8 +982,26 @@ pub fn identify(
     let jac = problem
         .jacobian()
         .ok_or_else(|| IdentifyError::Diverged("Jacobian not finite at the solution".into()))?;
+    // Marginal posterior variances from the eigen-decomposition of the
+    // information matrix: a direction with (numerically) no information
+    // makes exactly the parameters that load on it undetermined (infinite
+    // sd), instead of failing the whole inverse.
     let info = jac.transpose() * &jac;
-    let cov = info.clone().try_inverse();
+    let eig = info.symmetric_eigen();
+    let largest = eig.eigenvalues.iter().cloned().fold(0.0, f64::max);
+    let variance = |c: usize| -> f64 {
+        let mut v = 0.0;
+        for k in 0..eig.eigenvalues.len() {
+            let load = eig.eigenvectors[(c, k)] * eig.eigenvectors[(c, k)];
+            if eig.eigenvalues[k] > 1e-12 * largest {
+                v += load / eig.eigenvalues[k];
+            } else if load > 1e-6 {
+                return f64::INFINITY;
+            }
+        }
+        v
+    };
+    let singular = eig.eigenvalues.iter().any(|&l| l <= 1e-12 * largest);
     let mut parameters = Vec::new();
     let mut warnings = Vec::new();
     let names = parameter_names(&layout, structure);
@@ -1004,10 +1022,7 @@ pub fn identify(
                 state.effects[e].effect.parameters()[p]
             }
         };
-        let sd = cov
-            .as_ref()
-            .map(|m| m[(c, c)].max(0.0).sqrt() * s)
-            .unwrap_or(f64::INFINITY);
+        let sd = variance(c).sqrt() * s;
         let determined = match prior_sd {
             Some(p) => sd < 0.7 * p,
             None => sd.is_finite() && sd < 10.0 * s.max(value.abs()),
@@ -1029,7 +1044,7 @@ pub fn identify(
             determined,
         });
     }
-    if cov.is_none() {
+    if singular && warnings.is_empty() {
         warnings.push(
             "the information matrix is singular: some parameters are not determined by the data"
                 .into(),
