@@ -9,9 +9,12 @@
 
 use core::hint::black_box;
 use spidar_core::control::{ControlConfig, Controller, LoopInput, Target};
+use spidar_core::device::{Device, DeviceConfig, ModelBuffer, TickInput};
 use spidar_core::kinematics::{forward_kinematics, inverse_kinematics, FkConfig};
+use spidar_core::model_store::{FlashError, ModelFlash, RamFlash, Slot};
 use spidar_core::tension::{distribute, distribute_warm, TensionConfig};
 use spidar_core::STRINGS;
+use spidar_protocol::messages::{Request, Response};
 use spidar_qemu::bench::{measure, measure_overhead};
 use spidar_qemu::cases::{
     calibration, central_position, cube_anchors, force, lengths_at, string_inputs, tension_limits, Rng,
@@ -156,6 +159,61 @@ fn main() -> ! {
             out.tensions_n
         });
         hprintln!("INFO\t{}: armed {}, FK status Ok in {} of {} iterations", name, armed, fk_ok, N);
+    }
+
+    // One real device tick: device::Device::tick, the firmware's device
+    // logic, on a device booted from its (RAM) flash. The benchmark blob is
+    // committed through the device's own upload requests, the device rebooted
+    // on that flash (boot loads and checks the stored model), then Hello,
+    // Heartbeat, guidance target and Arm via `handle`; the ticks follow the
+    // Controller::step path above (same readings: FK Ok).
+    for (k, (name, cal, blob)) in [
+        ("device::Device::tick (NN 3-20-3)", &nn_cal, fx.nn_blob),
+        ("device::Device::tick (SVR 1,000 SV)", &svr_cal, fx.svr_blob),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let raw = controller_path(cal);
+        let (flash, ram, spare) = device_memory(k);
+        let mut dev = boot(flash, ram, spare);
+        let committed = upload(&mut dev, blob, cal.header.model_id);
+        // Power-cycle: boot from the committed slot, as the firmware does.
+        let flash = dev.into_flash();
+        let (ram, spare) = device_buffers_again(k);
+        let mut dev = boot(flash, ram, spare);
+        let mut ok = committed;
+        for req in [
+            Request::Hello { protocol_version: spidar_protocol::PROTOCOL_VERSION },
+            Request::Heartbeat,
+            Request::SetGuidanceTarget { target_mm: [100.0, -50.0, 1600.0], d_min_mm: 150.0, f_max_n: 5.0 },
+            Request::Arm,
+        ] {
+            ok &= matches!(dev.handle(&req, 0), Response::Ack | Response::HelloAck(_));
+        }
+        let armed = dev.armed();
+        let mut fk_ok = 0;
+        let mut tick_armed = 0;
+        measure(name, Some(55_000), N as u32, |i| {
+            let out = dev.tick(&TickInput { raw_counts: raw[at(i)], now_us: u64::from(i) * 100, estop: false });
+            fk_ok += (out.fk_status == spidar_core::kinematics::FkStatus::Ok) as u32;
+            tick_armed += out.armed as u32;
+            out.tensions_n
+        });
+        hprintln!(
+            "INFO\t{}: committed and set up {}, armed {} (in {} of {} ticks), FK status Ok in {} of {} ticks",
+            name,
+            ok,
+            armed,
+            tick_armed,
+            N,
+            fk_ok,
+            N
+        );
+        if !(ok && armed) {
+            hprintln!("FAIL: {}: device not set up", name);
+            exit(false)
+        }
     }
 
     // The same pipeline composed here from the parts (measured before
@@ -315,4 +373,90 @@ fn controller_path(cal: &spidar_core::blob::CompiledCalibration) -> [[u16; STRIN
         ctl.step(cal, &LoopInput { raw_counts: raw[k], now_ms: now, estop: false });
     }
     raw
+}
+
+/// The firmware's flash slot (`firmware/src/storage.rs`).
+const SLOT: usize = 128 * 1024;
+
+/// A device's RAM flash (two 128 KiB slots) and its two model buffers, one
+/// set per device benchmark: statics, handed out once each.
+static mut FLASH: [RamFlash<SLOT>; 2] = [RamFlash::new(), RamFlash::new()];
+static mut MODEL_RAM: [[ModelBuffer<SLOT>; 2]; 2] =
+    [[ModelBuffer::new(), ModelBuffer::new()], [ModelBuffer::new(), ModelBuffer::new()]];
+static mut SPARE_RAM: [[ModelBuffer<SLOT>; 2]; 2] =
+    [[ModelBuffer::new(), ModelBuffer::new()], [ModelBuffer::new(), ModelBuffer::new()]];
+
+/// The flash of device `k` (a reference, so the device stays small and
+/// nothing of 256 KiB moves) and the buffers of its first boot.
+fn device_memory(k: usize) -> (StaticFlash, &'static mut [u8], &'static mut [u8]) {
+    // SAFETY: called once per `k` (0 and 1), single-threaded, no interrupts
+    // touch these statics: each element is borrowed mutably exactly once.
+    unsafe {
+        let flash = &mut (*core::ptr::addr_of_mut!(FLASH))[k];
+        let ram = (*core::ptr::addr_of_mut!(MODEL_RAM))[k][0].bytes();
+        let spare = (*core::ptr::addr_of_mut!(SPARE_RAM))[k][0].bytes();
+        (StaticFlash(flash), ram, spare)
+    }
+}
+
+/// The buffers of device `k`'s second boot (after the power cycle).
+fn device_buffers_again(k: usize) -> (&'static mut [u8], &'static mut [u8]) {
+    // SAFETY: as above; called once per `k`, other elements than `device_memory`'s.
+    unsafe {
+        let ram = (*core::ptr::addr_of_mut!(MODEL_RAM))[k][1].bytes();
+        let spare = (*core::ptr::addr_of_mut!(SPARE_RAM))[k][1].bytes();
+        (ram, spare)
+    }
+}
+
+/// A `RamFlash` in a static, passed to `Device` by reference.
+struct StaticFlash(&'static mut RamFlash<SLOT>);
+
+impl ModelFlash for StaticFlash {
+    const SLOT_LEN: usize = SLOT;
+
+    fn read(&mut self, slot: Slot, offset: usize, buf: &mut [u8]) -> Result<(), FlashError> {
+        self.0.read(slot, offset, buf)
+    }
+
+    fn erase(&mut self, slot: Slot) -> Result<(), FlashError> {
+        self.0.erase(slot)
+    }
+
+    fn write(&mut self, slot: Slot, offset: usize, data: &[u8]) -> Result<(), FlashError> {
+        self.0.write(slot, offset, data)
+    }
+}
+
+/// Boots a device (the firmware's config, 100 µs loop) homed at counts 0.
+fn boot(flash: StaticFlash, ram: &'static mut [u8], spare: &'static mut [u8]) -> Device<'static, StaticFlash> {
+    let config = DeviceConfig {
+        firmware_version: [0, 1, 0],
+        device_id: [7; 12],
+        loop_period_us: 100,
+        control: ControlConfig::default(),
+    };
+    let Ok(dev) = Device::new(config, flash, ram, spare, [0; STRINGS], 0) else {
+        hprintln!("FAIL: device config rejected");
+        exit(false)
+    };
+    dev
+}
+
+/// Uploads `blob` through the device's requests (Hello, UploadBegin,
+/// UploadChunk of MAX_CHUNK bytes, UploadCommit); whether it committed.
+fn upload(dev: &mut Device<'static, StaticFlash>, blob: &[u8], model_id: u32) -> bool {
+    let crc = spidar_protocol::blob::CRC32.checksum(blob);
+    dev.handle(&Request::Hello { protocol_version: spidar_protocol::PROTOCOL_VERSION }, 0);
+    let r = dev.handle(&Request::UploadBegin { total_len: blob.len() as u32, crc32: crc, model_id }, 0);
+    let Response::ChunkAck { mut next_offset } = r else { return false };
+    while (next_offset as usize) < blob.len() {
+        let at = next_offset as usize;
+        let end = (at + spidar_protocol::MAX_CHUNK).min(blob.len());
+        match dev.handle(&Request::UploadChunk { offset: next_offset, data: &blob[at..end] }, 0) {
+            Response::ChunkAck { next_offset: n } if n > next_offset => next_offset = n,
+            _ => return false,
+        }
+    }
+    matches!(dev.handle(&Request::UploadCommit { crc32: crc }, 0), Response::Committed { .. })
 }
