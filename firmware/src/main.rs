@@ -22,6 +22,8 @@ mod storage;
 mod watchdog;
 
 use core::cell::RefCell;
+use core::mem::MaybeUninit;
+use core::sync::atomic::{AtomicBool, Ordering};
 
 use cortex_m::peripheral::DWT;
 use defmt_rtt as _;
@@ -34,7 +36,7 @@ use embassy_time::Instant;
 use panic_probe as _;
 use spidar_core::control::ControlConfig;
 use spidar_core::device::{Device, DeviceConfig, ModelBuffer};
-use static_cell::{ConstStaticCell, StaticCell};
+use static_cell::StaticCell;
 
 use crate::encoders::{EncoderPins, Encoders};
 use crate::motors::{MotorPins, Motors};
@@ -43,14 +45,49 @@ use crate::storage::H7Flash;
 
 /// RAM copy of the active model blob, and the buffer a commit validates the
 /// next one in (they swap on commit). Bounds the model blob the device takes
-/// (`HelloAck::max_blob_len`); an NN of 64 neurons is ~2.2 KiB, an SVR of
-/// 500 support vectors ~12.5 KiB. Aligned (`ModelBuffer`): the SVR records of
-/// a blob at the start of the buffer are then read as aligned words.
-const MODEL_RAM_LEN: usize = 24 * 1024;
-static MODEL_RAM: ConstStaticCell<ModelBuffer<MODEL_RAM_LEN>> =
-    ConstStaticCell::new(ModelBuffer::new());
-static SPARE_RAM: ConstStaticCell<ModelBuffer<MODEL_RAM_LEN>> =
-    ConstStaticCell::new(ModelBuffer::new());
+/// (`HelloAck::max_blob_len`, the smaller of this and a slot's 128 KiB minus
+/// the 32-byte commit record); an NN of 64 neurons is ~2.2 KiB, an SVR of
+/// 500 support vectors ~12.5 KiB, so 96 KiB is ~3900 support vectors.
+/// Aligned (`ModelBuffer`): the SVR records of a blob at the start of the
+/// buffer are then read as aligned words.
+const MODEL_RAM_LEN: usize = 96 * 1024;
+
+/// Both model buffers, in AXI SRAM (192 KiB, too large for the 128 KiB
+/// DTCM next to `.bss` and the stack). No DMA touches them.
+#[repr(C)]
+struct ModelRam {
+    active: ModelBuffer<MODEL_RAM_LEN>,
+    spare: ModelBuffer<MODEL_RAM_LEN>,
+}
+
+/// `.axisram` is NOLOAD (memory.x): cortex-m-rt neither loads nor zeroes it,
+/// so this holds garbage until [`take_model_ram`] zeroes it.
+#[link_section = ".axisram"]
+static mut MODEL_RAM: MaybeUninit<ModelRam> = MaybeUninit::uninit();
+/// Set by the one call of [`take_model_ram`] (in `.bss`, so zeroed at reset).
+static MODEL_RAM_TAKEN: AtomicBool = AtomicBool::new(false);
+
+/// Zeroes the AXI SRAM model buffers in place and hands them out, once
+/// (panics on a second call). In place: a `ModelRam` by value would be a
+/// 192 KiB temporary on the DTCM stack.
+fn take_model_ram() -> (&'static mut [u8], &'static mut [u8]) {
+    assert!(
+        !MODEL_RAM_TAKEN.swap(true, Ordering::AcqRel),
+        "model RAM taken twice"
+    );
+    // SAFETY: the flag above lets this run once, so this is the only
+    // reference ever made to `MODEL_RAM` (nothing else names it). The write
+    // initializes every byte (all-zero is a valid `ModelRam`: byte arrays)
+    // before `assume_init_mut`. AXI SRAM is clocked from reset on the H723
+    // (no RCC enable) and exists at these addresses (see memory.x).
+    let ram = unsafe {
+        let ram = &mut *core::ptr::addr_of_mut!(MODEL_RAM);
+        ram.as_mut_ptr().write_bytes(0, 1);
+        ram.assume_init_mut()
+    };
+    (ram.active.bytes(), ram.spare.bytes())
+}
+
 static DEVICE: StaticCell<SharedDevice> = StaticCell::new();
 
 /// `[major, minor, patch]` of this crate.
@@ -158,11 +195,12 @@ async fn main(spawner: Spawner) {
         loop_period_us: control::PERIOD_US,
         control: ControlConfig::default(),
     };
+    let (model_ram, spare_ram) = take_model_ram();
     let device = match Device::new(
         config,
         H7Flash::new(Flash::new_blocking(p.FLASH)),
-        MODEL_RAM.take().bytes(),
-        SPARE_RAM.take().bytes(),
+        model_ram,
+        spare_ram,
         encoders.read(),
         Instant::now().as_micros(),
     ) {
