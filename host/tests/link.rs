@@ -280,11 +280,12 @@ fn a_blob_larger_than_the_firmware_capacity_is_refused() {
     )
     .unwrap();
     let mut c = Client::open(vd.port_path()).unwrap();
-    let big = blob(&dev, nn(1200), 3);
-    assert!(big.len() > 24 * 1024);
+    let capacity = spidar::virtual_device::FIRMWARE_BLOB_CAPACITY;
+    let big = blob(&dev, nn(3600), 3);
+    assert!(big.len() > capacity);
     let e = c.flash(&big, |_| {}).unwrap_err();
     assert!(
-        matches!(e.device_error(), Some(DeviceError::TooLarge { capacity, .. }) if *capacity == 24 * 1024),
+        matches!(e.device_error(), Some(DeviceError::TooLarge { capacity: c, .. }) if *c as usize == capacity),
         "{e}"
     );
 }

@@ -55,7 +55,7 @@ pub const SLOT_LEN: usize = 128 * 1024 + RECORD_LEN;
 /// Largest blob the firmware takes (its RAM model buffers, see
 /// `docs/hardware.md`); the virtual device takes up to
 /// [`VirtualDeviceConfig::blob_capacity`].
-pub const FIRMWARE_BLOB_CAPACITY: usize = 24 * 1024;
+pub const FIRMWARE_BLOB_CAPACITY: usize = 96 * 1024;
 
 /// Why the virtual device could not start.
 #[derive(Debug, thiserror::Error)]
