@@ -168,43 +168,7 @@ pub fn scatter(
     y_label: &str,
     series: &[Series<'_>],
 ) -> Result<(), FigureError> {
-    register_font();
-    let root = BitMapBackend::new(path, SIZE).into_drawing_area();
-    root.fill(&WHITE).map_err(|e| fail(path, e))?;
-    let x = span(series.iter().flat_map(|s| s.x.iter().copied()));
-    let y = span(series.iter().flat_map(|s| s.y.iter().copied()));
-    let mut chart = ChartBuilder::on(&root)
-        .caption(title, ("sans-serif", 22))
-        .margin(15)
-        .x_label_area_size(45)
-        .y_label_area_size(65)
-        .build_cartesian_2d(x.0..x.1, y.0..y.1)
-        .map_err(|e| fail(path, e))?;
-    chart
-        .configure_mesh()
-        .x_desc(x_label)
-        .y_desc(y_label)
-        .draw()
-        .map_err(|e| fail(path, e))?;
-    for (i, s) in series.iter().enumerate() {
-        let color = palette(i);
-        chart
-            .draw_series(
-                s.x.iter()
-                    .zip(s.y)
-                    .map(move |(&a, &b)| Circle::new((a, b), 2, color.filled())),
-            )
-            .map_err(|e| fail(path, e))?
-            .label(s.label)
-            .legend(move |(a, b)| Circle::new((a + 8, b), 4, color.filled()));
-    }
-    chart
-        .configure_series_labels()
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .draw()
-        .map_err(|e| fail(path, e))?;
-    root.present().map_err(|e| fail(path, e))
+    xy_figure(path, title, x_label, y_label, series, XyStyle::Points)
 }
 
 /// Lines with markers (e.g. error in collection order, paper fig. 10; mean
@@ -215,6 +179,25 @@ pub fn lines(
     x_label: &str,
     y_label: &str,
     series: &[Series<'_>],
+) -> Result<(), FigureError> {
+    xy_figure(path, title, x_label, y_label, series, XyStyle::Lines)
+}
+
+#[derive(Clone, Copy, PartialEq)]
+enum XyStyle {
+    Points,
+    /// Lines, with markers when a series has few points.
+    Lines,
+}
+
+/// The one x-y chart behind [`scatter`] and [`lines`].
+fn xy_figure(
+    path: &Path,
+    title: &str,
+    x_label: &str,
+    y_label: &str,
+    series: &[Series<'_>],
+    style: XyStyle,
 ) -> Result<(), FigureError> {
     register_font();
     let root = BitMapBackend::new(path, SIZE).into_drawing_area();
@@ -237,20 +220,28 @@ pub fn lines(
     for (i, s) in series.iter().enumerate() {
         let color = palette(i);
         let points: Vec<(f64, f64)> = s.x.iter().copied().zip(s.y.iter().copied()).collect();
-        let markers = points.len() <= 60;
-        chart
-            .draw_series(LineSeries::new(points.clone(), color.stroke_width(1)))
-            .map_err(|e| fail(path, e))?
-            .label(s.label)
-            .legend(move |(a, b)| PathElement::new(vec![(a, b), (a + 16, b)], color));
-        if markers {
+        let markers = style == XyStyle::Points || points.len() <= 60;
+        let radius = if style == XyStyle::Points { 2 } else { 3 };
+        if style == XyStyle::Lines {
             chart
+                .draw_series(LineSeries::new(points.clone(), color.stroke_width(1)))
+                .map_err(|e| fail(path, e))?
+                .label(s.label)
+                .legend(move |(a, b)| PathElement::new(vec![(a, b), (a + 16, b)], color));
+        }
+        if markers {
+            let drawn = chart
                 .draw_series(
                     points
                         .into_iter()
-                        .map(move |p| Circle::new(p, 3, color.filled())),
+                        .map(move |p| Circle::new(p, radius, color.filled())),
                 )
                 .map_err(|e| fail(path, e))?;
+            if style == XyStyle::Points {
+                drawn
+                    .label(s.label)
+                    .legend(move |(a, b)| Circle::new((a + 8, b), 4, color.filled()));
+            }
         }
     }
     chart
