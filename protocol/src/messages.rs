@@ -618,6 +618,34 @@ fn finite(v: &[f32], field: &'static str) -> Result<(), &'static str> {
     }
 }
 
+impl Request<'_> {
+    /// The variant's name, for errors and logs. No wildcard arm: a new
+    /// variant must be named here.
+    pub fn name(&self) -> &'static str {
+        match self {
+            Request::Hello { .. } => "Hello",
+            Request::Heartbeat => "Heartbeat",
+            Request::GetInfo => "GetInfo",
+            Request::GetStats => "GetStats",
+            Request::SetStringModel(_) => "SetStringModel",
+            Request::SetLimits(_) => "SetLimits",
+            Request::SetForceTarget { .. } => "SetForceTarget",
+            Request::SetGuidanceTarget { .. } => "SetGuidanceTarget",
+            Request::Arm => "Arm",
+            Request::Disarm => "Disarm",
+            Request::ClearFaults => "ClearFaults",
+            Request::StreamOn { .. } => "StreamOn",
+            Request::StreamOff => "StreamOff",
+            Request::UploadBegin { .. } => "UploadBegin",
+            Request::UploadChunk { .. } => "UploadChunk",
+            Request::UploadCommit { .. } => "UploadCommit",
+            Request::UploadAbort => "UploadAbort",
+            Request::UploadStatus => "UploadStatus",
+            Request::ClearModel => "ClearModel",
+        }
+    }
+}
+
 impl Message for Request<'_> {
     fn validate(&self) -> Result<(), &'static str> {
         match self {

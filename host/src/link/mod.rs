@@ -198,30 +198,6 @@ pub struct StreamReport {
     pub elapsed: Duration,
 }
 
-/// The name of a request in errors.
-pub fn request_name(r: &Request<'_>) -> &'static str {
-    match r {
-        Request::Hello { .. } => "Hello",
-        Request::Heartbeat => "Heartbeat",
-        Request::GetInfo => "GetInfo",
-        Request::GetStats => "GetStats",
-        Request::SetStringModel(_) => "SetStringModel",
-        Request::SetLimits(_) => "SetLimits",
-        Request::SetForceTarget { .. } => "SetForceTarget",
-        Request::SetGuidanceTarget { .. } => "SetGuidanceTarget",
-        Request::Arm => "Arm",
-        Request::Disarm => "Disarm",
-        Request::ClearFaults => "ClearFaults",
-        Request::StreamOn { .. } => "StreamOn",
-        Request::StreamOff => "StreamOff",
-        Request::UploadBegin { .. } => "UploadBegin",
-        Request::UploadChunk { .. } => "UploadChunk",
-        Request::UploadCommit { .. } => "UploadCommit",
-        Request::UploadAbort => "UploadAbort",
-        Request::UploadStatus => "UploadStatus",
-        Request::ClearModel => "ClearModel",
-    }
-}
 
 /// A session with one device.
 pub struct Client {
@@ -437,7 +413,7 @@ impl Client {
         let mut tx = [0u8; MAX_FRAME];
         let frame = encode_request(seq, req, &mut tx).map_err(|e| LinkError::Unexpected {
             port: self.name.clone(),
-            request: request_name(req),
+            request: req.name(),
             got: format!("request does not encode: {e}"),
         })?;
         let frame = frame.to_vec();
@@ -478,7 +454,7 @@ impl Client {
         }
         Err(LinkError::Timeout {
             port: self.name.clone(),
-            request: request_name(req),
+            request: req.name(),
             attempts,
             timeout_ms: self.options.timeout.as_millis() as u64,
         })
@@ -497,7 +473,7 @@ impl Client {
             }
             Response::Error(reason) => Err(LinkError::Rejected {
                 port: self.name.clone(),
-                request: request_name(req),
+                request: req.name(),
                 reason,
             }),
             r => Ok(r),
@@ -515,7 +491,7 @@ impl Client {
     fn expect_ack(&mut self, req: &Request<'_>) -> Result<(), LinkError> {
         match self.request(req)? {
             Response::Ack => Ok(()),
-            r => Err(self.unexpected(request_name(req), &r)),
+            r => Err(self.unexpected(req.name(), &r)),
         }
     }
 
@@ -600,7 +576,7 @@ impl Client {
     fn chunk_ack(&mut self, req: &Request<'_>) -> Result<u32, LinkError> {
         match self.request(req)? {
             Response::ChunkAck { next_offset } => Ok(next_offset),
-            r => Err(self.unexpected(request_name(req), &r)),
+            r => Err(self.unexpected(req.name(), &r)),
         }
     }
 

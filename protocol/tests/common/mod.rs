@@ -98,28 +98,7 @@ pub fn requests(max: bool) -> Vec<Request<'static>> {
 }
 
 pub fn request_name(r: &Request) -> &'static str {
-    // No wildcard: adding a variant breaks this until the samples cover it.
-    match r {
-        Request::Hello { .. } => "Hello",
-        Request::Heartbeat => "Heartbeat",
-        Request::GetInfo => "GetInfo",
-        Request::GetStats => "GetStats",
-        Request::SetStringModel(_) => "SetStringModel",
-        Request::SetLimits(_) => "SetLimits",
-        Request::SetForceTarget { .. } => "SetForceTarget",
-        Request::SetGuidanceTarget { .. } => "SetGuidanceTarget",
-        Request::Arm => "Arm",
-        Request::Disarm => "Disarm",
-        Request::ClearFaults => "ClearFaults",
-        Request::StreamOn { .. } => "StreamOn",
-        Request::StreamOff => "StreamOff",
-        Request::UploadBegin { .. } => "UploadBegin",
-        Request::UploadChunk { .. } => "UploadChunk",
-        Request::UploadCommit { .. } => "UploadCommit",
-        Request::UploadAbort => "UploadAbort",
-        Request::UploadStatus => "UploadStatus",
-        Request::ClearModel => "ClearModel",
-    }
+    r.name()
 }
 pub const REQUEST_VARIANTS: usize = 19;
 
