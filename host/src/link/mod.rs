@@ -198,7 +198,6 @@ pub struct StreamReport {
     pub elapsed: Duration,
 }
 
-
 /// A session with one device.
 pub struct Client {
     port: Box<dyn serialport::SerialPort>,
