@@ -45,7 +45,16 @@ impl Default for ControlConfig {
                 t_min: 0.5,
                 t_max: 20.0,
             },
-            tension: TensionConfig::default(),
+            // Closest to a low tension, not to mid-range: internal tension
+            // turns every error of the geometry the loop believes into a
+            // force the user feels (8 strings x 10 N with directions off by
+            // 0.03 rad before homing: 1-2 N, as large as the guidance cue;
+            // measured with host/tests/operator_init.rs). 2 N keeps every
+            // string clear of t_min while rendering.
+            tension: TensionConfig {
+                reference: crate::tension::TensionReference::Preferred(2.0),
+                ..TensionConfig::default()
+            },
             safety: SafetyConfig {
                 t_min: 0.5,
                 t_max: 20.0,

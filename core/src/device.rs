@@ -22,7 +22,8 @@
 //!
 //! **Home** (counts 0, end-effector at the calibration's home point) is
 //! declared when the controller is created: at boot if a stored model loads,
-//! else when the first geometry arrives (`SetStringModel` or a commit). A
+//! else when the first geometry arrives (`SetStringModel` or a commit), and
+//! again at each `Home` request (the host's guided initialization). A
 //! later change of calibration keeps the counts (same physical home);
 //! `ClearModel` without a nominal model drops the geometry, and the next one
 //! homes again.
@@ -806,6 +807,21 @@ impl<'m, F: ModelFlash> Device<'m, F> {
                     next_offset: u.received,
                 },
             })),
+            Request::Home => {
+                let cal = match (&self.active, &self.nominal) {
+                    (Some(a), _) => &a.calibration,
+                    (None, Some(n)) => n,
+                    (None, None) => return Err(DeviceError::BadState(BadState::NoGeometry)),
+                };
+                let Some(c) = self.controller.as_mut() else {
+                    return Err(DeviceError::BadState(BadState::NoGeometry));
+                };
+                c.home(cal, self.last_raw, now_ms);
+                c.set_target(Target::Idle);
+                self.target = Target::Idle;
+                self.push_event(Event::Homed);
+                Ok(Response::Ack)
+            }
             Request::ClearModel => {
                 self.refuse_if_armed()?;
                 self.store.clear().map_err(store_error)?;
@@ -1235,8 +1251,18 @@ mod tests {
 
     impl<'m> Bench<'m> {
         fn new(flash: Flash, ram: &'m mut [u8], spare: &'m mut [u8]) -> Self {
+            Self::new_at(flash, ram, spare, raw_at([0.0; 3]))
+        }
+
+        /// Boots with the encoders reading `raw`.
+        fn new_at(
+            flash: Flash,
+            ram: &'m mut [u8],
+            spare: &'m mut [u8],
+            raw: [u16; STRINGS],
+        ) -> Self {
             Bench {
-                dev: Device::new(config(), flash, ram, spare, raw_at([0.0; 3]), 0).unwrap(),
+                dev: Device::new(config(), flash, ram, spare, raw, 0).unwrap(),
                 link: DeviceLink::new(),
                 host_rx: FrameDecoder::new(),
                 seq: 0,
@@ -1651,7 +1677,7 @@ mod tests {
             77,
             &FutureHello {
                 tag: 0,
-                protocol_version: 2,
+                protocol_version: PROTOCOL_VERSION + 1,
                 new_field: 5,
             },
             &mut buf,
@@ -1865,6 +1891,53 @@ mod tests {
             Response::UploadStatus(UploadState::Idle)
         );
         assert_eq!(b.upload(&blob, 5, 64), Response::Committed { model_id: 5 });
+    }
+
+    #[test]
+    fn home_rezeroes_the_strings_where_the_operator_holds_the_end_effector() {
+        let (mut ram, mut spare) = (ModelBuffer::<SLOT>::new(), ModelBuffer::<SLOT>::new());
+        // Booted with the end-effector 40 mm off the true home: the nominal
+        // model homes there, so every position is off by 40 mm.
+        let off = [40.0, -25.0, 10.0];
+        let mut b = Bench::new_at(Flash::new(), ram.bytes(), spare.bytes(), raw_at(off));
+        // No geometry yet: nothing to home.
+        assert_eq!(b.request(&Request::Home), bad_state(BadState::NoGeometry));
+        assert_eq!(
+            b.request(&Request::SetStringModel(string_model())),
+            Response::Ack
+        );
+        let out = b.tick_at(raw_at([0.0; 3]));
+        assert!((out.position_mm[0] + 40.0).abs() < 0.5, "{:?}", out.position_mm);
+        // Armed with a force: Home is accepted, the force is dropped.
+        assert_eq!(b.request(&Request::Arm), Response::Ack);
+        assert_eq!(
+            b.request(&Request::SetForceTarget {
+                force_n: [1.0, 0.0, 0.0]
+            }),
+            Response::Ack
+        );
+        let out = b.tick_at(raw_at([0.0; 3]));
+        assert_eq!(out.force_n, [1.0, 0.0, 0.0]);
+        assert_eq!(b.request(&Request::Home), Response::Ack);
+        let mut out = b.tick_at(raw_at([0.0; 3]));
+        for _ in 0..5 {
+            out = b.tick_at(raw_at([0.0; 3]));
+        }
+        assert_eq!(out.counts, [0; STRINGS]);
+        assert!(out.armed);
+        assert_eq!(out.force_n, [0.0; 3]);
+        for k in 0..3 {
+            assert!(out.position_mm[k].abs() < 1e-3, "{:?}", out.position_mm);
+        }
+        // A move of 100 mm now reads as 100 mm.
+        let out = b.tick_at(raw_at([100.0, 0.0, 0.0]));
+        assert!((out.position_mm[0] - 100.0).abs() < 0.5, "{:?}", out.position_mm);
+        let homed = b
+            .stream
+            .iter()
+            .filter(|p| matches!(p.msg, DeviceMessage::Event(Event::Homed)))
+            .count();
+        assert_eq!(homed, 1);
     }
 
     #[test]

@@ -367,6 +367,17 @@ impl Geometry {
         })
     }
 
+    /// The device's nominal string model (`SetStringModel`): what a device
+    /// without a calibration blob runs on.
+    pub fn string_model(&self) -> spidar_protocol::StringModel {
+        spidar_protocol::StringModel {
+            counts_per_rev: [self.counts_per_rev; STRINGS],
+            pulley_radius_mm: self.pulley_radius_mm.map(|r| r as f32),
+            anchors_mm: self.anchors_mm.map(|a| a.map(|v| v as f32)),
+            home_mm: self.home_mm.map(|v| v as f32),
+        }
+    }
+
     /// Nominal string length of each string at home (mm).
     pub fn home_lengths_mm(&self) -> [f64; STRINGS] {
         core::array::from_fn(|i| distance(&self.anchors_mm[i], &self.home_mm))

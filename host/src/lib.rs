@@ -11,6 +11,7 @@ pub mod identify;
 pub mod learn;
 pub mod link;
 pub mod observe;
+pub mod operator;
 pub mod predict;
 pub mod sim;
 pub mod stats;

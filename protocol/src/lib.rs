@@ -131,7 +131,7 @@ pub use messages::{
 };
 
 /// Version of this protocol. Bumped whenever a message's layout changes.
-pub const PROTOCOL_VERSION: u16 = 1;
+pub const PROTOCOL_VERSION: u16 = 2;
 
 /// Number of strings (and motors, and encoders) of the device.
 pub const STRINGS: usize = 8;

@@ -133,6 +133,15 @@ pub enum Request<'a> {
     /// Erases the active model (the device falls back to [`StringModel`]).
     /// Refused while armed.
     ClearModel,
+    /// Declares home now: the current encoder readings become the zero of
+    /// every string and the end-effector is taken to be at the active
+    /// calibration's home point (the operator holds it there; see the guided
+    /// initialization of the host, `spidar init`). Allowed while armed: the
+    /// target drops to idle (pre-tension), so that a force computed from the
+    /// old position is not rendered from the new one. Refused with
+    /// `BadState(NoGeometry)` without a calibration. Answered by `Ack` and
+    /// [`Event::Homed`] in the stream.
+    Home,
 }
 
 /// Nominal geometry and string law of the device.
@@ -588,6 +597,9 @@ pub enum Event {
     Fault { raised: Faults },
     /// The device disarmed itself because of these faults.
     Disarmed { faults: Faults },
+    /// Home was declared (`Request::Home`): state frames from here on count
+    /// from the new zero.
+    Homed,
 }
 
 // ---------------------------------------------------------------------------
@@ -642,6 +654,7 @@ impl Request<'_> {
             Request::UploadAbort => "UploadAbort",
             Request::UploadStatus => "UploadStatus",
             Request::ClearModel => "ClearModel",
+            Request::Home => "Home",
         }
     }
 }

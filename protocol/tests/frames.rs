@@ -448,13 +448,14 @@ fn hello_layout_is_frozen() {
 
 #[test]
 fn newer_hello_ack_is_a_version_mismatch() {
-    // A device of protocol version 2 whose HelloAck has another layout.
+    // A device of a newer protocol version whose HelloAck has another layout.
+    let newer = PROTOCOL_VERSION as u8 + 1;
     let mut dec: FrameDecoder = FrameDecoder::new();
-    let r = decode_stream(&mut dec, &raw_frame(&[0x09, 0x00, 0x00, 0x02, 0xff]));
+    let r = decode_stream(&mut dec, &raw_frame(&[0x09, 0x00, 0x00, newer, 0xff]));
     assert_eq!(
         r,
         vec![Err(FrameError::VersionMismatch {
-            peer: 2,
+            peer: u16::from(newer),
             ours: PROTOCOL_VERSION,
             seq: 9
         })]
@@ -466,11 +467,11 @@ fn newer_hello_ack_is_a_version_mismatch() {
         .to_string()
         .contains("version mismatch"));
     // Same on the device side for a future Hello with extra fields.
-    let mut f = raw_frame(&[0x04, 0x00, 0x03, 0x01, 0x02]);
+    let mut f = raw_frame(&[0x04, 0x00, newer + 1, 0x01, 0x02]);
     assert_eq!(
         decode::<Request>(&mut f),
         Err(FrameError::VersionMismatch {
-            peer: 3,
+            peer: u16::from(newer + 1),
             ours: PROTOCOL_VERSION,
             seq: 4
         })

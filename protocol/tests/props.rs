@@ -75,6 +75,7 @@ fn request(f: fn() -> F) -> impl Strategy<Value = Request<'static>> {
         Just(Request::UploadAbort),
         Just(Request::UploadStatus),
         Just(Request::ClearModel),
+        Just(Request::Home),
     ]
 }
 
@@ -269,6 +270,7 @@ fn device_message(f: fn() -> F) -> impl Strategy<Value = DeviceMessage> {
         Just(Event::HeartbeatLost),
         any::<u16>().prop_map(|b| Event::Fault { raised: Faults(b) }),
         any::<u16>().prop_map(|b| Event::Disarmed { faults: Faults(b) }),
+        Just(Event::Homed),
     ];
     prop_oneof![
         response.prop_map(DeviceMessage::Reply),

@@ -781,6 +781,41 @@ impl Client {
         })
     }
 
+    /// `Home`: the end-effector is at the calibration's home point now (the
+    /// encoder readings become every string's zero). The device drops its
+    /// target to idle and sends `Event::Homed`.
+    pub fn home(&mut self) -> Result<(), LinkError> {
+        self.expect_ack(&Request::Home)
+    }
+
+    /// `StreamOn` for the polling procedures ([`Client::poll_states`]): state
+    /// frames queue up on the host as they come, between and during requests.
+    pub fn stream_on(&mut self, decimation: u16) -> Result<(), LinkError> {
+        self.pending.clear();
+        self.expect_ack(&Request::StreamOn {
+            decimation: decimation.max(1),
+        })
+    }
+
+    /// `StreamOff`; drops the state frames not taken yet.
+    pub fn stream_off(&mut self) -> Result<(), LinkError> {
+        let r = self.expect_ack(&Request::StreamOff);
+        self.pending.clear();
+        r
+    }
+
+    /// The state frames that came since the last call (queued during
+    /// requests, and what the port holds now), oldest first. Waits at most
+    /// the port's read timeout for bytes; never blocks longer. Events go to
+    /// [`Client::take_events`]; lost frames are counted in
+    /// [`Client::stream_seq`].
+    pub fn poll_states(&mut self) -> Result<Vec<State>, LinkError> {
+        for p in self.poll_frames()? {
+            self.queue(p);
+        }
+        Ok(self.take_states())
+    }
+
     /// Writes raw bytes to the port (tests: corrupt frames, cut frames).
     pub fn write_raw(&mut self, bytes: &[u8]) -> Result<(), LinkError> {
         self.write_all(bytes, "write")

@@ -30,7 +30,7 @@
 
 mod plant;
 
-pub use plant::{Plant, Trajectory, Waypoint};
+pub use plant::{Hand, Plant, Trajectory, Waypoint};
 
 use std::io::{Read, Write};
 use std::os::fd::AsRawFd;

@@ -4,6 +4,8 @@
 //! tension follows the commanded tension with a first-order lag, and 16-bit
 //! encoder counters that read the true string lengths (and wrap).
 
+use std::sync::{Arc, Mutex};
+
 use spidar_core::STRINGS;
 
 use crate::sim::device::{norm, sub};
@@ -18,8 +20,78 @@ pub struct Waypoint {
     pub device_mm: [f64; 3],
 }
 
+/// An end-effector in someone's hand (a simulated operator): whoever holds
+/// the handle moves it ([`Hand::move_to`]); the plant reads its position at
+/// every tick and writes back the net force the strings put on it
+/// ([`Hand::string_force_n`]), which is what the holder feels. Clones share
+/// the same hand.
+#[derive(Clone, Debug)]
+pub struct Hand {
+    inner: Arc<Mutex<HandState>>,
+}
+
+#[derive(Clone, Copy, Debug)]
+struct HandState {
+    device_mm: [f64; 3],
+    force_n: [f64; 3],
+}
+
+impl Hand {
+    /// A hand holding the end-effector at `device_mm` (device frame, mm).
+    pub fn at(device_mm: [f64; 3]) -> Hand {
+        Hand {
+            inner: Arc::new(Mutex::new(HandState {
+                device_mm,
+                force_n: [0.0; 3],
+            })),
+        }
+    }
+
+    fn state(&self) -> HandState {
+        match self.inner.lock() {
+            Ok(s) => *s,
+            Err(poisoned) => *poisoned.into_inner(),
+        }
+    }
+
+    fn update(&self, f: impl FnOnce(&mut HandState)) {
+        match self.inner.lock() {
+            Ok(mut s) => f(&mut s),
+            Err(poisoned) => f(&mut poisoned.into_inner()),
+        }
+    }
+
+    /// Where the end-effector is, device frame, mm.
+    pub fn position_mm(&self) -> [f64; 3] {
+        self.state().device_mm
+    }
+
+    /// Moves the end-effector to `device_mm` (device frame, mm).
+    pub fn move_to(&self, device_mm: [f64; 3]) {
+        self.update(|s| s.device_mm = device_mm);
+    }
+
+    /// Net force of the strings on the end-effector at the last tick, device
+    /// frame, N: `sum_i tension_i (anchor_i - p) / |anchor_i - p|`.
+    pub fn string_force_n(&self) -> [f64; 3] {
+        self.state().force_n
+    }
+
+    fn set_string_force(&self, force_n: [f64; 3]) {
+        self.update(|s| s.force_n = force_n);
+    }
+}
+
+impl PartialEq for Hand {
+    /// The same hand (shared handle), not equal positions.
+    fn eq(&self, other: &Hand) -> bool {
+        Arc::ptr_eq(&self.inner, &other.inner)
+    }
+}
+
 /// Where the end-effector is at each instant of device time (since boot; the
-/// device boots with the end-effector at its true home).
+/// device boots with the end-effector at its true home, or where the
+/// [`Hand`] holds it).
 #[derive(Clone, Debug, PartialEq)]
 pub enum Trajectory {
     /// Resting at home.
@@ -29,6 +101,8 @@ pub enum Trajectory {
     Waypoints(Vec<Waypoint>),
     /// A slow loop through home: `home + [r (cos wt - 1), r sin wt, r/3 sin 2wt]`.
     Orbit { radius_mm: f64, period_s: f64 },
+    /// Wherever the hand holds it (device time plays no part).
+    Held(Hand),
 }
 
 impl Trajectory {
@@ -59,6 +133,7 @@ impl Trajectory {
     pub fn position_at(&self, home: [f64; 3], t_us: u64) -> [f64; 3] {
         match self {
             Trajectory::Hold => home,
+            Trajectory::Held(hand) => hand.position_mm(),
             Trajectory::Orbit {
                 radius_mm,
                 period_s,
@@ -115,6 +190,9 @@ pub struct Plant {
     prev_length: Option<[f64; STRINGS]>,
     prev_t_us: u64,
     counts: [i32; STRINGS],
+    /// Counts where the end-effector was at the last boot: the counters
+    /// read `raw_home` there (zero unless a hand held it away from home).
+    boot_counts: [i32; STRINGS],
     error: Option<String>,
 }
 
@@ -131,18 +209,33 @@ impl Plant {
             prev_length: None,
             prev_t_us: 0,
             counts: [0; STRINGS],
+            boot_counts: [0; STRINGS],
             error: None,
         }
     }
 
-    /// Back to home at time 0, motors off (power cycle: the user holds the
-    /// end-effector at home while the device boots).
+    /// Back to time 0, motors off (power cycle): a trajectory starts at
+    /// home again; a held end-effector stays where the hand holds it, and
+    /// the counters read `raw_home` there (as a real controller's counters
+    /// start wherever the strings are at power-on).
     pub fn reset(&mut self) {
         self.tension_n = [0.0; STRINGS];
         self.direction = [0; STRINGS];
         self.prev_length = None;
         self.prev_t_us = 0;
         self.counts = [0; STRINGS];
+        self.boot_counts = [0; STRINGS];
+        if let Trajectory::Held(hand) = &self.trajectory {
+            let p = hand.position_mm();
+            for i in 0..STRINGS {
+                let length = norm(&sub(&p, &self.device.frame.anchors[i]));
+                match self.device.counts_for_length(i, length, 0.0, 0, 0.0, 0.0) {
+                    Ok(c) => self.boot_counts[i] = c,
+                    Err(e) => self.error = Some(e.to_string()),
+                }
+            }
+            self.counts = self.boot_counts;
+        }
     }
 
     /// True end-effector position at `t_us`, device frame, mm.
@@ -227,8 +320,23 @@ impl Plant {
                 Err(e) => self.error = Some(e.to_string()),
             }
         }
+        if let Trajectory::Held(hand) = &self.trajectory {
+            let mut force = [0.0; 3];
+            for (i, length) in lengths.iter().enumerate() {
+                if *length > 0.0 {
+                    let towards = sub(&self.device.frame.anchors[i], &p);
+                    for k in 0..3 {
+                        force[k] += self.tension_n[i] * towards[k] / length;
+                    }
+                }
+            }
+            hand.set_string_force(force);
+        }
         self.prev_length = Some(lengths);
         self.prev_t_us = t_us;
-        core::array::from_fn(|i| (i32::from(self.raw_home[i]).wrapping_add(self.counts[i])) as u16)
+        core::array::from_fn(|i| {
+            let counts = self.counts[i].wrapping_sub(self.boot_counts[i]);
+            (i32::from(self.raw_home[i]).wrapping_add(counts)) as u16
+        })
     }
 }

@@ -94,13 +94,14 @@ pub fn requests(max: bool) -> Vec<Request<'static>> {
         Request::UploadAbort,
         Request::UploadStatus,
         Request::ClearModel,
+        Request::Home,
     ]
 }
 
 pub fn request_name(r: &Request) -> &'static str {
     r.name()
 }
-pub const REQUEST_VARIANTS: usize = 19;
+pub const REQUEST_VARIANTS: usize = 20;
 
 pub fn state(max: bool) -> State {
     if max {
@@ -262,6 +263,7 @@ pub fn device_messages(max: bool) -> Vec<DeviceMessage> {
         DeviceMessage::Event(Event::Disarmed {
             faults: Faults(if max { u16::MAX } else { 2 }),
         }),
+        DeviceMessage::Event(Event::Homed),
     ];
     v.extend(
         device_errors(max)
@@ -313,11 +315,12 @@ pub fn device_message_name(m: &DeviceMessage) -> &'static str {
             Event::HeartbeatLost => "Event(HeartbeatLost)",
             Event::Fault { .. } => "Event(Fault)",
             Event::Disarmed { .. } => "Event(Disarmed)",
+            Event::Homed => "Event(Homed)",
         },
     }
 }
 /// Distinct names `device_message_name` returns (BadState counted once).
-pub const DEVICE_MESSAGE_VARIANTS: usize = 32;
+pub const DEVICE_MESSAGE_VARIANTS: usize = 33;
 
 /// Encodes a raw postcard payload (seq + message bytes) into a frame, CRC and
 /// COBS included, bypassing the typed encoder (to build frames a correct

@@ -1,0 +1,471 @@
+//! A simulated operator: a hand on the virtual device's end-effector that
+//! follows the cues of a procedure, and the optical tracker that watches its
+//! marker.
+//!
+//! One thread, one step per tracker frame (`frame_rate_hz`, real time):
+//! 1. read the latest [`Cues`] (what a person would see and hear);
+//! 2. move the [`Hand`] (device frame):
+//!    - a visible target (lattice collection): reach for it, speed
+//!      `min(reach_speed, reach_gain * distance)`;
+//!    - else, a beep at or above `hold_beep_hz` (the audio cue says "there"):
+//!      hold still;
+//!    - else, with [`FreeMotion::FollowForce`]: a pull the operator can feel
+//!      (at least `feel_n`) is followed (`compliance * F`); a weaker one is
+//!      resisted (a human arm is stiff for a few tenths of a newton) and,
+//!      while it beeps, the operator searches by ear: keeps a direction while
+//!      the pitch rises (compared over `listen` windows: nobody hears a 1 Hz
+//!      change within one frame), turns to a random new one when it falls,
+//!      at `search_speed * (1 - h)` (slower near the target). Near the
+//!      target the force alone cannot finish the job: before home is
+//!      declared the device renders its force with the geometry it has
+//!      (homed centimetres off), so the pre-tensions leave a net force of a
+//!      few tenths of a newton, as large as the cue's own pull there (the
+//!      paper's "low sensitivity of the haptic device in small distance");
+//!    - [`FreeMotion::Wander`]: from one random point to the next (someone
+//!      using the device while runtime recalibration watches);
+//!    plus tremor (`tremor_mm` per frame, Gaussian);
+//! 3. send one DTrack2 datagram (`fr`, `ts`, `6d`) of the marker: the true
+//!    room position of the end-effector (the simulated device's true
+//!    room-from-device transform) plus tracker noise, with occlusion
+//!    (empty `6d` record) and datagram loss at the configured rates.
+//!
+//! The virtual device's plant reads the hand at every tick and writes back
+//! the string force, so the haptic cue the device renders is what moves the
+//! hand: the loop is closed through the device's own control code.
+
+use std::net::{SocketAddr, UdpSocket};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use rand::rngs::ChaCha8Rng;
+use rand::{RngExt, SeedableRng};
+use rand_distr::{Distribution, Normal};
+
+use super::{distance, Cues, SharedCues};
+use crate::sim::Device as SimDevice;
+use crate::tracker::dtrack::{format_datagram, BodyPose, DtrackFrame};
+use crate::tracker::TrackerError;
+use crate::virtual_device::Hand;
+
+/// What the hand does when no target is shown and no beep says "hold".
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum FreeMotion {
+    /// Yield to the string force: `velocity = compliance * force`.
+    FollowForce,
+    /// Go from one random point to the next inside a box (device frame).
+    Wander {
+        centre_mm: [f64; 3],
+        half_size_mm: f64,
+        speed_mm_s: f64,
+    },
+    /// Stay put (tremor only).
+    Still,
+}
+
+/// Settings of a [`SimOperator`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct SimOperatorConfig {
+    /// Where the tracker datagrams go (a loopback address).
+    pub tracker: SocketAddr,
+    pub frame_rate_hz: f64,
+    /// DTrack body id of the marker.
+    pub body_id: u32,
+    /// `ts` of the first frame, s since midnight.
+    pub ts_start_s: f64,
+    /// Tracker noise, standard deviation per axis, mm.
+    pub tracker_noise_mm: f64,
+    /// Probability that a frame has the marker occluded.
+    pub occlusion: f64,
+    /// Probability that a datagram is lost.
+    pub loss: f64,
+    /// Hand velocity per newton of string force it follows, mm/s/N.
+    pub compliance_mm_s_per_n: f64,
+    /// Weakest force the operator follows, N.
+    pub feel_n: f64,
+    /// Top speed toward a shown target, mm/s.
+    pub reach_speed_mm_s: f64,
+    /// Approach rate toward a shown target, 1/s (speed = gain x distance
+    /// near it).
+    pub reach_gain_per_s: f64,
+    /// Beep frequency at and above which the hand holds still, Hz.
+    pub hold_beep_hz: f32,
+    /// Once holding, the hand moves again only when the beep falls this far
+    /// below `hold_beep_hz` (a person does not chase every wobble), Hz.
+    pub release_hz: f32,
+    /// Speed of the search by ear far out (times `1 - h`), mm/s.
+    pub search_speed_mm_s: f64,
+    /// Slowest search speed, mm/s.
+    pub search_min_speed_mm_s: f64,
+    /// How long the operator listens before comparing pitches.
+    pub listen: Duration,
+    /// Tremor: Gaussian step per frame, per axis, mm.
+    pub tremor_mm: f64,
+    pub free_motion: FreeMotion,
+    /// Stop after this long whatever happens.
+    pub max_duration: Duration,
+    pub seed: u64,
+}
+
+impl SimOperatorConfig {
+    /// A steady operator and a clean 100 Hz tracker sending to `tracker`.
+    pub fn new(tracker: SocketAddr) -> SimOperatorConfig {
+        SimOperatorConfig {
+            tracker,
+            frame_rate_hz: 100.0,
+            body_id: 0,
+            ts_start_s: 36_000.0,
+            tracker_noise_mm: 0.1,
+            occlusion: 0.0,
+            loss: 0.0,
+            compliance_mm_s_per_n: 40.0,
+            feel_n: 0.4,
+            reach_speed_mm_s: 600.0,
+            reach_gain_per_s: 8.0,
+            hold_beep_hz: 990.0,
+            release_hz: 10.0,
+            search_speed_mm_s: 60.0,
+            search_min_speed_mm_s: 4.0,
+            listen: Duration::from_millis(100),
+            tremor_mm: 0.02,
+            free_motion: FreeMotion::FollowForce,
+            max_duration: Duration::from_secs(60),
+            seed: 0,
+        }
+    }
+
+    fn validate(&self) -> Result<(), TrackerError> {
+        if !self.tracker.ip().is_loopback() {
+            return Err(TrackerError::NotLoopback(self.tracker));
+        }
+        let bad = |field: &'static str, problem: String| TrackerError::Config { field, problem };
+        if !(self.frame_rate_hz.is_finite() && self.frame_rate_hz > 0.0) {
+            return Err(bad(
+                "frame_rate_hz",
+                format!("{} is not a positive rate", self.frame_rate_hz),
+            ));
+        }
+        for (field, p) in [("occlusion", self.occlusion), ("loss", self.loss)] {
+            if !(0.0..=1.0).contains(&p) {
+                return Err(bad(field, format!("{p} is not a probability")));
+            }
+        }
+        for (field, v) in [
+            ("tracker_noise_mm", self.tracker_noise_mm),
+            ("compliance_mm_s_per_n", self.compliance_mm_s_per_n),
+            ("feel_n", self.feel_n),
+            ("reach_speed_mm_s", self.reach_speed_mm_s),
+            ("reach_gain_per_s", self.reach_gain_per_s),
+            ("tremor_mm", self.tremor_mm),
+            ("search_speed_mm_s", self.search_speed_mm_s),
+            ("search_min_speed_mm_s", self.search_min_speed_mm_s),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(bad(field, format!("{v} is not a finite value >= 0")));
+            }
+        }
+        if !self.ts_start_s.is_finite() {
+            return Err(bad("ts_start_s", "not finite".into()));
+        }
+        Ok(())
+    }
+}
+
+/// What the simulated operator did.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct SimOperatorReport {
+    /// Tracker frames simulated (sent or lost).
+    pub frames: u32,
+    /// Datagrams sent.
+    pub sent: u32,
+    /// Frames with the marker occluded.
+    pub occluded: u32,
+    /// Path length of the hand, mm.
+    pub path_mm: f64,
+}
+
+/// A history entry: where the hand was at a tracker frame.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct HandSample {
+    pub frame: u32,
+    /// Host time of the frame.
+    pub at: Instant,
+    /// True marker position, room frame, mm.
+    pub room_mm: [f64; 3],
+    /// True end-effector position, device frame, mm.
+    pub device_mm: [f64; 3],
+}
+
+/// A running simulated operator. Dropping it stops the thread.
+pub struct SimOperator {
+    stop: Arc<AtomicBool>,
+    history: Arc<Mutex<Vec<HandSample>>>,
+    thread: Option<JoinHandle<Result<SimOperatorReport, TrackerError>>>,
+}
+
+impl SimOperator {
+    /// Starts the operator: it holds `hand` (the virtual device's
+    /// end-effector, see [`crate::virtual_device::Trajectory::Held`]) of the
+    /// simulated `device` and reads its cues from `cues`.
+    pub fn spawn(
+        config: SimOperatorConfig,
+        device: SimDevice,
+        hand: Hand,
+        cues: SharedCues,
+    ) -> Result<SimOperator, TrackerError> {
+        config.validate()?;
+        let local = SocketAddr::from(([127, 0, 0, 1], 0));
+        let socket = UdpSocket::bind(local).map_err(|source| TrackerError::Socket {
+            action: "cannot bind",
+            addr: local,
+            source,
+        })?;
+        let stop = Arc::new(AtomicBool::new(false));
+        let history = Arc::new(Mutex::new(Vec::new()));
+        let (thread_stop, thread_history) = (stop.clone(), history.clone());
+        let thread = std::thread::Builder::new()
+            .name("sim-operator".into())
+            .spawn(move || {
+                run(
+                    &config,
+                    &device,
+                    &hand,
+                    &cues,
+                    &socket,
+                    &thread_stop,
+                    &thread_history,
+                )
+            })
+            .map_err(|source| TrackerError::Socket {
+                action: "cannot start the operator thread for",
+                addr: local,
+                source,
+            })?;
+        Ok(SimOperator {
+            stop,
+            history,
+            thread: Some(thread),
+        })
+    }
+
+    /// Where the hand was at every tracker frame so far (the truth a test
+    /// compares with).
+    pub fn history(&self) -> Vec<HandSample> {
+        match self.history.lock() {
+            Ok(h) => h.clone(),
+            Err(poisoned) => poisoned.into_inner().clone(),
+        }
+    }
+
+    /// Stops the operator and reports what it did.
+    pub fn stop(mut self) -> Result<SimOperatorReport, TrackerError> {
+        self.stop.store(true, Ordering::SeqCst);
+        match self.thread.take() {
+            Some(t) => t.join().map_err(|_| TrackerError::SenderPanicked)?,
+            None => Ok(SimOperatorReport::default()),
+        }
+    }
+}
+
+impl Drop for SimOperator {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::SeqCst);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+/// What the operator remembers from frame to frame.
+#[derive(Clone, Debug, Default)]
+struct Memory {
+    wander_goal: Option<[f64; 3]>,
+    /// Search by ear: the direction kept, the pitches heard in the current
+    /// window, the mean pitch of the previous window.
+    search_dir: Option<[f64; 3]>,
+    heard: Vec<f32>,
+    previous_pitch: Option<f64>,
+    holding: bool,
+}
+
+fn random_direction(rng: &mut ChaCha8Rng) -> [f64; 3] {
+    loop {
+        let v: [f64; 3] = core::array::from_fn(|_| 2.0 * rng.random::<f64>() - 1.0);
+        let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+        if n > 0.1 && n <= 1.0 {
+            return v.map(|x| x / n);
+        }
+    }
+}
+
+/// Velocity of the hand for these cues, device frame, mm/s.
+fn velocity(
+    config: &SimOperatorConfig,
+    device: &SimDevice,
+    cues: &Cues,
+    hand_mm: &[f64; 3],
+    force_n: &[f64; 3],
+    memory: &mut Memory,
+    rng: &mut ChaCha8Rng,
+) -> [f64; 3] {
+    let toward = |goal: &[f64; 3], top: f64| -> [f64; 3] {
+        let d = distance(goal, hand_mm);
+        if d < 1e-9 {
+            return [0.0; 3];
+        }
+        let speed = top.min(config.reach_gain_per_s * d);
+        core::array::from_fn(|k| (goal[k] - hand_mm[k]) / d * speed)
+    };
+    if let Some(target) = cues.target_room_mm {
+        return toward(&device.device_from_room(&target), config.reach_speed_mm_s);
+    }
+    let threshold = if memory.holding {
+        config.hold_beep_hz - config.release_hz
+    } else {
+        config.hold_beep_hz
+    };
+    memory.holding = cues.beep_hz >= threshold;
+    if memory.holding {
+        memory.search_dir = None;
+        memory.heard.clear();
+        memory.previous_pitch = None;
+        return [0.0; 3];
+    }
+    match config.free_motion {
+        FreeMotion::FollowForce => {
+            let felt = (force_n[0].powi(2) + force_n[1].powi(2) + force_n[2].powi(2)).sqrt();
+            if felt >= config.feel_n || !(cues.beep_hz > 0.0) {
+                memory.search_dir = None;
+                memory.heard.clear();
+                memory.previous_pitch = None;
+                return force_n.map(|f| f * config.compliance_mm_s_per_n);
+            }
+            memory.heard.push(cues.beep_hz);
+            let window = (config.listen.as_secs_f64() * config.frame_rate_hz).ceil() as usize;
+            if memory.heard.len() >= window.max(1) {
+                let pitch = memory.heard.iter().map(|&f| f64::from(f)).sum::<f64>()
+                    / memory.heard.len() as f64;
+                memory.heard.clear();
+                let falling = memory.previous_pitch.is_some_and(|p| pitch < p);
+                if falling || memory.search_dir.is_none() {
+                    memory.search_dir = Some(random_direction(rng));
+                }
+                memory.previous_pitch = Some(pitch);
+            }
+            let h = f64::from(cues.beep_hz) / 1000.0;
+            let speed = (config.search_speed_mm_s * (1.0 - h)).max(config.search_min_speed_mm_s);
+            let dir = memory.search_dir.unwrap_or([0.0; 3]);
+            dir.map(|x| speed * x)
+        }
+        FreeMotion::Still => [0.0; 3],
+        FreeMotion::Wander {
+            centre_mm,
+            half_size_mm,
+            speed_mm_s,
+        } => {
+            let goal = match memory.wander_goal {
+                Some(g) if distance(&g, hand_mm) > 1.0 => g,
+                _ => {
+                    let g = core::array::from_fn(|k| {
+                        centre_mm[k] + half_size_mm * (2.0 * rng.random::<f64>() - 1.0)
+                    });
+                    memory.wander_goal = Some(g);
+                    g
+                }
+            };
+            toward(&goal, speed_mm_s)
+        }
+    }
+}
+
+fn run(
+    config: &SimOperatorConfig,
+    device: &SimDevice,
+    hand: &Hand,
+    cues: &SharedCues,
+    socket: &UdpSocket,
+    stop: &AtomicBool,
+    history: &Mutex<Vec<HandSample>>,
+) -> Result<SimOperatorReport, TrackerError> {
+    let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
+    let noise = Normal::new(0.0, config.tracker_noise_mm.max(1e-12)).map_err(|e| {
+        TrackerError::Config {
+            field: "tracker_noise_mm",
+            problem: e.to_string(),
+        }
+    })?;
+    let tremor =
+        Normal::new(0.0, config.tremor_mm.max(1e-12)).map_err(|e| TrackerError::Config {
+            field: "tremor_mm",
+            problem: e.to_string(),
+        })?;
+    let dt = 1.0 / config.frame_rate_hz;
+    let start = Instant::now();
+    let mut report = SimOperatorReport::default();
+    let mut memory = Memory::default();
+    let mut k: u32 = 0;
+    while !stop.load(Ordering::SeqCst) && start.elapsed() < config.max_duration {
+        let due = start + Duration::from_secs_f64(f64::from(k) * dt);
+        if let Some(wait) = due.checked_duration_since(Instant::now()) {
+            std::thread::sleep(wait);
+        }
+        // 1-2: cues, then the hand moves.
+        let shown = cues.latest();
+        let p = hand.position_mm();
+        let v = velocity(
+            config,
+            device,
+            &shown,
+            &p,
+            &hand.string_force_n(),
+            &mut memory,
+            &mut rng,
+        );
+        let next: [f64; 3] =
+            core::array::from_fn(|i| p[i] + v[i] * dt + tremor.sample(&mut rng));
+        report.path_mm += distance(&next, &p);
+        hand.move_to(next);
+        // 3: the tracker's frame of the marker.
+        let room = device.room_from_device(&next);
+        let frame = k.wrapping_add(1);
+        if let Ok(mut h) = history.lock() {
+            h.push(HandSample {
+                frame,
+                at: Instant::now(),
+                room_mm: room,
+                device_mm: next,
+            });
+        }
+        let occluded = rng.random::<f64>() < config.occlusion;
+        let lost = rng.random::<f64>() < config.loss;
+        report.frames += 1;
+        if occluded {
+            report.occluded += 1;
+        }
+        if !lost {
+            let seen = room.map(|x| x + noise.sample(&mut rng));
+            let datagram = format_datagram(&DtrackFrame {
+                frame,
+                ts_s: Some(config.ts_start_s + f64::from(k) * dt),
+                calibrated_bodies: Some(1),
+                bodies: if occluded {
+                    Vec::new()
+                } else {
+                    vec![BodyPose::at(config.body_id, seen)]
+                },
+                has_6d: true,
+            });
+            socket
+                .send_to(datagram.as_bytes(), config.tracker)
+                .map_err(|source| TrackerError::Socket {
+                    action: "cannot send to",
+                    addr: config.tracker,
+                    source,
+                })?;
+            report.sent += 1;
+        }
+        k = k.wrapping_add(1);
+    }
+    Ok(report)
+}
