@@ -1907,7 +1907,11 @@ mod tests {
             Response::Ack
         );
         let out = b.tick_at(raw_at([0.0; 3]));
-        assert!((out.position_mm[0] + 40.0).abs() < 0.5, "{:?}", out.position_mm);
+        assert!(
+            (out.position_mm[0] + 40.0).abs() < 0.5,
+            "{:?}",
+            out.position_mm
+        );
         // Armed with a force: Home is accepted, the force is dropped.
         assert_eq!(b.request(&Request::Arm), Response::Ack);
         assert_eq!(
@@ -1931,7 +1935,11 @@ mod tests {
         }
         // A move of 100 mm now reads as 100 mm.
         let out = b.tick_at(raw_at([100.0, 0.0, 0.0]));
-        assert!((out.position_mm[0] - 100.0).abs() < 0.5, "{:?}", out.position_mm);
+        assert!(
+            (out.position_mm[0] - 100.0).abs() < 0.5,
+            "{:?}",
+            out.position_mm
+        );
         let homed = b
             .stream
             .iter()

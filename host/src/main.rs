@@ -31,6 +31,9 @@ enum Command {
     Calibrate(spidar::calibrate::CalibrateArgs),
     /// Simulate a device with a lattice and a test session, and calibrate it.
     Demo(spidar::calibrate::DemoArgs),
+    /// Guided initialization: haptic and audio cues bring the marker to the
+    /// frame centre, home is declared there, the room transform recorded.
+    Init(spidar::operator::init::InitArgs),
 }
 
 fn fail(e: &dyn std::error::Error) -> ! {
@@ -70,6 +73,10 @@ fn main() {
         Command::Device(args) => match spidar::link::cli::run_device(args) {
             Ok(text) => print!("{text}"),
             Err(e) => fail(e.as_ref()),
+        },
+        Command::Init(args) => match spidar::operator::init::run_init(args) {
+            Ok(text) => print!("{text}"),
+            Err(e) => fail(&e),
         },
         Command::VirtualDevice(args) => match spidar::virtual_device::run_virtual_device(args) {
             Ok(text) => print!("{text}"),

@@ -55,11 +55,8 @@ fn world(offset: [f64; 3]) -> World {
         plant,
     )
     .unwrap();
-    let receiver = DtrackReceiver::bind(ReceiverConfig::new(SocketAddr::from((
-        [127, 0, 0, 1],
-        0,
-    ))))
-    .unwrap();
+    let receiver =
+        DtrackReceiver::bind(ReceiverConfig::new(SocketAddr::from(([127, 0, 0, 1], 0)))).unwrap();
     World {
         device,
         hand,
@@ -76,13 +73,8 @@ fn the_operator_follows_the_cues_to_the_centre_and_home_is_declared_there() {
     op_config.occlusion = 0.05;
     op_config.loss = 0.02;
     op_config.seed = 7;
-    let operator = SimOperator::spawn(
-        op_config,
-        w.device.clone(),
-        w.hand.clone(),
-        w.cues.clone(),
-    )
-    .unwrap();
+    let operator =
+        SimOperator::spawn(op_config, w.device.clone(), w.hand.clone(), w.cues.clone()).unwrap();
     let mut client = Client::open(w.vd.port_path()).unwrap();
     let geometry = w.device.nominal.clone();
     let mut config = InitConfig::for_geometry(&geometry);
@@ -100,7 +92,10 @@ fn the_operator_follows_the_cues_to_the_centre_and_home_is_declared_there() {
     );
     if std::env::var_os("TRACE").is_some() {
         for (i, c) in recorder.shown.iter().enumerate().step_by(25) {
-            eprintln!("{i} d {:?} beep {:.0} F {:?} {}", c.distance_mm, c.beep_hz, c.force_n, c.message);
+            eprintln!(
+                "{i} d {:?} beep {:.0} F {:?} {}",
+                c.distance_mm, c.beep_hz, c.force_n, c.message
+            );
         }
     }
     let record = record.expect("init");
@@ -196,13 +191,8 @@ fn an_operator_who_never_gets_there_times_out_with_the_closest_approach() {
     let mut w = world([80.0, 0.0, 0.0]);
     let mut op_config = SimOperatorConfig::new(w.receiver.local_addr());
     op_config.free_motion = FreeMotion::Still;
-    let operator = SimOperator::spawn(
-        op_config,
-        w.device.clone(),
-        w.hand.clone(),
-        w.cues.clone(),
-    )
-    .unwrap();
+    let operator =
+        SimOperator::spawn(op_config, w.device.clone(), w.hand.clone(), w.cues.clone()).unwrap();
     let mut client = Client::open(w.vd.port_path()).unwrap();
     let geometry = w.device.nominal.clone();
     let mut config = InitConfig::for_geometry(&geometry);

@@ -109,16 +109,17 @@ pub enum AudioOut {
 }
 
 fn on_path(program: &str) -> bool {
-    std::env::var_os("PATH").is_some_and(|paths| {
-        std::env::split_paths(&paths).any(|dir| dir.join(program).is_file())
-    })
+    std::env::var_os("PATH")
+        .is_some_and(|paths| std::env::split_paths(&paths).any(|dir| dir.join(program).is_file()))
 }
 
 fn player_command() -> Option<(&'static str, Command)> {
     let rate = SAMPLE_RATE_HZ.to_string();
     if on_path("aplay") {
         let mut c = Command::new("aplay");
-        c.args(["-q", "-t", "raw", "-f", "S16_LE", "-c", "1", "-r", &rate, "-"]);
+        c.args([
+            "-q", "-t", "raw", "-f", "S16_LE", "-c", "1", "-r", &rate, "-",
+        ]);
         return Some(("aplay", c));
     }
     if on_path("pacat") {
@@ -175,7 +176,11 @@ impl AudioOut {
                 let mut bytes = Vec::with_capacity(2 * block);
                 while !s.load(Ordering::Relaxed) {
                     samples.clear();
-                    synth.fill(f32::from_bits(f.load(Ordering::Relaxed)), block, &mut samples);
+                    synth.fill(
+                        f32::from_bits(f.load(Ordering::Relaxed)),
+                        block,
+                        &mut samples,
+                    );
                     bytes.clear();
                     for x in &samples {
                         bytes.extend_from_slice(&x.to_le_bytes());
@@ -259,7 +264,10 @@ mod tests {
         // period... count cycles inside the first beep only.
         let on = (BEEP_ON.as_secs_f64() * f64::from(SAMPLE_RATE_HZ)) as usize;
         let first = cycles(&out[..on]);
-        assert!((39..=41).contains(&first), "{first} cycles in 80 ms at 500 Hz");
+        assert!(
+            (39..=41).contains(&first),
+            "{first} cycles in 80 ms at 500 Hz"
+        );
         // Then silence.
         let gap_end = on + (BEEP_OFF.as_secs_f64() * f64::from(SAMPLE_RATE_HZ)) as usize;
         assert!(out[on..gap_end].iter().all(|&x| x == 0));

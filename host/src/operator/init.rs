@@ -112,7 +112,10 @@ impl InitConfig {
             return bad("target", "not finite".into());
         }
         if !(self.d_min_mm.is_finite() && self.d_min_mm > 0.0) {
-            return bad("d_min_mm", format!("{} is not a positive distance", self.d_min_mm));
+            return bad(
+                "d_min_mm",
+                format!("{} is not a positive distance", self.d_min_mm),
+            );
         }
         if !(self.f_max_n.is_finite() && self.f_max_n >= 0.0) {
             return bad("f_max_n", format!("{} is not a force >= 0", self.f_max_n));
@@ -361,7 +364,10 @@ fn run(
             message: if hold.is_empty() {
                 "follow the pull and the rising beep to the centre".into()
             } else {
-                format!("hold still: {held_s:.1} of {:.1} s", config.hold.as_secs_f64())
+                format!(
+                    "hold still: {held_s:.1} of {:.1} s",
+                    config.hold.as_secs_f64()
+                )
             },
         });
         if held_s >= config.hold.as_secs_f64() {
@@ -415,4 +421,167 @@ fn declare_home(
         device_position_after_home_mm: after,
         device_id,
     })
+}
+
+/// `spidar init`.
+#[derive(Clone, Debug, clap::Args)]
+pub struct InitArgs {
+    /// Serial port of the device (not with --simulate).
+    #[arg(long, required_unless_present = "simulate")]
+    pub port: Option<String>,
+    /// Nominal geometry TOML (the frame centre and eq. 6 translation give
+    /// the target; sent to a device that has no calibration).
+    #[arg(long, required_unless_present = "simulate")]
+    pub geometry: Option<PathBuf>,
+    /// Address to receive DTrack2 UDP datagrams on.
+    #[arg(long, default_value = "0.0.0.0:5000")]
+    pub tracker: std::net::SocketAddr,
+    /// DTrack body id of the end-effector's marker.
+    #[arg(long, default_value_t = 0)]
+    pub body: u32,
+    /// Where to write the init record (TOML).
+    #[arg(long, default_value = "init.toml")]
+    pub out: PathBuf,
+    /// Also write the geometry with the measured eq. 6 translation here.
+    #[arg(long)]
+    pub write_geometry: Option<PathBuf>,
+    /// Target, room frame, mm, `x,y,z` (default: the nominal frame centre).
+    #[arg(long, value_parser = parse_point)]
+    pub target: Option<[f64; 3]>,
+    /// Cue radius d_min, mm (eqs. 2-5).
+    #[arg(long, default_value_t = 150.0)]
+    pub d_min_mm: f32,
+    /// Largest guidance force F_max, N.
+    #[arg(long, default_value_t = 3.0)]
+    pub f_max_n: f32,
+    /// The marker must hold within this distance of the target, mm.
+    #[arg(long, default_value_t = 2.0)]
+    pub tolerance_mm: f64,
+    /// ... for this long, s.
+    #[arg(long, default_value_t = 0.5)]
+    pub hold_s: f64,
+    /// Give up after this long, s.
+    #[arg(long, default_value_t = 120.0)]
+    pub timeout_s: f64,
+    /// Audio cue output.
+    #[arg(long, value_enum, default_value_t = super::audio::AudioChoice::Auto)]
+    pub audio: super::audio::AudioChoice,
+    /// Run on the built-in simulated device with a simulated operator and
+    /// tracker (device seed; --port, --geometry and --tracker are ignored).
+    #[arg(long, value_name = "SEED")]
+    pub simulate: Option<u64>,
+}
+
+/// Parses `x,y,z` (mm).
+pub fn parse_point(s: &str) -> Result<[f64; 3], String> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|x| x.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|e| format!("`{s}`: {e} (expected x,y,z in mm)"))?;
+    match v.as_slice() {
+        [x, y, z] if v.iter().all(|c| c.is_finite()) => Ok([*x, *y, *z]),
+        _ => Err(format!("`{s}`: expected three finite numbers x,y,z (mm)")),
+    }
+}
+
+/// Why `spidar init` failed.
+#[derive(Debug, thiserror::Error)]
+pub enum InitRunError {
+    #[error("{0}")]
+    Init(#[from] InitError),
+    #[error("{0}")]
+    Rig(#[from] super::sim_user::RigError),
+    #[error("{0}")]
+    Audio(#[from] super::audio::AudioError),
+    #[error("init: {0}")]
+    Link(#[from] LinkError),
+    #[error("init: tracker: {0}")]
+    Tracker(#[from] TrackerError),
+}
+
+/// Runs `spidar init`; returns the summary for standard output.
+pub fn run_init(args: &InitArgs) -> Result<String, InitRunError> {
+    use super::view::TerminalView;
+    use super::Tee;
+    let audio = super::audio::AudioOut::open(args.audio)?;
+    let mut view = TerminalView::new(audio, 10.0);
+    let mut rig = None;
+    let (geometry, mut client, mut receiver) = match args.simulate {
+        Some(seed) => {
+            let device = crate::sim::Device::new(&crate::sim::SimConfig::default(), seed)
+                .map_err(super::sim_user::RigError::from)?;
+            // The built-in homing left the end-effector ~5 cm off.
+            let r = super::sim_user::SimulatedRig::start(device, [45.0, -30.0, 25.0], |c| {
+                c.seed = seed;
+                c.max_duration = Duration::from_secs_f64(args.timeout_s + 5.0);
+            })?;
+            let client = Client::open(r.port())?;
+            let geometry = r.device.nominal.clone();
+            // The rig's own receiver is the one its operator sends to.
+            rig = Some(r);
+            (geometry, client, None)
+        }
+        None => {
+            let port = args.port.as_deref().unwrap_or_default();
+            let path = args.geometry.clone().unwrap_or_default();
+            let geometry = Geometry::load(&path).map_err(InitError::from)?;
+            let client = Client::open(port)?;
+            let mut rc = crate::tracker::ReceiverConfig::new(args.tracker);
+            rc.body_id = args.body;
+            let receiver = crate::tracker::DtrackReceiver::bind(rc)?;
+            (geometry, client, Some(receiver))
+        }
+    };
+    let mut config = InitConfig::for_geometry(&geometry);
+    if let Some(t) = args.target {
+        config.target_room_mm = t;
+    }
+    config.d_min_mm = args.d_min_mm;
+    config.f_max_n = args.f_max_n;
+    config.tolerance_mm = args.tolerance_mm;
+    config.hold = Duration::from_secs_f64(args.hold_s.max(0.0));
+    config.timeout = Duration::from_secs_f64(args.timeout_s.max(0.0));
+    config.body_id = args.body;
+    let record = if let Some(r) = &mut rig {
+        let mut to_operator = r.cues.clone();
+        let mut sinks = Tee(vec![&mut view, &mut to_operator]);
+        initialize(&mut client, &mut r.receiver, &geometry, &config, &mut sinks)?
+    } else if let Some(rx) = &mut receiver {
+        initialize(&mut client, rx, &geometry, &config, &mut view)?
+    } else {
+        return Err(InitError::TrackerEnded.into());
+    };
+    record.write(&args.out)?;
+    let mut out = format!(
+        "home declared {:.2} mm from the target (held {} frames within {} mm for {} s, sd {:.2}/{:.2}/{:.2} mm)\n\
+         eq. 6 translation t = [{:.2}, {:.2}, {:.2}] mm\n\
+         device position after Home: [{:.3}, {:.3}, {:.3}] mm (device frame)\n\
+         wrote {}\n",
+        record.home_error_mm,
+        record.hold_frames,
+        record.tolerance_mm,
+        record.hold_s,
+        record.home_room_sd_mm[0],
+        record.home_room_sd_mm[1],
+        record.home_room_sd_mm[2],
+        record.room_from_device_translation_mm[0],
+        record.room_from_device_translation_mm[1],
+        record.room_from_device_translation_mm[2],
+        record.device_position_after_home_mm[0],
+        record.device_position_after_home_mm[1],
+        record.device_position_after_home_mm[2],
+        args.out.display()
+    );
+    if let Some(path) = &args.write_geometry {
+        record
+            .apply_to(&geometry)
+            .write(path)
+            .map_err(InitError::from)?;
+        out.push_str(&format!(
+            "wrote {} (geometry with the measured t)\n",
+            path.display()
+        ));
+    }
+    Ok(out)
 }

@@ -17,6 +17,7 @@
 pub mod audio;
 pub mod init;
 pub mod sim_user;
+pub mod view;
 
 use std::sync::{Arc, Mutex};
 use std::time::Duration;

@@ -23,7 +23,8 @@
 //!      paper's "low sensitivity of the haptic device in small distance");
 //!    - [`FreeMotion::Wander`]: from one random point to the next (someone
 //!      using the device while runtime recalibration watches);
-//!    plus tremor (`tremor_mm` per frame, Gaussian);
+//!
+//!    and tremor on top (`tremor_mm` per frame, Gaussian);
 //! 3. send one DTrack2 datagram (`fr`, `ts`, `6d`) of the marker: the true
 //!    room position of the end-effector (the simulated device's true
 //!    room-from-device transform) plus tracker noise, with occlusion
@@ -335,7 +336,7 @@ fn velocity(
     match config.free_motion {
         FreeMotion::FollowForce => {
             let felt = (force_n[0].powi(2) + force_n[1].powi(2) + force_n[2].powi(2)).sqrt();
-            if felt >= config.feel_n || !(cues.beep_hz > 0.0) {
+            if felt >= config.feel_n || cues.beep_hz.is_nan() || cues.beep_hz <= 0.0 {
                 memory.search_dir = None;
                 memory.heard.clear();
                 memory.previous_pitch = None;
@@ -389,12 +390,11 @@ fn run(
     history: &Mutex<Vec<HandSample>>,
 ) -> Result<SimOperatorReport, TrackerError> {
     let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
-    let noise = Normal::new(0.0, config.tracker_noise_mm.max(1e-12)).map_err(|e| {
-        TrackerError::Config {
+    let noise =
+        Normal::new(0.0, config.tracker_noise_mm.max(1e-12)).map_err(|e| TrackerError::Config {
             field: "tracker_noise_mm",
             problem: e.to_string(),
-        }
-    })?;
+        })?;
     let tremor =
         Normal::new(0.0, config.tremor_mm.max(1e-12)).map_err(|e| TrackerError::Config {
             field: "tremor_mm",
@@ -422,8 +422,7 @@ fn run(
             &mut memory,
             &mut rng,
         );
-        let next: [f64; 3] =
-            core::array::from_fn(|i| p[i] + v[i] * dt + tremor.sample(&mut rng));
+        let next: [f64; 3] = core::array::from_fn(|i| p[i] + v[i] * dt + tremor.sample(&mut rng));
         report.path_mm += distance(&next, &p);
         hand.move_to(next);
         // 3: the tracker's frame of the marker.
@@ -468,4 +467,74 @@ fn run(
         k = k.wrapping_add(1);
     }
     Ok(report)
+}
+
+/// Why a simulated rig could not start.
+#[derive(Debug, thiserror::Error)]
+pub enum RigError {
+    #[error("simulated rig: {0}")]
+    Sim(#[from] crate::sim::SimError),
+    #[error("simulated rig: {0}")]
+    Device(#[from] crate::virtual_device::VirtualDeviceError),
+    #[error("simulated rig: {0}")]
+    Tracker(#[from] TrackerError),
+}
+
+/// Everything a procedure needs on the simulated side: a virtual device
+/// whose end-effector is in a simulated operator's hand, the operator (who
+/// is also the tracker), and a DTrack2 receiver on loopback that the
+/// procedure reads. Used by the `--simulate` option of the operator
+/// commands and by their tests.
+pub struct SimulatedRig {
+    pub device: SimDevice,
+    pub hand: Hand,
+    pub cues: SharedCues,
+    pub virtual_device: crate::virtual_device::VirtualDevice,
+    pub receiver: crate::tracker::DtrackReceiver,
+    pub operator: SimOperator,
+}
+
+impl SimulatedRig {
+    /// Starts the rig: `device` as built, the end-effector at its true home
+    /// plus `offset_mm` (device frame; where the built-in homing left it),
+    /// the operator configured by `configure` (its tracker address is the
+    /// receiver's), the virtual device in real time.
+    pub fn start(
+        device: SimDevice,
+        offset_mm: [f64; 3],
+        configure: impl FnOnce(&mut SimOperatorConfig),
+    ) -> Result<SimulatedRig, RigError> {
+        use crate::virtual_device::{spawn, Pace, Plant, Trajectory, VirtualDeviceConfig};
+        let start: [f64; 3] = core::array::from_fn(|k| device.frame.home[k] + offset_mm[k]);
+        let hand = Hand::at(start);
+        let plant = Plant::new(device.clone(), Trajectory::Held(hand.clone()));
+        let virtual_device = spawn(
+            VirtualDeviceConfig {
+                pace: Pace::RealTime { speed: 1.0 },
+                ..VirtualDeviceConfig::default()
+            },
+            plant,
+        )?;
+        let receiver = crate::tracker::DtrackReceiver::bind(crate::tracker::ReceiverConfig::new(
+            SocketAddr::from(([127, 0, 0, 1], 0)),
+        ))?;
+        let mut config = SimOperatorConfig::new(receiver.local_addr());
+        configure(&mut config);
+        config.tracker = receiver.local_addr();
+        let cues = SharedCues::new();
+        let operator = SimOperator::spawn(config, device.clone(), hand.clone(), cues.clone())?;
+        Ok(SimulatedRig {
+            device,
+            hand,
+            cues,
+            virtual_device,
+            receiver,
+            operator,
+        })
+    }
+
+    /// The serial port of the virtual device.
+    pub fn port(&self) -> &str {
+        self.virtual_device.port_path()
+    }
 }
