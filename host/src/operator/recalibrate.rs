@@ -29,7 +29,9 @@
 //!    default) at least [`MonitorConfig::min_amplitude_mm`] large, and/or
 //!    the window error exceeds the baseline by
 //!    [`MonitorConfig::error_factor`] (and by at least
-//!    [`MonitorConfig::min_error_rise_mm`]).
+//!    [`MonitorConfig::min_error_rise_mm`]). The effect must also explain a
+//!    share of the residual ([`MonitorConfig::min_explained`]): the window's
+//!    residual is not white, and chi-square alone over-rates weak terms.
 //! 4. **Refit and reflash** ([`RefitPolicy`]: ask, yes, no). The found
 //!    effects are added to the calibration's structure one at a time, each
 //!    kept only if the cross-validated error on the pairs falls (the
@@ -102,6 +104,13 @@ pub struct MonitorConfig {
     /// Smallest effect (its largest contribution over the window, mm) that
     /// counts as drift.
     pub min_amplitude_mm: f64,
+    /// Smallest share of the window's residual sum of squares a diagnosed
+    /// effect must explain to count as drift. The residual is not white
+    /// noise (the calibration leaves position-dependent error, and over a
+    /// short window the operator's path ties time to position), so the
+    /// chi-square alone over-rates weak time-like terms: on clean runs they
+    /// explain a few to 17 %, a slipped string most of the residual.
+    pub min_explained: f64,
     /// Require both a diagnosed effect and the error rise (instead of
     /// either).
     pub require_both: bool,
@@ -136,6 +145,7 @@ impl Default for MonitorConfig {
             min_error_rise_mm: 1.0,
             drift_families: vec![Family::Slip, Family::Offset, Family::Drift, Family::Scale],
             min_amplitude_mm: 1.0,
+            min_explained: 0.4,
             require_both: false,
             loop_config: LoopConfig::default(),
             refit: RefitPolicy::Ask,
@@ -179,6 +189,7 @@ impl MonitorConfig {
             ("min_error_rise_mm", self.min_error_rise_mm),
             ("min_amplitude_mm", self.min_amplitude_mm),
             ("anchor_tolerance_mm", self.anchor_tolerance_mm),
+            ("min_explained", self.min_explained),
         ] {
             if !(v.is_finite() && v >= 0.0) {
                 return bad(field, format!("{v} is not a distance >= 0"));
@@ -375,10 +386,11 @@ pub fn describe_finding(f: &Finding) -> String {
         _ => f.description.clone(),
     };
     format!(
-        "{} ({}; {:.1} mm at most, chi2 {:.0})",
+        "{} ({}; {:.1} mm at most, explains {:.0} % of the residual, chi2 {:.0})",
         family_name(f.family),
         term,
         f.amplitude_mm,
+        100.0 * f.explained,
         f.chi2
     )
 }
@@ -830,6 +842,7 @@ impl Monitor<'_> {
             .filter(|f| {
                 self.config.drift_families.contains(&f.family)
                     && f.amplitude_mm >= self.config.min_amplitude_mm
+                    && f.explained >= self.config.min_explained
                     && f.change.is_some()
             })
             .collect();
