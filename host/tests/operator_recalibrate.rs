@@ -135,7 +135,11 @@ fn a_slipped_string_is_reported_named_refitted_and_reflashed() {
     // Refitted, reflashed, and the device runs the new model.
     assert_eq!(report.refits.len(), 1, "{} refits", report.refits.len());
     let r = &report.refits[0];
-    assert!(r.added.iter().any(|a| a.starts_with("slip")), "{:?}", r.added);
+    assert!(
+        r.added.iter().any(|a| a.starts_with("slip")),
+        "{:?}",
+        r.added
+    );
     let mut client = Client::open(rig.port()).unwrap();
     let info = client.info().unwrap().expect("a model on the device");
     assert_eq!(info.header.model_id, r.model_id);
@@ -180,7 +184,10 @@ fn a_clean_run_reports_no_drift() {
     assert!(report.checks.len() >= 6, "{} checks", report.checks.len());
     assert_eq!(report.drifts().count(), 0);
     assert!(report.refits.is_empty());
-    assert!(report.occluded > 0, "the tracker occludes 2 % of its frames");
+    assert!(
+        report.occluded > 0,
+        "the tracker occludes 2 % of its frames"
+    );
     assert!(report.pairs > 1000, "{} pairs", report.pairs);
 }
 
@@ -268,9 +275,9 @@ fn bad_input_gives_clear_errors() {
     assert!(e.to_string().contains("`window`"), "{e}");
 
     // A tracker that goes silent: a receiver nobody sends to.
-    let mut silent = spidar::tracker::DtrackReceiver::bind(
-        spidar::tracker::ReceiverConfig::new(std::net::SocketAddr::from(([127, 0, 0, 1], 0))),
-    )
+    let mut silent = spidar::tracker::DtrackReceiver::bind(spidar::tracker::ReceiverConfig::new(
+        std::net::SocketAddr::from(([127, 0, 0, 1], 0)),
+    ))
     .unwrap();
     let mut quick = short.clone();
     quick.tracker_timeout = Duration::from_millis(300);

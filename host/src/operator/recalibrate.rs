@@ -7,7 +7,7 @@
 //!    visible tracker frame is paired with the device state nearest to it
 //!    in *host arrival time*. Both arrival times are de-jittered: a stream's
 //!    own clock (device `time_us`, tracker `ts`) plus the smallest arrival
-//!    offset seen on that stream ([`ArrivalClock`]), so that a pause of the
+//!    offset seen on that stream over the last two seconds ([`ArrivalClock`]), so that a pause of the
 //!    host loop (a diagnosis, a refit) does not give a burst of queued
 //!    frames one arrival time. A frame with no state within
 //!    [`MonitorConfig::max_pair_gap`] is not paired (counted as
@@ -319,7 +319,7 @@ pub enum MonitorEvent {
         check: Check,
         refit: bool,
     },
-    Refitted(Refit),
+    Refitted(Box<Refit>),
     RefitFailed(String),
     /// The first full window after a reflash.
     After {
@@ -481,32 +481,43 @@ pub fn structure_of(calibration: &Calibration) -> Structure {
 }
 
 /// Host arrival time of a stream's frames from the stream's own clock: the
-/// clock plus the smallest arrival offset seen (the least delayed frame),
-/// which may creep up by [`ArrivalClock::CREEP`] per second to follow a
-/// clock that runs slow. A clock going backwards (a reboot) starts over.
-#[derive(Clone, Copy, Debug, Default)]
+/// clock plus the smallest arrival offset seen over the last
+/// [`ArrivalClock::HORIZON_S`] of that clock (the least delayed frame), so
+/// that read jitter and a backlog read at once do not move it, while a
+/// clock that steps or runs at another rate is followed within the
+/// horizon. A clock going backwards (a reboot) starts over.
+#[derive(Clone, Debug, Default)]
 pub struct ArrivalClock {
-    offset_s: Option<f64>,
+    /// (clock, observed offset), offsets increasing: the front is the
+    /// minimum over the horizon.
+    offsets: VecDeque<(f64, f64)>,
     last_clock_s: f64,
 }
 
 impl ArrivalClock {
-    /// Relative clock rate error followed (200 ppm).
-    pub const CREEP: f64 = 2e-4;
+    /// Span of the sliding minimum, s of the stream's clock.
+    pub const HORIZON_S: f64 = 2.0;
 
     /// The estimated arrival (host seconds) of a frame stamped `clock_s`
     /// that was read at `read_s` (host seconds, at or after its arrival).
     pub fn arrival(&mut self, clock_s: f64, read_s: f64) -> f64 {
-        let observed = read_s - clock_s;
-        let offset = match self.offset_s {
-            Some(o) if clock_s >= self.last_clock_s => {
-                (o + Self::CREEP * (clock_s - self.last_clock_s)).min(observed)
-            }
-            _ => observed,
-        };
-        self.offset_s = Some(offset);
+        if clock_s < self.last_clock_s {
+            self.offsets.clear();
+        }
         self.last_clock_s = clock_s;
-        clock_s + offset
+        let observed = read_s - clock_s;
+        while self.offsets.back().is_some_and(|b| b.1 >= observed) {
+            self.offsets.pop_back();
+        }
+        self.offsets.push_back((clock_s, observed));
+        while self
+            .offsets
+            .front()
+            .is_some_and(|f| f.0 < clock_s - Self::HORIZON_S)
+        {
+            self.offsets.pop_front();
+        }
+        clock_s + self.offsets.front().map_or(observed, |f| f.1)
     }
 }
 
@@ -723,7 +734,7 @@ impl Monitor<'_> {
                 if refit {
                     match self.refit_and_flash(client, &check) {
                         Ok(r) => {
-                            on_event(&MonitorEvent::Refitted(r.clone()));
+                            on_event(&MonitorEvent::Refitted(Box::new(r.clone())));
                             self.report.refits.push(r);
                             self.awaiting_after = Some(self.report.refits.len() - 1);
                             self.window.clear();
@@ -755,11 +766,18 @@ impl Monitor<'_> {
             let Some(frame) = self.pending.pop_front() else {
                 break;
             };
-            let nearest = self.states.iter().min_by(|a, b| {
-                (a.at_s - frame.at_s)
-                    .abs()
-                    .total_cmp(&(b.at_s - frame.at_s).abs())
-            });
+            // States are in arrival order: the nearest is on either side of
+            // the frame's place among them.
+            let k = self.states.partition_point(|s| s.at_s < frame.at_s);
+            let nearest = [k.checked_sub(1), Some(k)]
+                .into_iter()
+                .flatten()
+                .filter_map(|j| self.states.get(j))
+                .min_by(|a, b| {
+                    (a.at_s - frame.at_s)
+                        .abs()
+                        .total_cmp(&(b.at_s - frame.at_s).abs())
+                });
             let Some(s) = nearest.filter(|s| (s.at_s - frame.at_s).abs() <= gap) else {
                 self.report.unpaired += 1;
                 continue;
@@ -928,7 +946,7 @@ impl Monitor<'_> {
         }
         let host_before_mm = model_errors(&self.identification, &window_obs).mean_mm;
         let host_after_mm = model_errors(&id, &window_obs).mean_mm;
-        if !(host_after_mm < host_before_mm) {
+        if host_after_mm.partial_cmp(&host_before_mm) != Some(std::cmp::Ordering::Less) {
             return Err(MonitorError::Identify(IdentifyError::Diverged(format!(
                 "the refit does not lower the window error ({host_before_mm:.3} mm -> {host_after_mm:.3} mm); nothing flashed"
             ))));
