@@ -34,6 +34,10 @@ enum Command {
     /// Guided initialization: haptic and audio cues bring the marker to the
     /// frame centre, home is declared there, the room transform recorded.
     Init(spidar::operator::init::InitArgs),
+    /// Runtime recalibration: pair device states with tracker frames while
+    /// the device is used, report drift (a slipped string, ...) and refit
+    /// and reflash the calibration.
+    Monitor(spidar::operator::recalibrate::MonitorArgs),
 }
 
 fn fail(e: &dyn std::error::Error) -> ! {
@@ -75,6 +79,10 @@ fn main() {
             Err(e) => fail(e.as_ref()),
         },
         Command::Init(args) => match spidar::operator::init::run_init(args) {
+            Ok(text) => print!("{text}"),
+            Err(e) => fail(&e),
+        },
+        Command::Monitor(args) => match spidar::operator::recalibrate::run_monitor(args) {
             Ok(text) => print!("{text}"),
             Err(e) => fail(&e),
         },

@@ -16,6 +16,7 @@
 
 pub mod audio;
 pub mod init;
+pub mod recalibrate;
 pub mod sim_user;
 pub mod view;
 

@@ -1,0 +1,297 @@
+//! Runtime recalibration end to end: a simulated device calibrated from its
+//! simulated lattice, the blob flashed to a real-time virtual device whose
+//! end-effector is in the hand of a simulated operator who wanders about,
+//! the operator's DTrack2 tracker on loopback, and
+//! `spidar::operator::recalibrate::monitor` between them over the serial
+//! link. A string slips at a known device time: the monitor must report it
+//! after (never before), name it, refit, reflash, and bring the error the
+//! device reports back down.
+
+use std::path::Path;
+use std::sync::OnceLock;
+use std::time::{Duration, Instant};
+
+use spidar::diagnose::{Change, Family};
+use spidar::link::Client;
+use spidar::operator::recalibrate::{
+    calibrate_simulated, event_line, monitor, MonitorConfig, MonitorError, MonitorEvent,
+    MonitorInputs, MonitorReport, RefitPolicy, SimCalibration, SimRigConfig, SimulatedMonitorRig,
+};
+use spidar_core::model::{Effect, EffectTerm};
+
+const SEED: u64 = 3;
+const SLIP_AT_S: f64 = 9.0;
+const SLIP_MM: f64 = 6.0;
+const SLIP_STRING: u8 = 2;
+
+/// The calibration of the simulated device, shared by the tests.
+fn calibrated() -> &'static SimCalibration {
+    static CAL: OnceLock<SimCalibration> = OnceLock::new();
+    CAL.get_or_init(|| {
+        let c = calibrate_simulated(SEED).expect("calibration of the simulated device");
+        eprintln!("calibrated the simulated device in {:.1} s", c.seconds);
+        c
+    })
+}
+
+fn config(seconds: f64) -> MonitorConfig {
+    MonitorConfig {
+        window: 400,
+        check_every: 100,
+        refit: RefitPolicy::Yes,
+        duration: Some(Duration::from_secs_f64(seconds)),
+        ..MonitorConfig::default()
+    }
+}
+
+fn rig(effects: &[&str], seconds: f64) -> SimulatedMonitorRig {
+    SimulatedMonitorRig::start(
+        calibrated(),
+        &SimRigConfig {
+            effects: effects.iter().map(|s| s.to_string()).collect(),
+            max_duration: Duration::from_secs_f64(seconds + 5.0),
+            ..SimRigConfig::default()
+        },
+    )
+    .expect("simulated rig")
+}
+
+/// Runs the monitor on `rig`; returns the report and the events.
+fn run(
+    rig: &mut SimulatedMonitorRig,
+    config: &MonitorConfig,
+) -> (Result<MonitorReport, MonitorError>, Vec<MonitorEvent>) {
+    let cal = calibrated();
+    let mut client = Client::open(rig.port()).expect("open the virtual device");
+    let mut events = Vec::new();
+    let result = monitor(
+        &mut client,
+        &mut rig.receiver,
+        MonitorInputs {
+            geometry: &cal.geometry,
+            calibration: &cal.calibration,
+            calibration_file: Path::new("calibration.json"),
+            training: Some(&cal.training),
+        },
+        config,
+        &mut |e| {
+            eprintln!("{}", event_line(e));
+            events.push(e.clone());
+        },
+        &mut |_| panic!("policy Yes never asks"),
+    );
+    (result, events)
+}
+
+#[test]
+fn a_slipped_string_is_reported_named_refitted_and_reflashed() {
+    let t0 = Instant::now();
+    let seconds = 18.0;
+    let slip = format!("slip:{SLIP_STRING}:at_s={SLIP_AT_S},mm={SLIP_MM}");
+    let mut rig = rig(&[&slip], seconds);
+    let (report, _events) = run(&mut rig, &config(seconds));
+    let report = report.expect("monitor");
+    eprintln!(
+        "{}",
+        spidar::operator::recalibrate::summary(&report).trim_end()
+    );
+    let baseline = report.baseline.expect("a baseline window");
+
+    // No false alarm in the clean part; checks did run there.
+    let clean: Vec<_> = report
+        .checks
+        .iter()
+        .filter(|c| c.device_time_s < SLIP_AT_S)
+        .collect();
+    assert!(clean.len() >= 3, "{} checks before the slip", clean.len());
+    assert!(
+        clean.iter().all(|c| !c.drift),
+        "drift reported before the slip: {:?}",
+        clean
+            .iter()
+            .filter(|c| c.drift)
+            .map(|c| (c.device_time_s, c.findings.len()))
+            .collect::<Vec<_>>()
+    );
+
+    // Reported after it, named in the device's terms.
+    let drift = report.drifts().next().expect("a drift report");
+    let delay = drift.device_time_s - SLIP_AT_S;
+    assert!(delay > 0.0 && delay < 3.0, "detected {delay:.2} s after");
+    let f = drift.findings.first().expect("a diagnosed effect");
+    assert_eq!(f.family, Family::Slip, "{f:?}");
+    assert_eq!(f.strings, [SLIP_STRING]);
+    let Some(Change::Effect(EffectTerm {
+        string,
+        effect: Effect::Slip { at_s, mm },
+    })) = f.change
+    else {
+        panic!("{f:?}");
+    };
+    assert_eq!(string, SLIP_STRING);
+    assert!((at_s - SLIP_AT_S).abs() < 0.1, "slip at {at_s} s");
+    assert!((mm - SLIP_MM).abs() < 0.6, "slip of {mm} mm");
+
+    // Refitted, reflashed, and the device runs the new model.
+    assert_eq!(report.refits.len(), 1, "{} refits", report.refits.len());
+    let r = &report.refits[0];
+    assert!(
+        r.added.iter().any(|a| a.starts_with("slip")),
+        "{:?}",
+        r.added
+    );
+    let mut client = Client::open(rig.port()).unwrap();
+    let info = client.info().unwrap().expect("a model on the device");
+    assert_eq!(info.header.model_id, r.model_id);
+    assert_ne!(r.model_id, rig.model_id);
+
+    // The error the device reports: up at detection, back near the
+    // baseline after the reflash.
+    let after = r.after.expect("a full window after the reflash");
+    eprintln!(
+        "slip detected {delay:.2} s after it happened; device error: baseline {:.3} mm, \
+         before the reflash {:.3} mm, after {:.3} mm; refit took {:.2} s; test {:.1} s",
+        baseline.mean_mm,
+        r.before.mean_mm,
+        after.mean_mm,
+        r.seconds,
+        t0.elapsed().as_secs_f64()
+    );
+    assert!(r.before.mean_mm > baseline.mean_mm, "{r:?}");
+    assert!(
+        after.mean_mm < 1.3 * baseline.mean_mm,
+        "after {:.3} mm, baseline {:.3} mm",
+        after.mean_mm,
+        baseline.mean_mm
+    );
+    assert!(after.max_mm < 2.0, "after: max {:.3} mm", after.max_mm);
+    // Drift is not reported again once the model has the slip.
+    assert_eq!(report.drifts().count(), 1);
+    std::thread::sleep(Duration::from_millis(50));
+    assert!(!rig.virtual_device.status().armed);
+}
+
+#[test]
+fn a_clean_run_reports_no_drift() {
+    let seconds = 14.0;
+    let mut rig = rig(&[], seconds);
+    let (report, _) = run(&mut rig, &config(seconds));
+    let report = report.expect("monitor");
+    eprintln!(
+        "{}",
+        spidar::operator::recalibrate::summary(&report).trim_end()
+    );
+    assert!(report.checks.len() >= 6, "{} checks", report.checks.len());
+    assert_eq!(report.drifts().count(), 0);
+    assert!(report.refits.is_empty());
+    assert!(
+        report.occluded > 0,
+        "the tracker occludes 2 % of its frames"
+    );
+    assert!(report.pairs > 1000, "{} pairs", report.pairs);
+}
+
+#[test]
+fn bad_input_gives_clear_errors() {
+    let cal = calibrated();
+    let mut rig = rig(&[], 8.0);
+    let mut client = Client::open(rig.port()).unwrap();
+    let mut never = |_: &MonitorEvent| {};
+    let mut no = |_: &spidar::operator::recalibrate::Check| false;
+    let mut attempt = |client: &mut Client,
+                       tracker: &mut dyn spidar::tracker::TrackerSource,
+                       geometry: &spidar::dataset::Geometry,
+                       calibration: &spidar_core::model::Calibration,
+                       config: &MonitorConfig| {
+        monitor(
+            client,
+            tracker,
+            MonitorInputs {
+                geometry,
+                calibration,
+                calibration_file: Path::new("calibration.json"),
+                training: None,
+            },
+            config,
+            &mut never,
+            &mut no,
+        )
+        .unwrap_err()
+    };
+    let short = config(5.0);
+
+    // A geometry of another device: anchors far from the calibration's.
+    let mut other = cal.geometry.clone();
+    other.anchors_mm[5][0] += 400.0;
+    let e = attempt(
+        &mut client,
+        &mut rig.receiver,
+        &other,
+        &cal.calibration,
+        &short,
+    );
+    assert!(matches!(e, MonitorError::Calibration { .. }), "{e}");
+    let text = e.to_string();
+    assert!(
+        text.contains("calibration.json") && text.contains("frame.anchors[5]"),
+        "{text}"
+    );
+
+    // Another encoder resolution.
+    let mut other = cal.geometry.clone();
+    other.counts_per_rev *= 2;
+    let e = attempt(
+        &mut client,
+        &mut rig.receiver,
+        &other,
+        &cal.calibration,
+        &short,
+    );
+    assert!(e.to_string().contains("strings[0].counts_per_rev"), "{e}");
+
+    // A calibration that is not the one the device runs.
+    let mut not_flashed = cal.calibration.clone();
+    not_flashed.frame.room_translation[0] += 1.0;
+    let e = attempt(
+        &mut client,
+        &mut rig.receiver,
+        &cal.geometry,
+        &not_flashed,
+        &short,
+    );
+    assert!(matches!(e, MonitorError::ModelMismatch { .. }), "{e}");
+    assert!(e.to_string().contains("flash it first"), "{e}");
+
+    // A window too small to diagnose.
+    let mut tiny = short.clone();
+    tiny.window = 10;
+    let e = attempt(
+        &mut client,
+        &mut rig.receiver,
+        &cal.geometry,
+        &cal.calibration,
+        &tiny,
+    );
+    assert!(e.to_string().contains("`window`"), "{e}");
+
+    // A tracker that goes silent: a receiver nobody sends to.
+    let mut silent = spidar::tracker::DtrackReceiver::bind(spidar::tracker::ReceiverConfig::new(
+        std::net::SocketAddr::from(([127, 0, 0, 1], 0)),
+    ))
+    .unwrap();
+    let mut quick = short.clone();
+    quick.tracker_timeout = Duration::from_millis(300);
+    let t = Instant::now();
+    let e = attempt(
+        &mut client,
+        &mut silent,
+        &cal.geometry,
+        &cal.calibration,
+        &quick,
+    );
+    assert!(matches!(e, MonitorError::TrackerSilent { .. }), "{e}");
+    assert!(e.to_string().contains("tracker sent nothing"), "{e}");
+    assert!(t.elapsed() < Duration::from_secs(2));
+    std::thread::sleep(Duration::from_millis(50));
+    assert!(!rig.virtual_device.status().armed);
+}
