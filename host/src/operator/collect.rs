@@ -12,8 +12,9 @@
 //!    is armed at pre-tension (no target: the strings stay taut, nothing
 //!    pulls). `Limits::heartbeat_timeout_ms` must exceed the tracker's frame
 //!    period; a `Heartbeat` goes out every [`CollectConfig::heartbeat_every`],
-//!    and a device that disarms itself (`Disarmed`, `HeartbeatLost`) is
-//!    re-armed up to [`CollectConfig::max_rearms`] times.
+//!    and a device that disarms itself (a `Disarmed` or `HeartbeatLost`
+//!    event, or states that keep saying "disarmed") is re-armed, up to
+//!    [`CollectConfig::max_rearms`] times without a capture in between.
 //! 2. The state stream runs throughout; each state is stamped with its host
 //!    arrival time. Every tracker frame shows [`Cues`]: the target cell's
 //!    centre and half edge, the marker, its distance to the cell, progress
@@ -84,8 +85,9 @@ pub struct CollectConfig {
     pub limits: Limits,
     /// Send a heartbeat this often.
     pub heartbeat_every: Duration,
-    /// Times a device that disarmed itself is armed again before it is an
-    /// error.
+    /// Times a device that disarmed itself is armed again without a capture
+    /// in between before it is an error (a long session may see a few in
+    /// all: a string gone slack in a fast move, a late heartbeat).
     pub max_rearms: u32,
     /// Device state frames per control-loop iterations.
     pub decimation: u16,
@@ -235,7 +237,7 @@ pub enum CollectError {
     TrackerEnded { tracker: String },
     #[error("collect: serial port {port}: the device sent no state for {seconds:.1} s")]
     DeviceSilent { port: String, seconds: f64 },
-    #[error("collect: the device keeps disarming itself ({events} times; the last: {last}); after a reboot, run `spidar init` to declare home first")]
+    #[error("collect: the device keeps disarming itself ({events} times without a capture; the last: {last}); after a reboot, run `spidar init` to declare home first")]
     KeepsDisarming { events: u32, last: String },
     #[error(
         "collect: serial port {port}: the device clock went back from {previous_s} s to {now_s} s during the run (a reboot? home is lost: run `spidar init`, then collect again to resume)"
@@ -512,6 +514,7 @@ fn run(
     let mut captures: VecDeque<Instant> = VecDeque::new();
     let mut previous_device_s: Option<f64> = None;
     let mut unarmed_since: Option<Instant> = None;
+    let mut rearms_since_capture = 0u32;
     let cancelled = || {
         config
             .cancel
@@ -567,9 +570,10 @@ fn run(
             };
             if let Some(last) = event.or(unarmed) {
                 report.rearms += 1;
-                if report.rearms > config.max_rearms {
+                rearms_since_capture += 1;
+                if rearms_since_capture > config.max_rearms {
                     return Err(CollectError::KeepsDisarming {
-                        events: report.rearms,
+                        events: rearms_since_capture,
                         last,
                     });
                 }
@@ -690,6 +694,7 @@ fn run(
         done[index] = Some(line);
         report.captured += 1;
         report.done += 1;
+        rearms_since_capture = 0;
         captures.push_back(Instant::now());
         while captures.len() > config.eta_window {
             captures.pop_front();
@@ -886,4 +891,87 @@ pub fn run_collect(args: &CollectArgs) -> Result<String, CollectRunError> {
         }
     };
     Ok(summary(&report))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn row(p: [f64; 3]) -> Sample {
+        Sample {
+            t_s: 0.0,
+            counts: [0; 8],
+            tracker: Some(p),
+            legacy: None,
+            tension_n: None,
+        }
+    }
+
+    #[test]
+    fn done_cells_come_from_the_rows_tracker_positions() {
+        let lattice = Lattice::new([0.0, 0.0, 0.0], 300.0, 3).unwrap();
+        let file = Path::new("s.csv");
+        let order = lattice.order();
+        // Cells 0, 1 and 2 of the order, each somewhere inside.
+        let mut session = Session {
+            samples: vec![
+                row([-120.0, -140.0, -101.0]),
+                row([10.0, -60.0, -149.0]),
+                row([130.0, -100.0, -100.0]),
+            ],
+            ignored_columns: Vec::new(),
+        };
+        let done = done_cells(&lattice, &session, file).unwrap();
+        assert_eq!(&done[..4], &[Some(2), Some(3), Some(4), None]);
+        assert_eq!(order[3], [2, 0, 1]);
+        // On the face shared by cells 3 ([2,0,1]) and 4 ([1,0,1]): the first
+        // not done, then the other.
+        session.samples.push(row([50.0, -100.0, 0.0]));
+        session.samples.push(row([50.0, -100.0, 0.0]));
+        let done = done_cells(&lattice, &session, file).unwrap();
+        assert_eq!(&done[3..6], &[Some(5), Some(6), None]);
+        // A third row there: that cell was done twice.
+        session.samples.push(row([50.0, -100.0, 0.0]));
+        let e = done_cells(&lattice, &session, file).unwrap_err();
+        assert!(
+            matches!(
+                e,
+                CollectError::CellTwice {
+                    line: 7,
+                    first_line: 5,
+                    ..
+                }
+            ),
+            "{e}"
+        );
+        assert!(e.to_string().contains("s.csv: line 7"), "{e}");
+        // Outside the cube, or without a tracker position.
+        session.samples.truncate(5);
+        session.samples.push(row([0.0, 0.0, 151.0]));
+        let e = done_cells(&lattice, &session, file).unwrap_err();
+        assert!(
+            matches!(e, CollectError::RowOutsideLattice { line: 7, .. }),
+            "{e}"
+        );
+        session.samples.pop();
+        session.samples.push(Sample {
+            tracker: None,
+            ..row([0.0; 3])
+        });
+        let e = done_cells(&lattice, &session, file).unwrap_err();
+        assert!(
+            matches!(e, CollectError::RowWithoutTracker { line: 7, .. }),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn a_heartbeat_slower_than_the_device_timeout_is_refused() {
+        let config = CollectConfig {
+            heartbeat_every: Duration::from_millis(150),
+            ..CollectConfig::default()
+        };
+        let e = config.validate().unwrap_err();
+        assert!(e.to_string().contains("heartbeat_every"), "{e}");
+    }
 }
