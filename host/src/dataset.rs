@@ -34,6 +34,11 @@
 //! column. Writing checks the same rules, so a written file always reads back,
 //! and floats are written in their shortest exact form, so a round trip is
 //! lossless.
+//!
+//! A session can also be written one row at a time ([`SessionAppender`],
+//! `spidar collect`): each row flushed to the disk before the next, an
+//! unterminated last line (a crash mid-write) cut off and reported when the
+//! file is opened again.
 
 use std::fmt::Write as _;
 use std::fs;
@@ -120,6 +125,14 @@ pub enum DatasetError {
         file: PathBuf,
         present: String,
         missing: String,
+    },
+    /// A session opened for appending whose header is not the full set of
+    /// columns in the writer's order.
+    #[error("{}: line 1: the header `{found}` is not the full session header `{expected}` that appending requires: a file of another tool or layout; write to a new file", file.display())]
+    HeaderMismatch {
+        file: PathBuf,
+        found: String,
+        expected: String,
     },
     /// Malformed CSV, e.g. a row with another number of fields than the header.
     #[error("{}: line {line}: {message}", file.display())]
@@ -704,60 +717,11 @@ impl Session {
     /// Check what [`Session::read_from`] would check, naming the line and
     /// column each sample would be written at.
     pub fn validate(&self, file: &Path) -> Result<(), DatasetError> {
-        let value_error = |line: u64, column: &str, problem| DatasetError::Value {
-            file: file.to_path_buf(),
-            line,
-            column: column.to_string(),
-            problem,
-        };
-        let finite = |line: u64, column: &str, v: f64| {
-            if v.is_finite() {
-                Ok(())
-            } else {
-                Err(value_error(
-                    line,
-                    column,
-                    ValueProblem::NotFinite(v.to_string()),
-                ))
-            }
-        };
         let mut previous: Option<(f64, u64)> = None;
         for (row, s) in self.samples.iter().enumerate() {
             let line = row as u64 + 2;
-            finite(line, TIME_COLUMN, s.t_s)?;
-            if s.t_s < 0.0 {
-                return Err(value_error(
-                    line,
-                    TIME_COLUMN,
-                    ValueProblem::NegativeTime(s.t_s),
-                ));
-            }
-            if let Some((prev, prev_line)) = previous {
-                if s.t_s < prev {
-                    return Err(value_error(
-                        line,
-                        TIME_COLUMN,
-                        ValueProblem::TimeDecreasing {
-                            value: s.t_s,
-                            previous: prev,
-                            previous_line: prev_line,
-                        },
-                    ));
-                }
-            }
+            check_sample(file, line, s, previous)?;
             previous = Some((s.t_s, line));
-            for (group, names) in [(&s.tracker, &TRACKER_COLUMNS), (&s.legacy, &LEGACY_COLUMNS)] {
-                if let Some(v) = group {
-                    for (x, name) in v.iter().zip(names) {
-                        finite(line, name, *x)?;
-                    }
-                }
-            }
-            if let Some(v) = &s.tension_n {
-                for (x, name) in v.iter().zip(&TENSION_COLUMNS) {
-                    finite(line, name, *x)?;
-                }
-            }
         }
         Ok(())
     }
@@ -777,43 +741,405 @@ impl Session {
         self.validate(file)?;
         let legacy = self.has_legacy();
         let tension = self.has_tension();
-        let mut header: Vec<&str> = vec![TIME_COLUMN];
-        header.extend(ENCODER_COLUMNS);
-        header.extend(TRACKER_COLUMNS);
-        if legacy {
-            header.extend(LEGACY_COLUMNS);
-        }
-        if tension {
-            header.extend(TENSION_COLUMNS);
-        }
-        let write_error = |e: csv::Error| match e.into_kind() {
-            csv::ErrorKind::Io(source) => io_error(file, "cannot write", source),
-            other => DatasetError::Csv {
-                file: file.to_path_buf(),
-                line: 0,
-                message: format!("{other:?}"),
-            },
-        };
+        let header = session_header(legacy, tension);
         let mut w = csv::WriterBuilder::new().from_writer(writer);
-        w.write_record(&header).map_err(write_error)?;
+        w.write_record(&header)
+            .map_err(|e| csv_write_error(file, e))?;
         let mut fields: Vec<String> = Vec::with_capacity(header.len());
-        let push_group = |fields: &mut Vec<String>, g: Option<&[f64]>, n: usize| match g {
-            Some(v) => fields.extend(v.iter().map(|x| x.to_string())),
-            None => fields.extend(std::iter::repeat_n(String::new(), n)),
-        };
         for s in &self.samples {
-            fields.clear();
-            fields.push(s.t_s.to_string());
-            fields.extend(s.counts.iter().map(|c| c.to_string()));
-            push_group(&mut fields, s.tracker.as_ref().map(|v| &v[..]), 3);
-            if legacy {
-                push_group(&mut fields, s.legacy.as_ref().map(|v| &v[..]), 3);
-            }
-            if tension {
-                push_group(&mut fields, s.tension_n.as_ref().map(|v| &v[..]), STRINGS);
-            }
-            w.write_record(&fields).map_err(write_error)?;
+            row_fields(s, legacy, tension, &mut fields);
+            w.write_record(&fields)
+                .map_err(|e| csv_write_error(file, e))?;
         }
         w.flush().map_err(|e| io_error(file, "cannot write", e))
+    }
+}
+
+/// The header [`Session::write_to`] writes: `t_s`, `enc0..7`, `ots_*`, then
+/// `dev_*` with `legacy` and `tension0..7` with `tension`.
+pub fn session_header(legacy: bool, tension: bool) -> Vec<&'static str> {
+    let mut header: Vec<&'static str> = vec![TIME_COLUMN];
+    header.extend(ENCODER_COLUMNS);
+    header.extend(TRACKER_COLUMNS);
+    if legacy {
+        header.extend(LEGACY_COLUMNS);
+    }
+    if tension {
+        header.extend(TENSION_COLUMNS);
+    }
+    header
+}
+
+/// The fields of one row, in the order of [`session_header`]; floats in
+/// their shortest exact form, an absent group as empty fields.
+fn row_fields(s: &Sample, legacy: bool, tension: bool, fields: &mut Vec<String>) {
+    let push_group = |fields: &mut Vec<String>, g: Option<&[f64]>, n: usize| match g {
+        Some(v) => fields.extend(v.iter().map(|x| x.to_string())),
+        None => fields.extend(std::iter::repeat_n(String::new(), n)),
+    };
+    fields.clear();
+    fields.push(s.t_s.to_string());
+    fields.extend(s.counts.iter().map(|c| c.to_string()));
+    push_group(fields, s.tracker.as_ref().map(|v| &v[..]), 3);
+    if legacy {
+        push_group(fields, s.legacy.as_ref().map(|v| &v[..]), 3);
+    }
+    if tension {
+        push_group(fields, s.tension_n.as_ref().map(|v| &v[..]), STRINGS);
+    }
+}
+
+fn csv_write_error(file: &Path, e: csv::Error) -> DatasetError {
+    match e.into_kind() {
+        csv::ErrorKind::Io(source) => io_error(file, "cannot write", source),
+        other => DatasetError::Csv {
+            file: file.to_path_buf(),
+            line: 0,
+            message: format!("{other:?}"),
+        },
+    }
+}
+
+/// What the reader requires of one sample written at `line`, after a sample
+/// at `previous` (time, line).
+fn check_sample(
+    file: &Path,
+    line: u64,
+    s: &Sample,
+    previous: Option<(f64, u64)>,
+) -> Result<(), DatasetError> {
+    let value_error = |column: &str, problem| DatasetError::Value {
+        file: file.to_path_buf(),
+        line,
+        column: column.to_string(),
+        problem,
+    };
+    let finite = |column: &str, v: f64| {
+        if v.is_finite() {
+            Ok(())
+        } else {
+            Err(value_error(column, ValueProblem::NotFinite(v.to_string())))
+        }
+    };
+    finite(TIME_COLUMN, s.t_s)?;
+    if s.t_s < 0.0 {
+        return Err(value_error(TIME_COLUMN, ValueProblem::NegativeTime(s.t_s)));
+    }
+    if let Some((prev, prev_line)) = previous {
+        if s.t_s < prev {
+            return Err(value_error(
+                TIME_COLUMN,
+                ValueProblem::TimeDecreasing {
+                    value: s.t_s,
+                    previous: prev,
+                    previous_line: prev_line,
+                },
+            ));
+        }
+    }
+    for (group, names) in [(&s.tracker, &TRACKER_COLUMNS), (&s.legacy, &LEGACY_COLUMNS)] {
+        if let Some(v) = group {
+            for (x, name) in v.iter().zip(names) {
+                finite(name, *x)?;
+            }
+        }
+    }
+    if let Some(v) = &s.tension_n {
+        for (x, name) in v.iter().zip(&TENSION_COLUMNS) {
+            finite(name, *x)?;
+        }
+    }
+    Ok(())
+}
+
+// ---------------------------------------------------------------------------
+// Appending, crash-safe
+// ---------------------------------------------------------------------------
+
+/// An unterminated last line found when a session was opened for appending:
+/// the remains of a write that a crash or power loss cut short. It was
+/// removed from the file.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TornLine {
+    /// Its line number (1-based, header = line 1).
+    pub line: u64,
+    /// What it held.
+    pub text: String,
+}
+
+/// A session file opened by [`SessionAppender::open`].
+pub struct OpenedSession {
+    pub appender: SessionAppender,
+    /// The rows already in the file (read strictly, as [`Session::load`]).
+    pub existing: Session,
+    /// The unterminated last line that was cut off, if there was one.
+    pub torn: Option<TornLine>,
+    /// The file was new (or empty) and its header was written now.
+    pub created: bool,
+}
+
+/// Appends rows to a session CSV one at a time, crash-safe: every row is
+/// written whole and ends in a newline, then flushed to the disk
+/// (`sync_data`) before [`SessionAppender::append`] returns, so a crash or a
+/// power loss loses at most the row being written. The columns are always
+/// the full set: [`session_header`]`(true, true)`.
+///
+/// A row is committed once its newline is on the disk: when a file is
+/// opened again, an unterminated last line is a write that was cut short
+/// (even if what is left of it parses: its last number may be cut), so it is
+/// removed and reported ([`OpenedSession::torn`]); complete rows are never
+/// dropped. Anything else the strict reader rejects is an error, and so is
+/// a header other than the full set in its order (a file of another tool:
+/// this writer does not append to it).
+pub struct SessionAppender {
+    file: fs::File,
+    path: PathBuf,
+    rows: usize,
+    last: Option<(f64, u64)>,
+    /// A write failed part-way: the file may end in a partial row, so no
+    /// more rows go after it (open the file again to repair it).
+    failed: bool,
+}
+
+impl SessionAppender {
+    /// The header line this writer writes (no newline).
+    pub fn header_line() -> String {
+        session_header(true, true).join(",")
+    }
+
+    /// Opens `path` for appending, creating it (with its header) if it does
+    /// not exist or is empty. See the type's documentation for what an
+    /// existing file must satisfy.
+    pub fn open(path: impl AsRef<Path>) -> Result<OpenedSession, DatasetError> {
+        use io::{Read, Seek, Write};
+        let path = path.as_ref();
+        let mut file = fs::OpenOptions::new()
+            .read(true)
+            .append(true)
+            .create(true)
+            .open(path)
+            .map_err(|e| io_error(path, "cannot open for appending", e))?;
+        let mut bytes = Vec::new();
+        file.read_to_end(&mut bytes)
+            .map_err(|e| io_error(path, "cannot read", e))?;
+        let header = Self::header_line();
+        let mismatch = |found: &[u8]| DatasetError::HeaderMismatch {
+            file: path.to_path_buf(),
+            found: String::from_utf8_lossy(found).trim_end().to_string(),
+            expected: header.clone(),
+        };
+        let mut torn = None;
+        let keep = match bytes.iter().rposition(|&b| b == b'\n') {
+            Some(last_newline) => last_newline + 1,
+            None if bytes.is_empty() => 0,
+            // Not even the header's newline: a header cut short is started
+            // again; anything else is not this writer's file.
+            None if header.as_bytes().starts_with(&bytes) => {
+                torn = Some(TornLine {
+                    line: 1,
+                    text: String::from_utf8_lossy(&bytes).into_owned(),
+                });
+                0
+            }
+            None => return Err(mismatch(&bytes)),
+        };
+        let existing = if keep == 0 {
+            Session::default()
+        } else {
+            let first_line = bytes[..keep].split(|&b| b == b'\n').next().unwrap_or(&[]);
+            let first_line = first_line.strip_suffix(b"\r").unwrap_or(first_line);
+            if first_line != header.as_bytes() {
+                return Err(mismatch(first_line));
+            }
+            Session::read_from(&bytes[..keep], path)?
+        };
+        if keep < bytes.len() {
+            if torn.is_none() {
+                let line = bytes[..keep].iter().filter(|&&b| b == b'\n').count() as u64 + 1;
+                torn = Some(TornLine {
+                    line,
+                    text: String::from_utf8_lossy(&bytes[keep..]).into_owned(),
+                });
+            }
+            file.set_len(keep as u64)
+                .and_then(|()| file.sync_all())
+                .map_err(|e| io_error(path, "cannot cut off the unterminated last line of", e))?;
+        }
+        // Appending goes to the end whatever the position; keep it tidy.
+        file.seek(io::SeekFrom::End(0))
+            .map_err(|e| io_error(path, "cannot seek", e))?;
+        let created = keep == 0;
+        if created {
+            file.write_all(format!("{header}\n").as_bytes())
+                .and_then(|()| file.sync_all())
+                .map_err(|e| io_error(path, "cannot write the header to", e))?;
+            sync_parent_directory(path);
+        }
+        let rows = existing.samples.len();
+        let last = existing.samples.last().map(|s| (s.t_s, rows as u64 + 1));
+        Ok(OpenedSession {
+            appender: SessionAppender {
+                file,
+                path: path.to_path_buf(),
+                rows,
+                last,
+                failed: false,
+            },
+            existing,
+            torn,
+            created,
+        })
+    }
+
+    /// The file appended to.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// Rows in the file.
+    pub fn rows(&self) -> usize {
+        self.rows
+    }
+
+    /// `t_s` of the last row.
+    pub fn last_t_s(&self) -> Option<f64> {
+        self.last.map(|(t, _)| t)
+    }
+
+    /// Appends `sample` as one row (checked as [`Session::validate`] checks,
+    /// its time not before the last row's), flushed to the disk before this
+    /// returns. Returns the row's line number.
+    pub fn append(&mut self, sample: &Sample) -> Result<u64, DatasetError> {
+        use io::Write;
+        let line = self.rows as u64 + 2;
+        if self.failed {
+            return Err(io_error(
+                &self.path,
+                "an earlier write failed part-way; not appending to",
+                io::Error::other("open the file again to repair it"),
+            ));
+        }
+        check_sample(&self.path, line, sample, self.last)?;
+        let mut fields = Vec::new();
+        row_fields(sample, true, true, &mut fields);
+        let mut w = csv::WriterBuilder::new().from_writer(Vec::new());
+        w.write_record(&fields)
+            .map_err(|e| csv_write_error(&self.path, e))?;
+        let bytes = w.into_inner().map_err(|e| {
+            io_error(
+                &self.path,
+                "cannot format a row for",
+                io::Error::other(e.to_string()),
+            )
+        })?;
+        if let Err(e) = self
+            .file
+            .write_all(&bytes)
+            .and_then(|()| self.file.flush())
+            .and_then(|()| self.file.sync_data())
+        {
+            self.failed = true;
+            return Err(io_error(&self.path, "cannot append a row to", e));
+        }
+        self.rows += 1;
+        self.last = Some((sample.t_s, line));
+        Ok(line)
+    }
+}
+
+/// Makes a new file's directory entry durable (best effort: not every
+/// platform can open a directory).
+fn sync_parent_directory(path: &Path) {
+    let parent = match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p,
+        _ => Path::new("."),
+    };
+    if let Ok(dir) = fs::File::open(parent) {
+        let _ = dir.sync_all();
+    }
+}
+
+#[cfg(test)]
+mod append_tests {
+    use super::*;
+
+    fn sample(t_s: f64, x: f64) -> Sample {
+        Sample {
+            t_s,
+            counts: [1, -2, 3, -4, 5, -6, 7, -8],
+            tracker: Some([x, 0.25, -1e-3]),
+            legacy: Some([0.1, 0.2, 0.3]),
+            tension_n: Some([1.0; STRINGS]),
+        }
+    }
+
+    fn temp(name: &str) -> PathBuf {
+        let dir = std::env::temp_dir().join(format!("spidar-append-{}", std::process::id()));
+        let _ = fs::create_dir_all(&dir);
+        let path = dir.join(name);
+        let _ = fs::remove_file(&path);
+        path
+    }
+
+    #[test]
+    fn rows_appended_one_at_a_time_read_back_and_reopen_where_they_stopped() {
+        let path = temp("rows.csv");
+        let mut opened = SessionAppender::open(&path).unwrap();
+        assert!(opened.created && opened.torn.is_none());
+        assert_eq!(opened.appender.append(&sample(1.0, 10.0)).unwrap(), 2);
+        assert_eq!(opened.appender.append(&sample(1.0, 11.5)).unwrap(), 3);
+        // Time going backwards is refused, naming the line and column.
+        let e = opened.appender.append(&sample(0.5, 0.0)).unwrap_err();
+        assert!(e.to_string().contains("line 4, column `t_s`"), "{e}");
+        drop(opened);
+        let read = Session::load(&path).unwrap();
+        assert_eq!(read.samples, vec![sample(1.0, 10.0), sample(1.0, 11.5)]);
+        let mut again = SessionAppender::open(&path).unwrap();
+        assert!(!again.created && again.torn.is_none());
+        assert_eq!(again.existing, read);
+        assert_eq!(again.appender.last_t_s(), Some(1.0));
+        assert_eq!(again.appender.append(&sample(2.0, 12.0)).unwrap(), 4);
+        assert_eq!(Session::load(&path).unwrap().samples.len(), 3);
+    }
+
+    #[test]
+    fn an_unterminated_last_line_is_cut_off_and_reported() {
+        let path = temp("torn.csv");
+        let mut opened = SessionAppender::open(&path).unwrap();
+        opened.appender.append(&sample(1.0, 10.0)).unwrap();
+        drop(opened);
+        let whole = fs::read_to_string(&path).unwrap();
+        // A second row cut short (it even parses: its last number is cut).
+        let row = whole.lines().nth(1).unwrap();
+        fs::write(&path, format!("{whole}{}", &row[..row.len() - 2])).unwrap();
+        let opened = SessionAppender::open(&path).unwrap();
+        let torn = opened.torn.clone().expect("torn line reported");
+        assert_eq!(torn.line, 3);
+        assert_eq!(torn.text, row[..row.len() - 2]);
+        assert_eq!(opened.existing.samples, vec![sample(1.0, 10.0)]);
+        assert_eq!(fs::read_to_string(&path).unwrap(), whole);
+        // A header cut short is started again.
+        let header = SessionAppender::header_line();
+        fs::write(&path, &header[..20]).unwrap();
+        let opened = SessionAppender::open(&path).unwrap();
+        assert!(opened.created);
+        assert_eq!(opened.torn.map(|t| t.line), Some(1));
+        assert_eq!(fs::read_to_string(&path).unwrap(), format!("{header}\n"));
+    }
+
+    #[test]
+    fn another_header_or_a_bad_complete_row_is_an_error_naming_the_file() {
+        let path = temp("other.csv");
+        fs::write(&path, "t_s,enc0\n1,2\n").unwrap();
+        let e = SessionAppender::open(&path).err().expect("refused");
+        assert!(matches!(e, DatasetError::HeaderMismatch { .. }), "{e}");
+        assert!(e.to_string().contains("other.csv: line 1"), "{e}");
+        assert_eq!(fs::read_to_string(&path).unwrap(), "t_s,enc0\n1,2\n");
+        let header = SessionAppender::header_line();
+        let bad = format!("{header}\n1,x{}\n", ",0".repeat(21));
+        fs::write(&path, &bad).unwrap();
+        let e = SessionAppender::open(&path).err().expect("refused");
+        assert!(e.to_string().contains("line 2, column `enc0`"), "{e}");
+        assert_eq!(fs::read_to_string(&path).unwrap(), bad);
     }
 }

@@ -34,6 +34,10 @@ enum Command {
     /// Guided initialization: haptic and audio cues bring the marker to the
     /// frame centre, home is declared there, the room transform recorded.
     Init(spidar::operator::init::InitArgs),
+    /// Lattice data collection: the operator brings the marker into each
+    /// cell in turn; tracker and device state are captured there, appended
+    /// to the session CSV as they come; a stopped run resumes.
+    Collect(spidar::operator::collect::CollectArgs),
     /// Runtime recalibration: pair device states with tracker frames while
     /// the device is used, report drift (a slipped string, ...) and refit
     /// and reflash the calibration.
@@ -79,6 +83,10 @@ fn main() {
             Err(e) => fail(e.as_ref()),
         },
         Command::Init(args) => match spidar::operator::init::run_init(args) {
+            Ok(text) => print!("{text}"),
+            Err(e) => fail(&e),
+        },
+        Command::Collect(args) => match spidar::operator::collect::run_collect(args) {
             Ok(text) => print!("{text}"),
             Err(e) => fail(&e),
         },

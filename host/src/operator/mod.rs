@@ -15,6 +15,7 @@
 //! move, exactly what a person would see and hear, nothing more.
 
 pub mod audio;
+pub mod collect;
 pub mod init;
 pub mod recalibrate;
 pub mod sim_user;

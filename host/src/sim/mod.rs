@@ -22,6 +22,7 @@
 pub mod config;
 pub mod device;
 pub mod effects;
+pub mod lattice;
 mod legacy;
 mod trajectory;
 pub mod truth;
@@ -35,6 +36,7 @@ use spidar_core::STRINGS;
 pub use config::SimConfig;
 pub use device::Device;
 pub use effects::{parse_effect, parse_effects, InjectedEffect};
+pub use lattice::{Lattice, LatticeError};
 pub use truth::Truth;
 
 use crate::dataset::{DatasetError, Sample, Session};

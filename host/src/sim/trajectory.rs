@@ -11,6 +11,7 @@ use spidar_core::model::Vec3;
 
 use super::config::{LatticeConfig, RandomConfig, TrackerConfig};
 use super::device::{norm, sub};
+use super::lattice::Lattice;
 use super::SimError;
 
 /// One capture on the path.
@@ -37,26 +38,6 @@ fn to_ms(t_s: f64) -> Result<u32, SimError> {
     Ok(ms as u32)
 }
 
-/// Cells in the paper's order: plane by plane from the front (`-y`) to the
-/// back; within an x-z plane, rows along x. Rows alternate direction and
-/// planes alternate between bottom-up and top-down, so that consecutive
-/// cells always share a face (the path a user naturally takes).
-pub(crate) fn lattice_order(n: u32) -> Vec<[u32; 3]> {
-    let mut cells = Vec::with_capacity((n * n * n) as usize);
-    let mut x_forward = true;
-    for iy in 0..n {
-        for kz in 0..n {
-            let iz = if iy % 2 == 0 { kz } else { n - 1 - kz };
-            for kx in 0..n {
-                let ix = if x_forward { kx } else { n - 1 - kx };
-                cells.push([ix, iy, iz]);
-            }
-            x_forward = !x_forward;
-        }
-    }
-    cells
-}
-
 /// Smallest `s` in `[0, 1]` with `p + s (q - p)` inside the box `[lo, hi]`
 /// (`q` is inside the box).
 fn entry_parameter(p: &Vec3<f64>, q: &Vec3<f64>, lo: &Vec3<f64>, hi: &Vec3<f64>) -> f64 {
@@ -72,7 +53,7 @@ fn entry_parameter(p: &Vec3<f64>, q: &Vec3<f64>, lo: &Vec3<f64>, hi: &Vec3<f64>)
     s_in.clamp(0.0, 1.0)
 }
 
-/// The paper's lattice protocol: the user moves the marker, cell after cell,
+/// The paper's lattice protocol ([`Lattice`], in its order): the user moves the marker, cell after cell,
 /// towards a point near the highlighted cell's centre; the capture is taken
 /// at the first tracker frame after the marker enters the cell, so it lies
 /// inside the cell on the side the marker came from. Times are scaled to the
@@ -84,17 +65,19 @@ pub(crate) fn lattice(
     start: Vec3<f64>,
     rng: &mut ChaCha8Rng,
 ) -> Result<Vec<Capture>, SimError> {
-    let n = cfg.cells_per_axis;
-    let cell = cfg.size_mm / f64::from(n);
-    let lo0: Vec3<f64> = core::array::from_fn(|k| centre[k] - cfg.size_mm / 2.0);
+    let grid =
+        Lattice::new(centre, cfg.size_mm, cfg.cells_per_axis).map_err(|e| SimError::Config {
+            field: format!("lattice.{}", e.field),
+            problem: e.problem,
+        })?;
+    let cell = grid.cell_mm();
     let margin = (0.5f64).min(cell / 10.0);
     let frame_dt = 1.0 / tracker.frame_rate_hz;
 
     let mut previous = start;
     let mut points = Vec::new(); // (position, speed, travel time, cell)
-    for c in lattice_order(n) {
-        let lo: Vec3<f64> = core::array::from_fn(|k| lo0[k] + f64::from(c[k]) * cell);
-        let hi: Vec3<f64> = core::array::from_fn(|k| lo[k] + cell);
+    for c in grid.order() {
+        let (lo, hi) = grid.bounds(c);
         let target: Vec3<f64> = core::array::from_fn(|k| {
             lo[k] + cell * (0.5 + cfg.target_jitter * rng.random_range(-1.0..=1.0))
         });

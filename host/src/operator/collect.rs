@@ -1,0 +1,977 @@
+//! Lattice data collection (paper, section 4.3.1; `spidar collect`).
+//!
+//! A virtual cube of `n^3` cells ([`Lattice`], 13^3 over 1 m in the paper)
+//! is shown cell by cell in the paper's order (front plane first, through
+//! the x-z plane, then the next plane). The operator moves the end-effector
+//! until its marker, as the optical tracker sees it, lies inside the
+//! highlighted cell; at that tracker frame the program records the
+//! tracker's position and the device's state, and the next cell is shown.
+//!
+//! 1. The device runs its nominal string model (`SetStringModel`, from
+//!    [`CollectConfig::string_model`]) unless it has a calibration blob, and
+//!    is armed at pre-tension (no target: the strings stay taut, nothing
+//!    pulls). `Limits::heartbeat_timeout_ms` must exceed the tracker's frame
+//!    period; a `Heartbeat` goes out every [`CollectConfig::heartbeat_every`],
+//!    and a device that disarms itself (a `Disarmed` or `HeartbeatLost`
+//!    event, or states that keep saying "disarmed") is re-armed, up to
+//!    [`CollectConfig::max_rearms`] times without a capture in between.
+//! 2. The state stream runs throughout; each state is stamped with its host
+//!    arrival time. Every tracker frame shows [`Cues`]: the target cell's
+//!    centre and half edge, the marker, its distance to the cell, progress
+//!    and the time left (from the rate of the last captures).
+//! 3. Capture: the first frame whose **visible** marker lies inside the
+//!    target cell (faces included; an occluded frame or a lost datagram
+//!    never captures) is paired with the device state nearest to it in host
+//!    arrival time (waiting at most [`CollectConfig::max_pairing_gap`] for a
+//!    state after it); a pair further apart than that, or a state of a
+//!    disarmed device, does not capture: the next frame is tried. The row:
+//!    `t_s` = device time (`State::time_us`, s) plus the clock offset below,
+//!    `enc0..7` = counts since home, `ots_*` = the tracker position, `dev_*`
+//!    = the device's forward kinematics (device frame), `tension0..7` =
+//!    commanded tensions.
+//! 4. Each row is appended to the session CSV and flushed to the disk
+//!    before the next cell is shown ([`SessionAppender`]): a crash or a
+//!    power loss loses at most the current cell.
+//!
+//! **Resume.** An existing output file is read strictly; an unterminated
+//! last line (a write cut short) is cut off and reported; each row's tracker
+//! position marks the cell it lies in as done (a row outside the lattice, or
+//! a second row in a cell, is an error naming the line: the file was
+//! collected over another volume). Collection goes on with the first cell
+//! not done, in order.
+//!
+//! **Device time.** `t_s` must not decrease through the file. The device
+//! clock counts from its boot; a resumed session whose device clock is now
+//! behind the file's last `t_s` was rebooted (a power loss): `t_s` then
+//! continues from the last row (`clock_offset_s` in the report: device time
+//! plus that offset), since the interval is unknown. A reboot also loses
+//! home: run `spidar init` again before resuming. The clock going back
+//! *during* a run is an error.
+//!
+//! The device is disarmed and its stream stopped on every exit.
+
+use std::collections::VecDeque;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use spidar_protocol::{Event, Limits, State, StringModel};
+
+use super::{distance, CueSink, Cues, Progress};
+use crate::dataset::{DatasetError, Geometry, Sample, Session, SessionAppender, TornLine};
+use crate::link::{Client, LinkError};
+use crate::tracker::{Next, TrackerError, TrackerSource};
+
+pub use crate::sim::lattice::{Lattice, LatticeError};
+
+/// How long the device's states may say "disarmed" after it was armed
+/// before it counts as having disarmed itself.
+const UNARMED_GRACE: Duration = Duration::from_millis(250);
+
+/// Settings of lattice collection.
+#[derive(Clone, Debug)]
+pub struct CollectConfig {
+    /// DTrack body id of the marker.
+    pub body_id: u32,
+    /// How the tracker is named in errors (its address).
+    pub tracker_label: String,
+    /// Fail when the tracker sends nothing for this long.
+    pub tracker_timeout: Duration,
+    /// Sent to a device that has no calibration blob.
+    pub string_model: Option<StringModel>,
+    /// Safety limits: pre-tension while armed; the heartbeat timeout must
+    /// exceed `heartbeat_every` (and the tracker's frame period).
+    pub limits: Limits,
+    /// Send a heartbeat this often.
+    pub heartbeat_every: Duration,
+    /// Times a device that disarmed itself is armed again without a capture
+    /// in between before it is an error (a long session may see a few in
+    /// all: a string gone slack in a fast move, a late heartbeat).
+    pub max_rearms: u32,
+    /// Device state frames per control-loop iterations.
+    pub decimation: u16,
+    /// A capture pairs the tracker frame with a device state at most this
+    /// far from it in host arrival time.
+    pub max_pairing_gap: Duration,
+    /// Fail when the device sends no state for this long.
+    pub device_timeout: Duration,
+    /// The time left is estimated from this many recent captures.
+    pub eta_window: usize,
+    /// Stop cleanly after this many captures in this run.
+    pub max_cells: Option<usize>,
+    /// Stop cleanly when this becomes true.
+    pub cancel: Option<Arc<AtomicBool>>,
+}
+
+impl Default for CollectConfig {
+    fn default() -> Self {
+        CollectConfig {
+            body_id: 0,
+            tracker_label: "the tracker".into(),
+            tracker_timeout: Duration::from_secs(2),
+            string_model: None,
+            limits: Limits {
+                pre_tension_n: 1.0,
+                max_tension_n: 20.0,
+                heartbeat_timeout_ms: 100,
+            },
+            heartbeat_every: Duration::from_millis(25),
+            max_rearms: 5,
+            decimation: 2,
+            max_pairing_gap: Duration::from_millis(20),
+            device_timeout: Duration::from_secs(1),
+            eta_window: 20,
+            max_cells: None,
+            cancel: None,
+        }
+    }
+}
+
+impl CollectConfig {
+    /// Defaults, with the nominal string model of `geometry`.
+    pub fn for_geometry(geometry: &Geometry) -> CollectConfig {
+        CollectConfig {
+            string_model: Some(geometry.string_model()),
+            ..CollectConfig::default()
+        }
+    }
+
+    fn validate(&self) -> Result<(), CollectError> {
+        let bad =
+            |field: &'static str, problem: String| Err(CollectError::Config { field, problem });
+        let hb = Duration::from_millis(u64::from(self.limits.heartbeat_timeout_ms));
+        if self.heartbeat_every.is_zero() || self.heartbeat_every >= hb {
+            return bad(
+                "heartbeat_every",
+                format!(
+                    "{} ms must be above 0 and below the device's heartbeat timeout ({} ms)",
+                    self.heartbeat_every.as_millis(),
+                    hb.as_millis()
+                ),
+            );
+        }
+        if self.tracker_timeout.is_zero() {
+            return bad("tracker_timeout", "must be positive".into());
+        }
+        if self.device_timeout.is_zero() {
+            return bad("device_timeout", "must be positive".into());
+        }
+        if self.decimation == 0 {
+            return bad("decimation", "must be at least 1".into());
+        }
+        if self.eta_window < 2 {
+            return bad(
+                "eta_window",
+                format!(
+                    "{} captures cannot give a rate (2 or more)",
+                    self.eta_window
+                ),
+            );
+        }
+        Ok(())
+    }
+}
+
+/// Why collection stopped without an error.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Stop {
+    /// Every cell is done.
+    Complete,
+    /// `max_cells` captures were taken.
+    MaxCells,
+    /// The cancel flag was raised.
+    Cancelled,
+}
+
+/// What a run of [`collect`] did.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CollectReport {
+    pub path: PathBuf,
+    /// Cells in the lattice.
+    pub total: usize,
+    /// Cells already done in the file when the run started.
+    pub resumed_from: usize,
+    /// Cells captured in this run.
+    pub captured: usize,
+    /// Cells done now.
+    pub done: usize,
+    pub stop: Stop,
+    pub elapsed: Duration,
+    /// The unterminated last line cut off the file when it was opened.
+    pub torn: Option<TornLine>,
+    /// Added to the device time to make `t_s` (non-zero after a reboot).
+    pub clock_offset_s: f64,
+    /// Tracker frames seen, and of those with the marker occluded.
+    pub frames: u64,
+    pub occluded: u64,
+    /// Frames in the target cell that did not capture (no device state
+    /// close enough in time, or the device disarmed).
+    pub unpaired: u64,
+    /// Times the device was armed again after it disarmed itself.
+    pub rearms: u32,
+}
+
+/// Why collection failed (the device is disarmed in every case; the rows
+/// written stay in the file).
+#[derive(Debug, thiserror::Error)]
+pub enum CollectError {
+    #[error("collect: `{field}`: {problem}")]
+    Config {
+        field: &'static str,
+        problem: String,
+    },
+    #[error("collect: {0}")]
+    Lattice(#[from] LatticeError),
+    #[error("collect: {0}")]
+    Link(#[from] LinkError),
+    #[error("collect: tracker: {0}")]
+    Tracker(#[from] TrackerError),
+    #[error("collect: {0}")]
+    Dataset(#[from] DatasetError),
+    #[error(
+        "collect: {tracker} sent nothing for {seconds:.1} s (is DTrack sending to this host and port?)"
+    )]
+    TrackerSilent { tracker: String, seconds: f64 },
+    #[error("collect: {tracker}: the tracker source ended")]
+    TrackerEnded { tracker: String },
+    #[error("collect: serial port {port}: the device sent no state for {seconds:.1} s")]
+    DeviceSilent { port: String, seconds: f64 },
+    #[error("collect: the device keeps disarming itself ({events} times without a capture; the last: {last}); after a reboot, run `spidar init` to declare home first")]
+    KeepsDisarming { events: u32, last: String },
+    #[error(
+        "collect: serial port {port}: the device clock went back from {previous_s} s to {now_s} s during the run (a reboot? home is lost: run `spidar init`, then collect again to resume)"
+    )]
+    ClockWentBack {
+        port: String,
+        previous_s: f64,
+        now_s: f64,
+    },
+    #[error("collect: {}: line {line}: the row has no tracker position (not a collected session?)", file.display())]
+    RowWithoutTracker { file: PathBuf, line: u64 },
+    #[error(
+        "collect: {}: line {line}: the tracker position [{:.3}, {:.3}, {:.3}] mm lies outside the lattice ({lattice}): was the file collected over another volume (--centre, --size-mm, --cells)?",
+        file.display(), position[0], position[1], position[2]
+    )]
+    RowOutsideLattice {
+        file: PathBuf,
+        line: u64,
+        position: [f64; 3],
+        lattice: String,
+    },
+    #[error(
+        "collect: {}: line {line}: cell {cell:?} was already captured on line {first_line} (was the file collected with another lattice?)",
+        file.display()
+    )]
+    CellTwice {
+        file: PathBuf,
+        line: u64,
+        cell: [u32; 3],
+        first_line: u64,
+    },
+    #[error("collect: {}: {message}", file.display())]
+    InitRecord { file: PathBuf, message: String },
+}
+
+/// One-line description of a lattice (for messages).
+pub fn describe(lattice: &Lattice) -> String {
+    let c = lattice.centre_mm();
+    format!(
+        "{n}^3 cells of {e:.1} mm over {s} mm centred on [{:.1}, {:.1}, {:.1}] mm",
+        c[0],
+        c[1],
+        c[2],
+        n = lattice.cells_per_axis(),
+        e = lattice.cell_mm(),
+        s = lattice.size_mm(),
+    )
+}
+
+/// The line (1-based, header = 1) of the row that captured each cell, by
+/// position in [`Lattice::order`]; `None`: not done. Each row lies in its
+/// cell; a row on a shared face counts for the first of its cells (in
+/// order) not yet done.
+pub fn done_cells(
+    lattice: &Lattice,
+    session: &Session,
+    file: &Path,
+) -> Result<Vec<Option<u64>>, CollectError> {
+    let mut done: Vec<Option<u64>> = vec![None; lattice.len()];
+    for (row, s) in session.samples.iter().enumerate() {
+        let line = row as u64 + 2;
+        let p = s.tracker.ok_or_else(|| CollectError::RowWithoutTracker {
+            file: file.to_path_buf(),
+            line,
+        })?;
+        let mut candidates: Vec<(usize, [u32; 3])> = lattice
+            .cells_containing(&p)
+            .into_iter()
+            .filter_map(|c| lattice.index_of(c).map(|i| (i, c)))
+            .collect();
+        candidates.sort_unstable();
+        let Some(&(first_index, first_cell)) = candidates.first() else {
+            return Err(CollectError::RowOutsideLattice {
+                file: file.to_path_buf(),
+                line,
+                position: p,
+                lattice: describe(lattice),
+            });
+        };
+        match candidates.iter().find(|(i, _)| done[*i].is_none()) {
+            Some(&(i, _)) => done[i] = Some(line),
+            None => {
+                return Err(CollectError::CellTwice {
+                    file: file.to_path_buf(),
+                    line,
+                    cell: first_cell,
+                    first_line: done[first_index].unwrap_or(0),
+                })
+            }
+        }
+    }
+    Ok(done)
+}
+
+/// Device states with their host arrival times (the last half second).
+struct States {
+    recent: VecDeque<(Instant, State)>,
+    last_at: Instant,
+}
+
+impl States {
+    const KEEP: Duration = Duration::from_millis(500);
+
+    fn new() -> States {
+        States {
+            recent: VecDeque::new(),
+            last_at: Instant::now(),
+        }
+    }
+
+    fn poll(&mut self, client: &mut Client) -> Result<usize, LinkError> {
+        let states = client.poll_states()?;
+        let now = Instant::now();
+        let n = states.len();
+        if n > 0 {
+            self.last_at = now;
+        }
+        self.recent.extend(states.into_iter().map(|s| (now, s)));
+        while self
+            .recent
+            .front()
+            .is_some_and(|(t, _)| now.duration_since(*t) > Self::KEEP)
+            && self.recent.len() > 1
+        {
+            self.recent.pop_front();
+        }
+        Ok(n)
+    }
+
+    /// The state that arrived nearest to `at`, and how far from it.
+    fn nearest(&self, at: Instant) -> Option<(Duration, &State)> {
+        self.recent
+            .iter()
+            .map(|(t, s)| {
+                let gap = if *t >= at {
+                    t.duration_since(at)
+                } else {
+                    at.duration_since(*t)
+                };
+                (gap, s)
+            })
+            .min_by_key(|(gap, _)| *gap)
+    }
+
+    fn has_state_after(&self, at: Instant) -> bool {
+        self.recent.back().is_some_and(|(t, _)| *t >= at)
+    }
+}
+
+/// Runs lattice collection on an open device session, appending to the
+/// session CSV at `path` (created, or resumed: see the module
+/// documentation).
+pub fn collect(
+    client: &mut Client,
+    tracker: &mut dyn TrackerSource,
+    lattice: &Lattice,
+    config: &CollectConfig,
+    path: &Path,
+    sink: &mut dyn CueSink,
+) -> Result<CollectReport, CollectError> {
+    config.validate()?;
+    let opened = SessionAppender::open(path)?;
+    let done = done_cells(lattice, &opened.existing, path)?;
+    let mut report = CollectReport {
+        path: path.to_path_buf(),
+        total: lattice.len(),
+        resumed_from: done.iter().filter(|d| d.is_some()).count(),
+        captured: 0,
+        done: 0,
+        stop: Stop::Complete,
+        elapsed: Duration::ZERO,
+        torn: opened.torn,
+        clock_offset_s: 0.0,
+        frames: 0,
+        occluded: 0,
+        unpaired: 0,
+        rearms: 0,
+    };
+    report.done = report.resumed_from;
+    if report.done == report.total {
+        sink.show(&Cues {
+            message: format!("all {} cells are already done", report.total),
+            ..Cues::default()
+        });
+        return Ok(report);
+    }
+    let start = Instant::now();
+    let mut appender = opened.appender;
+    let result = run(
+        client,
+        tracker,
+        lattice,
+        config,
+        &mut appender,
+        done,
+        &mut report,
+        sink,
+    );
+    // Whatever happened, leave the motors off and the stream closed.
+    let _ = client.disarm();
+    let _ = client.stream_off();
+    report.elapsed = start.elapsed();
+    sink.show(&Cues {
+        progress: Some(Progress {
+            done: report.done,
+            total: report.total,
+            time_left: None,
+        }),
+        message: match &result {
+            Ok(()) => format!(
+                "{} cells captured, {}/{} done; motors off",
+                report.captured, report.done, report.total
+            ),
+            Err(e) => format!("stopped: {e}"),
+        },
+        ..Cues::default()
+    });
+    result.map(|()| report)
+}
+
+#[allow(clippy::too_many_arguments)]
+fn run(
+    client: &mut Client,
+    tracker: &mut dyn TrackerSource,
+    lattice: &Lattice,
+    config: &CollectConfig,
+    appender: &mut SessionAppender,
+    mut done: Vec<Option<u64>>,
+    report: &mut CollectReport,
+    sink: &mut dyn CueSink,
+) -> Result<(), CollectError> {
+    let port = client.port_name().to_string();
+    if let Some(model) = config.string_model {
+        if client.info()?.is_none() {
+            client.set_string_model(model)?;
+        }
+    }
+    client.set_limits(config.limits)?;
+    client.clear_faults()?;
+    client.arm()?;
+    let mut last_request = Instant::now();
+    client.stream_on(config.decimation)?;
+    let mut states = States::new();
+
+    // The first state gives the device clock: behind the file's last row
+    // means a reboot, and `t_s` continues from that row.
+    let waiting_since = Instant::now();
+    while states.recent.is_empty() {
+        states.poll(client)?;
+        if waiting_since.elapsed() > config.device_timeout {
+            return Err(CollectError::DeviceSilent {
+                port,
+                seconds: waiting_since.elapsed().as_secs_f64(),
+            });
+        }
+        if last_request.elapsed() >= config.heartbeat_every {
+            client.heartbeat()?;
+            last_request = Instant::now();
+        }
+    }
+    let first_s = states
+        .recent
+        .front()
+        .map(|(_, s)| s.time_us as f64 / 1e6)
+        .unwrap_or(0.0);
+    if let Some(last) = appender.last_t_s() {
+        if first_s < last {
+            report.clock_offset_s = last - first_s;
+        }
+    }
+    let order = lattice.order();
+    let half = lattice.cell_mm() / 2.0;
+    let mut last_frame_at = Instant::now();
+    let mut captures: VecDeque<Instant> = VecDeque::new();
+    let mut previous_device_s: Option<f64> = None;
+    let mut unarmed_since: Option<Instant> = None;
+    let mut rearms_since_capture = 0u32;
+    let cancelled = || {
+        config
+            .cancel
+            .as_ref()
+            .is_some_and(|c| c.load(Ordering::SeqCst))
+    };
+
+    while let Some(index) = done.iter().position(Option::is_none) {
+        if config.max_cells.is_some_and(|m| report.captured >= m) {
+            report.stop = Stop::MaxCells;
+            return Ok(());
+        }
+        let cell = order[index];
+        let centre = lattice.cell_centre(cell);
+        let time_left = match (captures.front(), captures.back()) {
+            (Some(a), Some(b)) if captures.len() >= 2 => {
+                let per_cell = b.duration_since(*a).as_secs_f64() / (captures.len() - 1) as f64;
+                let left = (report.total - report.done) as f64;
+                Some(Duration::from_secs_f64(per_cell * left))
+            }
+            _ => None,
+        };
+        let progress = Some(Progress {
+            done: report.done,
+            total: report.total,
+            time_left,
+        });
+        // Frames until one captures this cell.
+        let row = loop {
+            if cancelled() {
+                report.stop = Stop::Cancelled;
+                return Ok(());
+            }
+            states.poll(client)?;
+            // A device that disarmed itself (an event says so, or its
+            // states have said so for a while: it may refuse to run, e.g.
+            // not homed after a reboot) is armed again, a few times.
+            let event = client
+                .take_events()
+                .into_iter()
+                .rfind(|e| matches!(e, Event::Disarmed { .. } | Event::HeartbeatLost))
+                .map(|e| format!("{e:?}"));
+            let unarmed = match states.recent.back() {
+                Some((_, s)) if !s.armed => {
+                    let since = *unarmed_since.get_or_insert_with(Instant::now);
+                    (since.elapsed() > UNARMED_GRACE)
+                        .then(|| format!("states say disarmed, faults {:#06x}", s.faults.0))
+                }
+                _ => {
+                    unarmed_since = None;
+                    None
+                }
+            };
+            if let Some(last) = event.or(unarmed) {
+                report.rearms += 1;
+                rearms_since_capture += 1;
+                if rearms_since_capture > config.max_rearms {
+                    return Err(CollectError::KeepsDisarming {
+                        events: rearms_since_capture,
+                        last,
+                    });
+                }
+                client.clear_faults()?;
+                client.arm()?;
+                last_request = Instant::now();
+                unarmed_since = None;
+            }
+            if states.last_at.elapsed() > config.device_timeout {
+                return Err(CollectError::DeviceSilent {
+                    port,
+                    seconds: states.last_at.elapsed().as_secs_f64(),
+                });
+            }
+            if last_request.elapsed() >= config.heartbeat_every {
+                client.heartbeat()?;
+                last_request = Instant::now();
+            }
+            let frame = match tracker.next_frame(Duration::from_millis(10))? {
+                Next::Frame(f) => f,
+                Next::End => {
+                    return Err(CollectError::TrackerEnded {
+                        tracker: config.tracker_label.clone(),
+                    })
+                }
+                Next::Timeout => {
+                    if last_frame_at.elapsed() > config.tracker_timeout {
+                        return Err(CollectError::TrackerSilent {
+                            tracker: config.tracker_label.clone(),
+                            seconds: last_frame_at.elapsed().as_secs_f64(),
+                        });
+                    }
+                    continue;
+                }
+            };
+            last_frame_at = Instant::now();
+            report.frames += 1;
+            let marker = frame
+                .body
+                .as_ref()
+                .filter(|b| b.id == config.body_id && b.is_visible())
+                .map(|b| b.position_mm);
+            let mut cues = Cues {
+                marker_room_mm: marker,
+                target_room_mm: Some(centre),
+                target_half_size_mm: half,
+                progress,
+                ..Cues::default()
+            };
+            let Some(marker) = marker else {
+                report.occluded += 1;
+                cues.message = "marker occluded: bring it back into the tracker's view".into();
+                sink.show(&cues);
+                continue;
+            };
+            let d = lattice.distance_to(cell, &marker);
+            cues.distance_mm = Some(d);
+            if !lattice.contains(cell, &marker) {
+                cues.message = format!(
+                    "move into the highlighted cell {}/{} {cell:?} ({:.0} mm from its centre)",
+                    report.done + 1,
+                    report.total,
+                    distance(&marker, &centre)
+                );
+                sink.show(&cues);
+                continue;
+            }
+            // Inside: the device state nearest in host arrival time, waiting
+            // a little for one that came after the frame.
+            let wait_from = Instant::now();
+            while !states.has_state_after(frame.received_at)
+                && wait_from.elapsed() < config.max_pairing_gap
+            {
+                states.poll(client)?;
+            }
+            match states.nearest(frame.received_at) {
+                Some((gap, s)) if gap <= config.max_pairing_gap && s.armed => {
+                    let device_s = s.time_us as f64 / 1e6;
+                    if previous_device_s.is_some_and(|p| device_s < p) {
+                        return Err(CollectError::ClockWentBack {
+                            port,
+                            previous_s: previous_device_s.unwrap_or(0.0),
+                            now_s: device_s,
+                        });
+                    }
+                    previous_device_s = Some(device_s);
+                    // Never before the last row (the offset is rounded).
+                    let t_s =
+                        (device_s + report.clock_offset_s).max(appender.last_t_s().unwrap_or(0.0));
+                    cues.message = format!("captured cell {}/{}", report.done + 1, report.total);
+                    sink.show(&cues);
+                    break Sample {
+                        t_s,
+                        counts: s.counts,
+                        tracker: Some(marker),
+                        legacy: Some(s.position_mm.map(f64::from)),
+                        tension_n: Some(s.tensions_n.map(f64::from)),
+                    };
+                }
+                other => {
+                    report.unpaired += 1;
+                    cues.message = match other {
+                        Some((_, s)) if !s.armed => format!(
+                            "inside: waiting for the device to arm (faults {:#06x})",
+                            s.faults.0
+                        ),
+                        Some((gap, _)) => format!(
+                            "inside: waiting for a device state (nearest {:.0} ms away)",
+                            gap.as_secs_f64() * 1e3
+                        ),
+                        None => "inside: waiting for a device state".into(),
+                    };
+                    sink.show(&cues);
+                }
+            }
+        };
+        let line = appender.append(&row)?;
+        done[index] = Some(line);
+        report.captured += 1;
+        report.done += 1;
+        rearms_since_capture = 0;
+        captures.push_back(Instant::now());
+        while captures.len() > config.eta_window {
+            captures.pop_front();
+        }
+    }
+    report.stop = Stop::Complete;
+    Ok(())
+}
+
+/// `spidar collect`.
+#[derive(Clone, Debug, clap::Args)]
+pub struct CollectArgs {
+    /// Serial port of the device (not with --simulate).
+    #[arg(long, required_unless_present = "simulate")]
+    pub port: Option<String>,
+    /// Nominal geometry TOML (sent to a device that has no calibration; its
+    /// frame centre is the default lattice centre).
+    #[arg(long, required_unless_present = "simulate")]
+    pub geometry: Option<PathBuf>,
+    /// Init record of `spidar init` (TOML): the lattice is centred on the
+    /// home it measured, unless --centre is given.
+    #[arg(long)]
+    pub init: Option<PathBuf>,
+    /// Address to receive DTrack2 UDP datagrams on.
+    #[arg(long, default_value = "0.0.0.0:5000")]
+    pub tracker: std::net::SocketAddr,
+    /// DTrack body id of the end-effector's marker.
+    #[arg(long, default_value_t = 0)]
+    pub body: u32,
+    /// The session CSV: appended to, one row per cell, flushed as it goes;
+    /// an existing file is resumed where it stopped.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Cells per axis.
+    #[arg(long, default_value_t = 13)]
+    pub cells: u32,
+    /// Edge of the sampled cube, mm.
+    #[arg(long, default_value_t = 1000.0)]
+    pub size_mm: f64,
+    /// Centre of the cube, room frame, mm, `x,y,z` (default: the home of
+    /// --init, else the geometry's frame centre through eq. 6).
+    #[arg(long, value_parser = super::init::parse_point)]
+    pub centre: Option<[f64; 3]>,
+    /// Stop after this many cells (resume later with the same command).
+    #[arg(long)]
+    pub max_cells: Option<usize>,
+    /// Fail when the tracker sends nothing for this long, s.
+    #[arg(long, default_value_t = 5.0)]
+    pub tracker_timeout_s: f64,
+    /// Audio cue output (collection plays no beep; the view is visual).
+    #[arg(long, value_enum, default_value_t = super::audio::AudioChoice::Off)]
+    pub audio: super::audio::AudioChoice,
+    /// Run on the built-in simulated device with a simulated operator and
+    /// tracker (device seed; --port, --geometry and --tracker are ignored).
+    #[arg(long, value_name = "SEED")]
+    pub simulate: Option<u64>,
+}
+
+/// Why `spidar collect` failed.
+#[derive(Debug, thiserror::Error)]
+pub enum CollectRunError {
+    #[error("{0}")]
+    Collect(#[from] CollectError),
+    #[error("{0}")]
+    Rig(#[from] super::sim_user::RigError),
+    #[error("{0}")]
+    Audio(#[from] super::audio::AudioError),
+}
+
+/// Reads an init record (`spidar init --out`).
+pub fn load_init_record(path: &Path) -> Result<super::init::InitRecord, CollectError> {
+    let text = std::fs::read_to_string(path).map_err(|e| CollectError::InitRecord {
+        file: path.to_path_buf(),
+        message: format!("cannot read: {e}"),
+    })?;
+    toml::from_str(&text).map_err(|e| CollectError::InitRecord {
+        file: path.to_path_buf(),
+        message: e.to_string().trim_end().to_string(),
+    })
+}
+
+/// The summary `spidar collect` prints.
+pub fn summary(report: &CollectReport) -> String {
+    let mut out = String::new();
+    if let Some(t) = &report.torn {
+        out.push_str(&format!(
+            "{}: line {}: cut off an unterminated last line (a write cut short; its cell was collected again): `{}`\n",
+            report.path.display(),
+            t.line,
+            t.text
+        ));
+    }
+    if report.clock_offset_s != 0.0 {
+        out.push_str(&format!(
+            "the device clock restarted (a reboot): t_s continues from the last row (device time + {:.3} s)\n",
+            report.clock_offset_s
+        ));
+    }
+    out.push_str(&format!(
+        "captured {} cells in {:.1} s (resumed from {} of {}); {}/{} done{}\n\
+         tracker frames {} ({} occluded), captures deferred for want of a device state {}, re-arms {}\n\
+         wrote {}\n",
+        report.captured,
+        report.elapsed.as_secs_f64(),
+        report.resumed_from,
+        report.total,
+        report.done,
+        report.total,
+        match report.stop {
+            Stop::Complete => String::from(": complete"),
+            Stop::MaxCells => String::from(": stopped after --max-cells; run again to resume"),
+            Stop::Cancelled => String::from(": cancelled; run again to resume"),
+        },
+        report.frames,
+        report.occluded,
+        report.unpaired,
+        report.rearms,
+        report.path.display()
+    ));
+    out
+}
+
+/// Runs `spidar collect`; returns the summary for standard output.
+pub fn run_collect(args: &CollectArgs) -> Result<String, CollectRunError> {
+    use super::view::TerminalView;
+    use super::Tee;
+    let audio = super::audio::AudioOut::open(args.audio)?;
+    let mut view = TerminalView::new(audio, 10.0);
+    let init = match &args.init {
+        Some(p) => Some(load_init_record(p)?),
+        None => None,
+    };
+    let mut config = CollectConfig {
+        body_id: args.body,
+        tracker_timeout: Duration::from_secs_f64(args.tracker_timeout_s.clamp(0.1, 3600.0)),
+        max_cells: args.max_cells,
+        ..CollectConfig::default()
+    };
+    let centre_of = |geometry: &Geometry| -> [f64; 3] {
+        args.centre
+            .or(init.as_ref().map(|r| r.home_room_mm))
+            .unwrap_or_else(|| {
+                core::array::from_fn(|k| {
+                    geometry.home_mm[k] + geometry.room_from_device_translation_mm[k]
+                })
+            })
+    };
+    let report = match args.simulate {
+        Some(seed) => {
+            let device = crate::sim::Device::new(&crate::sim::SimConfig::default(), seed)
+                .map_err(super::sim_user::RigError::from)?;
+            let mut rig = super::sim_user::SimulatedRig::start(device, [0.0; 3], |c| {
+                c.seed = seed;
+                c.max_duration = Duration::from_secs(6 * 3600);
+            })?;
+            let mut client = Client::open(rig.port()).map_err(CollectError::from)?;
+            let geometry = rig.device.nominal.clone();
+            config.string_model = Some(geometry.string_model());
+            config.tracker_label = format!("the simulated tracker ({})", rig.receiver.local_addr());
+            let lattice = Lattice::new(centre_of(&geometry), args.size_mm, args.cells)
+                .map_err(CollectError::from)?;
+            let mut to_operator = rig.cues.clone();
+            let mut sinks = Tee(vec![&mut view, &mut to_operator]);
+            collect(
+                &mut client,
+                &mut rig.receiver,
+                &lattice,
+                &config,
+                &args.out,
+                &mut sinks,
+            )?
+        }
+        None => {
+            let port = args.port.as_deref().unwrap_or_default();
+            let path = args.geometry.clone().unwrap_or_default();
+            let geometry = Geometry::load(&path).map_err(CollectError::from)?;
+            config.string_model = Some(geometry.string_model());
+            config.tracker_label = format!("the tracker (UDP {})", args.tracker);
+            let lattice = Lattice::new(centre_of(&geometry), args.size_mm, args.cells)
+                .map_err(CollectError::from)?;
+            let mut client = Client::open(port).map_err(CollectError::from)?;
+            let mut rc = crate::tracker::ReceiverConfig::new(args.tracker);
+            rc.body_id = args.body;
+            let mut receiver =
+                crate::tracker::DtrackReceiver::bind(rc).map_err(CollectError::from)?;
+            collect(
+                &mut client,
+                &mut receiver,
+                &lattice,
+                &config,
+                &args.out,
+                &mut view,
+            )?
+        }
+    };
+    Ok(summary(&report))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn row(p: [f64; 3]) -> Sample {
+        Sample {
+            t_s: 0.0,
+            counts: [0; 8],
+            tracker: Some(p),
+            legacy: None,
+            tension_n: None,
+        }
+    }
+
+    #[test]
+    fn done_cells_come_from_the_rows_tracker_positions() {
+        let lattice = Lattice::new([0.0, 0.0, 0.0], 300.0, 3).unwrap();
+        let file = Path::new("s.csv");
+        let order = lattice.order();
+        // Cells 0, 1 and 2 of the order, each somewhere inside.
+        let mut session = Session {
+            samples: vec![
+                row([-120.0, -140.0, -101.0]),
+                row([10.0, -60.0, -149.0]),
+                row([130.0, -100.0, -100.0]),
+            ],
+            ignored_columns: Vec::new(),
+        };
+        let done = done_cells(&lattice, &session, file).unwrap();
+        assert_eq!(&done[..4], &[Some(2), Some(3), Some(4), None]);
+        assert_eq!(order[3], [2, 0, 1]);
+        // On the face shared by cells 3 ([2,0,1]) and 4 ([1,0,1]): the first
+        // not done, then the other.
+        session.samples.push(row([50.0, -100.0, 0.0]));
+        session.samples.push(row([50.0, -100.0, 0.0]));
+        let done = done_cells(&lattice, &session, file).unwrap();
+        assert_eq!(&done[3..6], &[Some(5), Some(6), None]);
+        // A third row there: that cell was done twice.
+        session.samples.push(row([50.0, -100.0, 0.0]));
+        let e = done_cells(&lattice, &session, file).unwrap_err();
+        assert!(
+            matches!(
+                e,
+                CollectError::CellTwice {
+                    line: 7,
+                    first_line: 5,
+                    ..
+                }
+            ),
+            "{e}"
+        );
+        assert!(e.to_string().contains("s.csv: line 7"), "{e}");
+        // Outside the cube, or without a tracker position.
+        session.samples.truncate(5);
+        session.samples.push(row([0.0, 0.0, 151.0]));
+        let e = done_cells(&lattice, &session, file).unwrap_err();
+        assert!(
+            matches!(e, CollectError::RowOutsideLattice { line: 7, .. }),
+            "{e}"
+        );
+        session.samples.pop();
+        session.samples.push(Sample {
+            tracker: None,
+            ..row([0.0; 3])
+        });
+        let e = done_cells(&lattice, &session, file).unwrap_err();
+        assert!(
+            matches!(e, CollectError::RowWithoutTracker { line: 7, .. }),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn a_heartbeat_slower_than_the_device_timeout_is_refused() {
+        let config = CollectConfig {
+            heartbeat_every: Duration::from_millis(150),
+            ..CollectConfig::default()
+        };
+        let e = config.validate().unwrap_err();
+        assert!(e.to_string().contains("heartbeat_every"), "{e}");
+    }
+}

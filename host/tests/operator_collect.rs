@@ -1,0 +1,566 @@
+//! Lattice collection end to end: a virtual device whose end-effector is in
+//! a simulated operator's hand, the operator reaching for the cell the
+//! procedure shows, a simulated DTrack2 tracker on loopback (noise,
+//! occlusion, datagram loss), and `spidar::operator::collect::collect`
+//! between them over the serial link, writing the session CSV.
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use spidar::dataset::{Session, SessionAppender};
+use spidar::link::Client;
+use spidar::operator::collect::{collect, CollectConfig, CollectError, Lattice, Stop};
+use spidar::operator::sim_user::{HandSample, SimulatedRig};
+use spidar::operator::{CueSink, Cues, SharedCues};
+use spidar::sim::{Device, SimConfig};
+use spidar::tracker::{DtrackReceiver, ReceiverConfig};
+use spidar::virtual_device::{spawn, Hand, Pace, Plant, Trajectory, VirtualDeviceConfig};
+use spidar_core::kinematics::{forward_kinematics, FkConfig};
+
+fn distance(a: &[f64; 3], b: &[f64; 3]) -> f64 {
+    ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
+}
+
+fn temp_csv(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("spidar-collect-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join(name);
+    let _ = std::fs::remove_file(&path);
+    path
+}
+
+/// Records every cue and passes it on to the simulated operator; raises
+/// `cancel` once `cancel_at` cells are done.
+struct Recorder {
+    to_operator: SharedCues,
+    shown: Vec<Cues>,
+    cancel: Option<(Arc<AtomicBool>, usize)>,
+}
+
+impl Recorder {
+    fn new(cues: &SharedCues) -> Recorder {
+        Recorder {
+            to_operator: cues.clone(),
+            shown: Vec::new(),
+            cancel: None,
+        }
+    }
+}
+
+impl CueSink for Recorder {
+    fn show(&mut self, cues: &Cues) {
+        self.to_operator.show(cues);
+        if let (Some((flag, at)), Some(p)) = (&self.cancel, cues.progress) {
+            if p.done >= *at {
+                flag.store(true, Ordering::SeqCst);
+            }
+        }
+        self.shown.push(cues.clone());
+    }
+}
+
+/// A device as built (seed 3) with the end-effector at its true home, a
+/// steady operator and a tracker with some occlusion and loss.
+fn rig(seed: u64) -> SimulatedRig {
+    let device = Device::new(&SimConfig::default(), 3).unwrap();
+    SimulatedRig::start(device, [0.0; 3], |c| {
+        c.seed = seed;
+        c.occlusion = 0.05;
+        c.loss = 0.02;
+        c.max_duration = Duration::from_secs(20);
+    })
+    .unwrap()
+}
+
+/// 3^3 cells over 300 mm around the nominal frame centre.
+fn small_lattice(rig: &SimulatedRig) -> Lattice {
+    Lattice::new(rig.device.volume_centre_room(), 300.0, 3).unwrap()
+}
+
+fn config(device: &Device) -> CollectConfig {
+    CollectConfig {
+        tracker_label: "the simulated tracker".into(),
+        ..CollectConfig::for_geometry(&device.nominal)
+    }
+}
+
+/// Every row lies in its cell, in lattice order, each cell once; time never
+/// goes back.
+fn assert_rows_in_order(lattice: &Lattice, session: &Session) {
+    let order = lattice.order();
+    assert_eq!(session.samples.len(), order.len());
+    for (k, (s, cell)) in session.samples.iter().zip(&order).enumerate() {
+        let p = s.tracker.expect("a tracker position");
+        assert!(
+            lattice.contains(*cell, &p),
+            "row {k}: {p:?} is not in cell {cell:?} {:?}",
+            lattice.bounds(*cell)
+        );
+        assert!(s.legacy.is_some() && s.tension_n.is_some());
+        if k > 0 {
+            assert!(s.t_s >= session.samples[k - 1].t_s, "row {k}");
+        }
+    }
+}
+
+/// The truth a row's tracker columns came from: the hand sample nearest to
+/// it in the room.
+fn truth_of<'a>(history: &'a [HandSample], p: &[f64; 3]) -> &'a HandSample {
+    history
+        .iter()
+        .min_by(|a, b| distance(&a.room_mm, p).total_cmp(&distance(&b.room_mm, p)))
+        .unwrap()
+}
+
+/// Least-squares `y = a + b x + c x^2`: the fitted values and the slope at 0.
+#[allow(clippy::needless_range_loop)]
+fn quadratic_fit(x: &[f64], y: &[f64]) -> (Vec<f64>, f64) {
+    let mut m = [[0.0f64; 4]; 3];
+    for (&xi, &yi) in x.iter().zip(y) {
+        let basis = [1.0, xi, xi * xi];
+        for r in 0..3 {
+            for c in 0..3 {
+                m[r][c] += basis[r] * basis[c];
+            }
+            m[r][3] += basis[r] * yi;
+        }
+    }
+    for p in 0..3 {
+        let pivot = m[p][p];
+        for c in p..4 {
+            m[p][c] /= pivot;
+        }
+        for r in 0..3 {
+            if r != p {
+                let f = m[r][p];
+                for c in p..4 {
+                    m[r][c] -= f * m[p][c];
+                }
+            }
+        }
+    }
+    let (a, b, c) = (m[0][3], m[1][3], m[2][3]);
+    (x.iter().map(|xi| a + b * xi + c * xi * xi).collect(), b)
+}
+
+fn disarmed(rig: &SimulatedRig) -> bool {
+    std::thread::sleep(Duration::from_millis(50));
+    !rig.virtual_device.status().armed
+}
+
+#[test]
+fn the_operator_fills_a_small_lattice_cell_by_cell_and_the_rows_are_true() {
+    let t0 = Instant::now();
+    let mut rig = rig(11);
+    let lattice = small_lattice(&rig);
+    let path = temp_csv("full.csv");
+    let mut client = Client::open(rig.port()).unwrap();
+    let mut recorder = Recorder::new(&rig.cues);
+    let report = collect(
+        &mut client,
+        &mut rig.receiver,
+        &lattice,
+        &config(&rig.device),
+        &path,
+        &mut recorder,
+    )
+    .expect("collect");
+    let history = rig.operator.history();
+    eprintln!("{report:?} in {:.1} s", t0.elapsed().as_secs_f64());
+    assert_eq!(report.stop, Stop::Complete);
+    assert_eq!((report.captured, report.done, report.total), (27, 27, 27));
+    assert_eq!(report.resumed_from, 0);
+    assert!(report.torn.is_none());
+    assert!(report.occluded > 0, "the tracker occluded some frames");
+    assert!(disarmed(&rig), "the motors are off afterwards");
+
+    // The file reads back with the one reader, rows in lattice order.
+    let session = Session::load(&path).unwrap();
+    assert_rows_in_order(&lattice, &session);
+
+    // Tracker columns: the true marker plus the tracker's noise.
+    let truths: Vec<&HandSample> = session
+        .samples
+        .iter()
+        .map(|s| truth_of(&history, &s.tracker.unwrap()))
+        .collect();
+    let worst_tracker = session
+        .samples
+        .iter()
+        .zip(&truths)
+        .map(|(s, t)| distance(&t.room_mm, &s.tracker.unwrap()))
+        .fold(0.0, f64::max);
+    assert!(worst_tracker < 1.0, "{worst_tracker} mm");
+    // Device columns, one state: `dev_*` is the forward kinematics of the
+    // row's counts on the nominal model.
+    let nominal = &rig.device.nominal;
+    let mm_per_count: Vec<f64> = (0..8)
+        .map(|i| {
+            2.0 * std::f64::consts::PI * nominal.pulley_radius_mm[i]
+                / f64::from(nominal.counts_per_rev)
+        })
+        .collect();
+    let home_lengths = nominal.home_lengths_mm();
+    let worst_fk = session
+        .samples
+        .iter()
+        .map(|s| {
+            let lengths: [f64; 8] = core::array::from_fn(|i| {
+                home_lengths[i] + f64::from(s.counts[i]) * mm_per_count[i]
+            });
+            let fk = forward_kinematics(
+                &nominal.anchors_mm,
+                &lengths,
+                nominal.home_mm,
+                &FkConfig::default(),
+            );
+            distance(&fk.position, &s.legacy.unwrap())
+        })
+        .fold(0.0, f64::max);
+    assert!(worst_fk < 0.5, "dev_* vs FK of the counts: {worst_fk} mm");
+    // ... of the moment of the tracker frame: each string's counts follow
+    // its true length change (the winding law, smooth: a quadratic) within
+    // a few mm (the simulated device's own effects, and what the hand moves
+    // in a few milliseconds; a state one tracker frame off would be ~5 mm
+    // more at the operator's speed, a wrong one tens of mm).
+    let anchors = rig.device.frame.anchors;
+    let home = rig.device.frame.home;
+    for (i, anchor) in anchors.iter().enumerate() {
+        let true_change: Vec<f64> = truths
+            .iter()
+            .map(|t| distance(&t.device_mm, anchor) - distance(&home, anchor))
+            .collect();
+        let counts: Vec<f64> = session
+            .samples
+            .iter()
+            .map(|s| f64::from(s.counts[i]))
+            .collect();
+        let (fit, slope) = quadratic_fit(&true_change, &counts);
+        let worst = counts
+            .iter()
+            .zip(&fit)
+            .map(|(c, f)| (c - f).abs() / slope.abs())
+            .fold(0.0, f64::max);
+        if std::env::var_os("TRACE").is_some() {
+            let r: Vec<String> = counts
+                .iter()
+                .zip(&fit)
+                .map(|(c, f)| format!("{:.1}", (c - f) / slope))
+                .collect();
+            eprintln!("string {i}: {}", r.join(" "));
+        }
+        assert!(slope > 0.0, "string {i}: counts grow as string is paid out");
+        assert!(
+            worst < 8.0,
+            "string {i}: counts off the true length by {worst:.2} mm"
+        );
+    }
+
+    // What the operator saw: each cell highlighted in turn, with progress
+    // and, after a few captures, the time left.
+    let order = lattice.order();
+    let mut next = 0;
+    for c in &recorder.shown {
+        if let (Some(t), Some(p)) = (c.target_room_mm, c.progress) {
+            assert_eq!(p.total, 27);
+            assert_eq!(c.target_half_size_mm, 50.0);
+            assert_eq!(t, lattice.cell_centre(order[p.done]));
+            assert!(p.done >= next);
+            next = p.done;
+        }
+    }
+    assert_eq!(next, 26);
+    assert!(recorder
+        .shown
+        .iter()
+        .any(|c| c.progress.is_some_and(|p| p.time_left.is_some())));
+    assert!(recorder
+        .shown
+        .iter()
+        .any(|c| c.message.contains("occluded") && c.marker_room_mm.is_none()));
+}
+
+#[test]
+fn a_stopped_or_cancelled_collection_resumes_and_every_cell_is_captured_once() {
+    let mut rig = rig(12);
+    let lattice = small_lattice(&rig);
+    let path = temp_csv("resume.csv");
+    let mut client = Client::open(rig.port()).unwrap();
+
+    // Stop after 7 cells.
+    let mut stop_early = config(&rig.device);
+    stop_early.max_cells = Some(7);
+    let mut recorder = Recorder::new(&rig.cues);
+    let first = collect(
+        &mut client,
+        &mut rig.receiver,
+        &lattice,
+        &stop_early,
+        &path,
+        &mut recorder,
+    )
+    .unwrap();
+    assert_eq!(first.stop, Stop::MaxCells);
+    assert_eq!((first.captured, first.done), (7, 7));
+    assert!(disarmed(&rig));
+    assert_eq!(Session::load(&path).unwrap().samples.len(), 7);
+
+    // Cancelled once 15 cells are done.
+    let flag = Arc::new(AtomicBool::new(false));
+    let mut cancellable = config(&rig.device);
+    cancellable.cancel = Some(flag.clone());
+    let mut recorder = Recorder::new(&rig.cues);
+    recorder.cancel = Some((flag, 15));
+    let second = collect(
+        &mut client,
+        &mut rig.receiver,
+        &lattice,
+        &cancellable,
+        &path,
+        &mut recorder,
+    )
+    .unwrap();
+    assert_eq!(second.stop, Stop::Cancelled);
+    assert_eq!((second.resumed_from, second.done), (7, 15));
+    assert_eq!(second.captured, 8);
+    assert!(disarmed(&rig));
+
+    // The rest.
+    let mut recorder = Recorder::new(&rig.cues);
+    let third = collect(
+        &mut client,
+        &mut rig.receiver,
+        &lattice,
+        &config(&rig.device),
+        &path,
+        &mut recorder,
+    )
+    .unwrap();
+    assert_eq!(third.stop, Stop::Complete);
+    assert_eq!(
+        (third.resumed_from, third.captured, third.done),
+        (15, 12, 27)
+    );
+    assert_eq!(third.clock_offset_s, 0.0, "same boot: device time as it is");
+    assert_rows_in_order(&lattice, &Session::load(&path).unwrap());
+
+    // Nothing left: a fourth run does nothing.
+    let fourth = collect(
+        &mut client,
+        &mut rig.receiver,
+        &lattice,
+        &config(&rig.device),
+        &path,
+        &mut Recorder::new(&rig.cues),
+    )
+    .unwrap();
+    assert_eq!((fourth.captured, fourth.done), (0, 27));
+}
+
+#[test]
+fn a_torn_last_line_is_cut_off_and_after_a_reboot_time_continues_from_the_last_row() {
+    let mut rig = rig(13);
+    let lattice = small_lattice(&rig);
+    let path = temp_csv("torn.csv");
+    let mut client = Client::open(rig.port()).unwrap();
+    let mut cfg = config(&rig.device);
+    cfg.max_cells = Some(5);
+    collect(
+        &mut client,
+        &mut rig.receiver,
+        &lattice,
+        &cfg,
+        &path,
+        &mut Recorder::new(&rig.cues),
+    )
+    .unwrap();
+    let whole = std::fs::read_to_string(&path).unwrap();
+    let last_t_s = Session::load(&path).unwrap().samples[4].t_s;
+    // A crash mid-write: half a row, no newline.
+    let half_row = &whole.lines().last().unwrap()[..60];
+    std::fs::write(&path, format!("{whole}{half_row}")).unwrap();
+    // And the device lost power: its clock restarts at 0.
+    drop(client);
+    rig.virtual_device.power_cycle().unwrap();
+    let mut client = Client::open(rig.port()).unwrap();
+
+    let mut recorder = Recorder::new(&rig.cues);
+    let report = collect(
+        &mut client,
+        &mut rig.receiver,
+        &lattice,
+        &config(&rig.device),
+        &path,
+        &mut recorder,
+    );
+    if report.is_err() {
+        for c in recorder.shown.iter().step_by(50) {
+            eprintln!("{:?} {:?} {}", c.marker_room_mm, c.distance_mm, c.message);
+        }
+    }
+    let report = report.unwrap();
+    let torn = report.torn.clone().expect("the torn line is reported");
+    assert_eq!(torn.line, 7);
+    assert_eq!(torn.text, half_row);
+    assert_eq!((report.resumed_from, report.captured), (5, 22));
+    assert!(report.clock_offset_s > 0.0, "{report:?}");
+    let session = Session::load(&path).unwrap();
+    assert_rows_in_order(&lattice, &session);
+    assert!(session.samples[5].t_s >= last_t_s);
+    assert!(session.samples[5].t_s < last_t_s + 1.0, "t_s continues");
+    assert!(std::fs::read_to_string(&path).unwrap().starts_with(&whole));
+}
+
+#[test]
+fn a_file_of_another_layout_or_volume_is_refused_naming_it() {
+    let mut rig = rig(14);
+    let lattice = small_lattice(&rig);
+    let mut client = Client::open(rig.port()).unwrap();
+
+    let other = temp_csv("other-layout.csv");
+    std::fs::write(&other, "t_s,enc0,enc1\n0,1,2\n").unwrap();
+    let e = collect(
+        &mut client,
+        &mut rig.receiver,
+        &lattice,
+        &config(&rig.device),
+        &other,
+        &mut Recorder::new(&rig.cues),
+    )
+    .unwrap_err();
+    let text = e.to_string();
+    assert!(text.contains("other-layout.csv: line 1"), "{text}");
+    assert!(text.contains("header"), "{text}");
+    assert_eq!(
+        std::fs::read_to_string(&other).unwrap(),
+        "t_s,enc0,enc1\n0,1,2\n",
+        "left as it was"
+    );
+
+    // A row outside this lattice: collected over another volume.
+    let elsewhere = temp_csv("elsewhere.csv");
+    let header = SessionAppender::header_line();
+    let far = format!(
+        "0.5,{}9000,9000,9000,{}\n",
+        "0,".repeat(8),
+        ["1"; 11].join(",")
+    );
+    std::fs::write(&elsewhere, format!("{header}\n{far}")).unwrap();
+    let e = collect(
+        &mut client,
+        &mut rig.receiver,
+        &lattice,
+        &config(&rig.device),
+        &elsewhere,
+        &mut Recorder::new(&rig.cues),
+    )
+    .unwrap_err();
+    assert!(
+        matches!(e, CollectError::RowOutsideLattice { line: 2, .. }),
+        "{e}"
+    );
+    assert!(e.to_string().contains("elsewhere.csv: line 2"), "{e}");
+}
+
+/// A virtual device and a tracker receiver nobody sends to.
+fn device_without_tracker() -> (
+    Device,
+    spidar::virtual_device::VirtualDevice,
+    DtrackReceiver,
+) {
+    let device = Device::new(&SimConfig::default(), 3).unwrap();
+    let hand = Hand::at(device.frame.home);
+    let plant = Plant::new(device.clone(), Trajectory::Held(hand));
+    let vd = spawn(
+        VirtualDeviceConfig {
+            pace: Pace::RealTime { speed: 1.0 },
+            ..VirtualDeviceConfig::default()
+        },
+        plant,
+    )
+    .unwrap();
+    let receiver =
+        DtrackReceiver::bind(ReceiverConfig::new(SocketAddr::from(([127, 0, 0, 1], 0)))).unwrap();
+    (device, vd, receiver)
+}
+
+#[test]
+fn a_silent_tracker_is_an_error_naming_it_and_the_device_is_left_disarmed() {
+    let (device, vd, mut receiver) = device_without_tracker();
+    let lattice = Lattice::new(device.volume_centre_room(), 300.0, 3).unwrap();
+    let mut client = Client::open(vd.port_path()).unwrap();
+    let mut cfg = CollectConfig::for_geometry(&device.nominal);
+    cfg.tracker_label = format!("the tracker (UDP {})", receiver.local_addr());
+    cfg.tracker_timeout = Duration::from_millis(300);
+    let path = temp_csv("silent.csv");
+    let e = collect(
+        &mut client,
+        &mut receiver,
+        &lattice,
+        &cfg,
+        &path,
+        &mut SharedCues::new(),
+    )
+    .unwrap_err();
+    assert!(matches!(e, CollectError::TrackerSilent { .. }), "{e}");
+    assert!(
+        e.to_string()
+            .contains(&format!("UDP {}", receiver.local_addr())),
+        "{e}"
+    );
+    std::thread::sleep(Duration::from_millis(50));
+    assert!(!vd.status().armed);
+    // Nothing was captured: the file holds its header only.
+    assert!(Session::load(&path).unwrap().samples.is_empty());
+}
+
+#[test]
+fn a_device_that_stops_answering_is_the_link_error() {
+    let SimulatedRig {
+        device,
+        cues,
+        virtual_device,
+        mut receiver,
+        operator,
+        ..
+    } = rig(15);
+    let lattice = Lattice::new(device.volume_centre_room(), 300.0, 3).unwrap();
+    let path = temp_csv("device-gone.csv");
+    let port = virtual_device.port_path().to_string();
+    let mut client = Client::open(&port).unwrap();
+    // The device falls silent a moment in (a lost USB link).
+    let killer = std::thread::spawn(move || {
+        std::thread::sleep(Duration::from_millis(400));
+        virtual_device.shutdown();
+    });
+    let mut recorder = Recorder {
+        to_operator: cues,
+        shown: Vec::new(),
+        cancel: None,
+    };
+    let mut cfg = CollectConfig::for_geometry(&device.nominal);
+    cfg.tracker_label = format!("the tracker (UDP {})", receiver.local_addr());
+    let started = Instant::now();
+    let e = collect(
+        &mut client,
+        &mut receiver,
+        &lattice,
+        &cfg,
+        &path,
+        &mut recorder,
+    )
+    .unwrap_err();
+    killer.join().unwrap();
+    drop(operator);
+    assert!(
+        matches!(e, CollectError::Link(_) | CollectError::DeviceSilent { .. }),
+        "{e}"
+    );
+    assert!(e.to_string().contains(&port), "{e}");
+    assert!(started.elapsed() < Duration::from_secs(5));
+    // The rows captured before stay readable.
+    Session::load(&path).unwrap();
+}
