@@ -1150,16 +1150,33 @@ impl Default for SimRigConfig {
 
 /// A calibrated virtual device (real time) whose end-effector is in the
 /// hand of a simulated operator who wanders about, and the DTrack2 receiver
-/// on loopback the operator's tracker sends to.
+/// on loopback the operator's tracker sends to: a [`SimulatedRig`] with the
+/// calibration flashed before the operator starts.
+///
+/// [`SimulatedRig`]: super::sim_user::SimulatedRig
 pub struct SimulatedMonitorRig {
-    /// The device at run time (with the injected effects).
-    pub device: crate::sim::Device,
-    pub hand: crate::virtual_device::Hand,
-    pub virtual_device: crate::virtual_device::VirtualDevice,
-    pub receiver: crate::tracker::DtrackReceiver,
-    pub operator: super::sim_user::SimOperator,
+    pub rig: super::sim_user::SimulatedRig,
     /// The model flashed before the start.
     pub model_id: u32,
+}
+
+impl std::ops::Deref for SimulatedMonitorRig {
+    type Target = super::sim_user::SimulatedRig;
+    fn deref(&self) -> &Self::Target {
+        &self.rig
+    }
+}
+
+impl std::ops::DerefMut for SimulatedMonitorRig {
+    fn deref_mut(&mut self) -> &mut Self::Target {
+        &mut self.rig
+    }
+}
+
+impl From<super::sim_user::RigError> for MonitorError {
+    fn from(e: super::sim_user::RigError) -> Self {
+        MonitorError::Simulation(e.to_string())
+    }
 }
 
 impl SimulatedMonitorRig {
@@ -1171,27 +1188,14 @@ impl SimulatedMonitorRig {
         calibrated: &SimCalibration,
         config: &SimRigConfig,
     ) -> Result<SimulatedMonitorRig, MonitorError> {
-        use super::sim_user::{FreeMotion, SimOperator, SimOperatorConfig};
+        use super::sim_user::{FreeMotion, SimulatedRig};
         use crate::sim::{Device as SimDevice, SimConfig};
-        use crate::virtual_device::{spawn, Hand, Pace, Plant, Trajectory, VirtualDeviceConfig};
         let sim_config = SimConfig {
             effects: config.effects.clone(),
             ..SimConfig::default()
         };
         let device = SimDevice::new(&sim_config, calibrated.seed)
             .map_err(|e| MonitorError::Simulation(e.to_string()))?;
-        let vd_err =
-            |e: crate::virtual_device::VirtualDeviceError| MonitorError::Simulation(e.to_string());
-        let hand = Hand::at(device.frame.home);
-        let plant = Plant::new(device.clone(), Trajectory::Held(hand.clone()));
-        let virtual_device = spawn(
-            VirtualDeviceConfig {
-                pace: Pace::RealTime { speed: 1.0 },
-                ..VirtualDeviceConfig::default()
-            },
-            plant,
-        )
-        .map_err(vd_err)?;
         let model_id = model_id_of(&calibrated.calibration);
         let blob = compile_checked(
             &calibrated.calibration,
@@ -1199,38 +1203,31 @@ impl SimulatedMonitorRig {
             0,
             Path::new("(simulated calibration)"),
         )?;
-        {
-            let mut client = Client::open(virtual_device.port_path())?;
-            client.flash(&blob, |_| {})?;
-        }
-        virtual_device.power_cycle().map_err(vd_err)?;
-        let receiver = crate::tracker::DtrackReceiver::bind(crate::tracker::ReceiverConfig::new(
-            std::net::SocketAddr::from(([127, 0, 0, 1], 0)),
-        ))?;
-        let mut op = SimOperatorConfig::new(receiver.local_addr());
-        op.free_motion = FreeMotion::Wander {
-            centre_mm: device.frame.home,
-            half_size_mm: config.wander_half_size_mm,
-            speed_mm_s: config.wander_speed_mm_s,
-        };
-        op.occlusion = config.occlusion;
-        op.seed = config.operator_seed;
-        op.max_duration = config.max_duration;
-        let operator =
-            SimOperator::spawn(op, device.clone(), hand.clone(), super::SharedCues::new())?;
-        Ok(SimulatedMonitorRig {
+        let home = device.frame.home;
+        let rig = SimulatedRig::start_prepared(
             device,
-            hand,
-            virtual_device,
-            receiver,
-            operator,
-            model_id,
-        })
-    }
-
-    /// The serial port of the virtual device.
-    pub fn port(&self) -> &str {
-        self.virtual_device.port_path()
+            [0.0; 3],
+            |virtual_device| -> Result<(), MonitorError> {
+                {
+                    let mut client = Client::open(virtual_device.port_path())?;
+                    client.flash(&blob, |_| {})?;
+                }
+                virtual_device
+                    .power_cycle()
+                    .map_err(|e| MonitorError::Simulation(e.to_string()))
+            },
+            |op| {
+                op.free_motion = FreeMotion::Wander {
+                    centre_mm: home,
+                    half_size_mm: config.wander_half_size_mm,
+                    speed_mm_s: config.wander_speed_mm_s,
+                };
+                op.occlusion = config.occlusion;
+                op.seed = config.operator_seed;
+                op.max_duration = config.max_duration;
+            },
+        )?;
+        Ok(SimulatedMonitorRig { rig, model_id })
     }
 }
 
@@ -1387,7 +1384,7 @@ pub fn run_monitor(args: &MonitorArgs) -> Result<String, MonitorError> {
             );
             let calibrated = calibrate_simulated(seed)?;
             eprintln!("calibrated in {:.1} s", calibrated.seconds);
-            let rig = SimulatedMonitorRig::start(
+            let mut rig = SimulatedMonitorRig::start(
                 &calibrated,
                 &SimRigConfig {
                     effects: args.effects.clone(),
@@ -1398,10 +1395,9 @@ pub fn run_monitor(args: &MonitorArgs) -> Result<String, MonitorError> {
                 },
             )?;
             let mut client = Client::open(rig.port())?;
-            let mut receiver = rig.receiver;
             monitor(
                 &mut client,
-                &mut receiver,
+                &mut rig.receiver,
                 MonitorInputs {
                     geometry: &calibrated.geometry,
                     calibration: &calibrated.calibration,

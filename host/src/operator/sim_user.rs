@@ -504,6 +504,18 @@ impl SimulatedRig {
         offset_mm: [f64; 3],
         configure: impl FnOnce(&mut SimOperatorConfig),
     ) -> Result<SimulatedRig, RigError> {
+        Self::start_prepared(device, offset_mm, |_| Ok::<(), RigError>(()), configure)
+    }
+
+    /// [`SimulatedRig::start`], with `prepare` run on the virtual device
+    /// before the operator takes the hand (flash a model and power-cycle
+    /// it, so that it homes where the hand is).
+    pub fn start_prepared<E: From<RigError>>(
+        device: SimDevice,
+        offset_mm: [f64; 3],
+        prepare: impl FnOnce(&crate::virtual_device::VirtualDevice) -> Result<(), E>,
+        configure: impl FnOnce(&mut SimOperatorConfig),
+    ) -> Result<SimulatedRig, E> {
         use crate::virtual_device::{spawn, Pace, Plant, Trajectory, VirtualDeviceConfig};
         let start: [f64; 3] = core::array::from_fn(|k| device.frame.home[k] + offset_mm[k]);
         let hand = Hand::at(start);
@@ -514,15 +526,19 @@ impl SimulatedRig {
                 ..VirtualDeviceConfig::default()
             },
             plant,
-        )?;
+        )
+        .map_err(RigError::from)?;
+        prepare(&virtual_device)?;
         let receiver = crate::tracker::DtrackReceiver::bind(crate::tracker::ReceiverConfig::new(
             SocketAddr::from(([127, 0, 0, 1], 0)),
-        ))?;
+        ))
+        .map_err(RigError::from)?;
         let mut config = SimOperatorConfig::new(receiver.local_addr());
         configure(&mut config);
         config.tracker = receiver.local_addr();
         let cues = SharedCues::new();
-        let operator = SimOperator::spawn(config, device.clone(), hand.clone(), cues.clone())?;
+        let operator = SimOperator::spawn(config, device.clone(), hand.clone(), cues.clone())
+            .map_err(RigError::from)?;
         Ok(SimulatedRig {
             device,
             hand,
