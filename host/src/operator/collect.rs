@@ -56,18 +56,14 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use spidar_protocol::{Event, Limits, State, StringModel};
+use spidar_protocol::{Limits, State, StringModel};
 
-use super::{distance, CueSink, Cues, Progress};
+use super::{distance, ArmWatch, ArmWatchError, CueSink, Cues, Progress};
 use crate::dataset::{DatasetError, Geometry, Sample, Session, SessionAppender, TornLine};
 use crate::link::{Client, LinkError};
 use crate::tracker::{Next, TrackerError, TrackerSource};
 
 pub use crate::sim::lattice::{Lattice, LatticeError};
-
-/// How long the device's states may say "disarmed" after it was armed
-/// before it counts as having disarmed itself.
-const UNARMED_GRACE: Duration = Duration::from_millis(250);
 
 /// Settings of lattice collection.
 #[derive(Clone, Debug)]
@@ -513,8 +509,7 @@ fn run(
     let mut last_frame_at = Instant::now();
     let mut captures: VecDeque<Instant> = VecDeque::new();
     let mut previous_device_s: Option<f64> = None;
-    let mut unarmed_since: Option<Instant> = None;
-    let mut rearms_since_capture = 0u32;
+    let mut arm_watch = ArmWatch::new(config.max_rearms);
     let cancelled = || {
         config
             .cancel
@@ -549,38 +544,18 @@ fn run(
                 return Ok(());
             }
             states.poll(client)?;
-            // A device that disarmed itself (an event says so, or its
-            // states have said so for a while: it may refuse to run, e.g.
-            // not homed after a reboot) is armed again, a few times.
-            let event = client
-                .take_events()
-                .into_iter()
-                .rfind(|e| matches!(e, Event::Disarmed { .. } | Event::HeartbeatLost))
-                .map(|e| format!("{e:?}"));
-            let unarmed = match states.recent.back() {
-                Some((_, s)) if !s.armed => {
-                    let since = *unarmed_since.get_or_insert_with(Instant::now);
-                    (since.elapsed() > UNARMED_GRACE)
-                        .then(|| format!("states say disarmed, faults {:#06x}", s.faults.0))
+            // A device that disarmed itself is armed again, a few times.
+            let latest = states.recent.back().map(|(_, s)| (s.armed, s.faults));
+            match arm_watch.check(client, latest) {
+                Ok(true) => {
+                    report.rearms += 1;
+                    last_request = Instant::now();
                 }
-                _ => {
-                    unarmed_since = None;
-                    None
+                Ok(false) => {}
+                Err(ArmWatchError::Link(e)) => return Err(e.into()),
+                Err(ArmWatchError::KeepsDisarming { events, last }) => {
+                    return Err(CollectError::KeepsDisarming { events, last })
                 }
-            };
-            if let Some(last) = event.or(unarmed) {
-                report.rearms += 1;
-                rearms_since_capture += 1;
-                if rearms_since_capture > config.max_rearms {
-                    return Err(CollectError::KeepsDisarming {
-                        events: rearms_since_capture,
-                        last,
-                    });
-                }
-                client.clear_faults()?;
-                client.arm()?;
-                last_request = Instant::now();
-                unarmed_since = None;
             }
             if states.last_at.elapsed() > config.device_timeout {
                 return Err(CollectError::DeviceSilent {
@@ -694,7 +669,7 @@ fn run(
         done[index] = Some(line);
         report.captured += 1;
         report.done += 1;
-        rearms_since_capture = 0;
+        arm_watch.progress();
         captures.push_back(Instant::now());
         while captures.len() > config.eta_window {
             captures.pop_front();

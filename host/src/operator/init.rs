@@ -35,9 +35,9 @@ use std::time::{Duration, Instant};
 
 use serde::{Deserialize, Serialize};
 use spidar_core::guidance::{beep_frequency_hz, guidance_force};
-use spidar_protocol::{Event, Limits};
+use spidar_protocol::Limits;
 
-use super::{distance, CueSink, Cues};
+use super::{distance, ArmWatch, ArmWatchError, CueSink, Cues};
 use crate::dataset::{DatasetError, Geometry};
 use crate::link::{Client, LinkError};
 use crate::tracker::{Next, TrackerError, TrackerSource};
@@ -268,7 +268,7 @@ fn run(
     client.clear_faults()?;
     client.arm()?;
     client.stream_on(config.decimation)?;
-    let mut disarms = 0u32;
+    let mut arm_watch = ArmWatch::new(MAX_REARMS);
 
     let start = Instant::now();
     let mut last_frame_at = Instant::now();
@@ -284,24 +284,16 @@ fn run(
                 tolerance_mm: config.tolerance_mm,
             });
         }
-        // Keep the state stream drained (and the link's events current); a
-        // device that disarmed itself (a late heartbeat, a slack string) is
-        // re-armed a few times, then it is an error.
-        client.poll_states()?;
-        if let Some(e) = client
-            .take_events()
-            .into_iter()
-            .rfind(|e| matches!(e, Event::Disarmed { .. } | Event::HeartbeatLost))
-        {
-            disarms += 1;
-            if disarms > MAX_REARMS {
-                return Err(InitError::KeepsDisarming {
-                    events: disarms,
-                    last: format!("{e:?}"),
-                });
+        // Keep the state stream drained; a device that disarmed itself (a
+        // late heartbeat, a slack string) is re-armed a few times, then it
+        // is an error.
+        let latest = client.poll_states()?.last().map(|s| (s.armed, s.faults));
+        match arm_watch.check(client, latest) {
+            Ok(_) => {}
+            Err(ArmWatchError::Link(e)) => return Err(e.into()),
+            Err(ArmWatchError::KeepsDisarming { events, last }) => {
+                return Err(InitError::KeepsDisarming { events, last })
             }
-            client.clear_faults()?;
-            client.arm()?;
         }
         let frame = match tracker.next_frame(Duration::from_millis(20))? {
             Next::Frame(f) => f,
