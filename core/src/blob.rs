@@ -195,6 +195,7 @@ mod host {
 
     fn frame_f32(frame: &Frame<f64>) -> Result<Frame<f32>, CompileError> {
         let mut out = Frame {
+            layout: frame.layout,
             anchors: [[0.0f32; 3]; STRINGS],
             home: [0.0; 3],
             room_rotation: [[0.0; 3]; 3],
@@ -336,6 +337,7 @@ mod tests {
         }
         Calibration {
             frame: Frame {
+                layout: crate::model::StringLayout::ALL,
                 anchors,
                 home: [1.0, -2.0, 3.0],
                 room_rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],

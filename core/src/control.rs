@@ -256,7 +256,13 @@ impl Controller {
         let lengths_q16 = string_lengths(&head.laws, &head.effects, &inputs);
         let lengths = lengths_q16.map(|l| l as f32 / 65536.0);
 
-        let fk = forward_kinematics(&frame.anchors, &lengths, self.position, &self.config.fk);
+        let fk = forward_kinematics(
+            &frame.anchors,
+            frame.layout,
+            &lengths,
+            self.position,
+            &self.config.fk,
+        );
         let fk_ok = matches!(fk.status, FkStatus::Ok | FkStatus::FaultyStringExcluded);
         // An inconsistent or unconverged solve is still the best estimate of
         // the position (the least-squares compromise, what a plain controller
@@ -357,6 +363,7 @@ mod tests {
         }
         Calibration {
             frame: Frame {
+                layout: crate::model::StringLayout::ALL,
                 anchors,
                 home: [0.0; 3],
                 room_rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],

@@ -70,7 +70,7 @@ use crate::blob::{split_body, BlobHead, CompiledCalibration, LENGTH_FRAC};
 use crate::control::{ControlConfig, Controller, LoopInput, LoopOutput, Target};
 use crate::correction::{Correction, CorrectionSummary, ACTIVATION_FRAC, POSITION_FRAC};
 use crate::kinematics::FkStatus;
-use crate::model::{Frame, StringLaw};
+use crate::model::{Frame, StringLaw, StringLayout};
 use crate::model_store::{CommitError, ModelFlash, ModelStore, StoreError, StoredModel};
 use crate::safety::{Faults as SafetyFaults, SafetyConfig, SafetyConfigError, SafetyMonitor};
 use crate::string_law::{compile_string_law, CompileError, CompiledStringLaw};
@@ -203,6 +203,7 @@ pub fn nominal_calibration(
         return Err("home_mm");
     }
     let frame64 = Frame::<f64> {
+        layout: StringLayout::ALL,
         anchors: model.anchors_mm.map(|a| a.map(f64::from)),
         home: model.home_mm.map(f64::from),
         room_rotation: IDENTITY.map(|r| r.map(f64::from)),
@@ -250,6 +251,7 @@ pub fn nominal_calibration(
         header,
         head: BlobHead {
             frame: Frame {
+                layout: StringLayout::ALL,
                 anchors: model.anchors_mm,
                 home: model.home_mm,
                 room_rotation: IDENTITY,
@@ -1191,6 +1193,7 @@ mod tests {
     fn calibration(correction: CorrectionModel) -> Calibration {
         Calibration {
             frame: Frame {
+                layout: StringLayout::ALL,
                 anchors: anchors(),
                 home: [0.0; 3],
                 room_rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],

@@ -18,6 +18,82 @@ use crate::STRINGS;
 /// A point or vector in millimetres, `[x, y, z]`.
 pub type Vec3<F> = [F; 3];
 
+/// Which of the controller's [`STRINGS`] channels carry a string, and whether
+/// the end-effector moves in a plane.
+///
+/// A Scalable-SPIDAR uses all 8 channels; a SPIDAR-G, a planar SPIDAR, a
+/// cable robot with 4 lines or a rig with strings removed use 3 to 8 of them.
+/// Arrays indexed by string keep their 8 entries (index = encoder channel);
+/// entries of inactive channels are ignored by kinematics, string laws,
+/// tension distribution and safety.
+///
+/// Planar: the anchors lie in the plane `z = anchors' z` of the device frame
+/// and the end-effector moves in it; kinematics solves `x, y` only.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct StringLayout {
+    /// Bit `i` set: channel `i` carries a string.
+    pub active: u8,
+    /// The end-effector moves in the anchors' plane (2 degrees of freedom).
+    pub planar: bool,
+}
+
+impl Default for StringLayout {
+    /// All 8 channels, 3-D: a Scalable-SPIDAR.
+    fn default() -> Self {
+        Self::ALL
+    }
+}
+
+impl StringLayout {
+    /// All [`STRINGS`] channels, 3-D.
+    pub const ALL: StringLayout = StringLayout {
+        active: u8::MAX,
+        planar: false,
+    };
+
+    /// The first `n` channels (`n` clamped to `0..=STRINGS`).
+    pub const fn first(n: usize, planar: bool) -> StringLayout {
+        let n = if n > STRINGS { STRINGS } else { n };
+        let active = if n >= 8 { u8::MAX } else { (1u8 << n) - 1 };
+        StringLayout { active, planar }
+    }
+
+    /// Whether channel `i` carries a string.
+    #[inline]
+    pub const fn is_active(&self, i: usize) -> bool {
+        i < STRINGS && self.active & (1 << i) != 0
+    }
+
+    /// Number of strings.
+    #[inline]
+    pub const fn count(&self) -> usize {
+        self.active.count_ones() as usize
+    }
+
+    /// Indices of the active channels, ascending.
+    pub fn indices(self) -> impl Iterator<Item = usize> + Clone {
+        (0..STRINGS).filter(move |&i| self.is_active(i))
+    }
+
+    /// Degrees of freedom of the end-effector's position: 2 (planar) or 3.
+    #[inline]
+    pub const fn dof(&self) -> usize {
+        if self.planar {
+            2
+        } else {
+            3
+        }
+    }
+
+    /// Strings beyond the position's degrees of freedom (`count - dof`,
+    /// 0 when there are fewer). One spare string lets forward kinematics see
+    /// that the strings disagree; telling which string is faulty needs two.
+    #[inline]
+    pub const fn redundancy(&self) -> usize {
+        self.count().saturating_sub(self.dof())
+    }
+}
+
 /// Geometry of the device: where the strings leave the frame, where the
 /// end-effector was at initialization, and how the device frame sits in the
 /// tracker's room frame.
@@ -26,8 +102,12 @@ pub type Vec3<F> = [F; 3];
 /// identifies `Frame<f64>`. This is the one geometry type of the project.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Frame<F> {
-    /// String exit points (device frame, mm), index = encoder index.
+    /// String exit points (device frame, mm), index = encoder index;
+    /// entries of channels [`StringLayout`] marks inactive are ignored.
     pub anchors: [Vec3<F>; STRINGS],
+    /// Which channels carry a string; planar or 3-D. Defaults to all 8, 3-D.
+    #[serde(default)]
+    pub layout: StringLayout,
     /// End-effector position at initialization (device frame, mm).
     pub home: Vec3<F>,
     /// Rotation part of `p_room = scale * R * p_device + t`, row-major.

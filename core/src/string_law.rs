@@ -975,6 +975,7 @@ mod tests {
             ];
         }
         Frame {
+            layout: crate::model::StringLayout::ALL,
             anchors,
             home,
             room_rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],

@@ -100,7 +100,8 @@ pub fn device_positions(
         .map(|o| {
             let q = string_lengths(&blob.head.laws, &blob.head.effects, &o.inputs);
             let lengths = q.map(|l| l as f32 / 65536.0);
-            let fk = forward_kinematics(&frame.anchors, &lengths, position, &fk_config);
+            let fk =
+                forward_kinematics(&frame.anchors, frame.layout, &lengths, position, &fk_config);
             if matches!(fk.status, FkStatus::Ok | FkStatus::FaultyStringExcluded) {
                 position = fk.position;
             }

@@ -47,7 +47,7 @@ use std::path::{Path, PathBuf};
 
 use serde::de::{self, Deserializer, SeqAccess, Visitor};
 use serde::Deserialize;
-use spidar_core::model::{Frame, StringLaw, Vec3, WINDING_ORDER};
+use spidar_core::model::{Frame, StringLaw, StringLayout, Vec3, WINDING_ORDER};
 use spidar_core::STRINGS;
 
 /// Name of the time column.
@@ -359,6 +359,7 @@ impl Geometry {
     /// scale and the eq. 6 translation.
     pub fn nominal_frame(&self) -> Frame<f64> {
         Frame {
+            layout: StringLayout::ALL,
             anchors: self.anchors_mm,
             home: self.home_mm,
             room_rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],

@@ -52,7 +52,13 @@ pub fn predict(model: StringModel<'_>, observations: &[Observation]) -> Vec<Pred
         .iter()
         .map(|o| {
             let lengths = string_lengths_f64(model.frame, model.laws, model.effects, &o.inputs);
-            let fk = forward_kinematics(&model.frame.anchors, &lengths, start, &config);
+            let fk = forward_kinematics(
+                &model.frame.anchors,
+                model.frame.layout,
+                &lengths,
+                start,
+                &config,
+            );
             if matches!(fk.status, FkStatus::Ok | FkStatus::FaultyStringExcluded) {
                 start = fk.position;
             }

@@ -213,6 +213,7 @@ fn the_operator_fills_a_small_lattice_cell_by_cell_and_the_rows_are_true() {
             });
             let fk = forward_kinematics(
                 &nominal.anchors_mm,
+                spidar_core::model::StringLayout::ALL,
                 &lengths,
                 nominal.home_mm,
                 &FkConfig::default(),

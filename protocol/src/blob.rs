@@ -26,13 +26,14 @@ use serde::{Deserialize, Serialize};
 
 /// Magic bytes at the start of every model blob.
 pub const MAGIC: [u8; 4] = *b"SPDM";
-/// Blob format this crate reads and writes. Version 2 (version 1 and any
-/// other are refused with [`BlobError::UnsupportedVersion`]): the body pads
-/// the string model with zero bytes so that the correction starts at a
+/// Blob format this crate reads and writes. Version 3 (any other is refused
+/// with [`BlobError::UnsupportedVersion`]): the frame carries the string
+/// layout (which of the 8 channels carry a string, planar or 3-D), so one
+/// blob format serves devices with 3 to 8 strings. Version 2 introduced the
+/// zero padding after the string model so that the correction starts at a
 /// multiple of 4 bytes from the blob start (`spidar-core::blob`), which lets
-/// the device read the SVR records as aligned words. Version 1 had no
-/// padding.
-pub const FORMAT_VERSION: u16 = 2;
+/// the device read the SVR records as aligned words; version 1 had none.
+pub const FORMAT_VERSION: u16 = 3;
 /// Size of the header in bytes.
 pub const HEADER_LEN: usize = 40;
 
@@ -334,18 +335,20 @@ mod tests {
     }
 
     #[test]
-    fn version_1_is_refused_by_name() {
-        let mut bytes = header().to_bytes();
-        bytes[4..6].copy_from_slice(&1u16.to_le_bytes());
-        let crc = CRC32.checksum(&bytes[0..36]);
-        bytes[36..40].copy_from_slice(&crc.to_le_bytes());
-        assert_eq!(
-            ModelHeader::parse(&bytes),
-            Err(BlobError::UnsupportedVersion {
-                found: 1,
-                supported: 2
-            })
-        );
+    fn older_versions_are_refused_by_name() {
+        for old in [1u16, 2] {
+            let mut bytes = header().to_bytes();
+            bytes[4..6].copy_from_slice(&old.to_le_bytes());
+            let crc = CRC32.checksum(&bytes[0..36]);
+            bytes[36..40].copy_from_slice(&crc.to_le_bytes());
+            assert_eq!(
+                ModelHeader::parse(&bytes),
+                Err(BlobError::UnsupportedVersion {
+                    found: old,
+                    supported: 3
+                })
+            );
+        }
     }
 
     #[test]

@@ -423,7 +423,16 @@ fn fk_warm(_: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
     let p = central_position(rng);
     let lengths = lengths_at(p, rng, 0.3);
     let start = [p[0] + rng.f32_in(-2.0, 2.0), p[1] + rng.f32_in(-2.0, 2.0), p[2] + rng.f32_in(-2.0, 2.0)];
-    fk_solution(out, &forward_kinematics(&cube_anchors(), &lengths, start, &FkConfig::default()));
+    fk_solution(
+        out,
+        &forward_kinematics(
+            &cube_anchors(),
+            spidar_core::model::StringLayout::ALL,
+            &lengths,
+            start,
+            &FkConfig::default(),
+        ),
+    );
 }
 
 /// Cold start (frame centre) with one string 5-40 mm off: the exclusion path.
@@ -433,7 +442,16 @@ fn fk_faulty(_: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
     let mut lengths = lengths_at(p, rng, 0.2);
     let bad = rng.i32_in(0, spidar_core::STRINGS as i32 - 1) as usize;
     lengths[bad] += rng.f32_in(5.0, 40.0);
-    fk_solution(out, &forward_kinematics(&cube_anchors(), &lengths, [0.0; 3], &FkConfig::default()));
+    fk_solution(
+        out,
+        &forward_kinematics(
+            &cube_anchors(),
+            spidar_core::model::StringLayout::ALL,
+            &lengths,
+            [0.0; 3],
+            &FkConfig::default(),
+        ),
+    );
 }
 
 fn correction_case(fx: &Fixtures, svr: bool, rng: &mut Rng, out: &mut dyn Out) {

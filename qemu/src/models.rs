@@ -6,7 +6,7 @@
 //! `spidar_core::correction`'s tests): realistic magnitudes, random values.
 
 use spidar_core::correction::{CorrectionModel, NnModel, OutputMode, Standardization, SvrModel};
-use spidar_core::model::{Calibration, Effect, EffectTerm, Frame, StringLaw};
+use spidar_core::model::{Calibration, Effect, EffectTerm, Frame, StringLaw, StringLayout};
 use spidar_core::STRINGS;
 
 use crate::cases::Rng;
@@ -49,6 +49,7 @@ fn calibration(correction: CorrectionModel) -> Calibration {
     ];
     Calibration {
         frame: Frame {
+            layout: StringLayout::ALL,
             anchors,
             home: [1.0, -2.0, 3.0],
             room_rotation: [[0.9998, -0.0175, 0.0], [0.0175, 0.9998, 0.0], [0.0, 0.0, 1.0]],

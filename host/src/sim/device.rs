@@ -4,7 +4,7 @@
 use rand::rngs::ChaCha8Rng;
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
-use spidar_core::model::{EffectTerm, Frame, StringLaw, Vec3, WINDING_ORDER};
+use spidar_core::model::{EffectTerm, Frame, StringLaw, StringLayout, Vec3, WINDING_ORDER};
 use spidar_core::STRINGS;
 
 use super::config::SimConfig;
@@ -150,6 +150,7 @@ impl Device {
         });
 
         let mut frame = Frame {
+            layout: StringLayout::ALL,
             anchors,
             home,
             room_rotation,

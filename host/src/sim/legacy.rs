@@ -6,7 +6,7 @@
 //! strings (no faulty-string rejection: the firmware of the paper had none).
 
 use spidar_core::kinematics::{forward_kinematics, FkConfig, FkStatus};
-use spidar_core::model::{StringLaw, Vec3};
+use spidar_core::model::{StringLaw, StringLayout, Vec3};
 use spidar_core::string_law::payout_f64;
 use spidar_core::STRINGS;
 
@@ -40,7 +40,13 @@ impl LegacyController {
     pub(crate) fn position(&self, counts: &[i32; STRINGS]) -> Option<Vec3<f64>> {
         let lengths: [f64; STRINGS] =
             core::array::from_fn(|i| self.home_lengths[i] + payout_f64(&self.laws[i], counts[i]));
-        let solution = forward_kinematics(&self.anchors, &lengths, self.home, &self.config);
+        let solution = forward_kinematics(
+            &self.anchors,
+            StringLayout::ALL,
+            &lengths,
+            self.home,
+            &self.config,
+        );
         match solution.status {
             FkStatus::InvalidInput => None,
             _ => Some(solution.position),

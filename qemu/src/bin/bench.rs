@@ -11,6 +11,7 @@ use core::hint::black_box;
 use spidar_core::control::{ControlConfig, Controller, LoopInput, Target};
 use spidar_core::device::{Device, DeviceConfig, ModelBuffer, TickInput};
 use spidar_core::kinematics::{forward_kinematics, inverse_kinematics, FkConfig};
+use spidar_core::model::StringLayout;
 use spidar_core::model_store::{FlashError, ModelFlash, RamFlash, Slot};
 use spidar_core::tension::{distribute, distribute_warm, TensionConfig};
 use spidar_core::STRINGS;
@@ -76,7 +77,7 @@ fn main() -> ! {
     }
     let mut prev = path[0];
     measure("kinematics::forward_kinematics f32 (warm start)", None, N as u32, |i| {
-        let s = forward_kinematics(&anchors, &path_lengths[at(i)], prev, &fk_cfg);
+        let s = forward_kinematics(&anchors, StringLayout::ALL, &path_lengths[at(i)], prev, &fk_cfg);
         prev = s.position;
         s.position
     });
@@ -86,7 +87,7 @@ fn main() -> ! {
         faulty[k][k % STRINGS] += 20.0;
     }
     measure("kinematics::forward_kinematics f32 (cold, one faulty string)", None, 8, |i| {
-        forward_kinematics(&anchors, &faulty[at(i)], [0.0; 3], &fk_cfg).position
+        forward_kinematics(&anchors, StringLayout::ALL, &faulty[at(i)], [0.0; 3], &fk_cfg).position
     });
     measure("blob::CompiledCalibration::from_blob (SVR blob, at load)", None, 2, |_| {
         spidar_core::blob::CompiledCalibration::from_blob(black_box(fx.svr_blob)).is_ok()
@@ -291,7 +292,7 @@ impl Loop {
         let frame = &cal.head.frame;
         let lengths_q16 = spidar_core::string_law::string_lengths(&cal.head.laws, &cal.head.effects, &inputs);
         let lengths: [f32; STRINGS] = core::array::from_fn(|s| lengths_q16[s] as f32 / 65536.0);
-        let fk = forward_kinematics(&frame.anchors, &lengths, self.position, fk_cfg);
+        let fk = forward_kinematics(&frame.anchors, frame.layout, &lengths, self.position, fk_cfg);
         self.position = fk.position;
         let p = self.position;
         let r = &frame.room_rotation;
