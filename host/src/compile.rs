@@ -301,12 +301,13 @@ pub fn run_compile(args: &CompileArgs) -> Result<CompileReport, CompileCmdError>
     let parsed = CompiledCalibration::from_blob(&blob).map_err(CompileCmdError::ParseBack)?;
     if let Some(g) = &args.geometry {
         let geometry = Geometry::load(g)?;
-        for law in &calibration.strings {
-            if law.counts_per_rev != geometry.counts_per_rev {
+        for i in geometry.layout.indices() {
+            let law = &calibration.strings[i];
+            if law.counts_per_rev != geometry.counts_per_rev[i] {
                 return Err(CompileCmdError::GeometryMismatch {
                     file: g.clone(),
                     field: "counts_per_rev",
-                    found: geometry.counts_per_rev.to_string(),
+                    found: geometry.counts_per_rev[i].to_string(),
                     expected: law.counts_per_rev.to_string(),
                 });
             }

@@ -3,16 +3,25 @@
 //! Two formats, fixed because other tools write them:
 //!
 //! - **Geometry** (TOML, [`Geometry`]): the device as designed (nominal).
-//!   Keys: `counts_per_rev`, `pulley_radius_mm` (one number or an array of 8),
-//!   `home_mm`, `anchors_mm` (8 x `[x, y, z]`, index = encoder index) and
-//!   `room_from_device_translation_mm` (`p_room = p_device + t`, the paper's
-//!   eq. 6). An unknown key is an error that names it.
+//!   Keys: `anchors_mm` (N x `[x, y, z]`, index = encoder index; N = 3..8
+//!   sets the number of strings, on channels `0..N`), `counts_per_rev` and
+//!   `pulley_radius_mm` (one number, or an array of N), optional
+//!   `mechanical_advantage` (array of N: spool payout per mm of string length
+//!   change, e.g. 2 for a line doubled through a pulley block; default 1),
+//!   optional `planar = true` (the end-effector moves in the anchors' plane;
+//!   anchors and home may then be given as `[x, y]`, and 3-D ones must share
+//!   one z), `home_mm` and `room_from_device_translation_mm`
+//!   (`p_room = p_device + t`, the paper's eq. 6). An unknown key is an error
+//!   that names it.
 //! - **Session** (CSV with a header, [`Session`]): one row per capture.
 //!   Columns are found by name, in any order:
-//!   `t_s`, `enc0`..`enc7` (required); `ots_x`, `ots_y`, `ots_z` (required
-//!   columns; all three empty while the marker is occluded); optional groups
-//!   `dev_x`, `dev_y`, `dev_z` (legacy controller position, device frame) and
-//!   `tension0`..`tension7` (commanded tensions, N).
+//!   `t_s`, `enc0`..`enc{N-1}` (required, N = 3..8 consecutive from `enc0`;
+//!   [`Session::strings`]); `ots_x`, `ots_y` and `ots_z` (required columns,
+//!   but `ots_z` may be left out for a planar device; all empty while the
+//!   marker is occluded); optional groups `dev_x`, `dev_y`, `dev_z` (legacy
+//!   controller position, device frame) and `tension0`..`tension{N-1}`
+//!   (commanded tensions, N). A session whose number of strings differs from
+//!   its geometry's is refused where the two meet ([`Session::check_strings`]).
 //!
 //! Decisions (strict where data could be lost or misread):
 //! - A missing required column, a duplicate column, or an optional group with
@@ -134,6 +143,14 @@ pub enum DatasetError {
         found: String,
         expected: String,
     },
+    /// A session whose encoder columns disagree with its geometry's anchors.
+    #[error("{}: line 1: {strings} encoder columns (enc0..enc{}), but {} has {geometry_strings} anchors: a session and its geometry must describe the same strings", file.display(), strings.saturating_sub(1), geometry_file.display())]
+    StringCount {
+        file: PathBuf,
+        strings: usize,
+        geometry_file: PathBuf,
+        geometry_strings: usize,
+    },
     /// Malformed CSV, e.g. a row with another number of fields than the header.
     #[error("{}: line {line}: {message}", file.display())]
     Csv {
@@ -162,13 +179,27 @@ fn io_error(file: &Path, action: &'static str, source: io::Error) -> DatasetErro
 // Geometry
 // ---------------------------------------------------------------------------
 
+/// Fewest strings a device may have (3 hold a point in 3-D, with no spare).
+pub const MIN_STRINGS: usize = 3;
+
 /// Nominal geometry of a device, as its designers give it (never as built).
+///
+/// Arrays have the controller's [`STRINGS`] entries (index = encoder
+/// channel); a device with N strings uses channels `0..N` (`layout`), and the
+/// entries of the other channels repeat string N-1's values: they are never
+/// read, but stay valid numbers for code that walks all 8.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Geometry {
-    /// Quadrature counts per pulley revolution.
-    pub counts_per_rev: u32,
-    /// Nominal pulley radius of each string (mm), index = encoder index.
+    /// Which channels carry a string (`0..N`), planar or 3-D.
+    pub layout: StringLayout,
+    /// Quadrature counts per pulley (spool) revolution, per string.
+    pub counts_per_rev: [u32; STRINGS],
+    /// Nominal pulley (spool) radius of each string (mm), index = encoder index.
     pub pulley_radius_mm: [f64; STRINGS],
+    /// Spool payout per mm of string length change (1 for a string straight
+    /// from its pulley to the end-effector, 2 or 4 for a line doubled through
+    /// pulley blocks).
+    pub mechanical_advantage: [f64; STRINGS],
     /// End-effector position at initialization (device frame, mm).
     pub home_mm: Vec3<f64>,
     /// String exit points (device frame, mm), index = encoder index.
@@ -177,49 +208,66 @@ pub struct Geometry {
     pub room_from_device_translation_mm: Vec3<f64>,
 }
 
-/// `pulley_radius_mm`: one number for all pulleys, or one per pulley.
+/// A key that is one number for all strings or an array of one per string.
 #[derive(Debug)]
-enum RadiusSpec {
-    One(f64),
-    Each(Vec<f64>),
+enum PerString<T> {
+    One(T),
+    Each(Vec<T>),
 }
 
-impl<'de> Deserialize<'de> for RadiusSpec {
+impl<'de, T: Deserialize<'de>> Deserialize<'de> for PerString<T> {
     fn deserialize<D: Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
-        struct RadiusVisitor;
-        impl<'de> Visitor<'de> for RadiusVisitor {
-            type Value = RadiusSpec;
+        struct PerStringVisitor<T>(std::marker::PhantomData<T>);
+        impl<'de, T: Deserialize<'de>> Visitor<'de> for PerStringVisitor<T> {
+            type Value = PerString<T>;
             fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
-                write!(f, "a number (mm) or an array of {STRINGS} numbers")
+                write!(f, "a number or an array of one number per string")
             }
-            fn visit_f64<E: de::Error>(self, v: f64) -> Result<RadiusSpec, E> {
-                Ok(RadiusSpec::One(v))
+            fn visit_f64<E: de::Error>(self, v: f64) -> Result<Self::Value, E> {
+                T::deserialize(de::value::F64Deserializer::new(v)).map(PerString::One)
             }
-            fn visit_i64<E: de::Error>(self, v: i64) -> Result<RadiusSpec, E> {
-                Ok(RadiusSpec::One(v as f64))
+            fn visit_i64<E: de::Error>(self, v: i64) -> Result<Self::Value, E> {
+                T::deserialize(de::value::I64Deserializer::new(v)).map(PerString::One)
             }
-            fn visit_u64<E: de::Error>(self, v: u64) -> Result<RadiusSpec, E> {
-                Ok(RadiusSpec::One(v as f64))
+            fn visit_u64<E: de::Error>(self, v: u64) -> Result<Self::Value, E> {
+                T::deserialize(de::value::U64Deserializer::new(v)).map(PerString::One)
             }
-            fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<RadiusSpec, A::Error> {
-                let mut radii = Vec::new();
-                while let Some(r) = seq.next_element::<f64>()? {
-                    radii.push(r);
+            fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<Self::Value, A::Error> {
+                let mut values = Vec::new();
+                while let Some(v) = seq.next_element::<T>()? {
+                    values.push(v);
                 }
-                Ok(RadiusSpec::Each(radii))
+                Ok(PerString::Each(values))
             }
         }
-        deserializer.deserialize_any(RadiusVisitor)
+        deserializer.deserialize_any(PerStringVisitor(std::marker::PhantomData))
+    }
+}
+
+impl<T: Copy> PerString<T> {
+    /// One value per string of `n`, the rest of the channels repeating the
+    /// last; `None` when an array has another length than `n`.
+    fn per_channel(&self, n: usize) -> Result<[T; STRINGS], usize> {
+        let values: Vec<T> = match self {
+            PerString::One(v) => vec![*v; n],
+            PerString::Each(v) if v.len() == n => v.clone(),
+            PerString::Each(v) => return Err(v.len()),
+        };
+        Ok(core::array::from_fn(|i| values[i.min(n - 1)]))
     }
 }
 
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct GeometryFile {
-    counts_per_rev: u32,
-    pulley_radius_mm: RadiusSpec,
-    home_mm: Vec3<f64>,
-    anchors_mm: Vec<Vec3<f64>>,
+    counts_per_rev: PerString<u32>,
+    pulley_radius_mm: PerString<f64>,
+    #[serde(default)]
+    mechanical_advantage: Option<PerString<f64>>,
+    #[serde(default)]
+    planar: bool,
+    home_mm: Vec<f64>,
+    anchors_mm: Vec<Vec<f64>>,
     room_from_device_translation_mm: Vec3<f64>,
 }
 
@@ -258,30 +306,72 @@ impl Geometry {
             file: file.to_path_buf(),
             message: e.to_string().trim_end().to_string(),
         })?;
-        let pulley_radius_mm = match raw.pulley_radius_mm {
-            RadiusSpec::One(r) => [r; STRINGS],
-            RadiusSpec::Each(v) => v.try_into().map_err(|v: Vec<f64>| {
-                field_error(
-                    file,
-                    "pulley_radius_mm",
-                    format!(
-                        "{} radii given, {STRINGS} expected (or one number for all)",
-                        v.len()
-                    ),
-                )
-            })?,
-        };
-        let anchors_mm: [Vec3<f64>; STRINGS] = raw.anchors_mm.try_into().map_err(|v: Vec<_>| {
-            field_error(
+        let n = raw.anchors_mm.len();
+        if !(MIN_STRINGS..=STRINGS).contains(&n) {
+            return Err(field_error(
                 file,
                 "anchors_mm",
-                format!("{} anchors given, {STRINGS} expected", v.len()),
+                format!(
+                    "{n} anchors given: a device has {MIN_STRINGS} to {STRINGS} strings, one anchor each"
+                ),
+            ));
+        }
+        let planar = raw.planar;
+        let point = |field: String, v: &[f64]| -> Result<Vec3<f64>, DatasetError> {
+            match (v.len(), planar) {
+                (3, _) => Ok([v[0], v[1], v[2]]),
+                (2, true) => Ok([v[0], v[1], 0.0]),
+                (len, true) => Err(field_error(
+                    file,
+                    field,
+                    format!("{len} coordinates: [x, y] or [x, y, z] (mm) expected"),
+                )),
+                (len, false) => Err(field_error(
+                    file,
+                    field,
+                    format!(
+                        "{len} coordinates: [x, y, z] (mm) expected (2-D points need `planar = true`)"
+                    ),
+                )),
+            }
+        };
+        let mut given = Vec::with_capacity(n);
+        for (i, a) in raw.anchors_mm.iter().enumerate() {
+            given.push(point(format!("anchors_mm[{i}]"), a)?);
+        }
+        let mut home_mm = point("home_mm".to_string(), &raw.home_mm)?;
+        if planar && raw.home_mm.len() == 2 {
+            // A 2-D home lies in the anchors' plane.
+            home_mm[2] = given[0][2];
+        }
+        let anchors_mm: [Vec3<f64>; STRINGS] = core::array::from_fn(|i| given[i.min(n - 1)]);
+        let per_string = |field: &str, len: usize| {
+            field_error(
+                file,
+                field,
+                format!("{len} values given, {n} expected (one per anchor, or one number for all)"),
             )
-        })?;
+        };
+        let counts_per_rev = raw
+            .counts_per_rev
+            .per_channel(n)
+            .map_err(|len| per_string("counts_per_rev", len))?;
+        let pulley_radius_mm = raw
+            .pulley_radius_mm
+            .per_channel(n)
+            .map_err(|len| per_string("pulley_radius_mm", len))?;
+        let mechanical_advantage = match &raw.mechanical_advantage {
+            None => [1.0; STRINGS],
+            Some(m) => m
+                .per_channel(n)
+                .map_err(|len| per_string("mechanical_advantage", len))?,
+        };
         let geometry = Geometry {
-            counts_per_rev: raw.counts_per_rev,
+            layout: StringLayout::first(n, planar),
+            counts_per_rev,
             pulley_radius_mm,
-            home_mm: raw.home_mm,
+            mechanical_advantage,
+            home_mm,
             anchors_mm,
             room_from_device_translation_mm: raw.room_from_device_translation_mm,
         };
@@ -289,18 +379,47 @@ impl Geometry {
         Ok(geometry)
     }
 
+    /// Number of strings (anchors), 3..=8.
+    pub fn strings(&self) -> usize {
+        self.layout.count()
+    }
+
     /// Check the values: positive counts per revolution and radii, finite
     /// coordinates, anchors apart from home. `file` names the file in errors.
     pub fn validate(&self, file: &Path) -> Result<(), DatasetError> {
-        if self.counts_per_rev == 0 {
-            return Err(field_error(file, "counts_per_rev", "must be positive"));
+        let n = self.strings();
+        if n < MIN_STRINGS || self.layout != StringLayout::first(n, self.layout.planar) {
+            return Err(field_error(
+                file,
+                "anchors_mm",
+                format!(
+                    "strings on channels {:?}: a device has {MIN_STRINGS} to {STRINGS} strings on channels 0..N",
+                    self.layout.indices().collect::<Vec<_>>()
+                ),
+            ));
         }
-        for (i, r) in self.pulley_radius_mm.iter().enumerate() {
-            if !(r.is_finite() && *r > 0.0) {
+        for i in self.layout.indices() {
+            if self.counts_per_rev[i] == 0 {
+                return Err(field_error(
+                    file,
+                    format!("counts_per_rev[{i}]"),
+                    "must be positive",
+                ));
+            }
+            let r = self.pulley_radius_mm[i];
+            if !(r.is_finite() && r > 0.0) {
                 return Err(field_error(
                     file,
                     format!("pulley_radius_mm[{i}]"),
                     format!("{r} is not a positive finite radius"),
+                ));
+            }
+            let m = self.mechanical_advantage[i];
+            if !(m.is_finite() && m > 0.0) {
+                return Err(field_error(
+                    file,
+                    format!("mechanical_advantage[{i}]"),
+                    format!("{m} is not a positive finite ratio"),
                 ));
             }
         }
@@ -310,7 +429,8 @@ impl Geometry {
             "room_from_device_translation_mm",
             &self.room_from_device_translation_mm,
         )?;
-        for (i, a) in self.anchors_mm.iter().enumerate() {
+        for i in self.layout.indices() {
+            let a = &self.anchors_mm[i];
             let field = format!("anchors_mm[{i}]");
             check_finite3(file, &field, a)?;
             if distance(a, &self.home_mm) == 0.0 {
@@ -320,23 +440,65 @@ impl Geometry {
                     "the anchor coincides with home_mm",
                 ));
             }
+            if self.layout.planar && a[2] != self.anchors_mm[0][2] {
+                return Err(field_error(
+                    file,
+                    field,
+                    format!(
+                        "z = {} but anchors_mm[0] has z = {}: the anchors of a planar device lie in one plane z = const",
+                        a[2], self.anchors_mm[0][2]
+                    ),
+                ));
+            }
+        }
+        if self.layout.planar && self.home_mm[2] != self.anchors_mm[0][2] {
+            return Err(field_error(
+                file,
+                "home_mm",
+                format!(
+                    "z = {} is not the anchors' plane z = {}: the end-effector of a planar device moves in that plane",
+                    self.home_mm[2], self.anchors_mm[0][2]
+                ),
+            ));
         }
         Ok(())
     }
 
-    /// TOML text of this geometry, in the layout of the shared example.
+    /// TOML text of this geometry, in the layout of the shared example
+    /// (the N-string keys only where they differ from a Scalable-SPIDAR's).
     pub fn to_toml_string(&self) -> String {
+        let n = self.strings();
         let mut s = String::from("# Nominal geometry of the device (as designed, not as built)\n");
-        let _ = writeln!(s, "counts_per_rev = {}", self.counts_per_rev);
-        let r0 = self.pulley_radius_mm[0];
-        if self.pulley_radius_mm.iter().all(|r| *r == r0) {
-            let _ = writeln!(s, "pulley_radius_mm = {r0:?}");
-        } else {
-            let _ = writeln!(s, "pulley_radius_mm = {:?}", self.pulley_radius_mm);
+        let one_or_each = |s: &mut String, key: &str, v: &[String]| {
+            if v.iter().all(|x| *x == v[0]) {
+                let _ = writeln!(s, "{key} = {}", v[0]);
+            } else {
+                let _ = writeln!(s, "{key} = [{}]", v.join(", "));
+            }
+        };
+        let cpr: Vec<String> = self.counts_per_rev[..n]
+            .iter()
+            .map(u32::to_string)
+            .collect();
+        one_or_each(&mut s, "counts_per_rev", &cpr);
+        let radii: Vec<String> = self.pulley_radius_mm[..n]
+            .iter()
+            .map(|r| format!("{r:?}"))
+            .collect();
+        one_or_each(&mut s, "pulley_radius_mm", &radii);
+        if self.mechanical_advantage[..n].iter().any(|m| *m != 1.0) {
+            let m: Vec<String> = self.mechanical_advantage[..n]
+                .iter()
+                .map(|m| format!("{m:?}"))
+                .collect();
+            let _ = writeln!(s, "mechanical_advantage = [{}]", m.join(", "));
+        }
+        if self.layout.planar {
+            s.push_str("planar = true\n");
         }
         let _ = writeln!(s, "home_mm = {:?}", self.home_mm);
         s.push_str("anchors_mm = [\n");
-        for a in &self.anchors_mm {
+        for a in &self.anchors_mm[..n] {
             let _ = writeln!(s, "  {a:?},");
         }
         s.push_str("]\n");
@@ -359,7 +521,7 @@ impl Geometry {
     /// scale and the eq. 6 translation.
     pub fn nominal_frame(&self) -> Frame<f64> {
         Frame {
-            layout: StringLayout::ALL,
+            layout: self.layout,
             anchors: self.anchors_mm,
             home: self.home_mm,
             room_rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
@@ -369,13 +531,15 @@ impl Geometry {
     }
 
     /// The nominal string laws: a constant winding radius, the nominal pulley
-    /// radius (`winding_mm = [r, 0, 0, 0]`).
+    /// radius over the mechanical advantage (`winding_mm = [r / m, 0, 0, 0]`:
+    /// a spool paying out `r theta` shortens a line doubled `m` times by
+    /// `r theta / m`).
     pub fn nominal_string_laws(&self) -> [StringLaw; STRINGS] {
         core::array::from_fn(|i| {
             let mut winding_mm = [0.0; WINDING_ORDER];
-            winding_mm[0] = self.pulley_radius_mm[i];
+            winding_mm[0] = self.pulley_radius_mm[i] / self.mechanical_advantage[i];
             StringLaw {
-                counts_per_rev: self.counts_per_rev,
+                counts_per_rev: self.counts_per_rev[i],
                 winding_mm,
             }
         })
@@ -385,8 +549,10 @@ impl Geometry {
     /// without a calibration blob runs on.
     pub fn string_model(&self) -> spidar_protocol::StringModel {
         spidar_protocol::StringModel {
-            counts_per_rev: [self.counts_per_rev; STRINGS],
-            pulley_radius_mm: self.pulley_radius_mm.map(|r| r as f32),
+            counts_per_rev: self.counts_per_rev,
+            pulley_radius_mm: core::array::from_fn(|i| {
+                (self.pulley_radius_mm[i] / self.mechanical_advantage[i]) as f32
+            }),
             anchors_mm: self.anchors_mm.map(|a| a.map(|v| v as f32)),
             home_mm: self.home_mm.map(|v| v as f32),
         }
@@ -423,21 +589,65 @@ pub struct Sample {
 }
 
 /// A recorded (or simulated) session: captures in time order.
-#[derive(Clone, Debug, Default, PartialEq)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct Session {
+    /// Number of strings: the encoder columns `enc0..enc{strings-1}` (3..=8).
+    /// Counts and tensions of the other channels are 0 in every sample.
+    pub strings: usize,
     pub samples: Vec<Sample>,
     /// Columns found in the file that this reader does not know; they were
     /// ignored. Empty for sessions not read from a file.
     pub ignored_columns: Vec<String>,
 }
 
+impl Default for Session {
+    /// An empty session of an 8-string device.
+    fn default() -> Self {
+        Session {
+            strings: STRINGS,
+            samples: Vec::new(),
+            ignored_columns: Vec::new(),
+        }
+    }
+}
+
 /// Where each known column sits in a header.
 struct Layout {
     time: usize,
-    counts: [usize; STRINGS],
-    tracker: [usize; 3],
+    /// `enc0..enc{N-1}`.
+    counts: Vec<usize>,
+    /// `ots_x, ots_y` and, unless the session is planar, `ots_z`.
+    tracker: Vec<usize>,
     legacy: Option<[usize; 3]>,
-    tension: Option<[usize; STRINGS]>,
+    /// `tension0..tension{N-1}`.
+    tension: Option<Vec<usize>>,
+}
+
+/// The columns `names[..n]` as a group: all present (`Some`), all absent
+/// (`None`, if not `required`), else an error naming a present and a
+/// missing one.
+fn find_columns(
+    file: &Path,
+    index_of: &dyn Fn(&str) -> Option<usize>,
+    names: &[&str],
+    required: bool,
+) -> Result<Option<Vec<usize>>, DatasetError> {
+    let found: Vec<Option<usize>> = names.iter().map(|n| index_of(n)).collect();
+    let present = found.iter().position(Option::is_some);
+    let missing = found.iter().position(Option::is_none);
+    match (present, missing) {
+        (_, None) => Ok(Some(found.into_iter().flatten().collect())),
+        (None, Some(_)) if !required => Ok(None),
+        (Some(p), Some(m)) if !required => Err(DatasetError::IncompleteGroup {
+            file: file.to_path_buf(),
+            present: names[p].to_string(),
+            missing: names[m].to_string(),
+        }),
+        (_, Some(m)) => Err(DatasetError::MissingColumn {
+            file: file.to_path_buf(),
+            column: names[m].to_string(),
+        }),
+    }
 }
 
 fn find_group<const N: usize>(
@@ -490,10 +700,56 @@ impl Layout {
             file: file.to_path_buf(),
             column: TIME_COLUMN.to_string(),
         })?;
-        let counts = find_group(file, &index_of, &ENCODER_COLUMNS, true)?.unwrap_or_default();
-        let tracker = find_group(file, &index_of, &TRACKER_COLUMNS, true)?.unwrap_or_default();
+        // The strings are enc0, enc1, ... up to the first one missing;
+        // an encoder column after a gap names the gap.
+        let strings = ENCODER_COLUMNS
+            .iter()
+            .position(|c| index_of(c).is_none())
+            .unwrap_or(STRINGS);
+        if ENCODER_COLUMNS[strings.min(STRINGS)..]
+            .iter()
+            .any(|c| index_of(c).is_some())
+        {
+            // enc0..enc{N-1} without gaps: a gap is the missing column.
+            return Err(DatasetError::MissingColumn {
+                file: file.to_path_buf(),
+                column: ENCODER_COLUMNS[strings].to_string(),
+            });
+        }
+        if strings < MIN_STRINGS {
+            return Err(DatasetError::MissingColumn {
+                file: file.to_path_buf(),
+                column: format!(
+                    "{} (a device has at least {MIN_STRINGS} strings: enc0..enc{})",
+                    ENCODER_COLUMNS[strings],
+                    MIN_STRINGS - 1
+                ),
+            });
+        }
+        let counts =
+            find_columns(file, &index_of, &ENCODER_COLUMNS[..strings], true)?.unwrap_or_default();
+        // `ots_z` may be left out (a planar device's tracker gives x, y).
+        let tracker_names: &[&str] = if index_of(TRACKER_COLUMNS[2]).is_some() {
+            &TRACKER_COLUMNS
+        } else {
+            &TRACKER_COLUMNS[..2]
+        };
+        let tracker = find_columns(file, &index_of, tracker_names, true)?.unwrap_or_default();
         let legacy = find_group(file, &index_of, &LEGACY_COLUMNS, false)?;
-        let tension = find_group(file, &index_of, &TENSION_COLUMNS, false)?;
+        let tension = find_columns(file, &index_of, &TENSION_COLUMNS[..strings], false)?;
+        if let Some(extra) = TENSION_COLUMNS[strings..]
+            .iter()
+            .find(|c| index_of(c).is_some())
+        {
+            return Err(DatasetError::Csv {
+                file: file.to_path_buf(),
+                line: 1,
+                message: format!(
+                    "column `{extra}` but the session has {strings} strings (enc0..enc{})",
+                    strings - 1
+                ),
+            });
+        }
         let known = |n: &str| {
             n == TIME_COLUMN
                 || ENCODER_COLUMNS.contains(&n)
@@ -566,9 +822,11 @@ impl RowReader<'_> {
     }
 
     /// A group that is all filled (`Some`) or all empty (`None`).
+    /// The values of `indices` in order (`out[k]` from `indices[k]`; `out`
+    /// may be longer: its other entries stay 0).
     fn group<const N: usize>(
         &self,
-        indices: &[usize; N],
+        indices: &[usize],
         group: &str,
     ) -> Result<Option<[f64; N]>, DatasetError> {
         let filled = indices.iter().position(|&k| !self.text(k).is_empty());
@@ -645,6 +903,13 @@ impl Session {
             .from_reader(reader);
         let header = csv.headers().map_err(|e| csv_error(file, e))?.clone();
         let (layout, ignored_columns) = Layout::from_header(file, &header)?;
+        let strings = layout.counts.len();
+        let tracker_group = if layout.tracker.len() == 3 {
+            "ots_x, ots_y, ots_z"
+        } else {
+            "ots_x, ots_y"
+        };
+        let tension_group = format!("tension0..tension{}", strings - 1);
         let mut samples = Vec::new();
         let mut record = csv::StringRecord::new();
         let mut previous: Option<(f64, u64)> = None;
@@ -682,13 +947,13 @@ impl Session {
             for (c, &k) in counts.iter_mut().zip(&layout.counts) {
                 *c = row.count(k)?;
             }
-            let tracker = row.group(&layout.tracker, "ots_x, ots_y, ots_z")?;
+            let tracker = row.group(&layout.tracker, tracker_group)?;
             let legacy = match &layout.legacy {
                 Some(ix) => row.group(ix, "dev_x, dev_y, dev_z")?,
                 None => None,
             };
             let tension_n = match &layout.tension {
-                Some(ix) => row.group(ix, "tension0..tension7")?,
+                Some(ix) => row.group(ix, &tension_group)?,
                 None => None,
             };
             samples.push(Sample {
@@ -700,8 +965,28 @@ impl Session {
             });
         }
         Ok(Session {
+            strings,
             samples,
             ignored_columns,
+        })
+    }
+
+    /// Checks that this session has `geometry`'s number of strings; the
+    /// error names both files.
+    pub fn check_strings(
+        &self,
+        file: &Path,
+        geometry: &Geometry,
+        geometry_file: &Path,
+    ) -> Result<(), DatasetError> {
+        if self.strings == geometry.strings() {
+            return Ok(());
+        }
+        Err(DatasetError::StringCount {
+            file: file.to_path_buf(),
+            strings: self.strings,
+            geometry_file: geometry_file.to_path_buf(),
+            geometry_strings: geometry.strings(),
         })
     }
 
@@ -742,13 +1027,13 @@ impl Session {
         self.validate(file)?;
         let legacy = self.has_legacy();
         let tension = self.has_tension();
-        let header = session_header(legacy, tension);
+        let header = session_header_for(self.strings, legacy, tension);
         let mut w = csv::WriterBuilder::new().from_writer(writer);
         w.write_record(&header)
             .map_err(|e| csv_write_error(file, e))?;
         let mut fields: Vec<String> = Vec::with_capacity(header.len());
         for s in &self.samples {
-            row_fields(s, legacy, tension, &mut fields);
+            row_fields(s, self.strings, legacy, tension, &mut fields);
             w.write_record(&fields)
                 .map_err(|e| csv_write_error(file, e))?;
         }
@@ -756,37 +1041,46 @@ impl Session {
     }
 }
 
-/// The header [`Session::write_to`] writes: `t_s`, `enc0..7`, `ots_*`, then
-/// `dev_*` with `legacy` and `tension0..7` with `tension`.
+/// The header [`Session::write_to`] writes for an 8-string device: `t_s`,
+/// `enc0..7`, `ots_*`, then `dev_*` with `legacy` and `tension0..7` with
+/// `tension`.
 pub fn session_header(legacy: bool, tension: bool) -> Vec<&'static str> {
+    session_header_for(STRINGS, legacy, tension)
+}
+
+/// [`session_header`] for a device with `strings` strings (`enc0..enc{n-1}`,
+/// `tension0..tension{n-1}`).
+pub fn session_header_for(strings: usize, legacy: bool, tension: bool) -> Vec<&'static str> {
+    let n = strings.min(STRINGS);
     let mut header: Vec<&'static str> = vec![TIME_COLUMN];
-    header.extend(ENCODER_COLUMNS);
+    header.extend(&ENCODER_COLUMNS[..n]);
     header.extend(TRACKER_COLUMNS);
     if legacy {
         header.extend(LEGACY_COLUMNS);
     }
     if tension {
-        header.extend(TENSION_COLUMNS);
+        header.extend(&TENSION_COLUMNS[..n]);
     }
     header
 }
 
 /// The fields of one row, in the order of [`session_header`]; floats in
 /// their shortest exact form, an absent group as empty fields.
-fn row_fields(s: &Sample, legacy: bool, tension: bool, fields: &mut Vec<String>) {
+fn row_fields(s: &Sample, strings: usize, legacy: bool, tension: bool, fields: &mut Vec<String>) {
+    let n = strings.min(STRINGS);
     let push_group = |fields: &mut Vec<String>, g: Option<&[f64]>, n: usize| match g {
         Some(v) => fields.extend(v.iter().map(|x| x.to_string())),
         None => fields.extend(std::iter::repeat_n(String::new(), n)),
     };
     fields.clear();
     fields.push(s.t_s.to_string());
-    fields.extend(s.counts.iter().map(|c| c.to_string()));
+    fields.extend(s.counts[..n].iter().map(|c| c.to_string()));
     push_group(fields, s.tracker.as_ref().map(|v| &v[..]), 3);
     if legacy {
         push_group(fields, s.legacy.as_ref().map(|v| &v[..]), 3);
     }
     if tension {
-        push_group(fields, s.tension_n.as_ref().map(|v| &v[..]), STRINGS);
+        push_group(fields, s.tension_n.as_ref().map(|v| &v[..n]), n);
     }
 }
 
@@ -1022,7 +1316,7 @@ impl SessionAppender {
         }
         check_sample(&self.path, line, sample, self.last)?;
         let mut fields = Vec::new();
-        row_fields(sample, true, true, &mut fields);
+        row_fields(sample, STRINGS, true, true, &mut fields);
         let mut w = csv::WriterBuilder::new().from_writer(Vec::new());
         w.write_record(&fields)
             .map_err(|e| csv_write_error(&self.path, e))?;

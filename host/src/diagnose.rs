@@ -4,12 +4,12 @@
 
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
-use spidar_core::model::{Effect, EffectTerm, Frame};
+use spidar_core::model::{Effect, EffectTerm, Frame, StringLayout};
 use spidar_core::string_law::{payout_f64, EffectContext};
 use spidar_core::STRINGS;
 
 use crate::identify::{
-    data_jacobian, device_from_room, identify, DataJacobian, Identification, IdentifyError, Start,
+    data_jacobian, device_position, identify, DataJacobian, Identification, IdentifyError, Start,
     Structure,
 };
 use crate::observe::Observation;
@@ -174,6 +174,8 @@ struct Row {
 
 /// Everything diagnosis needs about the current fit.
 struct Evidence {
+    /// Which channels carry a string (rows of the others have weight 0).
+    layout: StringLayout,
     rows: Vec<Row>,
     /// Orthonormal basis of the model's (weighted) Jacobian columns.
     basis: DMatrix<f64>,
@@ -210,7 +212,8 @@ impl Evidence {
         let mut rows = Vec::with_capacity(used.len() * STRINGS);
         for (u, &k) in used.iter().enumerate() {
             let o = &observations[k];
-            let p = device_from_room(&id.frame, o.tracker?);
+            o.tracker?;
+            let p = device_position(&id.frame, o);
             let prev = k.checked_sub(1).map(|j| &observations[j]);
             for i in 0..STRINGS {
                 let ctx = EffectContext::for_string(&id.frame, &id.laws, &o.inputs, i)?;
@@ -266,6 +269,7 @@ impl Evidence {
         let effective = weights.iter().flatten().filter(|&&w| w > 0.0).count();
         let dof = (effective as f64 - keep.len() as f64).max(1.0);
         Some(Evidence {
+            layout: nominal.layout,
             rows,
             basis,
             residual,
@@ -342,7 +346,11 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
             .iter()
             .any(|t| t.string as usize == string && f(&t.effect))
     };
+    let strings = ev.layout;
     for (i, split) in time_split.iter().enumerate().take(STRINGS) {
+        if !strings.is_active(i) {
+            continue;
+        }
         let s = i as u8;
         let term = move |effect: Effect| Change::Effect(EffectTerm { string: s, effect });
         if !has_effect(i, |e| matches!(e, Effect::Offset { .. })) {
@@ -497,6 +505,9 @@ fn slip_times(ev: &Evidence) -> Vec<Option<f64>> {
     const MIN_SIDE: usize = 20;
     (0..STRINGS)
         .map(|i| {
+            if !ev.layout.is_active(i) {
+                return None;
+            }
             let r: Vec<(f64, f64)> = ev
                 .rows
                 .iter()
@@ -598,6 +609,7 @@ fn anchors_beyond_tolerance(
     structure: &Structure,
 ) -> Vec<Finding> {
     (0..STRINGS)
+        .filter(|&i| nominal.layout.is_active(i))
         .filter(|&i| structure.anchor_sd_override_mm[i].is_none())
         .filter_map(|i| {
             let sd = structure.priors.anchor_sd_mm;
@@ -661,7 +673,7 @@ pub fn unexplained(
     let sigma2 = ev.sigma2;
     let threshold = chi2_threshold(config, BINS, 15.0);
     let mut by_variable: Vec<(Variable, Vec<u8>, f64, f64, f64)> = Vec::new();
-    for i in 0..STRINGS {
+    for i in ev.layout.indices() {
         let rows: Vec<(usize, &Row)> = ev
             .rows
             .iter()

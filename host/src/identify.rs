@@ -35,6 +35,21 @@
 //! standard deviation is close to its prior's is reported as not determined by
 //! the data.
 //!
+//! ## Devices with 3 to 8 strings, planar devices
+//! The parameter vector always has the controller's 8 channels; the frame's
+//! [`StringLayout`] says which carry a string. Residual rows of inactive
+//! channels have weight 0 and their parameters are held at the nominal value
+//! by tight priors (they are not reported). The gauge uses the active
+//! anchors. A planar device keeps anchors, home and the end-effector in the
+//! plane `z = anchors' z`: the z coordinates, the tracker's rotation about x
+//! and y and its z translation are held, and the tracker's z is not used.
+//!
+//! ## Mechanical advantage
+//! A line doubled `m` times through pulley blocks changes length by
+//! `payout / m`. The spool's winding physics is shared (one thinning rate
+//! for one kind of line); string `i`'s law is `r_home_i theta - (kappa /
+//! m_i) theta^2`, with `r_home_i` the effective radius (spool radius / m_i).
+//!
 //! ## Robustness
 //! Iteratively reweighted least squares: a plain least-squares round, a Huber
 //! round, then Tukey biweight rounds with the scale from the median absolute
@@ -47,7 +62,7 @@
 
 use nalgebra::{DMatrix, DVector, Dyn, Owned};
 use serde::{Deserialize, Serialize};
-use spidar_core::model::{Effect, EffectTerm, Frame, StringLaw, WINDING_ORDER};
+use spidar_core::model::{Effect, EffectTerm, Frame, StringLaw, StringLayout, WINDING_ORDER};
 use spidar_core::string_law::{string_lengths_f64, EffectContext};
 use spidar_core::STRINGS;
 
@@ -102,31 +117,41 @@ impl Default for Structure {
     }
 }
 
-/// The winding laws of the eight strings (see the module doc): a per-string
+/// The winding laws of the strings (see the module doc): a per-string
 /// winding radius at home and one shared thinning rate.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct WindingPhysics {
-    /// Winding radius at home of each string, mm: each pulley holds its own
-    /// amount of string at home, and pulleys differ slightly.
+    /// Effective winding radius at home of each string (spool radius over
+    /// the mechanical advantage), mm: each pulley holds its own amount of
+    /// string at home, and pulleys differ slightly.
     pub r_home_mm: [f64; STRINGS],
-    /// `d^2 / (4 pi)`, mm/rad^2: how fast the radius shrinks with payout
-    /// (string diameter d, the same string on every pulley).
+    /// `d^2 / (4 pi)`, mm/rad^2: how fast the spool's radius shrinks with
+    /// payout (string diameter d, the same string on every pulley).
     pub kappa_mm: f64,
-    pub counts_per_rev: u32,
+    /// Counts per pulley revolution, per string.
+    pub counts_per_rev: [u32; STRINGS],
+    /// Spool payout per mm of string length change, per string (1 unless
+    /// the line is doubled through pulley blocks).
+    #[serde(default = "unit_advantage")]
+    pub mechanical_advantage: [f64; STRINGS],
+}
+
+fn unit_advantage() -> [f64; STRINGS] {
+    [1.0; STRINGS]
 }
 
 impl WindingPhysics {
-    /// The per-string laws: `payout = r_home_i theta - kappa theta^2`.
+    /// The per-string laws: `payout = r_home_i theta - (kappa / m_i) theta^2`.
     pub fn laws(&self) -> [StringLaw; STRINGS] {
-        let mut laws = [StringLaw {
-            counts_per_rev: self.counts_per_rev,
-            winding_mm: [0.0; WINDING_ORDER],
-        }; STRINGS];
-        for (i, law) in laws.iter_mut().enumerate() {
-            law.winding_mm[0] = self.r_home_mm[i];
-            law.winding_mm[1] = -self.kappa_mm;
-        }
-        laws
+        core::array::from_fn(|i| {
+            let mut winding_mm = [0.0; WINDING_ORDER];
+            winding_mm[0] = self.r_home_mm[i];
+            winding_mm[1] = -self.kappa_mm / self.mechanical_advantage[i];
+            StringLaw {
+                counts_per_rev: self.counts_per_rev[i],
+                winding_mm,
+            }
+        })
     }
 }
 
@@ -367,7 +392,8 @@ struct Problem<'a> {
     nominal: &'a Frame<f64>,
     layout: &'a Layout,
     base_rotation: [[f64; 3]; 3],
-    counts_per_rev: u32,
+    /// Counts per revolution and mechanical advantage (not fitted).
+    winding_fixed: WindingPhysics,
     /// Current LM variables (scaled).
     x: DVector<f64>,
 }
@@ -402,7 +428,7 @@ impl Problem<'_> {
         let winding = WindingPhysics {
             r_home_mm,
             kappa_mm: v[self.layout.kappa()],
-            counts_per_rev: self.counts_per_rev,
+            ..self.winding_fixed
         };
         let mut effects = self.structure.effects.clone();
         let first = self.layout.first_effect();
@@ -422,17 +448,23 @@ impl Problem<'_> {
     }
 
     fn anchor_sd(&self, i: usize) -> f64 {
-        self.structure.anchor_sd_override_mm[i].unwrap_or(self.structure.priors.anchor_sd_mm)
+        anchor_prior_sd(self.structure, self.nominal.layout, i)
     }
 
     /// Prior rows: (row value, gradient over physical parameters as (column, d)).
     fn prior_rows(&self, state: &State) -> Vec<(f64, Vec<(usize, f64)>)> {
         let p = &self.structure.priors;
         let nominal = self.nominal;
+        let layout = nominal.layout;
+        let held = |active: bool, sd: f64| if active { sd } else { HELD_SD };
         let mut rows = Vec::new();
         for i in 0..STRINGS {
-            let sd = self.anchor_sd(i);
             for c in 0..3 {
+                let sd = if layout.planar && c == 2 {
+                    HELD_SD
+                } else {
+                    self.anchor_sd(i)
+                };
                 rows.push((
                     (state.frame.anchors[i][c] - nominal.anchors[i][c]) / sd,
                     vec![(ANCHORS + 3 * i + c, 1.0 / sd)],
@@ -440,14 +472,16 @@ impl Problem<'_> {
             }
         }
         for c in 0..3 {
+            let in_plane = !(layout.planar && c == 2);
+            let sd = held(in_plane, p.home_sd_mm);
             rows.push((
-                (state.frame.home[c] - nominal.home[c]) / p.home_sd_mm,
-                vec![(HOME + c, 1.0 / p.home_sd_mm)],
+                (state.frame.home[c] - nominal.home[c]) / sd,
+                vec![(HOME + c, 1.0 / sd)],
             ));
+            let sd = held(in_plane, p.translation_sd_mm);
             rows.push((
-                (state.frame.room_translation[c] - nominal.room_translation[c])
-                    / p.translation_sd_mm,
-                vec![(TRANSLATION + c, 1.0 / p.translation_sd_mm)],
+                (state.frame.room_translation[c] - nominal.room_translation[c]) / sd,
+                vec![(TRANSLATION + c, 1.0 / sd)],
             ));
         }
         let total_rotation = vector_from_rotation(&mat_mul(
@@ -455,33 +489,43 @@ impl Problem<'_> {
             &state.frame.room_rotation,
         ));
         for c in 0..3 {
+            // A planar device's tracker frame turns about z only.
+            let sd = held(!(layout.planar && c < 2), p.rotation_sd_rad);
+            rows.push((total_rotation[c] / sd, vec![(ROTATION + c, 1.0 / sd)]));
+        }
+        // Channels without a string: their winding radius stays nominal.
+        for i in (0..STRINGS).filter(|&i| !layout.is_active(i)) {
+            let col = self.layout.r_home() + i;
+            let s = self.layout.scale[col];
             rows.push((
-                total_rotation[c] / p.rotation_sd_rad,
-                vec![(ROTATION + c, 1.0 / p.rotation_sd_rad)],
+                (state.winding.r_home_mm[i] - self.winding_fixed.r_home_mm[i]) / s,
+                vec![(col, 1.0 / s)],
             ));
         }
-        // Gauge: the anchors' centroid and mean orientation stay nominal.
+        // Gauge: the active anchors' centroid and mean orientation stay
+        // nominal (in the plane: the orientation about z only).
         const GAUGE_SD_MM: f64 = 0.01;
-        let centroid_nominal = centroid(&nominal.anchors);
-        let centroid_now = centroid(&state.frame.anchors);
+        let n_active = layout.count() as f64;
+        let centroid_nominal = centroid(&nominal.anchors, layout);
+        let centroid_now = centroid(&state.frame.anchors, layout);
         for c in 0..3 {
-            let grad = (0..STRINGS)
-                .map(|i| (ANCHORS + 3 * i + c, 1.0 / (STRINGS as f64 * GAUGE_SD_MM)))
+            let grad = layout
+                .indices()
+                .map(|i| (ANCHORS + 3 * i + c, 1.0 / (n_active * GAUGE_SD_MM)))
                 .collect();
             rows.push(((centroid_now[c] - centroid_nominal[c]) / GAUGE_SD_MM, grad));
         }
-        let spread: f64 = nominal
-            .anchors
-            .iter()
-            .map(|a| {
-                let d = sub(*a, centroid_nominal);
+        let spread: f64 = layout
+            .indices()
+            .map(|i| {
+                let d = sub(nominal.anchors[i], centroid_nominal);
                 d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
             })
             .sum();
         // Small-rotation gauge: sum_i (a0_i - c0) x (a_i - a0_i) / spread = 0.
         let mut value = [0.0; 3];
         let mut grads: [Vec<(usize, f64)>; 3] = Default::default();
-        for i in 0..STRINGS {
+        for i in layout.indices() {
             let r = sub(nominal.anchors[i], centroid_nominal);
             let d = sub(state.frame.anchors[i], nominal.anchors[i]);
             let x = cross(r, d);
@@ -499,8 +543,11 @@ impl Problem<'_> {
             }
         }
         // Angle tolerance equivalent to GAUGE_SD_MM at the frame's size.
-        let angle_sd = GAUGE_SD_MM / (spread / STRINGS as f64).sqrt();
-        for c in 0..3 {
+        let angle_sd = GAUGE_SD_MM / (spread / n_active).sqrt();
+        // In the plane, rotations about x and y are held by the anchors' z
+        // already; only the one about z is a gauge freedom.
+        let gauge_axes = if layout.planar { 2..3 } else { 0..3 };
+        for c in gauge_axes {
             let g = grads[c].iter().map(|&(j, d)| (j, d / angle_sd)).collect();
             rows.push((value[c] / angle_sd, g));
         }
@@ -508,18 +555,15 @@ impl Problem<'_> {
     }
 
     fn n_rows(&self) -> usize {
-        self.observations.len() * STRINGS + 24 + 9 + 6
+        let layout = self.nominal.layout;
+        let gauge = if layout.planar { 4 } else { 6 };
+        self.observations.len() * STRINGS + 24 + 9 + (STRINGS - layout.count()) + gauge
     }
 
-    /// String-space residuals of one observation (geometric minus model).
+    /// String-space residuals of one observation (geometric minus model; 0
+    /// on channels without a string).
     fn string_residuals(state: &State, laws: &[StringLaw; STRINGS], o: &Observation) -> [f64; 8] {
-        let p = device_from_room(&state.frame, o.tracker.unwrap_or([0.0; 3]));
-        let lengths = string_lengths_f64(&state.frame, laws, &state.effects, &o.inputs);
-        let mut r = [0.0; STRINGS];
-        for i in 0..STRINGS {
-            r[i] = dist(p, state.frame.anchors[i]) - lengths[i];
-        }
-        r
+        residuals_at(&state.frame, laws, &state.effects, o)
     }
 }
 
@@ -531,11 +575,52 @@ fn transpose(m: &[[f64; 3]; 3]) -> [[f64; 3]; 3] {
     ]
 }
 
-fn centroid(points: &[[f64; 3]; STRINGS]) -> [f64; 3] {
+/// Prior sd of a parameter held at its nominal value (mm or rad): a
+/// channel without a string, a planar device's z.
+const HELD_SD: f64 = 1e-3;
+
+/// Prior sd of anchor `i` (mm): its override, the default tolerance, or
+/// held when the channel carries no string.
+fn anchor_prior_sd(structure: &Structure, layout: StringLayout, i: usize) -> f64 {
+    if !layout.is_active(i) {
+        return HELD_SD;
+    }
+    structure.anchor_sd_override_mm[i].unwrap_or(structure.priors.anchor_sd_mm)
+}
+
+/// The tracker position of `o` in the device frame (mm); on a planar
+/// device, in the anchors' plane whatever the tracker's z.
+pub fn device_position(frame: &Frame<f64>, o: &Observation) -> [f64; 3] {
+    let mut p = device_from_room(frame, o.tracker.unwrap_or([0.0; 3]));
+    if frame.layout.planar {
+        p[2] = frame.anchors[0][2];
+    }
+    p
+}
+
+/// String-space residuals (geometric minus model, mm) of one observation; 0
+/// on channels without a string.
+fn residuals_at(
+    frame: &Frame<f64>,
+    laws: &[StringLaw; STRINGS],
+    effects: &[EffectTerm],
+    o: &Observation,
+) -> [f64; STRINGS] {
+    let p = device_position(frame, o);
+    let lengths = string_lengths_f64(frame, laws, effects, &o.inputs);
+    let mut r = [0.0; STRINGS];
+    for i in frame.layout.indices() {
+        r[i] = dist(p, frame.anchors[i]) - lengths[i];
+    }
+    r
+}
+
+fn centroid(points: &[[f64; 3]; STRINGS], layout: StringLayout) -> [f64; 3] {
+    let n = layout.count().max(1) as f64;
     let mut c = [0.0; 3];
-    for p in points {
+    for i in layout.indices() {
         for k in 0..3 {
-            c[k] += p[k] / STRINGS as f64;
+            c[k] += points[i][k] / n;
         }
     }
     c
@@ -583,8 +668,9 @@ impl levenberg_marquardt::LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
             .map(|i| dist(frame.home, frame.anchors[i]))
             .collect();
         let two_pi = 2.0 * std::f64::consts::PI;
+        let planar = frame.layout.planar;
         for (k, o) in self.observations.iter().enumerate() {
-            let p = device_from_room(frame, o.tracker.unwrap_or([0.0; 3]));
+            let p = device_position(frame, o);
             // Effect columns: analytic gradients of the terms (each term
             // touches only its own string).
             let mut effect_grad = vec![[0.0; STRINGS]; layout.effect_columns.len()];
@@ -614,7 +700,7 @@ impl levenberg_marquardt::LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
                     let d = sub(frame.home, a);
                     [d[0] / lh, d[1] / lh, d[2] / lh]
                 };
-                let theta = two_pi * o.inputs.counts[i] as f64 / w.counts_per_rev as f64;
+                let theta = two_pi * o.inputs.counts[i] as f64 / w.counts_per_rev[i] as f64;
                 // Effects that scale with the payout or the home length
                 // (scale, elasticity) carry those derivatives along.
                 let (mut d_payout, mut d_home) = (1.0, 1.0);
@@ -639,12 +725,20 @@ impl levenberg_marquardt::LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
                     jac[(row, TRANSLATION + c)] = f * (-rup[c] / frame.room_scale);
                     jac[(row, ROTATION + c)] = f * wgrad[c];
                 }
+                if planar {
+                    // The position is held in the plane: the tracker's z
+                    // translation and tilts do not move it.
+                    jac[(row, TRANSLATION + 2)] = 0.0;
+                    jac[(row, ROTATION)] = 0.0;
+                    jac[(row, ROTATION + 1)] = 0.0;
+                }
                 if layout.fit_scale {
                     let dot = up[0] * p[0] + up[1] * p[1] + up[2] * p[2];
                     jac[(row, SCALE)] = f * (-dot / frame.room_scale);
                 }
                 jac[(row, layout.r_home() + i)] = f * (-theta * d_payout);
-                jac[(row, layout.kappa())] = f * (theta * theta * d_payout);
+                jac[(row, layout.kappa())] =
+                    f * (theta * theta * d_payout / w.mechanical_advantage[i]);
                 for c in 0..layout.effect_columns.len() {
                     jac[(row, layout.first_effect() + c)] = f * effect_grad[c][i];
                 }
@@ -776,9 +870,12 @@ fn median(values: &mut [f64]) -> f64 {
     }
 }
 
-/// Robust scale (1.4826 MAD) of residuals.
-fn robust_scale(residuals: &[[f64; STRINGS]]) -> f64 {
-    let mut all: Vec<f64> = residuals.iter().flatten().copied().collect();
+/// Robust scale (1.4826 MAD) of the residuals of the active strings.
+fn robust_scale(residuals: &[[f64; STRINGS]], layout: StringLayout) -> f64 {
+    let mut all: Vec<f64> = residuals
+        .iter()
+        .flat_map(|r| layout.indices().map(|i| r[i]))
+        .collect();
     let m = median(&mut all.clone());
     for v in all.iter_mut() {
         *v = (*v - m).abs();
@@ -829,29 +926,36 @@ pub struct Start {
 }
 
 impl Start {
-    /// From the nominal design: the geometry file's pulley radii, no growth.
+    /// From the nominal design: the pulley radii (spool radius over the
+    /// mechanical advantage: the effective radius), no growth.
     pub fn nominal(
         frame: Frame<f64>,
-        nominal_radius_mm: [f64; STRINGS],
-        counts_per_rev: u32,
+        effective_radius_mm: [f64; STRINGS],
+        counts_per_rev: [u32; STRINGS],
+        mechanical_advantage: [f64; STRINGS],
     ) -> Start {
         Start {
             frame,
             winding: WindingPhysics {
-                r_home_mm: nominal_radius_mm,
+                r_home_mm: effective_radius_mm,
                 kappa_mm: 0.0,
                 counts_per_rev,
+                mechanical_advantage,
             },
             warm: false,
         }
     }
 
-    /// From a geometry file: its nominal frame and pulley radii.
+    /// From a geometry file: its nominal frame, pulley radii, counts per
+    /// revolution and mechanical advantage.
     pub fn from_geometry(geometry: &crate::dataset::Geometry) -> Start {
         Start::nominal(
             geometry.nominal_frame(),
-            geometry.pulley_radius_mm,
+            core::array::from_fn(|i| {
+                geometry.pulley_radius_mm[i] / geometry.mechanical_advantage[i]
+            }),
             geometry.counts_per_rev,
+            geometry.mechanical_advantage,
         )
     }
 
@@ -879,7 +983,7 @@ pub fn identify(
         .filter(|o| o.tracker.is_some())
         .collect();
     let layout = Layout::new(structure);
-    let needed = (layout.len() / 4).max(20);
+    let needed = rows_needed(&layout, structure, nominal.layout);
     if used.len() < needed {
         return Err(IdentifyError::TooFewRows {
             needed,
@@ -892,7 +996,11 @@ pub fn identify(
         winding: start.winding,
         effects: structure.effects.clone(),
     };
-    let mut weights = vec![[1.0; STRINGS]; used.len()];
+    let strings = nominal.layout;
+    let active_weights = |w: [f64; STRINGS]| -> [f64; STRINGS] {
+        core::array::from_fn(|i| if strings.is_active(i) { w[i] } else { 0.0 })
+    };
+    let mut weights = vec![active_weights([1.0; STRINGS]); used.len()];
     let mut evaluations = 0;
     let cold = [
         Round::LeastSquares,
@@ -911,10 +1019,10 @@ pub fn identify(
             .iter()
             .map(|o| Problem::string_residuals(&state, &laws, o))
             .collect();
-        let scale = robust_scale(&residuals).max(1e-3);
+        let scale = robust_scale(&residuals, strings).max(1e-3);
         let new_weights: Vec<[f64; STRINGS]> = residuals
             .iter()
-            .map(|r| r.map(|v| weight(round, v, scale)))
+            .map(|r| active_weights(r.map(|v| weight(round, v, scale))))
             .collect();
         let changed = new_weights
             .iter()
@@ -936,7 +1044,7 @@ pub fn identify(
             nominal,
             layout: &layout,
             base_rotation,
-            counts_per_rev: start.winding.counts_per_rev,
+            winding_fixed: start.winding,
             x,
         };
         let (problem, used_evaluations) = minimize(problem)
@@ -951,9 +1059,13 @@ pub fn identify(
         .iter()
         .map(|o| Problem::string_residuals(&state, &laws, o))
         .collect();
-    let scale = robust_scale(&residuals).max(1e-6);
-    let rejected = weights.iter().flatten().filter(|&&w| w < 0.1).count();
-    let rejected_fraction = rejected as f64 / (weights.len() * STRINGS) as f64;
+    let scale = robust_scale(&residuals, strings).max(1e-6);
+    let rejected = weights
+        .iter()
+        .flat_map(|w| strings.indices().map(|i| w[i]))
+        .filter(|&w| w < 0.1)
+        .count();
+    let rejected_fraction = rejected as f64 / (weights.len() * strings.count()).max(1) as f64;
 
     // Covariance from the last round's problem at the solution, with the
     // residual scale re-estimated from the weighted residuals.
@@ -974,7 +1086,7 @@ pub fn identify(
             nominal,
             layout: &layout,
             base_rotation: state.frame.room_rotation,
-            counts_per_rev: start.winding.counts_per_rev,
+            winding_fixed: start.winding,
             x,
         }
     };
@@ -1004,8 +1116,11 @@ pub fn identify(
     let singular = eig.eigenvalues.iter().any(|&l| l <= 1e-12 * largest);
     let mut parameters = Vec::new();
     let mut warnings = Vec::new();
-    let names = parameter_names(&layout, structure);
+    let names = parameter_names(&layout, structure, strings);
     for (c, (name, unit, prior_sd)) in names.into_iter().enumerate() {
+        if !column_is_free(&layout, structure, strings, c) {
+            continue;
+        }
         let s = layout.scale[c];
         let value = match c {
             _ if c < HOME => state.frame.anchors[(c - ANCHORS) / 3][(c - ANCHORS) % 3],
@@ -1063,14 +1178,51 @@ pub fn identify(
     })
 }
 
+/// Whether column `c` is a parameter of the device (not a channel without a
+/// string, nor a coordinate a planar device holds).
+fn column_is_free(layout: &Layout, structure: &Structure, strings: StringLayout, c: usize) -> bool {
+    let planar = strings.planar;
+    match c {
+        _ if c < HOME => {
+            strings.is_active((c - ANCHORS) / 3) && !(planar && (c - ANCHORS) % 3 == 2)
+        }
+        _ if c < ROTATION => !(planar && c == HOME + 2),
+        _ if c < TRANSLATION => !(planar && c < ROTATION + 2),
+        _ if c < SCALE => !(planar && c == TRANSLATION + 2),
+        _ if c >= layout.r_home() && c < layout.kappa() => strings.is_active(c - layout.r_home()),
+        _ if c >= layout.first_effect() => {
+            let (e, _) = layout.effect_columns[c - layout.first_effect()];
+            strings.is_active(usize::from(structure.effects[e].string))
+        }
+        _ => true,
+    }
+}
+
+/// Fewest tracked rows an identification of `structure` takes: twice as
+/// many string residuals as free parameters (so that the residual scale
+/// and the robust weights mean something), and never fewer than 10 rows.
+/// An 8-string device's base model (36 free parameters once the gauge is
+/// fixed) needs 10 rows, a 4-string one's (20) needs 10, a 3-string one's
+/// (17) needs 12.
+fn rows_needed(layout: &Layout, structure: &Structure, strings: StringLayout) -> usize {
+    let free = (0..layout.len())
+        .filter(|&c| column_is_free(layout, structure, strings, c))
+        .count();
+    let gauge = if strings.planar { 3 } else { 6 };
+    let free = free.saturating_sub(gauge);
+    let per_row = strings.count().max(1);
+    (2 * free).div_ceil(per_row).max(10)
+}
+
 fn parameter_names(
     layout: &Layout,
     structure: &Structure,
+    strings: StringLayout,
 ) -> Vec<(String, &'static str, Option<f64>)> {
     let p = &structure.priors;
     let mut names = Vec::new();
     for i in 0..STRINGS {
-        let sd = structure.anchor_sd_override_mm[i].unwrap_or(p.anchor_sd_mm);
+        let sd = anchor_prior_sd(structure, strings, i);
         for c in ["x", "y", "z"] {
             names.push((format!("anchor{i}.{c}"), "mm", Some(sd)));
         }
@@ -1114,14 +1266,8 @@ pub fn string_residuals(
     observations
         .iter()
         .map(|o| {
-            let room = o.tracker?;
-            let p = device_from_room(frame, room);
-            let lengths = string_lengths_f64(frame, laws, effects, &o.inputs);
-            let mut r = [0.0; STRINGS];
-            for i in 0..STRINGS {
-                r[i] = dist(p, frame.anchors[i]) - lengths[i];
-            }
-            Some(r)
+            o.tracker?;
+            Some(residuals_at(frame, laws, effects, o))
         })
         .collect()
 }
@@ -1160,8 +1306,9 @@ pub fn data_jacobian(
     let weights: Vec<[f64; STRINGS]> = used
         .iter()
         .map(|o| {
-            Problem::string_residuals(&state, &laws, o).map(|r| {
-                if r.abs() <= GROSS_RESIDUAL_MM {
+            let r = Problem::string_residuals(&state, &laws, o);
+            core::array::from_fn(|i| {
+                if nominal.layout.is_active(i) && r[i].abs() <= GROSS_RESIDUAL_MM {
                     1.0
                 } else {
                     0.0
@@ -1177,7 +1324,7 @@ pub fn data_jacobian(
         nominal,
         layout: &layout,
         base_rotation: state.frame.room_rotation,
-        counts_per_rev: state.winding.counts_per_rev,
+        winding_fixed: state.winding,
         x: encode(&state, &layout),
     };
     use levenberg_marquardt::LeastSquaresProblem;

@@ -47,7 +47,7 @@ fn value_error(text: &str, line: u64, column: &str) -> ValueProblem {
 #[test]
 fn reads_the_shared_geometry() {
     let g = Geometry::load(shared("geometry.toml")).unwrap();
-    assert_eq!(g.counts_per_rev, 4096);
+    assert_eq!(g.counts_per_rev, [4096; 8]);
     assert_eq!(g.pulley_radius_mm, [7.5; 8]);
     assert_eq!(g.home_mm, [0.0; 3]);
     assert_eq!(g.anchors_mm[6], [1100.0, 1100.0, 1100.0]);
@@ -112,6 +112,7 @@ fn session_round_trip_is_lossless() {
         tension_n: None,
     });
     let s = Session {
+        strings: 8,
         samples,
         ignored_columns: vec![],
     };
@@ -280,6 +281,7 @@ fn error_missing_file_names_it() {
 #[test]
 fn writing_rejects_what_reading_would_reject() {
     let s = Session {
+        strings: 8,
         samples: vec![Sample {
             t_s: 0.0,
             counts: [0; 8],
@@ -342,9 +344,14 @@ fn geometry_error_missing_key_and_bad_values() {
     let err = geometry(&text).unwrap_err();
     assert!(err.to_string().contains("home_mm[1]"), "{err}");
 
+    // 7 anchors are a 7-string device; 2 are too few, 9 too many.
     let text = GEOMETRY.replace("[-1100, 1100, 1100]]", "]");
-    let err = geometry(&text).unwrap_err();
+    assert_eq!(geometry(&text).unwrap().strings(), 7);
+    let two = "counts_per_rev = 4096\npulley_radius_mm = 7.5\nhome_mm = [0, 0, 0]\n\
+               anchors_mm = [[1, 0, 0], [0, 1, 0]]\nroom_from_device_translation_mm = [0, 0, 0]\n";
+    let err = geometry(two).unwrap_err();
     assert!(matches!(err, DatasetError::GeometryField { ref field, .. } if field == "anchors_mm"));
+    assert!(err.to_string().contains("2 anchors given"), "{err}");
 
     let text = GEOMETRY.replace("counts_per_rev = 4096", "counts_per_rev = \"many\"");
     let msg = geometry(&text).unwrap_err().to_string();
@@ -352,4 +359,148 @@ fn geometry_error_missing_key_and_bad_values() {
         msg.contains("counts_per_rev") || msg.contains("line 1"),
         "{msg}"
     );
+}
+
+// ---------------------------------------------------------------------------
+// Devices with 3 to 8 strings, planar devices, doubled lines
+// ---------------------------------------------------------------------------
+
+const FOUR_LINES: &str = "\
+counts_per_rev = [459000, 459000, 459000, 1000]
+pulley_radius_mm = 75.0
+mechanical_advantage = [2, 2, 2, 4]
+home_mm = [0.0, 0.0, 0.0]
+anchors_mm = [
+  [0.0, -1620.0, -150.0],
+  [1272.792, 1272.792, -150.0],
+  [-1402.961, 810.0, -150.0],
+  [0.0, 0.0, 2350.0],
+]
+room_from_device_translation_mm = [0.0, 0.0, 0.0]
+";
+
+#[test]
+fn n_string_geometry_per_string_keys_and_round_trip() {
+    let g = geometry(FOUR_LINES).unwrap();
+    assert_eq!(g.strings(), 4);
+    assert_eq!(g.layout, spidar_core::model::StringLayout::first(4, false));
+    assert_eq!(&g.counts_per_rev[..4], &[459_000, 459_000, 459_000, 1000]);
+    assert_eq!(&g.mechanical_advantage[..4], &[2.0, 2.0, 2.0, 4.0]);
+    // Channels without a string repeat the last string's values.
+    assert_eq!(g.anchors_mm[7], g.anchors_mm[3]);
+    assert_eq!(g.counts_per_rev[7], 1000);
+    let frame = g.nominal_frame();
+    assert_eq!(frame.layout.count(), 4);
+    assert_eq!(g.nominal_string_laws()[3].winding_mm[0], 18.75);
+    let back = geometry(&g.to_toml_string()).unwrap();
+    assert_eq!(back, g);
+    assert!(g
+        .to_toml_string()
+        .contains("mechanical_advantage = [2.0, 2.0, 2.0, 4.0]"));
+}
+
+#[test]
+fn n_string_geometry_errors_name_the_key() {
+    for (from, to, field, words) in [
+        (
+            "mechanical_advantage = [2, 2, 2, 4]",
+            "mechanical_advantage = [2, 2]",
+            "mechanical_advantage",
+            "2 values given, 4 expected",
+        ),
+        (
+            "mechanical_advantage = [2, 2, 2, 4]",
+            "mechanical_advantage = [2, 2, 0, 4]",
+            "mechanical_advantage[2]",
+            "positive",
+        ),
+        (
+            "counts_per_rev = [459000, 459000, 459000, 1000]",
+            "counts_per_rev = [1, 2, 3]",
+            "counts_per_rev",
+            "3 values given",
+        ),
+        (
+            "[0.0, 0.0, 2350.0],",
+            "[0.0, 2350.0],",
+            "anchors_mm[3]",
+            "planar = true",
+        ),
+    ] {
+        let text = FOUR_LINES.replace(from, to);
+        assert_ne!(text, FOUR_LINES, "{from}");
+        let err = geometry(&text).unwrap_err();
+        let msg = err.to_string();
+        assert!(
+            matches!(err, DatasetError::GeometryField { field: ref f, .. } if f == field),
+            "{field}: {msg}"
+        );
+        assert!(msg.contains(words), "{msg}");
+    }
+}
+
+#[test]
+fn planar_geometry_takes_2d_points_in_one_plane() {
+    let text = "counts_per_rev = 4096\npulley_radius_mm = 10\nplanar = true\n\
+                home_mm = [0, 0]\nanchors_mm = [[-500, -400], [500, -400], [500, 400], [-500, 400]]\n\
+                room_from_device_translation_mm = [0, 0, 900]\n";
+    let g = geometry(text).unwrap();
+    assert!(g.layout.planar);
+    assert_eq!(g.strings(), 4);
+    assert_eq!(g.anchors_mm[2], [500.0, 400.0, 0.0]);
+    assert_eq!(geometry(&g.to_toml_string()).unwrap(), g);
+    // 3-D anchors of a planar device share one z.
+    let tilted = text.replace("[500, 400]", "[500, 400, 30]");
+    let err = geometry(&tilted).unwrap_err().to_string();
+    assert!(
+        err.contains("anchors_mm[2]") && err.contains("one plane"),
+        "{err}"
+    );
+}
+
+#[test]
+fn n_string_sessions_follow_their_encoder_columns() {
+    let text = "t_s,enc0,enc1,enc2,enc3,ots_x,ots_y,ots_z,tension0,tension1,tension2,tension3\n\
+                0,1,2,3,4,1.5,2.5,3.5,10,11,12,13\n\
+                1,5,6,7,8,,,,10,11,12,13\n";
+    let s = read(text).unwrap();
+    assert_eq!(s.strings, 4);
+    assert_eq!(s.samples[0].counts, [1, 2, 3, 4, 0, 0, 0, 0]);
+    assert_eq!(
+        s.samples[0].tension_n.unwrap()[..4],
+        [10.0, 11.0, 12.0, 13.0]
+    );
+    assert_eq!(s.samples[1].tracker, None);
+    // Written back with the same columns, read back the same.
+    let mut out = Vec::new();
+    s.write_to(&mut out, Path::new("mem/out.csv")).unwrap();
+    let written = String::from_utf8(out).unwrap();
+    assert!(
+        written.starts_with("t_s,enc0,enc1,enc2,enc3,ots_x,ots_y,ots_z,tension0,"),
+        "{written}"
+    );
+    assert_eq!(read(&written).unwrap(), s);
+    // A tension column beyond the strings, a gap, or too few strings.
+    let err = read("t_s,enc0,enc1,enc2,ots_x,ots_y,ots_z,tension0,tension1,tension2,tension3\n")
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("tension3") && err.contains("3 strings"),
+        "{err}"
+    );
+    let err = read("t_s,enc0,enc1,enc3,ots_x,ots_y,ots_z\n").unwrap_err();
+    assert!(
+        matches!(err, DatasetError::MissingColumn { ref column, .. } if column == "enc2"),
+        "{err}"
+    );
+    let err = read("t_s,enc0,enc1,ots_x,ots_y,ots_z\n")
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("enc2") && err.contains("at least 3 strings"),
+        "{err}"
+    );
+    // A planar device's tracker may leave out ots_z.
+    let s = read("t_s,enc0,enc1,enc2,ots_x,ots_y\n0,1,2,3,4.5,5.5\n").unwrap();
+    assert_eq!(s.samples[0].tracker, Some([4.5, 5.5, 0.0]));
 }

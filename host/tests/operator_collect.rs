@@ -200,7 +200,7 @@ fn the_operator_fills_a_small_lattice_cell_by_cell_and_the_rows_are_true() {
     let mm_per_count: Vec<f64> = (0..8)
         .map(|i| {
             2.0 * std::f64::consts::PI * nominal.pulley_radius_mm[i]
-                / f64::from(nominal.counts_per_rev)
+                / f64::from(nominal.counts_per_rev[i])
         })
         .collect();
     let home_lengths = nominal.home_lengths_mm();

@@ -246,7 +246,7 @@ fn bad_input_gives_clear_errors() {
 
     // Another encoder resolution.
     let mut other = cal.geometry.clone();
-    other.counts_per_rev *= 2;
+    other.counts_per_rev[0] *= 2;
     let e = attempt(
         &mut client,
         &mut rig.receiver,

@@ -209,6 +209,10 @@ impl Default for CalibrateConfig {
     }
 }
 
+/// Fewest points of the selection split on which a learned correction may
+/// be chosen over the identified model: below it, a 1% gain is noise.
+pub const MIN_SELECTION_POINTS: usize = 30;
+
 /// A session with the name it is reported under.
 #[derive(Clone, Copy, Debug)]
 pub struct NamedSession<'a> {
@@ -436,6 +440,9 @@ pub fn calibrate(
     let t_start = Instant::now();
     let mut timings = report::Timings::default();
     let mut warnings: Vec<String> = Vec::new();
+    for s in [&train, &test] {
+        s.session.check_strings(s.path, geometry, geometry_path)?;
+    }
     let train_info = session_info(train)?;
     let test_info = session_info(test)?;
     for (info, s) in [(&train_info, &train), (&test_info, &test)] {
@@ -568,7 +575,19 @@ pub fn calibrate(
     } else {
         (report::Choice::Nn, v_nn)
     };
-    let choice = if best_corr.1.is_finite() && best_corr.1 < v_id * (1.0 - cfg.min_correction_gain)
+    let enough_to_choose = x_sel.len() >= MIN_SELECTION_POINTS;
+    if !enough_to_choose {
+        warnings.push(format!(
+            "the NN and SVR corrections are reported but not chosen: the selection split of the \
+             training session has {} points, at least {MIN_SELECTION_POINTS} are needed to tell a \
+             correction from noise (the final model is the identified one; collect a larger \
+             training session to use a learned correction)",
+            x_sel.len()
+        ));
+    }
+    let choice = if enough_to_choose
+        && best_corr.1.is_finite()
+        && best_corr.1 < v_id * (1.0 - cfg.min_correction_gain)
     {
         best_corr.0
     } else {
@@ -744,6 +763,12 @@ pub fn calibrate(
     let report = Report {
         schema: SCHEMA,
         tool: report::Tool::current(),
+        device: report::DeviceReport::of(
+            geometry.layout,
+            train_info.tracked,
+            fin.residual_scale_mm,
+            cfg.loop_config.chi2_threshold,
+        ),
         inputs: report::Inputs {
             geometry: geometry_path.display().to_string(),
             train: train_info,

@@ -24,6 +24,8 @@ pub struct Report {
     pub schema: &'static str,
     pub tool: Tool,
     pub inputs: Inputs,
+    /// The device's strings and what their number allows.
+    pub device: DeviceReport,
     /// Pipeline order; the last stage is the final model.
     pub stages: Vec<Stage>,
     /// Everything the diagnosis loop reported (added or not).
@@ -39,6 +41,78 @@ pub struct Report {
     pub timings_s: Timings,
     pub figures: Vec<Figure>,
     pub files: Files,
+}
+
+/// The strings of the calibrated device and what their number means for
+/// what calibration and tracking can check.
+#[derive(Clone, Debug, Serialize)]
+pub struct DeviceReport {
+    /// Number of strings (anchors), 3..=8.
+    pub strings: usize,
+    /// Encoder channels that carry them.
+    pub channels: Vec<usize>,
+    /// The end-effector moves in the anchors' plane.
+    pub planar: bool,
+    /// Degrees of freedom of the position (2 or 3).
+    pub dof: usize,
+    /// Strings beyond the degrees of freedom.
+    pub redundancy: usize,
+    /// Whether forward kinematics can exclude a faulty string (needs 2 spare
+    /// strings).
+    pub fault_rejection: bool,
+    /// Smallest constant error of one string that diagnosis would find on
+    /// this training session (mm; `sigma * sqrt(chi2 threshold / rows)`,
+    /// before the loss of power to what the model already absorbs).
+    pub smallest_detectable_offset_mm: f64,
+    /// What the number of strings and rows leaves unchecked, in words.
+    pub limits: Vec<String>,
+}
+
+impl DeviceReport {
+    /// The report of `layout` calibrated from `tracked_rows` rows whose
+    /// string residuals scatter by `residual_scale_mm`.
+    pub fn of(
+        layout: spidar_core::model::StringLayout,
+        tracked_rows: usize,
+        residual_scale_mm: f64,
+        chi2_threshold: f64,
+    ) -> DeviceReport {
+        let redundancy = layout.redundancy();
+        let mut limits = Vec::new();
+        match redundancy {
+            0 => limits.push(
+                "no spare string: the strings always agree on a position, so neither tracking \
+                 nor calibration can see a string that reads wrong; string errors show only \
+                 against the tracker"
+                    .to_string(),
+            ),
+            1 => limits.push(
+                "one spare string: the device sees when its strings disagree, but cannot tell \
+                 which one is faulty (excluding a string needs 2 spare); a faulty string makes \
+                 the position the least-squares compromise, flagged inconsistent"
+                    .to_string(),
+            ),
+            _ => {}
+        }
+        let smallest = residual_scale_mm * (chi2_threshold / tracked_rows.max(1) as f64).sqrt();
+        if tracked_rows < 200 {
+            limits.push(format!(
+                "{tracked_rows} tracked rows: diagnosis sees a constant error of one string only \
+                 above ~{smallest:.2} mm, and effects that depend on time, direction or speed \
+                 are only testable with many rows spread over them"
+            ));
+        }
+        DeviceReport {
+            strings: layout.count(),
+            channels: layout.indices().collect(),
+            planar: layout.planar,
+            dof: layout.dof(),
+            redundancy,
+            fault_rejection: redundancy >= 2,
+            smallest_detectable_offset_mm: smallest,
+            limits,
+        }
+    }
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -396,6 +470,19 @@ impl Report {
             "training session {} ({} rows, {} tracked); test session {} ({} rows, {} tracked)",
             i.train.path, i.train.rows, i.train.tracked, i.test.path, i.test.rows, i.test.tracked
         );
+        let d = &self.device;
+        let _ = writeln!(
+            o,
+            "device: {} strings (channels {:?}), {}, {} spare string{}",
+            d.strings,
+            d.channels,
+            if d.planar { "planar" } else { "3-D" },
+            d.redundancy,
+            if d.redundancy == 1 { "" } else { "s" }
+        );
+        for l in &d.limits {
+            let _ = writeln!(o, "  limit: {l}");
+        }
         let _ = writeln!(
             o,
             "\nAbsolute position error (eq. 7) against the tracker, room frame, mm:"
@@ -426,7 +513,12 @@ impl Report {
 
         let _ = writeln!(o, "\nEffects found by diagnosis:");
         if self.effects.is_empty() {
-            let _ = writeln!(o, "  none: the identified model explains the residual");
+            let _ = writeln!(
+                o,
+                "  none significant: the identified model explains the residual (a constant \
+                 error of one string above ~{:.2} mm would have been seen)",
+                self.device.smallest_detectable_offset_mm
+            );
         }
         for f in &self.effects {
             let strings = if f.strings.is_empty() {
@@ -474,6 +566,11 @@ impl Report {
             c.svr.support_vectors
         );
         let why = match s.choice {
+            Choice::Identified if s.selection_points < super::MIN_SELECTION_POINTS => format!(
+                "the identified model alone: corrections are not chosen on fewer than {} points, \
+                 and there are",
+                super::MIN_SELECTION_POINTS
+            ),
             Choice::Identified => format!(
                 "the identified model alone: no correction lowered its error by {} on",
                 pct(s.min_correction_gain)

@@ -889,6 +889,7 @@ mod tests {
         let order = lattice.order();
         // Cells 0, 1 and 2 of the order, each somewhere inside.
         let mut session = Session {
+            strings: 8,
             samples: vec![
                 row([-120.0, -140.0, -101.0]),
                 row([10.0, -60.0, -149.0]),

@@ -412,12 +412,12 @@ pub fn check_calibration(
         })
     };
     for (i, law) in calibration.strings.iter().enumerate() {
-        if law.counts_per_rev != geometry.counts_per_rev {
+        if law.counts_per_rev != geometry.counts_per_rev[i] {
             return bad(
                 format!("strings[{i}].counts_per_rev"),
                 format!(
                     "{} counts per revolution, the geometry has {} (a calibration of another device?)",
-                    law.counts_per_rev, geometry.counts_per_rev
+                    law.counts_per_rev, geometry.counts_per_rev[i]
                 ),
             );
         }
@@ -455,10 +455,13 @@ pub fn identification_of(calibration: &Calibration) -> Identification {
     let laws = calibration.strings;
     Identification {
         frame: calibration.frame,
+        // The runtime monitor serves single-line strings (mechanical
+        // advantage 1): every string's law carries the shared kappa.
         winding: WindingPhysics {
             r_home_mm: core::array::from_fn(|i| laws[i].winding_mm[0]),
             kappa_mm: -laws[0].winding_mm[1],
-            counts_per_rev: laws[0].counts_per_rev,
+            counts_per_rev: laws.map(|l| l.counts_per_rev),
+            mechanical_advantage: [1.0; STRINGS],
         },
         laws,
         effects: calibration.effects.clone(),

@@ -61,8 +61,10 @@ impl NominalConfig {
         let h = self.frame_half_size_mm;
         let corners = [(-h, -h), (h, -h), (h, h), (-h, h)];
         Geometry {
-            counts_per_rev: self.counts_per_rev,
+            layout: spidar_core::model::StringLayout::ALL,
+            counts_per_rev: [self.counts_per_rev; STRINGS],
             pulley_radius_mm: [self.pulley_radius_mm; STRINGS],
+            mechanical_advantage: [1.0; STRINGS],
             home_mm: self.home_mm,
             anchors_mm: core::array::from_fn(|i| {
                 let (x, y) = corners[i % 4];

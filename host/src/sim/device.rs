@@ -177,7 +177,7 @@ impl Device {
         let d = ab.string_diameter_mm;
         let mut home_wound_mm = [0.0; STRINGS];
         let mut laws = [StringLaw {
-            counts_per_rev: nominal.counts_per_rev,
+            counts_per_rev: nominal.counts_per_rev[0],
             winding_mm: [0.0; WINDING_ORDER],
         }; STRINGS];
         for i in 0..STRINGS {
@@ -233,7 +233,7 @@ impl Device {
 
     /// Pulley angle of `counts`, rad.
     pub fn theta(&self, counts: i32) -> f64 {
-        2.0 * std::f64::consts::PI * f64::from(counts) / f64::from(self.nominal.counts_per_rev)
+        2.0 * std::f64::consts::PI * f64::from(counts) / f64::from(self.nominal.counts_per_rev[0])
     }
 
     /// The true base winding law: string paid out since home at angle `theta`, mm.
@@ -323,8 +323,9 @@ impl Device {
                 return Err(SimError::NoConvergence { string, t_s });
             }
         }
-        let counts =
-            (theta * f64::from(self.nominal.counts_per_rev) / (2.0 * std::f64::consts::PI)).round();
+        let counts = (theta * f64::from(self.nominal.counts_per_rev[0])
+            / (2.0 * std::f64::consts::PI))
+            .round();
         if counts.abs() > f64::from(i32::MAX) {
             return Err(exhausted());
         }

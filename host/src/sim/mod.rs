@@ -263,6 +263,7 @@ pub fn simulate_session_with_truth(
     }
     Ok((
         Session {
+            strings: STRINGS,
             samples,
             ignored_columns: Vec::new(),
         },
