@@ -443,7 +443,16 @@ fn bad_input_gives_typed_errors() {
         svr::train(&train.inputs, &train.targets, &bad),
         Err(LearnError::InvalidParameter { name: "C", .. })
     ));
+    // An exactly constant axis (a planar device's z) standardizes to 0; one
+    // that varies only by rounding noise is refused.
     let flat: Vec<[f64; 3]> = train.inputs.iter().map(|p| [p[0], 7.0, p[2]]).collect();
+    assert!(nn::train(&flat, &train.targets, &cfg).is_ok());
+    let flat: Vec<[f64; 3]> = train
+        .inputs
+        .iter()
+        .enumerate()
+        .map(|(i, p)| [p[0], 7.0 + 1e-15 * (i % 2) as f64, p[2]])
+        .collect();
     assert_eq!(
         nn::train(&flat, &train.targets, &cfg).unwrap_err(),
         LearnError::ZeroSpread {

@@ -46,7 +46,7 @@ use spidar_core::model::Calibration;
 
 use crate::dataset::{DatasetError, Geometry, Session};
 use crate::diagnose::{close_loop, LoopConfig, LoopResult};
-use crate::identify::{device_from_room, IdentifyError, Start};
+use crate::identify::{device_from_room, room_from_device, IdentifyError, Start};
 use crate::learn::nn::{self, NnConfig};
 use crate::learn::outliers;
 use crate::learn::search::{self, SvrSearchConfig, SweepConfig};
@@ -454,9 +454,20 @@ pub fn calibrate(
             ));
         }
     }
-    let tr = observations(&train.session.samples);
-    let te = observations(&test.session.samples);
     let nominal = geometry.nominal_frame();
+    let mut tr = observations(&train.session.samples);
+    let mut te = observations(&test.session.samples);
+    if nominal.layout.planar {
+        // A planar device's tracker gives the position in the plane; its z
+        // (absent, or the marker's height) is not used: the errors are in
+        // the plane.
+        let plane_z = room_from_device(&nominal, [0.0, 0.0, nominal.anchors[0][2]])[2];
+        for o in tr.iter_mut().chain(te.iter_mut()) {
+            if let Some(t) = o.tracker.as_mut() {
+                t[2] = plane_z;
+            }
+        }
+    }
     let nominal_laws = geometry.nominal_string_laws();
 
     // 1. Raw: nominal geometry through the device pipeline.

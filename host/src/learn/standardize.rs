@@ -6,8 +6,9 @@
 
 use super::{validate_points, LearnError, Standardization};
 
-/// Relative spread below which an axis counts as constant: dividing by such a
-/// std would blow rounding noise up to unit variance.
+/// Relative spread below which an axis that is not exactly constant is
+/// refused: dividing by such a std would blow rounding noise up to unit
+/// variance.
 const MIN_REL_SPREAD: f64 = 1e-12;
 
 /// Per-axis mean and standard deviation of `points`.
@@ -35,6 +36,13 @@ pub fn fit(what: &'static str, points: &[[f64; 3]]) -> Result<Standardization, L
     let mut std = [0.0; 3];
     for a in 0..3 {
         std[a] = (var[a] / n).sqrt();
+        if points.iter().all(|p| p[a] == points[0][a]) {
+            // An exactly constant axis (a planar device's z) carries no
+            // information: scale 1, as scikit-learn's StandardScaler does,
+            // so it standardizes to 0 everywhere.
+            std[a] = 1.0;
+            continue;
+        }
         let scale = mean[a].abs().max(1.0);
         // Also catches NaN (cannot happen after validation, but cheap).
         if std[a].is_nan() || std[a] <= MIN_REL_SPREAD * scale {

@@ -31,6 +31,14 @@ pub struct SimConfig {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct NominalConfig {
+    /// Number of strings, 3..=8 (on encoder channels `0..strings`). Eight
+    /// strings sit at the cube's corners in the Scalable-SPIDAR's order;
+    /// fewer take corners that spread them (4: a tetrahedron, SPIDAR-G
+    /// style), or, planar, the corners of a regular polygon.
+    pub strings: usize,
+    /// The end-effector moves in the plane `z = 0` of the device frame,
+    /// where the anchors are (a planar SPIDAR).
+    pub planar: bool,
     pub counts_per_rev: u32,
     /// Nominal (bare) pulley radius the designers give, mm.
     pub pulley_radius_mm: f64,
@@ -45,6 +53,8 @@ pub struct NominalConfig {
 impl Default for NominalConfig {
     fn default() -> Self {
         NominalConfig {
+            strings: STRINGS,
+            planar: false,
             counts_per_rev: 4096,
             pulley_radius_mm: 7.5,
             frame_half_size_mm: 1100.0,
@@ -55,21 +65,48 @@ impl Default for NominalConfig {
 }
 
 impl NominalConfig {
-    /// The nominal geometry, anchors in encoder order: the lower square
-    /// (`z = -h`) counter-clockwise from `(-h, -h)`, then the upper square.
+    /// The nominal geometry, anchors in encoder order. Eight strings: the
+    /// lower square (`z = -h`) counter-clockwise from `(-h, -h)`, then the
+    /// upper square. Fewer in 3-D: the cube corners in the order 0, 2, 5, 7
+    /// (a tetrahedron), then 1, 3, 4, 6 (index as in the 8-string order).
+    /// Planar: a regular polygon of circumradius `h sqrt 2` in `z = 0`, its
+    /// first corner at `(-h, -h)`; home is put in the plane.
     pub fn geometry(&self) -> Geometry {
         let h = self.frame_half_size_mm;
+        let n = self.strings.clamp(1, STRINGS);
         let corners = [(-h, -h), (h, -h), (h, h), (-h, h)];
+        let cube = |i: usize| {
+            let (x, y) = corners[i % 4];
+            [x, y, if i < 4 { -h } else { h }]
+        };
+        const SPREAD: [usize; STRINGS] = [0, 2, 5, 7, 1, 3, 4, 6];
+        let polygon = |i: usize| {
+            let angle = -3.0 * std::f64::consts::FRAC_PI_4
+                + 2.0 * std::f64::consts::PI * i as f64 / n as f64;
+            let r = h * std::f64::consts::SQRT_2;
+            [r * angle.cos(), r * angle.sin(), 0.0]
+        };
+        let anchor = |i: usize| {
+            let i = i.min(n - 1);
+            if self.planar {
+                polygon(i)
+            } else if n == STRINGS {
+                cube(i)
+            } else {
+                cube(SPREAD[i])
+            }
+        };
+        let mut home_mm = self.home_mm;
+        if self.planar {
+            home_mm[2] = 0.0;
+        }
         Geometry {
-            layout: spidar_core::model::StringLayout::ALL,
+            layout: spidar_core::model::StringLayout::first(n, self.planar),
             counts_per_rev: [self.counts_per_rev; STRINGS],
             pulley_radius_mm: [self.pulley_radius_mm; STRINGS],
             mechanical_advantage: [1.0; STRINGS],
-            home_mm: self.home_mm,
-            anchors_mm: core::array::from_fn(|i| {
-                let (x, y) = corners[i % 4];
-                [x, y, if i < 4 { -h } else { h }]
-            }),
+            home_mm,
+            anchors_mm: core::array::from_fn(anchor),
             room_from_device_translation_mm: self.room_from_device_translation_mm,
         }
     }
@@ -136,6 +173,12 @@ pub struct TrackerConfig {
     /// Tracker frame rate: the capture happens at the first tracker frame
     /// after the marker enters a lattice cell.
     pub frame_rate_hz: f64,
+    /// How far the tracker's clock runs ahead of the device's (s): the
+    /// tracker position written in a row stamped `t` (device clock) is where
+    /// the marker was at `t - clock_offset_s` (a recording paired by the two
+    /// clocks' timestamps). Rows before the first tracked instant are
+    /// occluded. Calibration finds and removes it for dynamic sessions.
+    pub clock_offset_s: f64,
 }
 
 impl Default for TrackerConfig {
@@ -148,6 +191,7 @@ impl Default for TrackerConfig {
             occlusion_probability: 0.01,
             occlusion_mean_rows: 4.0,
             frame_rate_hz: 60.0,
+            clock_offset_s: 0.0,
         }
     }
 }
@@ -337,6 +381,16 @@ impl SimConfig {
     /// Check every parameter; errors name the field (`section.key`).
     pub fn validate(&self) -> Result<(), SimError> {
         let n = &self.nominal;
+        if !(crate::dataset::MIN_STRINGS..=STRINGS).contains(&n.strings) {
+            return Err(bad(
+                "nominal.strings",
+                format!(
+                    "{} is not in {}..={STRINGS}",
+                    n.strings,
+                    crate::dataset::MIN_STRINGS
+                ),
+            ));
+        }
         if n.counts_per_rev == 0 {
             return Err(bad("nominal.counts_per_rev", "must be positive"));
         }
@@ -372,11 +426,20 @@ impl SimConfig {
             ));
         }
         positive("tracker.frame_rate_hz", t.frame_rate_hz)?;
+        if !t.clock_offset_s.is_finite() {
+            return Err(bad("tracker.clock_offset_s", "must be a finite number"));
+        }
         let m = &self.abnormal_motor;
-        if usize::from(m.string) >= STRINGS {
+        if m.enabled && usize::from(m.string) >= n.strings {
             return Err(bad(
                 "abnormal_motor.string",
-                format!("{} is not an encoder index 0..7", m.string),
+                format!(
+                    "{} is not a string of this {}-string device (0..{}); choose one or set \
+                     abnormal_motor.enabled = false",
+                    m.string,
+                    n.strings,
+                    n.strings - 1
+                ),
             ));
         }
         non_negative("abnormal_motor.region_length_mm", m.region_length_mm)?;

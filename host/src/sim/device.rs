@@ -4,7 +4,7 @@
 use rand::rngs::ChaCha8Rng;
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
-use spidar_core::model::{EffectTerm, Frame, StringLaw, StringLayout, Vec3, WINDING_ORDER};
+use spidar_core::model::{EffectTerm, Frame, StringLaw, Vec3, WINDING_ORDER};
 use spidar_core::STRINGS;
 
 use super::config::SimConfig;
@@ -101,17 +101,25 @@ impl Device {
 
         let mut rng = stream(seed, 1);
         let anchor_noise = normal("as_built.anchor_sigma_mm", ab.anchor_sigma_mm)?;
+        let planar = nominal.layout.planar;
         let mut anchors = nominal.anchors_mm;
         for a in anchors.iter_mut() {
-            for x in a.iter_mut() {
-                *x += anchor_noise.sample(&mut rng);
+            for (k, x) in a.iter_mut().enumerate() {
+                let e = anchor_noise.sample(&mut rng);
+                // A planar device's anchors stay in its plane.
+                if !(planar && k == 2) {
+                    *x += e;
+                }
             }
         }
 
         let mut rng = stream(seed, 2);
         let home_noise = normal("as_built.home_sigma_mm", ab.home_sigma_mm)?;
-        let home: Vec3<f64> =
+        let mut home: Vec3<f64> =
             core::array::from_fn(|k| nominal.home_mm[k] + home_noise.sample(&mut rng));
+        if planar {
+            home[2] = nominal.home_mm[2];
+        }
 
         let mut rng = stream(seed, 3);
         let shared = 1.0
@@ -138,19 +146,21 @@ impl Device {
         let axis_draw = normal("tracker.rotation_deg", 1.0)?;
         let mut axis: Vec3<f64> = core::array::from_fn(|_| axis_draw.sample(&mut rng));
         let n = norm(&axis);
-        axis = if n > 0.0 {
+        axis = if n > 0.0 && !planar {
             axis.map(|x| x / n)
         } else {
+            // A planar device's tracker frame turns about the plane's normal.
             [0.0, 0.0, 1.0]
         };
         let room_rotation = axis_angle(axis, tr.rotation_deg.to_radians());
         let t_noise = normal("tracker.translation_sigma_mm", tr.translation_sigma_mm)?;
         let room_translation: Vec3<f64> = core::array::from_fn(|k| {
-            nominal.room_from_device_translation_mm[k] + t_noise.sample(&mut rng)
+            let e = t_noise.sample(&mut rng);
+            nominal.room_from_device_translation_mm[k] + if planar && k == 2 { 0.0 } else { e }
         });
 
         let mut frame = Frame {
-            layout: StringLayout::ALL,
+            layout: nominal.layout,
             anchors,
             home,
             room_rotation,
@@ -159,6 +169,24 @@ impl Device {
         };
 
         let injected = parse_effects(&config.effects)?;
+        for e in &injected {
+            let string = match *e {
+                InjectedEffect::Model(term) => Some(term.string),
+                InjectedEffect::AnchorShift { string, .. }
+                | InjectedEffect::Speed { string, .. } => Some(string),
+                InjectedEffect::TrackerScale { .. } => None,
+            };
+            if let Some(s) = string.filter(|&s| !nominal.layout.is_active(usize::from(s))) {
+                return Err(SimError::Config {
+                    field: "effects".into(),
+                    problem: format!(
+                        "an effect on string {s}, but the device has {} strings (0..{})",
+                        nominal.layout.count(),
+                        nominal.layout.count() - 1
+                    ),
+                });
+            }
+        }
         let mut effects = Vec::new();
         for e in &injected {
             match *e {
@@ -342,6 +370,11 @@ impl Device {
     pub fn device_from_room(&self, p: &Vec3<f64>) -> Vec3<f64> {
         let d = sub(p, &self.frame.room_translation);
         rotate_back(&self.frame.room_rotation, &d).map(|x| x / self.frame.room_scale)
+    }
+
+    /// Room-frame velocity of a device-frame velocity.
+    pub fn room_velocity_from_device(&self, v: &Vec3<f64>) -> Vec3<f64> {
+        rotate(&self.frame.room_rotation, v).map(|x| x * self.frame.room_scale)
     }
 
     /// Device-frame velocity of a room-frame velocity.

@@ -167,6 +167,49 @@ pub fn simulate_session_with_truth(
     let noise = normal("tracker.noise_sigma_mm", cfg.tracker.noise_sigma_mm)?;
     let legacy = legacy::LegacyController::new(&device.nominal);
 
+    let layout = device.frame.layout;
+    // A planar device's end-effector moves in the anchors' plane: the path
+    // is projected onto it.
+    let captures: Vec<trajectory::Capture> = if layout.planar {
+        let plane_z = device.frame.anchors[0][2];
+        captures
+            .into_iter()
+            .map(|mut c| {
+                let mut p = device.device_from_room(&c.room);
+                p[2] = plane_z;
+                let mut v = device.device_velocity_from_room(&c.velocity);
+                v[2] = 0.0;
+                c.room = device.room_from_device(&p);
+                c.velocity = device.room_velocity_from_device(&v);
+                c
+            })
+            .collect()
+    } else {
+        captures
+    };
+    // Where the marker was `tracker.clock_offset_s` before each row's time
+    // (linear between captures; None before the first).
+    let offset_s = cfg.tracker.clock_offset_s;
+    let marker_at = |t_s: f64| -> Option<Vec3<f64>> {
+        let t = t_s - offset_s;
+        let k = captures.partition_point(|c| f64::from(c.t_ms) / 1000.0 <= t);
+        if k == 0 || k > captures.len() {
+            return None;
+        }
+        let a = &captures[k - 1];
+        let ta = f64::from(a.t_ms) / 1000.0;
+        match captures.get(k) {
+            Some(b) => {
+                let tb = f64::from(b.t_ms) / 1000.0;
+                let f = if tb > ta { (t - ta) / (tb - ta) } else { 0.0 };
+                Some(core::array::from_fn(|i| {
+                    a.room[i] + f * (b.room[i] - a.room[i])
+                }))
+            }
+            None => (t == ta).then_some(a.room),
+        }
+    };
+
     let mut direction = [0i8; STRINGS];
     let mut occluded = false;
     let mut samples = Vec::with_capacity(captures.len());
@@ -189,7 +232,7 @@ pub fn simulate_session_with_truth(
         let mut lengths = [0.0; STRINGS];
         let mut speeds = [0.0; STRINGS];
         let mut abnormal_mm = 0.0;
-        for i in 0..STRINGS {
+        for i in layout.indices() {
             let to_anchor = sub(&p, &device.frame.anchors[i]);
             let length = norm(&to_anchor);
             let speed = if length > 0.0 {
@@ -226,9 +269,15 @@ pub fn simulate_session_with_truth(
         } else {
             occlusion_rng.random_bool(tr.occlusion_probability)
         };
-        let measured: Vec3<f64> =
-            core::array::from_fn(|k| round_to(c.room[k] + noise.sample(&mut noise_rng), 1000.0));
-        let tracker = (!occluded).then_some(measured);
+        let marker = if offset_s == 0.0 {
+            Some(c.room)
+        } else {
+            marker_at(t_s)
+        };
+        let measured = marker.map(|m| -> Vec3<f64> {
+            core::array::from_fn(|k| round_to(m[k] + noise.sample(&mut noise_rng), 1000.0))
+        });
+        let tracker = measured.filter(|_| !occluded);
 
         let legacy_position = if cfg.legacy.enabled {
             legacy
@@ -263,7 +312,7 @@ pub fn simulate_session_with_truth(
     }
     Ok((
         Session {
-            strings: STRINGS,
+            strings: layout.count(),
             samples,
             ignored_columns: Vec::new(),
         },
