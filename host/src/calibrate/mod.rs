@@ -33,6 +33,7 @@
 //! Every error statistic comes from [`crate::stats`] (eq. 7 against the
 //! tracker, room frame, over the rows the tracker saw).
 
+pub mod align;
 mod cli;
 mod plots;
 pub mod report;
@@ -46,7 +47,9 @@ use spidar_core::model::Calibration;
 
 use crate::dataset::{DatasetError, Geometry, Session};
 use crate::diagnose::{close_loop, LoopConfig, LoopResult};
-use crate::identify::{device_from_room, room_from_device, IdentifyError, Start};
+use crate::identify::{
+    device_from_room, identify, room_from_device, IdentifyError, Start, Structure,
+};
 use crate::learn::nn::{self, NnConfig};
 use crate::learn::outliers;
 use crate::learn::search::{self, SvrSearchConfig, SweepConfig};
@@ -55,6 +58,7 @@ use crate::learn::{split_indices, LearnError, OutputMode};
 use crate::observe::{observations, Observation};
 use crate::predict::{predict, StringModel};
 use crate::stats::{error_stats_checked, ErrorStats, StatsError};
+use spidar_core::kinematics::FkStatus;
 
 pub use cli::{run_calibrate, run_demo, CalibrateArgs, DemoArgs};
 pub use report::{Report, SCHEMA};
@@ -96,6 +100,8 @@ pub enum CalibrateError {
     Blob { what: &'static str, message: String },
     #[error("{0}")]
     Device(#[from] crate::device_run::DeviceRunError),
+    #[error("{0}")]
+    Align(#[from] align::AlignError),
 }
 
 fn learn(step: &'static str) -> impl FnOnce(LearnError) -> CalibrateError {
@@ -383,6 +389,80 @@ fn tracked_pairs(obs: &[Observation], positions: &[[f64; 3]]) -> (Vec<[f64; 3]>,
         .unzip()
 }
 
+/// Aligns the tracker's clock of dynamic sessions (see [`align`]): twice
+/// for the training session (nominal model, then a model identified from
+/// the first alignment), once for the test session with that model.
+fn align_clocks(
+    tr: Vec<Observation>,
+    te: Vec<Observation>,
+    geometry: &Geometry,
+    nominal: &spidar_core::model::Frame<f64>,
+    nominal_laws: &[spidar_core::model::StringLaw; spidar_core::STRINGS],
+) -> Result<(Vec<Observation>, Vec<Observation>, report::Timing), CalibrateError> {
+    let positions = |model: StringModel<'_>, obs: &[Observation]| -> Vec<Option<[f64; 3]>> {
+        predict(model, obs)
+            .iter()
+            .map(|p| {
+                matches!(
+                    p.status,
+                    FkStatus::Ok | FkStatus::FaultyStringExcluded | FkStatus::Inconsistent
+                )
+                .then_some(p.room)
+            })
+            .collect()
+    };
+    let nominal_model = StringModel {
+        frame: nominal,
+        laws: nominal_laws,
+        effects: &[],
+    };
+    let mut id = None;
+    let (tr, train_timing) = match align::static_timing(&tr) {
+        Some(s) => (tr, s),
+        None => {
+            let (first, tr1) = align::align(&tr, &positions(nominal_model, &tr), 0.0)?;
+            let quick = identify(
+                &tr1,
+                nominal,
+                &Start::from_geometry(geometry),
+                &Structure::default(),
+            )?;
+            let model = StringModel {
+                frame: &quick.frame,
+                laws: &quick.laws,
+                effects: &quick.effects,
+            };
+            let (a, tr2) = align::align(&tr, &positions(model, &tr), first.offset_s)?;
+            id = Some(quick);
+            (tr2, align::SessionTiming::Aligned(a))
+        }
+    };
+    let (te, test_timing) = match align::static_timing(&te) {
+        Some(s) => (te, s),
+        None => {
+            let (frame, laws, effects) = match &id {
+                Some(q) => (&q.frame, &q.laws, q.effects.as_slice()),
+                None => (nominal, nominal_laws, &[][..]),
+            };
+            let model = StringModel {
+                frame,
+                laws,
+                effects,
+            };
+            let (a, te1) = align::align(&te, &positions(model, &te), 0.0)?;
+            (te1, align::SessionTiming::Aligned(a))
+        }
+    };
+    Ok((
+        tr,
+        te,
+        report::Timing {
+            train: train_timing,
+            test: test_timing,
+        },
+    ))
+}
+
 /// Session facts for the report; refuses a session the tracker never saw.
 fn session_info(s: NamedSession<'_>) -> Result<report::SessionInfo, CalibrateError> {
     let rows = s.session.samples.len();
@@ -469,6 +549,23 @@ pub fn calibrate(
         }
     }
     let nominal_laws = geometry.nominal_string_laws();
+
+    // 0. The tracker's clock against the device's (dynamic sessions only).
+    let t = Instant::now();
+    let (tr, te, timing) = align_clocks(tr, te, geometry, &nominal, &nominal_laws)?;
+    timings.alignment_s = t.elapsed().as_secs_f64();
+    for (name, t) in [("training", &timing.train), ("test", &timing.test)] {
+        if let align::SessionTiming::Aligned(a) = t {
+            if a.rows_unpaired > 0 {
+                warnings.push(format!(
+                    "{name} session: {} rows lost their tracker position when re-paired by the \
+                     {:+.4} s clock offset (before the tracker's first or after its last frame, \
+                     or across a gap)",
+                    a.rows_unpaired, a.offset_s
+                ));
+            }
+        }
+    }
 
     // 1. Raw: nominal geometry through the device pipeline.
     let t = Instant::now();
@@ -774,6 +871,7 @@ pub fn calibrate(
     let report = Report {
         schema: SCHEMA,
         tool: report::Tool::current(),
+        timing,
         device: report::DeviceReport::of(
             geometry.layout,
             train_info.tracked,

@@ -26,6 +26,8 @@ pub struct Report {
     pub inputs: Inputs,
     /// The device's strings and what their number allows.
     pub device: DeviceReport,
+    /// The tracker's clock against the device's, per session.
+    pub timing: Timing,
     /// Pipeline order; the last stage is the final model.
     pub stages: Vec<Stage>,
     /// Everything the diagnosis loop reported (added or not).
@@ -41,6 +43,13 @@ pub struct Report {
     pub timings_s: Timings,
     pub figures: Vec<Figure>,
     pub files: Files,
+}
+
+/// What the calibration did about the tracker's clock, per session.
+#[derive(Clone, Debug, Serialize)]
+pub struct Timing {
+    pub train: super::align::SessionTiming,
+    pub test: super::align::SessionTiming,
 }
 
 /// The strings of the calibrated device and what their number means for
@@ -366,6 +375,8 @@ impl IdentificationReport {
 /// Wall-clock seconds of each step.
 #[derive(Clone, Debug, Default, Serialize)]
 pub struct Timings {
+    /// Finding the tracker's clock offset (dynamic sessions).
+    pub alignment_s: f64,
     pub raw_s: f64,
     /// Identification and the diagnosis loop.
     pub identification_s: f64,
@@ -482,6 +493,22 @@ impl Report {
         );
         for l in &d.limits {
             let _ = writeln!(o, "  limit: {l}");
+        }
+        for (name, t) in [
+            ("training", &self.timing.train),
+            ("test", &self.timing.test),
+        ] {
+            if let super::align::SessionTiming::Aligned(a) = t {
+                let _ = writeln!(
+                    o,
+                    "{name} session: tracker clock {:+.2} ms (sd {:.3} ms) from the device's, \
+                     found from the motion ({} pairs, speed correlation {:.3}); rows re-paired",
+                    a.offset_s * 1e3,
+                    a.offset_sd_s * 1e3,
+                    a.pairs,
+                    a.correlation
+                );
+            }
         }
         let _ = writeln!(
             o,
