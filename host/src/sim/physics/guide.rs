@@ -84,7 +84,7 @@ impl Guide {
         let rho = self.radius_mm;
         let (x, y) = (perp_len - rho, along);
         let m = x.hypot(y);
-        if !(m > rho) {
+        if m.is_nan() || m <= rho {
             return Err(GuideError {
                 distance_mm: m,
                 radius_mm: rho,

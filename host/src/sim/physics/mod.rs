@@ -315,8 +315,8 @@ impl PhysicsDevice {
                 let path = guide
                     .path(&[0.0; 3], &nominal.home_mm)
                     .map_err(|e| string_error(i, e))?;
-                for k in 0..3 {
-                    guide.entry_mm[k] += exit[k] - path.exit_mm[k];
+                for ((a, x), t) in guide.entry_mm.iter_mut().zip(exit).zip(path.exit_mm) {
+                    *a += x - t;
                 }
             }
             guides.push(guide);
@@ -523,7 +523,7 @@ impl PhysicsDevice {
     pub fn counts_of(&self, string: usize, spool_rad: f64) -> Result<i32, SimError> {
         let theta = self.strings[string].home_spool_rad - spool_rad;
         let counts = (theta * f64::from(self.nominal.counts_per_rev) / TAU).round();
-        if !(counts.abs() <= f64::from(i32::MAX)) {
+        if counts.is_nan() || counts.abs() > f64::from(i32::MAX) {
             return Err(string_error(string, "its counts overflow 32 bits"));
         }
         Ok(counts as i32)

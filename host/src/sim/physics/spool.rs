@@ -178,7 +178,7 @@ impl Spool {
     /// The spool angle at which `wound_mm` of string is wound: the inverse
     /// of [`Spool::wound_mm`], by bisection to 1e-12 rad.
     pub fn angle_for_wound(&self, wound_mm: f64) -> Result<f64, SpoolError> {
-        if !(wound_mm >= 0.0) {
+        if wound_mm.is_nan() || wound_mm < 0.0 {
             return Err(SpoolError::Empty { wound_mm });
         }
         let capacity_mm = self.capacity_mm();
@@ -258,9 +258,10 @@ mod tests {
         let changes = s.layer_changes_rad();
         assert_eq!(changes.len(), 3);
         for (k, c) in changes.iter().enumerate() {
-            // Away from the cross-overs: angle = 2 pi m + pi.
-            let before = ((c - 3.0) / TAU).floor() * TAU + std::f64::consts::PI;
-            let after = ((c + 3.0) / TAU).ceil() * TAU + std::f64::consts::PI;
+            // Away from the cross-overs (angle = 2 pi m + pi), a turn or
+            // two from the layer change.
+            let before = (((c - 1.0) / TAU).floor() - 1.0) * TAU + std::f64::consts::PI;
+            let after = ((c + 1.0) / TAU).ceil() * TAU + std::f64::consts::PI;
             let step = s.radius_mm(after) - s.radius_mm(before);
             assert!((step - 0.45).abs() < 1e-12, "layer {k}: {step}");
         }
