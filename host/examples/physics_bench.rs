@@ -180,7 +180,7 @@ fn residual_analysis(device: &PhysicsDevice, run: &Run, truths: &[PhysicsTruth],
     let cal = &c.calibration;
     let obs = observations(&run.train.samples);
     println!(
-        "| string | rms | vs payout | vs layer phase | vs tension | vs free length | vs exit travel | vs time | sag range |"
+        "| string | rms | vs payout | vs layer phase | vs tension | vs free length | vs exit travel | vs time | arc + sag range |"
     );
     println!("|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     for i in 0..STRINGS {

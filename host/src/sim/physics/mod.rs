@@ -230,12 +230,10 @@ fn wrong_count(n: usize) -> SimError {
     }
 }
 
+/// Uniform in `[r[0], r[1]]`; always one draw, so that narrowing one range
+/// (to a point, say) leaves every other parameter of the device unchanged.
 fn uniform(rng: &mut ChaCha8Rng, r: [f64; 2]) -> f64 {
-    if r[1] > r[0] {
-        rng.random_range(r[0]..=r[1])
-    } else {
-        r[0]
-    }
+    r[0] + (r[1] - r[0]) * rng.random_range(0.0..=1.0)
 }
 
 fn unit(v: Vec3<f64>) -> Vec3<f64> {
@@ -386,7 +384,10 @@ impl PhysicsDevice {
                 lead_mm,
                 spool: params,
                 stiffness_n: uniform(&mut rng, ab.string_stiffness_n),
-                mass_g_per_m: heavy.unwrap_or_else(|| uniform(&mut rng, ab.string_mass_g_per_m)),
+                mass_g_per_m: {
+                    let drawn = uniform(&mut rng, ab.string_mass_g_per_m);
+                    heavy.unwrap_or(drawn)
+                },
                 total_mm,
                 compliance_mm_per_n: flex * uniform(&mut flex_rng, ab.frame_compliance_mm_per_n),
                 flex_direction: tilted(towards_centre, 0.5, &mut flex_rng),
@@ -404,15 +405,14 @@ impl PhysicsDevice {
         }
 
         let mut rng = stream(seed, 107);
+        // Drawn whatever the effects, so that an effect changes only itself.
+        let drawn = uniform(&mut rng, ab.marker_offset_mm);
         let offset = match effects.iter().rev().find_map(|e| match e {
             PhysicsEffect::MarkerOffset { mm, deg } => Some((*mm, *deg)),
             _ => None,
         }) {
             Some((mm, deg)) => (mm, deg.to_radians()),
-            None => (
-                uniform(&mut rng, ab.marker_offset_mm),
-                ab.posture_amplitude_deg.to_radians(),
-            ),
+            None => (drawn, ab.posture_amplitude_deg.to_radians()),
         };
         let direction = tilted(
             [0.0, 0.0, 1.0],
