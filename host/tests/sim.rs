@@ -31,6 +31,7 @@ fn args(out: PathBuf, seed: u64, kind: KindArg) -> SimulateArgs {
         effects: vec![],
         name: None,
         session_seed: None,
+        physics: Default::default(),
     }
 }
 

@@ -174,6 +174,7 @@ pub fn run_demo(args: &DemoArgs) -> Result<String, CalibrateError> {
         effects: args.effects.clone(),
         name: Some(name.to_string()),
         session_seed: None,
+        physics: Default::default(),
     };
     let lattice = run_simulate(&simulate(KindArg::Lattice, "lattice"))?;
     let test = run_simulate(&simulate(KindArg::Random, "test"))?;

@@ -55,7 +55,7 @@ pub(crate) fn rotate_back(r: &[[f64; 3]; 3], v: &Vec3<f64>) -> Vec3<f64> {
 }
 
 /// Rotation by `angle` rad about the unit vector `axis` (Rodrigues).
-fn axis_angle(axis: Vec3<f64>, angle: f64) -> [[f64; 3]; 3] {
+pub(crate) fn axis_angle(axis: Vec3<f64>, angle: f64) -> [[f64; 3]; 3] {
     let (s, c) = angle.sin_cos();
     let [x, y, z] = axis;
     let t = 1.0 - c;

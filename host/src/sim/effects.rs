@@ -62,14 +62,15 @@ fn spec_error(spec: &str, problem: impl Into<String>) -> SimError {
     }
 }
 
-/// Parsed `NAME=VALUE` list; every name must be consumed.
-struct Params<'a> {
+/// Parsed `NAME=VALUE` list; every name must be consumed (also the
+/// independent simulator's effect parameters, [`super::physics`]).
+pub(crate) struct Params<'a> {
     spec: &'a str,
     items: Vec<(&'a str, f64, bool)>,
 }
 
 impl<'a> Params<'a> {
-    fn parse(spec: &'a str, text: &'a str) -> Result<Self, SimError> {
+    pub(crate) fn parse(spec: &'a str, text: &'a str) -> Result<Self, SimError> {
         let mut items: Vec<(&str, f64, bool)> = Vec::new();
         for item in text.split(',').map(str::trim).filter(|s| !s.is_empty()) {
             let (name, value) = item
@@ -93,7 +94,7 @@ impl<'a> Params<'a> {
         Ok(Params { spec, items })
     }
 
-    fn take(&mut self, name: &str) -> Option<f64> {
+    pub(crate) fn take(&mut self, name: &str) -> Option<f64> {
         self.items
             .iter_mut()
             .find(|(n, _, _)| *n == name)
@@ -103,16 +104,16 @@ impl<'a> Params<'a> {
             })
     }
 
-    fn required(&mut self, name: &str) -> Result<f64, SimError> {
+    pub(crate) fn required(&mut self, name: &str) -> Result<f64, SimError> {
         self.take(name)
             .ok_or_else(|| spec_error(self.spec, format!("missing parameter `{name}`")))
     }
 
-    fn optional(&mut self, name: &str) -> f64 {
+    pub(crate) fn optional(&mut self, name: &str) -> f64 {
         self.take(name).unwrap_or(0.0)
     }
 
-    fn finish(self) -> Result<(), SimError> {
+    pub(crate) fn finish(self) -> Result<(), SimError> {
         match self.items.iter().find(|(_, _, used)| !used) {
             Some((name, _, _)) => Err(spec_error(self.spec, format!("unknown parameter `{name}`"))),
             None => Ok(()),

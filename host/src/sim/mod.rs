@@ -24,6 +24,7 @@ pub mod device;
 pub mod effects;
 pub mod lattice;
 mod legacy;
+pub mod physics;
 mod trajectory;
 pub mod truth;
 
@@ -350,6 +351,20 @@ pub struct SimulateArgs {
     /// Session seed (default: the device seed + 1 for lattice, + 2 for random).
     #[arg(long)]
     pub session_seed: Option<u64>,
+    /// Which simulator: `model` (the calibration model's own equations) or
+    /// `independent` (other physics, [`physics`]: layered spools, guide
+    /// pulleys, elastic sagging strings, frame flex, an offset marker; its
+    /// own `--config` keys and `--effect` names).
+    #[arg(long, value_enum, default_value_t = PhysicsArg::Model)]
+    pub physics: PhysicsArg,
+}
+
+/// `--physics`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
+pub enum PhysicsArg {
+    #[default]
+    Model,
+    Independent,
 }
 
 /// `--kind`.
@@ -417,6 +432,9 @@ pub fn legacy_raw_errors(session: &Session, geometry: &crate::dataset::Geometry)
 
 /// Run `spidar simulate`.
 pub fn run_simulate(args: &SimulateArgs) -> Result<SimulateReport, SimError> {
+    if args.physics == PhysicsArg::Independent {
+        return physics::run_simulate(args);
+    }
     let mut config = match &args.config {
         Some(path) => SimConfig::load(path)?,
         None => SimConfig::default(),

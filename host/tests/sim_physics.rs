@@ -1,0 +1,290 @@
+//! The independent simulator (`sim::physics`): deterministic per seed,
+//! physically sane (counts follow the string, the exit point moves, the
+//! spool winds in layers), its effects selectable by name, bad input named,
+//! and what today's calibration pipeline reaches on it.
+
+use std::path::{Path, PathBuf};
+
+use spidar::calibrate::{calibrate, CalibrateConfig, NamedSession};
+use spidar::sim::physics::{
+    rows_to_session, simulate_rows, simulate_session, PhysicsConfig, PhysicsDevice, PhysicsRow,
+    EFFECT_NAMES,
+};
+use spidar::sim::{run_simulate, KindArg, PhysicsArg, SessionKind, SimulateArgs};
+
+fn quiet_config() -> PhysicsConfig {
+    let mut c = PhysicsConfig::default();
+    c.abnormal_motor.enabled = false;
+    c
+}
+
+fn tmp(name: &str) -> PathBuf {
+    let dir =
+        std::env::temp_dir().join(format!("spidar-physics-test-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    dir
+}
+
+fn args(out: PathBuf, seed: u64, kind: KindArg, name: &str) -> SimulateArgs {
+    SimulateArgs {
+        out,
+        seed,
+        config: None,
+        kind,
+        points: None,
+        effects: vec![],
+        name: Some(name.into()),
+        session_seed: None,
+        physics: PhysicsArg::Independent,
+    }
+}
+
+#[test]
+fn the_same_seed_gives_the_same_files_and_another_seed_another_device() {
+    let (a, b) = (tmp("det-a"), tmp("det-b"));
+    for dir in [&a, &b] {
+        run_simulate(&args(dir.clone(), 5, KindArg::Random, "test")).unwrap();
+    }
+    for file in ["geometry.toml", "test.csv", "truth.toml"] {
+        let x = std::fs::read(a.join(file)).unwrap();
+        let y = std::fs::read(b.join(file)).unwrap();
+        assert!(x == y, "{file} differs between two runs of seed 5");
+    }
+    let c = tmp("det-c");
+    run_simulate(&args(c.clone(), 6, KindArg::Random, "test")).unwrap();
+    assert_ne!(
+        std::fs::read(a.join("test.csv")).unwrap(),
+        std::fs::read(c.join("test.csv")).unwrap()
+    );
+    // The geometry is the design: the same for every device.
+    assert_eq!(
+        std::fs::read(a.join("geometry.toml")).unwrap(),
+        std::fs::read(c.join("geometry.toml")).unwrap()
+    );
+    for d in [a, b, c] {
+        let _ = std::fs::remove_dir_all(d);
+    }
+}
+
+#[test]
+fn counts_grow_with_the_string_paid_out_on_every_string() {
+    let device = PhysicsDevice::new(&quiet_config(), 3).unwrap();
+    let (session, truths) = simulate_session(&device, SessionKind::Lattice, 4).unwrap();
+    assert_eq!(session.samples.len(), 2197);
+    for i in 0..device.string_count() {
+        let mut by_length: Vec<(f64, i32)> = truths
+            .iter()
+            .zip(&session.samples)
+            .map(|(t, s)| (t.natural_mm[i], s.counts[i]))
+            .collect();
+        by_length.sort_by(|a, b| a.0.total_cmp(&b.0));
+        for w in by_length.windows(2) {
+            assert!(
+                w[1].1 >= w[0].1,
+                "string {i}: {} mm -> {} counts but {} mm -> {} counts",
+                w[0].0,
+                w[0].1,
+                w[1].0,
+                w[1].1
+            );
+        }
+        // One count is well under a millimetre of string.
+        let (lo, hi) = (by_length[0], by_length[by_length.len() - 1]);
+        let mm_per_count = (hi.0 - lo.0) / f64::from(hi.1 - lo.1);
+        assert!(
+            mm_per_count > 0.005 && mm_per_count < 0.03,
+            "{mm_per_count}"
+        );
+    }
+}
+
+#[test]
+fn the_exit_point_moves_and_the_spool_winds_in_layers() {
+    let device = PhysicsDevice::new(&quiet_config(), 3).unwrap();
+    let (_, truths) = simulate_session(&device, SessionKind::Lattice, 4).unwrap();
+    let mut strings_crossing_layers = 0;
+    for i in 0..device.string_count() {
+        // The exit point travels over the guide as the string turns.
+        let exits: Vec<[f64; 3]> = truths.iter().map(|t| t.exit_mm[i]).collect();
+        let spread = (0..3)
+            .map(|k| {
+                let (lo, hi) = exits.iter().fold((f64::MAX, f64::MIN), |(lo, hi), e| {
+                    (lo.min(e[k]), hi.max(e[k]))
+                });
+                hi - lo
+            })
+            .fold(0.0, f64::max);
+        let rho = device.strings[i].guide.radius_mm;
+        assert!(
+            spread > 0.3 * rho,
+            "string {i}: exit spread {spread} mm, rho {rho} mm"
+        );
+
+        // The radius is a staircase: one layer rise at each layer change,
+        // flat in between (away from the cross-over).
+        let spool = device.spool(i);
+        let p = spool.params();
+        let rise = p.layer_packing * p.string_diameter_mm;
+        let changes = spool.layer_changes_rad();
+        assert!(
+            changes.len() >= 3,
+            "string {i}: {} layers",
+            changes.len() + 1
+        );
+        for c in &changes {
+            // Half a turn into a turn (past the cross-over), a turn or two
+            // from the layer change.
+            let tau = std::f64::consts::TAU;
+            let before = (((c - 1.0) / tau).floor() - 1.0) * tau + 3.0;
+            let after = ((c + 1.0) / tau).ceil() * tau + 3.0;
+            let step = spool.radius_mm(after) - spool.radius_mm(before);
+            assert!(
+                (step - rise).abs() < 1e-9,
+                "string {i} at {c} rad: {step} mm"
+            );
+            assert_eq!(spool.radius_mm(before), spool.radius_mm(before - 1.0));
+        }
+        // The lattice pays the string out across layer changes.
+        let (lo, hi) = truths.iter().fold((f64::MAX, f64::MIN), |(lo, hi), t| {
+            (lo.min(t.spool_rad[i]), hi.max(t.spool_rad[i]))
+        });
+        if changes.iter().any(|c| (lo..hi).contains(c)) {
+            strings_crossing_layers += 1;
+        }
+    }
+    assert_eq!(strings_crossing_layers, device.string_count());
+}
+
+#[test]
+fn every_undeclared_effect_is_selectable_and_changes_the_counts() {
+    let clean_device = PhysicsDevice::new(&quiet_config(), 7).unwrap();
+    let kind = SessionKind::Random { points: 200 };
+    let (clean, _) = simulate_session(&clean_device, kind, 8).unwrap();
+    for name in EFFECT_NAMES {
+        let mut c = quiet_config();
+        c.effects = vec![name.to_string()];
+        // A slip an hour would rarely fall in a 50 s session.
+        if name == "slip" {
+            c.effects = vec!["slip:per_h=400,mm=5".into()];
+        }
+        let device = PhysicsDevice::new(&c, 7).unwrap();
+        let (s, _) = simulate_session(&device, kind, 8).unwrap();
+        let changed = s
+            .samples
+            .iter()
+            .zip(&clean.samples)
+            .any(|(a, b)| a.counts != b.counts || a.tracker != b.tracker);
+        assert!(changed, "{name} changed nothing");
+    }
+}
+
+#[test]
+fn bad_input_is_named() {
+    let mut c = PhysicsConfig::default();
+    c.as_built.guide_radius_mm = [12.0, 6.0];
+    let e = PhysicsDevice::new(&c, 1).unwrap_err().to_string();
+    assert!(e.contains("as_built.guide_radius_mm"), "{e}");
+
+    let c = PhysicsConfig {
+        effects: vec!["offset:3:mm=8".into()],
+        ..PhysicsConfig::default()
+    };
+    let e = PhysicsDevice::new(&c, 1).unwrap_err().to_string();
+    assert!(e.contains("unknown effect `offset`"), "{e}");
+
+    let mut c = PhysicsConfig::default();
+    c.abnormal_motor.string = 8;
+    let e = PhysicsDevice::new(&c, 1).unwrap_err().to_string();
+    assert!(e.contains("abnormal_motor.string"), "{e}");
+
+    let dir = tmp("bad-config");
+    std::fs::create_dir_all(&dir).unwrap();
+    let file = dir.join("physics.toml");
+    std::fs::write(&file, "[as_built]\nspool_width = 3\n").unwrap();
+    let e = PhysicsConfig::load(&file).unwrap_err().to_string();
+    assert!(
+        e.contains("physics.toml") && e.contains("spool_width"),
+        "{e}"
+    );
+    let _ = std::fs::remove_dir_all(dir);
+
+    // A device of another string count is refused by the dataset step, by name.
+    let rows = vec![PhysicsRow {
+        t_s: 0.0,
+        counts: vec![0; 3],
+        tracker: None,
+        tension_n: vec![1.0; 3],
+    }];
+    let e = rows_to_session(rows).unwrap_err().to_string();
+    assert!(e.contains("3 strings"), "{e}");
+}
+
+#[test]
+fn rows_are_the_session() {
+    let device = PhysicsDevice::new(&PhysicsConfig::default(), 2).unwrap();
+    let kind = SessionKind::Random { points: 50 };
+    let (rows, _) = simulate_rows(&device, kind, 3).unwrap();
+    let (session, _) = simulate_session(&device, kind, 3).unwrap();
+    assert_eq!(rows_to_session(rows).unwrap(), session);
+}
+
+/// Held-out error today's pipeline reaches on the independent simulator
+/// (device seed 1, lattice session seed 2, 500-point test session seed 3,
+/// `CalibrateConfig::quick`), measured when this test was written:
+/// identified 1.142 mm mean (3.85 max); final (nn) 0.569 mm mean, 1.10 mm
+/// p95, 4.04 mm max.
+/// THE ISSUE'S TARGET (held-out mean <= 0.45 mm, max <= 3 mm with declared
+/// effects only) IS NOT MET YET: the bounds below are today's figures plus
+/// a margin, to catch regressions; tighten them when the model improves.
+const IDENTIFIED_MEAN_MAX_MM: f64 = 1.3;
+const FINAL_MEAN_MAX_MM: f64 = 0.65;
+const FINAL_MAX_MAX_MM: f64 = 5.5;
+
+#[test]
+fn calibration_on_the_independent_simulator() {
+    let device = PhysicsDevice::new(&PhysicsConfig::default(), 1).unwrap();
+    let (train, _) = simulate_session(&device, SessionKind::Lattice, 2).unwrap();
+    let (test, _) = simulate_session(&device, SessionKind::Random { points: 500 }, 3).unwrap();
+    let mut cfg = CalibrateConfig::quick();
+    cfg.quiet = true;
+    let c = calibrate(
+        &device.nominal,
+        Path::new("geometry.toml"),
+        NamedSession {
+            path: Path::new("lattice.csv"),
+            session: &train,
+        },
+        NamedSession {
+            path: Path::new("test.csv"),
+            session: &test,
+        },
+        &cfg,
+    )
+    .unwrap();
+    let stages = &c.report.stages;
+    for s in stages {
+        println!(
+            "{:<24} test mean {:.3} p95 {:.3} max {:.3}",
+            s.name, s.test.mean_mm, s.test.p95_mm, s.test.max_mm
+        );
+    }
+    let identified = stages.iter().find(|s| s.name == "identified").unwrap();
+    let last = stages.last().unwrap();
+    // The raw error is large, the calibration removes nearly all of it...
+    assert!(stages[0].test.mean_mm > 50.0, "{:?}", stages[0].test);
+    assert!(
+        identified.test.mean_mm <= IDENTIFIED_MEAN_MAX_MM,
+        "identified {:?}",
+        identified.test
+    );
+    assert!(
+        last.test.mean_mm <= FINAL_MEAN_MAX_MM && last.test.max_mm <= FINAL_MAX_MAX_MM,
+        "{}: {:?}",
+        last.name,
+        last.test
+    );
+    // ...but not down to the tracker's noise (0.32 mm mean): the model is
+    // not exact on this physics. If this fails, the model got better:
+    // tighten the bounds above.
+    assert!(identified.test.mean_mm > 0.45, "{:?}", identified.test);
+}
