@@ -195,16 +195,24 @@ pub struct PhysicsRow {
     pub tension_n: Vec<f64>,
 }
 
-/// The one step from N-string captures to dataset rows. The dataset holds
-/// `spidar_core::STRINGS` strings today; a device of another count is
-/// refused by name until the dataset takes N strings.
+/// The one step from N-string captures to dataset rows (N = 3..8, on
+/// channels `0..N`; the other channels' counts and tensions are 0).
 pub fn rows_to_session(rows: Vec<PhysicsRow>) -> Result<Session, SimError> {
+    let strings = rows.first().map_or(spidar_core::STRINGS, |r| r.counts.len());
     let samples = rows
         .into_iter()
         .map(|r| {
             let n = r.counts.len();
-            let counts = r.counts.try_into().map_err(|_| wrong_count(n))?;
-            let tension = r.tension_n.try_into().map_err(|_| wrong_count(n))?;
+            if n != strings
+                || r.tension_n.len() != n
+                || !(crate::dataset::MIN_STRINGS..=spidar_core::STRINGS).contains(&n)
+            {
+                return Err(wrong_count(n));
+            }
+            let mut counts = [0i32; spidar_core::STRINGS];
+            counts[..n].copy_from_slice(&r.counts);
+            let mut tension = [0.0; spidar_core::STRINGS];
+            tension[..n].copy_from_slice(&r.tension_n);
             Ok(Sample {
                 t_s: r.t_s,
                 counts,
@@ -215,6 +223,7 @@ pub fn rows_to_session(rows: Vec<PhysicsRow>) -> Result<Session, SimError> {
         })
         .collect::<Result<Vec<_>, SimError>>()?;
     Ok(Session {
+        strings,
         samples,
         ignored_columns: Vec::new(),
     })
@@ -224,7 +233,8 @@ fn wrong_count(n: usize) -> SimError {
     SimError::Config {
         field: "nominal".into(),
         problem: format!(
-            "a device of {n} strings: session files hold {} strings",
+            "a row of {n} strings: a session holds {}..={} strings, the same in every row",
+            crate::dataset::MIN_STRINGS,
             spidar_core::STRINGS
         ),
     }
@@ -277,13 +287,22 @@ impl PhysicsDevice {
         let nominal = config.nominal.geometry();
         let ab = &config.as_built;
         let effects = parse_effects(&config.effects)?;
-        let strings = nominal.anchors_mm.len();
+        let strings = nominal.strings();
+        if nominal.layout.planar {
+            return Err(SimError::Config {
+                field: "nominal.planar".into(),
+                problem: "the independent simulator models 3-D devices only (guide pulleys, \
+                          sag and a turning hand); use --physics model for a planar device"
+                    .into(),
+            });
+        }
 
         let mut rng = stream(seed, 101);
         let anchor_noise = normal("as_built.anchor_sigma_mm", ab.anchor_sigma_mm)?;
         let exits: Vec<Vec3<f64>> = nominal
             .anchors_mm
             .iter()
+            .take(strings)
             .map(|a| a.map(|x| x + anchor_noise.sample(&mut rng)))
             .collect();
 
@@ -522,7 +541,7 @@ impl PhysicsDevice {
     /// Encoder counts of a spool angle of `string`.
     pub fn counts_of(&self, string: usize, spool_rad: f64) -> Result<i32, SimError> {
         let theta = self.strings[string].home_spool_rad - spool_rad;
-        let counts = (theta * f64::from(self.nominal.counts_per_rev) / TAU).round();
+        let counts = (theta * f64::from(self.nominal.counts_per_rev[string]) / TAU).round();
         if counts.is_nan() || counts.abs() > f64::from(i32::MAX) {
             return Err(string_error(string, "its counts overflow 32 bits"));
         }
