@@ -397,6 +397,14 @@ pub enum BlobRejection {
     Body {
         field: Name,
     },
+    TooFewStrings {
+        strings: u8,
+        dof: u8,
+    },
+    InactiveString {
+        field: Name,
+        string: u8,
+    },
 }
 
 impl From<BlobError> for BlobRejection {
@@ -421,6 +429,11 @@ impl From<BlobError> for BlobRejection {
                 expected,
             },
             BlobError::Body { field } => Self::Body { field: name(field) },
+            BlobError::TooFewStrings { strings, dof } => Self::TooFewStrings { strings, dof },
+            BlobError::InactiveString { field, string } => Self::InactiveString {
+                field: name(field),
+                string,
+            },
         }
     }
 }
@@ -461,6 +474,14 @@ impl fmt::Display for BlobRejection {
             Self::Body { field } => {
                 write!(f, "model blob body does not decode at field `{field}`")
             }
+            Self::TooFewStrings { strings, dof } => write!(
+                f,
+                "model blob field `frame.layout` has {strings} active strings, a position with {dof} degrees of freedom needs at least {dof}"
+            ),
+            Self::InactiveString { field, string } => write!(
+                f,
+                "model blob field `{field}` refers to string {string}, which `frame.layout` marks inactive"
+            ),
         }
     }
 }
