@@ -253,7 +253,7 @@ impl Controller {
             inputs.counts[i] = self.encoders[i].update(input.raw_counts[i]);
             inputs.direction[i] = self.directions[i].update(inputs.counts[i]);
         }
-        let lengths_q16 = string_lengths(&head.laws, &head.effects, &inputs);
+        let lengths_q16 = string_lengths(frame.layout, &head.laws, &head.effects, &inputs);
         let lengths = lengths_q16.map(|l| l as f32 / 65536.0);
 
         let fk = forward_kinematics(
