@@ -217,6 +217,12 @@ impl Controller {
         &self.config
     }
 
+    /// The end-effector position the loop holds (device frame, mm): the last
+    /// forward kinematics solution, or home.
+    pub fn position(&self) -> [f32; 3] {
+        self.position
+    }
+
     /// New tension bounds for the distribution (the host's `SetLimits`), so
     /// the distribution and the safety clamp agree and the rendered force
     /// stays exact. The safety monitor's own limits are set with it by the

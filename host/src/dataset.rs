@@ -384,11 +384,14 @@ impl Geometry {
     /// The device's nominal string model (`SetStringModel`): what a device
     /// without a calibration blob runs on.
     pub fn string_model(&self) -> spidar_protocol::StringModel {
+        let layout = self.nominal_frame().layout;
         spidar_protocol::StringModel {
             counts_per_rev: [self.counts_per_rev; STRINGS],
             pulley_radius_mm: self.pulley_radius_mm.map(|r| r as f32),
             anchors_mm: self.anchors_mm.map(|a| a.map(|v| v as f32)),
             home_mm: self.home_mm.map(|v| v as f32),
+            active_strings: layout.active,
+            planar: layout.planar,
         }
     }
 
