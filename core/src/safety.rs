@@ -290,16 +290,19 @@ impl SafetyMonitor {
             self.latch(Faults::FK_FAULT);
         }
         let mut slack = 0u8;
+        let mut non_finite = false;
         for i in 0..STRINGS {
-            if self.active >> i & 1 == 0 {
-                continue;
-            }
             let (m, g) = (measured_lengths_mm[i], geometric_lengths_mm[i]);
             if !(m.is_finite() && g.is_finite()) {
-                self.latch(Faults::NON_FINITE);
+                non_finite |= self.active >> i & 1 != 0;
             } else if fk_ok && m - g > self.config.slack_threshold_mm {
                 slack |= 1 << i;
             }
+        }
+        // Inactive channels' lengths are not the strings': left out.
+        slack &= self.active;
+        if non_finite {
+            self.latch(Faults::NON_FINITE);
         }
         if slack != 0 {
             self.slack_mask |= slack;
@@ -350,11 +353,12 @@ impl SafetyMonitor {
     /// (see [`SafetyMonitor::set_active`]) get 0 whatever they were given.
     pub fn apply(&mut self, tensions: [f32; STRINGS]) -> [f32; STRINGS] {
         let active = self.active;
-        if !tensions
-            .iter()
-            .enumerate()
-            .all(|(i, t)| t.is_finite() || active >> i & 1 == 0)
-        {
+        let finite = if active == u8::MAX {
+            tensions.iter().all(|t| t.is_finite())
+        } else {
+            (0..STRINGS).all(|i| active >> i & 1 == 0 || tensions[i].is_finite())
+        };
+        if !finite {
             self.latch(Faults::NON_FINITE);
         }
         let mut out = if !self.faults.is_empty() || !self.armed {

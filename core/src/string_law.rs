@@ -833,7 +833,10 @@ impl CompiledEffect {
     }
 
     /// Contribution of this term (Q31.32 mm), integer only, saturating.
-    #[inline]
+    /// Always inlined: `string_lengths` has a copy of its loop for all 8
+    /// channels and one for a layout, and the call would cost each term ~70
+    /// instructions.
+    #[inline(always)]
     pub fn contribution_q32(&self, ctx: &FixedContext) -> i64 {
         match *self {
             CompiledEffect::Offset { mm_q16, .. } => q16_to_q32(mm_q16),
@@ -917,10 +920,26 @@ pub fn string_lengths(
     effects: &[CompiledEffect],
     inputs: &StringInputs,
 ) -> [i64; STRINGS] {
+    // All 8 channels: the masks compile out (the 8-string cost as it was).
+    if layout.active == u8::MAX {
+        lengths_of::<true>(u8::MAX, laws, effects, inputs)
+    } else {
+        lengths_of::<false>(layout.active, laws, effects, inputs)
+    }
+}
+
+/// [`string_lengths`] on the channels of `active` (`ALL`: every channel).
+#[inline(always)]
+fn lengths_of<const ALL: bool>(
+    active: u8,
+    laws: &[CompiledStringLaw; STRINGS],
+    effects: &[CompiledEffect],
+    inputs: &StringInputs,
+) -> [i64; STRINGS] {
     let mut payout = [0i64; STRINGS];
     let mut acc = [0i64; STRINGS];
     for i in 0..STRINGS {
-        if !layout.is_active(i) {
+        if !ALL && active >> i & 1 == 0 {
             continue;
         }
         payout[i] = laws[i].payout_q32(inputs.counts[i]);
@@ -928,7 +947,7 @@ pub fn string_lengths(
     }
     for e in effects {
         let s = usize::from(e.string());
-        if !layout.is_active(s) {
+        if s >= STRINGS || (!ALL && active >> s & 1 == 0) {
             continue;
         }
         let ctx = FixedContext {

@@ -343,13 +343,31 @@ pub fn distribute_warm<F: Float>(
     config: &TensionConfig<F>,
     warm_start: Vec3<F>,
 ) -> TensionSolution<F> {
+    // All 8 strings in space: the layout's tests compile out.
+    if layout == StringLayout::ALL {
+        solve::<F, true>(anchors, layout, position, force, limits, config, warm_start)
+    } else {
+        solve::<F, false>(anchors, layout, position, force, limits, config, warm_start)
+    }
+}
+
+/// [`distribute_warm`]; `ALL`: `layout` is [`StringLayout::ALL`].
+#[inline(always)]
+fn solve<F: Float, const ALL: bool>(
+    anchors: &[Vec3<F>; STRINGS],
+    layout: StringLayout,
+    position: Vec3<F>,
+    force: Vec3<F>,
+    limits: TensionLimits<F>,
+    config: &TensionConfig<F>,
+    warm_start: Vec3<F>,
+) -> TensionSolution<F> {
     if !limits.is_valid() {
         return failure(F::zero(), TensionStatus::InvalidLimits);
     }
-    let all = layout == StringLayout::ALL;
     let fail = |status| {
         let mut f = failure(limits.t_min, status);
-        if !all {
+        if !ALL {
             mask_inactive(&mut f.tensions, layout);
         }
         f
@@ -366,15 +384,16 @@ pub fn distribute_warm<F: Float>(
         && config.scale_back_off.is_finite();
     let input_finite = all_finite(&position)
         && all_finite(&force)
-        && anchors
-            .iter()
-            .enumerate()
-            .all(|(i, a)| (!all && !layout.is_active(i)) || all_finite(a));
+        && if ALL {
+            anchors.iter().all(|a| all_finite(a))
+        } else {
+            layout.indices().all(|i| all_finite(&anchors[i]))
+        };
     if !config_finite || !input_finite {
         return fail(TensionStatus::NonFiniteInput);
     }
 
-    let (u, alpha_max, force) = if all {
+    let (u, alpha_max, force) = if ALL {
         let u = match string_directions(anchors, position, config.min_string_length_mm) {
             Ok(u) => u,
             Err(status) => return fail(status),
@@ -485,7 +504,7 @@ pub fn distribute_warm<F: Float>(
         residual2 = dot(residual, residual);
     }
     let iterations = iterations + refinements;
-    if !all {
+    if !ALL {
         // Inactive channels took the reference tension along (free, with a
         // zero direction: no force); they carry no string.
         mask_inactive(&mut tensions, layout);
