@@ -536,6 +536,9 @@ fn mask_inactive<F: Float>(tensions: &mut [F; STRINGS], layout: StringLayout) {
     }
 }
 
+/// String directions, the force to render and its largest feasible fraction.
+type Geometry<F> = ([Vec3<F>; STRINGS], F, Vec3<F>);
+
 /// String directions, force and largest feasible fraction for a layout other
 /// than all 8 strings in space. Inactive channels get a zero direction: in
 /// the zonotope they are zero generators (no facet, no reach), in the dual
@@ -550,7 +553,7 @@ fn layout_geometry<F: Float>(
     force: Vec3<F>,
     limits: TensionLimits<F>,
     config: &TensionConfig<F>,
-) -> Result<([Vec3<F>; STRINGS], F, Vec3<F>), TensionStatus> {
+) -> Result<Geometry<F>, TensionStatus> {
     let (count, dof) = (layout.count(), layout.dof());
     if count < dof + 1 {
         return Err(TensionStatus::TooFewStrings {
@@ -1542,7 +1545,7 @@ mod tests {
             rect[i] = [x, y, 25.0];
         }
         let cfg = TensionConfig::default();
-        let mut state = 0x5eed_0f_91a4_a7u64;
+        let mut state = 0x5eed_0f91_a4a7_u64;
         for (anchors, n) in [(rect, 4usize), (rect, 3)] {
             let layout = StringLayout::first(n, true);
             let (mut rendered, mut not_converged) = (0, 0);
