@@ -36,6 +36,10 @@ fn main() {
     let svr_blob = models::svr_blob();
     std::fs::write(out_dir.join("nn.blob"), &nn_blob).expect("write nn.blob");
     std::fs::write(out_dir.join("svr.blob"), &svr_blob).expect("write svr.blob");
+    let four_blob = models::four_line_blob();
+    let planar_blob = models::planar_blob();
+    std::fs::write(out_dir.join("four.blob"), &four_blob).expect("write four.blob");
+    std::fs::write(out_dir.join("planar.blob"), &planar_blob).expect("write planar.blob");
     let mut odd = vec![0u8; svr_blob.len() + 1];
     odd[1..].copy_from_slice(&svr_blob);
     std::fs::write(out_dir.join("svr_odd.blob"), &odd).expect("write svr_odd.blob");
@@ -54,6 +58,8 @@ fn main() {
         nn_blob: &nn_blob,
         svr_blob: &aligned[a0..a0 + svr_blob.len()],
         svr_blob_odd: &spare[a1..a1 + svr_blob.len()],
+        four_blob: &four_blob,
+        planar_blob: &planar_blob,
     };
 
     let mut src = String::new();

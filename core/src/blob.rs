@@ -75,15 +75,55 @@ pub struct CompiledCalibration<'a> {
     pub correction: Correction<'a>,
 }
 
+/// Whether the frame's values are finite (anchors of active strings only:
+/// the others are never read) and its scale positive.
 fn frame_is_finite(frame: &Frame<f32>) -> bool {
-    let mut values = frame
+    let layout = frame.layout;
+    let anchors_ok = frame
         .anchors
         .iter()
-        .flatten()
-        .chain(frame.home.iter())
+        .enumerate()
+        .all(|(i, a)| !layout.is_active(i) || a.iter().all(|v| v.is_finite()));
+    let mut values = frame
+        .home
+        .iter()
         .chain(frame.room_rotation.iter().flatten())
         .chain(frame.room_translation.iter());
-    values.all(|v| v.is_finite()) && frame.room_scale.is_finite() && frame.room_scale > 0.0
+    anchors_ok
+        && values.all(|v| v.is_finite())
+        && frame.room_scale.is_finite()
+        && frame.room_scale > 0.0
+}
+
+/// Checks a frame's string layout against the strings the header announces
+/// and the end-effector's degrees of freedom, and the effect terms against
+/// the layout (none on an inactive channel).
+fn check_layout(header: &ModelHeader, head: &BlobHead) -> Result<(), BlobError> {
+    let layout = head.frame.layout;
+    let count = layout.count();
+    if count < layout.dof() {
+        return Err(BlobError::TooFewStrings {
+            strings: count as u8,
+            dof: layout.dof() as u8,
+        });
+    }
+    if header.strings as usize != count {
+        return Err(BlobError::Dimension {
+            field: "strings",
+            found: header.strings as u32,
+            expected: count as u32,
+        });
+    }
+    for effect in head.effects.iter() {
+        let s = effect.string();
+        if !layout.is_active(usize::from(s)) {
+            return Err(BlobError::InactiveString {
+                field: "effects",
+                string: s,
+            });
+        }
+    }
+    Ok(())
 }
 
 impl<'a> CompiledCalibration<'a> {
@@ -91,13 +131,6 @@ impl<'a> CompiledCalibration<'a> {
     /// every parameter). Never panics, whatever the bytes.
     pub fn from_blob(bytes: &'a [u8]) -> Result<CompiledCalibration<'a>, BlobError> {
         let (header, body) = split_blob(bytes)?;
-        if header.strings as usize != STRINGS {
-            return Err(BlobError::Dimension {
-                field: "strings",
-                found: header.strings as u32,
-                expected: STRINGS as u32,
-            });
-        }
         if header.q_length != LENGTH_FRAC {
             return Err(BlobError::Dimension {
                 field: "q_length",
@@ -117,14 +150,19 @@ impl<'a> CompiledCalibration<'a> {
         if !frame_is_finite(&head.frame) {
             return Err(BlobError::Body { field: "frame" });
         }
-        for (i, law) in head.laws.iter().enumerate() {
-            law.validate(i)
-                .map_err(|_| BlobError::Body { field: "laws" })?;
-        }
         for effect in head.effects.iter() {
             effect
                 .validate()
                 .map_err(|_| BlobError::Body { field: "effects" })?;
+        }
+        check_layout(&header, &head)?;
+        // Laws of inactive channels are never evaluated (the compiler writes
+        // zeros there).
+        for (i, law) in head.laws.iter().enumerate() {
+            if head.frame.layout.is_active(i) {
+                law.validate(i)
+                    .map_err(|_| BlobError::Body { field: "laws" })?;
+            }
         }
         let correction = Correction::parse(
             header.kind,
@@ -164,6 +202,13 @@ mod host {
             max: usize,
         },
         Correction(crate::correction::CompileError),
+        /// The frame's string layout has fewer active strings than the
+        /// end-effector's degrees of freedom (`frame.layout`), or an effect
+        /// term is on a channel it marks inactive (`effects`, `string`).
+        Layout {
+            field: &'static str,
+            string: Option<u8>,
+        },
         /// The body could not be encoded (should not happen).
         Encode,
     }
@@ -179,6 +224,20 @@ mod host {
                     write!(f, "{found} effect terms, a blob carries at most {max}")
                 }
                 CompileError::Correction(e) => write!(f, "position correction: {e:?}"),
+                CompileError::Layout {
+                    field,
+                    string: Some(s),
+                } => write!(
+                    f,
+                    "`{field}` refers to string {s}, which `frame.layout` marks inactive"
+                ),
+                CompileError::Layout {
+                    field,
+                    string: None,
+                } => write!(
+                    f,
+                    "`{field}` has fewer active strings than the end-effector's degrees of freedom"
+                ),
                 CompileError::Encode => write!(f, "blob body could not be encoded"),
             }
         }
@@ -202,9 +261,12 @@ mod host {
             room_translation: [0.0; 3],
             room_scale: to_f32(frame.room_scale, "room_scale")?,
         };
-        for (o, a) in out.anchors.iter_mut().zip(&frame.anchors) {
-            for c in 0..3 {
-                o[c] = to_f32(a[c], "anchors")?;
+        // Inactive channels' anchors are never read: written as zeros.
+        for (i, (o, a)) in out.anchors.iter_mut().zip(&frame.anchors).enumerate() {
+            if frame.layout.is_active(i) {
+                for c in 0..3 {
+                    o[c] = to_f32(a[c], "anchors")?;
+                }
             }
         }
         for c in 0..3 {
@@ -229,10 +291,30 @@ mod host {
         created_unix_s: u32,
     ) -> Result<Vec<u8>, CompileError> {
         let frame = frame_f32(&calibration.frame)?;
+        let layout = calibration.frame.layout;
+        if layout.count() < layout.dof() {
+            return Err(CompileError::Layout {
+                field: "frame.layout",
+                string: None,
+            });
+        }
+        if let Some(term) = calibration
+            .effects
+            .iter()
+            .find(|t| usize::from(t.string) < STRINGS && !layout.is_active(usize::from(t.string)))
+        {
+            return Err(CompileError::Layout {
+                field: "effects",
+                string: Some(term.string),
+            });
+        }
+        // Inactive channels get a zero law: never evaluated.
         let mut laws = [CompiledStringLaw::default(); STRINGS];
         for (i, law) in calibration.strings.iter().enumerate() {
-            laws[i] =
-                compile_string_law(&calibration.frame, i, law).map_err(CompileError::StringLaw)?;
+            if layout.is_active(i) {
+                laws[i] = compile_string_law(&calibration.frame, i, law)
+                    .map_err(CompileError::StringLaw)?;
+            }
         }
         if calibration.effects.len() > MAX_EFFECTS {
             return Err(CompileError::TooManyEffects {
@@ -263,7 +345,7 @@ mod host {
         let header = ModelHeader {
             format_version: FORMAT_VERSION,
             kind: correction.kind,
-            strings: STRINGS as u8,
+            strings: layout.count() as u8,
             effects: head.effects.len() as u8,
             q_length: LENGTH_FRAC,
             q_position: correction.q_position,
@@ -449,6 +531,124 @@ mod tests {
         }
         // The effect counts above give every padding length.
         assert!(paddings.iter().filter(|&&p| p).count() >= 2, "{paddings:?}");
+    }
+
+    /// Rewrites a blob's header (CRCs made valid again).
+    fn with_header(blob: &[u8], edit: impl Fn(&mut ModelHeader)) -> alloc::vec::Vec<u8> {
+        let mut h = ModelHeader::parse(blob).unwrap();
+        edit(&mut h);
+        let body = &blob[HEADER_LEN..];
+        let mut out = alloc::vec![0u8; blob.len()];
+        spidar_protocol::blob::write_blob(&h, body, &mut out).unwrap();
+        out
+    }
+
+    /// A 4-string model on channels 0, 2, 5, 7 (inactive anchors NaN: never
+    /// read, written as zeros) with an effect on string 5.
+    fn four_strings() -> Calibration {
+        let mut cal = calibration();
+        cal.frame.layout = crate::model::StringLayout {
+            active: 0b1010_0101,
+            planar: false,
+        };
+        for i in [1, 3, 4, 6] {
+            cal.frame.anchors[i] = [f64::NAN; 3];
+            cal.strings[i].counts_per_rev = 0;
+        }
+        cal.effects[0].string = 5;
+        cal
+    }
+
+    #[test]
+    fn header_strings_count_the_layout() {
+        let blob = compile(&four_strings(), 7, 0).unwrap();
+        let c = CompiledCalibration::from_blob(&blob).unwrap();
+        assert_eq!(c.header.strings, 4);
+        assert_eq!(c.head.frame.layout.active, 0b1010_0101);
+        assert_eq!(c.head.frame.anchors[1], [0.0; 3]);
+        assert_eq!(c.head.laws[3], CompiledStringLaw::default());
+        // A header that says otherwise is refused, naming the field.
+        let bad = with_header(&blob, |h| h.strings = 8);
+        assert_eq!(
+            CompiledCalibration::from_blob(&bad),
+            Err(BlobError::Dimension {
+                field: "strings",
+                found: 8,
+                expected: 4
+            })
+        );
+        // 8 strings still write 8.
+        let blob = compile(&calibration(), 7, 0).unwrap();
+        assert_eq!(ModelHeader::parse(&blob).unwrap().strings, 8);
+    }
+
+    #[test]
+    fn layouts_below_the_degrees_of_freedom_and_effects_on_inactive_strings_are_refused() {
+        // Effect on an inactive channel: refused by the compiler...
+        let mut cal = four_strings();
+        cal.effects[1].string = 4;
+        assert_eq!(
+            compile(&cal, 0, 0),
+            Err(CompileError::Layout {
+                field: "effects",
+                string: Some(4)
+            })
+        );
+        // ... and by the parser (a blob written by something else).
+        let blob = compile(&four_strings(), 7, 0).unwrap();
+        let (_, body) = split_blob(&blob).unwrap();
+        let (mut head, rest) = split_body(body).unwrap();
+        head.effects[1] = CompiledEffect::Offset {
+            string: 6,
+            mm_q16: 1,
+        };
+        let mut new_body = postcard::to_allocvec(&head).unwrap();
+        new_body.resize(
+            new_body.len() + correction_padding(HEADER_LEN + new_body.len()),
+            0,
+        );
+        new_body.extend_from_slice(rest);
+        let h = ModelHeader::parse(&blob).unwrap();
+        let mut out = alloc::vec![0u8; HEADER_LEN + new_body.len()];
+        spidar_protocol::blob::write_blob(&h, &new_body, &mut out).unwrap();
+        assert_eq!(
+            CompiledCalibration::from_blob(&out),
+            Err(BlobError::InactiveString {
+                field: "effects",
+                string: 6
+            })
+        );
+        // Two strings cannot fix a point in space; in a plane they can.
+        let mut cal = calibration();
+        cal.effects.clear();
+        cal.frame.layout = crate::model::StringLayout::first(2, false);
+        assert_eq!(
+            compile(&cal, 0, 0),
+            Err(CompileError::Layout {
+                field: "frame.layout",
+                string: None
+            })
+        );
+        cal.frame.layout = crate::model::StringLayout::first(2, true);
+        let blob = compile(&cal, 0, 0).unwrap();
+        assert!(CompiledCalibration::from_blob(&blob).is_ok());
+        // The same blob with the planar flag cleared (a blob from elsewhere).
+        let (_, body) = split_blob(&blob).unwrap();
+        let (mut head, rest) = split_body(body).unwrap();
+        head.frame.layout.planar = false;
+        let mut new_body = postcard::to_allocvec(&head).unwrap();
+        new_body.resize(
+            new_body.len() + correction_padding(HEADER_LEN + new_body.len()),
+            0,
+        );
+        new_body.extend_from_slice(rest);
+        let h = ModelHeader::parse(&blob).unwrap();
+        let mut out = alloc::vec![0u8; HEADER_LEN + new_body.len()];
+        spidar_protocol::blob::write_blob(&h, &new_body, &mut out).unwrap();
+        assert_eq!(
+            CompiledCalibration::from_blob(&out),
+            Err(BlobError::TooFewStrings { strings: 2, dof: 3 })
+        );
     }
 
     #[test]

@@ -217,6 +217,12 @@ impl Controller {
         &self.config
     }
 
+    /// The end-effector position the loop holds (device frame, mm): the last
+    /// forward kinematics solution, or home.
+    pub fn position(&self) -> [f32; 3] {
+        self.position
+    }
+
     /// New tension bounds for the distribution (the host's `SetLimits`), so
     /// the distribution and the safety clamp agree and the rendered force
     /// stays exact. The safety monitor's own limits are set with it by the
@@ -253,7 +259,7 @@ impl Controller {
             inputs.counts[i] = self.encoders[i].update(input.raw_counts[i]);
             inputs.direction[i] = self.directions[i].update(inputs.counts[i]);
         }
-        let lengths_q16 = string_lengths(&head.laws, &head.effects, &inputs);
+        let lengths_q16 = string_lengths(frame.layout, &head.laws, &head.effects, &inputs);
         let lengths = lengths_q16.map(|l| l as f32 / 65536.0);
 
         let fk = forward_kinematics(
@@ -277,6 +283,7 @@ impl Controller {
 
         let geometric = inverse_kinematics(&frame.anchors, self.position);
         self.safety.set_estop(input.estop);
+        self.safety.set_active(frame.layout.active);
         let faults = self.safety.check(input.now_ms, &lengths, &geometric, fk_ok);
 
         let requested = match self.target {
@@ -299,6 +306,7 @@ impl Controller {
         let force = self.safety.limit_force(requested);
         let solution = distribute_warm(
             &frame.anchors,
+            frame.layout,
             self.position,
             force,
             self.config.tension_limits,
@@ -441,6 +449,85 @@ mod tests {
         // Room frame: eq. 6 translation.
         let room = position_mm(o.room_q16);
         assert!((room[2] - (400.0 + 1500.0)).abs() < 0.05);
+    }
+
+    /// A 4-line cable robot (three low anchors, one high) on channels 0, 2,
+    /// 5, 7; the other channels keep the cube's anchors, which must not be
+    /// read, and their encoders turn as if strings were there.
+    #[test]
+    fn four_strings_track_and_render_with_inactive_channels_at_zero() {
+        let mut cal = calibration();
+        cal.frame.layout = crate::model::StringLayout {
+            active: 0b1010_0101,
+            planar: false,
+        };
+        cal.frame.anchors[0] = [0.0, -1620.0, -150.0];
+        cal.frame.anchors[2] = [1272.8, 1272.8, -150.0];
+        cal.frame.anchors[5] = [-1403.0, 810.0, -150.0];
+        cal.frame.anchors[7] = [0.0, 0.0, 2350.0];
+        cal.frame.home = [0.0, 0.0, 300.0];
+        let blob = compile(&cal, 1, 0).unwrap();
+        let compiled = CompiledCalibration::from_blob(&blob).unwrap();
+        let raw_at = |p: [f64; 3]| {
+            let mut c = cal.clone();
+            c.frame.layout = crate::model::StringLayout::ALL;
+            raw_counts_at(&c, p)
+        };
+        let mut ctl = Controller::new(
+            ControlConfig::default(),
+            &compiled,
+            raw_at(cal.frame.home),
+            0,
+        )
+        .unwrap();
+        ctl.safety().heartbeat(0);
+        ctl.safety().arm().unwrap();
+        ctl.set_target(Target::Force([0.0, 0.0, -2.0]));
+        let mut last = None;
+        for k in 1..=200 {
+            let t = k as f64 / 200.0;
+            let p = [200.0 * t, -150.0 * t, 300.0 + 300.0 * t];
+            ctl.safety().heartbeat(k);
+            let o = ctl.step(
+                &compiled,
+                &LoopInput {
+                    raw_counts: raw_at(p),
+                    now_ms: k,
+                    estop: false,
+                },
+            );
+            let err = (0..3)
+                .map(|c| (o.position_mm[c] as f64 - p[c]).powi(2))
+                .sum::<f64>()
+                .sqrt();
+            assert!(err < 0.1, "step {k}: error {err} mm");
+            for i in [1, 3, 4, 6] {
+                assert_eq!(o.string_lengths_mm[i], 0.0);
+                assert_eq!(o.tensions_n[i], 0.0);
+            }
+            last = Some(o);
+        }
+        let o = last.unwrap();
+        assert!(o.armed && o.faults.is_empty(), "{o:?}");
+        assert_eq!(o.tension_status, TensionStatus::Exact);
+        let f = crate::tension::resultant_force(
+            &compiled.head.frame.anchors,
+            o.position_mm,
+            &o.tensions_n,
+        );
+        assert!((f[2] + 2.0).abs() < 1e-3 && f[0].abs() < 1e-3 && f[1].abs() < 1e-3);
+        // Disarmed: pre-tension on the 4 strings, 0 on the other channels.
+        ctl.safety().disarm();
+        let o = ctl.step(
+            &compiled,
+            &LoopInput {
+                raw_counts: raw_at([200.0, -150.0, 600.0]),
+                now_ms: 201,
+                estop: false,
+            },
+        );
+        let pre = ControlConfig::default().safety.pretension_n;
+        assert_eq!(o.tensions_n, [pre, 0.0, pre, 0.0, 0.0, pre, 0.0, pre]);
     }
 
     #[test]

@@ -74,7 +74,7 @@ use crate::model::{Frame, StringLaw, StringLayout};
 use crate::model_store::{CommitError, ModelFlash, ModelStore, StoreError, StoredModel};
 use crate::safety::{Faults as SafetyFaults, SafetyConfig, SafetyConfigError, SafetyMonitor};
 use crate::string_law::{compile_string_law, CompileError, CompiledStringLaw};
-use crate::tension::TensionStatus;
+use crate::tension::{force_closure, TensionStatus};
 use crate::STRINGS;
 
 /// A model RAM buffer (`model_ram`, `spare_ram` of [`Device::new`]) of `N`
@@ -187,24 +187,35 @@ fn parse_model(bytes: &[u8]) -> Result<ParsedModel, BlobError> {
 
 const IDENTITY: [[f32; 3]; 3] = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
 
-/// The nominal calibration of a [`StringModel`]: its anchors and home, the
-/// device frame as room frame, a linear string law `payout = r theta` per
-/// string (`winding_mm = [r, 0, 0, 0]`), no effects, no correction. Built
-/// directly in its compiled form (no blob, no allocation). `Err` names the
-/// field of the request that is out of range.
+/// The nominal calibration of a [`StringModel`]: its string layout, anchors
+/// and home, the device frame as room frame, a linear string law
+/// `payout = r theta` per string (`winding_mm = [r, 0, 0, 0]`), no effects,
+/// no correction. Channels without a string get a zero anchor and law
+/// (never read). Built directly in its compiled form (no blob, no
+/// allocation). `Err` names the field of the request that is out of range.
 pub fn nominal_calibration(
     model: &StringModel,
 ) -> Result<CompiledCalibration<'static>, &'static str> {
-    let finite = |v: &[f32]| v.iter().all(|x| x.is_finite());
-    if !finite(model.anchors_mm.as_flattened()) {
-        return Err("anchors_mm");
+    let layout = StringLayout {
+        active: model.active_strings,
+        planar: model.planar,
+    };
+    if layout.count() < layout.dof() {
+        return Err("active_strings");
     }
-    if !finite(&model.home_mm) {
+    let mut anchors = [[0.0f32; 3]; STRINGS];
+    for i in layout.indices() {
+        if !model.anchors_mm[i].iter().all(|x| x.is_finite()) {
+            return Err("anchors_mm");
+        }
+        anchors[i] = model.anchors_mm[i];
+    }
+    if !model.home_mm.iter().all(|x| x.is_finite()) {
         return Err("home_mm");
     }
     let frame64 = Frame::<f64> {
-        layout: StringLayout::ALL,
-        anchors: model.anchors_mm.map(|a| a.map(f64::from)),
+        layout,
+        anchors: anchors.map(|a| a.map(f64::from)),
         home: model.home_mm.map(f64::from),
         room_rotation: IDENTITY.map(|r| r.map(f64::from)),
         room_translation: [0.0; 3],
@@ -212,6 +223,9 @@ pub fn nominal_calibration(
     };
     let mut laws = [CompiledStringLaw::default(); STRINGS];
     for (i, law) in laws.iter_mut().enumerate() {
+        if !layout.is_active(i) {
+            continue;
+        }
         let r = model.pulley_radius_mm[i];
         if !(r.is_finite() && r > 0.0) {
             return Err("pulley_radius_mm");
@@ -235,7 +249,7 @@ pub fn nominal_calibration(
     let header = ModelHeader {
         format_version: FORMAT_VERSION,
         kind: CorrectionKind::None,
-        strings: STRINGS as u8,
+        strings: layout.count() as u8,
         effects: 0,
         q_length: LENGTH_FRAC,
         q_position: POSITION_FRAC,
@@ -251,8 +265,8 @@ pub fn nominal_calibration(
         header,
         head: BlobHead {
             frame: Frame {
-                layout: StringLayout::ALL,
-                anchors: model.anchors_mm,
+                layout,
+                anchors,
                 home: model.home_mm,
                 room_rotation: IDENTITY,
                 room_translation: [0.0; 3],
@@ -860,7 +874,10 @@ impl<'m, F: ModelFlash> Device<'m, F> {
         Ok(())
     }
 
-    /// `Arm`: clear the faults whose cause has gone, then arm.
+    /// `Arm`: clear the faults whose cause has gone, then arm, if the
+    /// strings can pull the end-effector in every direction from where it
+    /// is ([`crate::tension::force_closure`]); else `NotForceClosed`, and the
+    /// loop goes on tracking unarmed.
     fn arm(&mut self) -> Result<Response, DeviceError> {
         self.loop_overrun = false;
         let Some(c) = self.controller.as_mut() else {
@@ -868,11 +885,34 @@ impl<'m, F: ModelFlash> Device<'m, F> {
         };
         c.safety().clear();
         self.apply_pending_safety();
+        let frame = match (&self.active, &self.nominal) {
+            (Some(a), _) => a.calibration.head.frame,
+            (None, Some(n)) => n.head.frame,
+            (None, None) => return Err(DeviceError::BadState(BadState::NoGeometry)),
+        };
         let Some(c) = self.controller.as_mut() else {
             return Err(DeviceError::BadState(BadState::NoGeometry));
         };
         if self.estop {
             return Err(DeviceError::BadState(BadState::Faulted));
+        }
+        let config = c.config();
+        let closure = force_closure(
+            &frame.anchors,
+            frame.layout,
+            c.position(),
+            config.tension_limits,
+            &config.tension,
+        );
+        if let Err(
+            status @ (TensionStatus::TooFewStrings { .. } | TensionStatus::OutsideAnchorHull),
+        ) = closure
+        {
+            return Err(DeviceError::NotForceClosed {
+                strings: frame.layout.count() as u8,
+                dof: frame.layout.dof() as u8,
+                too_few_strings: matches!(status, TensionStatus::TooFewStrings { .. }),
+            });
         }
         c.safety()
             .arm()
@@ -1238,6 +1278,8 @@ mod tests {
             pulley_radius_mm: [RADIUS as f32; STRINGS],
             anchors_mm: anchors().map(|a| a.map(|v| v as f32)),
             home_mm: [0.0; 3],
+            active_strings: 0xFF,
+            planar: false,
         }
     }
 
@@ -1949,6 +1991,145 @@ mod tests {
             .filter(|p| matches!(p.msg, DeviceMessage::Event(Event::Homed)))
             .count();
         assert_eq!(homed, 1);
+    }
+
+    /// Raw counters for the end-effector at `p` with strings from `anchors`,
+    /// reading 1000 at `home`.
+    fn raw_for(anchors: &[[f64; 3]; STRINGS], home: [f64; 3], p: [f64; 3]) -> [u16; STRINGS] {
+        let lengths = inverse_kinematics(anchors, p);
+        let at_home = inverse_kinematics(anchors, home);
+        core::array::from_fn(|i| {
+            let theta = (lengths[i] - at_home[i]) / RADIUS;
+            let counts = (theta / (2.0 * core::f64::consts::PI) * CPR as f64).round() as i32;
+            (1000 + counts) as u16
+        })
+    }
+
+    /// Devices with fewer strings: the layout travels in `SetStringModel`;
+    /// `Arm` is refused, saying why, when the strings cannot pull in every
+    /// direction, and the device still tracks and streams; a tetrahedron of
+    /// 4 strings around the end-effector arms and renders, with the unused
+    /// channels at tension 0.
+    #[test]
+    fn string_layouts_arm_only_when_force_closed_and_track_either_way() {
+        let (mut ram, mut spare) = (ModelBuffer::<SLOT>::new(), ModelBuffer::<SLOT>::new());
+        let mut b = Bench::new(Flash::new(), ram.bytes(), spare.bytes());
+        // Fewer strings than degrees of freedom: refused, naming the field.
+        let mut m = string_model();
+        m.active_strings = 0b0000_0011;
+        assert_eq!(
+            b.dev.handle(&Request::SetStringModel(m), 0),
+            Response::Error(DeviceError::InvalidArgument {
+                field: name("active_strings")
+            })
+        );
+        // Unused channels need no valid law or anchor.
+        let mut m = string_model();
+        m.active_strings = 0b0001_0110;
+        m.counts_per_rev[0] = 0;
+        m.pulley_radius_mm[3] = f32::NAN;
+        m.anchors_mm[7] = [f32::NAN; 3];
+        assert_eq!(b.request(&Request::SetStringModel(m)), Response::Ack);
+        // Three strings in space: never force closed.
+        assert_eq!(
+            b.request(&Request::Arm),
+            Response::Error(DeviceError::NotForceClosed {
+                strings: 3,
+                dof: 3,
+                too_few_strings: true
+            })
+        );
+
+        // Four strings from the ceiling (a hanging design): enough strings,
+        // but they only pull up.
+        let h = 1100.0;
+        let mut hanging = [[0.0f64; 3]; STRINGS];
+        for (i, (x, y)) in [(-h, -h), (h, -h), (h, h), (-h, h)].into_iter().enumerate() {
+            hanging[i] = [x, y, h];
+        }
+        let mut m = string_model();
+        m.active_strings = 0b0000_1111;
+        m.anchors_mm = hanging.map(|a| a.map(|v| v as f32));
+        assert_eq!(b.request(&Request::SetStringModel(m)), Response::Ack);
+        assert_eq!(
+            b.request(&Request::Arm),
+            Response::Error(DeviceError::NotForceClosed {
+                strings: 4,
+                dof: 3,
+                too_few_strings: false
+            })
+        );
+        // Tracking and the stream go on unarmed.
+        assert_eq!(
+            b.request(&Request::StreamOn { decimation: 1 }),
+            Response::Ack
+        );
+        let p = [120.0, -80.0, -200.0];
+        let mut out = b.tick_at(raw_for(&hanging, [0.0; 3], [0.0; 3]));
+        for _ in 0..20 {
+            out = b.tick_at(raw_for(&hanging, [0.0; 3], p));
+        }
+        assert!(!out.armed);
+        for (got, want) in out.position_mm.iter().zip(p) {
+            assert!((got - want as f32).abs() < 0.1, "{out:?}");
+        }
+        let pre = config().control.safety.pretension_n;
+        assert_eq!(out.tensions_n, [pre, pre, pre, pre, 0.0, 0.0, 0.0, 0.0]);
+        let last_state = b
+            .stream
+            .iter()
+            .rev()
+            .find_map(|p| match &p.msg {
+                DeviceMessage::State(s) => Some(*s),
+                _ => None,
+            })
+            .expect("state frames");
+        assert!(!last_state.armed);
+        assert!((last_state.position_mm[0] - 120.0).abs() < 0.1);
+
+        // A tetrahedron (cube corners 0, 3, 5, 6) around the end-effector:
+        // armed, renders, unused channels at 0. Home is declared again.
+        let mut m = string_model();
+        m.active_strings = 0b0110_1001;
+        assert_eq!(b.request(&Request::SetStringModel(m)), Response::Ack);
+        assert_eq!(b.request(&Request::Home), Response::Ack);
+        assert_eq!(b.request(&Request::Arm), Response::Ack);
+        assert_eq!(
+            b.request(&Request::SetForceTarget {
+                force_n: [1.0, -0.5, 0.5]
+            }),
+            Response::Ack
+        );
+        let home_raw = raw_for(&hanging, [0.0; 3], p);
+        let shift = |q: [f64; 3]| -> [u16; STRINGS] {
+            // Counters continue from where they were at Home.
+            let d = raw_for(&anchors(), [0.0; 3], q);
+            core::array::from_fn(|i| home_raw[i].wrapping_add(d[i].wrapping_sub(1000)))
+        };
+        let q = [100.0, 50.0, -60.0];
+        let mut out = b.tick_at(shift([0.0; 3]));
+        for _ in 0..10 {
+            out = b.tick_at(shift(q));
+        }
+        assert!(out.armed && out.faults.is_empty(), "{out:?}");
+        assert_eq!(out.tension_status, TensionStatus::Exact);
+        for i in [1, 2, 4, 7] {
+            assert_eq!(out.tensions_n[i], 0.0);
+        }
+        let f = crate::tension::resultant_force(
+            &anchors().map(|a| a.map(|v| v as f32)),
+            out.position_mm,
+            &core::array::from_fn(|i| {
+                if [0, 3, 5, 6].contains(&i) {
+                    out.tensions_n[i]
+                } else {
+                    0.0
+                }
+            }),
+        );
+        for (got, want) in f.iter().zip([1.0, -0.5, 0.5]) {
+            assert!((got - want).abs() < 1e-3, "{f:?}");
+        }
     }
 
     #[test]

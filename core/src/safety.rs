@@ -191,6 +191,9 @@ pub struct SafetyMonitor {
     last_heartbeat_ms: Option<u32>,
     estop_active: bool,
     model_valid: bool,
+    /// Channels that carry a string (bit `i` = channel `i`): the others are
+    /// not checked and always get tension 0.
+    active: u8,
 }
 
 impl SafetyMonitor {
@@ -206,6 +209,7 @@ impl SafetyMonitor {
             last_heartbeat_ms: None,
             estop_active: false,
             model_valid: true,
+            active: u8::MAX,
         })
     }
 
@@ -236,6 +240,19 @@ impl SafetyMonitor {
         }
     }
 
+    /// Which channels carry a string (the layout's `active` mask, bit `i` =
+    /// channel `i`; all 8 by default). The others are left out of the
+    /// length checks and get tension 0 from [`SafetyMonitor::apply`], armed
+    /// or not.
+    pub fn set_active(&mut self, active: u8) {
+        self.active = active;
+    }
+
+    /// The channels that carry a string (see [`SafetyMonitor::set_active`]).
+    pub fn active(&self) -> u8 {
+        self.active
+    }
+
     /// One control-loop check at `now_ms` (ms). `measured_lengths_mm` are the
     /// string lengths from the encoders (mm), `geometric_lengths_mm` the
     /// distances from the estimated position to the anchors (mm), `fk_ok`
@@ -246,7 +263,7 @@ impl SafetyMonitor {
     /// bits in the slack mask for `measured - geometric > slack_threshold_mm`
     /// (checked only when `fk_ok`: otherwise the geometric lengths are
     /// meaningless); `ESTOP`/`MODEL_INVALID` while their inputs are active.
-    /// Returns the latched faults.
+    /// Lengths of inactive channels are not read. Returns the latched faults.
     pub fn check(
         &mut self,
         now_ms: u32,
@@ -273,13 +290,19 @@ impl SafetyMonitor {
             self.latch(Faults::FK_FAULT);
         }
         let mut slack = 0u8;
+        let mut non_finite = false;
         for i in 0..STRINGS {
             let (m, g) = (measured_lengths_mm[i], geometric_lengths_mm[i]);
             if !(m.is_finite() && g.is_finite()) {
-                self.latch(Faults::NON_FINITE);
+                non_finite |= self.active >> i & 1 != 0;
             } else if fk_ok && m - g > self.config.slack_threshold_mm {
                 slack |= 1 << i;
             }
+        }
+        // Inactive channels' lengths are not the strings': left out.
+        slack &= self.active;
+        if non_finite {
+            self.latch(Faults::NON_FINITE);
         }
         if slack != 0 {
             self.slack_mask |= slack;
@@ -326,24 +349,40 @@ impl SafetyMonitor {
     /// The tensions (N) to send to the motors: the pre-tension on every
     /// string while any fault is latched or the device is disarmed, otherwise
     /// each tension clamped to `[t_min, t_max]`. Any non-finite tension
-    /// latches `NON_FINITE` (and so gives the pre-tension).
+    /// latches `NON_FINITE` (and so gives the pre-tension). Inactive channels
+    /// (see [`SafetyMonitor::set_active`]) get 0 whatever they were given.
     pub fn apply(&mut self, tensions: [f32; STRINGS]) -> [f32; STRINGS] {
-        if !tensions.iter().all(|t| t.is_finite()) {
+        let active = self.active;
+        let finite = if active == u8::MAX {
+            tensions.iter().all(|t| t.is_finite())
+        } else {
+            (0..STRINGS).all(|i| active >> i & 1 == 0 || tensions[i].is_finite())
+        };
+        if !finite {
             self.latch(Faults::NON_FINITE);
         }
-        if !self.faults.is_empty() || !self.armed {
-            return [self.config.pretension_n; STRINGS];
-        }
-        let (lo, hi) = (self.config.t_min, self.config.t_max);
-        tensions.map(|t| {
-            if t < lo {
-                lo
-            } else if t > hi {
-                hi
-            } else {
-                t
+        let mut out = if !self.faults.is_empty() || !self.armed {
+            [self.config.pretension_n; STRINGS]
+        } else {
+            let (lo, hi) = (self.config.t_min, self.config.t_max);
+            tensions.map(|t| {
+                if t < lo {
+                    lo
+                } else if t > hi {
+                    hi
+                } else {
+                    t
+                }
+            })
+        };
+        if active != u8::MAX {
+            for (i, t) in out.iter_mut().enumerate() {
+                if active >> i & 1 == 0 {
+                    *t = 0.0;
+                }
             }
-        })
+        }
+        out
     }
 
     /// Arms the device (tensions pass through `apply`). Refused, returning the
@@ -428,6 +467,29 @@ mod tests {
         m.heartbeat(0);
         m.arm().unwrap();
         m
+    }
+
+    #[test]
+    fn inactive_channels_are_not_checked_and_get_no_tension() {
+        let mut m = armed_monitor();
+        m.set_active(0b0000_1111);
+        // Channels 4..8: NaN and "slack" lengths are not read.
+        let mut measured = LENGTHS;
+        measured[5] = f32::NAN;
+        measured[6] = 2000.0;
+        assert_eq!(m.check(10, &measured, &LENGTHS, true), Faults::NONE);
+        let mut t = [3.0; STRINGS];
+        t[7] = f32::NAN;
+        let out = m.apply(t);
+        assert_eq!(out, [3.0, 3.0, 3.0, 3.0, 0.0, 0.0, 0.0, 0.0]);
+        assert!(m.is_armed());
+        // Disarmed: pre-tension on the strings, 0 elsewhere.
+        m.disarm();
+        assert_eq!(m.apply(t), [1.0, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0]);
+        // A slack active string is still seen.
+        measured[2] = 1010.0;
+        assert_eq!(m.check(20, &measured, &LENGTHS, true), Faults::SLACK);
+        assert_eq!(m.slack_mask(), 0b100);
     }
 
     #[test]

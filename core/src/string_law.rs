@@ -41,7 +41,9 @@ use core::fmt;
 
 use serde::{Deserialize, Serialize};
 
-use crate::model::{Effect, EffectTerm, Frame, StringInputs, StringLaw, WINDING_ORDER};
+use crate::model::{
+    Effect, EffectTerm, Frame, StringInputs, StringLaw, StringLayout, WINDING_ORDER,
+};
 use crate::STRINGS;
 
 /// The winding polynomial is evaluated in `x = counts / 2^COUNTS_SHIFT`, so
@@ -831,7 +833,10 @@ impl CompiledEffect {
     }
 
     /// Contribution of this term (Q31.32 mm), integer only, saturating.
-    #[inline]
+    /// Always inlined: `string_lengths` has a copy of its loop for all 8
+    /// channels and one for a layout, and the call would cost each term ~70
+    /// instructions.
+    #[inline(always)]
     pub fn contribution_q32(&self, ctx: &FixedContext) -> i64 {
         match *self {
             CompiledEffect::Offset { mm_q16, .. } => q16_to_q32(mm_q16),
@@ -906,8 +911,27 @@ fn pulley_phase_q32(counts: i32, counts_per_rev: u32, turns_per_count_q48: u64) 
 
 /// String lengths (Q47.16 mm) from the compiled laws and effect terms: what
 /// the device runs every control-loop iteration. Integer only, saturating,
-/// never panics; terms whose `string` is out of range are skipped.
+/// never panics. Only the channels `layout` marks active are evaluated; the
+/// others (and terms on them, or whose `string` is out of range) are skipped
+/// and their length is 0, which nothing reads.
 pub fn string_lengths(
+    layout: StringLayout,
+    laws: &[CompiledStringLaw; STRINGS],
+    effects: &[CompiledEffect],
+    inputs: &StringInputs,
+) -> [i64; STRINGS] {
+    // All 8 channels: the masks compile out (the 8-string cost as it was).
+    if layout.active == u8::MAX {
+        lengths_of::<true>(u8::MAX, laws, effects, inputs)
+    } else {
+        lengths_of::<false>(layout.active, laws, effects, inputs)
+    }
+}
+
+/// [`string_lengths`] on the channels of `active` (`ALL`: every channel).
+#[inline(always)]
+fn lengths_of<const ALL: bool>(
+    active: u8,
     laws: &[CompiledStringLaw; STRINGS],
     effects: &[CompiledEffect],
     inputs: &StringInputs,
@@ -915,12 +939,15 @@ pub fn string_lengths(
     let mut payout = [0i64; STRINGS];
     let mut acc = [0i64; STRINGS];
     for i in 0..STRINGS {
+        if !ALL && active >> i & 1 == 0 {
+            continue;
+        }
         payout[i] = laws[i].payout_q32(inputs.counts[i]);
         acc[i] = q16_to_q32(laws[i].home_length_q16).saturating_add(payout[i]);
     }
     for e in effects {
         let s = usize::from(e.string());
-        if s >= STRINGS {
+        if s >= STRINGS || (!ALL && active >> s & 1 == 0) {
             continue;
         }
         let ctx = FixedContext {
@@ -1142,7 +1169,7 @@ mod tests {
                     inputs.counts = [c; STRINGS];
                 }
                 let want = string_lengths_f64(&f, &laws, &effects, &inputs);
-                let got = string_lengths(&cl, &ce, &inputs);
+                let got = string_lengths(StringLayout::ALL, &cl, &ce, &inputs);
                 for i in 0..STRINGS {
                     let err = (got[i] as f64 / 65536.0 - want[i]).abs();
                     max_err = max_err.max(err);
@@ -1427,7 +1454,7 @@ mod tests {
                     ..Default::default()
                 };
                 let want = string_lengths_f64(&f, &laws, &terms, &inputs)[3];
-                let got = string_lengths(&cl, &ce, &inputs)[3] as f64 / 65536.0;
+                let got = string_lengths(StringLayout::ALL, &cl, &ce, &inputs)[3] as f64 / 65536.0;
                 assert!(
                     (want - got).abs() < 1e-4,
                     "at_s {at_s} t {t}: {want} vs {got}"
@@ -1514,9 +1541,27 @@ mod tests {
         fn string_lengths_never_panics(laws in proptest::array::uniform8(arb_law()),
                                        effects in proptest::collection::vec(arb_effect(), 0..40),
                                        inputs in arb_inputs()) {
-            let a = string_lengths(&laws, &effects, &inputs);
-            let b = string_lengths(&laws, &effects, &inputs);
+            let a = string_lengths(StringLayout::ALL, &laws, &effects, &inputs);
+            let b = string_lengths(StringLayout::ALL, &laws, &effects, &inputs);
             prop_assert_eq!(a, b);
+        }
+
+        /// A layout evaluates its active channels exactly as all 8 do and
+        /// gives 0 on the others.
+        #[test]
+        fn inactive_channels_give_zero_and_active_ones_are_unchanged(
+            laws in proptest::array::uniform8(arb_law()),
+            effects in proptest::collection::vec(arb_effect(), 0..40),
+            inputs in arb_inputs(),
+            active in any::<u8>(),
+            planar in any::<bool>(),
+        ) {
+            let all = string_lengths(StringLayout::ALL, &laws, &effects, &inputs);
+            let some = string_lengths(StringLayout { active, planar }, &laws, &effects, &inputs);
+            for i in 0..STRINGS {
+                let want = if active >> i & 1 == 1 { all[i] } else { 0 };
+                prop_assert_eq!(some[i], want, "channel {}", i);
+            }
         }
 
         /// Compiling arbitrary f64 parameters either fails with a named field or

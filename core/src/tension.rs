@@ -67,6 +67,23 @@
 //! converged, through the refinement). Max resultant error 1.0e-4 N, max
 //! direction error of a scaled force 5e-6 rad (`sweep_records_iterations_and_errors`).
 //!
+//! # Devices with 3 to 8 strings ([`StringLayout`])
+//!
+//! Inactive channels get a zero direction (a zero generator of the
+//! zonotope: no facet, no reach; in the dual they pull nothing) and tension
+//! 0; the method above then runs unchanged on the active strings. A planar
+//! layout works in the `x, y` plane: directions and force are projected on
+//! it (the force's `z` is dropped) and the 2-D zonotope's facets, one normal
+//! `(-u_y, u_x)` per string, replace the 3-D pairs. Pulling in every
+//! direction needs at least `dof + 1` strings
+//! ([`TensionStatus::TooFewStrings`]) whose directions positively span
+//! (else [`TensionStatus::OutsideAnchorHull`]; [`force_closure`]). With
+//! exactly `dof + 1` strings the tensions of a force are unique, and a
+//! scaled force at the zonotope's vertex may end `NotConverged` with a
+//! residual near the tolerance (1 in 1,000 cases for a planar triangle).
+//! [`StringLayout::ALL`] takes the 8-string path itself: same results, same
+//! cost.
+//!
 //! Only `+ - * /`, `sqrt`, `abs` and comparisons, in a fixed order: in `f32`
 //! the host and the Cortex-M7 compute the same bits. Generic over
 //! [`num_traits::Float`] so the host can also run it in `f64`.
@@ -75,7 +92,7 @@
 use num_traits::Float;
 use serde::{Deserialize, Serialize};
 
-use crate::model::Vec3;
+use crate::model::{StringLayout, Vec3};
 use crate::STRINGS;
 
 /// Most Newton iterations [`distribute`] takes (the worst case).
@@ -182,6 +199,10 @@ pub enum TensionStatus {
     /// Inside the hull, but not even zero force can be held with every
     /// tension within the limits (limits too narrow for this position).
     NoFeasibleTension,
+    /// The layout has fewer than `dof + 1` strings: strings only pull, so
+    /// at least one more string than degrees of freedom is needed to pull in
+    /// every direction, wherever the end-effector is.
+    TooFewStrings { strings: u8, dof: u8 },
 }
 
 /// Tensions chosen by [`distribute`] and how well they render the force.
@@ -189,7 +210,8 @@ pub enum TensionStatus {
 pub struct TensionSolution<F> {
     /// Tension of each string (N), index = encoder index. Always within the
     /// limits; `t_min` on every string when no distribution exists (status
-    /// other than `Exact`, `Scaled`, `NotConverged`), 0 if the limits are invalid.
+    /// other than `Exact`, `Scaled`, `NotConverged`), 0 if the limits are
+    /// invalid. 0 on the channels the layout marks inactive.
     pub tensions: [F; STRINGS],
     /// Whether the desired force itself is rendered (status `Exact`).
     pub feasible: bool,
@@ -251,16 +273,49 @@ pub fn string_directions<F: Float>(
     Ok(u)
 }
 
-/// Distributes the desired `force` (N, on the end-effector) over the 8
-/// strings, starting the dual iteration from zero. See [`distribute_warm`].
+/// Distributes the desired `force` (N, on the end-effector) over the
+/// strings of `layout`, starting the dual iteration from zero. See
+/// [`distribute_warm`].
 pub fn distribute<F: Float>(
     anchors: &[Vec3<F>; STRINGS],
+    layout: StringLayout,
     position: Vec3<F>,
     force: Vec3<F>,
     limits: TensionLimits<F>,
     config: &TensionConfig<F>,
 ) -> TensionSolution<F> {
-    distribute_warm(anchors, position, force, limits, config, [F::zero(); 3])
+    distribute_warm(
+        anchors,
+        layout,
+        position,
+        force,
+        limits,
+        config,
+        [F::zero(); 3],
+    )
+}
+
+/// Whether the strings of `layout`, from the end-effector at `position`
+/// (mm), can pull it in every direction (every direction of the plane, for a
+/// planar layout) with tensions within `limits`: the condition for rendering
+/// forces at all ("force closure"). `Err` says why not:
+/// [`TensionStatus::TooFewStrings`] (fewer than `dof + 1` strings: never),
+/// [`TensionStatus::OutsideAnchorHull`] (the string directions do not
+/// positively span: the end-effector is outside the active anchors' convex
+/// hull, e.g. below every anchor of a hanging design, which can only pull up
+/// and relies on gravity), or another failure status of [`distribute`].
+pub fn force_closure<F: Float>(
+    anchors: &[Vec3<F>; STRINGS],
+    layout: StringLayout,
+    position: Vec3<F>,
+    limits: TensionLimits<F>,
+    config: &TensionConfig<F>,
+) -> Result<(), TensionStatus> {
+    let s = distribute(anchors, layout, position, [F::zero(); 3], limits, config);
+    match s.status {
+        TensionStatus::Exact | TensionStatus::Scaled | TensionStatus::NotConverged => Ok(()),
+        other => Err(other),
+    }
 }
 
 /// Distributes the desired `force` (N) on the end-effector at `position` (mm)
@@ -270,10 +325,37 @@ pub fn distribute<F: Float>(
 /// initial dual multiplier (N), e.g. the previous solution's `multiplier`;
 /// non-finite values are replaced by zero.
 ///
+/// Only the strings `layout` marks active pull (the others get tension 0,
+/// their anchors are not read). A planar layout renders the force's `x, y`
+/// components in the anchors' plane (`z` is dropped, string directions are
+/// taken in the plane). A layout with fewer than `dof + 1` strings cannot
+/// pull in every direction: [`TensionStatus::TooFewStrings`]. All 8 strings
+/// ([`StringLayout::ALL`]) run exactly the 8-string method of the module doc.
+///
 /// At most [`MAX_ITERATIONS`] iterations (see the module doc). Never
 /// panics; every failure is a [`TensionStatus`].
 pub fn distribute_warm<F: Float>(
     anchors: &[Vec3<F>; STRINGS],
+    layout: StringLayout,
+    position: Vec3<F>,
+    force: Vec3<F>,
+    limits: TensionLimits<F>,
+    config: &TensionConfig<F>,
+    warm_start: Vec3<F>,
+) -> TensionSolution<F> {
+    // All 8 strings in space: the layout's tests compile out.
+    if layout == StringLayout::ALL {
+        solve::<F, true>(anchors, layout, position, force, limits, config, warm_start)
+    } else {
+        solve::<F, false>(anchors, layout, position, force, limits, config, warm_start)
+    }
+}
+
+/// [`distribute_warm`]; `ALL`: `layout` is [`StringLayout::ALL`].
+#[inline(always)]
+fn solve<F: Float, const ALL: bool>(
+    anchors: &[Vec3<F>; STRINGS],
+    layout: StringLayout,
     position: Vec3<F>,
     force: Vec3<F>,
     limits: TensionLimits<F>,
@@ -283,7 +365,13 @@ pub fn distribute_warm<F: Float>(
     if !limits.is_valid() {
         return failure(F::zero(), TensionStatus::InvalidLimits);
     }
-    let fail = |status| failure(limits.t_min, status);
+    let fail = |status| {
+        let mut f = failure(limits.t_min, status);
+        if !ALL {
+            mask_inactive(&mut f.tensions, layout);
+        }
+        f
+    };
 
     let t_ref = match config.reference {
         TensionReference::Mid => limits.mid(),
@@ -294,20 +382,31 @@ pub fn distribute_warm<F: Float>(
         && config.min_string_length_mm.is_finite()
         && config.hull_margin.is_finite()
         && config.scale_back_off.is_finite();
-    let input_finite =
-        all_finite(&position) && all_finite(&force) && anchors.iter().all(|a| all_finite(a));
+    let input_finite = all_finite(&position)
+        && all_finite(&force)
+        && if ALL {
+            anchors.iter().all(|a| all_finite(a))
+        } else {
+            layout.indices().all(|i| all_finite(&anchors[i]))
+        };
     if !config_finite || !input_finite {
         return fail(TensionStatus::NonFiniteInput);
     }
 
-    let u = match string_directions(anchors, position, config.min_string_length_mm) {
-        Ok(u) => u,
-        Err(status) => return fail(status),
-    };
-
-    let alpha_max = match feasible_fraction(&u, limits, force, config.hull_margin) {
-        Ok(a) => a,
-        Err(status) => return fail(status),
+    let (u, alpha_max, force) = if ALL {
+        let u = match string_directions(anchors, position, config.min_string_length_mm) {
+            Ok(u) => u,
+            Err(status) => return fail(status),
+        };
+        match feasible_fraction(&u, limits, force, config.hull_margin) {
+            Ok(a) => (u, a, force),
+            Err(status) => return fail(status),
+        }
+    } else {
+        match layout_geometry(anchors, layout, position, force, limits, config) {
+            Ok(g) => g,
+            Err(status) => return fail(status),
+        }
     };
     let alpha = if alpha_max >= F::one() {
         F::one()
@@ -405,6 +504,11 @@ pub fn distribute_warm<F: Float>(
         residual2 = dot(residual, residual);
     }
     let iterations = iterations + refinements;
+    if !ALL {
+        // Inactive channels took the reference tension along (free, with a
+        // zero direction: no force); they carry no string.
+        mask_inactive(&mut tensions, layout);
+    }
 
     let converged = residual2 <= tol2;
     let status = match (converged, alpha >= F::one()) {
@@ -421,6 +525,116 @@ pub fn distribute_warm<F: Float>(
         residual_n: residual2.sqrt(),
         multiplier: lambda,
     }
+}
+
+/// Tension 0 on the channels `layout` marks inactive.
+fn mask_inactive<F: Float>(tensions: &mut [F; STRINGS], layout: StringLayout) {
+    for (i, t) in tensions.iter_mut().enumerate() {
+        if !layout.is_active(i) {
+            *t = F::zero();
+        }
+    }
+}
+
+/// String directions, the force to render and its largest feasible fraction.
+type Geometry<F> = ([Vec3<F>; STRINGS], F, Vec3<F>);
+
+/// String directions, force and largest feasible fraction for a layout other
+/// than all 8 strings in space. Inactive channels get a zero direction: in
+/// the zonotope they are zero generators (no facet, no reach), in the dual
+/// they pull nothing; the 8-string method then runs unchanged on the active
+/// strings. Planar: directions and force in the `x, y` plane, and the 2-D
+/// facets (one per string) replace the 3-D pairs, whose normals would all be
+/// `z`.
+fn layout_geometry<F: Float>(
+    anchors: &[Vec3<F>; STRINGS],
+    layout: StringLayout,
+    position: Vec3<F>,
+    force: Vec3<F>,
+    limits: TensionLimits<F>,
+    config: &TensionConfig<F>,
+) -> Result<Geometry<F>, TensionStatus> {
+    let (count, dof) = (layout.count(), layout.dof());
+    if count < dof + 1 {
+        return Err(TensionStatus::TooFewStrings {
+            strings: count as u8,
+            dof: dof as u8,
+        });
+    }
+    let mut u = [[F::zero(); 3]; STRINGS];
+    for i in layout.indices() {
+        let mut d = sub(anchors[i], position);
+        if layout.planar {
+            d[2] = F::zero();
+        }
+        let len = norm(d);
+        if !len.is_finite() {
+            return Err(TensionStatus::NonFiniteInput);
+        }
+        if len < config.min_string_length_mm || len == F::zero() {
+            return Err(TensionStatus::StringTooShort { string: i as u8 });
+        }
+        u[i] = [d[0] / len, d[1] / len, d[2] / len];
+    }
+    if layout.planar {
+        let force = [force[0], force[1], F::zero()];
+        let alpha = feasible_fraction_planar(&u, layout, limits, force, config.hull_margin)?;
+        Ok((u, alpha, force))
+    } else {
+        let alpha = feasible_fraction(&u, limits, force, config.hull_margin)?;
+        Ok((u, alpha, force))
+    }
+}
+
+/// [`feasible_fraction`] in the plane: the facets of a 2-D zonotope are
+/// parallel to its generators, so each active string `i` gives the normal
+/// `n_i = (-u_i.y, u_i.x)` (unit). Hull test: some other string beyond
+/// `hull_margin` on each side of the line along `u_i` (the directions then
+/// positively span the plane). Directions `u` have `z = 0`; inactive ones
+/// are zero.
+fn feasible_fraction_planar<F: Float>(
+    u: &[Vec3<F>; STRINGS],
+    layout: StringLayout,
+    limits: TensionLimits<F>,
+    force: Vec3<F>,
+    hull_margin: F,
+) -> Result<F, TensionStatus> {
+    let mid = limits.mid();
+    let radius = (limits.t_max - limits.t_min) * lit(0.5);
+    let mut alpha = F::one();
+    for i in layout.indices() {
+        let n = [-u[i][1], u[i][0], F::zero()];
+        let (mut sum, mut sum_abs) = (F::zero(), F::zero());
+        let (mut above, mut below) = (false, false);
+        for k in layout.indices() {
+            if k == i {
+                continue;
+            }
+            let s = dot(n, u[k]);
+            sum = sum + s;
+            sum_abs = sum_abs + s.abs();
+            above |= s > hull_margin;
+            below |= -s > hull_margin;
+        }
+        if !(above && below) {
+            return Err(TensionStatus::OutsideAnchorHull);
+        }
+        let reach = radius * sum_abs;
+        let centre = mid * sum;
+        if centre.abs() > reach {
+            return Err(TensionStatus::NoFeasibleTension);
+        }
+        let a = dot(n, force);
+        let (slack, a_abs) = if a >= F::zero() {
+            (reach + centre, a)
+        } else {
+            (reach - centre, -a)
+        };
+        if slack < alpha * a_abs {
+            alpha = slack / a_abs;
+        }
+    }
+    Ok(alpha)
 }
 
 /// `x > hm * sqrt(n2)` without the square root (`n2 >= 0`).
@@ -906,7 +1120,7 @@ mod tests {
             f in prop::array::uniform3(-3.0f32..3.0),
         ) {
             let anchors = corner_anchors();
-            let s = distribute(&anchors, p, f, LIMITS, &TensionConfig::default());
+            let s = distribute(&anchors, StringLayout::ALL, p, f, LIMITS, &TensionConfig::default());
             prop_assert_eq!(s.status, TensionStatus::Exact);
             prop_assert!(s.feasible);
             prop_assert_eq!(s.rendered_fraction, 1.0);
@@ -927,7 +1141,7 @@ mod tests {
             prop_assume!(n > 0.1);
             let f = dir.map(|x| x / n * magnitude);
             let anchors = corner_anchors();
-            let s = distribute(&anchors, p, f, LIMITS, &TensionConfig::default());
+            let s = distribute(&anchors, StringLayout::ALL, p, f, LIMITS, &TensionConfig::default());
             prop_assert_eq!(s.status, TensionStatus::Scaled);
             prop_assert!(!s.feasible);
             prop_assert!(s.rendered_fraction > 0.0 && s.rendered_fraction < 1.0);
@@ -963,7 +1177,14 @@ mod tests {
             let p = [0; 3].map(|_| 500.0 * rng(&mut state));
             let scale = if case % 2 == 0 { 3.0 } else { 300.0 };
             let f = [0; 3].map(|_| scale * rng(&mut state));
-            let s = distribute(&anchors, p, f, LIMITS, &TensionConfig::default());
+            let s = distribute(
+                &anchors,
+                StringLayout::ALL,
+                p,
+                f,
+                LIMITS,
+                &TensionConfig::default(),
+            );
             assert!(within_limits(&s.tensions, LIMITS));
             assert!(s.iterations <= MAX_ITERATIONS);
             hist[s.iterations as usize] += 1;
@@ -997,6 +1218,7 @@ mod tests {
         // Centre: by symmetry every string at the mid tension.
         let s = distribute(
             &anchors,
+            StringLayout::ALL,
             [0.0; 3],
             [0.0; 3],
             LIMITS,
@@ -1013,7 +1235,7 @@ mod tests {
             ..TensionConfig::default()
         };
         let p = [420.0, -310.0, 250.0];
-        let s = distribute(&anchors, p, [0.0; 3], LIMITS, &config);
+        let s = distribute(&anchors, StringLayout::ALL, p, [0.0; 3], LIMITS, &config);
         assert_eq!(s.status, TensionStatus::Exact);
         assert!(within_limits(&s.tensions, LIMITS));
         assert!(norm64(resultant_f64(&anchors, p, &s.tensions)) < 1e-4);
@@ -1026,10 +1248,18 @@ mod tests {
         let cfg = TensionConfig::default();
         let mut p = [100.0f32, -50.0, 30.0];
         let f = [2.0f32, -1.0, 1.5];
-        let mut s = distribute(&anchors, p, f, LIMITS, &cfg);
+        let mut s = distribute(&anchors, StringLayout::ALL, p, f, LIMITS, &cfg);
         for _ in 0..100 {
             p[0] += 0.5; // 0.5 mm per loop iteration = 5 m/s at 10 kHz
-            s = distribute_warm(&anchors, p, f, LIMITS, &cfg, s.multiplier);
+            s = distribute_warm(
+                &anchors,
+                StringLayout::ALL,
+                p,
+                f,
+                LIMITS,
+                &cfg,
+                s.multiplier,
+            );
             assert_eq!(s.status, TensionStatus::Exact);
             assert!(s.iterations <= 1, "{}", s.iterations);
         }
@@ -1041,33 +1271,75 @@ mod tests {
         let cfg = TensionConfig::default();
         let f = [1.0f32, 0.0, 0.0];
         // Outside the frame.
-        let s = distribute(&anchors, [1500.0, 0.0, 0.0], f, LIMITS, &cfg);
+        let s = distribute(
+            &anchors,
+            StringLayout::ALL,
+            [1500.0, 0.0, 0.0],
+            f,
+            LIMITS,
+            &cfg,
+        );
         assert_eq!(s.status, TensionStatus::OutsideAnchorHull);
         assert!(!s.feasible);
         assert_eq!(s.tensions, [LIMITS.t_min; STRINGS]);
         // On a face of the frame (hull boundary).
-        let s = distribute(&anchors, [1100.0, 10.0, -20.0], f, LIMITS, &cfg);
+        let s = distribute(
+            &anchors,
+            StringLayout::ALL,
+            [1100.0, 10.0, -20.0],
+            f,
+            LIMITS,
+            &cfg,
+        );
         assert_eq!(s.status, TensionStatus::OutsideAnchorHull);
         // On an anchor: zero-length string 5 (x+, y-, z+).
-        let s = distribute(&anchors, [1100.0, -1100.0, 1100.0], f, LIMITS, &cfg);
+        let s = distribute(
+            &anchors,
+            StringLayout::ALL,
+            [1100.0, -1100.0, 1100.0],
+            f,
+            LIMITS,
+            &cfg,
+        );
         assert_eq!(s.status, TensionStatus::StringTooShort { string: 5 });
         // Inside, but limits too narrow to hold even zero force near a corner.
         let narrow = TensionLimits {
             t_min: 10.0,
             t_max: 11.0,
         };
-        let s = distribute(&anchors, [800.0, 800.0, 800.0], [0.0; 3], narrow, &cfg);
+        let s = distribute(
+            &anchors,
+            StringLayout::ALL,
+            [800.0, 800.0, 800.0],
+            [0.0; 3],
+            narrow,
+            &cfg,
+        );
         assert_eq!(s.status, TensionStatus::NoFeasibleTension);
         // Non-finite inputs and invalid limits.
-        let s = distribute(&anchors, [0.0; 3], [f32::NAN, 0.0, 0.0], LIMITS, &cfg);
+        let s = distribute(
+            &anchors,
+            StringLayout::ALL,
+            [0.0; 3],
+            [f32::NAN, 0.0, 0.0],
+            LIMITS,
+            &cfg,
+        );
         assert_eq!(s.status, TensionStatus::NonFiniteInput);
-        let s = distribute(&anchors, [f32::INFINITY, 0.0, 0.0], f, LIMITS, &cfg);
+        let s = distribute(
+            &anchors,
+            StringLayout::ALL,
+            [f32::INFINITY, 0.0, 0.0],
+            f,
+            LIMITS,
+            &cfg,
+        );
         assert_eq!(s.status, TensionStatus::NonFiniteInput);
         let bad = TensionLimits {
             t_min: 5.0,
             t_max: 1.0,
         };
-        let s = distribute(&anchors, [0.0; 3], f, bad, &cfg);
+        let s = distribute(&anchors, StringLayout::ALL, [0.0; 3], f, bad, &cfg);
         assert_eq!(s.status, TensionStatus::InvalidLimits);
         assert_eq!(s.tensions, [0.0; STRINGS]);
         assert!(s.tensions.iter().all(|t| t.is_finite()));
@@ -1086,10 +1358,244 @@ mod tests {
             force_tolerance_n: 1e-10,
             ..TensionConfig::default()
         };
-        let s = distribute(&anchors, p, f, limits, &config);
+        let s = distribute(&anchors, StringLayout::ALL, p, f, limits, &config);
         assert_eq!(s.status, TensionStatus::Exact);
         let r = resultant_force(&anchors, p, &s.tensions);
         assert!(dist3(r, f) < 1e-9, "{r:?}");
+    }
+
+    /// A 4-line cable robot (three low anchors, one high) on channels 0..4;
+    /// channels 4..8 hold NaN, which must not be read.
+    fn four_line_anchors() -> [Vec3<f32>; STRINGS] {
+        let mut a = [[f32::NAN; 3]; STRINGS];
+        a[0] = [0.0, -1620.0, -150.0];
+        a[1] = [1272.8, 1272.8, -150.0];
+        a[2] = [-1403.0, 810.0, -150.0];
+        a[3] = [0.0, 0.0, 2350.0];
+        a
+    }
+
+    /// Resultant (f64) over the active channels only.
+    fn resultant_layout(
+        anchors: &[Vec3<f32>; STRINGS],
+        layout: StringLayout,
+        p: Vec3<f32>,
+        t: &[f32; STRINGS],
+    ) -> [f64; 3] {
+        let mut f = [0.0f64; 3];
+        for i in layout.indices() {
+            let mut d: Vec<f64> = (0..3).map(|k| anchors[i][k] as f64 - p[k] as f64).collect();
+            if layout.planar {
+                d[2] = 0.0;
+            }
+            let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+            for k in 0..3 {
+                f[k] += t[i] as f64 * d[k] / l;
+            }
+        }
+        f
+    }
+
+    fn inactive_are_zero(t: &[f32; STRINGS], layout: StringLayout) -> bool {
+        (0..STRINGS).all(|i| layout.is_active(i) || t[i] == 0.0)
+    }
+
+    #[test]
+    fn four_line_robot_renders_inside_its_tetrahedron() {
+        let a = four_line_anchors();
+        let layout = StringLayout::first(4, false);
+        let cfg = TensionConfig::default();
+        let mut state = 0x1234_5678_9abc_def1u64;
+        for case in 0..2000 {
+            // Inside the tetrahedron: a convex combination of the anchors,
+            // kept away from the faces.
+            let mut w = [0.0f32; 4];
+            for x in w.iter_mut() {
+                *x = 0.2 + 0.8 * (rng(&mut state) + 1.0) / 2.0;
+            }
+            let sw: f32 = w.iter().sum();
+            let p = [0, 1, 2].map(|k| (0..4).map(|i| w[i] / sw * a[i][k]).sum::<f32>());
+            let scale = if case % 2 == 0 { 3.0 } else { 300.0 };
+            let f = [0; 3].map(|_| scale * rng(&mut state));
+            let s = distribute(&a, layout, p, f, LIMITS, &cfg);
+            assert!(
+                matches!(s.status, TensionStatus::Exact | TensionStatus::Scaled),
+                "{p:?} {f:?}: {s:?}"
+            );
+            assert!(inactive_are_zero(&s.tensions, layout), "{:?}", s.tensions);
+            for i in layout.indices() {
+                assert!(s.tensions[i] >= LIMITS.t_min && s.tensions[i] <= LIMITS.t_max);
+            }
+            let alpha = s.rendered_fraction as f64;
+            let want = f.map(|x| x as f64 * alpha);
+            let got = resultant_layout(&a, layout, p, &s.tensions);
+            assert!(dist3(got, want) < 1e-3, "{got:?} vs {want:?}");
+            assert!(force_closure(&a, layout, p, LIMITS, &cfg).is_ok());
+        }
+        // Below the three low anchors the strings can only pull up and out.
+        let below = [0.0, 0.0, -400.0];
+        let s = distribute(&a, layout, below, [0.0, 0.0, 1.0], LIMITS, &cfg);
+        assert_eq!(s.status, TensionStatus::OutsideAnchorHull);
+        assert!(inactive_are_zero(&s.tensions, layout));
+        assert_eq!(s.tensions[3], LIMITS.t_min);
+        assert_eq!(
+            force_closure(&a, layout, below, LIMITS, &cfg),
+            Err(TensionStatus::OutsideAnchorHull)
+        );
+    }
+
+    #[test]
+    fn hanging_designs_and_too_few_strings_are_not_force_closed() {
+        let cfg = TensionConfig::default();
+        // Four anchors on the ceiling: gravity does the pulling down.
+        let mut a = [[0.0f32; 3]; STRINGS];
+        for (i, (x, y)) in [
+            (-900.0, -900.0),
+            (900.0, -900.0),
+            (900.0, 900.0),
+            (-900.0, 900.0),
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            a[i] = [x, y, 1500.0];
+        }
+        let layout = StringLayout::first(4, false);
+        for p in [[0.0, 0.0, 0.0], [300.0, -200.0, 800.0]] {
+            assert_eq!(
+                force_closure(&a, layout, p, LIMITS, &cfg),
+                Err(TensionStatus::OutsideAnchorHull)
+            );
+        }
+        // Three strings in space, two in a plane.
+        let cube = corner_anchors();
+        let three = StringLayout {
+            active: 0b0001_0110,
+            planar: false,
+        };
+        let s = distribute(&cube, three, [0.0; 3], [1.0, 0.0, 0.0], LIMITS, &cfg);
+        assert_eq!(
+            s.status,
+            TensionStatus::TooFewStrings { strings: 3, dof: 3 }
+        );
+        assert!(inactive_are_zero(&s.tensions, three));
+        assert_eq!(
+            force_closure(&cube, StringLayout::first(2, true), [0.0; 3], LIMITS, &cfg),
+            Err(TensionStatus::TooFewStrings { strings: 2, dof: 2 })
+        );
+    }
+
+    #[test]
+    fn a_cube_with_strings_removed_still_renders() {
+        let cube = corner_anchors();
+        let cfg = TensionConfig::default();
+        let mut state = 0x0bad_cafe_f00d_1234u64;
+        // 7 strings, 5 strings (channel 1 and 6 and 3 gone).
+        for layout in [
+            StringLayout {
+                active: 0b1111_1101,
+                planar: false,
+            },
+            StringLayout {
+                active: 0b1011_0101,
+                planar: false,
+            },
+        ] {
+            let mut exact = 0;
+            for _ in 0..1000 {
+                let p = [0; 3].map(|_| 300.0 * rng(&mut state));
+                let f = [0; 3].map(|_| 3.0 * rng(&mut state));
+                let s = distribute(&cube, layout, p, f, LIMITS, &cfg);
+                if let TensionStatus::OutsideAnchorHull | TensionStatus::NoFeasibleTension =
+                    s.status
+                {
+                    // 5 corners do not surround every point; near the hull's
+                    // boundary even zero force needs a tension below t_min.
+                    assert!(inactive_are_zero(&s.tensions, layout));
+                    continue;
+                }
+                assert!(
+                    matches!(s.status, TensionStatus::Exact | TensionStatus::Scaled),
+                    "{:b} {p:?}: {s:?}",
+                    layout.active
+                );
+                exact += usize::from(s.status == TensionStatus::Exact);
+                assert!(inactive_are_zero(&s.tensions, layout));
+                let want = f.map(|x| x as f64 * s.rendered_fraction as f64);
+                assert!(dist3(resultant_layout(&cube, layout, p, &s.tensions), want) < 1e-3);
+            }
+            assert!(exact > 300, "{:b}: {exact}", layout.active);
+        }
+    }
+
+    #[test]
+    fn planar_layouts_render_in_the_plane() {
+        // A planar SPIDAR: 4 strings at the corners of a 1.6 m x 1.2 m frame
+        // (z = 25 mm), and a 3-string triangle; channels 4..8 unused.
+        let mut rect = [[f32::NAN; 3]; STRINGS];
+        for (i, (x, y)) in [
+            (-800.0, -600.0),
+            (800.0, -600.0),
+            (800.0, 600.0),
+            (-800.0, 600.0),
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            rect[i] = [x, y, 25.0];
+        }
+        let cfg = TensionConfig::default();
+        let mut state = 0x5eed_0f91_a4a7_u64;
+        for (anchors, n) in [(rect, 4usize), (rect, 3)] {
+            let layout = StringLayout::first(n, true);
+            let (mut rendered, mut not_converged) = (0, 0);
+            for case in 0..1000 {
+                let p = [400.0 * rng(&mut state), 300.0 * rng(&mut state), 25.0];
+                let scale = if case % 2 == 0 { 3.0 } else { 300.0 };
+                // z is not the plane's: dropped.
+                let f = [scale * rng(&mut state), scale * rng(&mut state), 5.0];
+                let s = distribute(&anchors, layout, p, f, LIMITS, &cfg);
+                if matches!(
+                    s.status,
+                    TensionStatus::OutsideAnchorHull | TensionStatus::NoFeasibleTension
+                ) {
+                    // Outside the triangle, or near its sides.
+                    assert_eq!(n, 3, "{p:?}: {s:?}");
+                    continue;
+                }
+                if s.status == TensionStatus::NotConverged {
+                    // Three strings in a plane have one tension set per
+                    // force: at the limit of a scaled force the dual's
+                    // multiplier grows large; the residual stays small.
+                    assert!(s.residual_n < 1e-3, "{n}: {p:?} {f:?}: {s:?}");
+                    not_converged += 1;
+                    continue;
+                }
+                assert!(
+                    matches!(s.status, TensionStatus::Exact | TensionStatus::Scaled),
+                    "{n}: {p:?} {f:?}: {s:?}"
+                );
+                rendered += 1;
+                assert!(inactive_are_zero(&s.tensions, layout));
+                let alpha = s.rendered_fraction as f64;
+                let want = [f[0] as f64 * alpha, f[1] as f64 * alpha, 0.0];
+                let got = resultant_layout(&anchors, layout, p, &s.tensions);
+                assert!(dist3(got, want) < 1e-3, "{n}: {got:?} vs {want:?}");
+            }
+            println!("planar, {n} strings: {rendered} rendered, {not_converged} not converged");
+            assert!(rendered > 300, "{n}: {rendered}");
+            assert!(not_converged <= 10, "{n}: {not_converged}");
+        }
+        // Outside the rectangle.
+        let s = distribute(
+            &rect,
+            StringLayout::first(4, true),
+            [900.0, 0.0, 25.0],
+            [1.0, 0.0, 0.0],
+            LIMITS,
+            &cfg,
+        );
+        assert_eq!(s.status, TensionStatus::OutsideAnchorHull);
     }
 
     #[test]

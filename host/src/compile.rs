@@ -98,7 +98,12 @@ pub fn device_positions(
     observations
         .iter()
         .map(|o| {
-            let q = string_lengths(&blob.head.laws, &blob.head.effects, &o.inputs);
+            let q = string_lengths(
+                blob.head.frame.layout,
+                &blob.head.laws,
+                &blob.head.effects,
+                &o.inputs,
+            );
             let lengths = q.map(|l| l as f32 / 65536.0);
             let fk =
                 forward_kinematics(&frame.anchors, frame.layout, &lengths, position, &fk_config);

@@ -548,6 +548,7 @@ impl Geometry {
     /// The device's nominal string model (`SetStringModel`): what a device
     /// without a calibration blob runs on.
     pub fn string_model(&self) -> spidar_protocol::StringModel {
+        let layout = self.nominal_frame().layout;
         spidar_protocol::StringModel {
             counts_per_rev: self.counts_per_rev,
             pulley_radius_mm: core::array::from_fn(|i| {
@@ -555,6 +556,8 @@ impl Geometry {
             }),
             anchors_mm: self.anchors_mm.map(|a| a.map(|v| v as f32)),
             home_mm: self.home_mm.map(|v| v as f32),
+            active_strings: layout.active,
+            planar: layout.planar,
         }
     }
 

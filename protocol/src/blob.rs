@@ -7,7 +7,7 @@
 //!  0     4    magic            b"SPDM"
 //!  4     2    format_version   FORMAT_VERSION
 //!  6     1    kind             CorrectionKind (0 none, 1 NN, 2 SVR)
-//!  7     1    strings          number of string laws (8)
+//!  7     1    strings          number of active strings (3..=8; the frame's layout says which)
 //!  8     1    effects          number of effect terms
 //!  9     1    q_length         fractional bits of string lengths (mm)
 //! 10     1    q_position       fractional bits of positions (mm)
@@ -117,6 +117,19 @@ pub enum BlobError {
     Body {
         field: &'static str,
     },
+    /// The frame's string layout (`frame.layout`) has fewer active strings
+    /// than the end-effector's degrees of freedom (2 planar, 3 in space):
+    /// no position can be found.
+    TooFewStrings {
+        strings: u8,
+        dof: u8,
+    },
+    /// `field` refers to channel `string`, which the frame's layout marks
+    /// as carrying no string (e.g. an effect term on a removed string).
+    InactiveString {
+        field: &'static str,
+        string: u8,
+    },
 }
 
 impl core::fmt::Display for BlobError {
@@ -155,6 +168,14 @@ impl core::fmt::Display for BlobError {
             BlobError::Body { field } => {
                 write!(f, "model blob body does not decode at field `{field}`")
             }
+            BlobError::TooFewStrings { strings, dof } => write!(
+                f,
+                "model blob field `frame.layout` has {strings} active strings, a position with {dof} degrees of freedom needs at least {dof}"
+            ),
+            BlobError::InactiveString { field, string } => write!(
+                f,
+                "model blob field `{field}` refers to string {string}, which `frame.layout` marks inactive"
+            ),
         }
     }
 }

@@ -95,7 +95,7 @@
 //! | message | message | frame on the wire |
 //! |---|---|---|
 //! | `Request::UploadChunk` ([`MAX_CHUNK`] data bytes) | 264 | 274 = [`MAX_FRAME`] |
-//! | `Request::SetStringModel` | 181 | 190 |
+//! | `Request::SetStringModel` | 183 | 192 |
 //! | `Request::SetGuidanceTarget` | 21 | 30 |
 //! | `Request::UploadBegin` | 16 | 25 |
 //! | `Request::SetForceTarget` | 13 | 22 |
@@ -131,7 +131,10 @@ pub use messages::{
 };
 
 /// Version of this protocol. Bumped whenever a message's layout changes.
-pub const PROTOCOL_VERSION: u16 = 2;
+/// Version 3: `StringModel` carries the string layout (`active_strings`,
+/// `planar`); `DeviceError::NotForceClosed`; `BlobRejection::TooFewStrings`
+/// and `InactiveString`.
+pub const PROTOCOL_VERSION: u16 = 3;
 
 /// Number of strings (and motors, and encoders) of the device.
 pub const STRINGS: usize = 8;

@@ -144,7 +144,9 @@ pub enum Request<'a> {
     Home,
 }
 
-/// Nominal geometry and string law of the device.
+/// Nominal geometry and string law of the device. Arrays are indexed by
+/// encoder channel; entries of channels that carry no string
+/// (`active_strings`) are ignored and not checked.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct StringModel {
     /// Quadrature encoder counts per pulley revolution, per string (> 0).
@@ -155,6 +157,28 @@ pub struct StringModel {
     pub anchors_mm: [[f32; 3]; STRINGS],
     /// End-effector position at initialization, device frame, millimetres.
     pub home_mm: [f32; 3],
+    /// Bit `i` set: channel `i` carries a string (`0xFF`: all 8, a
+    /// Scalable-SPIDAR). At least as many strings as degrees of freedom.
+    pub active_strings: u8,
+    /// The end-effector moves in the anchors' plane (2 degrees of freedom);
+    /// `false`: in space (3).
+    pub planar: bool,
+}
+
+impl StringModel {
+    /// Whether channel `i` carries a string.
+    pub const fn is_active(&self, i: usize) -> bool {
+        i < STRINGS && self.active_strings & (1 << i) != 0
+    }
+
+    /// Degrees of freedom of the end-effector's position: 2 planar, 3.
+    pub const fn dof(&self) -> u8 {
+        if self.planar {
+            2
+        } else {
+            3
+        }
+    }
 }
 
 /// Safety limits.
@@ -339,6 +363,21 @@ pub enum DeviceError {
     CrcMismatch { expected: u32, computed: u32 },
     /// The blob's header or body failed a check.
     BlobRejected(BlobRejection),
+    /// `Arm` refused: the active strings cannot pull the end-effector in
+    /// every direction (of the plane, for a planar device), so forces cannot
+    /// be rendered. Position tracking and the state stream go on unarmed.
+    NotForceClosed {
+        /// Strings of the device's layout.
+        strings: u8,
+        /// Degrees of freedom of the end-effector: 2 planar, 3 in space.
+        dof: u8,
+        /// `true`: fewer than `dof + 1` strings, never enough (strings only
+        /// pull). `false`: enough strings, but from where the end-effector
+        /// is their directions do not positively span (it is outside the
+        /// anchors' convex hull, e.g. below every anchor of a hanging
+        /// design, which relies on gravity to pull down).
+        too_few_strings: bool,
+    },
     /// Writing or erasing flash failed.
     Storage {
         /// Flash controller status bits.
@@ -397,6 +436,14 @@ pub enum BlobRejection {
     Body {
         field: Name,
     },
+    TooFewStrings {
+        strings: u8,
+        dof: u8,
+    },
+    InactiveString {
+        field: Name,
+        string: u8,
+    },
 }
 
 impl From<BlobError> for BlobRejection {
@@ -421,6 +468,11 @@ impl From<BlobError> for BlobRejection {
                 expected,
             },
             BlobError::Body { field } => Self::Body { field: name(field) },
+            BlobError::TooFewStrings { strings, dof } => Self::TooFewStrings { strings, dof },
+            BlobError::InactiveString { field, string } => Self::InactiveString {
+                field: name(field),
+                string,
+            },
         }
     }
 }
@@ -461,6 +513,14 @@ impl fmt::Display for BlobRejection {
             Self::Body { field } => {
                 write!(f, "model blob body does not decode at field `{field}`")
             }
+            Self::TooFewStrings { strings, dof } => write!(
+                f,
+                "model blob field `frame.layout` has {strings} active strings, a position with {dof} degrees of freedom needs at least {dof}"
+            ),
+            Self::InactiveString { field, string } => write!(
+                f,
+                "model blob field `{field}` refers to string {string}, which `frame.layout` marks inactive"
+            ),
         }
     }
 }
@@ -504,6 +564,19 @@ impl fmt::Display for DeviceError {
                 "model blob CRC mismatch: expected {expected:#010x}, computed {computed:#010x}"
             ),
             Self::BlobRejected(r) => write!(f, "model blob rejected: {r}"),
+            Self::NotForceClosed {
+                strings,
+                dof,
+                too_few_strings: true,
+            } => write!(
+                f,
+                "not armed: {strings} strings cannot render force in every direction of {dof} degrees of freedom (strings only pull: that needs at least {}); position tracking goes on",
+                u16::from(*dof) + 1
+            ),
+            Self::NotForceClosed { strings, .. } => write!(
+                f,
+                "not armed: from where the end-effector is, its {strings} strings cannot pull it in every direction (it is outside the anchors' convex hull); position tracking goes on"
+            ),
             Self::Storage { code } => write!(f, "flash storage error (status {code:#010x})"),
         }
     }
@@ -663,13 +736,28 @@ impl Message for Request<'_> {
     fn validate(&self) -> Result<(), &'static str> {
         match self {
             Request::SetStringModel(m) => {
-                if m.counts_per_rev.contains(&0) {
+                if m.active_strings.count_ones() < u32::from(m.dof()) {
+                    return Err("active_strings");
+                }
+                let active = |i: &usize| m.is_active(*i);
+                if (0..STRINGS)
+                    .filter(active)
+                    .any(|i| m.counts_per_rev[i] == 0)
+                {
                     return Err("counts_per_rev");
                 }
-                if !m.pulley_radius_mm.iter().all(|r| r.is_finite() && *r > 0.0) {
+                if !(0..STRINGS).filter(active).all(|i| {
+                    let r = m.pulley_radius_mm[i];
+                    r.is_finite() && r > 0.0
+                }) {
                     return Err("pulley_radius_mm");
                 }
-                finite(m.anchors_mm.as_flattened(), "anchors_mm")?;
+                if !(0..STRINGS)
+                    .filter(active)
+                    .all(|i| m.anchors_mm[i].iter().all(|v| v.is_finite()))
+                {
+                    return Err("anchors_mm");
+                }
                 finite(&m.home_mm, "home_mm")
             }
             Request::SetLimits(l) => {

@@ -31,13 +31,17 @@ fn request(f: fn() -> F) -> impl Strategy<Value = Request<'static>> {
         uniform8(f()),
         uniform8(uniform3(f())),
         uniform3(f()),
+        any::<u8>(),
+        any::<bool>(),
     )
-        .prop_map(|(c, r, a, h)| {
+        .prop_map(|(c, r, a, h, active_strings, planar)| {
             Request::SetStringModel(StringModel {
                 counts_per_rev: c,
                 pulley_radius_mm: r,
                 anchors_mm: a,
                 home_mm: h,
+                active_strings,
+                planar,
             })
         });
     prop_oneof![

@@ -134,6 +134,12 @@ pub struct Fixtures<'a> {
     /// The same SVR blob at an address 1 mod 4: its records are read as
     /// bytes (the fallback path), `svr_blob`'s as aligned words.
     pub svr_blob_odd: &'a [u8],
+    /// N = 4: a 4-line cable robot in space ([`FOUR_LINE_ANCHORS`] on
+    /// channels 0..4), NN 3-20-3.
+    pub four_blob: &'a [u8],
+    /// N = 4, planar: [`PLANAR_ANCHORS`] on the channels of
+    /// [`PLANAR_ACTIVE`], NN 3-20-3.
+    pub planar_blob: &'a [u8],
 }
 
 /// One function under test.
@@ -178,6 +184,15 @@ pub const CASES: &[Case] = &[
     case("correction::SvrView::evaluate (1000 SV, words/bytes, near/far)", 24, svr_paths),
     case("control::Controller::step (NN, 8 steps)", 6, control_nn),
     case("control::Controller::step (SVR, 8 steps)", 4, control_svr),
+    case("N=4: blob::CompiledCalibration::from_blob (4-line, planar)", 1, layout_blob_parse),
+    case("N=4: string_law::string_lengths (4-line)", 24, string_lengths_four),
+    case("N=4: string_law::string_lengths (planar)", 24, string_lengths_planar),
+    case("N=4: kinematics::forward_kinematics::<f32> (4-line, warm)", 32, fk_four),
+    case("N=4: kinematics::forward_kinematics::<f32> (planar, warm)", 32, fk_planar),
+    case("N=4: tension::distribute (4-line)", 32, tension_four),
+    case("N=4: tension::distribute (planar)", 32, tension_planar),
+    case("N=4: control::Controller::step (4-line NN, 8 steps)", 6, control_four),
+    case("N=4: control::Controller::step (planar NN, 8 steps)", 6, control_planar),
 ];
 
 /// Shorthand of [`CASES`]: name, number of vectors, function.
@@ -199,6 +214,39 @@ pub fn cube_anchors() -> [[f32; 3]; spidar_core::STRINGS] {
         *p = [if i & 1 == 0 { -h } else { h }, if i & 2 == 0 { -h } else { h }, if i & 4 == 0 { -h } else { h }];
     }
     a
+}
+
+/// A 4-line cable robot's anchors (three low, one high; device frame, mm),
+/// channels 0..4 of the N = 4 model.
+pub const FOUR_LINE_ANCHORS: [[f32; 3]; 4] =
+    [[0.0, -1620.0, -150.0], [1272.8, 1272.8, -150.0], [-1403.0, 810.0, -150.0], [0.0, 0.0, 2350.0]];
+
+/// A planar device's anchors: corners of a 1.6 m x 1.2 m frame in z = 25 mm.
+pub const PLANAR_ANCHORS: [[f32; 3]; 4] =
+    [[-800.0, -600.0, 25.0], [800.0, -600.0, 25.0], [800.0, 600.0, 25.0], [-800.0, 600.0, 25.0]];
+
+/// The planar model's channels: 0, 2, 5, 7.
+pub const PLANAR_ACTIVE: u8 = 0b1010_0101;
+
+/// The compiled N = 4 calibration: 4-line (`planar == false`) or planar.
+pub fn layout_calibration<'a>(fx: &Fixtures<'a>, planar: bool) -> Option<spidar_core::blob::CompiledCalibration<'a>> {
+    spidar_core::blob::CompiledCalibration::from_blob(if planar { fx.planar_blob } else { fx.four_blob }).ok()
+}
+
+/// A position inside the active anchors' hull: a convex combination with
+/// weights in [0.2, 1] (exact f32 operations in a fixed order); planar: in
+/// the anchors' plane.
+pub fn position_inside(frame: &spidar_core::model::Frame<f32>, rng: &mut Rng) -> [f32; 3] {
+    let mut p = [0.0f32; 3];
+    let mut total = 0.0f32;
+    for i in frame.layout.indices() {
+        let w = rng.f32_in(0.2, 1.0);
+        total += w;
+        for k in 0..3 {
+            p[k] += w * frame.anchors[i][k];
+        }
+    }
+    p.map(|v| v / total)
 }
 
 /// A position in the central 1 m cube (mm).
@@ -277,7 +325,14 @@ fn tension_case(rng: &mut Rng, out: &mut dyn Out, max_force: f32) {
     use spidar_core::tension::{distribute, TensionConfig};
     let p = central_position(rng);
     let f = force(rng, max_force);
-    let s = distribute(&cube_anchors(), p, f, tension_limits(), &TensionConfig::default());
+    let s = distribute(
+        &cube_anchors(),
+        spidar_core::model::StringLayout::ALL,
+        p,
+        f,
+        tension_limits(),
+        &TensionConfig::default(),
+    );
     tension_solution(out, &s);
 }
 
@@ -298,7 +353,15 @@ fn tension_warm(_: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
     let f = force(rng, 30.0);
     let mut lambda = [0.0f32; 3];
     for _ in 0..4 {
-        let s = distribute_warm(&cube_anchors(), p, f, tension_limits(), &TensionConfig::default(), lambda);
+        let s = distribute_warm(
+            &cube_anchors(),
+            spidar_core::model::StringLayout::ALL,
+            p,
+            f,
+            tension_limits(),
+            &TensionConfig::default(),
+            lambda,
+        );
         tension_solution(out, &s);
         lambda = s.multiplier;
         for x in p.iter_mut() {
@@ -401,7 +464,7 @@ fn encoder(_: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
 fn string_lengths(fx: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
     let Some(c) = calibration(fx, false) else { return out.u32(u32::MAX) };
     let inputs = string_inputs(rng);
-    out.i64s(&spidar_core::string_law::string_lengths(&c.head.laws, &c.head.effects, &inputs));
+    out.i64s(&spidar_core::string_law::string_lengths(c.head.frame.layout, &c.head.laws, &c.head.effects, &inputs));
 }
 
 fn inverse_kinematics(_: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
@@ -494,10 +557,14 @@ fn svr_paths(fx: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
 /// FK also meets inconsistent lengths), a random target kind; every output
 /// field of every step.
 fn control_case(fx: &Fixtures, svr: bool, rng: &mut Rng, out: &mut dyn Out) {
-    use spidar_core::control::{ControlConfig, Controller, LoopInput, Target};
     let Some(cal) = calibration(fx, svr) else { return out.u32(u32::MAX) };
+    control_steps(&cal, rng, out)
+}
+
+fn control_steps(cal: &spidar_core::blob::CompiledCalibration, rng: &mut Rng, out: &mut dyn Out) {
+    use spidar_core::control::{ControlConfig, Controller, LoopInput, Target};
     let mut raw: [u16; spidar_core::STRINGS] = core::array::from_fn(|_| rng.next_u32() as u16);
-    let Ok(mut ctl) = Controller::new(ControlConfig::default(), &cal, raw, 5) else { return out.u32(u32::MAX - 1) };
+    let Ok(mut ctl) = Controller::new(ControlConfig::default(), cal, raw, 5) else { return out.u32(u32::MAX - 1) };
     ctl.set_target(match rng.i32_in(0, 2) {
         0 => Target::Idle,
         1 => Target::Force(force(rng, 20.0)),
@@ -513,7 +580,7 @@ fn control_case(fx: &Fixtures, svr: bool, rng: &mut Rng, out: &mut dyn Out) {
         if rng.i32_in(0, 3) != 0 {
             ctl.safety().heartbeat(now);
         }
-        let o = ctl.step(&cal, &LoopInput { raw_counts: raw, now_ms: now, estop: rng.i32_in(0, 15) == 0 });
+        let o = ctl.step(cal, &LoopInput { raw_counts: raw, now_ms: now, estop: rng.i32_in(0, 15) == 0 });
         out.f32s(&o.string_lengths_mm);
         out.f32s(&o.position_mm);
         out.i32s(&o.corrected_q16);
@@ -529,4 +596,92 @@ fn control_nn(fx: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
 
 fn control_svr(fx: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
     control_case(fx, true, rng, out)
+}
+
+// ---------------------------------------------------------------------------
+// N = 4 (issue 11): a 4-line cable robot in space and a planar device, each
+// on 4 of the 8 channels.
+
+fn layout_blob_parse(fx: &Fixtures, _: &mut Rng, out: &mut dyn Out) {
+    for planar in [false, true] {
+        match layout_calibration(fx, planar) {
+            Some(c) => {
+                out.debug(&c.header);
+                out.debug(&c.head);
+            }
+            None => out.u32(u32::MAX),
+        }
+    }
+}
+
+fn string_lengths_layout(fx: &Fixtures, planar: bool, rng: &mut Rng, out: &mut dyn Out) {
+    let Some(c) = layout_calibration(fx, planar) else { return out.u32(u32::MAX) };
+    let inputs = string_inputs(rng);
+    out.i64s(&spidar_core::string_law::string_lengths(c.head.frame.layout, &c.head.laws, &c.head.effects, &inputs));
+}
+
+fn string_lengths_four(fx: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    string_lengths_layout(fx, false, rng, out)
+}
+
+fn string_lengths_planar(fx: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    string_lengths_layout(fx, true, rng, out)
+}
+
+/// Warm start 0.05-2 mm from a point inside the anchors' hull, 0.3 mm
+/// length noise on the active strings (inactive lengths NaN: never read).
+fn fk_layout(fx: &Fixtures, planar: bool, rng: &mut Rng, out: &mut dyn Out) {
+    use spidar_core::kinematics::{forward_kinematics, inverse_kinematics, FkConfig};
+    let Some(c) = layout_calibration(fx, planar) else { return out.u32(u32::MAX) };
+    let frame = &c.head.frame;
+    let p = position_inside(frame, rng);
+    let mut lengths = inverse_kinematics(&frame.anchors, p);
+    for (i, l) in lengths.iter_mut().enumerate() {
+        *l = if frame.layout.is_active(i) { *l + rng.f32_in(-0.3, 0.3) } else { f32::NAN };
+    }
+    let mut start = [p[0] + rng.f32_in(-2.0, 2.0), p[1] + rng.f32_in(-2.0, 2.0), p[2] + rng.f32_in(-2.0, 2.0)];
+    if planar {
+        start[2] = p[2];
+    }
+    fk_solution(out, &forward_kinematics(&frame.anchors, frame.layout, &lengths, start, &FkConfig::default()));
+}
+
+fn fk_four(fx: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    fk_layout(fx, false, rng, out)
+}
+
+fn fk_planar(fx: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    fk_layout(fx, true, rng, out)
+}
+
+/// Inside the hull (mostly), forces up to 30 N (feasible and scaled); one
+/// vector in four at a central-cube position (outside the hull for some).
+fn tension_layout(fx: &Fixtures, planar: bool, rng: &mut Rng, out: &mut dyn Out) {
+    use spidar_core::tension::{distribute, force_closure, TensionConfig};
+    let Some(c) = layout_calibration(fx, planar) else { return out.u32(u32::MAX) };
+    let frame = &c.head.frame;
+    let p = if rng.i32_in(0, 3) == 0 { central_position(rng) } else { position_inside(frame, rng) };
+    let f = force(rng, 30.0);
+    let cfg = TensionConfig::default();
+    let s = distribute(&frame.anchors, frame.layout, p, f, tension_limits(), &cfg);
+    tension_solution(out, &s);
+    out.debug(&force_closure(&frame.anchors, frame.layout, p, tension_limits(), &cfg));
+}
+
+fn tension_four(fx: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    tension_layout(fx, false, rng, out)
+}
+
+fn tension_planar(fx: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    tension_layout(fx, true, rng, out)
+}
+
+fn control_four(fx: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    let Some(c) = layout_calibration(fx, false) else { return out.u32(u32::MAX) };
+    control_steps(&c, rng, out)
+}
+
+fn control_planar(fx: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    let Some(c) = layout_calibration(fx, true) else { return out.u32(u32::MAX) };
+    control_steps(&c, rng, out)
 }

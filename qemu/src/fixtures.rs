@@ -22,5 +22,7 @@ pub fn fixtures() -> Fixtures<'static> {
         nn_blob: out_bytes!("nn.blob"),
         svr_blob: out_bytes!("svr.blob"),
         svr_blob_odd: &out_bytes!("svr_odd.blob")[1..],
+        four_blob: out_bytes!("four.blob"),
+        planar_blob: out_bytes!("planar.blob"),
     }
 }

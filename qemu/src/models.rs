@@ -4,6 +4,8 @@
 //! NN 3-20-3 correction, the other an RBF SVR with 1,000 support vectors (the
 //! issue's benchmark sizes). Weights are shaped like trained ones (see
 //! `spidar_core::correction`'s tests): realistic magnitudes, random values.
+//! Two more use 4 of the 8 channels (issue 11): a 4-line cable robot in
+//! space and a planar device, both with the NN.
 
 use spidar_core::correction::{CorrectionModel, NnModel, OutputMode, Standardization, SvrModel};
 use spidar_core::model::{Calibration, Effect, EffectTerm, Frame, StringLaw, StringLayout};
@@ -60,6 +62,40 @@ fn calibration(correction: CorrectionModel) -> Calibration {
         effects,
         correction,
     }
+}
+
+/// A 4-line cable robot (three low anchors, one high; channels 0..4) with
+/// two effect terms per string and the NN correction: the N = 4 model.
+fn four_line(correction: CorrectionModel) -> Calibration {
+    let mut c = calibration(correction);
+    c.frame.layout = StringLayout::first(4, false);
+    c.frame.anchors = [[0.0; 3]; STRINGS];
+    for (i, a) in crate::cases::FOUR_LINE_ANCHORS.iter().enumerate() {
+        c.frame.anchors[i] = a.map(f64::from);
+    }
+    c.frame.home = [10.0, -20.0, 300.0];
+    for (k, t) in c.effects.iter_mut().enumerate() {
+        t.string = (k % 4) as u8;
+    }
+    c
+}
+
+/// A planar SPIDAR: 4 strings at the corners of a 1.6 m x 1.2 m frame in
+/// the plane z = 25 mm, on channels 0, 2, 5, 7 (the others unused), one or
+/// two effect terms per string and the NN correction.
+fn planar(correction: CorrectionModel) -> Calibration {
+    let mut c = calibration(correction);
+    c.frame.layout = StringLayout { active: crate::cases::PLANAR_ACTIVE, planar: true };
+    c.frame.anchors = [[0.0; 3]; STRINGS];
+    let channels = [0usize, 2, 5, 7];
+    for (k, a) in crate::cases::PLANAR_ANCHORS.iter().enumerate() {
+        c.frame.anchors[channels[k]] = a.map(f64::from);
+    }
+    c.frame.home = [10.0, -20.0, 25.0];
+    for (k, t) in c.effects.iter_mut().enumerate() {
+        t.string = channels[k % 4] as u8;
+    }
+    c
 }
 
 fn nn_model() -> NnModel {
@@ -126,4 +162,14 @@ pub fn nn_blob() -> Vec<u8> {
 /// The compiled blob with the 1,000-SV SVR correction.
 pub fn svr_blob() -> Vec<u8> {
     compile(&calibration(CorrectionModel::Svr(svr_model())), 2)
+}
+
+/// The compiled N = 4 blob (4-line cable robot, NN 3-20-3).
+pub fn four_line_blob() -> Vec<u8> {
+    compile(&four_line(CorrectionModel::Nn(nn_model())), 3)
+}
+
+/// The compiled planar N = 4 blob (NN 3-20-3).
+pub fn planar_blob() -> Vec<u8> {
+    compile(&planar(CorrectionModel::Nn(nn_model())), 4)
 }

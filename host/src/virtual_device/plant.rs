@@ -227,7 +227,7 @@ impl Plant {
         self.boot_counts = [0; STRINGS];
         if let Trajectory::Held(hand) = &self.trajectory {
             let p = hand.position_mm();
-            for i in 0..STRINGS {
+            for i in self.device.frame.layout.indices() {
                 let length = norm(&sub(&p, &self.device.frame.anchors[i]));
                 match self.device.counts_for_length(i, length, 0.0, 0, 0.0, 0.0) {
                     Ok(c) => self.boot_counts[i] = c,
@@ -282,11 +282,14 @@ impl Plant {
         }
         let p = self.device_mm_at(t_us);
         let t_s = t_us as f64 / 1e6;
+        // Channels without a string (the frame's layout) keep their counter
+        // still and pull nothing.
+        let layout = self.device.frame.layout;
         let mut lengths = [0.0; STRINGS];
-        for (i, l) in lengths.iter_mut().enumerate() {
-            *l = norm(&sub(&p, &self.device.frame.anchors[i]));
+        for i in layout.indices() {
+            lengths[i] = norm(&sub(&p, &self.device.frame.anchors[i]));
         }
-        for i in 0..STRINGS {
+        for i in layout.indices() {
             let speed = match self.prev_length {
                 Some(prev) if dt_s > 0.0 => (lengths[i] - prev[i]) / dt_s,
                 _ => 0.0,

@@ -21,6 +21,8 @@ pub fn string_model(counts: u32) -> StringModel {
         pulley_radius_mm: [7.5; STRINGS],
         anchors_mm: anchors,
         home_mm: [0.5, -1.25, 3.0],
+        active_strings: 0xFF,
+        planar: false,
     }
 }
 
@@ -200,7 +202,22 @@ pub fn device_errors(max: bool) -> Vec<DeviceError> {
             found: w,
             expected: w,
         }),
-        DeviceError::BlobRejected(BlobRejection::Body { field }),
+        DeviceError::BlobRejected(BlobRejection::Body {
+            field: field.clone(),
+        }),
+        DeviceError::BlobRejected(BlobRejection::TooFewStrings {
+            strings: if max { u8::MAX } else { 2 },
+            dof: 3,
+        }),
+        DeviceError::BlobRejected(BlobRejection::InactiveString {
+            field,
+            string: if max { u8::MAX } else { 5 },
+        }),
+        DeviceError::NotForceClosed {
+            strings: if max { u8::MAX } else { 4 },
+            dof: 3,
+            too_few_strings: max,
+        },
         DeviceError::Storage { code: w },
     ]
 }
@@ -306,7 +323,10 @@ pub fn device_message_name(m: &DeviceMessage) -> &'static str {
                     BlobRejection::BodyCrc { .. } => "Error(Blob(BodyCrc))",
                     BlobRejection::Dimension { .. } => "Error(Blob(Dimension))",
                     BlobRejection::Body { .. } => "Error(Blob(Body))",
+                    BlobRejection::TooFewStrings { .. } => "Error(Blob(TooFewStrings))",
+                    BlobRejection::InactiveString { .. } => "Error(Blob(InactiveString))",
                 },
+                DeviceError::NotForceClosed { .. } => "Error(NotForceClosed)",
                 DeviceError::Storage { .. } => "Error(Storage)",
             },
         },
@@ -320,7 +340,7 @@ pub fn device_message_name(m: &DeviceMessage) -> &'static str {
     }
 }
 /// Distinct names `device_message_name` returns (BadState counted once).
-pub const DEVICE_MESSAGE_VARIANTS: usize = 33;
+pub const DEVICE_MESSAGE_VARIANTS: usize = 36;
 
 /// Encodes a raw postcard payload (seq + message bytes) into a frame, CRC and
 /// COBS included, bypassing the typed encoder (to build frames a correct

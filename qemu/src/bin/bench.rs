@@ -18,7 +18,8 @@ use spidar_core::STRINGS;
 use spidar_protocol::messages::{Request, Response};
 use spidar_qemu::bench::{measure, measure_overhead};
 use spidar_qemu::cases::{
-    calibration, central_position, cube_anchors, force, lengths_at, string_inputs, tension_limits, Rng,
+    calibration, central_position, cube_anchors, force, layout_calibration, lengths_at, position_inside, string_inputs,
+    tension_limits, Rng,
 };
 use spidar_qemu::fixtures::fixtures;
 use spidar_qemu::{exit, hprintln};
@@ -63,7 +64,7 @@ fn main() -> ! {
     // Pipeline stages.
     let inputs: [spidar_core::model::StringInputs; N] = core::array::from_fn(|_| string_inputs(&mut rng));
     measure("string_law::string_lengths (8 strings, 8 effects)", None, N as u32, |i| {
-        spidar_core::string_law::string_lengths(laws, effects, &inputs[at(i)])
+        spidar_core::string_law::string_lengths(StringLayout::ALL, laws, effects, &inputs[at(i)])
     });
     measure("kinematics::inverse_kinematics f32", None, N as u32, |i| inverse_kinematics(&anchors, positions[at(i)]));
     // Warm start as in the control loop: the previous position, ~0.1 mm away
@@ -100,17 +101,17 @@ fn main() -> ! {
     });
 
     measure("tension::distribute f32 (feasible, |F_i| <= 3 N)", None, N as u32, |i| {
-        distribute(&anchors, positions[at(i)], small_forces[at(i)], lim, &cfg).tensions
+        distribute(&anchors, StringLayout::ALL, positions[at(i)], small_forces[at(i)], lim, &cfg).tensions
     });
     measure("tension::distribute f32 (scaled, |F_i| <= 300 N)", None, N as u32, |i| {
-        distribute(&anchors, positions[at(i)], large_forces[at(i)], lim, &cfg).tensions
+        distribute(&anchors, StringLayout::ALL, positions[at(i)], large_forces[at(i)], lim, &cfg).tensions
     });
     // Control-loop use: warm start from the previous multiplier, 0.1 mm steps.
     let mut lambda = [0.0f32; 3];
     let mut p = positions[0];
     measure("tension::distribute_warm f32 (path, 30 N)", None, N as u32, |i| {
         p[(i % 3) as usize] += 0.1;
-        let s = distribute_warm(&anchors, p, [10.0, -20.0, 30.0], lim, &cfg, lambda);
+        let s = distribute_warm(&anchors, StringLayout::ALL, p, [10.0, -20.0, 30.0], lim, &cfg, lambda);
         lambda = s.multiplier;
         s.tensions
     });
@@ -217,6 +218,75 @@ fn main() -> ! {
         }
     }
 
+    // N = 4 (issue 11): the 4-line cable robot and the planar device, on 4
+    // of the 8 channels. The 8-string rows above are the ones to compare
+    // with earlier runs.
+    let (Some(four_cal), Some(planar_cal)) = (layout_calibration(&fx, false), layout_calibration(&fx, true)) else {
+        hprintln!("FAIL: N = 4 fixture blobs do not parse");
+        exit(false)
+    };
+    for (names, cal) in [
+        (
+            [
+                "N=4 4-line: string_law::string_lengths (4 strings, 8 effects)",
+                "N=4 4-line: kinematics::forward_kinematics f32 (warm)",
+                "N=4 4-line: tension::distribute f32 (|F_i| <= 3 N)",
+                "N=4 4-line: control::Controller::step (NN 3-20-3)",
+            ],
+            &four_cal,
+        ),
+        (
+            [
+                "N=4 planar: string_law::string_lengths (4 strings, 8 effects)",
+                "N=4 planar: kinematics::forward_kinematics f32 (warm)",
+                "N=4 planar: tension::distribute f32 (|F_i| <= 3 N)",
+                "N=4 planar: control::Controller::step (NN 3-20-3)",
+            ],
+            &planar_cal,
+        ),
+    ] {
+        let frame = cal.head.frame;
+        let inside: [[f32; 3]; N] = core::array::from_fn(|_| position_inside(&frame, &mut rng));
+        let lengths: [[f32; STRINGS]; N] = core::array::from_fn(|k| inverse_kinematics(&frame.anchors, inside[k]));
+        measure(names[0], None, N as u32, |i| {
+            spidar_core::string_law::string_lengths(frame.layout, &cal.head.laws, &cal.head.effects, &inputs[at(i)])
+        });
+        let mut prev = inside[0];
+        measure(names[1], None, N as u32, |i| {
+            let k = at(i);
+            let start = [inside[k][0] + 0.1, inside[k][1] - 0.05, inside[k][2]];
+            let s = forward_kinematics(&frame.anchors, frame.layout, &lengths[k], black_box(start), &fk_cfg);
+            prev = s.position;
+            s.position
+        });
+        black_box(prev);
+        measure(names[2], None, N as u32, |i| {
+            distribute(&frame.anchors, frame.layout, inside[at(i)], small_forces[at(i)], lim, &cfg).tensions
+        });
+        let raw = controller_path(cal);
+        let Ok(mut ctl) = Controller::new(ControlConfig::default(), cal, [0; STRINGS], 0) else { exit(false) };
+        ctl.set_target(Target::Force([1.0, -0.5, 0.25]));
+        ctl.safety().heartbeat(0);
+        let armed = ctl.safety().arm().is_ok();
+        let mut fk_ok = 0;
+        let mut exact = 0;
+        measure(names[3], Some(55_000), N as u32, |i| {
+            ctl.safety().heartbeat(i / 10);
+            let out = ctl.step(cal, &LoopInput { raw_counts: raw[at(i)], now_ms: i / 10, estop: false });
+            fk_ok += (out.fk_status == spidar_core::kinematics::FkStatus::Ok) as u32;
+            exact += (out.tension_status == spidar_core::tension::TensionStatus::Exact) as u32;
+            out.tensions_n
+        });
+        hprintln!(
+            "INFO\t{}: armed {}, FK status Ok in {} of {} iterations, tensions exact in {}",
+            names[3],
+            armed,
+            fk_ok,
+            N,
+            exact
+        );
+    }
+
     // The same pipeline composed here from the parts (measured before
     // `control` landed; kept to show what the parts add up to): encoders ->
     // string law -> FK (warm) -> room transform -> correction -> guidance ->
@@ -290,7 +360,8 @@ impl Loop {
     ) -> bool {
         let inputs = self.inputs(raw, now_ms);
         let frame = &cal.head.frame;
-        let lengths_q16 = spidar_core::string_law::string_lengths(&cal.head.laws, &cal.head.effects, &inputs);
+        let lengths_q16 =
+            spidar_core::string_law::string_lengths(frame.layout, &cal.head.laws, &cal.head.effects, &inputs);
         let lengths: [f32; STRINGS] = core::array::from_fn(|s| lengths_q16[s] as f32 / 65536.0);
         let fk = forward_kinematics(&frame.anchors, frame.layout, &lengths, self.position, fk_cfg);
         self.position = fk.position;
@@ -306,7 +377,7 @@ impl Loop {
         let geometric = inverse_kinematics(&frame.anchors, p);
         let fk_ok = fk.status == spidar_core::kinematics::FkStatus::Ok;
         self.monitor.check(now_ms, &lengths, &geometric, fk_ok);
-        let sol = distribute_warm(&frame.anchors, p, f, lim, cfg, self.lambda);
+        let sol = distribute_warm(&frame.anchors, frame.layout, p, f, lim, cfg, self.lambda);
         self.lambda = sol.multiplier;
         self.tensions = self.monitor.apply(sol.tensions);
         fk_ok
@@ -332,7 +403,12 @@ impl Loop {
         let mut counts = self.counts;
         for _ in 0..8 {
             let inputs = self.clone().inputs(counts.map(|c| c as u16), 0);
-            let got = spidar_core::string_law::string_lengths(&cal.head.laws, &cal.head.effects, &inputs);
+            let got = spidar_core::string_law::string_lengths(
+                cal.head.frame.layout,
+                &cal.head.laws,
+                &cal.head.effects,
+                &inputs,
+            );
             for s in 0..STRINGS {
                 // ~0.0184 mm per count (12 mm radius, 4096 counts per turn).
                 let err_mm = want[s] - got[s] as f32 / 65536.0;
