@@ -215,6 +215,11 @@ impl PhysicsConfig {
             tension: self.tension.clone(),
             lattice: self.lattice.clone(),
             random: self.random.clone(),
+            // This simulator's abnormal motor is its own section (below).
+            abnormal_motor: crate::sim::config::AbnormalMotorConfig {
+                enabled: false,
+                ..Default::default()
+            },
             ..crate::sim::SimConfig::default()
         }
         .validate()?;
@@ -293,11 +298,16 @@ impl PhysicsConfig {
             ));
         }
         let m = &self.abnormal_motor;
-        let strings = self.nominal.geometry().anchors_mm.len();
-        if usize::from(m.string) >= strings {
+        let strings = self.nominal.geometry().strings();
+        if m.enabled && usize::from(m.string) >= strings {
             return Err(bad(
                 "abnormal_motor.string",
-                format!("{} is not an encoder index 0..{}", m.string, strings - 1),
+                format!(
+                    "{} is not a string of this {strings}-string device (0..{}); choose one or \
+                     set abnormal_motor.enabled = false",
+                    m.string,
+                    strings - 1
+                ),
             ));
         }
         non_negative("abnormal_motor.region_length_mm", m.region_length_mm)?;

@@ -198,7 +198,9 @@ pub struct PhysicsRow {
 /// The one step from N-string captures to dataset rows (N = 3..8, on
 /// channels `0..N`; the other channels' counts and tensions are 0).
 pub fn rows_to_session(rows: Vec<PhysicsRow>) -> Result<Session, SimError> {
-    let strings = rows.first().map_or(spidar_core::STRINGS, |r| r.counts.len());
+    let strings = rows
+        .first()
+        .map_or(spidar_core::STRINGS, |r| r.counts.len());
     let samples = rows
         .into_iter()
         .map(|r| {
