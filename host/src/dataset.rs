@@ -1192,6 +1192,8 @@ pub struct OpenedSession {
 pub struct SessionAppender {
     file: fs::File,
     path: PathBuf,
+    /// Strings of the device (`enc0..enc{strings-1}`).
+    strings: usize,
     rows: usize,
     last: Option<(f64, u64)>,
     /// A write failed part-way: the file may end in a partial row, so no
@@ -1200,17 +1202,31 @@ pub struct SessionAppender {
 }
 
 impl SessionAppender {
-    /// The header line this writer writes (no newline).
+    /// The header line this writer writes for an 8-string device (no newline).
     pub fn header_line() -> String {
-        session_header(true, true).join(",")
+        Self::header_line_for(STRINGS)
     }
 
-    /// Opens `path` for appending, creating it (with its header) if it does
-    /// not exist or is empty. See the type's documentation for what an
-    /// existing file must satisfy.
+    /// The header line for a device with `strings` strings (no newline).
+    pub fn header_line_for(strings: usize) -> String {
+        session_header_for(strings, true, true).join(",")
+    }
+
+    /// Opens `path` for appending the rows of an 8-string device (see
+    /// [`SessionAppender::open_for`]).
     pub fn open(path: impl AsRef<Path>) -> Result<OpenedSession, DatasetError> {
+        Self::open_for(path, STRINGS)
+    }
+
+    /// Opens `path` for appending the rows of a device with `strings`
+    /// strings (3..=8), creating it (with its header) if it does not exist
+    /// or is empty. See the type's documentation for what an existing file
+    /// must satisfy: its header must be this device's (a file of another
+    /// number of strings is refused, naming both headers).
+    pub fn open_for(path: impl AsRef<Path>, strings: usize) -> Result<OpenedSession, DatasetError> {
         use io::{Read, Seek, Write};
         let path = path.as_ref();
+        let strings = strings.clamp(MIN_STRINGS, STRINGS);
         let mut file = fs::OpenOptions::new()
             .read(true)
             .append(true)
@@ -1220,7 +1236,7 @@ impl SessionAppender {
         let mut bytes = Vec::new();
         file.read_to_end(&mut bytes)
             .map_err(|e| io_error(path, "cannot read", e))?;
-        let header = Self::header_line();
+        let header = Self::header_line_for(strings);
         let mismatch = |found: &[u8]| DatasetError::HeaderMismatch {
             file: path.to_path_buf(),
             found: String::from_utf8_lossy(found).trim_end().to_string(),
@@ -1242,7 +1258,10 @@ impl SessionAppender {
             None => return Err(mismatch(&bytes)),
         };
         let existing = if keep == 0 {
-            Session::default()
+            Session {
+                strings,
+                ..Session::default()
+            }
         } else {
             let first_line = bytes[..keep].split(|&b| b == b'\n').next().unwrap_or(&[]);
             let first_line = first_line.strip_suffix(b"\r").unwrap_or(first_line);
@@ -1279,6 +1298,7 @@ impl SessionAppender {
             appender: SessionAppender {
                 file,
                 path: path.to_path_buf(),
+                strings,
                 rows,
                 last,
                 failed: false,
@@ -1319,7 +1339,7 @@ impl SessionAppender {
         }
         check_sample(&self.path, line, sample, self.last)?;
         let mut fields = Vec::new();
-        row_fields(sample, STRINGS, true, true, &mut fields);
+        row_fields(sample, self.strings, true, true, &mut fields);
         let mut w = csv::WriterBuilder::new().from_writer(Vec::new());
         w.write_record(&fields)
             .map_err(|e| csv_write_error(&self.path, e))?;
@@ -1439,5 +1459,38 @@ mod append_tests {
         let e = SessionAppender::open(&path).err().expect("refused");
         assert!(e.to_string().contains("line 2, column `enc0`"), "{e}");
         assert_eq!(fs::read_to_string(&path).unwrap(), bad);
+    }
+}
+
+#[cfg(test)]
+mod append_n_tests {
+    use super::*;
+
+    #[test]
+    fn a_four_string_device_appends_its_own_columns_and_refuses_an_eight_string_file() {
+        let dir = std::env::temp_dir().join(format!("spidar-append4-{}", std::process::id()));
+        let _ = fs::create_dir_all(&dir);
+        let path = dir.join("four.csv");
+        let _ = fs::remove_file(&path);
+        let mut opened = SessionAppender::open_for(&path, 4).unwrap();
+        let sample = Sample {
+            t_s: 0.5,
+            counts: [1, 2, 3, 4, 0, 0, 0, 0],
+            tracker: Some([1.0, 2.0, 3.0]),
+            legacy: None,
+            tension_n: Some([1.0, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0]),
+        };
+        opened.appender.append(&sample).unwrap();
+        drop(opened);
+        let text = fs::read_to_string(&path).unwrap();
+        assert!(text.starts_with("t_s,enc0,enc1,enc2,enc3,ots_x"), "{text}");
+        let read = Session::load(&path).unwrap();
+        assert_eq!(read.strings, 4);
+        assert_eq!(read.samples, vec![sample]);
+        assert_eq!(SessionAppender::open_for(&path, 4).unwrap().existing, read);
+        let e = SessionAppender::open(&path)
+            .err()
+            .expect("8-string writer refused");
+        assert!(matches!(e, DatasetError::HeaderMismatch { .. }), "{e}");
     }
 }
