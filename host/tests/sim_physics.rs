@@ -208,15 +208,19 @@ fn bad_input_is_named() {
     );
     let _ = std::fs::remove_dir_all(dir);
 
-    // A device of another string count is refused by the dataset step, by name.
-    let rows = vec![PhysicsRow {
+    // Rows of 3 to 8 strings make a session of that many; 2, or rows that
+    // disagree, are refused by name.
+    let row = |n: usize| PhysicsRow {
         t_s: 0.0,
-        counts: vec![0; 3],
+        counts: vec![0; n],
         tracker: None,
-        tension_n: vec![1.0; 3],
-    }];
-    let e = rows_to_session(rows).unwrap_err().to_string();
-    assert!(e.contains("3 strings"), "{e}");
+        tension_n: vec![1.0; n],
+    };
+    assert_eq!(rows_to_session(vec![row(3)]).unwrap().strings, 3);
+    let e = rows_to_session(vec![row(2)]).unwrap_err().to_string();
+    assert!(e.contains("2 strings"), "{e}");
+    let e = rows_to_session(vec![row(4), row(5)]).unwrap_err().to_string();
+    assert!(e.contains("5 strings"), "{e}");
 }
 
 #[test]
