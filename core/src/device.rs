@@ -423,6 +423,8 @@ pub struct Device<'m, F: ModelFlash> {
     last_heartbeat_ms: Option<u32>,
     last_raw: [u16; STRINGS],
     last_now_us: u64,
+    /// Device time at which home was last declared (boot or `Home`), µs.
+    home_us: u64,
     estop: bool,
     last_out: LoopOutput,
     stream: Option<Stream>,
@@ -489,6 +491,7 @@ impl<'m, F: ModelFlash> Device<'m, F> {
             last_heartbeat_ms: None,
             last_raw: raw_counts,
             last_now_us: now_us,
+            home_us: now_us,
             estop: false,
             last_out: idle_output(false, model_invalid),
             stream: None,
@@ -604,6 +607,7 @@ impl<'m, F: ModelFlash> Device<'m, F> {
         };
         let now_ms = ms(self.last_now_us);
         if let Ok(mut c) = Controller::new(self.config.control, cal, self.last_raw, now_ms) {
+            self.home_us = self.last_now_us;
             if let Some(t) = self.last_heartbeat_ms {
                 c.safety().heartbeat(t);
             }
@@ -833,6 +837,7 @@ impl<'m, F: ModelFlash> Device<'m, F> {
                     return Err(DeviceError::BadState(BadState::NoGeometry));
                 };
                 c.home(cal, self.last_raw, now_ms);
+                self.home_us = now_us;
                 c.set_target(Target::Idle);
                 self.target = Target::Idle;
                 self.push_event(Event::Homed);
@@ -1059,6 +1064,7 @@ impl<'m, F: ModelFlash> Device<'m, F> {
         let out = &self.last_out;
         let state = State {
             time_us: self.last_now_us,
+            since_home_us: self.last_now_us.saturating_sub(self.home_us),
             counts: out.counts,
             position_mm: out.position_mm,
             corrected_mm: out.corrected_q16,
@@ -1596,6 +1602,8 @@ mod tests {
         assert_eq!(last.counts, out.counts);
         assert_eq!(last.corrected_mm, out.corrected_q16);
         assert_eq!(last.loop_us, 40);
+        // Booted (and homed) at device time 0: both clocks agree.
+        assert_eq!(last.since_home_us, last.time_us);
         for (got, want) in last.position_mm.iter().zip(p) {
             assert!((got - want as f32).abs() < 0.05);
         }
@@ -1967,11 +1975,29 @@ mod tests {
         );
         let out = b.tick_at(raw_at([0.0; 3]));
         assert_eq!(out.force_n, [1.0, 0.0, 0.0]);
+        assert_eq!(
+            b.request(&Request::StreamOn { decimation: 1 }),
+            Response::Ack
+        );
+        let homed_at_us = b.now_us;
         assert_eq!(b.request(&Request::Home), Response::Ack);
         let mut out = b.tick_at(raw_at([0.0; 3]));
         for _ in 0..5 {
             out = b.tick_at(raw_at([0.0; 3]));
         }
+        // The state frame says when it was sampled, since boot and since home.
+        let last = b
+            .stream
+            .iter()
+            .rev()
+            .find_map(|p| match p.msg {
+                DeviceMessage::State(s) => Some(s),
+                _ => None,
+            })
+            .unwrap();
+        assert_eq!(last.time_us, b.now_us);
+        assert_eq!(last.since_home_us, b.now_us - homed_at_us);
+        assert_eq!(last.since_home_us, 6000);
         assert_eq!(out.counts, [0; STRINGS]);
         assert!(out.armed);
         assert_eq!(out.force_n, [0.0; 3]);

@@ -586,8 +586,15 @@ impl fmt::Display for DeviceError {
 /// iteration.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct State {
-    /// Time since boot, microseconds.
+    /// When the sample was taken: the control loop's timer at the start of
+    /// the iteration whose outputs this frame reports, microseconds since
+    /// boot. The host maps it to the tracker's clock (offset and drift) and
+    /// pairs by it, never by arrival time.
     pub time_us: u64,
+    /// The same instant, microseconds since home was declared (boot, or the
+    /// last `Request::Home`): the time the string law's time-dependent terms
+    /// (drift, slip) read. Protocol v3.
+    pub since_home_us: u64,
     /// Encoder counts since home, per string (extended to 32 bits).
     pub counts: [i32; STRINGS],
     /// End-effector position from forward kinematics, device frame, millimetres.

@@ -177,7 +177,7 @@ fn device_error() -> impl Strategy<Value = DeviceError> {
 
 fn state(f: fn() -> F) -> impl Strategy<Value = State> {
     (
-        any::<u64>(),
+        (any::<u64>(), any::<u64>()),
         uniform8(any::<i32>()),
         uniform3(f()),
         uniform3(any::<i32>()),
@@ -190,8 +190,9 @@ fn state(f: fn() -> F) -> impl Strategy<Value = State> {
             proptest::option::of(any::<u32>()),
         ),
     )
-        .prop_map(|(t, c, p, q, tn, (fl, sl, ex), (lu, lm, ar, mi))| State {
+        .prop_map(|((t, h), c, p, q, tn, (fl, sl, ex), (lu, lm, ar, mi))| State {
             time_us: t,
+            since_home_us: h,
             counts: c,
             position_mm: p,
             corrected_mm: q,
