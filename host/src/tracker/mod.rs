@@ -19,6 +19,7 @@ pub mod dtrack;
 pub mod receiver;
 pub mod replay;
 pub mod sim;
+pub mod clock;
 pub mod sync;
 
 use std::io;
@@ -29,6 +30,7 @@ pub use dtrack::{BodyPose, DtrackError, DtrackFrame};
 pub use receiver::{DtrackReceiver, ReceiverConfig, ReceiverStats};
 pub use replay::{Pacing, ReplaySource};
 pub use sim::{SimReport, SimSender, SimSenderConfig};
+pub use clock::{ClockSync, StateHistory};
 pub use sync::{estimate_time_shift, ShiftConfig, SyncError, TimeShift, TimedPosition};
 
 /// One tracker measurement of the end-effector's marker body.
