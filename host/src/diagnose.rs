@@ -882,10 +882,8 @@ pub struct Validation {
     pub held: ErrorStats,
     /// The two interleaved folds pooled (every row once).
     pub interleaved: ErrorStats,
-    /// Sampling noise of `held`'s p95 and max: how much the statistic differs
-    /// between the two interleaved halves (each half is an equally good
-    /// sample; their difference is on average about two standard errors of
-    /// the pooled statistic), at least 1 % (p95) and 2 % (max) of it.
+    /// Sampling noise (two standard errors) of `held`'s p95 and max, see
+    /// [`tail_noise`].
     pub noise_p95_mm: f64,
     pub noise_max_mm: f64,
 }
@@ -905,12 +903,34 @@ pub struct Check {
     pub reason: String,
 }
 
-/// Noise of the p95 and max of errors sampled as two equal halves `a` and
-/// `b` (pooled `all`): the difference of each statistic between the halves,
-/// floored at 1 % (p95) and 2 % (max) of the pooled value.
-pub fn tail_noise(a: &ErrorStats, b: &ErrorStats, all: &ErrorStats) -> (f64, f64) {
-    let p95 = (a.p95_mm - b.p95_mm).abs().max(0.01 * all.p95_mm);
-    let max = (a.max_mm - b.max_mm).abs().max(0.02 * all.max_mm);
+/// Sampling noise (two standard errors) of the p95 and the max of a set of
+/// errors, from the set itself. p95: half the spread between the errors at
+/// ranks `n (0.95 -+ 2 sqrt(0.95 0.05 / n))` (the binomial uncertainty of the
+/// rank). Max: the errors' tail beyond the p95 is taken as exponential with
+/// the mean excess `beta`; the maximum of such a sample is Gumbel-distributed
+/// with standard deviation `pi / sqrt(6) beta`.
+pub fn tail_noise(errors: &[f64]) -> (f64, f64) {
+    let n = errors.len();
+    if n < 2 {
+        return (f64::INFINITY, f64::INFINITY);
+    }
+    let mut sorted = errors.to_vec();
+    sorted.sort_by(f64::total_cmp);
+    let at = |q: f64| sorted[((q * n as f64).ceil() as usize).clamp(1, n) - 1];
+    let band = 2.0 * (0.95 * 0.05 / n as f64).sqrt();
+    let p95 = 0.5 * (at((0.95 + band).min(1.0)) - at(0.95 - band));
+    let threshold = at(0.95);
+    let tail: Vec<f64> = sorted
+        .iter()
+        .filter(|e| **e > threshold)
+        .map(|e| e - threshold)
+        .collect();
+    let beta = if tail.is_empty() {
+        0.0
+    } else {
+        tail.iter().sum::<f64>() / tail.len() as f64
+    };
+    let max = 2.0 * std::f64::consts::PI / 6f64.sqrt() * beta;
     (p95, max)
 }
 
@@ -1017,14 +1037,13 @@ fn validate_fits(
         })
         .collect::<Result<_, IdentifyError>>()?;
     let errors: Vec<&[f64]> = fits.iter().map(|f| f.1.as_slice()).collect();
-    let a = ErrorStats::of(errors[0]);
-    let b = ErrorStats::of(errors[1]);
     let interleaved = ErrorStats::of(&errors[..2].concat());
-    let held = match kind {
-        Folds::Blocked => ErrorStats::of(&errors[2..].concat()),
-        Folds::Interleaved => interleaved,
+    let held_errors = match kind {
+        Folds::Blocked => errors[2..].concat(),
+        Folds::Interleaved => errors[..2].concat(),
     };
-    let (noise_p95_mm, noise_max_mm) = tail_noise(&a, &b, &held);
+    let held = ErrorStats::of(&held_errors);
+    let (noise_p95_mm, noise_max_mm) = tail_noise(&held_errors);
     Ok((
         Validation {
             folds: kind,

@@ -682,17 +682,8 @@ pub fn calibrate(
     let s_id = ErrorStats::of(&e_id);
     let s_nn = ErrorStats::of(&point_error_list(|p| nn_corr.evaluate(p), &x_sel, &t_sel));
     let s_svr = ErrorStats::of(&point_error_list(|p| svr_corr.evaluate(p), &x_sel, &t_sel));
-    // Noise of the identified model's p95 and max on the selection split:
-    // their difference between its two interleaved halves.
-    let half = |parity: usize| -> Vec<f64> {
-        e_id.iter()
-            .enumerate()
-            .filter(|(k, _)| k % 2 == parity)
-            .map(|(_, e)| *e)
-            .collect()
-    };
-    let (noise_p95, noise_max) =
-        tail_noise(&ErrorStats::of(&half(0)), &ErrorStats::of(&half(1)), &s_id);
+    // Noise of the identified model's p95 and max on the selection split.
+    let (noise_p95, noise_max) = tail_noise(&e_id);
     let enough_to_choose = x_sel.len() >= MIN_SELECTION_POINTS;
     if !enough_to_choose {
         warnings.push(format!(

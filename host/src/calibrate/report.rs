@@ -226,9 +226,9 @@ pub struct Selection {
     pub validation_mean_mm: Candidates,
     pub validation_p95_mm: Candidates,
     pub validation_max_mm: Candidates,
-    /// Sampling noise of the identified model's p95 and max on the selection
-    /// split (their difference between its two interleaved halves, at least
-    /// 1 % and 2 %): a correction may not raise them by more.
+    /// Sampling noise (two standard errors, `diagnose::tail_noise`) of the
+    /// identified model's p95 and max on the selection split: a correction
+    /// may not raise them by more.
     pub noise_p95_mm: f64,
     pub noise_max_mm: f64,
     /// Why the final model was chosen (and the corrections refused).
