@@ -949,11 +949,13 @@ fn model_error_list(id: &Identification, observations: &[Observation]) -> Vec<f6
     position_errors(&p, &t)
 }
 
-/// The folds of a session: (fit rows, held-out rows), by index into the
-/// tracked observations; the first two are the interleaved ones.
-fn folds(tracked: &[&Observation]) -> (Folds, Vec<(Vec<usize>, Vec<usize>)>) {
+/// One fold: (fit rows, held-out rows), by index into the tracked rows.
+type Fold = (Vec<usize>, Vec<usize>);
+
+/// The folds of a session; the first two are the interleaved ones.
+fn folds(tracked: &[&Observation]) -> (Folds, Vec<Fold>) {
     let n = tracked.len();
-    let parity = |p: usize| -> (Vec<usize>, Vec<usize>) {
+    let parity = |p: usize| -> Fold {
         (
             (0..n).filter(|k| k % 2 != p).collect(),
             (0..n).filter(|k| k % 2 == p).collect(),
@@ -1074,12 +1076,10 @@ fn stability(change: Change, fits: &[Identification]) -> Option<(f64, usize)> {
     let k = crate::identify::effect_parameter_info(&term.effect).len();
     let (early, late) = (fits.get(2)?, fits.get(3)?);
     let tail = |id: &Identification| {
-        id.parameters[id.parameters.len().checked_sub(k)?..]
-            .to_vec()
-            .into()
+        let from = id.parameters.len().checked_sub(k)?;
+        Some(id.parameters[from..].to_vec())
     };
-    let (a, b): (Option<Vec<_>>, Option<Vec<_>>) = (tail(early), tail(late));
-    let (a, b) = (a?, b?);
+    let (a, b) = (tail(early)?, tail(late)?);
     let chi2 = a
         .iter()
         .zip(&b)
