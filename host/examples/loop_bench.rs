@@ -6,11 +6,18 @@
 //!
 //! `cargo run --release -p spidar --example loop_bench -- [SEEDS] [CLEAN_SEEDS]`
 //! (defaults 5 and 20).
+//!
+//! With `--clean-only [CLEAN_SEEDS]`: only the false findings, on clean
+//! sessions of both simulators (the model simulator and the independent
+//! physics, `sim::physics`), each effect added named per seed. The loop
+//! does not depend on the NN/SVR settings, so this is the full loop.
 
 use spidar::diagnose::{close_loop, family_name, variable_name, Family, LoopConfig, Variable};
 use spidar::identify::Start;
 use spidar::observe::observations;
+use spidar::observe::Observation;
 use spidar::sim::config::SimConfig;
+use spidar::sim::physics::{self, PhysicsConfig, PhysicsDevice};
 use spidar::sim::{simulate_session, Device, SessionKind};
 
 struct Outcome {
@@ -64,7 +71,96 @@ fn run(seed: u64, effects: &[&str], expect: Option<(Family, &[u8], Variable)>) -
     }
 }
 
+/// The loop on a clean session: the names of the effects it added, and the
+/// held-out (test) error after it.
+fn clean_loop(
+    geometry: &spidar::dataset::Geometry,
+    train: &[Observation],
+    test: &[Observation],
+) -> (Vec<String>, String, f64) {
+    let nominal = geometry.nominal_frame();
+    let start = Start::from_geometry(geometry);
+    let t0 = std::time::Instant::now();
+    let r = close_loop(train, Some(test), &nominal, &start, &LoopConfig::default()).expect("loop");
+    let seconds = t0.elapsed().as_secs_f64();
+    let after = r.stages.last().and_then(|s| s.test).or(r.base_test);
+    let rejected = r
+        .findings
+        .iter()
+        .filter(|f| !f.added && f.change.is_some())
+        .count();
+    (
+        r.stages.iter().map(|s| s.name.clone()).collect(),
+        format!(
+            "{:.3} / {:.3} / {:.2} ({rejected} significant, not added)",
+            after.map_or(f64::NAN, |s| s.mean_mm),
+            after.map_or(f64::NAN, |s| s.p95_mm),
+            after.map_or(f64::NAN, |s| s.max_mm)
+        ),
+        seconds,
+    )
+}
+
+/// False findings: effects the loop adds on clean sessions of both simulators.
+fn clean_only(seeds: u64) {
+    println!("| simulator | seed | added | held-out after the loop: mean / p95 / max | loop s |");
+    println!("|---|---:|---|---|---:|");
+    let mut totals = [0usize; 2];
+    for seed in 1..=seeds {
+        let config = SimConfig::default();
+        let device = Device::new(&config, seed).expect("device");
+        let train = simulate_session(&device, SessionKind::Lattice, seed + 100).expect("lattice");
+        let test = simulate_session(&device, SessionKind::Random { points: 500 }, seed + 200)
+            .expect("test session");
+        let (added, after, s) = clean_loop(
+            &config.nominal.geometry(),
+            &observations(&train.samples),
+            &observations(&test.samples),
+        );
+        totals[0] += added.len();
+        println!("| model | {seed} | {} | {after} | {s:.1} |", show(&added));
+    }
+    for seed in 1..=seeds {
+        let device = PhysicsDevice::new(&PhysicsConfig::default(), seed).expect("device");
+        let (train, _) =
+            physics::simulate_session(&device, SessionKind::Lattice, seed + 1).expect("lattice");
+        let (test, _) =
+            physics::simulate_session(&device, SessionKind::Random { points: 500 }, seed + 2)
+                .expect("test session");
+        let (added, after, s) = clean_loop(
+            &device.nominal,
+            &observations(&train.samples),
+            &observations(&test.samples),
+        );
+        totals[1] += added.len();
+        println!(
+            "| independent | {seed} | {} | {after} | {s:.1} |",
+            show(&added)
+        );
+    }
+    println!(
+        "\nclean sessions, {seeds} seeds: {} effects added (model simulator), {} (independent)",
+        totals[0], totals[1]
+    );
+}
+
+fn show(added: &[String]) -> String {
+    if added.is_empty() {
+        "none".into()
+    } else {
+        added.join(", ")
+    }
+}
+
 fn main() {
+    if std::env::args().nth(1).as_deref() == Some("--clean-only") {
+        let seeds = std::env::args()
+            .nth(2)
+            .and_then(|s| s.parse().ok())
+            .unwrap_or(20);
+        clean_only(seeds);
+        return;
+    }
     let mut args = std::env::args().skip(1);
     let seeds: u64 = args.next().and_then(|s| s.parse().ok()).unwrap_or(5);
     let clean_seeds: u64 = args.next().and_then(|s| s.parse().ok()).unwrap_or(20);

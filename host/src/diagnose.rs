@@ -75,6 +75,11 @@ pub struct Finding {
     pub chi2: f64,
     /// One line for people.
     pub description: String,
+    /// The held-out check that decided `added` (figures before and after the
+    /// change, and why); `None` for findings the loop did not test
+    /// (unexplained structure).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub validation: Option<Check>,
     /// What adding it means; `None` for unexplained structure.
     #[serde(skip)]
     pub change: Option<Change>,
@@ -88,7 +93,8 @@ pub struct LoopConfig {
     /// A candidate is significant when its chi-square exceeds this (after
     /// accounting for the number of candidates tested).
     pub chi2_threshold: f64,
-    /// A step is kept only if the held-out error falls by this fraction.
+    /// A step is kept only if the held-out error (blocked folds, see
+    /// [`validate`]) falls by this fraction.
     pub min_relative_gain: f64,
 }
 
@@ -111,7 +117,8 @@ pub struct LoopStage {
     /// Position error against the tracker after adding the effect.
     pub train: ErrorStats,
     pub test: Option<ErrorStats>,
-    /// Held-out (cross-validated) mean error before and after, mm.
+    /// Held-out mean error (blocked folds, [`Validation::held`]) before and
+    /// after, mm.
     pub validation_before_mm: f64,
     pub validation_after_mm: f64,
 }
@@ -586,6 +593,7 @@ pub fn diagnose(
                 added: false,
                 chi2,
                 description: c.describe.clone(),
+                validation: None,
                 change: Some((c.build)(&beta)),
             })
         })
@@ -637,6 +645,7 @@ fn anchors_beyond_tolerance(
                     d[1],
                     d[2]
                 ),
+                validation: None,
                 change: Some(Change::ReleaseAnchor(i as u8)),
             })
         })
@@ -743,6 +752,7 @@ pub fn unexplained(
             explained: between / ev.rss.max(1e-12),
             added: false,
             chi2,
+            validation: None,
             change: None,
         })
         .collect()
@@ -835,9 +845,339 @@ pub fn cross_validated_error(
     Ok((a.0 + b.0) / (a.1 + b.1).max(1) as f64)
 }
 
+// ---------------------------------------------------------------------------
+// Validation that sees extrapolation: folds blocked in time and in space.
+
+/// Fewest tracked rows for blocked folds: each blocked fit sees half (time) or
+/// about 60 % (space) of the rows, and a full model of 8 strings has ~40
+/// parameters; below this the session falls back to interleaved folds.
+pub const MIN_BLOCKED_ROWS: usize = 200;
+
+/// Outer shell of the space fold: points whose largest coordinate offset from
+/// the centroid, relative to the session's extent on that axis, is at least
+/// this. For points filling a cube it is the outer third of the volume
+/// (1 - r^3 = 1/3); on the 13^3 lattice it is the outermost layer (39 %).
+const OUTER_SHELL: f64 = 0.873_580_464_736_299_4; // (2/3)^(1/3)
+
+/// Which folds a validation pooled.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Folds {
+    /// Time (fit the earlier half, validate the later, and the reverse) and
+    /// space (fit the inner region, validate the outer shell).
+    Blocked,
+    /// The session is too small for blocked folds (fewer than
+    /// [`MIN_BLOCKED_ROWS`] tracked rows): two interleaved folds only.
+    Interleaved,
+}
+
+/// Held-out position errors of one structure, every fold refitted warm from
+/// the current identification.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Validation {
+    pub folds: Folds,
+    /// The errors acceptance looks at: the blocked folds pooled (each later
+    /// and earlier half once, the outer shell once), or the interleaved ones
+    /// when `folds` is `interleaved`.
+    pub held: ErrorStats,
+    /// The two interleaved folds pooled (every row once).
+    pub interleaved: ErrorStats,
+    /// Sampling noise (two standard errors) of `held`'s p95 and max, see
+    /// [`tail_noise`].
+    pub noise_p95_mm: f64,
+    pub noise_max_mm: f64,
+}
+
+/// A held-out check of a change: the figures before and after, and why it
+/// was or was not taken.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Check {
+    pub before: Validation,
+    pub after: Validation,
+    /// Chi-square of the difference between the added term's parameters
+    /// fitted on the earlier and on the later half (see `reason`); absent
+    /// without time folds.
+    pub stability_chi2: Option<f64>,
+    pub accepted: bool,
+    /// One line for people.
+    pub reason: String,
+}
+
+/// Sampling noise (two standard errors) of the p95 and the max of a set of
+/// errors, from the set itself. p95: half the spread between the errors at
+/// ranks `n (0.95 -+ 2 sqrt(0.95 0.05 / n))` (the binomial uncertainty of the
+/// rank). Max: the errors' tail beyond the p95 is taken as exponential with
+/// the mean excess `beta`; the maximum of such a sample is Gumbel-distributed
+/// with standard deviation `pi / sqrt(6) beta`.
+pub fn tail_noise(errors: &[f64]) -> (f64, f64) {
+    let n = errors.len();
+    if n < 2 {
+        return (f64::INFINITY, f64::INFINITY);
+    }
+    let mut sorted = errors.to_vec();
+    sorted.sort_by(f64::total_cmp);
+    let at = |q: f64| sorted[((q * n as f64).ceil() as usize).clamp(1, n) - 1];
+    let band = 2.0 * (0.95 * 0.05 / n as f64).sqrt();
+    let p95 = 0.5 * (at((0.95 + band).min(1.0)) - at(0.95 - band));
+    let threshold = at(0.95);
+    let tail: Vec<f64> = sorted
+        .iter()
+        .filter(|e| **e > threshold)
+        .map(|e| e - threshold)
+        .collect();
+    let beta = if tail.is_empty() {
+        0.0
+    } else {
+        tail.iter().sum::<f64>() / tail.len() as f64
+    };
+    let max = 2.0 * std::f64::consts::PI / 6f64.sqrt() * beta;
+    (p95, max)
+}
+
+/// Position errors (eq. 7) of an identified model on the tracked rows.
+fn model_error_list(id: &Identification, observations: &[Observation]) -> Vec<f64> {
+    let predictions = predict(
+        StringModel {
+            frame: &id.frame,
+            laws: &id.laws,
+            effects: &id.effects,
+        },
+        observations,
+    );
+    let room: Vec<[f64; 3]> = predictions.iter().map(|p| p.room).collect();
+    let (p, t) = paired_with_tracker(&room, observations);
+    position_errors(&p, &t)
+}
+
+/// One fold: (fit rows, held-out rows), by index into the tracked rows.
+type Fold = (Vec<usize>, Vec<usize>);
+
+/// The folds of a session; the first two are the interleaved ones.
+fn folds(tracked: &[&Observation]) -> (Folds, Vec<Fold>) {
+    let n = tracked.len();
+    let parity = |p: usize| -> Fold {
+        (
+            (0..n).filter(|k| k % 2 != p).collect(),
+            (0..n).filter(|k| k % 2 == p).collect(),
+        )
+    };
+    let mut out = vec![parity(0), parity(1)];
+    if n < MIN_BLOCKED_ROWS {
+        return (Folds::Interleaved, out);
+    }
+    // Time: the earlier and the later half (row order breaks ties).
+    let mut by_time: Vec<usize> = (0..n).collect();
+    by_time.sort_by(|&a, &b| tracked[a].t_s.total_cmp(&tracked[b].t_s).then(a.cmp(&b)));
+    let (early, late) = by_time.split_at(n / 2);
+    let (mut early, mut late) = (early.to_vec(), late.to_vec());
+    early.sort_unstable();
+    late.sort_unstable();
+    out.push((early.clone(), late.clone()));
+    out.push((late, early));
+    // Space: the outer shell by the largest relative coordinate offset.
+    let positions: Vec<[f64; 3]> = tracked.iter().filter_map(|o| o.tracker).collect();
+    let mut centre = [0.0; 3];
+    for p in &positions {
+        for k in 0..3 {
+            centre[k] += p[k] / n as f64;
+        }
+    }
+    let mut extent = [0.0f64; 3];
+    for p in &positions {
+        for k in 0..3 {
+            extent[k] = extent[k].max((p[k] - centre[k]).abs());
+        }
+    }
+    let widest = extent.iter().cloned().fold(0.0, f64::max);
+    let offset = |p: &[f64; 3]| -> f64 {
+        (0..3)
+            // An axis the session does not move along (a planar device's
+            // height) does not define a shell.
+            .filter(|&k| extent[k] > 1e-3 * widest)
+            .map(|k| (p[k] - centre[k]).abs() / extent[k])
+            .fold(0.0, f64::max)
+    };
+    let (outer, inner): (Vec<usize>, Vec<usize>) =
+        (0..n).partition(|&k| offset(&positions[k]) >= OUTER_SHELL);
+    if inner.len() >= MIN_BLOCKED_ROWS / 2 && outer.len() >= MIN_BLOCKED_ROWS / 4 {
+        out.push((inner, outer));
+    }
+    (Folds::Blocked, out)
+}
+
+/// Held-out errors of `structure` on the folds of `train` (see [`Folds`]),
+/// each fold's fit warm from `from`, the fits in parallel.
+pub fn validate(
+    train: &[Observation],
+    nominal: &Frame<f64>,
+    from: &Identification,
+    structure: &Structure,
+) -> Result<Validation, IdentifyError> {
+    validate_fits(train, nominal, from, structure).map(|v| v.0)
+}
+
+/// [`validate`], with the fold fits (interleaved, then time: earlier, later;
+/// then space).
+fn validate_fits(
+    train: &[Observation],
+    nominal: &Frame<f64>,
+    from: &Identification,
+    structure: &Structure,
+) -> Result<(Validation, Vec<Identification>), IdentifyError> {
+    use rayon::prelude::*;
+    let tracked: Vec<&Observation> = train.iter().filter(|o| o.tracker.is_some()).collect();
+    let (kind, folds) = folds(&tracked);
+    let pick =
+        |rows: &[usize]| -> Vec<Observation> { rows.iter().map(|&k| tracked[k].clone()).collect() };
+    let start = Start::from_identification(from);
+    let fits: Vec<(Identification, Vec<f64>)> = folds
+        .par_iter()
+        .map(|(fit, held)| {
+            let id = identify(&pick(fit), nominal, &start, structure)?;
+            let errors = model_error_list(&id, &pick(held));
+            Ok((id, errors))
+        })
+        .collect::<Result<_, IdentifyError>>()?;
+    let errors: Vec<&[f64]> = fits.iter().map(|f| f.1.as_slice()).collect();
+    let interleaved = ErrorStats::of(&errors[..2].concat());
+    let held_errors = match kind {
+        Folds::Blocked => errors[2..].concat(),
+        Folds::Interleaved => errors[..2].concat(),
+    };
+    let held = ErrorStats::of(&held_errors);
+    let (noise_p95_mm, noise_max_mm) = tail_noise(&held_errors);
+    Ok((
+        Validation {
+            folds: kind,
+            held,
+            interleaved,
+            noise_p95_mm,
+            noise_max_mm,
+        },
+        fits.into_iter().map(|f| f.0).collect(),
+    ))
+}
+
+/// Chi-square (p = 0.001) an added effect's parameters may differ by between
+/// the fits on the earlier and the later half, by their number.
+const STABLE_CHI2: [f64; 2] = [10.83, 13.82];
+
+/// How far apart the added effect's parameters (the last term of the
+/// structure) come out of the fits on the earlier and on the later half:
+/// chi-square of the difference over the two fits' standard deviations, and
+/// its dof. A physical effect has one value; a term that stands in for
+/// something else (a drift standing in for position on a lattice collected
+/// plane by plane) takes the local slope of what it replaces, different in
+/// each half. `None` without time folds or for a change that adds no term.
+fn stability(change: Change, fits: &[Identification]) -> Option<(f64, usize)> {
+    let Change::Effect(term) = change else {
+        return None;
+    };
+    let k = crate::identify::effect_parameter_info(&term.effect).len();
+    let (early, late) = (fits.get(2)?, fits.get(3)?);
+    let tail = |id: &Identification| {
+        let from = id.parameters.len().checked_sub(k)?;
+        Some(id.parameters[from..].to_vec())
+    };
+    let (a, b) = (tail(early)?, tail(late)?);
+    let chi2 = a
+        .iter()
+        .zip(&b)
+        .map(|(x, y)| {
+            let v = x.sd * x.sd + y.sd * y.sd;
+            if v > 0.0 && v.is_finite() {
+                (x.value - y.value).powi(2) / v
+            } else {
+                0.0
+            }
+        })
+        .sum::<f64>();
+    Some((chi2, k))
+}
+
+/// Whether a change that turns held-out errors `before` into `after` is
+/// taken: the mean must fall by `min_gain` (relative) and neither the p95
+/// nor the max may rise beyond its noise (that of `before`).
+pub fn judge(
+    before: &Validation,
+    after: &Validation,
+    stable: Option<(f64, usize)>,
+    min_gain: f64,
+) -> Check {
+    let (b, a) = (&before.held, &after.held);
+    let folds = match after.folds {
+        Folds::Blocked => "blocked folds (time, space)".to_string(),
+        Folds::Interleaved => format!(
+            "interleaved folds only ({} tracked rows; blocked folds need {MIN_BLOCKED_ROWS})",
+            a.n
+        ),
+    };
+    let gain = 1.0 - a.mean_mm / b.mean_mm;
+    let figures = format!(
+        "held-out mean {:.3} -> {:.3} mm ({:+.1} %), p95 {:.3} -> {:.3}, max {:.2} -> {:.2} on {folds}",
+        b.mean_mm,
+        a.mean_mm,
+        -100.0 * gain,
+        b.p95_mm,
+        a.p95_mm,
+        b.max_mm,
+        a.max_mm
+    );
+    let limit = |k: usize| STABLE_CHI2[k.clamp(1, 2) - 1];
+    let (accepted, why) = if let Some((chi2, k)) = stable.filter(|s| s.0 > limit(s.1)) {
+        (
+            false,
+            format!(
+                "its value fitted on the earlier half and on the later half differ beyond their \
+                 uncertainty (chi-square {chi2:.1} > {:.1}, {k} dof): it stands in for something \
+                 else (time and position go together in this session)",
+                limit(k)
+            ),
+        )
+    } else if !(a.mean_mm.is_finite() && gain >= min_gain) {
+        (
+            false,
+            format!("the mean does not fall by {:.1} %", 100.0 * min_gain),
+        )
+    } else if a.p95_mm > b.p95_mm + before.noise_p95_mm {
+        (
+            false,
+            format!(
+                "the p95 rises beyond its noise ({:.3} mm)",
+                before.noise_p95_mm
+            ),
+        )
+    } else if a.max_mm > b.max_mm + before.noise_max_mm {
+        (
+            false,
+            format!(
+                "the max rises beyond its noise ({:.2} mm)",
+                before.noise_max_mm
+            ),
+        )
+    } else {
+        (true, "added".to_string())
+    };
+    Check {
+        before: before.clone(),
+        after: after.clone(),
+        stability_chi2: stable.map(|s| s.0),
+        accepted,
+        reason: if accepted {
+            format!("{why}: {figures}")
+        } else {
+            format!("not added: {why}: {figures}")
+        },
+    }
+}
+
 /// Runs the loop: identify, diagnose, add the strongest significant effect,
 /// refit, repeat until nothing significant that helps on held-out data
-/// remains; then report the structure no family explains.
+/// remains; then report the structure no family explains. "Helps" is
+/// [`judge`] on [`validate`]: folds blocked in time and space, so that a
+/// change that only interpolates (a drift standing in for position on a
+/// lattice collected plane by plane) is refused; every tested finding carries
+/// its check.
 pub fn close_loop(
     train: &[Observation],
     test: Option<&[Observation]>,
@@ -850,7 +1190,7 @@ pub fn close_loop(
     let base_train = model_errors(&base, train);
     let base_test = test.map(|t| model_errors(&base, t));
     let mut id = base.clone();
-    let mut validation = cross_validated_error(train, nominal, &id, &structure)?;
+    let mut validation = validate(train, nominal, &id, &structure)?;
     let mut stages = Vec::new();
     let mut findings: Vec<Finding> = Vec::new();
     let same = |a: &Finding, b: &Finding| a.family == b.family && a.strings == b.strings;
@@ -861,28 +1201,34 @@ pub fn close_loop(
                 continue;
             };
             let candidate = structure.with(change);
-            let after = cross_validated_error(train, nominal, &id, &candidate)?;
-            if after < validation * (1.0 - config.min_relative_gain) {
+            let (after, fits) = validate_fits(train, nominal, &id, &candidate)?;
+            let check = judge(
+                &validation,
+                &after,
+                stability(change, &fits),
+                config.min_relative_gain,
+            );
+            let accepted = check.accepted;
+            finding.validation = Some(check);
+            findings.retain(|f| !same(f, &finding));
+            if accepted {
                 let refit = identify(train, nominal, &Start::from_identification(&id), &candidate)?;
                 finding.added = true;
-                findings.retain(|f| !same(f, &finding));
                 findings.push(finding.clone());
                 stages.push(LoopStage {
                     name: stage_name(&finding),
                     train: model_errors(&refit, train),
                     test: test.map(|t| model_errors(&refit, t)),
                     finding,
-                    validation_before_mm: validation,
-                    validation_after_mm: after,
+                    validation_before_mm: validation.held.mean_mm,
+                    validation_after_mm: after.held.mean_mm,
                 });
                 validation = after;
                 structure = candidate;
                 id = refit;
                 continue 'outer;
             }
-            if !findings.iter().any(|f| same(f, &finding)) {
-                findings.push(finding);
-            }
+            findings.push(finding);
         }
         break;
     }

@@ -292,3 +292,92 @@ fn calibration_on_the_independent_simulator() {
     // tighten the bounds above.
     assert!(identified.test.mean_mm > 0.45, "{:?}", identified.test);
 }
+
+/// The diagnosis loop on a clean independent device (issue 10, point 6):
+/// nothing added, and every significant candidate it tested is reported
+/// `added: false` with the check that refused it.
+fn clean_loop(seed: u64) -> spidar::diagnose::LoopResult {
+    use spidar::diagnose::{close_loop, LoopConfig};
+    use spidar::identify::Start;
+    use spidar::observe::observations;
+    let device = PhysicsDevice::new(&PhysicsConfig::default(), seed).unwrap();
+    let (train, _) = simulate_session(&device, SessionKind::Lattice, seed + 1).unwrap();
+    let (test, _) =
+        simulate_session(&device, SessionKind::Random { points: 500 }, seed + 2).unwrap();
+    close_loop(
+        &observations(&train.samples),
+        Some(&observations(&test.samples)),
+        &device.nominal.nominal_frame(),
+        &Start::from_geometry(&device.nominal),
+        &LoopConfig::default(),
+    )
+    .unwrap()
+}
+
+#[test]
+fn a_clean_independent_device_gets_no_effect_and_each_refusal_says_why() {
+    use spidar::diagnose::Folds;
+    let r = clean_loop(1);
+    assert!(
+        r.stages.is_empty(),
+        "added {:?}",
+        r.stages.iter().map(|s| &s.name).collect::<Vec<_>>()
+    );
+    let tested: Vec<_> = r
+        .findings
+        .iter()
+        .filter(|f| f.validation.is_some())
+        .collect();
+    assert!(!tested.is_empty(), "findings: {:#?}", r.findings);
+    for f in &tested {
+        let check = f.validation.as_ref().unwrap();
+        assert!(!f.added && !check.accepted, "{f:#?}");
+        assert!(check.reason.starts_with("not added: "), "{}", check.reason);
+        assert_eq!(check.after.folds, Folds::Blocked);
+        assert!(check.before.held.n > check.before.interleaved.n / 2);
+    }
+    // The strongest candidate (string 4's scale, standing in for the layered
+    // spool) lowers the blocked mean, but its value is not the same in the
+    // earlier and the later half of the session: refused for that.
+    let first = tested[0].validation.as_ref().unwrap();
+    assert!(
+        first.after.held.mean_mm < first.before.held.mean_mm,
+        "{first:#?}"
+    );
+    assert!(
+        first.stability_chi2.is_some_and(|c| c > 10.83),
+        "{first:#?}"
+    );
+    assert!(first.reason.contains("earlier half"), "{}", first.reason);
+    // In the JSON report: `validation` with its reason.
+    let json = serde_json::to_value(tested[0]).unwrap();
+    assert_eq!(json["added"], false);
+    assert!(json["validation"]["reason"]
+        .as_str()
+        .unwrap()
+        .contains("not added"));
+}
+
+#[test]
+fn a_small_session_falls_back_to_interleaved_folds() {
+    use spidar::diagnose::{validate, Folds, MIN_BLOCKED_ROWS};
+    use spidar::identify::{identify, Start, Structure};
+    use spidar::observe::observations;
+    let device = PhysicsDevice::new(&quiet_config(), 2).unwrap();
+    let (train, _) = simulate_session(&device, SessionKind::Random { points: 150 }, 3).unwrap();
+    let obs = observations(&train.samples);
+    assert!(obs.len() < MIN_BLOCKED_ROWS);
+    let nominal = device.nominal.nominal_frame();
+    let structure = Structure::default();
+    let id = identify(
+        &obs,
+        &nominal,
+        &Start::from_geometry(&device.nominal),
+        &structure,
+    )
+    .unwrap();
+    let v = validate(&obs, &nominal, &id, &structure).unwrap();
+    assert_eq!(v.folds, Folds::Interleaved);
+    assert_eq!(v.held, v.interleaved);
+    assert!(v.noise_p95_mm > 0.0 && v.noise_max_mm > 0.0);
+}

@@ -46,7 +46,7 @@ use spidar_core::correction::CorrectionModel;
 use spidar_core::model::Calibration;
 
 use crate::dataset::{DatasetError, Geometry, Session};
-use crate::diagnose::{close_loop, LoopConfig, LoopResult};
+use crate::diagnose::{close_loop, tail_noise, LoopConfig, LoopResult};
 use crate::identify::{
     device_from_room, identify, room_from_device, IdentifyError, Start, Structure,
 };
@@ -372,13 +372,16 @@ fn subset(points: &[[f64; 3]], idx: &[usize]) -> Vec<[f64; 3]> {
     idx.iter().filter_map(|&i| points.get(i).copied()).collect()
 }
 
-fn mean_error(correct: impl Fn([f64; 3]) -> [f64; 3], x: &[[f64; 3]], t: &[[f64; 3]]) -> f64 {
-    let e: Vec<f64> = x
-        .iter()
+/// Eq. 7 errors of corrected positions `x` against the tracker `t`.
+fn point_error_list(
+    correct: impl Fn([f64; 3]) -> [f64; 3],
+    x: &[[f64; 3]],
+    t: &[[f64; 3]],
+) -> Vec<f64> {
+    x.iter()
         .zip(t)
         .map(|(p, r)| crate::stats::position_error(correct(*p), *r))
-        .collect();
-    ErrorStats::of(&e).mean_mm
+        .collect()
 }
 
 /// Tracked pairs (model room position, tracker) of the training session.
@@ -675,14 +678,12 @@ pub fn calibrate(
 
     // 5. The choice, on the selection split.
     let t = Instant::now();
-    let v_id = mean_error(|p| p, &x_sel, &t_sel);
-    let v_nn = mean_error(|p| nn_corr.evaluate(p), &x_sel, &t_sel);
-    let v_svr = mean_error(|p| svr_corr.evaluate(p), &x_sel, &t_sel);
-    let best_corr = if v_svr <= v_nn {
-        (report::Choice::Svr, v_svr)
-    } else {
-        (report::Choice::Nn, v_nn)
-    };
+    let e_id = point_error_list(|p| p, &x_sel, &t_sel);
+    let s_id = ErrorStats::of(&e_id);
+    let s_nn = ErrorStats::of(&point_error_list(|p| nn_corr.evaluate(p), &x_sel, &t_sel));
+    let s_svr = ErrorStats::of(&point_error_list(|p| svr_corr.evaluate(p), &x_sel, &t_sel));
+    // Noise of the identified model's p95 and max on the selection split.
+    let (noise_p95, noise_max) = tail_noise(&e_id);
     let enough_to_choose = x_sel.len() >= MIN_SELECTION_POINTS;
     if !enough_to_choose {
         warnings.push(format!(
@@ -693,14 +694,72 @@ pub fn calibrate(
             x_sel.len()
         ));
     }
-    let choice = if enough_to_choose
-        && best_corr.1.is_finite()
-        && best_corr.1 < v_id * (1.0 - cfg.min_correction_gain)
-    {
-        best_corr.0
-    } else {
-        report::Choice::Identified
+    // A correction is eligible when it lowers the mean by the configured gain
+    // without raising the p95 or the max beyond their noise; the eligible one
+    // with the lower mean is chosen.
+    let verdict = |name: &str, c: &ErrorStats| -> Result<(), String> {
+        if !c.mean_mm.is_finite() || c.mean_mm >= s_id.mean_mm * (1.0 - cfg.min_correction_gain) {
+            Err(format!(
+                "{name} does not lower the mean by {:.0} % ({:.3} vs {:.3} mm)",
+                100.0 * cfg.min_correction_gain,
+                c.mean_mm,
+                s_id.mean_mm
+            ))
+        } else if c.p95_mm > s_id.p95_mm + noise_p95 {
+            Err(format!(
+                "{name} raises the p95 beyond its noise ({:.3} vs {:.3} + {:.3} mm)",
+                c.p95_mm, s_id.p95_mm, noise_p95
+            ))
+        } else if c.max_mm > s_id.max_mm + noise_max {
+            Err(format!(
+                "{name} raises the max beyond its noise ({:.2} vs {:.2} + {:.2} mm)",
+                c.max_mm, s_id.max_mm, noise_max
+            ))
+        } else {
+            Ok(())
+        }
     };
+    let judged = [
+        (report::Choice::Nn, &s_nn, verdict("nn", &s_nn)),
+        (report::Choice::Svr, &s_svr, verdict("svr", &s_svr)),
+    ];
+    let best = judged
+        .iter()
+        .filter(|j| j.2.is_ok())
+        .min_by(|a, b| a.1.mean_mm.total_cmp(&b.1.mean_mm));
+    let refused: Vec<String> = judged.iter().filter_map(|j| j.2.clone().err()).collect();
+    let (choice, choice_reason) = match best {
+        _ if !enough_to_choose => (
+            report::Choice::Identified,
+            format!(
+                "the selection split has {} points, fewer than {MIN_SELECTION_POINTS}",
+                x_sel.len()
+            ),
+        ),
+        Some(b) => (
+            b.0,
+            format!(
+                "{} lowers the mean {:.3} -> {:.3} mm with p95 {:.3} -> {:.3} and max {:.2} -> {:.2} \
+                 within their noise ({:.3}, {:.2} mm){}",
+                b.0.name(),
+                s_id.mean_mm,
+                b.1.mean_mm,
+                s_id.p95_mm,
+                b.1.p95_mm,
+                s_id.max_mm,
+                b.1.max_mm,
+                noise_p95,
+                noise_max,
+                if refused.is_empty() {
+                    String::new()
+                } else {
+                    format!("; {}", refused.join("; "))
+                }
+            ),
+        ),
+        None => (report::Choice::Identified, refused.join("; ")),
+    };
+    let (v_id, v_nn, v_svr) = (s_id.mean_mm, s_nn.mean_mm, s_svr.mean_mm);
     let pb = spinner("refitting the chosen correction", cfg.quiet);
     let final_corr = match choice {
         report::Choice::Identified => CorrectionModel::None,
@@ -797,6 +856,19 @@ pub fn calibrate(
             nn: v_nn,
             svr: v_svr,
         },
+        validation_p95_mm: report::Candidates {
+            identified: s_id.p95_mm,
+            nn: s_nn.p95_mm,
+            svr: s_svr.p95_mm,
+        },
+        validation_max_mm: report::Candidates {
+            identified: s_id.max_mm,
+            nn: s_nn.max_mm,
+            svr: s_svr.max_mm,
+        },
+        noise_p95_mm: noise_p95,
+        noise_max_mm: noise_max,
+        reason: choice_reason,
         final_support_vectors: match &final_corr {
             CorrectionModel::Svr(m) => Some(m.support.len()),
             _ => None,

@@ -224,6 +224,15 @@ pub struct Selection {
     pub selection_points: usize,
     pub min_correction_gain: f64,
     pub validation_mean_mm: Candidates,
+    pub validation_p95_mm: Candidates,
+    pub validation_max_mm: Candidates,
+    /// Sampling noise (two standard errors, `diagnose::tail_noise`) of the
+    /// identified model's p95 and max on the selection split: a correction
+    /// may not raise them by more.
+    pub noise_p95_mm: f64,
+    pub noise_max_mm: f64,
+    /// Why the final model was chosen (and the corrections refused).
+    pub reason: String,
     /// Of the final correction refitted on all kept training points.
     pub final_support_vectors: Option<usize>,
     pub final_hidden: Option<usize>,
@@ -568,6 +577,9 @@ impl Report {
                     format!(" - {}", f.description)
                 }
             );
+            if let Some(check) = &f.validation {
+                let _ = writeln!(o, "            {}", check.reason);
+            }
         }
 
         let c = &self.corrections;
@@ -599,7 +611,8 @@ impl Report {
                 super::MIN_SELECTION_POINTS
             ),
             Choice::Identified => format!(
-                "the identified model alone: no correction lowered its error by {} on",
+                "the identified model alone: no correction lowered its mean error by {} without \
+                 raising its p95 or max beyond noise, on",
                 pct(s.min_correction_gain)
             ),
             Choice::Nn => "the NN correction, refitted on all kept points; lowest error on".into(),
@@ -617,6 +630,7 @@ impl Report {
             num(s.validation_mean_mm.nn),
             num(s.validation_mean_mm.svr)
         );
+        let _ = writeln!(o, "    why: {}", s.reason);
 
         if !self.warnings.is_empty() {
             let _ = writeln!(o, "\nWarnings:");
