@@ -219,7 +219,9 @@ fn bad_input_is_named() {
     assert_eq!(rows_to_session(vec![row(3)]).unwrap().strings, 3);
     let e = rows_to_session(vec![row(2)]).unwrap_err().to_string();
     assert!(e.contains("2 strings"), "{e}");
-    let e = rows_to_session(vec![row(4), row(5)]).unwrap_err().to_string();
+    let e = rows_to_session(vec![row(4), row(5)])
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("5 strings"), "{e}");
 }
 

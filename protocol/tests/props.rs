@@ -190,21 +190,23 @@ fn state(f: fn() -> F) -> impl Strategy<Value = State> {
             proptest::option::of(any::<u32>()),
         ),
     )
-        .prop_map(|((t, h), c, p, q, tn, (fl, sl, ex), (lu, lm, ar, mi))| State {
-            time_us: t,
-            since_home_us: h,
-            counts: c,
-            position_mm: p,
-            corrected_mm: q,
-            tensions_n: tn,
-            faults: Faults(fl),
-            slack: sl,
-            excluded: ex,
-            loop_us: lu,
-            loop_max_us: lm,
-            armed: ar,
-            model_id: mi,
-        })
+        .prop_map(
+            |((t, h), c, p, q, tn, (fl, sl, ex), (lu, lm, ar, mi))| State {
+                time_us: t,
+                since_home_us: h,
+                counts: c,
+                position_mm: p,
+                corrected_mm: q,
+                tensions_n: tn,
+                faults: Faults(fl),
+                slack: sl,
+                excluded: ex,
+                loop_us: lu,
+                loop_max_us: lm,
+                armed: ar,
+                model_id: mi,
+            },
+        )
 }
 
 fn device_message(f: fn() -> F) -> impl Strategy<Value = DeviceMessage> {

@@ -227,8 +227,7 @@ impl StateHistory {
             s.tensions_n[i] = mix(f64::from(a.tensions_n[i]), f64::from(b.tensions_n[i])) as f32;
         }
         for k in 0..3 {
-            s.position_mm[k] =
-                mix(f64::from(a.position_mm[k]), f64::from(b.position_mm[k])) as f32;
+            s.position_mm[k] = mix(f64::from(a.position_mm[k]), f64::from(b.position_mm[k])) as f32;
             s.corrected_mm[k] =
                 mix(f64::from(a.corrected_mm[k]), f64::from(b.corrected_mm[k])).round() as i32;
         }
@@ -248,7 +247,9 @@ mod tests {
         let mut sync = ClockSync::new();
         let mut seed = 1u64;
         let mut delay = || {
-            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
             let u = (seed >> 11) as f64 / (1u64 << 53) as f64;
             5e-5 + 0.03 * u * u
         };

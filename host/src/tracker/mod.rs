@@ -15,22 +15,22 @@
 //! once each; an occluded marker is a frame with `body: None`, so the
 //! consumer sees occlusion as such, not as silence.
 
+pub mod clock;
 pub mod dtrack;
 pub mod receiver;
 pub mod replay;
 pub mod sim;
-pub mod clock;
 pub mod sync;
 
 use std::io;
 use std::net::SocketAddr;
 use std::time::{Duration, Instant};
 
+pub use clock::{ClockSync, StateHistory};
 pub use dtrack::{BodyPose, DtrackError, DtrackFrame};
 pub use receiver::{DtrackReceiver, ReceiverConfig, ReceiverStats};
 pub use replay::{Pacing, ReplaySource};
 pub use sim::{SimReport, SimSender, SimSenderConfig};
-pub use clock::{ClockSync, StateHistory};
 pub use sync::{estimate_time_shift, ShiftConfig, SyncError, TimeShift, TimedPosition};
 
 /// One tracker measurement of the end-effector's marker body.
