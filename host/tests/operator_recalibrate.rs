@@ -256,6 +256,22 @@ fn bad_input_gives_clear_errors() {
     );
     assert!(e.to_string().contains("strings[0].counts_per_rev"), "{e}");
 
+    // A geometry of another number of strings (a 4-string device).
+    let mut other = cal.geometry.clone();
+    other.layout = spidar_core::model::StringLayout::first(4, false);
+    let e = attempt(
+        &mut client,
+        &mut rig.receiver,
+        &other,
+        &cal.calibration,
+        &short,
+    );
+    let text = e.to_string();
+    assert!(
+        text.contains("frame.layout") && text.contains("[0, 1, 2, 3]"),
+        "{text}"
+    );
+
     // A calibration that is not the one the device runs.
     let mut not_flashed = cal.calibration.clone();
     not_flashed.frame.room_translation[0] += 1.0;

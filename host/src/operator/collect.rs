@@ -395,7 +395,12 @@ pub fn collect(
     sink: &mut dyn CueSink,
 ) -> Result<CollectReport, CollectError> {
     config.validate()?;
-    let opened = SessionAppender::open(path)?;
+    // The session has the device's strings (enc0..enc{N-1}): those of the
+    // nominal string model it is given, else a Scalable-SPIDAR's 8.
+    let strings = config.string_model.map_or(spidar_core::STRINGS, |m| {
+        m.active_strings.count_ones() as usize
+    });
+    let opened = SessionAppender::open_for(path, strings)?;
     let done = done_cells(lattice, &opened.existing, path)?;
     let mut report = CollectReport {
         path: path.to_path_buf(),

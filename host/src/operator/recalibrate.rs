@@ -411,7 +411,9 @@ pub fn check_calibration(
             problem,
         })
     };
-    for (i, law) in calibration.strings.iter().enumerate() {
+    let first = geometry.layout.indices().next().unwrap_or(0);
+    for i in geometry.layout.indices() {
+        let law = &calibration.strings[i];
         if law.counts_per_rev != geometry.counts_per_rev[i] {
             return bad(
                 format!("strings[{i}].counts_per_rev"),
@@ -422,7 +424,7 @@ pub fn check_calibration(
             );
         }
         if law.winding_mm[2..WINDING_ORDER].iter().any(|c| *c != 0.0)
-            || law.winding_mm[1] != calibration.strings[0].winding_mm[1]
+            || law.winding_mm[1] != calibration.strings[first].winding_mm[1]
         {
             return bad(
                 format!("strings[{i}].winding_mm"),
@@ -432,7 +434,28 @@ pub fn check_calibration(
             );
         }
     }
-    for i in 0..STRINGS {
+    if calibration.frame.layout != geometry.layout {
+        return bad(
+            "frame.layout".into(),
+            format!(
+                "strings on channels {:?}{}, the geometry has {:?}{}: the calibration and the \
+                 geometry are of different devices",
+                calibration.frame.layout.indices().collect::<Vec<_>>(),
+                if calibration.frame.layout.planar {
+                    " (planar)"
+                } else {
+                    ""
+                },
+                geometry.layout.indices().collect::<Vec<_>>(),
+                if geometry.layout.planar {
+                    " (planar)"
+                } else {
+                    ""
+                },
+            ),
+        );
+    }
+    for i in geometry.layout.indices() {
         let a = calibration.frame.anchors[i];
         let n = geometry.anchors_mm[i];
         let d = ((a[0] - n[0]).powi(2) + (a[1] - n[1]).powi(2) + (a[2] - n[2]).powi(2)).sqrt();
