@@ -451,6 +451,42 @@ impl Geometry {
                 ));
             }
         }
+        // Anchors at one point, or on one line: no position can be solved.
+        let active: Vec<Vec3<f64>> = self.layout.indices().map(|i| self.anchors_mm[i]).collect();
+        let far = active
+            .iter()
+            .map(|a| distance(a, &active[0]))
+            .fold(0.0, f64::max);
+        let degenerate = if far == 0.0 {
+            Some("all anchors are at one point")
+        } else {
+            let (k, _) = active
+                .iter()
+                .enumerate()
+                .map(|(k, a)| (k, distance(a, &active[0])))
+                .fold((0, 0.0), |b, x| if x.1 > b.1 { x } else { b });
+            let u = [0, 1, 2].map(|c| (active[k][c] - active[0][c]) / far);
+            let off_line = active
+                .iter()
+                .map(|a| {
+                    let d = [0, 1, 2].map(|c| a[c] - active[0][c]);
+                    let along = d[0] * u[0] + d[1] * u[1] + d[2] * u[2];
+                    let p = [0, 1, 2].map(|c| d[c] - along * u[c]);
+                    (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt()
+                })
+                .fold(0.0, f64::max);
+            (off_line <= 1e-9 * far).then_some("all anchors lie on one line")
+        };
+        if let Some(why) = degenerate {
+            return Err(field_error(
+                file,
+                "anchors_mm",
+                format!(
+                    "the geometry is degenerate: {why}, so string lengths cannot fix a \
+                     position (copied one anchor into every row?)"
+                ),
+            ));
+        }
         if self.layout.planar && self.home_mm[2] != self.anchors_mm[0][2] {
             return Err(field_error(
                 file,

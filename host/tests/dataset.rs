@@ -504,3 +504,18 @@ fn n_string_sessions_follow_their_encoder_columns() {
     let s = read("t_s,enc0,enc1,enc2,ots_x,ots_y\n0,1,2,3,4.5,5.5\n").unwrap();
     assert_eq!(s.samples[0].tracker, Some([4.5, 5.5, 0.0]));
 }
+
+#[test]
+fn degenerate_anchors_are_an_error_that_says_so() {
+    let one_point = "counts_per_rev = 4096\npulley_radius_mm = 7.5\nhome_mm = [0, 0, 0]\n\
+                     anchors_mm = [[1, 1, 1], [1, 1, 1], [1, 1, 1], [1, 1, 1]]\n\
+                     room_from_device_translation_mm = [0, 0, 0]\n";
+    let e = geometry(one_point).unwrap_err().to_string();
+    assert!(e.contains("anchors_mm") && e.contains("one point"), "{e}");
+    let line = one_point.replace(
+        "[[1, 1, 1], [1, 1, 1], [1, 1, 1], [1, 1, 1]]",
+        "[[1, 0, 0], [2, 0, 0], [3, 0, 0], [5, 0, 0]]",
+    );
+    let e = geometry(&line).unwrap_err().to_string();
+    assert!(e.contains("one line"), "{e}");
+}

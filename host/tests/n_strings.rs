@@ -107,3 +107,37 @@ fn a_two_second_tracker_clock_offset_is_found_and_removed() {
     }
     assert!(errors[1] <= 1.5 * errors[0], "{errors:?}");
 }
+
+/// Warnings where a result is not what it seems (issue 13): a test session
+/// that is the training session, test points beyond the training volume.
+#[test]
+fn shared_rows_and_points_beyond_the_training_volume_are_warned_about() {
+    let mut c = config(8, false);
+    c.lattice.cells_per_axis = 5;
+    c.lattice.size_mm = 400.0;
+    let device = Device::new(&c, 2).unwrap();
+    let train = simulate_session(&device, SessionKind::Lattice, 3).unwrap();
+    // The test session is the training session.
+    let r = run(&c, &train, &train);
+    assert!(
+        r.report
+            .warnings
+            .iter()
+            .any(|w| w.contains("holds only rows of the training session")),
+        "{:?}",
+        r.report.warnings
+    );
+    // Random points over a 1 m cube against a 0.4 m training lattice.
+    c.lattice.size_mm = 1000.0;
+    let wide = Device::new(&c, 2).unwrap();
+    let test = simulate_session(&wide, SessionKind::Random { points: 200 }, 4).unwrap();
+    let r = run(&c, &train, &test);
+    let w = r
+        .report
+        .warnings
+        .iter()
+        .find(|w| w.contains("outside the volume the training session covers"))
+        .unwrap_or_else(|| panic!("{:?}", r.report.warnings));
+    assert!(w.contains("test points") && w.contains("outside"), "{w}");
+    assert!(!r.report.warnings.iter().any(|w| w.contains("also appear")));
+}

@@ -37,6 +37,7 @@ pub mod align;
 mod cli;
 mod plots;
 pub mod report;
+pub mod trust;
 
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
@@ -528,6 +529,19 @@ pub fn calibrate(
     }
     let train_info = session_info(train)?;
     let test_info = session_info(test)?;
+    match trust::shared_rows(train.session, test.session) {
+        (0, _) => {}
+        (shared, rows) if shared == rows => warnings.push(format!(
+            "the test session {} holds only rows of the training session {}: the held-out \
+             figures are training errors, not a test; record a separate test session",
+            test.path.display(),
+            train.path.display()
+        )),
+        (shared, rows) => warnings.push(format!(
+            "{shared} of the {rows} test rows also appear in the training session: the \
+             held-out figures are partly training errors; remove them from one of the files"
+        )),
+    }
     for (info, s) in [(&train_info, &train), (&test_info, &test)] {
         if !info.ignored_columns.is_empty() {
             warnings.push(format!(
@@ -839,6 +853,44 @@ pub fn calibrate(
     correction_stage("svr".into(), &svr_corr, report::StageKind::Correction)?;
     let final_name = format!("final ({})", choice.name());
     correction_stage(final_name.clone(), &final_corr, report::StageKind::Final)?;
+
+    // Where the held-out figure is not what it seems.
+    let train_room: Vec<[f64; 3]> = tr.iter().filter_map(|o| o.tracker).collect();
+    const BOX_MARGIN_MM: f64 = 1.0;
+    if let (Some(bx), Some(fp)) = (
+        trust::TrainingBox::of(&fin.frame, &train_room, BOX_MARGIN_MM),
+        points.iter().find(|p| p.name == final_name),
+    ) {
+        let x = trust::extrapolation(&fin.frame, &bx, &fp.test.tracker, &fp.test.errors);
+        if x.outside.n > 0 {
+            warnings.push(format!(
+                "{} of {} test points lie outside the volume the training session covers (its \
+                 box, {BOX_MARGIN_MM} mm margin): the model extrapolates there; final error \
+                 outside {:.3} mm mean, {:.3} max, inside {:.3} mean, {:.3} max",
+                x.outside.n,
+                x.outside.n + x.inside.n,
+                x.outside.mean_mm,
+                x.outside.max_mm,
+                x.inside.mean_mm,
+                x.inside.max_mm
+            ));
+        }
+    }
+    let train_device: Vec<[f64; 3]> = train_room
+        .iter()
+        .map(|r| device_from_room(&fin.frame, *r))
+        .collect();
+    if let Some(d) = trust::determination(&fin.frame, &train_device) {
+        if d.gain > trust::POOR_DETERMINATION_GAIN {
+            warnings.push(format!(
+                "the anchors determine the position poorly along ({:+.2}, {:+.2}, {:+.2}) \
+                 (device frame): there a string-length error moves the position {:.1} times as \
+                 much (median over the training points; a cube SPIDAR: ~0.6). Anchors nearly in \
+                 one plane or line? Spread them, or expect errors along that direction",
+                d.direction[0], d.direction[1], d.direction[2], d.gain
+            ));
+        }
+    }
 
     let selection = report::Selection {
         stage: final_name,
