@@ -321,14 +321,14 @@ impl Default for LegacyConfig {
     }
 }
 
-fn bad(field: &str, problem: impl Into<String>) -> SimError {
+pub(crate) fn bad(field: &str, problem: impl Into<String>) -> SimError {
     SimError::Config {
         field: field.to_string(),
         problem: problem.into(),
     }
 }
 
-fn non_negative(field: &str, v: f64) -> Result<(), SimError> {
+pub(crate) fn non_negative(field: &str, v: f64) -> Result<(), SimError> {
     if v.is_finite() && v >= 0.0 {
         Ok(())
     } else {
@@ -353,7 +353,7 @@ fn speed_range(field: &str, r: [f64; 2]) -> Result<(), SimError> {
     Ok(())
 }
 
-fn probability(field: &str, p: f64) -> Result<(), SimError> {
+pub(crate) fn probability(field: &str, p: f64) -> Result<(), SimError> {
     if (0.0..=1.0).contains(&p) {
         Ok(())
     } else {
@@ -361,19 +361,24 @@ fn probability(field: &str, p: f64) -> Result<(), SimError> {
     }
 }
 
+/// A simulator configuration TOML file (either simulator's), parsed; errors
+/// name the file, and the key and line where it does not parse.
+pub(crate) fn read_toml<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T, SimError> {
+    let text = std::fs::read_to_string(path).map_err(|source| SimError::Io {
+        file: path.to_path_buf(),
+        action: "cannot read",
+        source,
+    })?;
+    toml::from_str(&text).map_err(|e| SimError::ConfigFile {
+        file: path.to_path_buf(),
+        message: e.to_string().trim_end().to_string(),
+    })
+}
+
 impl SimConfig {
     /// Read a configuration TOML file (all keys optional).
     pub fn load(path: impl AsRef<Path>) -> Result<Self, SimError> {
-        let path = path.as_ref();
-        let text = std::fs::read_to_string(path).map_err(|source| SimError::Io {
-            file: path.to_path_buf(),
-            action: "cannot read",
-            source,
-        })?;
-        let config: SimConfig = toml::from_str(&text).map_err(|e| SimError::ConfigFile {
-            file: path.to_path_buf(),
-            message: e.to_string().trim_end().to_string(),
-        })?;
+        let config: SimConfig = read_toml(path.as_ref())?;
         config.validate()?;
         Ok(config)
     }

@@ -430,51 +430,58 @@ pub fn legacy_raw_errors(session: &Session, geometry: &crate::dataset::Geometry)
         .collect()
 }
 
-/// Run `spidar simulate`.
-pub fn run_simulate(args: &SimulateArgs) -> Result<SimulateReport, SimError> {
-    if args.physics == PhysicsArg::Independent {
-        return physics::run_simulate(args);
-    }
-    let mut config = match &args.config {
-        Some(path) => SimConfig::load(path)?,
-        None => SimConfig::default(),
-    };
-    config.effects.extend(args.effects.iter().cloned());
-    let kind = match args.kind {
-        KindArg::Lattice => {
-            if args.points.is_some() {
-                return Err(SimError::Config {
-                    field: "--points".into(),
-                    problem: "applies to --kind random only".into(),
-                });
-            }
-            SessionKind::Lattice
-        }
-        KindArg::Random => SessionKind::Random {
-            points: args.points.unwrap_or(config.random.points),
+/// The session kind `args` ask for (`default_points`: the configuration's
+/// `random.points`).
+pub(crate) fn session_kind(
+    args: &SimulateArgs,
+    default_points: usize,
+) -> Result<SessionKind, SimError> {
+    match args.kind {
+        KindArg::Lattice => match args.points {
+            Some(_) => Err(SimError::Config {
+                field: "--points".into(),
+                problem: "applies to --kind random only".into(),
+            }),
+            None => Ok(SessionKind::Lattice),
         },
-    };
-    let device = Device::new(&config, args.seed)?;
-    let session_seed = args.session_seed.unwrap_or(match kind {
+        KindArg::Random => Ok(SessionKind::Random {
+            points: args.points.unwrap_or(default_points),
+        }),
+    }
+}
+
+/// The session seed of `args`: given, or the device seed + 1 (lattice) or
+/// + 2 (random).
+pub(crate) fn session_seed(args: &SimulateArgs, kind: SessionKind) -> u64 {
+    args.session_seed.unwrap_or(match kind {
         SessionKind::Lattice => args.seed.wrapping_add(1),
         SessionKind::Random { .. } => args.seed.wrapping_add(2),
-    });
-    let session = simulate_session(&device, kind, session_seed)?;
+    })
+}
 
+/// Writes what `spidar simulate` writes, for either simulator: the nominal
+/// `geometry.toml`, the session CSV (`--name` or the kind's name) and
+/// `truth.toml` (by `write_truth`).
+pub(crate) fn write_outputs(
+    args: &SimulateArgs,
+    kind: SessionKind,
+    nominal: &crate::dataset::Geometry,
+    session: &Session,
+    write_truth: impl FnOnce(&std::path::Path) -> Result<(), SimError>,
+    legacy_raw_error: Option<crate::stats::ErrorStats>,
+) -> Result<SimulateReport, SimError> {
     std::fs::create_dir_all(&args.out).map_err(|source| SimError::Io {
         file: args.out.clone(),
         action: "cannot create the output directory",
         source,
     })?;
     let geometry = args.out.join("geometry.toml");
-    device.nominal.write(&geometry)?;
+    nominal.write(&geometry)?;
     let stem = args.name.clone().unwrap_or_else(|| kind.name().to_string());
     let session_path = args.out.join(format!("{stem}.csv"));
     session.write(&session_path)?;
     let truth = args.out.join("truth.toml");
-    Truth::of(&device).write(&truth)?;
-
-    let errors = legacy_raw_errors(&session, &device.nominal);
+    write_truth(&truth)?;
     Ok(SimulateReport {
         geometry,
         session: session_path,
@@ -485,6 +492,30 @@ pub fn run_simulate(args: &SimulateArgs) -> Result<SimulateReport, SimError> {
             .iter()
             .filter(|s| s.tracker.is_none())
             .count(),
-        legacy_raw_error: (!errors.is_empty()).then(|| crate::stats::ErrorStats::of(&errors)),
+        legacy_raw_error,
     })
+}
+
+/// Run `spidar simulate`.
+pub fn run_simulate(args: &SimulateArgs) -> Result<SimulateReport, SimError> {
+    if args.physics == PhysicsArg::Independent {
+        return physics::run_simulate(args);
+    }
+    let mut config = match &args.config {
+        Some(path) => SimConfig::load(path)?,
+        None => SimConfig::default(),
+    };
+    config.effects.extend(args.effects.iter().cloned());
+    let kind = session_kind(args, config.random.points)?;
+    let device = Device::new(&config, args.seed)?;
+    let session = simulate_session(&device, kind, session_seed(args, kind))?;
+    let errors = legacy_raw_errors(&session, &device.nominal);
+    write_outputs(
+        args,
+        kind,
+        &device.nominal,
+        &session,
+        |truth| Truth::of(&device).write(truth),
+        (!errors.is_empty()).then(|| crate::stats::ErrorStats::of(&errors)),
+    )
 }

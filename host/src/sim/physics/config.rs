@@ -10,7 +10,8 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 use crate::sim::config::{
-    LatticeConfig, NominalConfig, RandomConfig, TensionConfig, TrackerConfig,
+    bad, non_negative, probability, LatticeConfig, NominalConfig, RandomConfig, TensionConfig,
+    TrackerConfig,
 };
 use crate::sim::SimError;
 
@@ -149,21 +150,6 @@ impl Default for PhysicsAbnormalMotor {
     }
 }
 
-fn bad(field: &str, problem: impl Into<String>) -> SimError {
-    SimError::Config {
-        field: field.to_string(),
-        problem: problem.into(),
-    }
-}
-
-fn non_negative(field: &str, v: f64) -> Result<(), SimError> {
-    if v.is_finite() && v >= 0.0 {
-        Ok(())
-    } else {
-        Err(bad(field, format!("{v} must be a finite number >= 0")))
-    }
-}
-
 fn range(field: &str, r: [f64; 2], positive: bool) -> Result<(), SimError> {
     let ok = r
         .iter()
@@ -181,27 +167,10 @@ fn range(field: &str, r: [f64; 2], positive: bool) -> Result<(), SimError> {
     Ok(())
 }
 
-fn probability(field: &str, p: f64) -> Result<(), SimError> {
-    if (0.0..=1.0).contains(&p) {
-        Ok(())
-    } else {
-        Err(bad(field, format!("{p} is not a probability")))
-    }
-}
-
 impl PhysicsConfig {
     /// Read a configuration TOML file (all keys optional).
     pub fn load(path: impl AsRef<Path>) -> Result<Self, SimError> {
-        let path = path.as_ref();
-        let text = std::fs::read_to_string(path).map_err(|source| SimError::Io {
-            file: path.to_path_buf(),
-            action: "cannot read",
-            source,
-        })?;
-        let config: PhysicsConfig = toml::from_str(&text).map_err(|e| SimError::ConfigFile {
-            file: path.to_path_buf(),
-            message: e.to_string().trim_end().to_string(),
-        })?;
+        let config: PhysicsConfig = crate::sim::config::read_toml(path.as_ref())?;
         config.validate()?;
         Ok(config)
     }

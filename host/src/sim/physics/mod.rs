@@ -67,8 +67,6 @@ pub mod effects;
 pub mod guide;
 pub mod spool;
 
-use std::path::PathBuf;
-
 use rand::rngs::ChaCha8Rng;
 use rand::RngExt;
 use rand_distr::Distribution;
@@ -82,7 +80,7 @@ pub use guide::{Guide, GuidePath};
 pub use spool::{Spool, SpoolParams};
 
 use super::device::{axis_angle, dot, norm, normal, rotate, rotate_back, stream, sub};
-use super::{trajectory, KindArg, SessionKind, SimError, SimulateArgs, SimulateReport};
+use super::{trajectory, SessionKind, SimError, SimulateArgs, SimulateReport};
 use crate::dataset::{Geometry, Sample, Session};
 
 const G_MM_PER_S2: f64 = 9806.65;
@@ -849,49 +847,15 @@ pub fn run_simulate(args: &SimulateArgs) -> Result<SimulateReport, SimError> {
         None => PhysicsConfig::default(),
     };
     config.effects.extend(args.effects.iter().cloned());
-    let kind = match args.kind {
-        KindArg::Lattice => {
-            if args.points.is_some() {
-                return Err(SimError::Config {
-                    field: "--points".into(),
-                    problem: "applies to --kind random only".into(),
-                });
-            }
-            SessionKind::Lattice
-        }
-        KindArg::Random => SessionKind::Random {
-            points: args.points.unwrap_or(config.random.points),
-        },
-    };
+    let kind = super::session_kind(args, config.random.points)?;
     let device = PhysicsDevice::new(&config, args.seed)?;
-    let session_seed = args.session_seed.unwrap_or(match kind {
-        SessionKind::Lattice => args.seed.wrapping_add(1),
-        SessionKind::Random { .. } => args.seed.wrapping_add(2),
-    });
-    let (session, _) = simulate_session(&device, kind, session_seed)?;
-
-    std::fs::create_dir_all(&args.out).map_err(|source| SimError::Io {
-        file: args.out.clone(),
-        action: "cannot create the output directory",
-        source,
-    })?;
-    let geometry = args.out.join("geometry.toml");
-    device.nominal.write(&geometry)?;
-    let stem = args.name.clone().unwrap_or_else(|| kind.name().to_string());
-    let session_path = args.out.join(format!("{stem}.csv"));
-    session.write(&session_path)?;
-    let truth: PathBuf = args.out.join("truth.toml");
-    write_truth(&device, &truth)?;
-    Ok(SimulateReport {
-        geometry,
-        session: session_path,
-        truth,
-        rows: session.samples.len(),
-        occluded_rows: session
-            .samples
-            .iter()
-            .filter(|s| s.tracker.is_none())
-            .count(),
-        legacy_raw_error: None,
-    })
+    let (session, _) = simulate_session(&device, kind, super::session_seed(args, kind))?;
+    super::write_outputs(
+        args,
+        kind,
+        &device.nominal,
+        &session,
+        |truth| write_truth(&device, truth),
+        None,
+    )
 }
