@@ -87,15 +87,85 @@ pub enum DeviceCommand {
     /// Arm and render a force (device frame, N) for --hold seconds, then
     /// go back to no force and disarm.
     Force {
-        #[arg(allow_hyphen_values = true)]
+        /// Force along x, N.
+        #[arg(allow_hyphen_values = true, value_parser = finite_newtons)]
         fx: f32,
-        #[arg(allow_hyphen_values = true)]
+        /// Force along y, N.
+        #[arg(allow_hyphen_values = true, value_parser = finite_newtons)]
         fy: f32,
-        #[arg(allow_hyphen_values = true)]
+        /// Force along z, N.
+        #[arg(allow_hyphen_values = true, value_parser = finite_newtons)]
         fz: f32,
         #[arg(long, default_value_t = 1.0)]
         hold: f64,
     },
+}
+
+/// A force component: a finite number of newtons (an argument error, not a
+/// link error, for `nan` or `inf`).
+fn finite_newtons(text: &str) -> Result<f32, String> {
+    match text.parse::<f32>() {
+        Ok(v) if v.is_finite() => Ok(v),
+        Ok(v) => Err(format!("{v} is not a finite force in newtons")),
+        Err(e) => Err(format!("`{text}` is not a number of newtons: {e}")),
+    }
+}
+
+/// The device id as text when it is printable ASCII (a name such as
+/// `VIRTUAL-0001`), else as hex.
+fn device_name(id: &[u8]) -> String {
+    let trimmed: Vec<u8> = id.iter().copied().take_while(|&b| b != 0).collect();
+    if !trimmed.is_empty() && trimmed.iter().all(|b| b.is_ascii_graphic()) {
+        String::from_utf8_lossy(&trimmed).into_owned()
+    } else {
+        hex(id)
+    }
+}
+
+/// `YYYY-MM-DD hh:mm:ss UTC` of seconds since 1970 (civil-from-days, the
+/// proleptic Gregorian calendar; no time-zone database needed for UTC).
+fn utc_date(unix_s: u64) -> String {
+    let days = (unix_s / 86_400) as i64;
+    let secs = unix_s % 86_400;
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z.rem_euclid(146_097);
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let day = doy - (153 * mp + 2) / 5 + 1;
+    let month = if mp < 10 { mp + 3 } else { mp - 9 };
+    let year = yoe + era * 400 + i64::from(month <= 2);
+    format!(
+        "{year:04}-{month:02}-{day:02} {:02}:{:02}:{:02} UTC",
+        secs / 3600,
+        secs / 60 % 60,
+        secs % 60
+    )
+}
+
+/// The link statistics in words.
+fn link_line(s: &spidar_protocol::LinkStats) -> String {
+    let r = &s.rx;
+    format!(
+        "link: {} frames received ({} rejected: crc {}, cobs {}, too short {}, payload {}, \
+         invalid {}, overlong {}, version {}), {} sent, {} stream frames dropped, {} loop \
+         overruns, {} heartbeat losses, up {:.1} s",
+        r.ok,
+        r.rejected(),
+        r.crc,
+        r.cobs,
+        r.too_short,
+        r.payload,
+        r.invalid,
+        r.overlong,
+        r.version,
+        s.tx_frames,
+        s.tx_dropped,
+        s.loop_overruns,
+        s.heartbeat_losses,
+        s.uptime_us as f64 / 1e6
+    )
 }
 
 fn seconds(s: f64, field: &'static str) -> Result<Duration, LinkError> {
@@ -199,8 +269,8 @@ pub fn run_device(args: &DeviceArgs) -> Result<String, Box<dyn std::error::Error
             if let Some(h) = client.device().copied() {
                 let _ = writeln!(
                     out,
-                    "device id {}\nfirmware {}.{}.{}\nprotocol {}\ncapabilities {:#06x}\nmax chunk {} bytes\nmax blob {} bytes\nloop period {} us",
-                    hex(&h.device_id),
+                    "device {}\nfirmware {}.{}.{}\nprotocol {}\ncapabilities {:#06x}\nmax chunk {} bytes\nmax blob {} bytes\nloop period {} us",
+                    device_name(&h.device_id),
                     h.firmware_version[0],
                     h.firmware_version[1],
                     h.firmware_version[2],
@@ -215,14 +285,18 @@ pub fn run_device(args: &DeviceArgs) -> Result<String, Box<dyn std::error::Error
                 Some(i) => {
                     let _ = writeln!(
                         out,
-                        "model id {:#010x} in slot {}: {:?} correction, {} effects, blob {} bytes, CRC {:#010x}, created {}",
+                        "model id {:#010x} in slot {}: {}, {} effects, blob {} bytes, CRC {:#010x}, created {}",
                         i.header.model_id,
                         i.slot,
-                        i.header.kind,
+                        match i.header.kind {
+                            spidar_protocol::blob::CorrectionKind::None => "no position correction",
+                            spidar_protocol::blob::CorrectionKind::Nn => "NN position correction",
+                            spidar_protocol::blob::CorrectionKind::Svr => "SVR position correction",
+                        },
                         i.header.effects,
                         i.header.blob_len(),
                         i.blob_crc32,
-                        i.header.created_unix_s
+                        utc_date(u64::from(i.header.created_unix_s))
                     );
                 }
                 None => {
@@ -230,7 +304,7 @@ pub fn run_device(args: &DeviceArgs) -> Result<String, Box<dyn std::error::Error
                 }
             }
             let s = client.stats()?;
-            let _ = writeln!(out, "link: {s:?}");
+            let _ = writeln!(out, "{}", link_line(&s));
         }
         DeviceCommand::Stream {
             decimation,
@@ -294,4 +368,25 @@ fn hold_heartbeat(client: &mut Client, hold: Duration) -> Result<(), LinkError> 
         std::thread::sleep(Duration::from_millis(5));
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn dates_names_and_forces_read_as_people_write_them() {
+        assert_eq!(utc_date(0), "1970-01-01 00:00:00 UTC");
+        assert_eq!(utc_date(951_782_400), "2000-02-29 00:00:00 UTC");
+        assert_eq!(utc_date(1_795_430_123), "2026-11-23 10:35:23 UTC");
+        assert_eq!(device_name(b"VIRTUAL-0001"), "VIRTUAL-0001");
+        assert_eq!(device_name(&[0xde, 0xad, 0x01]), "dead01");
+        assert_eq!(finite_newtons("-2.5"), Ok(-2.5));
+        assert!(finite_newtons("nan")
+            .unwrap_err()
+            .contains("not a finite force"));
+        assert!(finite_newtons("x")
+            .unwrap_err()
+            .contains("not a number of newtons"));
+    }
 }
