@@ -139,27 +139,15 @@ pub fn simulate_session_with_truth(
     let centre = device.volume_centre_room();
     let start = device.room_from_device(&device.frame.home);
     let mut path_rng = stream(seed, 10);
-    let captures = match kind {
-        SessionKind::Lattice => {
-            trajectory::lattice(&cfg.lattice, &cfg.tracker, centre, start, &mut path_rng)?
-        }
-        SessionKind::Random { points } => {
-            if points == 0 {
-                return Err(SimError::Config {
-                    field: "random.points".into(),
-                    problem: "must be positive".into(),
-                });
-            }
-            trajectory::random(
-                &cfg.random,
-                &cfg.lattice,
-                centre,
-                start,
-                points,
-                &mut path_rng,
-            )?
-        }
-    };
+    let captures = trajectory::captures(
+        kind,
+        &cfg.lattice,
+        &cfg.random,
+        &cfg.tracker,
+        centre,
+        start,
+        &mut path_rng,
+    )?;
 
     let mut tension_rng = stream(seed, 11);
     let mut noise_rng = stream(seed, 12);

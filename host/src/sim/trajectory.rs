@@ -172,3 +172,26 @@ pub(crate) fn random(
     }
     Ok(captures)
 }
+
+/// The captures of a session of `kind` (both simulators' path): the
+/// lattice protocol, or `points` random captures.
+pub(crate) fn captures(
+    kind: super::SessionKind,
+    lattice_cfg: &LatticeConfig,
+    random_cfg: &RandomConfig,
+    tracker: &TrackerConfig,
+    centre: Vec3<f64>,
+    start: Vec3<f64>,
+    rng: &mut ChaCha8Rng,
+) -> Result<Vec<Capture>, SimError> {
+    match kind {
+        super::SessionKind::Lattice => lattice(lattice_cfg, tracker, centre, start, rng),
+        super::SessionKind::Random { points: 0 } => Err(SimError::Config {
+            field: "random.points".into(),
+            problem: "must be positive".into(),
+        }),
+        super::SessionKind::Random { points } => {
+            random(random_cfg, lattice_cfg, centre, start, points, rng)
+        }
+    }
+}

@@ -656,27 +656,15 @@ pub fn simulate_rows(
     let home_omega = device.posture.rotation_vector(&device.home_mm);
     let start = device.room_from_device(&device.marker_of(&device.home_mm, &home_omega));
     let mut path_rng = stream(seed, 110);
-    let captures = match kind {
-        SessionKind::Lattice => {
-            trajectory::lattice(&cfg.lattice, &cfg.tracker, centre, start, &mut path_rng)?
-        }
-        SessionKind::Random { points } => {
-            if points == 0 {
-                return Err(SimError::Config {
-                    field: "random.points".into(),
-                    problem: "must be positive".into(),
-                });
-            }
-            trajectory::random(
-                &cfg.random,
-                &cfg.lattice,
-                centre,
-                start,
-                points,
-                &mut path_rng,
-            )?
-        }
-    };
+    let captures = trajectory::captures(
+        kind,
+        &cfg.lattice,
+        &cfg.random,
+        &cfg.tracker,
+        centre,
+        start,
+        &mut path_rng,
+    )?;
     let duration_s = captures.last().map_or(0.0, |c| f64::from(c.t_ms) / 1000.0);
 
     let mut tension_rng = stream(seed, 111);
