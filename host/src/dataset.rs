@@ -695,22 +695,7 @@ fn find_group<const N: usize>(
     names: &[&str; N],
     required: bool,
 ) -> Result<Option<[usize; N]>, DatasetError> {
-    let found: Vec<Option<usize>> = names.iter().map(|n| index_of(n)).collect();
-    let present = found.iter().position(Option::is_some);
-    let missing = found.iter().position(Option::is_none);
-    match (present, missing) {
-        (_, None) => Ok(Some(core::array::from_fn(|k| found[k].unwrap_or(0)))),
-        (None, Some(_)) if !required => Ok(None),
-        (Some(p), Some(m)) if !required => Err(DatasetError::IncompleteGroup {
-            file: file.to_path_buf(),
-            present: names[p].to_string(),
-            missing: names[m].to_string(),
-        }),
-        (_, Some(m)) => Err(DatasetError::MissingColumn {
-            file: file.to_path_buf(),
-            column: names[m].to_string(),
-        }),
-    }
+    Ok(find_columns(file, index_of, names, required)?.map(|v| core::array::from_fn(|k| v[k])))
 }
 
 impl Layout {
