@@ -619,22 +619,29 @@ fn feasible_fraction_planar<F: Float>(
         if !(above && below) {
             return Err(TensionStatus::OutsideAnchorHull);
         }
-        let reach = radius * sum_abs;
-        let centre = mid * sum;
-        if centre.abs() > reach {
-            return Err(TensionStatus::NoFeasibleTension);
-        }
-        let a = dot(n, force);
-        let (slack, a_abs) = if a >= F::zero() {
-            (reach + centre, a)
-        } else {
-            (reach - centre, -a)
-        };
-        if slack < alpha * a_abs {
-            alpha = slack / a_abs;
-        }
+        alpha = facet_limit(alpha, radius * sum_abs, mid * sum, dot(n, force))?;
     }
     Ok(alpha)
+}
+
+/// The feasible fraction `alpha` after one facet pair of the tension
+/// zonotope: `|alpha n.F - n.c| <= reach`, with `centre = n.c` and
+/// `a = n.F`; the shared step of the 3-D and planar searches.
+#[inline(always)]
+fn facet_limit<F: Float>(alpha: F, reach: F, centre: F, a: F) -> Result<F, TensionStatus> {
+    if centre.abs() > reach {
+        return Err(TensionStatus::NoFeasibleTension);
+    }
+    let (slack, a_abs) = if a >= F::zero() {
+        (reach + centre, a)
+    } else {
+        (reach - centre, -a)
+    };
+    Ok(if slack < alpha * a_abs {
+        slack / a_abs
+    } else {
+        alpha
+    })
 }
 
 /// `x > hm * sqrt(n2)` without the square root (`n2 >= 0`).
@@ -718,20 +725,7 @@ fn feasible_fraction<F: Float>(
                 return Err(TensionStatus::OutsideAnchorHull);
             }
             // Facet pair: |alpha n.F - n.c| <= r sum_k |n.u_k|, c = mid sum_k u_k.
-            let reach = radius * a_ij;
-            let centre = mid * s_ij;
-            if centre.abs() > reach {
-                return Err(TensionStatus::NoFeasibleTension);
-            }
-            let a = dot(n, force);
-            let (slack, a_abs) = if a >= F::zero() {
-                (reach + centre, a)
-            } else {
-                (reach - centre, -a)
-            };
-            if slack < alpha * a_abs {
-                alpha = slack / a_abs;
-            }
+            alpha = facet_limit(alpha, radius * a_ij, mid * s_ij, dot(n, force))?;
         }
     }
     if pairs_used == 0 {

@@ -142,17 +142,7 @@ pub struct LoopResult {
 
 /// Position errors of an identified string model against the tracker.
 pub fn model_errors(id: &Identification, observations: &[Observation]) -> ErrorStats {
-    let predictions = predict(
-        StringModel {
-            frame: &id.frame,
-            laws: &id.laws,
-            effects: &id.effects,
-        },
-        observations,
-    );
-    let room: Vec<[f64; 3]> = predictions.iter().map(|p| p.room).collect();
-    let (p, t) = paired_with_tracker(&room, observations);
-    ErrorStats::of(&position_errors(&p, &t))
+    ErrorStats::of(&model_error_list(id, observations))
 }
 
 // ---------------------------------------------------------------------------
