@@ -591,10 +591,15 @@ fn run_boot(
                 d.handle(req, now)
             });
             rest = rest.get(used..).unwrap_or(&[]);
+            // The status is published before the reply goes out, so whoever
+            // has seen a reply reads a status that already counts its request
+            // (and the frames rejected before it).
+            let reply = reply.map(<[u8]>::to_vec);
+            publish(&dev, &link, now_us, ticks, tx_dropped, plant);
             // A reply to a request during which the power went is never sent.
             if let Some(frame) = reply {
                 if !shared.lost.load(Ordering::SeqCst)
-                    && !write_frame(master, frame, Duration::from_millis(50), &mut resync)
+                    && !write_frame(master, &frame, Duration::from_millis(50), &mut resync)
                 {
                     tx_dropped = tx_dropped.wrapping_add(1);
                 }
