@@ -227,6 +227,26 @@ fn the_operator_fills_a_small_lattice_cell_by_cell_and_the_rows_are_true() {
     // a few mm (the simulated device's own effects, and what the hand moves
     // in a few milliseconds; a state one tracker frame off would be ~5 mm
     // more at the operator's speed, a wrong one tens of mm).
+    // Pairing: each row's counts are the device's at the tracker frame's
+    // capture instant. The truth is the plant's counts at that simulated
+    // instant; the difference, in mm of string, is the pairing error.
+    let pairing: Vec<f64> = session
+        .samples
+        .iter()
+        .zip(&truths)
+        .flat_map(|(s, t)| {
+            (0..8)
+                .map(|i| f64::from(s.counts[i] - t.counts[i]).abs() * mm_per_count[i])
+                .collect::<Vec<_>>()
+        })
+        .collect();
+    let mean = pairing.iter().sum::<f64>() / pairing.len() as f64;
+    let max = pairing.iter().copied().fold(0.0, f64::max);
+    eprintln!("pairing error: mean {mean:.4} mm, max {max:.4} mm of string");
+    assert!(
+        max <= 0.1,
+        "pairing error up to {max:.3} mm of string (mean {mean:.3})"
+    );
     let anchors = rig.device.frame.anchors;
     let home = rig.device.frame.home;
     for (i, anchor) in anchors.iter().enumerate() {

@@ -61,7 +61,7 @@ use spidar_protocol::{Limits, State, StringModel};
 use super::{distance, ArmWatch, ArmWatchError, CueSink, Cues, Progress};
 use crate::dataset::{DatasetError, Geometry, Sample, Session, SessionAppender, TornLine};
 use crate::link::{Client, LinkError};
-use crate::tracker::{Next, TrackerError, TrackerSource};
+use crate::tracker::{ClockSync, Next, StateHistory, TrackerError, TrackerSource};
 
 pub use crate::sim::lattice::{Lattice, LatticeError};
 
@@ -87,8 +87,9 @@ pub struct CollectConfig {
     pub max_rearms: u32,
     /// Device state frames per control-loop iterations.
     pub decimation: u16,
-    /// A capture pairs the tracker frame with a device state at most this
-    /// far from it in host arrival time.
+    /// A capture reads the device state at the tracker frame's capture time
+    /// between two states at most this far apart in device time (a gap in
+    /// the stream is not bridged).
     pub max_pairing_gap: Duration,
     /// Fail when the device sends no state for this long.
     pub device_timeout: Duration,
@@ -328,19 +329,24 @@ pub fn done_cells(
     Ok(done)
 }
 
-/// Device states with their host arrival times (the last half second).
+/// Device states by their own sample time, and the clock map fed by
+/// every state's and tracker frame's arrival.
 struct States {
-    recent: VecDeque<(Instant, State)>,
+    history: StateHistory,
+    sync: ClockSync,
+    base: Instant,
     last_at: Instant,
+    first: Option<State>,
 }
 
 impl States {
-    const KEEP: Duration = Duration::from_millis(500);
-
     fn new() -> States {
         States {
-            recent: VecDeque::new(),
+            history: StateHistory::new(),
+            sync: ClockSync::new(),
+            base: Instant::now(),
             last_at: Instant::now(),
+            first: None,
         }
     }
 
@@ -351,36 +357,31 @@ impl States {
         if n > 0 {
             self.last_at = now;
         }
-        self.recent.extend(states.into_iter().map(|s| (now, s)));
-        while self
-            .recent
-            .front()
-            .is_some_and(|(t, _)| now.duration_since(*t) > Self::KEEP)
-            && self.recent.len() > 1
-        {
-            self.recent.pop_front();
+        let arrival_s = now.saturating_duration_since(self.base).as_secs_f64();
+        for s in states {
+            self.first.get_or_insert(s);
+            self.sync.device_state(s.time_us, arrival_s);
+            self.history.push(s);
         }
         Ok(n)
     }
 
-    /// The state that arrived nearest to `at`, and how far from it.
-    fn nearest(&self, at: Instant) -> Option<(Duration, &State)> {
-        self.recent
-            .iter()
-            .map(|(t, s)| {
-                let gap = if *t >= at {
-                    t.duration_since(at)
-                } else {
-                    at.duration_since(*t)
-                };
-                (gap, s)
-            })
-            .min_by_key(|(gap, _)| *gap)
+    fn tracker_frame(&mut self, ts_s: f64, received_at: Instant) {
+        let arrival_s = received_at
+            .saturating_duration_since(self.base)
+            .as_secs_f64();
+        self.sync.tracker_frame(ts_s, arrival_s);
     }
 
-    fn has_state_after(&self, at: Instant) -> bool {
-        self.recent.back().is_some_and(|(t, _)| *t >= at)
+    fn latest(&self) -> Option<&State> {
+        self.history.newest()
     }
+}
+
+/// `t_s` as written: whole microseconds, so that a value read back and
+/// written again (a resumed file) carries no float noise.
+fn t_s_of(us: f64) -> f64 {
+    (us.round()) / 1e6
 }
 
 /// Runs lattice collection on an open device session, appending to the
@@ -486,7 +487,7 @@ fn run(
     // The first state gives the device clock: behind the file's last row
     // means a reboot, and `t_s` continues from that row.
     let waiting_since = Instant::now();
-    while states.recent.is_empty() {
+    while states.first.is_none() {
         states.poll(client)?;
         if waiting_since.elapsed() > config.device_timeout {
             return Err(CollectError::DeviceSilent {
@@ -499,14 +500,10 @@ fn run(
             last_request = Instant::now();
         }
     }
-    let first_s = states
-        .recent
-        .front()
-        .map(|(_, s)| s.time_us as f64 / 1e6)
-        .unwrap_or(0.0);
+    let first_s = states.first.map_or(0.0, |s| s.time_us as f64 / 1e6);
     if let Some(last) = appender.last_t_s() {
         if first_s < last {
-            report.clock_offset_s = last - first_s;
+            report.clock_offset_s = t_s_of((last - first_s) * 1e6);
         }
     }
     let order = lattice.order();
@@ -550,7 +547,7 @@ fn run(
             }
             states.poll(client)?;
             // A device that disarmed itself is armed again, a few times.
-            let latest = states.recent.back().map(|(_, s)| (s.armed, s.faults));
+            let latest = states.latest().map(|s| (s.armed, s.faults));
             match arm_watch.check(client, latest) {
                 Ok(true) => {
                     report.rearms += 1;
@@ -572,7 +569,9 @@ fn run(
                 client.heartbeat()?;
                 last_request = Instant::now();
             }
-            let frame = match tracker.next_frame(Duration::from_millis(10))? {
+            // A short wait: states are read (and stamped) at least every
+            // 2 ms, so some arrive promptly enough for the clock map.
+            let frame = match tracker.next_frame(Duration::from_millis(2))? {
                 Next::Frame(f) => f,
                 Next::End => {
                     return Err(CollectError::TrackerEnded {
@@ -591,6 +590,7 @@ fn run(
             };
             last_frame_at = Instant::now();
             report.frames += 1;
+            states.tracker_frame(frame.ts_s, frame.received_at);
             let marker = frame
                 .body
                 .as_ref()
@@ -621,16 +621,31 @@ fn run(
                 sink.show(&cues);
                 continue;
             }
-            // Inside: the device state nearest in host arrival time, waiting
-            // a little for one that came after the frame.
+            // Inside: the device state at the frame's capture time (the
+            // tracker's stamp mapped to device time), interpolated between
+            // the two states around it; waits for the state after it.
+            let at_us = if states.sync.ready() {
+                states.sync.device_time_us(frame.ts_s)
+            } else {
+                None
+            };
             let wait_from = Instant::now();
-            while !states.has_state_after(frame.received_at)
-                && wait_from.elapsed() < config.max_pairing_gap
-            {
-                states.poll(client)?;
+            if let Some(t) = at_us {
+                while states.latest().is_some_and(|s| (s.time_us as f64) < t)
+                    && wait_from.elapsed() < config.device_timeout
+                {
+                    states.poll(client)?;
+                    if last_request.elapsed() >= config.heartbeat_every {
+                        client.heartbeat()?;
+                        last_request = Instant::now();
+                    }
+                    std::thread::sleep(Duration::from_micros(200));
+                }
             }
-            match states.nearest(frame.received_at) {
-                Some((gap, s)) if gap <= config.max_pairing_gap && s.armed => {
+            let max_gap_us = config.max_pairing_gap.as_micros() as u64;
+            let paired = at_us.and_then(|t| states.history.at(t, max_gap_us));
+            match paired {
+                Some(s) if s.armed => {
                     let device_s = s.time_us as f64 / 1e6;
                     if previous_device_s.is_some_and(|p| device_s < p) {
                         return Err(CollectError::ClockWentBack {
@@ -640,9 +655,9 @@ fn run(
                         });
                     }
                     previous_device_s = Some(device_s);
-                    // Never before the last row (the offset is rounded).
-                    let t_s =
-                        (device_s + report.clock_offset_s).max(appender.last_t_s().unwrap_or(0.0));
+                    // Never before the last row.
+                    let t_s = t_s_of(s.time_us as f64 + report.clock_offset_s * 1e6)
+                        .max(appender.last_t_s().unwrap_or(0.0));
                     cues.message = format!("captured cell {}/{}", report.done + 1, report.total);
                     sink.show(&cues);
                     break Sample {
@@ -655,16 +670,18 @@ fn run(
                 }
                 other => {
                     report.unpaired += 1;
-                    cues.message = match other {
-                        Some((_, s)) if !s.armed => format!(
+                    cues.message = match (other, at_us) {
+                        (Some(s), _) => format!(
                             "inside: waiting for the device to arm (faults {:#06x})",
                             s.faults.0
                         ),
-                        Some((gap, _)) => format!(
-                            "inside: waiting for a device state (nearest {:.0} ms away)",
-                            gap.as_secs_f64() * 1e3
-                        ),
-                        None => "inside: waiting for a device state".into(),
+                        (None, None) => {
+                            "inside: synchronizing the device's and the tracker's clocks".into()
+                        }
+                        (None, Some(_)) => {
+                            "inside: no device state around the frame's time (a gap in the stream)"
+                                .into()
+                        }
                     };
                     sink.show(&cues);
                 }

@@ -73,8 +73,12 @@ pub struct SimOperatorConfig {
     pub frame_rate_hz: f64,
     /// DTrack body id of the marker.
     pub body_id: u32,
-    /// `ts` of the first frame, s since midnight.
+    /// Tracker `ts` at simulated time 0 (the virtual device's first boot),
+    /// s since midnight.
     pub ts_start_s: f64,
+    /// How much faster the tracker's clock runs than the device's, parts
+    /// per million (two crystals never agree).
+    pub clock_drift_ppm: f64,
     /// Tracker noise, standard deviation per axis, mm.
     pub tracker_noise_mm: f64,
     /// Probability that a frame has the marker occluded.
@@ -117,6 +121,7 @@ impl SimOperatorConfig {
             frame_rate_hz: 100.0,
             body_id: 0,
             ts_start_s: 36_000.0,
+            clock_drift_ppm: 30.0,
             tracker_noise_mm: 0.1,
             occlusion: 0.0,
             loss: 0.0,
@@ -134,6 +139,11 @@ impl SimOperatorConfig {
             max_duration: Duration::from_secs(60),
             seed: 0,
         }
+    }
+
+    /// The tracker's `ts` of an instant of simulated time.
+    pub fn tracker_ts_s(&self, sim_us: u64) -> f64 {
+        self.ts_start_s + sim_us as f64 / 1e6 * (1.0 + self.clock_drift_ppm * 1e-6)
     }
 
     fn validate(&self) -> Result<(), TrackerError> {
@@ -166,6 +176,12 @@ impl SimOperatorConfig {
                 return Err(bad(field, format!("{v} is not a finite value >= 0")));
             }
         }
+        if !(self.clock_drift_ppm.is_finite() && self.clock_drift_ppm.abs() < 1000.0) {
+            return Err(bad(
+                "clock_drift_ppm",
+                format!("{} is not a drift within 1000 ppm", self.clock_drift_ppm),
+            ));
+        }
         if !self.ts_start_s.is_finite() {
             return Err(bad("ts_start_s", "not finite".into()));
         }
@@ -192,10 +208,16 @@ pub struct HandSample {
     pub frame: u32,
     /// Host time of the frame.
     pub at: Instant,
+    /// Capture time on the simulated clock (the plant's: device time since
+    /// the virtual device's first boot), µs.
+    pub t_us: u64,
     /// True marker position, room frame, mm.
     pub room_mm: [f64; 3],
     /// True end-effector position, device frame, mm.
     pub device_mm: [f64; 3],
+    /// The plant's encoder counts since its boot at `t_us`: what a device
+    /// state sampled at the capture instant reads (until a `Home`).
+    pub counts: [i32; spidar_core::STRINGS],
 }
 
 /// A running simulated operator. Dropping it stops the thread.
@@ -401,39 +423,43 @@ fn run(
             problem: e.to_string(),
         })?;
     let dt = 1.0 / config.frame_rate_hz;
-    let start = Instant::now();
+    let dt_us = ((1e6 / config.frame_rate_hz).round() as u64).max(1);
+    // On the simulated clock: the plant waits for each next point of the
+    // hand's path, and each frame is taken at a simulated instant.
+    struct Release<'a>(&'a Hand);
+    impl Drop for Release<'_> {
+        fn drop(&mut self) {
+            self.0.detach();
+        }
+    }
+    let t0_us = hand.attach();
+    let _release = Release(hand);
+    let max_us = config.max_duration.as_micros().min(u128::from(u64::MAX)) as u64;
     let mut report = SimOperatorReport::default();
     let mut memory = Memory::default();
     let mut k: u32 = 0;
-    while !stop.load(Ordering::SeqCst) && start.elapsed() < config.max_duration {
-        let due = start + Duration::from_secs_f64(f64::from(k) * dt);
-        if let Some(wait) = due.checked_duration_since(Instant::now()) {
-            std::thread::sleep(wait);
+    loop {
+        let t_us = t0_us + u64::from(k) * dt_us;
+        if stop.load(Ordering::SeqCst) || t_us - t0_us >= max_us {
+            break;
         }
-        // 1-2: cues, then the hand moves.
-        let shown = cues.latest();
+        // The plant has ticked at the frame's instant: the marker is where
+        // the path says, the force is what the strings pulled with.
+        let Some((_, counts)) = hand.wait_plant(t_us, stop) else {
+            break;
+        };
         let p = hand.position_mm();
-        let v = velocity(
-            config,
-            device,
-            &shown,
-            &p,
-            &hand.string_force_n(),
-            &mut memory,
-            &mut rng,
-        );
-        let next: [f64; 3] = core::array::from_fn(|i| p[i] + v[i] * dt + tremor.sample(&mut rng));
-        report.path_mm += distance(&next, &p);
-        hand.move_to(next);
-        // 3: the tracker's frame of the marker.
-        let room = device.room_from_device(&next);
+        // 1: the tracker's frame of the marker at `t_us`.
+        let room = device.room_from_device(&p);
         let frame = k.wrapping_add(1);
         if let Ok(mut h) = history.lock() {
             h.push(HandSample {
                 frame,
                 at: Instant::now(),
+                t_us,
                 room_mm: room,
-                device_mm: next,
+                device_mm: p,
+                counts,
             });
         }
         let occluded = rng.random::<f64>() < config.occlusion;
@@ -446,7 +472,7 @@ fn run(
             let seen = room.map(|x| x + noise.sample(&mut rng));
             let datagram = format_datagram(&DtrackFrame {
                 frame,
-                ts_s: Some(config.ts_start_s + f64::from(k) * dt),
+                ts_s: Some(config.tracker_ts_s(t_us)),
                 calibrated_bodies: Some(1),
                 bodies: if occluded {
                     Vec::new()
@@ -464,6 +490,20 @@ fn run(
                 })?;
             report.sent += 1;
         }
+        // 2-3: cues, then the hand's next point, one frame on.
+        let shown = cues.latest();
+        let v = velocity(
+            config,
+            device,
+            &shown,
+            &p,
+            &hand.string_force_n(),
+            &mut memory,
+            &mut rng,
+        );
+        let next: [f64; 3] = core::array::from_fn(|i| p[i] + v[i] * dt + tremor.sample(&mut rng));
+        report.path_mm += distance(&next, &p);
+        hand.commit(t_us, t_us + dt_us, next);
         k = k.wrapping_add(1);
     }
     Ok(report)

@@ -4,7 +4,9 @@
 //! tension follows the commanded tension with a first-order lag, and 16-bit
 //! encoder counters that read the true string lengths (and wrap).
 
-use std::sync::{Arc, Mutex};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Condvar, Mutex};
+use std::time::Duration;
 
 use spidar_core::STRINGS;
 
@@ -25,48 +27,75 @@ pub struct Waypoint {
 /// every tick and writes back the net force the strings put on it
 /// ([`Hand::string_force_n`]), which is what the holder feels. Clones share
 /// the same hand.
+///
+/// **Simulated clock.** Free (as built), the plant reads wherever the hand
+/// is when it ticks: the path then depends on how the host schedules the
+/// two threads. Clocked ([`Hand::attach`]), the hand's path is a function
+/// of simulated time (the plant's: device time since its first boot): the
+/// holder commits the next point of a piecewise-linear path
+/// ([`Hand::commit`]) and the plant does not tick past the last committed
+/// point until the next one is there ([`Hand::wait_plant`] is the
+/// holder's side). The plant's physics, the device's sample times and the
+/// holder's captures then share one timeline whatever the host does, and
+/// the truth at any simulated instant is well defined.
 #[derive(Clone, Debug)]
 pub struct Hand {
-    inner: Arc<Mutex<HandState>>,
+    inner: Arc<(Mutex<HandState>, Condvar)>,
 }
 
 #[derive(Clone, Copy, Debug)]
 struct HandState {
     device_mm: [f64; 3],
     force_n: [f64; 3],
+    /// Committed path segment (from, to) while clocked.
+    path: Option<((u64, [f64; 3]), (u64, [f64; 3]))>,
+    /// Simulated time of the plant's last tick, µs.
+    plant_us: u64,
+    /// The plant's counts (since its boot) at `plant_us`.
+    plant_counts: [i32; STRINGS],
 }
 
 impl Hand {
     /// A hand holding the end-effector at `device_mm` (device frame, mm).
     pub fn at(device_mm: [f64; 3]) -> Hand {
         Hand {
-            inner: Arc::new(Mutex::new(HandState {
-                device_mm,
-                force_n: [0.0; 3],
-            })),
+            inner: Arc::new((
+                Mutex::new(HandState {
+                    device_mm,
+                    force_n: [0.0; 3],
+                    path: None,
+                    plant_us: 0,
+                    plant_counts: [0; STRINGS],
+                }),
+                Condvar::new(),
+            )),
+        }
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, HandState> {
+        match self.inner.0.lock() {
+            Ok(s) => s,
+            Err(poisoned) => poisoned.into_inner(),
         }
     }
 
     fn state(&self) -> HandState {
-        match self.inner.lock() {
-            Ok(s) => *s,
-            Err(poisoned) => *poisoned.into_inner(),
-        }
+        *self.lock()
     }
 
     fn update(&self, f: impl FnOnce(&mut HandState)) {
-        match self.inner.lock() {
-            Ok(mut s) => f(&mut s),
-            Err(poisoned) => f(&mut poisoned.into_inner()),
-        }
+        f(&mut self.lock());
+        self.inner.1.notify_all();
     }
 
-    /// Where the end-effector is, device frame, mm.
+    /// Where the end-effector is, device frame, mm (clocked: the last
+    /// committed point).
     pub fn position_mm(&self) -> [f64; 3] {
         self.state().device_mm
     }
 
-    /// Moves the end-effector to `device_mm` (device frame, mm).
+    /// Moves the end-effector to `device_mm` (device frame, mm) now (free
+    /// hand).
     pub fn move_to(&self, device_mm: [f64; 3]) {
         self.update(|s| s.device_mm = device_mm);
     }
@@ -80,6 +109,93 @@ impl Hand {
     fn set_string_force(&self, force_n: [f64; 3]) {
         self.update(|s| s.force_n = force_n);
     }
+
+    /// Puts the hand on the simulated clock: the path starts where it is,
+    /// at the plant's last tick, whose simulated time (µs) is returned.
+    /// The plant waits for each next point from here on.
+    pub fn attach(&self) -> u64 {
+        let mut s = self.lock();
+        let at = (s.plant_us, s.device_mm);
+        s.path = Some((at, at));
+        s.plant_us
+    }
+
+    /// Back to a free hand (the holder lets go): the plant no longer waits.
+    pub fn detach(&self) {
+        self.update(|s| {
+            if let Some((_, to)) = s.path.take() {
+                s.device_mm = to.1;
+            }
+        });
+    }
+
+    /// Commits the path's next point: the end-effector goes in a straight
+    /// line from where it is at `from_us` (simulated µs; the end of the
+    /// committed path) to `device_mm` at `to_us`.
+    pub fn commit(&self, from_us: u64, to_us: u64, device_mm: [f64; 3]) {
+        self.update(|s| {
+            let from = match s.path {
+                Some(p) => (from_us, segment_at(p, from_us)),
+                None => (from_us, s.device_mm),
+            };
+            s.path = Some((from, (to_us.max(from_us), device_mm)));
+            s.device_mm = device_mm;
+        });
+    }
+
+    /// Waits until the plant has ticked at or past simulated time `t_us`
+    /// (or `stop` is raised: `None`). Returns the plant's simulated time
+    /// and its counts (since its boot) at that tick.
+    pub fn wait_plant(&self, t_us: u64, stop: &AtomicBool) -> Option<(u64, [i32; STRINGS])> {
+        let mut s = self.lock();
+        while s.plant_us < t_us {
+            if stop.load(Ordering::SeqCst) {
+                return None;
+            }
+            s = match self.inner.1.wait_timeout(s, Duration::from_millis(20)) {
+                Ok((g, _)) => g,
+                Err(p) => p.into_inner().0,
+            };
+        }
+        Some((s.plant_us, s.plant_counts))
+    }
+
+    /// The plant's side: the position at simulated time `t_us`, waiting
+    /// (clocked) until the path reaches it.
+    fn position_at_sim(&self, t_us: u64) -> [f64; 3] {
+        let mut s = self.lock();
+        loop {
+            match s.path {
+                None => return s.device_mm,
+                Some(p) if t_us <= (p.1).0 => return segment_at(p, t_us),
+                Some(_) => {}
+            }
+            s = match self.inner.1.wait_timeout(s, Duration::from_millis(20)) {
+                Ok((g, _)) => g,
+                Err(p) => p.into_inner().0,
+            };
+        }
+    }
+
+    fn note_tick(&self, t_us: u64, counts: [i32; STRINGS]) {
+        self.update(|s| {
+            s.plant_us = t_us;
+            s.plant_counts = counts;
+        });
+    }
+}
+
+/// The point of a path segment at `t_us` (clamped to its ends).
+fn segment_at(p: ((u64, [f64; 3]), (u64, [f64; 3])), t_us: u64) -> [f64; 3] {
+    let ((t0, a), (t1, b)) = p;
+    if t_us <= t0 || t1 <= t0 {
+        return if t_us >= t1 { b } else { a };
+    }
+    if t_us >= t1 {
+        return b;
+    }
+    let w = (t_us - t0) as f64 / (t1 - t0) as f64;
+    core::array::from_fn(|k| a[k] + w * (b[k] - a[k]))
 }
 
 impl PartialEq for Hand {
@@ -193,6 +309,9 @@ pub struct Plant {
     /// Counts where the end-effector was at the last boot: the counters
     /// read `raw_home` there (zero unless a hand held it away from home).
     boot_counts: [i32; STRINGS],
+    /// Simulated time at the last boot, µs: device time restarts at each
+    /// boot, the simulated clock (a clocked [`Hand`]'s) does not.
+    sim_epoch_us: u64,
     error: Option<String>,
 }
 
@@ -210,6 +329,7 @@ impl Plant {
             prev_t_us: 0,
             counts: [0; STRINGS],
             boot_counts: [0; STRINGS],
+            sim_epoch_us: 0,
             error: None,
         }
     }
@@ -219,6 +339,7 @@ impl Plant {
     /// the counters read `raw_home` there (as a real controller's counters
     /// start wherever the strings are at power-on).
     pub fn reset(&mut self) {
+        self.sim_epoch_us += self.prev_t_us;
         self.tension_n = [0.0; STRINGS];
         self.direction = [0; STRINGS];
         self.prev_length = None;
@@ -280,7 +401,10 @@ impl Plant {
             };
             *t += (target - *t) * alpha;
         }
-        let p = self.device_mm_at(t_us);
+        let p = match &self.trajectory {
+            Trajectory::Held(hand) => hand.position_at_sim(self.sim_epoch_us + t_us),
+            _ => self.device_mm_at(t_us),
+        };
         let t_s = t_us as f64 / 1e6;
         // Channels without a string (the frame's layout) keep their counter
         // still and pull nothing.
@@ -334,6 +458,8 @@ impl Plant {
                 }
             }
             hand.set_string_force(force);
+            let counts = core::array::from_fn(|i| self.counts[i].wrapping_sub(self.boot_counts[i]));
+            hand.note_tick(self.sim_epoch_us + t_us, counts);
         }
         self.prev_length = Some(lengths);
         self.prev_t_us = t_us;
