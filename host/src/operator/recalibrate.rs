@@ -4,13 +4,15 @@
 //! the host watches the calibration the device runs:
 //!
 //! 1. **Pairs.** The device streams its state, the tracker its frames. Each
-//!    visible tracker frame is paired with the device state nearest to it
-//!    in *host arrival time*. Both arrival times are de-jittered: a stream's
-//!    own clock (device `time_us`, tracker `ts`) plus the smallest arrival
-//!    offset seen on that stream over the last two seconds ([`ArrivalClock`]), so that a pause of the
-//!    host loop (a diagnosis, a refit) does not give a burst of queued
-//!    frames one arrival time. A frame with no state within
-//!    [`MonitorConfig::max_pair_gap`] is not paired (counted as
+//!    visible tracker frame is paired with the device state *at its capture
+//!    time*: the frame's `ts` mapped to device time by the clock map fitted
+//!    online from both streams' least delayed arrivals
+//!    ([`crate::tracker::ClockSync`], offset and drift), the state there
+//!    interpolated between the two streamed around it
+//!    ([`crate::tracker::StateHistory`]). How late the host reads either
+//!    stream does not move a pair. A frame whose instant falls in a gap of
+//!    the stream wider than [`MonitorConfig::max_pair_gap`] is not paired
+//!    (counted as
 //!    `unpaired`); occluded frames are counted and skipped. A rolling
 //!    window of the last [`MonitorConfig::window`] pairs is kept as
 //!    dataset [`Sample`]s (counts, device time since home, tracker,
@@ -57,7 +59,7 @@ use std::time::{Duration, Instant};
 use spidar_core::model::{Calibration, Effect, EffectTerm, WINDING_ORDER};
 use spidar_core::STRINGS;
 use spidar_protocol::messages::q16_to_mm;
-use spidar_protocol::{Event, State};
+use spidar_protocol::Event;
 
 use crate::compile::{compile_checked, model_id_of, CompileCmdError};
 use crate::dataset::{DatasetError, Geometry, Sample, Session};
@@ -68,6 +70,7 @@ use crate::identify::{identify, Identification, IdentifyError, Start, Structure,
 use crate::link::{Client, LinkError};
 use crate::observe::{observations, Observation};
 use crate::stats::{position_error, ErrorStats};
+use crate::tracker::{ClockSync, StateHistory};
 use crate::tracker::{Next, TrackerError, TrackerSource};
 
 /// What to do when drift is found.
@@ -90,8 +93,9 @@ pub struct MonitorConfig {
     pub window: usize,
     /// Run the drift check every this many new pairs.
     pub check_every: usize,
-    /// Never pair a tracker frame with a device state further apart than
-    /// this in host arrival time.
+    /// A tracker frame is paired with the device state at its capture time,
+    /// interpolated between two states at most this far apart in device
+    /// time; it waits at most this long (host time) for the state after it.
     pub max_pair_gap: Duration,
     /// Drift when the window's mean error exceeds the baseline mean by this
     /// factor ...
@@ -260,7 +264,8 @@ pub struct Pair {
     pub device_room_mm: [f64; 3],
     /// Its error against the tracker, mm.
     pub error_mm: f64,
-    /// Difference of the two arrival times, ms.
+    /// Device time from the capture instant to the nearest state streamed, ms
+    /// (the state is interpolated across it).
     pub gap_ms: f64,
 }
 
@@ -547,11 +552,6 @@ impl ArrivalClock {
     }
 }
 
-struct Timed<T> {
-    at_s: f64,
-    item: T,
-}
-
 /// The monitor's loop state.
 struct Monitor<'a> {
     config: &'a MonitorConfig,
@@ -561,10 +561,12 @@ struct Monitor<'a> {
     identification: Identification,
     structure: Structure,
     base: Instant,
-    device_clock: ArrivalClock,
-    tracker_clock: ArrivalClock,
-    states: VecDeque<Timed<State>>,
-    pending: VecDeque<Timed<[f64; 3]>>,
+    /// Device-to-tracker clock map, fed by both streams' arrivals.
+    sync: ClockSync,
+    states: StateHistory,
+    /// Visible tracker frames waiting for the state after them: (`ts`,
+    /// host read time, marker).
+    pending: VecDeque<(f64, f64, [f64; 3])>,
     window: VecDeque<Pair>,
     since_check: usize,
     home_us: u64,
@@ -617,9 +619,8 @@ pub fn monitor(
         identification: identification_of(inputs.calibration),
         structure: structure_of(inputs.calibration),
         base: Instant::now(),
-        device_clock: ArrivalClock::default(),
-        tracker_clock: ArrivalClock::default(),
-        states: VecDeque::new(),
+        sync: ClockSync::new(),
+        states: StateHistory::new(),
         pending: VecDeque::new(),
         window: VecDeque::new(),
         since_check: 0,
@@ -676,16 +677,13 @@ impl Monitor<'_> {
                         .received_at
                         .saturating_duration_since(self.base)
                         .as_secs_f64();
-                    let at_s = self.tracker_clock.arrival(f.ts_s, read_s);
+                    self.sync.tracker_frame(f.ts_s, read_s);
                     match f
                         .body
                         .as_ref()
                         .filter(|b| b.id == self.config.body_id && b.is_visible())
                     {
-                        Some(b) => self.pending.push_back(Timed {
-                            at_s,
-                            item: b.position_mm,
-                        }),
+                        Some(b) => self.pending.push_back((f.ts_s, read_s, b.position_mm)),
                         None => self.report.occluded += 1,
                     }
                 }
@@ -719,8 +717,8 @@ impl Monitor<'_> {
                     self.home_us = s.time_us;
                     self.rehome = false;
                 }
-                let at_s = self.device_clock.arrival(s.time_us as f64 / 1e6, read_s);
-                self.states.push_back(Timed { at_s, item: s });
+                self.sync.device_state(s.time_us, read_s);
+                self.states.push(s);
             }
             self.pair(read_s);
             if self.report.baseline.is_none() && self.window.len() >= self.config.window {
@@ -808,48 +806,42 @@ impl Monitor<'_> {
         }
     }
 
-    /// Pairs the pending tracker frames whose neighbourhood the device
-    /// stream has covered (or that waited longer than the gap).
+    /// Pairs the pending tracker frames whose capture time the device
+    /// stream has passed (or that waited longer than the gap): the device
+    /// state at the frame's `ts` mapped to device time.
     fn pair(&mut self, now_s: f64) {
-        let gap = self.config.max_pair_gap.as_secs_f64();
-        while let Some(front) = self.pending.front() {
-            let newest = self.states.back().map_or(f64::NEG_INFINITY, |s| s.at_s);
-            if newest < front.at_s && now_s - front.at_s < gap {
+        let gap = self.config.max_pair_gap;
+        let gap_us = gap.as_micros() as u64;
+        while let Some(&(ts_s, read_s, marker)) = self.pending.front() {
+            let at_us = self.sync.device_time_us(ts_s);
+            let newest = self
+                .states
+                .newest()
+                .map_or(f64::NEG_INFINITY, |s| s.time_us as f64);
+            let covered = at_us.is_some_and(|t| newest >= t);
+            if !covered && now_s - read_s < gap.as_secs_f64() {
                 break;
             }
-            let Some(frame) = self.pending.pop_front() else {
-                break;
-            };
-            // States are in arrival order: the nearest is on either side of
-            // the frame's place among them.
-            let k = self.states.partition_point(|s| s.at_s < frame.at_s);
-            let nearest = [k.checked_sub(1), Some(k)]
-                .into_iter()
-                .flatten()
-                .filter_map(|j| self.states.get(j))
-                .min_by(|a, b| {
-                    (a.at_s - frame.at_s)
-                        .abs()
-                        .total_cmp(&(b.at_s - frame.at_s).abs())
-                });
-            let Some(s) = nearest.filter(|s| (s.at_s - frame.at_s).abs() <= gap) else {
+            self.pending.pop_front();
+            let Some((t, state)) = at_us.and_then(|t| self.states.at(t, gap_us).map(|s| (t, s)))
+            else {
                 self.report.unpaired += 1;
                 continue;
             };
-            let state = &s.item;
+            let nearest_ms = self.states.nearest_gap_us(t).unwrap_or(0.0) / 1e3;
             let device_room_mm = state.corrected_mm.map(q16_to_mm);
             let pair = Pair {
                 sample: Sample {
-                    t_s: state.time_us.saturating_sub(self.home_us) as f64 / 1e6,
+                    t_s: (t - self.home_us as f64).max(0.0).round() / 1e6,
                     counts: state.counts,
-                    tracker: Some(frame.item),
+                    tracker: Some(marker),
                     legacy: None,
                     tension_n: Some(state.tensions_n.map(f64::from)),
                 },
-                device_time_s: state.time_us as f64 / 1e6,
+                device_time_s: t.round() / 1e6,
                 device_room_mm,
-                error_mm: position_error(device_room_mm, frame.item),
-                gap_ms: (s.at_s - frame.at_s) * 1e3,
+                error_mm: position_error(device_room_mm, marker),
+                gap_ms: nearest_ms,
             };
             self.window.push_back(pair);
             while self.window.len() > self.config.window {
@@ -857,10 +849,6 @@ impl Monitor<'_> {
             }
             self.report.pairs += 1;
             self.since_check += 1;
-        }
-        // States older than a second cannot pair with anything to come.
-        while self.states.front().is_some_and(|s| s.at_s < now_s - 1.0) {
-            self.states.pop_front();
         }
     }
 
@@ -879,8 +867,7 @@ impl Monitor<'_> {
         self.report.states += n;
         self.states.clear();
         self.pending.clear();
-        self.device_clock = ArrivalClock::default();
-        self.tracker_clock = ArrivalClock::default();
+        self.sync = ClockSync::new();
         Ok(())
     }
 

@@ -196,6 +196,14 @@ impl StateHistory {
         self.states.is_empty()
     }
 
+    /// Device time from `t_us` to the nearest state held, µs.
+    pub fn nearest_gap_us(&self, t_us: f64) -> Option<f64> {
+        self.states
+            .iter()
+            .map(|s| (s.time_us as f64 - t_us).abs())
+            .reduce(f64::min)
+    }
+
     /// The state at device time `t_us`: the two states around it, no more
     /// than `max_gap_us` apart, interpolated linearly (counts rounded to
     /// the nearest count, positions and tensions as `f32`); flags and ids

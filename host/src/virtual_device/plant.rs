@@ -43,12 +43,15 @@ pub struct Hand {
     inner: Arc<(Mutex<HandState>, Condvar)>,
 }
 
+/// A straight piece of a clocked hand's path: (µs, device mm) at each end.
+type Segment = ((u64, [f64; 3]), (u64, [f64; 3]));
+
 #[derive(Clone, Copy, Debug)]
 struct HandState {
     device_mm: [f64; 3],
     force_n: [f64; 3],
     /// Committed path segment (from, to) while clocked.
-    path: Option<((u64, [f64; 3]), (u64, [f64; 3]))>,
+    path: Option<Segment>,
     /// Simulated time of the plant's last tick, µs.
     plant_us: u64,
     /// The plant's counts (since its boot) at `plant_us`.
@@ -186,7 +189,7 @@ impl Hand {
 }
 
 /// The point of a path segment at `t_us` (clamped to its ends).
-fn segment_at(p: ((u64, [f64; 3]), (u64, [f64; 3])), t_us: u64) -> [f64; 3] {
+fn segment_at(p: Segment, t_us: u64) -> [f64; 3] {
     let ((t0, a), (t1, b)) = p;
     if t_us <= t0 || t1 <= t0 {
         return if t_us >= t1 { b } else { a };
