@@ -80,10 +80,11 @@ fn small_lattice(rig: &SimulatedRig) -> Lattice {
     Lattice::new(rig.device.volume_centre_room(), 300.0, 3).unwrap()
 }
 
-fn config(device: &Device) -> CollectConfig {
+fn config(rig: &SimulatedRig) -> CollectConfig {
     CollectConfig {
         tracker_label: "the simulated tracker".into(),
-        ..CollectConfig::for_geometry(&device.nominal)
+        host_clock: rig.host_clock(),
+        ..CollectConfig::for_geometry(&rig.device.nominal)
     }
 }
 
@@ -159,11 +160,12 @@ fn the_operator_fills_a_small_lattice_cell_by_cell_and_the_rows_are_true() {
     let path = temp_csv("full.csv");
     let mut client = Client::open(rig.port()).unwrap();
     let mut recorder = Recorder::new(&rig.cues);
+    let cfg_here = config(&rig);
     let report = collect(
         &mut client,
         &mut rig.receiver,
         &lattice,
-        &config(&rig.device),
+        &cfg_here,
         &path,
         &mut recorder,
     )
@@ -312,9 +314,10 @@ fn a_stopped_or_cancelled_collection_resumes_and_every_cell_is_captured_once() {
     let mut client = Client::open(rig.port()).unwrap();
 
     // Stop after 7 cells.
-    let mut stop_early = config(&rig.device);
+    let mut stop_early = config(&rig);
     stop_early.max_cells = Some(7);
     let mut recorder = Recorder::new(&rig.cues);
+    let cfg_here = config(&rig);
     let first = collect(
         &mut client,
         &mut rig.receiver,
@@ -331,7 +334,7 @@ fn a_stopped_or_cancelled_collection_resumes_and_every_cell_is_captured_once() {
 
     // Cancelled once 15 cells are done.
     let flag = Arc::new(AtomicBool::new(false));
-    let mut cancellable = config(&rig.device);
+    let mut cancellable = config(&rig);
     cancellable.cancel = Some(flag.clone());
     let mut recorder = Recorder::new(&rig.cues);
     recorder.cancel = Some((flag, 15));
@@ -355,7 +358,7 @@ fn a_stopped_or_cancelled_collection_resumes_and_every_cell_is_captured_once() {
         &mut client,
         &mut rig.receiver,
         &lattice,
-        &config(&rig.device),
+        &cfg_here,
         &path,
         &mut recorder,
     )
@@ -369,11 +372,12 @@ fn a_stopped_or_cancelled_collection_resumes_and_every_cell_is_captured_once() {
     assert_rows_in_order(&lattice, &Session::load(&path).unwrap());
 
     // Nothing left: a fourth run does nothing.
+    let cfg_here = config(&rig);
     let fourth = collect(
         &mut client,
         &mut rig.receiver,
         &lattice,
-        &config(&rig.device),
+        &cfg_here,
         &path,
         &mut Recorder::new(&rig.cues),
     )
@@ -387,8 +391,9 @@ fn a_torn_last_line_is_cut_off_and_after_a_reboot_time_continues_from_the_last_r
     let lattice = small_lattice(&rig);
     let path = temp_csv("torn.csv");
     let mut client = Client::open(rig.port()).unwrap();
-    let mut cfg = config(&rig.device);
+    let mut cfg = config(&rig);
     cfg.max_cells = Some(5);
+    let cfg_here = config(&rig);
     collect(
         &mut client,
         &mut rig.receiver,
@@ -413,7 +418,7 @@ fn a_torn_last_line_is_cut_off_and_after_a_reboot_time_continues_from_the_last_r
         &mut client,
         &mut rig.receiver,
         &lattice,
-        &config(&rig.device),
+        &cfg_here,
         &path,
         &mut recorder,
     );
@@ -443,11 +448,12 @@ fn a_file_of_another_layout_or_volume_is_refused_naming_it() {
 
     let other = temp_csv("other-layout.csv");
     std::fs::write(&other, "t_s,enc0,enc1\n0,1,2\n").unwrap();
+    let cfg_here = config(&rig);
     let e = collect(
         &mut client,
         &mut rig.receiver,
         &lattice,
-        &config(&rig.device),
+        &cfg_here,
         &other,
         &mut Recorder::new(&rig.cues),
     )
@@ -470,11 +476,12 @@ fn a_file_of_another_layout_or_volume_is_refused_naming_it() {
         ["1"; 11].join(",")
     );
     std::fs::write(&elsewhere, format!("{header}\n{far}")).unwrap();
+    let cfg_here = config(&rig);
     let e = collect(
         &mut client,
         &mut rig.receiver,
         &lattice,
-        &config(&rig.device),
+        &cfg_here,
         &elsewhere,
         &mut Recorder::new(&rig.cues),
     )

@@ -61,7 +61,7 @@ use spidar_protocol::{Limits, State, StringModel};
 use super::{distance, ArmWatch, ArmWatchError, CueSink, Cues, Progress};
 use crate::dataset::{DatasetError, Geometry, Sample, Session, SessionAppender, TornLine};
 use crate::link::{Client, LinkError};
-use crate::tracker::{ClockSync, Next, StateHistory, TrackerError, TrackerSource};
+use crate::tracker::{ClockSync, HostClock, Next, StateHistory, TrackerError, TrackerSource};
 
 pub use crate::sim::lattice::{Lattice, LatticeError};
 
@@ -99,6 +99,9 @@ pub struct CollectConfig {
     pub max_cells: Option<usize>,
     /// Stop cleanly when this becomes true.
     pub cancel: Option<Arc<AtomicBool>>,
+    /// The clock arrivals are stamped with for the clock map (the wall
+    /// clock; a simulated rig's own, [`super::sim_user::SimulatedRig::host_clock`]).
+    pub host_clock: HostClock,
 }
 
 impl Default for CollectConfig {
@@ -121,6 +124,7 @@ impl Default for CollectConfig {
             eta_window: 20,
             max_cells: None,
             cancel: None,
+            host_clock: HostClock::Wall,
         }
     }
 }
@@ -334,16 +338,18 @@ pub fn done_cells(
 struct States {
     history: StateHistory,
     sync: ClockSync,
+    clock: HostClock,
     base: Instant,
     last_at: Instant,
     first: Option<State>,
 }
 
 impl States {
-    fn new() -> States {
+    fn new(clock: HostClock) -> States {
         States {
             history: StateHistory::new(),
             sync: ClockSync::new(),
+            clock,
             base: Instant::now(),
             last_at: Instant::now(),
             first: None,
@@ -357,7 +363,7 @@ impl States {
         if n > 0 {
             self.last_at = now;
         }
-        let arrival_s = now.saturating_duration_since(self.base).as_secs_f64();
+        let arrival_s = self.clock.now_s(self.base);
         for s in states {
             self.first.get_or_insert(s);
             self.sync.device_state(s.time_us, arrival_s);
@@ -367,9 +373,7 @@ impl States {
     }
 
     fn tracker_frame(&mut self, ts_s: f64, received_at: Instant) {
-        let arrival_s = received_at
-            .saturating_duration_since(self.base)
-            .as_secs_f64();
+        let arrival_s = self.clock.frame_arrival_s(received_at, self.base);
         self.sync.tracker_frame(ts_s, arrival_s);
     }
 
@@ -482,13 +486,18 @@ fn run(
     client.arm()?;
     let mut last_request = Instant::now();
     client.stream_on(config.decimation)?;
-    let mut states = States::new();
+    let mut states = States::new(config.host_clock.clone());
 
     // The first state gives the device clock: behind the file's last row
     // means a reboot, and `t_s` continues from that row.
     let waiting_since = Instant::now();
     while states.first.is_none() {
         states.poll(client)?;
+        // Frames read meanwhile feed the clock map (and a simulated
+        // tracker in step with this procedure waits for them).
+        if let Next::Frame(f) = tracker.next_frame(Duration::from_millis(1))? {
+            states.tracker_frame(f.ts_s, f.received_at);
+        }
         if waiting_since.elapsed() > config.device_timeout {
             return Err(CollectError::DeviceSilent {
                 port,
@@ -591,6 +600,11 @@ fn run(
             last_frame_at = Instant::now();
             report.frames += 1;
             states.tracker_frame(frame.ts_s, frame.received_at);
+            // Every tracker frame is a heartbeat too: the device hears from
+            // the host at the tracker's rate in its own time, however fast
+            // or slow the host runs.
+            client.heartbeat()?;
+            last_request = Instant::now();
             let marker = frame
                 .body
                 .as_ref()
@@ -851,6 +865,7 @@ pub fn run_collect(args: &CollectArgs) -> Result<String, CollectRunError> {
             let geometry = rig.device.nominal.clone();
             config.string_model = Some(geometry.string_model());
             config.tracker_label = format!("the simulated tracker ({})", rig.receiver.local_addr());
+            config.host_clock = rig.host_clock();
             let lattice = Lattice::new(centre_of(&geometry), args.size_mm, args.cells)
                 .map_err(CollectError::from)?;
             let mut to_operator = rig.cues.clone();

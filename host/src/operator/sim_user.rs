@@ -35,7 +35,7 @@
 //! hand: the loop is closed through the device's own control code.
 
 use std::net::{SocketAddr, UdpSocket};
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
@@ -237,6 +237,24 @@ impl SimOperator {
         hand: Hand,
         cues: SharedCues,
     ) -> Result<SimOperator, TrackerError> {
+        Self::spawn_in_step(config, device, hand, cues, None)
+    }
+
+    /// [`SimOperator::spawn`], in step with the procedure: with `taken`
+    /// (the receiver's [`crate::tracker::DtrackReceiver::taken_counter`]),
+    /// each frame is sent once the procedure has taken every frame sent
+    /// before it, and the hand moves on (the simulated world goes past the
+    /// frame's instant) once it has taken this one; a procedure that takes
+    /// nothing for [`PROCEDURE_PATIENCE`] (not started yet, finished, busy
+    /// refitting) lets the world go one frame further. The simulated world
+    /// then waits for the host however the machine schedules it.
+    pub fn spawn_in_step(
+        config: SimOperatorConfig,
+        device: SimDevice,
+        hand: Hand,
+        cues: SharedCues,
+        taken: Option<Arc<AtomicU64>>,
+    ) -> Result<SimOperator, TrackerError> {
         config.validate()?;
         let local = SocketAddr::from(([127, 0, 0, 1], 0));
         let socket = UdpSocket::bind(local).map_err(|source| TrackerError::Socket {
@@ -258,6 +276,7 @@ impl SimOperator {
                     &socket,
                     &thread_stop,
                     &thread_history,
+                    taken.as_deref(),
                 )
             })
             .map_err(|source| TrackerError::Socket {
@@ -402,6 +421,30 @@ fn velocity(
     }
 }
 
+/// How long a simulated operator in step with a procedure waits for it to
+/// take a frame before the world goes one frame on without it (wall time:
+/// only a procedure that is not reading the tracker at all waits this
+/// long).
+pub const PROCEDURE_PATIENCE: Duration = Duration::from_secs(1);
+
+/// Waits until the procedure has taken `sent` frames (or `stop`, or
+/// [`PROCEDURE_PATIENCE`] without progress).
+fn wait_taken(taken: &AtomicU64, sent: u64, stop: &AtomicBool) {
+    let mut last = taken.load(Ordering::SeqCst);
+    let mut since = Instant::now();
+    while last < sent && !stop.load(Ordering::SeqCst) {
+        std::thread::sleep(Duration::from_micros(100));
+        let now = taken.load(Ordering::SeqCst);
+        if now != last {
+            last = now;
+            since = Instant::now();
+        } else if since.elapsed() > PROCEDURE_PATIENCE {
+            return;
+        }
+    }
+}
+
+#[allow(clippy::too_many_arguments)]
 fn run(
     config: &SimOperatorConfig,
     device: &SimDevice,
@@ -410,6 +453,7 @@ fn run(
     socket: &UdpSocket,
     stop: &AtomicBool,
     history: &Mutex<Vec<HandSample>>,
+    taken: Option<&AtomicU64>,
 ) -> Result<SimOperatorReport, TrackerError> {
     let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
     let noise =
@@ -469,6 +513,10 @@ fn run(
             report.occluded += 1;
         }
         if !lost {
+            // In step: the procedure has read everything sent so far.
+            if let Some(taken) = taken {
+                wait_taken(taken, u64::from(report.sent), stop);
+            }
             let seen = room.map(|x| x + noise.sample(&mut rng));
             let datagram = format_datagram(&DtrackFrame {
                 frame,
@@ -489,6 +537,10 @@ fn run(
                     source,
                 })?;
             report.sent += 1;
+            // ... and this frame, read at its own instant.
+            if let Some(taken) = taken {
+                wait_taken(taken, u64::from(report.sent), stop);
+            }
         }
         // 2-3: cues, then the hand's next point, one frame on.
         let shown = cues.latest();
@@ -538,7 +590,11 @@ impl SimulatedRig {
     /// Starts the rig: `device` as built, the end-effector at its true home
     /// plus `offset_mm` (device frame; where the built-in homing left it),
     /// the operator configured by `configure` (its tracker address is the
-    /// receiver's), the virtual device in real time.
+    /// receiver's), the virtual device in virtual time ([`Pace::Virtual`]:
+    /// the world goes as far as the operator has moved the hand, and the
+    /// operator waits for the procedure to take each tracker frame).
+    ///
+    /// [`Pace::Virtual`]: crate::virtual_device::Pace::Virtual
     pub fn start(
         device: SimDevice,
         offset_mm: [f64; 3],
@@ -562,7 +618,7 @@ impl SimulatedRig {
         let plant = Plant::new(device.clone(), Trajectory::Held(hand.clone()));
         let virtual_device = spawn(
             VirtualDeviceConfig {
-                pace: Pace::RealTime { speed: 1.0 },
+                pace: Pace::Virtual,
                 ..VirtualDeviceConfig::default()
             },
             plant,
@@ -577,8 +633,14 @@ impl SimulatedRig {
         configure(&mut config);
         config.tracker = receiver.local_addr();
         let cues = SharedCues::new();
-        let operator = SimOperator::spawn(config, device.clone(), hand.clone(), cues.clone())
-            .map_err(RigError::from)?;
+        let operator = SimOperator::spawn_in_step(
+            config,
+            device.clone(),
+            hand.clone(),
+            cues.clone(),
+            Some(receiver.taken_counter()),
+        )
+        .map_err(RigError::from)?;
         Ok(SimulatedRig {
             device,
             hand,
@@ -587,6 +649,12 @@ impl SimulatedRig {
             receiver,
             operator,
         })
+    }
+
+    /// The clock a procedure on this rig stamps arrivals with: the
+    /// simulated world's.
+    pub fn host_clock(&self) -> crate::tracker::HostClock {
+        crate::tracker::HostClock::Simulated(self.hand.clock())
     }
 
     /// The serial port of the virtual device.

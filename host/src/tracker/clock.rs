@@ -24,8 +24,44 @@
 //! motion of both streams measures it.
 
 use std::collections::VecDeque;
+use std::time::Instant;
 
 use spidar_protocol::State;
+
+use crate::virtual_device::SimClock;
+
+/// The clock a procedure stamps arrivals with (the host's clock in
+/// [`ClockSync`]'s terms).
+#[derive(Clone, Debug, Default)]
+pub enum HostClock {
+    /// The wall clock: a real rig.
+    #[default]
+    Wall,
+    /// A simulated rig's clock ([`SimClock`]): the host is part of the
+    /// simulated world, and a sample is read at the simulated instant the
+    /// world has reached, however late the machine ran the host's thread.
+    Simulated(SimClock),
+}
+
+impl HostClock {
+    /// Now, s since `base` (wall) or since the simulated world's start.
+    pub fn now_s(&self, base: Instant) -> f64 {
+        match self {
+            HostClock::Wall => Instant::now().saturating_duration_since(base).as_secs_f64(),
+            HostClock::Simulated(c) => c.now_us() as f64 / 1e6,
+        }
+    }
+
+    /// When a tracker frame the receiver stamped `received_at` (wall) was
+    /// read: that stamp on the wall clock, now on a simulated one (the
+    /// frame is taken as it is read).
+    pub fn frame_arrival_s(&self, received_at: Instant, base: Instant) -> f64 {
+        match self {
+            HostClock::Wall => received_at.saturating_duration_since(base).as_secs_f64(),
+            HostClock::Simulated(_) => self.now_s(base),
+        }
+    }
+}
 
 /// Arrival-time minima of one stream, per bucket of its own clock.
 #[derive(Clone, Debug, Default)]
@@ -132,13 +168,23 @@ impl ClockSync {
 
     /// `tracker_ts - device_t` at tracker time `ts_s` (s), if known.
     pub fn offset_at_tracker_s(&self, ts_s: f64) -> Option<f64> {
-        // host = ts + dt(ts) = t + dd(t); t is within ms of ts - offset, and
-        // the lines move by microseconds per second: one fixed-point step.
-        let dt = self.tracker.delay_at(ts_s)?;
-        let host = ts_s + dt;
-        let guess = host - self.device.delay_at(host - dt)?;
-        let dd = self.device.delay_at(guess)?;
-        Some(ts_s - (host - dd))
+        // host = ts + dt(ts) = t + dd(t): solve for t by fixed point,
+        // starting from the device line where it has data (the two clocks
+        // may be hours apart: a line's slope, noise, extrapolated that far
+        // would throw the first guess off by seconds). Each step shrinks
+        // the error by the slope of the device line (well below 1).
+        let host = ts_s + self.tracker.delay_at(ts_s)?;
+        let newest = self.device.minima.back().map(|m| m.1)?;
+        let mut t = host - self.device.delay_at(newest)?;
+        for _ in 0..8 {
+            let next = host - self.device.delay_at(t)?;
+            let done = (next - t).abs() < 1e-9;
+            t = next;
+            if done {
+                break;
+            }
+        }
+        Some(ts_s - t)
     }
 
     /// The device time (µs, fractional) of the instant the tracker stamped

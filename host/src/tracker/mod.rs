@@ -26,7 +26,7 @@ use std::io;
 use std::net::SocketAddr;
 use std::time::{Duration, Instant};
 
-pub use clock::{ClockSync, StateHistory};
+pub use clock::{ClockSync, HostClock, StateHistory};
 pub use dtrack::{BodyPose, DtrackError, DtrackFrame};
 pub use receiver::{DtrackReceiver, ReceiverConfig, ReceiverStats};
 pub use replay::{Pacing, ReplaySource};

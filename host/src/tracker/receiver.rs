@@ -16,6 +16,8 @@
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::io;
 use std::net::{SocketAddr, UdpSocket};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use super::dtrack::{parse_datagram, DtrackError};
@@ -205,6 +207,7 @@ pub struct DtrackReceiver {
     last_error: Option<DtrackError>,
     day_offset_s: f64,
     last_ts_s: Option<f64>,
+    taken: Arc<AtomicU64>,
 }
 
 impl DtrackReceiver {
@@ -232,7 +235,15 @@ impl DtrackReceiver {
             last_error: None,
             day_offset_s: 0.0,
             last_ts_s: None,
+            taken: Arc::new(AtomicU64::new(0)),
         })
+    }
+
+    /// Frames handed out by [`TrackerSource::next_frame`] so far, shared:
+    /// a simulated tracker waits on it so that the simulated world does
+    /// not run ahead of the procedure that reads it.
+    pub fn taken_counter(&self) -> Arc<AtomicU64> {
+        self.taken.clone()
     }
 
     /// The bound address (the actual port when bound to port 0).
@@ -296,6 +307,7 @@ impl TrackerSource for DtrackReceiver {
         let deadline = Instant::now() + timeout;
         loop {
             if let Some(f) = self.ready.pop_front() {
+                self.taken.fetch_add(1, Ordering::SeqCst);
                 return Ok(Next::Frame(f));
             }
             let now = Instant::now();

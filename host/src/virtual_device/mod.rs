@@ -19,6 +19,15 @@
 //! stream is on (paced by the reader: a full pseudo-terminal holds the
 //! device back) and in real time otherwise. Requests are handled at the
 //! device time of the last tick, so heartbeat timeouts are in device time.
+//! `Virtual` is virtual time for a simulated rig: the plant's end-effector
+//! is in a simulated operator's clocked [`Hand`], and the device ticks as
+//! far as the operator has committed the hand's path, back to back, and
+//! waits there (still answering requests, at the device time it reached).
+//! The simulated world then runs as fast as it is computed, and a host
+//! starved of CPU slows all of it down instead of finding its heartbeat
+//! late; a host that stops sending heartbeats while the world goes on
+//! still trips the device, after 100 ms of simulated time. Whatever the
+//! pace, a plant with a clocked hand never ticks past the committed path.
 //!
 //! # Power
 //!
@@ -30,7 +39,7 @@
 
 mod plant;
 
-pub use plant::{Hand, Plant, Trajectory, Waypoint};
+pub use plant::{Hand, Plant, SimClock, Trajectory, Waypoint};
 
 use std::io::{Read, Write};
 use std::os::fd::AsRawFd;
@@ -84,6 +93,13 @@ pub enum Pace {
     RealTime { speed: f64 },
     /// Back-to-back ticks while streaming, real time otherwise.
     Fast,
+    /// Virtual time: the device ticks as far as the simulated world has
+    /// been computed (a clocked [`Hand`]'s committed path,
+    /// [`Plant::ready_until_us`]) and no further, back to back, whatever
+    /// the wall clock says; a starved host slows the whole simulated world
+    /// down instead of letting the device's timeouts expire. With nothing
+    /// to wait for (a trajectory, a free hand) it runs in real time.
+    Virtual,
 }
 
 /// Settings of a virtual device.
@@ -517,9 +533,10 @@ fn run_boot(
     let mut anchor = (Instant::now(), 0u64);
     let speed = match config.pace {
         Pace::RealTime { speed } => speed,
-        Pace::Fast => 1.0,
+        Pace::Fast | Pace::Virtual => 1.0,
     };
     let fast = matches!(config.pace, Pace::Fast);
+    let virtual_time = matches!(config.pace, Pace::Virtual);
     let mut streaming = false;
     let mut resync = false;
     let mut tx_dropped = 0u32;
@@ -527,7 +544,7 @@ fn run_boot(
     let real_at = |anchor: (Instant, u64), t_us: u64| {
         anchor.0 + Duration::from_secs_f64(t_us.saturating_sub(anchor.1) as f64 / 1e6 / speed)
     };
-    let publish = |dev: &Device<'_, VirtualFlash>,
+    let publish = |dev: &mut Device<'_, VirtualFlash>,
                    link: &DeviceLink,
                    now_us: u64,
                    ticks: u64,
@@ -544,12 +561,14 @@ fn run_boot(
             s.tx_dropped = tx_dropped;
             s.plant_tensions_n = plant.tensions_n();
             s.commanded_n = dev.last_output().tensions_n;
-            s.armed = dev.last_output().armed;
+            // As requests left it (a `Disarm` answered between two ticks
+            // counts, even while the simulated world waits).
+            s.armed = dev.armed();
             s.plant_error = plant.error().map(str::to_string);
             s.flash_operations = shared.ops.load(Ordering::SeqCst);
         }
     };
-    publish(&dev, &link, now_us, ticks, tx_dropped, plant);
+    publish(&mut dev, &link, now_us, ticks, tx_dropped, plant);
     loop {
         match control.try_recv() {
             Ok(Control::PowerCycle) => return (dev.into_flash(), Exit::PowerCycle),
@@ -559,9 +578,16 @@ fn run_boot(
             Err(TryRecvError::Empty) => {}
         }
         let dead = shared.lost.load(Ordering::SeqCst);
-        let run_fast = fast && streaming && !dead;
+        // The simulated world's limit (a clocked hand's committed path):
+        // never tick past it, whatever the pace.
+        let gate = plant.ready_until_us();
+        let gated = |t: u64| gate.is_some_and(|g| t > g);
+        let run_virtual = virtual_time && gate.is_some() && !dead;
+        let run_fast = (fast && streaming && !dead) || run_virtual;
         let due = real_at(anchor, now_us + tick_us);
-        let wait = if run_fast {
+        let wait = if gated(now_us + tick_us) {
+            Duration::from_millis(1)
+        } else if run_fast {
             Duration::ZERO
         } else {
             due.saturating_duration_since(Instant::now())
@@ -608,17 +634,29 @@ fn run_boot(
         if shared.lost.load(Ordering::SeqCst) {
             // Silent until the power cycle; keep the clock anchored.
             anchor = (Instant::now(), now_us);
-            publish(&dev, &link, now_us, ticks, tx_dropped, plant);
+            publish(&mut dev, &link, now_us, ticks, tx_dropped, plant);
             continue;
         }
         // Ticks due.
         let now_real = Instant::now();
-        let mut budget = if run_fast { 1 } else { 20 };
-        while budget > 0 && (run_fast || real_at(anchor, now_us + tick_us) <= now_real) {
+        let mut budget = if run_virtual {
+            20
+        } else if run_fast {
+            1
+        } else {
+            20
+        };
+        while budget > 0
+            && !gated(now_us + tick_us)
+            && (run_fast || real_at(anchor, now_us + tick_us) <= now_real)
+        {
             budget -= 1;
             let t = now_us + tick_us;
             let commanded = dev.last_output().tensions_n;
             let raw = plant.step(t, &commanded, dev.motors_enabled());
+            // The simulated clock is at `t` before anything stamped `t`
+            // leaves the device: no sample arrives before its time.
+            plant.publish_tick();
             let t0 = Instant::now();
             dev.tick(&TickInput {
                 raw_counts: raw,
@@ -652,12 +690,15 @@ fn run_boot(
                 }
             }
         }
-        if run_fast || real_at(anchor, now_us + 100 * tick_us) < Instant::now() {
+        if run_fast
+            || gated(now_us + tick_us)
+            || real_at(anchor, now_us + 100 * tick_us) < Instant::now()
+        {
             // Fast, or far behind (a loaded host): device time goes on from
             // here instead of bursting to catch up.
             anchor = (Instant::now(), now_us);
         }
-        publish(&dev, &link, now_us, ticks, tx_dropped, plant);
+        publish(&mut dev, &link, now_us, ticks, tx_dropped, plant);
     }
 }
 

@@ -4,7 +4,7 @@
 //! tension follows the commanded tension with a first-order lag, and 16-bit
 //! encoder counters that read the true string lengths (and wrap).
 
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::Duration;
 
@@ -12,6 +12,29 @@ use spidar_core::STRINGS;
 
 use crate::sim::device::{norm, sub};
 use crate::sim::{Device as SimDevice, InjectedEffect, SampleTruth};
+
+/// The simulated world's clock: how far it has been computed, µs of
+/// simulated time (device time since the virtual device's first boot; it
+/// does not restart at a power cycle). The virtual device moves it at each
+/// tick of a plant with a [`Hand`] before that tick's outputs are written,
+/// so no sample is read before the instant it is stamped. In a simulated rig it
+/// is also the host's clock: where a procedure reads the time it stamps
+/// arrivals with ([`crate::tracker::HostClock::Simulated`]), so that how
+/// the machine schedules the host's threads plays no part. Clones share
+/// the clock.
+#[derive(Clone, Debug, Default)]
+pub struct SimClock(Arc<AtomicU64>);
+
+impl SimClock {
+    /// Simulated time computed so far, µs.
+    pub fn now_us(&self) -> u64 {
+        self.0.load(Ordering::SeqCst)
+    }
+
+    fn set(&self, t_us: u64) {
+        self.0.fetch_max(t_us, Ordering::SeqCst);
+    }
+}
 
 /// A point of a [`Trajectory::Waypoints`] path.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -41,6 +64,7 @@ pub struct Waypoint {
 #[derive(Clone, Debug)]
 pub struct Hand {
     inner: Arc<(Mutex<HandState>, Condvar)>,
+    clock: SimClock,
 }
 
 /// A straight piece of a clocked hand's path: (µs, device mm) at each end.
@@ -72,7 +96,13 @@ impl Hand {
                 }),
                 Condvar::new(),
             )),
+            clock: SimClock::default(),
         }
+    }
+
+    /// The simulated clock of the plant that reads this hand.
+    pub fn clock(&self) -> SimClock {
+        self.clock.clone()
     }
 
     fn lock(&self) -> std::sync::MutexGuard<'_, HandState> {
@@ -151,7 +181,7 @@ impl Hand {
     /// and its counts (since its boot) at that tick.
     pub fn wait_plant(&self, t_us: u64, stop: &AtomicBool) -> Option<(u64, [i32; STRINGS])> {
         let mut s = self.lock();
-        while s.plant_us < t_us {
+        while s.plant_us < t_us || self.clock.now_us() < t_us {
             if stop.load(Ordering::SeqCst) {
                 return None;
             }
@@ -163,21 +193,21 @@ impl Hand {
         Some((s.plant_us, s.plant_counts))
     }
 
-    /// The plant's side: the position at simulated time `t_us`, waiting
-    /// (clocked) until the path reaches it.
+    /// The plant's side: the position at simulated time `t_us` (clocked:
+    /// the committed path, clamped to its end; ask [`Hand::ready_until`]
+    /// first).
     fn position_at_sim(&self, t_us: u64) -> [f64; 3] {
-        let mut s = self.lock();
-        loop {
-            match s.path {
-                None => return s.device_mm,
-                Some(p) if t_us <= (p.1).0 => return segment_at(p, t_us),
-                Some(_) => {}
-            }
-            s = match self.inner.1.wait_timeout(s, Duration::from_millis(20)) {
-                Ok((g, _)) => g,
-                Err(p) => p.into_inner().0,
-            };
+        let s = self.lock();
+        match s.path {
+            None => s.device_mm,
+            Some(p) => segment_at(p, t_us),
         }
+    }
+
+    /// Clocked: the simulated time up to which the path is committed (the
+    /// plant must not tick past it); free: `None` (no limit).
+    pub fn ready_until(&self) -> Option<u64> {
+        self.lock().path.map(|p| (p.1).0)
     }
 
     fn note_tick(&self, t_us: u64, counts: [i32; STRINGS]) {
@@ -185,6 +215,13 @@ impl Hand {
             s.plant_us = t_us;
             s.plant_counts = counts;
         });
+    }
+
+    /// The world has reached simulated time `t_us`: the clock moves there
+    /// and whoever waits on the plant goes on.
+    fn publish(&self, t_us: u64) {
+        self.clock.set(t_us);
+        self.update(|_| {});
     }
 }
 
@@ -350,7 +387,7 @@ impl Plant {
         self.counts = [0; STRINGS];
         self.boot_counts = [0; STRINGS];
         if let Trajectory::Held(hand) = &self.trajectory {
-            let p = hand.position_mm();
+            let p = hand.position_at_sim(self.sim_epoch_us);
             for i in self.device.frame.layout.indices() {
                 let length = norm(&sub(&p, &self.device.frame.anchors[i]));
                 match self.device.counts_for_length(i, length, 0.0, 0, 0.0, 0.0) {
@@ -360,6 +397,31 @@ impl Plant {
             }
             self.counts = self.boot_counts;
         }
+    }
+
+    /// Device time (µs since this boot) up to which the plant may tick: a
+    /// clocked hand's committed path; `None`: no limit.
+    pub fn ready_until_us(&self) -> Option<u64> {
+        match &self.trajectory {
+            Trajectory::Held(hand) => hand
+                .ready_until()
+                .map(|t| t.saturating_sub(self.sim_epoch_us)),
+            _ => None,
+        }
+    }
+
+    /// The simulated world has reached the last [`Plant::step`]: a held
+    /// hand's [`SimClock`] moves to it (before the device's outputs of
+    /// that tick are written, so that nothing arrives before its time).
+    pub fn publish_tick(&self) {
+        if let Trajectory::Held(hand) = &self.trajectory {
+            hand.publish(self.sim_epoch_us + self.prev_t_us);
+        }
+    }
+
+    /// Simulated time at this boot's device time 0, µs.
+    pub fn sim_epoch_us(&self) -> u64 {
+        self.sim_epoch_us
     }
 
     /// True end-effector position at `t_us`, device frame, mm.
