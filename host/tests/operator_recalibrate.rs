@@ -64,6 +64,11 @@ fn run(
     let cal = calibrated();
     let mut client = Client::open(rig.port()).expect("open the virtual device");
     let mut events = Vec::new();
+    // Arrivals on the simulated rig's clock.
+    let config = &MonitorConfig {
+        host_clock: rig.host_clock(),
+        ..config.clone()
+    };
     let result = monitor(
         &mut client,
         &mut rig.receiver,

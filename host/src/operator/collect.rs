@@ -363,7 +363,7 @@ impl States {
         if n > 0 {
             self.last_at = now;
         }
-        let arrival_s = self.clock.now_s(self.base);
+        let arrival_s = self.clock.states_arrival_s(self.base);
         for s in states {
             self.first.get_or_insert(s);
             self.sync.device_state(s.time_us, arrival_s);

@@ -70,7 +70,7 @@ use crate::identify::{identify, Identification, IdentifyError, Start, Structure,
 use crate::link::{Client, LinkError};
 use crate::observe::{observations, Observation};
 use crate::stats::{position_error, ErrorStats};
-use crate::tracker::{ClockSync, StateHistory};
+use crate::tracker::{ClockSync, HostClock, StateHistory};
 use crate::tracker::{Next, TrackerError, TrackerSource};
 
 /// What to do when drift is found.
@@ -127,7 +127,8 @@ pub struct MonitorConfig {
     pub tracker_timeout: Duration,
     /// Fail when the device streams no state for this long.
     pub device_timeout: Duration,
-    /// Stop after this long (None: until the tracker ends).
+    /// Stop after this long of tracker time (from the first frame; None:
+    /// until the tracker ends).
     pub duration: Option<Duration>,
     /// Device state frames per control-loop iterations.
     pub decimation: u16,
@@ -136,6 +137,9 @@ pub struct MonitorConfig {
     /// Model id the device must run (default: the calibration's,
     /// [`model_id_of`], as `spidar compile` gives it).
     pub expected_model_id: Option<u32>,
+    /// The clock arrivals are stamped with for the clock map (the wall
+    /// clock; a simulated rig's own, [`super::sim_user::SimulatedRig::host_clock`]).
+    pub host_clock: HostClock,
 }
 
 impl Default for MonitorConfig {
@@ -160,6 +164,7 @@ impl Default for MonitorConfig {
             decimation: 10,
             anchor_tolerance_mm: 100.0,
             expected_model_id: None,
+            host_clock: HostClock::Wall,
         }
     }
 }
@@ -653,14 +658,8 @@ impl Monitor<'_> {
     ) -> Result<(), MonitorError> {
         let mut last_frame = Instant::now();
         let mut last_state = Instant::now();
+        let mut first_ts: Option<f64> = None;
         loop {
-            if self
-                .config
-                .duration
-                .is_some_and(|d| self.base.elapsed() >= d)
-            {
-                return Ok(());
-            }
             match tracker.next_frame(Duration::from_millis(5))? {
                 Next::End => return Ok(()),
                 Next::Timeout => {
@@ -672,11 +671,19 @@ impl Monitor<'_> {
                 }
                 Next::Frame(f) => {
                     last_frame = Instant::now();
+                    let first = *first_ts.get_or_insert(f.ts_s);
+                    if self
+                        .config
+                        .duration
+                        .is_some_and(|d| f.ts_s - first >= d.as_secs_f64())
+                    {
+                        return Ok(());
+                    }
                     self.report.frames += 1;
-                    let read_s = f
-                        .received_at
-                        .saturating_duration_since(self.base)
-                        .as_secs_f64();
+                    let read_s = self
+                        .config
+                        .host_clock
+                        .frame_arrival_s(f.received_at, self.base);
                     self.sync.tracker_frame(f.ts_s, read_s);
                     match f
                         .body
@@ -689,7 +696,8 @@ impl Monitor<'_> {
                 }
             }
             let states = client.poll_states()?;
-            let read_s = self.now_s();
+            let read_s = self.config.host_clock.states_arrival_s(self.base);
+            let now_s = self.config.host_clock.now_s(self.base);
             if states.is_empty() {
                 if last_state.elapsed() > self.config.device_timeout {
                     return Err(MonitorError::DeviceSilent {
@@ -720,7 +728,7 @@ impl Monitor<'_> {
                 self.sync.device_state(s.time_us, read_s);
                 self.states.push(s);
             }
-            self.pair(read_s);
+            self.pair(now_s);
             if self.report.baseline.is_none() && self.window.len() >= self.config.window {
                 let b = self.window_stats();
                 self.report.baseline = Some(b);
@@ -1408,6 +1416,7 @@ pub fn run_monitor(args: &MonitorArgs) -> Result<String, MonitorError> {
                 },
             )?;
             let mut client = Client::open(rig.port())?;
+            config.host_clock = rig.host_clock();
             monitor(
                 &mut client,
                 &mut rig.receiver,

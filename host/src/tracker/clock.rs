@@ -32,7 +32,7 @@ use crate::virtual_device::SimClock;
 
 /// The clock a procedure stamps arrivals with (the host's clock in
 /// [`ClockSync`]'s terms).
-#[derive(Clone, Debug, Default)]
+#[derive(Clone, Debug, Default, PartialEq)]
 pub enum HostClock {
     /// The wall clock: a real rig.
     #[default]
@@ -49,6 +49,17 @@ impl HostClock {
         match self {
             HostClock::Wall => Instant::now().saturating_duration_since(base).as_secs_f64(),
             HostClock::Simulated(c) => c.now_us() as f64 / 1e6,
+        }
+    }
+
+    /// When the device states just read arrived: now on the wall clock; on
+    /// a simulated one, when the newest of them was sent (the simulated
+    /// link's receive stamp: the reader may look later than the world it
+    /// waits on has gone).
+    pub fn states_arrival_s(&self, base: Instant) -> f64 {
+        match self {
+            HostClock::Wall => self.now_s(base),
+            HostClock::Simulated(c) => c.last_sent_us() as f64 / 1e6,
         }
     }
 
@@ -118,7 +129,12 @@ impl Envelope {
                 let d0 = complete.iter().map(|p| p.1).sum::<f64>() / m as f64;
                 let sxx: f64 = complete.iter().map(|p| (p.0 - s0).powi(2)).sum();
                 let sxy: f64 = complete.iter().map(|p| (p.0 - s0) * (p.1 - d0)).sum();
+                // Two crystals drift by parts per million; a steeper line is
+                // a backlog draining (a host that read late for a while, and
+                // then caught up), not the clocks: keep the slope physical
+                // and let the floor below find the prompt samples.
                 let b = if sxx > 0.0 { sxy / sxx } else { 0.0 };
+                let b = b.clamp(-ClockSync::MAX_DRIFT, ClockSync::MAX_DRIFT);
                 // A line through minima of a noisy delay sits above the
                 // floor by the minima's own scatter: pin it to the floor
                 // (the smallest residual), keeping the slope.
@@ -145,6 +161,9 @@ impl ClockSync {
     pub const BUCKET_S: f64 = 0.25;
     /// Span of the fit, s of a stream's clock.
     pub const HORIZON_S: f64 = 8.0;
+    /// Largest drift of a stream's clock against the host's that the fit
+    /// believes (1000 ppm; crystals are within 100).
+    pub const MAX_DRIFT: f64 = 1e-3;
 
     pub fn new() -> ClockSync {
         ClockSync::default()

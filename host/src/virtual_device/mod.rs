@@ -680,6 +680,7 @@ fn run_boot(
                 }
             }
             if let Some(s) = dev.state_frame() {
+                plant.note_state_sent();
                 let sent = match link.encode_state(&s) {
                     Some(frame) => write_frame(master, frame, frame_wait, &mut resync),
                     None => false,

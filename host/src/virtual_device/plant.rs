@@ -23,16 +23,33 @@ use crate::sim::{Device as SimDevice, InjectedEffect, SampleTruth};
 /// the machine schedules the host's threads plays no part. Clones share
 /// the clock.
 #[derive(Clone, Debug, Default)]
-pub struct SimClock(Arc<AtomicU64>);
+pub struct SimClock {
+    now: Arc<AtomicU64>,
+    sent: Arc<AtomicU64>,
+}
 
 impl SimClock {
     /// Simulated time computed so far, µs.
     pub fn now_us(&self) -> u64 {
-        self.0.load(Ordering::SeqCst)
+        self.now.load(Ordering::SeqCst)
+    }
+
+    /// Simulated time at which the device last sent a state, µs: when
+    /// the newest state a host reads arrived (the simulated link has no
+    /// delay, and this is its receive timestamp, not the reader's).
+    pub fn last_sent_us(&self) -> u64 {
+        self.sent.load(Ordering::SeqCst)
     }
 
     fn set(&self, t_us: u64) {
-        self.0.fetch_max(t_us, Ordering::SeqCst);
+        self.now.fetch_max(t_us, Ordering::SeqCst);
+    }
+}
+
+impl PartialEq for SimClock {
+    /// The same clock (shared handle).
+    fn eq(&self, other: &SimClock) -> bool {
+        Arc::ptr_eq(&self.now, &other.now)
     }
 }
 
@@ -416,6 +433,17 @@ impl Plant {
     pub fn publish_tick(&self) {
         if let Trajectory::Held(hand) = &self.trajectory {
             hand.publish(self.sim_epoch_us + self.prev_t_us);
+        }
+    }
+
+    /// The device is about to send a state stamped at the last
+    /// [`Plant::step`]: a held hand's [`SimClock::last_sent_us`] moves
+    /// there first (so that no state is read before it was sent).
+    pub fn note_state_sent(&self) {
+        if let Trajectory::Held(hand) = &self.trajectory {
+            hand.clock
+                .sent
+                .fetch_max(self.sim_epoch_us + self.prev_t_us, Ordering::SeqCst);
         }
     }
 
