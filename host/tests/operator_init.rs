@@ -49,7 +49,7 @@ fn world(offset: [f64; 3]) -> World {
     let plant = Plant::new(device.clone(), Trajectory::Held(hand.clone()));
     let vd = spawn(
         VirtualDeviceConfig {
-            pace: Pace::RealTime { speed: 1.0 },
+            pace: Pace::Virtual,
             ..VirtualDeviceConfig::default()
         },
         plant,
@@ -73,8 +73,14 @@ fn the_operator_follows_the_cues_to_the_centre_and_home_is_declared_there() {
     op_config.occlusion = 0.05;
     op_config.loss = 0.02;
     op_config.seed = 7;
-    let operator =
-        SimOperator::spawn(op_config, w.device.clone(), w.hand.clone(), w.cues.clone()).unwrap();
+    let operator = SimOperator::spawn_in_step(
+        op_config,
+        w.device.clone(),
+        w.hand.clone(),
+        w.cues.clone(),
+        Some(w.receiver.taken_counter()),
+    )
+    .unwrap();
     let mut client = Client::open(w.vd.port_path()).unwrap();
     let geometry = w.device.nominal.clone();
     let mut config = InitConfig::for_geometry(&geometry);
@@ -191,8 +197,14 @@ fn an_operator_who_never_gets_there_times_out_with_the_closest_approach() {
     let mut w = world([80.0, 0.0, 0.0]);
     let mut op_config = SimOperatorConfig::new(w.receiver.local_addr());
     op_config.free_motion = FreeMotion::Still;
-    let operator =
-        SimOperator::spawn(op_config, w.device.clone(), w.hand.clone(), w.cues.clone()).unwrap();
+    let operator = SimOperator::spawn_in_step(
+        op_config,
+        w.device.clone(),
+        w.hand.clone(),
+        w.cues.clone(),
+        Some(w.receiver.taken_counter()),
+    )
+    .unwrap();
     let mut client = Client::open(w.vd.port_path()).unwrap();
     let geometry = w.device.nominal.clone();
     let mut config = InitConfig::for_geometry(&geometry);

@@ -272,7 +272,8 @@ fn run(
 
     let start = Instant::now();
     let mut last_frame_at = Instant::now();
-    let mut last_seen_at: Option<Instant> = None;
+    // Tracker time of the last visible frame.
+    let mut last_seen_ts: Option<f64> = None;
     let mut closest = f64::INFINITY;
     // (ts, marker) of the current hold.
     let mut hold: Vec<(f64, [f64; 3])> = Vec::new();
@@ -315,7 +316,8 @@ fn run(
             .filter(|b| b.id == config.body_id && b.is_visible())
             .map(|b| b.position_mm);
         let Some(marker) = marker else {
-            let stale = last_seen_at.is_none_or(|t| t.elapsed() > config.occlusion_timeout);
+            let stale = last_seen_ts
+                .is_none_or(|t| frame.ts_s - t > config.occlusion_timeout.as_secs_f64());
             if stale {
                 hold.clear();
                 client.set_force([0.0; 3])?;
@@ -328,7 +330,7 @@ fn run(
             });
             continue;
         };
-        last_seen_at = Some(Instant::now());
+        last_seen_ts = Some(frame.ts_s);
         let v: [f64; 3] = core::array::from_fn(|k| config.target_room_mm[k] - marker[k]);
         let d = distance(&config.target_room_mm, &marker);
         closest = closest.min(d);
@@ -363,13 +365,14 @@ fn run(
             },
         });
         if held_s >= config.hold.as_secs_f64() {
-            return declare_home(client, config, &hold, frame.ts_s, device_id);
+            return declare_home(client, tracker, config, &hold, frame.ts_s, device_id);
         }
     }
 }
 
 fn declare_home(
     client: &mut Client,
+    tracker: &mut dyn TrackerSource,
     config: &InitConfig,
     hold: &[(f64, [f64; 3])],
     ts_s: f64,
@@ -386,6 +389,9 @@ fn declare_home(
     let mut homed = false;
     let mut after = None;
     while Instant::now() < deadline && after.is_none() {
+        // The tracker's frames are read on (a simulated world in step with
+        // this procedure waits for them to be taken).
+        let _ = tracker.next_frame(Duration::from_millis(1))?;
         let states = client.poll_states()?;
         if !homed {
             homed = client
