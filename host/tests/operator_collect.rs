@@ -84,6 +84,10 @@ fn config(rig: &SimulatedRig) -> CollectConfig {
     CollectConfig {
         tracker_label: "the simulated tracker".into(),
         host_clock: rig.host_clock(),
+        // A machine busy with other work may leave the simulated device's
+        // thread unscheduled for a while: that is not a silent device.
+        device_timeout: Duration::from_secs(10),
+        tracker_timeout: Duration::from_secs(10),
         ..CollectConfig::for_geometry(&rig.device.nominal)
     }
 }
@@ -158,7 +162,7 @@ fn the_operator_fills_a_small_lattice_cell_by_cell_and_the_rows_are_true() {
     let mut rig = rig(11);
     let lattice = small_lattice(&rig);
     let path = temp_csv("full.csv");
-    let mut client = Client::open(rig.port()).unwrap();
+    let mut client = rig.client().unwrap();
     let mut recorder = Recorder::new(&rig.cues);
     let cfg_here = config(&rig);
     let report = collect(
@@ -311,7 +315,7 @@ fn a_stopped_or_cancelled_collection_resumes_and_every_cell_is_captured_once() {
     let mut rig = rig(12);
     let lattice = small_lattice(&rig);
     let path = temp_csv("resume.csv");
-    let mut client = Client::open(rig.port()).unwrap();
+    let mut client = rig.client().unwrap();
 
     // Stop after 7 cells.
     let mut stop_early = config(&rig);
@@ -390,7 +394,7 @@ fn a_torn_last_line_is_cut_off_and_after_a_reboot_time_continues_from_the_last_r
     let mut rig = rig(13);
     let lattice = small_lattice(&rig);
     let path = temp_csv("torn.csv");
-    let mut client = Client::open(rig.port()).unwrap();
+    let mut client = rig.client().unwrap();
     let mut cfg = config(&rig);
     cfg.max_cells = Some(5);
     let cfg_here = config(&rig);
@@ -411,7 +415,7 @@ fn a_torn_last_line_is_cut_off_and_after_a_reboot_time_continues_from_the_last_r
     // And the device lost power: its clock restarts at 0.
     drop(client);
     rig.virtual_device.power_cycle().unwrap();
-    let mut client = Client::open(rig.port()).unwrap();
+    let mut client = rig.client().unwrap();
 
     let mut recorder = Recorder::new(&rig.cues);
     let report = collect(
@@ -444,7 +448,7 @@ fn a_torn_last_line_is_cut_off_and_after_a_reboot_time_continues_from_the_last_r
 fn a_file_of_another_layout_or_volume_is_refused_naming_it() {
     let mut rig = rig(14);
     let lattice = small_lattice(&rig);
-    let mut client = Client::open(rig.port()).unwrap();
+    let mut client = rig.client().unwrap();
 
     let other = temp_csv("other-layout.csv");
     std::fs::write(&other, "t_s,enc0,enc1\n0,1,2\n").unwrap();

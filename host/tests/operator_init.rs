@@ -81,7 +81,15 @@ fn the_operator_follows_the_cues_to_the_centre_and_home_is_declared_there() {
         Some(w.receiver.taken_counter()),
     )
     .unwrap();
-    let mut client = Client::open(w.vd.port_path()).unwrap();
+    let mut client = Client::open_with(
+        w.vd.port_path(),
+        spidar::link::ClientOptions {
+            timeout: Duration::from_secs(1),
+            retries: 9,
+            ..Default::default()
+        },
+    )
+    .unwrap();
     let geometry = w.device.nominal.clone();
     let mut config = InitConfig::for_geometry(&geometry);
     config.timeout = Duration::from_secs(40);
@@ -174,7 +182,15 @@ fn the_operator_follows_the_cues_to_the_centre_and_home_is_declared_there() {
 #[test]
 fn a_silent_tracker_is_an_error_and_the_device_is_left_disarmed() {
     let mut w = world([10.0, 0.0, 0.0]);
-    let mut client = Client::open(w.vd.port_path()).unwrap();
+    let mut client = Client::open_with(
+        w.vd.port_path(),
+        spidar::link::ClientOptions {
+            timeout: Duration::from_secs(1),
+            retries: 9,
+            ..Default::default()
+        },
+    )
+    .unwrap();
     let geometry = w.device.nominal.clone();
     let mut config = InitConfig::for_geometry(&geometry);
     config.tracker_timeout = Duration::from_millis(300);
@@ -205,7 +221,15 @@ fn an_operator_who_never_gets_there_times_out_with_the_closest_approach() {
         Some(w.receiver.taken_counter()),
     )
     .unwrap();
-    let mut client = Client::open(w.vd.port_path()).unwrap();
+    let mut client = Client::open_with(
+        w.vd.port_path(),
+        spidar::link::ClientOptions {
+            timeout: Duration::from_secs(1),
+            retries: 9,
+            ..Default::default()
+        },
+    )
+    .unwrap();
     let geometry = w.device.nominal.clone();
     let mut config = InitConfig::for_geometry(&geometry);
     config.timeout = Duration::from_millis(800);

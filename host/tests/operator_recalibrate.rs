@@ -62,11 +62,13 @@ fn run(
     config: &MonitorConfig,
 ) -> (Result<MonitorReport, MonitorError>, Vec<MonitorEvent>) {
     let cal = calibrated();
-    let mut client = Client::open(rig.port()).expect("open the virtual device");
+    let mut client = rig.client().expect("open the virtual device");
     let mut events = Vec::new();
     // Arrivals on the simulated rig's clock.
     let config = &MonitorConfig {
         host_clock: rig.host_clock(),
+        device_timeout: Duration::from_secs(10),
+        tracker_timeout: Duration::from_secs(10),
         ..config.clone()
     };
     let result = monitor(
@@ -145,7 +147,7 @@ fn a_slipped_string_is_reported_named_refitted_and_reflashed() {
         "{:?}",
         r.added
     );
-    let mut client = Client::open(rig.port()).unwrap();
+    let mut client = rig.client().unwrap();
     let info = client.info().unwrap().expect("a model on the device");
     assert_eq!(info.header.model_id, r.model_id);
     assert_ne!(r.model_id, rig.model_id);
@@ -207,7 +209,7 @@ fn a_clean_run_reports_no_drift() {
 fn bad_input_gives_clear_errors() {
     let cal = calibrated();
     let mut rig = rig(&[], 8.0);
-    let mut client = Client::open(rig.port()).unwrap();
+    let mut client = rig.client().unwrap();
     let mut never = |_: &MonitorEvent| {};
     let mut no = |_: &spidar::operator::recalibrate::Check| false;
     let mut attempt = |client: &mut Client,

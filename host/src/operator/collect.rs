@@ -861,11 +861,14 @@ pub fn run_collect(args: &CollectArgs) -> Result<String, CollectRunError> {
                 c.seed = seed;
                 c.max_duration = Duration::from_secs(6 * 3600);
             })?;
-            let mut client = Client::open(rig.port()).map_err(CollectError::from)?;
+            let mut client = rig.client().map_err(CollectError::from)?;
             let geometry = rig.device.nominal.clone();
             config.string_model = Some(geometry.string_model());
             config.tracker_label = format!("the simulated tracker ({})", rig.receiver.local_addr());
             config.host_clock = rig.host_clock();
+            // A busy machine may not run the simulated device's thread for
+            // a while: that is not a silent device.
+            config.device_timeout = Duration::from_secs(10);
             let lattice = Lattice::new(centre_of(&geometry), args.size_mm, args.cells)
                 .map_err(CollectError::from)?;
             let mut to_operator = rig.cues.clone();

@@ -514,7 +514,7 @@ pub fn run_init(args: &InitArgs) -> Result<String, InitRunError> {
                 c.seed = seed;
                 c.max_duration = Duration::from_secs_f64(args.timeout_s + 5.0);
             })?;
-            let client = Client::open(r.port())?;
+            let client = r.client()?;
             let geometry = r.device.nominal.clone();
             // The rig's own receiver is the one its operator sends to.
             rig = Some(r);

@@ -1415,7 +1415,7 @@ pub fn run_monitor(args: &MonitorArgs) -> Result<String, MonitorError> {
                     ..SimRigConfig::default()
                 },
             )?;
-            let mut client = Client::open(rig.port())?;
+            let mut client = rig.client()?;
             config.host_clock = rig.host_clock();
             monitor(
                 &mut client,

@@ -657,6 +657,23 @@ impl SimulatedRig {
         crate::tracker::HostClock::Simulated(self.hand.clock())
     }
 
+    /// Link options for a client of this rig: the device answers from a
+    /// thread of this machine, and a machine busy with other work may not
+    /// run it for a while; a simulated device that is there but slow is not
+    /// a lost link (1 s per try, 10 tries).
+    pub fn client_options(&self) -> crate::link::ClientOptions {
+        crate::link::ClientOptions {
+            timeout: std::time::Duration::from_secs(1),
+            retries: 9,
+            ..crate::link::ClientOptions::default()
+        }
+    }
+
+    /// Opens a client on the rig's device with [`SimulatedRig::client_options`].
+    pub fn client(&self) -> Result<crate::link::Client, crate::link::LinkError> {
+        crate::link::Client::open_with(self.port(), self.client_options())
+    }
+
     /// The serial port of the virtual device.
     pub fn port(&self) -> &str {
         self.virtual_device.port_path()
