@@ -158,7 +158,7 @@ pub enum InitError {
         closest_mm: f64,
         tolerance_mm: f64,
     },
-    #[error("init: the device did not confirm home (no state after Home within 1 s)")]
+    #[error("init: the device did not confirm home (no state after Home within 5 s)")]
     NotConfirmed,
     #[error("init: the device keeps disarming itself ({events}); the last event: {last}")]
     KeepsDisarming { events: u32, last: String },
@@ -385,7 +385,9 @@ fn declare_home(
         (hold.iter().map(|h| (h.1[k] - mean[k]).powi(2)).sum::<f64>() / (n - 1.0).max(1.0)).sqrt()
     });
     // The first state after the `Homed` event is the device's new home.
-    let deadline = Instant::now() + Duration::from_secs(1);
+    // A device answers within milliseconds; a machine busy with other work
+    // may take its time to run a simulated one.
+    let deadline = Instant::now() + Duration::from_secs(5);
     let mut homed = false;
     let mut after = None;
     while Instant::now() < deadline && after.is_none() {
