@@ -238,8 +238,13 @@ pub enum CollectError {
     TrackerEnded { tracker: String },
     #[error("collect: serial port {port}: the device sent no state for {seconds:.1} s")]
     DeviceSilent { port: String, seconds: f64 },
-    #[error("collect: the device keeps disarming itself ({events} times without a capture; the last: {last}); after a reboot, run `spidar init` to declare home first")]
-    KeepsDisarming { events: u32, last: String },
+    #[error("collect: the device keeps disarming itself ({events} times without a capture; the last: {last}): {advice}")]
+    KeepsDisarming {
+        events: u32,
+        last: String,
+        /// What happened and what to do, for the faults seen and the rig.
+        advice: String,
+    },
     #[error(
         "collect: serial port {port}: the device clock went back from {previous_s} s to {now_s} s during the run (a reboot? home is lost: run `spidar init`, then collect again to resume)"
     )]
@@ -272,6 +277,31 @@ pub enum CollectError {
     },
     #[error("collect: {}: {message}", file.display())]
     InitRecord { file: PathBuf, message: String },
+}
+
+/// What a device that keeps disarming itself with `faults` means, and what
+/// to do (a simulated rig has no power switch or init to run again).
+pub fn disarm_advice(faults: u16, simulated: bool) -> String {
+    use spidar_protocol::Faults;
+    let f = Faults(faults);
+    let resume = if simulated {
+        "the captured cells are saved; run the same command again to resume"
+    } else {
+        "the captured cells are saved; fix the cause, then run the same command to resume"
+    };
+    if f.contains(Faults::KINEMATICS) {
+        format!(
+            "the device cannot place the end-effector from its string lengths here (fault 0x0004: forward kinematics failed, or a string reads longer than the position allows, i.e. slack); check the strings near the highlighted cell; {resume}"
+        )
+    } else if f.contains(Faults::HEARTBEAT_LOST) {
+        format!("the device stopped hearing from this host (heartbeat lost): is the host overloaded or the link unplugged? {resume}")
+    } else if f.contains(Faults::ENCODER) {
+        format!("an encoder count jumped: check the encoder cables; {resume}")
+    } else if simulated {
+        resume.to_string()
+    } else {
+        format!("after a reboot, run `spidar init` to declare home first; {resume}")
+    }
 }
 
 /// One-line description of a lattice (for messages).
@@ -565,7 +595,13 @@ fn run(
                 Ok(false) => {}
                 Err(ArmWatchError::Link(e)) => return Err(e.into()),
                 Err(ArmWatchError::KeepsDisarming { events, last }) => {
-                    return Err(CollectError::KeepsDisarming { events, last })
+                    let faults = states.latest().map_or(0, |s| s.faults.0);
+                    let simulated = matches!(config.host_clock, HostClock::Simulated(_));
+                    return Err(CollectError::KeepsDisarming {
+                        events,
+                        last,
+                        advice: disarm_advice(faults, simulated),
+                    });
                 }
             }
             if states.last_at.elapsed() > config.device_timeout {
@@ -817,7 +853,9 @@ pub fn summary(report: &CollectReport) -> String {
         match report.stop {
             Stop::Complete => String::from(": complete"),
             Stop::MaxCells => String::from(": stopped after --max-cells; run again to resume"),
-            Stop::Cancelled => String::from(": cancelled; run again to resume"),
+            Stop::Cancelled => String::from(
+                ": interrupted; the motors are off and every captured cell is on disk; run the same command again to resume"
+            ),
         },
         report.frames,
         report.occluded,
@@ -826,6 +864,42 @@ pub fn summary(report: &CollectReport) -> String {
         report.path.display()
     ));
     out
+}
+
+/// Raised by the first Ctrl-C (SIGINT) once [`cancel_on_ctrl_c`] ran.
+static INTERRUPTED: AtomicBool = AtomicBool::new(false);
+
+extern "C" fn on_sigint(_: nix::libc::c_int) {
+    // Async-signal-safe: one atomic store.
+    INTERRUPTED.store(true, Ordering::SeqCst);
+}
+
+/// A cancel flag raised by the first Ctrl-C: collection then stops between
+/// two frames, disarms and reports; a second Ctrl-C kills the process as
+/// usual (the handler resets itself). `None` if the handler cannot be
+/// installed (collection then runs without it).
+pub fn cancel_on_ctrl_c() -> Option<Arc<AtomicBool>> {
+    use nix::sys::signal::{sigaction, SaFlags, SigAction, SigHandler, SigSet, Signal};
+    let action = SigAction::new(
+        SigHandler::Handler(on_sigint),
+        SaFlags::SA_RESETHAND | SaFlags::SA_RESTART,
+        SigSet::empty(),
+    );
+    // SAFETY: the handler only stores to an atomic.
+    unsafe { sigaction(Signal::SIGINT, &action) }.ok()?;
+    let flag = Arc::new(AtomicBool::new(false));
+    let watched = flag.clone();
+    std::thread::Builder::new()
+        .name("ctrl-c".into())
+        .spawn(move || loop {
+            if INTERRUPTED.load(Ordering::SeqCst) {
+                watched.store(true, Ordering::SeqCst);
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        })
+        .ok()?;
+    Some(flag)
 }
 
 /// Runs `spidar collect`; returns the summary for standard output.
@@ -842,6 +916,8 @@ pub fn run_collect(args: &CollectArgs) -> Result<String, CollectRunError> {
         body_id: args.body,
         tracker_timeout: Duration::from_secs_f64(args.tracker_timeout_s.clamp(0.1, 3600.0)),
         max_cells: args.max_cells,
+        // Ctrl-C stops between two frames: motors off, the count, how to resume.
+        cancel: cancel_on_ctrl_c(),
         ..CollectConfig::default()
     };
     let centre_of = |geometry: &Geometry| -> [f64; 3] {
