@@ -621,7 +621,7 @@ fn run_boot(
             // has seen a reply reads a status that already counts its request
             // (and the frames rejected before it).
             let reply = reply.map(<[u8]>::to_vec);
-            publish(&dev, &link, now_us, ticks, tx_dropped, plant);
+            publish(&mut dev, &link, now_us, ticks, tx_dropped, plant);
             // A reply to a request during which the power went is never sent.
             if let Some(frame) = reply {
                 if !shared.lost.load(Ordering::SeqCst)
