@@ -272,8 +272,9 @@ impl StateHistory {
     /// The state at device time `t_us`: the two states around it, no more
     /// than `max_gap_us` apart, interpolated linearly (counts rounded to
     /// the nearest count, positions and tensions as `f32`); flags and ids
-    /// from the later one. `None` if `t_us` is outside the history or falls
-    /// in a gap.
+    /// from the later one. `None` if `t_us` is outside the history, falls
+    /// in a gap, or between two states of different homes (their counts
+    /// start from different zeros) or different models.
     pub fn at(&self, t_us: f64, max_gap_us: u64) -> Option<State> {
         let k = self.states.partition_point(|s| (s.time_us as f64) < t_us);
         let b = self.states.get(k)?;
@@ -282,19 +283,16 @@ impl StateHistory {
         }
         let a = self.states.get(k.checked_sub(1)?)?;
         let span = b.time_us.checked_sub(a.time_us)?;
-        if span == 0 || span > max_gap_us {
+        let home = |s: &State| s.time_us.saturating_sub(s.since_home_us);
+        // Counts of two homes, or positions of two models, do not mix.
+        if span == 0 || span > max_gap_us || a.model_id != b.model_id || home(a) != home(b) {
             return None;
         }
         let w = (t_us - a.time_us as f64) / span as f64;
         let mix = |x: f64, y: f64| x + w * (y - x);
         let mut s = *b;
         s.time_us = t_us.round() as u64;
-        s.since_home_us = if b.since_home_us >= span {
-            (mix(a.since_home_us as f64, b.since_home_us as f64)).round() as u64
-        } else {
-            // Homed between the two: the later one's zero.
-            b.since_home_us.saturating_sub(b.time_us - s.time_us)
-        };
+        s.since_home_us = s.time_us - home(b);
         for i in 0..s.counts.len() {
             s.counts[i] = mix(f64::from(a.counts[i]), f64::from(b.counts[i])).round() as i32;
             s.tensions_n[i] = mix(f64::from(a.tensions_n[i]), f64::from(b.tensions_n[i])) as f32;
@@ -373,5 +371,31 @@ mod tests {
         assert!(h.at(10_000.0, 5000).is_none(), "a gap");
         assert!(h.at(500.0, 5000).is_none(), "before the history");
         assert!(h.at(25_000.0, 5000).is_none(), "after it");
+    }
+
+    #[test]
+    fn states_of_two_homes_or_two_models_are_not_mixed() {
+        let mut h = StateHistory::new();
+        h.push(state(1000, 0));
+        // Homed at 1500 µs: counts restart.
+        h.push(State {
+            since_home_us: 500,
+            ..state(2000, 7)
+        });
+        h.push(State {
+            since_home_us: 1500,
+            ..state(3000, 9)
+        });
+        // A new model from 4000 µs on.
+        h.push(State {
+            since_home_us: 2500,
+            model_id: Some(5),
+            ..state(4000, 11)
+        });
+        assert!(h.at(1200.0, 5000).is_none(), "across the home");
+        let s = h.at(2500.0, 5000).unwrap();
+        assert_eq!((s.counts[0], s.since_home_us), (8, 1000));
+        assert!(h.at(3500.0, 5000).is_none(), "across the reflash");
+        assert_eq!(h.at(4000.0, 5000).unwrap().model_id, Some(5));
     }
 }
