@@ -551,6 +551,8 @@ fn a_silent_tracker_is_an_error_naming_it_and_the_device_is_left_disarmed() {
 
 #[test]
 fn a_device_that_stops_answering_is_the_link_error() {
+    let rig = rig(15);
+    let mut cfg = config(&rig);
     let SimulatedRig {
         device,
         cues,
@@ -558,41 +560,102 @@ fn a_device_that_stops_answering_is_the_link_error() {
         mut receiver,
         operator,
         ..
-    } = rig(15);
+    } = rig;
     let lattice = Lattice::new(device.volume_centre_room(), 300.0, 3).unwrap();
     let path = temp_csv("device-gone.csv");
     let port = virtual_device.port_path().to_string();
     let mut client = Client::open(&port).unwrap();
-    // The device falls silent a moment in (a lost USB link).
-    let killer = std::thread::spawn(move || {
-        std::thread::sleep(Duration::from_millis(400));
-        virtual_device.shutdown();
-    });
-    let mut recorder = Recorder {
-        to_operator: cues,
-        shown: Vec::new(),
-        cancel: None,
+    // The device falls silent two cells in (a lost USB link).
+    let mut sink = ShutdownAt {
+        recorder: Recorder {
+            to_operator: cues,
+            shown: Vec::new(),
+            cancel: None,
+        },
+        device: Some(virtual_device),
+        at: 2,
     };
-    let mut cfg = CollectConfig::for_geometry(&device.nominal);
     cfg.tracker_label = format!("the tracker (UDP {})", receiver.local_addr());
     let started = Instant::now();
-    let e = collect(
-        &mut client,
-        &mut receiver,
-        &lattice,
-        &cfg,
-        &path,
-        &mut recorder,
-    )
-    .unwrap_err();
-    killer.join().unwrap();
+    let e = collect(&mut client, &mut receiver, &lattice, &cfg, &path, &mut sink).unwrap_err();
+    assert!(sink.device.is_none(), "the device was shut down");
     drop(operator);
     assert!(
         matches!(e, CollectError::Link(_) | CollectError::DeviceSilent { .. }),
         "{e}"
     );
     assert!(e.to_string().contains(&port), "{e}");
-    assert!(started.elapsed() < Duration::from_secs(5));
-    // The rows captured before stay readable.
-    Session::load(&path).unwrap();
+    // It fails instead of waiting for ever (timeouts are wall time: a busy
+    // machine may take seconds more).
+    assert!(started.elapsed() < Duration::from_secs(30));
+    // The rows captured before stay on disk.
+    assert!(Session::load(&path).unwrap().samples.len() >= 2);
+}
+
+/// Shuts the device down once `at` cells are captured.
+struct ShutdownAt {
+    recorder: Recorder,
+    device: Option<spidar::virtual_device::VirtualDevice>,
+    at: usize,
+}
+
+impl CueSink for ShutdownAt {
+    fn show(&mut self, cues: &Cues) {
+        self.recorder.show(cues);
+        if cues.progress.is_some_and(|p| p.done >= self.at) {
+            if let Some(d) = self.device.take() {
+                d.shutdown();
+            }
+        }
+    }
+}
+
+/// Power-cycles the device once `at` cells are captured (from inside the
+/// collection, so the moment is the same in every run).
+struct RebootAt<'a> {
+    recorder: Recorder,
+    device: &'a spidar::virtual_device::VirtualDevice,
+    at: usize,
+    done: bool,
+}
+
+impl CueSink for RebootAt<'_> {
+    fn show(&mut self, cues: &Cues) {
+        self.recorder.show(cues);
+        if !self.done && cues.progress.is_some_and(|p| p.done >= self.at) {
+            self.done = true;
+            self.device.power_cycle().unwrap();
+        }
+    }
+}
+
+#[test]
+fn a_reboot_during_the_collection_stops_it_naming_the_lost_home() {
+    let mut rig = rig(16);
+    let lattice = small_lattice(&rig);
+    let path = temp_csv("reboot.csv");
+    let mut client = rig.client().unwrap();
+    let cfg = config(&rig);
+    let mut sink = RebootAt {
+        recorder: Recorder::new(&rig.cues),
+        device: &rig.virtual_device,
+        at: 3,
+        done: false,
+    };
+    let e = collect(
+        &mut client,
+        &mut rig.receiver,
+        &lattice,
+        &cfg,
+        &path,
+        &mut sink,
+    )
+    .unwrap_err();
+    assert!(sink.done);
+    assert!(matches!(e, CollectError::ClockWentBack { .. }), "{e}");
+    let text = e.to_string();
+    assert!(text.contains("spidar init"), "{text}");
+    // The cells captured before the reboot stay on disk, in order.
+    let session = Session::load(&path).unwrap();
+    assert!(session.samples.len() >= 3, "{} rows", session.samples.len());
 }

@@ -321,7 +321,9 @@ fn bad_input_gives_clear_errors() {
     );
     assert!(matches!(e, MonitorError::TrackerSilent { .. }), "{e}");
     assert!(e.to_string().contains("tracker sent nothing"), "{e}");
-    assert!(t.elapsed() < Duration::from_secs(2));
+    // It fails instead of waiting for ever (the timeout is wall time: a busy
+    // machine may take seconds more to run the monitor's thread).
+    assert!(t.elapsed() < Duration::from_secs(30));
     std::thread::sleep(Duration::from_millis(50));
     assert!(!rig.virtual_device.status().armed);
 }

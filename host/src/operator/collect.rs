@@ -372,6 +372,11 @@ struct States {
     base: Instant,
     last_at: Instant,
     first: Option<State>,
+    /// (newest before, first after), s of device time: a state stamped
+    /// before the newest one (the device rebooted; its home is lost).
+    went_back: Option<(f64, f64)>,
+    /// When the device was last asked its uptime.
+    last_probe: Instant,
 }
 
 impl States {
@@ -383,6 +388,8 @@ impl States {
             base: Instant::now(),
             last_at: Instant::now(),
             first: None,
+            went_back: None,
+            last_probe: Instant::now(),
         }
     }
 
@@ -396,10 +403,39 @@ impl States {
         let arrival_s = self.clock.states_arrival_s(self.base);
         for s in states {
             self.first.get_or_insert(s);
+            if let Some(newest) = self.history.newest().filter(|n| s.time_us < n.time_us) {
+                self.went_back
+                    .get_or_insert((newest.time_us as f64 / 1e6, s.time_us as f64 / 1e6));
+            }
             self.sync.device_state(s.time_us, arrival_s);
             self.history.push(s);
         }
         Ok(n)
+    }
+
+    /// Sends a heartbeat when one is due. A stream silent for that long is
+    /// asked (as often) the device's uptime: a device that rebooted
+    /// answers with its stream off and an uptime behind its last state
+    /// (`went_back`).
+    fn keep_alive(
+        &mut self,
+        client: &mut Client,
+        last_request: &mut Instant,
+        every: Duration,
+    ) -> Result<(), LinkError> {
+        if last_request.elapsed() >= every {
+            client.heartbeat()?;
+            *last_request = Instant::now();
+        }
+        if self.last_at.elapsed() >= every && self.last_probe.elapsed() >= every {
+            self.last_probe = Instant::now();
+            let uptime_us = client.stats()?.uptime_us;
+            if let Some(newest) = self.history.newest().filter(|n| uptime_us < n.time_us) {
+                self.went_back
+                    .get_or_insert((newest.time_us as f64 / 1e6, uptime_us as f64 / 1e6));
+            }
+        }
+        Ok(())
     }
 
     fn tracker_frame(&mut self, ts_s: f64, received_at: Instant) {
@@ -549,7 +585,6 @@ fn run(
     let half = lattice.cell_mm() / 2.0;
     let mut last_frame_at = Instant::now();
     let mut captures: VecDeque<Instant> = VecDeque::new();
-    let mut previous_device_s: Option<f64> = None;
     let mut arm_watch = ArmWatch::new(config.max_rearms);
     let cancelled = || {
         config
@@ -585,6 +620,14 @@ fn run(
                 return Ok(());
             }
             states.poll(client)?;
+            // A device that rebooted has lost its home: no rearm helps.
+            if let Some((previous_s, now_s)) = states.went_back {
+                return Err(CollectError::ClockWentBack {
+                    port,
+                    previous_s,
+                    now_s,
+                });
+            }
             // A device that disarmed itself is armed again, a few times.
             let latest = states.latest().map(|s| (s.armed, s.faults));
             match arm_watch.check(client, latest) {
@@ -610,10 +653,7 @@ fn run(
                     seconds: states.last_at.elapsed().as_secs_f64(),
                 });
             }
-            if last_request.elapsed() >= config.heartbeat_every {
-                client.heartbeat()?;
-                last_request = Instant::now();
-            }
+            states.keep_alive(client, &mut last_request, config.heartbeat_every)?;
             // A short wait: states are read (and stamped) at least every
             // 2 ms, so some arrive promptly enough for the clock map.
             let frame = match tracker.next_frame(Duration::from_millis(2))? {
@@ -641,6 +681,9 @@ fn run(
             // or slow the host runs.
             client.heartbeat()?;
             last_request = Instant::now();
+            if states.went_back.is_some() {
+                continue;
+            }
             let marker = frame
                 .body
                 .as_ref()
@@ -682,13 +725,11 @@ fn run(
             let wait_from = Instant::now();
             if let Some(t) = at_us {
                 while states.latest().is_some_and(|s| (s.time_us as f64) < t)
+                    && states.went_back.is_none()
                     && wait_from.elapsed() < config.device_timeout
                 {
                     states.poll(client)?;
-                    if last_request.elapsed() >= config.heartbeat_every {
-                        client.heartbeat()?;
-                        last_request = Instant::now();
-                    }
+                    states.keep_alive(client, &mut last_request, config.heartbeat_every)?;
                     std::thread::sleep(Duration::from_micros(200));
                 }
             }
@@ -696,15 +737,6 @@ fn run(
             let paired = at_us.and_then(|t| states.history.at(t, max_gap_us));
             match paired {
                 Some(s) if s.armed => {
-                    let device_s = s.time_us as f64 / 1e6;
-                    if previous_device_s.is_some_and(|p| device_s < p) {
-                        return Err(CollectError::ClockWentBack {
-                            port,
-                            previous_s: previous_device_s.unwrap_or(0.0),
-                            now_s: device_s,
-                        });
-                    }
-                    previous_device_s = Some(device_s);
                     // Never before the last row.
                     let t_s = t_s_of(s.time_us as f64 + report.clock_offset_s * 1e6)
                         .max(appender.last_t_s().unwrap_or(0.0));
