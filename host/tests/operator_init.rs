@@ -74,7 +74,7 @@ fn the_operator_follows_the_cues_to_the_centre_and_home_is_declared_there() {
     op_config.loss = 0.02;
     op_config.seed = 7;
     let operator = SimOperator::spawn_in_step(
-        op_config,
+        op_config.clone(),
         w.device.clone(),
         w.hand.clone(),
         w.cues.clone(),
@@ -151,11 +151,28 @@ fn the_operator_follows_the_cues_to_the_centre_and_home_is_declared_there() {
         .filter(|h| distance(&h.room_mm, &config.target_room_mm) <= config.tolerance_mm + 0.5)
         .collect();
     assert!(!held.is_empty());
-    let last = history.last().unwrap();
+    // The hold's frames: from `hold` (plus one frame period) before the
+    // frame that declared home, to it; the hand wanders a few tenths of a
+    // millimetre meanwhile, so the record is the mean, not any one frame.
+    let hold_s = record.hold_s + 1.0 / op_config.frame_rate_hz;
+    let during: Vec<[f64; 3]> = history
+        .iter()
+        .filter(|h| {
+            let ts = op_config.tracker_ts_s(h.t_us);
+            ts <= record.declared_at_ts_s + 1e-9 && ts >= record.declared_at_ts_s - hold_s
+        })
+        .map(|h| h.room_mm)
+        .collect();
     assert!(
-        distance(&last.room_mm, &record.home_room_mm) < 0.5,
-        "true marker {:?} vs recorded home {:?}",
-        last.room_mm,
+        during.len() >= record.hold_frames,
+        "{} frames",
+        during.len()
+    );
+    let true_mean: [f64; 3] =
+        core::array::from_fn(|k| during.iter().map(|p| p[k]).sum::<f64>() / during.len() as f64);
+    assert!(
+        distance(&true_mean, &record.home_room_mm) < 0.2,
+        "true marker over the hold {true_mean:?} vs recorded home {:?}",
         record.home_room_mm
     );
     // Eq. 6 translation: measured home minus the nominal device home.
