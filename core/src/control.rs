@@ -135,6 +135,8 @@ pub struct Controller {
     tensions_mn: [u16; STRINGS],
     safety: SafetyMonitor,
     target: Target,
+    /// See [`Controller::set_lengths_calibrated`].
+    lengths_calibrated: bool,
 }
 
 fn room_from_device(frame: &Frame<f32>, p: [f32; 3]) -> [f32; 3] {
@@ -177,6 +179,7 @@ impl Controller {
             tensions_mn: [0; STRINGS],
             safety,
             target: Target::Idle,
+            lengths_calibrated: true,
         };
         c.home(calibration, raw_counts, now_ms);
         Ok(c)
@@ -198,6 +201,14 @@ impl Controller {
         self.home_ms = now_ms;
         self.position = calibration.head.frame.home;
         self.multiplier = [0.0; 3];
+    }
+
+    /// Whether the string law stepped with is calibrated (default) or
+    /// nominal: with nominal lengths forward kinematics looks for no faulty
+    /// string and the length-consistency faults are off
+    /// ([`SafetyMonitor::set_lengths_calibrated`] says why).
+    pub fn set_lengths_calibrated(&mut self, calibrated: bool) {
+        self.lengths_calibrated = calibrated;
     }
 
     pub fn set_target(&mut self, target: Target) {
@@ -262,12 +273,20 @@ impl Controller {
         let lengths_q16 = string_lengths(frame.layout, &head.laws, &head.effects, &inputs);
         let lengths = lengths_q16.map(|l| l as f32 / 65536.0);
 
+        let fk_config = if self.lengths_calibrated {
+            self.config.fk
+        } else {
+            FkConfig {
+                fault_threshold_mm: f32::INFINITY,
+                ..self.config.fk
+            }
+        };
         let fk = forward_kinematics(
             &frame.anchors,
             frame.layout,
             &lengths,
             self.position,
-            &self.config.fk,
+            &fk_config,
         );
         let fk_ok = matches!(fk.status, FkStatus::Ok | FkStatus::FaultyStringExcluded);
         // An inconsistent or unconverged solve is still the best estimate of
@@ -284,6 +303,7 @@ impl Controller {
         let geometric = inverse_kinematics(&frame.anchors, self.position);
         self.safety.set_estop(input.estop);
         self.safety.set_active(frame.layout.active);
+        self.safety.set_lengths_calibrated(self.lengths_calibrated);
         let faults = self.safety.check(input.now_ms, &lengths, &geometric, fk_ok);
 
         let requested = match self.target {
@@ -449,6 +469,60 @@ mod tests {
         // Room frame: eq. 6 translation.
         let room = position_mm(o.room_q16);
         assert!((room[2] - (400.0 + 1500.0)).abs() < 0.05);
+    }
+
+    /// Counters of a spool whose radius grows with the wound string (the
+    /// paper's pulley) read with the linear law: 700 mm from home the
+    /// strings disagree by tens of mm. With the law taken as calibrated that
+    /// is a forward-kinematics fault and the device drops to pre-tension;
+    /// taken as nominal (before calibration) it is the model's own error,
+    /// and the loop goes on armed with its least-squares position.
+    #[test]
+    fn uncalibrated_lengths_raise_no_consistency_fault() {
+        let cal = calibration();
+        let blob = compile(&cal, 1, 0).unwrap();
+        let compiled = CompiledCalibration::from_blob(&blob).unwrap();
+        let home = inverse_kinematics(&cal.frame.anchors, cal.frame.home);
+        // payout = r theta - kappa theta^2: theta from the true payout.
+        let kappa = 0.03;
+        let raw_at = |p: [f64; 3]| -> [u16; STRINGS] {
+            let lengths = inverse_kinematics(&cal.frame.anchors, p);
+            core::array::from_fn(|i| {
+                let payout = lengths[i] - home[i];
+                let theta =
+                    2.0 * payout / (RADIUS + libm::sqrt(RADIUS * RADIUS - 4.0 * kappa * payout));
+                let counts = (theta / (2.0 * core::f64::consts::PI) * CPR as f64).round() as i32;
+                (1000 + counts) as u16
+            })
+        };
+        let run = |calibrated: bool| {
+            let mut ctl =
+                Controller::new(ControlConfig::default(), &compiled, raw_at([0.0; 3]), 0).unwrap();
+            ctl.set_lengths_calibrated(calibrated);
+            ctl.safety().heartbeat(0);
+            ctl.safety().arm().unwrap();
+            let mut last = None;
+            for k in 1..=200u32 {
+                let t = f64::from(k) / 200.0;
+                ctl.safety().heartbeat(k);
+                last = Some(ctl.step(
+                    &compiled,
+                    &LoopInput {
+                        raw_counts: raw_at([-400.0 * t, -400.0 * t, -400.0 * t]),
+                        now_ms: k,
+                        estop: false,
+                    },
+                ));
+            }
+            last.unwrap()
+        };
+        let calibrated = run(true);
+        assert!(calibrated.faults.contains(Faults::FK_FAULT));
+        assert!(!calibrated.armed);
+        let nominal = run(false);
+        assert!(nominal.faults.is_empty(), "{:?}", nominal.faults);
+        assert!(nominal.armed);
+        assert_eq!(nominal.fk_status, FkStatus::Ok);
     }
 
     /// A 4-line cable robot (three low anchors, one high) on channels 0, 2,

@@ -986,6 +986,8 @@ impl<'m, F: ModelFlash> Device<'m, F> {
             None => idle_output(input.estop, *model_invalid),
             Some(c) => {
                 c.set_target(*target);
+                // Only a flashed model's string law is calibrated.
+                c.set_lengths_calibrated(active.is_some());
                 match (active.as_ref(), nominal.as_ref()) {
                     (Some(a), _) => {
                         let kind = a.calibration.header.kind;

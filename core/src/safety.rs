@@ -194,6 +194,9 @@ pub struct SafetyMonitor {
     /// Channels that carry a string (bit `i` = channel `i`): the others are
     /// not checked and always get tension 0.
     active: u8,
+    /// The string lengths come from a calibrated model (see
+    /// [`SafetyMonitor::set_lengths_calibrated`]).
+    lengths_calibrated: bool,
 }
 
 impl SafetyMonitor {
@@ -210,6 +213,7 @@ impl SafetyMonitor {
             estop_active: false,
             model_valid: true,
             active: u8::MAX,
+            lengths_calibrated: true,
         })
     }
 
@@ -246,6 +250,19 @@ impl SafetyMonitor {
     /// or not.
     pub fn set_active(&mut self, active: u8) {
         self.active = active;
+    }
+
+    /// Whether the string lengths come from a calibrated model (default)
+    /// or from a nominal one (`payout = r theta`, before any calibration).
+    /// A nominal law is off by up to 40 % of the payout far from home (the
+    /// winding radius grows with the wound string: the paper's 267 mm), so
+    /// the strings disagree by tens of millimetres there by the model's own
+    /// error; `FK_FAULT` and `SLACK`, which exist to catch a string that
+    /// breaks, slips or jams on a calibrated device, cannot tell that from
+    /// it and are not raised with uncalibrated lengths. The other faults
+    /// are.
+    pub fn set_lengths_calibrated(&mut self, calibrated: bool) {
+        self.lengths_calibrated = calibrated;
     }
 
     /// The channels that carry a string (see [`SafetyMonitor::set_active`]).
@@ -286,7 +303,7 @@ impl SafetyMonitor {
                 }
             }
         }
-        if !fk_ok {
+        if !fk_ok && self.lengths_calibrated {
             self.latch(Faults::FK_FAULT);
         }
         let mut slack = 0u8;
@@ -295,7 +312,7 @@ impl SafetyMonitor {
             let (m, g) = (measured_lengths_mm[i], geometric_lengths_mm[i]);
             if !(m.is_finite() && g.is_finite()) {
                 non_finite |= self.active >> i & 1 != 0;
-            } else if fk_ok && m - g > self.config.slack_threshold_mm {
+            } else if fk_ok && self.lengths_calibrated && m - g > self.config.slack_threshold_mm {
                 slack |= 1 << i;
             }
         }
