@@ -631,14 +631,16 @@ pub fn calibrate(
         laws: &fin.laws,
         effects: &fin.effects,
     };
-    let (fin_tr, fin_te) = if loop_result.stages.is_empty() {
-        (id_tr.clone(), id_te.clone())
-    } else {
-        (
-            room_positions(fin_model, &tr),
-            room_positions(fin_model, &te),
-        )
+    let fin_tr_pred = predict(fin_model, &tr);
+    let fin_te_pred = predict(fin_model, &te);
+    let rejections = report::SessionRejections {
+        train: report::Rejections::of(&fin_tr_pred),
+        test: report::Rejections::of(&fin_te_pred),
     };
+    let room = |p: Vec<crate::predict::Prediction>| -> Vec<[f64; 3]> {
+        p.iter().map(|p| p.room).collect()
+    };
+    let (fin_tr, fin_te) = (room(fin_tr_pred), room(fin_te_pred));
     let (fin_tr_pe, fin_tr_s) = point_errors(
         "identified with effects, training session",
         &tr,
@@ -1001,6 +1003,7 @@ pub fn calibrate(
             train_info.tracked,
             fin.residual_scale_mm,
             cfg.loop_config.chi2_threshold,
+            rejections,
         ),
         inputs: report::Inputs {
             geometry: geometry_path.display().to_string(),

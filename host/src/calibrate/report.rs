@@ -75,6 +75,107 @@ pub struct DeviceReport {
     pub smallest_detectable_offset_mm: f64,
     /// What the number of strings and rows leaves unchecked, in words.
     pub limits: Vec<String>,
+    /// What forward kinematics did with each row of the final identified
+    /// model, per session: strings excluded as faulty, rows whose strings
+    /// disagree with no single culprit.
+    pub rejections: SessionRejections,
+}
+
+/// [`Rejections`] of the training and the test session.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct SessionRejections {
+    pub train: Rejections,
+    pub test: Rejections,
+}
+
+/// How forward kinematics treated the rows of one session.
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct Rejections {
+    /// Rows predicted.
+    pub rows: usize,
+    /// Rows where this channel's string was excluded as faulty, per
+    /// channel (0..8; channels without a string stay 0).
+    pub excluded_by_channel: [usize; spidar_core::STRINGS],
+    /// Rows whose strings disagree and no single exclusion fits (the
+    /// position is the least-squares compromise).
+    pub inconsistent: usize,
+    /// Rows where the solve did not converge.
+    pub not_converged: usize,
+    /// Rows with an invalid length (NaN, negative).
+    pub invalid: usize,
+}
+
+impl Rejections {
+    pub fn of(predictions: &[crate::predict::Prediction]) -> Rejections {
+        use spidar_core::kinematics::FkStatus;
+        let mut r = Rejections {
+            rows: predictions.len(),
+            ..Rejections::default()
+        };
+        for p in predictions {
+            match p.status {
+                FkStatus::Ok => {}
+                FkStatus::FaultyStringExcluded => {
+                    if let Some(c) = p
+                        .excluded
+                        .and_then(|s| r.excluded_by_channel.get_mut(usize::from(s)))
+                    {
+                        *c += 1;
+                    }
+                }
+                FkStatus::Inconsistent => r.inconsistent += 1,
+                FkStatus::NotConverged => r.not_converged += 1,
+                FkStatus::InvalidInput => r.invalid += 1,
+            }
+        }
+        r
+    }
+
+    /// Rows not solved from all strings in agreement.
+    pub fn flagged(&self) -> usize {
+        self.excluded_by_channel.iter().sum::<usize>()
+            + self.inconsistent
+            + self.not_converged
+            + self.invalid
+    }
+
+    /// One line in words, e.g. `3 of 2197 rows: string 2 excluded 3 times`.
+    pub fn describe(&self) -> String {
+        let mut parts: Vec<String> = self
+            .excluded_by_channel
+            .iter()
+            .enumerate()
+            .filter(|(_, &n)| n > 0)
+            .map(|(s, &n)| {
+                format!(
+                    "string {s} excluded {n} time{}",
+                    if n == 1 { "" } else { "s" }
+                )
+            })
+            .collect();
+        for (n, what) in [
+            (
+                self.inconsistent,
+                "strings disagreeing with no single culprit",
+            ),
+            (self.not_converged, "not converged"),
+            (self.invalid, "invalid lengths"),
+        ] {
+            if n > 0 {
+                parts.push(format!("{n} {what}"));
+            }
+        }
+        if parts.is_empty() {
+            format!("all {} rows solved with every string", self.rows)
+        } else {
+            format!(
+                "{} of {} rows: {}",
+                self.flagged(),
+                self.rows,
+                parts.join(", ")
+            )
+        }
+    }
 }
 
 impl DeviceReport {
@@ -85,6 +186,7 @@ impl DeviceReport {
         tracked_rows: usize,
         residual_scale_mm: f64,
         chi2_threshold: f64,
+        rejections: SessionRejections,
     ) -> DeviceReport {
         let redundancy = layout.redundancy();
         let mut limits = Vec::new();
@@ -120,6 +222,7 @@ impl DeviceReport {
             fault_rejection: redundancy >= 2,
             smallest_detectable_offset_mm: smallest,
             limits,
+            rejections,
         }
     }
 }
@@ -503,6 +606,14 @@ impl Report {
         for l in &d.limits {
             let _ = writeln!(o, "  limit: {l}");
         }
+        for (name, r) in [
+            ("training", &d.rejections.train),
+            ("test", &d.rejections.test),
+        ] {
+            if r.flagged() > 0 {
+                let _ = writeln!(o, "  forward kinematics, {name} session: {}", r.describe());
+            }
+        }
         for (name, t) in [
             ("training", &self.timing.train),
             ("test", &self.timing.test),
@@ -667,5 +778,47 @@ impl Report {
             }
         }
         o
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::predict::Prediction;
+    use spidar_core::kinematics::FkStatus;
+
+    fn row(status: FkStatus, excluded: Option<u8>) -> Prediction {
+        Prediction {
+            device: [0.0; 3],
+            room: [0.0; 3],
+            status,
+            excluded,
+        }
+    }
+
+    #[test]
+    fn rejections_are_counted_per_string_and_kind() {
+        let rows = [
+            row(FkStatus::Ok, None),
+            row(FkStatus::FaultyStringExcluded, Some(2)),
+            row(FkStatus::FaultyStringExcluded, Some(2)),
+            row(FkStatus::FaultyStringExcluded, Some(7)),
+            row(FkStatus::Inconsistent, None),
+            row(FkStatus::NotConverged, None),
+            row(FkStatus::InvalidInput, None),
+            row(FkStatus::Ok, None),
+        ];
+        let r = Rejections::of(&rows);
+        assert_eq!(r.rows, 8);
+        assert_eq!(r.excluded_by_channel, [0, 0, 2, 0, 0, 0, 0, 1]);
+        assert_eq!((r.inconsistent, r.not_converged, r.invalid), (1, 1, 1));
+        assert_eq!(r.flagged(), 6);
+        assert_eq!(
+            r.describe(),
+            "6 of 8 rows: string 2 excluded 2 times, string 7 excluded 1 time, \
+             1 strings disagreeing with no single culprit, 1 not converged, 1 invalid lengths"
+        );
+        let clean = Rejections::of(&rows[..1]);
+        assert_eq!(clean.describe(), "all 1 rows solved with every string");
     }
 }
