@@ -566,19 +566,24 @@ fn a_device_that_stops_answering_is_the_link_error() {
     let port = virtual_device.port_path().to_string();
     let mut client = Client::open(&port).unwrap();
     // The device falls silent two cells in (a lost USB link).
-    let mut sink = ShutdownAt {
+    let mut device = Some(virtual_device);
+    let mut sink = AtCell {
         recorder: Recorder {
             to_operator: cues,
             shown: Vec::new(),
             cancel: None,
         },
-        device: Some(virtual_device),
         at: 2,
+        action: Some(|| {
+            if let Some(d) = device.take() {
+                d.shutdown();
+            }
+        }),
     };
     cfg.tracker_label = format!("the tracker (UDP {})", receiver.local_addr());
     let started = Instant::now();
     let e = collect(&mut client, &mut receiver, &lattice, &cfg, &path, &mut sink).unwrap_err();
-    assert!(sink.device.is_none(), "the device was shut down");
+    assert!(sink.action.is_none(), "the device was shut down");
     drop(operator);
     assert!(
         matches!(e, CollectError::Link(_) | CollectError::DeviceSilent { .. }),
@@ -592,39 +597,22 @@ fn a_device_that_stops_answering_is_the_link_error() {
     assert!(Session::load(&path).unwrap().samples.len() >= 2);
 }
 
-/// Shuts the device down once `at` cells are captured.
-struct ShutdownAt {
+/// Passes the cues on and does `action` once, when `at` cells are
+/// captured (from inside the collection, so the moment is the same in every
+/// run, however busy the machine).
+struct AtCell<F: FnMut()> {
     recorder: Recorder,
-    device: Option<spidar::virtual_device::VirtualDevice>,
     at: usize,
+    action: Option<F>,
 }
 
-impl CueSink for ShutdownAt {
+impl<F: FnMut()> CueSink for AtCell<F> {
     fn show(&mut self, cues: &Cues) {
         self.recorder.show(cues);
         if cues.progress.is_some_and(|p| p.done >= self.at) {
-            if let Some(d) = self.device.take() {
-                d.shutdown();
+            if let Some(mut action) = self.action.take() {
+                action();
             }
-        }
-    }
-}
-
-/// Power-cycles the device once `at` cells are captured (from inside the
-/// collection, so the moment is the same in every run).
-struct RebootAt<'a> {
-    recorder: Recorder,
-    device: &'a spidar::virtual_device::VirtualDevice,
-    at: usize,
-    done: bool,
-}
-
-impl CueSink for RebootAt<'_> {
-    fn show(&mut self, cues: &Cues) {
-        self.recorder.show(cues);
-        if !self.done && cues.progress.is_some_and(|p| p.done >= self.at) {
-            self.done = true;
-            self.device.power_cycle().unwrap();
         }
     }
 }
@@ -636,11 +624,11 @@ fn a_reboot_during_the_collection_stops_it_naming_the_lost_home() {
     let path = temp_csv("reboot.csv");
     let mut client = rig.client().unwrap();
     let cfg = config(&rig);
-    let mut sink = RebootAt {
+    let device = &rig.virtual_device;
+    let mut sink = AtCell {
         recorder: Recorder::new(&rig.cues),
-        device: &rig.virtual_device,
         at: 3,
-        done: false,
+        action: Some(|| device.power_cycle().unwrap()),
     };
     let e = collect(
         &mut client,
@@ -651,7 +639,7 @@ fn a_reboot_during_the_collection_stops_it_naming_the_lost_home() {
         &mut sink,
     )
     .unwrap_err();
-    assert!(sink.done);
+    assert!(sink.action.is_none(), "the device was power-cycled");
     assert!(matches!(e, CollectError::ClockWentBack { .. }), "{e}");
     let text = e.to_string();
     assert!(text.contains("spidar init"), "{text}");

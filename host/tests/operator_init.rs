@@ -40,6 +40,30 @@ struct World {
     cues: SharedCues,
 }
 
+/// The simulated operator in step with the procedure, and a link client
+/// with generous timeouts (a busy machine may not run the device's thread
+/// for a while; that is not a lost device).
+fn operator_and_client(w: &World, op_config: SimOperatorConfig) -> (SimOperator, Client) {
+    let operator = SimOperator::spawn_in_step(
+        op_config,
+        w.device.clone(),
+        w.hand.clone(),
+        w.cues.clone(),
+        Some(w.receiver.taken_counter()),
+    )
+    .unwrap();
+    let client = Client::open_with(
+        w.vd.port_path(),
+        spidar::link::ClientOptions {
+            timeout: Duration::from_secs(1),
+            retries: 9,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    (operator, client)
+}
+
 /// A device as built (seed 3), its end-effector `offset` (device frame) off
 /// where the built-in homing left it.
 fn world(offset: [f64; 3]) -> World {
@@ -73,23 +97,7 @@ fn the_operator_follows_the_cues_to_the_centre_and_home_is_declared_there() {
     op_config.occlusion = 0.05;
     op_config.loss = 0.02;
     op_config.seed = 7;
-    let operator = SimOperator::spawn_in_step(
-        op_config.clone(),
-        w.device.clone(),
-        w.hand.clone(),
-        w.cues.clone(),
-        Some(w.receiver.taken_counter()),
-    )
-    .unwrap();
-    let mut client = Client::open_with(
-        w.vd.port_path(),
-        spidar::link::ClientOptions {
-            timeout: Duration::from_secs(1),
-            retries: 9,
-            ..Default::default()
-        },
-    )
-    .unwrap();
+    let (operator, mut client) = operator_and_client(&w, op_config.clone());
     let geometry = w.device.nominal.clone();
     let mut config = InitConfig::for_geometry(&geometry);
     config.timeout = Duration::from_secs(40);
@@ -230,23 +238,7 @@ fn an_operator_who_never_gets_there_times_out_with_the_closest_approach() {
     let mut w = world([80.0, 0.0, 0.0]);
     let mut op_config = SimOperatorConfig::new(w.receiver.local_addr());
     op_config.free_motion = FreeMotion::Still;
-    let operator = SimOperator::spawn_in_step(
-        op_config,
-        w.device.clone(),
-        w.hand.clone(),
-        w.cues.clone(),
-        Some(w.receiver.taken_counter()),
-    )
-    .unwrap();
-    let mut client = Client::open_with(
-        w.vd.port_path(),
-        spidar::link::ClientOptions {
-            timeout: Duration::from_secs(1),
-            retries: 9,
-            ..Default::default()
-        },
-    )
-    .unwrap();
+    let (operator, mut client) = operator_and_client(&w, op_config);
     let geometry = w.device.nominal.clone();
     let mut config = InitConfig::for_geometry(&geometry);
     config.timeout = Duration::from_millis(800);
