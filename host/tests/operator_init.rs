@@ -49,7 +49,7 @@ fn operator_and_client(w: &World, op_config: SimOperatorConfig) -> (SimOperator,
         w.device.clone(),
         w.hand.clone(),
         w.cues.clone(),
-        Some(w.receiver.taken_counter()),
+        Some(w.receiver.progress()),
     )
     .unwrap();
     let client = Client::open_with(

@@ -45,11 +45,16 @@ fn config(seconds: f64) -> MonitorConfig {
 }
 
 fn rig(effects: &[&str], seconds: f64) -> SimulatedMonitorRig {
+    rig_at(effects, seconds, SimRigConfig::default().frame_rate_hz)
+}
+
+fn rig_at(effects: &[&str], seconds: f64, frame_rate_hz: f64) -> SimulatedMonitorRig {
     SimulatedMonitorRig::start(
         calibrated(),
         &SimRigConfig {
             effects: effects.iter().map(|s| s.to_string()).collect(),
             max_duration: Duration::from_secs_f64(seconds + 5.0),
+            frame_rate_hz,
             ..SimRigConfig::default()
         },
     )
@@ -67,6 +72,7 @@ fn run(
     // Arrivals on the simulated rig's clock.
     let config = &MonitorConfig {
         host_clock: rig.host_clock(),
+        record_pairs: true,
         device_timeout: Duration::from_secs(10),
         tracker_timeout: Duration::from_secs(10),
         ..config.clone()
@@ -90,6 +96,47 @@ fn run(
     (result, events)
 }
 
+/// Pairing error: each pair's counts against the plant's true counts at
+/// its tracker frame's capture instant (the operator's record of the frame
+/// with that stamp), mm of string: (mean, max, pairs). Asserted at most
+/// 0.1 mm: the pair is the device's state at that instant, not at when the
+/// host read it (10 ms late is ~3 mm at the operator's speed).
+fn pairing_error(rig: &SimulatedMonitorRig, report: &MonitorReport) -> (f64, f64, usize) {
+    let history = rig.operator.history();
+    let nominal = &rig.device.nominal;
+    let mm_per_count: Vec<f64> = (0..8)
+        .map(|i| {
+            2.0 * std::f64::consts::PI * nominal.pulley_radius_mm[i]
+                / f64::from(nominal.counts_per_rev[i])
+        })
+        .collect();
+    let mut errors = Vec::new();
+    for (ts_s, pair) in &report.recorded {
+        let k = history.partition_point(|h| h.ts_s < ts_s - 1e-7);
+        let truth = history
+            .get(k)
+            .filter(|h| (h.ts_s - ts_s).abs() < 1e-6)
+            .unwrap_or_else(|| panic!("no operator frame stamped {ts_s}"));
+        errors.extend(
+            (0..8).map(|i| {
+                f64::from(pair.sample.counts[i] - truth.counts[i]).abs() * mm_per_count[i]
+            }),
+        );
+    }
+    assert!(!errors.is_empty(), "no pair recorded");
+    let mean = errors.iter().sum::<f64>() / errors.len() as f64;
+    let max = errors.iter().copied().fold(0.0, f64::max);
+    eprintln!(
+        "pairing error: mean {mean:.4} mm, max {max:.4} mm of string over {} pairs",
+        report.recorded.len()
+    );
+    assert!(
+        max <= 0.1,
+        "pairing error up to {max:.3} mm of string (mean {mean:.4})"
+    );
+    (mean, max, report.recorded.len())
+}
+
 #[test]
 fn a_slipped_string_is_reported_named_refitted_and_reflashed() {
     let t0 = Instant::now();
@@ -103,6 +150,7 @@ fn a_slipped_string_is_reported_named_refitted_and_reflashed() {
         spidar::operator::recalibrate::summary(&report).trim_end()
     );
     let baseline = report.baseline.expect("a baseline window");
+    pairing_error(&rig, &report);
 
     // No false alarm in the clean part; checks did run there.
     let clean: Vec<_> = report
@@ -188,7 +236,9 @@ fn a_slipped_string_is_reported_named_refitted_and_reflashed() {
 #[test]
 fn a_clean_run_reports_no_drift() {
     let seconds = 14.0;
-    let mut rig = rig(&[], seconds);
+    // 125 Hz: most frames fall between two of the device's states (100 Hz)
+    // and are paired with the state interpolated at their instant.
+    let mut rig = rig_at(&[], seconds, 125.0);
     let (report, _) = run(&mut rig, &config(seconds));
     let report = report.expect("monitor");
     eprintln!(
@@ -203,11 +253,24 @@ fn a_clean_run_reports_no_drift() {
         "the tracker occludes 2 % of its frames"
     );
     assert!(report.pairs > 1000, "{} pairs", report.pairs);
+    let (_, _, recorded) = pairing_error(&rig, &report);
+    assert_eq!(recorded, report.pairs);
 }
 
 #[test]
 fn bad_input_gives_clear_errors() {
     let cal = calibrated();
+    // A frame period the simulated device's 1 ms ticks never reach.
+    let Err(e) = SimulatedMonitorRig::start(
+        cal,
+        &SimRigConfig {
+            frame_rate_hz: 120.0,
+            ..SimRigConfig::default()
+        },
+    ) else {
+        panic!("a 120 Hz tracker on a 1 ms device tick");
+    };
+    assert!(e.to_string().contains("frame_rate_hz"), "{e}");
     let mut rig = rig(&[], 8.0);
     let mut client = rig.client().unwrap();
     let mut never = |_: &MonitorEvent| {};

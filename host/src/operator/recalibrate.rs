@@ -140,6 +140,9 @@ pub struct MonitorConfig {
     /// The clock arrivals are stamped with for the clock map (the wall
     /// clock; a simulated rig's own, [`super::sim_user::SimulatedRig::host_clock`]).
     pub host_clock: HostClock,
+    /// Keep every pair in [`MonitorReport::recorded`] (a test compares them
+    /// with a simulated truth; a long run would grow without bound).
+    pub record_pairs: bool,
 }
 
 impl Default for MonitorConfig {
@@ -165,6 +168,7 @@ impl Default for MonitorConfig {
             anchor_tolerance_mm: 100.0,
             expected_model_id: None,
             host_clock: HostClock::Wall,
+            record_pairs: false,
         }
     }
 }
@@ -367,6 +371,9 @@ pub struct MonitorReport {
     /// The last full window.
     pub last_window: Option<ErrorStats>,
     pub seconds: f64,
+    /// Every pair with its tracker frame's stamp (`ts`, s), in the order
+    /// made, when [`MonitorConfig::record_pairs`].
+    pub recorded: Vec<(f64, Pair)>,
 }
 
 impl MonitorReport {
@@ -807,6 +814,9 @@ impl Monitor<'_> {
                     refit,
                 });
                 if refit {
+                    // Busy: a simulated world waits for the refit (its
+                    // length is the machine's, not the rig's).
+                    tracker.busy();
                     match self.refit_and_flash(client, &check) {
                         Ok(r) => {
                             on_event(&MonitorEvent::Refitted(Box::new(r.clone())));
@@ -845,7 +855,12 @@ impl Monitor<'_> {
                 .newest()
                 .map_or(f64::NEG_INFINITY, |s| s.time_us as f64);
             let covered = at_us.is_some_and(|t| newest >= t);
-            if !covered && now_s - read_s < gap.as_secs_f64() {
+            // Wait for the state after the frame: at most the gap in host
+            // time, and on a simulated link as long as one sent after the
+            // frame's instant is still on its way (the machine's pipe, not
+            // the device, is late).
+            let in_flight = self.config.host_clock.state_sent_since(read_s);
+            if !covered && (now_s - read_s < gap.as_secs_f64() || in_flight) {
                 break;
             }
             self.pending.pop_front();
@@ -875,6 +890,9 @@ impl Monitor<'_> {
                 error_mm: position_error(device_room_mm, marker),
                 gap_ms: nearest_ms,
             };
+            if self.config.record_pairs {
+                self.report.recorded.push((ts_s, pair.clone()));
+            }
             self.window.push_back(pair);
             while self.window.len() > self.config.window {
                 self.window.pop_front();
@@ -1158,6 +1176,9 @@ pub struct SimRigConfig {
     /// Probability that a tracker frame has the marker occluded.
     pub occlusion: f64,
     pub operator_seed: u64,
+    /// The tracker's frame rate, Hz (the device streams at 100 Hz: another
+    /// rate puts frames between its states).
+    pub frame_rate_hz: f64,
     /// The operator (and the tracker) stop after this long.
     pub max_duration: Duration,
 }
@@ -1170,6 +1191,7 @@ impl Default for SimRigConfig {
             wander_speed_mm_s: 60.0,
             occlusion: 0.02,
             operator_seed: 1,
+            frame_rate_hz: 100.0,
             max_duration: Duration::from_secs(600),
         }
     }
@@ -1251,6 +1273,7 @@ impl SimulatedMonitorRig {
                 };
                 op.occlusion = config.occlusion;
                 op.seed = config.operator_seed;
+                op.frame_rate_hz = config.frame_rate_hz;
                 op.max_duration = config.max_duration;
             },
         )?;

@@ -35,7 +35,7 @@
 //! hand: the loop is closed through the device's own control code.
 
 use std::net::{SocketAddr, UdpSocket};
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
@@ -47,6 +47,7 @@ use rand_distr::{Distribution, Normal};
 use super::{distance, Cues, SharedCues};
 use crate::sim::Device as SimDevice;
 use crate::tracker::dtrack::{format_datagram, BodyPose, DtrackFrame};
+use crate::tracker::ReadProgress;
 use crate::tracker::TrackerError;
 use crate::virtual_device::Hand;
 
@@ -211,6 +212,8 @@ pub struct HandSample {
     /// Capture time on the simulated clock (the plant's: device time since
     /// the virtual device's first boot), µs.
     pub t_us: u64,
+    /// The tracker's stamp of the frame (`ts`, s).
+    pub ts_s: f64,
     /// True marker position, room frame, mm.
     pub room_mm: [f64; 3],
     /// True end-effector position, device frame, mm.
@@ -240,20 +243,22 @@ impl SimOperator {
         Self::spawn_in_step(config, device, hand, cues, None)
     }
 
-    /// [`SimOperator::spawn`], in step with the procedure: with `taken`
-    /// (the receiver's [`crate::tracker::DtrackReceiver::taken_counter`]),
+    /// [`SimOperator::spawn`], in step with the procedure: with `progress`
+    /// (the receiver's [`crate::tracker::DtrackReceiver::progress`]),
     /// each frame is sent once the procedure has taken every frame sent
     /// before it, and the hand moves on (the simulated world goes past the
-    /// frame's instant) once it has taken this one; a procedure that takes
-    /// nothing for [`PROCEDURE_PATIENCE`] (not started yet, finished, busy
-    /// refitting) lets the world go one frame further. The simulated world
-    /// then waits for the host however the machine schedules it.
+    /// frame's instant) once it has taken this one. The world waits for a
+    /// procedure that has not read yet or said it is busy (refitting,
+    /// flashing) as long as it takes; one that stops reading without
+    /// saying so (finished) lets the world go one frame further per
+    /// [`PROCEDURE_PATIENCE`]. The simulated world then waits for the host
+    /// however the machine schedules it.
     pub fn spawn_in_step(
         config: SimOperatorConfig,
         device: SimDevice,
         hand: Hand,
         cues: SharedCues,
-        taken: Option<Arc<AtomicU64>>,
+        progress: Option<ReadProgress>,
     ) -> Result<SimOperator, TrackerError> {
         config.validate()?;
         let local = SocketAddr::from(([127, 0, 0, 1], 0));
@@ -276,7 +281,7 @@ impl SimOperator {
                     &socket,
                     &thread_stop,
                     &thread_history,
-                    taken.as_deref(),
+                    progress.as_ref(),
                 )
             })
             .map_err(|source| TrackerError::Socket {
@@ -423,19 +428,20 @@ fn velocity(
 
 /// How long a simulated operator in step with a procedure waits for it to
 /// take a frame before the world goes one frame on without it (wall time:
-/// only a procedure that is not reading the tracker at all waits this
-/// long).
+/// only a procedure that reads, then stops reading the tracker without
+/// saying it is busy, waits this long; one that has not started or said
+/// [`crate::tracker::TrackerSource::busy`] is waited for).
 pub const PROCEDURE_PATIENCE: Duration = Duration::from_secs(1);
 
 /// Waits until the procedure has taken `sent` frames (or `stop`, or
-/// [`PROCEDURE_PATIENCE`] without progress).
-fn wait_taken(taken: &AtomicU64, sent: u64, stop: &AtomicBool) {
-    let mut last = taken.load(Ordering::SeqCst);
+/// [`PROCEDURE_PATIENCE`] without progress while it is not busy).
+fn wait_taken(progress: &ReadProgress, sent: u64, stop: &AtomicBool) {
+    let mut last = progress.taken();
     let mut since = Instant::now();
     while last < sent && !stop.load(Ordering::SeqCst) {
         std::thread::sleep(Duration::from_micros(100));
-        let now = taken.load(Ordering::SeqCst);
-        if now != last {
+        let now = progress.taken();
+        if now != last || progress.busy() {
             last = now;
             since = Instant::now();
         } else if since.elapsed() > PROCEDURE_PATIENCE {
@@ -453,7 +459,7 @@ fn run(
     socket: &UdpSocket,
     stop: &AtomicBool,
     history: &Mutex<Vec<HandSample>>,
-    taken: Option<&AtomicU64>,
+    progress: Option<&ReadProgress>,
 ) -> Result<SimOperatorReport, TrackerError> {
     let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
     let noise =
@@ -501,6 +507,7 @@ fn run(
                 frame,
                 at: Instant::now(),
                 t_us,
+                ts_s: config.tracker_ts_s(t_us),
                 room_mm: room,
                 device_mm: p,
                 counts,
@@ -514,8 +521,8 @@ fn run(
         }
         if !lost {
             // In step: the procedure has read everything sent so far.
-            if let Some(taken) = taken {
-                wait_taken(taken, u64::from(report.sent), stop);
+            if let Some(progress) = progress {
+                wait_taken(progress, u64::from(report.sent), stop);
             }
             let seen = room.map(|x| x + noise.sample(&mut rng));
             let datagram = format_datagram(&DtrackFrame {
@@ -538,8 +545,8 @@ fn run(
                 })?;
             report.sent += 1;
             // ... and this frame, read at its own instant.
-            if let Some(taken) = taken {
-                wait_taken(taken, u64::from(report.sent), stop);
+            if let Some(progress) = progress {
+                wait_taken(progress, u64::from(report.sent), stop);
             }
         }
         // 2-3: cues, then the hand's next point, one frame on.
@@ -615,6 +622,11 @@ impl SimulatedRig {
         use crate::virtual_device::{spawn, Pace, Plant, Trajectory, VirtualDeviceConfig};
         let start: [f64; 3] = core::array::from_fn(|k| device.frame.home[k] + offset_mm[k]);
         let hand = Hand::at(start);
+        // On the simulated clock from the start: the device does not tick
+        // before the operator moves the hand (in real time it would, and
+        // where its clock stands when the operator starts would be the
+        // machine's doing).
+        hand.attach();
         let plant = Plant::new(device.clone(), Trajectory::Held(hand.clone()));
         let virtual_device = spawn(
             VirtualDeviceConfig {
@@ -632,13 +644,27 @@ impl SimulatedRig {
         let mut config = SimOperatorConfig::new(receiver.local_addr());
         configure(&mut config);
         config.tracker = receiver.local_addr();
+        // In virtual time the plant ticks up to each frame's instant and
+        // waits there: an instant between two ticks would never be reached.
+        let tick_us = u64::from(virtual_device.config().tick_us);
+        let frame_us = (1e6 / config.frame_rate_hz).round();
+        if !(frame_us.is_finite() && frame_us >= 1.0) || frame_us as u64 % tick_us != 0 {
+            return Err(RigError::from(TrackerError::Config {
+                field: "frame_rate_hz",
+                problem: format!(
+                    "{} Hz: in a simulated rig the tracker's frame period must be a whole number of the device's {tick_us} µs ticks (e.g. 100, 125, 200, 250 Hz)",
+                    config.frame_rate_hz
+                ),
+            })
+            .into());
+        }
         let cues = SharedCues::new();
         let operator = SimOperator::spawn_in_step(
             config,
             device.clone(),
             hand.clone(),
             cues.clone(),
-            Some(receiver.taken_counter()),
+            Some(receiver.progress()),
         )
         .map_err(RigError::from)?;
         Ok(SimulatedRig {

@@ -63,6 +63,17 @@ impl HostClock {
         }
     }
 
+    /// Whether the device has sent a state at or after host time `t_s`
+    /// (this clock's seconds) that may not have been read yet: a simulated
+    /// link knows when the device last sent one; a real one cannot
+    /// (false), and the reader waits its gap in host time.
+    pub fn state_sent_since(&self, t_s: f64) -> bool {
+        match self {
+            HostClock::Wall => false,
+            HostClock::Simulated(c) => c.last_sent_us() as f64 / 1e6 >= t_s,
+        }
+    }
+
     /// When a tracker frame the receiver stamped `received_at` (wall) was
     /// read: that stamp on the wall clock, now on a simulated one (the
     /// frame is taken as it is read).

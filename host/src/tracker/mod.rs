@@ -28,7 +28,7 @@ use std::time::{Duration, Instant};
 
 pub use clock::{ClockSync, HostClock, StateHistory};
 pub use dtrack::{BodyPose, DtrackError, DtrackFrame};
-pub use receiver::{DtrackReceiver, ReceiverConfig, ReceiverStats};
+pub use receiver::{DtrackReceiver, ReadProgress, ReceiverConfig, ReceiverStats};
 pub use replay::{Pacing, ReplaySource};
 pub use sim::{SimReport, SimSender, SimSenderConfig};
 pub use sync::{estimate_time_shift, ShiftConfig, SyncError, TimeShift, TimedPosition};
@@ -86,6 +86,12 @@ pub trait TrackerSource {
     fn next_frame(&mut self, timeout: Duration) -> Result<Next, TrackerError>;
     /// Counters so far.
     fn stats(&self) -> SourceStats;
+    /// The procedure is busy (computing, flashing) and reads no frame
+    /// until its next [`TrackerSource::next_frame`]. A real tracker goes on
+    /// and its frames queue; a simulated world in step with the procedure
+    /// waits for it, so that how long the machine takes to compute plays
+    /// no part in what is simulated.
+    fn busy(&mut self) {}
 }
 
 /// Failures of a tracker source (bad datagrams are counted, not returned).

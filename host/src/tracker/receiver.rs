@@ -16,7 +16,7 @@
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::io;
 use std::net::{SocketAddr, UdpSocket};
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -207,7 +207,31 @@ pub struct DtrackReceiver {
     last_error: Option<DtrackError>,
     day_offset_s: f64,
     last_ts_s: Option<f64>,
+    progress: ReadProgress,
+}
+
+/// How far the procedure reading a [`DtrackReceiver`] has got, shared with
+/// a simulated tracker in step with it (see
+/// [`crate::operator::sim_user::SimOperator::spawn_in_step`]): the frames it
+/// has taken, and whether it said it is busy and reads nothing for a while
+/// ([`TrackerSource::busy`]). Clones share the counters.
+#[derive(Clone, Debug, Default)]
+pub struct ReadProgress {
     taken: Arc<AtomicU64>,
+    busy: Arc<AtomicBool>,
+}
+
+impl ReadProgress {
+    /// Frames handed out by [`TrackerSource::next_frame`] so far.
+    pub fn taken(&self) -> u64 {
+        self.taken.load(Ordering::SeqCst)
+    }
+
+    /// The procedure has not read a frame yet, or said it is busy since its
+    /// last read.
+    pub fn busy(&self) -> bool {
+        self.busy.load(Ordering::SeqCst)
+    }
 }
 
 impl DtrackReceiver {
@@ -235,15 +259,19 @@ impl DtrackReceiver {
             last_error: None,
             day_offset_s: 0.0,
             last_ts_s: None,
-            taken: Arc::new(AtomicU64::new(0)),
+            // Nothing read yet: busy until the first read.
+            progress: ReadProgress {
+                taken: Arc::new(AtomicU64::new(0)),
+                busy: Arc::new(AtomicBool::new(true)),
+            },
         })
     }
 
-    /// Frames handed out by [`TrackerSource::next_frame`] so far, shared:
-    /// a simulated tracker waits on it so that the simulated world does
-    /// not run ahead of the procedure that reads it.
-    pub fn taken_counter(&self) -> Arc<AtomicU64> {
-        self.taken.clone()
+    /// How far the procedure has read, shared: a simulated tracker waits
+    /// on it so that the simulated world does not run ahead of the
+    /// procedure that reads it.
+    pub fn progress(&self) -> ReadProgress {
+        self.progress.clone()
     }
 
     /// The bound address (the actual port when bound to port 0).
@@ -304,10 +332,11 @@ impl DtrackReceiver {
 
 impl TrackerSource for DtrackReceiver {
     fn next_frame(&mut self, timeout: Duration) -> Result<Next, TrackerError> {
+        self.progress.busy.store(false, Ordering::SeqCst);
         let deadline = Instant::now() + timeout;
         loop {
             if let Some(f) = self.ready.pop_front() {
-                self.taken.fetch_add(1, Ordering::SeqCst);
+                self.progress.taken.fetch_add(1, Ordering::SeqCst);
                 return Ok(Next::Frame(f));
             }
             let now = Instant::now();
@@ -364,5 +393,9 @@ impl TrackerSource for DtrackReceiver {
             malformed: self.malformed,
             ..self.reorder.stats().clone()
         }
+    }
+
+    fn busy(&mut self) {
+        self.progress.busy.store(true, Ordering::SeqCst);
     }
 }
