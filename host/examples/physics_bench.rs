@@ -14,7 +14,8 @@
 //! with one part of its physics switched off at a time (the identified and
 //! final held-out error tell what each part costs the model).
 //!
-//! `cargo run --release -p spidar --example physics_bench -- [SEEDS] [--quick] [--no-analysis] [--ablation]`
+//! `cargo run --release -p spidar --example physics_bench -- [SEEDS] [--quick] [--no-analysis] [--ablation] [--only=SIM:EFFECT,..]`
+//! (`--only=independent:slip,model:clean`: just those cases)
 //! (default 3 seeds).
 
 use std::path::Path;
@@ -359,7 +360,13 @@ fn main() {
     let mut seeds = 3u64;
     let mut quick = false;
     let mut analysis = true;
+    // `--only=independent:slip,model:clean`: just these cases.
+    let mut only: Option<Vec<String>> = None;
     for a in std::env::args().skip(1) {
+        if let Some(list) = a.strip_prefix("--only=") {
+            only = Some(list.split(',').map(str::to_string).collect());
+            continue;
+        }
         match a.as_str() {
             "--quick" => quick = true,
             "--no-analysis" => analysis = false,
@@ -368,9 +375,9 @@ fn main() {
                 return;
             }
             s => {
-                seeds = s
-                    .parse()
-                    .expect("usage: physics_bench [SEEDS] [--quick] [--no-analysis]")
+                seeds = s.parse().expect(
+                    "usage: physics_bench [SEEDS] [--quick] [--no-analysis] [--only=SIM:EFFECT,..]",
+                )
             }
         }
     }
@@ -403,7 +410,16 @@ fn main() {
     ];
     let mut summary = Vec::new();
     let mut notes = Vec::new();
+    let wanted = |simulator: &str, effect: Option<&str>| {
+        only.as_ref().is_none_or(|o| {
+            o.iter()
+                .any(|c| *c == format!("{simulator}:{}", effect.unwrap_or("clean")))
+        })
+    };
     for effect in model_cases {
+        if !wanted("model", effect) {
+            continue;
+        }
         let mut rows = Vec::new();
         for seed in 1..=seeds {
             let c = run_calibration(&model_run(seed, effect), &config);
@@ -413,6 +429,9 @@ fn main() {
     }
     let mut clean_physics = Vec::new();
     for effect in physics_cases {
+        if !wanted("independent", effect) {
+            continue;
+        }
         let mut rows = Vec::new();
         for seed in 1..=seeds {
             let device = physics_device(seed, effect);
