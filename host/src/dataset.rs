@@ -143,6 +143,12 @@ pub enum DatasetError {
         found: String,
         expected: String,
     },
+    /// A session without `ots_z` for a 3-D device.
+    #[error("{}: line 1: no `ots_z` column (tracker positions in x, y only, as a planar device's), but {} is a 3-D device (no `planar = true`): its tracker positions need ots_z", file.display(), geometry_file.display())]
+    NoTrackerZ {
+        file: PathBuf,
+        geometry_file: PathBuf,
+    },
     /// A session whose encoder columns disagree with its geometry's anchors.
     #[error("{}: line 1: {strings} encoder columns (enc0..enc{}), but {} has {geometry_strings} anchors: a session and its geometry must describe the same strings", file.display(), strings.saturating_sub(1), geometry_file.display())]
     StringCount {
@@ -637,6 +643,10 @@ pub struct Session {
     /// Columns found in the file that this reader does not know; they were
     /// ignored. Empty for sessions not read from a file.
     pub ignored_columns: Vec<String>,
+    /// The tracker columns include `ots_z` (false: a planar session's file
+    /// gave `ots_x, ots_y` only, and every sample's tracker z reads 0; a
+    /// 3-D geometry refuses it, [`Session::check_strings`]).
+    pub tracker_z: bool,
 }
 
 impl Default for Session {
@@ -646,6 +656,7 @@ impl Default for Session {
             strings: STRINGS,
             samples: Vec::new(),
             ignored_columns: Vec::new(),
+            tracker_z: true,
         }
     }
 }
@@ -992,26 +1003,34 @@ impl Session {
             strings,
             samples,
             ignored_columns,
+            tracker_z: layout.tracker.len() == 3,
         })
     }
 
-    /// Checks that this session has `geometry`'s number of strings; the
-    /// error names both files.
+    /// Checks that this session has `geometry`'s number of strings, and
+    /// tracker z positions unless the geometry is planar; the error names
+    /// both files.
     pub fn check_strings(
         &self,
         file: &Path,
         geometry: &Geometry,
         geometry_file: &Path,
     ) -> Result<(), DatasetError> {
-        if self.strings == geometry.strings() {
-            return Ok(());
+        if self.strings != geometry.strings() {
+            return Err(DatasetError::StringCount {
+                file: file.to_path_buf(),
+                strings: self.strings,
+                geometry_file: geometry_file.to_path_buf(),
+                geometry_strings: geometry.strings(),
+            });
         }
-        Err(DatasetError::StringCount {
-            file: file.to_path_buf(),
-            strings: self.strings,
-            geometry_file: geometry_file.to_path_buf(),
-            geometry_strings: geometry.strings(),
-        })
+        if !self.tracker_z && !geometry.layout.planar {
+            return Err(DatasetError::NoTrackerZ {
+                file: file.to_path_buf(),
+                geometry_file: geometry_file.to_path_buf(),
+            });
+        }
+        Ok(())
     }
 
     /// True if any sample has a legacy position (the `dev_*` columns are written).

@@ -115,6 +115,7 @@ fn session_round_trip_is_lossless() {
         strings: 8,
         samples,
         ignored_columns: vec![],
+        tracker_z: true,
     };
     s.write(&path).unwrap();
     assert_eq!(Session::load(&path).unwrap(), s);
@@ -290,6 +291,7 @@ fn writing_rejects_what_reading_would_reject() {
             tension_n: None,
         }],
         ignored_columns: vec![],
+        tracker_z: true,
     };
     let err = s.write(tmp("bad.csv")).unwrap_err();
     assert!(
@@ -500,9 +502,43 @@ fn n_string_sessions_follow_their_encoder_columns() {
         err.contains("enc2") && err.contains("at least 3 strings"),
         "{err}"
     );
-    // A planar device's tracker may leave out ots_z.
+    // A planar device's tracker may leave out ots_z ...
     let s = read("t_s,enc0,enc1,enc2,ots_x,ots_y\n0,1,2,3,4.5,5.5\n").unwrap();
     assert_eq!(s.samples[0].tracker, Some([4.5, 5.5, 0.0]));
+    assert!(!s.tracker_z);
+    let planar = geometry(
+        "counts_per_rev = 4096\npulley_radius_mm = 10\nplanar = true\nhome_mm = [0, 0]\n\
+         anchors_mm = [[-500, -400], [500, -400], [0, 400]]\n\
+         room_from_device_translation_mm = [0, 0, 900]\n",
+    )
+    .unwrap();
+    let (file, geometry_file) = (Path::new("s.csv"), Path::new("g.toml"));
+    s.check_strings(file, &planar, geometry_file).unwrap();
+    // ... a 3-D device's may not: z would read 0 everywhere.
+    let cube = geometry(
+        "counts_per_rev = 4096\npulley_radius_mm = 10\nhome_mm = [0, 0, 0]\n\
+         anchors_mm = [[-500, -400, 0], [500, -400, 0], [0, 400, 0], [0, 0, 600]]\n\
+         room_from_device_translation_mm = [0, 0, 900]\n",
+    )
+    .unwrap();
+    let err = s.check_strings(file, &cube, geometry_file).unwrap_err();
+    let msg = err.to_string();
+    assert!(matches!(err, DatasetError::StringCount { .. }), "{msg}");
+    let s4 = read("t_s,enc0,enc1,enc2,enc3,ots_x,ots_y\n0,1,2,3,4,4.5,5.5\n").unwrap();
+    let err = s4.check_strings(file, &cube, geometry_file).unwrap_err();
+    let msg = err.to_string();
+    assert!(
+        matches!(err, DatasetError::NoTrackerZ { .. })
+            && msg.contains("s.csv")
+            && msg.contains("g.toml")
+            && msg.contains("ots_z")
+            && msg.contains("3-D"),
+        "{msg}"
+    );
+    let with_z =
+        read("t_s,enc0,enc1,enc2,enc3,ots_x,ots_y,ots_z\n0,1,2,3,4,4.5,5.5,6.5\n").unwrap();
+    assert!(with_z.tracker_z);
+    with_z.check_strings(file, &cube, geometry_file).unwrap();
 }
 
 #[test]

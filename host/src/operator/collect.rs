@@ -1044,6 +1044,7 @@ mod tests {
                 row([130.0, -100.0, -100.0]),
             ],
             ignored_columns: Vec::new(),
+            tracker_z: true,
         };
         let done = done_cells(&lattice, &session, file).unwrap();
         assert_eq!(&done[..4], &[Some(2), Some(3), Some(4), None]);

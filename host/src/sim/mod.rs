@@ -304,6 +304,7 @@ pub fn simulate_session_with_truth(
             strings: layout.count(),
             samples,
             ignored_columns: Vec::new(),
+            tracker_z: true,
         },
         truths,
     ))

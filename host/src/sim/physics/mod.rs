@@ -226,6 +226,7 @@ pub fn rows_to_session(rows: Vec<PhysicsRow>) -> Result<Session, SimError> {
         strings,
         samples,
         ignored_columns: Vec::new(),
+        tracker_z: true,
     })
 }
 
