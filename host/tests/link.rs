@@ -570,3 +570,75 @@ fn link_benchmarks() {
         per_frame - state
     );
 }
+
+/// `spidar device`'s port options go before or after the subcommand; a
+/// missing port and a bad duration are argument errors that say so.
+#[test]
+fn device_command_line_takes_the_port_anywhere() {
+    let spidar = |args: &[&str]| {
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_spidar"))
+            .args(args)
+            .output()
+            .expect("run spidar");
+        (
+            out.status.success(),
+            String::from_utf8_lossy(&out.stderr).to_string(),
+        )
+    };
+    for args in [
+        &["device", "info", "--port", "/nonexistent/tty"][..],
+        &["device", "--port", "/nonexistent/tty", "info"][..],
+        &[
+            "device",
+            "info",
+            "--timeout-ms",
+            "20",
+            "--port",
+            "/nonexistent/tty",
+        ][..],
+    ] {
+        let (ok, err) = spidar(args);
+        assert!(
+            !ok && err.contains("/nonexistent/tty") && err.contains("no such port"),
+            "{args:?}: {err}"
+        );
+    }
+    // Negative coordinates are values, not options.
+    for args in [
+        &[
+            "collect",
+            "--port",
+            "/nonexistent/tty",
+            "--geometry",
+            "/nonexistent/g.toml",
+            "--centre",
+            "-100,0,1500",
+            "--out",
+            "/nonexistent/s.csv",
+        ][..],
+        &[
+            "init",
+            "--port",
+            "/nonexistent/tty",
+            "--geometry",
+            "/nonexistent/g.toml",
+            "--target",
+            "-100,-5,1500",
+            "--out",
+            "/nonexistent/i.toml",
+        ][..],
+    ] {
+        let (ok, err) = spidar(args);
+        assert!(
+            !ok && err.contains("/nonexistent/g.toml"),
+            "{args:?}: {err}"
+        );
+    }
+    let (ok, err) = spidar(&["device", "info"]);
+    assert!(!ok && err.contains("--port"), "{err}");
+    let (ok, err) = spidar(&["device", "arm", "--hold=-1", "--port", "/nonexistent/tty"]);
+    assert!(
+        !ok && err.contains("--hold") && !err.contains("serial port"),
+        "{err}"
+    );
+}

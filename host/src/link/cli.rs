@@ -10,18 +10,22 @@ use spidar_protocol::State;
 
 use super::{Client, ClientOptions, FlashPhase, LinkError, StreamOptions};
 
-/// Port and link settings shared by the device commands.
+/// Port and link settings shared by the device commands. Global: they may
+/// come before or after a subcommand (`spidar device info --port P` as
+/// well as `spidar device --port P info`); clap does not allow a global
+/// argument to be required, so a missing `--port` is checked in
+/// [`PortArgs::open`].
 #[derive(Clone, Debug, clap::Args)]
 pub struct PortArgs {
     /// Serial port of the device (e.g. /dev/ttyACM0, or the path
-    /// `spidar virtual-device` prints).
-    #[arg(long)]
-    pub port: String,
+    /// `spidar virtual-device` prints). Required.
+    #[arg(long, global = true)]
+    pub port: Option<String>,
     /// Reply timeout, ms.
-    #[arg(long, default_value_t = 250)]
+    #[arg(long, global = true, default_value_t = 250)]
     pub timeout_ms: u64,
     /// Resends of a request that got no reply.
-    #[arg(long, default_value_t = 3)]
+    #[arg(long, global = true, default_value_t = 3)]
     pub retries: u32,
 }
 
@@ -34,8 +38,12 @@ impl PortArgs {
         }
     }
 
-    pub fn open(&self) -> Result<Client, LinkError> {
-        Client::open_with(&self.port, self.options())
+    /// Opens the port; an error if `--port` was not given.
+    pub fn open(&self) -> Result<Client, Box<dyn std::error::Error>> {
+        let port = self.port.as_deref().ok_or(
+            "the device's serial port is required: --port PORT (e.g. /dev/ttyACM0, or the path `spidar virtual-device` prints)",
+        )?;
+        Ok(Client::open_with(port, self.options())?)
     }
 }
 
@@ -168,12 +176,11 @@ fn link_line(s: &spidar_protocol::LinkStats) -> String {
     )
 }
 
-fn seconds(s: f64, field: &'static str) -> Result<Duration, LinkError> {
-    Duration::try_from_secs_f64(s).map_err(|_| LinkError::Unexpected {
-        port: String::new(),
-        request: field,
-        got: format!("{s} is not a duration in seconds"),
-    })
+/// A duration option: an argument error (naming the option), not a link
+/// error.
+fn seconds(s: f64, field: &'static str) -> Result<Duration, String> {
+    Duration::try_from_secs_f64(s)
+        .map_err(|_| format!("{field}: {s} is not a duration in seconds (>= 0)"))
 }
 
 /// Runs `spidar flash`.
@@ -262,6 +269,16 @@ pub fn state_csv(s: &State) -> String {
 
 /// Runs `spidar device ...`.
 pub fn run_device(args: &DeviceArgs) -> Result<String, Box<dyn std::error::Error>> {
+    // Arguments first: a bad one is an argument error, whatever the port.
+    match &args.command {
+        DeviceCommand::Stream { seconds: s, .. } => {
+            seconds(*s, "--seconds")?;
+        }
+        DeviceCommand::Arm { hold } | DeviceCommand::Force { hold, .. } => {
+            seconds(*hold, "--hold")?;
+        }
+        DeviceCommand::Info | DeviceCommand::Disarm => {}
+    }
     let mut client = args.port.open()?;
     let mut out = String::new();
     match &args.command {

@@ -815,7 +815,7 @@ pub struct CollectArgs {
     pub size_mm: f64,
     /// Centre of the cube, room frame, mm, `x,y,z` (default: the home of
     /// --init, else the geometry's frame centre through eq. 6).
-    #[arg(long, value_parser = super::init::parse_point)]
+    #[arg(long, allow_hyphen_values = true, value_parser = super::init::parse_point)]
     pub centre: Option<[f64; 3]>,
     /// Stop after this many cells (resume later with the same command).
     #[arg(long)]

@@ -446,7 +446,7 @@ pub struct InitArgs {
     #[arg(long)]
     pub write_geometry: Option<PathBuf>,
     /// Target, room frame, mm, `x,y,z` (default: the nominal frame centre).
-    #[arg(long, value_parser = parse_point)]
+    #[arg(long, allow_hyphen_values = true, value_parser = parse_point)]
     pub target: Option<[f64; 3]>,
     /// Cue radius d_min, mm (eqs. 2-5).
     #[arg(long, default_value_t = 150.0)]
