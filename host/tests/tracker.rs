@@ -1,5 +1,5 @@
-//! Tracker input: DTrack2 datagrams (real-format examples, skipped records,
-//! typed errors, arbitrary bytes), the UDP receiver over loopback (loss,
+//! Tracker input: DTrack2/DTrack3 datagrams (real-format examples, ts2,
+//! skipped records, typed errors, arbitrary bytes), the UDP receiver over loopback (loss,
 //! duplicates, reordering, occlusion, bad datagrams, midnight, restarts),
 //! the CSV replay of the shared example session, and the time-shift
 //! estimate. Every socket is on 127.0.0.1; every loop is bounded.
@@ -123,6 +123,25 @@ fn malformed_known_records_name_the_field() {
         ("fr 1 2\r\n".into(), 1, "fr"),
         ("fr 1\r\nts abc\r\n".into(), 2, "ts"),
         ("fr 1\r\nts inf\r\n".into(), 2, "ts"),
+        ("fr 1\r\nts\r\n".into(), 2, "ts"),
+        ("fr 1\r\nts2\r\n".into(), 2, "ts2 seconds"),
+        ("fr 1\r\nts2 1.5 0 0\r\n".into(), 2, "ts2 seconds"),
+        ("fr 1\r\nts2 -1 0 0\r\n".into(), 2, "ts2 seconds"),
+        ("fr 1\r\nts2 1700000000\r\n".into(), 2, "ts2 microseconds"),
+        (
+            "fr 1\r\nts2 1700000000 0.5 0\r\n".into(),
+            2,
+            "ts2 microseconds",
+        ),
+        (
+            "fr 1\r\nts2 1700000000 1000000 0\r\n".into(),
+            2,
+            "ts2 microseconds",
+        ),
+        ("fr 1\r\nts2 1700000000 5 x\r\n".into(), 2, "ts2 latency"),
+        ("fr 1\r\nts2 1700000000 5 -7\r\n".into(), 2, "ts2 latency"),
+        // The ts line is checked even though ts2 gives the time.
+        ("fr 1\r\nts2 1700000000 5 7\r\nts x\r\n".into(), 3, "ts"),
         ("fr 1\r\n6dcal -1\r\n".into(), 2, "6dcal"),
         ("fr 1\r\n6d\r\n".into(), 2, "6d count"),
         (format!("fr 1\r\n6d 2 {body}\r\n"), 2, "6d count"),
@@ -164,6 +183,11 @@ fn malformed_known_records_name_the_field() {
         ),
         ("fr 1\r\nfr 2\r\n".into(), 2, "fr"),
         (format!("fr 1\r\n6d 1 {body}\r\n6d 0\r\n"), 3, "6d"),
+        (
+            "fr 1\r\nts2 1700000000 5 7\r\nts2 1700000000 6 7\r\n".into(),
+            3,
+            "ts2",
+        ),
     ];
     for (d, line, field) in cases {
         let (l, f, _) = field_error(&d);
@@ -174,6 +198,13 @@ fn malformed_known_records_name_the_field() {
         FieldProblem::CountMismatch {
             declared: 2,
             found: 1
+        }
+    );
+    assert_eq!(
+        field_error("fr 1\r\nts2 1700000000 1000000 0\r\n").2,
+        FieldProblem::NotBelow {
+            text: "1000000".into(),
+            limit: 1_000_000
         }
     );
 }
@@ -190,6 +221,114 @@ fn datagram_level_errors() {
         parse_datagram(b"fr 1\r\n\xff\xfe"),
         Err(DtrackError::NotText { offset: 6 })
     );
+}
+
+// ---------------------------------------------------------------------------
+// What real DTrack output contains (DTrack3 records, SDK tolerance)
+// ---------------------------------------------------------------------------
+
+/// One complete standard body `id` at `p` (identity rotation).
+fn body_text(id: u32, p: [i32; 3]) -> String {
+    format!(
+        "[{id} 1.000][{} {} {} 0 0 0][1 0 0 0 1 0 0 0 1]",
+        p[0], p[1], p[2]
+    )
+}
+
+/// 2023-11-14 00:00:00 UTC, seconds since 1970.
+const DAY_START_1970_S: u64 = 19_675 * 86_400;
+
+#[test]
+fn ts2_alone_gives_the_time_of_day() {
+    // The manual's time of day, 10:59:56.024470 UTC, as DTrack3's ts2.
+    let secs = DAY_START_1970_S + 39_596;
+    let d = format!("fr 21753\r\nts2 {secs} 24470 1800\r\n6d 0\r\n");
+    let f = parse_datagram(d.as_bytes()).unwrap();
+    // Exactly the f64 that `ts 39596.024470` gives: the same clock.
+    assert_eq!(f.ts_s, parse_datagram(MANUAL.as_bytes()).unwrap().ts_s);
+    assert_eq!(f.ts_s, Some(39596.024470));
+    // Without the latency field, and with values after it: the same time.
+    for tail in ["", " 1800 extra 3"] {
+        let d = format!("fr 1\r\nts2 {secs} 24470{tail}\r\n");
+        assert_eq!(
+            parse_datagram(d.as_bytes()).unwrap().ts_s,
+            Some(39596.024470)
+        );
+    }
+    // Midnight and the last microsecond of the day.
+    let f = parse_datagram(format!("fr 1\r\nts2 {DAY_START_1970_S} 0 0\r\n").as_bytes());
+    assert_eq!(f.unwrap().ts_s, Some(0.0));
+    let last = DAY_START_1970_S + 86_399;
+    let f = parse_datagram(format!("fr 1\r\nts2 {last} 999999 0\r\n").as_bytes());
+    assert_eq!(f.unwrap().ts_s, Some(86_399.999999));
+}
+
+#[test]
+fn ts2_latency_is_read_and_checked() {
+    let secs = DAY_START_1970_S + 10;
+    for latency in ["0", "1800", "4294967295"] {
+        let d = format!("fr 1\r\nts2 {secs} 500000 {latency}\r\n");
+        assert_eq!(parse_datagram(d.as_bytes()).unwrap().ts_s, Some(10.5));
+    }
+    for latency in ["1.5", "-1", "lat", "4294967296"] {
+        let d = format!("fr 1\r\nts2 {secs} 500000 {latency}\r\n");
+        let (line, field, problem) = field_error(&d);
+        assert_eq!((line, field.as_str()), (2, "ts2 latency"), "{d:?}");
+        assert_eq!(problem, FieldProblem::NotAnInteger(latency.into()));
+    }
+}
+
+#[test]
+fn ts2_is_preferred_to_ts() {
+    // Both given (and here disagreeing, to tell them apart): ts2, in either
+    // order.
+    let ts2 = format!("ts2 {} 250000 900", DAY_START_1970_S + 200);
+    for d in [
+        format!("fr 1\r\nts 100.5\r\n{ts2}\r\n"),
+        format!("fr 1\r\n{ts2}\r\nts 100.5\r\n"),
+    ] {
+        assert_eq!(parse_datagram(d.as_bytes()).unwrap().ts_s, Some(200.25));
+    }
+    // Agreeing, as DTrack writes them: the same value either way.
+    let d = format!(
+        "fr 1\r\nts 39596.024470\r\nts2 {} 24470 1800\r\n",
+        DAY_START_1970_S + 39_596
+    );
+    assert_eq!(
+        parse_datagram(d.as_bytes()).unwrap().ts_s,
+        Some(39596.024470)
+    );
+}
+
+#[test]
+fn a_ts2_stream_unwraps_at_midnight_like_ts() {
+    let mut rx = receiver(2, 10_000);
+    let now = Instant::now();
+    let day = DAY_START_1970_S;
+    let text = |n: u32, secs: u64, us: u32| {
+        format!(
+            "fr {n}\r\nts2 {secs} {us} 2000\r\n6d 1 {}\r\n",
+            body_text(0, [1, 2, 3])
+        )
+    };
+    // 23:59:59.99, then 00:00:00.01 and 00:00:01.5 of the next day.
+    rx.accept(text(10, day + 86_399, 990_000).as_bytes(), now);
+    rx.accept(text(11, day + 86_400, 10_000).as_bytes(), now);
+    rx.accept(text(12, day + 86_401, 500_000).as_bytes(), now);
+    // A set-up switched to ts: the same clock, no jump.
+    rx.accept(frame_text(13, 1.51).as_bytes(), now);
+    let frames = rx.drain();
+    assert_eq!(
+        frames.iter().map(|f| f.frame).collect::<Vec<_>>(),
+        [10, 11, 12, 13]
+    );
+    let ts: Vec<f64> = frames.iter().map(|f| f.ts_s).collect();
+    let expected = [86_399.99, 86_400.01, 86_401.5, 86_401.51];
+    for (t, e) in ts.iter().zip(expected) {
+        assert!((t - e).abs() < 1e-6, "{ts:?}");
+    }
+    let s = rx.stats();
+    assert_eq!((s.delivered, s.malformed, s.lost, s.restarts), (4, 0, 0, 0));
 }
 
 fn arb_body() -> impl Strategy<Value = BodyPose> {
@@ -224,6 +363,7 @@ proptest! {
                 Just("]".to_string()), Just("\r\n".to_string()), Just(" ".to_string()),
                 Just("-1.000".to_string()), Just("nan".to_string()), Just("1e999".to_string()),
                 Just("4294967296".to_string()), "[0-9.e+-]{1,8}",
+                Just("ts2 ".to_string()),
             ],
             0..64,
         )

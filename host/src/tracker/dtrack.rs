@@ -1,4 +1,5 @@
-//! The A.R.T. DTrack2 ASCII output: parsing and formatting one datagram.
+//! The A.R.T. DTrack ASCII output (DTrack2, DTrack3): parsing and formatting
+//! one datagram.
 //!
 //! Format, as documented in the DTrack2 user manual, Technical Appendix B.2
 //! "Output of Measurement Data via Ethernet" (A.R.T. GmbH; read in the
@@ -10,6 +11,11 @@
 //!   at the synchronization frequency;
 //! - `ts <s>` (B.2.2, optional output): the time of the camera flash, seconds
 //!   since 00:00 UTC with microsecond resolution, **reset to 0 at midnight**;
+//! - `ts2 <s> <us> <latency>` (DTRACK3, optional output): the measurement
+//!   time as whole seconds since 1970-01-01 UTC plus microseconds, then the
+//!   latency in microseconds. (The DTrackSDK sources read for this, up to
+//!   2023, do not parse `ts2`: they skip it as an unknown record; the layout
+//!   is DTRACK3's.) See [`DtrackFrame::ts_s`] for the clock we give it;
 //! - `6dcal <n>`: the number of calibrated standard bodies;
 //! - `6d <n> [id qu][sx sy sz eta theta phi][b0 .. b8] ...` (B.2.3): the
 //!   *tracked* standard bodies only ("bodies that are not tracked ... don't
@@ -65,7 +71,24 @@ pub const IDENTITY: [[f64; 3]; 3] = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0
 pub struct DtrackFrame {
     /// `fr`: frame counter.
     pub frame: u32,
-    /// `ts`: seconds since 00:00 UTC, if the timestamp output is enabled.
+    /// The measurement time, seconds since 00:00 UTC, if DTrack's timestamp
+    /// output is enabled: from `ts2` if present, else from `ts`.
+    ///
+    /// `ts2` gives whole seconds since 1970 and microseconds; we keep the
+    /// time of day, `(s % 86400) + us / 1e6` (computed in integer
+    /// microseconds, so `ts 39596.024470` and `ts2 1699959596 24470` give
+    /// the same `f64`). Every `ts_s` is then on the clock of `ts`, which
+    /// restarts at midnight: the receiver unwraps that one clock (see its
+    /// `day_offset_s`), whichever record a set-up sends, and a stream that
+    /// switches between the two records does not jump by 1.7e9 s. The date
+    /// that `ts2` would add is of no use to the time shift, which is
+    /// estimated over seconds to minutes.
+    ///
+    /// Both present: `ts2` is used, always. It gives the time as whole
+    /// numbers, with no decimal rounding, and it is DTRACK3's newer record;
+    /// preferring one record for every frame keeps the stream on one source
+    /// even if the two were ever to differ. The `ts` line is still checked
+    /// (a malformed one is an error).
     pub ts_s: Option<f64>,
     /// `6dcal`: number of calibrated bodies, if present.
     pub calibrated_bodies: Option<u32>,
@@ -97,6 +120,8 @@ pub enum FieldProblem {
     NotANumber(String),
     #[error("`{0}` is not a finite number")]
     NotFinite(String),
+    #[error("`{text}` is not below {limit}")]
+    NotBelow { text: String, limit: u64 },
     #[error("unexpected `{0}`")]
     Unexpected(String),
     #[error("expected `[`, found `{0}`")]
@@ -120,9 +145,9 @@ pub enum DtrackError {
     NotText { offset: usize },
     #[error("no `fr` (frame counter) line")]
     MissingFrameCounter,
-    /// The receiver needs `ts`: enable DTrack2's timestamp output
-    /// (Settings -> Output 'ts').
-    #[error("no `ts` (timestamp) line: enable the DTrack2 timestamp output")]
+    /// The receiver needs a timestamp: enable DTrack's timestamp output
+    /// (DTrack2: Settings -> Output 'ts'; DTrack3: 'ts' or 'ts2').
+    #[error("no `ts` or `ts2` (timestamp) line: enable the DTrack timestamp output")]
     MissingTimestamp,
     #[error("line {line}, field `{field}`: {problem}")]
     Field {
@@ -160,6 +185,45 @@ fn parse_f64(line: usize, field: &dyn Fn() -> String, text: &str) -> Result<f64,
             FieldProblem::NotANumber(text.to_string()),
         )),
     }
+}
+
+/// Seconds in a day: `ts` counts from midnight UTC.
+const DAY_S: u64 = 86_400;
+const MICROS_PER_S: u64 = 1_000_000;
+
+/// `ts2 <s> <us> [<latency>]`: the time of day (see [`DtrackFrame::ts_s`]).
+/// The latency (microseconds) is checked when present and not kept.
+fn parse_ts2(line: usize, rest: &str) -> Result<f64, DtrackError> {
+    let mut words = rest.split_ascii_whitespace();
+    let seconds = words
+        .next()
+        .ok_or_else(|| field_error(line, "ts2 seconds", FieldProblem::Missing))?;
+    let seconds = seconds.parse::<u64>().map_err(|_| {
+        field_error(
+            line,
+            "ts2 seconds",
+            FieldProblem::NotAnInteger(seconds.to_string()),
+        )
+    })?;
+    let micros_text = words.next();
+    let micros = parse_u32(line, "ts2 microseconds", micros_text)?;
+    if u64::from(micros) >= MICROS_PER_S {
+        return Err(field_error(
+            line,
+            "ts2 microseconds",
+            FieldProblem::NotBelow {
+                text: micros.to_string(),
+                limit: MICROS_PER_S,
+            },
+        ));
+    }
+    if let Some(latency) = words.next() {
+        parse_u32(line, "ts2 latency", Some(latency))?;
+    }
+    // Integer microseconds of the day (< 8.64e10, exact in an f64), divided
+    // once: the correctly rounded value, as parsing `ts`'s decimal gives.
+    let micros_of_day = (seconds % DAY_S) * MICROS_PER_S + u64::from(micros);
+    Ok(micros_of_day as f64 / MICROS_PER_S as f64)
 }
 
 /// Split `rest` into its `[...]` blocks (contents only).
@@ -263,6 +327,7 @@ pub fn parse_datagram(bytes: &[u8]) -> Result<DtrackFrame, DtrackError> {
     }
     let mut frame: Option<(u32, usize)> = None;
     let mut ts: Option<(f64, usize)> = None;
+    let mut ts2: Option<(f64, usize)> = None;
     let mut cal: Option<(u32, usize)> = None;
     let mut six_d: Option<(Vec<BodyPose>, usize)> = None;
     let repeated = |name: &str, first: usize, second: usize| {
@@ -312,6 +377,12 @@ pub fn parse_datagram(bytes: &[u8]) -> Result<DtrackFrame, DtrackError> {
                 }
                 ts = Some((v, line));
             }
+            "ts2" => {
+                if let Some((_, first)) = ts2 {
+                    return Err(repeated("ts2", first, line));
+                }
+                ts2 = Some((parse_ts2(line, rest)?, line));
+            }
             "6dcal" => {
                 if let Some((_, first)) = cal {
                     return Err(repeated("6dcal", first, line));
@@ -342,7 +413,7 @@ pub fn parse_datagram(bytes: &[u8]) -> Result<DtrackFrame, DtrackError> {
     let has_6d = six_d.is_some();
     Ok(DtrackFrame {
         frame,
-        ts_s: ts.map(|(v, _)| v),
+        ts_s: ts2.or(ts).map(|(v, _)| v),
         calibrated_bodies: cal.map(|(v, _)| v),
         bodies: six_d.map(|(b, _)| b).unwrap_or_default(),
         has_6d,
