@@ -1,9 +1,9 @@
 //! Tracker input: DTrack2/DTrack3 datagrams (real-format examples, ts2,
-//! the SDK's tolerance, skipped records, typed errors, arbitrary bytes),
-//! the UDP receiver over loopback (loss, duplicates, reordering, occlusion,
-//! bad datagrams, midnight, restarts), the CSV replay of the shared example
-//! session, and the time-shift estimate. Every socket is on 127.0.0.1;
-//! every loop is bounded.
+//! hybrid bodies, the SDK's tolerance, skipped records, typed errors,
+//! arbitrary bytes), the UDP receiver over loopback (loss, duplicates,
+//! reordering, occlusion, bad datagrams, midnight, restarts), the CSV replay
+//! of the shared example session, and the time-shift estimate. Every socket
+//! is on 127.0.0.1; every loop is bounded.
 
 use std::net::{SocketAddr, UdpSocket};
 use std::path::{Path, PathBuf};
@@ -67,7 +67,6 @@ fn accepts_bare_lf_and_several_bodies() {
 fn skips_records_it_does_not_use() {
     let d = "fr 10\r\nts 2.0\r\n6dcal 3\r\n\
              3d 2 [1 1.000][1.0 2.0 3.0] [2 1.000][4.0 5.0 6.0]\r\n\
-             6di 1 [0 1 0][1 2 3][1 0 0 0 1 0 0 0 1]\r\n\
              6dcov 1 [0 0 0 0][0 0 0 0 0 0 0 0 0 0 0 0 0 0 0 0 0 0 0 0 0]\r\n\
              6df2 1 1 [0 1.000 2 4][1 2 3][1 0 0 0 1 0 0 0 1][0 0 0 0]\r\n\
              6dmt 1 [0 -1.000 0][0 0 0][0 0 0 0 0 0 0 0 0]\r\n\
@@ -189,6 +188,27 @@ fn malformed_known_records_name_the_field() {
             format!("fr 1\r\n6d 3 {body} [1 q][1 2 3][1 0 0 0 1 0 0 0 1]\r\n"),
             2,
             "6d body 2: qu",
+        ),
+        ("fr 1\r\n6di\r\n".into(), 2, "6di count"),
+        (
+            "fr 1\r\n6di 1 [0 2][1 2 3][1 0 0 0 1 0 0 0 1]\r\n".into(),
+            2,
+            "6di body 1: [id st error]",
+        ),
+        (
+            "fr 1\r\n6di 1 [0 x 0.1][1 2 3][1 0 0 0 1 0 0 0 1]\r\n".into(),
+            2,
+            "6di body 1: st",
+        ),
+        (
+            "fr 1\r\n6di 1 [0 2 e][1 2 3][1 0 0 0 1 0 0 0 1]\r\n".into(),
+            2,
+            "6di body 1: error",
+        ),
+        (
+            "fr 1\r\n6di 1 [0 2 0.1][1 2][1 0 0 0 1 0 0 0 1]\r\n".into(),
+            2,
+            "6di body 1: [sx sy sz]",
         ),
     ];
     for (d, line, field) in cases {
@@ -478,6 +498,62 @@ fn a_nul_ends_the_datagram() {
     }
 }
 
+#[test]
+fn hybrid_bodies_are_read_as_bodies() {
+    let d = "fr 1\r\nts 1.0\r\n\
+             6di 3 [0 0 0.000][0 0 0][0 0 0 0 0 0 0 0 0] \
+             [1 2 0.120][10 20 30][0 1 0 -1 0 0 0 0 1] \
+             [2 1 0.800][40 50 60][1 0 0 0 1 0 0 0 1]\r\n";
+    let f = parse_datagram(d.as_bytes()).unwrap();
+    assert!(f.has_6d);
+    assert_eq!(ids(&f), [0, 1, 2]);
+    // State 0: not tracked, listed as occluded.
+    assert_eq!(f.bodies[0].quality, -1.0);
+    assert_eq!(f.visible_body(0), None);
+    // State 2: optical and inertial, visible.
+    let b = f.visible_body(1).unwrap();
+    assert_eq!(b.quality, 1.0);
+    assert_eq!(b.position_mm, [10.0, 20.0, 30.0]);
+    // b0..b8 column-wise: the first row is b0 b3 b6.
+    assert_eq!(
+        b.rotation,
+        [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
+    );
+    // State 1: inertial only, visible, least trusted.
+    let b = f.visible_body(2).unwrap();
+    assert_eq!(b.quality, 0.0);
+    assert_eq!(b.position_mm, [40.0, 50.0, 60.0]);
+}
+
+#[test]
+fn standard_and_hybrid_bodies_merge() {
+    let six_d = format!(
+        "6d 2 {} {}",
+        body_text(0, [1, 2, 3]),
+        body_text(1, [4, 5, 6])
+    );
+    let six_di = "6di 2 [1 2 0.1][70 80 90][1 0 0 0 1 0 0 0 1] \
+                  [2 2 0.1][7 8 9][1 0 0 0 1 0 0 0 1]";
+    // 6d first, whichever line comes first; id 1 keeps its 6d pose.
+    for d in [
+        format!("fr 1\r\n{six_d}\r\n{six_di}\r\n"),
+        format!("fr 1\r\n{six_di}\r\n{six_d}\r\n"),
+    ] {
+        let f = parse_datagram(d.as_bytes()).unwrap();
+        assert_eq!(ids(&f), [0, 1, 2], "{d:?}");
+        assert_eq!(f.visible_body(1).unwrap().position_mm, [4.0, 5.0, 6.0]);
+        assert_eq!(f.visible_body(2).unwrap().position_mm, [7.0, 8.0, 9.0]);
+    }
+    // 6di alone: bodies, as 6d's.
+    let f = parse_datagram(format!("fr 1\r\n{six_di}\r\n").as_bytes()).unwrap();
+    assert!(f.has_6d);
+    assert_eq!(ids(&f), [1, 2]);
+    // The merged frame writes as a 6d record and reads back the same.
+    let f =
+        parse_datagram(format!("fr 1\r\nts 3.0\r\n{six_d}\r\n{six_di}\r\n").as_bytes()).unwrap();
+    assert_eq!(parse_datagram(format_datagram(&f).as_bytes()), Ok(f));
+}
+
 fn arb_body() -> impl Strategy<Value = BodyPose> {
     (
         0u32..100,
@@ -510,7 +586,7 @@ proptest! {
                 Just("]".to_string()), Just("\r\n".to_string()), Just(" ".to_string()),
                 Just("-1.000".to_string()), Just("nan".to_string()), Just("1e999".to_string()),
                 Just("4294967296".to_string()), "[0-9.e+-]{1,8}",
-                Just("ts2 ".to_string()), Just("\r".to_string()),
+                Just("ts2 ".to_string()), Just("6di ".to_string()), Just("\r".to_string()),
                 Just("\0".to_string()),
             ],
             0..64,

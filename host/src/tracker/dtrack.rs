@@ -30,9 +30,18 @@
 //!   the first three values of that block. The manual calls `qu` "unused"
 //!   for `6d`; other record types use `qu = -1` for a target that is not
 //!   visible, so we treat a negative quality as occluded too;
-//! - other records (`3d`, `6dcov`, `6di`, `6df`, `6df2`, `6dmt`, `6dmt2`,
-//!   `6dmtr`, `6dj`, `gl`, `glcal`, `st`, ...) are legitimate outputs we do
-//!   not use: they are skipped without error, whatever they contain.
+//! - `6di <n> [id st error][sx sy sz][b0 .. b8] ...` (hybrid, optical and
+//!   inertial bodies): read as bodies too, with the same position and
+//!   rotation. `st` is the tracking state: 0 not tracked, 1 inertial only,
+//!   2 optical and inertial. We give state 0 the quality -1 (occluded),
+//!   state 2 the quality 1 and any other state (1, inertial only, and states
+//!   not known to us) the quality 0: visible, as DTrack reports a pose, but
+//!   marked as the least trusted. `error` is read (checked as a number) and
+//!   not kept. The bodies of `6d` and `6di` are merged, `6d` first; an id
+//!   listed by both keeps its `6d` pose;
+//! - other records (`3d`, `6dcov`, `6df`, `6df2`, `6dmt`, `6dmt2`, `6dmtr`,
+//!   `6dj`, `gl`, `glcal`, `st`, ...) are legitimate outputs we do not use:
+//!   they are skipped without error, whatever they contain.
 //!
 //! Tolerance. As the SDK: a record is read for the values we need and what
 //! follows them is ignored (`fr 1 2`, `ts 1.5 x`, values after the ninth of
@@ -56,7 +65,7 @@
 
 use std::fmt::{self, Write as _};
 
-/// One 6DOF body of a `6d` record.
+/// One 6DOF body of a `6d` (or `6di`) record.
 #[derive(Clone, Debug, PartialEq)]
 pub struct BodyPose {
     /// Body id as DTrack numbers it (from 0).
@@ -116,10 +125,11 @@ pub struct DtrackFrame {
     pub ts_s: Option<f64>,
     /// `6dcal`: number of calibrated bodies, if present.
     pub calibrated_bodies: Option<u32>,
-    /// `6d`: the bodies listed (tracked ones; may include negative quality).
-    /// Empty if the record is absent or lists no body.
+    /// `6d` then `6di`: the bodies listed (tracked ones; may include
+    /// negative quality), an id given by both once, with its `6d` pose.
+    /// Empty if neither record is present or they list no body.
     pub bodies: Vec<BodyPose>,
-    /// True if a `6d` record was present.
+    /// True if a `6d` or a `6di` record was present.
     pub has_6d: bool,
 }
 
@@ -280,32 +290,78 @@ fn block_numbers<const N: usize>(
     Ok(out)
 }
 
-fn parse_6d(line: usize, rest: &str) -> Result<Vec<BodyPose>, DtrackError> {
+/// The body records: standard (`6d`) and hybrid (`6di`) bodies, which
+/// differ in their first block only.
+#[derive(Clone, Copy)]
+enum BodyRecord {
+    /// `[id qu]`
+    Standard,
+    /// `[id st error]`
+    Hybrid,
+}
+
+impl BodyRecord {
+    fn name(self) -> &'static str {
+        match self {
+            BodyRecord::Standard => "6d",
+            BodyRecord::Hybrid => "6di",
+        }
+    }
+
+    /// Id and quality from the first block of a body.
+    fn head(
+        self,
+        line: usize,
+        name: &dyn Fn(&str) -> String,
+        block: &str,
+    ) -> Result<(u32, f64), DtrackError> {
+        let (layout, expected) = match self {
+            BodyRecord::Standard => ("[id qu]", 2),
+            BodyRecord::Hybrid => ("[id st error]", 3),
+        };
+        let words: Vec<&str> = block.split_ascii_whitespace().take(expected).collect();
+        if words.len() < expected {
+            return Err(field_error(
+                line,
+                name(layout),
+                FieldProblem::BlockLength {
+                    expected,
+                    found: words.len(),
+                },
+            ));
+        }
+        let id = parse_u32(line, &name("id"), Some(words[0]))?;
+        let quality = match self {
+            BodyRecord::Standard => parse_f64(line, &|| name("qu"), words[1])?,
+            BodyRecord::Hybrid => {
+                let state = parse_u32(line, &name("st"), Some(words[1]))?;
+                parse_f64(line, &|| name("error"), words[2])?;
+                match state {
+                    0 => -1.0,
+                    2 => 1.0,
+                    _ => 0.0,
+                }
+            }
+        };
+        Ok((id, quality))
+    }
+}
+
+fn parse_bodies(line: usize, record: BodyRecord, rest: &str) -> Result<Vec<BodyPose>, DtrackError> {
+    let kind = record.name();
     let rest = rest.trim_start();
     let (count_text, blocks_text) = match rest.find(|c: char| c.is_ascii_whitespace() || c == '[') {
         Some(i) => (&rest[..i], &rest[i..]),
         None => (rest, ""),
     };
     let count_text = (!count_text.is_empty()).then_some(count_text);
-    let declared = parse_u32(line, "6d count", count_text)?;
+    let declared = parse_u32(line, &format!("{kind} count"), count_text)?;
     let blocks = blocks(blocks_text, (declared as usize).saturating_mul(3));
     // A body short of blocks can only be the last: it was cut off.
     let mut bodies = Vec::with_capacity(blocks.len() / 3);
     for (n, b) in blocks.chunks_exact(3).enumerate() {
-        let name = |part: &str| format!("6d body {}: {part}", n + 1);
-        let head: Vec<&str> = b[0].split_ascii_whitespace().take(2).collect();
-        if head.len() < 2 {
-            return Err(field_error(
-                line,
-                name("[id qu]"),
-                FieldProblem::BlockLength {
-                    expected: 2,
-                    found: head.len(),
-                },
-            ));
-        }
-        let id = parse_u32(line, &name("id"), Some(head[0]))?;
-        let quality = parse_f64(line, &|| name("qu"), head[1])?;
+        let name = |part: &str| format!("{kind} body {}: {part}", n + 1);
+        let (id, quality) = record.head(line, &name, b[0])?;
         let s: [f64; 3] = block_numbers(line, &|| name("[sx sy sz]"), b[1])?;
         let m: [f64; 9] = block_numbers(line, &|| name("[b0..b8]"), b[2])?;
         // Column-wise: b0 b1 b2 is the first column.
@@ -365,6 +421,7 @@ pub fn parse_datagram(bytes: &[u8]) -> Result<DtrackFrame, DtrackError> {
     let mut ts2: Option<f64> = None;
     let mut cal: Option<u32> = None;
     let mut six_d: Option<Vec<BodyPose>> = None;
+    let mut six_di: Option<Vec<BodyPose>> = None;
     for (index, raw) in lines(text).into_iter().enumerate() {
         let line = index + 1;
         let content = raw.trim();
@@ -386,19 +443,31 @@ pub fn parse_datagram(bytes: &[u8]) -> Result<DtrackFrame, DtrackError> {
             }
             "ts2" if ts2.is_none() => ts2 = Some(parse_ts2(line, rest)?),
             "6dcal" if cal.is_none() => cal = Some(parse_u32(line, "6dcal", first_word())?),
-            "6d" if six_d.is_none() => six_d = Some(parse_6d(line, rest)?),
-            // Repeats, and 3d, 6dcov, 6di, 6df, 6df2, 6dmt, 6dmt2, 6dmtr, 6dj, gl,
+            "6d" if six_d.is_none() => {
+                six_d = Some(parse_bodies(line, BodyRecord::Standard, rest)?);
+            }
+            "6di" if six_di.is_none() => {
+                six_di = Some(parse_bodies(line, BodyRecord::Hybrid, rest)?);
+            }
+            // Repeats, and 3d, 6dcov, 6df, 6df2, 6dmt, 6dmt2, 6dmtr, 6dj, gl,
             // glcal, st and any future record: output we do not consume.
             _ => {}
         }
     }
     let frame = frame.ok_or(DtrackError::MissingFrameCounter)?;
-    let has_6d = six_d.is_some();
+    let has_6d = six_d.is_some() || six_di.is_some();
+    let mut bodies = six_d.unwrap_or_default();
+    let standard = bodies.len();
+    for b in six_di.unwrap_or_default() {
+        if !bodies[..standard].iter().any(|s| s.id == b.id) {
+            bodies.push(b);
+        }
+    }
     Ok(DtrackFrame {
         frame,
         ts_s: ts2.or(ts),
         calibrated_bodies: cal,
-        bodies: six_d.unwrap_or_default(),
+        bodies,
         has_6d,
     })
 }
