@@ -519,10 +519,10 @@ fn hybrid_bodies_are_read_as_bodies() {
         b.rotation,
         [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
     );
-    // State 1: inertial only, visible, least trusted.
-    let b = f.visible_body(2).unwrap();
-    assert_eq!(b.quality, 0.0);
-    assert_eq!(b.position_mm, [40.0, 50.0, 60.0]);
+    // State 1: inertial only (dead reckoning): kept, not visible.
+    assert_eq!(f.visible_body(2), None);
+    assert_eq!(f.bodies[2].quality, -1.0);
+    assert_eq!(f.bodies[2].position_mm, [40.0, 50.0, 60.0]);
 }
 
 #[test]

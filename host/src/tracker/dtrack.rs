@@ -33,10 +33,11 @@
 //! - `6di <n> [id st error][sx sy sz][b0 .. b8] ...` (hybrid, optical and
 //!   inertial bodies): read as bodies too, with the same position and
 //!   rotation. `st` is the tracking state: 0 not tracked, 1 inertial only,
-//!   2 optical and inertial. We give state 0 the quality -1 (occluded),
-//!   state 2 the quality 1 and any other state (1, inertial only, and states
-//!   not known to us) the quality 0: visible, as DTrack reports a pose, but
-//!   marked as the least trusted. `error` is read (checked as a number) and
+//!   2 optical and inertial. State 2 gets the quality 1; any other state
+//!   (0, 1 inertial only, and states not known to us) the quality -1,
+//!   occluded: an inertial-only pose is dead reckoning that drifts within
+//!   seconds, not a measurement to calibrate against (the pose is kept in
+//!   the body for whoever wants it). `error` is read (checked as a number) and
 //!   not kept. The bodies of `6d` and `6di` are merged, `6d` first; an id
 //!   listed by both keeps its `6d` pose;
 //! - other records (`3d`, `6dcov`, `6df`, `6df2`, `6dmt`, `6dmt2`, `6dmtr`,
@@ -336,10 +337,13 @@ impl BodyRecord {
             BodyRecord::Hybrid => {
                 let state = parse_u32(line, &name("st"), Some(words[1]))?;
                 parse_f64(line, &|| name("error"), words[2])?;
+                // Only an optically tracked pose is a measurement: an
+                // inertial-only one is dead reckoning that drifts within
+                // seconds, and a calibration paired with it would learn
+                // the drift.
                 match state {
-                    0 => -1.0,
                     2 => 1.0,
-                    _ => 0.0,
+                    _ => -1.0,
                 }
             }
         };
