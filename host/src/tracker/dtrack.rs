@@ -1,32 +1,72 @@
-//! The A.R.T. DTrack2 ASCII output: parsing and formatting one datagram.
+//! The A.R.T. DTrack ASCII output (DTrack2, DTrack3): parsing and formatting
+//! one datagram.
 //!
 //! Format, as documented in the DTrack2 user manual, Technical Appendix B.2
 //! "Output of Measurement Data via Ethernet" (A.R.T. GmbH; read in the
-//! Flystick2/Flystick3 manual editions, pages 259-264):
+//! Flystick2/Flystick3 manual editions, pages 259-264), with DTRACK3's
+//! `ts2`, and as A.R.T.'s DTrackSDK (`DTrackParser.cpp`, `DTrackParse.cpp`)
+//! and VRPN (`vrpn_Tracker_DTrack.C`) read it:
 //!
 //! - one UDP datagram per measurement frame, ASCII, one record per line;
-//!   DTrack ends lines with CR LF (we also accept a bare LF);
+//!   DTrack ends lines with CR LF; a bare LF or a bare CR ends a line too
+//!   (the SDK splits lines at either character);
 //! - `fr <n>` (B.2.1): the frame counter, "always the first" line, counting
 //!   at the synchronization frequency;
 //! - `ts <s>` (B.2.2, optional output): the time of the camera flash, seconds
 //!   since 00:00 UTC with microsecond resolution, **reset to 0 at midnight**;
+//! - `ts2 <s> <us> <latency>` (DTRACK3, optional output): the measurement
+//!   time as whole seconds since 1970-01-01 UTC plus microseconds, then the
+//!   latency in microseconds. (The DTrackSDK sources read for this, up to
+//!   2023, do not parse `ts2`: they skip it as an unknown record; the layout
+//!   is DTRACK3's.) See [`DtrackFrame::ts_s`] for the clock we give it;
 //! - `6dcal <n>`: the number of calibrated standard bodies;
-//! - `6d <n> [id qu][sx sy sz eta theta phi][b0 .. b8] ...` (B.2.3): the
-//!   *tracked* standard bodies only ("bodies that are not tracked ... don't
-//!   appear in the output"), `id` counted from 0, position in mm in the room
-//!   frame, and the rotation matrix given column-wise:
-//!   `R = [[b0 b3 b6], [b1 b4 b7], [b2 b5 b8]]`. The manual calls `qu`
-//!   "unused" for `6d`; other record types use `qu = -1` for a target that is
-//!   not visible, so we treat a negative quality as occluded too;
-//! - other records (`3d`, `6di`, `6df`, `6df2`, `6dmt`, `6dmt2`, `6dmtr`, `gl`,
-//!   `glcal`, ...) are legitimate outputs we do not use: they are skipped
-//!   without error, whatever they contain.
+//! - `6d <n> [id qu][sx sy sz ...][b0 .. b8] ...` (B.2.3): the *tracked*
+//!   standard bodies only ("bodies that are not tracked ... don't appear in
+//!   the output"), `id` counted from 0, position in mm in the room frame, and
+//!   the rotation matrix given column-wise:
+//!   `R = [[b0 b3 b6], [b1 b4 b7], [b2 b5 b8]]`. The DTrack2 manual's example
+//!   has three angles after the position (`[sx sy sz eta theta phi]`); later
+//!   DTrack versions write `[sx sy sz]`. Both are read: like the SDK we read
+//!   the first three values of that block. The manual calls `qu` "unused"
+//!   for `6d`; other record types use `qu = -1` for a target that is not
+//!   visible, so we treat a negative quality as occluded too;
+//! - `6di <n> [id st error][sx sy sz][b0 .. b8] ...` (hybrid, optical and
+//!   inertial bodies): read as bodies too, with the same position and
+//!   rotation. `st` is the tracking state: 0 not tracked, 1 inertial only,
+//!   2 optical and inertial. State 2 gets the quality 1; any other state
+//!   (0, 1 inertial only, and states not known to us) the quality -1,
+//!   occluded: an inertial-only pose is dead reckoning that drifts within
+//!   seconds, not a measurement to calibrate against (the pose is kept in
+//!   the body for whoever wants it). `error` is read (checked as a number) and
+//!   not kept. The bodies of `6d` and `6di` are merged, `6d` first; an id
+//!   listed by both keeps its `6d` pose;
+//! - other records (`3d`, `6dcov`, `6df`, `6df2`, `6dmt`, `6dmt2`, `6dmtr`,
+//!   `6dj`, `gl`, `glcal`, `st`, ...) are legitimate outputs we do not use:
+//!   they are skipped without error, whatever they contain.
 //!
-//! Errors name the line (1-based) and the field, e.g. `6d body 2: qu`.
+//! Tolerance. As the SDK: a record is read for the values we need and what
+//! follows them is ignored (`fr 1 2`, `ts 1.5 x`, values after the ninth of
+//! a rotation block, text after the last body); the blocks of a body record
+//! are found by their `[`, text between blocks is ignored; a body count
+//! smaller than the bodies present reads the count, the bodies after it are
+//! not read; the first NUL byte ends the datagram (the SDK reads the buffer
+//! as a C string): what follows it (padding, the rest of an older datagram
+//! in a reused buffer) is ignored, text or not. More tolerant than the SDK,
+//! which rejects the whole datagram there: a body count larger than the
+//! bodies present reads the complete bodies present (a body missing blocks
+//! at the end of the line, or whose last block has no `]`, is left out as
+//! cut off). Unlike the SDK, where a later line overwrites an earlier one,
+//! a repeated record keeps its first line and later ones are ignored
+//! unread: the first is where DTrack writes its records, and a stray repeat
+//! then cannot change a frame, nor drop it.
+//!
+//! A value we read that is malformed is an error that names the line
+//! (1-based) and the field, e.g. `6d body 2: qu`, and the datagram is
+//! skipped: a frame is not built from damaged values.
 
 use std::fmt::{self, Write as _};
 
-/// One 6DOF body of a `6d` record.
+/// One 6DOF body of a `6d` (or `6di`) record.
 #[derive(Clone, Debug, PartialEq)]
 pub struct BodyPose {
     /// Body id as DTrack numbers it (from 0).
@@ -65,14 +105,32 @@ pub const IDENTITY: [[f64; 3]; 3] = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0
 pub struct DtrackFrame {
     /// `fr`: frame counter.
     pub frame: u32,
-    /// `ts`: seconds since 00:00 UTC, if the timestamp output is enabled.
+    /// The measurement time, seconds since 00:00 UTC, if DTrack's timestamp
+    /// output is enabled: from `ts2` if present, else from `ts`.
+    ///
+    /// `ts2` gives whole seconds since 1970 and microseconds; we keep the
+    /// time of day, `(s % 86400) + us / 1e6` (computed in integer
+    /// microseconds, so `ts 39596.024470` and `ts2 1699959596 24470` give
+    /// the same `f64`). Every `ts_s` is then on the clock of `ts`, which
+    /// restarts at midnight: the receiver unwraps that one clock (see its
+    /// `day_offset_s`), whichever record a set-up sends, and a stream that
+    /// switches between the two records does not jump by 1.7e9 s. The date
+    /// that `ts2` would add is of no use to the time shift, which is
+    /// estimated over seconds to minutes.
+    ///
+    /// Both present: `ts2` is used, always. It gives the time as whole
+    /// numbers, with no decimal rounding, and it is DTRACK3's newer record;
+    /// preferring one record for every frame keeps the stream on one source
+    /// even if the two were ever to differ. The `ts` line is still checked
+    /// (a malformed one is an error).
     pub ts_s: Option<f64>,
     /// `6dcal`: number of calibrated bodies, if present.
     pub calibrated_bodies: Option<u32>,
-    /// `6d`: the bodies listed (tracked ones; may include negative quality).
-    /// Empty if the record is absent or lists no body.
+    /// `6d` then `6di`: the bodies listed (tracked ones; may include
+    /// negative quality), an id given by both once, with its `6d` pose.
+    /// Empty if neither record is present or they list no body.
     pub bodies: Vec<BodyPose>,
-    /// True if a `6d` record was present.
+    /// True if a `6d` or a `6di` record was present.
     pub has_6d: bool,
 }
 
@@ -97,18 +155,10 @@ pub enum FieldProblem {
     NotANumber(String),
     #[error("`{0}` is not a finite number")]
     NotFinite(String),
-    #[error("unexpected `{0}`")]
-    Unexpected(String),
-    #[error("expected `[`, found `{0}`")]
-    ExpectedBlock(String),
-    #[error("`[` without its `]`")]
-    UnclosedBlock,
-    #[error("{found} values in the block, {expected} expected")]
+    #[error("`{text}` is not below {limit}")]
+    NotBelow { text: String, limit: u64 },
+    #[error("{found} values in the block, at least {expected} expected")]
     BlockLength { expected: usize, found: usize },
-    #[error("the count says {declared}, but {found} bodies follow")]
-    CountMismatch { declared: u32, found: usize },
-    #[error("given twice (lines {first} and {second})")]
-    Repeated { first: usize, second: usize },
 }
 
 /// A malformed datagram. Unknown record types are never an error.
@@ -120,9 +170,9 @@ pub enum DtrackError {
     NotText { offset: usize },
     #[error("no `fr` (frame counter) line")]
     MissingFrameCounter,
-    /// The receiver needs `ts`: enable DTrack2's timestamp output
-    /// (Settings -> Output 'ts').
-    #[error("no `ts` (timestamp) line: enable the DTrack2 timestamp output")]
+    /// The receiver needs a timestamp: enable DTrack's timestamp output
+    /// (DTrack2: Settings -> Output 'ts'; DTrack3: 'ts' or 'ts2').
+    #[error("no `ts` or `ts2` (timestamp) line: enable the DTrack timestamp output")]
     MissingTimestamp,
     #[error("line {line}, field `{field}`: {problem}")]
     Field {
@@ -162,32 +212,69 @@ fn parse_f64(line: usize, field: &dyn Fn() -> String, text: &str) -> Result<f64,
     }
 }
 
-/// Split `rest` into its `[...]` blocks (contents only).
-fn blocks<'a>(line: usize, field: &str, rest: &'a str) -> Result<Vec<&'a str>, DtrackError> {
-    let mut out = Vec::new();
-    let mut rest = rest.trim_start();
-    while !rest.is_empty() {
-        let Some(inner) = rest.strip_prefix('[') else {
-            let shown: String = rest.chars().take(16).collect();
-            return Err(field_error(line, field, FieldProblem::ExpectedBlock(shown)));
-        };
-        let Some(end) = inner.find(']') else {
-            return Err(field_error(line, field, FieldProblem::UnclosedBlock));
-        };
-        out.push(&inner[..end]);
-        rest = inner[end + 1..].trim_start();
+/// Seconds in a day: `ts` counts from midnight UTC.
+const DAY_S: u64 = 86_400;
+const MICROS_PER_S: u64 = 1_000_000;
+
+/// `ts2 <s> <us> [<latency>]`: the time of day (see [`DtrackFrame::ts_s`]).
+/// The latency (microseconds) is checked when present and not kept.
+fn parse_ts2(line: usize, rest: &str) -> Result<f64, DtrackError> {
+    let mut words = rest.split_ascii_whitespace();
+    let seconds = words
+        .next()
+        .ok_or_else(|| field_error(line, "ts2 seconds", FieldProblem::Missing))?;
+    let seconds = seconds.parse::<u64>().map_err(|_| {
+        field_error(
+            line,
+            "ts2 seconds",
+            FieldProblem::NotAnInteger(seconds.to_string()),
+        )
+    })?;
+    let micros_text = words.next();
+    let micros = parse_u32(line, "ts2 microseconds", micros_text)?;
+    if u64::from(micros) >= MICROS_PER_S {
+        return Err(field_error(
+            line,
+            "ts2 microseconds",
+            FieldProblem::NotBelow {
+                text: micros.to_string(),
+                limit: MICROS_PER_S,
+            },
+        ));
     }
-    Ok(out)
+    if let Some(latency) = words.next() {
+        parse_u32(line, "ts2 latency", Some(latency))?;
+    }
+    // Integer microseconds of the day (< 8.64e10, exact in an f64), divided
+    // once: the correctly rounded value, as parsing `ts`'s decimal gives.
+    let micros_of_day = (seconds % DAY_S) * MICROS_PER_S + u64::from(micros);
+    Ok(micros_of_day as f64 / MICROS_PER_S as f64)
 }
 
-/// The numbers of one block, checking their count.
+/// The contents of the `[...]` blocks of `rest`, at most `max`, each found
+/// by its `[` (text between blocks is ignored). A last `[` without its `]`
+/// ends the list: a truncated block is not a block.
+fn blocks(rest: &str, max: usize) -> Vec<&str> {
+    let mut out = Vec::new();
+    let mut rest = rest;
+    while out.len() < max {
+        let Some(open) = rest.find('[') else { break };
+        let inner = &rest[open + 1..];
+        let Some(close) = inner.find(']') else { break };
+        out.push(&inner[..close]);
+        rest = &inner[close + 1..];
+    }
+    out
+}
+
+/// The first `N` numbers of one block; more values are ignored.
 fn block_numbers<const N: usize>(
     line: usize,
     field: &dyn Fn() -> String,
     block: &str,
 ) -> Result<[f64; N], DtrackError> {
-    let words: Vec<&str> = block.split_ascii_whitespace().collect();
-    if words.len() != N {
+    let words: Vec<&str> = block.split_ascii_whitespace().take(N).collect();
+    if words.len() < N {
         return Err(field_error(
             line,
             field(),
@@ -204,48 +291,88 @@ fn block_numbers<const N: usize>(
     Ok(out)
 }
 
-fn parse_6d(line: usize, rest: &str) -> Result<Vec<BodyPose>, DtrackError> {
+/// The body records: standard (`6d`) and hybrid (`6di`) bodies, which
+/// differ in their first block only.
+#[derive(Clone, Copy)]
+enum BodyRecord {
+    /// `[id qu]`
+    Standard,
+    /// `[id st error]`
+    Hybrid,
+}
+
+impl BodyRecord {
+    fn name(self) -> &'static str {
+        match self {
+            BodyRecord::Standard => "6d",
+            BodyRecord::Hybrid => "6di",
+        }
+    }
+
+    /// Id and quality from the first block of a body.
+    fn head(
+        self,
+        line: usize,
+        name: &dyn Fn(&str) -> String,
+        block: &str,
+    ) -> Result<(u32, f64), DtrackError> {
+        let (layout, expected) = match self {
+            BodyRecord::Standard => ("[id qu]", 2),
+            BodyRecord::Hybrid => ("[id st error]", 3),
+        };
+        let words: Vec<&str> = block.split_ascii_whitespace().take(expected).collect();
+        if words.len() < expected {
+            return Err(field_error(
+                line,
+                name(layout),
+                FieldProblem::BlockLength {
+                    expected,
+                    found: words.len(),
+                },
+            ));
+        }
+        let id = parse_u32(line, &name("id"), Some(words[0]))?;
+        let quality = match self {
+            BodyRecord::Standard => parse_f64(line, &|| name("qu"), words[1])?,
+            BodyRecord::Hybrid => {
+                let state = parse_u32(line, &name("st"), Some(words[1]))?;
+                parse_f64(line, &|| name("error"), words[2])?;
+                // Only an optically tracked pose is a measurement: an
+                // inertial-only one is dead reckoning that drifts within
+                // seconds, and a calibration paired with it would learn
+                // the drift.
+                match state {
+                    2 => 1.0,
+                    _ => -1.0,
+                }
+            }
+        };
+        Ok((id, quality))
+    }
+}
+
+fn parse_bodies(line: usize, record: BodyRecord, rest: &str) -> Result<Vec<BodyPose>, DtrackError> {
+    let kind = record.name();
     let rest = rest.trim_start();
     let (count_text, blocks_text) = match rest.find(|c: char| c.is_ascii_whitespace() || c == '[') {
         Some(i) => (&rest[..i], &rest[i..]),
         None => (rest, ""),
     };
     let count_text = (!count_text.is_empty()).then_some(count_text);
-    let declared = parse_u32(line, "6d count", count_text)?;
-    let blocks = blocks(line, "6d bodies", blocks_text)?;
-    if blocks.len() % 3 != 0 || blocks.len() / 3 != declared as usize {
-        return Err(field_error(
-            line,
-            "6d count",
-            FieldProblem::CountMismatch {
-                declared,
-                found: blocks.len() / 3,
-            },
-        ));
-    }
+    let declared = parse_u32(line, &format!("{kind} count"), count_text)?;
+    let blocks = blocks(blocks_text, (declared as usize).saturating_mul(3));
+    // A body short of blocks can only be the last: it was cut off.
     let mut bodies = Vec::with_capacity(blocks.len() / 3);
     for (n, b) in blocks.chunks_exact(3).enumerate() {
-        let name = |part: &str| format!("6d body {}: {part}", n + 1);
-        let head: Vec<&str> = b[0].split_ascii_whitespace().collect();
-        if head.len() != 2 {
-            return Err(field_error(
-                line,
-                name("[id qu]"),
-                FieldProblem::BlockLength {
-                    expected: 2,
-                    found: head.len(),
-                },
-            ));
-        }
-        let id = parse_u32(line, &name("id"), Some(head[0]))?;
-        let quality = parse_f64(line, &|| name("qu"), head[1])?;
-        let s: [f64; 6] = block_numbers(line, &|| name("[sx sy sz eta theta phi]"), b[1])?;
+        let name = |part: &str| format!("{kind} body {}: {part}", n + 1);
+        let (id, quality) = record.head(line, &name, b[0])?;
+        let s: [f64; 3] = block_numbers(line, &|| name("[sx sy sz]"), b[1])?;
         let m: [f64; 9] = block_numbers(line, &|| name("[b0..b8]"), b[2])?;
         // Column-wise: b0 b1 b2 is the first column.
         let rotation = core::array::from_fn(|row| core::array::from_fn(|col| m[col * 3 + row]));
         bodies.push(BodyPose {
             id,
-            position_mm: [s[0], s[1], s[2]],
+            position_mm: s,
             rotation,
             quality,
         });
@@ -253,22 +380,53 @@ fn parse_6d(line: usize, rest: &str) -> Result<Vec<BodyPose>, DtrackError> {
     Ok(bodies)
 }
 
+/// The lines of `text`: a line ends at CR LF, at a bare LF or at a bare CR.
+fn lines(text: &str) -> Vec<&str> {
+    let bytes = text.as_bytes();
+    let mut out = Vec::new();
+    let mut start = 0;
+    let mut i = 0;
+    while i < bytes.len() {
+        match bytes[i] {
+            b'\r' => {
+                out.push(&text[start..i]);
+                if bytes.get(i + 1) == Some(&b'\n') {
+                    i += 1;
+                }
+                start = i + 1;
+            }
+            b'\n' => {
+                out.push(&text[start..i]);
+                start = i + 1;
+            }
+            _ => {}
+        }
+        i += 1;
+    }
+    out.push(&text[start..]);
+    out
+}
+
 /// Parse one datagram.
 pub fn parse_datagram(bytes: &[u8]) -> Result<DtrackFrame, DtrackError> {
+    // The first NUL ends the datagram (see the module documentation).
+    let bytes = match bytes.iter().position(|&b| b == 0) {
+        Some(end) => &bytes[..end],
+        None => bytes,
+    };
     let text = std::str::from_utf8(bytes).map_err(|e| DtrackError::NotText {
         offset: e.valid_up_to(),
     })?;
     if text.trim().is_empty() {
         return Err(DtrackError::Empty);
     }
-    let mut frame: Option<(u32, usize)> = None;
-    let mut ts: Option<(f64, usize)> = None;
-    let mut cal: Option<(u32, usize)> = None;
-    let mut six_d: Option<(Vec<BodyPose>, usize)> = None;
-    let repeated = |name: &str, first: usize, second: usize| {
-        field_error(second, name, FieldProblem::Repeated { first, second })
-    };
-    for (index, raw) in text.split('\n').enumerate() {
+    let mut frame: Option<u32> = None;
+    let mut ts: Option<f64> = None;
+    let mut ts2: Option<f64> = None;
+    let mut cal: Option<u32> = None;
+    let mut six_d: Option<Vec<BodyPose>> = None;
+    let mut six_di: Option<Vec<BodyPose>> = None;
+    for (index, raw) in lines(text).into_iter().enumerate() {
         let line = index + 1;
         let content = raw.trim();
         if content.is_empty() {
@@ -278,73 +436,42 @@ pub fn parse_datagram(bytes: &[u8]) -> Result<DtrackFrame, DtrackError> {
             Some(i) => (&content[..i], &content[i..]),
             None => (content, ""),
         };
+        let first_word = || rest.split_ascii_whitespace().next();
+        // A repeated record keeps its first line: later ones are not read.
         match kind {
-            "fr" => {
-                if let Some((_, first)) = frame {
-                    return Err(repeated("fr", first, line));
-                }
-                let mut words = rest.split_ascii_whitespace();
-                let n = parse_u32(line, "fr", words.next())?;
-                if let Some(extra) = words.next() {
-                    return Err(field_error(
-                        line,
-                        "fr",
-                        FieldProblem::Unexpected(extra.to_string()),
-                    ));
-                }
-                frame = Some((n, line));
+            "fr" if frame.is_none() => frame = Some(parse_u32(line, "fr", first_word())?),
+            "ts" if ts.is_none() => {
+                let word =
+                    first_word().ok_or_else(|| field_error(line, "ts", FieldProblem::Missing))?;
+                ts = Some(parse_f64(line, &|| "ts".to_string(), word)?);
             }
-            "ts" => {
-                if let Some((_, first)) = ts {
-                    return Err(repeated("ts", first, line));
-                }
-                let mut words = rest.split_ascii_whitespace();
-                let word = words
-                    .next()
-                    .ok_or_else(|| field_error(line, "ts", FieldProblem::Missing))?;
-                let v = parse_f64(line, &|| "ts".to_string(), word)?;
-                if let Some(extra) = words.next() {
-                    return Err(field_error(
-                        line,
-                        "ts",
-                        FieldProblem::Unexpected(extra.to_string()),
-                    ));
-                }
-                ts = Some((v, line));
+            "ts2" if ts2.is_none() => ts2 = Some(parse_ts2(line, rest)?),
+            "6dcal" if cal.is_none() => cal = Some(parse_u32(line, "6dcal", first_word())?),
+            "6d" if six_d.is_none() => {
+                six_d = Some(parse_bodies(line, BodyRecord::Standard, rest)?);
             }
-            "6dcal" => {
-                if let Some((_, first)) = cal {
-                    return Err(repeated("6dcal", first, line));
-                }
-                let mut words = rest.split_ascii_whitespace();
-                let n = parse_u32(line, "6dcal", words.next())?;
-                if let Some(extra) = words.next() {
-                    return Err(field_error(
-                        line,
-                        "6dcal",
-                        FieldProblem::Unexpected(extra.to_string()),
-                    ));
-                }
-                cal = Some((n, line));
+            "6di" if six_di.is_none() => {
+                six_di = Some(parse_bodies(line, BodyRecord::Hybrid, rest)?);
             }
-            "6d" => {
-                if let Some((_, first)) = six_d {
-                    return Err(repeated("6d", first, line));
-                }
-                six_d = Some((parse_6d(line, rest)?, line));
-            }
-            // 3d, 6di, 6df, 6df2, 6dmt, 6dmt2, 6dmtr, gl, glcal and any future
-            // record: legitimate output we do not consume.
+            // Repeats, and 3d, 6dcov, 6df, 6df2, 6dmt, 6dmt2, 6dmtr, 6dj, gl,
+            // glcal, st and any future record: output we do not consume.
             _ => {}
         }
     }
-    let (frame, _) = frame.ok_or(DtrackError::MissingFrameCounter)?;
-    let has_6d = six_d.is_some();
+    let frame = frame.ok_or(DtrackError::MissingFrameCounter)?;
+    let has_6d = six_d.is_some() || six_di.is_some();
+    let mut bodies = six_d.unwrap_or_default();
+    let standard = bodies.len();
+    for b in six_di.unwrap_or_default() {
+        if !bodies[..standard].iter().any(|s| s.id == b.id) {
+            bodies.push(b);
+        }
+    }
     Ok(DtrackFrame {
         frame,
-        ts_s: ts.map(|(v, _)| v),
-        calibrated_bodies: cal.map(|(v, _)| v),
-        bodies: six_d.map(|(b, _)| b).unwrap_or_default(),
+        ts_s: ts2.or(ts),
+        calibrated_bodies: cal,
+        bodies,
         has_6d,
     })
 }

@@ -1,6 +1,6 @@
 //! Optical-tracker input: what calibration pairs with the device's state.
 //!
-//! - [`dtrack`]: the A.R.T. DTrack2 ASCII datagram (parse and format);
+//! - [`dtrack`]: the A.R.T. DTrack2/DTrack3 ASCII datagram (parse and format);
 //! - [`receiver`]: a UDP receiver of those datagrams that puts frames back in
 //!   order, drops duplicates and counts lost, reordered and bad datagrams;
 //! - [`replay`]: the tracker columns of a session CSV played back as frames;
@@ -38,9 +38,9 @@ pub use sync::{estimate_time_shift, ShiftConfig, SyncError, TimeShift, TimedPosi
 pub struct TrackerFrame {
     /// Frame counter (DTrack `fr`; row index for a replayed session).
     pub frame: u32,
-    /// Tracker time of the measurement (s). DTrack `ts` (seconds since
-    /// 00:00 UTC, unwrapped across midnight by the receiver); `t_s` of the
-    /// session for a replay.
+    /// Tracker time of the measurement (s). DTrack `ts`, or `ts2` as its
+    /// time of day (seconds since 00:00 UTC, unwrapped across midnight by
+    /// the receiver); `t_s` of the session for a replay.
     pub ts_s: f64,
     /// Host time the frame reached us (the datagram's arrival; the moment
     /// it was played for a replay).

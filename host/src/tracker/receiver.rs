@@ -26,7 +26,9 @@ use super::{Next, SourceStats, TrackerError, TrackerFrame, TrackerSource};
 /// A backwards jump of the frame counter larger than this is a restart.
 pub const RESTART_GAP: u32 = 1000;
 
-/// Seconds in a day: DTrack's `ts` restarts from 0 at midnight UTC.
+/// Seconds in a day: DTrack's `ts` restarts from 0 at midnight UTC. The
+/// parser gives a `ts2` (seconds since 1970) as the same time of day
+/// ([`super::dtrack::DtrackFrame::ts_s`]), so one unwrap serves both.
 const DAY_S: f64 = 86_400.0;
 
 /// Receiver settings.
@@ -309,7 +311,7 @@ impl DtrackReceiver {
                 return;
             }
         };
-        // Midnight UTC: ts restarts at 0; a drop of more than half a day is
+        // Midnight UTC: ts (and ts2 as the parser gives it) restarts at 0; a drop of more than half a day is
         // a new day, not a late frame.
         if let Some(last) = self.last_ts_s {
             if ts + DAY_S / 2.0 < last {
