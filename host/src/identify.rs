@@ -1204,6 +1204,12 @@ fn column_is_free(layout: &Layout, structure: &Structure, strings: StringLayout,
 /// An 8-string device's base model (36 free parameters once the gauge is
 /// fixed) needs 10 rows, a 4-string one's (20) needs 10, a 3-string one's
 /// (17) needs 12.
+/// Tracked rows [`identify`] needs for `structure` on a device of `strings`
+/// (twice the free parameters over the strings per row, at least 10).
+pub fn rows_needed_for(structure: &Structure, strings: StringLayout) -> usize {
+    rows_needed(&Layout::new(structure), structure, strings)
+}
+
 fn rows_needed(layout: &Layout, structure: &Structure, strings: StringLayout) -> usize {
     let free = (0..layout.len())
         .filter(|&c| column_is_free(layout, structure, strings, c))

@@ -529,3 +529,56 @@ fn effects_found_by_the_loop_become_stages_and_json_effects() {
     let last = r.stages.last().unwrap();
     assert!(last.test.mean_mm <= TEST_MEAN_MAX_MM && last.test.max_mm <= TEST_MAX_MAX_MM);
 }
+
+/// A pilot session too small to calibrate is refused in the user's terms:
+/// how many rows, why, and what to collect (not the row count of one
+/// cross-validation half, which is what identification saw). A 27-point
+/// pilot calibrates (25 tracked rows, 20 needed).
+#[test]
+fn a_pilot_session_too_small_says_how_many_rows_and_why() {
+    let dir = temp_dir("pilot");
+    let (geometry, _, test) = simulate_files(&dir);
+    let o = spidar(&[
+        "simulate",
+        "--out",
+        s(&dir),
+        "--seed",
+        "1",
+        "--kind",
+        "random",
+        "--points",
+        "15",
+        "--name",
+        "pilot",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let pilot = dir.join("pilot.csv");
+    let o = spidar(&[
+        "calibrate",
+        "--geometry",
+        s(&geometry),
+        "--train",
+        s(&pilot),
+        "--test",
+        s(&test),
+        "--out",
+        s(&dir.join("out")),
+        "--quick",
+        "--quiet",
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success(),
+        "{err}{}",
+        String::from_utf8_lossy(&o.stdout)
+    );
+    assert!(
+        err.contains("pilot.csv")
+            && err.contains("rows with tracker positions")
+            && err.contains("needs at least 20 (10 to identify")
+            && err.contains("cross-validation")
+            && err.contains("--cells"),
+        "{err}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}

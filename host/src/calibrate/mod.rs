@@ -598,7 +598,22 @@ pub fn calibrate(
     timings.raw_s = t.elapsed().as_secs_f64();
     let mut stages = vec![stage("raw", report::StageKind::Raw, raw_tr_s, raw_te_s)];
 
-    // 2-3. Identification and the diagnosis loop.
+    // 2-3. Identification and the diagnosis loop. Said in the user's terms
+    // before it fails in a fold: every change is judged on two halves.
+    let needed = crate::identify::rows_needed_for(&Structure::default(), nominal.layout);
+    let tracked = tr.iter().filter(|o| o.tracker.is_some()).count();
+    if tracked < 2 * needed {
+        return Err(CalibrateError::Session {
+            file: train.path.to_path_buf(),
+            problem: format!(
+                "{tracked} rows with tracker positions; a calibration needs at least {} ({needed} \
+                 to identify the model's parameters, in each half of the 2-fold cross-validation \
+                 that decides which effects to add): collect a larger lattice (e.g. `spidar \
+                 collect --cells 4`, 64 cells)",
+                2 * needed
+            ),
+        });
+    }
     let t = Instant::now();
     let pb = spinner("identification and diagnosis", cfg.quiet);
     let start = Start::from_geometry(geometry);
