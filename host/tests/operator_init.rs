@@ -70,6 +70,8 @@ fn world(offset: [f64; 3]) -> World {
     let device = Device::new(&SimConfig::default(), 3).unwrap();
     let start: [f64; 3] = core::array::from_fn(|k| device.frame.home[k] + offset[k]);
     let hand = Hand::at(start);
+    // On the simulated clock from the start, as `SimulatedRig` does.
+    hand.attach();
     let plant = Plant::new(device.clone(), Trajectory::Held(hand.clone()));
     let vd = spawn(
         VirtualDeviceConfig {
@@ -81,12 +83,13 @@ fn world(offset: [f64; 3]) -> World {
     .unwrap();
     let receiver =
         DtrackReceiver::bind(ReceiverConfig::new(SocketAddr::from(([127, 0, 0, 1], 0)))).unwrap();
+    let cues = SharedCues::stamped_by(receiver.progress());
     World {
         device,
         hand,
         vd,
         receiver,
-        cues: SharedCues::new(),
+        cues,
     }
 }
 

@@ -550,7 +550,10 @@ fn run(
             }
         }
         // 2-3: cues, then the hand's next point, one frame on.
-        let shown = cues.latest();
+        // The procedure's answer to the frames before this one (a cue it
+        // shows while working on this frame comes one frame later: a
+        // 1/frame_rate reaction, the same whatever the machine does).
+        let shown = cues.shown_before(u64::from(report.sent));
         let v = velocity(
             config,
             device,
@@ -658,7 +661,7 @@ impl SimulatedRig {
             })
             .into());
         }
-        let cues = SharedCues::new();
+        let cues = SharedCues::stamped_by(receiver.progress());
         let operator = SimOperator::spawn_in_step(
             config,
             device.clone(),
