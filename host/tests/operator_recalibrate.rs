@@ -104,11 +104,11 @@ fn run(
 fn pairing_error(rig: &SimulatedMonitorRig, report: &MonitorReport) -> (f64, f64, usize) {
     let history = rig.operator.history();
     let nominal = &rig.device.nominal;
-    let mm_per_count: Vec<f64> = (0..8)
-        .map(|i| {
-            2.0 * std::f64::consts::PI * nominal.pulley_radius_mm[i]
-                / f64::from(nominal.counts_per_rev[i])
-        })
+    // The nominal law's payout per count (`r 2 pi / counts_per_rev`).
+    let laws = nominal.nominal_string_laws();
+    let mm_per_count: Vec<f64> = laws
+        .iter()
+        .map(|law| spidar_core::string_law::payout_f64(law, 1))
         .collect();
     let mut errors = Vec::new();
     for (ts_s, pair) in &report.recorded {
