@@ -50,7 +50,7 @@ use crate::storage::H7Flash;
 /// 500 support vectors ~12.5 KiB, so 96 KiB is ~3900 support vectors.
 /// Aligned (`ModelBuffer`): the SVR records of a blob at the start of the
 /// buffer are then read as aligned words.
-const MODEL_RAM_LEN: usize = 96 * 1024;
+const MODEL_RAM_LEN: usize = spidar_protocol::blob::REFERENCE_FIRMWARE_BLOB_CAPACITY;
 
 /// Both model buffers, in AXI SRAM (192 KiB, too large for the 128 KiB
 /// DTCM next to `.bss` and the stack). No DMA touches them.

@@ -37,6 +37,13 @@ pub const FORMAT_VERSION: u16 = 3;
 /// Size of the header in bytes.
 pub const HEADER_LEN: usize = 40;
 
+/// Largest model blob the reference firmware (`firmware/`, Nucleo-H723ZG)
+/// takes, bytes: the size of each of its two RAM model buffers, which
+/// bounds its `HelloAck::max_blob_len` (a flash slot would hold 128 KiB).
+/// The one place this number is written: the firmware sizes its buffers
+/// with it, the host prints it.
+pub const REFERENCE_FIRMWARE_BLOB_CAPACITY: usize = 96 * 1024;
+
 /// CRC-32 used for blob bodies, headers and upload checks (ISO-HDLC, as zlib).
 pub const CRC32: crc::Crc<u32> = crc::Crc::<u32>::new(&crc::CRC_32_ISO_HDLC);
 

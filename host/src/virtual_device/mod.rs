@@ -64,7 +64,7 @@ pub const SLOT_LEN: usize = 128 * 1024 + RECORD_LEN;
 /// Largest blob the firmware takes (its RAM model buffers, see
 /// `docs/hardware.md`); the virtual device takes up to
 /// [`VirtualDeviceConfig::blob_capacity`].
-pub const FIRMWARE_BLOB_CAPACITY: usize = 96 * 1024;
+pub const FIRMWARE_BLOB_CAPACITY: usize = spidar_protocol::blob::REFERENCE_FIRMWARE_BLOB_CAPACITY;
 
 /// Why the virtual device could not start.
 #[derive(Debug, thiserror::Error)]
@@ -724,7 +724,8 @@ pub struct VirtualDeviceArgs {
     /// Device time per real time (1 = like the hardware).
     #[arg(long, default_value_t = 1.0)]
     pub speed: f64,
-    /// Largest model blob, KiB (the firmware takes 24).
+    /// Largest model blob, KiB (the reference firmware's capacity is
+    /// printed in the banner and by `spidar compile`).
     #[arg(long, default_value_t = 128)]
     pub capacity_kib: usize,
     /// Stop after this many seconds (default: run until killed).
