@@ -587,6 +587,14 @@ impl Geometry {
         })
     }
 
+    /// Nominal string payout per encoder count, mm, per channel (the
+    /// nominal law's payout of one count: `r 2 pi / counts_per_rev` over
+    /// the mechanical advantage).
+    pub fn nominal_mm_per_count(&self) -> [f64; STRINGS] {
+        self.nominal_string_laws()
+            .map(|law| spidar_core::string_law::payout_f64(&law, 1))
+    }
+
     /// The device's nominal string model (`SetStringModel`): what a device
     /// without a calibration blob runs on.
     pub fn string_model(&self) -> spidar_protocol::StringModel {

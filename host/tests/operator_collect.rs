@@ -203,12 +203,7 @@ fn the_operator_fills_a_small_lattice_cell_by_cell_and_the_rows_are_true() {
     // Device columns, one state: `dev_*` is the forward kinematics of the
     // row's counts on the nominal model.
     let nominal = &rig.device.nominal;
-    // The nominal law's payout per count (`r 2 pi / counts_per_rev`).
-    let laws = nominal.nominal_string_laws();
-    let mm_per_count: Vec<f64> = laws
-        .iter()
-        .map(|law| spidar_core::string_law::payout_f64(law, 1))
-        .collect();
+    let mm_per_count = nominal.nominal_mm_per_count();
     let home_lengths = nominal.home_lengths_mm();
     let worst_fk = session
         .samples

@@ -104,12 +104,7 @@ fn run(
 fn pairing_error(rig: &SimulatedMonitorRig, report: &MonitorReport) -> (f64, f64, usize) {
     let history = rig.operator.history();
     let nominal = &rig.device.nominal;
-    // The nominal law's payout per count (`r 2 pi / counts_per_rev`).
-    let laws = nominal.nominal_string_laws();
-    let mm_per_count: Vec<f64> = laws
-        .iter()
-        .map(|law| spidar_core::string_law::payout_f64(law, 1))
-        .collect();
+    let mm_per_count = nominal.nominal_mm_per_count();
     let mut errors = Vec::new();
     for (ts_s, pair) in &report.recorded {
         let k = history.partition_point(|h| h.ts_s < ts_s - 1e-7);
