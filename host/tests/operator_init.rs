@@ -54,11 +54,7 @@ fn operator_and_client(w: &World, op_config: SimOperatorConfig) -> (SimOperator,
     .unwrap();
     let client = Client::open_with(
         w.vd.port_path(),
-        spidar::link::ClientOptions {
-            timeout: Duration::from_secs(1),
-            retries: 9,
-            ..Default::default()
-        },
+        spidar::link::ClientOptions::for_simulated_device(),
     )
     .unwrap();
     (operator, client)
@@ -212,11 +208,7 @@ fn a_silent_tracker_is_an_error_and_the_device_is_left_disarmed() {
     let mut w = world([10.0, 0.0, 0.0]);
     let mut client = Client::open_with(
         w.vd.port_path(),
-        spidar::link::ClientOptions {
-            timeout: Duration::from_secs(1),
-            retries: 9,
-            ..Default::default()
-        },
+        spidar::link::ClientOptions::for_simulated_device(),
     )
     .unwrap();
     let geometry = w.device.nominal.clone();

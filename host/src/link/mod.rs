@@ -116,6 +116,20 @@ impl Default for ClientOptions {
     }
 }
 
+impl ClientOptions {
+    /// For a simulated device: it answers from a thread of this machine,
+    /// and a machine busy with other work may not run it for a while; a
+    /// device that is there but slow is not a lost link (1 s per try, 10
+    /// tries).
+    pub fn for_simulated_device() -> ClientOptions {
+        ClientOptions {
+            timeout: Duration::from_secs(1),
+            retries: 9,
+            ..ClientOptions::default()
+        }
+    }
+}
+
 /// Where an upload stands, for progress reports.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum FlashPhase {

@@ -686,16 +686,10 @@ impl SimulatedRig {
         crate::tracker::HostClock::Simulated(self.hand.clock())
     }
 
-    /// Link options for a client of this rig: the device answers from a
-    /// thread of this machine, and a machine busy with other work may not
-    /// run it for a while; a simulated device that is there but slow is not
-    /// a lost link (1 s per try, 10 tries).
+    /// Link options for a client of this rig
+    /// ([`crate::link::ClientOptions::for_simulated_device`]).
     pub fn client_options(&self) -> crate::link::ClientOptions {
-        crate::link::ClientOptions {
-            timeout: std::time::Duration::from_secs(1),
-            retries: 9,
-            ..crate::link::ClientOptions::default()
-        }
+        crate::link::ClientOptions::for_simulated_device()
     }
 
     /// Opens a client on the rig's device with [`SimulatedRig::client_options`].

@@ -74,15 +74,6 @@ impl Truth {
     }
 
     pub fn load(path: impl AsRef<Path>) -> Result<Truth, SimError> {
-        let path = path.as_ref();
-        let text = std::fs::read_to_string(path).map_err(|source| SimError::Io {
-            file: path.to_path_buf(),
-            action: "cannot read",
-            source,
-        })?;
-        toml::from_str(&text).map_err(|e| SimError::ConfigFile {
-            file: path.to_path_buf(),
-            message: e.to_string().trim_end().to_string(),
-        })
+        super::config::read_toml(path.as_ref())
     }
 }
