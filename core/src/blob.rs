@@ -426,10 +426,7 @@ mod tests {
                 room_translation: [0.0, 0.0, 1500.0],
                 room_scale: 1.0,
             },
-            strings: [StringLaw {
-                counts_per_rev: 4096,
-                winding_mm: [12.0, -0.02, 0.0, 0.0],
-            }; STRINGS],
+            strings: [StringLaw::polynomial(4096, [12.0, -0.02, 0.0, 0.0]); STRINGS],
             effects: alloc::vec![
                 EffectTerm {
                     string: 3,

@@ -398,10 +398,7 @@ mod tests {
                 room_translation: [0.0, 0.0, 1500.0],
                 room_scale: 1.0,
             },
-            strings: [StringLaw {
-                counts_per_rev: CPR,
-                winding_mm: [RADIUS, 0.0, 0.0, 0.0],
-            }; STRINGS],
+            strings: [StringLaw::polynomial(CPR, [RADIUS, 0.0, 0.0, 0.0]); STRINGS],
             effects: alloc::vec![],
             correction: CorrectionModel::None,
         }

@@ -230,10 +230,7 @@ pub fn nominal_calibration(
         if !(r.is_finite() && r > 0.0) {
             return Err("pulley_radius_mm");
         }
-        let nominal = StringLaw {
-            counts_per_rev: model.counts_per_rev[i],
-            winding_mm: [f64::from(r), 0.0, 0.0, 0.0],
-        };
+        let nominal = StringLaw::polynomial(model.counts_per_rev[i], [f64::from(r), 0.0, 0.0, 0.0]);
         *law = compile_string_law(&frame64, i, &nominal).map_err(|e| match e {
             CompileError::NotFinite { field, .. }
             | CompileError::DoesNotFit { field, .. }
@@ -1248,10 +1245,7 @@ mod tests {
                 room_translation: [0.0, 0.0, 1500.0],
                 room_scale: 1.0,
             },
-            strings: [StringLaw {
-                counts_per_rev: CPR,
-                winding_mm: [RADIUS, 0.0, 0.0, 0.0],
-            }; STRINGS],
+            strings: [StringLaw::polynomial(CPR, [RADIUS, 0.0, 0.0, 0.0]); STRINGS],
             effects: alloc::vec![],
             correction,
         }

@@ -143,12 +143,241 @@ pub const WINDING_ORDER: usize = 4;
 /// For a pulley whose winding radius shrinks linearly as string is paid out
 /// (`r(theta) = r_home - d^2/(2 pi) theta`, string of diameter `d` in level
 /// layers) the law is exactly quadratic: `winding_mm = [r_home, -d^2/(4 pi), 0, 0]`.
+///
+/// A spool wound in layers departs from any smooth polynomial: within a layer
+/// the radius is constant, at a layer change it steps by about one string
+/// diameter, so the payout is a staircase of slopes around the polynomial
+/// (1.7 to 4.7 mm peak to peak on the independent simulator's spools, one
+/// period per layer). [`StringLaw::layers`] holds that departure as a table.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct StringLaw {
     /// Quadrature counts per pulley revolution.
     pub counts_per_rev: u32,
     /// Coefficients of theta^1 .. theta^WINDING_ORDER, mm / rad^k.
     pub winding_mm: [f64; WINDING_ORDER],
+    /// The spool's departure from the polynomial, added to the payout
+    /// (empty: none; absent in files written before it existed).
+    #[serde(default)]
+    pub layers: LayerTable,
+}
+
+impl StringLaw {
+    /// A law that is the polynomial alone (no layer table).
+    pub const fn polynomial(counts_per_rev: u32, winding_mm: [f64; WINDING_ORDER]) -> StringLaw {
+        StringLaw {
+            counts_per_rev,
+            winding_mm,
+            layers: LayerTable::NONE,
+        }
+    }
+}
+
+/// Most knots of a [`LayerTable`].
+pub const LAYER_KNOTS: usize = 32;
+
+/// Largest `|knot|` of a [`LayerTable`], mm: a layer departure is a few mm;
+/// the bound keeps the fixed-point interpolation far from overflow.
+pub const MAX_LAYER_MM: f64 = 100.0;
+
+/// Largest `step_log2` of a [`LayerTable`] (knots 2^30 counts apart).
+pub const MAX_LAYER_STEP_LOG2: u8 = 30;
+
+/// The departure of a string's payout from its winding polynomial, piecewise
+/// linear in the encoder counts (the flexible part of the winding law, see
+/// `docs/design.md`, "Layer tables").
+///
+/// Knot `k` sits at `start_counts + k 2^step_log2` counts since home and holds
+/// `knots_mm[k]`; between knots the departure is interpolated linearly, and
+/// outside the knots it is held at the first or last knot's value, so that
+/// beyond the payout range it was fitted on the law is the polynomial shifted
+/// by a bounded constant: nothing in it can grow there. Knots a power of two
+/// counts apart let the device find the segment with a shift (no 64-bit
+/// division on a Cortex-M). Counts, not angles, so that host and device place
+/// the knots at exactly the same counts.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LayerTable {
+    /// Counts since home of the first knot.
+    pub start_counts: i32,
+    /// Knots are `2^step_log2` counts apart, `0..=MAX_LAYER_STEP_LOG2`.
+    pub step_log2: u8,
+    /// Departure at each knot, mm (at most [`LAYER_KNOTS`]).
+    pub knots_mm: Knots<f64>,
+}
+
+impl Default for LayerTable {
+    fn default() -> Self {
+        Self::NONE
+    }
+}
+
+impl LayerTable {
+    /// No table: the law is its polynomial.
+    pub const NONE: LayerTable = LayerTable {
+        start_counts: 0,
+        step_log2: 0,
+        knots_mm: Knots::EMPTY,
+    };
+
+    /// Whether the table has no knots (adds nothing).
+    pub const fn is_empty(&self) -> bool {
+        self.knots_mm.len == 0
+    }
+
+    /// Counts since home of knot `k`.
+    pub fn knot_counts(&self, k: usize) -> i64 {
+        i64::from(self.start_counts) + ((k as i64) << self.step_log2.min(MAX_LAYER_STEP_LOG2))
+    }
+
+    /// Where `counts` falls: the segment's first knot and how far along it
+    /// (`0..2^step_log2` counts), or the end knot it is held at
+    /// (`(k, 0)`). `None` when the table is empty.
+    pub fn locate(&self, counts: i32) -> Option<(usize, u32)> {
+        locate_knot(
+            self.start_counts,
+            self.step_log2,
+            self.knots_mm.len(),
+            counts,
+        )
+    }
+
+    /// The departure at `counts` (mm), f64 reference of the device's table.
+    pub fn departure_mm(&self, counts: i32) -> f64 {
+        let Some((k, along)) = self.locate(counts) else {
+            return 0.0;
+        };
+        let v = self.knots_mm.as_slice();
+        if along == 0 {
+            return v[k];
+        }
+        let step = libm::exp2(f64::from(self.step_log2.min(MAX_LAYER_STEP_LOG2)));
+        v[k] + (v[k + 1] - v[k]) * (f64::from(along) / step)
+    }
+}
+
+/// Where `counts` falls in a table of `len` knots from `start_counts`,
+/// `2^step_log2` counts apart (see [`LayerTable::locate`]); integer only, the
+/// same on host and device.
+#[inline]
+pub fn locate_knot(
+    start_counts: i32,
+    step_log2: u8,
+    len: usize,
+    counts: i32,
+) -> Option<(usize, u32)> {
+    if len == 0 {
+        return None;
+    }
+    let s = u32::from(step_log2.min(MAX_LAYER_STEP_LOG2));
+    let u = i64::from(counts) - i64::from(start_counts);
+    if u <= 0 {
+        return Some((0, 0));
+    }
+    let k = (u >> s) as u64;
+    if k >= (len - 1) as u64 {
+        return Some((len - 1, 0));
+    }
+    Some((k as usize, (u & ((1i64 << s) - 1)) as u32))
+}
+
+/// Up to [`LAYER_KNOTS`] values in a fixed array (so that laws stay `Copy`),
+/// serialized as a sequence of the values present.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Knots<T> {
+    values: [T; LAYER_KNOTS],
+    len: u8,
+}
+
+impl<T: Copy + Default> Knots<T> {
+    /// The values, or `None` when there are more than [`LAYER_KNOTS`].
+    pub fn from_slice(values: &[T]) -> Option<Knots<T>> {
+        if values.len() > LAYER_KNOTS {
+            return None;
+        }
+        let mut out = [T::default(); LAYER_KNOTS];
+        out[..values.len()].copy_from_slice(values);
+        Some(Knots {
+            values: out,
+            len: values.len() as u8,
+        })
+    }
+}
+
+impl<T> Knots<T> {
+    /// The values present.
+    pub fn as_slice(&self) -> &[T] {
+        &self.values[..self.len()]
+    }
+    /// The values present, mutable.
+    pub fn as_mut_slice(&mut self) -> &mut [T] {
+        let n = self.len();
+        &mut self.values[..n]
+    }
+    /// Number of values.
+    pub const fn len(&self) -> usize {
+        let n = self.len as usize;
+        if n > LAYER_KNOTS {
+            LAYER_KNOTS
+        } else {
+            n
+        }
+    }
+    /// Whether there are none.
+    pub const fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+}
+
+impl Knots<f64> {
+    /// No values.
+    pub const EMPTY: Knots<f64> = Knots {
+        values: [0.0; LAYER_KNOTS],
+        len: 0,
+    };
+}
+
+impl Knots<i64> {
+    /// No values.
+    pub const EMPTY_I64: Knots<i64> = Knots {
+        values: [0; LAYER_KNOTS],
+        len: 0,
+    };
+}
+
+impl<T: Serialize> Serialize for Knots<T> {
+    fn serialize<S: serde::Serializer>(&self, serializer: S) -> Result<S::Ok, S::Error> {
+        serializer.collect_seq(self.as_slice())
+    }
+}
+
+impl<'de, T: Deserialize<'de> + Copy + Default> Deserialize<'de> for Knots<T> {
+    fn deserialize<D: serde::Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
+        struct Visit<T>(core::marker::PhantomData<T>);
+        impl<'de, T: Deserialize<'de> + Copy + Default> serde::de::Visitor<'de> for Visit<T> {
+            type Value = Knots<T>;
+            fn expecting(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+                write!(f, "at most {LAYER_KNOTS} knot values")
+            }
+            fn visit_seq<A: serde::de::SeqAccess<'de>>(
+                self,
+                mut seq: A,
+            ) -> Result<Self::Value, A::Error> {
+                let mut values = [T::default(); LAYER_KNOTS];
+                let mut len = 0;
+                while let Some(v) = seq.next_element()? {
+                    if len == LAYER_KNOTS {
+                        return Err(serde::de::Error::invalid_length(len + 1, &self));
+                    }
+                    values[len] = v;
+                    len += 1;
+                }
+                Ok(Knots {
+                    values,
+                    len: len as u8,
+                })
+            }
+        }
+        deserializer.deserialize_seq(Visit(core::marker::PhantomData))
+    }
 }
 
 /// One physically meaningful correction term of one string's length.

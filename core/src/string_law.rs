@@ -5,6 +5,7 @@
 //! ```text
 //! L_i = |home - anchor_i| + payout_i(theta_i) + sum of the effect terms of string i
 //! theta_i = 2 pi counts_i / counts_per_rev_i
+//! payout_i = winding polynomial(theta_i) + layer table(counts_i)
 //! ```
 //!
 //! Two implementations of the same law:
@@ -31,6 +32,7 @@
 //! | slip time | `u32` | ms since home |
 //! | pulley phase (eccentricity) | `u32` | Q0.32 turns, from `counts mod counts_per_rev` |
 //! | sine table | `i32` | Q1.30, 512 segments per quarter turn, linear interpolation |
+//! | layer table knots | `i64` | Q47.16 mm (`|v| <= MAX_LAYER_MM`), knots `2^step_log2` counts apart; added to the payout |
 //!
 //! Every product is `i64 x i32 -> 96 bits`, rounded (half up) and shifted back
 //! to `i64`, saturating; every sum saturates. No input or compiled parameter
@@ -42,7 +44,8 @@ use core::fmt;
 use serde::{Deserialize, Serialize};
 
 use crate::model::{
-    Effect, EffectTerm, Frame, StringInputs, StringLaw, StringLayout, WINDING_ORDER,
+    locate_knot, Effect, EffectTerm, Frame, Knots, StringInputs, StringLaw, StringLayout,
+    LAYER_KNOTS, MAX_LAYER_MM, MAX_LAYER_STEP_LOG2, WINDING_ORDER,
 };
 use crate::STRINGS;
 
@@ -68,13 +71,29 @@ pub fn pulley_angle(law: &StringLaw, counts: i32) -> f64 {
 }
 
 /// Base winding law: length paid out since home (mm) at `counts`,
-/// `sum_k winding_mm[k-1] theta^k` (Horner).
+/// `sum_k winding_mm[k-1] theta^k` (Horner) plus the law's layer table
+/// ([`LayerTable::departure_mm`]).
 pub fn payout_f64(law: &StringLaw, counts: i32) -> f64 {
+    polynomial_payout_f64(law, counts) + law.layers.departure_mm(counts)
+}
+
+/// The winding polynomial alone (mm), without the layer table.
+pub fn polynomial_payout_f64(law: &StringLaw, counts: i32) -> f64 {
     let t = pulley_angle(law, counts);
     let w = &law.winding_mm;
     let mut acc = 0.0;
     for k in (0..WINDING_ORDER).rev() {
         acc = (acc + w[k]) * t;
+    }
+    acc
+}
+
+/// `d payout / d theta` of the winding polynomial at `theta` (mm/rad).
+pub fn polynomial_slope_f64(law: &StringLaw, theta: f64) -> f64 {
+    let w = &law.winding_mm;
+    let mut acc = 0.0;
+    for k in (0..WINDING_ORDER).rev() {
+        acc = acc * theta + (k + 1) as f64 * w[k];
     }
     acc
 }
@@ -549,6 +568,66 @@ pub struct CompiledStringLaw {
     /// Coefficient of `x^k` at index `k-1`, Q31.32 mm:
     /// `round(winding_mm[k-1] (2 pi 2^18 / counts_per_rev)^k 2^32)`.
     pub winding_q32: [i64; WINDING_ORDER],
+    /// The layer table ([`LayerTable`]), knots in Q47.16 mm.
+    pub layers: CompiledLayerTable,
+}
+
+/// The fixed-point form of a [`LayerTable`]: the same knots (counts), their
+/// values in Q47.16 mm, `|value| <= MAX_LAYER_MM`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CompiledLayerTable {
+    pub start_counts: i32,
+    pub step_log2: u8,
+    pub knots_q16: Knots<i64>,
+}
+
+impl Eq for Knots<i64> {}
+
+impl Default for CompiledLayerTable {
+    fn default() -> Self {
+        Self::NONE
+    }
+}
+
+impl CompiledLayerTable {
+    /// No table.
+    pub const NONE: CompiledLayerTable = CompiledLayerTable {
+        start_counts: 0,
+        step_log2: 0,
+        knots_q16: Knots::EMPTY_I64,
+    };
+
+    /// Departure at `counts`, Q47.16 mm: linear interpolation between the
+    /// two knots around `counts`, `v_k + round_half_up((v_{k+1} - v_k)
+    /// along / 2^step_log2)`, held at the end knots outside them. With
+    /// `|v| <= MAX_LAYER_MM` (checked when compiled and when read) the
+    /// product is below `2^25 2^30`: no overflow.
+    #[inline]
+    pub fn departure_q16(&self, counts: i32) -> i64 {
+        let Some((k, along)) = self.locate(counts) else {
+            return 0;
+        };
+        let v = self.knots_q16.as_slice();
+        let (Some(&a), Some(&b)) = (v.get(k), v.get(k + 1)) else {
+            return v.get(k).copied().unwrap_or(0);
+        };
+        if along == 0 {
+            return a;
+        }
+        let s = u32::from(self.step_log2.min(MAX_LAYER_STEP_LOG2));
+        let product = b.saturating_sub(a).saturating_mul(i64::from(along));
+        a.saturating_add(product.saturating_add(1i64 << (s - 1)) >> s)
+    }
+
+    #[inline]
+    fn locate(&self, counts: i32) -> Option<(usize, u32)> {
+        locate_knot(
+            self.start_counts,
+            self.step_log2,
+            self.knots_q16.len(),
+            counts,
+        )
+    }
 }
 
 /// Compiles string `string`'s base law (home length from `frame`).
@@ -588,6 +667,69 @@ pub fn compile_string_law(
         home_length_q16,
         counts_per_rev: law.counts_per_rev,
         winding_q32,
+        layers: compile_layer_table(string, law)?,
+    })
+}
+
+fn check_layer_step(string: usize, step_log2: u8) -> Result<(), CompileError> {
+    if step_log2 > MAX_LAYER_STEP_LOG2 {
+        return Err(CompileError::OutOfRange {
+            string,
+            field: "layers.step_log2",
+            value: f64::from(step_log2),
+            min: 0.0,
+            max: f64::from(MAX_LAYER_STEP_LOG2),
+        });
+    }
+    Ok(())
+}
+
+/// Compiles a law's layer table, refusing one that would make the payout
+/// decrease where the polynomial's increases (the law must stay monotone: a
+/// non-monotone law has one string length for two counts, and the fit that
+/// made it followed noise). Checked on every segment at both ends against
+/// the polynomial's slope there.
+fn compile_layer_table(string: usize, law: &StringLaw) -> Result<CompiledLayerTable, CompileError> {
+    let table = &law.layers;
+    check_layer_step(string, table.step_log2)?;
+    let values = table.knots_mm.as_slice();
+    let mut knots_q16 = [0i64; LAYER_KNOTS];
+    for (k, &v) in values.iter().enumerate() {
+        let v = finite(string, "layers.knots_mm", v)?;
+        if v.abs() > MAX_LAYER_MM {
+            return Err(CompileError::OutOfRange {
+                string,
+                field: "layers.knots_mm",
+                value: v,
+                min: -MAX_LAYER_MM,
+                max: MAX_LAYER_MM,
+            });
+        }
+        knots_q16[k] = to_fixed(string, "layers.knots_mm", v, 16, "Q47.16 mm")?;
+    }
+    let rad_per_count = TAU / f64::from(law.counts_per_rev);
+    let step_rad = libm::exp2(f64::from(table.step_log2)) * rad_per_count;
+    for k in 1..values.len() {
+        let slope = (values[k] - values[k - 1]) / step_rad;
+        for end in [k - 1, k] {
+            let theta = table.knot_counts(end) as f64 * rad_per_count;
+            let polynomial = polynomial_slope_f64(law, theta);
+            let total = polynomial + slope;
+            if polynomial > 0.0 && total <= 0.0 {
+                return Err(CompileError::OutOfRange {
+                    string,
+                    field: "layers (payout slope, mm/rad)",
+                    value: total,
+                    min: 0.0,
+                    max: f64::INFINITY,
+                });
+            }
+        }
+    }
+    Ok(CompiledLayerTable {
+        start_counts: table.start_counts,
+        step_log2: table.step_log2,
+        knots_q16: Knots::from_slice(&knots_q16[..values.len()]).unwrap_or(Knots::EMPTY_I64),
     })
 }
 
@@ -601,7 +743,7 @@ impl CompiledStringLaw {
             acc = acc.saturating_add(self.winding_q32[k]);
             acc = mul_i32_shr(acc, counts, COUNTS_SHIFT);
         }
-        acc
+        acc.saturating_add(q16_to_q32(self.layers.departure_q16(counts)))
     }
 
     /// Checks a compiled law read from a blob.
@@ -609,7 +751,21 @@ impl CompiledStringLaw {
         if string >= STRINGS {
             return Err(CompileError::StringOutOfRange { string });
         }
-        check_counts_per_rev(string, self.counts_per_rev)
+        check_counts_per_rev(string, self.counts_per_rev)?;
+        check_layer_step(string, self.layers.step_log2)?;
+        let limit = (MAX_LAYER_MM * 65536.0) as i64;
+        for &v in self.layers.knots_q16.as_slice() {
+            if !(-limit..=limit).contains(&v) {
+                return Err(CompileError::OutOfRange {
+                    string,
+                    field: "layers.knots_mm",
+                    value: v as f64 / 65536.0,
+                    min: -MAX_LAYER_MM,
+                    max: MAX_LAYER_MM,
+                });
+            }
+        }
+        Ok(())
     }
 }
 
@@ -1066,10 +1222,7 @@ mod tests {
     fn quadratic_law_at_known_points() {
         // r = 10 mm, 4096 counts/rev, d^2/(4 pi) = 0.02: one turn pays out
         // 2 pi 10 - 0.02 (2 pi)^2 mm.
-        let law = StringLaw {
-            counts_per_rev: 4096,
-            winding_mm: [10.0, -0.02, 0.0, 0.0],
-        };
+        let law = StringLaw::polynomial(4096, [10.0, -0.02, 0.0, 0.0]);
         let want = TAU * 10.0 - 0.02 * TAU * TAU;
         assert!((payout_f64(&law, 4096) - want).abs() < 1e-12);
         let f = frame([0.0; 3]);
@@ -1082,6 +1235,156 @@ mod tests {
         );
     }
 
+    fn layered(start_counts: i32, step_log2: u8, knots: &[f64]) -> StringLaw {
+        let mut law = StringLaw::polynomial(4096, [10.0, -0.02, 0.0, 0.0]);
+        law.layers = crate::model::LayerTable {
+            start_counts,
+            step_log2,
+            knots_mm: Knots::from_slice(knots).expect("at most LAYER_KNOTS"),
+        };
+        law
+    }
+
+    /// The table interpolates between its knots and holds the end values
+    /// outside them, in f64 and in fixed point alike.
+    #[test]
+    fn layer_table_interpolates_and_holds_its_ends() {
+        let law = layered(-1000, 10, &[1.0, -1.0, 2.0]); // knots at -1000, 24, 1048
+        let t = &law.layers;
+        let cases = [
+            (i32::MIN, 1.0),
+            (-5000, 1.0),
+            (-1000, 1.0),
+            (-488, 0.0),
+            (24, -1.0),
+            (536, 0.5),
+            (1048, 2.0),
+            (1049, 2.0),
+            (i32::MAX, 2.0),
+        ];
+        let f = frame([0.0; 3]);
+        let c = compile_string_law(&f, 0, &law).expect("compiles");
+        for (counts, want) in cases {
+            assert!((t.departure_mm(counts) - want).abs() < 1e-12, "{counts}");
+            let got = c.layers.departure_q16(counts) as f64 / 65536.0;
+            assert!((got - want).abs() < 2e-5, "{counts}: fixed {got}");
+            let whole = polynomial_payout_f64(&law, counts) + want;
+            assert!((payout_f64(&law, counts) - whole).abs() < 1e-9);
+        }
+        // No table: nothing added, and the compiled law is the polynomial's.
+        let plain = StringLaw::polynomial(4096, [10.0, -0.02, 0.0, 0.0]);
+        assert_eq!(plain.layers.departure_mm(12345), 0.0);
+        let cp = compile_string_law(&f, 0, &plain).expect("compiles");
+        assert_eq!(cp.layers, CompiledLayerTable::NONE);
+        assert_eq!(
+            cp.payout_q32(5000) + q16_to_q32(c.layers.departure_q16(5000)),
+            c.payout_q32(5000)
+        );
+    }
+
+    #[test]
+    fn layer_table_compile_errors_name_the_field() {
+        let f = frame([0.0; 3]);
+        let err = compile_string_law(&f, 3, &layered(0, 31, &[0.0, 1.0])).unwrap_err();
+        assert!(
+            matches!(
+                err,
+                CompileError::OutOfRange {
+                    string: 3,
+                    field: "layers.step_log2",
+                    ..
+                }
+            ),
+            "{err}"
+        );
+        let err = compile_string_law(&f, 2, &layered(0, 10, &[0.0, f64::NAN])).unwrap_err();
+        assert_eq!(
+            err,
+            CompileError::NotFinite {
+                string: 2,
+                field: "layers.knots_mm"
+            }
+        );
+        let err = compile_string_law(&f, 1, &layered(0, 10, &[0.0, 150.0])).unwrap_err();
+        assert!(
+            matches!(
+                err,
+                CompileError::OutOfRange {
+                    string: 1,
+                    field: "layers.knots_mm",
+                    ..
+                }
+            ),
+            "{err}"
+        );
+        // 1024 counts = 1.57 rad; the polynomial rises by ~15.7 mm there: a
+        // table falling by 20 mm over it would make the payout fall.
+        let err = compile_string_law(&f, 0, &layered(0, 10, &[0.0, -20.0])).unwrap_err();
+        assert!(
+            matches!(
+                err,
+                CompileError::OutOfRange {
+                    string: 0,
+                    field: "layers (payout slope, mm/rad)",
+                    ..
+                }
+            ),
+            "{err}"
+        );
+        assert!(err.to_string().contains("layers"), "{err}");
+        compile_string_law(&f, 0, &layered(0, 10, &[0.0, -10.0])).expect("still rising");
+        // A compiled table read from a blob is checked too.
+        let mut c = compile_string_law(&f, 0, &layered(0, 10, &[0.0, 1.0])).expect("compiles");
+        c.validate(0).expect("valid");
+        c.layers.knots_q16.as_mut_slice()[1] = 101 << 16;
+        assert!(matches!(
+            c.validate(0),
+            Err(CompileError::OutOfRange {
+                field: "layers.knots_mm",
+                ..
+            })
+        ));
+        c.layers.knots_q16.as_mut_slice()[1] = 0;
+        c.layers.step_log2 = 40;
+        assert!(matches!(
+            c.validate(0),
+            Err(CompileError::OutOfRange {
+                field: "layers.step_log2",
+                ..
+            })
+        ));
+    }
+
+    /// A law written before layer tables existed still reads (no table); a
+    /// table round-trips through JSON and postcard; more than LAYER_KNOTS
+    /// knots is an error, not a truncation.
+    #[test]
+    fn layer_tables_serialize_and_old_laws_still_read() {
+        let old = r#"{"counts_per_rev":4096,"winding_mm":[10.0,-0.02,0.0,0.0]}"#;
+        let law: StringLaw = serde_json::from_str(old).expect("old law reads");
+        assert!(law.layers.is_empty());
+        let law = layered(-300, 12, &[0.5, -0.25, 1.0]);
+        let json = serde_json::to_string(&law).expect("serializes");
+        assert!(json.contains("[0.5,-0.25,1.0]"), "{json}");
+        assert_eq!(
+            serde_json::from_str::<StringLaw>(&json).expect("reads"),
+            law
+        );
+        let f = frame([0.0; 3]);
+        let c = compile_string_law(&f, 0, &law).expect("compiles");
+        let bytes = postcard::to_allocvec(&c).expect("postcard");
+        assert_eq!(
+            postcard::from_bytes::<CompiledStringLaw>(&bytes).expect("reads"),
+            c
+        );
+        let too_many = format!(
+            r#"{{"start_counts":0,"step_log2":10,"knots_mm":[{}]}}"#,
+            vec!["0.0"; LAYER_KNOTS + 1].join(",")
+        );
+        let err = serde_json::from_str::<crate::model::LayerTable>(&too_many).unwrap_err();
+        assert!(err.to_string().contains("at most 32"), "{err}");
+    }
+
     /// A realistic calibration: anchors at the corners of a 2.2 m frame, every
     /// effect family on some string with realistic amplitudes.
     fn realistic(rng: &mut Rng) -> (Frame<f64>, [StringLaw; STRINGS], Vec<EffectTerm>) {
@@ -1090,22 +1393,32 @@ mod tests {
             rng.uniform(-300.0, 300.0),
             rng.uniform(-300.0, 300.0),
         ]);
-        let mut laws = [StringLaw {
-            counts_per_rev: 1,
-            winding_mm: [0.0; 4],
-        }; STRINGS];
+        let mut laws = [StringLaw::polynomial(1, [0.0; 4]); STRINGS];
         let mut effects = Vec::new();
         for (i, law) in laws.iter_mut().enumerate() {
             let n = rng.int(2000, 20000) as u32;
             let theta_max = TAU * 250_000.0 / f64::from(n);
-            *law = StringLaw {
-                counts_per_rev: n,
-                winding_mm: [
+            *law = StringLaw::polynomial(
+                n,
+                [
                     rng.uniform(7.5, 20.0),
                     rng.uniform(-0.03, -0.01),
                     rng.uniform(-10.0, 10.0) / theta_max.powi(3),
                     rng.uniform(-10.0, 10.0) / theta_max.powi(4),
                 ],
+            );
+            let step_log2 = rng.int(10, 14) as u8;
+            // Non-decreasing knots: the random polynomials above are not
+            // all monotone, and a falling table on a barely rising one is
+            // (rightly) refused by the compiler.
+            let mut knots: Vec<f64> = (0..rng.int(0, LAYER_KNOTS as i64))
+                .map(|_| rng.uniform(-3.0, 3.0))
+                .collect();
+            knots.sort_by(f64::total_cmp);
+            law.layers = crate::model::LayerTable {
+                start_counts: rng.int(-250_000, 0) as i32,
+                step_log2,
+                knots_mm: Knots::from_slice(&knots).expect("at most LAYER_KNOTS"),
             };
             let s = i as u8;
             let mut push = |effect| effects.push(EffectTerm { string: s, effect });
@@ -1242,10 +1555,7 @@ mod tests {
     #[test]
     fn compile_errors_name_the_field() {
         let f = frame([0.0; 3]);
-        let law = StringLaw {
-            counts_per_rev: 4096,
-            winding_mm: [10.0, -0.02, 0.0, 0.0],
-        };
+        let law = StringLaw::polynomial(4096, [10.0, -0.02, 0.0, 0.0]);
         let laws = [law; STRINGS];
         assert_eq!(
             compile_string_law(&f, 8, &law),
@@ -1433,10 +1743,7 @@ mod tests {
 
     #[test]
     fn slip_step_time_is_consistent() {
-        let laws = [StringLaw {
-            counts_per_rev: 4096,
-            winding_mm: [10.0, 0.0, 0.0, 0.0],
-        }; STRINGS];
+        let laws = [StringLaw::polynomial(4096, [10.0, 0.0, 0.0, 0.0]); STRINGS];
         let f = frame([0.0; 3]);
         for at_s in [0.0, 0.1, 0.3, 1.0005, 17.25, 3600.0001] {
             let terms = [EffectTerm {
@@ -1510,14 +1817,34 @@ mod tests {
         ]
     }
 
-    fn arb_law() -> impl Strategy<Value = CompiledStringLaw> {
-        (any::<i64>(), any::<u32>(), any::<[i64; WINDING_ORDER]>()).prop_map(
-            |(home_length_q16, counts_per_rev, winding_q32)| CompiledStringLaw {
-                home_length_q16,
-                counts_per_rev,
-                winding_q32,
-            },
+    fn arb_layers() -> impl Strategy<Value = CompiledLayerTable> {
+        (
+            any::<i32>(),
+            any::<u8>(),
+            proptest::collection::vec(any::<i64>(), 0..=LAYER_KNOTS),
         )
+            .prop_map(|(start_counts, step_log2, knots)| CompiledLayerTable {
+                start_counts,
+                step_log2,
+                knots_q16: Knots::from_slice(&knots).expect("at most LAYER_KNOTS"),
+            })
+    }
+
+    fn arb_law() -> impl Strategy<Value = CompiledStringLaw> {
+        (
+            any::<i64>(),
+            any::<u32>(),
+            any::<[i64; WINDING_ORDER]>(),
+            arb_layers(),
+        )
+            .prop_map(|(home_length_q16, counts_per_rev, winding_q32, layers)| {
+                CompiledStringLaw {
+                    home_length_q16,
+                    counts_per_rev,
+                    winding_q32,
+                    layers,
+                }
+            })
     }
 
     fn arb_inputs() -> impl Strategy<Value = StringInputs> {
@@ -1569,7 +1896,7 @@ mod tests {
         #[test]
         fn compile_never_panics(v in any::<f64>(), w in any::<f64>(), string in any::<u8>(),
                                 power in any::<u8>(), n in any::<u32>()) {
-            let laws = [StringLaw { counts_per_rev: n, winding_mm: [v, w, v, w] }; STRINGS];
+            let laws = [StringLaw::polynomial(n, [v, w, v, w]); STRINGS];
             let f = frame([v, w, 0.0]);
             let _ = compile_string_law(&f, usize::from(string), &laws[0]);
             for effect in [

@@ -580,10 +580,7 @@ impl Geometry {
         core::array::from_fn(|i| {
             let mut winding_mm = [0.0; WINDING_ORDER];
             winding_mm[0] = self.pulley_radius_mm[i] / self.mechanical_advantage[i];
-            StringLaw {
-                counts_per_rev: self.counts_per_rev[i],
-                winding_mm,
-            }
+            StringLaw::polynomial(self.counts_per_rev[i], winding_mm)
         })
     }
 

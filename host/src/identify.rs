@@ -147,10 +147,7 @@ impl WindingPhysics {
             let mut winding_mm = [0.0; WINDING_ORDER];
             winding_mm[0] = self.r_home_mm[i];
             winding_mm[1] = -self.kappa_mm / self.mechanical_advantage[i];
-            StringLaw {
-                counts_per_rev: self.counts_per_rev[i],
-                winding_mm,
-            }
+            StringLaw::polynomial(self.counts_per_rev[i], winding_mm)
         })
     }
 }

@@ -26,14 +26,16 @@ use serde::{Deserialize, Serialize};
 
 /// Magic bytes at the start of every model blob.
 pub const MAGIC: [u8; 4] = *b"SPDM";
-/// Blob format this crate reads and writes. Version 3 (any other is refused
-/// with [`BlobError::UnsupportedVersion`]): the frame carries the string
+/// Blob format this crate reads and writes. Version 4 (any other is refused
+/// with [`BlobError::UnsupportedVersion`]): each string law carries its
+/// layer table (the spool's departure from the winding polynomial, knots in
+/// counts, `spidar-core::model::LayerTable`). Version 3: the frame carries the string
 /// layout (which of the 8 channels carry a string, planar or 3-D), so one
 /// blob format serves devices with 3 to 8 strings. Version 2 introduced the
 /// zero padding after the string model so that the correction starts at a
 /// multiple of 4 bytes from the blob start (`spidar-core::blob`), which lets
 /// the device read the SVR records as aligned words; version 1 had none.
-pub const FORMAT_VERSION: u16 = 3;
+pub const FORMAT_VERSION: u16 = 4;
 /// Size of the header in bytes.
 pub const HEADER_LEN: usize = 40;
 
@@ -364,7 +366,7 @@ mod tests {
 
     #[test]
     fn older_versions_are_refused_by_name() {
-        for old in [1u16, 2] {
+        for old in [1u16, 2, 3] {
             let mut bytes = header().to_bytes();
             bytes[4..6].copy_from_slice(&old.to_le_bytes());
             let crc = CRC32.checksum(&bytes[0..36]);
@@ -373,7 +375,7 @@ mod tests {
                 ModelHeader::parse(&bytes),
                 Err(BlobError::UnsupportedVersion {
                     found: old,
-                    supported: 3
+                    supported: 4
                 })
             );
         }

@@ -1,6 +1,6 @@
 //! Host only (`build.rs`): the deterministic calibrations whose compiled blobs
 //! the device binaries embed. Both have the 2.2 m cube frame, a quadratic
-//! winding law per string and one effect term of every family; one carries an
+//! winding law with a layer table per string and one effect term of every family; one carries an
 //! NN 3-20-3 correction, the other an RBF SVR with 1,000 support vectors (the
 //! issue's benchmark sizes). Weights are shaped like trained ones (see
 //! `spidar_core::correction`'s tests): realistic magnitudes, random values.
@@ -8,7 +8,9 @@
 //! space and a planar device, both with the NN.
 
 use spidar_core::correction::{CorrectionModel, NnModel, OutputMode, Standardization, SvrModel};
-use spidar_core::model::{Calibration, Effect, EffectTerm, Frame, StringLaw, StringLayout};
+use spidar_core::model::{
+    Calibration, Effect, EffectTerm, Frame, Knots, LayerTable, StringLaw, StringLayout, LAYER_KNOTS,
+};
 use spidar_core::STRINGS;
 
 use crate::cases::Rng;
@@ -58,10 +60,24 @@ fn calibration(correction: CorrectionModel) -> Calibration {
             room_translation: [12.0, -40.0, 1500.0],
             room_scale: 1.001,
         },
-        strings: [StringLaw { counts_per_rev: 4096, winding_mm: [12.0, -0.02, 0.0, 0.0] }; STRINGS],
+        strings: core::array::from_fn(layered_law),
         effects,
         correction,
     }
+}
+
+/// String `i`'s law: the quadratic plus a layer table (issue 10) of 32 knots
+/// 4096 or 8192 counts apart that starts inside the cases' +-30 turns, so
+/// that the cases read its interpolation, its start and its held end.
+fn layered_law(i: usize) -> StringLaw {
+    let mut law = StringLaw::polynomial(4096, [12.0, -0.02, 0.0, 0.0]);
+    let knots: Vec<f64> = (0..LAYER_KNOTS).map(|k| 0.8 * (0.9 * k as f64 + i as f64).sin()).collect();
+    law.layers = LayerTable {
+        start_counts: -30 * 4096 + 2000 * i as i32,
+        step_log2: 12 + (i % 2) as u8,
+        knots_mm: Knots::from_slice(&knots).expect("LAYER_KNOTS knots"),
+    };
+    law
 }
 
 /// A 4-line cable robot (three low anchors, one high; channels 0..4) with

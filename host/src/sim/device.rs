@@ -204,10 +204,8 @@ impl Device {
 
         let d = ab.string_diameter_mm;
         let mut home_wound_mm = [0.0; STRINGS];
-        let mut laws = [StringLaw {
-            counts_per_rev: nominal.counts_per_rev[0],
-            winding_mm: [0.0; WINDING_ORDER],
-        }; STRINGS];
+        let mut laws =
+            [StringLaw::polynomial(nominal.counts_per_rev[0], [0.0; WINDING_ORDER]); STRINGS];
         for i in 0..STRINGS {
             let home_length = norm(&sub(&frame.home, &frame.anchors[i]));
             let wound = string_total_mm[i] - home_length;
