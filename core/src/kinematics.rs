@@ -101,8 +101,11 @@ pub enum FkStatus {
     /// other 7 and `excluded` names it.
     FaultyStringExcluded,
     /// The strings disagree and no single exclusion explains it (two or more
-    /// faulty strings, or a bad calibration). The position is the 8-string
-    /// least-squares compromise: do not trust it.
+    /// faulty strings, or a bad calibration). The position is the all-string
+    /// least-squares compromise or, with 4 or more spare strings, when
+    /// leaving one string out lowers the RMS residual [`DOMINANT_EXCLUSION`]
+    /// times or more, that solve's (`excluded` names the string): do not
+    /// trust it either way.
     Inconsistent,
     /// The iteration limit was reached before convergence; the position is
     /// the best found.
@@ -118,7 +121,8 @@ pub struct FkSolution<F> {
     /// Device-frame position (mm). Finite whenever the inputs are finite.
     pub position: Vec3<F>,
     pub status: FkStatus,
-    /// Encoder index of the string left out, with [`FkStatus::FaultyStringExcluded`].
+    /// Encoder index of the string left out, with [`FkStatus::FaultyStringExcluded`]
+    /// (and with [`FkStatus::Inconsistent`] when one exclusion dominates).
     pub excluded: Option<u8>,
     /// RMS of `|position - anchor_i| - length_i` over the strings used (mm);
     /// infinite with [`FkStatus::InvalidInput`] or when it overflows.
@@ -483,12 +487,31 @@ pub fn forward_kinematics<F: Float>(
                 iterations,
             };
         }
+        // No exclusion fits, but one explains most of the disagreement (a
+        // faulty string on a device whose other strings disagree a little
+        // too): its position is a better estimate than the compromise that
+        // spreads the faulty string's error over all of them. Still
+        // inconsistent: not to be trusted for force.
+        if !unique_required && s.converged && r * lit(DOMINANT_EXCLUSION) <= all_rms {
+            return FkSolution {
+                position: s.position,
+                status: FkStatus::Inconsistent,
+                excluded: Some(k as u8),
+                rms_residual_mm: r,
+                iterations,
+            };
+        }
     }
     FkSolution {
         iterations,
         ..inconsistent
     }
 }
+
+/// An exclusion that does not bring the RMS residual within the threshold
+/// but lowers it this many times gives the position of an inconsistent solve
+/// (see [`FkStatus::Inconsistent`]).
+pub const DOMINANT_EXCLUSION: f64 = 3.0;
 
 #[cfg(test)]
 mod tests {
@@ -772,6 +795,53 @@ mod tests {
         let s = forward_kinematics(&a, layout, &l, [0.0; 3], &FkConfig::default());
         assert_eq!(s.status, FkStatus::Inconsistent, "{s:?}");
         assert_eq!(s.excluded, None);
+    }
+
+    /// A faulty string on a device whose other strings disagree by more than
+    /// the threshold too: no exclusion fits, but leaving the faulty string
+    /// out explains most of it, and that position is kept (flagged
+    /// inconsistent) instead of the compromise.
+    #[test]
+    fn a_dominant_exclusion_gives_the_position_of_an_inconsistent_solve() {
+        let a = anchors::<f64>();
+        let p = [150.0, -220.0, 90.0];
+        let exact = inverse_kinematics(&a, p);
+        for bad in 0..STRINGS {
+            let mut l = exact;
+            for (i, v) in l.iter_mut().enumerate() {
+                // The sign of x y z at corner i: no position absorbs it.
+                let sign = [1.0, -1.0, -1.0, 1.0, -1.0, 1.0, 1.0, -1.0][i];
+                *v += if i == bad { 40.0 } else { 2.6 * sign };
+            }
+            let s = forward_kinematics(&a, StringLayout::ALL, &l, [0.0; 3], &FkConfig::default());
+            assert_eq!(s.status, FkStatus::Inconsistent, "bad {bad}: {s:?}");
+            assert_eq!(s.excluded, Some(bad as u8), "bad {bad}");
+            let compromise = forward_kinematics(
+                &a,
+                StringLayout::ALL,
+                &l,
+                [0.0; 3],
+                &FkConfig {
+                    fault_threshold_mm: f64::INFINITY,
+                    ..FkConfig::default()
+                },
+            );
+            let (kept, spread) = (dist(s.position, p), dist(compromise.position, p));
+            assert!(
+                kept < 6.0 && kept < spread / 3.0,
+                "bad {bad}: {kept} vs {spread} mm"
+            );
+        }
+        // Two faulty strings: no exclusion dominates, the compromise stays.
+        let mut l = exact;
+        l[1] += 40.0;
+        l[5] -= 35.0;
+        let s = forward_kinematics(&a, StringLayout::ALL, &l, [0.0; 3], &FkConfig::default());
+        assert_eq!(
+            (s.status, s.excluded),
+            (FkStatus::Inconsistent, None),
+            "{s:?}"
+        );
     }
 
     #[test]

@@ -12,6 +12,7 @@ use crate::identify::{
     data_jacobian, device_position, identify, DataJacobian, Identification, IdentifyError, Start,
     Structure,
 };
+use crate::layers::{self, StringLayers};
 use crate::observe::Observation;
 use crate::predict::{paired_with_tracker, predict, StringModel};
 use crate::stats::{position_errors, ErrorStats};
@@ -28,6 +29,9 @@ pub enum Family {
     Backlash,
     Drift,
     Slip,
+    /// Layer tables ([`crate::layers`]): the spool's departure from the
+    /// smooth winding law, per string.
+    Layers,
     Geometry,
     Unexplained,
 }
@@ -96,6 +100,13 @@ pub struct LoopConfig {
     /// A step is kept only if the held-out error (blocked folds, see
     /// [`validate`]) falls by this fraction.
     pub min_relative_gain: f64,
+    /// Try layer tables ([`crate::layers`]) before the effect families.
+    #[serde(default = "yes")]
+    pub layer_tables: bool,
+}
+
+fn yes() -> bool {
+    true
 }
 
 impl Default for LoopConfig {
@@ -104,6 +115,7 @@ impl Default for LoopConfig {
             max_effects: 8,
             chi2_threshold: 40.0,
             min_relative_gain: 0.005,
+            layer_tables: true,
         }
     }
 }
@@ -138,6 +150,106 @@ pub struct LoopResult {
     /// Everything diagnosis reported: added effects, significant candidates
     /// that did not help on held-out data, and unexplained structure.
     pub findings: Vec<Finding>,
+    /// The layer-table spacing chosen for each active string (before the
+    /// position-space check; see the `layers` finding for whether the
+    /// tables were kept).
+    #[serde(default)]
+    pub layers: Vec<StringLayers>,
+}
+
+/// What [`add_layer_tables`] tried.
+struct LayerTry {
+    choice: Vec<StringLayers>,
+    /// `None` when no string's spacing helped (nothing to check).
+    finding: Option<Finding>,
+    /// The refit with the tables and its validation, when accepted.
+    added: Option<(Identification, Validation)>,
+}
+
+/// Layer tables ([`crate::layers`]) on the strings whose held-out string
+/// residual they lower, kept when [`judge`] accepts them on the blocked
+/// folds with every fold refitting geometry and tables on its own rows.
+fn add_layer_tables(
+    train: &[Observation],
+    nominal: &Frame<f64>,
+    id: &Identification,
+    structure: &Structure,
+    before: &Validation,
+    config: &LoopConfig,
+) -> Result<LayerTry, IdentifyError> {
+    let tracked: Vec<&Observation> = train.iter().filter(|o| o.tracker.is_some()).collect();
+    let (kind, all_folds) = folds(&tracked);
+    let spacing_folds = match kind {
+        Folds::Blocked => &all_folds[2..],
+        Folds::Interleaved => &all_folds[..],
+    };
+    let choice = layers::choose_spacings(id, train, spacing_folds);
+    let steps = layers::steps_of(&choice);
+    let chosen: Vec<&StringLayers> = choice.iter().filter(|c| c.step_counts.is_some()).collect();
+    if chosen.is_empty() {
+        return Ok(LayerTry {
+            choice,
+            finding: None,
+            added: None,
+        });
+    }
+    let cold = layers::without_layers(id);
+    let (after, _) = validate_by(train, |rows| {
+        let plain = identify(rows, nominal, &cold, structure)?;
+        layers::identify_with_layers(rows, nominal, &plain, structure, &steps)
+    })?;
+    let check = judge(before, &after, None, config.min_relative_gain);
+    let refit = if check.accepted {
+        Some(layers::identify_with_layers(
+            train, nominal, id, structure, &steps,
+        )?)
+    } else {
+        None
+    };
+    let ss = |rms: f64| rms * rms;
+    let without: f64 = chosen.iter().map(|c| ss(c.held_rms_without_mm)).sum();
+    let with: f64 = chosen.iter().map(|c| ss(c.held_rms_with_mm)).sum();
+    let amplitude_mm = chosen
+        .iter()
+        .map(|c| c.peak_to_peak_mm / 2.0)
+        .fold(0.0, f64::max);
+    let per_string: Vec<String> = chosen
+        .iter()
+        .map(|c| {
+            let turns = c.step_counts.map_or(0.0, |s| {
+                f64::from(s) / f64::from(id.laws[usize::from(c.string)].counts_per_rev)
+            });
+            format!(
+                "string {} every {turns:.2} turns, {:.1} mm peak to peak, held-out string rms \
+                 {:.3} -> {:.3} mm",
+                c.string, c.peak_to_peak_mm, c.held_rms_without_mm, c.held_rms_with_mm
+            )
+        })
+        .collect();
+    let finding = Finding {
+        family: Family::Layers,
+        strings: chosen.iter().map(|c| c.string).collect(),
+        variable: Variable::WoundLength,
+        amplitude_mm,
+        explained: if without > 0.0 {
+            1.0 - with / without
+        } else {
+            0.0
+        },
+        added: false,
+        chi2: 0.0,
+        description: format!(
+            "the spool departs from the smooth winding law (layers): {}",
+            per_string.join("; ")
+        ),
+        validation: Some(check),
+        change: None,
+    };
+    Ok(LayerTry {
+        choice,
+        finding: Some(finding),
+        added: refit.map(|r| (r, after)),
+    })
 }
 
 /// Position errors of an identified string model against the tracker.
@@ -774,6 +886,7 @@ pub fn family_name(f: Family) -> &'static str {
         Family::Backlash => "backlash",
         Family::Drift => "drift",
         Family::Slip => "slip",
+        Family::Layers => "layers",
         Family::Geometry => "geometry",
         Family::Unexplained => "unexplained",
     }
@@ -876,7 +989,22 @@ pub struct Validation {
     /// [`tail_noise`].
     pub noise_p95_mm: f64,
     pub noise_max_mm: f64,
+    /// The held-out errors behind `held`, row by row in fold order (the same
+    /// order for every structure of one session), mm.
+    #[serde(skip)]
+    pub held_errors: Vec<f64>,
 }
+
+/// A held-out row whose error exceeds this many times the p95 before a
+/// change, before or after it, is one the model fails on (a faulty string
+/// it did not reject): its error moves by mm with any change. [`judge`]
+/// holds the max of the other rows to its noise and lets each of these rise
+/// by at most [`FAILING_ROW_RISE`] plus that noise (a term that blows up
+/// outside the lattice, 3 -> 67 mm, is still refused).
+pub const FAILING_ROW_FACTOR: f64 = 4.0;
+
+/// How much (relative) a row the model already fails on may worsen.
+pub const FAILING_ROW_RISE: f64 = 0.25;
 
 /// A held-out check of a change: the figures before and after, and why it
 /// was or was not taken.
@@ -940,10 +1068,10 @@ fn model_error_list(id: &Identification, observations: &[Observation]) -> Vec<f6
 }
 
 /// One fold: (fit rows, held-out rows), by index into the tracked rows.
-type Fold = (Vec<usize>, Vec<usize>);
+pub(crate) type Fold = (Vec<usize>, Vec<usize>);
 
 /// The folds of a session; the first two are the interleaved ones.
-fn folds(tracked: &[&Observation]) -> (Folds, Vec<Fold>) {
+pub(crate) fn folds(tracked: &[&Observation]) -> (Folds, Vec<Fold>) {
     let n = tracked.len();
     let parity = |p: usize| -> Fold {
         (
@@ -1014,16 +1142,25 @@ fn validate_fits(
     from: &Identification,
     structure: &Structure,
 ) -> Result<(Validation, Vec<Identification>), IdentifyError> {
+    let start = Start::from_identification(from);
+    validate_by(train, |rows| identify(rows, nominal, &start, structure))
+}
+
+/// [`validate_fits`] with each fold's model made by `fit` from the fold's
+/// fitting rows.
+pub(crate) fn validate_by(
+    train: &[Observation],
+    fit: impl Fn(&[Observation]) -> Result<Identification, IdentifyError> + Sync,
+) -> Result<(Validation, Vec<Identification>), IdentifyError> {
     use rayon::prelude::*;
     let tracked: Vec<&Observation> = train.iter().filter(|o| o.tracker.is_some()).collect();
     let (kind, folds) = folds(&tracked);
     let pick =
         |rows: &[usize]| -> Vec<Observation> { rows.iter().map(|&k| tracked[k].clone()).collect() };
-    let start = Start::from_identification(from);
     let fits: Vec<(Identification, Vec<f64>)> = folds
         .par_iter()
-        .map(|(fit, held)| {
-            let id = identify(&pick(fit), nominal, &start, structure)?;
+        .map(|(rows, held)| {
+            let id = fit(&pick(rows))?;
             let errors = model_error_list(&id, &pick(held));
             Ok((id, errors))
         })
@@ -1043,6 +1180,7 @@ fn validate_fits(
             interleaved,
             noise_p95_mm,
             noise_max_mm,
+            held_errors,
         },
         fits.into_iter().map(|f| f.0).collect(),
     ))
@@ -1113,6 +1251,31 @@ pub fn judge(
         b.max_mm,
         a.max_mm
     );
+    // The max is judged on the rows the model does not fail on (before or
+    // after); those it fails on may not worsen by more than FAILING_ROW_RISE.
+    let paired =
+        before.held_errors.len() == after.held_errors.len() && !before.held_errors.is_empty();
+    let failing = |e: f64| e > FAILING_ROW_FACTOR * b.p95_mm;
+    let (max_before, max_after, worst_failing) = if paired {
+        let mut mb = 0.0f64;
+        let mut ma = 0.0f64;
+        let mut worst: Option<(f64, f64)> = None;
+        for (&x, &y) in before.held_errors.iter().zip(&after.held_errors) {
+            if failing(x) || failing(y) {
+                if y > x * (1.0 + FAILING_ROW_RISE) + before.noise_max_mm
+                    && worst.is_none_or(|w| y - x > w.1 - w.0)
+                {
+                    worst = Some((x, y));
+                }
+            } else {
+                mb = mb.max(x);
+                ma = ma.max(y);
+            }
+        }
+        (mb, ma, worst)
+    } else {
+        (b.max_mm, a.max_mm, None)
+    };
     let limit = |k: usize| STABLE_CHI2[k.clamp(1, 2) - 1];
     let (accepted, why) = if let Some((chi2, k)) = stable.filter(|s| s.0 > limit(s.1)) {
         (
@@ -1137,12 +1300,22 @@ pub fn judge(
                 before.noise_p95_mm
             ),
         )
-    } else if a.max_mm > b.max_mm + before.noise_max_mm {
+    } else if max_after > max_before + before.noise_max_mm {
         (
             false,
             format!(
-                "the max rises beyond its noise ({:.2} mm)",
+                "the max rises beyond its noise ({:.2} mm): {max_before:.2} -> {max_after:.2} mm \
+                 on the rows the model does not fail on",
                 before.noise_max_mm
+            ),
+        )
+    } else if let Some((x, y)) = worst_failing {
+        (
+            false,
+            format!(
+                "a row the model fails on gets worse beyond {:.0} % and the max noise: \
+                 {x:.2} -> {y:.2} mm",
+                100.0 * FAILING_ROW_RISE
             ),
         )
     } else {
@@ -1183,6 +1356,27 @@ pub fn close_loop(
     let mut validation = validate(train, nominal, &id, &structure)?;
     let mut stages = Vec::new();
     let mut findings: Vec<Finding> = Vec::new();
+    let mut layers = Vec::new();
+    if config.layer_tables {
+        let tried = add_layer_tables(train, nominal, &id, &structure, &validation, config)?;
+        layers = tried.choice;
+        if let Some(mut finding) = tried.finding {
+            if let Some((refit, after)) = tried.added {
+                finding.added = true;
+                stages.push(LoopStage {
+                    name: stage_name(&finding),
+                    train: model_errors(&refit, train),
+                    test: test.map(|t| model_errors(&refit, t)),
+                    finding: finding.clone(),
+                    validation_before_mm: validation.held.mean_mm,
+                    validation_after_mm: after.held.mean_mm,
+                });
+                validation = after;
+                id = refit;
+            }
+            findings.push(finding);
+        }
+    }
     let same = |a: &Finding, b: &Finding| a.family == b.family && a.strings == b.strings;
     'outer: while stages.len() < config.max_effects {
         let proposals = diagnose(&id, train, nominal, &structure, config);
@@ -1224,6 +1418,7 @@ pub fn close_loop(
     }
     findings.extend(unexplained(&id, train, nominal, &structure, config));
     Ok(LoopResult {
+        layers,
         base,
         base_train,
         base_test,

@@ -62,7 +62,9 @@
 
 use nalgebra::{DMatrix, DVector, Dyn, Owned};
 use serde::{Deserialize, Serialize};
-use spidar_core::model::{Effect, EffectTerm, Frame, StringLaw, StringLayout, WINDING_ORDER};
+use spidar_core::model::{
+    Effect, EffectTerm, Frame, LayerTable, StringLaw, StringLayout, WINDING_ORDER,
+};
 use spidar_core::string_law::{string_lengths_f64, EffectContext};
 use spidar_core::STRINGS;
 
@@ -134,6 +136,10 @@ pub struct WindingPhysics {
     /// the line is doubled through pulley blocks).
     #[serde(default = "unit_advantage")]
     pub mechanical_advantage: [f64; STRINGS],
+    /// Each string's layer table (the spool's departure from the smooth law,
+    /// [`crate::layers`]); held, not fitted, by the identification.
+    #[serde(default)]
+    pub layers: [LayerTable; STRINGS],
 }
 
 fn unit_advantage() -> [f64; STRINGS] {
@@ -147,7 +153,10 @@ impl WindingPhysics {
             let mut winding_mm = [0.0; WINDING_ORDER];
             winding_mm[0] = self.r_home_mm[i];
             winding_mm[1] = -self.kappa_mm / self.mechanical_advantage[i];
-            StringLaw::polynomial(self.counts_per_rev[i], winding_mm)
+            StringLaw {
+                layers: self.layers[i],
+                ..StringLaw::polynomial(self.counts_per_rev[i], winding_mm)
+            }
         })
     }
 }
@@ -938,6 +947,7 @@ impl Start {
                 kappa_mm: 0.0,
                 counts_per_rev,
                 mechanical_advantage,
+                layers: [LayerTable::NONE; STRINGS],
             },
             warm: false,
         }

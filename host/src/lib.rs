@@ -8,6 +8,7 @@ pub mod device_run;
 pub mod diagnose;
 pub mod figures;
 pub mod identify;
+pub mod layers;
 pub mod learn;
 pub mod link;
 pub mod observe;

@@ -236,15 +236,17 @@ fn rows_are_the_session() {
 
 /// Held-out error today's pipeline reaches on the independent simulator
 /// (device seed 1, lattice session seed 2, 500-point test session seed 3,
-/// `CalibrateConfig::quick`), measured when this test was written:
-/// identified 1.142 mm mean (3.85 max); final (nn) 0.569 mm mean, 1.10 mm
-/// p95, 4.04 mm max.
-/// THE ISSUE'S TARGET (held-out mean <= 0.45 mm, max <= 3 mm with declared
-/// effects only) IS NOT MET YET: the bounds below are today's figures plus
-/// a margin, to catch regressions; tighten them when the model improves.
+/// `CalibrateConfig::quick`), measured 2026-11-24: identified (smooth
+/// winding law) 1.142 mm mean, 3.85 max; with the layer tables 0.665 mean,
+/// 2.86 max; final (nn) 0.477 mean, 1.01 p95, 3.01 max. The issue's target
+/// (0.45 mean, 3 max, over seeds 1-3: 0.437 mean, worst max 3.01) is met
+/// on the mean over seeds, not on this seed alone: the bounds are today's
+/// figures plus a margin, to catch regressions.
 const IDENTIFIED_MEAN_MAX_MM: f64 = 1.3;
-const FINAL_MEAN_MAX_MM: f64 = 0.65;
-const FINAL_MAX_MAX_MM: f64 = 5.5;
+const LAYERS_MEAN_MAX_MM: f64 = 0.75;
+const LAYERS_MAX_MAX_MM: f64 = 3.3;
+const FINAL_MEAN_MAX_MM: f64 = 0.53;
+const FINAL_MAX_MAX_MM: f64 = 3.5;
 
 #[test]
 fn calibration_on_the_independent_simulator() {
@@ -275,6 +277,22 @@ fn calibration_on_the_independent_simulator() {
         );
     }
     let identified = stages.iter().find(|s| s.name == "identified").unwrap();
+    let layers = stages
+        .iter()
+        .find(|s| s.name.starts_with("layers strings"))
+        .expect("layer tables added");
+    assert!(
+        layers.test.mean_mm <= LAYERS_MEAN_MAX_MM && layers.test.max_mm <= LAYERS_MAX_MAX_MM,
+        "{:?}",
+        layers.test
+    );
+    // The tables hold on the test session, which reaches a little beyond
+    // the lattice: the max does not rise over the smooth law's.
+    assert!(
+        layers.test.max_mm <= identified.test.max_mm,
+        "{:?}",
+        layers.test
+    );
     let last = stages.last().unwrap();
     // The raw error is large, the calibration removes nearly all of it...
     assert!(stages[0].test.mean_mm > 50.0, "{:?}", stages[0].test);
@@ -289,15 +307,12 @@ fn calibration_on_the_independent_simulator() {
         last.name,
         last.test
     );
-    // ...but not down to the tracker's noise (0.32 mm mean): the model is
-    // not exact on this physics. If this fails, the model got better:
-    // tighten the bounds above.
-    assert!(identified.test.mean_mm > 0.45, "{:?}", identified.test);
+    // The smooth law alone is far from the tracker's noise (0.32 mm mean):
+    // what the tables bring is the layering.
+    assert!(identified.test.mean_mm > 0.9, "{:?}", identified.test);
 }
 
-/// The diagnosis loop on a clean independent device (issue 10, point 6):
-/// nothing added, and every significant candidate it tested is reported
-/// `added: false` with the check that refused it.
+/// The diagnosis loop on a clean independent device (issue 10, point 6).
 fn clean_loop(seed: u64) -> spidar::diagnose::LoopResult {
     use spidar::diagnose::{close_loop, LoopConfig};
     use spidar::identify::Start;
@@ -316,19 +331,39 @@ fn clean_loop(seed: u64) -> spidar::diagnose::LoopResult {
     .unwrap()
 }
 
+/// A clean independent device: its spools are layered (declared physics),
+/// so the loop adds layer tables, checked on blocked folds, and no effect
+/// family; every other candidate it tested is reported `added: false` with
+/// the check that refused it.
 #[test]
-fn a_clean_independent_device_gets_no_effect_and_each_refusal_says_why() {
-    use spidar::diagnose::Folds;
+fn a_clean_independent_device_gets_layer_tables_only_and_each_refusal_says_why() {
+    use spidar::diagnose::{Family, Folds};
     let r = clean_loop(1);
+    let added: Vec<_> = r.stages.iter().map(|s| s.name.as_str()).collect();
+    assert_eq!(added, ["layers strings [0, 1, 2, 3, 4, 5, 6, 7]"]);
+    let layers = &r.stages[0].finding;
+    assert_eq!(layers.family, Family::Layers);
+    let check = layers.validation.as_ref().unwrap();
     assert!(
-        r.stages.is_empty(),
-        "added {:?}",
-        r.stages.iter().map(|s| &s.name).collect::<Vec<_>>()
+        check.accepted && check.reason.starts_with("added"),
+        "{}",
+        check.reason
     );
+    assert_eq!(check.after.folds, Folds::Blocked);
+    assert!(check.after.held.mean_mm < 0.8 * check.before.held.mean_mm);
+    // Every string got a spacing that lowered its held-out residual, and
+    // the final model's laws carry the tables.
+    assert_eq!(r.layers.len(), 8);
+    for (i, c) in r.layers.iter().enumerate() {
+        assert!(c.step_counts.is_some(), "string {i}: {c:?}");
+        assert!(c.held_rms_with_mm < c.held_rms_without_mm, "{c:?}");
+        assert!(!r.identification.laws[i].layers.is_empty());
+        assert!(c.peak_to_peak_mm > 1.0 && c.peak_to_peak_mm < 8.0, "{c:?}");
+    }
     let tested: Vec<_> = r
         .findings
         .iter()
-        .filter(|f| f.validation.is_some())
+        .filter(|f| f.family != Family::Layers && f.validation.is_some())
         .collect();
     assert!(!tested.is_empty(), "findings: {:#?}", r.findings);
     for f in &tested {
@@ -338,19 +373,6 @@ fn a_clean_independent_device_gets_no_effect_and_each_refusal_says_why() {
         assert_eq!(check.after.folds, Folds::Blocked);
         assert!(check.before.held.n > check.before.interleaved.n / 2);
     }
-    // The strongest candidate (string 4's scale, standing in for the layered
-    // spool) lowers the blocked mean, but its value is not the same in the
-    // earlier and the later half of the session: refused for that.
-    let first = tested[0].validation.as_ref().unwrap();
-    assert!(
-        first.after.held.mean_mm < first.before.held.mean_mm,
-        "{first:#?}"
-    );
-    assert!(
-        first.stability_chi2.is_some_and(|c| c > 10.83),
-        "{first:#?}"
-    );
-    assert!(first.reason.contains("earlier half"), "{}", first.reason);
     // In the JSON report: `validation` with its reason.
     let json = serde_json::to_value(tested[0]).unwrap();
     assert_eq!(json["added"], false);
@@ -358,6 +380,36 @@ fn a_clean_independent_device_gets_no_effect_and_each_refusal_says_why() {
         .as_str()
         .unwrap()
         .contains("not added"));
+}
+
+/// The model simulator's spools follow the smooth law exactly: no string
+/// gets a table (the spacing must lower the held-out residual by 3 %).
+#[test]
+fn a_clean_model_device_gets_no_layer_table() {
+    use spidar::diagnose::{close_loop, LoopConfig};
+    use spidar::identify::Start;
+    use spidar::observe::observations;
+    let device = spidar::sim::Device::new(&spidar::sim::config::SimConfig::default(), 1).unwrap();
+    let train = spidar::sim::simulate_session(&device, SessionKind::Lattice, 101).unwrap();
+    let r = close_loop(
+        &observations(&train.samples),
+        None,
+        &device.nominal.nominal_frame(),
+        &Start::from_geometry(&device.nominal),
+        &LoopConfig::default(),
+    )
+    .unwrap();
+    assert!(
+        r.stages.is_empty(),
+        "{:?}",
+        r.stages.iter().map(|s| &s.name).collect::<Vec<_>>()
+    );
+    assert!(
+        r.layers.iter().all(|c| c.step_counts.is_none()),
+        "{:#?}",
+        r.layers
+    );
+    assert!(r.identification.laws.iter().all(|l| l.layers.is_empty()));
 }
 
 #[test]

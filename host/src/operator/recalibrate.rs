@@ -516,6 +516,7 @@ pub fn identification_of(calibration: &Calibration) -> Identification {
             kappa_mm: -laws[0].winding_mm[1],
             counts_per_rev: laws.map(|l| l.counts_per_rev),
             mechanical_advantage: [1.0; STRINGS],
+            layers: laws.map(|l| l.layers),
         },
         laws,
         effects: calibration.effects.clone(),
