@@ -116,7 +116,7 @@ fn check_layout(header: &ModelHeader, head: &BlobHead) -> Result<(), BlobError> 
     }
     for effect in head.effects.iter() {
         let s = effect.string();
-        if !layout.is_active(usize::from(s)) {
+        if s != crate::model::EVERY_STRING && !layout.is_active(usize::from(s)) {
             return Err(BlobError::InactiveString {
                 field: "effects",
                 string: s,

@@ -408,12 +408,28 @@ pub enum Effect {
     Slip { at_s: f64, mm: f64 },
 }
 
-/// An [`Effect`] applied to one string.
+/// An [`Effect`] applied to one string, or to every string at once.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct EffectTerm {
-    /// Encoder index of the string, `0..STRINGS`.
+    /// Encoder index of the string, `0..STRINGS`; [`EVERY_STRING`]: one term
+    /// shared by every active string (one parameter, the same contribution
+    /// formula on each string with that string's inputs), e.g. one drift for
+    /// the whole device.
     pub string: u8,
     pub effect: Effect,
+}
+
+/// [`EffectTerm::string`] of a term shared by every active string. Families
+/// whose compiled form needs one string's law (winding, eccentricity) cannot
+/// be shared.
+pub const EVERY_STRING: u8 = u8::MAX;
+
+impl EffectTerm {
+    /// Whether the term applies to string `i`.
+    #[inline]
+    pub const fn applies_to(&self, i: usize) -> bool {
+        self.string == EVERY_STRING || self.string as usize == i
+    }
 }
 
 /// Most effect terms a calibration may carry (the blob's fixed capacity).

@@ -45,7 +45,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::model::{
     locate_knot, Effect, EffectTerm, Frame, Knots, StringInputs, StringLaw, StringLayout,
-    LAYER_KNOTS, MAX_LAYER_MM, MAX_LAYER_STEP_LOG2, WINDING_ORDER,
+    EVERY_STRING, LAYER_KNOTS, MAX_LAYER_MM, MAX_LAYER_STEP_LOG2, WINDING_ORDER,
 };
 use crate::STRINGS;
 
@@ -285,6 +285,14 @@ pub fn string_lengths_f64(
         }
     }
     for term in effects {
+        if term.string == EVERY_STRING {
+            for i in frame.layout.indices() {
+                if let Some(c) = &ctx[i] {
+                    out[i] += term.effect.contribution_f64(c);
+                }
+            }
+            continue;
+        }
         let s = usize::from(term.string);
         if let Some(Some(c)) = ctx.get(s) {
             out[s] += term.effect.contribution_f64(c);
@@ -835,9 +843,21 @@ pub fn compile_effect(
     laws: &[StringLaw; STRINGS],
 ) -> Result<CompiledEffect, CompileError> {
     let s = usize::from(term.string);
-    let law = laws
-        .get(s)
-        .ok_or(CompileError::StringOutOfRange { string: s })?;
+    let shared = term.string == EVERY_STRING;
+    let law = match laws.get(s) {
+        Some(law) => law,
+        // A shared term of a family that does not read the law compiles
+        // against any law; winding and eccentricity need their string's.
+        None if shared
+            && !matches!(
+                term.effect,
+                Effect::Winding { .. } | Effect::Eccentricity { .. }
+            ) =>
+        {
+            &laws[0]
+        }
+        None => return Err(CompileError::StringOutOfRange { string: s }),
+    };
     let string = term.string;
     Ok(match term.effect {
         Effect::Offset { mm } => CompiledEffect::Offset {
@@ -952,7 +972,11 @@ impl CompiledEffect {
     /// power in range, eccentricity counts per revolution consistent.
     pub fn validate(&self) -> Result<(), CompileError> {
         let s = usize::from(self.string());
-        if s >= STRINGS {
+        let law_free = !matches!(
+            self,
+            CompiledEffect::Winding { .. } | CompiledEffect::Eccentricity { .. }
+        );
+        if s >= STRINGS && !(self.string() == EVERY_STRING && law_free) {
             return Err(CompileError::StringOutOfRange { string: s });
         }
         match *self {
@@ -1101,20 +1125,28 @@ fn lengths_of<const ALL: bool>(
         payout[i] = laws[i].payout_q32(inputs.counts[i]);
         acc[i] = q16_to_q32(laws[i].home_length_q16).saturating_add(payout[i]);
     }
+    let context = |s: usize| FixedContext {
+        counts: inputs.counts[s],
+        direction: inputs.direction[s],
+        tension_mn: inputs.tension_mn[s],
+        time_ms: inputs.time_ms,
+        home_length_q16: laws[s].home_length_q16,
+        payout_q32: payout[s],
+    };
     for e in effects {
         let s = usize::from(e.string());
+        if e.string() == EVERY_STRING {
+            for (i, a) in acc.iter_mut().enumerate() {
+                if ALL || active >> i & 1 == 1 {
+                    *a = a.saturating_add(e.contribution_q32(&context(i)));
+                }
+            }
+            continue;
+        }
         if s >= STRINGS || (!ALL && active >> s & 1 == 0) {
             continue;
         }
-        let ctx = FixedContext {
-            counts: inputs.counts[s],
-            direction: inputs.direction[s],
-            tension_mn: inputs.tension_mn[s],
-            time_ms: inputs.time_ms,
-            home_length_q16: laws[s].home_length_q16,
-            payout_q32: payout[s],
-        };
-        acc[s] = acc[s].saturating_add(e.contribution_q32(&ctx));
+        acc[s] = acc[s].saturating_add(e.contribution_q32(&context(s)));
     }
     let mut out = [0i64; STRINGS];
     for i in 0..STRINGS {
@@ -1233,6 +1265,69 @@ mod tests {
             c.home_length_q16,
             (libm::sqrt(3.0) * 1100.0 * 65536.0).round() as i64
         );
+    }
+
+    /// A term shared by every string adds its contribution to each active
+    /// string with that string's inputs, as one term per string would; the
+    /// families that need one string's law cannot be shared.
+    #[test]
+    fn a_shared_term_is_one_term_on_every_string() {
+        let f = frame([10.0, -20.0, 30.0]);
+        let laws = [StringLaw::polynomial(4096, [10.0, -0.02, 0.0, 0.0]); STRINGS];
+        let shared = [
+            EffectTerm {
+                string: EVERY_STRING,
+                effect: Effect::Drift { mm_per_s: 2e-4 },
+            },
+            EffectTerm {
+                string: EVERY_STRING,
+                effect: Effect::Scale { relative: 0.003 },
+            },
+        ];
+        let each: Vec<EffectTerm> = shared
+            .iter()
+            .flat_map(|t| (0..STRINGS as u8).map(move |s| EffectTerm { string: s, ..*t }))
+            .collect();
+        let mut rng = Rng(7);
+        let (cl, ce_shared) = compile_all(&f, &laws, &shared);
+        let (_, ce_each) = compile_all(&f, &laws, &each);
+        for _ in 0..50 {
+            let inputs = random_inputs(&mut rng);
+            assert_eq!(
+                string_lengths_f64(&f, &laws, &shared, &inputs),
+                string_lengths_f64(&f, &laws, &each, &inputs)
+            );
+            assert_eq!(
+                string_lengths(StringLayout::ALL, &cl, &ce_shared, &inputs),
+                string_lengths(StringLayout::ALL, &cl, &ce_each, &inputs)
+            );
+            // Inactive channels stay 0.
+            let four = StringLayout::first(4, false);
+            let got = string_lengths(four, &cl, &ce_shared, &inputs);
+            assert!(got[4..].iter().all(|&v| v == 0));
+        }
+        for c in &ce_shared {
+            c.validate().expect("a shared drift or scale is valid");
+        }
+        for effect in [
+            Effect::Winding {
+                power: 3,
+                mm_per_rad_pow: 1e-6,
+            },
+            Effect::Eccentricity {
+                sin_mm: 0.1,
+                cos_mm: 0.0,
+            },
+        ] {
+            let term = EffectTerm {
+                string: EVERY_STRING,
+                effect,
+            };
+            assert_eq!(
+                compile_effect(&term, &laws),
+                Err(CompileError::StringOutOfRange { string: 255 })
+            );
+        }
     }
 
     fn layered(start_counts: i32, step_log2: u8, knots: &[f64]) -> StringLaw {
@@ -1451,6 +1546,19 @@ mod tests {
                 mm: rng.uniform(-30.0, 30.0),
             });
         }
+        // Terms shared by every string.
+        effects.push(EffectTerm {
+            string: EVERY_STRING,
+            effect: Effect::Drift {
+                mm_per_s: rng.uniform(-0.01, 0.01),
+            },
+        });
+        effects.push(EffectTerm {
+            string: EVERY_STRING,
+            effect: Effect::Scale {
+                relative: rng.uniform(-0.01, 0.01),
+            },
+        });
         (f, laws, effects)
     }
 
@@ -1525,7 +1633,7 @@ mod tests {
         let mut rng = Rng(7);
         let (f, laws, effects) = realistic(&mut rng);
         let inputs = random_inputs(&mut rng);
-        for term in &effects {
+        for term in effects.iter().filter(|t| t.string != EVERY_STRING) {
             let ctx =
                 EffectContext::for_string(&f, &laws, &inputs, usize::from(term.string)).unwrap();
             let g = term.effect.gradient_f64(&ctx);

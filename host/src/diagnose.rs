@@ -4,7 +4,7 @@
 
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
-use spidar_core::model::{Effect, EffectTerm, Frame, StringLayout};
+use spidar_core::model::{Effect, EffectTerm, Frame, StringLayout, EVERY_STRING};
 use spidar_core::string_law::{payout_f64, EffectContext};
 use spidar_core::STRINGS;
 
@@ -593,6 +593,41 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
             }
         }
     }
+    // One drift shared by every string (creep or temperature of the whole
+    // device): one parameter where per-string drifts take one each, and the
+    // same value on every string, which the per-string terms, added one at a
+    // time, do not find (issue 10, point 4).
+    let shared_drift = structure
+        .effects
+        .iter()
+        .any(|t| t.string == EVERY_STRING && matches!(t.effect, Effect::Drift { .. }));
+    if !shared_drift {
+        out.push(Candidate {
+            family: Family::Drift,
+            strings: Vec::new(),
+            variable: Variable::Time,
+            columns: vec![rows
+                .iter()
+                .map(|r| {
+                    if strings.is_active(r.string) {
+                        r.ctx.time_s
+                    } else {
+                        0.0
+                    }
+                })
+                .collect()],
+            search_penalty: 0.0,
+            build: Box::new(|b| {
+                Change::Effect(EffectTerm {
+                    string: EVERY_STRING,
+                    effect: Effect::Drift { mm_per_s: b[0] },
+                })
+            }),
+            describe: "every string's length drifts alike with time since initialization (creep, \
+                       temperature of the whole device)"
+                .into(),
+        });
+    }
     if !structure.fit_room_scale {
         out.push(Candidate {
             family: Family::Geometry,
@@ -896,6 +931,7 @@ fn stage_name(f: &Finding) -> String {
     match (f.family, f.strings.as_slice()) {
         (Family::Geometry, []) => "geometry (tracker scale)".into(),
         (Family::Geometry, [s]) => format!("geometry anchor {s}"),
+        (family, []) => format!("{} (every string)", family_name(family)),
         (family, [s]) => format!("{} string {s}", family_name(family)),
         (family, s) => format!("{} strings {s:?}", family_name(family)),
     }

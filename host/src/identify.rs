@@ -63,7 +63,7 @@
 use nalgebra::{DMatrix, DVector, Dyn, Owned};
 use serde::{Deserialize, Serialize};
 use spidar_core::model::{
-    Effect, EffectTerm, Frame, LayerTable, StringLaw, StringLayout, WINDING_ORDER,
+    Effect, EffectTerm, Frame, LayerTable, StringLaw, StringLayout, EVERY_STRING, WINDING_ORDER,
 };
 use spidar_core::string_law::{string_lengths_f64, EffectContext};
 use spidar_core::STRINGS;
@@ -682,10 +682,11 @@ impl levenberg_marquardt::LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
             let mut effect_grad = vec![[0.0; STRINGS]; layout.effect_columns.len()];
             for (c, &(e, pi)) in layout.effect_columns.iter().enumerate() {
                 let term = &state.effects[e];
-                let s = usize::from(term.string);
-                if let Some(ctx) = EffectContext::for_string(frame, &laws, &o.inputs, s) {
-                    if let Some(g) = term.effect.gradient_f64(&ctx).get(pi) {
-                        effect_grad[c][s] = -g;
+                for s in frame.layout.indices().filter(|&s| term.applies_to(s)) {
+                    if let Some(ctx) = EffectContext::for_string(frame, &laws, &o.inputs, s) {
+                        if let Some(g) = term.effect.gradient_f64(&ctx).get(pi) {
+                            effect_grad[c][s] = -g;
+                        }
                     }
                 }
             }
@@ -710,7 +711,7 @@ impl levenberg_marquardt::LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
                 // Effects that scale with the payout or the home length
                 // (scale, elasticity) carry those derivatives along.
                 let (mut d_payout, mut d_home) = (1.0, 1.0);
-                for term in state.effects.iter().filter(|t| usize::from(t.string) == i) {
+                for term in state.effects.iter().filter(|t| t.applies_to(i)) {
                     match term.effect {
                         Effect::Scale { relative } => d_payout += relative,
                         Effect::Elasticity { per_newton } => {
@@ -1199,7 +1200,8 @@ fn column_is_free(layout: &Layout, structure: &Structure, strings: StringLayout,
         _ if c >= layout.r_home() && c < layout.kappa() => strings.is_active(c - layout.r_home()),
         _ if c >= layout.first_effect() => {
             let (e, _) = layout.effect_columns[c - layout.first_effect()];
-            strings.is_active(usize::from(structure.effects[e].string))
+            let string = structure.effects[e].string;
+            string == EVERY_STRING || strings.is_active(usize::from(string))
         }
         _ => true,
     }
@@ -1262,7 +1264,12 @@ fn parameter_names(
     names.push(("winding.kappa".into(), "mm/rad^2", None));
     for term in &structure.effects {
         for (pname, _, unit) in effect_parameter_info(&term.effect) {
-            names.push((format!("string{}.{pname}", term.string), *unit, None));
+            let owner = if term.string == EVERY_STRING {
+                "every_string".to_string()
+            } else {
+                format!("string{}", term.string)
+            };
+            names.push((format!("{owner}.{pname}"), *unit, None));
         }
     }
     names

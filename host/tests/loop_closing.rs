@@ -140,6 +140,25 @@ fn drift() {
     );
 }
 
+/// One drift on every string (issue 10, point 4): found as one shared term
+/// (no per-string drifts one at a time), and the held-out error back to
+/// the clean device's.
+#[test]
+fn drift_of_every_string_is_one_shared_term() {
+    let (result, after) = run(1, &["drift:*:mm_per_s=0.0002"]);
+    let added: Vec<&str> = result.stages.iter().map(|s| s.name.as_str()).collect();
+    assert_eq!(added, ["drift (every string)"]);
+    assert_found(&result, Family::Drift, &[], Variable::Time);
+    let term = result.identification.effects[0];
+    assert_eq!(term.string, spidar_core::model::EVERY_STRING);
+    let spidar_core::model::Effect::Drift { mm_per_s } = term.effect else {
+        panic!("{term:?}");
+    };
+    assert!((mm_per_s - 0.0002).abs() < 0.00002, "{mm_per_s}");
+    let base = baseline(1);
+    assert!(after <= 1.05 * base, "{after:.3} mm after, {base:.3} clean");
+}
+
 #[test]
 fn slip() {
     check_family("slip:2:at_s=2000,mm=5", Family::Slip, &[2], Variable::Time);

@@ -9,7 +9,7 @@
 
 use spidar_core::correction::{CorrectionModel, NnModel, OutputMode, Standardization, SvrModel};
 use spidar_core::model::{
-    Calibration, Effect, EffectTerm, Frame, Knots, LayerTable, StringLaw, StringLayout, LAYER_KNOTS,
+    Calibration, Effect, EffectTerm, Frame, Knots, LayerTable, StringLaw, StringLayout, EVERY_STRING, LAYER_KNOTS,
 };
 use spidar_core::STRINGS;
 
@@ -50,6 +50,8 @@ fn calibration(correction: CorrectionModel) -> Calibration {
         EffectTerm { string: 5, effect: Effect::Backlash { half_width_mm: 0.7 } },
         EffectTerm { string: 6, effect: Effect::Drift { mm_per_s: 1e-4 } },
         EffectTerm { string: 7, effect: Effect::Slip { at_s: 600.0, mm: 1.2 } },
+        // One drift shared by every string (issue 10, point 4).
+        EffectTerm { string: EVERY_STRING, effect: Effect::Drift { mm_per_s: 3e-5 } },
     ];
     Calibration {
         frame: Frame {
@@ -90,7 +92,7 @@ fn four_line(correction: CorrectionModel) -> Calibration {
         c.frame.anchors[i] = a.map(f64::from);
     }
     c.frame.home = [10.0, -20.0, 300.0];
-    for (k, t) in c.effects.iter_mut().enumerate() {
+    for (k, t) in c.effects.iter_mut().enumerate().filter(|(_, t)| t.string != EVERY_STRING) {
         t.string = (k % 4) as u8;
     }
     c
