@@ -1068,6 +1068,11 @@ impl<'m, F: ModelFlash> Device<'m, F> {
             position_mm: out.position_mm,
             corrected_mm: out.corrected_q16,
             tensions_n: out.tensions_n,
+            rendered_force_n: if out.armed {
+                out.force_n.map(|f| f * out.rendered_fraction)
+            } else {
+                [0.0; 3]
+            },
             faults: protocol_faults(out, self.loop_overrun),
             slack: out.slack_mask,
             excluded: out.excluded.filter(|&i| usize::from(i) < STRINGS),

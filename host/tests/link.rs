@@ -642,3 +642,50 @@ fn device_command_line_takes_the_port_anywhere() {
         "{err}"
     );
 }
+
+/// `spidar device force` reports what the device rendered, from its state
+/// frames, and why it differs from the request (issue 13, point 3).
+#[test]
+fn device_force_reports_the_rendered_force() {
+    let dev = sim_device();
+    let vd = virtual_device(Trajectory::Hold);
+    {
+        let mut c = Client::open(vd.port_path()).unwrap();
+        c.flash(&blob(&dev, CorrectionModel::None, 11), |_| {})
+            .unwrap();
+    }
+    let force = |f: [&str; 3]| {
+        let port = vd.port_path().to_string();
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_spidar"))
+            .args(["device", "force", "--hold", "0.3", "--port", &port, "--"])
+            .args(f)
+            .output()
+            .expect("run spidar");
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        String::from_utf8_lossy(&out.stdout).to_string()
+    };
+    let small = force(["0", "0", "2"]);
+    assert!(
+        small.starts_with("requested [0, 0, 2] N; rendered [") && !small.contains("limited"),
+        "{small}"
+    );
+    let z: f64 = small
+        .split("rendered [")
+        .nth(1)
+        .and_then(|r| r.split(']').next())
+        .and_then(|r| r.split(", ").nth(2))
+        .and_then(|v| v.parse().ok())
+        .expect("rendered z");
+    assert!((z - 2.0).abs() < 0.1, "{small}");
+    let huge = force(["1e9", "0", "0"]);
+    assert!(
+        huge.starts_with("requested [1000000000, 0, 0] N; rendered [")
+            && huge.contains("the device limited it to"),
+        "{huge}"
+    );
+    assert!(huge.contains("disarmed"), "{huge}");
+}

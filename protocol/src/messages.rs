@@ -608,6 +608,10 @@ pub struct State {
     pub corrected_mm: [i32; 3],
     /// Commanded tension per string after the safety clamp, newtons.
     pub tensions_n: [f32; STRINGS],
+    /// Force those tensions render, device frame, newtons: the force asked
+    /// for after the safety limit, scaled by the share of it the tension
+    /// distribution reaches; 0 when disarmed. Protocol v5.
+    pub rendered_force_n: [f32; 3],
     /// Latched and present faults.
     pub faults: Faults,
     /// Bit `i` set: string `i` is slack.
@@ -653,6 +657,39 @@ impl Faults {
     pub const ESTOP: Self = Self(1 << 7);
     /// The end-effector left the workspace spanned by the anchors.
     pub const WORKSPACE: Self = Self(1 << 8);
+
+    /// Every fault bit with its name, in bit order.
+    pub const NAMED: [(Faults, &'static str); 9] = [
+        (Self::HEARTBEAT_LOST, "HEARTBEAT_LOST"),
+        (Self::ENCODER, "ENCODER"),
+        (Self::KINEMATICS, "KINEMATICS"),
+        (Self::TENSION_CLAMPED, "TENSION_CLAMPED"),
+        (Self::LOOP_OVERRUN, "LOOP_OVERRUN"),
+        (Self::MODEL_INVALID, "MODEL_INVALID"),
+        (Self::DRIVER, "DRIVER"),
+        (Self::ESTOP, "ESTOP"),
+        (Self::WORKSPACE, "WORKSPACE"),
+    ];
+
+    /// Names of the bits set, in bit order (bits without a name are left
+    /// out: see [`Faults::unnamed`]).
+    pub fn names(self) -> impl Iterator<Item = &'static str> {
+        Self::NAMED
+            .into_iter()
+            .filter(move |(f, _)| self.contains(*f))
+            .map(|(_, n)| n)
+    }
+
+    /// The bits set that have no name (a newer firmware's).
+    pub const fn unnamed(self) -> u16 {
+        let mut known = 0;
+        let mut k = 0;
+        while k < Self::NAMED.len() {
+            known |= Self::NAMED[k].0 .0;
+            k += 1;
+        }
+        self.0 & !known
+    }
 
     /// No fault.
     pub const fn is_empty(self) -> bool {

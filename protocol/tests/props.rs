@@ -181,7 +181,7 @@ fn state(f: fn() -> F) -> impl Strategy<Value = State> {
         uniform8(any::<i32>()),
         uniform3(f()),
         uniform3(any::<i32>()),
-        uniform8(f()),
+        (uniform8(f()), uniform3(f())),
         (any::<u16>(), any::<u8>(), proptest::option::of(0u8..8)),
         (
             any::<u16>(),
@@ -191,13 +191,14 @@ fn state(f: fn() -> F) -> impl Strategy<Value = State> {
         ),
     )
         .prop_map(
-            |((t, h), c, p, q, tn, (fl, sl, ex), (lu, lm, ar, mi))| State {
+            |((t, h), c, p, q, (tn, rf), (fl, sl, ex), (lu, lm, ar, mi))| State {
                 time_us: t,
                 since_home_us: h,
                 counts: c,
                 position_mm: p,
                 corrected_mm: q,
                 tensions_n: tn,
+                rendered_force_n: rf,
                 faults: Faults(fl),
                 slack: sl,
                 excluded: ex,

@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
 use spidar_protocol::messages::q16_to_mm;
-use spidar_protocol::State;
+use spidar_protocol::{Faults, State};
 
 use super::{Client, ClientOptions, FlashPhase, LinkError, StreamOptions};
 
@@ -363,14 +363,20 @@ pub fn run_device(args: &DeviceArgs) -> Result<String, Box<dyn std::error::Error
         }
         DeviceCommand::Force { fx, fy, fz, hold } => {
             let hold = seconds(*hold, "--hold")?;
+            let requested = [*fx, *fy, *fz];
             client.arm()?;
-            client.set_force([*fx, *fy, *fz])?;
-            hold_heartbeat(&mut client, hold)?;
+            // State frames (every 10th loop iteration) tell what the device
+            // renders; the last one taken while holding is reported.
+            client.stream_on(10)?;
+            client.set_force(requested)?;
+            let last = hold_heartbeat(&mut client, hold)?;
             client.set_force([0.0; 3])?;
+            client.stream_off()?;
             client.disarm()?;
             let _ = writeln!(
                 out,
-                "rendered [{fx}, {fy}, {fz}] N for {:.1} s, disarmed",
+                "{} (held {:.1} s), disarmed",
+                force_report(requested, last.as_ref()),
                 hold.as_secs_f64()
             );
         }
@@ -378,18 +384,138 @@ pub fn run_device(args: &DeviceArgs) -> Result<String, Box<dyn std::error::Error
     Ok(out)
 }
 
-fn hold_heartbeat(client: &mut Client, hold: Duration) -> Result<(), LinkError> {
+/// Keeps the device armed for `hold` with heartbeats; the last state frame
+/// that came meanwhile, if streaming.
+fn hold_heartbeat(client: &mut Client, hold: Duration) -> Result<Option<State>, LinkError> {
     let t0 = Instant::now();
+    let mut last = None;
     while t0.elapsed() < hold {
         client.heartbeat()?;
+        if let Some(s) = client.take_states().pop() {
+            last = Some(s);
+        }
         std::thread::sleep(Duration::from_millis(5));
     }
-    Ok(())
+    if let Some(s) = client.poll_states()?.pop() {
+        last = Some(s);
+    }
+    Ok(last)
+}
+
+/// The fault bits of a state by name (`none` when clear).
+pub fn fault_names(faults: Faults) -> String {
+    let mut names: Vec<String> = faults.names().map(str::to_string).collect();
+    if faults.unnamed() != 0 {
+        names.push(format!("unnamed bits {:#06x}", faults.unnamed()));
+    }
+    if names.is_empty() {
+        "none".into()
+    } else {
+        names.join(", ")
+    }
+}
+
+/// What `device force` says: the force asked for, the force the device's
+/// last state frame says its tensions render, and why they differ.
+pub fn force_report(requested: [f32; 3], last: Option<&State>) -> String {
+    let norm = |f: [f32; 3]| (f[0] * f[0] + f[1] * f[1] + f[2] * f[2]).sqrt();
+    let show = |f: [f32; 3]| format!("[{:.3}, {:.3}, {:.3}] N", f[0], f[1], f[2]);
+    let asked = format!(
+        "requested [{}, {}, {}] N",
+        requested[0], requested[1], requested[2]
+    );
+    let Some(s) = last else {
+        return format!("{asked}; rendered: unknown (no state frame came while holding)");
+    };
+    let rendered = s.rendered_force_n;
+    let mut line = format!("{asked}; rendered {} (device frame)", show(rendered));
+    let (r, q) = (norm(rendered), norm(requested));
+    let limited = r + 1e-3 < 0.99 * q;
+    if !s.armed {
+        let _ = write!(
+            line,
+            ": the device disarmed itself (faults {})",
+            fault_names(s.faults)
+        );
+    } else if limited {
+        let _ = write!(
+            line,
+            ": the device limited it to {:.1} % ({}; faults {})",
+            100.0 * r / q.max(f32::MIN_POSITIVE),
+            if s.faults.contains(Faults::TENSION_CLAMPED) {
+                "a tension reached the maximum"
+            } else {
+                "its force limit or the tension range"
+            },
+            fault_names(s.faults)
+        );
+    } else if !s.faults.is_empty() {
+        let _ = write!(line, " (faults {})", fault_names(s.faults));
+    }
+    line
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn state(rendered: [f32; 3], faults: Faults, armed: bool) -> State {
+        State {
+            time_us: 0,
+            since_home_us: 0,
+            counts: [0; 8],
+            position_mm: [0.0; 3],
+            corrected_mm: [0; 3],
+            tensions_n: [1.0; 8],
+            rendered_force_n: rendered,
+            faults,
+            slack: 0,
+            excluded: None,
+            loop_us: 0,
+            loop_max_us: 0,
+            armed,
+            model_id: None,
+        }
+    }
+
+    #[test]
+    fn the_force_report_says_what_was_rendered_and_why() {
+        let r = force_report(
+            [0.0, 0.0, 2.0],
+            Some(&state([0.0, 0.0, 2.0], Faults(0), true)),
+        );
+        assert_eq!(
+            r,
+            "requested [0, 0, 2] N; rendered [0.000, 0.000, 2.000] N (device frame)"
+        );
+        let r = force_report(
+            [1e9, 0.0, 0.0],
+            Some(&state([10.0, 0.0, 0.0], Faults::TENSION_CLAMPED, true)),
+        );
+        assert!(
+            r.starts_with("requested [1000000000, 0, 0] N; rendered [10.000, 0.000, 0.000] N"),
+            "{r}"
+        );
+        assert!(r.contains("limited it to 0.0 %"), "{r}");
+        assert!(
+            r.contains("a tension reached the maximum; faults TENSION_CLAMPED"),
+            "{r}"
+        );
+        let r = force_report(
+            [3.0, 0.0, 0.0],
+            Some(&state([0.0; 3], Faults(1 | 1 << 12), false)),
+        );
+        assert!(
+            r.contains("disarmed itself (faults HEARTBEAT_LOST, unnamed bits 0x1000)"),
+            "{r}"
+        );
+        assert!(force_report([1.0, 0.0, 0.0], None).contains("unknown"));
+        assert_eq!(fault_names(Faults(0)), "none");
+        assert_eq!(
+            fault_names(Faults::ESTOP.union(Faults::WORKSPACE)),
+            "ESTOP, WORKSPACE"
+        );
+    }
 
     #[test]
     fn dates_names_and_forces_read_as_people_write_them() {

@@ -359,6 +359,7 @@ mod tests {
             position_mm: [c as f32; 3],
             corrected_mm: [c; 3],
             tensions_n: [1.0; 8],
+            rendered_force_n: [0.0; 3],
             faults: Default::default(),
             slack: 0,
             excluded: None,
