@@ -354,7 +354,7 @@ pub fn run_device(args: &DeviceArgs) -> Result<String, Box<dyn std::error::Error
         DeviceCommand::Arm { hold } => {
             let hold = seconds(*hold, "--hold")?;
             client.arm()?;
-            hold_heartbeat(&mut client, hold)?;
+            hold_heartbeat(&mut client, hold, false)?;
             let _ = writeln!(out, "armed");
         }
         DeviceCommand::Disarm => {
@@ -369,7 +369,10 @@ pub fn run_device(args: &DeviceArgs) -> Result<String, Box<dyn std::error::Error
             // renders; the last one taken while holding is reported.
             client.stream_on(10)?;
             client.set_force(requested)?;
-            let last = hold_heartbeat(&mut client, hold)?;
+            // Frames that came before the force was acknowledged may be
+            // from before it was applied.
+            client.take_states();
+            let last = hold_heartbeat(&mut client, hold, true)?;
             client.set_force([0.0; 3])?;
             client.stream_off()?;
             client.disarm()?;
@@ -384,23 +387,39 @@ pub fn run_device(args: &DeviceArgs) -> Result<String, Box<dyn std::error::Error
     Ok(out)
 }
 
-/// Keeps the device armed for `hold` with heartbeats; the last state frame
-/// that came meanwhile, if streaming.
-fn hold_heartbeat(client: &mut Client, hold: Duration) -> Result<Option<State>, LinkError> {
+/// Keeps the device armed for `hold` with heartbeats; when streaming, the
+/// last state frame that came meanwhile. A state frame is only trusted when
+/// another came before it in the hold (the first may have been computed in
+/// the loop iteration before the last request took effect): if fewer came
+/// (a slow host), the heartbeats go on until two did, for up to
+/// [`STATE_WAIT`] more.
+fn hold_heartbeat(
+    client: &mut Client,
+    hold: Duration,
+    want_states: bool,
+) -> Result<Option<State>, LinkError> {
     let t0 = Instant::now();
     let mut last = None;
-    while t0.elapsed() < hold {
+    let mut seen = 0usize;
+    loop {
+        let elapsed = t0.elapsed();
+        let short = want_states && seen < 2;
+        if elapsed >= hold && !(short && elapsed < hold + STATE_WAIT) {
+            break;
+        }
         client.heartbeat()?;
-        if let Some(s) = client.take_states().pop() {
-            last = Some(s);
+        let states = client.poll_states()?;
+        seen += states.len();
+        if let Some(s) = states.last() {
+            last = Some(*s);
         }
         std::thread::sleep(Duration::from_millis(5));
     }
-    if let Some(s) = client.poll_states()?.pop() {
-        last = Some(s);
-    }
-    Ok(last)
+    Ok(if seen >= 2 { last } else { None })
 }
+
+/// How long `device force` waits past its hold for the device's state frames.
+const STATE_WAIT: Duration = Duration::from_secs(2);
 
 /// The fault bits of a state by name (`none` when clear).
 pub fn fault_names(faults: Faults) -> String {
