@@ -41,6 +41,11 @@ pub struct CalibrateArgs {
     /// Do not draw the figures.
     #[arg(long)]
     pub no_figures: bool,
+    /// Keep the smooth winding law: do not try layer tables (the spool's
+    /// departure from it, fitted per string and kept only when held-out
+    /// data say it helps; see docs/design.md, "Layer tables").
+    #[arg(long)]
+    pub no_layer_tables: bool,
     /// No progress bars.
     #[arg(long)]
     pub quiet: bool,
@@ -72,6 +77,7 @@ impl CalibrateArgs {
         c.seed = self.seed;
         c.blackbox = self.blackbox;
         c.quiet = self.quiet;
+        c.loop_config.layer_tables = !self.no_layer_tables;
         c
     }
 }
@@ -200,6 +206,7 @@ pub fn run_demo(args: &DemoArgs) -> Result<String, CalibrateError> {
         blackbox: args.blackbox,
         quick: args.quick,
         no_figures: false,
+        no_layer_tables: false,
         quiet: args.quiet,
         export_pairs: None,
     })?;
@@ -277,4 +284,37 @@ fn run_on_virtual_device(
         row("before (nominal)", &before),
         row("after (calibrated)", &after),
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Parser)]
+    struct Wrap {
+        #[command(flatten)]
+        args: CalibrateArgs,
+    }
+
+    /// `--no-layer-tables` turns the loop's layer tables off; they are on by
+    /// default.
+    #[test]
+    fn layer_tables_are_on_unless_turned_off() {
+        let parse = |extra: &[&str]| {
+            let mut argv = vec![
+                "calibrate",
+                "--geometry",
+                "g.toml",
+                "--train",
+                "a.csv",
+                "--test",
+                "b.csv",
+            ];
+            argv.extend_from_slice(extra);
+            Wrap::try_parse_from(argv).expect("parses").args.config()
+        };
+        assert!(parse(&[]).loop_config.layer_tables);
+        assert!(!parse(&["--no-layer-tables"]).loop_config.layer_tables);
+    }
 }

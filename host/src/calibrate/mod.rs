@@ -1027,7 +1027,7 @@ pub fn calibrate(
         },
         stages,
         effects: loop_result.findings.clone(),
-        identification: report::IdentificationReport::of(base, fin),
+        identification: report::IdentificationReport::of(base, fin, &loop_result.layers),
         selection,
         corrections: residual,
         blackbox,

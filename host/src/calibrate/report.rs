@@ -468,10 +468,18 @@ pub struct IdentificationReport {
     pub effect_terms: Vec<EffectTerm>,
     /// The base identification's residual scale, before any effect, mm.
     pub base_residual_scale_mm: f64,
+    /// The layer-table spacing chosen for each string on the blocked folds
+    /// (every spacing tried with its held-out string rms); whether the
+    /// tables were kept is the `layers` finding's validation.
+    pub layer_tables: Vec<crate::layers::StringLayers>,
 }
 
 impl IdentificationReport {
-    pub fn of(base: &Identification, fin: &Identification) -> IdentificationReport {
+    pub fn of(
+        base: &Identification,
+        fin: &Identification,
+        layer_tables: &[crate::layers::StringLayers],
+    ) -> IdentificationReport {
         IdentificationReport {
             parameters: fin.parameters.clone(),
             warnings: fin.warnings.clone(),
@@ -480,6 +488,7 @@ impl IdentificationReport {
             evaluations: fin.evaluations,
             effect_terms: fin.effects.clone(),
             base_residual_scale_mm: base.residual_scale_mm,
+            layer_tables: layer_tables.to_vec(),
         }
     }
 }
