@@ -830,6 +830,11 @@ pub struct CollectArgs {
     /// tracker (device seed; --port, --geometry and --tracker are ignored).
     #[arg(long, value_name = "SEED")]
     pub simulate: Option<u64>,
+    /// Simulator configuration of the --simulate device (TOML, as `spidar
+    /// simulate --config`; e.g. `[nominal] strings = 4` for a 4-string rig)
+    /// (default: the built-in 8-string Scalable-SPIDAR).
+    #[arg(long, value_name = "TOML", requires = "simulate")]
+    pub sim_config: Option<std::path::PathBuf>,
 }
 
 /// Why `spidar collect` failed.
@@ -963,7 +968,9 @@ pub fn run_collect(args: &CollectArgs) -> Result<String, CollectRunError> {
     };
     let report = match args.simulate {
         Some(seed) => {
-            let device = crate::sim::Device::new(&crate::sim::SimConfig::default(), seed)
+            let sim_config = crate::sim::SimConfig::load_or_default(args.sim_config.as_deref())
+                .map_err(super::sim_user::RigError::from)?;
+            let device = crate::sim::Device::new(&sim_config, seed)
                 .map_err(super::sim_user::RigError::from)?;
             let mut rig = super::sim_user::SimulatedRig::start(device, [0.0; 3], |c| {
                 c.seed = seed;

@@ -470,6 +470,11 @@ pub struct InitArgs {
     /// tracker (device seed; --port, --geometry and --tracker are ignored).
     #[arg(long, value_name = "SEED")]
     pub simulate: Option<u64>,
+    /// Simulator configuration of the --simulate device (TOML, as `spidar
+    /// simulate --config`; e.g. `[nominal] strings = 4` for a 4-string rig)
+    /// (default: the built-in 8-string Scalable-SPIDAR).
+    #[arg(long, value_name = "TOML", requires = "simulate")]
+    pub sim_config: Option<std::path::PathBuf>,
 }
 
 /// Parses `x,y,z` (mm).
@@ -509,7 +514,9 @@ pub fn run_init(args: &InitArgs) -> Result<String, InitRunError> {
     let mut rig = None;
     let (geometry, mut client, mut receiver) = match args.simulate {
         Some(seed) => {
-            let device = crate::sim::Device::new(&crate::sim::SimConfig::default(), seed)
+            let sim_config = crate::sim::SimConfig::load_or_default(args.sim_config.as_deref())
+                .map_err(super::sim_user::RigError::from)?;
+            let device = crate::sim::Device::new(&sim_config, seed)
                 .map_err(super::sim_user::RigError::from)?;
             // The built-in homing left the end-effector ~5 cm off.
             let r = super::sim_user::SimulatedRig::start(device, [45.0, -30.0, 25.0], |c| {

@@ -56,7 +56,7 @@ use std::collections::VecDeque;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
-use spidar_core::model::{Calibration, Effect, EffectTerm, WINDING_ORDER};
+use spidar_core::model::{Calibration, Effect, EffectTerm, EVERY_STRING, WINDING_ORDER};
 use spidar_core::STRINGS;
 use spidar_protocol::messages::q16_to_mm;
 use spidar_protocol::Event;
@@ -398,22 +398,26 @@ pub struct MonitorInputs<'a> {
 /// A finding in the device's terms: string, mm, when.
 pub fn describe_finding(f: &Finding) -> String {
     let term = match f.change {
-        Some(Change::Effect(EffectTerm { string, effect })) => match effect {
-            Effect::Slip { at_s, mm } => format!(
-                "string {string} slipped by {mm:+.2} mm at {at_s:.2} s of device time since home"
-            ),
-            Effect::Offset { mm } => format!("string {string} reads {mm:+.2} mm off"),
-            Effect::Drift { mm_per_s } => {
-                format!("string {string} drifts {:+.3} mm/min", mm_per_s * 60.0)
+        Some(Change::Effect(EffectTerm { string, effect })) => {
+            let who = if string == EVERY_STRING {
+                "every string".to_string()
+            } else {
+                format!("string {string}")
+            };
+            match effect {
+                Effect::Slip { at_s, mm } => {
+                    format!("{who} slipped by {mm:+.2} mm at {at_s:.2} s of device time since home")
+                }
+                Effect::Offset { mm } => format!("{who} reads {mm:+.2} mm off"),
+                Effect::Drift { mm_per_s } => {
+                    format!("{who} drifts {:+.3} mm/min", mm_per_s * 60.0)
+                }
+                Effect::Scale { relative } => {
+                    format!("{who}'s payout is off by {:+.3} %", relative * 100.0)
+                }
+                other => format!("{who}: {other:?}"),
             }
-            Effect::Scale { relative } => {
-                format!(
-                    "string {string}'s payout is off by {:+.3} %",
-                    relative * 100.0
-                )
-            }
-            other => format!("string {string}: {other:?}"),
-        },
+        }
         _ => f.description.clone(),
     };
     format!(
@@ -998,7 +1002,19 @@ impl Monitor<'_> {
                 break;
             }
             let Some(change) = f.change else { continue };
-            if f.strings.iter().any(|s| strings_changed.contains(s)) {
+            // A term shared by every string (no strings named) touches them
+            // all.
+            let touched: Vec<u8> = if f.strings.is_empty() {
+                self.geometry
+                    .nominal_frame()
+                    .layout
+                    .indices()
+                    .map(|i| i as u8)
+                    .collect()
+            } else {
+                f.strings.clone()
+            };
+            if touched.iter().any(|s| strings_changed.contains(s)) {
                 continue;
             }
             let candidate = structure.with(change);
@@ -1014,7 +1030,7 @@ impl Monitor<'_> {
                 structure = candidate;
                 data = candidate_data;
                 validation = after;
-                strings_changed.extend(&f.strings);
+                strings_changed.extend(&touched);
                 added.push(describe_finding(f));
             }
         }
@@ -1110,6 +1126,8 @@ impl Monitor<'_> {
 pub struct SimCalibration {
     /// The device seed.
     pub seed: u64,
+    /// The simulator configuration of the device (effects aside).
+    pub sim_config: crate::sim::SimConfig,
     pub geometry: Geometry,
     /// The lattice (training) session.
     pub training: Session,
@@ -1123,11 +1141,24 @@ pub struct SimCalibration {
 /// `seed` (no injected effect: the device as calibrated) and runs the
 /// calibrate pipeline on them in process (reduced NN/SVR search).
 pub fn calibrate_simulated(seed: u64) -> Result<SimCalibration, MonitorError> {
+    calibrate_simulated_with(seed, &crate::sim::SimConfig::default())
+}
+
+/// [`calibrate_simulated`] for the device of another simulator
+/// configuration (`spidar monitor --simulate --sim-config`: e.g. a
+/// 4-string rig); its injected effects are left out.
+pub fn calibrate_simulated_with(
+    seed: u64,
+    sim_config: &crate::sim::SimConfig,
+) -> Result<SimCalibration, MonitorError> {
     use crate::calibrate::{calibrate, CalibrateConfig, NamedSession};
     use crate::sim::{simulate_session, Device as SimDevice, SessionKind, SimConfig};
     let t0 = Instant::now();
     let sim = |e: crate::sim::SimError| MonitorError::Simulation(e.to_string());
-    let config = SimConfig::default();
+    let config = SimConfig {
+        effects: Vec::new(),
+        ..sim_config.clone()
+    };
     let device = SimDevice::new(&config, seed).map_err(sim)?;
     let training =
         simulate_session(&device, SessionKind::Lattice, seed.wrapping_add(100)).map_err(sim)?;
@@ -1156,6 +1187,7 @@ pub fn calibrate_simulated(seed: u64) -> Result<SimCalibration, MonitorError> {
     .map_err(|e| MonitorError::Simulation(format!("calibration: {e}")))?;
     Ok(SimCalibration {
         seed,
+        sim_config: config.clone(),
         geometry: device.nominal.clone(),
         training,
         calibration: calibrated.calibration,
@@ -1242,7 +1274,7 @@ impl SimulatedMonitorRig {
         use crate::sim::{Device as SimDevice, SimConfig};
         let sim_config = SimConfig {
             effects: config.effects.clone(),
-            ..SimConfig::default()
+            ..calibrated.sim_config.clone()
         };
         let device = SimDevice::new(&sim_config, calibrated.seed)
             .map_err(|e| MonitorError::Simulation(e.to_string()))?;
@@ -1329,6 +1361,11 @@ pub struct MonitorArgs {
     /// wanders about (--port, --geometry, --calibration, --tracker ignored).
     #[arg(long, value_name = "SEED")]
     pub simulate: Option<u64>,
+    /// Simulator configuration of the --simulate device (TOML, as `spidar
+    /// simulate --config`; e.g. `[nominal] strings = 4` for a 4-string rig)
+    /// (default: the built-in 8-string Scalable-SPIDAR).
+    #[arg(long, value_name = "TOML", requires = "simulate")]
+    pub sim_config: Option<std::path::PathBuf>,
     /// Injected effect of the simulated device at run time, e.g.
     /// `slip:2:at_s=20,mm=8` (device time since boot; repeatable).
     #[arg(long = "effect", value_name = "SPEC", requires = "simulate")]
@@ -1433,7 +1470,9 @@ pub fn run_monitor(args: &MonitorArgs) -> Result<String, MonitorError> {
             eprintln!(
                 "calibrating the simulated device (seed {seed}) from its simulated lattice ..."
             );
-            let calibrated = calibrate_simulated(seed)?;
+            let sim_config = crate::sim::SimConfig::load_or_default(args.sim_config.as_deref())
+                .map_err(|e| MonitorError::Simulation(e.to_string()))?;
+            let calibrated = calibrate_simulated_with(seed, &sim_config)?;
             eprintln!("calibrated in {:.1} s", calibrated.seconds);
             let mut rig = SimulatedMonitorRig::start(
                 &calibrated,

@@ -376,6 +376,12 @@ pub(crate) fn read_toml<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T
 }
 
 impl SimConfig {
+    /// The configuration of `path` (see [`SimConfig::load`]), or the
+    /// default one without a path.
+    pub fn load_or_default(path: Option<&Path>) -> Result<Self, SimError> {
+        path.map_or_else(|| Ok(SimConfig::default()), SimConfig::load)
+    }
+
     /// Read a configuration TOML file (all keys optional).
     pub fn load(path: impl AsRef<Path>) -> Result<Self, SimError> {
         let config: SimConfig = read_toml(path.as_ref())?;
