@@ -124,6 +124,16 @@ fn a_model_fitted_on_train_meets_the_held_out_target() {
     assert_eq!(r.device.redundancy, 1);
     assert!(!r.device.fault_rejection);
     assert!(r.device.limits.iter().any(|l| l.contains("spare")));
+    // The runtime monitor takes this calibration of a device whose lines are
+    // doubled and quadrupled (issue 11): its laws are of the identified form
+    // with the geometry's mechanical advantage, and read back as the same
+    // shared spool build-up.
+    use spidar::operator::recalibrate::{check_calibration, identification_of};
+    check_calibration(&c.calibration, &g, 100.0, &d.join("calibration.json"))
+        .expect("the monitor accepts a calibration of a device with mechanical advantage");
+    let back = identification_of(&c.calibration, &g.mechanical_advantage);
+    assert!((back.winding.kappa_mm - kappa).abs() < 1e-12 * kappa.abs().max(1.0));
+    assert_eq!(back.laws, c.calibration.strings);
     // 31 tracked training rows: too few to choose a learned correction.
     assert!(
         r.warnings.iter().any(|w| w.contains("selection split")),

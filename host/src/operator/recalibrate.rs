@@ -458,13 +458,18 @@ pub fn check_calibration(
                 ),
             );
         }
+        // The identified form: [r_home_i, -kappa / m_i, 0, 0] with one kappa
+        // (m_i the string's mechanical advantage, 1 for a single line).
+        let kappa_of =
+            |j: usize| -calibration.strings[j].winding_mm[1] * geometry.mechanical_advantage[j];
+        let (k, k0) = (kappa_of(i), kappa_of(first));
         if law.winding_mm[2..WINDING_ORDER].iter().any(|c| *c != 0.0)
-            || law.winding_mm[1] != calibration.strings[first].winding_mm[1]
+            || (k - k0).abs() > 1e-9 * k0.abs().max(1e-12)
         {
             return bad(
                 format!("strings[{i}].winding_mm"),
-                "not of the identified winding form [r_home, -kappa, 0, 0] with one kappa: \
-                 runtime diagnosis cannot test this model"
+                "not of the identified winding form [r_home, -kappa / mechanical_advantage, 0, \
+                 0] with one kappa: runtime diagnosis cannot test this model"
                     .into(),
             );
         }
@@ -508,18 +513,22 @@ pub fn check_calibration(
 }
 
 /// The calibration as an identification (its frame, winding and effects),
-/// so that diagnosis can test it.
-pub fn identification_of(calibration: &Calibration) -> Identification {
+/// so that diagnosis can test it; `mechanical_advantage` is the geometry's
+/// (each string's law carries the shared kappa over it, see
+/// [`check_calibration`]).
+pub fn identification_of(
+    calibration: &Calibration,
+    mechanical_advantage: &[f64; STRINGS],
+) -> Identification {
     let laws = calibration.strings;
+    let first = calibration.frame.layout.indices().next().unwrap_or(0);
     Identification {
         frame: calibration.frame,
-        // The runtime monitor serves single-line strings (mechanical
-        // advantage 1): every string's law carries the shared kappa.
         winding: WindingPhysics {
             r_home_mm: core::array::from_fn(|i| laws[i].winding_mm[0]),
-            kappa_mm: -laws[0].winding_mm[1],
+            kappa_mm: -laws[first].winding_mm[1] * mechanical_advantage[first],
             counts_per_rev: laws.map(|l| l.counts_per_rev),
-            mechanical_advantage: [1.0; STRINGS],
+            mechanical_advantage: *mechanical_advantage,
             layers: laws.map(|l| l.layers),
         },
         laws,
@@ -651,7 +660,10 @@ pub fn monitor(
         geometry: inputs.geometry,
         training: inputs.training,
         calibration: inputs.calibration.clone(),
-        identification: identification_of(inputs.calibration),
+        identification: identification_of(
+            inputs.calibration,
+            &inputs.geometry.mechanical_advantage,
+        ),
         structure: structure_of(inputs.calibration),
         base: Instant::now(),
         sync: ClockSync::new(),
