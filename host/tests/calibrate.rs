@@ -176,8 +176,22 @@ fn cli_calibrate_writes_the_report_the_scripts_read() {
     ] {
         assert!(stdout.contains(needle), "summary lacks {needle}:\n{stdout}");
     }
+    // That --blackbox would add the paper's procedure is a note, not a
+    // warning about the result (issue 13, point 7).
+    let notes = stdout.split("\nNotes:").nth(1).expect("a Notes section");
+    assert!(notes.contains("--blackbox adds"), "{stdout}");
+    let warnings = stdout.split("\nWarnings:").nth(1).unwrap_or("");
+    assert!(
+        !warnings
+            .split("\nNotes:")
+            .next()
+            .unwrap_or("")
+            .contains("--blackbox"),
+        "{stdout}"
+    );
 
     let report: Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    assert!(report["notes"][0].as_str().unwrap().contains("--blackbox"));
     let same: Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
     assert_eq!(report["stages"], same["stages"]);

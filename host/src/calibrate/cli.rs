@@ -102,7 +102,7 @@ pub fn run_calibrate(args: &CalibrateArgs) -> Result<CalibrateOutput, CalibrateE
         &config,
     )?;
     if !config.blackbox && train.has_legacy() && test.has_legacy() {
-        calibrated.report.warnings.push(
+        calibrated.report.notes.push(
             "the sessions have dev_* columns: --blackbox adds the paper's black-box NN and SVR \
              for comparison"
                 .into(),

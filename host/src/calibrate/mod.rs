@@ -169,10 +169,12 @@ impl CalibrateConfig {
             blackbox_nn: SweepConfig {
                 sizes: (3..=24).collect(),
                 mode: OutputMode::Absolute,
+                blackbox: true,
                 ..SweepConfig::default()
             },
             blackbox_svr: SvrSearchConfig {
                 mode: OutputMode::Absolute,
+                blackbox: true,
                 ..SvrSearchConfig::default()
             },
             quiet: false,
@@ -1032,6 +1034,7 @@ pub fn calibrate(
         corrections: residual,
         blackbox,
         warnings,
+        notes: Vec::new(),
         timings_s: timings,
         figures: Vec::new(),
         files: report::Files::default(),

@@ -40,6 +40,10 @@ pub struct Report {
     /// The paper's black-box procedure, when run (`null` otherwise).
     pub blackbox: Option<Blackbox>,
     pub warnings: Vec<String>,
+    /// What else the run could do, for information (not a problem with the
+    /// result: e.g. that `--blackbox` would add the paper's procedure).
+    #[serde(default)]
+    pub notes: Vec<String>,
     pub timings_s: Timings,
     pub figures: Vec<Figure>,
     pub files: Files,
@@ -756,6 +760,12 @@ impl Report {
             let _ = writeln!(o, "\nWarnings:");
             for w in &self.warnings {
                 let _ = writeln!(o, "  - {w}");
+            }
+        }
+        if !self.notes.is_empty() {
+            let _ = writeln!(o, "\nNotes:");
+            for n in &self.notes {
+                let _ = writeln!(o, "  - {n}");
             }
         }
         let t = &self.timings_s;

@@ -41,6 +41,10 @@ pub struct SweepConfig {
     pub sweep_time_limit: Option<Duration>,
     pub final_time_limit: Option<Duration>,
     pub quiet: bool,
+    /// The progress bars say "black-box" (the paper's procedure, not the
+    /// residual correction).
+    #[serde(default)]
+    pub blackbox: bool,
 }
 
 impl Default for SweepConfig {
@@ -63,6 +67,7 @@ impl Default for SweepConfig {
             sweep_time_limit: None,
             final_time_limit: None,
             quiet: true,
+            blackbox: false,
         }
     }
 }
@@ -142,7 +147,15 @@ pub fn nn_sweep(
         .collect();
     jobs.sort_by_key(|&(h, r)| (std::cmp::Reverse(h), r));
     let deadline = Deadline::after(cfg.sweep_time_limit);
-    let pb = progress(jobs.len() as u64, "NN sweep", cfg.quiet);
+    let pb = progress(
+        jobs.len() as u64,
+        if cfg.blackbox {
+            "black-box NN sweep"
+        } else {
+            "NN sweep"
+        },
+        cfg.quiet,
+    );
     let runs: Vec<(usize, usize, nn::Run)> = jobs
         .par_iter()
         .map(|&(h, r)| {
@@ -197,7 +210,11 @@ pub fn nn_sweep(
     let deadline = Deadline::after(cfg.final_time_limit);
     let pb = progress(
         (cfg.final_restarts * cfg.final_lm.max_epochs) as u64,
-        "NN final",
+        if cfg.blackbox {
+            "black-box NN final"
+        } else {
+            "NN final"
+        },
         cfg.quiet,
     );
     let finals: Vec<nn::Run> = (0..cfg.final_restarts)
@@ -262,6 +279,9 @@ pub struct SvrSearchConfig {
     /// Dense-kernel size cap (see `svr::DEFAULT_MAX_DENSE_POINTS`).
     pub max_dense_points: usize,
     pub quiet: bool,
+    /// The progress bar says "black-box" (see [`SweepConfig::blackbox`]).
+    #[serde(default)]
+    pub blackbox: bool,
 }
 
 impl Default for SvrSearchConfig {
@@ -279,6 +299,7 @@ impl Default for SvrSearchConfig {
             time_limit: None,
             max_dense_points: svr::DEFAULT_MAX_DENSE_POINTS,
             quiet: true,
+            blackbox: false,
         }
     }
 }
@@ -394,7 +415,15 @@ pub fn svr_search(
     let cand_index =
         |gi: usize, ci: usize, ei: usize| (gi * cfg.c.len() + ci) * cfg.epsilon.len() + ei;
     let deadline = Deadline::after(cfg.time_limit);
-    let pb = progress((n_cand * folds.len()) as u64, "SVR search", cfg.quiet);
+    let pb = progress(
+        (n_cand * folds.len()) as u64,
+        if cfg.blackbox {
+            "black-box SVR search"
+        } else {
+            "SVR search"
+        },
+        cfg.quiet,
+    );
     for (tr, va) in &folds {
         let xt: Vec<[f64; 3]> = tr.iter().map(|&i| x[i]).collect();
         let yt: Vec<[f64; 3]> = tr.iter().map(|&i| y[i]).collect();
