@@ -24,6 +24,78 @@ pub struct FigureError {
 
 const SIZE: (u32, u32) = (900, 640);
 
+/// What a figure shows, from the data it was drawn with: its axes' ranges
+/// and, for the spatial map, its colour scale (the report lists it beside
+/// each figure, and tests assert it).
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
+pub struct Drawn {
+    /// x axis range (the histogram's error range, mm).
+    pub x: (f64, f64),
+    /// y axis range (the histogram's count range).
+    pub y: (f64, f64),
+    /// The y axis is logarithmic.
+    pub log_y: bool,
+    /// Spatial map: the error the top colour stands for, mm, and how many
+    /// points lie beyond it (drawn in that colour, larger).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub colour_max_mm: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub beyond_colour_max: Option<usize>,
+    /// An x value marked on the figure (the chosen hidden size).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub marked_x: Option<f64>,
+}
+
+/// How an x-y figure is drawn beyond its series.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct XyOptions<'a> {
+    /// A logarithmic y axis when the series' medians are this many times
+    /// apart or more (one series of hundreds of mm, another of tenths).
+    pub log_y_beyond_ratio: Option<f64>,
+    /// Integer ticks on x (counts, neuron numbers).
+    pub integer_x: bool,
+    /// A vertical mark at this x, with its label.
+    pub mark_x: Option<(f64, &'a str)>,
+}
+
+/// The colour scale of a spatial map: the 98th percentile of the errors,
+/// or the maximum when it is no more than twice that (one far point must
+/// not turn every other point the same blue).
+pub fn robust_colour_max(errors_mm: &[f64]) -> f64 {
+    let mut e: Vec<f64> = errors_mm
+        .iter()
+        .copied()
+        .filter(|v| v.is_finite())
+        .collect();
+    if e.is_empty() {
+        return 1.0;
+    }
+    e.sort_by(f64::total_cmp);
+    let max = e[e.len() - 1];
+    let p98 = e[((0.98 * e.len() as f64).ceil() as usize).clamp(1, e.len()) - 1];
+    let top = if max <= 2.0 * p98 { max } else { p98 };
+    top.max(1e-9)
+}
+
+/// A histogram's x range from 0 to just past the largest finite value.
+pub fn from_zero(values: &[f64]) -> (f64, f64) {
+    let max = values
+        .iter()
+        .copied()
+        .filter(|v| v.is_finite())
+        .fold(0.0f64, f64::max);
+    (0.0, (1.05 * max).max(1e-9))
+}
+
+fn median_of(v: &[f64]) -> f64 {
+    let mut e: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
+    if e.is_empty() {
+        return f64::NAN;
+    }
+    e.sort_by(f64::total_cmp);
+    e[e.len() / 2]
+}
+
 fn register_font() {
     static ONCE: Once = Once::new();
     ONCE.call_once(|| {
@@ -86,7 +158,7 @@ pub fn spatial_error_map(
     title: &str,
     positions: &[[f64; 3]],
     errors_mm: &[f64],
-) -> Result<(), FigureError> {
+) -> Result<Drawn, FigureError> {
     register_font();
     let root = BitMapBackend::new(path, SIZE).into_drawing_area();
     root.fill(&WHITE).map_err(|e| fail(path, e))?;
@@ -94,8 +166,8 @@ pub fn spatial_error_map(
     let x = span(positions.iter().map(|p| p[0]));
     let y = span(positions.iter().map(|p| p[1]));
     let z = span(positions.iter().map(|p| p[2]));
-    let (_, emax) = span(errors_mm.iter().copied());
-    let emax = emax.max(1e-9);
+    let emax = robust_colour_max(errors_mm);
+    let beyond = errors_mm.iter().filter(|e| **e > emax).count();
     let mut chart = ChartBuilder::on(&main)
         .caption(title, ("sans-serif", 22))
         .margin(10)
@@ -109,18 +181,16 @@ pub fn spatial_error_map(
     });
     chart
         .configure_axes()
-        .x_formatter(&|v| format!("x {v:.0}"))
-        .y_formatter(&|v| format!("z {v:.0}"))
-        .z_formatter(&|v| format!("y {v:.0}"))
+        .x_formatter(&|v| format!("x {v:.0} mm"))
+        .y_formatter(&|v| format!("z {v:.0} mm"))
+        .z_formatter(&|v| format!("y {v:.0} mm"))
         .draw()
         .map_err(|e| fail(path, e))?;
     chart
-        .draw_series(
-            positions
-                .iter()
-                .zip(errors_mm)
-                .map(|(p, e)| Circle::new((p[0], p[2], p[1]), 2, heat(e / emax).filled())),
-        )
+        .draw_series(positions.iter().zip(errors_mm).map(|(p, e)| {
+            let size = if *e > emax { 4 } else { 2 };
+            Circle::new((p[0], p[2], p[1]), size, heat(e / emax).filled())
+        }))
         .map_err(|e| fail(path, e))?;
     // Colour bar.
     let steps = 50;
@@ -128,7 +198,14 @@ pub fn spatial_error_map(
         .margin_top(60)
         .margin_bottom(60)
         .y_label_area_size(60)
-        .caption("error mm", ("sans-serif", 14))
+        .caption(
+            if beyond > 0 {
+                format!("error mm ({beyond} beyond)")
+            } else {
+                "error mm".to_string()
+            },
+            ("sans-serif", 14),
+        )
         .build_cartesian_2d(0.0..1.0, 0.0..emax)
         .map_err(|e| fail(path, e))?;
     bar_chart
@@ -149,7 +226,15 @@ pub fn spatial_error_map(
             )
         }))
         .map_err(|e| fail(path, e))?;
-    root.present().map_err(|e| fail(path, e))
+    root.present().map_err(|e| fail(path, e))?;
+    Ok(Drawn {
+        x,
+        y: (0.0, emax),
+        log_y: false,
+        colour_max_mm: Some(emax),
+        beyond_colour_max: Some(beyond),
+        marked_x: None,
+    })
 }
 
 /// One named set of (x, y) points of a scatter or line figure.
@@ -167,8 +252,17 @@ pub fn scatter(
     x_label: &str,
     y_label: &str,
     series: &[Series<'_>],
-) -> Result<(), FigureError> {
-    xy_figure(path, title, x_label, y_label, series, XyStyle::Points)
+    options: XyOptions<'_>,
+) -> Result<Drawn, FigureError> {
+    xy_figure(
+        path,
+        title,
+        x_label,
+        y_label,
+        series,
+        XyStyle::Points,
+        options,
+    )
 }
 
 /// Lines with markers (e.g. error in collection order, paper fig. 10; mean
@@ -179,8 +273,17 @@ pub fn lines(
     x_label: &str,
     y_label: &str,
     series: &[Series<'_>],
-) -> Result<(), FigureError> {
-    xy_figure(path, title, x_label, y_label, series, XyStyle::Lines)
+    options: XyOptions<'_>,
+) -> Result<Drawn, FigureError> {
+    xy_figure(
+        path,
+        title,
+        x_label,
+        y_label,
+        series,
+        XyStyle::Lines,
+        options,
+    )
 }
 
 #[derive(Clone, Copy, PartialEq)]
@@ -198,59 +301,135 @@ fn xy_figure(
     y_label: &str,
     series: &[Series<'_>],
     style: XyStyle,
-) -> Result<(), FigureError> {
+    options: XyOptions<'_>,
+) -> Result<Drawn, FigureError> {
     register_font();
     let root = BitMapBackend::new(path, SIZE).into_drawing_area();
     root.fill(&WHITE).map_err(|e| fail(path, e))?;
     let x = span(series.iter().flat_map(|s| s.x.iter().copied()));
-    let y = span(series.iter().flat_map(|s| s.y.iter().copied()));
-    let mut chart = ChartBuilder::on(&root)
-        .caption(title, ("sans-serif", 22))
-        .margin(15)
-        .x_label_area_size(45)
-        .y_label_area_size(65)
-        .build_cartesian_2d(x.0..x.1, y.0..y.1)
-        .map_err(|e| fail(path, e))?;
-    chart
-        .configure_mesh()
-        .x_desc(x_label)
-        .y_desc(y_label)
-        .draw()
-        .map_err(|e| fail(path, e))?;
-    for (i, s) in series.iter().enumerate() {
-        let color = palette(i);
-        let points: Vec<(f64, f64)> = s.x.iter().copied().zip(s.y.iter().copied()).collect();
-        let markers = style == XyStyle::Points || points.len() <= 60;
-        let radius = if style == XyStyle::Points { 2 } else { 3 };
-        if style == XyStyle::Lines {
+    let medians: Vec<f64> = series
+        .iter()
+        .map(|s| median_of(s.y))
+        .filter(|m| m.is_finite() && *m > 0.0)
+        .collect();
+    let log_y = options.log_y_beyond_ratio.is_some_and(|r| {
+        let lo = medians.iter().cloned().fold(f64::INFINITY, f64::min);
+        let hi = medians.iter().cloned().fold(0.0, f64::max);
+        medians.len() >= 2 && hi >= r * lo
+    });
+    let y = if log_y {
+        // Positive values only on a log axis; a decade of room below.
+        let (lo, hi) = series
+            .iter()
+            .flat_map(|s| s.y.iter().copied())
+            .filter(|v| v.is_finite() && *v > 0.0)
+            .fold((f64::INFINITY, 0.0f64), |(lo, hi), v| {
+                (lo.min(v), hi.max(v))
+            });
+        (lo.max(1e-6) / 1.5, hi * 1.5)
+    } else {
+        span(series.iter().flat_map(|s| s.y.iter().copied()))
+    };
+    let caption_and_labels = |b: &mut ChartBuilder<'_, '_, BitMapBackend<'_>>| {
+        b.caption(title, ("sans-serif", 22))
+            .margin(15)
+            .x_label_area_size(45)
+            .y_label_area_size(65);
+    };
+    let mut builder = ChartBuilder::on(&root);
+    caption_and_labels(&mut builder);
+    let integer_x = options.integer_x;
+    let x_ticks = if integer_x {
+        ((x.1 - x.0).round() as usize).clamp(2, 25)
+    } else {
+        10
+    };
+    let x_format = move |v: &f64| {
+        if integer_x {
+            format!("{v:.0}")
+        } else {
+            format!("{v}")
+        }
+    };
+    macro_rules! finish {
+        ($chart:expr) => {{
+            let mut chart = $chart;
             chart
-                .draw_series(LineSeries::new(points.clone(), color.stroke_width(1)))
-                .map_err(|e| fail(path, e))?
-                .label(s.label)
-                .legend(move |(a, b)| PathElement::new(vec![(a, b), (a + 16, b)], color));
-        }
-        if markers {
-            let drawn = chart
-                .draw_series(
-                    points
-                        .into_iter()
-                        .map(move |p| Circle::new(p, radius, color.filled())),
-                )
+                .configure_mesh()
+                .x_desc(x_label)
+                .y_desc(y_label)
+                .x_labels(x_ticks)
+                .x_label_formatter(&x_format)
+                .draw()
                 .map_err(|e| fail(path, e))?;
-            if style == XyStyle::Points {
-                drawn
-                    .label(s.label)
-                    .legend(move |(a, b)| Circle::new((a + 8, b), 4, color.filled()));
+            for (i, s) in series.iter().enumerate() {
+                let color = palette(i);
+                let points: Vec<(f64, f64)> =
+                    s.x.iter()
+                        .copied()
+                        .zip(s.y.iter().copied())
+                        .filter(|p| !log_y || p.1 > 0.0)
+                        .collect();
+                let markers = style == XyStyle::Points || points.len() <= 60;
+                let radius = if style == XyStyle::Points { 2 } else { 3 };
+                if style == XyStyle::Lines {
+                    chart
+                        .draw_series(LineSeries::new(points.clone(), color.stroke_width(1)))
+                        .map_err(|e| fail(path, e))?
+                        .label(s.label)
+                        .legend(move |(a, b)| PathElement::new(vec![(a, b), (a + 16, b)], color));
+                }
+                if markers {
+                    let drawn = chart
+                        .draw_series(
+                            points
+                                .into_iter()
+                                .map(move |p| Circle::new(p, radius, color.filled())),
+                        )
+                        .map_err(|e| fail(path, e))?;
+                    if style == XyStyle::Points {
+                        drawn
+                            .label(s.label)
+                            .legend(move |(a, b)| Circle::new((a + 8, b), 4, color.filled()));
+                    }
+                }
             }
-        }
+            if let Some((at, label)) = options.mark_x {
+                chart
+                    .draw_series(std::iter::once(PathElement::new(
+                        vec![(at, y.0), (at, y.1)],
+                        BLACK.stroke_width(2),
+                    )))
+                    .map_err(|e| fail(path, e))?
+                    .label(label)
+                    .legend(move |(a, b)| PathElement::new(vec![(a, b), (a + 16, b)], BLACK));
+            }
+            chart
+                .configure_series_labels()
+                .background_style(WHITE.mix(0.85))
+                .border_style(BLACK)
+                .draw()
+                .map_err(|e| fail(path, e))?;
+        }};
     }
-    chart
-        .configure_series_labels()
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .draw()
-        .map_err(|e| fail(path, e))?;
-    root.present().map_err(|e| fail(path, e))
+    if log_y {
+        finish!(builder
+            .build_cartesian_2d(x.0..x.1, (y.0..y.1).log_scale())
+            .map_err(|e| fail(path, e))?);
+    } else {
+        finish!(builder
+            .build_cartesian_2d(x.0..x.1, y.0..y.1)
+            .map_err(|e| fail(path, e))?);
+    }
+    root.present().map_err(|e| fail(path, e))?;
+    Ok(Drawn {
+        x,
+        y,
+        log_y,
+        colour_max_mm: None,
+        beyond_colour_max: None,
+        marked_x: options.mark_x.map(|m| m.0),
+    })
 }
 
 /// Frequency histogram of errors (paper fig. 11).
@@ -260,14 +439,15 @@ pub fn histogram(
     x_label: &str,
     values: &[f64],
     bins: usize,
-) -> Result<(), FigureError> {
+    x_range: Option<(f64, f64)>,
+) -> Result<Drawn, FigureError> {
     register_font();
     let bins = bins.max(1);
-    let (lo, hi) = span(values.iter().copied());
+    let (lo, hi) = x_range.unwrap_or_else(|| span(values.iter().copied()));
     let width = (hi - lo) / bins as f64;
     let mut counts = vec![0usize; bins];
     for v in values.iter().filter(|v| v.is_finite()) {
-        let b = (((v - lo) / width) as usize).min(bins - 1);
+        let b = (((v - lo) / width).max(0.0) as usize).min(bins - 1);
         counts[b] += 1;
     }
     let top = counts.iter().copied().max().unwrap_or(1).max(1) as f64 * 1.05;
@@ -280,10 +460,14 @@ pub fn histogram(
         .y_label_area_size(65)
         .build_cartesian_2d(lo..hi, 0.0..top)
         .map_err(|e| fail(path, e))?;
+    // Whole counts on the y axis.
+    let top_count = counts.iter().copied().max().unwrap_or(1).max(1);
     chart
         .configure_mesh()
         .x_desc(x_label)
         .y_desc("count")
+        .y_labels((top_count + 1).min(10))
+        .y_label_formatter(&|v| format!("{v:.0}"))
         .draw()
         .map_err(|e| fail(path, e))?;
     chart
@@ -292,7 +476,12 @@ pub fn histogram(
             Rectangle::new([(a, 0.0), (a + width, c as f64)], palette(1).filled())
         }))
         .map_err(|e| fail(path, e))?;
-    root.present().map_err(|e| fail(path, e))
+    root.present().map_err(|e| fail(path, e))?;
+    Ok(Drawn {
+        x: (lo, hi),
+        y: (0.0, top),
+        ..Drawn::default()
+    })
 }
 
 #[cfg(test)]
@@ -314,9 +503,25 @@ mod tests {
             x: &idx,
             y: &err,
         }];
-        scatter(&dir.join("s.png"), "scatter", "x", "y", &s).unwrap();
-        lines(&dir.join("l.png"), "lines", "x", "y", &s).unwrap();
-        histogram(&dir.join("h.png"), "hist", "mm", &err, 20).unwrap();
+        scatter(
+            &dir.join("s.png"),
+            "scatter",
+            "x",
+            "y",
+            &s,
+            XyOptions::default(),
+        )
+        .unwrap();
+        lines(
+            &dir.join("l.png"),
+            "lines",
+            "x",
+            "y",
+            &s,
+            XyOptions::default(),
+        )
+        .unwrap();
+        histogram(&dir.join("h.png"), "hist", "mm", &err, 20, None).unwrap();
         for f in ["map.png", "s.png", "l.png", "h.png"] {
             let len = std::fs::metadata(dir.join(f)).unwrap().len();
             assert!(len > 1000, "{f} is {len} bytes");
@@ -332,6 +537,7 @@ mod tests {
             "mm",
             &[1.0, 2.0],
             4,
+            None,
         )
         .unwrap_err();
         assert!(e.to_string().contains("/nonexistent-dir/x.png"));

@@ -272,7 +272,48 @@ fn cli_calibrate_writes_the_report_the_scripts_read() {
     for f in figures {
         let path = PathBuf::from(f["path"].as_str().unwrap());
         assert!(std::fs::metadata(&path).unwrap().len() > 1000, "{path:?}");
+        assert!(f["drawn"].is_object(), "{f}");
     }
+    // What the figures show, from the data drawn (issue 13, point 5).
+    let figure = |name: &str| {
+        figures
+            .iter()
+            .find(|f| f["name"] == name)
+            .unwrap_or_else(|| panic!("figure {name}"))["drawn"]
+            .clone()
+    };
+    let range = |d: &Value, axis: &str| -> (f64, f64) {
+        (d[axis][0].as_f64().unwrap(), d[axis][1].as_f64().unwrap())
+    };
+    // The raw map's colours span its errors robustly: at most 2 % of the
+    // points lie beyond the top colour.
+    let raw_map = figure("error_map_raw");
+    let beyond = raw_map["beyond_colour_max"].as_u64().unwrap() as f64;
+    assert!(beyond <= 0.02 * 2197.0 + 1.0, "{raw_map}");
+    assert!(
+        raw_map["colour_max_mm"].as_f64().unwrap() > 50.0,
+        "{raw_map}"
+    );
+    // The chosen hidden size is marked on the sweep, on integer ticks.
+    let best = report["corrections"]["nn"]["best_hidden"].as_f64().unwrap();
+    assert_eq!(figure("nn_sweep")["marked_x"].as_f64(), Some(best));
+    // Raw (~200 mm) and calibrated (~0.3 mm) errors on one log axis.
+    let vs = figure("error_vs_distance");
+    assert_eq!(vs["log_y"], true, "{vs}");
+    let (lo, hi) = range(&vs, "y");
+    assert!(lo < 0.3 && hi > 150.0, "{vs}");
+    // Before/after histograms: the same (test) session, both from 0 mm.
+    for name in ["histogram_raw", "histogram_final"] {
+        let h = figure(name);
+        assert_eq!(range(&h, "x").0, 0.0, "{h}");
+        let title = figures.iter().find(|f| f["name"] == name).unwrap()["title"]
+            .as_str()
+            .unwrap()
+            .to_string();
+        assert!(title.ends_with("test session"), "{title}");
+    }
+    assert!(range(&figure("histogram_raw"), "x").1 > 100.0);
+    assert!(range(&figure("histogram_final"), "x").1 < 10.0);
 
     // calibration.json is the core's Calibration.
     let cal: spidar_core::model::Calibration =

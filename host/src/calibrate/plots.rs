@@ -5,7 +5,7 @@ use std::path::Path;
 
 use super::report::{Figure, NnReport};
 use super::{CalibrateError, Calibrated, PointErrors};
-use crate::figures::{self, Series};
+use crate::figures::{self, Drawn, Series, XyOptions};
 
 struct Out<'a> {
     dir: &'a Path,
@@ -20,10 +20,26 @@ impl Out<'_> {
             paper_figure: paper,
             path: path.display().to_string(),
             title: title.to_string(),
+            drawn: None,
         });
         path
     }
+
+    /// Records what the last figure shows.
+    fn drawn(&mut self, drawn: Drawn) {
+        if let Some(f) = self.figures.last_mut() {
+            f.drawn = Some(drawn);
+        }
+    }
 }
+
+/// Error figures with a raw (hundreds of mm) and a calibrated (tenths)
+/// series: a log y axis, so that both can be read.
+const LOG_Y_BEYOND: XyOptions<'static> = XyOptions {
+    log_y_beyond_ratio: Some(20.0),
+    integer_x: false,
+    mark_x: None,
+};
 
 fn order(p: &PointErrors) -> Vec<f64> {
     (1..=p.errors.len()).map(|i| i as f64).collect()
@@ -39,7 +55,8 @@ fn sweep_figure(
     let v: Vec<f64> = nn.sweep.iter().map(|p| p.validation_mean_mm).collect();
     let t: Vec<f64> = nn.sweep.iter().map(|p| p.train_mean_mm).collect();
     let path = out.file(name, Some("13"), title);
-    figures::lines(
+    let chosen = format!("chosen: {} neurons", nn.best_hidden);
+    let drawn = figures::lines(
         &path,
         title,
         "neurons in the hidden layer",
@@ -56,7 +73,13 @@ fn sweep_figure(
                 y: &t,
             },
         ],
+        XyOptions {
+            integer_x: true,
+            mark_x: Some((nn.best_hidden as f64, &chosen)),
+            ..XyOptions::default()
+        },
     )?;
+    out.drawn(drawn);
     Ok(())
 }
 
@@ -86,7 +109,9 @@ pub(super) fn draw_all(c: &Calibrated, dir: &Path) -> Result<Vec<Figure>, Calibr
         if let Some(p) = get(stage) {
             let title = format!("{stage}: absolute position error, training session");
             let path = out.file(file, paper, &title);
-            figures::spatial_error_map(&path, &title, &p.train.tracker, &p.train.errors)?;
+            let drawn =
+                figures::spatial_error_map(&path, &title, &p.train.tracker, &p.train.errors)?;
+            out.drawn(drawn);
         }
     }
 
@@ -94,7 +119,7 @@ pub(super) fn draw_all(c: &Calibrated, dir: &Path) -> Result<Vec<Figure>, Calibr
     if let (Some(raw), Some(fin)) = (get("raw"), get(final_name)) {
         let title = "absolute position error against distance to the origin, training session";
         let path = out.file("error_vs_distance", Some("15, 17"), title);
-        figures::scatter(
+        let drawn = figures::scatter(
             &path,
             title,
             "distance to the device origin, mm",
@@ -111,12 +136,14 @@ pub(super) fn draw_all(c: &Calibrated, dir: &Path) -> Result<Vec<Figure>, Calibr
                     y: &fin.train.errors,
                 },
             ],
+            LOG_Y_BEYOND,
         )?;
+        out.drawn(drawn);
     }
     if let (Some(id), Some(fin)) = (get("identified"), get(final_name)) {
         let title = "after calibration: error against distance to the origin, test session";
         let path = out.file("error_vs_distance_after", None, title);
-        figures::scatter(
+        let drawn = figures::scatter(
             &path,
             title,
             "distance to the device origin, mm",
@@ -133,31 +160,39 @@ pub(super) fn draw_all(c: &Calibrated, dir: &Path) -> Result<Vec<Figure>, Calibr
                     y: &fin.test.errors,
                 },
             ],
+            LOG_Y_BEYOND,
         )?;
+        out.drawn(drawn);
     }
 
     // Histograms (fig. 11).
     if let Some(raw) = get("raw") {
-        let title = "raw absolute position error, training session";
+        // The test session, as the final histogram: before and after on
+        // the same points, both axes from 0 mm.
+        let title = "raw absolute position error, test session";
         let path = out.file("histogram_raw", Some("11"), title);
-        figures::histogram(
+        let drawn = figures::histogram(
             &path,
             title,
             "absolute position error, mm",
-            &raw.train.errors,
+            &raw.test.errors,
             40,
+            Some(figures::from_zero(&raw.test.errors)),
         )?;
+        out.drawn(drawn);
     }
     if let Some(fin) = get(final_name) {
         let title = format!("{final_name}: absolute position error, test session");
         let path = out.file("histogram_final", None, &title);
-        figures::histogram(
+        let drawn = figures::histogram(
             &path,
             &title,
             "absolute position error, mm",
             &fin.test.errors,
             40,
+            Some(figures::from_zero(&fin.test.errors)),
         )?;
+        out.drawn(drawn);
     }
 
     // Error in collection order (fig. 10).
@@ -169,7 +204,7 @@ pub(super) fn draw_all(c: &Calibrated, dir: &Path) -> Result<Vec<Figure>, Calibr
             let title = format!("{stage}: absolute position error in collection order");
             let x = order(&p.train);
             let path = out.file(file, paper, &title);
-            figures::lines(
+            let drawn = figures::lines(
                 &path,
                 &title,
                 "capture (training session order)",
@@ -179,7 +214,12 @@ pub(super) fn draw_all(c: &Calibrated, dir: &Path) -> Result<Vec<Figure>, Calibr
                     x: &x,
                     y: &p.train.errors,
                 }],
+                XyOptions {
+                    integer_x: true,
+                    ..XyOptions::default()
+                },
             )?;
+            out.drawn(drawn);
         }
     }
 
@@ -201,7 +241,9 @@ pub(super) fn draw_all(c: &Calibrated, dir: &Path) -> Result<Vec<Figure>, Calibr
             if let Some(p) = get(stage) {
                 let title = format!("{stage}: absolute position error, training session");
                 let path = out.file(file, paper, &title);
-                figures::spatial_error_map(&path, &title, &p.train.tracker, &p.train.errors)?;
+                let drawn =
+                    figures::spatial_error_map(&path, &title, &p.train.tracker, &p.train.errors)?;
+                out.drawn(drawn);
             }
         }
         if let (Some(l), Some(n), Some(s)) =
@@ -209,7 +251,7 @@ pub(super) fn draw_all(c: &Calibrated, dir: &Path) -> Result<Vec<Figure>, Calibr
         {
             let title = "black-box: error against distance to the origin, training session";
             let path = out.file("blackbox_error_vs_distance", Some("15, 17"), title);
-            figures::scatter(
+            let drawn = figures::scatter(
                 &path,
                 title,
                 "distance to the device origin, mm",
@@ -231,20 +273,24 @@ pub(super) fn draw_all(c: &Calibrated, dir: &Path) -> Result<Vec<Figure>, Calibr
                         y: &s.train.errors,
                     },
                 ],
+                LOG_Y_BEYOND,
             )?;
+            out.drawn(drawn);
             let title = "legacy controller: absolute position error, training session";
             let path = out.file("blackbox_histogram_legacy", Some("11"), title);
-            figures::histogram(
+            let drawn = figures::histogram(
                 &path,
                 title,
                 "absolute position error, mm",
                 &l.train.errors,
                 40,
+                Some(figures::from_zero(&l.train.errors)),
             )?;
+            out.drawn(drawn);
             let title = "legacy controller: absolute position error in collection order";
             let x = order(&l.train);
             let path = out.file("blackbox_error_order_legacy", Some("10"), title);
-            figures::lines(
+            let drawn = figures::lines(
                 &path,
                 title,
                 "capture (training session order)",
@@ -254,7 +300,12 @@ pub(super) fn draw_all(c: &Calibrated, dir: &Path) -> Result<Vec<Figure>, Calibr
                     x: &x,
                     y: &l.train.errors,
                 }],
+                XyOptions {
+                    integer_x: true,
+                    ..XyOptions::default()
+                },
             )?;
+            out.drawn(drawn);
         }
         sweep_figure(
             &mut out,

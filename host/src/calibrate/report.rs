@@ -303,7 +303,10 @@ pub enum Choice {
 impl Choice {
     pub fn name(self) -> &'static str {
         match self {
-            Choice::Identified => "identified",
+            // Not "identified": that is the stage before diagnosis, and the
+            // final model without a correction carries the loop's effects
+            // and layer tables too (issue 13, point 5).
+            Choice::Identified => "string model",
             Choice::Nn => "nn",
             Choice::Svr => "svr",
         }
@@ -525,6 +528,9 @@ pub struct Figure {
     pub paper_figure: Option<&'static str>,
     pub path: String,
     pub title: String,
+    /// What it shows: axis ranges, colour scale, marks, from the data drawn.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub drawn: Option<crate::figures::Drawn>,
 }
 
 #[derive(Clone, Debug, Default, Serialize)]
