@@ -289,14 +289,11 @@ impl PhysicsDevice {
         let ab = &config.as_built;
         let effects = parse_effects(&config.effects)?;
         let strings = nominal.strings();
-        if nominal.layout.planar {
-            return Err(SimError::Config {
-                field: "nominal.planar".into(),
-                problem: "the independent simulator models 3-D devices only (guide pulleys, \
-                          sag and a turning hand); use --physics model for a planar device"
-                    .into(),
-            });
-        }
+        // A planar device: the exits, home and the strings' meeting point
+        // stay in the anchors' plane (the as-built errors are in it); the
+        // guides swivel about the plane's normal, the strings sag out of
+        // it, the hand turns about the normal only.
+        let planar = nominal.layout.planar;
 
         let mut rng = stream(seed, 101);
         let anchor_noise = normal("as_built.anchor_sigma_mm", ab.anchor_sigma_mm)?;
@@ -304,13 +301,22 @@ impl PhysicsDevice {
             .anchors_mm
             .iter()
             .take(strings)
-            .map(|a| a.map(|x| x + anchor_noise.sample(&mut rng)))
+            .map(|a| {
+                let mut e = a.map(|x| x + anchor_noise.sample(&mut rng));
+                if planar {
+                    e[2] = a[2];
+                }
+                e
+            })
             .collect();
 
         let mut rng = stream(seed, 102);
         let home_noise = normal("as_built.home_sigma_mm", ab.home_sigma_mm)?;
-        let home_mm: Vec3<f64> =
+        let mut home_mm: Vec3<f64> =
             core::array::from_fn(|k| nominal.home_mm[k] + home_noise.sample(&mut rng));
+        if planar {
+            home_mm[2] = nominal.home_mm[2];
+        }
 
         // Guides: swivel axis along the frame edge, away from the home
         // height; entry point placed so that the string to the nominal home
@@ -693,18 +699,37 @@ pub fn simulate_rows(
     let mut off_groove: Option<(f64, f64)> = None;
     let mut previous_counts: Option<Vec<i32>> = None;
 
+    let planar = device.nominal.layout.planar;
+    let plane_z = device.home_mm[2];
     let mut occluded = false;
     let mut rows = Vec::with_capacity(captures.len());
     let mut truths = Vec::with_capacity(captures.len());
     for c in &captures {
         let t_s = f64::from(c.t_ms) / 1000.0;
-        let marker = device.device_from_room(&c.room);
+        let mut marker = device.device_from_room(&c.room);
         let mut omega = device.posture.rotation_vector(&marker);
         for w in omega.iter_mut() {
             *w += jitter.sample(&mut posture_rng);
         }
+        if planar {
+            omega[0] = 0.0;
+            omega[1] = 0.0;
+        }
         let o = rotate(&rotation(&omega), &device.marker_body_mm);
-        let meeting: Vec3<f64> = core::array::from_fn(|k| marker[k] - o[k]);
+        let mut meeting: Vec3<f64> = core::array::from_fn(|k| marker[k] - o[k]);
+        if planar {
+            // The strings meet in the plane; the marker is where the hand
+            // holds it from there.
+            meeting[2] = plane_z;
+            marker = core::array::from_fn(|k| meeting[k] + o[k]);
+        }
+        // Not a round trip through the device frame unless the marker moved:
+        // the 3-D sessions stay bit for bit what they were.
+        let marker_room = if planar {
+            device.room_from_device(&marker)
+        } else {
+            c.room
+        };
 
         let ts = &cfg.tension;
         let tension_n: Vec<f64> = (0..n)
@@ -722,7 +747,7 @@ pub fn simulate_rows(
         let mut counts = Vec::with_capacity(n);
         let mut truth = PhysicsTruth {
             meeting_mm: meeting,
-            marker_room_mm: c.room,
+            marker_room_mm: marker_room,
             exit_mm: Vec::with_capacity(n),
             free_mm: Vec::with_capacity(n),
             geometric_mm: Vec::with_capacity(n),
@@ -788,8 +813,9 @@ pub fn simulate_rows(
         } else {
             occlusion_rng.random_bool(tr.occlusion_probability)
         };
-        let measured: Vec3<f64> =
-            core::array::from_fn(|k| round_to(c.room[k] + noise.sample(&mut noise_rng), 1000.0));
+        let measured: Vec3<f64> = core::array::from_fn(|k| {
+            round_to(marker_room[k] + noise.sample(&mut noise_rng), 1000.0)
+        });
         rows.push(PhysicsRow {
             t_s,
             counts,
