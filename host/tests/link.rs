@@ -668,6 +668,15 @@ fn device_force_reports_the_rendered_force() {
         );
         String::from_utf8_lossy(&out.stdout).to_string()
     };
+    // `device info` says the device's state with its fault bits by name.
+    let port = vd.port_path().to_string();
+    let info = std::process::Command::new(env!("CARGO_BIN_EXE_spidar"))
+        .args(["device", "info", "--port", &port])
+        .output()
+        .expect("run spidar");
+    let info = String::from_utf8_lossy(&info.stdout).to_string();
+    assert!(info.contains("state: disarmed, faults none"), "{info}");
+    assert!(info.contains("model id 0x0000000b"), "{info}");
     let small = force(["0", "0", "2"]);
     assert!(
         small.starts_with("requested [0, 0, 2] N; rendered [") && !small.contains("limited"),

@@ -322,6 +322,19 @@ pub fn run_device(args: &DeviceArgs) -> Result<String, Box<dyn std::error::Error
             }
             let s = client.stats()?;
             let _ = writeln!(out, "{}", link_line(&s));
+            // The device's state now: armed or not, its fault bits by name.
+            client.stream_on(1)?;
+            let last = hold_heartbeat(&mut client, Duration::ZERO, true)?;
+            client.stream_off()?;
+            let _ = match last {
+                Some(st) => writeln!(
+                    out,
+                    "state: {}, faults {}",
+                    if st.armed { "armed" } else { "disarmed" },
+                    fault_names(st.faults)
+                ),
+                None => writeln!(out, "state: no state frame came (faults unknown)"),
+            };
         }
         DeviceCommand::Stream {
             decimation,
