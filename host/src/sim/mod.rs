@@ -331,7 +331,15 @@ pub struct SimulateArgs {
     /// Number of captures of a random session (default: `random.points`).
     #[arg(long)]
     pub points: Option<usize>,
-    /// Injected effect, e.g. `offset:3:mm=10` (repeatable; see `sim::effects`).
+    /// Injected effect (repeatable), `KIND:STRING:KEY=VALUE,...` with STRING
+    /// an index or `*`. Model physics: offset (mm), scale (relative), winding
+    /// (power, mm_per_rad_pow), eccentricity (sin_mm, cos_mm), elasticity
+    /// (per_newton), backlash (half_width_mm), drift (mm_per_s), slip (at_s,
+    /// mm), speed (latency_s), anchor (dx, dy, dz, mm), and
+    /// `tracker_scale:relative=VALUE` (no string); e.g.
+    /// `offset:3:mm=10`, `slip:2:at_s=2000,mm=5`. Independent physics
+    /// (`NAME[:KEY=VALUE,...]`): drift-all, frame-flex, marker-offset, slip,
+    /// heavy-string.
     #[arg(long = "effect", value_name = "SPEC")]
     pub effects: Vec<String>,
     /// File stem of the session CSV (default: `lattice` or `random`).
@@ -341,7 +349,7 @@ pub struct SimulateArgs {
     #[arg(long)]
     pub session_seed: Option<u64>,
     /// Which simulator: `model` (the calibration model's own equations) or
-    /// `independent` (other physics, [`physics`]: layered spools, guide
+    /// `independent` (other physics, `host/src/sim/physics`: layered spools, guide
     /// pulleys, elastic sagging strings, frame flex, an offset marker; its
     /// own `--config` keys and `--effect` names).
     #[arg(long, value_enum, default_value_t = PhysicsArg::Model)]
