@@ -72,12 +72,15 @@ impl BeepSynth {
 
 /// Where the audio cue goes.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+// The variants are described in the options' help (`--audio`), not here:
+// clap would print them as a list and every command's help would change
+// layout.
 pub enum AudioChoice {
-    /// A PCM player if one is installed, else the terminal bell.
+    // A PCM player if one is installed, else the terminal bell.
     Auto,
-    /// `aplay` or `pacat` (fails if neither is on PATH).
+    // `aplay` or `pacat` (fails if neither is on PATH).
     Player,
-    /// The terminal bell.
+    // The terminal bell.
     Bell,
     Off,
 }

@@ -823,7 +823,10 @@ pub struct CollectArgs {
     /// Fail when the tracker sends nothing for this long, s.
     #[arg(long, default_value_t = 5.0)]
     pub tracker_timeout_s: f64,
-    /// Audio cue output (collection plays no beep; the view is visual).
+    /// Audio cue output (collection plays no beep; the view is visual):
+    /// auto (a PCM player if one is installed, else the terminal bell), player
+    /// (`aplay` or `pacat`; fails if neither is on PATH), bell (the terminal
+    /// bell), off.
     #[arg(long, value_enum, default_value_t = super::audio::AudioChoice::Off)]
     pub audio: super::audio::AudioChoice,
     /// Run on the built-in simulated device with a simulated operator and

@@ -463,7 +463,9 @@ pub struct InitArgs {
     /// Give up after this long, s.
     #[arg(long, default_value_t = 120.0)]
     pub timeout_s: f64,
-    /// Audio cue output.
+    /// Audio cue output: auto (a PCM player if one is installed, else the terminal bell), player
+    /// (`aplay` or `pacat`; fails if neither is on PATH), bell (the terminal
+    /// bell), off.
     #[arg(long, value_enum, default_value_t = super::audio::AudioChoice::Auto)]
     pub audio: super::audio::AudioChoice,
     /// Run on the built-in simulated device with a simulated operator and

@@ -75,12 +75,13 @@ use crate::tracker::{Next, TrackerError, TrackerSource};
 
 /// What to do when drift is found.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+// Described in `--refit`'s help (see `AudioChoice` for why not here).
 pub enum RefitPolicy {
-    /// Ask the operator (y/N on standard input).
+    // Ask the operator (y/N on standard input).
     Ask,
-    /// Refit and reflash automatically.
+    // Refit and reflash automatically.
     Yes,
-    /// Report only.
+    // Report only.
     No,
 }
 
@@ -1359,7 +1360,8 @@ pub struct MonitorArgs {
     /// Drift when the window error exceeds the baseline by this factor.
     #[arg(long, default_value_t = 1.5)]
     pub error_factor: f64,
-    /// What to do on drift: ask, yes (refit and reflash), no (report only).
+    /// What to do on drift: ask (the operator, y/N on standard input), yes
+    /// (refit and reflash automatically), no (report only).
     #[arg(long, value_enum, default_value_t = RefitPolicy::Ask)]
     pub refit: RefitPolicy,
     /// Model id the device runs, when the blob was compiled with `--model-id`.
