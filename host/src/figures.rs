@@ -35,6 +35,9 @@ pub struct Drawn {
     pub y: (f64, f64),
     /// The y axis is logarithmic.
     pub log_y: bool,
+    /// The x axis is logarithmic (the before/after histogram).
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub log_x: bool,
     /// Spatial map: the error the top colour stands for, mm, and how many
     /// points lie beyond it (drawn in that colour, larger).
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -231,6 +234,7 @@ pub fn spatial_error_map(
         x,
         y: (0.0, emax),
         log_y: false,
+        log_x: false,
         colour_max_mm: Some(emax),
         beyond_colour_max: Some(beyond),
         marked_x: None,
@@ -426,6 +430,7 @@ fn xy_figure(
         x,
         y,
         log_y,
+        log_x: false,
         colour_max_mm: None,
         beyond_colour_max: None,
         marked_x: options.mark_x.map(|m| m.0),
@@ -484,6 +489,91 @@ pub fn histogram(
     })
 }
 
+/// Two error distributions on one logarithmic error axis (bins equal in
+/// log scale), overlaid: the errors before calibration (hundreds of mm) and
+/// after (tenths) of the same session, each readable.
+pub fn histogram_pair(
+    path: &Path,
+    title: &str,
+    x_label: &str,
+    series: [(&str, &[f64]); 2],
+    bins: usize,
+) -> Result<Drawn, FigureError> {
+    register_font();
+    let bins = bins.max(2);
+    let positive = || {
+        series
+            .iter()
+            .flat_map(|(_, v)| v.iter().copied())
+            .filter(|v| v.is_finite() && *v > 0.0)
+    };
+    let lo = positive().fold(f64::INFINITY, f64::min);
+    let hi = positive().fold(0.0f64, f64::max);
+    let (lo, hi) = if lo.is_finite() && hi > lo {
+        (lo / 1.2, hi * 1.2)
+    } else {
+        (1e-3, 1.0)
+    };
+    let (llo, lhi) = (lo.log10(), hi.log10());
+    let step = (lhi - llo) / bins as f64;
+    let counts: Vec<Vec<usize>> = series
+        .iter()
+        .map(|(_, values)| {
+            let mut c = vec![0usize; bins];
+            for v in values.iter().filter(|v| v.is_finite() && **v > 0.0) {
+                let b = (((v.log10() - llo) / step).max(0.0) as usize).min(bins - 1);
+                c[b] += 1;
+            }
+            c
+        })
+        .collect();
+    let top_count = counts.iter().flatten().copied().max().unwrap_or(1).max(1);
+    let top = top_count as f64 * 1.05;
+    let root = BitMapBackend::new(path, SIZE).into_drawing_area();
+    root.fill(&WHITE).map_err(|e| fail(path, e))?;
+    let mut chart = ChartBuilder::on(&root)
+        .caption(title, ("sans-serif", 22))
+        .margin(15)
+        .x_label_area_size(45)
+        .y_label_area_size(65)
+        .build_cartesian_2d((lo..hi).log_scale(), 0.0..top)
+        .map_err(|e| fail(path, e))?;
+    chart
+        .configure_mesh()
+        .x_desc(x_label)
+        .y_desc("count")
+        .y_labels((top_count + 1).min(10))
+        .y_label_formatter(&|v| format!("{v:.0}"))
+        .draw()
+        .map_err(|e| fail(path, e))?;
+    for (i, ((label, _), c)) in series.iter().zip(&counts).enumerate() {
+        let color = palette(i);
+        chart
+            .draw_series(c.iter().enumerate().map(|(b, &n)| {
+                let a = 10f64.powf(llo + step * b as f64);
+                let z = 10f64.powf(llo + step * (b + 1) as f64);
+                Rectangle::new([(a, 0.0), (z, n as f64)], color.mix(0.6).filled())
+            }))
+            .map_err(|e| fail(path, e))?
+            .label(*label)
+            .legend(move |(x, y)| Rectangle::new([(x, y - 5), (x + 12, y + 5)], color.filled()));
+    }
+    chart
+        .configure_series_labels()
+        .position(SeriesLabelPosition::UpperMiddle)
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .draw()
+        .map_err(|e| fail(path, e))?;
+    root.present().map_err(|e| fail(path, e))?;
+    Ok(Drawn {
+        x: (lo, hi),
+        y: (0.0, top),
+        log_x: true,
+        ..Drawn::default()
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -522,7 +612,18 @@ mod tests {
         )
         .unwrap();
         histogram(&dir.join("h.png"), "hist", "mm", &err, 20, None).unwrap();
-        for f in ["map.png", "s.png", "l.png", "h.png"] {
+        let big: Vec<f64> = err.iter().map(|e| 100.0 * (e + 1.0)).collect();
+        let small: Vec<f64> = err.iter().map(|e| 0.01 * (e + 1.0)).collect();
+        let d = histogram_pair(
+            &dir.join("hp.png"),
+            "pair",
+            "mm",
+            [("before", &big), ("after", &small)],
+            30,
+        )
+        .unwrap();
+        assert!(d.log_x && d.x.0 < 0.01 && d.x.1 > 1700.0, "{d:?}");
+        for f in ["map.png", "s.png", "l.png", "h.png", "hp.png"] {
             let len = std::fs::metadata(dir.join(f)).unwrap().len();
             assert!(len > 1000, "{f} is {len} bytes");
         }

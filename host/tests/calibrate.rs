@@ -313,6 +313,11 @@ fn cli_calibrate_writes_the_report_the_scripts_read() {
         assert!(title.ends_with("test session"), "{title}");
     }
     assert!(range(&figure("histogram_raw"), "x").1 > 100.0);
+    // ... and on one log axis that holds both.
+    let pair = figure("histogram_before_after");
+    assert_eq!(pair["log_x"], true, "{pair}");
+    let (lo, hi) = range(&pair, "x");
+    assert!(lo < 0.5 && hi > 150.0, "{pair}");
     assert!(range(&figure("histogram_final"), "x").1 < 10.0);
 
     // calibration.json is the core's Calibration.

@@ -195,6 +195,23 @@ pub(super) fn draw_all(c: &Calibrated, dir: &Path) -> Result<Vec<Figure>, Calibr
         out.drawn(drawn);
     }
 
+    // Before and after on one (logarithmic) axis, the same test session.
+    if let (Some(raw), Some(fin)) = (get("raw"), get(final_name)) {
+        let title = "absolute position error before and after calibration, test session";
+        let path = out.file("histogram_before_after", Some("11"), title);
+        let drawn = figures::histogram_pair(
+            &path,
+            title,
+            "absolute position error, mm (log scale)",
+            [
+                ("raw (before)", &raw.test.errors),
+                (final_name, &fin.test.errors),
+            ],
+            60,
+        )?;
+        out.drawn(drawn);
+    }
+
     // Error in collection order (fig. 10).
     for (stage, file, paper) in [
         ("raw", "error_order_raw", Some("10")),
