@@ -724,9 +724,10 @@ pub struct VirtualDeviceArgs {
     /// Device time per real time (1 = like the hardware).
     #[arg(long, default_value_t = 1.0)]
     pub speed: f64,
-    /// Largest model blob, KiB (the reference firmware's capacity is
-    /// printed in the banner and by `spidar compile`).
-    #[arg(long, default_value_t = 128)]
+    /// Largest model blob, KiB, at most 128 (the virtual flash slot). The
+    /// default is the reference firmware's capacity, so that a blob the
+    /// board would refuse is refused here too.
+    #[arg(long, default_value_t = FIRMWARE_BLOB_CAPACITY / 1024)]
     pub capacity_kib: usize,
     /// Stop after this many seconds (default: run until killed).
     #[arg(long)]
