@@ -266,7 +266,8 @@ impl std::fmt::Display for CompileReport {
         )?;
         writeln!(
             f,
-            "blob parses back with the device's parser and compiles bit-identically; firmware capacity {} bytes ({})",
+            "blob parses back with the device's parser and compiles bit-identically; firmware capacity {} KiB = {} bytes ({})",
+            crate::virtual_device::FIRMWARE_BLOB_CAPACITY / 1024,
             crate::virtual_device::FIRMWARE_BLOB_CAPACITY,
             if self.bytes <= crate::virtual_device::FIRMWARE_BLOB_CAPACITY {
                 "fits"
