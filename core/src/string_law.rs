@@ -285,17 +285,10 @@ pub fn string_lengths_f64(
         }
     }
     for term in effects {
-        if term.string == EVERY_STRING {
-            for i in frame.layout.indices() {
-                if let Some(c) = &ctx[i] {
-                    out[i] += term.effect.contribution_f64(c);
-                }
+        for (i, c) in ctx.iter().enumerate() {
+            if let Some(c) = c.as_ref().filter(|_| term.applies_to(i)) {
+                out[i] += term.effect.contribution_f64(c);
             }
-            continue;
-        }
-        let s = usize::from(term.string);
-        if let Some(Some(c)) = ctx.get(s) {
-            out[s] += term.effect.contribution_f64(c);
         }
     }
     out

@@ -90,15 +90,6 @@ pub fn from_zero(values: &[f64]) -> (f64, f64) {
     (0.0, (1.05 * max).max(1e-9))
 }
 
-fn median_of(v: &[f64]) -> f64 {
-    let mut e: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
-    if e.is_empty() {
-        return f64::NAN;
-    }
-    e.sort_by(f64::total_cmp);
-    e[e.len() / 2]
-}
-
 fn register_font() {
     static ONCE: Once = Once::new();
     ONCE.call_once(|| {
@@ -313,7 +304,10 @@ fn xy_figure(
     let x = span(series.iter().flat_map(|s| s.x.iter().copied()));
     let medians: Vec<f64> = series
         .iter()
-        .map(|s| median_of(s.y))
+        .map(|s| {
+            let mut y: Vec<f64> = s.y.iter().copied().filter(|v| v.is_finite()).collect();
+            crate::stats::median(&mut y)
+        })
         .filter(|m| m.is_finite() && *m > 0.0)
         .collect();
     let log_y = options.log_y_beyond_ratio.is_some_and(|r| {
@@ -334,14 +328,12 @@ fn xy_figure(
     } else {
         span(series.iter().flat_map(|s| s.y.iter().copied()))
     };
-    let caption_and_labels = |b: &mut ChartBuilder<'_, '_, BitMapBackend<'_>>| {
-        b.caption(title, ("sans-serif", 22))
-            .margin(15)
-            .x_label_area_size(45)
-            .y_label_area_size(65);
-    };
     let mut builder = ChartBuilder::on(&root);
-    caption_and_labels(&mut builder);
+    builder
+        .caption(title, ("sans-serif", 22))
+        .margin(15)
+        .x_label_area_size(45)
+        .y_label_area_size(65);
     let integer_x = options.integer_x;
     let x_ticks = if integer_x {
         ((x.1 - x.0).round() as usize).clamp(2, 25)

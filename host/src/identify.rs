@@ -864,30 +864,13 @@ fn minimize(mut problem: Problem<'_>) -> Result<(Problem<'_>, usize), String> {
     Ok((problem, evaluations))
 }
 
-fn median(values: &mut [f64]) -> f64 {
-    values.sort_by(f64::total_cmp);
-    let n = values.len();
-    if n == 0 {
-        return 0.0;
-    }
-    if n % 2 == 1 {
-        values[n / 2]
-    } else {
-        0.5 * (values[n / 2 - 1] + values[n / 2])
-    }
-}
-
 /// Robust scale (1.4826 MAD) of the residuals of the active strings.
 fn robust_scale(residuals: &[[f64; STRINGS]], layout: StringLayout) -> f64 {
-    let mut all: Vec<f64> = residuals
+    let all: Vec<f64> = residuals
         .iter()
         .flat_map(|r| layout.indices().map(|i| r[i]))
         .collect();
-    let m = median(&mut all.clone());
-    for v in all.iter_mut() {
-        *v = (*v - m).abs();
-    }
-    1.4826 * median(&mut all)
+    crate::stats::robust_centre_and_sd(&all).1
 }
 
 #[derive(Clone, Copy)]

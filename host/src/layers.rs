@@ -44,6 +44,7 @@ use crate::identify::{
     identify, string_residuals, Identification, IdentifyError, Start, Structure, GROSS_RESIDUAL_MM,
 };
 use crate::observe::Observation;
+use crate::stats::robust_centre_and_sd;
 
 /// Prior standard deviation of each knot, mm: a layer departure is a few mm;
 /// the prior only decides what a knot takes when the nuisance terms could
@@ -97,22 +98,25 @@ impl StringLayers {
     }
 }
 
-/// The residual points of every string of `rows` (tracked rows only, in
-/// order), with each string's current table added back.
-fn points_by_string(id: &Identification, rows: &[&Observation]) -> Vec<Vec<Option<(i32, f64)>>> {
-    let owned: Vec<Observation> = rows.iter().map(|o| (*o).clone()).collect();
-    let residuals = string_residuals(&id.frame, &id.laws, &id.effects, &owned);
+/// The residual points of every string over the tracked rows of `rows`
+/// (indexed as the folds index them: tracked rows only, in order), with
+/// each string's current table added back.
+fn points_by_string(id: &Identification, rows: &[Observation]) -> Vec<Vec<Option<(i32, f64)>>> {
+    let tracked: Vec<(&Observation, [f64; STRINGS])> = rows
+        .iter()
+        .zip(string_residuals(&id.frame, &id.laws, &id.effects, rows))
+        .filter_map(|(o, r)| Some((o, r?)))
+        .collect();
     let layout = id.frame.layout;
     (0..STRINGS)
         .map(|i| {
             if !layout.is_active(i) {
-                return vec![None; rows.len()];
+                return vec![None; tracked.len()];
             }
-            let raw: Vec<Option<(i32, f64)>> = rows
+            let raw: Vec<Option<(i32, f64)>> = tracked
                 .iter()
-                .zip(&residuals)
                 .map(|(o, r)| {
-                    let r = (*r)?[i];
+                    let r = r[i];
                     let c = o.inputs.counts[i];
                     (r.is_finite() && r.abs() <= GROSS_RESIDUAL_MM)
                         .then(|| (c, r + id.laws[i].layers.departure_mm(c)))
@@ -120,30 +124,16 @@ fn points_by_string(id: &Identification, rows: &[&Observation]) -> Vec<Vec<Optio
                 .collect();
             // Beyond 5 robust sd of this string: the abnormal motor's bad
             // captures, not its winding.
-            let mut v: Vec<f64> = raw.iter().flatten().map(|p| p.1).collect();
+            let v: Vec<f64> = raw.iter().flatten().map(|p| p.1).collect();
             if v.len() < 4 {
                 return raw;
             }
-            let med = median(&mut v);
-            let mut dev: Vec<f64> = raw.iter().flatten().map(|p| (p.1 - med).abs()).collect();
-            let sd = 1.4826 * median(&mut dev);
+            let (med, sd) = robust_centre_and_sd(&v);
             raw.into_iter()
                 .map(|p| p.filter(|p| (p.1 - med).abs() <= 5.0 * sd.max(1e-6)))
                 .collect()
         })
         .collect()
-}
-
-fn median(v: &mut [f64]) -> f64 {
-    v.sort_by(f64::total_cmp);
-    let n = v.len();
-    if n == 0 {
-        0.0
-    } else if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        0.5 * (v[n / 2 - 1] + v[n / 2])
-    }
 }
 
 /// Knots `2^step_log2` counts apart from `lo` that cover `lo..=hi`; `None`
@@ -190,10 +180,8 @@ pub fn fit_table(points: &[(i32, f64)], counts_per_rev: u32, step_log2: u8) -> O
     let mut normal = DMatrix::<f64>::zeros(m, m);
     let mut rhs = DVector::<f64>::zeros(m);
     let mut row = vec![0.0; m];
-    let mut values: Vec<f64> = points.iter().map(|p| p.1).collect();
-    let centre = median(&mut values);
-    let mut dev: Vec<f64> = points.iter().map(|p| (p.1 - centre).abs()).collect();
-    let noise = (1.4826 * median(&mut dev)).max(1e-3);
+    let values: Vec<f64> = points.iter().map(|p| p.1).collect();
+    let noise = robust_centre_and_sd(&values).1.max(1e-3);
     for &(c, r) in points {
         row.iter_mut().for_each(|v| *v = 0.0);
         let (k, along) = table.locate(c)?;
@@ -264,8 +252,7 @@ pub fn choose_spacings(
     folds: &[(Vec<usize>, Vec<usize>)],
 ) -> Vec<StringLayers> {
     use rayon::prelude::*;
-    let tracked: Vec<&Observation> = train.iter().filter(|o| o.tracker.is_some()).collect();
-    let points = points_by_string(id, &tracked);
+    let points = points_by_string(id, train);
     id.frame
         .layout
         .indices()
@@ -313,11 +300,11 @@ pub fn choose_spacings(
 }
 
 /// Tables of every string with a spacing in `steps`, fitted on the
-/// residuals of `id` over `rows` (tracked rows); a table the device would
+/// residuals of `id` over the tracked rows of `rows`; a table the device would
 /// refuse (it makes the payout fall) is dropped.
 fn fit_all(
     id: &Identification,
-    rows: &[&Observation],
+    rows: &[Observation],
     steps: &[Option<u8>; STRINGS],
 ) -> [LayerTable; STRINGS] {
     let points = points_by_string(id, rows);
@@ -351,11 +338,10 @@ pub fn identify_with_layers(
     structure: &Structure,
     steps: &[Option<u8>; STRINGS],
 ) -> Result<Identification, IdentifyError> {
-    let tracked: Vec<&Observation> = rows.iter().filter(|o| o.tracker.is_some()).collect();
     let mut id = from.clone();
     for _ in 0..REFINE_ROUNDS {
         let mut start = Start::from_identification(&id);
-        start.winding.layers = fit_all(&id, &tracked, steps);
+        start.winding.layers = fit_all(&id, rows, steps);
         id = identify(rows, nominal, &start, structure)?;
     }
     Ok(id)

@@ -25,6 +25,32 @@ pub fn position_errors(positions: &[[f64; 3]], references: &[[f64; 3]]) -> Vec<f
         .collect()
 }
 
+/// Median of `values` (sorts them in place; 0 when empty).
+pub fn median(values: &mut [f64]) -> f64 {
+    values.sort_by(f64::total_cmp);
+    let n = values.len();
+    if n == 0 {
+        return 0.0;
+    }
+    if n % 2 == 1 {
+        values[n / 2]
+    } else {
+        0.5 * (values[n / 2 - 1] + values[n / 2])
+    }
+}
+
+/// Robust centre and spread of `values`: the median and 1.4826 times the
+/// median absolute deviation (the standard deviation for Gaussian data, not
+/// moved by a few gross values). `(0, 0)` when empty.
+pub fn robust_centre_and_sd(values: &[f64]) -> (f64, f64) {
+    let mut v = values.to_vec();
+    let centre = median(&mut v);
+    for x in v.iter_mut() {
+        *x = (*x - centre).abs();
+    }
+    (centre, 1.4826 * median(&mut v))
+}
+
 /// Summary of a set of absolute errors (mm), as in the paper's tables.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ErrorStats {

@@ -67,7 +67,15 @@ fn run(
     rig: &mut SimulatedMonitorRig,
     config: &MonitorConfig,
 ) -> (Result<MonitorReport, MonitorError>, Vec<MonitorEvent>) {
-    let cal = calibrated();
+    run_with(calibrated(), rig, config)
+}
+
+/// [`run`] for the rig of another calibrated device.
+fn run_with(
+    cal: &SimCalibration,
+    rig: &mut SimulatedMonitorRig,
+    config: &MonitorConfig,
+) -> (Result<MonitorReport, MonitorError>, Vec<MonitorEvent>) {
     let mut client = rig.client().expect("open the virtual device");
     let mut events = Vec::new();
     // Arrivals on the simulated rig's clock.
@@ -251,27 +259,8 @@ fn a_four_string_rig_is_monitored_and_its_slip_refitted_alone() {
         },
     )
     .expect("simulated rig");
-    let mut client = rig.client().expect("open the virtual device");
-    let config = MonitorConfig {
-        host_clock: rig.host_clock(),
-        device_timeout: Duration::from_secs(10),
-        tracker_timeout: Duration::from_secs(10),
-        ..config(seconds)
-    };
-    let report = monitor(
-        &mut client,
-        &mut rig.receiver,
-        MonitorInputs {
-            geometry: &cal.geometry,
-            calibration: &cal.calibration,
-            calibration_file: Path::new("calibration.json"),
-            training: Some(&cal.training),
-        },
-        &config,
-        &mut |e| eprintln!("{}", event_line(e)),
-        &mut |_| panic!("policy Yes never asks"),
-    )
-    .expect("monitor");
+    let (report, _events) = run_with(&cal, &mut rig, &config(seconds));
+    let report = report.expect("monitor");
     let baseline = report.baseline.expect("a baseline window");
     assert_eq!(report.refits.len(), 1, "{} refits", report.refits.len());
     let r = &report.refits[0];

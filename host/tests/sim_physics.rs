@@ -248,27 +248,36 @@ const LAYERS_MAX_MAX_MM: f64 = 3.3;
 const FINAL_MEAN_MAX_MM: f64 = 0.53;
 const FINAL_MAX_MAX_MM: f64 = 3.5;
 
+/// `calibrate` (quick, quiet) of an independent device's two sessions.
+fn calibrate_quick(
+    device: &PhysicsDevice,
+    train: &spidar::dataset::Session,
+    test: &spidar::dataset::Session,
+) -> spidar::calibrate::Calibrated {
+    let mut cfg = CalibrateConfig::quick();
+    cfg.quiet = true;
+    calibrate(
+        &device.nominal,
+        Path::new("geometry.toml"),
+        NamedSession {
+            path: Path::new("lattice.csv"),
+            session: train,
+        },
+        NamedSession {
+            path: Path::new("test.csv"),
+            session: test,
+        },
+        &cfg,
+    )
+    .unwrap()
+}
+
 #[test]
 fn calibration_on_the_independent_simulator() {
     let device = PhysicsDevice::new(&PhysicsConfig::default(), 1).unwrap();
     let (train, _) = simulate_session(&device, SessionKind::Lattice, 2).unwrap();
     let (test, _) = simulate_session(&device, SessionKind::Random { points: 500 }, 3).unwrap();
-    let mut cfg = CalibrateConfig::quick();
-    cfg.quiet = true;
-    let c = calibrate(
-        &device.nominal,
-        Path::new("geometry.toml"),
-        NamedSession {
-            path: Path::new("lattice.csv"),
-            session: &train,
-        },
-        NamedSession {
-            path: Path::new("test.csv"),
-            session: &test,
-        },
-        &cfg,
-    )
-    .unwrap();
+    let c = calibrate_quick(&device, &train, &test);
     let stages = &c.report.stages;
     for s in stages {
         println!(
@@ -456,22 +465,7 @@ fn a_planar_device_of_other_physics_calibrates() {
         );
     }
     let (test, _) = simulate_session(&device, SessionKind::Random { points: 300 }, 3).unwrap();
-    let mut cfg = CalibrateConfig::quick();
-    cfg.quiet = true;
-    let c = calibrate(
-        &device.nominal,
-        Path::new("geometry.toml"),
-        NamedSession {
-            path: Path::new("lattice.csv"),
-            session: &train,
-        },
-        NamedSession {
-            path: Path::new("test.csv"),
-            session: &test,
-        },
-        &cfg,
-    )
-    .unwrap();
+    let c = calibrate_quick(&device, &train, &test);
     assert!(c.report.device.redundancy == 2);
     let last = c.report.stages.last().unwrap();
     // Measured 0.315 mm mean, 0.96 max on a 500-point test (seed 1).

@@ -421,10 +421,14 @@ fn hold_heartbeat(
             break;
         }
         client.heartbeat()?;
-        let states = client.poll_states()?;
-        seen += states.len();
-        if let Some(s) = states.last() {
-            last = Some(*s);
+        // Polling waits for bytes up to the port's timeout: only while
+        // streaming, or the heartbeats would come too far apart.
+        if want_states {
+            let states = client.poll_states()?;
+            seen += states.len();
+            if let Some(s) = states.last() {
+                last = Some(*s);
+            }
         }
         std::thread::sleep(Duration::from_millis(5));
     }

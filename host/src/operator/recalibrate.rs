@@ -1018,12 +1018,7 @@ impl Monitor<'_> {
             // A term shared by every string (no strings named) touches them
             // all.
             let touched: Vec<u8> = if f.strings.is_empty() {
-                self.geometry
-                    .nominal_frame()
-                    .layout
-                    .indices()
-                    .map(|i| i as u8)
-                    .collect()
+                self.geometry.layout.indices().map(|i| i as u8).collect()
             } else {
                 f.strings.clone()
             };
