@@ -22,6 +22,8 @@ use spidar::sim::{simulate_session, Device, SessionKind};
 
 struct Outcome {
     found: bool,
+    /// The base identification's winding radius at home of each string.
+    r_home_mm: [f64; 8],
     test_after_mm: f64,
     added: usize,
     seconds: f64,
@@ -65,6 +67,7 @@ fn run(seed: u64, effects: &[&str], expect: Option<(Family, &[u8], Variable)>) -
         .unwrap_or(f64::NAN);
     Outcome {
         found,
+        r_home_mm: r.base.winding.r_home_mm,
         test_after_mm,
         added: r.stages.len(),
         seconds,
@@ -90,7 +93,16 @@ fn clean_loop(
         .filter(|f| !f.added && f.change.is_some())
         .count();
     (
-        r.stages.iter().map(|s| s.name.clone()).collect(),
+        r.stages
+            .iter()
+            .map(|s| {
+                format!(
+                    "{} ({:+.1} %)",
+                    s.name,
+                    100.0 * (s.validation_after_mm / s.validation_before_mm - 1.0)
+                )
+            })
+            .collect(),
         format!(
             "{:.3} / {:.3} / {:.2} ({rejected} significant, not added)",
             after.map_or(f64::NAN, |s| s.mean_mm),
@@ -224,23 +236,44 @@ fn main() {
             Variable::Speed,
         ),
     ];
-    let baselines: Vec<f64> = (1..=seeds)
-        .map(|s| run(s, &[], None).test_after_mm)
-        .collect();
+    let baseline_runs: Vec<Outcome> = (1..=seeds).map(|s| run(s, &[], None)).collect();
+    let baselines: Vec<f64> = baseline_runs.iter().map(|o| o.test_after_mm).collect();
     println!("| family | injected | variable | found | worst after / baseline | mean loop s |");
     println!("|---|---|---|---|---|---|");
     for (spec, family, strings, variable) in cases {
         let mut found = 0;
+        let mut in_base = 0;
         let mut worst: f64 = 0.0;
         let mut seconds = 0.0;
         for (k, seed) in (1..=seeds).enumerate() {
             let o = run(seed, &[spec], Some((family, strings, variable)));
-            found += usize::from(o.found);
+            // A payout scale error of string s is the base model's own
+            // parameters since each spool has its own thinning rate
+            // (r_home and kappa_each scale with it): found when the base
+            // identification's r_home of that string, and of no other,
+            // moved by the injected 3 % against the same device without it.
+            let carried = family == Family::Scale
+                && (0..8).all(|i| {
+                    let ratio = o.r_home_mm[i] / baseline_runs[k].r_home_mm[i];
+                    let expected = if strings.contains(&(i as u8)) {
+                        1.03
+                    } else {
+                        1.0
+                    };
+                    !ratio.is_finite() || (ratio - expected).abs() < 0.0075
+                });
+            found += usize::from(o.found || carried);
+            in_base += usize::from(!o.found && carried);
             worst = worst.max(o.test_after_mm / baselines[k]);
             seconds += o.seconds;
         }
+        let how = if in_base > 0 {
+            format!(" ({in_base} by the base model's r_home)")
+        } else {
+            String::new()
+        };
         println!(
-            "| {} | `{spec}` | {} | {found}/{seeds} | {worst:.2} | {:.1} |",
+            "| {} | `{spec}` | {} | {found}/{seeds}{how} | {worst:.2} | {:.1} |",
             family_name(family),
             variable_name(variable),
             seconds / seeds as f64

@@ -4,7 +4,9 @@
 
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
-use spidar_core::model::{Effect, EffectTerm, Frame, StringLayout, EVERY_STRING};
+use spidar_core::model::{
+    Effect, EffectTerm, Frame, StringLayout, EVERY_STRING, MAX_LAYER_STEP_LOG2,
+};
 use spidar_core::string_law::{payout_f64, EffectContext};
 use spidar_core::STRINGS;
 
@@ -98,7 +100,11 @@ pub struct LoopConfig {
     /// accounting for the number of candidates tested).
     pub chi2_threshold: f64,
     /// A step is kept only if the held-out error (blocked folds, see
-    /// [`validate`]) falls by this fraction.
+    /// [`validate`]) falls by this fraction. 2 %: on 20 clean independent
+    /// devices 0.5 % added 74 terms and 2 % 33 for the same held-out error
+    /// (0.437 and 0.436 mm mean; the terms between took 0.5 to 2 % each);
+    /// every injected family of the model simulator is still found 5/5
+    /// (`loop_bench`).
     pub min_relative_gain: f64,
     /// Try layer tables ([`crate::layers`]) before the effect families.
     #[serde(default = "yes")]
@@ -114,7 +120,7 @@ impl Default for LoopConfig {
         LoopConfig {
             max_effects: 8,
             chi2_threshold: 40.0,
-            min_relative_gain: 0.005,
+            min_relative_gain: 0.02,
             layer_tables: true,
         }
     }
@@ -183,10 +189,9 @@ fn add_layer_tables(
         Folds::Blocked => &all_folds[2..],
         Folds::Interleaved => &all_folds[..],
     };
-    let choice = layers::choose_spacings(id, train, spacing_folds);
+    let mut choice = layers::choose_spacings(id, train, spacing_folds);
     let steps = layers::steps_of(&choice);
-    let chosen: Vec<&StringLayers> = choice.iter().filter(|c| c.step_counts.is_some()).collect();
-    if chosen.is_empty() {
+    if choice.iter().all(|c| c.step_counts.is_none()) {
         return Ok(LayerTry {
             choice,
             finding: None,
@@ -194,11 +199,44 @@ fn add_layer_tables(
         });
     }
     let cold = layers::without_layers(id);
-    let (after, _) = validate_by(train, |rows| {
-        let plain = identify(rows, nominal, &cold, structure)?;
-        layers::identify_with_layers(rows, nominal, &plain, structure, &steps)
-    })?;
-    let check = judge(before, &after, None, config.min_relative_gain);
+    let validate_steps = |steps: &[Option<u8>; STRINGS]| {
+        validate_by(train, |rows| {
+            let plain = identify(rows, nominal, &cold, structure)?;
+            layers::identify_with_layers(rows, nominal, &plain, structure, steps)
+        })
+        .map(|(after, _)| after)
+    };
+    let mut steps = steps;
+    let mut after = validate_steps(&steps)?;
+    let mut check = judge(before, &after, None, config.min_relative_gain);
+    let mut coarser_note = String::new();
+    if !check.accepted {
+        // Refused (most often on the max of the shell fold, which the
+        // finest spacing follows least smoothly beyond its counts): one try
+        // with knots twice as far apart on every string.
+        let coarser = steps.map(|s| s.map(|s| s.saturating_add(1).min(MAX_LAYER_STEP_LOG2)));
+        let after2 = validate_steps(&coarser)?;
+        let check2 = judge(before, &after2, None, config.min_relative_gain);
+        if check2.accepted {
+            coarser_note = format!(
+                " (the spacing chosen per string was refused, {}; knots twice as far apart were \
+                 taken)",
+                check.reason
+            );
+            steps = coarser;
+            after = after2;
+            check = check2;
+            for c in choice.iter_mut() {
+                if let Some(step) = c.step_counts {
+                    let step = step.saturating_mul(2);
+                    c.step_counts = Some(step);
+                    if let Some(&(_, rms)) = c.tried.iter().find(|t| t.0 == step) {
+                        c.held_rms_with_mm = rms;
+                    }
+                }
+            }
+        }
+    }
     let refit = if check.accepted {
         Some(layers::identify_with_layers(
             train, nominal, id, structure, &steps,
@@ -206,6 +244,15 @@ fn add_layer_tables(
     } else {
         None
     };
+    if let Some(refit) = &refit {
+        for c in choice.iter_mut().filter(|c| c.step_counts.is_some()) {
+            c.knots = refit.winding.layers[usize::from(c.string)]
+                .knots_mm
+                .as_slice()
+                .len();
+        }
+    }
+    let chosen: Vec<&StringLayers> = choice.iter().filter(|c| c.step_counts.is_some()).collect();
     let ss = |rms: f64| rms * rms;
     let without: f64 = chosen.iter().map(|c| ss(c.held_rms_without_mm)).sum();
     let with: f64 = chosen.iter().map(|c| ss(c.held_rms_with_mm)).sum();
@@ -239,7 +286,7 @@ fn add_layer_tables(
         added: false,
         chi2: 0.0,
         description: format!(
-            "the spool departs from the smooth winding law (layers): {}",
+            "the spool departs from the smooth winding law (layers): {}{coarser_note}",
             per_string.join("; ")
         ),
         validation: Some(check),

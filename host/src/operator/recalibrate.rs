@@ -447,7 +447,6 @@ pub fn check_calibration(
             problem,
         })
     };
-    let first = geometry.layout.indices().next().unwrap_or(0);
     for i in geometry.layout.indices() {
         let law = &calibration.strings[i];
         if law.counts_per_rev != geometry.counts_per_rev[i] {
@@ -459,18 +458,13 @@ pub fn check_calibration(
                 ),
             );
         }
-        // The identified form: [r_home_i, -kappa / m_i, 0, 0] with one kappa
+        // The identified form: [r_home_i, -(kappa + kappa_i) / m_i, 0, 0]
         // (m_i the string's mechanical advantage, 1 for a single line).
-        let kappa_of =
-            |j: usize| -calibration.strings[j].winding_mm[1] * geometry.mechanical_advantage[j];
-        let (k, k0) = (kappa_of(i), kappa_of(first));
-        if law.winding_mm[2..WINDING_ORDER].iter().any(|c| *c != 0.0)
-            || (k - k0).abs() > 1e-9 * k0.abs().max(1e-12)
-        {
+        if law.winding_mm[2..WINDING_ORDER].iter().any(|c| *c != 0.0) {
             return bad(
                 format!("strings[{i}].winding_mm"),
                 "not of the identified winding form [r_home, -kappa / mechanical_advantage, 0, \
-                 0] with one kappa: runtime diagnosis cannot test this model"
+                 0]: runtime diagnosis cannot test this model"
                     .into(),
             );
         }
@@ -522,12 +516,23 @@ pub fn identification_of(
     mechanical_advantage: &[f64; STRINGS],
 ) -> Identification {
     let laws = calibration.strings;
-    let first = calibration.frame.layout.indices().next().unwrap_or(0);
+    let layout = calibration.frame.layout;
+    // Each string's thinning rate, split into the shared mean and each
+    // spool's departure (the identification's form).
+    let kappa_of = |i: usize| -laws[i].winding_mm[1] * mechanical_advantage[i];
+    let kappa_mm = layout.indices().map(kappa_of).sum::<f64>() / layout.count().max(1) as f64;
     Identification {
         frame: calibration.frame,
         winding: WindingPhysics {
             r_home_mm: core::array::from_fn(|i| laws[i].winding_mm[0]),
-            kappa_mm: -laws[first].winding_mm[1] * mechanical_advantage[first],
+            kappa_mm,
+            kappa_each_mm: core::array::from_fn(|i| {
+                if layout.is_active(i) {
+                    kappa_of(i) - kappa_mm
+                } else {
+                    0.0
+                }
+            }),
             counts_per_rev: laws.map(|l| l.counts_per_rev),
             mechanical_advantage: *mechanical_advantage,
             layers: laws.map(|l| l.layers),
@@ -548,6 +553,9 @@ pub fn structure_of(calibration: &Calibration) -> Structure {
     Structure {
         fit_room_scale: (calibration.frame.room_scale - 1.0).abs() > 1e-12,
         effects: calibration.effects.clone(),
+        // A window of a few seconds cannot tell a spool's thinning rate
+        // from a step or a drift: the calibration's are held.
+        hold_kappa_each: true,
         ..Structure::default()
     }
 }
