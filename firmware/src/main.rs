@@ -19,6 +19,7 @@ mod link;
 mod motors;
 mod shared;
 mod storage;
+mod time_driver;
 mod watchdog;
 
 use core::cell::RefCell;
@@ -123,6 +124,8 @@ unsafe fn UART4() {
 #[embassy_executor::main]
 async fn main(spawner: Spawner) {
     let p = embassy_stm32::init(clocks::config());
+    // The time base first: everything after reads the time.
+    time_driver::init(p.TIM12, p.TIM13, p.TIM14);
     defmt::info!("spidar firmware, {} MHz", clocks::SYSCLK_HZ / 1_000_000);
 
     if let Some(mut cp) = cortex_m::Peripherals::take() {
