@@ -12,6 +12,7 @@
 #![no_std]
 #![no_main]
 
+mod cache;
 mod clocks;
 mod control;
 mod encoders;
@@ -130,6 +131,10 @@ async fn main(spawner: Spawner) {
 
     if let Some(mut cp) = cortex_m::Peripherals::take() {
         cp.SCB.enable_icache();
+        // Before anything reads the model slots: they become uncached, the
+        // rest of memory cached (docs/hardware.md, "Caches").
+        cache::model_slots_uncached(&mut cp.MPU);
+        cp.SCB.enable_dcache(&mut cp.CPUID);
         cp.DCB.enable_trace();
         DWT::unlock();
         cp.DWT.enable_cycle_counter();
