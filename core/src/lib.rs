@@ -14,6 +14,7 @@
 //! - [`control`]: one control-loop iteration wiring all of the above;
 //! - [`model_store`]: two flash slots holding the model blob, power-loss safe uploads;
 //! - [`device`]: the device behind the link: requests, uploads, the loop, the state stream.
+//! - [`time_base`]: the firmware clock from two cascaded 16-bit timers, which survives a flash erase.
 #![cfg_attr(not(test), no_std)]
 #![forbid(unsafe_code)]
 
@@ -36,3 +37,4 @@ pub mod model_store;
 pub mod safety;
 pub mod string_law;
 pub mod tension;
+pub mod time_base;

@@ -12,6 +12,7 @@
 #![no_std]
 #![no_main]
 
+mod cache;
 mod clocks;
 mod control;
 mod encoders;
@@ -19,6 +20,7 @@ mod link;
 mod motors;
 mod shared;
 mod storage;
+mod time_driver;
 mod watchdog;
 
 use core::cell::RefCell;
@@ -123,10 +125,16 @@ unsafe fn UART4() {
 #[embassy_executor::main]
 async fn main(spawner: Spawner) {
     let p = embassy_stm32::init(clocks::config());
+    // The time base first: everything after reads the time.
+    time_driver::init(p.TIM12, p.TIM13, p.TIM14);
     defmt::info!("spidar firmware, {} MHz", clocks::SYSCLK_HZ / 1_000_000);
 
     if let Some(mut cp) = cortex_m::Peripherals::take() {
         cp.SCB.enable_icache();
+        // Before anything reads the model slots: they become uncached, the
+        // rest of memory cached (docs/hardware.md, "Caches").
+        cache::model_slots_uncached(&mut cp.MPU);
+        cp.SCB.enable_dcache(&mut cp.CPUID);
         cp.DCB.enable_trace();
         DWT::unlock();
         cp.DWT.enable_cycle_counter();

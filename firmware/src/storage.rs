@@ -3,10 +3,12 @@
 //! (commit records, which slot is active, uploads that survive a power cut)
 //! is `spidar_core::model_store`; this is only the flash I/O.
 //!
-//! Single-bank part: while a sector is erased (up to ~2 s) or a word
-//! programmed, every flash read stalls, i.e. the whole program including the
-//! control loop. The device refuses uploads while armed, and the watchdog is
-//! stretched around an erase (see `watchdog`).
+//! Single-bank part: while a sector is erased (~1-2 s, up to ~4 s) or a
+//! word programmed, every flash read stalls, i.e. the whole program including
+//! the control loop, and the device lock (a critical section) masks
+//! interrupts too. The device refuses uploads while armed, the watchdog is
+//! stretched around an erase (see `watchdog`), and the time base counts on
+//! in hardware (see `time_driver`).
 
 use embassy_stm32::flash::{Blocking, Error, Flash};
 use spidar_core::model_store::{FlashError, ModelFlash, Slot, FLASH_WORD};

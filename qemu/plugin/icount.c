@@ -18,6 +18,12 @@
  * `<address hex> <count>` lines (addresses with a non-zero count), then
  * resets. Slower (one helper call per instruction); the totals are the same.
  *
+ * Optional `trace=FILE` (scripts/qemu-cycles): writes the address of every
+ * instruction executed in the *first* measured call after each report (the
+ * first call of each benchmark), in execution order, one hex address a line,
+ * each call after a line `CALL <report index>`. The executed instruction
+ * stream for a pipeline model (llvm-mca).
+ *
  * Debian does not ship qemu-plugin.h (QEMU's public plugin header), so the
  * few declarations used are below; they are those of the plugin API version 1
  * (QEMU 6.0 .. 8.1; QEMU 7.2 in Debian 12). The API is a C ABI of functions
@@ -86,11 +92,20 @@ static uint64_t total_reports;
 static uint64_t *prof;
 static FILE *prof_file;
 
+/* Trace: the first call of each benchmark, instruction by instruction. */
+static FILE *trace_file;
+static bool tracing;
+
 static void on_insn(unsigned int vcpu, void *udata)
 {
     (void)vcpu;
     if (in_call) {
-        prof[(uintptr_t)udata]++;
+        if (prof) {
+            prof[(uintptr_t)udata]++;
+        }
+        if (tracing) {
+            fprintf(trace_file, "%zx\n", (size_t)(uintptr_t)udata * 2);
+        }
     }
 }
 
@@ -114,6 +129,10 @@ static void on_marker(unsigned int vcpu, void *udata)
     case START:
         at_start = executed;
         in_call = true;
+        if (trace_file && calls == 0) {
+            tracing = true;
+            fprintf(trace_file, "CALL %" PRIu64 "\n", total_reports);
+        }
         break;
     case STOP:
         if (in_call) {
@@ -127,6 +146,7 @@ static void on_marker(unsigned int vcpu, void *udata)
             sum += n;
             calls++;
             in_call = false;
+            tracing = false;
         }
         break;
     case REPORT:
@@ -138,6 +158,7 @@ static void on_marker(unsigned int vcpu, void *udata)
         }
         calls = sum = min_n = max_n = 0;
         in_call = false;
+        tracing = false;
         total_reports++;
         break;
     }
@@ -159,7 +180,7 @@ static void tb_trans(qemu_plugin_id_t id, struct qemu_plugin_tb *tb)
         }
         qemu_plugin_register_vcpu_insn_exec_inline(
             insn, QEMU_PLUGIN_INLINE_ADD_U64, &executed, 1);
-        if (prof_file && va / 2 < PROF_SLOTS) {
+        if ((prof_file || trace_file) && va / 2 < PROF_SLOTS) {
             qemu_plugin_register_vcpu_insn_exec_cb(
                 insn, on_insn, QEMU_PLUGIN_CB_NO_REGS, (void *)(uintptr_t)(va / 2));
         }
@@ -171,6 +192,10 @@ static void at_exit(qemu_plugin_id_t id, void *p)
     char line[96];
     (void)id;
     (void)p;
+    if (trace_file) {
+        fclose(trace_file);
+        trace_file = NULL;
+    }
     snprintf(line, sizeof line, "ICOUNT_TOTAL %" PRIu64 " %" PRIu64 "\n",
              executed, total_reports);
     qemu_plugin_outs(line);
@@ -189,6 +214,14 @@ QEMU_PLUGIN_EXPORT int qemu_plugin_install(qemu_plugin_id_t id,
             prof = calloc(PROF_SLOTS, sizeof *prof);
             if (!prof_file || !prof) {
                 fprintf(stderr, "icount: cannot open profile '%s'\n", argv[i] + 8);
+                return -1;
+            }
+            continue;
+        }
+        if (strncmp(argv[i], "trace=", 6) == 0) {
+            trace_file = fopen(argv[i] + 6, "w");
+            if (!trace_file) {
+                fprintf(stderr, "icount: cannot open trace '%s'\n", argv[i] + 6);
                 return -1;
             }
             continue;
