@@ -2,30 +2,31 @@
 //! and a position from string lengths (forward, damped Gauss-Newton /
 //! Levenberg-Marquardt) with faulty-string rejection.
 //!
-//! Generic over [`num_traits::Float`]: the device runs `f32`, the host `f64`.
+//! Generic over [`Real`]: the device runs `f32`, the host `f64`.
 //! Only `+ - * /` and `sqrt` are used, always in the same order, so `f32`
 //! results are bit-identical on x86_64 (SSE) and on the Cortex-M7 FPU: all
 //! five are correctly rounded IEEE 754 operations on both, Rust never
-//! contracts `a * b + c` into an FMA, and `sqrt` is `libm::sqrtf`/`sqrt`
-//! (no_std) or the hardware instruction (std), both correctly rounded.
+//! contracts `a * b + c` into an FMA, and `sqrt` is [`Real::sqrt_rounded`]
+//! (`VSQRT.F32` on the Cortex-M7, `libm::sqrtf`/`sqrt` elsewhere), all
+//! correctly rounded.
 //! Comparisons and `abs`/`is_finite` are exact.
 //!
 //! Units: millimetres, device frame.
 
-use num_traits::Float;
+use crate::real::Real;
 
 use crate::model::{StringLayout, Vec3};
 use crate::STRINGS;
 
 /// `x` as `F` (constants only; every `f64` converts to `f32`/`f64`).
 #[inline]
-fn lit<F: Float>(x: f64) -> F {
+fn lit<F: Real>(x: f64) -> F {
     F::from(x).unwrap_or_else(F::zero)
 }
 
 /// Geometric string lengths `|position - anchor_i|` (mm), computed as
 /// `sqrt(dx*dx + dy*dy + dz*dz)` in that order.
-pub fn inverse_kinematics<F: Float>(
+pub fn inverse_kinematics<F: Real>(
     anchors: &[Vec3<F>; STRINGS],
     position: Vec3<F>,
 ) -> [F; STRINGS] {
@@ -34,7 +35,7 @@ pub fn inverse_kinematics<F: Float>(
         let dx = position[0] - a[0];
         let dy = position[1] - a[1];
         let dz = position[2] - a[2];
-        *o = (dx * dx + dy * dy + dz * dz).sqrt();
+        *o = (dx * dx + dy * dy + dz * dz).sqrt_rounded();
     }
     out
 }
@@ -70,7 +71,7 @@ pub struct FkConfig<F> {
     pub initial_damping: F,
 }
 
-impl<F: Float> Default for FkConfig<F> {
+impl<F: Real> Default for FkConfig<F> {
     /// Sensible for a ~2.2 m frame in millimetres.
     fn default() -> Self {
         Self {
@@ -84,7 +85,7 @@ impl<F: Float> Default for FkConfig<F> {
     }
 }
 
-impl<F: Float> FkConfig<F> {
+impl<F: Real> FkConfig<F> {
     /// Worst-case iteration count of [`forward_kinematics`] with this config.
     pub fn worst_case_iterations(&self) -> u32 {
         self.max_iterations
@@ -141,7 +142,7 @@ struct Eval<F> {
     jtr: [F; 3],
 }
 
-fn evaluate<F: Float>(
+fn evaluate<F: Real>(
     anchors: &[Vec3<F>; STRINGS],
     layout: StringLayout,
     lengths: &[F; STRINGS],
@@ -161,7 +162,7 @@ fn evaluate<F: Float>(
         let dx = p[0] - a[0];
         let dy = p[1] - a[1];
         let dz = p[2] - a[2];
-        let dist = (dx * dx + dy * dy + dz * dz).sqrt();
+        let dist = (dx * dx + dy * dy + dz * dz).sqrt_rounded();
         let r = dist - lengths[i];
         e.cost = e.cost + r * r;
         // At an anchor the residual has no direction: no Jacobian row.
@@ -192,7 +193,7 @@ fn evaluate<F: Float>(
 
 /// Solves `(J^T J + lambda I) delta = -J^T r` by cofactors; `None` when the
 /// matrix is singular or something is not finite.
-fn damped_step<F: Float>(e: &Eval<F>, lambda: F) -> Option<Vec3<F>> {
+fn damped_step<F: Real>(e: &Eval<F>, lambda: F) -> Option<Vec3<F>> {
     let m00 = e.jtj[0] + lambda;
     let m01 = e.jtj[1];
     let m02 = e.jtj[2];
@@ -233,7 +234,7 @@ struct Solve<F> {
 
 /// Levenberg-Marquardt from `start` with at most `max_iterations` trials
 /// (each trial = one evaluation and one 3x3 solve).
-fn solve<F: Float>(
+fn solve<F: Real>(
     anchors: &[Vec3<F>; STRINGS],
     layout: StringLayout,
     lengths: &[F; STRINGS],
@@ -284,7 +285,7 @@ fn solve<F: Float>(
 
 /// Index of the string with the largest `| |p - anchor_i| - length_i |` (the
 /// first one on ties; 0 if every residual is NaN).
-fn largest_residual<F: Float>(
+fn largest_residual<F: Real>(
     anchors: &[Vec3<F>; STRINGS],
     layout: StringLayout,
     lengths: &[F; STRINGS],
@@ -297,7 +298,7 @@ fn largest_residual<F: Float>(
         let dx = p[0] - a[0];
         let dy = p[1] - a[1];
         let dz = p[2] - a[2];
-        let r = ((dx * dx + dy * dy + dz * dz).sqrt() - lengths[i]).abs();
+        let r = ((dx * dx + dy * dy + dz * dz).sqrt_rounded() - lengths[i]).abs();
         if r > worst_r {
             worst = i;
             worst_r = r;
@@ -306,8 +307,8 @@ fn largest_residual<F: Float>(
     worst
 }
 
-fn rms<F: Float>(cost: F, n: usize) -> F {
-    let r = (cost / lit(n as f64)).sqrt();
+fn rms<F: Real>(cost: F, n: usize) -> F {
+    let r = (cost / lit(n as f64)).sqrt_rounded();
     if r.is_finite() {
         r
     } else {
@@ -315,7 +316,7 @@ fn rms<F: Float>(cost: F, n: usize) -> F {
     }
 }
 
-fn finite3<F: Float>(v: &Vec3<F>) -> bool {
+fn finite3<F: Real>(v: &Vec3<F>) -> bool {
     v[0].is_finite() && v[1].is_finite() && v[2].is_finite()
 }
 
@@ -342,7 +343,7 @@ fn finite3<F: Float>(v: &Vec3<F>) -> bool {
 /// Fewer active strings than degrees of freedom is [`FkStatus::InvalidInput`].
 /// Never panics; never returns a NaN position or RMS (a non-finite `start`
 /// is replaced by the active anchors' centroid).
-pub fn forward_kinematics<F: Float>(
+pub fn forward_kinematics<F: Real>(
     anchors: &[Vec3<F>; STRINGS],
     layout: StringLayout,
     lengths: &[F; STRINGS],
@@ -518,7 +519,7 @@ mod tests {
     use super::*;
     use proptest::prelude::*;
 
-    fn anchors<F: Float>() -> [Vec3<F>; STRINGS] {
+    fn anchors<F: Real>() -> [Vec3<F>; STRINGS] {
         let h: F = lit(1100.0);
         let mut a = [[F::zero(); 3]; STRINGS];
         for (i, v) in a.iter_mut().enumerate() {
@@ -549,7 +550,7 @@ mod tests {
         ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
     }
 
-    fn to_f64<F: Float>(p: Vec3<F>) -> [f64; 3] {
+    fn to_f64<F: Real>(p: Vec3<F>) -> [f64; 3] {
         [
             p[0].to_f64().unwrap(),
             p[1].to_f64().unwrap(),
@@ -558,7 +559,7 @@ mod tests {
     }
 
     /// Round trip position -> lengths -> position; returns (max error mm, max iterations).
-    fn round_trip<F: Float + core::fmt::Debug>(warm: bool) -> (f64, u32) {
+    fn round_trip<F: Real + core::fmt::Debug>(warm: bool) -> (f64, u32) {
         let a = anchors::<F>();
         let config = FkConfig::<F>::default();
         let mut max_err = 0.0f64;
@@ -614,7 +615,7 @@ mod tests {
         }
     }
 
-    fn check_single_fault<F: Float + core::fmt::Debug>() -> (f64, u32) {
+    fn check_single_fault<F: Real + core::fmt::Debug>() -> (f64, u32) {
         let mut max_err = 0.0f64;
         let mut max_it = 0;
         let a = anchors::<F>();

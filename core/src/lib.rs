@@ -34,6 +34,7 @@ pub mod guidance;
 pub mod kinematics;
 pub mod model;
 pub mod model_store;
+pub mod real;
 pub mod safety;
 pub mod string_law;
 pub mod tension;

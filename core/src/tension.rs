@@ -89,7 +89,7 @@
 //! [`num_traits::Float`] so the host can also run it in `f64`.
 #![allow(clippy::needless_range_loop)]
 
-use num_traits::Float;
+use crate::real::Real;
 use serde::{Deserialize, Serialize};
 
 use crate::model::{StringLayout, Vec3};
@@ -118,7 +118,7 @@ pub struct TensionLimits<F> {
     pub t_max: F,
 }
 
-impl<F: Float> TensionLimits<F> {
+impl<F: Real> TensionLimits<F> {
     /// Whether `0 < t_min < t_max` and both are finite.
     pub fn is_valid(&self) -> bool {
         self.t_min.is_finite()
@@ -163,7 +163,7 @@ pub struct TensionConfig<F> {
     pub scale_back_off: F,
 }
 
-impl<F: Float> Default for TensionConfig<F> {
+impl<F: Real> Default for TensionConfig<F> {
     fn default() -> Self {
         Self {
             reference: TensionReference::Mid,
@@ -232,7 +232,7 @@ pub struct TensionSolution<F> {
 /// (mm): `sum_i tensions_i u_i`, `u_i` the unit vector from the end-effector
 /// toward `anchors[i]` (mm). A string of zero length (or with non-finite
 /// geometry) contributes nothing.
-pub fn resultant_force<F: Float>(
+pub fn resultant_force<F: Real>(
     anchors: &[Vec3<F>; STRINGS],
     position: Vec3<F>,
     tensions: &[F; STRINGS],
@@ -253,7 +253,7 @@ pub fn resultant_force<F: Float>(
 /// String directions: unit vectors from the end-effector at `position` (mm)
 /// toward each anchor (mm), or the status naming the first string shorter
 /// than `min_string_length_mm` (or with non-finite geometry).
-pub fn string_directions<F: Float>(
+pub fn string_directions<F: Real>(
     anchors: &[Vec3<F>; STRINGS],
     position: Vec3<F>,
     min_string_length_mm: F,
@@ -276,7 +276,7 @@ pub fn string_directions<F: Float>(
 /// Distributes the desired `force` (N, on the end-effector) over the
 /// strings of `layout`, starting the dual iteration from zero. See
 /// [`distribute_warm`].
-pub fn distribute<F: Float>(
+pub fn distribute<F: Real>(
     anchors: &[Vec3<F>; STRINGS],
     layout: StringLayout,
     position: Vec3<F>,
@@ -304,7 +304,7 @@ pub fn distribute<F: Float>(
 /// positively span: the end-effector is outside the active anchors' convex
 /// hull, e.g. below every anchor of a hanging design, which can only pull up
 /// and relies on gravity), or another failure status of [`distribute`].
-pub fn force_closure<F: Float>(
+pub fn force_closure<F: Real>(
     anchors: &[Vec3<F>; STRINGS],
     layout: StringLayout,
     position: Vec3<F>,
@@ -334,7 +334,7 @@ pub fn force_closure<F: Float>(
 ///
 /// At most [`MAX_ITERATIONS`] iterations (see the module doc). Never
 /// panics; every failure is a [`TensionStatus`].
-pub fn distribute_warm<F: Float>(
+pub fn distribute_warm<F: Real>(
     anchors: &[Vec3<F>; STRINGS],
     layout: StringLayout,
     position: Vec3<F>,
@@ -353,7 +353,7 @@ pub fn distribute_warm<F: Float>(
 
 /// [`distribute_warm`]; `ALL`: `layout` is [`StringLayout::ALL`].
 #[inline(always)]
-fn solve<F: Float, const ALL: bool>(
+fn solve<F: Real, const ALL: bool>(
     anchors: &[Vec3<F>; STRINGS],
     layout: StringLayout,
     position: Vec3<F>,
@@ -522,13 +522,13 @@ fn solve<F: Float, const ALL: bool>(
         rendered_fraction: alpha,
         iterations,
         status,
-        residual_n: residual2.sqrt(),
+        residual_n: residual2.sqrt_rounded(),
         multiplier: lambda,
     }
 }
 
 /// Tension 0 on the channels `layout` marks inactive.
-fn mask_inactive<F: Float>(tensions: &mut [F; STRINGS], layout: StringLayout) {
+fn mask_inactive<F: Real>(tensions: &mut [F; STRINGS], layout: StringLayout) {
     for (i, t) in tensions.iter_mut().enumerate() {
         if !layout.is_active(i) {
             *t = F::zero();
@@ -546,7 +546,7 @@ type Geometry<F> = ([Vec3<F>; STRINGS], F, Vec3<F>);
 /// strings. Planar: directions and force in the `x, y` plane, and the 2-D
 /// facets (one per string) replace the 3-D pairs, whose normals would all be
 /// `z`.
-fn layout_geometry<F: Float>(
+fn layout_geometry<F: Real>(
     anchors: &[Vec3<F>; STRINGS],
     layout: StringLayout,
     position: Vec3<F>,
@@ -592,7 +592,7 @@ fn layout_geometry<F: Float>(
 /// `hull_margin` on each side of the line along `u_i` (the directions then
 /// positively span the plane). Directions `u` have `z = 0`; inactive ones
 /// are zero.
-fn feasible_fraction_planar<F: Float>(
+fn feasible_fraction_planar<F: Real>(
     u: &[Vec3<F>; STRINGS],
     layout: StringLayout,
     limits: TensionLimits<F>,
@@ -628,7 +628,7 @@ fn feasible_fraction_planar<F: Float>(
 /// zonotope: `|alpha n.F - n.c| <= reach`, with `centre = n.c` and
 /// `a = n.F`; the shared step of the 3-D and planar searches.
 #[inline(always)]
-fn facet_limit<F: Float>(alpha: F, reach: F, centre: F, a: F) -> Result<F, TensionStatus> {
+fn facet_limit<F: Real>(alpha: F, reach: F, centre: F, a: F) -> Result<F, TensionStatus> {
     if centre.abs() > reach {
         return Err(TensionStatus::NoFeasibleTension);
     }
@@ -646,7 +646,7 @@ fn facet_limit<F: Float>(alpha: F, reach: F, centre: F, a: F) -> Result<F, Tensi
 
 /// `x > hm * sqrt(n2)` without the square root (`n2 >= 0`).
 #[inline(always)]
-fn beyond_margin<F: Float>(x: F, hm: F, n2: F) -> bool {
+fn beyond_margin<F: Real>(x: F, hm: F, n2: F) -> bool {
     let hm2n2 = hm * hm * n2;
     if hm >= F::zero() {
         x > F::zero() && x * x > hm2n2
@@ -679,7 +679,7 @@ const PAIR_SLOTS: usize = 32;
 /// sum) / 2`; only a pair failing this sufficient test (near the hull
 /// boundary) is checked string by string. Margins are compared on squares:
 /// no square root.
-fn feasible_fraction<F: Float>(
+fn feasible_fraction<F: Real>(
     u: &[Vec3<F>; STRINGS],
     limits: TensionLimits<F>,
     force: Vec3<F>,
@@ -737,7 +737,7 @@ fn feasible_fraction<F: Float>(
 /// Whether some string other than `i`, `j` lies beyond `hull_margin |n|` on
 /// each side of the plane with normal `n = u_i x u_j` (`|n|^2 = n2`).
 #[inline(never)]
-fn strings_on_both_sides<F: Float>(
+fn strings_on_both_sides<F: Real>(
     u: &[Vec3<F>; STRINGS],
     i: usize,
     j: usize,
@@ -771,7 +771,7 @@ struct Evaluation<F> {
 
 /// `T_i = clamp(t_ref + u_i . lambda)` and the residual `target - A T` (the
 /// gradient of the dual `g = sum_i (T_i - t_ref)^2 / 2 - (u_i . lambda) T_i + lambda . target`).
-fn evaluate<F: Float>(
+fn evaluate<F: Real>(
     u: &[Vec3<F>; STRINGS],
     t_ref: F,
     limits: TensionLimits<F>,
@@ -813,7 +813,7 @@ fn evaluate<F: Float>(
 /// where a string enters or leaves its limits are sorted (insertion sort,
 /// ties by string index) and walked until `phi'` crosses zero. `slope` is
 /// `phi'(0) > 0`. Returns 0 if no ascent is possible.
-fn exact_line_search<F: Float>(
+fn exact_line_search<F: Real>(
     u: &[Vec3<F>; STRINGS],
     t_ref: F,
     limits: TensionLimits<F>,
@@ -884,7 +884,7 @@ fn exact_line_search<F: Float>(
 }
 
 /// `sum_{i free} u_i u_i^T` as `[xx, xy, xz, yy, yz, zz]`.
-fn free_hessian<F: Float>(u: &[Vec3<F>; STRINGS], free: &[bool; STRINGS]) -> [F; 6] {
+fn free_hessian<F: Real>(u: &[Vec3<F>; STRINGS], free: &[bool; STRINGS]) -> [F; 6] {
     let mut h = [F::zero(); 6];
     for i in 0..STRINGS {
         if free[i] {
@@ -905,7 +905,7 @@ fn free_hessian<F: Float>(u: &[Vec3<F>; STRINGS], free: &[bool; STRINGS]) -> [F;
 /// pivot is raised to at least `pivot_floor`, so a singular `H` gives a
 /// finite solution with a long component along its null space. `None` only
 /// if the result is not finite.
-fn solve_spd3<F: Float>(h: [F; 6], b: Vec3<F>, pivot_floor: F) -> Option<Vec3<F>> {
+fn solve_spd3<F: Real>(h: [F; 6], b: Vec3<F>, pivot_floor: F) -> Option<Vec3<F>> {
     let floor = |d: F| if d > pivot_floor { d } else { pivot_floor };
     let [a11, a21, a31, a22, a32, a33] = h;
     let d1 = floor(a11);
@@ -928,7 +928,7 @@ fn solve_spd3<F: Float>(h: [F; 6], b: Vec3<F>, pivot_floor: F) -> Option<Vec3<F>
     }
 }
 
-fn failure<F: Float>(tension: F, status: TensionStatus) -> TensionSolution<F> {
+fn failure<F: Real>(tension: F, status: TensionStatus) -> TensionSolution<F> {
     TensionSolution {
         tensions: [tension; STRINGS],
         feasible: false,
@@ -942,12 +942,12 @@ fn failure<F: Float>(tension: F, status: TensionStatus) -> TensionSolution<F> {
 
 /// A literal in the float type (exact for every value used here in f32/f64).
 #[inline(always)]
-fn lit<F: Float>(x: f64) -> F {
+fn lit<F: Real>(x: f64) -> F {
     F::from(x).unwrap_or_else(F::nan)
 }
 
 #[inline(always)]
-fn clamp<F: Float>(x: F, lo: F, hi: F) -> F {
+fn clamp<F: Real>(x: F, lo: F, hi: F) -> F {
     if x < lo {
         lo
     } else if x > hi {
@@ -958,17 +958,17 @@ fn clamp<F: Float>(x: F, lo: F, hi: F) -> F {
 }
 
 #[inline(always)]
-fn sub<F: Float>(a: Vec3<F>, b: Vec3<F>) -> Vec3<F> {
+fn sub<F: Real>(a: Vec3<F>, b: Vec3<F>) -> Vec3<F> {
     [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
 }
 
 #[inline(always)]
-fn dot<F: Float>(a: Vec3<F>, b: Vec3<F>) -> F {
+fn dot<F: Real>(a: Vec3<F>, b: Vec3<F>) -> F {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
 
 #[inline(always)]
-fn cross<F: Float>(a: Vec3<F>, b: Vec3<F>) -> Vec3<F> {
+fn cross<F: Real>(a: Vec3<F>, b: Vec3<F>) -> Vec3<F> {
     [
         a[1] * b[2] - a[2] * b[1],
         a[2] * b[0] - a[0] * b[2],
@@ -977,12 +977,12 @@ fn cross<F: Float>(a: Vec3<F>, b: Vec3<F>) -> Vec3<F> {
 }
 
 #[inline(always)]
-fn norm<F: Float>(a: Vec3<F>) -> F {
-    dot(a, a).sqrt()
+fn norm<F: Real>(a: Vec3<F>) -> F {
+    dot(a, a).sqrt_rounded()
 }
 
 #[inline(always)]
-fn all_finite<F: Float>(a: &[F]) -> bool {
+fn all_finite<F: Real>(a: &[F]) -> bool {
     a.iter().all(|x| x.is_finite())
 }
 
