@@ -19,7 +19,10 @@ fn read_pairs(path: &str) -> (Vec<[f64; 3]>, Vec<[f64; 3]>) {
     let mut x = Vec::new();
     let mut t = Vec::new();
     for line in text.lines().skip(1) {
-        let v: Vec<f64> = line.split(',').map(|s| s.parse().expect("number")).collect();
+        let v: Vec<f64> = line
+            .split(',')
+            .map(|s| s.parse().expect("number"))
+            .collect();
         x.push([v[0], v[1], v[2]]);
         t.push([v[3], v[4], v[5]]);
     }
@@ -36,6 +39,7 @@ fn main() {
             .cloned()
     };
     let tol: f64 = value("--tol").and_then(|v| v.parse().ok()).unwrap_or(1e-3);
+
     let (x, t) = read_pairs(&format!("{dir}/blackbox_train.csv"));
     let (xt, tt) = read_pairs(&format!("{dir}/blackbox_test.csv"));
     let cfg = SvrSearchConfig {
@@ -61,13 +65,24 @@ fn main() {
         let xtr: Vec<[f64; 3]> = tr.iter().map(|&i| xs[i]).collect();
         println!("| gamma | C | eps | axis | iterations | s | us/iter | SV | bounded SV |");
         println!("|---|---|---|---|---:|---:|---:|---:|---:|");
+        let one: Option<Vec<f64>> =
+            value("--one").map(|v| v.split(',').map(|x| x.parse().unwrap()).collect());
         for &gamma in &cfg.gamma {
+            if one.as_ref().is_some_and(|o| o[0] != gamma) {
+                continue;
+            }
             let t0 = Instant::now();
             let k = KernelMatrix::rbf(&xtr, gamma, 16_000).unwrap();
             println!("kernel gamma {gamma}: {:.3} s", t0.elapsed().as_secs_f64());
             for &c in &cfg.c {
                 for &eps in &cfg.epsilon {
                     for a in 0..3 {
+                        if one
+                            .as_ref()
+                            .is_some_and(|o| o[1] != c || o[2] != eps || o[3] != a as f64)
+                        {
+                            continue;
+                        }
                         let z: Vec<f64> = tr.iter().map(|&i| ys[i][a]).collect();
                         let t0 = Instant::now();
                         let s =
@@ -86,13 +101,80 @@ fn main() {
             }
         }
     }
+    if args.iter().any(|a| a == "--one") {
+        return;
+    }
+    if let Some(spec) = value("--warm") {
+        // gamma,axis: the chain C 30 -> 300 and eps 0.01 -> 0.005, warm starts
+        // unscaled and scaled by the C ratio.
+        let v: Vec<f64> = spec.split(',').map(|x| x.parse().unwrap()).collect();
+        let (gamma, a) = (v[0], v[1] as usize);
+        let (tr, _va) = split_indices(x.len(), 0.2, cfg.seed);
+        let input = standardize::fit("in", &x).unwrap();
+        let output = standardize::fit("out", &t).unwrap();
+        let xs = standardize::apply_all(&input, &x);
+        let ys = standardize::apply_all(&output, &t);
+        let k = KernelMatrix::rbf(&xs, gamma, 16_000).unwrap();
+        let z: Vec<f64> = tr.iter().map(|&i| ys[i][a]).collect();
+        let run = |c: f64, eps: f64, warm: Option<&[f64]>, what: &str| {
+            let t0 = Instant::now();
+            let s = svr::solve(
+                &svr::Problem {
+                    kernel: &k,
+                    points: &tr,
+                    z: &z,
+                    c,
+                    epsilon: eps,
+                    warm,
+                },
+                &cfg.solver,
+                Deadline::none(),
+            )
+            .unwrap();
+            println!(
+                "C {c} eps {eps} {what}: {} iterations, {:.2} s, obj {:.6}, SV {} bounded {}",
+                s.iterations,
+                t0.elapsed().as_secs_f64(),
+                s.objective,
+                s.support_vectors,
+                s.bounded_support_vectors
+            );
+            s.coef
+        };
+        let a30 = run(30.0, 0.01, None, "cold");
+        let b30 = run(30.0, 0.005, Some(&a30), "warm from C 30 eps 0.01");
+        let _ = run(30.0, 0.005, None, "cold");
+        let a300 = run(300.0, 0.01, Some(&a30), "warm from C 30 unscaled");
+        let scaled: Vec<f64> = a30.iter().map(|v| v * 10.0).collect();
+        let _ = run(300.0, 0.01, Some(&scaled), "warm from C 30 scaled x10");
+        let _ = run(300.0, 0.005, Some(&a300), "warm from C 300 eps 0.01");
+        let scaled: Vec<f64> = b30.iter().map(|v| v * 10.0).collect();
+        let _ = run(
+            300.0,
+            0.005,
+            Some(&scaled),
+            "warm from C 30 eps 0.005 scaled x10",
+        );
+        let _ = run(
+            300.0,
+            0.005,
+            Some(&b30),
+            "warm from C 30 eps 0.005 unscaled",
+        );
+        return;
+    }
     let t0 = Instant::now();
     let res = search::svr_search(&x, &t, &cfg).unwrap();
     let total = t0.elapsed().as_secs_f64();
     for c in &res.candidates {
         println!(
             "candidate C {} eps {} gamma {}: validation {:?} mm, {:.2} s, {} SV",
-            c.params.c, c.params.epsilon, c.params.gamma, c.validation_mean_mm, c.seconds, c.support_vectors
+            c.params.c,
+            c.params.epsilon,
+            c.params.gamma,
+            c.validation_mean_mm,
+            c.seconds,
+            c.support_vectors
         );
     }
     let pred = svr::predict_all(&res.fit.model, &xt);

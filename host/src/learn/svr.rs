@@ -175,6 +175,9 @@ pub struct AxisSolution {
     pub support_vectors: usize,
     /// Support vectors at the bound C (outside the tube).
     pub bounded_support_vectors: usize,
+    /// Wall seconds of the solve (set by callers that time it).
+    #[serde(default)]
+    pub seconds: f64,
 }
 
 #[derive(Clone, Copy, PartialEq, Eq)]
@@ -206,6 +209,12 @@ struct Solver<'a> {
     unshrink: bool,
     buf_i: Vec<f64>,
     buf_j: Vec<f64>,
+    /// Whether each variable may move up (`I_up`: `y beta` can grow) or down
+    /// (`I_low`), kept with `status` so that the selection needs no branch.
+    up_ok: Vec<bool>,
+    low_ok: Vec<bool>,
+    /// The second-order decrease of each candidate j (selection scratch).
+    obj_buf: Vec<f64>,
 }
 
 /// `out[t] = y_i y_t K(point_i, point_t)` for `t < out.len()`.
@@ -216,8 +225,19 @@ fn fill_q(krow: &[f32], yi: f64, y: &[f64], index: &[usize], out: &mut [f64]) {
 }
 
 impl<'a> Solver<'a> {
-    fn new(k: &'a KernelMatrix, z: &[f64], epsilon: f64, c: f64, tol: f64) -> Self {
-        let n = k.len();
+    /// The dual over the kernel rows `points` (targets `z[i]` at
+    /// `points[i]`), from `warm` coefficients `alpha_i - alpha*_i` (feasible:
+    /// `|c_i| <= C`, summing to 0) or from 0.
+    fn new(
+        k: &'a KernelMatrix,
+        points: &[usize],
+        z: &[f64],
+        epsilon: f64,
+        c: f64,
+        tol: f64,
+        warm: Option<&[f64]>,
+    ) -> Self {
+        let n = points.len();
         let l = 2 * n;
         let mut y = vec![1.0; l];
         let mut index = vec![0; l];
@@ -225,26 +245,25 @@ impl<'a> Solver<'a> {
         let mut qd = vec![0.0; l];
         for i in 0..n {
             y[i + n] = -1.0;
-            index[i] = i;
-            index[i + n] = i;
+            index[i] = points[i];
+            index[i + n] = points[i];
             p[i] = epsilon - z[i];
             p[i + n] = epsilon + z[i];
             // libsvm keeps the diagonal in double: K(x, x) = 1 for the RBF.
             qd[i] = 1.0;
             qd[i + n] = qd[i];
         }
-        // All alphas start at 0, so the gradient starts at p and G_bar at 0.
-        let g = p.clone();
-        Solver {
+        let mut s = Solver {
             k,
             l,
             y,
             index,
             qd,
+            // All alphas start at 0, so the gradient starts at p and G_bar at 0.
+            g: p.clone(),
             p,
             alpha: vec![0.0; l],
             status: vec![Status::Lower; l],
-            g,
             g_bar: vec![0.0; l],
             active_set: (0..l).collect(),
             active_size: l,
@@ -253,17 +272,81 @@ impl<'a> Solver<'a> {
             unshrink: false,
             buf_i: vec![0.0; l],
             buf_j: vec![0.0; l],
+            up_ok: vec![false; l],
+            low_ok: vec![false; l],
+            obj_buf: vec![0.0; l],
+        };
+        for t in 0..l {
+            s.update_status(t);
+        }
+        if let Some(coef) = warm {
+            s.start_from(points, coef);
+        }
+        s
+    }
+
+    /// Set `beta` from coefficients and compute the gradient and G_bar with
+    /// one pass over the kernel rows of the support vectors.
+    fn start_from(&mut self, points: &[usize], coef: &[f64]) {
+        let n = points.len();
+        let c = self.c;
+        for (i, &ci) in coef.iter().enumerate() {
+            // Exactly at the bound when within rounding of it (a warm start
+            // scaled from another C).
+            let a = ci.abs().min(c);
+            let a = if a >= c * (1.0 - 1e-12) { c } else { a };
+            if ci > 0.0 {
+                self.alpha[i] = a;
+            } else if ci < 0.0 {
+                self.alpha[i + n] = a;
+            }
+        }
+        for t in 0..self.l {
+            self.update_status(t);
+        }
+        // u_t = sum_i c_i K(i, t), ub_t = C sum_{|c_i| = C} sign(c_i) K(i, t).
+        let mut u = vec![0.0; n];
+        let mut ub = vec![0.0; n];
+        for i in 0..n {
+            let ci = self.alpha[i] - self.alpha[i + n];
+            if ci == 0.0 {
+                continue;
+            }
+            let at_bound = self.is_upper(i) || self.is_upper(i + n);
+            let row = self.k.row(points[i]);
+            for ((ut, ubt), &pt) in u.iter_mut().zip(ub.iter_mut()).zip(points) {
+                let kv = f64::from(row[pt]);
+                *ut += ci * kv;
+                if at_bound {
+                    *ubt += ci * kv;
+                }
+            }
+        }
+        for t in 0..n {
+            self.g[t] = u[t] + self.p[t];
+            self.g[t + n] = -u[t] + self.p[t + n];
+            self.g_bar[t] = ub[t];
+            self.g_bar[t + n] = -ub[t];
         }
     }
 
     fn update_status(&mut self, i: usize) {
-        self.status[i] = if self.alpha[i] >= self.c {
+        let st = if self.alpha[i] >= self.c {
             Status::Upper
         } else if self.alpha[i] <= 0.0 {
             Status::Lower
         } else {
             Status::Free
         };
+        self.status[i] = st;
+        let (not_upper, not_lower) = (st != Status::Upper, st != Status::Lower);
+        if self.y[i] > 0.0 {
+            self.up_ok[i] = not_upper;
+            self.low_ok[i] = not_lower;
+        } else {
+            self.up_ok[i] = not_lower;
+            self.low_ok[i] = not_upper;
+        }
     }
 
     fn is_upper(&self, i: usize) -> bool {
@@ -304,6 +387,8 @@ impl<'a> Solver<'a> {
         self.g.swap(i, j);
         self.g_bar.swap(i, j);
         self.active_set.swap(i, j);
+        self.up_ok.swap(i, j);
+        self.low_ok.swap(i, j);
     }
 
     /// Recompute the gradient of the shrunk variables from G_bar and the free
@@ -343,66 +428,97 @@ impl<'a> Solver<'a> {
     }
 
     /// WSS2: i maximizes the violation, j maximizes the second-order decrease.
-    /// Leaves `Q_i` (length `active_size`) in `buf_i`.
+    ///
+    /// libsvm's selection, value for value and with its tie rules (the last
+    /// of equal candidates wins), written as branch-free passes over the
+    /// active set: the branchy loop spent two thirds of the solver's time on
+    /// mispredicted branches.
     fn select_working_set(&mut self) -> Option<(usize, usize)> {
         let act = self.active_size;
-        let mut gmax = f64::NEG_INFINITY;
-        let mut gmax2 = f64::NEG_INFINITY;
-        let mut gmax_idx = None;
-        for t in 0..act {
-            if self.y[t] > 0.0 {
-                if !self.is_upper(t) && -self.g[t] >= gmax {
-                    gmax = -self.g[t];
-                    gmax_idx = Some(t);
-                }
-            } else if !self.is_lower(t) && self.g[t] >= gmax {
-                gmax = self.g[t];
-                gmax_idx = Some(t);
+        let (y, g) = (&self.y[..act], &self.g[..act]);
+        let (up_ok, low_ok) = (&self.up_ok[..act], &self.low_ok[..act]);
+        // gmax = max over I_up of -y G; gmax2 = max over I_low of y G (it
+        // does not depend on i).
+        let mut gmax = [f64::NEG_INFINITY; 4];
+        let mut gmax2 = [f64::NEG_INFINITY; 4];
+        let mut t = 0;
+        while t + 4 <= act {
+            for k in 0..4 {
+                let yg = y[t + k] * g[t + k];
+                let up = if up_ok[t + k] { -yg } else { f64::NEG_INFINITY };
+                let low = if low_ok[t + k] { yg } else { f64::NEG_INFINITY };
+                gmax[k] = if up > gmax[k] { up } else { gmax[k] };
+                gmax2[k] = if low > gmax2[k] { low } else { gmax2[k] };
+            }
+            t += 4;
+        }
+        for r in t..act {
+            let yg = y[r] * g[r];
+            if up_ok[r] && -yg > gmax[0] {
+                gmax[0] = -yg;
+            }
+            if low_ok[r] && yg > gmax2[0] {
+                gmax2[0] = yg;
             }
         }
-        let i = gmax_idx?;
-        self.q_into_i(i, act);
-        let yi = self.y[i];
+        let gmax = gmax
+            .iter()
+            .fold(f64::NEG_INFINITY, |m, &v| if v > m { v } else { m });
+        let gmax2 = gmax2
+            .iter()
+            .fold(f64::NEG_INFINITY, |m, &v| if v > m { v } else { m });
+        if gmax == f64::NEG_INFINITY {
+            return None;
+        }
+        // i: the last variable of I_up reaching gmax.
+        let i = (0..act)
+            .rev()
+            .find(|&r| up_ok[r] && -(y[r] * g[r]) == gmax)?;
+        let krow = self.k.row(self.index[i]);
         let qdi = self.qd[i];
-        let mut gmin_idx = None;
-        let mut obj_diff_min = f64::INFINITY;
-        for j in 0..act {
-            let gj = self.g[j];
-            if self.y[j] > 0.0 {
-                if !self.is_lower(j) {
-                    let grad_diff = gmax + gj;
-                    if gj >= gmax2 {
-                        gmax2 = gj;
-                    }
-                    if grad_diff > 0.0 {
-                        let quad = qdi + self.qd[j] - 2.0 * yi * self.buf_i[j];
-                        let obj_diff =
-                            -(grad_diff * grad_diff) / if quad > 0.0 { quad } else { TAU };
-                        if obj_diff <= obj_diff_min {
-                            gmin_idx = Some(j);
-                            obj_diff_min = obj_diff;
-                        }
-                    }
-                }
-            } else if !self.is_upper(j) {
-                let grad_diff = gmax - gj;
-                if -gj >= gmax2 {
-                    gmax2 = -gj;
-                }
-                if grad_diff > 0.0 {
-                    let quad = qdi + self.qd[j] + 2.0 * yi * self.buf_i[j];
-                    let obj_diff = -(grad_diff * grad_diff) / if quad > 0.0 { quad } else { TAU };
-                    if obj_diff <= obj_diff_min {
-                        gmin_idx = Some(j);
-                        obj_diff_min = obj_diff;
-                    }
-                }
+        let index = &self.index[..act];
+        let qd = &self.qd[..act];
+        let obj = &mut self.obj_buf[..act];
+        let mut best = [f64::INFINITY; 4];
+        let mut t = 0;
+        let cand = |r: usize| -> f64 {
+            let grad_diff = gmax + y[r] * g[r];
+            // quad = Q_ii + Q_jj - 2 y_i y_j Q_ij = K_ii + K_jj - 2 K_ij.
+            let quad = qdi + qd[r] - 2.0 * f64::from(krow[index[r]]);
+            let quad = if quad > 0.0 { quad } else { TAU };
+            let od = -(grad_diff * grad_diff) / quad;
+            if low_ok[r] && grad_diff > 0.0 {
+                od
+            } else {
+                f64::INFINITY
+            }
+        };
+        while t + 4 <= act {
+            for k in 0..4 {
+                let v = cand(t + k);
+                obj[t + k] = v;
+                best[k] = if v < best[k] { v } else { best[k] };
+            }
+            t += 4;
+        }
+        for r in t..act {
+            let v = cand(r);
+            obj[r] = v;
+            if v < best[0] {
+                best[0] = v;
             }
         }
         if gmax + gmax2 < self.tol {
             return None;
         }
-        gmin_idx.map(|j| (i, j))
+        let best = best
+            .iter()
+            .fold(f64::INFINITY, |m, &v| if v < m { v } else { m });
+        if best == f64::INFINITY {
+            return None;
+        }
+        let j = (0..act).rev().find(|&r| obj[r] == best)?;
+        Some((i, j))
     }
 
     fn be_shrunk(&self, i: usize, gmax1: f64, gmax2: f64) -> bool {
@@ -498,13 +614,12 @@ impl<'a> Solver<'a> {
         }
     }
 
-    /// Optimize the pair (i, j); `buf_i` must hold `Q_i` over the active set.
+    /// Optimize the pair (i, j).
     fn step(&mut self, i: usize, j: usize) {
         let act = self.active_size;
-        self.q_into_j(j, act);
         let c = self.c;
         let (old_ai, old_aj) = (self.alpha[i], self.alpha[j]);
-        let qij = self.buf_i[j];
+        let qij = self.y[i] * self.y[j] * f64::from(self.k.row(self.index[i])[self.index[j]]);
         let (mut ai, mut aj) = (old_ai, old_aj);
         if self.y[i] != self.y[j] {
             let mut quad = self.qd[i] + self.qd[j] + 2.0 * qij;
@@ -566,12 +681,16 @@ impl<'a> Solver<'a> {
         self.alpha[j] = aj;
         let dai = ai - old_ai;
         let daj = aj - old_aj;
-        for ((g, qi), qj) in self.g[..act]
+        // G_t += Q_ti dai + Q_tj daj = y_t (y_i K_ti dai + y_j K_tj daj),
+        // the same rounding as with the signed Q rows.
+        let (yi, yj) = (self.y[i], self.y[j]);
+        let (ki, kj) = (self.k.row(self.index[i]), self.k.row(self.index[j]));
+        for ((g, &yt), &it) in self.g[..act]
             .iter_mut()
-            .zip(&self.buf_i[..act])
-            .zip(&self.buf_j[..act])
+            .zip(&self.y[..act])
+            .zip(&self.index[..act])
         {
-            *g += qi * dai + qj * daj;
+            *g += yt * (yi * (f64::from(ki[it]) * dai) + yj * (f64::from(kj[it]) * daj));
         }
         let (ui, uj) = (self.is_upper(i), self.is_upper(j));
         self.update_status(i);
@@ -594,7 +713,8 @@ impl<'a> Solver<'a> {
     }
 
     /// Run SMO; returns (iterations, converged).
-    fn solve(&mut self, shrinking: bool, max_iter: usize, deadline: Deadline) -> (usize, bool) {
+    fn solve(&mut self, cfg: &SolverConfig, max_iter: usize, deadline: Deadline) -> (usize, bool) {
+        let shrinking = cfg.shrinking;
         let l = self.l;
         let mut iter = 0;
         let mut counter = l.min(1000) + 1;
@@ -640,8 +760,8 @@ impl<'a> Solver<'a> {
 }
 
 /// Solve one epsilon-SVR dual on a precomputed kernel for targets `z`
-/// (standardized). Returns an error only for bad input; an unconverged run is
-/// flagged in the result.
+/// (standardized, one per kernel point), from 0. Returns an error only for
+/// bad input; an unconverged run is flagged in the result.
 pub fn solve_epsilon_svr(
     kernel: &KernelMatrix,
     z: &[f64],
@@ -650,11 +770,66 @@ pub fn solve_epsilon_svr(
     solver: &SolverConfig,
     deadline: Deadline,
 ) -> Result<AxisSolution, LearnError> {
-    let n = kernel.len();
+    let points: Vec<usize> = (0..kernel.len()).collect();
+    solve(
+        &Problem {
+            kernel,
+            points: &points,
+            z,
+            c,
+            epsilon,
+            warm: None,
+        },
+        solver,
+        deadline,
+    )
+}
+
+/// One epsilon-SVR dual on some rows of a precomputed kernel.
+#[derive(Clone, Copy, Debug)]
+pub struct Problem<'a> {
+    pub kernel: &'a KernelMatrix,
+    /// The kernel rows (points) that train; the solution's coefficients are
+    /// in this order.
+    pub points: &'a [usize],
+    /// Standardized target of each training point.
+    pub z: &'a [f64],
+    pub c: f64,
+    pub epsilon: f64,
+    /// Start from these coefficients `alpha_i - alpha*_i` (one per training
+    /// point, summing to 0), e.g. the solution for a smaller C or a wider
+    /// tube, instead of from 0. Scaled down if some exceed C. The optimum
+    /// and the stopping rule are the same; only the path is shorter.
+    pub warm: Option<&'a [f64]>,
+}
+
+/// Solve a [`Problem`]. Returns an error only for bad input; an unconverged
+/// run is flagged in the result.
+pub fn solve(
+    problem: &Problem,
+    solver: &SolverConfig,
+    deadline: Deadline,
+) -> Result<AxisSolution, LearnError> {
+    let &Problem {
+        kernel,
+        points,
+        z,
+        c,
+        epsilon,
+        warm,
+    } = problem;
+    let n = points.len();
     if z.len() != n {
         return Err(LearnError::LengthMismatch {
             inputs: n,
             targets: z.len(),
+        });
+    }
+    if n == 0 || points.iter().any(|&p| p >= kernel.len()) {
+        return Err(LearnError::InvalidParameter {
+            name: "points",
+            value: n as f64,
+            expected: "at least one training point, each a row of the kernel matrix",
         });
     }
     if let Some(index) = z.iter().position(|v| !v.is_finite()) {
@@ -667,9 +842,13 @@ pub fn solve_epsilon_svr(
     check_range("C", c, 1e-12, 1e12, "0 < C <= 1e12")?;
     check_range("epsilon", epsilon, 0.0, 1e12, "epsilon >= 0")?;
     check_range("tol", solver.tol, 1e-15, 1e3, "0 < tol <= 1000")?;
-    let mut s = Solver::new(kernel, z, epsilon, c, solver.tol);
+    let warm = match warm {
+        None => None,
+        Some(w) => Some(feasible_start(w, n, c)?),
+    };
+    let mut s = Solver::new(kernel, points, z, epsilon, c, solver.tol, warm.as_deref());
     let max_iter = solver.max_iter.unwrap_or((100 * n).max(10_000_000));
-    let (iterations, converged) = s.solve(solver.shrinking, max_iter, deadline);
+    let (iterations, converged) = s.solve(solver, max_iter, deadline);
     let rho = s.calculate_rho();
     let objective = s
         .alpha
@@ -694,7 +873,37 @@ pub fn solve_epsilon_svr(
         converged,
         support_vectors,
         bounded_support_vectors,
+        seconds: 0.0,
     })
+}
+
+/// A warm start checked and scaled into the box `|c_i| <= C`.
+fn feasible_start(w: &[f64], n: usize, c: f64) -> Result<Vec<f64>, LearnError> {
+    if w.len() != n {
+        return Err(LearnError::LengthMismatch {
+            inputs: n,
+            targets: w.len(),
+        });
+    }
+    if let Some(index) = w.iter().position(|v| !v.is_finite()) {
+        return Err(LearnError::NonFinite {
+            what: "SVR warm start",
+            index,
+            axis: 0,
+        });
+    }
+    let sum: f64 = w.iter().sum();
+    let size: f64 = w.iter().map(|v| v.abs()).sum();
+    if sum.abs() > 1e-9 * size.max(1.0) {
+        return Err(LearnError::InvalidParameter {
+            name: "warm start",
+            value: sum,
+            expected: "coefficients alpha - alpha* summing to 0",
+        });
+    }
+    let largest = w.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    let scale = if largest > c { c / largest } else { 1.0 };
+    Ok(w.iter().map(|v| v * scale).collect())
 }
 
 /// A trained three-axis SVR and how the solver did.
@@ -773,22 +982,6 @@ pub(crate) fn check_params(p: &SvrParams) -> Result<(), LearnError> {
     check_range("C", p.c, 1e-12, 1e12, "0 < C <= 1e12")?;
     check_range("epsilon", p.epsilon, 0.0, 1e12, "epsilon >= 0")?;
     check_range("gamma", p.gamma, 1e-12, 1e12, "0 < gamma <= 1e12")
-}
-
-pub(crate) fn solve_axes(
-    kernel: &KernelMatrix,
-    y: &[[f64; 3]],
-    params: &SvrParams,
-    solver: &SolverConfig,
-    deadline: Deadline,
-) -> Result<Vec<AxisSolution>, LearnError> {
-    (0..3)
-        .into_par_iter()
-        .map(|a| {
-            let z: Vec<f64> = y.iter().map(|p| p[a]).collect();
-            solve_epsilon_svr(kernel, &z, params.c, params.epsilon, solver, deadline)
-        })
-        .collect()
 }
 
 pub(crate) fn summary(s: &AxisSolution) -> AxisSummary {
