@@ -46,6 +46,7 @@ fn main() {
         mode: OutputMode::Absolute,
         solver: SolverConfig {
             tol,
+            conjugate: !args.iter().any(|a| a == "--plain"),
             ..SolverConfig::default()
         },
         ..SvrSearchConfig::default()
@@ -89,6 +90,7 @@ fn main() {
                             svr::solve_epsilon_svr(&k, &z, c, eps, &cfg.solver, Deadline::none())
                                 .unwrap();
                         let sec = t0.elapsed().as_secs_f64();
+
                         println!(
                             "| {gamma} | {c} | {eps} | {a} | {} | {sec:.2} | {:.2} | {} | {} |",
                             s.iterations,

@@ -66,6 +66,10 @@ pub struct SolverConfig {
     /// Iteration cap; `None` uses libsvm's `max(10^7, 100 n)`. Reaching it is
     /// reported (`converged = false`), never silent.
     pub max_iter: Option<usize>,
+    /// Conjugate SMO: each step goes along the SMO pair's direction made
+    /// Q-conjugate to the previous step's (see `Solver::conjugate_step`).
+    #[serde(default)]
+    pub conjugate: bool,
 }
 
 impl Default for SolverConfig {
@@ -74,6 +78,7 @@ impl Default for SolverConfig {
             tol: 1e-3,
             shrinking: true,
             max_iter: None,
+            conjugate: true,
         }
     }
 }
@@ -215,6 +220,13 @@ struct Solver<'a> {
     low_ok: Vec<bool>,
     /// The second-order decrease of each candidate j (selection scratch).
     obj_buf: Vec<f64>,
+    /// Conjugate SMO: the previous direction d (by position), its support,
+    /// `Q d` over the active set and `d^T Q d`; `None` after a reset.
+    dir: Vec<f64>,
+    dir_support: Vec<usize>,
+    in_support: Vec<bool>,
+    q_dir: Vec<f64>,
+    dir_curvature: Option<f64>,
 }
 
 /// `out[t] = y_i y_t K(point_i, point_t)` for `t < out.len()`.
@@ -275,6 +287,11 @@ impl<'a> Solver<'a> {
             up_ok: vec![false; l],
             low_ok: vec![false; l],
             obj_buf: vec![0.0; l],
+            dir: vec![0.0; l],
+            dir_support: Vec::new(),
+            in_support: vec![false; l],
+            q_dir: vec![0.0; l],
+            dir_curvature: None,
         };
         for t in 0..l {
             s.update_status(t);
@@ -389,6 +406,9 @@ impl<'a> Solver<'a> {
         self.active_set.swap(i, j);
         self.up_ok.swap(i, j);
         self.low_ok.swap(i, j);
+        self.dir.swap(i, j);
+        self.in_support.swap(i, j);
+        self.q_dir.swap(i, j);
     }
 
     /// Recompute the gradient of the shrunk variables from G_bar and the free
@@ -712,6 +732,175 @@ impl<'a> Solver<'a> {
         }
     }
 
+    fn reset_direction(&mut self) {
+        for &t in &self.dir_support {
+            self.dir[t] = 0.0;
+            self.in_support[t] = false;
+        }
+        self.dir_support.clear();
+        self.dir_curvature = None;
+    }
+
+    /// Conjugate SMO step for the WSS2 pair (i, j): the pair's direction
+    /// `u = y_i e_i - y_j e_j` plus a multiple of the previous direction that
+    /// makes the two Q-conjugate, then an exact line search clipped to the
+    /// box. Falls back to the plain SMO step (and forgets the direction) when
+    /// that would not be a useful descent step.
+    fn conjugate_step(&mut self, i: usize, j: usize) {
+        let act = self.active_size;
+        let (yi, yj) = (self.y[i], self.y[j]);
+        let beta = match self.dir_curvature {
+            Some(curv) => -(yi * self.q_dir[i] - yj * self.q_dir[j]) / curv,
+            None => 0.0,
+        };
+        if beta == 0.0 || !beta.is_finite() {
+            self.reset_direction();
+            self.step(i, j);
+            self.start_direction(i, j);
+            return;
+        }
+        // Candidate direction d = u + beta d_prev; Q d is needed on the
+        // support for the line search, over the active set for the gradient.
+        let (ki, kj) = (self.k.row(self.index[i]), self.k.row(self.index[j]));
+        for &t in &self.dir_support {
+            self.dir[t] *= beta;
+        }
+        for (v, add) in [(i, yi), (j, -yj)] {
+            self.dir[v] += add;
+            if !self.in_support[v] {
+                self.in_support[v] = true;
+                self.dir_support.push(v);
+            }
+        }
+        let q_dir_at = |t: usize| {
+            let it = self.index[t];
+            self.y[t] * (f64::from(ki[it]) - f64::from(kj[it])) + beta * self.q_dir[t]
+        };
+        let mut gd = 0.0;
+        let mut dqd = 0.0;
+        let mut t_max = f64::INFINITY;
+        let mut blocking = 0;
+        for &t in &self.dir_support {
+            let d = self.dir[t];
+            gd += self.g[t] * d;
+            dqd += d * q_dir_at(t);
+            let room = if d > 0.0 {
+                (self.c - self.alpha[t]) / d
+            } else if d < 0.0 {
+                -self.alpha[t] / d
+            } else {
+                f64::INFINITY
+            };
+            if room < t_max {
+                t_max = room;
+                blocking = t;
+            }
+        }
+        let t_opt = -gd / dqd;
+        if !(gd < 0.0 && dqd > 0.0 && t_max > 0.0) {
+            self.reset_direction();
+            self.step(i, j);
+            self.start_direction(i, j);
+            return;
+        }
+        let clipped = t_max < t_opt;
+        let t = if clipped { t_max } else { t_opt };
+        // Q d and the gradient in one pass.
+        for (((w, g), &yt), &it) in self.q_dir[..act]
+            .iter_mut()
+            .zip(self.g[..act].iter_mut())
+            .zip(&self.y[..act])
+            .zip(&self.index[..act])
+        {
+            *w = yt * (f64::from(ki[it]) - f64::from(kj[it])) + beta * *w;
+            *g += t * *w;
+        }
+        let c = self.c;
+        let l = self.l;
+        for k in 0..self.dir_support.len() {
+            let v = self.dir_support[k];
+            let was_upper = self.is_upper(v);
+            let mut a = (self.alpha[v] + t * self.dir[v]).clamp(0.0, c);
+            if clipped && v == blocking {
+                a = if self.dir[v] > 0.0 { c } else { 0.0 };
+            }
+            self.alpha[v] = a;
+            if a <= 0.0 || a >= c || self.status[v] != Status::Free {
+                self.update_status(v);
+            }
+            if was_upper != self.is_upper(v) {
+                self.q_into_i(v, l);
+                let s = if was_upper { -c } else { c };
+                for (gb, q) in self.g_bar.iter_mut().zip(&self.buf_i) {
+                    *gb += s * q;
+                }
+            }
+        }
+        if clipped {
+            self.reset_direction();
+        } else {
+            self.dir_curvature = Some(dqd);
+        }
+    }
+
+    /// Positions moved while shrinking: list the direction's support again;
+    /// forget the direction if part of it left the active set (its `Q d` is
+    /// only kept there) or the active set grew (unshrinking).
+    fn after_shrinking(&mut self, before: usize) {
+        if self.dir_curvature.is_none() {
+            return;
+        }
+        let act = self.active_size;
+        let kept = self.dir_support.len();
+        self.dir_support.clear();
+        for t in 0..act {
+            if self.in_support[t] {
+                self.dir_support.push(t);
+            }
+        }
+        if act > before || self.dir_support.len() != kept {
+            // Clear by position over everything the old support may occupy.
+            for t in 0..self.l {
+                self.dir[t] = 0.0;
+                self.in_support[t] = false;
+            }
+            self.dir_support.clear();
+            self.dir_curvature = None;
+        }
+    }
+
+    /// After a plain SMO step on (i, j): remember its direction and Q d so
+    /// that the next step can be made conjugate to it.
+    fn start_direction(&mut self, i: usize, j: usize) {
+        let act = self.active_size;
+        let (yi, yj) = (self.y[i], self.y[j]);
+        let (ki, kj) = (self.k.row(self.index[i]), self.k.row(self.index[j]));
+        for ((w, &yt), &it) in self.q_dir[..act]
+            .iter_mut()
+            .zip(&self.y[..act])
+            .zip(&self.index[..act])
+        {
+            *w = yt * (f64::from(ki[it]) - f64::from(kj[it]));
+        }
+        self.dir[i] = yi;
+        self.dir[j] = -yj;
+        self.in_support[i] = true;
+        self.in_support[j] = true;
+        self.dir_support.push(i);
+        self.dir_support.push(j);
+        // The plain step is exact along u unless it was clipped: keep the
+        // direction only when both variables stayed strictly inside.
+        let free = |v: usize| self.status[v] == Status::Free;
+        self.dir_curvature = if free(i) && free(j) {
+            Some(self.qd[i] + self.qd[j] - 2.0 * f64::from(ki[self.index[j]]))
+        } else {
+            None
+        };
+        if self.dir_curvature.is_none() {
+            self.reset_direction();
+        }
+    }
+
     /// Run SMO; returns (iterations, converged).
     fn solve(&mut self, cfg: &SolverConfig, max_iter: usize, deadline: Deadline) -> (usize, bool) {
         let shrinking = cfg.shrinking;
@@ -724,7 +913,9 @@ impl<'a> Solver<'a> {
             if counter == 0 {
                 counter = l.min(1000);
                 if shrinking {
+                    let before = self.active_size;
                     self.do_shrinking();
+                    self.after_shrinking(before);
                 }
                 if deadline.passed() {
                     break;
@@ -734,6 +925,7 @@ impl<'a> Solver<'a> {
                 Some(pair) => pair,
                 None => {
                     // Optimal on the active set: check all variables.
+                    self.reset_direction();
                     self.reconstruct_gradient();
                     self.active_size = l;
                     match self.select_working_set() {
@@ -749,7 +941,11 @@ impl<'a> Solver<'a> {
                 }
             };
             iter += 1;
-            self.step(i, j);
+            if cfg.conjugate {
+                self.conjugate_step(i, j);
+            } else {
+                self.step(i, j);
+            }
         }
         if self.active_size < l {
             self.reconstruct_gradient();
