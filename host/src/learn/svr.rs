@@ -494,9 +494,8 @@ impl<'a> Solver<'a> {
         let i = (0..act)
             .rev()
             .find(|&r| up_ok[r] && -(y[r] * g[r]) == gmax)?;
-        let krow = self.k.row(self.index[i]);
+        let (krow, index) = (self.k.row(self.index[i]), &self.index[..act]);
         let qdi = self.qd[i];
-        let index = &self.index[..act];
         let qd = &self.qd[..act];
         let obj = &mut self.obj_buf[..act];
         let mut best = [f64::INFINITY; 4];
@@ -639,7 +638,8 @@ impl<'a> Solver<'a> {
         let act = self.active_size;
         let c = self.c;
         let (old_ai, old_aj) = (self.alpha[i], self.alpha[j]);
-        let qij = self.y[i] * self.y[j] * f64::from(self.k.row(self.index[i])[self.index[j]]);
+        let (ki, cols) = (self.k.row(self.index[i]), &self.index[..act]);
+        let qij = self.y[i] * self.y[j] * f64::from(ki[cols[j]]);
         let (mut ai, mut aj) = (old_ai, old_aj);
         if self.y[i] != self.y[j] {
             let mut quad = self.qd[i] + self.qd[j] + 2.0 * qij;
@@ -704,12 +704,8 @@ impl<'a> Solver<'a> {
         // G_t += Q_ti dai + Q_tj daj = y_t (y_i K_ti dai + y_j K_tj daj),
         // the same rounding as with the signed Q rows.
         let (yi, yj) = (self.y[i], self.y[j]);
-        let (ki, kj) = (self.k.row(self.index[i]), self.k.row(self.index[j]));
-        for ((g, &yt), &it) in self.g[..act]
-            .iter_mut()
-            .zip(&self.y[..act])
-            .zip(&self.index[..act])
-        {
+        let (kj, _) = (self.k.row(self.index[j]), &self.index[..act]);
+        for ((g, &yt), &it) in self.g[..act].iter_mut().zip(&self.y[..act]).zip(cols) {
             *g += yt * (yi * (f64::from(ki[it]) * dai) + yj * (f64::from(kj[it]) * daj));
         }
         let (ui, uj) = (self.is_upper(i), self.is_upper(j));
@@ -761,7 +757,8 @@ impl<'a> Solver<'a> {
         }
         // Candidate direction d = u + beta d_prev; Q d is needed on the
         // support for the line search, over the active set for the gradient.
-        let (ki, kj) = (self.k.row(self.index[i]), self.k.row(self.index[j]));
+        let (ki, cols) = (self.k.row(self.index[i]), &self.index[..act]);
+        let (kj, _) = (self.k.row(self.index[j]), &self.index[..act]);
         for &t in &self.dir_support {
             self.dir[t] *= beta;
         }
@@ -773,31 +770,44 @@ impl<'a> Solver<'a> {
             }
         }
         let q_dir_at = |t: usize| {
-            let it = self.index[t];
+            let it = cols[t];
             self.y[t] * (f64::from(ki[it]) - f64::from(kj[it])) + beta * self.q_dir[t]
         };
         let mut gd = 0.0;
         let mut dqd = 0.0;
-        let mut t_max = f64::INFINITY;
-        let mut blocking = 0;
         for &t in &self.dir_support {
             let d = self.dir[t];
             gd += self.g[t] * d;
             dqd += d * q_dir_at(t);
-            let room = if d > 0.0 {
-                (self.c - self.alpha[t]) / d
-            } else if d < 0.0 {
-                -self.alpha[t] / d
-            } else {
-                f64::INFINITY
-            };
-            if room < t_max {
-                t_max = room;
-                blocking = t;
-            }
         }
         let t_opt = -gd / dqd;
-        if !(gd < 0.0 && dqd > 0.0 && t_max > 0.0) {
+        if !(gd < 0.0 && dqd > 0.0 && t_opt.is_finite()) {
+            self.reset_direction();
+            self.step(i, j);
+            self.start_direction(i, j);
+            return;
+        }
+        // The box: the full step usually fits (a division only for the
+        // variables it would push out).
+        let c = self.c;
+        let mut t_max = f64::INFINITY;
+        let mut blocking = 0;
+        for &t in &self.dir_support {
+            let d = self.dir[t];
+            let a = self.alpha[t] + t_opt * d;
+            if a < 0.0 || a > c {
+                let room = if d > 0.0 {
+                    (c - self.alpha[t]) / d
+                } else {
+                    -self.alpha[t] / d
+                };
+                if room < t_max {
+                    t_max = room;
+                    blocking = t;
+                }
+            }
+        }
+        if !(t_max > 0.0) {
             self.reset_direction();
             self.step(i, j);
             self.start_direction(i, j);
@@ -810,12 +820,11 @@ impl<'a> Solver<'a> {
             .iter_mut()
             .zip(self.g[..act].iter_mut())
             .zip(&self.y[..act])
-            .zip(&self.index[..act])
+            .zip(cols)
         {
             *w = yt * (f64::from(ki[it]) - f64::from(kj[it])) + beta * *w;
             *g += t * *w;
         }
-        let c = self.c;
         let l = self.l;
         for k in 0..self.dir_support.len() {
             let v = self.dir_support[k];
@@ -874,12 +883,9 @@ impl<'a> Solver<'a> {
     fn start_direction(&mut self, i: usize, j: usize) {
         let act = self.active_size;
         let (yi, yj) = (self.y[i], self.y[j]);
-        let (ki, kj) = (self.k.row(self.index[i]), self.k.row(self.index[j]));
-        for ((w, &yt), &it) in self.q_dir[..act]
-            .iter_mut()
-            .zip(&self.y[..act])
-            .zip(&self.index[..act])
-        {
+        let (ki, cols) = (self.k.row(self.index[i]), &self.index[..act]);
+        let (kj, _) = (self.k.row(self.index[j]), &self.index[..act]);
+        for ((w, &yt), &it) in self.q_dir[..act].iter_mut().zip(&self.y[..act]).zip(cols) {
             *w = yt * (f64::from(ki[it]) - f64::from(kj[it]));
         }
         self.dir[i] = yi;
@@ -892,7 +898,7 @@ impl<'a> Solver<'a> {
         // direction only when both variables stayed strictly inside.
         let free = |v: usize| self.status[v] == Status::Free;
         self.dir_curvature = if free(i) && free(j) {
-            Some(self.qd[i] + self.qd[j] - 2.0 * f64::from(ki[self.index[j]]))
+            Some(self.qd[i] + self.qd[j] - 2.0 * f64::from(ki[cols[j]]))
         } else {
             None
         };
