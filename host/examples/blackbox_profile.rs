@@ -29,6 +29,8 @@ fn read_pairs(path: &str) -> (Vec<[f64; 3]>, Vec<[f64; 3]>) {
     (x, t)
 }
 
+// The axis index picks a coordinate of every target, not an element of one list.
+#[allow(clippy::needless_range_loop)]
 fn main() {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let dir = args.first().expect("usage: blackbox_profile DIR [--tol T]");

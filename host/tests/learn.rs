@@ -1,5 +1,6 @@
 //! Learned corrections on a synthetic smooth distortion field, and the SVR
-//! solver against libsvm (fixture written by scripts/reference/svr_reference.py).
+//! solver (libsvm's plain SMO path and the default conjugate one) against
+//! libsvm (fixture written by scripts/reference/svr_reference.py).
 
 use spidar::learn::nn::{self, LmConfig, NnConfig};
 use spidar::learn::search::{self, SvrSearchConfig, SweepConfig, Validation};
