@@ -162,6 +162,79 @@ fn svr_matches_libsvm() {
     }
 }
 
+/// A warm start (from a smaller C, on a subset of the kernel's rows) ends on
+/// the same optimum as a cold start, to the solver's tolerance; a warm start
+/// that is not feasible and rows outside the kernel are typed errors.
+#[test]
+fn svr_warm_start_reaches_the_cold_optimum() {
+    let fx: Fixture =
+        serde_json::from_str(include_str!("fixtures/svr_libsvm.json")).expect("fixture parses");
+    let k = KernelMatrix::rbf(&fx.x_train, 0.5, 10_000).unwrap();
+    // Every other point trains, as a search fold does.
+    let points: Vec<usize> = (0..fx.x_train.len()).step_by(2).collect();
+    let z: Vec<f64> = points.iter().map(|&i| fx.y_train[i][0]).collect();
+    let solver = SolverConfig {
+        tol: 1e-6,
+        ..SolverConfig::default()
+    };
+    let problem = |c: f64| svr::Problem {
+        kernel: &k,
+        points: &points,
+        z: &z,
+        c,
+        epsilon: 0.01,
+        warm: None,
+    };
+    let with_warm = |warm| svr::Problem {
+        warm: Some(warm),
+        ..problem(100.0)
+    };
+    let small = svr::solve(&problem(10.0), &solver, Deadline::none()).unwrap();
+    let cold = svr::solve(&problem(100.0), &solver, Deadline::none()).unwrap();
+    let scaled: Vec<f64> = small.coef.iter().map(|c| c * 10.0).collect();
+    for warm in [&small.coef, &scaled] {
+        let w = svr::solve(&with_warm(warm), &solver, Deadline::none()).unwrap();
+        assert!(w.converged && cold.converged);
+        let rel = (w.objective - cold.objective).abs() / cold.objective.abs();
+        assert!(
+            rel < 1e-8,
+            "warm objective {} vs cold {}",
+            w.objective,
+            cold.objective
+        );
+        let pred = |coef: &[f64], bias: f64, x: &[f64; 3]| {
+            let xs: Vec<[f64; 3]> = points.iter().map(|&i| fx.x_train[i]).collect();
+            rbf_predict(&xs, coef, bias, 0.5, x)
+        };
+        for x in &fx.x_test {
+            let d = (pred(&w.coef, w.bias, x) - pred(&cold.coef, cold.bias, x)).abs();
+            assert!(d < 1e-4, "warm and cold predictions differ by {d}");
+        }
+    }
+    let mut unbalanced = small.coef.clone();
+    unbalanced[0] += 1.0;
+    assert!(matches!(
+        svr::solve(&with_warm(&unbalanced), &solver, Deadline::none()),
+        Err(LearnError::InvalidParameter {
+            name: "warm start",
+            ..
+        })
+    ));
+    let outside = [0, k.len()];
+    assert!(matches!(
+        svr::solve(
+            &svr::Problem {
+                points: &outside,
+                z: &[0.0, 1.0],
+                ..problem(1.0)
+            },
+            &solver,
+            Deadline::none()
+        ),
+        Err(LearnError::InvalidParameter { name: "points", .. })
+    ));
+}
+
 // ------------------------------------------------------- synthetic field --
 
 #[test]
