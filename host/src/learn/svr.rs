@@ -51,6 +51,12 @@ use super::{
     SvrModel,
 };
 
+/// Variables a conjugate direction may span before it restarts: measured on
+/// the black-box grid (C 300, epsilon 0.005), 64 keeps the iteration count of
+/// unbounded directions (0.55 and 0.77 million on two axes) at 3/4 of the
+/// time; 16 costs 10 % more iterations.
+const MAX_DIRECTION_SUPPORT: usize = 64;
+
 /// libsvm's `TAU`: the curvature used when a pair's `quad_coef` is not positive.
 const TAU: f64 = 1e-12;
 
@@ -756,9 +762,13 @@ impl<'a> Solver<'a> {
     fn conjugate_step(&mut self, i: usize, j: usize) {
         let act = self.active_size;
         let (yi, yj) = (self.y[i], self.y[j]);
+        // Restart (a plain step) once the direction spans MAX_DIRECTION_SUPPORT
+        // variables: its upkeep grows with the support, its benefit does not.
         let beta = match self.dir_curvature {
-            Some(curv) => -(yi * self.q_dir[i] - yj * self.q_dir[j]) / curv,
-            None => 0.0,
+            Some(curv) if self.dir_support.len() < MAX_DIRECTION_SUPPORT => {
+                -(yi * self.q_dir[i] - yj * self.q_dir[j]) / curv
+            }
+            _ => 0.0,
         };
         if beta == 0.0 || !beta.is_finite() {
             self.reset_direction();
