@@ -1,5 +1,6 @@
 //! Learned corrections on a synthetic smooth distortion field, and the SVR
-//! solver against libsvm (fixture written by scripts/reference/svr_reference.py).
+//! solver (libsvm's plain SMO path and the default conjugate one) against
+//! libsvm (fixture written by scripts/reference/svr_reference.py).
 
 use spidar::learn::nn::{self, LmConfig, NnConfig};
 use spidar::learn::search::{self, SvrSearchConfig, SweepConfig, Validation};
@@ -79,10 +80,11 @@ fn dual_objective(x: &[[f64; 3]], z: &[f64], coef: &[f64], epsilon: f64, gamma: 
 fn svr_matches_libsvm() {
     let fx: Fixture =
         serde_json::from_str(include_str!("fixtures/svr_libsvm.json")).expect("fixture parses");
-    for case in &fx.cases {
+    for (case, conjugate) in fx.cases.iter().flat_map(|c| [(c, false), (c, true)]) {
         let k = KernelMatrix::rbf(&fx.x_train, case.gamma, 10_000).unwrap();
         let solver = SolverConfig {
             tol: case.tol,
+            conjugate,
             ..SolverConfig::default()
         };
         // The solutions agree to the accuracy the KKT tolerance buys. At the
@@ -123,7 +125,7 @@ fn svr_matches_libsvm() {
                 .map(|(u, v)| (u - v).abs())
                 .fold(0.0, f64::max);
             eprintln!(
-                "libsvm {:>8} axis {a}: max |pred diff| {worst:.2e}, objective {:.6} vs {:.6} (rel {rel_obj:.1e}), \
+                "libsvm {:>8} conjugate {conjugate} axis {a}: max |pred diff| {worst:.2e}, objective {:.6} vs {:.6} (rel {rel_obj:.1e}), \
                  SVs {} vs {}, bias diff {:.1e}, max coef diff {coef_diff:.2e}, iters {}",
                 case.name,
                 obj,
@@ -133,13 +135,27 @@ fn svr_matches_libsvm() {
                 (sol.bias - ax.intercept).abs(),
                 sol.iterations
             );
+            // The conjugate solver (the default) takes another path through
+            // the same tolerance region: at tol 1e-6 it agrees with libsvm as
+            // tightly as the plain one; at the default tol 1e-3 its
+            // predictions differ by up to 3.1e-3 on "paper" and 1.0e-3 on
+            // "bounded" (measured), with an objective lower than libsvm's on
+            // "paper" (by up to 3e-4 relative) and equal to 2e-8 on
+            // "bounded": it stops at another point of the region, often
+            // closer to the optimum, so predictions are held to 4 tol and the
+            // objective to "not worse".
+            let pred_tol = if conjugate {
+                f64::max(pred_tol, 4.0 * case.tol)
+            } else {
+                pred_tol
+            };
             assert!(
                 worst < pred_tol,
                 "{} axis {a}: prediction differs by {worst}",
                 case.name
             );
             assert!(
-                rel_obj < obj_tol,
+                rel_obj < obj_tol || (conjugate && obj < ax.objective),
                 "{} axis {a}: objective rel diff {rel_obj}",
                 case.name
             );
@@ -147,6 +163,79 @@ fn svr_matches_libsvm() {
             assert!(obj <= ax.objective + obj_tol * ax.objective.abs());
         }
     }
+}
+
+/// A warm start (from a smaller C, on a subset of the kernel's rows) ends on
+/// the same optimum as a cold start, to the solver's tolerance; a warm start
+/// that is not feasible and rows outside the kernel are typed errors.
+#[test]
+fn svr_warm_start_reaches_the_cold_optimum() {
+    let fx: Fixture =
+        serde_json::from_str(include_str!("fixtures/svr_libsvm.json")).expect("fixture parses");
+    let k = KernelMatrix::rbf(&fx.x_train, 0.5, 10_000).unwrap();
+    // Every other point trains, as a search fold does.
+    let points: Vec<usize> = (0..fx.x_train.len()).step_by(2).collect();
+    let z: Vec<f64> = points.iter().map(|&i| fx.y_train[i][0]).collect();
+    let solver = SolverConfig {
+        tol: 1e-6,
+        ..SolverConfig::default()
+    };
+    let problem = |c: f64| svr::Problem {
+        kernel: &k,
+        points: &points,
+        z: &z,
+        c,
+        epsilon: 0.01,
+        warm: None,
+    };
+    let with_warm = |warm| svr::Problem {
+        warm: Some(warm),
+        ..problem(100.0)
+    };
+    let small = svr::solve(&problem(10.0), &solver, Deadline::none()).unwrap();
+    let cold = svr::solve(&problem(100.0), &solver, Deadline::none()).unwrap();
+    let scaled: Vec<f64> = small.coef.iter().map(|c| c * 10.0).collect();
+    for warm in [&small.coef, &scaled] {
+        let w = svr::solve(&with_warm(warm), &solver, Deadline::none()).unwrap();
+        assert!(w.converged && cold.converged);
+        let rel = (w.objective - cold.objective).abs() / cold.objective.abs();
+        assert!(
+            rel < 1e-8,
+            "warm objective {} vs cold {}",
+            w.objective,
+            cold.objective
+        );
+        let pred = |coef: &[f64], bias: f64, x: &[f64; 3]| {
+            let xs: Vec<[f64; 3]> = points.iter().map(|&i| fx.x_train[i]).collect();
+            rbf_predict(&xs, coef, bias, 0.5, x)
+        };
+        for x in &fx.x_test {
+            let d = (pred(&w.coef, w.bias, x) - pred(&cold.coef, cold.bias, x)).abs();
+            assert!(d < 1e-4, "warm and cold predictions differ by {d}");
+        }
+    }
+    let mut unbalanced = small.coef.clone();
+    unbalanced[0] += 1.0;
+    assert!(matches!(
+        svr::solve(&with_warm(&unbalanced), &solver, Deadline::none()),
+        Err(LearnError::InvalidParameter {
+            name: "warm start",
+            ..
+        })
+    ));
+    let outside = [0, k.len()];
+    assert!(matches!(
+        svr::solve(
+            &svr::Problem {
+                points: &outside,
+                z: &[0.0, 1.0],
+                ..problem(1.0)
+            },
+            &solver,
+            Deadline::none()
+        ),
+        Err(LearnError::InvalidParameter { name: "points", .. })
+    ));
 }
 
 // ------------------------------------------------------- synthetic field --

@@ -15,7 +15,8 @@ use serde::{Deserialize, Serialize};
 
 use super::nn::{self, best_run, check_lm, Init, LmConfig, NnFit, Prepared, StopReason};
 use super::svr::{
-    self, assemble, check_params, solve_axes, KernelMatrix, SolverConfig, SvrFit, SvrParams,
+    self, assemble, check_params, AxisSolution, KernelMatrix, Problem, SolverConfig, SvrFit,
+    SvrParams,
 };
 use super::{
     check_range, progress, split_indices, standardize, validate_pairs, Deadline, ErrorStats,
@@ -345,12 +346,18 @@ fn check_grid(
         .try_for_each(|&x| check_range(name, x, lo, 1e12, expected))
 }
 
-/// (candidate index, summed validation distance, seconds, support vectors,
-/// converged) of one candidate on one fold.
-type Scored = (usize, f64, f64, usize, bool);
-
 /// Grid search over C x epsilon x gamma, scored by held-out or k-fold mean
 /// position error (mm), then a refit of the best on all points.
+///
+/// How the work is shared (issue 15, point 2): one kernel matrix per gamma
+/// over all points serves every fold, axis and (C, epsilon) (a fold trains on
+/// some of its rows) and then the refit. For each (gamma, fold, axis) the
+/// (C, epsilon) pairs are solved in one chain, each from the previous
+/// solution: a wider tube's solution for the next epsilon of the same C, the
+/// previous C's solution scaled by the ratio of the C's for the next C. The
+/// chains run in parallel; the refit on all points starts from the chosen
+/// candidate's solution (held-out points at 0). Each solve still stops on
+/// the same KKT gap as from 0.
 pub fn svr_search(
     inputs: &[[f64; 3]],
     targets: &[[f64; 3]],
@@ -360,8 +367,16 @@ pub fn svr_search(
     check_grid("C", &cfg.c, 1e-12, "0 < C <= 1e12")?;
     check_grid("epsilon", &cfg.epsilon, 0.0, "0 <= epsilon <= 1e12")?;
     check_grid("gamma", &cfg.gamma, 1e-12, "0 < gamma <= 1e12")?;
+    check_range("tol", cfg.solver.tol, 1e-15, 1e3, "0 < tol <= 1000")?;
     validate_pairs("SVR search data", inputs, targets, 10)?;
     let n = inputs.len();
+    if n > cfg.max_dense_points {
+        return Err(LearnError::TooLarge {
+            what: "SVR kernel matrix",
+            points: n,
+            max: cfg.max_dense_points,
+        });
+    }
     let folds: Vec<(Vec<usize>, Vec<usize>)> = match cfg.validation {
         Validation::HoldOut { fraction } => {
             check_range("fraction", fraction, 0.01, 0.9, "0.01 <= fraction <= 0.9")?;
@@ -395,28 +410,20 @@ pub fn svr_search(
     let x = standardize::apply_all(&input, inputs);
     let y = standardize::apply_all(&output, &outs);
 
-    // Grid order: gamma, C, epsilon. Within one kernel, cheap candidates
-    // (small C, wide tube) first so a tight budget still scores some.
-    let mut pairs: Vec<(usize, usize)> = (0..cfg.c.len())
-        .flat_map(|ci| (0..cfg.epsilon.len()).map(move |ei| (ci, ei)))
-        .collect();
-    pairs.sort_by(|a, b| {
-        cfg.c[a.0]
-            .total_cmp(&cfg.c[b.0])
-            .then(cfg.epsilon[b.1].total_cmp(&cfg.epsilon[a.1]))
-    });
-    let n_cand = cfg.gamma.len() * pairs.len();
-    // Per candidate, over folds: summed validation distances and their count.
-    let mut sum_err = vec![0.0; n_cand];
-    let mut count = vec![0usize; n_cand];
-    let mut ok = vec![true; n_cand];
-    let mut secs = vec![0.0; n_cand];
-    let mut svs = vec![0usize; n_cand];
+    // Chain order within one (gamma, fold, axis): C ascending, and for each
+    // C the widest tube first (cheap candidates first, so that a tight
+    // budget still scores some, and each warm start comes from an easier
+    // problem).
+    let mut c_order: Vec<usize> = (0..cfg.c.len()).collect();
+    c_order.sort_by(|&a, &b| cfg.c[a].total_cmp(&cfg.c[b]));
+    let mut e_order: Vec<usize> = (0..cfg.epsilon.len()).collect();
+    e_order.sort_by(|&a, &b| cfg.epsilon[b].total_cmp(&cfg.epsilon[a]));
+    let n_cand = cfg.gamma.len() * cfg.c.len() * cfg.epsilon.len();
     let cand_index =
         |gi: usize, ci: usize, ei: usize| (gi * cfg.c.len() + ci) * cfg.epsilon.len() + ei;
     let deadline = Deadline::after(cfg.time_limit);
     let pb = progress(
-        (n_cand * folds.len()) as u64,
+        (n_cand * folds.len() * 3) as u64,
         if cfg.blackbox {
             "black-box SVR search"
         } else {
@@ -424,93 +431,222 @@ pub fn svr_search(
         },
         cfg.quiet,
     );
-    for (tr, va) in &folds {
-        let xt: Vec<[f64; 3]> = tr.iter().map(|&i| x[i]).collect();
-        let yt: Vec<[f64; 3]> = tr.iter().map(|&i| y[i]).collect();
-        for (gi, &gamma) in cfg.gamma.iter().enumerate() {
-            if deadline.passed() {
-                for &(ci, ei) in &pairs {
-                    ok[cand_index(gi, ci, ei)] = false;
+
+    // Kernels: all at once when they fit in 1 GiB (every chain can then run
+    // in parallel), otherwise one gamma at a time.
+    let bytes_per_kernel = n * n * std::mem::size_of::<f32>();
+    let at_once = (1usize << 30) / bytes_per_kernel.max(1);
+    let groups: Vec<Vec<usize>> = (0..cfg.gamma.len())
+        .collect::<Vec<_>>()
+        .chunks(at_once.max(1))
+        .map(|c| c.to_vec())
+        .collect();
+    // Per (candidate, fold, axis): the solution.
+    let mut sols: Vec<Option<AxisSolution>> = vec![None; n_cand * folds.len() * 3];
+    let slot = |idx: usize, f: usize, a: usize| (idx * folds.len() + f) * 3 + a;
+    let mut kept_kernel: Vec<Option<(KernelMatrix, f64)>> =
+        (0..cfg.gamma.len()).map(|_| None).collect();
+    for group in &groups {
+        if deadline.passed() {
+            break;
+        }
+        let kernels: Vec<(usize, KernelMatrix, f64)> = group
+            .iter()
+            .map(|&gi| {
+                let t = Instant::now();
+                KernelMatrix::rbf(&x, cfg.gamma[gi], cfg.max_dense_points)
+                    .map(|k| (gi, k, t.elapsed().as_secs_f64()))
+            })
+            .collect::<Result<_, _>>()?;
+        // Longest chains first: larger gamma (more support vectors) first.
+        let mut jobs: Vec<(usize, usize, usize)> = Vec::new();
+        for ki in 0..kernels.len() {
+            for f in 0..folds.len() {
+                for a in 0..3 {
+                    jobs.push((ki, f, a));
                 }
-                continue;
             }
-            let kernel = KernelMatrix::rbf(&xt, gamma, cfg.max_dense_points)?;
-            let results: Vec<Result<Scored, LearnError>> = pairs
-                .par_iter()
-                .map(|&(ci, ei)| {
-                    let idx = cand_index(gi, ci, ei);
-                    if deadline.passed() {
+        }
+        jobs.sort_by(|p, q| cfg.gamma[kernels[q.0].0].total_cmp(&cfg.gamma[kernels[p.0].0]));
+        let done: Vec<Result<Vec<(usize, AxisSolution)>, LearnError>> = jobs
+            .par_iter()
+            .map(|&(ki, f, a)| {
+                let (gi, kernel, _) = &kernels[ki];
+                let tr = &folds[f].0;
+                let z: Vec<f64> = tr.iter().map(|&i| y[i][a]).collect();
+                let mut out = Vec::new();
+                let mut prev_c: Option<(f64, Vec<f64>)> = None;
+                for &ci in &c_order {
+                    let c = cfg.c[ci];
+                    let mut prev_e: Option<Vec<f64>> = None;
+                    for &ei in &e_order {
+                        if deadline.passed() {
+                            pb.inc(1);
+                            continue;
+                        }
+                        let warm: Option<Vec<f64>> = match (&prev_e, &prev_c) {
+                            (Some(w), _) => Some(w.clone()),
+                            (None, Some((c0, w))) => Some(w.iter().map(|v| v * (c / c0)).collect()),
+                            (None, None) => None,
+                        };
+                        let t = Instant::now();
+                        let mut sol = svr::solve(
+                            &Problem {
+                                kernel,
+                                points: tr,
+                                z: &z,
+                                c,
+                                epsilon: cfg.epsilon[ei],
+                                warm: warm.as_deref(),
+                            },
+                            &cfg.solver,
+                            deadline,
+                        )?;
+                        sol.seconds = t.elapsed().as_secs_f64();
+                        if prev_e.is_none() {
+                            prev_c = Some((c, sol.coef.clone()));
+                        }
+                        prev_e = Some(sol.coef.clone());
+                        out.push((slot(cand_index(*gi, ci, ei), f, a), sol));
                         pb.inc(1);
-                        return Ok((idx, 0.0, 0.0, 0, false));
                     }
-                    let t = Instant::now();
-                    let params = SvrParams {
-                        c: cfg.c[ci],
-                        epsilon: cfg.epsilon[ei],
-                        gamma,
-                    };
-                    let sols = solve_axes(&kernel, &yt, &params, &cfg.solver, deadline)?;
-                    let converged = sols.iter().all(|s| s.converged);
-                    let model = assemble(input, output, gamma, cfg.mode, &xt, &sols);
-                    let err: f64 = va
-                        .iter()
-                        .map(|&i| super::dist(&svr::predict(&model, &inputs[i]), &targets[i]))
-                        .sum();
-                    let sv = sols.iter().map(|s| s.support_vectors).max().unwrap_or(0);
-                    pb.inc(1);
-                    Ok((idx, err, t.elapsed().as_secs_f64(), sv, converged))
-                })
-                .collect();
-            for r in results {
-                let (idx, err, s, sv, converged) = r?;
-                sum_err[idx] += err;
-                count[idx] += va.len();
-                secs[idx] += s;
-                svs[idx] = sv;
-                ok[idx] &= converged;
+                }
+                Ok(out)
+            })
+            .collect();
+        for r in done {
+            for (k, sol) in r? {
+                sols[k] = Some(sol);
+            }
+        }
+        for (gi, k, secs) in kernels {
+            kept_kernel[gi] = Some((k, secs));
+        }
+        // The refit reuses the kernel of the chosen gamma when all kernels
+        // fit in memory at once; otherwise it builds it again.
+        if groups.len() > 1 {
+            for k in kept_kernel.iter_mut() {
+                *k = None;
             }
         }
     }
     pb.finish_and_clear();
+
+    // Score every candidate: the three axes of each fold as one model.
+    let scored: Vec<(Option<f64>, usize, f64)> = (0..n_cand)
+        .into_par_iter()
+        .map(|idx| {
+            let gi = idx / (cfg.c.len() * cfg.epsilon.len());
+            let gamma = cfg.gamma[gi];
+            let mut sum = 0.0;
+            let mut count = 0usize;
+            let mut ok = true;
+            let mut secs = 0.0;
+            let mut sv = 0;
+            for (f, (tr, va)) in folds.iter().enumerate() {
+                let axes: Option<Vec<&AxisSolution>> =
+                    (0..3).map(|a| sols[slot(idx, f, a)].as_ref()).collect();
+                let Some(axes) = axes else {
+                    ok = false;
+                    continue;
+                };
+                ok &= axes.iter().all(|s| s.converged);
+                secs += axes.iter().map(|s| s.seconds).sum::<f64>();
+                sv = axes.iter().map(|s| s.support_vectors).max().unwrap_or(0);
+                let xt: Vec<[f64; 3]> = tr.iter().map(|&i| x[i]).collect();
+                let owned: Vec<AxisSolution> = axes.into_iter().cloned().collect();
+                let model = assemble(input, output, gamma, cfg.mode, &xt, &owned);
+                sum += va
+                    .iter()
+                    .map(|&i| super::dist(&svr::predict(&model, &inputs[i]), &targets[i]))
+                    .sum::<f64>();
+                count += va.len();
+            }
+            ((ok && count > 0).then(|| sum / count as f64), sv, secs)
+        })
+        .collect();
     let mut candidates = Vec::with_capacity(n_cand);
     for (gi, &gamma) in cfg.gamma.iter().enumerate() {
         for (ci, &c) in cfg.c.iter().enumerate() {
             for (ei, &epsilon) in cfg.epsilon.iter().enumerate() {
-                let idx = cand_index(gi, ci, ei);
+                let (val, sv, secs) = scored[cand_index(gi, ci, ei)];
                 candidates.push(SvrCandidate {
                     params: SvrParams { c, epsilon, gamma },
-                    validation_mean_mm: (ok[idx] && count[idx] > 0)
-                        .then(|| sum_err[idx] / count[idx] as f64),
-                    support_vectors: svs[idx],
-                    seconds: secs[idx],
+                    validation_mean_mm: val,
+                    support_vectors: sv,
+                    seconds: secs,
                 });
             }
         }
     }
-    let best = candidates
+    let best_idx = candidates
         .iter()
-        .filter_map(|c| c.validation_mean_mm.map(|e| (e, c.params)))
+        .enumerate()
+        .filter_map(|(i, c)| c.validation_mean_mm.map(|e| (e, i)))
         .reduce(|a, b| if b.0 < a.0 { b } else { a })
-        .map(|(_, p)| p)
+        .map(|(_, i)| i)
         .ok_or(LearnError::OutOfTime {
             what: "SVR hyperparameter search",
             budget_s: cfg.time_limit.map_or(0.0, |d| d.as_secs_f64()),
         })?;
+    let best = candidates[best_idx].params;
     let search_seconds = t0.elapsed().as_secs_f64();
     check_params(&best)?;
-    let fit = svr::train(
-        inputs,
-        targets,
-        &svr::SvrConfig {
-            params: best,
-            solver: cfg.solver,
-            mode: cfg.mode,
-            time_limit: None,
-            max_dense_points: cfg.max_dense_points,
-            quiet: cfg.quiet,
-        },
-    )?;
-    let refit_seconds = fit.seconds;
+
+    // Refit on all points, from the chosen candidate's solution on the last
+    // fold (its held-out points start at 0).
+    let t1 = Instant::now();
+    let gi = best_idx / (cfg.c.len() * cfg.epsilon.len());
+    let (kernel, kernel_seconds) = match kept_kernel[gi].take() {
+        Some(k) => k,
+        None => {
+            let t = Instant::now();
+            let k = KernelMatrix::rbf(&x, best.gamma, cfg.max_dense_points)?;
+            (k, t.elapsed().as_secs_f64())
+        }
+    };
+    drop(kept_kernel);
+    let last = folds.len() - 1;
+    let all: Vec<usize> = (0..n).collect();
+    let pb = progress(3, "SVR refit", cfg.quiet);
+    let refit: Result<Vec<AxisSolution>, LearnError> = (0..3)
+        .into_par_iter()
+        .map(|a| {
+            let mut warm = vec![0.0; n];
+            if let Some(s) = &sols[slot(best_idx, last, a)] {
+                for (&i, &c) in folds[last].0.iter().zip(&s.coef) {
+                    warm[i] = c;
+                }
+            }
+            let z: Vec<f64> = y.iter().map(|p| p[a]).collect();
+            let r = svr::solve(
+                &Problem {
+                    kernel: &kernel,
+                    points: &all,
+                    z: &z,
+                    c: best.c,
+                    epsilon: best.epsilon,
+                    warm: Some(&warm),
+                },
+                &cfg.solver,
+                Deadline::none(),
+            );
+            pb.inc(1);
+            r
+        })
+        .collect();
+    pb.finish_and_clear();
+    let refit = refit?;
+    let model = assemble(input, output, best.gamma, cfg.mode, &x, &refit);
+    let pred = svr::predict_all(&model, inputs);
+    let refit_seconds = t1.elapsed().as_secs_f64();
+    let fit = SvrFit {
+        train: ErrorStats::between(&pred, targets),
+        axes: [0, 1, 2].map(|a| svr::summary(&refit[a])),
+        model,
+        seconds: refit_seconds,
+        kernel_seconds,
+    };
     Ok(SvrSearchResult {
         candidates,
         best,
