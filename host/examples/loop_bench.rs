@@ -122,7 +122,8 @@ fn clean_only(seeds: u64) {
     // is not a false finding, one on the model simulator would be.
     let mut totals = [0usize; 2];
     let mut tables = [0usize; 2];
-    let is_table = |name: &String| name.starts_with("layers");
+    // So is each spool's own thinning rate (the spools differ in width).
+    let is_table = |name: &String| name.starts_with("layers") || name.starts_with("spool rates");
     for seed in 1..=seeds {
         let config = SimConfig::default();
         let device = Device::new(&config, seed).expect("device");
@@ -159,7 +160,7 @@ fn clean_only(seeds: u64) {
     }
     println!(
         "\nclean sessions, {seeds} seeds: effect families added {} (model simulator), {} \
-         (independent); layer tables added on {} and {} devices",
+         (independent); layer tables or spool rates added {} and {} times",
         totals[0], totals[1], tables[0], tables[1]
     );
 }
@@ -268,7 +269,7 @@ fn main() {
             seconds += o.seconds;
         }
         let how = if in_base > 0 {
-            format!(" ({in_base} by the base model's r_home)")
+            format!(" ({in_base} by the base model's r_home and the spool rates)")
         } else {
             String::new()
         };

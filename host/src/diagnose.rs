@@ -299,6 +299,63 @@ fn add_layer_tables(
     })
 }
 
+/// Each spool's own thinning rate ([`Structure::hold_kappa_each`] off),
+/// kept when [`judge`] accepts it on the validation folds: the finding (a
+/// `winding` on every active string, `added` as judged) and, when
+/// accepted, the refit with its structure and validation.
+#[allow(clippy::type_complexity)]
+fn free_spool_rates(
+    train: &[Observation],
+    nominal: &Frame<f64>,
+    id: &Identification,
+    structure: &Structure,
+    before: &Validation,
+    config: &LoopConfig,
+) -> Result<(Finding, Option<(Identification, Structure, Validation)>), IdentifyError> {
+    let free = Structure {
+        hold_kappa_each: false,
+        ..structure.clone()
+    };
+    let (after, _) = validate_fits(train, nominal, id, &free)?;
+    let check = judge(before, &after, None, config.min_relative_gain);
+    let explained = 1.0 - after.held.mean_mm / before.held.mean_mm.max(1e-12);
+    let added = if check.accepted {
+        let refit = identify(train, nominal, &Start::from_identification(id), &free)?;
+        Some((refit, free, after))
+    } else {
+        None
+    };
+    let rates = added.as_ref().map_or_else(String::new, |(refit, _, _)| {
+        let each: Vec<String> = refit
+            .frame
+            .layout
+            .indices()
+            .map(|i| format!("{i}: {:+.5}", refit.winding.kappa_each_mm[i]))
+            .collect();
+        format!(
+            " (shared {:.5} mm/rad^2; each string's departure {})",
+            refit.winding.kappa_mm,
+            each.join(", ")
+        )
+    });
+    let finding = Finding {
+        family: Family::Winding,
+        strings: nominal.layout.indices().map(|i| i as u8).collect(),
+        variable: Variable::WoundLength,
+        amplitude_mm: 0.0,
+        explained,
+        added: check.accepted,
+        chi2: 0.0,
+        description: format!(
+            "each spool thins at its own rate as string is paid out (spools of other widths, \
+             packing or pitch){rates}"
+        ),
+        validation: Some(check),
+        change: None,
+    };
+    Ok((finding, added))
+}
+
 /// Position errors of an identified string model against the tracker.
 pub fn model_errors(id: &Identification, observations: &[Observation]) -> ErrorStats {
     ErrorStats::of(&model_error_list(id, observations))
@@ -1440,6 +1497,24 @@ pub fn close_loop(
     let mut stages = Vec::new();
     let mut findings: Vec<Finding> = Vec::new();
     let mut layers = Vec::new();
+    if structure.hold_kappa_each && nominal.layout.count() > 1 {
+        let (finding, added) =
+            free_spool_rates(train, nominal, &id, &structure, &validation, config)?;
+        if let Some((refit, free, after)) = added {
+            stages.push(LoopStage {
+                name: format!("spool rates strings {:?}", finding.strings),
+                train: model_errors(&refit, train),
+                test: test.map(|t| model_errors(&refit, t)),
+                finding: finding.clone(),
+                validation_before_mm: validation.held.mean_mm,
+                validation_after_mm: after.held.mean_mm,
+            });
+            validation = after;
+            structure = free;
+            id = refit;
+        }
+        findings.push(finding);
+    }
     if config.layer_tables {
         let tried = add_layer_tables(train, nominal, &id, &structure, &validation, config)?;
         layers = tried.choice;

@@ -27,12 +27,15 @@
 //! spools of other widths, packing or pitch thin at other rates. So each
 //! string also has its own departure `kappa_i` from the shared rate
 //! ([`WindingPhysics::kappa_each_mm`], prior sd [`KAPPA_EACH_SD_MM`], mean 0
-//! over the strings). On the independent simulator's spools (widths 3 to 6
-//! mm) this took the string model's held-out error after the loop from 0.85
-//! to 0.47 mm (20 clean devices, `docs/benchmarks.md`); on devices with one
-//! spool design the `kappa_i` come out at their noise. A payout scale error
-//! of one string (another pulley diameter, another encoder resolution) is
-//! then the string's own `r_home` and `kappa_i`, not an effect. What a string
+//! over the strings). The base model holds them at 0; the diagnosis loop
+//! frees them first, kept when the blocked-fold error falls
+//! ([`Structure::hold_kappa_each`]): on the independent simulator's spools
+//! (widths 3 to 6 mm) this took the string model's held-out error after
+//! the loop from 0.85 to 0.44 mm (20 clean devices, `docs/benchmarks.md`),
+//! while on the Hangprinter's 34 training rows, fitted unconditionally, it
+//! raised the held-out error from 2.69 to 2.83 mm. With them free, a payout
+//! scale error of one string (another pulley diameter, another encoder
+//! resolution) is the string's own `r_home` and `kappa_i`. What a string
 //! needs beyond this law (a constant offset, a higher order, ...) is an
 //! effect the diagnosis loop adds when the data show it.
 //!
@@ -130,10 +133,12 @@ pub struct Structure {
     /// (a slip's time is not: it is chosen by the diagnosis search).
     pub effects: Vec<EffectTerm>,
     /// Hold each spool's own thinning rate at the start's
-    /// ([`WindingPhysics::kappa_each_mm`]) instead of fitting it: the
-    /// monitor's short windows, where a string's angle moves little and its
-    /// `theta^2` would stand in for a step or a drift.
-    #[serde(default)]
+    /// ([`WindingPhysics::kappa_each_mm`]) instead of fitting it. The base
+    /// model holds them (at 0: one shared rate); the diagnosis loop frees
+    /// them when that lowers the blocked-fold error (spools of other
+    /// widths), and the monitor holds a calibration's (in a window of
+    /// seconds a string's `theta^2` would stand in for a step or a drift).
+    #[serde(default = "hold_by_default")]
     pub hold_kappa_each: bool,
 }
 
@@ -144,7 +149,7 @@ impl Default for Structure {
             anchor_sd_override_mm: [None; STRINGS],
             fit_room_scale: false,
             effects: Vec::new(),
-            hold_kappa_each: false,
+            hold_kappa_each: true,
         }
     }
 }
@@ -176,6 +181,10 @@ pub struct WindingPhysics {
     /// [`crate::layers`]); held, not fitted, by the identification.
     #[serde(default)]
     pub layers: [LayerTable; STRINGS],
+}
+
+fn hold_by_default() -> bool {
+    true
 }
 
 fn unit_advantage() -> [f64; STRINGS] {
@@ -1293,9 +1302,9 @@ fn column_is_free(layout: &Layout, structure: &Structure, strings: StringLayout,
 /// Fewest tracked rows an identification of `structure` takes: twice as
 /// many string residuals as free parameters (so that the residual scale
 /// and the robust weights mean something), and never fewer than 10 rows.
-/// An 8-string device's base model (43 free parameters once the gauges of
-/// the frame and of the spools' own thinning rates are fixed) needs 11
-/// rows, a 4-string one's (23) needs 12, a 3-string one's (18) needs 12.
+/// An 8-string device's base model (36 free parameters once the gauge is
+/// fixed) needs 10 rows, a 4-string one's (20) needs 10, a 3-string one's
+/// (17) needs 12; with each spool's own thinning rate free, 11, 12 and 12.
 pub fn rows_needed_for(structure: &Structure, strings: StringLayout) -> usize {
     rows_needed(&Layout::new(structure), structure, strings)
 }

@@ -635,7 +635,7 @@ fn a_pilot_session_too_small_says_how_many_rows_and_why() {
     assert!(
         err.contains("pilot.csv")
             && err.contains("rows with tracker positions")
-            && err.contains("needs at least 22 (11 to identify")
+            && err.contains("needs at least 20 (10 to identify")
             && err.contains("cross-validation")
             && err.contains("--cells"),
         "{err}"

@@ -340,17 +340,31 @@ fn clean_loop(seed: u64) -> spidar::diagnose::LoopResult {
     .unwrap()
 }
 
-/// A clean independent device: its spools are layered (declared physics),
-/// so the loop adds layer tables first, checked on blocked folds; whatever
-/// it adds after them lowered the blocked-fold error by the loop's minimum
-/// gain, and every candidate it tested and refused is reported `added:
-/// false` with the check that refused it.
+/// A clean independent device: its spools differ in width and are layered
+/// (declared physics), so the loop frees each spool's thinning rate and
+/// adds layer tables first, each checked on blocked folds; whatever it adds
+/// after them lowered the blocked-fold error by the loop's minimum gain, and
+/// every candidate it tested and refused is reported `added: false` with
+/// the check that refused it.
 #[test]
-fn a_clean_independent_device_gets_layer_tables_first_and_each_decision_says_why() {
+fn a_clean_independent_device_gets_spool_rates_and_layer_tables_first_and_each_decision_says_why() {
     use spidar::diagnose::{Family, Folds, LoopConfig};
     let r = clean_loop(1);
-    assert_eq!(r.stages[0].name, "layers strings [0, 1, 2, 3, 4, 5, 6, 7]");
-    let layers = &r.stages[0].finding;
+    assert_eq!(
+        r.stages[0].name,
+        "spool rates strings [0, 1, 2, 3, 4, 5, 6, 7]"
+    );
+    let rates = &r.stages[0].finding;
+    assert_eq!(rates.family, Family::Winding);
+    assert!(rates.validation.as_ref().unwrap().accepted);
+    assert!(r
+        .identification
+        .winding
+        .kappa_each_mm
+        .iter()
+        .any(|k| k.abs() > 1e-4));
+    assert_eq!(r.stages[1].name, "layers strings [0, 1, 2, 3, 4, 5, 6, 7]");
+    let layers = &r.stages[1].finding;
     assert_eq!(layers.family, Family::Layers);
     let check = layers.validation.as_ref().unwrap();
     assert!(
@@ -361,7 +375,7 @@ fn a_clean_independent_device_gets_layer_tables_first_and_each_decision_says_why
     assert_eq!(check.after.folds, Folds::Blocked);
     assert!(check.after.held.mean_mm < 0.8 * check.before.held.mean_mm);
     let min_gain = LoopConfig::default().min_relative_gain;
-    for stage in &r.stages[1..] {
+    for stage in &r.stages[2..] {
         let gain = 1.0 - stage.validation_after_mm / stage.validation_before_mm;
         assert!(gain >= min_gain, "{}: {gain}", stage.name);
         assert!(stage.finding.added && stage.finding.family != Family::Layers);

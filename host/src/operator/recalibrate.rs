@@ -554,8 +554,7 @@ pub fn structure_of(calibration: &Calibration) -> Structure {
         fit_room_scale: (calibration.frame.room_scale - 1.0).abs() > 1e-12,
         effects: calibration.effects.clone(),
         // A window of a few seconds cannot tell a spool's thinning rate
-        // from a step or a drift: the calibration's are held.
-        hold_kappa_each: true,
+        // from a step or a drift: the calibration's are held (the default).
         ..Structure::default()
     }
 }
