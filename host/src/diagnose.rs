@@ -163,6 +163,29 @@ pub struct LoopResult {
     pub layers: Vec<StringLayers>,
 }
 
+impl LoopStage {
+    /// The stage `name` of an accepted `finding`: the refit's errors on the
+    /// training (and test) sessions and the validation before and after.
+    fn of(
+        name: String,
+        finding: &Finding,
+        refit: &Identification,
+        train: &[Observation],
+        test: Option<&[Observation]>,
+        before: &Validation,
+        after: &Validation,
+    ) -> LoopStage {
+        LoopStage {
+            name,
+            train: model_errors(refit, train),
+            test: test.map(|t| model_errors(refit, t)),
+            finding: finding.clone(),
+            validation_before_mm: before.held.mean_mm,
+            validation_after_mm: after.held.mean_mm,
+        }
+    }
+}
+
 /// What [`add_layer_tables`] tried.
 struct LayerTry {
     choice: Vec<StringLayers>,
@@ -1501,14 +1524,16 @@ pub fn close_loop(
         let (finding, added) =
             free_spool_rates(train, nominal, &id, &structure, &validation, config)?;
         if let Some((refit, free, after)) = added {
-            stages.push(LoopStage {
-                name: format!("spool rates strings {:?}", finding.strings),
-                train: model_errors(&refit, train),
-                test: test.map(|t| model_errors(&refit, t)),
-                finding: finding.clone(),
-                validation_before_mm: validation.held.mean_mm,
-                validation_after_mm: after.held.mean_mm,
-            });
+            let name = format!("spool rates strings {:?}", finding.strings);
+            stages.push(LoopStage::of(
+                name,
+                &finding,
+                &refit,
+                train,
+                test,
+                &validation,
+                &after,
+            ));
             validation = after;
             structure = free;
             id = refit;
@@ -1521,14 +1546,16 @@ pub fn close_loop(
         if let Some(mut finding) = tried.finding {
             if let Some((refit, after)) = tried.added {
                 finding.added = true;
-                stages.push(LoopStage {
-                    name: stage_name(&finding),
-                    train: model_errors(&refit, train),
-                    test: test.map(|t| model_errors(&refit, t)),
-                    finding: finding.clone(),
-                    validation_before_mm: validation.held.mean_mm,
-                    validation_after_mm: after.held.mean_mm,
-                });
+                let name = stage_name(&finding);
+                stages.push(LoopStage::of(
+                    name,
+                    &finding,
+                    &refit,
+                    train,
+                    test,
+                    &validation,
+                    &after,
+                ));
                 validation = after;
                 id = refit;
             }
@@ -1557,14 +1584,16 @@ pub fn close_loop(
                 let refit = identify(train, nominal, &Start::from_identification(&id), &candidate)?;
                 finding.added = true;
                 findings.push(finding.clone());
-                stages.push(LoopStage {
-                    name: stage_name(&finding),
-                    train: model_errors(&refit, train),
-                    test: test.map(|t| model_errors(&refit, t)),
-                    finding,
-                    validation_before_mm: validation.held.mean_mm,
-                    validation_after_mm: after.held.mean_mm,
-                });
+                let name = stage_name(&finding);
+                stages.push(LoopStage::of(
+                    name,
+                    &finding,
+                    &refit,
+                    train,
+                    test,
+                    &validation,
+                    &after,
+                ));
                 validation = after;
                 structure = candidate;
                 id = refit;
