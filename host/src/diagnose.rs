@@ -339,7 +339,30 @@ fn free_spool_rates(
         hold_kappa_each: false,
         ..structure.clone()
     };
-    let (after, _) = validate_fits(train, nominal, id, &free)?;
+    let (after, _) = match validate_fits(train, nominal, id, &free) {
+        Ok(v) => v,
+        // A session just large enough for the base model's folds: the
+        // shared rate stays, and the finding says why.
+        Err(IdentifyError::TooFewRows { needed, got }) => {
+            let finding = Finding {
+                family: Family::Winding,
+                strings: nominal.layout.indices().map(|i| i as u8).collect(),
+                variable: Variable::WoundLength,
+                amplitude_mm: 0.0,
+                explained: 0.0,
+                added: false,
+                chi2: 0.0,
+                description: format!(
+                    "each spool's own thinning rate not tried: a validation fold has {got} \
+                     tracked rows, freeing the rates needs {needed}"
+                ),
+                validation: None,
+                change: None,
+            };
+            return Ok((finding, None));
+        }
+        Err(e) => return Err(e),
+    };
     let check = judge(before, &after, None, config.min_relative_gain);
     let explained = 1.0 - after.held.mean_mm / before.held.mean_mm.max(1e-12);
     let added = if check.accepted {

@@ -642,3 +642,58 @@ fn a_pilot_session_too_small_says_how_many_rows_and_why() {
     );
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// A pilot session of exactly the fewest rows a calibration takes (20
+/// tracked rows: 10 in each validation fold) calibrates: the loop's first
+/// step, freeing each spool's thinning rate, needs 11 rows per fold and is
+/// reported as not tried, with why, instead of failing the calibration.
+#[test]
+fn a_pilot_session_of_the_minimum_size_calibrates_and_says_what_it_did_not_try() {
+    let dir = temp_dir("pilot-min");
+    let (geometry, _, test) = simulate_files(&dir);
+    let o = spidar(&[
+        "simulate",
+        "--out",
+        s(&dir),
+        "--seed",
+        "1",
+        "--kind",
+        "random",
+        "--points",
+        "22",
+        "--name",
+        "pilot",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let out = dir.join("out");
+    let o = spidar(&[
+        "calibrate",
+        "--geometry",
+        s(&geometry),
+        "--train",
+        s(&dir.join("pilot.csv")),
+        "--test",
+        s(&test),
+        "--out",
+        s(&out),
+        "--quick",
+        "--no-figures",
+        "--quiet",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
+    let rates = report["effects"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|f| f["family"] == "winding" && f["strings"].as_array().unwrap().len() == 8)
+        .expect("the spool-rates finding");
+    assert_eq!(rates["added"], false);
+    let why = rates["description"].as_str().unwrap();
+    assert!(
+        why.contains("not tried") && why.contains("10 tracked rows") && why.contains("needs 11"),
+        "{why}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
