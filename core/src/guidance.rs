@@ -27,6 +27,7 @@
 //! so the host and the device compute the same bits.
 
 use crate::model::Vec3;
+use crate::real::Real;
 
 /// Beep frequency (Hz) at `h = 1`, eq. 3.
 pub const BEEP_FREQUENCY_SCALE_HZ: f32 = 1000.0;
@@ -78,7 +79,7 @@ pub fn guidance_force(v: Vec3<f32>, d_min: f32, f_max: f32) -> Vec3<f32> {
         return [0.0; 3]; // on the target: no direction
     }
     let w = [v[0] / m, v[1] / m, v[2] / m];
-    let n = spidar_fpu::sqrtf(w[0] * w[0] + w[1] * w[1] + w[2] * w[2]);
+    let n = (w[0] * w[0] + w[1] * w[1] + w[2] * w[2]).sqrt_rounded();
     let d = m * n;
     if !d.is_finite() {
         return [0.0; 3];

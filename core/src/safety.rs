@@ -33,6 +33,7 @@ use core::ops::{BitOr, BitOrAssign};
 
 use serde::{Deserialize, Serialize};
 
+use crate::real::Real;
 use crate::STRINGS;
 
 /// A set of safety faults, one bit each (see the module doc for which latch).
@@ -351,7 +352,7 @@ impl SafetyMonitor {
             return force;
         }
         let w = [force[0] / m, force[1] / m, force[2] / m];
-        let w_norm = spidar_fpu::sqrtf(w[0] * w[0] + w[1] * w[1] + w[2] * w[2]);
+        let w_norm = (w[0] * w[0] + w[1] * w[1] + w[2] * w[2]).sqrt_rounded();
         let norm = m * w_norm; // may be +inf for huge finite forces
         if norm > self.config.f_max {
             self.warnings.insert(Faults::OVERFORCE);

@@ -339,27 +339,28 @@ fn free_spool_rates(
         hold_kappa_each: false,
         ..structure.clone()
     };
+    let finding = |description: String, explained: f64, validation: Option<Check>| Finding {
+        family: Family::Winding,
+        strings: nominal.layout.indices().map(|i| i as u8).collect(),
+        variable: Variable::WoundLength,
+        amplitude_mm: 0.0,
+        explained,
+        added: validation.as_ref().is_some_and(|c| c.accepted),
+        chi2: 0.0,
+        description,
+        validation,
+        change: None,
+    };
     let (after, _) = match validate_fits(train, nominal, id, &free) {
         Ok(v) => v,
         // A session just large enough for the base model's folds: the
         // shared rate stays, and the finding says why.
         Err(IdentifyError::TooFewRows { needed, got }) => {
-            let finding = Finding {
-                family: Family::Winding,
-                strings: nominal.layout.indices().map(|i| i as u8).collect(),
-                variable: Variable::WoundLength,
-                amplitude_mm: 0.0,
-                explained: 0.0,
-                added: false,
-                chi2: 0.0,
-                description: format!(
-                    "each spool's own thinning rate not tried: a validation fold has {got} \
-                     tracked rows, freeing the rates needs {needed}"
-                ),
-                validation: None,
-                change: None,
-            };
-            return Ok((finding, None));
+            let why = format!(
+                "each spool's own thinning rate not tried: a validation fold has {got} tracked \
+                 rows, freeing the rates needs {needed}"
+            );
+            return Ok((finding(why, 0.0, None), None));
         }
         Err(e) => return Err(e),
     };
@@ -384,22 +385,11 @@ fn free_spool_rates(
             each.join(", ")
         )
     });
-    let finding = Finding {
-        family: Family::Winding,
-        strings: nominal.layout.indices().map(|i| i as u8).collect(),
-        variable: Variable::WoundLength,
-        amplitude_mm: 0.0,
-        explained,
-        added: check.accepted,
-        chi2: 0.0,
-        description: format!(
-            "each spool thins at its own rate as string is paid out (spools of other widths, \
-             packing or pitch){rates}"
-        ),
-        validation: Some(check),
-        change: None,
-    };
-    Ok((finding, added))
+    let description = format!(
+        "each spool thins at its own rate as string is paid out (spools of other widths, packing \
+         or pitch){rates}"
+    );
+    Ok((finding(description, explained, Some(check)), added))
 }
 
 /// Position errors of an identified string model against the tracker.

@@ -590,6 +590,44 @@ fn effects_found_by_the_loop_become_stages_and_json_effects() {
     assert!(last.test.mean_mm <= TEST_MEAN_MAX_MM && last.test.max_mm <= TEST_MAX_MAX_MM);
 }
 
+/// Simulates a pilot session of `points` random points of the seed-1 device
+/// in `dir` and runs `calibrate --quick` on it (test session: the usual
+/// one); the command's output and the calibration's output directory.
+fn calibrate_pilot(dir: &Path, points: u32) -> (std::process::Output, PathBuf) {
+    let (geometry, _, test) = simulate_files(dir);
+    let points = points.to_string();
+    let o = spidar(&[
+        "simulate",
+        "--out",
+        s(dir),
+        "--seed",
+        "1",
+        "--kind",
+        "random",
+        "--points",
+        &points,
+        "--name",
+        "pilot",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let out = dir.join("out");
+    let o = spidar(&[
+        "calibrate",
+        "--geometry",
+        s(&geometry),
+        "--train",
+        s(&dir.join("pilot.csv")),
+        "--test",
+        s(&test),
+        "--out",
+        s(&out),
+        "--quick",
+        "--no-figures",
+        "--quiet",
+    ]);
+    (o, out)
+}
+
 /// A pilot session too small to calibrate is refused in the user's terms:
 /// how many rows, why, and what to collect (not the row count of one
 /// cross-validation half, which is what identification saw). A 27-point
@@ -597,35 +635,7 @@ fn effects_found_by_the_loop_become_stages_and_json_effects() {
 #[test]
 fn a_pilot_session_too_small_says_how_many_rows_and_why() {
     let dir = temp_dir("pilot");
-    let (geometry, _, test) = simulate_files(&dir);
-    let o = spidar(&[
-        "simulate",
-        "--out",
-        s(&dir),
-        "--seed",
-        "1",
-        "--kind",
-        "random",
-        "--points",
-        "15",
-        "--name",
-        "pilot",
-    ]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let pilot = dir.join("pilot.csv");
-    let o = spidar(&[
-        "calibrate",
-        "--geometry",
-        s(&geometry),
-        "--train",
-        s(&pilot),
-        "--test",
-        s(&test),
-        "--out",
-        s(&dir.join("out")),
-        "--quick",
-        "--quiet",
-    ]);
+    let (o, _) = calibrate_pilot(&dir, 15);
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(
         !o.status.success(),
@@ -650,36 +660,7 @@ fn a_pilot_session_too_small_says_how_many_rows_and_why() {
 #[test]
 fn a_pilot_session_of_the_minimum_size_calibrates_and_says_what_it_did_not_try() {
     let dir = temp_dir("pilot-min");
-    let (geometry, _, test) = simulate_files(&dir);
-    let o = spidar(&[
-        "simulate",
-        "--out",
-        s(&dir),
-        "--seed",
-        "1",
-        "--kind",
-        "random",
-        "--points",
-        "22",
-        "--name",
-        "pilot",
-    ]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let out = dir.join("out");
-    let o = spidar(&[
-        "calibrate",
-        "--geometry",
-        s(&geometry),
-        "--train",
-        s(&dir.join("pilot.csv")),
-        "--test",
-        s(&test),
-        "--out",
-        s(&out),
-        "--quick",
-        "--no-figures",
-        "--quiet",
-    ]);
+    let (o, out) = calibrate_pilot(&dir, 22);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let report: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
