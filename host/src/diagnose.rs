@@ -135,8 +135,8 @@ pub struct LoopStage {
     /// Position error against the tracker after adding the effect.
     pub train: ErrorStats,
     pub test: Option<ErrorStats>,
-    /// Held-out mean error (blocked folds, [`Validation::held`]) before and
-    /// after, mm.
+    /// Held-out mean error (blocked folds, [`Validation::held`]; a slip's:
+    /// [`Validation::for_step`]) before and after, mm.
     pub validation_before_mm: f64,
     pub validation_after_mm: f64,
 }
@@ -786,40 +786,63 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
 /// time order) with the largest two-sample mean difference, or `None` when
 /// the string has too few rows.
 fn slip_times(ev: &Evidence) -> Vec<Option<f64>> {
-    const MIN_SIDE: usize = 20;
     (0..STRINGS)
         .map(|i| {
             if !ev.layout.is_active(i) {
                 return None;
             }
-            let r: Vec<(f64, f64)> = ev
+            let rows: Vec<&Row> = ev
                 .rows
                 .iter()
                 .filter(|r| r.string == i && r.weight > 0.0)
-                .map(|r| (r.ctx.time_s, r.residual))
                 .collect();
-            let n = r.len();
-            if n < 2 * MIN_SIDE {
-                return None;
-            }
-            let total: f64 = r.iter().map(|x| x.1).sum();
-            let mut prefix = 0.0;
-            let mut best = (0.0, None);
-            for j in 1..n {
-                prefix += r[j - 1].1;
-                if j < MIN_SIDE || n - j < MIN_SIDE || r[j].0 == r[j - 1].0 {
-                    continue;
-                }
-                let (a, b) = (j as f64, (n - j) as f64);
-                let diff = prefix / a - (total - prefix) / b;
-                let stat = diff * diff * a * b / n as f64;
-                if stat > best.0 {
-                    best = (stat, Some(0.5 * (r[j - 1].0 + r[j].0)));
-                }
-            }
-            best.1
+            let along = |key: fn(&Row) -> f64| -> Vec<(f64, f64)> {
+                rows.iter().map(|r| (key(r), r.residual)).collect()
+            };
+            let (stat, at_s) = best_step(along(|r| r.ctx.time_s))?;
+            // A step in time that a step in one coordinate of the position
+            // explains as well is not a slip we can tell from position (a
+            // lattice collected plane by plane: time goes with height): the
+            // step in time must explain more.
+            let by_position = [
+                along(|r| r.position[0]),
+                along(|r| r.position[1]),
+                along(|r| r.position[2]),
+            ]
+            .into_iter()
+            .filter_map(|points| best_step(points).map(|b| b.0))
+            .fold(0.0, f64::max);
+            (by_position < stat).then_some(at_s)
         })
         .collect()
+}
+
+/// The best single step of residuals `(key, residual)` ordered by the key:
+/// (its statistic, the key halfway across it), at least `MIN_SIDE` points
+/// on each side; `None` with too few points.
+fn best_step(mut r: Vec<(f64, f64)>) -> Option<(f64, f64)> {
+    const MIN_SIDE: usize = 20;
+    let n = r.len();
+    if n < 2 * MIN_SIDE {
+        return None;
+    }
+    r.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let total: f64 = r.iter().map(|x| x.1).sum();
+    let mut prefix = 0.0;
+    let mut best = (0.0, None);
+    for j in 1..n {
+        prefix += r[j - 1].1;
+        if j < MIN_SIDE || n - j < MIN_SIDE || r[j].0 == r[j - 1].0 {
+            continue;
+        }
+        let (a, b) = (j as f64, (n - j) as f64);
+        let diff = prefix / a - (total - prefix) / b;
+        let stat = diff * diff * a * b / n as f64;
+        if stat > best.0 {
+            best = (stat, Some(0.5 * (r[j - 1].0 + r[j].0)));
+        }
+    }
+    best.1.map(|at| (best.0, at))
 }
 
 fn chi2_threshold(config: &LoopConfig, dof: usize, penalty: f64) -> f64 {
@@ -1169,6 +1192,51 @@ pub struct Validation {
     /// order for every structure of one session), mm.
     #[serde(skip)]
     pub held_errors: Vec<f64>,
+    /// How many of `held_errors` each fold behind `held` gave, in order
+    /// (the blocked folds: later half, earlier half, outer shell; or the two
+    /// interleaved ones).
+    #[serde(skip)]
+    pub fold_sizes: Vec<usize>,
+    /// The interleaved folds' errors behind `interleaved`, row by row, mm.
+    #[serde(skip)]
+    pub interleaved_errors: Vec<f64>,
+}
+
+impl Validation {
+    /// What a step in time (a slip) is judged on: the interleaved folds
+    /// (every fit straddles the step and every held-out set has rows on
+    /// both sides of it) and, of the blocked folds, those `keep` says (their
+    /// fit rows reach both sides of the step, [`judgeable_folds`]).
+    pub fn for_step(&self, keep: &[bool]) -> Validation {
+        let mut held_errors = Vec::with_capacity(self.held_errors.len());
+        let mut fold_sizes = Vec::with_capacity(self.fold_sizes.len());
+        if self.folds == Folds::Blocked {
+            held_errors.extend_from_slice(&self.interleaved_errors);
+            fold_sizes.push(self.interleaved_errors.len());
+            let mut from = 0;
+            for (k, &size) in self.fold_sizes.iter().enumerate() {
+                if keep.get(k).copied().unwrap_or(true) {
+                    held_errors.extend_from_slice(&self.held_errors[from..from + size]);
+                    fold_sizes.push(size);
+                }
+                from += size;
+            }
+        } else {
+            held_errors.extend_from_slice(&self.held_errors);
+            fold_sizes.extend_from_slice(&self.fold_sizes);
+        }
+        let (noise_p95_mm, noise_max_mm) = tail_noise(&held_errors);
+        Validation {
+            folds: self.folds,
+            held: ErrorStats::of(&held_errors),
+            interleaved: self.interleaved,
+            noise_p95_mm,
+            noise_max_mm,
+            held_errors,
+            fold_sizes,
+            interleaved_errors: self.interleaved_errors.clone(),
+        }
+    }
 }
 
 /// A held-out row whose error exceeds this many times the p95 before a
@@ -1342,11 +1410,14 @@ pub(crate) fn validate_by(
         })
         .collect::<Result<_, IdentifyError>>()?;
     let errors: Vec<&[f64]> = fits.iter().map(|f| f.1.as_slice()).collect();
-    let interleaved = ErrorStats::of(&errors[..2].concat());
-    let held_errors = match kind {
-        Folds::Blocked => errors[2..].concat(),
-        Folds::Interleaved => errors[..2].concat(),
+    let interleaved_errors = errors[..2].concat();
+    let interleaved = ErrorStats::of(&interleaved_errors);
+    let pooled = match kind {
+        Folds::Blocked => &errors[2..],
+        Folds::Interleaved => &errors[..2],
     };
+    let held_errors = pooled.concat();
+    let fold_sizes = pooled.iter().map(|e| e.len()).collect();
     let held = ErrorStats::of(&held_errors);
     let (noise_p95_mm, noise_max_mm) = tail_noise(&held_errors);
     Ok((
@@ -1357,9 +1428,58 @@ pub(crate) fn validate_by(
             noise_p95_mm,
             noise_max_mm,
             held_errors,
+            fold_sizes,
+            interleaved_errors,
         },
         fits.into_iter().map(|f| f.0).collect(),
     ))
+}
+
+/// Fewest fit rows a fold needs on each side of a step in time (a slip) to
+/// fit the step's size.
+pub const MIN_STEP_SIDE_ROWS: usize = 20;
+
+/// Which of the blocked folds of `train` (indexed as
+/// [`Validation::fold_sizes`]) can judge `change`, with the names of those
+/// that cannot; `None` for a change that is not a step in time. A step in
+/// time (a slip at `t`) has a size only a fit whose rows lie on both sides
+/// of `t` can find: the fold that fits the later half of a session whose
+/// slip came early never sees the string before it, so its prediction of
+/// the earlier rows is arbitrary with or without the slip. A step is judged
+/// on the interleaved folds and these ([`Validation::for_step`]): whether a
+/// step stands in for position is asked before, of the residual itself
+/// ([`slip_times`]).
+fn judgeable_folds(
+    change: Change,
+    train: &[Observation],
+) -> Option<(Vec<bool>, Vec<&'static str>)> {
+    let Change::Effect(EffectTerm {
+        effect: Effect::Slip { at_s, .. },
+        ..
+    }) = change
+    else {
+        return None;
+    };
+    let tracked: Vec<&Observation> = train.iter().filter(|o| o.tracker.is_some()).collect();
+    let (kind, folds) = folds(&tracked);
+    let (pooled, names): (&[Fold], &[&'static str]) = match kind {
+        Folds::Blocked => (&folds[2..], &["later half", "earlier half", "outer shell"]),
+        Folds::Interleaved => (&folds[..2], &["even rows", "odd rows"]),
+    };
+    let keep: Vec<bool> = pooled
+        .iter()
+        .map(|(fit, _)| {
+            let before = fit.iter().filter(|&&k| tracked[k].t_s < at_s).count();
+            before >= MIN_STEP_SIDE_ROWS && fit.len() - before >= MIN_STEP_SIDE_ROWS
+        })
+        .collect();
+    let left_out = keep
+        .iter()
+        .zip(names)
+        .filter(|(k, _)| !**k)
+        .map(|(_, n)| *n)
+        .collect();
+    Some((keep, left_out))
 }
 
 /// Chi-square (p = 0.001) an added effect's parameters may differ by between
@@ -1584,12 +1704,34 @@ pub fn close_loop(
             };
             let candidate = structure.with(change);
             let (after, fits) = validate_fits(train, nominal, &id, &candidate)?;
-            let check = judge(
-                &validation,
-                &after,
-                stability(change, &fits),
-                config.min_relative_gain,
-            );
+            let check = match judgeable_folds(change, train) {
+                None => judge(
+                    &validation,
+                    &after,
+                    stability(change, &fits),
+                    config.min_relative_gain,
+                ),
+                Some((keep, left_out)) => {
+                    // A step's halves are not one value fitted twice: no
+                    // stability test (one half may not see the step).
+                    let mut check = judge(
+                        &validation.for_step(&keep),
+                        &after.for_step(&keep),
+                        None,
+                        config.min_relative_gain,
+                    );
+                    check.reason += " and interleaved folds (a step in time)";
+                    if !left_out.is_empty() {
+                        check.reason += &format!(
+                            ", without the {} fold{}: its fit rows do not reach both sides of \
+                             the step",
+                            left_out.join(" and "),
+                            if left_out.len() > 1 { "s" } else { "" }
+                        );
+                    }
+                    check
+                }
+            };
             let accepted = check.accepted;
             finding.validation = Some(check);
             findings.retain(|f| !same(f, &finding));
@@ -1598,14 +1740,17 @@ pub fn close_loop(
                 finding.added = true;
                 findings.push(finding.clone());
                 let name = stage_name(&finding);
+                // The folds the check judged on (a step's are its own).
+                let judged = finding.validation.as_ref().map(|c| (&c.before, &c.after));
+                let (judged_before, judged_after) = judged.unwrap_or((&validation, &after));
                 stages.push(LoopStage::of(
                     name,
                     &finding,
                     &refit,
                     train,
                     test,
-                    &validation,
-                    &after,
+                    judged_before,
+                    judged_after,
                 ));
                 validation = after;
                 structure = candidate;
@@ -1627,4 +1772,63 @@ pub fn close_loop(
         stages,
         findings,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A step in time on a session collected plane by plane: at a plane
+    /// boundary a step in height explains it as well (not a slip we can
+    /// tell); inside a plane the step in time explains more.
+    #[test]
+    fn a_step_in_time_must_beat_a_step_in_position() {
+        // 10 planes of 50 points, one a second; height = plane.
+        let points: Vec<(f64, f64)> = (0..500).map(|k| (k as f64, (k / 50) as f64)).collect();
+        let residual = |step_at: f64| -> Vec<(f64, f64, f64)> {
+            points
+                .iter()
+                .map(|&(t, z)| (t, z, if t >= step_at { 3.0 } else { 0.0 }))
+                .collect()
+        };
+        let stats = |rows: &[(f64, f64, f64)]| {
+            let time = best_step(rows.iter().map(|r| (r.0, r.2)).collect()).unwrap();
+            let height = best_step(rows.iter().map(|r| (r.1, r.2)).collect()).unwrap();
+            (time, height)
+        };
+        let (time, height) = stats(&residual(200.0));
+        assert!((time.1 - 199.5).abs() < 1e-9, "{time:?}");
+        assert!(height.0 >= time.0 * (1.0 - 1e-12), "{time:?} {height:?}");
+        let (time, height) = stats(&residual(225.0));
+        assert!((time.1 - 224.5).abs() < 1e-9, "{time:?}");
+        assert!(height.0 < 0.9 * time.0, "{time:?} {height:?}");
+        // Too few points on a side: no step.
+        assert!(best_step(points[..39].to_vec()).is_none());
+    }
+
+    /// A step is judged on the interleaved folds and the blocked folds kept.
+    #[test]
+    fn a_step_is_judged_on_the_interleaved_folds_and_the_folds_that_straddle_it() {
+        let v = Validation {
+            folds: Folds::Blocked,
+            held: ErrorStats::of(&[1.0, 2.0, 3.0, 4.0, 5.0, 6.0]),
+            interleaved: ErrorStats::of(&[0.5, 0.5]),
+            noise_p95_mm: 0.0,
+            noise_max_mm: 0.0,
+            held_errors: vec![1.0, 2.0, 3.0, 4.0, 5.0, 6.0],
+            fold_sizes: vec![1, 2, 3],
+            interleaved_errors: vec![0.5, 0.5],
+        };
+        let step = v.for_step(&[true, false, true]);
+        assert_eq!(step.held_errors, vec![0.5, 0.5, 1.0, 4.0, 5.0, 6.0]);
+        assert_eq!(step.fold_sizes, vec![2, 1, 3]);
+        assert_eq!(step.held.n, 6);
+        assert!((step.held.mean_mm - 17.0 / 6.0).abs() < 1e-12);
+        // Interleaved-only validations have nothing else to drop.
+        let small = Validation {
+            folds: Folds::Interleaved,
+            ..v.clone()
+        };
+        assert_eq!(small.for_step(&[false]).held_errors, v.held_errors);
+    }
 }

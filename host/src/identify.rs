@@ -1015,6 +1015,14 @@ pub struct Start {
     /// Starting close to the solution (a refit): skip the least-squares and
     /// Huber rounds, whose only job is to get near it robustly.
     pub warm: bool,
+    /// Effect terms with the values to start from (a refit's): a structure
+    /// term takes the value of the term at its place here when both are
+    /// the same kind on the same string (the structure's values are those
+    /// diagnosis proposed, before any fit; a warm start's robust weights
+    /// come from the start's residuals, so its terms must be the fitted
+    /// ones). A term beyond these starts from the structure's value, and
+    /// the fit from a Huber round.
+    pub effects: Vec<EffectTerm>,
 }
 
 impl Start {
@@ -1037,6 +1045,7 @@ impl Start {
                 layers: [LayerTable::NONE; STRINGS],
             },
             warm: false,
+            effects: Vec::new(),
         }
     }
 
@@ -1059,8 +1068,19 @@ impl Start {
             frame: id.frame,
             winding: id.winding,
             warm: true,
+            effects: id.effects.clone(),
         }
     }
+}
+
+/// Whether `known` (a start's term) is `term` with other values: the same
+/// kind on the same string (and a slip at the same time).
+fn same_term(term: &EffectTerm, known: &EffectTerm) -> bool {
+    term.string == known.string
+        && match (&term.effect, &known.effect) {
+            (Effect::Slip { at_s: a, .. }, Effect::Slip { at_s: b, .. }) => a == b,
+            (a, b) => core::mem::discriminant(a) == core::mem::discriminant(b),
+        }
 }
 
 /// Identifies the model of `structure` from the observations that have a
@@ -1085,10 +1105,20 @@ pub fn identify(
         });
     }
 
+    let mut effects = structure.effects.clone();
+    let mut carried = 0;
+    for (term, known) in effects.iter_mut().zip(&start.effects) {
+        if !same_term(term, known) {
+            break;
+        }
+        *term = *known;
+        carried += 1;
+    }
+    let grown = carried < effects.len();
     let mut state = State {
         frame: start.frame,
         winding: start.winding,
-        effects: structure.effects.clone(),
+        effects,
     };
     let strings = nominal.layout;
     let active_weights = |w: [f64; STRINGS]| -> [f64; STRINGS] {
@@ -1104,8 +1134,16 @@ pub fn identify(
         Round::Tukey,
     ];
     let warm = [Round::Tukey, Round::Tukey, Round::Tukey];
-    let (rounds, settled_after): (&[Round], usize) =
-        if start.warm { (&warm, 1) } else { (&cold, 3) };
+    // A warm start whose structure gained a term begins with a Huber round:
+    // Tukey weights from the start's residuals would give the rows the new
+    // term explains (the minority side of a slip) no weight before it could
+    // explain them.
+    let warm_grown = [Round::Huber, Round::Tukey, Round::Tukey, Round::Tukey];
+    let (rounds, settled_after): (&[Round], usize) = match (start.warm, grown) {
+        (true, false) => (&warm, 1),
+        (true, true) => (&warm_grown, 2),
+        (false, _) => (&cold, 3),
+    };
     for (n, &round) in rounds.iter().enumerate() {
         // Weights from the current state's residuals.
         let laws = state.winding.laws();

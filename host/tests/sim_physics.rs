@@ -323,10 +323,21 @@ fn calibration_on_the_independent_simulator() {
 
 /// The diagnosis loop on a clean independent device (issue 10, point 6).
 fn clean_loop(seed: u64) -> spidar::diagnose::LoopResult {
+    loop_on(seed, &[])
+}
+
+/// The diagnosis loop on an independent device with undeclared `effects`,
+/// its lattice (session seed + 1) for training, 500 random points (+ 2) for
+/// the test.
+fn loop_on(seed: u64, effects: &[&str]) -> spidar::diagnose::LoopResult {
     use spidar::diagnose::{close_loop, LoopConfig};
     use spidar::identify::Start;
     use spidar::observe::observations;
-    let device = PhysicsDevice::new(&PhysicsConfig::default(), seed).unwrap();
+    let config = PhysicsConfig {
+        effects: effects.iter().map(|e| e.to_string()).collect(),
+        ..PhysicsConfig::default()
+    };
+    let device = PhysicsDevice::new(&config, seed).unwrap();
     let (train, _) = simulate_session(&device, SessionKind::Lattice, seed + 1).unwrap();
     let (test, _) =
         simulate_session(&device, SessionKind::Random { points: 500 }, seed + 2).unwrap();
@@ -409,6 +420,45 @@ fn a_clean_independent_device_gets_spool_rates_and_layer_tables_first_and_each_d
         .as_str()
         .unwrap()
         .contains("not added"));
+}
+
+/// A string that slipped 419 s into a 4800 s lattice (independent device of
+/// seed 2: one slip, string 6, 4.6 mm, a few rows into the lattice's second
+/// plane) is a slip, not an offset: 91 % of its rows read the slipped
+/// length, and the blocked folds alone could not tell a constant from a
+/// step there (the fold that fits the later half never sees the string
+/// before the slip), so a step in time is judged on the interleaved folds
+/// and the blocked folds whose fit rows straddle it. The test session (a
+/// new session from home, no slip) then follows the string as it was
+/// before the slip: with an offset it was off by the slip's 4.6 mm (2.05
+/// mm test mean before this rule, 0.72 after).
+#[test]
+fn a_slip_early_in_a_session_is_added_as_a_slip_not_an_offset() {
+    use spidar::diagnose::Family;
+    let r = loop_on(2, &["slip"]);
+    let slip = r
+        .stages
+        .iter()
+        .find(|s| s.name == "slip string 6")
+        .unwrap_or_else(|| panic!("stages: {:?}", names(&r)));
+    assert_eq!(slip.finding.family, Family::Slip);
+    let reason = &slip.finding.validation.as_ref().unwrap().reason;
+    assert!(
+        reason.contains("interleaved folds (a step in time)")
+            && reason.contains("without the earlier half"),
+        "{reason}"
+    );
+    assert!(
+        !r.stages.iter().any(|s| s.name == "offset string 6"),
+        "{:?}",
+        names(&r)
+    );
+    let test = r.stages.last().unwrap().test.unwrap();
+    assert!(test.mean_mm < 1.0, "{test:?}");
+}
+
+fn names(r: &spidar::diagnose::LoopResult) -> Vec<&str> {
+    r.stages.iter().map(|s| s.name.as_str()).collect()
 }
 
 /// The model simulator's spools follow the smooth law exactly: no string
