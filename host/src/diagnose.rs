@@ -791,28 +791,13 @@ fn slip_times(ev: &Evidence) -> Vec<Option<f64>> {
             if !ev.layout.is_active(i) {
                 return None;
             }
-            let rows: Vec<&Row> = ev
+            let residual_in_time = ev
                 .rows
                 .iter()
                 .filter(|r| r.string == i && r.weight > 0.0)
+                .map(|r| (r.ctx.time_s, r.residual))
                 .collect();
-            let along = |key: fn(&Row) -> f64| -> Vec<(f64, f64)> {
-                rows.iter().map(|r| (key(r), r.residual)).collect()
-            };
-            let (stat, at_s) = best_step(along(|r| r.ctx.time_s))?;
-            // A step in time that a step in one coordinate of the position
-            // explains as well is not a slip we can tell from position (a
-            // lattice collected plane by plane: time goes with height): the
-            // step in time must explain more.
-            let by_position = [
-                along(|r| r.position[0]),
-                along(|r| r.position[1]),
-                along(|r| r.position[2]),
-            ]
-            .into_iter()
-            .filter_map(|points| best_step(points).map(|b| b.0))
-            .fold(0.0, f64::max);
-            (by_position < stat).then_some(at_s)
+            best_step(residual_in_time).map(|b| b.1)
         })
         .collect()
 }
@@ -1446,9 +1431,7 @@ pub const MIN_STEP_SIDE_ROWS: usize = 20;
 /// of `t` can find: the fold that fits the later half of a session whose
 /// slip came early never sees the string before it, so its prediction of
 /// the earlier rows is arbitrary with or without the slip. A step is judged
-/// on the interleaved folds and these ([`Validation::for_step`]): whether a
-/// step stands in for position is asked before, of the residual itself
-/// ([`slip_times`]).
+/// on the interleaved folds and these ([`Validation::for_step`]).
 fn judgeable_folds(
     change: Change,
     train: &[Observation],
@@ -1778,31 +1761,17 @@ pub fn close_loop(
 mod tests {
     use super::*;
 
-    /// A step in time on a session collected plane by plane: at a plane
-    /// boundary a step in height explains it as well (not a slip we can
-    /// tell); inside a plane the step in time explains more.
+    /// The best step of a residual: where it is, and none with too few
+    /// points on a side.
     #[test]
-    fn a_step_in_time_must_beat_a_step_in_position() {
-        // 10 planes of 50 points, one a second; height = plane.
-        let points: Vec<(f64, f64)> = (0..500).map(|k| (k as f64, (k / 50) as f64)).collect();
-        let residual = |step_at: f64| -> Vec<(f64, f64, f64)> {
-            points
-                .iter()
-                .map(|&(t, z)| (t, z, if t >= step_at { 3.0 } else { 0.0 }))
-                .collect()
-        };
-        let stats = |rows: &[(f64, f64, f64)]| {
-            let time = best_step(rows.iter().map(|r| (r.0, r.2)).collect()).unwrap();
-            let height = best_step(rows.iter().map(|r| (r.1, r.2)).collect()).unwrap();
-            (time, height)
-        };
-        let (time, height) = stats(&residual(200.0));
-        assert!((time.1 - 199.5).abs() < 1e-9, "{time:?}");
-        assert!(height.0 >= time.0 * (1.0 - 1e-12), "{time:?} {height:?}");
-        let (time, height) = stats(&residual(225.0));
-        assert!((time.1 - 224.5).abs() < 1e-9, "{time:?}");
-        assert!(height.0 < 0.9 * time.0, "{time:?} {height:?}");
-        // Too few points on a side: no step.
+    fn the_best_step_is_found_where_the_residual_steps() {
+        let points: Vec<(f64, f64)> = (0..500)
+            .map(|k| (k as f64, if k >= 225 { 3.0 } else { 0.0 }))
+            .collect();
+        let (stat, at) = best_step(points.clone()).unwrap();
+        assert!((at - 224.5).abs() < 1e-9, "{at}");
+        // n a b / n^2 * 3^2 with a = 225, b = 275.
+        assert!((stat - 9.0 * 225.0 * 275.0 / 500.0).abs() < 1e-6, "{stat}");
         assert!(best_step(points[..39].to_vec()).is_none());
     }
 
