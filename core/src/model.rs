@@ -406,6 +406,17 @@ pub enum Effect {
     Drift { mm_per_s: f64 },
     /// String slip: a step at a time since initialization: `+ mm * [t >= at_s]`.
     Slip { at_s: f64, mm: f64 },
+    /// Sag of a heavy string: a span of length `l` and linear weight `w`
+    /// under tension `T` is longer than its chord by `w^2 cos^2(a) l^3 /
+    /// (24 T^2)` (parabolic catenary, `a` the chord's inclination), so
+    /// `+ mm_at_1m_1n * (l / 1 m)^3 / (T / 1 N)^2` with `l = home_length +
+    /// payout` (clamped to 0..[`MAX_SAG_LENGTH_MM`](crate::string_law::MAX_SAG_LENGTH_MM))
+    /// and `T` at least [`SAG_MIN_TENSION_N`](crate::string_law::SAG_MIN_TENSION_N)
+    /// (a slacker string is not a catenary), the sum clamped to
+    /// `+-`[`MAX_SAG_MM`](crate::string_law::MAX_SAG_MM). `mm_at_1m_1n` is `w^2
+    /// cos^2(a) / 24` of the string's mean inclination: 1.6 mm for 20 g/m
+    /// horizontal.
+    Sag { mm_at_1m_1n: f64 },
 }
 
 /// An [`Effect`] applied to one string, or to every string at once.

@@ -60,6 +60,43 @@ pub const MAX_EFFECT_WINDING_POWER: u8 = 8;
 /// commanded tension (65.535 N) must fit Q0.31.
 pub const MAX_ELASTICITY_PER_NEWTON: f64 = 0.015;
 
+/// Least tension a sag term takes (N): below it the string is not a
+/// catenary and `1 / T^2` would grow without bound.
+pub const SAG_MIN_TENSION_N: f64 = 0.25;
+
+/// [`MAX_SAG_MM`] in Q31.32 mm.
+const MAX_SAG_Q32: i128 = 100 << 32;
+
+/// [`SAG_MIN_TENSION_N`] in the device's unit (mN).
+const SAG_MIN_TENSION_MN: u16 = 250;
+
+/// Longest free length a sag term takes (mm): the fixed-point cube is taken
+/// of `l / 4096 mm < 2` ([`CompiledEffect::Sag`]).
+pub const MAX_SAG_LENGTH_MM: f64 = 8192.0 - 1.0 / 65536.0;
+
+/// Largest `|mm_at_1m_1n|` of a sag term: 1.6 mm is a 20 g/m string, 100 mm a
+/// 160 g/m one; beyond it the compiled coefficient could overflow.
+pub const MAX_SAG_MM_AT_1M_1N: f64 = 100.0;
+
+/// Largest sag a term gives (mm): a string sagging more is not taut, the
+/// parabolic law does not hold, and its slope (`3 sag / l`) would amplify
+/// any error of the length it is evaluated at.
+pub const MAX_SAG_MM: f64 = 100.0;
+
+/// A sag term's contribution: `mm_at_1m_1n * sag_variable`, clamped to
+/// `+-`[`MAX_SAG_MM`].
+pub fn sag_mm(mm_at_1m_1n: f64, ctx: &EffectContext) -> f64 {
+    (mm_at_1m_1n * sag_variable(ctx)).clamp(-MAX_SAG_MM, MAX_SAG_MM)
+}
+
+/// `(l / 1 m)^3 / (T / 1 N)^2` of a sag term, with `l` and `T` clamped as
+/// [`Effect::Sag`] says.
+pub fn sag_variable(ctx: &EffectContext) -> f64 {
+    let l = (ctx.home_length_mm + ctx.payout_mm).clamp(0.0, MAX_SAG_LENGTH_MM) / 1000.0;
+    let t = ctx.tension_n.max(SAG_MIN_TENSION_N);
+    l * l * l / (t * t)
+}
+
 // ---------------------------------------------------------------------------
 // f64 reference
 // ---------------------------------------------------------------------------
@@ -197,6 +234,7 @@ impl Effect {
                     0.0
                 }
             }
+            Effect::Sag { mm_at_1m_1n } => sag_mm(mm_at_1m_1n, ctx),
         }
     }
 
@@ -213,6 +251,7 @@ impl Effect {
     /// | Backlash | `half_width_mm` | `[sign(direction)]` |
     /// | Drift | `mm_per_s` | `[t]` |
     /// | Slip | `mm` (`at_s` is held fixed: a step is not differentiable in its time; search it separately) | `[t >= at_s ? 1 : 0]` |
+    /// | Sag | `mm_at_1m_1n` | `[(l / 1 m)^3 / (T / 1 N)^2]` (0 where the sag is clamped) |
     pub fn gradient_f64(&self, ctx: &EffectContext) -> heapless::Vec<f64, 2> {
         match *self {
             Effect::Offset { .. } => one(1.0),
@@ -223,6 +262,14 @@ impl Effect {
             Effect::Backlash { .. } => one(direction_sign(ctx.direction)),
             Effect::Drift { .. } => one(ctx.time_s),
             Effect::Slip { at_s, .. } => one(if ctx.time_s >= at_s { 1.0 } else { 0.0 }),
+            Effect::Sag { mm_at_1m_1n } => {
+                let v = sag_variable(ctx);
+                one(if (mm_at_1m_1n * v).abs() < MAX_SAG_MM {
+                    v
+                } else {
+                    0.0
+                })
+            }
         }
     }
 
@@ -237,6 +284,7 @@ impl Effect {
             Effect::Backlash { half_width_mm } => one(half_width_mm),
             Effect::Drift { mm_per_s } => one(mm_per_s),
             Effect::Slip { mm, .. } => one(mm),
+            Effect::Sag { mm_at_1m_1n } => one(mm_at_1m_1n),
         }
     }
 
@@ -264,6 +312,7 @@ impl Effect {
             },
             Effect::Drift { .. } => Effect::Drift { mm_per_s: p[0] },
             Effect::Slip { at_s, .. } => Effect::Slip { at_s, mm: p[0] },
+            Effect::Sag { .. } => Effect::Sag { mm_at_1m_1n: p[0] },
         })
     }
 }
@@ -810,6 +859,14 @@ pub enum CompiledEffect {
     Drift { string: u8, mm_per_ms_q48: i64 },
     /// `+ mm_q16` when `time_ms >= at_ms` (Q47.16 mm, ms since home).
     Slip { string: u8, at_ms: u32, mm_q16: i64 },
+    /// `+ coeff_q32 * a^3 / tau^2` (Q31.32 mm) with `a = l / 4096 mm` and
+    /// `tau = tension_mn / 1024`: `a` is the free length `l = home_length +
+    /// payout` read as Q·30 (its Q·18 mm bits), clamped to `0..2^31`
+    /// (8192 mm); `tau^2` is `max(tension_mn, 250)^2` in Q·20; `a^2`, `a^3`
+    /// in Q·30, `r = (a^3 << 20) / tau^2` in Q·30, the product through
+    /// i128, each rounded, clamped to `+-`[`MAX_SAG_MM`]. `coeff = mm_at_1m_1n * 4.096^3 /
+    /// 1.024^2 = mm_at_1m_1n * 65.536`.
+    Sag { string: u8, coeff_q32: i64 },
 }
 
 /// What a compiled effect of one string depends on, in device units.
@@ -908,6 +965,22 @@ pub fn compile_effect(
                 per_mn_q47: to_fixed(s, "per_newton", e / 1000.0, 47, "Q16.47 per mN")?,
             }
         }
+        Effect::Sag { mm_at_1m_1n } => {
+            let m = finite(s, "mm_at_1m_1n", mm_at_1m_1n)?;
+            if m.abs() > MAX_SAG_MM_AT_1M_1N {
+                return Err(CompileError::OutOfRange {
+                    string: s,
+                    field: "mm_at_1m_1n",
+                    value: m,
+                    min: -MAX_SAG_MM_AT_1M_1N,
+                    max: MAX_SAG_MM_AT_1M_1N,
+                });
+            }
+            CompiledEffect::Sag {
+                string,
+                coeff_q32: to_fixed(s, "mm_at_1m_1n", m * 65.536, 32, "Q31.32 mm")?,
+            }
+        }
         Effect::Backlash { half_width_mm } => CompiledEffect::Backlash {
             string,
             half_width_q16: to_fixed(s, "half_width_mm", half_width_mm, 16, "Q47.16 mm")?,
@@ -957,7 +1030,8 @@ impl CompiledEffect {
             | CompiledEffect::Elasticity { string, .. }
             | CompiledEffect::Backlash { string, .. }
             | CompiledEffect::Drift { string, .. }
-            | CompiledEffect::Slip { string, .. } => string,
+            | CompiledEffect::Slip { string, .. }
+            | CompiledEffect::Sag { string, .. } => string,
         }
     }
 
@@ -1063,6 +1137,21 @@ impl CompiledEffect {
                 } else {
                     0
                 }
+            }
+            CompiledEffect::Sag { coeff_q32, .. } => {
+                let free_q32 = q16_to_q32(ctx.home_length_q16).saturating_add(ctx.payout_q32);
+                // a = l / 4096 mm in Q.30 is l in Q.18 mm; 0 <= a < 2, so
+                // a^2 < 2^62 and a^2 a < 2^63 (rounded at each step).
+                let round_q30 = |x: i64| (x + (1 << 29)) >> 30;
+                let a_q30 = (free_q32 >> 14).clamp(0, (1 << 31) - 1);
+                let a2_q30 = round_q30(a_q30 * a_q30);
+                let a3_q30 = round_q30(a2_q30 * a_q30);
+                let t = i64::from(ctx.tension_mn.max(SAG_MIN_TENSION_MN));
+                let t2 = t * t;
+                // a^3 / tau^2 in Q.30 (a^3 << 20 < 2^54), rounded.
+                let r_q30 = ((a3_q30 << 20) + t2 / 2) / t2;
+                let out = (i128::from(coeff_q32) * i128::from(r_q30) + (1 << 29)) >> 30;
+                out.clamp(-MAX_SAG_Q32, MAX_SAG_Q32) as i64
             }
         }
     }
@@ -1538,6 +1627,9 @@ mod tests {
                 at_s: rng.uniform(0.0, 7200.0),
                 mm: rng.uniform(-30.0, 30.0),
             });
+            push(Effect::Sag {
+                mm_at_1m_1n: rng.uniform(-5.0, 5.0),
+            });
         }
         // Terms shared by every string.
         effects.push(EffectTerm {
@@ -1602,7 +1694,7 @@ mod tests {
         let max_err = measure(0x5EED_0001, 400, 500, |_| true);
         println!("string law: max |fixed - f64| = {max_err:.3e} mm (400 calibrations x 500 inputs x 8 strings)");
         type Keep = fn(&Effect) -> bool;
-        let families: [(&str, Keep); 9] = [
+        let families: [(&str, Keep); 10] = [
             ("no effect", |_| false),
             ("offset", |e| matches!(e, Effect::Offset { .. })),
             ("scale", |e| matches!(e, Effect::Scale { .. })),
@@ -1612,6 +1704,7 @@ mod tests {
             ("backlash", |e| matches!(e, Effect::Backlash { .. })),
             ("drift", |e| matches!(e, Effect::Drift { .. })),
             ("slip", |e| matches!(e, Effect::Slip { .. })),
+            ("sag", |e| matches!(e, Effect::Sag { .. })),
         ];
         for (name, keep) in families {
             let e = measure(0x5EED_0002, 100, 200, keep);
@@ -1775,6 +1868,28 @@ mod tests {
             Err(CompileError::NotFinite { field: "mm", .. })
         ));
         assert!(matches!(
+            compile_effect(&term(0, Effect::Sag { mm_at_1m_1n: 101.0 }), &laws),
+            Err(CompileError::OutOfRange {
+                field: "mm_at_1m_1n",
+                ..
+            })
+        ));
+        assert!(matches!(
+            compile_effect(
+                &term(
+                    0,
+                    Effect::Sag {
+                        mm_at_1m_1n: f64::NAN
+                    }
+                ),
+                &laws
+            ),
+            Err(CompileError::NotFinite {
+                field: "mm_at_1m_1n",
+                ..
+            })
+        ));
+        assert!(matches!(
             compile_effect(&term(0, Effect::Drift { mm_per_s: 1e30 }), &laws),
             Err(CompileError::DoesNotFit {
                 field: "mm_per_s",
@@ -1915,6 +2030,8 @@ mod tests {
                     mm_q16,
                 }
             }),
+            (s, any::<i64>())
+                .prop_map(|(string, coeff_q32)| CompiledEffect::Sag { string, coeff_q32 }),
         ]
     }
 
@@ -2009,6 +2126,7 @@ mod tests {
                 Effect::Backlash { half_width_mm: v },
                 Effect::Drift { mm_per_s: v },
                 Effect::Slip { at_s: v, mm: w },
+                Effect::Sag { mm_at_1m_1n: v },
             ] {
                 if let Ok(c) = compile_effect(&EffectTerm { string, effect }, &laws) {
                     prop_assert!(c.validate().is_ok());

@@ -225,6 +225,12 @@ fn main() {
         ),
         ("slip:2:at_s=2000,mm=5", Family::Slip, &[2], Variable::Time),
         (
+            "sag:5:mm_at_1m_1n=1.6",
+            Family::Sag,
+            &[5],
+            Variable::Tension,
+        ),
+        (
             "anchor:3:dx=80,dy=-60,dz=30",
             Family::Geometry,
             &[3],

@@ -7,7 +7,7 @@ use serde::{Deserialize, Serialize};
 use spidar_core::model::{
     Effect, EffectTerm, Frame, StringLayout, EVERY_STRING, MAX_LAYER_STEP_LOG2,
 };
-use spidar_core::string_law::{payout_f64, EffectContext};
+use spidar_core::string_law::{payout_f64, sag_variable, EffectContext};
 use spidar_core::STRINGS;
 
 use crate::identify::{
@@ -31,6 +31,8 @@ pub enum Family {
     Backlash,
     Drift,
     Slip,
+    /// A heavy string's sag, `l^3 / T^2` ([`Effect::Sag`]).
+    Sag,
     /// Layer tables ([`crate::layers`]): the spool's departure from the
     /// smooth winding law, per string.
     Layers,
@@ -680,6 +682,20 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
                 describe: format!("string {i} stretches with its tension (elastic string)"),
             });
         }
+        if !has_effect(i, |e| matches!(e, Effect::Sag { .. })) {
+            out.push(Candidate {
+                family: Family::Sag,
+                strings: vec![s],
+                variable: Variable::Tension,
+                columns: vec![string_column(rows, i, |r| sag_variable(&r.ctx))],
+                search_penalty: 0.0,
+                build: Box::new(move |b| term(Effect::Sag { mm_at_1m_1n: b[0] })),
+                describe: format!(
+                    "string {i} sags under its own weight: longer by (l / 1 m)^3 / (T / 1 N)^2 \
+                     (a heavy string)"
+                ),
+            });
+        }
         if !has_effect(i, |e| matches!(e, Effect::Backlash { .. })) {
             out.push(Candidate {
                 family: Family::Backlash,
@@ -765,6 +781,38 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
             }),
             describe: "every string's length drifts alike with time since initialization (creep, \
                        temperature of the whole device)"
+                .into(),
+        });
+    }
+    // One sag shared by every string: one kind of string, one weight.
+    let shared_sag = structure
+        .effects
+        .iter()
+        .any(|t| t.string == EVERY_STRING && matches!(t.effect, Effect::Sag { .. }));
+    if !shared_sag {
+        out.push(Candidate {
+            family: Family::Sag,
+            strings: Vec::new(),
+            variable: Variable::Tension,
+            columns: vec![rows
+                .iter()
+                .map(|r| {
+                    if strings.is_active(r.string) {
+                        sag_variable(&r.ctx)
+                    } else {
+                        0.0
+                    }
+                })
+                .collect()],
+            search_penalty: 0.0,
+            build: Box::new(|b| {
+                Change::Effect(EffectTerm {
+                    string: EVERY_STRING,
+                    effect: Effect::Sag { mm_at_1m_1n: b[0] },
+                })
+            }),
+            describe: "every string sags alike under its own weight: longer by (l / 1 m)^3 / \
+                       (T / 1 N)^2 (one kind of heavy string)"
                 .into(),
         });
     }
@@ -1069,6 +1117,7 @@ pub fn family_name(f: Family) -> &'static str {
         Family::Backlash => "backlash",
         Family::Drift => "drift",
         Family::Slip => "slip",
+        Family::Sag => "sag",
         Family::Layers => "layers",
         Family::Geometry => "geometry",
         Family::Unexplained => "unexplained",

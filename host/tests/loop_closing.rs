@@ -182,6 +182,17 @@ fn slip() {
     check_family("slip:2:at_s=2000,mm=5", Family::Slip, &[2], Variable::Time);
 }
 
+/// A heavy string (20 g/m, horizontal: 1.6 mm at 1 m and 1 N) on one string.
+#[test]
+fn sag() {
+    check_family(
+        "sag:5:mm_at_1m_1n=1.6",
+        Family::Sag,
+        &[5],
+        Variable::Tension,
+    );
+}
+
 #[test]
 fn geometry_anchor_off_its_drawing() {
     check_family(

@@ -29,6 +29,7 @@
 //! | `backlash` | `half_width_mm` | `+ half_width_mm * direction` |
 //! | `drift` | `mm_per_s` | `+ mm_per_s * t` |
 //! | `slip` | `at_s`, `mm` | `+ mm * [t >= at_s]` |
+//! | `sag` | `mm_at_1m_1n` | `+ mm_at_1m_1n * (l / 1 m)^3 / (T / 1 N)^2`, `l = home_length + payout` |
 //! | `speed` (unexplained) | `latency_s` | `+ latency_s * dL/dt` (encoder latency) |
 //! | `anchor` (geometry) | `dx`, `dy`, `dz` (each default 0) | anchor moved by `[dx, dy, dz]` mm |
 //! | `tracker_scale` (geometry) | `relative` | tracker scale times `1 + relative` |
@@ -121,7 +122,7 @@ impl<'a> Params<'a> {
     }
 }
 
-const KINDS: &str = "offset, scale, winding, eccentricity, elasticity, backlash, drift, slip, speed, anchor, tracker_scale";
+const KINDS: &str = "offset, scale, winding, eccentricity, elasticity, backlash, drift, slip, sag, speed, anchor, tracker_scale";
 
 /// Parse one effect spec (see the module documentation for the syntax).
 pub fn parse_effect(spec: &str) -> Result<Vec<InjectedEffect>, SimError> {
@@ -202,6 +203,10 @@ pub fn parse_effect(spec: &str) -> Result<Vec<InjectedEffect>, SimError> {
             let at_s = p.required("at_s")?;
             let mm = p.required("mm")?;
             Ok(model(Effect::Slip { at_s, mm }))
+        }
+        "sag" => {
+            let mm_at_1m_1n = p.required("mm_at_1m_1n")?;
+            Ok(model(Effect::Sag { mm_at_1m_1n }))
         }
         "speed" => {
             let latency_s = p.required("latency_s")?;
