@@ -185,7 +185,7 @@ fn main() {
     let mut args = std::env::args().skip(1);
     let seeds: u64 = args.next().and_then(|s| s.parse().ok()).unwrap_or(5);
     let clean_seeds: u64 = args.next().and_then(|s| s.parse().ok()).unwrap_or(20);
-    let cases: [(&str, Family, &[u8], Variable); 10] = [
+    let cases: [(&str, Family, &[u8], Variable); 11] = [
         ("offset:3:mm=8", Family::Offset, &[3], Variable::Length),
         (
             "scale:5:relative=0.03",
