@@ -784,38 +784,6 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
                 .into(),
         });
     }
-    // One sag shared by every string: one kind of string, one weight.
-    let shared_sag = structure
-        .effects
-        .iter()
-        .any(|t| t.string == EVERY_STRING && matches!(t.effect, Effect::Sag { .. }));
-    if !shared_sag {
-        out.push(Candidate {
-            family: Family::Sag,
-            strings: Vec::new(),
-            variable: Variable::Tension,
-            columns: vec![rows
-                .iter()
-                .map(|r| {
-                    if strings.is_active(r.string) {
-                        sag_variable(&r.ctx)
-                    } else {
-                        0.0
-                    }
-                })
-                .collect()],
-            search_penalty: 0.0,
-            build: Box::new(|b| {
-                Change::Effect(EffectTerm {
-                    string: EVERY_STRING,
-                    effect: Effect::Sag { mm_at_1m_1n: b[0] },
-                })
-            }),
-            describe: "every string sags alike under its own weight: longer by (l / 1 m)^3 / \
-                       (T / 1 N)^2 (one kind of heavy string)"
-                .into(),
-        });
-    }
     if !structure.fit_room_scale {
         out.push(Candidate {
             family: Family::Geometry,

@@ -63,7 +63,7 @@ fn main() -> ! {
 
     // Pipeline stages.
     let inputs: [spidar_core::model::StringInputs; N] = core::array::from_fn(|_| string_inputs(&mut rng));
-    measure("string_law::string_lengths (8 strings, 8 effects + 1 shared)", None, N as u32, |i| {
+    measure("string_law::string_lengths (8 strings, 9 effects + 1 shared)", None, N as u32, |i| {
         spidar_core::string_law::string_lengths(StringLayout::ALL, laws, effects, &inputs[at(i)])
     });
     measure("kinematics::inverse_kinematics f32", None, N as u32, |i| inverse_kinematics(&anchors, positions[at(i)]));
