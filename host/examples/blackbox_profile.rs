@@ -5,7 +5,7 @@
 //! `svr_search` as `calibrate --blackbox` runs it, and its test error.
 //!
 //! ```text
-//! cargo run --release -p spidar --example blackbox_profile -- DIR [--tol T] [--axes-only]
+//! cargo run --release -p spidar --example blackbox_profile -- DIR [--tol T] [--plain] [--two-n] [--search-only] [--one G,C,E,AXIS] [--warm G,AXIS]
 //! ```
 
 use std::time::Instant;
@@ -49,6 +49,7 @@ fn main() {
         solver: SolverConfig {
             tol,
             conjugate: !args.iter().any(|a| a == "--plain"),
+            per_point: !args.iter().any(|a| a == "--two-n"),
             ..SolverConfig::default()
         },
         ..SvrSearchConfig::default()
