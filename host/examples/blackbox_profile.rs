@@ -154,12 +154,15 @@ fn main() {
         let _ = run(300.0, 0.01, Some(&scaled), "warm from C 30 scaled x10");
         let _ = run(300.0, 0.005, Some(&a300), "warm from C 300 eps 0.01");
         let scaled: Vec<f64> = b30.iter().map(|v| v * 10.0).collect();
-        let _ = run(
+        let b300 = run(
             300.0,
             0.005,
             Some(&scaled),
             "warm from C 30 eps 0.005 scaled x10",
         );
+        let _ = run(300.0, 0.01, Some(&b300), "warm from C 300 eps 0.005");
+        let _ = run(300.0, 0.005, None, "cold");
+        let _ = run(300.0, 0.01, None, "cold");
         let _ = run(
             300.0,
             0.005,

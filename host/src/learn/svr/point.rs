@@ -603,6 +603,11 @@ impl<'a> PointSolver<'a> {
         if !(gd < 0.0 && dqd > 0.0 && t_opt.is_finite()) {
             return self.plain(i, j);
         }
+        // The first kink or bound along d. Only a variable whose room is
+        // within twice the full step can block it (or set t_max <= 0): the
+        // division is done for those only (most steps are not clipped), and
+        // t_max, `blocking` and `clipped` are what dividing for every one
+        // gives.
         let mut t_max = f64::INFINITY;
         let mut blocking = usize::MAX;
         for &t in &self.dir_support {
@@ -610,9 +615,13 @@ impl<'a> PointSolver<'a> {
             if d == 0.0 {
                 continue;
             }
-            let room = self.room(t, d > 0.0) / d.abs();
-            if room < t_max {
-                t_max = room;
+            let room = self.room(t, d > 0.0);
+            if room > 2.0 * t_opt * d.abs() {
+                continue;
+            }
+            let ratio = room / d.abs();
+            if ratio < t_max {
+                t_max = ratio;
                 blocking = t;
             }
         }
@@ -797,7 +806,8 @@ impl Top {
 }
 
 /// Lane accumulators of WSS2's j: the best decrease as a fraction
-/// `num / den` (`num = -1`: none) and its position (-1: none yet).
+/// `num / den` and its position (-1: none yet). A candidate of decrease 0
+/// may be held until a positive one replaces it; `finish` never returns it.
 #[derive(Clone, Copy)]
 struct Best {
     num: [f64; LANES],
@@ -808,7 +818,7 @@ struct Best {
 impl Best {
     fn new() -> Self {
         Best {
-            num: [-1.0; LANES],
+            num: [0.0; LANES],
             den: [1.0; LANES],
             at: [-1.0; LANES],
         }
@@ -821,7 +831,7 @@ impl Best {
         self.at[k] = if take { r } else { self.at[k] };
     }
     fn finish(self) -> Option<usize> {
-        let (mut bn, mut bd, mut j) = (-1.0, 1.0, -1.0);
+        let (mut bn, mut bd, mut j) = (0.0, 1.0, -1.0);
         for k in 0..LANES {
             if self.at[k] < 0.0 {
                 continue;
@@ -837,20 +847,19 @@ impl Best {
     }
 }
 
-/// One candidate j: `(grad_diff^2, quad)`, or `(-1, quad)` when r has no
-/// room to go down or the pair would not decrease the objective.
+/// One candidate j: `(grad_diff^2, quad)`, or `(0, quad)` when r has no room
+/// to go down or the pair would not decrease the objective (`Best` never
+/// chooses those).
 #[inline(always)]
 fn candidate(gmax: f64, g: f64, low: f64, k: f32) -> (f64, f64) {
     let grad_diff = gmax + g + low;
-    // K_ii + K_jj - 2 K_ij with K(x, x) = 1 (libsvm's double diagonal).
-    let quad = 2.0 - 2.0 * f64::from(k);
-    let quad = if quad > 0.0 { quad } else { TAU };
-    let num = if grad_diff > 0.0 {
-        grad_diff * grad_diff
-    } else {
-        -1.0
-    };
-    (num, quad)
+    // K_ii + K_jj - 2 K_ij with K(x, x) = 1 (libsvm's double diagonal);
+    // libsvm's `quad > 0 ? quad : TAU`, as a max: from an f32 K, quad is 0,
+    // negative or above 1e-7, never in (0, TAU].
+    let quad = (2.0 - 2.0 * f64::from(k)).max(TAU);
+    // max(grad_diff, 0): -inf (no room) and negatives give 0.
+    let gd = if grad_diff > 0.0 { grad_diff } else { 0.0 };
+    (gd * gd, quad)
 }
 
 /// Whether this CPU runs the AVX2 passes (same results as the scalar ones:
@@ -1140,7 +1149,6 @@ mod avx2 {
         let act = g.len();
         let gmax4 = _mm256_set1_pd(gmax);
         let (zero, two) = (_mm256_setzero_pd(), _mm256_set1_pd(2.0));
-        let minus_one = _mm256_set1_pd(-1.0);
         let tau = _mm256_set1_pd(TAU);
         let (mut num, mut den, mut at) = (load(&best.num), load(&best.den), load(&best.at));
         let mut pos = first_positions();
@@ -1153,13 +1161,10 @@ mod avx2 {
                     _mm256_add_pd(gmax4, _mm256_loadu_pd(g.as_ptr().add(r))),
                     _mm256_loadu_pd(low.as_ptr().add(r)),
                 );
-                let quad = _mm256_sub_pd(two, _mm256_mul_pd(two, k4(ki, r)));
-                let quad = _mm256_blendv_pd(tau, quad, _mm256_cmp_pd::<_CMP_GT_OQ>(quad, zero));
-                let a = _mm256_blendv_pd(
-                    minus_one,
-                    _mm256_mul_pd(gd, gd),
-                    _mm256_cmp_pd::<_CMP_GT_OQ>(gd, zero),
-                );
+                // `x.max(y)` is `_mm256_max_pd(x, y)` for non-NaN x and y.
+                let quad = _mm256_max_pd(_mm256_sub_pd(two, _mm256_mul_pd(two, k4(ki, r))), tau);
+                let gd = _mm256_max_pd(gd, zero);
+                let a = _mm256_mul_pd(gd, gd);
                 let take = _mm256_cmp_pd::<_CMP_GE_OQ>(
                     _mm256_mul_pd(a, den[v]),
                     _mm256_mul_pd(num[v], quad),
