@@ -99,8 +99,9 @@ pub struct SolverConfig {
     pub conjugate: bool,
     /// Solve the dual in one variable per point (`alpha_i - alpha*_i`, see
     /// `svr/point.rs`) instead of libsvm's 2n: one gradient of n entries
-    /// per iteration instead of 2n. Off: libsvm's own formulation (with
-    /// `conjugate` off, libsvm's path step for step).
+    /// per iteration instead of 2n. Off, or above 6000 training points
+    /// (each solver then keeps its own n^2 kernel block): libsvm's own
+    /// formulation (with `conjugate` off, libsvm's path step for step).
     #[serde(default = "per_point_default")]
     pub per_point: bool,
 }
@@ -1092,37 +1093,38 @@ pub fn solve(
         Some(w) => Some(feasible_start(w, n, c)?),
     };
     let max_iter = solver.max_iter.unwrap_or((100 * n).max(10_000_000));
-    let (coef, bias, objective, iterations, converged) = if solver.per_point {
-        let mut s =
-            point::PointSolver::new(kernel, points, z, epsilon, c, solver.tol, warm.as_deref());
-        let (iterations, converged) =
-            s.solve(solver.shrinking, solver.conjugate, max_iter, deadline);
-        let rho = s.calculate_rho();
-        let objective = s.objective();
-        let mut coef = vec![0.0; n];
-        for (t, &orig) in s.active_set.iter().enumerate() {
-            coef[orig] = s.beta[t];
-        }
-        (coef, -rho, objective, iterations, converged)
-    } else {
-        let mut s = Solver::new(kernel, points, z, epsilon, c, solver.tol, warm.as_deref());
-        let (iterations, converged) = s.solve(solver, max_iter, deadline);
-        let rho = s.calculate_rho();
-        let objective = s
-            .alpha
-            .iter()
-            .zip(&s.g)
-            .zip(&s.p)
-            .map(|((a, g), p)| a * (g + p))
-            .sum::<f64>()
-            / 2.0;
-        let mut beta = vec![0.0; 2 * n];
-        for (t, &orig) in s.active_set.iter().enumerate() {
-            beta[orig] = s.alpha[t];
-        }
-        let coef: Vec<f64> = (0..n).map(|i| beta[i] - beta[i + n]).collect();
-        (coef, -rho, objective, iterations, converged)
-    };
+    let (coef, bias, objective, iterations, converged) =
+        if solver.per_point && n <= point::MAX_BLOCK_POINTS {
+            let mut s =
+                point::PointSolver::new(kernel, points, z, epsilon, c, solver.tol, warm.as_deref());
+            let (iterations, converged) =
+                s.solve(solver.shrinking, solver.conjugate, max_iter, deadline);
+            let rho = s.calculate_rho();
+            let objective = s.objective();
+            let mut coef = vec![0.0; n];
+            for (t, &orig) in s.active_set.iter().enumerate() {
+                coef[orig] = s.beta[t];
+            }
+            (coef, -rho, objective, iterations, converged)
+        } else {
+            let mut s = Solver::new(kernel, points, z, epsilon, c, solver.tol, warm.as_deref());
+            let (iterations, converged) = s.solve(solver, max_iter, deadline);
+            let rho = s.calculate_rho();
+            let objective = s
+                .alpha
+                .iter()
+                .zip(&s.g)
+                .zip(&s.p)
+                .map(|((a, g), p)| a * (g + p))
+                .sum::<f64>()
+                / 2.0;
+            let mut beta = vec![0.0; 2 * n];
+            for (t, &orig) in s.active_set.iter().enumerate() {
+                beta[orig] = s.alpha[t];
+            }
+            let coef: Vec<f64> = (0..n).map(|i| beta[i] - beta[i + n]).collect();
+            (coef, -rho, objective, iterations, converged)
+        };
     let support_vectors = coef.iter().filter(|v| **v != 0.0).count();
     let bounded_support_vectors = coef.iter().filter(|v| v.abs() >= c).count();
     Ok(AxisSolution {

@@ -29,6 +29,11 @@
 use super::{KernelMatrix, MAX_DIRECTION_SUPPORT, TAU};
 use crate::learn::Deadline;
 
+/// Largest problem solved here: each solver keeps its own n^2 f32 kernel
+/// block (144 MB at 6000 points, three at once in a three-axis fit); larger
+/// problems go to the 2n solver, which reads the shared kernel.
+pub(super) const MAX_BLOCK_POINTS: usize = 6000;
+
 /// Lanes of the branch-free reductions: four vectors of 4 f64, so that four
 /// independent compare-and-blend chains hide each other's latency.
 const LANES: usize = 16;
