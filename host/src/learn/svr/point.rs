@@ -19,12 +19,20 @@
 //! rounding of `g`. Steps stop at the kink `beta_i = 0` exactly as libsvm's
 //! stop at `alpha_i = 0`. WSS2, shrinking (a point is shrunk when both its
 //! variables would be), the unshrinking near the end, `rho` and the objective
-//! are libsvm's formulas on the same values. The conjugate step is
-//! [`super::Solver::conjugate_step`]'s.
+//! are libsvm's formulas on the same values. The conjugate step is the 2n
+//! solver's (`Solver::conjugate_step`) on points.
 //!
-//! Each gradient pass also computes the next iteration's maximal violation
-//! (the first half of the selection), so an iteration is two passes over the
-//! active points: the gradient update (with that maximum) and the choice of j.
+//! The halving alone gained nothing measurable (after shrinking the active
+//! sets are small either way); the speed (2.5 times the 2n solver's per
+//! iteration on the black-box grid) comes from what this layout allows:
+//! each solver keeps a contiguous copy of its kernel block, permuted with
+//! the active set, so the passes read rows without gathers; each gradient
+//! pass also computes the next iteration's maximal violation (the first half
+//! of the selection), so an iteration is two passes over the active points,
+//! the gradient update and the choice of j; that choice compares fractions
+//! instead of dividing; and both passes run on AVX2 when the CPU has it,
+//! with the scalar passes' operations in the same order on the same 16 lanes
+//! (no FMA), so the path does not depend on the CPU.
 
 use super::{KernelMatrix, MAX_DIRECTION_SUPPORT, TAU};
 use crate::learn::Deadline;
