@@ -5,7 +5,7 @@
 //! `svr_search` as `calibrate --blackbox` runs it, and its test error.
 //!
 //! ```text
-//! cargo run --release -p spidar --example blackbox_profile -- DIR [--tol T] [--axes-only]
+//! cargo run --release -p spidar --example blackbox_profile -- DIR [--tol T] [--plain] [--two-n] [--search-only] [--one G,C,E,AXIS] [--warm G,AXIS]
 //! ```
 
 use std::time::Instant;
@@ -49,6 +49,7 @@ fn main() {
         solver: SolverConfig {
             tol,
             conjugate: !args.iter().any(|a| a == "--plain"),
+            per_point: !args.iter().any(|a| a == "--two-n"),
             ..SolverConfig::default()
         },
         ..SvrSearchConfig::default()
@@ -153,12 +154,15 @@ fn main() {
         let _ = run(300.0, 0.01, Some(&scaled), "warm from C 30 scaled x10");
         let _ = run(300.0, 0.005, Some(&a300), "warm from C 300 eps 0.01");
         let scaled: Vec<f64> = b30.iter().map(|v| v * 10.0).collect();
-        let _ = run(
+        let b300 = run(
             300.0,
             0.005,
             Some(&scaled),
             "warm from C 30 eps 0.005 scaled x10",
         );
+        let _ = run(300.0, 0.01, Some(&b300), "warm from C 300 eps 0.005");
+        let _ = run(300.0, 0.005, None, "cold");
+        let _ = run(300.0, 0.01, None, "cold");
         let _ = run(
             300.0,
             0.005,

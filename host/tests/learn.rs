@@ -80,11 +80,19 @@ fn dual_objective(x: &[[f64; 3]], z: &[f64], coef: &[f64], epsilon: f64, gamma: 
 fn svr_matches_libsvm() {
     let fx: Fixture =
         serde_json::from_str(include_str!("fixtures/svr_libsvm.json")).expect("fixture parses");
-    for (case, conjugate) in fx.cases.iter().flat_map(|c| [(c, false), (c, true)]) {
+    // Both formulations (libsvm's 2n variables, and one per point, the
+    // default), each with libsvm's plain steps and with conjugate ones.
+    let variants = [(false, false), (true, false), (false, true), (true, true)];
+    for (case, (conjugate, per_point)) in fx
+        .cases
+        .iter()
+        .flat_map(|c| variants.iter().map(move |v| (c, *v)))
+    {
         let k = KernelMatrix::rbf(&fx.x_train, case.gamma, 10_000).unwrap();
         let solver = SolverConfig {
             tol: case.tol,
             conjugate,
+            per_point,
             ..SolverConfig::default()
         };
         // The solutions agree to the accuracy the KKT tolerance buys. At the
@@ -125,7 +133,7 @@ fn svr_matches_libsvm() {
                 .map(|(u, v)| (u - v).abs())
                 .fold(0.0, f64::max);
             eprintln!(
-                "libsvm {:>8} conjugate {conjugate} axis {a}: max |pred diff| {worst:.2e}, objective {:.6} vs {:.6} (rel {rel_obj:.1e}), \
+                "libsvm {:>8} conjugate {conjugate} per point {per_point} axis {a}: max |pred diff| {worst:.2e}, objective {:.6} vs {:.6} (rel {rel_obj:.1e}), \
                  SVs {} vs {}, bias diff {:.1e}, max coef diff {coef_diff:.2e}, iters {}",
                 case.name,
                 obj,

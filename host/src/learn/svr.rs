@@ -24,6 +24,14 @@
 //! iterations for one axis), and on the fixture it ends at least as close to
 //! the optimum as libsvm.
 //!
+//! By default ([`SolverConfig::per_point`]) the dual is solved in one variable
+//! per point, `alpha_i - alpha*_i` (`svr/point.rs`): the same selection,
+//! steps and stopping rule on values that libsvm's 2n variables give, one
+//! gradient of n entries, each solver's own contiguous copy of its kernel
+//! block, and the hot passes on AVX2 where the CPU has it (bit for bit the
+//! scalar passes' results). On the black-box grid it is 2 times faster per
+//! SMO iteration than the 2n solver, on the same iteration counts.
+//!
 //! The kernel cache is the whole dense kernel matrix, computed once (in
 //! parallel) and shared by the three axes: every SMO iteration then reads two
 //! rows with no kernel evaluation at all. Entries are stored in f32, as
@@ -44,6 +52,8 @@ use std::time::{Duration, Instant};
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
+
+mod point;
 
 use super::standardize::{self, apply, mode_targets, output_position};
 use super::{
@@ -87,6 +97,17 @@ pub struct SolverConfig {
     /// Q-conjugate to the previous step's (see `Solver::conjugate_step`).
     #[serde(default)]
     pub conjugate: bool,
+    /// Solve the dual in one variable per point (`alpha_i - alpha*_i`, see
+    /// `svr/point.rs`) instead of libsvm's 2n: one gradient of n entries
+    /// per iteration instead of 2n. Off, or above 6000 training points
+    /// (each solver then keeps its own n^2 kernel block): libsvm's own
+    /// formulation (with `conjugate` off, libsvm's path step for step).
+    #[serde(default = "per_point_default")]
+    pub per_point: bool,
+}
+
+fn per_point_default() -> bool {
+    true
 }
 
 impl Default for SolverConfig {
@@ -96,6 +117,7 @@ impl Default for SolverConfig {
             shrinking: true,
             max_iter: None,
             conjugate: true,
+            per_point: true,
         }
     }
 }
@@ -1070,28 +1092,44 @@ pub fn solve(
         None => None,
         Some(w) => Some(feasible_start(w, n, c)?),
     };
-    let mut s = Solver::new(kernel, points, z, epsilon, c, solver.tol, warm.as_deref());
     let max_iter = solver.max_iter.unwrap_or((100 * n).max(10_000_000));
-    let (iterations, converged) = s.solve(solver, max_iter, deadline);
-    let rho = s.calculate_rho();
-    let objective = s
-        .alpha
-        .iter()
-        .zip(&s.g)
-        .zip(&s.p)
-        .map(|((a, g), p)| a * (g + p))
-        .sum::<f64>()
-        / 2.0;
-    let mut beta = vec![0.0; 2 * n];
-    for (t, &orig) in s.active_set.iter().enumerate() {
-        beta[orig] = s.alpha[t];
-    }
-    let coef: Vec<f64> = (0..n).map(|i| beta[i] - beta[i + n]).collect();
+    let (coef, bias, objective, iterations, converged) =
+        if solver.per_point && n <= point::MAX_BLOCK_POINTS {
+            let mut s =
+                point::PointSolver::new(kernel, points, z, epsilon, c, solver.tol, warm.as_deref());
+            let (iterations, converged) =
+                s.solve(solver.shrinking, solver.conjugate, max_iter, deadline);
+            let rho = s.calculate_rho();
+            let objective = s.objective();
+            let mut coef = vec![0.0; n];
+            for (t, &orig) in s.active_set.iter().enumerate() {
+                coef[orig] = s.beta[t];
+            }
+            (coef, -rho, objective, iterations, converged)
+        } else {
+            let mut s = Solver::new(kernel, points, z, epsilon, c, solver.tol, warm.as_deref());
+            let (iterations, converged) = s.solve(solver, max_iter, deadline);
+            let rho = s.calculate_rho();
+            let objective = s
+                .alpha
+                .iter()
+                .zip(&s.g)
+                .zip(&s.p)
+                .map(|((a, g), p)| a * (g + p))
+                .sum::<f64>()
+                / 2.0;
+            let mut beta = vec![0.0; 2 * n];
+            for (t, &orig) in s.active_set.iter().enumerate() {
+                beta[orig] = s.alpha[t];
+            }
+            let coef: Vec<f64> = (0..n).map(|i| beta[i] - beta[i + n]).collect();
+            (coef, -rho, objective, iterations, converged)
+        };
     let support_vectors = coef.iter().filter(|v| **v != 0.0).count();
     let bounded_support_vectors = coef.iter().filter(|v| v.abs() >= c).count();
     Ok(AxisSolution {
         coef,
-        bias: -rho,
+        bias,
         objective,
         iterations,
         converged,
