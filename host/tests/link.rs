@@ -65,6 +65,17 @@ fn virtual_device(trajectory: Trajectory) -> VirtualDevice {
     .expect("virtual device starts")
 }
 
+/// A virtual device in real time whose heartbeat timeout is 2 s instead of
+/// 20 ms: for tests of what an armed device renders, which must not depend
+/// on how fast a busy machine schedules the host (a host process held off
+/// the CPU for 20 ms would trip the device's heartbeat check; that check
+/// has its own test, in device time).
+fn patient_virtual_device(trajectory: Trajectory) -> VirtualDevice {
+    let mut config = VirtualDeviceConfig::default();
+    config.device.control.safety.heartbeat_timeout_ms = 2000;
+    spawn(config, Plant::new(sim_device(), trajectory)).expect("virtual device starts")
+}
+
 fn quick() -> ClientOptions {
     ClientOptions {
         timeout: Duration::from_millis(40),
@@ -648,7 +659,7 @@ fn device_command_line_takes_the_port_anywhere() {
 #[test]
 fn device_force_reports_the_rendered_force() {
     let dev = sim_device();
-    let vd = virtual_device(Trajectory::Hold);
+    let vd = patient_virtual_device(Trajectory::Hold);
     {
         let mut c = Client::open(vd.port_path()).unwrap();
         c.flash(&blob(&dev, CorrectionModel::None, 11), |_| {})
