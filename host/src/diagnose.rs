@@ -1441,6 +1441,15 @@ pub(crate) fn validate_by(
 /// fit the step's size.
 pub const MIN_STEP_SIDE_ROWS: usize = 20;
 
+/// The mean held-out error of each fold of `v`, in order.
+fn fold_means(v: &Validation) -> impl Iterator<Item = f64> + '_ {
+    v.fold_sizes.iter().scan(0, |from, &size| {
+        let errors = &v.held_errors[*from..*from + size];
+        *from += size;
+        Some(errors.iter().sum::<f64>() / size.max(1) as f64)
+    })
+}
+
 /// Which of the blocked folds of `train` (indexed as
 /// [`Validation::fold_sizes`]) can judge `change`, with the names of those
 /// that cannot; `None` for a change that is not a step in time. A step in
@@ -1721,6 +1730,24 @@ pub fn close_loop(
                         config.min_relative_gain,
                     );
                     check.reason += " and interleaved folds (a step in time)";
+                    // A step is a fact of the session: every fit that sees
+                    // it must predict better with it. A term that helps on
+                    // some folds only stands in for something else.
+                    let (before_step, after_step) =
+                        (validation.for_step(&keep), after.for_step(&keep));
+                    let worse = fold_means(&before_step)
+                        .zip(fold_means(&after_step))
+                        .filter(|(b, a)| a > b)
+                        .count();
+                    if check.accepted && worse > 0 {
+                        check.accepted = false;
+                        check.reason = format!(
+                            "not added: it raises the mean on {worse} of the {} folds that \
+                             see the step (a slip lowers it on every one): {}",
+                            before_step.fold_sizes.len(),
+                            check.reason.trim_start_matches("added: ")
+                        );
+                    }
                     if !left_out.is_empty() {
                         check.reason += &format!(
                             ", without the {} fold{}: its fit rows do not reach both sides of \
@@ -1809,6 +1836,8 @@ mod tests {
         assert_eq!(step.held_errors, vec![0.5, 0.5, 1.0, 4.0, 5.0, 6.0]);
         assert_eq!(step.fold_sizes, vec![2, 1, 3]);
         assert_eq!(step.held.n, 6);
+        let means: Vec<f64> = fold_means(&step).collect();
+        assert_eq!(means, vec![0.5, 1.0, 5.0]);
         assert!((step.held.mean_mm - 17.0 / 6.0).abs() < 1e-12);
         // Interleaved-only validations have nothing else to drop.
         let small = Validation {

@@ -1165,10 +1165,10 @@ pub fn identify(
     // Tukey weights from the start's residuals would give the rows the new
     // term explains (the minority side of a slip) no weight before it could
     // explain them.
-    let warm_grown = [Round::Huber, Round::Tukey, Round::Tukey, Round::Tukey];
+    let warm_grown = [Round::Huber, Round::Tukey, Round::Tukey];
     let (rounds, settled_after): (&[Round], usize) = match (start.warm, grown) {
         (true, false) => (&warm, 1),
-        (true, true) => (&warm_grown, 2),
+        (true, true) => (&warm_grown, 1),
         (false, _) => (&cold, 3),
     };
     for (n, &round) in rounds.iter().enumerate() {
