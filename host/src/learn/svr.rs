@@ -55,6 +55,49 @@ use serde::{Deserialize, Serialize};
 
 mod point;
 
+/// Forgets the conjugate SMO's direction (both solvers): its values and
+/// flags at its support, the support list, its curvature.
+fn forget_direction(
+    dir: &mut [f64],
+    in_support: &mut [bool],
+    support: &mut Vec<usize>,
+    curvature: &mut Option<f64>,
+) {
+    for &t in support.iter() {
+        dir[t] = 0.0;
+        in_support[t] = false;
+    }
+    support.clear();
+    *curvature = None;
+}
+
+/// After shrinking moved positions (both solvers): lists the direction's
+/// support again among the `active` first positions; forgets the direction
+/// if part of it left the active set (its `Q d` is only kept there) or the
+/// active set grew from `before` (unshrinking), clearing every position
+/// the old support may occupy.
+fn relist_direction(
+    dir: &mut [f64],
+    in_support: &mut [bool],
+    support: &mut Vec<usize>,
+    curvature: &mut Option<f64>,
+    active: usize,
+    before: usize,
+) {
+    if curvature.is_none() {
+        return;
+    }
+    let kept = support.len();
+    support.clear();
+    support.extend((0..active).filter(|&t| in_support[t]));
+    if active > before || support.len() != kept {
+        dir.fill(0.0);
+        in_support.fill(false);
+        support.clear();
+        *curvature = None;
+    }
+}
+
 use super::standardize::{self, apply, mode_targets, output_position};
 use super::{
     check_range, validate_pairs, validate_points, Deadline, ErrorStats, LearnError, OutputMode,
@@ -768,12 +811,12 @@ impl<'a> Solver<'a> {
     }
 
     fn reset_direction(&mut self) {
-        for &t in &self.dir_support {
-            self.dir[t] = 0.0;
-            self.in_support[t] = false;
-        }
-        self.dir_support.clear();
-        self.dir_curvature = None;
+        forget_direction(
+            &mut self.dir,
+            &mut self.in_support,
+            &mut self.dir_support,
+            &mut self.dir_curvature,
+        );
     }
 
     /// Conjugate SMO step for the WSS2 pair (i, j): the pair's direction
@@ -900,26 +943,14 @@ impl<'a> Solver<'a> {
     /// forget the direction if part of it left the active set (its `Q d` is
     /// only kept there) or the active set grew (unshrinking).
     fn after_shrinking(&mut self, before: usize) {
-        if self.dir_curvature.is_none() {
-            return;
-        }
-        let act = self.active_size;
-        let kept = self.dir_support.len();
-        self.dir_support.clear();
-        for t in 0..act {
-            if self.in_support[t] {
-                self.dir_support.push(t);
-            }
-        }
-        if act > before || self.dir_support.len() != kept {
-            // Clear by position over everything the old support may occupy.
-            for t in 0..self.l {
-                self.dir[t] = 0.0;
-                self.in_support[t] = false;
-            }
-            self.dir_support.clear();
-            self.dir_curvature = None;
-        }
+        relist_direction(
+            &mut self.dir,
+            &mut self.in_support,
+            &mut self.dir_support,
+            &mut self.dir_curvature,
+            self.active_size,
+            before,
+        );
     }
 
     /// After a plain SMO step on (i, j): remember its direction and Q d so

@@ -34,7 +34,7 @@
 //! with the scalar passes' operations in the same order on the same 16 lanes
 //! (no FMA), so the path does not depend on the CPU.
 
-use super::{KernelMatrix, MAX_DIRECTION_SUPPORT, TAU};
+use super::{forget_direction, relist_direction, KernelMatrix, MAX_DIRECTION_SUPPORT, TAU};
 use crate::learn::Deadline;
 
 /// Largest problem solved here: each solver keeps its own n^2 f32 kernel
@@ -555,12 +555,12 @@ impl<'a> PointSolver<'a> {
     }
 
     fn reset_direction(&mut self) {
-        for &t in &self.dir_support {
-            self.dir[t] = 0.0;
-            self.in_support[t] = false;
-        }
-        self.dir_support.clear();
-        self.dir_curvature = None;
+        forget_direction(
+            &mut self.dir,
+            &mut self.in_support,
+            &mut self.dir_support,
+            &mut self.dir_curvature,
+        );
     }
 
     /// After a plain step on (i, j): its direction `e_i - e_j` and `K d`.
@@ -725,25 +725,14 @@ impl<'a> PointSolver<'a> {
     /// As the 2n solver's: re-list the support after shrinking, forget the
     /// direction if part of it left or the active set grew.
     fn after_shrinking(&mut self, before: usize) {
-        if self.dir_curvature.is_none() {
-            return;
-        }
-        let act = self.active_size;
-        let kept = self.dir_support.len();
-        self.dir_support.clear();
-        for t in 0..act {
-            if self.in_support[t] {
-                self.dir_support.push(t);
-            }
-        }
-        if act > before || self.dir_support.len() != kept {
-            for t in 0..self.n {
-                self.dir[t] = 0.0;
-                self.in_support[t] = false;
-            }
-            self.dir_support.clear();
-            self.dir_curvature = None;
-        }
+        relist_direction(
+            &mut self.dir,
+            &mut self.in_support,
+            &mut self.dir_support,
+            &mut self.dir_curvature,
+            self.active_size,
+            before,
+        );
     }
 
     /// Run SMO; returns (iterations, converged).
