@@ -984,56 +984,112 @@ impl<'a> Solver<'a> {
 
     /// Run SMO; returns (iterations, converged).
     fn solve(&mut self, cfg: &SolverConfig, max_iter: usize, deadline: Deadline) -> (usize, bool) {
-        let shrinking = cfg.shrinking;
-        let l = self.l;
-        let mut iter = 0;
-        let mut counter = l.min(1000) + 1;
-        let mut converged = false;
-        while iter < max_iter {
-            counter -= 1;
-            if counter == 0 {
-                counter = l.min(1000);
-                if shrinking {
-                    let before = self.active_size;
-                    self.do_shrinking();
-                    self.after_shrinking(before);
-                }
-                if deadline.passed() {
-                    break;
-                }
+        run_smo(self, cfg.shrinking, cfg.conjugate, max_iter, deadline)
+    }
+}
+
+impl Smo for Solver<'_> {
+    fn shrink_period(&self) -> usize {
+        self.l.min(1000)
+    }
+    fn shrunk(&self) -> bool {
+        self.active_size < self.l
+    }
+    fn shrink(&mut self) {
+        let before = self.active_size;
+        self.do_shrinking();
+        self.after_shrinking(before);
+    }
+    fn working_set(&mut self) -> Option<(usize, usize)> {
+        self.select_working_set()
+    }
+    fn unshrink(&mut self, _resume: bool) {
+        self.reconstruct_gradient();
+        self.active_size = self.l;
+    }
+    fn forget_direction(&mut self) {
+        self.reset_direction();
+    }
+    fn smo_step(&mut self, i: usize, j: usize, conjugate: bool) {
+        if conjugate {
+            self.conjugate_step(i, j);
+        } else {
+            self.step(i, j);
+        }
+    }
+}
+
+/// What libsvm's SMO loop asks of a solver (the 2n-variable one and the
+/// per-point one, [`run_smo`]).
+trait Smo {
+    /// Iterations between shrinkings: libsvm's `min(l, 1000)` with `l` its
+    /// 2n variables.
+    fn shrink_period(&self) -> usize;
+    /// Whether some variables are out of the active set.
+    fn shrunk(&self) -> bool;
+    /// Shrink the active set (and re-list the conjugate direction).
+    fn shrink(&mut self);
+    /// The WSS2 pair, `None` when the active set is optimal.
+    fn working_set(&mut self) -> Option<(usize, usize)>;
+    /// Every variable active again, with its gradient rebuilt; `resume`:
+    /// the loop goes on (rebuild what the steps read), else it has ended.
+    fn unshrink(&mut self, resume: bool);
+    /// Forget the conjugate direction.
+    fn forget_direction(&mut self);
+    /// One SMO step on the pair (conjugate or plain).
+    fn smo_step(&mut self, i: usize, j: usize, conjugate: bool);
+}
+
+/// libsvm's SMO loop: shrink every [`Smo::shrink_period`] iterations,
+/// check the deadline there, and when the active set is optimal unshrink
+/// and look again; returns (iterations, converged).
+fn run_smo<S: Smo>(
+    s: &mut S,
+    shrinking: bool,
+    conjugate: bool,
+    max_iter: usize,
+    deadline: Deadline,
+) -> (usize, bool) {
+    let period = s.shrink_period();
+    let mut iter = 0;
+    let mut counter = period + 1;
+    let mut converged = false;
+    while iter < max_iter {
+        counter -= 1;
+        if counter == 0 {
+            counter = period;
+            if shrinking {
+                s.shrink();
             }
-            let (i, j) = match self.select_working_set() {
-                Some(pair) => pair,
-                None => {
-                    // Optimal on the active set: check all variables.
-                    self.reset_direction();
-                    self.reconstruct_gradient();
-                    self.active_size = l;
-                    match self.select_working_set() {
-                        Some(pair) => {
-                            counter = 1; // shrink again at the next iteration
-                            pair
-                        }
-                        None => {
-                            converged = true;
-                            break;
-                        }
+            if deadline.passed() {
+                break;
+            }
+        }
+        let (i, j) = match s.working_set() {
+            Some(pair) => pair,
+            None => {
+                // Optimal on the active set: check all variables.
+                s.forget_direction();
+                s.unshrink(true);
+                match s.working_set() {
+                    Some(pair) => {
+                        counter = 1; // shrink again at the next iteration
+                        pair
+                    }
+                    None => {
+                        converged = true;
+                        break;
                     }
                 }
-            };
-            iter += 1;
-            if cfg.conjugate {
-                self.conjugate_step(i, j);
-            } else {
-                self.step(i, j);
             }
-        }
-        if self.active_size < l {
-            self.reconstruct_gradient();
-            self.active_size = l;
-        }
-        (iter, converged)
+        };
+        iter += 1;
+        s.smo_step(i, j, conjugate);
     }
+    if s.shrunk() {
+        s.unshrink(false);
+    }
+    (iter, converged)
 }
 
 /// Solve one epsilon-SVR dual on a precomputed kernel for targets `z`

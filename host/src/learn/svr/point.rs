@@ -34,7 +34,9 @@
 //! with the scalar passes' operations in the same order on the same 16 lanes
 //! (no FMA), so the path does not depend on the CPU.
 
-use super::{forget_direction, relist_direction, KernelMatrix, MAX_DIRECTION_SUPPORT, TAU};
+use super::{
+    forget_direction, relist_direction, run_smo, KernelMatrix, Smo, MAX_DIRECTION_SUPPORT, TAU,
+};
 use crate::learn::Deadline;
 
 /// Largest problem solved here: each solver keeps its own n^2 f32 kernel
@@ -743,55 +745,44 @@ impl<'a> PointSolver<'a> {
         max_iter: usize,
         deadline: Deadline,
     ) -> (usize, bool) {
-        let n = self.n;
         self.conjugate = conjugate;
+        run_smo(self, shrinking, conjugate, max_iter, deadline)
+    }
+}
+
+impl Smo for PointSolver<'_> {
+    fn shrink_period(&self) -> usize {
         // libsvm counts its 2n variables.
-        let period = (2 * n).min(1000);
-        let mut iter = 0;
-        let mut counter = period + 1;
-        let mut converged = false;
-        while iter < max_iter {
-            counter -= 1;
-            if counter == 0 {
-                counter = period;
-                if shrinking {
-                    let before = self.active_size;
-                    self.do_shrinking();
-                    self.after_shrinking(before);
-                }
-                if deadline.passed() {
-                    break;
-                }
-            }
-            let (i, j) = match self.select_working_set() {
-                Some(pair) => pair,
-                None => {
-                    self.reset_direction();
-                    self.activate_all();
-                    match self.select_working_set() {
-                        Some(pair) => {
-                            counter = 1;
-                            pair
-                        }
-                        None => {
-                            converged = true;
-                            break;
-                        }
-                    }
-                }
-            };
-            iter += 1;
-            if conjugate {
-                self.conjugate_step(i, j);
-            } else {
-                self.step(i, j);
-            }
-        }
-        if self.active_size < n {
+        (2 * self.n).min(1000)
+    }
+    fn shrunk(&self) -> bool {
+        self.active_size < self.n
+    }
+    fn shrink(&mut self) {
+        let before = self.active_size;
+        self.do_shrinking();
+        self.after_shrinking(before);
+    }
+    fn working_set(&mut self) -> Option<(usize, usize)> {
+        self.select_working_set()
+    }
+    fn unshrink(&mut self, resume: bool) {
+        if resume {
+            self.activate_all();
+        } else {
             self.reconstruct_gradient();
-            self.active_size = n;
+            self.active_size = self.n;
         }
-        (iter, converged)
+    }
+    fn forget_direction(&mut self) {
+        self.reset_direction();
+    }
+    fn smo_step(&mut self, i: usize, j: usize, conjugate: bool) {
+        if conjugate {
+            self.conjugate_step(i, j);
+        } else {
+            self.step(i, j);
+        }
     }
 }
 
