@@ -167,23 +167,28 @@ pub struct LoopResult {
 
 impl LoopStage {
     /// The stage `name` of an accepted `finding`: the refit's errors on the
-    /// training (and test) sessions and the validation before and after.
+    /// training (and test) sessions and the held-out means its check judged
+    /// (an accepted finding carries its check).
     fn of(
         name: String,
         finding: &Finding,
         refit: &Identification,
         train: &[Observation],
         test: Option<&[Observation]>,
-        before: &Validation,
-        after: &Validation,
     ) -> LoopStage {
+        let (validation_before_mm, validation_after_mm) = finding
+            .validation
+            .as_ref()
+            .map_or((f64::NAN, f64::NAN), |c| {
+                (c.before.held.mean_mm, c.after.held.mean_mm)
+            });
         LoopStage {
             name,
             train: model_errors(refit, train),
             test: test.map(|t| model_errors(refit, t)),
             finding: finding.clone(),
-            validation_before_mm: before.held.mean_mm,
-            validation_after_mm: after.held.mean_mm,
+            validation_before_mm,
+            validation_after_mm,
         }
     }
 }
@@ -1667,15 +1672,7 @@ pub fn close_loop(
             free_spool_rates(train, nominal, &id, &structure, &validation, config)?;
         if let Some((refit, free, after)) = added {
             let name = format!("spool rates strings {:?}", finding.strings);
-            stages.push(LoopStage::of(
-                name,
-                &finding,
-                &refit,
-                train,
-                test,
-                &validation,
-                &after,
-            ));
+            stages.push(LoopStage::of(name, &finding, &refit, train, test));
             validation = after;
             structure = free;
             id = refit;
@@ -1689,15 +1686,7 @@ pub fn close_loop(
             if let Some((refit, after)) = tried.added {
                 finding.added = true;
                 let name = stage_name(&finding);
-                stages.push(LoopStage::of(
-                    name,
-                    &finding,
-                    &refit,
-                    train,
-                    test,
-                    &validation,
-                    &after,
-                ));
+                stages.push(LoopStage::of(name, &finding, &refit, train, test));
                 validation = after;
                 id = refit;
             }
@@ -1767,18 +1756,7 @@ pub fn close_loop(
                 finding.added = true;
                 findings.push(finding.clone());
                 let name = stage_name(&finding);
-                // The folds the check judged on (a step's are its own).
-                let judged = finding.validation.as_ref().map(|c| (&c.before, &c.after));
-                let (judged_before, judged_after) = judged.unwrap_or((&validation, &after));
-                stages.push(LoopStage::of(
-                    name,
-                    &finding,
-                    &refit,
-                    train,
-                    test,
-                    judged_before,
-                    judged_after,
-                ));
+                stages.push(LoopStage::of(name, &finding, &refit, train, test));
                 validation = after;
                 structure = candidate;
                 id = refit;
