@@ -89,6 +89,18 @@ pub fn sag_mm(mm_at_1m_1n: f64, ctx: &EffectContext) -> f64 {
     (mm_at_1m_1n * sag_variable(ctx)).clamp(-MAX_SAG_MM, MAX_SAG_MM)
 }
 
+/// d(sag)/d(free length) of a sag term: `3 sag / l`, 0 where the length or
+/// the sag is clamped (what the identification's length derivatives carry).
+pub fn sag_slope(mm_at_1m_1n: f64, ctx: &EffectContext) -> f64 {
+    let l = ctx.home_length_mm + ctx.payout_mm;
+    let sag = mm_at_1m_1n * sag_variable(ctx);
+    if l <= 0.0 || l >= MAX_SAG_LENGTH_MM || sag.abs() >= MAX_SAG_MM {
+        0.0
+    } else {
+        3.0 * sag / l
+    }
+}
+
 /// `(l / 1 m)^3 / (T / 1 N)^2` of a sag term, with `l` and `T` clamped as
 /// [`Effect::Sag`] says.
 pub fn sag_variable(ctx: &EffectContext) -> f64 {

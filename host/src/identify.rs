@@ -78,7 +78,7 @@ use serde::{Deserialize, Serialize};
 use spidar_core::model::{
     Effect, EffectTerm, Frame, LayerTable, StringLaw, StringLayout, EVERY_STRING, WINDING_ORDER,
 };
-use spidar_core::string_law::{string_lengths_f64, EffectContext};
+use spidar_core::string_law::{sag_slope, string_lengths_f64, EffectContext};
 use spidar_core::STRINGS;
 
 use crate::observe::Observation;
@@ -817,7 +817,8 @@ impl levenberg_marquardt::LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
                             d_home += per_newton * t;
                         }
                         Effect::Sag { mm_at_1m_1n } => {
-                            let slope = sag_slope(mm_at_1m_1n, o, &laws[i], lh, i);
+                            let slope = EffectContext::for_string(frame, &laws, &o.inputs, i)
+                                .map_or(0.0, |ctx| sag_slope(mm_at_1m_1n, &ctx));
                             d_payout += slope;
                             d_home += slope;
                         }
@@ -1076,27 +1077,6 @@ impl Start {
             warm: true,
             effects: id.effects.clone(),
         }
-    }
-}
-
-/// d(sag)/d(free length) of a sag term on string `i` (law `law`) at
-/// observation `o` (`3 sag / l`, 0 where the length or the sag is
-/// clamped), `home_length_mm` the string's length at home.
-fn sag_slope(
-    mm_at_1m_1n: f64,
-    o: &Observation,
-    law: &StringLaw,
-    home_length_mm: f64,
-    i: usize,
-) -> f64 {
-    use spidar_core::string_law::{payout_f64, MAX_SAG_LENGTH_MM, MAX_SAG_MM, SAG_MIN_TENSION_N};
-    let l = home_length_mm + payout_f64(law, o.inputs.counts[i]);
-    let t = (f64::from(o.inputs.tension_mn[i]) / 1000.0).max(SAG_MIN_TENSION_N);
-    let sag = mm_at_1m_1n * (l / 1000.0).powi(3) / (t * t);
-    if l <= 0.0 || l >= MAX_SAG_LENGTH_MM || sag.abs() >= MAX_SAG_MM {
-        0.0
-    } else {
-        3.0 * sag / l
     }
 }
 
