@@ -1321,6 +1321,18 @@ fn model_error_list(id: &Identification, observations: &[Observation]) -> Vec<f6
 /// One fold: (fit rows, held-out rows), by index into the tracked rows.
 pub(crate) type Fold = (Vec<usize>, Vec<usize>);
 
+/// What each fold of [`folds`] holds out, by name, in its order: the two
+/// interleaved folds, then the blocked ones (the later half, fitted on the
+/// earlier; the earlier, fitted on the later; the outer shell, fitted on the
+/// inner region).
+const FOLD_NAMES: [&str; 5] = [
+    "even rows",
+    "odd rows",
+    "later half",
+    "earlier half",
+    "outer shell",
+];
+
 /// The folds of a session; the first two are the interleaved ones.
 pub(crate) fn folds(tracked: &[&Observation]) -> (Folds, Vec<Fold>) {
     let n = tracked.len();
@@ -1477,8 +1489,8 @@ fn judgeable_folds(
     let tracked: Vec<&Observation> = train.iter().filter(|o| o.tracker.is_some()).collect();
     let (kind, folds) = folds(&tracked);
     let (pooled, names): (&[Fold], &[&'static str]) = match kind {
-        Folds::Blocked => (&folds[2..], &["later half", "earlier half", "outer shell"]),
-        Folds::Interleaved => (&folds[..2], &["even rows", "odd rows"]),
+        Folds::Blocked => (&folds[2..], &FOLD_NAMES[2..]),
+        Folds::Interleaved => (&folds[..2], &FOLD_NAMES[..2]),
     };
     let keep: Vec<bool> = pooled
         .iter()
@@ -1494,6 +1506,49 @@ fn judgeable_folds(
         .map(|(_, n)| *n)
         .collect();
     Some((keep, left_out))
+}
+
+/// [`judge`] for a step in time (a slip) on the folds that see it
+/// (`keep`, [`judgeable_folds`]; `left_out` names the others). No
+/// halves-stability test (one half may not see the step), and every fold
+/// that sees the step must gain: a slip is a fact of the session, so every
+/// fit that straddles it predicts better with it, and a term that helps on
+/// some folds only stands in for something else.
+fn judge_step(
+    before: &Validation,
+    after: &Validation,
+    keep: &[bool],
+    left_out: &[&str],
+    min_gain: f64,
+) -> Check {
+    let mut check = judge(
+        &before.for_step(keep),
+        &after.for_step(keep),
+        None,
+        min_gain,
+    );
+    check.reason += " and interleaved folds (a step in time)";
+    let worse = fold_means(&check.before)
+        .zip(fold_means(&check.after))
+        .filter(|(b, a)| a > b)
+        .count();
+    if check.accepted && worse > 0 {
+        check.accepted = false;
+        check.reason = format!(
+            "not added: it raises the mean on {worse} of the {} folds that see the step (a slip \
+             lowers it on every one): {}",
+            check.before.fold_sizes.len(),
+            check.reason.trim_start_matches("added: ")
+        );
+    }
+    if !left_out.is_empty() {
+        check.reason += &format!(
+            ", without the {} fold{}: its fit rows do not reach both sides of the step",
+            left_out.join(" and "),
+            if left_out.len() > 1 { "s" } else { "" }
+        );
+    }
+    check
 }
 
 /// Chi-square (p = 0.001) an added effect's parameters may differ by between
@@ -1709,44 +1764,13 @@ pub fn close_loop(
                     stability(change, &fits),
                     config.min_relative_gain,
                 ),
-                Some((keep, left_out)) => {
-                    // A step's halves are not one value fitted twice: no
-                    // stability test (one half may not see the step).
-                    let mut check = judge(
-                        &validation.for_step(&keep),
-                        &after.for_step(&keep),
-                        None,
-                        config.min_relative_gain,
-                    );
-                    check.reason += " and interleaved folds (a step in time)";
-                    // A step is a fact of the session: every fit that sees
-                    // it must predict better with it. A term that helps on
-                    // some folds only stands in for something else.
-                    let (before_step, after_step) =
-                        (validation.for_step(&keep), after.for_step(&keep));
-                    let worse = fold_means(&before_step)
-                        .zip(fold_means(&after_step))
-                        .filter(|(b, a)| a > b)
-                        .count();
-                    if check.accepted && worse > 0 {
-                        check.accepted = false;
-                        check.reason = format!(
-                            "not added: it raises the mean on {worse} of the {} folds that \
-                             see the step (a slip lowers it on every one): {}",
-                            before_step.fold_sizes.len(),
-                            check.reason.trim_start_matches("added: ")
-                        );
-                    }
-                    if !left_out.is_empty() {
-                        check.reason += &format!(
-                            ", without the {} fold{}: its fit rows do not reach both sides of \
-                             the step",
-                            left_out.join(" and "),
-                            if left_out.len() > 1 { "s" } else { "" }
-                        );
-                    }
-                    check
-                }
+                Some((keep, left_out)) => judge_step(
+                    &validation,
+                    &after,
+                    &keep,
+                    &left_out,
+                    config.min_relative_gain,
+                ),
             };
             let accepted = check.accepted;
             finding.validation = Some(check);
