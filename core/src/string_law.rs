@@ -65,10 +65,10 @@ pub const MAX_ELASTICITY_PER_NEWTON: f64 = 0.015;
 pub const SAG_MIN_TENSION_N: f64 = 0.25;
 
 /// [`MAX_SAG_MM`] in Q31.32 mm.
-const MAX_SAG_Q32: i128 = 100 << 32;
+const MAX_SAG_Q32: i128 = (MAX_SAG_MM as i128) << 32;
 
 /// [`SAG_MIN_TENSION_N`] in the device's unit (mN).
-const SAG_MIN_TENSION_MN: u16 = 250;
+const SAG_MIN_TENSION_MN: u16 = (SAG_MIN_TENSION_N * 1000.0) as u16;
 
 /// Longest free length a sag term takes (mm): the fixed-point cube is taken
 /// of `l / 4096 mm < 2` ([`CompiledEffect::Sag`]).
