@@ -939,20 +939,6 @@ impl<'a> Solver<'a> {
         }
     }
 
-    /// Positions moved while shrinking: list the direction's support again;
-    /// forget the direction if part of it left the active set (its `Q d` is
-    /// only kept there) or the active set grew (unshrinking).
-    fn after_shrinking(&mut self, before: usize) {
-        relist_direction(
-            &mut self.dir,
-            &mut self.in_support,
-            &mut self.dir_support,
-            &mut self.dir_curvature,
-            self.active_size,
-            before,
-        );
-    }
-
     /// After a plain SMO step on (i, j): remember its direction and Q d so
     /// that the next step can be made conjugate to it.
     fn start_direction(&mut self, i: usize, j: usize) {
@@ -998,7 +984,15 @@ impl Smo for Solver<'_> {
     fn shrink(&mut self) {
         let before = self.active_size;
         self.do_shrinking();
-        self.after_shrinking(before);
+        // Positions moved: list the direction's support again.
+        relist_direction(
+            &mut self.dir,
+            &mut self.in_support,
+            &mut self.dir_support,
+            &mut self.dir_curvature,
+            self.active_size,
+            before,
+        );
     }
     fn working_set(&mut self) -> Option<(usize, usize)> {
         self.select_working_set()

@@ -724,19 +724,6 @@ impl<'a> PointSolver<'a> {
         }
     }
 
-    /// As the 2n solver's: re-list the support after shrinking, forget the
-    /// direction if part of it left or the active set grew.
-    fn after_shrinking(&mut self, before: usize) {
-        relist_direction(
-            &mut self.dir,
-            &mut self.in_support,
-            &mut self.dir_support,
-            &mut self.dir_curvature,
-            self.active_size,
-            before,
-        );
-    }
-
     /// Run SMO; returns (iterations, converged).
     pub(super) fn solve(
         &mut self,
@@ -761,7 +748,15 @@ impl Smo for PointSolver<'_> {
     fn shrink(&mut self) {
         let before = self.active_size;
         self.do_shrinking();
-        self.after_shrinking(before);
+        // Positions moved: list the direction's support again.
+        relist_direction(
+            &mut self.dir,
+            &mut self.in_support,
+            &mut self.dir_support,
+            &mut self.dir_curvature,
+            self.active_size,
+            before,
+        );
     }
     fn working_set(&mut self) -> Option<(usize, usize)> {
         self.select_working_set()
