@@ -130,6 +130,12 @@ pub struct StringInputs {
     pub tension_mn: [u16; STRINGS],
     /// Time since initialization, milliseconds.
     pub time_ms: u32,
+    /// `cos^2` of each string's inclination from the horizontal (the
+    /// device frame's z axis is up) at the position the loop holds, Q0.16
+    /// (65535 for a level string, 0 for a plumb one), what a sag term scales
+    /// with ([`Effect::Sag`]); see
+    /// [`cos2_inclinations`](crate::string_law::cos2_inclinations).
+    pub cos2_inclination_q16: [u16; STRINGS],
 }
 
 /// Highest power of the pulley angle in a winding law.
@@ -408,14 +414,15 @@ pub enum Effect {
     Slip { at_s: f64, mm: f64 },
     /// Sag of a heavy string: a span of length `l` and linear weight `w`
     /// under tension `T` is longer than its chord by `w^2 cos^2(a) l^3 /
-    /// (24 T^2)` (parabolic catenary, `a` the chord's inclination), so
-    /// `+ mm_at_1m_1n * (l / 1 m)^3 / (T / 1 N)^2` with `l = home_length +
-    /// payout` (clamped to 0..[`MAX_SAG_LENGTH_MM`](crate::string_law::MAX_SAG_LENGTH_MM))
-    /// and `T` at least [`SAG_MIN_TENSION_N`](crate::string_law::SAG_MIN_TENSION_N)
+    /// (24 T^2)` (parabolic catenary, `a` the chord's inclination from the
+    /// horizontal), so `+ mm_at_1m_1n * cos^2(a) * (l / 1 m)^3 / (T / 1 N)^2`
+    /// with `cos^2(a)` from [`StringInputs::cos2_inclination_q16`], `l =
+    /// home_length + payout` (clamped to
+    /// 0..[`MAX_SAG_LENGTH_MM`](crate::string_law::MAX_SAG_LENGTH_MM)) and `T`
+    /// at least [`SAG_MIN_TENSION_N`](crate::string_law::SAG_MIN_TENSION_N)
     /// (a slacker string is not a catenary), the sum clamped to
     /// `+-`[`MAX_SAG_MM`](crate::string_law::MAX_SAG_MM). `mm_at_1m_1n` is `w^2
-    /// cos^2(a) / 24` of the string's mean inclination: 1.6 mm for 20 g/m
-    /// horizontal.
+    /// / 24`, the sag of a level 1 m span at 1 N: 1.6 mm for 20 g/m.
     Sag { mm_at_1m_1n: f64 },
 }
 

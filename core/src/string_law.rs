@@ -32,6 +32,7 @@
 //! | slip time | `u32` | ms since home |
 //! | pulley phase (eccentricity) | `u32` | Q0.32 turns, from `counts mod counts_per_rev` |
 //! | sine table | `i32` | Q1.30, 512 segments per quarter turn, linear interpolation |
+//! | inclination of a string (sag) | `u16` | Q0.16 `cos^2`, 65535 level |
 //! | layer table knots | `i64` | Q47.16 mm (`|v| <= MAX_LAYER_MM`), knots `2^step_log2` counts apart; added to the payout |
 //!
 //! Every product is `i64 x i32 -> 96 bits`, rounded (half up) and shifted back
@@ -44,9 +45,10 @@ use core::fmt;
 use serde::{Deserialize, Serialize};
 
 use crate::model::{
-    locate_knot, Effect, EffectTerm, Frame, Knots, StringInputs, StringLaw, StringLayout,
+    locate_knot, Effect, EffectTerm, Frame, Knots, StringInputs, StringLaw, StringLayout, Vec3,
     EVERY_STRING, LAYER_KNOTS, MAX_LAYER_MM, MAX_LAYER_STEP_LOG2, WINDING_ORDER,
 };
+use crate::real::Real;
 use crate::STRINGS;
 
 /// The winding polynomial is evaluated in `x = counts / 2^COUNTS_SHIFT`, so
@@ -101,12 +103,45 @@ pub fn sag_slope(mm_at_1m_1n: f64, ctx: &EffectContext) -> f64 {
     }
 }
 
-/// `(l / 1 m)^3 / (T / 1 N)^2` of a sag term, with `l` and `T` clamped as
-/// [`Effect::Sag`] says.
+/// `cos^2(a) (l / 1 m)^3 / (T / 1 N)^2` of a sag term, with `l` and `T`
+/// clamped as [`Effect::Sag`] says.
 pub fn sag_variable(ctx: &EffectContext) -> f64 {
     let l = (ctx.home_length_mm + ctx.payout_mm).clamp(0.0, MAX_SAG_LENGTH_MM) / 1000.0;
     let t = ctx.tension_n.max(SAG_MIN_TENSION_N);
-    l * l * l / (t * t)
+    ctx.cos2_inclination * l * l * l / (t * t)
+}
+
+/// `cos^2` of the inclination from the horizontal of the chord from
+/// `anchor` to `position` (device frame, z up), Q0.16, saturating at 65535
+/// (a level chord); 0 for a plumb chord, a chord of no length or a non-finite
+/// input. What [`StringInputs::cos2_inclination_q16`] carries: the device
+/// takes it at the position its loop holds (the last forward kinematics, a
+/// tick old), the host at the tracker's position (identification) or at the
+/// row's solved position (prediction).
+pub fn cos2_inclination_q16<F: Real>(anchor: &Vec3<F>, position: &Vec3<F>) -> u16 {
+    let d = [
+        position[0] - anchor[0],
+        position[1] - anchor[1],
+        position[2] - anchor[2],
+    ];
+    let level = d[0] * d[0] + d[1] * d[1];
+    let squared = level + d[2] * d[2];
+    if !(squared > F::zero()) {
+        return 0;
+    }
+    // In f32 on both sides (the device's type; a Q0.16 step is 1.5e-5): the
+    // `as` cast truncates the non-negative value (so rounds half up),
+    // saturates the level chord's 65536 and takes NaN (an infinite input) to 0.
+    let ratio = (level / squared).to_f32().unwrap_or(f32::NAN);
+    (ratio * 65536.0 + 0.5) as u16
+}
+
+/// [`cos2_inclination_q16`] of every string of `anchors` at `position`.
+pub fn cos2_inclinations<F: Real>(
+    anchors: &[Vec3<F>; STRINGS],
+    position: &Vec3<F>,
+) -> [u16; STRINGS] {
+    core::array::from_fn(|i| cos2_inclination_q16(&anchors[i], position))
 }
 
 // ---------------------------------------------------------------------------
@@ -173,6 +208,8 @@ pub struct EffectContext {
     pub direction: i8,
     /// Time since home (s) = `time_ms / 1000`.
     pub time_s: f64,
+    /// `cos^2` of the string's inclination = `cos2_inclination_q16 / 65536`.
+    pub cos2_inclination: f64,
 }
 
 impl EffectContext {
@@ -192,6 +229,7 @@ impl EffectContext {
             tension_n: f64::from(*inputs.tension_mn.get(string)?) / 1000.0,
             direction: *inputs.direction.get(string)?,
             time_s: f64::from(inputs.time_ms) / 1000.0,
+            cos2_inclination: f64::from(*inputs.cos2_inclination_q16.get(string)?) / 65536.0,
         })
     }
 }
@@ -222,6 +260,13 @@ fn two(a: f64, b: f64) -> heapless::Vec<f64, 2> {
 }
 
 impl Effect {
+    /// Whether the term reads the string's inclination (a sag): forward
+    /// kinematics over sparse rows then solves twice, the second time at the
+    /// inclination of the first solution (`spidar::predict`).
+    pub fn reads_inclination(&self) -> bool {
+        matches!(self, Effect::Sag { .. })
+    }
+
     /// Contribution of this term to the string length (mm), f64 reference.
     pub fn contribution_f64(&self, ctx: &EffectContext) -> f64 {
         match *self {
@@ -263,7 +308,7 @@ impl Effect {
     /// | Backlash | `half_width_mm` | `[sign(direction)]` |
     /// | Drift | `mm_per_s` | `[t]` |
     /// | Slip | `mm` (`at_s` is held fixed: a step is not differentiable in its time; search it separately) | `[t >= at_s ? 1 : 0]` |
-    /// | Sag | `mm_at_1m_1n` | `[(l / 1 m)^3 / (T / 1 N)^2]` (0 where the sag is clamped) |
+    /// | Sag | `mm_at_1m_1n` | `[cos^2(a) (l / 1 m)^3 / (T / 1 N)^2]` (0 where the sag is clamped) |
     pub fn gradient_f64(&self, ctx: &EffectContext) -> heapless::Vec<f64, 2> {
         match *self {
             Effect::Offset { .. } => one(1.0),
@@ -896,6 +941,8 @@ pub struct FixedContext {
     pub home_length_q16: i64,
     /// Q31.32 mm, [`CompiledStringLaw::payout_q32`].
     pub payout_q32: i64,
+    /// `cos^2` of the inclination, Q0.16 ([`StringInputs::cos2_inclination_q16`]).
+    pub cos2_inclination_q16: u16,
 }
 
 /// Compiles one effect term; `laws` gives the counts per revolution of its
@@ -1091,6 +1138,11 @@ impl CompiledEffect {
         }
     }
 
+    /// Whether the term reads the string's inclination ([`Effect::reads_inclination`]).
+    pub fn reads_inclination(&self) -> bool {
+        matches!(self, CompiledEffect::Sag { .. })
+    }
+
     /// Contribution of this term (Q31.32 mm), integer only, saturating.
     /// Always inlined: `string_lengths` has a copy of its loop for all 8
     /// channels and one for a layout, and the call would cost each term ~70
@@ -1162,7 +1214,10 @@ impl CompiledEffect {
                 let t2 = t * t;
                 // a^3 / tau^2 in Q.30 (a^3 << 20 < 2^54), rounded.
                 let r_q30 = ((a3_q30 << 20) + t2 / 2) / t2;
-                let out = (i128::from(coeff_q32) * i128::from(r_q30) + (1 << 29)) >> 30;
+                // coeff cos^2 a^3 / tau^2 in Q.46: |coeff| < 2^45, r < 2^38
+                // (tau >= 250 mN) and cos^2 < 2^16, so below 2^99.
+                let scaled = i128::from(coeff_q32) * i128::from(r_q30);
+                let out = (scaled * i128::from(ctx.cos2_inclination_q16) + (1 << 45)) >> 46;
                 out.clamp(-MAX_SAG_Q32, MAX_SAG_Q32) as i64
             }
         }
@@ -1226,6 +1281,7 @@ fn lengths_of<const ALL: bool>(
         time_ms: inputs.time_ms,
         home_length_q16: laws[s].home_length_q16,
         payout_q32: payout[s],
+        cos2_inclination_q16: inputs.cos2_inclination_q16[s],
     };
     for e in effects {
         let s = usize::from(e.string());
@@ -1665,6 +1721,7 @@ mod tests {
             inputs.counts[i] = rng.int(-250_000, 250_000) as i32;
             inputs.direction[i] = rng.int(-1, 1) as i8;
             inputs.tension_mn[i] = rng.int(0, 20_000) as u16;
+            inputs.cos2_inclination_q16[i] = rng.int(0, 65535) as u16;
         }
         inputs.time_ms = rng.int(0, 7_200_000) as u32;
         inputs
@@ -1970,6 +2027,52 @@ mod tests {
     }
 
     #[test]
+    fn inclination_is_level_plumb_or_between_and_never_panics() {
+        let a = [100.0f32, -200.0, 300.0];
+        let at = |p: [f32; 3]| cos2_inclination_q16(&a, &p);
+        assert_eq!(at([1100.0, -200.0, 300.0]), u16::MAX); // level
+        assert_eq!(at([100.0, -200.0, -700.0]), 0); // plumb
+        assert_eq!(at([1100.0, -200.0, 1300.0]), 32768); // 45 degrees
+        assert_eq!(at(a), 0); // no chord
+        assert_eq!(at([f32::NAN, 0.0, 0.0]), 0);
+        assert_eq!(at([f32::INFINITY, 0.0, 0.0]), 0);
+        // f32 on the device, f64 on the host: the same Q0.16 away from ties.
+        let p64 = [612.5f64, 48.25, -333.0];
+        let p32 = p64.map(|x| x as f32);
+        let a64 = a.map(f64::from);
+        assert_eq!(
+            cos2_inclination_q16(&a64, &p64),
+            cos2_inclination_q16(&a, &p32)
+        );
+    }
+
+    #[test]
+    fn sag_scales_with_the_inclination_in_both_paths() {
+        let laws = [StringLaw::polynomial(4096, [10.0, 0.0, 0.0, 0.0]); STRINGS];
+        let f = frame([0.0; 3]);
+        let terms = [EffectTerm {
+            string: 2,
+            effect: Effect::Sag { mm_at_1m_1n: 1.6 },
+        }];
+        let (cl, ce) = compile_all(&f, &laws, &terms);
+        let mut inputs = StringInputs::default();
+        inputs.tension_mn = [1000; STRINGS];
+        inputs.counts[2] = 40_000;
+        let base = string_lengths_f64(&f, &laws, &[], &inputs)[2];
+        let mut sags = [0.0; 3];
+        for (k, cos2) in [0u16, 32768, u16::MAX].into_iter().enumerate() {
+            inputs.cos2_inclination_q16[2] = cos2;
+            let want = string_lengths_f64(&f, &laws, &terms, &inputs)[2];
+            let got = string_lengths(StringLayout::ALL, &cl, &ce, &inputs)[2] as f64 / 65536.0;
+            assert!((want - got).abs() < 1e-4, "cos2 {cos2}: {want} vs {got}");
+            sags[k] = want - base;
+        }
+        assert_eq!(sags[0], 0.0, "a plumb string does not sag");
+        assert!(sags[2] > 1.0, "{sags:?}");
+        assert!((sags[1] - sags[2] / 2.0).abs() < 1e-4 * sags[2], "{sags:?}");
+    }
+
+    #[test]
     fn slip_step_time_is_consistent() {
         let laws = [StringLaw::polynomial(4096, [10.0, 0.0, 0.0, 0.0]); STRINGS];
         let f = frame([0.0; 3]);
@@ -2083,13 +2186,17 @@ mod tests {
             any::<[i8; STRINGS]>(),
             any::<[u16; STRINGS]>(),
             any::<u32>(),
+            any::<[u16; STRINGS]>(),
         )
-            .prop_map(|(counts, direction, tension_mn, time_ms)| StringInputs {
-                counts,
-                direction,
-                tension_mn,
-                time_ms,
-            })
+            .prop_map(
+                |(counts, direction, tension_mn, time_ms, cos2_inclination_q16)| StringInputs {
+                    counts,
+                    direction,
+                    tension_mn,
+                    time_ms,
+                    cos2_inclination_q16,
+                },
+            )
     }
 
     proptest! {

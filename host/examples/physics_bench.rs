@@ -23,7 +23,7 @@ use std::path::Path;
 use spidar::calibrate::{calibrate, CalibrateConfig, Calibrated, NamedSession};
 use spidar::dataset::{Geometry, Session};
 use spidar::diagnose::{family_name, variable_name};
-use spidar::identify::device_from_room;
+use spidar::identify::{device_from_room, inputs_at};
 use spidar::observe::observations;
 use spidar::sim::physics::{self, PhysicsConfig, PhysicsDevice, PhysicsTruth};
 use spidar::sim::{simulate_session, Device, SessionKind, SimConfig};
@@ -204,7 +204,8 @@ fn residual_analysis(device: &PhysicsDevice, run: &Run, truths: &[PhysicsTruth],
                 continue;
             }
             let p = device_from_room(&cal.frame, tracker);
-            let lengths = string_lengths_f64(&cal.frame, &cal.strings, &cal.effects, &o.inputs);
+            let inputs = inputs_at(&cal.frame, o, &p);
+            let lengths = string_lengths_f64(&cal.frame, &cal.strings, &cal.effects, &inputs);
             let a = cal.frame.anchors[i];
             let geometric = position_error(p, a);
             let res = geometric - lengths[i];

@@ -11,8 +11,8 @@ use spidar_core::string_law::{payout_f64, sag_variable, EffectContext};
 use spidar_core::STRINGS;
 
 use crate::identify::{
-    data_jacobian, device_position, identify, DataJacobian, Identification, IdentifyError, Start,
-    Structure,
+    data_jacobian, device_position, identify, inputs_at, DataJacobian, Identification,
+    IdentifyError, Start, Structure,
 };
 use crate::layers::{self, StringLayers};
 use crate::observe::Observation;
@@ -470,9 +470,10 @@ impl Evidence {
             let o = &observations[k];
             o.tracker?;
             let p = device_position(&id.frame, o);
+            let inputs = inputs_at(&id.frame, o, &p);
             let prev = k.checked_sub(1).map(|j| &observations[j]);
             for i in 0..STRINGS {
-                let ctx = EffectContext::for_string(&id.frame, &id.laws, &o.inputs, i)?;
+                let ctx = EffectContext::for_string(&id.frame, &id.laws, &inputs, i)?;
                 let d = [
                     p[0] - id.frame.anchors[i][0],
                     p[1] - id.frame.anchors[i][1],
@@ -696,8 +697,8 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
                 search_penalty: 0.0,
                 build: Box::new(move |b| term(Effect::Sag { mm_at_1m_1n: b[0] })),
                 describe: format!(
-                    "string {i} sags under its own weight: longer by (l / 1 m)^3 / (T / 1 N)^2 \
-                     (a heavy string)"
+                    "string {i} sags under its own weight: longer by cos^2(inclination) \
+                     (l / 1 m)^3 / (T / 1 N)^2 (a heavy string)"
                 ),
             });
         }
@@ -786,6 +787,39 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
             }),
             describe: "every string's length drifts alike with time since initialization (creep, \
                        temperature of the whole device)"
+                .into(),
+        });
+    }
+    // One sag shared by every string (strings of one kind: one weight per
+    // metre), each string at its own length, tension and inclination.
+    let shared_sag = structure
+        .effects
+        .iter()
+        .any(|t| t.string == EVERY_STRING && matches!(t.effect, Effect::Sag { .. }));
+    if !shared_sag {
+        out.push(Candidate {
+            family: Family::Sag,
+            strings: Vec::new(),
+            variable: Variable::Tension,
+            columns: vec![rows
+                .iter()
+                .map(|r| {
+                    if strings.is_active(r.string) {
+                        sag_variable(&r.ctx)
+                    } else {
+                        0.0
+                    }
+                })
+                .collect()],
+            search_penalty: 0.0,
+            build: Box::new(|b| {
+                Change::Effect(EffectTerm {
+                    string: EVERY_STRING,
+                    effect: Effect::Sag { mm_at_1m_1n: b[0] },
+                })
+            }),
+            describe: "every string sags under its own weight: longer by cos^2(inclination) \
+                       (l / 1 m)^3 / (T / 1 N)^2 (heavy strings of one kind)"
                 .into(),
         });
     }

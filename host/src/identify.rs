@@ -76,9 +76,10 @@
 use nalgebra::{DMatrix, DVector, Dyn, Owned};
 use serde::{Deserialize, Serialize};
 use spidar_core::model::{
-    Effect, EffectTerm, Frame, LayerTable, StringLaw, StringLayout, EVERY_STRING, WINDING_ORDER,
+    Effect, EffectTerm, Frame, LayerTable, StringInputs, StringLaw, StringLayout, EVERY_STRING,
+    WINDING_ORDER,
 };
-use spidar_core::string_law::{sag_slope, string_lengths_f64, EffectContext};
+use spidar_core::string_law::{cos2_inclinations, sag_slope, string_lengths_f64, EffectContext};
 use spidar_core::STRINGS;
 
 use crate::observe::Observation;
@@ -701,6 +702,15 @@ pub fn device_position(frame: &Frame<f64>, o: &Observation) -> [f64; 3] {
     p
 }
 
+/// `o`'s inputs with each string's inclination (what a sag term reads) at
+/// `p`, the tracker's position in the device frame ([`device_position`]).
+pub fn inputs_at(frame: &Frame<f64>, o: &Observation, p: &[f64; 3]) -> StringInputs {
+    StringInputs {
+        cos2_inclination_q16: cos2_inclinations(&frame.anchors, p),
+        ..o.inputs
+    }
+}
+
 /// String-space residuals (geometric minus model, mm) of one observation; 0
 /// on channels without a string.
 fn residuals_at(
@@ -710,7 +720,7 @@ fn residuals_at(
     o: &Observation,
 ) -> [f64; STRINGS] {
     let p = device_position(frame, o);
-    let lengths = string_lengths_f64(frame, laws, effects, &o.inputs);
+    let lengths = string_lengths_f64(frame, laws, effects, &inputs_at(frame, o, &p));
     let mut r = [0.0; STRINGS];
     for i in frame.layout.indices() {
         r[i] = dist(p, frame.anchors[i]) - lengths[i];
@@ -774,13 +784,14 @@ impl levenberg_marquardt::LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
         let planar = frame.layout.planar;
         for (k, o) in self.observations.iter().enumerate() {
             let p = device_position(frame, o);
+            let inputs = inputs_at(frame, o, &p);
             // Effect columns: analytic gradients of the terms (each term
             // touches only its own string).
             let mut effect_grad = vec![[0.0; STRINGS]; layout.effect_columns.len()];
             for (c, &(e, pi)) in layout.effect_columns.iter().enumerate() {
                 let term = &state.effects[e];
                 for s in frame.layout.indices().filter(|&s| term.applies_to(s)) {
-                    if let Some(ctx) = EffectContext::for_string(frame, &laws, &o.inputs, s) {
+                    if let Some(ctx) = EffectContext::for_string(frame, &laws, &inputs, s) {
                         if let Some(g) = term.effect.gradient_f64(&ctx).get(pi) {
                             effect_grad[c][s] = -g;
                         }
@@ -817,7 +828,7 @@ impl levenberg_marquardt::LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
                             d_home += per_newton * t;
                         }
                         Effect::Sag { mm_at_1m_1n } => {
-                            let slope = EffectContext::for_string(frame, &laws, &o.inputs, i)
+                            let slope = EffectContext::for_string(frame, &laws, &inputs, i)
                                 .map_or(0.0, |ctx| sag_slope(mm_at_1m_1n, &ctx));
                             d_payout += slope;
                             d_home += slope;

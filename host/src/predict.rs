@@ -3,12 +3,16 @@
 //! exclusion, room transform, position correction).
 //!
 //! Rows are processed in session order and forward kinematics is warm-started
-//! from the previous row, as on the device.
+//! from the previous row, as on the device. A model with a sag term reads
+//! each string's inclination: the device takes it at the position its loop
+//! holds, a tick (0.1 ms) old, but a session's rows are far apart, so the
+//! rows are solved twice, the second time at the inclinations of the first
+//! solution ([`spidar_core::model::Effect::reads_inclination`]).
 
 use spidar_core::correction::CorrectionModel;
 use spidar_core::kinematics::{forward_kinematics, FkConfig, FkStatus};
-use spidar_core::model::{Calibration, EffectTerm, Frame, StringLaw};
-use spidar_core::string_law::string_lengths_f64;
+use spidar_core::model::{Calibration, EffectTerm, Frame, StringInputs, StringLaw};
+use spidar_core::string_law::{cos2_inclinations, string_lengths_f64};
 use spidar_core::STRINGS;
 
 use crate::identify::room_from_device;
@@ -47,18 +51,23 @@ impl<'a> StringModel<'a> {
 /// Forward kinematics of every row (warm-started along the session).
 pub fn predict(model: StringModel<'_>, observations: &[Observation]) -> Vec<Prediction> {
     let config = FkConfig::<f64>::default();
-    let mut start = model.frame.home;
+    let frame = model.frame;
+    let inclined = model.effects.iter().any(|t| t.effect.reads_inclination());
+    let solve = |inputs: &StringInputs, start: [f64; 3]| {
+        let lengths = string_lengths_f64(frame, model.laws, model.effects, inputs);
+        forward_kinematics(&frame.anchors, frame.layout, &lengths, start, &config)
+    };
+    let mut start = frame.home;
     observations
         .iter()
         .map(|o| {
-            let lengths = string_lengths_f64(model.frame, model.laws, model.effects, &o.inputs);
-            let fk = forward_kinematics(
-                &model.frame.anchors,
-                model.frame.layout,
-                &lengths,
-                start,
-                &config,
-            );
+            let mut inputs = o.inputs;
+            inputs.cos2_inclination_q16 = cos2_inclinations(&frame.anchors, &start);
+            let mut fk = solve(&inputs, start);
+            if inclined && fk.position.iter().all(|x| x.is_finite()) {
+                inputs.cos2_inclination_q16 = cos2_inclinations(&frame.anchors, &fk.position);
+                fk = solve(&inputs, fk.position);
+            }
             if matches!(fk.status, FkStatus::Ok | FkStatus::FaultyStringExcluded) {
                 start = fk.position;
             }

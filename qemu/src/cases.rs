@@ -270,13 +270,15 @@ pub fn calibration<'a>(fx: &Fixtures<'a>, svr: bool) -> Option<spidar_core::blob
 }
 
 /// Run-time string inputs over the whole workspace: up to +-30 pulley turns
-/// (4096 counts per turn), any direction, 0 to 20 N, up to an hour.
+/// (4096 counts per turn), any direction, 0 to 20 N, up to an hour, any
+/// inclination.
 pub fn string_inputs(rng: &mut Rng) -> spidar_core::model::StringInputs {
     let mut s = spidar_core::model::StringInputs::default();
     for i in 0..spidar_core::STRINGS {
         s.counts[i] = rng.i32_in(-30 * 4096, 30 * 4096);
         s.direction[i] = rng.i32_in(-1, 1) as i8;
         s.tension_mn[i] = rng.i32_in(0, 20_000) as u16;
+        s.cos2_inclination_q16[i] = rng.i32_in(0, 65535) as u16;
     }
     s.time_ms = rng.next_u32() % 3_600_000;
     s

@@ -8,7 +8,7 @@ use spidar_core::model::{EffectTerm, Frame, StringLaw, Vec3, WINDING_ORDER};
 use spidar_core::STRINGS;
 
 use super::config::SimConfig;
-use spidar_core::string_law::EffectContext;
+use spidar_core::string_law::{cos2_inclination_q16, EffectContext};
 
 use super::effects::{parse_effects, InjectedEffect};
 use super::SimError;
@@ -299,20 +299,45 @@ impl Device {
         Some(2.0 * payout / (r + disc.sqrt()))
     }
 
+    /// The run-time inputs of `string` at `position` that the model's terms
+    /// read ([`Self::counts_for_length`]): direction, tension, time, and the
+    /// inclination quantized as the device reads it
+    /// ([`cos2_inclination_q16`]).
+    pub(crate) fn conditions(
+        &self,
+        string: usize,
+        position: &Vec3<f64>,
+        direction: i8,
+        tension_n: f64,
+        t_s: f64,
+    ) -> EffectContext {
+        let cos2 = cos2_inclination_q16(&self.frame.anchors[string], position);
+        EffectContext {
+            theta: 0.0,
+            payout_mm: 0.0,
+            home_length_mm: 0.0,
+            direction,
+            tension_n,
+            time_s: t_s,
+            cos2_inclination: f64::from(cos2) / 65536.0,
+        }
+    }
+
     /// Encoder counts of `string` when its true length is `length_mm`,
     /// with `extra_mm` of length not explained by the model families (speed,
     /// abnormal motor) and the model terms evaluated at the true angle. Solves
     /// `length = home_length + payout(theta) + extra + effects(theta)` by
-    /// fixed-point iteration, then quantizes to whole counts.
+    /// fixed-point iteration, then quantizes to whole counts. `conditions`
+    /// holds the string's run-time inputs (direction, tension, time,
+    /// inclination); its angle, payout and home length are the solver's.
     pub(crate) fn counts_for_length(
         &self,
         string: usize,
         length_mm: f64,
         extra_mm: f64,
-        direction: i8,
-        tension_n: f64,
-        t_s: f64,
+        conditions: EffectContext,
     ) -> Result<i32, SimError> {
+        let t_s = conditions.time_s;
         let home_length_mm = self.home_length_mm(string);
         let target = length_mm - home_length_mm - extra_mm;
         let exhausted = || SimError::StringExhausted {
@@ -331,9 +356,7 @@ impl Device {
                     theta,
                     payout_mm: self.payout_mm(string, theta),
                     home_length_mm,
-                    direction,
-                    tension_n,
-                    time_s: t_s,
+                    ..conditions
                 };
                 let next = self
                     .theta_for_payout(string, target - self.effects_mm(string, &x))

@@ -32,6 +32,7 @@ use std::path::PathBuf;
 
 use rand::RngExt;
 use spidar_core::model::{StringInputs, Vec3};
+use spidar_core::string_law::cos2_inclinations;
 use spidar_core::STRINGS;
 
 pub use config::SimConfig;
@@ -247,7 +248,8 @@ pub fn simulate_session_with_truth(
                 extra += abnormal_mm;
             }
             let tension_n = f64::from(tension_mn[i]) / 1000.0;
-            counts[i] = device.counts_for_length(i, length, extra, direction[i], tension_n, t_s)?;
+            let conditions = device.conditions(i, &p, direction[i], tension_n, t_s);
+            counts[i] = device.counts_for_length(i, length, extra, conditions)?;
             lengths[i] = length;
             speeds[i] = speed;
         }
@@ -294,6 +296,7 @@ pub fn simulate_session_with_truth(
                 direction,
                 tension_mn,
                 time_ms: c.t_ms,
+                cos2_inclination_q16: cos2_inclinations(&device.frame.anchors, &p),
             },
             abnormal_mm,
             cell: c.cell,

@@ -407,7 +407,8 @@ impl Plant {
             let p = hand.position_at_sim(self.sim_epoch_us);
             for i in self.device.frame.layout.indices() {
                 let length = norm(&sub(&p, &self.device.frame.anchors[i]));
-                match self.device.counts_for_length(i, length, 0.0, 0, 0.0, 0.0) {
+                let conditions = self.device.conditions(i, &p, 0, 0.0, 0.0);
+                match self.device.counts_for_length(i, length, 0.0, conditions) {
                     Ok(c) => self.boot_counts[i] = c,
                     Err(e) => self.error = Some(e.to_string()),
                 }
@@ -528,14 +529,13 @@ impl Plant {
                 let spread = 1.0 - am.jitter / 2.0;
                 extra -= (am.step_mm + am.gain * (am.region_length_mm - lengths[i])) * spread;
             }
-            match self.device.counts_for_length(
-                i,
-                lengths[i],
-                extra,
-                self.direction[i],
-                self.tension_n[i],
-                t_s,
-            ) {
+            let conditions =
+                self.device
+                    .conditions(i, &p, self.direction[i], self.tension_n[i], t_s);
+            match self
+                .device
+                .counts_for_length(i, lengths[i], extra, conditions)
+            {
                 Ok(c) => self.counts[i] = c,
                 Err(e) => self.error = Some(e.to_string()),
             }

@@ -358,8 +358,9 @@ impl Loop {
         lim: spidar_core::tension::TensionLimits<f32>,
         cfg: &TensionConfig<f32>,
     ) -> bool {
-        let inputs = self.inputs(raw, now_ms);
         let frame = &cal.head.frame;
+        let mut inputs = self.inputs(raw, now_ms);
+        inputs.cos2_inclination_q16 = spidar_core::string_law::cos2_inclinations(&frame.anchors, &self.position);
         let lengths_q16 =
             spidar_core::string_law::string_lengths(frame.layout, &cal.head.laws, &cal.head.effects, &inputs);
         let lengths: [f32; STRINGS] = core::array::from_fn(|s| lengths_q16[s] as f32 / 65536.0);
@@ -402,7 +403,9 @@ impl Loop {
         let want = inverse_kinematics(&cal.head.frame.anchors, p);
         let mut counts = self.counts;
         for _ in 0..8 {
-            let inputs = self.clone().inputs(counts.map(|c| c as u16), 0);
+            let mut inputs = self.clone().inputs(counts.map(|c| c as u16), 0);
+            inputs.cos2_inclination_q16 =
+                spidar_core::string_law::cos2_inclinations(&cal.head.frame.anchors, &self.position);
             let got = spidar_core::string_law::string_lengths(
                 cal.head.frame.layout,
                 &cal.head.laws,
