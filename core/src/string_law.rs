@@ -126,8 +126,8 @@ pub fn cos2_inclination_q16<F: Real>(anchor: &Vec3<F>, position: &Vec3<F>) -> u1
     ];
     let level = d[0] * d[0] + d[1] * d[1];
     let squared = level + d[2] * d[2];
-    if !(squared > F::zero()) {
-        return 0;
+    if squared.partial_cmp(&F::zero()) != Some(core::cmp::Ordering::Greater) {
+        return 0; // no chord, or NaN
     }
     // In f32 on both sides (the device's type; a Q0.16 step is 1.5e-5): the
     // `as` cast truncates the non-negative value (so rounds half up),
@@ -2055,8 +2055,10 @@ mod tests {
             effect: Effect::Sag { mm_at_1m_1n: 1.6 },
         }];
         let (cl, ce) = compile_all(&f, &laws, &terms);
-        let mut inputs = StringInputs::default();
-        inputs.tension_mn = [1000; STRINGS];
+        let mut inputs = StringInputs {
+            tension_mn: [1000; STRINGS],
+            ..StringInputs::default()
+        };
         inputs.counts[2] = 40_000;
         let base = string_lengths_f64(&f, &laws, &[], &inputs)[2];
         let mut sags = [0.0; 3];
