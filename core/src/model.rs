@@ -415,15 +415,24 @@ pub enum Effect {
     /// Sag of a heavy string: a span of length `l` and linear weight `w`
     /// under tension `T` is longer than its chord by `w^2 cos^2(a) l^3 /
     /// (24 T^2)` (parabolic catenary, `a` the chord's inclination from the
-    /// horizontal), so `+ mm_at_1m_1n * cos^2(a) * (l / 1 m)^3 / (T / 1 N)^2`
-    /// with `cos^2(a)` from [`StringInputs::cos2_inclination_q16`], `l =
-    /// home_length + payout` (clamped to
-    /// 0..[`MAX_SAG_LENGTH_MM`](crate::string_law::MAX_SAG_LENGTH_MM)) and `T`
-    /// at least [`SAG_MIN_TENSION_N`](crate::string_law::SAG_MIN_TENSION_N)
-    /// (a slacker string is not a catenary), the sum clamped to
-    /// `+-`[`MAX_SAG_MM`](crate::string_law::MAX_SAG_MM). `mm_at_1m_1n` is `w^2
-    /// / 24`, the sag of a level 1 m span at 1 N: 1.6 mm for 20 g/m.
-    Sag { mm_at_1m_1n: f64 },
+    /// horizontal). The counts measure the string, the model the chord, and
+    /// the string already sagged when home was captured, so
+    /// `- mm_at_1m_1n * cos^2(a) * (l / 1 m)^3 / (T / 1 N)^2
+    ///  + home_mm_at_1m * cos^2(a_home) * (home_length / 1 m)^3`:
+    /// `mm_at_1m_1n = w^2 / 24`, the sag of a level 1 m span at 1 N (1.6 mm
+    /// for 20 g/m), and `home_mm_at_1m = w^2 / (24 T_home^2)`, that of a
+    /// level 1 m span at the home capture's tension (both positive for a
+    /// real sag; their ratio is `T_home^2`). `cos^2(a)` from
+    /// [`StringInputs::cos2_inclination_q16`], `cos^2(a_home)` from the
+    /// frame (quantized the same way); `l = home_length + payout` (clamped to
+    /// 0..[`MAX_SAG_LENGTH_MM`](crate::string_law::MAX_SAG_LENGTH_MM)), `T` at
+    /// least [`SAG_MIN_TENSION_N`](crate::string_law::SAG_MIN_TENSION_N) (a
+    /// slacker string is not a catenary); each of the two parts clamped to
+    /// `+-`[`MAX_SAG_MM`](crate::string_law::MAX_SAG_MM).
+    Sag {
+        mm_at_1m_1n: f64,
+        home_mm_at_1m: f64,
+    },
 }
 
 /// An [`Effect`] applied to one string, or to every string at once.

@@ -85,22 +85,46 @@ pub const MAX_SAG_MM_AT_1M_1N: f64 = 100.0;
 /// any error of the length it is evaluated at.
 pub const MAX_SAG_MM: f64 = 100.0;
 
-/// A sag term's contribution: `mm_at_1m_1n * sag_variable`, clamped to
-/// `+-`[`MAX_SAG_MM`].
-pub fn sag_mm(mm_at_1m_1n: f64, ctx: &EffectContext) -> f64 {
-    (mm_at_1m_1n * sag_variable(ctx)).clamp(-MAX_SAG_MM, MAX_SAG_MM)
+/// A sag term's contribution (mm): `- mm_at_1m_1n * sag_variable +
+/// home_mm_at_1m * sag_home_variable`, each part clamped to
+/// `+-`[`MAX_SAG_MM`] ([`Effect::Sag`]).
+pub fn sag_mm(mm_at_1m_1n: f64, home_mm_at_1m: f64, ctx: &EffectContext) -> f64 {
+    let now = (mm_at_1m_1n * sag_variable(ctx)).clamp(-MAX_SAG_MM, MAX_SAG_MM);
+    let home = (home_mm_at_1m * sag_home_variable(ctx)).clamp(-MAX_SAG_MM, MAX_SAG_MM);
+    home - now
 }
 
-/// d(sag)/d(free length) of a sag term: `3 sag / l`, 0 where the length or
-/// the sag is clamped (what the identification's length derivatives carry).
+/// d(contribution)/d(free length) of a sag term: `-3 sag / l`, 0 where the
+/// length or the sag is clamped (what the identification's payout and home
+/// length derivatives carry).
 pub fn sag_slope(mm_at_1m_1n: f64, ctx: &EffectContext) -> f64 {
     let l = ctx.home_length_mm + ctx.payout_mm;
     let sag = mm_at_1m_1n * sag_variable(ctx);
     if l <= 0.0 || l >= MAX_SAG_LENGTH_MM || sag.abs() >= MAX_SAG_MM {
         0.0
     } else {
+        -3.0 * sag / l
+    }
+}
+
+/// d(contribution)/d(home length) of a sag term's home part: `3 home_sag /
+/// home_length`, 0 where clamped (the identification adds it to the home
+/// length's derivative, beside [`sag_slope`]).
+pub fn sag_home_slope(home_mm_at_1m: f64, ctx: &EffectContext) -> f64 {
+    let l = ctx.home_length_mm;
+    let sag = home_mm_at_1m * sag_home_variable(ctx);
+    if l <= 0.0 || l >= MAX_SAG_LENGTH_MM || sag.abs() >= MAX_SAG_MM {
+        0.0
+    } else {
         3.0 * sag / l
     }
+}
+
+/// `cos^2(a_home) (home_length / 1 m)^3` of a sag term: the home capture's
+/// sag variable without its tension ([`Effect::Sag`]).
+pub fn sag_home_variable(ctx: &EffectContext) -> f64 {
+    let l = ctx.home_length_mm.clamp(0.0, MAX_SAG_LENGTH_MM) / 1000.0;
+    ctx.home_cos2_inclination * l * l * l
 }
 
 /// `cos^2(a) (l / 1 m)^3 / (T / 1 N)^2` of a sag term, with `l` and `T`
@@ -210,6 +234,9 @@ pub struct EffectContext {
     pub time_s: f64,
     /// `cos^2` of the string's inclination = `cos2_inclination_q16 / 65536`.
     pub cos2_inclination: f64,
+    /// `cos^2` of the string's inclination at home, from the frame,
+    /// quantized as the device's ([`cos2_inclination_q16`]) / 65536.
+    pub home_cos2_inclination: f64,
 }
 
 impl EffectContext {
@@ -230,6 +257,10 @@ impl EffectContext {
             direction: *inputs.direction.get(string)?,
             time_s: f64::from(inputs.time_ms) / 1000.0,
             cos2_inclination: f64::from(*inputs.cos2_inclination_q16.get(string)?) / 65536.0,
+            home_cos2_inclination: f64::from(cos2_inclination_q16(
+                frame.anchors.get(string)?,
+                &frame.home,
+            )) / 65536.0,
         })
     }
 }
@@ -291,7 +322,10 @@ impl Effect {
                     0.0
                 }
             }
-            Effect::Sag { mm_at_1m_1n } => sag_mm(mm_at_1m_1n, ctx),
+            Effect::Sag {
+                mm_at_1m_1n,
+                home_mm_at_1m,
+            } => sag_mm(mm_at_1m_1n, home_mm_at_1m, ctx),
         }
     }
 
@@ -308,7 +342,7 @@ impl Effect {
     /// | Backlash | `half_width_mm` | `[sign(direction)]` |
     /// | Drift | `mm_per_s` | `[t]` |
     /// | Slip | `mm` (`at_s` is held fixed: a step is not differentiable in its time; search it separately) | `[t >= at_s ? 1 : 0]` |
-    /// | Sag | `mm_at_1m_1n` | `[cos^2(a) (l / 1 m)^3 / (T / 1 N)^2]` (0 where the sag is clamped) |
+    /// | Sag | `mm_at_1m_1n, home_mm_at_1m` | `[-cos^2(a) (l / 1 m)^3 / (T / 1 N)^2, cos^2(a_home) (home_length / 1 m)^3]` (0 where a part is clamped) |
     pub fn gradient_f64(&self, ctx: &EffectContext) -> heapless::Vec<f64, 2> {
         match *self {
             Effect::Offset { .. } => one(1.0),
@@ -319,13 +353,24 @@ impl Effect {
             Effect::Backlash { .. } => one(direction_sign(ctx.direction)),
             Effect::Drift { .. } => one(ctx.time_s),
             Effect::Slip { at_s, .. } => one(if ctx.time_s >= at_s { 1.0 } else { 0.0 }),
-            Effect::Sag { mm_at_1m_1n } => {
+            Effect::Sag {
+                mm_at_1m_1n,
+                home_mm_at_1m,
+            } => {
                 let v = sag_variable(ctx);
-                one(if (mm_at_1m_1n * v).abs() < MAX_SAG_MM {
-                    v
-                } else {
-                    0.0
-                })
+                let h = sag_home_variable(ctx);
+                two(
+                    if (mm_at_1m_1n * v).abs() < MAX_SAG_MM {
+                        -v
+                    } else {
+                        0.0
+                    },
+                    if (home_mm_at_1m * h).abs() < MAX_SAG_MM {
+                        h
+                    } else {
+                        0.0
+                    },
+                )
             }
         }
     }
@@ -341,7 +386,10 @@ impl Effect {
             Effect::Backlash { half_width_mm } => one(half_width_mm),
             Effect::Drift { mm_per_s } => one(mm_per_s),
             Effect::Slip { mm, .. } => one(mm),
-            Effect::Sag { mm_at_1m_1n } => one(mm_at_1m_1n),
+            Effect::Sag {
+                mm_at_1m_1n,
+                home_mm_at_1m,
+            } => two(mm_at_1m_1n, home_mm_at_1m),
         }
     }
 
@@ -369,7 +417,10 @@ impl Effect {
             },
             Effect::Drift { .. } => Effect::Drift { mm_per_s: p[0] },
             Effect::Slip { at_s, .. } => Effect::Slip { at_s, mm: p[0] },
-            Effect::Sag { .. } => Effect::Sag { mm_at_1m_1n: p[0] },
+            Effect::Sag { .. } => Effect::Sag {
+                mm_at_1m_1n: p[0],
+                home_mm_at_1m: p[1],
+            },
         })
     }
 }
@@ -677,6 +728,10 @@ pub struct CompiledStringLaw {
     pub winding_q32: [i64; WINDING_ORDER],
     /// The layer table ([`LayerTable`]), knots in Q47.16 mm.
     pub layers: CompiledLayerTable,
+    /// What a sag term's home part scales with: `cos^2(a_home) (home_length
+    /// / 4096 mm)^3` in Q·30 (`cos^2` quantized to Q0.16 as the device's,
+    /// the length clamped to [`MAX_SAG_LENGTH_MM`]: below 2^33).
+    pub home_sag_q30: i64,
 }
 
 /// The fixed-point form of a [`LayerTable`]: the same knots (counts), their
@@ -770,11 +825,14 @@ pub fn compile_string_law(
             "Q31.32 mm per x^k",
         )?;
     }
+    let home_cos2 = f64::from(cos2_inclination_q16(anchor, &frame.home)) / 65536.0;
+    let a = home.clamp(0.0, MAX_SAG_LENGTH_MM) / 4096.0;
     Ok(CompiledStringLaw {
         home_length_q16,
         counts_per_rev: law.counts_per_rev,
         winding_q32,
         layers: compile_layer_table(string, law)?,
+        home_sag_q30: libm::round(home_cos2 * a * a * a * (1u64 << 30) as f64) as i64,
     })
 }
 
@@ -916,14 +974,21 @@ pub enum CompiledEffect {
     Drift { string: u8, mm_per_ms_q48: i64 },
     /// `+ mm_q16` when `time_ms >= at_ms` (Q47.16 mm, ms since home).
     Slip { string: u8, at_ms: u32, mm_q16: i64 },
-    /// `+ coeff_q32 * a^3 / tau^2` (Q31.32 mm) with `a = l / 4096 mm` and
-    /// `tau = tension_mn / 1024`: `a` is the free length `l = home_length +
-    /// payout` read as Q·30 (its Q·18 mm bits), clamped to `0..2^31`
-    /// (8192 mm); `tau^2` is `max(tension_mn, 250)^2` in Q·20; `a^2`, `a^3`
-    /// in Q·30, `r = (a^3 << 20) / tau^2` in Q·30, the product through
-    /// i128, each rounded, clamped to `+-`[`MAX_SAG_MM`]. `coeff = mm_at_1m_1n * 4.096^3 /
-    /// 1.024^2 = mm_at_1m_1n * 65.536`.
-    Sag { string: u8, coeff_q32: i64 },
+    /// `+ coeff_q32 * cos^2 * a^3 / tau^2 + home_coeff_q32 * home_sag`
+    /// (Q31.32 mm) with `a = l / 4096 mm` and `tau = tension_mn / 1024`: `a`
+    /// is the free length `l = home_length + payout` read as Q·30 (its Q·18
+    /// mm bits), clamped to `0..2^31` (8192 mm); `tau^2` is
+    /// `max(tension_mn, 250)^2` in Q·20; `a^2`, `a^3` in Q·30, `r = (a^3 <<
+    /// 20) / tau^2` in Q·30, `cos^2` the input's Q0.16; `home_sag` the
+    /// string law's [`CompiledStringLaw::home_sag_q30`]; each product
+    /// through i128, rounded, each part clamped to `+-`[`MAX_SAG_MM`].
+    /// `coeff = -mm_at_1m_1n * 4.096^3 / 1.024^2 = -mm_at_1m_1n * 65.536`,
+    /// `home_coeff = home_mm_at_1m * 4.096^3`.
+    Sag {
+        string: u8,
+        coeff_q32: i64,
+        home_coeff_q32: i64,
+    },
 }
 
 /// What a compiled effect of one string depends on, in device units.
@@ -943,6 +1008,8 @@ pub struct FixedContext {
     pub payout_q32: i64,
     /// `cos^2` of the inclination, Q0.16 ([`StringInputs::cos2_inclination_q16`]).
     pub cos2_inclination_q16: u16,
+    /// The law's [`CompiledStringLaw::home_sag_q30`].
+    pub home_sag_q30: i64,
 }
 
 /// Compiles one effect term; `laws` gives the counts per revolution of its
@@ -1024,20 +1091,35 @@ pub fn compile_effect(
                 per_mn_q47: to_fixed(s, "per_newton", e / 1000.0, 47, "Q16.47 per mN")?,
             }
         }
-        Effect::Sag { mm_at_1m_1n } => {
-            let m = finite(s, "mm_at_1m_1n", mm_at_1m_1n)?;
-            if m.abs() > MAX_SAG_MM_AT_1M_1N {
-                return Err(CompileError::OutOfRange {
-                    string: s,
-                    field: "mm_at_1m_1n",
-                    value: m,
-                    min: -MAX_SAG_MM_AT_1M_1N,
-                    max: MAX_SAG_MM_AT_1M_1N,
-                });
-            }
+        Effect::Sag {
+            mm_at_1m_1n,
+            home_mm_at_1m,
+        } => {
+            let bounded = |field: &'static str, v: f64| {
+                let v = finite(s, field, v)?;
+                if v.abs() > MAX_SAG_MM_AT_1M_1N {
+                    return Err(CompileError::OutOfRange {
+                        string: s,
+                        field,
+                        value: v,
+                        min: -MAX_SAG_MM_AT_1M_1N,
+                        max: MAX_SAG_MM_AT_1M_1N,
+                    });
+                }
+                Ok(v)
+            };
+            let m = bounded("mm_at_1m_1n", mm_at_1m_1n)?;
+            let h = bounded("home_mm_at_1m", home_mm_at_1m)?;
             CompiledEffect::Sag {
                 string,
-                coeff_q32: to_fixed(s, "mm_at_1m_1n", m * 65.536, 32, "Q31.32 mm")?,
+                coeff_q32: to_fixed(s, "mm_at_1m_1n", -m * 65.536, 32, "Q31.32 mm")?,
+                home_coeff_q32: to_fixed(
+                    s,
+                    "home_mm_at_1m",
+                    h * 4.096 * 4.096 * 4.096,
+                    32,
+                    "Q31.32 mm",
+                )?,
             }
         }
         Effect::Backlash { half_width_mm } => CompiledEffect::Backlash {
@@ -1202,7 +1284,11 @@ impl CompiledEffect {
                     0
                 }
             }
-            CompiledEffect::Sag { coeff_q32, .. } => {
+            CompiledEffect::Sag {
+                coeff_q32,
+                home_coeff_q32,
+                ..
+            } => {
                 let free_q32 = q16_to_q32(ctx.home_length_q16).saturating_add(ctx.payout_q32);
                 // a = l / 4096 mm in Q.30 is l in Q.18 mm; 0 <= a < 2, so
                 // a^2 < 2^62 and a^2 a < 2^63 (rounded at each step).
@@ -1217,8 +1303,12 @@ impl CompiledEffect {
                 // coeff cos^2 a^3 / tau^2 in Q.46: |coeff| < 2^45, r < 2^38
                 // (tau >= 250 mN) and cos^2 < 2^16, so below 2^99.
                 let scaled = i128::from(coeff_q32) * i128::from(r_q30);
-                let out = (scaled * i128::from(ctx.cos2_inclination_q16) + (1 << 45)) >> 46;
-                out.clamp(-MAX_SAG_Q32, MAX_SAG_Q32) as i64
+                let now = (scaled * i128::from(ctx.cos2_inclination_q16) + (1 << 45)) >> 46;
+                // |home_coeff| < 2^45, home_sag < 2^33.
+                let home =
+                    (i128::from(home_coeff_q32) * i128::from(ctx.home_sag_q30) + (1 << 29)) >> 30;
+                (now.clamp(-MAX_SAG_Q32, MAX_SAG_Q32) + home.clamp(-MAX_SAG_Q32, MAX_SAG_Q32))
+                    as i64
             }
         }
     }
@@ -1282,6 +1372,7 @@ fn lengths_of<const ALL: bool>(
         home_length_q16: laws[s].home_length_q16,
         payout_q32: payout[s],
         cos2_inclination_q16: inputs.cos2_inclination_q16[s],
+        home_sag_q30: laws[s].home_sag_q30,
     };
     for e in effects {
         let s = usize::from(e.string());
@@ -1697,6 +1788,7 @@ mod tests {
             });
             push(Effect::Sag {
                 mm_at_1m_1n: rng.uniform(-5.0, 5.0),
+                home_mm_at_1m: rng.uniform(-5.0, 5.0),
             });
         }
         // Terms shared by every string.
@@ -1937,7 +2029,16 @@ mod tests {
             Err(CompileError::NotFinite { field: "mm", .. })
         ));
         assert!(matches!(
-            compile_effect(&term(0, Effect::Sag { mm_at_1m_1n: 101.0 }), &laws),
+            compile_effect(
+                &term(
+                    0,
+                    Effect::Sag {
+                        mm_at_1m_1n: 101.0,
+                        home_mm_at_1m: 1.0
+                    }
+                ),
+                &laws
+            ),
             Err(CompileError::OutOfRange {
                 field: "mm_at_1m_1n",
                 ..
@@ -1948,7 +2049,24 @@ mod tests {
                 &term(
                     0,
                     Effect::Sag {
-                        mm_at_1m_1n: f64::NAN
+                        mm_at_1m_1n: 1.6,
+                        home_mm_at_1m: -101.0
+                    }
+                ),
+                &laws
+            ),
+            Err(CompileError::OutOfRange {
+                field: "home_mm_at_1m",
+                ..
+            })
+        ));
+        assert!(matches!(
+            compile_effect(
+                &term(
+                    0,
+                    Effect::Sag {
+                        mm_at_1m_1n: f64::NAN,
+                        home_mm_at_1m: 0.0
                     }
                 ),
                 &laws
@@ -2052,7 +2170,10 @@ mod tests {
         let f = frame([0.0; 3]);
         let terms = [EffectTerm {
             string: 2,
-            effect: Effect::Sag { mm_at_1m_1n: 1.6 },
+            effect: Effect::Sag {
+                mm_at_1m_1n: 1.6,
+                home_mm_at_1m: 0.0,
+            },
         }];
         let (cl, ce) = compile_all(&f, &laws, &terms);
         let mut inputs = StringInputs {
@@ -2070,8 +2191,67 @@ mod tests {
             sags[k] = want - base;
         }
         assert_eq!(sags[0], 0.0, "a plumb string does not sag");
-        assert!(sags[2] > 1.0, "{sags:?}");
-        assert!((sags[1] - sags[2] / 2.0).abs() < 1e-4 * sags[2], "{sags:?}");
+        assert!(
+            sags[2] < -1.0,
+            "the chord is shorter than the string: {sags:?}"
+        );
+        assert!(
+            (sags[1] - sags[2] / 2.0).abs() < 1e-4 * sags[2].abs(),
+            "{sags:?}"
+        );
+    }
+
+    #[test]
+    fn a_sag_term_is_zero_at_the_home_capture() {
+        // The counts start from the string as it sagged at home (tension
+        // T_home): with home_mm_at_1m = mm_at_1m_1n / T_home^2 the term
+        // vanishes there, in both paths, and is the sag's change elsewhere.
+        let laws = [StringLaw::polynomial(4096, [10.0, 0.0, 0.0, 0.0]); STRINGS];
+        let f = frame([100.0, -50.0, 200.0]);
+        let t_home = 1.1;
+        let terms = [EffectTerm {
+            string: EVERY_STRING,
+            effect: Effect::Sag {
+                mm_at_1m_1n: 1.6,
+                home_mm_at_1m: 1.6 / (t_home * t_home),
+            },
+        }];
+        let (cl, ce) = compile_all(&f, &laws, &terms);
+        let at_home = StringInputs {
+            tension_mn: [1100; STRINGS],
+            cos2_inclination_q16: cos2_inclinations(&f.anchors, &f.home),
+            ..StringInputs::default()
+        };
+        let want = string_lengths_f64(&f, &laws, &terms, &at_home);
+        let bare = string_lengths_f64(&f, &laws, &[], &at_home);
+        let got = string_lengths(StringLayout::ALL, &cl, &ce, &at_home);
+        for i in 0..STRINGS {
+            assert!(
+                (want[i] - bare[i]).abs() < 1e-9,
+                "string {i}: {} vs {}",
+                want[i],
+                bare[i]
+            );
+            assert!(
+                (got[i] as f64 / 65536.0 - bare[i]).abs() < 1e-4,
+                "string {i}"
+            );
+        }
+        // Taut (4x the home tension) at home: the string sags less than at
+        // the capture, so the chord is longer than the counts say.
+        let taut = StringInputs {
+            tension_mn: [4400; STRINGS],
+            ..at_home
+        };
+        let want = string_lengths_f64(&f, &laws, &terms, &taut);
+        let got = string_lengths(StringLayout::ALL, &cl, &ce, &taut);
+        for i in 0..STRINGS {
+            assert!(want[i] - bare[i] > 0.1, "string {i}: {}", want[i] - bare[i]);
+            assert!(
+                (got[i] as f64 / 65536.0 - want[i]).abs() < 1e-4,
+                "string {i}"
+            );
+        }
     }
 
     #[test]
@@ -2147,8 +2327,13 @@ mod tests {
                     mm_q16,
                 }
             }),
-            (s, any::<i64>())
-                .prop_map(|(string, coeff_q32)| CompiledEffect::Sag { string, coeff_q32 }),
+            (s, any::<i64>(), any::<i64>()).prop_map(|(string, coeff_q32, home_coeff_q32)| {
+                CompiledEffect::Sag {
+                    string,
+                    coeff_q32,
+                    home_coeff_q32,
+                }
+            }),
         ]
     }
 
@@ -2171,15 +2356,19 @@ mod tests {
             any::<u32>(),
             any::<[i64; WINDING_ORDER]>(),
             arb_layers(),
+            any::<i64>(),
         )
-            .prop_map(|(home_length_q16, counts_per_rev, winding_q32, layers)| {
-                CompiledStringLaw {
-                    home_length_q16,
-                    counts_per_rev,
-                    winding_q32,
-                    layers,
-                }
-            })
+            .prop_map(
+                |(home_length_q16, counts_per_rev, winding_q32, layers, home_sag_q30)| {
+                    CompiledStringLaw {
+                        home_length_q16,
+                        counts_per_rev,
+                        winding_q32,
+                        home_sag_q30,
+                        layers,
+                    }
+                },
+            )
     }
 
     fn arb_inputs() -> impl Strategy<Value = StringInputs> {
@@ -2247,7 +2436,10 @@ mod tests {
                 Effect::Backlash { half_width_mm: v },
                 Effect::Drift { mm_per_s: v },
                 Effect::Slip { at_s: v, mm: w },
-                Effect::Sag { mm_at_1m_1n: v },
+                Effect::Sag {
+                    mm_at_1m_1n: v,
+                    home_mm_at_1m: w,
+                },
             ] {
                 if let Ok(c) = compile_effect(&EffectTerm { string, effect }, &laws) {
                     prop_assert!(c.validate().is_ok());

@@ -225,9 +225,9 @@ fn main() {
         ),
         ("slip:2:at_s=2000,mm=5", Family::Slip, &[2], Variable::Time),
         (
-            "sag:5:mm_at_1m_1n=1.6",
+            "sag:*:mm_at_1m_1n=1.6,home_mm_at_1m=1.32",
             Family::Sag,
-            &[5],
+            &[],
             Variable::Tension,
         ),
         (

@@ -79,7 +79,9 @@ use spidar_core::model::{
     Effect, EffectTerm, Frame, LayerTable, StringInputs, StringLaw, StringLayout, EVERY_STRING,
     WINDING_ORDER,
 };
-use spidar_core::string_law::{cos2_inclinations, sag_slope, string_lengths_f64, EffectContext};
+use spidar_core::string_law::{
+    cos2_inclinations, sag_home_slope, sag_slope, string_lengths_f64, EffectContext,
+};
 use spidar_core::STRINGS;
 
 use crate::observe::Observation;
@@ -371,7 +373,10 @@ pub fn effect_parameter_info(effect: &Effect) -> &'static [(&'static str, f64, &
         Effect::Backlash { .. } => &[("backlash", 0.1, "mm")],
         Effect::Drift { .. } => &[("drift", 1e-4, "mm/s")],
         Effect::Slip { .. } => &[("slip", 1.0, "mm")],
-        Effect::Sag { .. } => &[("sag", 0.1, "mm at 1 m and 1 N")],
+        Effect::Sag { .. } => &[
+            ("sag", 0.1, "mm at 1 m and 1 N"),
+            ("home_sag", 0.1, "mm at 1 m"),
+        ],
     }
 }
 
@@ -827,11 +832,15 @@ impl levenberg_marquardt::LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
                             d_payout += per_newton * t;
                             d_home += per_newton * t;
                         }
-                        Effect::Sag { mm_at_1m_1n } => {
-                            let slope = EffectContext::for_string(frame, &laws, &inputs, i)
-                                .map_or(0.0, |ctx| sag_slope(mm_at_1m_1n, &ctx));
-                            d_payout += slope;
-                            d_home += slope;
+                        Effect::Sag {
+                            mm_at_1m_1n,
+                            home_mm_at_1m,
+                        } => {
+                            if let Some(ctx) = EffectContext::for_string(frame, &laws, &inputs, i) {
+                                let slope = sag_slope(mm_at_1m_1n, &ctx);
+                                d_payout += slope;
+                                d_home += slope + sag_home_slope(home_mm_at_1m, &ctx);
+                            }
                         }
                         _ => {}
                     }

@@ -182,15 +182,28 @@ fn slip() {
     check_family("slip:2:at_s=2000,mm=5", Family::Slip, &[2], Variable::Time);
 }
 
-/// A heavy string (20 g/m, horizontal: 1.6 mm at 1 m and 1 N) on one string.
+/// Heavy strings (20 g/m: 1.6 mm at 1 m and 1 N, captured at home at
+/// 1.1 N: 1.32 mm at 1 m), all of one kind: one shared term, its weight and
+/// the home tension recovered.
 #[test]
 fn sag() {
-    check_family(
-        "sag:5:mm_at_1m_1n=1.6",
-        Family::Sag,
-        &[5],
-        Variable::Tension,
-    );
+    let (result, after) = run(1, &["sag:*:mm_at_1m_1n=1.6,home_mm_at_1m=1.32"]);
+    assert_found(&result, Family::Sag, &[], Variable::Tension);
+    let (c, h) = result
+        .identification
+        .effects
+        .iter()
+        .find_map(|t| match t.effect {
+            spidar_core::model::Effect::Sag {
+                mm_at_1m_1n,
+                home_mm_at_1m,
+            } if t.string == spidar_core::model::EVERY_STRING => Some((mm_at_1m_1n, home_mm_at_1m)),
+            _ => None,
+        })
+        .expect("one shared sag");
+    assert!((c - 1.6).abs() < 0.02 && (h - 1.32).abs() < 0.05, "{c} {h}");
+    let base = baseline(1);
+    assert!(after <= 1.05 * base, "{after:.3} mm after, {base:.3} clean");
 }
 
 #[test]

@@ -457,6 +457,46 @@ fn a_slip_early_in_a_session_is_added_as_a_slip_not_an_offset() {
     assert!(test.mean_mm < 1.0, "{test:?}");
 }
 
+/// Heavy strings (20 g/m on every string, other physics: its sag is
+/// `w^2 cos^2(a) l^3 / (24 T^2)` and the string already sagged at the home
+/// capture, 1.1 N) are named one shared sag, against tension, with the
+/// string's weight and the home tension recovered from their ratio, and
+/// the error falls to the clean device's level.
+#[test]
+fn heavy_strings_are_one_shared_sag_with_the_home_capture_s_tension() {
+    use spidar::diagnose::{Family, Variable};
+    use spidar_core::model::{Effect, EVERY_STRING};
+    let r = loop_on(2, &["heavy-string"]);
+    let stage = r
+        .stages
+        .iter()
+        .find(|s| s.name == "sag (every string)")
+        .unwrap_or_else(|| panic!("stages: {:?}", names(&r)));
+    assert_eq!(stage.finding.family, Family::Sag);
+    assert_eq!(stage.finding.variable, Variable::Tension);
+    let (c, h) = r
+        .identification
+        .effects
+        .iter()
+        .find_map(|t| match t.effect {
+            Effect::Sag {
+                mm_at_1m_1n,
+                home_mm_at_1m,
+            } if t.string == EVERY_STRING => Some((mm_at_1m_1n, home_mm_at_1m)),
+            _ => None,
+        })
+        .expect("the shared sag term");
+    // w^2 / 24 of 20 g/m = 1.603 mm at 1 m and 1 N.
+    assert!((c - 1.603).abs() < 0.1 * 1.603, "mm_at_1m_1n {c}");
+    let home_tension_n = (c / h).sqrt();
+    assert!(
+        (home_tension_n - 1.1).abs() < 0.1,
+        "home tension {home_tension_n} N"
+    );
+    let test = r.stages.last().unwrap().test.unwrap();
+    assert!(test.mean_mm < 0.6, "{test:?}");
+}
+
 fn names(r: &spidar::diagnose::LoopResult) -> Vec<&str> {
     r.stages.iter().map(|s| s.name.as_str()).collect()
 }

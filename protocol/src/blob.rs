@@ -26,8 +26,10 @@ use serde::{Deserialize, Serialize};
 
 /// Magic bytes at the start of every model blob.
 pub const MAGIC: [u8; 4] = *b"SPDM";
-/// Blob format this crate reads and writes. Version 4 (any other is refused
+/// Blob format this crate reads and writes. Version 5 (any other is refused
 /// with [`BlobError::UnsupportedVersion`]): each string law carries its
+/// home sag factor and a sag term its home part (the string sagged when home
+/// was captured, `spidar-core::model::Effect::Sag`). Version 4: each string law carries its
 /// layer table (the spool's departure from the winding polynomial, knots in
 /// counts, `spidar-core::model::LayerTable`). Version 3: the frame carries the string
 /// layout (which of the 8 channels carry a string, planar or 3-D), so one
@@ -35,7 +37,7 @@ pub const MAGIC: [u8; 4] = *b"SPDM";
 /// zero padding after the string model so that the correction starts at a
 /// multiple of 4 bytes from the blob start (`spidar-core::blob`), which lets
 /// the device read the SVR records as aligned words; version 1 had none.
-pub const FORMAT_VERSION: u16 = 4;
+pub const FORMAT_VERSION: u16 = 5;
 /// Size of the header in bytes.
 pub const HEADER_LEN: usize = 40;
 
@@ -366,7 +368,7 @@ mod tests {
 
     #[test]
     fn older_versions_are_refused_by_name() {
-        for old in [1u16, 2, 3] {
+        for old in [1u16, 2, 3, 4] {
             let mut bytes = header().to_bytes();
             bytes[4..6].copy_from_slice(&old.to_le_bytes());
             let crc = CRC32.checksum(&bytes[0..36]);
@@ -375,7 +377,7 @@ mod tests {
                 ModelHeader::parse(&bytes),
                 Err(BlobError::UnsupportedVersion {
                     found: old,
-                    supported: 4
+                    supported: FORMAT_VERSION
                 })
             );
         }

@@ -51,7 +51,7 @@ fn calibration(correction: CorrectionModel) -> Calibration {
         EffectTerm { string: 6, effect: Effect::Drift { mm_per_s: 1e-4 } },
         EffectTerm { string: 7, effect: Effect::Slip { at_s: 600.0, mm: 1.2 } },
         // A heavy string's sag (issue 10, heavy-string).
-        EffectTerm { string: 4, effect: Effect::Sag { mm_at_1m_1n: 1.6 } },
+        EffectTerm { string: 4, effect: Effect::Sag { mm_at_1m_1n: 1.6, home_mm_at_1m: 1.32 } },
         // One drift shared by every string (issue 10, point 4).
         EffectTerm { string: EVERY_STRING, effect: Effect::Drift { mm_per_s: 3e-5 } },
     ];

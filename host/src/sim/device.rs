@@ -311,7 +311,9 @@ impl Device {
         tension_n: f64,
         t_s: f64,
     ) -> EffectContext {
-        let cos2 = cos2_inclination_q16(&self.frame.anchors[string], position);
+        let anchor = &self.frame.anchors[string];
+        let cos2 = cos2_inclination_q16(anchor, position);
+        let home_cos2 = cos2_inclination_q16(anchor, &self.frame.home);
         EffectContext {
             theta: 0.0,
             payout_mm: 0.0,
@@ -320,6 +322,7 @@ impl Device {
             tension_n,
             time_s: t_s,
             cos2_inclination: f64::from(cos2) / 65536.0,
+            home_cos2_inclination: f64::from(home_cos2) / 65536.0,
         }
     }
 

@@ -29,7 +29,7 @@
 //! | `backlash` | `half_width_mm` | `+ half_width_mm * direction` |
 //! | `drift` | `mm_per_s` | `+ mm_per_s * t` |
 //! | `slip` | `at_s`, `mm` | `+ mm * [t >= at_s]` |
-//! | `sag` | `mm_at_1m_1n` | `+ mm_at_1m_1n * (l / 1 m)^3 / (T / 1 N)^2`, `l = home_length + payout` |
+//! | `sag` | `mm_at_1m_1n`, `home_mm_at_1m` (default 0) | `- mm_at_1m_1n * cos^2(a) (l / 1 m)^3 / (T / 1 N)^2 + home_mm_at_1m * cos^2(a_home) (home_length / 1 m)^3`, `l = home_length + payout` |
 //! | `speed` (unexplained) | `latency_s` | `+ latency_s * dL/dt` (encoder latency) |
 //! | `anchor` (geometry) | `dx`, `dy`, `dz` (each default 0) | anchor moved by `[dx, dy, dz]` mm |
 //! | `tracker_scale` (geometry) | `relative` | tracker scale times `1 + relative` |
@@ -206,7 +206,11 @@ pub fn parse_effect(spec: &str) -> Result<Vec<InjectedEffect>, SimError> {
         }
         "sag" => {
             let mm_at_1m_1n = p.required("mm_at_1m_1n")?;
-            Ok(model(Effect::Sag { mm_at_1m_1n }))
+            let home_mm_at_1m = p.optional("home_mm_at_1m");
+            Ok(model(Effect::Sag {
+                mm_at_1m_1n,
+                home_mm_at_1m,
+            }))
         }
         "speed" => {
             let latency_s = p.required("latency_s")?;
