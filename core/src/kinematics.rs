@@ -15,7 +15,8 @@
 
 use crate::real::Real;
 
-use crate::model::{StringLayout, Vec3};
+use crate::model::{StringInputs, StringLayout, Vec3};
+use crate::string_law::cos2_inclinations;
 use crate::STRINGS;
 
 /// `x` as `F` (constants only; every `f64` converts to `f32`/`f64`).
@@ -320,6 +321,32 @@ fn finite3<F: Real>(v: &Vec3<F>) -> bool {
     v[0].is_finite() && v[1].is_finite() && v[2].is_finite()
 }
 
+/// Forward kinematics of one session row whose string lengths read the
+/// strings' inclination (a sag, [`crate::model::Effect::reads_inclination`]),
+/// for the host's replays of a session (f64 reference and device bits): the
+/// lengths at the inclinations at `start`, then, when `inclined`, at those of
+/// the first solution, solved again from it. The device's loop needs no
+/// second solve: the position it holds is a tick old. `lengths` gives the
+/// string lengths of `inputs`.
+pub fn forward_kinematics_inclined<F: Real>(
+    anchors: &[Vec3<F>; STRINGS],
+    layout: StringLayout,
+    inputs: &StringInputs,
+    start: Vec3<F>,
+    config: &FkConfig<F>,
+    inclined: bool,
+    lengths: impl Fn(&StringInputs) -> [F; STRINGS],
+) -> FkSolution<F> {
+    let mut inputs = *inputs;
+    inputs.cos2_inclination_q16 = cos2_inclinations(anchors, &start);
+    let fk = forward_kinematics(anchors, layout, &lengths(&inputs), start, config);
+    if !inclined || !finite3(&fk.position) {
+        return fk;
+    }
+    inputs.cos2_inclination_q16 = cos2_inclinations(anchors, &fk.position);
+    forward_kinematics(anchors, layout, &lengths(&inputs), fk.position, config)
+}
+
 /// Position (mm, device frame) from the string lengths of the channels
 /// `layout` marks active, warm-started from `start` (the previous position;
 /// the frame centre on a cold start). Inactive channels' anchors and lengths
@@ -530,6 +557,41 @@ mod tests {
             ];
         }
         a
+    }
+
+    /// A row far from the previous one (a lattice's next point): lengths
+    /// that read the inclination (a 20 mm sag-like term, exact at the true
+    /// inclinations) solved once at the previous position's inclinations
+    /// are off; solved again at the first solution's, they are not.
+    #[test]
+    fn a_row_whose_lengths_read_the_inclination_is_solved_at_its_own() {
+        let a = anchors::<f64>();
+        let config = FkConfig::<f64>::default();
+        let truth = [300.0, -200.0, 150.0];
+        let at_truth = cos2_inclinations(&a, &truth);
+        let lengths = |inputs: &StringInputs| -> [f64; STRINGS] {
+            let chords = inverse_kinematics(&a, truth);
+            core::array::from_fn(|i| {
+                let read = f64::from(inputs.cos2_inclination_q16[i]) / 65536.0;
+                chords[i] + 20.0 * (read - f64::from(at_truth[i]) / 65536.0)
+            })
+        };
+        let inputs = StringInputs::default();
+        let solve = |inclined| {
+            let fk = forward_kinematics_inclined(
+                &a,
+                StringLayout::ALL,
+                &inputs,
+                [0.0; 3],
+                &config,
+                inclined,
+                lengths,
+            );
+            dist(fk.position, truth)
+        };
+        let (once, twice) = (solve(false), solve(true));
+        assert!(once > 1.0, "{once}");
+        assert!(twice < 0.1 * once && twice < 0.5, "{once} -> {twice}");
     }
 
     /// Points of a 1 m cube centred in the frame, `n` per axis.

@@ -16,9 +16,9 @@ use std::path::{Path, PathBuf};
 
 use spidar_core::blob::{compile, position_q16, CompiledCalibration};
 use spidar_core::control::ControlConfig;
-use spidar_core::kinematics::{forward_kinematics, FkStatus};
+use spidar_core::kinematics::{forward_kinematics_inclined, FkStatus};
 use spidar_core::model::{Calibration, Frame, StringInputs};
-use spidar_core::string_law::{cos2_inclinations, string_lengths};
+use spidar_core::string_law::string_lengths;
 use spidar_protocol::blob::{BlobError, CRC32};
 
 use crate::dataset::{DatasetError, Geometry, Session};
@@ -95,25 +95,23 @@ pub fn device_positions(
     let fk_config = ControlConfig::default().fk;
     let frame = &blob.head.frame;
     let inclined = blob.head.effects.iter().any(|e| e.reads_inclination());
-    let solve = |inputs: &StringInputs, start: [f32; 3]| {
-        let q = string_lengths(frame.layout, &blob.head.laws, &blob.head.effects, inputs);
-        let lengths = q.map(|l| l as f32 / 65536.0);
-        forward_kinematics(&frame.anchors, frame.layout, &lengths, start, &fk_config)
+    let lengths = |inputs: &StringInputs| {
+        string_lengths(frame.layout, &blob.head.laws, &blob.head.effects, inputs)
+            .map(|l| l as f32 / 65536.0)
     };
     let mut position = frame.home;
     observations
         .iter()
         .map(|o| {
-            // As `predict`: the device's held position is the row's own
-            // when it moves there continuously, so a sag's inclination is
-            // taken at the first solution and the row solved again.
-            let mut inputs = o.inputs;
-            inputs.cos2_inclination_q16 = cos2_inclinations(&frame.anchors, &position);
-            let mut fk = solve(&inputs, position);
-            if inclined && fk.position.iter().all(|x| x.is_finite()) {
-                inputs.cos2_inclination_q16 = cos2_inclinations(&frame.anchors, &fk.position);
-                fk = solve(&inputs, fk.position);
-            }
+            let fk = forward_kinematics_inclined(
+                &frame.anchors,
+                frame.layout,
+                &o.inputs,
+                position,
+                &fk_config,
+                inclined,
+                lengths,
+            );
             if matches!(fk.status, FkStatus::Ok | FkStatus::FaultyStringExcluded) {
                 position = fk.position;
             }

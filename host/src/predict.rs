@@ -10,9 +10,9 @@
 //! solution ([`spidar_core::model::Effect::reads_inclination`]).
 
 use spidar_core::correction::CorrectionModel;
-use spidar_core::kinematics::{forward_kinematics, FkConfig, FkStatus};
+use spidar_core::kinematics::{forward_kinematics_inclined, FkConfig, FkStatus};
 use spidar_core::model::{Calibration, EffectTerm, Frame, StringInputs, StringLaw};
-use spidar_core::string_law::{cos2_inclinations, string_lengths_f64};
+use spidar_core::string_law::string_lengths_f64;
 use spidar_core::STRINGS;
 
 use crate::identify::room_from_device;
@@ -53,21 +53,21 @@ pub fn predict(model: StringModel<'_>, observations: &[Observation]) -> Vec<Pred
     let config = FkConfig::<f64>::default();
     let frame = model.frame;
     let inclined = model.effects.iter().any(|t| t.effect.reads_inclination());
-    let solve = |inputs: &StringInputs, start: [f64; 3]| {
-        let lengths = string_lengths_f64(frame, model.laws, model.effects, inputs);
-        forward_kinematics(&frame.anchors, frame.layout, &lengths, start, &config)
-    };
+    let lengths =
+        |inputs: &StringInputs| string_lengths_f64(frame, model.laws, model.effects, inputs);
     let mut start = frame.home;
     observations
         .iter()
         .map(|o| {
-            let mut inputs = o.inputs;
-            inputs.cos2_inclination_q16 = cos2_inclinations(&frame.anchors, &start);
-            let mut fk = solve(&inputs, start);
-            if inclined && fk.position.iter().all(|x| x.is_finite()) {
-                inputs.cos2_inclination_q16 = cos2_inclinations(&frame.anchors, &fk.position);
-                fk = solve(&inputs, fk.position);
-            }
+            let fk = forward_kinematics_inclined(
+                &frame.anchors,
+                frame.layout,
+                &o.inputs,
+                start,
+                &config,
+                inclined,
+                lengths,
+            );
             if matches!(fk.status, FkStatus::Ok | FkStatus::FaultyStringExcluded) {
                 start = fk.position;
             }
