@@ -223,7 +223,7 @@ mod host {
                 CompileError::TooManyEffects { found, max } => {
                     write!(f, "{found} effect terms, a blob carries at most {max}")
                 }
-                CompileError::Correction(e) => write!(f, "position correction: {e:?}"),
+                CompileError::Correction(e) => write!(f, "position correction: {e}"),
                 CompileError::Layout {
                     field,
                     string: Some(s),
@@ -242,6 +242,8 @@ mod host {
             }
         }
     }
+
+    impl core::error::Error for CompileError {}
 
     fn to_f32(v: f64, field: &'static str) -> Result<f32, CompileError> {
         let x = v as f32;

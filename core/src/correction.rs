@@ -1016,6 +1016,8 @@ mod host {
         }
     }
 
+    impl core::error::Error for CompileError {}
+
     /// A compiled correction: the blob header fields it sets and the
     /// correction bytes of the blob body.
     #[derive(Clone, Debug, PartialEq, Eq)]

@@ -39,3 +39,16 @@ pub mod safety;
 pub mod string_law;
 pub mod tension;
 pub mod time_base;
+
+#[cfg(test)]
+mod tests {
+    /// Every error of the crate is a `core::error::Error` (the host chains
+    /// them as sources; the firmware can report them through the trait).
+    #[test]
+    fn errors_are_errors() {
+        fn error<E: core::error::Error>() {}
+        error::<crate::string_law::CompileError>();
+        error::<crate::correction::CompileError>();
+        error::<crate::blob::CompileError>();
+    }
+}

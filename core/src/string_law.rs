@@ -513,6 +513,8 @@ impl fmt::Display for CompileError {
     }
 }
 
+impl core::error::Error for CompileError {}
+
 const WINDING_FIELDS: [&str; WINDING_ORDER] = [
     "winding_mm[0]",
     "winding_mm[1]",

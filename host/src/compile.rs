@@ -48,10 +48,11 @@ pub enum CompileCmdError {
     #[error("{}: does not compile: {error}", file.display())]
     Compile {
         file: PathBuf,
+        #[source]
         error: spidar_core::blob::CompileError,
     },
     #[error("compiled blob does not parse back: {0}")]
-    ParseBack(BlobError),
+    ParseBack(#[source] BlobError),
     #[error("compiled blob is not reproducible: two compilations differ at byte {at}")]
     NotReproducible { at: usize },
     #[error("{0}")]

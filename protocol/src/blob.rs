@@ -191,6 +191,8 @@ impl core::fmt::Display for BlobError {
     }
 }
 
+impl core::error::Error for BlobError {}
+
 fn le_u16(b: &[u8], at: usize) -> u16 {
     u16::from_le_bytes([b[at], b[at + 1]])
 }

@@ -130,6 +130,8 @@ impl fmt::Display for FrameError {
     }
 }
 
+impl core::error::Error for FrameError {}
+
 /// Counters of a [`FrameDecoder`]: frames accepted, and frames rejected by
 /// reason. All counters wrap.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]

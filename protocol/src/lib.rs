@@ -195,3 +195,17 @@ mod size_tests {
         assert_eq!(MAX_FRAME, 274);
     }
 }
+
+#[cfg(test)]
+mod error_tests {
+    /// Every error of the crate is a `core::error::Error` (callers box it,
+    /// chain it, or `?` it into their own).
+    #[test]
+    fn errors_are_errors() {
+        fn error<E: core::error::Error>() {}
+        error::<crate::blob::BlobError>();
+        error::<crate::frame::FrameError>();
+        error::<crate::messages::BlobRejection>();
+        error::<crate::messages::DeviceError>();
+    }
+}

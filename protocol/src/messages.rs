@@ -525,6 +525,8 @@ impl fmt::Display for BlobRejection {
     }
 }
 
+impl core::error::Error for BlobRejection {}
+
 impl fmt::Display for DeviceError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
@@ -581,6 +583,8 @@ impl fmt::Display for DeviceError {
         }
     }
 }
+
+impl core::error::Error for DeviceError {}
 
 /// One sample of the device state, taken at the end of a control-loop
 /// iteration.

@@ -71,7 +71,7 @@ pub enum LinkError {
         got: String,
     },
     #[error("model blob: {0}")]
-    InvalidBlob(spidar_protocol::blob::BlobError),
+    InvalidBlob(#[source] spidar_protocol::blob::BlobError),
     #[error("serial port {port}: read-back after the upload does not match: {what}")]
     Verify { port: String, what: String },
     #[error("serial port {port}: {action}: {source}")]
