@@ -877,6 +877,30 @@ fn best_step(mut r: Vec<(f64, f64)>) -> Option<(f64, f64)> {
     best.1.map(|at| (best.0, at))
 }
 
+/// A fitted sag in the device's terms: the strings' weight (`c = w^2 / 24`)
+/// and the tension they held at the home capture (`h = c / T_home^2`);
+/// `None` for another effect.
+fn sag_in_physical_terms(effect: &Effect) -> Option<String> {
+    let Effect::Sag {
+        mm_at_1m_1n: c,
+        home_mm_at_1m: h,
+    } = *effect
+    else {
+        return None;
+    };
+    // c mm = w^2 (1 m)^3 / (24 (1 N)^2), w in N/m.
+    let grams_per_m = (24.0 * c.max(0.0) / 1000.0).sqrt() / 9.80665 * 1000.0;
+    let home = if c > 0.0 && h > 0.0 {
+        format!("{:.2} N", (c / h).sqrt())
+    } else {
+        "not a tension (the home part's sign is not a sag's)".into()
+    };
+    Some(format!(
+        " (fitted: {c:.3} mm at 1 m and 1 N, strings of {grams_per_m:.1} g/m; tension at the home \
+         capture {home})"
+    ))
+}
+
 /// Whether a sag's columns explain the residual beyond the strings' stretch
 /// (`T l` on every string): both grow with the tension's effect on the
 /// string, and on clean independent devices a sag of 0.06-0.08 mm at 1 m
@@ -1864,6 +1888,13 @@ pub fn close_loop(
             findings.retain(|f| !same(f, &finding));
             if accepted {
                 let refit = identify(train, nominal, &Start::from_identification(&id), &candidate)?;
+                if let Some(fitted) = refit
+                    .effects
+                    .last()
+                    .and_then(|t| sag_in_physical_terms(&t.effect))
+                {
+                    finding.description += &fitted;
+                }
                 finding.added = true;
                 findings.push(finding.clone());
                 let name = stage_name(&finding);

@@ -474,6 +474,12 @@ fn heavy_strings_are_one_shared_sag_with_the_home_capture_s_tension() {
         .unwrap_or_else(|| panic!("stages: {:?}", names(&r)));
     assert_eq!(stage.finding.family, Family::Sag);
     assert_eq!(stage.finding.variable, Variable::Tension);
+    // The report says it in the device's terms: 20 g/m, 1.1 N at home.
+    let said = &stage.finding.description;
+    assert!(
+        said.contains("strings of 20.") && said.contains("home capture 1.1"),
+        "{said}"
+    );
     let (c, h) = r
         .identification
         .effects
