@@ -55,46 +55,57 @@ use serde::{Deserialize, Serialize};
 
 mod point;
 
-/// Forgets the conjugate SMO's direction (both solvers): its values and
-/// flags at its support, the support list, its curvature.
-fn forget_direction(
-    dir: &mut [f64],
-    in_support: &mut [bool],
-    support: &mut Vec<usize>,
-    curvature: &mut Option<f64>,
-) {
-    for &t in support.iter() {
-        dir[t] = 0.0;
-        in_support[t] = false;
-    }
-    support.clear();
-    *curvature = None;
+/// Conjugate SMO's previous direction (both solvers): `d` by position, its
+/// support (listed, and flagged by position), `Q d` over the active set and
+/// `d^T Q d`; `curvature` is `None` when there is no direction.
+struct Direction {
+    d: Vec<f64>,
+    support: Vec<usize>,
+    in_support: Vec<bool>,
+    q: Vec<f64>,
+    curvature: Option<f64>,
 }
 
-/// After shrinking moved positions (both solvers): lists the direction's
-/// support again among the `active` first positions; forgets the direction
-/// if part of it left the active set (its `Q d` is only kept there) or the
-/// active set grew from `before` (unshrinking), clearing every position
-/// the old support may occupy.
-fn relist_direction(
-    dir: &mut [f64],
-    in_support: &mut [bool],
-    support: &mut Vec<usize>,
-    curvature: &mut Option<f64>,
-    active: usize,
-    before: usize,
-) {
-    if curvature.is_none() {
-        return;
+impl Direction {
+    fn new(n: usize) -> Direction {
+        Direction {
+            d: vec![0.0; n],
+            support: Vec::new(),
+            in_support: vec![false; n],
+            q: vec![0.0; n],
+            curvature: None,
+        }
     }
-    let kept = support.len();
-    support.clear();
-    support.extend((0..active).filter(|&t| in_support[t]));
-    if active > before || support.len() != kept {
-        dir.fill(0.0);
-        in_support.fill(false);
-        support.clear();
-        *curvature = None;
+
+    /// Forgets the direction (clears only its support's positions).
+    fn forget(&mut self) {
+        for &t in &self.support {
+            self.d[t] = 0.0;
+            self.in_support[t] = false;
+        }
+        self.support.clear();
+        self.curvature = None;
+    }
+
+    /// After shrinking moved positions: lists the support again among the
+    /// `active` first positions; forgets the direction if part of it left
+    /// the active set (its `Q d` is only kept there) or the active set grew
+    /// from `before` (unshrinking), clearing every position the old support
+    /// may occupy.
+    fn relist(&mut self, active: usize, before: usize) {
+        if self.curvature.is_none() {
+            return;
+        }
+        let kept = self.support.len();
+        self.support.clear();
+        let in_support = &self.in_support;
+        self.support.extend((0..active).filter(|&t| in_support[t]));
+        if active > before || self.support.len() != kept {
+            self.d.fill(0.0);
+            self.in_support.fill(false);
+            self.support.clear();
+            self.curvature = None;
+        }
     }
 }
 
@@ -302,13 +313,8 @@ struct Solver<'a> {
     low_ok: Vec<bool>,
     /// The second-order decrease of each candidate j (selection scratch).
     obj_buf: Vec<f64>,
-    /// Conjugate SMO: the previous direction d (by position), its support,
-    /// `Q d` over the active set and `d^T Q d`; `None` after a reset.
-    dir: Vec<f64>,
-    dir_support: Vec<usize>,
-    in_support: Vec<bool>,
-    q_dir: Vec<f64>,
-    dir_curvature: Option<f64>,
+    /// Conjugate SMO's previous direction.
+    direction: Direction,
 }
 
 /// `out[t] = y_i y_t K(point_i, point_t)` for `t < out.len()`.
@@ -369,11 +375,7 @@ impl<'a> Solver<'a> {
             up_ok: vec![false; l],
             low_ok: vec![false; l],
             obj_buf: vec![0.0; l],
-            dir: vec![0.0; l],
-            dir_support: Vec::new(),
-            in_support: vec![false; l],
-            q_dir: vec![0.0; l],
-            dir_curvature: None,
+            direction: Direction::new(l),
         };
         for t in 0..l {
             s.update_status(t);
@@ -488,9 +490,9 @@ impl<'a> Solver<'a> {
         self.active_set.swap(i, j);
         self.up_ok.swap(i, j);
         self.low_ok.swap(i, j);
-        self.dir.swap(i, j);
-        self.in_support.swap(i, j);
-        self.q_dir.swap(i, j);
+        self.direction.d.swap(i, j);
+        self.direction.in_support.swap(i, j);
+        self.direction.q.swap(i, j);
     }
 
     /// Recompute the gradient of the shrunk variables from G_bar and the free
@@ -811,12 +813,7 @@ impl<'a> Solver<'a> {
     }
 
     fn reset_direction(&mut self) {
-        forget_direction(
-            &mut self.dir,
-            &mut self.in_support,
-            &mut self.dir_support,
-            &mut self.dir_curvature,
-        );
+        self.direction.forget();
     }
 
     /// Conjugate SMO step for the WSS2 pair (i, j): the pair's direction
@@ -829,9 +826,9 @@ impl<'a> Solver<'a> {
         let (yi, yj) = (self.y[i], self.y[j]);
         // Restart (a plain step) once the direction spans MAX_DIRECTION_SUPPORT
         // variables: its upkeep grows with the support, its benefit does not.
-        let beta = match self.dir_curvature {
-            Some(curv) if self.dir_support.len() < MAX_DIRECTION_SUPPORT => {
-                -(yi * self.q_dir[i] - yj * self.q_dir[j]) / curv
+        let beta = match self.direction.curvature {
+            Some(curv) if self.direction.support.len() < MAX_DIRECTION_SUPPORT => {
+                -(yi * self.direction.q[i] - yj * self.direction.q[j]) / curv
             }
             _ => 0.0,
         };
@@ -845,24 +842,24 @@ impl<'a> Solver<'a> {
         // support for the line search, over the active set for the gradient.
         let (ki, cols) = (self.k.row(self.index[i]), &self.index[..act]);
         let (kj, _) = (self.k.row(self.index[j]), &self.index[..act]);
-        for &t in &self.dir_support {
-            self.dir[t] *= beta;
+        for &t in &self.direction.support {
+            self.direction.d[t] *= beta;
         }
         for (v, add) in [(i, yi), (j, -yj)] {
-            self.dir[v] += add;
-            if !self.in_support[v] {
-                self.in_support[v] = true;
-                self.dir_support.push(v);
+            self.direction.d[v] += add;
+            if !self.direction.in_support[v] {
+                self.direction.in_support[v] = true;
+                self.direction.support.push(v);
             }
         }
         let q_dir_at = |t: usize| {
             let it = cols[t];
-            self.y[t] * (f64::from(ki[it]) - f64::from(kj[it])) + beta * self.q_dir[t]
+            self.y[t] * (f64::from(ki[it]) - f64::from(kj[it])) + beta * self.direction.q[t]
         };
         let mut gd = 0.0;
         let mut dqd = 0.0;
-        for &t in &self.dir_support {
-            let d = self.dir[t];
+        for &t in &self.direction.support {
+            let d = self.direction.d[t];
             gd += self.g[t] * d;
             dqd += d * q_dir_at(t);
         }
@@ -878,8 +875,8 @@ impl<'a> Solver<'a> {
         let c = self.c;
         let mut t_max = f64::INFINITY;
         let mut blocking = 0;
-        for &t in &self.dir_support {
-            let d = self.dir[t];
+        for &t in &self.direction.support {
+            let d = self.direction.d[t];
             let a = self.alpha[t] + t_opt * d;
             if a < 0.0 || a > c {
                 let room = if d > 0.0 {
@@ -903,7 +900,7 @@ impl<'a> Solver<'a> {
         let clipped = t_max < t_opt;
         let t = if clipped { t_max } else { t_opt };
         // Q d and the gradient in one pass.
-        for (((w, g), &yt), &it) in self.q_dir[..act]
+        for (((w, g), &yt), &it) in self.direction.q[..act]
             .iter_mut()
             .zip(self.g[..act].iter_mut())
             .zip(&self.y[..act])
@@ -913,12 +910,12 @@ impl<'a> Solver<'a> {
             *g += t * *w;
         }
         let l = self.l;
-        for k in 0..self.dir_support.len() {
-            let v = self.dir_support[k];
+        for k in 0..self.direction.support.len() {
+            let v = self.direction.support[k];
             let was_upper = self.is_upper(v);
-            let mut a = (self.alpha[v] + t * self.dir[v]).clamp(0.0, c);
+            let mut a = (self.alpha[v] + t * self.direction.d[v]).clamp(0.0, c);
             if clipped && v == blocking {
-                a = if self.dir[v] > 0.0 { c } else { 0.0 };
+                a = if self.direction.d[v] > 0.0 { c } else { 0.0 };
             }
             self.alpha[v] = a;
             if a <= 0.0 || a >= c || self.status[v] != Status::Free {
@@ -935,7 +932,7 @@ impl<'a> Solver<'a> {
         if clipped {
             self.reset_direction();
         } else {
-            self.dir_curvature = Some(dqd);
+            self.direction.curvature = Some(dqd);
         }
     }
 
@@ -946,24 +943,28 @@ impl<'a> Solver<'a> {
         let (yi, yj) = (self.y[i], self.y[j]);
         let (ki, cols) = (self.k.row(self.index[i]), &self.index[..act]);
         let (kj, _) = (self.k.row(self.index[j]), &self.index[..act]);
-        for ((w, &yt), &it) in self.q_dir[..act].iter_mut().zip(&self.y[..act]).zip(cols) {
+        for ((w, &yt), &it) in self.direction.q[..act]
+            .iter_mut()
+            .zip(&self.y[..act])
+            .zip(cols)
+        {
             *w = yt * (f64::from(ki[it]) - f64::from(kj[it]));
         }
-        self.dir[i] = yi;
-        self.dir[j] = -yj;
-        self.in_support[i] = true;
-        self.in_support[j] = true;
-        self.dir_support.push(i);
-        self.dir_support.push(j);
+        self.direction.d[i] = yi;
+        self.direction.d[j] = -yj;
+        self.direction.in_support[i] = true;
+        self.direction.in_support[j] = true;
+        self.direction.support.push(i);
+        self.direction.support.push(j);
         // The plain step is exact along u unless it was clipped: keep the
         // direction only when both variables stayed strictly inside.
         let free = |v: usize| self.status[v] == Status::Free;
-        self.dir_curvature = if free(i) && free(j) {
+        self.direction.curvature = if free(i) && free(j) {
             Some(self.qd[i] + self.qd[j] - 2.0 * f64::from(ki[cols[j]]))
         } else {
             None
         };
-        if self.dir_curvature.is_none() {
+        if self.direction.curvature.is_none() {
             self.reset_direction();
         }
     }
@@ -985,14 +986,7 @@ impl Smo for Solver<'_> {
         let before = self.active_size;
         self.do_shrinking();
         // Positions moved: list the direction's support again.
-        relist_direction(
-            &mut self.dir,
-            &mut self.in_support,
-            &mut self.dir_support,
-            &mut self.dir_curvature,
-            self.active_size,
-            before,
-        );
+        self.direction.relist(self.active_size, before);
     }
     fn working_set(&mut self) -> Option<(usize, usize)> {
         self.select_working_set()

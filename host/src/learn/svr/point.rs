@@ -34,9 +34,7 @@
 //! with the scalar passes' operations in the same order on the same 16 lanes
 //! (no FMA), so the path does not depend on the CPU.
 
-use super::{
-    forget_direction, relist_direction, run_smo, KernelMatrix, Smo, MAX_DIRECTION_SUPPORT, TAU,
-};
+use super::{run_smo, Direction, KernelMatrix, Smo, MAX_DIRECTION_SUPPORT, TAU};
 use crate::learn::Deadline;
 
 /// Largest problem solved here: each solver keeps its own n^2 f32 kernel
@@ -92,12 +90,8 @@ pub(super) struct PointSolver<'a> {
     /// The maximal up violation and its point, and the maximal down
     /// violation, as the last gradient pass left them (None: recompute).
     top: Option<(f64, usize, f64)>,
-    /// Conjugate SMO, as in the 2n solver.
-    dir: Vec<f64>,
-    dir_support: Vec<usize>,
-    in_support: Vec<bool>,
-    q_dir: Vec<f64>,
-    dir_curvature: Option<f64>,
+    /// Conjugate SMO's previous direction, as in the 2n solver.
+    direction: Direction,
 }
 
 /// The largest value of the lanes and, among equal ones, the last position
@@ -147,11 +141,7 @@ impl<'a> PointSolver<'a> {
             tol,
             unshrink: false,
             top: None,
-            dir: vec![0.0; n],
-            dir_support: Vec::new(),
-            in_support: vec![false; n],
-            q_dir: vec![0.0; n],
-            dir_curvature: None,
+            direction: Direction::new(n),
         };
         if let Some(coef) = warm {
             s.start_from(coef);
@@ -261,9 +251,9 @@ impl<'a> PointSolver<'a> {
         self.up_off.swap(i, j);
         self.low_off.swap(i, j);
         self.active_set.swap(i, j);
-        self.dir.swap(i, j);
-        self.in_support.swap(i, j);
-        self.q_dir.swap(i, j);
+        self.direction.d.swap(i, j);
+        self.direction.in_support.swap(i, j);
+        self.direction.q.swap(i, j);
         self.swaps.push((i, j));
     }
 
@@ -381,11 +371,13 @@ impl<'a> PointSolver<'a> {
         }
         let act = self.active_size;
         // The direction the conjugate step will use (the same conditions).
-        let conj = match self.dir_curvature {
-            Some(curv) if self.conjugate && self.dir_support.len() < MAX_DIRECTION_SUPPORT => {
+        let conj = match self.direction.curvature {
+            Some(curv)
+                if self.conjugate && self.direction.support.len() < MAX_DIRECTION_SUPPORT =>
+            {
                 Some(Conjugate {
-                    q: &self.q_dir[..act],
-                    qi: self.q_dir[i],
+                    q: &self.direction.q[..act],
+                    qi: self.direction.q[i],
                     inv_curv: 1.0 / curv,
                 })
             }
@@ -557,12 +549,7 @@ impl<'a> PointSolver<'a> {
     }
 
     fn reset_direction(&mut self) {
-        forget_direction(
-            &mut self.dir,
-            &mut self.in_support,
-            &mut self.dir_support,
-            &mut self.dir_curvature,
-        );
+        self.direction.forget();
     }
 
     /// After a plain step on (i, j): its direction `e_i - e_j` and `K d`.
@@ -577,16 +564,16 @@ impl<'a> PointSolver<'a> {
             &self.block[i * n..i * n + act],
             &self.block[j * n..j * n + act],
         );
-        for ((w, &a), &b) in self.q_dir[..act].iter_mut().zip(ki).zip(kj) {
+        for ((w, &a), &b) in self.direction.q[..act].iter_mut().zip(ki).zip(kj) {
             *w = f64::from(a) - f64::from(b);
         }
-        self.dir[i] = 1.0;
-        self.dir[j] = -1.0;
-        self.in_support[i] = true;
-        self.in_support[j] = true;
-        self.dir_support.push(i);
-        self.dir_support.push(j);
-        self.dir_curvature = Some(2.0 - 2.0 * f64::from(self.block[i * n + j]));
+        self.direction.d[i] = 1.0;
+        self.direction.d[j] = -1.0;
+        self.direction.in_support[i] = true;
+        self.direction.in_support[j] = true;
+        self.direction.support.push(i);
+        self.direction.support.push(j);
+        self.direction.curvature = Some(2.0 - 2.0 * f64::from(self.block[i * n + j]));
     }
 
     fn plain(&mut self, i: usize, j: usize) {
@@ -600,31 +587,31 @@ impl<'a> PointSolver<'a> {
     /// K-conjugate, an exact line search clipped at the first kink or bound.
     fn conjugate_step(&mut self, i: usize, j: usize) {
         let act = self.active_size;
-        let bc = match self.dir_curvature {
-            Some(curv) if self.dir_support.len() < MAX_DIRECTION_SUPPORT => {
-                -(self.q_dir[i] - self.q_dir[j]) / curv
+        let bc = match self.direction.curvature {
+            Some(curv) if self.direction.support.len() < MAX_DIRECTION_SUPPORT => {
+                -(self.direction.q[i] - self.direction.q[j]) / curv
             }
             _ => 0.0,
         };
         if bc == 0.0 || !bc.is_finite() {
             return self.plain(i, j);
         }
-        for &t in &self.dir_support {
-            self.dir[t] *= bc;
+        for &t in &self.direction.support {
+            self.direction.d[t] *= bc;
         }
         for (v, add) in [(i, 1.0), (j, -1.0)] {
-            self.dir[v] += add;
-            if !self.in_support[v] {
-                self.in_support[v] = true;
-                self.dir_support.push(v);
+            self.direction.d[v] += add;
+            if !self.direction.in_support[v] {
+                self.direction.in_support[v] = true;
+                self.direction.support.push(v);
             }
         }
         let n = self.n;
         let e = self.eps;
         let mut gd = 0.0;
         let mut dqd = 0.0;
-        for &t in &self.dir_support {
-            let d = self.dir[t];
+        for &t in &self.direction.support {
+            let d = self.direction.d[t];
             let (ki, kj) = (&self.block[i * n..], &self.block[j * n..]);
             let it = t;
             let b = self.beta[t];
@@ -635,7 +622,7 @@ impl<'a> PointSolver<'a> {
                 -e
             };
             gd += (self.g[t] + s) * d;
-            dqd += d * ((f64::from(ki[it]) - f64::from(kj[it])) + bc * self.q_dir[t]);
+            dqd += d * ((f64::from(ki[it]) - f64::from(kj[it])) + bc * self.direction.q[t]);
         }
         let t_opt = -gd / dqd;
         if !(gd < 0.0 && dqd > 0.0 && t_opt.is_finite()) {
@@ -648,8 +635,8 @@ impl<'a> PointSolver<'a> {
         // gives.
         let mut t_max = f64::INFINITY;
         let mut blocking = usize::MAX;
-        for &t in &self.dir_support {
-            let d = self.dir[t];
+        for &t in &self.direction.support {
+            let d = self.direction.d[t];
             if d == 0.0 {
                 continue;
             }
@@ -669,9 +656,9 @@ impl<'a> PointSolver<'a> {
         let clipped = t_max < t_opt;
         let step = if clipped { t_max } else { t_opt };
         let c = self.c;
-        for k in 0..self.dir_support.len() {
-            let v = self.dir_support[k];
-            let (b, d) = (self.beta[v], self.dir[v]);
+        for k in 0..self.direction.support.len() {
+            let v = self.direction.support[k];
+            let (b, d) = (self.beta[v], self.direction.d[v]);
             let nb = if clipped && v == blocking {
                 if d > 0.0 {
                     if b < 0.0 {
@@ -712,7 +699,7 @@ impl<'a> PointSolver<'a> {
             kj,
             bc,
             step,
-            &mut self.q_dir[..act],
+            &mut self.direction.q[..act],
             &mut self.g[..act],
             &self.up_off[..act],
             &self.low_off[..act],
@@ -720,7 +707,7 @@ impl<'a> PointSolver<'a> {
         if clipped {
             self.reset_direction();
         } else {
-            self.dir_curvature = Some(dqd);
+            self.direction.curvature = Some(dqd);
         }
     }
 
@@ -749,14 +736,7 @@ impl Smo for PointSolver<'_> {
         let before = self.active_size;
         self.do_shrinking();
         // Positions moved: list the direction's support again.
-        relist_direction(
-            &mut self.dir,
-            &mut self.in_support,
-            &mut self.dir_support,
-            &mut self.dir_curvature,
-            self.active_size,
-            before,
-        );
+        self.direction.relist(self.active_size, before);
     }
     fn working_set(&mut self) -> Option<(usize, usize)> {
         self.select_working_set()
