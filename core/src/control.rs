@@ -22,7 +22,7 @@ use crate::guidance::guidance_force;
 use crate::kinematics::{forward_kinematics, inverse_kinematics, FkConfig, FkStatus};
 use crate::model::{Frame, StringInputs};
 use crate::safety::{Faults, SafetyConfig, SafetyConfigError, SafetyMonitor};
-use crate::string_law::{cos2_inclinations, string_lengths};
+use crate::string_law::{cos2_inclinations, string_lengths, CompiledEffect};
 use crate::tension::{distribute_warm, TensionConfig, TensionLimits, TensionStatus};
 use crate::STRINGS;
 
@@ -262,13 +262,16 @@ impl Controller {
     ) -> LoopOutput {
         let frame = &head.frame;
         // Tensions and inclinations (sag) are the last tick's: at the loop's
-        // rate the position moves by less than 0.1 mm between ticks.
+        // rate the position moves by less than 0.1 mm between ticks. Only a
+        // model with a term that reads the inclination pays for it.
         let mut inputs = StringInputs {
             tension_mn: self.tensions_mn,
             time_ms: input.now_ms.wrapping_sub(self.home_ms),
-            cos2_inclination_q16: cos2_inclinations(&frame.anchors, &self.position),
             ..StringInputs::default()
         };
+        if head.effects.iter().any(CompiledEffect::reads_inclination) {
+            inputs.cos2_inclination_q16 = cos2_inclinations(&frame.anchors, &self.position);
+        }
         for i in 0..STRINGS {
             inputs.counts[i] = self.encoders[i].update(input.raw_counts[i]);
             inputs.direction[i] = self.directions[i].update(inputs.counts[i]);

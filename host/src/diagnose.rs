@@ -584,6 +584,9 @@ struct Candidate {
     columns: Vec<Vec<f64>>,
     /// Extra chi-square demanded for a searched parameter (a slip's time).
     search_penalty: f64,
+    /// Columns of a simpler explanation the candidate must explain the
+    /// residual beyond (nested test at its own dof); empty: none.
+    rival: Vec<Vec<f64>>,
     build: BuildChange,
     describe: String,
 }
@@ -617,6 +620,7 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
                 variable: Variable::Length,
                 columns: vec![string_column(rows, i, |_| 1.0)],
                 search_penalty: 0.0,
+                rival: Vec::new(),
                 build: Box::new(move |b| term(Effect::Offset { mm: b[0] })),
                 describe: format!(
                     "string {i} reads a constant length error (its home length is off)"
@@ -630,6 +634,7 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
                 variable: Variable::WoundLength,
                 columns: vec![string_column(rows, i, |r| r.ctx.payout_mm)],
                 search_penalty: 0.0,
+                rival: Vec::new(),
                 build: Box::new(move |b| term(Effect::Scale { relative: b[0] })),
                 describe: format!(
                     "string {i}'s payout is off in proportion to the string wound out"
@@ -643,6 +648,7 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
                 variable: Variable::WoundLength,
                 columns: vec![string_column(rows, i, |r| r.ctx.theta.powi(3))],
                 search_penalty: 0.0,
+                rival: Vec::new(),
                 build: Box::new(move |b| {
                     term(Effect::Winding {
                         power: 3,
@@ -664,6 +670,7 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
                     string_column(rows, i, |r| r.ctx.theta.cos() - 1.0),
                 ],
                 search_penalty: 3.0,
+                rival: Vec::new(),
                 build: Box::new(move |b| {
                     term(Effect::Eccentricity {
                         sin_mm: b[0],
@@ -684,6 +691,7 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
                     r.ctx.tension_n * (r.ctx.home_length_mm + r.ctx.payout_mm)
                 })],
                 search_penalty: 0.0,
+                rival: Vec::new(),
                 build: Box::new(move |b| term(Effect::Elasticity { per_newton: b[0] })),
                 describe: format!("string {i} stretches with its tension (elastic string)"),
             });
@@ -697,6 +705,7 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
                     f64::from(r.ctx.direction.signum())
                 })],
                 search_penalty: 0.0,
+                rival: Vec::new(),
                 build: Box::new(move |b| {
                     term(Effect::Backlash {
                         half_width_mm: b[0],
@@ -714,6 +723,7 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
                 variable: Variable::Time,
                 columns: vec![string_column(rows, i, |r| r.ctx.time_s)],
                 search_penalty: 0.0,
+                rival: Vec::new(),
                 build: Box::new(move |b| term(Effect::Drift { mm_per_s: b[0] })),
                 describe: format!("string {i}'s length drifts with time since initialization"),
             });
@@ -733,6 +743,7 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
                         }
                     })],
                     search_penalty: 2.0 * n.ln(),
+                    rival: Vec::new(),
                     build: Box::new(move |b| term(Effect::Slip { at_s, mm: b[0] })),
                     describe: format!(
                         "string {i} slipped at t = {at_s:.1} s (a step in its length)"
@@ -765,6 +776,7 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
                 })
                 .collect()],
             search_penalty: 0.0,
+            rival: Vec::new(),
             build: Box::new(|b| {
                 Change::Effect(EffectTerm {
                     string: EVERY_STRING,
@@ -801,6 +813,7 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
                     .collect(),
             ],
             search_penalty: 0.0,
+            rival: vec![stretch_column(rows, strings)],
             build: Box::new(|b| {
                 Change::Effect(EffectTerm {
                     string: EVERY_STRING,
@@ -822,6 +835,7 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
             variable: Variable::Position,
             columns: vec![rows.iter().map(|r| r.scale_gradient).collect()],
             search_penalty: 0.0,
+            rival: Vec::new(),
             build: Box::new(|_| Change::RoomScale),
             describe: "the tracker's scale differs from the device's (frame error)".into(),
         });
@@ -901,32 +915,34 @@ fn sag_in_physical_terms(effect: &Effect) -> Option<String> {
     ))
 }
 
-/// Whether a sag's columns explain the residual beyond the strings' stretch
-/// (`T l` on every string): both grow with the tension's effect on the
-/// string, and on clean independent devices a sag of 0.06-0.08 mm at 1 m
-/// and 1 N (the strings weigh 0.3-1 g/m: 0.0004-0.004) stood in for the
-/// stretch the elasticity family cannot yet follow (the lead's and the
-/// home capture's; with rigid strings it was not added). Nested test: the
-/// sag's chi-square over the stretch column alone.
-fn sag_beyond_stretch(ev: &Evidence, sag: &[Vec<f64>], config: &LoopConfig) -> bool {
-    let stretch: Vec<f64> = ev
-        .rows
-        .iter()
+/// The strings' stretch, `T l` on every active string: what a shared sag
+/// must explain the residual beyond. Both grow with the tension's effect on
+/// the string, and on clean independent devices a sag of 0.06-0.08 mm at
+/// 1 m and 1 N (the strings weigh 0.3-1 g/m: 0.0004-0.004) stood in for the
+/// stretch the elasticity family cannot yet follow (the lead's and the home
+/// capture's; with rigid strings it was not added).
+fn stretch_column(rows: &[Row], strings: StringLayout) -> Vec<f64> {
+    rows.iter()
         .map(|r| {
-            if ev.layout.is_active(r.string) {
+            if strings.is_active(r.string) {
                 r.ctx.tension_n * (r.ctx.home_length_mm + r.ctx.payout_mm)
             } else {
                 0.0
             }
         })
-        .collect();
-    let mut both = vec![stretch.clone()];
-    both.extend(sag.iter().cloned());
+        .collect()
+}
+
+/// Whether candidate `c` explains the residual beyond its rival's columns:
+/// its chi-square over the rival's alone, at the candidate's dof.
+fn beyond_rival(ev: &Evidence, c: &Candidate, config: &LoopConfig) -> bool {
     let explained =
         |columns: &[Vec<f64>]| ev.project(columns).and_then(|p| ev.fit(&p)).map(|(_, e)| e);
-    match (explained(&both), explained(&[stretch])) {
+    let both: Vec<Vec<f64>> = c.rival.iter().chain(&c.columns).cloned().collect();
+    match (explained(&both), explained(&c.rival)) {
         (Some(with), Some(without)) => {
-            (with - without) / ev.sigma2 >= chi2_threshold(config, sag.len(), 0.0)
+            (with - without) / ev.sigma2
+                >= chi2_threshold(config, c.columns.len(), c.search_penalty)
         }
         _ => false,
     }
@@ -957,7 +973,7 @@ pub fn diagnose(
             if chi2 < chi2_threshold(config, c.columns.len(), c.search_penalty) {
                 return None;
             }
-            if c.family == Family::Sag && !sag_beyond_stretch(&ev, &c.columns, config) {
+            if !c.rival.is_empty() && !beyond_rival(&ev, &c, config) {
                 return None;
             }
             let amplitude_mm = ev
@@ -1821,42 +1837,41 @@ pub fn close_loop(
     // Layer tables first; refused ones are tried once more after the
     // effects (an effect the model lacked, a heavy string's sag, can hide
     // what the tables gain until it is in).
-    let mut layers_refused = false;
-    let mut try_layers = |id: &mut Identification,
-                          structure: &Structure,
-                          validation: &mut Validation,
-                          stages: &mut Vec<LoopStage>,
-                          findings: &mut Vec<Finding>|
-     -> Result<Option<bool>, IdentifyError> {
+    // Each try: `None` when no string wanted a table, else whether they
+    // were added; the strings' choices.
+    let try_layers = |id: &mut Identification,
+                      structure: &Structure,
+                      validation: &mut Validation,
+                      stages: &mut Vec<LoopStage>,
+                      findings: &mut Vec<Finding>|
+     -> Result<(Option<bool>, Vec<StringLayers>), IdentifyError> {
         let tried = add_layer_tables(train, nominal, id, structure, validation, config)?;
-        let mut added = None;
-        if let Some(mut finding) = tried.finding {
-            added = Some(false);
-            if let Some((refit, after)) = tried.added {
-                finding.added = true;
-                let name = stage_name(&finding);
-                stages.push(LoopStage::of(name, &finding, &refit, train, test));
-                *validation = after;
-                *id = refit;
-                added = Some(true);
-            }
-            findings.retain(|f| f.family != Family::Layers);
-            findings.push(finding);
+        let Some(mut finding) = tried.finding else {
+            return Ok((None, tried.choice));
+        };
+        let added = tried.added.is_some();
+        if let Some((refit, after)) = tried.added {
+            finding.added = true;
+            let name = stage_name(&finding);
+            stages.push(LoopStage::of(name, &finding, &refit, train, test));
+            *validation = after;
+            *id = refit;
         }
-        if added == Some(true) || layers.is_empty() {
-            layers = tried.choice;
-        }
-        Ok(added)
+        findings.retain(|f| f.family != Family::Layers);
+        findings.push(finding);
+        Ok((Some(added), tried.choice))
     };
+    let mut layers_refused = false;
     if config.layer_tables {
-        // Refused by the held-out check (not: no string wanted a table).
-        layers_refused = try_layers(
+        let (added, choice) = try_layers(
             &mut id,
             &structure,
             &mut validation,
             &mut stages,
             &mut findings,
-        )? == Some(false);
+        )?;
+        layers = choice;
+        layers_refused = added == Some(false);
     }
     let effects_before = stages.len();
     let same = |a: &Finding, b: &Finding| a.family == b.family && a.strings == b.strings;
@@ -1909,13 +1924,16 @@ pub fn close_loop(
         break;
     }
     if layers_refused && stages.len() > effects_before {
-        try_layers(
+        let (added, choice) = try_layers(
             &mut id,
             &structure,
             &mut validation,
             &mut stages,
             &mut findings,
         )?;
+        if added == Some(true) {
+            layers = choice;
+        }
     }
     findings.extend(unexplained(&id, train, nominal, &structure, config));
     Ok(LoopResult {
