@@ -90,6 +90,7 @@ pub struct ModelHeader {
 }
 
 /// Why a blob was refused. Each variant names the field at fault.
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub enum BlobError {
     /// Fewer bytes than a header, or than the header says the body has.

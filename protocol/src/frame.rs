@@ -31,6 +31,7 @@ pub struct Packet<T> {
 
 /// Why a frame could not be encoded or was rejected. Each variant names the
 /// stage or field that failed.
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum FrameError {
     /// Encoding: the output buffer is too small (use [`MAX_FRAME`] bytes).
@@ -64,6 +65,7 @@ pub enum FrameError {
 }
 
 /// What postcard reported when a payload did not decode.
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum PayloadError {
     /// The payload ended inside a field.

@@ -327,6 +327,7 @@ pub struct LinkStats {
 }
 
 /// Why the device refused a request. Each variant names what was wrong.
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub enum DeviceError {
     /// The host's `Hello` named another protocol version.
@@ -386,6 +387,7 @@ pub enum DeviceError {
 }
 
 /// Which state forbids a request.
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub enum BadState {
     /// The request needs the motors disarmed (geometry, limits, model changes).
@@ -403,6 +405,7 @@ pub enum BadState {
 /// A [`BlobError`] as it travels on the wire: field names are carried as
 /// [`Name`]s instead of `&'static str`, so the host can decode it from a
 /// transient buffer.
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub enum BlobRejection {
     Truncated {
