@@ -190,6 +190,7 @@ mod host {
     use spidar_protocol::blob::{write_blob, FORMAT_VERSION};
 
     /// Why a calibration does not compile into a blob; names the part.
+    #[cfg_attr(feature = "defmt", derive(defmt::Format))]
     #[derive(Clone, Copy, Debug, PartialEq)]
     pub enum CompileError {
         /// A frame value that is not finite or does not fit f32.

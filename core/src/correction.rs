@@ -954,6 +954,7 @@ mod host {
     use alloc::vec::Vec;
 
     /// Why a model does not compile. Each variant names the parameter.
+    #[cfg_attr(feature = "defmt", derive(defmt::Format))]
     #[derive(Clone, Copy, Debug, PartialEq)]
     pub enum CompileError {
         /// Parameter vectors of inconsistent lengths, or a count beyond what

@@ -97,6 +97,7 @@ impl Slot {
 }
 
 /// Why a flash operation failed.
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum FlashError {
     /// `offset..offset + len` does not lie inside the slot.
@@ -302,6 +303,7 @@ impl Upload {
 
 /// Why a store operation was refused. On every error the active model is
 /// unchanged.
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum StoreError {
     /// The flash failed; an upload in progress is dropped (begin again).
@@ -334,6 +336,7 @@ impl From<FlashError> for StoreError {
 
 /// Why a commit failed: the store's checks, or the caller's validation of
 /// the staged blob.
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum CommitError<E> {
     Store(StoreError),

@@ -133,6 +133,7 @@ pub struct SafetyConfig {
 }
 
 /// Why a [`SafetyConfig`] was rejected.
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub enum SafetyConfigError {
     /// A field is NaN or infinite.

@@ -458,6 +458,7 @@ pub fn string_lengths_f64(
 /// Why a string law or an effect term cannot be compiled to fixed point (or a
 /// compiled one is invalid). Fields are named as in [`StringLaw`], [`Effect`]
 /// and [`Frame`].
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum CompileError {
     /// The string index is not in `0..STRINGS`.
