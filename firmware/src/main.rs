@@ -215,7 +215,7 @@ async fn main(spawner: Spawner) {
         Ok(d) => d,
         Err(e) => {
             // Only a bad constant ControlConfig gets here; motors stay off.
-            defmt::error!("invalid control config: {}", defmt::Debug2Format(&e));
+            defmt::error!("invalid control config: {}", e);
             loop {
                 cortex_m::asm::wfi();
             }
