@@ -40,6 +40,24 @@ pub mod string_law;
 pub mod tension;
 pub mod time_base;
 
+// With the `defmt` feature, the errors a firmware may log are defmt::Format,
+// so it logs them without Debug2Format. Fails the build if one loses its
+// derive (scripts/test builds core with the feature for thumbv7em).
+#[cfg(feature = "defmt")]
+const _: () = {
+    const fn format<T: defmt::Format>() {}
+    format::<safety::SafetyConfigError>();
+    format::<model_store::FlashError>();
+    format::<model_store::StoreError>();
+    format::<model_store::CommitError<spidar_protocol::DeviceError>>();
+    format::<string_law::CompileError>();
+    #[cfg(feature = "alloc")]
+    {
+        format::<correction::CompileError>();
+        format::<blob::CompileError>();
+    }
+};
+
 #[cfg(test)]
 mod tests {
     /// Every error of the crate is a `core::error::Error` (the host chains

@@ -130,6 +130,18 @@ pub use messages::{
     UploadState,
 };
 
+// With the `defmt` feature, the errors a firmware may log are defmt::Format,
+// so it logs them without Debug2Format. Fails the build if one loses its
+// derive (scripts/test builds protocol with the feature for thumbv7em).
+#[cfg(feature = "defmt")]
+const _: () = {
+    const fn format<T: defmt::Format>() {}
+    format::<blob::BlobError>();
+    format::<BlobRejection>();
+    format::<DeviceError>();
+    format::<FrameError>();
+};
+
 /// Version of this protocol. Bumped whenever a message's layout changes.
 /// Version 5: `State` carries the force the tensions render
 /// (`rendered_force_n`), so that a host that asked for a force sees what the
