@@ -62,6 +62,10 @@ pub const MAX_EFFECT_WINDING_POWER: u8 = 8;
 /// commanded tension (65.535 N) must fit Q0.31.
 pub const MAX_ELASTICITY_PER_NEWTON: f64 = 0.015;
 
+/// Largest `|mm_per_newton|` of an elasticity term (mm/N): 1 m of lead on a
+/// string of 1 kN stiffness.
+pub const MAX_ELASTICITY_MM_PER_NEWTON: f64 = 1.0;
+
 /// Least tension a sag term takes (N): below it the string is not a
 /// catenary and `1 / T^2` would grow without bound.
 pub const SAG_MIN_TENSION_N: f64 = 0.25;
@@ -118,6 +122,21 @@ pub fn sag_home_slope(home_mm_at_1m: f64, ctx: &EffectContext) -> f64 {
     } else {
         3.0 * sag / l
     }
+}
+
+/// An elasticity term's contribution (mm): `per_newton * (T (home_length +
+/// payout) - T_home home_length) + mm_per_newton (T - T_home)`
+/// ([`Effect::Elasticity`]).
+pub fn elasticity_mm(
+    per_newton: f64,
+    mm_per_newton: f64,
+    home_tension_n: f64,
+    ctx: &EffectContext,
+) -> f64 {
+    per_newton
+        * (ctx.tension_n * (ctx.home_length_mm + ctx.payout_mm)
+            - home_tension_n * ctx.home_length_mm)
+        + mm_per_newton * (ctx.tension_n - home_tension_n)
 }
 
 /// `cos^2(a_home) (home_length / 1 m)^3` of a sag term: the home capture's
@@ -277,13 +296,21 @@ fn powi_f64(x: f64, power: u8) -> f64 {
     r
 }
 
-fn one(v: f64) -> heapless::Vec<f64, 2> {
+fn one(v: f64) -> heapless::Vec<f64, 3> {
     let mut out = heapless::Vec::new();
     let _ = out.push(v);
     out
 }
 
-fn two(a: f64, b: f64) -> heapless::Vec<f64, 2> {
+fn three(a: f64, b: f64, c: f64) -> heapless::Vec<f64, 3> {
+    let mut out = heapless::Vec::new();
+    let _ = out.push(a);
+    let _ = out.push(b);
+    let _ = out.push(c);
+    out
+}
+
+fn two(a: f64, b: f64) -> heapless::Vec<f64, 3> {
     let mut out = heapless::Vec::new();
     let _ = out.push(a);
     let _ = out.push(b);
@@ -310,9 +337,11 @@ impl Effect {
             Effect::Eccentricity { sin_mm, cos_mm } => {
                 sin_mm * libm::sin(ctx.theta) + cos_mm * (libm::cos(ctx.theta) - 1.0)
             }
-            Effect::Elasticity { per_newton } => {
-                per_newton * ctx.tension_n * (ctx.home_length_mm + ctx.payout_mm)
-            }
+            Effect::Elasticity {
+                per_newton,
+                mm_per_newton,
+                home_tension_n,
+            } => elasticity_mm(per_newton, mm_per_newton, home_tension_n, ctx),
             Effect::Backlash { half_width_mm } => half_width_mm * direction_sign(ctx.direction),
             Effect::Drift { mm_per_s } => mm_per_s * ctx.time_s,
             Effect::Slip { at_s, mm } => {
@@ -338,18 +367,27 @@ impl Effect {
     /// | Scale | `relative` | `[payout]` |
     /// | Winding | `mm_per_rad_pow` (`power` is structural) | `[theta^power]` |
     /// | Eccentricity | `sin_mm, cos_mm` | `[sin theta, cos theta - 1]` |
-    /// | Elasticity | `per_newton` | `[tension_N (home_length + payout)]` |
+    /// | Elasticity | `per_newton, mm_per_newton, home_tension_n` | `[T (home_length + payout) - T_home home_length, T - T_home, -(per_newton home_length + mm_per_newton)]` |
     /// | Backlash | `half_width_mm` | `[sign(direction)]` |
     /// | Drift | `mm_per_s` | `[t]` |
     /// | Slip | `mm` (`at_s` is held fixed: a step is not differentiable in its time; search it separately) | `[t >= at_s ? 1 : 0]` |
     /// | Sag | `mm_at_1m_1n, home_mm_at_1m` | `[-cos^2(a) (l / 1 m)^3 / (T / 1 N)^2, cos^2(a_home) (home_length / 1 m)^3]` (0 where a part is clamped) |
-    pub fn gradient_f64(&self, ctx: &EffectContext) -> heapless::Vec<f64, 2> {
+    pub fn gradient_f64(&self, ctx: &EffectContext) -> heapless::Vec<f64, 3> {
         match *self {
             Effect::Offset { .. } => one(1.0),
             Effect::Scale { .. } => one(ctx.payout_mm),
             Effect::Winding { power, .. } => one(powi_f64(ctx.theta, power)),
             Effect::Eccentricity { .. } => two(libm::sin(ctx.theta), libm::cos(ctx.theta) - 1.0),
-            Effect::Elasticity { .. } => one(ctx.tension_n * (ctx.home_length_mm + ctx.payout_mm)),
+            Effect::Elasticity {
+                per_newton,
+                mm_per_newton,
+                home_tension_n,
+            } => three(
+                ctx.tension_n * (ctx.home_length_mm + ctx.payout_mm)
+                    - home_tension_n * ctx.home_length_mm,
+                ctx.tension_n - home_tension_n,
+                -(per_newton * ctx.home_length_mm + mm_per_newton),
+            ),
             Effect::Backlash { .. } => one(direction_sign(ctx.direction)),
             Effect::Drift { .. } => one(ctx.time_s),
             Effect::Slip { at_s, .. } => one(if ctx.time_s >= at_s { 1.0 } else { 0.0 }),
@@ -376,13 +414,17 @@ impl Effect {
     }
 
     /// The free parameters, in the order of [`gradient_f64`](Self::gradient_f64).
-    pub fn parameters(&self) -> heapless::Vec<f64, 2> {
+    pub fn parameters(&self) -> heapless::Vec<f64, 3> {
         match *self {
             Effect::Offset { mm } => one(mm),
             Effect::Scale { relative } => one(relative),
             Effect::Winding { mm_per_rad_pow, .. } => one(mm_per_rad_pow),
             Effect::Eccentricity { sin_mm, cos_mm } => two(sin_mm, cos_mm),
-            Effect::Elasticity { per_newton } => one(per_newton),
+            Effect::Elasticity {
+                per_newton,
+                mm_per_newton,
+                home_tension_n,
+            } => three(per_newton, mm_per_newton, home_tension_n),
             Effect::Backlash { half_width_mm } => one(half_width_mm),
             Effect::Drift { mm_per_s } => one(mm_per_s),
             Effect::Slip { mm, .. } => one(mm),
@@ -411,7 +453,11 @@ impl Effect {
                 sin_mm: p[0],
                 cos_mm: p[1],
             },
-            Effect::Elasticity { .. } => Effect::Elasticity { per_newton: p[0] },
+            Effect::Elasticity { .. } => Effect::Elasticity {
+                per_newton: p[0],
+                mm_per_newton: p[1],
+                home_tension_n: p[2],
+            },
             Effect::Backlash { .. } => Effect::Backlash {
                 half_width_mm: p[0],
             },
@@ -968,9 +1014,17 @@ pub enum CompiledEffect {
         counts_per_rev: u32,
         turns_per_count_q48: u64,
     },
-    /// `+ strain * (home_length + payout)`, strain = `per_mn_q47 * tension_mn`
-    /// rounded to Q0.31 and saturated (Q16.47 per millinewton).
-    Elasticity { string: u8, per_mn_q47: i64 },
+    /// `+ strain * (home_length + payout) - home_strain * home_length +
+    /// mm_per_mn_q47 * (tension_mn - home_tension_mn)`, strain =
+    /// `per_mn_q47 * tension_mn` and home_strain = `per_mn_q47 *
+    /// home_tension_mn`, each rounded to Q0.31 and saturated (Q16.47 per
+    /// millinewton; the lead part Q16.47 mm per millinewton).
+    Elasticity {
+        string: u8,
+        per_mn_q47: i64,
+        mm_per_mn_q47: i64,
+        home_tension_mn: u16,
+    },
     /// `+ half_width_q16 * sign(direction)` (Q47.16 mm).
     Backlash { string: u8, half_width_q16: i64 },
     /// `+ mm_per_ms_q48 * time_ms` (Q15.48 mm per ms).
@@ -1079,7 +1133,11 @@ pub fn compile_effect(
                 turns_per_count_q48: turns_per_count_q48(law.counts_per_rev),
             }
         }
-        Effect::Elasticity { per_newton } => {
+        Effect::Elasticity {
+            per_newton,
+            mm_per_newton,
+            home_tension_n,
+        } => {
             let e = finite(s, "per_newton", per_newton)?;
             if e.abs() > MAX_ELASTICITY_PER_NEWTON {
                 return Err(CompileError::DoesNotFit {
@@ -1089,9 +1147,29 @@ pub fn compile_effect(
                     format: "strain Q0.31 at 65.535 N",
                 });
             }
+            let m = finite(s, "mm_per_newton", mm_per_newton)?;
+            if m.abs() > MAX_ELASTICITY_MM_PER_NEWTON {
+                return Err(CompileError::DoesNotFit {
+                    string: s,
+                    field: "mm_per_newton",
+                    value: m,
+                    format: "Q16.47 mm per mN, at most MAX_ELASTICITY_MM_PER_NEWTON",
+                });
+            }
+            let th = finite(s, "home_tension_n", home_tension_n)?;
+            if !(0.0..=65.535).contains(&th) {
+                return Err(CompileError::DoesNotFit {
+                    string: s,
+                    field: "home_tension_n",
+                    value: th,
+                    format: "mN in u16",
+                });
+            }
             CompiledEffect::Elasticity {
                 string,
                 per_mn_q47: to_fixed(s, "per_newton", e / 1000.0, 47, "Q16.47 per mN")?,
+                mm_per_mn_q47: to_fixed(s, "mm_per_newton", m / 1000.0, 47, "Q16.47 mm per mN")?,
+                home_tension_mn: libm::round(th * 1000.0) as u16,
             }
         }
         Effect::Sag {
@@ -1261,13 +1339,27 @@ impl CompiledEffect {
                 let cos_m1 = (i64::from(cos) - (1 << 30)).clamp(i64::from(i32::MIN), 0) as i32;
                 mul_i32_shr(sin_q16, sin, 14).saturating_add(mul_i32_shr(cos_q16, cos_m1, 14))
             }
-            CompiledEffect::Elasticity { per_mn_q47, .. } => {
-                let strain_q47 = per_mn_q47.saturating_mul(i64::from(ctx.tension_mn));
-                let strain_q31 = ((strain_q47 >> 16) + ((strain_q47 >> 15) & 1))
-                    .clamp(i64::from(i32::MIN), i64::from(i32::MAX))
-                    as i32;
-                let free = q16_to_q32(ctx.home_length_q16).saturating_add(ctx.payout_q32);
-                mul_i32_shr(free, strain_q31, 31)
+            CompiledEffect::Elasticity {
+                per_mn_q47,
+                mm_per_mn_q47,
+                home_tension_mn,
+                ..
+            } => {
+                let strain_q31 = |tension_mn: u16| {
+                    let strain_q47 = per_mn_q47.saturating_mul(i64::from(tension_mn));
+                    ((strain_q47 >> 16) + ((strain_q47 >> 15) & 1))
+                        .clamp(i64::from(i32::MIN), i64::from(i32::MAX)) as i32
+                };
+                let home = q16_to_q32(ctx.home_length_q16);
+                let free = home.saturating_add(ctx.payout_q32);
+                let lead = mul_i32_shr(
+                    mm_per_mn_q47,
+                    i32::from(ctx.tension_mn) - i32::from(home_tension_mn),
+                    15,
+                );
+                mul_i32_shr(free, strain_q31(ctx.tension_mn), 31)
+                    .saturating_sub(mul_i32_shr(home, strain_q31(home_tension_mn), 31))
+                    .saturating_add(lead)
             }
             CompiledEffect::Backlash { half_width_q16, .. } => {
                 let h = q16_to_q32(half_width_q16);
@@ -1778,6 +1870,8 @@ mod tests {
             });
             push(Effect::Elasticity {
                 per_newton: rng.uniform(0.0, 2e-4),
+                mm_per_newton: rng.uniform(0.0, 0.03),
+                home_tension_n: rng.uniform(0.5, 2.0),
             });
             push(Effect::Backlash {
                 half_width_mm: rng.uniform(-3.0, 3.0),
@@ -1999,7 +2093,7 @@ mod tests {
             Err(CompileError::OutOfRange { field: "power", .. })
         ));
         assert!(matches!(
-            compile_effect(&term(0, Effect::Elasticity { per_newton: 0.1 }), &laws),
+            compile_effect(&term(0, Effect::elasticity(0.1)), &laws),
             Err(CompileError::DoesNotFit {
                 field: "per_newton",
                 ..
@@ -2313,8 +2407,12 @@ mod tests {
                     }
                 }
             ),
-            (s, any::<i64>())
-                .prop_map(|(string, per_mn_q47)| CompiledEffect::Elasticity { string, per_mn_q47 }),
+            (s, any::<i64>()).prop_map(|(string, per_mn_q47)| CompiledEffect::Elasticity {
+                string,
+                per_mn_q47,
+                mm_per_mn_q47: 0,
+                home_tension_mn: 0,
+            }),
             (s, any::<i64>()).prop_map(|(string, half_width_q16)| CompiledEffect::Backlash {
                 string,
                 half_width_q16
@@ -2435,7 +2533,7 @@ mod tests {
                 Effect::Scale { relative: v },
                 Effect::Winding { power, mm_per_rad_pow: v },
                 Effect::Eccentricity { sin_mm: v, cos_mm: w },
-                Effect::Elasticity { per_newton: v },
+                Effect::elasticity(v),
                 Effect::Backlash { half_width_mm: v },
                 Effect::Drift { mm_per_s: v },
                 Effect::Slip { at_s: v, mm: w },

@@ -369,7 +369,11 @@ pub fn effect_parameter_info(effect: &Effect) -> &'static [(&'static str, f64, &
             ("eccentricity_sin", 0.1, "mm"),
             ("eccentricity_cos", 0.1, "mm"),
         ],
-        Effect::Elasticity { .. } => &[("elasticity", 1e-5, "1/N")],
+        Effect::Elasticity { .. } => &[
+            ("elasticity", 1e-5, "1/N"),
+            ("elasticity_lead", 1e-2, "mm/N"),
+            ("elasticity_home_tension", 1.0, "N"),
+        ],
         Effect::Backlash { .. } => &[("backlash", 0.1, "mm")],
         Effect::Drift { .. } => &[("drift", 1e-4, "mm/s")],
         Effect::Slip { .. } => &[("slip", 1.0, "mm")],
@@ -827,10 +831,14 @@ impl levenberg_marquardt::LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
                 for term in state.effects.iter().filter(|t| t.applies_to(i)) {
                     match term.effect {
                         Effect::Scale { relative } => d_payout += relative,
-                        Effect::Elasticity { per_newton } => {
+                        Effect::Elasticity {
+                            per_newton,
+                            home_tension_n,
+                            ..
+                        } => {
                             let t = f64::from(o.inputs.tension_mn[i]) / 1000.0;
                             d_payout += per_newton * t;
-                            d_home += per_newton * t;
+                            d_home += per_newton * (t - home_tension_n);
                         }
                         Effect::Sag {
                             mm_at_1m_1n,
