@@ -1014,16 +1014,18 @@ pub enum CompiledEffect {
         counts_per_rev: u32,
         turns_per_count_q48: u64,
     },
-    /// `+ strain * (home_length + payout) - home_strain * home_length +
-    /// mm_per_mn_q47 * (tension_mn - home_tension_mn)`, strain =
-    /// `per_mn_q47 * tension_mn` and home_strain = `per_mn_q47 *
-    /// home_tension_mn`, each rounded to Q0.31 and saturated (Q16.47 per
-    /// millinewton; the lead part Q16.47 mm per millinewton).
+    /// `+ strain * (home_length + payout) - home_strain_q31 * home_length +
+    /// mm_per_mn_q47 * tension_mn - home_lead_q32`, strain = `per_mn_q47 *
+    /// tension_mn` rounded to Q0.31 and saturated (Q16.47 per millinewton),
+    /// `home_strain_q31 = per_newton * T_home` (Q0.31), the lead part
+    /// Q16.47 mm per millinewton and `home_lead_q32 = mm_per_newton *
+    /// T_home` (Q31.32 mm).
     Elasticity {
         string: u8,
         per_mn_q47: i64,
         mm_per_mn_q47: i64,
-        home_tension_mn: u16,
+        home_strain_q31: i32,
+        home_lead_q32: i64,
     },
     /// `+ half_width_q16 * sign(direction)` (Q47.16 mm).
     Backlash { string: u8, half_width_q16: i64 },
@@ -1169,7 +1171,8 @@ pub fn compile_effect(
                 string,
                 per_mn_q47: to_fixed(s, "per_newton", e / 1000.0, 47, "Q16.47 per mN")?,
                 mm_per_mn_q47: to_fixed(s, "mm_per_newton", m / 1000.0, 47, "Q16.47 mm per mN")?,
-                home_tension_mn: libm::round(th * 1000.0) as u16,
+                home_strain_q31: to_fixed_i32(s, "home_tension_n", e * th, 31, "strain Q0.31")?,
+                home_lead_q32: to_fixed(s, "home_tension_n", m * th, 32, "Q31.32 mm")?,
             }
         }
         Effect::Sag {
@@ -1342,24 +1345,21 @@ impl CompiledEffect {
             CompiledEffect::Elasticity {
                 per_mn_q47,
                 mm_per_mn_q47,
-                home_tension_mn,
+                home_strain_q31,
+                home_lead_q32,
                 ..
             } => {
-                let strain_q31 = |tension_mn: u16| {
-                    let strain_q47 = per_mn_q47.saturating_mul(i64::from(tension_mn));
-                    ((strain_q47 >> 16) + ((strain_q47 >> 15) & 1))
-                        .clamp(i64::from(i32::MIN), i64::from(i32::MAX)) as i32
-                };
+                let strain_q47 = per_mn_q47.saturating_mul(i64::from(ctx.tension_mn));
+                let strain_q31 = ((strain_q47 >> 16) + ((strain_q47 >> 15) & 1))
+                    .clamp(i64::from(i32::MIN), i64::from(i32::MAX))
+                    as i32;
                 let home = q16_to_q32(ctx.home_length_q16);
                 let free = home.saturating_add(ctx.payout_q32);
-                let lead = mul_i32_shr(
-                    mm_per_mn_q47,
-                    i32::from(ctx.tension_mn) - i32::from(home_tension_mn),
-                    15,
-                );
-                mul_i32_shr(free, strain_q31(ctx.tension_mn), 31)
-                    .saturating_sub(mul_i32_shr(home, strain_q31(home_tension_mn), 31))
+                let lead = mul_i32_shr(mm_per_mn_q47, i32::from(ctx.tension_mn), 15);
+                mul_i32_shr(free, strain_q31, 31)
+                    .saturating_sub(mul_i32_shr(home, home_strain_q31, 31))
                     .saturating_add(lead)
+                    .saturating_sub(home_lead_q32)
             }
             CompiledEffect::Backlash { half_width_q16, .. } => {
                 let h = q16_to_q32(half_width_q16);
@@ -2000,7 +2000,7 @@ mod tests {
                     g[j]
                 );
             }
-            assert!(term.effect.with_parameters(&[1.0, 2.0, 3.0]).is_none());
+            assert!(term.effect.with_parameters(&[1.0, 2.0, 3.0, 4.0]).is_none());
         }
     }
 
@@ -2411,7 +2411,8 @@ mod tests {
                 string,
                 per_mn_q47,
                 mm_per_mn_q47: 0,
-                home_tension_mn: 0,
+                home_strain_q31: 0,
+                home_lead_q32: 0,
             }),
             (s, any::<i64>()).prop_map(|(string, half_width_q16)| CompiledEffect::Backlash {
                 string,

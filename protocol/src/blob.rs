@@ -26,8 +26,10 @@ use serde::{Deserialize, Serialize};
 
 /// Magic bytes at the start of every model blob.
 pub const MAGIC: [u8; 4] = *b"SPDM";
-/// Blob format this crate reads and writes. Version 5 (any other is refused
-/// with [`BlobError::UnsupportedVersion`]): each string law carries its
+/// Blob format this crate reads and writes. Version 6 (any other is refused
+/// with [`BlobError::UnsupportedVersion`]): an elasticity term carries its
+/// lead and home parts (`spidar-core::model::Effect::Elasticity`). Version 5:
+/// each string law carries its
 /// home sag factor and a sag term its home part (the string sagged when home
 /// was captured, `spidar-core::model::Effect::Sag`). Version 4: each string law carries its
 /// layer table (the spool's departure from the winding polynomial, knots in
@@ -37,7 +39,7 @@ pub const MAGIC: [u8; 4] = *b"SPDM";
 /// zero padding after the string model so that the correction starts at a
 /// multiple of 4 bytes from the blob start (`spidar-core::blob`), which lets
 /// the device read the SVR records as aligned words; version 1 had none.
-pub const FORMAT_VERSION: u16 = 5;
+pub const FORMAT_VERSION: u16 = 6;
 /// Size of the header in bytes.
 pub const HEADER_LEN: usize = 40;
 
@@ -371,7 +373,7 @@ mod tests {
 
     #[test]
     fn older_versions_are_refused_by_name() {
-        for old in [1u16, 2, 3, 4] {
+        for old in [1u16, 2, 3, 4, 5] {
             let mut bytes = header().to_bytes();
             bytes[4..6].copy_from_slice(&old.to_le_bytes());
             let crc = CRC32.checksum(&bytes[0..36]);
