@@ -403,25 +403,9 @@ pub enum Effect {
     /// Pulley eccentricity, periodic in the pulley angle:
     /// `+ sin_mm * sin(theta) + cos_mm * (cos(theta) - 1)`.
     Eccentricity { sin_mm: f64, cos_mm: f64 },
-    /// String elasticity: a string of stiffness `EA` under tension `T` is
-    /// longer than its natural length by `T / EA` of the length from its
-    /// spool (the lead to the guide, the arc on it and the free span), and
-    /// the counts measure the natural length from the home capture, where
-    /// the string was already stretched at the home tension, so
-    /// `+ per_newton * (T * (home_length + payout) - T_home * home_length)
-    ///  + mm_per_newton * (T - T_home)`:
-    /// `per_newton = 1 / EA` (1/N), `mm_per_newton = (lead + arc) / EA`
-    /// (mm/N, the string between the spool and the exit point, whose length
-    /// does not change), `T_home = home_tension_n` (N, fitted). Both absent
-    /// (0) in files written before they existed: the stretch of the free
-    /// span alone, `per_newton * T * (home_length + payout)`.
-    Elasticity {
-        per_newton: f64,
-        #[serde(default)]
-        mm_per_newton: f64,
-        #[serde(default)]
-        home_tension_n: f64,
-    },
+    /// String elasticity of one string, the stretch of its free span:
+    /// `+ per_newton * tension_N * (home_length + payout)`.
+    Elasticity { per_newton: f64 },
     /// Direction-dependent backlash / hysteresis: `+ half_width_mm * direction`.
     Backlash { half_width_mm: f64 },
     /// Drift with time since initialization (creep, temperature): `+ mm_per_s * t`.
@@ -449,18 +433,24 @@ pub enum Effect {
         mm_at_1m_1n: f64,
         home_mm_at_1m: f64,
     },
-}
-
-impl Effect {
-    /// The stretch of the free span alone, `per_newton * T * (home_length +
-    /// payout)` (no lead, no home capture).
-    pub const fn elasticity(per_newton: f64) -> Effect {
-        Effect::Elasticity {
-            per_newton,
-            mm_per_newton: 0.0,
-            home_tension_n: 0.0,
-        }
-    }
+    /// The strings' stretch as the encoders count it: a string of stiffness
+    /// `EA` under tension `T` is longer than its natural length by `T / EA`
+    /// of its whole length from the spool (the lead to the guide and the arc
+    /// on it, whose length does not change, and the free span), and the
+    /// counts measure the natural length from the home capture, where the
+    /// string was already stretched at the home tension, so
+    /// `+ per_newton * (T * (home_length + payout) - T_home * home_length)
+    ///  + mm_per_newton * (T - T_home)`:
+    /// `per_newton = 1 / EA` (1/N), `mm_per_newton = (lead + arc) / EA`
+    /// (mm/N), `T_home = home_tension_n` (N, fitted). Zero at the home
+    /// capture. Meant for strings of one kind, one term shared by every
+    /// string ([`EVERY_STRING`]): one string's home part is a constant on
+    /// that string, an [`Offset`](Effect::Offset).
+    Stretch {
+        per_newton: f64,
+        mm_per_newton: f64,
+        home_tension_n: f64,
+    },
 }
 
 /// An [`Effect`] applied to one string, or to every string at once.

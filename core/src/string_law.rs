@@ -124,10 +124,10 @@ pub fn sag_home_slope(home_mm_at_1m: f64, ctx: &EffectContext) -> f64 {
     }
 }
 
-/// An elasticity term's contribution (mm): `per_newton * (T (home_length +
+/// A stretch term's contribution (mm): `per_newton * (T (home_length +
 /// payout) - T_home home_length) + mm_per_newton (T - T_home)`
-/// ([`Effect::Elasticity`]).
-pub fn elasticity_mm(
+/// ([`Effect::Stretch`]).
+pub fn stretch_mm(
     per_newton: f64,
     mm_per_newton: f64,
     home_tension_n: f64,
@@ -337,11 +337,14 @@ impl Effect {
             Effect::Eccentricity { sin_mm, cos_mm } => {
                 sin_mm * libm::sin(ctx.theta) + cos_mm * (libm::cos(ctx.theta) - 1.0)
             }
-            Effect::Elasticity {
+            Effect::Elasticity { per_newton } => {
+                per_newton * ctx.tension_n * (ctx.home_length_mm + ctx.payout_mm)
+            }
+            Effect::Stretch {
                 per_newton,
                 mm_per_newton,
                 home_tension_n,
-            } => elasticity_mm(per_newton, mm_per_newton, home_tension_n, ctx),
+            } => stretch_mm(per_newton, mm_per_newton, home_tension_n, ctx),
             Effect::Backlash { half_width_mm } => half_width_mm * direction_sign(ctx.direction),
             Effect::Drift { mm_per_s } => mm_per_s * ctx.time_s,
             Effect::Slip { at_s, mm } => {
@@ -367,18 +370,20 @@ impl Effect {
     /// | Scale | `relative` | `[payout]` |
     /// | Winding | `mm_per_rad_pow` (`power` is structural) | `[theta^power]` |
     /// | Eccentricity | `sin_mm, cos_mm` | `[sin theta, cos theta - 1]` |
-    /// | Elasticity | `per_newton, mm_per_newton, home_tension_n` | `[T (home_length + payout) - T_home home_length, T - T_home, -(per_newton home_length + mm_per_newton)]` |
+    /// | Elasticity | `per_newton` | `[tension_N (home_length + payout)]` |
     /// | Backlash | `half_width_mm` | `[sign(direction)]` |
     /// | Drift | `mm_per_s` | `[t]` |
     /// | Slip | `mm` (`at_s` is held fixed: a step is not differentiable in its time; search it separately) | `[t >= at_s ? 1 : 0]` |
     /// | Sag | `mm_at_1m_1n, home_mm_at_1m` | `[-cos^2(a) (l / 1 m)^3 / (T / 1 N)^2, cos^2(a_home) (home_length / 1 m)^3]` (0 where a part is clamped) |
+    /// | Stretch | `per_newton, mm_per_newton, home_tension_n` | `[T (home_length + payout) - T_home home_length, T - T_home, -(per_newton home_length + mm_per_newton)]` |
     pub fn gradient_f64(&self, ctx: &EffectContext) -> heapless::Vec<f64, 3> {
         match *self {
             Effect::Offset { .. } => one(1.0),
             Effect::Scale { .. } => one(ctx.payout_mm),
             Effect::Winding { power, .. } => one(powi_f64(ctx.theta, power)),
             Effect::Eccentricity { .. } => two(libm::sin(ctx.theta), libm::cos(ctx.theta) - 1.0),
-            Effect::Elasticity {
+            Effect::Elasticity { .. } => one(ctx.tension_n * (ctx.home_length_mm + ctx.payout_mm)),
+            Effect::Stretch {
                 per_newton,
                 mm_per_newton,
                 home_tension_n,
@@ -420,7 +425,8 @@ impl Effect {
             Effect::Scale { relative } => one(relative),
             Effect::Winding { mm_per_rad_pow, .. } => one(mm_per_rad_pow),
             Effect::Eccentricity { sin_mm, cos_mm } => two(sin_mm, cos_mm),
-            Effect::Elasticity {
+            Effect::Elasticity { per_newton } => one(per_newton),
+            Effect::Stretch {
                 per_newton,
                 mm_per_newton,
                 home_tension_n,
@@ -453,7 +459,8 @@ impl Effect {
                 sin_mm: p[0],
                 cos_mm: p[1],
             },
-            Effect::Elasticity { .. } => Effect::Elasticity {
+            Effect::Elasticity { .. } => Effect::Elasticity { per_newton: p[0] },
+            Effect::Stretch { .. } => Effect::Stretch {
                 per_newton: p[0],
                 mm_per_newton: p[1],
                 home_tension_n: p[2],
@@ -1135,46 +1142,12 @@ pub fn compile_effect(
                 turns_per_count_q48: turns_per_count_q48(law.counts_per_rev),
             }
         }
-        Effect::Elasticity {
+        Effect::Elasticity { per_newton } => compile_stretch(s, string, per_newton, 0.0, 0.0)?,
+        Effect::Stretch {
             per_newton,
             mm_per_newton,
             home_tension_n,
-        } => {
-            let e = finite(s, "per_newton", per_newton)?;
-            if e.abs() > MAX_ELASTICITY_PER_NEWTON {
-                return Err(CompileError::DoesNotFit {
-                    string: s,
-                    field: "per_newton",
-                    value: e,
-                    format: "strain Q0.31 at 65.535 N",
-                });
-            }
-            let m = finite(s, "mm_per_newton", mm_per_newton)?;
-            if m.abs() > MAX_ELASTICITY_MM_PER_NEWTON {
-                return Err(CompileError::DoesNotFit {
-                    string: s,
-                    field: "mm_per_newton",
-                    value: m,
-                    format: "Q16.47 mm per mN, at most MAX_ELASTICITY_MM_PER_NEWTON",
-                });
-            }
-            let th = finite(s, "home_tension_n", home_tension_n)?;
-            if !(0.0..=65.535).contains(&th) {
-                return Err(CompileError::DoesNotFit {
-                    string: s,
-                    field: "home_tension_n",
-                    value: th,
-                    format: "mN in u16",
-                });
-            }
-            CompiledEffect::Elasticity {
-                string,
-                per_mn_q47: to_fixed(s, "per_newton", e / 1000.0, 47, "Q16.47 per mN")?,
-                mm_per_mn_q47: to_fixed(s, "mm_per_newton", m / 1000.0, 47, "Q16.47 mm per mN")?,
-                home_strain_q31: to_fixed_i32(s, "home_tension_n", e * th, 31, "strain Q0.31")?,
-                home_lead_q32: to_fixed(s, "home_tension_n", m * th, 32, "Q31.32 mm")?,
-            }
-        }
+        } => compile_stretch(s, string, per_newton, mm_per_newton, home_tension_n)?,
         Effect::Sag {
             mm_at_1m_1n,
             home_mm_at_1m,
@@ -1232,6 +1205,51 @@ pub fn compile_effect(
                 mm_q16: to_fixed(s, "mm", mm, 16, "Q47.16 mm")?,
             }
         }
+    })
+}
+
+/// An elasticity or stretch term in its one compiled form (an elasticity is
+/// a stretch without lead and home parts).
+fn compile_stretch(
+    s: usize,
+    string: u8,
+    per_newton: f64,
+    mm_per_newton: f64,
+    home_tension_n: f64,
+) -> Result<CompiledEffect, CompileError> {
+    let e = finite(s, "per_newton", per_newton)?;
+    if e.abs() > MAX_ELASTICITY_PER_NEWTON {
+        return Err(CompileError::DoesNotFit {
+            string: s,
+            field: "per_newton",
+            value: e,
+            format: "strain Q0.31 at 65.535 N",
+        });
+    }
+    let m = finite(s, "mm_per_newton", mm_per_newton)?;
+    if m.abs() > MAX_ELASTICITY_MM_PER_NEWTON {
+        return Err(CompileError::DoesNotFit {
+            string: s,
+            field: "mm_per_newton",
+            value: m,
+            format: "Q16.47 mm per mN, at most MAX_ELASTICITY_MM_PER_NEWTON",
+        });
+    }
+    let th = finite(s, "home_tension_n", home_tension_n)?;
+    if !(0.0..=65.535).contains(&th) {
+        return Err(CompileError::DoesNotFit {
+            string: s,
+            field: "home_tension_n",
+            value: th,
+            format: "mN in u16",
+        });
+    }
+    Ok(CompiledEffect::Elasticity {
+        string,
+        per_mn_q47: to_fixed(s, "per_newton", e / 1000.0, 47, "Q16.47 per mN")?,
+        mm_per_mn_q47: to_fixed(s, "mm_per_newton", m / 1000.0, 47, "Q16.47 mm per mN")?,
+        home_strain_q31: to_fixed_i32(s, "home_tension_n", e * th, 31, "strain Q0.31")?,
+        home_lead_q32: to_fixed(s, "home_tension_n", m * th, 32, "Q31.32 mm")?,
     })
 }
 
@@ -2093,7 +2111,7 @@ mod tests {
             Err(CompileError::OutOfRange { field: "power", .. })
         ));
         assert!(matches!(
-            compile_effect(&term(0, Effect::elasticity(0.1)), &laws),
+            compile_effect(&term(0, Effect::Elasticity { per_newton: 0.1 }), &laws),
             Err(CompileError::DoesNotFit {
                 field: "per_newton",
                 ..
@@ -2534,7 +2552,7 @@ mod tests {
                 Effect::Scale { relative: v },
                 Effect::Winding { power, mm_per_rad_pow: v },
                 Effect::Eccentricity { sin_mm: v, cos_mm: w },
-                Effect::elasticity(v),
+                Effect::Elasticity { per_newton: v },
                 Effect::Backlash { half_width_mm: v },
                 Effect::Drift { mm_per_s: v },
                 Effect::Slip { at_s: v, mm: w },

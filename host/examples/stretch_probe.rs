@@ -28,7 +28,9 @@ fn main() {
         k += 1.0 / s.stiffness_n / n as f64;
         m += (s.lead_mm + arc) / s.stiffness_n / n as f64;
     }
-    println!("seed {seed} truth: mean 1/EA {k:.3e}, mean (lead + arc)/EA {m:.4} mm/N, home tension {th}");
+    println!(
+        "seed {seed} truth: mean 1/EA {k:.3e}, mean (lead + arc)/EA {m:.4} mm/N, home tension {th}"
+    );
     let obs = observations(&train.samples);
     let nominal = device.nominal.nominal_frame();
     let start = Start::from_geometry(&device.nominal);

@@ -692,7 +692,7 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
                 })],
                 search_penalty: 0.0,
                 rival: Vec::new(),
-                build: Box::new(move |b| term(Effect::elasticity(b[0]))),
+                build: Box::new(move |b| term(Effect::Elasticity { per_newton: b[0] })),
                 describe: format!("string {i} stretches with its tension (elastic string)"),
             });
         }
@@ -788,23 +788,25 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
                 .into(),
         });
     }
-    // One elasticity shared by every string (strings of one kind: one
+    // One stretch shared by every string (strings of one kind: one
     // stiffness, a similar lead from spool to guide, one tension at the home
     // capture): `k (T l - T_home l_home) + m (T - T_home)`. Detected with the
-    // linear columns `T l`, `T`, `-1` (`T_home (k l_home + m)` with the mean
-    // home length); the refit frees `T_home`. Without its lead and home parts
-    // the shared sag stood in for it on 11 of 20 clean independent devices.
-    let shared_elasticity = structure
+    // linear columns `T l`, `T` and `-1` (`T_home (k l_home + m)` at the mean
+    // home length); the refit frees `T_home` around the pretension. Without
+    // its lead and home parts the shared sag stood in for it on 11 of 20
+    // clean independent devices.
+    let shared_stretch = structure
         .effects
         .iter()
-        .any(|t| t.string == EVERY_STRING && matches!(t.effect, Effect::Elasticity { .. }));
-    if !shared_elasticity {
+        .any(|t| matches!(t.effect, Effect::Stretch { .. }));
+    if !shared_stretch {
         let active = |r: &Row, v: f64| if strings.is_active(r.string) { v } else { 0.0 };
         let (sum_lh, n_lh) = rows
             .iter()
             .filter(|r| strings.is_active(r.string))
             .fold((0.0, 0usize), |(s, n), r| (s + r.ctx.home_length_mm, n + 1));
-        let mean_lh = if n_lh > 0 { sum_lh / n_lh as f64 } else { 0.0 };
+        let mean_lh = sum_lh / n_lh.max(1) as f64;
+        let pretension = structure.priors.home_tension_n;
         out.push(Candidate {
             family: Family::Elasticity,
             strings: Vec::new(),
@@ -822,22 +824,19 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
                 rows.iter().map(|r| active(r, -1.0)).collect(),
             ],
             search_penalty: 0.0,
+            rival: Vec::new(),
             build: Box::new(move |b| {
-                let home = b[0] * mean_lh + b[1];
-                let t_home = if home.abs() > 1e-9 {
-                    b[2] / home
-                } else {
-                    f64::NAN
-                };
+                let home_tension_n = b[2] / (b[0] * mean_lh + b[1]);
                 Change::Effect(EffectTerm {
                     string: EVERY_STRING,
-                    effect: Effect::Elasticity {
+                    effect: Effect::Stretch {
                         per_newton: b[0],
                         mm_per_newton: b[1],
-                        home_tension_n: if (0.0..=10.0).contains(&t_home) {
-                            t_home
+                        home_tension_n: if (0.0..=2.0 * pretension + 1.0).contains(&home_tension_n)
+                        {
+                            home_tension_n
                         } else {
-                            1.0
+                            pretension
                         },
                     },
                 })

@@ -101,6 +101,23 @@ pub struct Priors {
     /// ([`WindingPhysics::kappa_each_mm`]), mm/rad^2.
     #[serde(default = "default_kappa_each_sd")]
     pub kappa_each_sd_mm: f64,
+    /// The strings' tension when home was captured ([`Effect::Stretch`]'s
+    /// `home_tension_n`), N: the pretension the initialization holds, the
+    /// firmware's default 1 N. The data fix it only through the stretch's
+    /// home part, which is small when the strings are stiff.
+    #[serde(default = "default_home_tension")]
+    pub home_tension_n: f64,
+    /// Its tolerance, N.
+    #[serde(default = "default_home_tension_sd")]
+    pub home_tension_sd_n: f64,
+}
+
+fn default_home_tension() -> f64 {
+    1.0
+}
+
+fn default_home_tension_sd() -> f64 {
+    1.0
 }
 
 fn default_kappa_each_sd() -> f64 {
@@ -119,6 +136,8 @@ impl Default for Priors {
             rotation_sd_rad: 0.2,
             translation_sd_mm: 500.0,
             kappa_each_sd_mm: KAPPA_EACH_SD_MM,
+            home_tension_n: default_home_tension(),
+            home_tension_sd_n: default_home_tension_sd(),
         }
     }
 }
@@ -369,17 +388,18 @@ pub fn effect_parameter_info(effect: &Effect) -> &'static [(&'static str, f64, &
             ("eccentricity_sin", 0.1, "mm"),
             ("eccentricity_cos", 0.1, "mm"),
         ],
-        Effect::Elasticity { .. } => &[
-            ("elasticity", 1e-5, "1/N"),
-            ("elasticity_lead", 1e-2, "mm/N"),
-            ("elasticity_home_tension", 1.0, "N"),
-        ],
+        Effect::Elasticity { .. } => &[("elasticity", 1e-5, "1/N")],
         Effect::Backlash { .. } => &[("backlash", 0.1, "mm")],
         Effect::Drift { .. } => &[("drift", 1e-4, "mm/s")],
         Effect::Slip { .. } => &[("slip", 1.0, "mm")],
         Effect::Sag { .. } => &[
             ("sag", 0.1, "mm at 1 m and 1 N"),
             ("home_sag", 0.1, "mm at 1 m"),
+        ],
+        Effect::Stretch { .. } => &[
+            ("stretch", 1e-5, "1/N"),
+            ("stretch_lead", 1e-2, "mm/N"),
+            ("stretch_home_tension", 1.0, "N"),
         ],
     }
 }
@@ -607,6 +627,16 @@ impl Problem<'_> {
                     .collect(),
             ));
         }
+        // A stretch's home tension: around the pretension held at home.
+        for (c, &(e, pi)) in self.layout.effect_columns.iter().enumerate() {
+            if let (Effect::Stretch { home_tension_n, .. }, 2) = (state.effects[e].effect, pi) {
+                let sd = p.home_tension_sd_n;
+                rows.push((
+                    (home_tension_n - p.home_tension_n) / sd,
+                    vec![(self.layout.first_effect() + c, 1.0 / sd)],
+                ));
+            }
+        }
         // Gauge: the active anchors' centroid and mean orientation stay
         // nominal (in the plane: the orientation about z only).
         const GAUGE_SD_MM: f64 = 0.01;
@@ -670,6 +700,12 @@ impl Problem<'_> {
             + (STRINGS - layout.count())
             + STRINGS
             + usize::from(!self.structure.hold_kappa_each)
+            + self
+                .structure
+                .effects
+                .iter()
+                .filter(|t| matches!(t.effect, Effect::Stretch { .. }))
+                .count()
             + gauge
     }
 
@@ -831,7 +867,12 @@ impl levenberg_marquardt::LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
                 for term in state.effects.iter().filter(|t| t.applies_to(i)) {
                     match term.effect {
                         Effect::Scale { relative } => d_payout += relative,
-                        Effect::Elasticity {
+                        Effect::Elasticity { per_newton } => {
+                            let t = f64::from(o.inputs.tension_mn[i]) / 1000.0;
+                            d_payout += per_newton * t;
+                            d_home += per_newton * t;
+                        }
+                        Effect::Stretch {
                             per_newton,
                             home_tension_n,
                             ..
@@ -1440,7 +1481,8 @@ fn parameter_names(
             } else {
                 format!("string{}", term.string)
             };
-            names.push((format!("{owner}.{pname}"), *unit, None));
+            let prior = (*pname == "stretch_home_tension").then_some(p.home_tension_sd_n);
+            names.push((format!("{owner}.{pname}"), *unit, prior));
         }
     }
     names

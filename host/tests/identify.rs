@@ -48,7 +48,7 @@ fn an_effect_the_data_cannot_show_is_reported_as_undetermined() {
     let structure = Structure {
         effects: vec![EffectTerm {
             string: 2,
-            effect: Effect::elasticity(0.0),
+            effect: Effect::Elasticity { per_newton: 0.0 },
         }],
         ..Structure::default()
     };

@@ -46,7 +46,7 @@ fn calibration(correction: CorrectionModel) -> Calibration {
         EffectTerm { string: 1, effect: Effect::Scale { relative: 0.003 } },
         EffectTerm { string: 2, effect: Effect::Winding { power: 3, mm_per_rad_pow: 1.5e-6 } },
         EffectTerm { string: 3, effect: Effect::Eccentricity { sin_mm: 0.12, cos_mm: -0.05 } },
-        EffectTerm { string: 4, effect: Effect::elasticity(2e-4) },
+        EffectTerm { string: 4, effect: Effect::Elasticity { per_newton: 2e-4 } },
         EffectTerm { string: 5, effect: Effect::Backlash { half_width_mm: 0.7 } },
         EffectTerm { string: 6, effect: Effect::Drift { mm_per_s: 1e-4 } },
         EffectTerm { string: 7, effect: Effect::Slip { at_s: 600.0, mm: 1.2 } },

@@ -189,7 +189,7 @@ pub fn parse_effect(spec: &str) -> Result<Vec<InjectedEffect>, SimError> {
         }
         "elasticity" => {
             let per_newton = p.required("per_newton")?;
-            Ok(model(Effect::elasticity(per_newton)))
+            Ok(model(Effect::Elasticity { per_newton }))
         }
         "backlash" => {
             let half_width_mm = p.required("half_width_mm")?;
