@@ -266,6 +266,15 @@ fn finish(acc: i64, frac: u8, offset: i32, mode: OutputMode, p: i32) -> i32 {
 /// [`NN_HEADER_LEN`] for the layout). Positions in and out are Q15.16 mm.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct NnView<'a> {
+    summary: NnSummary,
+    /// `hidden * NN_NEURON_LEN` bytes.
+    neurons: &'a [u8],
+}
+
+/// The checked, borrow-free part of an [`NnView`] (see
+/// [`NnView::from_summary`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct NnSummary {
     mode: OutputMode,
     /// Fractional bits of the first-layer weights (per mm).
     w1_frac: u8,
@@ -275,8 +284,7 @@ pub struct NnView<'a> {
     mean: [i32; 3],
     /// `b2 * std_out + mean_out`, Q15.16 mm.
     offset: [i32; 3],
-    /// `hidden * NN_NEURON_LEN` bytes.
-    neurons: &'a [u8],
+    hidden: u16,
 }
 
 impl<'a> NnView<'a> {
@@ -338,12 +346,40 @@ impl<'a> NnView<'a> {
             }
         }
         Ok(NnView {
-            mode,
-            w1_frac,
-            w2_frac,
-            mean,
-            offset,
+            summary: NnSummary {
+                mode,
+                w1_frac,
+                w2_frac,
+                mean,
+                offset,
+                hidden,
+            },
             neurons,
+        })
+    }
+
+    /// The borrow-free part of this view.
+    pub fn summary(&self) -> NnSummary {
+        self.summary
+    }
+
+    /// The view again over bytes that [`parse`](Self::parse) checked into
+    /// `summary` and that have not changed since: O(1) (the length is
+    /// checked, the weights' bounds are not read again). A device tick
+    /// rebuilds its view this way; re-parsing cost ~1,150 instructions of
+    /// the 25,000-cycle tick.
+    pub fn from_summary(summary: &NnSummary, bytes: &'a [u8]) -> Result<NnView<'a>, BlobError> {
+        let expected = NN_HEADER_LEN + NN_NEURON_LEN * summary.hidden as usize;
+        if bytes.len() != expected {
+            return Err(BlobError::Dimension {
+                field: "nn.body_len",
+                found: len_u32(bytes.len()),
+                expected: len_u32(expected),
+            });
+        }
+        Ok(NnView {
+            summary: *summary,
+            neurons: &bytes[NN_HEADER_LEN..],
         })
     }
 
@@ -354,17 +390,18 @@ impl<'a> NnView<'a> {
 
     /// Output mode of the network.
     pub fn mode(&self) -> OutputMode {
-        self.mode
+        self.summary.mode
     }
 
     /// Corrected position (Q15.16 mm) of a position `p` (Q15.16 mm). Integer
     /// only, saturating, never panics.
     pub fn evaluate(&self, p: [i32; 3]) -> [i32; 3] {
-        let d0 = p[0].saturating_sub(self.mean[0]) as i64;
-        let d1 = p[1].saturating_sub(self.mean[1]) as i64;
-        let d2 = p[2].saturating_sub(self.mean[2]) as i64;
+        let d0 = p[0].saturating_sub(self.summary.mean[0]) as i64;
+        let d1 = p[1].saturating_sub(self.summary.mean[1]) as i64;
+        let d2 = p[2].saturating_sub(self.summary.mean[2]) as i64;
         // Q(16 + w1_frac) -> Q27.
-        let sh = (self.w1_frac as u32).wrapping_sub(PREACTIVATION_FRAC - POSITION_FRAC as u32);
+        let sh =
+            (self.summary.w1_frac as u32).wrapping_sub(PREACTIVATION_FRAC - POSITION_FRAC as u32);
         let mut acc = [0i64; 3];
         for rec in self.neurons.chunks_exact(NN_NEURON_LEN) {
             let Ok(rec) = <&[u8; NN_NEURON_LEN]>::try_from(rec) else {
@@ -380,9 +417,27 @@ impl<'a> NnView<'a> {
             acc[2] = acc[2].wrapping_add(le_i32::<NN_NEURON_LEN, 24>(rec) as i64 * t);
         }
         [
-            finish(acc[0], self.w2_frac[0], self.offset[0], self.mode, p[0]),
-            finish(acc[1], self.w2_frac[1], self.offset[1], self.mode, p[1]),
-            finish(acc[2], self.w2_frac[2], self.offset[2], self.mode, p[2]),
+            finish(
+                acc[0],
+                self.summary.w2_frac[0],
+                self.summary.offset[0],
+                self.summary.mode,
+                p[0],
+            ),
+            finish(
+                acc[1],
+                self.summary.w2_frac[1],
+                self.summary.offset[1],
+                self.summary.mode,
+                p[1],
+            ),
+            finish(
+                acc[2],
+                self.summary.w2_frac[2],
+                self.summary.offset[2],
+                self.summary.mode,
+                p[2],
+            ),
         ]
     }
 }
@@ -851,10 +906,7 @@ pub enum Correction<'a> {
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum CorrectionSummary {
     None,
-    /// An NN re-parses in O(hidden), cheap enough to keep it simple.
-    Nn {
-        hidden: u16,
-    },
+    Nn(NnSummary),
     Svr(SvrSummary),
 }
 
@@ -863,22 +915,20 @@ impl<'a> Correction<'a> {
     pub fn summary(&self) -> CorrectionSummary {
         match self {
             Correction::None => CorrectionSummary::None,
-            Correction::Nn(nn) => CorrectionSummary::Nn {
-                hidden: nn.hidden() as u16,
-            },
+            Correction::Nn(nn) => CorrectionSummary::Nn(nn.summary()),
             Correction::Svr(svr) => CorrectionSummary::Svr(svr.summary()),
         }
     }
 
     /// The view again over bytes that were parsed into `summary` and have not
-    /// changed since; O(1) for an SVR (see [`SvrView::from_summary`]).
+    /// changed since; O(1) ([`NnView::from_summary`], [`SvrView::from_summary`]).
     pub fn from_summary(
         summary: &CorrectionSummary,
         bytes: &'a [u8],
     ) -> Result<Correction<'a>, BlobError> {
         match summary {
             CorrectionSummary::None => Ok(Correction::None),
-            CorrectionSummary::Nn { hidden } => Ok(Correction::Nn(NnView::parse(bytes, *hidden)?)),
+            CorrectionSummary::Nn(s) => Ok(Correction::Nn(NnView::from_summary(s, bytes)?)),
             CorrectionSummary::Svr(s) => Ok(Correction::Svr(SvrView::from_summary(s, bytes)?)),
         }
     }
@@ -1706,6 +1756,8 @@ mod tests {
         for model in [
             CorrectionModel::Svr(svr_model(200, 5, OutputMode::Residual)),
             CorrectionModel::Svr(svr_model(70, 6, OutputMode::Absolute)),
+            CorrectionModel::Nn(nn_model(20, 7, OutputMode::Residual)),
+            CorrectionModel::Nn(nn_model(3, 8, OutputMode::Absolute)),
         ] {
             let c = model.compile().expect("compiles");
             let parsed =
