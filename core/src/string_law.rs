@@ -1367,17 +1367,36 @@ impl CompiledEffect {
                 home_lead_q32,
                 ..
             } => {
-                let strain_q47 = per_mn_q47.saturating_mul(i64::from(ctx.tension_mn));
+                // |per_mn_q47| <= 2^47 (a compiled model's is below 2^31):
+                // the product fits i64 without a checked multiply, which
+                // the M7 does in a library call.
+                let strain_q47 = per_mn_q47.clamp(-(1 << 47), 1 << 47) * i64::from(ctx.tension_mn);
                 let strain_q31 = ((strain_q47 >> 16) + ((strain_q47 >> 15) & 1))
                     .clamp(i64::from(i32::MIN), i64::from(i32::MAX))
                     as i32;
-                let home = q16_to_q32(ctx.home_length_q16);
-                let free = home.saturating_add(ctx.payout_q32);
-                let lead = mul_i32_shr(mm_per_mn_q47, i32::from(ctx.tension_mn), 15);
-                mul_i32_shr(free, strain_q31, 31)
-                    .saturating_sub(mul_i32_shr(home, home_strain_q31, 31))
-                    .saturating_add(lead)
-                    .saturating_sub(home_lead_q32)
+                // Lengths in Q16 (below 2^15 mm: clamped to i32) times
+                // Q0.31 strains: one 32 x 32 -> 64 bit product each, in
+                // Q.47 (the payout rounded to Q16 first: 8e-6 mm times the
+                // strain). The home part is skipped by an elasticity of one
+                // string, which has none.
+                let to_i32 = |v: i64| v.clamp(i64::from(i32::MIN), i64::from(i32::MAX));
+                let home_q16 = to_i32(ctx.home_length_q16);
+                let free_q16 =
+                    to_i32(home_q16 + q32_to_q16(ctx.payout_q32).clamp(-(1 << 40), 1 << 40));
+                let mut stretch_q47 = free_q16 * i64::from(strain_q31);
+                if home_strain_q31 != 0 {
+                    stretch_q47 -= home_q16 * i64::from(home_strain_q31);
+                }
+                let stretch = (stretch_q47 + (1 << 14)) >> 15;
+                // The lead part: |mm_per_mn_q47| <= 2^47 (a compiled
+                // model's is below 2^37) times a u16 fits i64.
+                if mm_per_mn_q47 == 0 {
+                    stretch
+                } else {
+                    let m = mm_per_mn_q47.clamp(-(1 << 47), 1 << 47);
+                    let lead = (m * i64::from(ctx.tension_mn) + (1 << 14)) >> 15;
+                    stretch.saturating_add(lead.saturating_sub(home_lead_q32))
+                }
             }
             CompiledEffect::Backlash { half_width_q16, .. } => {
                 let h = q16_to_q32(half_width_q16);
@@ -1888,8 +1907,6 @@ mod tests {
             });
             push(Effect::Elasticity {
                 per_newton: rng.uniform(0.0, 2e-4),
-                mm_per_newton: rng.uniform(0.0, 0.03),
-                home_tension_n: rng.uniform(0.5, 2.0),
             });
             push(Effect::Backlash {
                 half_width_mm: rng.uniform(-3.0, 3.0),
@@ -1917,6 +1934,14 @@ mod tests {
             string: EVERY_STRING,
             effect: Effect::Scale {
                 relative: rng.uniform(-0.01, 0.01),
+            },
+        });
+        effects.push(EffectTerm {
+            string: EVERY_STRING,
+            effect: Effect::Stretch {
+                per_newton: rng.uniform(0.0, 2e-4),
+                mm_per_newton: rng.uniform(0.0, 0.03),
+                home_tension_n: rng.uniform(0.5, 2.0),
             },
         });
         (f, laws, effects)
@@ -1970,7 +1995,7 @@ mod tests {
         let max_err = measure(0x5EED_0001, 400, 500, |_| true);
         println!("string law: max |fixed - f64| = {max_err:.3e} mm (400 calibrations x 500 inputs x 8 strings)");
         type Keep = fn(&Effect) -> bool;
-        let families: [(&str, Keep); 10] = [
+        let families: [(&str, Keep); 11] = [
             ("no effect", |_| false),
             ("offset", |e| matches!(e, Effect::Offset { .. })),
             ("scale", |e| matches!(e, Effect::Scale { .. })),
@@ -1981,6 +2006,7 @@ mod tests {
             ("drift", |e| matches!(e, Effect::Drift { .. })),
             ("slip", |e| matches!(e, Effect::Slip { .. })),
             ("sag", |e| matches!(e, Effect::Sag { .. })),
+            ("stretch", |e| matches!(e, Effect::Stretch { .. })),
         ];
         for (name, keep) in families {
             let e = measure(0x5EED_0002, 100, 200, keep);
@@ -2365,6 +2391,76 @@ mod tests {
             assert!(
                 (got[i] as f64 / 65536.0 - want[i]).abs() < 1e-4,
                 "string {i}"
+            );
+        }
+    }
+
+    #[test]
+    fn a_stretch_is_zero_at_the_home_capture_and_grows_with_the_tension() {
+        // The counts start from the strings as they stretched at home
+        // (tension T_home): the term vanishes there in both paths, and a
+        // string pulled harder is longer by its whole length's strain.
+        let laws = [StringLaw::polynomial(4096, [10.0, 0.0, 0.0, 0.0]); STRINGS];
+        let f = frame([100.0, -50.0, 200.0]);
+        let (k, m, t_home) = (5e-5, 0.02, 1.1);
+        let terms = [EffectTerm {
+            string: EVERY_STRING,
+            effect: Effect::Stretch {
+                per_newton: k,
+                mm_per_newton: m,
+                home_tension_n: t_home,
+            },
+        }];
+        let (cl, ce) = compile_all(&f, &laws, &terms);
+        let at_home = StringInputs {
+            tension_mn: [1100; STRINGS],
+            ..StringInputs::default()
+        };
+        let bare = string_lengths_f64(&f, &laws, &[], &at_home);
+        let want = string_lengths_f64(&f, &laws, &terms, &at_home);
+        let got = string_lengths(StringLayout::ALL, &cl, &ce, &at_home);
+        for i in 0..STRINGS {
+            assert!((want[i] - bare[i]).abs() < 1e-9, "string {i}");
+            assert!(
+                (got[i] as f64 / 65536.0 - bare[i]).abs() < 1e-4,
+                "string {i}"
+            );
+        }
+        let taut = StringInputs {
+            tension_mn: [4100; STRINGS],
+            counts: [2000; STRINGS],
+            ..at_home
+        };
+        let bare = string_lengths_f64(&f, &laws, &[], &taut);
+        let want = string_lengths_f64(&f, &laws, &terms, &taut);
+        let got = string_lengths(StringLayout::ALL, &cl, &ce, &taut);
+        for i in 0..STRINGS {
+            let home_length = EffectContext::for_string(&f, &laws, &taut, i)
+                .expect("string")
+                .home_length_mm;
+            let payout = bare[i] - home_length;
+            let stretch = k * (4.1 * (home_length + payout) - t_home * home_length) + m * 3.0;
+            assert!((want[i] - bare[i] - stretch).abs() < 1e-9, "string {i}");
+            assert!(
+                (got[i] as f64 / 65536.0 - want[i]).abs() < 1e-4,
+                "string {i}"
+            );
+        }
+        // Its gradient is its slope in each parameter.
+        let ctx = EffectContext::for_string(&f, &laws, &taut, 2).expect("string 2");
+        let effect = terms[0].effect;
+        let p = effect.parameters();
+        let g = effect.gradient_f64(&ctx);
+        for j in 0..p.len() {
+            let h = 1e-6 * p[j].abs().max(1e-6);
+            let mut up = p.clone();
+            up[j] += h;
+            let moved = effect.with_parameters(&up).expect("three parameters");
+            let slope = (moved.contribution_f64(&ctx) - effect.contribution_f64(&ctx)) / h;
+            assert!(
+                (slope - g[j]).abs() < 1e-4 * g[j].abs().max(1.0),
+                "{j}: {slope} vs {}",
+                g[j]
             );
         }
     }

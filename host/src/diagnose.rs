@@ -949,28 +949,62 @@ fn best_step(mut r: Vec<(f64, f64)>) -> Option<(f64, f64)> {
     best.1.map(|at| (best.0, at))
 }
 
-/// A fitted sag in the device's terms: the strings' weight (`c = w^2 / 24`)
-/// and the tension they held at the home capture (`h = c / T_home^2`);
-/// `None` for another effect.
-fn sag_in_physical_terms(effect: &Effect) -> Option<String> {
-    let Effect::Sag {
-        mm_at_1m_1n: c,
-        home_mm_at_1m: h,
-    } = *effect
-    else {
-        return None;
-    };
-    // c mm = w^2 (1 m)^3 / (24 (1 N)^2), w in N/m.
-    let grams_per_m = (24.0 * c.max(0.0) / 1000.0).sqrt() / 9.80665 * 1000.0;
-    let home = if c > 0.0 && h > 0.0 {
-        format!("{:.2} N", (c / h).sqrt())
-    } else {
-        "not a tension (the home part's sign is not a sag's)".into()
-    };
-    Some(format!(
-        " (fitted: {c:.3} mm at 1 m and 1 N, strings of {grams_per_m:.1} g/m; tension at the home \
-         capture {home})"
-    ))
+/// A fitted sag or stretch in the device's terms; `None` for another
+/// effect. A sag: the strings' weight (`c = w^2 / 24`) and the tension they
+/// held at the home capture (`h = c / T_home^2`). A stretch: the strings'
+/// stiffness `EA = 1 / per_newton`, the length between spool and exit point
+/// it stretches beside the free span (`mm_per_newton * EA`), and the home
+/// tension.
+fn in_physical_terms(effect: &Effect) -> Option<String> {
+    match *effect {
+        Effect::Sag {
+            mm_at_1m_1n: c,
+            home_mm_at_1m: h,
+        } => {
+            // c mm = w^2 (1 m)^3 / (24 (1 N)^2), w in N/m.
+            let grams_per_m = (24.0 * c.max(0.0) / 1000.0).sqrt() / 9.80665 * 1000.0;
+            let home = if c > 0.0 && h > 0.0 {
+                format!("{:.2} N", (c / h).sqrt())
+            } else {
+                "not a tension (the home part's sign is not a sag's)".into()
+            };
+            Some(format!(
+                " (fitted: {c:.3} mm at 1 m and 1 N, strings of {grams_per_m:.1} g/m; tension at \
+                 the home capture {home})"
+            ))
+        }
+        Effect::Stretch {
+            per_newton,
+            mm_per_newton,
+            home_tension_n,
+        } => {
+            let stiffness = if per_newton > 0.0 {
+                format!(
+                    "EA {:.0} N, {:.0} mm of string between spool and exit point",
+                    1.0 / per_newton,
+                    mm_per_newton / per_newton
+                )
+            } else {
+                format!("{mm_per_newton:.4} mm/N (no stretch of the free span)")
+            };
+            // A home tension below 0 is not one: the home part, a length
+            // on every string, then also takes a constant the strings share
+            // for another reason (seen on clean independent devices).
+            let home = if home_tension_n > 0.0 {
+                format!("{home_tension_n:.2} N")
+            } else {
+                format!(
+                    "{home_tension_n:.2} N, not a tension: its home part also takes a length \
+                     shared by every string"
+                )
+            };
+            Some(format!(
+                " (fitted: {per_newton:.3e} per N, strings of {stiffness}; tension at the home \
+                 capture {home})"
+            ))
+        }
+        _ => None,
+    }
 }
 
 /// The strings' stretch, `T l` on every active string: what a shared sag
@@ -1964,7 +1998,7 @@ pub fn close_loop(
                 if let Some(fitted) = refit
                     .effects
                     .last()
-                    .and_then(|t| sag_in_physical_terms(&t.effect))
+                    .and_then(|t| in_physical_terms(&t.effect))
                 {
                     finding.description += &fitted;
                 }

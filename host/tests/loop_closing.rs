@@ -206,6 +206,39 @@ fn sag() {
     assert!(after <= 1.05 * base, "{after:.3} mm after, {base:.3} clean");
 }
 
+/// Strings of one kind that stretch over their whole length from the spool
+/// (free span and a lead of 200 mm, 1/EA = 3e-4 per N) and were captured at
+/// home at 1.1 N: one shared stretch, its stiffness and lead recovered.
+#[test]
+fn stretch() {
+    let (result, after) = run(
+        1,
+        &["stretch:*:per_newton=0.0003,mm_per_newton=0.06,home_tension_n=1.1"],
+    );
+    assert_found(&result, Family::Elasticity, &[], Variable::Tension);
+    let (k, m, t_home) = result
+        .identification
+        .effects
+        .iter()
+        .find_map(|t| match t.effect {
+            spidar_core::model::Effect::Stretch {
+                per_newton,
+                mm_per_newton,
+                home_tension_n,
+            } if t.string == spidar_core::model::EVERY_STRING => {
+                Some((per_newton, mm_per_newton, home_tension_n))
+            }
+            _ => None,
+        })
+        .expect("one shared stretch");
+    assert!(
+        (k - 3e-4).abs() < 3e-5 && (m - 0.06).abs() < 0.03 && (t_home - 1.1).abs() < 0.3,
+        "1/EA {k:.3e} per N, lead {m:.3} mm/N, home tension {t_home:.2} N"
+    );
+    let base = baseline(1);
+    assert!(after <= 1.05 * base, "{after:.3} mm after, {base:.3} clean");
+}
+
 #[test]
 fn geometry_anchor_off_its_drawing() {
     check_family(

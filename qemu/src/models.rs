@@ -54,6 +54,11 @@ fn calibration(correction: CorrectionModel) -> Calibration {
         EffectTerm { string: 4, effect: Effect::Sag { mm_at_1m_1n: 1.6, home_mm_at_1m: 1.32 } },
         // One drift shared by every string (issue 10, point 4).
         EffectTerm { string: EVERY_STRING, effect: Effect::Drift { mm_per_s: 3e-5 } },
+        // Strings of one kind stretching from their spools (issue 10).
+        EffectTerm {
+            string: EVERY_STRING,
+            effect: Effect::Stretch { per_newton: 6e-5, mm_per_newton: 0.02, home_tension_n: 1.1 },
+        },
     ];
     Calibration {
         frame: Frame {
