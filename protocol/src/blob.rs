@@ -27,10 +27,10 @@ use serde::{Deserialize, Serialize};
 /// Magic bytes at the start of every model blob.
 pub const MAGIC: [u8; 4] = *b"SPDM";
 /// Blob format this crate reads and writes. Version 6 (any other is refused
-/// with [`BlobError::UnsupportedVersion`]): an elasticity term carries its
-/// lead and home parts (`spidar-core::model::Effect::Elasticity`). Version 5:
-/// each string law carries its
-/// home sag factor and a sag term its home part (the string sagged when home
+/// with [`BlobError::UnsupportedVersion`]): an elasticity term carries the
+/// lead and home parts of the strings' stretch
+/// (`spidar-core::model::Effect::Stretch`). Version 5: each string law
+/// carries its home sag factor and a sag term its home part (the string sagged when home
 /// was captured, `spidar-core::model::Effect::Sag`). Version 4: each string law carries its
 /// layer table (the spool's departure from the winding polynomial, knots in
 /// counts, `spidar-core::model::LayerTable`). Version 3: the frame carries the string
