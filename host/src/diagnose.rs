@@ -1754,6 +1754,12 @@ const STABLE_CHI2: [f64; 2] = [10.83, 13.82];
 /// something else (a drift standing in for position on a lattice collected
 /// plane by plane) takes the local slope of what it replaces, different in
 /// each half. `None` without time folds or for a change that adds no term.
+/// Least relative sd of a half's value in the halves test: each half's sd
+/// is that of white residuals, and a model that misses something leaves
+/// residuals correlated along the lattice, so two halves that agree to 1-2 %
+/// were refused at sds of 0.3 % (heavy strings, seed 1).
+const STABILITY_RELATIVE_SD: f64 = 0.03;
+
 fn stability(change: Change, fits: &[Identification]) -> Option<(f64, usize)> {
     let Change::Effect(term) = change else {
         return None;
@@ -1769,7 +1775,9 @@ fn stability(change: Change, fits: &[Identification]) -> Option<(f64, usize)> {
         .iter()
         .zip(&b)
         .map(|(x, y)| {
-            let v = x.sd * x.sd + y.sd * y.sd;
+            let floor = |v: f64, sd: f64| sd.max(STABILITY_RELATIVE_SD * v.abs());
+            let (sx, sy) = (floor(x.value, x.sd), floor(y.value, y.sd));
+            let v = sx * sx + sy * sy;
             if v > 0.0 && v.is_finite() {
                 (x.value - y.value).powi(2) / v
             } else {
