@@ -451,6 +451,14 @@ pub enum Effect {
         mm_per_newton: f64,
         home_tension_n: f64,
     },
+    /// The frame flexing under the strings' pull: each guide moves with the
+    /// total tension of the strings, so a string's chord is off by
+    /// `+ mm_per_newton * sum_j T_j - home_mm` (`sum_j` over the active
+    /// strings; `home_mm` the flex at the home capture, where the anchors
+    /// were found, `mm_per_newton * sum_j T_home_j`). Meant as one term
+    /// shared by every string ([`EVERY_STRING`]): one string's `home_mm` is
+    /// an [`Offset`](Effect::Offset).
+    FrameFlex { mm_per_newton: f64, home_mm: f64 },
 }
 
 /// An [`Effect`] applied to one string, or to every string at once.

@@ -66,6 +66,13 @@ pub const MAX_ELASTICITY_PER_NEWTON: f64 = 0.015;
 /// string of 1 kN stiffness.
 pub const MAX_ELASTICITY_MM_PER_NEWTON: f64 = 1.0;
 
+/// Largest `|mm_per_newton|` of a frame-flex term (mm/N): a frame that
+/// gives 10 mm per newton of total pull is no frame.
+pub const MAX_FRAME_FLEX_MM_PER_NEWTON: f64 = 10.0;
+
+/// Largest `|home_mm|` of a frame-flex term (mm).
+pub const MAX_FRAME_FLEX_HOME_MM: f64 = 100.0;
+
 /// Least tension a sag term takes (N): below it the string is not a
 /// catenary and `1 / T^2` would grow without bound.
 pub const SAG_MIN_TENSION_N: f64 = 0.25;
@@ -247,6 +254,8 @@ pub struct EffectContext {
     pub home_length_mm: f64,
     /// Commanded tension (N) = `tension_mn / 1000`.
     pub tension_n: f64,
+    /// Sum of the active strings' commanded tensions (N), [`total_tension_mn`] / 1000.
+    pub total_tension_n: f64,
     /// Direction of the last motion; only its sign is used (+1, -1, 0).
     pub direction: i8,
     /// Time since home (s) = `time_ms / 1000`.
@@ -273,6 +282,7 @@ impl EffectContext {
             payout_mm: payout_f64(law, counts),
             home_length_mm: home_length_f64(frame, string)?,
             tension_n: f64::from(*inputs.tension_mn.get(string)?) / 1000.0,
+            total_tension_n: f64::from(total_tension_mn(frame.layout.active, inputs)) / 1000.0,
             direction: *inputs.direction.get(string)?,
             time_s: f64::from(inputs.time_ms) / 1000.0,
             cos2_inclination: f64::from(*inputs.cos2_inclination_q16.get(string)?) / 65536.0,
@@ -282,6 +292,16 @@ impl EffectContext {
             )) / 65536.0,
         })
     }
+}
+
+/// Sum of the commanded tensions (mN) of the strings whose bit is set in
+/// `active` ([`StringLayout::active`]): what a frame-flex term reads
+/// ([`Effect::FrameFlex`]). Eight `u16` fit a `u32`.
+pub fn total_tension_mn(active: u8, inputs: &StringInputs) -> u32 {
+    (0..STRINGS)
+        .filter(|&i| active >> i & 1 == 1)
+        .map(|i| u32::from(inputs.tension_mn[i]))
+        .sum()
 }
 
 fn direction_sign(direction: i8) -> f64 {
@@ -345,6 +365,10 @@ impl Effect {
                 mm_per_newton,
                 home_tension_n,
             } => stretch_mm(per_newton, mm_per_newton, home_tension_n, ctx),
+            Effect::FrameFlex {
+                mm_per_newton,
+                home_mm,
+            } => mm_per_newton * ctx.total_tension_n - home_mm,
             Effect::Backlash { half_width_mm } => half_width_mm * direction_sign(ctx.direction),
             Effect::Drift { mm_per_s } => mm_per_s * ctx.time_s,
             Effect::Slip { at_s, mm } => {
@@ -375,6 +399,7 @@ impl Effect {
     /// | Drift | `mm_per_s` | `[t]` |
     /// | Slip | `mm` (`at_s` is held fixed: a step is not differentiable in its time; search it separately) | `[t >= at_s ? 1 : 0]` |
     /// | Sag | `mm_at_1m_1n, home_mm_at_1m` | `[-cos^2(a) (l / 1 m)^3 / (T / 1 N)^2, cos^2(a_home) (home_length / 1 m)^3]` (0 where a part is clamped) |
+    /// | FrameFlex | `mm_per_newton, home_mm` | `[sum_j T_j, -1]` |
     /// | Stretch | `per_newton, mm_per_newton, home_tension_n` | `[T (home_length + payout) - T_home home_length, T - T_home, -(per_newton home_length + mm_per_newton)]` |
     pub fn gradient_f64(&self, ctx: &EffectContext) -> heapless::Vec<f64, 3> {
         match *self {
@@ -393,6 +418,7 @@ impl Effect {
                 ctx.tension_n - home_tension_n,
                 -(per_newton * ctx.home_length_mm + mm_per_newton),
             ),
+            Effect::FrameFlex { .. } => two(ctx.total_tension_n, -1.0),
             Effect::Backlash { .. } => one(direction_sign(ctx.direction)),
             Effect::Drift { .. } => one(ctx.time_s),
             Effect::Slip { at_s, .. } => one(if ctx.time_s >= at_s { 1.0 } else { 0.0 }),
@@ -431,6 +457,10 @@ impl Effect {
                 mm_per_newton,
                 home_tension_n,
             } => three(per_newton, mm_per_newton, home_tension_n),
+            Effect::FrameFlex {
+                mm_per_newton,
+                home_mm,
+            } => two(mm_per_newton, home_mm),
             Effect::Backlash { half_width_mm } => one(half_width_mm),
             Effect::Drift { mm_per_s } => one(mm_per_s),
             Effect::Slip { mm, .. } => one(mm),
@@ -464,6 +494,10 @@ impl Effect {
                 per_newton: p[0],
                 mm_per_newton: p[1],
                 home_tension_n: p[2],
+            },
+            Effect::FrameFlex { .. } => Effect::FrameFlex {
+                mm_per_newton: p[0],
+                home_mm: p[1],
             },
             Effect::Backlash { .. } => Effect::Backlash {
                 half_width_mm: p[0],
@@ -1055,6 +1089,15 @@ pub enum CompiledEffect {
         coeff_q32: i64,
         home_coeff_q32: i64,
     },
+    /// `+ per_mn_q48 * total_tension_mn - home_q32`: Q15.48 mm per mN
+    /// (`mm_per_newton / 1000`, clamped to `+-2^44` so that the product
+    /// with the total of eight `u16` tensions fits `i64`), rounded to Q31.32;
+    /// `home_q32` Q31.32 mm.
+    FrameFlex {
+        string: u8,
+        per_mn_q48: i64,
+        home_q32: i64,
+    },
 }
 
 /// What a compiled effect of one string depends on, in device units.
@@ -1076,6 +1119,8 @@ pub struct FixedContext {
     pub cos2_inclination_q16: u16,
     /// The law's [`CompiledStringLaw::home_sag_q30`].
     pub home_sag_q30: i64,
+    /// Sum of the active strings' commanded tensions, mN ([`total_tension_mn`]).
+    pub total_tension_mn: u32,
 }
 
 /// Compiles one effect term; `laws` gives the counts per revolution of its
@@ -1179,6 +1224,36 @@ pub fn compile_effect(
                 )?,
             }
         }
+        Effect::FrameFlex {
+            mm_per_newton,
+            home_mm,
+        } => {
+            let k = finite(s, "mm_per_newton", mm_per_newton)?;
+            if k.abs() > MAX_FRAME_FLEX_MM_PER_NEWTON {
+                return Err(CompileError::OutOfRange {
+                    string: s,
+                    field: "mm_per_newton",
+                    value: k,
+                    min: -MAX_FRAME_FLEX_MM_PER_NEWTON,
+                    max: MAX_FRAME_FLEX_MM_PER_NEWTON,
+                });
+            }
+            let h = finite(s, "home_mm", home_mm)?;
+            if h.abs() > MAX_FRAME_FLEX_HOME_MM {
+                return Err(CompileError::OutOfRange {
+                    string: s,
+                    field: "home_mm",
+                    value: h,
+                    min: -MAX_FRAME_FLEX_HOME_MM,
+                    max: MAX_FRAME_FLEX_HOME_MM,
+                });
+            }
+            CompiledEffect::FrameFlex {
+                string,
+                per_mn_q48: to_fixed(s, "mm_per_newton", k / 1000.0, 48, "Q15.48 mm per mN")?,
+                home_q32: to_fixed(s, "home_mm", h, 32, "Q31.32 mm")?,
+            }
+        }
         Effect::Backlash { half_width_mm } => CompiledEffect::Backlash {
             string,
             half_width_q16: to_fixed(s, "half_width_mm", half_width_mm, 16, "Q47.16 mm")?,
@@ -1274,7 +1349,8 @@ impl CompiledEffect {
             | CompiledEffect::Backlash { string, .. }
             | CompiledEffect::Drift { string, .. }
             | CompiledEffect::Slip { string, .. }
-            | CompiledEffect::Sag { string, .. } => string,
+            | CompiledEffect::Sag { string, .. }
+            | CompiledEffect::FrameFlex { string, .. } => string,
         }
     }
 
@@ -1442,6 +1518,16 @@ impl CompiledEffect {
                 (now.clamp(-MAX_SAG_Q32, MAX_SAG_Q32) + home.clamp(-MAX_SAG_Q32, MAX_SAG_Q32))
                     as i64
             }
+            CompiledEffect::FrameFlex {
+                per_mn_q48,
+                home_q32,
+                ..
+            } => {
+                // |per| <= 2^44 and total < 2^19: the product fits i64.
+                let per = per_mn_q48.clamp(-(1 << 44), 1 << 44);
+                let flex = (per * i64::from(ctx.total_tension_mn) + (1 << 15)) >> 16;
+                flex.saturating_sub(home_q32)
+            }
         }
     }
 }
@@ -1496,7 +1582,10 @@ fn lengths_of<const ALL: bool>(
         payout[i] = laws[i].payout_q32(inputs.counts[i]);
         acc[i] = q16_to_q32(laws[i].home_length_q16).saturating_add(payout[i]);
     }
-    let context = |s: usize| FixedContext {
+    let total_tension_mn = total_tension_mn(if ALL { u8::MAX } else { active }, inputs);
+    // Each string's context built once, not once per term that reads it
+    // (a shared term reads all eight).
+    let contexts: [FixedContext; STRINGS] = core::array::from_fn(|s| FixedContext {
         counts: inputs.counts[s],
         direction: inputs.direction[s],
         tension_mn: inputs.tension_mn[s],
@@ -1505,13 +1594,14 @@ fn lengths_of<const ALL: bool>(
         payout_q32: payout[s],
         cos2_inclination_q16: inputs.cos2_inclination_q16[s],
         home_sag_q30: laws[s].home_sag_q30,
-    };
+        total_tension_mn,
+    });
     for e in effects {
         let s = usize::from(e.string());
         if e.string() == EVERY_STRING {
             for (i, a) in acc.iter_mut().enumerate() {
                 if ALL || active >> i & 1 == 1 {
-                    *a = a.saturating_add(e.contribution_q32(&context(i)));
+                    *a = a.saturating_add(e.contribution_q32(&contexts[i]));
                 }
             }
             continue;
@@ -1519,7 +1609,7 @@ fn lengths_of<const ALL: bool>(
         if s >= STRINGS || (!ALL && active >> s & 1 == 0) {
             continue;
         }
-        acc[s] = acc[s].saturating_add(e.contribution_q32(&context(s)));
+        acc[s] = acc[s].saturating_add(e.contribution_q32(&contexts[s]));
     }
     let mut out = [0i64; STRINGS];
     for i in 0..STRINGS {
@@ -1944,6 +2034,13 @@ mod tests {
                 home_tension_n: rng.uniform(0.5, 2.0),
             },
         });
+        effects.push(EffectTerm {
+            string: EVERY_STRING,
+            effect: Effect::FrameFlex {
+                mm_per_newton: rng.uniform(-0.5, 0.5),
+                home_mm: rng.uniform(-5.0, 5.0),
+            },
+        });
         (f, laws, effects)
     }
 
@@ -1995,7 +2092,7 @@ mod tests {
         let max_err = measure(0x5EED_0001, 400, 500, |_| true);
         println!("string law: max |fixed - f64| = {max_err:.3e} mm (400 calibrations x 500 inputs x 8 strings)");
         type Keep = fn(&Effect) -> bool;
-        let families: [(&str, Keep); 11] = [
+        let families: [(&str, Keep); 12] = [
             ("no effect", |_| false),
             ("offset", |e| matches!(e, Effect::Offset { .. })),
             ("scale", |e| matches!(e, Effect::Scale { .. })),
@@ -2007,6 +2104,7 @@ mod tests {
             ("slip", |e| matches!(e, Effect::Slip { .. })),
             ("sag", |e| matches!(e, Effect::Sag { .. })),
             ("stretch", |e| matches!(e, Effect::Stretch { .. })),
+            ("frame flex", |e| matches!(e, Effect::FrameFlex { .. })),
         ];
         for (name, keep) in families {
             let e = measure(0x5EED_0002, 100, 200, keep);
@@ -2463,6 +2561,67 @@ mod tests {
                 g[j]
             );
         }
+    }
+
+    #[test]
+    fn a_frame_flex_reads_the_total_tension_of_the_active_strings() {
+        let laws = [StringLaw::polynomial(4096, [10.0, 0.0, 0.0, 0.0]); STRINGS];
+        let mut f = frame([100.0, -50.0, 200.0]);
+        let (k, home_mm) = (0.02, 0.176);
+        let terms = [EffectTerm {
+            string: EVERY_STRING,
+            effect: Effect::FrameFlex {
+                mm_per_newton: k,
+                home_mm,
+            },
+        }];
+        let inputs = StringInputs {
+            tension_mn: [1000, 2000, 3000, 4000, 5000, 6000, 7000, 8000],
+            counts: [1500; STRINGS],
+            ..StringInputs::default()
+        };
+        for layout in [
+            StringLayout::ALL,
+            StringLayout {
+                active: 0b0101_0101,
+                planar: false,
+            },
+        ] {
+            f.layout = layout;
+            let total: f64 = layout.indices().map(|i| (i + 1) as f64).sum();
+            let (cl, ce) = compile_all(&f, &laws, &terms);
+            let bare = string_lengths_f64(&f, &laws, &[], &inputs);
+            let want = string_lengths_f64(&f, &laws, &terms, &inputs);
+            let got = string_lengths(layout, &cl, &ce, &inputs);
+            for i in layout.indices() {
+                assert!(
+                    (want[i] - bare[i] - (k * total - home_mm)).abs() < 1e-9,
+                    "string {i}"
+                );
+                assert!(
+                    (got[i] as f64 / 65536.0 - want[i]).abs() < 1e-4,
+                    "string {i}"
+                );
+            }
+        }
+        // A blob's coefficient of any size neither overflows nor panics.
+        let worst = CompiledEffect::FrameFlex {
+            string: EVERY_STRING,
+            per_mn_q48: i64::MAX,
+            home_q32: i64::MIN,
+        };
+        let ctx = FixedContext {
+            counts: 0,
+            direction: 0,
+            tension_mn: u16::MAX,
+            time_ms: 0,
+            home_length_q16: 0,
+            payout_q32: 0,
+            cos2_inclination_q16: 0,
+            home_sag_q30: 0,
+            total_tension_mn: 8 * u32::from(u16::MAX),
+        };
+        assert_eq!(worst.contribution_q32(&ctx), i64::MAX);
     }
 
     #[test]

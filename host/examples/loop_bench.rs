@@ -185,7 +185,7 @@ fn main() {
     let mut args = std::env::args().skip(1);
     let seeds: u64 = args.next().and_then(|s| s.parse().ok()).unwrap_or(5);
     let clean_seeds: u64 = args.next().and_then(|s| s.parse().ok()).unwrap_or(20);
-    let cases: [(&str, Family, &[u8], Variable); 12] = [
+    let cases: [(&str, Family, &[u8], Variable); 13] = [
         ("offset:3:mm=8", Family::Offset, &[3], Variable::Length),
         (
             "scale:5:relative=0.03",
@@ -233,6 +233,12 @@ fn main() {
         (
             "stretch:*:per_newton=0.0003,mm_per_newton=0.06,home_tension_n=1.1",
             Family::Elasticity,
+            &[],
+            Variable::Tension,
+        ),
+        (
+            "frame_flex:*:mm_per_newton=0.1,home_mm=0.9",
+            Family::FrameFlex,
             &[],
             Variable::Tension,
         ),

@@ -33,6 +33,8 @@ pub enum Family {
     Slip,
     /// A heavy string's sag, `l^3 / T^2` ([`Effect::Sag`]).
     Sag,
+    /// The guides moving with the strings' total pull ([`Effect::FrameFlex`]).
+    FrameFlex,
     /// Layer tables ([`crate::layers`]): the spool's departure from the
     /// smooth winding law, per string.
     Layers,
@@ -846,6 +848,41 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
                 .into(),
         });
     }
+    // The frame flexing under the strings' total pull: every guide moves
+    // with `sum_j T_j`, one compliance for the frame, less the flex at the
+    // home capture (a length every string shares).
+    if !structure
+        .effects
+        .iter()
+        .any(|t| matches!(t.effect, Effect::FrameFlex { .. }))
+    {
+        let active = |r: &Row, v: f64| if strings.is_active(r.string) { v } else { 0.0 };
+        out.push(Candidate {
+            family: Family::FrameFlex,
+            strings: Vec::new(),
+            variable: Variable::Tension,
+            columns: vec![
+                rows.iter()
+                    .map(|r| active(r, r.ctx.total_tension_n))
+                    .collect(),
+                rows.iter().map(|r| active(r, -1.0)).collect(),
+            ],
+            search_penalty: 0.0,
+            rival: Vec::new(),
+            build: Box::new(|b| {
+                Change::Effect(EffectTerm {
+                    string: EVERY_STRING,
+                    effect: Effect::FrameFlex {
+                        mm_per_newton: b[0],
+                        home_mm: b[1],
+                    },
+                })
+            }),
+            describe: "every string's length moves with the strings' total tension (the frame \
+                       flexes under their pull)"
+                .into(),
+        });
+    }
     // One sag shared by every string (strings of one kind: one weight per
     // metre, one tension at the home capture), each string at its own
     // length, tension and inclination. Not one string's: its home part is a
@@ -1001,6 +1038,20 @@ fn in_physical_terms(effect: &Effect) -> Option<String> {
             Some(format!(
                 " (fitted: {per_newton:.3e} per N, strings of {stiffness}; tension at the home \
                  capture {home})"
+            ))
+        }
+        Effect::FrameFlex {
+            mm_per_newton,
+            home_mm,
+        } => {
+            let home_total = if mm_per_newton != 0.0 {
+                format!("{:.1} N", home_mm / mm_per_newton)
+            } else {
+                "none".into()
+            };
+            Some(format!(
+                " (fitted: {mm_per_newton:.4} mm per N of total tension; total tension at the \
+                 home capture {home_total})"
             ))
         }
         _ => None,
@@ -1283,6 +1334,7 @@ pub fn family_name(f: Family) -> &'static str {
         Family::Drift => "drift",
         Family::Slip => "slip",
         Family::Sag => "sag",
+        Family::FrameFlex => "frame flex",
         Family::Layers => "layers",
         Family::Geometry => "geometry",
         Family::Unexplained => "unexplained",

@@ -239,6 +239,33 @@ fn stretch() {
     assert!(after <= 1.05 * base, "{after:.3} mm after, {base:.3} clean");
 }
 
+/// A frame whose guides move with the strings' total pull (0.1 mm per N):
+/// one shared term against tension, its compliance and its home part
+/// recovered.
+#[test]
+fn frame_flex() {
+    let (result, after) = run(1, &["frame_flex:*:mm_per_newton=0.1,home_mm=0.9"]);
+    assert_found(&result, Family::FrameFlex, &[], Variable::Tension);
+    let (k, home_mm) = result
+        .identification
+        .effects
+        .iter()
+        .find_map(|t| match t.effect {
+            spidar_core::model::Effect::FrameFlex {
+                mm_per_newton,
+                home_mm,
+            } if t.string == spidar_core::model::EVERY_STRING => Some((mm_per_newton, home_mm)),
+            _ => None,
+        })
+        .expect("one shared frame flex");
+    assert!(
+        (k - 0.1).abs() < 0.01 && (home_mm - 0.9).abs() < 0.15,
+        "{k:.4} mm/N, home {home_mm:.3} mm"
+    );
+    let base = baseline(1);
+    assert!(after <= 1.05 * base, "{after:.3} mm after, {base:.3} clean");
+}
+
 #[test]
 fn geometry_anchor_off_its_drawing() {
     check_family(

@@ -507,6 +507,39 @@ fn heavy_strings_are_one_shared_sag_with_the_home_capture_s_tension() {
     assert!(test.mean_mm < 0.6, "{test:?}");
 }
 
+/// A frame ten times as compliant as the declared one (other physics: each
+/// guide moves by its own `k_i sum_j T_j`, 0.05-0.2 mm/N, along a direction
+/// tilted from the frame's centre) is named one shared frame flex against
+/// tension, with a compliance in the guides' range, and the error falls to
+/// near the clean device's.
+#[test]
+fn a_flexing_frame_is_named_frame_flex() {
+    use spidar::diagnose::{Family, Variable};
+    use spidar_core::model::{Effect, EVERY_STRING};
+    let r = loop_on(2, &["frame-flex"]);
+    let stage = r
+        .stages
+        .iter()
+        .find(|s| s.name == "frame flex (every string)")
+        .unwrap_or_else(|| panic!("stages: {:?}", names(&r)));
+    assert_eq!(stage.finding.family, Family::FrameFlex);
+    assert_eq!(stage.finding.variable, Variable::Tension);
+    let k = r
+        .identification
+        .effects
+        .iter()
+        .find_map(|t| match t.effect {
+            Effect::FrameFlex { mm_per_newton, .. } if t.string == EVERY_STRING => {
+                Some(mm_per_newton)
+            }
+            _ => None,
+        })
+        .expect("the shared frame flex term");
+    assert!((0.03..0.2).contains(&k), "compliance {k} mm/N");
+    let test = r.stages.last().unwrap().test.unwrap();
+    assert!(test.mean_mm < 0.5, "{test:?}");
+}
+
 fn names(r: &spidar::diagnose::LoopResult) -> Vec<&str> {
     r.stages.iter().map(|s| s.name.as_str()).collect()
 }

@@ -59,6 +59,8 @@ fn calibration(correction: CorrectionModel) -> Calibration {
             string: EVERY_STRING,
             effect: Effect::Stretch { per_newton: 6e-5, mm_per_newton: 0.02, home_tension_n: 1.1 },
         },
+        // A frame that flexes under the strings' total pull (issue 10).
+        EffectTerm { string: EVERY_STRING, effect: Effect::FrameFlex { mm_per_newton: 0.012, home_mm: 0.1 } },
     ];
     Calibration {
         frame: Frame {

@@ -300,7 +300,8 @@ impl Device {
     }
 
     /// The run-time inputs of `string` at `position` that the model's terms
-    /// read ([`Self::counts_for_length`]): direction, tension, time, and the
+    /// read ([`Self::counts_for_length`]): direction, tension, the total
+    /// tension of the active strings, time, and the
     /// inclination quantized as the device reads it
     /// ([`cos2_inclination_q16`]).
     pub(crate) fn conditions(
@@ -309,6 +310,7 @@ impl Device {
         position: &Vec3<f64>,
         direction: i8,
         tension_n: f64,
+        total_tension_n: f64,
         t_s: f64,
     ) -> EffectContext {
         let anchor = &self.frame.anchors[string];
@@ -320,6 +322,7 @@ impl Device {
             home_length_mm: 0.0,
             direction,
             tension_n,
+            total_tension_n,
             time_s: t_s,
             cos2_inclination: f64::from(cos2) / 65536.0,
             home_cos2_inclination: f64::from(home_cos2) / 65536.0,

@@ -218,6 +218,13 @@ pub fn simulate_session_with_truth(
             (t * 1000.0).round().clamp(0.0, f64::from(u16::MAX)) as u16
         });
 
+        let total_tension_n = f64::from(spidar_core::string_law::total_tension_mn(
+            layout.active,
+            &StringInputs {
+                tension_mn,
+                ..StringInputs::default()
+            },
+        )) / 1000.0;
         let mut counts = [0i32; STRINGS];
         let mut lengths = [0.0; STRINGS];
         let mut speeds = [0.0; STRINGS];
@@ -248,7 +255,8 @@ pub fn simulate_session_with_truth(
                 extra += abnormal_mm;
             }
             let tension_n = f64::from(tension_mn[i]) / 1000.0;
-            let conditions = device.conditions(i, &p, direction[i], tension_n, t_s);
+            let conditions =
+                device.conditions(i, &p, direction[i], tension_n, total_tension_n, t_s);
             counts[i] = device.counts_for_length(i, length, extra, conditions)?;
             lengths[i] = length;
             speeds[i] = speed;

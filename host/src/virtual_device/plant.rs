@@ -407,7 +407,7 @@ impl Plant {
             let p = hand.position_at_sim(self.sim_epoch_us);
             for i in self.device.frame.layout.indices() {
                 let length = norm(&sub(&p, &self.device.frame.anchors[i]));
-                let conditions = self.device.conditions(i, &p, 0, 0.0, 0.0);
+                let conditions = self.device.conditions(i, &p, 0, 0.0, 0.0, 0.0);
                 match self.device.counts_for_length(i, length, 0.0, conditions) {
                     Ok(c) => self.boot_counts[i] = c,
                     Err(e) => self.error = Some(e.to_string()),
@@ -529,9 +529,21 @@ impl Plant {
                 let spread = 1.0 - am.jitter / 2.0;
                 extra -= (am.step_mm + am.gain * (am.region_length_mm - lengths[i])) * spread;
             }
-            let conditions =
-                self.device
-                    .conditions(i, &p, self.direction[i], self.tension_n[i], t_s);
+            let total_tension_n: f64 = self
+                .device
+                .frame
+                .layout
+                .indices()
+                .map(|j| self.tension_n[j])
+                .sum();
+            let conditions = self.device.conditions(
+                i,
+                &p,
+                self.direction[i],
+                self.tension_n[i],
+                total_tension_n,
+                t_s,
+            );
             match self
                 .device
                 .counts_for_length(i, lengths[i], extra, conditions)
