@@ -67,10 +67,11 @@ fn physics_device(seed: u64, effect: Option<&str>) -> PhysicsDevice {
     PhysicsDevice::new(&config, seed).expect("independent device")
 }
 
-fn physics_run(device: &PhysicsDevice, seed: u64) -> (Run, Vec<PhysicsTruth>) {
+/// A run of `device` and the truths of its training and test sessions.
+fn physics_run(device: &PhysicsDevice, seed: u64) -> (Run, Vec<PhysicsTruth>, Vec<PhysicsTruth>) {
     let (train, truths) =
         physics::simulate_session(device, SessionKind::Lattice, seed + 1).expect("lattice");
-    let (test, _) = physics::simulate_session(
+    let (test, test_truths) = physics::simulate_session(
         device,
         SessionKind::Random {
             points: TEST_POINTS,
@@ -85,7 +86,62 @@ fn physics_run(device: &PhysicsDevice, seed: u64) -> (Run, Vec<PhysicsTruth>) {
             test,
         },
         truths,
+        test_truths,
     )
+}
+
+/// The slips of a session from its truths: (row, string, mm) of each step.
+fn slip_steps(truths: &[PhysicsTruth]) -> Vec<(usize, usize, f64)> {
+    let mut steps = Vec::new();
+    for (row, pair) in truths.windows(2).enumerate() {
+        for (i, (a, b)) in pair[0]
+            .slipped_mm
+            .iter()
+            .zip(&pair[1].slipped_mm)
+            .enumerate()
+        {
+            if a != b {
+                steps.push((row + 1, i, ((b - a) * 100.0).round() / 100.0));
+            }
+        }
+    }
+    steps
+}
+
+/// The test session's own slips (a calibration made before them cannot
+/// know them) and the final model's test error before and after the first.
+fn test_session_slips(test_truths: &[PhysicsTruth], c: &Calibrated) -> Option<String> {
+    let slipped = |t: &PhysicsTruth| t.slipped_mm.iter().any(|&mm| mm != 0.0);
+    let first = test_truths.iter().position(slipped)?;
+    let last = test_truths.last()?;
+    let strings: Vec<usize> = (0..last.slipped_mm.len())
+        .filter(|&i| last.slipped_mm[i] != 0.0)
+        .collect();
+    let fin = c
+        .points
+        .iter()
+        .rev()
+        .find(|p| p.name.starts_with("final"))
+        .or(c.points.last())?;
+    let (mut before, mut after) = (Vec::new(), Vec::new());
+    for (&row, &e) in fin.test.rows.iter().zip(&fin.test.errors) {
+        if row < first {
+            before.push(e)
+        } else {
+            after.push(e)
+        }
+    }
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+    Some(format!(
+        "the test session slipped from row {first} of {} (strings {strings:?}, {:?} mm at its end): \
+         final test mean {:.3} mm on the {} rows before, {:.3} mm on the {} after",
+        test_truths.len(),
+        strings.iter().map(|&i| (last.slipped_mm[i] * 100.0).round() / 100.0).collect::<Vec<_>>(),
+        mean(&before),
+        before.len(),
+        mean(&after),
+        after.len()
+    ))
 }
 
 fn run_calibration(run: &Run, config: &CalibrateConfig) -> Calibrated {
@@ -333,7 +389,7 @@ fn ablation(quick: bool) {
         let mut c = PhysicsConfig::default();
         switch(&mut c);
         let device = PhysicsDevice::new(&c, 1).expect("independent device");
-        let (run, _) = physics_run(&device, 1);
+        let (run, _, _) = physics_run(&device, 1);
         let cal = run_calibration(&run, &config);
         let stages = &cal.report.stages;
         let added: Vec<&str> = stages
@@ -436,8 +492,22 @@ fn main() {
         let mut rows = Vec::new();
         for seed in 1..=seeds {
             let device = physics_device(seed, effect);
-            let (run, truths) = physics_run(&device, seed);
+            let (run, truths, test_truths) = physics_run(&device, seed);
             let c = run_calibration(&run, &config);
+            let steps = slip_steps(&truths);
+            if !steps.is_empty() {
+                notes.push(format!(
+                    "independent {} seed {seed}: the lattice slipped (row, string, mm) {steps:?} of {} rows",
+                    effect.unwrap_or("clean"),
+                    truths.len()
+                ));
+            }
+            if let Some(slips) = test_session_slips(&test_truths, &c) {
+                notes.push(format!(
+                    "independent {} seed {seed}: {slips}",
+                    effect.unwrap_or("clean")
+                ));
+            }
             rows.push(print_row(
                 "independent",
                 effect.unwrap_or("clean"),

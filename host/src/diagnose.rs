@@ -187,7 +187,9 @@ impl LoopStage {
         LoopStage {
             name,
             train: model_errors(refit, train),
-            test: test.map(|t| model_errors(refit, t)),
+            // The test session is another session: the training
+            // session's slips are not in it.
+            test: test.map(|t| model_errors(&refit.for_a_new_session(), t)),
             finding: finding.clone(),
             validation_before_mm,
             validation_after_mm,

@@ -641,15 +641,25 @@ pub fn calibrate(
         id_te_s,
     ));
 
-    // The final identified model (the base when no effect was added).
+    // The final identified model (the base when no effect was added); on
+    // the test session, and in the calibration the device runs from its
+    // next home capture, without the training session's slips.
     let fin = &loop_result.identification;
     let fin_model = StringModel {
         frame: &fin.frame,
         laws: &fin.laws,
         effects: &fin.effects,
     };
+    let fin_new = fin.for_a_new_session();
     let fin_tr_pred = predict(fin_model, &tr);
-    let fin_te_pred = predict(fin_model, &te);
+    let fin_te_pred = predict(
+        StringModel {
+            frame: &fin_new.frame,
+            laws: &fin_new.laws,
+            effects: &fin_new.effects,
+        },
+        &te,
+    );
     let rejections = report::SessionRejections {
         train: report::Rejections::of(&fin_tr_pred),
         test: report::Rejections::of(&fin_te_pred),
@@ -1005,9 +1015,9 @@ pub fn calibrate(
     }
 
     let calibration = Calibration {
-        frame: fin.frame,
-        strings: fin.laws,
-        effects: fin.effects.clone(),
+        frame: fin_new.frame,
+        strings: fin_new.laws,
+        effects: fin_new.effects.clone(),
         correction: final_corr,
     };
     timings.calibration_s = t_start.elapsed().as_secs_f64();

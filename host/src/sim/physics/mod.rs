@@ -178,6 +178,9 @@ pub struct PhysicsTruth {
     pub natural_mm: Vec<f64>,
     /// Per string: true spool angle, rad.
     pub spool_rad: Vec<f64>,
+    /// Per string: what it has slipped on its spool since home, mm (the
+    /// `slip` effect's events up to this capture).
+    pub slipped_mm: Vec<f64>,
     /// The abnormal motor's counts are wrong at this capture.
     pub abnormal: bool,
     /// Lattice cell (lattice sessions).
@@ -753,6 +756,7 @@ pub fn simulate_rows(
             geometric_mm: Vec::with_capacity(n),
             natural_mm: Vec::with_capacity(n),
             spool_rad: Vec::with_capacity(n),
+            slipped_mm: Vec::with_capacity(n),
             abnormal: false,
             cell: c.cell,
         };
@@ -763,6 +767,7 @@ pub fn simulate_rows(
                 .filter(|(at, s, _)| *s == i && *at <= t_s)
                 .map(|(_, _, mm)| mm)
                 .sum();
+            truth.slipped_mm.push(slipped);
             let wound = device.strings[i].total_mm - slipped - state.natural_mm;
             let phi = device.spool_angle(i, wound).map_err(|e| at_time(e, t_s))?;
             let mut read_phi = phi;
