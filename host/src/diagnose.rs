@@ -1064,8 +1064,9 @@ fn in_physical_terms(effect: &Effect) -> Option<String> {
 /// must explain the residual beyond. Both grow with the tension's effect on
 /// the string, and on clean independent devices a sag of 0.06-0.08 mm at
 /// 1 m and 1 N (the strings weigh 0.3-1 g/m: 0.0004-0.004) stood in for the
-/// stretch the elasticity family cannot yet follow (the lead's and the home
-/// capture's; with rigid strings it was not added).
+/// stretch (with rigid strings it was not added). The stretch family
+/// ([`Effect::Stretch`]) has its own candidate; this column only keeps the
+/// sag from being proposed for it.
 fn stretch_column(rows: &[Row], strings: StringLayout) -> Vec<f64> {
     rows.iter()
         .map(|r| {
