@@ -21,8 +21,9 @@
 #[cfg(feature = "alloc")]
 extern crate alloc;
 
-/// Number of strings (and motors, encoders) of a Scalable-SPIDAR.
-pub const STRINGS: usize = 8;
+/// Number of strings (and motors, encoders) of a Scalable-SPIDAR: the
+/// controller's channels, defined once, in the protocol both sides share.
+pub use spidar_protocol::STRINGS;
 
 pub mod blob;
 pub mod control;

@@ -206,7 +206,7 @@ pub fn pulley_angle(law: &StringLaw, counts: i32) -> f64 {
 
 /// Base winding law: length paid out since home (mm) at `counts`,
 /// `sum_k winding_mm[k-1] theta^k` (Horner) plus the law's layer table
-/// ([`LayerTable::departure_mm`]).
+/// ([`LayerTable::departure_mm`](crate::model::LayerTable::departure_mm)).
 pub fn payout_f64(law: &StringLaw, counts: i32) -> f64 {
     polynomial_payout_f64(law, counts) + law.layers.departure_mm(counts)
 }
@@ -816,7 +816,7 @@ pub struct CompiledStringLaw {
     /// Coefficient of `x^k` at index `k-1`, Q31.32 mm:
     /// `round(winding_mm[k-1] (2 pi 2^18 / counts_per_rev)^k 2^32)`.
     pub winding_q32: [i64; WINDING_ORDER],
-    /// The layer table ([`LayerTable`]), knots in Q47.16 mm.
+    /// The layer table ([`LayerTable`](crate::model::LayerTable)), knots in Q47.16 mm.
     pub layers: CompiledLayerTable,
     /// What a sag term's home part scales with: `cos^2(a_home) (home_length
     /// / 4096 mm)^3` in Q·30 (`cos^2` quantized to Q0.16 as the device's,
@@ -824,7 +824,7 @@ pub struct CompiledStringLaw {
     pub home_sag_q30: i64,
 }
 
-/// The fixed-point form of a [`LayerTable`]: the same knots (counts), their
+/// The fixed-point form of a [`LayerTable`](crate::model::LayerTable): the same knots (counts), their
 /// values in Q47.16 mm, `|value| <= MAX_LAYER_MM`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct CompiledLayerTable {
