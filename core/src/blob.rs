@@ -179,10 +179,10 @@ impl<'a> CompiledCalibration<'a> {
 }
 
 #[cfg(feature = "alloc")]
-pub use host::{compile, CompileError};
+pub use compiler::{compile, CompileError};
 
 #[cfg(feature = "alloc")]
-mod host {
+mod compiler {
     use super::*;
     use crate::model::Calibration;
     use crate::string_law::{compile_effect, compile_string_law};

@@ -992,13 +992,13 @@ impl<'a> Correction<'a> {
 }
 
 // ---------------------------------------------------------------------------
-// Host side: f64 reference evaluation and compilation.
+// The host side (alloc): f64 reference evaluation and compilation.
 
 #[cfg(feature = "alloc")]
-pub use host::{CompileError, CompiledCorrection};
+pub use compiler::{CompileError, CompiledCorrection};
 
 #[cfg(feature = "alloc")]
-mod host {
+mod compiler {
     use super::*;
     use crate::fixed::to_q_i32;
     use alloc::vec::Vec;
