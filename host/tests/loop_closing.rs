@@ -8,6 +8,7 @@ use spidar::identify::Start;
 use spidar::observe::observations;
 use spidar::sim::config::SimConfig;
 use spidar::sim::{simulate_session, Device, SessionKind};
+use spidar_core::model::{Effect, EVERY_STRING};
 
 /// Runs the loop on a device of `seed` with `effects` injected; returns the
 /// result and the held-out (test session) mean error of the final model.
@@ -182,6 +183,25 @@ fn slip() {
     check_family("slip:2:at_s=2000,mm=5", Family::Slip, &[2], Variable::Time);
 }
 
+/// The fitted parameters (`Effect::parameters` order) of the one term
+/// shared by every string that `family` matches.
+fn shared_parameters(result: &LoopResult, family: fn(&Effect) -> bool) -> Vec<f64> {
+    let shared: Vec<_> = result
+        .identification
+        .effects
+        .iter()
+        .filter(|t| t.string == EVERY_STRING && family(&t.effect))
+        .collect();
+    assert_eq!(shared.len(), 1, "{:?}", result.identification.effects);
+    shared[0].effect.parameters().to_vec()
+}
+
+/// The test error after the loop is back at the clean device's (seed).
+fn assert_back_to_clean(after: f64, seed: u64) {
+    let base = baseline(seed);
+    assert!(after <= 1.05 * base, "{after:.3} mm after, {base:.3} clean");
+}
+
 /// Heavy strings (20 g/m: 1.6 mm at 1 m and 1 N, captured at home at
 /// 1.1 N: 1.32 mm at 1 m), all of one kind: one shared term, its weight and
 /// the home tension recovered.
@@ -189,21 +209,10 @@ fn slip() {
 fn sag() {
     let (result, after) = run(1, &["sag:*:mm_at_1m_1n=1.6,home_mm_at_1m=1.32"]);
     assert_found(&result, Family::Sag, &[], Variable::Tension);
-    let (c, h) = result
-        .identification
-        .effects
-        .iter()
-        .find_map(|t| match t.effect {
-            spidar_core::model::Effect::Sag {
-                mm_at_1m_1n,
-                home_mm_at_1m,
-            } if t.string == spidar_core::model::EVERY_STRING => Some((mm_at_1m_1n, home_mm_at_1m)),
-            _ => None,
-        })
-        .expect("one shared sag");
+    let p = shared_parameters(&result, |e| matches!(e, Effect::Sag { .. }));
+    let (c, h) = (p[0], p[1]);
     assert!((c - 1.6).abs() < 0.02 && (h - 1.32).abs() < 0.05, "{c} {h}");
-    let base = baseline(1);
-    assert!(after <= 1.05 * base, "{after:.3} mm after, {base:.3} clean");
+    assert_back_to_clean(after, 1);
 }
 
 /// Strings of one kind that stretch over their whole length from the spool
@@ -216,27 +225,13 @@ fn stretch() {
         &["stretch:*:per_newton=0.0003,mm_per_newton=0.06,home_tension_n=1.1"],
     );
     assert_found(&result, Family::Elasticity, &[], Variable::Tension);
-    let (k, m, t_home) = result
-        .identification
-        .effects
-        .iter()
-        .find_map(|t| match t.effect {
-            spidar_core::model::Effect::Stretch {
-                per_newton,
-                mm_per_newton,
-                home_tension_n,
-            } if t.string == spidar_core::model::EVERY_STRING => {
-                Some((per_newton, mm_per_newton, home_tension_n))
-            }
-            _ => None,
-        })
-        .expect("one shared stretch");
+    let p = shared_parameters(&result, |e| matches!(e, Effect::Stretch { .. }));
+    let (k, m, t_home) = (p[0], p[1], p[2]);
     assert!(
         (k - 3e-4).abs() < 3e-5 && (m - 0.06).abs() < 0.03 && (t_home - 1.1).abs() < 0.3,
         "1/EA {k:.3e} per N, lead {m:.3} mm/N, home tension {t_home:.2} N"
     );
-    let base = baseline(1);
-    assert!(after <= 1.05 * base, "{after:.3} mm after, {base:.3} clean");
+    assert_back_to_clean(after, 1);
 }
 
 /// A frame whose guides move with the strings' total pull (0.1 mm per N):
@@ -246,24 +241,13 @@ fn stretch() {
 fn frame_flex() {
     let (result, after) = run(1, &["frame_flex:*:mm_per_newton=0.1,home_mm=0.9"]);
     assert_found(&result, Family::FrameFlex, &[], Variable::Tension);
-    let (k, home_mm) = result
-        .identification
-        .effects
-        .iter()
-        .find_map(|t| match t.effect {
-            spidar_core::model::Effect::FrameFlex {
-                mm_per_newton,
-                home_mm,
-            } if t.string == spidar_core::model::EVERY_STRING => Some((mm_per_newton, home_mm)),
-            _ => None,
-        })
-        .expect("one shared frame flex");
+    let p = shared_parameters(&result, |e| matches!(e, Effect::FrameFlex { .. }));
+    let (k, home_mm) = (p[0], p[1]);
     assert!(
         (k - 0.1).abs() < 0.01 && (home_mm - 0.9).abs() < 0.15,
         "{k:.4} mm/N, home {home_mm:.3} mm"
     );
-    let base = baseline(1);
-    assert!(after <= 1.05 * base, "{after:.3} mm after, {base:.3} clean");
+    assert_back_to_clean(after, 1);
 }
 
 #[test]
