@@ -855,11 +855,14 @@ impl levenberg_marquardt::LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
             // Effect columns: analytic gradients of the terms (each term
             // touches only its own string).
             let mut effect_grad = vec![[0.0; STRINGS]; layout.effect_columns.len()];
+            // Each string's context once per row, not once per column.
+            let contexts: [Option<EffectContext>; STRINGS] =
+                core::array::from_fn(|s| EffectContext::for_string(frame, &laws, &inputs, s));
             for (c, &(e, pi)) in layout.effect_columns.iter().enumerate() {
                 let term = &state.effects[e];
                 for s in frame.layout.indices().filter(|&s| term.applies_to(s)) {
-                    if let Some(ctx) = EffectContext::for_string(frame, &laws, &inputs, s) {
-                        if let Some(g) = term.effect.gradient_f64(&ctx).get(pi) {
+                    if let Some(ctx) = &contexts[s] {
+                        if let Some(g) = term.effect.gradient_f64(ctx).get(pi) {
                             effect_grad[c][s] = -g;
                         }
                     }
@@ -907,10 +910,10 @@ impl levenberg_marquardt::LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
                             mm_at_1m_1n,
                             home_mm_at_1m,
                         } => {
-                            if let Some(ctx) = EffectContext::for_string(frame, &laws, &inputs, i) {
-                                let slope = sag_slope(mm_at_1m_1n, &ctx);
+                            if let Some(ctx) = &contexts[i] {
+                                let slope = sag_slope(mm_at_1m_1n, ctx);
                                 d_payout += slope;
-                                d_home += slope + sag_home_slope(home_mm_at_1m, &ctx);
+                                d_home += slope + sag_home_slope(home_mm_at_1m, ctx);
                             }
                         }
                         _ => {}
