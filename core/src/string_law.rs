@@ -275,6 +275,19 @@ impl EffectContext {
         inputs: &StringInputs,
         string: usize,
     ) -> Option<Self> {
+        let total_tension_n = f64::from(total_tension_mn(frame.layout.active, inputs)) / 1000.0;
+        Self::with_total_tension(frame, laws, inputs, string, total_tension_n)
+    }
+
+    /// [`for_string`](Self::for_string) with the total tension of the
+    /// active strings already summed (once for a row's eight strings).
+    fn with_total_tension(
+        frame: &Frame<f64>,
+        laws: &[StringLaw; STRINGS],
+        inputs: &StringInputs,
+        string: usize,
+        total_tension_n: f64,
+    ) -> Option<Self> {
         let law = laws.get(string)?;
         let counts = *inputs.counts.get(string)?;
         Some(Self {
@@ -282,7 +295,7 @@ impl EffectContext {
             payout_mm: payout_f64(law, counts),
             home_length_mm: home_length_f64(frame, string)?,
             tension_n: f64::from(*inputs.tension_mn.get(string)?) / 1000.0,
-            total_tension_n: f64::from(total_tension_mn(frame.layout.active, inputs)) / 1000.0,
+            total_tension_n,
             direction: *inputs.direction.get(string)?,
             time_s: f64::from(inputs.time_ms) / 1000.0,
             cos2_inclination: f64::from(*inputs.cos2_inclination_q16.get(string)?) / 65536.0,
@@ -522,8 +535,9 @@ pub fn string_lengths_f64(
 ) -> [f64; STRINGS] {
     let mut ctx = [None; STRINGS];
     let mut out = [0.0; STRINGS];
+    let total_tension_n = f64::from(total_tension_mn(frame.layout.active, inputs)) / 1000.0;
     for i in 0..STRINGS {
-        ctx[i] = EffectContext::for_string(frame, laws, inputs, i);
+        ctx[i] = EffectContext::with_total_tension(frame, laws, inputs, i, total_tension_n);
         if let Some(c) = &ctx[i] {
             out[i] = c.home_length_mm + c.payout_mm;
         }
