@@ -271,6 +271,20 @@ pub struct NnView<'a> {
     neurons: &'a [u8],
 }
 
+/// Checks that `bytes` is a network of `hidden` neurons, header included.
+fn nn_body_len(bytes: &[u8], hidden: u16) -> Result<(), BlobError> {
+    let expected = NN_HEADER_LEN + NN_NEURON_LEN * hidden as usize;
+    if bytes.len() == expected {
+        Ok(())
+    } else {
+        Err(BlobError::Dimension {
+            field: "nn.body_len",
+            found: len_u32(bytes.len()),
+            expected: len_u32(expected),
+        })
+    }
+}
+
 /// The checked, borrow-free part of an [`NnView`] (see
 /// [`NnView::from_summary`]).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -300,14 +314,7 @@ impl<'a> NnView<'a> {
                 expected: 1,
             });
         }
-        let expected = NN_HEADER_LEN + NN_NEURON_LEN * hidden as usize;
-        if bytes.len() != expected {
-            return Err(BlobError::Dimension {
-                field: "nn.body_len",
-                found: len_u32(bytes.len()),
-                expected: len_u32(expected),
-            });
-        }
+        nn_body_len(bytes, hidden)?;
         let mode = mode_from_byte(bytes[0], "nn.mode")?;
         let w1_frac = bytes[1];
         if !W1_FRAC_RANGE.contains(&w1_frac) {
@@ -369,14 +376,7 @@ impl<'a> NnView<'a> {
     /// rebuilds its view this way; re-parsing cost ~1,150 instructions of
     /// the 25,000-cycle tick.
     pub fn from_summary(summary: &NnSummary, bytes: &'a [u8]) -> Result<NnView<'a>, BlobError> {
-        let expected = NN_HEADER_LEN + NN_NEURON_LEN * summary.hidden as usize;
-        if bytes.len() != expected {
-            return Err(BlobError::Dimension {
-                field: "nn.body_len",
-                found: len_u32(bytes.len()),
-                expected: len_u32(expected),
-            });
-        }
+        nn_body_len(bytes, summary.hidden)?;
         Ok(NnView {
             summary: *summary,
             neurons: &bytes[NN_HEADER_LEN..],
@@ -416,28 +416,11 @@ impl<'a> NnView<'a> {
             acc[1] = acc[1].wrapping_add(le_i32::<NN_NEURON_LEN, 20>(rec) as i64 * t);
             acc[2] = acc[2].wrapping_add(le_i32::<NN_NEURON_LEN, 24>(rec) as i64 * t);
         }
+        let s = &self.summary;
         [
-            finish(
-                acc[0],
-                self.summary.w2_frac[0],
-                self.summary.offset[0],
-                self.summary.mode,
-                p[0],
-            ),
-            finish(
-                acc[1],
-                self.summary.w2_frac[1],
-                self.summary.offset[1],
-                self.summary.mode,
-                p[1],
-            ),
-            finish(
-                acc[2],
-                self.summary.w2_frac[2],
-                self.summary.offset[2],
-                self.summary.mode,
-                p[2],
-            ),
+            finish(acc[0], s.w2_frac[0], s.offset[0], s.mode, p[0]),
+            finish(acc[1], s.w2_frac[1], s.offset[1], s.mode, p[1]),
+            finish(acc[2], s.w2_frac[2], s.offset[2], s.mode, p[2]),
         ]
     }
 }

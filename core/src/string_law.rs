@@ -109,21 +109,22 @@ pub fn sag_mm(mm_at_1m_1n: f64, home_mm_at_1m: f64, ctx: &EffectContext) -> f64 
 /// length or the sag is clamped (what the identification's payout and home
 /// length derivatives carry).
 pub fn sag_slope(mm_at_1m_1n: f64, ctx: &EffectContext) -> f64 {
-    let l = ctx.home_length_mm + ctx.payout_mm;
-    let sag = mm_at_1m_1n * sag_variable(ctx);
-    if l <= 0.0 || l >= MAX_SAG_LENGTH_MM || sag.abs() >= MAX_SAG_MM {
-        0.0
-    } else {
-        -3.0 * sag / l
-    }
+    -cube_slope(
+        mm_at_1m_1n * sag_variable(ctx),
+        ctx.home_length_mm + ctx.payout_mm,
+    )
 }
 
 /// d(contribution)/d(home length) of a sag term's home part: `3 home_sag /
 /// home_length`, 0 where clamped (the identification adds it to the home
 /// length's derivative, beside [`sag_slope`]).
 pub fn sag_home_slope(home_mm_at_1m: f64, ctx: &EffectContext) -> f64 {
-    let l = ctx.home_length_mm;
-    let sag = home_mm_at_1m * sag_home_variable(ctx);
+    cube_slope(home_mm_at_1m * sag_home_variable(ctx), ctx.home_length_mm)
+}
+
+/// d(sag)/d(l) of a sag in `l^3`: `3 sag / l`, 0 where the length or the
+/// sag is clamped.
+fn cube_slope(sag: f64, l: f64) -> f64 {
     if l <= 0.0 || l >= MAX_SAG_LENGTH_MM || sag.abs() >= MAX_SAG_MM {
         0.0
     } else {
@@ -329,25 +330,9 @@ fn powi_f64(x: f64, power: u8) -> f64 {
     r
 }
 
-fn one(v: f64) -> heapless::Vec<f64, 3> {
-    let mut out = heapless::Vec::new();
-    let _ = out.push(v);
-    out
-}
-
-fn three(a: f64, b: f64, c: f64) -> heapless::Vec<f64, 3> {
-    let mut out = heapless::Vec::new();
-    let _ = out.push(a);
-    let _ = out.push(b);
-    let _ = out.push(c);
-    out
-}
-
-fn two(a: f64, b: f64) -> heapless::Vec<f64, 3> {
-    let mut out = heapless::Vec::new();
-    let _ = out.push(a);
-    let _ = out.push(b);
-    out
+/// An effect's parameters or gradient (at most three).
+fn values(v: &[f64]) -> heapless::Vec<f64, 3> {
+    heapless::Vec::from_slice(v).unwrap_or_default()
 }
 
 impl Effect {
@@ -416,32 +401,36 @@ impl Effect {
     /// | Stretch | `per_newton, mm_per_newton, home_tension_n` | `[T (home_length + payout) - T_home home_length, T - T_home, -(per_newton home_length + mm_per_newton)]` |
     pub fn gradient_f64(&self, ctx: &EffectContext) -> heapless::Vec<f64, 3> {
         match *self {
-            Effect::Offset { .. } => one(1.0),
-            Effect::Scale { .. } => one(ctx.payout_mm),
-            Effect::Winding { power, .. } => one(powi_f64(ctx.theta, power)),
-            Effect::Eccentricity { .. } => two(libm::sin(ctx.theta), libm::cos(ctx.theta) - 1.0),
-            Effect::Elasticity { .. } => one(ctx.tension_n * (ctx.home_length_mm + ctx.payout_mm)),
+            Effect::Offset { .. } => values(&[1.0]),
+            Effect::Scale { .. } => values(&[ctx.payout_mm]),
+            Effect::Winding { power, .. } => values(&[powi_f64(ctx.theta, power)]),
+            Effect::Eccentricity { .. } => {
+                values(&[libm::sin(ctx.theta), libm::cos(ctx.theta) - 1.0])
+            }
+            Effect::Elasticity { .. } => {
+                values(&[ctx.tension_n * (ctx.home_length_mm + ctx.payout_mm)])
+            }
             Effect::Stretch {
                 per_newton,
                 mm_per_newton,
                 home_tension_n,
-            } => three(
+            } => values(&[
                 ctx.tension_n * (ctx.home_length_mm + ctx.payout_mm)
                     - home_tension_n * ctx.home_length_mm,
                 ctx.tension_n - home_tension_n,
                 -(per_newton * ctx.home_length_mm + mm_per_newton),
-            ),
-            Effect::FrameFlex { .. } => two(ctx.total_tension_n, -1.0),
-            Effect::Backlash { .. } => one(direction_sign(ctx.direction)),
-            Effect::Drift { .. } => one(ctx.time_s),
-            Effect::Slip { at_s, .. } => one(if ctx.time_s >= at_s { 1.0 } else { 0.0 }),
+            ]),
+            Effect::FrameFlex { .. } => values(&[ctx.total_tension_n, -1.0]),
+            Effect::Backlash { .. } => values(&[direction_sign(ctx.direction)]),
+            Effect::Drift { .. } => values(&[ctx.time_s]),
+            Effect::Slip { at_s, .. } => values(&[if ctx.time_s >= at_s { 1.0 } else { 0.0 }]),
             Effect::Sag {
                 mm_at_1m_1n,
                 home_mm_at_1m,
             } => {
                 let v = sag_variable(ctx);
                 let h = sag_home_variable(ctx);
-                two(
+                values(&[
                     if (mm_at_1m_1n * v).abs() < MAX_SAG_MM {
                         -v
                     } else {
@@ -452,7 +441,7 @@ impl Effect {
                     } else {
                         0.0
                     },
-                )
+                ])
             }
         }
     }
@@ -460,27 +449,27 @@ impl Effect {
     /// The free parameters, in the order of [`gradient_f64`](Self::gradient_f64).
     pub fn parameters(&self) -> heapless::Vec<f64, 3> {
         match *self {
-            Effect::Offset { mm } => one(mm),
-            Effect::Scale { relative } => one(relative),
-            Effect::Winding { mm_per_rad_pow, .. } => one(mm_per_rad_pow),
-            Effect::Eccentricity { sin_mm, cos_mm } => two(sin_mm, cos_mm),
-            Effect::Elasticity { per_newton } => one(per_newton),
+            Effect::Offset { mm } => values(&[mm]),
+            Effect::Scale { relative } => values(&[relative]),
+            Effect::Winding { mm_per_rad_pow, .. } => values(&[mm_per_rad_pow]),
+            Effect::Eccentricity { sin_mm, cos_mm } => values(&[sin_mm, cos_mm]),
+            Effect::Elasticity { per_newton } => values(&[per_newton]),
             Effect::Stretch {
                 per_newton,
                 mm_per_newton,
                 home_tension_n,
-            } => three(per_newton, mm_per_newton, home_tension_n),
+            } => values(&[per_newton, mm_per_newton, home_tension_n]),
             Effect::FrameFlex {
                 mm_per_newton,
                 home_mm,
-            } => two(mm_per_newton, home_mm),
-            Effect::Backlash { half_width_mm } => one(half_width_mm),
-            Effect::Drift { mm_per_s } => one(mm_per_s),
-            Effect::Slip { mm, .. } => one(mm),
+            } => values(&[mm_per_newton, home_mm]),
+            Effect::Backlash { half_width_mm } => values(&[half_width_mm]),
+            Effect::Drift { mm_per_s } => values(&[mm_per_s]),
+            Effect::Slip { mm, .. } => values(&[mm]),
             Effect::Sag {
                 mm_at_1m_1n,
                 home_mm_at_1m,
-            } => two(mm_at_1m_1n, home_mm_at_1m),
+            } => values(&[mm_at_1m_1n, home_mm_at_1m]),
         }
     }
 
@@ -629,6 +618,28 @@ fn finite(string: usize, field: &'static str, v: f64) -> Result<f64, CompileErro
         Ok(v)
     } else {
         Err(CompileError::NotFinite { string, field })
+    }
+}
+
+/// `v` when finite and within `min..=max`, else the error naming `field`.
+fn in_range(
+    string: usize,
+    field: &'static str,
+    v: f64,
+    min: f64,
+    max: f64,
+) -> Result<f64, CompileError> {
+    let v = finite(string, field, v)?;
+    if (min..=max).contains(&v) {
+        Ok(v)
+    } else {
+        Err(CompileError::OutOfRange {
+            string,
+            field,
+            value: v,
+            min,
+            max,
+        })
     }
 }
 
@@ -1211,19 +1222,8 @@ pub fn compile_effect(
             mm_at_1m_1n,
             home_mm_at_1m,
         } => {
-            let bounded = |field: &'static str, v: f64| {
-                let v = finite(s, field, v)?;
-                if v.abs() > MAX_SAG_MM_AT_1M_1N {
-                    return Err(CompileError::OutOfRange {
-                        string: s,
-                        field,
-                        value: v,
-                        min: -MAX_SAG_MM_AT_1M_1N,
-                        max: MAX_SAG_MM_AT_1M_1N,
-                    });
-                }
-                Ok(v)
-            };
+            let bounded =
+                |field, v| in_range(s, field, v, -MAX_SAG_MM_AT_1M_1N, MAX_SAG_MM_AT_1M_1N);
             let m = bounded("mm_at_1m_1n", mm_at_1m_1n)?;
             let h = bounded("home_mm_at_1m", home_mm_at_1m)?;
             CompiledEffect::Sag {
@@ -1242,26 +1242,20 @@ pub fn compile_effect(
             mm_per_newton,
             home_mm,
         } => {
-            let k = finite(s, "mm_per_newton", mm_per_newton)?;
-            if k.abs() > MAX_FRAME_FLEX_MM_PER_NEWTON {
-                return Err(CompileError::OutOfRange {
-                    string: s,
-                    field: "mm_per_newton",
-                    value: k,
-                    min: -MAX_FRAME_FLEX_MM_PER_NEWTON,
-                    max: MAX_FRAME_FLEX_MM_PER_NEWTON,
-                });
-            }
-            let h = finite(s, "home_mm", home_mm)?;
-            if h.abs() > MAX_FRAME_FLEX_HOME_MM {
-                return Err(CompileError::OutOfRange {
-                    string: s,
-                    field: "home_mm",
-                    value: h,
-                    min: -MAX_FRAME_FLEX_HOME_MM,
-                    max: MAX_FRAME_FLEX_HOME_MM,
-                });
-            }
+            let k = in_range(
+                s,
+                "mm_per_newton",
+                mm_per_newton,
+                -MAX_FRAME_FLEX_MM_PER_NEWTON,
+                MAX_FRAME_FLEX_MM_PER_NEWTON,
+            )?;
+            let h = in_range(
+                s,
+                "home_mm",
+                home_mm,
+                -MAX_FRAME_FLEX_HOME_MM,
+                MAX_FRAME_FLEX_HOME_MM,
+            )?;
             CompiledEffect::FrameFlex {
                 string,
                 per_mn_q48: to_fixed(s, "mm_per_newton", k / 1000.0, 48, "Q15.48 mm per mN")?,
@@ -1315,24 +1309,15 @@ fn compile_stretch(
             format: "strain Q0.31 at 65.535 N",
         });
     }
-    let m = finite(s, "mm_per_newton", mm_per_newton)?;
-    if m.abs() > MAX_ELASTICITY_MM_PER_NEWTON {
-        return Err(CompileError::DoesNotFit {
-            string: s,
-            field: "mm_per_newton",
-            value: m,
-            format: "Q16.47 mm per mN, at most MAX_ELASTICITY_MM_PER_NEWTON",
-        });
-    }
-    let th = finite(s, "home_tension_n", home_tension_n)?;
-    if !(0.0..=65.535).contains(&th) {
-        return Err(CompileError::DoesNotFit {
-            string: s,
-            field: "home_tension_n",
-            value: th,
-            format: "mN in u16",
-        });
-    }
+    let m = in_range(
+        s,
+        "mm_per_newton",
+        mm_per_newton,
+        -MAX_ELASTICITY_MM_PER_NEWTON,
+        MAX_ELASTICITY_MM_PER_NEWTON,
+    )?;
+    // A commanded tension is at most 65.535 N (u16 mN).
+    let th = in_range(s, "home_tension_n", home_tension_n, 0.0, 65.535)?;
     Ok(CompiledEffect::Elasticity {
         string,
         per_mn_q47: to_fixed(s, "per_newton", e / 1000.0, 47, "Q16.47 per mN")?,
