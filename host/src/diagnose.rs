@@ -601,6 +601,20 @@ fn string_column(rows: &[Row], string: usize, f: impl Fn(&Row) -> f64) -> Vec<f6
         .collect()
 }
 
+/// The column of a term shared by every string: `f` on the active
+/// strings' rows.
+fn shared_column(rows: &[Row], strings: StringLayout, f: impl Fn(&Row) -> f64) -> Vec<f64> {
+    rows.iter()
+        .map(|r| {
+            if strings.is_active(r.string) {
+                f(r)
+            } else {
+                0.0
+            }
+        })
+        .collect()
+}
+
 fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) -> Vec<Candidate> {
     let rows = &ev.rows;
     let mut out = Vec::new();
@@ -760,25 +774,13 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
     // device): one parameter where per-string drifts take one each, and the
     // same value on every string, which the per-string terms, added one at a
     // time, do not find (issue 10, point 4).
-    let shared_drift = structure
-        .effects
-        .iter()
-        .any(|t| t.string == EVERY_STRING && matches!(t.effect, Effect::Drift { .. }));
-    if !shared_drift {
+    let shared = usize::from(EVERY_STRING);
+    if !has_effect(shared, |e| matches!(e, Effect::Drift { .. })) {
         out.push(Candidate {
             family: Family::Drift,
             strings: Vec::new(),
             variable: Variable::Time,
-            columns: vec![rows
-                .iter()
-                .map(|r| {
-                    if strings.is_active(r.string) {
-                        r.ctx.time_s
-                    } else {
-                        0.0
-                    }
-                })
-                .collect()],
+            columns: vec![shared_column(rows, strings, |r| r.ctx.time_s)],
             search_penalty: 0.0,
             rival: Vec::new(),
             build: Box::new(|b| {
@@ -799,11 +801,7 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
     // home length); the refit frees `T_home` around the pretension. Without
     // its lead and home parts the shared sag stood in for it on 11 of 20
     // clean independent devices.
-    let shared_stretch = structure
-        .effects
-        .iter()
-        .any(|t| matches!(t.effect, Effect::Stretch { .. }));
-    if !shared_stretch {
+    if !has_effect(shared, |e| matches!(e, Effect::Stretch { .. })) {
         let (sum_lh, n_lh) = rows
             .iter()
             .filter(|r| strings.is_active(r.string))
@@ -841,21 +839,14 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
     // The frame flexing under the strings' total pull: every guide moves
     // with `sum_j T_j`, one compliance for the frame, less the flex at the
     // home capture (a length every string shares).
-    if !structure
-        .effects
-        .iter()
-        .any(|t| matches!(t.effect, Effect::FrameFlex { .. }))
-    {
-        let active = |r: &Row, v: f64| if strings.is_active(r.string) { v } else { 0.0 };
+    if !has_effect(shared, |e| matches!(e, Effect::FrameFlex { .. })) {
         out.push(Candidate {
             family: Family::FrameFlex,
             strings: Vec::new(),
             variable: Variable::Tension,
             columns: vec![
-                rows.iter()
-                    .map(|r| active(r, r.ctx.total_tension_n))
-                    .collect(),
-                rows.iter().map(|r| active(r, -1.0)).collect(),
+                shared_column(rows, strings, |r| r.ctx.total_tension_n),
+                shared_column(rows, strings, |_| -1.0),
             ],
             search_penalty: 0.0,
             rival: Vec::new(),
@@ -879,23 +870,14 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
     // constant on that string (an offset), and on clean independent devices
     // per-string sags stood in for offsets and raised the test error (seed
     // 5: 0.42 -> 0.94 mm; docs/benchmarks.md).
-    let shared_sag = structure
-        .effects
-        .iter()
-        .any(|t| t.string == EVERY_STRING && matches!(t.effect, Effect::Sag { .. }));
-    if !shared_sag {
-        let active = |r: &Row, v: f64| if strings.is_active(r.string) { v } else { 0.0 };
+    if !has_effect(shared, |e| matches!(e, Effect::Sag { .. })) {
         out.push(Candidate {
             family: Family::Sag,
             strings: Vec::new(),
             variable: Variable::Tension,
             columns: vec![
-                rows.iter()
-                    .map(|r| active(r, -sag_variable(&r.ctx)))
-                    .collect(),
-                rows.iter()
-                    .map(|r| active(r, sag_home_variable(&r.ctx)))
-                    .collect(),
+                shared_column(rows, strings, |r| -sag_variable(&r.ctx)),
+                shared_column(rows, strings, |r| sag_home_variable(&r.ctx)),
             ],
             search_penalty: 0.0,
             // The stretch's `T l` column only: its three columns as the
@@ -1060,21 +1042,12 @@ fn in_physical_terms(effect: &Effect) -> Option<String> {
 /// weigh 0.3-1 g/m: 0.0004-0.004) stood in for the stretch (with rigid
 /// strings it was not added).
 fn stretch_columns(rows: &[Row], strings: StringLayout) -> Vec<Vec<f64>> {
-    let column = |f: &dyn Fn(&Row) -> f64| -> Vec<f64> {
-        rows.iter()
-            .map(|r| {
-                if strings.is_active(r.string) {
-                    f(r)
-                } else {
-                    0.0
-                }
-            })
-            .collect()
-    };
     vec![
-        column(&|r| r.ctx.tension_n * (r.ctx.home_length_mm + r.ctx.payout_mm)),
-        column(&|r| r.ctx.tension_n),
-        column(&|_| -1.0),
+        shared_column(rows, strings, |r| {
+            r.ctx.tension_n * (r.ctx.home_length_mm + r.ctx.payout_mm)
+        }),
+        shared_column(rows, strings, |r| r.ctx.tension_n),
+        shared_column(rows, strings, |_| -1.0),
     ]
 }
 
