@@ -426,6 +426,16 @@ pub fn effect_parameter_info(effect: &Effect) -> &'static [(&'static str, f64, &
     }
 }
 
+/// The prior (centre, sd) of an effect's free parameter `parameter` (in
+/// the order of `Effect::parameters`), if it has one: a stretch's home
+/// tension, around the pretension held at home.
+fn effect_prior(effect: &Effect, parameter: usize, priors: &Priors) -> Option<(f64, f64)> {
+    match (effect, parameter) {
+        (Effect::Stretch { .. }, 2) => Some((priors.home_tension_n, priors.home_tension_sd_n)),
+        _ => None,
+    }
+}
+
 /// Everything the fit varies, in physical units.
 #[derive(Clone, Debug)]
 struct State {
@@ -649,12 +659,14 @@ impl Problem<'_> {
                     .collect(),
             ));
         }
-        // A stretch's home tension: around the pretension held at home.
+        // Effect parameters with a prior.
         for (c, &(e, pi)) in self.layout.effect_columns.iter().enumerate() {
-            if let (Effect::Stretch { home_tension_n, .. }, 2) = (state.effects[e].effect, pi) {
-                let sd = p.home_tension_sd_n;
+            let effect = &state.effects[e].effect;
+            if let (Some((centre, sd)), Some(&value)) =
+                (effect_prior(effect, pi, p), effect.parameters().get(pi))
+            {
                 rows.push((
-                    (home_tension_n - p.home_tension_n) / sd,
+                    (value - centre) / sd,
                     vec![(self.layout.first_effect() + c, 1.0 / sd)],
                 ));
             }
@@ -723,10 +735,17 @@ impl Problem<'_> {
             + STRINGS
             + usize::from(!self.structure.hold_kappa_each)
             + self
-                .structure
-                .effects
+                .layout
+                .effect_columns
                 .iter()
-                .filter(|t| matches!(t.effect, Effect::Stretch { .. }))
+                .filter(|&&(e, pi)| {
+                    effect_prior(
+                        &self.structure.effects[e].effect,
+                        pi,
+                        &self.structure.priors,
+                    )
+                    .is_some()
+                })
                 .count()
             + gauge
     }
@@ -1505,13 +1524,13 @@ fn parameter_names(
         ));
     }
     for term in &structure.effects {
-        for (pname, _, unit) in effect_parameter_info(&term.effect) {
+        for (k, (pname, _, unit)) in effect_parameter_info(&term.effect).iter().enumerate() {
             let owner = if term.string == EVERY_STRING {
                 "every_string".to_string()
             } else {
                 format!("string{}", term.string)
             };
-            let prior = (*pname == "stretch_home_tension").then_some(p.home_tension_sd_n);
+            let prior = effect_prior(&term.effect, k, p).map(|(_, sd)| sd);
             names.push((format!("{owner}.{pname}"), *unit, prior));
         }
     }
