@@ -276,7 +276,8 @@ impl EffectContext {
         inputs: &StringInputs,
         string: usize,
     ) -> Option<Self> {
-        let total_tension_n = f64::from(total_tension_mn(frame.layout.active, inputs)) / 1000.0;
+        let total_tension_n =
+            f64::from(total_tension_mn(frame.layout.active, &inputs.tension_mn)) / 1000.0;
         Self::with_total_tension(frame, laws, inputs, string, total_tension_n)
     }
 
@@ -311,10 +312,10 @@ impl EffectContext {
 /// Sum of the commanded tensions (mN) of the strings whose bit is set in
 /// `active` ([`StringLayout::active`]): what a frame-flex term reads
 /// ([`Effect::FrameFlex`]). Eight `u16` fit a `u32`.
-pub fn total_tension_mn(active: u8, inputs: &StringInputs) -> u32 {
+pub fn total_tension_mn(active: u8, tension_mn: &[u16; STRINGS]) -> u32 {
     (0..STRINGS)
         .filter(|&i| active >> i & 1 == 1)
-        .map(|i| u32::from(inputs.tension_mn[i]))
+        .map(|i| u32::from(tension_mn[i]))
         .sum()
 }
 
@@ -524,7 +525,8 @@ pub fn string_lengths_f64(
 ) -> [f64; STRINGS] {
     let mut ctx = [None; STRINGS];
     let mut out = [0.0; STRINGS];
-    let total_tension_n = f64::from(total_tension_mn(frame.layout.active, inputs)) / 1000.0;
+    let total_tension_n =
+        f64::from(total_tension_mn(frame.layout.active, &inputs.tension_mn)) / 1000.0;
     for i in 0..STRINGS {
         ctx[i] = EffectContext::with_total_tension(frame, laws, inputs, i, total_tension_n);
         if let Some(c) = &ctx[i] {
@@ -1581,7 +1583,7 @@ fn lengths_of<const ALL: bool>(
         payout[i] = laws[i].payout_q32(inputs.counts[i]);
         acc[i] = q16_to_q32(laws[i].home_length_q16).saturating_add(payout[i]);
     }
-    let total_tension_mn = total_tension_mn(if ALL { u8::MAX } else { active }, inputs);
+    let total_tension_mn = total_tension_mn(if ALL { u8::MAX } else { active }, &inputs.tension_mn);
     // Each string's context built once, not once per term that reads it
     // (a shared term reads all eight).
     let contexts: [FixedContext; STRINGS] = core::array::from_fn(|s| FixedContext {

@@ -16,7 +16,7 @@ use crate::identify::{
 };
 use crate::layers::{self, StringLayers};
 use crate::observe::Observation;
-use crate::predict::{paired_with_tracker, predict, StringModel};
+use crate::predict::{paired_with_tracker, predict};
 use crate::stats::{position_errors, ErrorStats};
 
 /// Effect families (the JSON report's `family`).
@@ -1524,14 +1524,7 @@ pub fn tail_noise(errors: &[f64]) -> (f64, f64) {
 
 /// Position errors (eq. 7) of an identified model on the tracked rows.
 fn model_error_list(id: &Identification, observations: &[Observation]) -> Vec<f64> {
-    let predictions = predict(
-        StringModel {
-            frame: &id.frame,
-            laws: &id.laws,
-            effects: &id.effects,
-        },
-        observations,
-    );
+    let predictions = predict(id.string_model(), observations);
     let room: Vec<[f64; 3]> = predictions.iter().map(|p| p.room).collect();
     let (p, t) = paired_with_tracker(&room, observations);
     position_errors(&p, &t)

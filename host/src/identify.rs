@@ -261,6 +261,15 @@ pub struct Identification {
 }
 
 impl Identification {
+    /// Its string model (what forward kinematics needs).
+    pub fn string_model(&self) -> crate::predict::StringModel<'_> {
+        crate::predict::StringModel {
+            frame: &self.frame,
+            laws: &self.laws,
+            effects: &self.effects,
+        }
+    }
+
     /// The model as it holds for another session, started from a new home
     /// capture: without the slips found in this one. A slip is an event of
     /// the session it happened in (the string slid on its spool); a new home

@@ -624,11 +624,7 @@ pub fn calibrate(
     let loop_result = loop_result?;
     timings.identification_s = t.elapsed().as_secs_f64();
     let base = &loop_result.base;
-    let base_model = StringModel {
-        frame: &base.frame,
-        laws: &base.laws,
-        effects: &base.effects,
-    };
+    let base_model = base.string_model();
     let id_tr = room_positions(base_model, &tr);
     let id_te = room_positions(base_model, &te);
     let (id_tr_pe, id_tr_s) =
@@ -645,21 +641,9 @@ pub fn calibrate(
     // the test session, and in the calibration the device runs from its
     // next home capture, without the training session's slips.
     let fin = &loop_result.identification;
-    let fin_model = StringModel {
-        frame: &fin.frame,
-        laws: &fin.laws,
-        effects: &fin.effects,
-    };
     let fin_new = fin.for_a_new_session();
-    let fin_tr_pred = predict(fin_model, &tr);
-    let fin_te_pred = predict(
-        StringModel {
-            frame: &fin_new.frame,
-            laws: &fin_new.laws,
-            effects: &fin_new.effects,
-        },
-        &te,
-    );
+    let fin_tr_pred = predict(fin.string_model(), &tr);
+    let fin_te_pred = predict(fin_new.string_model(), &te);
     let rejections = report::SessionRejections {
         train: report::Rejections::of(&fin_tr_pred),
         test: report::Rejections::of(&fin_te_pred),

@@ -220,10 +220,7 @@ pub fn simulate_session_with_truth(
 
         let total_tension_n = f64::from(spidar_core::string_law::total_tension_mn(
             layout.active,
-            &StringInputs {
-                tension_mn,
-                ..StringInputs::default()
-            },
+            &tension_mn,
         )) / 1000.0;
         let mut counts = [0i32; STRINGS];
         let mut lengths = [0.0; STRINGS];
