@@ -90,20 +90,19 @@ fn physics_run(device: &PhysicsDevice, seed: u64) -> (Run, Vec<PhysicsTruth>, Ve
     )
 }
 
-/// The slips of a session from its truths: (row, string, mm) of each step.
+/// The slips of a session from its truths: (row, string, mm) of each step
+/// (each string starts unslipped at home).
 fn slip_steps(truths: &[PhysicsTruth]) -> Vec<(usize, usize, f64)> {
     let mut steps = Vec::new();
-    for (row, pair) in truths.windows(2).enumerate() {
-        for (i, (a, b)) in pair[0]
-            .slipped_mm
-            .iter()
-            .zip(&pair[1].slipped_mm)
-            .enumerate()
-        {
+    let mut before: Vec<f64> = Vec::new();
+    for (row, t) in truths.iter().enumerate() {
+        before.resize(t.slipped_mm.len(), 0.0);
+        for (i, (a, b)) in before.iter().zip(&t.slipped_mm).enumerate() {
             if a != b {
-                steps.push((row + 1, i, ((b - a) * 100.0).round() / 100.0));
+                steps.push((row, i, ((b - a) * 100.0).round() / 100.0));
             }
         }
+        before.clone_from(&t.slipped_mm);
     }
     steps
 }
@@ -111,12 +110,8 @@ fn slip_steps(truths: &[PhysicsTruth]) -> Vec<(usize, usize, f64)> {
 /// The test session's own slips (a calibration made before them cannot
 /// know them) and the final model's test error before and after the first.
 fn test_session_slips(test_truths: &[PhysicsTruth], c: &Calibrated) -> Option<String> {
-    let slipped = |t: &PhysicsTruth| t.slipped_mm.iter().any(|&mm| mm != 0.0);
-    let first = test_truths.iter().position(slipped)?;
-    let last = test_truths.last()?;
-    let strings: Vec<usize> = (0..last.slipped_mm.len())
-        .filter(|&i| last.slipped_mm[i] != 0.0)
-        .collect();
+    let steps = slip_steps(test_truths);
+    let first = steps.first()?.0;
     let fin = c
         .points
         .iter()
@@ -131,16 +126,15 @@ fn test_session_slips(test_truths: &[PhysicsTruth], c: &Calibrated) -> Option<St
             after.push(e)
         }
     }
-    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+    let (before, after) = (ErrorStats::of(&before), ErrorStats::of(&after));
     Some(format!(
-        "the test session slipped from row {first} of {} (strings {strings:?}, {:?} mm at its end): \
-         final test mean {:.3} mm on the {} rows before, {:.3} mm on the {} after",
+        "the test session slipped (row, string, mm) {steps:?} of {} rows: final test mean \
+         {:.3} mm on the {} rows before its first slip, {:.3} mm on the {} after",
         test_truths.len(),
-        strings.iter().map(|&i| (last.slipped_mm[i] * 100.0).round() / 100.0).collect::<Vec<_>>(),
-        mean(&before),
-        before.len(),
-        mean(&after),
-        after.len()
+        before.mean_mm,
+        before.n,
+        after.mean_mm,
+        after.n
     ))
 }
 
