@@ -632,6 +632,10 @@ pub struct Sample {
     pub counts: [i32; STRINGS],
     /// Tracker position of the marker (room frame, mm); `None` while occluded.
     pub tracker: Option<Vec3<f64>>,
+    /// Orientation of the tracked body when the tracker gives one: the unit
+    /// quaternion `[w, x, y, z]` that turns the body's frame into the room
+    /// frame. `None` while occluded or when the session has no orientation.
+    pub orientation: Option<[f64; 4]>,
     /// Position reported by a legacy controller (device frame, mm), if any.
     pub legacy: Option<Vec3<f64>>,
     /// Commanded tensions (N), if recorded.
@@ -1000,6 +1004,7 @@ impl Session {
                 t_s,
                 counts,
                 tracker,
+                orientation: None,
                 legacy,
                 tension_n,
             });
@@ -1431,6 +1436,7 @@ mod append_tests {
             t_s,
             counts: [1, -2, 3, -4, 5, -6, 7, -8],
             tracker: Some([x, 0.25, -1e-3]),
+            orientation: None,
             legacy: Some([0.1, 0.2, 0.3]),
             tension_n: Some([1.0; STRINGS]),
         }
@@ -1522,6 +1528,7 @@ mod append_n_tests {
             t_s: 0.5,
             counts: [1, 2, 3, 4, 0, 0, 0, 0],
             tracker: Some([1.0, 2.0, 3.0]),
+            orientation: None,
             legacy: None,
             tension_n: Some([1.0, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0]),
         };

@@ -26,6 +26,9 @@ pub struct Observation {
     pub tension_n: [f64; STRINGS],
     /// Tracker position, room frame, mm; `None` while occluded.
     pub tracker: Option<[f64; 3]>,
+    /// The tracked body's rotation into the room frame (row-major), when
+    /// the tracker gives its orientation ([`Sample::orientation`]).
+    pub tracker_rotation: Option<[[f64; 3]; 3]>,
     /// Legacy controller position, device frame, mm, when recorded.
     pub legacy: Option<[f64; 3]>,
 }
@@ -56,8 +59,33 @@ pub fn observations(samples: &[Sample]) -> Vec<Observation> {
                 inputs,
                 tension_n,
                 tracker: s.tracker,
+                tracker_rotation: s.orientation.map(rotation_of_quaternion),
                 legacy: s.legacy,
             }
         })
         .collect()
+}
+
+/// The rotation matrix (row-major) of the quaternion `[w, x, y, z]`,
+/// normalized first (a reader checks it is a unit one to its digits).
+pub fn rotation_of_quaternion(q: [f64; 4]) -> [[f64; 3]; 3] {
+    let n = q.iter().map(|v| v * v).sum::<f64>().sqrt();
+    let [w, x, y, z] = q.map(|v| v / n);
+    [
+        [
+            1.0 - 2.0 * (y * y + z * z),
+            2.0 * (x * y - w * z),
+            2.0 * (x * z + w * y),
+        ],
+        [
+            2.0 * (x * y + w * z),
+            1.0 - 2.0 * (x * x + z * z),
+            2.0 * (y * z - w * x),
+        ],
+        [
+            2.0 * (x * z - w * y),
+            2.0 * (y * z + w * x),
+            1.0 - 2.0 * (x * x + y * y),
+        ],
+    ]
 }

@@ -101,6 +101,7 @@ fn session_round_trip_is_lossless() {
         t_s: 0.1 + 0.2,
         counts: [i32::MIN, i32::MAX, 0, -1, 1, 2, 3, 4],
         tracker: Some([1e-9, -123456.789012345, 1.0 / 3.0]),
+        orientation: None,
         legacy: None,
         tension_n: Some([1.0, 2.5, 0.001, 3.0, 4.0, 5.0, 6.0, 7.0]),
     }];
@@ -108,6 +109,7 @@ fn session_round_trip_is_lossless() {
         t_s: 0.3 + 1e-12,
         counts: [5; 8],
         tracker: None,
+        orientation: None,
         legacy: Some([1.5, -2.5, 3.25]),
         tension_n: None,
     });
@@ -287,6 +289,7 @@ fn writing_rejects_what_reading_would_reject() {
             t_s: 0.0,
             counts: [0; 8],
             tracker: Some([0.0, f64::NAN, 0.0]),
+            orientation: None,
             legacy: None,
             tension_n: None,
         }],

@@ -214,6 +214,7 @@ fn bad_input_is_named() {
         t_s: 0.0,
         counts: vec![0; n],
         tracker: None,
+        orientation: None,
         tension_n: vec![1.0; n],
     };
     assert_eq!(rows_to_session(vec![row(3)]).unwrap().strings, 3);

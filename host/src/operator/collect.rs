@@ -746,6 +746,7 @@ fn run(
                         t_s,
                         counts: s.counts,
                         tracker: Some(marker),
+                        orientation: None,
                         legacy: Some(s.position_mm.map(f64::from)),
                         tension_n: Some(s.tensions_n.map(f64::from)),
                     };
@@ -1035,6 +1036,7 @@ mod tests {
             t_s: 0.0,
             counts: [0; 8],
             tracker: Some(p),
+            orientation: None,
             legacy: None,
             tension_n: None,
         }

@@ -907,6 +907,7 @@ impl Monitor<'_> {
                     t_s: state.since_home_us as f64 / 1e6,
                     counts: state.counts,
                     tracker: Some(marker),
+                    orientation: None,
                     legacy: None,
                     tension_n: Some(state.tensions_n.map(f64::from)),
                 },

@@ -287,6 +287,7 @@ pub fn simulate_session_with_truth(
             t_s,
             counts,
             tracker,
+            orientation: None,
             legacy: legacy_position,
             tension_n: Some(tension_mn.map(|t| f64::from(t) / 1000.0)),
         });

@@ -26,8 +26,32 @@ pub struct PhysicsConfig {
     pub tension: TensionConfig,
     pub lattice: LatticeConfig,
     pub random: RandomConfig,
+    pub orientation: OrientationConfig,
     /// Undeclared effects, `NAME` or `NAME:KEY=VALUE,...` (see [`super::effects`]).
     pub effects: Vec<String>,
+}
+
+/// The tracker's orientation of the tracked body (a rigid body of markers,
+/// as optical trackers give it): written as `ots_qw, ots_qx, ots_qy,
+/// ots_qz` beside the position.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct OrientationConfig {
+    /// Write the orientation (false: a tracker of single markers, position
+    /// only).
+    pub enabled: bool,
+    /// Standard deviation of the measured orientation about each axis,
+    /// degrees (optical rigid bodies: about 0.1).
+    pub sigma_deg: f64,
+}
+
+impl Default for OrientationConfig {
+    fn default() -> Self {
+        OrientationConfig {
+            enabled: true,
+            sigma_deg: 0.1,
+        }
+    }
 }
 
 /// The device as built: every physical parameter and its spread.
@@ -192,6 +216,10 @@ impl PhysicsConfig {
             ..crate::sim::SimConfig::default()
         }
         .validate()?;
+        non_negative("orientation.sigma_deg", self.orientation.sigma_deg)?;
+        if self.orientation.sigma_deg > 10.0 {
+            return Err(bad("orientation.sigma_deg", "must be at most 10 degrees"));
+        }
         let a = &self.as_built;
         non_negative("as_built.anchor_sigma_mm", a.anchor_sigma_mm)?;
         non_negative("as_built.home_sigma_mm", a.home_sigma_mm)?;

@@ -125,6 +125,25 @@ impl Posture {
     }
 }
 
+/// The unit quaternion `[w, x, y, z]` of the body's rotation into the room:
+/// the room rotation after the body's turn `omega` (device frame), then a
+/// measurement error `error` (rotation vector, room frame), rounded to the
+/// 1e-6 a tracker writes.
+fn body_to_room_quaternion(
+    room_rotation: &[[f64; 3]; 3],
+    omega: &Vec3<f64>,
+    error: &Vec3<f64>,
+) -> [f64; 4] {
+    use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector3};
+    let room = Rotation3::from_matrix(&Matrix3::from_fn(|r, c| room_rotation[r][c]));
+    let body = Rotation3::new(Vector3::new(omega[0], omega[1], omega[2]));
+    let noise = Rotation3::new(Vector3::new(error[0], error[1], error[2]));
+    let q = UnitQuaternion::from_rotation_matrix(&(noise * room * body));
+    // One sign of the double cover: w >= 0.
+    let sign = if q.w < 0.0 { -1.0 } else { 1.0 };
+    [q.w, q.i, q.j, q.k].map(|v| round_to(sign * v, 1e6))
+}
+
 /// Rotation matrix of a rotation vector.
 fn rotation(omega: &Vec3<f64>) -> [[f64; 3]; 3] {
     let angle = norm(omega);
@@ -193,6 +212,9 @@ pub struct PhysicsRow {
     pub t_s: f64,
     pub counts: Vec<i32>,
     pub tracker: Option<Vec3<f64>>,
+    /// The tracked body's orientation (`[w, x, y, z]`, body to room), when
+    /// the tracker gives one and sees the body.
+    pub orientation: Option<[f64; 4]>,
     pub tension_n: Vec<f64>,
 }
 
@@ -220,6 +242,7 @@ pub fn rows_to_session(rows: Vec<PhysicsRow>) -> Result<Session, SimError> {
                 t_s: r.t_s,
                 counts,
                 tracker: r.tracker,
+                orientation: r.orientation,
                 legacy: None,
                 tension_n: Some(tension),
             })
@@ -683,6 +706,11 @@ pub fn simulate_rows(
     let mut abnormal_rng = stream(seed, 114);
     let mut posture_rng = stream(seed, 115);
     let mut slip_rng = stream(seed, 116);
+    let mut orientation_rng = stream(seed, 117);
+    let orientation_noise = normal(
+        "orientation.sigma_deg",
+        cfg.orientation.sigma_deg.to_radians(),
+    )?;
     let noise = normal("tracker.noise_sigma_mm", cfg.tracker.noise_sigma_mm)?;
     let jitter = normal("as_built.posture_jitter_deg", device.posture.jitter_rad)?;
     let slips = slip_events(&device.effects, n, duration_s, &mut slip_rng);
@@ -821,10 +849,18 @@ pub fn simulate_rows(
         let measured: Vec3<f64> = core::array::from_fn(|k| {
             round_to(marker_room[k] + noise.sample(&mut noise_rng), 1000.0)
         });
+        // The body turns with the hand (`omega`, device frame); the tracker
+        // reads its orientation in the room, with its own noise.
+        let orientation = (cfg.orientation.enabled && !occluded).then(|| {
+            let err: [f64; 3] =
+                core::array::from_fn(|_| orientation_noise.sample(&mut orientation_rng));
+            body_to_room_quaternion(&device.room_rotation, &omega, &err)
+        });
         rows.push(PhysicsRow {
             t_s,
             counts,
             tracker: (!occluded).then_some(measured),
+            orientation,
             tension_n,
         });
         truths.push(truth);
