@@ -126,14 +126,16 @@ fn clean_only(seeds: u64) {
     let is_table = |name: &String| name.starts_with("layers") || name.starts_with("spool rates");
     // The independent clean device's strings stretch (EA 10-30 kN, from a
     // home captured at 1.1 N), weigh 0.3-1 g/m and pull on a frame that
-    // gives 0.005-0.02 mm/N: a shared stretch, sag or frame flex names
-    // physics it has; any other family (an offset, a drift, a slip, ...)
-    // does not.
+    // gives 0.005-0.02 mm/N, and its tracker sees a body whose origin is
+    // 8-15 mm from the strings' meeting point: a shared stretch, sag or
+    // frame flex, or a marker offset, names physics it has; any other
+    // family (an offset, a drift, a slip, ...) does not.
     let names_its_physics = |name: &String| {
         [
             "elasticity (every string)",
             "sag (every string)",
             "frame flex (every string)",
+            "marker offset",
         ]
         .iter()
         .any(|p| name.starts_with(p))
@@ -176,7 +178,7 @@ fn clean_only(seeds: u64) {
     }
     println!(
         "\nclean sessions, {seeds} seeds: effect families added {} (model simulator), {} \
-         (independent: {physics_named} a shared stretch, sag or frame flex, physics that device \
+         (independent: {physics_named} a shared stretch, sag, frame flex or marker offset, physics that device \
          has; {} of other families, stand-ins for physics no family has); layer tables or spool rates added {} and {} \
          times",
         totals[0],

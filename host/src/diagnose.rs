@@ -15,9 +15,10 @@ use crate::identify::{
     IdentifyError, Start, Structure,
 };
 use crate::layers::{self, StringLayers};
-use crate::observe::Observation;
+use crate::observe::{at_meeting_points, Observation};
 use crate::predict::{paired_with_tracker, predict};
 use crate::stats::{position_errors, ErrorStats};
+use std::borrow::Cow;
 
 /// Effect families (the JSON report's `family`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
@@ -39,6 +40,9 @@ pub enum Family {
     /// smooth winding law, per string.
     Layers,
     Geometry,
+    /// The tracked body's origin off the strings' meeting point, seen
+    /// through the tracker's orientation ([`Change::MarkerOffset`]).
+    Marker,
     Unexplained,
 }
 
@@ -55,6 +59,8 @@ pub enum Variable {
     Speed,
     Time,
     Order,
+    /// The tracked body's orientation.
+    Orientation,
 }
 
 /// A structural change to the model that a finding proposes.
@@ -66,6 +72,10 @@ pub enum Change {
     RoomScale,
     /// Release an anchor from its design tolerance (it was built elsewhere).
     ReleaseAnchor(u8),
+    /// Read the tracker at the strings' meeting point, the tracked body's
+    /// origin being this far from it (body frame, mm;
+    /// [`Structure::marker_body_mm`]).
+    MarkerOffset([f64; 3]),
 }
 
 /// One thing diagnosis found in the residual.
@@ -428,6 +438,10 @@ struct Row {
     speed: f64,
     /// Device-frame position from the tracker, mm.
     position: [f64; 3],
+    /// How the string's length reads a move of the tracked body's origin
+    /// from the meeting point (body frame, per mm of each axis), when the
+    /// tracker gives the body's orientation: a marker offset's columns.
+    marker_column: Option<[f64; 3]>,
     /// `d residual / d room_scale` (frame-wide geometry regressor).
     scale_gradient: f64,
 }
@@ -506,6 +520,9 @@ impl Evidence {
                     length,
                     speed,
                     position: p,
+                    marker_column: o
+                        .tracker_rotation
+                        .map(|body| marker_column(&id.frame, &body, &up)),
                     scale_gradient: -(up[0] * p[0] + up[1] * p[1] + up[2] * p[2])
                         / id.frame.room_scale,
                 });
@@ -572,6 +589,23 @@ impl Evidence {
         (explained.is_finite() && explained >= 0.0)
             .then(|| (beta.iter().copied().collect(), explained))
     }
+}
+
+/// `d length / d marker` of a string whose unit direction (anchor to
+/// end-effector) is `up`, when the tracked body (rotation `body` into the
+/// room) holds its origin `d` from the meeting point: the meeting point is
+/// `device_from_room(p - R_body d)`, so the string shortens by
+/// `up . R^T R_body d / s` (`R`, `s`: the room transform; a planar device's
+/// meeting point stays in its plane).
+fn marker_column(frame: &Frame<f64>, body: &[[f64; 3]; 3], up: &[f64; 3]) -> [f64; 3] {
+    let r = &frame.room_rotation;
+    core::array::from_fn(|j| {
+        (0..3)
+            .filter(|&k| !(frame.layout.planar && k == 2))
+            .map(|k| up[k] * (0..3).map(|m| r[m][k] * body[m][j]).sum::<f64>())
+            .sum::<f64>()
+            / frame.room_scale
+    })
 }
 
 /// Turns fitted coefficients into the model change a candidate proposes.
@@ -896,6 +930,29 @@ fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) 
             }),
             describe: "every string sags under its own weight, by cos^2(inclination) (l / 1 m)^3 \
                        / (T / 1 N)^2 less its sag at the home capture (heavy strings of one kind)"
+                .into(),
+        });
+    }
+    // The tracked body's origin off the strings' meeting point, seen through
+    // the body's orientation (a tracker of rigid bodies gives it): the
+    // meeting point is `p - R_body d`. Tried when every tracked row has an
+    // orientation; a found offset is refined by the next diagnosis.
+    if rows.iter().all(|r| r.marker_column.is_some()) {
+        let before = structure.marker_body_mm.unwrap_or([0.0; 3]);
+        out.push(Candidate {
+            family: Family::Marker,
+            strings: Vec::new(),
+            variable: Variable::Orientation,
+            columns: (0..3)
+                .map(|j| shared_column(rows, strings, |r| r.marker_column.map_or(0.0, |c| c[j])))
+                .collect(),
+            search_penalty: 0.0,
+            rival: Vec::new(),
+            build: Box::new(move |b| {
+                Change::MarkerOffset(core::array::from_fn(|j| before[j] + b[j]))
+            }),
+            describe: "the tracked body's origin is off the strings' meeting point: it turns \
+                       with the body (the tracker's orientation)"
                 .into(),
         });
     }
@@ -1294,6 +1351,7 @@ pub fn variable_name(v: Variable) -> &'static str {
         Variable::Speed => "speed",
         Variable::Time => "time",
         Variable::Order => "order",
+        Variable::Orientation => "orientation",
     }
 }
 
@@ -1312,6 +1370,7 @@ pub fn family_name(f: Family) -> &'static str {
         Family::FrameFlex => "frame flex",
         Family::Layers => "layers",
         Family::Geometry => "geometry",
+        Family::Marker => "marker offset",
         Family::Unexplained => "unexplained",
     }
 }
@@ -1320,6 +1379,7 @@ fn stage_name(f: &Finding) -> String {
     match (f.family, f.strings.as_slice()) {
         (Family::Geometry, []) => "geometry (tracker scale)".into(),
         (Family::Geometry, [s]) => format!("geometry anchor {s}"),
+        (Family::Marker, _) => "marker offset (tracked body)".into(),
         (family, []) => format!("{} (every string)", family_name(family)),
         (family, [s]) => format!("{} string {s}", family_name(family)),
         (family, s) => format!("{} strings {s:?}", family_name(family)),
@@ -1338,6 +1398,7 @@ impl Structure {
                     *sd = Some(RELEASED_ANCHOR_SD_MM);
                 }
             }
+            Change::MarkerOffset(d) => s.marker_body_mm = Some(d),
         }
         s
     }
@@ -1919,6 +1980,16 @@ pub fn judge(
     }
 }
 
+/// A found marker offset in the report's words.
+fn marker_in_physical_terms(d: &[f64; 3]) -> String {
+    let norm = d.iter().map(|v| v * v).sum::<f64>().sqrt();
+    format!(
+        " (the body's origin {norm:.1} mm from the meeting point: [{:.1}, {:.1}, {:.1}] mm in \
+         the body's frame; the tracker is read at the meeting point from here on)",
+        d[0], d[1], d[2]
+    )
+}
+
 /// Runs the loop: identify, diagnose, add the strongest significant effect,
 /// refit, repeat until nothing significant that helps on held-out data
 /// remains; then report the structure no family explains. "Helps" is
@@ -1959,7 +2030,9 @@ pub fn close_loop(
     // what the tables gain until it is in).
     // Each try: `None` when no string wanted a table, else whether they
     // were added; the strings' choices.
-    let try_layers = |id: &mut Identification,
+    let try_layers = |train: &[Observation],
+                      test: Option<&[Observation]>,
+                      id: &mut Identification,
                       structure: &Structure,
                       validation: &mut Validation,
                       stages: &mut Vec<LoopStage>,
@@ -1999,6 +2072,8 @@ pub fn close_loop(
     let mut layers_refused = false;
     if config.layer_tables {
         let (added, choice) = try_layers(
+            train,
+            test,
             &mut id,
             &structure,
             &mut validation,
@@ -2010,13 +2085,20 @@ pub fn close_loop(
     }
     let effects_before = stages.len();
     let same = |a: &Finding, b: &Finding| a.family == b.family && a.strings == b.strings;
+    // The sessions as the model reads them: at the strings' meeting point
+    // once a marker offset is found (the tracker sees the body's origin).
+    let mut seen_train = Cow::Borrowed(train);
+    let mut seen_test = test.map(Cow::Borrowed);
     'outer: while stages.len() < config.max_effects {
-        let proposals = diagnose(&id, train, nominal, &structure, config);
+        let proposals = diagnose(&id, &seen_train, nominal, &structure, config);
         for mut finding in proposals.into_iter().take(3) {
             let Some(change) = finding.change else {
                 continue;
             };
             let candidate = structure.with(change);
+            let moved = (candidate.marker_body_mm != structure.marker_body_mm)
+                .then(|| at_meeting_points(train, candidate.marker_body_mm).into_owned());
+            let train: &[Observation] = moved.as_deref().unwrap_or(&seen_train);
             let (after, fits) = validate_fits(train, nominal, &id, &candidate)?;
             let check = match judgeable_folds(change, train) {
                 None => judge(
@@ -2038,17 +2120,31 @@ pub fn close_loop(
             findings.retain(|f| !same(f, &finding));
             if accepted {
                 let refit = identify(train, nominal, &Start::from_identification(&id), &candidate)?;
-                if let Some(fitted) = refit
-                    .effects
-                    .last()
-                    .and_then(|t| in_physical_terms(&t.effect))
-                {
+                let fitted = match change {
+                    Change::Effect(_) => refit
+                        .effects
+                        .last()
+                        .and_then(|t| in_physical_terms(&t.effect)),
+                    Change::MarkerOffset(d) => Some(marker_in_physical_terms(&d)),
+                    _ => None,
+                };
+                if let Some(fitted) = fitted {
                     finding.description += &fitted;
                 }
                 finding.added = true;
                 findings.push(finding.clone());
+                if let Some(moved) = moved {
+                    seen_train = Cow::Owned(moved);
+                    seen_test = test.map(|t| at_meeting_points(t, candidate.marker_body_mm));
+                }
                 let name = stage_name(&finding);
-                stages.push(LoopStage::of(name, &finding, &refit, train, test));
+                stages.push(LoopStage::of(
+                    name,
+                    &finding,
+                    &refit,
+                    &seen_train,
+                    seen_test.as_deref(),
+                ));
                 validation = after;
                 structure = candidate;
                 id = refit;
@@ -2060,6 +2156,8 @@ pub fn close_loop(
     }
     if layers_refused && stages.len() > effects_before {
         let (added, choice) = try_layers(
+            &seen_train,
+            seen_test.as_deref(),
             &mut id,
             &structure,
             &mut validation,
@@ -2070,7 +2168,7 @@ pub fn close_loop(
             layers = choice;
         }
     }
-    findings.extend(unexplained(&id, train, nominal, &structure, config));
+    findings.extend(unexplained(&id, &seen_train, nominal, &structure, config));
     Ok(LoopResult {
         layers,
         base,

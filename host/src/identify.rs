@@ -162,6 +162,14 @@ pub struct Structure {
     /// seconds a string's `theta^2` would stand in for a step or a drift).
     #[serde(default = "hold_by_default")]
     pub hold_kappa_each: bool,
+    /// Where the tracked body's origin sits from the strings' meeting point,
+    /// in the body's frame (mm), when the diagnosis loop found it from the
+    /// tracker's orientation: the tracker's positions are then read at the
+    /// meeting point, `p - R_body d`
+    /// ([`crate::observe::at_meeting_points`]). Not part of what the device
+    /// evaluates: it says how to read the tracker.
+    #[serde(default)]
+    pub marker_body_mm: Option<[f64; 3]>,
 }
 
 impl Default for Structure {
@@ -172,6 +180,7 @@ impl Default for Structure {
             fit_room_scale: false,
             effects: Vec::new(),
             hold_kappa_each: true,
+            marker_body_mm: None,
         }
     }
 }

@@ -66,6 +66,38 @@ pub fn observations(samples: &[Sample]) -> Vec<Observation> {
         .collect()
 }
 
+impl Observation {
+    /// This observation with its tracker position moved from the tracked
+    /// body's origin to the strings' meeting point, which is
+    /// `marker_body_mm` (body frame) from it: `p - R_body d`. Unchanged
+    /// without a position or without an orientation.
+    pub fn at_meeting_point(&self, marker_body_mm: &[f64; 3]) -> Observation {
+        let mut o = self.clone();
+        if let (Some(p), Some(r)) = (self.tracker, self.tracker_rotation) {
+            o.tracker = Some(core::array::from_fn(|k| {
+                p[k] - (0..3).map(|j| r[k][j] * marker_body_mm[j]).sum::<f64>()
+            }));
+        }
+        o
+    }
+}
+
+/// `observations` read at the strings' meeting point
+/// ([`Observation::at_meeting_point`]) when a marker offset is known; as
+/// they are otherwise.
+pub fn at_meeting_points(
+    observations: &[Observation],
+    marker_body_mm: Option<[f64; 3]>,
+) -> std::borrow::Cow<'_, [Observation]> {
+    match marker_body_mm {
+        Some(d) => observations
+            .iter()
+            .map(|o| o.at_meeting_point(&d))
+            .collect(),
+        None => std::borrow::Cow::Borrowed(observations),
+    }
+}
+
 /// The rotation matrix (row-major) of the quaternion `[w, x, y, z]`,
 /// normalized first (a reader checks it is a unit one to its digits).
 pub fn rotation_of_quaternion(q: [f64; 4]) -> [[f64; 3]; 3] {
@@ -88,4 +120,67 @@ pub fn rotation_of_quaternion(q: [f64; 4]) -> [[f64; 3]; 3] {
             1.0 - 2.0 * (x * x + y * y),
         ],
     ]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The rotation of a quaternion is nalgebra's, for any scaling of it.
+    #[test]
+    fn a_quaternion_s_rotation_is_the_one_nalgebra_gives() {
+        use nalgebra::{UnitQuaternion, Vector3};
+        for (axis, angle) in [
+            ([0.0, 0.0, 1.0], 0.3),
+            ([1.0, -2.0, 0.5], 2.5),
+            ([0.2, 0.1, -1.0], -1.2),
+        ] {
+            let q = UnitQuaternion::from_axis_angle(
+                &nalgebra::Unit::new_normalize(Vector3::from(axis)),
+                angle,
+            );
+            let r = q.to_rotation_matrix();
+            let ours = rotation_of_quaternion([2.0 * q.w, 2.0 * q.i, 2.0 * q.j, 2.0 * q.k]);
+            for (row, expected_row) in ours.iter().zip(r.matrix().row_iter()) {
+                for (a, b) in row.iter().zip(expected_row.iter()) {
+                    assert!((a - b).abs() < 1e-12, "{ours:?} vs {r}");
+                }
+            }
+        }
+    }
+
+    /// The meeting point is the tracked origin less the body's offset turned
+    /// into the room; a row without a position or an orientation stays.
+    #[test]
+    fn the_meeting_point_is_the_tracked_origin_less_the_turned_offset() {
+        let quarter_turn_about_z = [
+            core::f64::consts::FRAC_1_SQRT_2,
+            0.0,
+            0.0,
+            core::f64::consts::FRAC_1_SQRT_2,
+        ];
+        let o = Observation {
+            row: 0,
+            t_s: 0.0,
+            inputs: StringInputs::default(),
+            tension_n: [0.0; STRINGS],
+            tracker: Some([100.0, 200.0, 300.0]),
+            tracker_rotation: Some(rotation_of_quaternion(quarter_turn_about_z)),
+            legacy: None,
+        };
+        // The body's x axis points along the room's y.
+        let p = o.at_meeting_point(&[10.0, 0.0, 5.0]).tracker.unwrap();
+        for (a, b) in p.iter().zip([100.0, 190.0, 295.0]) {
+            assert!((a - b).abs() < 1e-9, "{p:?}");
+        }
+        let blind = Observation {
+            tracker_rotation: None,
+            ..o.clone()
+        };
+        assert_eq!(blind.at_meeting_point(&[10.0, 0.0, 5.0]), blind);
+        assert!(matches!(
+            at_meeting_points(std::slice::from_ref(&o), None),
+            std::borrow::Cow::Borrowed(_)
+        ));
+    }
 }

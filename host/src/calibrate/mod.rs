@@ -637,6 +637,13 @@ pub fn calibrate(
         id_te_s,
     ));
 
+    // From here on the sessions are read at the strings' meeting point when
+    // the loop found the tracked body's origin off it (the errors are then
+    // those of the tracker's position predicted with its orientation).
+    let marker = loop_result.structure.marker_body_mm;
+    let tr = crate::observe::at_meeting_points(&tr, marker).into_owned();
+    let te = crate::observe::at_meeting_points(&te, marker).into_owned();
+
     // The final identified model (the base when no effect was added); on
     // the test session, and in the calibration the device runs from its
     // next home capture, without the training session's slips.
