@@ -18,10 +18,14 @@
 //!   `t_s`, `enc0`..`enc{N-1}` (required, N = 3..8 consecutive from `enc0`;
 //!   [`Session::strings`]); `ots_x`, `ots_y` and `ots_z` (required columns,
 //!   but `ots_z` may be left out for a planar device; all empty while the
-//!   marker is occluded); optional groups `dev_x`, `dev_y`, `dev_z` (legacy
-//!   controller position, device frame) and `tension0`..`tension{N-1}`
-//!   (commanded tensions, N). A session whose number of strings differs from
-//!   its geometry's is refused where the two meet ([`Session::check_strings`]).
+//!   marker is occluded); optional groups `ots_qw`, `ots_qx`, `ots_qy`,
+//!   `ots_qz` (the tracked body's orientation: the unit quaternion
+//!   `[w, x, y, z]` from body to room frame, norm within 1e-3 of 1; empty
+//!   when the tracker gives a position only, and never filled without a
+//!   position), `dev_x`, `dev_y`, `dev_z` (legacy controller position,
+//!   device frame) and `tension0`..`tension{N-1}` (commanded tensions, N). A
+//!   session whose number of strings differs from its geometry's is refused
+//!   where the two meet ([`Session::check_strings`]).
 //!
 //! Decisions (strict where data could be lost or misread):
 //! - A missing required column, a duplicate column, or an optional group with
@@ -29,9 +33,12 @@
 //! - An **unknown column is ignored** and listed in
 //!   [`Session::ignored_columns`], so that tools may add columns of their own;
 //!   a misspelt known column still fails, because its group is then incomplete.
-//! - Within a row, each group (tracker, legacy, tensions) is all filled or all
-//!   empty (`None`); a partially empty group is an error. Time and counts are
-//!   always required.
+//! - Within a row, each group (tracker, orientation, legacy, tensions) is all
+//!   filled or all empty (`None`); a partially empty group is an error. Time
+//!   and counts are always required.
+//! - An orientation is a unit quaternion (a norm off 1 by more than 1e-3 is
+//!   an error, not normalized away) on a row with a position: the body is
+//!   occluded (both empty) or seen (a position, with or without orientation).
 //! - `t_s` must be finite, non-negative and **non-decreasing**: a time going
 //!   backwards is an error (time-dependent effects such as drift and slip are
 //!   fitted against it). Equal consecutive times are allowed.
@@ -67,6 +74,12 @@ pub const ENCODER_COLUMNS: [&str; STRINGS] = [
 ];
 /// Names of the optical-tracker columns (room frame, mm).
 pub const TRACKER_COLUMNS: [&str; 3] = ["ots_x", "ots_y", "ots_z"];
+/// Names of the tracked body's orientation columns: the unit quaternion
+/// `[w, x, y, z]` that turns the body's frame into the room frame.
+pub const ORIENTATION_COLUMNS: [&str; 4] = ["ots_qw", "ots_qx", "ots_qy", "ots_qz"];
+/// How far from 1 the norm of an orientation quaternion may be (its values
+/// are rounded, but a rotation is a unit quaternion).
+const ORIENTATION_NORM_TOLERANCE: f64 = 1e-3;
 /// Names of the legacy-controller columns (device frame, mm).
 pub const LEGACY_COLUMNS: [&str; 3] = ["dev_x", "dev_y", "dev_z"];
 /// Names of the commanded-tension columns (N), index = encoder index.
@@ -97,6 +110,10 @@ pub enum ValueProblem {
     },
     #[error("empty while `{filled}` is filled: the group {group} must be all empty or all filled")]
     PartialGroup { filled: String, group: String },
+    #[error("orientation quaternion has norm {0}; a rotation needs a unit quaternion (norm within 1e-3 of 1)")]
+    NotUnitQuaternion(f64),
+    #[error("an orientation on a row whose position (`ots_x`...) is empty: the body is occluded (position and orientation empty) or seen (a position, with or without an orientation)")]
+    OrientationWithoutPosition,
 }
 
 /// Any failure to read or write a geometry or session file.
@@ -677,6 +694,8 @@ struct Layout {
     counts: Vec<usize>,
     /// `ots_x, ots_y` and, unless the session is planar, `ots_z`.
     tracker: Vec<usize>,
+    /// `ots_qw, ots_qx, ots_qy, ots_qz`.
+    orientation: Option<[usize; 4]>,
     legacy: Option<[usize; 3]>,
     /// `tension0..tension{N-1}`.
     tension: Option<Vec<usize>>,
@@ -779,6 +798,7 @@ impl Layout {
             &TRACKER_COLUMNS[..2]
         };
         let tracker = find_columns(file, &index_of, tracker_names, true)?.unwrap_or_default();
+        let orientation = find_group(file, &index_of, &ORIENTATION_COLUMNS, false)?;
         let legacy = find_group(file, &index_of, &LEGACY_COLUMNS, false)?;
         let tension = find_columns(file, &index_of, &TENSION_COLUMNS[..strings], false)?;
         if let Some(extra) = TENSION_COLUMNS[strings..]
@@ -798,6 +818,7 @@ impl Layout {
             n == TIME_COLUMN
                 || ENCODER_COLUMNS.contains(&n)
                 || TRACKER_COLUMNS.contains(&n)
+                || ORIENTATION_COLUMNS.contains(&n)
                 || LEGACY_COLUMNS.contains(&n)
                 || TENSION_COLUMNS.contains(&n)
         };
@@ -811,6 +832,7 @@ impl Layout {
                 time,
                 counts,
                 tracker,
+                orientation,
                 legacy,
                 tension,
             },
@@ -895,6 +917,17 @@ impl RowReader<'_> {
     }
 }
 
+/// What is wrong with a row's orientation `q` (finite values), given
+/// whether the row has a position.
+fn orientation_problem(q: &[f64; 4], has_position: bool) -> Option<ValueProblem> {
+    if !has_position {
+        return Some(ValueProblem::OrientationWithoutPosition);
+    }
+    let norm = q.iter().map(|v| v * v).sum::<f64>().sqrt();
+    ((norm - 1.0).abs() > ORIENTATION_NORM_TOLERANCE)
+        .then_some(ValueProblem::NotUnitQuaternion(norm))
+}
+
 fn parse_float(text: &str) -> Result<f64, ValueProblem> {
     if text.is_empty() {
         return Err(ValueProblem::Empty);
@@ -954,6 +987,7 @@ impl Session {
             "ots_x, ots_y"
         };
         let tension_group = format!("tension0..tension{}", strings - 1);
+        let orientation_group = ORIENTATION_COLUMNS.join(", ");
         let mut samples = Vec::new();
         let mut record = csv::StringRecord::new();
         let mut previous: Option<(f64, u64)> = None;
@@ -992,6 +1026,16 @@ impl Session {
                 *c = row.count(k)?;
             }
             let tracker = row.group(&layout.tracker, tracker_group)?;
+            let orientation = match &layout.orientation {
+                Some(ix) => {
+                    let q = row.group(ix, &orientation_group)?;
+                    if let Some(p) = q.and_then(|q| orientation_problem(&q, tracker.is_some())) {
+                        return Err(row.error(ix[0], p));
+                    }
+                    q
+                }
+                None => None,
+            };
             let legacy = match &layout.legacy {
                 Some(ix) => row.group(ix, "dev_x, dev_y, dev_z")?,
                 None => None,
@@ -1004,7 +1048,7 @@ impl Session {
                 t_s,
                 counts,
                 tracker,
-                orientation: None,
+                orientation,
                 legacy,
                 tension_n,
             });

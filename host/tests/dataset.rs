@@ -558,3 +558,117 @@ fn degenerate_anchors_are_an_error_that_says_so() {
     let e = geometry(&line).unwrap_err().to_string();
     assert!(e.contains("one line"), "{e}");
 }
+
+// ---------------------------------------------------------------------------
+// The tracked body's orientation (ots_qw, ots_qx, ots_qy, ots_qz)
+// ---------------------------------------------------------------------------
+
+const ORIENTED: &str = "t_s,enc0,enc1,enc2,ots_x,ots_y,ots_z,ots_qw,ots_qx,ots_qy,ots_qz";
+
+#[test]
+fn orientation_columns_in_any_order_and_a_planar_session() {
+    let text = "ots_qz,t_s,ots_qy,enc0,enc1,ots_qx,enc2,ots_x,ots_qw,ots_y\n\
+                0.8,0.5,0,1,2,0,3,10,0.6,20\n";
+    let s = read(text).unwrap();
+    assert!(!s.tracker_z);
+    assert_eq!(s.samples[0].tracker, Some([10.0, 20.0, 0.0]));
+    assert_eq!(s.samples[0].orientation, Some([0.6, 0.0, 0.0, 0.8]));
+}
+
+#[test]
+fn error_incomplete_orientation_header() {
+    let text = format!("{HEADER},ots_qw,ots_qx,ots_qy\n");
+    let err = read(&text).unwrap_err();
+    let msg = err.to_string();
+    assert!(
+        matches!(err, DatasetError::IncompleteGroup { ref present, ref missing, .. }
+            if present == "ots_qw" && missing == "ots_qz"),
+        "{msg}"
+    );
+    assert!(
+        msg.contains("mem/session.csv") && msg.contains("line 1") && msg.contains("`ots_qz`"),
+        "{msg}"
+    );
+    // A misspelt column is ignored, and its group is then incomplete.
+    let text = format!("{HEADER},ots_qw,ots_qx,ots_qy,ots_gz\n");
+    let err = read(&text).unwrap_err();
+    assert!(
+        matches!(err, DatasetError::IncompleteGroup { ref missing, .. } if missing == "ots_qz"),
+        "{err}"
+    );
+}
+
+#[test]
+fn error_partially_empty_orientation() {
+    let text = format!("{ORIENTED}\n0,1,2,3,1,2,3,1,0,0,0\n1,1,2,3,1,2,3,1,0,,0\n");
+    let p = value_error(&text, 3, "ots_qy");
+    assert_eq!(
+        p,
+        ValueProblem::PartialGroup {
+            filled: "ots_qw".into(),
+            group: "ots_qw, ots_qx, ots_qy, ots_qz".into()
+        }
+    );
+}
+
+#[test]
+fn error_orientation_not_a_unit_quaternion() {
+    let text = format!("{ORIENTED}\n0,1,2,3,1,2,3,1,0,0,0\n1,1,2,3,1,2,3,0.8,0,0,0\n");
+    let p = value_error(&text, 3, "ots_qw");
+    assert_eq!(p, ValueProblem::NotUnitQuaternion(0.8));
+    let msg = read(&text).unwrap_err().to_string();
+    assert!(
+        msg.contains("norm 0.8") && msg.contains("unit quaternion"),
+        "{msg}"
+    );
+    // Zero, and just outside the tolerance; just inside it is read as given.
+    let text = format!("{ORIENTED}\n0,1,2,3,1,2,3,0,0,0,0\n");
+    assert_eq!(
+        value_error(&text, 2, "ots_qw"),
+        ValueProblem::NotUnitQuaternion(0.0)
+    );
+    let text = format!("{ORIENTED}\n0,1,2,3,1,2,3,0,0,-1.0011,0\n");
+    assert_eq!(
+        value_error(&text, 2, "ots_qw"),
+        ValueProblem::NotUnitQuaternion(1.0011)
+    );
+    let text = format!("{ORIENTED}\n0,1,2,3,1,2,3,0,0,-0.9991,0\n");
+    assert_eq!(
+        read(&text).unwrap().samples[0].orientation,
+        Some([0.0, 0.0, -0.9991, 0.0])
+    );
+}
+
+#[test]
+fn error_orientation_not_finite_or_not_a_number() {
+    let text = format!("{ORIENTED}\n0,1,2,3,1,2,3,1,NaN,0,0\n");
+    assert_eq!(
+        value_error(&text, 2, "ots_qx"),
+        ValueProblem::NotFinite("NaN".into())
+    );
+    let text = format!("{ORIENTED}\n0,1,2,3,1,2,3,1,0,0,-inf\n");
+    assert_eq!(
+        value_error(&text, 2, "ots_qz"),
+        ValueProblem::NotFinite("-inf".into())
+    );
+    let text = format!("{ORIENTED}\n0,1,2,3,1,2,3,1,0,one,0\n");
+    assert_eq!(
+        value_error(&text, 2, "ots_qy"),
+        ValueProblem::NotANumber("one".into())
+    );
+}
+
+#[test]
+fn error_orientation_without_position() {
+    let text = format!("{ORIENTED}\n0,1,2,3,1,2,3,1,0,0,0\n1,1,2,3,,,,1,0,0,0\n");
+    let p = value_error(&text, 3, "ots_qw");
+    assert_eq!(p, ValueProblem::OrientationWithoutPosition);
+    let msg = read(&text).unwrap_err().to_string();
+    assert!(msg.contains("occluded") && msg.contains("`ots_x`"), "{msg}");
+    // A position without orientation is a marker seen, its body's
+    // orientation lost: allowed.
+    let text = format!("{ORIENTED}\n0,1,2,3,1,2,3,,,,\n");
+    let s = read(&text).unwrap();
+    assert_eq!(s.samples[0].tracker, Some([1.0, 2.0, 3.0]));
+    assert_eq!(s.samples[0].orientation, None);
+}
