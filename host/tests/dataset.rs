@@ -565,6 +565,88 @@ fn degenerate_anchors_are_an_error_that_says_so() {
 
 const ORIENTED: &str = "t_s,enc0,enc1,enc2,ots_x,ots_y,ots_z,ots_qw,ots_qx,ots_qy,ots_qz";
 
+fn oriented(t_s: f64, tracker: Option<[f64; 3]>, orientation: Option<[f64; 4]>) -> Sample {
+    Sample {
+        t_s,
+        counts: [1, -2, 3, 0, 0, 0, 0, 0],
+        tracker,
+        orientation,
+        legacy: None,
+        tension_n: Some([1.5, 2.0, 2.5, 0.0, 0.0, 0.0, 0.0, 0.0]),
+    }
+}
+
+#[test]
+fn orientation_round_trip_is_lossless_with_rows_without_one() {
+    // A sixth of a turn about z rounded to 1e-6 as the simulator writes it, an
+    // awkward exact unit quaternion, a position without orientation (the
+    // rigid body lost, a marker kept), an occluded row.
+    let s = Session {
+        strings: 3,
+        samples: vec![
+            oriented(0.0, Some([1.0, 2.0, 3.0]), Some([0.866025, 0.0, 0.0, 0.5])),
+            oriented(0.5, Some([1.5, -2.0, 1.0 / 3.0]), None),
+            oriented(1.0, None, None),
+            oriented(
+                1.5,
+                Some([0.0, 0.0, 0.0]),
+                Some([0.1 + 0.2, -0.5, 0.5, (1.0f64 - 0.09 - 0.5).sqrt()]),
+            ),
+            oriented(2.0, Some([4.0, 5.0, 6.0]), Some([-1.0, 0.0, -0.0, 0.0])),
+        ],
+        ignored_columns: vec![],
+        tracker_z: true,
+    };
+    assert!(s.has_orientation());
+    let path = tmp("oriented.csv");
+    s.write(&path).unwrap();
+    let text = std::fs::read_to_string(&path).unwrap();
+    let mut lines = text.lines();
+    assert_eq!(
+        lines.next(),
+        Some(format!("{ORIENTED},tension0,tension1,tension2").as_str())
+    );
+    assert_eq!(
+        lines.next(),
+        Some("0,1,-2,3,1,2,3,0.866025,0,0,0.5,1.5,2,2.5")
+    );
+    assert_eq!(
+        lines.next(),
+        Some("0.5,1,-2,3,1.5,-2,0.3333333333333333,,,,,1.5,2,2.5")
+    );
+    assert_eq!(lines.next(), Some("1,1,-2,3,,,,,,,,1.5,2,2.5"));
+    assert_eq!(Session::load(&path).unwrap(), s);
+}
+
+#[test]
+fn a_session_without_orientation_reads_none_and_is_written_as_before() {
+    let s = Session::load(shared("session-head.csv")).unwrap();
+    assert!(s.samples.iter().all(|x| x.orientation.is_none()));
+    assert!(!s.has_orientation());
+    // Written byte for byte as before the orientation existed.
+    let text = format!(
+        "{HEADER},dev_x,dev_y,dev_z\n\
+         0.25,1,2,3,4,5,6,7,8,1.5,-2.5,1000.125,0.1,0.2,0.3\n\
+         0.5,1,2,3,4,5,6,7,8,,,,0.1,0.2,0.3\n"
+    );
+    let s = read(&text).unwrap();
+    assert!(s.samples.iter().all(|x| x.orientation.is_none()));
+    let mut out = Vec::new();
+    s.write_to(&mut out, Path::new("mem/out.csv")).unwrap();
+    assert_eq!(String::from_utf8(out).unwrap(), text);
+    // Orientation columns left empty on every row: nothing to write back.
+    let text = format!("{ORIENTED}\n0,1,2,3,1,2,3,,,,\n1,1,2,3,,,,,,,\n");
+    let s = read(&text).unwrap();
+    assert!(s.samples.iter().all(|x| x.orientation.is_none()));
+    assert!(s.ignored_columns.is_empty());
+    let mut out = Vec::new();
+    s.write_to(&mut out, Path::new("mem/out.csv")).unwrap();
+    assert_eq!(
+        String::from_utf8(out).unwrap(),
+        "t_s,enc0,enc1,enc2,ots_x,ots_y,ots_z\n0,1,2,3,1,2,3\n1,1,2,3,,,\n"
+    );
+}
+
 #[test]
 fn orientation_columns_in_any_order_and_a_planar_session() {
     let text = "ots_qz,t_s,ots_qy,enc0,enc1,ots_qx,enc2,ots_x,ots_qw,ots_y\n\
@@ -671,4 +753,51 @@ fn error_orientation_without_position() {
     let s = read(&text).unwrap();
     assert_eq!(s.samples[0].tracker, Some([1.0, 2.0, 3.0]));
     assert_eq!(s.samples[0].orientation, None);
+}
+
+#[test]
+fn writing_rejects_an_orientation_reading_would_reject() {
+    for (tracker, orientation, column, problem) in [
+        (
+            Some([1.0, 2.0, 3.0]),
+            [0.5, 0.0, 0.0, 0.0],
+            "ots_qw",
+            ValueProblem::NotUnitQuaternion(0.5),
+        ),
+        (
+            Some([1.0, 2.0, 3.0]),
+            [1.0, 0.0, f64::NAN, 0.0],
+            "ots_qy",
+            ValueProblem::NotFinite("NaN".into()),
+        ),
+        (
+            None,
+            [1.0, 0.0, 0.0, 0.0],
+            "ots_qw",
+            ValueProblem::OrientationWithoutPosition,
+        ),
+    ] {
+        let s = Session {
+            strings: 3,
+            samples: vec![
+                oriented(0.0, Some([1.0, 2.0, 3.0]), Some([1.0, 0.0, 0.0, 0.0])),
+                oriented(1.0, tracker, Some(orientation)),
+            ],
+            ignored_columns: vec![],
+            tracker_z: true,
+        };
+        let path = tmp("bad-orientation.csv");
+        let err = s.write(&path).unwrap_err();
+        let msg = err.to_string();
+        assert!(msg.contains("bad-orientation.csv"), "{msg}");
+        match err {
+            DatasetError::Value {
+                line,
+                column: c,
+                problem: p,
+                ..
+            } => assert_eq!((line, c.as_str(), p), (3, column, problem), "{msg}"),
+            other => panic!("expected a value error, got {other:?}"),
+        }
+    }
 }
