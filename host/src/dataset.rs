@@ -18,10 +18,14 @@
 //!   `t_s`, `enc0`..`enc{N-1}` (required, N = 3..8 consecutive from `enc0`;
 //!   [`Session::strings`]); `ots_x`, `ots_y` and `ots_z` (required columns,
 //!   but `ots_z` may be left out for a planar device; all empty while the
-//!   marker is occluded); optional groups `dev_x`, `dev_y`, `dev_z` (legacy
-//!   controller position, device frame) and `tension0`..`tension{N-1}`
-//!   (commanded tensions, N). A session whose number of strings differs from
-//!   its geometry's is refused where the two meet ([`Session::check_strings`]).
+//!   marker is occluded); optional groups `ots_qw`, `ots_qx`, `ots_qy`,
+//!   `ots_qz` (the tracked body's orientation: the unit quaternion
+//!   `[w, x, y, z]` from body to room frame, norm within 1e-3 of 1; empty
+//!   when the tracker gives a position only, and never filled without a
+//!   position), `dev_x`, `dev_y`, `dev_z` (legacy controller position,
+//!   device frame) and `tension0`..`tension{N-1}` (commanded tensions, N). A
+//!   session whose number of strings differs from its geometry's is refused
+//!   where the two meet ([`Session::check_strings`]).
 //!
 //! Decisions (strict where data could be lost or misread):
 //! - A missing required column, a duplicate column, or an optional group with
@@ -29,9 +33,12 @@
 //! - An **unknown column is ignored** and listed in
 //!   [`Session::ignored_columns`], so that tools may add columns of their own;
 //!   a misspelt known column still fails, because its group is then incomplete.
-//! - Within a row, each group (tracker, legacy, tensions) is all filled or all
-//!   empty (`None`); a partially empty group is an error. Time and counts are
-//!   always required.
+//! - Within a row, each group (tracker, orientation, legacy, tensions) is all
+//!   filled or all empty (`None`); a partially empty group is an error. Time
+//!   and counts are always required.
+//! - An orientation is a unit quaternion (a norm off 1 by more than 1e-3 is
+//!   an error, not normalized away) on a row with a position: the body is
+//!   occluded (both empty) or seen (a position, with or without orientation).
 //! - `t_s` must be finite, non-negative and **non-decreasing**: a time going
 //!   backwards is an error (time-dependent effects such as drift and slip are
 //!   fitted against it). Equal consecutive times are allowed.
@@ -67,6 +74,12 @@ pub const ENCODER_COLUMNS: [&str; STRINGS] = [
 ];
 /// Names of the optical-tracker columns (room frame, mm).
 pub const TRACKER_COLUMNS: [&str; 3] = ["ots_x", "ots_y", "ots_z"];
+/// Names of the tracked body's orientation columns: the unit quaternion
+/// `[w, x, y, z]` that turns the body's frame into the room frame.
+pub const ORIENTATION_COLUMNS: [&str; 4] = ["ots_qw", "ots_qx", "ots_qy", "ots_qz"];
+/// How far from 1 the norm of an orientation quaternion may be (its values
+/// are rounded, but a rotation is a unit quaternion).
+const ORIENTATION_NORM_TOLERANCE: f64 = 1e-3;
 /// Names of the legacy-controller columns (device frame, mm).
 pub const LEGACY_COLUMNS: [&str; 3] = ["dev_x", "dev_y", "dev_z"];
 /// Names of the commanded-tension columns (N), index = encoder index.
@@ -97,6 +110,10 @@ pub enum ValueProblem {
     },
     #[error("empty while `{filled}` is filled: the group {group} must be all empty or all filled")]
     PartialGroup { filled: String, group: String },
+    #[error("orientation quaternion has norm {0}; a rotation needs a unit quaternion (norm within 1e-3 of 1)")]
+    NotUnitQuaternion(f64),
+    #[error("an orientation on a row whose position (`ots_x`...) is empty: the body is occluded (position and orientation empty) or seen (a position, with or without an orientation)")]
+    OrientationWithoutPosition,
 }
 
 /// Any failure to read or write a geometry or session file.
@@ -135,14 +152,18 @@ pub enum DatasetError {
         present: String,
         missing: String,
     },
-    /// A session opened for appending whose header is not the full set of
-    /// columns in the writer's order.
-    #[error("{}: line 1: the header `{found}` is not the full session header `{expected}` that appending requires: a file of another tool or layout; write to a new file", file.display())]
+    /// A session opened for appending whose header is not the appender's
+    /// columns in its order.
+    #[error("{}: line 1: the header `{found}` is not the session header `{expected}` that appending requires: a file of another tool or layout; write to a new file", file.display())]
     HeaderMismatch {
         file: PathBuf,
         found: String,
         expected: String,
     },
+    /// A sample with an orientation given to a [`SessionAppender`], whose
+    /// header has no orientation columns.
+    #[error("{}: line {line}: the row has an orientation, but an appended session has no orientation columns (ots_qw..ots_qz), so it would be lost: write such a session whole (Session::write)", file.display())]
+    OrientationNotAppended { file: PathBuf, line: u64 },
     /// A session without `ots_z` for a 3-D device.
     #[error("{}: line 1: no `ots_z` column (tracker positions in x, y only, as a planar device's), but {} is a 3-D device (no `planar = true`): its tracker positions need ots_z", file.display(), geometry_file.display())]
     NoTrackerZ {
@@ -677,6 +698,8 @@ struct Layout {
     counts: Vec<usize>,
     /// `ots_x, ots_y` and, unless the session is planar, `ots_z`.
     tracker: Vec<usize>,
+    /// `ots_qw, ots_qx, ots_qy, ots_qz`.
+    orientation: Option<[usize; 4]>,
     legacy: Option<[usize; 3]>,
     /// `tension0..tension{N-1}`.
     tension: Option<Vec<usize>>,
@@ -779,6 +802,7 @@ impl Layout {
             &TRACKER_COLUMNS[..2]
         };
         let tracker = find_columns(file, &index_of, tracker_names, true)?.unwrap_or_default();
+        let orientation = find_group(file, &index_of, &ORIENTATION_COLUMNS, false)?;
         let legacy = find_group(file, &index_of, &LEGACY_COLUMNS, false)?;
         let tension = find_columns(file, &index_of, &TENSION_COLUMNS[..strings], false)?;
         if let Some(extra) = TENSION_COLUMNS[strings..]
@@ -798,6 +822,7 @@ impl Layout {
             n == TIME_COLUMN
                 || ENCODER_COLUMNS.contains(&n)
                 || TRACKER_COLUMNS.contains(&n)
+                || ORIENTATION_COLUMNS.contains(&n)
                 || LEGACY_COLUMNS.contains(&n)
                 || TENSION_COLUMNS.contains(&n)
         };
@@ -811,6 +836,7 @@ impl Layout {
                 time,
                 counts,
                 tracker,
+                orientation,
                 legacy,
                 tension,
             },
@@ -895,6 +921,17 @@ impl RowReader<'_> {
     }
 }
 
+/// What is wrong with a row's orientation `q` (finite values), given
+/// whether the row has a position.
+fn orientation_problem(q: &[f64; 4], has_position: bool) -> Option<ValueProblem> {
+    if !has_position {
+        return Some(ValueProblem::OrientationWithoutPosition);
+    }
+    let norm = q.iter().map(|v| v * v).sum::<f64>().sqrt();
+    ((norm - 1.0).abs() > ORIENTATION_NORM_TOLERANCE)
+        .then_some(ValueProblem::NotUnitQuaternion(norm))
+}
+
 fn parse_float(text: &str) -> Result<f64, ValueProblem> {
     if text.is_empty() {
         return Err(ValueProblem::Empty);
@@ -954,6 +991,7 @@ impl Session {
             "ots_x, ots_y"
         };
         let tension_group = format!("tension0..tension{}", strings - 1);
+        let orientation_group = ORIENTATION_COLUMNS.join(", ");
         let mut samples = Vec::new();
         let mut record = csv::StringRecord::new();
         let mut previous: Option<(f64, u64)> = None;
@@ -992,6 +1030,16 @@ impl Session {
                 *c = row.count(k)?;
             }
             let tracker = row.group(&layout.tracker, tracker_group)?;
+            let orientation = match &layout.orientation {
+                Some(ix) => {
+                    let q = row.group(ix, &orientation_group)?;
+                    if let Some(p) = q.and_then(|q| orientation_problem(&q, tracker.is_some())) {
+                        return Err(row.error(ix[0], p));
+                    }
+                    q
+                }
+                None => None,
+            };
             let legacy = match &layout.legacy {
                 Some(ix) => row.group(ix, "dev_x, dev_y, dev_z")?,
                 None => None,
@@ -1004,7 +1052,7 @@ impl Session {
                 t_s,
                 counts,
                 tracker,
-                orientation: None,
+                orientation,
                 legacy,
                 tension_n,
             });
@@ -1043,6 +1091,11 @@ impl Session {
         Ok(())
     }
 
+    /// True if any sample has an orientation (the `ots_q*` columns are written).
+    pub fn has_orientation(&self) -> bool {
+        self.samples.iter().any(|s| s.orientation.is_some())
+    }
+
     /// True if any sample has a legacy position (the `dev_*` columns are written).
     pub fn has_legacy(&self) -> bool {
         self.samples.iter().any(|s| s.legacy.is_some())
@@ -1074,19 +1127,24 @@ impl Session {
     }
 
     /// Write the session as CSV to any writer; `file` names it in errors.
-    /// Columns: `t_s`, `enc0..7`, `ots_*`, then `dev_*` if any sample has a
-    /// legacy position and `tension0..7` if any has tensions.
+    /// Columns: `t_s`, `enc0..7`, `ots_x, ots_y, ots_z`, then
+    /// `ots_qw, ots_qx, ots_qy, ots_qz` if any sample has an orientation,
+    /// `dev_*` if any has a legacy position and `tension0..7` if any has
+    /// tensions.
     pub fn write_to<W: io::Write>(&self, writer: W, file: &Path) -> Result<(), DatasetError> {
         self.validate(file)?;
-        let legacy = self.has_legacy();
-        let tension = self.has_tension();
-        let header = session_header_for(self.strings, legacy, tension);
+        let columns = OptionalColumns {
+            orientation: self.has_orientation(),
+            legacy: self.has_legacy(),
+            tension: self.has_tension(),
+        };
+        let header = session_header_for(self.strings, columns);
         let mut w = csv::WriterBuilder::new().from_writer(writer);
         w.write_record(&header)
             .map_err(|e| csv_write_error(file, e))?;
         let mut fields: Vec<String> = Vec::with_capacity(header.len());
         for s in &self.samples {
-            row_fields(s, self.strings, legacy, tension, &mut fields);
+            row_fields(s, self.strings, columns, &mut fields);
             w.write_record(&fields)
                 .map_err(|e| csv_write_error(file, e))?;
         }
@@ -1094,24 +1152,38 @@ impl Session {
     }
 }
 
+/// Which optional column groups a session file has.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct OptionalColumns {
+    /// `ots_qw, ots_qx, ots_qy, ots_qz`.
+    pub orientation: bool,
+    /// `dev_x, dev_y, dev_z`.
+    pub legacy: bool,
+    /// `tension0..tension{N-1}`.
+    pub tension: bool,
+}
+
 /// The header [`Session::write_to`] writes for an 8-string device: `t_s`,
-/// `enc0..7`, `ots_*`, then `dev_*` with `legacy` and `tension0..7` with
-/// `tension`.
-pub fn session_header(legacy: bool, tension: bool) -> Vec<&'static str> {
-    session_header_for(STRINGS, legacy, tension)
+/// `enc0..7`, `ots_x, ots_y, ots_z`, then the optional groups of `columns`:
+/// `ots_q*`, `dev_*`, `tension0..7`.
+pub fn session_header(columns: OptionalColumns) -> Vec<&'static str> {
+    session_header_for(STRINGS, columns)
 }
 
 /// [`session_header`] for a device with `strings` strings (`enc0..enc{n-1}`,
 /// `tension0..tension{n-1}`).
-pub fn session_header_for(strings: usize, legacy: bool, tension: bool) -> Vec<&'static str> {
+pub fn session_header_for(strings: usize, columns: OptionalColumns) -> Vec<&'static str> {
     let n = strings.min(STRINGS);
     let mut header: Vec<&'static str> = vec![TIME_COLUMN];
     header.extend(&ENCODER_COLUMNS[..n]);
     header.extend(TRACKER_COLUMNS);
-    if legacy {
+    if columns.orientation {
+        header.extend(ORIENTATION_COLUMNS);
+    }
+    if columns.legacy {
         header.extend(LEGACY_COLUMNS);
     }
-    if tension {
+    if columns.tension {
         header.extend(&TENSION_COLUMNS[..n]);
     }
     header
@@ -1119,7 +1191,7 @@ pub fn session_header_for(strings: usize, legacy: bool, tension: bool) -> Vec<&'
 
 /// The fields of one row, in the order of [`session_header`]; floats in
 /// their shortest exact form, an absent group as empty fields.
-fn row_fields(s: &Sample, strings: usize, legacy: bool, tension: bool, fields: &mut Vec<String>) {
+fn row_fields(s: &Sample, strings: usize, columns: OptionalColumns, fields: &mut Vec<String>) {
     let n = strings.min(STRINGS);
     let push_group = |fields: &mut Vec<String>, g: Option<&[f64]>, n: usize| match g {
         Some(v) => fields.extend(v.iter().map(|x| x.to_string())),
@@ -1129,10 +1201,13 @@ fn row_fields(s: &Sample, strings: usize, legacy: bool, tension: bool, fields: &
     fields.push(s.t_s.to_string());
     fields.extend(s.counts[..n].iter().map(|c| c.to_string()));
     push_group(fields, s.tracker.as_ref().map(|v| &v[..]), 3);
-    if legacy {
+    if columns.orientation {
+        push_group(fields, s.orientation.as_ref().map(|v| &v[..]), 4);
+    }
+    if columns.legacy {
         push_group(fields, s.legacy.as_ref().map(|v| &v[..]), 3);
     }
-    if tension {
+    if columns.tension {
         push_group(fields, s.tension_n.as_ref().map(|v| &v[..n]), n);
     }
 }
@@ -1185,11 +1260,22 @@ fn check_sample(
             ));
         }
     }
-    for (group, names) in [(&s.tracker, &TRACKER_COLUMNS), (&s.legacy, &LEGACY_COLUMNS)] {
-        if let Some(v) = group {
-            for (x, name) in v.iter().zip(names) {
-                finite(name, *x)?;
-            }
+    if let Some(v) = &s.tracker {
+        for (x, name) in v.iter().zip(&TRACKER_COLUMNS) {
+            finite(name, *x)?;
+        }
+    }
+    if let Some(q) = &s.orientation {
+        for (x, name) in q.iter().zip(&ORIENTATION_COLUMNS) {
+            finite(name, *x)?;
+        }
+        if let Some(p) = orientation_problem(q, s.tracker.is_some()) {
+            return Err(value_error(ORIENTATION_COLUMNS[0], p));
+        }
+    }
+    if let Some(v) = &s.legacy {
+        for (x, name) in v.iter().zip(&LEGACY_COLUMNS) {
+            finite(name, *x)?;
         }
     }
     if let Some(v) = &s.tension_n {
@@ -1230,14 +1316,16 @@ pub struct OpenedSession {
 /// written whole and ends in a newline, then flushed to the disk
 /// (`sync_data`) before [`SessionAppender::append`] returns, so a crash or a
 /// power loss loses at most the row being written. The columns are always
-/// the full set: [`session_header`]`(true, true)`.
+/// the same: [`session_header`] with `dev_*` and `tension0..` but no
+/// orientation (a sample with one is refused:
+/// [`DatasetError::OrientationNotAppended`]).
 ///
 /// A row is committed once its newline is on the disk: when a file is
 /// opened again, an unterminated last line is a write that was cut short
 /// (even if what is left of it parses: its last number may be cut), so it is
 /// removed and reported ([`OpenedSession::torn`]); complete rows are never
 /// dropped. Anything else the strict reader rejects is an error, and so is
-/// a header other than the full set in its order (a file of another tool:
+/// a header other than its columns in their order (a file of another tool:
 /// this writer does not append to it).
 pub struct SessionAppender {
     file: fs::File,
@@ -1252,6 +1340,16 @@ pub struct SessionAppender {
 }
 
 impl SessionAppender {
+    /// The optional groups of an appended session: legacy positions and
+    /// tensions, no orientation (a `collect` row has none; the header is
+    /// fixed so that a file can be reopened, and a row with an orientation
+    /// is refused rather than written without it).
+    const COLUMNS: OptionalColumns = OptionalColumns {
+        orientation: false,
+        legacy: true,
+        tension: true,
+    };
+
     /// The header line this writer writes for an 8-string device (no newline).
     pub fn header_line() -> String {
         Self::header_line_for(STRINGS)
@@ -1259,7 +1357,7 @@ impl SessionAppender {
 
     /// The header line for a device with `strings` strings (no newline).
     pub fn header_line_for(strings: usize) -> String {
-        session_header_for(strings, true, true).join(",")
+        session_header_for(strings, Self::COLUMNS).join(",")
     }
 
     /// Opens `path` for appending the rows of an 8-string device (see
@@ -1388,8 +1486,14 @@ impl SessionAppender {
             ));
         }
         check_sample(&self.path, line, sample, self.last)?;
+        if sample.orientation.is_some() {
+            return Err(DatasetError::OrientationNotAppended {
+                file: self.path.clone(),
+                line,
+            });
+        }
         let mut fields = Vec::new();
-        row_fields(sample, self.strings, true, true, &mut fields);
+        row_fields(sample, self.strings, Self::COLUMNS, &mut fields);
         let mut w = csv::WriterBuilder::new().from_writer(Vec::new());
         w.write_record(&fields)
             .map_err(|e| csv_write_error(&self.path, e))?;
@@ -1469,6 +1573,30 @@ mod append_tests {
         assert_eq!(again.appender.last_t_s(), Some(1.0));
         assert_eq!(again.appender.append(&sample(2.0, 12.0)).unwrap(), 4);
         assert_eq!(Session::load(&path).unwrap().samples.len(), 3);
+    }
+
+    #[test]
+    fn a_row_with_an_orientation_is_refused_not_written_without_it() {
+        let path = temp("oriented.csv");
+        let mut opened = SessionAppender::open(&path).unwrap();
+        let oriented = Sample {
+            orientation: Some([1.0, 0.0, 0.0, 0.0]),
+            ..sample(1.0, 10.0)
+        };
+        let e = opened.appender.append(&oriented).unwrap_err();
+        assert!(
+            matches!(e, DatasetError::OrientationNotAppended { line: 2, .. }),
+            "{e}"
+        );
+        assert!(e.to_string().contains("oriented.csv: line 2"), "{e}");
+        assert_eq!(opened.appender.append(&sample(1.0, 10.0)).unwrap(), 2);
+        drop(opened);
+        assert_eq!(
+            Session::load(&path).unwrap().samples,
+            vec![sample(1.0, 10.0)]
+        );
+        // The header is the one it always was: no orientation columns.
+        assert!(!SessionAppender::header_line().contains("ots_q"));
     }
 
     #[test]

@@ -558,3 +558,246 @@ fn degenerate_anchors_are_an_error_that_says_so() {
     let e = geometry(&line).unwrap_err().to_string();
     assert!(e.contains("one line"), "{e}");
 }
+
+// ---------------------------------------------------------------------------
+// The tracked body's orientation (ots_qw, ots_qx, ots_qy, ots_qz)
+// ---------------------------------------------------------------------------
+
+const ORIENTED: &str = "t_s,enc0,enc1,enc2,ots_x,ots_y,ots_z,ots_qw,ots_qx,ots_qy,ots_qz";
+
+fn oriented(t_s: f64, tracker: Option<[f64; 3]>, orientation: Option<[f64; 4]>) -> Sample {
+    Sample {
+        t_s,
+        counts: [1, -2, 3, 0, 0, 0, 0, 0],
+        tracker,
+        orientation,
+        legacy: None,
+        tension_n: Some([1.5, 2.0, 2.5, 0.0, 0.0, 0.0, 0.0, 0.0]),
+    }
+}
+
+#[test]
+fn orientation_round_trip_is_lossless_with_rows_without_one() {
+    // A sixth of a turn about z rounded to 1e-6 as the simulator writes it, an
+    // awkward exact unit quaternion, a position without orientation (the
+    // rigid body lost, a marker kept), an occluded row.
+    let s = Session {
+        strings: 3,
+        samples: vec![
+            oriented(0.0, Some([1.0, 2.0, 3.0]), Some([0.866025, 0.0, 0.0, 0.5])),
+            oriented(0.5, Some([1.5, -2.0, 1.0 / 3.0]), None),
+            oriented(1.0, None, None),
+            oriented(
+                1.5,
+                Some([0.0, 0.0, 0.0]),
+                Some([0.1 + 0.2, -0.5, 0.5, (1.0f64 - 0.09 - 0.5).sqrt()]),
+            ),
+            oriented(2.0, Some([4.0, 5.0, 6.0]), Some([-1.0, 0.0, -0.0, 0.0])),
+        ],
+        ignored_columns: vec![],
+        tracker_z: true,
+    };
+    assert!(s.has_orientation());
+    let path = tmp("oriented.csv");
+    s.write(&path).unwrap();
+    let text = std::fs::read_to_string(&path).unwrap();
+    let mut lines = text.lines();
+    assert_eq!(
+        lines.next(),
+        Some(format!("{ORIENTED},tension0,tension1,tension2").as_str())
+    );
+    assert_eq!(
+        lines.next(),
+        Some("0,1,-2,3,1,2,3,0.866025,0,0,0.5,1.5,2,2.5")
+    );
+    assert_eq!(
+        lines.next(),
+        Some("0.5,1,-2,3,1.5,-2,0.3333333333333333,,,,,1.5,2,2.5")
+    );
+    assert_eq!(lines.next(), Some("1,1,-2,3,,,,,,,,1.5,2,2.5"));
+    assert_eq!(Session::load(&path).unwrap(), s);
+}
+
+#[test]
+fn a_session_without_orientation_reads_none_and_is_written_as_before() {
+    let s = Session::load(shared("session-head.csv")).unwrap();
+    assert!(s.samples.iter().all(|x| x.orientation.is_none()));
+    assert!(!s.has_orientation());
+    // Written byte for byte as before the orientation existed.
+    let text = format!(
+        "{HEADER},dev_x,dev_y,dev_z\n\
+         0.25,1,2,3,4,5,6,7,8,1.5,-2.5,1000.125,0.1,0.2,0.3\n\
+         0.5,1,2,3,4,5,6,7,8,,,,0.1,0.2,0.3\n"
+    );
+    let s = read(&text).unwrap();
+    assert!(s.samples.iter().all(|x| x.orientation.is_none()));
+    let mut out = Vec::new();
+    s.write_to(&mut out, Path::new("mem/out.csv")).unwrap();
+    assert_eq!(String::from_utf8(out).unwrap(), text);
+    // Orientation columns left empty on every row: nothing to write back.
+    let text = format!("{ORIENTED}\n0,1,2,3,1,2,3,,,,\n1,1,2,3,,,,,,,\n");
+    let s = read(&text).unwrap();
+    assert!(s.samples.iter().all(|x| x.orientation.is_none()));
+    assert!(s.ignored_columns.is_empty());
+    let mut out = Vec::new();
+    s.write_to(&mut out, Path::new("mem/out.csv")).unwrap();
+    assert_eq!(
+        String::from_utf8(out).unwrap(),
+        "t_s,enc0,enc1,enc2,ots_x,ots_y,ots_z\n0,1,2,3,1,2,3\n1,1,2,3,,,\n"
+    );
+}
+
+#[test]
+fn orientation_columns_in_any_order_and_a_planar_session() {
+    let text = "ots_qz,t_s,ots_qy,enc0,enc1,ots_qx,enc2,ots_x,ots_qw,ots_y\n\
+                0.8,0.5,0,1,2,0,3,10,0.6,20\n";
+    let s = read(text).unwrap();
+    assert!(!s.tracker_z);
+    assert_eq!(s.samples[0].tracker, Some([10.0, 20.0, 0.0]));
+    assert_eq!(s.samples[0].orientation, Some([0.6, 0.0, 0.0, 0.8]));
+}
+
+#[test]
+fn error_incomplete_orientation_header() {
+    let text = format!("{HEADER},ots_qw,ots_qx,ots_qy\n");
+    let err = read(&text).unwrap_err();
+    let msg = err.to_string();
+    assert!(
+        matches!(err, DatasetError::IncompleteGroup { ref present, ref missing, .. }
+            if present == "ots_qw" && missing == "ots_qz"),
+        "{msg}"
+    );
+    assert!(
+        msg.contains("mem/session.csv") && msg.contains("line 1") && msg.contains("`ots_qz`"),
+        "{msg}"
+    );
+    // A misspelt column is ignored, and its group is then incomplete.
+    let text = format!("{HEADER},ots_qw,ots_qx,ots_qy,ots_gz\n");
+    let err = read(&text).unwrap_err();
+    assert!(
+        matches!(err, DatasetError::IncompleteGroup { ref missing, .. } if missing == "ots_qz"),
+        "{err}"
+    );
+}
+
+#[test]
+fn error_partially_empty_orientation() {
+    let text = format!("{ORIENTED}\n0,1,2,3,1,2,3,1,0,0,0\n1,1,2,3,1,2,3,1,0,,0\n");
+    let p = value_error(&text, 3, "ots_qy");
+    assert_eq!(
+        p,
+        ValueProblem::PartialGroup {
+            filled: "ots_qw".into(),
+            group: "ots_qw, ots_qx, ots_qy, ots_qz".into()
+        }
+    );
+}
+
+#[test]
+fn error_orientation_not_a_unit_quaternion() {
+    let text = format!("{ORIENTED}\n0,1,2,3,1,2,3,1,0,0,0\n1,1,2,3,1,2,3,0.8,0,0,0\n");
+    let p = value_error(&text, 3, "ots_qw");
+    assert_eq!(p, ValueProblem::NotUnitQuaternion(0.8));
+    let msg = read(&text).unwrap_err().to_string();
+    assert!(
+        msg.contains("norm 0.8") && msg.contains("unit quaternion"),
+        "{msg}"
+    );
+    // Zero, and just outside the tolerance; just inside it is read as given.
+    let text = format!("{ORIENTED}\n0,1,2,3,1,2,3,0,0,0,0\n");
+    assert_eq!(
+        value_error(&text, 2, "ots_qw"),
+        ValueProblem::NotUnitQuaternion(0.0)
+    );
+    let text = format!("{ORIENTED}\n0,1,2,3,1,2,3,0,0,-1.0011,0\n");
+    assert_eq!(
+        value_error(&text, 2, "ots_qw"),
+        ValueProblem::NotUnitQuaternion(1.0011)
+    );
+    let text = format!("{ORIENTED}\n0,1,2,3,1,2,3,0,0,-0.9991,0\n");
+    assert_eq!(
+        read(&text).unwrap().samples[0].orientation,
+        Some([0.0, 0.0, -0.9991, 0.0])
+    );
+}
+
+#[test]
+fn error_orientation_not_finite_or_not_a_number() {
+    let text = format!("{ORIENTED}\n0,1,2,3,1,2,3,1,NaN,0,0\n");
+    assert_eq!(
+        value_error(&text, 2, "ots_qx"),
+        ValueProblem::NotFinite("NaN".into())
+    );
+    let text = format!("{ORIENTED}\n0,1,2,3,1,2,3,1,0,0,-inf\n");
+    assert_eq!(
+        value_error(&text, 2, "ots_qz"),
+        ValueProblem::NotFinite("-inf".into())
+    );
+    let text = format!("{ORIENTED}\n0,1,2,3,1,2,3,1,0,one,0\n");
+    assert_eq!(
+        value_error(&text, 2, "ots_qy"),
+        ValueProblem::NotANumber("one".into())
+    );
+}
+
+#[test]
+fn error_orientation_without_position() {
+    let text = format!("{ORIENTED}\n0,1,2,3,1,2,3,1,0,0,0\n1,1,2,3,,,,1,0,0,0\n");
+    let p = value_error(&text, 3, "ots_qw");
+    assert_eq!(p, ValueProblem::OrientationWithoutPosition);
+    let msg = read(&text).unwrap_err().to_string();
+    assert!(msg.contains("occluded") && msg.contains("`ots_x`"), "{msg}");
+    // A position without orientation is a marker seen, its body's
+    // orientation lost: allowed.
+    let text = format!("{ORIENTED}\n0,1,2,3,1,2,3,,,,\n");
+    let s = read(&text).unwrap();
+    assert_eq!(s.samples[0].tracker, Some([1.0, 2.0, 3.0]));
+    assert_eq!(s.samples[0].orientation, None);
+}
+
+#[test]
+fn writing_rejects_an_orientation_reading_would_reject() {
+    for (tracker, orientation, column, problem) in [
+        (
+            Some([1.0, 2.0, 3.0]),
+            [0.5, 0.0, 0.0, 0.0],
+            "ots_qw",
+            ValueProblem::NotUnitQuaternion(0.5),
+        ),
+        (
+            Some([1.0, 2.0, 3.0]),
+            [1.0, 0.0, f64::NAN, 0.0],
+            "ots_qy",
+            ValueProblem::NotFinite("NaN".into()),
+        ),
+        (
+            None,
+            [1.0, 0.0, 0.0, 0.0],
+            "ots_qw",
+            ValueProblem::OrientationWithoutPosition,
+        ),
+    ] {
+        let s = Session {
+            strings: 3,
+            samples: vec![
+                oriented(0.0, Some([1.0, 2.0, 3.0]), Some([1.0, 0.0, 0.0, 0.0])),
+                oriented(1.0, tracker, Some(orientation)),
+            ],
+            ignored_columns: vec![],
+            tracker_z: true,
+        };
+        let path = tmp("bad-orientation.csv");
+        let err = s.write(&path).unwrap_err();
+        let msg = err.to_string();
+        assert!(msg.contains("bad-orientation.csv"), "{msg}");
+        match err {
+            DatasetError::Value {
+                line,
+                column: c,
+                problem: p,
+                ..
+            } => assert_eq!((line, c.as_str(), p), (3, column, problem), "{msg}"),
+            other => panic!("expected a value error, got {other:?}"),
+        }
+    }
+}

@@ -6,6 +6,7 @@
 use std::path::{Path, PathBuf};
 
 use spidar::calibrate::{calibrate, CalibrateConfig, NamedSession};
+use spidar::dataset::Session;
 use spidar::sim::physics::{
     rows_to_session, simulate_rows, simulate_session, PhysicsConfig, PhysicsDevice, PhysicsRow,
     EFFECT_NAMES,
@@ -233,6 +234,42 @@ fn rows_are_the_session() {
     let (rows, _) = simulate_rows(&device, kind, 3).unwrap();
     let (session, _) = simulate_session(&device, kind, 3).unwrap();
     assert_eq!(rows_to_session(rows).unwrap(), session);
+}
+
+#[test]
+fn the_simulated_session_file_carries_the_orientation_the_model_simulator_has_none() {
+    let dir = tmp("orientation");
+    let report = run_simulate(&args(dir.clone(), 4, KindArg::Random, "test")).unwrap();
+    let text = std::fs::read_to_string(&report.session).unwrap();
+    let header = text.lines().next().unwrap();
+    assert!(
+        header.contains(",ots_x,ots_y,ots_z,ots_qw,ots_qx,ots_qy,ots_qz,"),
+        "{header}"
+    );
+    let session = Session::load(&report.session).unwrap();
+    assert!(session.samples.iter().any(|s| s.tracker.is_none()));
+    for (row, s) in session.samples.iter().enumerate() {
+        // Seen: a position and an orientation; occluded: neither.
+        assert_eq!(s.orientation.is_some(), s.tracker.is_some(), "row {row}");
+        if let Some(q) = s.orientation {
+            let norm = q.iter().map(|v| v * v).sum::<f64>().sqrt();
+            assert!((norm - 1.0).abs() < 1e-5, "row {row}: {q:?}, norm {norm}");
+        }
+    }
+
+    let model_dir = tmp("orientation-model");
+    let model = SimulateArgs {
+        physics: PhysicsArg::Model,
+        ..args(model_dir.clone(), 4, KindArg::Random, "test")
+    };
+    let report = run_simulate(&model).unwrap();
+    let text = std::fs::read_to_string(&report.session).unwrap();
+    assert!(!text.lines().next().unwrap().contains("ots_q"), "{text}");
+    let session = Session::load(&report.session).unwrap();
+    assert!(session.samples.iter().all(|s| s.orientation.is_none()));
+    for d in [dir, model_dir] {
+        let _ = std::fs::remove_dir_all(d);
+    }
 }
 
 /// Held-out error today's pipeline reaches on the independent simulator

@@ -2,8 +2,9 @@
 //!
 //! Reads through the project's one reader, [`Session::load`]. Row `i` (from
 //! 0, header excluded) becomes frame `i` with `ts_s = t_s`; a row with empty
-//! `ots_*` columns becomes `body: None`. The CSV has no orientation and no
-//! quality: replayed poses carry the identity rotation and quality 1.
+//! `ots_*` columns becomes `body: None`. The CSV has no quality, and its
+//! orientation columns (`ots_q*`, when present) are not replayed: replayed
+//! poses carry the identity rotation and quality 1.
 
 use std::path::Path;
 use std::time::{Duration, Instant};
