@@ -110,7 +110,7 @@ pub enum ValueProblem {
     },
     #[error("empty while `{filled}` is filled: the group {group} must be all empty or all filled")]
     PartialGroup { filled: String, group: String },
-    #[error("orientation quaternion has norm {0}; a rotation needs a unit quaternion (norm within 1e-3 of 1)")]
+    #[error("orientation quaternion has norm {0:.4}; a rotation needs a unit quaternion (norm within 1e-3 of 1)")]
     NotUnitQuaternion(f64),
     #[error("an orientation on a row whose position (`ots_x`...) is empty: the body is occluded (position and orientation empty) or seen (a position, with or without an orientation)")]
     OrientationWithoutPosition,

@@ -137,26 +137,31 @@ pub fn estimate_offset(
 /// tracker stream (as recorded, on its own clock) interpolated at
 /// `t_s + offset_s`; `None` outside the stream or across a gap longer than
 /// `max_gap_s`. Returns the rows and how many lost their position.
+/// The body's orientation, when the tracker gives one, is re-paired with
+/// its position: interpolated (slerp) between the same two recorded rows,
+/// `None` when either has none.
 pub fn repaired(obs: &[Observation], offset_s: f64, max_gap_s: f64) -> (Vec<Observation>, usize) {
-    let stream: Vec<(f64, [f64; 3])> = obs
+    type Rotation = [[f64; 3]; 3];
+    let stream: Vec<(f64, [f64; 3], Option<Rotation>)> = obs
         .iter()
-        .filter_map(|o| o.tracker.map(|p| (o.t_s, p)))
+        .filter_map(|o| o.tracker.map(|p| (o.t_s, p, o.tracker_rotation)))
         .collect();
-    let at = |t: f64| -> Option<[f64; 3]> {
+    let at = |t: f64| -> Option<([f64; 3], Option<Rotation>)> {
         let k = stream.partition_point(|s| s.0 <= t);
         if k == 0 {
             return None;
         }
-        let (ta, a) = stream[k - 1];
+        let (ta, a, ra) = stream[k - 1];
         if ta == t {
-            return Some(a);
+            return Some((a, ra));
         }
-        let (tb, b) = *stream.get(k)?;
+        let (tb, b, rb) = *stream.get(k)?;
         if tb - ta > max_gap_s {
             return None;
         }
         let f = (t - ta) / (tb - ta);
-        Some(core::array::from_fn(|i| a[i] + f * (b[i] - a[i])))
+        let rotation = ra.zip(rb).map(|(ra, rb)| slerp(&ra, &rb, f));
+        Some((core::array::from_fn(|i| a[i] + f * (b[i] - a[i])), rotation))
     };
     let mut lost = 0;
     let out = obs
@@ -164,12 +169,27 @@ pub fn repaired(obs: &[Observation], offset_s: f64, max_gap_s: f64) -> (Vec<Obse
         .map(|o| {
             let mut o = o.clone();
             let had = o.tracker.is_some();
-            o.tracker = at(o.t_s + offset_s);
+            let seen = at(o.t_s + offset_s);
+            o.tracker = seen.map(|s| s.0);
+            o.tracker_rotation = seen.and_then(|s| s.1);
             lost += usize::from(had && o.tracker.is_none());
             o
         })
         .collect();
     (out, lost)
+}
+
+/// The rotation a fraction `f` of the way from `a` to `b` (row-major
+/// matrices), along the shortest arc.
+fn slerp(a: &[[f64; 3]; 3], b: &[[f64; 3]; 3], f: f64) -> [[f64; 3]; 3] {
+    use nalgebra::{Matrix3, Rotation3, UnitQuaternion};
+    let q = |m: &[[f64; 3]; 3]| {
+        UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix(&Matrix3::from_fn(|r, c| {
+            m[r][c]
+        })))
+    };
+    let m = q(a).slerp(&q(b), f).to_rotation_matrix();
+    core::array::from_fn(|r| core::array::from_fn(|c| m[(r, c)]))
 }
 
 /// Aligns `obs` with positions from `model_positions` (room frame, one per
@@ -192,4 +212,53 @@ pub fn align(
         },
         rows,
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::observe::rotation_of_quaternion;
+    use spidar_core::model::StringInputs;
+    use spidar_core::STRINGS;
+
+    fn about_z(deg: f64) -> [[f64; 3]; 3] {
+        let h = deg.to_radians() / 2.0;
+        rotation_of_quaternion([h.cos(), 0.0, 0.0, h.sin()])
+    }
+
+    fn row(t_s: f64, x: f64, rotation: Option<[[f64; 3]; 3]>) -> Observation {
+        Observation {
+            row: 0,
+            t_s,
+            inputs: StringInputs::default(),
+            tension_n: [0.0; STRINGS],
+            tracker: Some([x, 0.0, 0.0]),
+            tracker_rotation: rotation,
+            legacy: None,
+        }
+    }
+
+    /// Re-paired rows take the body's orientation from the same two
+    /// recorded rows as its position, halfway turned halfway; none where a
+    /// recorded row has none.
+    #[test]
+    fn the_orientation_is_re_paired_with_the_position() {
+        let obs = vec![
+            row(0.0, 0.0, Some(about_z(0.0))),
+            row(1.0, 10.0, Some(about_z(10.0))),
+            row(2.0, 20.0, None),
+        ];
+        let (rows, lost) = repaired(&obs, 0.5, 5.0);
+        assert_eq!(lost, 1);
+        assert_eq!(rows[0].tracker, Some([5.0, 0.0, 0.0]));
+        let r = rows[0].tracker_rotation.unwrap();
+        let expected = about_z(5.0);
+        for (a, b) in r.iter().flatten().zip(expected.iter().flatten()) {
+            assert!((a - b).abs() < 1e-12, "{r:?}");
+        }
+        // Between a row with an orientation and one without: a position only.
+        assert_eq!(rows[1].tracker, Some([15.0, 0.0, 0.0]));
+        assert_eq!(rows[1].tracker_rotation, None);
+        assert_eq!(rows[2].tracker, None);
+    }
 }
