@@ -469,8 +469,9 @@ fn a_file_of_another_layout_or_volume_is_refused_naming_it() {
     // A row outside this lattice: collected over another volume.
     let elsewhere = temp_csv("elsewhere.csv");
     let header = SessionAppender::header_line();
+    // No orientation (empty `ots_q*`), then `dev_*` and `tension0..7`.
     let far = format!(
-        "0.5,{}9000,9000,9000,{}\n",
+        "0.5,{}9000,9000,9000,,,,,{}\n",
         "0,".repeat(8),
         ["1"; 11].join(",")
     );
