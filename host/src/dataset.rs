@@ -54,7 +54,9 @@
 //! A session can also be written one row at a time ([`SessionAppender`],
 //! `spidar collect`): each row flushed to the disk before the next, an
 //! unterminated last line (a crash mid-write) cut off and reported when the
-//! file is opened again.
+//! file is opened again. A new appended file has the orientation columns
+//! (empty on rows without one); a file started without them (by an older
+//! `spidar`) is still appended to, with position-only rows.
 
 use std::fmt::Write as _;
 use std::fs;
@@ -153,16 +155,16 @@ pub enum DatasetError {
         missing: String,
     },
     /// A session opened for appending whose header is not the appender's
-    /// columns in its order.
-    #[error("{}: line 1: the header `{found}` is not the session header `{expected}` that appending requires: a file of another tool or layout; write to a new file", file.display())]
+    /// columns in its order (with or without the orientation columns).
+    #[error("{}: line 1: the header `{found}` is not the session header `{expected}` (or that header without ots_qw..ots_qz, as older files have) that appending requires: a file of another tool or layout; write to a new file", file.display())]
     HeaderMismatch {
         file: PathBuf,
         found: String,
         expected: String,
     },
-    /// A sample with an orientation given to a [`SessionAppender`], whose
-    /// header has no orientation columns.
-    #[error("{}: line {line}: the row has an orientation, but an appended session has no orientation columns (ots_qw..ots_qz), so it would be lost: write such a session whole (Session::write)", file.display())]
+    /// A sample with an orientation given to a [`SessionAppender`] whose
+    /// file was started without orientation columns.
+    #[error("{}: line {line}: the row has an orientation, but the file was started without orientation columns (ots_qw..ots_qz; an older spidar's header), so it would be lost: append it to a new file", file.display())]
     OrientationNotAppended { file: PathBuf, line: u64 },
     /// A session without `ots_z` for a 3-D device.
     #[error("{}: line 1: no `ots_z` column (tracker positions in x, y only, as a planar device's), but {} is a 3-D device (no `planar = true`): its tracker positions need ots_z", file.display(), geometry_file.display())]
@@ -1315,23 +1317,29 @@ pub struct OpenedSession {
 /// Appends rows to a session CSV one at a time, crash-safe: every row is
 /// written whole and ends in a newline, then flushed to the disk
 /// (`sync_data`) before [`SessionAppender::append`] returns, so a crash or a
-/// power loss loses at most the row being written. The columns are always
-/// the same: [`session_header`] with `dev_*` and `tension0..` but no
-/// orientation (a sample with one is refused:
-/// [`DatasetError::OrientationNotAppended`]).
+/// power loss loses at most the row being written. A new file gets
+/// [`session_header`] with `ots_q*`, `dev_*` and `tension0..` (a row
+/// without an orientation leaves `ots_q*` empty). An existing file may also
+/// have that header without `ots_q*` (files started before the appender
+/// wrote orientations): rows are appended to it as they are, and a sample
+/// with an orientation is refused rather than written without it
+/// ([`DatasetError::OrientationNotAppended`]).
 ///
 /// A row is committed once its newline is on the disk: when a file is
 /// opened again, an unterminated last line is a write that was cut short
 /// (even if what is left of it parses: its last number may be cut), so it is
 /// removed and reported ([`OpenedSession::torn`]); complete rows are never
 /// dropped. Anything else the strict reader rejects is an error, and so is
-/// a header other than its columns in their order (a file of another tool:
-/// this writer does not append to it).
+/// a header other than one of its two in their order (a file of another
+/// tool: this writer does not append to it).
 pub struct SessionAppender {
     file: fs::File,
     path: PathBuf,
     /// Strings of the device (`enc0..enc{strings-1}`).
     strings: usize,
+    /// The file's optional columns: [`SessionAppender::COLUMNS`], or
+    /// [`SessionAppender::COLUMNS_WITHOUT_ORIENTATION`] for an older file.
+    columns: OptionalColumns,
     rows: usize,
     last: Option<(f64, u64)>,
     /// A write failed part-way: the file may end in a partial row, so no
@@ -1340,14 +1348,21 @@ pub struct SessionAppender {
 }
 
 impl SessionAppender {
-    /// The optional groups of an appended session: legacy positions and
-    /// tensions, no orientation (a `collect` row has none; the header is
-    /// fixed so that a file can be reopened, and a row with an orientation
-    /// is refused rather than written without it).
-    const COLUMNS: OptionalColumns = OptionalColumns {
-        orientation: false,
+    /// The optional groups of a new appended session: orientation (empty
+    /// on rows without one), legacy positions and tensions. The header is
+    /// fixed whatever the rows hold, so that a file can be reopened.
+    pub const COLUMNS: OptionalColumns = OptionalColumns {
+        orientation: true,
         legacy: true,
         tension: true,
+    };
+
+    /// The optional groups of a session appended to before orientations
+    /// were: [`SessionAppender::COLUMNS`] without the orientation. Such a
+    /// file is still appended to (with position-only rows).
+    pub const COLUMNS_WITHOUT_ORIENTATION: OptionalColumns = OptionalColumns {
+        orientation: false,
+        ..Self::COLUMNS
     };
 
     /// The header line this writer writes for an 8-string device (no newline).
@@ -1360,6 +1375,12 @@ impl SessionAppender {
         session_header_for(strings, Self::COLUMNS).join(",")
     }
 
+    /// The header line of a file started without orientation columns,
+    /// which is still appended to (no newline).
+    pub fn header_line_without_orientation_for(strings: usize) -> String {
+        session_header_for(strings, Self::COLUMNS_WITHOUT_ORIENTATION).join(",")
+    }
+
     /// Opens `path` for appending the rows of an 8-string device (see
     /// [`SessionAppender::open_for`]).
     pub fn open(path: impl AsRef<Path>) -> Result<OpenedSession, DatasetError> {
@@ -1369,8 +1390,9 @@ impl SessionAppender {
     /// Opens `path` for appending the rows of a device with `strings`
     /// strings (3..=8), creating it (with its header) if it does not exist
     /// or is empty. See the type's documentation for what an existing file
-    /// must satisfy: its header must be this device's (a file of another
-    /// number of strings is refused, naming both headers).
+    /// must satisfy: its header must be this device's, with or without the
+    /// orientation columns (a file of another number of strings is refused,
+    /// naming both headers).
     pub fn open_for(path: impl AsRef<Path>, strings: usize) -> Result<OpenedSession, DatasetError> {
         use io::{Read, Seek, Write};
         let path = path.as_ref();
@@ -1385,6 +1407,7 @@ impl SessionAppender {
         file.read_to_end(&mut bytes)
             .map_err(|e| io_error(path, "cannot read", e))?;
         let header = Self::header_line_for(strings);
+        let old_header = Self::header_line_without_orientation_for(strings);
         let mismatch = |found: &[u8]| DatasetError::HeaderMismatch {
             file: path.to_path_buf(),
             found: String::from_utf8_lossy(found).trim_end().to_string(),
@@ -1394,9 +1417,12 @@ impl SessionAppender {
         let keep = match bytes.iter().rposition(|&b| b == b'\n') {
             Some(last_newline) => last_newline + 1,
             None if bytes.is_empty() => 0,
-            // Not even the header's newline: a header cut short is started
-            // again; anything else is not this writer's file.
-            None if header.as_bytes().starts_with(&bytes) => {
+            // Not even the header's newline: a header cut short (either
+            // one: the file has no row yet) is started again, with the new
+            // one; anything else is not this writer's file.
+            None if header.as_bytes().starts_with(&bytes)
+                || old_header.as_bytes().starts_with(&bytes) =>
+            {
                 torn = Some(TornLine {
                     line: 1,
                     text: String::from_utf8_lossy(&bytes).into_owned(),
@@ -1405,18 +1431,23 @@ impl SessionAppender {
             }
             None => return Err(mismatch(&bytes)),
         };
-        let existing = if keep == 0 {
-            Session {
+        let (existing, columns) = if keep == 0 {
+            let empty = Session {
                 strings,
                 ..Session::default()
-            }
+            };
+            (empty, Self::COLUMNS)
         } else {
             let first_line = bytes[..keep].split(|&b| b == b'\n').next().unwrap_or(&[]);
             let first_line = first_line.strip_suffix(b"\r").unwrap_or(first_line);
-            if first_line != header.as_bytes() {
+            let columns = if first_line == header.as_bytes() {
+                Self::COLUMNS
+            } else if first_line == old_header.as_bytes() {
+                Self::COLUMNS_WITHOUT_ORIENTATION
+            } else {
                 return Err(mismatch(first_line));
-            }
-            Session::read_from(&bytes[..keep], path)?
+            };
+            (Session::read_from(&bytes[..keep], path)?, columns)
         };
         if keep < bytes.len() {
             if torn.is_none() {
@@ -1447,6 +1478,7 @@ impl SessionAppender {
                 file,
                 path: path.to_path_buf(),
                 strings,
+                columns,
                 rows,
                 last,
                 failed: false,
@@ -1460,6 +1492,12 @@ impl SessionAppender {
     /// The file appended to.
     pub fn path(&self) -> &Path {
         &self.path
+    }
+
+    /// The file has the orientation columns (`ots_qw..ots_qz`): false for a
+    /// file started without them, which refuses a row with an orientation.
+    pub fn has_orientation_columns(&self) -> bool {
+        self.columns.orientation
     }
 
     /// Rows in the file.
@@ -1486,14 +1524,14 @@ impl SessionAppender {
             ));
         }
         check_sample(&self.path, line, sample, self.last)?;
-        if sample.orientation.is_some() {
+        if sample.orientation.is_some() && !self.columns.orientation {
             return Err(DatasetError::OrientationNotAppended {
                 file: self.path.clone(),
                 line,
             });
         }
         let mut fields = Vec::new();
-        row_fields(sample, self.strings, Self::COLUMNS, &mut fields);
+        row_fields(sample, self.strings, self.columns, &mut fields);
         let mut w = csv::WriterBuilder::new().from_writer(Vec::new());
         w.write_record(&fields)
             .map_err(|e| csv_write_error(&self.path, e))?;
@@ -1575,28 +1613,149 @@ mod append_tests {
         assert_eq!(Session::load(&path).unwrap().samples.len(), 3);
     }
 
+    fn oriented(t_s: f64, x: f64, q: [f64; 4]) -> Sample {
+        Sample {
+            orientation: Some(q),
+            ..sample(t_s, x)
+        }
+    }
+
+    /// A file as an older `spidar collect` started it: the header without
+    /// the orientation columns, and `rows` rows.
+    fn old_file(path: &Path, rows: &[Sample]) -> String {
+        let columns = SessionAppender::COLUMNS_WITHOUT_ORIENTATION;
+        let mut text = format!("{}\n", session_header(columns).join(","));
+        let mut fields = Vec::new();
+        for s in rows {
+            row_fields(s, STRINGS, columns, &mut fields);
+            text.push_str(&fields.join(","));
+            text.push('\n');
+        }
+        fs::write(path, &text).unwrap();
+        text
+    }
+
     #[test]
-    fn a_row_with_an_orientation_is_refused_not_written_without_it() {
+    fn a_new_file_has_the_orientation_columns_and_rows_with_and_without_one_read_back() {
         let path = temp("oriented.csv");
         let mut opened = SessionAppender::open(&path).unwrap();
-        let oriented = Sample {
-            orientation: Some([1.0, 0.0, 0.0, 0.0]),
-            ..sample(1.0, 10.0)
-        };
-        let e = opened.appender.append(&oriented).unwrap_err();
-        assert!(
-            matches!(e, DatasetError::OrientationNotAppended { line: 2, .. }),
-            "{e}"
-        );
-        assert!(e.to_string().contains("oriented.csv: line 2"), "{e}");
-        assert_eq!(opened.appender.append(&sample(1.0, 10.0)).unwrap(), 2);
+        assert!(opened.appender.has_orientation_columns());
+        let q = [0.5, -0.5, 0.5, 0.5];
+        let tilted = [0.996195, 0.0, 0.087156, 0.0];
+        assert_eq!(opened.appender.append(&oriented(1.0, 10.0, q)).unwrap(), 2);
+        assert_eq!(opened.appender.append(&sample(1.5, 11.0)).unwrap(), 3);
         drop(opened);
+        let text = fs::read_to_string(&path).unwrap();
+        let header = text.lines().next().unwrap();
+        assert_eq!(header, SessionAppender::header_line());
+        // As `Session::write_to` places them: after `ots_z`.
+        assert!(
+            header.contains("ots_x,ots_y,ots_z,ots_qw,ots_qx,ots_qy,ots_qz,dev_x"),
+            "{header}"
+        );
+        // A row without an orientation leaves its columns empty.
+        assert!(
+            text.lines().nth(2).unwrap().contains(",-0.001,,,,,0.1,"),
+            "{text}"
+        );
+        let mut again = SessionAppender::open(&path).unwrap();
+        assert!(again.appender.has_orientation_columns() && !again.created);
+        assert_eq!(
+            again.existing.samples,
+            vec![oriented(1.0, 10.0, q), sample(1.5, 11.0)]
+        );
+        assert_eq!(
+            again.appender.append(&oriented(2.0, 12.0, tilted)).unwrap(),
+            4
+        );
+        // What the reader refuses is refused before anything is written.
+        let e = again
+            .appender
+            .append(&oriented(3.0, 13.0, [1.0, 1.0, 0.0, 0.0]))
+            .unwrap_err();
+        assert!(e.to_string().contains("line 5, column `ots_qw`"), "{e}");
+        let e = again
+            .appender
+            .append(&Sample {
+                tracker: None,
+                ..oriented(3.0, 13.0, q)
+            })
+            .unwrap_err();
+        assert!(e.to_string().contains("line 5, column `ots_qw`"), "{e}");
+        drop(again);
         assert_eq!(
             Session::load(&path).unwrap().samples,
-            vec![sample(1.0, 10.0)]
+            vec![
+                oriented(1.0, 10.0, q),
+                sample(1.5, 11.0),
+                oriented(2.0, 12.0, tilted)
+            ]
         );
-        // The header is the one it always was: no orientation columns.
-        assert!(!SessionAppender::header_line().contains("ots_q"));
+    }
+
+    #[test]
+    fn a_file_started_without_orientation_columns_reopens_and_takes_position_only_rows() {
+        let path = temp("old.csv");
+        let text = old_file(&path, &[sample(1.0, 10.0)]);
+        let mut opened = SessionAppender::open(&path).unwrap();
+        assert!(!opened.created && opened.torn.is_none());
+        assert!(!opened.appender.has_orientation_columns());
+        assert_eq!(opened.existing.samples, vec![sample(1.0, 10.0)]);
+        assert_eq!(opened.appender.last_t_s(), Some(1.0));
+        assert_eq!(opened.appender.append(&sample(2.0, 11.0)).unwrap(), 3);
+        drop(opened);
+        // The old header stays, and the row is in its columns.
+        let now = fs::read_to_string(&path).unwrap();
+        assert!(now.starts_with(&text), "{now}");
+        assert!(!now.contains("ots_q"), "{now}");
+        assert_eq!(
+            Session::load(&path).unwrap().samples,
+            vec![sample(1.0, 10.0), sample(2.0, 11.0)]
+        );
+        // Reopened again, with a torn last line cut off as for a new file.
+        fs::write(&path, format!("{now}3,1,2")).unwrap();
+        let mut opened = SessionAppender::open(&path).unwrap();
+        assert_eq!(opened.torn.as_ref().map(|t| t.line), Some(4));
+        assert!(!opened.appender.has_orientation_columns());
+        assert_eq!(opened.appender.append(&sample(3.0, 12.0)).unwrap(), 4);
+        drop(opened);
+        assert_eq!(Session::load(&path).unwrap().samples.len(), 3);
+        // An old header cut short (no row yet) starts again with the new one.
+        let old_header = SessionAppender::header_line_without_orientation_for(STRINGS);
+        let cut = &old_header[..old_header.len() - 3];
+        assert!(!SessionAppender::header_line().starts_with(cut));
+        fs::write(&path, cut).unwrap();
+        let opened = SessionAppender::open(&path).unwrap();
+        assert!(opened.created && opened.appender.has_orientation_columns());
+        assert_eq!(opened.torn.map(|t| t.line), Some(1));
+        assert_eq!(
+            fs::read_to_string(&path).unwrap(),
+            format!("{}\n", SessionAppender::header_line())
+        );
+    }
+
+    #[test]
+    fn a_file_started_without_orientation_columns_refuses_a_row_with_one() {
+        let path = temp("old-oriented.csv");
+        let text = old_file(&path, &[sample(1.0, 10.0)]);
+        let mut opened = SessionAppender::open(&path).unwrap();
+        let e = opened
+            .appender
+            .append(&oriented(2.0, 11.0, [1.0, 0.0, 0.0, 0.0]))
+            .unwrap_err();
+        assert!(
+            matches!(e, DatasetError::OrientationNotAppended { line: 3, .. }),
+            "{e}"
+        );
+        let message = e.to_string();
+        assert!(message.contains("old-oriented.csv: line 3"), "{message}");
+        assert!(
+            message.contains("started without orientation columns"),
+            "{message}"
+        );
+        // Nothing was written, and the next position-only row goes on line 3.
+        assert_eq!(fs::read_to_string(&path).unwrap(), text);
+        assert_eq!(opened.appender.append(&sample(2.0, 11.0)).unwrap(), 3);
     }
 
     #[test]
@@ -1633,7 +1792,8 @@ mod append_tests {
         assert!(e.to_string().contains("other.csv: line 1"), "{e}");
         assert_eq!(fs::read_to_string(&path).unwrap(), "t_s,enc0\n1,2\n");
         let header = SessionAppender::header_line();
-        let bad = format!("{header}\n1,x{}\n", ",0".repeat(21));
+        let fields = header.split(',').count();
+        let bad = format!("{header}\n1,x{}\n", ",0".repeat(fields - 2));
         fs::write(&path, &bad).unwrap();
         let e = SessionAppender::open(&path).err().expect("refused");
         assert!(e.to_string().contains("line 2, column `enc0`"), "{e}");

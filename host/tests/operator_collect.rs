@@ -12,7 +12,9 @@ use std::time::{Duration, Instant};
 
 use spidar::dataset::{Session, SessionAppender};
 use spidar::link::Client;
-use spidar::operator::collect::{collect, CollectConfig, CollectError, Lattice, Stop};
+use spidar::operator::collect::{
+    collect, summary, CollectConfig, CollectError, CollectReport, Lattice, Stop,
+};
 use spidar::operator::sim_user::{HandSample, SimulatedRig};
 use spidar::operator::{CueSink, Cues, SharedCues};
 use spidar::sim::{Device, SimConfig};
@@ -186,6 +188,14 @@ fn the_operator_fills_a_small_lattice_cell_by_cell_and_the_rows_are_true() {
     // The file reads back with the one reader, rows in lattice order.
     let session = Session::load(&path).unwrap();
     assert_rows_in_order(&lattice, &session);
+    // The simulated tracker's `6d` body has the identity rotation: every
+    // row records it as the body's orientation.
+    assert!(report.orientation_columns);
+    assert_eq!((report.oriented, report.improper_rotations), (27, 0));
+    assert!(session
+        .samples
+        .iter()
+        .all(|s| s.orientation == Some([1.0, 0.0, 0.0, 0.0])));
 
     // Tracker columns: the true marker plus the tracker's noise.
     let truths: Vec<&HandSample> = session
@@ -303,6 +313,120 @@ fn the_operator_fills_a_small_lattice_cell_by_cell_and_the_rows_are_true() {
         .shown
         .iter()
         .any(|c| c.message.contains("occluded") && c.marker_room_mm.is_none()));
+}
+
+/// A rig like [`rig`] whose tracker reports the marker body turned by
+/// `rotation` (row-major body -> room), with `max_cells` captures.
+fn turned_rig(seed: u64, rotation: [[f64; 3]; 3]) -> SimulatedRig {
+    let device = Device::new(&SimConfig::default(), 3).unwrap();
+    SimulatedRig::start(device, [0.0; 3], |c| {
+        c.seed = seed;
+        c.occlusion = 0.05;
+        c.loss = 0.02;
+        c.body_rotation = rotation;
+        c.max_duration = Duration::from_secs(20);
+    })
+    .unwrap()
+}
+
+fn collect_cells(rig: &mut SimulatedRig, path: &std::path::Path, cells: usize) -> CollectReport {
+    let lattice = small_lattice(rig);
+    let mut client = rig.client().unwrap();
+    let mut recorder = Recorder::new(&rig.cues);
+    let cfg = CollectConfig {
+        max_cells: Some(cells),
+        ..config(rig)
+    };
+    collect(
+        &mut client,
+        &mut rig.receiver,
+        &lattice,
+        &cfg,
+        path,
+        &mut recorder,
+    )
+    .expect("collect")
+}
+
+#[test]
+fn each_row_records_the_body_s_orientation_from_the_tracker_s_rotation() {
+    use nalgebra::{Unit, UnitQuaternion, Vector3};
+    // A turn of 2.5 rad about a skew axis: no symmetry of the matrix can
+    // hide a transposed (column- for row-major) reading.
+    let truth =
+        UnitQuaternion::from_axis_angle(&Unit::new_normalize(Vector3::new(1.0, -2.0, 0.5)), 2.5);
+    let m = truth.to_rotation_matrix();
+    let rotation: [[f64; 3]; 3] = core::array::from_fn(|r| core::array::from_fn(|c| m[(r, c)]));
+    let expected = {
+        let q = [truth.w, truth.i, truth.j, truth.k];
+        q.map(|v| if truth.w < 0.0 { -v } else { v })
+    };
+    let mut rig = turned_rig(15, rotation);
+    let path = temp_csv("oriented.csv");
+    let report = collect_cells(&mut rig, &path, 6);
+    assert_eq!(report.captured, 6);
+    assert_eq!((report.oriented, report.improper_rotations), (6, 0));
+    let session = Session::load(&path).unwrap();
+    assert_eq!(session.samples.len(), 6);
+    for (k, s) in session.samples.iter().enumerate() {
+        let q = s.orientation.expect("an orientation");
+        let norm = q.iter().map(|v| v * v).sum::<f64>().sqrt();
+        assert!((norm - 1.0).abs() < 1e-5, "row {k}: norm {norm}");
+        assert!(q[0] >= 0.0, "row {k}: {q:?}");
+        for (a, b) in q.iter().zip(&expected) {
+            assert!((a - b).abs() <= 1e-5, "row {k}: {q:?} vs {expected:?}");
+        }
+    }
+    assert!(summary(&report).contains("rows with the body's orientation 6"));
+}
+
+#[test]
+fn a_rotation_that_is_not_a_proper_one_is_counted_and_its_rows_have_no_orientation() {
+    // A mirror: determinant -1.
+    let mirror = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, -1.0]];
+    let mut rig = turned_rig(16, mirror);
+    let path = temp_csv("mirrored.csv");
+    let report = collect_cells(&mut rig, &path, 3);
+    assert_eq!(report.captured, 3);
+    assert_eq!((report.oriented, report.improper_rotations), (0, 3));
+    let session = Session::load(&path).unwrap();
+    assert_eq!(session.samples.len(), 3);
+    assert!(session
+        .samples
+        .iter()
+        .all(|s| s.tracker.is_some() && s.orientation.is_none()));
+    let text = summary(&report);
+    assert!(
+        text.contains("3 captured rows had a tracker rotation that is not a proper rotation"),
+        "{text}"
+    );
+}
+
+#[test]
+fn a_file_started_without_orientation_columns_is_resumed_with_position_only_rows() {
+    let mut rig = rig(17);
+    let path = temp_csv("old-header.csv");
+    // As an older `spidar collect` started it: no ots_q* columns.
+    let old_header = SessionAppender::header_line_without_orientation_for(8);
+    std::fs::write(&path, format!("{old_header}\n")).unwrap();
+    let report = collect_cells(&mut rig, &path, 3);
+    assert_eq!(report.captured, 3);
+    assert!(!report.orientation_columns);
+    assert_eq!((report.oriented, report.orientations_not_recorded), (0, 3));
+    let text = std::fs::read_to_string(&path).unwrap();
+    assert_eq!(text.lines().next(), Some(old_header.as_str()));
+    let session = Session::load(&path).unwrap();
+    assert_eq!(session.samples.len(), 3);
+    assert!(session.samples.iter().all(|s| s.orientation.is_none()));
+    let said = summary(&report);
+    assert!(
+        said.contains("old-header.csv: started without orientation columns"),
+        "{said}"
+    );
+    // And resumed again where it stopped.
+    let report = collect_cells(&mut rig, &path, 2);
+    assert_eq!((report.resumed_from, report.captured), (3, 2));
+    assert_eq!(Session::load(&path).unwrap().samples.len(), 5);
 }
 
 #[test]
@@ -469,8 +593,9 @@ fn a_file_of_another_layout_or_volume_is_refused_naming_it() {
     // A row outside this lattice: collected over another volume.
     let elsewhere = temp_csv("elsewhere.csv");
     let header = SessionAppender::header_line();
+    // No orientation (empty `ots_q*`), then `dev_*` and `tension0..7`.
     let far = format!(
-        "0.5,{}9000,9000,9000,{}\n",
+        "0.5,{}9000,9000,9000,,,,,{}\n",
         "0,".repeat(8),
         ["1"; 11].join(",")
     );

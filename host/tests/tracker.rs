@@ -48,9 +48,10 @@ fn parses_the_manual_example() {
     assert_eq!(b.quality, 1.0);
     assert_eq!(b.position_mm, [326.848, -187.216, 109.503]);
     // b0..b8 column-wise: the first row is b0 b3 b6.
-    assert_eq!(b.rotation[0], [-0.940508, 0.333599, 0.064467]);
-    assert_eq!(b.rotation[1], [-0.339238, -0.932599, -0.123194]);
-    assert_eq!(b.rotation[2], [0.019025, -0.137735, 0.990286]);
+    let r = b.rotation.expect("a 6d body has a rotation");
+    assert_eq!(r[0], [-0.940508, 0.333599, 0.064467]);
+    assert_eq!(r[1], [-0.339238, -0.932599, -0.123194]);
+    assert_eq!(r[2], [0.019025, -0.137735, 0.990286]);
     assert_eq!(f.visible_body(0), Some(b));
     assert_eq!(f.visible_body(1), None);
 }
@@ -382,7 +383,7 @@ fn values_after_those_read_are_ignored() {
     let b = &f.bodies[0];
     assert_eq!((b.id, b.quality), (0, 0.9));
     assert_eq!(b.position_mm, [1.0, 2.0, 3.0]);
-    assert_eq!(b.rotation, spidar::tracker::dtrack::IDENTITY);
+    assert_eq!(b.rotation, Some(spidar::tracker::dtrack::IDENTITY));
 }
 
 #[test]
@@ -517,7 +518,7 @@ fn hybrid_bodies_are_read_as_bodies() {
     // b0..b8 column-wise: the first row is b0 b3 b6.
     assert_eq!(
         b.rotation,
-        [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
+        Some([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
     );
     // State 1: inertial only (dead reckoning): kept, not visible.
     assert_eq!(f.visible_body(2), None);
@@ -564,7 +565,8 @@ fn arb_body() -> impl Strategy<Value = BodyPose> {
         .prop_map(|(id, quality, position_mm, rotation)| BodyPose {
             id,
             position_mm,
-            rotation,
+            // A 6d body always has one.
+            rotation: Some(rotation),
             quality,
         })
 }
@@ -932,9 +934,47 @@ fn replay_of_the_shared_session_keeps_occlusions() {
         assert_eq!(f.frame, i as u32);
         assert_eq!(f.ts_s, s.t_s);
         assert_eq!(f.body.as_ref().map(|b| b.position_mm), s.tracker);
+        // The session has no orientation columns: no rotation, not the
+        // identity.
+        assert!(f.body.as_ref().is_none_or(|b| b.rotation.is_none()));
     }
     assert_eq!(replay.stats().occluded, 2);
     assert_eq!(replay.stats().delivered, 20);
+}
+
+#[test]
+fn replay_plays_back_a_session_s_orientation_as_the_body_s_rotation() {
+    use spidar::dataset::{Sample, Session};
+    let row = |t_s: f64, tracker: Option<[f64; 3]>, orientation: Option<[f64; 4]>| Sample {
+        t_s,
+        counts: [0; 8],
+        tracker,
+        orientation,
+        legacy: None,
+        tension_n: None,
+    };
+    // A quarter turn about z: x goes to y.
+    let h = std::f64::consts::FRAC_1_SQRT_2;
+    let session = Session {
+        samples: vec![
+            row(0.0, Some([1.0, 2.0, 3.0]), Some([h, 0.0, 0.0, h])),
+            row(0.1, Some([4.0, 5.0, 6.0]), None),
+            row(0.2, None, None),
+        ],
+        ..Session::default()
+    };
+    let mut replay = ReplaySource::from_session(&session, Pacing::AsFastAsPossible).unwrap();
+    let frames = collect(&mut replay, usize::MAX, Duration::from_secs(5)).unwrap();
+    assert_eq!(frames.len(), 3);
+    let turned = frames[0].body.as_ref().unwrap();
+    assert_eq!(turned.position_mm, [1.0, 2.0, 3.0]);
+    let r = turned.rotation.expect("the row's orientation");
+    let expected = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]];
+    for (a, b) in r.iter().flatten().zip(expected.iter().flatten()) {
+        assert!((a - b).abs() < 1e-12, "{r:?}");
+    }
+    assert_eq!(frames[1].body.as_ref().unwrap().rotation, None);
+    assert_eq!(frames[2].body, None);
 }
 
 #[test]

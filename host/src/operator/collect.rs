@@ -26,9 +26,14 @@
 //!    state after it); a pair further apart than that, or a state of a
 //!    disarmed device, does not capture: the next frame is tried. The row:
 //!    `t_s` = device time (`State::time_us`, s) plus the clock offset below,
-//!    `enc0..7` = counts since home, `ots_*` = the tracker position, `dev_*`
-//!    = the device's forward kinematics (device frame), `tension0..7` =
-//!    commanded tensions.
+//!    `enc0..7` = counts since home, `ots_*` = the tracker position,
+//!    `ots_qw..ots_qz` = the body's orientation from the same frame when the
+//!    tracker gives its rotation (a DTrack `6d` body does), as the unit
+//!    quaternion with `w >= 0` rounded to 1e-6 ([`orientation_of_rotation`];
+//!    empty when the source gives a position only, and for a rotation that
+//!    is not a proper one, counted in [`CollectReport::improper_rotations`]),
+//!    `dev_*` = the device's forward kinematics (device frame), `tension0..7`
+//!    = commanded tensions.
 //! 4. Each row is appended to the session CSV and flushed to the disk
 //!    before the next cell is shown ([`SessionAppender`]): a crash or a
 //!    power loss loses at most the current cell.
@@ -38,7 +43,9 @@
 //! position marks the cell it lies in as done (a row outside the lattice, or
 //! a second row in a cell, is an error naming the line: the file was
 //! collected over another volume). Collection goes on with the first cell
-//! not done, in order.
+//! not done, in order. A file started without the orientation columns (by
+//! an older `spidar`) is resumed as it is: its new rows have no
+//! orientation either ([`CollectReport::orientations_not_recorded`]).
 //!
 //! **Device time.** `t_s` must not decrease through the file. The device
 //! clock counts from its boot; a resumed session whose device clock is now
@@ -211,6 +218,62 @@ pub struct CollectReport {
     pub unpaired: u64,
     /// Times the device was armed again after it disarmed itself.
     pub rearms: u32,
+    /// Rows captured in this run with the body's orientation.
+    pub oriented: u64,
+    /// Rows captured in this run whose tracker rotation was not a proper
+    /// rotation (a value not finite, a determinant off 1 or axes not
+    /// orthonormal by more than [`ROTATION_TOLERANCE`]): recorded without an
+    /// orientation.
+    pub improper_rotations: u64,
+    /// The file has the orientation columns (false: it was started without
+    /// them, by an older `spidar`, and is resumed as it is).
+    pub orientation_columns: bool,
+    /// Rows captured in this run whose orientation the tracker gave but the
+    /// file, having no orientation columns, could not take.
+    pub orientations_not_recorded: u64,
+}
+
+/// How far a tracker's rotation matrix may be from a proper rotation
+/// (its determinant from 1, each entry of `R^T R` from the identity's) and
+/// still be recorded as the body's orientation. A tracker writes about six
+/// decimals: its matrices are within about 1e-5.
+pub const ROTATION_TOLERANCE: f64 = 1e-3;
+
+/// The orientation of a body whose rotation body -> room is `r` (row-major,
+/// `x_room = R x_body + s`): the unit quaternion `[w, x, y, z]` of the
+/// rotation nearest to `r`, with `w >= 0`, rounded to 1e-6 as the tracker's
+/// values are written (its norm stays within about 1e-6 of 1, well inside
+/// the session reader's 1e-3). `None` if `r` is not a proper rotation: a
+/// value not finite, `|det r - 1|` or an entry of `r^T r - I` above
+/// [`ROTATION_TOLERANCE`] (a reflection, a scaled or a degenerate matrix).
+pub fn orientation_of_rotation(r: &[[f64; 3]; 3]) -> Option<[f64; 4]> {
+    use nalgebra::{Matrix3, Rotation3, UnitQuaternion};
+    if !r.iter().flatten().all(|v| v.is_finite()) {
+        return None;
+    }
+    let m = Matrix3::from_fn(|row, col| r[row][col]);
+    let gram = m.transpose() * m - Matrix3::identity();
+    if (m.determinant() - 1.0).abs() > ROTATION_TOLERANCE || gram.amax() > ROTATION_TOLERANCE {
+        return None;
+    }
+    // The nearest rotation, found from a guess next to it: the quaternion
+    // read off the matrix as if it were one. (`Rotation3::from_matrix`
+    // starts from the identity, and from there an exact half turn, such as
+    // diag(-1, 1, -1), is a stationary point it does not leave: it returns
+    // a wrong rotation.) Bounded, though from so close it converges in a
+    // few iterations.
+    let guess = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(m));
+    let guess = UnitQuaternion::new_normalize(guess.into_inner());
+    let nearest = Rotation3::from_matrix_eps(&m, f64::EPSILON, 100, guess.to_rotation_matrix());
+    if (nearest.matrix() - m).amax() > 10.0 * ROTATION_TOLERANCE {
+        return None;
+    }
+    let q = UnitQuaternion::from_rotation_matrix(&nearest);
+    // One sign of the double cover: w >= 0 (`+ 0.0` writes -0 as 0).
+    let sign = if q.w < 0.0 { -1.0 } else { 1.0 };
+    let rounded = [q.w, q.i, q.j, q.k].map(|v| (sign * v * 1e6).round() / 1e6 + 0.0);
+    let norm = rounded.iter().map(|v| v * v).sum::<f64>().sqrt();
+    ((norm - 1.0).abs() <= 1e-5).then_some(rounded)
 }
 
 /// Why collection failed (the device is disarmed in every case; the rows
@@ -487,6 +550,10 @@ pub fn collect(
         occluded: 0,
         unpaired: 0,
         rearms: 0,
+        oriented: 0,
+        improper_rotations: 0,
+        orientation_columns: opened.appender.has_orientation_columns(),
+        orientations_not_recorded: 0,
     };
     report.done = report.resumed_from;
     if report.done == report.total {
@@ -684,11 +751,12 @@ fn run(
             if states.went_back.is_some() {
                 continue;
             }
-            let marker = frame
+            let body = frame
                 .body
                 .as_ref()
-                .filter(|b| b.id == config.body_id && b.is_visible())
-                .map(|b| b.position_mm);
+                .filter(|b| b.id == config.body_id && b.is_visible());
+            let marker = body.map(|b| b.position_mm);
+            let rotation = body.and_then(|b| b.rotation);
             let mut cues = Cues {
                 marker_room_mm: marker,
                 target_room_mm: Some(centre),
@@ -742,11 +810,22 @@ fn run(
                         .max(appender.last_t_s().unwrap_or(0.0));
                     cues.message = format!("captured cell {}/{}", report.done + 1, report.total);
                     sink.show(&cues);
+                    let orientation = rotation.and_then(|r| {
+                        let q = orientation_of_rotation(&r);
+                        report.improper_rotations += u64::from(q.is_none());
+                        q
+                    });
+                    let orientation = orientation.filter(|_| {
+                        let fits = appender.has_orientation_columns();
+                        report.orientations_not_recorded += u64::from(!fits);
+                        fits
+                    });
+                    report.oriented += u64::from(orientation.is_some());
                     break Sample {
                         t_s,
                         counts: s.counts,
                         tracker: Some(marker),
-                        orientation: None,
+                        orientation,
                         legacy: Some(s.position_mm.map(f64::from)),
                         tension_n: Some(s.tensions_n.map(f64::from)),
                     };
@@ -881,9 +960,22 @@ pub fn summary(report: &CollectReport) -> String {
             report.clock_offset_s
         ));
     }
+    if report.improper_rotations > 0 {
+        out.push_str(&format!(
+            "{} captured rows had a tracker rotation that is not a proper rotation (determinant or axes off by more than {}): recorded without the body's orientation\n",
+            report.improper_rotations, ROTATION_TOLERANCE
+        ));
+    }
+    if report.orientations_not_recorded > 0 {
+        out.push_str(&format!(
+            "{}: started without orientation columns (ots_qw..ots_qz): the body's orientation of {} captured rows is not recorded; collect into a new file to record it\n",
+            report.path.display(),
+            report.orientations_not_recorded
+        ));
+    }
     out.push_str(&format!(
         "captured {} cells in {:.1} s (resumed from {} of {}); {}/{} done{}\n\
-         tracker frames {} ({} occluded), captures deferred for want of a device state {}, re-arms {}\n\
+         tracker frames {} ({} occluded), captures deferred for want of a device state {}, re-arms {}; rows with the body's orientation {}\n\
          wrote {}\n",
         report.captured,
         report.elapsed.as_secs_f64(),
@@ -902,6 +994,7 @@ pub fn summary(report: &CollectReport) -> String {
         report.occluded,
         report.unpaired,
         report.rearms,
+        report.oriented,
         report.path.display()
     ));
     out
@@ -1100,6 +1193,122 @@ mod tests {
             matches!(e, CollectError::RowWithoutTracker { line: 7, .. }),
             "{e}"
         );
+    }
+
+    /// `v` turned by the quaternion `q = [w, x, y, z]`.
+    fn turn(q: [f64; 4], v: [f64; 3]) -> [f64; 3] {
+        let [w, x, y, z] = q;
+        let u = [x, y, z];
+        let cross = |a: [f64; 3], b: [f64; 3]| {
+            [
+                a[1] * b[2] - a[2] * b[1],
+                a[2] * b[0] - a[0] * b[2],
+                a[0] * b[1] - a[1] * b[0],
+            ]
+        };
+        // v + 2 w (u x v) + 2 u x (u x v)
+        let uv = cross(u, v);
+        let uuv = cross(u, uv);
+        core::array::from_fn(|k| v[k] + 2.0 * w * uv[k] + 2.0 * uuv[k])
+    }
+
+    /// `r v` for a row-major `r`.
+    fn apply(r: &[[f64; 3]; 3], v: [f64; 3]) -> [f64; 3] {
+        core::array::from_fn(|k| r[k][0] * v[0] + r[k][1] * v[1] + r[k][2] * v[2])
+    }
+
+    fn assert_same_rotation(q: [f64; 4], r: &[[f64; 3]; 3], tolerance: f64) {
+        for v in [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]] {
+            let (a, b) = (turn(q, v), apply(r, v));
+            assert!(
+                a.iter().zip(&b).all(|(x, y)| (x - y).abs() <= tolerance),
+                "{q:?} turns {v:?} to {a:?}, the matrix {r:?} to {b:?}"
+            );
+        }
+    }
+
+    #[test]
+    fn a_rotation_s_orientation_is_its_unit_quaternion_with_w_not_negative() {
+        use nalgebra::{Unit, UnitQuaternion, Vector3};
+        let h = std::f64::consts::FRAC_1_SQRT_2;
+        // Row-major: a quarter turn about z takes x to y.
+        let quarter_z = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]];
+        assert_eq!(
+            orientation_of_rotation(&quarter_z),
+            Some([h, 0.0, 0.0, h].map(|v| (v * 1e6).round() / 1e6))
+        );
+        assert_eq!(
+            orientation_of_rotation(&crate::tracker::dtrack::IDENTITY),
+            Some([1.0, 0.0, 0.0, 0.0])
+        );
+        for (axis, angle) in [
+            ([1.0, 0.0, 0.0], std::f64::consts::PI),
+            ([0.0, 1.0, 0.0], std::f64::consts::PI),
+            ([0.0, 0.0, 1.0], -std::f64::consts::PI),
+            ([1.0, 1.0, 0.0], std::f64::consts::PI),
+            ([1.0, -2.0, 0.5], 2.5),
+            ([0.2, 0.1, -1.0], -1.2),
+            ([0.3, 0.4, 0.5], 3.1),
+            ([-1.0, 0.0, 2.0], 1e-9),
+        ] {
+            let q =
+                UnitQuaternion::from_axis_angle(&Unit::new_normalize(Vector3::from(axis)), angle);
+            let m = q.to_rotation_matrix();
+            let r: [[f64; 3]; 3] = core::array::from_fn(|i| core::array::from_fn(|j| m[(i, j)]));
+            let got = orientation_of_rotation(&r).expect("a rotation");
+            assert!(got[0] >= 0.0, "{got:?}");
+            let norm = got.iter().map(|v| v * v).sum::<f64>().sqrt();
+            assert!((norm - 1.0).abs() < 2e-6, "{norm}");
+            // Rounded to 1e-6.
+            assert!(got
+                .iter()
+                .all(|v| (v * 1e6 - (v * 1e6).round()).abs() < 1e-6));
+            assert_same_rotation(got, &r, 1e-5);
+            // As a tracker writes it: six decimals, so not quite orthonormal.
+            let written = r.map(|row| row.map(|v| (v * 1e6).round() / 1e6));
+            let again = orientation_of_rotation(&written).expect("a rotation to six decimals");
+            assert_same_rotation(again, &r, 1e-5);
+        }
+    }
+
+    #[test]
+    fn a_matrix_that_is_not_a_proper_rotation_has_no_orientation() {
+        let identity = crate::tracker::dtrack::IDENTITY;
+        let mut reflection = identity;
+        reflection[2][2] = -1.0;
+        let scaled = identity.map(|row| row.map(|v| 1.01 * v));
+        let mut sheared = identity;
+        sheared[0][1] = 0.01;
+        let mut not_finite = identity;
+        not_finite[1][1] = f64::NAN;
+        let mut infinite = identity;
+        infinite[0][2] = f64::INFINITY;
+        for r in [
+            reflection,
+            scaled,
+            sheared,
+            not_finite,
+            infinite,
+            [[0.0; 3]; 3],
+            identity.map(|row| row.map(|v| -v)),
+        ] {
+            assert_eq!(orientation_of_rotation(&r), None, "{r:?}");
+        }
+    }
+
+    #[test]
+    fn the_orientation_of_a_dtrack_body_turns_as_its_column_wise_matrix() {
+        // The DTrack2 manual's example body: b0..b8 given column-wise.
+        let datagram = b"fr 21753\r\n6d 1 [0 1.000][326.848 -187.216 109.503 -160.4704 -3.6963 -7.0913][-0.940508 -0.339238 0.019025 0.333599 -0.932599 -0.137735 0.064467 -0.123194 0.990286]\r\n";
+        let frame = crate::tracker::dtrack::parse_datagram(datagram).unwrap();
+        let r = frame.bodies[0].rotation.unwrap();
+        let q = orientation_of_rotation(&r).expect("the manual's rotation");
+        assert_same_rotation(q, &r, 1e-5);
+        // The first column is the image of the body's x axis.
+        let x = turn(q, [1.0, 0.0, 0.0]);
+        for (a, b) in x.iter().zip([-0.940508, -0.339238, 0.019025]) {
+            assert!((a - b).abs() < 1e-5, "{x:?}");
+        }
     }
 
     #[test]

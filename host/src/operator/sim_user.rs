@@ -74,6 +74,11 @@ pub struct SimOperatorConfig {
     pub frame_rate_hz: f64,
     /// DTrack body id of the marker.
     pub body_id: u32,
+    /// The marker body's rotation body -> room the tracker reports
+    /// (row-major, sent column-wise in the `6d` record as DTrack does); the
+    /// hand holds it fixed. Not checked: a test may send one that is not a
+    /// rotation.
+    pub body_rotation: [[f64; 3]; 3],
     /// Tracker `ts` at simulated time 0 (the virtual device's first boot),
     /// s since midnight.
     pub ts_start_s: f64,
@@ -121,6 +126,7 @@ impl SimOperatorConfig {
             tracker,
             frame_rate_hz: 100.0,
             body_id: 0,
+            body_rotation: crate::tracker::dtrack::IDENTITY,
             ts_start_s: 36_000.0,
             clock_drift_ppm: 30.0,
             tracker_noise_mm: 0.1,
@@ -532,7 +538,10 @@ fn run(
                 bodies: if occluded {
                     Vec::new()
                 } else {
-                    vec![BodyPose::at(config.body_id, seen)]
+                    vec![BodyPose {
+                        rotation: Some(config.body_rotation),
+                        ..BodyPose::at(config.body_id, seen)
+                    }]
                 },
                 has_6d: true,
             });

@@ -74,8 +74,11 @@ pub struct BodyPose {
     /// Position of the body origin in the room frame (mm).
     pub position_mm: [f64; 3],
     /// Rotation body -> room, `rotation[row][col]` (the paper's eq. 1:
-    /// `x_room = R x_body + s`).
-    pub rotation: [[f64; 3]; 3],
+    /// `x_room = R x_body + s`), as the tracker gives it (not checked to be
+    /// a rotation). Always given by a `6d`/`6di` record; `None` from a
+    /// source that has a position only (a replayed session without
+    /// orientation columns).
+    pub rotation: Option<[[f64; 3]; 3]>,
     /// DTrack's quality value; negative means not visible.
     pub quality: f64,
 }
@@ -86,8 +89,16 @@ impl BodyPose {
         BodyPose {
             id,
             position_mm,
-            rotation: IDENTITY,
+            rotation: Some(IDENTITY),
             quality: 1.0,
+        }
+    }
+
+    /// A body seen at `position_mm`, its rotation unknown, quality 1.
+    pub fn position_only(id: u32, position_mm: [f64; 3]) -> Self {
+        BodyPose {
+            rotation: None,
+            ..BodyPose::at(id, position_mm)
         }
     }
 
@@ -373,7 +384,7 @@ fn parse_bodies(line: usize, record: BodyRecord, rest: &str) -> Result<Vec<BodyP
         bodies.push(BodyPose {
             id,
             position_mm: s,
-            rotation,
+            rotation: Some(rotation),
             quality,
         });
     }
@@ -489,7 +500,8 @@ impl fmt::Display for Num {
 /// numbers in their shortest exact form so that parsing gives the same frame
 /// back. The orientation angles (eta theta phi), which this module never
 /// reads, are derived from the rotation as DTrack defines them
-/// (`R = Rx(eta) Ry(theta) Rz(phi)`, degrees).
+/// (`R = Rx(eta) Ry(theta) Rz(phi)`, degrees). A `6d` body always has a
+/// rotation: a body without one is written with the identity.
 pub fn format_datagram(frame: &DtrackFrame) -> String {
     let mut s = String::new();
     let _ = write!(s, "fr {}\r\n", frame.frame);
@@ -503,7 +515,8 @@ pub fn format_datagram(frame: &DtrackFrame) -> String {
     if frame.has_6d || !frame.bodies.is_empty() {
         let _ = write!(s, "6d {}", frame.bodies.len());
         for b in &frame.bodies {
-            let [eta, theta, phi] = euler_deg(&b.rotation);
+            let rotation = b.rotation.unwrap_or(IDENTITY);
+            let [eta, theta, phi] = euler_deg(&rotation);
             let p = b.position_mm;
             let _ = write!(
                 s,
@@ -517,11 +530,10 @@ pub fn format_datagram(frame: &DtrackFrame) -> String {
                 Num(theta),
                 Num(phi)
             );
-            for col in 0..3 {
-                for row in 0..3 {
-                    let sep = if col == 0 && row == 0 { "" } else { " " };
-                    let _ = write!(s, "{sep}{}", Num(b.rotation[row][col]));
-                }
+            // Column-wise: b0 b1 b2 is the first column.
+            for k in 0..9 {
+                let sep = if k == 0 { "" } else { " " };
+                let _ = write!(s, "{sep}{}", Num(rotation[k % 3][k / 3]));
             }
             s.push(']');
         }
@@ -549,7 +561,7 @@ mod tests {
         let f = parse_datagram(d).unwrap();
         assert_eq!(
             f.bodies[0].rotation,
-            [[1.0, 4.0, 7.0], [2.0, 5.0, 8.0], [3.0, 6.0, 9.0]]
+            Some([[1.0, 4.0, 7.0], [2.0, 5.0, 8.0], [3.0, 6.0, 9.0]])
         );
     }
 }

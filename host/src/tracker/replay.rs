@@ -2,14 +2,17 @@
 //!
 //! Reads through the project's one reader, [`Session::load`]. Row `i` (from
 //! 0, header excluded) becomes frame `i` with `ts_s = t_s`; a row with empty
-//! `ots_*` columns becomes `body: None`. The CSV has no quality, and its
-//! orientation columns (`ots_q*`, when present) are not replayed: replayed
-//! poses carry the identity rotation and quality 1.
+//! `ots_*` columns becomes `body: None`. A row's orientation (`ots_q*`,
+//! when the session has one) is played back as the body's rotation (the
+//! quaternion's matrix, [`crate::observe::rotation_of_quaternion`]); a row
+//! without one gives a body whose rotation is unknown (`rotation: None`),
+//! not the identity. The CSV has no quality: replayed poses have quality 1.
 
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-use crate::dataset::Session;
+use crate::dataset::{Sample, Session};
+use crate::observe::rotation_of_quaternion;
 
 use super::dtrack::BodyPose;
 use super::{Next, SourceStats, TrackerError, TrackerFrame, TrackerSource};
@@ -23,10 +26,20 @@ pub enum Pacing {
     RealTime { speed: f64 },
 }
 
-/// A session's tracker column as a [`TrackerSource`].
+/// One replayed row: its time, and the body's position and rotation.
+type Row = (f64, Option<([f64; 3], Option<[[f64; 3]; 3]>)>);
+
+fn row_of(s: &Sample) -> Row {
+    let pose = s
+        .tracker
+        .map(|p| (p, s.orientation.map(rotation_of_quaternion)));
+    (s.t_s, pose)
+}
+
+/// A session's tracker columns as a [`TrackerSource`].
 #[derive(Clone, Debug)]
 pub struct ReplaySource {
-    rows: Vec<(f64, Option<[f64; 3]>)>,
+    rows: Vec<Row>,
     next: usize,
     pacing: Pacing,
     body_id: u32,
@@ -58,7 +71,7 @@ impl ReplaySource {
             });
         }
         Ok(ReplaySource {
-            rows: session.samples.iter().map(|s| (s.t_s, s.tracker)).collect(),
+            rows: session.samples.iter().map(row_of).collect(),
             next: 0,
             pacing,
             body_id: 0,
@@ -85,12 +98,12 @@ impl ReplaySource {
 
     fn emit(&mut self, now: Instant) -> Next {
         let i = self.next;
-        let Some(&(t, position)) = self.rows.get(i) else {
+        let Some(&(t, pose)) = self.rows.get(i) else {
             return Next::End;
         };
         self.next += 1;
         self.stats.delivered += 1;
-        if position.is_none() {
+        if pose.is_none() {
             self.stats.occluded += 1;
         }
         Next::Frame(TrackerFrame {
@@ -98,7 +111,10 @@ impl ReplaySource {
             frame: u32::try_from(i).unwrap_or(u32::MAX),
             ts_s: t,
             received_at: now,
-            body: position.map(|p| BodyPose::at(self.body_id, p)),
+            body: pose.map(|(p, rotation)| BodyPose {
+                rotation,
+                ..BodyPose::position_only(self.body_id, p)
+            }),
         })
     }
 }

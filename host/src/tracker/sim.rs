@@ -251,7 +251,7 @@ where
             Some(p) => vec![BodyPose::at(config.body_id, p)],
             None if config.occluded_as_negative_quality => vec![BodyPose {
                 quality: -1.0,
-                rotation: [[0.0; 3]; 3],
+                rotation: Some([[0.0; 3]; 3]),
                 ..BodyPose::at(config.body_id, [0.0; 3])
             }],
             None => Vec::new(),
