@@ -180,13 +180,16 @@ pub fn repaired(obs: &[Observation], offset_s: f64, max_gap_s: f64) -> (Vec<Obse
 }
 
 /// The rotation a fraction `f` of the way from `a` to `b` (row-major
-/// matrices), along the shortest arc.
+/// matrices), along the shortest arc. The matrices are rotations already
+/// (made from the reader's unit quaternions), taken as they are:
+/// `Rotation3::from_matrix`'s search, started from the identity, lands on
+/// a wrong rotation for some exact half turns.
 fn slerp(a: &[[f64; 3]; 3], b: &[[f64; 3]; 3], f: f64) -> [[f64; 3]; 3] {
     use nalgebra::{Matrix3, Rotation3, UnitQuaternion};
     let q = |m: &[[f64; 3]; 3]| {
-        UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix(&Matrix3::from_fn(|r, c| {
-            m[r][c]
-        })))
+        UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(Matrix3::from_fn(
+            |r, c| m[r][c],
+        )))
     };
     let m = q(a).slerp(&q(b), f).to_rotation_matrix();
     core::array::from_fn(|r| core::array::from_fn(|c| m[(r, c)]))
@@ -254,6 +257,21 @@ mod tests {
         let r = rows[0].tracker_rotation.unwrap();
         let expected = about_z(5.0);
         for (a, b) in r.iter().flatten().zip(expected.iter().flatten()) {
+            assert!((a - b).abs() < 1e-12, "{r:?}");
+        }
+        // Exact half turns (a body mounted upside down) interpolate too.
+        let half = |axis: [f64; 3]| rotation_of_quaternion([0.0, axis[0], axis[1], axis[2]]);
+        let upside = vec![
+            row(0.0, 0.0, Some(half([0.0, 1.0, 0.0]))),
+            row(1.0, 10.0, Some(half([0.0, 1.0, 0.0]))),
+        ];
+        let (turned, _) = repaired(&upside, 0.5, 5.0);
+        let r = turned[0].tracker_rotation.unwrap();
+        for (a, b) in r
+            .iter()
+            .flatten()
+            .zip(half([0.0, 1.0, 0.0]).iter().flatten())
+        {
             assert!((a - b).abs() < 1e-12, "{r:?}");
         }
         // Between a row with an orientation and one without: a position only.

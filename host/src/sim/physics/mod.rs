@@ -135,7 +135,9 @@ fn body_to_room_quaternion(
     error: &Vec3<f64>,
 ) -> [f64; 4] {
     use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector3};
-    let room = Rotation3::from_matrix(&Matrix3::from_fn(|r, c| room_rotation[r][c]));
+    // The room rotation is one (drawn as an axis and an angle), taken as it
+    // is: `from_matrix`'s search misses some exact half turns.
+    let room = Rotation3::from_matrix_unchecked(Matrix3::from_fn(|r, c| room_rotation[r][c]));
     let body = Rotation3::new(Vector3::new(omega[0], omega[1], omega[2]));
     let noise = Rotation3::new(Vector3::new(error[0], error[1], error[2]));
     let q = UnitQuaternion::from_rotation_matrix(&(noise * room * body));
@@ -311,7 +313,13 @@ impl PhysicsDevice {
     /// configured undeclared effects.
     pub fn new(config: &PhysicsConfig, seed: u64) -> Result<PhysicsDevice, SimError> {
         config.validate()?;
-        let nominal = config.nominal.geometry();
+        let nominal = Geometry {
+            // The pretension its initialization commands at the home
+            // capture (what the strings hold is that and their jitter).
+            home_tension_n: (config.tension.pretension_n > 0.0)
+                .then_some(config.tension.pretension_n),
+            ..config.nominal.geometry()
+        };
         let ab = &config.as_built;
         let effects = parse_effects(&config.effects)?;
         let strings = nominal.strings();
