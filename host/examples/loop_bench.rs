@@ -35,7 +35,7 @@ fn run(seed: u64, effects: &[&str], expect: Option<(Family, &[u8], Variable)>) -
         ..SimConfig::default()
     };
     let device = Device::new(&config, seed).expect("device");
-    let geometry = config.nominal.geometry();
+    let geometry = device.nominal.clone();
     let train = simulate_session(&device, SessionKind::Lattice, seed + 100).expect("lattice");
     let test = simulate_session(&device, SessionKind::Random { points: 500 }, seed + 200)
         .expect("test session");
@@ -49,7 +49,7 @@ fn run(seed: u64, effects: &[&str], expect: Option<(Family, &[u8], Variable)>) -
         Some(&test),
         &nominal,
         &start,
-        &LoopConfig::default(),
+        &LoopConfig::for_geometry(&geometry),
     )
     .expect("loop");
     let seconds = t0.elapsed().as_secs_f64();
@@ -84,7 +84,14 @@ fn clean_loop(
     let nominal = geometry.nominal_frame();
     let start = Start::from_geometry(geometry);
     let t0 = std::time::Instant::now();
-    let r = close_loop(train, Some(test), &nominal, &start, &LoopConfig::default()).expect("loop");
+    let r = close_loop(
+        train,
+        Some(test),
+        &nominal,
+        &start,
+        &LoopConfig::for_geometry(geometry),
+    )
+    .expect("loop");
     let seconds = t0.elapsed().as_secs_f64();
     let after = r.stages.last().and_then(|s| s.test).or(r.base_test);
     let rejected = r
@@ -148,7 +155,7 @@ fn clean_only(seeds: u64) {
         let test = simulate_session(&device, SessionKind::Random { points: 500 }, seed + 200)
             .expect("test session");
         let (added, after, s) = clean_loop(
-            &config.nominal.geometry(),
+            &device.nominal,
             &observations(&train.samples),
             &observations(&test.samples),
         );

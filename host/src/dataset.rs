@@ -235,7 +235,16 @@ pub struct Geometry {
     pub anchors_mm: [Vec3<f64>; STRINGS],
     /// `t` of `p_room = p_device + t` (mm), the paper's eq. 6.
     pub room_from_device_translation_mm: Vec3<f64>,
+    /// Tension every string held when home was captured (N): the pretension
+    /// the initialization holds (`spidar init` records it). The strings'
+    /// stretch is counted from it; `None`: the firmware's default, 1 N,
+    /// within 1 N.
+    pub home_tension_n: Option<f64>,
 }
+
+/// Largest home tension a geometry may declare, N (the firmware's tension
+/// ceiling is 20 N).
+pub const MAX_HOME_TENSION_N: f64 = 50.0;
 
 /// A key that is one number for all strings or an array of one per string.
 #[derive(Debug)]
@@ -298,6 +307,8 @@ struct GeometryFile {
     home_mm: Vec<f64>,
     anchors_mm: Vec<Vec<f64>>,
     room_from_device_translation_mm: Vec3<f64>,
+    #[serde(default)]
+    home_tension_n: Option<f64>,
 }
 
 fn field_error(file: &Path, field: impl Into<String>, problem: impl Into<String>) -> DatasetError {
@@ -403,6 +414,7 @@ impl Geometry {
             home_mm,
             anchors_mm,
             room_from_device_translation_mm: raw.room_from_device_translation_mm,
+            home_tension_n: raw.home_tension_n,
         };
         geometry.validate(file)?;
         Ok(geometry)
@@ -426,6 +438,18 @@ impl Geometry {
                     self.layout.indices().collect::<Vec<_>>()
                 ),
             ));
+        }
+        if let Some(t) = self.home_tension_n {
+            if !(t.is_finite() && t > 0.0 && t <= MAX_HOME_TENSION_N) {
+                return Err(field_error(
+                    file,
+                    "home_tension_n",
+                    format!(
+                        "{t} N: the tension the strings held at the home capture is above 0 and \
+                         at most {MAX_HOME_TENSION_N} N"
+                    ),
+                ));
+            }
         }
         for i in self.layout.indices() {
             if self.counts_per_rev[i] == 0 {
@@ -572,6 +596,9 @@ impl Geometry {
             "room_from_device_translation_mm = {:?}",
             self.room_from_device_translation_mm
         );
+        if let Some(t) = self.home_tension_n {
+            let _ = writeln!(s, "home_tension_n = {t:?}");
+        }
         s
     }
 

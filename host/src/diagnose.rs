@@ -123,6 +123,24 @@ pub struct LoopConfig {
     /// Try layer tables ([`crate::layers`]) before the effect families.
     #[serde(default = "yes")]
     pub layer_tables: bool,
+    /// The tension the strings held at the home capture, when the device's
+    /// geometry declares it ([`crate::dataset::Geometry::home_tension_n`]):
+    /// the stretch's home tension is then fitted around it instead of the
+    /// firmware's default 1 N (within 1 N either way: at 0.25 N the stretch
+    /// could no longer take the length every string's home shares, and
+    /// heavy-string seed 2's string model went 0.421 -> 0.640 mm).
+    #[serde(default)]
+    pub home_tension_n: Option<f64>,
+}
+
+impl LoopConfig {
+    /// The defaults with what `geometry` declares (the home tension).
+    pub fn for_geometry(geometry: &crate::dataset::Geometry) -> LoopConfig {
+        LoopConfig {
+            home_tension_n: geometry.home_tension_n,
+            ..LoopConfig::default()
+        }
+    }
 }
 
 fn yes() -> bool {
@@ -136,6 +154,7 @@ impl Default for LoopConfig {
             chi2_threshold: 40.0,
             min_relative_gain: 0.02,
             layer_tables: true,
+            home_tension_n: None,
         }
     }
 }
@@ -2087,6 +2106,9 @@ pub fn close_loop(
     config: &LoopConfig,
 ) -> Result<LoopResult, IdentifyError> {
     let mut structure = Structure::default();
+    if let Some(t) = config.home_tension_n {
+        structure.priors.home_tension_n = t;
+    }
     let base = identify(train, nominal, start, &structure)?;
     let base_train = model_errors(&base, train);
     let base_test = test.map(|t| model_errors(&base, t));

@@ -318,6 +318,28 @@ fn geometry_accepts_integers() {
     assert_eq!(g, Geometry::load(shared("geometry.toml")).unwrap());
 }
 
+/// The tension the strings held at the home capture: optional (the shared
+/// example has none), kept through a round trip, and a value that is no
+/// tension names the key.
+#[test]
+fn geometry_home_tension_is_optional_kept_and_checked() {
+    assert_eq!(geometry(GEOMETRY).unwrap().home_tension_n, None);
+    let g = geometry(&format!("{GEOMETRY}home_tension_n = 1.5\n")).unwrap();
+    assert_eq!(g.home_tension_n, Some(1.5));
+    let path = tmp("geometry-tension.toml");
+    g.write(&path).unwrap();
+    assert_eq!(Geometry::load(&path).unwrap(), g);
+    for bad in ["0", "-1.0", "nan", "80"] {
+        let msg = geometry(&format!("{GEOMETRY}home_tension_n = {bad}\n"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            msg.contains("mem/geometry.toml") && msg.contains("home_tension_n"),
+            "{bad}: {msg}"
+        );
+    }
+}
+
 #[test]
 fn geometry_error_unknown_key_names_it() {
     let err = geometry(&format!("{GEOMETRY}pulley_radius = 7\n")).unwrap_err();

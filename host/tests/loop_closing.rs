@@ -18,7 +18,7 @@ fn run(seed: u64, effects: &[&str]) -> (LoopResult, f64) {
         ..SimConfig::default()
     };
     let device = Device::new(&config, seed).expect("device");
-    let geometry = config.nominal.geometry();
+    let geometry = device.nominal.clone();
     let train = simulate_session(&device, SessionKind::Lattice, seed + 100).expect("lattice");
     let test = simulate_session(&device, SessionKind::Random { points: 500 }, seed + 200)
         .expect("test session");
@@ -31,7 +31,7 @@ fn run(seed: u64, effects: &[&str]) -> (LoopResult, f64) {
         Some(&test),
         &nominal,
         &start,
-        &LoopConfig::default(),
+        &LoopConfig::for_geometry(&geometry),
     )
     .expect("loop");
     let after = result

@@ -191,6 +191,10 @@ fn the_operator_follows_the_cues_to_the_centre_and_home_is_declared_there() {
                 < 1e-9
         );
     }
+    // The pretension it held at home goes into the geometry it writes (the
+    // strings' stretch is counted from it).
+    assert_eq!(record.home_tension_n, 1.0);
+    assert_eq!(record.apply_to(&geometry).home_tension_n, Some(1.0));
     // The device homed there: its forward kinematics reads the nominal home.
     assert!(
         distance(&record.device_position_after_home_mm, &geometry.home_mm) < 0.5,

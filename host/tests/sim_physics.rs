@@ -400,7 +400,12 @@ fn loop_with(
         Some(&observations(&test.samples)),
         &nominal,
         &Start::from_geometry(&device.nominal),
-        loop_config,
+        // What the device's geometry declares (the home tension), as
+        // `calibrate` does.
+        &spidar::diagnose::LoopConfig {
+            home_tension_n: device.nominal.home_tension_n,
+            ..*loop_config
+        },
     )
     .unwrap();
     (result, train, nominal)

@@ -619,7 +619,11 @@ pub fn calibrate(
     let t = Instant::now();
     let pb = spinner("identification and diagnosis", cfg.quiet);
     let start = Start::from_geometry(geometry);
-    let loop_result = close_loop(&tr, Some(&te), &nominal, &start, &cfg.loop_config);
+    let loop_config = LoopConfig {
+        home_tension_n: geometry.home_tension_n.or(cfg.loop_config.home_tension_n),
+        ..cfg.loop_config
+    };
+    let loop_result = close_loop(&tr, Some(&te), &nominal, &start, &loop_config);
     pb.finish_and_clear();
     let loop_result = loop_result?;
     timings.identification_s = t.elapsed().as_secs_f64();

@@ -196,6 +196,15 @@ pub struct InitRecord {
     pub device_position_after_home_mm: [f64; 3],
     /// Device id (from `Hello`).
     pub device_id: String,
+    /// The pretension every string held when home was declared, N (the
+    /// procedure's `Limits::pre_tension_n`); records written before it was
+    /// kept read the firmware's default, 1 N.
+    #[serde(default = "default_home_tension_n")]
+    pub home_tension_n: f64,
+}
+
+fn default_home_tension_n() -> f64 {
+    1.0
 }
 
 impl InitRecord {
@@ -211,10 +220,12 @@ impl InitRecord {
         })
     }
 
-    /// `geometry` with the measured eq. 6 translation.
+    /// `geometry` with the measured eq. 6 translation and the tension the
+    /// strings held at the home capture.
     pub fn apply_to(&self, geometry: &Geometry) -> Geometry {
         let mut g = geometry.clone();
         g.room_from_device_translation_mm = self.room_from_device_translation_mm;
+        g.home_tension_n = Some(self.home_tension_n);
         g
     }
 }
@@ -420,6 +431,7 @@ fn declare_home(
         declared_at_ts_s: ts_s,
         device_position_after_home_mm: after,
         device_id,
+        home_tension_n: f64::from(config.limits.pre_tension_n),
     })
 }
 

@@ -108,6 +108,9 @@ impl NominalConfig {
             home_mm,
             anchors_mm: core::array::from_fn(anchor),
             room_from_device_translation_mm: self.room_from_device_translation_mm,
+            // The design says nothing of it; the simulators' initialization
+            // declares its pretension (`SimConfig::tension`).
+            home_tension_n: None,
         }
     }
 }

@@ -96,7 +96,12 @@ impl Device {
     /// configured injected effects.
     pub fn new(config: &SimConfig, seed: u64) -> Result<Device, SimError> {
         config.validate()?;
-        let nominal = config.nominal.geometry();
+        let nominal = Geometry {
+            // The pretension its initialization holds at the home capture.
+            home_tension_n: (config.tension.pretension_n > 0.0)
+                .then_some(config.tension.pretension_n),
+            ..config.nominal.geometry()
+        };
         let ab = &config.as_built;
 
         let mut rng = stream(seed, 1);
