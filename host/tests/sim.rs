@@ -176,7 +176,14 @@ fn outputs_nominal_geometry_and_a_loadable_truth() {
     let report = run_simulate(&a).unwrap();
     assert_eq!(report.rows, 120);
     let g = Geometry::load(out.join("geometry.toml")).unwrap();
-    assert_eq!(g, SimConfig::default().nominal.geometry());
+    // The design, and the pretension its initialization declares.
+    assert_eq!(
+        g,
+        Geometry {
+            home_tension_n: Some(1.0),
+            ..SimConfig::default().nominal.geometry()
+        }
+    );
     assert_eq!(g.anchors_mm[4], [-1100.0, -1100.0, 1100.0]);
     let truth = Truth::load(out.join("truth.toml")).unwrap();
     let config = SimConfig {
