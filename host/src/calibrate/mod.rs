@@ -1034,7 +1034,12 @@ pub fn calibrate(
         },
         stages,
         effects: loop_result.findings.clone(),
-        identification: report::IdentificationReport::of(base, fin, &loop_result.layers),
+        identification: report::IdentificationReport::of(
+            base,
+            fin,
+            &loop_result.layers,
+            loop_result.structure.marker_body_mm,
+        ),
         selection,
         corrections: residual,
         blackbox,

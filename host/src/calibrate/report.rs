@@ -479,6 +479,12 @@ pub struct IdentificationReport {
     /// (every spacing tried with its held-out string rms); whether the
     /// tables were kept is the `layers` finding's validation.
     pub layer_tables: Vec<crate::layers::StringLayers>,
+    /// Where the tracked body's origin sits from the strings' meeting point
+    /// (body frame, mm) when the loop found it through the tracker's
+    /// orientation (`null` otherwise): the stages after it, the corrections
+    /// and the final errors read the tracker at the meeting point. A tool
+    /// that compares the device with the tracker must do the same.
+    pub marker_body_mm: Option<[f64; 3]>,
 }
 
 impl IdentificationReport {
@@ -486,6 +492,7 @@ impl IdentificationReport {
         base: &Identification,
         fin: &Identification,
         layer_tables: &[crate::layers::StringLayers],
+        marker_body_mm: Option<[f64; 3]>,
     ) -> IdentificationReport {
         IdentificationReport {
             parameters: fin.parameters.clone(),
@@ -496,6 +503,7 @@ impl IdentificationReport {
             effect_terms: fin.effects.clone(),
             base_residual_scale_mm: base.residual_scale_mm,
             layer_tables: layer_tables.to_vec(),
+            marker_body_mm,
         }
     }
 }
