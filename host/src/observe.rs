@@ -74,12 +74,17 @@ impl Observation {
     pub fn at_meeting_point(&self, marker_body_mm: &[f64; 3]) -> Observation {
         let mut o = self.clone();
         if let (Some(p), Some(r)) = (self.tracker, self.tracker_rotation) {
-            o.tracker = Some(core::array::from_fn(|k| {
-                p[k] - (0..3).map(|j| r[k][j] * marker_body_mm[j]).sum::<f64>()
-            }));
+            o.tracker = Some(meeting_point(&p, &r, marker_body_mm));
         }
         o
     }
+}
+
+/// The strings' meeting point (room frame, mm) of a tracked body at `p`
+/// turned by `body` (body to room, row-major) whose origin is
+/// `marker_body_mm` (body frame) from it: `p - R_body d`.
+pub fn meeting_point(p: &[f64; 3], body: &[[f64; 3]; 3], marker_body_mm: &[f64; 3]) -> [f64; 3] {
+    core::array::from_fn(|k| p[k] - (0..3).map(|j| body[k][j] * marker_body_mm[j]).sum::<f64>())
 }
 
 /// `observations` read at the strings' meeting point

@@ -144,6 +144,13 @@ pub struct MonitorConfig {
     /// Keep every pair in [`MonitorReport::recorded`] (a test compares them
     /// with a simulated truth; a long run would grow without bound).
     pub record_pairs: bool,
+    /// Where the tracked body's origin sits from the strings' meeting point
+    /// (body frame, mm), as the calibration found it (its report's
+    /// `identification.marker_body_mm`): the tracker is then read at the
+    /// meeting point, `p - R_body d`, as the calibration read it, and a
+    /// frame without the body's rotation is not paired
+    /// ([`MonitorReport::unoriented`]).
+    pub marker_body_mm: Option<[f64; 3]>,
 }
 
 impl Default for MonitorConfig {
@@ -170,6 +177,7 @@ impl Default for MonitorConfig {
             expected_model_id: None,
             host_clock: HostClock::Wall,
             record_pairs: false,
+            marker_body_mm: None,
         }
     }
 }
@@ -178,6 +186,14 @@ impl MonitorConfig {
     fn validate(&self) -> Result<(), MonitorError> {
         let bad =
             |field: &'static str, problem: String| Err(MonitorError::Config { field, problem });
+        if let Some(d) = self.marker_body_mm {
+            if !d.iter().all(|v| v.is_finite() && v.abs() <= 1000.0) {
+                return bad(
+                    "marker_body_mm",
+                    format!("{d:?} is not an offset of finite mm (at most 1 m per axis)"),
+                );
+            }
+        }
         if self.window < 100 {
             return bad(
                 "window",
@@ -354,6 +370,37 @@ pub enum MonitorEvent {
     Note(String),
 }
 
+/// Where the tracker sees the strings' meeting point in a frame of `body`:
+/// its origin, or with a marker offset `p - R_body d` (`None` when the frame
+/// has no rotation then: its meeting point is unknown).
+pub fn tracked_point(
+    body: &crate::tracker::BodyPose,
+    marker_body_mm: Option<[f64; 3]>,
+) -> Option<[f64; 3]> {
+    match marker_body_mm {
+        None => Some(body.position_mm),
+        Some(d) => body
+            .rotation
+            .map(|r| crate::observe::meeting_point(&body.position_mm, &r, &d)),
+    }
+}
+
+/// `--marker-body-mm X,Y,Z`: three numbers or an error naming the flag.
+fn marker_of(args: &MonitorArgs) -> Result<Option<[f64; 3]>, MonitorError> {
+    args.marker_body_mm
+        .as_deref()
+        .map(|v| {
+            <[f64; 3]>::try_from(v).map_err(|_| MonitorError::Config {
+                field: "marker_body_mm",
+                problem: format!(
+                    "{} values given: X,Y,Z (mm, the body's frame) expected",
+                    v.len()
+                ),
+            })
+        })
+        .transpose()
+}
+
 /// What a monitor run did.
 #[derive(Clone, Debug, Default)]
 pub struct MonitorReport {
@@ -364,6 +411,9 @@ pub struct MonitorReport {
     /// home the monitor no longer watches (before a reflash or a new home):
     /// not paired.
     pub superseded: usize,
+    /// Tracker frames without the body's rotation while a marker offset is
+    /// set: their meeting point is unknown, not paired.
+    pub unoriented: usize,
     pub states: usize,
     pub pairs: usize,
     pub baseline: Option<ErrorStats>,
@@ -740,7 +790,10 @@ impl Monitor<'_> {
                         .as_ref()
                         .filter(|b| b.id == self.config.body_id && b.is_visible())
                     {
-                        Some(b) => self.pending.push_back((f.ts_s, read_s, b.position_mm)),
+                        Some(b) => match tracked_point(b, self.config.marker_body_mm) {
+                            Some(p) => self.pending.push_back((f.ts_s, read_s, p)),
+                            None => self.report.unoriented += 1,
+                        },
                         None => self.report.occluded += 1,
                     }
                 }
@@ -994,7 +1047,10 @@ impl Monitor<'_> {
             }));
         }
         samples.extend(self.window.iter().map(|p| p.sample.clone()));
-        observations(&samples)
+        // The training rows as the calibration read them (the window's are
+        // paired at the meeting point already and carry no orientation).
+        crate::observe::at_meeting_points(&observations(&samples), self.config.marker_body_mm)
+            .into_owned()
     }
 
     fn refit_and_flash(
@@ -1354,6 +1410,17 @@ pub struct MonitorArgs {
     /// DTrack body id of the end-effector's marker.
     #[arg(long, default_value_t = 0)]
     pub body: u32,
+    /// Where the tracked body's origin sits from the strings' meeting point
+    /// (body frame, mm), as the calibration's report gives it
+    /// (`identification.marker_body_mm`): the tracker is read at the meeting
+    /// point, as the calibration read it.
+    #[arg(
+        long,
+        value_name = "X,Y,Z",
+        value_delimiter = ',',
+        allow_hyphen_values = true
+    )]
+    pub marker_body_mm: Option<Vec<f64>>,
     /// Pairs in the rolling window (and the baseline).
     #[arg(long, default_value_t = 600)]
     pub window: usize,
@@ -1469,6 +1536,7 @@ pub fn run_monitor(args: &MonitorArgs) -> Result<String, MonitorError> {
         error_factor: args.error_factor,
         refit: args.refit,
         expected_model_id: args.model_id,
+        marker_body_mm: marker_of(args)?,
         ..MonitorConfig::default()
     };
     if let Some(s) = args.seconds {
@@ -1576,4 +1644,64 @@ pub fn summary(r: &MonitorReport) -> String {
         ));
     }
     s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::tracker::BodyPose;
+
+    /// Without a marker offset the tracker is read at the body's origin;
+    /// with one, at the meeting point the body's rotation puts it; a frame
+    /// without the rotation then has no meeting point.
+    #[test]
+    fn the_tracker_is_read_at_the_meeting_point_the_calibration_found() {
+        let quarter_turn_about_z = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]];
+        let body = BodyPose {
+            rotation: Some(quarter_turn_about_z),
+            ..BodyPose::at(0, [100.0, 200.0, 300.0])
+        };
+        assert_eq!(tracked_point(&body, None), Some([100.0, 200.0, 300.0]));
+        assert_eq!(
+            tracked_point(&body, Some([10.0, 0.0, 5.0])),
+            Some([100.0, 190.0, 295.0])
+        );
+        let blind = BodyPose {
+            rotation: None,
+            ..body
+        };
+        assert_eq!(tracked_point(&blind, Some([10.0, 0.0, 5.0])), None);
+        assert_eq!(tracked_point(&blind, None), Some([100.0, 200.0, 300.0]));
+    }
+
+    /// `--marker-body-mm X,Y,Z` reaches the monitor's settings; an offset
+    /// that is not finite is refused by name.
+    #[test]
+    fn the_marker_offset_is_given_on_the_command_line_and_checked() {
+        use clap::Parser;
+        #[derive(Parser)]
+        struct Cli {
+            #[command(flatten)]
+            args: MonitorArgs,
+        }
+        let cli = Cli::try_parse_from([
+            "monitor",
+            "--simulate",
+            "1",
+            "--marker-body-mm",
+            "9.5,-1.25,-38",
+        ])
+        .unwrap();
+        assert_eq!(marker_of(&cli.args).unwrap(), Some([9.5, -1.25, -38.0]));
+        let two =
+            Cli::try_parse_from(["monitor", "--simulate", "1", "--marker-body-mm", "1,2"]).unwrap();
+        let e = marker_of(&two.args).unwrap_err().to_string();
+        assert!(e.contains("`marker_body_mm`: 2 values given"), "{e}");
+        let config = MonitorConfig {
+            marker_body_mm: Some([f64::NAN, 0.0, 0.0]),
+            ..MonitorConfig::default()
+        };
+        let e = config.validate().unwrap_err().to_string();
+        assert!(e.contains("marker_body_mm"), "{e}");
+    }
 }
