@@ -68,6 +68,7 @@ use spidar_protocol::{Limits, State, StringModel};
 use super::{distance, ArmWatch, ArmWatchError, CueSink, Cues, Progress};
 use crate::dataset::{DatasetError, Geometry, Sample, Session, SessionAppender, TornLine};
 use crate::link::{Client, LinkError};
+use crate::observe::{orientation_of_rotation, ROTATION_TOLERANCE};
 use crate::tracker::{ClockSync, HostClock, Next, StateHistory, TrackerError, TrackerSource};
 
 pub use crate::sim::lattice::{Lattice, LatticeError};
@@ -231,49 +232,6 @@ pub struct CollectReport {
     /// Rows captured in this run whose orientation the tracker gave but the
     /// file, having no orientation columns, could not take.
     pub orientations_not_recorded: u64,
-}
-
-/// How far a tracker's rotation matrix may be from a proper rotation
-/// (its determinant from 1, each entry of `R^T R` from the identity's) and
-/// still be recorded as the body's orientation. A tracker writes about six
-/// decimals: its matrices are within about 1e-5.
-pub const ROTATION_TOLERANCE: f64 = 1e-3;
-
-/// The orientation of a body whose rotation body -> room is `r` (row-major,
-/// `x_room = R x_body + s`): the unit quaternion `[w, x, y, z]` of the
-/// rotation nearest to `r`, with `w >= 0`, rounded to 1e-6 as the tracker's
-/// values are written (its norm stays within about 1e-6 of 1, well inside
-/// the session reader's 1e-3). `None` if `r` is not a proper rotation: a
-/// value not finite, `|det r - 1|` or an entry of `r^T r - I` above
-/// [`ROTATION_TOLERANCE`] (a reflection, a scaled or a degenerate matrix).
-pub fn orientation_of_rotation(r: &[[f64; 3]; 3]) -> Option<[f64; 4]> {
-    use nalgebra::{Matrix3, Rotation3, UnitQuaternion};
-    if !r.iter().flatten().all(|v| v.is_finite()) {
-        return None;
-    }
-    let m = Matrix3::from_fn(|row, col| r[row][col]);
-    let gram = m.transpose() * m - Matrix3::identity();
-    if (m.determinant() - 1.0).abs() > ROTATION_TOLERANCE || gram.amax() > ROTATION_TOLERANCE {
-        return None;
-    }
-    // The nearest rotation, found from a guess next to it: the quaternion
-    // read off the matrix as if it were one. (`Rotation3::from_matrix`
-    // starts from the identity, and from there an exact half turn, such as
-    // diag(-1, 1, -1), is a stationary point it does not leave: it returns
-    // a wrong rotation.) Bounded, though from so close it converges in a
-    // few iterations.
-    let guess = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(m));
-    let guess = UnitQuaternion::new_normalize(guess.into_inner());
-    let nearest = Rotation3::from_matrix_eps(&m, f64::EPSILON, 100, guess.to_rotation_matrix());
-    if (nearest.matrix() - m).amax() > 10.0 * ROTATION_TOLERANCE {
-        return None;
-    }
-    let q = UnitQuaternion::from_rotation_matrix(&nearest);
-    // One sign of the double cover: w >= 0 (`+ 0.0` writes -0 as 0).
-    let sign = if q.w < 0.0 { -1.0 } else { 1.0 };
-    let rounded = [q.w, q.i, q.j, q.k].map(|v| (sign * v * 1e6).round() / 1e6 + 0.0);
-    let norm = rounded.iter().map(|v| v * v).sum::<f64>().sqrt();
-    ((norm - 1.0).abs() <= 1e-5).then_some(rounded)
 }
 
 /// Why collection failed (the device is disarmed in every case; the rows

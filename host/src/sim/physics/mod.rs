@@ -125,25 +125,25 @@ impl Posture {
     }
 }
 
-/// The unit quaternion `[w, x, y, z]` of the body's rotation into the room:
-/// the room rotation after the body's turn `omega` (device frame), then a
-/// measurement error `error` (rotation vector, room frame), rounded to the
-/// 1e-6 a tracker writes.
+/// The tracker's reading of the body's orientation: the room rotation after
+/// the body's turn `omega` (device frame), then a measurement error `error`
+/// (rotation vector, room frame), written as a tracker's rotation is
+/// ([`crate::observe::orientation_of_rotation`]).
 fn body_to_room_quaternion(
     room_rotation: &[[f64; 3]; 3],
     omega: &Vec3<f64>,
     error: &Vec3<f64>,
-) -> [f64; 4] {
-    use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector3};
+) -> Option<[f64; 4]> {
+    use nalgebra::{Matrix3, Rotation3, Vector3};
     // The room rotation is one (drawn as an axis and an angle), taken as it
     // is: `from_matrix`'s search misses some exact half turns.
     let room = Rotation3::from_matrix_unchecked(Matrix3::from_fn(|r, c| room_rotation[r][c]));
     let body = Rotation3::new(Vector3::new(omega[0], omega[1], omega[2]));
     let noise = Rotation3::new(Vector3::new(error[0], error[1], error[2]));
-    let q = UnitQuaternion::from_rotation_matrix(&(noise * room * body));
-    // One sign of the double cover: w >= 0.
-    let sign = if q.w < 0.0 { -1.0 } else { 1.0 };
-    [q.w, q.i, q.j, q.k].map(|v| round_to(sign * v, 1e6))
+    let m = (noise * room * body).into_inner();
+    crate::observe::orientation_of_rotation(&core::array::from_fn(|r| {
+        core::array::from_fn(|c| m[(r, c)])
+    }))
 }
 
 /// Rotation matrix of a rotation vector.
@@ -859,11 +859,13 @@ pub fn simulate_rows(
         });
         // The body turns with the hand (`omega`, device frame); the tracker
         // reads its orientation in the room, with its own noise.
-        let orientation = (cfg.orientation.enabled && !occluded).then(|| {
-            let err: [f64; 3] =
-                core::array::from_fn(|_| orientation_noise.sample(&mut orientation_rng));
-            body_to_room_quaternion(&device.room_rotation, &omega, &err)
-        });
+        let orientation = (cfg.orientation.enabled && !occluded)
+            .then(|| {
+                let err: [f64; 3] =
+                    core::array::from_fn(|_| orientation_noise.sample(&mut orientation_rng));
+                body_to_room_quaternion(&device.room_rotation, &omega, &err)
+            })
+            .flatten();
         rows.push(PhysicsRow {
             t_s,
             counts,
