@@ -509,6 +509,10 @@ impl Evidence {
             let p = device_position(&id.frame, o);
             let inputs = inputs_at(&id.frame, o, &p);
             let prev = k.checked_sub(1).map(|j| &observations[j]);
+            // The body's turn as the device frame sees it, once per row.
+            let body_in_device = o
+                .tracker_rotation
+                .map(|body| body_in_device(&id.frame, &body));
             for i in 0..STRINGS {
                 let ctx = EffectContext::for_string(&id.frame, &id.laws, &inputs, i)?;
                 let d = [
@@ -539,9 +543,7 @@ impl Evidence {
                     length,
                     speed,
                     position: p,
-                    marker_column: o
-                        .tracker_rotation
-                        .map(|body| marker_column(&id.frame, &body, &up)),
+                    marker_column: body_in_device.map(|m| marker_column(&m, &up)),
                     scale_gradient: -(up[0] * p[0] + up[1] * p[1] + up[2] * p[2])
                         / id.frame.room_scale,
                 });
@@ -610,21 +612,28 @@ impl Evidence {
     }
 }
 
-/// `d length / d marker` of a string whose unit direction (anchor to
-/// end-effector) is `up`, when the tracked body (rotation `body` into the
-/// room) holds its origin `d` from the meeting point: the meeting point is
-/// `device_from_room(p - R_body d)`, so the string shortens by
-/// `up . R^T R_body d / s` (`R`, `s`: the room transform; a planar device's
-/// meeting point stays in its plane).
-fn marker_column(frame: &Frame<f64>, body: &[[f64; 3]; 3], up: &[f64; 3]) -> [f64; 3] {
+/// `R^T R_body / s` (`R`, `s`: the room transform), the rows of a planar
+/// device's normal zeroed (its meeting point stays in its plane): how the
+/// meeting point, `device_from_room(p - R_body d)`, moves against the
+/// tracked body's origin `d` (body frame).
+fn body_in_device(frame: &Frame<f64>, body: &[[f64; 3]; 3]) -> [[f64; 3]; 3] {
     let r = &frame.room_rotation;
-    core::array::from_fn(|j| {
-        (0..3)
-            .filter(|&k| !(frame.layout.planar && k == 2))
-            .map(|k| up[k] * (0..3).map(|m| r[m][k] * body[m][j]).sum::<f64>())
-            .sum::<f64>()
-            / frame.room_scale
+    core::array::from_fn(|k| {
+        core::array::from_fn(|j| {
+            if frame.layout.planar && k == 2 {
+                0.0
+            } else {
+                (0..3).map(|m| r[m][k] * body[m][j]).sum::<f64>() / frame.room_scale
+            }
+        })
     })
+}
+
+/// `d length / d marker` of a string whose unit direction (anchor to
+/// end-effector) is `up`, for the body's turn `body_in_device`
+/// ([`body_in_device`]): the string shortens by `up . M d`.
+fn marker_column(body_in_device: &[[f64; 3]; 3], up: &[f64; 3]) -> [f64; 3] {
+    core::array::from_fn(|j| (0..3).map(|k| up[k] * body_in_device[k][j]).sum::<f64>())
 }
 
 /// Turns fitted coefficients into the model change a candidate proposes.
@@ -1750,13 +1759,18 @@ pub(crate) fn validate_by(
 /// fit the step's size.
 pub const MIN_STEP_SIDE_ROWS: usize = 20;
 
-/// The mean held-out error of each fold of `v`, in order.
-fn fold_means(v: &Validation) -> impl Iterator<Item = f64> + '_ {
+/// The held-out errors of each fold of `v`, in order.
+fn fold_errors(v: &Validation) -> impl Iterator<Item = &[f64]> + '_ {
     v.fold_sizes.iter().scan(0, |from, &size| {
         let errors = &v.held_errors[*from..*from + size];
         *from += size;
-        Some(errors.iter().sum::<f64>() / size.max(1) as f64)
+        Some(errors)
     })
+}
+
+/// The mean held-out error of each fold of `v`, in order.
+fn fold_means(v: &Validation) -> impl Iterator<Item = f64> + '_ {
+    fold_errors(v).map(|errors| errors.iter().sum::<f64>() / errors.len().max(1) as f64)
 }
 
 /// Which of the blocked folds of `train` (indexed as
@@ -2048,18 +2062,12 @@ fn fold_rise(before: &Validation, after: &Validation) -> Option<FoldRise> {
     if after.folds != Folds::Blocked || before.fold_sizes != after.fold_sizes {
         return None;
     }
-    let mut from = 0;
     let mut worst: Option<FoldRise> = None;
-    for (k, &size) in after.fold_sizes.iter().enumerate() {
-        let (b, a) = (
-            &before.held_errors[from..from + size],
-            &after.held_errors[from..from + size],
-        );
-        from += size;
-        if size < 2 {
+    for (k, (b, a)) in fold_errors(before).zip(fold_errors(after)).enumerate() {
+        if a.len() < 2 {
             continue;
         }
-        let n = size as f64;
+        let n = a.len() as f64;
         let d: Vec<f64> = a.iter().zip(b).map(|(x, y)| x - y).collect();
         let mean = d.iter().sum::<f64>() / n;
         let var = d.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1.0);
