@@ -3,6 +3,8 @@
 //! virtual device's pseudo-terminal, the firmware's `Device`/`DeviceLink` on
 //! the master side.
 
+mod common;
+use common::eventually;
 use std::time::Duration;
 
 use spidar::link::{Client, ClientOptions, FlashPhase, LinkError, StreamOptions};
@@ -708,21 +710,4 @@ fn device_force_reports_the_rendered_force() {
         "{huge}"
     );
     assert!(huge.contains("disarmed"), "{huge}");
-}
-
-/// Whether `condition` comes to hold within 5 s (polled every 5 ms): what a
-/// device thread does after a call returns is not timed by the test, which
-/// must pass on a busy machine (a fixed 50 ms sleep did not, with every
-/// core loaded).
-fn eventually(condition: impl Fn() -> bool) -> bool {
-    let deadline = std::time::Instant::now() + Duration::from_secs(5);
-    loop {
-        if condition() {
-            return true;
-        }
-        if std::time::Instant::now() > deadline {
-            return false;
-        }
-        std::thread::sleep(Duration::from_millis(5));
-    }
 }

@@ -4,6 +4,8 @@
 //! occlusion, datagram loss), and `spidar::operator::collect::collect`
 //! between them over the serial link, writing the session CSV.
 
+mod common;
+use common::eventually;
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -764,21 +766,4 @@ fn a_reboot_during_the_collection_stops_it_naming_the_lost_home() {
     // The cells captured before the reboot stay on disk, in order.
     let session = Session::load(&path).unwrap();
     assert!(session.samples.len() >= 3, "{} rows", session.samples.len());
-}
-
-/// Whether `condition` comes to hold within 5 s (polled every 5 ms): what a
-/// device thread does after a call returns is not timed by the test, which
-/// must pass on a busy machine (a fixed 50 ms sleep did not, with every
-/// core loaded).
-fn eventually(condition: impl Fn() -> bool) -> bool {
-    let deadline = std::time::Instant::now() + Duration::from_secs(5);
-    loop {
-        if condition() {
-            return true;
-        }
-        if std::time::Instant::now() > deadline {
-            return false;
-        }
-        std::thread::sleep(Duration::from_millis(5));
-    }
 }

@@ -4,6 +4,8 @@
 //! tracker on loopback, and `spidar::operator::init::initialize` between
 //! them over the serial link.
 
+mod common;
+use common::eventually;
 use std::net::SocketAddr;
 use std::time::Duration;
 
@@ -253,21 +255,4 @@ fn an_operator_who_never_gets_there_times_out_with_the_closest_approach() {
         other => panic!("{other}"),
     }
     assert!(!w.vd.status().armed);
-}
-
-/// Whether `condition` comes to hold within 5 s (polled every 5 ms): what a
-/// device thread does after a call returns is not timed by the test, which
-/// must pass on a busy machine (a fixed 50 ms sleep did not, with every
-/// core loaded).
-fn eventually(condition: impl Fn() -> bool) -> bool {
-    let deadline = std::time::Instant::now() + Duration::from_secs(5);
-    loop {
-        if condition() {
-            return true;
-        }
-        if std::time::Instant::now() > deadline {
-            return false;
-        }
-        std::thread::sleep(Duration::from_millis(5));
-    }
 }

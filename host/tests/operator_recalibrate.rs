@@ -7,6 +7,8 @@
 //! after (never before), name it, refit, reflash, and bring the error the
 //! device reports back down.
 
+mod common;
+use common::eventually;
 use std::path::Path;
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
@@ -433,21 +435,4 @@ fn bad_input_gives_clear_errors() {
     // machine may take seconds more to run the monitor's thread).
     assert!(t.elapsed() < Duration::from_secs(30));
     assert!(eventually(|| !rig.virtual_device.status().armed));
-}
-
-/// Whether `condition` comes to hold within 5 s (polled every 5 ms): what a
-/// device thread does after a call returns is not timed by the test, which
-/// must pass on a busy machine (a fixed 50 ms sleep did not, with every
-/// core loaded).
-fn eventually(condition: impl Fn() -> bool) -> bool {
-    let deadline = std::time::Instant::now() + Duration::from_secs(5);
-    loop {
-        if condition() {
-            return true;
-        }
-        if std::time::Instant::now() > deadline {
-            return false;
-        }
-        std::thread::sleep(Duration::from_millis(5));
-    }
 }
