@@ -206,6 +206,14 @@ impl<'m> Bench<'m> {
         }
         self.request(&Request::UploadCommit { crc32: crc })
     }
+
+    /// The state frames streamed so far, in order.
+    fn states(&self) -> impl DoubleEndedIterator<Item = State> + '_ {
+        self.stream.iter().filter_map(|p| match p.msg {
+            DeviceMessage::State(s) => Some(s),
+            _ => None,
+        })
+    }
 }
 
 fn bad_state(s: BadState) -> Response {
@@ -385,14 +393,7 @@ fn full_session_through_frames() {
         &out.tensions_n,
     );
     assert!((f[2] - 2.0).abs() < 1e-2 && f[0].abs() < 1e-2, "{f:?}");
-    let states: Vec<State> = b
-        .stream
-        .iter()
-        .filter_map(|p| match p.msg {
-            DeviceMessage::State(s) => Some(s),
-            _ => None,
-        })
-        .collect();
+    let states: Vec<State> = b.states().collect();
     assert_eq!(states.len(), 10);
     assert_eq!(b.stream_seq.lost, 0);
     let last = states.last().unwrap();
@@ -480,15 +481,7 @@ fn full_session_through_frames() {
     }));
     // Still holding pre-tension: no flash work until Disarm.
     assert_eq!(b.request(&begin), bad_state(BadState::Armed));
-    let last = b
-        .stream
-        .iter()
-        .rev()
-        .find_map(|p| match p.msg {
-            DeviceMessage::State(s) => Some(s),
-            _ => None,
-        })
-        .unwrap();
+    let last = b.states().next_back().unwrap();
     assert!(!last.armed && last.faults.contains(Faults::HEARTBEAT_LOST));
     assert_eq!(last.tensions_n, [pretension; STRINGS]);
     assert_eq!(b.stream_seq.lost, 0);
@@ -785,15 +778,7 @@ fn home_rezeroes_the_strings_where_the_operator_holds_the_end_effector() {
         out = b.tick_at(raw_at([0.0; 3]));
     }
     // The state frame says when it was sampled, since boot and since home.
-    let last = b
-        .stream
-        .iter()
-        .rev()
-        .find_map(|p| match p.msg {
-            DeviceMessage::State(s) => Some(s),
-            _ => None,
-        })
-        .unwrap();
+    let last = b.states().next_back().unwrap();
     assert_eq!(last.time_us, b.now_us);
     assert_eq!(last.since_home_us, b.now_us - homed_at_us);
     assert_eq!(last.since_home_us, 6000);
