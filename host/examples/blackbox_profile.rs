@@ -10,9 +10,9 @@
 
 use std::time::Instant;
 
-use spidar::learn::search::{self, SvrSearchConfig};
-use spidar::learn::svr::{self, KernelMatrix, SolverConfig};
-use spidar::learn::{split_indices, standardize, Deadline, ErrorStats, OutputMode};
+use spidar::model::learn::search::{self, SvrSearchConfig};
+use spidar::model::learn::svr::{self, KernelMatrix, SolverConfig};
+use spidar::model::learn::{split_indices, standardize, Deadline, ErrorStats, OutputMode};
 
 fn read_pairs(path: &str) -> (Vec<[f64; 3]>, Vec<[f64; 3]>) {
     let text = std::fs::read_to_string(path).unwrap_or_else(|e| panic!("{path}: {e}"));

@@ -12,10 +12,10 @@
 
 use std::time::Instant;
 
-use spidar::learn::nn::{self, LmConfig, NnConfig};
-use spidar::learn::search::{self, SvrSearchConfig, SweepConfig};
-use spidar::learn::svr::{self, SolverConfig, SvrConfig, SvrParams};
-use spidar::learn::{synthetic, ErrorStats, OutputMode};
+use spidar::model::learn::nn::{self, LmConfig, NnConfig};
+use spidar::model::learn::search::{self, SvrSearchConfig, SweepConfig};
+use spidar::model::learn::svr::{self, SolverConfig, SvrConfig, SvrParams};
+use spidar::model::learn::{synthetic, ErrorStats, OutputMode};
 
 /// Process CPU seconds (user + system) from /proc, to tell contention from
 /// work on a shared machine; None where /proc is missing.

@@ -12,10 +12,12 @@
 //! physics, `sim::physics`), each effect added named per seed. The loop
 //! does not depend on the NN/SVR settings, so this is the full loop.
 
-use spidar::diagnose::{close_loop, family_name, variable_name, Family, LoopConfig, Variable};
-use spidar::identify::Start;
-use spidar::observe::observations;
-use spidar::observe::Observation;
+use spidar::data::observe::observations;
+use spidar::data::observe::Observation;
+use spidar::model::diagnose::{
+    close_loop, family_name, variable_name, Family, LoopConfig, Variable,
+};
+use spidar::model::identify::Start;
 use spidar::sim::config::SimConfig;
 use spidar::sim::physics::{self, PhysicsConfig, PhysicsDevice};
 use spidar::sim::{simulate_session, Device, SessionKind};
@@ -77,7 +79,7 @@ fn run(seed: u64, effects: &[&str], expect: Option<(Family, &[u8], Variable)>) -
 /// The loop on a clean session: the names of the effects it added, and the
 /// held-out (test) error after it.
 fn clean_loop(
-    geometry: &spidar::dataset::Geometry,
+    geometry: &spidar::data::dataset::Geometry,
     train: &[Observation],
     test: &[Observation],
 ) -> (Vec<String>, String, f64) {

@@ -20,14 +20,14 @@
 
 use std::path::Path;
 
-use spidar::calibrate::{calibrate, CalibrateConfig, Calibrated, NamedSession};
-use spidar::dataset::{Geometry, Session};
-use spidar::diagnose::{family_name, variable_name};
-use spidar::identify::{device_from_room, inputs_at};
-use spidar::observe::observations;
+use spidar::data::dataset::{Geometry, Session};
+use spidar::data::observe::observations;
+use spidar::data::stats::{position_error, ErrorStats};
+use spidar::model::diagnose::{family_name, variable_name};
+use spidar::model::identify::{device_from_room, inputs_at};
+use spidar::procedures::calibrate::{calibrate, CalibrateConfig, Calibrated, NamedSession};
 use spidar::sim::physics::{self, PhysicsConfig, PhysicsDevice, PhysicsTruth};
 use spidar::sim::{simulate_session, Device, SessionKind, SimConfig};
-use spidar::stats::{position_error, ErrorStats};
 use spidar_core::string_law::string_lengths_f64;
 use spidar_core::STRINGS;
 
@@ -303,12 +303,12 @@ fn extrapolation(
 ) -> (ErrorStats, ErrorStats) {
     let cal = &c.calibration;
     let obs = observations(&test.samples);
-    let model = spidar::predict::StringModel {
+    let model = spidar::model::predict::StringModel {
         frame: &cal.frame,
         laws: &cal.strings,
         effects: &cal.effects,
     };
-    let predicted = spidar::predict::predict(model, &obs);
+    let predicted = spidar::model::predict::predict(model, &obs);
     let (mut inside, mut outside) = (vec![], vec![]);
     for (o, p) in obs.iter().zip(&predicted) {
         let Some(t) = o.tracker else { continue };

@@ -1,20 +1,28 @@
-//! Host side of the SPIDAR stack: datasets, simulation, identification,
-//! learned corrections, diagnosis, reports, and the device link.
+//! Host side of the SPIDAR stack, in layers (each a folder; a layer uses the
+//! ones above it, never one below):
+//!
+//! - [`data`]: measured sessions (the one dataset reader and writer), how a
+//!   session is observed (tracker frame, orientation, meeting point) and the
+//!   one error statistic every report uses;
+//! - [`model`]: the calibration model and what fits it: prediction through
+//!   the device pipeline, identification, the diagnosis loop (residual ->
+//!   effect), layer tables, learned corrections (NN, SVR) and the compiler
+//!   to the device's fixed-point blob;
+//! - [`device`]: what the host talks to: the device link (postcard frames
+//!   over serial), the virtual device (the firmware's logic behind a
+//!   pseudo-terminal), the optical tracker (DTrack input, clock pairing) and
+//!   a model measured on the device;
+//! - [`sim`]: everything simulated: the model simulator, the independent
+//!   physics simulator, the virtual device's plant, a simulated tracker and
+//!   a simulated operator;
+//! - [`procedures`]: what a lab engineer runs: calibration, guided
+//!   initialization, lattice collection, runtime monitoring, and the cues
+//!   they show the operator.
+//!
+//! The `spidar` command line (`src/main.rs`) is a thin shell over these.
 
-pub mod calibrate;
-pub mod compile;
-pub mod dataset;
-pub mod device_run;
-pub mod diagnose;
-pub mod figures;
-pub mod identify;
-pub mod layers;
-pub mod learn;
-pub mod link;
-pub mod observe;
-pub mod operator;
-pub mod predict;
+pub mod data;
+pub mod device;
+pub mod model;
+pub mod procedures;
 pub mod sim;
-pub mod stats;
-pub mod tracker;
-pub mod virtual_device;

@@ -19,29 +19,29 @@ enum Command {
     /// Simulate a device and write its nominal geometry, one session and the truth.
     Simulate(spidar::sim::SimulateArgs),
     /// Compile a calibration into the device's model blob and measure its fixed-point error.
-    Compile(spidar::compile::CompileArgs),
+    Compile(spidar::model::compile::CompileArgs),
     /// Upload a model blob to a device (chunks, retry, resume, CRC, atomic commit, read-back).
-    Flash(spidar::link::cli::FlashArgs),
+    Flash(spidar::device::link::cli::FlashArgs),
     /// Talk to a device: info, stream, arm, disarm, force.
-    Device(spidar::link::cli::DeviceArgs),
+    Device(spidar::device::link::cli::DeviceArgs),
     /// Run a virtual device (firmware logic + simulated plant) behind a pseudo-terminal.
-    VirtualDevice(spidar::virtual_device::VirtualDeviceArgs),
+    VirtualDevice(spidar::device::virtual_device::VirtualDeviceArgs),
     /// Calibrate a device from a training and a test session: identification,
     /// diagnosis, NN and SVR corrections, error statistics, figures, JSON report.
-    Calibrate(spidar::calibrate::CalibrateArgs),
+    Calibrate(spidar::procedures::calibrate::CalibrateArgs),
     /// Simulate a device with a lattice and a test session, and calibrate it.
-    Demo(spidar::calibrate::DemoArgs),
+    Demo(spidar::procedures::calibrate::DemoArgs),
     /// Guided initialization: haptic and audio cues bring the marker to the
     /// frame centre, home is declared there, the room transform recorded.
-    Init(spidar::operator::init::InitArgs),
+    Init(spidar::procedures::init::InitArgs),
     /// Lattice data collection: the operator brings the marker into each
     /// cell in turn; tracker and device state are captured there, appended
     /// to the session CSV as they come; a stopped run resumes.
-    Collect(spidar::operator::collect::CollectArgs),
+    Collect(spidar::procedures::collect::CollectArgs),
     /// Runtime recalibration: pair device states with tracker frames while
     /// the device is used, report drift (a slipped string, ...) and refit
     /// and reflash the calibration.
-    Monitor(spidar::operator::recalibrate::MonitorArgs),
+    Monitor(spidar::procedures::recalibrate::MonitorArgs),
 }
 
 fn fail(e: &dyn std::error::Error) -> ! {
@@ -56,7 +56,7 @@ fn main() {
             Ok(report) => print!("{report}"),
             Err(e) => fail(&e),
         },
-        Command::Calibrate(args) => match spidar::calibrate::run_calibrate(args) {
+        Command::Calibrate(args) => match spidar::procedures::calibrate::run_calibrate(args) {
             Ok(out) => match out.json_stdout {
                 Some(json) => {
                     eprint!("{}", out.summary);
@@ -66,37 +66,39 @@ fn main() {
             },
             Err(e) => fail(&e),
         },
-        Command::Demo(args) => match spidar::calibrate::run_demo(args) {
+        Command::Demo(args) => match spidar::procedures::calibrate::run_demo(args) {
             Ok(text) => print!("{text}"),
             Err(e) => fail(&e),
         },
-        Command::Compile(args) => match spidar::compile::run_compile(args) {
+        Command::Compile(args) => match spidar::model::compile::run_compile(args) {
             Ok(report) => print!("{report}"),
             Err(e) => fail(&e),
         },
-        Command::Flash(args) => match spidar::link::cli::run_flash(args) {
+        Command::Flash(args) => match spidar::device::link::cli::run_flash(args) {
             Ok(text) => print!("{text}"),
             Err(e) => fail(e.as_ref()),
         },
-        Command::Device(args) => match spidar::link::cli::run_device(args) {
+        Command::Device(args) => match spidar::device::link::cli::run_device(args) {
             Ok(text) => print!("{text}"),
             Err(e) => fail(e.as_ref()),
         },
-        Command::Init(args) => match spidar::operator::init::run_init(args) {
+        Command::Init(args) => match spidar::procedures::init::run_init(args) {
             Ok(text) => print!("{text}"),
             Err(e) => fail(&e),
         },
-        Command::Collect(args) => match spidar::operator::collect::run_collect(args) {
+        Command::Collect(args) => match spidar::procedures::collect::run_collect(args) {
             Ok(text) => print!("{text}"),
             Err(e) => fail(&e),
         },
-        Command::Monitor(args) => match spidar::operator::recalibrate::run_monitor(args) {
+        Command::Monitor(args) => match spidar::procedures::recalibrate::run_monitor(args) {
             Ok(text) => print!("{text}"),
             Err(e) => fail(&e),
         },
-        Command::VirtualDevice(args) => match spidar::virtual_device::run_virtual_device(args) {
-            Ok(text) => print!("{text}"),
-            Err(e) => fail(&e),
-        },
+        Command::VirtualDevice(args) => {
+            match spidar::device::virtual_device::run_virtual_device(args) {
+                Ok(text) => print!("{text}"),
+                Err(e) => fail(&e),
+            }
+        }
     }
 }

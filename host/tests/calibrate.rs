@@ -7,8 +7,8 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use serde_json::Value;
-use spidar::calibrate::report::StageKind;
-use spidar::calibrate::{calibrate, CalibrateConfig, NamedSession, SCHEMA};
+use spidar::procedures::calibrate::report::StageKind;
+use spidar::procedures::calibrate::{calibrate, CalibrateConfig, NamedSession, SCHEMA};
 use spidar::sim::{simulate_session, Device, SessionKind, SimConfig};
 
 /// Held-out targets of the issue (test session, mm).

@@ -3,7 +3,7 @@
 
 use std::path::{Path, PathBuf};
 
-use spidar::dataset::{DatasetError, Geometry, Sample, Session, ValueProblem};
+use spidar::data::dataset::{DatasetError, Geometry, Sample, Session, ValueProblem};
 
 fn shared(file: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))

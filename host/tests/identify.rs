@@ -2,12 +2,17 @@
 //! the tracker's noise, parameters come with uncertainties, and data that
 //! cannot determine a parameter produce a warning naming it.
 
-use spidar::identify::{identify, Start, Structure};
-use spidar::observe::observations;
+use spidar::data::observe::observations;
+use spidar::model::identify::{identify, Start, Structure};
 use spidar::sim::{simulate_session, Device, SessionKind, SimConfig};
 use spidar_core::model::{Effect, EffectTerm};
 
-fn lattice(seed: u64) -> (Vec<spidar::observe::Observation>, spidar::dataset::Geometry) {
+fn lattice(
+    seed: u64,
+) -> (
+    Vec<spidar::data::observe::Observation>,
+    spidar::data::dataset::Geometry,
+) {
     let config = SimConfig::default();
     let device = Device::new(&config, seed).expect("device");
     let session = simulate_session(&device, SessionKind::Lattice, seed + 100).expect("lattice");

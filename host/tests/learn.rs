@@ -2,11 +2,11 @@
 //! solver (libsvm's plain SMO path and the default conjugate one) against
 //! libsvm (fixture written by scripts/reference/svr_reference.py).
 
-use spidar::learn::nn::{self, LmConfig, NnConfig};
-use spidar::learn::search::{self, SvrSearchConfig, SweepConfig, Validation};
-use spidar::learn::svr::{self, KernelMatrix, SolverConfig, SvrConfig, SvrParams};
-use spidar::learn::synthetic::{self, Dataset};
-use spidar::learn::{outliers, standardize, Deadline, ErrorStats, LearnError, OutputMode};
+use spidar::model::learn::nn::{self, LmConfig, NnConfig};
+use spidar::model::learn::search::{self, SvrSearchConfig, SweepConfig, Validation};
+use spidar::model::learn::svr::{self, KernelMatrix, SolverConfig, SvrConfig, SvrParams};
+use spidar::model::learn::synthetic::{self, Dataset};
+use spidar::model::learn::{outliers, standardize, Deadline, ErrorStats, LearnError, OutputMode};
 
 const HALF: f64 = 500.0;
 

@@ -7,9 +7,11 @@ mod common;
 use common::eventually;
 use std::time::Duration;
 
-use spidar::link::{Client, ClientOptions, FlashPhase, LinkError, StreamOptions};
+use spidar::device::link::{Client, ClientOptions, FlashPhase, LinkError, StreamOptions};
+use spidar::device::virtual_device::{
+    spawn, Pace, Plant, Trajectory, VirtualDevice, VirtualDeviceConfig,
+};
 use spidar::sim::{self, SimConfig};
-use spidar::virtual_device::{spawn, Pace, Plant, Trajectory, VirtualDevice, VirtualDeviceConfig};
 use spidar_core::blob::compile;
 use spidar_core::correction::{CorrectionModel, NnModel, OutputMode, Standardization};
 use spidar_core::model::Calibration;
@@ -286,14 +288,14 @@ fn a_blob_larger_than_the_firmware_capacity_is_refused() {
     let dev = sim_device();
     let vd = spawn(
         VirtualDeviceConfig {
-            blob_capacity: spidar::virtual_device::FIRMWARE_BLOB_CAPACITY,
+            blob_capacity: spidar::device::virtual_device::FIRMWARE_BLOB_CAPACITY,
             ..VirtualDeviceConfig::default()
         },
         Plant::new(dev.clone(), Trajectory::Hold),
     )
     .unwrap();
     let mut c = Client::open(vd.port_path()).unwrap();
-    let capacity = spidar::virtual_device::FIRMWARE_BLOB_CAPACITY;
+    let capacity = spidar::device::virtual_device::FIRMWARE_BLOB_CAPACITY;
     let big = blob(&dev, nn(3600), 3);
     assert!(big.len() > capacity);
     let e = c.flash(&big, |_| {}).unwrap_err();
@@ -539,7 +541,7 @@ fn link_benchmarks() {
         c.clear_model().unwrap();
         runs.push(c.flash(&big, |_| {}).unwrap());
     }
-    let med = |f: &dyn Fn(&spidar::link::FlashReport) -> f64| {
+    let med = |f: &dyn Fn(&spidar::device::link::FlashReport) -> f64| {
         let mut v: Vec<f64> = runs.iter().map(f).collect();
         v.sort_by(f64::total_cmp);
         v[v.len() / 2]

@@ -3,9 +3,9 @@
 //! family, strings and variable, and after adding it the held-out error must
 //! fall to within 1.3 times that of the same device without the effect.
 
-use spidar::diagnose::{close_loop, Family, LoopConfig, LoopResult, Variable};
-use spidar::identify::Start;
-use spidar::observe::observations;
+use spidar::data::observe::observations;
+use spidar::model::diagnose::{close_loop, Family, LoopConfig, LoopResult, Variable};
+use spidar::model::identify::Start;
 use spidar::sim::config::SimConfig;
 use spidar::sim::{simulate_session, Device, SessionKind};
 use spidar_core::model::{Effect, EVERY_STRING};

@@ -5,9 +5,9 @@
 
 use std::path::Path;
 
-use spidar::calibrate::align::SessionTiming;
-use spidar::calibrate::{calibrate, CalibrateConfig, Calibrated, NamedSession};
-use spidar::dataset::Session;
+use spidar::data::dataset::Session;
+use spidar::procedures::calibrate::align::SessionTiming;
+use spidar::procedures::calibrate::{calibrate, CalibrateConfig, Calibrated, NamedSession};
 use spidar::sim::{simulate_session, Device, SessionKind, SimConfig};
 
 fn config(strings: usize, planar: bool) -> SimConfig {

@@ -1,7 +1,7 @@
 //! Lattice collection end to end: a virtual device whose end-effector is in
 //! a simulated operator's hand, the operator reaching for the cell the
 //! procedure shows, a simulated DTrack2 tracker on loopback (noise,
-//! occlusion, datagram loss), and `spidar::operator::collect::collect`
+//! occlusion, datagram loss), and `spidar::procedures::collect::collect`
 //! between them over the serial link, writing the session CSV.
 
 mod common;
@@ -12,16 +12,16 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use spidar::dataset::{Session, SessionAppender};
-use spidar::link::Client;
-use spidar::operator::collect::{
+use spidar::data::dataset::{Session, SessionAppender};
+use spidar::device::link::Client;
+use spidar::device::tracker::{DtrackReceiver, ReceiverConfig};
+use spidar::device::virtual_device::{spawn, Hand, Pace, Plant, Trajectory, VirtualDeviceConfig};
+use spidar::procedures::collect::{
     collect, summary, CollectConfig, CollectError, CollectReport, Lattice, Stop,
 };
-use spidar::operator::sim_user::{HandSample, SimulatedRig};
-use spidar::operator::{CueSink, Cues, SharedCues};
+use spidar::procedures::cues::{CueSink, Cues, SharedCues};
+use spidar::sim::operator::{HandSample, SimulatedRig};
 use spidar::sim::{Device, SimConfig};
-use spidar::tracker::{DtrackReceiver, ReceiverConfig};
-use spidar::virtual_device::{spawn, Hand, Pace, Plant, Trajectory, VirtualDeviceConfig};
 use spidar_core::kinematics::{forward_kinematics, FkConfig};
 
 fn distance(a: &[f64; 3], b: &[f64; 3]) -> f64 {
@@ -621,7 +621,7 @@ fn a_file_of_another_layout_or_volume_is_refused_naming_it() {
 /// A virtual device and a tracker receiver nobody sends to.
 fn device_without_tracker() -> (
     Device,
-    spidar::virtual_device::VirtualDevice,
+    spidar::device::virtual_device::VirtualDevice,
     DtrackReceiver,
 ) {
     let device = Device::new(&SimConfig::default(), 3).unwrap();

@@ -1,7 +1,7 @@
 //! Guided initialization end to end: a virtual device whose end-effector is
 //! in a simulated operator's hand, the operator following the haptic cue the
 //! device renders and the audio cue the host plays, a simulated DTrack2
-//! tracker on loopback, and `spidar::operator::init::initialize` between
+//! tracker on loopback, and `spidar::procedures::init::initialize` between
 //! them over the serial link.
 
 mod common;
@@ -9,13 +9,13 @@ use common::eventually;
 use std::net::SocketAddr;
 use std::time::Duration;
 
-use spidar::link::Client;
-use spidar::operator::init::{initialize, InitConfig, InitError};
-use spidar::operator::sim_user::{FreeMotion, SimOperator, SimOperatorConfig};
-use spidar::operator::{CueSink, Cues, SharedCues};
+use spidar::device::link::Client;
+use spidar::device::tracker::{DtrackReceiver, ReceiverConfig, TrackerSource};
+use spidar::device::virtual_device::{spawn, Hand, Pace, Plant, Trajectory, VirtualDeviceConfig};
+use spidar::procedures::cues::{CueSink, Cues, SharedCues};
+use spidar::procedures::init::{initialize, InitConfig, InitError};
+use spidar::sim::operator::{FreeMotion, SimOperator, SimOperatorConfig};
 use spidar::sim::{Device, SimConfig};
-use spidar::tracker::{DtrackReceiver, ReceiverConfig, TrackerSource};
-use spidar::virtual_device::{spawn, Hand, Pace, Plant, Trajectory, VirtualDeviceConfig};
 
 fn distance(a: &[f64; 3], b: &[f64; 3]) -> f64 {
     ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
@@ -37,7 +37,7 @@ impl CueSink for Recorder {
 struct World {
     device: Device,
     hand: Hand,
-    vd: spidar::virtual_device::VirtualDevice,
+    vd: spidar::device::virtual_device::VirtualDevice,
     receiver: DtrackReceiver,
     cues: SharedCues,
 }
@@ -56,7 +56,7 @@ fn operator_and_client(w: &World, op_config: SimOperatorConfig) -> (SimOperator,
     .unwrap();
     let client = Client::open_with(
         w.vd.port_path(),
-        spidar::link::ClientOptions::for_simulated_device(),
+        spidar::device::link::ClientOptions::for_simulated_device(),
     )
     .unwrap();
     (operator, client)
@@ -213,7 +213,7 @@ fn a_silent_tracker_is_an_error_and_the_device_is_left_disarmed() {
     let mut w = world([10.0, 0.0, 0.0]);
     let mut client = Client::open_with(
         w.vd.port_path(),
-        spidar::link::ClientOptions::for_simulated_device(),
+        spidar::device::link::ClientOptions::for_simulated_device(),
     )
     .unwrap();
     let geometry = w.device.nominal.clone();

@@ -2,7 +2,7 @@
 //! simulated lattice, the blob flashed to a real-time virtual device whose
 //! end-effector is in the hand of a simulated operator who wanders about,
 //! the operator's DTrack2 tracker on loopback, and
-//! `spidar::operator::recalibrate::monitor` between them over the serial
+//! `spidar::procedures::recalibrate::monitor` between them over the serial
 //! link. A string slips at a known device time: the monitor must report it
 //! after (never before), name it, refit, reflash, and bring the error the
 //! device reports back down.
@@ -13,9 +13,9 @@ use std::path::Path;
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
-use spidar::diagnose::{Change, Family};
-use spidar::link::Client;
-use spidar::operator::recalibrate::{
+use spidar::device::link::Client;
+use spidar::model::diagnose::{Change, Family};
+use spidar::procedures::recalibrate::{
     calibrate_simulated, calibrate_simulated_with, event_line, monitor, MonitorConfig,
     MonitorError, MonitorEvent, MonitorInputs, MonitorReport, RefitPolicy, SimCalibration,
     SimRigConfig, SimulatedMonitorRig,
@@ -153,7 +153,7 @@ fn a_slipped_string_is_reported_named_refitted_and_reflashed() {
     let report = report.expect("monitor");
     eprintln!(
         "{}",
-        spidar::operator::recalibrate::summary(&report).trim_end()
+        spidar::procedures::recalibrate::summary(&report).trim_end()
     );
     let baseline = report.baseline.expect("a baseline window");
     pairing_error(&rig, &report);
@@ -290,7 +290,7 @@ fn a_clean_run_reports_no_drift() {
     let report = report.expect("monitor");
     eprintln!(
         "{}",
-        spidar::operator::recalibrate::summary(&report).trim_end()
+        spidar::procedures::recalibrate::summary(&report).trim_end()
     );
     assert!(report.checks.len() >= 6, "{} checks", report.checks.len());
     assert_eq!(report.drifts().count(), 0);
@@ -321,10 +321,10 @@ fn bad_input_gives_clear_errors() {
     let mut rig = rig(&[], 8.0);
     let mut client = rig.client().unwrap();
     let mut never = |_: &MonitorEvent| {};
-    let mut no = |_: &spidar::operator::recalibrate::Check| false;
+    let mut no = |_: &spidar::procedures::recalibrate::Check| false;
     let mut attempt = |client: &mut Client,
-                       tracker: &mut dyn spidar::tracker::TrackerSource,
-                       geometry: &spidar::dataset::Geometry,
+                       tracker: &mut dyn spidar::device::tracker::TrackerSource,
+                       geometry: &spidar::data::dataset::Geometry,
                        calibration: &spidar_core::model::Calibration,
                        config: &MonitorConfig| {
         monitor(
@@ -415,9 +415,12 @@ fn bad_input_gives_clear_errors() {
     assert!(e.to_string().contains("`window`"), "{e}");
 
     // A tracker that goes silent: a receiver nobody sends to.
-    let mut silent = spidar::tracker::DtrackReceiver::bind(spidar::tracker::ReceiverConfig::new(
-        std::net::SocketAddr::from(([127, 0, 0, 1], 0)),
-    ))
+    let mut silent = spidar::device::tracker::DtrackReceiver::bind(
+        spidar::device::tracker::ReceiverConfig::new(std::net::SocketAddr::from((
+            [127, 0, 0, 1],
+            0,
+        ))),
+    )
     .unwrap();
     let mut quick = short.clone();
     quick.tracker_timeout = Duration::from_millis(300);

@@ -16,9 +16,9 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use spidar::calibrate::report::StageKind;
-use spidar::calibrate::{calibrate, CalibrateConfig, NamedSession};
-use spidar::dataset::{DatasetError, Geometry, Session};
+use spidar::data::dataset::{DatasetError, Geometry, Session};
+use spidar::procedures::calibrate::report::StageKind;
+use spidar::procedures::calibrate::{calibrate, CalibrateConfig, NamedSession};
 
 /// The issue's target for the held-out mean (mm): a careful fit of anchors,
 /// per-string radius and spool build-up reaches it; the nominal geometry is
@@ -128,7 +128,7 @@ fn a_model_fitted_on_train_meets_the_held_out_target() {
     // doubled and quadrupled (issue 11): its laws are of the identified form
     // with the geometry's mechanical advantage, and read back as the same
     // shared spool build-up.
-    use spidar::operator::recalibrate::{check_calibration, identification_of};
+    use spidar::procedures::recalibrate::{check_calibration, identification_of};
     check_calibration(&c.calibration, &g, 100.0, &d.join("calibration.json"))
         .expect("the monitor accepts a calibration of a device with mechanical advantage");
     let back = identification_of(&c.calibration, &g.mechanical_advantage);

@@ -5,12 +5,12 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
-use spidar::dataset::{Geometry, Session};
+use spidar::data::dataset::{Geometry, Session};
+use spidar::data::stats::ErrorStats;
 use spidar::sim::{
     legacy_raw_errors, run_simulate, simulate_session, simulate_session_with_truth, Device,
     InjectedEffect, KindArg, SampleTruth, SessionKind, SimConfig, SimError, SimulateArgs, Truth,
 };
-use spidar::stats::ErrorStats;
 use spidar_core::model::Effect;
 use spidar_core::string_law::string_lengths_f64;
 use spidar_core::STRINGS;

@@ -5,8 +5,8 @@
 
 use std::path::{Path, PathBuf};
 
-use spidar::calibrate::{calibrate, CalibrateConfig, NamedSession};
-use spidar::dataset::Session;
+use spidar::data::dataset::Session;
+use spidar::procedures::calibrate::{calibrate, CalibrateConfig, NamedSession};
 use spidar::sim::physics::{
     rows_to_session, simulate_rows, simulate_session, PhysicsConfig, PhysicsDevice, PhysicsRow,
     EFFECT_NAMES,
@@ -289,9 +289,9 @@ const FINAL_MAX_MAX_MM: f64 = 3.5;
 /// `calibrate` (quick, quiet) of an independent device's two sessions.
 fn calibrate_quick(
     device: &PhysicsDevice,
-    train: &spidar::dataset::Session,
-    test: &spidar::dataset::Session,
-) -> spidar::calibrate::Calibrated {
+    train: &spidar::data::dataset::Session,
+    test: &spidar::data::dataset::Session,
+) -> spidar::procedures::calibrate::Calibrated {
     let mut cfg = CalibrateConfig::quick();
     cfg.quiet = true;
     calibrate(
@@ -360,15 +360,20 @@ fn calibration_on_the_independent_simulator() {
 }
 
 /// The diagnosis loop on a clean independent device (issue 10, point 6).
-fn clean_loop(seed: u64) -> spidar::diagnose::LoopResult {
+fn clean_loop(seed: u64) -> spidar::model::diagnose::LoopResult {
     loop_on(seed, &[])
 }
 
 /// The diagnosis loop on an independent device with undeclared `effects`,
 /// its lattice (session seed + 1) for training, 500 random points (+ 2) for
 /// the test.
-fn loop_on(seed: u64, effects: &[&str]) -> spidar::diagnose::LoopResult {
-    loop_with(seed, effects, &spidar::diagnose::LoopConfig::default()).0
+fn loop_on(seed: u64, effects: &[&str]) -> spidar::model::diagnose::LoopResult {
+    loop_with(
+        seed,
+        effects,
+        &spidar::model::diagnose::LoopConfig::default(),
+    )
+    .0
 }
 
 /// [`loop_on`] with `loop_config`, and the training session and the nominal
@@ -376,15 +381,15 @@ fn loop_on(seed: u64, effects: &[&str]) -> spidar::diagnose::LoopResult {
 fn loop_with(
     seed: u64,
     effects: &[&str],
-    loop_config: &spidar::diagnose::LoopConfig,
+    loop_config: &spidar::model::diagnose::LoopConfig,
 ) -> (
-    spidar::diagnose::LoopResult,
-    Vec<spidar::observe::Observation>,
+    spidar::model::diagnose::LoopResult,
+    Vec<spidar::data::observe::Observation>,
     spidar_core::model::Frame<f64>,
 ) {
-    use spidar::diagnose::close_loop;
-    use spidar::identify::Start;
-    use spidar::observe::observations;
+    use spidar::data::observe::observations;
+    use spidar::model::diagnose::close_loop;
+    use spidar::model::identify::Start;
     let config = PhysicsConfig {
         effects: effects.iter().map(|e| e.to_string()).collect(),
         ..PhysicsConfig::default()
@@ -402,7 +407,7 @@ fn loop_with(
         &Start::from_geometry(&device.nominal),
         // What the device's geometry declares (the home tension), as
         // `calibrate` does.
-        &spidar::diagnose::LoopConfig {
+        &spidar::model::diagnose::LoopConfig {
             home_tension_n: device.nominal.home_tension_n,
             ..*loop_config
         },
@@ -418,7 +423,7 @@ fn loop_with(
 /// an offset on string 4 was taken on the 15 % between the two).
 #[test]
 fn the_change_after_the_layer_tables_is_judged_against_them_validated_as_it_is() {
-    use spidar::diagnose::{validate, LoopConfig};
+    use spidar::model::diagnose::{validate, LoopConfig};
     let (full, train, nominal) = loop_with(1, &[], &LoopConfig::default());
     let (tables, _, _) = loop_with(
         1,
@@ -435,8 +440,8 @@ fn the_change_after_the_layer_tables_is_judged_against_them_validated_as_it_is()
     );
     let held = validate(&train, &nominal, &tables.identification, &tables.structure).unwrap();
     let next = full.findings.iter().find(|f| {
-        f.family != spidar::diagnose::Family::Layers
-            && f.family != spidar::diagnose::Family::Winding
+        f.family != spidar::model::diagnose::Family::Layers
+            && f.family != spidar::model::diagnose::Family::Winding
             && f.validation.is_some()
     });
     let check = next.unwrap().validation.as_ref().unwrap();
@@ -462,7 +467,7 @@ fn the_change_after_the_layer_tables_is_judged_against_them_validated_as_it_is()
 /// the check that refused it.
 #[test]
 fn a_clean_independent_device_gets_spool_rates_and_layer_tables_first_and_each_decision_says_why() {
-    use spidar::diagnose::{Family, Folds, LoopConfig};
+    use spidar::model::diagnose::{Family, Folds, LoopConfig};
     let r = clean_loop(1);
     assert_eq!(
         r.stages[0].name,
@@ -537,7 +542,7 @@ fn a_clean_independent_device_gets_spool_rates_and_layer_tables_first_and_each_d
 /// mm test mean before this rule, 0.72 after).
 #[test]
 fn a_slip_early_in_a_session_is_added_as_a_slip_not_an_offset() {
-    use spidar::diagnose::Family;
+    use spidar::model::diagnose::Family;
     let r = loop_on(2, &["slip"]);
     let slip = r
         .stages
@@ -567,7 +572,7 @@ fn a_slip_early_in_a_session_is_added_as_a_slip_not_an_offset() {
 /// the error falls to the clean device's level.
 #[test]
 fn heavy_strings_are_one_shared_sag_with_the_home_capture_s_tension() {
-    use spidar::diagnose::{Family, Variable};
+    use spidar::model::diagnose::{Family, Variable};
     use spidar_core::model::{Effect, EVERY_STRING};
     let r = loop_on(2, &["heavy-string"]);
     let stage = r
@@ -617,7 +622,7 @@ fn heavy_strings_are_one_shared_sag_with_the_home_capture_s_tension() {
 /// near the clean device's.
 #[test]
 fn a_flexing_frame_is_named_frame_flex() {
-    use spidar::diagnose::{Family, Variable};
+    use spidar::model::diagnose::{Family, Variable};
     use spidar_core::model::{Effect, EVERY_STRING};
     let r = loop_on(2, &["frame-flex"]);
     let stage = r
@@ -655,7 +660,7 @@ fn a_flexing_frame_is_named_frame_flex() {
 /// stand-in refused but the turning offset left to the correction).
 #[test]
 fn a_marker_off_the_meeting_point_is_found_through_the_tracked_orientation() {
-    use spidar::diagnose::{Family, Variable};
+    use spidar::model::diagnose::{Family, Variable};
     let r = loop_on(3, &["marker-offset"]);
     let stage = r
         .stages
@@ -727,22 +732,22 @@ fn without_orientation_no_marker_offset_is_proposed() {
     let device = PhysicsDevice::new(&config, 3).unwrap();
     let (train, _) = simulate_session(&device, SessionKind::Lattice, 4).unwrap();
     assert!(train.samples.iter().all(|s| s.orientation.is_none()));
-    let r = spidar::diagnose::close_loop(
-        &spidar::observe::observations(&train.samples),
+    let r = spidar::model::diagnose::close_loop(
+        &spidar::data::observe::observations(&train.samples),
         None,
         &device.nominal.nominal_frame(),
-        &spidar::identify::Start::from_geometry(&device.nominal),
-        &spidar::diagnose::LoopConfig::default(),
+        &spidar::model::identify::Start::from_geometry(&device.nominal),
+        &spidar::model::diagnose::LoopConfig::default(),
     )
     .unwrap();
     assert!(r.structure.marker_body_mm.is_none());
     assert!(r
         .findings
         .iter()
-        .all(|f| f.family != spidar::diagnose::Family::Marker));
+        .all(|f| f.family != spidar::model::diagnose::Family::Marker));
 }
 
-fn names(r: &spidar::diagnose::LoopResult) -> Vec<&str> {
+fn names(r: &spidar::model::diagnose::LoopResult) -> Vec<&str> {
     r.stages.iter().map(|s| s.name.as_str()).collect()
 }
 
@@ -750,9 +755,9 @@ fn names(r: &spidar::diagnose::LoopResult) -> Vec<&str> {
 /// gets a table (the spacing must lower the held-out residual by 3 %).
 #[test]
 fn a_clean_model_device_gets_no_layer_table() {
-    use spidar::diagnose::{close_loop, LoopConfig};
-    use spidar::identify::Start;
-    use spidar::observe::observations;
+    use spidar::data::observe::observations;
+    use spidar::model::diagnose::{close_loop, LoopConfig};
+    use spidar::model::identify::Start;
     let device = spidar::sim::Device::new(&spidar::sim::config::SimConfig::default(), 1).unwrap();
     let train = spidar::sim::simulate_session(&device, SessionKind::Lattice, 101).unwrap();
     let r = close_loop(
@@ -778,9 +783,9 @@ fn a_clean_model_device_gets_no_layer_table() {
 
 #[test]
 fn a_small_session_falls_back_to_interleaved_folds() {
-    use spidar::diagnose::{validate, Folds, MIN_BLOCKED_ROWS};
-    use spidar::identify::{identify, Start, Structure};
-    use spidar::observe::observations;
+    use spidar::data::observe::observations;
+    use spidar::model::diagnose::{validate, Folds, MIN_BLOCKED_ROWS};
+    use spidar::model::identify::{identify, Start, Structure};
     let device = PhysicsDevice::new(&quiet_config(), 2).unwrap();
     let (train, _) = simulate_session(&device, SessionKind::Random { points: 150 }, 3).unwrap();
     let obs = observations(&train.samples);

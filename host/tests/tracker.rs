@@ -12,15 +12,15 @@ use std::time::{Duration, Instant};
 use proptest::prelude::*;
 use rand::rngs::ChaCha8Rng;
 use rand::{RngExt, SeedableRng};
-use spidar::tracker::dtrack::{
+use spidar::device::tracker::dtrack::{
     format_datagram, parse_datagram, BodyPose, DtrackError, DtrackFrame, FieldProblem,
 };
-use spidar::tracker::receiver::Reorder;
-use spidar::tracker::{
+use spidar::device::tracker::receiver::Reorder;
+use spidar::device::tracker::{
     collect, estimate_time_shift, DtrackReceiver, Next, Pacing, ReceiverConfig, ReplaySource,
-    ShiftConfig, SimReport, SimSender, SimSenderConfig, SyncError, TimedPosition, TrackerError,
-    TrackerFrame, TrackerSource,
+    ShiftConfig, SyncError, TimedPosition, TrackerError, TrackerFrame, TrackerSource,
 };
+use spidar::sim::tracker::{SimReport, SimSender, SimSenderConfig};
 
 const LOOPBACK_ANY_PORT: &str = "127.0.0.1:0";
 
@@ -383,7 +383,7 @@ fn values_after_those_read_are_ignored() {
     let b = &f.bodies[0];
     assert_eq!((b.id, b.quality), (0, 0.9));
     assert_eq!(b.position_mm, [1.0, 2.0, 3.0]);
-    assert_eq!(b.rotation, Some(spidar::tracker::dtrack::IDENTITY));
+    assert_eq!(b.rotation, Some(spidar::device::tracker::dtrack::IDENTITY));
 }
 
 #[test]
@@ -915,7 +915,7 @@ fn session_head() -> PathBuf {
 
 #[test]
 fn replay_of_the_shared_session_keeps_occlusions() {
-    let session = spidar::dataset::Session::load(session_head()).unwrap();
+    let session = spidar::data::dataset::Session::load(session_head()).unwrap();
     let mut replay = ReplaySource::load(session_head(), Pacing::AsFastAsPossible).unwrap();
     assert_eq!(replay.len(), session.samples.len());
     let frames = collect(&mut replay, usize::MAX, Duration::from_secs(5)).unwrap();
@@ -944,7 +944,7 @@ fn replay_of_the_shared_session_keeps_occlusions() {
 
 #[test]
 fn replay_plays_back_a_session_s_orientation_as_the_body_s_rotation() {
-    use spidar::dataset::{Sample, Session};
+    use spidar::data::dataset::{Sample, Session};
     let row = |t_s: f64, tracker: Option<[f64; 3]>, orientation: Option<[f64; 4]>| Sample {
         t_s,
         counts: [0; 8],

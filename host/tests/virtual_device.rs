@@ -5,11 +5,11 @@
 use std::time::Duration;
 
 use proptest::prelude::*;
-use spidar::compile::{fixed_point_error, run_compile, CompileArgs, FIXED_POINT_BUDGET_MM};
-use spidar::link::Client;
-use spidar::observe::observations;
+use spidar::data::observe::observations;
+use spidar::device::link::Client;
+use spidar::device::virtual_device::{spawn, Plant, Trajectory, VirtualDeviceConfig, Waypoint};
+use spidar::model::compile::{fixed_point_error, run_compile, CompileArgs, FIXED_POINT_BUDGET_MM};
 use spidar::sim::{self, SessionKind, SimConfig};
-use spidar::virtual_device::{spawn, Plant, Trajectory, VirtualDeviceConfig, Waypoint};
 use spidar_core::blob::{compile, CompiledCalibration};
 use spidar_core::correction::{CorrectionModel, NnModel, OutputMode, Standardization};
 use spidar_core::device::DeviceLink;

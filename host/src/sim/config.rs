@@ -9,7 +9,7 @@ use spidar_core::model::Vec3;
 use spidar_core::STRINGS;
 
 use super::SimError;
-use crate::dataset::Geometry;
+use crate::data::dataset::Geometry;
 
 /// The whole simulator configuration.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -395,13 +395,13 @@ impl SimConfig {
     /// Check every parameter; errors name the field (`section.key`).
     pub fn validate(&self) -> Result<(), SimError> {
         let n = &self.nominal;
-        if !(crate::dataset::MIN_STRINGS..=STRINGS).contains(&n.strings) {
+        if !(crate::data::dataset::MIN_STRINGS..=STRINGS).contains(&n.strings) {
             return Err(bad(
                 "nominal.strings",
                 format!(
                     "{} is not in {}..={STRINGS}",
                     n.strings,
-                    crate::dataset::MIN_STRINGS
+                    crate::data::dataset::MIN_STRINGS
                 ),
             ));
         }

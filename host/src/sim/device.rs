@@ -12,7 +12,7 @@ use spidar_core::string_law::{cos2_inclination_q16, EffectContext};
 
 use super::effects::{parse_effects, InjectedEffect};
 use super::SimError;
-use crate::dataset::Geometry;
+use crate::data::dataset::Geometry;
 
 /// Independent random streams derived from one seed (splitmix64), so that
 /// e.g. switching tracker occlusion off does not change the trajectory.

@@ -2,7 +2,7 @@
 //! `cells_per_axis`^3 cubic cells over a volume of the room (tracker) frame,
 //! and the order in which they are sampled. One definition for the
 //! simulator's lattice sessions ([`super::simulate_session`]) and for the
-//! live protocol (`spidar collect`, [`crate::operator::collect`]).
+//! live protocol (`spidar collect`, [`crate::procedures::collect`]).
 //!
 //! Order: "starting at the front of the volume, processing through the same
 //! x-z plane and then moving forward to the next plane": plane by plane from

@@ -10,7 +10,7 @@ use spidar_core::model::{StringLaw, StringLayout, Vec3};
 use spidar_core::string_law::payout_f64;
 use spidar_core::STRINGS;
 
-use crate::dataset::Geometry;
+use crate::data::dataset::Geometry;
 
 pub(crate) struct LegacyController {
     anchors: [Vec3<f64>; STRINGS],

@@ -7,7 +7,7 @@
 //! true room-from-device transform of the tracker (small rotation, eq. 6
 //! translation), the paper's abnormal motor, and any injected effects
 //! ([`effects`]). [`simulate_session`] moves the end-effector along a path
-//! ([`SessionKind`]) and records one [`Sample`](crate::dataset::Sample) per
+//! ([`SessionKind`]) and records one [`Sample`] per
 //! capture: quantized encoder counts from the true winding law, commanded
 //! tensions, the tracker position (noisy, sometimes occluded) and what a
 //! legacy controller would report.
@@ -24,7 +24,10 @@ pub mod device;
 pub mod effects;
 pub mod lattice;
 mod legacy;
+pub mod operator;
 pub mod physics;
+pub mod plant;
+pub mod tracker;
 mod trajectory;
 pub mod truth;
 
@@ -41,7 +44,7 @@ pub use effects::{parse_effect, parse_effects, InjectedEffect};
 pub use lattice::{Lattice, LatticeError};
 pub use truth::Truth;
 
-use crate::dataset::{DatasetError, Sample, Session};
+use crate::data::dataset::{DatasetError, Sample, Session};
 use device::{dot, norm, normal, stream, sub};
 use rand_distr::Distribution;
 
@@ -390,7 +393,7 @@ pub struct SimulateReport {
     pub occluded_rows: usize,
     /// Eq. 7 error of the legacy position (mapped to the room by eq. 6) against
     /// the tracker, over rows with both.
-    pub legacy_raw_error: Option<crate::stats::ErrorStats>,
+    pub legacy_raw_error: Option<crate::data::stats::ErrorStats>,
 }
 
 impl std::fmt::Display for SimulateReport {
@@ -421,14 +424,14 @@ impl std::fmt::Display for SimulateReport {
 
 /// Eq. 7 error of the legacy positions (eq. 6 to the room with the nominal
 /// translation) against the tracker, over the rows that have both.
-pub fn legacy_raw_errors(session: &Session, geometry: &crate::dataset::Geometry) -> Vec<f64> {
+pub fn legacy_raw_errors(session: &Session, geometry: &crate::data::dataset::Geometry) -> Vec<f64> {
     let t = geometry.room_from_device_translation_mm;
     session
         .samples
         .iter()
         .filter_map(|s| {
             let (d, o) = (s.legacy?, s.tracker?);
-            Some(crate::stats::position_error(
+            Some(crate::data::stats::position_error(
                 [d[0] + t[0], d[1] + t[1], d[2] + t[2]],
                 o,
             ))
@@ -471,10 +474,10 @@ pub(crate) fn session_seed(args: &SimulateArgs, kind: SessionKind) -> u64 {
 pub(crate) fn write_outputs(
     args: &SimulateArgs,
     kind: SessionKind,
-    nominal: &crate::dataset::Geometry,
+    nominal: &crate::data::dataset::Geometry,
     session: &Session,
     write_truth: impl FnOnce(&std::path::Path) -> Result<(), SimError>,
-    legacy_raw_error: Option<crate::stats::ErrorStats>,
+    legacy_raw_error: Option<crate::data::stats::ErrorStats>,
 ) -> Result<SimulateReport, SimError> {
     std::fs::create_dir_all(&args.out).map_err(|source| SimError::Io {
         file: args.out.clone(),
@@ -522,6 +525,6 @@ pub fn run_simulate(args: &SimulateArgs) -> Result<SimulateReport, SimError> {
         &device.nominal,
         &session,
         |truth| Truth::of(&device).write(truth),
-        (!errors.is_empty()).then(|| crate::stats::ErrorStats::of(&errors)),
+        (!errors.is_empty()).then(|| crate::data::stats::ErrorStats::of(&errors)),
     )
 }

@@ -4,7 +4,7 @@
 //! exact on its data. It shares with the model simulator ([`super`]) only
 //! what is not physics: the design (`[nominal]`), the tracker's frame,
 //! noise and occlusions, the commanded tensions, the paper's lattice and
-//! the random test paths ([`super::trajectory`]), and the dataset writer. It
+//! the random test paths (the model simulator's `trajectory` module), and the dataset writer. It
 //! never evaluates the model's string law, effect terms, identification or
 //! kinematics.
 //!
@@ -81,7 +81,7 @@ pub use spool::{Spool, SpoolParams};
 
 use super::device::{axis_angle, dot, norm, normal, rotate, rotate_back, stream, sub};
 use super::{trajectory, SessionKind, SimError, SimulateArgs, SimulateReport};
-use crate::dataset::{Geometry, Sample, Session};
+use crate::data::dataset::{Geometry, Sample, Session};
 
 const G_MM_PER_S2: f64 = 9806.65;
 
@@ -128,7 +128,7 @@ impl Posture {
 /// The tracker's reading of the body's orientation: the room rotation after
 /// the body's turn `omega` (device frame), then a measurement error `error`
 /// (rotation vector, room frame), written as a tracker's rotation is
-/// ([`crate::observe::orientation_of_rotation`]).
+/// ([`crate::data::observe::orientation_of_rotation`]).
 fn body_to_room_quaternion(
     room_rotation: &[[f64; 3]; 3],
     omega: &Vec3<f64>,
@@ -141,7 +141,7 @@ fn body_to_room_quaternion(
     let body = Rotation3::new(Vector3::new(omega[0], omega[1], omega[2]));
     let noise = Rotation3::new(Vector3::new(error[0], error[1], error[2]));
     let m = (noise * room * body).into_inner();
-    crate::observe::orientation_of_rotation(&core::array::from_fn(|r| {
+    crate::data::observe::orientation_of_rotation(&core::array::from_fn(|r| {
         core::array::from_fn(|c| m[(r, c)])
     }))
 }
@@ -232,7 +232,7 @@ pub fn rows_to_session(rows: Vec<PhysicsRow>) -> Result<Session, SimError> {
             let n = r.counts.len();
             if n != strings
                 || r.tension_n.len() != n
-                || !(crate::dataset::MIN_STRINGS..=spidar_core::STRINGS).contains(&n)
+                || !(crate::data::dataset::MIN_STRINGS..=spidar_core::STRINGS).contains(&n)
             {
                 return Err(wrong_count(n));
             }
@@ -263,7 +263,7 @@ fn wrong_count(n: usize) -> SimError {
         field: "nominal".into(),
         problem: format!(
             "a row of {n} strings: a session holds {}..={} strings, the same in every row",
-            crate::dataset::MIN_STRINGS,
+            crate::data::dataset::MIN_STRINGS,
             spidar_core::STRINGS
         ),
     }

@@ -1,0 +1,11 @@
+//! Measured data: sessions, how they are observed, and their error statistic.
+//!
+//! - [`dataset`]: the one reader and writer of session CSVs and geometry
+//!   files, with file/line/column errors;
+//! - [`observe`]: what a tracked row says (the tracker frame, the body's
+//!   orientation, the strings' meeting point);
+//! - [`stats`]: eq. 7's error statistics, used by every report.
+
+pub mod dataset;
+pub mod observe;
+pub mod stats;

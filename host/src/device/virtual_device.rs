@@ -1,0 +1,820 @@
+//! A SPIDAR controller on the host: the firmware's own device logic
+//! ([`spidar_core::device::Device`], [`DeviceLink`]) behind a
+//! pseudo-terminal, driven by a [`Plant`] (strings, end-effector on a
+//! trajectory, motors, encoders) and a two-slot [`RamFlash`] that can lose
+//! power at any write.
+//!
+//! [`spawn`] opens the pseudo-terminal pair, runs the device in a thread and
+//! returns a [`VirtualDevice`] whose [`VirtualDevice::port_path`] any serial
+//! client opens (`spidar flash --port PATH`, [`crate::device::link::Client::open`]):
+//! host commands and tests go through the same serial path as with a real
+//! device.
+//!
+//! # Time
+//!
+//! The device runs on its own clock (µs since boot), one [`Device::tick`]
+//! every [`VirtualDeviceConfig::tick_us`] of device time. [`Pace`] maps it to
+//! real time: `RealTime { speed }` keeps device time at `speed` x real time
+//! (1.0: like the hardware); `Fast` runs ticks back to back while a state
+//! stream is on (paced by the reader: a full pseudo-terminal holds the
+//! device back) and in real time otherwise. Requests are handled at the
+//! device time of the last tick, so heartbeat timeouts are in device time.
+//! `Virtual` is virtual time for a simulated rig: the plant's end-effector
+//! is in a simulated operator's clocked [`Hand`], and the device ticks as
+//! far as the operator has committed the hand's path, back to back, and
+//! waits there (still answering requests, at the device time it reached).
+//! The simulated world then runs as fast as it is computed, and a host
+//! starved of CPU slows all of it down instead of finding its heartbeat
+//! late; a host that stops sending heartbeats while the world goes on
+//! still trips the device, after 100 ms of simulated time. Whatever the
+//! pace, a plant with a clocked hand never ticks past the committed path.
+//!
+//! # Power
+//!
+//! [`VirtualDevice::cut_flash_after`] plans a power loss at the n-th next
+//! flash operation ([`RamFlash::cut_after`]); when it happens the device goes
+//! silent (it stops answering and ticking) until
+//! [`VirtualDevice::power_cycle`], which boots a new `Device` on the same
+//! flash (the plant back at home, device time 0), as the firmware would boot.
+
+pub use crate::sim::plant::{Hand, Plant, SimClock, Trajectory, Waypoint};
+
+use std::io::{Read, Write};
+use std::os::fd::AsRawFd;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::mpsc::{channel, Receiver, Sender, TryRecvError};
+use std::sync::{Arc, Mutex};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use serialport::SerialPort;
+use spidar_core::control::ControlConfig;
+use spidar_core::device::{Device, DeviceConfig, DeviceLink, TickInput};
+use spidar_core::model_store::{FlashError, ModelFlash, RamFlash, Slot, RECORD_LEN};
+use spidar_core::STRINGS;
+use spidar_protocol::{DecodeStats, Request};
+
+/// Bytes per flash slot of the virtual device: a 128 KiB blob and its
+/// commit record.
+pub const SLOT_LEN: usize = 128 * 1024 + RECORD_LEN;
+
+/// Largest blob the firmware takes (its RAM model buffers, see
+/// `docs/hardware.md`); the virtual device takes up to
+/// [`VirtualDeviceConfig::blob_capacity`].
+pub const FIRMWARE_BLOB_CAPACITY: usize = spidar_protocol::blob::REFERENCE_FIRMWARE_BLOB_CAPACITY;
+
+/// Why the virtual device could not start.
+#[derive(Debug, thiserror::Error)]
+pub enum VirtualDeviceError {
+    #[error("virtual device: cannot open a pseudo-terminal: {0}")]
+    Pty(serialport::Error),
+    #[error("virtual device: cannot make the pseudo-terminal non-blocking: {0}")]
+    NonBlocking(nix::Error),
+    #[error("virtual device: cannot start its thread: {0}")]
+    Thread(std::io::Error),
+    #[error("virtual device: `{field}`: {problem}")]
+    Config {
+        field: &'static str,
+        problem: String,
+    },
+    #[error("virtual device: the device thread has stopped")]
+    Stopped,
+    #[error("virtual device: no reboot within {0:?}")]
+    RebootTimeout(Duration),
+}
+
+/// How device time relates to real time.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Pace {
+    /// Device time runs `speed` times as fast as real time.
+    RealTime { speed: f64 },
+    /// Back-to-back ticks while streaming, real time otherwise.
+    Fast,
+    /// Virtual time: the device ticks as far as the simulated world has
+    /// been computed (a clocked [`Hand`]'s committed path,
+    /// [`Plant::ready_until_us`]) and no further, back to back, whatever
+    /// the wall clock says; a starved host slows the whole simulated world
+    /// down instead of letting the device's timeouts expire. With nothing
+    /// to wait for (a trajectory, a free hand) it runs in real time.
+    Virtual,
+}
+
+/// Settings of a virtual device.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct VirtualDeviceConfig {
+    /// What the device says about itself, and its loop settings.
+    pub device: DeviceConfig,
+    /// Bytes of each RAM model buffer (the largest blob; at most a slot's
+    /// [`SLOT_LEN`] - [`RECORD_LEN`]). The firmware's is
+    /// [`FIRMWARE_BLOB_CAPACITY`].
+    pub blob_capacity: usize,
+    /// Device time per control-loop iteration, µs.
+    pub tick_us: u32,
+    pub pace: Pace,
+}
+
+impl Default for VirtualDeviceConfig {
+    fn default() -> Self {
+        VirtualDeviceConfig {
+            device: DeviceConfig {
+                firmware_version: [0, 1, 0],
+                device_id: *b"VIRTUAL-0001",
+                loop_period_us: 1000,
+                control: ControlConfig::default(),
+            },
+            blob_capacity: SLOT_LEN - RECORD_LEN,
+            tick_us: 1000,
+            pace: Pace::RealTime { speed: 1.0 },
+        }
+    }
+}
+
+/// What the device thread reports.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct VirtualStatus {
+    /// Boots so far (1 after `spawn`).
+    pub boots: u32,
+    /// Device time of the last tick, µs since the last boot.
+    pub device_time_us: u64,
+    /// Ticks since the last boot.
+    pub ticks: u64,
+    /// The flash lost power and the device is silent until a power cycle.
+    pub power_lost: bool,
+    /// The device link's decoder counters since the last boot.
+    pub rx: DecodeStats,
+    /// Frames sent since the last boot.
+    pub tx_frames: u32,
+    /// Frames not sent because the pseudo-terminal was full (nobody reading).
+    pub tx_dropped: u32,
+    /// Tension of each string at the plant, N.
+    pub plant_tensions_n: [f64; STRINGS],
+    /// Commanded tension of each string after the last tick, N.
+    pub commanded_n: [f32; STRINGS],
+    pub armed: bool,
+    /// The plant's last error (a pulley ran empty, ...).
+    pub plant_error: Option<String>,
+    /// Flash operations (word writes and erases) since spawn.
+    pub flash_operations: usize,
+}
+
+enum Control {
+    PowerCycle,
+    Shutdown,
+}
+
+struct FlashShared {
+    cut: Mutex<Option<usize>>,
+    lost: AtomicBool,
+    ops: AtomicUsize,
+}
+
+/// The virtual device's flash: two [`RamFlash`] slots on the heap, with a
+/// power cut that the test thread can plan while the device runs.
+pub struct VirtualFlash {
+    inner: Box<RamFlash<SLOT_LEN>>,
+    shared: Arc<FlashShared>,
+}
+
+impl VirtualFlash {
+    fn arm_cut(&mut self) {
+        if let Ok(mut cut) = self.shared.cut.lock() {
+            if let Some(n) = cut.take() {
+                self.inner.cut_after(n);
+            }
+        }
+    }
+
+    fn note<T>(&self, r: Result<T, FlashError>) -> Result<T, FlashError> {
+        if matches!(r, Err(FlashError::PowerLost)) {
+            self.shared.lost.store(true, Ordering::SeqCst);
+        }
+        self.shared
+            .ops
+            .store(self.inner.operations(), Ordering::SeqCst);
+        r
+    }
+}
+
+impl ModelFlash for VirtualFlash {
+    const SLOT_LEN: usize = SLOT_LEN;
+
+    fn read(&mut self, slot: Slot, offset: usize, buf: &mut [u8]) -> Result<(), FlashError> {
+        self.arm_cut();
+        let r = self.inner.read(slot, offset, buf);
+        self.note(r)
+    }
+
+    fn erase(&mut self, slot: Slot) -> Result<(), FlashError> {
+        self.arm_cut();
+        let r = self.inner.erase(slot);
+        self.note(r)
+    }
+
+    fn write(&mut self, slot: Slot, offset: usize, data: &[u8]) -> Result<(), FlashError> {
+        self.arm_cut();
+        let r = self.inner.write(slot, offset, data);
+        self.note(r)
+    }
+}
+
+/// A running virtual device. Dropping it stops the device thread.
+pub struct VirtualDevice {
+    port_path: String,
+    control: Sender<Control>,
+    status: Arc<Mutex<VirtualStatus>>,
+    flash: Arc<FlashShared>,
+    plant: Plant,
+    config: VirtualDeviceConfig,
+    thread: Option<JoinHandle<()>>,
+}
+
+/// Starts a virtual device: opens a pseudo-terminal pair, boots the device
+/// (erased flash, the plant at home) and runs it in a thread.
+pub fn spawn(
+    config: VirtualDeviceConfig,
+    plant: Plant,
+) -> Result<VirtualDevice, VirtualDeviceError> {
+    if config.blob_capacity == 0 || config.blob_capacity > SLOT_LEN - RECORD_LEN {
+        return Err(VirtualDeviceError::Config {
+            field: "blob_capacity",
+            problem: format!(
+                "{} bytes; must be 1..={} (a slot)",
+                config.blob_capacity,
+                SLOT_LEN - RECORD_LEN
+            ),
+        });
+    }
+    if config.tick_us == 0 {
+        return Err(VirtualDeviceError::Config {
+            field: "tick_us",
+            problem: "must be positive".into(),
+        });
+    }
+    if let Pace::RealTime { speed } = config.pace {
+        if !(speed.is_finite() && speed > 0.0) {
+            return Err(VirtualDeviceError::Config {
+                field: "pace.speed",
+                problem: format!("{speed} is not a positive speed"),
+            });
+        }
+    }
+    let (mut master, slave) = serialport::TTYPort::pair().map_err(VirtualDeviceError::Pty)?;
+    let port_path = slave.name().ok_or_else(|| {
+        VirtualDeviceError::Pty(serialport::Error::new(
+            serialport::ErrorKind::Unknown,
+            "the pseudo-terminal has no name",
+        ))
+    })?;
+    // The device must never block on a full pseudo-terminal.
+    nix::fcntl::fcntl(
+        master.as_raw_fd(),
+        nix::fcntl::FcntlArg::F_SETFL(nix::fcntl::OFlag::O_NONBLOCK),
+    )
+    .map_err(VirtualDeviceError::NonBlocking)?;
+    master
+        .set_timeout(Duration::from_millis(1))
+        .map_err(VirtualDeviceError::Pty)?;
+    let flash_shared = Arc::new(FlashShared {
+        cut: Mutex::new(None),
+        lost: AtomicBool::new(false),
+        ops: AtomicUsize::new(0),
+    });
+    let status = Arc::new(Mutex::new(VirtualStatus::default()));
+    let (tx, rx) = channel();
+    let thread_status = status.clone();
+    let thread_flash = flash_shared.clone();
+    let thread_plant = plant.clone();
+    let thread = std::thread::Builder::new()
+        .name(format!("virtual-device {port_path}"))
+        .stack_size(8 << 20)
+        .spawn(move || {
+            // Keep the slave side open so the master never sees a hang-up
+            // between two clients.
+            let _slave = slave;
+            run(
+                master,
+                config,
+                thread_plant,
+                rx,
+                thread_status,
+                thread_flash,
+            );
+        })
+        .map_err(VirtualDeviceError::Thread)?;
+    let vd = VirtualDevice {
+        port_path,
+        control: tx,
+        status,
+        flash: flash_shared,
+        plant,
+        config,
+        thread: Some(thread),
+    };
+    vd.wait_boots(1, Duration::from_secs(5))?;
+    Ok(vd)
+}
+
+impl VirtualDevice {
+    /// Path of the serial port to open (the pseudo-terminal's slave side).
+    pub fn port_path(&self) -> &str {
+        &self.port_path
+    }
+
+    /// The configuration it runs with.
+    pub fn config(&self) -> &VirtualDeviceConfig {
+        &self.config
+    }
+
+    /// What the device thread last reported.
+    pub fn status(&self) -> VirtualStatus {
+        self.status.lock().map(|s| s.clone()).unwrap_or_default()
+    }
+
+    /// Flash operations (word writes and erases) so far.
+    pub fn flash_operations(&self) -> usize {
+        self.flash.ops.load(Ordering::SeqCst)
+    }
+
+    /// Lets `ops` more flash word writes / erases succeed; the next one is
+    /// torn and the power goes (the device falls silent).
+    pub fn cut_flash_after(&self, ops: usize) {
+        if let Ok(mut cut) = self.flash.cut.lock() {
+            *cut = Some(ops);
+        }
+    }
+
+    /// Power off and on: a new `Device` boots on the same flash, the plant
+    /// is back at home, device time restarts at 0. Returns when it booted.
+    pub fn power_cycle(&self) -> Result<(), VirtualDeviceError> {
+        let boots = self.status().boots;
+        self.control
+            .send(Control::PowerCycle)
+            .map_err(|_| VirtualDeviceError::Stopped)?;
+        self.wait_boots(boots + 1, Duration::from_secs(5))
+    }
+
+    fn wait_boots(&self, boots: u32, timeout: Duration) -> Result<(), VirtualDeviceError> {
+        let t0 = Instant::now();
+        while self.status().boots < boots {
+            if self.thread.as_ref().is_none_or(|t| t.is_finished()) {
+                return Err(VirtualDeviceError::Stopped);
+            }
+            if t0.elapsed() > timeout {
+                return Err(VirtualDeviceError::RebootTimeout(timeout));
+            }
+            std::thread::sleep(Duration::from_millis(1));
+        }
+        Ok(())
+    }
+
+    /// The plant as configured (its trajectory and true geometry).
+    pub fn plant(&self) -> &Plant {
+        &self.plant
+    }
+
+    /// True end-effector position at device time `t_us`, device frame, mm.
+    pub fn truth_device_mm(&self, t_us: u64) -> [f64; 3] {
+        self.plant.device_mm_at(t_us)
+    }
+
+    /// True end-effector position at device time `t_us`, room frame, mm
+    /// (what a perfect tracker sees).
+    pub fn truth_room_mm(&self, t_us: u64) -> [f64; 3] {
+        self.plant.room_mm_at(t_us)
+    }
+
+    /// Stops the device thread.
+    pub fn shutdown(mut self) {
+        self.stop();
+    }
+
+    fn stop(&mut self) {
+        let _ = self.control.send(Control::Shutdown);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+impl Drop for VirtualDevice {
+    fn drop(&mut self) {
+        self.stop();
+    }
+}
+
+enum Exit {
+    PowerCycle,
+    Shutdown,
+}
+
+fn run(
+    mut master: serialport::TTYPort,
+    config: VirtualDeviceConfig,
+    mut plant: Plant,
+    control: Receiver<Control>,
+    status: Arc<Mutex<VirtualStatus>>,
+    flash_shared: Arc<FlashShared>,
+) {
+    let mut flash = VirtualFlash {
+        inner: Box::new(RamFlash::new()),
+        shared: flash_shared,
+    };
+    let mut ram = vec![0u8; config.blob_capacity];
+    let mut spare = vec![0u8; config.blob_capacity];
+    let mut boots = 0u32;
+    loop {
+        boots += 1;
+        flash.inner.power_cycle();
+        flash.shared.lost.store(false, Ordering::SeqCst);
+        plant.reset();
+        let (f, exit) = run_boot(
+            &mut master,
+            &config,
+            &mut plant,
+            flash,
+            &mut ram,
+            &mut spare,
+            &control,
+            &status,
+            boots,
+        );
+        flash = f;
+        if let Exit::Shutdown = exit {
+            return;
+        }
+    }
+}
+
+/// Writes one frame to the master side; waits at most `wait` for room.
+/// Returns false if (part of) the frame was dropped.
+fn write_frame(
+    master: &mut serialport::TTYPort,
+    frame: &[u8],
+    wait: Duration,
+    resync: &mut bool,
+) -> bool {
+    let deadline = Instant::now() + wait;
+    if *resync {
+        // The peer may hold half a frame: a lone 0x00 ends it.
+        match master.write(&[0]) {
+            Ok(1) => *resync = false,
+            _ => return false,
+        }
+    }
+    let mut rest = frame;
+    let mut started = false;
+    while !rest.is_empty() {
+        match master.write(rest) {
+            Ok(n) if n > 0 => {
+                started = true;
+                rest = &rest[n..];
+            }
+            Ok(_) => {}
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    std::io::ErrorKind::WouldBlock
+                        | std::io::ErrorKind::TimedOut
+                        | std::io::ErrorKind::Interrupted
+                ) => {}
+            Err(_) => {}
+        }
+        if !rest.is_empty() && Instant::now() >= deadline {
+            if started {
+                *resync = true;
+            }
+            return false;
+        }
+    }
+    true
+}
+
+#[allow(clippy::too_many_arguments)]
+fn run_boot(
+    master: &mut serialport::TTYPort,
+    config: &VirtualDeviceConfig,
+    plant: &mut Plant,
+    flash: VirtualFlash,
+    ram: &mut [u8],
+    spare: &mut [u8],
+    control: &Receiver<Control>,
+    status: &Mutex<VirtualStatus>,
+    boots: u32,
+) -> (VirtualFlash, Exit) {
+    let shared = flash.shared.clone();
+    let tick_us = u64::from(config.tick_us);
+    let mut dev = match Device::new(config.device, flash, ram, spare, plant.raw_home, 0) {
+        Ok(d) => d,
+        Err(_) => {
+            // Invalid safety limits in the configuration: the device cannot
+            // boot. Stay silent until told otherwise.
+            loop {
+                match control.recv() {
+                    Ok(Control::PowerCycle) => {}
+                    _ => {
+                        return (
+                            VirtualFlash {
+                                inner: Box::new(RamFlash::new()),
+                                shared,
+                            },
+                            Exit::Shutdown,
+                        )
+                    }
+                }
+            }
+        }
+    };
+    let mut link = DeviceLink::new();
+    let mut now_us = 0u64;
+    let mut ticks = 0u64;
+    let mut anchor = (Instant::now(), 0u64);
+    let speed = match config.pace {
+        Pace::RealTime { speed } => speed,
+        Pace::Fast | Pace::Virtual => 1.0,
+    };
+    let fast = matches!(config.pace, Pace::Fast);
+    let virtual_time = matches!(config.pace, Pace::Virtual);
+    let mut streaming = false;
+    let mut resync = false;
+    let mut tx_dropped = 0u32;
+    let mut buf = [0u8; 4096];
+    let real_at = |anchor: (Instant, u64), t_us: u64| {
+        anchor.0 + Duration::from_secs_f64(t_us.saturating_sub(anchor.1) as f64 / 1e6 / speed)
+    };
+    let publish = |dev: &mut Device<'_, VirtualFlash>,
+                   link: &DeviceLink,
+                   now_us: u64,
+                   ticks: u64,
+                   tx_dropped: u32,
+                   plant: &Plant| {
+        if let Ok(mut s) = status.lock() {
+            s.boots = boots;
+            s.device_time_us = now_us;
+            s.ticks = ticks;
+            s.power_lost = shared.lost.load(Ordering::SeqCst);
+            let c = link.counters();
+            s.rx = c.rx;
+            s.tx_frames = c.tx_frames;
+            s.tx_dropped = tx_dropped;
+            s.plant_tensions_n = plant.tensions_n();
+            s.commanded_n = dev.last_output().tensions_n;
+            // As requests left it (a `Disarm` answered between two ticks
+            // counts, even while the simulated world waits).
+            s.armed = dev.armed();
+            s.plant_error = plant.error().map(str::to_string);
+            s.flash_operations = shared.ops.load(Ordering::SeqCst);
+        }
+    };
+    publish(&mut dev, &link, now_us, ticks, tx_dropped, plant);
+    loop {
+        match control.try_recv() {
+            Ok(Control::PowerCycle) => return (dev.into_flash(), Exit::PowerCycle),
+            Ok(Control::Shutdown) | Err(TryRecvError::Disconnected) => {
+                return (dev.into_flash(), Exit::Shutdown)
+            }
+            Err(TryRecvError::Empty) => {}
+        }
+        let dead = shared.lost.load(Ordering::SeqCst);
+        // The simulated world's limit (a clocked hand's committed path):
+        // never tick past it, whatever the pace.
+        let gate = plant.ready_until_us();
+        let gated = |t: u64| gate.is_some_and(|g| t > g);
+        let run_virtual = virtual_time && gate.is_some() && !dead;
+        let run_fast = (fast && streaming && !dead) || run_virtual;
+        let due = real_at(anchor, now_us + tick_us);
+        let wait = if gated(now_us + tick_us) {
+            Duration::from_millis(1)
+        } else if run_fast {
+            Duration::ZERO
+        } else {
+            due.saturating_duration_since(Instant::now())
+                .min(Duration::from_millis(5))
+        };
+        let _ = master.set_timeout(wait.max(Duration::from_micros(1)));
+        let n = if wait.is_zero() {
+            // Do not wait: only what is already there.
+            let _ = master.set_timeout(Duration::ZERO);
+            master.read(&mut buf).unwrap_or(0)
+        } else {
+            master.read(&mut buf).unwrap_or(0)
+        };
+        // Requests.
+        let mut rest = &buf[..n];
+        while !rest.is_empty() && !shared.lost.load(Ordering::SeqCst) {
+            let now = now_us;
+            let d = &mut dev;
+            let st = &mut streaming;
+            let (used, reply) = link.push(rest, |req, counters| {
+                d.set_link_counters(counters);
+                match req {
+                    Request::StreamOn { decimation } if *decimation > 0 => *st = true,
+                    Request::StreamOff => *st = false,
+                    _ => {}
+                }
+                d.handle(req, now)
+            });
+            rest = rest.get(used..).unwrap_or(&[]);
+            // The status is published before the reply goes out, so whoever
+            // has seen a reply reads a status that already counts its request
+            // (and the frames rejected before it).
+            let reply = reply.map(<[u8]>::to_vec);
+            publish(&mut dev, &link, now_us, ticks, tx_dropped, plant);
+            // A reply to a request during which the power went is never sent.
+            if let Some(frame) = reply {
+                if !shared.lost.load(Ordering::SeqCst)
+                    && !write_frame(master, &frame, Duration::from_millis(50), &mut resync)
+                {
+                    tx_dropped = tx_dropped.wrapping_add(1);
+                }
+            }
+        }
+        if shared.lost.load(Ordering::SeqCst) {
+            // Silent until the power cycle; keep the clock anchored.
+            anchor = (Instant::now(), now_us);
+            publish(&mut dev, &link, now_us, ticks, tx_dropped, plant);
+            continue;
+        }
+        // Ticks due.
+        let now_real = Instant::now();
+        let mut budget = if run_virtual {
+            20
+        } else if run_fast {
+            1
+        } else {
+            20
+        };
+        while budget > 0
+            && !gated(now_us + tick_us)
+            && (run_fast || real_at(anchor, now_us + tick_us) <= now_real)
+        {
+            budget -= 1;
+            let t = now_us + tick_us;
+            let commanded = dev.last_output().tensions_n;
+            let raw = plant.step(t, &commanded, dev.motors_enabled());
+            // The simulated clock is at `t` before anything stamped `t`
+            // leaves the device: no sample arrives before its time.
+            plant.publish_tick();
+            let t0 = Instant::now();
+            dev.tick(&TickInput {
+                raw_counts: raw,
+                now_us: t,
+                estop: false,
+            });
+            let took = t0.elapsed().as_micros().min(u128::from(u16::MAX)) as u16;
+            dev.record_loop_time(took);
+            now_us = t;
+            ticks += 1;
+            let frame_wait = if run_fast {
+                Duration::from_millis(200)
+            } else {
+                Duration::ZERO
+            };
+            while let Some(e) = dev.take_event() {
+                if let Some(frame) = link.encode_event(&e) {
+                    if !write_frame(master, frame, Duration::from_millis(5), &mut resync) {
+                        tx_dropped = tx_dropped.wrapping_add(1);
+                    }
+                }
+            }
+            if let Some(s) = dev.state_frame() {
+                plant.note_state_sent();
+                let sent = match link.encode_state(&s) {
+                    Some(frame) => write_frame(master, frame, frame_wait, &mut resync),
+                    None => false,
+                };
+                if !sent {
+                    tx_dropped = tx_dropped.wrapping_add(1);
+                    dev.count_stream_dropped();
+                }
+            }
+        }
+        if run_fast
+            || gated(now_us + tick_us)
+            || real_at(anchor, now_us + 100 * tick_us) < Instant::now()
+        {
+            // Fast, or far behind (a loaded host): device time goes on from
+            // here instead of bursting to catch up.
+            anchor = (Instant::now(), now_us);
+        }
+        publish(&mut dev, &link, now_us, ticks, tx_dropped, plant);
+    }
+}
+
+/// `spidar virtual-device`: a virtual device on a pseudo-terminal.
+#[derive(Clone, Debug, clap::Args)]
+pub struct VirtualDeviceArgs {
+    /// Device seed of the simulated device (as `spidar simulate --seed`).
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Simulator configuration TOML (as `spidar simulate --config`).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Injected effect, e.g. `offset:3:mm=10` (repeatable).
+    #[arg(long = "effect", value_name = "SPEC")]
+    pub effects: Vec<String>,
+    /// Path of the end-effector.
+    #[arg(long, value_enum, default_value_t = TrajectoryArg::Orbit)]
+    pub trajectory: TrajectoryArg,
+    /// Points of a `random` trajectory (a random session's path).
+    #[arg(long, default_value_t = 50)]
+    pub points: usize,
+    /// Device time per real time (1 = like the hardware).
+    #[arg(long, default_value_t = 1.0)]
+    pub speed: f64,
+    /// Largest model blob, KiB, at most 128 (the virtual flash slot). The
+    /// default is the reference firmware's capacity, so that a blob the
+    /// board would refuse is refused here too.
+    #[arg(long, default_value_t = FIRMWARE_BLOB_CAPACITY / 1024)]
+    pub capacity_kib: usize,
+    /// Stop after this many seconds (default: run until killed).
+    #[arg(long)]
+    pub seconds: Option<f64>,
+}
+
+/// `--trajectory`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum TrajectoryArg {
+    Hold,
+    Orbit,
+    Random,
+}
+
+/// Why `spidar virtual-device` failed.
+#[derive(Debug, thiserror::Error)]
+pub enum VirtualDeviceRunError {
+    #[error("{0}")]
+    Sim(#[from] crate::sim::SimError),
+    #[error("{0}")]
+    Device(#[from] VirtualDeviceError),
+}
+
+/// Builds the simulated device and plant of `args`.
+pub fn plant_of(args: &VirtualDeviceArgs) -> Result<Plant, crate::sim::SimError> {
+    let mut sim_config = match &args.config {
+        Some(path) => crate::sim::SimConfig::load(path)?,
+        None => crate::sim::SimConfig::default(),
+    };
+    sim_config.effects.extend(args.effects.iter().cloned());
+    let device = crate::sim::Device::new(&sim_config, args.seed)?;
+    let trajectory = match args.trajectory {
+        TrajectoryArg::Hold => Trajectory::Hold,
+        TrajectoryArg::Orbit => Trajectory::Orbit {
+            radius_mm: 150.0,
+            period_s: 8.0,
+        },
+        TrajectoryArg::Random => {
+            let (_, truths) = crate::sim::simulate_session_with_truth(
+                &device,
+                crate::sim::SessionKind::Random {
+                    points: args.points,
+                },
+                args.seed.wrapping_add(2),
+            )?;
+            Trajectory::from_truth(&truths)
+        }
+    };
+    Ok(Plant::new(device, trajectory))
+}
+
+/// Runs `spidar virtual-device`: prints the port path, then serves until
+/// killed (or `--seconds`).
+pub fn run_virtual_device(args: &VirtualDeviceArgs) -> Result<String, VirtualDeviceRunError> {
+    let plant = plant_of(args)?;
+    let config = VirtualDeviceConfig {
+        blob_capacity: args.capacity_kib.saturating_mul(1024),
+        pace: Pace::RealTime { speed: args.speed },
+        ..VirtualDeviceConfig::default()
+    };
+    let vd = spawn(config, plant)?;
+    println!("{}", vd.port_path());
+    println!(
+        "virtual SPIDAR running (seed {}, trajectory {:?}, blob capacity {} KiB; the firmware takes {} KiB); Ctrl-C stops it",
+        args.seed,
+        args.trajectory,
+        args.capacity_kib,
+        FIRMWARE_BLOB_CAPACITY / 1024
+    );
+    let _ = std::io::stdout().flush();
+    let t0 = Instant::now();
+    loop {
+        std::thread::sleep(Duration::from_millis(100));
+        if args
+            .seconds
+            .is_some_and(|s| t0.elapsed().as_secs_f64() >= s)
+        {
+            break;
+        }
+        if vd.thread.as_ref().is_none_or(|t| t.is_finished()) {
+            return Err(VirtualDeviceError::Stopped.into());
+        }
+    }
+    let s = vd.status();
+    Ok(format!(
+        "virtual device stopped after {:.1} s of device time, {} frames sent, {} received ({} rejected)\n",
+        s.device_time_us as f64 / 1e6,
+        s.tx_frames,
+        s.rx.ok,
+        s.rx.rejected()
+    ))
+}

@@ -1,0 +1,369 @@
+//! `spidar compile`: a calibration (`calibration.json`, serde JSON of
+//! [`Calibration`]) into the device's model blob, checked bit for bit with the
+//! device's own parser, and the fixed-point error measured against the f64
+//! model on a test session.
+//!
+//! The device way ([`device_positions`]) is exactly what
+//! `spidar_core::control::Controller::step` computes from the same string-law
+//! inputs: the fixed-point string law of the blob, forward kinematics in f32
+//! (warm-started, the last good position kept), the f32 room transform,
+//! Q15.16 rounding and the fixed-point correction. The reference
+//! ([`crate::model::predict`]) is the same pipeline in f64 with the f64 correction.
+//! The inputs are the session's own (counts, direction, recorded commanded
+//! tensions, time), so the difference is the arithmetic alone.
+
+use std::path::{Path, PathBuf};
+
+use spidar_core::blob::{compile, position_q16, CompiledCalibration};
+use spidar_core::control::ControlConfig;
+use spidar_core::kinematics::{forward_kinematics_inclined, FkStatus};
+use spidar_core::model::{Calibration, Frame, StringInputs};
+use spidar_core::string_law::string_lengths;
+use spidar_protocol::blob::{BlobError, CRC32};
+
+use crate::data::dataset::{DatasetError, Geometry, Session};
+use crate::data::observe::{observations, Observation};
+use crate::data::stats::ErrorStats;
+use crate::model::predict::{corrected, predict, StringModel};
+
+/// Mean fixed-point error allowed by the budget, mm.
+pub const FIXED_POINT_BUDGET_MM: f64 = 0.02;
+
+/// Why `spidar compile` failed; each names the file or field.
+#[derive(Debug, thiserror::Error)]
+pub enum CompileCmdError {
+    #[error("{}: {action}: {source}", file.display())]
+    Io {
+        file: PathBuf,
+        action: &'static str,
+        source: std::io::Error,
+    },
+    #[error("{}:{line}:{column}: not a calibration: {message}", file.display())]
+    Json {
+        file: PathBuf,
+        line: usize,
+        column: usize,
+        message: String,
+    },
+    #[error("{}: does not compile: {error}", file.display())]
+    Compile {
+        file: PathBuf,
+        #[source]
+        error: spidar_core::blob::CompileError,
+    },
+    #[error("compiled blob does not parse back: {0}")]
+    ParseBack(#[source] BlobError),
+    #[error("compiled blob is not reproducible: two compilations differ at byte {at}")]
+    NotReproducible { at: usize },
+    #[error("{0}")]
+    Dataset(#[from] DatasetError),
+    #[error("{}: `{field}` is {found} but the calibration has {expected}", file.display())]
+    GeometryMismatch {
+        file: PathBuf,
+        field: &'static str,
+        found: String,
+        expected: String,
+    },
+    #[error("{}: no row of the session has a usable position to compare", file.display())]
+    NoRows { file: PathBuf },
+    #[error("fixed-point error {mean_mm:.5} mm mean exceeds the budget of {budget_mm} mm (blob written to {})", out.display())]
+    OverBudget {
+        mean_mm: f64,
+        budget_mm: f64,
+        out: PathBuf,
+    },
+}
+
+/// The fixed-point error of a blob against its f64 calibration.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FixedPointError {
+    /// Rows compared (forward kinematics converged in both).
+    pub rows: usize,
+    /// Rows where one side's forward kinematics failed and the other's did not.
+    pub status_mismatches: usize,
+    /// Device-frame position (string law + FK), blob vs f64.
+    pub string_model: ErrorStats,
+    /// Corrected room position (everything), blob vs f64.
+    pub corrected: ErrorStats,
+}
+
+/// Positions the device computes from a session's inputs with `blob`:
+/// (device-frame FK position, corrected room position Q15.16 -> mm, FK status).
+pub fn device_positions(
+    blob: &CompiledCalibration<'_>,
+    observations: &[Observation],
+) -> Vec<([f64; 3], [f64; 3], FkStatus)> {
+    let fk_config = ControlConfig::default().fk;
+    let frame = &blob.head.frame;
+    let inclined = blob.head.effects.iter().any(|e| e.reads_inclination());
+    let lengths = |inputs: &StringInputs| {
+        string_lengths(frame.layout, &blob.head.laws, &blob.head.effects, inputs)
+            .map(|l| l as f32 / 65536.0)
+    };
+    let mut position = frame.home;
+    observations
+        .iter()
+        .map(|o| {
+            let fk = forward_kinematics_inclined(
+                &frame.anchors,
+                frame.layout,
+                &o.inputs,
+                position,
+                &fk_config,
+                inclined,
+                lengths,
+            );
+            if matches!(fk.status, FkStatus::Ok | FkStatus::FaultyStringExcluded) {
+                position = fk.position;
+            }
+            let room = position_q16(room_from_device_f32(frame, position));
+            let c = blob.correction.evaluate(room);
+            (
+                position.map(f64::from),
+                c.map(|v| f64::from(v) / 65536.0),
+                fk.status,
+            )
+        })
+        .collect()
+}
+
+/// The device's room transform (f32, the order of `control::Controller`).
+fn room_from_device_f32(frame: &Frame<f32>, p: [f32; 3]) -> [f32; 3] {
+    let r = &frame.room_rotation;
+    let mut out = [0.0f32; 3];
+    for (k, o) in out.iter_mut().enumerate() {
+        let v = r[k][0] * p[0] + r[k][1] * p[1] + r[k][2] * p[2];
+        *o = frame.room_scale * v + frame.room_translation[k];
+    }
+    out
+}
+
+fn distance(a: [f64; 3], b: [f64; 3]) -> f64 {
+    ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
+}
+
+/// Compares the blob (the device way) with the f64 calibration on every row.
+/// `None` if no row converged on both sides.
+pub fn fixed_point_error(
+    calibration: &Calibration,
+    blob: &CompiledCalibration<'_>,
+    observations: &[Observation],
+) -> Option<FixedPointError> {
+    let reference = predict(StringModel::of(calibration), observations);
+    let reference_corrected = corrected(&calibration.correction, &reference);
+    let device = device_positions(blob, observations);
+    let ok = |s: FkStatus| matches!(s, FkStatus::Ok | FkStatus::FaultyStringExcluded);
+    let mut model = Vec::new();
+    let mut all = Vec::new();
+    let mut mismatches = 0;
+    for ((r, rc), (d, dc, ds)) in reference.iter().zip(&reference_corrected).zip(&device) {
+        match (ok(r.status), ok(*ds)) {
+            (true, true) => {
+                model.push(distance(r.device, *d));
+                all.push(distance(*rc, *dc));
+            }
+            (false, false) => {}
+            _ => mismatches += 1,
+        }
+    }
+    (!all.is_empty()).then(|| FixedPointError {
+        rows: all.len(),
+        status_mismatches: mismatches,
+        string_model: ErrorStats::of(&model),
+        corrected: ErrorStats::of(&all),
+    })
+}
+
+/// Reads `calibration.json`.
+pub fn load_calibration(path: &Path) -> Result<Calibration, CompileCmdError> {
+    let text = std::fs::read_to_string(path).map_err(|source| CompileCmdError::Io {
+        file: path.to_path_buf(),
+        action: "cannot read the calibration",
+        source,
+    })?;
+    serde_json::from_str(&text).map_err(|e| CompileCmdError::Json {
+        file: path.to_path_buf(),
+        line: e.line(),
+        column: e.column(),
+        message: e.to_string(),
+    })
+}
+
+/// A model id from the calibration's content (CRC-32 of its JSON).
+pub fn model_id_of(calibration: &Calibration) -> u32 {
+    let json = serde_json::to_vec(calibration).unwrap_or_default();
+    CRC32.checksum(&json)
+}
+
+/// Compiles `calibration` and checks the blob with the device's parser and
+/// a second compilation (bit for bit).
+pub fn compile_checked(
+    calibration: &Calibration,
+    model_id: u32,
+    created_unix_s: u32,
+    file: &Path,
+) -> Result<Vec<u8>, CompileCmdError> {
+    let err = |error| CompileCmdError::Compile {
+        file: file.to_path_buf(),
+        error,
+    };
+    let blob = compile(calibration, model_id, created_unix_s).map_err(err)?;
+    let again = compile(calibration, model_id, created_unix_s).map_err(err)?;
+    if let Some(at) = blob
+        .iter()
+        .zip(&again)
+        .position(|(a, b)| a != b)
+        .or((blob.len() != again.len()).then(|| blob.len().min(again.len())))
+    {
+        return Err(CompileCmdError::NotReproducible { at });
+    }
+    CompiledCalibration::from_blob(&blob).map_err(CompileCmdError::ParseBack)?;
+    Ok(blob)
+}
+
+/// `spidar compile`.
+#[derive(Clone, Debug, clap::Args)]
+pub struct CompileArgs {
+    /// Calibration written by `spidar calibrate` (calibration.json).
+    #[arg(long)]
+    pub calibration: PathBuf,
+    /// Where to write the model blob.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Test session CSV: measure the fixed-point error on its rows.
+    #[arg(long)]
+    pub test: Option<PathBuf>,
+    /// Nominal geometry of the session (checks its counts per revolution
+    /// against the calibration's).
+    #[arg(long)]
+    pub geometry: Option<PathBuf>,
+    /// Model id (default: CRC-32 of the calibration).
+    #[arg(long)]
+    pub model_id: Option<u32>,
+    /// Largest mean fixed-point error accepted, mm.
+    #[arg(long, default_value_t = FIXED_POINT_BUDGET_MM)]
+    pub budget_mm: f64,
+}
+
+/// What `spidar compile` did.
+#[derive(Clone, Debug)]
+pub struct CompileReport {
+    pub out: PathBuf,
+    pub bytes: usize,
+    pub model_id: u32,
+    pub header: spidar_protocol::blob::ModelHeader,
+    pub error: Option<FixedPointError>,
+    pub budget_mm: f64,
+}
+
+impl std::fmt::Display for CompileReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let h = &self.header;
+        writeln!(
+            f,
+            "wrote {} ({} bytes: {:?} correction, {} effects, hidden {}, support vectors {}; model id {:#010x})",
+            self.out.display(),
+            self.bytes,
+            h.kind,
+            h.effects,
+            h.hidden,
+            h.support_vectors,
+            self.model_id
+        )?;
+        writeln!(
+            f,
+            "blob parses back with the device's parser and compiles bit-identically; firmware capacity {} KiB = {} bytes ({})",
+            crate::device::virtual_device::FIRMWARE_BLOB_CAPACITY / 1024,
+            crate::device::virtual_device::FIRMWARE_BLOB_CAPACITY,
+            if self.bytes <= crate::device::virtual_device::FIRMWARE_BLOB_CAPACITY {
+                "fits"
+            } else {
+                "TOO LARGE for the firmware"
+            }
+        )?;
+        if let Some(e) = &self.error {
+            writeln!(
+                f,
+                "fixed-point error vs f64 over {} rows: string model mean {:.5} mm max {:.5} mm; corrected mean {:.5} mm max {:.5} mm (budget {} mm mean){}",
+                e.rows,
+                e.string_model.mean_mm,
+                e.string_model.max_mm,
+                e.corrected.mean_mm,
+                e.corrected.max_mm,
+                self.budget_mm,
+                if e.status_mismatches > 0 {
+                    format!("; {} rows converged on one side only", e.status_mismatches)
+                } else {
+                    String::new()
+                }
+            )?;
+        }
+        Ok(())
+    }
+}
+
+/// Runs `spidar compile`.
+pub fn run_compile(args: &CompileArgs) -> Result<CompileReport, CompileCmdError> {
+    let calibration = load_calibration(&args.calibration)?;
+    let model_id = args.model_id.unwrap_or_else(|| model_id_of(&calibration));
+    let created = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| u32::try_from(d.as_secs()).unwrap_or(u32::MAX));
+    let blob = compile_checked(&calibration, model_id, created, &args.calibration)?;
+    let parsed = CompiledCalibration::from_blob(&blob).map_err(CompileCmdError::ParseBack)?;
+    if let Some(g) = &args.geometry {
+        let geometry = Geometry::load(g)?;
+        for i in geometry.layout.indices() {
+            let law = &calibration.strings[i];
+            if law.counts_per_rev != geometry.counts_per_rev[i] {
+                return Err(CompileCmdError::GeometryMismatch {
+                    file: g.clone(),
+                    field: "counts_per_rev",
+                    found: geometry.counts_per_rev[i].to_string(),
+                    expected: law.counts_per_rev.to_string(),
+                });
+            }
+        }
+    }
+    let error = match &args.test {
+        Some(test) => {
+            let session = Session::load(test)?;
+            let obs = observations(&session.samples);
+            Some(
+                fixed_point_error(&calibration, &parsed, &obs)
+                    .ok_or_else(|| CompileCmdError::NoRows { file: test.clone() })?,
+            )
+        }
+        None => None,
+    };
+    if let Some(parent) = args.out.parent().filter(|p| !p.as_os_str().is_empty()) {
+        std::fs::create_dir_all(parent).map_err(|source| CompileCmdError::Io {
+            file: parent.to_path_buf(),
+            action: "cannot create the output directory",
+            source,
+        })?;
+    }
+    std::fs::write(&args.out, &blob).map_err(|source| CompileCmdError::Io {
+        file: args.out.clone(),
+        action: "cannot write the model blob",
+        source,
+    })?;
+    let report = CompileReport {
+        out: args.out.clone(),
+        bytes: blob.len(),
+        model_id,
+        header: parsed.header,
+        error,
+        budget_mm: args.budget_mm,
+    };
+    if let Some(e) = &report.error {
+        if e.corrected.mean_mm.is_nan() || e.corrected.mean_mm > args.budget_mm {
+            return Err(CompileCmdError::OverBudget {
+                mean_mm: e.corrected.mean_mm,
+                budget_mm: args.budget_mm,
+                out: args.out.clone(),
+            });
+        }
+    }
+    Ok(report)
+}

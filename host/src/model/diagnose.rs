@@ -1,0 +1,2402 @@
+//! Closing the loop: find what the identified model still misses in the
+//! residual, trace it to a physical effect, add the effect, refit, and keep it
+//! only if it helps on data it was not fitted on.
+
+use nalgebra::{DMatrix, DVector};
+use serde::{Deserialize, Serialize};
+use spidar_core::model::{
+    Effect, EffectTerm, Frame, StringLayout, EVERY_STRING, MAX_LAYER_STEP_LOG2,
+};
+use spidar_core::string_law::{payout_f64, sag_home_variable, sag_variable, EffectContext};
+use spidar_core::STRINGS;
+
+use crate::data::observe::{at_meeting_points, Observation};
+use crate::data::stats::{position_errors, ErrorStats};
+use crate::model::identify::{
+    data_jacobian, device_position, identify, inputs_at, DataJacobian, Identification,
+    IdentifyError, Start, Structure,
+};
+use crate::model::layers::{self, StringLayers};
+use crate::model::predict::{paired_with_tracker, predict};
+use std::borrow::Cow;
+
+/// Effect families (the JSON report's `family`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Family {
+    Offset,
+    Scale,
+    Winding,
+    Eccentricity,
+    Elasticity,
+    Backlash,
+    Drift,
+    Slip,
+    /// A heavy string's sag, `l^3 / T^2` ([`Effect::Sag`]).
+    Sag,
+    /// The guides moving with the strings' total pull ([`Effect::FrameFlex`]).
+    FrameFlex,
+    /// Layer tables ([`crate::model::layers`]): the spool's departure from the
+    /// smooth winding law, per string.
+    Layers,
+    Geometry,
+    /// The tracked body's origin off the strings' meeting point, seen
+    /// through the tracker's orientation ([`Change::MarkerOffset`]).
+    Marker,
+    Unexplained,
+}
+
+/// Variables a residual is tested against (the JSON report's `variable`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Variable {
+    Position,
+    Length,
+    WoundLength,
+    PulleyAngle,
+    Tension,
+    Direction,
+    Speed,
+    Time,
+    Order,
+    /// The tracked body's orientation.
+    Orientation,
+}
+
+/// A structural change to the model that a finding proposes.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Change {
+    /// Add an effect term (its parameters are refitted).
+    Effect(EffectTerm),
+    /// Free the tracker's scale relative to the device.
+    RoomScale,
+    /// Release an anchor from its design tolerance (it was built elsewhere).
+    ReleaseAnchor(u8),
+    /// Read the tracker at the strings' meeting point, the tracked body's
+    /// origin being this far from it (body frame, mm;
+    /// [`Structure::marker_body_mm`]).
+    MarkerOffset([f64; 3]),
+}
+
+/// One thing diagnosis found in the residual.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Finding {
+    pub family: Family,
+    /// Encoder indices; empty for a frame-wide effect.
+    pub strings: Vec<u8>,
+    pub variable: Variable,
+    /// Largest contribution of the effect over the data, mm.
+    pub amplitude_mm: f64,
+    /// Share of the string-space residual sum of squares it explains.
+    pub explained: f64,
+    /// Whether the loop added it to the model.
+    pub added: bool,
+    /// Test statistic (chi-square with the effect's degrees of freedom).
+    pub chi2: f64,
+    /// One line for people.
+    pub description: String,
+    /// The held-out check that decided `added` (figures before and after the
+    /// change, and why); `None` for findings the loop did not test
+    /// (unexplained structure).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub validation: Option<Check>,
+    /// What adding it means; `None` for unexplained structure.
+    #[serde(skip)]
+    pub change: Option<Change>,
+}
+
+/// Settings of the loop.
+#[derive(Clone, Copy, Debug, Serialize, Deserialize)]
+pub struct LoopConfig {
+    /// At most this many effects are added.
+    pub max_effects: usize,
+    /// A candidate is significant when its chi-square exceeds this (after
+    /// accounting for the number of candidates tested).
+    pub chi2_threshold: f64,
+    /// A step is kept only if the held-out error (blocked folds, see
+    /// [`validate`]) falls by this fraction. 2 %: on 20 clean independent
+    /// devices 0.5 % added 74 terms and 2 % 33 for the same held-out error
+    /// (0.437 and 0.436 mm mean; the terms between took 0.5 to 2 % each);
+    /// every injected family of the model simulator is still found 5/5
+    /// (`loop_bench`).
+    pub min_relative_gain: f64,
+    /// Try layer tables ([`crate::model::layers`]) before the effect families.
+    #[serde(default = "yes")]
+    pub layer_tables: bool,
+    /// The tension the strings held at the home capture, when the device's
+    /// geometry declares it ([`crate::data::dataset::Geometry::home_tension_n`]):
+    /// the stretch's home tension is then fitted around it instead of the
+    /// firmware's default 1 N (within 1 N either way: at 0.25 N the stretch
+    /// could no longer take the length every string's home shares, and
+    /// heavy-string seed 2's string model went 0.421 -> 0.640 mm).
+    #[serde(default)]
+    pub home_tension_n: Option<f64>,
+}
+
+impl LoopConfig {
+    /// The defaults with what `geometry` declares (the home tension).
+    pub fn for_geometry(geometry: &crate::data::dataset::Geometry) -> LoopConfig {
+        LoopConfig {
+            home_tension_n: geometry.home_tension_n,
+            ..LoopConfig::default()
+        }
+    }
+}
+
+fn yes() -> bool {
+    true
+}
+
+impl Default for LoopConfig {
+    fn default() -> Self {
+        LoopConfig {
+            max_effects: 8,
+            chi2_threshold: 40.0,
+            min_relative_gain: 0.02,
+            layer_tables: true,
+            home_tension_n: None,
+        }
+    }
+}
+
+/// One added effect, with the error before and after.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct LoopStage {
+    /// Named after the effect, e.g. "offset string 3".
+    pub name: String,
+    pub finding: Finding,
+    /// Position error against the tracker after adding the effect.
+    pub train: ErrorStats,
+    pub test: Option<ErrorStats>,
+    /// Held-out mean error (blocked folds, [`Validation::held`]; a slip's:
+    /// [`Validation::for_step`]) before and after, mm.
+    pub validation_before_mm: f64,
+    pub validation_after_mm: f64,
+}
+
+/// What the loop did.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct LoopResult {
+    /// The base identification (before any effect).
+    pub base: Identification,
+    pub base_train: ErrorStats,
+    pub base_test: Option<ErrorStats>,
+    /// The final identification (with the added effects).
+    pub identification: Identification,
+    pub structure: Structure,
+    /// One stage per added effect, in order.
+    pub stages: Vec<LoopStage>,
+    /// Everything diagnosis reported: added effects, significant candidates
+    /// that did not help on held-out data, and unexplained structure.
+    pub findings: Vec<Finding>,
+    /// The layer-table spacing chosen for each active string (before the
+    /// position-space check; see the `layers` finding for whether the
+    /// tables were kept).
+    #[serde(default)]
+    pub layers: Vec<StringLayers>,
+}
+
+impl LoopStage {
+    /// The stage `name` of an accepted `finding`: the refit's errors on the
+    /// training (and test) sessions and the held-out means its check judged
+    /// (an accepted finding carries its check).
+    fn of(
+        name: String,
+        finding: &Finding,
+        refit: &Identification,
+        train: &[Observation],
+        test: Option<&[Observation]>,
+    ) -> LoopStage {
+        let (validation_before_mm, validation_after_mm) = finding
+            .validation
+            .as_ref()
+            .map_or((f64::NAN, f64::NAN), |c| {
+                (c.before.held.mean_mm, c.after.held.mean_mm)
+            });
+        LoopStage {
+            name,
+            train: model_errors(refit, train),
+            // The test session is another session: the training
+            // session's slips are not in it.
+            test: test.map(|t| model_errors(&refit.for_a_new_session(), t)),
+            finding: finding.clone(),
+            validation_before_mm,
+            validation_after_mm,
+        }
+    }
+}
+
+/// What [`add_layer_tables`] tried.
+struct LayerTry {
+    choice: Vec<StringLayers>,
+    /// `None` when no string's spacing helped (nothing to check).
+    finding: Option<Finding>,
+    /// The refit with the tables and its validation, when accepted.
+    added: Option<(Identification, Validation)>,
+}
+
+/// Layer tables ([`crate::model::layers`]) on the strings whose held-out string
+/// residual they lower, kept when [`judge`] accepts them on the blocked
+/// folds with every fold refitting geometry and tables on its own rows.
+fn add_layer_tables(
+    train: &[Observation],
+    nominal: &Frame<f64>,
+    id: &Identification,
+    structure: &Structure,
+    before: &Validation,
+    config: &LoopConfig,
+) -> Result<LayerTry, IdentifyError> {
+    let tracked: Vec<&Observation> = train.iter().filter(|o| o.tracker.is_some()).collect();
+    let (kind, all_folds) = folds(&tracked);
+    let spacing_folds = match kind {
+        Folds::Blocked => &all_folds[2..],
+        Folds::Interleaved => &all_folds[..],
+    };
+    let mut choice = layers::choose_spacings(id, train, spacing_folds);
+    let steps = layers::steps_of(&choice);
+    if choice.iter().all(|c| c.step_counts.is_none()) {
+        return Ok(LayerTry {
+            choice,
+            finding: None,
+            added: None,
+        });
+    }
+    let cold = layers::without_layers(id);
+    let validate_steps = |steps: &[Option<u8>; STRINGS]| {
+        validate_by(train, |rows| {
+            let plain = identify(rows, nominal, &cold, structure)?;
+            layers::identify_with_layers(rows, nominal, &plain, structure, steps)
+        })
+        .map(|(after, _)| after)
+    };
+    let mut steps = steps;
+    let mut after = validate_steps(&steps)?;
+    let mut check = judge(before, &after, None, config.min_relative_gain);
+    let mut coarser_note = String::new();
+    if !check.accepted {
+        // Refused (most often on the max of the shell fold, which the
+        // finest spacing follows least smoothly beyond its counts): one try
+        // with knots twice as far apart on every string.
+        let coarser = steps.map(|s| s.map(|s| s.saturating_add(1).min(MAX_LAYER_STEP_LOG2)));
+        let after2 = validate_steps(&coarser)?;
+        let check2 = judge(before, &after2, None, config.min_relative_gain);
+        if check2.accepted {
+            coarser_note = format!(
+                " (the spacing chosen per string was refused, {}; knots twice as far apart were \
+                 taken)",
+                check.reason
+            );
+            steps = coarser;
+            after = after2;
+            check = check2;
+            for c in choice.iter_mut() {
+                if let Some(step) = c.step_counts {
+                    let step = step.saturating_mul(2);
+                    c.step_counts = Some(step);
+                    if let Some(&(_, rms)) = c.tried.iter().find(|t| t.0 == step) {
+                        c.held_rms_with_mm = rms;
+                    }
+                }
+            }
+        }
+    }
+    let refit = if check.accepted {
+        Some(layers::identify_with_layers(
+            train, nominal, id, structure, &steps,
+        )?)
+    } else {
+        None
+    };
+    if let Some(refit) = &refit {
+        for c in choice.iter_mut().filter(|c| c.step_counts.is_some()) {
+            c.knots = refit.winding.layers[usize::from(c.string)]
+                .knots_mm
+                .as_slice()
+                .len();
+        }
+    }
+    let chosen: Vec<&StringLayers> = choice.iter().filter(|c| c.step_counts.is_some()).collect();
+    let ss = |rms: f64| rms * rms;
+    let without: f64 = chosen.iter().map(|c| ss(c.held_rms_without_mm)).sum();
+    let with: f64 = chosen.iter().map(|c| ss(c.held_rms_with_mm)).sum();
+    let amplitude_mm = chosen
+        .iter()
+        .map(|c| c.peak_to_peak_mm / 2.0)
+        .fold(0.0, f64::max);
+    let per_string: Vec<String> = chosen
+        .iter()
+        .map(|c| {
+            let turns = c.step_counts.map_or(0.0, |s| {
+                f64::from(s) / f64::from(id.laws[usize::from(c.string)].counts_per_rev)
+            });
+            format!(
+                "string {} every {turns:.2} turns, {:.1} mm peak to peak, held-out string rms \
+                 {:.3} -> {:.3} mm",
+                c.string, c.peak_to_peak_mm, c.held_rms_without_mm, c.held_rms_with_mm
+            )
+        })
+        .collect();
+    let finding = Finding {
+        family: Family::Layers,
+        strings: chosen.iter().map(|c| c.string).collect(),
+        variable: Variable::WoundLength,
+        amplitude_mm,
+        explained: if without > 0.0 {
+            1.0 - with / without
+        } else {
+            0.0
+        },
+        added: false,
+        chi2: 0.0,
+        description: format!(
+            "the spool departs from the smooth winding law (layers): {}{coarser_note}",
+            per_string.join("; ")
+        ),
+        validation: Some(check),
+        change: None,
+    };
+    Ok(LayerTry {
+        choice,
+        finding: Some(finding),
+        added: refit.map(|r| (r, after)),
+    })
+}
+
+/// Each spool's own thinning rate ([`Structure::hold_kappa_each`] off),
+/// kept when [`judge`] accepts it on the validation folds: the finding (a
+/// `winding` on every active string, `added` as judged) and, when
+/// accepted, the refit with its structure and validation.
+#[allow(clippy::type_complexity)]
+fn free_spool_rates(
+    train: &[Observation],
+    nominal: &Frame<f64>,
+    id: &Identification,
+    structure: &Structure,
+    before: &Validation,
+    config: &LoopConfig,
+) -> Result<(Finding, Option<(Identification, Structure, Validation)>), IdentifyError> {
+    let free = Structure {
+        hold_kappa_each: false,
+        ..structure.clone()
+    };
+    let finding = |description: String, explained: f64, validation: Option<Check>| Finding {
+        family: Family::Winding,
+        strings: nominal.layout.indices().map(|i| i as u8).collect(),
+        variable: Variable::WoundLength,
+        amplitude_mm: 0.0,
+        explained,
+        added: validation.as_ref().is_some_and(|c| c.accepted),
+        chi2: 0.0,
+        description,
+        validation,
+        change: None,
+    };
+    let (after, _) = match validate_fits(train, nominal, id, &free) {
+        Ok(v) => v,
+        // A session just large enough for the base model's folds: the
+        // shared rate stays, and the finding says why.
+        Err(IdentifyError::TooFewRows { needed, got }) => {
+            let why = format!(
+                "each spool's own thinning rate not tried: a validation fold has {got} tracked \
+                 rows, freeing the rates needs {needed}"
+            );
+            return Ok((finding(why, 0.0, None), None));
+        }
+        Err(e) => return Err(e),
+    };
+    let check = judge(before, &after, None, config.min_relative_gain);
+    let explained = 1.0 - after.held.mean_mm / before.held.mean_mm.max(1e-12);
+    let added = if check.accepted {
+        let refit = identify(train, nominal, &Start::from_identification(id), &free)?;
+        Some((refit, free, after))
+    } else {
+        None
+    };
+    let rates = added.as_ref().map_or_else(String::new, |(refit, _, _)| {
+        let each: Vec<String> = refit
+            .frame
+            .layout
+            .indices()
+            .map(|i| format!("{i}: {:+.5}", refit.winding.kappa_each_mm[i]))
+            .collect();
+        format!(
+            " (shared {:.5} mm/rad^2; each string's departure {})",
+            refit.winding.kappa_mm,
+            each.join(", ")
+        )
+    });
+    let description = format!(
+        "each spool thins at its own rate as string is paid out (spools of other widths, packing \
+         or pitch){rates}"
+    );
+    Ok((finding(description, explained, Some(check)), added))
+}
+
+/// Position errors of an identified string model against the tracker.
+pub fn model_errors(id: &Identification, observations: &[Observation]) -> ErrorStats {
+    ErrorStats::of(&model_error_list(id, observations))
+}
+
+// ---------------------------------------------------------------------------
+// Diagnosis: score tests of candidate effects on the string-space residual.
+
+/// What one (row, string) residual depends on.
+#[derive(Clone, Copy, Debug)]
+struct Row {
+    /// Index into the observations.
+    obs: usize,
+    string: usize,
+    /// Weight of the robust fit (0 for rejected residuals).
+    weight: f64,
+    /// Residual (geometric minus model), mm, unweighted.
+    residual: f64,
+    ctx: EffectContext,
+    /// Geometric length from the tracker, mm.
+    length: f64,
+    /// String speed `d payout / dt` since the previous row, mm/s.
+    speed: f64,
+    /// Device-frame position from the tracker, mm.
+    position: [f64; 3],
+    /// How the string's length reads a move of the tracked body's origin
+    /// from the meeting point (body frame, per mm of each axis), when the
+    /// tracker gives the body's orientation: a marker offset's columns.
+    marker_column: Option<[f64; 3]>,
+    /// `d residual / d room_scale` (frame-wide geometry regressor).
+    scale_gradient: f64,
+}
+
+/// Everything diagnosis needs about the current fit.
+struct Evidence {
+    /// Which channels carry a string (rows of the others have weight 0).
+    layout: StringLayout,
+    rows: Vec<Row>,
+    /// Orthonormal basis of the model's (weighted) Jacobian columns.
+    basis: DMatrix<f64>,
+    /// Weighted residual with the model's directions projected out.
+    residual: DVector<f64>,
+    /// Residual variance per unit weight, mm^2.
+    sigma2: f64,
+    /// Weighted residual sum of squares, mm^2.
+    rss: f64,
+}
+
+fn pulley_turn_angle(theta: f64) -> f64 {
+    theta.rem_euclid(2.0 * std::f64::consts::PI)
+}
+
+impl Evidence {
+    fn gather(
+        id: &Identification,
+        observations: &[Observation],
+        nominal: &Frame<f64>,
+        structure: &Structure,
+    ) -> Option<Evidence> {
+        let DataJacobian {
+            jacobian: jac,
+            residuals: weighted,
+            weights,
+        } = data_jacobian(id, observations, nominal, structure)?;
+        let used: Vec<usize> = observations
+            .iter()
+            .enumerate()
+            .filter(|(_, o)| o.tracker.is_some())
+            .map(|(k, _)| k)
+            .collect();
+        let mut rows = Vec::with_capacity(used.len() * STRINGS);
+        for (u, &k) in used.iter().enumerate() {
+            let o = &observations[k];
+            o.tracker?;
+            let p = device_position(&id.frame, o);
+            let inputs = inputs_at(&id.frame, o, &p);
+            let prev = k.checked_sub(1).map(|j| &observations[j]);
+            // The body's turn as the device frame sees it, once per row.
+            let body_in_device = o
+                .tracker_rotation
+                .map(|body| body_in_device(&id.frame, &body));
+            for i in 0..STRINGS {
+                let ctx = EffectContext::for_string(&id.frame, &id.laws, &inputs, i)?;
+                let d = [
+                    p[0] - id.frame.anchors[i][0],
+                    p[1] - id.frame.anchors[i][1],
+                    p[2] - id.frame.anchors[i][2],
+                ];
+                let length = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+                let up = [d[0] / length, d[1] / length, d[2] / length];
+                let speed = match prev {
+                    Some(q) if o.t_s > q.t_s => {
+                        let before = payout_f64(&id.laws[i], q.inputs.counts[i]);
+                        (ctx.payout_mm - before) / (o.t_s - q.t_s)
+                    }
+                    _ => 0.0,
+                };
+                let w = weights[u][i];
+                rows.push(Row {
+                    obs: k,
+                    string: i,
+                    weight: w,
+                    residual: if w > 0.0 {
+                        weighted[u * STRINGS + i] / w.sqrt()
+                    } else {
+                        0.0
+                    },
+                    ctx,
+                    length,
+                    speed,
+                    position: p,
+                    marker_column: body_in_device.map(|m| marker_column(&m, &up)),
+                    scale_gradient: -(up[0] * p[0] + up[1] * p[1] + up[2] * p[2])
+                        / id.frame.room_scale,
+                });
+            }
+        }
+        // Orthonormal basis of the column space from the eigenvectors of J^T J
+        // (the data Jacobian alone is rank deficient: the gauge is fixed by priors).
+        let gram = jac.transpose() * &jac;
+        let eig = gram.symmetric_eigen();
+        let max = eig.eigenvalues.iter().cloned().fold(0.0, f64::max);
+        let keep: Vec<usize> = (0..eig.eigenvalues.len())
+            .filter(|&j| eig.eigenvalues[j] > 1e-10 * max)
+            .collect();
+        let mut basis = DMatrix::zeros(jac.nrows(), keep.len());
+        for (c, &j) in keep.iter().enumerate() {
+            let v = eig.eigenvectors.column(j);
+            let u = &jac * v / eig.eigenvalues[j].sqrt();
+            basis.set_column(c, &u);
+        }
+        let residual = &weighted - &basis * (basis.transpose() * &weighted);
+        let rss = residual.norm_squared();
+        let effective = weights.iter().flatten().filter(|&&w| w > 0.0).count();
+        let dof = (effective as f64 - keep.len() as f64).max(1.0);
+        Some(Evidence {
+            layout: nominal.layout,
+            rows,
+            basis,
+            residual,
+            sigma2: rss / dof,
+            rss,
+        })
+    }
+
+    /// Projects weighted regressor columns (one value per row) off the model.
+    /// `None` when a column lies (almost) in the model's span: the current
+    /// model already absorbs that effect, so the data cannot show it.
+    fn project(&self, columns: &[Vec<f64>]) -> Option<DMatrix<f64>> {
+        const MIN_OUTSIDE_SPAN: f64 = 1e-2;
+        let n = self.rows.len();
+        let mut x = DMatrix::zeros(n, columns.len());
+        for (c, col) in columns.iter().enumerate() {
+            for (r, row) in self.rows.iter().enumerate() {
+                x[(r, c)] = col[r] * row.weight.sqrt();
+            }
+        }
+        let coef = self.basis.transpose() * &x;
+        let projected = &x - &self.basis * coef;
+        for c in 0..columns.len() {
+            let before = x.column(c).norm();
+            if before == 0.0 || projected.column(c).norm() < MIN_OUTSIDE_SPAN * before {
+                return None;
+            }
+        }
+        Some(projected)
+    }
+
+    /// Least-squares fit of projected regressors to the projected residual:
+    /// (coefficients, explained sum of squares).
+    fn fit(&self, projected: &DMatrix<f64>) -> Option<(Vec<f64>, f64)> {
+        let gram = projected.transpose() * projected;
+        let rhs = projected.transpose() * &self.residual;
+        let beta = gram.clone().cholesky()?.solve(&rhs);
+        let explained = beta.dot(&rhs);
+        (explained.is_finite() && explained >= 0.0)
+            .then(|| (beta.iter().copied().collect(), explained))
+    }
+}
+
+/// `R^T R_body / s` (`R`, `s`: the room transform), the rows of a planar
+/// device's normal zeroed (its meeting point stays in its plane): how the
+/// meeting point, `device_from_room(p - R_body d)`, moves against the
+/// tracked body's origin `d` (body frame).
+fn body_in_device(frame: &Frame<f64>, body: &[[f64; 3]; 3]) -> [[f64; 3]; 3] {
+    let r = &frame.room_rotation;
+    core::array::from_fn(|k| {
+        core::array::from_fn(|j| {
+            if frame.layout.planar && k == 2 {
+                0.0
+            } else {
+                (0..3).map(|m| r[m][k] * body[m][j]).sum::<f64>() / frame.room_scale
+            }
+        })
+    })
+}
+
+/// `d length / d marker` of a string whose unit direction (anchor to
+/// end-effector) is `up`, for the body's turn `body_in_device`
+/// ([`body_in_device`]): the string shortens by `up . M d`.
+fn marker_column(body_in_device: &[[f64; 3]; 3], up: &[f64; 3]) -> [f64; 3] {
+    core::array::from_fn(|j| (0..3).map(|k| up[k] * body_in_device[k][j]).sum::<f64>())
+}
+
+/// Turns fitted coefficients into the model change a candidate proposes.
+type BuildChange = Box<dyn Fn(&[f64]) -> Change>;
+
+/// A variable of the residual and how to read it off a row.
+type VariableOf = (Variable, fn(&Row) -> f64);
+
+/// A candidate effect: its regressors over all rows and what adding it means.
+struct Candidate {
+    family: Family,
+    strings: Vec<u8>,
+    variable: Variable,
+    columns: Vec<Vec<f64>>,
+    /// Extra chi-square demanded for a searched parameter (a slip's time).
+    search_penalty: f64,
+    /// Columns of a simpler explanation the candidate must explain the
+    /// residual beyond (nested test at its own dof); empty: none.
+    rival: Vec<Vec<f64>>,
+    build: BuildChange,
+    describe: String,
+}
+
+fn string_column(rows: &[Row], string: usize, f: impl Fn(&Row) -> f64) -> Vec<f64> {
+    rows.iter()
+        .map(|r| if r.string == string { f(r) } else { 0.0 })
+        .collect()
+}
+
+/// The column of a term shared by every string: `f` on the active
+/// strings' rows.
+fn shared_column(rows: &[Row], strings: StringLayout, f: impl Fn(&Row) -> f64) -> Vec<f64> {
+    rows.iter()
+        .map(|r| {
+            if strings.is_active(r.string) {
+                f(r)
+            } else {
+                0.0
+            }
+        })
+        .collect()
+}
+
+fn candidates(ev: &Evidence, structure: &Structure, time_split: &[Option<f64>]) -> Vec<Candidate> {
+    let rows = &ev.rows;
+    let mut out = Vec::new();
+    let has_effect = |string: usize, f: fn(&Effect) -> bool| {
+        structure
+            .effects
+            .iter()
+            .any(|t| t.string as usize == string && f(&t.effect))
+    };
+    let strings = ev.layout;
+    for (i, split) in time_split.iter().enumerate().take(STRINGS) {
+        if !strings.is_active(i) {
+            continue;
+        }
+        let s = i as u8;
+        let term = move |effect: Effect| Change::Effect(EffectTerm { string: s, effect });
+        if !has_effect(i, |e| matches!(e, Effect::Offset { .. })) {
+            out.push(Candidate {
+                family: Family::Offset,
+                strings: vec![s],
+                variable: Variable::Length,
+                columns: vec![string_column(rows, i, |_| 1.0)],
+                search_penalty: 0.0,
+                rival: Vec::new(),
+                build: Box::new(move |b| term(Effect::Offset { mm: b[0] })),
+                describe: format!(
+                    "string {i} reads a constant length error (its home length is off)"
+                ),
+            });
+        }
+        if !has_effect(i, |e| matches!(e, Effect::Scale { .. })) {
+            out.push(Candidate {
+                family: Family::Scale,
+                strings: vec![s],
+                variable: Variable::WoundLength,
+                columns: vec![string_column(rows, i, |r| r.ctx.payout_mm)],
+                search_penalty: 0.0,
+                rival: Vec::new(),
+                build: Box::new(move |b| term(Effect::Scale { relative: b[0] })),
+                describe: format!(
+                    "string {i}'s payout is off in proportion to the string wound out"
+                ),
+            });
+        }
+        if !has_effect(i, |e| matches!(e, Effect::Winding { power: 3, .. })) {
+            out.push(Candidate {
+                family: Family::Winding,
+                strings: vec![s],
+                variable: Variable::WoundLength,
+                columns: vec![string_column(rows, i, |r| r.ctx.theta.powi(3))],
+                search_penalty: 0.0,
+                rival: Vec::new(),
+                build: Box::new(move |b| {
+                    term(Effect::Winding {
+                        power: 3,
+                        mm_per_rad_pow: b[0],
+                    })
+                }),
+                describe: format!(
+                    "string {i}'s winding law needs a third-order term (uneven layers)"
+                ),
+            });
+        }
+        if !has_effect(i, |e| matches!(e, Effect::Eccentricity { .. })) {
+            out.push(Candidate {
+                family: Family::Eccentricity,
+                strings: vec![s],
+                variable: Variable::PulleyAngle,
+                columns: vec![
+                    string_column(rows, i, |r| r.ctx.theta.sin()),
+                    string_column(rows, i, |r| r.ctx.theta.cos() - 1.0),
+                ],
+                search_penalty: 3.0,
+                rival: Vec::new(),
+                build: Box::new(move |b| {
+                    term(Effect::Eccentricity {
+                        sin_mm: b[0],
+                        cos_mm: b[1],
+                    })
+                }),
+                describe: format!(
+                    "string {i}'s error is periodic in its pulley angle (eccentric pulley)"
+                ),
+            });
+        }
+        if !has_effect(i, |e| matches!(e, Effect::Elasticity { .. })) {
+            out.push(Candidate {
+                family: Family::Elasticity,
+                strings: vec![s],
+                variable: Variable::Tension,
+                columns: vec![string_column(rows, i, |r| {
+                    r.ctx.tension_n * (r.ctx.home_length_mm + r.ctx.payout_mm)
+                })],
+                search_penalty: 0.0,
+                rival: Vec::new(),
+                build: Box::new(move |b| term(Effect::Elasticity { per_newton: b[0] })),
+                describe: format!("string {i} stretches with its tension (elastic string)"),
+            });
+        }
+        if !has_effect(i, |e| matches!(e, Effect::Backlash { .. })) {
+            out.push(Candidate {
+                family: Family::Backlash,
+                strings: vec![s],
+                variable: Variable::Direction,
+                columns: vec![string_column(rows, i, |r| {
+                    f64::from(r.ctx.direction.signum())
+                })],
+                search_penalty: 0.0,
+                rival: Vec::new(),
+                build: Box::new(move |b| {
+                    term(Effect::Backlash {
+                        half_width_mm: b[0],
+                    })
+                }),
+                describe: format!(
+                    "string {i}'s error depends on its direction of motion (backlash)"
+                ),
+            });
+        }
+        if !has_effect(i, |e| matches!(e, Effect::Drift { .. })) {
+            out.push(Candidate {
+                family: Family::Drift,
+                strings: vec![s],
+                variable: Variable::Time,
+                columns: vec![string_column(rows, i, |r| r.ctx.time_s)],
+                search_penalty: 0.0,
+                rival: Vec::new(),
+                build: Box::new(move |b| term(Effect::Drift { mm_per_s: b[0] })),
+                describe: format!("string {i}'s length drifts with time since initialization"),
+            });
+        }
+        if let Some(at_s) = *split {
+            if !has_effect(i, |e| matches!(e, Effect::Slip { .. })) {
+                let n = rows.iter().filter(|r| r.string == i).count().max(2) as f64;
+                out.push(Candidate {
+                    family: Family::Slip,
+                    strings: vec![s],
+                    variable: Variable::Time,
+                    columns: vec![string_column(rows, i, |r| {
+                        if r.ctx.time_s >= at_s {
+                            1.0
+                        } else {
+                            0.0
+                        }
+                    })],
+                    search_penalty: 2.0 * n.ln(),
+                    rival: Vec::new(),
+                    build: Box::new(move |b| term(Effect::Slip { at_s, mm: b[0] })),
+                    describe: format!(
+                        "string {i} slipped at t = {at_s:.1} s (a step in its length)"
+                    ),
+                });
+            }
+        }
+    }
+    // One drift shared by every string (creep or temperature of the whole
+    // device): one parameter where per-string drifts take one each, and the
+    // same value on every string, which the per-string terms, added one at a
+    // time, do not find (issue 10, point 4).
+    let shared = usize::from(EVERY_STRING);
+    if !has_effect(shared, |e| matches!(e, Effect::Drift { .. })) {
+        out.push(Candidate {
+            family: Family::Drift,
+            strings: Vec::new(),
+            variable: Variable::Time,
+            columns: vec![shared_column(rows, strings, |r| r.ctx.time_s)],
+            search_penalty: 0.0,
+            rival: Vec::new(),
+            build: Box::new(|b| {
+                Change::Effect(EffectTerm {
+                    string: EVERY_STRING,
+                    effect: Effect::Drift { mm_per_s: b[0] },
+                })
+            }),
+            describe: "every string's length drifts alike with time since initialization (creep, \
+                       temperature of the whole device)"
+                .into(),
+        });
+    }
+    // One stretch shared by every string (strings of one kind: one
+    // stiffness, a similar lead from spool to guide, one tension at the home
+    // capture): `k (T l - T_home l_home) + m (T - T_home)`. Detected with the
+    // linear columns `T l`, `T` and `-1` (`T_home (k l_home + m)` at the mean
+    // home length); the refit frees `T_home` around the pretension. Without
+    // its lead and home parts the shared sag stood in for it on 11 of 20
+    // clean independent devices.
+    if !has_effect(shared, |e| matches!(e, Effect::Stretch { .. })) {
+        let (sum_lh, n_lh) = rows
+            .iter()
+            .filter(|r| strings.is_active(r.string))
+            .fold((0.0, 0usize), |(s, n), r| (s + r.ctx.home_length_mm, n + 1));
+        let mean_lh = sum_lh / n_lh.max(1) as f64;
+        let pretension = structure.priors.home_tension_n;
+        out.push(Candidate {
+            family: Family::Elasticity,
+            strings: Vec::new(),
+            variable: Variable::Tension,
+            columns: stretch_columns(rows, strings),
+            search_penalty: 0.0,
+            rival: Vec::new(),
+            build: Box::new(move |b| {
+                let home_tension_n = b[2] / (b[0] * mean_lh + b[1]);
+                Change::Effect(EffectTerm {
+                    string: EVERY_STRING,
+                    effect: Effect::Stretch {
+                        per_newton: b[0],
+                        mm_per_newton: b[1],
+                        home_tension_n: if (0.0..=2.0 * pretension + 1.0).contains(&home_tension_n)
+                        {
+                            home_tension_n
+                        } else {
+                            pretension
+                        },
+                    },
+                })
+            }),
+            describe: "every string stretches with its tension, over its free span and its \
+                       lead, less its stretch at the home capture (elastic strings of one kind)"
+                .into(),
+        });
+    }
+    // The frame flexing under the strings' total pull: every guide moves
+    // with `sum_j T_j`, one compliance for the frame, less the flex at the
+    // home capture (a length every string shares).
+    if !has_effect(shared, |e| matches!(e, Effect::FrameFlex { .. })) {
+        out.push(Candidate {
+            family: Family::FrameFlex,
+            strings: Vec::new(),
+            variable: Variable::Tension,
+            columns: vec![
+                shared_column(rows, strings, |r| r.ctx.total_tension_n),
+                shared_column(rows, strings, |_| -1.0),
+            ],
+            search_penalty: 0.0,
+            rival: Vec::new(),
+            build: Box::new(|b| {
+                Change::Effect(EffectTerm {
+                    string: EVERY_STRING,
+                    effect: Effect::FrameFlex {
+                        mm_per_newton: b[0],
+                        home_mm: b[1],
+                    },
+                })
+            }),
+            describe: "every string's length moves with the strings' total tension (the frame \
+                       flexes under their pull)"
+                .into(),
+        });
+    }
+    // One sag shared by every string (strings of one kind: one weight per
+    // metre, one tension at the home capture), each string at its own
+    // length, tension and inclination. Not one string's: its home part is a
+    // constant on that string (an offset), and on clean independent devices
+    // per-string sags stood in for offsets and raised the test error (seed
+    // 5: 0.42 -> 0.94 mm; docs/benchmarks.md).
+    if !has_effect(shared, |e| matches!(e, Effect::Sag { .. })) {
+        out.push(Candidate {
+            family: Family::Sag,
+            strings: Vec::new(),
+            variable: Variable::Tension,
+            columns: vec![
+                shared_column(rows, strings, |r| -sag_variable(&r.ctx)),
+                shared_column(rows, strings, |r| sag_home_variable(&r.ctx)),
+            ],
+            search_penalty: 0.0,
+            // The stretch's `T l` column only: its three columns as the
+            // rival let a different sag through on clean seeds 6 and 8, and
+            // a drift after it (test 0.41 -> 0.64 mm; loop_bench
+            // --clean-only 20 mean 0.403 -> 0.428).
+            rival: stretch_columns(rows, strings).into_iter().take(1).collect(),
+            build: Box::new(|b| {
+                Change::Effect(EffectTerm {
+                    string: EVERY_STRING,
+                    effect: Effect::Sag {
+                        mm_at_1m_1n: b[0],
+                        home_mm_at_1m: b[1],
+                    },
+                })
+            }),
+            describe: "every string sags under its own weight, by cos^2(inclination) (l / 1 m)^3 \
+                       / (T / 1 N)^2 less its sag at the home capture (heavy strings of one kind)"
+                .into(),
+        });
+    }
+    // The tracked body's origin off the strings' meeting point, seen through
+    // the body's orientation (a tracker of rigid bodies gives it): the
+    // meeting point is `p - R_body d`. Tried when every tracked row has an
+    // orientation; a found offset is refined by the next diagnosis.
+    if rows.iter().all(|r| r.marker_column.is_some()) {
+        let before = structure.marker_body_mm.unwrap_or([0.0; 3]);
+        out.push(Candidate {
+            family: Family::Marker,
+            strings: Vec::new(),
+            variable: Variable::Orientation,
+            columns: (0..3)
+                .map(|j| shared_column(rows, strings, |r| r.marker_column.map_or(0.0, |c| c[j])))
+                .collect(),
+            search_penalty: 0.0,
+            rival: Vec::new(),
+            build: Box::new(move |b| {
+                Change::MarkerOffset(core::array::from_fn(|j| before[j] + b[j]))
+            }),
+            describe: "the tracked body's origin is off the strings' meeting point: it turns \
+                       with the body (the tracker's orientation)"
+                .into(),
+        });
+    }
+    if !structure.fit_room_scale {
+        out.push(Candidate {
+            family: Family::Geometry,
+            strings: Vec::new(),
+            variable: Variable::Position,
+            columns: vec![rows.iter().map(|r| r.scale_gradient).collect()],
+            search_penalty: 0.0,
+            rival: Vec::new(),
+            build: Box::new(|_| Change::RoomScale),
+            describe: "the tracker's scale differs from the device's (frame error)".into(),
+        });
+    }
+    out
+}
+
+/// The most likely slip time of each string: the split of its residuals (in
+/// time order) with the largest two-sample mean difference, or `None` when
+/// the string has too few rows.
+fn slip_times(ev: &Evidence) -> Vec<Option<f64>> {
+    (0..STRINGS)
+        .map(|i| {
+            if !ev.layout.is_active(i) {
+                return None;
+            }
+            let residual_in_time = ev
+                .rows
+                .iter()
+                .filter(|r| r.string == i && r.weight > 0.0)
+                .map(|r| (r.ctx.time_s, r.residual))
+                .collect();
+            best_step(residual_in_time).map(|b| b.1)
+        })
+        .collect()
+}
+
+/// The best single step of residuals `(key, residual)` ordered by the key:
+/// (its statistic, the key halfway across it), at least `MIN_SIDE` points
+/// on each side; `None` with too few points.
+fn best_step(mut r: Vec<(f64, f64)>) -> Option<(f64, f64)> {
+    const MIN_SIDE: usize = 20;
+    let n = r.len();
+    if n < 2 * MIN_SIDE {
+        return None;
+    }
+    r.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let total: f64 = r.iter().map(|x| x.1).sum();
+    let mut prefix = 0.0;
+    let mut best = (0.0, None);
+    for j in 1..n {
+        prefix += r[j - 1].1;
+        if j < MIN_SIDE || n - j < MIN_SIDE || r[j].0 == r[j - 1].0 {
+            continue;
+        }
+        let (a, b) = (j as f64, (n - j) as f64);
+        let diff = prefix / a - (total - prefix) / b;
+        let stat = diff * diff * a * b / n as f64;
+        if stat > best.0 {
+            best = (stat, Some(0.5 * (r[j - 1].0 + r[j].0)));
+        }
+    }
+    best.1.map(|at| (best.0, at))
+}
+
+/// A fitted sag or stretch in the device's terms; `None` for another
+/// effect. A sag: the strings' weight (`c = w^2 / 24`) and the tension they
+/// held at the home capture (`h = c / T_home^2`). A stretch: the strings'
+/// stiffness `EA = 1 / per_newton`, the length between spool and exit point
+/// it stretches beside the free span (`mm_per_newton * EA`), and the home
+/// tension.
+fn in_physical_terms(effect: &Effect) -> Option<String> {
+    match *effect {
+        Effect::Sag {
+            mm_at_1m_1n: c,
+            home_mm_at_1m: h,
+        } => {
+            // c mm = w^2 (1 m)^3 / (24 (1 N)^2), w in N/m.
+            let grams_per_m = (24.0 * c.max(0.0) / 1000.0).sqrt() / 9.80665 * 1000.0;
+            let home = if c > 0.0 && h > 0.0 {
+                format!("{:.2} N", (c / h).sqrt())
+            } else {
+                "not a tension (the home part's sign is not a sag's)".into()
+            };
+            Some(format!(
+                " (fitted: {c:.3} mm at 1 m and 1 N, strings of {grams_per_m:.1} g/m; tension at \
+                 the home capture {home})"
+            ))
+        }
+        Effect::Stretch {
+            per_newton,
+            mm_per_newton,
+            home_tension_n,
+        } => {
+            let stiffness = if per_newton > 0.0 {
+                format!(
+                    "EA {:.0} N, {:.0} mm of string between spool and exit point",
+                    1.0 / per_newton,
+                    mm_per_newton / per_newton
+                )
+            } else {
+                format!("{mm_per_newton:.4} mm/N (no stretch of the free span)")
+            };
+            // A home tension below 0 is not one: the home part, a length
+            // on every string, then also takes a constant the strings share
+            // for another reason (seen on clean independent devices).
+            let home = if home_tension_n > 0.0 {
+                format!("{home_tension_n:.2} N")
+            } else {
+                format!(
+                    "{home_tension_n:.2} N, not a tension: its home part also takes a length \
+                     shared by every string"
+                )
+            };
+            Some(format!(
+                " (fitted: {per_newton:.3e} per N, strings of {stiffness}; tension at the home \
+                 capture {home})"
+            ))
+        }
+        Effect::FrameFlex {
+            mm_per_newton,
+            home_mm,
+        } => {
+            let home_total = if mm_per_newton != 0.0 {
+                format!("{:.1} N", home_mm / mm_per_newton)
+            } else {
+                "none".into()
+            };
+            Some(format!(
+                " (fitted: {mm_per_newton:.4} mm per N of total tension; total tension at the \
+                 home capture {home_total})"
+            ))
+        }
+        _ => None,
+    }
+}
+
+/// The strings' stretch's columns on every active string, `T l`, `T` and
+/// `-1` ([`Effect::Stretch`] linearized at the mean home length): the
+/// stretch candidate's; the first is what a shared sag must explain the
+/// residual beyond. Both grow with the tension's effect on the string, and on clean
+/// independent devices a sag of 0.06-0.08 mm at 1 m and 1 N (the strings
+/// weigh 0.3-1 g/m: 0.0004-0.004) stood in for the stretch (with rigid
+/// strings it was not added).
+fn stretch_columns(rows: &[Row], strings: StringLayout) -> Vec<Vec<f64>> {
+    vec![
+        shared_column(rows, strings, |r| {
+            r.ctx.tension_n * (r.ctx.home_length_mm + r.ctx.payout_mm)
+        }),
+        shared_column(rows, strings, |r| r.ctx.tension_n),
+        shared_column(rows, strings, |_| -1.0),
+    ]
+}
+
+/// Whether candidate `c` explains the residual beyond its rival's columns:
+/// its chi-square over the rival's alone, at the candidate's dof.
+fn beyond_rival(ev: &Evidence, c: &Candidate, config: &LoopConfig) -> bool {
+    let explained =
+        |columns: &[Vec<f64>]| ev.project(columns).and_then(|p| ev.fit(&p)).map(|(_, e)| e);
+    let both: Vec<Vec<f64>> = c.rival.iter().chain(&c.columns).cloned().collect();
+    match (explained(&both), explained(&c.rival)) {
+        (Some(with), Some(without)) => {
+            (with - without) / ev.sigma2
+                >= chi2_threshold(config, c.columns.len(), c.search_penalty)
+        }
+        _ => false,
+    }
+}
+
+fn chi2_threshold(config: &LoopConfig, dof: usize, penalty: f64) -> f64 {
+    config.chi2_threshold + 3.0 * (dof.saturating_sub(1)) as f64 + penalty
+}
+
+/// Significant candidate effects of the current fit, strongest first.
+pub fn diagnose(
+    id: &Identification,
+    observations: &[Observation],
+    nominal: &Frame<f64>,
+    structure: &Structure,
+    config: &LoopConfig,
+) -> Vec<Finding> {
+    let Some(ev) = Evidence::gather(id, observations, nominal, structure) else {
+        return Vec::new();
+    };
+    let splits = slip_times(&ev);
+    let mut findings: Vec<Finding> = candidates(&ev, structure, &splits)
+        .into_iter()
+        .filter_map(|c| {
+            let projected = ev.project(&c.columns)?;
+            let (beta, explained) = ev.fit(&projected)?;
+            let chi2 = explained / ev.sigma2;
+            if chi2 < chi2_threshold(config, c.columns.len(), c.search_penalty) {
+                return None;
+            }
+            if !c.rival.is_empty() && !beyond_rival(&ev, &c, config) {
+                return None;
+            }
+            let amplitude_mm = ev
+                .rows
+                .iter()
+                .enumerate()
+                .filter(|(_, r)| r.weight > 0.1)
+                .map(|(k, _)| {
+                    c.columns
+                        .iter()
+                        .zip(&beta)
+                        .map(|(col, b)| col[k] * b)
+                        .sum::<f64>()
+                        .abs()
+                })
+                .fold(0.0, f64::max);
+            Some(Finding {
+                family: c.family,
+                strings: c.strings.clone(),
+                variable: c.variable,
+                amplitude_mm,
+                explained: explained / ev.rss.max(1e-12),
+                added: false,
+                chi2,
+                description: c.describe.clone(),
+                validation: None,
+                change: Some((c.build)(&beta)),
+            })
+        })
+        .collect();
+    findings.extend(anchors_beyond_tolerance(id, nominal, structure));
+    findings.sort_by(|a, b| b.chi2.total_cmp(&a.chi2));
+    findings
+}
+
+/// Prior sd (mm) of an anchor the geometry family released.
+pub const RELEASED_ANCHOR_SD_MM: f64 = 1000.0;
+
+/// Anchors the data pull far beyond their design tolerance: the fitted
+/// anchor's distance from its design position, in prior standard deviations,
+/// is beyond what the tolerance explains (chi-square, 3 dof, p = 0.001), so
+/// the prior is fighting the data (a bracket mounted in another hole, a frame
+/// built off the drawing). Releasing the prior is the geometry change.
+fn anchors_beyond_tolerance(
+    id: &Identification,
+    nominal: &Frame<f64>,
+    structure: &Structure,
+) -> Vec<Finding> {
+    (0..STRINGS)
+        .filter(|&i| nominal.layout.is_active(i))
+        .filter(|&i| structure.anchor_sd_override_mm[i].is_none())
+        .filter_map(|i| {
+            let sd = structure.priors.anchor_sd_mm;
+            let d = [
+                id.frame.anchors[i][0] - nominal.anchors[i][0],
+                id.frame.anchors[i][1] - nominal.anchors[i][1],
+                id.frame.anchors[i][2] - nominal.anchors[i][2],
+            ];
+            let chi2 = d.iter().map(|v| (v / sd).powi(2)).sum::<f64>();
+            // Mahalanobis distance under the prior beyond chi-square(3 dof)
+            // at p = 0.001: the as-built tolerance does not explain it.
+            const CHI2_3DOF_P001: f64 = 16.27;
+            (chi2 > CHI2_3DOF_P001).then(|| Finding {
+                family: Family::Geometry,
+                strings: vec![i as u8],
+                variable: Variable::Position,
+                amplitude_mm: (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt(),
+                explained: 0.0,
+                added: false,
+                chi2,
+                description: format!(
+                    "anchor {i} sits {:.1} mm from its design position ({:+.1}, {:+.1}, {:+.1}), beyond the {sd} mm tolerance",
+                    (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt(),
+                    d[0],
+                    d[1],
+                    d[2]
+                ),
+                validation: None,
+                change: Some(Change::ReleaseAnchor(i as u8)),
+            })
+        })
+        .collect()
+}
+
+/// Structure left in the residual that no family explains: per string, the
+/// residual binned by each variable; a variable whose bin means differ beyond
+/// chance is reported, naming it. Position-dependent structure is what the
+/// learned correction (NN/SVR) takes next.
+pub fn unexplained(
+    id: &Identification,
+    observations: &[Observation],
+    nominal: &Frame<f64>,
+    structure: &Structure,
+    config: &LoopConfig,
+) -> Vec<Finding> {
+    const BINS: usize = 8;
+    let Some(ev) = Evidence::gather(id, observations, nominal, structure) else {
+        return Vec::new();
+    };
+    let variables: [VariableOf; 10] = [
+        (Variable::Length, |r| r.length),
+        (Variable::WoundLength, |r| r.ctx.payout_mm),
+        (Variable::PulleyAngle, |r| pulley_turn_angle(r.ctx.theta)),
+        (Variable::Tension, |r| r.ctx.tension_n),
+        (Variable::Direction, |r| f64::from(r.ctx.direction)),
+        (Variable::Speed, |r| r.speed),
+        (Variable::Time, |r| r.ctx.time_s),
+        (Variable::Order, |r| r.obs as f64),
+        (Variable::Position, |r| r.position[0]),
+        (Variable::Position, |r| r.position[2]),
+    ];
+    let sigma2 = ev.sigma2;
+    let threshold = chi2_threshold(config, BINS, 15.0);
+    let mut by_variable: Vec<(Variable, Vec<u8>, f64, f64, f64)> = Vec::new();
+    for i in ev.layout.indices() {
+        let rows: Vec<(usize, &Row)> = ev
+            .rows
+            .iter()
+            .enumerate()
+            .filter(|(_, r)| r.string == i && r.weight > 0.1)
+            .collect();
+        if rows.len() < 4 * BINS {
+            continue;
+        }
+        let mut best: Option<(Variable, f64, f64, f64)> = None;
+        for (variable, value) in variables.iter() {
+            let mut v: Vec<(f64, f64, f64)> = rows
+                .iter()
+                .map(|(k, r)| (value(r), ev.residual[*k], r.weight.sqrt()))
+                .collect();
+            v.sort_by(|a, b| a.0.total_cmp(&b.0));
+            let mut between = 0.0;
+            let mut peak: f64 = 0.0;
+            let per = v.len() / BINS;
+            for b in 0..BINS {
+                let part = &v[b * per..if b + 1 == BINS {
+                    v.len()
+                } else {
+                    (b + 1) * per
+                }];
+                let sum: f64 = part.iter().map(|x| x.1).sum();
+                let n = part.len() as f64;
+                between += sum * sum / n;
+                let w: f64 = part.iter().map(|x| x.2).sum::<f64>() / n;
+                peak = peak.max((sum / n / w.max(1e-9)).abs());
+            }
+            let total: f64 = v.iter().map(|x| x.1).sum();
+            between -= total * total / v.len() as f64;
+            let chi2 = between / sigma2;
+            if chi2 > threshold && best.is_none_or(|b| chi2 > b.1) {
+                best = Some((*variable, chi2, peak, between));
+            }
+        }
+        if let Some((variable, chi2, peak, between)) = best {
+            match by_variable.iter_mut().find(|e| e.0 == variable) {
+                Some(e) => {
+                    e.1.push(i as u8);
+                    e.2 = e.2.max(chi2);
+                    e.3 = e.3.max(peak);
+                    e.4 += between;
+                }
+                None => by_variable.push((variable, vec![i as u8], chi2, peak, between)),
+            }
+        }
+    }
+    by_variable
+        .into_iter()
+        .map(|(variable, strings, chi2, peak, between)| Finding {
+            family: Family::Unexplained,
+            description: format!(
+                "strings {strings:?}: residual follows {} but fits no known effect{}",
+                variable_name(variable),
+                if variable == Variable::Position {
+                    "; the learned position correction takes it"
+                } else {
+                    ""
+                }
+            ),
+            strings,
+            variable,
+            amplitude_mm: peak,
+            explained: between / ev.rss.max(1e-12),
+            added: false,
+            chi2,
+            validation: None,
+            change: None,
+        })
+        .collect()
+}
+
+/// The report's name of a variable.
+pub fn variable_name(v: Variable) -> &'static str {
+    match v {
+        Variable::Position => "position",
+        Variable::Length => "length",
+        Variable::WoundLength => "wound_length",
+        Variable::PulleyAngle => "pulley_angle",
+        Variable::Tension => "tension",
+        Variable::Direction => "direction",
+        Variable::Speed => "speed",
+        Variable::Time => "time",
+        Variable::Order => "order",
+        Variable::Orientation => "orientation",
+    }
+}
+
+/// The report's name of a family.
+pub fn family_name(f: Family) -> &'static str {
+    match f {
+        Family::Offset => "offset",
+        Family::Scale => "scale",
+        Family::Winding => "winding",
+        Family::Eccentricity => "eccentricity",
+        Family::Elasticity => "elasticity",
+        Family::Backlash => "backlash",
+        Family::Drift => "drift",
+        Family::Slip => "slip",
+        Family::Sag => "sag",
+        Family::FrameFlex => "frame flex",
+        Family::Layers => "layers",
+        Family::Geometry => "geometry",
+        Family::Marker => "marker offset",
+        Family::Unexplained => "unexplained",
+    }
+}
+
+fn stage_name(f: &Finding) -> String {
+    match (f.family, f.strings.as_slice()) {
+        (Family::Geometry, []) => "geometry (tracker scale)".into(),
+        (Family::Geometry, [s]) => format!("geometry anchor {s}"),
+        (Family::Marker, _) => "marker offset (tracked body)".into(),
+        (family, []) => format!("{} (every string)", family_name(family)),
+        (family, [s]) => format!("{} string {s}", family_name(family)),
+        (family, s) => format!("{} strings {s:?}", family_name(family)),
+    }
+}
+
+impl Structure {
+    /// This structure with `change` applied.
+    pub fn with(&self, change: Change) -> Structure {
+        let mut s = self.clone();
+        match change {
+            Change::Effect(term) => s.effects.push(term),
+            Change::RoomScale => s.fit_room_scale = true,
+            Change::ReleaseAnchor(i) => {
+                if let Some(sd) = s.anchor_sd_override_mm.get_mut(i as usize) {
+                    *sd = Some(RELEASED_ANCHOR_SD_MM);
+                }
+            }
+            Change::MarkerOffset(d) => s.marker_body_mm = Some(d),
+        }
+        s
+    }
+}
+
+/// Mean position error on data each fit did not see: two interleaved folds,
+/// each fitted (warm, from `from`) on the other.
+pub fn cross_validated_error(
+    train: &[Observation],
+    nominal: &Frame<f64>,
+    from: &Identification,
+    structure: &Structure,
+) -> Result<f64, IdentifyError> {
+    let fold = |parity: usize| -> Result<(f64, usize), IdentifyError> {
+        let fit: Vec<Observation> = train
+            .iter()
+            .enumerate()
+            .filter(|(k, _)| k % 2 != parity)
+            .map(|(_, o)| o.clone())
+            .collect();
+        let held: Vec<Observation> = train
+            .iter()
+            .enumerate()
+            .filter(|(k, _)| k % 2 == parity)
+            .map(|(_, o)| o.clone())
+            .collect();
+        let id = identify(&fit, nominal, &Start::from_identification(from), structure)?;
+        let s = model_errors(&id, &held);
+        Ok((s.mean_mm * s.n as f64, s.n))
+    };
+    let (a, b) = rayon::join(|| fold(0), || fold(1));
+    let (a, b) = (a?, b?);
+    Ok((a.0 + b.0) / (a.1 + b.1).max(1) as f64)
+}
+
+// ---------------------------------------------------------------------------
+// Validation that sees extrapolation: folds blocked in time and in space.
+
+/// Fewest tracked rows for blocked folds: each blocked fit sees half (time) or
+/// about 60 % (space) of the rows, and a full model of 8 strings has ~40
+/// parameters; below this the session falls back to interleaved folds.
+pub const MIN_BLOCKED_ROWS: usize = 200;
+
+/// Outer shell of the space fold: points whose largest coordinate offset from
+/// the centroid, relative to the session's extent on that axis, is at least
+/// this. For points filling a cube it is the outer third of the volume
+/// (1 - r^3 = 1/3); on the 13^3 lattice it is the outermost layer (39 %).
+const OUTER_SHELL: f64 = 0.873_580_464_736_299_4; // (2/3)^(1/3)
+
+/// Which folds a validation pooled.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Folds {
+    /// Time (fit the earlier half, validate the later, and the reverse) and
+    /// space (fit the inner region, validate the outer shell).
+    Blocked,
+    /// The session is too small for blocked folds (fewer than
+    /// [`MIN_BLOCKED_ROWS`] tracked rows): two interleaved folds only.
+    Interleaved,
+}
+
+/// Held-out position errors of one structure, every fold refitted warm from
+/// the current identification.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Validation {
+    pub folds: Folds,
+    /// The errors acceptance looks at: the blocked folds pooled (each later
+    /// and earlier half once, the outer shell once), or the interleaved ones
+    /// when `folds` is `interleaved`.
+    pub held: ErrorStats,
+    /// The two interleaved folds pooled (every row once).
+    pub interleaved: ErrorStats,
+    /// Sampling noise (two standard errors) of `held`'s p95 and max, see
+    /// [`tail_noise`].
+    pub noise_p95_mm: f64,
+    pub noise_max_mm: f64,
+    /// The held-out errors behind `held`, row by row in fold order (the same
+    /// order for every structure of one session), mm.
+    #[serde(skip)]
+    pub held_errors: Vec<f64>,
+    /// How many of `held_errors` each fold behind `held` gave, in order
+    /// (the blocked folds: later half, earlier half, outer shell; or the two
+    /// interleaved ones).
+    #[serde(skip)]
+    pub fold_sizes: Vec<usize>,
+    /// The interleaved folds' errors behind `interleaved`, row by row, mm.
+    #[serde(skip)]
+    pub interleaved_errors: Vec<f64>,
+}
+
+impl Validation {
+    /// What a step in time (a slip) is judged on: the interleaved folds
+    /// (every fit straddles the step and every held-out set has rows on
+    /// both sides of it) and, of the blocked folds, those `keep` says (their
+    /// fit rows reach both sides of the step, `judgeable_folds`).
+    pub fn for_step(&self, keep: &[bool]) -> Validation {
+        let mut held_errors = Vec::with_capacity(self.held_errors.len());
+        let mut fold_sizes = Vec::with_capacity(self.fold_sizes.len());
+        if self.folds == Folds::Blocked {
+            held_errors.extend_from_slice(&self.interleaved_errors);
+            fold_sizes.push(self.interleaved_errors.len());
+            let mut from = 0;
+            for (k, &size) in self.fold_sizes.iter().enumerate() {
+                if keep.get(k).copied().unwrap_or(true) {
+                    held_errors.extend_from_slice(&self.held_errors[from..from + size]);
+                    fold_sizes.push(size);
+                }
+                from += size;
+            }
+        } else {
+            held_errors.extend_from_slice(&self.held_errors);
+            fold_sizes.extend_from_slice(&self.fold_sizes);
+        }
+        let (noise_p95_mm, noise_max_mm) = tail_noise(&held_errors);
+        Validation {
+            folds: self.folds,
+            held: ErrorStats::of(&held_errors),
+            interleaved: self.interleaved,
+            noise_p95_mm,
+            noise_max_mm,
+            held_errors,
+            fold_sizes,
+            interleaved_errors: self.interleaved_errors.clone(),
+        }
+    }
+}
+
+/// A held-out row whose error exceeds this many times the p95 before a
+/// change, before or after it, is one the model fails on (a faulty string
+/// it did not reject): its error moves by mm with any change. [`judge`]
+/// holds the max of the other rows to its noise and lets each of these rise
+/// by at most [`FAILING_ROW_RISE`] plus that noise (a term that blows up
+/// outside the lattice, 3 -> 67 mm, is still refused).
+pub const FAILING_ROW_FACTOR: f64 = 4.0;
+
+/// How much (relative) a row the model already fails on may worsen.
+pub const FAILING_ROW_RISE: f64 = 0.25;
+
+/// A held-out check of a change: the figures before and after, and why it
+/// was or was not taken.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Check {
+    pub before: Validation,
+    pub after: Validation,
+    /// Chi-square of the difference between the added term's parameters
+    /// fitted on the earlier and on the later half (see `reason`); absent
+    /// without time folds.
+    pub stability_chi2: Option<f64>,
+    pub accepted: bool,
+    /// One line for people.
+    pub reason: String,
+}
+
+/// Sampling noise (two standard errors) of the p95 and the max of a set of
+/// errors, from the set itself. p95: half the spread between the errors at
+/// ranks `n (0.95 -+ 2 sqrt(0.95 0.05 / n))` (the binomial uncertainty of the
+/// rank). Max: the errors' tail beyond the p95 is taken as exponential with
+/// the mean excess `beta`; the maximum of such a sample is Gumbel-distributed
+/// with standard deviation `pi / sqrt(6) beta`.
+pub fn tail_noise(errors: &[f64]) -> (f64, f64) {
+    let n = errors.len();
+    if n < 2 {
+        return (f64::INFINITY, f64::INFINITY);
+    }
+    let mut sorted = errors.to_vec();
+    sorted.sort_by(f64::total_cmp);
+    let at = |q: f64| sorted[((q * n as f64).ceil() as usize).clamp(1, n) - 1];
+    let band = 2.0 * (0.95 * 0.05 / n as f64).sqrt();
+    let p95 = 0.5 * (at((0.95 + band).min(1.0)) - at(0.95 - band));
+    let threshold = at(0.95);
+    let tail: Vec<f64> = sorted
+        .iter()
+        .filter(|e| **e > threshold)
+        .map(|e| e - threshold)
+        .collect();
+    let beta = if tail.is_empty() {
+        0.0
+    } else {
+        tail.iter().sum::<f64>() / tail.len() as f64
+    };
+    let max = 2.0 * std::f64::consts::PI / 6f64.sqrt() * beta;
+    (p95, max)
+}
+
+/// Position errors (eq. 7) of an identified model on the tracked rows.
+fn model_error_list(id: &Identification, observations: &[Observation]) -> Vec<f64> {
+    let predictions = predict(id.string_model(), observations);
+    let room: Vec<[f64; 3]> = predictions.iter().map(|p| p.room).collect();
+    let (p, t) = paired_with_tracker(&room, observations);
+    position_errors(&p, &t)
+}
+
+/// One fold: (fit rows, held-out rows), by index into the tracked rows.
+pub(crate) type Fold = (Vec<usize>, Vec<usize>);
+
+/// What each fold of [`folds`] holds out, by name, in its order: the two
+/// interleaved folds, then the blocked ones (the later half, fitted on the
+/// earlier; the earlier, fitted on the later; the outer shell, fitted on the
+/// inner region).
+const FOLD_NAMES: [&str; 5] = [
+    "even rows",
+    "odd rows",
+    "later half",
+    "earlier half",
+    "outer shell",
+];
+
+/// The folds of a session; the first two are the interleaved ones.
+pub(crate) fn folds(tracked: &[&Observation]) -> (Folds, Vec<Fold>) {
+    let n = tracked.len();
+    let parity = |p: usize| -> Fold {
+        (
+            (0..n).filter(|k| k % 2 != p).collect(),
+            (0..n).filter(|k| k % 2 == p).collect(),
+        )
+    };
+    let mut out = vec![parity(0), parity(1)];
+    if n < MIN_BLOCKED_ROWS {
+        return (Folds::Interleaved, out);
+    }
+    // Time: the earlier and the later half (row order breaks ties).
+    let mut by_time: Vec<usize> = (0..n).collect();
+    by_time.sort_by(|&a, &b| tracked[a].t_s.total_cmp(&tracked[b].t_s).then(a.cmp(&b)));
+    let (early, late) = by_time.split_at(n / 2);
+    let (mut early, mut late) = (early.to_vec(), late.to_vec());
+    early.sort_unstable();
+    late.sort_unstable();
+    out.push((early.clone(), late.clone()));
+    out.push((late, early));
+    // Space: the outer shell by the largest relative coordinate offset.
+    let positions: Vec<[f64; 3]> = tracked.iter().filter_map(|o| o.tracker).collect();
+    let mut centre = [0.0; 3];
+    for p in &positions {
+        for k in 0..3 {
+            centre[k] += p[k] / n as f64;
+        }
+    }
+    let mut extent = [0.0f64; 3];
+    for p in &positions {
+        for k in 0..3 {
+            extent[k] = extent[k].max((p[k] - centre[k]).abs());
+        }
+    }
+    let widest = extent.iter().cloned().fold(0.0, f64::max);
+    let offset = |p: &[f64; 3]| -> f64 {
+        (0..3)
+            // An axis the session does not move along (a planar device's
+            // height) does not define a shell.
+            .filter(|&k| extent[k] > 1e-3 * widest)
+            .map(|k| (p[k] - centre[k]).abs() / extent[k])
+            .fold(0.0, f64::max)
+    };
+    let (outer, inner): (Vec<usize>, Vec<usize>) =
+        (0..n).partition(|&k| offset(&positions[k]) >= OUTER_SHELL);
+    if inner.len() >= MIN_BLOCKED_ROWS / 2 && outer.len() >= MIN_BLOCKED_ROWS / 4 {
+        out.push((inner, outer));
+    }
+    (Folds::Blocked, out)
+}
+
+/// Held-out errors of `structure` on the folds of `train` (see [`Folds`]),
+/// each fold's fit warm from `from`, the fits in parallel.
+pub fn validate(
+    train: &[Observation],
+    nominal: &Frame<f64>,
+    from: &Identification,
+    structure: &Structure,
+) -> Result<Validation, IdentifyError> {
+    validate_fits(train, nominal, from, structure).map(|v| v.0)
+}
+
+/// [`validate`], with the fold fits (interleaved, then time: earlier, later;
+/// then space).
+fn validate_fits(
+    train: &[Observation],
+    nominal: &Frame<f64>,
+    from: &Identification,
+    structure: &Structure,
+) -> Result<(Validation, Vec<Identification>), IdentifyError> {
+    let start = Start::from_identification(from);
+    validate_by(train, |rows| identify(rows, nominal, &start, structure))
+}
+
+/// [`validate_fits`] with each fold's model made by `fit` from the fold's
+/// fitting rows.
+pub(crate) fn validate_by(
+    train: &[Observation],
+    fit: impl Fn(&[Observation]) -> Result<Identification, IdentifyError> + Sync,
+) -> Result<(Validation, Vec<Identification>), IdentifyError> {
+    use rayon::prelude::*;
+    let tracked: Vec<&Observation> = train.iter().filter(|o| o.tracker.is_some()).collect();
+    let (kind, folds) = folds(&tracked);
+    let pick =
+        |rows: &[usize]| -> Vec<Observation> { rows.iter().map(|&k| tracked[k].clone()).collect() };
+    let fits: Vec<(Identification, Vec<f64>)> = folds
+        .par_iter()
+        .map(|(rows, held)| {
+            let id = fit(&pick(rows))?;
+            let errors = model_error_list(&id, &pick(held));
+            Ok((id, errors))
+        })
+        .collect::<Result<_, IdentifyError>>()?;
+    let errors: Vec<&[f64]> = fits.iter().map(|f| f.1.as_slice()).collect();
+    let interleaved_errors = errors[..2].concat();
+    let interleaved = ErrorStats::of(&interleaved_errors);
+    let pooled = match kind {
+        Folds::Blocked => &errors[2..],
+        Folds::Interleaved => &errors[..2],
+    };
+    let held_errors = pooled.concat();
+    let fold_sizes = pooled.iter().map(|e| e.len()).collect();
+    let held = ErrorStats::of(&held_errors);
+    let (noise_p95_mm, noise_max_mm) = tail_noise(&held_errors);
+    Ok((
+        Validation {
+            folds: kind,
+            held,
+            interleaved,
+            noise_p95_mm,
+            noise_max_mm,
+            held_errors,
+            fold_sizes,
+            interleaved_errors,
+        },
+        fits.into_iter().map(|f| f.0).collect(),
+    ))
+}
+
+/// Fewest fit rows a fold needs on each side of a step in time (a slip) to
+/// fit the step's size.
+pub const MIN_STEP_SIDE_ROWS: usize = 20;
+
+/// The held-out errors of each fold of `v`, in order.
+fn fold_errors(v: &Validation) -> impl Iterator<Item = &[f64]> + '_ {
+    v.fold_sizes.iter().scan(0, |from, &size| {
+        let errors = &v.held_errors[*from..*from + size];
+        *from += size;
+        Some(errors)
+    })
+}
+
+/// The mean held-out error of each fold of `v`, in order.
+fn fold_means(v: &Validation) -> impl Iterator<Item = f64> + '_ {
+    fold_errors(v).map(|errors| errors.iter().sum::<f64>() / errors.len().max(1) as f64)
+}
+
+/// Which of the blocked folds of `train` (indexed as
+/// [`Validation::fold_sizes`]) can judge `change`, with the names of those
+/// that cannot; `None` for a change that is not a step in time. A step in
+/// time (a slip at `t`) has a size only a fit whose rows lie on both sides
+/// of `t` can find: the fold that fits the later half of a session whose
+/// slip came early never sees the string before it, so its prediction of
+/// the earlier rows is arbitrary with or without the slip. A step is judged
+/// on the interleaved folds and these ([`Validation::for_step`]).
+fn judgeable_folds(
+    change: Change,
+    train: &[Observation],
+) -> Option<(Vec<bool>, Vec<&'static str>)> {
+    let Change::Effect(EffectTerm {
+        effect: Effect::Slip { at_s, .. },
+        ..
+    }) = change
+    else {
+        return None;
+    };
+    let tracked: Vec<&Observation> = train.iter().filter(|o| o.tracker.is_some()).collect();
+    let (kind, folds) = folds(&tracked);
+    let (pooled, names): (&[Fold], &[&'static str]) = match kind {
+        Folds::Blocked => (&folds[2..], &FOLD_NAMES[2..]),
+        Folds::Interleaved => (&folds[..2], &FOLD_NAMES[..2]),
+    };
+    let keep: Vec<bool> = pooled
+        .iter()
+        .map(|(fit, _)| {
+            let before = fit.iter().filter(|&&k| tracked[k].t_s < at_s).count();
+            before >= MIN_STEP_SIDE_ROWS && fit.len() - before >= MIN_STEP_SIDE_ROWS
+        })
+        .collect();
+    let left_out = keep
+        .iter()
+        .zip(names)
+        .filter(|(k, _)| !**k)
+        .map(|(_, n)| *n)
+        .collect();
+    Some((keep, left_out))
+}
+
+/// [`judge`] for a step in time (a slip) on the folds that see it
+/// (`keep`, [`judgeable_folds`]; `left_out` names the others). No
+/// halves-stability test (one half may not see the step), and every fold
+/// that sees the step must gain: a slip is a fact of the session, so every
+/// fit that straddles it predicts better with it, and a term that helps on
+/// some folds only stands in for something else.
+fn judge_step(
+    before: &Validation,
+    after: &Validation,
+    keep: &[bool],
+    left_out: &[&str],
+    min_gain: f64,
+) -> Check {
+    let mut check = judge(
+        &before.for_step(keep),
+        &after.for_step(keep),
+        None,
+        min_gain,
+    );
+    check.reason += " and interleaved folds (a step in time)";
+    let worse = fold_means(&check.before)
+        .zip(fold_means(&check.after))
+        .filter(|(b, a)| a > b)
+        .count();
+    if check.accepted && worse > 0 {
+        check.accepted = false;
+        check.reason = format!(
+            "not added: it raises the mean on {worse} of the {} folds that see the step (a slip \
+             lowers it on every one): {}",
+            check.before.fold_sizes.len(),
+            check.reason.trim_start_matches("added: ")
+        );
+    }
+    if !left_out.is_empty() {
+        check.reason += &format!(
+            ", without the {} fold{}: its fit rows do not reach both sides of the step",
+            left_out.join(" and "),
+            if left_out.len() > 1 { "s" } else { "" }
+        );
+    }
+    check
+}
+
+/// Chi-square (p = 0.001) an added effect's parameters may differ by between
+/// the fits on the earlier and the later half, by their number.
+const STABLE_CHI2: [f64; 2] = [10.83, 13.82];
+
+/// How far apart the added effect's parameters (the last term of the
+/// structure) come out of the fits on the earlier and on the later half:
+/// chi-square of the difference over the two fits' standard deviations, and
+/// its dof. A physical effect has one value; a term that stands in for
+/// something else (a drift standing in for position on a lattice collected
+/// plane by plane) takes the local slope of what it replaces, different in
+/// each half. `None` without time folds or for a change that adds no term.
+/// Least relative sd of a half's value in the halves test: each half's sd
+/// is that of white residuals, and a model that misses something leaves
+/// residuals correlated along the lattice, so two halves that agree to 1-2 %
+/// were refused at sds of 0.3 % (heavy strings, seed 1).
+const STABILITY_RELATIVE_SD: f64 = 0.03;
+
+fn stability(change: Change, fits: &[Identification]) -> Option<(f64, usize)> {
+    let Change::Effect(term) = change else {
+        return None;
+    };
+    let k = crate::model::identify::effect_parameter_info(&term.effect).len();
+    let (early, late) = (fits.get(2)?, fits.get(3)?);
+    let tail = |id: &Identification| {
+        let from = id.parameters.len().checked_sub(k)?;
+        Some(id.parameters[from..].to_vec())
+    };
+    let (a, b) = (tail(early)?, tail(late)?);
+    let chi2 = a
+        .iter()
+        .zip(&b)
+        .map(|(x, y)| {
+            let floor = |v: f64, sd: f64| sd.max(STABILITY_RELATIVE_SD * v.abs());
+            let (sx, sy) = (floor(x.value, x.sd), floor(y.value, y.sd));
+            let v = sx * sx + sy * sy;
+            if v > 0.0 && v.is_finite() {
+                (x.value - y.value).powi(2) / v
+            } else {
+                0.0
+            }
+        })
+        .sum::<f64>();
+    Some((chi2, k))
+}
+
+/// Whether a change that turns held-out errors `before` into `after` is
+/// taken: the mean must fall by `min_gain` (relative) and neither the p95
+/// nor the max may rise beyond its noise (that of `before`).
+pub fn judge(
+    before: &Validation,
+    after: &Validation,
+    stable: Option<(f64, usize)>,
+    min_gain: f64,
+) -> Check {
+    let (b, a) = (&before.held, &after.held);
+    let folds = match after.folds {
+        Folds::Blocked => "blocked folds (time, space)".to_string(),
+        Folds::Interleaved => format!(
+            "interleaved folds only ({} tracked rows; blocked folds need {MIN_BLOCKED_ROWS})",
+            a.n
+        ),
+    };
+    let gain = 1.0 - a.mean_mm / b.mean_mm;
+    let figures = format!(
+        "held-out mean {:.3} -> {:.3} mm ({:+.1} %), p95 {:.3} -> {:.3}, max {:.2} -> {:.2} on {folds}",
+        b.mean_mm,
+        a.mean_mm,
+        -100.0 * gain,
+        b.p95_mm,
+        a.p95_mm,
+        b.max_mm,
+        a.max_mm
+    );
+    // The max is judged on the rows the model does not fail on (before or
+    // after); those it fails on may not worsen by more than FAILING_ROW_RISE.
+    let paired =
+        before.held_errors.len() == after.held_errors.len() && !before.held_errors.is_empty();
+    let failing = |e: f64| e > FAILING_ROW_FACTOR * b.p95_mm;
+    let (max_before, max_after, worst_failing) = if paired {
+        let mut mb = 0.0f64;
+        let mut ma = 0.0f64;
+        let mut worst: Option<(f64, f64)> = None;
+        for (&x, &y) in before.held_errors.iter().zip(&after.held_errors) {
+            if failing(x) || failing(y) {
+                if y > x * (1.0 + FAILING_ROW_RISE) + before.noise_max_mm
+                    && worst.is_none_or(|w| y - x > w.1 - w.0)
+                {
+                    worst = Some((x, y));
+                }
+            } else {
+                mb = mb.max(x);
+                ma = ma.max(y);
+            }
+        }
+        (mb, ma, worst)
+    } else {
+        (b.max_mm, a.max_mm, None)
+    };
+    let limit = |k: usize| STABLE_CHI2[k.clamp(1, 2) - 1];
+    let (accepted, why) = if let Some((chi2, k)) = stable.filter(|s| s.0 > limit(s.1)) {
+        (
+            false,
+            format!(
+                "its value fitted on the earlier half and on the later half differ beyond their \
+                 uncertainty (chi-square {chi2:.1} > {:.1}, {k} dof): it stands in for something \
+                 else (time and position go together in this session)",
+                limit(k)
+            ),
+        )
+    } else if !(a.mean_mm.is_finite() && gain >= min_gain) {
+        (
+            false,
+            format!("the mean does not fall by {:.1} %", 100.0 * min_gain),
+        )
+    } else if a.p95_mm > b.p95_mm + before.noise_p95_mm {
+        (
+            false,
+            format!(
+                "the p95 rises beyond its noise ({:.3} mm)",
+                before.noise_p95_mm
+            ),
+        )
+    } else if max_after > max_before + before.noise_max_mm {
+        (
+            false,
+            format!(
+                "the max rises beyond its noise ({:.2} mm): {max_before:.2} -> {max_after:.2} mm \
+                 on the rows the model does not fail on",
+                before.noise_max_mm
+            ),
+        )
+    } else if let Some((x, y)) = worst_failing {
+        (
+            false,
+            format!(
+                "a row the model fails on gets worse beyond {:.0} % and the max noise: \
+                 {x:.2} -> {y:.2} mm",
+                100.0 * FAILING_ROW_RISE
+            ),
+        )
+    } else {
+        (true, "added".to_string())
+    };
+    Check {
+        before: before.clone(),
+        after: after.clone(),
+        stability_chi2: stable.map(|s| s.0),
+        accepted,
+        reason: if accepted {
+            format!("{why}: {figures}")
+        } else {
+            format!("not added: {why}: {figures}")
+        },
+    }
+}
+
+/// Standard errors (of a fold's paired differences) by which one blocked
+/// fold's mean may rise under a drift while the pooled mean falls. A drift
+/// on one string (marker-offset seed 1) lowered the pooled blocked error by
+/// 2.4 % by helping the earlier half (0.530 -> 0.489 mm) and costing the
+/// later half (0.481 -> 0.495 mm, 5 standard errors): a real drift, fitted
+/// on either half, helps the other; that one raised the test error 0.428
+/// -> 0.619 mm. Drifts only: other changes trade one fold for another when
+/// something else is missing too, and refusing them for it lost offsets and
+/// a stretch worth 0.446 -> 0.348 mm on clean independent seed 2.
+const FOLD_RISE_Z: f64 = 3.0;
+
+/// `check` (an accepted drift's) refused when a blocked fold gets worse
+/// beyond [`FOLD_RISE_Z`].
+fn refuse_on_fold_rise(check: Check) -> Check {
+    let Some(rise) = fold_rise(&check.before, &check.after) else {
+        return check;
+    };
+    let figures = check
+        .reason
+        .strip_prefix("added: ")
+        .unwrap_or(&check.reason)
+        .to_string();
+    Check {
+        accepted: false,
+        reason: format!(
+            "not added: the {} fold gets worse, {:.3} -> {:.3} mm ({:.1} standard errors of its \
+             paired differences): a drift fitted on either half helps the other, this one only \
+             moves error between them: {figures}",
+            rise.fold, rise.before_mm, rise.after_mm, rise.z
+        ),
+        ..check
+    }
+}
+
+/// A blocked fold whose mean rises beyond [`FOLD_RISE_Z`] standard errors.
+struct FoldRise {
+    fold: &'static str,
+    before_mm: f64,
+    after_mm: f64,
+    z: f64,
+}
+
+/// The blocked fold of `after` whose mean rises most over `before`'s, in
+/// standard errors of the paired row differences, when that is beyond
+/// [`FOLD_RISE_Z`]; `None` for interleaved-only validations.
+fn fold_rise(before: &Validation, after: &Validation) -> Option<FoldRise> {
+    if after.folds != Folds::Blocked || before.fold_sizes != after.fold_sizes {
+        return None;
+    }
+    let mut worst: Option<FoldRise> = None;
+    for (k, (b, a)) in fold_errors(before).zip(fold_errors(after)).enumerate() {
+        if a.len() < 2 {
+            continue;
+        }
+        let n = a.len() as f64;
+        let d: Vec<f64> = a.iter().zip(b).map(|(x, y)| x - y).collect();
+        let mean = d.iter().sum::<f64>() / n;
+        let var = d.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1.0);
+        if mean <= 0.0 {
+            continue;
+        }
+        // Every row worse by the same amount: beyond any noise.
+        let se = (var / n).sqrt();
+        let z = if se > 0.0 { mean / se } else { f64::INFINITY };
+        if z > FOLD_RISE_Z && worst.as_ref().is_none_or(|w| z > w.z) {
+            worst = Some(FoldRise {
+                fold: FOLD_NAMES.get(k + 2).copied().unwrap_or("blocked"),
+                before_mm: b.iter().sum::<f64>() / n,
+                after_mm: a.iter().sum::<f64>() / n,
+                z,
+            });
+        }
+    }
+    worst
+}
+
+/// A found marker offset in the report's words.
+fn marker_in_physical_terms(d: &[f64; 3]) -> String {
+    let norm = d.iter().map(|v| v * v).sum::<f64>().sqrt();
+    format!(
+        " (the body's origin {norm:.1} mm from the meeting point: [{:.1}, {:.1}, {:.1}] mm in \
+         the body's frame; the tracker is read at the meeting point from here on)",
+        d[0], d[1], d[2]
+    )
+}
+
+/// Runs the loop: identify, diagnose, add the strongest significant effect,
+/// refit, repeat until nothing significant that helps on held-out data
+/// remains; then report the structure no family explains. "Helps" is
+/// [`judge`] on [`validate`]: folds blocked in time and space, so that a
+/// change that only interpolates (a drift standing in for position on a
+/// lattice collected plane by plane) is refused; every tested finding carries
+/// its check.
+pub fn close_loop(
+    train: &[Observation],
+    test: Option<&[Observation]>,
+    nominal: &Frame<f64>,
+    start: &Start,
+    config: &LoopConfig,
+) -> Result<LoopResult, IdentifyError> {
+    let mut structure = Structure::default();
+    if let Some(t) = config.home_tension_n {
+        structure.priors.home_tension_n = t;
+    }
+    let base = identify(train, nominal, start, &structure)?;
+    let base_train = model_errors(&base, train);
+    let base_test = test.map(|t| model_errors(&base, t));
+    let mut id = base.clone();
+    let mut validation = validate(train, nominal, &id, &structure)?;
+    let mut stages = Vec::new();
+    let mut findings: Vec<Finding> = Vec::new();
+    let mut layers = Vec::new();
+    if structure.hold_kappa_each && nominal.layout.count() > 1 {
+        let (finding, added) =
+            free_spool_rates(train, nominal, &id, &structure, &validation, config)?;
+        if let Some((refit, free, after)) = added {
+            let name = format!("spool rates strings {:?}", finding.strings);
+            stages.push(LoopStage::of(name, &finding, &refit, train, test));
+            validation = after;
+            structure = free;
+            id = refit;
+        }
+        findings.push(finding);
+    }
+    // Layer tables first; refused ones are tried once more after the
+    // effects (an effect the model lacked, a heavy string's sag, can hide
+    // what the tables gain until it is in).
+    // Each try: `None` when no string wanted a table, else whether they
+    // were added; the strings' choices.
+    let try_layers = |train: &[Observation],
+                      test: Option<&[Observation]>,
+                      id: &mut Identification,
+                      structure: &Structure,
+                      validation: &mut Validation,
+                      stages: &mut Vec<LoopStage>,
+                      findings: &mut Vec<Finding>|
+     -> Result<(Option<bool>, Vec<StringLayers>), IdentifyError> {
+        let tried = add_layer_tables(train, nominal, id, structure, validation, config)?;
+        let Some(mut finding) = tried.finding else {
+            return Ok((None, tried.choice));
+        };
+        let added = tried.added.is_some();
+        if let Some((refit, _)) = tried.added {
+            // The tables' own check fits each fold's tables on the fold's
+            // rows; every later change is validated with the tables held
+            // (fitted on every row, the held-out ones included), and must be
+            // judged against the same structure validated the same way. The
+            // check's own figure as the baseline gave the first change after
+            // the tables a gain it did not make: 3-15 % (clean independent
+            // seed 1: 0.670 mm for tables whose held validation is 0.567),
+            // and an offset or a drift stood in on that (docs/benchmarks.md,
+            // "One baseline for the changes after the layer tables").
+            let held = validate(train, nominal, &refit, structure)?;
+            finding.description += &format!(
+                " (the changes after the tables are judged against {:.3} mm: the same held-out \
+                 folds with the tables held, as those changes are validated)",
+                held.held.mean_mm
+            );
+            finding.added = true;
+            let name = stage_name(&finding);
+            stages.push(LoopStage::of(name, &finding, &refit, train, test));
+            *validation = held;
+            *id = refit;
+        }
+        findings.retain(|f| f.family != Family::Layers);
+        findings.push(finding);
+        Ok((Some(added), tried.choice))
+    };
+    let mut layers_refused = false;
+    if config.layer_tables {
+        let (added, choice) = try_layers(
+            train,
+            test,
+            &mut id,
+            &structure,
+            &mut validation,
+            &mut stages,
+            &mut findings,
+        )?;
+        layers = choice;
+        layers_refused = added == Some(false);
+    }
+    let effects_before = stages.len();
+    let same = |a: &Finding, b: &Finding| a.family == b.family && a.strings == b.strings;
+    // The sessions as the model reads them: at the strings' meeting point
+    // once a marker offset is found (the tracker sees the body's origin).
+    let mut seen_train = Cow::Borrowed(train);
+    let mut seen_test = test.map(Cow::Borrowed);
+    'outer: while stages.len() < config.max_effects {
+        let proposals = diagnose(&id, &seen_train, nominal, &structure, config);
+        for mut finding in proposals.into_iter().take(3) {
+            let Some(change) = finding.change else {
+                continue;
+            };
+            let candidate = structure.with(change);
+            let moved = (candidate.marker_body_mm != structure.marker_body_mm)
+                .then(|| at_meeting_points(train, candidate.marker_body_mm).into_owned());
+            let train: &[Observation] = moved.as_deref().unwrap_or(&seen_train);
+            let (after, fits) = validate_fits(train, nominal, &id, &candidate)?;
+            let check = match judgeable_folds(change, train) {
+                None => judge(
+                    &validation,
+                    &after,
+                    stability(change, &fits),
+                    config.min_relative_gain,
+                ),
+                Some((keep, left_out)) => judge_step(
+                    &validation,
+                    &after,
+                    &keep,
+                    &left_out,
+                    config.min_relative_gain,
+                ),
+            };
+            let check = match (change, check.accepted) {
+                (
+                    Change::Effect(EffectTerm {
+                        effect: Effect::Drift { .. },
+                        ..
+                    }),
+                    true,
+                ) => refuse_on_fold_rise(check),
+                _ => check,
+            };
+            let accepted = check.accepted;
+            finding.validation = Some(check);
+            findings.retain(|f| !same(f, &finding));
+            if accepted {
+                let refit = identify(train, nominal, &Start::from_identification(&id), &candidate)?;
+                let fitted = match change {
+                    Change::Effect(_) => refit
+                        .effects
+                        .last()
+                        .and_then(|t| in_physical_terms(&t.effect)),
+                    Change::MarkerOffset(d) => Some(marker_in_physical_terms(&d)),
+                    _ => None,
+                };
+                if let Some(fitted) = fitted {
+                    finding.description += &fitted;
+                }
+                finding.added = true;
+                findings.push(finding.clone());
+                if let Some(moved) = moved {
+                    seen_train = Cow::Owned(moved);
+                    seen_test = test.map(|t| at_meeting_points(t, candidate.marker_body_mm));
+                }
+                let name = stage_name(&finding);
+                stages.push(LoopStage::of(
+                    name,
+                    &finding,
+                    &refit,
+                    &seen_train,
+                    seen_test.as_deref(),
+                ));
+                validation = after;
+                structure = candidate;
+                id = refit;
+                continue 'outer;
+            }
+            findings.push(finding);
+        }
+        break;
+    }
+    if layers_refused && stages.len() > effects_before {
+        let (added, choice) = try_layers(
+            &seen_train,
+            seen_test.as_deref(),
+            &mut id,
+            &structure,
+            &mut validation,
+            &mut stages,
+            &mut findings,
+        )?;
+        if added == Some(true) {
+            layers = choice;
+        }
+    }
+    findings.extend(unexplained(&id, &seen_train, nominal, &structure, config));
+    Ok(LoopResult {
+        layers,
+        base,
+        base_train,
+        base_test,
+        identification: id,
+        structure,
+        stages,
+        findings,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The best step of a residual: where it is, and none with too few
+    /// points on a side.
+    #[test]
+    fn the_best_step_is_found_where_the_residual_steps() {
+        let points: Vec<(f64, f64)> = (0..500)
+            .map(|k| (k as f64, if k >= 225 { 3.0 } else { 0.0 }))
+            .collect();
+        let (stat, at) = best_step(points.clone()).unwrap();
+        assert!((at - 224.5).abs() < 1e-9, "{at}");
+        // n a b / n^2 * 3^2 with a = 225, b = 275.
+        assert!((stat - 9.0 * 225.0 * 275.0 / 500.0).abs() < 1e-6, "{stat}");
+        assert!(best_step(points[..39].to_vec()).is_none());
+    }
+
+    fn blocked(folds: [&[f64]; 3]) -> Validation {
+        let held_errors: Vec<f64> = folds.concat();
+        let (noise_p95_mm, noise_max_mm) = tail_noise(&held_errors);
+        Validation {
+            folds: Folds::Blocked,
+            held: ErrorStats::of(&held_errors),
+            interleaved: ErrorStats::of(&held_errors),
+            noise_p95_mm,
+            noise_max_mm,
+            fold_sizes: folds.iter().map(|f| f.len()).collect(),
+            interleaved_errors: held_errors.clone(),
+            held_errors,
+        }
+    }
+
+    /// A drift that lowers the pooled error by moving it from one time half
+    /// to the other is refused, naming the fold; one that helps every fold
+    /// is kept.
+    #[test]
+    fn a_drift_that_only_moves_error_between_the_halves_is_refused() {
+        // Row errors with a spread, and a change that moves each row by its
+        // own amount around the fold's shift.
+        let fold = |level: f64| -> Vec<f64> {
+            (0..400)
+                .map(|k| level + 0.05 * ((k * 7919) % 13) as f64 / 13.0)
+                .collect()
+        };
+        let before = blocked([&fold(0.50), &fold(0.60), &fold(0.45)]);
+        let jitter = |v: Vec<f64>| -> Vec<f64> {
+            v.iter()
+                .enumerate()
+                .map(|(k, x)| x + 0.02 * ((k * 104729) % 7) as f64 / 7.0 - 0.01)
+                .collect()
+        };
+        let moved = blocked([&jitter(fold(0.52)), &jitter(fold(0.50)), &fold(0.45)]);
+        let check = judge(&before, &moved, None, 0.02);
+        assert!(check.accepted, "{}", check.reason);
+        let check = refuse_on_fold_rise(check);
+        assert!(!check.accepted);
+        assert!(
+            check
+                .reason
+                .starts_with("not added: the later half fold gets worse, 0.523 -> 0.542 mm"),
+            "{}",
+            check.reason
+        );
+        let helped = blocked([&fold(0.48), &fold(0.55), &fold(0.44)]);
+        let check = refuse_on_fold_rise(judge(&before, &helped, None, 0.02));
+        assert!(check.accepted, "{}", check.reason);
+    }
+
+    /// A step is judged on the interleaved folds and the blocked folds kept.
+    #[test]
+    fn a_step_is_judged_on_the_interleaved_folds_and_the_folds_that_straddle_it() {
+        let v = Validation {
+            folds: Folds::Blocked,
+            held: ErrorStats::of(&[1.0, 2.0, 3.0, 4.0, 5.0, 6.0]),
+            interleaved: ErrorStats::of(&[0.5, 0.5]),
+            noise_p95_mm: 0.0,
+            noise_max_mm: 0.0,
+            held_errors: vec![1.0, 2.0, 3.0, 4.0, 5.0, 6.0],
+            fold_sizes: vec![1, 2, 3],
+            interleaved_errors: vec![0.5, 0.5],
+        };
+        let step = v.for_step(&[true, false, true]);
+        assert_eq!(step.held_errors, vec![0.5, 0.5, 1.0, 4.0, 5.0, 6.0]);
+        assert_eq!(step.fold_sizes, vec![2, 1, 3]);
+        assert_eq!(step.held.n, 6);
+        let means: Vec<f64> = fold_means(&step).collect();
+        assert_eq!(means, vec![0.5, 1.0, 5.0]);
+        assert!((step.held.mean_mm - 17.0 / 6.0).abs() < 1e-12);
+        // Interleaved-only validations have nothing else to drop.
+        let small = Validation {
+            folds: Folds::Interleaved,
+            ..v.clone()
+        };
+        assert_eq!(small.for_step(&[false]).held_errors, v.held_errors);
+    }
+}

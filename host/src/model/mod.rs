@@ -1,0 +1,18 @@
+//! The calibration model (`../shared/notes/model-spine.md`) and what fits it.
+//!
+//! - [`predict`]: a model's room positions through the device pipeline (f64);
+//! - [`identify`]: the kinematic identification (anchors, home, winding laws,
+//!   effects) by Levenberg-Marquardt;
+//! - [`diagnose`]: the loop that finds what the model still misses in the
+//!   residual, traces it to an effect and adds it when validation agrees;
+//! - [`layers`]: each spool's layer table in the string law;
+//! - [`learn`]: model-less corrections (NN, SVR) and their searches;
+//! - [`compile`]: the model compiled to the device's fixed-point blob, with
+//!   its error against f64.
+
+pub mod compile;
+pub mod diagnose;
+pub mod identify;
+pub mod layers;
+pub mod learn;
+pub mod predict;

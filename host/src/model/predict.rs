@@ -1,0 +1,102 @@
+//! Positions a calibration gives for a session, in f64: the host's reference
+//! of the device pipeline (string law, forward kinematics with faulty-string
+//! exclusion, room transform, position correction).
+//!
+//! Rows are processed in session order and forward kinematics is warm-started
+//! from the previous row, as on the device. A model with a sag term reads
+//! each string's inclination: the device takes it at the position its loop
+//! holds, a tick (0.1 ms) old, but a session's rows are far apart, so the
+//! rows are solved twice, the second time at the inclinations of the first
+//! solution ([`spidar_core::model::Effect::reads_inclination`]).
+
+use spidar_core::correction::CorrectionModel;
+use spidar_core::kinematics::{forward_kinematics_inclined, FkConfig, FkStatus};
+use spidar_core::model::{Calibration, EffectTerm, Frame, StringInputs, StringLaw};
+use spidar_core::string_law::string_lengths_f64;
+use spidar_core::STRINGS;
+
+use crate::data::observe::Observation;
+use crate::model::identify::room_from_device;
+
+/// The position of one row.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Prediction {
+    /// Forward kinematics, device frame, mm.
+    pub device: [f64; 3],
+    /// Room frame, before any learned correction, mm.
+    pub room: [f64; 3],
+    pub status: FkStatus,
+    /// String excluded as faulty by forward kinematics.
+    pub excluded: Option<u8>,
+}
+
+/// The string model of a calibration (what forward kinematics needs).
+#[derive(Clone, Copy, Debug)]
+pub struct StringModel<'a> {
+    pub frame: &'a Frame<f64>,
+    pub laws: &'a [StringLaw; STRINGS],
+    pub effects: &'a [EffectTerm],
+}
+
+impl<'a> StringModel<'a> {
+    pub fn of(calibration: &'a Calibration) -> StringModel<'a> {
+        StringModel {
+            frame: &calibration.frame,
+            laws: &calibration.strings,
+            effects: &calibration.effects,
+        }
+    }
+}
+
+/// Forward kinematics of every row (warm-started along the session).
+pub fn predict(model: StringModel<'_>, observations: &[Observation]) -> Vec<Prediction> {
+    let config = FkConfig::<f64>::default();
+    let frame = model.frame;
+    let inclined = model.effects.iter().any(|t| t.effect.reads_inclination());
+    let lengths =
+        |inputs: &StringInputs| string_lengths_f64(frame, model.laws, model.effects, inputs);
+    let mut start = frame.home;
+    observations
+        .iter()
+        .map(|o| {
+            let fk = forward_kinematics_inclined(
+                &frame.anchors,
+                frame.layout,
+                &o.inputs,
+                start,
+                &config,
+                inclined,
+                lengths,
+            );
+            if matches!(fk.status, FkStatus::Ok | FkStatus::FaultyStringExcluded) {
+                start = fk.position;
+            }
+            Prediction {
+                device: fk.position,
+                room: room_from_device(model.frame, fk.position),
+                status: fk.status,
+                excluded: fk.excluded,
+            }
+        })
+        .collect()
+}
+
+/// Room positions after a learned position correction.
+pub fn corrected(correction: &CorrectionModel, predictions: &[Prediction]) -> Vec<[f64; 3]> {
+    predictions
+        .iter()
+        .map(|p| correction.evaluate(p.room))
+        .collect()
+}
+
+/// Pairs of (position, tracker) for the rows the tracker saw.
+pub fn paired_with_tracker(
+    positions: &[[f64; 3]],
+    observations: &[Observation],
+) -> (Vec<[f64; 3]>, Vec<[f64; 3]>) {
+    positions
+        .iter()
+        .zip(observations)
+        .filter_map(|(p, o)| o.tracker.map(|t| (*p, t)))
+        .unzip()
+}

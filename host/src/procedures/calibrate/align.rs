@@ -1,0 +1,282 @@
+//! The tracker's clock against the device's, found by the calibration.
+//!
+//! A session pairs each device row (counts at the device's time `t_s`) with
+//! a tracker position. When the two streams were paired by timestamps of
+//! two clocks that disagree (a tracker PC whose clock runs seconds ahead, a
+//! logger that stamped tracker frames on arrival), each row carries the
+//! marker where it was `offset` seconds earlier (or later), and every
+//! string residual grows with the speed of the hand: a calibration fitted
+//! on such pairs is wrong everywhere the hand moved.
+//!
+//! For a **dynamic** session (a stream: rows at 10 Hz or faster over a
+//! moving end-effector) the offset is found from the data:
+//! `tracker::sync::estimate_time_shift` (speed-profile cross-correlation,
+//! then least squares with sub-frame interpolation) between the positions a
+//! model gives from the counts and the tracker's, then every row gets the
+//! tracker position interpolated at its own time on the tracker's clock
+//! (`t_s + offset`); rows outside the tracker's span, or across a tracker gap,
+//! become occluded, never paired with a stale position. Calibration runs it
+//! twice: with the nominal model (good enough for the speed profiles), then
+//! with the model identified from the first alignment (position residuals at
+//! the tracker's noise, which is what makes the fine fit sharp).
+//!
+//! A **static** session (one pose per row: a lattice captured cell by cell,
+//! the Hangprinter's 44 poses with `t_s` a pose index) has no time to align:
+//! it is recognised by its row interval and left as it is.
+
+use serde::Serialize;
+
+use crate::data::observe::Observation;
+use crate::device::tracker::sync::{estimate_time_shift, ShiftConfig, TimeShift, TimedPosition};
+
+/// Rows further apart than this (median, s) make a static session.
+pub const MAX_STREAM_INTERVAL_S: f64 = 0.1;
+/// Fewest tracked rows a stream needs to be aligned.
+pub const MIN_STREAM_ROWS: usize = 200;
+/// Largest clock offset searched (s).
+pub const MAX_OFFSET_S: f64 = 5.0;
+
+/// What the calibration did about the clocks of one session.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum SessionTiming {
+    /// One pose per row: nothing to align.
+    Static {
+        /// Median time between rows (s).
+        median_interval_s: f64,
+        rows: usize,
+    },
+    /// A stream whose tracker positions were re-paired by the found offset.
+    Aligned(ClockAlignment),
+}
+
+/// The tracker-minus-device clock offset of a dynamic session.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct ClockAlignment {
+    /// `tracker time - device time` (s): the row stamped `t` holds where
+    /// the marker was at `t - offset_s`.
+    pub offset_s: f64,
+    /// One standard deviation of `offset_s` (s).
+    pub offset_sd_s: f64,
+    /// Peak correlation of the speed profiles (-1..1).
+    pub correlation: f64,
+    /// Rows paired in the fit.
+    pub pairs: usize,
+    /// Rows that lost their tracker position (outside the tracker's span
+    /// at the new pairing, or across a gap).
+    pub rows_unpaired: usize,
+}
+
+/// Why a dynamic session could not be aligned.
+#[derive(Debug, thiserror::Error)]
+#[error("tracker clock alignment: {0}")]
+pub struct AlignError(#[from] pub crate::device::tracker::sync::SyncError);
+
+/// Median time between consecutive rows (s); `None` with fewer than 2 rows.
+pub fn median_interval_s(obs: &[Observation]) -> Option<f64> {
+    let mut d: Vec<f64> = obs.windows(2).map(|w| w[1].t_s - w[0].t_s).collect();
+    if d.is_empty() {
+        return None;
+    }
+    d.sort_by(f64::total_cmp);
+    Some(d[d.len() / 2])
+}
+
+/// `Some(static timing)` when `obs` is not a stream to align.
+pub fn static_timing(obs: &[Observation]) -> Option<SessionTiming> {
+    let tracked = obs.iter().filter(|o| o.tracker.is_some()).count();
+    let interval = median_interval_s(obs).unwrap_or(f64::INFINITY);
+    (interval > MAX_STREAM_INTERVAL_S || tracked < MIN_STREAM_ROWS).then_some(
+        SessionTiming::Static {
+            median_interval_s: interval,
+            rows: obs.len(),
+        },
+    )
+}
+
+/// The clock offset between the tracker positions of `obs` and `positions`
+/// (room frame, mm; one per row, `None` where the model has none).
+pub fn estimate_offset(
+    obs: &[Observation],
+    positions: &[Option<[f64; 3]>],
+    prior_offset_s: f64,
+) -> Result<TimeShift, AlignError> {
+    let device: Vec<TimedPosition> = obs
+        .iter()
+        .zip(positions)
+        .filter_map(|(o, p)| {
+            p.map(|position_mm| TimedPosition {
+                t_s: o.t_s,
+                position_mm,
+            })
+        })
+        .collect();
+    let tracker: Vec<TimedPosition> = obs
+        .iter()
+        .filter_map(|o| {
+            o.tracker.map(|position_mm| TimedPosition {
+                t_s: o.t_s,
+                position_mm,
+            })
+        })
+        .collect();
+    let interval = median_interval_s(obs).unwrap_or(MAX_STREAM_INTERVAL_S);
+    let config = ShiftConfig {
+        prior_offset_s,
+        max_shift_s: MAX_OFFSET_S,
+        grid_step_s: None,
+        // A gap of a few missing rows (an occlusion) is not bridged.
+        max_gap_s: 4.0 * interval,
+        estimate_drift: false,
+        max_iterations: 50,
+    };
+    Ok(estimate_time_shift(&device, &tracker, &config)?)
+}
+
+/// `obs` re-paired by `offset_s`: each row's tracker position is the
+/// tracker stream (as recorded, on its own clock) interpolated at
+/// `t_s + offset_s`; `None` outside the stream or across a gap longer than
+/// `max_gap_s`. Returns the rows and how many lost their position.
+/// The body's orientation, when the tracker gives one, is re-paired with
+/// its position: interpolated (slerp) between the same two recorded rows,
+/// `None` when either has none.
+pub fn repaired(obs: &[Observation], offset_s: f64, max_gap_s: f64) -> (Vec<Observation>, usize) {
+    type Rotation = [[f64; 3]; 3];
+    let stream: Vec<(f64, [f64; 3], Option<Rotation>)> = obs
+        .iter()
+        .filter_map(|o| o.tracker.map(|p| (o.t_s, p, o.tracker_rotation)))
+        .collect();
+    let at = |t: f64| -> Option<([f64; 3], Option<Rotation>)> {
+        let k = stream.partition_point(|s| s.0 <= t);
+        if k == 0 {
+            return None;
+        }
+        let (ta, a, ra) = stream[k - 1];
+        if ta == t {
+            return Some((a, ra));
+        }
+        let (tb, b, rb) = *stream.get(k)?;
+        if tb - ta > max_gap_s {
+            return None;
+        }
+        let f = (t - ta) / (tb - ta);
+        let rotation = ra.zip(rb).map(|(ra, rb)| slerp(&ra, &rb, f));
+        Some((core::array::from_fn(|i| a[i] + f * (b[i] - a[i])), rotation))
+    };
+    let mut lost = 0;
+    let out = obs
+        .iter()
+        .map(|o| {
+            let mut o = o.clone();
+            let had = o.tracker.is_some();
+            let seen = at(o.t_s + offset_s);
+            o.tracker = seen.map(|s| s.0);
+            o.tracker_rotation = seen.and_then(|s| s.1);
+            lost += usize::from(had && o.tracker.is_none());
+            o
+        })
+        .collect();
+    (out, lost)
+}
+
+/// The rotation a fraction `f` of the way from `a` to `b` (row-major
+/// matrices), along the shortest arc. The matrices are rotations already
+/// (made from the reader's unit quaternions), taken as they are:
+/// `Rotation3::from_matrix`'s search, started from the identity, lands on
+/// a wrong rotation for some exact half turns.
+fn slerp(a: &[[f64; 3]; 3], b: &[[f64; 3]; 3], f: f64) -> [[f64; 3]; 3] {
+    use nalgebra::{Matrix3, Rotation3, UnitQuaternion};
+    let q = |m: &[[f64; 3]; 3]| {
+        UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(Matrix3::from_fn(
+            |r, c| m[r][c],
+        )))
+    };
+    let m = q(a).slerp(&q(b), f).to_rotation_matrix();
+    core::array::from_fn(|r| core::array::from_fn(|c| m[(r, c)]))
+}
+
+/// Aligns `obs` with positions from `model_positions` (room frame, one per
+/// row): the offset, its uncertainty, and the re-paired rows.
+pub fn align(
+    obs: &[Observation],
+    model_positions: &[Option<[f64; 3]>],
+    prior_offset_s: f64,
+) -> Result<(ClockAlignment, Vec<Observation>), AlignError> {
+    let shift = estimate_offset(obs, model_positions, prior_offset_s)?;
+    let interval = median_interval_s(obs).unwrap_or(MAX_STREAM_INTERVAL_S);
+    let (rows, lost) = repaired(obs, shift.offset_s, 4.0 * interval);
+    Ok((
+        ClockAlignment {
+            offset_s: shift.offset_s,
+            offset_sd_s: shift.offset_std_s,
+            correlation: shift.correlation,
+            pairs: shift.pairs,
+            rows_unpaired: lost,
+        },
+        rows,
+    ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::data::observe::rotation_of_quaternion;
+    use spidar_core::model::StringInputs;
+    use spidar_core::STRINGS;
+
+    fn about_z(deg: f64) -> [[f64; 3]; 3] {
+        let h = deg.to_radians() / 2.0;
+        rotation_of_quaternion([h.cos(), 0.0, 0.0, h.sin()])
+    }
+
+    fn row(t_s: f64, x: f64, rotation: Option<[[f64; 3]; 3]>) -> Observation {
+        Observation {
+            row: 0,
+            t_s,
+            inputs: StringInputs::default(),
+            tension_n: [0.0; STRINGS],
+            tracker: Some([x, 0.0, 0.0]),
+            tracker_rotation: rotation,
+            legacy: None,
+        }
+    }
+
+    /// Re-paired rows take the body's orientation from the same two
+    /// recorded rows as its position, halfway turned halfway; none where a
+    /// recorded row has none.
+    #[test]
+    fn the_orientation_is_re_paired_with_the_position() {
+        let obs = vec![
+            row(0.0, 0.0, Some(about_z(0.0))),
+            row(1.0, 10.0, Some(about_z(10.0))),
+            row(2.0, 20.0, None),
+        ];
+        let (rows, lost) = repaired(&obs, 0.5, 5.0);
+        assert_eq!(lost, 1);
+        assert_eq!(rows[0].tracker, Some([5.0, 0.0, 0.0]));
+        let r = rows[0].tracker_rotation.unwrap();
+        let expected = about_z(5.0);
+        for (a, b) in r.iter().flatten().zip(expected.iter().flatten()) {
+            assert!((a - b).abs() < 1e-12, "{r:?}");
+        }
+        // Exact half turns (a body mounted upside down) interpolate too.
+        let half = |axis: [f64; 3]| rotation_of_quaternion([0.0, axis[0], axis[1], axis[2]]);
+        let upside = vec![
+            row(0.0, 0.0, Some(half([0.0, 1.0, 0.0]))),
+            row(1.0, 10.0, Some(half([0.0, 1.0, 0.0]))),
+        ];
+        let (turned, _) = repaired(&upside, 0.5, 5.0);
+        let r = turned[0].tracker_rotation.unwrap();
+        for (a, b) in r
+            .iter()
+            .flatten()
+            .zip(half([0.0, 1.0, 0.0]).iter().flatten())
+        {
+            assert!((a - b).abs() < 1e-12, "{r:?}");
+        }
+        // Between a row with an orientation and one without: a position only.
+        assert_eq!(rows[1].tracker, Some([15.0, 0.0, 0.0]));
+        assert_eq!(rows[1].tracker_rotation, None);
+        assert_eq!(rows[2].tracker, None);
+    }
+}

@@ -1,0 +1,857 @@
+//! The calibration report: the JSON document `spidar calibrate --json` writes
+//! (schema in `docs/json-schema.md`) and the readable summary printed on
+//! stdout.
+
+use std::fmt::Write as _;
+
+use serde::Serialize;
+
+use crate::data::stats::ErrorStats;
+use crate::model::diagnose::Finding;
+use crate::model::identify::{Identification, ParameterEstimate};
+use crate::model::learn::outliers::OutlierReport;
+use crate::model::learn::search::{SvrCandidate, SvrSearchResult, SweepPoint, SweepResult};
+use crate::model::learn::svr::SvrParams;
+use spidar_core::model::EffectTerm;
+
+/// Version of the report's JSON layout. The major number changes when a key
+/// is removed or changes meaning; new keys do not change it.
+pub const SCHEMA: &str = "spidar-calibrate-report/1";
+
+/// The whole report.
+#[derive(Clone, Debug, Serialize)]
+pub struct Report {
+    pub schema: &'static str,
+    pub tool: Tool,
+    pub inputs: Inputs,
+    /// The device's strings and what their number allows.
+    pub device: DeviceReport,
+    /// The tracker's clock against the device's, per session.
+    pub timing: Timing,
+    /// Pipeline order; the last stage is the final model.
+    pub stages: Vec<Stage>,
+    /// Everything the diagnosis loop reported (added or not).
+    pub effects: Vec<Finding>,
+    pub identification: IdentificationReport,
+    /// How the final model was chosen.
+    pub selection: Selection,
+    /// Residual-mode corrections (the `nn` and `svr` stages).
+    pub corrections: Corrections,
+    /// The paper's black-box procedure, when run (`null` otherwise).
+    pub blackbox: Option<Blackbox>,
+    pub warnings: Vec<String>,
+    /// What else the run could do, for information (not a problem with the
+    /// result: e.g. that `--blackbox` would add the paper's procedure).
+    #[serde(default)]
+    pub notes: Vec<String>,
+    pub timings_s: Timings,
+    pub figures: Vec<Figure>,
+    pub files: Files,
+}
+
+/// What the calibration did about the tracker's clock, per session.
+#[derive(Clone, Debug, Serialize)]
+pub struct Timing {
+    pub train: super::align::SessionTiming,
+    pub test: super::align::SessionTiming,
+}
+
+/// The strings of the calibrated device and what their number means for
+/// what calibration and tracking can check.
+#[derive(Clone, Debug, Serialize)]
+pub struct DeviceReport {
+    /// Number of strings (anchors), 3..=8.
+    pub strings: usize,
+    /// Encoder channels that carry them.
+    pub channels: Vec<usize>,
+    /// The end-effector moves in the anchors' plane.
+    pub planar: bool,
+    /// Degrees of freedom of the position (2 or 3).
+    pub dof: usize,
+    /// Strings beyond the degrees of freedom.
+    pub redundancy: usize,
+    /// Whether forward kinematics can exclude a faulty string (needs 2 spare
+    /// strings).
+    pub fault_rejection: bool,
+    /// Smallest constant error of one string that diagnosis would find on
+    /// this training session (mm; `sigma * sqrt(chi2 threshold / rows)`,
+    /// before the loss of power to what the model already absorbs).
+    pub smallest_detectable_offset_mm: f64,
+    /// What the number of strings and rows leaves unchecked, in words.
+    pub limits: Vec<String>,
+    /// What forward kinematics did with each row of the final identified
+    /// model, per session: strings excluded as faulty, rows whose strings
+    /// disagree with no single culprit.
+    pub rejections: SessionRejections,
+}
+
+/// [`Rejections`] of the training and the test session.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct SessionRejections {
+    pub train: Rejections,
+    pub test: Rejections,
+}
+
+/// How forward kinematics treated the rows of one session.
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct Rejections {
+    /// Rows predicted.
+    pub rows: usize,
+    /// Rows where this channel's string was excluded as faulty, per
+    /// channel (0..8; channels without a string stay 0).
+    pub excluded_by_channel: [usize; spidar_core::STRINGS],
+    /// Rows whose strings disagree and no single exclusion fits (the
+    /// position is the least-squares compromise).
+    pub inconsistent: usize,
+    /// Rows where the solve did not converge.
+    pub not_converged: usize,
+    /// Rows with an invalid length (NaN, negative).
+    pub invalid: usize,
+}
+
+impl Rejections {
+    pub fn of(predictions: &[crate::model::predict::Prediction]) -> Rejections {
+        use spidar_core::kinematics::FkStatus;
+        let mut r = Rejections {
+            rows: predictions.len(),
+            ..Rejections::default()
+        };
+        for p in predictions {
+            match p.status {
+                FkStatus::Ok => {}
+                FkStatus::FaultyStringExcluded => {
+                    if let Some(c) = p
+                        .excluded
+                        .and_then(|s| r.excluded_by_channel.get_mut(usize::from(s)))
+                    {
+                        *c += 1;
+                    }
+                }
+                FkStatus::Inconsistent => r.inconsistent += 1,
+                FkStatus::NotConverged => r.not_converged += 1,
+                FkStatus::InvalidInput => r.invalid += 1,
+            }
+        }
+        r
+    }
+
+    /// Rows not solved from all strings in agreement.
+    pub fn flagged(&self) -> usize {
+        self.excluded_by_channel.iter().sum::<usize>()
+            + self.inconsistent
+            + self.not_converged
+            + self.invalid
+    }
+
+    /// One line in words, e.g. `3 of 2197 rows: string 2 excluded 3 times`.
+    pub fn describe(&self) -> String {
+        let mut parts: Vec<String> = self
+            .excluded_by_channel
+            .iter()
+            .enumerate()
+            .filter(|(_, &n)| n > 0)
+            .map(|(s, &n)| {
+                format!(
+                    "string {s} excluded {n} time{}",
+                    if n == 1 { "" } else { "s" }
+                )
+            })
+            .collect();
+        for (n, what) in [
+            (
+                self.inconsistent,
+                "strings disagreeing with no single culprit",
+            ),
+            (self.not_converged, "not converged"),
+            (self.invalid, "invalid lengths"),
+        ] {
+            if n > 0 {
+                parts.push(format!("{n} {what}"));
+            }
+        }
+        if parts.is_empty() {
+            format!("all {} rows solved with every string", self.rows)
+        } else {
+            format!(
+                "{} of {} rows: {}",
+                self.flagged(),
+                self.rows,
+                parts.join(", ")
+            )
+        }
+    }
+}
+
+impl DeviceReport {
+    /// The report of `layout` calibrated from `tracked_rows` rows whose
+    /// string residuals scatter by `residual_scale_mm`.
+    pub fn of(
+        layout: spidar_core::model::StringLayout,
+        tracked_rows: usize,
+        residual_scale_mm: f64,
+        chi2_threshold: f64,
+        rejections: SessionRejections,
+    ) -> DeviceReport {
+        let redundancy = layout.redundancy();
+        let mut limits = Vec::new();
+        match redundancy {
+            0 => limits.push(
+                "no spare string: the strings always agree on a position, so neither tracking \
+                 nor calibration can see a string that reads wrong; string errors show only \
+                 against the tracker"
+                    .to_string(),
+            ),
+            1 => limits.push(
+                "one spare string: the device sees when its strings disagree, but cannot tell \
+                 which one is faulty (excluding a string needs 2 spare); a faulty string makes \
+                 the position the least-squares compromise, flagged inconsistent"
+                    .to_string(),
+            ),
+            _ => {}
+        }
+        let smallest = residual_scale_mm * (chi2_threshold / tracked_rows.max(1) as f64).sqrt();
+        if tracked_rows < 200 {
+            limits.push(format!(
+                "{tracked_rows} tracked rows: diagnosis sees a constant error of one string only \
+                 above ~{smallest:.2} mm, and effects that depend on time, direction or speed \
+                 are only testable with many rows spread over them"
+            ));
+        }
+        DeviceReport {
+            strings: layout.count(),
+            channels: layout.indices().collect(),
+            planar: layout.planar,
+            dof: layout.dof(),
+            redundancy,
+            fault_rejection: redundancy >= 2,
+            smallest_detectable_offset_mm: smallest,
+            limits,
+            rejections,
+        }
+    }
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct Tool {
+    pub name: &'static str,
+    pub version: &'static str,
+}
+
+impl Tool {
+    pub fn current() -> Tool {
+        Tool {
+            name: "spidar",
+            version: env!("CARGO_PKG_VERSION"),
+        }
+    }
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct Inputs {
+    pub geometry: String,
+    pub train: SessionInfo,
+    pub test: SessionInfo,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct SessionInfo {
+    pub path: String,
+    pub rows: usize,
+    /// Rows with a tracker position (the rows every statistic is over).
+    pub tracked: usize,
+    pub occluded: usize,
+    pub has_legacy: bool,
+    pub has_tension: bool,
+    pub ignored_columns: Vec<String>,
+}
+
+/// What a stage is.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum StageKind {
+    /// No calibration: nominal geometry (or the legacy controller).
+    Raw,
+    /// The base kinematic identification.
+    Identified,
+    /// The identification with one more effect added by diagnosis.
+    Effect,
+    /// A learned correction (residual or black-box).
+    Correction,
+    /// The chosen model (always the last stage).
+    Final,
+}
+
+/// One stage: eq. 7 error statistics on the training and test sessions.
+#[derive(Clone, Debug, Serialize)]
+pub struct Stage {
+    pub name: String,
+    pub kind: StageKind,
+    pub train: ErrorStats,
+    pub test: ErrorStats,
+}
+
+/// The chosen model.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Choice {
+    /// No correction helped: the identified model alone.
+    Identified,
+    Nn,
+    Svr,
+}
+
+impl Choice {
+    pub fn name(self) -> &'static str {
+        match self {
+            // Not "identified": that is the stage before diagnosis, and the
+            // final model without a correction carries the loop's effects
+            // and layer tables too (issue 13, point 5).
+            Choice::Identified => "string model",
+            Choice::Nn => "nn",
+            Choice::Svr => "svr",
+        }
+    }
+}
+
+/// Mean eq. 7 error of each candidate on the selection split, mm.
+#[derive(Clone, Copy, Debug, Serialize)]
+pub struct Candidates {
+    pub identified: f64,
+    pub nn: f64,
+    pub svr: f64,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct Selection {
+    /// Name of the final stage (the last of `stages`).
+    pub stage: String,
+    pub choice: Choice,
+    /// Correction stored in `calibration.json`: "none", "nn" or "svr".
+    pub correction: &'static str,
+    /// Points the candidates were trained on / scored on (training session,
+    /// after outlier removal).
+    pub fit_points: usize,
+    pub selection_points: usize,
+    pub min_correction_gain: f64,
+    pub validation_mean_mm: Candidates,
+    pub validation_p95_mm: Candidates,
+    pub validation_max_mm: Candidates,
+    /// Sampling noise (two standard errors, `diagnose::tail_noise`) of the
+    /// identified model's p95 and max on the selection split: a correction
+    /// may not raise them by more.
+    pub noise_p95_mm: f64,
+    pub noise_max_mm: f64,
+    /// Why the final model was chosen (and the corrections refused).
+    pub reason: String,
+    /// Of the final correction refitted on all kept training points.
+    pub final_support_vectors: Option<usize>,
+    pub final_hidden: Option<usize>,
+}
+
+/// Tukey's box plot on the absolute position errors of the training pairs.
+#[derive(Clone, Debug, Serialize)]
+pub struct Outliers {
+    /// What the errors are of.
+    pub on: &'static str,
+    pub points: usize,
+    pub removed: usize,
+    pub removed_high: usize,
+    pub removed_low: usize,
+    pub whisker: f64,
+    pub q1_mm: f64,
+    pub q3_mm: f64,
+    pub iqr_mm: f64,
+    pub lower_fence_mm: f64,
+    pub upper_fence_mm: f64,
+}
+
+impl Outliers {
+    pub fn of(r: &OutlierReport, on: &'static str) -> Outliers {
+        Outliers {
+            on,
+            points: r.errors.len(),
+            removed: r.removed.len(),
+            removed_high: r.removed_high(),
+            removed_low: r.removed_low(),
+            whisker: r.whisker,
+            q1_mm: r.q1,
+            q3_mm: r.q3,
+            iqr_mm: r.iqr,
+            lower_fence_mm: r.lower_fence,
+            upper_fence_mm: r.upper_fence,
+        }
+    }
+}
+
+/// The hidden-size sweep (fig. 13) and the chosen network.
+#[derive(Clone, Debug, Serialize)]
+pub struct NnReport {
+    pub best_hidden: usize,
+    /// One point per hidden size: validation and training mean error, mm.
+    pub sweep: Vec<SweepPoint>,
+    pub epochs: usize,
+    pub stop: crate::model::learn::nn::StopReason,
+    pub restarts: usize,
+    pub sweep_seconds: f64,
+    pub final_seconds: f64,
+}
+
+impl NnReport {
+    pub fn of(s: &SweepResult) -> NnReport {
+        NnReport {
+            best_hidden: s.best_hidden,
+            sweep: s.curve.clone(),
+            epochs: s.fit.epochs,
+            stop: s.fit.stop,
+            restarts: s.fit.restarts,
+            sweep_seconds: s.sweep_seconds,
+            final_seconds: s.final_seconds,
+        }
+    }
+}
+
+/// The SVR hyperparameter search and the chosen parameters.
+#[derive(Clone, Debug, Serialize)]
+pub struct SvrReport {
+    /// C, epsilon (standardized output units), gamma (standardized inputs).
+    pub best: SvrParams,
+    /// Support vectors of the model (union over the three axes).
+    pub support_vectors: usize,
+    pub support_vectors_per_axis: [usize; 3],
+    pub converged: [bool; 3],
+    pub candidates: Vec<SvrCandidate>,
+    pub search_seconds: f64,
+    pub refit_seconds: f64,
+}
+
+impl SvrReport {
+    pub fn of(s: &SvrSearchResult) -> SvrReport {
+        SvrReport {
+            best: s.best,
+            support_vectors: s.fit.model.support.len(),
+            support_vectors_per_axis: s.fit.axes.map(|a| a.support_vectors),
+            converged: s.fit.axes.map(|a| a.converged),
+            candidates: s.candidates.clone(),
+            search_seconds: s.search_seconds,
+            refit_seconds: s.refit_seconds,
+        }
+    }
+}
+
+/// The residual-mode corrections.
+#[derive(Clone, Debug, Serialize)]
+pub struct Corrections {
+    pub mode: &'static str,
+    pub input: &'static str,
+    pub outliers: Outliers,
+    pub nn: NnReport,
+    pub svr: SvrReport,
+}
+
+/// The paper's black-box procedure.
+#[derive(Clone, Debug, Serialize)]
+pub struct Blackbox {
+    pub mode: &'static str,
+    pub input: &'static str,
+    /// `legacy`, `blackbox nn`, `blackbox svr`: over the rows with both a
+    /// legacy and a tracker position.
+    pub stages: Vec<Stage>,
+    pub outliers: Outliers,
+    pub nn: NnReport,
+    pub svr: SvrReport,
+}
+
+/// The identified kinematic model.
+#[derive(Clone, Debug, Serialize)]
+pub struct IdentificationReport {
+    /// Parameters of the final identification (with the added effects), each
+    /// with its posterior standard deviation.
+    pub parameters: Vec<ParameterEstimate>,
+    pub warnings: Vec<String>,
+    /// Robust scale of the string-space residuals, mm.
+    pub residual_scale_mm: f64,
+    pub rejected_fraction: f64,
+    pub evaluations: usize,
+    pub effect_terms: Vec<EffectTerm>,
+    /// The base identification's residual scale, before any effect, mm.
+    pub base_residual_scale_mm: f64,
+    /// The layer-table spacing chosen for each string on the blocked folds
+    /// (every spacing tried with its held-out string rms); whether the
+    /// tables were kept is the `layers` finding's validation.
+    pub layer_tables: Vec<crate::model::layers::StringLayers>,
+    /// Where the tracked body's origin sits from the strings' meeting point
+    /// (body frame, mm) when the loop found it through the tracker's
+    /// orientation (`null` otherwise): the stages after it, the corrections
+    /// and the final errors read the tracker at the meeting point. A tool
+    /// that compares the device with the tracker must do the same.
+    pub marker_body_mm: Option<[f64; 3]>,
+}
+
+impl IdentificationReport {
+    pub fn of(
+        base: &Identification,
+        fin: &Identification,
+        layer_tables: &[crate::model::layers::StringLayers],
+        marker_body_mm: Option<[f64; 3]>,
+    ) -> IdentificationReport {
+        IdentificationReport {
+            parameters: fin.parameters.clone(),
+            warnings: fin.warnings.clone(),
+            residual_scale_mm: fin.residual_scale_mm,
+            rejected_fraction: fin.rejected_fraction,
+            evaluations: fin.evaluations,
+            effect_terms: fin.effects.clone(),
+            base_residual_scale_mm: base.residual_scale_mm,
+            layer_tables: layer_tables.to_vec(),
+            marker_body_mm,
+        }
+    }
+}
+
+/// Wall-clock seconds of each step.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct Timings {
+    /// Finding the tracker's clock offset (dynamic sessions).
+    pub alignment_s: f64,
+    pub raw_s: f64,
+    /// Identification and the diagnosis loop.
+    pub identification_s: f64,
+    /// Residual NN sweep and final training.
+    pub nn_s: f64,
+    /// Residual SVR search and refit.
+    pub svr_s: f64,
+    /// Choice of the final model and its refit on all kept points.
+    pub selection_s: f64,
+    pub blackbox_s: Option<f64>,
+    /// Everything [`super::calibrate`] did (black-box included when run).
+    pub calibration_s: f64,
+    pub figures_s: Option<f64>,
+}
+
+/// One figure file.
+#[derive(Clone, Debug, Serialize)]
+pub struct Figure {
+    pub name: String,
+    /// The paper's figure it corresponds to, e.g. "9".
+    pub paper_figure: Option<&'static str>,
+    pub path: String,
+    pub title: String,
+    /// What it shows: axis ranges, colour scale, marks, from the data drawn.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub drawn: Option<super::figures::Drawn>,
+}
+
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct Files {
+    pub out_dir: String,
+    /// `spidar_core::model::Calibration` as JSON (frame, string laws,
+    /// effects, correction): what later commands read.
+    pub calibration: String,
+    pub reports: Vec<String>,
+}
+
+fn stage_table(out: &mut String, stages: &[Stage]) {
+    let width = stages
+        .iter()
+        .map(|s| s.name.chars().count())
+        .max()
+        .unwrap_or(5)
+        .max(5);
+    let (ntr, nte) = stages.first().map_or((0, 0), |s| (s.train.n, s.test.n));
+    let _ = writeln!(
+        out,
+        "  {:width$}  {:>27}  {:>27}",
+        "",
+        format!("training session (n = {ntr})"),
+        format!("test session (n = {nte})"),
+    );
+    let _ = writeln!(
+        out,
+        "  {:width$}  {:>8} {:>8} {:>9}  {:>8} {:>8} {:>9}",
+        "stage", "mean", "sd", "max", "mean", "sd", "max"
+    );
+    for s in stages {
+        let _ = writeln!(
+            out,
+            "  {:width$}  {:>8} {:>8} {:>9}  {:>8} {:>8} {:>9}",
+            s.name,
+            num(s.train.mean_mm),
+            num(s.train.sd_mm),
+            num(s.train.max_mm),
+            num(s.test.mean_mm),
+            num(s.test.sd_mm),
+            num(s.test.max_mm),
+        );
+    }
+}
+
+/// Three decimals below 1000 mm, one above; "-" for a missing value.
+fn num(v: f64) -> String {
+    if !v.is_finite() {
+        "-".into()
+    } else if v.abs() < 1000.0 {
+        format!("{v:.3}")
+    } else {
+        format!("{v:.1}")
+    }
+}
+
+/// The JSON name of an enum value (e.g. `pulley_angle`).
+fn label<T: Serialize>(value: &T) -> String {
+    match serde_json::to_value(value) {
+        Ok(serde_json::Value::String(s)) => s,
+        _ => "?".into(),
+    }
+}
+
+fn pct(v: f64) -> String {
+    format!("{:.0} %", 100.0 * v)
+}
+
+impl Report {
+    /// The readable summary: the paper's tables (raw, identified, effects,
+    /// NN, SVR, final; mean, sd, max; training and test), the effects found,
+    /// the choice, warnings, and where the files went.
+    pub fn summary(&self) -> String {
+        let mut o = String::new();
+        let i = &self.inputs;
+        let _ = writeln!(
+            o,
+            "training session {} ({} rows, {} tracked); test session {} ({} rows, {} tracked)",
+            i.train.path, i.train.rows, i.train.tracked, i.test.path, i.test.rows, i.test.tracked
+        );
+        let d = &self.device;
+        let _ = writeln!(
+            o,
+            "device: {} strings (channels {:?}), {}, {} spare string{}",
+            d.strings,
+            d.channels,
+            if d.planar { "planar" } else { "3-D" },
+            d.redundancy,
+            if d.redundancy == 1 { "" } else { "s" }
+        );
+        for l in &d.limits {
+            let _ = writeln!(o, "  limit: {l}");
+        }
+        for (name, r) in [
+            ("training", &d.rejections.train),
+            ("test", &d.rejections.test),
+        ] {
+            if r.flagged() > 0 {
+                let _ = writeln!(o, "  forward kinematics, {name} session: {}", r.describe());
+            }
+        }
+        for (name, t) in [
+            ("training", &self.timing.train),
+            ("test", &self.timing.test),
+        ] {
+            if let super::align::SessionTiming::Aligned(a) = t {
+                let _ = writeln!(
+                    o,
+                    "{name} session: tracker clock {:+.2} ms (sd {:.3} ms) from the device's, \
+                     found from the motion ({} pairs, speed correlation {:.3}); rows re-paired",
+                    a.offset_s * 1e3,
+                    a.offset_sd_s * 1e3,
+                    a.pairs,
+                    a.correlation
+                );
+            }
+        }
+        let _ = writeln!(
+            o,
+            "\nAbsolute position error (eq. 7) against the tracker, room frame, mm:"
+        );
+        stage_table(&mut o, &self.stages);
+
+        if let Some(bb) = &self.blackbox {
+            let _ = writeln!(
+                o,
+                "\nBlack-box, as the paper ({}; {} mode):",
+                bb.input, bb.mode
+            );
+            stage_table(&mut o, &bb.stages);
+            let _ = writeln!(
+                o,
+                "  NN: {} hidden neurons; SVR: C = {}, epsilon = {}, gamma = {}, {} support vectors; \
+                 outliers removed: {} of {} (fence {:.1} mm)",
+                bb.nn.best_hidden,
+                bb.svr.best.c,
+                bb.svr.best.epsilon,
+                bb.svr.best.gamma,
+                bb.svr.support_vectors,
+                bb.outliers.removed,
+                bb.outliers.points,
+                bb.outliers.upper_fence_mm
+            );
+        }
+
+        let _ = writeln!(o, "\nEffects found by diagnosis:");
+        if self.effects.is_empty() {
+            let _ = writeln!(
+                o,
+                "  none significant: the identified model explains the residual (a constant \
+                 error of one string above ~{:.2} mm would have been seen)",
+                self.device.smallest_detectable_offset_mm
+            );
+        }
+        for f in &self.effects {
+            let strings = if f.strings.is_empty() {
+                "all strings".to_string()
+            } else {
+                let s: Vec<String> = f.strings.iter().map(|s| s.to_string()).collect();
+                format!("string {}", s.join(", "))
+            };
+            let _ = writeln!(
+                o,
+                "  {:9} {} ({strings}) against {}: amplitude {:.3} mm, explains {}{}",
+                if f.added { "added" } else { "not added" },
+                label(&f.family),
+                label(&f.variable),
+                f.amplitude_mm,
+                pct(f.explained),
+                if f.description.is_empty() {
+                    String::new()
+                } else {
+                    format!(" - {}", f.description)
+                }
+            );
+            if let Some(check) = &f.validation {
+                let _ = writeln!(o, "            {}", check.reason);
+            }
+        }
+
+        let c = &self.corrections;
+        let s = &self.selection;
+        let _ = writeln!(
+            o,
+            "\nCorrections ({} mode, on top of the identified model):",
+            c.mode
+        );
+        let _ = writeln!(
+            o,
+            "  outliers (Tukey box plot): {} of {} training points removed (fences {:.3} .. {:.3} mm)",
+            c.outliers.removed, c.outliers.points, c.outliers.lower_fence_mm, c.outliers.upper_fence_mm
+        );
+        let _ = writeln!(
+            o,
+            "  nn: sweep of {} hidden sizes, best {} neurons; svr: C = {}, epsilon = {}, gamma = {}, {} support vectors",
+            c.nn.sweep.len(),
+            c.nn.best_hidden,
+            c.svr.best.c,
+            c.svr.best.epsilon,
+            c.svr.best.gamma,
+            c.svr.support_vectors
+        );
+        let why = match s.choice {
+            Choice::Identified if s.selection_points < super::MIN_SELECTION_POINTS => format!(
+                "the identified model alone: corrections are not chosen on fewer than {} points, \
+                 and there are",
+                super::MIN_SELECTION_POINTS
+            ),
+            Choice::Identified => format!(
+                "the identified model alone: no correction lowered its mean error by {} without \
+                 raising its p95 or max beyond noise, on",
+                pct(s.min_correction_gain)
+            ),
+            Choice::Nn => "the NN correction, refitted on all kept points; lowest error on".into(),
+            Choice::Svr => {
+                "the SVR correction, refitted on all kept points; lowest error on".into()
+            }
+        };
+        let _ = writeln!(
+            o,
+            "  final stage `{}`: {why} a {}-point selection split of the training session \
+             (identified {}, nn {}, svr {} mm)",
+            s.stage,
+            s.selection_points,
+            num(s.validation_mean_mm.identified),
+            num(s.validation_mean_mm.nn),
+            num(s.validation_mean_mm.svr)
+        );
+        let _ = writeln!(o, "    why: {}", s.reason);
+
+        if !self.warnings.is_empty() {
+            let _ = writeln!(o, "\nWarnings:");
+            for w in &self.warnings {
+                let _ = writeln!(o, "  - {w}");
+            }
+        }
+        if !self.notes.is_empty() {
+            let _ = writeln!(o, "\nNotes:");
+            for n in &self.notes {
+                let _ = writeln!(o, "  - {n}");
+            }
+        }
+        let t = &self.timings_s;
+        let _ = writeln!(
+            o,
+            "\nTime: calibration {:.1} s (identification and diagnosis {:.1}, NN {:.1}, SVR {:.1}, choice and refit {:.1}{}){}",
+            t.calibration_s,
+            t.identification_s,
+            t.nn_s,
+            t.svr_s,
+            t.selection_s,
+            t.blackbox_s
+                .map_or(String::new(), |b| format!(", black-box {b:.1}")),
+            t.figures_s
+                .map_or(String::new(), |f| format!("; figures {f:.1} s")),
+        );
+        if !self.files.calibration.is_empty() {
+            let _ = writeln!(o, "\nWrote:");
+            let _ = writeln!(o, "  {} (the calibration)", self.files.calibration);
+            for r in &self.files.reports {
+                let _ = writeln!(o, "  {r} (JSON report)");
+            }
+            if let Some(first) = self.figures.first() {
+                let dir = std::path::Path::new(&first.path)
+                    .parent()
+                    .map(|p| p.display().to_string())
+                    .unwrap_or_default();
+                let _ = writeln!(o, "  {dir}/ ({} figures, PNG)", self.figures.len());
+            }
+        }
+        o
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::predict::Prediction;
+    use spidar_core::kinematics::FkStatus;
+
+    fn row(status: FkStatus, excluded: Option<u8>) -> Prediction {
+        Prediction {
+            device: [0.0; 3],
+            room: [0.0; 3],
+            status,
+            excluded,
+        }
+    }
+
+    #[test]
+    fn rejections_are_counted_per_string_and_kind() {
+        let rows = [
+            row(FkStatus::Ok, None),
+            row(FkStatus::FaultyStringExcluded, Some(2)),
+            row(FkStatus::FaultyStringExcluded, Some(2)),
+            row(FkStatus::FaultyStringExcluded, Some(7)),
+            row(FkStatus::Inconsistent, None),
+            row(FkStatus::NotConverged, None),
+            row(FkStatus::InvalidInput, None),
+            row(FkStatus::Ok, None),
+        ];
+        let r = Rejections::of(&rows);
+        assert_eq!(r.rows, 8);
+        assert_eq!(r.excluded_by_channel, [0, 0, 2, 0, 0, 0, 0, 1]);
+        assert_eq!((r.inconsistent, r.not_converged, r.invalid), (1, 1, 1));
+        assert_eq!(r.flagged(), 6);
+        assert_eq!(
+            r.describe(),
+            "6 of 8 rows: string 2 excluded 2 times, string 7 excluded 1 time, \
+             1 strings disagreeing with no single culprit, 1 not converged, 1 invalid lengths"
+        );
+        let clean = Rejections::of(&rows[..1]);
+        assert_eq!(clean.describe(), "all 1 rows solved with every string");
+    }
+}

@@ -1,0 +1,1283 @@
+//! Lattice data collection (paper, section 4.3.1; `spidar collect`).
+//!
+//! A virtual cube of `n^3` cells ([`Lattice`], 13^3 over 1 m in the paper)
+//! is shown cell by cell in the paper's order (front plane first, through
+//! the x-z plane, then the next plane). The operator moves the end-effector
+//! until its marker, as the optical tracker sees it, lies inside the
+//! highlighted cell; at that tracker frame the program records the
+//! tracker's position and the device's state, and the next cell is shown.
+//!
+//! 1. The device runs its nominal string model (`SetStringModel`, from
+//!    [`CollectConfig::string_model`]) unless it has a calibration blob, and
+//!    is armed at pre-tension (no target: the strings stay taut, nothing
+//!    pulls). `Limits::heartbeat_timeout_ms` must exceed the tracker's frame
+//!    period; a `Heartbeat` goes out every [`CollectConfig::heartbeat_every`],
+//!    and a device that disarms itself (a `Disarmed` or `HeartbeatLost`
+//!    event, or states that keep saying "disarmed") is re-armed, up to
+//!    [`CollectConfig::max_rearms`] times without a capture in between.
+//! 2. The state stream runs throughout; each state is stamped with its host
+//!    arrival time. Every tracker frame shows [`Cues`]: the target cell's
+//!    centre and half edge, the marker, its distance to the cell, progress
+//!    and the time left (from the rate of the last captures).
+//! 3. Capture: the first frame whose **visible** marker lies inside the
+//!    target cell (faces included; an occluded frame or a lost datagram
+//!    never captures) is paired with the device state nearest to it in host
+//!    arrival time (waiting at most [`CollectConfig::max_pairing_gap`] for a
+//!    state after it); a pair further apart than that, or a state of a
+//!    disarmed device, does not capture: the next frame is tried. The row:
+//!    `t_s` = device time (`State::time_us`, s) plus the clock offset below,
+//!    `enc0..7` = counts since home, `ots_*` = the tracker position,
+//!    `ots_qw..ots_qz` = the body's orientation from the same frame when the
+//!    tracker gives its rotation (a DTrack `6d` body does), as the unit
+//!    quaternion with `w >= 0` rounded to 1e-6 ([`orientation_of_rotation`];
+//!    empty when the source gives a position only, and for a rotation that
+//!    is not a proper one, counted in [`CollectReport::improper_rotations`]),
+//!    `dev_*` = the device's forward kinematics (device frame), `tension0..7`
+//!    = commanded tensions.
+//! 4. Each row is appended to the session CSV and flushed to the disk
+//!    before the next cell is shown ([`SessionAppender`]): a crash or a
+//!    power loss loses at most the current cell.
+//!
+//! **Resume.** An existing output file is read strictly; an unterminated
+//! last line (a write cut short) is cut off and reported; each row's tracker
+//! position marks the cell it lies in as done (a row outside the lattice, or
+//! a second row in a cell, is an error naming the line: the file was
+//! collected over another volume). Collection goes on with the first cell
+//! not done, in order. A file started without the orientation columns (by
+//! an older `spidar`) is resumed as it is: its new rows have no
+//! orientation either ([`CollectReport::orientations_not_recorded`]).
+//!
+//! **Device time.** `t_s` must not decrease through the file. The device
+//! clock counts from its boot; a resumed session whose device clock is now
+//! behind the file's last `t_s` was rebooted (a power loss): `t_s` then
+//! continues from the last row (`clock_offset_s` in the report: device time
+//! plus that offset), since the interval is unknown. A reboot also loses
+//! home: run `spidar init` again before resuming. The clock going back
+//! *during* a run is an error.
+//!
+//! The device is disarmed and its stream stopped on every exit.
+
+use std::collections::VecDeque;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use spidar_protocol::{Limits, State, StringModel};
+
+use super::cues::{distance, ArmWatch, ArmWatchError, CueSink, Cues, Progress};
+use crate::data::dataset::{DatasetError, Geometry, Sample, Session, SessionAppender, TornLine};
+use crate::data::observe::{orientation_of_rotation, ROTATION_TOLERANCE};
+use crate::device::link::{Client, LinkError};
+use crate::device::tracker::{
+    ClockSync, HostClock, Next, StateHistory, TrackerError, TrackerSource,
+};
+
+pub use crate::sim::lattice::{Lattice, LatticeError};
+
+/// Settings of lattice collection.
+#[derive(Clone, Debug)]
+pub struct CollectConfig {
+    /// DTrack body id of the marker.
+    pub body_id: u32,
+    /// How the tracker is named in errors (its address).
+    pub tracker_label: String,
+    /// Fail when the tracker sends nothing for this long.
+    pub tracker_timeout: Duration,
+    /// Sent to a device that has no calibration blob.
+    pub string_model: Option<StringModel>,
+    /// Safety limits: pre-tension while armed; the heartbeat timeout must
+    /// exceed `heartbeat_every` (and the tracker's frame period).
+    pub limits: Limits,
+    /// Send a heartbeat this often.
+    pub heartbeat_every: Duration,
+    /// Times a device that disarmed itself is armed again without a capture
+    /// in between before it is an error (a long session may see a few in
+    /// all: a string gone slack in a fast move, a late heartbeat).
+    pub max_rearms: u32,
+    /// Device state frames per control-loop iterations.
+    pub decimation: u16,
+    /// A capture reads the device state at the tracker frame's capture time
+    /// between two states at most this far apart in device time (a gap in
+    /// the stream is not bridged).
+    pub max_pairing_gap: Duration,
+    /// Fail when the device sends no state for this long.
+    pub device_timeout: Duration,
+    /// The time left is estimated from this many recent captures.
+    pub eta_window: usize,
+    /// Stop cleanly after this many captures in this run.
+    pub max_cells: Option<usize>,
+    /// Stop cleanly when this becomes true.
+    pub cancel: Option<Arc<AtomicBool>>,
+    /// The clock arrivals are stamped with for the clock map (the wall
+    /// clock; a simulated rig's own, [`crate::sim::operator::SimulatedRig::host_clock`]).
+    pub host_clock: HostClock,
+}
+
+impl Default for CollectConfig {
+    fn default() -> Self {
+        CollectConfig {
+            body_id: 0,
+            tracker_label: "the tracker".into(),
+            tracker_timeout: Duration::from_secs(2),
+            string_model: None,
+            limits: Limits {
+                pre_tension_n: 1.0,
+                max_tension_n: 20.0,
+                heartbeat_timeout_ms: 100,
+            },
+            heartbeat_every: Duration::from_millis(25),
+            max_rearms: 5,
+            decimation: 2,
+            max_pairing_gap: Duration::from_millis(20),
+            device_timeout: Duration::from_secs(1),
+            eta_window: 20,
+            max_cells: None,
+            cancel: None,
+            host_clock: HostClock::Wall,
+        }
+    }
+}
+
+impl CollectConfig {
+    /// Defaults, with the nominal string model of `geometry`.
+    pub fn for_geometry(geometry: &Geometry) -> CollectConfig {
+        CollectConfig {
+            string_model: Some(geometry.string_model()),
+            ..CollectConfig::default()
+        }
+    }
+
+    fn validate(&self) -> Result<(), CollectError> {
+        let bad =
+            |field: &'static str, problem: String| Err(CollectError::Config { field, problem });
+        let hb = Duration::from_millis(u64::from(self.limits.heartbeat_timeout_ms));
+        if self.heartbeat_every.is_zero() || self.heartbeat_every >= hb {
+            return bad(
+                "heartbeat_every",
+                format!(
+                    "{} ms must be above 0 and below the device's heartbeat timeout ({} ms)",
+                    self.heartbeat_every.as_millis(),
+                    hb.as_millis()
+                ),
+            );
+        }
+        if self.tracker_timeout.is_zero() {
+            return bad("tracker_timeout", "must be positive".into());
+        }
+        if self.device_timeout.is_zero() {
+            return bad("device_timeout", "must be positive".into());
+        }
+        if self.decimation == 0 {
+            return bad("decimation", "must be at least 1".into());
+        }
+        if self.eta_window < 2 {
+            return bad(
+                "eta_window",
+                format!(
+                    "{} captures cannot give a rate (2 or more)",
+                    self.eta_window
+                ),
+            );
+        }
+        Ok(())
+    }
+}
+
+/// Why collection stopped without an error.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Stop {
+    /// Every cell is done.
+    Complete,
+    /// `max_cells` captures were taken.
+    MaxCells,
+    /// The cancel flag was raised.
+    Cancelled,
+}
+
+/// What a run of [`collect`] did.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CollectReport {
+    pub path: PathBuf,
+    /// Cells in the lattice.
+    pub total: usize,
+    /// Cells already done in the file when the run started.
+    pub resumed_from: usize,
+    /// Cells captured in this run.
+    pub captured: usize,
+    /// Cells done now.
+    pub done: usize,
+    pub stop: Stop,
+    pub elapsed: Duration,
+    /// The unterminated last line cut off the file when it was opened.
+    pub torn: Option<TornLine>,
+    /// Added to the device time to make `t_s` (non-zero after a reboot).
+    pub clock_offset_s: f64,
+    /// Tracker frames seen, and of those with the marker occluded.
+    pub frames: u64,
+    pub occluded: u64,
+    /// Frames in the target cell that did not capture (no device state
+    /// close enough in time, or the device disarmed).
+    pub unpaired: u64,
+    /// Times the device was armed again after it disarmed itself.
+    pub rearms: u32,
+    /// Rows captured in this run with the body's orientation.
+    pub oriented: u64,
+    /// Rows captured in this run whose tracker rotation was not a proper
+    /// rotation (a value not finite, a determinant off 1 or axes not
+    /// orthonormal by more than [`ROTATION_TOLERANCE`]): recorded without an
+    /// orientation.
+    pub improper_rotations: u64,
+    /// The file has the orientation columns (false: it was started without
+    /// them, by an older `spidar`, and is resumed as it is).
+    pub orientation_columns: bool,
+    /// Rows captured in this run whose orientation the tracker gave but the
+    /// file, having no orientation columns, could not take.
+    pub orientations_not_recorded: u64,
+}
+
+/// Why collection failed (the device is disarmed in every case; the rows
+/// written stay in the file).
+#[derive(Debug, thiserror::Error)]
+pub enum CollectError {
+    #[error("collect: `{field}`: {problem}")]
+    Config {
+        field: &'static str,
+        problem: String,
+    },
+    #[error("collect: {0}")]
+    Lattice(#[from] LatticeError),
+    #[error("collect: {0}")]
+    Link(#[from] LinkError),
+    #[error("collect: tracker: {0}")]
+    Tracker(#[from] TrackerError),
+    #[error("collect: {0}")]
+    Dataset(#[from] DatasetError),
+    #[error(
+        "collect: {tracker} sent nothing for {seconds:.1} s (is DTrack sending to this host and port?)"
+    )]
+    TrackerSilent { tracker: String, seconds: f64 },
+    #[error("collect: {tracker}: the tracker source ended")]
+    TrackerEnded { tracker: String },
+    #[error("collect: serial port {port}: the device sent no state for {seconds:.1} s")]
+    DeviceSilent { port: String, seconds: f64 },
+    #[error("collect: the device keeps disarming itself ({events} times without a capture; the last: {last}): {advice}")]
+    KeepsDisarming {
+        events: u32,
+        last: String,
+        /// What happened and what to do, for the faults seen and the rig.
+        advice: String,
+    },
+    #[error(
+        "collect: serial port {port}: the device clock went back from {previous_s} s to {now_s} s during the run (a reboot? home is lost: run `spidar init`, then collect again to resume)"
+    )]
+    ClockWentBack {
+        port: String,
+        previous_s: f64,
+        now_s: f64,
+    },
+    #[error("collect: {}: line {line}: the row has no tracker position (not a collected session?)", file.display())]
+    RowWithoutTracker { file: PathBuf, line: u64 },
+    #[error(
+        "collect: {}: line {line}: the tracker position [{:.3}, {:.3}, {:.3}] mm lies outside the lattice ({lattice}): was the file collected over another volume (--centre, --size-mm, --cells)?",
+        file.display(), position[0], position[1], position[2]
+    )]
+    RowOutsideLattice {
+        file: PathBuf,
+        line: u64,
+        position: [f64; 3],
+        lattice: String,
+    },
+    #[error(
+        "collect: {}: line {line}: cell {cell:?} was already captured on line {first_line} (was the file collected with another lattice?)",
+        file.display()
+    )]
+    CellTwice {
+        file: PathBuf,
+        line: u64,
+        cell: [u32; 3],
+        first_line: u64,
+    },
+    #[error("collect: {}: {message}", file.display())]
+    InitRecord { file: PathBuf, message: String },
+}
+
+/// What a device that keeps disarming itself with `faults` means, and what
+/// to do (a simulated rig has no power switch or init to run again).
+pub fn disarm_advice(faults: u16, simulated: bool) -> String {
+    use spidar_protocol::Faults;
+    let f = Faults(faults);
+    let resume = if simulated {
+        "the captured cells are saved; run the same command again to resume"
+    } else {
+        "the captured cells are saved; fix the cause, then run the same command to resume"
+    };
+    if f.contains(Faults::KINEMATICS) {
+        format!(
+            "the device cannot place the end-effector from its string lengths here (fault 0x0004: forward kinematics failed, or a string reads longer than the position allows, i.e. slack); check the strings near the highlighted cell; {resume}"
+        )
+    } else if f.contains(Faults::HEARTBEAT_LOST) {
+        format!("the device stopped hearing from this host (heartbeat lost): is the host overloaded or the link unplugged? {resume}")
+    } else if f.contains(Faults::ENCODER) {
+        format!("an encoder count jumped: check the encoder cables; {resume}")
+    } else if simulated {
+        resume.to_string()
+    } else {
+        format!("after a reboot, run `spidar init` to declare home first; {resume}")
+    }
+}
+
+/// One-line description of a lattice (for messages).
+pub fn describe(lattice: &Lattice) -> String {
+    let c = lattice.centre_mm();
+    format!(
+        "{n}^3 cells of {e:.1} mm over {s} mm centred on [{:.1}, {:.1}, {:.1}] mm",
+        c[0],
+        c[1],
+        c[2],
+        n = lattice.cells_per_axis(),
+        e = lattice.cell_mm(),
+        s = lattice.size_mm(),
+    )
+}
+
+/// The line (1-based, header = 1) of the row that captured each cell, by
+/// position in [`Lattice::order`]; `None`: not done. Each row lies in its
+/// cell; a row on a shared face counts for the first of its cells (in
+/// order) not yet done.
+pub fn done_cells(
+    lattice: &Lattice,
+    session: &Session,
+    file: &Path,
+) -> Result<Vec<Option<u64>>, CollectError> {
+    let mut done: Vec<Option<u64>> = vec![None; lattice.len()];
+    for (row, s) in session.samples.iter().enumerate() {
+        let line = row as u64 + 2;
+        let p = s.tracker.ok_or_else(|| CollectError::RowWithoutTracker {
+            file: file.to_path_buf(),
+            line,
+        })?;
+        let mut candidates: Vec<(usize, [u32; 3])> = lattice
+            .cells_containing(&p)
+            .into_iter()
+            .filter_map(|c| lattice.index_of(c).map(|i| (i, c)))
+            .collect();
+        candidates.sort_unstable();
+        let Some(&(first_index, first_cell)) = candidates.first() else {
+            return Err(CollectError::RowOutsideLattice {
+                file: file.to_path_buf(),
+                line,
+                position: p,
+                lattice: describe(lattice),
+            });
+        };
+        match candidates.iter().find(|(i, _)| done[*i].is_none()) {
+            Some(&(i, _)) => done[i] = Some(line),
+            None => {
+                return Err(CollectError::CellTwice {
+                    file: file.to_path_buf(),
+                    line,
+                    cell: first_cell,
+                    first_line: done[first_index].unwrap_or(0),
+                })
+            }
+        }
+    }
+    Ok(done)
+}
+
+/// Device states by their own sample time, and the clock map fed by
+/// every state's and tracker frame's arrival.
+struct States {
+    history: StateHistory,
+    sync: ClockSync,
+    clock: HostClock,
+    base: Instant,
+    last_at: Instant,
+    first: Option<State>,
+    /// (newest before, first after), s of device time: a state stamped
+    /// before the newest one (the device rebooted; its home is lost).
+    went_back: Option<(f64, f64)>,
+    /// When the device was last asked its uptime.
+    last_probe: Instant,
+}
+
+impl States {
+    fn new(clock: HostClock) -> States {
+        States {
+            history: StateHistory::new(),
+            sync: ClockSync::new(),
+            clock,
+            base: Instant::now(),
+            last_at: Instant::now(),
+            first: None,
+            went_back: None,
+            last_probe: Instant::now(),
+        }
+    }
+
+    fn poll(&mut self, client: &mut Client) -> Result<usize, LinkError> {
+        let states = client.poll_states()?;
+        let now = Instant::now();
+        let n = states.len();
+        if n > 0 {
+            self.last_at = now;
+        }
+        let arrival_s = self.clock.states_arrival_s(self.base);
+        for s in states {
+            self.first.get_or_insert(s);
+            if let Some(newest) = self.history.newest().filter(|n| s.time_us < n.time_us) {
+                self.went_back
+                    .get_or_insert((newest.time_us as f64 / 1e6, s.time_us as f64 / 1e6));
+            }
+            self.sync.device_state(s.time_us, arrival_s);
+            self.history.push(s);
+        }
+        Ok(n)
+    }
+
+    /// Sends a heartbeat when one is due. A stream silent for that long is
+    /// asked (as often) the device's uptime: a device that rebooted
+    /// answers with its stream off and an uptime behind its last state
+    /// (`went_back`).
+    fn keep_alive(
+        &mut self,
+        client: &mut Client,
+        last_request: &mut Instant,
+        every: Duration,
+    ) -> Result<(), LinkError> {
+        if last_request.elapsed() >= every {
+            client.heartbeat()?;
+            *last_request = Instant::now();
+        }
+        if self.last_at.elapsed() >= every && self.last_probe.elapsed() >= every {
+            self.last_probe = Instant::now();
+            let uptime_us = client.stats()?.uptime_us;
+            if let Some(newest) = self.history.newest().filter(|n| uptime_us < n.time_us) {
+                self.went_back
+                    .get_or_insert((newest.time_us as f64 / 1e6, uptime_us as f64 / 1e6));
+            }
+        }
+        Ok(())
+    }
+
+    fn tracker_frame(&mut self, ts_s: f64, received_at: Instant) {
+        let arrival_s = self.clock.frame_arrival_s(received_at, self.base);
+        self.sync.tracker_frame(ts_s, arrival_s);
+    }
+
+    fn latest(&self) -> Option<&State> {
+        self.history.newest()
+    }
+}
+
+/// `t_s` as written: whole microseconds, so that a value read back and
+/// written again (a resumed file) carries no float noise.
+fn t_s_of(us: f64) -> f64 {
+    (us.round()) / 1e6
+}
+
+/// Runs lattice collection on an open device session, appending to the
+/// session CSV at `path` (created, or resumed: see the module
+/// documentation).
+pub fn collect(
+    client: &mut Client,
+    tracker: &mut dyn TrackerSource,
+    lattice: &Lattice,
+    config: &CollectConfig,
+    path: &Path,
+    sink: &mut dyn CueSink,
+) -> Result<CollectReport, CollectError> {
+    config.validate()?;
+    // The session has the device's strings (enc0..enc{N-1}): those of the
+    // nominal string model it is given, else a Scalable-SPIDAR's 8.
+    let strings = config.string_model.map_or(spidar_core::STRINGS, |m| {
+        m.active_strings.count_ones() as usize
+    });
+    let opened = SessionAppender::open_for(path, strings)?;
+    let done = done_cells(lattice, &opened.existing, path)?;
+    let mut report = CollectReport {
+        path: path.to_path_buf(),
+        total: lattice.len(),
+        resumed_from: done.iter().filter(|d| d.is_some()).count(),
+        captured: 0,
+        done: 0,
+        stop: Stop::Complete,
+        elapsed: Duration::ZERO,
+        torn: opened.torn,
+        clock_offset_s: 0.0,
+        frames: 0,
+        occluded: 0,
+        unpaired: 0,
+        rearms: 0,
+        oriented: 0,
+        improper_rotations: 0,
+        orientation_columns: opened.appender.has_orientation_columns(),
+        orientations_not_recorded: 0,
+    };
+    report.done = report.resumed_from;
+    if report.done == report.total {
+        sink.show(&Cues {
+            message: format!("all {} cells are already done", report.total),
+            ..Cues::default()
+        });
+        return Ok(report);
+    }
+    let start = Instant::now();
+    let mut appender = opened.appender;
+    let result = run(
+        client,
+        tracker,
+        lattice,
+        config,
+        &mut appender,
+        done,
+        &mut report,
+        sink,
+    );
+    // Whatever happened, leave the motors off and the stream closed.
+    let _ = client.disarm();
+    let _ = client.stream_off();
+    report.elapsed = start.elapsed();
+    sink.show(&Cues {
+        progress: Some(Progress {
+            done: report.done,
+            total: report.total,
+            time_left: None,
+        }),
+        message: match &result {
+            Ok(()) => format!(
+                "{} cells captured, {}/{} done; motors off",
+                report.captured, report.done, report.total
+            ),
+            Err(e) => format!("stopped: {e}"),
+        },
+        ..Cues::default()
+    });
+    result.map(|()| report)
+}
+
+#[allow(clippy::too_many_arguments)]
+fn run(
+    client: &mut Client,
+    tracker: &mut dyn TrackerSource,
+    lattice: &Lattice,
+    config: &CollectConfig,
+    appender: &mut SessionAppender,
+    mut done: Vec<Option<u64>>,
+    report: &mut CollectReport,
+    sink: &mut dyn CueSink,
+) -> Result<(), CollectError> {
+    let port = client.port_name().to_string();
+    if let Some(model) = config.string_model {
+        if client.info()?.is_none() {
+            client.set_string_model(model)?;
+        }
+    }
+    client.set_limits(config.limits)?;
+    client.clear_faults()?;
+    client.arm()?;
+    let mut last_request = Instant::now();
+    client.stream_on(config.decimation)?;
+    let mut states = States::new(config.host_clock.clone());
+
+    // The first state gives the device clock: behind the file's last row
+    // means a reboot, and `t_s` continues from that row.
+    let waiting_since = Instant::now();
+    while states.first.is_none() {
+        states.poll(client)?;
+        // Frames read meanwhile feed the clock map (and a simulated
+        // tracker in step with this procedure waits for them).
+        if let Next::Frame(f) = tracker.next_frame(Duration::from_millis(1))? {
+            states.tracker_frame(f.ts_s, f.received_at);
+        }
+        if waiting_since.elapsed() > config.device_timeout {
+            return Err(CollectError::DeviceSilent {
+                port,
+                seconds: waiting_since.elapsed().as_secs_f64(),
+            });
+        }
+        if last_request.elapsed() >= config.heartbeat_every {
+            client.heartbeat()?;
+            last_request = Instant::now();
+        }
+    }
+    let first_s = states.first.map_or(0.0, |s| s.time_us as f64 / 1e6);
+    if let Some(last) = appender.last_t_s() {
+        if first_s < last {
+            report.clock_offset_s = t_s_of((last - first_s) * 1e6);
+        }
+    }
+    let order = lattice.order();
+    let half = lattice.cell_mm() / 2.0;
+    let mut last_frame_at = Instant::now();
+    let mut captures: VecDeque<Instant> = VecDeque::new();
+    let mut arm_watch = ArmWatch::new(config.max_rearms);
+    let cancelled = || {
+        config
+            .cancel
+            .as_ref()
+            .is_some_and(|c| c.load(Ordering::SeqCst))
+    };
+
+    while let Some(index) = done.iter().position(Option::is_none) {
+        if config.max_cells.is_some_and(|m| report.captured >= m) {
+            report.stop = Stop::MaxCells;
+            return Ok(());
+        }
+        let cell = order[index];
+        let centre = lattice.cell_centre(cell);
+        let time_left = match (captures.front(), captures.back()) {
+            (Some(a), Some(b)) if captures.len() >= 2 => {
+                let per_cell = b.duration_since(*a).as_secs_f64() / (captures.len() - 1) as f64;
+                let left = (report.total - report.done) as f64;
+                Some(Duration::from_secs_f64(per_cell * left))
+            }
+            _ => None,
+        };
+        let progress = Some(Progress {
+            done: report.done,
+            total: report.total,
+            time_left,
+        });
+        // Frames until one captures this cell.
+        let row = loop {
+            if cancelled() {
+                report.stop = Stop::Cancelled;
+                return Ok(());
+            }
+            states.poll(client)?;
+            // A device that rebooted has lost its home: no rearm helps.
+            if let Some((previous_s, now_s)) = states.went_back {
+                return Err(CollectError::ClockWentBack {
+                    port,
+                    previous_s,
+                    now_s,
+                });
+            }
+            // A device that disarmed itself is armed again, a few times.
+            let latest = states.latest().map(|s| (s.armed, s.faults));
+            match arm_watch.check(client, latest) {
+                Ok(true) => {
+                    report.rearms += 1;
+                    last_request = Instant::now();
+                }
+                Ok(false) => {}
+                Err(ArmWatchError::Link(e)) => return Err(e.into()),
+                Err(ArmWatchError::KeepsDisarming { events, last }) => {
+                    let faults = states.latest().map_or(0, |s| s.faults.0);
+                    let simulated = matches!(config.host_clock, HostClock::Simulated(_));
+                    return Err(CollectError::KeepsDisarming {
+                        events,
+                        last,
+                        advice: disarm_advice(faults, simulated),
+                    });
+                }
+            }
+            if states.last_at.elapsed() > config.device_timeout {
+                return Err(CollectError::DeviceSilent {
+                    port,
+                    seconds: states.last_at.elapsed().as_secs_f64(),
+                });
+            }
+            states.keep_alive(client, &mut last_request, config.heartbeat_every)?;
+            // A short wait: states are read (and stamped) at least every
+            // 2 ms, so some arrive promptly enough for the clock map.
+            let frame = match tracker.next_frame(Duration::from_millis(2))? {
+                Next::Frame(f) => f,
+                Next::End => {
+                    return Err(CollectError::TrackerEnded {
+                        tracker: config.tracker_label.clone(),
+                    })
+                }
+                Next::Timeout => {
+                    if last_frame_at.elapsed() > config.tracker_timeout {
+                        return Err(CollectError::TrackerSilent {
+                            tracker: config.tracker_label.clone(),
+                            seconds: last_frame_at.elapsed().as_secs_f64(),
+                        });
+                    }
+                    continue;
+                }
+            };
+            last_frame_at = Instant::now();
+            report.frames += 1;
+            states.tracker_frame(frame.ts_s, frame.received_at);
+            // Every tracker frame is a heartbeat too: the device hears from
+            // the host at the tracker's rate in its own time, however fast
+            // or slow the host runs.
+            client.heartbeat()?;
+            last_request = Instant::now();
+            if states.went_back.is_some() {
+                continue;
+            }
+            let body = frame
+                .body
+                .as_ref()
+                .filter(|b| b.id == config.body_id && b.is_visible());
+            let marker = body.map(|b| b.position_mm);
+            let rotation = body.and_then(|b| b.rotation);
+            let mut cues = Cues {
+                marker_room_mm: marker,
+                target_room_mm: Some(centre),
+                target_half_size_mm: half,
+                progress,
+                ..Cues::default()
+            };
+            let Some(marker) = marker else {
+                report.occluded += 1;
+                cues.message = "marker occluded: bring it back into the tracker's view".into();
+                sink.show(&cues);
+                continue;
+            };
+            let d = lattice.distance_to(cell, &marker);
+            cues.distance_mm = Some(d);
+            if !lattice.contains(cell, &marker) {
+                cues.message = format!(
+                    "move into the highlighted cell {}/{} {cell:?} ({:.0} mm from its centre)",
+                    report.done + 1,
+                    report.total,
+                    distance(&marker, &centre)
+                );
+                sink.show(&cues);
+                continue;
+            }
+            // Inside: the device state at the frame's capture time (the
+            // tracker's stamp mapped to device time), interpolated between
+            // the two states around it; waits for the state after it.
+            let at_us = if states.sync.ready() {
+                states.sync.device_time_us(frame.ts_s)
+            } else {
+                None
+            };
+            let wait_from = Instant::now();
+            if let Some(t) = at_us {
+                while states.latest().is_some_and(|s| (s.time_us as f64) < t)
+                    && states.went_back.is_none()
+                    && wait_from.elapsed() < config.device_timeout
+                {
+                    states.poll(client)?;
+                    states.keep_alive(client, &mut last_request, config.heartbeat_every)?;
+                    std::thread::sleep(Duration::from_micros(200));
+                }
+            }
+            let max_gap_us = config.max_pairing_gap.as_micros() as u64;
+            let paired = at_us.and_then(|t| states.history.at(t, max_gap_us));
+            match paired {
+                Some(s) if s.armed => {
+                    // Never before the last row.
+                    let t_s = t_s_of(s.time_us as f64 + report.clock_offset_s * 1e6)
+                        .max(appender.last_t_s().unwrap_or(0.0));
+                    cues.message = format!("captured cell {}/{}", report.done + 1, report.total);
+                    sink.show(&cues);
+                    let orientation = rotation.and_then(|r| {
+                        let q = orientation_of_rotation(&r);
+                        report.improper_rotations += u64::from(q.is_none());
+                        q
+                    });
+                    let orientation = orientation.filter(|_| {
+                        let fits = appender.has_orientation_columns();
+                        report.orientations_not_recorded += u64::from(!fits);
+                        fits
+                    });
+                    report.oriented += u64::from(orientation.is_some());
+                    break Sample {
+                        t_s,
+                        counts: s.counts,
+                        tracker: Some(marker),
+                        orientation,
+                        legacy: Some(s.position_mm.map(f64::from)),
+                        tension_n: Some(s.tensions_n.map(f64::from)),
+                    };
+                }
+                other => {
+                    report.unpaired += 1;
+                    cues.message = match (other, at_us) {
+                        (Some(s), _) => format!(
+                            "inside: waiting for the device to arm (faults {:#06x})",
+                            s.faults.0
+                        ),
+                        (None, None) => {
+                            "inside: synchronizing the device's and the tracker's clocks".into()
+                        }
+                        (None, Some(_)) => {
+                            "inside: no device state around the frame's time (a gap in the stream)"
+                                .into()
+                        }
+                    };
+                    sink.show(&cues);
+                }
+            }
+        };
+        let line = appender.append(&row)?;
+        done[index] = Some(line);
+        report.captured += 1;
+        report.done += 1;
+        arm_watch.progress();
+        captures.push_back(Instant::now());
+        while captures.len() > config.eta_window {
+            captures.pop_front();
+        }
+    }
+    report.stop = Stop::Complete;
+    Ok(())
+}
+
+/// `spidar collect`.
+#[derive(Clone, Debug, clap::Args)]
+pub struct CollectArgs {
+    /// Serial port of the device (not with --simulate).
+    #[arg(long, required_unless_present = "simulate")]
+    pub port: Option<String>,
+    /// Nominal geometry TOML (sent to a device that has no calibration; its
+    /// frame centre is the default lattice centre).
+    #[arg(long, required_unless_present = "simulate")]
+    pub geometry: Option<PathBuf>,
+    /// Init record of `spidar init` (TOML): the lattice is centred on the
+    /// home it measured, unless --centre is given.
+    #[arg(long)]
+    pub init: Option<PathBuf>,
+    /// Address to receive DTrack2 UDP datagrams on.
+    #[arg(long, default_value = "0.0.0.0:5000")]
+    pub tracker: std::net::SocketAddr,
+    /// DTrack body id of the end-effector's marker.
+    #[arg(long, default_value_t = 0)]
+    pub body: u32,
+    /// The session CSV: appended to, one row per cell, flushed as it goes;
+    /// an existing file is resumed where it stopped.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Cells per axis.
+    #[arg(long, default_value_t = 13)]
+    pub cells: u32,
+    /// Edge of the sampled cube, mm.
+    #[arg(long, default_value_t = 1000.0)]
+    pub size_mm: f64,
+    /// Centre of the cube, room frame, mm, `x,y,z` (default: the home of
+    /// --init, else the geometry's frame centre through eq. 6).
+    #[arg(long, allow_hyphen_values = true, value_parser = super::init::parse_point)]
+    pub centre: Option<[f64; 3]>,
+    /// Stop after this many cells (resume later with the same command).
+    #[arg(long)]
+    pub max_cells: Option<usize>,
+    /// Fail when the tracker sends nothing for this long, s.
+    #[arg(long, default_value_t = 5.0)]
+    pub tracker_timeout_s: f64,
+    /// Audio cue output (collection plays no beep; the view is visual):
+    /// auto (a PCM player if one is installed, else the terminal bell), player
+    /// (`aplay` or `pacat`; fails if neither is on PATH), bell (the terminal
+    /// bell), off.
+    #[arg(long, value_enum, default_value_t = super::audio::AudioChoice::Off)]
+    pub audio: super::audio::AudioChoice,
+    /// Run on the built-in simulated device with a simulated operator and
+    /// tracker (device seed; --port, --geometry and --tracker are ignored).
+    #[arg(long, value_name = "SEED")]
+    pub simulate: Option<u64>,
+    /// Simulator configuration of the --simulate device (TOML, as `spidar
+    /// simulate --config`; e.g. `[nominal] strings = 4` for a 4-string rig)
+    /// (default: the built-in 8-string Scalable-SPIDAR).
+    #[arg(long, value_name = "TOML", requires = "simulate")]
+    pub sim_config: Option<std::path::PathBuf>,
+}
+
+/// Why `spidar collect` failed.
+#[derive(Debug, thiserror::Error)]
+pub enum CollectRunError {
+    #[error("{0}")]
+    Collect(#[from] CollectError),
+    #[error("{0}")]
+    Rig(#[from] crate::sim::operator::RigError),
+    #[error("{0}")]
+    Audio(#[from] super::audio::AudioError),
+}
+
+/// Reads an init record (`spidar init --out`).
+pub fn load_init_record(path: &Path) -> Result<super::init::InitRecord, CollectError> {
+    let text = std::fs::read_to_string(path).map_err(|e| CollectError::InitRecord {
+        file: path.to_path_buf(),
+        message: format!("cannot read: {e}"),
+    })?;
+    toml::from_str(&text).map_err(|e| CollectError::InitRecord {
+        file: path.to_path_buf(),
+        message: e.to_string().trim_end().to_string(),
+    })
+}
+
+/// The summary `spidar collect` prints.
+pub fn summary(report: &CollectReport) -> String {
+    let mut out = String::new();
+    if let Some(t) = &report.torn {
+        out.push_str(&format!(
+            "{}: line {}: cut off an unterminated last line (a write cut short; its cell was collected again): `{}`\n",
+            report.path.display(),
+            t.line,
+            t.text
+        ));
+    }
+    if report.clock_offset_s != 0.0 {
+        out.push_str(&format!(
+            "the device clock restarted (a reboot): t_s continues from the last row (device time + {:.3} s)\n",
+            report.clock_offset_s
+        ));
+    }
+    if report.improper_rotations > 0 {
+        out.push_str(&format!(
+            "{} captured rows had a tracker rotation that is not a proper rotation (determinant or axes off by more than {}): recorded without the body's orientation\n",
+            report.improper_rotations, ROTATION_TOLERANCE
+        ));
+    }
+    if report.orientations_not_recorded > 0 {
+        out.push_str(&format!(
+            "{}: started without orientation columns (ots_qw..ots_qz): the body's orientation of {} captured rows is not recorded; collect into a new file to record it\n",
+            report.path.display(),
+            report.orientations_not_recorded
+        ));
+    }
+    out.push_str(&format!(
+        "captured {} cells in {:.1} s (resumed from {} of {}); {}/{} done{}\n\
+         tracker frames {} ({} occluded), captures deferred for want of a device state {}, re-arms {}; rows with the body's orientation {}\n\
+         wrote {}\n",
+        report.captured,
+        report.elapsed.as_secs_f64(),
+        report.resumed_from,
+        report.total,
+        report.done,
+        report.total,
+        match report.stop {
+            Stop::Complete => String::from(": complete"),
+            Stop::MaxCells => String::from(": stopped after --max-cells; run again to resume"),
+            Stop::Cancelled => String::from(
+                ": interrupted; the motors are off and every captured cell is on disk; run the same command again to resume"
+            ),
+        },
+        report.frames,
+        report.occluded,
+        report.unpaired,
+        report.rearms,
+        report.oriented,
+        report.path.display()
+    ));
+    out
+}
+
+/// Raised by the first Ctrl-C (SIGINT) once [`cancel_on_ctrl_c`] ran.
+static INTERRUPTED: AtomicBool = AtomicBool::new(false);
+
+extern "C" fn on_sigint(_: nix::libc::c_int) {
+    // Async-signal-safe: one atomic store.
+    INTERRUPTED.store(true, Ordering::SeqCst);
+}
+
+/// A cancel flag raised by the first Ctrl-C: collection then stops between
+/// two frames, disarms and reports; a second Ctrl-C kills the process as
+/// usual (the handler resets itself). `None` if the handler cannot be
+/// installed (collection then runs without it).
+pub fn cancel_on_ctrl_c() -> Option<Arc<AtomicBool>> {
+    use nix::sys::signal::{sigaction, SaFlags, SigAction, SigHandler, SigSet, Signal};
+    let action = SigAction::new(
+        SigHandler::Handler(on_sigint),
+        SaFlags::SA_RESETHAND | SaFlags::SA_RESTART,
+        SigSet::empty(),
+    );
+    // SAFETY: the handler only stores to an atomic.
+    unsafe { sigaction(Signal::SIGINT, &action) }.ok()?;
+    let flag = Arc::new(AtomicBool::new(false));
+    let watched = flag.clone();
+    std::thread::Builder::new()
+        .name("ctrl-c".into())
+        .spawn(move || loop {
+            if INTERRUPTED.load(Ordering::SeqCst) {
+                watched.store(true, Ordering::SeqCst);
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        })
+        .ok()?;
+    Some(flag)
+}
+
+/// Runs `spidar collect`; returns the summary for standard output.
+pub fn run_collect(args: &CollectArgs) -> Result<String, CollectRunError> {
+    use super::cues::Tee;
+    use super::view::TerminalView;
+    let audio = super::audio::AudioOut::open(args.audio)?;
+    let mut view = TerminalView::new(audio, 10.0);
+    let init = match &args.init {
+        Some(p) => Some(load_init_record(p)?),
+        None => None,
+    };
+    let mut config = CollectConfig {
+        body_id: args.body,
+        tracker_timeout: Duration::from_secs_f64(args.tracker_timeout_s.clamp(0.1, 3600.0)),
+        max_cells: args.max_cells,
+        // Ctrl-C stops between two frames: motors off, the count, how to resume.
+        cancel: cancel_on_ctrl_c(),
+        ..CollectConfig::default()
+    };
+    let centre_of = |geometry: &Geometry| -> [f64; 3] {
+        args.centre
+            .or(init.as_ref().map(|r| r.home_room_mm))
+            .unwrap_or_else(|| {
+                core::array::from_fn(|k| {
+                    geometry.home_mm[k] + geometry.room_from_device_translation_mm[k]
+                })
+            })
+    };
+    let report = match args.simulate {
+        Some(seed) => {
+            let sim_config = crate::sim::SimConfig::load_or_default(args.sim_config.as_deref())
+                .map_err(crate::sim::operator::RigError::from)?;
+            let device = crate::sim::Device::new(&sim_config, seed)
+                .map_err(crate::sim::operator::RigError::from)?;
+            let mut rig = crate::sim::operator::SimulatedRig::start(device, [0.0; 3], |c| {
+                c.seed = seed;
+                c.max_duration = Duration::from_secs(6 * 3600);
+            })?;
+            let mut client = rig.client().map_err(CollectError::from)?;
+            let geometry = rig.device.nominal.clone();
+            config.string_model = Some(geometry.string_model());
+            config.tracker_label = format!("the simulated tracker ({})", rig.receiver.local_addr());
+            config.host_clock = rig.host_clock();
+            // A busy machine may not run the simulated device's thread for
+            // a while: that is not a silent device.
+            config.device_timeout = Duration::from_secs(10);
+            let lattice = Lattice::new(centre_of(&geometry), args.size_mm, args.cells)
+                .map_err(CollectError::from)?;
+            let mut to_operator = rig.cues.clone();
+            let mut sinks = Tee(vec![&mut view, &mut to_operator]);
+            collect(
+                &mut client,
+                &mut rig.receiver,
+                &lattice,
+                &config,
+                &args.out,
+                &mut sinks,
+            )?
+        }
+        None => {
+            let port = args.port.as_deref().unwrap_or_default();
+            let path = args.geometry.clone().unwrap_or_default();
+            let geometry = Geometry::load(&path).map_err(CollectError::from)?;
+            config.string_model = Some(geometry.string_model());
+            config.tracker_label = format!("the tracker (UDP {})", args.tracker);
+            let lattice = Lattice::new(centre_of(&geometry), args.size_mm, args.cells)
+                .map_err(CollectError::from)?;
+            let mut client = Client::open(port).map_err(CollectError::from)?;
+            let mut rc = crate::device::tracker::ReceiverConfig::new(args.tracker);
+            rc.body_id = args.body;
+            let mut receiver =
+                crate::device::tracker::DtrackReceiver::bind(rc).map_err(CollectError::from)?;
+            collect(
+                &mut client,
+                &mut receiver,
+                &lattice,
+                &config,
+                &args.out,
+                &mut view,
+            )?
+        }
+    };
+    Ok(summary(&report))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn row(p: [f64; 3]) -> Sample {
+        Sample {
+            t_s: 0.0,
+            counts: [0; 8],
+            tracker: Some(p),
+            orientation: None,
+            legacy: None,
+            tension_n: None,
+        }
+    }
+
+    #[test]
+    fn done_cells_come_from_the_rows_tracker_positions() {
+        let lattice = Lattice::new([0.0, 0.0, 0.0], 300.0, 3).unwrap();
+        let file = Path::new("s.csv");
+        let order = lattice.order();
+        // Cells 0, 1 and 2 of the order, each somewhere inside.
+        let mut session = Session {
+            strings: 8,
+            samples: vec![
+                row([-120.0, -140.0, -101.0]),
+                row([10.0, -60.0, -149.0]),
+                row([130.0, -100.0, -100.0]),
+            ],
+            ignored_columns: Vec::new(),
+            tracker_z: true,
+        };
+        let done = done_cells(&lattice, &session, file).unwrap();
+        assert_eq!(&done[..4], &[Some(2), Some(3), Some(4), None]);
+        assert_eq!(order[3], [2, 0, 1]);
+        // On the face shared by cells 3 ([2,0,1]) and 4 ([1,0,1]): the first
+        // not done, then the other.
+        session.samples.push(row([50.0, -100.0, 0.0]));
+        session.samples.push(row([50.0, -100.0, 0.0]));
+        let done = done_cells(&lattice, &session, file).unwrap();
+        assert_eq!(&done[3..6], &[Some(5), Some(6), None]);
+        // A third row there: that cell was done twice.
+        session.samples.push(row([50.0, -100.0, 0.0]));
+        let e = done_cells(&lattice, &session, file).unwrap_err();
+        assert!(
+            matches!(
+                e,
+                CollectError::CellTwice {
+                    line: 7,
+                    first_line: 5,
+                    ..
+                }
+            ),
+            "{e}"
+        );
+        assert!(e.to_string().contains("s.csv: line 7"), "{e}");
+        // Outside the cube, or without a tracker position.
+        session.samples.truncate(5);
+        session.samples.push(row([0.0, 0.0, 151.0]));
+        let e = done_cells(&lattice, &session, file).unwrap_err();
+        assert!(
+            matches!(e, CollectError::RowOutsideLattice { line: 7, .. }),
+            "{e}"
+        );
+        session.samples.pop();
+        session.samples.push(Sample {
+            tracker: None,
+            ..row([0.0; 3])
+        });
+        let e = done_cells(&lattice, &session, file).unwrap_err();
+        assert!(
+            matches!(e, CollectError::RowWithoutTracker { line: 7, .. }),
+            "{e}"
+        );
+    }
+
+    /// `v` turned by the quaternion `q = [w, x, y, z]`.
+    fn turn(q: [f64; 4], v: [f64; 3]) -> [f64; 3] {
+        let [w, x, y, z] = q;
+        let u = [x, y, z];
+        let cross = |a: [f64; 3], b: [f64; 3]| {
+            [
+                a[1] * b[2] - a[2] * b[1],
+                a[2] * b[0] - a[0] * b[2],
+                a[0] * b[1] - a[1] * b[0],
+            ]
+        };
+        // v + 2 w (u x v) + 2 u x (u x v)
+        let uv = cross(u, v);
+        let uuv = cross(u, uv);
+        core::array::from_fn(|k| v[k] + 2.0 * w * uv[k] + 2.0 * uuv[k])
+    }
+
+    /// `r v` for a row-major `r`.
+    fn apply(r: &[[f64; 3]; 3], v: [f64; 3]) -> [f64; 3] {
+        core::array::from_fn(|k| r[k][0] * v[0] + r[k][1] * v[1] + r[k][2] * v[2])
+    }
+
+    fn assert_same_rotation(q: [f64; 4], r: &[[f64; 3]; 3], tolerance: f64) {
+        for v in [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]] {
+            let (a, b) = (turn(q, v), apply(r, v));
+            assert!(
+                a.iter().zip(&b).all(|(x, y)| (x - y).abs() <= tolerance),
+                "{q:?} turns {v:?} to {a:?}, the matrix {r:?} to {b:?}"
+            );
+        }
+    }
+
+    #[test]
+    fn a_rotation_s_orientation_is_its_unit_quaternion_with_w_not_negative() {
+        use nalgebra::{Unit, UnitQuaternion, Vector3};
+        let h = std::f64::consts::FRAC_1_SQRT_2;
+        // Row-major: a quarter turn about z takes x to y.
+        let quarter_z = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]];
+        assert_eq!(
+            orientation_of_rotation(&quarter_z),
+            Some([h, 0.0, 0.0, h].map(|v| (v * 1e6).round() / 1e6))
+        );
+        assert_eq!(
+            orientation_of_rotation(&crate::device::tracker::dtrack::IDENTITY),
+            Some([1.0, 0.0, 0.0, 0.0])
+        );
+        for (axis, angle) in [
+            ([1.0, 0.0, 0.0], std::f64::consts::PI),
+            ([0.0, 1.0, 0.0], std::f64::consts::PI),
+            ([0.0, 0.0, 1.0], -std::f64::consts::PI),
+            ([1.0, 1.0, 0.0], std::f64::consts::PI),
+            ([1.0, -2.0, 0.5], 2.5),
+            ([0.2, 0.1, -1.0], -1.2),
+            ([0.3, 0.4, 0.5], 3.1),
+            ([-1.0, 0.0, 2.0], 1e-9),
+        ] {
+            let q =
+                UnitQuaternion::from_axis_angle(&Unit::new_normalize(Vector3::from(axis)), angle);
+            let m = q.to_rotation_matrix();
+            let r: [[f64; 3]; 3] = core::array::from_fn(|i| core::array::from_fn(|j| m[(i, j)]));
+            let got = orientation_of_rotation(&r).expect("a rotation");
+            assert!(got[0] >= 0.0, "{got:?}");
+            let norm = got.iter().map(|v| v * v).sum::<f64>().sqrt();
+            assert!((norm - 1.0).abs() < 2e-6, "{norm}");
+            // Rounded to 1e-6.
+            assert!(got
+                .iter()
+                .all(|v| (v * 1e6 - (v * 1e6).round()).abs() < 1e-6));
+            assert_same_rotation(got, &r, 1e-5);
+            // As a tracker writes it: six decimals, so not quite orthonormal.
+            let written = r.map(|row| row.map(|v| (v * 1e6).round() / 1e6));
+            let again = orientation_of_rotation(&written).expect("a rotation to six decimals");
+            assert_same_rotation(again, &r, 1e-5);
+        }
+    }
+
+    #[test]
+    fn a_matrix_that_is_not_a_proper_rotation_has_no_orientation() {
+        let identity = crate::device::tracker::dtrack::IDENTITY;
+        let mut reflection = identity;
+        reflection[2][2] = -1.0;
+        let scaled = identity.map(|row| row.map(|v| 1.01 * v));
+        let mut sheared = identity;
+        sheared[0][1] = 0.01;
+        let mut not_finite = identity;
+        not_finite[1][1] = f64::NAN;
+        let mut infinite = identity;
+        infinite[0][2] = f64::INFINITY;
+        for r in [
+            reflection,
+            scaled,
+            sheared,
+            not_finite,
+            infinite,
+            [[0.0; 3]; 3],
+            identity.map(|row| row.map(|v| -v)),
+        ] {
+            assert_eq!(orientation_of_rotation(&r), None, "{r:?}");
+        }
+    }
+
+    #[test]
+    fn the_orientation_of_a_dtrack_body_turns_as_its_column_wise_matrix() {
+        // The DTrack2 manual's example body: b0..b8 given column-wise.
+        let datagram = b"fr 21753\r\n6d 1 [0 1.000][326.848 -187.216 109.503 -160.4704 -3.6963 -7.0913][-0.940508 -0.339238 0.019025 0.333599 -0.932599 -0.137735 0.064467 -0.123194 0.990286]\r\n";
+        let frame = crate::device::tracker::dtrack::parse_datagram(datagram).unwrap();
+        let r = frame.bodies[0].rotation.unwrap();
+        let q = orientation_of_rotation(&r).expect("the manual's rotation");
+        assert_same_rotation(q, &r, 1e-5);
+        // The first column is the image of the body's x axis.
+        let x = turn(q, [1.0, 0.0, 0.0]);
+        for (a, b) in x.iter().zip([-0.940508, -0.339238, 0.019025]) {
+            assert!((a - b).abs() < 1e-5, "{x:?}");
+        }
+    }
+
+    #[test]
+    fn a_heartbeat_slower_than_the_device_timeout_is_refused() {
+        let config = CollectConfig {
+            heartbeat_every: Duration::from_millis(150),
+            ..CollectConfig::default()
+        };
+        let e = config.validate().unwrap_err();
+        assert!(e.to_string().contains("heartbeat_every"), "{e}");
+    }
+}

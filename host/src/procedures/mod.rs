@@ -1,0 +1,20 @@
+//! What a lab engineer runs (the paper's sections 4.1, 4.3.1, 5 and 5.5).
+//!
+//! - [`calibrate`]: the whole calibration of a device from a training and a
+//!   test session (`spidar calibrate`, `spidar demo`);
+//! - [`init`]: guided initialization (`spidar init`): the haptic and audio
+//!   cues (eqs. 2-5) bring the marker to the frame centre, home is declared
+//!   when it holds there, and the room-to-device transform is recorded;
+//! - [`collect`]: lattice data collection (`spidar collect`);
+//! - [`recalibrate`]: runtime monitoring and refit (`spidar monitor`);
+//! - [`cues`], [`view`], [`audio`]: what the operator is shown and hears.
+//!
+//! A simulated operator for tests and demos is [`crate::sim::operator`].
+
+pub mod audio;
+pub mod calibrate;
+pub mod collect;
+pub mod cues;
+pub mod init;
+pub mod recalibrate;
+pub mod view;
