@@ -18,9 +18,10 @@
 use crate::blob::{position_mm, position_q16, BlobHead, CompiledCalibration};
 use crate::correction::Correction;
 use crate::encoder::{DirectionTracker, EncoderExtender};
+use crate::geometry::{device_direction, room_from_device};
 use crate::guidance::guidance_force;
 use crate::kinematics::{forward_kinematics, inverse_kinematics, FkConfig, FkStatus};
-use crate::model::{Frame, StringInputs};
+use crate::model::StringInputs;
 use crate::safety::{Faults, SafetyConfig, SafetyConfigError, SafetyMonitor};
 use crate::string_law::{cos2_inclinations, string_lengths, CompiledEffect};
 use crate::tension::{distribute_warm, TensionConfig, TensionLimits, TensionStatus};
@@ -137,26 +138,6 @@ pub struct Controller {
     target: Target,
     /// See [`Controller::set_lengths_calibrated`].
     lengths_calibrated: bool,
-}
-
-fn room_from_device(frame: &Frame<f32>, p: [f32; 3]) -> [f32; 3] {
-    let r = &frame.room_rotation;
-    let mut out = [0.0f32; 3];
-    for (k, o) in out.iter_mut().enumerate() {
-        let v = r[k][0] * p[0] + r[k][1] * p[1] + r[k][2] * p[2];
-        *o = frame.room_scale * v + frame.room_translation[k];
-    }
-    out
-}
-
-/// A room-frame direction (force) in the device frame: `R^T f`.
-fn device_direction(frame: &Frame<f32>, f: [f32; 3]) -> [f32; 3] {
-    let r = &frame.room_rotation;
-    [
-        r[0][0] * f[0] + r[1][0] * f[1] + r[2][0] * f[2],
-        r[0][1] * f[0] + r[1][1] * f[1] + r[2][1] * f[2],
-        r[0][2] * f[0] + r[1][2] * f[1] + r[2][2] * f[2],
-    ]
 }
 
 impl Controller {
@@ -380,7 +361,7 @@ mod tests {
     use super::*;
     use crate::blob::compile;
     use crate::correction::CorrectionModel;
-    use crate::model::{Calibration, StringLaw};
+    use crate::model::{Calibration, Frame, StringLaw};
 
     const CPR: u32 = 4096;
     const RADIUS: f64 = 10.0;

@@ -6,6 +6,7 @@
 //!
 //! The calibration model is the spine (see `docs/design.md`):
 //! - [`model`]: the physical model the host fits, in f64 and physical units;
+//! - [`geometry`]: points, rotations and the room/device frames (f32 and f64);
 //! - [`blob`]: its compiled, fixed-point form that the device evaluates;
 //! - [`string_law`]: string length from encoder counts (winding law + effects);
 //! - [`kinematics`]: forward kinematics from 8 strings with faulty-string rejection;
@@ -31,6 +32,7 @@ pub mod correction;
 pub mod device;
 pub mod encoder;
 pub mod fixed;
+pub mod geometry;
 pub mod guidance;
 pub mod kinematics;
 pub mod model;

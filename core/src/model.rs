@@ -15,8 +15,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::STRINGS;
 
-/// A point or vector in millimetres, `[x, y, z]`.
-pub type Vec3<F> = [F; 3];
+pub use crate::geometry::Vec3;
 
 /// Which of the controller's [`STRINGS`] channels carry a string, and whether
 /// the end-effector moves in a plane.

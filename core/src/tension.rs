@@ -92,6 +92,7 @@
 use crate::real::Real;
 use serde::{Deserialize, Serialize};
 
+use crate::geometry::{cross, dot, norm, sub};
 use crate::model::{StringLayout, Vec3};
 use crate::STRINGS;
 
@@ -955,30 +956,6 @@ fn clamp<F: Real>(x: F, lo: F, hi: F) -> F {
     } else {
         x
     }
-}
-
-#[inline(always)]
-fn sub<F: Real>(a: Vec3<F>, b: Vec3<F>) -> Vec3<F> {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-
-#[inline(always)]
-fn dot<F: Real>(a: Vec3<F>, b: Vec3<F>) -> F {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-#[inline(always)]
-fn cross<F: Real>(a: Vec3<F>, b: Vec3<F>) -> Vec3<F> {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
-}
-
-#[inline(always)]
-fn norm<F: Real>(a: Vec3<F>) -> F {
-    dot(a, a).sqrt_rounded()
 }
 
 #[inline(always)]

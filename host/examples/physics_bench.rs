@@ -24,10 +24,11 @@ use spidar::data::dataset::{Geometry, Session};
 use spidar::data::observe::observations;
 use spidar::data::stats::{position_error, ErrorStats};
 use spidar::model::diagnose::{family_name, variable_name};
-use spidar::model::identify::{device_from_room, inputs_at};
+use spidar::model::identify::inputs_at;
 use spidar::procedures::calibrate::{calibrate, CalibrateConfig, Calibrated, NamedSession};
 use spidar::sim::physics::{self, PhysicsConfig, PhysicsDevice, PhysicsTruth};
 use spidar::sim::{simulate_session, Device, SessionKind, SimConfig};
+use spidar_core::geometry::device_from_room;
 use spidar_core::string_law::string_lengths_f64;
 use spidar_core::STRINGS;
 

@@ -25,4 +25,5 @@ pub mod data;
 pub mod device;
 pub mod model;
 pub mod procedures;
+pub mod progress;
 pub mod sim;

@@ -3,14 +3,14 @@
 
 Usage (from the repository root; needs `pip install scikit-learn numpy scipy`):
 
-    python3 scripts/reference/svr_reference.py host/tests/fixtures/svr_libsvm.json
+    python3 scripts/reference/svr_reference.py host/tests/model/fixtures/svr_libsvm.json
 
 It draws a fixed small 3-D regression problem (already standardized, so both
 sides see identical numbers), fits scikit-learn's SVR (libsvm: RBF kernel,
 WSS2 SMO with shrinking) per output axis for a few (C, epsilon, gamma, tol)
 cases, and writes the data, libsvm's dense dual coefficients
 (alpha - alpha*), intercepts, dual objective values and predictions on train
-and test points to JSON. `host/tests/learn.rs` reads the committed fixture, so
+and test points to JSON. `host/tests/model/learn.rs` reads the committed fixture, so
 CI never needs Python.
 
 The dual objective is libsvm's `obj`:
@@ -50,7 +50,7 @@ def rbf(a, b, gamma):
 
 
 def main():
-    out = sys.argv[1] if len(sys.argv) > 1 else "host/tests/fixtures/svr_libsvm.json"
+    out = sys.argv[1] if len(sys.argv) > 1 else "host/tests/model/fixtures/svr_libsvm.json"
     rng = np.random.default_rng(20240611)
     n, m = 300, 100
     x = rng.uniform(-1.7, 1.7, size=(n, 3))

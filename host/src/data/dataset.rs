@@ -65,6 +65,7 @@ use std::path::{Path, PathBuf};
 
 use serde::de::{self, Deserializer, SeqAccess, Visitor};
 use serde::Deserialize;
+use spidar_core::geometry::distance;
 use spidar_core::model::{Frame, StringLaw, StringLayout, Vec3, WINDING_ORDER};
 use spidar_core::STRINGS;
 
@@ -486,7 +487,7 @@ impl Geometry {
             let a = &self.anchors_mm[i];
             let field = format!("anchors_mm[{i}]");
             check_finite3(file, &field, a)?;
-            if distance(a, &self.home_mm) == 0.0 {
+            if distance(*a, self.home_mm) == 0.0 {
                 return Err(field_error(
                     file,
                     field,
@@ -508,7 +509,7 @@ impl Geometry {
         let active: Vec<Vec3<f64>> = self.layout.indices().map(|i| self.anchors_mm[i]).collect();
         let far = active
             .iter()
-            .map(|a| distance(a, &active[0]))
+            .map(|a| distance(*a, active[0]))
             .fold(0.0, f64::max);
         let degenerate = if far == 0.0 {
             Some("all anchors are at one point")
@@ -516,7 +517,7 @@ impl Geometry {
             let (k, _) = active
                 .iter()
                 .enumerate()
-                .map(|(k, a)| (k, distance(a, &active[0])))
+                .map(|(k, a)| (k, distance(*a, active[0])))
                 .fold((0, 0.0), |b, x| if x.1 > b.1 { x } else { b });
             let u = [0, 1, 2].map(|c| (active[k][c] - active[0][c]) / far);
             let off_line = active
@@ -660,13 +661,8 @@ impl Geometry {
 
     /// Nominal string length of each string at home (mm).
     pub fn home_lengths_mm(&self) -> [f64; STRINGS] {
-        core::array::from_fn(|i| distance(&self.anchors_mm[i], &self.home_mm))
+        core::array::from_fn(|i| distance(self.anchors_mm[i], self.home_mm))
     }
-}
-
-fn distance(a: &Vec3<f64>, b: &Vec3<f64>) -> f64 {
-    let d = [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
-    (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt()
 }
 
 // ---------------------------------------------------------------------------

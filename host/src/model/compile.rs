@@ -16,8 +16,9 @@ use std::path::{Path, PathBuf};
 
 use spidar_core::blob::{compile, position_q16, CompiledCalibration};
 use spidar_core::control::ControlConfig;
+use spidar_core::geometry::{distance, room_from_device};
 use spidar_core::kinematics::{forward_kinematics_inclined, FkStatus};
-use spidar_core::model::{Calibration, Frame, StringInputs};
+use spidar_core::model::{Calibration, StringInputs};
 use spidar_core::string_law::string_lengths;
 use spidar_protocol::blob::{BlobError, CRC32};
 
@@ -116,7 +117,7 @@ pub fn device_positions(
             if matches!(fk.status, FkStatus::Ok | FkStatus::FaultyStringExcluded) {
                 position = fk.position;
             }
-            let room = position_q16(room_from_device_f32(frame, position));
+            let room = position_q16(room_from_device(frame, position));
             let c = blob.correction.evaluate(room);
             (
                 position.map(f64::from),
@@ -125,21 +126,6 @@ pub fn device_positions(
             )
         })
         .collect()
-}
-
-/// The device's room transform (f32, the order of `control::Controller`).
-fn room_from_device_f32(frame: &Frame<f32>, p: [f32; 3]) -> [f32; 3] {
-    let r = &frame.room_rotation;
-    let mut out = [0.0f32; 3];
-    for (k, o) in out.iter_mut().enumerate() {
-        let v = r[k][0] * p[0] + r[k][1] * p[1] + r[k][2] * p[2];
-        *o = frame.room_scale * v + frame.room_translation[k];
-    }
-    out
-}
-
-fn distance(a: [f64; 3], b: [f64; 3]) -> f64 {
-    ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
 }
 
 /// Compares the blob (the device way) with the f64 calibration on every row.
@@ -221,27 +207,22 @@ pub fn compile_checked(
     Ok(blob)
 }
 
-/// `spidar compile`.
-#[derive(Clone, Debug, clap::Args)]
-pub struct CompileArgs {
+/// What `spidar compile` is asked for.
+#[derive(Clone, Debug)]
+pub struct CompileRequest {
     /// Calibration written by `spidar calibrate` (calibration.json).
-    #[arg(long)]
     pub calibration: PathBuf,
     /// Where to write the model blob.
-    #[arg(long)]
     pub out: PathBuf,
     /// Test session CSV: measure the fixed-point error on its rows.
-    #[arg(long)]
     pub test: Option<PathBuf>,
     /// Nominal geometry of the session (checks its counts per revolution
     /// against the calibration's).
-    #[arg(long)]
     pub geometry: Option<PathBuf>,
     /// Model id (default: CRC-32 of the calibration).
-    #[arg(long)]
     pub model_id: Option<u32>,
-    /// Largest mean fixed-point error accepted, mm.
-    #[arg(long, default_value_t = FIXED_POINT_BUDGET_MM)]
+    /// Largest mean fixed-point error accepted, mm
+    /// ([`FIXED_POINT_BUDGET_MM`] by default on the command line).
     pub budget_mm: f64,
 }
 
@@ -303,7 +284,7 @@ impl std::fmt::Display for CompileReport {
 }
 
 /// Runs `spidar compile`.
-pub fn run_compile(args: &CompileArgs) -> Result<CompileReport, CompileCmdError> {
+pub fn run_compile(args: &CompileRequest) -> Result<CompileReport, CompileCmdError> {
     let calibration = load_calibration(&args.calibration)?;
     let model_id = args.model_id.unwrap_or_else(|| model_id_of(&calibration));
     let created = std::time::SystemTime::now()

@@ -75,6 +75,10 @@
 
 use nalgebra::{DMatrix, DVector, Dyn, Owned};
 use serde::{Deserialize, Serialize};
+use spidar_core::geometry::{
+    cross, device_from_room, distance, mat_mul, mat_vec, rotation_from_vector, sub, transpose,
+    vector_from_rotation,
+};
 use spidar_core::model::{
     Effect, EffectTerm, Frame, LayerTable, StringInputs, StringLaw, StringLayout, EVERY_STRING,
     WINDING_ORDER,
@@ -308,110 +312,6 @@ pub enum IdentifyError {
     TooFewRows { needed: usize, got: usize },
     #[error("identification diverged: {0}")]
     Diverged(String),
-}
-
-fn dist(a: [f64; 3], b: [f64; 3]) -> f64 {
-    let d = [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
-    (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt()
-}
-
-fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-
-fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
-}
-
-fn mat_vec(m: &[[f64; 3]; 3], v: [f64; 3]) -> [f64; 3] {
-    [
-        m[0][0] * v[0] + m[0][1] * v[1] + m[0][2] * v[2],
-        m[1][0] * v[0] + m[1][1] * v[1] + m[1][2] * v[2],
-        m[2][0] * v[0] + m[2][1] * v[1] + m[2][2] * v[2],
-    ]
-}
-
-fn mat_t_vec(m: &[[f64; 3]; 3], v: [f64; 3]) -> [f64; 3] {
-    [
-        m[0][0] * v[0] + m[1][0] * v[1] + m[2][0] * v[2],
-        m[0][1] * v[0] + m[1][1] * v[1] + m[2][1] * v[2],
-        m[0][2] * v[0] + m[1][2] * v[1] + m[2][2] * v[2],
-    ]
-}
-
-fn mat_mul(a: &[[f64; 3]; 3], b: &[[f64; 3]; 3]) -> [[f64; 3]; 3] {
-    let mut m = [[0.0; 3]; 3];
-    for (i, row) in m.iter_mut().enumerate() {
-        for (j, v) in row.iter_mut().enumerate() {
-            *v = (0..3).map(|k| a[i][k] * b[k][j]).sum();
-        }
-    }
-    m
-}
-
-/// Rotation matrix of a rotation vector (Rodrigues).
-pub fn rotation_from_vector(w: [f64; 3]) -> [[f64; 3]; 3] {
-    let angle = (w[0] * w[0] + w[1] * w[1] + w[2] * w[2]).sqrt();
-    if angle < 1e-15 {
-        return [[1.0, -w[2], w[1]], [w[2], 1.0, -w[0]], [-w[1], w[0], 1.0]];
-    }
-    let k = [w[0] / angle, w[1] / angle, w[2] / angle];
-    let (s, c) = angle.sin_cos();
-    let v = 1.0 - c;
-    [
-        [
-            c + k[0] * k[0] * v,
-            k[0] * k[1] * v - k[2] * s,
-            k[0] * k[2] * v + k[1] * s,
-        ],
-        [
-            k[1] * k[0] * v + k[2] * s,
-            c + k[1] * k[1] * v,
-            k[1] * k[2] * v - k[0] * s,
-        ],
-        [
-            k[2] * k[0] * v - k[1] * s,
-            k[2] * k[1] * v + k[0] * s,
-            c + k[2] * k[2] * v,
-        ],
-    ]
-}
-
-/// Rotation vector of a rotation matrix (inverse of [`rotation_from_vector`]).
-pub fn vector_from_rotation(r: &[[f64; 3]; 3]) -> [f64; 3] {
-    let cos = ((r[0][0] + r[1][1] + r[2][2] - 1.0) / 2.0).clamp(-1.0, 1.0);
-    let angle = cos.acos();
-    let axis = [r[2][1] - r[1][2], r[0][2] - r[2][0], r[1][0] - r[0][1]];
-    let s = angle.sin();
-    if s.abs() < 1e-12 {
-        return [axis[0] / 2.0, axis[1] / 2.0, axis[2] / 2.0];
-    }
-    let f = angle / (2.0 * s);
-    [axis[0] * f, axis[1] * f, axis[2] * f]
-}
-
-/// Device-frame position of a room-frame point under `frame`.
-pub fn device_from_room(frame: &Frame<f64>, room: [f64; 3]) -> [f64; 3] {
-    let v = mat_t_vec(&frame.room_rotation, sub(room, frame.room_translation));
-    [
-        v[0] / frame.room_scale,
-        v[1] / frame.room_scale,
-        v[2] / frame.room_scale,
-    ]
-}
-
-/// Room-frame position of a device-frame point under `frame`.
-pub fn room_from_device(frame: &Frame<f64>, device: [f64; 3]) -> [f64; 3] {
-    let v = mat_vec(&frame.room_rotation, device);
-    [
-        frame.room_scale * v[0] + frame.room_translation[0],
-        frame.room_scale * v[1] + frame.room_translation[1],
-        frame.room_scale * v[2] + frame.room_translation[2],
-    ]
 }
 
 /// Names, typical sizes (used to scale the LM variables) and units of an
@@ -775,14 +675,6 @@ impl Problem<'_> {
     }
 }
 
-fn transpose(m: &[[f64; 3]; 3]) -> [[f64; 3]; 3] {
-    [
-        [m[0][0], m[1][0], m[2][0]],
-        [m[0][1], m[1][1], m[2][1]],
-        [m[0][2], m[1][2], m[2][2]],
-    ]
-}
-
 /// Prior sd of a parameter held at its nominal value (mm or rad): a
 /// channel without a string, a planar device's z.
 const HELD_SD: f64 = 1e-3;
@@ -827,7 +719,7 @@ fn residuals_at(
     let lengths = string_lengths_f64(frame, laws, effects, &inputs_at(frame, o, &p));
     let mut r = [0.0; STRINGS];
     for i in frame.layout.indices() {
-        r[i] = dist(p, frame.anchors[i]) - lengths[i];
+        r[i] = distance(p, frame.anchors[i]) - lengths[i];
     }
     r
 }
@@ -882,7 +774,7 @@ impl levenberg_marquardt::LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
         let frame = &state.frame;
         let w = &state.winding;
         let home_lengths: Vec<f64> = (0..STRINGS)
-            .map(|i| dist(frame.home, frame.anchors[i]))
+            .map(|i| distance(frame.home, frame.anchors[i]))
             .collect();
         let two_pi = 2.0 * std::f64::consts::PI;
         let planar = frame.layout.planar;
@@ -912,7 +804,7 @@ impl levenberg_marquardt::LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
                     continue;
                 }
                 let a = frame.anchors[i];
-                let geo = dist(p, a);
+                let geo = distance(p, a);
                 let up = {
                     let d = sub(p, a);
                     [d[0] / geo, d[1] / geo, d[2] / geo]

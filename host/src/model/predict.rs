@@ -16,7 +16,7 @@ use spidar_core::string_law::string_lengths_f64;
 use spidar_core::STRINGS;
 
 use crate::data::observe::Observation;
-use crate::model::identify::room_from_device;
+use spidar_core::geometry::room_from_device;
 
 /// The position of one row.
 #[derive(Clone, Copy, Debug, PartialEq)]

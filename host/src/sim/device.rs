@@ -4,6 +4,9 @@
 use rand::rngs::ChaCha8Rng;
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
+use spidar_core::geometry::{
+    device_from_room, mat_t_vec, mat_vec, norm, room_from_device, rotation_about_axis, sub,
+};
 use spidar_core::model::{EffectTerm, Frame, StringLaw, Vec3, WINDING_ORDER};
 use spidar_core::STRINGS;
 
@@ -30,40 +33,6 @@ pub(crate) fn normal(field: &str, sigma: f64) -> Result<Normal<f64>, SimError> {
         field: field.to_string(),
         problem: format!("{sigma} is not a standard deviation: {e}"),
     })
-}
-
-pub(crate) fn sub(a: &Vec3<f64>, b: &Vec3<f64>) -> Vec3<f64> {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-
-pub(crate) fn norm(a: &Vec3<f64>) -> f64 {
-    (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt()
-}
-
-pub(crate) fn dot(a: &Vec3<f64>, b: &Vec3<f64>) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-/// `R v`.
-pub(crate) fn rotate(r: &[[f64; 3]; 3], v: &Vec3<f64>) -> Vec3<f64> {
-    core::array::from_fn(|i| dot(&r[i], v))
-}
-
-/// `R^T v`.
-pub(crate) fn rotate_back(r: &[[f64; 3]; 3], v: &Vec3<f64>) -> Vec3<f64> {
-    core::array::from_fn(|i| r[0][i] * v[0] + r[1][i] * v[1] + r[2][i] * v[2])
-}
-
-/// Rotation by `angle` rad about the unit vector `axis` (Rodrigues).
-pub(crate) fn axis_angle(axis: Vec3<f64>, angle: f64) -> [[f64; 3]; 3] {
-    let (s, c) = angle.sin_cos();
-    let [x, y, z] = axis;
-    let t = 1.0 - c;
-    [
-        [c + x * x * t, x * y * t - z * s, x * z * t + y * s],
-        [y * x * t + z * s, c + y * y * t, y * z * t - x * s],
-        [z * x * t - y * s, z * y * t + x * s, c + z * z * t],
-    ]
 }
 
 /// One simulated device as built. The same device gives any number of
@@ -150,14 +119,14 @@ impl Device {
         let tr = &config.tracker;
         let axis_draw = normal("tracker.rotation_deg", 1.0)?;
         let mut axis: Vec3<f64> = core::array::from_fn(|_| axis_draw.sample(&mut rng));
-        let n = norm(&axis);
+        let n = norm(axis);
         axis = if n > 0.0 && !planar {
             axis.map(|x| x / n)
         } else {
             // A planar device's tracker frame turns about the plane's normal.
             [0.0, 0.0, 1.0]
         };
-        let room_rotation = axis_angle(axis, tr.rotation_deg.to_radians());
+        let room_rotation = rotation_about_axis(axis, tr.rotation_deg.to_radians());
         let t_noise = normal("tracker.translation_sigma_mm", tr.translation_sigma_mm)?;
         let room_translation: Vec3<f64> = core::array::from_fn(|k| {
             let e = t_noise.sample(&mut rng);
@@ -212,7 +181,7 @@ impl Device {
         let mut laws =
             [StringLaw::polynomial(nominal.counts_per_rev[0], [0.0; WINDING_ORDER]); STRINGS];
         for i in 0..STRINGS {
-            let home_length = norm(&sub(&frame.home, &frame.anchors[i]));
+            let home_length = norm(sub(frame.home, frame.anchors[i]));
             let wound = string_total_mm[i] - home_length;
             if wound <= 0.0 {
                 return Err(SimError::Config {
@@ -254,7 +223,7 @@ impl Device {
 
     /// True `|home - anchor_i|`, mm.
     pub fn home_length_mm(&self, string: usize) -> f64 {
-        norm(&sub(&self.frame.home, &self.frame.anchors[string]))
+        norm(sub(self.frame.home, self.frame.anchors[string]))
     }
 
     /// Winding radius at initialization, `r_home`, mm.
@@ -394,24 +363,22 @@ impl Device {
 
     /// Room position (tracker frame) of a device-frame position.
     pub fn room_from_device(&self, p: &Vec3<f64>) -> Vec3<f64> {
-        let r = rotate(&self.frame.room_rotation, p);
-        core::array::from_fn(|k| self.frame.room_scale * r[k] + self.frame.room_translation[k])
+        room_from_device(&self.frame, *p)
     }
 
     /// Device-frame position of a room (tracker frame) position.
     pub fn device_from_room(&self, p: &Vec3<f64>) -> Vec3<f64> {
-        let d = sub(p, &self.frame.room_translation);
-        rotate_back(&self.frame.room_rotation, &d).map(|x| x / self.frame.room_scale)
+        device_from_room(&self.frame, *p)
     }
 
     /// Room-frame velocity of a device-frame velocity.
     pub fn room_velocity_from_device(&self, v: &Vec3<f64>) -> Vec3<f64> {
-        rotate(&self.frame.room_rotation, v).map(|x| x * self.frame.room_scale)
+        mat_vec(&self.frame.room_rotation, *v).map(|x| x * self.frame.room_scale)
     }
 
     /// Device-frame velocity of a room-frame velocity.
     pub fn device_velocity_from_room(&self, v: &Vec3<f64>) -> Vec3<f64> {
-        rotate_back(&self.frame.room_rotation, v).map(|x| x / self.frame.room_scale)
+        mat_t_vec(&self.frame.room_rotation, *v).map(|x| x / self.frame.room_scale)
     }
 
     /// Centre of the sampled volume in the room frame: the nominal room image

@@ -45,8 +45,9 @@ pub use lattice::{Lattice, LatticeError};
 pub use truth::Truth;
 
 use crate::data::dataset::{DatasetError, Sample, Session};
-use device::{dot, norm, normal, stream, sub};
+use device::{normal, stream};
 use rand_distr::Distribution;
+use spidar_core::geometry::{dot, norm, sub};
 
 /// Any failure of the simulator; each names the file, field or string concerned.
 #[derive(Debug, thiserror::Error)]
@@ -230,10 +231,10 @@ pub fn simulate_session_with_truth(
         let mut speeds = [0.0; STRINGS];
         let mut abnormal_mm = 0.0;
         for i in layout.indices() {
-            let to_anchor = sub(&p, &device.frame.anchors[i]);
-            let length = norm(&to_anchor);
+            let to_anchor = sub(p, device.frame.anchors[i]);
+            let length = norm(to_anchor);
             let speed = if length > 0.0 {
-                dot(&v, &to_anchor) / length
+                dot(v, to_anchor) / length
             } else {
                 0.0
             };
@@ -322,64 +323,51 @@ pub fn simulate_session_with_truth(
     ))
 }
 
-/// `spidar simulate`: write a simulated device's nominal geometry, one session
-/// and the truth.
-#[derive(Clone, Debug, clap::Args)]
-pub struct SimulateArgs {
+/// What `spidar simulate` is asked for: which simulator, which device, which
+/// session, and where to write them (the command line's `--` options).
+#[derive(Clone, Debug)]
+pub struct SimulateRequest {
     /// Output directory (created if missing).
-    #[arg(long)]
     pub out: PathBuf,
     /// Device seed: the same seed gives the same device (as-built errors)
-    /// whatever the session kind, so a lattice and a random session of one
-    /// device are two runs with the same seed.
-    #[arg(long, default_value_t = 1)]
+    /// whatever the session kind.
     pub seed: u64,
     /// Simulator configuration TOML (every key optional).
-    #[arg(long)]
     pub config: Option<PathBuf>,
     /// Path of the end-effector.
-    #[arg(long, value_enum, default_value_t = KindArg::Lattice)]
-    pub kind: KindArg,
+    pub kind: SessionPath,
     /// Number of captures of a random session (default: `random.points`).
-    #[arg(long)]
     pub points: Option<usize>,
-    /// Injected effect (repeatable), `KIND:STRING:KEY=VALUE,...` with STRING
-    /// an index or `*`. Model physics: offset (mm), scale (relative), winding
-    /// (power, mm_per_rad_pow), eccentricity (sin_mm, cos_mm), elasticity
-    /// (per_newton), backlash (half_width_mm), drift (mm_per_s), slip (at_s,
-    /// mm), speed (latency_s), anchor (dx, dy, dz, mm), and
-    /// `tracker_scale:relative=VALUE` (no string); e.g.
-    /// `offset:3:mm=10`, `slip:2:at_s=2000,mm=5`. Independent physics
-    /// (`NAME[:KEY=VALUE,...]`): drift-all, frame-flex, marker-offset, slip,
-    /// heavy-string.
-    #[arg(long = "effect", value_name = "SPEC")]
+    /// Injected effects, `KIND:STRING:KEY=VALUE,...` (model simulator,
+    /// [`effects::parse_effect`]) or `NAME[:KEY=VALUE,...]` (independent
+    /// physics).
     pub effects: Vec<String>,
     /// File stem of the session CSV (default: `lattice` or `random`).
-    #[arg(long)]
     pub name: Option<String>,
     /// Session seed (default: the device seed + 1 for lattice, + 2 for random).
-    #[arg(long)]
     pub session_seed: Option<u64>,
-    /// Which simulator: `model` (the calibration model's own equations) or
-    /// `independent` (other physics, `host/src/sim/physics`: layered spools, guide
-    /// pulleys, elastic sagging strings, frame flex, an offset marker; its
-    /// own `--config` keys and `--effect` names).
-    #[arg(long, value_enum, default_value_t = PhysicsArg::Model)]
-    pub physics: PhysicsArg,
+    /// Which simulator.
+    pub physics: Physics,
 }
 
-/// `--physics`.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
-pub enum PhysicsArg {
+/// Which simulator makes a session.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Physics {
+    /// The calibration model's own equations.
     #[default]
     Model,
+    /// Other physics ([`physics`]): layered spools, guide pulleys, elastic
+    /// sagging strings, frame flex, an offset marker.
     Independent,
 }
 
-/// `--kind`.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
-pub enum KindArg {
+/// The end-effector's path through a session, as asked for (a random
+/// session's number of points comes with the request).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SessionPath {
+    /// The paper's lattice.
     Lattice,
+    /// Random test points.
     Random,
 }
 
@@ -442,18 +430,18 @@ pub fn legacy_raw_errors(session: &Session, geometry: &crate::data::dataset::Geo
 /// The session kind `args` ask for (`default_points`: the configuration's
 /// `random.points`).
 pub(crate) fn session_kind(
-    args: &SimulateArgs,
+    args: &SimulateRequest,
     default_points: usize,
 ) -> Result<SessionKind, SimError> {
     match args.kind {
-        KindArg::Lattice => match args.points {
+        SessionPath::Lattice => match args.points {
             Some(_) => Err(SimError::Config {
                 field: "--points".into(),
                 problem: "applies to --kind random only".into(),
             }),
             None => Ok(SessionKind::Lattice),
         },
-        KindArg::Random => Ok(SessionKind::Random {
+        SessionPath::Random => Ok(SessionKind::Random {
             points: args.points.unwrap_or(default_points),
         }),
     }
@@ -461,7 +449,7 @@ pub(crate) fn session_kind(
 
 /// The session seed of `args`: given, or the device seed + 1 (lattice) or
 /// + 2 (random).
-pub(crate) fn session_seed(args: &SimulateArgs, kind: SessionKind) -> u64 {
+pub(crate) fn session_seed(args: &SimulateRequest, kind: SessionKind) -> u64 {
     args.session_seed.unwrap_or(match kind {
         SessionKind::Lattice => args.seed.wrapping_add(1),
         SessionKind::Random { .. } => args.seed.wrapping_add(2),
@@ -472,7 +460,7 @@ pub(crate) fn session_seed(args: &SimulateArgs, kind: SessionKind) -> u64 {
 /// `geometry.toml`, the session CSV (`--name` or the kind's name) and
 /// `truth.toml` (by `write_truth`).
 pub(crate) fn write_outputs(
-    args: &SimulateArgs,
+    args: &SimulateRequest,
     kind: SessionKind,
     nominal: &crate::data::dataset::Geometry,
     session: &Session,
@@ -506,8 +494,8 @@ pub(crate) fn write_outputs(
 }
 
 /// Run `spidar simulate`.
-pub fn run_simulate(args: &SimulateArgs) -> Result<SimulateReport, SimError> {
-    if args.physics == PhysicsArg::Independent {
+pub fn run_simulate(args: &SimulateRequest) -> Result<SimulateReport, SimError> {
+    if args.physics == Physics::Independent {
         return physics::run_simulate(args);
     }
     let mut config = match &args.config {

@@ -10,8 +10,8 @@ use std::time::Duration;
 
 use spidar_core::STRINGS;
 
-use crate::sim::device::{norm, sub};
 use crate::sim::{Device as SimDevice, InjectedEffect, SampleTruth};
+use spidar_core::geometry::{norm, sub};
 
 /// The simulated world's clock: how far it has been computed, µs of
 /// simulated time (device time since the virtual device's first boot; it
@@ -406,7 +406,7 @@ impl Plant {
         if let Trajectory::Held(hand) = &self.trajectory {
             let p = hand.position_at_sim(self.sim_epoch_us);
             for i in self.device.frame.layout.indices() {
-                let length = norm(&sub(&p, &self.device.frame.anchors[i]));
+                let length = norm(sub(p, self.device.frame.anchors[i]));
                 let conditions = self.device.conditions(i, &p, 0, 0.0, 0.0, 0.0);
                 match self.device.counts_for_length(i, length, 0.0, conditions) {
                     Ok(c) => self.boot_counts[i] = c,
@@ -505,7 +505,7 @@ impl Plant {
         let layout = self.device.frame.layout;
         let mut lengths = [0.0; STRINGS];
         for i in layout.indices() {
-            lengths[i] = norm(&sub(&p, &self.device.frame.anchors[i]));
+            lengths[i] = norm(sub(p, self.device.frame.anchors[i]));
         }
         for i in layout.indices() {
             let speed = match self.prev_length {
@@ -556,7 +556,7 @@ impl Plant {
             let mut force = [0.0; 3];
             for (i, length) in lengths.iter().enumerate() {
                 if *length > 0.0 {
-                    let towards = sub(&self.device.frame.anchors[i], &p);
+                    let towards = sub(self.device.frame.anchors[i], p);
                     for k in 0..3 {
                         force[k] += self.tension_n[i] * towards[k] / length;
                     }

@@ -10,9 +10,9 @@ use rand_distr::{Distribution, Exp1};
 use spidar_core::model::Vec3;
 
 use super::config::{LatticeConfig, RandomConfig, TrackerConfig};
-use super::device::{norm, sub};
 use super::lattice::Lattice;
 use super::SimError;
+use spidar_core::geometry::{norm, sub};
 
 /// One capture on the path.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -83,8 +83,8 @@ pub(crate) fn lattice(
         });
         let speed = rng.random_range(cfg.speed_mm_s[0]..=cfg.speed_mm_s[1]);
         let s = entry_parameter(&previous, &target, &lo, &hi);
-        let d = sub(&target, &previous);
-        let len = norm(&d);
+        let d = sub(target, previous);
+        let len = norm(d);
         let unit = if len > 0.0 {
             d.map(|x| x / len)
         } else {
@@ -95,8 +95,8 @@ pub(crate) fn lattice(
         let p: Vec3<f64> = core::array::from_fn(|k| {
             (previous[k] + s * d[k] + depth * unit[k]).clamp(lo[k] + margin, hi[k] - margin)
         });
-        let travel = norm(&sub(&p, &previous));
-        points.push((p, speed, travel / speed, c, sub(&p, &previous)));
+        let travel = norm(sub(p, previous));
+        points.push((p, speed, travel / speed, c, sub(p, previous)));
         previous = p;
     }
 
@@ -109,7 +109,7 @@ pub(crate) fn lattice(
     let mut captures = Vec::with_capacity(points.len());
     for ((p, speed, travel_s, c, step), w) in points.into_iter().zip(weights) {
         t += travel_s + pause_total * w / weight_total.max(f64::MIN_POSITIVE);
-        let len = norm(&step);
+        let len = norm(step);
         let velocity = if len > 0.0 {
             step.map(|x| x * speed / len)
         } else {
@@ -147,15 +147,15 @@ pub(crate) fn random(
     let mut captures = Vec::with_capacity(points);
     for k in 1..=points {
         let t = k as f64 * cfg.capture_interval_s;
-        let mut leg = sub(&to, &from);
-        let mut len = norm(&leg);
+        let mut leg = sub(to, from);
+        let mut len = norm(leg);
         while leg_start_s + len / speed < t {
             leg_start_s += len / speed;
             from = to;
             to = waypoint(rng);
             speed = rng.random_range(cfg.speed_mm_s[0]..=cfg.speed_mm_s[1]);
-            leg = sub(&to, &from);
-            len = norm(&leg);
+            leg = sub(to, from);
+            len = norm(leg);
         }
         let unit = if len > 0.0 {
             leg.map(|x| x / len)

@@ -32,6 +32,7 @@
 //! noise; it widens the residuals and with them the reported uncertainty.
 
 use super::TrackerFrame;
+use spidar_core::geometry::{dot, norm, scale, sub};
 
 /// A position at a time on one stream's clock.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -215,19 +216,6 @@ struct Series<'a> {
 
 type V3 = [f64; 3];
 
-fn sub(a: V3, b: V3) -> V3 {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-fn scale(a: V3, k: f64) -> V3 {
-    [a[0] * k, a[1] * k, a[2] * k]
-}
-fn dot(a: V3, b: V3) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-fn norm(a: V3) -> f64 {
-    dot(a, a).sqrt()
-}
-
 impl Series<'_> {
     fn step_ok(&self, dt: f64) -> bool {
         dt > 0.0 && dt <= self.max_gap
@@ -249,19 +237,19 @@ impl Series<'_> {
         if !self.step_ok(dt) {
             return None;
         }
-        let chord = scale(sub(b.position_mm, a.position_mm), 1.0 / dt);
+        let chord = scale(1.0 / dt, sub(b.position_mm, a.position_mm));
         let m0 = if k >= 1 && self.step_ok(a.t_s - s[k - 1].t_s) {
             scale(
-                sub(b.position_mm, s[k - 1].position_mm),
                 1.0 / (b.t_s - s[k - 1].t_s),
+                sub(b.position_mm, s[k - 1].position_mm),
             )
         } else {
             chord
         };
         let m1 = if k + 2 < n && self.step_ok(s[k + 2].t_s - b.t_s) {
             scale(
-                sub(s[k + 2].position_mm, a.position_mm),
                 1.0 / (s[k + 2].t_s - a.t_s),
+                sub(s[k + 2].position_mm, a.position_mm),
             )
         } else {
             chord
@@ -462,7 +450,7 @@ impl Fine<'_> {
             let r = sub(*e, bias);
             rss += dot(r, r);
             residuals.push(r);
-            jac.push([sub(*v, mean_v), sub(scale(*v, *u), mean_vu)]);
+            jac.push([sub(*v, mean_v), sub(scale(*u, *v), mean_vu)]);
         }
         Linear {
             used,

@@ -23,7 +23,7 @@ pub mod synthetic;
 use std::fmt;
 use std::time::{Duration, Instant};
 
-use indicatif::{ProgressBar, ProgressStyle};
+use crate::progress::Step;
 pub use spidar_core::correction::{NnModel, OutputMode, Standardization, SvrModel};
 
 /// What went wrong while learning a correction. Every variant names the
@@ -321,18 +321,8 @@ impl Deadline {
     }
 }
 
-/// A progress bar on stderr, or a hidden one when `quiet` (tests) — indicatif
-/// also hides it by itself when stderr is not a terminal.
-pub(crate) fn progress(len: u64, msg: &'static str, quiet: bool) -> ProgressBar {
-    if quiet {
-        return ProgressBar::hidden();
-    }
-    let pb = ProgressBar::new(len);
-    if let Ok(style) =
-        ProgressStyle::with_template("{msg:>12} [{bar:30}] {pos}/{len} {elapsed_precise} {prefix}")
-    {
-        pb.set_style(style.progress_chars("=> "));
-    }
-    pb.set_message(msg);
-    pb
+/// A bar of `len` steps, shown by the installed [`crate::progress`]
+/// reporter unless `quiet` (tests).
+pub(crate) fn progress(len: u64, msg: &'static str, quiet: bool) -> Step {
+    Step::bar(len, msg, quiet)
 }

@@ -1285,7 +1285,6 @@ pub fn train(
     // Small epsilon can take the SMO from a fraction of a second to minutes:
     // show that it is working.
     let pb = super::progress(3, "SVR axes", cfg.quiet);
-    pb.enable_steady_tick(Duration::from_millis(200));
     let sols: Result<Vec<AxisSolution>, LearnError> = (0..3)
         .into_par_iter()
         .map(|a| {

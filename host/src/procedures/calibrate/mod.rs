@@ -34,7 +34,6 @@
 //! tracker, room frame, over the rows the tracker saw).
 
 pub mod align;
-mod cli;
 mod figures;
 mod plots;
 pub mod report;
@@ -43,7 +42,7 @@ pub mod trust;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
-use indicatif::{ProgressBar, ProgressStyle};
+use crate::progress::Step;
 use spidar_core::correction::CorrectionModel;
 use spidar_core::model::Calibration;
 
@@ -51,18 +50,16 @@ use crate::data::dataset::{DatasetError, Geometry, Session};
 use crate::data::observe::{observations, Observation};
 use crate::data::stats::{error_stats_checked, ErrorStats, StatsError};
 use crate::model::diagnose::{close_loop, tail_noise, LoopConfig, LoopResult};
-use crate::model::identify::{
-    device_from_room, identify, room_from_device, IdentifyError, Start, Structure,
-};
+use crate::model::identify::{identify, IdentifyError, Start, Structure};
 use crate::model::learn::nn::{self, NnConfig};
 use crate::model::learn::outliers;
 use crate::model::learn::search::{self, SvrSearchConfig, SweepConfig};
 use crate::model::learn::svr::{self, SvrConfig};
 use crate::model::learn::{split_indices, LearnError, OutputMode};
 use crate::model::predict::{predict, StringModel};
+use spidar_core::geometry::{device_from_room, room_from_device};
 use spidar_core::kinematics::FkStatus;
 
-pub use cli::{run_calibrate, run_demo, CalibrateArgs, DemoArgs};
 pub use report::{Report, SCHEMA};
 
 /// Any failure of a calibration; each names the file, stage or step.
@@ -331,19 +328,10 @@ impl Calibrated {
     }
 }
 
-/// A spinner on stderr for a step that may take over a second (hidden when
-/// `quiet`; indicatif also hides it when stderr is not a terminal).
-pub(crate) fn spinner(message: &'static str, quiet: bool) -> ProgressBar {
-    if quiet {
-        return ProgressBar::hidden();
-    }
-    let pb = ProgressBar::new_spinner();
-    if let Ok(style) = ProgressStyle::with_template("{spinner} {msg} {elapsed}") {
-        pb.set_style(style);
-    }
-    pb.set_message(message);
-    pb.enable_steady_tick(Duration::from_millis(120));
-    pb
+/// A spinner for a step that may take over a second, shown by the installed
+/// [`crate::progress`] reporter unless `quiet`.
+pub(crate) fn spinner(message: &'static str, quiet: bool) -> Step {
+    Step::spinner(message, quiet)
 }
 
 /// The tracked rows of a session's observations, with positions from `f`.

@@ -11,7 +11,7 @@ use spidar_core::model::Frame;
 
 use crate::data::dataset::Session;
 use crate::data::stats::ErrorStats;
-use crate::model::identify::device_from_room;
+use spidar_core::geometry::device_from_room;
 
 /// Test rows that also appear (same counts and tracker position) in the
 /// training session: `(shared, test rows)`.

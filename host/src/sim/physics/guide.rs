@@ -20,7 +20,7 @@
 use serde::{Deserialize, Serialize};
 use spidar_core::model::Vec3;
 
-use crate::sim::device::{dot, norm, sub};
+use spidar_core::geometry::{dot, norm, sub};
 
 /// One guide pulley, device frame.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -63,10 +63,10 @@ impl Guide {
     pub fn path(&self, shift_mm: &Vec3<f64>, p: &Vec3<f64>) -> Result<GuidePath, GuideError> {
         let a: Vec3<f64> = core::array::from_fn(|k| self.entry_mm[k] + shift_mm[k]);
         let e = self.axis;
-        let v = sub(p, &a);
-        let along = dot(&v, &e);
+        let v = sub(*p, a);
+        let along = dot(v, e);
         let perp: Vec3<f64> = core::array::from_fn(|k| v[k] - along * e[k]);
-        let perp_len = norm(&perp);
+        let perp_len = norm(perp);
         let u: Vec3<f64> = if perp_len > 1e-9 {
             perp.map(|x| x / perp_len)
         } else {
@@ -76,9 +76,9 @@ impl Guide {
             } else {
                 [0.0, 1.0, 0.0]
             };
-            let t = dot(&trial, &e);
+            let t = dot(trial, e);
             let w: Vec3<f64> = core::array::from_fn(|k| trial[k] - t * e[k]);
-            let n = norm(&w);
+            let n = norm(w);
             w.map(|x| x / n)
         };
         let rho = self.radius_mm;
@@ -96,8 +96,8 @@ impl Guide {
         let (s, c) = phi_t.sin_cos();
         let exit_mm: Vec3<f64> =
             core::array::from_fn(|k| a[k] + rho * u[k] + rho * (c * u[k] + s * e[k]));
-        let to_p = sub(p, &exit_mm);
-        let n = norm(&to_p);
+        let to_p = sub(*p, exit_mm);
+        let n = norm(to_p);
         let direction = if n > 0.0 { to_p.map(|x| x / n) } else { e };
         Ok(GuidePath {
             length_mm: rho * wrap_rad + free_mm,
@@ -128,15 +128,15 @@ mod tests {
             let path = g.path(&[0.0; 3], &p).unwrap();
             // The exit point is on the pulley, the free segment is tangent to it.
             let u = {
-                let v = sub(&p, &g.entry_mm);
+                let v = sub(p, g.entry_mm);
                 let h = (v[0] * v[0] + v[1] * v[1]).sqrt();
                 [v[0] / h, v[1] / h, 0.0]
             };
             let m: Vec3<f64> = core::array::from_fn(|k| g.entry_mm[k] + 10.0 * u[k]);
-            let r = sub(&path.exit_mm, &m);
-            assert!((norm(&r) - 10.0).abs() < 1e-9);
-            assert!(dot(&r, &path.direction).abs() < 1e-9);
-            assert!((norm(&sub(&p, &path.exit_mm)) - path.free_mm).abs() < 1e-9);
+            let r = sub(path.exit_mm, m);
+            assert!((norm(r) - 10.0).abs() < 1e-9);
+            assert!(dot(r, path.direction).abs() < 1e-9);
+            assert!((norm(sub(p, path.exit_mm)) - path.free_mm).abs() < 1e-9);
             assert!(
                 path.wrap_rad > 1.0 && path.wrap_rad < 3.0,
                 "{}",
@@ -148,7 +148,7 @@ mod tests {
                 ..g.clone()
             };
             let fixed = point.path(&[0.0; 3], &p).unwrap();
-            assert!((fixed.length_mm - norm(&sub(&p, &g.entry_mm))).abs() < 1e-6);
+            assert!((fixed.length_mm - norm(sub(p, g.entry_mm))).abs() < 1e-6);
         }
         assert!(g.path(&[0.0; 3], &[-1090.0, -1100.0, 1100.0]).is_err());
     }

@@ -79,9 +79,12 @@ pub use effects::{parse_effect, parse_effects, PhysicsEffect, EFFECT_NAMES};
 pub use guide::{Guide, GuidePath};
 pub use spool::{Spool, SpoolParams};
 
-use super::device::{axis_angle, dot, norm, normal, rotate, rotate_back, stream, sub};
-use super::{trajectory, SessionKind, SimError, SimulateArgs, SimulateReport};
+use super::device::{normal, stream};
+use super::{trajectory, SessionKind, SimError, SimulateReport, SimulateRequest};
 use crate::data::dataset::{Geometry, Sample, Session};
+use spidar_core::geometry::{
+    dot, mat_t_vec, mat_vec, norm, rotation_about_axis, rotation_from_vector, sub,
+};
 
 const G_MM_PER_S2: f64 = 9806.65;
 
@@ -121,7 +124,7 @@ pub struct Posture {
 
 impl Posture {
     fn rotation_vector(&self, p: &Vec3<f64>) -> Vec3<f64> {
-        core::array::from_fn(|k| self.amplitude_rad * (dot(&self.wave[k], p) + self.phase[k]).sin())
+        core::array::from_fn(|k| self.amplitude_rad * (dot(self.wave[k], *p) + self.phase[k]).sin())
     }
 }
 
@@ -144,15 +147,6 @@ fn body_to_room_quaternion(
     crate::data::observe::orientation_of_rotation(&core::array::from_fn(|r| {
         core::array::from_fn(|c| m[(r, c)])
     }))
-}
-
-/// Rotation matrix of a rotation vector.
-fn rotation(omega: &Vec3<f64>) -> [[f64; 3]; 3] {
-    let angle = norm(omega);
-    if angle < 1e-15 {
-        return [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
-    }
-    axis_angle(omega.map(|x| x / angle), angle)
 }
 
 /// One device of the independent simulator, as built (serialized as its
@@ -276,7 +270,7 @@ fn uniform(rng: &mut ChaCha8Rng, r: [f64; 2]) -> f64 {
 }
 
 fn unit(v: Vec3<f64>) -> Vec3<f64> {
-    let n = norm(&v);
+    let n = norm(v);
     v.map(|x| x / n)
 }
 
@@ -287,7 +281,7 @@ fn tilted(axis: Vec3<f64>, angle: f64, rng: &mut ChaCha8Rng) -> Vec3<f64> {
     } else {
         [0.0, 1.0, 0.0]
     };
-    let t = dot(&trial, &axis);
+    let t = dot(trial, axis);
     let a = unit(core::array::from_fn(|k| trial[k] - t * axis[k]));
     let b = [
         axis[1] * a[2] - axis[2] * a[1],
@@ -438,7 +432,7 @@ impl PhysicsDevice {
             }
             params.turns_per_layer.push(width / d);
             let spool = Spool::new(params.clone());
-            let towards_centre = unit(sub(&nominal.home_mm, &guide.entry_mm));
+            let towards_centre = unit(sub(nominal.home_mm, guide.entry_mm));
             let mut s = PhysicsString {
                 guide,
                 lead_mm,
@@ -504,7 +498,7 @@ impl PhysicsDevice {
             rng.random_range(0.0..std::f64::consts::PI),
             &mut rng,
         );
-        let room_rotation = axis_angle(axis, tr.rotation_deg.to_radians());
+        let room_rotation = rotation_about_axis(axis, tr.rotation_deg.to_radians());
         let t_noise = normal("tracker.translation_sigma_mm", tr.translation_sigma_mm)?;
         let room_translation_mm: Vec3<f64> = core::array::from_fn(|k| {
             nominal.room_from_device_translation_mm[k] + t_noise.sample(&mut rng)
@@ -539,20 +533,20 @@ impl PhysicsDevice {
 
     /// Room position of a device-frame position.
     pub fn room_from_device(&self, p: &Vec3<f64>) -> Vec3<f64> {
-        let r = rotate(&self.room_rotation, p);
+        let r = mat_vec(&self.room_rotation, *p);
         core::array::from_fn(|k| self.room_scale * r[k] + self.room_translation_mm[k])
     }
 
     /// Device-frame position of a room position.
     pub fn device_from_room(&self, p: &Vec3<f64>) -> Vec3<f64> {
-        let d = sub(p, &self.room_translation_mm);
-        rotate_back(&self.room_rotation, &d).map(|x| x / self.room_scale)
+        let d = sub(*p, self.room_translation_mm);
+        mat_t_vec(&self.room_rotation, d).map(|x| x / self.room_scale)
     }
 
     /// The marker (device frame) when the meeting point is `p` and the
     /// end-effector is turned by `omega`.
     pub fn marker_of(&self, p: &Vec3<f64>, omega: &Vec3<f64>) -> Vec3<f64> {
-        let o = rotate(&rotation(omega), &self.marker_body_mm);
+        let o = mat_vec(&rotation_from_vector(*omega), self.marker_body_mm);
         core::array::from_fn(|k| p[k] + o[k])
     }
 
@@ -754,7 +748,7 @@ pub fn simulate_rows(
             omega[0] = 0.0;
             omega[1] = 0.0;
         }
-        let o = rotate(&rotation(&omega), &device.marker_body_mm);
+        let o = mat_vec(&rotation_from_vector(omega), device.marker_body_mm);
         let mut meeting: Vec3<f64> = core::array::from_fn(|k| marker[k] - o[k]);
         if planar {
             // The strings meet in the plane; the marker is where the hand
@@ -907,7 +901,7 @@ fn write_truth(device: &PhysicsDevice, path: &std::path::Path) -> Result<(), Sim
 
 /// `spidar simulate --physics independent`: the same files as the model
 /// simulator (nominal `geometry.toml`, the session CSV, `truth.toml`).
-pub fn run_simulate(args: &SimulateArgs) -> Result<SimulateReport, SimError> {
+pub fn run_simulate(args: &SimulateRequest) -> Result<SimulateReport, SimError> {
     let mut config = match &args.config {
         Some(path) => PhysicsConfig::load(path)?,
         None => PhysicsConfig::default(),

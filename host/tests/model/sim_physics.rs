@@ -11,7 +11,7 @@ use spidar::sim::physics::{
     rows_to_session, simulate_rows, simulate_session, PhysicsConfig, PhysicsDevice, PhysicsRow,
     EFFECT_NAMES,
 };
-use spidar::sim::{run_simulate, KindArg, PhysicsArg, SessionKind, SimulateArgs};
+use spidar::sim::{run_simulate, Physics, SessionKind, SessionPath, SimulateRequest};
 
 fn quiet_config() -> PhysicsConfig {
     let mut c = PhysicsConfig::default();
@@ -26,8 +26,8 @@ fn tmp(name: &str) -> PathBuf {
     dir
 }
 
-fn args(out: PathBuf, seed: u64, kind: KindArg, name: &str) -> SimulateArgs {
-    SimulateArgs {
+fn args(out: PathBuf, seed: u64, kind: SessionPath, name: &str) -> SimulateRequest {
+    SimulateRequest {
         out,
         seed,
         config: None,
@@ -36,7 +36,7 @@ fn args(out: PathBuf, seed: u64, kind: KindArg, name: &str) -> SimulateArgs {
         effects: vec![],
         name: Some(name.into()),
         session_seed: None,
-        physics: PhysicsArg::Independent,
+        physics: Physics::Independent,
     }
 }
 
@@ -44,7 +44,7 @@ fn args(out: PathBuf, seed: u64, kind: KindArg, name: &str) -> SimulateArgs {
 fn the_same_seed_gives_the_same_files_and_another_seed_another_device() {
     let (a, b) = (tmp("det-a"), tmp("det-b"));
     for dir in [&a, &b] {
-        run_simulate(&args(dir.clone(), 5, KindArg::Random, "test")).unwrap();
+        run_simulate(&args(dir.clone(), 5, SessionPath::Random, "test")).unwrap();
     }
     for file in ["geometry.toml", "test.csv", "truth.toml"] {
         let x = std::fs::read(a.join(file)).unwrap();
@@ -52,7 +52,7 @@ fn the_same_seed_gives_the_same_files_and_another_seed_another_device() {
         assert!(x == y, "{file} differs between two runs of seed 5");
     }
     let c = tmp("det-c");
-    run_simulate(&args(c.clone(), 6, KindArg::Random, "test")).unwrap();
+    run_simulate(&args(c.clone(), 6, SessionPath::Random, "test")).unwrap();
     assert_ne!(
         std::fs::read(a.join("test.csv")).unwrap(),
         std::fs::read(c.join("test.csv")).unwrap()
@@ -239,7 +239,7 @@ fn rows_are_the_session() {
 #[test]
 fn the_simulated_session_file_carries_the_orientation_the_model_simulator_has_none() {
     let dir = tmp("orientation");
-    let report = run_simulate(&args(dir.clone(), 4, KindArg::Random, "test")).unwrap();
+    let report = run_simulate(&args(dir.clone(), 4, SessionPath::Random, "test")).unwrap();
     let text = std::fs::read_to_string(&report.session).unwrap();
     let header = text.lines().next().unwrap();
     assert!(
@@ -258,9 +258,9 @@ fn the_simulated_session_file_carries_the_orientation_the_model_simulator_has_no
     }
 
     let model_dir = tmp("orientation-model");
-    let model = SimulateArgs {
-        physics: PhysicsArg::Model,
-        ..args(model_dir.clone(), 4, KindArg::Random, "test")
+    let model = SimulateRequest {
+        physics: Physics::Model,
+        ..args(model_dir.clone(), 4, SessionPath::Random, "test")
     };
     let report = run_simulate(&model).unwrap();
     let text = std::fs::read_to_string(&report.session).unwrap();

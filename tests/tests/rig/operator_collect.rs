@@ -4,8 +4,7 @@
 //! occlusion, datagram loss), and `spidar::procedures::collect::collect`
 //! between them over the serial link, writing the session CSV.
 
-mod common;
-use common::eventually;
+use spidar_tests::eventually;
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};

@@ -4,8 +4,7 @@
 //! tracker on loopback, and `spidar::procedures::init::initialize` between
 //! them over the serial link.
 
-mod common;
-use common::eventually;
+use spidar_tests::eventually;
 use std::net::SocketAddr;
 use std::time::Duration;
 

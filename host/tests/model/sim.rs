@@ -9,7 +9,8 @@ use spidar::data::dataset::{Geometry, Session};
 use spidar::data::stats::ErrorStats;
 use spidar::sim::{
     legacy_raw_errors, run_simulate, simulate_session, simulate_session_with_truth, Device,
-    InjectedEffect, KindArg, SampleTruth, SessionKind, SimConfig, SimError, SimulateArgs, Truth,
+    InjectedEffect, SampleTruth, SessionKind, SessionPath, SimConfig, SimError, SimulateRequest,
+    Truth,
 };
 use spidar_core::model::Effect;
 use spidar_core::string_law::string_lengths_f64;
@@ -21,8 +22,8 @@ fn tmp(name: &str) -> PathBuf {
     dir
 }
 
-fn args(out: PathBuf, seed: u64, kind: KindArg) -> SimulateArgs {
-    SimulateArgs {
+fn args(out: PathBuf, seed: u64, kind: SessionPath) -> SimulateRequest {
+    SimulateRequest {
         out,
         seed,
         config: None,
@@ -119,7 +120,7 @@ fn lattice_is_2197_cells_plane_by_plane_from_the_front() {
 #[test]
 fn occluded_rows_have_empty_tracker_fields_and_tensions_are_written() {
     let out = tmp("occlusion");
-    run_simulate(&args(out.clone(), 9, KindArg::Lattice)).unwrap();
+    run_simulate(&args(out.clone(), 9, SessionPath::Lattice)).unwrap();
     let text = std::fs::read_to_string(out.join("lattice.csv")).unwrap();
     let header: Vec<&str> = text.lines().next().unwrap().split(',').collect();
     for name in ["ots_x", "dev_x", "tension0", "tension7"] {
@@ -170,7 +171,7 @@ fn occluded_rows_have_empty_tracker_fields_and_tensions_are_written() {
 #[test]
 fn outputs_nominal_geometry_and_a_loadable_truth() {
     let out = tmp("outputs");
-    let mut a = args(out.clone(), 11, KindArg::Random);
+    let mut a = args(out.clone(), 11, SessionPath::Random);
     a.points = Some(120);
     a.effects = vec!["offset:3:mm=10".into(), "anchor:2:dz=-5".into()];
     let report = run_simulate(&a).unwrap();
@@ -206,9 +207,9 @@ fn seeds_reproduce_files_byte_for_byte() {
         ["geometry.toml", "lattice.csv", "truth.toml"].map(|f| std::fs::read(dir.join(f)).unwrap())
     };
     let (a, b, c) = (tmp("seed-a"), tmp("seed-b"), tmp("seed-c"));
-    run_simulate(&args(a.clone(), 5, KindArg::Lattice)).unwrap();
-    run_simulate(&args(b.clone(), 5, KindArg::Lattice)).unwrap();
-    run_simulate(&args(c.clone(), 6, KindArg::Lattice)).unwrap();
+    run_simulate(&args(a.clone(), 5, SessionPath::Lattice)).unwrap();
+    run_simulate(&args(b.clone(), 5, SessionPath::Lattice)).unwrap();
+    run_simulate(&args(c.clone(), 6, SessionPath::Lattice)).unwrap();
     let (fa, fb, fc) = (read(&a), read(&b), read(&c));
     assert_eq!(fa, fb);
     assert_eq!(
@@ -490,54 +491,10 @@ fn configuration_and_effect_errors_name_what_is_wrong() {
         assert!(msg.contains(spec) && msg.contains(needle), "{spec}: {msg}");
     }
 
-    let mut a = args(dir.join("out"), 1, KindArg::Lattice);
+    let mut a = args(dir.join("out"), 1, SessionPath::Lattice);
     a.points = Some(10);
     assert!(run_simulate(&a)
         .unwrap_err()
         .to_string()
         .contains("--points"));
-}
-
-/// The help says what a user needs without the source (issue 13, point 4):
-/// every effect kind of `simulate --effect` for both physics, the virtual
-/// device's blob capacity as the firmware's, one option layout (no
-/// per-value paragraphs) in the operator procedures.
-#[test]
-fn help_texts_list_effects_units_and_the_firmware_capacity() {
-    let help = |args: &[&str]| {
-        let out = std::process::Command::new(env!("CARGO_BIN_EXE_spidar"))
-            .args(args)
-            .output()
-            .expect("run spidar");
-        assert!(out.status.success());
-        String::from_utf8_lossy(&out.stdout).to_string()
-    };
-    let simulate = help(&["simulate", "--help"]);
-    for kind in [
-        "offset",
-        "scale",
-        "winding",
-        "eccentricity",
-        "elasticity",
-        "backlash",
-        "drift",
-        "slip",
-        "speed",
-        "anchor",
-        "tracker_scale",
-        "drift-all",
-        "frame-flex",
-        "marker-offset",
-        "heavy-string",
-    ] {
-        assert!(simulate.contains(kind), "simulate --help lacks {kind}");
-    }
-    let kib = spidar_protocol::blob::REFERENCE_FIRMWARE_BLOB_CAPACITY / 1024;
-    let vd = help(&["virtual-device", "--help"]);
-    assert!(vd.contains(&format!("[default: {kib}]")), "{vd}");
-    for command in ["collect", "init", "monitor"] {
-        let h = help(&[command, "--help"]);
-        assert!(!h.contains("Possible values:"), "{command}: {h}");
-        assert!(h.contains("[default: "), "{command}: {h}");
-    }
 }

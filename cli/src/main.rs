@@ -1,4 +1,11 @@
-//! The `spidar` command line.
+//! The `spidar` command line: a thin shell over the `spidar` library. It owns
+//! the arguments (clap), the progress bars and terminal output, and the
+//! error context; every computation is the library's.
+
+mod calibrate;
+mod compile;
+mod progress;
+mod simulate;
 
 use clap::{Parser, Subcommand};
 
@@ -17,9 +24,9 @@ struct Cli {
 #[derive(Debug, Subcommand)]
 enum Command {
     /// Simulate a device and write its nominal geometry, one session and the truth.
-    Simulate(spidar::sim::SimulateArgs),
+    Simulate(simulate::SimulateArgs),
     /// Compile a calibration into the device's model blob and measure its fixed-point error.
-    Compile(spidar::model::compile::CompileArgs),
+    Compile(compile::CompileArgs),
     /// Upload a model blob to a device (chunks, retry, resume, CRC, atomic commit, read-back).
     Flash(spidar::device::link::cli::FlashArgs),
     /// Talk to a device: info, stream, arm, disarm, force.
@@ -28,9 +35,9 @@ enum Command {
     VirtualDevice(spidar::device::virtual_device::VirtualDeviceArgs),
     /// Calibrate a device from a training and a test session: identification,
     /// diagnosis, NN and SVR corrections, error statistics, figures, JSON report.
-    Calibrate(spidar::procedures::calibrate::CalibrateArgs),
+    Calibrate(calibrate::CalibrateArgs),
     /// Simulate a device with a lattice and a test session, and calibrate it.
-    Demo(spidar::procedures::calibrate::DemoArgs),
+    Demo(calibrate::DemoArgs),
     /// Guided initialization: haptic and audio cues bring the marker to the
     /// frame centre, home is declared there, the room transform recorded.
     Init(spidar::procedures::init::InitArgs),
@@ -49,14 +56,21 @@ fn fail(e: &dyn std::error::Error) -> ! {
     std::process::exit(1);
 }
 
+/// Prints an error (the library's messages name the file, line or field) and exits 1.
+fn fail_with(e: anyhow::Error) -> ! {
+    eprintln!("spidar: {e}");
+    std::process::exit(1);
+}
+
 fn main() {
     let cli = Cli::parse();
+    spidar::progress::set_reporter(Box::new(progress::TerminalBars));
     match &cli.command {
-        Command::Simulate(args) => match spidar::sim::run_simulate(args) {
+        Command::Simulate(args) => match simulate::run(args) {
             Ok(report) => print!("{report}"),
-            Err(e) => fail(&e),
+            Err(e) => fail_with(e),
         },
-        Command::Calibrate(args) => match spidar::procedures::calibrate::run_calibrate(args) {
+        Command::Calibrate(args) => match calibrate::run_calibrate(args) {
             Ok(out) => match out.json_stdout {
                 Some(json) => {
                     eprint!("{}", out.summary);
@@ -66,13 +80,13 @@ fn main() {
             },
             Err(e) => fail(&e),
         },
-        Command::Demo(args) => match spidar::procedures::calibrate::run_demo(args) {
+        Command::Demo(args) => match calibrate::run_demo(args) {
             Ok(text) => print!("{text}"),
             Err(e) => fail(&e),
         },
-        Command::Compile(args) => match spidar::model::compile::run_compile(args) {
+        Command::Compile(args) => match compile::run(args) {
             Ok(report) => print!("{report}"),
-            Err(e) => fail(&e),
+            Err(e) => fail_with(e),
         },
         Command::Flash(args) => match spidar::device::link::cli::run_flash(args) {
             Ok(text) => print!("{text}"),

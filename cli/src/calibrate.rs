@@ -2,9 +2,11 @@
 
 use std::path::{Path, PathBuf};
 
-use super::{calibrate, write_outputs, CalibrateConfig, CalibrateError, NamedSession};
-use crate::data::dataset::{Geometry, Session};
-use crate::sim::{run_simulate, KindArg, SimulateArgs};
+use spidar::data::dataset::{Geometry, Session};
+use spidar::procedures::calibrate::{
+    calibrate, write_outputs, CalibrateConfig, CalibrateError, NamedSession,
+};
+use spidar::sim::{run_simulate, SessionPath, SimulateRequest};
 
 /// `spidar calibrate`: identify the model, diagnose it, train the NN and SVR
 /// corrections, and report every stage on the training and test sessions.
@@ -171,7 +173,7 @@ pub struct DemoArgs {
 
 /// Run `spidar demo`; returns the text to print.
 pub fn run_demo(args: &DemoArgs) -> Result<String, CalibrateError> {
-    let simulate = |kind: KindArg, name: &str| SimulateArgs {
+    let simulate = |kind: SessionPath, name: &str| SimulateRequest {
         out: args.out.clone(),
         seed: args.seed,
         config: args.config.clone(),
@@ -182,8 +184,8 @@ pub fn run_demo(args: &DemoArgs) -> Result<String, CalibrateError> {
         session_seed: None,
         physics: Default::default(),
     };
-    let lattice = run_simulate(&simulate(KindArg::Lattice, "lattice"))?;
-    let test = run_simulate(&simulate(KindArg::Random, "test"))?;
+    let lattice = run_simulate(&simulate(SessionPath::Lattice, "lattice"))?;
+    let test = run_simulate(&simulate(SessionPath::Random, "test"))?;
     let mut text = format!(
         "simulated device (seed {}): {}, {} ({} rows), {} ({} rows), {} (the truth, not used)\n\n",
         args.seed,
@@ -225,8 +227,8 @@ fn run_on_virtual_device(
     geometry_path: &Path,
     calibration_dir: &Path,
 ) -> Result<String, CalibrateError> {
-    use crate::device::measure::measure_on_virtual_device;
-    use crate::sim::{simulate_session_with_truth, Device, SessionKind, SimConfig};
+    use spidar::device::measure::measure_on_virtual_device;
+    use spidar::sim::{simulate_session_with_truth, Device, SessionKind, SimConfig};
     use spidar_core::correction::CorrectionModel;
     use spidar_core::model::Calibration;
 
@@ -252,9 +254,9 @@ fn run_on_virtual_device(
         correction: CorrectionModel::None,
     };
     let calibrated =
-        crate::model::compile::load_calibration(&calibration_dir.join("calibration.json"))?;
+        spidar::model::compile::load_calibration(&calibration_dir.join("calibration.json"))?;
     let blob = |what: &'static str, c: &Calibration| {
-        spidar_core::blob::compile(c, crate::model::compile::model_id_of(c), 0).map_err(|e| {
+        spidar_core::blob::compile(c, spidar::model::compile::model_id_of(c), 0).map_err(|e| {
             CalibrateError::Blob {
                 what,
                 message: e.to_string(),
@@ -265,7 +267,7 @@ fn run_on_virtual_device(
         measure_on_virtual_device(&device, &truths, &blob("the nominal model", &nominal)?)?;
     let after =
         measure_on_virtual_device(&device, &truths, &blob("the calibration", &calibrated)?)?;
-    let row = |name: &str, r: &crate::device::measure::DeviceRun| {
+    let row = |name: &str, r: &spidar::device::measure::DeviceRun| {
         format!(
             "  {name:<22} {:>9.3} {:>8.3} {:>9.3} {:>8} {:>6} {:>8}\n",
             r.error.mean_mm, r.error.sd_mm, r.error.max_mm, r.frames, r.lost, r.blob_len

@@ -3,32 +3,17 @@
 //! virtual device's pseudo-terminal, the firmware's `Device`/`DeviceLink` on
 //! the master side.
 
-mod common;
-use common::eventually;
+use spidar_tests::{blob, eventually, sim_device, virtual_device};
 use std::time::Duration;
 
 use spidar::device::link::{Client, ClientOptions, FlashPhase, LinkError, StreamOptions};
-use spidar::device::virtual_device::{
-    spawn, Pace, Plant, Trajectory, VirtualDevice, VirtualDeviceConfig,
-};
-use spidar::sim::{self, SimConfig};
-use spidar_core::blob::compile;
+use spidar::device::virtual_device::{spawn, Pace, Plant, Trajectory, VirtualDeviceConfig};
 use spidar_core::correction::{CorrectionModel, NnModel, OutputMode, Standardization};
-use spidar_core::model::Calibration;
 use spidar_protocol::blob::{split_blob, write_blob, CRC32};
 use spidar_protocol::{
     encode_device_message, encode_request, BlobRejection, DeviceError, DeviceMessage, Event,
     Faults, FrameDecoder, HelloAck, Request, Response, State, MAX_FRAME,
 };
-
-/// The simulated device as built (no injected effects, no abnormal motor, so
-/// its true parameters are an exact calibration).
-fn sim_device() -> sim::Device {
-    let mut config = SimConfig::default();
-    config.abnormal_motor.enabled = false;
-    config.effects.clear();
-    sim::Device::new(&config, 7).expect("simulated device")
-}
 
 fn nn(hidden: usize) -> CorrectionModel {
     let s = Standardization {
@@ -45,39 +30,6 @@ fn nn(hidden: usize) -> CorrectionModel {
         b2: [0.0; 3],
         mode: OutputMode::Residual,
     })
-}
-
-/// The device's true calibration with an optional correction.
-fn calibration(device: &sim::Device, correction: CorrectionModel) -> Calibration {
-    Calibration {
-        frame: device.frame,
-        strings: device.laws,
-        effects: device.effects.clone(),
-        correction,
-    }
-}
-
-fn blob(device: &sim::Device, correction: CorrectionModel, model_id: u32) -> Vec<u8> {
-    compile(&calibration(device, correction), model_id, 0).expect("compiles")
-}
-
-fn virtual_device(trajectory: Trajectory) -> VirtualDevice {
-    spawn(
-        VirtualDeviceConfig::default(),
-        Plant::new(sim_device(), trajectory),
-    )
-    .expect("virtual device starts")
-}
-
-/// A virtual device in real time whose heartbeat timeout is 2 s instead of
-/// 20 ms: for tests of what an armed device renders, which must not depend
-/// on how fast a busy machine schedules the host (a host process held off
-/// the CPU for 20 ms would trip the device's heartbeat check; that check
-/// has its own test, in device time).
-fn patient_virtual_device(trajectory: Trajectory) -> VirtualDevice {
-    let mut config = VirtualDeviceConfig::default();
-    config.device.control.safety.heartbeat_timeout_ms = 2000;
-    spawn(config, Plant::new(sim_device(), trajectory)).expect("virtual device starts")
 }
 
 fn quick() -> ClientOptions {
@@ -584,132 +536,4 @@ fn link_benchmarks() {
         state,
         per_frame - state
     );
-}
-
-/// `spidar device`'s port options go before or after the subcommand; a
-/// missing port and a bad duration are argument errors that say so.
-#[test]
-fn device_command_line_takes_the_port_anywhere() {
-    let spidar = |args: &[&str]| {
-        let out = std::process::Command::new(env!("CARGO_BIN_EXE_spidar"))
-            .args(args)
-            .output()
-            .expect("run spidar");
-        (
-            out.status.success(),
-            String::from_utf8_lossy(&out.stderr).to_string(),
-        )
-    };
-    for args in [
-        &["device", "info", "--port", "/nonexistent/tty"][..],
-        &["device", "--port", "/nonexistent/tty", "info"][..],
-        &[
-            "device",
-            "info",
-            "--timeout-ms",
-            "20",
-            "--port",
-            "/nonexistent/tty",
-        ][..],
-    ] {
-        let (ok, err) = spidar(args);
-        assert!(
-            !ok && err.contains("/nonexistent/tty") && err.contains("no such port"),
-            "{args:?}: {err}"
-        );
-    }
-    // Negative coordinates are values, not options.
-    for args in [
-        &[
-            "collect",
-            "--port",
-            "/nonexistent/tty",
-            "--geometry",
-            "/nonexistent/g.toml",
-            "--centre",
-            "-100,0,1500",
-            "--out",
-            "/nonexistent/s.csv",
-        ][..],
-        &[
-            "init",
-            "--port",
-            "/nonexistent/tty",
-            "--geometry",
-            "/nonexistent/g.toml",
-            "--target",
-            "-100,-5,1500",
-            "--out",
-            "/nonexistent/i.toml",
-        ][..],
-    ] {
-        let (ok, err) = spidar(args);
-        assert!(
-            !ok && err.contains("/nonexistent/g.toml"),
-            "{args:?}: {err}"
-        );
-    }
-    let (ok, err) = spidar(&["device", "info"]);
-    assert!(!ok && err.contains("--port"), "{err}");
-    let (ok, err) = spidar(&["device", "arm", "--hold=-1", "--port", "/nonexistent/tty"]);
-    assert!(
-        !ok && err.contains("--hold") && !err.contains("serial port"),
-        "{err}"
-    );
-}
-
-/// `spidar device force` reports what the device rendered, from its state
-/// frames, and why it differs from the request (issue 13, point 3).
-#[test]
-fn device_force_reports_the_rendered_force() {
-    let dev = sim_device();
-    let vd = patient_virtual_device(Trajectory::Hold);
-    {
-        let mut c = Client::open(vd.port_path()).unwrap();
-        c.flash(&blob(&dev, CorrectionModel::None, 11), |_| {})
-            .unwrap();
-    }
-    let force = |f: [&str; 3]| {
-        let port = vd.port_path().to_string();
-        let out = std::process::Command::new(env!("CARGO_BIN_EXE_spidar"))
-            .args(["device", "force", "--hold", "0.3", "--port", &port, "--"])
-            .args(f)
-            .output()
-            .expect("run spidar");
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-        String::from_utf8_lossy(&out.stdout).to_string()
-    };
-    // `device info` says the device's state with its fault bits by name.
-    let port = vd.port_path().to_string();
-    let info = std::process::Command::new(env!("CARGO_BIN_EXE_spidar"))
-        .args(["device", "info", "--port", &port])
-        .output()
-        .expect("run spidar");
-    let info = String::from_utf8_lossy(&info.stdout).to_string();
-    assert!(info.contains("state: disarmed, faults none"), "{info}");
-    assert!(info.contains("model id 0x0000000b"), "{info}");
-    let small = force(["0", "0", "2"]);
-    assert!(
-        small.starts_with("requested [0, 0, 2] N; rendered [") && !small.contains("limited"),
-        "{small}"
-    );
-    let z: f64 = small
-        .split("rendered [")
-        .nth(1)
-        .and_then(|r| r.split(']').next())
-        .and_then(|r| r.split(", ").nth(2))
-        .and_then(|v| v.parse().ok())
-        .expect("rendered z");
-    assert!((z - 2.0).abs() < 0.1, "{small}");
-    let huge = force(["1e9", "0", "0"]);
-    assert!(
-        huge.starts_with("requested [1000000000, 0, 0] N; rendered [")
-            && huge.contains("the device limited it to"),
-        "{huge}"
-    );
-    assert!(huge.contains("disarmed"), "{huge}");
 }

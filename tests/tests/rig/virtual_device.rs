@@ -8,7 +8,9 @@ use proptest::prelude::*;
 use spidar::data::observe::observations;
 use spidar::device::link::Client;
 use spidar::device::virtual_device::{spawn, Plant, Trajectory, VirtualDeviceConfig, Waypoint};
-use spidar::model::compile::{fixed_point_error, run_compile, CompileArgs, FIXED_POINT_BUDGET_MM};
+use spidar::model::compile::{
+    fixed_point_error, run_compile, CompileRequest, FIXED_POINT_BUDGET_MM,
+};
 use spidar::sim::{self, SessionKind, SimConfig};
 use spidar_core::blob::{compile, CompiledCalibration};
 use spidar_core::correction::{CorrectionModel, NnModel, OutputMode, Standardization};
@@ -225,7 +227,7 @@ fn compile_command_writes_a_checked_blob_and_names_bad_files() {
     let geometry = dir.join("geometry.toml");
     dev.nominal.write(&geometry).unwrap();
     let out = dir.join("model.blob");
-    let args = CompileArgs {
+    let args = CompileRequest {
         calibration: cal_path.clone(),
         out: out.clone(),
         test: Some(test),

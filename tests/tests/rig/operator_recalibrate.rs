@@ -7,8 +7,7 @@
 //! after (never before), name it, refit, reflash, and bring the error the
 //! device reports back down.
 
-mod common;
-use common::eventually;
+use spidar_tests::eventually;
 use std::path::Path;
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};

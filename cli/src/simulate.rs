@@ -1,0 +1,93 @@
+//! `spidar simulate`.
+
+use std::path::PathBuf;
+
+use spidar::sim::{Physics, SessionPath, SimulateRequest};
+
+/// `spidar simulate`: write a simulated device's nominal geometry, one session
+/// and the truth.
+#[derive(Clone, Debug, clap::Args)]
+pub struct SimulateArgs {
+    /// Output directory (created if missing).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Device seed: the same seed gives the same device (as-built errors)
+    /// whatever the session kind, so a lattice and a random session of one
+    /// device are two runs with the same seed.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Simulator configuration TOML (every key optional).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Path of the end-effector.
+    #[arg(long, value_enum, default_value_t = KindArg::Lattice)]
+    pub kind: KindArg,
+    /// Number of captures of a random session (default: `random.points`).
+    #[arg(long)]
+    pub points: Option<usize>,
+    /// Injected effect (repeatable), `KIND:STRING:KEY=VALUE,...` with STRING
+    /// an index or `*`. Model physics: offset (mm), scale (relative), winding
+    /// (power, mm_per_rad_pow), eccentricity (sin_mm, cos_mm), elasticity
+    /// (per_newton), backlash (half_width_mm), drift (mm_per_s), slip (at_s,
+    /// mm), speed (latency_s), anchor (dx, dy, dz, mm), and
+    /// `tracker_scale:relative=VALUE` (no string); e.g.
+    /// `offset:3:mm=10`, `slip:2:at_s=2000,mm=5`. Independent physics
+    /// (`NAME[:KEY=VALUE,...]`): drift-all, frame-flex, marker-offset, slip,
+    /// heavy-string.
+    #[arg(long = "effect", value_name = "SPEC")]
+    pub effects: Vec<String>,
+    /// File stem of the session CSV (default: `lattice` or `random`).
+    #[arg(long)]
+    pub name: Option<String>,
+    /// Session seed (default: the device seed + 1 for lattice, + 2 for random).
+    #[arg(long)]
+    pub session_seed: Option<u64>,
+    /// Which simulator: `model` (the calibration model's own equations) or
+    /// `independent` (other physics, `host/src/sim/physics`: layered spools, guide
+    /// pulleys, elastic sagging strings, frame flex, an offset marker; its
+    /// own `--config` keys and `--effect` names).
+    #[arg(long, value_enum, default_value_t = PhysicsArg::Model)]
+    pub physics: PhysicsArg,
+}
+
+/// `--physics`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum PhysicsArg {
+    Model,
+    Independent,
+}
+
+/// `--kind`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum KindArg {
+    Lattice,
+    Random,
+}
+
+impl SimulateArgs {
+    /// What the library is asked to simulate.
+    pub fn request(&self) -> SimulateRequest {
+        SimulateRequest {
+            out: self.out.clone(),
+            seed: self.seed,
+            config: self.config.clone(),
+            kind: match self.kind {
+                KindArg::Lattice => SessionPath::Lattice,
+                KindArg::Random => SessionPath::Random,
+            },
+            points: self.points,
+            effects: self.effects.clone(),
+            name: self.name.clone(),
+            session_seed: self.session_seed,
+            physics: match self.physics {
+                PhysicsArg::Model => Physics::Model,
+                PhysicsArg::Independent => Physics::Independent,
+            },
+        }
+    }
+}
+
+/// Runs `spidar simulate`; returns what to print.
+pub fn run(args: &SimulateArgs) -> anyhow::Result<String> {
+    Ok(spidar::sim::run_simulate(&args.request())?.to_string())
+}

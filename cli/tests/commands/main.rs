@@ -1,0 +1,7 @@
+//! The `spidar` binary as a user runs it: calibrate (simulated and measured
+//! sessions), demo, the device commands, help texts and error messages.
+
+mod calibrate;
+mod device;
+mod help;
+mod real_data;
