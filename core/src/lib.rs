@@ -71,5 +71,9 @@ mod tests {
         error::<crate::string_law::CompileError>();
         error::<crate::correction::CompileError>();
         error::<crate::blob::CompileError>();
+        error::<crate::safety::SafetyConfigError>();
+        error::<crate::model_store::FlashError>();
+        error::<crate::model_store::StoreError>();
+        error::<crate::model_store::CommitError<spidar_protocol::DeviceError>>();
     }
 }

@@ -328,6 +328,67 @@ pub enum StoreError {
     RecordVerify,
 }
 
+impl core::fmt::Display for FlashError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match *self {
+            Self::OutOfBounds { offset, len } => {
+                write!(
+                    f,
+                    "flash: {len} bytes at {offset:#x} do not lie inside the slot"
+                )
+            }
+            Self::Misaligned { offset, len } => write!(
+                f,
+                "flash: a write of {len} bytes at {offset:#x} is not made of whole flash words"
+            ),
+            Self::NotErased { offset } => write!(f, "flash: the word at {offset:#x} is not erased"),
+            Self::Hardware { code } => write!(f, "flash controller error, status {code:#010x}"),
+            Self::PowerLost => write!(f, "flash: the power went"),
+        }
+    }
+}
+
+impl core::error::Error for FlashError {}
+
+impl core::fmt::Display for StoreError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match *self {
+            Self::Flash(e) => write!(f, "model store: {e}"),
+            Self::EmptyBlob => write!(f, "model store: an upload of 0 bytes"),
+            Self::TooLarge {
+                total_len,
+                capacity,
+            } => write!(
+                f,
+                "model store: a {total_len}-byte blob does not fit the {capacity}-byte slot"
+            ),
+            Self::NoUpload => write!(f, "model store: no upload in progress"),
+            Self::OutOfOrder { expected_offset } => write!(
+                f,
+                "model store: a chunk out of order (the upload continues at {expected_offset})"
+            ),
+            Self::PastEnd { end, total_len } => write!(
+                f,
+                "model store: a chunk ending at {end}, past the blob's {total_len} bytes"
+            ),
+            Self::Incomplete {
+                next_offset,
+                total_len,
+            } => write!(
+                f,
+                "model store: commit with {next_offset} of {total_len} bytes received"
+            ),
+            Self::CrcMismatch { expected, computed } => write!(
+                f,
+                "model store: CRC {computed:#010x} where {expected:#010x} was announced"
+            ),
+            Self::RecordVerify => write!(f, "model store: the commit record did not read back"),
+        }
+    }
+}
+
+impl core::error::Error for StoreError {}
+
 impl From<FlashError> for StoreError {
     fn from(e: FlashError) -> Self {
         StoreError::Flash(e)
@@ -343,6 +404,17 @@ pub enum CommitError<E> {
     /// The caller's validation refused the blob; the upload is dropped.
     Rejected(E),
 }
+
+impl<E: core::fmt::Display> core::fmt::Display for CommitError<E> {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match self {
+            Self::Store(e) => write!(f, "{e}"),
+            Self::Rejected(e) => write!(f, "the blob was refused: {e}"),
+        }
+    }
+}
+
+impl<E: core::fmt::Debug + core::fmt::Display> core::error::Error for CommitError<E> {}
 
 impl<E> From<StoreError> for CommitError<E> {
     fn from(e: StoreError) -> Self {

@@ -132,6 +132,23 @@ pub struct SafetyConfig {
     pub slack_threshold_mm: f32,
 }
 
+impl core::fmt::Display for SafetyConfigError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        f.write_str(match self {
+            Self::NonFinite => "safety configuration: a field is NaN or infinite",
+            Self::TensionLimits => "safety configuration: not 0 <= t_min <= t_max",
+            Self::ForceLimit => "safety configuration: f_max < 0",
+            Self::Pretension => "safety configuration: pretension_n not in [0, t_max]",
+            Self::HeartbeatTimeout => {
+                "safety configuration: heartbeat_timeout_ms is 0 or above i32::MAX"
+            }
+            Self::SlackThreshold => "safety configuration: slack_threshold_mm < 0",
+        })
+    }
+}
+
+impl core::error::Error for SafetyConfigError {}
+
 /// Why a [`SafetyConfig`] was rejected.
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]

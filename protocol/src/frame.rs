@@ -103,6 +103,23 @@ impl From<postcard::Error> for PayloadError {
     }
 }
 
+impl fmt::Display for PayloadError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            Self::UnexpectedEnd => "the payload ended inside a field",
+            Self::BadVarint => "a varint longer than its type allows",
+            Self::BadBool => "a bool that is neither 0 nor 1",
+            Self::BadOption => "an option tag that is neither 0 nor 1",
+            Self::BadEnum => "an enum tag that is not a valid varint",
+            Self::BadUtf8 => "a string that is not UTF-8",
+            Self::BadValue => "a value out of its type's range (unknown variant, name too long)",
+            Self::Other => "a payload postcard could not decode",
+        })
+    }
+}
+
+impl core::error::Error for PayloadError {}
+
 impl fmt::Display for FrameError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match *self {
@@ -116,7 +133,7 @@ impl fmt::Display for FrameError {
                 f,
                 "corrupt frame: CRC mismatch (stored {stored:#010x}, computed {computed:#010x})"
             ),
-            Self::Payload(e) => write!(f, "undecodable message: {e:?}"),
+            Self::Payload(e) => write!(f, "undecodable message: {e}"),
             Self::TrailingBytes { extra } => {
                 write!(f, "undecodable message: {extra} bytes after it")
             }

@@ -217,6 +217,7 @@ mod error_tests {
         fn error<E: core::error::Error>() {}
         error::<crate::blob::BlobError>();
         error::<crate::frame::FrameError>();
+        error::<crate::frame::PayloadError>();
         error::<crate::messages::BlobRejection>();
         error::<crate::messages::DeviceError>();
     }
