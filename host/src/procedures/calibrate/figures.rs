@@ -12,6 +12,8 @@
 use std::path::{Path, PathBuf};
 use std::sync::Once;
 
+use plotters::coord::ranged1d::ValueFormatter;
+use plotters::coord::types::RangedCoordf64;
 use plotters::prelude::*;
 
 /// A figure that could not be written; names the file.
@@ -288,20 +290,9 @@ enum XyStyle {
     Lines,
 }
 
-/// The one x-y chart behind [`scatter`] and [`lines`].
-fn xy_figure(
-    path: &Path,
-    title: &str,
-    x_label: &str,
-    y_label: &str,
-    series: &[Series<'_>],
-    style: XyStyle,
-    options: XyOptions<'_>,
-) -> Result<Drawn, FigureError> {
-    register_font();
-    let root = BitMapBackend::new(path, SIZE).into_drawing_area();
-    root.fill(&WHITE).map_err(|e| fail(path, e))?;
-    let x = span(series.iter().flat_map(|s| s.x.iter().copied()));
+/// The y axis of an x-y figure: logarithmic when the series' medians are
+/// [`XyOptions::log_y_beyond_ratio`] apart, and its range.
+fn xy_y_axis(series: &[Series<'_>], options: &XyOptions<'_>) -> (bool, (f64, f64)) {
     let medians: Vec<f64> = series
         .iter()
         .map(|s| {
@@ -328,13 +319,33 @@ fn xy_figure(
     } else {
         span(series.iter().flat_map(|s| s.y.iter().copied()))
     };
-    let mut builder = ChartBuilder::on(&root);
-    builder
-        .caption(title, ("sans-serif", 22))
-        .margin(15)
-        .x_label_area_size(45)
-        .y_label_area_size(65);
-    let integer_x = options.integer_x;
+    (log_y, y)
+}
+
+/// What [`xy_figure`] draws on its chart, whichever the y axis' scale.
+struct XyChart<'a> {
+    path: &'a Path,
+    x_label: &'a str,
+    y_label: &'a str,
+    series: &'a [Series<'a>],
+    style: XyStyle,
+    options: XyOptions<'a>,
+    x: (f64, f64),
+    y: (f64, f64),
+    log_y: bool,
+}
+
+/// The mesh, the series, the x mark and the legend of an x-y figure on its
+/// chart (a linear or a logarithmic y axis).
+fn draw_xy<'a, 'b: 'a, Y>(
+    mut chart: ChartContext<'a, BitMapBackend<'b>, Cartesian2d<RangedCoordf64, Y>>,
+    xy: &XyChart<'_>,
+) -> Result<(), FigureError>
+where
+    Y: Ranged<ValueType = f64> + ValueFormatter<f64>,
+{
+    let (path, style, log_y, x, y) = (xy.path, xy.style, xy.log_y, xy.x, xy.y);
+    let integer_x = xy.options.integer_x;
     let x_ticks = if integer_x {
         ((x.1 - x.0).round() as usize).clamp(2, 25)
     } else {
@@ -347,75 +358,111 @@ fn xy_figure(
             format!("{v}")
         }
     };
-    macro_rules! finish {
-        ($chart:expr) => {{
-            let mut chart = $chart;
+    chart
+        .configure_mesh()
+        .x_desc(xy.x_label)
+        .y_desc(xy.y_label)
+        .x_labels(x_ticks)
+        .x_label_formatter(&x_format)
+        .draw()
+        .map_err(|e| fail(path, e))?;
+    for (i, s) in xy.series.iter().enumerate() {
+        let color = palette(i);
+        let points: Vec<(f64, f64)> =
+            s.x.iter()
+                .copied()
+                .zip(s.y.iter().copied())
+                .filter(|p| !log_y || p.1 > 0.0)
+                .collect();
+        let markers = style == XyStyle::Points || points.len() <= 60;
+        let radius = if style == XyStyle::Points { 2 } else { 3 };
+        if style == XyStyle::Lines {
             chart
-                .configure_mesh()
-                .x_desc(x_label)
-                .y_desc(y_label)
-                .x_labels(x_ticks)
-                .x_label_formatter(&x_format)
-                .draw()
+                .draw_series(LineSeries::new(points.clone(), color.stroke_width(1)))
+                .map_err(|e| fail(path, e))?
+                .label(s.label)
+                .legend(move |(a, b)| PathElement::new(vec![(a, b), (a + 16, b)], color));
+        }
+        if markers {
+            let drawn = chart
+                .draw_series(
+                    points
+                        .into_iter()
+                        .map(move |p| Circle::new(p, radius, color.filled())),
+                )
                 .map_err(|e| fail(path, e))?;
-            for (i, s) in series.iter().enumerate() {
-                let color = palette(i);
-                let points: Vec<(f64, f64)> =
-                    s.x.iter()
-                        .copied()
-                        .zip(s.y.iter().copied())
-                        .filter(|p| !log_y || p.1 > 0.0)
-                        .collect();
-                let markers = style == XyStyle::Points || points.len() <= 60;
-                let radius = if style == XyStyle::Points { 2 } else { 3 };
-                if style == XyStyle::Lines {
-                    chart
-                        .draw_series(LineSeries::new(points.clone(), color.stroke_width(1)))
-                        .map_err(|e| fail(path, e))?
-                        .label(s.label)
-                        .legend(move |(a, b)| PathElement::new(vec![(a, b), (a + 16, b)], color));
-                }
-                if markers {
-                    let drawn = chart
-                        .draw_series(
-                            points
-                                .into_iter()
-                                .map(move |p| Circle::new(p, radius, color.filled())),
-                        )
-                        .map_err(|e| fail(path, e))?;
-                    if style == XyStyle::Points {
-                        drawn
-                            .label(s.label)
-                            .legend(move |(a, b)| Circle::new((a + 8, b), 4, color.filled()));
-                    }
-                }
+            if style == XyStyle::Points {
+                drawn
+                    .label(s.label)
+                    .legend(move |(a, b)| Circle::new((a + 8, b), 4, color.filled()));
             }
-            if let Some((at, label)) = options.mark_x {
-                chart
-                    .draw_series(std::iter::once(PathElement::new(
-                        vec![(at, y.0), (at, y.1)],
-                        BLACK.stroke_width(2),
-                    )))
-                    .map_err(|e| fail(path, e))?
-                    .label(label)
-                    .legend(move |(a, b)| PathElement::new(vec![(a, b), (a + 16, b)], BLACK));
-            }
-            chart
-                .configure_series_labels()
-                .background_style(WHITE.mix(0.85))
-                .border_style(BLACK)
-                .draw()
-                .map_err(|e| fail(path, e))?;
-        }};
+        }
     }
+    if let Some((at, label)) = xy.options.mark_x {
+        chart
+            .draw_series(std::iter::once(PathElement::new(
+                vec![(at, y.0), (at, y.1)],
+                BLACK.stroke_width(2),
+            )))
+            .map_err(|e| fail(path, e))?
+            .label(label)
+            .legend(move |(a, b)| PathElement::new(vec![(a, b), (a + 16, b)], BLACK));
+    }
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .draw()
+        .map_err(|e| fail(path, e))?;
+    Ok(())
+}
+
+/// The one x-y chart behind [`scatter`] and [`lines`].
+fn xy_figure(
+    path: &Path,
+    title: &str,
+    x_label: &str,
+    y_label: &str,
+    series: &[Series<'_>],
+    style: XyStyle,
+    options: XyOptions<'_>,
+) -> Result<Drawn, FigureError> {
+    register_font();
+    let root = BitMapBackend::new(path, SIZE).into_drawing_area();
+    root.fill(&WHITE).map_err(|e| fail(path, e))?;
+    let x = span(series.iter().flat_map(|s| s.x.iter().copied()));
+    let (log_y, y) = xy_y_axis(series, &options);
+    let mut builder = ChartBuilder::on(&root);
+    builder
+        .caption(title, ("sans-serif", 22))
+        .margin(15)
+        .x_label_area_size(45)
+        .y_label_area_size(65);
+    let xy = XyChart {
+        path,
+        x_label,
+        y_label,
+        series,
+        style,
+        options,
+        x,
+        y,
+        log_y,
+    };
     if log_y {
-        finish!(builder
-            .build_cartesian_2d(x.0..x.1, (y.0..y.1).log_scale())
-            .map_err(|e| fail(path, e))?);
+        draw_xy(
+            builder
+                .build_cartesian_2d(x.0..x.1, (y.0..y.1).log_scale())
+                .map_err(|e| fail(path, e))?,
+            &xy,
+        )?;
     } else {
-        finish!(builder
-            .build_cartesian_2d(x.0..x.1, y.0..y.1)
-            .map_err(|e| fail(path, e))?);
+        draw_xy(
+            builder
+                .build_cartesian_2d(x.0..x.1, y.0..y.1)
+                .map_err(|e| fail(path, e))?,
+            &xy,
+        )?;
     }
     root.present().map_err(|e| fail(path, e))?;
     Ok(Drawn {

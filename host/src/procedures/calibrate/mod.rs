@@ -501,19 +501,73 @@ fn stage(
     }
 }
 
-/// Calibrate a device: identification and the diagnosis loop, residual NN
-/// and SVR, the choice of the final model, and the black-box comparison when
-/// asked for. No file is written (see [`write_outputs`]).
-pub fn calibrate(
+/// Training and test values side by side: the sessions' observations, the
+/// positions a model predicts on them.
+#[derive(Clone, Copy)]
+struct PerSession<T> {
+    train: T,
+    test: T,
+}
+
+/// One stage's per-point errors and statistics on both sessions.
+struct StageErrors {
+    train: PointErrors,
+    train_stats: ErrorStats,
+    test: PointErrors,
+    test_stats: ErrorStats,
+}
+
+impl StageErrors {
+    /// The errors of `positions` (one per observation) against the tracker;
+    /// `what` names the stage in an error.
+    fn of(
+        what: &str,
+        obs: PerSession<&[Observation]>,
+        positions: PerSession<&[[f64; 3]]>,
+        frame: &spidar_core::model::Frame<f64>,
+    ) -> Result<StageErrors, StatsError> {
+        let (train, train_stats) = point_errors(
+            &format!("{what}, training session"),
+            obs.train,
+            positions.train,
+            frame,
+        )?;
+        let (test, test_stats) = point_errors(
+            &format!("{what}, test session"),
+            obs.test,
+            positions.test,
+            frame,
+        )?;
+        Ok(StageErrors {
+            train,
+            train_stats,
+            test,
+            test_stats,
+        })
+    }
+
+    fn stage(&self, name: &str, kind: report::StageKind) -> report::Stage {
+        stage(name, kind, self.train_stats, self.test_stats)
+    }
+
+    fn points(self, name: String) -> StagePoints {
+        StagePoints {
+            name,
+            train: self.train,
+            test: self.test,
+        }
+    }
+}
+
+/// Both sessions' facts for the report, after checking their strings
+/// against the geometry, and the warnings they call for: test rows that are
+/// training rows, columns nobody reads.
+fn checked_sessions(
     geometry: &Geometry,
     geometry_path: &Path,
     train: NamedSession<'_>,
     test: NamedSession<'_>,
-    config: &CalibrateConfig,
-) -> Result<Calibrated, CalibrateError> {
-    let cfg = config.with_seed_and_quiet();
-    let t_start = Instant::now();
-    let mut timings = report::Timings::default();
+) -> Result<(report::SessionInfo, report::SessionInfo, Vec<String>), CalibrateError> {
     let mut warnings: Vec<String> = Vec::new();
     for s in [&train, &test] {
         s.session.check_strings(s.path, geometry, geometry_path)?;
@@ -542,26 +596,36 @@ pub fn calibrate(
             ));
         }
     }
-    let nominal = geometry.nominal_frame();
-    let mut tr = observations(&train.session.samples);
-    let mut te = observations(&test.session.samples);
+    Ok((train_info, test_info, warnings))
+}
+
+/// The observations of both sessions; on a planar device the tracker's z
+/// set to the anchors' plane.
+fn session_observations(
+    nominal: &spidar_core::model::Frame<f64>,
+    train: &Session,
+    test: &Session,
+) -> (Vec<Observation>, Vec<Observation>) {
+    let mut tr = observations(&train.samples);
+    let mut te = observations(&test.samples);
     if nominal.layout.planar {
         // A planar device's tracker gives the position in the plane; its z
         // (absent, or the marker's height) is not used: the errors are in
         // the plane.
-        let plane_z = room_from_device(&nominal, [0.0, 0.0, nominal.anchors[0][2]])[2];
+        let plane_z = room_from_device(nominal, [0.0, 0.0, nominal.anchors[0][2]])[2];
         for o in tr.iter_mut().chain(te.iter_mut()) {
             if let Some(t) = o.tracker.as_mut() {
                 t[2] = plane_z;
             }
         }
     }
-    let nominal_laws = geometry.nominal_string_laws();
+    (tr, te)
+}
 
-    // 0. The tracker's clock against the device's (dynamic sessions only).
-    let t = Instant::now();
-    let (tr, te, timing) = align_clocks(tr, te, geometry, &nominal, &nominal_laws)?;
-    timings.alignment_s = t.elapsed().as_secs_f64();
+/// A warning for each session whose clock alignment left rows without a
+/// tracker position.
+fn unpaired_rows_warnings(timing: &report::Timing) -> Vec<String> {
+    let mut warnings = Vec::new();
     for (name, t) in [("training", &timing.train), ("test", &timing.test)] {
         if let align::SessionTiming::Aligned(a) = t {
             if a.rows_unpaired > 0 {
@@ -574,28 +638,46 @@ pub fn calibrate(
             }
         }
     }
+    warnings
+}
 
-    // 1. Raw: nominal geometry through the device pipeline.
-    let t = Instant::now();
+/// Stage 1, raw: the nominal geometry through the device pipeline.
+fn raw_errors(
+    obs: PerSession<&[Observation]>,
+    nominal: &spidar_core::model::Frame<f64>,
+    nominal_laws: &[spidar_core::model::StringLaw; spidar_core::STRINGS],
+) -> Result<StageErrors, StatsError> {
     let raw_model = StringModel {
-        frame: &nominal,
-        laws: &nominal_laws,
+        frame: nominal,
+        laws: nominal_laws,
         effects: &[],
     };
-    let raw_tr = room_positions(raw_model, &tr);
-    let raw_te = room_positions(raw_model, &te);
-    let (raw_tr_pe, raw_tr_s) = point_errors("raw, training session", &tr, &raw_tr, &nominal)?;
-    let (raw_te_pe, raw_te_s) = point_errors("raw, test session", &te, &raw_te, &nominal)?;
-    timings.raw_s = t.elapsed().as_secs_f64();
-    let mut stages = vec![stage("raw", report::StageKind::Raw, raw_tr_s, raw_te_s)];
+    let raw_tr = room_positions(raw_model, obs.train);
+    let raw_te = room_positions(raw_model, obs.test);
+    StageErrors::of(
+        "raw",
+        obs,
+        PerSession {
+            train: &raw_tr,
+            test: &raw_te,
+        },
+        nominal,
+    )
+}
 
-    // 2-3. Identification and the diagnosis loop. Said in the user's terms
-    // before it fails in a fold: every change is judged on two halves.
+/// Refuses a training session too small for the diagnosis loop, in the
+/// user's terms before it fails in a fold: every change is judged on two
+/// halves.
+fn check_enough_tracked_rows(
+    train_path: &Path,
+    tr: &[Observation],
+    nominal: &spidar_core::model::Frame<f64>,
+) -> Result<(), CalibrateError> {
     let needed = crate::model::identify::rows_needed_for(&Structure::default(), nominal.layout);
     let tracked = tr.iter().filter(|o| o.tracker.is_some()).count();
     if tracked < 2 * needed {
         return Err(CalibrateError::Session {
-            file: train.path.to_path_buf(),
+            file: train_path.to_path_buf(),
             problem: format!(
                 "{tracked} rows with tracker positions; a calibration needs at least {} ({needed} \
                  to identify the model's parameters, in each half of the 2-fold cross-validation \
@@ -605,122 +687,217 @@ pub fn calibrate(
             ),
         });
     }
-    let t = Instant::now();
+    Ok(())
+}
+
+/// Stages 2-3: the base identification and the diagnosis loop, from the
+/// geometry file's start (and its home tension when it gives one).
+fn identify_and_diagnose(
+    geometry: &Geometry,
+    obs: PerSession<&[Observation]>,
+    nominal: &spidar_core::model::Frame<f64>,
+    cfg: &CalibrateConfig,
+) -> Result<LoopResult, CalibrateError> {
     let pb = spinner("identification and diagnosis", cfg.quiet);
     let start = Start::from_geometry(geometry);
     let loop_config = LoopConfig {
         home_tension_n: geometry.home_tension_n.or(cfg.loop_config.home_tension_n),
         ..cfg.loop_config
     };
-    let loop_result = close_loop(&tr, Some(&te), &nominal, &start, &loop_config);
+    let loop_result = close_loop(obs.train, Some(obs.test), nominal, &start, &loop_config);
     pb.finish_and_clear();
-    let loop_result = loop_result?;
-    timings.identification_s = t.elapsed().as_secs_f64();
-    let base = &loop_result.base;
+    Ok(loop_result?)
+}
+
+/// The base identification's errors (stage `identified`).
+fn identified_errors(
+    base: &crate::model::identify::Identification,
+    obs: PerSession<&[Observation]>,
+) -> Result<StageErrors, StatsError> {
     let base_model = base.string_model();
-    let id_tr = room_positions(base_model, &tr);
-    let id_te = room_positions(base_model, &te);
-    let (id_tr_pe, id_tr_s) =
-        point_errors("identified, training session", &tr, &id_tr, &base.frame)?;
-    let (id_te_pe, id_te_s) = point_errors("identified, test session", &te, &id_te, &base.frame)?;
-    stages.push(stage(
+    let id_tr = room_positions(base_model, obs.train);
+    let id_te = room_positions(base_model, obs.test);
+    StageErrors::of(
         "identified",
-        report::StageKind::Identified,
-        id_tr_s,
-        id_te_s,
-    ));
+        obs,
+        PerSession {
+            train: &id_tr,
+            test: &id_te,
+        },
+        &base.frame,
+    )
+}
 
-    // From here on the sessions are read at the strings' meeting point when
-    // the loop found the tracked body's origin off it (the errors are then
-    // those of the tracker's position predicted with its orientation).
-    let marker = loop_result.structure.marker_body_mm;
-    let tr = crate::data::observe::at_meeting_points(&tr, marker).into_owned();
-    let te = crate::data::observe::at_meeting_points(&te, marker).into_owned();
+/// The final identified model (the base when no effect was added) on both
+/// sessions: on the test session, and in the calibration the device runs
+/// from its next home capture, without the training session's slips.
+struct FinalIdentified {
+    /// The model for a new session (the calibration's).
+    new_session: crate::model::identify::Identification,
+    /// Room positions on each session.
+    positions: PerSession<Vec<[f64; 3]>>,
+    rejections: report::SessionRejections,
+}
 
-    // The final identified model (the base when no effect was added); on
-    // the test session, and in the calibration the device runs from its
-    // next home capture, without the training session's slips.
-    let fin = &loop_result.identification;
-    let fin_new = fin.for_a_new_session();
-    let fin_tr_pred = predict(fin.string_model(), &tr);
-    let fin_te_pred = predict(fin_new.string_model(), &te);
-    let rejections = report::SessionRejections {
-        train: report::Rejections::of(&fin_tr_pred),
-        test: report::Rejections::of(&fin_te_pred),
-    };
-    let room = |p: Vec<crate::model::predict::Prediction>| -> Vec<[f64; 3]> {
-        p.iter().map(|p| p.room).collect()
-    };
-    let (fin_tr, fin_te) = (room(fin_tr_pred), room(fin_te_pred));
-    let (fin_tr_pe, fin_tr_s) = point_errors(
-        "identified with effects, training session",
-        &tr,
-        &fin_tr,
-        &fin.frame,
-    )?;
-    let (fin_te_pe, fin_te_s) = point_errors(
-        "identified with effects, test session",
-        &te,
-        &fin_te,
-        &fin.frame,
-    )?;
+impl FinalIdentified {
+    /// The model's predictions on both sessions, and their errors.
+    fn of(
+        fin: &crate::model::identify::Identification,
+        obs: PerSession<&[Observation]>,
+    ) -> Result<(FinalIdentified, StageErrors), StatsError> {
+        let fin_new = fin.for_a_new_session();
+        let fin_tr_pred = predict(fin.string_model(), obs.train);
+        let fin_te_pred = predict(fin_new.string_model(), obs.test);
+        let rejections = report::SessionRejections {
+            train: report::Rejections::of(&fin_tr_pred),
+            test: report::Rejections::of(&fin_te_pred),
+        };
+        let room = |p: Vec<crate::model::predict::Prediction>| -> Vec<[f64; 3]> {
+            p.iter().map(|p| p.room).collect()
+        };
+        let (fin_tr, fin_te) = (room(fin_tr_pred), room(fin_te_pred));
+        let errors = StageErrors::of(
+            "identified with effects",
+            obs,
+            PerSession {
+                train: &fin_tr,
+                test: &fin_te,
+            },
+            &fin.frame,
+        )?;
+        let final_identified = FinalIdentified {
+            new_session: fin_new,
+            positions: PerSession {
+                train: fin_tr,
+                test: fin_te,
+            },
+            rejections,
+        };
+        Ok((final_identified, errors))
+    }
+}
+
+/// One stage per effect the diagnosis loop added.
+fn effect_stages(loop_result: &LoopResult, fin: &StageErrors) -> Vec<report::Stage> {
     let n_effects = loop_result.stages.len();
+    let mut stages = Vec::new();
     for (k, s) in loop_result.stages.iter().enumerate() {
         // The last effect stage is the final identified model: its statistics
         // are recomputed here so that they match the corrections' base exactly.
         let (train_s, test_s) = if k + 1 == n_effects {
-            (fin_tr_s, fin_te_s)
+            (fin.train_stats, fin.test_stats)
         } else {
             (s.train, s.test.unwrap_or_else(|| ErrorStats::of(&[])))
         };
         stages.push(stage(&s.name, report::StageKind::Effect, train_s, test_s));
     }
+    stages
+}
 
-    // 4. Residual corrections on top of the final identified model.
-    let (x_all, t_all) = tracked_pairs(&tr, &fin_tr);
-    let outl = outliers::tukey(&x_all, &t_all).map_err(learn("outliers (Tukey box plot)"))?;
-    let (x_kept, t_kept) = outliers::select(&outl, &x_all, &t_all);
-    let (xt_all, tt_all) = tracked_pairs(&te, &fin_te);
-    let mut pairs = Pairs {
-        residual: PairSet {
-            train_inputs: x_kept.clone(),
-            train_targets: t_kept.clone(),
-            test_inputs: xt_all,
-            test_targets: tt_all,
-        },
-        blackbox: None,
-    };
-    let (fit_idx, sel_idx) = split_indices(x_kept.len(), cfg.selection_fraction, cfg.seed);
-    let (x_fit, t_fit) = (subset(&x_kept, &fit_idx), subset(&t_kept, &fit_idx));
-    let (x_sel, t_sel) = (subset(&x_kept, &sel_idx), subset(&t_kept, &sel_idx));
+/// The residual learners' data: the final identified model's tracked pairs,
+/// Tukey's box plot on the training ones, and the kept training pairs split
+/// into a fit part and the selection split.
+struct ResidualData {
+    outliers: outliers::OutlierReport,
+    /// Kept training pairs and all tracked test pairs.
+    pairs: PairSet,
+    x_fit: Vec<[f64; 3]>,
+    t_fit: Vec<[f64; 3]>,
+    x_sel: Vec<[f64; 3]>,
+    t_sel: Vec<[f64; 3]>,
+}
 
+impl ResidualData {
+    fn of(
+        obs: PerSession<&[Observation]>,
+        positions: PerSession<&[[f64; 3]]>,
+        cfg: &CalibrateConfig,
+    ) -> Result<ResidualData, CalibrateError> {
+        let (x_all, t_all) = tracked_pairs(obs.train, positions.train);
+        let outl = outliers::tukey(&x_all, &t_all).map_err(learn("outliers (Tukey box plot)"))?;
+        let (x_kept, t_kept) = outliers::select(&outl, &x_all, &t_all);
+        let (xt_all, tt_all) = tracked_pairs(obs.test, positions.test);
+        let (fit_idx, sel_idx) = split_indices(x_kept.len(), cfg.selection_fraction, cfg.seed);
+        let (x_fit, t_fit) = (subset(&x_kept, &fit_idx), subset(&t_kept, &fit_idx));
+        let (x_sel, t_sel) = (subset(&x_kept, &sel_idx), subset(&t_kept, &sel_idx));
+        Ok(ResidualData {
+            outliers: outl,
+            pairs: PairSet {
+                train_inputs: x_kept,
+                train_targets: t_kept,
+                test_inputs: xt_all,
+                test_targets: tt_all,
+            },
+            x_fit,
+            t_fit,
+            x_sel,
+            t_sel,
+        })
+    }
+}
+
+/// The residual NN and SVR, searched and trained on the fit part.
+struct Learned {
+    sweep: search::SweepResult,
+    svr_search: search::SvrSearchResult,
+    nn: CorrectionModel,
+    svr: CorrectionModel,
+}
+
+/// Stage 4: the NN hidden-size sweep and the SVR search on the fit part
+/// (their times into `timings`).
+fn train_corrections(
+    data: &ResidualData,
+    cfg: &CalibrateConfig,
+    timings: &mut report::Timings,
+) -> Result<Learned, CalibrateError> {
     let t = Instant::now();
-    let sweep = search::nn_sweep(&x_fit, &t_fit, &cfg.nn).map_err(learn("NN hidden-size sweep"))?;
+    let sweep = search::nn_sweep(&data.x_fit, &data.t_fit, &cfg.nn)
+        .map_err(learn("NN hidden-size sweep"))?;
     timings.nn_s = t.elapsed().as_secs_f64();
     let t = Instant::now();
-    let svr_search = search::svr_search(&x_fit, &t_fit, &cfg.svr).map_err(learn("SVR search"))?;
+    let svr_search =
+        search::svr_search(&data.x_fit, &data.t_fit, &cfg.svr).map_err(learn("SVR search"))?;
     timings.svr_s = t.elapsed().as_secs_f64();
-    let nn_corr = CorrectionModel::Nn(sweep.fit.model.clone());
-    let svr_corr = CorrectionModel::Svr(svr_search.fit.model.clone());
+    let nn = CorrectionModel::Nn(sweep.fit.model.clone());
+    let svr = CorrectionModel::Svr(svr_search.fit.model.clone());
+    Ok(Learned {
+        sweep,
+        svr_search,
+        nn,
+        svr,
+    })
+}
 
-    // 5. The choice, on the selection split.
-    let t = Instant::now();
-    let e_id = point_error_list(|p| p, &x_sel, &t_sel);
+/// What the selection split said of the identified model and the two
+/// corrections, and the choice it made.
+struct Judgement {
+    identified: ErrorStats,
+    nn: ErrorStats,
+    svr: ErrorStats,
+    /// Noise of the identified model's p95 and max on the selection split.
+    noise_p95: f64,
+    noise_max: f64,
+    /// The selection split has enough points to choose a correction.
+    enough_to_choose: bool,
+    choice: report::Choice,
+    reason: String,
+}
+
+/// Stage 5: the choice, on the selection split.
+fn judge_on_selection_split(
+    data: &ResidualData,
+    learned: &Learned,
+    cfg: &CalibrateConfig,
+) -> Judgement {
+    let (x_sel, t_sel) = (&data.x_sel, &data.t_sel);
+    let e_id = point_error_list(|p| p, x_sel, t_sel);
     let s_id = ErrorStats::of(&e_id);
-    let s_nn = ErrorStats::of(&point_error_list(|p| nn_corr.evaluate(p), &x_sel, &t_sel));
-    let s_svr = ErrorStats::of(&point_error_list(|p| svr_corr.evaluate(p), &x_sel, &t_sel));
+    let s_nn = ErrorStats::of(&point_error_list(|p| learned.nn.evaluate(p), x_sel, t_sel));
+    let s_svr = ErrorStats::of(&point_error_list(|p| learned.svr.evaluate(p), x_sel, t_sel));
     // Noise of the identified model's p95 and max on the selection split.
     let (noise_p95, noise_max) = tail_noise(&e_id);
     let enough_to_choose = x_sel.len() >= MIN_SELECTION_POINTS;
-    if !enough_to_choose {
-        warnings.push(format!(
-            "the NN and SVR corrections are reported but not chosen: the selection split of the \
-             training session has {} points, at least {MIN_SELECTION_POINTS} are needed to tell a \
-             correction from noise (the final model is the identified one; collect a larger \
-             training session to use a learned correction)",
-            x_sel.len()
-        ));
-    }
     // A correction is eligible when it lowers the mean by the configured gain
     // without raising the p95 or the max beyond their noise; the eligible one
     // with the lower mean is chosen.
@@ -755,7 +932,7 @@ pub fn calibrate(
         .filter(|j| j.2.is_ok())
         .min_by(|a, b| a.1.mean_mm.total_cmp(&b.1.mean_mm));
     let refused: Vec<String> = judged.iter().filter_map(|j| j.2.clone().err()).collect();
-    let (choice, choice_reason) = match best {
+    let (choice, reason) = match best {
         _ if !enough_to_choose => (
             report::Choice::Identified,
             format!(
@@ -786,16 +963,36 @@ pub fn calibrate(
         ),
         None => (report::Choice::Identified, refused.join("; ")),
     };
-    let (v_id, v_nn, v_svr) = (s_id.mean_mm, s_nn.mean_mm, s_svr.mean_mm);
+    Judgement {
+        identified: s_id,
+        nn: s_nn,
+        svr: s_svr,
+        noise_p95,
+        noise_max,
+        enough_to_choose,
+        choice,
+        reason,
+    }
+}
+
+/// The chosen correction refitted on all kept training points with the
+/// hyperparameters the search found (none for the identified model).
+fn refit_chosen(
+    choice: report::Choice,
+    data: &ResidualData,
+    learned: &Learned,
+    cfg: &CalibrateConfig,
+) -> Result<CorrectionModel, CalibrateError> {
+    let (x_kept, t_kept) = (&data.pairs.train_inputs, &data.pairs.train_targets);
     let pb = spinner("refitting the chosen correction", cfg.quiet);
     let final_corr = match choice {
         report::Choice::Identified => CorrectionModel::None,
         report::Choice::Nn => {
             let fit = nn::train(
-                &x_kept,
-                &t_kept,
+                x_kept,
+                t_kept,
                 &NnConfig {
-                    hidden: sweep.best_hidden,
+                    hidden: learned.sweep.best_hidden,
                     mode: OutputMode::Residual,
                     lm: cfg.nn.final_lm.clone(),
                     restarts: cfg.nn.final_restarts,
@@ -810,10 +1007,10 @@ pub fn calibrate(
         }
         report::Choice::Svr => {
             let fit = svr::train(
-                &x_kept,
-                &t_kept,
+                x_kept,
+                t_kept,
                 &SvrConfig {
-                    params: svr_search.best,
+                    params: learned.svr_search.best,
                     solver: cfg.svr.solver,
                     mode: OutputMode::Residual,
                     time_limit: cfg.svr.time_limit,
@@ -826,55 +1023,53 @@ pub fn calibrate(
         }
     };
     pb.finish_and_clear();
-    timings.selection_s = t.elapsed().as_secs_f64();
+    Ok(final_corr)
+}
 
-    let mut points = vec![
-        StagePoints {
-            name: "raw".into(),
-            train: raw_tr_pe,
-            test: raw_te_pe,
+/// The errors of a correction on top of the final identified model.
+fn correction_errors(
+    name: &str,
+    corr: &CorrectionModel,
+    obs: PerSession<&[Observation]>,
+    fin_positions: PerSession<&[[f64; 3]]>,
+    frame: &spidar_core::model::Frame<f64>,
+) -> Result<StageErrors, StatsError> {
+    let ptr: Vec<[f64; 3]> = fin_positions
+        .train
+        .iter()
+        .map(|p| corr.evaluate(*p))
+        .collect();
+    let pte: Vec<[f64; 3]> = fin_positions
+        .test
+        .iter()
+        .map(|p| corr.evaluate(*p))
+        .collect();
+    StageErrors::of(
+        name,
+        obs,
+        PerSession {
+            train: &ptr,
+            test: &pte,
         },
-        StagePoints {
-            name: "identified".into(),
-            train: id_tr_pe,
-            test: id_te_pe,
-        },
-    ];
-    if n_effects > 0 {
-        points.push(StagePoints {
-            name: "identified with effects".into(),
-            train: fin_tr_pe,
-            test: fin_te_pe,
-        });
-    }
-    let mut correction_stage =
-        |name: String, corr: &CorrectionModel, kind| -> Result<(), CalibrateError> {
-            let ptr: Vec<[f64; 3]> = fin_tr.iter().map(|p| corr.evaluate(*p)).collect();
-            let pte: Vec<[f64; 3]> = fin_te.iter().map(|p| corr.evaluate(*p)).collect();
-            let (a, sa) =
-                point_errors(&format!("{name}, training session"), &tr, &ptr, &fin.frame)?;
-            let (b, sb) = point_errors(&format!("{name}, test session"), &te, &pte, &fin.frame)?;
-            stages.push(stage(&name, kind, sa, sb));
-            points.push(StagePoints {
-                name,
-                train: a,
-                test: b,
-            });
-            Ok(())
-        };
-    correction_stage("nn".into(), &nn_corr, report::StageKind::Correction)?;
-    correction_stage("svr".into(), &svr_corr, report::StageKind::Correction)?;
-    let final_name = format!("final ({})", choice.name());
-    correction_stage(final_name.clone(), &final_corr, report::StageKind::Final)?;
+        frame,
+    )
+}
 
-    // Where the held-out figure is not what it seems.
+/// Where the held-out figure is not what it seems: test points outside the
+/// training volume, and anchors that determine the position poorly.
+fn trust_warnings(
+    frame: &spidar_core::model::Frame<f64>,
+    tr: &[Observation],
+    final_points: Option<&StagePoints>,
+) -> Vec<String> {
+    let mut warnings = Vec::new();
     let train_room: Vec<[f64; 3]> = tr.iter().filter_map(|o| o.tracker).collect();
     const BOX_MARGIN_MM: f64 = 1.0;
     if let (Some(bx), Some(fp)) = (
-        trust::TrainingBox::of(&fin.frame, &train_room, BOX_MARGIN_MM),
-        points.iter().find(|p| p.name == final_name),
+        trust::TrainingBox::of(frame, &train_room, BOX_MARGIN_MM),
+        final_points,
     ) {
-        let x = trust::extrapolation(&fin.frame, &bx, &fp.test.tracker, &fp.test.errors);
+        let x = trust::extrapolation(frame, &bx, &fp.test.tracker, &fp.test.errors);
         if x.outside.n > 0 {
             warnings.push(format!(
                 "{} of {} test points lie outside the volume the training session covers (its \
@@ -891,9 +1086,9 @@ pub fn calibrate(
     }
     let train_device: Vec<[f64; 3]> = train_room
         .iter()
-        .map(|r| device_from_room(&fin.frame, *r))
+        .map(|r| device_from_room(frame, *r))
         .collect();
-    if let Some(d) = trust::determination(&fin.frame, &train_device) {
+    if let Some(d) = trust::determination(frame, &train_device) {
         if d.gain > trust::POOR_DETERMINATION_GAIN {
             warnings.push(format!(
                 "the anchors determine the position poorly along ({:+.2}, {:+.2}, {:+.2}) \
@@ -904,22 +1099,33 @@ pub fn calibrate(
             ));
         }
     }
+    warnings
+}
 
-    let selection = report::Selection {
+/// The report's account of the choice of the final model.
+fn selection_report(
+    final_name: String,
+    judgement: Judgement,
+    final_corr: &CorrectionModel,
+    data: &ResidualData,
+    cfg: &CalibrateConfig,
+) -> report::Selection {
+    let (s_id, s_nn, s_svr) = (&judgement.identified, &judgement.nn, &judgement.svr);
+    report::Selection {
         stage: final_name,
-        choice,
-        correction: match &final_corr {
+        choice: judgement.choice,
+        correction: match final_corr {
             CorrectionModel::None => "none",
             CorrectionModel::Nn(_) => "nn",
             CorrectionModel::Svr(_) => "svr",
         },
-        selection_points: x_sel.len(),
-        fit_points: x_fit.len(),
+        selection_points: data.x_sel.len(),
+        fit_points: data.x_fit.len(),
         min_correction_gain: cfg.min_correction_gain,
         validation_mean_mm: report::Candidates {
-            identified: v_id,
-            nn: v_nn,
-            svr: v_svr,
+            identified: s_id.mean_mm,
+            nn: s_nn.mean_mm,
+            svr: s_svr.mean_mm,
         },
         validation_p95_mm: report::Candidates {
             identified: s_id.p95_mm,
@@ -931,54 +1137,32 @@ pub fn calibrate(
             nn: s_nn.max_mm,
             svr: s_svr.max_mm,
         },
-        noise_p95_mm: noise_p95,
-        noise_max_mm: noise_max,
-        reason: choice_reason,
-        final_support_vectors: match &final_corr {
+        noise_p95_mm: judgement.noise_p95,
+        noise_max_mm: judgement.noise_max,
+        reason: judgement.reason,
+        final_support_vectors: match final_corr {
             CorrectionModel::Svr(m) => Some(m.support.len()),
             _ => None,
         },
-        final_hidden: match &final_corr {
+        final_hidden: match final_corr {
             CorrectionModel::Nn(m) => Some(m.w1.len()),
             _ => None,
         },
-    };
-    let residual = report::Corrections {
-        mode: "residual",
-        input: "final identified model, room position (mm)",
-        outliers: report::Outliers::of(
-            &outl,
-            "final identified model vs tracker, training session",
-        ),
-        nn: report::NnReport::of(&sweep),
-        svr: report::SvrReport::of(&svr_search),
-    };
+    }
+}
 
-    // Black-box comparison.
-    let legacy = (train_info.has_legacy && test_info.has_legacy)
-        .then(|| blackbox_pairs(geometry, train.session, test.session))
-        .transpose()?;
-    let blackbox = if cfg.blackbox {
-        if let Some(lp) = &legacy {
-            let t = Instant::now();
-            let bb = blackbox(lp, &cfg, &mut points)?;
-            timings.blackbox_s = Some(t.elapsed().as_secs_f64());
-            Some(bb)
-        } else {
-            warnings.push(
-                "black-box comparison skipped: it needs the legacy controller's dev_x, dev_y, \
-                 dev_z columns in both sessions"
-                    .into(),
-            );
-            None
-        }
-    } else {
-        None
-    };
-
+/// The identification's own warnings, and the learners' time limits that cut
+/// their search.
+fn learner_warnings(
+    fin: &crate::model::identify::Identification,
+    learned: &Learned,
+    cfg: &CalibrateConfig,
+) -> Vec<String> {
+    let mut warnings = Vec::new();
     for w in &fin.warnings {
         warnings.push(format!("identification: {w}"));
     }
+    let (sweep, svr_search) = (&learned.sweep, &learned.svr_search);
     if sweep.curve.len() < cfg.nn.sizes.len() {
         warnings.push(format!(
             "NN sweep: the time limit cut {} of {} hidden sizes",
@@ -997,52 +1181,329 @@ pub fn calibrate(
             svr_search.candidates.len()
         ));
     }
+    warnings
+}
 
+/// The report's stages and the figures' per-point errors, in the order the
+/// stages are computed.
+#[derive(Default)]
+struct StageList {
+    stages: Vec<report::Stage>,
+    points: Vec<StagePoints>,
+}
+
+impl StageList {
+    /// A stage with its figures' points.
+    fn push(&mut self, name: String, kind: report::StageKind, errors: StageErrors) {
+        self.stages.push(errors.stage(&name, kind));
+        self.points.push(errors.points(name));
+    }
+}
+
+/// Stages 0-3: the identified model and its stages, with the sessions'
+/// observations it leaves for the corrections.
+struct IdentifiedModel {
+    /// The tracker's clock against the device's.
+    timing: report::Timing,
+    /// The sessions' observations, read at the strings' meeting point.
+    tr: Vec<Observation>,
+    te: Vec<Observation>,
+    loop_result: LoopResult,
+    final_identified: FinalIdentified,
+    /// `raw`, `identified` and one stage per added effect.
+    list: StageList,
+}
+
+/// What the stages of one calibration share: its inputs and settings, and
+/// the times and warnings they add to.
+struct Run<'a> {
+    geometry: &'a Geometry,
+    geometry_path: &'a Path,
+    train_info: report::SessionInfo,
+    test_info: report::SessionInfo,
+    cfg: CalibrateConfig,
+    timings: report::Timings,
+    warnings: Vec<String>,
+}
+
+/// What the stages found, for the report.
+struct Findings<'a> {
+    timing: report::Timing,
+    stages: Vec<report::Stage>,
+    loop_result: &'a LoopResult,
+    rejections: report::SessionRejections,
+    selection: report::Selection,
+    corrections: report::Corrections,
+    blackbox: Option<report::Blackbox>,
+}
+
+impl Run<'_> {
+    /// Stages 0-3: the clocks aligned, the raw model, the identification and
+    /// the diagnosis loop, and the final identified model.
+    fn identify_model(
+        &mut self,
+        train: NamedSession<'_>,
+        test: NamedSession<'_>,
+    ) -> Result<IdentifiedModel, CalibrateError> {
+        let geometry = self.geometry;
+        let nominal = geometry.nominal_frame();
+        let (tr, te) = session_observations(&nominal, train.session, test.session);
+        let nominal_laws = geometry.nominal_string_laws();
+
+        // 0. The tracker's clock against the device's (dynamic sessions only).
+        let t = Instant::now();
+        let (tr, te, timing) = align_clocks(tr, te, geometry, &nominal, &nominal_laws)?;
+        self.timings.alignment_s = t.elapsed().as_secs_f64();
+        self.warnings.extend(unpaired_rows_warnings(&timing));
+        let obs = PerSession {
+            train: &tr[..],
+            test: &te[..],
+        };
+
+        // 1. Raw: nominal geometry through the device pipeline.
+        let t = Instant::now();
+        let raw = raw_errors(obs, &nominal, &nominal_laws)?;
+        self.timings.raw_s = t.elapsed().as_secs_f64();
+        let mut list = StageList::default();
+        list.push("raw".into(), report::StageKind::Raw, raw);
+
+        // 2-3. Identification and the diagnosis loop.
+        check_enough_tracked_rows(train.path, &tr, &nominal)?;
+        let t = Instant::now();
+        let loop_result = identify_and_diagnose(geometry, obs, &nominal, &self.cfg)?;
+        self.timings.identification_s = t.elapsed().as_secs_f64();
+        let identified = identified_errors(&loop_result.base, obs)?;
+        list.push(
+            "identified".into(),
+            report::StageKind::Identified,
+            identified,
+        );
+
+        // From here on the sessions are read at the strings' meeting point when
+        // the loop found the tracked body's origin off it (the errors are then
+        // those of the tracker's position predicted with its orientation).
+        let marker = loop_result.structure.marker_body_mm;
+        let tr = crate::data::observe::at_meeting_points(&tr, marker).into_owned();
+        let te = crate::data::observe::at_meeting_points(&te, marker).into_owned();
+        let obs = PerSession {
+            train: &tr[..],
+            test: &te[..],
+        };
+        let (final_identified, errors) = FinalIdentified::of(&loop_result.identification, obs)?;
+        list.stages.extend(effect_stages(&loop_result, &errors));
+        if !loop_result.stages.is_empty() {
+            list.points
+                .push(errors.points("identified with effects".into()));
+        }
+        Ok(IdentifiedModel {
+            timing,
+            tr,
+            te,
+            loop_result,
+            final_identified,
+            list,
+        })
+    }
+
+    /// Stage 5: the choice on the selection split, and the chosen correction
+    /// refitted (its time into `selection_s`).
+    fn choose_final_model(
+        &mut self,
+        data: &ResidualData,
+        learned: &Learned,
+    ) -> Result<(Judgement, CorrectionModel), CalibrateError> {
+        let t = Instant::now();
+        let judgement = judge_on_selection_split(data, learned, &self.cfg);
+        if !judgement.enough_to_choose {
+            self.warnings.push(format!(
+                "the NN and SVR corrections are reported but not chosen: the selection split of \
+                 the training session has {} points, at least {MIN_SELECTION_POINTS} are needed \
+                 to tell a correction from noise (the final model is the identified one; collect \
+                 a larger training session to use a learned correction)",
+                data.x_sel.len()
+            ));
+        }
+        let final_corr = refit_chosen(judgement.choice, data, learned, &self.cfg)?;
+        self.timings.selection_s = t.elapsed().as_secs_f64();
+        Ok((judgement, final_corr))
+    }
+
+    /// The black-box data when both sessions have the legacy controller's
+    /// columns, and the black-box comparison when asked for (a warning when
+    /// asked for without them).
+    fn blackbox_comparison(
+        &mut self,
+        train: &Session,
+        test: &Session,
+        points: &mut Vec<StagePoints>,
+    ) -> Result<(Option<LegacyPairs>, Option<report::Blackbox>), CalibrateError> {
+        let legacy = (self.train_info.has_legacy && self.test_info.has_legacy)
+            .then(|| blackbox_pairs(self.geometry, train, test))
+            .transpose()?;
+        if !self.cfg.blackbox {
+            return Ok((legacy, None));
+        }
+        let blackbox = if let Some(lp) = &legacy {
+            let t = Instant::now();
+            let bb = blackbox(lp, &self.cfg, points)?;
+            self.timings.blackbox_s = Some(t.elapsed().as_secs_f64());
+            Some(bb)
+        } else {
+            self.warnings.push(
+                "black-box comparison skipped: it needs the legacy controller's dev_x, dev_y, \
+                 dev_z columns in both sessions"
+                    .into(),
+            );
+            None
+        };
+        Ok((legacy, blackbox))
+    }
+
+    /// The report of the run, from what its stages found.
+    fn report(self, f: Findings<'_>) -> Report {
+        let fin = &f.loop_result.identification;
+        Report {
+            schema: SCHEMA,
+            tool: report::Tool::current(),
+            timing: f.timing,
+            device: report::DeviceReport::of(
+                self.geometry.layout,
+                self.train_info.tracked,
+                fin.residual_scale_mm,
+                self.cfg.loop_config.chi2_threshold,
+                f.rejections,
+            ),
+            inputs: report::Inputs {
+                geometry: self.geometry_path.display().to_string(),
+                train: self.train_info,
+                test: self.test_info,
+            },
+            stages: f.stages,
+            effects: f.loop_result.findings.clone(),
+            identification: report::IdentificationReport::of(
+                &f.loop_result.base,
+                fin,
+                &f.loop_result.layers,
+                f.loop_result.structure.marker_body_mm,
+            ),
+            selection: f.selection,
+            corrections: f.corrections,
+            blackbox: f.blackbox,
+            warnings: self.warnings,
+            notes: Vec::new(),
+            timings_s: self.timings,
+            figures: Vec::new(),
+            files: report::Files::default(),
+        }
+    }
+}
+
+/// The report's account of the residual corrections.
+fn residual_report(data: &ResidualData, learned: &Learned) -> report::Corrections {
+    report::Corrections {
+        mode: "residual",
+        input: "final identified model, room position (mm)",
+        outliers: report::Outliers::of(
+            &data.outliers,
+            "final identified model vs tracker, training session",
+        ),
+        nn: report::NnReport::of(&learned.sweep),
+        svr: report::SvrReport::of(&learned.svr_search),
+    }
+}
+
+/// Calibrate a device: identification and the diagnosis loop, residual NN
+/// and SVR, the choice of the final model, and the black-box comparison when
+/// asked for. No file is written (see [`write_outputs`]).
+pub fn calibrate(
+    geometry: &Geometry,
+    geometry_path: &Path,
+    train: NamedSession<'_>,
+    test: NamedSession<'_>,
+    config: &CalibrateConfig,
+) -> Result<Calibrated, CalibrateError> {
+    let cfg = config.with_seed_and_quiet();
+    let t_start = Instant::now();
+    let (train_info, test_info, warnings) = checked_sessions(geometry, geometry_path, train, test)?;
+    let mut run = Run {
+        geometry,
+        geometry_path,
+        train_info,
+        test_info,
+        cfg,
+        timings: report::Timings::default(),
+        warnings,
+    };
+    let IdentifiedModel {
+        timing,
+        tr,
+        te,
+        loop_result,
+        final_identified,
+        mut list,
+    } = run.identify_model(train, test)?;
+    let fin = &loop_result.identification;
+    let obs = PerSession {
+        train: &tr[..],
+        test: &te[..],
+    };
+    let positions = PerSession {
+        train: &final_identified.positions.train[..],
+        test: &final_identified.positions.test[..],
+    };
+
+    // 4. Residual corrections on top of the final identified model.
+    let data = ResidualData::of(obs, positions, &run.cfg)?;
+    let learned = train_corrections(&data, &run.cfg, &mut run.timings)?;
+
+    // 5. The choice, on the selection split.
+    let (judgement, final_corr) = run.choose_final_model(&data, &learned)?;
+    let final_name = format!("final ({})", judgement.choice.name());
+    for (name, corr, kind) in [
+        ("nn".to_string(), &learned.nn, report::StageKind::Correction),
+        ("svr".into(), &learned.svr, report::StageKind::Correction),
+        (final_name.clone(), &final_corr, report::StageKind::Final),
+    ] {
+        let errors = correction_errors(&name, corr, obs, positions, &fin.frame)?;
+        list.push(name, kind, errors);
+    }
+    let final_points = list.points.iter().find(|p| p.name == final_name);
+    run.warnings
+        .extend(trust_warnings(&fin.frame, &tr, final_points));
+    let selection = selection_report(final_name, judgement, &final_corr, &data, &run.cfg);
+    let corrections = residual_report(&data, &learned);
+
+    // Black-box comparison.
+    let (legacy, blackbox) =
+        run.blackbox_comparison(train.session, test.session, &mut list.points)?;
+    run.warnings
+        .extend(learner_warnings(fin, &learned, &run.cfg));
+
+    let fin_new = final_identified.new_session;
     let calibration = Calibration {
         frame: fin_new.frame,
         strings: fin_new.laws,
         effects: fin_new.effects.clone(),
         correction: final_corr,
     };
-    timings.calibration_s = t_start.elapsed().as_secs_f64();
-    let report = Report {
-        schema: SCHEMA,
-        tool: report::Tool::current(),
+    run.timings.calibration_s = t_start.elapsed().as_secs_f64();
+    let report = run.report(Findings {
         timing,
-        device: report::DeviceReport::of(
-            geometry.layout,
-            train_info.tracked,
-            fin.residual_scale_mm,
-            cfg.loop_config.chi2_threshold,
-            rejections,
-        ),
-        inputs: report::Inputs {
-            geometry: geometry_path.display().to_string(),
-            train: train_info,
-            test: test_info,
-        },
-        stages,
-        effects: loop_result.findings.clone(),
-        identification: report::IdentificationReport::of(
-            base,
-            fin,
-            &loop_result.layers,
-            loop_result.structure.marker_body_mm,
-        ),
+        stages: list.stages,
+        loop_result: &loop_result,
+        rejections: final_identified.rejections,
         selection,
-        corrections: residual,
+        corrections,
         blackbox,
-        warnings,
-        notes: Vec::new(),
-        timings_s: timings,
-        figures: Vec::new(),
-        files: report::Files::default(),
+    });
+    let pairs = Pairs {
+        residual: data.pairs,
+        blackbox: legacy.map(|l| l.kept),
     };
-    pairs.blackbox = legacy.map(|l| l.kept);
     Ok(Calibrated {
         report,
         calibration,
-        points,
+        points: list.points,
         loop_result,
         pairs,
     })

@@ -83,19 +83,109 @@ fn sweep_figure(
     Ok(())
 }
 
-/// Draw every figure into `dir` (created if missing); returns them in order.
-pub(super) fn draw_all(c: &Calibrated, dir: &Path) -> Result<Vec<Figure>, CalibrateError> {
-    std::fs::create_dir_all(dir).map_err(|source| CalibrateError::Io {
-        file: dir.to_path_buf(),
-        action: "cannot create the figure directory",
-        source,
-    })?;
-    let mut out = Out {
-        dir,
-        figures: Vec::new(),
-    };
-    let r = &c.report;
-    let final_name = r.selection.stage.as_str();
+/// A series of errors against distance to the device origin.
+fn by_distance<'a>(label: &'a str, p: &'a PointErrors) -> Series<'a> {
+    Series {
+        label,
+        x: &p.distance_mm,
+        y: &p.errors,
+    }
+}
+
+impl Out<'_> {
+    /// Spatial error map (figs. 9, 14, 16) of a stage on the training session.
+    fn spatial_map(
+        &mut self,
+        stage: &str,
+        file: &str,
+        paper: Option<&'static str>,
+        train: &PointErrors,
+    ) -> Result<(), CalibrateError> {
+        let title = format!("{stage}: absolute position error, training session");
+        let path = self.file(file, paper, &title);
+        let drawn = figures::spatial_error_map(&path, &title, &train.tracker, &train.errors)?;
+        self.drawn(drawn);
+        Ok(())
+    }
+
+    /// Error against distance to the origin (figs. 15, 17), one series per
+    /// stage.
+    fn error_vs_distance(
+        &mut self,
+        file: &str,
+        paper: Option<&'static str>,
+        title: &str,
+        series: &[Series<'_>],
+    ) -> Result<(), CalibrateError> {
+        let path = self.file(file, paper, title);
+        let drawn = figures::scatter(
+            &path,
+            title,
+            "distance to the device origin, mm",
+            "absolute position error, mm",
+            series,
+            LOG_Y_BEYOND,
+        )?;
+        self.drawn(drawn);
+        Ok(())
+    }
+
+    /// Histogram of errors (fig. 11), the x axis from 0 mm.
+    fn histogram(
+        &mut self,
+        file: &str,
+        paper: Option<&'static str>,
+        title: &str,
+        errors: &[f64],
+    ) -> Result<(), CalibrateError> {
+        let path = self.file(file, paper, title);
+        let drawn = figures::histogram(
+            &path,
+            title,
+            "absolute position error, mm",
+            errors,
+            40,
+            Some(figures::from_zero(errors)),
+        )?;
+        self.drawn(drawn);
+        Ok(())
+    }
+
+    /// Error in collection order (fig. 10) on the training session.
+    fn error_order(
+        &mut self,
+        file: &str,
+        paper: Option<&'static str>,
+        title: &str,
+        label: &str,
+        train: &PointErrors,
+    ) -> Result<(), CalibrateError> {
+        let x = order(train);
+        let path = self.file(file, paper, title);
+        let drawn = figures::lines(
+            &path,
+            title,
+            "capture (training session order)",
+            "absolute position error, mm",
+            &[Series {
+                label,
+                x: &x,
+                y: &train.errors,
+            }],
+            XyOptions {
+                integer_x: true,
+                ..XyOptions::default()
+            },
+        )?;
+        self.drawn(drawn);
+        Ok(())
+    }
+}
+
+/// The figures of the residual stages: spatial maps, error against distance,
+/// histograms, error in collection order.
+fn residual_figures(out: &mut Out<'_>, c: &Calibrated) -> Result<(), CalibrateError> {
+    let final_name = c.report.selection.stage.as_str();
     let get = |name: &str| c.points_of(name);
 
     // Spatial maps (figs. 9, 14, 16) on the training session.
@@ -107,92 +197,48 @@ pub(super) fn draw_all(c: &Calibrated, dir: &Path) -> Result<Vec<Figure>, Calibr
         (final_name, "error_map_final", None),
     ] {
         if let Some(p) = get(stage) {
-            let title = format!("{stage}: absolute position error, training session");
-            let path = out.file(file, paper, &title);
-            let drawn =
-                figures::spatial_error_map(&path, &title, &p.train.tracker, &p.train.errors)?;
-            out.drawn(drawn);
+            out.spatial_map(stage, file, paper, &p.train)?;
         }
     }
 
     // Error against distance to the origin, before and after (figs. 15, 17).
     if let (Some(raw), Some(fin)) = (get("raw"), get(final_name)) {
-        let title = "absolute position error against distance to the origin, training session";
-        let path = out.file("error_vs_distance", Some("15, 17"), title);
-        let drawn = figures::scatter(
-            &path,
-            title,
-            "distance to the device origin, mm",
-            "absolute position error, mm",
+        out.error_vs_distance(
+            "error_vs_distance",
+            Some("15, 17"),
+            "absolute position error against distance to the origin, training session",
             &[
-                Series {
-                    label: "raw (before)",
-                    x: &raw.train.distance_mm,
-                    y: &raw.train.errors,
-                },
-                Series {
-                    label: final_name,
-                    x: &fin.train.distance_mm,
-                    y: &fin.train.errors,
-                },
+                by_distance("raw (before)", &raw.train),
+                by_distance(final_name, &fin.train),
             ],
-            LOG_Y_BEYOND,
         )?;
-        out.drawn(drawn);
     }
     if let (Some(id), Some(fin)) = (get("identified"), get(final_name)) {
-        let title = "after calibration: error against distance to the origin, test session";
-        let path = out.file("error_vs_distance_after", None, title);
-        let drawn = figures::scatter(
-            &path,
-            title,
-            "distance to the device origin, mm",
-            "absolute position error, mm",
+        out.error_vs_distance(
+            "error_vs_distance_after",
+            None,
+            "after calibration: error against distance to the origin, test session",
             &[
-                Series {
-                    label: "identified",
-                    x: &id.test.distance_mm,
-                    y: &id.test.errors,
-                },
-                Series {
-                    label: final_name,
-                    x: &fin.test.distance_mm,
-                    y: &fin.test.errors,
-                },
+                by_distance("identified", &id.test),
+                by_distance(final_name, &fin.test),
             ],
-            LOG_Y_BEYOND,
         )?;
-        out.drawn(drawn);
     }
 
     // Histograms (fig. 11).
     if let Some(raw) = get("raw") {
         // The test session, as the final histogram: before and after on
         // the same points, both axes from 0 mm.
-        let title = "raw absolute position error, test session";
-        let path = out.file("histogram_raw", Some("11"), title);
-        let drawn = figures::histogram(
-            &path,
-            title,
-            "absolute position error, mm",
+        out.histogram(
+            "histogram_raw",
+            Some("11"),
+            "raw absolute position error, test session",
             &raw.test.errors,
-            40,
-            Some(figures::from_zero(&raw.test.errors)),
         )?;
-        out.drawn(drawn);
     }
     if let Some(fin) = get(final_name) {
         let title = format!("{final_name}: absolute position error, test session");
-        let path = out.file("histogram_final", None, &title);
-        let drawn = figures::histogram(
-            &path,
-            &title,
-            "absolute position error, mm",
-            &fin.test.errors,
-            40,
-            Some(figures::from_zero(&fin.test.errors)),
-        )?;
-        out.drawn(drawn);
+        out.histogram("histogram_final", None, &title, &fin.test.errors)?;
     }
 
     // Before and after on one (logarithmic) axis, the same test session.
@@ -219,26 +265,74 @@ pub(super) fn draw_all(c: &Calibrated, dir: &Path) -> Result<Vec<Figure>, Calibr
     ] {
         if let Some(p) = get(stage) {
             let title = format!("{stage}: absolute position error in collection order");
-            let x = order(&p.train);
-            let path = out.file(file, paper, &title);
-            let drawn = figures::lines(
-                &path,
-                &title,
-                "capture (training session order)",
-                "absolute position error, mm",
-                &[Series {
-                    label: stage,
-                    x: &x,
-                    y: &p.train.errors,
-                }],
-                XyOptions {
-                    integer_x: true,
-                    ..XyOptions::default()
-                },
-            )?;
-            out.drawn(drawn);
+            out.error_order(file, paper, &title, stage, &p.train)?;
         }
     }
+    Ok(())
+}
+
+/// The figures of the paper's black-box procedure.
+fn blackbox_figures(
+    out: &mut Out<'_>,
+    c: &Calibrated,
+    nn: &NnReport,
+) -> Result<(), CalibrateError> {
+    let get = |name: &str| c.points_of(name);
+    for (stage, file, paper) in [
+        ("legacy", "blackbox_error_map_legacy", Some("9")),
+        ("blackbox nn", "blackbox_error_map_nn", Some("14")),
+        ("blackbox svr", "blackbox_error_map_svr", Some("16")),
+    ] {
+        if let Some(p) = get(stage) {
+            out.spatial_map(stage, file, paper, &p.train)?;
+        }
+    }
+    if let (Some(l), Some(n), Some(s)) = (get("legacy"), get("blackbox nn"), get("blackbox svr")) {
+        out.error_vs_distance(
+            "blackbox_error_vs_distance",
+            Some("15, 17"),
+            "black-box: error against distance to the origin, training session",
+            &[
+                by_distance("legacy (before)", &l.train),
+                by_distance("blackbox nn", &n.train),
+                by_distance("blackbox svr", &s.train),
+            ],
+        )?;
+        out.histogram(
+            "blackbox_histogram_legacy",
+            Some("11"),
+            "legacy controller: absolute position error, training session",
+            &l.train.errors,
+        )?;
+        out.error_order(
+            "blackbox_error_order_legacy",
+            Some("10"),
+            "legacy controller: absolute position error in collection order",
+            "legacy",
+            &l.train,
+        )?;
+    }
+    sweep_figure(
+        out,
+        "blackbox_nn_sweep",
+        "black-box NN: mean error against hidden neurons",
+        nn,
+    )
+}
+
+/// Draw every figure into `dir` (created if missing); returns them in order.
+pub(super) fn draw_all(c: &Calibrated, dir: &Path) -> Result<Vec<Figure>, CalibrateError> {
+    std::fs::create_dir_all(dir).map_err(|source| CalibrateError::Io {
+        file: dir.to_path_buf(),
+        action: "cannot create the figure directory",
+        source,
+    })?;
+    let mut out = Out {
+        dir,
+        figures: Vec::new(),
+    };
+    let r = &c.report;
+    residual_figures(&mut out, c)?;
 
     // Mean error against hidden neurons (fig. 13).
     sweep_figure(
@@ -250,86 +344,7 @@ pub(super) fn draw_all(c: &Calibrated, dir: &Path) -> Result<Vec<Figure>, Calibr
 
     // The paper's black-box procedure.
     if let Some(bb) = &r.blackbox {
-        for (stage, file, paper) in [
-            ("legacy", "blackbox_error_map_legacy", Some("9")),
-            ("blackbox nn", "blackbox_error_map_nn", Some("14")),
-            ("blackbox svr", "blackbox_error_map_svr", Some("16")),
-        ] {
-            if let Some(p) = get(stage) {
-                let title = format!("{stage}: absolute position error, training session");
-                let path = out.file(file, paper, &title);
-                let drawn =
-                    figures::spatial_error_map(&path, &title, &p.train.tracker, &p.train.errors)?;
-                out.drawn(drawn);
-            }
-        }
-        if let (Some(l), Some(n), Some(s)) =
-            (get("legacy"), get("blackbox nn"), get("blackbox svr"))
-        {
-            let title = "black-box: error against distance to the origin, training session";
-            let path = out.file("blackbox_error_vs_distance", Some("15, 17"), title);
-            let drawn = figures::scatter(
-                &path,
-                title,
-                "distance to the device origin, mm",
-                "absolute position error, mm",
-                &[
-                    Series {
-                        label: "legacy (before)",
-                        x: &l.train.distance_mm,
-                        y: &l.train.errors,
-                    },
-                    Series {
-                        label: "blackbox nn",
-                        x: &n.train.distance_mm,
-                        y: &n.train.errors,
-                    },
-                    Series {
-                        label: "blackbox svr",
-                        x: &s.train.distance_mm,
-                        y: &s.train.errors,
-                    },
-                ],
-                LOG_Y_BEYOND,
-            )?;
-            out.drawn(drawn);
-            let title = "legacy controller: absolute position error, training session";
-            let path = out.file("blackbox_histogram_legacy", Some("11"), title);
-            let drawn = figures::histogram(
-                &path,
-                title,
-                "absolute position error, mm",
-                &l.train.errors,
-                40,
-                Some(figures::from_zero(&l.train.errors)),
-            )?;
-            out.drawn(drawn);
-            let title = "legacy controller: absolute position error in collection order";
-            let x = order(&l.train);
-            let path = out.file("blackbox_error_order_legacy", Some("10"), title);
-            let drawn = figures::lines(
-                &path,
-                title,
-                "capture (training session order)",
-                "absolute position error, mm",
-                &[Series {
-                    label: "legacy",
-                    x: &x,
-                    y: &l.train.errors,
-                }],
-                XyOptions {
-                    integer_x: true,
-                    ..XyOptions::default()
-                },
-            )?;
-            out.drawn(drawn);
-        }
-        sweep_figure(
-            &mut out,
-            "blackbox_nn_sweep",
-            "black-box NN: mean error against hidden neurons",
-            &bb.nn,
-        )?;
+        blackbox_figures(&mut out, c, &bb.nn)?;
     }
     Ok(out.figures)
 }

@@ -614,6 +614,19 @@ impl Report {
     /// the choice, warnings, and where the files went.
     pub fn summary(&self) -> String {
         let mut o = String::new();
+        self.write_inputs(&mut o);
+        self.write_error_tables(&mut o);
+        self.write_effects(&mut o);
+        self.write_corrections(&mut o);
+        self.write_warnings(&mut o);
+        self.write_time(&mut o);
+        self.write_files(&mut o);
+        o
+    }
+
+    /// The sessions, the device, its forward-kinematics rejections and the
+    /// clock alignment.
+    fn write_inputs(&self, o: &mut String) {
         let i = &self.inputs;
         let _ = writeln!(
             o,
@@ -657,11 +670,15 @@ impl Report {
                 );
             }
         }
+    }
+
+    /// The error table of every stage, and the black-box one.
+    fn write_error_tables(&self, o: &mut String) {
         let _ = writeln!(
             o,
             "\nAbsolute position error (eq. 7) against the tracker, room frame, mm:"
         );
-        stage_table(&mut o, &self.stages);
+        stage_table(o, &self.stages);
 
         if let Some(bb) = &self.blackbox {
             let _ = writeln!(
@@ -669,7 +686,7 @@ impl Report {
                 "\nBlack-box, as the paper ({}; {} mode):",
                 bb.input, bb.mode
             );
-            stage_table(&mut o, &bb.stages);
+            stage_table(o, &bb.stages);
             let _ = writeln!(
                 o,
                 "  NN: {} hidden neurons; SVR: C = {}, epsilon = {}, gamma = {}, {} support vectors; \
@@ -684,7 +701,10 @@ impl Report {
                 bb.outliers.upper_fence_mm
             );
         }
+    }
 
+    /// The effects diagnosis found (or the smallest it would have seen).
+    fn write_effects(&self, o: &mut String) {
         let _ = writeln!(o, "\nEffects found by diagnosis:");
         if self.effects.is_empty() {
             let _ = writeln!(
@@ -719,7 +739,10 @@ impl Report {
                 let _ = writeln!(o, "            {}", check.reason);
             }
         }
+    }
 
+    /// The residual corrections and the choice of the final stage.
+    fn write_corrections(&self, o: &mut String) {
         let c = &self.corrections;
         let s = &self.selection;
         let _ = writeln!(
@@ -769,7 +792,10 @@ impl Report {
             num(s.validation_mean_mm.svr)
         );
         let _ = writeln!(o, "    why: {}", s.reason);
+    }
 
+    /// Warnings and notes.
+    fn write_warnings(&self, o: &mut String) {
         if !self.warnings.is_empty() {
             let _ = writeln!(o, "\nWarnings:");
             for w in &self.warnings {
@@ -782,6 +808,10 @@ impl Report {
                 let _ = writeln!(o, "  - {n}");
             }
         }
+    }
+
+    /// Where the time went.
+    fn write_time(&self, o: &mut String) {
         let t = &self.timings_s;
         let _ = writeln!(
             o,
@@ -796,6 +826,10 @@ impl Report {
             t.figures_s
                 .map_or(String::new(), |f| format!("; figures {f:.1} s")),
         );
+    }
+
+    /// Where the files went.
+    fn write_files(&self, o: &mut String) {
         if !self.files.calibration.is_empty() {
             let _ = writeln!(o, "\nWrote:");
             let _ = writeln!(o, "  {} (the calibration)", self.files.calibration);
@@ -810,7 +844,6 @@ impl Report {
                 let _ = writeln!(o, "  {dir}/ ({} figures, PNG)", self.figures.len());
             }
         }
-        o
     }
 }
 
