@@ -1,0 +1,542 @@
+//! The host side (alloc): f64 reference evaluation and compilation of the
+//! corrections into their bytes.
+
+use super::*;
+use crate::fixed::to_q_i32;
+use alloc::vec::Vec;
+
+/// Why a model does not compile. Each variant names the parameter.
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum CompileError {
+    /// Parameter vectors of inconsistent lengths, or a count beyond what
+    /// the blob can carry.
+    Dimension {
+        field: &'static str,
+        found: usize,
+        expected: usize,
+    },
+    /// A parameter is NaN or infinite (`index` into the flattened field).
+    NotFinite { field: &'static str, index: usize },
+    /// A standard deviation or `gamma` that is not strictly positive.
+    NotPositive {
+        field: &'static str,
+        index: usize,
+        value: f64,
+    },
+    /// A parameter (after folding the standardization into it) that does
+    /// not fit its Q format.
+    OutOfRange {
+        field: &'static str,
+        index: usize,
+        value: f64,
+        format: &'static str,
+    },
+}
+
+impl core::fmt::Display for CompileError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match *self {
+            CompileError::Dimension {
+                field,
+                found,
+                expected,
+            } => write!(
+                f,
+                "correction parameter `{field}` has {found} entries, expected {expected}"
+            ),
+            CompileError::NotFinite { field, index } => {
+                write!(f, "correction parameter `{field}`[{index}] is not finite")
+            }
+            CompileError::NotPositive {
+                field,
+                index,
+                value,
+            } => write!(
+                f,
+                "correction parameter `{field}`[{index}] = {value} must be strictly positive"
+            ),
+            CompileError::OutOfRange {
+                field,
+                index,
+                value,
+                format,
+            } => write!(
+                f,
+                "correction parameter `{field}`[{index}] = {value} does not fit {format}"
+            ),
+        }
+    }
+}
+
+impl core::error::Error for CompileError {}
+
+/// A compiled correction: the blob header fields it sets and the
+/// correction bytes of the blob body.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct CompiledCorrection {
+    pub kind: CorrectionKind,
+    /// Header `hidden` (NN), else 0.
+    pub hidden: u16,
+    /// Header `support_vectors` (SVR), else 0.
+    pub support_vectors: u32,
+    /// Header `q_position`: [`POSITION_FRAC`].
+    pub q_position: u8,
+    /// Header `q_weight`: [`ACTIVATION_FRAC`].
+    pub q_weight: u8,
+    /// The bytes [`Correction::parse`] reads.
+    pub bytes: Vec<u8>,
+}
+
+const LOG2_E: f64 = core::f64::consts::LOG2_E;
+
+fn pow2(e: u32) -> f64 {
+    libm::ldexp(1.0, e as i32)
+}
+
+fn check_finite(field: &'static str, values: &[f64]) -> Result<(), CompileError> {
+    match values.iter().position(|v| !v.is_finite()) {
+        Some(index) => Err(CompileError::NotFinite { field, index }),
+        None => Ok(()),
+    }
+}
+
+fn check_standardization(s: &Standardization, side: u8) -> Result<(), CompileError> {
+    let (mean, std) = if side == 0 {
+        ("input.mean", "input.std")
+    } else {
+        ("output.mean", "output.std")
+    };
+    check_finite(mean, &s.mean)?;
+    check_finite(std, &s.std)?;
+    for (index, &value) in s.std.iter().enumerate() {
+        if value <= 0.0 {
+            return Err(CompileError::NotPositive {
+                field: std,
+                index,
+                value,
+            });
+        }
+    }
+    Ok(())
+}
+
+fn q16(field: &'static str, index: usize, v: f64) -> Result<i32, CompileError> {
+    to_q_i32(v, POSITION_FRAC as u32).ok_or(CompileError::OutOfRange {
+        field,
+        index,
+        value: v,
+        format: "i32 Q15.16 mm",
+    })
+}
+
+/// Largest fractional bits in `range` with `max_abs * 2^frac <= limit`
+/// (after rounding); `None` if even the smallest does not fit.
+fn best_frac(max_abs: f64, limit: f64, range: core::ops::RangeInclusive<u8>) -> Option<u8> {
+    range
+        .rev()
+        .find(|&f| libm::round(max_abs * pow2(f as u32)) <= limit)
+}
+
+/// Fractional bits for one axis of output weights (`i32` each, the sum of
+/// magnitudes within [`OUTPUT_ABS_SUM_MAX`] after rounding).
+fn output_frac(w: &[f64]) -> Option<u8> {
+    let max = w.iter().fold(0f64, |m, v| m.max(libm::fabs(*v)));
+    let sum: f64 = w.iter().map(|v| libm::fabs(*v)).sum();
+    OUTPUT_FRAC_RANGE.rev().find(|&f| {
+        let s = pow2(f as u32);
+        libm::round(max * s) <= i32::MAX as f64
+            && sum * s + w.len() as f64 <= OUTPUT_ABS_SUM_MAX as f64
+    })
+}
+
+/// Fractional bits for one axis of SVR coefficients (`i32` each, the sum
+/// of magnitudes of every block of [`SVR_BLOCK`] within
+/// [`SVR_BLOCK_ABS_SUM_MAX`] after rounding).
+fn svr_coef_frac(c: &[f64]) -> Option<u8> {
+    let max = c.iter().fold(0f64, |m, v| m.max(libm::fabs(*v)));
+    let block_sum = c
+        .chunks(SVR_BLOCK)
+        .map(|b| b.iter().map(|v| libm::fabs(*v)).sum::<f64>())
+        .fold(0f64, f64::max);
+    OUTPUT_FRAC_RANGE.rev().find(|&f| {
+        let s = pow2(f as u32);
+        libm::round(max * s) <= i32::MAX as f64
+            && block_sum * s + SVR_BLOCK as f64 <= SVR_BLOCK_ABS_SUM_MAX as f64
+    })
+}
+
+fn largest(
+    field: &'static str,
+    values: impl Iterator<Item = f64>,
+    format: &'static str,
+) -> CompileError {
+    let (index, value) = values.enumerate().fold((0, 0f64), |(bi, bv), (i, v)| {
+        if libm::fabs(v) > libm::fabs(bv) {
+            (i, v)
+        } else {
+            (bi, bv)
+        }
+    });
+    CompileError::OutOfRange {
+        field,
+        index,
+        value,
+        format,
+    }
+}
+
+fn standardize(s: &Standardization, p: [f64; 3]) -> [f64; 3] {
+    [
+        (p[0] - s.mean[0]) / s.std[0],
+        (p[1] - s.mean[1]) / s.std[1],
+        (p[2] - s.mean[2]) / s.std[2],
+    ]
+}
+
+fn destandardize(s: &Standardization, mode: OutputMode, p: [f64; 3], y: [f64; 3]) -> [f64; 3] {
+    let mut out = [0.0; 3];
+    for a in 0..3 {
+        out[a] = y[a] * s.std[a] + s.mean[a];
+        if mode == OutputMode::Residual {
+            out[a] += p[a];
+        }
+    }
+    out
+}
+
+fn push_i32(out: &mut Vec<u8>, v: i32) {
+    out.extend_from_slice(&v.to_le_bytes());
+}
+
+impl NnModel {
+    /// Reference evaluation in f64 (eq. 10 standardization, tanh hidden
+    /// layer via libm, linear output, de-standardization, output mode):
+    /// position in mm to corrected position in mm. Parameter vectors of
+    /// inconsistent lengths are truncated to the shortest (see
+    /// [`NnModel::compile`] for the checked form).
+    pub fn evaluate(&self, p_mm: [f64; 3]) -> [f64; 3] {
+        let x = standardize(&self.input, p_mm);
+        let mut y = self.b2;
+        for (h, (w1, b1)) in self.w1.iter().zip(&self.b1).enumerate() {
+            let t = libm::tanh(w1[0] * x[0] + w1[1] * x[1] + w1[2] * x[2] + b1);
+            for (a, ya) in y.iter_mut().enumerate() {
+                *ya += self.w2[a].get(h).copied().unwrap_or(0.0) * t;
+            }
+        }
+        destandardize(&self.output, self.mode, p_mm, y)
+    }
+
+    /// Compiles the network into its fixed-point bytes (layout at
+    /// [`NN_HEADER_LEN`]). Folds the input scale into the first-layer
+    /// weights, the rounding of the input mean into the first-layer biases,
+    /// and the output scale and mean into the output weights and offsets;
+    /// picks the fractional bits of each layer (each output axis) to use
+    /// the full `i32` range.
+    pub fn compile(&self) -> Result<Vec<u8>, CompileError> {
+        let hidden = self.w1.len();
+        if hidden == 0 || hidden > u16::MAX as usize {
+            return Err(CompileError::Dimension {
+                field: "w1",
+                found: hidden,
+                expected: if hidden == 0 { 1 } else { u16::MAX as usize },
+            });
+        }
+        if self.b1.len() != hidden {
+            return Err(CompileError::Dimension {
+                field: "b1",
+                found: self.b1.len(),
+                expected: hidden,
+            });
+        }
+        const W2: [&str; 3] = ["w2[0]", "w2[1]", "w2[2]"];
+        for (a, w2) in self.w2.iter().enumerate() {
+            if w2.len() != hidden {
+                return Err(CompileError::Dimension {
+                    field: W2[a],
+                    found: w2.len(),
+                    expected: hidden,
+                });
+            }
+            check_finite(W2[a], w2)?;
+        }
+        check_standardization(&self.input, 0)?;
+        check_standardization(&self.output, 1)?;
+        check_finite("w1", self.w1.as_flattened())?;
+        check_finite("b1", &self.b1)?;
+        check_finite("b2", &self.b2)?;
+
+        // Input mean in Q15.16; the rounding residual goes into b1.
+        let mut mean = [0i32; 3];
+        let mut mean_residual = [0f64; 3];
+        for i in 0..3 {
+            mean[i] = q16("input.mean", i, self.input.mean[i])?;
+            mean_residual[i] = self.input.mean[i] - mean[i] as f64 / 65536.0;
+        }
+        // First layer with the input scale folded in (per mm).
+        let w1: Vec<[f64; 3]> = self
+            .w1
+            .iter()
+            .map(|w| {
+                [
+                    w[0] / self.input.std[0],
+                    w[1] / self.input.std[1],
+                    w[2] / self.input.std[2],
+                ]
+            })
+            .collect();
+        let w1_max = w1
+            .as_flattened()
+            .iter()
+            .fold(0f64, |m, v| m.max(libm::fabs(*v)));
+        let w1_frac = best_frac(w1_max, W1_MAX as f64, W1_FRAC_RANGE).ok_or_else(|| {
+            largest(
+                "w1",
+                w1.as_flattened().iter().copied(),
+                "i32 Q(12) per mm within 2^29 (w1 / input.std)",
+            )
+        })?;
+        // Output weights with the output scale folded in (mm).
+        let mut w2_frac = [0u8; 3];
+        let mut w2: [Vec<f64>; 3] = [Vec::new(), Vec::new(), Vec::new()];
+        for a in 0..3 {
+            w2[a] = self.w2[a].iter().map(|w| w * self.output.std[a]).collect();
+            w2_frac[a] = output_frac(&w2[a]).ok_or_else(|| {
+                largest(
+                    W2[a],
+                    w2[a].iter().copied(),
+                    "i32 Q(0) mm, sum of magnitudes within 2^32 (w2 * output.std)",
+                )
+            })?;
+        }
+        let mut offset = [0i32; 3];
+        for (a, o) in offset.iter_mut().enumerate() {
+            *o = q16(
+                "b2",
+                a,
+                self.b2[a] * self.output.std[a] + self.output.mean[a],
+            )?;
+        }
+
+        let mut out = Vec::with_capacity(NN_HEADER_LEN + NN_NEURON_LEN * hidden);
+        out.push(mode_byte(self.mode));
+        out.push(w1_frac);
+        out.extend_from_slice(&w2_frac);
+        out.extend_from_slice(&[0, 0, 0]);
+        mean.iter().for_each(|&v| push_i32(&mut out, v));
+        offset.iter().for_each(|&v| push_i32(&mut out, v));
+        let s1 = pow2(w1_frac as u32);
+        for h in 0..hidden {
+            for &w in &w1[h] {
+                // |w * 2^w1_frac| <= 2^29 by the choice of w1_frac.
+                push_i32(&mut out, libm::round(w * s1) as i32);
+            }
+            // x = w1 . (p - mean_q) + b1 - w1 . mean_residual.
+            let b1 = self.b1[h]
+                - (w1[h][0] * mean_residual[0]
+                    + w1[h][1] * mean_residual[1]
+                    + w1[h][2] * mean_residual[2]);
+            let b1q = to_q_i32(b1, PREACTIVATION_FRAC).ok_or(CompileError::OutOfRange {
+                field: "b1",
+                index: h,
+                value: self.b1[h],
+                format: "i32 Q4.27",
+            })?;
+            push_i32(&mut out, b1q);
+            for a in 0..3 {
+                push_i32(
+                    &mut out,
+                    libm::round(w2[a][h] * pow2(w2_frac[a] as u32)) as i32,
+                );
+            }
+        }
+        Ok(out)
+    }
+}
+
+impl SvrModel {
+    /// Reference evaluation in f64 (eq. 10 standardization, RBF kernel
+    /// `exp(-gamma |x - sv|^2)` via libm, de-standardization, output mode):
+    /// position in mm to corrected position in mm. Parameter vectors of
+    /// inconsistent lengths are truncated to the shortest.
+    pub fn evaluate(&self, p_mm: [f64; 3]) -> [f64; 3] {
+        let x = standardize(&self.input, p_mm);
+        let mut y = self.bias;
+        for (j, sv) in self.support.iter().enumerate() {
+            let d2 = (x[0] - sv[0]) * (x[0] - sv[0])
+                + (x[1] - sv[1]) * (x[1] - sv[1])
+                + (x[2] - sv[2]) * (x[2] - sv[2]);
+            let k = libm::exp(-self.gamma * d2);
+            for (a, ya) in y.iter_mut().enumerate() {
+                *ya += self.coef[a].get(j).copied().unwrap_or(0.0) * k;
+            }
+        }
+        destandardize(&self.output, self.mode, p_mm, y)
+    }
+
+    /// Compiles the regressor into its fixed-point bytes (layout at
+    /// [`SVR_HEADER_LEN`]): support vectors mapped into the scaled space
+    /// `sqrt(gamma log2 e) * standardized` (Q4.27, the input mean's
+    /// rounding folded in), coefficients with the output scale folded in,
+    /// fractional bits per axis. The support-vector count (header
+    /// `support_vectors`) is `self.support.len()`.
+    pub fn compile(&self) -> Result<Vec<u8>, CompileError> {
+        let n = self.support.len();
+        if n > (u32::MAX as usize - SVR_HEADER_LEN) / SVR_RECORD_LEN {
+            return Err(CompileError::Dimension {
+                field: "support",
+                found: n,
+                expected: (u32::MAX as usize - SVR_HEADER_LEN) / SVR_RECORD_LEN,
+            });
+        }
+        const COEF: [&str; 3] = ["coef[0]", "coef[1]", "coef[2]"];
+        for (a, c) in self.coef.iter().enumerate() {
+            if c.len() != n {
+                return Err(CompileError::Dimension {
+                    field: COEF[a],
+                    found: c.len(),
+                    expected: n,
+                });
+            }
+            check_finite(COEF[a], c)?;
+        }
+        check_standardization(&self.input, 0)?;
+        check_standardization(&self.output, 1)?;
+        check_finite("support", self.support.as_flattened())?;
+        check_finite("bias", &self.bias)?;
+        if !self.gamma.is_finite() {
+            return Err(CompileError::NotFinite {
+                field: "gamma",
+                index: 0,
+            });
+        }
+        if self.gamma <= 0.0 {
+            return Err(CompileError::NotPositive {
+                field: "gamma",
+                index: 0,
+                value: self.gamma,
+            });
+        }
+
+        let r = libm::sqrt(self.gamma * LOG2_E);
+        let mut mean = [0i32; 3];
+        let mut mean_residual = [0f64; 3];
+        let g = [
+            r / self.input.std[0],
+            r / self.input.std[1],
+            r / self.input.std[2],
+        ];
+        for i in 0..3 {
+            mean[i] = q16("input.mean", i, self.input.mean[i])?;
+            mean_residual[i] = self.input.mean[i] - mean[i] as f64 / 65536.0;
+        }
+        let g_max = g.iter().fold(0f64, |m, v| m.max(*v));
+        let scale_frac = best_frac(g_max, i32::MAX as f64, INPUT_FRAC_RANGE).ok_or_else(|| {
+            largest(
+                "input.std",
+                g.iter().copied(),
+                "i32 Q(11) per mm (sqrt(gamma log2 e) / input.std)",
+            )
+        })?;
+        let sg = pow2(scale_frac as u32);
+        let scale = [
+            libm::round(g[0] * sg) as i32,
+            libm::round(g[1] * sg) as i32,
+            libm::round(g[2] * sg) as i32,
+        ];
+        // The device computes q = (p - mean_q) * scale_q; the support
+        // vectors absorb the rounding of the mean and of the scale so that
+        // q - s is the exact scaled difference (to Q27 rounding):
+        // q_true = (p - mean) g = q_dev + (p - mean_q)(g - g_q) - mean_residual g.
+        // The middle term is at most |p - mean_q| * 2^-scale_frac/2 * ... and
+        // is left out (it is below 1e-9 over the workspace).
+        let mut coef_frac = [0u8; 3];
+        let mut coef: [Vec<f64>; 3] = [Vec::new(), Vec::new(), Vec::new()];
+        for a in 0..3 {
+            coef[a] = self.coef[a]
+                .iter()
+                .map(|c| c * self.output.std[a])
+                .collect();
+            coef_frac[a] = svr_coef_frac(&coef[a]).ok_or_else(|| {
+                largest(
+                    COEF[a],
+                    coef[a].iter().copied(),
+                    "i32 Q(0) mm, sum of magnitudes per block of 64 within 2^33 (coef * output.std)",
+                )
+            })?;
+        }
+        let mut offset = [0i32; 3];
+        for (a, o) in offset.iter_mut().enumerate() {
+            *o = q16(
+                "bias",
+                a,
+                self.bias[a] * self.output.std[a] + self.output.mean[a],
+            )?;
+        }
+
+        let mut out = Vec::with_capacity(SVR_HEADER_LEN + SVR_RECORD_LEN * n);
+        out.push(mode_byte(self.mode));
+        out.push(scale_frac);
+        out.extend_from_slice(&coef_frac);
+        out.extend_from_slice(&[0, 0, 0]);
+        mean.iter().for_each(|&v| push_i32(&mut out, v));
+        scale.iter().for_each(|&v| push_i32(&mut out, v));
+        offset.iter().for_each(|&v| push_i32(&mut out, v));
+        let space = pow2(SVR_SPACE_FRAC);
+        for (j, sv) in self.support.iter().enumerate() {
+            for i in 0..3 {
+                let s = sv[i] * r + mean_residual[i] * g[i];
+                let sq = libm::round(s * space);
+                if !(-(SUPPORT_MAX as f64)..=SUPPORT_MAX as f64).contains(&sq) {
+                    return Err(CompileError::OutOfRange {
+                        field: "support",
+                        index: 3 * j + i,
+                        value: sv[i],
+                        format: "Q4.27 within 8.0 after scaling by sqrt(gamma log2 e)",
+                    });
+                }
+                push_i32(&mut out, sq as i32);
+            }
+            for a in 0..3 {
+                push_i32(
+                    &mut out,
+                    libm::round(coef[a][j] * pow2(coef_frac[a] as u32)) as i32,
+                );
+            }
+        }
+        Ok(out)
+    }
+}
+
+impl CorrectionModel {
+    /// Reference evaluation in f64 (the input itself for `None`).
+    pub fn evaluate(&self, p_mm: [f64; 3]) -> [f64; 3] {
+        match self {
+            CorrectionModel::None => p_mm,
+            CorrectionModel::Nn(nn) => nn.evaluate(p_mm),
+            CorrectionModel::Svr(svr) => svr.evaluate(p_mm),
+        }
+    }
+
+    /// Compiles the correction: its bytes and the header fields they need.
+    pub fn compile(&self) -> Result<CompiledCorrection, CompileError> {
+        let (kind, hidden, support_vectors, bytes) = match self {
+            CorrectionModel::None => (CorrectionKind::None, 0, 0, Vec::new()),
+            CorrectionModel::Nn(nn) => (CorrectionKind::Nn, nn.w1.len() as u16, 0, nn.compile()?),
+            CorrectionModel::Svr(svr) => (
+                CorrectionKind::Svr,
+                0,
+                svr.support.len() as u32,
+                svr.compile()?,
+            ),
+        };
+        Ok(CompiledCorrection {
+            kind,
+            hidden,
+            support_vectors,
+            q_position: POSITION_FRAC,
+            q_weight: ACTIVATION_FRAC,
+            bytes,
+        })
+    }
+}
