@@ -408,125 +408,133 @@ fn ablation(quick: bool) {
     }
 }
 
-fn main() {
-    let mut seeds = 3u64;
-    let mut quick = false;
-    let mut analysis = true;
-    // `--only=independent:slip,model:clean`: just these cases.
-    let mut only: Option<Vec<String>> = None;
-    for a in std::env::args().skip(1) {
-        if let Some(list) = a.strip_prefix("--only=") {
-            only = Some(list.split(',').map(str::to_string).collect());
-            continue;
-        }
-        match a.as_str() {
-            "--quick" => quick = true,
-            "--no-analysis" => analysis = false,
-            "--ablation" => {
-                ablation(quick);
-                return;
-            }
-            s => {
-                seeds = s.parse().expect(
-                    "usage: physics_bench [SEEDS] [--quick] [--no-analysis] [--only=SIM:EFFECT,..]",
-                )
-            }
-        }
-    }
-    let mut config = if quick {
-        CalibrateConfig::quick()
-    } else {
-        CalibrateConfig::full()
-    };
-    config.quiet = true;
+/// What the command line asked for.
+struct Options {
+    seeds: u64,
+    quick: bool,
+    analysis: bool,
+    /// `--only=independent:slip,model:clean`: just these cases.
+    only: Option<Vec<String>>,
+    ablation: bool,
+}
 
-    println!(
-        "held-out (test session, {TEST_POINTS} points) eq. 7 error, mm: mean / p95 / max; config {}",
-        if quick { "quick" } else { "full" }
-    );
-    println!();
-    println!("| simulator | effect | seed | raw mean | identified | added by the loop (test mean after) | final stage | final |");
-    println!("|---|---|---:|---:|---|---|---|---|");
-    let model_cases = [
+impl Options {
+    fn parse() -> Options {
+        let mut o = Options {
+            seeds: 3,
+            quick: false,
+            analysis: true,
+            only: None,
+            ablation: false,
+        };
+        for a in std::env::args().skip(1) {
+            if let Some(list) = a.strip_prefix("--only=") {
+                o.only = Some(list.split(',').map(str::to_string).collect());
+                continue;
+            }
+            match a.as_str() {
+                "--quick" => o.quick = true,
+                "--no-analysis" => o.analysis = false,
+                "--ablation" => o.ablation = true,
+                s => o.seeds = s.parse().expect(
+                    "usage: physics_bench [SEEDS] [--quick] [--no-analysis] [--only=SIM:EFFECT,..]",
+                ),
+            }
+        }
+        o
+    }
+
+    /// Whether the case `simulator:effect` is to run.
+    fn wanted(&self, simulator: &str, effect: Option<&str>) -> bool {
+        self.only.as_ref().is_none_or(|o| {
+            o.iter()
+                .any(|c| *c == format!("{simulator}:{}", effect.unwrap_or("clean")))
+        })
+    }
+}
+
+/// The final-test figures of one case's seeds, for the summary table.
+type CaseRows = (&'static str, &'static str, Vec<(f64, f64, f64, f64)>);
+
+/// A clean independent device with its lattice run, truths and calibration,
+/// for the analysis after the tables.
+type CleanPhysics = (PhysicsDevice, Run, Vec<PhysicsTruth>, Calibrated);
+
+/// The model simulator's cases, one row per seed.
+fn model_cases(options: &Options, config: &CalibrateConfig, summary: &mut Vec<CaseRows>) {
+    for effect in [
         None,
         Some("drift:*:mm_per_s=0.0002"),
         Some("slip:3:at_s=2400,mm=5"),
-    ];
-    let physics_cases = [
+    ] {
+        if !options.wanted("model", effect) {
+            continue;
+        }
+        let mut rows = Vec::new();
+        for seed in 1..=options.seeds {
+            let c = run_calibration(&model_run(seed, effect), config);
+            rows.push(print_row("model", effect.unwrap_or("clean"), seed, &c));
+        }
+        summary.push(("model", effect.unwrap_or("clean"), rows));
+    }
+}
+
+/// The independent simulator's cases, one row per seed; what the loop left
+/// out and where sessions slipped go to `notes`.
+fn physics_cases(
+    options: &Options,
+    config: &CalibrateConfig,
+    summary: &mut Vec<CaseRows>,
+    notes: &mut Vec<String>,
+) -> Vec<CleanPhysics> {
+    let mut clean_physics = Vec::new();
+    for effect in [
         None,
         Some("drift-all"),
         Some("frame-flex"),
         Some("marker-offset"),
         Some("slip"),
         Some("heavy-string"),
-    ];
-    let mut summary = Vec::new();
-    let mut notes = Vec::new();
-    let wanted = |simulator: &str, effect: Option<&str>| {
-        only.as_ref().is_none_or(|o| {
-            o.iter()
-                .any(|c| *c == format!("{simulator}:{}", effect.unwrap_or("clean")))
-        })
-    };
-    for effect in model_cases {
-        if !wanted("model", effect) {
+    ] {
+        if !options.wanted("independent", effect) {
             continue;
         }
+        let name = effect.unwrap_or("clean");
         let mut rows = Vec::new();
-        for seed in 1..=seeds {
-            let c = run_calibration(&model_run(seed, effect), &config);
-            rows.push(print_row("model", effect.unwrap_or("clean"), seed, &c));
-        }
-        summary.push(("model", effect.unwrap_or("clean"), rows));
-    }
-    let mut clean_physics = Vec::new();
-    for effect in physics_cases {
-        if !wanted("independent", effect) {
-            continue;
-        }
-        let mut rows = Vec::new();
-        for seed in 1..=seeds {
+        for seed in 1..=options.seeds {
             let device = physics_device(seed, effect);
             let (run, truths, test_truths) = physics_run(&device, seed);
-            let c = run_calibration(&run, &config);
+            let c = run_calibration(&run, config);
             let steps = slip_steps(&truths);
             if !steps.is_empty() {
                 notes.push(format!(
-                    "independent {} seed {seed}: the lattice slipped (row, string, mm) {steps:?} of {} rows",
-                    effect.unwrap_or("clean"),
+                    "independent {name} seed {seed}: the lattice slipped (row, string, mm) {steps:?} of {} rows",
                     truths.len()
                 ));
             }
             if let Some(slips) = test_session_slips(&test_truths, &c) {
-                notes.push(format!(
-                    "independent {} seed {seed}: {slips}",
-                    effect.unwrap_or("clean")
-                ));
+                notes.push(format!("independent {name} seed {seed}: {slips}"));
             }
-            rows.push(print_row(
-                "independent",
-                effect.unwrap_or("clean"),
-                seed,
-                &c,
-            ));
+            rows.push(print_row("independent", name, seed, &c));
             let n = not_added(&c);
             if !n.is_empty() {
-                notes.push(format!(
-                    "independent {} seed {seed}: {n}",
-                    effect.unwrap_or("clean")
-                ));
+                notes.push(format!("independent {name} seed {seed}: {n}"));
             }
             if effect.is_none() {
                 clean_physics.push((device, run, truths, c));
             }
         }
-        summary.push(("independent", effect.unwrap_or("clean"), rows));
+        summary.push(("independent", name, rows));
     }
+    clean_physics
+}
 
+/// The averages of every case, and the notes.
+fn print_summary(summary: &[CaseRows], notes: &[String]) {
     println!();
     println!("| simulator | effect | identified mean (avg) | final mean (avg) | final p95 (worst) | final max (worst) |");
     println!("|---|---|---:|---:|---:|---:|");
-    for (sim, effect, rows) in &summary {
+    for (sim, effect, rows) in summary {
         let n = rows.len() as f64;
         println!(
             "| {sim} | {effect} | {:.3} | {:.3} | {:.3} | {:.2} |",
@@ -538,23 +546,14 @@ fn main() {
     }
     println!();
     println!("significant but not added, and unexplained (independent simulator):");
-    for n in &notes {
+    for n in notes {
         println!("- {n}");
     }
-    if !analysis {
-        return;
-    }
+}
 
-    for (device, run, truths, c) in &clean_physics {
-        println!();
-        println!(
-            "string residuals of the identified model (final loop model, no correction), clean independent device seed {}, training lattice: rms and spread of 8 quantile-bin means, mm",
-            device.seed
-        );
-        println!();
-        residual_analysis(device, run, truths, c);
-    }
-
+/// Trained on the 1 m lattice, tested on a 1.2 m cube: the error inside and
+/// outside the training volume, on both simulators.
+fn print_extrapolation(seeds: u64, config: &CalibrateConfig, clean_physics: &[CleanPhysics]) {
     println!();
     println!("extrapolation: trained on the 1 m lattice, tested on 500 random points of a 1.2 m cube (final model)");
     println!();
@@ -563,7 +562,7 @@ fn main() {
     for seed in 1..=seeds {
         // Model simulator.
         let run = model_run(seed, None);
-        let c = run_calibration(&run, &config);
+        let c = run_calibration(&run, config);
         let mut wide = SimConfig::default();
         wide.lattice.size_mm = 1200.0;
         let device = Device::new(&wide, seed).expect("model device");
@@ -585,7 +584,7 @@ fn main() {
             o.n
         );
     }
-    for (device, _, _, c) in &clean_physics {
+    for (device, _, _, c) in clean_physics {
         let mut wide = device.clone();
         wide.config.lattice.size_mm = 1200.0;
         let (test, _) = physics::simulate_session(
@@ -607,4 +606,44 @@ fn main() {
             o.n
         );
     }
+}
+
+fn main() {
+    let options = Options::parse();
+    if options.ablation {
+        ablation(options.quick);
+        return;
+    }
+    let mut config = if options.quick {
+        CalibrateConfig::quick()
+    } else {
+        CalibrateConfig::full()
+    };
+    config.quiet = true;
+
+    println!(
+        "held-out (test session, {TEST_POINTS} points) eq. 7 error, mm: mean / p95 / max; config {}",
+        if options.quick { "quick" } else { "full" }
+    );
+    println!();
+    println!("| simulator | effect | seed | raw mean | identified | added by the loop (test mean after) | final stage | final |");
+    println!("|---|---|---:|---:|---|---|---|---|");
+    let mut summary = Vec::new();
+    let mut notes = Vec::new();
+    model_cases(&options, &config, &mut summary);
+    let clean_physics = physics_cases(&options, &config, &mut summary, &mut notes);
+    print_summary(&summary, &notes);
+    if !options.analysis {
+        return;
+    }
+    for (device, run, truths, c) in &clean_physics {
+        println!();
+        println!(
+            "string residuals of the identified model (final loop model, no correction), clean independent device seed {}, training lattice: rms and spread of 8 quantile-bin means, mm",
+            device.seed
+        );
+        println!();
+        residual_analysis(device, run, truths, c);
+    }
+    print_extrapolation(options.seeds, &config, &clean_physics);
 }
