@@ -609,6 +609,7 @@ fn run(rig: Rig<'_>, plan: Plan<'_>, report: &mut CollectReport) -> Result<(), C
     };
     c.wait_for_first_state()?;
     c.continue_the_file_clock();
+    c.last_frame_at = Instant::now();
     c.fill_cells()
 }
 
@@ -678,7 +679,6 @@ impl Collection<'_, '_> {
                 self.report.clock_offset_s = t_s_of((last - first_s) * 1e6);
             }
         }
-        self.last_frame_at = Instant::now();
     }
 
     fn cancelled(&self) -> bool {
