@@ -503,109 +503,201 @@ fn run_boot(
     boots: u32,
 ) -> (VirtualFlash, Exit) {
     let shared = flash.shared.clone();
-    let tick_us = u64::from(config.tick_us);
-    let mut dev = match Device::new(config.device, flash, ram, spare, plant.raw_home, 0) {
+    let dev = match Device::new(config.device, flash, ram, spare, plant.raw_home, 0) {
         Ok(d) => d,
-        Err(_) => {
-            // Invalid safety limits in the configuration: the device cannot
-            // boot. Stay silent until told otherwise.
-            loop {
-                match control.recv() {
-                    Ok(Control::PowerCycle) => {}
-                    _ => {
-                        return (
-                            VirtualFlash {
-                                inner: Box::new(RamFlash::new()),
-                                shared,
-                            },
-                            Exit::Shutdown,
-                        )
-                    }
-                }
-            }
-        }
+        // Invalid safety limits in the configuration: the device cannot
+        // boot.
+        Err(_) => return stay_unbooted(control, shared),
     };
-    let mut link = DeviceLink::new();
-    let mut now_us = 0u64;
-    let mut ticks = 0u64;
-    let mut anchor = (Instant::now(), 0u64);
-    let speed = match config.pace {
-        Pace::RealTime { speed } => speed,
-        Pace::Fast | Pace::Virtual => 1.0,
+    let mut boot = Boot {
+        master,
+        config,
+        plant,
+        status,
+        shared,
+        boots,
+        dev,
+        link: DeviceLink::new(),
+        now_us: 0,
+        ticks: 0,
+        anchor: (Instant::now(), 0),
+        speed: match config.pace {
+            Pace::RealTime { speed } => speed,
+            Pace::Fast | Pace::Virtual => 1.0,
+        },
+        streaming: false,
+        resync: false,
+        tx_dropped: 0,
     };
-    let fast = matches!(config.pace, Pace::Fast);
-    let virtual_time = matches!(config.pace, Pace::Virtual);
-    let mut streaming = false;
-    let mut resync = false;
-    let mut tx_dropped = 0u32;
     let mut buf = [0u8; 4096];
-    let real_at = |anchor: (Instant, u64), t_us: u64| {
-        anchor.0 + Duration::from_secs_f64(t_us.saturating_sub(anchor.1) as f64 / 1e6 / speed)
-    };
-    let publish = |dev: &mut Device<'_, VirtualFlash>,
-                   link: &DeviceLink,
-                   now_us: u64,
-                   ticks: u64,
-                   tx_dropped: u32,
-                   plant: &Plant| {
-        if let Ok(mut s) = status.lock() {
-            s.boots = boots;
-            s.device_time_us = now_us;
-            s.ticks = ticks;
-            s.power_lost = shared.lost.load(Ordering::SeqCst);
-            let c = link.counters();
-            s.rx = c.rx;
-            s.tx_frames = c.tx_frames;
-            s.tx_dropped = tx_dropped;
-            s.plant_tensions_n = plant.tensions_n();
-            s.commanded_n = dev.last_output().tensions_n;
-            // As requests left it (a `Disarm` answered between two ticks
-            // counts, even while the simulated world waits).
-            s.armed = dev.armed();
-            s.plant_error = plant.error().map(str::to_string);
-            s.flash_operations = shared.ops.load(Ordering::SeqCst);
-        }
-    };
-    publish(&mut dev, &link, now_us, ticks, tx_dropped, plant);
+    boot.publish();
     loop {
         match control.try_recv() {
-            Ok(Control::PowerCycle) => return (dev.into_flash(), Exit::PowerCycle),
+            Ok(Control::PowerCycle) => return (boot.dev.into_flash(), Exit::PowerCycle),
             Ok(Control::Shutdown) | Err(TryRecvError::Disconnected) => {
-                return (dev.into_flash(), Exit::Shutdown)
+                return (boot.dev.into_flash(), Exit::Shutdown)
             }
             Err(TryRecvError::Empty) => {}
         }
-        let dead = shared.lost.load(Ordering::SeqCst);
+        boot.serve(&mut buf);
+    }
+}
+
+/// A device that cannot boot stays silent until told otherwise (a power
+/// cycle boots it again on the same configuration: silent again).
+fn stay_unbooted(control: &Receiver<Control>, shared: Arc<FlashShared>) -> (VirtualFlash, Exit) {
+    loop {
+        match control.recv() {
+            Ok(Control::PowerCycle) => {}
+            _ => {
+                return (
+                    VirtualFlash {
+                        inner: Box::new(RamFlash::new()),
+                        shared,
+                    },
+                    Exit::Shutdown,
+                )
+            }
+        }
+    }
+}
+
+/// One boot of the virtual device: the device and its link, its clock
+/// against real time, and what it tells the [`VirtualDevice`].
+struct Boot<'a> {
+    master: &'a mut serialport::TTYPort,
+    config: &'a VirtualDeviceConfig,
+    plant: &'a mut Plant,
+    status: &'a Mutex<VirtualStatus>,
+    shared: Arc<FlashShared>,
+    boots: u32,
+    dev: Device<'a, VirtualFlash>,
+    link: DeviceLink,
+    /// Device time of the last tick, µs since boot.
+    now_us: u64,
+    ticks: u64,
+    /// (real time, device time) that keep the pace: device time `t` is due
+    /// at `anchor.0 + (t - anchor.1) / speed`.
+    anchor: (Instant, u64),
+    speed: f64,
+    /// A state stream is on.
+    streaming: bool,
+    /// The peer may hold half a frame (see [`write_frame`]).
+    resync: bool,
+    tx_dropped: u32,
+}
+
+/// How one pass runs its ticks.
+struct Pass {
+    /// The simulated world's limit (a clocked hand's committed path).
+    gate: Option<u64>,
+    /// Ticks back to back in virtual time.
+    run_virtual: bool,
+    /// Ticks back to back (`Fast` while streaming, or virtual time).
+    run_fast: bool,
+}
+
+impl Pass {
+    /// Device time `t` lies past the simulated world's limit.
+    fn gated(&self, t: u64) -> bool {
+        self.gate.is_some_and(|g| t > g)
+    }
+}
+
+impl Boot<'_> {
+    /// When device time `t_us` is due in real time.
+    fn real_at(&self, t_us: u64) -> Instant {
+        let anchor = self.anchor;
+        anchor.0 + Duration::from_secs_f64(t_us.saturating_sub(anchor.1) as f64 / 1e6 / self.speed)
+    }
+
+    /// Writes the device's status for the [`VirtualDevice`].
+    fn publish(&mut self) {
+        if let Ok(mut s) = self.status.lock() {
+            s.boots = self.boots;
+            s.device_time_us = self.now_us;
+            s.ticks = self.ticks;
+            s.power_lost = self.shared.lost.load(Ordering::SeqCst);
+            let c = self.link.counters();
+            s.rx = c.rx;
+            s.tx_frames = c.tx_frames;
+            s.tx_dropped = self.tx_dropped;
+            s.plant_tensions_n = self.plant.tensions_n();
+            s.commanded_n = self.dev.last_output().tensions_n;
+            // As requests left it (a `Disarm` answered between two ticks
+            // counts, even while the simulated world waits).
+            s.armed = self.dev.armed();
+            s.plant_error = self.plant.error().map(str::to_string);
+            s.flash_operations = self.shared.ops.load(Ordering::SeqCst);
+        }
+    }
+
+    /// One pass: the requests that came, answered, then the ticks due.
+    fn serve(&mut self, buf: &mut [u8]) {
+        let tick_us = u64::from(self.config.tick_us);
+        let dead = self.shared.lost.load(Ordering::SeqCst);
         // The simulated world's limit (a clocked hand's committed path):
         // never tick past it, whatever the pace.
-        let gate = plant.ready_until_us();
-        let gated = |t: u64| gate.is_some_and(|g| t > g);
-        let run_virtual = virtual_time && gate.is_some() && !dead;
-        let run_fast = (fast && streaming && !dead) || run_virtual;
-        let due = real_at(anchor, now_us + tick_us);
-        let wait = if gated(now_us + tick_us) {
+        let gate = self.plant.ready_until_us();
+        let run_virtual = matches!(self.config.pace, Pace::Virtual) && gate.is_some() && !dead;
+        let pass = Pass {
+            gate,
+            run_virtual,
+            run_fast: (matches!(self.config.pace, Pace::Fast) && self.streaming && !dead)
+                || run_virtual,
+        };
+        let n = self.read_requests(buf, &pass);
+        self.answer(&buf[..n]);
+        if self.shared.lost.load(Ordering::SeqCst) {
+            // Silent until the power cycle; keep the clock anchored.
+            self.anchor = (Instant::now(), self.now_us);
+            self.publish();
+            return;
+        }
+        self.run_ticks(&pass);
+        if pass.run_fast
+            || pass.gated(self.now_us + tick_us)
+            || self.real_at(self.now_us + 100 * tick_us) < Instant::now()
+        {
+            // Fast, or far behind (a loaded host): device time goes on from
+            // here instead of bursting to catch up.
+            self.anchor = (Instant::now(), self.now_us);
+        }
+        self.publish();
+    }
+
+    /// Reads what the host sent into `buf`, waiting at most until the next
+    /// tick is due (not at all when ticks run back to back); its length.
+    fn read_requests(&mut self, buf: &mut [u8], pass: &Pass) -> usize {
+        let next_us = self.now_us + u64::from(self.config.tick_us);
+        let due = self.real_at(next_us);
+        let wait = if pass.gated(next_us) {
             Duration::from_millis(1)
-        } else if run_fast {
+        } else if pass.run_fast {
             Duration::ZERO
         } else {
             due.saturating_duration_since(Instant::now())
                 .min(Duration::from_millis(5))
         };
-        let _ = master.set_timeout(wait.max(Duration::from_micros(1)));
-        let n = if wait.is_zero() {
+        let _ = self.master.set_timeout(wait.max(Duration::from_micros(1)));
+        if wait.is_zero() {
             // Do not wait: only what is already there.
-            let _ = master.set_timeout(Duration::ZERO);
-            master.read(&mut buf).unwrap_or(0)
+            let _ = self.master.set_timeout(Duration::ZERO);
+            self.master.read(buf).unwrap_or(0)
         } else {
-            master.read(&mut buf).unwrap_or(0)
-        };
-        // Requests.
-        let mut rest = &buf[..n];
-        while !rest.is_empty() && !shared.lost.load(Ordering::SeqCst) {
-            let now = now_us;
-            let d = &mut dev;
-            let st = &mut streaming;
-            let (used, reply) = link.push(rest, |req, counters| {
+            self.master.read(buf).unwrap_or(0)
+        }
+    }
+
+    /// Handles the requests in `bytes` at the device time of the last tick
+    /// and sends the replies (none once the power went).
+    fn answer(&mut self, bytes: &[u8]) {
+        let mut rest = bytes;
+        while !rest.is_empty() && !self.shared.lost.load(Ordering::SeqCst) {
+            let now = self.now_us;
+            let d = &mut self.dev;
+            let st = &mut self.streaming;
+            let (used, reply) = self.link.push(rest, |req, counters| {
                 d.set_link_counters(counters);
                 match req {
                     Request::StreamOn { decimation } if *decimation > 0 => *st = true,
@@ -619,85 +711,92 @@ fn run_boot(
             // has seen a reply reads a status that already counts its request
             // (and the frames rejected before it).
             let reply = reply.map(<[u8]>::to_vec);
-            publish(&mut dev, &link, now_us, ticks, tx_dropped, plant);
+            self.publish();
             // A reply to a request during which the power went is never sent.
             if let Some(frame) = reply {
-                if !shared.lost.load(Ordering::SeqCst)
-                    && !write_frame(master, &frame, Duration::from_millis(50), &mut resync)
+                if !self.shared.lost.load(Ordering::SeqCst)
+                    && !write_frame(
+                        self.master,
+                        &frame,
+                        Duration::from_millis(50),
+                        &mut self.resync,
+                    )
                 {
-                    tx_dropped = tx_dropped.wrapping_add(1);
+                    self.tx_dropped = self.tx_dropped.wrapping_add(1);
                 }
             }
         }
-        if shared.lost.load(Ordering::SeqCst) {
-            // Silent until the power cycle; keep the clock anchored.
-            anchor = (Instant::now(), now_us);
-            publish(&mut dev, &link, now_us, ticks, tx_dropped, plant);
-            continue;
-        }
-        // Ticks due.
+    }
+
+    /// Runs the ticks due (a bounded burst), sending each tick's events and
+    /// state frame.
+    fn run_ticks(&mut self, pass: &Pass) {
+        let tick_us = u64::from(self.config.tick_us);
         let now_real = Instant::now();
-        let mut budget = if run_virtual {
+        let mut budget = if pass.run_virtual {
             20
-        } else if run_fast {
+        } else if pass.run_fast {
             1
         } else {
             20
         };
         while budget > 0
-            && !gated(now_us + tick_us)
-            && (run_fast || real_at(anchor, now_us + tick_us) <= now_real)
+            && !pass.gated(self.now_us + tick_us)
+            && (pass.run_fast || self.real_at(self.now_us + tick_us) <= now_real)
         {
             budget -= 1;
-            let t = now_us + tick_us;
-            let commanded = dev.last_output().tensions_n;
-            let raw = plant.step(t, &commanded, dev.motors_enabled());
+            let t = self.now_us + tick_us;
+            let commanded = self.dev.last_output().tensions_n;
+            let raw = self.plant.step(t, &commanded, self.dev.motors_enabled());
             // The simulated clock is at `t` before anything stamped `t`
             // leaves the device: no sample arrives before its time.
-            plant.publish_tick();
+            self.plant.publish_tick();
             let t0 = Instant::now();
-            dev.tick(&TickInput {
+            self.dev.tick(&TickInput {
                 raw_counts: raw,
                 now_us: t,
                 estop: false,
             });
             let took = t0.elapsed().as_micros().min(u128::from(u16::MAX)) as u16;
-            dev.record_loop_time(took);
-            now_us = t;
-            ticks += 1;
-            let frame_wait = if run_fast {
-                Duration::from_millis(200)
-            } else {
-                Duration::ZERO
+            self.dev.record_loop_time(took);
+            self.now_us = t;
+            self.ticks += 1;
+            self.send_tick_output(pass.run_fast);
+        }
+    }
+
+    /// Sends the events and the state frame of the last tick; a state frame
+    /// waits up to 200 ms for room when ticks run back to back (the reader
+    /// paces the device), not at all otherwise.
+    fn send_tick_output(&mut self, run_fast: bool) {
+        let frame_wait = if run_fast {
+            Duration::from_millis(200)
+        } else {
+            Duration::ZERO
+        };
+        while let Some(e) = self.dev.take_event() {
+            if let Some(frame) = self.link.encode_event(&e) {
+                if !write_frame(
+                    self.master,
+                    frame,
+                    Duration::from_millis(5),
+                    &mut self.resync,
+                ) {
+                    self.tx_dropped = self.tx_dropped.wrapping_add(1);
+                }
+            }
+        }
+        if let Some(s) = self.dev.state_frame() {
+            self.plant.note_state_sent();
+            let sent = match self.link.encode_state(&s) {
+                Some(frame) => write_frame(self.master, frame, frame_wait, &mut self.resync),
+                None => false,
             };
-            while let Some(e) = dev.take_event() {
-                if let Some(frame) = link.encode_event(&e) {
-                    if !write_frame(master, frame, Duration::from_millis(5), &mut resync) {
-                        tx_dropped = tx_dropped.wrapping_add(1);
-                    }
-                }
-            }
-            if let Some(s) = dev.state_frame() {
-                plant.note_state_sent();
-                let sent = match link.encode_state(&s) {
-                    Some(frame) => write_frame(master, frame, frame_wait, &mut resync),
-                    None => false,
-                };
-                if !sent {
-                    tx_dropped = tx_dropped.wrapping_add(1);
-                    dev.count_stream_dropped();
-                }
+            if !sent {
+                self.tx_dropped = self.tx_dropped.wrapping_add(1);
+                self.dev.count_stream_dropped();
             }
         }
-        if run_fast
-            || gated(now_us + tick_us)
-            || real_at(anchor, now_us + 100 * tick_us) < Instant::now()
-        {
-            // Fast, or far behind (a loaded host): device time goes on from
-            // here instead of bursting to catch up.
-            anchor = (Instant::now(), now_us);
-        }
-        publish(&mut dev, &link, now_us, ticks, tx_dropped, plant);
     }
 }
 

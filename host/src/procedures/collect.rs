@@ -70,7 +70,7 @@ use crate::data::dataset::{DatasetError, Geometry, Sample, Session, SessionAppen
 use crate::data::observe::{orientation_of_rotation, ROTATION_TOLERANCE};
 use crate::device::link::{Client, LinkError};
 use crate::device::tracker::{
-    ClockSync, HostClock, Next, StateHistory, TrackerError, TrackerSource,
+    ClockSync, HostClock, Next, StateHistory, TrackerError, TrackerFrame, TrackerSource,
 };
 
 pub use crate::sim::lattice::{Lattice, LatticeError};
@@ -526,14 +526,18 @@ pub fn collect(
     let start = Instant::now();
     let mut appender = opened.appender;
     let result = run(
-        client,
-        tracker,
-        lattice,
-        config,
-        &mut appender,
-        done,
+        Rig {
+            client: &mut *client,
+            tracker,
+            sink: &mut *sink,
+        },
+        Plan {
+            lattice,
+            config,
+            appender: &mut appender,
+            done,
+        },
         &mut report,
-        sink,
     );
     // Whatever happened, leave the motors off and the stream closed.
     let _ = client.disarm();
@@ -557,18 +561,62 @@ pub fn collect(
     result.map(|()| report)
 }
 
-#[allow(clippy::too_many_arguments)]
-fn run(
-    client: &mut Client,
-    tracker: &mut dyn TrackerSource,
-    lattice: &Lattice,
-    config: &CollectConfig,
-    appender: &mut SessionAppender,
-    mut done: Vec<Option<u64>>,
-    report: &mut CollectReport,
-    sink: &mut dyn CueSink,
-) -> Result<(), CollectError> {
-    let port = client.port_name().to_string();
+/// What a collection talks to: the device, the tracker and the operator's
+/// view.
+struct Rig<'a> {
+    client: &'a mut Client,
+    tracker: &'a mut dyn TrackerSource,
+    sink: &'a mut dyn CueSink,
+}
+
+/// What a collection fills: the lattice's cells not done, in order, into
+/// the session file.
+struct Plan<'a> {
+    lattice: &'a Lattice,
+    config: &'a CollectConfig,
+    appender: &'a mut SessionAppender,
+    /// The line of the row that captured each cell, by position in
+    /// [`Lattice::order`] (see [`done_cells`]).
+    done: Vec<Option<u64>>,
+}
+
+/// One collection under way: the rig, the plan, and what the steps share.
+struct Collection<'r, 'p> {
+    rig: Rig<'r>,
+    plan: Plan<'p>,
+    report: &'p mut CollectReport,
+    /// The device's serial port (for errors).
+    port: String,
+    states: States,
+    /// When the device last heard from this host.
+    last_request: Instant,
+    last_frame_at: Instant,
+    arm_watch: ArmWatch,
+}
+
+fn run(rig: Rig<'_>, plan: Plan<'_>, report: &mut CollectReport) -> Result<(), CollectError> {
+    let port = rig.client.port_name().to_string();
+    let last_request = start_device(rig.client, plan.config)?;
+    let mut c = Collection {
+        states: States::new(plan.config.host_clock.clone()),
+        arm_watch: ArmWatch::new(plan.config.max_rearms),
+        rig,
+        plan,
+        report,
+        port,
+        last_request,
+        last_frame_at: Instant::now(),
+    };
+    c.wait_for_first_state()?;
+    c.continue_the_file_clock();
+    c.last_frame_at = Instant::now();
+    c.fill_cells()
+}
+
+/// Gives a device without a calibration blob the nominal string model,
+/// sets the limits, arms it at pre-tension and starts its stream. Returns
+/// when the device last heard from the host.
+fn start_device(client: &mut Client, config: &CollectConfig) -> Result<Instant, CollectError> {
     if let Some(model) = config.string_model {
         if client.info()?.is_none() {
             client.set_string_model(model)?;
@@ -577,250 +625,352 @@ fn run(
     client.set_limits(config.limits)?;
     client.clear_faults()?;
     client.arm()?;
-    let mut last_request = Instant::now();
+    let last_request = Instant::now();
     client.stream_on(config.decimation)?;
-    let mut states = States::new(config.host_clock.clone());
+    Ok(last_request)
+}
 
-    // The first state gives the device clock: behind the file's last row
-    // means a reboot, and `t_s` continues from that row.
-    let waiting_since = Instant::now();
-    while states.first.is_none() {
-        states.poll(client)?;
-        // Frames read meanwhile feed the clock map (and a simulated
-        // tracker in step with this procedure waits for them).
-        if let Next::Frame(f) = tracker.next_frame(Duration::from_millis(1))? {
-            states.tracker_frame(f.ts_s, f.received_at);
+/// The time per cell of the last captures times the cells left; `None`
+/// before two captures.
+fn time_left(captures: &VecDeque<Instant>, report: &CollectReport) -> Option<Duration> {
+    match (captures.front(), captures.back()) {
+        (Some(a), Some(b)) if captures.len() >= 2 => {
+            let per_cell = b.duration_since(*a).as_secs_f64() / (captures.len() - 1) as f64;
+            let left = (report.total - report.done) as f64;
+            Some(Duration::from_secs_f64(per_cell * left))
         }
-        if waiting_since.elapsed() > config.device_timeout {
-            return Err(CollectError::DeviceSilent {
-                port,
-                seconds: waiting_since.elapsed().as_secs_f64(),
-            });
+        _ => None,
+    }
+}
+
+impl Collection<'_, '_> {
+    /// Waits for the first state, which gives the device clock (sending
+    /// heartbeats meanwhile).
+    fn wait_for_first_state(&mut self) -> Result<(), CollectError> {
+        let config = self.plan.config;
+        let waiting_since = Instant::now();
+        while self.states.first.is_none() {
+            self.states.poll(self.rig.client)?;
+            // Frames read meanwhile feed the clock map (and a simulated
+            // tracker in step with this procedure waits for them).
+            if let Next::Frame(f) = self.rig.tracker.next_frame(Duration::from_millis(1))? {
+                self.states.tracker_frame(f.ts_s, f.received_at);
+            }
+            if waiting_since.elapsed() > config.device_timeout {
+                return Err(CollectError::DeviceSilent {
+                    port: self.port.clone(),
+                    seconds: waiting_since.elapsed().as_secs_f64(),
+                });
+            }
+            if self.last_request.elapsed() >= config.heartbeat_every {
+                self.rig.client.heartbeat()?;
+                self.last_request = Instant::now();
+            }
         }
-        if last_request.elapsed() >= config.heartbeat_every {
-            client.heartbeat()?;
-            last_request = Instant::now();
+        Ok(())
+    }
+
+    /// A first state behind the file's last row means a reboot: `t_s`
+    /// continues from that row.
+    fn continue_the_file_clock(&mut self) {
+        let first_s = self.states.first.map_or(0.0, |s| s.time_us as f64 / 1e6);
+        if let Some(last) = self.plan.appender.last_t_s() {
+            if first_s < last {
+                self.report.clock_offset_s = t_s_of((last - first_s) * 1e6);
+            }
         }
     }
-    let first_s = states.first.map_or(0.0, |s| s.time_us as f64 / 1e6);
-    if let Some(last) = appender.last_t_s() {
-        if first_s < last {
-            report.clock_offset_s = t_s_of((last - first_s) * 1e6);
-        }
-    }
-    let order = lattice.order();
-    let half = lattice.cell_mm() / 2.0;
-    let mut last_frame_at = Instant::now();
-    let mut captures: VecDeque<Instant> = VecDeque::new();
-    let mut arm_watch = ArmWatch::new(config.max_rearms);
-    let cancelled = || {
-        config
+
+    fn cancelled(&self) -> bool {
+        self.plan
+            .config
             .cancel
             .as_ref()
             .is_some_and(|c| c.load(Ordering::SeqCst))
-    };
+    }
 
-    while let Some(index) = done.iter().position(Option::is_none) {
-        if config.max_cells.is_some_and(|m| report.captured >= m) {
-            report.stop = Stop::MaxCells;
-            return Ok(());
-        }
-        let cell = order[index];
-        let centre = lattice.cell_centre(cell);
-        let time_left = match (captures.front(), captures.back()) {
-            (Some(a), Some(b)) if captures.len() >= 2 => {
-                let per_cell = b.duration_since(*a).as_secs_f64() / (captures.len() - 1) as f64;
-                let left = (report.total - report.done) as f64;
-                Some(Duration::from_secs_f64(per_cell * left))
-            }
-            _ => None,
-        };
-        let progress = Some(Progress {
-            done: report.done,
-            total: report.total,
-            time_left,
-        });
-        // Frames until one captures this cell.
-        let row = loop {
-            if cancelled() {
-                report.stop = Stop::Cancelled;
+    /// Shows the cells not done in order, and captures each, until every
+    /// cell is done, `max_cells` were captured or the run is cancelled.
+    fn fill_cells(&mut self) -> Result<(), CollectError> {
+        let order = self.plan.lattice.order();
+        let mut captures: VecDeque<Instant> = VecDeque::new();
+        while let Some(index) = self.plan.done.iter().position(Option::is_none) {
+            if self
+                .plan
+                .config
+                .max_cells
+                .is_some_and(|m| self.report.captured >= m)
+            {
+                self.report.stop = Stop::MaxCells;
                 return Ok(());
             }
-            states.poll(client)?;
-            // A device that rebooted has lost its home: no rearm helps.
-            if let Some((previous_s, now_s)) = states.went_back {
-                return Err(CollectError::ClockWentBack {
-                    port,
-                    previous_s,
-                    now_s,
-                });
-            }
-            // A device that disarmed itself is armed again, a few times.
-            let latest = states.latest().map(|s| (s.armed, s.faults));
-            match arm_watch.check(client, latest) {
-                Ok(true) => {
-                    report.rearms += 1;
-                    last_request = Instant::now();
-                }
-                Ok(false) => {}
-                Err(ArmWatchError::Link(e)) => return Err(e.into()),
-                Err(ArmWatchError::KeepsDisarming { events, last }) => {
-                    let faults = states.latest().map_or(0, |s| s.faults.0);
-                    let simulated = matches!(config.host_clock, HostClock::Simulated(_));
-                    return Err(CollectError::KeepsDisarming {
-                        events,
-                        last,
-                        advice: disarm_advice(faults, simulated),
-                    });
-                }
-            }
-            if states.last_at.elapsed() > config.device_timeout {
-                return Err(CollectError::DeviceSilent {
-                    port,
-                    seconds: states.last_at.elapsed().as_secs_f64(),
-                });
-            }
-            states.keep_alive(client, &mut last_request, config.heartbeat_every)?;
-            // A short wait: states are read (and stamped) at least every
-            // 2 ms, so some arrive promptly enough for the clock map.
-            let frame = match tracker.next_frame(Duration::from_millis(2))? {
-                Next::Frame(f) => f,
-                Next::End => {
-                    return Err(CollectError::TrackerEnded {
-                        tracker: config.tracker_label.clone(),
-                    })
-                }
-                Next::Timeout => {
-                    if last_frame_at.elapsed() > config.tracker_timeout {
-                        return Err(CollectError::TrackerSilent {
-                            tracker: config.tracker_label.clone(),
-                            seconds: last_frame_at.elapsed().as_secs_f64(),
-                        });
-                    }
-                    continue;
-                }
+            let progress = Some(Progress {
+                done: self.report.done,
+                total: self.report.total,
+                time_left: time_left(&captures, self.report),
+            });
+            let Some(row) = self.capture(order[index], progress)? else {
+                self.report.stop = Stop::Cancelled;
+                return Ok(());
             };
-            last_frame_at = Instant::now();
-            report.frames += 1;
-            states.tracker_frame(frame.ts_s, frame.received_at);
-            // Every tracker frame is a heartbeat too: the device hears from
-            // the host at the tracker's rate in its own time, however fast
-            // or slow the host runs.
-            client.heartbeat()?;
-            last_request = Instant::now();
-            if states.went_back.is_some() {
+            let line = self.plan.appender.append(&row)?;
+            self.plan.done[index] = Some(line);
+            self.report.captured += 1;
+            self.report.done += 1;
+            self.arm_watch.progress();
+            captures.push_back(Instant::now());
+            while captures.len() > self.plan.config.eta_window {
+                captures.pop_front();
+            }
+        }
+        self.report.stop = Stop::Complete;
+        Ok(())
+    }
+
+    /// Frames until one captures `cell`: its row; `None` when the run was
+    /// cancelled.
+    fn capture(
+        &mut self,
+        cell: [u32; 3],
+        progress: Option<Progress>,
+    ) -> Result<Option<Sample>, CollectError> {
+        let centre = self.plan.lattice.cell_centre(cell);
+        loop {
+            if self.cancelled() {
+                return Ok(None);
+            }
+            self.watch_device()?;
+            let Some(frame) = self.next_frame()? else {
+                continue;
+            };
+            if self.states.went_back.is_some() {
                 continue;
             }
-            let body = frame
-                .body
-                .as_ref()
-                .filter(|b| b.id == config.body_id && b.is_visible());
-            let marker = body.map(|b| b.position_mm);
-            let rotation = body.and_then(|b| b.rotation);
-            let mut cues = Cues {
-                marker_room_mm: marker,
+            let cues = Cues {
                 target_room_mm: Some(centre),
-                target_half_size_mm: half,
+                target_half_size_mm: self.plan.lattice.cell_mm() / 2.0,
                 progress,
                 ..Cues::default()
             };
-            let Some(marker) = marker else {
-                report.occluded += 1;
-                cues.message = "marker occluded: bring it back into the tracker's view".into();
-                sink.show(&cues);
-                continue;
-            };
-            let d = lattice.distance_to(cell, &marker);
-            cues.distance_mm = Some(d);
-            if !lattice.contains(cell, &marker) {
-                cues.message = format!(
-                    "move into the highlighted cell {}/{} {cell:?} ({:.0} mm from its centre)",
-                    report.done + 1,
-                    report.total,
-                    distance(&marker, &centre)
-                );
-                sink.show(&cues);
-                continue;
+            if let Some(row) = self.try_capture(&frame, cell, cues)? {
+                return Ok(Some(row));
             }
-            // Inside: the device state at the frame's capture time (the
-            // tracker's stamp mapped to device time), interpolated between
-            // the two states around it; waits for the state after it.
-            let at_us = if states.sync.ready() {
-                states.sync.device_time_us(frame.ts_s)
-            } else {
-                None
-            };
-            let wait_from = Instant::now();
-            if let Some(t) = at_us {
-                while states.latest().is_some_and(|s| (s.time_us as f64) < t)
-                    && states.went_back.is_none()
-                    && wait_from.elapsed() < config.device_timeout
-                {
-                    states.poll(client)?;
-                    states.keep_alive(client, &mut last_request, config.heartbeat_every)?;
-                    std::thread::sleep(Duration::from_micros(200));
-                }
-            }
-            let max_gap_us = config.max_pairing_gap.as_micros() as u64;
-            let paired = at_us.and_then(|t| states.history.at(t, max_gap_us));
-            match paired {
-                Some(s) if s.armed => {
-                    // Never before the last row.
-                    let t_s = t_s_of(s.time_us as f64 + report.clock_offset_s * 1e6)
-                        .max(appender.last_t_s().unwrap_or(0.0));
-                    cues.message = format!("captured cell {}/{}", report.done + 1, report.total);
-                    sink.show(&cues);
-                    let orientation = rotation.and_then(|r| {
-                        let q = orientation_of_rotation(&r);
-                        report.improper_rotations += u64::from(q.is_none());
-                        q
-                    });
-                    let orientation = orientation.filter(|_| {
-                        let fits = appender.has_orientation_columns();
-                        report.orientations_not_recorded += u64::from(!fits);
-                        fits
-                    });
-                    report.oriented += u64::from(orientation.is_some());
-                    break Sample {
-                        t_s,
-                        counts: s.counts,
-                        tracker: Some(marker),
-                        orientation,
-                        legacy: Some(s.position_mm.map(f64::from)),
-                        tension_n: Some(s.tensions_n.map(f64::from)),
-                    };
-                }
-                other => {
-                    report.unpaired += 1;
-                    cues.message = match (other, at_us) {
-                        (Some(s), _) => format!(
-                            "inside: waiting for the device to arm (faults {:#06x})",
-                            s.faults.0
-                        ),
-                        (None, None) => {
-                            "inside: synchronizing the device's and the tracker's clocks".into()
-                        }
-                        (None, Some(_)) => {
-                            "inside: no device state around the frame's time (a gap in the stream)"
-                                .into()
-                        }
-                    };
-                    sink.show(&cues);
-                }
-            }
-        };
-        let line = appender.append(&row)?;
-        done[index] = Some(line);
-        report.captured += 1;
-        report.done += 1;
-        arm_watch.progress();
-        captures.push_back(Instant::now());
-        while captures.len() > config.eta_window {
-            captures.pop_front();
         }
     }
-    report.stop = Stop::Complete;
-    Ok(())
+
+    /// Reads the device's states and keeps it going: an error for a device
+    /// that rebooted, keeps disarming itself or fell silent; re-arms one
+    /// that disarmed itself; sends the heartbeat when due.
+    fn watch_device(&mut self) -> Result<(), CollectError> {
+        let config = self.plan.config;
+        self.states.poll(self.rig.client)?;
+        // A device that rebooted has lost its home: no rearm helps.
+        if let Some((previous_s, now_s)) = self.states.went_back {
+            return Err(CollectError::ClockWentBack {
+                port: self.port.clone(),
+                previous_s,
+                now_s,
+            });
+        }
+        // A device that disarmed itself is armed again, a few times.
+        let latest = self.states.latest().map(|s| (s.armed, s.faults));
+        match self.arm_watch.check(self.rig.client, latest) {
+            Ok(true) => {
+                self.report.rearms += 1;
+                self.last_request = Instant::now();
+            }
+            Ok(false) => {}
+            Err(ArmWatchError::Link(e)) => return Err(e.into()),
+            Err(ArmWatchError::KeepsDisarming { events, last }) => {
+                let faults = self.states.latest().map_or(0, |s| s.faults.0);
+                let simulated = matches!(config.host_clock, HostClock::Simulated(_));
+                return Err(CollectError::KeepsDisarming {
+                    events,
+                    last,
+                    advice: disarm_advice(faults, simulated),
+                });
+            }
+        }
+        if self.states.last_at.elapsed() > config.device_timeout {
+            return Err(CollectError::DeviceSilent {
+                port: self.port.clone(),
+                seconds: self.states.last_at.elapsed().as_secs_f64(),
+            });
+        }
+        self.states.keep_alive(
+            self.rig.client,
+            &mut self.last_request,
+            config.heartbeat_every,
+        )?;
+        Ok(())
+    }
+
+    /// The next tracker frame (fed to the clock map and answered with a
+    /// heartbeat); `None` when none came yet. An error when the tracker
+    /// ended or stayed silent too long.
+    fn next_frame(&mut self) -> Result<Option<TrackerFrame>, CollectError> {
+        let config = self.plan.config;
+        // A short wait: states are read (and stamped) at least every
+        // 2 ms, so some arrive promptly enough for the clock map.
+        let frame = match self.rig.tracker.next_frame(Duration::from_millis(2))? {
+            Next::Frame(f) => f,
+            Next::End => {
+                return Err(CollectError::TrackerEnded {
+                    tracker: config.tracker_label.clone(),
+                })
+            }
+            Next::Timeout => {
+                if self.last_frame_at.elapsed() > config.tracker_timeout {
+                    return Err(CollectError::TrackerSilent {
+                        tracker: config.tracker_label.clone(),
+                        seconds: self.last_frame_at.elapsed().as_secs_f64(),
+                    });
+                }
+                return Ok(None);
+            }
+        };
+        self.last_frame_at = Instant::now();
+        self.report.frames += 1;
+        self.states.tracker_frame(frame.ts_s, frame.received_at);
+        // Every tracker frame is a heartbeat too: the device hears from
+        // the host at the tracker's rate in its own time, however fast
+        // or slow the host runs.
+        self.rig.client.heartbeat()?;
+        self.last_request = Instant::now();
+        Ok(Some(frame))
+    }
+
+    /// Shows `frame`'s cues (`cues` gives the target) and, when its visible
+    /// marker lies inside `cell` and an armed device state pairs with it,
+    /// the row it captures.
+    fn try_capture(
+        &mut self,
+        frame: &TrackerFrame,
+        cell: [u32; 3],
+        mut cues: Cues,
+    ) -> Result<Option<Sample>, CollectError> {
+        let lattice = self.plan.lattice;
+        let body = frame
+            .body
+            .as_ref()
+            .filter(|b| b.id == self.plan.config.body_id && b.is_visible());
+        let marker = body.map(|b| b.position_mm);
+        let rotation = body.and_then(|b| b.rotation);
+        cues.marker_room_mm = marker;
+        let Some(marker) = marker else {
+            self.report.occluded += 1;
+            cues.message = "marker occluded: bring it back into the tracker's view".into();
+            self.rig.sink.show(&cues);
+            return Ok(None);
+        };
+        let d = lattice.distance_to(cell, &marker);
+        cues.distance_mm = Some(d);
+        if !lattice.contains(cell, &marker) {
+            cues.message = format!(
+                "move into the highlighted cell {}/{} {cell:?} ({:.0} mm from its centre)",
+                self.report.done + 1,
+                self.report.total,
+                distance(&marker, &lattice.cell_centre(cell))
+            );
+            self.rig.sink.show(&cues);
+            return Ok(None);
+        }
+        let (at_us, paired) = self.state_at(frame.ts_s)?;
+        match paired {
+            Some(s) if s.armed => {
+                // Never before the last row.
+                let t_s = t_s_of(s.time_us as f64 + self.report.clock_offset_s * 1e6)
+                    .max(self.plan.appender.last_t_s().unwrap_or(0.0));
+                cues.message = format!(
+                    "captured cell {}/{}",
+                    self.report.done + 1,
+                    self.report.total
+                );
+                self.rig.sink.show(&cues);
+                Ok(Some(self.row_of(&s, t_s, marker, rotation)))
+            }
+            other => {
+                self.report.unpaired += 1;
+                cues.message = match (other, at_us) {
+                    (Some(s), _) => format!(
+                        "inside: waiting for the device to arm (faults {:#06x})",
+                        s.faults.0
+                    ),
+                    (None, None) => {
+                        "inside: synchronizing the device's and the tracker's clocks".into()
+                    }
+                    (None, Some(_)) => {
+                        "inside: no device state around the frame's time (a gap in the stream)"
+                            .into()
+                    }
+                };
+                self.rig.sink.show(&cues);
+                Ok(None)
+            }
+        }
+    }
+
+    /// The device state at a frame's capture time (the tracker's stamp
+    /// `ts_s` mapped to device time, `None` before the clock map is ready),
+    /// interpolated between the two states around it; waits for the state
+    /// after it.
+    fn state_at(&mut self, ts_s: f64) -> Result<(Option<f64>, Option<State>), CollectError> {
+        let config = self.plan.config;
+        let states = &mut self.states;
+        let at_us = if states.sync.ready() {
+            states.sync.device_time_us(ts_s)
+        } else {
+            None
+        };
+        let wait_from = Instant::now();
+        if let Some(t) = at_us {
+            while states.latest().is_some_and(|s| (s.time_us as f64) < t)
+                && states.went_back.is_none()
+                && wait_from.elapsed() < config.device_timeout
+            {
+                states.poll(self.rig.client)?;
+                states.keep_alive(
+                    self.rig.client,
+                    &mut self.last_request,
+                    config.heartbeat_every,
+                )?;
+                std::thread::sleep(Duration::from_micros(200));
+            }
+        }
+        let max_gap_us = config.max_pairing_gap.as_micros() as u64;
+        Ok((at_us, at_us.and_then(|t| states.history.at(t, max_gap_us))))
+    }
+
+    /// The row of a capture: device state `s`, `t_s`, the tracker's marker
+    /// and, when the file takes it, the body's orientation.
+    fn row_of(
+        &mut self,
+        s: &State,
+        t_s: f64,
+        marker: [f64; 3],
+        rotation: Option<[[f64; 3]; 3]>,
+    ) -> Sample {
+        let report = &mut *self.report;
+        let orientation = rotation.and_then(|r| {
+            let q = orientation_of_rotation(&r);
+            report.improper_rotations += u64::from(q.is_none());
+            q
+        });
+        let orientation = orientation.filter(|_| {
+            let fits = self.plan.appender.has_orientation_columns();
+            report.orientations_not_recorded += u64::from(!fits);
+            fits
+        });
+        report.oriented += u64::from(orientation.is_some());
+        Sample {
+            t_s,
+            counts: s.counts,
+            tracker: Some(marker),
+            orientation,
+            legacy: Some(s.position_mm.map(f64::from)),
+            tension_n: Some(s.tensions_n.map(f64::from)),
+        }
+    }
 }
 
 /// `spidar collect`.

@@ -66,7 +66,7 @@ use crate::data::observe::{observations, Observation};
 use crate::data::stats::{position_error, ErrorStats};
 use crate::device::link::{Client, LinkError};
 use crate::device::tracker::{ClockSync, HostClock, StateHistory};
-use crate::device::tracker::{Next, TrackerError, TrackerSource};
+use crate::device::tracker::{Next, TrackerError, TrackerFrame, TrackerSource};
 use crate::model::compile::{compile_checked, model_id_of, CompileCmdError};
 use crate::model::diagnose::{
     cross_validated_error, diagnose, family_name, model_errors, Change, Family, Finding, LoopConfig,
@@ -685,6 +685,15 @@ struct Monitor<'a> {
     model_id: u32,
 }
 
+/// A refit's model before it is flashed: the identification, its
+/// structure, the data it was fitted on and the terms added (in words).
+struct RefitModel {
+    id: Identification,
+    structure: Structure,
+    data: Vec<Observation>,
+    added: Vec<String>,
+}
+
 /// Runs the monitor on an open device session until `config.duration`
 /// passes or the tracker ends. `confirm` answers [`RefitPolicy::Ask`];
 /// `on_event` sees everything as it happens. The device is left disarmed,
@@ -781,136 +790,13 @@ impl Monitor<'_> {
                     {
                         return Ok(());
                     }
-                    self.report.frames += 1;
-                    let read_s = self
-                        .config
-                        .host_clock
-                        .frame_arrival_s(f.received_at, self.base);
-                    self.sync.tracker_frame(f.ts_s, read_s);
-                    match f
-                        .body
-                        .as_ref()
-                        .filter(|b| b.id == self.config.body_id && b.is_visible())
-                    {
-                        Some(b) => match tracked_point(b, self.config.marker_body_mm) {
-                            Some(p) => self.pending.push_back((f.ts_s, read_s, p)),
-                            None => self.report.unoriented += 1,
-                        },
-                        None => self.report.occluded += 1,
-                    }
+                    self.take_frame(&f);
                 }
             }
-            let states = client.poll_states()?;
-            let read_s = self.config.host_clock.states_arrival_s(self.base);
-            let now_s = self.config.host_clock.now_s(self.base);
-            if states.is_empty() {
-                if last_state.elapsed() > self.config.device_timeout {
-                    return Err(MonitorError::DeviceSilent {
-                        seconds: last_state.elapsed().as_secs_f64(),
-                    });
-                }
-            } else {
-                last_state = Instant::now();
-            }
-            if client
-                .take_events()
-                .iter()
-                .any(|e| matches!(e, Event::Homed))
-            {
-                // The counts restart: the window no longer fits them (pairs
-                // with states from before the home are not made).
-                self.window.clear();
-                on_event(&MonitorEvent::Note(
-                    "the device was homed again: the window restarts".into(),
-                ));
-            }
-            for s in states {
-                self.report.states += 1;
-                self.home_us = s.time_us.saturating_sub(s.since_home_us);
-                self.sync.device_state(s.time_us, read_s);
-                self.states.push(s);
-            }
+            let now_s = self.take_states(client, &mut last_state, on_event)?;
             self.pair(now_s);
-            if self.report.baseline.is_none() && self.window.len() >= self.config.window {
-                let b = self.window_stats();
-                self.report.baseline = Some(b);
-                self.since_check = 0;
-                on_event(&MonitorEvent::Baseline(b));
-            }
-            if let Some(k) = self.awaiting_after {
-                if self.window.len() >= self.config.window {
-                    let after = self.window_stats();
-                    self.report.refits[k].after = Some(after);
-                    self.awaiting_after = None;
-                    self.since_check = 0;
-                    on_event(&MonitorEvent::After {
-                        before: self.report.refits[k].before,
-                        after,
-                    });
-                }
-            }
-            let ready = self.report.baseline.is_some()
-                && self.awaiting_after.is_none()
-                && self.window.len() >= self.config.window
-                && self.since_check
-                    >= if self.settling {
-                        self.config.window / 4
-                    } else {
-                        self.config.check_every
-                    };
-            if ready {
-                self.since_check = 0;
-                let check = self.check();
-                self.report.checks.push(check.clone());
-                if !check.drift {
-                    self.settling = false;
-                    on_event(&MonitorEvent::Check(check));
-                    continue;
-                }
-                if !self.settling
-                    && self.config.refit != RefitPolicy::No
-                    && self.report.refits.len() < self.config.max_refits
-                {
-                    self.settling = true;
-                    on_event(&MonitorEvent::Drift {
-                        check,
-                        refit: false,
-                    });
-                    on_event(&MonitorEvent::Note(format!(
-                        "collecting {} more pairs after the change before refitting",
-                        self.config.window / 4
-                    )));
-                    continue;
-                }
-                self.settling = false;
-                let refit = self.report.refits.len() < self.config.max_refits
-                    && match self.config.refit {
-                        RefitPolicy::Yes => true,
-                        RefitPolicy::No => false,
-                        RefitPolicy::Ask => confirm(&check),
-                    };
-                on_event(&MonitorEvent::Drift {
-                    check: check.clone(),
-                    refit,
-                });
-                if refit {
-                    // Busy: a simulated world waits for the refit (its
-                    // length is the machine's, not the rig's).
-                    tracker.busy();
-                    match self.refit_and_flash(client, &check) {
-                        Ok(r) => {
-                            on_event(&MonitorEvent::Refitted(Box::new(r.clone())));
-                            self.model_id = r.model_id;
-                            self.report.refits.push(r);
-                            self.awaiting_after = Some(self.report.refits.len() - 1);
-                            self.window.clear();
-                        }
-                        Err(MonitorError::Identify(e)) => {
-                            on_event(&MonitorEvent::RefitFailed(e.to_string()))
-                        }
-                        Err(e) => return Err(e),
-                    }
-                }
+            self.note_windows(on_event);
+            if self.check_and_refit(client, tracker, on_event, confirm)? {
                 // What queued up meanwhile is paired as it comes, by its
                 // stamps (a backlog's late arrivals do not move the clock
                 // map, which keeps the least delayed ones); states of the
@@ -920,6 +806,171 @@ impl Monitor<'_> {
                 last_state = Instant::now();
             }
         }
+    }
+
+    /// A tracker frame: into the clock map, and its visible marker into the
+    /// frames waiting for their state.
+    fn take_frame(&mut self, f: &TrackerFrame) {
+        self.report.frames += 1;
+        let read_s = self
+            .config
+            .host_clock
+            .frame_arrival_s(f.received_at, self.base);
+        self.sync.tracker_frame(f.ts_s, read_s);
+        match f
+            .body
+            .as_ref()
+            .filter(|b| b.id == self.config.body_id && b.is_visible())
+        {
+            Some(b) => match tracked_point(b, self.config.marker_body_mm) {
+                Some(p) => self.pending.push_back((f.ts_s, read_s, p)),
+                None => self.report.unoriented += 1,
+            },
+            None => self.report.occluded += 1,
+        }
+    }
+
+    /// Reads the device's states into the history and the clock map (an
+    /// error when it stayed silent too long; a new home restarts the
+    /// window). Returns the host time now, s.
+    fn take_states(
+        &mut self,
+        client: &mut Client,
+        last_state: &mut Instant,
+        on_event: &mut dyn FnMut(&MonitorEvent),
+    ) -> Result<f64, MonitorError> {
+        let states = client.poll_states()?;
+        let read_s = self.config.host_clock.states_arrival_s(self.base);
+        let now_s = self.config.host_clock.now_s(self.base);
+        if states.is_empty() {
+            if last_state.elapsed() > self.config.device_timeout {
+                return Err(MonitorError::DeviceSilent {
+                    seconds: last_state.elapsed().as_secs_f64(),
+                });
+            }
+        } else {
+            *last_state = Instant::now();
+        }
+        if client
+            .take_events()
+            .iter()
+            .any(|e| matches!(e, Event::Homed))
+        {
+            // The counts restart: the window no longer fits them (pairs
+            // with states from before the home are not made).
+            self.window.clear();
+            on_event(&MonitorEvent::Note(
+                "the device was homed again: the window restarts".into(),
+            ));
+        }
+        for s in states {
+            self.report.states += 1;
+            self.home_us = s.time_us.saturating_sub(s.since_home_us);
+            self.sync.device_state(s.time_us, read_s);
+            self.states.push(s);
+        }
+        Ok(now_s)
+    }
+
+    /// The baseline from the first full window, and a refit's after-window
+    /// once the window is full again.
+    fn note_windows(&mut self, on_event: &mut dyn FnMut(&MonitorEvent)) {
+        if self.report.baseline.is_none() && self.window.len() >= self.config.window {
+            let b = self.window_stats();
+            self.report.baseline = Some(b);
+            self.since_check = 0;
+            on_event(&MonitorEvent::Baseline(b));
+        }
+        if let Some(k) = self.awaiting_after {
+            if self.window.len() >= self.config.window {
+                let after = self.window_stats();
+                self.report.refits[k].after = Some(after);
+                self.awaiting_after = None;
+                self.since_check = 0;
+                on_event(&MonitorEvent::After {
+                    before: self.report.refits[k].before,
+                    after,
+                });
+            }
+        }
+    }
+
+    /// Checks the window for drift when a check is due; on drift, waits for
+    /// the window to settle, then refits and flashes as the policy says.
+    /// True when it went as far as the refit decision (the streams'
+    /// silence clocks restart then).
+    fn check_and_refit(
+        &mut self,
+        client: &mut Client,
+        tracker: &mut dyn TrackerSource,
+        on_event: &mut dyn FnMut(&MonitorEvent),
+        confirm: &mut dyn FnMut(&Check) -> bool,
+    ) -> Result<bool, MonitorError> {
+        let ready = self.report.baseline.is_some()
+            && self.awaiting_after.is_none()
+            && self.window.len() >= self.config.window
+            && self.since_check
+                >= if self.settling {
+                    self.config.window / 4
+                } else {
+                    self.config.check_every
+                };
+        if !ready {
+            return Ok(false);
+        }
+        self.since_check = 0;
+        let check = self.check();
+        self.report.checks.push(check.clone());
+        if !check.drift {
+            self.settling = false;
+            on_event(&MonitorEvent::Check(check));
+            return Ok(false);
+        }
+        if !self.settling
+            && self.config.refit != RefitPolicy::No
+            && self.report.refits.len() < self.config.max_refits
+        {
+            self.settling = true;
+            on_event(&MonitorEvent::Drift {
+                check,
+                refit: false,
+            });
+            on_event(&MonitorEvent::Note(format!(
+                "collecting {} more pairs after the change before refitting",
+                self.config.window / 4
+            )));
+            return Ok(false);
+        }
+        self.settling = false;
+        let refit = self.report.refits.len() < self.config.max_refits
+            && match self.config.refit {
+                RefitPolicy::Yes => true,
+                RefitPolicy::No => false,
+                RefitPolicy::Ask => confirm(&check),
+            };
+        on_event(&MonitorEvent::Drift {
+            check: check.clone(),
+            refit,
+        });
+        if refit {
+            // Busy: a simulated world waits for the refit (its
+            // length is the machine's, not the rig's).
+            tracker.busy();
+            match self.refit_and_flash(client, &check) {
+                Ok(r) => {
+                    on_event(&MonitorEvent::Refitted(Box::new(r.clone())));
+                    self.model_id = r.model_id;
+                    self.report.refits.push(r);
+                    self.awaiting_after = Some(self.report.refits.len() - 1);
+                    self.window.clear();
+                }
+                Err(MonitorError::Identify(e)) => {
+                    on_event(&MonitorEvent::RefitFailed(e.to_string()))
+                }
+                Err(e) => return Err(e),
+            }
+        }
+        Ok(true)
     }
 
     /// Pairs the pending tracker frames whose capture time the device
@@ -1061,8 +1112,51 @@ impl Monitor<'_> {
         check: &Check,
     ) -> Result<Refit, MonitorError> {
         let t0 = Instant::now();
-        let nominal = self.geometry.nominal_frame();
         let window_obs = self.window_observations();
+        let RefitModel {
+            id,
+            structure,
+            data,
+            added,
+        } = self.refit_model(check)?;
+        let host_before_mm = model_errors(&self.identification, &window_obs).mean_mm;
+        let host_after_mm = model_errors(&id, &window_obs).mean_mm;
+        if host_after_mm.partial_cmp(&host_before_mm) != Some(std::cmp::Ordering::Less) {
+            return Err(MonitorError::Identify(IdentifyError::Diverged(format!(
+                "the refit does not lower the window error ({host_before_mm:.3} mm -> {host_after_mm:.3} mm); nothing flashed"
+            ))));
+        }
+        let calibration = Calibration {
+            frame: id.frame,
+            strings: id.laws,
+            effects: id.effects.clone(),
+            correction: self.calibration.correction.clone(),
+        };
+        let model_id = model_id_of(&calibration);
+        let flashed = self.flash_calibration(client, &calibration, model_id)?;
+        self.calibration = calibration.clone();
+        self.identification = id;
+        self.structure = structure;
+        Ok(Refit {
+            before: check.window,
+            after: None,
+            after_partial: None,
+            added,
+            host_before_mm,
+            host_after_mm,
+            model_id,
+            blob_len: flashed.blob_len,
+            rows: data.iter().filter(|o| o.tracker.is_some()).count(),
+            calibration,
+            seconds: t0.elapsed().as_secs_f64(),
+        })
+    }
+
+    /// The refitted model: the check's findings added as terms where they
+    /// lower the cross-validated error enough, else the model as it is
+    /// refitted.
+    fn refit_model(&self, check: &Check) -> Result<RefitModel, MonitorError> {
+        let nominal = self.geometry.nominal_frame();
         let mut structure = self.structure.clone();
         let mut id = self.identification.clone();
         let mut data = self.refit_data(&structure);
@@ -1119,29 +1213,26 @@ impl Monitor<'_> {
             )?;
             added.push("no new term: the model's parameters refitted".into());
         }
-        let host_before_mm = model_errors(&self.identification, &window_obs).mean_mm;
-        let host_after_mm = model_errors(&id, &window_obs).mean_mm;
-        if host_after_mm.partial_cmp(&host_before_mm) != Some(std::cmp::Ordering::Less) {
-            return Err(MonitorError::Identify(IdentifyError::Diverged(format!(
-                "the refit does not lower the window error ({host_before_mm:.3} mm -> {host_after_mm:.3} mm); nothing flashed"
-            ))));
-        }
-        let calibration = Calibration {
-            frame: id.frame,
-            strings: id.laws,
-            effects: id.effects.clone(),
-            correction: self.calibration.correction.clone(),
-        };
-        let model_id = model_id_of(&calibration);
+        Ok(RefitModel {
+            id,
+            structure,
+            data,
+            added,
+        })
+    }
+
+    /// Compiles `calibration` and flashes it with the motors off and the
+    /// stream paused; checks that the device runs it, then streams again.
+    fn flash_calibration(
+        &self,
+        client: &mut Client,
+        calibration: &Calibration,
+        model_id: u32,
+    ) -> Result<crate::device::link::FlashReport, MonitorError> {
         let created = std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)
             .map_or(0, |d| d.as_secs().min(u64::from(u32::MAX)) as u32);
-        let blob = compile_checked(
-            &calibration,
-            model_id,
-            created,
-            Path::new("(runtime refit)"),
-        )?;
+        let blob = compile_checked(calibration, model_id, created, Path::new("(runtime refit)"))?;
         // Flashing needs the motors off; the stream pauses meanwhile.
         client.stream_off()?;
         client.disarm()?;
@@ -1161,22 +1252,7 @@ impl Monitor<'_> {
             }
         }
         client.stream_on(self.config.decimation)?;
-        self.calibration = calibration.clone();
-        self.identification = id;
-        self.structure = structure;
-        Ok(Refit {
-            before: check.window,
-            after: None,
-            after_partial: None,
-            added,
-            host_before_mm,
-            host_after_mm,
-            model_id,
-            blob_len: flashed.blob_len,
-            rows: data.iter().filter(|o| o.tracker.is_some()).count(),
-            calibration,
-            seconds: t0.elapsed().as_secs_f64(),
-        })
+        Ok(flashed)
     }
 
     fn finish(&mut self) {

@@ -282,87 +282,14 @@ pub fn run_device(args: &DeviceArgs) -> Result<String, Box<dyn std::error::Error
     let mut client = args.port.open()?;
     let mut out = String::new();
     match &args.command {
-        DeviceCommand::Info => {
-            if let Some(h) = client.device().copied() {
-                let _ = writeln!(
-                    out,
-                    "device {}\nfirmware {}.{}.{}\nprotocol {}\ncapabilities {:#06x}\nmax chunk {} bytes\nmax blob {} bytes\nloop period {} us",
-                    device_name(&h.device_id),
-                    h.firmware_version[0],
-                    h.firmware_version[1],
-                    h.firmware_version[2],
-                    h.protocol_version,
-                    h.capabilities.0,
-                    h.max_chunk,
-                    h.max_blob_len,
-                    h.loop_period_us
-                );
-            }
-            match client.info()? {
-                Some(i) => {
-                    let _ = writeln!(
-                        out,
-                        "model id {:#010x} in slot {}: {}, {} effects, blob {} bytes, CRC {:#010x}, created {}",
-                        i.header.model_id,
-                        i.slot,
-                        match i.header.kind {
-                            spidar_protocol::blob::CorrectionKind::None => "no position correction",
-                            spidar_protocol::blob::CorrectionKind::Nn => "NN position correction",
-                            spidar_protocol::blob::CorrectionKind::Svr => "SVR position correction",
-                        },
-                        i.header.effects,
-                        i.header.blob_len(),
-                        i.blob_crc32,
-                        utc_date(u64::from(i.header.created_unix_s))
-                    );
-                }
-                None => {
-                    let _ = writeln!(out, "no model blob (nominal string model, if any)");
-                }
-            }
-            let s = client.stats()?;
-            let _ = writeln!(out, "{}", link_line(&s));
-            // The device's state now: armed or not, its fault bits by name.
-            client.stream_on(1)?;
-            let last = hold_heartbeat(&mut client, Duration::ZERO, true)?;
-            client.stream_off()?;
-            let _ = match last {
-                Some(st) => writeln!(
-                    out,
-                    "state: {}, faults {}",
-                    if st.armed { "armed" } else { "disarmed" },
-                    fault_names(st.faults)
-                ),
-                None => writeln!(out, "state: no state frame came (faults unknown)"),
-            };
-        }
+        DeviceCommand::Info => device_info(&mut client, &mut out)?,
         DeviceCommand::Stream {
             decimation,
             frames,
             seconds: secs,
         } => {
             let duration = seconds(*secs, "--seconds")?;
-            let stdout = std::io::stdout();
-            let mut lock = stdout.lock();
-            let _ = writeln!(lock, "{STREAM_HEADER}");
-            let report = client.stream(
-                StreamOptions {
-                    decimation: *decimation,
-                    duration: Some(duration),
-                    max_frames: *frames,
-                    ..StreamOptions::default()
-                },
-                |s| writeln!(lock, "{}", state_csv(s)).is_ok(),
-            )?;
-            // On stderr: stdout is the CSV (and may be a closed pipe).
-            eprintln!(
-                "# {} frames in {:.2} s, {} lost, {} rejected, {} bytes",
-                report.frames,
-                report.elapsed.as_secs_f64(),
-                report.lost,
-                report.rejected,
-                report.bytes
-            );
+            stream_csv(&mut client, *decimation, *frames, duration)?;
         }
         DeviceCommand::Arm { hold } => {
             let hold = seconds(*hold, "--hold")?;
@@ -376,28 +303,129 @@ pub fn run_device(args: &DeviceArgs) -> Result<String, Box<dyn std::error::Error
         }
         DeviceCommand::Force { fx, fy, fz, hold } => {
             let hold = seconds(*hold, "--hold")?;
-            let requested = [*fx, *fy, *fz];
-            client.arm()?;
-            // State frames (every 10th loop iteration) tell what the device
-            // renders; the last one taken while holding is reported.
-            client.stream_on(10)?;
-            client.set_force(requested)?;
-            // Frames that came before the force was acknowledged may be
-            // from before it was applied.
-            client.take_states();
-            let last = hold_heartbeat(&mut client, hold, true)?;
-            client.set_force([0.0; 3])?;
-            client.stream_off()?;
-            client.disarm()?;
-            let _ = writeln!(
-                out,
-                "{} (held {:.1} s), disarmed",
-                force_report(requested, last.as_ref()),
-                hold.as_secs_f64()
-            );
+            render_force(&mut client, [*fx, *fy, *fz], hold, &mut out)?;
         }
     }
     Ok(out)
+}
+
+/// `spidar device info`: the device, its active model, the link counters
+/// and its state now (armed or not, its fault bits by name), into `out`.
+fn device_info(client: &mut Client, out: &mut String) -> Result<(), LinkError> {
+    if let Some(h) = client.device().copied() {
+        let _ = writeln!(
+            out,
+            "device {}\nfirmware {}.{}.{}\nprotocol {}\ncapabilities {:#06x}\nmax chunk {} bytes\nmax blob {} bytes\nloop period {} us",
+            device_name(&h.device_id),
+            h.firmware_version[0],
+            h.firmware_version[1],
+            h.firmware_version[2],
+            h.protocol_version,
+            h.capabilities.0,
+            h.max_chunk,
+            h.max_blob_len,
+            h.loop_period_us
+        );
+    }
+    match client.info()? {
+        Some(i) => {
+            let _ = writeln!(
+                out,
+                "model id {:#010x} in slot {}: {}, {} effects, blob {} bytes, CRC {:#010x}, created {}",
+                i.header.model_id,
+                i.slot,
+                match i.header.kind {
+                    spidar_protocol::blob::CorrectionKind::None => "no position correction",
+                    spidar_protocol::blob::CorrectionKind::Nn => "NN position correction",
+                    spidar_protocol::blob::CorrectionKind::Svr => "SVR position correction",
+                },
+                i.header.effects,
+                i.header.blob_len(),
+                i.blob_crc32,
+                utc_date(u64::from(i.header.created_unix_s))
+            );
+        }
+        None => {
+            let _ = writeln!(out, "no model blob (nominal string model, if any)");
+        }
+    }
+    let s = client.stats()?;
+    let _ = writeln!(out, "{}", link_line(&s));
+    // The device's state now: armed or not, its fault bits by name.
+    client.stream_on(1)?;
+    let last = hold_heartbeat(client, Duration::ZERO, true)?;
+    client.stream_off()?;
+    let _ = match last {
+        Some(st) => writeln!(
+            out,
+            "state: {}, faults {}",
+            if st.armed { "armed" } else { "disarmed" },
+            fault_names(st.faults)
+        ),
+        None => writeln!(out, "state: no state frame came (faults unknown)"),
+    };
+    Ok(())
+}
+
+/// `spidar device stream`: the state stream as CSV on stdout, its counters
+/// on stderr.
+fn stream_csv(
+    client: &mut Client,
+    decimation: u16,
+    frames: Option<u64>,
+    duration: Duration,
+) -> Result<(), LinkError> {
+    let stdout = std::io::stdout();
+    let mut lock = stdout.lock();
+    let _ = writeln!(lock, "{STREAM_HEADER}");
+    let report = client.stream(
+        StreamOptions {
+            decimation,
+            duration: Some(duration),
+            max_frames: frames,
+            ..StreamOptions::default()
+        },
+        |s| writeln!(lock, "{}", state_csv(s)).is_ok(),
+    )?;
+    // On stderr: stdout is the CSV (and may be a closed pipe).
+    eprintln!(
+        "# {} frames in {:.2} s, {} lost, {} rejected, {} bytes",
+        report.frames,
+        report.elapsed.as_secs_f64(),
+        report.lost,
+        report.rejected,
+        report.bytes
+    );
+    Ok(())
+}
+
+/// `spidar device force`: arms, renders `requested` (device frame, N) for
+/// `hold`, then no force and disarms; what the device rendered into `out`.
+fn render_force(
+    client: &mut Client,
+    requested: [f32; 3],
+    hold: Duration,
+    out: &mut String,
+) -> Result<(), LinkError> {
+    client.arm()?;
+    // State frames (every 10th loop iteration) tell what the device
+    // renders; the last one taken while holding is reported.
+    client.stream_on(10)?;
+    client.set_force(requested)?;
+    // Frames that came before the force was acknowledged may be
+    // from before it was applied.
+    client.take_states();
+    let last = hold_heartbeat(client, hold, true)?;
+    client.set_force([0.0; 3])?;
+    client.stream_off()?;
+    client.disarm()?;
+    let _ = writeln!(
+        out,
+        "{} (held {:.1} s), disarmed",
+        force_report(requested, last.as_ref()),
+        hold.as_secs_f64()
+    );
+    Ok(())
 }
 
 /// Keeps the device armed for `hold` with heartbeats; when streaming, the

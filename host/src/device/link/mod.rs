@@ -618,17 +618,64 @@ impl Client {
             .min(self.options.max_chunk)
             .clamp(1, MAX_CHUNK);
         let t0 = Instant::now();
-        let mut offset = self.chunk_ack(&Request::UploadBegin {
+        let resumed_at = self.chunk_ack(&Request::UploadBegin {
             total_len: total,
             crc32,
             model_id: header.model_id,
         })?;
-        let resumed_at = offset;
         progress(FlashProgress {
             phase: FlashPhase::Begin,
-            sent: offset,
+            sent: resumed_at,
             total,
         });
+        let (chunks, resends) = self.upload_chunks(blob, resumed_at, chunk_len, &mut progress)?;
+        let upload = t0.elapsed();
+        let t1 = Instant::now();
+        let model_id = match self.request(&Request::UploadCommit { crc32 })? {
+            Response::Committed { model_id } => model_id,
+            r => return Err(self.unexpected("UploadCommit", &r)),
+        };
+        let commit = t1.elapsed();
+        progress(FlashProgress {
+            phase: FlashPhase::Committed,
+            sent: total,
+            total,
+        });
+        let t2 = Instant::now();
+        let info = self.info()?;
+        let verify = t2.elapsed();
+        let info = self.check_flashed(info, &header, crc32, model_id)?;
+        progress(FlashProgress {
+            phase: FlashPhase::Verified,
+            sent: total,
+            total,
+        });
+        Ok(FlashReport {
+            model_id,
+            blob_len: total,
+            blob_crc32: crc32,
+            resumed_at,
+            chunks,
+            resends,
+            slot: info.slot,
+            upload,
+            commit,
+            verify,
+        })
+    }
+
+    /// Sends `blob` from `offset` on in chunks of `chunk_len` until the
+    /// device has all of it: (chunks acknowledged, chunks resent). A chunk
+    /// the device does not move past is resent, and the device's
+    /// `OutOfOrder` offset followed, up to the retries.
+    fn upload_chunks(
+        &mut self,
+        blob: &[u8],
+        mut offset: u32,
+        chunk_len: usize,
+        progress: &mut impl FnMut(FlashProgress),
+    ) -> Result<(u32, u32), LinkError> {
+        let total = blob.len() as u32;
         let mut chunks = 0u32;
         let mut resends = 0u32;
         let mut stalls = 0u32;
@@ -674,28 +721,25 @@ impl Client {
                 Err(e) => return Err(e),
             }
         }
-        let upload = t0.elapsed();
-        let t1 = Instant::now();
-        let model_id = match self.request(&Request::UploadCommit { crc32 })? {
-            Response::Committed { model_id } => model_id,
-            r => return Err(self.unexpected("UploadCommit", &r)),
-        };
-        let commit = t1.elapsed();
-        progress(FlashProgress {
-            phase: FlashPhase::Committed,
-            sent: total,
-            total,
-        });
-        let t2 = Instant::now();
-        let info = self.info()?;
-        let verify = t2.elapsed();
+        Ok((chunks, resends))
+    }
+
+    /// The model info read back after a commit, when it is the uploaded
+    /// blob's (`header`, `crc32`, committed as `model_id`).
+    fn check_flashed(
+        &self,
+        info: Option<ModelInfo>,
+        header: &ModelHeader,
+        crc32: u32,
+        model_id: u32,
+    ) -> Result<ModelInfo, LinkError> {
         let Some(info) = info else {
             return Err(LinkError::Verify {
                 port: self.name.clone(),
                 what: "the device reports no active model after the commit".into(),
             });
         };
-        if info.header != header || info.blob_crc32 != crc32 || model_id != header.model_id {
+        if info.header != *header || info.blob_crc32 != crc32 || model_id != header.model_id {
             return Err(LinkError::Verify {
                 port: self.name.clone(),
                 what: format!(
@@ -704,23 +748,7 @@ impl Client {
                 ),
             });
         }
-        progress(FlashProgress {
-            phase: FlashPhase::Verified,
-            sent: total,
-            total,
-        });
-        Ok(FlashReport {
-            model_id,
-            blob_len: total,
-            blob_crc32: crc32,
-            resumed_at,
-            chunks,
-            resends,
-            slot: info.slot,
-            upload,
-            commit,
-            verify,
-        })
+        Ok(info)
     }
 
     /// Runs the state stream: `StreamOn{decimation}`, then `on_state` for
