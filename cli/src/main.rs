@@ -2,10 +2,18 @@
 //! the arguments (clap), the progress bars and terminal output, and the
 //! error context; every computation is the library's.
 
+mod audio;
 mod calibrate;
+mod collect;
 mod compile;
+mod device;
+mod init;
+mod monitor;
 mod progress;
+mod rig;
 mod simulate;
+mod view;
+mod virtual_device;
 
 use clap::{Parser, Subcommand};
 
@@ -28,11 +36,11 @@ enum Command {
     /// Compile a calibration into the device's model blob and measure its fixed-point error.
     Compile(compile::CompileArgs),
     /// Upload a model blob to a device (chunks, retry, resume, CRC, atomic commit, read-back).
-    Flash(spidar::device::link::cli::FlashArgs),
+    Flash(device::FlashArgs),
     /// Talk to a device: info, stream, arm, disarm, force.
-    Device(spidar::device::link::cli::DeviceArgs),
+    Device(device::DeviceArgs),
     /// Run a virtual device (firmware logic + simulated plant) behind a pseudo-terminal.
-    VirtualDevice(spidar::device::virtual_device::VirtualDeviceArgs),
+    VirtualDevice(virtual_device::VirtualDeviceArgs),
     /// Calibrate a device from a training and a test session: identification,
     /// diagnosis, NN and SVR corrections, error statistics, figures, JSON report.
     Calibrate(calibrate::CalibrateArgs),
@@ -40,79 +48,55 @@ enum Command {
     Demo(calibrate::DemoArgs),
     /// Guided initialization: haptic and audio cues bring the marker to the
     /// frame centre, home is declared there, the room transform recorded.
-    Init(spidar::procedures::init::InitArgs),
+    Init(init::InitArgs),
     /// Lattice data collection: the operator brings the marker into each
     /// cell in turn; tracker and device state are captured there, appended
     /// to the session CSV as they come; a stopped run resumes.
-    Collect(spidar::procedures::collect::CollectArgs),
+    Collect(collect::CollectArgs),
     /// Runtime recalibration: pair device states with tracker frames while
     /// the device is used, report drift (a slipped string, ...) and refit
     /// and reflash the calibration.
-    Monitor(spidar::procedures::recalibrate::MonitorArgs),
+    Monitor(monitor::MonitorArgs),
 }
 
-fn fail(e: &dyn std::error::Error) -> ! {
+/// Prints an error (the library's messages name the file, line or field) and
+/// exits 1.
+fn fail(e: anyhow::Error) -> ! {
     eprintln!("spidar: {e}");
     std::process::exit(1);
 }
 
-/// Prints an error (the library's messages name the file, line or field) and exits 1.
-fn fail_with(e: anyhow::Error) -> ! {
-    eprintln!("spidar: {e}");
-    std::process::exit(1);
+/// Runs one command; returns what goes to standard output.
+fn run(command: &Command) -> anyhow::Result<String> {
+    Ok(match command {
+        Command::Simulate(args) => simulate::run(args)?,
+        Command::Calibrate(args) => {
+            let out = calibrate::run_calibrate(args)?;
+            match out.json_stdout {
+                // The report on stdout: the summary goes to stderr.
+                Some(json) => {
+                    eprint!("{}", out.summary);
+                    format!("{json}\n")
+                }
+                None => out.summary,
+            }
+        }
+        Command::Demo(args) => calibrate::run_demo(args)?,
+        Command::Compile(args) => compile::run(args)?,
+        Command::Flash(args) => device::run_flash(args)?,
+        Command::Device(args) => device::run_device(args)?,
+        Command::Init(args) => init::run(args)?,
+        Command::Collect(args) => collect::run(args)?,
+        Command::Monitor(args) => monitor::run(args)?,
+        Command::VirtualDevice(args) => virtual_device::run(args)?,
+    })
 }
 
 fn main() {
     let cli = Cli::parse();
     spidar::progress::set_reporter(Box::new(progress::TerminalBars));
-    match &cli.command {
-        Command::Simulate(args) => match simulate::run(args) {
-            Ok(report) => print!("{report}"),
-            Err(e) => fail_with(e),
-        },
-        Command::Calibrate(args) => match calibrate::run_calibrate(args) {
-            Ok(out) => match out.json_stdout {
-                Some(json) => {
-                    eprint!("{}", out.summary);
-                    println!("{json}");
-                }
-                None => print!("{}", out.summary),
-            },
-            Err(e) => fail(&e),
-        },
-        Command::Demo(args) => match calibrate::run_demo(args) {
-            Ok(text) => print!("{text}"),
-            Err(e) => fail(&e),
-        },
-        Command::Compile(args) => match compile::run(args) {
-            Ok(report) => print!("{report}"),
-            Err(e) => fail_with(e),
-        },
-        Command::Flash(args) => match spidar::device::link::cli::run_flash(args) {
-            Ok(text) => print!("{text}"),
-            Err(e) => fail(e.as_ref()),
-        },
-        Command::Device(args) => match spidar::device::link::cli::run_device(args) {
-            Ok(text) => print!("{text}"),
-            Err(e) => fail(e.as_ref()),
-        },
-        Command::Init(args) => match spidar::procedures::init::run_init(args) {
-            Ok(text) => print!("{text}"),
-            Err(e) => fail(&e),
-        },
-        Command::Collect(args) => match spidar::procedures::collect::run_collect(args) {
-            Ok(text) => print!("{text}"),
-            Err(e) => fail(&e),
-        },
-        Command::Monitor(args) => match spidar::procedures::recalibrate::run_monitor(args) {
-            Ok(text) => print!("{text}"),
-            Err(e) => fail(&e),
-        },
-        Command::VirtualDevice(args) => {
-            match spidar::device::virtual_device::run_virtual_device(args) {
-                Ok(text) => print!("{text}"),
-                Err(e) => fail(&e),
-            }
-        }
+    match run(&cli.command) {
+        Ok(text) => print!("{text}"),
+        Err(e) => fail(e),
     }
 }

@@ -326,6 +326,12 @@ impl VirtualDevice {
         &self.config
     }
 
+    /// Whether the device thread still runs (it stops on a fault of its
+    /// pseudo-terminal, or when the device is dropped).
+    pub fn is_running(&self) -> bool {
+        self.thread.as_ref().is_some_and(|t| !t.is_finished())
+    }
+
     /// What the device thread last reported.
     pub fn status(&self) -> VirtualStatus {
         self.status.lock().map(|s| s.clone()).unwrap_or_default()
@@ -800,120 +806,57 @@ impl Boot<'_> {
     }
 }
 
-/// `spidar virtual-device`: a virtual device on a pseudo-terminal.
-#[derive(Clone, Debug, clap::Args)]
-pub struct VirtualDeviceArgs {
+/// The simulated device and the path of its end-effector that a virtual
+/// device's plant follows (`spidar virtual-device`'s options).
+#[derive(Clone, Debug)]
+pub struct PlantRequest {
     /// Device seed of the simulated device (as `spidar simulate --seed`).
-    #[arg(long, default_value_t = 1)]
     pub seed: u64,
     /// Simulator configuration TOML (as `spidar simulate --config`).
-    #[arg(long)]
     pub config: Option<PathBuf>,
-    /// Injected effect, e.g. `offset:3:mm=10` (repeatable).
-    #[arg(long = "effect", value_name = "SPEC")]
+    /// Injected effects, e.g. `offset:3:mm=10`.
     pub effects: Vec<String>,
     /// Path of the end-effector.
-    #[arg(long, value_enum, default_value_t = TrajectoryArg::Orbit)]
-    pub trajectory: TrajectoryArg,
-    /// Points of a `random` trajectory (a random session's path).
-    #[arg(long, default_value_t = 50)]
+    pub path: PlantPath,
+    /// Points of a [`PlantPath::Random`] path (a random session's path).
     pub points: usize,
-    /// Device time per real time (1 = like the hardware).
-    #[arg(long, default_value_t = 1.0)]
-    pub speed: f64,
-    /// Largest model blob, KiB, at most 128 (the virtual flash slot). The
-    /// default is the reference firmware's capacity, so that a blob the
-    /// board would refuse is refused here too.
-    #[arg(long, default_value_t = FIRMWARE_BLOB_CAPACITY / 1024)]
-    pub capacity_kib: usize,
-    /// Stop after this many seconds (default: run until killed).
-    #[arg(long)]
-    pub seconds: Option<f64>,
 }
 
-/// `--trajectory`.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
-pub enum TrajectoryArg {
+/// The end-effector's path on a virtual device.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum PlantPath {
+    /// Still at home.
     Hold,
+    /// A 150 mm circle every 8 s.
     Orbit,
+    /// The path of a random test session of the device.
     Random,
 }
 
-/// Why `spidar virtual-device` failed.
-#[derive(Debug, thiserror::Error)]
-pub enum VirtualDeviceRunError {
-    #[error("{0}")]
-    Sim(#[from] crate::sim::SimError),
-    #[error("{0}")]
-    Device(#[from] VirtualDeviceError),
-}
-
-/// Builds the simulated device and plant of `args`.
-pub fn plant_of(args: &VirtualDeviceArgs) -> Result<Plant, crate::sim::SimError> {
-    let mut sim_config = match &args.config {
+/// Builds the simulated device and plant of `request`.
+pub fn plant_of(request: &PlantRequest) -> Result<Plant, crate::sim::SimError> {
+    let mut sim_config = match &request.config {
         Some(path) => crate::sim::SimConfig::load(path)?,
         None => crate::sim::SimConfig::default(),
     };
-    sim_config.effects.extend(args.effects.iter().cloned());
-    let device = crate::sim::Device::new(&sim_config, args.seed)?;
-    let trajectory = match args.trajectory {
-        TrajectoryArg::Hold => Trajectory::Hold,
-        TrajectoryArg::Orbit => Trajectory::Orbit {
+    sim_config.effects.extend(request.effects.iter().cloned());
+    let device = crate::sim::Device::new(&sim_config, request.seed)?;
+    let trajectory = match request.path {
+        PlantPath::Hold => Trajectory::Hold,
+        PlantPath::Orbit => Trajectory::Orbit {
             radius_mm: 150.0,
             period_s: 8.0,
         },
-        TrajectoryArg::Random => {
+        PlantPath::Random => {
             let (_, truths) = crate::sim::simulate_session_with_truth(
                 &device,
                 crate::sim::SessionKind::Random {
-                    points: args.points,
+                    points: request.points,
                 },
-                args.seed.wrapping_add(2),
+                request.seed.wrapping_add(2),
             )?;
             Trajectory::from_truth(&truths)
         }
     };
     Ok(Plant::new(device, trajectory))
-}
-
-/// Runs `spidar virtual-device`: prints the port path, then serves until
-/// killed (or `--seconds`).
-pub fn run_virtual_device(args: &VirtualDeviceArgs) -> Result<String, VirtualDeviceRunError> {
-    let plant = plant_of(args)?;
-    let config = VirtualDeviceConfig {
-        blob_capacity: args.capacity_kib.saturating_mul(1024),
-        pace: Pace::RealTime { speed: args.speed },
-        ..VirtualDeviceConfig::default()
-    };
-    let vd = spawn(config, plant)?;
-    println!("{}", vd.port_path());
-    println!(
-        "virtual SPIDAR running (seed {}, trajectory {:?}, blob capacity {} KiB; the firmware takes {} KiB); Ctrl-C stops it",
-        args.seed,
-        args.trajectory,
-        args.capacity_kib,
-        FIRMWARE_BLOB_CAPACITY / 1024
-    );
-    let _ = std::io::stdout().flush();
-    let t0 = Instant::now();
-    loop {
-        std::thread::sleep(Duration::from_millis(100));
-        if args
-            .seconds
-            .is_some_and(|s| t0.elapsed().as_secs_f64() >= s)
-        {
-            break;
-        }
-        if vd.thread.as_ref().is_none_or(|t| t.is_finished()) {
-            return Err(VirtualDeviceError::Stopped.into());
-        }
-    }
-    let s = vd.status();
-    Ok(format!(
-        "virtual device stopped after {:.1} s of device time, {} frames sent, {} received ({} rejected)\n",
-        s.device_time_us as f64 / 1e6,
-        s.tx_frames,
-        s.rx.ok,
-        s.rx.rejected()
-    ))
 }

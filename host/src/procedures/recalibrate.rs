@@ -76,14 +76,13 @@ use crate::model::identify::{
 };
 
 /// What to do when drift is found.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
-// Described in `--refit`'s help (see `AudioChoice` for why not here).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum RefitPolicy {
-    // Ask the operator (y/N on standard input).
+    /// Ask the operator (the `confirm` callback of [`monitor`]).
     Ask,
-    // Refit and reflash automatically.
+    /// Refit and reflash automatically.
     Yes,
-    // Report only.
+    /// Report only.
     No,
 }
 
@@ -385,22 +384,6 @@ pub fn tracked_point(
             .rotation
             .map(|r| crate::data::observe::meeting_point(&body.position_mm, &r, &d)),
     }
-}
-
-/// `--marker-body-mm X,Y,Z`: three numbers or an error naming the flag.
-fn marker_of(args: &MonitorArgs) -> Result<Option<[f64; 3]>, MonitorError> {
-    args.marker_body_mm
-        .as_deref()
-        .map(|v| {
-            <[f64; 3]>::try_from(v).map_err(|_| MonitorError::Config {
-                field: "marker_body_mm",
-                problem: format!(
-                    "{} values given: X,Y,Z (mm, the body's frame) expected",
-                    v.len()
-                ),
-            })
-        })
-        .transpose()
 }
 
 /// What a monitor run did.
@@ -1464,76 +1447,6 @@ impl SimulatedMonitorRig {
     }
 }
 
-// ---------------------------------------------------------------------------
-// Command line.
-
-/// `spidar monitor`.
-#[derive(Clone, Debug, clap::Args)]
-pub struct MonitorArgs {
-    /// Serial port of the device (not with --simulate).
-    #[arg(long, required_unless_present = "simulate")]
-    pub port: Option<String>,
-    /// Nominal geometry TOML of the device.
-    #[arg(long, required_unless_present = "simulate")]
-    pub geometry: Option<PathBuf>,
-    /// The calibration the device runs (calibration.json of `spidar calibrate`).
-    #[arg(long, required_unless_present = "simulate")]
-    pub calibration: Option<PathBuf>,
-    /// The training session of that calibration (CSV): used in a refit too.
-    #[arg(long)]
-    pub train: Option<PathBuf>,
-    /// Address to receive DTrack2 UDP datagrams on.
-    #[arg(long, default_value = "0.0.0.0:5000")]
-    pub tracker: std::net::SocketAddr,
-    /// DTrack body id of the end-effector's marker.
-    #[arg(long, default_value_t = 0)]
-    pub body: u32,
-    /// Where the tracked body's origin sits from the strings' meeting point
-    /// (body frame, mm), as the calibration's report gives it
-    /// (`identification.marker_body_mm`): the tracker is read at the meeting
-    /// point, as the calibration read it.
-    #[arg(
-        long,
-        value_name = "X,Y,Z",
-        value_delimiter = ',',
-        allow_hyphen_values = true
-    )]
-    pub marker_body_mm: Option<Vec<f64>>,
-    /// Pairs in the rolling window (and the baseline).
-    #[arg(long, default_value_t = 600)]
-    pub window: usize,
-    /// Run the drift check every this many new pairs.
-    #[arg(long, default_value_t = 200)]
-    pub check_every: usize,
-    /// Drift when the window error exceeds the baseline by this factor.
-    #[arg(long, default_value_t = 1.5)]
-    pub error_factor: f64,
-    /// What to do on drift: ask (the operator, y/N on standard input), yes
-    /// (refit and reflash automatically), no (report only).
-    #[arg(long, value_enum, default_value_t = RefitPolicy::Ask)]
-    pub refit: RefitPolicy,
-    /// Model id the device runs, when the blob was compiled with `--model-id`.
-    #[arg(long)]
-    pub model_id: Option<u32>,
-    /// Stop after this long, s (default: until interrupted).
-    #[arg(long)]
-    pub seconds: Option<f64>,
-    /// Run on the built-in simulated device (this seed): calibrated from its
-    /// simulated lattice, flashed, in the hand of a simulated operator who
-    /// wanders about (--port, --geometry, --calibration, --tracker ignored).
-    #[arg(long, value_name = "SEED")]
-    pub simulate: Option<u64>,
-    /// Simulator configuration of the --simulate device (TOML, as `spidar
-    /// simulate --config`; e.g. `[nominal] strings = 4` for a 4-string rig)
-    /// (default: the built-in 8-string Scalable-SPIDAR).
-    #[arg(long, value_name = "TOML", requires = "simulate")]
-    pub sim_config: Option<std::path::PathBuf>,
-    /// Injected effect of the simulated device at run time, e.g.
-    /// `slip:2:at_s=20,mm=8` (device time since boot; repeatable).
-    #[arg(long = "effect", value_name = "SPEC", requires = "simulate")]
-    pub effects: Vec<String>,
-}
-
 /// One line per monitor event.
 pub fn event_line(e: &MonitorEvent) -> String {
     let stats = |s: &ErrorStats| {
@@ -1586,109 +1499,6 @@ pub fn event_line(e: &MonitorEvent) -> String {
         ),
         MonitorEvent::Note(n) => n.clone(),
     }
-}
-
-/// Asks on standard error / standard input.
-fn ask_on_terminal(check: &Check) -> bool {
-    use std::io::Write;
-    eprint!(
-        "drift found ({} effect(s), window error {:.2} x baseline): refit and reflash the device? [y/N] ",
-        check.findings.len(),
-        check.error_ratio
-    );
-    let _ = std::io::stderr().flush();
-    let mut line = String::new();
-    match std::io::stdin().read_line(&mut line) {
-        Ok(_) => matches!(line.trim(), "y" | "Y" | "yes" | "Yes"),
-        Err(_) => false,
-    }
-}
-
-/// Runs `spidar monitor`; events are printed as they come, the summary is
-/// returned.
-pub fn run_monitor(args: &MonitorArgs) -> Result<String, MonitorError> {
-    let mut config = MonitorConfig {
-        body_id: args.body,
-        window: args.window,
-        check_every: args.check_every,
-        error_factor: args.error_factor,
-        refit: args.refit,
-        expected_model_id: args.model_id,
-        marker_body_mm: marker_of(args)?,
-        ..MonitorConfig::default()
-    };
-    if let Some(s) = args.seconds {
-        if !(s.is_finite() && s > 0.0) {
-            return Err(MonitorError::Config {
-                field: "seconds",
-                problem: format!("{s} is not a positive duration"),
-            });
-        }
-        config.duration = Some(Duration::from_secs_f64(s));
-    }
-    let mut print = |e: &MonitorEvent| println!("{}", event_line(e));
-    let mut confirm = ask_on_terminal;
-    let report = match args.simulate {
-        Some(seed) => {
-            eprintln!(
-                "calibrating the simulated device (seed {seed}) from its simulated lattice ..."
-            );
-            let sim_config = crate::sim::SimConfig::load_or_default(args.sim_config.as_deref())
-                .map_err(|e| MonitorError::Simulation(e.to_string()))?;
-            let calibrated = calibrate_simulated_with(seed, &sim_config)?;
-            eprintln!("calibrated in {:.1} s", calibrated.seconds);
-            let mut rig = SimulatedMonitorRig::start(
-                &calibrated,
-                &SimRigConfig {
-                    effects: args.effects.clone(),
-                    max_duration: config
-                        .duration
-                        .map_or(Duration::from_secs(3600), |d| d + Duration::from_secs(5)),
-                    ..SimRigConfig::default()
-                },
-            )?;
-            let mut client = rig.client()?;
-            config.host_clock = rig.host_clock();
-            monitor(
-                &mut client,
-                &mut rig.receiver,
-                MonitorInputs {
-                    geometry: &calibrated.geometry,
-                    calibration: &calibrated.calibration,
-                    calibration_file: Path::new("(simulated calibration)"),
-                    training: Some(&calibrated.training),
-                },
-                &config,
-                &mut print,
-                &mut confirm,
-            )?
-        }
-        None => {
-            let geometry_path = args.geometry.clone().unwrap_or_default();
-            let geometry = Geometry::load(&geometry_path)?;
-            let calibration_path = args.calibration.clone().unwrap_or_default();
-            let calibration = crate::model::compile::load_calibration(&calibration_path)?;
-            let training = args.train.as_ref().map(Session::load).transpose()?;
-            let mut client = Client::open(args.port.as_deref().unwrap_or_default())?;
-            let mut rc = crate::device::tracker::ReceiverConfig::new(args.tracker);
-            rc.body_id = args.body;
-            let mut receiver = crate::device::tracker::DtrackReceiver::bind(rc)?;
-            monitor(
-                &mut client,
-                &mut receiver,
-                MonitorInputs {
-                    geometry: &geometry,
-                    calibration: &calibration,
-                    calibration_file: &calibration_path,
-                    training: training.as_ref(),
-                },
-                &config,
-                &mut print,
-                &mut confirm,
-            )?
-        }
-    };
-    Ok(summary(&report))
 }
 
 /// The run's summary.
@@ -1752,29 +1562,9 @@ mod tests {
         assert_eq!(tracked_point(&blind, None), Some([100.0, 200.0, 300.0]));
     }
 
-    /// `--marker-body-mm X,Y,Z` reaches the monitor's settings; an offset
-    /// that is not finite is refused by name.
+    /// An offset of the tracked body that is not finite is refused by name.
     #[test]
-    fn the_marker_offset_is_given_on_the_command_line_and_checked() {
-        use clap::Parser;
-        #[derive(Parser)]
-        struct Cli {
-            #[command(flatten)]
-            args: MonitorArgs,
-        }
-        let cli = Cli::try_parse_from([
-            "monitor",
-            "--simulate",
-            "1",
-            "--marker-body-mm",
-            "9.5,-1.25,-38",
-        ])
-        .unwrap();
-        assert_eq!(marker_of(&cli.args).unwrap(), Some([9.5, -1.25, -38.0]));
-        let two =
-            Cli::try_parse_from(["monitor", "--simulate", "1", "--marker-body-mm", "1,2"]).unwrap();
-        let e = marker_of(&two.args).unwrap_err().to_string();
-        assert!(e.contains("`marker_body_mm`: 2 values given"), "{e}");
+    fn a_marker_offset_that_is_not_finite_is_refused() {
         let config = MonitorConfig {
             marker_body_mm: Some([f64::NAN, 0.0, 0.0]),
             ..MonitorConfig::default()

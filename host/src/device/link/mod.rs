@@ -20,8 +20,6 @@
 //! - [`Client::stream`] runs the state stream, keeping an armed device's
 //!   heartbeat alive.
 
-pub mod cli;
-
 use std::collections::VecDeque;
 use std::io::{Read, Write};
 use std::time::{Duration, Instant};

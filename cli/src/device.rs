@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 use spidar_protocol::messages::q16_to_mm;
 use spidar_protocol::{Faults, State};
 
-use super::{Client, ClientOptions, FlashPhase, LinkError, StreamOptions};
+use spidar::device::link::{Client, ClientOptions, FlashPhase, LinkError, StreamOptions};
 
 /// Port and link settings shared by the device commands. Global: they may
 /// come before or after a subcommand (`spidar device info --port P` as
@@ -39,10 +39,10 @@ impl PortArgs {
     }
 
     /// Opens the port; an error if `--port` was not given.
-    pub fn open(&self) -> Result<Client, Box<dyn std::error::Error>> {
-        let port = self.port.as_deref().ok_or(
+    pub fn open(&self) -> anyhow::Result<Client> {
+        let port = self.port.as_deref().ok_or_else(|| anyhow::anyhow!(
             "the device's serial port is required: --port PORT (e.g. /dev/ttyACM0, or the path `spidar virtual-device` prints)",
-        )?;
+        ))?;
         Ok(Client::open_with(port, self.options())?)
     }
 }
@@ -178,15 +178,16 @@ fn link_line(s: &spidar_protocol::LinkStats) -> String {
 
 /// A duration option: an argument error (naming the option), not a link
 /// error.
-fn seconds(s: f64, field: &'static str) -> Result<Duration, String> {
+fn seconds(s: f64, field: &'static str) -> anyhow::Result<Duration> {
     Duration::try_from_secs_f64(s)
-        .map_err(|_| format!("{field}: {s} is not a duration in seconds (>= 0)"))
+        .map_err(|_| anyhow::anyhow!("{field}: {s} is not a duration in seconds (>= 0)"))
 }
 
 /// Runs `spidar flash`.
-pub fn run_flash(args: &FlashArgs) -> Result<String, Box<dyn std::error::Error>> {
-    let blob = std::fs::read(&args.model)
-        .map_err(|e| format!("{}: cannot read the model blob: {e}", args.model.display()))?;
+pub fn run_flash(args: &FlashArgs) -> anyhow::Result<String> {
+    let blob = std::fs::read(&args.model).map_err(|e| {
+        anyhow::anyhow!("{}: cannot read the model blob: {e}", args.model.display())
+    })?;
     let mut client = args.port.open()?;
     let hello = client.device().copied();
     let mut last = Instant::now();
@@ -199,7 +200,7 @@ pub fn run_flash(args: &FlashArgs) -> Result<String, Box<dyn std::error::Error>>
         }
     });
     eprintln!();
-    let report = report.map_err(|e| format!("{}: {e}", args.model.display()))?;
+    let report = report.map_err(|e| anyhow::anyhow!("{}: {e}", args.model.display()))?;
     let mut out = String::new();
     if let Some(h) = hello {
         let _ = writeln!(
@@ -268,7 +269,7 @@ pub fn state_csv(s: &State) -> String {
 }
 
 /// Runs `spidar device ...`.
-pub fn run_device(args: &DeviceArgs) -> Result<String, Box<dyn std::error::Error>> {
+pub fn run_device(args: &DeviceArgs) -> anyhow::Result<String> {
     // Arguments first: a bad one is an argument error, whatever the port.
     match &args.command {
         DeviceCommand::Stream { seconds: s, .. } => {

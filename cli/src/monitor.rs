@@ -1,0 +1,226 @@
+//! `spidar monitor`: runtime recalibration on a rig or a simulated one.
+
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use spidar::data::dataset::Session;
+use spidar::model::compile::load_calibration;
+use spidar::procedures::recalibrate::{
+    calibrate_simulated_with, event_line, monitor, summary, Check, MonitorConfig, MonitorError,
+    MonitorEvent, MonitorInputs, RefitPolicy, SimRigConfig, SimulatedMonitorRig,
+};
+
+use crate::rig::RigArgs;
+
+/// `spidar monitor`.
+#[derive(Clone, Debug, clap::Args)]
+pub struct MonitorArgs {
+    #[command(flatten)]
+    pub rig: RigArgs,
+    /// The calibration the device runs (calibration.json of `spidar calibrate`).
+    #[arg(long, required_unless_present = "simulate")]
+    pub calibration: Option<PathBuf>,
+    /// The training session of that calibration (CSV): used in a refit too.
+    #[arg(long)]
+    pub train: Option<PathBuf>,
+    /// Where the tracked body's origin sits from the strings' meeting point
+    /// (body frame, mm), as the calibration's report gives it
+    /// (`identification.marker_body_mm`): the tracker is read at the meeting
+    /// point, as the calibration read it.
+    #[arg(
+        long,
+        value_name = "X,Y,Z",
+        value_delimiter = ',',
+        allow_hyphen_values = true
+    )]
+    pub marker_body_mm: Option<Vec<f64>>,
+    /// Pairs in the rolling window (and the baseline).
+    #[arg(long, default_value_t = 600)]
+    pub window: usize,
+    /// Run the drift check every this many new pairs.
+    #[arg(long, default_value_t = 200)]
+    pub check_every: usize,
+    /// Drift when the window error exceeds the baseline by this factor.
+    #[arg(long, default_value_t = 1.5)]
+    pub error_factor: f64,
+    /// What to do on drift: ask (the operator, y/N on standard input), yes
+    /// (refit and reflash automatically), no (report only).
+    #[arg(long, value_enum, default_value_t = RefitArg::Ask)]
+    pub refit: RefitArg,
+    /// Model id the device runs, when the blob was compiled with `--model-id`.
+    #[arg(long)]
+    pub model_id: Option<u32>,
+    /// Stop after this long, s (default: until interrupted).
+    #[arg(long)]
+    pub seconds: Option<f64>,
+    /// Injected effect of the simulated device at run time, e.g.
+    /// `slip:2:at_s=20,mm=8` (device time since boot; repeatable).
+    #[arg(long = "effect", value_name = "SPEC", requires = "simulate")]
+    pub effects: Vec<String>,
+}
+
+/// `--refit`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+// Described in `--refit`'s help (see `AudioChoice` for why not here).
+pub enum RefitArg {
+    Ask,
+    Yes,
+    No,
+}
+
+/// `--marker-body-mm X,Y,Z`: three numbers or an error naming the flag.
+fn marker_of(args: &MonitorArgs) -> Result<Option<[f64; 3]>, MonitorError> {
+    args.marker_body_mm
+        .as_deref()
+        .map(|v| {
+            <[f64; 3]>::try_from(v).map_err(|_| MonitorError::Config {
+                field: "marker_body_mm",
+                problem: format!(
+                    "{} values given: X,Y,Z (mm, the body's frame) expected",
+                    v.len()
+                ),
+            })
+        })
+        .transpose()
+}
+
+/// Asks on standard error / standard input.
+fn ask_on_terminal(check: &Check) -> bool {
+    use std::io::Write;
+    eprint!(
+        "drift found ({} effect(s), window error {:.2} x baseline): refit and reflash the device? [y/N] ",
+        check.findings.len(),
+        check.error_ratio
+    );
+    let _ = std::io::stderr().flush();
+    let mut line = String::new();
+    match std::io::stdin().read_line(&mut line) {
+        Ok(_) => matches!(line.trim(), "y" | "Y" | "yes" | "Yes"),
+        Err(_) => false,
+    }
+}
+
+/// Runs `spidar monitor`; events are printed as they come, the summary is
+/// returned.
+pub fn run(args: &MonitorArgs) -> anyhow::Result<String> {
+    let mut config = MonitorConfig {
+        body_id: args.rig.body,
+        window: args.window,
+        check_every: args.check_every,
+        error_factor: args.error_factor,
+        refit: match args.refit {
+            RefitArg::Ask => RefitPolicy::Ask,
+            RefitArg::Yes => RefitPolicy::Yes,
+            RefitArg::No => RefitPolicy::No,
+        },
+        expected_model_id: args.model_id,
+        marker_body_mm: marker_of(args)?,
+        ..MonitorConfig::default()
+    };
+    if let Some(s) = args.seconds {
+        if !(s.is_finite() && s > 0.0) {
+            return Err(MonitorError::Config {
+                field: "seconds",
+                problem: format!("{s} is not a positive duration"),
+            }
+            .into());
+        }
+        config.duration = Some(Duration::from_secs_f64(s));
+    }
+    let mut print = |e: &MonitorEvent| println!("{}", event_line(e));
+    let mut confirm = ask_on_terminal;
+    let report = match args.rig.simulate {
+        Some(seed) => {
+            eprintln!(
+                "calibrating the simulated device (seed {seed}) from its simulated lattice ..."
+            );
+            let sim_config =
+                spidar::sim::SimConfig::load_or_default(args.rig.sim_config.as_deref())
+                    .map_err(|e| MonitorError::Simulation(e.to_string()))?;
+            let calibrated = calibrate_simulated_with(seed, &sim_config)?;
+            eprintln!("calibrated in {:.1} s", calibrated.seconds);
+            let mut rig = SimulatedMonitorRig::start(
+                &calibrated,
+                &SimRigConfig {
+                    effects: args.effects.clone(),
+                    max_duration: config
+                        .duration
+                        .map_or(Duration::from_secs(3600), |d| d + Duration::from_secs(5)),
+                    ..SimRigConfig::default()
+                },
+            )?;
+            let mut client = rig.client()?;
+            config.host_clock = rig.host_clock();
+            monitor(
+                &mut client,
+                &mut rig.receiver,
+                MonitorInputs {
+                    geometry: &calibrated.geometry,
+                    calibration: &calibrated.calibration,
+                    calibration_file: Path::new("(simulated calibration)"),
+                    training: Some(&calibrated.training),
+                },
+                &config,
+                &mut print,
+                &mut confirm,
+            )?
+        }
+        None => {
+            let geometry = args.rig.geometry().map_err(MonitorError::from)?;
+            let calibration_path = args.calibration.clone().unwrap_or_default();
+            let calibration = load_calibration(&calibration_path).map_err(MonitorError::from)?;
+            let training = args
+                .train
+                .as_ref()
+                .map(Session::load)
+                .transpose()
+                .map_err(MonitorError::from)?;
+            let mut client = args.rig.client().map_err(MonitorError::from)?;
+            let mut receiver = args.rig.receiver().map_err(MonitorError::from)?;
+            monitor(
+                &mut client,
+                &mut receiver,
+                MonitorInputs {
+                    geometry: &geometry,
+                    calibration: &calibration,
+                    calibration_file: &calibration_path,
+                    training: training.as_ref(),
+                },
+                &config,
+                &mut print,
+                &mut confirm,
+            )?
+        }
+    };
+    Ok(summary(&report))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `--marker-body-mm X,Y,Z` reaches the monitor's settings; an offset
+    /// that is not finite is refused by name.
+    #[test]
+    fn the_marker_offset_is_given_on_the_command_line_and_checked() {
+        use clap::Parser;
+        #[derive(Parser)]
+        struct Cli {
+            #[command(flatten)]
+            args: MonitorArgs,
+        }
+        let cli = Cli::try_parse_from([
+            "monitor",
+            "--simulate",
+            "1",
+            "--marker-body-mm",
+            "9.5,-1.25,-38",
+        ])
+        .unwrap();
+        assert_eq!(marker_of(&cli.args).unwrap(), Some([9.5, -1.25, -38.0]));
+        let two =
+            Cli::try_parse_from(["monitor", "--simulate", "1", "--marker-body-mm", "1,2"]).unwrap();
+        let e = marker_of(&two.args).unwrap_err().to_string();
+        assert!(e.contains("`marker_body_mm`: 2 values given"), "{e}");
+    }
+}
