@@ -93,10 +93,14 @@ pub struct ModelHeader {
     pub created_unix_s: u32,
 }
 
-/// Why a blob was refused. Each variant names the field at fault.
+/// Why a blob was refused. Each variant names the field at fault: a
+/// `&'static str` where the blob is checked, a [`Name`](crate::messages::Name)
+/// in the device's answer on the wire
+/// ([`BlobRejection`](crate::messages::BlobRejection)), one set of messages
+/// for both.
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-pub enum BlobError {
+pub enum BlobError<F = &'static str> {
     /// Fewer bytes than a header, or than the header says the body has.
     Truncated {
         needed: u32,
@@ -125,13 +129,13 @@ pub enum BlobError {
     },
     /// A dimension or Q format that does not fit the evaluator.
     Dimension {
-        field: &'static str,
+        field: F,
         found: u32,
         expected: u32,
     },
     /// The body does not decode as the header's kind.
     Body {
-        field: &'static str,
+        field: F,
     },
     /// The frame's string layout (`frame.layout`) has fewer active strings
     /// than the end-effector's degrees of freedom (2 planar, 3 in space):
@@ -143,52 +147,52 @@ pub enum BlobError {
     /// `field` refers to channel `string`, which the frame's layout marks
     /// as carrying no string (e.g. an effect term on a removed string).
     InactiveString {
-        field: &'static str,
+        field: F,
         string: u8,
     },
 }
 
-impl core::fmt::Display for BlobError {
+impl<F: core::fmt::Display> core::fmt::Display for BlobError<F> {
     fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
-        match *self {
-            BlobError::Truncated { needed, got } => {
+        match self {
+            Self::Truncated { needed, got } => {
                 write!(f, "model blob truncated: needs {needed} bytes, got {got}")
             }
-            BlobError::TrailingBytes { extra } => {
+            Self::TrailingBytes { extra } => {
                 write!(f, "model blob has {extra} bytes after its body")
             }
-            BlobError::BadMagic => write!(f, "not a model blob (magic is not \"SPDM\")"),
-            BlobError::UnsupportedVersion { found, supported } => write!(
+            Self::BadMagic => write!(f, "not a model blob (magic is not \"SPDM\")"),
+            Self::UnsupportedVersion { found, supported } => write!(
                 f,
-                "model blob format version {found} is not supported (this build reads version {supported})"
+                "model blob format version {found} is not supported (the reader takes version {supported})"
             ),
-            BlobError::UnknownKind { found } => {
+            Self::UnknownKind { found } => {
                 write!(f, "model blob has unknown correction kind {found}")
             }
-            BlobError::HeaderCrc { stored, computed } => write!(
+            Self::HeaderCrc { stored, computed } => write!(
                 f,
                 "model blob header CRC mismatch: stored {stored:#010x}, computed {computed:#010x}"
             ),
-            BlobError::BodyCrc { stored, computed } => write!(
+            Self::BodyCrc { stored, computed } => write!(
                 f,
                 "model blob body CRC mismatch: stored {stored:#010x}, computed {computed:#010x}"
             ),
-            BlobError::Dimension {
+            Self::Dimension {
                 field,
                 found,
                 expected,
             } => write!(
                 f,
-                "model blob field `{field}` is {found}, this evaluator needs {expected}"
+                "model blob field `{field}` is {found}, the evaluator needs {expected}"
             ),
-            BlobError::Body { field } => {
+            Self::Body { field } => {
                 write!(f, "model blob body does not decode at field `{field}`")
             }
-            BlobError::TooFewStrings { strings, dof } => write!(
+            Self::TooFewStrings { strings, dof } => write!(
                 f,
                 "model blob field `frame.layout` has {strings} active strings, a position with {dof} degrees of freedom needs at least {dof}"
             ),
-            BlobError::InactiveString { field, string } => write!(
+            Self::InactiveString { field, string } => write!(
                 f,
                 "model blob field `{field}` refers to string {string}, which `frame.layout` marks inactive"
             ),
@@ -196,7 +200,7 @@ impl core::fmt::Display for BlobError {
     }
 }
 
-impl core::error::Error for BlobError {}
+impl<F: core::fmt::Debug + core::fmt::Display> core::error::Error for BlobError<F> {}
 
 fn le_u16(b: &[u8], at: usize) -> u16 {
     u16::from_le_bytes([b[at], b[at + 1]])

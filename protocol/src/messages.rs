@@ -404,50 +404,8 @@ pub enum BadState {
 
 /// A [`BlobError`] as it travels on the wire: field names are carried as
 /// [`Name`]s instead of `&'static str`, so the host can decode it from a
-/// transient buffer.
-#[cfg_attr(feature = "defmt", derive(defmt::Format))]
-#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
-pub enum BlobRejection {
-    Truncated {
-        needed: u32,
-        got: u32,
-    },
-    TrailingBytes {
-        extra: u32,
-    },
-    BadMagic,
-    UnsupportedVersion {
-        found: u16,
-        supported: u16,
-    },
-    UnknownKind {
-        found: u8,
-    },
-    HeaderCrc {
-        stored: u32,
-        computed: u32,
-    },
-    BodyCrc {
-        stored: u32,
-        computed: u32,
-    },
-    Dimension {
-        field: Name,
-        found: u32,
-        expected: u32,
-    },
-    Body {
-        field: Name,
-    },
-    TooFewStrings {
-        strings: u8,
-        dof: u8,
-    },
-    InactiveString {
-        field: Name,
-        string: u8,
-    },
-}
+/// transient buffer. Same variants, same messages.
+pub type BlobRejection = BlobError<Name>;
 
 impl From<BlobError> for BlobRejection {
     fn from(e: BlobError) -> Self {
@@ -479,56 +437,6 @@ impl From<BlobError> for BlobRejection {
         }
     }
 }
-
-impl fmt::Display for BlobRejection {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self {
-            Self::Truncated { needed, got } => {
-                write!(f, "model blob truncated: needs {needed} bytes, got {got}")
-            }
-            Self::TrailingBytes { extra } => {
-                write!(f, "model blob has {extra} bytes after its body")
-            }
-            Self::BadMagic => write!(f, "not a model blob (magic is not \"SPDM\")"),
-            Self::UnsupportedVersion { found, supported } => write!(
-                f,
-                "model blob format version {found} is not supported (the device reads version {supported})"
-            ),
-            Self::UnknownKind { found } => {
-                write!(f, "model blob has unknown correction kind {found}")
-            }
-            Self::HeaderCrc { stored, computed } => write!(
-                f,
-                "model blob header CRC mismatch: stored {stored:#010x}, computed {computed:#010x}"
-            ),
-            Self::BodyCrc { stored, computed } => write!(
-                f,
-                "model blob body CRC mismatch: stored {stored:#010x}, computed {computed:#010x}"
-            ),
-            Self::Dimension {
-                field,
-                found,
-                expected,
-            } => write!(
-                f,
-                "model blob field `{field}` is {found}, the device's evaluator needs {expected}"
-            ),
-            Self::Body { field } => {
-                write!(f, "model blob body does not decode at field `{field}`")
-            }
-            Self::TooFewStrings { strings, dof } => write!(
-                f,
-                "model blob field `frame.layout` has {strings} active strings, a position with {dof} degrees of freedom needs at least {dof}"
-            ),
-            Self::InactiveString { field, string } => write!(
-                f,
-                "model blob field `{field}` refers to string {string}, which `frame.layout` marks inactive"
-            ),
-        }
-    }
-}
-
-impl core::error::Error for BlobRejection {}
 
 impl fmt::Display for DeviceError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
