@@ -269,6 +269,56 @@ fn add_layer_tables(
         })
         .map(|(after, _)| after)
     };
+    let judged = judge_layer_steps(validate_steps, steps, before, config, &mut choice)?;
+    let refit = if judged.check.accepted {
+        Some(layers::identify_with_layers(
+            train,
+            nominal,
+            id,
+            structure,
+            &judged.steps,
+        )?)
+    } else {
+        None
+    };
+    if let Some(refit) = &refit {
+        for c in choice.iter_mut().filter(|c| c.step_counts.is_some()) {
+            c.knots = refit.winding.layers[usize::from(c.string)]
+                .knots_mm
+                .as_slice()
+                .len();
+        }
+    }
+    let finding = layers_finding(&choice, id, judged.check, &judged.coarser_note);
+    Ok(LayerTry {
+        choice,
+        finding: Some(finding),
+        added: refit.map(|r| (r, judged.after)),
+    })
+}
+
+/// The layer tables' check ([`judge_layer_steps`]).
+struct LayerJudgement {
+    /// Each string's knot spacing (log2 counts) the check judged.
+    steps: [Option<u8>; STRINGS],
+    after: Validation,
+    check: Check,
+    /// Said when the spacings chosen per string were refused and knots
+    /// twice as far apart taken; empty otherwise.
+    coarser_note: String,
+}
+
+/// Judges the tables at the spacings chosen per string (`steps`,
+/// validated by `validate_steps`) against `before`; when refused, tries
+/// once knots twice as far apart, and when those are accepted, `choice`
+/// follows them.
+fn judge_layer_steps(
+    validate_steps: impl Fn(&[Option<u8>; STRINGS]) -> Result<Validation, IdentifyError>,
+    steps: [Option<u8>; STRINGS],
+    before: &Validation,
+    config: &LoopConfig,
+    choice: &mut [StringLayers],
+) -> Result<LayerJudgement, IdentifyError> {
     let mut steps = steps;
     let mut after = validate_steps(&steps)?;
     let mut check = judge(before, &after, None, config.min_relative_gain);
@@ -300,21 +350,23 @@ fn add_layer_tables(
             }
         }
     }
-    let refit = if check.accepted {
-        Some(layers::identify_with_layers(
-            train, nominal, id, structure, &steps,
-        )?)
-    } else {
-        None
-    };
-    if let Some(refit) = &refit {
-        for c in choice.iter_mut().filter(|c| c.step_counts.is_some()) {
-            c.knots = refit.winding.layers[usize::from(c.string)]
-                .knots_mm
-                .as_slice()
-                .len();
-        }
-    }
+    Ok(LayerJudgement {
+        steps,
+        after,
+        check,
+        coarser_note,
+    })
+}
+
+/// The `layers` finding of the strings that chose a spacing: each string's
+/// spacing in turns, its table's peak to peak and its held-out string rms
+/// without and with the table; `check` the tables' check.
+fn layers_finding(
+    choice: &[StringLayers],
+    id: &Identification,
+    check: Check,
+    coarser_note: &str,
+) -> Finding {
     let chosen: Vec<&StringLayers> = choice.iter().filter(|c| c.step_counts.is_some()).collect();
     let ss = |rms: f64| rms * rms;
     let without: f64 = chosen.iter().map(|c| ss(c.held_rms_without_mm)).sum();
@@ -336,7 +388,7 @@ fn add_layer_tables(
             )
         })
         .collect();
-    let finding = Finding {
+    Finding {
         family: Family::Layers,
         strings: chosen.iter().map(|c| c.string).collect(),
         variable: Variable::WoundLength,
@@ -354,12 +406,7 @@ fn add_layer_tables(
         ),
         validation: Some(check),
         change: None,
-    };
-    Ok(LayerTry {
-        choice,
-        finding: Some(finding),
-        added: refit.map(|r| (r, after)),
-    })
+    }
 }
 
 /// Each spool's own thinning rate ([`Structure::hold_kappa_each`] off),
