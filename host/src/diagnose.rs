@@ -2207,37 +2207,117 @@ pub fn close_loop(
     let base = identify(train, nominal, start, &structure)?;
     let base_train = model_errors(&base, train);
     let base_test = test.map(|t| model_errors(&base, t));
-    let mut id = base.clone();
-    let mut validation = validate(train, nominal, &id, &structure)?;
-    let mut stages = Vec::new();
-    let mut findings: Vec<Finding> = Vec::new();
+    let id = base.clone();
+    let validation = validate(train, nominal, &id, &structure)?;
+    let mut state = LoopState {
+        train,
+        test,
+        nominal,
+        config,
+        id,
+        structure,
+        validation,
+        stages: Vec::new(),
+        findings: Vec::new(),
+        seen_train: Cow::Borrowed(train),
+        seen_test: test.map(Cow::Borrowed),
+    };
     let mut layers = Vec::new();
-    if structure.hold_kappa_each && nominal.layout.count() > 1 {
-        let (finding, added) =
-            free_spool_rates(train, nominal, &id, &structure, &validation, config)?;
-        if let Some((refit, free, after)) = added {
-            let name = format!("spool rates strings {:?}", finding.strings);
-            stages.push(LoopStage::of(name, &finding, &refit, train, test));
-            validation = after;
-            structure = free;
-            id = refit;
-        }
-        findings.push(finding);
+    if state.structure.hold_kappa_each && nominal.layout.count() > 1 {
+        state.try_spool_rates()?;
     }
     // Layer tables first; refused ones are tried once more after the
     // effects (an effect the model lacked, a heavy string's sag, can hide
     // what the tables gain until it is in).
-    // Each try: `None` when no string wanted a table, else whether they
-    // were added; the strings' choices.
-    let try_layers = |train: &[Observation],
-                      test: Option<&[Observation]>,
-                      id: &mut Identification,
-                      structure: &Structure,
-                      validation: &mut Validation,
-                      stages: &mut Vec<LoopStage>,
-                      findings: &mut Vec<Finding>|
-     -> Result<(Option<bool>, Vec<StringLayers>), IdentifyError> {
-        let tried = add_layer_tables(train, nominal, id, structure, validation, config)?;
+    let mut layers_refused = false;
+    if config.layer_tables {
+        let (added, choice) = state.try_layer_tables()?;
+        layers = choice;
+        layers_refused = added == Some(false);
+    }
+    let effects_before = state.stages.len();
+    state.add_effects()?;
+    if layers_refused && state.stages.len() > effects_before {
+        let (added, choice) = state.try_layer_tables()?;
+        if added == Some(true) {
+            layers = choice;
+        }
+    }
+    let LoopState {
+        id,
+        structure,
+        stages,
+        mut findings,
+        seen_train,
+        ..
+    } = state;
+    findings.extend(unexplained(&id, &seen_train, nominal, &structure, config));
+    Ok(LoopResult {
+        layers,
+        base,
+        base_train,
+        base_test,
+        identification: id,
+        structure,
+        stages,
+        findings,
+    })
+}
+
+/// What [`close_loop`] carries from step to step: the model so far, its
+/// validation, the stages and findings reported, and the sessions.
+struct LoopState<'a> {
+    train: &'a [Observation],
+    test: Option<&'a [Observation]>,
+    nominal: &'a Frame<f64>,
+    config: &'a LoopConfig,
+    id: Identification,
+    structure: Structure,
+    validation: Validation,
+    stages: Vec<LoopStage>,
+    findings: Vec<Finding>,
+    /// The sessions as the model reads them: at the strings' meeting point
+    /// once a marker offset is found (the tracker sees the body's origin).
+    seen_train: Cow<'a, [Observation]>,
+    seen_test: Option<Cow<'a, [Observation]>>,
+}
+
+impl LoopState<'_> {
+    /// Each spool's own thinning rate ([`free_spool_rates`]): its finding,
+    /// and the refit when accepted.
+    fn try_spool_rates(&mut self) -> Result<(), IdentifyError> {
+        let (finding, added) = free_spool_rates(
+            self.train,
+            self.nominal,
+            &self.id,
+            &self.structure,
+            &self.validation,
+            self.config,
+        )?;
+        if let Some((refit, free, after)) = added {
+            let name = format!("spool rates strings {:?}", finding.strings);
+            self.stages
+                .push(LoopStage::of(name, &finding, &refit, self.train, self.test));
+            self.validation = after;
+            self.structure = free;
+            self.id = refit;
+        }
+        self.findings.push(finding);
+        Ok(())
+    }
+
+    /// One try of the layer tables ([`add_layer_tables`]): `None` when no
+    /// string wanted a table, else whether they were added; the strings'
+    /// choices.
+    fn try_layer_tables(&mut self) -> Result<(Option<bool>, Vec<StringLayers>), IdentifyError> {
+        let tried = add_layer_tables(
+            &self.seen_train,
+            self.nominal,
+            &self.id,
+            &self.structure,
+            &self.validation,
+            self.config,
+        )?;
         let Some(mut finding) = tried.finding else {
             return Ok((None, tried.choice));
         };
@@ -2252,7 +2332,7 @@ pub fn close_loop(
             // seed 1: 0.670 mm for tables whose held validation is 0.567),
             // and an offset or a drift stood in on that (docs/benchmarks.md,
             // "One baseline for the changes after the layer tables").
-            let held = validate(train, nominal, &refit, structure)?;
+            let held = validate(&self.seen_train, self.nominal, &refit, &self.structure)?;
             finding.description += &format!(
                 " (the changes after the tables are judged against {:.3} mm: the same held-out \
                  folds with the tables held, as those changes are validated)",
@@ -2260,134 +2340,146 @@ pub fn close_loop(
             );
             finding.added = true;
             let name = stage_name(&finding);
-            stages.push(LoopStage::of(name, &finding, &refit, train, test));
-            *validation = held;
-            *id = refit;
+            self.stages.push(LoopStage::of(
+                name,
+                &finding,
+                &refit,
+                &self.seen_train,
+                self.seen_test.as_deref(),
+            ));
+            self.validation = held;
+            self.id = refit;
         }
-        findings.retain(|f| f.family != Family::Layers);
-        findings.push(finding);
+        self.findings.retain(|f| f.family != Family::Layers);
+        self.findings.push(finding);
         Ok((Some(added), tried.choice))
-    };
-    let mut layers_refused = false;
-    if config.layer_tables {
-        let (added, choice) = try_layers(
-            train,
-            test,
-            &mut id,
-            &structure,
-            &mut validation,
-            &mut stages,
-            &mut findings,
-        )?;
-        layers = choice;
-        layers_refused = added == Some(false);
     }
-    let effects_before = stages.len();
-    let same = |a: &Finding, b: &Finding| a.family == b.family && a.strings == b.strings;
-    // The sessions as the model reads them: at the strings' meeting point
-    // once a marker offset is found (the tracker sees the body's origin).
-    let mut seen_train = Cow::Borrowed(train);
-    let mut seen_test = test.map(Cow::Borrowed);
-    'outer: while stages.len() < config.max_effects {
-        let proposals = diagnose(&id, &seen_train, nominal, &structure, config);
-        for mut finding in proposals.into_iter().take(3) {
-            let Some(change) = finding.change else {
-                continue;
-            };
-            let candidate = structure.with(change);
-            let moved = (candidate.marker_body_mm != structure.marker_body_mm)
-                .then(|| at_meeting_points(train, candidate.marker_body_mm).into_owned());
-            let train: &[Observation] = moved.as_deref().unwrap_or(&seen_train);
-            let (after, fits) = validate_fits(train, nominal, &id, &candidate)?;
-            let check = match judgeable_folds(change, train) {
-                None => judge(
-                    &validation,
-                    &after,
-                    stability(change, &fits),
-                    config.min_relative_gain,
-                ),
-                Some((keep, left_out)) => judge_step(
-                    &validation,
-                    &after,
-                    &keep,
-                    &left_out,
-                    config.min_relative_gain,
-                ),
-            };
-            let check = match (change, check.accepted) {
-                (
-                    Change::Effect(EffectTerm {
-                        effect: Effect::Drift { .. },
-                        ..
-                    }),
-                    true,
-                ) => refuse_on_fold_rise(check),
-                _ => check,
-            };
-            let accepted = check.accepted;
-            finding.validation = Some(check);
-            findings.retain(|f| !same(f, &finding));
-            if accepted {
-                let refit = identify(train, nominal, &Start::from_identification(&id), &candidate)?;
-                let fitted = match change {
-                    Change::Effect(_) => refit
-                        .effects
-                        .last()
-                        .and_then(|t| in_physical_terms(&t.effect)),
-                    Change::MarkerOffset(d) => Some(marker_in_physical_terms(&d)),
-                    _ => None,
+
+    /// Diagnose, add the first of the three strongest proposals that
+    /// helps on held-out data, repeat until none helps or the loop holds
+    /// its most effects.
+    fn add_effects(&mut self) -> Result<(), IdentifyError> {
+        'outer: while self.stages.len() < self.config.max_effects {
+            let proposals = diagnose(
+                &self.id,
+                &self.seen_train,
+                self.nominal,
+                &self.structure,
+                self.config,
+            );
+            for finding in proposals.into_iter().take(3) {
+                let Some(change) = finding.change else {
+                    continue;
                 };
-                if let Some(fitted) = fitted {
-                    finding.description += &fitted;
+                if self.try_change(finding, change)? {
+                    continue 'outer;
                 }
-                finding.added = true;
-                findings.push(finding.clone());
-                if let Some(moved) = moved {
-                    seen_train = Cow::Owned(moved);
-                    seen_test = test.map(|t| at_meeting_points(t, candidate.marker_body_mm));
-                }
-                let name = stage_name(&finding);
-                stages.push(LoopStage::of(
-                    name,
-                    &finding,
-                    &refit,
-                    &seen_train,
-                    seen_test.as_deref(),
-                ));
-                validation = after;
-                structure = candidate;
-                id = refit;
-                continue 'outer;
             }
-            findings.push(finding);
+            break;
         }
-        break;
+        Ok(())
     }
-    if layers_refused && stages.len() > effects_before {
-        let (added, choice) = try_layers(
-            &seen_train,
-            seen_test.as_deref(),
-            &mut id,
-            &structure,
-            &mut validation,
-            &mut stages,
-            &mut findings,
+
+    /// Validates the model with `finding`'s `change` and judges it; adds it
+    /// (a stage, the refit) when accepted. The finding, with its check,
+    /// replaces an earlier one of the same family and strings. Whether the
+    /// change was added.
+    fn try_change(&mut self, mut finding: Finding, change: Change) -> Result<bool, IdentifyError> {
+        let candidate = self.structure.with(change);
+        let moved = (candidate.marker_body_mm != self.structure.marker_body_mm)
+            .then(|| at_meeting_points(self.train, candidate.marker_body_mm).into_owned());
+        let train: &[Observation] = moved.as_deref().unwrap_or(&self.seen_train);
+        let (after, fits) = validate_fits(train, self.nominal, &self.id, &candidate)?;
+        let check = self.judge_change(change, train, &after, &fits);
+        let accepted = check.accepted;
+        finding.validation = Some(check);
+        let same = |a: &Finding, b: &Finding| a.family == b.family && a.strings == b.strings;
+        self.findings.retain(|f| !same(f, &finding));
+        if !accepted {
+            self.findings.push(finding);
+            return Ok(false);
+        }
+        let refit = identify(
+            train,
+            self.nominal,
+            &Start::from_identification(&self.id),
+            &candidate,
         )?;
-        if added == Some(true) {
-            layers = choice;
+        if let Some(fitted) = fitted_in_physical_terms(change, &refit) {
+            finding.description += &fitted;
+        }
+        finding.added = true;
+        self.findings.push(finding.clone());
+        if let Some(moved) = moved {
+            self.seen_train = Cow::Owned(moved);
+            self.seen_test = self
+                .test
+                .map(|t| at_meeting_points(t, candidate.marker_body_mm));
+        }
+        let name = stage_name(&finding);
+        self.stages.push(LoopStage::of(
+            name,
+            &finding,
+            &refit,
+            &self.seen_train,
+            self.seen_test.as_deref(),
+        ));
+        self.validation = after;
+        self.structure = candidate;
+        self.id = refit;
+        Ok(true)
+    }
+
+    /// The check of `change` validated on `train` (`after`, each fold's
+    /// fit in `fits`): a slip on the folds that can judge a step, any other
+    /// change on the blocked folds with its stability; an accepted drift is
+    /// refused when it only moves error between folds.
+    fn judge_change(
+        &self,
+        change: Change,
+        train: &[Observation],
+        after: &Validation,
+        fits: &[Identification],
+    ) -> Check {
+        let check = match judgeable_folds(change, train) {
+            None => judge(
+                &self.validation,
+                after,
+                stability(change, fits),
+                self.config.min_relative_gain,
+            ),
+            Some((keep, left_out)) => judge_step(
+                &self.validation,
+                after,
+                &keep,
+                &left_out,
+                self.config.min_relative_gain,
+            ),
+        };
+        match (change, check.accepted) {
+            (
+                Change::Effect(EffectTerm {
+                    effect: Effect::Drift { .. },
+                    ..
+                }),
+                true,
+            ) => refuse_on_fold_rise(check),
+            _ => check,
         }
     }
-    findings.extend(unexplained(&id, &seen_train, nominal, &structure, config));
-    Ok(LoopResult {
-        layers,
-        base,
-        base_train,
-        base_test,
-        identification: id,
-        structure,
-        stages,
-        findings,
-    })
+}
+
+/// An added change's fitted values in the report's words: the refit's
+/// last effect, or the marker offset found.
+fn fitted_in_physical_terms(change: Change, refit: &Identification) -> Option<String> {
+    match change {
+        Change::Effect(_) => refit
+            .effects
+            .last()
+            .and_then(|t| in_physical_terms(&t.effect)),
+        Change::MarkerOffset(d) => Some(marker_in_physical_terms(&d)),
+        _ => None,
+    }
 }
 
 #[cfg(test)]
