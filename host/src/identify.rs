@@ -1248,92 +1248,19 @@ pub fn identify(
         });
     }
 
-    let mut effects = structure.effects.clone();
-    let mut carried = 0;
-    for (term, known) in effects.iter_mut().zip(&start.effects) {
-        if !same_term(term, known) {
-            break;
-        }
-        *term = *known;
-        carried += 1;
-    }
-    let grown = carried < effects.len();
-    let mut state = State {
-        frame: start.frame,
-        winding: start.winding,
-        effects,
+    let fit = Fit {
+        used: &used,
+        structure,
+        nominal,
+        layout: &layout,
+        start,
     };
-    let strings = nominal.layout;
-    let active_weights = |w: [f64; STRINGS]| -> [f64; STRINGS] {
-        core::array::from_fn(|i| if strings.is_active(i) { w[i] } else { 0.0 })
-    };
-    let mut weights = vec![active_weights([1.0; STRINGS]); used.len()];
-    let mut evaluations = 0;
-    let cold = [
-        Round::LeastSquares,
-        Round::Huber,
-        Round::Tukey,
-        Round::Tukey,
-        Round::Tukey,
-    ];
-    let warm = [Round::Tukey, Round::Tukey, Round::Tukey];
-    // A warm start whose structure gained a term begins with a Huber round:
-    // Tukey weights from the start's residuals would give the rows the new
-    // term explains (the minority side of a slip) no weight before it could
-    // explain them.
-    let warm_grown = [Round::Huber, Round::Tukey, Round::Tukey];
-    let (rounds, settled_after): (&[Round], usize) = match (start.warm, grown) {
-        (true, false) => (&warm, 1),
-        (true, true) => (&warm_grown, 1),
-        (false, _) => (&cold, 3),
-    };
-    for (n, &round) in rounds.iter().enumerate() {
-        // Weights from the current state's residuals.
-        let laws = state.winding.laws();
-        let residuals: Vec<[f64; STRINGS]> = used
-            .iter()
-            .map(|o| Problem::string_residuals(&state, &laws, o))
-            .collect();
-        let scale = robust_scale(&residuals, strings).max(1e-3);
-        let new_weights: Vec<[f64; STRINGS]> = residuals
-            .iter()
-            .map(|r| active_weights(r.map(|v| weight(round, v, scale))))
-            .collect();
-        let changed = new_weights
-            .iter()
-            .flatten()
-            .zip(weights.iter().flatten())
-            .any(|(a, b)| (a - b).abs() > 1e-3);
-        if n >= settled_after && !changed {
-            break;
-        }
-        weights = new_weights;
-        let residual_sd = scale;
-        let base_rotation = state.frame.room_rotation;
-        let x = encode(&state, &layout);
-        let problem = Problem {
-            observations: &used,
-            weights: &weights,
-            residual_sd,
-            structure,
-            nominal,
-            layout: &layout,
-            base_rotation,
-            winding_fixed: start.winding,
-            x,
-        };
-        let (problem, used_evaluations) = minimize(problem)
-            .map_err(|why| IdentifyError::Diverged(format!("robust round {n}: {why}")))?;
-        evaluations += used_evaluations;
-        state = problem.state();
-    }
+    let (state, weights, evaluations) = fit.robust_rounds()?;
 
     // Final residuals, weights and covariance.
+    let strings = nominal.layout;
     let laws = state.winding.laws();
-    let residuals: Vec<[f64; STRINGS]> = used
-        .iter()
-        .map(|o| Problem::string_residuals(&state, &laws, o))
-        .collect();
+    let residuals = fit.string_residuals(&state, &laws);
     let scale = robust_scale(&residuals, strings).max(1e-6);
     let rejected = weights
         .iter()
@@ -1351,98 +1278,12 @@ pub fn identify(
         .sum();
     let weight_sum: f64 = weights.iter().flatten().sum();
     let sigma = (weighted_ss / (weight_sum - layout.len() as f64).max(1.0)).sqrt();
-    let problem = {
-        let x = encode(&state, &layout);
-        Problem {
-            observations: &used,
-            weights: &weights,
-            residual_sd: sigma.max(1e-6),
-            structure,
-            nominal,
-            layout: &layout,
-            base_rotation: state.frame.room_rotation,
-            winding_fixed: start.winding,
-            x,
-        }
-    };
+    let problem = fit.problem(&state, &weights, sigma.max(1e-6));
     use levenberg_marquardt::LeastSquaresProblem;
     let jac = problem
         .jacobian()
         .ok_or_else(|| IdentifyError::Diverged("Jacobian not finite at the solution".into()))?;
-    // Marginal posterior variances from the eigen-decomposition of the
-    // information matrix: a direction with (numerically) no information
-    // makes exactly the parameters that load on it undetermined (infinite
-    // sd), instead of failing the whole inverse.
-    let info = jac.transpose() * &jac;
-    let eig = info.symmetric_eigen();
-    let largest = eig.eigenvalues.iter().cloned().fold(0.0, f64::max);
-    let variance = |c: usize| -> f64 {
-        let mut v = 0.0;
-        for k in 0..eig.eigenvalues.len() {
-            let load = eig.eigenvectors[(c, k)] * eig.eigenvectors[(c, k)];
-            if eig.eigenvalues[k] > 1e-12 * largest {
-                v += load / eig.eigenvalues[k];
-            } else if load > 1e-6 {
-                return f64::INFINITY;
-            }
-        }
-        v
-    };
-    let singular = eig.eigenvalues.iter().any(|&l| l <= 1e-12 * largest);
-    let mut parameters = Vec::new();
-    let mut warnings = Vec::new();
-    let names = parameter_names(&layout, structure, strings);
-    for (c, (name, unit, prior_sd)) in names.into_iter().enumerate() {
-        if !column_is_free(&layout, structure, strings, c) {
-            continue;
-        }
-        let s = layout.scale[c];
-        let value = match c {
-            _ if c < HOME => state.frame.anchors[(c - ANCHORS) / 3][(c - ANCHORS) % 3],
-            _ if c < ROTATION => state.frame.home[c - HOME],
-            _ if c < TRANSLATION => vector_from_rotation(&state.frame.room_rotation)[c - ROTATION],
-            _ if c < SCALE => state.frame.room_translation[c - TRANSLATION],
-            _ if layout.fit_scale && c == SCALE => state.frame.room_scale,
-            _ if c >= layout.r_home() && c < layout.kappa() => {
-                state.winding.r_home_mm[c - layout.r_home()]
-            }
-            _ if c == layout.kappa() => state.winding.kappa_mm,
-            _ if c >= layout.kappa_each() && c < layout.first_effect() => {
-                state.winding.kappa_each_mm[c - layout.kappa_each()]
-            }
-            _ => {
-                let (e, p) = layout.effect_columns[c - layout.first_effect()];
-                state.effects[e].effect.parameters()[p]
-            }
-        };
-        let sd = variance(c).sqrt() * s;
-        let determined = match prior_sd {
-            Some(p) => sd < 0.7 * p,
-            None => sd.is_finite() && sd < 10.0 * s.max(value.abs()),
-        };
-        if !determined {
-            warnings.push(match prior_sd {
-                Some(p) => format!(
-                    "{name}: the data do not determine it (posterior sd {sd:.3} {unit} vs prior sd {p:.3} {unit}); its value comes from the nominal design"
-                ),
-                None => format!("{name}: the data do not determine it (sd {sd:.3e} {unit})"),
-            });
-        }
-        parameters.push(ParameterEstimate {
-            name,
-            unit: unit.to_string(),
-            value,
-            sd,
-            prior_sd,
-            determined,
-        });
-    }
-    if singular && warnings.is_empty() {
-        warnings.push(
-            "the information matrix is singular: some parameters are not determined by the data"
-                .into(),
-        );
-    }
+    let (parameters, warnings) = fit.estimates(&state, &jac);
     Ok(Identification {
         frame: state.frame,
         winding: state.winding,
@@ -1454,6 +1295,222 @@ pub fn identify(
         rejected_fraction,
         evaluations,
     })
+}
+
+/// What the steps of [`identify`] share: the observations with a tracker
+/// position, the structure and its parameter layout, the design geometry
+/// and the start.
+struct Fit<'a> {
+    used: &'a [&'a Observation],
+    structure: &'a Structure,
+    nominal: &'a Frame<f64>,
+    layout: &'a Layout,
+    start: &'a Start,
+}
+
+impl Fit<'_> {
+    /// The start's state, with the structure's terms; the start's values of
+    /// its leading terms that are the structure's (a refit carries them).
+    /// Whether the structure gained terms beyond those.
+    fn start_state(&self) -> (State, bool) {
+        let mut effects = self.structure.effects.clone();
+        let mut carried = 0;
+        for (term, known) in effects.iter_mut().zip(&self.start.effects) {
+            if !same_term(term, known) {
+                break;
+            }
+            *term = *known;
+            carried += 1;
+        }
+        let grown = carried < effects.len();
+        let state = State {
+            frame: self.start.frame,
+            winding: self.start.winding,
+            effects,
+        };
+        (state, grown)
+    }
+
+    /// `w` on the channels with a string, 0 on the others.
+    fn active_weights(&self, w: [f64; STRINGS]) -> [f64; STRINGS] {
+        let strings = self.nominal.layout;
+        core::array::from_fn(|i| if strings.is_active(i) { w[i] } else { 0.0 })
+    }
+
+    /// String-space residuals of every used observation.
+    fn string_residuals(&self, state: &State, laws: &[StringLaw; STRINGS]) -> Vec<[f64; STRINGS]> {
+        self.used
+            .iter()
+            .map(|o| Problem::string_residuals(state, laws, o))
+            .collect()
+    }
+
+    /// The LM problem at `state` with the rows' `weights` and the residual
+    /// scale `residual_sd`.
+    fn problem<'b>(
+        &'b self,
+        state: &State,
+        weights: &'b [[f64; STRINGS]],
+        residual_sd: f64,
+    ) -> Problem<'b> {
+        let base_rotation = state.frame.room_rotation;
+        let x = encode(state, self.layout);
+        Problem {
+            observations: self.used,
+            weights,
+            residual_sd,
+            structure: self.structure,
+            nominal: self.nominal,
+            layout: self.layout,
+            base_rotation,
+            winding_fixed: self.start.winding,
+            x,
+        }
+    }
+
+    /// The robust rounds from the start: each reweights the rows from the
+    /// current state's residuals and refits, until the weights settle. The
+    /// state, the last round's weights and the evaluations used.
+    fn robust_rounds(&self) -> Result<(State, Vec<[f64; STRINGS]>, usize), IdentifyError> {
+        let (mut state, grown) = self.start_state();
+        let strings = self.nominal.layout;
+        let mut weights = vec![self.active_weights([1.0; STRINGS]); self.used.len()];
+        let mut evaluations = 0;
+        let cold = [
+            Round::LeastSquares,
+            Round::Huber,
+            Round::Tukey,
+            Round::Tukey,
+            Round::Tukey,
+        ];
+        let warm = [Round::Tukey, Round::Tukey, Round::Tukey];
+        // A warm start whose structure gained a term begins with a Huber round:
+        // Tukey weights from the start's residuals would give the rows the new
+        // term explains (the minority side of a slip) no weight before it could
+        // explain them.
+        let warm_grown = [Round::Huber, Round::Tukey, Round::Tukey];
+        let (rounds, settled_after): (&[Round], usize) = match (self.start.warm, grown) {
+            (true, false) => (&warm, 1),
+            (true, true) => (&warm_grown, 1),
+            (false, _) => (&cold, 3),
+        };
+        for (n, &round) in rounds.iter().enumerate() {
+            // Weights from the current state's residuals.
+            let laws = state.winding.laws();
+            let residuals = self.string_residuals(&state, &laws);
+            let scale = robust_scale(&residuals, strings).max(1e-3);
+            let new_weights: Vec<[f64; STRINGS]> = residuals
+                .iter()
+                .map(|r| self.active_weights(r.map(|v| weight(round, v, scale))))
+                .collect();
+            let changed = new_weights
+                .iter()
+                .flatten()
+                .zip(weights.iter().flatten())
+                .any(|(a, b)| (a - b).abs() > 1e-3);
+            if n >= settled_after && !changed {
+                break;
+            }
+            weights = new_weights;
+            let problem = self.problem(&state, &weights, scale);
+            let (problem, used_evaluations) = minimize(problem)
+                .map_err(|why| IdentifyError::Diverged(format!("robust round {n}: {why}")))?;
+            evaluations += used_evaluations;
+            state = problem.state();
+        }
+        Ok((state, weights, evaluations))
+    }
+
+    /// Each free parameter's value at `state` and its posterior sd from
+    /// the Jacobian at the solution `jac`; a warning for each the data do
+    /// not determine (or, failing any, for a singular information matrix).
+    fn estimates(
+        &self,
+        state: &State,
+        jac: &DMatrix<f64>,
+    ) -> (Vec<ParameterEstimate>, Vec<String>) {
+        let (layout, structure, strings) = (self.layout, self.structure, self.nominal.layout);
+        // Marginal posterior variances from the eigen-decomposition of the
+        // information matrix: a direction with (numerically) no information
+        // makes exactly the parameters that load on it undetermined (infinite
+        // sd), instead of failing the whole inverse.
+        let info = jac.transpose() * jac;
+        let eig = info.symmetric_eigen();
+        let largest = eig.eigenvalues.iter().cloned().fold(0.0, f64::max);
+        let variance = |c: usize| -> f64 {
+            let mut v = 0.0;
+            for k in 0..eig.eigenvalues.len() {
+                let load = eig.eigenvectors[(c, k)] * eig.eigenvectors[(c, k)];
+                if eig.eigenvalues[k] > 1e-12 * largest {
+                    v += load / eig.eigenvalues[k];
+                } else if load > 1e-6 {
+                    return f64::INFINITY;
+                }
+            }
+            v
+        };
+        let singular = eig.eigenvalues.iter().any(|&l| l <= 1e-12 * largest);
+        let mut parameters = Vec::new();
+        let mut warnings = Vec::new();
+        let names = parameter_names(layout, structure, strings);
+        for (c, (name, unit, prior_sd)) in names.into_iter().enumerate() {
+            if !column_is_free(layout, structure, strings, c) {
+                continue;
+            }
+            let s = layout.scale[c];
+            let value = column_value(layout, state, c);
+            let sd = variance(c).sqrt() * s;
+            let determined = match prior_sd {
+                Some(p) => sd < 0.7 * p,
+                None => sd.is_finite() && sd < 10.0 * s.max(value.abs()),
+            };
+            if !determined {
+                warnings.push(match prior_sd {
+                    Some(p) => format!(
+                        "{name}: the data do not determine it (posterior sd {sd:.3} {unit} vs prior sd {p:.3} {unit}); its value comes from the nominal design"
+                    ),
+                    None => format!("{name}: the data do not determine it (sd {sd:.3e} {unit})"),
+                });
+            }
+            parameters.push(ParameterEstimate {
+                name,
+                unit: unit.to_string(),
+                value,
+                sd,
+                prior_sd,
+                determined,
+            });
+        }
+        if singular && warnings.is_empty() {
+            warnings.push(
+                "the information matrix is singular: some parameters are not determined by the data"
+                    .into(),
+            );
+        }
+        (parameters, warnings)
+    }
+}
+
+/// The physical value of column `c` at `state`.
+fn column_value(layout: &Layout, state: &State, c: usize) -> f64 {
+    match c {
+        _ if c < HOME => state.frame.anchors[(c - ANCHORS) / 3][(c - ANCHORS) % 3],
+        _ if c < ROTATION => state.frame.home[c - HOME],
+        _ if c < TRANSLATION => vector_from_rotation(&state.frame.room_rotation)[c - ROTATION],
+        _ if c < SCALE => state.frame.room_translation[c - TRANSLATION],
+        _ if layout.fit_scale && c == SCALE => state.frame.room_scale,
+        _ if c >= layout.r_home() && c < layout.kappa() => {
+            state.winding.r_home_mm[c - layout.r_home()]
+        }
+        _ if c == layout.kappa() => state.winding.kappa_mm,
+        _ if c >= layout.kappa_each() && c < layout.first_effect() => {
+            state.winding.kappa_each_mm[c - layout.kappa_each()]
+        }
+        _ => {
+            let (e, p) = layout.effect_columns[c - layout.first_effect()];
+            state.effects[e].effect.parameters()[p]
+        }
+    }
 }
 
 /// Whether column `c` is a parameter of the device (not a channel without a
