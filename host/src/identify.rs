@@ -590,12 +590,22 @@ impl Problem<'_> {
     }
 
     /// Prior rows: (row value, gradient over physical parameters as (column, d)).
-    fn prior_rows(&self, state: &State) -> Vec<(f64, Vec<(usize, f64)>)> {
+    fn prior_rows(&self, state: &State) -> Vec<PriorRow> {
+        let mut rows = Vec::new();
+        self.frame_prior_rows(state, &mut rows);
+        self.winding_prior_rows(state, &mut rows);
+        self.effect_prior_rows(state, &mut rows);
+        self.gauge_rows(state, &mut rows);
+        rows
+    }
+
+    /// The frame's priors: each anchor, the home position, the tracker's
+    /// translation and rotation around nominal.
+    fn frame_prior_rows(&self, state: &State, rows: &mut Vec<PriorRow>) {
         let p = &self.structure.priors;
         let nominal = self.nominal;
         let layout = nominal.layout;
         let held = |active: bool, sd: f64| if active { sd } else { HELD_SD };
-        let mut rows = Vec::new();
         for i in 0..STRINGS {
             for c in 0..3 {
                 let sd = if layout.planar && c == 2 {
@@ -631,6 +641,13 @@ impl Problem<'_> {
             let sd = held(!(layout.planar && c < 2), p.rotation_sd_rad);
             rows.push((total_rotation[c] / sd, vec![(ROTATION + c, 1.0 / sd)]));
         }
+    }
+
+    /// The winding's priors: the radius of a channel without a string, each
+    /// spool's own thinning rate and their mean.
+    fn winding_prior_rows(&self, state: &State, rows: &mut Vec<PriorRow>) {
+        let p = &self.structure.priors;
+        let layout = self.nominal.layout;
         // Channels without a string: their winding radius stays nominal.
         for i in (0..STRINGS).filter(|&i| !layout.is_active(i)) {
             let col = self.layout.r_home() + i;
@@ -677,7 +694,11 @@ impl Problem<'_> {
                     .collect(),
             ));
         }
-        // Effect parameters with a prior.
+    }
+
+    /// Effect parameters with a prior.
+    fn effect_prior_rows(&self, state: &State, rows: &mut Vec<PriorRow>) {
+        let p = &self.structure.priors;
         for (c, &(e, pi)) in self.layout.effect_columns.iter().enumerate() {
             let effect = &state.effects[e].effect;
             if let (Some((centre, sd)), Some(&value)) =
@@ -689,8 +710,13 @@ impl Problem<'_> {
                 ));
             }
         }
-        // Gauge: the active anchors' centroid and mean orientation stay
-        // nominal (in the plane: the orientation about z only).
+    }
+
+    /// Gauge: the active anchors' centroid and mean orientation stay
+    /// nominal (in the plane: the orientation about z only).
+    fn gauge_rows(&self, state: &State, rows: &mut Vec<PriorRow>) {
+        let nominal = self.nominal;
+        let layout = nominal.layout;
         const GAUGE_SD_MM: f64 = 0.01;
         let n_active = layout.count() as f64;
         let centroid_nominal = centroid(&nominal.anchors, layout);
@@ -738,7 +764,6 @@ impl Problem<'_> {
             let g = grads[c].iter().map(|&(j, d)| (j, d / angle_sd)).collect();
             rows.push((value[c] / angle_sd, g));
         }
-        rows
     }
 
     fn n_rows(&self) -> usize {
@@ -782,6 +807,10 @@ fn transpose(m: &[[f64; 3]; 3]) -> [[f64; 3]; 3] {
         [m[0][2], m[1][2], m[2][2]],
     ]
 }
+
+/// A prior row: its value and its gradient over the physical parameters as
+/// (column, d).
+type PriorRow = (f64, Vec<(usize, f64)>);
 
 /// Prior sd of a parameter held at its nominal value (mm or rad): a
 /// channel without a string, a planar device's z.
