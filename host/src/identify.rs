@@ -766,6 +766,28 @@ impl Problem<'_> {
         }
     }
 
+    /// The effect columns of one observation, per column and string:
+    /// analytic gradients of the terms (each term touches only its own
+    /// string) at each string's `contexts`.
+    fn effect_gradients(
+        &self,
+        state: &State,
+        contexts: &[Option<EffectContext>; STRINGS],
+    ) -> Vec<[f64; STRINGS]> {
+        let mut effect_grad = vec![[0.0; STRINGS]; self.layout.effect_columns.len()];
+        for (c, &(e, pi)) in self.layout.effect_columns.iter().enumerate() {
+            let term = &state.effects[e];
+            for s in state.frame.layout.indices().filter(|&s| term.applies_to(s)) {
+                if let Some(ctx) = &contexts[s] {
+                    if let Some(g) = term.effect.gradient_f64(ctx).get(pi) {
+                        effect_grad[c][s] = -g;
+                    }
+                }
+            }
+        }
+        effect_grad
+    }
+
     fn n_rows(&self) -> usize {
         let layout = self.nominal.layout;
         let gauge = if layout.planar { 4 } else { 6 };
@@ -872,6 +894,50 @@ fn centroid(points: &[[f64; 3]; STRINGS], layout: StringLayout) -> [f64; 3] {
     c
 }
 
+/// The derivatives of string `i`'s model length over its payout and over
+/// its home length at `o` (1 each without effects): effects that scale with
+/// the payout or the home length (scale, elasticity, stretch, sag) carry
+/// those derivatives along. `context`: the string's, for the sag.
+fn length_derivatives(
+    effects: &[EffectTerm],
+    i: usize,
+    o: &Observation,
+    context: Option<&EffectContext>,
+) -> (f64, f64) {
+    let (mut d_payout, mut d_home) = (1.0, 1.0);
+    for term in effects.iter().filter(|t| t.applies_to(i)) {
+        match term.effect {
+            Effect::Scale { relative } => d_payout += relative,
+            Effect::Elasticity { per_newton } => {
+                let t = f64::from(o.inputs.tension_mn[i]) / 1000.0;
+                d_payout += per_newton * t;
+                d_home += per_newton * t;
+            }
+            Effect::Stretch {
+                per_newton,
+                home_tension_n,
+                ..
+            } => {
+                let t = f64::from(o.inputs.tension_mn[i]) / 1000.0;
+                d_payout += per_newton * t;
+                d_home += per_newton * (t - home_tension_n);
+            }
+            Effect::Sag {
+                mm_at_1m_1n,
+                home_mm_at_1m,
+            } => {
+                if let Some(ctx) = context {
+                    let slope = sag_slope(mm_at_1m_1n, ctx);
+                    d_payout += slope;
+                    d_home += slope + sag_home_slope(home_mm_at_1m, ctx);
+                }
+            }
+            _ => {}
+        }
+    }
+    (d_payout, d_home)
+}
+
 impl levenberg_marquardt::LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
     type ResidualStorage = Owned<f64, Dyn>;
     type JacobianStorage = Owned<f64, Dyn, Dyn>;
@@ -918,22 +984,10 @@ impl levenberg_marquardt::LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
         for (k, o) in self.observations.iter().enumerate() {
             let p = device_position(frame, o);
             let inputs = inputs_at(frame, o, &p);
-            // Effect columns: analytic gradients of the terms (each term
-            // touches only its own string).
-            let mut effect_grad = vec![[0.0; STRINGS]; layout.effect_columns.len()];
             // Each string's context once per row, not once per column.
             let contexts: [Option<EffectContext>; STRINGS] =
                 core::array::from_fn(|s| EffectContext::for_string(frame, &laws, &inputs, s));
-            for (c, &(e, pi)) in layout.effect_columns.iter().enumerate() {
-                let term = &state.effects[e];
-                for s in frame.layout.indices().filter(|&s| term.applies_to(s)) {
-                    if let Some(ctx) = &contexts[s] {
-                        if let Some(g) = term.effect.gradient_f64(ctx).get(pi) {
-                            effect_grad[c][s] = -g;
-                        }
-                    }
-                }
-            }
+            let effect_grad = self.effect_gradients(&state, &contexts);
             for i in 0..STRINGS {
                 let row = k * STRINGS + i;
                 let f = self.weights[k][i].sqrt() / self.residual_sd;
@@ -952,39 +1006,8 @@ impl levenberg_marquardt::LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
                     [d[0] / lh, d[1] / lh, d[2] / lh]
                 };
                 let theta = two_pi * o.inputs.counts[i] as f64 / w.counts_per_rev[i] as f64;
-                // Effects that scale with the payout or the home length
-                // (scale, elasticity) carry those derivatives along.
-                let (mut d_payout, mut d_home) = (1.0, 1.0);
-                for term in state.effects.iter().filter(|t| t.applies_to(i)) {
-                    match term.effect {
-                        Effect::Scale { relative } => d_payout += relative,
-                        Effect::Elasticity { per_newton } => {
-                            let t = f64::from(o.inputs.tension_mn[i]) / 1000.0;
-                            d_payout += per_newton * t;
-                            d_home += per_newton * t;
-                        }
-                        Effect::Stretch {
-                            per_newton,
-                            home_tension_n,
-                            ..
-                        } => {
-                            let t = f64::from(o.inputs.tension_mn[i]) / 1000.0;
-                            d_payout += per_newton * t;
-                            d_home += per_newton * (t - home_tension_n);
-                        }
-                        Effect::Sag {
-                            mm_at_1m_1n,
-                            home_mm_at_1m,
-                        } => {
-                            if let Some(ctx) = &contexts[i] {
-                                let slope = sag_slope(mm_at_1m_1n, ctx);
-                                d_payout += slope;
-                                d_home += slope + sag_home_slope(home_mm_at_1m, ctx);
-                            }
-                        }
-                        _ => {}
-                    }
-                }
+                let (d_payout, d_home) =
+                    length_derivatives(&state.effects, i, o, contexts[i].as_ref());
                 for c in 0..3 {
                     jac[(row, ANCHORS + 3 * i + c)] = f * (-up[c] + d_home * uh[c]);
                     jac[(row, HOME + c)] = f * (-d_home * uh[c]);
