@@ -519,6 +519,10 @@ impl Layout {
     }
 }
 
+/// A prior row: its value and its gradient over the physical parameters as
+/// (column, d).
+type PriorRow = (f64, Vec<(usize, f64)>);
+
 /// The LM problem for one robust round: rotation is linearized around
 /// `base_rotation` (the columns 27..30 are a small rotation vector on top).
 struct Problem<'a> {
@@ -829,10 +833,6 @@ fn transpose(m: &[[f64; 3]; 3]) -> [[f64; 3]; 3] {
         [m[0][2], m[1][2], m[2][2]],
     ]
 }
-
-/// A prior row: its value and its gradient over the physical parameters as
-/// (column, d).
-type PriorRow = (f64, Vec<(usize, f64)>);
 
 /// Prior sd of a parameter held at its nominal value (mm or rad): a
 /// channel without a string, a planar device's z.
