@@ -419,6 +419,10 @@ impl Layout {
     }
 }
 
+/// A prior row: its value and its gradient over the physical parameters as
+/// (column, d).
+type PriorRow = (f64, Vec<(usize, f64)>);
+
 /// The LM problem for one robust round: rotation is linearized around
 /// `base_rotation` (the columns 27..30 are a small rotation vector on top).
 struct Problem<'a> {
@@ -490,12 +494,22 @@ impl Problem<'_> {
     }
 
     /// Prior rows: (row value, gradient over physical parameters as (column, d)).
-    fn prior_rows(&self, state: &State) -> Vec<(f64, Vec<(usize, f64)>)> {
+    fn prior_rows(&self, state: &State) -> Vec<PriorRow> {
+        let mut rows = Vec::new();
+        self.frame_prior_rows(state, &mut rows);
+        self.winding_prior_rows(state, &mut rows);
+        self.effect_prior_rows(state, &mut rows);
+        self.gauge_rows(state, &mut rows);
+        rows
+    }
+
+    /// The frame's priors: each anchor, the home position, the tracker's
+    /// translation and rotation around nominal.
+    fn frame_prior_rows(&self, state: &State, rows: &mut Vec<PriorRow>) {
         let p = &self.structure.priors;
         let nominal = self.nominal;
         let layout = nominal.layout;
         let held = |active: bool, sd: f64| if active { sd } else { HELD_SD };
-        let mut rows = Vec::new();
         for i in 0..STRINGS {
             for c in 0..3 {
                 let sd = if layout.planar && c == 2 {
@@ -531,6 +545,13 @@ impl Problem<'_> {
             let sd = held(!(layout.planar && c < 2), p.rotation_sd_rad);
             rows.push((total_rotation[c] / sd, vec![(ROTATION + c, 1.0 / sd)]));
         }
+    }
+
+    /// The winding's priors: the radius of a channel without a string, each
+    /// spool's own thinning rate and their mean.
+    fn winding_prior_rows(&self, state: &State, rows: &mut Vec<PriorRow>) {
+        let p = &self.structure.priors;
+        let layout = self.nominal.layout;
         // Channels without a string: their winding radius stays nominal.
         for i in (0..STRINGS).filter(|&i| !layout.is_active(i)) {
             let col = self.layout.r_home() + i;
@@ -577,7 +598,11 @@ impl Problem<'_> {
                     .collect(),
             ));
         }
-        // Effect parameters with a prior.
+    }
+
+    /// Effect parameters with a prior.
+    fn effect_prior_rows(&self, state: &State, rows: &mut Vec<PriorRow>) {
+        let p = &self.structure.priors;
         for (c, &(e, pi)) in self.layout.effect_columns.iter().enumerate() {
             let effect = &state.effects[e].effect;
             if let (Some((centre, sd)), Some(&value)) =
@@ -589,8 +614,13 @@ impl Problem<'_> {
                 ));
             }
         }
-        // Gauge: the active anchors' centroid and mean orientation stay
-        // nominal (in the plane: the orientation about z only).
+    }
+
+    /// Gauge: the active anchors' centroid and mean orientation stay
+    /// nominal (in the plane: the orientation about z only).
+    fn gauge_rows(&self, state: &State, rows: &mut Vec<PriorRow>) {
+        let nominal = self.nominal;
+        let layout = nominal.layout;
         const GAUGE_SD_MM: f64 = 0.01;
         let n_active = layout.count() as f64;
         let centroid_nominal = centroid(&nominal.anchors, layout);
@@ -638,7 +668,28 @@ impl Problem<'_> {
             let g = grads[c].iter().map(|&(j, d)| (j, d / angle_sd)).collect();
             rows.push((value[c] / angle_sd, g));
         }
-        rows
+    }
+
+    /// The effect columns of one observation, per column and string:
+    /// analytic gradients of the terms (each term touches only its own
+    /// string) at each string's `contexts`.
+    fn effect_gradients(
+        &self,
+        state: &State,
+        contexts: &[Option<EffectContext>; STRINGS],
+    ) -> Vec<[f64; STRINGS]> {
+        let mut effect_grad = vec![[0.0; STRINGS]; self.layout.effect_columns.len()];
+        for (c, &(e, pi)) in self.layout.effect_columns.iter().enumerate() {
+            let term = &state.effects[e];
+            for s in state.frame.layout.indices().filter(|&s| term.applies_to(s)) {
+                if let Some(ctx) = &contexts[s] {
+                    if let Some(g) = term.effect.gradient_f64(ctx).get(pi) {
+                        effect_grad[c][s] = -g;
+                    }
+                }
+            }
+        }
+        effect_grad
     }
 
     fn n_rows(&self) -> usize {
@@ -735,6 +786,50 @@ fn centroid(points: &[[f64; 3]; STRINGS], layout: StringLayout) -> [f64; 3] {
     c
 }
 
+/// The derivatives of string `i`'s model length over its payout and over
+/// its home length at `o` (1 each without effects): effects that scale with
+/// the payout or the home length (scale, elasticity, stretch, sag) carry
+/// those derivatives along. `context`: the string's, for the sag.
+fn length_derivatives(
+    effects: &[EffectTerm],
+    i: usize,
+    o: &Observation,
+    context: Option<&EffectContext>,
+) -> (f64, f64) {
+    let (mut d_payout, mut d_home) = (1.0, 1.0);
+    for term in effects.iter().filter(|t| t.applies_to(i)) {
+        match term.effect {
+            Effect::Scale { relative } => d_payout += relative,
+            Effect::Elasticity { per_newton } => {
+                let t = f64::from(o.inputs.tension_mn[i]) / 1000.0;
+                d_payout += per_newton * t;
+                d_home += per_newton * t;
+            }
+            Effect::Stretch {
+                per_newton,
+                home_tension_n,
+                ..
+            } => {
+                let t = f64::from(o.inputs.tension_mn[i]) / 1000.0;
+                d_payout += per_newton * t;
+                d_home += per_newton * (t - home_tension_n);
+            }
+            Effect::Sag {
+                mm_at_1m_1n,
+                home_mm_at_1m,
+            } => {
+                if let Some(ctx) = context {
+                    let slope = sag_slope(mm_at_1m_1n, ctx);
+                    d_payout += slope;
+                    d_home += slope + sag_home_slope(home_mm_at_1m, ctx);
+                }
+            }
+            _ => {}
+        }
+    }
+    (d_payout, d_home)
+}
+
 impl levenberg_marquardt::LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
     type ResidualStorage = Owned<f64, Dyn>;
     type JacobianStorage = Owned<f64, Dyn, Dyn>;
@@ -781,22 +876,10 @@ impl levenberg_marquardt::LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
         for (k, o) in self.observations.iter().enumerate() {
             let p = device_position(frame, o);
             let inputs = inputs_at(frame, o, &p);
-            // Effect columns: analytic gradients of the terms (each term
-            // touches only its own string).
-            let mut effect_grad = vec![[0.0; STRINGS]; layout.effect_columns.len()];
             // Each string's context once per row, not once per column.
             let contexts: [Option<EffectContext>; STRINGS] =
                 core::array::from_fn(|s| EffectContext::for_string(frame, &laws, &inputs, s));
-            for (c, &(e, pi)) in layout.effect_columns.iter().enumerate() {
-                let term = &state.effects[e];
-                for s in frame.layout.indices().filter(|&s| term.applies_to(s)) {
-                    if let Some(ctx) = &contexts[s] {
-                        if let Some(g) = term.effect.gradient_f64(ctx).get(pi) {
-                            effect_grad[c][s] = -g;
-                        }
-                    }
-                }
-            }
+            let effect_grad = self.effect_gradients(&state, &contexts);
             for i in 0..STRINGS {
                 let row = k * STRINGS + i;
                 let f = self.weights[k][i].sqrt() / self.residual_sd;
@@ -815,39 +898,8 @@ impl levenberg_marquardt::LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
                     [d[0] / lh, d[1] / lh, d[2] / lh]
                 };
                 let theta = two_pi * o.inputs.counts[i] as f64 / w.counts_per_rev[i] as f64;
-                // Effects that scale with the payout or the home length
-                // (scale, elasticity) carry those derivatives along.
-                let (mut d_payout, mut d_home) = (1.0, 1.0);
-                for term in state.effects.iter().filter(|t| t.applies_to(i)) {
-                    match term.effect {
-                        Effect::Scale { relative } => d_payout += relative,
-                        Effect::Elasticity { per_newton } => {
-                            let t = f64::from(o.inputs.tension_mn[i]) / 1000.0;
-                            d_payout += per_newton * t;
-                            d_home += per_newton * t;
-                        }
-                        Effect::Stretch {
-                            per_newton,
-                            home_tension_n,
-                            ..
-                        } => {
-                            let t = f64::from(o.inputs.tension_mn[i]) / 1000.0;
-                            d_payout += per_newton * t;
-                            d_home += per_newton * (t - home_tension_n);
-                        }
-                        Effect::Sag {
-                            mm_at_1m_1n,
-                            home_mm_at_1m,
-                        } => {
-                            if let Some(ctx) = &contexts[i] {
-                                let slope = sag_slope(mm_at_1m_1n, ctx);
-                                d_payout += slope;
-                                d_home += slope + sag_home_slope(home_mm_at_1m, ctx);
-                            }
-                        }
-                        _ => {}
-                    }
-                }
+                let (d_payout, d_home) =
+                    length_derivatives(&state.effects, i, o, contexts[i].as_ref());
                 for c in 0..3 {
                     jac[(row, ANCHORS + 3 * i + c)] = f * (-up[c] + d_home * uh[c]);
                     jac[(row, HOME + c)] = f * (-d_home * uh[c]);
@@ -1140,92 +1192,19 @@ pub fn identify(
         });
     }
 
-    let mut effects = structure.effects.clone();
-    let mut carried = 0;
-    for (term, known) in effects.iter_mut().zip(&start.effects) {
-        if !same_term(term, known) {
-            break;
-        }
-        *term = *known;
-        carried += 1;
-    }
-    let grown = carried < effects.len();
-    let mut state = State {
-        frame: start.frame,
-        winding: start.winding,
-        effects,
+    let fit = Fit {
+        used: &used,
+        structure,
+        nominal,
+        layout: &layout,
+        start,
     };
-    let strings = nominal.layout;
-    let active_weights = |w: [f64; STRINGS]| -> [f64; STRINGS] {
-        core::array::from_fn(|i| if strings.is_active(i) { w[i] } else { 0.0 })
-    };
-    let mut weights = vec![active_weights([1.0; STRINGS]); used.len()];
-    let mut evaluations = 0;
-    let cold = [
-        Round::LeastSquares,
-        Round::Huber,
-        Round::Tukey,
-        Round::Tukey,
-        Round::Tukey,
-    ];
-    let warm = [Round::Tukey, Round::Tukey, Round::Tukey];
-    // A warm start whose structure gained a term begins with a Huber round:
-    // Tukey weights from the start's residuals would give the rows the new
-    // term explains (the minority side of a slip) no weight before it could
-    // explain them.
-    let warm_grown = [Round::Huber, Round::Tukey, Round::Tukey];
-    let (rounds, settled_after): (&[Round], usize) = match (start.warm, grown) {
-        (true, false) => (&warm, 1),
-        (true, true) => (&warm_grown, 1),
-        (false, _) => (&cold, 3),
-    };
-    for (n, &round) in rounds.iter().enumerate() {
-        // Weights from the current state's residuals.
-        let laws = state.winding.laws();
-        let residuals: Vec<[f64; STRINGS]> = used
-            .iter()
-            .map(|o| Problem::string_residuals(&state, &laws, o))
-            .collect();
-        let scale = robust_scale(&residuals, strings).max(1e-3);
-        let new_weights: Vec<[f64; STRINGS]> = residuals
-            .iter()
-            .map(|r| active_weights(r.map(|v| weight(round, v, scale))))
-            .collect();
-        let changed = new_weights
-            .iter()
-            .flatten()
-            .zip(weights.iter().flatten())
-            .any(|(a, b)| (a - b).abs() > 1e-3);
-        if n >= settled_after && !changed {
-            break;
-        }
-        weights = new_weights;
-        let residual_sd = scale;
-        let base_rotation = state.frame.room_rotation;
-        let x = encode(&state, &layout);
-        let problem = Problem {
-            observations: &used,
-            weights: &weights,
-            residual_sd,
-            structure,
-            nominal,
-            layout: &layout,
-            base_rotation,
-            winding_fixed: start.winding,
-            x,
-        };
-        let (problem, used_evaluations) = minimize(problem)
-            .map_err(|why| IdentifyError::Diverged(format!("robust round {n}: {why}")))?;
-        evaluations += used_evaluations;
-        state = problem.state();
-    }
+    let (state, weights, evaluations) = fit.robust_rounds()?;
 
     // Final residuals, weights and covariance.
+    let strings = nominal.layout;
     let laws = state.winding.laws();
-    let residuals: Vec<[f64; STRINGS]> = used
-        .iter()
-        .map(|o| Problem::string_residuals(&state, &laws, o))
-        .collect();
+    let residuals = fit.string_residuals(&state, &laws);
     let scale = robust_scale(&residuals, strings).max(1e-6);
     let rejected = weights
         .iter()
@@ -1243,98 +1222,12 @@ pub fn identify(
         .sum();
     let weight_sum: f64 = weights.iter().flatten().sum();
     let sigma = (weighted_ss / (weight_sum - layout.len() as f64).max(1.0)).sqrt();
-    let problem = {
-        let x = encode(&state, &layout);
-        Problem {
-            observations: &used,
-            weights: &weights,
-            residual_sd: sigma.max(1e-6),
-            structure,
-            nominal,
-            layout: &layout,
-            base_rotation: state.frame.room_rotation,
-            winding_fixed: start.winding,
-            x,
-        }
-    };
+    let problem = fit.problem(&state, &weights, sigma.max(1e-6));
     use levenberg_marquardt::LeastSquaresProblem;
     let jac = problem
         .jacobian()
         .ok_or_else(|| IdentifyError::Diverged("Jacobian not finite at the solution".into()))?;
-    // Marginal posterior variances from the eigen-decomposition of the
-    // information matrix: a direction with (numerically) no information
-    // makes exactly the parameters that load on it undetermined (infinite
-    // sd), instead of failing the whole inverse.
-    let info = jac.transpose() * &jac;
-    let eig = info.symmetric_eigen();
-    let largest = eig.eigenvalues.iter().cloned().fold(0.0, f64::max);
-    let variance = |c: usize| -> f64 {
-        let mut v = 0.0;
-        for k in 0..eig.eigenvalues.len() {
-            let load = eig.eigenvectors[(c, k)] * eig.eigenvectors[(c, k)];
-            if eig.eigenvalues[k] > 1e-12 * largest {
-                v += load / eig.eigenvalues[k];
-            } else if load > 1e-6 {
-                return f64::INFINITY;
-            }
-        }
-        v
-    };
-    let singular = eig.eigenvalues.iter().any(|&l| l <= 1e-12 * largest);
-    let mut parameters = Vec::new();
-    let mut warnings = Vec::new();
-    let names = parameter_names(&layout, structure, strings);
-    for (c, (name, unit, prior_sd)) in names.into_iter().enumerate() {
-        if !column_is_free(&layout, structure, strings, c) {
-            continue;
-        }
-        let s = layout.scale[c];
-        let value = match c {
-            _ if c < HOME => state.frame.anchors[(c - ANCHORS) / 3][(c - ANCHORS) % 3],
-            _ if c < ROTATION => state.frame.home[c - HOME],
-            _ if c < TRANSLATION => vector_from_rotation(&state.frame.room_rotation)[c - ROTATION],
-            _ if c < SCALE => state.frame.room_translation[c - TRANSLATION],
-            _ if layout.fit_scale && c == SCALE => state.frame.room_scale,
-            _ if c >= layout.r_home() && c < layout.kappa() => {
-                state.winding.r_home_mm[c - layout.r_home()]
-            }
-            _ if c == layout.kappa() => state.winding.kappa_mm,
-            _ if c >= layout.kappa_each() && c < layout.first_effect() => {
-                state.winding.kappa_each_mm[c - layout.kappa_each()]
-            }
-            _ => {
-                let (e, p) = layout.effect_columns[c - layout.first_effect()];
-                state.effects[e].effect.parameters()[p]
-            }
-        };
-        let sd = variance(c).sqrt() * s;
-        let determined = match prior_sd {
-            Some(p) => sd < 0.7 * p,
-            None => sd.is_finite() && sd < 10.0 * s.max(value.abs()),
-        };
-        if !determined {
-            warnings.push(match prior_sd {
-                Some(p) => format!(
-                    "{name}: the data do not determine it (posterior sd {sd:.3} {unit} vs prior sd {p:.3} {unit}); its value comes from the nominal design"
-                ),
-                None => format!("{name}: the data do not determine it (sd {sd:.3e} {unit})"),
-            });
-        }
-        parameters.push(ParameterEstimate {
-            name,
-            unit: unit.to_string(),
-            value,
-            sd,
-            prior_sd,
-            determined,
-        });
-    }
-    if singular && warnings.is_empty() {
-        warnings.push(
-            "the information matrix is singular: some parameters are not determined by the data"
-                .into(),
-        );
-    }
+    let (parameters, warnings) = fit.estimates(&state, &jac);
     Ok(Identification {
         frame: state.frame,
         winding: state.winding,
@@ -1346,6 +1239,222 @@ pub fn identify(
         rejected_fraction,
         evaluations,
     })
+}
+
+/// What the steps of [`identify`] share: the observations with a tracker
+/// position, the structure and its parameter layout, the design geometry
+/// and the start.
+struct Fit<'a> {
+    used: &'a [&'a Observation],
+    structure: &'a Structure,
+    nominal: &'a Frame<f64>,
+    layout: &'a Layout,
+    start: &'a Start,
+}
+
+impl Fit<'_> {
+    /// The start's state, with the structure's terms; the start's values of
+    /// its leading terms that are the structure's (a refit carries them).
+    /// Whether the structure gained terms beyond those.
+    fn start_state(&self) -> (State, bool) {
+        let mut effects = self.structure.effects.clone();
+        let mut carried = 0;
+        for (term, known) in effects.iter_mut().zip(&self.start.effects) {
+            if !same_term(term, known) {
+                break;
+            }
+            *term = *known;
+            carried += 1;
+        }
+        let grown = carried < effects.len();
+        let state = State {
+            frame: self.start.frame,
+            winding: self.start.winding,
+            effects,
+        };
+        (state, grown)
+    }
+
+    /// `w` on the channels with a string, 0 on the others.
+    fn active_weights(&self, w: [f64; STRINGS]) -> [f64; STRINGS] {
+        let strings = self.nominal.layout;
+        core::array::from_fn(|i| if strings.is_active(i) { w[i] } else { 0.0 })
+    }
+
+    /// String-space residuals of every used observation.
+    fn string_residuals(&self, state: &State, laws: &[StringLaw; STRINGS]) -> Vec<[f64; STRINGS]> {
+        self.used
+            .iter()
+            .map(|o| Problem::string_residuals(state, laws, o))
+            .collect()
+    }
+
+    /// The LM problem at `state` with the rows' `weights` and the residual
+    /// scale `residual_sd`.
+    fn problem<'b>(
+        &'b self,
+        state: &State,
+        weights: &'b [[f64; STRINGS]],
+        residual_sd: f64,
+    ) -> Problem<'b> {
+        let base_rotation = state.frame.room_rotation;
+        let x = encode(state, self.layout);
+        Problem {
+            observations: self.used,
+            weights,
+            residual_sd,
+            structure: self.structure,
+            nominal: self.nominal,
+            layout: self.layout,
+            base_rotation,
+            winding_fixed: self.start.winding,
+            x,
+        }
+    }
+
+    /// The robust rounds from the start: each reweights the rows from the
+    /// current state's residuals and refits, until the weights settle. The
+    /// state, the last round's weights and the evaluations used.
+    fn robust_rounds(&self) -> Result<(State, Vec<[f64; STRINGS]>, usize), IdentifyError> {
+        let (mut state, grown) = self.start_state();
+        let strings = self.nominal.layout;
+        let mut weights = vec![self.active_weights([1.0; STRINGS]); self.used.len()];
+        let mut evaluations = 0;
+        let cold = [
+            Round::LeastSquares,
+            Round::Huber,
+            Round::Tukey,
+            Round::Tukey,
+            Round::Tukey,
+        ];
+        let warm = [Round::Tukey, Round::Tukey, Round::Tukey];
+        // A warm start whose structure gained a term begins with a Huber round:
+        // Tukey weights from the start's residuals would give the rows the new
+        // term explains (the minority side of a slip) no weight before it could
+        // explain them.
+        let warm_grown = [Round::Huber, Round::Tukey, Round::Tukey];
+        let (rounds, settled_after): (&[Round], usize) = match (self.start.warm, grown) {
+            (true, false) => (&warm, 1),
+            (true, true) => (&warm_grown, 1),
+            (false, _) => (&cold, 3),
+        };
+        for (n, &round) in rounds.iter().enumerate() {
+            // Weights from the current state's residuals.
+            let laws = state.winding.laws();
+            let residuals = self.string_residuals(&state, &laws);
+            let scale = robust_scale(&residuals, strings).max(1e-3);
+            let new_weights: Vec<[f64; STRINGS]> = residuals
+                .iter()
+                .map(|r| self.active_weights(r.map(|v| weight(round, v, scale))))
+                .collect();
+            let changed = new_weights
+                .iter()
+                .flatten()
+                .zip(weights.iter().flatten())
+                .any(|(a, b)| (a - b).abs() > 1e-3);
+            if n >= settled_after && !changed {
+                break;
+            }
+            weights = new_weights;
+            let problem = self.problem(&state, &weights, scale);
+            let (problem, used_evaluations) = minimize(problem)
+                .map_err(|why| IdentifyError::Diverged(format!("robust round {n}: {why}")))?;
+            evaluations += used_evaluations;
+            state = problem.state();
+        }
+        Ok((state, weights, evaluations))
+    }
+
+    /// Each free parameter's value at `state` and its posterior sd from
+    /// the Jacobian at the solution `jac`; a warning for each the data do
+    /// not determine (or, failing any, for a singular information matrix).
+    fn estimates(
+        &self,
+        state: &State,
+        jac: &DMatrix<f64>,
+    ) -> (Vec<ParameterEstimate>, Vec<String>) {
+        let (layout, structure, strings) = (self.layout, self.structure, self.nominal.layout);
+        // Marginal posterior variances from the eigen-decomposition of the
+        // information matrix: a direction with (numerically) no information
+        // makes exactly the parameters that load on it undetermined (infinite
+        // sd), instead of failing the whole inverse.
+        let info = jac.transpose() * jac;
+        let eig = info.symmetric_eigen();
+        let largest = eig.eigenvalues.iter().cloned().fold(0.0, f64::max);
+        let variance = |c: usize| -> f64 {
+            let mut v = 0.0;
+            for k in 0..eig.eigenvalues.len() {
+                let load = eig.eigenvectors[(c, k)] * eig.eigenvectors[(c, k)];
+                if eig.eigenvalues[k] > 1e-12 * largest {
+                    v += load / eig.eigenvalues[k];
+                } else if load > 1e-6 {
+                    return f64::INFINITY;
+                }
+            }
+            v
+        };
+        let singular = eig.eigenvalues.iter().any(|&l| l <= 1e-12 * largest);
+        let mut parameters = Vec::new();
+        let mut warnings = Vec::new();
+        let names = parameter_names(layout, structure, strings);
+        for (c, (name, unit, prior_sd)) in names.into_iter().enumerate() {
+            if !column_is_free(layout, structure, strings, c) {
+                continue;
+            }
+            let s = layout.scale[c];
+            let value = column_value(layout, state, c);
+            let sd = variance(c).sqrt() * s;
+            let determined = match prior_sd {
+                Some(p) => sd < 0.7 * p,
+                None => sd.is_finite() && sd < 10.0 * s.max(value.abs()),
+            };
+            if !determined {
+                warnings.push(match prior_sd {
+                    Some(p) => format!(
+                        "{name}: the data do not determine it (posterior sd {sd:.3} {unit} vs prior sd {p:.3} {unit}); its value comes from the nominal design"
+                    ),
+                    None => format!("{name}: the data do not determine it (sd {sd:.3e} {unit})"),
+                });
+            }
+            parameters.push(ParameterEstimate {
+                name,
+                unit: unit.to_string(),
+                value,
+                sd,
+                prior_sd,
+                determined,
+            });
+        }
+        if singular && warnings.is_empty() {
+            warnings.push(
+                "the information matrix is singular: some parameters are not determined by the data"
+                    .into(),
+            );
+        }
+        (parameters, warnings)
+    }
+}
+
+/// The physical value of column `c` at `state`.
+fn column_value(layout: &Layout, state: &State, c: usize) -> f64 {
+    match c {
+        _ if c < HOME => state.frame.anchors[(c - ANCHORS) / 3][(c - ANCHORS) % 3],
+        _ if c < ROTATION => state.frame.home[c - HOME],
+        _ if c < TRANSLATION => vector_from_rotation(&state.frame.room_rotation)[c - ROTATION],
+        _ if c < SCALE => state.frame.room_translation[c - TRANSLATION],
+        _ if layout.fit_scale && c == SCALE => state.frame.room_scale,
+        _ if c >= layout.r_home() && c < layout.kappa() => {
+            state.winding.r_home_mm[c - layout.r_home()]
+        }
+        _ if c == layout.kappa() => state.winding.kappa_mm,
+        _ if c >= layout.kappa_each() && c < layout.first_effect() => {
+            state.winding.kappa_each_mm[c - layout.kappa_each()]
+        }
+        _ => {
+            let (e, p) = layout.effect_columns[c - layout.first_effect()];
+            state.effects[e].effect.parameters()[p]
+        }
+    }
 }
 
 /// Whether column `c` is a parameter of the device (not a channel without a
