@@ -40,44 +40,18 @@ fn line(name: &str, s: &ErrorStats) {
     );
 }
 
-fn main() {
-    let args: Vec<String> = std::env::args().skip(1).collect();
-    let flag = |f: &str| args.iter().any(|a| a == f);
-    let value = |f: &str| {
-        args.iter()
-            .position(|a| a == f)
-            .and_then(|i| args.get(i + 1))
-            .cloned()
-    };
-    let quiet = flag("--quiet");
-    let amplitude: f64 = value("--amplitude")
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(1.0);
-    let train = synthetic::lattice(13, 500.0, amplitude, 0.2, 11);
-    let test = synthetic::random(500, 500.0, amplitude, 0.2, 12);
-    if let Some(dir) = value("--csv") {
-        std::fs::create_dir_all(&dir).expect("create csv dir");
-        std::fs::write(format!("{dir}/train.csv"), train.to_csv()).expect("write train.csv");
-        std::fs::write(format!("{dir}/test.csv"), test.to_csv()).expect("write test.csv");
-        println!("wrote {dir}/train.csv and {dir}/test.csv");
-    }
-    println!(
-        "synthetic field x{amplitude}: {} train (lattice), {} test (random), rayon threads {}",
-        train.inputs.len(),
-        test.inputs.len(),
-        rayon::current_num_threads()
-    );
-    line(
-        "raw (train)",
-        &ErrorStats::between(&train.inputs, &train.targets),
-    );
-    line(
-        "raw (test)",
-        &ErrorStats::between(&test.inputs, &test.targets),
-    );
-    let mut json = serde_json::Map::new();
+/// The synthetic sessions and what every part of the bench shares.
+struct Bench {
+    train: synthetic::Dataset,
+    test: synthetic::Dataset,
+    quiet: bool,
+    /// The figures `--json` writes.
+    json: serde_json::Map<String, serde_json::Value>,
+}
 
-    // SVR at the notes' reference point.
+/// SVR at the notes' reference point; returns its fit seconds.
+fn svr_reference(b: &mut Bench) -> f64 {
+    let (train, test, quiet, json) = (&b.train, &b.test, b.quiet, &mut b.json);
     println!("\nSVR C = 100, gamma = 1/3, epsilon = 0.01 (standardized), tol 1e-3:");
     let cfg = SvrConfig {
         quiet,
@@ -100,42 +74,47 @@ fn main() {
     line("SVR test", &t);
     json.insert("svr_fit_s".into(), fit.seconds.into());
     json.insert("svr_test_mean_mm".into(), t.mean.into());
-    let svr_fixed_s = fit.seconds;
+    fit.seconds
+}
 
-    if flag("--long") {
-        let cfg = SvrConfig {
-            solver: SolverConfig {
-                shrinking: false,
-                ..SolverConfig::default()
-            },
-            ..SvrConfig::default()
-        };
-        let fit = svr::train(&train.inputs, &train.targets, &cfg).expect("svr");
-        let t = search::evaluate(|p| svr::predict(&fit.model, p), &test.inputs, &test.targets);
-        println!(
-            "  without shrinking: fit {:.3} s, iterations {:?}, test mean {:.3} mm",
-            fit.seconds,
-            fit.axes.map(|a| a.iterations),
-            t.mean
-        );
-        let cfg = SvrConfig {
-            params: SvrParams {
-                epsilon: 0.003,
-                ..SvrConfig::default().params
-            },
-            ..SvrConfig::default()
-        };
-        let fit = svr::train(&train.inputs, &train.targets, &cfg).expect("svr");
-        let t = search::evaluate(|p| svr::predict(&fit.model, p), &test.inputs, &test.targets);
-        println!(
-            "  epsilon 0.003: fit {:.3} s, SVs {:?}, test mean {:.3} mm",
-            fit.seconds,
-            fit.axes.map(|a| a.support_vectors),
-            t.mean
-        );
-    }
+/// `--long`: the reference fit without shrinking, and with epsilon 0.003.
+fn svr_variants(b: &Bench) {
+    let (train, test) = (&b.train, &b.test);
+    let cfg = SvrConfig {
+        solver: SolverConfig {
+            shrinking: false,
+            ..SolverConfig::default()
+        },
+        ..SvrConfig::default()
+    };
+    let fit = svr::train(&train.inputs, &train.targets, &cfg).expect("svr");
+    let t = search::evaluate(|p| svr::predict(&fit.model, p), &test.inputs, &test.targets);
+    println!(
+        "  without shrinking: fit {:.3} s, iterations {:?}, test mean {:.3} mm",
+        fit.seconds,
+        fit.axes.map(|a| a.iterations),
+        t.mean
+    );
+    let cfg = SvrConfig {
+        params: SvrParams {
+            epsilon: 0.003,
+            ..SvrConfig::default().params
+        },
+        ..SvrConfig::default()
+    };
+    let fit = svr::train(&train.inputs, &train.targets, &cfg).expect("svr");
+    let t = search::evaluate(|p| svr::predict(&fit.model, p), &test.inputs, &test.targets);
+    println!(
+        "  epsilon 0.003: fit {:.3} s, SVs {:?}, test mean {:.3} mm",
+        fit.seconds,
+        fit.axes.map(|a| a.support_vectors),
+        t.mean
+    );
+}
 
-    // Residual mode (on top of a kinematic model; here the raw position).
+/// Residual mode (on top of a kinematic model; here the raw position).
+fn svr_residual(b: &Bench) {
+    let (train, test) = (&b.train, &b.test);
     let cfg = SvrConfig {
         mode: OutputMode::Residual,
         params: SvrParams {
@@ -153,8 +132,12 @@ fn main() {
         fit.axes.map(|a| a.iterations)
     );
     line("SVR residual test", &t);
+}
 
-    // NN: hidden-size sweep 3..=24 then the chosen size trained longer.
+/// NN: hidden-size sweep 3..=24 then the chosen size trained longer; returns
+/// the sweep's and the final training's seconds.
+fn nn_sweep(b: &mut Bench) -> f64 {
+    let (train, test, quiet, json) = (&b.train, &b.test, b.quiet, &mut b.json);
     let sweep_cfg = SweepConfig {
         quiet,
         ..SweepConfig::default()
@@ -194,9 +177,12 @@ fn main() {
     json.insert("nn_final_s".into(), sweep.final_seconds.into());
     json.insert("nn_best_hidden".into(), sweep.best_hidden.into());
     json.insert("nn_test_mean_mm".into(), t.mean.into());
-    let nn_s = sweep.sweep_seconds + sweep.final_seconds;
+    sweep.sweep_seconds + sweep.final_seconds
+}
 
-    // SVR hyperparameter search (hold-out) and refit.
+/// SVR hyperparameter search (hold-out) and refit; returns their seconds.
+fn svr_search(b: &mut Bench) -> f64 {
+    let (train, test, quiet, json) = (&b.train, &b.test, b.quiet, &mut b.json);
     let scfg = SvrSearchConfig {
         quiet,
         ..SvrSearchConfig::default()
@@ -234,41 +220,98 @@ fn main() {
     json.insert("svr_refit_s".into(), s.refit_seconds.into());
     json.insert("svr_searched_test_mean_mm".into(), t.mean.into());
 
+    s.search_seconds + s.refit_seconds
+}
+
+/// `--long`: a 20-neuron network trained 1000 epochs without early stop.
+fn nn_long(b: &Bench) {
+    let (train, test, quiet) = (&b.train, &b.test, b.quiet);
+    let t0 = Instant::now();
+    let cfg = NnConfig {
+        hidden: 20,
+        restarts: 1,
+        lm: LmConfig {
+            max_epochs: 1000,
+            max_fail: 1000,
+            ..LmConfig::default()
+        },
+        mode: OutputMode::Absolute,
+        quiet,
+        ..NnConfig::default()
+    };
+    let fit = nn::train(&train.inputs, &train.targets, &cfg).expect("nn");
+    let t = search::evaluate(|p| nn::predict(&fit.model, p), &test.inputs, &test.targets);
+    println!(
+        "\nNN H = 20, up to 1000 epochs, no early stop: {:.2} s, {} epochs ({:?}), {:.2} ms/epoch, test mean {:.3} mm",
+        t0.elapsed().as_secs_f64(),
+        fit.epochs,
+        fit.stop,
+        1000.0 * fit.seconds / fit.epochs.max(1) as f64,
+        t.mean
+    );
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let flag = |f: &str| args.iter().any(|a| a == f);
+    let value = |f: &str| {
+        args.iter()
+            .position(|a| a == f)
+            .and_then(|i| args.get(i + 1))
+            .cloned()
+    };
+    let quiet = flag("--quiet");
+    let amplitude: f64 = value("--amplitude")
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(1.0);
+    let train = synthetic::lattice(13, 500.0, amplitude, 0.2, 11);
+    let test = synthetic::random(500, 500.0, amplitude, 0.2, 12);
+    if let Some(dir) = value("--csv") {
+        std::fs::create_dir_all(&dir).expect("create csv dir");
+        std::fs::write(format!("{dir}/train.csv"), train.to_csv()).expect("write train.csv");
+        std::fs::write(format!("{dir}/test.csv"), test.to_csv()).expect("write test.csv");
+        println!("wrote {dir}/train.csv and {dir}/test.csv");
+    }
+    println!(
+        "synthetic field x{amplitude}: {} train (lattice), {} test (random), rayon threads {}",
+        train.inputs.len(),
+        test.inputs.len(),
+        rayon::current_num_threads()
+    );
+    line(
+        "raw (train)",
+        &ErrorStats::between(&train.inputs, &train.targets),
+    );
+    line(
+        "raw (test)",
+        &ErrorStats::between(&test.inputs, &test.targets),
+    );
+    let mut bench = Bench {
+        train,
+        test,
+        quiet,
+        json: serde_json::Map::new(),
+    };
+    let svr_fixed_s = svr_reference(&mut bench);
+    if flag("--long") {
+        svr_variants(&bench);
+    }
+    svr_residual(&bench);
+    let nn_s = nn_sweep(&mut bench);
+    let search_s = svr_search(&mut bench);
     println!(
         "\ntotals: NN sweep+final {:.2} s; + SVR fixed {:.2} s = {:.2} s; + SVR search+refit {:.2} s = {:.2} s",
         nn_s,
         svr_fixed_s,
         nn_s + svr_fixed_s,
-        s.search_seconds + s.refit_seconds,
-        nn_s + s.search_seconds + s.refit_seconds
+        search_s,
+        nn_s + search_s
     );
-
     if flag("--long") {
-        let t0 = Instant::now();
-        let cfg = NnConfig {
-            hidden: 20,
-            restarts: 1,
-            lm: LmConfig {
-                max_epochs: 1000,
-                max_fail: 1000,
-                ..LmConfig::default()
-            },
-            mode: OutputMode::Absolute,
-            quiet,
-            ..NnConfig::default()
-        };
-        let fit = nn::train(&train.inputs, &train.targets, &cfg).expect("nn");
-        let t = search::evaluate(|p| nn::predict(&fit.model, p), &test.inputs, &test.targets);
-        println!(
-            "\nNN H = 20, up to 1000 epochs, no early stop: {:.2} s, {} epochs ({:?}), {:.2} ms/epoch, test mean {:.3} mm",
-            t0.elapsed().as_secs_f64(),
-            fit.epochs,
-            fit.stop,
-            1000.0 * fit.seconds / fit.epochs.max(1) as f64,
-            t.mean
-        );
+        nn_long(&bench);
     }
     if let Some(path) = value("--json") {
-        std::fs::write(&path, serde_json::Value::Object(json).to_string()).expect("write json");
+        std::fs::write(&path, serde_json::Value::Object(bench.json).to_string())
+            .expect("write json");
     }
 }
