@@ -628,11 +628,43 @@ impl<'a> PointSolver<'a> {
         if !(gd < 0.0 && dqd > 0.0 && t_opt.is_finite()) {
             return self.plain(i, j);
         }
-        // The first kink or bound along d. Only a variable whose room is
-        // within twice the full step can block it (or set t_max <= 0): the
-        // division is done for those only (most steps are not clipped), and
-        // t_max, `blocking` and `clipped` are what dividing for every one
-        // gives.
+        let (t_max, blocking) = self.first_block(t_opt);
+        if t_max.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
+            return self.plain(i, j);
+        }
+        let clipped = t_max < t_opt;
+        let step = if clipped { t_max } else { t_opt };
+        self.move_along(step, clipped.then_some(blocking));
+        // K d and the gradient in one pass, with the next maximal violations.
+        let (ki, kj) = (
+            &self.block[i * n..i * n + act],
+            &self.block[j * n..j * n + act],
+        );
+        self.top = Some(conjugate_pass(
+            self.avx2,
+            ki,
+            kj,
+            bc,
+            step,
+            &mut self.direction.q[..act],
+            &mut self.g[..act],
+            &self.up_off[..act],
+            &self.low_off[..act],
+        ));
+        if clipped {
+            self.reset_direction();
+        } else {
+            self.direction.curvature = Some(dqd);
+        }
+    }
+
+    /// The first kink or bound along the direction, and the variable that
+    /// sets it: `(t_max, blocking)`. Only a variable whose room is within
+    /// twice the full step `t_opt` can block it (or set `t_max <= 0`): the
+    /// division is done for those only (most steps are not clipped), and
+    /// `t_max` and `blocking` are what dividing for every one gives.
+    #[inline]
+    fn first_block(&self, t_opt: f64) -> (f64, usize) {
         let mut t_max = f64::INFINITY;
         let mut blocking = usize::MAX;
         for &t in &self.direction.support {
@@ -650,16 +682,19 @@ impl<'a> PointSolver<'a> {
                 blocking = t;
             }
         }
-        if t_max.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
-            return self.plain(i, j);
-        }
-        let clipped = t_max < t_opt;
-        let step = if clipped { t_max } else { t_opt };
+        (t_max, blocking)
+    }
+
+    /// Moves every variable of the direction by `step` along it; the
+    /// `blocking` variable of a clipped step lands exactly on its kink or
+    /// bound.
+    #[inline]
+    fn move_along(&mut self, step: f64, blocking: Option<usize>) {
         let c = self.c;
         for k in 0..self.direction.support.len() {
             let v = self.direction.support[k];
             let (b, d) = (self.beta[v], self.direction.d[v]);
-            let nb = if clipped && v == blocking {
+            let nb = if blocking == Some(v) {
                 if d > 0.0 {
                     if b < 0.0 {
                         0.0
@@ -687,27 +722,6 @@ impl<'a> PointSolver<'a> {
             if nb != b {
                 self.set_beta(v, nb);
             }
-        }
-        // K d and the gradient in one pass, with the next maximal violations.
-        let (ki, kj) = (
-            &self.block[i * n..i * n + act],
-            &self.block[j * n..j * n + act],
-        );
-        self.top = Some(conjugate_pass(
-            self.avx2,
-            ki,
-            kj,
-            bc,
-            step,
-            &mut self.direction.q[..act],
-            &mut self.g[..act],
-            &self.up_off[..act],
-            &self.low_off[..act],
-        ));
-        if clipped {
-            self.reset_direction();
-        } else {
-            self.direction.curvature = Some(dqd);
         }
     }
 
