@@ -73,12 +73,14 @@ fn marker_of(args: &MonitorArgs) -> Result<Option<[f64; 3]>, MonitorError> {
     args.marker_body_mm
         .as_deref()
         .map(|v| {
-            <[f64; 3]>::try_from(v).map_err(|_| MonitorError::Config {
-                field: "marker_body_mm",
-                problem: format!(
-                    "{} values given: X,Y,Z (mm, the body's frame) expected",
-                    v.len()
-                ),
+            <[f64; 3]>::try_from(v).map_err(|_| {
+                MonitorError::Config(spidar::ConfigError::new(
+                    "marker_body_mm",
+                    format!(
+                        "{} values given: X,Y,Z (mm, the body's frame) expected",
+                        v.len()
+                    ),
+                ))
             })
         })
         .transpose()
@@ -119,10 +121,10 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<String> {
     };
     if let Some(s) = args.seconds {
         if !(s.is_finite() && s > 0.0) {
-            return Err(MonitorError::Config {
-                field: "seconds",
-                problem: format!("{s} is not a positive duration"),
-            }
+            return Err(MonitorError::Config(spidar::ConfigError::new(
+                "seconds",
+                format!("{s} is not a positive duration"),
+            ))
             .into());
         }
         config.duration = Some(Duration::from_secs_f64(s));

@@ -23,7 +23,10 @@
 
 pub mod data;
 pub mod device;
+mod error;
 pub mod model;
 pub mod procedures;
 pub mod progress;
 pub mod sim;
+
+pub use error::ConfigError;

@@ -73,11 +73,8 @@ pub enum VirtualDeviceError {
     NonBlocking(nix::Error),
     #[error("virtual device: cannot start its thread: {0}")]
     Thread(std::io::Error),
-    #[error("virtual device: `{field}`: {problem}")]
-    Config {
-        field: &'static str,
-        problem: String,
-    },
+    #[error("virtual device: {0}")]
+    Config(#[from] crate::ConfigError),
     #[error("virtual device: the device thread has stopped")]
     Stopped,
     #[error("virtual device: no reboot within {0:?}")]
@@ -236,27 +233,27 @@ pub fn spawn(
     plant: Plant,
 ) -> Result<VirtualDevice, VirtualDeviceError> {
     if config.blob_capacity == 0 || config.blob_capacity > SLOT_LEN - RECORD_LEN {
-        return Err(VirtualDeviceError::Config {
-            field: "blob_capacity",
-            problem: format!(
+        return Err(VirtualDeviceError::Config(crate::ConfigError::new(
+            "blob_capacity",
+            format!(
                 "{} bytes; must be 1..={} (a slot)",
                 config.blob_capacity,
                 SLOT_LEN - RECORD_LEN
             ),
-        });
+        )));
     }
     if config.tick_us == 0 {
-        return Err(VirtualDeviceError::Config {
-            field: "tick_us",
-            problem: "must be positive".into(),
-        });
+        return Err(VirtualDeviceError::Config(crate::ConfigError::new(
+            "tick_us",
+            "must be positive",
+        )));
     }
     if let Pace::RealTime { speed } = config.pace {
         if !(speed.is_finite() && speed > 0.0) {
-            return Err(VirtualDeviceError::Config {
-                field: "pace.speed",
-                problem: format!("{speed} is not a positive speed"),
-            });
+            return Err(VirtualDeviceError::Config(crate::ConfigError::new(
+                "pace.speed",
+                format!("{speed} is not a positive speed"),
+            )));
         }
     }
     let (mut master, slave) = serialport::TTYPort::pair().map_err(VirtualDeviceError::Pty)?;

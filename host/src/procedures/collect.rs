@@ -149,8 +149,11 @@ impl CollectConfig {
     }
 
     fn validate(&self) -> Result<(), CollectError> {
-        let bad =
-            |field: &'static str, problem: String| Err(CollectError::Config { field, problem });
+        let bad = |field: &'static str, problem: String| {
+            Err(CollectError::Config(crate::ConfigError::new(
+                field, problem,
+            )))
+        };
         let hb = Duration::from_millis(u64::from(self.limits.heartbeat_timeout_ms));
         if self.heartbeat_every.is_zero() || self.heartbeat_every >= hb {
             return bad(
@@ -240,11 +243,8 @@ pub struct CollectReport {
 /// written stay in the file).
 #[derive(Debug, thiserror::Error)]
 pub enum CollectError {
-    #[error("collect: `{field}`: {problem}")]
-    Config {
-        field: &'static str,
-        problem: String,
-    },
+    #[error("collect: {0}")]
+    Config(#[from] crate::ConfigError),
     #[error("collect: {0}")]
     Lattice(#[from] LatticeError),
     #[error("collect: {0}")]

@@ -102,7 +102,9 @@ impl InitConfig {
     }
 
     fn validate(&self) -> Result<(), InitError> {
-        let bad = |field: &'static str, problem: String| Err(InitError::Config { field, problem });
+        let bad = |field: &'static str, problem: String| {
+            Err(InitError::Config(crate::ConfigError::new(field, problem)))
+        };
         if !self
             .target_room_mm
             .iter()
@@ -133,11 +135,8 @@ impl InitConfig {
 /// Why initialization failed (the device is disarmed in every case).
 #[derive(Debug, thiserror::Error)]
 pub enum InitError {
-    #[error("init: `{field}`: {problem}")]
-    Config {
-        field: &'static str,
-        problem: String,
-    },
+    #[error("init: {0}")]
+    Config(#[from] crate::ConfigError),
     #[error("init: {0}")]
     Link(#[from] LinkError),
     #[error("init: tracker: {0}")]

@@ -185,8 +185,11 @@ impl Default for MonitorConfig {
 
 impl MonitorConfig {
     fn validate(&self) -> Result<(), MonitorError> {
-        let bad =
-            |field: &'static str, problem: String| Err(MonitorError::Config { field, problem });
+        let bad = |field: &'static str, problem: String| {
+            Err(MonitorError::Config(crate::ConfigError::new(
+                field, problem,
+            )))
+        };
         if let Some(d) = self.marker_body_mm {
             if !d.iter().all(|v| v.is_finite() && v.abs() <= 1000.0) {
                 return bad(
@@ -236,11 +239,8 @@ impl MonitorConfig {
 /// Why monitoring stopped with an error.
 #[derive(Debug, thiserror::Error)]
 pub enum MonitorError {
-    #[error("monitor: `{field}`: {problem}")]
-    Config {
-        field: &'static str,
-        problem: String,
-    },
+    #[error("monitor: {0}")]
+    Config(#[from] crate::ConfigError),
     #[error("{}: `{field}`: {problem}", file.display())]
     Calibration {
         file: PathBuf,

@@ -157,7 +157,9 @@ impl SimOperatorConfig {
         if !self.tracker.ip().is_loopback() {
             return Err(TrackerError::NotLoopback(self.tracker));
         }
-        let bad = |field: &'static str, problem: String| TrackerError::Config { field, problem };
+        let bad = |field: &'static str, problem: String| {
+            TrackerError::Config(crate::ConfigError::new(field, problem))
+        };
         if !(self.frame_rate_hz.is_finite() && self.frame_rate_hz > 0.0) {
             return Err(bad(
                 "frame_rate_hz",
@@ -468,16 +470,11 @@ fn run(
     progress: Option<&ReadProgress>,
 ) -> Result<SimOperatorReport, TrackerError> {
     let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
-    let noise =
-        Normal::new(0.0, config.tracker_noise_mm.max(1e-12)).map_err(|e| TrackerError::Config {
-            field: "tracker_noise_mm",
-            problem: e.to_string(),
-        })?;
-    let tremor =
-        Normal::new(0.0, config.tremor_mm.max(1e-12)).map_err(|e| TrackerError::Config {
-            field: "tremor_mm",
-            problem: e.to_string(),
-        })?;
+    let noise = Normal::new(0.0, config.tracker_noise_mm.max(1e-12)).map_err(|e| {
+        TrackerError::Config(crate::ConfigError::new("tracker_noise_mm", e.to_string()))
+    })?;
+    let tremor = Normal::new(0.0, config.tremor_mm.max(1e-12))
+        .map_err(|e| TrackerError::Config(crate::ConfigError::new("tremor_mm", e.to_string())))?;
     let dt = 1.0 / config.frame_rate_hz;
     let dt_us = ((1e6 / config.frame_rate_hz).round() as u64).max(1);
     // On the simulated clock: the plant waits for each next point of the
@@ -661,13 +658,10 @@ impl SimulatedRig {
         let tick_us = u64::from(virtual_device.config().tick_us);
         let frame_us = (1e6 / config.frame_rate_hz).round();
         if !(frame_us.is_finite() && frame_us >= 1.0) || frame_us as u64 % tick_us != 0 {
-            return Err(RigError::from(TrackerError::Config {
-                field: "frame_rate_hz",
-                problem: format!(
+            return Err(RigError::from(TrackerError::Config(crate::ConfigError::new("frame_rate_hz", format!(
                     "{} Hz: in a simulated rig the tracker's frame period must be a whole number of the device's {tick_us} µs ticks (e.g. 100, 125, 200, 250 Hz)",
                     config.frame_rate_hz
-                ),
-            })
+                ))))
             .into());
         }
         let cues = SharedCues::stamped_by(receiver.progress());

@@ -81,8 +81,11 @@ impl SimSenderConfig {
         if !self.target.ip().is_loopback() {
             return Err(TrackerError::NotLoopback(self.target));
         }
-        let bad =
-            |field: &'static str, problem: String| Err(TrackerError::Config { field, problem });
+        let bad = |field: &'static str, problem: String| {
+            Err(TrackerError::Config(crate::ConfigError::new(
+                field, problem,
+            )))
+        };
         if !(self.frame_rate_hz.is_finite() && self.frame_rate_hz > 0.0) {
             return bad(
                 "frame_rate_hz",

@@ -106,11 +106,8 @@ pub enum TrackerError {
     Dataset(#[from] crate::data::dataset::DatasetError),
     #[error("simulated sender: target {0} is not a loopback address")]
     NotLoopback(SocketAddr),
-    #[error("configuration field `{field}`: {problem}")]
-    Config {
-        field: &'static str,
-        problem: String,
-    },
+    #[error("configuration field {0}")]
+    Config(#[from] crate::ConfigError),
     #[error("simulated sender thread panicked")]
     SenderPanicked,
 }

@@ -58,17 +58,17 @@ impl ReplaySource {
     pub fn from_session(session: &Session, pacing: Pacing) -> Result<Self, TrackerError> {
         if let Pacing::RealTime { speed } = pacing {
             if !(speed.is_finite() && speed > 0.0) {
-                return Err(TrackerError::Config {
-                    field: "pacing.speed",
-                    problem: format!("{speed} is not a positive speed"),
-                });
+                return Err(TrackerError::Config(crate::ConfigError::new(
+                    "pacing.speed",
+                    format!("{speed} is not a positive speed"),
+                )));
             }
         }
         if u32::try_from(session.samples.len()).is_err() {
-            return Err(TrackerError::Config {
-                field: "session",
-                problem: "more rows than a frame counter can number".into(),
-            });
+            return Err(TrackerError::Config(crate::ConfigError::new(
+                "session",
+                "more rows than a frame counter can number",
+            )));
         }
         Ok(ReplaySource {
             rows: session.samples.iter().map(row_of).collect(),
