@@ -241,52 +241,15 @@ pub struct Series<'a> {
     pub y: &'a [f64],
 }
 
-/// Scatter of several series (e.g. error against distance to the origin
-/// before and after calibration, paper figs. 15 and 17).
-pub fn scatter(
-    path: &Path,
-    title: &str,
-    x_label: &str,
-    y_label: &str,
-    series: &[Series<'_>],
-    options: XyOptions<'_>,
-) -> Result<Drawn, FigureError> {
-    xy_figure(
-        path,
-        title,
-        x_label,
-        y_label,
-        series,
-        XyStyle::Points,
-        options,
-    )
-}
-
-/// Lines with markers (e.g. error in collection order, paper fig. 10; mean
-/// error against hidden neurons, fig. 13).
-pub fn lines(
-    path: &Path,
-    title: &str,
-    x_label: &str,
-    y_label: &str,
-    series: &[Series<'_>],
-    options: XyOptions<'_>,
-) -> Result<Drawn, FigureError> {
-    xy_figure(
-        path,
-        title,
-        x_label,
-        y_label,
-        series,
-        XyStyle::Lines,
-        options,
-    )
-}
-
+/// How an x-y chart draws its series.
 #[derive(Clone, Copy, PartialEq)]
-enum XyStyle {
+pub enum XyStyle {
+    /// A scatter (e.g. error against distance to the origin before and
+    /// after calibration, paper figs. 15 and 17).
     Points,
-    /// Lines, with markers when a series has few points.
+    /// Lines, with markers when a series has few points (e.g. error in
+    /// collection order, paper fig. 10; mean error against hidden neurons,
+    /// fig. 13).
     Lines,
 }
 
@@ -322,7 +285,7 @@ fn xy_y_axis(series: &[Series<'_>], options: &XyOptions<'_>) -> (bool, (f64, f64
     (log_y, y)
 }
 
-/// What [`xy_figure`] draws on its chart, whichever the y axis' scale.
+/// What [`xy_chart`] draws on its chart, whichever the y axis' scale.
 struct XyChart<'a> {
     path: &'a Path,
     x_label: &'a str,
@@ -417,8 +380,8 @@ where
     Ok(())
 }
 
-/// The one x-y chart behind [`scatter`] and [`lines`].
-fn xy_figure(
+/// An x-y chart of several series, drawn as `style` says.
+pub fn xy_chart(
     path: &Path,
     title: &str,
     x_label: &str,
@@ -632,21 +595,23 @@ mod tests {
             x: &idx,
             y: &err,
         }];
-        scatter(
+        xy_chart(
             &dir.join("s.png"),
             "scatter",
             "x",
             "y",
             &s,
+            XyStyle::Points,
             XyOptions::default(),
         )
         .unwrap();
-        lines(
+        xy_chart(
             &dir.join("l.png"),
             "lines",
             "x",
             "y",
             &s,
+            XyStyle::Lines,
             XyOptions::default(),
         )
         .unwrap();

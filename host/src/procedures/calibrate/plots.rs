@@ -3,7 +3,7 @@
 
 use std::path::Path;
 
-use super::figures::{self, Drawn, Series, XyOptions};
+use super::figures::{self, Drawn, Series, XyOptions, XyStyle};
 use super::report::{Figure, NnReport};
 use super::{CalibrateError, Calibrated, PointErrors};
 
@@ -56,7 +56,7 @@ fn sweep_figure(
     let t: Vec<f64> = nn.sweep.iter().map(|p| p.train_mean_mm).collect();
     let path = out.file(name, Some("13"), title);
     let chosen = format!("chosen: {} neurons", nn.best_hidden);
-    let drawn = figures::lines(
+    let drawn = figures::xy_chart(
         &path,
         title,
         "neurons in the hidden layer",
@@ -73,6 +73,7 @@ fn sweep_figure(
                 y: &t,
             },
         ],
+        XyStyle::Lines,
         XyOptions {
             integer_x: true,
             mark_x: Some((nn.best_hidden as f64, &chosen)),
@@ -118,12 +119,13 @@ impl Out<'_> {
         series: &[Series<'_>],
     ) -> Result<(), CalibrateError> {
         let path = self.file(file, paper, title);
-        let drawn = figures::scatter(
+        let drawn = figures::xy_chart(
             &path,
             title,
             "distance to the device origin, mm",
             "absolute position error, mm",
             series,
+            XyStyle::Points,
             LOG_Y_BEYOND,
         )?;
         self.drawn(drawn);
@@ -162,7 +164,7 @@ impl Out<'_> {
     ) -> Result<(), CalibrateError> {
         let x = order(train);
         let path = self.file(file, paper, title);
-        let drawn = figures::lines(
+        let drawn = figures::xy_chart(
             &path,
             title,
             "capture (training session order)",
@@ -172,6 +174,7 @@ impl Out<'_> {
                 x: &x,
                 y: &train.errors,
             }],
+            XyStyle::Lines,
             XyOptions {
                 integer_x: true,
                 ..XyOptions::default()
