@@ -1472,51 +1472,20 @@ impl CompiledEffect {
                 counts_per_rev,
                 turns_per_count_q48,
                 ..
-            } => {
-                let phase = pulley_phase_q32(ctx.counts, counts_per_rev, turns_per_count_q48);
-                let sin = sin_q30(phase);
-                let cos = sin_q30(phase.wrapping_add(1 << 30));
-                let cos_m1 = (i64::from(cos) - (1 << 30)).clamp(i64::from(i32::MIN), 0) as i32;
-                mul_i32_shr(sin_q16, sin, 14).saturating_add(mul_i32_shr(cos_q16, cos_m1, 14))
-            }
+            } => eccentricity_q32(sin_q16, cos_q16, counts_per_rev, turns_per_count_q48, ctx),
             CompiledEffect::Elasticity {
                 per_mn_q47,
                 mm_per_mn_q47,
                 home_strain_q31,
                 home_lead_q32,
                 ..
-            } => {
-                // |per_mn_q47| <= 2^47 (a compiled model's is below 2^31):
-                // the product fits i64 without a checked multiply, which
-                // the M7 does in a library call.
-                let strain_q47 = per_mn_q47.clamp(-(1 << 47), 1 << 47) * i64::from(ctx.tension_mn);
-                let strain_q31 = ((strain_q47 >> 16) + ((strain_q47 >> 15) & 1))
-                    .clamp(i64::from(i32::MIN), i64::from(i32::MAX))
-                    as i32;
-                // Lengths in Q16 (below 2^15 mm: clamped to i32) times
-                // Q0.31 strains: one 32 x 32 -> 64 bit product each, in
-                // Q.47 (the payout rounded to Q16 first: 8e-6 mm times the
-                // strain). The home part is skipped by an elasticity of one
-                // string, which has none.
-                let to_i32 = |v: i64| v.clamp(i64::from(i32::MIN), i64::from(i32::MAX));
-                let home_q16 = to_i32(ctx.home_length_q16);
-                let free_q16 =
-                    to_i32(home_q16 + q32_to_q16(ctx.payout_q32).clamp(-(1 << 40), 1 << 40));
-                let mut stretch_q47 = free_q16 * i64::from(strain_q31);
-                if home_strain_q31 != 0 {
-                    stretch_q47 -= home_q16 * i64::from(home_strain_q31);
-                }
-                let stretch = (stretch_q47 + (1 << 14)) >> 15;
-                // The lead part: |mm_per_mn_q47| <= 2^47 (a compiled
-                // model's is below 2^37) times a u16 fits i64.
-                if mm_per_mn_q47 == 0 {
-                    stretch
-                } else {
-                    let m = mm_per_mn_q47.clamp(-(1 << 47), 1 << 47);
-                    let lead = (m * i64::from(ctx.tension_mn) + (1 << 14)) >> 15;
-                    stretch.saturating_add(lead.saturating_sub(home_lead_q32))
-                }
-            }
+            } => elasticity_q32(
+                per_mn_q47,
+                mm_per_mn_q47,
+                home_strain_q31,
+                home_lead_q32,
+                ctx,
+            ),
             CompiledEffect::Backlash { half_width_q16, .. } => {
                 let h = q16_to_q32(half_width_q16);
                 match ctx.direction.signum() {
@@ -1540,6 +1509,9 @@ impl CompiledEffect {
                 home_coeff_q32,
                 ..
             } => {
+                // Written out here: in a helper, even always inlined, it
+                // changes the code of `string_lengths` (2 % more or fewer
+                // instructions for N = 4, under `scripts/qemu-bench`).
                 let free_q32 = q16_to_q32(ctx.home_length_q16).saturating_add(ctx.payout_q32);
                 // a = l / 4096 mm in Q.30 is l in Q.18 mm; 0 <= a < 2, so
                 // a^2 < 2^62 and a^2 a < 2^63 (rounded at each step).
@@ -1572,6 +1544,66 @@ impl CompiledEffect {
                 flex.saturating_sub(home_q32)
             }
         }
+    }
+}
+
+/// [`CompiledEffect::Eccentricity`]'s contribution (Q31.32 mm) at the
+/// pulley phase of `ctx.counts`. Always inlined, as
+/// [`CompiledEffect::contribution_q32`].
+#[inline(always)]
+fn eccentricity_q32(
+    sin_q16: i64,
+    cos_q16: i64,
+    counts_per_rev: u32,
+    turns_per_count_q48: u64,
+    ctx: &FixedContext,
+) -> i64 {
+    let phase = pulley_phase_q32(ctx.counts, counts_per_rev, turns_per_count_q48);
+    let sin = sin_q30(phase);
+    let cos = sin_q30(phase.wrapping_add(1 << 30));
+    let cos_m1 = (i64::from(cos) - (1 << 30)).clamp(i64::from(i32::MIN), 0) as i32;
+    mul_i32_shr(sin_q16, sin, 14).saturating_add(mul_i32_shr(cos_q16, cos_m1, 14))
+}
+
+/// [`CompiledEffect::Elasticity`]'s contribution (Q31.32 mm): the strain
+/// of the commanded tension over the free length, less the home strain over
+/// the home length, plus the lead part. Always inlined, as
+/// [`CompiledEffect::contribution_q32`].
+#[inline(always)]
+fn elasticity_q32(
+    per_mn_q47: i64,
+    mm_per_mn_q47: i64,
+    home_strain_q31: i32,
+    home_lead_q32: i64,
+    ctx: &FixedContext,
+) -> i64 {
+    // |per_mn_q47| <= 2^47 (a compiled model's is below 2^31):
+    // the product fits i64 without a checked multiply, which
+    // the M7 does in a library call.
+    let strain_q47 = per_mn_q47.clamp(-(1 << 47), 1 << 47) * i64::from(ctx.tension_mn);
+    let strain_q31 = ((strain_q47 >> 16) + ((strain_q47 >> 15) & 1))
+        .clamp(i64::from(i32::MIN), i64::from(i32::MAX)) as i32;
+    // Lengths in Q16 (below 2^15 mm: clamped to i32) times
+    // Q0.31 strains: one 32 x 32 -> 64 bit product each, in
+    // Q.47 (the payout rounded to Q16 first: 8e-6 mm times the
+    // strain). The home part is skipped by an elasticity of one
+    // string, which has none.
+    let to_i32 = |v: i64| v.clamp(i64::from(i32::MIN), i64::from(i32::MAX));
+    let home_q16 = to_i32(ctx.home_length_q16);
+    let free_q16 = to_i32(home_q16 + q32_to_q16(ctx.payout_q32).clamp(-(1 << 40), 1 << 40));
+    let mut stretch_q47 = free_q16 * i64::from(strain_q31);
+    if home_strain_q31 != 0 {
+        stretch_q47 -= home_q16 * i64::from(home_strain_q31);
+    }
+    let stretch = (stretch_q47 + (1 << 14)) >> 15;
+    // The lead part: |mm_per_mn_q47| <= 2^47 (a compiled
+    // model's is below 2^37) times a u16 fits i64.
+    if mm_per_mn_q47 == 0 {
+        stretch
+    } else {
+        let m = mm_per_mn_q47.clamp(-(1 << 47), 1 << 47);
+        let lead = (m * i64::from(ctx.tension_mn) + (1 << 14)) >> 15;
+        stretch.saturating_add(lead.saturating_sub(home_lead_q32))
     }
 }
 
