@@ -679,111 +679,34 @@ impl<'m, F: ModelFlash> Device<'m, F> {
     ) -> Result<Response, DeviceError> {
         let now_ms = ms(now_us);
         if let Request::Hello { protocol_version } = *request {
-            self.host_version = Some(protocol_version);
-            if protocol_version == PROTOCOL_VERSION {
-                self.heartbeat(now_ms);
-            }
-            return Ok(Response::HelloAck(self.hello_ack()));
+            return Ok(self.hello(protocol_version, now_ms));
         }
-        if let Some(host) = self.host_version.filter(|&v| v != PROTOCOL_VERSION) {
-            return Err(DeviceError::VersionMismatch {
-                device: PROTOCOL_VERSION,
-                host,
-            });
-        }
+        self.check_host_version()?;
         self.heartbeat(now_ms);
         match *request {
             Request::Hello { .. } | Request::Heartbeat => Ok(Response::Ack),
-            Request::GetInfo => Ok(Response::Info(self.active.as_ref().map(|a| ModelInfo {
-                slot: a.stored.slot.index(),
-                header: a.calibration.header,
-                blob_crc32: a.stored.record.blob_crc32,
-            }))),
+            Request::GetInfo => Ok(Response::Info(self.model_info())),
             Request::GetStats => {
                 let mut s = self.stats;
                 s.uptime_us = now_us;
                 Ok(Response::Stats(s))
             }
-            Request::SetStringModel(ref m) => {
-                self.refuse_if_armed()?;
-                let cal = nominal_calibration(m)
-                    .map_err(|field| DeviceError::InvalidArgument { field: name(field) })?;
-                self.nominal = Some(cal);
-                self.ensure_controller();
-                Ok(Response::Ack)
-            }
+            Request::SetStringModel(ref m) => self.set_string_model(m),
             Request::SetLimits(limits) => {
                 self.refuse_if_armed()?;
                 self.set_limits(&limits)?;
                 Ok(Response::Ack)
             }
-            Request::SetForceTarget { force_n } => {
-                if !force_n.iter().all(|f| f.is_finite()) {
-                    return Err(DeviceError::InvalidArgument {
-                        field: name("force_n"),
-                    });
-                }
-                self.target = Target::Force(force_n);
-                Ok(Response::Ack)
-            }
+            Request::SetForceTarget { force_n } => self.set_force_target(force_n),
             Request::SetGuidanceTarget {
                 target_mm,
                 d_min_mm,
                 f_max_n,
-            } => {
-                if !target_mm.iter().all(|v| v.is_finite()) {
-                    return Err(DeviceError::InvalidArgument {
-                        field: name("target_mm"),
-                    });
-                }
-                if !(d_min_mm.is_finite() && d_min_mm >= 0.0) {
-                    return Err(DeviceError::InvalidArgument {
-                        field: name("d_min_mm"),
-                    });
-                }
-                if !(f_max_n.is_finite() && f_max_n >= 0.0) {
-                    return Err(DeviceError::InvalidArgument {
-                        field: name("f_max_n"),
-                    });
-                }
-                self.target = Target::Guidance {
-                    target_mm,
-                    d_min_mm,
-                    f_max_n,
-                };
-                Ok(Response::Ack)
-            }
+            } => self.set_guidance_target(target_mm, d_min_mm, f_max_n),
             Request::Arm => self.arm(),
-            Request::Disarm => {
-                if let Some(c) = self.controller.as_mut() {
-                    c.safety().disarm();
-                }
-                self.energized = false;
-                self.target = Target::Idle;
-                Ok(Response::Ack)
-            }
-            Request::ClearFaults => {
-                if let Some(c) = self.controller.as_mut() {
-                    c.safety().clear();
-                }
-                self.loop_overrun = false;
-                self.apply_pending_safety();
-                Ok(Response::Ack)
-            }
-            Request::StreamOn { decimation } => {
-                if decimation == 0 {
-                    return Err(DeviceError::InvalidArgument {
-                        field: name("decimation"),
-                    });
-                }
-                self.stream = Some(Stream {
-                    decimation,
-                    count: 0,
-                });
-                self.frame_due = false;
-                self.loop_max_us = 0;
-                Ok(Response::Ack)
-            }
+            Request::Disarm => self.disarm(),
+            Request::ClearFaults => self.clear_faults(),
+            Request::StreamOn { decimation } => self.stream_on(decimation),
             Request::StreamOff => {
                 self.stream = None;
                 self.frame_due = false;
@@ -793,15 +716,7 @@ impl<'m, F: ModelFlash> Device<'m, F> {
                 total_len,
                 crc32,
                 model_id,
-            } => {
-                self.refuse_if_armed()?;
-                let capacity = self.blob_capacity();
-                let next_offset = self
-                    .store
-                    .begin(total_len, crc32, model_id, capacity)
-                    .map_err(store_error)?;
-                Ok(Response::ChunkAck { next_offset })
-            }
+            } => self.upload_begin(total_len, crc32, model_id),
             Request::UploadChunk { offset, data } => {
                 self.refuse_if_armed()?;
                 let next_offset = self.store.chunk(offset, data).map_err(store_error)?;
@@ -815,40 +730,191 @@ impl<'m, F: ModelFlash> Device<'m, F> {
                 self.store.abort();
                 Ok(Response::Ack)
             }
-            Request::UploadStatus => Ok(Response::UploadStatus(match self.store.upload() {
-                None => UploadState::Idle,
-                Some(u) => UploadState::InProgress {
-                    model_id: u.model_id,
-                    total_len: u.total_len,
-                    crc32: u.crc32,
-                    next_offset: u.received,
-                },
-            })),
-            Request::Home => {
-                let cal = match (&self.active, &self.nominal) {
-                    (Some(a), _) => &a.calibration,
-                    (None, Some(n)) => n,
-                    (None, None) => return Err(DeviceError::BadState(BadState::NoGeometry)),
-                };
-                let Some(c) = self.controller.as_mut() else {
-                    return Err(DeviceError::BadState(BadState::NoGeometry));
-                };
-                c.home(cal, self.last_raw, now_ms);
-                self.home_us = now_us;
-                c.set_target(Target::Idle);
-                self.target = Target::Idle;
-                self.push_event(Event::Homed);
-                Ok(Response::Ack)
-            }
-            Request::ClearModel => {
-                self.refuse_if_armed()?;
-                self.store.clear().map_err(store_error)?;
-                self.active = None;
-                self.set_model_invalid(false);
-                self.ensure_controller();
-                Ok(Response::Ack)
-            }
+            Request::UploadStatus => Ok(Response::UploadStatus(self.upload_state())),
+            Request::Home => self.home(now_us),
+            Request::ClearModel => self.clear_model(),
         }
+    }
+
+    /// `Hello`: records the host's protocol version (a heartbeat if it is
+    /// ours) and answers with what the device is.
+    fn hello(&mut self, protocol_version: u16, now_ms: u32) -> Response {
+        self.host_version = Some(protocol_version);
+        if protocol_version == PROTOCOL_VERSION {
+            self.heartbeat(now_ms);
+        }
+        Response::HelloAck(self.hello_ack())
+    }
+
+    /// `VersionMismatch` while the last `Hello` named another protocol
+    /// version.
+    fn check_host_version(&self) -> Result<(), DeviceError> {
+        match self.host_version.filter(|&v| v != PROTOCOL_VERSION) {
+            Some(host) => Err(DeviceError::VersionMismatch {
+                device: PROTOCOL_VERSION,
+                host,
+            }),
+            None => Ok(()),
+        }
+    }
+
+    /// `GetInfo`: the committed model, if there is one.
+    fn model_info(&self) -> Option<ModelInfo> {
+        self.active.as_ref().map(|a| ModelInfo {
+            slot: a.stored.slot.index(),
+            header: a.calibration.header,
+            blob_crc32: a.stored.record.blob_crc32,
+        })
+    }
+
+    /// `SetStringModel`: the nominal calibration (used while no model is
+    /// committed); homes the controller if it is the first geometry.
+    fn set_string_model(&mut self, m: &StringModel) -> Result<Response, DeviceError> {
+        self.refuse_if_armed()?;
+        let cal = nominal_calibration(m)
+            .map_err(|field| DeviceError::InvalidArgument { field: name(field) })?;
+        self.nominal = Some(cal);
+        self.ensure_controller();
+        Ok(Response::Ack)
+    }
+
+    /// `SetForceTarget`: a finite force, N.
+    fn set_force_target(&mut self, force_n: [f32; 3]) -> Result<Response, DeviceError> {
+        if !force_n.iter().all(|f| f.is_finite()) {
+            return Err(DeviceError::InvalidArgument {
+                field: name("force_n"),
+            });
+        }
+        self.target = Target::Force(force_n);
+        Ok(Response::Ack)
+    }
+
+    /// `SetGuidanceTarget`: a finite target (mm), a finite non-negative
+    /// `d_min_mm` and `f_max_n`.
+    fn set_guidance_target(
+        &mut self,
+        target_mm: [f32; 3],
+        d_min_mm: f32,
+        f_max_n: f32,
+    ) -> Result<Response, DeviceError> {
+        if !target_mm.iter().all(|v| v.is_finite()) {
+            return Err(DeviceError::InvalidArgument {
+                field: name("target_mm"),
+            });
+        }
+        if !(d_min_mm.is_finite() && d_min_mm >= 0.0) {
+            return Err(DeviceError::InvalidArgument {
+                field: name("d_min_mm"),
+            });
+        }
+        if !(f_max_n.is_finite() && f_max_n >= 0.0) {
+            return Err(DeviceError::InvalidArgument {
+                field: name("f_max_n"),
+            });
+        }
+        self.target = Target::Guidance {
+            target_mm,
+            d_min_mm,
+            f_max_n,
+        };
+        Ok(Response::Ack)
+    }
+
+    /// `Disarm`: the loop stops rendering, the motor drivers are released.
+    fn disarm(&mut self) -> Result<Response, DeviceError> {
+        if let Some(c) = self.controller.as_mut() {
+            c.safety().disarm();
+        }
+        self.energized = false;
+        self.target = Target::Idle;
+        Ok(Response::Ack)
+    }
+
+    /// `ClearFaults`: clears the latched faults and installs pending safety
+    /// limits.
+    fn clear_faults(&mut self) -> Result<Response, DeviceError> {
+        if let Some(c) = self.controller.as_mut() {
+            c.safety().clear();
+        }
+        self.loop_overrun = false;
+        self.apply_pending_safety();
+        Ok(Response::Ack)
+    }
+
+    /// `StreamOn`: a state frame every `decimation` ticks (not 0).
+    fn stream_on(&mut self, decimation: u16) -> Result<Response, DeviceError> {
+        if decimation == 0 {
+            return Err(DeviceError::InvalidArgument {
+                field: name("decimation"),
+            });
+        }
+        self.stream = Some(Stream {
+            decimation,
+            count: 0,
+        });
+        self.frame_due = false;
+        self.loop_max_us = 0;
+        Ok(Response::Ack)
+    }
+
+    /// `UploadBegin`: starts (or resumes) an upload of at most
+    /// [`Device::blob_capacity`] bytes.
+    fn upload_begin(
+        &mut self,
+        total_len: u32,
+        crc32: u32,
+        model_id: u32,
+    ) -> Result<Response, DeviceError> {
+        self.refuse_if_armed()?;
+        let capacity = self.blob_capacity();
+        let next_offset = self
+            .store
+            .begin(total_len, crc32, model_id, capacity)
+            .map_err(store_error)?;
+        Ok(Response::ChunkAck { next_offset })
+    }
+
+    /// `UploadStatus`: the upload in progress, if any.
+    fn upload_state(&self) -> UploadState {
+        match self.store.upload() {
+            None => UploadState::Idle,
+            Some(u) => UploadState::InProgress {
+                model_id: u.model_id,
+                total_len: u.total_len,
+                crc32: u.crc32,
+                next_offset: u.received,
+            },
+        }
+    }
+
+    /// `Home`: the end-effector is at the calibration's home point now (the
+    /// host's guided initialization); the target goes back to idle.
+    fn home(&mut self, now_us: u64) -> Result<Response, DeviceError> {
+        let cal = match (&self.active, &self.nominal) {
+            (Some(a), _) => &a.calibration,
+            (None, Some(n)) => n,
+            (None, None) => return Err(DeviceError::BadState(BadState::NoGeometry)),
+        };
+        let Some(c) = self.controller.as_mut() else {
+            return Err(DeviceError::BadState(BadState::NoGeometry));
+        };
+        c.home(cal, self.last_raw, ms(now_us));
+        self.home_us = now_us;
+        c.set_target(Target::Idle);
+        self.target = Target::Idle;
+        self.push_event(Event::Homed);
+        Ok(Response::Ack)
+    }
+
+    /// `ClearModel`: erases the committed model; the nominal one (if any)
+    /// runs again.
+    fn clear_model(&mut self) -> Result<Response, DeviceError> {
+        self.refuse_if_armed()?;
+        self.store.clear().map_err(store_error)?;
+        self.active = None;
+        self.set_model_invalid(false);
+        self.ensure_controller();
+        Ok(Response::Ack)
     }
 
     fn set_model_invalid(&mut self, invalid: bool) {

@@ -370,6 +370,11 @@ pub fn forward_kinematics_inclined<F: Real>(
 /// Fewer active strings than degrees of freedom is [`FkStatus::InvalidInput`].
 /// Never panics; never returns a NaN position or RMS (a non-finite `start`
 /// is replaced by the active anchors' centroid).
+///
+/// One piece (a numerical kernel of the control loop): the exclusion search
+/// of step 2 as a function of its own changes the code the device runs
+/// (out of line: 1 % more instructions with a faulty string; always inlined:
+/// a few instructions more or fewer per call, under `scripts/qemu-bench`).
 pub fn forward_kinematics<F: Real>(
     anchors: &[Vec3<F>; STRINGS],
     layout: StringLayout,

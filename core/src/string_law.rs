@@ -1157,21 +1157,7 @@ pub fn compile_effect(
     laws: &[StringLaw; STRINGS],
 ) -> Result<CompiledEffect, CompileError> {
     let s = usize::from(term.string);
-    let shared = term.string == EVERY_STRING;
-    let law = match laws.get(s) {
-        Some(law) => law,
-        // A shared term of a family that does not read the law compiles
-        // against any law; winding and eccentricity need their string's.
-        None if shared
-            && !matches!(
-                term.effect,
-                Effect::Winding { .. } | Effect::Eccentricity { .. }
-            ) =>
-        {
-            &laws[0]
-        }
-        None => return Err(CompileError::StringOutOfRange { string: s }),
-    };
+    let law = law_of_term(term, laws)?;
     let string = term.string;
     Ok(match term.effect {
         Effect::Offset { mm } => CompiledEffect::Offset {
@@ -1185,25 +1171,7 @@ pub fn compile_effect(
         Effect::Winding {
             power,
             mm_per_rad_pow,
-        } => {
-            if power == 0 || power > MAX_EFFECT_WINDING_POWER {
-                return Err(CompileError::OutOfRange {
-                    string: s,
-                    field: "power",
-                    value: f64::from(power),
-                    min: 1.0,
-                    max: f64::from(MAX_EFFECT_WINDING_POWER),
-                });
-            }
-            check_counts_per_rev(s, law.counts_per_rev)?;
-            let c = finite(s, "mm_per_rad_pow", mm_per_rad_pow)?;
-            let scaled = c * powi_f64(rad_per_x(law.counts_per_rev), power);
-            CompiledEffect::Winding {
-                string,
-                power,
-                coeff_q32: to_fixed(s, "mm_per_rad_pow", scaled, 32, "Q31.32 mm per x^power")?,
-            }
-        }
+        } => compile_winding(s, string, power, mm_per_rad_pow, law)?,
         Effect::Eccentricity { sin_mm, cos_mm } => {
             check_counts_per_rev(s, law.counts_per_rev)?;
             CompiledEffect::Eccentricity {
@@ -1223,47 +1191,11 @@ pub fn compile_effect(
         Effect::Sag {
             mm_at_1m_1n,
             home_mm_at_1m,
-        } => {
-            let bounded =
-                |field, v| in_range(s, field, v, -MAX_SAG_MM_AT_1M_1N, MAX_SAG_MM_AT_1M_1N);
-            let m = bounded("mm_at_1m_1n", mm_at_1m_1n)?;
-            let h = bounded("home_mm_at_1m", home_mm_at_1m)?;
-            CompiledEffect::Sag {
-                string,
-                coeff_q32: to_fixed(s, "mm_at_1m_1n", -m * 65.536, 32, "Q31.32 mm")?,
-                home_coeff_q32: to_fixed(
-                    s,
-                    "home_mm_at_1m",
-                    h * 4.096 * 4.096 * 4.096,
-                    32,
-                    "Q31.32 mm",
-                )?,
-            }
-        }
+        } => compile_sag(s, string, mm_at_1m_1n, home_mm_at_1m)?,
         Effect::FrameFlex {
             mm_per_newton,
             home_mm,
-        } => {
-            let k = in_range(
-                s,
-                "mm_per_newton",
-                mm_per_newton,
-                -MAX_FRAME_FLEX_MM_PER_NEWTON,
-                MAX_FRAME_FLEX_MM_PER_NEWTON,
-            )?;
-            let h = in_range(
-                s,
-                "home_mm",
-                home_mm,
-                -MAX_FRAME_FLEX_HOME_MM,
-                MAX_FRAME_FLEX_HOME_MM,
-            )?;
-            CompiledEffect::FrameFlex {
-                string,
-                per_mn_q48: to_fixed(s, "mm_per_newton", k / 1000.0, 48, "Q15.48 mm per mN")?,
-                home_q32: to_fixed(s, "home_mm", h, 32, "Q31.32 mm")?,
-            }
-        }
+        } => compile_frame_flex(s, string, mm_per_newton, home_mm)?,
         Effect::Backlash { half_width_mm } => CompiledEffect::Backlash {
             string,
             half_width_q16: to_fixed(s, "half_width_mm", half_width_mm, 16, "Q47.16 mm")?,
@@ -1272,24 +1204,134 @@ pub fn compile_effect(
             string,
             mm_per_ms_q48: to_fixed(s, "mm_per_s", mm_per_s / 1000.0, 48, "Q15.48 mm per ms")?,
         },
-        Effect::Slip { at_s, mm } => {
-            let at = finite(s, "at_s", at_s)?;
-            let at_ms = libm::ceil(at * 1000.0);
-            if !(0.0..=f64::from(u32::MAX)).contains(&at_ms) {
-                return Err(CompileError::OutOfRange {
-                    string: s,
-                    field: "at_s",
-                    value: at,
-                    min: 0.0,
-                    max: f64::from(u32::MAX) / 1000.0,
-                });
-            }
-            CompiledEffect::Slip {
-                string,
-                at_ms: at_ms as u32,
-                mm_q16: to_fixed(s, "mm", mm, 16, "Q47.16 mm")?,
-            }
+        Effect::Slip { at_s, mm } => compile_slip(s, string, at_s, mm)?,
+    })
+}
+
+/// The law a term compiles against: its string's. A shared term of a family
+/// that does not read the law compiles against any law; winding and
+/// eccentricity need their string's.
+fn law_of_term<'a>(
+    term: &EffectTerm,
+    laws: &'a [StringLaw; STRINGS],
+) -> Result<&'a StringLaw, CompileError> {
+    let s = usize::from(term.string);
+    let shared = term.string == EVERY_STRING;
+    match laws.get(s) {
+        Some(law) => Ok(law),
+        None if shared
+            && !matches!(
+                term.effect,
+                Effect::Winding { .. } | Effect::Eccentricity { .. }
+            ) =>
+        {
+            Ok(&laws[0])
         }
+        None => Err(CompileError::StringOutOfRange { string: s }),
+    }
+}
+
+/// A winding term: power in `1..=`[`MAX_EFFECT_WINDING_POWER`], the
+/// coefficient per radian^power turned into one per `x^power` of the
+/// string's counts per revolution.
+fn compile_winding(
+    s: usize,
+    string: u8,
+    power: u8,
+    mm_per_rad_pow: f64,
+    law: &StringLaw,
+) -> Result<CompiledEffect, CompileError> {
+    if power == 0 || power > MAX_EFFECT_WINDING_POWER {
+        return Err(CompileError::OutOfRange {
+            string: s,
+            field: "power",
+            value: f64::from(power),
+            min: 1.0,
+            max: f64::from(MAX_EFFECT_WINDING_POWER),
+        });
+    }
+    check_counts_per_rev(s, law.counts_per_rev)?;
+    let c = finite(s, "mm_per_rad_pow", mm_per_rad_pow)?;
+    let scaled = c * powi_f64(rad_per_x(law.counts_per_rev), power);
+    Ok(CompiledEffect::Winding {
+        string,
+        power,
+        coeff_q32: to_fixed(s, "mm_per_rad_pow", scaled, 32, "Q31.32 mm per x^power")?,
+    })
+}
+
+/// A sag term: both coefficients within `+-`[`MAX_SAG_MM_AT_1M_1N`], in
+/// the units of [`CompiledEffect::Sag`].
+fn compile_sag(
+    s: usize,
+    string: u8,
+    mm_at_1m_1n: f64,
+    home_mm_at_1m: f64,
+) -> Result<CompiledEffect, CompileError> {
+    let bounded = |field, v| in_range(s, field, v, -MAX_SAG_MM_AT_1M_1N, MAX_SAG_MM_AT_1M_1N);
+    let m = bounded("mm_at_1m_1n", mm_at_1m_1n)?;
+    let h = bounded("home_mm_at_1m", home_mm_at_1m)?;
+    Ok(CompiledEffect::Sag {
+        string,
+        coeff_q32: to_fixed(s, "mm_at_1m_1n", -m * 65.536, 32, "Q31.32 mm")?,
+        home_coeff_q32: to_fixed(
+            s,
+            "home_mm_at_1m",
+            h * 4.096 * 4.096 * 4.096,
+            32,
+            "Q31.32 mm",
+        )?,
+    })
+}
+
+/// A frame-flex term: compliance within `+-`[`MAX_FRAME_FLEX_MM_PER_NEWTON`]
+/// (per millinewton on the device), home part within
+/// `+-`[`MAX_FRAME_FLEX_HOME_MM`].
+fn compile_frame_flex(
+    s: usize,
+    string: u8,
+    mm_per_newton: f64,
+    home_mm: f64,
+) -> Result<CompiledEffect, CompileError> {
+    let k = in_range(
+        s,
+        "mm_per_newton",
+        mm_per_newton,
+        -MAX_FRAME_FLEX_MM_PER_NEWTON,
+        MAX_FRAME_FLEX_MM_PER_NEWTON,
+    )?;
+    let h = in_range(
+        s,
+        "home_mm",
+        home_mm,
+        -MAX_FRAME_FLEX_HOME_MM,
+        MAX_FRAME_FLEX_HOME_MM,
+    )?;
+    Ok(CompiledEffect::FrameFlex {
+        string,
+        per_mn_q48: to_fixed(s, "mm_per_newton", k / 1000.0, 48, "Q15.48 mm per mN")?,
+        home_q32: to_fixed(s, "home_mm", h, 32, "Q31.32 mm")?,
+    })
+}
+
+/// A slip term: its time rounded up to whole milliseconds since home (a
+/// `u32`).
+fn compile_slip(s: usize, string: u8, at_s: f64, mm: f64) -> Result<CompiledEffect, CompileError> {
+    let at = finite(s, "at_s", at_s)?;
+    let at_ms = libm::ceil(at * 1000.0);
+    if !(0.0..=f64::from(u32::MAX)).contains(&at_ms) {
+        return Err(CompileError::OutOfRange {
+            string: s,
+            field: "at_s",
+            value: at,
+            min: 0.0,
+            max: f64::from(u32::MAX) / 1000.0,
+        });
+    }
+    Ok(CompiledEffect::Slip {
+        string,
+        at_ms: at_ms as u32,
+        mm_q16: to_fixed(s, "mm", mm, 16, "Q47.16 mm")?,
     })
 }
 
@@ -1430,51 +1472,20 @@ impl CompiledEffect {
                 counts_per_rev,
                 turns_per_count_q48,
                 ..
-            } => {
-                let phase = pulley_phase_q32(ctx.counts, counts_per_rev, turns_per_count_q48);
-                let sin = sin_q30(phase);
-                let cos = sin_q30(phase.wrapping_add(1 << 30));
-                let cos_m1 = (i64::from(cos) - (1 << 30)).clamp(i64::from(i32::MIN), 0) as i32;
-                mul_i32_shr(sin_q16, sin, 14).saturating_add(mul_i32_shr(cos_q16, cos_m1, 14))
-            }
+            } => eccentricity_q32(sin_q16, cos_q16, counts_per_rev, turns_per_count_q48, ctx),
             CompiledEffect::Elasticity {
                 per_mn_q47,
                 mm_per_mn_q47,
                 home_strain_q31,
                 home_lead_q32,
                 ..
-            } => {
-                // |per_mn_q47| <= 2^47 (a compiled model's is below 2^31):
-                // the product fits i64 without a checked multiply, which
-                // the M7 does in a library call.
-                let strain_q47 = per_mn_q47.clamp(-(1 << 47), 1 << 47) * i64::from(ctx.tension_mn);
-                let strain_q31 = ((strain_q47 >> 16) + ((strain_q47 >> 15) & 1))
-                    .clamp(i64::from(i32::MIN), i64::from(i32::MAX))
-                    as i32;
-                // Lengths in Q16 (below 2^15 mm: clamped to i32) times
-                // Q0.31 strains: one 32 x 32 -> 64 bit product each, in
-                // Q.47 (the payout rounded to Q16 first: 8e-6 mm times the
-                // strain). The home part is skipped by an elasticity of one
-                // string, which has none.
-                let to_i32 = |v: i64| v.clamp(i64::from(i32::MIN), i64::from(i32::MAX));
-                let home_q16 = to_i32(ctx.home_length_q16);
-                let free_q16 =
-                    to_i32(home_q16 + q32_to_q16(ctx.payout_q32).clamp(-(1 << 40), 1 << 40));
-                let mut stretch_q47 = free_q16 * i64::from(strain_q31);
-                if home_strain_q31 != 0 {
-                    stretch_q47 -= home_q16 * i64::from(home_strain_q31);
-                }
-                let stretch = (stretch_q47 + (1 << 14)) >> 15;
-                // The lead part: |mm_per_mn_q47| <= 2^47 (a compiled
-                // model's is below 2^37) times a u16 fits i64.
-                if mm_per_mn_q47 == 0 {
-                    stretch
-                } else {
-                    let m = mm_per_mn_q47.clamp(-(1 << 47), 1 << 47);
-                    let lead = (m * i64::from(ctx.tension_mn) + (1 << 14)) >> 15;
-                    stretch.saturating_add(lead.saturating_sub(home_lead_q32))
-                }
-            }
+            } => elasticity_q32(
+                per_mn_q47,
+                mm_per_mn_q47,
+                home_strain_q31,
+                home_lead_q32,
+                ctx,
+            ),
             CompiledEffect::Backlash { half_width_q16, .. } => {
                 let h = q16_to_q32(half_width_q16);
                 match ctx.direction.signum() {
@@ -1498,6 +1509,9 @@ impl CompiledEffect {
                 home_coeff_q32,
                 ..
             } => {
+                // Written out here: in a helper, even always inlined, it
+                // changes the code of `string_lengths` (2 % more or fewer
+                // instructions for N = 4, under `scripts/qemu-bench`).
                 let free_q32 = q16_to_q32(ctx.home_length_q16).saturating_add(ctx.payout_q32);
                 // a = l / 4096 mm in Q.30 is l in Q.18 mm; 0 <= a < 2, so
                 // a^2 < 2^62 and a^2 a < 2^63 (rounded at each step).
@@ -1530,6 +1544,66 @@ impl CompiledEffect {
                 flex.saturating_sub(home_q32)
             }
         }
+    }
+}
+
+/// [`CompiledEffect::Eccentricity`]'s contribution (Q31.32 mm) at the
+/// pulley phase of `ctx.counts`. Always inlined, as
+/// [`CompiledEffect::contribution_q32`].
+#[inline(always)]
+fn eccentricity_q32(
+    sin_q16: i64,
+    cos_q16: i64,
+    counts_per_rev: u32,
+    turns_per_count_q48: u64,
+    ctx: &FixedContext,
+) -> i64 {
+    let phase = pulley_phase_q32(ctx.counts, counts_per_rev, turns_per_count_q48);
+    let sin = sin_q30(phase);
+    let cos = sin_q30(phase.wrapping_add(1 << 30));
+    let cos_m1 = (i64::from(cos) - (1 << 30)).clamp(i64::from(i32::MIN), 0) as i32;
+    mul_i32_shr(sin_q16, sin, 14).saturating_add(mul_i32_shr(cos_q16, cos_m1, 14))
+}
+
+/// [`CompiledEffect::Elasticity`]'s contribution (Q31.32 mm): the strain
+/// of the commanded tension over the free length, less the home strain over
+/// the home length, plus the lead part. Always inlined, as
+/// [`CompiledEffect::contribution_q32`].
+#[inline(always)]
+fn elasticity_q32(
+    per_mn_q47: i64,
+    mm_per_mn_q47: i64,
+    home_strain_q31: i32,
+    home_lead_q32: i64,
+    ctx: &FixedContext,
+) -> i64 {
+    // |per_mn_q47| <= 2^47 (a compiled model's is below 2^31):
+    // the product fits i64 without a checked multiply, which
+    // the M7 does in a library call.
+    let strain_q47 = per_mn_q47.clamp(-(1 << 47), 1 << 47) * i64::from(ctx.tension_mn);
+    let strain_q31 = ((strain_q47 >> 16) + ((strain_q47 >> 15) & 1))
+        .clamp(i64::from(i32::MIN), i64::from(i32::MAX)) as i32;
+    // Lengths in Q16 (below 2^15 mm: clamped to i32) times
+    // Q0.31 strains: one 32 x 32 -> 64 bit product each, in
+    // Q.47 (the payout rounded to Q16 first: 8e-6 mm times the
+    // strain). The home part is skipped by an elasticity of one
+    // string, which has none.
+    let to_i32 = |v: i64| v.clamp(i64::from(i32::MIN), i64::from(i32::MAX));
+    let home_q16 = to_i32(ctx.home_length_q16);
+    let free_q16 = to_i32(home_q16 + q32_to_q16(ctx.payout_q32).clamp(-(1 << 40), 1 << 40));
+    let mut stretch_q47 = free_q16 * i64::from(strain_q31);
+    if home_strain_q31 != 0 {
+        stretch_q47 -= home_q16 * i64::from(home_strain_q31);
+    }
+    let stretch = (stretch_q47 + (1 << 14)) >> 15;
+    // The lead part: |mm_per_mn_q47| <= 2^47 (a compiled
+    // model's is below 2^37) times a u16 fits i64.
+    if mm_per_mn_q47 == 0 {
+        stretch
+    } else {
+        let m = mm_per_mn_q47.clamp(-(1 << 47), 1 << 47);
+        let lead = (m * i64::from(ctx.tension_mn) + (1 << 14)) >> 15;
+        stretch.saturating_add(lead.saturating_sub(home_lead_q32))
     }
 }
 

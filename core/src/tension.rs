@@ -353,6 +353,12 @@ pub fn distribute_warm<F: Real>(
 }
 
 /// [`distribute_warm`]; `ALL`: `layout` is [`StringLayout::ALL`].
+///
+/// One piece (a numerical kernel of the control loop): checks, the dual
+/// Newton iteration and the primal refinement share their state, and every
+/// split tried changes the code the device runs (the refinement in an
+/// always-inlined helper: 12 more instructions per call for N = 4 under
+/// `scripts/qemu-bench`; the Newton iteration too: 5 more for 8 strings).
 #[inline(always)]
 fn solve<F: Real, const ALL: bool>(
     anchors: &[Vec3<F>; STRINGS],

@@ -209,6 +209,104 @@ fn push_i32(out: &mut Vec<u8>, v: i32) {
     out.extend_from_slice(&v.to_le_bytes());
 }
 
+/// The NN's output weights per axis (`w2[axis]`), by name.
+const W2: [&str; 3] = ["w2[0]", "w2[1]", "w2[2]"];
+/// The SVR's coefficients per axis (`coef[axis]`), by name.
+const COEF: [&str; 3] = ["coef[0]", "coef[1]", "coef[2]"];
+
+/// The output parameters of each axis (NN `w2`, SVR `coef`, named
+/// `fields`): `expected` entries each, all finite.
+fn check_axes(
+    fields: [&'static str; 3],
+    axes: &[Vec<f64>; 3],
+    expected: usize,
+) -> Result<(), CompileError> {
+    for (a, values) in axes.iter().enumerate() {
+        if values.len() != expected {
+            return Err(CompileError::Dimension {
+                field: fields[a],
+                found: values.len(),
+                expected,
+            });
+        }
+        check_finite(fields[a], values)?;
+    }
+    Ok(())
+}
+
+/// The input mean in Q15.16 and the rounding residual (mm) that the first
+/// layer (NN) or the support vectors (SVR) absorb.
+fn input_mean_q16(input: &Standardization) -> Result<([i32; 3], [f64; 3]), CompileError> {
+    let mut mean = [0i32; 3];
+    let mut mean_residual = [0f64; 3];
+    for i in 0..3 {
+        mean[i] = q16("input.mean", i, input.mean[i])?;
+        mean_residual[i] = input.mean[i] - mean[i] as f64 / 65536.0;
+    }
+    Ok((mean, mean_residual))
+}
+
+/// The output parameters of each axis with the output scale folded in (mm)
+/// and the fractional bits `frac` picks for each axis; an axis that does
+/// not fit is an error naming its largest parameter and `format`.
+fn fold_output_scale(
+    fields: [&'static str; 3],
+    axes: &[Vec<f64>; 3],
+    output: &Standardization,
+    frac: fn(&[f64]) -> Option<u8>,
+    format: &'static str,
+) -> Result<([Vec<f64>; 3], [u8; 3]), CompileError> {
+    let mut fracs = [0u8; 3];
+    let mut folded: [Vec<f64>; 3] = [Vec::new(), Vec::new(), Vec::new()];
+    for a in 0..3 {
+        folded[a] = axes[a].iter().map(|w| w * output.std[a]).collect();
+        fracs[a] = frac(&folded[a])
+            .ok_or_else(|| largest(fields[a], folded[a].iter().copied(), format))?;
+    }
+    Ok((folded, fracs))
+}
+
+/// The output offsets in Q15.16 mm: `bias * output.std + output.mean` per
+/// axis (`field`: NN `b2`, SVR `bias`).
+fn output_offset_q16(
+    field: &'static str,
+    bias: &[f64; 3],
+    output: &Standardization,
+) -> Result<[i32; 3], CompileError> {
+    let mut offset = [0i32; 3];
+    for (a, o) in offset.iter_mut().enumerate() {
+        *o = q16(field, a, bias[a] * output.std[a] + output.mean[a])?;
+    }
+    Ok(offset)
+}
+
+/// The start of the NN and SVR bytes: output mode, input fractional bits,
+/// output fractional bits per axis, padding, input mean; room for
+/// `capacity` bytes in all.
+fn correction_head(
+    capacity: usize,
+    mode: OutputMode,
+    input_frac: u8,
+    output_frac: [u8; 3],
+    mean: [i32; 3],
+) -> Vec<u8> {
+    let mut out = Vec::with_capacity(capacity);
+    out.push(mode_byte(mode));
+    out.push(input_frac);
+    out.extend_from_slice(&output_frac);
+    out.extend_from_slice(&[0, 0, 0]);
+    mean.iter().for_each(|&v| push_i32(&mut out, v));
+    out
+}
+
+/// The output parameters of neuron or support vector `j`, each axis in its
+/// fractional bits.
+fn push_output_weights(out: &mut Vec<u8>, axes: &[Vec<f64>; 3], frac: [u8; 3], j: usize) {
+    for a in 0..3 {
+        push_i32(out, libm::round(axes[a][j] * pow2(frac[a] as u32)) as i32);
+    }
+}
+
 impl NnModel {
     /// Reference evaluation in f64 (eq. 10 standardization, tanh hidden
     /// layer via libm, linear output, de-standardization, output mode):
@@ -234,45 +332,9 @@ impl NnModel {
     /// picks the fractional bits of each layer (each output axis) to use
     /// the full `i32` range.
     pub fn compile(&self) -> Result<Vec<u8>, CompileError> {
-        let hidden = self.w1.len();
-        if hidden == 0 || hidden > u16::MAX as usize {
-            return Err(CompileError::Dimension {
-                field: "w1",
-                found: hidden,
-                expected: if hidden == 0 { 1 } else { u16::MAX as usize },
-            });
-        }
-        if self.b1.len() != hidden {
-            return Err(CompileError::Dimension {
-                field: "b1",
-                found: self.b1.len(),
-                expected: hidden,
-            });
-        }
-        const W2: [&str; 3] = ["w2[0]", "w2[1]", "w2[2]"];
-        for (a, w2) in self.w2.iter().enumerate() {
-            if w2.len() != hidden {
-                return Err(CompileError::Dimension {
-                    field: W2[a],
-                    found: w2.len(),
-                    expected: hidden,
-                });
-            }
-            check_finite(W2[a], w2)?;
-        }
-        check_standardization(&self.input, 0)?;
-        check_standardization(&self.output, 1)?;
-        check_finite("w1", self.w1.as_flattened())?;
-        check_finite("b1", &self.b1)?;
-        check_finite("b2", &self.b2)?;
-
+        let hidden = self.check_parameters()?;
         // Input mean in Q15.16; the rounding residual goes into b1.
-        let mut mean = [0i32; 3];
-        let mut mean_residual = [0f64; 3];
-        for i in 0..3 {
-            mean[i] = q16("input.mean", i, self.input.mean[i])?;
-            mean_residual[i] = self.input.mean[i] - mean[i] as f64 / 65536.0;
-        }
+        let (mean, mean_residual) = input_mean_q16(&self.input)?;
         // First layer with the input scale folded in (per mm).
         let w1: Vec<[f64; 3]> = self
             .w1
@@ -297,45 +359,34 @@ impl NnModel {
             )
         })?;
         // Output weights with the output scale folded in (mm).
-        let mut w2_frac = [0u8; 3];
-        let mut w2: [Vec<f64>; 3] = [Vec::new(), Vec::new(), Vec::new()];
-        for a in 0..3 {
-            w2[a] = self.w2[a].iter().map(|w| w * self.output.std[a]).collect();
-            w2_frac[a] = output_frac(&w2[a]).ok_or_else(|| {
-                largest(
-                    W2[a],
-                    w2[a].iter().copied(),
-                    "i32 Q(0) mm, sum of magnitudes within 2^32 (w2 * output.std)",
-                )
-            })?;
-        }
-        let mut offset = [0i32; 3];
-        for (a, o) in offset.iter_mut().enumerate() {
-            *o = q16(
-                "b2",
-                a,
-                self.b2[a] * self.output.std[a] + self.output.mean[a],
-            )?;
-        }
+        let (w2, w2_frac) = fold_output_scale(
+            W2,
+            &self.w2,
+            &self.output,
+            output_frac,
+            "i32 Q(0) mm, sum of magnitudes within 2^32 (w2 * output.std)",
+        )?;
+        let offset = output_offset_q16("b2", &self.b2, &self.output)?;
 
-        let mut out = Vec::with_capacity(NN_HEADER_LEN + NN_NEURON_LEN * hidden);
-        out.push(mode_byte(self.mode));
-        out.push(w1_frac);
-        out.extend_from_slice(&w2_frac);
-        out.extend_from_slice(&[0, 0, 0]);
-        mean.iter().for_each(|&v| push_i32(&mut out, v));
+        let mut out = correction_head(
+            NN_HEADER_LEN + NN_NEURON_LEN * hidden,
+            self.mode,
+            w1_frac,
+            w2_frac,
+            mean,
+        );
         offset.iter().for_each(|&v| push_i32(&mut out, v));
         let s1 = pow2(w1_frac as u32);
-        for h in 0..hidden {
-            for &w in &w1[h] {
+        for (h, w1h) in w1.iter().enumerate() {
+            for &w in w1h {
                 // |w * 2^w1_frac| <= 2^29 by the choice of w1_frac.
                 push_i32(&mut out, libm::round(w * s1) as i32);
             }
             // x = w1 . (p - mean_q) + b1 - w1 . mean_residual.
             let b1 = self.b1[h]
-                - (w1[h][0] * mean_residual[0]
-                    + w1[h][1] * mean_residual[1]
-                    + w1[h][2] * mean_residual[2]);
+                - (w1h[0] * mean_residual[0]
+                    + w1h[1] * mean_residual[1]
+                    + w1h[2] * mean_residual[2]);
             let b1q = to_q_i32(b1, PREACTIVATION_FRAC).ok_or(CompileError::OutOfRange {
                 field: "b1",
                 index: h,
@@ -343,14 +394,37 @@ impl NnModel {
                 format: "i32 Q4.27",
             })?;
             push_i32(&mut out, b1q);
-            for a in 0..3 {
-                push_i32(
-                    &mut out,
-                    libm::round(w2[a][h] * pow2(w2_frac[a] as u32)) as i32,
-                );
-            }
+            push_output_weights(&mut out, &w2, w2_frac, h);
         }
         Ok(out)
+    }
+
+    /// The parameters' counts (1 to `u16::MAX` neurons, the same in every
+    /// vector) and that they are finite, standard deviations positive;
+    /// the neuron count.
+    fn check_parameters(&self) -> Result<usize, CompileError> {
+        let hidden = self.w1.len();
+        if hidden == 0 || hidden > u16::MAX as usize {
+            return Err(CompileError::Dimension {
+                field: "w1",
+                found: hidden,
+                expected: if hidden == 0 { 1 } else { u16::MAX as usize },
+            });
+        }
+        if self.b1.len() != hidden {
+            return Err(CompileError::Dimension {
+                field: "b1",
+                found: self.b1.len(),
+                expected: hidden,
+            });
+        }
+        check_axes(W2, &self.w2, hidden)?;
+        check_standardization(&self.input, 0)?;
+        check_standardization(&self.output, 1)?;
+        check_finite("w1", self.w1.as_flattened())?;
+        check_finite("b1", &self.b1)?;
+        check_finite("b2", &self.b2)?;
+        Ok(hidden)
     }
 }
 
@@ -381,55 +455,14 @@ impl SvrModel {
     /// fractional bits per axis. The support-vector count (header
     /// `support_vectors`) is `self.support.len()`.
     pub fn compile(&self) -> Result<Vec<u8>, CompileError> {
-        let n = self.support.len();
-        if n > (u32::MAX as usize - SVR_HEADER_LEN) / SVR_RECORD_LEN {
-            return Err(CompileError::Dimension {
-                field: "support",
-                found: n,
-                expected: (u32::MAX as usize - SVR_HEADER_LEN) / SVR_RECORD_LEN,
-            });
-        }
-        const COEF: [&str; 3] = ["coef[0]", "coef[1]", "coef[2]"];
-        for (a, c) in self.coef.iter().enumerate() {
-            if c.len() != n {
-                return Err(CompileError::Dimension {
-                    field: COEF[a],
-                    found: c.len(),
-                    expected: n,
-                });
-            }
-            check_finite(COEF[a], c)?;
-        }
-        check_standardization(&self.input, 0)?;
-        check_standardization(&self.output, 1)?;
-        check_finite("support", self.support.as_flattened())?;
-        check_finite("bias", &self.bias)?;
-        if !self.gamma.is_finite() {
-            return Err(CompileError::NotFinite {
-                field: "gamma",
-                index: 0,
-            });
-        }
-        if self.gamma <= 0.0 {
-            return Err(CompileError::NotPositive {
-                field: "gamma",
-                index: 0,
-                value: self.gamma,
-            });
-        }
-
+        let n = self.check_parameters()?;
         let r = libm::sqrt(self.gamma * LOG2_E);
-        let mut mean = [0i32; 3];
-        let mut mean_residual = [0f64; 3];
         let g = [
             r / self.input.std[0],
             r / self.input.std[1],
             r / self.input.std[2],
         ];
-        for i in 0..3 {
-            mean[i] = q16("input.mean", i, self.input.mean[i])?;
-            mean_residual[i] = self.input.mean[i] - mean[i] as f64 / 65536.0;
-        }
+        let (mean, mean_residual) = input_mean_q16(&self.input)?;
         let g_max = g.iter().fold(0f64, |m, v| m.max(*v));
         let scale_frac = best_frac(g_max, i32::MAX as f64, INPUT_FRAC_RANGE).ok_or_else(|| {
             largest(
@@ -450,36 +483,22 @@ impl SvrModel {
         // q_true = (p - mean) g = q_dev + (p - mean_q)(g - g_q) - mean_residual g.
         // The middle term is at most |p - mean_q| * 2^-scale_frac/2 * ... and
         // is left out (it is below 1e-9 over the workspace).
-        let mut coef_frac = [0u8; 3];
-        let mut coef: [Vec<f64>; 3] = [Vec::new(), Vec::new(), Vec::new()];
-        for a in 0..3 {
-            coef[a] = self.coef[a]
-                .iter()
-                .map(|c| c * self.output.std[a])
-                .collect();
-            coef_frac[a] = svr_coef_frac(&coef[a]).ok_or_else(|| {
-                largest(
-                    COEF[a],
-                    coef[a].iter().copied(),
-                    "i32 Q(0) mm, sum of magnitudes per block of 64 within 2^33 (coef * output.std)",
-                )
-            })?;
-        }
-        let mut offset = [0i32; 3];
-        for (a, o) in offset.iter_mut().enumerate() {
-            *o = q16(
-                "bias",
-                a,
-                self.bias[a] * self.output.std[a] + self.output.mean[a],
-            )?;
-        }
+        let (coef, coef_frac) = fold_output_scale(
+            COEF,
+            &self.coef,
+            &self.output,
+            svr_coef_frac,
+            "i32 Q(0) mm, sum of magnitudes per block of 64 within 2^33 (coef * output.std)",
+        )?;
+        let offset = output_offset_q16("bias", &self.bias, &self.output)?;
 
-        let mut out = Vec::with_capacity(SVR_HEADER_LEN + SVR_RECORD_LEN * n);
-        out.push(mode_byte(self.mode));
-        out.push(scale_frac);
-        out.extend_from_slice(&coef_frac);
-        out.extend_from_slice(&[0, 0, 0]);
-        mean.iter().for_each(|&v| push_i32(&mut out, v));
+        let mut out = correction_head(
+            SVR_HEADER_LEN + SVR_RECORD_LEN * n,
+            self.mode,
+            scale_frac,
+            coef_frac,
+            mean,
+        );
         scale.iter().for_each(|&v| push_i32(&mut out, v));
         offset.iter().for_each(|&v| push_i32(&mut out, v));
         let space = pow2(SVR_SPACE_FRAC);
@@ -497,14 +516,42 @@ impl SvrModel {
                 }
                 push_i32(&mut out, sq as i32);
             }
-            for a in 0..3 {
-                push_i32(
-                    &mut out,
-                    libm::round(coef[a][j] * pow2(coef_frac[a] as u32)) as i32,
-                );
-            }
+            push_output_weights(&mut out, &coef, coef_frac, j);
         }
         Ok(out)
+    }
+
+    /// The parameters' counts (as many coefficients per axis as support
+    /// vectors, no more than a blob carries) and that they are finite,
+    /// standard deviations and `gamma` positive; the support-vector count.
+    fn check_parameters(&self) -> Result<usize, CompileError> {
+        let n = self.support.len();
+        if n > (u32::MAX as usize - SVR_HEADER_LEN) / SVR_RECORD_LEN {
+            return Err(CompileError::Dimension {
+                field: "support",
+                found: n,
+                expected: (u32::MAX as usize - SVR_HEADER_LEN) / SVR_RECORD_LEN,
+            });
+        }
+        check_axes(COEF, &self.coef, n)?;
+        check_standardization(&self.input, 0)?;
+        check_standardization(&self.output, 1)?;
+        check_finite("support", self.support.as_flattened())?;
+        check_finite("bias", &self.bias)?;
+        if !self.gamma.is_finite() {
+            return Err(CompileError::NotFinite {
+                field: "gamma",
+                index: 0,
+            });
+        }
+        if self.gamma <= 0.0 {
+            return Err(CompileError::NotPositive {
+                field: "gamma",
+                index: 0,
+                value: self.gamma,
+            });
+        }
+        Ok(n)
     }
 }
 
