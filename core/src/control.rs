@@ -27,6 +27,11 @@ use crate::string_law::{cos2_inclinations, string_lengths, CompiledEffect};
 use crate::tension::{distribute_warm, TensionConfig, TensionLimits, TensionStatus};
 use crate::STRINGS;
 
+/// The largest residual (N) of a `NotConverged` tension solution the loop
+/// still renders (see [`Controller::step`]): a millinewton, ten times the
+/// solver's tolerance.
+pub const USABLE_RESIDUAL_N: f32 = 1e-3;
+
 /// Fixed parameters of the loop.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ControlConfig {
@@ -324,8 +329,18 @@ impl Controller {
             solution.status,
             TensionStatus::Exact | TensionStatus::Scaled
         );
+        // A force scaled to a vertex of the reachable set can end
+        // NotConverged a fraction of a millinewton short of the tolerance
+        // (fewer free strings than the last refinement needs): its tensions
+        // are within limits and render the force, better than a tick of
+        // pretension. Its multiplier is not kept as the next warm start.
+        let usable = solution.status == TensionStatus::NotConverged
+            && solution.residual_n < USABLE_RESIDUAL_N;
         let wanted = if solved {
             self.multiplier = solution.multiplier;
+            solution.tensions
+        } else if usable {
+            self.multiplier = [0.0; 3];
             solution.tensions
         } else {
             self.multiplier = [0.0; 3];
