@@ -21,10 +21,12 @@ use crate::encoder::{DirectionTracker, EncoderExtender};
 use crate::geometry::{device_direction, room_from_device};
 use crate::guidance::guidance_force;
 use crate::kinematics::{forward_kinematics, inverse_kinematics, FkConfig, FkStatus};
-use crate::model::StringInputs;
+use crate::model::{Frame, StringInputs};
 use crate::safety::{Faults, SafetyConfig, SafetyConfigError, SafetyMonitor};
 use crate::string_law::{cos2_inclinations, string_lengths, CompiledEffect};
-use crate::tension::{distribute_warm, TensionConfig, TensionLimits, TensionStatus};
+use crate::tension::{
+    distribute_warm, TensionConfig, TensionLimits, TensionSolution, TensionStatus,
+};
 use crate::STRINGS;
 
 /// The largest residual (N) of a `NotConverged` tension solution the loop
@@ -298,23 +300,7 @@ impl Controller {
         self.safety.set_lengths_calibrated(self.lengths_calibrated);
         let faults = self.safety.check(input.now_ms, &lengths, &geometric, fk_ok);
 
-        let requested = match self.target {
-            Target::Idle => [0.0; 3],
-            Target::Force(f) => f,
-            Target::Guidance {
-                target_mm,
-                d_min_mm,
-                f_max_n,
-            } => {
-                let p = position_mm(corrected_q16);
-                let v = [
-                    target_mm[0] - p[0],
-                    target_mm[1] - p[1],
-                    target_mm[2] - p[2],
-                ];
-                device_direction(frame, guidance_force(v, d_min_mm, f_max_n))
-            }
-        };
+        let requested = self.requested_force(frame, corrected_q16);
         let force = self.safety.limit_force(requested);
         let solution = distribute_warm(
             &frame.anchors,
@@ -325,27 +311,7 @@ impl Controller {
             &self.config.tension,
             self.multiplier,
         );
-        let solved = matches!(
-            solution.status,
-            TensionStatus::Exact | TensionStatus::Scaled
-        );
-        // A force scaled to a vertex of the reachable set can end
-        // NotConverged a fraction of a millinewton short of the tolerance
-        // (fewer free strings than the last refinement needs): its tensions
-        // are within limits and render the force, better than a tick of
-        // pretension. Its multiplier is not kept as the next warm start.
-        let usable = solution.status == TensionStatus::NotConverged
-            && solution.residual_n < USABLE_RESIDUAL_N;
-        let wanted = if solved {
-            self.multiplier = solution.multiplier;
-            solution.tensions
-        } else if usable {
-            self.multiplier = [0.0; 3];
-            solution.tensions
-        } else {
-            self.multiplier = [0.0; 3];
-            [self.config.safety.pretension_n; STRINGS]
-        };
+        let wanted = self.tensions_to_render(&solution);
         let tensions = self.safety.apply(wanted);
         for (mn, t) in self.tensions_mn.iter_mut().zip(tensions) {
             *mn = (t * 1000.0).clamp(0.0, u16::MAX as f32) as u16;
@@ -367,6 +333,56 @@ impl Controller {
             warnings: self.safety.warnings(),
             slack_mask: self.safety.slack_mask(),
             armed: self.safety.is_armed(),
+        }
+    }
+
+    /// The force the target asks for this tick (device frame, N), before
+    /// the safety limit.
+    #[inline(always)]
+    fn requested_force(&self, frame: &Frame<f32>, corrected_q16: [i32; 3]) -> [f32; 3] {
+        match self.target {
+            Target::Idle => [0.0; 3],
+            Target::Force(f) => f,
+            Target::Guidance {
+                target_mm,
+                d_min_mm,
+                f_max_n,
+            } => {
+                let p = position_mm(corrected_q16);
+                let v = [
+                    target_mm[0] - p[0],
+                    target_mm[1] - p[1],
+                    target_mm[2] - p[2],
+                ];
+                device_direction(frame, guidance_force(v, d_min_mm, f_max_n))
+            }
+        }
+    }
+
+    /// The tensions to command from the solver's answer: its tensions when
+    /// it rendered the force, pretension when it could not.
+    #[inline(always)]
+    fn tensions_to_render(&mut self, solution: &TensionSolution<f32>) -> [f32; STRINGS] {
+        let solved = matches!(
+            solution.status,
+            TensionStatus::Exact | TensionStatus::Scaled
+        );
+        // A force scaled to a vertex of the reachable set can end
+        // NotConverged a fraction of a millinewton short of the tolerance
+        // (fewer free strings than the last refinement needs): its tensions
+        // are within limits and render the force, better than a tick of
+        // pretension. Its multiplier is not kept as the next warm start.
+        let usable = solution.status == TensionStatus::NotConverged
+            && solution.residual_n < USABLE_RESIDUAL_N;
+        if solved {
+            self.multiplier = solution.multiplier;
+            solution.tensions
+        } else if usable {
+            self.multiplier = [0.0; 3];
+            solution.tensions
+        } else {
+            self.multiplier = [0.0; 3];
+            [self.config.safety.pretension_n; STRINGS]
         }
     }
 }
