@@ -429,6 +429,31 @@ impl Geometry {
     /// Check the values: positive counts per revolution and radii, finite
     /// coordinates, anchors apart from home. `file` names the file in errors.
     pub fn validate(&self, file: &Path) -> Result<(), DatasetError> {
+        self.check_channels(file)?;
+        check_finite3(file, "home_mm", &self.home_mm)?;
+        check_finite3(
+            file,
+            "room_from_device_translation_mm",
+            &self.room_from_device_translation_mm,
+        )?;
+        self.check_anchors(file)?;
+        if self.layout.planar && self.home_mm[2] != self.anchors_mm[0][2] {
+            return Err(field_error(
+                file,
+                "home_mm",
+                format!(
+                    "z = {} is not the anchors' plane z = {}: the end-effector of a planar device moves in that plane",
+                    self.home_mm[2], self.anchors_mm[0][2]
+                ),
+            ));
+        }
+        Ok(())
+    }
+
+    /// The strings are on channels 0..N (N in 3..=8), the home tension is a
+    /// tension, and each channel's counts per revolution, pulley radius and
+    /// mechanical advantage are positive.
+    fn check_channels(&self, file: &Path) -> Result<(), DatasetError> {
         let n = self.strings();
         if n < MIN_STRINGS || self.layout != StringLayout::first(n, self.layout.planar) {
             return Err(field_error(
@@ -477,12 +502,12 @@ impl Geometry {
                 ));
             }
         }
-        check_finite3(file, "home_mm", &self.home_mm)?;
-        check_finite3(
-            file,
-            "room_from_device_translation_mm",
-            &self.room_from_device_translation_mm,
-        )?;
+        Ok(())
+    }
+
+    /// Each anchor is finite, apart from home and (planar) in the first
+    /// one's plane; together they are not at one point or on one line.
+    fn check_anchors(&self, file: &Path) -> Result<(), DatasetError> {
         for i in self.layout.indices() {
             let a = &self.anchors_mm[i];
             let field = format!("anchors_mm[{i}]");
@@ -505,13 +530,28 @@ impl Geometry {
                 ));
             }
         }
-        // Anchors at one point, or on one line: no position can be solved.
+        if let Some(why) = self.degenerate_anchors() {
+            return Err(field_error(
+                file,
+                "anchors_mm",
+                format!(
+                    "the geometry is degenerate: {why}, so string lengths cannot fix a \
+                     position (copied one anchor into every row?)"
+                ),
+            ));
+        }
+        Ok(())
+    }
+
+    /// Why no position can be solved from the anchors: all at one point, or
+    /// all on one line (None: they span a plane or more).
+    fn degenerate_anchors(&self) -> Option<&'static str> {
         let active: Vec<Vec3<f64>> = self.layout.indices().map(|i| self.anchors_mm[i]).collect();
         let far = active
             .iter()
             .map(|a| distance(*a, active[0]))
             .fold(0.0, f64::max);
-        let degenerate = if far == 0.0 {
+        if far == 0.0 {
             Some("all anchors are at one point")
         } else {
             let (k, _) = active
@@ -530,28 +570,7 @@ impl Geometry {
                 })
                 .fold(0.0, f64::max);
             (off_line <= 1e-9 * far).then_some("all anchors lie on one line")
-        };
-        if let Some(why) = degenerate {
-            return Err(field_error(
-                file,
-                "anchors_mm",
-                format!(
-                    "the geometry is degenerate: {why}, so string lengths cannot fix a \
-                     position (copied one anchor into every row?)"
-                ),
-            ));
         }
-        if self.layout.planar && self.home_mm[2] != self.anchors_mm[0][2] {
-            return Err(field_error(
-                file,
-                "home_mm",
-                format!(
-                    "z = {} is not the anchors' plane z = {}: the end-effector of a planar device moves in that plane",
-                    self.home_mm[2], self.anchors_mm[0][2]
-                ),
-            ));
-        }
-        Ok(())
     }
 
     /// TOML text of this geometry, in the layout of the shared example

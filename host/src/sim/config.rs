@@ -325,10 +325,7 @@ impl Default for LegacyConfig {
 }
 
 pub(crate) fn bad(field: &str, problem: impl Into<String>) -> SimError {
-    SimError::Config {
-        field: field.to_string(),
-        problem: problem.into(),
-    }
+    SimError::Config(crate::ConfigError::new(field.to_string(), problem.into()))
 }
 
 pub(crate) fn non_negative(field: &str, v: f64) -> Result<(), SimError> {

@@ -7,10 +7,10 @@ use rand_distr::{Distribution, Normal};
 use spidar_core::geometry::{
     device_from_room, mat_t_vec, mat_vec, norm, room_from_device, rotation_about_axis, sub,
 };
-use spidar_core::model::{EffectTerm, Frame, StringLaw, Vec3, WINDING_ORDER};
+use spidar_core::model::{EffectTerm, Frame, StringLaw, StringLayout, Vec3, WINDING_ORDER};
 use spidar_core::STRINGS;
 
-use super::config::SimConfig;
+use super::config::{AsBuiltConfig, SimConfig, TrackerConfig};
 use spidar_core::string_law::{cos2_inclination_q16, EffectContext};
 
 use super::effects::{parse_effects, InjectedEffect};
@@ -29,9 +29,11 @@ pub(crate) fn stream(seed: u64, purpose: u64) -> ChaCha8Rng {
 
 /// `N(0, sigma)`; `field` names the configuration key in the error.
 pub(crate) fn normal(field: &str, sigma: f64) -> Result<Normal<f64>, SimError> {
-    Normal::new(0.0, sigma).map_err(|e| SimError::Config {
-        field: field.to_string(),
-        problem: format!("{sigma} is not a standard deviation: {e}"),
+    Normal::new(0.0, sigma).map_err(|e| {
+        SimError::Config(crate::ConfigError::new(
+            field.to_string(),
+            format!("{sigma} is not a standard deviation: {e}"),
+        ))
     })
 }
 
@@ -60,6 +62,188 @@ pub struct Device {
     pub effects: Vec<EffectTerm>,
 }
 
+/// True anchors (stream 1): each coordinate off the design (a planar
+/// device's anchors stay in its plane).
+fn draw_anchors(
+    nominal: &Geometry,
+    ab: &AsBuiltConfig,
+    seed: u64,
+) -> Result<[Vec3<f64>; STRINGS], SimError> {
+    let mut rng = stream(seed, 1);
+    let anchor_noise = normal("as_built.anchor_sigma_mm", ab.anchor_sigma_mm)?;
+    let planar = nominal.layout.planar;
+    let mut anchors = nominal.anchors_mm;
+    for a in anchors.iter_mut() {
+        for (k, x) in a.iter_mut().enumerate() {
+            let e = anchor_noise.sample(&mut rng);
+            // A planar device's anchors stay in its plane.
+            if !(planar && k == 2) {
+                *x += e;
+            }
+        }
+    }
+    Ok(anchors)
+}
+
+/// True home (stream 2): where the built-in initialization really is.
+fn draw_home(nominal: &Geometry, ab: &AsBuiltConfig, seed: u64) -> Result<Vec3<f64>, SimError> {
+    let mut rng = stream(seed, 2);
+    let home_noise = normal("as_built.home_sigma_mm", ab.home_sigma_mm)?;
+    let mut home: Vec3<f64> =
+        core::array::from_fn(|k| nominal.home_mm[k] + home_noise.sample(&mut rng));
+    if nominal.layout.planar {
+        home[2] = nominal.home_mm[2];
+    }
+    Ok(home)
+}
+
+/// True bare pulley radii (stream 3): a machining error shared by every
+/// pulley and each one's own.
+fn draw_bare_radii(
+    nominal: &Geometry,
+    ab: &AsBuiltConfig,
+    seed: u64,
+) -> Result<[f64; STRINGS], SimError> {
+    let mut rng = stream(seed, 3);
+    let shared = 1.0
+        + normal(
+            "as_built.pulley_radius_shared_sigma",
+            ab.pulley_radius_shared_sigma,
+        )?
+        .sample(&mut rng);
+    let each = normal(
+        "as_built.pulley_radius_each_sigma",
+        ab.pulley_radius_each_sigma,
+    )?;
+    Ok(core::array::from_fn(|i| {
+        nominal.pulley_radius_mm[i] * shared * (1.0 + each.sample(&mut rng))
+    }))
+}
+
+/// True total length of each string (stream 4), mm.
+fn draw_string_totals(ab: &AsBuiltConfig, seed: u64) -> Result<[f64; STRINGS], SimError> {
+    let mut rng = stream(seed, 4);
+    let total_noise = normal("as_built.string_total_sigma_mm", ab.string_total_sigma_mm)?;
+    Ok(core::array::from_fn(|_| {
+        ab.string_total_mm + total_noise.sample(&mut rng)
+    }))
+}
+
+/// The tracker's true room-from-device rotation and translation (stream 5).
+fn draw_room_transform(
+    nominal: &Geometry,
+    tr: &TrackerConfig,
+    seed: u64,
+) -> Result<([[f64; 3]; 3], Vec3<f64>), SimError> {
+    let planar = nominal.layout.planar;
+    let mut rng = stream(seed, 5);
+    let axis_draw = normal("tracker.rotation_deg", 1.0)?;
+    let mut axis: Vec3<f64> = core::array::from_fn(|_| axis_draw.sample(&mut rng));
+    let n = norm(axis);
+    axis = if n > 0.0 && !planar {
+        axis.map(|x| x / n)
+    } else {
+        // A planar device's tracker frame turns about the plane's normal.
+        [0.0, 0.0, 1.0]
+    };
+    let room_rotation = rotation_about_axis(axis, tr.rotation_deg.to_radians());
+    let t_noise = normal("tracker.translation_sigma_mm", tr.translation_sigma_mm)?;
+    let room_translation: Vec3<f64> = core::array::from_fn(|k| {
+        let e = t_noise.sample(&mut rng);
+        nominal.room_from_device_translation_mm[k] + if planar && k == 2 { 0.0 } else { e }
+    });
+    Ok((room_rotation, room_translation))
+}
+
+/// Every injected effect on a string is on one of the device's strings.
+fn check_effect_strings(
+    injected: &[InjectedEffect],
+    layout: &StringLayout,
+) -> Result<(), SimError> {
+    for e in injected {
+        let string = match *e {
+            InjectedEffect::Model(term) => Some(term.string),
+            InjectedEffect::AnchorShift { string, .. } | InjectedEffect::Speed { string, .. } => {
+                Some(string)
+            }
+            InjectedEffect::TrackerScale { .. } => None,
+        };
+        if let Some(s) = string.filter(|&s| !layout.is_active(usize::from(s))) {
+            return Err(SimError::Config(crate::ConfigError::new(
+                "effects",
+                format!(
+                    "an effect on string {s}, but the device has {} strings (0..{})",
+                    layout.count(),
+                    layout.count() - 1
+                ),
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// Apply the injected effects on the frame (anchor shifts, tracker scale)
+/// to `frame`; the model-family terms among them, in order.
+fn apply_effects(injected: &[InjectedEffect], frame: &mut Frame<f64>) -> Vec<EffectTerm> {
+    let mut effects = Vec::new();
+    for e in injected {
+        match *e {
+            InjectedEffect::Model(term) => effects.push(term),
+            InjectedEffect::AnchorShift { string, mm } => {
+                let a = &mut frame.anchors[usize::from(string)];
+                for k in 0..3 {
+                    a[k] += mm[k];
+                }
+            }
+            InjectedEffect::TrackerScale { relative } => frame.room_scale *= 1.0 + relative,
+            InjectedEffect::Speed { .. } => {}
+        }
+    }
+    effects
+}
+
+/// Each string's winding at initialization: the string wound on its pulley
+/// at the true home (`w_home`, mm) and the true base winding law
+/// `[r_home, -d^2/(4 pi), 0, 0]` (level layers) or `[r0, 0, 0, 0]`.
+fn home_windings(
+    frame: &Frame<f64>,
+    string_total_mm: &[f64; STRINGS],
+    bare_radius_mm: &[f64; STRINGS],
+    ab: &AsBuiltConfig,
+    counts_per_rev: u32,
+) -> Result<([StringLaw; STRINGS], [f64; STRINGS]), SimError> {
+    let d = ab.string_diameter_mm;
+    let mut home_wound_mm = [0.0; STRINGS];
+    let mut laws = [StringLaw::polynomial(counts_per_rev, [0.0; WINDING_ORDER]); STRINGS];
+    for i in 0..STRINGS {
+        let home_length = norm(sub(frame.home, frame.anchors[i]));
+        let wound = string_total_mm[i] - home_length;
+        if wound <= 0.0 {
+            return Err(SimError::Config(crate::ConfigError::new(
+                "as_built.string_total_mm",
+                format!(
+                    "string {i} ({:.1} mm) is shorter than its home length {home_length:.1} mm",
+                    string_total_mm[i]
+                ),
+            )));
+        }
+        home_wound_mm[i] = wound;
+        let r0 = bare_radius_mm[i];
+        laws[i].winding_mm = if ab.winding_growth {
+            let pi = std::f64::consts::PI;
+            [
+                (r0 * r0 + wound * d * d / pi).sqrt(),
+                -d * d / (4.0 * pi),
+                0.0,
+                0.0,
+            ]
+        } else {
+            [r0, 0.0, 0.0, 0.0]
+        };
+    }
+    Ok((laws, home_wound_mm))
+}
+
 impl Device {
     /// Build the device: draw its as-built errors from `seed`, apply the
     /// configured injected effects.
@@ -72,140 +256,31 @@ impl Device {
             ..config.nominal.geometry()
         };
         let ab = &config.as_built;
-
-        let mut rng = stream(seed, 1);
-        let anchor_noise = normal("as_built.anchor_sigma_mm", ab.anchor_sigma_mm)?;
-        let planar = nominal.layout.planar;
-        let mut anchors = nominal.anchors_mm;
-        for a in anchors.iter_mut() {
-            for (k, x) in a.iter_mut().enumerate() {
-                let e = anchor_noise.sample(&mut rng);
-                // A planar device's anchors stay in its plane.
-                if !(planar && k == 2) {
-                    *x += e;
-                }
-            }
-        }
-
-        let mut rng = stream(seed, 2);
-        let home_noise = normal("as_built.home_sigma_mm", ab.home_sigma_mm)?;
-        let mut home: Vec3<f64> =
-            core::array::from_fn(|k| nominal.home_mm[k] + home_noise.sample(&mut rng));
-        if planar {
-            home[2] = nominal.home_mm[2];
-        }
-
-        let mut rng = stream(seed, 3);
-        let shared = 1.0
-            + normal(
-                "as_built.pulley_radius_shared_sigma",
-                ab.pulley_radius_shared_sigma,
-            )?
-            .sample(&mut rng);
-        let each = normal(
-            "as_built.pulley_radius_each_sigma",
-            ab.pulley_radius_each_sigma,
-        )?;
-        let bare_radius_mm: [f64; STRINGS] = core::array::from_fn(|i| {
-            nominal.pulley_radius_mm[i] * shared * (1.0 + each.sample(&mut rng))
-        });
-
-        let mut rng = stream(seed, 4);
-        let total_noise = normal("as_built.string_total_sigma_mm", ab.string_total_sigma_mm)?;
-        let string_total_mm: [f64; STRINGS] =
-            core::array::from_fn(|_| ab.string_total_mm + total_noise.sample(&mut rng));
-
-        let mut rng = stream(seed, 5);
-        let tr = &config.tracker;
-        let axis_draw = normal("tracker.rotation_deg", 1.0)?;
-        let mut axis: Vec3<f64> = core::array::from_fn(|_| axis_draw.sample(&mut rng));
-        let n = norm(axis);
-        axis = if n > 0.0 && !planar {
-            axis.map(|x| x / n)
-        } else {
-            // A planar device's tracker frame turns about the plane's normal.
-            [0.0, 0.0, 1.0]
-        };
-        let room_rotation = rotation_about_axis(axis, tr.rotation_deg.to_radians());
-        let t_noise = normal("tracker.translation_sigma_mm", tr.translation_sigma_mm)?;
-        let room_translation: Vec3<f64> = core::array::from_fn(|k| {
-            let e = t_noise.sample(&mut rng);
-            nominal.room_from_device_translation_mm[k] + if planar && k == 2 { 0.0 } else { e }
-        });
-
+        let anchors = draw_anchors(&nominal, ab, seed)?;
+        let home = draw_home(&nominal, ab, seed)?;
+        let bare_radius_mm = draw_bare_radii(&nominal, ab, seed)?;
+        let string_total_mm = draw_string_totals(ab, seed)?;
+        let (room_rotation, room_translation) =
+            draw_room_transform(&nominal, &config.tracker, seed)?;
         let mut frame = Frame {
             layout: nominal.layout,
             anchors,
             home,
             room_rotation,
             room_translation,
-            room_scale: tr.scale,
+            room_scale: config.tracker.scale,
         };
 
         let injected = parse_effects(&config.effects)?;
-        for e in &injected {
-            let string = match *e {
-                InjectedEffect::Model(term) => Some(term.string),
-                InjectedEffect::AnchorShift { string, .. }
-                | InjectedEffect::Speed { string, .. } => Some(string),
-                InjectedEffect::TrackerScale { .. } => None,
-            };
-            if let Some(s) = string.filter(|&s| !nominal.layout.is_active(usize::from(s))) {
-                return Err(SimError::Config {
-                    field: "effects".into(),
-                    problem: format!(
-                        "an effect on string {s}, but the device has {} strings (0..{})",
-                        nominal.layout.count(),
-                        nominal.layout.count() - 1
-                    ),
-                });
-            }
-        }
-        let mut effects = Vec::new();
-        for e in &injected {
-            match *e {
-                InjectedEffect::Model(term) => effects.push(term),
-                InjectedEffect::AnchorShift { string, mm } => {
-                    let a = &mut frame.anchors[usize::from(string)];
-                    for k in 0..3 {
-                        a[k] += mm[k];
-                    }
-                }
-                InjectedEffect::TrackerScale { relative } => frame.room_scale *= 1.0 + relative,
-                InjectedEffect::Speed { .. } => {}
-            }
-        }
-
-        let d = ab.string_diameter_mm;
-        let mut home_wound_mm = [0.0; STRINGS];
-        let mut laws =
-            [StringLaw::polynomial(nominal.counts_per_rev[0], [0.0; WINDING_ORDER]); STRINGS];
-        for i in 0..STRINGS {
-            let home_length = norm(sub(frame.home, frame.anchors[i]));
-            let wound = string_total_mm[i] - home_length;
-            if wound <= 0.0 {
-                return Err(SimError::Config {
-                    field: "as_built.string_total_mm".into(),
-                    problem: format!(
-                        "string {i} ({:.1} mm) is shorter than its home length {home_length:.1} mm",
-                        string_total_mm[i]
-                    ),
-                });
-            }
-            home_wound_mm[i] = wound;
-            let r0 = bare_radius_mm[i];
-            laws[i].winding_mm = if ab.winding_growth {
-                let pi = std::f64::consts::PI;
-                [
-                    (r0 * r0 + wound * d * d / pi).sqrt(),
-                    -d * d / (4.0 * pi),
-                    0.0,
-                    0.0,
-                ]
-            } else {
-                [r0, 0.0, 0.0, 0.0]
-            };
-        }
+        check_effect_strings(&injected, &nominal.layout)?;
+        let effects = apply_effects(&injected, &mut frame);
+        let (laws, home_wound_mm) = home_windings(
+            &frame,
+            &string_total_mm,
+            &bare_radius_mm,
+            ab,
+            nominal.counts_per_rev[0],
+        )?;
 
         Ok(Device {
             config: config.clone(),

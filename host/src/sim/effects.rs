@@ -131,16 +131,7 @@ pub fn parse_effect(spec: &str) -> Result<Vec<InjectedEffect>, SimError> {
     let parts: Vec<&str> = spec.trim().split(':').map(str::trim).collect();
     let kind = parts[0];
     if kind == "tracker_scale" {
-        if parts.len() != 2 {
-            return Err(spec_error(spec, "expected tracker_scale:relative=VALUE"));
-        }
-        let mut p = Params::parse(spec, parts[1])?;
-        let relative = p.required("relative")?;
-        p.finish()?;
-        if relative <= -1.0 {
-            return Err(spec_error(spec, "`relative` must be > -1"));
-        }
-        return Ok(vec![InjectedEffect::TrackerScale { relative }]);
+        return parse_tracker_scale(spec, &parts);
     }
     if parts.len() != 3 {
         return Err(spec_error(
@@ -148,20 +139,49 @@ pub fn parse_effect(spec: &str) -> Result<Vec<InjectedEffect>, SimError> {
             "expected KIND:STRING:NAME=VALUE,... (STRING 0..7 or *)",
         ));
     }
-    let strings: Vec<u8> = match parts[1] {
-        "*" => (0..STRINGS as u8).collect(),
-        s => match s.parse::<u8>() {
-            Ok(i) if usize::from(i) < STRINGS => vec![i],
-            _ => {
-                return Err(spec_error(
-                    spec,
-                    format!("`{s}` is not a string index 0..7 or *"),
-                ))
-            }
-        },
-    };
+    let strings = parse_strings(spec, parts[1])?;
     let mut p = Params::parse(spec, parts[2])?;
-    let one: Result<Box<dyn Fn(u8) -> InjectedEffect>, SimError> = match kind {
+    let one = per_string_effect(spec, kind, &mut p)?;
+    p.finish()?;
+    Ok(strings.into_iter().map(one).collect())
+}
+
+/// `tracker_scale:relative=VALUE` (`parts`: the spec split at `:`).
+fn parse_tracker_scale(spec: &str, parts: &[&str]) -> Result<Vec<InjectedEffect>, SimError> {
+    if parts.len() != 2 {
+        return Err(spec_error(spec, "expected tracker_scale:relative=VALUE"));
+    }
+    let mut p = Params::parse(spec, parts[1])?;
+    let relative = p.required("relative")?;
+    p.finish()?;
+    if relative <= -1.0 {
+        return Err(spec_error(spec, "`relative` must be > -1"));
+    }
+    Ok(vec![InjectedEffect::TrackerScale { relative }])
+}
+
+/// The strings of a spec: one index 0..7, or `*` for all.
+fn parse_strings(spec: &str, s: &str) -> Result<Vec<u8>, SimError> {
+    match s {
+        "*" => Ok((0..STRINGS as u8).collect()),
+        s => match s.parse::<u8>() {
+            Ok(i) if usize::from(i) < STRINGS => Ok(vec![i]),
+            _ => Err(spec_error(
+                spec,
+                format!("`{s}` is not a string index 0..7 or *"),
+            )),
+        },
+    }
+}
+
+/// The effect of `kind` with the parameters `p` (what is left of them is
+/// unknown), as a function of the string it is on.
+fn per_string_effect(
+    spec: &str,
+    kind: &str,
+    p: &mut Params<'_>,
+) -> Result<Box<dyn Fn(u8) -> InjectedEffect>, SimError> {
+    match kind {
         "offset" => {
             let mm = p.required("mm")?;
             Ok(model(Effect::Offset { mm }))
@@ -250,10 +270,7 @@ pub fn parse_effect(spec: &str) -> Result<Vec<InjectedEffect>, SimError> {
             spec,
             format!("unknown kind `{other}` (kinds: {KINDS})"),
         )),
-    };
-    let one = one?;
-    p.finish()?;
-    Ok(strings.into_iter().map(one).collect())
+    }
 }
 
 fn model(effect: Effect) -> Box<dyn Fn(u8) -> InjectedEffect> {

@@ -61,8 +61,8 @@ pub enum SimError {
     /// The configuration TOML does not parse (the message names the key and line).
     #[error("{}: {message}", file.display())]
     ConfigFile { file: PathBuf, message: String },
-    #[error("simulator configuration: `{field}`: {problem}")]
-    Config { field: String, problem: String },
+    #[error("simulator configuration: {0}")]
+    Config(#[from] crate::ConfigError),
     #[error("effect `{spec}`: {problem}")]
     EffectSpec { spec: String, problem: String },
     #[error("string {string}: its pulley would run empty at a length of {length_mm:.1} mm (t = {t_s} s)")]
@@ -154,92 +154,218 @@ pub fn simulate_session_with_truth(
         &mut path_rng,
     )?;
 
-    let mut tension_rng = stream(seed, 11);
-    let mut noise_rng = stream(seed, 12);
-    let mut occlusion_rng = stream(seed, 13);
-    let mut abnormal_rng = stream(seed, 14);
-    let noise = normal("tracker.noise_sigma_mm", cfg.tracker.noise_sigma_mm)?;
-    let legacy = legacy::LegacyController::new(&device.nominal);
-
-    let layout = device.frame.layout;
-    // A planar device's end-effector moves in the anchors' plane: the path
-    // is projected onto it.
-    let captures: Vec<trajectory::Capture> = if layout.planar {
-        let plane_z = device.frame.anchors[0][2];
-        captures
-            .into_iter()
-            .map(|mut c| {
-                let mut p = device.device_from_room(&c.room);
-                p[2] = plane_z;
-                let mut v = device.device_velocity_from_room(&c.velocity);
-                v[2] = 0.0;
-                c.room = device.room_from_device(&p);
-                c.velocity = device.room_velocity_from_device(&v);
-                c
-            })
-            .collect()
-    } else {
-        captures
-    };
-    // Where the marker was `tracker.clock_offset_s` before each row's time
-    // (linear between captures; None before the first).
-    let offset_s = cfg.tracker.clock_offset_s;
-    let marker_at = |t_s: f64| -> Option<Vec3<f64>> {
-        let t = t_s - offset_s;
-        let k = captures.partition_point(|c| f64::from(c.t_ms) / 1000.0 <= t);
-        if k == 0 || k > captures.len() {
-            return None;
-        }
-        let a = &captures[k - 1];
-        let ta = f64::from(a.t_ms) / 1000.0;
-        match captures.get(k) {
-            Some(b) => {
-                let tb = f64::from(b.t_ms) / 1000.0;
-                let f = if tb > ta { (t - ta) / (tb - ta) } else { 0.0 };
-                Some(core::array::from_fn(|i| {
-                    a.room[i] + f * (b.room[i] - a.room[i])
-                }))
-            }
-            None => (t == ta).then_some(a.room),
-        }
-    };
-
-    let mut direction = [0i8; STRINGS];
-    let mut occluded = false;
+    let mut session = ModelSession::new(device, seed)?;
+    let captures = onto_the_plane(device, captures);
     let mut samples = Vec::with_capacity(captures.len());
     let mut truths = Vec::with_capacity(captures.len());
     for c in &captures {
+        let (sample, truth) = session.capture(c, &captures)?;
+        samples.push(sample);
+        truths.push(truth);
+    }
+    Ok((
+        Session {
+            strings: device.frame.layout.count(),
+            samples,
+            ignored_columns: Vec::new(),
+            tracker_z: true,
+        },
+        truths,
+    ))
+}
+
+/// A planar device's end-effector moves in the anchors' plane: the path
+/// is projected onto it (a 3-D device's path as it is).
+fn onto_the_plane(device: &Device, captures: Vec<trajectory::Capture>) -> Vec<trajectory::Capture> {
+    if !device.frame.layout.planar {
+        return captures;
+    }
+    let plane_z = device.frame.anchors[0][2];
+    captures
+        .into_iter()
+        .map(|mut c| {
+            let mut p = device.device_from_room(&c.room);
+            p[2] = plane_z;
+            let mut v = device.device_velocity_from_room(&c.velocity);
+            v[2] = 0.0;
+            c.room = device.room_from_device(&p);
+            c.velocity = device.room_velocity_from_device(&v);
+            c
+        })
+        .collect()
+}
+
+/// Where the marker was `offset_s` before `t_s` (linear between captures;
+/// None before the first).
+fn marker_at(captures: &[trajectory::Capture], offset_s: f64, t_s: f64) -> Option<Vec3<f64>> {
+    let t = t_s - offset_s;
+    let k = captures.partition_point(|c| f64::from(c.t_ms) / 1000.0 <= t);
+    if k == 0 || k > captures.len() {
+        return None;
+    }
+    let a = &captures[k - 1];
+    let ta = f64::from(a.t_ms) / 1000.0;
+    match captures.get(k) {
+        Some(b) => {
+            let tb = f64::from(b.t_ms) / 1000.0;
+            let f = if tb > ta { (t - ta) / (tb - ta) } else { 0.0 };
+            Some(core::array::from_fn(|i| {
+                a.room[i] + f * (b.room[i] - a.room[i])
+            }))
+        }
+        None => (t == ta).then_some(a.room),
+    }
+}
+
+/// One session of the model simulator under way: each part of the world's
+/// own random stream, the legacy controller, and what carries over from one
+/// capture to the next (each string's direction of motion, the tracker's
+/// occlusion).
+struct ModelSession<'a> {
+    device: &'a Device,
+    tension_rng: rand::rngs::ChaCha8Rng,
+    noise_rng: rand::rngs::ChaCha8Rng,
+    occlusion_rng: rand::rngs::ChaCha8Rng,
+    abnormal_rng: rand::rngs::ChaCha8Rng,
+    noise: rand_distr::Normal<f64>,
+    legacy: legacy::LegacyController,
+    direction: [i8; STRINGS],
+    occluded: bool,
+}
+
+/// Every string at one capture.
+struct StringReadings {
+    counts: [i32; STRINGS],
+    /// True geometric lengths, mm.
+    lengths: [f64; STRINGS],
+    /// `dL_i/dt`, mm/s.
+    speeds: [f64; STRINGS],
+    /// Length error of the abnormal motor, mm.
+    abnormal_mm: f64,
+}
+
+impl<'a> ModelSession<'a> {
+    /// The streams of the session `seed` (11..14).
+    fn new(device: &'a Device, seed: u64) -> Result<ModelSession<'a>, SimError> {
+        let cfg = &device.config;
+        let tension_rng = stream(seed, 11);
+        let noise_rng = stream(seed, 12);
+        let occlusion_rng = stream(seed, 13);
+        let abnormal_rng = stream(seed, 14);
+        let noise = normal("tracker.noise_sigma_mm", cfg.tracker.noise_sigma_mm)?;
+        let legacy = legacy::LegacyController::new(&device.nominal);
+        Ok(ModelSession {
+            device,
+            tension_rng,
+            noise_rng,
+            occlusion_rng,
+            abnormal_rng,
+            noise,
+            legacy,
+            direction: [0i8; STRINGS],
+            occluded: false,
+        })
+    }
+
+    /// One capture `c` of the session's `captures`: the commanded tensions,
+    /// the encoders, the tracker and the legacy controller's position.
+    fn capture(
+        &mut self,
+        c: &trajectory::Capture,
+        captures: &[trajectory::Capture],
+    ) -> Result<(Sample, SampleTruth), SimError> {
+        let device = self.device;
+        let cfg = &device.config;
         let t_s = f64::from(c.t_ms) / 1000.0;
         let p = device.device_from_room(&c.room);
         let v = device.device_velocity_from_room(&c.velocity);
+        let tension_mn = self.draw_tension_mn();
+        let strings = self.read_encoders(&p, &v, &tension_mn, t_s)?;
+        let counts = strings.counts;
+        let tracker = self.track(c, captures, t_s);
 
-        let ts = &cfg.tension;
-        let tension_mn: [u16; STRINGS] = core::array::from_fn(|_| {
-            let mut t = ts.pretension_n + ts.jitter_n * tension_rng.random_range(0.0..1.0);
-            if tension_rng.random_bool(ts.active_probability) {
-                t += ts.active_max_n * tension_rng.random_range(0.0..1.0);
+        let legacy_position = if cfg.legacy.enabled {
+            self.legacy
+                .position(&counts)
+                .map(|q| q.map(|x| round_to(x, 1000.0)))
+        } else {
+            None
+        };
+
+        let sample = Sample {
+            t_s,
+            counts,
+            tracker,
+            orientation: None,
+            legacy: legacy_position,
+            tension_n: Some(tension_mn.map(|t| f64::from(t) / 1000.0)),
+        };
+        let truth = SampleTruth {
+            device_mm: p,
+            room_mm: c.room,
+            velocity_device_mm_s: v,
+            lengths_mm: strings.lengths,
+            string_speed_mm_s: strings.speeds,
+            inputs: StringInputs {
+                counts,
+                direction: self.direction,
+                tension_mn,
+                time_ms: c.t_ms,
+                cos2_inclination_q16: cos2_inclinations(&device.frame.anchors, &p),
+            },
+            abnormal_mm: strings.abnormal_mm,
+            cell: c.cell,
+        };
+        Ok((sample, truth))
+    }
+
+    /// The commanded tension of every channel, mN.
+    fn draw_tension_mn(&mut self) -> [u16; STRINGS] {
+        let ts = &self.device.config.tension;
+        let rng = &mut self.tension_rng;
+        core::array::from_fn(|_| {
+            let mut t = ts.pretension_n + ts.jitter_n * rng.random_range(0.0..1.0);
+            if rng.random_bool(ts.active_probability) {
+                t += ts.active_max_n * rng.random_range(0.0..1.0);
             }
             (t * 1000.0).round().clamp(0.0, f64::from(u16::MAX)) as u16
-        });
+        })
+    }
 
+    /// Every active string's encoder counts with the end-effector at `p`
+    /// moving at `v` under `tension_mn` at `t_s`: the true length, its
+    /// direction of motion, the injected speed effects, the abnormal motor
+    /// and the string's conditions.
+    fn read_encoders(
+        &mut self,
+        p: &Vec3<f64>,
+        v: &Vec3<f64>,
+        tension_mn: &[u16; STRINGS],
+        t_s: f64,
+    ) -> Result<StringReadings, SimError> {
+        let device = self.device;
+        let cfg = &device.config;
+        let layout = device.frame.layout;
         let total_tension_n = f64::from(spidar_core::string_law::total_tension_mn(
             layout.active,
-            &tension_mn,
+            tension_mn,
         )) / 1000.0;
-        let mut counts = [0i32; STRINGS];
-        let mut lengths = [0.0; STRINGS];
-        let mut speeds = [0.0; STRINGS];
-        let mut abnormal_mm = 0.0;
+        let mut r = StringReadings {
+            counts: [0i32; STRINGS],
+            lengths: [0.0; STRINGS],
+            speeds: [0.0; STRINGS],
+            abnormal_mm: 0.0,
+        };
         for i in layout.indices() {
-            let to_anchor = sub(p, device.frame.anchors[i]);
+            let to_anchor = sub(*p, device.frame.anchors[i]);
             let length = norm(to_anchor);
             let speed = if length > 0.0 {
-                dot(v, to_anchor) / length
+                dot(*v, to_anchor) / length
             } else {
                 0.0
             };
             if speed.abs() > 1e-9 {
-                direction[i] = if speed > 0.0 { 1 } else { -1 };
+                self.direction[i] = if speed > 0.0 { 1 } else { -1 };
             }
             let mut extra = 0.0;
             for e in &device.injected {
@@ -251,76 +377,46 @@ pub fn simulate_session_with_truth(
             }
             let am = &cfg.abnormal_motor;
             if am.enabled && usize::from(am.string) == i && length < am.region_length_mm {
-                let spread = 1.0 - am.jitter * abnormal_rng.random_range(0.0..1.0);
-                abnormal_mm = -(am.step_mm + am.gain * (am.region_length_mm - length)) * spread;
-                extra += abnormal_mm;
+                let spread = 1.0 - am.jitter * self.abnormal_rng.random_range(0.0..1.0);
+                r.abnormal_mm = -(am.step_mm + am.gain * (am.region_length_mm - length)) * spread;
+                extra += r.abnormal_mm;
             }
             let tension_n = f64::from(tension_mn[i]) / 1000.0;
             let conditions =
-                device.conditions(i, &p, direction[i], tension_n, total_tension_n, t_s);
-            counts[i] = device.counts_for_length(i, length, extra, conditions)?;
-            lengths[i] = length;
-            speeds[i] = speed;
+                device.conditions(i, p, self.direction[i], tension_n, total_tension_n, t_s);
+            r.counts[i] = device.counts_for_length(i, length, extra, conditions)?;
+            r.lengths[i] = length;
+            r.speeds[i] = speed;
         }
+        Ok(r)
+    }
 
-        let tr = &cfg.tracker;
-        occluded = if occluded {
-            !occlusion_rng.random_bool(1.0 / tr.occlusion_mean_rows)
+    /// The tracker's reading of the marker at capture `c` (noisy, whole
+    /// micrometres; `tracker.clock_offset_s` late), unless occluded.
+    fn track(
+        &mut self,
+        c: &trajectory::Capture,
+        captures: &[trajectory::Capture],
+        t_s: f64,
+    ) -> Option<Vec3<f64>> {
+        let tr = &self.device.config.tracker;
+        self.occluded = if self.occluded {
+            !self.occlusion_rng.random_bool(1.0 / tr.occlusion_mean_rows)
         } else {
-            occlusion_rng.random_bool(tr.occlusion_probability)
+            self.occlusion_rng.random_bool(tr.occlusion_probability)
         };
+        let offset_s = tr.clock_offset_s;
         let marker = if offset_s == 0.0 {
             Some(c.room)
         } else {
-            marker_at(t_s)
+            marker_at(captures, offset_s, t_s)
         };
+        let (noise, noise_rng) = (&self.noise, &mut self.noise_rng);
         let measured = marker.map(|m| -> Vec3<f64> {
-            core::array::from_fn(|k| round_to(m[k] + noise.sample(&mut noise_rng), 1000.0))
+            core::array::from_fn(|k| round_to(m[k] + noise.sample(noise_rng), 1000.0))
         });
-        let tracker = measured.filter(|_| !occluded);
-
-        let legacy_position = if cfg.legacy.enabled {
-            legacy
-                .position(&counts)
-                .map(|q| q.map(|x| round_to(x, 1000.0)))
-        } else {
-            None
-        };
-
-        samples.push(Sample {
-            t_s,
-            counts,
-            tracker,
-            orientation: None,
-            legacy: legacy_position,
-            tension_n: Some(tension_mn.map(|t| f64::from(t) / 1000.0)),
-        });
-        truths.push(SampleTruth {
-            device_mm: p,
-            room_mm: c.room,
-            velocity_device_mm_s: v,
-            lengths_mm: lengths,
-            string_speed_mm_s: speeds,
-            inputs: StringInputs {
-                counts,
-                direction,
-                tension_mn,
-                time_ms: c.t_ms,
-                cos2_inclination_q16: cos2_inclinations(&device.frame.anchors, &p),
-            },
-            abnormal_mm,
-            cell: c.cell,
-        });
+        measured.filter(|_| !self.occluded)
     }
-    Ok((
-        Session {
-            strings: layout.count(),
-            samples,
-            ignored_columns: Vec::new(),
-            tracker_z: true,
-        },
-        truths,
-    ))
 }
 
 /// What `spidar simulate` is asked for: which simulator, which device, which
@@ -435,10 +531,10 @@ pub(crate) fn session_kind(
 ) -> Result<SessionKind, SimError> {
     match args.kind {
         SessionPath::Lattice => match args.points {
-            Some(_) => Err(SimError::Config {
-                field: "--points".into(),
-                problem: "applies to --kind random only".into(),
-            }),
+            Some(_) => Err(SimError::Config(crate::ConfigError::new(
+                "--points",
+                "applies to --kind random only",
+            ))),
             None => Ok(SessionKind::Lattice),
         },
         SessionPath::Random => Ok(SessionKind::Random {

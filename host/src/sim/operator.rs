@@ -281,16 +281,13 @@ impl SimOperator {
         let thread = std::thread::Builder::new()
             .name("sim-operator".into())
             .spawn(move || {
-                run(
-                    &config,
-                    &device,
-                    &hand,
-                    &cues,
-                    &socket,
-                    &thread_stop,
-                    &thread_history,
-                    progress.as_ref(),
-                )
+                let links = HostLinks {
+                    socket: &socket,
+                    stop: &thread_stop,
+                    history: &thread_history,
+                    progress: progress.as_ref(),
+                };
+                run(&config, &device, &hand, &cues, &links)
             })
             .map_err(|source| TrackerError::Socket {
                 action: "cannot start the operator thread for",
@@ -458,23 +455,75 @@ fn wait_taken(progress: &ReadProgress, sent: u64, stop: &AtomicBool) {
     }
 }
 
-#[allow(clippy::too_many_arguments)]
+/// What the operator's thread shares with the host side: the socket its
+/// tracker frames go out on, the stop flag, the hand's history and (in step
+/// with a procedure) the procedure's read progress.
+struct HostLinks<'a> {
+    socket: &'a UdpSocket,
+    stop: &'a AtomicBool,
+    history: &'a Mutex<Vec<HandSample>>,
+    progress: Option<&'a ReadProgress>,
+}
+
+impl HostLinks<'_> {
+    /// In step: wait until the procedure has taken `sent` frames.
+    fn wait_in_step(&self, sent: u32) {
+        if let Some(progress) = self.progress {
+            wait_taken(progress, u64::from(sent), self.stop);
+        }
+    }
+}
+
+/// `N(0, sigma)` of the operator's `field` (a zero sigma: a tiny one).
+fn operator_normal(field: &'static str, sigma: f64) -> Result<Normal<f64>, TrackerError> {
+    Normal::new(0.0, sigma.max(1e-12))
+        .map_err(|e| TrackerError::Config(crate::ConfigError::new(field, e.to_string())))
+}
+
+/// Send one DTrack2 datagram of the marker seen at `seen` (None: occluded,
+/// an empty `6d` record), frame `frame` taken at `t_us`.
+fn send_frame(
+    config: &SimOperatorConfig,
+    socket: &UdpSocket,
+    frame: u32,
+    t_us: u64,
+    seen: Option<[f64; 3]>,
+) -> Result<(), TrackerError> {
+    let datagram = format_datagram(&DtrackFrame {
+        frame,
+        ts_s: Some(config.tracker_ts_s(t_us)),
+        calibrated_bodies: Some(1),
+        bodies: match seen {
+            None => Vec::new(),
+            Some(seen) => vec![BodyPose {
+                rotation: Some(config.body_rotation),
+                ..BodyPose::at(config.body_id, seen)
+            }],
+        },
+        has_6d: true,
+    });
+    socket
+        .send_to(datagram.as_bytes(), config.tracker)
+        .map_err(|source| TrackerError::Socket {
+            action: "cannot send to",
+            addr: config.tracker,
+            source,
+        })?;
+    Ok(())
+}
+
+/// The operator's thread: one step per tracker frame (see the module
+/// documentation) until `stop` or `max_duration`.
 fn run(
     config: &SimOperatorConfig,
     device: &SimDevice,
     hand: &Hand,
     cues: &SharedCues,
-    socket: &UdpSocket,
-    stop: &AtomicBool,
-    history: &Mutex<Vec<HandSample>>,
-    progress: Option<&ReadProgress>,
+    links: &HostLinks<'_>,
 ) -> Result<SimOperatorReport, TrackerError> {
     let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
-    let noise = Normal::new(0.0, config.tracker_noise_mm.max(1e-12)).map_err(|e| {
-        TrackerError::Config(crate::ConfigError::new("tracker_noise_mm", e.to_string()))
-    })?;
-    let tremor = Normal::new(0.0, config.tremor_mm.max(1e-12))
-        .map_err(|e| TrackerError::Config(crate::ConfigError::new("tremor_mm", e.to_string())))?;
+    let noise = operator_normal("tracker_noise_mm", config.tracker_noise_mm)?;
+    let tremor = operator_normal("tremor_mm", config.tremor_mm)?;
     let dt = 1.0 / config.frame_rate_hz;
     let dt_us = ((1e6 / config.frame_rate_hz).round() as u64).max(1);
     // On the simulated clock: the plant waits for each next point of the
@@ -493,19 +542,19 @@ fn run(
     let mut k: u32 = 0;
     loop {
         let t_us = t0_us + u64::from(k) * dt_us;
-        if stop.load(Ordering::SeqCst) || t_us - t0_us >= max_us {
+        if links.stop.load(Ordering::SeqCst) || t_us - t0_us >= max_us {
             break;
         }
         // The plant has ticked at the frame's instant: the marker is where
         // the path says, the force is what the strings pulled with.
-        let Some((_, counts)) = hand.wait_plant(t_us, stop) else {
+        let Some((_, counts)) = hand.wait_plant(t_us, links.stop) else {
             break;
         };
         let p = hand.position_mm();
         // 1: the tracker's frame of the marker at `t_us`.
         let room = device.room_from_device(&p);
         let frame = k.wrapping_add(1);
-        if let Ok(mut h) = history.lock() {
+        if let Ok(mut h) = links.history.lock() {
             h.push(HandSample {
                 frame,
                 at: Instant::now(),
@@ -524,36 +573,18 @@ fn run(
         }
         if !lost {
             // In step: the procedure has read everything sent so far.
-            if let Some(progress) = progress {
-                wait_taken(progress, u64::from(report.sent), stop);
-            }
+            links.wait_in_step(report.sent);
             let seen = room.map(|x| x + noise.sample(&mut rng));
-            let datagram = format_datagram(&DtrackFrame {
+            send_frame(
+                config,
+                links.socket,
                 frame,
-                ts_s: Some(config.tracker_ts_s(t_us)),
-                calibrated_bodies: Some(1),
-                bodies: if occluded {
-                    Vec::new()
-                } else {
-                    vec![BodyPose {
-                        rotation: Some(config.body_rotation),
-                        ..BodyPose::at(config.body_id, seen)
-                    }]
-                },
-                has_6d: true,
-            });
-            socket
-                .send_to(datagram.as_bytes(), config.tracker)
-                .map_err(|source| TrackerError::Socket {
-                    action: "cannot send to",
-                    addr: config.tracker,
-                    source,
-                })?;
+                t_us,
+                (!occluded).then_some(seen),
+            )?;
             report.sent += 1;
             // ... and this frame, read at its own instant.
-            if let Some(progress) = progress {
-                wait_taken(progress, u64::from(report.sent), stop);
-            }
+            links.wait_in_step(report.sent);
         }
         // 2-3: cues, then the hand's next point, one frame on.
         // The procedure's answer to the frames before this one (a cue it

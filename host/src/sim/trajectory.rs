@@ -30,10 +30,10 @@ pub(crate) struct Capture {
 fn to_ms(t_s: f64) -> Result<u32, SimError> {
     let ms = (t_s * 1000.0).round();
     if !(0.0..=f64::from(u32::MAX)).contains(&ms) {
-        return Err(SimError::Config {
-            field: "session duration".into(),
-            problem: format!("{t_s} s does not fit the 49-day time-since-home counter"),
-        });
+        return Err(SimError::Config(crate::ConfigError::new(
+            "session duration",
+            format!("{t_s} s does not fit the 49-day time-since-home counter"),
+        )));
     }
     Ok(ms as u32)
 }
@@ -65,11 +65,12 @@ pub(crate) fn lattice(
     start: Vec3<f64>,
     rng: &mut ChaCha8Rng,
 ) -> Result<Vec<Capture>, SimError> {
-    let grid =
-        Lattice::new(centre, cfg.size_mm, cfg.cells_per_axis).map_err(|e| SimError::Config {
-            field: format!("lattice.{}", e.field),
-            problem: e.problem,
-        })?;
+    let grid = Lattice::new(centre, cfg.size_mm, cfg.cells_per_axis).map_err(|e| {
+        SimError::Config(crate::ConfigError::new(
+            format!("lattice.{}", e.field),
+            e.problem,
+        ))
+    })?;
     let cell = grid.cell_mm();
     let margin = (0.5f64).min(cell / 10.0);
     let frame_dt = 1.0 / tracker.frame_rate_hz;
@@ -186,10 +187,10 @@ pub(crate) fn captures(
 ) -> Result<Vec<Capture>, SimError> {
     match kind {
         super::SessionKind::Lattice => lattice(lattice_cfg, tracker, centre, start, rng),
-        super::SessionKind::Random { points: 0 } => Err(SimError::Config {
-            field: "random.points".into(),
-            problem: "must be positive".into(),
-        }),
+        super::SessionKind::Random { points: 0 } => Err(SimError::Config(crate::ConfigError::new(
+            "random.points",
+            "must be positive",
+        ))),
         super::SessionKind::Random { points } => {
             random(random_cfg, lattice_cfg, centre, start, points, rng)
         }

@@ -57,9 +57,11 @@ impl Truth {
 
     /// TOML text, with a header saying what the file is for.
     pub fn to_toml_string(&self) -> Result<String, SimError> {
-        let body = toml::to_string(self).map_err(|e| SimError::Config {
-            field: "truth".into(),
-            problem: format!("cannot be written as TOML: {e}"),
+        let body = toml::to_string(self).map_err(|e| {
+            SimError::Config(crate::ConfigError::new(
+                "truth",
+                format!("cannot be written as TOML: {e}"),
+            ))
         })?;
         Ok(format!("{HEADER}{body}"))
     }

@@ -1203,9 +1203,6 @@ fn time_shift_errors_name_the_problem() {
                 ..cfg.clone()
             }
         ),
-        Err(SyncError::Config {
-            field: "max_gap_s",
-            ..
-        })
+        Err(SyncError::Config(c)) if c.field == "max_gap_s"
     ));
 }

@@ -152,11 +152,8 @@ pub enum SyncError {
         value: f64,
         previous: f64,
     },
-    #[error("configuration field `{field}`: {problem}")]
-    Config {
-        field: &'static str,
-        problem: String,
-    },
+    #[error("configuration field {0}")]
+    Config(#[from] crate::ConfigError),
     #[error("the streams overlap in {pairs} samples within the search range, {need} needed")]
     NoOverlap { pairs: usize, need: usize },
     #[error("the {stream} stream shows no motion: move the end-effector while recording")]
@@ -515,7 +512,65 @@ pub fn estimate_time_shift(
 ) -> Result<TimeShift, SyncError> {
     check_stream("device", device)?;
     check_stream("tracker", tracker)?;
-    let cfg_err = |field: &'static str, problem: String| Err(SyncError::Config { field, problem });
+    let h = grid_step(device, tracker, config)?;
+    let device_series = Series {
+        s: device,
+        max_gap: config.max_gap_s,
+    };
+    let tracker_series = Series {
+        s: tracker,
+        max_gap: config.max_gap_s,
+    };
+    let (coarse_offset_s, correlation) = coarse(&device_series, &tracker_series, config, h)?;
+
+    let fine = Fine {
+        device,
+        tracker: tracker_series,
+        reference: 0.5 * (device[0].t_s + device[device.len() - 1].t_s),
+    };
+    let p = if config.estimate_drift { 2 } else { 1 };
+    let (theta, lin) = refine(&fine, [coarse_offset_s, 0.0], config, h, p);
+    let n = lin.used.len();
+    if n < MIN_SAMPLES {
+        return Err(SyncError::NoOverlap {
+            pairs: n,
+            need: MIN_SAMPLES,
+        });
+    }
+    let (a, _) = normal(&lin, p);
+    let dof = (3 * n).saturating_sub(3 + p).max(1) as f64;
+    let sigma2 = lin.rss / dof;
+    let rho = residual_correlation(&lin);
+    let inflation = (1.0 + rho) / (1.0 - rho);
+    let cov = invert(a, p).ok_or(SyncError::NoMotion { stream: "tracker" })?;
+    let std = |k: usize| (sigma2 * cov[k][k].max(0.0) * inflation).sqrt();
+    Ok(TimeShift {
+        offset_s: theta[0],
+        offset_std_s: std(0),
+        drift: theta[1],
+        drift_std: if p == 2 { std(1) } else { 0.0 },
+        reference_t_s: fine.reference,
+        coarse_offset_s,
+        correlation,
+        bias_mm: lin.bias,
+        rms_residual_mm: (lin.rss / n as f64).sqrt(),
+        pairs: n,
+        effective_pairs: n as f64 / inflation,
+    })
+}
+
+/// The coarse search's grid step (`grid_step_s`, else the tracker's median
+/// interval), once the configuration is checked: a finite prior offset,
+/// durations that are durations, and a grid of at most [`MAX_GRID`] points
+/// over the device stream and the search.
+fn grid_step(
+    device: &[TimedPosition],
+    tracker: &[TimedPosition],
+    config: &ShiftConfig,
+) -> Result<f64, SyncError> {
+    let cfg_err = |field: &'static str, problem: String| {
+        Err(SyncError::Config(crate::ConfigError::new(field, problem)))
+    };
     if !config.prior_offset_s.is_finite() {
         return cfg_err(
             "prior_offset_s",
@@ -549,23 +604,19 @@ pub fn estimate_time_shift(
             format!("{h} s gives more than {MAX_GRID} grid points over the stream and search"),
         );
     }
-    let device_series = Series {
-        s: device,
-        max_gap: config.max_gap_s,
-    };
-    let tracker_series = Series {
-        s: tracker,
-        max_gap: config.max_gap_s,
-    };
-    let (coarse_offset_s, correlation) = coarse(&device_series, &tracker_series, config, h)?;
+    Ok(h)
+}
 
-    let fine = Fine {
-        device,
-        tracker: tracker_series,
-        reference: 0.5 * (device[0].t_s + device[device.len() - 1].t_s),
-    };
-    let p = if config.estimate_drift { 2 } else { 1 };
-    let mut theta = [coarse_offset_s, 0.0];
+/// Levenberg-Marquardt from `theta` (offset, drift; `p` of them free),
+/// each step within a grid step `h` of the last (the coarse basin): the
+/// refined `theta` and the fit there.
+fn refine(
+    fine: &Fine,
+    mut theta: [f64; 2],
+    config: &ShiftConfig,
+    h: f64,
+    p: usize,
+) -> ([f64; 2], Linear) {
     let mut lambda = 1e-3;
     let mut lin = fine.linearize(theta, None);
     for _ in 0..config.max_iterations {
@@ -602,42 +653,20 @@ pub fn estimate_time_shift(
             break;
         }
     }
-    let n = lin.used.len();
-    if n < MIN_SAMPLES {
-        return Err(SyncError::NoOverlap {
-            pairs: n,
-            need: MIN_SAMPLES,
-        });
-    }
-    let (a, _) = normal(&lin, p);
-    let dof = (3 * n).saturating_sub(3 + p).max(1) as f64;
-    let sigma2 = lin.rss / dof;
-    // Lag-1 correlation of consecutive residual vectors.
+    (theta, lin)
+}
+
+/// Lag-1 correlation of consecutive residual vectors (0..0.995).
+fn residual_correlation(lin: &Linear) -> f64 {
     let mut num = 0.0;
     for (w, idx) in lin.residuals.windows(2).zip(lin.used.windows(2)) {
         if idx[1] == idx[0] + 1 {
             num += dot(w[0], w[1]);
         }
     }
-    let rho = if lin.rss > 0.0 {
+    if lin.rss > 0.0 {
         (num / lin.rss).clamp(0.0, 0.995)
     } else {
         0.0
-    };
-    let inflation = (1.0 + rho) / (1.0 - rho);
-    let cov = invert(a, p).ok_or(SyncError::NoMotion { stream: "tracker" })?;
-    let std = |k: usize| (sigma2 * cov[k][k].max(0.0) * inflation).sqrt();
-    Ok(TimeShift {
-        offset_s: theta[0],
-        offset_std_s: std(0),
-        drift: theta[1],
-        drift_std: if p == 2 { std(1) } else { 0.0 },
-        reference_t_s: fine.reference,
-        coarse_offset_s,
-        correlation,
-        bias_mm: lin.bias,
-        rms_residual_mm: (lin.rss / n as f64).sqrt(),
-        pairs: n,
-        effective_pairs: n as f64 / inflation,
-    })
+    }
 }

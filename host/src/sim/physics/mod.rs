@@ -253,14 +253,14 @@ pub fn rows_to_session(rows: Vec<PhysicsRow>) -> Result<Session, SimError> {
 }
 
 fn wrong_count(n: usize) -> SimError {
-    SimError::Config {
-        field: "nominal".into(),
-        problem: format!(
+    SimError::Config(crate::ConfigError::new(
+        "nominal",
+        format!(
             "a row of {n} strings: a session holds {}..={} strings, the same in every row",
             crate::data::dataset::MIN_STRINGS,
             spidar_core::STRINGS
         ),
-    }
+    ))
 }
 
 /// Uniform in `[r[0], r[1]]`; always one draw, so that narrowing one range
@@ -296,10 +296,300 @@ fn tilted(axis: Vec3<f64>, angle: f64, rng: &mut ChaCha8Rng) -> Vec3<f64> {
 }
 
 fn string_error(string: usize, what: impl std::fmt::Display) -> SimError {
-    SimError::Config {
-        field: format!("string {string}"),
-        problem: what.to_string(),
+    SimError::Config(crate::ConfigError::new(
+        format!("string {string}"),
+        what.to_string(),
+    ))
+}
+
+/// The as-built guides' exit points (stream 101): each 3 mm sd off its
+/// design anchor (in the anchors' plane on a planar device).
+fn draw_exits(
+    nominal: &Geometry,
+    ab: &PhysicsAsBuilt,
+    seed: u64,
+) -> Result<Vec<Vec3<f64>>, SimError> {
+    let planar = nominal.layout.planar;
+    let mut rng = stream(seed, 101);
+    let anchor_noise = normal("as_built.anchor_sigma_mm", ab.anchor_sigma_mm)?;
+    Ok(nominal
+        .anchors_mm
+        .iter()
+        .take(nominal.strings())
+        .map(|a| {
+            let mut e = a.map(|x| x + anchor_noise.sample(&mut rng));
+            if planar {
+                e[2] = a[2];
+            }
+            e
+        })
+        .collect())
+}
+
+/// The true home (stream 102): off the nominal one (in the anchors' plane
+/// on a planar device).
+fn draw_home(nominal: &Geometry, ab: &PhysicsAsBuilt, seed: u64) -> Result<Vec3<f64>, SimError> {
+    let mut rng = stream(seed, 102);
+    let home_noise = normal("as_built.home_sigma_mm", ab.home_sigma_mm)?;
+    let mut home_mm: Vec3<f64> =
+        core::array::from_fn(|k| nominal.home_mm[k] + home_noise.sample(&mut rng));
+    if nominal.layout.planar {
+        home_mm[2] = nominal.home_mm[2];
     }
+    Ok(home_mm)
+}
+
+/// The guides (stream 103): swivel axis along the frame edge, away from the
+/// home height; entry point placed so that the string to the nominal home
+/// leaves at the as-built exit point.
+fn place_guides(
+    nominal: &Geometry,
+    ab: &PhysicsAsBuilt,
+    exits: &[Vec3<f64>],
+    seed: u64,
+) -> Result<Vec<Guide>, SimError> {
+    let mut rng = stream(seed, 103);
+    let mut guides = Vec::with_capacity(exits.len());
+    for (i, exit) in exits.iter().enumerate() {
+        let up = if exit[2] >= nominal.home_mm[2] {
+            1.0
+        } else {
+            -1.0
+        };
+        let axis = tilted([0.0, 0.0, up], ab.guide_tilt_deg.to_radians(), &mut rng);
+        let mut guide = Guide {
+            entry_mm: *exit,
+            axis,
+            radius_mm: uniform(&mut rng, ab.guide_radius_mm),
+        };
+        for _ in 0..6 {
+            let path = guide
+                .path(&[0.0; 3], &nominal.home_mm)
+                .map_err(|e| string_error(i, e))?;
+            for ((a, x), t) in guide.entry_mm.iter_mut().zip(exit).zip(path.exit_mm) {
+                *a += x - t;
+            }
+        }
+        guides.push(guide);
+    }
+    Ok(guides)
+}
+
+/// What every string is built against: the design, the as-built spreads,
+/// the true home, the tension the strings hold there and the undeclared
+/// effects on the strings and the frame.
+struct StringBuild<'a> {
+    nominal: &'a Geometry,
+    ab: &'a PhysicsAsBuilt,
+    home_mm: Vec3<f64>,
+    home_tension_n: f64,
+    /// `heavy-string`: every string's linear mass, g/m.
+    heavy: Option<f64>,
+    /// `frame-flex`: the factor on every guide's compliance.
+    flex: f64,
+}
+
+/// The spools' and strings' spreads: the spool radius error shared by every
+/// spool, and the distributions of each one's own errors.
+struct SpoolSpreads {
+    shared: f64,
+    each: rand_distr::Normal<f64>,
+    diameter: rand_distr::Normal<f64>,
+    total_noise: rand_distr::Normal<f64>,
+}
+
+impl StringBuild<'_> {
+    /// Every string with its guide, spool and home spool angle (spools,
+    /// string dimensions and stiffness from stream 104, frame flex from 106).
+    fn strings(
+        &self,
+        guides: Vec<Guide>,
+        seed: u64,
+    ) -> Result<(Vec<PhysicsString>, Vec<Spool>), SimError> {
+        let ab = self.ab;
+        let mut rng = stream(seed, 104);
+        let shared = 1.0
+            + normal(
+                "as_built.spool_radius_shared_sigma",
+                ab.spool_radius_shared_sigma,
+            )?
+            .sample(&mut rng);
+        let each = normal(
+            "as_built.spool_radius_each_sigma",
+            ab.spool_radius_each_sigma,
+        )?;
+        let diameter = normal("as_built.string_diameter_sigma", ab.string_diameter_sigma)?;
+        let total_noise = normal("as_built.string_total_sigma_mm", ab.string_total_sigma_mm)?;
+        let spreads = SpoolSpreads {
+            shared,
+            each,
+            diameter,
+            total_noise,
+        };
+        let home_total_tension = self.home_tension_n * guides.len() as f64;
+
+        let mut out = Vec::with_capacity(guides.len());
+        let mut spools = Vec::with_capacity(guides.len());
+        let mut flex_rng = stream(seed, 106);
+        for (i, guide) in guides.into_iter().enumerate() {
+            let (s, spool) = self.string(
+                i,
+                guide,
+                &spreads,
+                home_total_tension,
+                &mut rng,
+                &mut flex_rng,
+            )?;
+            out.push(s);
+            spools.push(spool);
+        }
+        Ok((out, spools))
+    }
+
+    /// String `i` on `guide`: its spool wound in layers until it holds the
+    /// whole string, its lead, stiffness, weight and frame flex, and the
+    /// spool angle at the home capture.
+    fn string(
+        &self,
+        i: usize,
+        guide: Guide,
+        spreads: &SpoolSpreads,
+        home_total_tension: f64,
+        rng: &mut ChaCha8Rng,
+        flex_rng: &mut ChaCha8Rng,
+    ) -> Result<(PhysicsString, Spool), SimError> {
+        let ab = self.ab;
+        let d = ab.string_diameter_mm * (1.0 + spreads.diameter.sample(rng)).max(0.5);
+        let bare =
+            self.nominal.pulley_radius_mm[i] * spreads.shared * (1.0 + spreads.each.sample(rng));
+        let width = uniform(rng, ab.spool_width_mm);
+        let lead_mm = uniform(rng, ab.lead_mm);
+        let total_mm = ab.string_total_mm + spreads.total_noise.sample(rng) + lead_mm;
+        let mut params = SpoolParams {
+            bare_radius_mm: bare,
+            string_diameter_mm: d,
+            layer_packing: uniform(rng, ab.layer_packing),
+            turns_per_layer: Vec::new(),
+            layer_change_rad: uniform(rng, ab.layer_change_rad),
+            crossover_rise_mm: uniform(rng, ab.crossover_rise_mm),
+            crossover_rad: uniform(rng, ab.crossover_rad),
+        };
+        wind_layers(&mut params, width, total_mm, ab.pitch_excess, rng)
+            .map_err(|e| string_error(i, e))?;
+        let spool = Spool::new(params.clone());
+        let towards_centre = unit(sub(self.nominal.home_mm, guide.entry_mm));
+        let mut s = PhysicsString {
+            guide,
+            lead_mm,
+            spool: params,
+            stiffness_n: uniform(rng, ab.string_stiffness_n),
+            mass_g_per_m: {
+                let drawn = uniform(rng, ab.string_mass_g_per_m);
+                self.heavy.unwrap_or(drawn)
+            },
+            total_mm,
+            compliance_mm_per_n: self.flex * uniform(flex_rng, ab.frame_compliance_mm_per_n),
+            flex_direction: tilted(towards_centre, 0.5, flex_rng),
+            home_spool_rad: 0.0,
+        };
+        let home = s
+            .natural_length(&self.home_mm, self.home_tension_n, home_total_tension, 0.0)
+            .map_err(|e| string_error(i, e))?;
+        let wound = total_mm - home.natural_mm;
+        s.home_spool_rad = spool
+            .angle_for_wound(wound)
+            .map_err(|e| string_error(i, format!("at home ({:.1} mm wound): {e}", wound)))?;
+        Ok((s, spool))
+    }
+}
+
+/// The spool's layers of `width` mm: layers until the spool holds the whole
+/// string (`total_mm`), and one more; each layer's turns drawn with its
+/// uneven pitch (`pitch_excess`).
+fn wind_layers(
+    params: &mut SpoolParams,
+    width: f64,
+    total_mm: f64,
+    pitch_excess: [f64; 2],
+    rng: &mut ChaCha8Rng,
+) -> Result<(), &'static str> {
+    let d = params.string_diameter_mm;
+    let bare = params.bare_radius_mm;
+    let mut capacity = 0.0;
+    while capacity <= total_mm {
+        let k = params.turns_per_layer.len();
+        let turns = width / (d * (1.0 + uniform(rng, pitch_excess)));
+        params.turns_per_layer.push(turns);
+        capacity += TAU * turns * (bare + d / 2.0 + k as f64 * params.layer_packing * d);
+        if params.turns_per_layer.len() > 100_000 {
+            return Err("the spool would need over 100000 layers");
+        }
+    }
+    params.turns_per_layer.push(width / d);
+    Ok(())
+}
+
+/// The marker in the end-effector's body and the hand's posture (stream
+/// 107); `marker-offset` sets the marker's distance and the posture's
+/// amplitude.
+fn draw_marker_and_posture(
+    ab: &PhysicsAsBuilt,
+    effects: &[PhysicsEffect],
+    seed: u64,
+) -> (Vec3<f64>, Posture) {
+    let mut rng = stream(seed, 107);
+    // Drawn whatever the effects, so that an effect changes only itself.
+    let drawn = uniform(&mut rng, ab.marker_offset_mm);
+    let offset = match effects.iter().rev().find_map(|e| match e {
+        PhysicsEffect::MarkerOffset { mm, deg } => Some((*mm, *deg)),
+        _ => None,
+    }) {
+        Some((mm, deg)) => (mm, deg.to_radians()),
+        None => (drawn, ab.posture_amplitude_deg.to_radians()),
+    };
+    let direction = tilted(
+        [0.0, 0.0, 1.0],
+        rng.random_range(0.0..std::f64::consts::PI),
+        &mut rng,
+    );
+    let marker_body_mm = direction.map(|x| x * offset.0);
+    let k = TAU / ab.posture_wavelength_mm;
+    let mut wave = [[0.0; 3]; 3];
+    for w in wave.iter_mut() {
+        let dir = tilted(
+            [0.0, 0.0, 1.0],
+            rng.random_range(0.0..std::f64::consts::PI),
+            &mut rng,
+        );
+        *w = dir.map(|x| x * k);
+    }
+    let posture = Posture {
+        amplitude_rad: offset.1,
+        wave,
+        phase: core::array::from_fn(|_| rng.random_range(0.0..TAU)),
+        jitter_rad: ab.posture_jitter_deg.to_radians(),
+    };
+    (marker_body_mm, posture)
+}
+
+/// The tracker's true room-from-device rotation and translation (stream 108).
+fn draw_room_transform(
+    nominal: &Geometry,
+    tr: &crate::sim::config::TrackerConfig,
+    seed: u64,
+) -> Result<([[f64; 3]; 3], Vec3<f64>), SimError> {
+    let mut rng = stream(seed, 108);
+    let axis = tilted(
+        [0.0, 0.0, 1.0],
+        rng.random_range(0.0..std::f64::consts::PI),
+        &mut rng,
+    );
+    let room_rotation = rotation_about_axis(axis, tr.rotation_deg.to_radians());
+    let t_noise = normal("tracker.translation_sigma_mm", tr.translation_sigma_mm)?;
+    let room_translation_mm: Vec3<f64> = core::array::from_fn(|k| {
+        nominal.room_from_device_translation_mm[k] + t_noise.sample(&mut rng)
+    });
+    Ok((room_rotation, room_translation_mm))
 }
 
 impl PhysicsDevice {
@@ -316,203 +606,47 @@ impl PhysicsDevice {
         };
         let ab = &config.as_built;
         let effects = parse_effects(&config.effects)?;
-        let strings = nominal.strings();
         // A planar device: the exits, home and the strings' meeting point
         // stay in the anchors' plane (the as-built errors are in it); the
         // guides swivel about the plane's normal, the strings sag out of
         // it, the hand turns about the normal only.
-        let planar = nominal.layout.planar;
+        let exits = draw_exits(&nominal, ab, seed)?;
+        let home_mm = draw_home(&nominal, ab, seed)?;
+        let guides = place_guides(&nominal, ab, &exits, seed)?;
 
-        let mut rng = stream(seed, 101);
-        let anchor_noise = normal("as_built.anchor_sigma_mm", ab.anchor_sigma_mm)?;
-        let exits: Vec<Vec3<f64>> = nominal
-            .anchors_mm
-            .iter()
-            .take(strings)
-            .map(|a| {
-                let mut e = a.map(|x| x + anchor_noise.sample(&mut rng));
-                if planar {
-                    e[2] = a[2];
-                }
-                e
-            })
-            .collect();
-
-        let mut rng = stream(seed, 102);
-        let home_noise = normal("as_built.home_sigma_mm", ab.home_sigma_mm)?;
-        let mut home_mm: Vec3<f64> =
-            core::array::from_fn(|k| nominal.home_mm[k] + home_noise.sample(&mut rng));
-        if planar {
-            home_mm[2] = nominal.home_mm[2];
-        }
-
-        // Guides: swivel axis along the frame edge, away from the home
-        // height; entry point placed so that the string to the nominal home
-        // leaves at the as-built exit point.
-        let mut rng = stream(seed, 103);
-        let mut guides = Vec::with_capacity(strings);
-        for (i, exit) in exits.iter().enumerate() {
-            let up = if exit[2] >= nominal.home_mm[2] {
-                1.0
-            } else {
-                -1.0
-            };
-            let axis = tilted([0.0, 0.0, up], ab.guide_tilt_deg.to_radians(), &mut rng);
-            let mut guide = Guide {
-                entry_mm: *exit,
-                axis,
-                radius_mm: uniform(&mut rng, ab.guide_radius_mm),
-            };
-            for _ in 0..6 {
-                let path = guide
-                    .path(&[0.0; 3], &nominal.home_mm)
-                    .map_err(|e| string_error(i, e))?;
-                for ((a, x), t) in guide.entry_mm.iter_mut().zip(exit).zip(path.exit_mm) {
-                    *a += x - t;
-                }
-            }
-            guides.push(guide);
-        }
-
-        let mut rng = stream(seed, 104);
-        let shared = 1.0
-            + normal(
-                "as_built.spool_radius_shared_sigma",
-                ab.spool_radius_shared_sigma,
-            )?
-            .sample(&mut rng);
-        let each = normal(
-            "as_built.spool_radius_each_sigma",
-            ab.spool_radius_each_sigma,
-        )?;
-        let diameter = normal("as_built.string_diameter_sigma", ab.string_diameter_sigma)?;
-        let total_noise = normal("as_built.string_total_sigma_mm", ab.string_total_sigma_mm)?;
-        let heavy = effects.iter().find_map(|e| match e {
-            PhysicsEffect::HeavyString { g_per_m } => Some(*g_per_m),
-            _ => None,
-        });
-        let flex: f64 = effects
-            .iter()
-            .map(|e| match e {
-                PhysicsEffect::FrameFlex { factor } => *factor,
-                _ => 1.0,
-            })
-            .product();
         let home_tension_n = config.tension.pretension_n + config.tension.jitter_n / 2.0;
-        let home_total_tension = home_tension_n * strings as f64;
-
-        let mut out = Vec::with_capacity(strings);
-        let mut spools = Vec::with_capacity(strings);
-        let mut flex_rng = stream(seed, 106);
-        for (i, guide) in guides.into_iter().enumerate() {
-            let d = ab.string_diameter_mm * (1.0 + diameter.sample(&mut rng)).max(0.5);
-            let bare = nominal.pulley_radius_mm[i] * shared * (1.0 + each.sample(&mut rng));
-            let width = uniform(&mut rng, ab.spool_width_mm);
-            let lead_mm = uniform(&mut rng, ab.lead_mm);
-            let total_mm = ab.string_total_mm + total_noise.sample(&mut rng) + lead_mm;
-            let mut params = SpoolParams {
-                bare_radius_mm: bare,
-                string_diameter_mm: d,
-                layer_packing: uniform(&mut rng, ab.layer_packing),
-                turns_per_layer: Vec::new(),
-                layer_change_rad: uniform(&mut rng, ab.layer_change_rad),
-                crossover_rise_mm: uniform(&mut rng, ab.crossover_rise_mm),
-                crossover_rad: uniform(&mut rng, ab.crossover_rad),
-            };
-            // Layers until the spool holds the whole string, and one more.
-            let mut capacity = 0.0;
-            while capacity <= total_mm {
-                let k = params.turns_per_layer.len();
-                let turns = width / (d * (1.0 + uniform(&mut rng, ab.pitch_excess)));
-                params.turns_per_layer.push(turns);
-                capacity += TAU * turns * (bare + d / 2.0 + k as f64 * params.layer_packing * d);
-                if params.turns_per_layer.len() > 100_000 {
-                    return Err(string_error(i, "the spool would need over 100000 layers"));
-                }
-            }
-            params.turns_per_layer.push(width / d);
-            let spool = Spool::new(params.clone());
-            let towards_centre = unit(sub(nominal.home_mm, guide.entry_mm));
-            let mut s = PhysicsString {
-                guide,
-                lead_mm,
-                spool: params,
-                stiffness_n: uniform(&mut rng, ab.string_stiffness_n),
-                mass_g_per_m: {
-                    let drawn = uniform(&mut rng, ab.string_mass_g_per_m);
-                    heavy.unwrap_or(drawn)
-                },
-                total_mm,
-                compliance_mm_per_n: flex * uniform(&mut flex_rng, ab.frame_compliance_mm_per_n),
-                flex_direction: tilted(towards_centre, 0.5, &mut flex_rng),
-                home_spool_rad: 0.0,
-            };
-            let home = s
-                .natural_length(&home_mm, home_tension_n, home_total_tension, 0.0)
-                .map_err(|e| string_error(i, e))?;
-            let wound = total_mm - home.natural_mm;
-            s.home_spool_rad = spool
-                .angle_for_wound(wound)
-                .map_err(|e| string_error(i, format!("at home ({:.1} mm wound): {e}", wound)))?;
-            out.push(s);
-            spools.push(spool);
-        }
-
-        let mut rng = stream(seed, 107);
-        // Drawn whatever the effects, so that an effect changes only itself.
-        let drawn = uniform(&mut rng, ab.marker_offset_mm);
-        let offset = match effects.iter().rev().find_map(|e| match e {
-            PhysicsEffect::MarkerOffset { mm, deg } => Some((*mm, *deg)),
-            _ => None,
-        }) {
-            Some((mm, deg)) => (mm, deg.to_radians()),
-            None => (drawn, ab.posture_amplitude_deg.to_radians()),
+        let build = StringBuild {
+            nominal: &nominal,
+            ab,
+            home_mm,
+            home_tension_n,
+            heavy: effects.iter().find_map(|e| match e {
+                PhysicsEffect::HeavyString { g_per_m } => Some(*g_per_m),
+                _ => None,
+            }),
+            flex: effects
+                .iter()
+                .map(|e| match e {
+                    PhysicsEffect::FrameFlex { factor } => *factor,
+                    _ => 1.0,
+                })
+                .product(),
         };
-        let direction = tilted(
-            [0.0, 0.0, 1.0],
-            rng.random_range(0.0..std::f64::consts::PI),
-            &mut rng,
-        );
-        let marker_body_mm = direction.map(|x| x * offset.0);
-        let k = TAU / ab.posture_wavelength_mm;
-        let mut wave = [[0.0; 3]; 3];
-        for w in wave.iter_mut() {
-            let dir = tilted(
-                [0.0, 0.0, 1.0],
-                rng.random_range(0.0..std::f64::consts::PI),
-                &mut rng,
-            );
-            *w = dir.map(|x| x * k);
-        }
-        let posture = Posture {
-            amplitude_rad: offset.1,
-            wave,
-            phase: core::array::from_fn(|_| rng.random_range(0.0..TAU)),
-            jitter_rad: ab.posture_jitter_deg.to_radians(),
-        };
+        let (strings, spools) = build.strings(guides, seed)?;
 
-        let mut rng = stream(seed, 108);
-        let tr = &config.tracker;
-        let axis = tilted(
-            [0.0, 0.0, 1.0],
-            rng.random_range(0.0..std::f64::consts::PI),
-            &mut rng,
-        );
-        let room_rotation = rotation_about_axis(axis, tr.rotation_deg.to_radians());
-        let t_noise = normal("tracker.translation_sigma_mm", tr.translation_sigma_mm)?;
-        let room_translation_mm: Vec3<f64> = core::array::from_fn(|k| {
-            nominal.room_from_device_translation_mm[k] + t_noise.sample(&mut rng)
-        });
+        let (marker_body_mm, posture) = draw_marker_and_posture(ab, &effects, seed);
+        let (room_rotation, room_translation_mm) =
+            draw_room_transform(&nominal, &config.tracker, seed)?;
 
         Ok(PhysicsDevice {
             seed,
             nominal,
-            strings: out,
+            strings,
             home_mm,
             home_tension_n,
             room_rotation,
             room_translation_mm,
-            room_scale: tr.scale,
+            room_scale: config.tracker.scale,
             marker_body_mm,
             posture,
             effects,
@@ -686,7 +820,6 @@ pub fn simulate_rows(
     seed: u64,
 ) -> Result<(Vec<PhysicsRow>, Vec<PhysicsTruth>), SimError> {
     let cfg = &device.config;
-    let n = device.string_count();
     let centre = device.volume_centre_room();
     let home_omega = device.posture.rotation_vector(&device.home_mm);
     let start = device.room_from_device(&device.marker_of(&device.home_mm, &home_omega));
@@ -702,47 +835,162 @@ pub fn simulate_rows(
     )?;
     let duration_s = captures.last().map_or(0.0, |c| f64::from(c.t_ms) / 1000.0);
 
-    let mut tension_rng = stream(seed, 111);
-    let mut noise_rng = stream(seed, 112);
-    let mut occlusion_rng = stream(seed, 113);
-    let mut abnormal_rng = stream(seed, 114);
-    let mut posture_rng = stream(seed, 115);
-    let mut slip_rng = stream(seed, 116);
-    let mut orientation_rng = stream(seed, 117);
-    let orientation_noise = normal(
-        "orientation.sigma_deg",
-        cfg.orientation.sigma_deg.to_radians(),
-    )?;
-    let noise = normal("tracker.noise_sigma_mm", cfg.tracker.noise_sigma_mm)?;
-    let jitter = normal("as_built.posture_jitter_deg", device.posture.jitter_rad)?;
-    let slips = slip_events(&device.effects, n, duration_s, &mut slip_rng);
-    let drift_per_s: f64 = device
-        .effects
-        .iter()
-        .map(|e| match e {
-            PhysicsEffect::DriftAll { ppm_per_h } => ppm_per_h * 1e-6 / 3600.0,
-            _ => 0.0,
-        })
-        .sum();
-    let am = &cfg.abnormal_motor;
-    let abnormal_string =
-        (am.enabled && usize::from(am.string) < n).then_some(usize::from(am.string));
-    // Abnormal motor state: inside its region, off the groove since wound = w0, excess g.
-    let mut in_region = false;
-    let mut off_groove: Option<(f64, f64)> = None;
-    let mut previous_counts: Option<Vec<i32>> = None;
-
-    let planar = device.nominal.layout.planar;
-    let plane_z = device.home_mm[2];
-    let mut occluded = false;
+    let mut session = PhysicsSession::new(device, seed, duration_s)?;
     let mut rows = Vec::with_capacity(captures.len());
     let mut truths = Vec::with_capacity(captures.len());
     for c in &captures {
+        let (row, truth) = session.capture(c)?;
+        rows.push(row);
+        truths.push(truth);
+    }
+    Ok((rows, truths))
+}
+
+/// One session of the independent simulator under way: each part of the
+/// world's own random stream, the session's slips and drift, and what
+/// carries over from one capture to the next (the abnormal motor's state,
+/// the tracker's occlusion).
+struct PhysicsSession<'a> {
+    device: &'a PhysicsDevice,
+    tension_rng: ChaCha8Rng,
+    noise_rng: ChaCha8Rng,
+    occlusion_rng: ChaCha8Rng,
+    posture_rng: ChaCha8Rng,
+    orientation_rng: ChaCha8Rng,
+    orientation_noise: rand_distr::Normal<f64>,
+    noise: rand_distr::Normal<f64>,
+    jitter: rand_distr::Normal<f64>,
+    /// `(time s, string, mm)`.
+    slips: Vec<(f64, usize, f64)>,
+    /// Thermal strain per second (`drift-all`).
+    drift_per_s: f64,
+    abnormal: AbnormalMotor<'a>,
+    occluded: bool,
+}
+
+/// The abnormal motor and its state: inside its region at the last capture,
+/// off the groove since wound = `w0` on a radius `1 + g` larger, the counts
+/// of the last capture (what a jammed encoder repeats).
+struct AbnormalMotor<'a> {
+    config: &'a PhysicsAbnormalMotor,
+    /// Its string (None: disabled, or not on this device).
+    string: Option<usize>,
+    rng: ChaCha8Rng,
+    in_region: bool,
+    /// `(w0, g)`.
+    off_groove: Option<(f64, f64)>,
+    previous_counts: Option<Vec<i32>>,
+}
+
+/// Where the hand holds the end-effector at one capture.
+struct HandPose {
+    /// Strings' meeting point, device frame, mm.
+    meeting: Vec3<f64>,
+    /// The marker, room frame, mm.
+    marker_room: Vec3<f64>,
+    /// The end-effector's turn (rotation vector, device frame).
+    omega: Vec3<f64>,
+}
+
+impl<'a> PhysicsSession<'a> {
+    /// The streams of the session `seed` (111..117), its slips over
+    /// `duration_s` and its drift.
+    fn new(
+        device: &'a PhysicsDevice,
+        seed: u64,
+        duration_s: f64,
+    ) -> Result<PhysicsSession<'a>, SimError> {
+        let cfg = &device.config;
+        let n = device.string_count();
+        let tension_rng = stream(seed, 111);
+        let noise_rng = stream(seed, 112);
+        let occlusion_rng = stream(seed, 113);
+        let abnormal_rng = stream(seed, 114);
+        let posture_rng = stream(seed, 115);
+        let mut slip_rng = stream(seed, 116);
+        let orientation_rng = stream(seed, 117);
+        let orientation_noise = normal(
+            "orientation.sigma_deg",
+            cfg.orientation.sigma_deg.to_radians(),
+        )?;
+        let noise = normal("tracker.noise_sigma_mm", cfg.tracker.noise_sigma_mm)?;
+        let jitter = normal("as_built.posture_jitter_deg", device.posture.jitter_rad)?;
+        let slips = slip_events(&device.effects, n, duration_s, &mut slip_rng);
+        let drift_per_s: f64 = device
+            .effects
+            .iter()
+            .map(|e| match e {
+                PhysicsEffect::DriftAll { ppm_per_h } => ppm_per_h * 1e-6 / 3600.0,
+                _ => 0.0,
+            })
+            .sum();
+        let am = &cfg.abnormal_motor;
+        let abnormal = AbnormalMotor {
+            config: am,
+            string: (am.enabled && usize::from(am.string) < n).then_some(usize::from(am.string)),
+            rng: abnormal_rng,
+            in_region: false,
+            off_groove: None,
+            previous_counts: None,
+        };
+        Ok(PhysicsSession {
+            device,
+            tension_rng,
+            noise_rng,
+            occlusion_rng,
+            posture_rng,
+            orientation_rng,
+            orientation_noise,
+            noise,
+            jitter,
+            slips,
+            drift_per_s,
+            abnormal,
+            occluded: false,
+        })
+    }
+
+    /// One capture: the hand's pose, the commanded tensions, the encoders,
+    /// the tracker.
+    fn capture(&mut self, c: &trajectory::Capture) -> Result<(PhysicsRow, PhysicsTruth), SimError> {
+        let n = self.device.string_count();
         let t_s = f64::from(c.t_ms) / 1000.0;
+        let pose = self.hand_pose(c);
+        let tension_n = self.draw_tensions();
+        let mut truth = PhysicsTruth {
+            meeting_mm: pose.meeting,
+            marker_room_mm: pose.marker_room,
+            exit_mm: Vec::with_capacity(n),
+            free_mm: Vec::with_capacity(n),
+            geometric_mm: Vec::with_capacity(n),
+            natural_mm: Vec::with_capacity(n),
+            spool_rad: Vec::with_capacity(n),
+            slipped_mm: Vec::with_capacity(n),
+            abnormal: false,
+            cell: c.cell,
+        };
+        let counts = self.read_encoders(&pose.meeting, &tension_n, t_s, &mut truth)?;
+        let (tracker, orientation) = self.track(&pose);
+        let row = PhysicsRow {
+            t_s,
+            counts,
+            tracker,
+            orientation,
+            tension_n,
+        };
+        Ok((row, truth))
+    }
+
+    /// The hand at the capture's marker position: the end-effector turned
+    /// with the posture (and its jitter), the strings' meeting point behind
+    /// the marker.
+    fn hand_pose(&mut self, c: &trajectory::Capture) -> HandPose {
+        let device = self.device;
+        let planar = device.nominal.layout.planar;
         let mut marker = device.device_from_room(&c.room);
         let mut omega = device.posture.rotation_vector(&marker);
         for w in omega.iter_mut() {
-            *w += jitter.sample(&mut posture_rng);
+            *w += self.jitter.sample(&mut self.posture_rng);
         }
         if planar {
             omega[0] = 0.0;
@@ -753,7 +1001,7 @@ pub fn simulate_rows(
         if planar {
             // The strings meet in the plane; the marker is where the hand
             // holds it from there.
-            meeting[2] = plane_z;
+            meeting[2] = device.home_mm[2];
             marker = core::array::from_fn(|k| meeting[k] + o[k]);
         }
         // Not a round trip through the device frame unless the marker moved:
@@ -763,36 +1011,48 @@ pub fn simulate_rows(
         } else {
             c.room
         };
+        HandPose {
+            meeting,
+            marker_room,
+            omega,
+        }
+    }
 
-        let ts = &cfg.tension;
-        let tension_n: Vec<f64> = (0..n)
+    /// The commanded tension of every string, whole millinewtons.
+    fn draw_tensions(&mut self) -> Vec<f64> {
+        let device = self.device;
+        let ts = &device.config.tension;
+        let rng = &mut self.tension_rng;
+        (0..device.string_count())
             .map(|_| {
-                let mut t = ts.pretension_n + ts.jitter_n * tension_rng.random_range(0.0..1.0);
-                if tension_rng.random_bool(ts.active_probability) {
-                    t += ts.active_max_n * tension_rng.random_range(0.0..1.0);
+                let mut t = ts.pretension_n + ts.jitter_n * rng.random_range(0.0..1.0);
+                if rng.random_bool(ts.active_probability) {
+                    t += ts.active_max_n * rng.random_range(0.0..1.0);
                 }
                 round_to(t.clamp(0.0, 65.535), 1000.0)
             })
-            .collect();
-        let total_tension: f64 = tension_n.iter().sum();
-        let strain = drift_per_s * t_s;
+            .collect()
+    }
 
+    /// Every string's encoder counts with the strings meeting at `meeting`
+    /// under `tension_n` at `t_s` (slips, drift and the abnormal motor
+    /// included); what really happened goes to `truth`.
+    fn read_encoders(
+        &mut self,
+        meeting: &Vec3<f64>,
+        tension_n: &[f64],
+        t_s: f64,
+        truth: &mut PhysicsTruth,
+    ) -> Result<Vec<i32>, SimError> {
+        let device = self.device;
+        let n = device.string_count();
+        let total_tension: f64 = tension_n.iter().sum();
+        let strain = self.drift_per_s * t_s;
         let mut counts = Vec::with_capacity(n);
-        let mut truth = PhysicsTruth {
-            meeting_mm: meeting,
-            marker_room_mm: marker_room,
-            exit_mm: Vec::with_capacity(n),
-            free_mm: Vec::with_capacity(n),
-            geometric_mm: Vec::with_capacity(n),
-            natural_mm: Vec::with_capacity(n),
-            spool_rad: Vec::with_capacity(n),
-            slipped_mm: Vec::with_capacity(n),
-            abnormal: false,
-            cell: c.cell,
-        };
-        for i in 0..n {
-            let state = device.natural_length(i, &meeting, tension_n[i], total_tension, strain)?;
-            let slipped: f64 = slips
+        for (i, &tension) in tension_n.iter().enumerate() {
+            let state = device.natural_length(i, meeting, tension, total_tension, strain)?;
+            let slipped: f64 = self
+                .slips
                 .iter()
                 .filter(|(at, s, _)| *s == i && *at <= t_s)
                 .map(|(_, _, mm)| mm)
@@ -801,37 +1061,17 @@ pub fn simulate_rows(
             let wound = device.strings[i].total_mm - slipped - state.natural_mm;
             let phi = device.spool_angle(i, wound).map_err(|e| at_time(e, t_s))?;
             let mut read_phi = phi;
-            if Some(i) == abnormal_string {
-                let inside = state.path.free_mm < am.region_length_mm;
-                if inside && !in_region {
-                    off_groove = abnormal_rng
-                        .random_bool(am.out_of_groove_probability)
-                        .then(|| (wound, uniform(&mut abnormal_rng, am.radius_excess)));
-                }
-                if !inside {
-                    off_groove = None;
-                }
-                in_region = inside;
-                if let Some((w0, g)) = off_groove {
-                    if wound > w0 {
-                        // Wound in off the groove, on a radius 1 + g larger:
-                        // the spool turned 1 + g times less.
-                        read_phi = device
-                            .spool_angle(i, w0 + (wound - w0) / (1.0 + g))
-                            .map_err(|e| at_time(e, t_s))?;
-                        truth.abnormal = true;
-                    }
-                }
+            if let Some(off) =
+                self.abnormal
+                    .off_groove_angle(device, i, state.path.free_mm, wound, t_s)?
+            {
+                read_phi = off;
+                truth.abnormal = true;
             }
             let mut k = device.counts_of(i, read_phi)?;
-            if Some(i) == abnormal_string
-                && in_region
-                && abnormal_rng.random_bool(am.jam_probability)
-            {
-                if let Some(prev) = &previous_counts {
-                    k = prev[i];
-                    truth.abnormal = true;
-                }
+            if let Some(previous) = self.abnormal.jammed(i) {
+                k = previous;
+                truth.abnormal = true;
             }
             counts.push(k);
             truth.exit_mm.push(state.path.exit_mm);
@@ -840,53 +1080,115 @@ pub fn simulate_rows(
             truth.natural_mm.push(state.natural_mm);
             truth.spool_rad.push(phi);
         }
-        previous_counts = Some(counts.clone());
+        self.abnormal.previous_counts = Some(counts.clone());
+        Ok(counts)
+    }
 
+    /// The tracker's reading of the hand: the marker's position (noisy,
+    /// whole micrometres) and the body's orientation, unless occluded.
+    fn track(&mut self, pose: &HandPose) -> (Option<Vec3<f64>>, Option<[f64; 4]>) {
+        let device = self.device;
+        let cfg = &device.config;
         let tr = &cfg.tracker;
-        occluded = if occluded {
-            !occlusion_rng.random_bool(1.0 / tr.occlusion_mean_rows)
+        self.occluded = if self.occluded {
+            !self.occlusion_rng.random_bool(1.0 / tr.occlusion_mean_rows)
         } else {
-            occlusion_rng.random_bool(tr.occlusion_probability)
+            self.occlusion_rng.random_bool(tr.occlusion_probability)
         };
+        let occluded = self.occluded;
+        let (noise, noise_rng) = (&self.noise, &mut self.noise_rng);
         let measured: Vec3<f64> = core::array::from_fn(|k| {
-            round_to(marker_room[k] + noise.sample(&mut noise_rng), 1000.0)
+            round_to(pose.marker_room[k] + noise.sample(noise_rng), 1000.0)
         });
         // The body turns with the hand (`omega`, device frame); the tracker
         // reads its orientation in the room, with its own noise.
+        let (orientation_noise, orientation_rng) =
+            (&self.orientation_noise, &mut self.orientation_rng);
         let orientation = (cfg.orientation.enabled && !occluded)
             .then(|| {
                 let err: [f64; 3] =
-                    core::array::from_fn(|_| orientation_noise.sample(&mut orientation_rng));
-                body_to_room_quaternion(&device.room_rotation, &omega, &err)
+                    core::array::from_fn(|_| orientation_noise.sample(orientation_rng));
+                body_to_room_quaternion(&device.room_rotation, &pose.omega, &err)
             })
             .flatten();
-        rows.push(PhysicsRow {
-            t_s,
-            counts,
-            tracker: (!occluded).then_some(measured),
-            orientation,
-            tension_n,
-        });
-        truths.push(truth);
+        ((!occluded).then_some(measured), orientation)
     }
-    Ok((rows, truths))
+}
+
+impl AbnormalMotor<'_> {
+    /// The spool angle the encoder of string `i` reads when the motor is
+    /// off its groove (None: on the groove, or not the abnormal string);
+    /// entering the region (free string shorter than its length) may throw
+    /// the string off the groove, leaving it puts it back.
+    fn off_groove_angle(
+        &mut self,
+        device: &PhysicsDevice,
+        i: usize,
+        free_mm: f64,
+        wound: f64,
+        t_s: f64,
+    ) -> Result<Option<f64>, SimError> {
+        if Some(i) != self.string {
+            return Ok(None);
+        }
+        let am = self.config;
+        let inside = free_mm < am.region_length_mm;
+        if inside && !self.in_region {
+            let rng = &mut self.rng;
+            self.off_groove = rng
+                .random_bool(am.out_of_groove_probability)
+                .then(|| (wound, uniform(rng, am.radius_excess)));
+        }
+        if !inside {
+            self.off_groove = None;
+        }
+        self.in_region = inside;
+        if let Some((w0, g)) = self.off_groove {
+            if wound > w0 {
+                // Wound in off the groove, on a radius 1 + g larger:
+                // the spool turned 1 + g times less.
+                return device
+                    .spool_angle(i, w0 + (wound - w0) / (1.0 + g))
+                    .map(Some)
+                    .map_err(|e| at_time(e, t_s));
+            }
+        }
+        Ok(None)
+    }
+
+    /// The previous counts of string `i` when its spool jams at this
+    /// capture (only the abnormal string, inside its region, after a first
+    /// capture).
+    fn jammed(&mut self, i: usize) -> Option<i32> {
+        if Some(i) == self.string
+            && self.in_region
+            && self.rng.random_bool(self.config.jam_probability)
+        {
+            if let Some(prev) = &self.previous_counts {
+                return Some(prev[i]);
+            }
+        }
+        None
+    }
 }
 
 fn at_time(e: SimError, t_s: f64) -> SimError {
     match e {
-        SimError::Config { field, problem } => SimError::Config {
-            field,
-            problem: format!("{problem} (t = {t_s} s)"),
-        },
+        SimError::Config(c) => SimError::Config(crate::ConfigError {
+            problem: format!("{} (t = {t_s} s)", c.problem),
+            ..c
+        }),
         other => other,
     }
 }
 
 /// `truth.toml` of the independent simulator (tests and benchmarks only).
 fn write_truth(device: &PhysicsDevice, path: &std::path::Path) -> Result<(), SimError> {
-    let body = toml::to_string(device).map_err(|e| SimError::Config {
-        field: "truth".into(),
-        problem: format!("cannot encode the truth as TOML: {e}"),
+    let body = toml::to_string(device).map_err(|e| {
+        SimError::Config(crate::ConfigError::new(
+            "truth",
+            format!("cannot encode the truth as TOML: {e}"),
+        ))
     })?;
     let text = format!(
         "# Independent simulator ground truth: the device as built.\n\
