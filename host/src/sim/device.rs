@@ -85,10 +85,18 @@ fn draw_anchors(
     Ok(anchors)
 }
 
-/// True home (stream 2): where the built-in initialization really is.
-fn draw_home(nominal: &Geometry, ab: &AsBuiltConfig, seed: u64) -> Result<Vec3<f64>, SimError> {
-    let mut rng = stream(seed, 2);
-    let home_noise = normal("as_built.home_sigma_mm", ab.home_sigma_mm)?;
+/// A true home off the nominal one by `sigma_mm` per axis, drawn from the
+/// device's random stream `stream_id` (in the anchors' plane on a planar
+/// device): where the built-in initialization really is. Both simulators
+/// draw it so (the model's stream 2, the independent one's 102).
+pub(crate) fn draw_home(
+    nominal: &Geometry,
+    sigma_mm: f64,
+    seed: u64,
+    stream_id: u64,
+) -> Result<Vec3<f64>, SimError> {
+    let mut rng = stream(seed, stream_id);
+    let home_noise = normal("as_built.home_sigma_mm", sigma_mm)?;
     let mut home: Vec3<f64> =
         core::array::from_fn(|k| nominal.home_mm[k] + home_noise.sample(&mut rng));
     if nominal.layout.planar {
@@ -257,7 +265,7 @@ impl Device {
         };
         let ab = &config.as_built;
         let anchors = draw_anchors(&nominal, ab, seed)?;
-        let home = draw_home(&nominal, ab, seed)?;
+        let home = draw_home(&nominal, ab.home_sigma_mm, seed, 2)?;
         let bare_radius_mm = draw_bare_radii(&nominal, ab, seed)?;
         let string_total_mm = draw_string_totals(ab, seed)?;
         let (room_rotation, room_translation) =

@@ -79,7 +79,7 @@ pub use effects::{parse_effect, parse_effects, PhysicsEffect, EFFECT_NAMES};
 pub use guide::{Guide, GuidePath};
 pub use spool::{Spool, SpoolParams};
 
-use super::device::{normal, stream};
+use super::device::{draw_home, normal, stream};
 use super::{trajectory, SessionKind, SimError, SimulateReport, SimulateRequest};
 use crate::data::dataset::{Geometry, Sample, Session};
 use spidar_core::geometry::{
@@ -324,19 +324,6 @@ fn draw_exits(
             e
         })
         .collect())
-}
-
-/// The true home (stream 102): off the nominal one (in the anchors' plane
-/// on a planar device).
-fn draw_home(nominal: &Geometry, ab: &PhysicsAsBuilt, seed: u64) -> Result<Vec3<f64>, SimError> {
-    let mut rng = stream(seed, 102);
-    let home_noise = normal("as_built.home_sigma_mm", ab.home_sigma_mm)?;
-    let mut home_mm: Vec3<f64> =
-        core::array::from_fn(|k| nominal.home_mm[k] + home_noise.sample(&mut rng));
-    if nominal.layout.planar {
-        home_mm[2] = nominal.home_mm[2];
-    }
-    Ok(home_mm)
 }
 
 /// The guides (stream 103): swivel axis along the frame edge, away from the
@@ -611,7 +598,7 @@ impl PhysicsDevice {
         // guides swivel about the plane's normal, the strings sag out of
         // it, the hand turns about the normal only.
         let exits = draw_exits(&nominal, ab, seed)?;
-        let home_mm = draw_home(&nominal, ab, seed)?;
+        let home_mm = draw_home(&nominal, ab.home_sigma_mm, seed, 102)?;
         let guides = place_guides(&nominal, ab, &exits, seed)?;
 
         let home_tension_n = config.tension.pretension_n + config.tension.jitter_n / 2.0;
