@@ -138,7 +138,7 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<String> {
             );
             let sim_config =
                 spidar::sim::SimConfig::load_or_default(args.rig.sim_config.as_deref())
-                    .map_err(|e| MonitorError::Simulation(e.to_string()))?;
+                    .map_err(MonitorError::from)?;
             let calibrated = calibrate_simulated_with(seed, &sim_config)?;
             eprintln!("calibrated in {:.1} s", calibrated.seconds);
             let mut rig = SimulatedMonitorRig::start(

@@ -276,7 +276,13 @@ pub enum MonitorError {
     #[error("monitor: after the reflash the device reports {what}")]
     Verify { what: String },
     #[error("monitor: simulation: {0}")]
-    Simulation(String),
+    Simulation(#[from] crate::sim::SimError),
+    #[error("monitor: simulation: calibration: {0}")]
+    SimulatedCalibration(#[source] Box<crate::procedures::calibrate::CalibrateError>),
+    #[error("monitor: simulation: {0}")]
+    SimulatedRig(#[from] crate::sim::operator::RigError),
+    #[error("monitor: simulation: {0}")]
+    VirtualDevice(#[from] crate::device::virtual_device::VirtualDeviceError),
 }
 
 /// One tracker frame paired with a device state.
@@ -1287,20 +1293,17 @@ pub fn calibrate_simulated_with(
     use crate::procedures::calibrate::{calibrate, CalibrateConfig, NamedSession};
     use crate::sim::{simulate_session, Device as SimDevice, SessionKind, SimConfig};
     let t0 = Instant::now();
-    let sim = |e: crate::sim::SimError| MonitorError::Simulation(e.to_string());
     let config = SimConfig {
         effects: Vec::new(),
         ..sim_config.clone()
     };
-    let device = SimDevice::new(&config, seed).map_err(sim)?;
-    let training =
-        simulate_session(&device, SessionKind::Lattice, seed.wrapping_add(100)).map_err(sim)?;
+    let device = SimDevice::new(&config, seed)?;
+    let training = simulate_session(&device, SessionKind::Lattice, seed.wrapping_add(100))?;
     let test = simulate_session(
         &device,
         SessionKind::Random { points: 300 },
         seed.wrapping_add(200),
-    )
-    .map_err(sim)?;
+    )?;
     let mut cc = CalibrateConfig::quick();
     cc.quiet = true;
     cc.seed = seed;
@@ -1317,7 +1320,7 @@ pub fn calibrate_simulated_with(
         },
         &cc,
     )
-    .map_err(|e| MonitorError::Simulation(format!("calibration: {e}")))?;
+    .map_err(|e| MonitorError::SimulatedCalibration(Box::new(e)))?;
     Ok(SimCalibration {
         seed,
         sim_config: config.clone(),
@@ -1388,12 +1391,6 @@ impl std::ops::DerefMut for SimulatedMonitorRig {
     }
 }
 
-impl From<crate::sim::operator::RigError> for MonitorError {
-    fn from(e: crate::sim::operator::RigError) -> Self {
-        MonitorError::Simulation(e.to_string())
-    }
-}
-
 impl SimulatedMonitorRig {
     /// Builds the run-time device (same seed, plus `config.effects`),
     /// spawns it with the end-effector at its true home, flashes the
@@ -1409,8 +1406,7 @@ impl SimulatedMonitorRig {
             effects: config.effects.clone(),
             ..calibrated.sim_config.clone()
         };
-        let device = SimDevice::new(&sim_config, calibrated.seed)
-            .map_err(|e| MonitorError::Simulation(e.to_string()))?;
+        let device = SimDevice::new(&sim_config, calibrated.seed)?;
         let model_id = model_id_of(&calibrated.calibration);
         let blob = compile_checked(
             &calibrated.calibration,
@@ -1427,9 +1423,7 @@ impl SimulatedMonitorRig {
                     let mut client = Client::open(virtual_device.port_path())?;
                     client.flash(&blob, |_| {})?;
                 }
-                virtual_device
-                    .power_cycle()
-                    .map_err(|e| MonitorError::Simulation(e.to_string()))
+                Ok(virtual_device.power_cycle()?)
             },
             |op| {
                 op.free_motion = FreeMotion::Wander {
