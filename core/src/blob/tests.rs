@@ -1,0 +1,255 @@
+use super::*;
+use crate::correction::CorrectionModel;
+use crate::model::{Calibration, Effect, EffectTerm, StringLaw};
+use spidar_protocol::blob::CorrectionKind;
+
+fn calibration() -> Calibration {
+    let h = 1100.0;
+    let mut anchors = [[0.0; 3]; STRINGS];
+    for (i, a) in anchors.iter_mut().enumerate() {
+        *a = [
+            if i & 1 == 0 { -h } else { h },
+            if i & 2 == 0 { -h } else { h },
+            if i & 4 == 0 { -h } else { h },
+        ];
+    }
+    Calibration {
+        frame: Frame {
+            layout: crate::model::StringLayout::ALL,
+            anchors,
+            home: [1.0, -2.0, 3.0],
+            room_rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            room_translation: [0.0, 0.0, 1500.0],
+            room_scale: 1.0,
+        },
+        strings: [StringLaw::polynomial(4096, [12.0, -0.02, 0.0, 0.0]); STRINGS],
+        effects: alloc::vec![
+            EffectTerm {
+                string: 3,
+                effect: Effect::Offset { mm: 4.5 },
+            },
+            EffectTerm {
+                string: 5,
+                effect: Effect::Backlash { half_width_mm: 0.7 },
+            },
+        ],
+        correction: CorrectionModel::None,
+    }
+}
+
+#[test]
+fn compiled_blob_parses_back() {
+    let blob = compile(&calibration(), 7, 0).unwrap();
+    let c = CompiledCalibration::from_blob(&blob).unwrap();
+    assert_eq!(c.header.effects, 2);
+    assert_eq!(c.header.model_id, 7);
+    assert_eq!(c.head.frame.home, [1.0, -2.0, 3.0]);
+    assert_eq!(c.correction.kind(), CorrectionKind::None);
+}
+
+#[test]
+fn any_corruption_or_truncation_is_refused_not_panicking() {
+    let blob = compile(&calibration(), 7, 0).unwrap();
+    for cut in 0..blob.len() {
+        assert!(CompiledCalibration::from_blob(&blob[..cut]).is_err());
+    }
+    for i in 0..blob.len() {
+        let mut bad = blob.clone();
+        bad[i] ^= 0x40;
+        assert!(CompiledCalibration::from_blob(&bad).is_err(), "byte {i}");
+    }
+}
+
+/// Format 2: whatever the length of the string model, the correction
+/// starts at a multiple of 4 bytes from the blob start, after zero
+/// padding that the parser checks.
+#[test]
+fn correction_is_4_aligned_and_padding_checked() {
+    let svr = crate::correction::SvrModel {
+        input: crate::correction::Standardization {
+            mean: [0.0; 3],
+            std: [300.0; 3],
+        },
+        output: crate::correction::Standardization {
+            mean: [0.0; 3],
+            std: [1.0; 3],
+        },
+        gamma: 0.5,
+        support: alloc::vec![[0.1, 0.2, 0.3], [-0.5, 0.0, 0.25]],
+        coef: [
+            alloc::vec![0.5, -0.25],
+            alloc::vec![0.1, 0.2],
+            alloc::vec![-0.3, 0.0],
+        ],
+        bias: [0.0; 3],
+        mode: crate::correction::OutputMode::Residual,
+    };
+    let mut paddings = [false; 4];
+    for extra in 0..8 {
+        let mut cal = calibration();
+        cal.correction = CorrectionModel::Svr(svr.clone());
+        for i in 0..extra {
+            cal.effects.push(EffectTerm {
+                string: (i % STRINGS) as u8,
+                effect: Effect::Offset {
+                    mm: 1.0 + i as f64 * 0.37,
+                },
+            });
+        }
+        let blob = compile(&cal, 7, 0).unwrap();
+        let (_, body) = split_blob(&blob).unwrap();
+        let (_, rest): (BlobHead, &[u8]) = postcard::take_from_bytes(body).unwrap();
+        let (_, correction) = split_body(body).unwrap();
+        let at = blob.len() - correction.len();
+        assert_eq!(at % CORRECTION_ALIGN, 0, "{extra} effects");
+        let pad = rest.len() - correction.len();
+        assert!(pad < CORRECTION_ALIGN);
+        paddings[pad] = true;
+        let c = CompiledCalibration::from_blob(&blob).unwrap();
+        assert_eq!(c.correction.kind(), CorrectionKind::Svr);
+        if pad > 0 {
+            // A non-zero padding byte, with the CRCs made valid again.
+            let mut bad = blob.clone();
+            bad[at - 1] = 1;
+            let mut h = ModelHeader::parse(&bad).unwrap();
+            h.body_crc32 = 0;
+            let body = bad[HEADER_LEN..].to_vec();
+            let n = spidar_protocol::blob::write_blob(&h, &body, &mut bad).unwrap();
+            assert_eq!(n, blob.len());
+            assert_eq!(
+                CompiledCalibration::from_blob(&bad),
+                Err(BlobError::Body { field: "padding" })
+            );
+        }
+    }
+    // The effect counts above give every padding length.
+    assert!(paddings.iter().filter(|&&p| p).count() >= 2, "{paddings:?}");
+}
+
+/// Rewrites a blob's header (CRCs made valid again).
+fn with_header(blob: &[u8], edit: impl Fn(&mut ModelHeader)) -> alloc::vec::Vec<u8> {
+    let mut h = ModelHeader::parse(blob).unwrap();
+    edit(&mut h);
+    let body = &blob[HEADER_LEN..];
+    let mut out = alloc::vec![0u8; blob.len()];
+    spidar_protocol::blob::write_blob(&h, body, &mut out).unwrap();
+    out
+}
+
+/// A 4-string model on channels 0, 2, 5, 7 (inactive anchors NaN: never
+/// read, written as zeros) with an effect on string 5.
+fn four_strings() -> Calibration {
+    let mut cal = calibration();
+    cal.frame.layout = crate::model::StringLayout {
+        active: 0b1010_0101,
+        planar: false,
+    };
+    for i in [1, 3, 4, 6] {
+        cal.frame.anchors[i] = [f64::NAN; 3];
+        cal.strings[i].counts_per_rev = 0;
+    }
+    cal.effects[0].string = 5;
+    cal
+}
+
+#[test]
+fn header_strings_count_the_layout() {
+    let blob = compile(&four_strings(), 7, 0).unwrap();
+    let c = CompiledCalibration::from_blob(&blob).unwrap();
+    assert_eq!(c.header.strings, 4);
+    assert_eq!(c.head.frame.layout.active, 0b1010_0101);
+    assert_eq!(c.head.frame.anchors[1], [0.0; 3]);
+    assert_eq!(c.head.laws[3], CompiledStringLaw::default());
+    // A header that says otherwise is refused, naming the field.
+    let bad = with_header(&blob, |h| h.strings = 8);
+    assert_eq!(
+        CompiledCalibration::from_blob(&bad),
+        Err(BlobError::Dimension {
+            field: "strings",
+            found: 8,
+            expected: 4
+        })
+    );
+    // 8 strings still write 8.
+    let blob = compile(&calibration(), 7, 0).unwrap();
+    assert_eq!(ModelHeader::parse(&blob).unwrap().strings, 8);
+}
+
+#[test]
+fn layouts_below_the_degrees_of_freedom_and_effects_on_inactive_strings_are_refused() {
+    // Effect on an inactive channel: refused by the compiler...
+    let mut cal = four_strings();
+    cal.effects[1].string = 4;
+    assert_eq!(
+        compile(&cal, 0, 0),
+        Err(CompileError::Layout {
+            field: "effects",
+            string: Some(4)
+        })
+    );
+    // ... and by the parser (a blob written by something else).
+    let blob = compile(&four_strings(), 7, 0).unwrap();
+    let (_, body) = split_blob(&blob).unwrap();
+    let (mut head, rest) = split_body(body).unwrap();
+    head.effects[1] = CompiledEffect::Offset {
+        string: 6,
+        mm_q16: 1,
+    };
+    let mut new_body = postcard::to_allocvec(&head).unwrap();
+    new_body.resize(
+        new_body.len() + correction_padding(HEADER_LEN + new_body.len()),
+        0,
+    );
+    new_body.extend_from_slice(rest);
+    let h = ModelHeader::parse(&blob).unwrap();
+    let mut out = alloc::vec![0u8; HEADER_LEN + new_body.len()];
+    spidar_protocol::blob::write_blob(&h, &new_body, &mut out).unwrap();
+    assert_eq!(
+        CompiledCalibration::from_blob(&out),
+        Err(BlobError::InactiveString {
+            field: "effects",
+            string: 6
+        })
+    );
+    // Two strings cannot fix a point in space; in a plane they can.
+    let mut cal = calibration();
+    cal.effects.clear();
+    cal.frame.layout = crate::model::StringLayout::first(2, false);
+    assert_eq!(
+        compile(&cal, 0, 0),
+        Err(CompileError::Layout {
+            field: "frame.layout",
+            string: None
+        })
+    );
+    cal.frame.layout = crate::model::StringLayout::first(2, true);
+    let blob = compile(&cal, 0, 0).unwrap();
+    assert!(CompiledCalibration::from_blob(&blob).is_ok());
+    // The same blob with the planar flag cleared (a blob from elsewhere).
+    let (_, body) = split_blob(&blob).unwrap();
+    let (mut head, rest) = split_body(body).unwrap();
+    head.frame.layout.planar = false;
+    let mut new_body = postcard::to_allocvec(&head).unwrap();
+    new_body.resize(
+        new_body.len() + correction_padding(HEADER_LEN + new_body.len()),
+        0,
+    );
+    new_body.extend_from_slice(rest);
+    let h = ModelHeader::parse(&blob).unwrap();
+    let mut out = alloc::vec![0u8; HEADER_LEN + new_body.len()];
+    spidar_protocol::blob::write_blob(&h, &new_body, &mut out).unwrap();
+    assert_eq!(
+        CompiledCalibration::from_blob(&out),
+        Err(BlobError::TooFewStrings { strings: 2, dof: 3 })
+    );
+}
+
+#[test]
+fn nan_frame_does_not_compile() {
+    let mut cal = calibration();
+    cal.frame.home[1] = f64::NAN;
+    assert_eq!(
+        compile(&cal, 0, 0),
+        Err(CompileError::Frame { field: "home" })
+    );
+}
