@@ -227,7 +227,7 @@ fn run_on_virtual_device(
     geometry_path: &Path,
     calibration_dir: &Path,
 ) -> Result<String, CalibrateError> {
-    use spidar::device::measure::measure_on_virtual_device;
+    use spidar::sim::measure::measure_on_virtual_device;
     use spidar::sim::{simulate_session_with_truth, Device, SessionKind, SimConfig};
     use spidar_core::correction::CorrectionModel;
     use spidar_core::model::Calibration;
@@ -267,7 +267,7 @@ fn run_on_virtual_device(
         measure_on_virtual_device(&device, &truths, &blob("the nominal model", &nominal)?)?;
     let after =
         measure_on_virtual_device(&device, &truths, &blob("the calibration", &calibrated)?)?;
-    let row = |name: &str, r: &spidar::device::measure::DeviceRun| {
+    let row = |name: &str, r: &spidar::sim::measure::DeviceRun| {
         format!(
             "  {name:<22} {:>9.3} {:>8.3} {:>9.3} {:>8} {:>6} {:>8}\n",
             r.error.mean_mm, r.error.sd_mm, r.error.max_mm, r.frames, r.lost, r.blob_len

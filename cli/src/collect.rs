@@ -6,10 +6,10 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use spidar::data::dataset::Geometry;
+use spidar::device::cues::Tee;
 use spidar::procedures::collect::{
     collect, load_init_record, summary, CollectConfig, CollectError,
 };
-use spidar::procedures::cues::Tee;
 use spidar::sim::lattice::Lattice;
 use spidar::sim::operator::SimulatedRig;
 

@@ -4,7 +4,7 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use anyhow::anyhow;
-use spidar::procedures::cues::Tee;
+use spidar::device::cues::Tee;
 use spidar::procedures::init::{initialize, InitConfig, InitError};
 use spidar::sim::operator::SimulatedRig;
 

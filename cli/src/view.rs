@@ -14,7 +14,7 @@ use std::io::{IsTerminal, Write};
 use std::time::{Duration, Instant};
 
 use crate::audio::AudioOut;
-use spidar::procedures::cues::{CueSink, Cues};
+use spidar::device::cues::{CueSink, Cues};
 
 /// Renders [`Cues`] in the terminal and plays the beep.
 pub struct TerminalView {
@@ -128,7 +128,7 @@ impl CueSink for TerminalView {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use spidar::procedures::cues::Progress;
+    use spidar::device::cues::Progress;
 
     #[test]
     fn the_view_names_progress_target_marker_and_cues() {

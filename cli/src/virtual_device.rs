@@ -4,7 +4,7 @@ use std::io::Write as _;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
-use spidar::device::virtual_device::{
+use spidar::sim::virtual_device::{
     plant_of, spawn, Pace, PlantPath, PlantRequest, VirtualDeviceConfig, VirtualDeviceError,
     FIRMWARE_BLOB_CAPACITY,
 };

@@ -9,12 +9,12 @@
 //!   effect), layer tables, learned corrections (NN, SVR) and the compiler
 //!   to the device's fixed-point blob;
 //! - [`device`]: what the host talks to: the device link (postcard frames
-//!   over serial), the virtual device (the firmware's logic behind a
-//!   pseudo-terminal), the optical tracker (DTrack input, clock pairing) and
-//!   a model measured on the device;
+//!   over serial), the optical tracker (DTrack input, clock pairing) and the
+//!   operator (the cues a procedure shows and plays);
 //! - [`sim`]: everything simulated: the model simulator, the independent
-//!   physics simulator, the virtual device's plant, a simulated tracker and
-//!   a simulated operator;
+//!   physics simulator, the plant, the virtual device (the firmware's logic
+//!   behind a pseudo-terminal, on the plant), a simulated tracker and a
+//!   simulated operator, and a model measured on the virtual device;
 //! - [`procedures`]: what a lab engineer runs: calibration, guided
 //!   initialization, lattice collection, runtime monitoring, and the cues
 //!   they show the operator.

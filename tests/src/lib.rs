@@ -4,9 +4,7 @@
 
 use std::time::{Duration, Instant};
 
-use spidar::device::virtual_device::{
-    spawn, Plant, Trajectory, VirtualDevice, VirtualDeviceConfig,
-};
+use spidar::sim::virtual_device::{spawn, Plant, Trajectory, VirtualDevice, VirtualDeviceConfig};
 use spidar::sim::{self, SimConfig};
 use spidar_core::blob::compile;
 use spidar_core::correction::CorrectionModel;

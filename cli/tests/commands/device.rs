@@ -1,6 +1,6 @@
 //! `spidar device` against a virtual device, and where its options go.
 
-use spidar::device::virtual_device::Trajectory;
+use spidar::sim::virtual_device::Trajectory;
 use spidar_core::correction::CorrectionModel;
 use spidar_tests::{blob, patient_virtual_device, sim_device};
 

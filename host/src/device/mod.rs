@@ -2,13 +2,15 @@
 //!
 //! - [`link`]: the device link (postcard frames over a serial port): info,
 //!   stream, arm, force, and the model upload;
-//! - [`virtual_device`]: the firmware's device logic behind a
-//!   pseudo-terminal, on a simulated plant;
 //! - [`tracker`]: the optical tracker's input (DTrack datagrams, replay) and
 //!   the clock pairing of its frames with the device's states;
-//! - [`measure`]: a model measured on the (virtual) device.
+//! - [`cues`]: the third thing a procedure talks to, the operator: what is
+//!   shown and played at one moment (the binary draws it in the terminal,
+//!   a simulated operator reads it).
+//!
+//! A virtual device (the firmware's device logic on a simulated plant) is in
+//! [`crate::sim::virtual_device`].
 
+pub mod cues;
 pub mod link;
-pub mod measure;
 pub mod tracker;
-pub mod virtual_device;

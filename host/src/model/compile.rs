@@ -254,9 +254,9 @@ impl std::fmt::Display for CompileReport {
         writeln!(
             f,
             "blob parses back with the device's parser and compiles bit-identically; firmware capacity {} KiB = {} bytes ({})",
-            crate::device::virtual_device::FIRMWARE_BLOB_CAPACITY / 1024,
-            crate::device::virtual_device::FIRMWARE_BLOB_CAPACITY,
-            if self.bytes <= crate::device::virtual_device::FIRMWARE_BLOB_CAPACITY {
+            spidar_protocol::blob::REFERENCE_FIRMWARE_BLOB_CAPACITY / 1024,
+            spidar_protocol::blob::REFERENCE_FIRMWARE_BLOB_CAPACITY,
+            if self.bytes <= spidar_protocol::blob::REFERENCE_FIRMWARE_BLOB_CAPACITY {
                 "fits"
             } else {
                 "TOO LARGE for the firmware"

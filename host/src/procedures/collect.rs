@@ -65,13 +65,15 @@ use std::time::{Duration, Instant};
 
 use spidar_protocol::{Limits, State, StringModel};
 
-use super::cues::{distance, ArmWatch, ArmWatchError, CueSink, Cues, Progress};
+use super::arm_watch::{ArmWatch, ArmWatchError};
 use crate::data::dataset::{DatasetError, Geometry, Sample, Session, SessionAppender, TornLine};
 use crate::data::observe::{orientation_of_rotation, ROTATION_TOLERANCE};
+use crate::device::cues::{CueSink, Cues, Progress};
 use crate::device::link::{Client, LinkError};
 use crate::device::tracker::{
     ClockSync, HostClock, Next, StateHistory, TrackerError, TrackerFrame, TrackerSource,
 };
+use spidar_core::geometry::distance;
 
 pub use crate::sim::lattice::{Lattice, LatticeError};
 
@@ -870,7 +872,7 @@ impl Collection<'_, '_> {
                 "move into the highlighted cell {}/{} {cell:?} ({:.0} mm from its centre)",
                 self.report.done + 1,
                 self.report.total,
-                distance(&marker, &lattice.cell_centre(cell))
+                distance(marker, lattice.cell_centre(cell))
             );
             self.rig.sink.show(&cues);
             return Ok(None);

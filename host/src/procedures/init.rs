@@ -37,10 +37,12 @@ use serde::{Deserialize, Serialize};
 use spidar_core::guidance::{beep_frequency_hz, guidance_force};
 use spidar_protocol::Limits;
 
-use super::cues::{distance, ArmWatch, ArmWatchError, CueSink, Cues};
+use super::arm_watch::{ArmWatch, ArmWatchError};
 use crate::data::dataset::{DatasetError, Geometry};
+use crate::device::cues::{CueSink, Cues};
 use crate::device::link::{Client, LinkError};
 use crate::device::tracker::{Next, TrackerError, TrackerSource};
+use spidar_core::geometry::distance;
 
 /// Settings of guided initialization.
 #[derive(Clone, Debug, PartialEq)]
@@ -342,7 +344,7 @@ fn run(
         };
         last_seen_ts = Some(frame.ts_s);
         let v: [f64; 3] = core::array::from_fn(|k| config.target_room_mm[k] - marker[k]);
-        let d = distance(&config.target_room_mm, &marker);
+        let d = distance(config.target_room_mm, marker);
         closest = closest.min(d);
         // Eq. 6 has no rotation: a room-frame force is a device-frame force.
         let force = guidance_force(v.map(|x| x as f32), config.d_min_mm, config.f_max_n);
@@ -419,7 +421,7 @@ fn declare_home(
         target_room_mm: config.target_room_mm,
         home_room_mm: mean,
         home_room_sd_mm: sd,
-        home_error_mm: distance(&mean, &config.target_room_mm),
+        home_error_mm: distance(mean, config.target_room_mm),
         hold_frames: hold.len(),
         tolerance_mm: config.tolerance_mm,
         hold_s: config.hold.as_secs_f64(),

@@ -7,13 +7,13 @@
 //!   when it holds there, and the room-to-device transform is recorded;
 //! - [`collect`]: lattice data collection (`spidar collect`);
 //! - [`recalibrate`]: runtime monitoring and refit (`spidar monitor`);
-//! - [`cues`]: what the operator is shown and hears (the command line draws
-//!   them in the terminal and plays the beep).
+//! - what the operator is shown and hears is [`crate::device::cues`] (the
+//!   command line draws it in the terminal and plays the beep).
 //!
 //! A simulated operator for tests and demos is [`crate::sim::operator`].
 
+mod arm_watch;
 pub mod calibrate;
 pub mod collect;
-pub mod cues;
 pub mod init;
 pub mod recalibrate;

@@ -282,7 +282,7 @@ pub enum MonitorError {
     #[error("monitor: simulation: {0}")]
     SimulatedRig(#[from] crate::sim::operator::RigError),
     #[error("monitor: simulation: {0}")]
-    VirtualDevice(#[from] crate::device::virtual_device::VirtualDeviceError),
+    VirtualDevice(#[from] crate::sim::virtual_device::VirtualDeviceError),
 }
 
 /// One tracker frame paired with a device state.

@@ -24,12 +24,14 @@ pub mod device;
 pub mod effects;
 pub mod lattice;
 mod legacy;
+pub mod measure;
 pub mod operator;
 pub mod physics;
 pub mod plant;
 pub mod tracker;
 mod trajectory;
 pub mod truth;
+pub mod virtual_device;
 
 use std::path::PathBuf;
 

@@ -44,12 +44,13 @@ use rand::rngs::ChaCha8Rng;
 use rand::{RngExt, SeedableRng};
 use rand_distr::{Distribution, Normal};
 
+use crate::device::cues::{Cues, SharedCues};
 use crate::device::tracker::dtrack::{format_datagram, BodyPose, DtrackFrame};
 use crate::device::tracker::ReadProgress;
 use crate::device::tracker::TrackerError;
-use crate::device::virtual_device::Hand;
-use crate::procedures::cues::{distance, Cues, SharedCues};
+use crate::sim::virtual_device::Hand;
 use crate::sim::Device as SimDevice;
+use spidar_core::geometry::distance;
 
 /// What the hand does when no target is shown and no beep says "hold".
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -240,7 +241,7 @@ pub struct SimOperator {
 
 impl SimOperator {
     /// Starts the operator: it holds `hand` (the virtual device's
-    /// end-effector, see [`crate::device::virtual_device::Trajectory::Held`]) of the
+    /// end-effector, see [`crate::sim::virtual_device::Trajectory::Held`]) of the
     /// simulated `device` and reads its cues from `cues`.
     pub fn spawn(
         config: SimOperatorConfig,
@@ -362,7 +363,7 @@ fn velocity(
     rng: &mut ChaCha8Rng,
 ) -> [f64; 3] {
     let toward = |goal: &[f64; 3], top: f64| -> [f64; 3] {
-        let d = distance(goal, hand_mm);
+        let d = distance(*goal, *hand_mm);
         if d < 1e-9 {
             return [0.0; 3];
         }
@@ -417,7 +418,7 @@ fn velocity(
             speed_mm_s,
         } => {
             let goal = match memory.wander_goal {
-                Some(g) if distance(&g, hand_mm) > 1.0 => g,
+                Some(g) if distance(g, *hand_mm) > 1.0 => g,
                 _ => {
                     let g = core::array::from_fn(|k| {
                         centre_mm[k] + half_size_mm * (2.0 * rng.random::<f64>() - 1.0)
@@ -601,7 +602,7 @@ fn run(
             &mut rng,
         );
         let next: [f64; 3] = core::array::from_fn(|i| p[i] + v[i] * dt + tremor.sample(&mut rng));
-        report.path_mm += distance(&next, &p);
+        report.path_mm += distance(next, p);
         hand.commit(t_us, t_us + dt_us, next);
         k = k.wrapping_add(1);
     }
@@ -614,7 +615,7 @@ pub enum RigError {
     #[error("simulated rig: {0}")]
     Sim(#[from] crate::sim::SimError),
     #[error("simulated rig: {0}")]
-    Device(#[from] crate::device::virtual_device::VirtualDeviceError),
+    Device(#[from] crate::sim::virtual_device::VirtualDeviceError),
     #[error("simulated rig: {0}")]
     Tracker(#[from] TrackerError),
 }
@@ -628,7 +629,7 @@ pub struct SimulatedRig {
     pub device: SimDevice,
     pub hand: Hand,
     pub cues: SharedCues,
-    pub virtual_device: crate::device::virtual_device::VirtualDevice,
+    pub virtual_device: crate::sim::virtual_device::VirtualDevice,
     pub receiver: crate::device::tracker::DtrackReceiver,
     pub operator: SimOperator,
 }
@@ -641,7 +642,7 @@ impl SimulatedRig {
     /// the world goes as far as the operator has moved the hand, and the
     /// operator waits for the procedure to take each tracker frame).
     ///
-    /// [`Pace::Virtual`]: crate::device::virtual_device::Pace::Virtual
+    /// [`Pace::Virtual`]: crate::sim::virtual_device::Pace::Virtual
     pub fn start(
         device: SimDevice,
         offset_mm: [f64; 3],
@@ -656,10 +657,10 @@ impl SimulatedRig {
     pub fn start_prepared<E: From<RigError>>(
         device: SimDevice,
         offset_mm: [f64; 3],
-        prepare: impl FnOnce(&crate::device::virtual_device::VirtualDevice) -> Result<(), E>,
+        prepare: impl FnOnce(&crate::sim::virtual_device::VirtualDevice) -> Result<(), E>,
         configure: impl FnOnce(&mut SimOperatorConfig),
     ) -> Result<SimulatedRig, E> {
-        use crate::device::virtual_device::{spawn, Pace, Plant, Trajectory, VirtualDeviceConfig};
+        use crate::sim::virtual_device::{spawn, Pace, Plant, Trajectory, VirtualDeviceConfig};
         let start: [f64; 3] = core::array::from_fn(|k| device.frame.home[k] + offset_mm[k]);
         let hand = Hand::at(start);
         // On the simulated clock from the start: the device does not tick

@@ -4,54 +4,15 @@
 //! tension follows the commanded tension with a first-order lag, and 16-bit
 //! encoder counters that read the true string lengths (and wrap).
 
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::Duration;
 
 use spidar_core::STRINGS;
 
+pub use crate::device::tracker::clock::SimClock;
 use crate::sim::{Device as SimDevice, InjectedEffect, SampleTruth};
 use spidar_core::geometry::{norm, sub};
-
-/// The simulated world's clock: how far it has been computed, µs of
-/// simulated time (device time since the virtual device's first boot; it
-/// does not restart at a power cycle). The virtual device moves it at each
-/// tick of a plant with a [`Hand`] before that tick's outputs are written,
-/// so no sample is read before the instant it is stamped. In a simulated rig it
-/// is also the host's clock: where a procedure reads the time it stamps
-/// arrivals with ([`crate::device::tracker::HostClock::Simulated`]), so that how
-/// the machine schedules the host's threads plays no part. Clones share
-/// the clock.
-#[derive(Clone, Debug, Default)]
-pub struct SimClock {
-    now: Arc<AtomicU64>,
-    sent: Arc<AtomicU64>,
-}
-
-impl SimClock {
-    /// Simulated time computed so far, µs.
-    pub fn now_us(&self) -> u64 {
-        self.now.load(Ordering::SeqCst)
-    }
-
-    /// Simulated time at which the device last sent a state, µs: when
-    /// the newest state a host reads arrived (the simulated link has no
-    /// delay, and this is its receive timestamp, not the reader's).
-    pub fn last_sent_us(&self) -> u64 {
-        self.sent.load(Ordering::SeqCst)
-    }
-
-    fn set(&self, t_us: u64) {
-        self.now.fetch_max(t_us, Ordering::SeqCst);
-    }
-}
-
-impl PartialEq for SimClock {
-    /// The same clock (shared handle).
-    fn eq(&self, other: &SimClock) -> bool {
-        Arc::ptr_eq(&self.now, &other.now)
-    }
-}
 
 /// A point of a [`Trajectory::Waypoints`] path.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -442,9 +403,7 @@ impl Plant {
     /// there first (so that no state is read before it was sent).
     pub fn note_state_sent(&self) {
         if let Trajectory::Held(hand) = &self.trajectory {
-            hand.clock
-                .sent
-                .fetch_max(self.sim_epoch_us + self.prev_t_us, Ordering::SeqCst);
+            hand.clock.note_sent(self.sim_epoch_us + self.prev_t_us);
         }
     }
 

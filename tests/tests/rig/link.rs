@@ -7,7 +7,7 @@ use spidar_tests::{blob, eventually, sim_device, virtual_device};
 use std::time::Duration;
 
 use spidar::device::link::{Client, ClientOptions, FlashPhase, LinkError, StreamOptions};
-use spidar::device::virtual_device::{spawn, Pace, Plant, Trajectory, VirtualDeviceConfig};
+use spidar::sim::virtual_device::{spawn, Pace, Plant, Trajectory, VirtualDeviceConfig};
 use spidar_core::correction::{CorrectionModel, NnModel, OutputMode, Standardization};
 use spidar_protocol::blob::{split_blob, write_blob, CRC32};
 use spidar_protocol::{
@@ -240,14 +240,14 @@ fn a_blob_larger_than_the_firmware_capacity_is_refused() {
     let dev = sim_device();
     let vd = spawn(
         VirtualDeviceConfig {
-            blob_capacity: spidar::device::virtual_device::FIRMWARE_BLOB_CAPACITY,
+            blob_capacity: spidar::sim::virtual_device::FIRMWARE_BLOB_CAPACITY,
             ..VirtualDeviceConfig::default()
         },
         Plant::new(dev.clone(), Trajectory::Hold),
     )
     .unwrap();
     let mut c = Client::open(vd.port_path()).unwrap();
-    let capacity = spidar::device::virtual_device::FIRMWARE_BLOB_CAPACITY;
+    let capacity = spidar::sim::virtual_device::FIRMWARE_BLOB_CAPACITY;
     let big = blob(&dev, nn(3600), 3);
     assert!(big.len() > capacity);
     let e = c.flash(&big, |_| {}).unwrap_err();

@@ -12,14 +12,14 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use spidar::data::dataset::{Session, SessionAppender};
+use spidar::device::cues::{CueSink, Cues, SharedCues};
 use spidar::device::link::Client;
 use spidar::device::tracker::{DtrackReceiver, ReceiverConfig};
-use spidar::device::virtual_device::{spawn, Hand, Pace, Plant, Trajectory, VirtualDeviceConfig};
 use spidar::procedures::collect::{
     collect, summary, CollectConfig, CollectError, CollectReport, Lattice, Stop,
 };
-use spidar::procedures::cues::{CueSink, Cues, SharedCues};
 use spidar::sim::operator::{HandSample, SimulatedRig};
+use spidar::sim::virtual_device::{spawn, Hand, Pace, Plant, Trajectory, VirtualDeviceConfig};
 use spidar::sim::{Device, SimConfig};
 use spidar_core::kinematics::{forward_kinematics, FkConfig};
 
@@ -620,7 +620,7 @@ fn a_file_of_another_layout_or_volume_is_refused_naming_it() {
 /// A virtual device and a tracker receiver nobody sends to.
 fn device_without_tracker() -> (
     Device,
-    spidar::device::virtual_device::VirtualDevice,
+    spidar::sim::virtual_device::VirtualDevice,
     DtrackReceiver,
 ) {
     let device = Device::new(&SimConfig::default(), 3).unwrap();

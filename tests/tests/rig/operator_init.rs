@@ -8,12 +8,12 @@ use spidar_tests::eventually;
 use std::net::SocketAddr;
 use std::time::Duration;
 
+use spidar::device::cues::{CueSink, Cues, SharedCues};
 use spidar::device::link::Client;
 use spidar::device::tracker::{DtrackReceiver, ReceiverConfig, TrackerSource};
-use spidar::device::virtual_device::{spawn, Hand, Pace, Plant, Trajectory, VirtualDeviceConfig};
-use spidar::procedures::cues::{CueSink, Cues, SharedCues};
 use spidar::procedures::init::{initialize, InitConfig, InitError};
 use spidar::sim::operator::{FreeMotion, SimOperator, SimOperatorConfig};
+use spidar::sim::virtual_device::{spawn, Hand, Pace, Plant, Trajectory, VirtualDeviceConfig};
 use spidar::sim::{Device, SimConfig};
 
 fn distance(a: &[f64; 3], b: &[f64; 3]) -> f64 {
@@ -36,7 +36,7 @@ impl CueSink for Recorder {
 struct World {
     device: Device,
     hand: Hand,
-    vd: spidar::device::virtual_device::VirtualDevice,
+    vd: spidar::sim::virtual_device::VirtualDevice,
     receiver: DtrackReceiver,
     cues: SharedCues,
 }

@@ -7,10 +7,10 @@ use std::time::Duration;
 use proptest::prelude::*;
 use spidar::data::observe::observations;
 use spidar::device::link::Client;
-use spidar::device::virtual_device::{spawn, Plant, Trajectory, VirtualDeviceConfig, Waypoint};
 use spidar::model::compile::{
     fixed_point_error, run_compile, CompileRequest, FIXED_POINT_BUDGET_MM,
 };
+use spidar::sim::virtual_device::{spawn, Plant, Trajectory, VirtualDeviceConfig, Waypoint};
 use spidar::sim::{self, SessionKind, SimConfig};
 use spidar_core::blob::{compile, CompiledCalibration};
 use spidar_core::correction::{CorrectionModel, NnModel, OutputMode, Standardization};

@@ -1,6 +1,6 @@
 //! The host's side of the device link: a client for a SPIDAR controller on a
 //! serial port (a real USB CDC port, or the pseudo-terminal of
-//! [`crate::device::virtual_device`]), speaking `spidar_protocol`.
+//! [`crate::sim::virtual_device`]), speaking `spidar_protocol`.
 //!
 //! - [`Client::open`] opens the port through the `serialport` crate (it
 //!   works on pseudo-terminals too: the virtual device goes through exactly

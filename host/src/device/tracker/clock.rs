@@ -28,7 +28,54 @@ use std::time::Instant;
 
 use spidar_protocol::State;
 
-use crate::device::virtual_device::SimClock;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+
+/// The simulated world's clock: how far it has been computed, µs of
+/// simulated time (device time since the virtual device's first boot; it
+/// does not restart at a power cycle). The virtual device moves it at each
+/// tick of a plant with a hand ([`crate::sim::plant::Hand`]) before that tick's outputs are written,
+/// so no sample is read before the instant it is stamped. In a simulated rig it
+/// is also the host's clock: where a procedure reads the time it stamps
+/// arrivals with ([`crate::device::tracker::HostClock::Simulated`]), so that how
+/// the machine schedules the host's threads plays no part. Clones share
+/// the clock.
+#[derive(Clone, Debug, Default)]
+pub struct SimClock {
+    now: Arc<AtomicU64>,
+    sent: Arc<AtomicU64>,
+}
+
+impl SimClock {
+    /// Simulated time computed so far, µs.
+    pub fn now_us(&self) -> u64 {
+        self.now.load(Ordering::SeqCst)
+    }
+
+    /// Simulated time at which the device last sent a state, µs: when
+    /// the newest state a host reads arrived (the simulated link has no
+    /// delay, and this is its receive timestamp, not the reader's).
+    pub fn last_sent_us(&self) -> u64 {
+        self.sent.load(Ordering::SeqCst)
+    }
+
+    /// The world has been computed up to `t_us` (it never goes back).
+    pub(crate) fn set(&self, t_us: u64) {
+        self.now.fetch_max(t_us, Ordering::SeqCst);
+    }
+
+    /// The device sent a state stamped `t_us`.
+    pub(crate) fn note_sent(&self, t_us: u64) {
+        self.sent.fetch_max(t_us, Ordering::SeqCst);
+    }
+}
+
+impl PartialEq for SimClock {
+    /// The same clock (shared handle).
+    fn eq(&self, other: &SimClock) -> bool {
+        Arc::ptr_eq(&self.now, &other.now)
+    }
+}
 
 /// The clock a procedure stamps arrivals with (the host's clock in
 /// [`ClockSync`]'s terms).

@@ -98,7 +98,7 @@ pub enum CalibrateError {
     #[error("model blob of {what}: {message}")]
     Blob { what: &'static str, message: String },
     #[error("{0}")]
-    Device(#[from] crate::device::measure::DeviceRunError),
+    Device(#[from] crate::sim::measure::DeviceRunError),
     #[error("{0}")]
     Align(#[from] align::AlignError),
 }

@@ -12,7 +12,7 @@ use spidar_protocol::messages::q16_to_mm;
 
 use crate::data::stats::{position_error, ErrorStats};
 use crate::device::link::{Client, LinkError, StreamOptions};
-use crate::device::virtual_device::{
+use crate::sim::virtual_device::{
     spawn, Pace, Plant, Trajectory, VirtualDeviceConfig, VirtualDeviceError,
 };
 use crate::sim::{Device, SampleTruth};
