@@ -80,7 +80,10 @@
 //! (else [`TensionStatus::OutsideAnchorHull`]; [`force_closure`]). With
 //! exactly `dof + 1` strings the tensions of a force are unique, and a
 //! scaled force at the zonotope's vertex may end `NotConverged` with a
-//! residual near the tolerance (1 in 1,000 cases for a planar triangle).
+//! residual near the tolerance (1 in 1,000 cases for a planar triangle;
+//! rarely with 8 strings too, when the vertex leaves fewer free strings
+//! than the last refinement needs). The controller renders such a solution
+//! when its residual is below `control::USABLE_RESIDUAL_N`.
 //! [`StringLayout::ALL`] takes the 8-string path itself: same results, same
 //! cost.
 //!
