@@ -1199,6 +1199,34 @@ mod avx2 {
         t
     }
 
+    /// For the four points at `r`: the second-order choice's numerator
+    /// `a = max(gmax + g_t + low_t, 0)^2` and the pair's curvature
+    /// `quad = max(2 - 2 K_it, tau)`, which [`choose`] and
+    /// [`choose_conjugate`] share (the same operations in the same order as
+    /// the scalar pass).
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    unsafe fn gap_and_curvature(
+        ki: &[f32],
+        g: &[f64],
+        low: &[f64],
+        gmax4: __m256d,
+        r: usize,
+    ) -> (__m256d, __m256d) {
+        let two = _mm256_set1_pd(2.0);
+        let gd = _mm256_add_pd(
+            _mm256_add_pd(gmax4, _mm256_loadu_pd(g.as_ptr().add(r))),
+            _mm256_loadu_pd(low.as_ptr().add(r)),
+        );
+        // `x.max(y)` is `_mm256_max_pd(x, y)` for non-NaN x and y.
+        let quad = _mm256_max_pd(
+            _mm256_sub_pd(two, _mm256_mul_pd(two, k4(ki, r))),
+            _mm256_set1_pd(TAU),
+        );
+        let gd = _mm256_max_pd(gd, _mm256_setzero_pd());
+        (_mm256_mul_pd(gd, gd), quad)
+    }
+
     /// Returns the first position not processed.
     #[target_feature(enable = "avx2")]
     pub(super) unsafe fn choose(
@@ -1210,8 +1238,6 @@ mod avx2 {
     ) -> usize {
         let act = g.len();
         let gmax4 = _mm256_set1_pd(gmax);
-        let (zero, two) = (_mm256_setzero_pd(), _mm256_set1_pd(2.0));
-        let tau = _mm256_set1_pd(TAU);
         let (mut num, mut den, mut at) = (load(&best.num), load(&best.den), load(&best.at));
         let mut pos = first_positions();
         let advance = _mm256_set1_pd(LANES as f64);
@@ -1219,14 +1245,7 @@ mod avx2 {
         while t + LANES <= act {
             for v in 0..V {
                 let r = t + 4 * v;
-                let gd = _mm256_add_pd(
-                    _mm256_add_pd(gmax4, _mm256_loadu_pd(g.as_ptr().add(r))),
-                    _mm256_loadu_pd(low.as_ptr().add(r)),
-                );
-                // `x.max(y)` is `_mm256_max_pd(x, y)` for non-NaN x and y.
-                let quad = _mm256_max_pd(_mm256_sub_pd(two, _mm256_mul_pd(two, k4(ki, r))), tau);
-                let gd = _mm256_max_pd(gd, zero);
-                let a = _mm256_mul_pd(gd, gd);
+                let (a, quad) = gap_and_curvature(ki, g, low, gmax4, r);
                 let take = _mm256_cmp_pd::<_CMP_GE_OQ>(
                     _mm256_mul_pd(a, den[v]),
                     _mm256_mul_pd(num[v], quad),
@@ -1260,8 +1279,6 @@ mod avx2 {
     ) -> usize {
         let act = g.len();
         let gmax4 = _mm256_set1_pd(gmax);
-        let (zero, two) = (_mm256_setzero_pd(), _mm256_set1_pd(2.0));
-        let tau = _mm256_set1_pd(TAU);
         let (qi4, inv4) = (_mm256_set1_pd(qi), _mm256_set1_pd(inv_curv));
         let floor = _mm256_set1_pd(CONJUGATE_CURVATURE_FLOOR);
         let (mut num, mut den, mut at) = (load(&best.num), load(&best.den), load(&best.at));
@@ -1271,13 +1288,7 @@ mod avx2 {
         while t + LANES <= act {
             for v in 0..V {
                 let r = t + 4 * v;
-                let gd = _mm256_add_pd(
-                    _mm256_add_pd(gmax4, _mm256_loadu_pd(g.as_ptr().add(r))),
-                    _mm256_loadu_pd(low.as_ptr().add(r)),
-                );
-                let quad = _mm256_max_pd(_mm256_sub_pd(two, _mm256_mul_pd(two, k4(ki, r))), tau);
-                let gd = _mm256_max_pd(gd, zero);
-                let a = _mm256_mul_pd(gd, gd);
+                let (a, quad) = gap_and_curvature(ki, g, low, gmax4, r);
                 let dq = _mm256_sub_pd(qi4, _mm256_loadu_pd(q.as_ptr().add(r)));
                 let cd = _mm256_sub_pd(quad, _mm256_mul_pd(_mm256_mul_pd(dq, dq), inv4));
                 let b = _mm256_blendv_pd(
