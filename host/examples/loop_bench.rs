@@ -20,7 +20,7 @@ use spidar::model::diagnose::{
 use spidar::model::identify::Start;
 use spidar::sim::config::SimConfig;
 use spidar::sim::physics::{self, PhysicsConfig, PhysicsDevice};
-use spidar::sim::{simulate_session, Device, SessionKind};
+use spidar::sim::{device_with_lattice_and_test, simulate_session, Device, SessionKind};
 
 struct Outcome {
     found: bool,
@@ -32,15 +32,9 @@ struct Outcome {
 }
 
 fn run(seed: u64, effects: &[&str], expect: Option<(Family, &[u8], Variable)>) -> Outcome {
-    let config = SimConfig {
-        effects: effects.iter().map(|s| s.to_string()).collect(),
-        ..SimConfig::default()
-    };
-    let device = Device::new(&config, seed).expect("device");
+    let (device, train, test) =
+        device_with_lattice_and_test(seed, effects, 500).expect("simulated sessions");
     let geometry = device.nominal.clone();
-    let train = simulate_session(&device, SessionKind::Lattice, seed + 100).expect("lattice");
-    let test = simulate_session(&device, SessionKind::Random { points: 500 }, seed + 200)
-        .expect("test session");
     let train = observations(&train.samples);
     let test = observations(&test.samples);
     let nominal = geometry.nominal_frame();

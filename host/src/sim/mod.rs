@@ -120,6 +120,24 @@ pub struct SampleTruth {
     pub cell: Option<[u32; 3]>,
 }
 
+/// A model-simulator device of `seed` with `effects` injected, its lattice
+/// (session seed `seed + 100`) and a `points`-point random test session
+/// (`seed + 200`): the loop's benchmark and tests run on these.
+pub fn device_with_lattice_and_test(
+    seed: u64,
+    effects: &[&str],
+    points: usize,
+) -> Result<(Device, Session, Session), SimError> {
+    let config = SimConfig {
+        effects: effects.iter().map(|s| s.to_string()).collect(),
+        ..SimConfig::default()
+    };
+    let device = Device::new(&config, seed)?;
+    let lattice = simulate_session(&device, SessionKind::Lattice, seed + 100)?;
+    let test = simulate_session(&device, SessionKind::Random { points }, seed + 200)?;
+    Ok((device, lattice, test))
+}
+
 /// Simulate one session of `device` (see [`simulate_session_with_truth`]).
 pub fn simulate_session(
     device: &Device,

@@ -6,22 +6,15 @@
 use spidar::data::observe::observations;
 use spidar::model::diagnose::{close_loop, Family, LoopConfig, LoopResult, Variable};
 use spidar::model::identify::Start;
-use spidar::sim::config::SimConfig;
-use spidar::sim::{simulate_session, Device, SessionKind};
+use spidar::sim::device_with_lattice_and_test;
 use spidar_core::model::{Effect, EVERY_STRING};
 
 /// Runs the loop on a device of `seed` with `effects` injected; returns the
 /// result and the held-out (test session) mean error of the final model.
 fn run(seed: u64, effects: &[&str]) -> (LoopResult, f64) {
-    let config = SimConfig {
-        effects: effects.iter().map(|s| s.to_string()).collect(),
-        ..SimConfig::default()
-    };
-    let device = Device::new(&config, seed).expect("device");
+    let (device, train, test) =
+        device_with_lattice_and_test(seed, effects, 500).expect("simulated sessions");
     let geometry = device.nominal.clone();
-    let train = simulate_session(&device, SessionKind::Lattice, seed + 100).expect("lattice");
-    let test = simulate_session(&device, SessionKind::Random { points: 500 }, seed + 200)
-        .expect("test session");
     let train = observations(&train.samples);
     let test = observations(&test.samples);
     let nominal = geometry.nominal_frame();
