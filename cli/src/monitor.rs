@@ -24,9 +24,9 @@ pub struct MonitorArgs {
     #[arg(long)]
     pub train: Option<PathBuf>,
     /// Where the tracked body's origin sits from the strings' meeting point
-    /// (body frame, mm), as the calibration's report gives it
-    /// (`identification.marker_body_mm`): the tracker is read at the meeting
-    /// point, as the calibration read it.
+    /// (body frame, mm): the tracker is read at the meeting point, as the
+    /// calibration read it. Default: `identification.marker_body_mm` of the
+    /// report.json beside --calibration (none without one).
     #[arg(
         long,
         value_name = "X,Y,Z",
@@ -68,22 +68,69 @@ pub enum RefitArg {
     No,
 }
 
-/// `--marker-body-mm X,Y,Z`: three numbers or an error naming the flag.
-fn marker_of(args: &MonitorArgs) -> Result<Option<[f64; 3]>, MonitorError> {
-    args.marker_body_mm
-        .as_deref()
-        .map(|v| {
-            <[f64; 3]>::try_from(v).map_err(|_| {
-                MonitorError::Config(spidar::ConfigError::new(
-                    "marker_body_mm",
-                    format!(
-                        "{} values given: X,Y,Z (mm, the body's frame) expected",
-                        v.len()
-                    ),
-                ))
-            })
-        })
-        .transpose()
+/// Where the tracked body's origin sits from the strings' meeting point:
+/// `--marker-body-mm`, or else what the calibration found, from the
+/// `report.json` that `spidar calibrate` wrote beside the `--calibration`
+/// file (`identification.marker_body_mm`; none when the report is absent
+/// or says `null`). Said on standard error when it comes from the report.
+fn marker_of(args: &MonitorArgs) -> anyhow::Result<Option<[f64; 3]>> {
+    if let Some(v) = args.marker_body_mm.as_deref() {
+        let marker = <[f64; 3]>::try_from(v).map_err(|_| {
+            MonitorError::Config(spidar::ConfigError::new(
+                "marker_body_mm",
+                format!(
+                    "{} values given: X,Y,Z (mm, the body's frame) expected",
+                    v.len()
+                ),
+            ))
+        })?;
+        return Ok(Some(marker));
+    }
+    let Some(calibration) = &args.calibration else {
+        return Ok(None);
+    };
+    let report = calibration.with_file_name("report.json");
+    let marker = marker_in_report(&report)?;
+    if let Some(m) = marker {
+        eprintln!(
+            "reading the tracker at the strings' meeting point: the body's origin is [{}, {}, {}] mm \
+             from it (identification.marker_body_mm of {}; --marker-body-mm overrides)",
+            m[0],
+            m[1],
+            m[2],
+            report.display()
+        );
+    }
+    Ok(marker)
+}
+
+/// `identification.marker_body_mm` of a calibration report; `None` when the
+/// file does not exist or the field is `null`.
+fn marker_in_report(report: &Path) -> anyhow::Result<Option<[f64; 3]>> {
+    let text = match std::fs::read_to_string(report) {
+        Ok(text) => text,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(e) => anyhow::bail!(
+            "{}: cannot read the calibration report: {e}",
+            report.display()
+        ),
+    };
+    let json: serde_json::Value = serde_json::from_str(&text)
+        .map_err(|e| anyhow::anyhow!("{}: not a calibration report: {e}", report.display()))?;
+    let field = &json["identification"]["marker_body_mm"];
+    if field.is_null() {
+        return Ok(None);
+    }
+    let values: Option<Vec<f64>> = field
+        .as_array()
+        .map(|a| a.iter().filter_map(serde_json::Value::as_f64).collect());
+    match values.as_deref() {
+        Some(&[x, y, z]) if [x, y, z].iter().all(|c| c.is_finite()) => Ok(Some([x, y, z])),
+        _ => anyhow::bail!(
+            "{}: `identification.marker_body_mm` is {field}, not three numbers (mm)",
+            report.display()
+        ),
+    }
 }
 
 /// Asks on standard error / standard input.
@@ -224,5 +271,56 @@ mod tests {
             Cli::try_parse_from(["monitor", "--simulate", "1", "--marker-body-mm", "1,2"]).unwrap();
         let e = marker_of(&two.args).unwrap_err().to_string();
         assert!(e.contains("`marker_body_mm`: 2 values given"), "{e}");
+    }
+
+    /// Without `--marker-body-mm`, the monitor reads the body's origin from
+    /// the report beside the calibration; an absent report or a `null` means
+    /// none, a malformed one is an error naming the file and the field.
+    #[test]
+    fn the_marker_offset_comes_from_the_report_beside_the_calibration() {
+        use clap::Parser;
+        #[derive(Parser)]
+        struct Cli {
+            #[command(flatten)]
+            args: MonitorArgs,
+        }
+        let dir =
+            std::env::temp_dir().join(format!("spidar-monitor-marker-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let calibration = dir.join("calibration.json");
+        let cli = Cli::try_parse_from([
+            "monitor",
+            "--port",
+            "/dev/null",
+            "--geometry",
+            "g.toml",
+            "--calibration",
+            calibration.to_str().unwrap(),
+        ])
+        .unwrap();
+        let report = dir.join("report.json");
+        let _ = std::fs::remove_file(&report);
+        assert_eq!(marker_of(&cli.args).unwrap(), None);
+        std::fs::write(&report, r#"{"identification": {"marker_body_mm": null}}"#).unwrap();
+        assert_eq!(marker_of(&cli.args).unwrap(), None);
+        std::fs::write(
+            &report,
+            r#"{"identification": {"marker_body_mm": [1.5, -2.0, 40.0]}}"#,
+        )
+        .unwrap();
+        assert_eq!(marker_of(&cli.args).unwrap(), Some([1.5, -2.0, 40.0]));
+        std::fs::write(&report, r#"{"identification": {"marker_body_mm": [1.5]}}"#).unwrap();
+        let e = marker_of(&cli.args).unwrap_err().to_string();
+        assert!(
+            e.contains("report.json") && e.contains("marker_body_mm"),
+            "{e}"
+        );
+        std::fs::write(&report, "{ not json").unwrap();
+        let e = marker_of(&cli.args).unwrap_err().to_string();
+        assert!(
+            e.contains("report.json") && e.contains("not a calibration report"),
+            "{e}"
+        );
+        let _ = std::fs::remove_dir_all(&dir);
     }
 }
