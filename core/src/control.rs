@@ -374,14 +374,14 @@ impl Controller {
         // pretension. Its multiplier is not kept as the next warm start.
         let usable = solution.status == TensionStatus::NotConverged
             && solution.residual_n < USABLE_RESIDUAL_N;
-        if solved {
-            self.multiplier = solution.multiplier;
-            solution.tensions
-        } else if usable {
-            self.multiplier = [0.0; 3];
+        self.multiplier = if solved {
+            solution.multiplier
+        } else {
+            [0.0; 3]
+        };
+        if solved || usable {
             solution.tensions
         } else {
-            self.multiplier = [0.0; 3];
             [self.config.safety.pretension_n; STRINGS]
         }
     }

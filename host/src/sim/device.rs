@@ -85,6 +85,16 @@ fn draw_anchors(
     Ok(anchors)
 }
 
+/// The nominal geometry a simulator writes, declaring the pretension its
+/// initialization commands at the home capture (`home_tension_n`; none for
+/// a pretension of 0).
+pub(crate) fn declaring_pretension(nominal: Geometry, pretension_n: f64) -> Geometry {
+    Geometry {
+        home_tension_n: (pretension_n > 0.0).then_some(pretension_n),
+        ..nominal
+    }
+}
+
 /// A true home off the nominal one by `sigma_mm` per axis, drawn from the
 /// device's random stream `stream_id` (in the anchors' plane on a planar
 /// device): where the built-in initialization really is. Both simulators
@@ -257,12 +267,7 @@ impl Device {
     /// configured injected effects.
     pub fn new(config: &SimConfig, seed: u64) -> Result<Device, SimError> {
         config.validate()?;
-        let nominal = Geometry {
-            // The pretension its initialization holds at the home capture.
-            home_tension_n: (config.tension.pretension_n > 0.0)
-                .then_some(config.tension.pretension_n),
-            ..config.nominal.geometry()
-        };
+        let nominal = declaring_pretension(config.nominal.geometry(), config.tension.pretension_n);
         let ab = &config.as_built;
         let anchors = draw_anchors(&nominal, ab, seed)?;
         let home = draw_home(&nominal, ab.home_sigma_mm, seed, 2)?;

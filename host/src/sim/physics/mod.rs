@@ -79,7 +79,7 @@ pub use effects::{parse_effect, parse_effects, PhysicsEffect, EFFECT_NAMES};
 pub use guide::{Guide, GuidePath};
 pub use spool::{Spool, SpoolParams};
 
-use super::device::{draw_home, normal, stream};
+use super::device::{declaring_pretension, draw_home, normal, stream};
 use super::{trajectory, SessionKind, SimError, SimulateReport, SimulateRequest};
 use crate::data::dataset::{Geometry, Sample, Session};
 use spidar_core::geometry::{
@@ -584,13 +584,8 @@ impl PhysicsDevice {
     /// configured undeclared effects.
     pub fn new(config: &PhysicsConfig, seed: u64) -> Result<PhysicsDevice, SimError> {
         config.validate()?;
-        let nominal = Geometry {
-            // The pretension its initialization commands at the home
-            // capture (what the strings hold is that and their jitter).
-            home_tension_n: (config.tension.pretension_n > 0.0)
-                .then_some(config.tension.pretension_n),
-            ..config.nominal.geometry()
-        };
+        // What the strings hold at the home capture is that and their jitter.
+        let nominal = declaring_pretension(config.nominal.geometry(), config.tension.pretension_n);
         let ab = &config.as_built;
         let effects = parse_effects(&config.effects)?;
         // A planar device: the exits, home and the strings' meeting point
