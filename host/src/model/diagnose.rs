@@ -519,6 +519,11 @@ struct Evidence {
     rows: Vec<Row>,
     /// Orthonormal basis of the model's (weighted) Jacobian columns.
     basis: DMatrix<f64>,
+    /// `basis` transposed, made once: every candidate's projection
+    /// multiplies by it, and transposing the 17,576-row basis anew for each
+    /// took 0.23 s of the 2.0 s loop of `spidar demo` with an eccentricity
+    /// and backlashes.
+    basis_t: DMatrix<f64>,
     /// Weighted residual with the model's directions projected out.
     residual: DVector<f64>,
     /// Residual variance per unit weight, mm^2.
@@ -610,7 +615,8 @@ impl Evidence {
             let u = &jac * v / eig.eigenvalues[j].sqrt();
             basis.set_column(c, &u);
         }
-        let residual = &weighted - &basis * (basis.transpose() * &weighted);
+        let basis_t = basis.transpose();
+        let residual = &weighted - &basis * (&basis_t * &weighted);
         let rss = residual.norm_squared();
         let effective = weights.iter().flatten().filter(|&&w| w > 0.0).count();
         let dof = (effective as f64 - keep.len() as f64).max(1.0);
@@ -618,6 +624,7 @@ impl Evidence {
             layout: nominal.layout,
             rows,
             basis,
+            basis_t,
             residual,
             sigma2: rss / dof,
             rss,
@@ -636,7 +643,7 @@ impl Evidence {
                 x[(r, c)] = col[r] * row.weight.sqrt();
             }
         }
-        let coef = self.basis.transpose() * &x;
+        let coef = &self.basis_t * &x;
         let projected = &x - &self.basis * coef;
         for c in 0..columns.len() {
             let before = x.column(c).norm();

@@ -89,6 +89,7 @@ use spidar_core::string_law::{
 use spidar_core::STRINGS;
 
 use crate::data::observe::Observation;
+use crate::model::normal::{ArrowColumns, NormalEquations};
 
 /// Prior standard deviations of the geometry.
 #[derive(Clone, Copy, Debug, Serialize, Deserialize)]
@@ -369,6 +370,9 @@ struct Layout {
     effect_columns: Vec<(usize, usize)>,
     /// Typical size of each column's parameter (LM variable = value / scale).
     scale: Vec<f64>,
+    /// The columns each string's residuals touch, in the order
+    /// [`Problem::string_rows`] gives their values.
+    arrow: ArrowColumns,
 }
 
 const ANCHORS: usize = 0;
@@ -396,11 +400,66 @@ impl Layout {
                 scale.push(*s);
             }
         }
-        Layout {
+        let mut layout = Layout {
             fit_scale,
             effect_columns,
             scale,
+            arrow: ArrowColumns {
+                n: 0,
+                shared: Vec::new(),
+                own: Default::default(),
+            },
+        };
+        layout.arrow = layout.arrow_columns(structure);
+        layout
+    }
+
+    /// A string's residual touches its anchor, winding radius, spool rate
+    /// and the terms on it (its own columns), and the home, the tracker
+    /// frame, the shared thinning rate and the every-string terms (the
+    /// shared ones).
+    fn arrow_columns(&self, structure: &Structure) -> ArrowColumns {
+        let terms_on = |owner: u8| -> Vec<usize> {
+            self.term_columns(structure, owner)
+                .map(|c| self.first_effect() + c)
+                .collect()
+        };
+        let mut shared: Vec<usize> = (HOME..TRANSLATION + 3).collect();
+        if self.fit_scale {
+            shared.push(SCALE);
         }
+        shared.push(self.kappa());
+        shared.extend(terms_on(EVERY_STRING));
+        let own = core::array::from_fn(|i| {
+            let mut own = vec![
+                ANCHORS + 3 * i,
+                ANCHORS + 3 * i + 1,
+                ANCHORS + 3 * i + 2,
+                self.r_home() + i,
+                self.kappa_each() + i,
+            ];
+            own.extend(terms_on(i as u8));
+            own
+        });
+        ArrowColumns {
+            n: self.len(),
+            shared,
+            own,
+        }
+    }
+
+    /// The effect columns (counted from the first) of the terms on
+    /// `owner`, a string or [`EVERY_STRING`].
+    fn term_columns<'s>(
+        &'s self,
+        structure: &'s Structure,
+        owner: u8,
+    ) -> impl Iterator<Item = usize> + 's {
+        self.effect_columns
+            .iter()
+            .enumerate()
+            .filter(move |(_, &(e, _))| structure.effects[e].string == owner)
+            .map(|(c, _)| c)
     }
     fn r_home(&self) -> usize {
         SCALE + usize::from(self.fit_scale)
@@ -862,10 +921,41 @@ impl levenberg_marquardt::LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
 
     fn jacobian(&self) -> Option<DMatrix<f64>> {
         let state = self.state();
+        let columns = &self.layout.arrow;
+        let mut jac = DMatrix::zeros(self.n_rows(), columns.n);
+        let strings_finite = self.string_rows(&state, |row, i, own, shared| {
+            for (&c, &v) in columns.own[i].iter().zip(own) {
+                jac[(row, c)] = v;
+            }
+            for (&c, &v) in columns.shared.iter().zip(shared) {
+                jac[(row, c)] = v;
+            }
+        });
+        let base = self.observations.len() * STRINGS;
+        for (j, values) in self.scaled_prior_rows(&state).into_iter().enumerate() {
+            jac.row_mut(base + j).copy_from_slice(&values);
+        }
+        (strings_finite && jac.iter().all(|v| v.is_finite())).then_some(jac)
+    }
+}
+
+impl Problem<'_> {
+    /// Each string residual's row of the Jacobian (over the scaled LM
+    /// variables) at `state`, in row order: `visit(row, string, own,
+    /// shared)` with its values on the string's own columns and on the
+    /// shared ones ([`Layout::arrow`]); it is zero elsewhere. Rows of
+    /// weight 0 (zero) are not visited. False when a value is not finite.
+    fn string_rows(
+        &self,
+        state: &State,
+        mut visit: impl FnMut(usize, usize, &[f64], &[f64]),
+    ) -> bool {
         let laws = state.winding.laws();
         let layout = self.layout;
-        let n = layout.len();
-        let mut jac = DMatrix::zeros(self.n_rows(), n);
+        let columns = &layout.arrow;
+        let shared_terms: Vec<usize> = layout.term_columns(self.structure, EVERY_STRING).collect();
+        let own_terms: [Vec<usize>; STRINGS] =
+            core::array::from_fn(|i| layout.term_columns(self.structure, i as u8).collect());
         let frame = &state.frame;
         let w = &state.winding;
         let home_lengths: Vec<f64> = (0..STRINGS)
@@ -873,13 +963,16 @@ impl levenberg_marquardt::LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
             .collect();
         let two_pi = 2.0 * std::f64::consts::PI;
         let planar = frame.layout.planar;
+        let mut own = Vec::with_capacity(columns.n);
+        let mut shared = Vec::with_capacity(columns.n);
+        let mut finite = true;
         for (k, o) in self.observations.iter().enumerate() {
             let p = device_position(frame, o);
             let inputs = inputs_at(frame, o, &p);
             // Each string's context once per row, not once per column.
             let contexts: [Option<EffectContext>; STRINGS] =
                 core::array::from_fn(|s| EffectContext::for_string(frame, &laws, &inputs, s));
-            let effect_grad = self.effect_gradients(&state, &contexts);
+            let effect_grad = self.effect_gradients(state, &contexts);
             for i in 0..STRINGS {
                 let row = k * STRINGS + i;
                 let f = self.weights[k][i].sqrt() / self.residual_sd;
@@ -900,50 +993,88 @@ impl levenberg_marquardt::LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
                 let theta = two_pi * o.inputs.counts[i] as f64 / w.counts_per_rev[i] as f64;
                 let (d_payout, d_home) =
                     length_derivatives(&state.effects, i, o, contexts[i].as_ref());
-                for c in 0..3 {
-                    jac[(row, ANCHORS + 3 * i + c)] = f * (-up[c] + d_home * uh[c]);
-                    jac[(row, HOME + c)] = f * (-d_home * uh[c]);
-                }
+                own.clear();
+                shared.clear();
+                // Anchor, then home.
+                own.extend((0..3).map(|c| f * (-up[c] + d_home * uh[c])));
+                shared.extend((0..3).map(|c| f * (-d_home * uh[c])));
+                // The tracker frame: rotation, translation.
                 let rup = mat_vec(&frame.room_rotation, up);
                 let wgrad = cross(up, p);
-                for c in 0..3 {
-                    jac[(row, TRANSLATION + c)] = f * (-rup[c] / frame.room_scale);
-                    jac[(row, ROTATION + c)] = f * wgrad[c];
-                }
+                shared.extend((0..3).map(|c| f * wgrad[c]));
+                shared.extend((0..3).map(|c| f * (-rup[c] / frame.room_scale)));
                 if planar {
-                    // The position is held in the plane: the tracker's z
-                    // translation and tilts do not move it.
-                    jac[(row, TRANSLATION + 2)] = 0.0;
-                    jac[(row, ROTATION)] = 0.0;
-                    jac[(row, ROTATION + 1)] = 0.0;
+                    // The position is held in the plane: the tracker's
+                    // tilts and z translation do not move it.
+                    shared[ROTATION - HOME] = 0.0;
+                    shared[ROTATION + 1 - HOME] = 0.0;
+                    shared[TRANSLATION + 2 - HOME] = 0.0;
                 }
                 if layout.fit_scale {
                     let dot = up[0] * p[0] + up[1] * p[1] + up[2] * p[2];
-                    jac[(row, SCALE)] = f * (-dot / frame.room_scale);
+                    shared.push(f * (-dot / frame.room_scale));
                 }
-                jac[(row, layout.r_home() + i)] = f * (-theta * d_payout);
+                // The winding law: radius, shared and own thinning rates.
+                own.push(f * (-theta * d_payout));
                 let d_kappa = f * (theta * theta * d_payout / w.mechanical_advantage[i]);
-                jac[(row, layout.kappa())] = d_kappa;
-                if !self.structure.hold_kappa_each {
-                    jac[(row, layout.kappa_each() + i)] = d_kappa;
+                shared.push(d_kappa);
+                own.push(if self.structure.hold_kappa_each {
+                    0.0
+                } else {
+                    d_kappa
+                });
+                own.extend(own_terms[i].iter().map(|&c| f * effect_grad[c][i]));
+                shared.extend(shared_terms.iter().map(|&c| f * effect_grad[c][i]));
+                // To the scaled LM variables.
+                for (v, &c) in own.iter_mut().zip(&columns.own[i]) {
+                    *v *= layout.scale[c];
                 }
-                for c in 0..layout.effect_columns.len() {
-                    jac[(row, layout.first_effect() + c)] = f * effect_grad[c][i];
+                for (v, &c) in shared.iter_mut().zip(&columns.shared) {
+                    *v *= layout.scale[c];
                 }
+                finite &= own.iter().chain(&shared).all(|v| v.is_finite());
+                visit(row, i, &own, &shared);
             }
         }
+        finite
+    }
+
+    /// The prior rows of the Jacobian (over the scaled LM variables) at
+    /// `state`, each on every column.
+    fn scaled_prior_rows(&self, state: &State) -> Vec<Vec<f64>> {
+        let scale = &self.layout.scale;
+        self.prior_rows(state)
+            .into_iter()
+            .map(|(_, grad)| {
+                let mut values = vec![0.0; scale.len()];
+                for (c, d) in grad {
+                    values[c] += d;
+                }
+                for (v, s) in values.iter_mut().zip(scale) {
+                    *v *= s;
+                }
+                values
+            })
+            .collect()
+    }
+
+    /// `J^T J` and `J^T residuals` of the Jacobian `J` at the current
+    /// variables, summed without forming `J` ([`crate::model::normal`]):
+    /// the same figures as the dense products. `None` when `J` is not
+    /// finite.
+    fn normal_equations(&self, residuals: &DVector<f64>) -> Option<(DMatrix<f64>, DVector<f64>)> {
+        let state = self.state();
+        let mut normal = NormalEquations::new(&self.layout.arrow);
+        let strings_finite = self.string_rows(&state, |row, i, own, shared| {
+            normal.add_string_row(row, i, own, shared, residuals[row]);
+        });
         let base = self.observations.len() * STRINGS;
-        for (j, (_, grad)) in self.prior_rows(&state).into_iter().enumerate() {
-            for (col, d) in grad {
-                jac[(base + j, col)] += d;
-            }
+        let mut priors_finite = true;
+        for (j, values) in self.scaled_prior_rows(&state).into_iter().enumerate() {
+            priors_finite &= values.iter().all(|v| v.is_finite());
+            normal.add_row(base + j, &values, residuals[base + j]);
         }
-        // To the scaled LM variables.
-        for c in 0..n {
-            let s = layout.scale[c];
-            jac.column_mut(c).scale_mut(s);
-        }
-        jac.iter().all(|v| v.is_finite()).then_some(jac)
+        (strings_finite && priors_finite).then(|| normal.finish())
     }
 }
 
@@ -1005,10 +1136,7 @@ fn minimize(mut problem: Problem<'_>) -> Result<(Problem<'_>, usize), String> {
     let settled = 1e-4 / r.len().max(1) as f64;
     let mut lambda = 1e-3;
     for _ in 0..MAX_ITERATIONS {
-        let jac = problem.jacobian().ok_or("Jacobian not finite")?;
-        let jt = jac.transpose();
-        let normal = &jt * &jac;
-        let gradient = &jt * &r;
+        let (normal, gradient) = problem.normal_equations(&r).ok_or("Jacobian not finite")?;
         let mut improved = false;
         while lambda < 1e12 {
             let mut damped = normal.clone();
@@ -1223,11 +1351,10 @@ pub fn identify(
     let weight_sum: f64 = weights.iter().flatten().sum();
     let sigma = (weighted_ss / (weight_sum - layout.len() as f64).max(1.0)).sqrt();
     let problem = fit.problem(&state, &weights, sigma.max(1e-6));
-    use levenberg_marquardt::LeastSquaresProblem;
-    let jac = problem
-        .jacobian()
+    let (info, _) = problem
+        .normal_equations(&DVector::zeros(problem.n_rows()))
         .ok_or_else(|| IdentifyError::Diverged("Jacobian not finite at the solution".into()))?;
-    let (parameters, warnings) = fit.estimates(&state, &jac);
+    let (parameters, warnings) = fit.estimates(&state, info);
     Ok(Identification {
         frame: state.frame,
         winding: state.winding,
@@ -1366,19 +1493,19 @@ impl Fit<'_> {
     }
 
     /// Each free parameter's value at `state` and its posterior sd from
-    /// the Jacobian at the solution `jac`; a warning for each the data do
-    /// not determine (or, failing any, for a singular information matrix).
+    /// the information matrix `info` (`J^T J` at the solution); a warning
+    /// for each the data do not determine (or, failing any, for a singular
+    /// information matrix).
     fn estimates(
         &self,
         state: &State,
-        jac: &DMatrix<f64>,
+        info: DMatrix<f64>,
     ) -> (Vec<ParameterEstimate>, Vec<String>) {
         let (layout, structure, strings) = (self.layout, self.structure, self.nominal.layout);
         // Marginal posterior variances from the eigen-decomposition of the
         // information matrix: a direction with (numerically) no information
         // makes exactly the parameters that load on it undetermined (infinite
         // sd), instead of failing the whole inverse.
-        let info = jac.transpose() * jac;
         let eig = info.symmetric_eigen();
         let largest = eig.eigenvalues.iter().cloned().fold(0.0, f64::max);
         let variance = |c: usize| -> f64 {

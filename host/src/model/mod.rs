@@ -6,6 +6,8 @@
 //! - [`diagnose`]: the loop that finds what the model still misses in the
 //!   residual, traces it to an effect and adds it when validation agrees;
 //! - [`layers`]: each spool's layer table in the string law;
+//! - `normal`: the identification's normal equations, summed from the
+//!   Jacobian's block-arrow rows without forming it;
 //! - [`learn`]: model-less corrections (NN, SVR) and their searches;
 //! - [`compile`]: the model compiled to the device's fixed-point blob, with
 //!   its error against f64.
@@ -15,4 +17,5 @@ pub mod diagnose;
 pub mod identify;
 pub mod layers;
 pub mod learn;
+pub(crate) mod normal;
 pub mod predict;

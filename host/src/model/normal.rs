@@ -1,0 +1,342 @@
+//! The normal equations `J^T J` and `J^T r` of the identification's
+//! least-squares problem ([`crate::model::identify`]), summed row by row
+//! without forming the Jacobian `J`.
+//!
+//! ## Why
+//! A string residual's row touches only its own string's columns (anchor,
+//! winding radius, spool rate, the terms on that string) and the shared
+//! ones (home, tracker frame, the shared thinning rate, every-string terms):
+//! `J^T J` is block-arrow shaped. On a 2197-point lattice with a few
+//! effects the dense product multiplied ~55 x 55 pairs per row where ~220
+//! are not zero, and zeroing, transposing and packing the 17,576 x 55
+//! Jacobian (7.7 MB) at every LM iteration cost as much again: together
+//! half of the diagnosis loop's time.
+//!
+//! ## The same sums as the dense product
+//! The sums are taken in the order and with the rounding of the dense
+//! products the fit used before, so fits come out bit for bit the same:
+//! `J^T J` as matrixmultiply's f64 product (nalgebra's for large matrices)
+//! sums it, each entry a chain of multiply-adds over blocks of
+//! [`DENSE_BLOCK_ROWS`] rows from zero, the blocks' sums added in order,
+//! fused where its kernels fuse them (x86-64 with FMA and AVX2, aarch64);
+//! `J^T r` as nalgebra's matrix-vector product, each row's product added in
+//! turn. A zero product leaves such a sum as it is, so the zeros the block
+//! structure skips change nothing. Any other order would be as accurate;
+//! this one keeps every figure of the calibration where it was.
+
+use nalgebra::{DMatrix, DVector};
+use spidar_core::STRINGS;
+
+/// Rows per block of matrixmultiply's f64 matrix product (its `D_KC`): each
+/// block's products are summed from zero, then added to the running sum.
+const DENSE_BLOCK_ROWS: usize = 256;
+
+/// The columns a string's rows touch: its own and the shared ones.
+pub(crate) struct ArrowColumns {
+    /// Number of columns of `J`.
+    pub n: usize,
+    /// Columns every string's rows touch.
+    pub shared: Vec<usize>,
+    /// Columns only string `i`'s rows touch.
+    pub own: [Vec<usize>; STRINGS],
+}
+
+/// `J^T J` and `J^T r` summed so far. The string rows come first, in row
+/// order ([`Self::add_string_row`]); then any general rows
+/// ([`Self::add_row`]).
+pub(crate) struct NormalEquations<'a> {
+    columns: &'a ArrowColumns,
+    /// Whether the products are fused multiply-adds (those of the dense
+    /// product on this CPU).
+    fused: bool,
+    /// `J^T J` over the blocks done.
+    total: DMatrix<f64>,
+    /// The current block (its index), while string rows come: the shared
+    /// columns' products (shared x shared, row-major) and each string's
+    /// (own x (own, shared), row-major).
+    block: usize,
+    block_shared: Vec<f64>,
+    block_own: [Vec<f64>; STRINGS],
+    /// The current block's sums as a full matrix, once general rows come.
+    block_full: Option<DMatrix<f64>>,
+    /// `J^T r` on the shared columns and on each string's own, while string
+    /// rows come; on every column once general rows come.
+    gradient_shared: Vec<f64>,
+    gradient_own: [Vec<f64>; STRINGS],
+    gradient: DVector<f64>,
+    /// One row's values on (own, shared), reused.
+    row: Vec<f64>,
+}
+
+impl<'a> NormalEquations<'a> {
+    pub fn new(columns: &'a ArrowColumns) -> Self {
+        let s = columns.shared.len();
+        NormalEquations {
+            columns,
+            fused: dense_product_fuses(),
+            total: DMatrix::zeros(columns.n, columns.n),
+            block: 0,
+            block_shared: vec![0.0; s * s],
+            block_own: core::array::from_fn(|i| {
+                let t = columns.own[i].len();
+                vec![0.0; t * (t + s)]
+            }),
+            block_full: None,
+            gradient_shared: vec![0.0; s],
+            gradient_own: core::array::from_fn(|i| vec![0.0; columns.own[i].len()]),
+            gradient: DVector::zeros(columns.n),
+            row: Vec::with_capacity(columns.n),
+        }
+    }
+
+    /// Adds row `row` of `J` (string `string`'s: `own` on its own columns,
+    /// `shared` on the shared ones, zero elsewhere) with residual
+    /// `residual`.
+    pub fn add_string_row(
+        &mut self,
+        row: usize,
+        string: usize,
+        own: &[f64],
+        shared: &[f64],
+        residual: f64,
+    ) {
+        debug_assert!(self.block_full.is_none(), "string rows come first");
+        if row / DENSE_BLOCK_ROWS != self.block {
+            self.flush_arrow();
+            self.block = row / DENSE_BLOCK_ROWS;
+        }
+        self.row.clear();
+        self.row.extend_from_slice(own);
+        self.row.extend_from_slice(shared);
+        add_outer_products(self.fused, &mut self.block_shared, shared, shared);
+        add_outer_products(self.fused, &mut self.block_own[string], own, &self.row);
+        // nalgebra's gemv: each product rounded, then added.
+        for (g, &v) in self.gradient_shared.iter_mut().zip(shared) {
+            *g += v * residual;
+        }
+        for (g, &v) in self.gradient_own[string].iter_mut().zip(own) {
+            *g += v * residual;
+        }
+    }
+
+    /// Adds row `row` of `J`, `values` on every column (a prior row: few
+    /// are not zero), with residual `residual`. After the string rows.
+    pub fn add_row(&mut self, row: usize, values: &[f64], residual: f64) {
+        let block = row / DENSE_BLOCK_ROWS;
+        let mut full = match self.block_full.take() {
+            // The first: the string rows' sums go on, in this block's sums
+            // when the row falls in it, else in the total first.
+            None => {
+                let mut full = DMatrix::zeros(self.columns.n, self.columns.n);
+                if block == self.block {
+                    self.scatter_arrow(&mut full);
+                } else {
+                    self.flush_arrow();
+                }
+                self.gradient = self.scatter_gradient();
+                full
+            }
+            Some(mut full) => {
+                if block != self.block {
+                    self.total += &full;
+                    full.fill(0.0);
+                }
+                full
+            }
+        };
+        self.block = block;
+        let touched: Vec<usize> = (0..values.len()).filter(|&c| values[c] != 0.0).collect();
+        for &a in &touched {
+            for &b in &touched {
+                full[(a, b)] = multiply_add(self.fused, values[a], values[b], full[(a, b)]);
+            }
+            self.gradient[a] += values[a] * residual;
+        }
+        self.block_full = Some(full);
+    }
+
+    /// `J^T J` and `J^T r`.
+    pub fn finish(mut self) -> (DMatrix<f64>, DVector<f64>) {
+        match self.block_full.take() {
+            Some(full) => {
+                self.total += full;
+                (self.total, self.gradient)
+            }
+            None => {
+                self.flush_arrow();
+                let gradient = self.scatter_gradient();
+                (self.total, gradient)
+            }
+        }
+    }
+
+    /// Adds the current block's string sums to the total and clears them.
+    fn flush_arrow(&mut self) {
+        let mut total = core::mem::replace(&mut self.total, DMatrix::zeros(0, 0));
+        self.scatter_arrow(&mut total);
+        self.total = total;
+        self.block_shared.fill(0.0);
+        for sums in &mut self.block_own {
+            sums.fill(0.0);
+        }
+    }
+
+    /// Adds the current block's string sums to `into` (symmetric: the
+    /// dense product's entries `(a, b)` and `(b, a)` are the same sums).
+    fn scatter_arrow(&self, into: &mut DMatrix<f64>) {
+        let shared = &self.columns.shared;
+        let s = shared.len();
+        for (ai, &a) in shared.iter().enumerate() {
+            for (bi, &b) in shared.iter().enumerate() {
+                into[(a, b)] += self.block_shared[ai * s + bi];
+            }
+        }
+        for (own, sums) in self.columns.own.iter().zip(&self.block_own) {
+            let width = own.len() + s;
+            for (ai, &a) in own.iter().enumerate() {
+                for (bi, &b) in own.iter().chain(shared).enumerate() {
+                    let sum = sums[ai * width + bi];
+                    into[(a, b)] += sum;
+                    if bi >= own.len() {
+                        into[(b, a)] += sum;
+                    }
+                }
+            }
+        }
+    }
+
+    /// `J^T r` so far on every column.
+    fn scatter_gradient(&self) -> DVector<f64> {
+        let mut g = DVector::zeros(self.columns.n);
+        for (&c, &v) in self.columns.shared.iter().zip(&self.gradient_shared) {
+            g[c] = v;
+        }
+        for (own, sums) in self.columns.own.iter().zip(&self.gradient_own) {
+            for (&c, &v) in own.iter().zip(sums) {
+                g[c] = v;
+            }
+        }
+        g
+    }
+}
+
+/// Whether matrixmultiply's f64 kernel on this CPU fuses its multiply-adds:
+/// its AVX-512 and FMA+AVX2 kernels do, its AVX and SSE2 ones do not.
+fn dense_product_fuses() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("fma") && std::arch::is_x86_feature_detected!("avx2")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        true
+    }
+}
+
+/// `a b + sum`, fused or rounded twice.
+#[inline(always)]
+fn multiply_add(fused: bool, a: f64, b: f64, sum: f64) -> f64 {
+    if fused {
+        a.mul_add(b, sum)
+    } else {
+        a * b + sum
+    }
+}
+
+/// `sums[a][b] += u[a] v[b]` (`sums` row-major, `u.len()` x `v.len()`).
+#[inline(always)]
+fn add_outer<const FUSED: bool>(sums: &mut [f64], u: &[f64], v: &[f64]) {
+    for (row, &ua) in sums.chunks_exact_mut(v.len()).zip(u) {
+        for (sum, &vb) in row.iter_mut().zip(v) {
+            *sum = multiply_add(FUSED, ua, vb, *sum);
+        }
+    }
+}
+
+/// [`add_outer`] with fused multiply-adds when `fused`.
+fn add_outer_products(fused: bool, sums: &mut [f64], u: &[f64], v: &[f64]) {
+    #[cfg(target_arch = "x86_64")]
+    if fused {
+        // SAFETY: `fused` comes from `dense_product_fuses`, true only when
+        // the CPU has FMA. The binary targets x86-64 without FMA, where
+        // `f64::mul_add` is a call into libm per product (several times
+        // slower than the dense product this replaces); compiling this one
+        // loop for FMA and choosing it at run time is the only safe way
+        // the language offers to the instruction in a portable binary.
+        unsafe { add_outer_fma(sums, u, v) };
+        return;
+    }
+    add_outer::<{ cfg!(not(target_arch = "x86_64")) }>(sums, u, v);
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "fma")]
+fn add_outer_fma(sums: &mut [f64], u: &[f64], v: &[f64]) {
+    add_outer::<true>(sums, u, v);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Random block-arrow rows (string rows then general rows) give the
+    /// dense products' `J^T J` and `J^T r` to the bit, whether the general
+    /// rows begin in the string rows' last block or in a block of their own.
+    #[test]
+    fn sums_as_the_dense_products() {
+        // 560 string rows: a partial third block; 512: two full blocks.
+        for observations in [70, 64] {
+            sums_as_the_dense_products_with(observations);
+        }
+    }
+
+    fn sums_as_the_dense_products_with(observations: usize) {
+        let mut seed = 12345u64;
+        let mut next = || {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((seed >> 11) as f64 / (1u64 << 53) as f64) * 2.0 - 1.0
+        };
+        // 3 shared columns, string i owns columns 3 + 2i and 4 + 2i.
+        let n = 3 + 2 * STRINGS;
+        let columns = ArrowColumns {
+            n,
+            shared: vec![0, 1, 2],
+            own: core::array::from_fn(|i| vec![3 + 2 * i, 4 + 2 * i]),
+        };
+        let general = 5;
+        let rows = observations * STRINGS + general;
+        let mut jac = DMatrix::zeros(rows, n);
+        let r = DVector::from_fn(rows, |_, _| next());
+        let mut normal = NormalEquations::new(&columns);
+        for k in 0..observations {
+            for i in 0..STRINGS {
+                let row = k * STRINGS + i;
+                let own: Vec<f64> = (0..2).map(|_| next() * 1e3).collect();
+                let shared: Vec<f64> = (0..3).map(|_| next()).collect();
+                for (&c, &v) in columns.own[i].iter().zip(&own) {
+                    jac[(row, c)] = v;
+                }
+                for (&c, &v) in columns.shared.iter().zip(&shared) {
+                    jac[(row, c)] = v;
+                }
+                normal.add_string_row(row, i, &own, &shared, r[row]);
+            }
+        }
+        for j in 0..general {
+            let row = observations * STRINGS + j;
+            let values: Vec<f64> = (0..n)
+                .map(|c| if (c + j) % 4 == 0 { next() } else { 0.0 })
+                .collect();
+            for c in 0..n {
+                jac[(row, c)] = values[c];
+            }
+            normal.add_row(row, &values, r[row]);
+        }
+        let (jtj, jtr) = normal.finish();
+        let jt = jac.transpose();
+        assert_eq!(jtj, &jt * &jac);
+        assert_eq!(jtr, &jt * &r);
+    }
+}
