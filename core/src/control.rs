@@ -272,6 +272,7 @@ impl Controller {
         } else {
             FkConfig {
                 fault_threshold_mm: f32::INFINITY,
+                exclusion_threshold_mm: f32::INFINITY,
                 ..self.config.fk
             }
         };

@@ -67,6 +67,19 @@ pub struct FkConfig<F> {
     /// calibrated device with 0.1-0.5 mm length noise stays well below; a
     /// 10 mm error on one string typically raises the RMS to ~3 mm).
     pub fault_threshold_mm: F,
+    /// RMS string-length residual (mm) above which a faulty string is looked
+    /// for while the strings still count as agreeing (default 1 mm, at most
+    /// `fault_threshold_mm`): an exclusion that brings the others within it
+    /// gives the position ([`FkStatus::FaultyStringExcluded`]); without one,
+    /// the all-string solution stands ([`FkStatus::Ok`]) up to
+    /// `fault_threshold_mm`. A string that slipped a few mm on its spool, or
+    /// the paper's abnormal motor riding out of its groove, raises the RMS
+    /// of 8 strings by ~1 mm, under the 2 mm at which the strings are
+    /// inconsistent, and pulls the all-string position by that much; a
+    /// calibrated device's strings agree to 0.15 mm RMS (p99 0.4 mm) on
+    /// independent physics (`docs/benchmarks.md`, "A faulty string looked
+    /// for from 1 mm").
+    pub exclusion_threshold_mm: F,
     /// Initial Levenberg-Marquardt damping (dimensionless, relative to
     /// `J^T J` whose eigenvalues are ~1-4 for unit Jacobian rows; default 1e-3).
     pub initial_damping: F,
@@ -81,6 +94,7 @@ impl<F: Real> Default for FkConfig<F> {
             step_tolerance_mm: lit(1e-3),
             trusted_step_mm: lit(0.5),
             fault_threshold_mm: lit(2.0),
+            exclusion_threshold_mm: lit(1.0),
             initial_damping: lit(1e-3),
         }
     }
@@ -355,7 +369,7 @@ pub fn forward_kinematics_inclined<F: Real>(
 /// 1. Damped Gauss-Newton (Levenberg-Marquardt) on the residuals
 ///    `|p - anchor_i| - length_i` of the `n` active strings, at most
 ///    `config.max_iterations` iterations (planar layouts keep `z`).
-/// 2. If the RMS residual exceeds `config.fault_threshold_mm` and the layout
+/// 2. If the RMS residual exceeds `config.exclusion_threshold_mm` and the layout
 ///    has at least 2 spare strings ([`StringLayout::redundancy`]; with one
 ///    spare a disagreement is seen but no string can be blamed), solves
 ///    leaving one string out (`n - 1` strings) are run, each from the better
@@ -365,7 +379,10 @@ pub fn forward_kinematics_inclined<F: Real>(
 ///    out converges within the threshold it is the answer
 ///    ([`FkStatus::FaultyStringExcluded`]). Otherwise the others are run too
 ///    and the one with the lowest RMS is kept if it is converged and below
-///    the threshold, else [`FkStatus::Inconsistent`].
+///    the threshold. The threshold is `exclusion_threshold_mm` while the
+///    all-string RMS is within `config.fault_threshold_mm` (without such an
+///    exclusion the all-string solution is [`FkStatus::Ok`]), and
+///    `fault_threshold_mm` beyond it (without one: [`FkStatus::Inconsistent`]).
 ///
 /// Fewer active strings than degrees of freedom is [`FkStatus::InvalidInput`].
 /// Never panics; never returns a NaN position or RMS (a non-finite `start`
@@ -421,24 +438,10 @@ pub fn forward_kinematics<F: Real>(
     );
     let all_rms = rms(all.cost, n_strings);
     let mut iterations = all.iterations;
-    // An infinite RMS (overflow) is not below the threshold: fault handling.
-    if all_rms <= config.fault_threshold_mm {
-        return FkSolution {
-            position: all.position,
-            status: if all.converged {
-                FkStatus::Ok
-            } else {
-                FkStatus::NotConverged
-            },
-            excluded: None,
-            rms_residual_mm: all_rms,
-            iterations,
-        };
-    }
-    let inconsistent = FkSolution {
+    let agreeing = FkSolution {
         position: all.position,
         status: if all.converged {
-            FkStatus::Inconsistent
+            FkStatus::Ok
         } else {
             FkStatus::NotConverged
         },
@@ -446,10 +449,32 @@ pub fn forward_kinematics<F: Real>(
         rms_residual_mm: all_rms,
         iterations,
     };
+    let fault_mm = config.fault_threshold_mm;
+    let look_mm = if config.exclusion_threshold_mm < fault_mm {
+        config.exclusion_threshold_mm
+    } else {
+        fault_mm
+    };
+    // An infinite RMS (overflow) is not below the threshold: fault handling.
+    if all_rms <= look_mm {
+        return agreeing;
+    }
+    let inconsistent = FkSolution {
+        status: if all.converged {
+            FkStatus::Inconsistent
+        } else {
+            FkStatus::NotConverged
+        },
+        ..agreeing
+    };
     if layout.redundancy() < 2 {
         // Leaving one string out would leave no spare to check the rest:
         // any exclusion fits exactly, so none can be trusted.
-        return inconsistent;
+        return if all_rms <= fault_mm {
+            agreeing
+        } else {
+            inconsistent
+        };
     }
 
     // The string with the largest residual at the all-string solution is the
@@ -484,7 +509,14 @@ pub fn forward_kinematics<F: Real>(
     // that fits. With 4 or more spares (7 or 8 strings in 3-D) the first
     // fit is taken at once.
     let unique_required = layout.redundancy() < 4;
-    if !unique_required && s.converged && r <= config.fault_threshold_mm {
+    // Strings that agree to within the fault threshold: an exclusion must
+    // bring the others within the tighter one to be believed.
+    let fit_mm = if all_rms <= fault_mm {
+        look_mm
+    } else {
+        fault_mm
+    };
+    if !unique_required && s.converged && r <= fit_mm {
         return FkSolution {
             position: s.position,
             status: FkStatus::FaultyStringExcluded,
@@ -493,8 +525,7 @@ pub fn forward_kinematics<F: Real>(
             iterations,
         };
     }
-    let fits =
-        |s: &Solve<F>| s.converged && rms(s.cost, n_strings - 1) <= config.fault_threshold_mm;
+    let fits = |s: &Solve<F>| s.converged && rms(s.cost, n_strings - 1) <= fit_mm;
     let mut fitting = usize::from(fits(&s));
     let mut best: Option<(usize, Solve<F>)> = Some((first, s));
     for k in layout.indices().filter(|&k| k != first) {
@@ -511,13 +542,19 @@ pub fn forward_kinematics<F: Real>(
     }
     if let Some((k, s)) = best {
         let r = rms(s.cost, n_strings - 1);
-        if s.converged && r <= config.fault_threshold_mm && (!unique_required || fitting == 1) {
+        if s.converged && r <= fit_mm && (!unique_required || fitting == 1) {
             return FkSolution {
                 position: s.position,
                 status: FkStatus::FaultyStringExcluded,
                 excluded: Some(k as u8),
                 rms_residual_mm: r,
                 iterations,
+            };
+        }
+        if all_rms <= fault_mm {
+            return FkSolution {
+                iterations,
+                ..agreeing
             };
         }
         // No exclusion fits, but one explains most of the disagreement (a
@@ -537,7 +574,11 @@ pub fn forward_kinematics<F: Real>(
     }
     FkSolution {
         iterations,
-        ..inconsistent
+        ..if all_rms <= fault_mm {
+            agreeing
+        } else {
+            inconsistent
+        }
     }
 }
 

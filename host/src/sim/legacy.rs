@@ -30,6 +30,7 @@ impl LegacyController {
             config: FkConfig {
                 max_iterations: 100,
                 fault_threshold_mm: f64::INFINITY,
+                exclusion_threshold_mm: f64::INFINITY,
                 ..FkConfig::default()
             },
         }
