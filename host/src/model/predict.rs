@@ -48,9 +48,18 @@ impl<'a> StringModel<'a> {
     }
 }
 
-/// Forward kinematics of every row (warm-started along the session).
+/// Forward kinematics of every row (warm-started along the session), as
+/// the device solves it ([`FkConfig::default`]).
 pub fn predict(model: StringModel<'_>, observations: &[Observation]) -> Vec<Prediction> {
-    let config = FkConfig::<f64>::default();
+    predict_with(model, observations, &FkConfig::default())
+}
+
+/// [`predict`] with the kinematics tuned by `config`.
+pub fn predict_with(
+    model: StringModel<'_>,
+    observations: &[Observation],
+    config: &FkConfig<f64>,
+) -> Vec<Prediction> {
     let frame = model.frame;
     let inclined = model.effects.iter().any(|t| t.effect.reads_inclination());
     let lengths =
@@ -64,7 +73,7 @@ pub fn predict(model: StringModel<'_>, observations: &[Observation]) -> Vec<Pred
                 frame.layout,
                 &o.inputs,
                 start,
-                &config,
+                config,
                 inclined,
                 lengths,
             );
