@@ -128,9 +128,16 @@ fn upload_cut_at_every_flash_operation_keeps_the_previous_model() {
     let vd = virtual_device(Trajectory::Hold);
     let old = blob(&dev, CorrectionModel::None, 1);
     let new = blob(&dev, nn(4), 2);
+    // Opening and reading back wait as long as a busy machine needs; the
+    // upload that the cut silences gives up after 4 x 40 ms (a device that
+    // lost its power never answers; one reply late under load is resent).
     let opts = ClientOptions {
         max_chunk: 64,
-        ..quick()
+        ..ClientOptions::default()
+    };
+    let cutting = ClientOptions {
+        timeout: Duration::from_millis(40),
+        ..opts
     };
     let mut c = Client::open_with(vd.port_path(), opts).unwrap();
     c.flash(&old, |_| {}).unwrap();
@@ -140,6 +147,7 @@ fn upload_cut_at_every_flash_operation_keeps_the_previous_model() {
     let mut cuts_survived = 0;
     loop {
         let mut c = Client::open_with(vd.port_path(), opts).unwrap();
+        c.set_options(cutting);
         vd.cut_flash_after(cut);
         match c.flash(&new, |_| {}) {
             Ok(r) => {

@@ -227,7 +227,13 @@ fn the_operator_fills_a_small_lattice_cell_by_cell_and_the_rows_are_true() {
                 spidar_core::model::StringLayout::ALL,
                 &lengths,
                 nominal.home_mm,
-                &FkConfig::default(),
+                // The legacy controller solves with every string (no
+                // faulty-string search), as the black box it stands for.
+                &FkConfig {
+                    fault_threshold_mm: f64::INFINITY,
+                    exclusion_threshold_mm: f64::INFINITY,
+                    ..FkConfig::default()
+                },
             );
             distance(&fk.position, &s.legacy.unwrap())
         })

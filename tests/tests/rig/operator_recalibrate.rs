@@ -205,8 +205,10 @@ fn a_slipped_string_is_reported_named_refitted_and_reflashed() {
     assert_eq!(info.header.model_id, r.model_id);
     assert_ne!(r.model_id, rig.model_id);
 
-    // The error the device reports: up at detection, back near the
-    // baseline after the reflash.
+    // The error the device reports: near the baseline at detection (its
+    // kinematics leave the slipped string out: a 6 mm slip lifts the RMS
+    // of eight strings above 1 mm) and after the reflash (the slip is in
+    // the model, the string back in the position).
     let after = r.after.expect("a full window after the reflash");
     eprintln!(
         "slip detected {delay:.2} s after it happened; device error: baseline {:.3} mm, \
@@ -217,12 +219,16 @@ fn a_slipped_string_is_reported_named_refitted_and_reflashed() {
         r.seconds,
         t0.elapsed().as_secs_f64()
     );
-    assert!(r.before.mean_mm > baseline.mean_mm, "{r:?}");
-    // "Back near the baseline": pairs come from the device's and the
-    // tracker's own stamps (the rig in virtual time), so the baseline is the
-    // same from run to run however busy the machine (0.164 mm) and the bound
-    // can be tight; a model without the slip stays above 1.2 mm.
-    assert!(after.mean_mm < r.before.mean_mm, "{r:?}");
+    // Pairs come from the device's and the tracker's own stamps (the rig in
+    // virtual time), so the baseline is the same from run to run however
+    // busy the machine (0.164 mm) and the bounds can be tight; with every
+    // string in the position the slip put the window at 1.2 mm.
+    assert!(
+        r.before.mean_mm < 1.3 * baseline.mean_mm,
+        "before {:.3} mm, baseline {:.3} mm",
+        r.before.mean_mm,
+        baseline.mean_mm
+    );
     assert!(
         after.mean_mm < 1.3 * baseline.mean_mm,
         "after {:.3} mm, baseline {:.3} mm",
