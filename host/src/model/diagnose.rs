@@ -16,7 +16,7 @@ use crate::model::identify::{
     data_jacobian, device_position, identify, inputs_at, DataJacobian, Identification,
     IdentifyError, Start, Structure,
 };
-use crate::model::layers::{self, StringLayers};
+use crate::model::layers::{self, StringLayers, TableLevel};
 use crate::model::predict::{paired_with_tracker, predict_with};
 use spidar_core::kinematics::FkConfig;
 use std::borrow::Cow;
@@ -266,7 +266,14 @@ fn add_layer_tables(
     let validate_steps = |steps: &[Option<u8>; STRINGS]| {
         validate_by(train, |rows| {
             let plain = identify(rows, nominal, &cold, structure)?;
-            layers::identify_with_layers(rows, nominal, &plain, structure, steps)
+            layers::identify_with_layers(
+                rows,
+                nominal,
+                &plain,
+                structure,
+                steps,
+                TableLevel::Dropped,
+            )
         })
         .map(|(after, _)| after)
     };
@@ -278,6 +285,7 @@ fn add_layer_tables(
             id,
             structure,
             &judged.steps,
+            TableLevel::Kept,
         )?)
     } else {
         None
@@ -2420,7 +2428,9 @@ impl LoopState<'_> {
         let moved = (candidate.marker_body_mm != self.structure.marker_body_mm)
             .then(|| at_meeting_points(self.train, candidate.marker_body_mm).into_owned());
         let train: &[Observation] = moved.as_deref().unwrap_or(&self.seen_train);
-        let (after, fits) = validate_fits(train, self.nominal, &self.id, &candidate)?;
+        let retabled = self.with_step_in_the_tables(change, train, &candidate)?;
+        let from = retabled.as_ref().unwrap_or(&self.id);
+        let (after, fits) = validate_fits(train, self.nominal, from, &candidate)?;
         let check = self.judge_change(change, train, &after, &fits);
         let accepted = check.accepted;
         finding.validation = Some(check);
@@ -2430,12 +2440,15 @@ impl LoopState<'_> {
             self.findings.push(finding);
             return Ok(false);
         }
-        let refit = identify(
-            train,
-            self.nominal,
-            &Start::from_identification(&self.id),
-            &candidate,
-        )?;
+        let refit = match retabled {
+            Some(refit) => refit,
+            None => identify(
+                train,
+                self.nominal,
+                &Start::from_identification(&self.id),
+                &candidate,
+            )?,
+        };
         if let Some(fitted) = fitted_in_physical_terms(change, &refit) {
             finding.description += &fitted;
         }
@@ -2459,6 +2472,45 @@ impl LoopState<'_> {
         self.structure = candidate;
         self.id = refit;
         Ok(true)
+    }
+
+    /// With a step (a slip) proposed on a model with layer tables: the
+    /// model with the step, its tables refitted together with it
+    /// ([`layers::fit_table_with_slips`]), which the step is validated from
+    /// and, accepted, is the refit. `None` for other changes or without
+    /// tables: they are validated from the current model, tables held.
+    fn with_step_in_the_tables(
+        &self,
+        change: Change,
+        train: &[Observation],
+        candidate: &Structure,
+    ) -> Result<Option<Identification>, IdentifyError> {
+        let Change::Effect(EffectTerm {
+            effect: Effect::Slip { .. },
+            ..
+        }) = change
+        else {
+            return Ok(None);
+        };
+        let steps = layers::steps_in(&self.id);
+        if steps.iter().all(Option::is_none) {
+            return Ok(None);
+        }
+        let sized = identify(
+            train,
+            self.nominal,
+            &Start::from_identification(&self.id),
+            candidate,
+        )?;
+        layers::identify_with_layers(
+            train,
+            self.nominal,
+            &sized,
+            candidate,
+            &steps,
+            TableLevel::Kept,
+        )
+        .map(Some)
     }
 
     /// The check of `change` validated on `train` (`after`, each fold's

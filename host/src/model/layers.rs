@@ -33,10 +33,18 @@
 //! Whether the tables are kept is decided as every change of the loop is
 //! ([`crate::model::diagnose::judge`]): held-out position error on the blocked
 //! folds, every fold refitting geometry *and tables* on its own rows.
+//!
+//! Tables the loop kept are then refitted with their level ([`TableLevel`]),
+//! and a string's slips are fitted together with its table
+//! ([`fit_table_with_slips`]): a table is a function of the counts, and
+//! fitted on residuals with a step in time it takes the step's level and
+//! bends to follow the rows on one side of it.
 
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
-use spidar_core::model::{Frame, Knots, LayerTable, StringLaw, LAYER_KNOTS, MAX_LAYER_STEP_LOG2};
+use spidar_core::model::{
+    Effect, EffectTerm, Frame, Knots, LayerTable, StringLaw, LAYER_KNOTS, MAX_LAYER_STEP_LOG2,
+};
 use spidar_core::string_law::{compile_string_law, pulley_angle};
 use spidar_core::STRINGS;
 
@@ -58,6 +66,11 @@ pub const MIN_STRING_GAIN: f64 = 0.03;
 /// Fewest residuals per knot a spacing needs on the rows it is fitted on.
 pub const MIN_ROWS_PER_KNOT: usize = 8;
 
+/// Fewest rows on each side of a slip for its step to be refitted with the
+/// tables ([`crate::model::diagnose::MIN_STEP_SIDE_ROWS`], as a step is
+/// judged).
+const MIN_STEP_SIDE_ROWS: usize = crate::model::diagnose::MIN_STEP_SIDE_ROWS;
+
 /// Coarser spacings tried after the finest that fits [`LAYER_KNOTS`] knots.
 pub const COARSER_SPACINGS: u8 = 4;
 
@@ -68,6 +81,26 @@ pub const COARSER_SPACINGS: u8 = 4;
 /// 0.787 / 5.31 (the effects the loop adds after the tables change with
 /// the refit, not the tables themselves).
 pub const REFINE_ROUNDS: usize = 2;
+
+/// Who takes a string's level (its mean departure) when a layer table is
+/// fitted.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum TableLevel {
+    /// A constant fitted with the table and dropped (with the `theta` and
+    /// `theta^2` terms): the table's level is what its knots' prior leaves.
+    /// How the tables are chosen and judged: a table with a free level
+    /// stands in for a drift or a step in time (a lattice collected plane
+    /// by plane ties the counts to time), and was accepted on the model
+    /// simulator's drifting string, whose spool has no layers.
+    Dropped,
+    /// The level is the table's: nothing else in the model takes a
+    /// string's level (its payout law is 0 at home), so with the constant
+    /// dropped an `offset` stood in for it (most of the terms of other
+    /// families the loop added on clean independent devices: 27 on 20
+    /// devices, 8 with the level kept). How tables the loop accepted are
+    /// refitted, and refitted with a slip.
+    Kept,
+}
 
 /// One string's residuals: (counts since home, residual without the
 /// string's current table, mm), gross failures left out.
@@ -160,6 +193,33 @@ fn finest_step(lo: i32, hi: i32) -> u8 {
 /// gives fewer than 3 or more than [`LAYER_KNOTS`] knots, or fewer than
 /// [`MIN_ROWS_PER_KNOT`] points per knot.
 pub fn fit_table(points: &[(i32, f64)], counts_per_rev: u32, step_log2: u8) -> Option<LayerTable> {
+    fit_table_with_slips(
+        points,
+        &[],
+        &[],
+        counts_per_rev,
+        step_log2,
+        TableLevel::Dropped,
+    )
+    .map(|(table, _)| table)
+}
+
+/// [`fit_table`] together with the string's slips: `times_s[k]` is when
+/// `points[k]` was captured, `slips_at_s` when the string slipped (the
+/// points without the slips' steps); each slip's step (mm) is fitted with
+/// the table. A table fitted on residuals with a step in them bends to
+/// follow the rows on one side of it (the rows before an early slip sit in
+/// one corner of the lattice), and a step fitted with that table held is
+/// undersized: the two are one least-squares problem, which only the counts
+/// visited both before and after the slip can separate.
+pub fn fit_table_with_slips(
+    points: &[(i32, f64)],
+    times_s: &[f64],
+    slips_at_s: &[f64],
+    counts_per_rev: u32,
+    step_log2: u8,
+    level: TableLevel,
+) -> Option<(LayerTable, Vec<f64>)> {
     let lo = points.iter().map(|p| p.0).min()?;
     let hi = points.iter().map(|p| p.0).max()?;
     let n = knot_count(lo, hi, step_log2)?;
@@ -176,13 +236,14 @@ pub fn fit_table(points: &[(i32, f64)], counts_per_rev: u32, step_log2: u8) -> O
         .abs()
         .max(pulley_angle(&law, hi).abs())
         .max(1e-9);
-    let m = n + 3;
+    let dropped = level == TableLevel::Dropped;
+    let m = n + 2 + slips_at_s.len() + usize::from(dropped);
     let mut normal = DMatrix::<f64>::zeros(m, m);
     let mut rhs = DVector::<f64>::zeros(m);
     let mut row = vec![0.0; m];
     let values: Vec<f64> = points.iter().map(|p| p.1).collect();
     let noise = robust_centre_and_sd(&values).1.max(1e-3);
-    for &(c, r) in points {
+    for (k_point, &(c, r)) in points.iter().enumerate() {
         row.iter_mut().for_each(|v| *v = 0.0);
         let (k, along) = table.locate(c)?;
         let f = f64::from(along) / f64::from(1u32 << step_log2);
@@ -191,9 +252,14 @@ pub fn fit_table(points: &[(i32, f64)], counts_per_rev: u32, step_log2: u8) -> O
             row[k + 1] = f;
         }
         let u = pulley_angle(&law, c) / theta_scale;
-        row[n] = 1.0;
-        row[n + 1] = u;
-        row[n + 2] = u * u;
+        row[n] = u;
+        row[n + 1] = u * u;
+        for (j, &at_s) in slips_at_s.iter().enumerate() {
+            row[n + 2 + j] = if times_s[k_point] >= at_s { 1.0 } else { 0.0 };
+        }
+        if dropped {
+            row[m - 1] = 1.0;
+        }
         for a in 0..m {
             if row[a] == 0.0 {
                 continue;
@@ -210,11 +276,14 @@ pub fn fit_table(points: &[(i32, f64)], counts_per_rev: u32, step_log2: u8) -> O
     }
     let solution = normal.cholesky()?.solve(&rhs);
     let knots: Vec<f64> = (0..n).map(|k| solution[k]).collect();
-    if !knots.iter().all(|v| v.is_finite()) {
+    let steps_mm: Vec<f64> = (n + 2..n + 2 + slips_at_s.len())
+        .map(|k| solution[k])
+        .collect();
+    if !knots.iter().chain(&steps_mm).all(|v| v.is_finite()) {
         return None;
     }
     table.knots_mm = Knots::from_slice(&knots)?;
-    Some(table)
+    Some((table, steps_mm))
 }
 
 /// Held-out string residual sum of squares of one string for one spacing
@@ -306,14 +375,61 @@ fn fit_all(
     id: &Identification,
     rows: &[Observation],
     steps: &[Option<u8>; STRINGS],
-) -> [LayerTable; STRINGS] {
+    level: TableLevel,
+) -> ([LayerTable; STRINGS], Vec<(usize, f64)>) {
     let points = points_by_string(id, rows);
-    core::array::from_fn(|i| {
+    let times_s: Vec<f64> = rows
+        .iter()
+        .filter(|o| o.tracker.is_some())
+        .map(|o| f64::from(o.inputs.time_ms) / 1000.0)
+        .collect();
+    let mut slip_steps = Vec::new();
+    let tables = core::array::from_fn(|i| {
         let Some(s) = steps[i] else {
             return LayerTable::NONE;
         };
-        let all: StringPoints = points[i].iter().flatten().copied().collect();
-        let Some(table) = fit_table(&all, id.laws[i].counts_per_rev, s) else {
+        // The string's slips that these rows see from both sides: (index
+        // among the effects, time, fitted step). A step with too few rows
+        // on a side is not refitted (a fold that ends before it, or begins
+        // after it): it keeps its value, since the table's level would take
+        // it.
+        let rows_of = |t: &f64| {
+            points[i]
+                .iter()
+                .zip(&times_s)
+                .filter(|(p, _)| p.is_some())
+                .filter(move |(_, s)| *s >= t)
+                .count()
+        };
+        let visible = points[i].iter().filter(|p| p.is_some()).count();
+        let slips: Vec<(usize, f64, f64)> = id
+            .effects
+            .iter()
+            .enumerate()
+            .filter(|(_, t)| t.applies_to(i))
+            .filter_map(|(k, t)| match t.effect {
+                Effect::Slip { at_s, mm } => Some((k, at_s, mm)),
+                _ => None,
+            })
+            .filter(|s| {
+                let after = rows_of(&s.1);
+                after >= MIN_STEP_SIDE_ROWS && visible - after >= MIN_STEP_SIDE_ROWS
+            })
+            .collect();
+        // The points with the slips' steps added back, fitted with them.
+        let (all, times): (StringPoints, Vec<f64>) = points[i]
+            .iter()
+            .zip(&times_s)
+            .filter_map(|(p, &t)| {
+                let (c, r) = (*p)?;
+                let back: f64 = slips.iter().filter(|s| t >= s.1).map(|s| s.2).sum();
+                Some(((c, r + back), t))
+            })
+            .unzip();
+        let at_s: Vec<f64> = slips.iter().map(|s| s.1).collect();
+        let Some((table, steps_mm)) =
+            fit_table_with_slips(&all, &times, &at_s, id.laws[i].counts_per_rev, s, level)
+        else {
             return LayerTable::NONE;
         };
         let law = StringLaw {
@@ -321,11 +437,13 @@ fn fit_all(
             ..id.laws[i]
         };
         if compile_string_law(&id.frame, i, &law).is_ok() {
+            slip_steps.extend(slips.iter().zip(steps_mm).map(|(s, mm)| (s.0, mm)));
             table
         } else {
             LayerTable::NONE
         }
-    })
+    });
+    (tables, slip_steps)
 }
 
 /// The identification of `rows` with layer tables of the spacings `steps`:
@@ -337,11 +455,22 @@ pub fn identify_with_layers(
     from: &Identification,
     structure: &Structure,
     steps: &[Option<u8>; STRINGS],
+    level: TableLevel,
 ) -> Result<Identification, IdentifyError> {
     let mut id = from.clone();
     for _ in 0..REFINE_ROUNDS {
         let mut start = Start::from_identification(&id);
-        start.winding.layers = fit_all(&id, rows, steps);
+        let (tables, slip_steps) = fit_all(&id, rows, steps, level);
+        start.winding.layers = tables;
+        for (k, step_mm) in slip_steps {
+            if let Some(EffectTerm {
+                effect: Effect::Slip { mm, .. },
+                ..
+            }) = start.effects.get_mut(k)
+            {
+                *mm = step_mm;
+            }
+        }
         id = identify(rows, nominal, &start, structure)?;
     }
     Ok(id)
@@ -356,6 +485,14 @@ pub fn steps_of(choice: &[StringLayers]) -> [Option<u8>; STRINGS] {
         }
     }
     steps
+}
+
+/// The spacings of the tables `id` holds, by string.
+pub fn steps_in(id: &Identification) -> [Option<u8>; STRINGS] {
+    core::array::from_fn(|i| {
+        let table = &id.laws[i].layers;
+        (!table.is_empty()).then_some(table.step_log2)
+    })
 }
 
 /// `id` without layer tables (what a fold starts from).
@@ -435,6 +572,55 @@ mod tests {
         // Too few points per knot: no table.
         assert!(fit_table(&points[..100], cpr, 13).is_none());
         assert!(fit_table(&[], cpr, 13).is_none());
+    }
+
+    /// A slip early in the session, while the end-effector was in one
+    /// region (few counts, few rows): fitted with the table, the step comes
+    /// out at its size; the table alone, fitted on the rows with the step in
+    /// them, bends to follow the rows before it.
+    #[test]
+    fn a_table_fitted_with_a_slip_sizes_the_step_from_the_counts_visited_on_both_sides() {
+        let cpr = 4096;
+        let slip_mm = -4.2;
+        let slip_at_s = 100.0;
+        // 100 rows in one count range before the slip, then 2000 rows over
+        // the whole range (that range again included).
+        let (points, times): (Vec<(i32, f64)>, Vec<f64>) = (0..2100)
+            .map(|k| {
+                let (c, t) = if k < 100 {
+                    (-40_000 + (k as i32 * 397) % 20_000, k as f64 * 0.9)
+                } else {
+                    (-50_000 + (k as i32 * 997) % 200_000, 100.0 + k as f64)
+                };
+                let step = if t >= slip_at_s { slip_mm } else { 0.0 };
+                ((c, staircase(c, 45_000.0) + step + noise(k)), t)
+            })
+            .unzip();
+        let (table, steps) =
+            fit_table_with_slips(&points, &times, &[slip_at_s], cpr, 13, TableLevel::Kept)
+                .expect("a table and a step");
+        assert!((steps[0] - slip_mm).abs() < 0.1, "step {} mm", steps[0]);
+        // The level is the string's before the slip: the table is the
+        // staircase (its level and smooth part aside).
+        let before: Vec<f64> = points[..100]
+            .iter()
+            .map(|&(c, r)| r - table.departure_mm(c))
+            .collect();
+        let mean = before.iter().sum::<f64>() / before.len() as f64;
+        assert!(mean.abs() < 0.3, "rows before the slip left at {mean} mm");
+        // Without the step in the fit the table takes the level after the
+        // slip and leaves the rows before it several mm off.
+        let (alone, _) =
+            fit_table_with_slips(&points, &[], &[], cpr, 13, TableLevel::Kept).unwrap();
+        let off = points[..100]
+            .iter()
+            .map(|&(c, r)| r - alone.departure_mm(c))
+            .sum::<f64>()
+            / 100.0;
+        assert!(
+            off > 2.0,
+            "the table alone leaves the early rows {off} mm off"
+        );
     }
 
     #[test]
