@@ -1727,8 +1727,8 @@ fn model_error_list(id: &Identification, observations: &[Observation]) -> Vec<f6
 /// puts a few mm off (the rows before an early slip) is what the loop is
 /// looking for; leaving it out of the position hides it. Judged with the
 /// device's kinematics, 20 clean independent devices took 36 terms of other
-/// families instead of 28 (`docs/benchmarks.md`, "A faulty string looked
-/// for from 1 mm").
+/// families instead of 27 (with the tables' level dropped; `docs/benchmarks.md`,
+/// "A faulty string looked for from 1 mm").
 fn held_out_error_list(id: &Identification, observations: &[Observation]) -> Vec<f64> {
     let judging = FkConfig::<f64>::default();
     let judging = FkConfig {
