@@ -47,7 +47,7 @@ use spidar_core::correction::CorrectionModel;
 use spidar_core::model::Calibration;
 
 use crate::data::dataset::{DatasetError, Geometry, Session};
-use crate::data::observe::{observations, Observation};
+use crate::data::observe::{meeting_point, observations, rotation_of_quaternion, Observation};
 use crate::data::stats::{error_stats_checked, ErrorStats, StatsError};
 use crate::model::diagnose::{close_loop, tail_noise, LoopConfig, LoopResult};
 use crate::model::identify::{identify, IdentifyError, Start, Structure};
@@ -1330,15 +1330,20 @@ impl Run<'_> {
 
     /// The black-box data when both sessions have the legacy controller's
     /// columns, and the black-box comparison when asked for (a warning when
-    /// asked for without them).
+    /// asked for without them). The tracker is read where the model's
+    /// stages read it: at the strings' meeting point when the loop found
+    /// the tracked body's origin off it (`marker_body_mm`, through each
+    /// row's orientation), so that every stage of the report is measured
+    /// against the same point.
     fn blackbox_comparison(
         &mut self,
         train: &Session,
         test: &Session,
+        marker_body_mm: Option<[f64; 3]>,
         points: &mut Vec<StagePoints>,
     ) -> Result<(Option<LegacyPairs>, Option<report::Blackbox>), CalibrateError> {
         let legacy = (self.train_info.has_legacy && self.test_info.has_legacy)
-            .then(|| blackbox_pairs(self.geometry, train, test))
+            .then(|| blackbox_pairs(self.geometry, train, test, marker_body_mm))
             .transpose()?;
         if !self.cfg.blackbox {
             return Ok((legacy, None));
@@ -1474,8 +1479,12 @@ pub fn calibrate(
     let corrections = residual_report(&data, &learned);
 
     // Black-box comparison.
-    let (legacy, blackbox) =
-        run.blackbox_comparison(train.session, test.session, &mut list.points)?;
+    let (legacy, blackbox) = run.blackbox_comparison(
+        train.session,
+        test.session,
+        loop_result.structure.marker_body_mm,
+        &mut list.points,
+    )?;
     run.warnings
         .extend(learner_warnings(fin, &learned, &run.cfg));
 
@@ -1514,6 +1523,7 @@ pub fn calibrate(
 fn legacy_pairs(
     geometry: &Geometry,
     session: &Session,
+    marker_body_mm: Option<[f64; 3]>,
 ) -> (Vec<usize>, Vec<[f64; 3]>, Vec<[f64; 3]>) {
     let t = geometry.room_from_device_translation_mm;
     let mut rows = Vec::new();
@@ -1523,7 +1533,10 @@ fn legacy_pairs(
         if let (Some(d), Some(o)) = (s.legacy, s.tracker) {
             rows.push(row);
             x.push([d[0] + t[0], d[1] + t[1], d[2] + t[2]]);
-            y.push(o);
+            y.push(match (marker_body_mm, s.orientation) {
+                (Some(m), Some(q)) => meeting_point(&o, &rotation_of_quaternion(q), &m),
+                _ => o,
+            });
         }
     }
     (rows, x, y)
@@ -1545,9 +1558,10 @@ fn blackbox_pairs(
     geometry: &Geometry,
     train: &Session,
     test: &Session,
+    marker_body_mm: Option<[f64; 3]>,
 ) -> Result<LegacyPairs, CalibrateError> {
-    let (rows_tr, x_tr, y_tr) = legacy_pairs(geometry, train);
-    let (rows_te, x_te, y_te) = legacy_pairs(geometry, test);
+    let (rows_tr, x_tr, y_tr) = legacy_pairs(geometry, train, marker_body_mm);
+    let (rows_te, x_te, y_te) = legacy_pairs(geometry, test, marker_body_mm);
     let outl =
         outliers::tukey(&x_tr, &y_tr).map_err(learn("black-box outliers (Tukey box plot)"))?;
     let (xk, yk) = outliers::select(&outl, &x_tr, &y_tr);
@@ -1716,4 +1730,45 @@ fn write_json<T: serde::Serialize>(path: &Path, value: &T) -> Result<(), Calibra
         action: "cannot write",
         source,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::data::dataset::Sample;
+    use spidar_core::STRINGS;
+
+    /// The black box reads the tracker where the model's stages do: at the
+    /// strings' meeting point `p - R_body d` once the loop found the body's
+    /// origin `d` off it, on the rows with an orientation.
+    #[test]
+    fn the_black_box_reads_the_tracker_at_the_meeting_point_the_loop_found() {
+        let geometry = crate::sim::SimConfig::default().nominal.geometry();
+        let t = geometry.room_from_device_translation_mm;
+        // A quarter turn about z: the body's x axis along the room's y.
+        let h = std::f64::consts::FRAC_1_SQRT_2;
+        let row = |orientation| Sample {
+            t_s: 0.0,
+            counts: [0; STRINGS],
+            tracker: Some([100.0, 200.0, 300.0]),
+            orientation,
+            legacy: Some([1.0, 2.0, 3.0]),
+            tension_n: None,
+        };
+        let session = Session {
+            strings: STRINGS,
+            samples: vec![row(Some([h, 0.0, 0.0, h])), row(None)],
+            ignored_columns: Vec::new(),
+            tracker_z: true,
+        };
+        let (rows, x, y) = legacy_pairs(&geometry, &session, Some([10.0, 0.0, 0.0]));
+        assert_eq!(rows, [0, 1]);
+        assert_eq!(x[0], [1.0 + t[0], 2.0 + t[1], 3.0 + t[2]]);
+        for (got, want) in y[0].iter().zip([100.0, 190.0, 300.0]) {
+            assert!((got - want).abs() < 1e-9, "{:?}", y[0]);
+        }
+        assert_eq!(y[1], [100.0, 200.0, 300.0], "a row without orientation");
+        let (_, _, plain) = legacy_pairs(&geometry, &session, None);
+        assert_eq!(plain[0], [100.0, 200.0, 300.0]);
+    }
 }
