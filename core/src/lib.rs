@@ -41,6 +41,8 @@ pub mod real;
 pub mod safety;
 pub mod string_law;
 pub mod tension;
+#[cfg(test)]
+pub(crate) mod test_fixtures;
 pub mod time_base;
 
 // With the `defmt` feature, the errors a firmware may log are defmt::Format,

@@ -1,27 +1,12 @@
 use super::*;
 use crate::correction::CorrectionModel;
 use crate::model::{Calibration, Effect, EffectTerm, StringLaw};
+use crate::test_fixtures::cube_frame;
 use spidar_protocol::blob::CorrectionKind;
 
 fn calibration() -> Calibration {
-    let h = 1100.0;
-    let mut anchors = [[0.0; 3]; STRINGS];
-    for (i, a) in anchors.iter_mut().enumerate() {
-        *a = [
-            if i & 1 == 0 { -h } else { h },
-            if i & 2 == 0 { -h } else { h },
-            if i & 4 == 0 { -h } else { h },
-        ];
-    }
     Calibration {
-        frame: Frame {
-            layout: crate::model::StringLayout::ALL,
-            anchors,
-            home: [1.0, -2.0, 3.0],
-            room_rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
-            room_translation: [0.0, 0.0, 1500.0],
-            room_scale: 1.0,
-        },
+        frame: cube_frame([1.0, -2.0, 3.0]),
         strings: [StringLaw::polynomial(4096, [12.0, -0.02, 0.0, 0.0]); STRINGS],
         effects: alloc::vec![
             EffectTerm {

@@ -1,30 +1,15 @@
 use super::*;
 use crate::blob::compile;
 use crate::correction::CorrectionModel;
-use crate::model::{Calibration, Frame, StringLaw};
+use crate::model::{Calibration, StringLaw};
+use crate::test_fixtures::cube_frame;
 
 const CPR: u32 = 4096;
 const RADIUS: f64 = 10.0;
 
 fn calibration() -> Calibration {
-    let h = 1100.0;
-    let mut anchors = [[0.0; 3]; STRINGS];
-    for (i, a) in anchors.iter_mut().enumerate() {
-        *a = [
-            if i & 1 == 0 { -h } else { h },
-            if i & 2 == 0 { -h } else { h },
-            if i & 4 == 0 { -h } else { h },
-        ];
-    }
     Calibration {
-        frame: Frame {
-            layout: crate::model::StringLayout::ALL,
-            anchors,
-            home: [0.0; 3],
-            room_rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
-            room_translation: [0.0, 0.0, 1500.0],
-            room_scale: 1.0,
-        },
+        frame: cube_frame([0.0; 3]),
         strings: [StringLaw::polynomial(CPR, [RADIUS, 0.0, 0.0, 0.0]); STRINGS],
         effects: alloc::vec![],
         correction: CorrectionModel::None,

@@ -4,6 +4,7 @@ use crate::correction::{CorrectionModel, NnModel, OutputMode, Standardization};
 use crate::kinematics::inverse_kinematics;
 use crate::model::Calibration;
 use crate::model_store::RamFlash;
+use crate::test_fixtures::{cube_anchors, cube_frame};
 use spidar_protocol::blob::CRC32;
 use spidar_protocol::{encode, encode_request, BlobRejection, Message, SeqTracker};
 use std::vec::Vec;
@@ -12,19 +13,6 @@ const SLOT: usize = 16 * 1024;
 type Flash = RamFlash<SLOT>;
 const CPR: u32 = 4096;
 const RADIUS: f64 = 10.0;
-const H: f64 = 1100.0;
-
-fn anchors() -> [[f64; 3]; STRINGS] {
-    let mut anchors = [[0.0; 3]; STRINGS];
-    for (i, a) in anchors.iter_mut().enumerate() {
-        *a = [
-            if i & 1 == 0 { -H } else { H },
-            if i & 2 == 0 { -H } else { H },
-            if i & 4 == 0 { -H } else { H },
-        ];
-    }
-    anchors
-}
 
 fn nn(hidden: usize) -> CorrectionModel {
     let s = Standardization {
@@ -45,14 +33,7 @@ fn nn(hidden: usize) -> CorrectionModel {
 
 fn calibration(correction: CorrectionModel) -> Calibration {
     Calibration {
-        frame: Frame {
-            layout: StringLayout::ALL,
-            anchors: anchors(),
-            home: [0.0; 3],
-            room_rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
-            room_translation: [0.0, 0.0, 1500.0],
-            room_scale: 1.0,
-        },
+        frame: cube_frame([0.0; 3]),
         strings: [StringLaw::polynomial(CPR, [RADIUS, 0.0, 0.0, 0.0]); STRINGS],
         effects: alloc::vec![],
         correction,
@@ -62,8 +43,8 @@ fn calibration(correction: CorrectionModel) -> Calibration {
 /// Raw counters for the end-effector at `p` (device frame), counters
 /// reading 1000 at home.
 fn raw_at(p: [f64; 3]) -> [u16; STRINGS] {
-    let lengths = inverse_kinematics(&anchors(), p);
-    let home = inverse_kinematics(&anchors(), [0.0; 3]);
+    let lengths = inverse_kinematics(&cube_anchors(), p);
+    let home = inverse_kinematics(&cube_anchors(), [0.0; 3]);
     let mut raw = [0u16; STRINGS];
     for i in 0..STRINGS {
         let theta = (lengths[i] - home[i]) / RADIUS;
@@ -86,7 +67,7 @@ fn string_model() -> StringModel {
     StringModel {
         counts_per_rev: [CPR; STRINGS],
         pulley_radius_mm: [RADIUS as f32; STRINGS],
-        anchors_mm: anchors().map(|a| a.map(|v| v as f32)),
+        anchors_mm: cube_anchors().map(|a| a.map(|v| v as f32)),
         home_mm: [0.0; 3],
         active_strings: 0xFF,
         planar: false,
@@ -388,7 +369,7 @@ fn full_session_through_frames() {
     let out = out.unwrap();
     assert!(out.armed && out.faults.is_empty(), "{out:?}");
     let f = crate::tension::resultant_force(
-        &anchors().map(|a| a.map(|v| v as f32)),
+        &cube_anchors().map(|a| a.map(|v| v as f32)),
         out.position_mm,
         &out.tensions_n,
     );
@@ -913,7 +894,7 @@ fn string_layouts_arm_only_when_force_closed_and_track_either_way() {
     let home_raw = raw_for(&hanging, [0.0; 3], p);
     let shift = |q: [f64; 3]| -> [u16; STRINGS] {
         // Counters continue from where they were at Home.
-        let d = raw_for(&anchors(), [0.0; 3], q);
+        let d = raw_for(&cube_anchors(), [0.0; 3], q);
         core::array::from_fn(|i| home_raw[i].wrapping_add(d[i].wrapping_sub(1000)))
     };
     let q = [100.0, 50.0, -60.0];
@@ -927,7 +908,7 @@ fn string_layouts_arm_only_when_force_closed_and_track_either_way() {
         assert_eq!(out.tensions_n[i], 0.0);
     }
     let f = crate::tension::resultant_force(
-        &anchors().map(|a| a.map(|v| v as f32)),
+        &cube_anchors().map(|a| a.map(|v| v as f32)),
         out.position_mm,
         &core::array::from_fn(|i| {
             if [0, 3, 5, 6].contains(&i) {

@@ -1,4 +1,5 @@
 use super::*;
+use crate::test_fixtures::cube_frame;
 use proptest::prelude::*;
 
 /// Deterministic xorshift64* so that the measured error is reproducible.
@@ -17,26 +18,6 @@ impl Rng {
     }
     fn int(&mut self, lo: i64, hi: i64) -> i64 {
         lo + (self.next_u64() % ((hi - lo + 1) as u64)) as i64
-    }
-}
-
-fn frame(home: [f64; 3]) -> Frame<f64> {
-    let h = 1100.0;
-    let mut anchors = [[0.0; 3]; STRINGS];
-    for (i, a) in anchors.iter_mut().enumerate() {
-        *a = [
-            if i & 1 == 0 { -h } else { h },
-            if i & 2 == 0 { -h } else { h },
-            if i & 4 == 0 { -h } else { h },
-        ];
-    }
-    Frame {
-        layout: crate::model::StringLayout::ALL,
-        anchors,
-        home,
-        room_rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
-        room_translation: [0.0, 0.0, 1500.0],
-        room_scale: 1.0,
     }
 }
 
@@ -98,7 +79,7 @@ fn quadratic_law_at_known_points() {
     let law = StringLaw::polynomial(4096, [10.0, -0.02, 0.0, 0.0]);
     let want = TAU * 10.0 - 0.02 * TAU * TAU;
     assert!((payout_f64(&law, 4096) - want).abs() < 1e-12);
-    let f = frame([0.0; 3]);
+    let f = cube_frame([0.0; 3]);
     let c = compile_string_law(&f, 0, &law).unwrap();
     let got = c.payout_q32(4096) as f64 / 4_294_967_296.0;
     assert!((got - want).abs() < 1e-8, "{got} vs {want}");
@@ -113,7 +94,7 @@ fn quadratic_law_at_known_points() {
 /// families that need one string's law cannot be shared.
 #[test]
 fn a_shared_term_is_one_term_on_every_string() {
-    let f = frame([10.0, -20.0, 30.0]);
+    let f = cube_frame([10.0, -20.0, 30.0]);
     let laws = [StringLaw::polynomial(4096, [10.0, -0.02, 0.0, 0.0]); STRINGS];
     let shared = [
         EffectTerm {
@@ -198,7 +179,7 @@ fn layer_table_interpolates_and_holds_its_ends() {
         (1049, 2.0),
         (i32::MAX, 2.0),
     ];
-    let f = frame([0.0; 3]);
+    let f = cube_frame([0.0; 3]);
     let c = compile_string_law(&f, 0, &law).expect("compiles");
     for (counts, want) in cases {
         assert!((t.departure_mm(counts) - want).abs() < 1e-12, "{counts}");
@@ -220,7 +201,7 @@ fn layer_table_interpolates_and_holds_its_ends() {
 
 #[test]
 fn layer_table_compile_errors_name_the_field() {
-    let f = frame([0.0; 3]);
+    let f = cube_frame([0.0; 3]);
     let err = compile_string_law(&f, 3, &layered(0, 31, &[0.0, 1.0])).unwrap_err();
     assert!(
         matches!(
@@ -306,7 +287,7 @@ fn layer_tables_serialize_and_old_laws_still_read() {
         serde_json::from_str::<StringLaw>(&json).expect("reads"),
         law
     );
-    let f = frame([0.0; 3]);
+    let f = cube_frame([0.0; 3]);
     let c = compile_string_law(&f, 0, &law).expect("compiles");
     let bytes = postcard::to_allocvec(&c).expect("postcard");
     assert_eq!(
@@ -324,7 +305,7 @@ fn layer_tables_serialize_and_old_laws_still_read() {
 /// A realistic calibration: anchors at the corners of a 2.2 m frame, every
 /// effect family on some string with realistic amplitudes.
 fn realistic(rng: &mut Rng) -> (Frame<f64>, [StringLaw; STRINGS], Vec<EffectTerm>) {
-    let f = frame([
+    let f = cube_frame([
         rng.uniform(-300.0, 300.0),
         rng.uniform(-300.0, 300.0),
         rng.uniform(-300.0, 300.0),
@@ -524,7 +505,7 @@ fn f64_gradients_match_finite_differences() {
 
 #[test]
 fn compile_errors_name_the_field() {
-    let f = frame([0.0; 3]);
+    let f = cube_frame([0.0; 3]);
     let law = StringLaw::polynomial(4096, [10.0, -0.02, 0.0, 0.0]);
     let laws = [law; STRINGS];
     assert_eq!(
@@ -782,7 +763,7 @@ fn inclination_is_level_plumb_or_between_and_never_panics() {
 #[test]
 fn sag_scales_with_the_inclination_in_both_paths() {
     let laws = [StringLaw::polynomial(4096, [10.0, 0.0, 0.0, 0.0]); STRINGS];
-    let f = frame([0.0; 3]);
+    let f = cube_frame([0.0; 3]);
     let terms = [EffectTerm {
         string: 2,
         effect: Effect::Sag {
@@ -822,7 +803,7 @@ fn a_sag_term_is_zero_at_the_home_capture() {
     // T_home): with home_mm_at_1m = mm_at_1m_1n / T_home^2 the term
     // vanishes there, in both paths, and is the sag's change elsewhere.
     let laws = [StringLaw::polynomial(4096, [10.0, 0.0, 0.0, 0.0]); STRINGS];
-    let f = frame([100.0, -50.0, 200.0]);
+    let f = cube_frame([100.0, -50.0, 200.0]);
     let t_home = 1.1;
     let terms = [EffectTerm {
         string: EVERY_STRING,
@@ -875,7 +856,7 @@ fn a_stretch_is_zero_at_the_home_capture_and_grows_with_the_tension() {
     // (tension T_home): the term vanishes there in both paths, and a
     // string pulled harder is longer by its whole length's strain.
     let laws = [StringLaw::polynomial(4096, [10.0, 0.0, 0.0, 0.0]); STRINGS];
-    let f = frame([100.0, -50.0, 200.0]);
+    let f = cube_frame([100.0, -50.0, 200.0]);
     let (k, m, t_home) = (5e-5, 0.02, 1.1);
     let terms = [EffectTerm {
         string: EVERY_STRING,
@@ -942,7 +923,7 @@ fn a_stretch_is_zero_at_the_home_capture_and_grows_with_the_tension() {
 #[test]
 fn a_frame_flex_reads_the_total_tension_of_the_active_strings() {
     let laws = [StringLaw::polynomial(4096, [10.0, 0.0, 0.0, 0.0]); STRINGS];
-    let mut f = frame([100.0, -50.0, 200.0]);
+    let mut f = cube_frame([100.0, -50.0, 200.0]);
     let (k, home_mm) = (0.02, 0.176);
     let terms = [EffectTerm {
         string: EVERY_STRING,
@@ -1003,7 +984,7 @@ fn a_frame_flex_reads_the_total_tension_of_the_active_strings() {
 #[test]
 fn slip_step_time_is_consistent() {
     let laws = [StringLaw::polynomial(4096, [10.0, 0.0, 0.0, 0.0]); STRINGS];
-    let f = frame([0.0; 3]);
+    let f = cube_frame([0.0; 3]);
     for at_s in [0.0, 0.1, 0.3, 1.0005, 17.25, 3600.0001] {
         let terms = [EffectTerm {
             string: 3,
@@ -1175,7 +1156,7 @@ proptest! {
     fn compile_never_panics(v in any::<f64>(), w in any::<f64>(), string in any::<u8>(),
                             power in any::<u8>(), n in any::<u32>()) {
         let laws = [StringLaw::polynomial(n, [v, w, v, w]); STRINGS];
-        let f = frame([v, w, 0.0]);
+        let f = cube_frame([v, w, 0.0]);
         let _ = compile_string_law(&f, usize::from(string), &laws[0]);
         for effect in [
             Effect::Offset { mm: v },

@@ -332,20 +332,11 @@ impl ModelFlash for StallingFlash {
 
 fn blob() -> Vec<u8> {
     use crate::correction::CorrectionModel;
-    use crate::model::{Calibration, Frame, StringLaw, StringLayout};
-    let h = 1100.0;
-    let mut anchors = [[0.0; 3]; crate::STRINGS];
-    for (i, a) in anchors.iter_mut().enumerate() {
-        *a = [i & 1, i & 2, i & 4].map(|b| if b == 0 { -h } else { h });
-    }
+    use crate::model::{Calibration, Frame, StringLaw};
     let calibration = Calibration {
         frame: Frame {
-            layout: StringLayout::ALL,
-            anchors,
-            home: [0.0; 3],
-            room_rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
             room_translation: [0.0; 3],
-            room_scale: 1.0,
+            ..crate::test_fixtures::cube_frame([0.0; 3])
         },
         strings: [StringLaw::polynomial(4096, [10.0, 0.0, 0.0, 0.0]); crate::STRINGS],
         effects: std::vec![],
