@@ -438,43 +438,32 @@ pub fn forward_kinematics<F: Real>(
     );
     let all_rms = rms(all.cost, n_strings);
     let mut iterations = all.iterations;
-    let agreeing = FkSolution {
-        position: all.position,
-        status: if all.converged {
-            FkStatus::Ok
-        } else {
-            FkStatus::NotConverged
-        },
-        excluded: None,
-        rms_residual_mm: all_rms,
-        iterations,
-    };
     let fault_mm = config.fault_threshold_mm;
     let look_mm = if config.exclusion_threshold_mm < fault_mm {
         config.exclusion_threshold_mm
     } else {
         fault_mm
     };
-    // An infinite RMS (overflow) is not below the threshold: fault handling.
-    if all_rms <= look_mm {
-        return agreeing;
-    }
-    let inconsistent = FkSolution {
-        status: if all.converged {
-            FkStatus::Inconsistent
-        } else {
-            FkStatus::NotConverged
+    // Within the fault threshold the strings agree: the all-string solution
+    // stands unless an exclusion brings the others within `look_mm`. An
+    // infinite RMS (overflow) is not below either threshold.
+    let agree = all_rms <= fault_mm;
+    let all_strings = FkSolution {
+        position: all.position,
+        status: match (all.converged, agree) {
+            (false, _) => FkStatus::NotConverged,
+            (true, true) => FkStatus::Ok,
+            (true, false) => FkStatus::Inconsistent,
         },
-        ..agreeing
+        excluded: None,
+        rms_residual_mm: all_rms,
+        iterations,
     };
-    if layout.redundancy() < 2 {
-        // Leaving one string out would leave no spare to check the rest:
-        // any exclusion fits exactly, so none can be trusted.
-        return if all_rms <= fault_mm {
-            agreeing
-        } else {
-            inconsistent
-        };
+    if all_rms <= look_mm || layout.redundancy() < 2 {
+        // (With fewer than 2 spares, leaving one string out would leave no
+        // spare to check the rest: any exclusion fits exactly, so none can
+        // be trusted.)
+        return all_strings;
     }
 
     // The string with the largest residual at the all-string solution is the
@@ -511,11 +500,7 @@ pub fn forward_kinematics<F: Real>(
     let unique_required = layout.redundancy() < 4;
     // Strings that agree to within the fault threshold: an exclusion must
     // bring the others within the tighter one to be believed.
-    let fit_mm = if all_rms <= fault_mm {
-        look_mm
-    } else {
-        fault_mm
-    };
+    let fit_mm = if agree { look_mm } else { fault_mm };
     if !unique_required && s.converged && r <= fit_mm {
         return FkSolution {
             position: s.position,
@@ -551,18 +536,12 @@ pub fn forward_kinematics<F: Real>(
                 iterations,
             };
         }
-        if all_rms <= fault_mm {
-            return FkSolution {
-                iterations,
-                ..agreeing
-            };
-        }
         // No exclusion fits, but one explains most of the disagreement (a
         // faulty string on a device whose other strings disagree a little
         // too): its position is a better estimate than the compromise that
         // spreads the faulty string's error over all of them. Still
         // inconsistent: not to be trusted for force.
-        if !unique_required && s.converged && r * lit(DOMINANT_EXCLUSION) <= all_rms {
+        if !agree && !unique_required && s.converged && r * lit(DOMINANT_EXCLUSION) <= all_rms {
             return FkSolution {
                 position: s.position,
                 status: FkStatus::Inconsistent,
@@ -574,11 +553,7 @@ pub fn forward_kinematics<F: Real>(
     }
     FkSolution {
         iterations,
-        ..if all_rms <= fault_mm {
-            agreeing
-        } else {
-            inconsistent
-        }
+        ..all_strings
     }
 }
 
