@@ -4,6 +4,18 @@ use crate::model::{Calibration, Effect, EffectTerm, StringLaw};
 use crate::test_fixtures::cube_frame;
 use spidar_protocol::blob::CorrectionKind;
 
+/// `blob` with its string model replaced by `head` (`rest`: its
+/// correction), header and CRCs rewritten: a blob another tool could send.
+fn with_head(blob: &[u8], head: &BlobHead, rest: &[u8]) -> alloc::vec::Vec<u8> {
+    let mut body = postcard::to_allocvec(head).unwrap();
+    body.resize(body.len() + correction_padding(HEADER_LEN + body.len()), 0);
+    body.extend_from_slice(rest);
+    let h = ModelHeader::parse(blob).unwrap();
+    let mut out = alloc::vec![0u8; HEADER_LEN + body.len()];
+    spidar_protocol::blob::write_blob(&h, &body, &mut out).unwrap();
+    out
+}
+
 fn calibration() -> Calibration {
     Calibration {
         frame: cube_frame([1.0, -2.0, 3.0]),
@@ -180,15 +192,7 @@ fn layouts_below_the_degrees_of_freedom_and_effects_on_inactive_strings_are_refu
         string: 6,
         mm_q16: 1,
     };
-    let mut new_body = postcard::to_allocvec(&head).unwrap();
-    new_body.resize(
-        new_body.len() + correction_padding(HEADER_LEN + new_body.len()),
-        0,
-    );
-    new_body.extend_from_slice(rest);
-    let h = ModelHeader::parse(&blob).unwrap();
-    let mut out = alloc::vec![0u8; HEADER_LEN + new_body.len()];
-    spidar_protocol::blob::write_blob(&h, &new_body, &mut out).unwrap();
+    let out = with_head(&blob, &head, rest);
     assert_eq!(
         CompiledCalibration::from_blob(&out),
         Err(BlobError::InactiveString {
@@ -214,15 +218,7 @@ fn layouts_below_the_degrees_of_freedom_and_effects_on_inactive_strings_are_refu
     let (_, body) = split_blob(&blob).unwrap();
     let (mut head, rest) = split_body(body).unwrap();
     head.frame.layout.planar = false;
-    let mut new_body = postcard::to_allocvec(&head).unwrap();
-    new_body.resize(
-        new_body.len() + correction_padding(HEADER_LEN + new_body.len()),
-        0,
-    );
-    new_body.extend_from_slice(rest);
-    let h = ModelHeader::parse(&blob).unwrap();
-    let mut out = alloc::vec![0u8; HEADER_LEN + new_body.len()];
-    spidar_protocol::blob::write_blob(&h, &new_body, &mut out).unwrap();
+    let out = with_head(&blob, &head, rest);
     assert_eq!(
         CompiledCalibration::from_blob(&out),
         Err(BlobError::TooFewStrings { strings: 2, dof: 3 })
