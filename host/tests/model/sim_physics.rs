@@ -595,6 +595,74 @@ fn early_slips_are_sized_with_the_layer_tables() {
     assert!(test.mean_mm < 0.45, "{test:?}");
 }
 
+/// The slips of `r`'s model: (string, time, mm).
+fn slips_of(r: &spidar::model::diagnose::LoopResult) -> Vec<(u8, f64, f64)> {
+    use spidar_core::model::Effect;
+    r.identification
+        .effects
+        .iter()
+        .filter_map(|t| match t.effect {
+            Effect::Slip { at_s, mm } => Some((t.string, at_s, mm)),
+            _ => None,
+        })
+        .collect()
+}
+
+/// Asserts that `slips` holds each of `truth` (string, time, mm: the
+/// simulator's) on its string within 10 s of its time and 15 % of its size,
+/// and nothing else.
+fn assert_slips(slips: &[(u8, f64, f64)], truth: &[(u8, f64, f64)]) {
+    for &(string, at_s, mm) in truth {
+        let found = slips
+            .iter()
+            .find(|s| s.0 == string && (s.1 - at_s).abs() < 10.0)
+            .unwrap_or_else(|| panic!("no slip on string {string} at {at_s} s: {slips:?}"));
+        // The model's length steps the other way from what the spool gave out.
+        assert!(
+            (found.2.abs() - mm).abs() < 0.15 * mm,
+            "string {string} at {at_s} s: {} mm for {mm}",
+            found.2
+        );
+    }
+    assert_eq!(slips.len(), truth.len(), "{slips:?}");
+}
+
+/// Five strings slipped during one lattice (independent seed 1: strings 7,
+/// 0, 3, 4, 2 at rows 620, 1153, 1322, 1578, 1825 of 2197). Each step alone
+/// left the four others to the rest of the model and raised the held-out
+/// p95, and the layer tables, bent by the steps, were refused: the loop
+/// stopped with three found, two of them at the wrong time (test mean 0.73
+/// mm). The steps are now placed off the model, tried together when none
+/// helps alone, and looked for again once the tables are in.
+#[test]
+fn five_slips_of_one_session_are_found_on_their_strings() {
+    let r = loop_on(1, &["slip"]);
+    assert_slips(
+        &slips_of(&r),
+        &[
+            (7, 1388.6, 2.69),
+            (0, 2572.8, 2.71),
+            (3, 2931.9, 4.25),
+            (4, 3502.5, 3.41),
+            (2, 4021.1, 3.58),
+        ],
+    );
+    let test = r.stages.last().unwrap().test.unwrap();
+    assert!(test.mean_mm < 0.45, "{test:?}");
+}
+
+/// One string slipped twice (independent seed 4: string 5 at rows 126 and
+/// 704, -4.72 and +3.15 mm): both steps are found, the second off the model
+/// that holds the first (one slip a string was all the loop tried: test
+/// mean 0.93 mm).
+#[test]
+fn a_string_that_slipped_twice_gets_both_steps() {
+    let r = loop_on(4, &["slip"]);
+    assert_slips(&slips_of(&r), &[(5, 288.0, 4.72), (5, 1548.8, 3.15)]);
+    let test = r.stages.last().unwrap().test.unwrap();
+    assert!(test.mean_mm < 0.45, "{test:?}");
+}
+
 /// Heavy strings (20 g/m on every string, other physics: its sag is
 /// `w^2 cos^2(a) l^3 / (24 T^2)` and the string already sagged at the home
 /// capture, 1.1 N) are named one shared sag, against tension, with the
