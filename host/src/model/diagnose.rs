@@ -2563,8 +2563,10 @@ impl LoopState<'_> {
 
     /// Validates the model with `finding`'s `change` and judges it; adds it
     /// (a stage, the refit) when accepted. The finding, with its check,
-    /// replaces an earlier one of the same family and strings. Whether the
-    /// change was added.
+    /// replaces an earlier one of the same family and strings that was not
+    /// added (an added one is a stage of the model: a string's second slip
+    /// must not take its first out of the report). Whether the change was
+    /// added.
     fn try_change(&mut self, mut finding: Finding, change: Change) -> Result<bool, IdentifyError> {
         let candidate = self.structure.with(change);
         let moved = (candidate.marker_body_mm != self.structure.marker_body_mm)
@@ -2577,7 +2579,7 @@ impl LoopState<'_> {
         let accepted = check.accepted;
         finding.validation = Some(check);
         let same = |a: &Finding, b: &Finding| a.family == b.family && a.strings == b.strings;
-        self.findings.retain(|f| !same(f, &finding));
+        self.findings.retain(|f| f.added || !same(f, &finding));
         if !accepted {
             self.findings.push(finding);
             return Ok(false);

@@ -654,11 +654,18 @@ fn five_slips_of_one_session_are_found_on_their_strings() {
 /// One string slipped twice (independent seed 4: string 5 at rows 126 and
 /// 704, -4.72 and +3.15 mm): both steps are found, the second off the model
 /// that holds the first (one slip a string was all the loop tried: test
-/// mean 0.93 mm).
+/// mean 0.93 mm), and both are in the report.
 #[test]
 fn a_string_that_slipped_twice_gets_both_steps() {
     let r = loop_on(4, &["slip"]);
     assert_slips(&slips_of(&r), &[(5, 288.0, 4.72), (5, 1548.8, 3.15)]);
+    // The report keeps both: the second did not replace the first.
+    let reported = r
+        .findings
+        .iter()
+        .filter(|f| f.added && f.family == spidar::model::diagnose::Family::Slip)
+        .count();
+    assert_eq!(reported, 2, "{:?}", r.findings);
     let test = r.stages.last().unwrap().test.unwrap();
     assert!(test.mean_mm < 0.45, "{test:?}");
 }
