@@ -22,7 +22,7 @@ use crate::geometry::{device_direction, room_from_device};
 use crate::guidance::guidance_force;
 use crate::kinematics::{forward_kinematics, inverse_kinematics, FkConfig, FkStatus};
 use crate::model::{Frame, StringInputs};
-use crate::safety::{Faults, SafetyConfig, SafetyConfigError, SafetyMonitor};
+use crate::safety::{SafetyConfig, SafetyConfigError, SafetyFaults, SafetyMonitor};
 use crate::string_law::{cos2_inclinations, string_lengths, CompiledEffect};
 use crate::tension::{
     distribute_warm, TensionConfig, TensionLimits, TensionSolution, TensionStatus,
@@ -125,8 +125,8 @@ pub struct LoopOutput {
     pub rendered_fraction: f32,
     /// Tensions sent to the motors, N.
     pub tensions_n: [f32; STRINGS],
-    pub faults: Faults,
-    pub warnings: Faults,
+    pub faults: SafetyFaults,
+    pub warnings: SafetyFaults,
     pub slack_mask: u8,
     pub armed: bool,
 }

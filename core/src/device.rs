@@ -72,7 +72,7 @@ use crate::correction::{Correction, CorrectionSummary, ACTIVATION_FRAC, POSITION
 use crate::kinematics::FkStatus;
 use crate::model::{Frame, StringLaw, StringLayout};
 use crate::model_store::{CommitError, ModelFlash, ModelStore, StoreError, StoredModel};
-use crate::safety::{Faults as SafetyFaults, SafetyConfig, SafetyConfigError, SafetyMonitor};
+use crate::safety::{SafetyConfig, SafetyConfigError, SafetyFaults, SafetyMonitor};
 use crate::string_law::{compile_string_law, CompileError, CompiledStringLaw};
 use crate::tension::{force_closure, TensionStatus};
 use crate::STRINGS;

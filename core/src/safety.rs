@@ -9,17 +9,17 @@
 //!
 //! # Latching
 //!
-//! Every fault in [`Faults`] except [`Faults::OVERFORCE`] is **latched**: once
+//! Every fault in [`SafetyFaults`] except [`SafetyFaults::OVERFORCE`] is **latched**: once
 //! set it stays set, and the device is disarmed, until the host clears it
 //! explicitly with [`SafetyMonitor::clear`] (the host's arm command does
 //! `clear()` then `arm()`). Nothing clears a fault by itself: a heartbeat that
 //! resumes, a string that becomes taut again or a consistent position do not.
 //! Two faults reflect an input that is still present and survive `clear()`
-//! while it is: [`Faults::ESTOP`] (while the emergency-stop input is active)
-//! and [`Faults::MODEL_INVALID`] (while the calibration model is flagged
+//! while it is: [`SafetyFaults::ESTOP`] (while the emergency-stop input is active)
+//! and [`SafetyFaults::MODEL_INVALID`] (while the calibration model is flagged
 //! invalid).
 //!
-//! [`Faults::OVERFORCE`] is not a fault but a warning: a commanded force above
+//! [`SafetyFaults::OVERFORCE`] is not a fault but a warning: a commanded force above
 //! `f_max` is clamped (direction preserved), which is normal operation; the
 //! bit reports, in [`SafetyMonitor::warnings`], whether the last
 //! `limit_force` clamped.
@@ -37,33 +37,36 @@ use crate::real::Real;
 use crate::STRINGS;
 
 /// A set of safety faults, one bit each (see the module doc for which latch).
+/// The device's own: the wire's fault bits are `spidar_protocol::Faults`,
+/// which [`crate::device::protocol_faults`] maps these onto (`SLACK`,
+/// `FK_FAULT` and `NON_FINITE` all report as `KINEMATICS`).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
-pub struct Faults(u16);
+pub struct SafetyFaults(u16);
 
-impl Faults {
+impl SafetyFaults {
     /// No fault.
-    pub const NONE: Faults = Faults(0);
+    pub const NONE: SafetyFaults = SafetyFaults(0);
     /// No heartbeat from the host for longer than `heartbeat_timeout_ms`. Latched.
-    pub const HEARTBEAT_LOST: Faults = Faults(1 << 0);
+    pub const HEARTBEAT_LOST: SafetyFaults = SafetyFaults(1 << 0);
     /// A string is slack: measured longer than its geometric length by more
     /// than `slack_threshold_mm` (which strings: [`SafetyMonitor::slack_mask`]). Latched.
-    pub const SLACK: Faults = Faults(1 << 1);
+    pub const SLACK: SafetyFaults = SafetyFaults(1 << 1);
     /// Forward kinematics found no consistent position. Latched.
-    pub const FK_FAULT: Faults = Faults(1 << 2);
+    pub const FK_FAULT: SafetyFaults = SafetyFaults(1 << 2);
     /// A NaN or infinity in lengths, force or tensions. Latched.
-    pub const NON_FINITE: Faults = Faults(1 << 3);
+    pub const NON_FINITE: SafetyFaults = SafetyFaults(1 << 3);
     /// The last commanded force exceeded `f_max` and was clamped. Warning
     /// only, never latched.
-    pub const OVERFORCE: Faults = Faults(1 << 4);
+    pub const OVERFORCE: SafetyFaults = SafetyFaults(1 << 4);
     /// Hardware emergency-stop input active. Latched; survives `clear()`
     /// while the input is still active.
-    pub const ESTOP: Faults = Faults(1 << 5);
+    pub const ESTOP: SafetyFaults = SafetyFaults(1 << 5);
     /// The calibration model is invalid (e.g. blob failed to load). Latched;
     /// survives `clear()` while the model is still flagged invalid.
-    pub const MODEL_INVALID: Faults = Faults(1 << 6);
+    pub const MODEL_INVALID: SafetyFaults = SafetyFaults(1 << 6);
 
     /// Every defined bit.
-    pub const ALL: Faults = Faults(0x7f);
+    pub const ALL: SafetyFaults = SafetyFaults(0x7f);
 
     /// The raw bits.
     pub const fn bits(self) -> u16 {
@@ -71,8 +74,8 @@ impl Faults {
     }
 
     /// From raw bits; undefined bits are dropped.
-    pub const fn from_bits_truncate(bits: u16) -> Faults {
-        Faults(bits & Self::ALL.0)
+    pub const fn from_bits_truncate(bits: u16) -> SafetyFaults {
+        SafetyFaults(bits & Self::ALL.0)
     }
 
     /// Whether no bit is set.
@@ -81,35 +84,35 @@ impl Faults {
     }
 
     /// Whether every bit of `other` is set in `self`.
-    pub const fn contains(self, other: Faults) -> bool {
+    pub const fn contains(self, other: SafetyFaults) -> bool {
         self.0 & other.0 == other.0
     }
 
     /// Whether any bit of `other` is set in `self`.
-    pub const fn intersects(self, other: Faults) -> bool {
+    pub const fn intersects(self, other: SafetyFaults) -> bool {
         self.0 & other.0 != 0
     }
 
     /// Sets the bits of `other`.
-    pub fn insert(&mut self, other: Faults) {
+    pub fn insert(&mut self, other: SafetyFaults) {
         self.0 |= other.0;
     }
 
     /// Clears the bits of `other`.
-    pub fn remove(&mut self, other: Faults) {
+    pub fn remove(&mut self, other: SafetyFaults) {
         self.0 &= !other.0;
     }
 }
 
-impl BitOr for Faults {
-    type Output = Faults;
-    fn bitor(self, rhs: Faults) -> Faults {
-        Faults(self.0 | rhs.0)
+impl BitOr for SafetyFaults {
+    type Output = SafetyFaults;
+    fn bitor(self, rhs: SafetyFaults) -> SafetyFaults {
+        SafetyFaults(self.0 | rhs.0)
     }
 }
 
-impl BitOrAssign for Faults {
-    fn bitor_assign(&mut self, rhs: Faults) {
+impl BitOrAssign for SafetyFaults {
+    fn bitor_assign(&mut self, rhs: SafetyFaults) {
         self.0 |= rhs.0;
     }
 }
@@ -203,8 +206,8 @@ impl SafetyConfig {
 #[derive(Clone, Debug, PartialEq)]
 pub struct SafetyMonitor {
     config: SafetyConfig,
-    faults: Faults,
-    warnings: Faults,
+    faults: SafetyFaults,
+    warnings: SafetyFaults,
     slack_mask: u8,
     armed: bool,
     last_heartbeat_ms: Option<u32>,
@@ -224,8 +227,8 @@ impl SafetyMonitor {
         config.validate()?;
         Ok(Self {
             config,
-            faults: Faults::NONE,
-            warnings: Faults::NONE,
+            faults: SafetyFaults::NONE,
+            warnings: SafetyFaults::NONE,
             slack_mask: 0,
             armed: false,
             last_heartbeat_ms: None,
@@ -251,7 +254,7 @@ impl SafetyMonitor {
     pub fn set_estop(&mut self, active: bool) {
         self.estop_active = active;
         if active {
-            self.latch(Faults::ESTOP);
+            self.latch(SafetyFaults::ESTOP);
         }
     }
 
@@ -259,7 +262,7 @@ impl SafetyMonitor {
     pub fn set_model_valid(&mut self, valid: bool) {
         self.model_valid = valid;
         if !valid {
-            self.latch(Faults::MODEL_INVALID);
+            self.latch(SafetyFaults::MODEL_INVALID);
         }
     }
 
@@ -306,24 +309,24 @@ impl SafetyMonitor {
         measured_lengths_mm: &[f32; STRINGS],
         geometric_lengths_mm: &[f32; STRINGS],
         fk_ok: bool,
-    ) -> Faults {
+    ) -> SafetyFaults {
         match self.last_heartbeat_ms {
             Some(last) => {
                 // Wrapping difference; a heartbeat stamped after `now_ms`
                 // (negative age) counts as fresh.
                 let age = now_ms.wrapping_sub(last) as i32;
                 if age > self.config.heartbeat_timeout_ms as i32 {
-                    self.latch(Faults::HEARTBEAT_LOST);
+                    self.latch(SafetyFaults::HEARTBEAT_LOST);
                 }
             }
             None => {
                 if self.armed {
-                    self.latch(Faults::HEARTBEAT_LOST);
+                    self.latch(SafetyFaults::HEARTBEAT_LOST);
                 }
             }
         }
         if !fk_ok && self.lengths_calibrated {
-            self.latch(Faults::FK_FAULT);
+            self.latch(SafetyFaults::FK_FAULT);
         }
         let mut slack = 0u8;
         let mut non_finite = false;
@@ -338,17 +341,17 @@ impl SafetyMonitor {
         // Inactive channels' lengths are not the strings': left out.
         slack &= self.active;
         if non_finite {
-            self.latch(Faults::NON_FINITE);
+            self.latch(SafetyFaults::NON_FINITE);
         }
         if slack != 0 {
             self.slack_mask |= slack;
-            self.latch(Faults::SLACK);
+            self.latch(SafetyFaults::SLACK);
         }
         if self.estop_active {
-            self.latch(Faults::ESTOP);
+            self.latch(SafetyFaults::ESTOP);
         }
         if !self.model_valid {
-            self.latch(Faults::MODEL_INVALID);
+            self.latch(SafetyFaults::MODEL_INVALID);
         }
         self.faults
     }
@@ -358,7 +361,7 @@ impl SafetyMonitor {
     /// force becomes zero and latches `NON_FINITE`.
     pub fn limit_force(&mut self, force: [f32; 3]) -> [f32; 3] {
         if !force.iter().all(|f| f.is_finite()) {
-            self.latch(Faults::NON_FINITE);
+            self.latch(SafetyFaults::NON_FINITE);
             return [0.0; 3];
         }
         // Scaled norm: no overflow for any finite force.
@@ -366,18 +369,18 @@ impl SafetyMonitor {
             .iter()
             .fold(0.0f32, |m, f| if f.abs() > m { f.abs() } else { m });
         if m <= 0.0 {
-            self.warnings.remove(Faults::OVERFORCE);
+            self.warnings.remove(SafetyFaults::OVERFORCE);
             return force;
         }
         let w = [force[0] / m, force[1] / m, force[2] / m];
         let w_norm = (w[0] * w[0] + w[1] * w[1] + w[2] * w[2]).sqrt_rounded();
         let norm = m * w_norm; // may be +inf for huge finite forces
         if norm > self.config.f_max {
-            self.warnings.insert(Faults::OVERFORCE);
+            self.warnings.insert(SafetyFaults::OVERFORCE);
             let scale = self.config.f_max / w_norm;
             [w[0] * scale, w[1] * scale, w[2] * scale]
         } else {
-            self.warnings.remove(Faults::OVERFORCE);
+            self.warnings.remove(SafetyFaults::OVERFORCE);
             force
         }
     }
@@ -395,7 +398,7 @@ impl SafetyMonitor {
             (0..STRINGS).all(|i| active >> i & 1 == 0 || tensions[i].is_finite())
         };
         if !finite {
-            self.latch(Faults::NON_FINITE);
+            self.latch(SafetyFaults::NON_FINITE);
         }
         let mut out = if !self.faults.is_empty() || !self.armed {
             [self.config.pretension_n; STRINGS]
@@ -424,12 +427,12 @@ impl SafetyMonitor {
     /// Arms the device (tensions pass through `apply`). Refused, returning the
     /// blocking faults, while any fault is latched or before the first
     /// heartbeat (`HEARTBEAT_LOST`).
-    pub fn arm(&mut self) -> Result<(), Faults> {
+    pub fn arm(&mut self) -> Result<(), SafetyFaults> {
         if !self.faults.is_empty() {
             return Err(self.faults);
         }
         if self.last_heartbeat_ms.is_none() {
-            return Err(Faults::HEARTBEAT_LOST);
+            return Err(SafetyFaults::HEARTBEAT_LOST);
         }
         self.armed = true;
         Ok(())
@@ -446,12 +449,12 @@ impl SafetyMonitor {
     }
 
     /// The latched faults.
-    pub fn faults(&self) -> Faults {
+    pub fn faults(&self) -> SafetyFaults {
         self.faults
     }
 
     /// Warnings of the last call (`OVERFORCE`), not latched.
-    pub fn warnings(&self) -> Faults {
+    pub fn warnings(&self) -> SafetyFaults {
         self.warnings
     }
 
@@ -463,21 +466,21 @@ impl SafetyMonitor {
     /// Clears the latched faults and the slack mask, except `ESTOP` and
     /// `MODEL_INVALID` while their inputs are still active. Does not arm.
     /// Returns the faults still latched.
-    pub fn clear(&mut self) -> Faults {
-        let mut keep = Faults::NONE;
+    pub fn clear(&mut self) -> SafetyFaults {
+        let mut keep = SafetyFaults::NONE;
         if self.estop_active {
-            keep.insert(Faults::ESTOP);
+            keep.insert(SafetyFaults::ESTOP);
         }
         if !self.model_valid {
-            keep.insert(Faults::MODEL_INVALID);
+            keep.insert(SafetyFaults::MODEL_INVALID);
         }
-        self.faults = Faults::from_bits_truncate(self.faults.bits() & keep.bits());
+        self.faults = SafetyFaults::from_bits_truncate(self.faults.bits() & keep.bits());
         self.slack_mask = 0;
         self.faults
     }
 
     /// Latches `fault` and disarms.
-    fn latch(&mut self, fault: Faults) {
+    fn latch(&mut self, fault: SafetyFaults) {
         self.faults.insert(fault);
         self.armed = false;
     }

@@ -123,7 +123,7 @@ fn uncalibrated_lengths_raise_no_consistency_fault() {
         last.unwrap()
     };
     let calibrated = run(true);
-    assert!(calibrated.faults.contains(Faults::FK_FAULT));
+    assert!(calibrated.faults.contains(SafetyFaults::FK_FAULT));
     assert!(!calibrated.armed);
     let nominal = run(false);
     assert!(nominal.faults.is_empty(), "{:?}", nominal.faults);
@@ -230,7 +230,7 @@ fn heartbeat_loss_drops_to_pretension() {
     };
     assert!(step(&mut ctl, 10).armed);
     let late = step(&mut ctl, 10 + config.safety.heartbeat_timeout_ms + 1);
-    assert!(late.faults.contains(Faults::HEARTBEAT_LOST));
+    assert!(late.faults.contains(SafetyFaults::HEARTBEAT_LOST));
     assert!(late
         .tensions_n
         .iter()

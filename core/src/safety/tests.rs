@@ -26,7 +26,7 @@ fn inactive_channels_are_not_checked_and_get_no_tension() {
     let mut measured = LENGTHS;
     measured[5] = f32::NAN;
     measured[6] = 2000.0;
-    assert_eq!(m.check(10, &measured, &LENGTHS, true), Faults::NONE);
+    assert_eq!(m.check(10, &measured, &LENGTHS, true), SafetyFaults::NONE);
     let mut t = [3.0; STRINGS];
     t[7] = f32::NAN;
     let out = m.apply(t);
@@ -37,7 +37,7 @@ fn inactive_channels_are_not_checked_and_get_no_tension() {
     assert_eq!(m.apply(t), [1.0, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0]);
     // A slack active string is still seen.
     measured[2] = 1010.0;
-    assert_eq!(m.check(20, &measured, &LENGTHS, true), Faults::SLACK);
+    assert_eq!(m.check(20, &measured, &LENGTHS, true), SafetyFaults::SLACK);
     assert_eq!(m.slack_mask(), 0b100);
 }
 
@@ -45,13 +45,13 @@ fn inactive_channels_are_not_checked_and_get_no_tension() {
 fn heartbeat_timeout_latches_until_clear() {
     let mut m = armed_monitor();
     let t = [5.0; STRINGS];
-    assert_eq!(m.check(50, &LENGTHS, &LENGTHS, true), Faults::NONE);
+    assert_eq!(m.check(50, &LENGTHS, &LENGTHS, true), SafetyFaults::NONE);
     assert_eq!(m.apply(t), t);
     m.heartbeat(90);
-    assert_eq!(m.check(190, &LENGTHS, &LENGTHS, true), Faults::NONE); // exactly the timeout
+    assert_eq!(m.check(190, &LENGTHS, &LENGTHS, true), SafetyFaults::NONE); // exactly the timeout
     assert_eq!(
         m.check(191, &LENGTHS, &LENGTHS, true),
-        Faults::HEARTBEAT_LOST
+        SafetyFaults::HEARTBEAT_LOST
     );
     assert!(!m.is_armed());
     assert_eq!(m.apply(t), [CONFIG.pretension_n; STRINGS]);
@@ -59,15 +59,15 @@ fn heartbeat_timeout_latches_until_clear() {
     m.heartbeat(200);
     assert_eq!(
         m.check(210, &LENGTHS, &LENGTHS, true),
-        Faults::HEARTBEAT_LOST
+        SafetyFaults::HEARTBEAT_LOST
     );
     assert_eq!(m.apply(t), [CONFIG.pretension_n; STRINGS]);
-    assert_eq!(m.arm(), Err(Faults::HEARTBEAT_LOST));
+    assert_eq!(m.arm(), Err(SafetyFaults::HEARTBEAT_LOST));
     // The host's arm command: clear, then arm.
-    assert_eq!(m.clear(), Faults::NONE);
+    assert_eq!(m.clear(), SafetyFaults::NONE);
     assert_eq!(m.apply(t), [CONFIG.pretension_n; STRINGS]); // cleared but not armed
     m.arm().unwrap();
-    assert_eq!(m.check(220, &LENGTHS, &LENGTHS, true), Faults::NONE);
+    assert_eq!(m.check(220, &LENGTHS, &LENGTHS, true), SafetyFaults::NONE);
     assert_eq!(m.apply(t), t);
 }
 
@@ -76,20 +76,23 @@ fn heartbeat_age_wraps_with_the_clock() {
     let mut m = SafetyMonitor::new(CONFIG).unwrap();
     m.heartbeat(u32::MAX - 10);
     m.arm().unwrap();
-    assert_eq!(m.check(20, &LENGTHS, &LENGTHS, true), Faults::NONE); // 31 ms later
-    assert_eq!(m.check(89, &LENGTHS, &LENGTHS, true), Faults::NONE); // 100 ms later
+    assert_eq!(m.check(20, &LENGTHS, &LENGTHS, true), SafetyFaults::NONE); // 31 ms later
+    assert_eq!(m.check(89, &LENGTHS, &LENGTHS, true), SafetyFaults::NONE); // 100 ms later
     assert_eq!(
         m.check(90, &LENGTHS, &LENGTHS, true),
-        Faults::HEARTBEAT_LOST
+        SafetyFaults::HEARTBEAT_LOST
     ); // 101 ms
 }
 
 #[test]
 fn arming_needs_a_heartbeat() {
     let mut m = SafetyMonitor::new(CONFIG).unwrap();
-    assert_eq!(m.arm(), Err(Faults::HEARTBEAT_LOST));
+    assert_eq!(m.arm(), Err(SafetyFaults::HEARTBEAT_LOST));
     // Disarmed and never heard from the host: idle, no fault.
-    assert_eq!(m.check(10_000, &LENGTHS, &LENGTHS, true), Faults::NONE);
+    assert_eq!(
+        m.check(10_000, &LENGTHS, &LENGTHS, true),
+        SafetyFaults::NONE
+    );
     assert_eq!(m.apply([5.0; STRINGS]), [CONFIG.pretension_n; STRINGS]);
 }
 
@@ -100,16 +103,19 @@ fn slack_is_detected_on_the_right_string() {
     measured[5] = 1006.0; // 6 mm longer than geometric: slack
     measured[3] = 1004.0; // 4 mm: within threshold
     measured[1] = 980.0; // shorter (stretched estimate): not slack
-    assert_eq!(m.check(10, &measured, &LENGTHS, true), Faults::SLACK);
+    assert_eq!(m.check(10, &measured, &LENGTHS, true), SafetyFaults::SLACK);
     assert_eq!(m.slack_mask(), 0b0010_0000);
     assert_eq!(m.apply([5.0; STRINGS]), [CONFIG.pretension_n; STRINGS]);
     // Taut again: still latched, mask kept.
-    assert_eq!(m.check(20, &LENGTHS, &LENGTHS, true), Faults::SLACK);
+    assert_eq!(m.check(20, &LENGTHS, &LENGTHS, true), SafetyFaults::SLACK);
     assert_eq!(m.slack_mask(), 0b0010_0000);
     m.clear();
     assert_eq!(m.slack_mask(), 0);
     // Without a consistent position the slack test is skipped; FK_FAULT latches.
-    assert_eq!(m.check(30, &measured, &LENGTHS, false), Faults::FK_FAULT);
+    assert_eq!(
+        m.check(30, &measured, &LENGTHS, false),
+        SafetyFaults::FK_FAULT
+    );
     assert_eq!(m.slack_mask(), 0);
 }
 
@@ -121,7 +127,7 @@ fn tensions_and_force_are_clamped() {
     // |(30, 40, 0)| = 50 N > 10 N: scaled to (6, 8, 0).
     let f = m.limit_force([30.0, 40.0, 0.0]);
     assert!((f[0] - 6.0).abs() < 1e-6 && (f[1] - 8.0).abs() < 1e-6 && f[2] == 0.0);
-    assert!(m.warnings().contains(Faults::OVERFORCE));
+    assert!(m.warnings().contains(SafetyFaults::OVERFORCE));
     assert!(m.faults().is_empty() && m.is_armed()); // a warning, not a fault
     assert_eq!(m.limit_force([1.0, -2.0, 2.0]), [1.0, -2.0, 2.0]);
     assert!(m.warnings().is_empty());
@@ -137,17 +143,20 @@ fn nan_gives_pretension_and_latches() {
     let mut t = [5.0; STRINGS];
     t[2] = f32::NAN;
     assert_eq!(m.apply(t), [CONFIG.pretension_n; STRINGS]);
-    assert_eq!(m.faults(), Faults::NON_FINITE);
+    assert_eq!(m.faults(), SafetyFaults::NON_FINITE);
     assert_eq!(m.apply([5.0; STRINGS]), [CONFIG.pretension_n; STRINGS]);
     m.clear();
     m.arm().unwrap();
     assert_eq!(m.limit_force([f32::NAN, 0.0, 0.0]), [0.0; 3]);
-    assert_eq!(m.faults(), Faults::NON_FINITE);
+    assert_eq!(m.faults(), SafetyFaults::NON_FINITE);
     m.clear();
     m.arm().unwrap();
     let mut measured = LENGTHS;
     measured[7] = f32::INFINITY;
-    assert_eq!(m.check(10, &measured, &LENGTHS, true), Faults::NON_FINITE);
+    assert_eq!(
+        m.check(10, &measured, &LENGTHS, true),
+        SafetyFaults::NON_FINITE
+    );
     assert_eq!(m.slack_mask(), 0);
 }
 
@@ -156,16 +165,19 @@ fn estop_and_model_survive_clear_while_active() {
     let mut m = armed_monitor();
     m.set_estop(true);
     assert!(!m.is_armed());
-    assert_eq!(m.clear(), Faults::ESTOP);
-    assert_eq!(m.arm(), Err(Faults::ESTOP));
+    assert_eq!(m.clear(), SafetyFaults::ESTOP);
+    assert_eq!(m.arm(), Err(SafetyFaults::ESTOP));
     m.set_estop(false);
-    assert_eq!(m.faults(), Faults::ESTOP); // still latched
-    assert_eq!(m.clear(), Faults::NONE);
+    assert_eq!(m.faults(), SafetyFaults::ESTOP); // still latched
+    assert_eq!(m.clear(), SafetyFaults::NONE);
     m.set_model_valid(false);
-    assert_eq!(m.clear(), Faults::MODEL_INVALID);
-    assert_eq!(m.check(10, &LENGTHS, &LENGTHS, true), Faults::MODEL_INVALID);
+    assert_eq!(m.clear(), SafetyFaults::MODEL_INVALID);
+    assert_eq!(
+        m.check(10, &LENGTHS, &LENGTHS, true),
+        SafetyFaults::MODEL_INVALID
+    );
     m.set_model_valid(true);
-    assert_eq!(m.clear(), Faults::NONE);
+    assert_eq!(m.clear(), SafetyFaults::NONE);
     m.arm().unwrap();
     assert!(m.is_armed());
     m.disarm();
@@ -174,14 +186,17 @@ fn estop_and_model_survive_clear_while_active() {
 
 #[test]
 fn faults_bit_set() {
-    let mut f = Faults::SLACK | Faults::ESTOP;
-    assert!(f.contains(Faults::SLACK) && f.intersects(Faults::ESTOP | Faults::FK_FAULT));
-    assert!(!f.contains(Faults::SLACK | Faults::FK_FAULT));
-    f.remove(Faults::SLACK);
-    assert_eq!(f, Faults::ESTOP);
-    f |= Faults::NON_FINITE;
+    let mut f = SafetyFaults::SLACK | SafetyFaults::ESTOP;
+    assert!(
+        f.contains(SafetyFaults::SLACK)
+            && f.intersects(SafetyFaults::ESTOP | SafetyFaults::FK_FAULT)
+    );
+    assert!(!f.contains(SafetyFaults::SLACK | SafetyFaults::FK_FAULT));
+    f.remove(SafetyFaults::SLACK);
+    assert_eq!(f, SafetyFaults::ESTOP);
+    f |= SafetyFaults::NON_FINITE;
     assert_eq!(f.bits(), (1 << 5) | (1 << 3));
-    assert_eq!(Faults::from_bits_truncate(0xffff), Faults::ALL);
+    assert_eq!(SafetyFaults::from_bits_truncate(0xffff), SafetyFaults::ALL);
 }
 
 #[test]
