@@ -228,7 +228,7 @@ fn run_on_virtual_device(
     calibration_dir: &Path,
 ) -> Result<String, CalibrateError> {
     use spidar::sim::measure::measure_on_virtual_device;
-    use spidar::sim::{simulate_session_with_truth, Device, SessionKind, SimConfig};
+    use spidar::sim::{simulate_session_with_truth, SessionKind, SimConfig, SimDevice};
     use spidar_core::correction::CorrectionModel;
     use spidar_core::model::Calibration;
 
@@ -237,7 +237,7 @@ fn run_on_virtual_device(
         None => SimConfig::default(),
     };
     config.effects.extend(args.effects.iter().cloned());
-    let device = Device::new(&config, args.seed)?;
+    let device = SimDevice::new(&config, args.seed)?;
     // The test session's trajectory (run_simulate's seed rule for random sessions).
     let (_, truths) = simulate_session_with_truth(
         &device,

@@ -27,7 +27,7 @@ use spidar::model::diagnose::{family_name, variable_name};
 use spidar::model::identify::inputs_at;
 use spidar::procedures::calibrate::{calibrate, CalibrateConfig, Calibrated, NamedSession};
 use spidar::sim::physics::{self, PhysicsConfig, PhysicsDevice, PhysicsTruth};
-use spidar::sim::{simulate_session, Device, SessionKind, SimConfig};
+use spidar::sim::{simulate_session, SessionKind, SimConfig, SimDevice};
 use spidar_core::geometry::device_from_room;
 use spidar_core::string_law::string_lengths_f64;
 use spidar_core::STRINGS;
@@ -45,7 +45,7 @@ fn model_run(seed: u64, effect: Option<&str>) -> Run {
         effects: effect.map(|e| vec![e.to_string()]).unwrap_or_default(),
         ..SimConfig::default()
     };
-    let device = Device::new(&config, seed).expect("model device");
+    let device = SimDevice::new(&config, seed).expect("model device");
     Run {
         geometry: device.nominal.clone(),
         train: simulate_session(&device, SessionKind::Lattice, seed + 1).expect("lattice"),
@@ -565,7 +565,7 @@ fn print_extrapolation(seeds: u64, config: &CalibrateConfig, clean_physics: &[Cl
         let c = run_calibration(&run, config);
         let mut wide = SimConfig::default();
         wide.lattice.size_mm = 1200.0;
-        let device = Device::new(&wide, seed).expect("model device");
+        let device = SimDevice::new(&wide, seed).expect("model device");
         let test = simulate_session(
             &device,
             SessionKind::Random {

@@ -1327,7 +1327,7 @@ pub fn calibrate_simulated_with(
     sim_config: &crate::sim::SimConfig,
 ) -> Result<SimCalibration, MonitorError> {
     use crate::procedures::calibrate::{calibrate, CalibrateConfig, NamedSession};
-    use crate::sim::{simulate_session, Device as SimDevice, SessionKind, SimConfig};
+    use crate::sim::{simulate_session, SessionKind, SimConfig, SimDevice};
     let t0 = Instant::now();
     let config = SimConfig {
         effects: Vec::new(),
@@ -1437,7 +1437,7 @@ impl SimulatedMonitorRig {
         config: &SimRigConfig,
     ) -> Result<SimulatedMonitorRig, MonitorError> {
         use crate::sim::operator::{FreeMotion, SimulatedRig};
-        use crate::sim::{Device as SimDevice, SimConfig};
+        use crate::sim::{SimConfig, SimDevice};
         let sim_config = SimConfig {
             effects: config.effects.clone(),
             ..calibrated.sim_config.clone()

@@ -40,7 +40,7 @@ pub(crate) fn normal(field: &str, sigma: f64) -> Result<Normal<f64>, SimError> {
 /// One simulated device as built. The same device gives any number of
 /// sessions (train and test) with the same as-built errors.
 #[derive(Clone, Debug)]
-pub struct Device {
+pub struct SimDevice {
     pub config: SimConfig,
     /// The device seed.
     pub seed: u64,
@@ -262,10 +262,10 @@ fn home_windings(
     Ok((laws, home_wound_mm))
 }
 
-impl Device {
+impl SimDevice {
     /// Build the device: draw its as-built errors from `seed`, apply the
     /// configured injected effects.
-    pub fn new(config: &SimConfig, seed: u64) -> Result<Device, SimError> {
+    pub fn new(config: &SimConfig, seed: u64) -> Result<SimDevice, SimError> {
         config.validate()?;
         let nominal = declaring_pretension(config.nominal.geometry(), config.tension.pretension_n);
         let ab = &config.as_built;
@@ -295,7 +295,7 @@ impl Device {
             nominal.counts_per_rev[0],
         )?;
 
-        Ok(Device {
+        Ok(SimDevice {
             config: config.clone(),
             seed,
             nominal,

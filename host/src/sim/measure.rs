@@ -15,7 +15,7 @@ use crate::device::link::{Client, LinkError, StreamOptions};
 use crate::sim::virtual_device::{
     spawn, Pace, Plant, Trajectory, VirtualDeviceConfig, VirtualDeviceError,
 };
-use crate::sim::{Device, SampleTruth};
+use crate::sim::{SampleTruth, SimDevice};
 
 /// Why a device run failed.
 #[derive(Debug, thiserror::Error)]
@@ -44,7 +44,7 @@ pub struct DeviceRun {
 /// plant), power-cycles it so it homes at the trajectory's start, streams the
 /// whole trajectory and measures the reported positions.
 pub fn measure_on_virtual_device(
-    device: &Device,
+    device: &SimDevice,
     trajectory: &[SampleTruth],
     blob: &[u8],
 ) -> Result<DeviceRun, DeviceRunError> {

@@ -49,7 +49,7 @@ use crate::device::tracker::dtrack::{format_datagram, BodyPose, DtrackFrame};
 use crate::device::tracker::ReadProgress;
 use crate::device::tracker::TrackerError;
 use crate::sim::virtual_device::Hand;
-use crate::sim::Device as SimDevice;
+use crate::sim::SimDevice;
 use spidar_core::geometry::distance;
 
 /// What the hand does when no target is shown and no beep says "hold".

@@ -1,5 +1,5 @@
 //! The physical side of the virtual device: a simulated SPIDAR
-//! ([`crate::sim::Device`]: true anchors, home, winding laws and injected
+//! ([`crate::sim::SimDevice`]: true anchors, home, winding laws and injected
 //! effects) whose end-effector follows a [`Trajectory`], motors whose string
 //! tension follows the commanded tension with a first-order lag, and 16-bit
 //! encoder counters that read the true string lengths (and wrap).
@@ -11,7 +11,7 @@ use std::time::Duration;
 use spidar_core::STRINGS;
 
 pub use crate::device::tracker::clock::SimClock;
-use crate::sim::{Device as SimDevice, InjectedEffect, SampleTruth};
+use crate::sim::{InjectedEffect, SampleTruth, SimDevice};
 use spidar_core::geometry::{norm, sub};
 
 /// A point of a [`Trajectory::Waypoints`] path.

@@ -8,7 +8,7 @@ use spidar_core::model::{EffectTerm, Frame, StringLaw};
 use spidar_core::STRINGS;
 
 use super::config::SimConfig;
-use super::device::Device;
+use super::device::SimDevice;
 use super::effects::InjectedEffect;
 use super::SimError;
 
@@ -41,7 +41,7 @@ pub struct Truth {
 
 impl Truth {
     /// The truth of `device`.
-    pub fn of(device: &Device) -> Truth {
+    pub fn of(device: &SimDevice) -> Truth {
         Truth {
             seed: device.seed,
             frame: device.frame,

@@ -8,7 +8,7 @@ use std::path::Path;
 use spidar::data::dataset::Session;
 use spidar::procedures::calibrate::align::SessionTiming;
 use spidar::procedures::calibrate::{calibrate, CalibrateConfig, Calibrated, NamedSession};
-use spidar::sim::{simulate_session, Device, SessionKind, SimConfig};
+use spidar::sim::{simulate_session, SessionKind, SimConfig, SimDevice};
 
 fn config(strings: usize, planar: bool) -> SimConfig {
     let mut c = SimConfig::default();
@@ -46,7 +46,7 @@ fn four_strings_in_3d_and_three_in_the_plane_calibrate_to_the_tracker_noise() {
     for (strings, planar, floor_mm) in [(4, false, 0.32), (3, true, 0.25)] {
         let mut c = config(strings, planar);
         c.lattice.cells_per_axis = 7;
-        let device = Device::new(&c, 3).unwrap();
+        let device = SimDevice::new(&c, 3).unwrap();
         let train = simulate_session(&device, SessionKind::Lattice, 4).unwrap();
         let test = simulate_session(&device, SessionKind::Random { points: 300 }, 5).unwrap();
         assert_eq!((train.strings, test.strings), (strings, strings));
@@ -88,7 +88,7 @@ fn a_two_second_tracker_clock_offset_is_found_and_removed() {
         let mut c = config(4, true);
         c.random.capture_interval_s = 0.01;
         c.tracker.clock_offset_s = offset_s;
-        let device = Device::new(&c, 5).unwrap();
+        let device = SimDevice::new(&c, 5).unwrap();
         let train = simulate_session(&device, SessionKind::Random { points: 3000 }, 11).unwrap();
         let test = simulate_session(&device, SessionKind::Random { points: 1000 }, 12).unwrap();
         let r = run(&c, &train, &test);
@@ -115,7 +115,7 @@ fn shared_rows_and_points_beyond_the_training_volume_are_warned_about() {
     let mut c = config(8, false);
     c.lattice.cells_per_axis = 5;
     c.lattice.size_mm = 400.0;
-    let device = Device::new(&c, 2).unwrap();
+    let device = SimDevice::new(&c, 2).unwrap();
     let train = simulate_session(&device, SessionKind::Lattice, 3).unwrap();
     // The test session is the training session.
     let r = run(&c, &train, &train);
@@ -129,7 +129,7 @@ fn shared_rows_and_points_beyond_the_training_volume_are_warned_about() {
     );
     // Random points over a 1 m cube against a 0.4 m training lattice.
     c.lattice.size_mm = 1000.0;
-    let wide = Device::new(&c, 2).unwrap();
+    let wide = SimDevice::new(&c, 2).unwrap();
     let test = simulate_session(&wide, SessionKind::Random { points: 200 }, 4).unwrap();
     let r = run(&c, &train, &test);
     let w = r

@@ -21,14 +21,14 @@ use spidar_protocol::{
     MAX_FRAME,
 };
 
-fn sim_device(seed: u64) -> sim::Device {
+fn sim_device(seed: u64) -> sim::SimDevice {
     let mut config = SimConfig::default();
     config.abnormal_motor.enabled = false;
     config.effects = vec![
         "offset:2:mm=3".into(),
         "backlash:5:half_width_mm=0.4".into(),
     ];
-    sim::Device::new(&config, seed).expect("simulated device")
+    sim::SimDevice::new(&config, seed).expect("simulated device")
 }
 
 fn nn(hidden: usize) -> CorrectionModel {
@@ -185,7 +185,7 @@ fn the_virtual_device_survives_garbage_on_its_port() {
     c.hello().unwrap();
 }
 
-fn truth_calibration(dev: &sim::Device, correction: CorrectionModel) -> Calibration {
+fn truth_calibration(dev: &sim::SimDevice, correction: CorrectionModel) -> Calibration {
     Calibration {
         frame: dev.frame,
         strings: dev.laws,
