@@ -304,7 +304,7 @@ fn extrapolation(
 ) -> (ErrorStats, ErrorStats) {
     let cal = &c.calibration;
     let obs = observations(&test.samples);
-    let model = spidar::model::predict::StringModel {
+    let model = spidar::model::predict::KinematicModel {
         frame: &cal.frame,
         laws: &cal.strings,
         effects: &cal.effects,

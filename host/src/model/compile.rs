@@ -25,7 +25,7 @@ use spidar_protocol::blob::{BlobError, CRC32};
 use crate::data::dataset::{DatasetError, Geometry, Session};
 use crate::data::observe::{observations, Observation};
 use crate::data::stats::ErrorStats;
-use crate::model::predict::{corrected, predict, StringModel};
+use crate::model::predict::{corrected, predict, KinematicModel};
 
 /// Mean fixed-point error allowed by the budget, mm.
 pub const FIXED_POINT_BUDGET_MM: f64 = 0.02;
@@ -135,7 +135,7 @@ pub fn fixed_point_error(
     blob: &CompiledCalibration<'_>,
     observations: &[Observation],
 ) -> Option<FixedPointError> {
-    let reference = predict(StringModel::of(calibration), observations);
+    let reference = predict(KinematicModel::of(calibration), observations);
     let reference_corrected = corrected(&calibration.correction, &reference);
     let device = device_positions(blob, observations);
     let ok = |s: FkStatus| matches!(s, FkStatus::Ok | FkStatus::FaultyStringExcluded);

@@ -1869,7 +1869,7 @@ fn held_out_error_list(id: &Identification, observations: &[Observation]) -> Vec
 }
 
 fn error_list(id: &Identification, observations: &[Observation], fk: &FkConfig<f64>) -> Vec<f64> {
-    let predictions = predict_with(id.string_model(), observations, fk);
+    let predictions = predict_with(id.kinematic_model(), observations, fk);
     let room: Vec<[f64; 3]> = predictions.iter().map(|p| p.room).collect();
     let (p, t) = paired_with_tracker(&room, observations);
     position_errors(&p, &t)

@@ -275,9 +275,9 @@ pub struct Identification {
 }
 
 impl Identification {
-    /// Its string model (what forward kinematics needs).
-    pub fn string_model(&self) -> crate::model::predict::StringModel<'_> {
-        crate::model::predict::StringModel {
+    /// Its kinematic model (what forward kinematics needs).
+    pub fn kinematic_model(&self) -> crate::model::predict::KinematicModel<'_> {
+        crate::model::predict::KinematicModel {
             frame: &self.frame,
             laws: &self.laws,
             effects: &self.effects,

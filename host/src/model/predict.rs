@@ -30,17 +30,19 @@ pub struct Prediction {
     pub excluded: Option<u8>,
 }
 
-/// The string model of a calibration (what forward kinematics needs).
+/// The kinematic model of a calibration: its frame, string laws and effect
+/// terms, what forward kinematics needs (not the nominal string model a
+/// device is given over the link, `spidar_protocol::StringModel`).
 #[derive(Clone, Copy, Debug)]
-pub struct StringModel<'a> {
+pub struct KinematicModel<'a> {
     pub frame: &'a Frame<f64>,
     pub laws: &'a [StringLaw; STRINGS],
     pub effects: &'a [EffectTerm],
 }
 
-impl<'a> StringModel<'a> {
-    pub fn of(calibration: &'a Calibration) -> StringModel<'a> {
-        StringModel {
+impl<'a> KinematicModel<'a> {
+    pub fn of(calibration: &'a Calibration) -> KinematicModel<'a> {
+        KinematicModel {
             frame: &calibration.frame,
             laws: &calibration.strings,
             effects: &calibration.effects,
@@ -50,13 +52,13 @@ impl<'a> StringModel<'a> {
 
 /// Forward kinematics of every row (warm-started along the session), as
 /// the device solves it ([`FkConfig::default`]).
-pub fn predict(model: StringModel<'_>, observations: &[Observation]) -> Vec<Prediction> {
+pub fn predict(model: KinematicModel<'_>, observations: &[Observation]) -> Vec<Prediction> {
     predict_with(model, observations, &FkConfig::default())
 }
 
 /// [`predict`] with the kinematics tuned by `config`.
 pub fn predict_with(
-    model: StringModel<'_>,
+    model: KinematicModel<'_>,
     observations: &[Observation],
     config: &FkConfig<f64>,
 ) -> Vec<Prediction> {

@@ -56,7 +56,7 @@ use crate::model::learn::outliers;
 use crate::model::learn::search::{self, SvrSearchConfig, SweepConfig};
 use crate::model::learn::svr::{self, SvrConfig};
 use crate::model::learn::{split_indices, LearnError, OutputMode};
-use crate::model::predict::{predict, StringModel};
+use crate::model::predict::{predict, KinematicModel};
 use spidar_core::geometry::{device_from_room, room_from_device};
 use spidar_core::kinematics::FkStatus;
 
@@ -356,7 +356,7 @@ fn point_errors(
     Ok((pe, stats))
 }
 
-fn room_positions(model: StringModel<'_>, obs: &[Observation]) -> Vec<[f64; 3]> {
+fn room_positions(model: KinematicModel<'_>, obs: &[Observation]) -> Vec<[f64; 3]> {
     predict(model, obs).iter().map(|p| p.room).collect()
 }
 
@@ -394,7 +394,7 @@ fn align_clocks(
     nominal: &spidar_core::model::Frame<f64>,
     nominal_laws: &[spidar_core::model::StringLaw; spidar_core::STRINGS],
 ) -> Result<(Vec<Observation>, Vec<Observation>, report::Timing), CalibrateError> {
-    let positions = |model: StringModel<'_>, obs: &[Observation]| -> Vec<Option<[f64; 3]>> {
+    let positions = |model: KinematicModel<'_>, obs: &[Observation]| -> Vec<Option<[f64; 3]>> {
         predict(model, obs)
             .iter()
             .map(|p| {
@@ -406,7 +406,7 @@ fn align_clocks(
             })
             .collect()
     };
-    let nominal_model = StringModel {
+    let nominal_model = KinematicModel {
         frame: nominal,
         laws: nominal_laws,
         effects: &[],
@@ -422,7 +422,7 @@ fn align_clocks(
                 &Start::from_geometry(geometry),
                 &Structure::default(),
             )?;
-            let model = StringModel {
+            let model = KinematicModel {
                 frame: &quick.frame,
                 laws: &quick.laws,
                 effects: &quick.effects,
@@ -439,7 +439,7 @@ fn align_clocks(
                 Some(q) => (&q.frame, &q.laws, q.effects.as_slice()),
                 None => (nominal, nominal_laws, &[][..]),
             };
-            let model = StringModel {
+            let model = KinematicModel {
                 frame,
                 laws,
                 effects,
@@ -647,7 +647,7 @@ fn raw_errors(
     nominal: &spidar_core::model::Frame<f64>,
     nominal_laws: &[spidar_core::model::StringLaw; spidar_core::STRINGS],
 ) -> Result<StageErrors, StatsError> {
-    let raw_model = StringModel {
+    let raw_model = KinematicModel {
         frame: nominal,
         laws: nominal_laws,
         effects: &[],
@@ -714,7 +714,7 @@ fn identified_errors(
     base: &crate::model::identify::Identification,
     obs: PerSession<&[Observation]>,
 ) -> Result<StageErrors, StatsError> {
-    let base_model = base.string_model();
+    let base_model = base.kinematic_model();
     let id_tr = room_positions(base_model, obs.train);
     let id_te = room_positions(base_model, obs.test);
     StageErrors::of(
@@ -746,8 +746,8 @@ impl FinalIdentified {
         obs: PerSession<&[Observation]>,
     ) -> Result<(FinalIdentified, StageErrors), StatsError> {
         let fin_new = fin.for_a_new_session();
-        let fin_tr_pred = predict(fin.string_model(), obs.train);
-        let fin_te_pred = predict(fin_new.string_model(), obs.test);
+        let fin_tr_pred = predict(fin.kinematic_model(), obs.train);
+        let fin_te_pred = predict(fin_new.kinematic_model(), obs.test);
         let rejections = report::SessionRejections {
             train: report::Rejections::of(&fin_tr_pred),
             test: report::Rejections::of(&fin_te_pred),
