@@ -5,7 +5,7 @@
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 use spidar_core::model::{
-    Effect, EffectTerm, Frame, StringLayout, EVERY_STRING, MAX_LAYER_STEP_LOG2,
+    Effect, EffectTerm, Frame, StringLayout, EVERY_STRING, MAX_EFFECTS, MAX_LAYER_STEP_LOG2,
 };
 use spidar_core::string_law::{payout_f64, sag_home_variable, sag_variable, EffectContext};
 use spidar_core::STRINGS;
@@ -2584,6 +2584,19 @@ impl LoopState<'_> {
     /// added.
     fn try_change(&mut self, mut finding: Finding, change: Change) -> Result<bool, IdentifyError> {
         let candidate = self.structure.with(change);
+        let same = |a: &Finding, b: &Finding| a.family == b.family && a.strings == b.strings;
+        if let Some(reason) = beyond_the_device(&candidate) {
+            finding.validation = Some(Check {
+                before: self.validation.clone(),
+                after: self.validation.clone(),
+                stability_chi2: None,
+                accepted: false,
+                reason,
+            });
+            self.findings.retain(|f| f.added || !same(f, &finding));
+            self.findings.push(finding);
+            return Ok(false);
+        }
         let moved = (candidate.marker_body_mm != self.structure.marker_body_mm)
             .then(|| at_meeting_points(self.train, candidate.marker_body_mm).into_owned());
         let train: &[Observation] = moved.as_deref().unwrap_or(&self.seen_train);
@@ -2593,7 +2606,6 @@ impl LoopState<'_> {
         let check = self.judge_change(change, train, &after, &fits);
         let accepted = check.accepted;
         finding.validation = Some(check);
-        let same = |a: &Finding, b: &Finding| a.family == b.family && a.strings == b.strings;
         self.findings.retain(|f| f.added || !same(f, &finding));
         if !accepted {
             self.findings.push(finding);
@@ -2709,6 +2721,18 @@ impl LoopState<'_> {
             _ => check,
         }
     }
+}
+
+/// Why `structure` cannot run on the device, if it cannot: its blob holds at
+/// most [`MAX_EFFECTS`] effect terms (several strings' slips added together
+/// take one each, and a string may slip more than once).
+fn beyond_the_device(structure: &Structure) -> Option<String> {
+    (structure.effects.len() > MAX_EFFECTS).then(|| {
+        format!(
+            "not added: the model would hold {} effect terms, the device at most {MAX_EFFECTS}",
+            structure.effects.len()
+        )
+    })
 }
 
 /// The significant slips of several strings as one finding and change
@@ -2859,6 +2883,30 @@ mod tests {
         jammed[200] = -10.0;
         assert!(!jumps_where_it_slipped(&jammed, 200, -3.0));
         assert!(!jumps_where_it_slipped(&jammed, 201, 3.0));
+    }
+
+    /// A change that would give the model more effect terms than the
+    /// device's blob holds is refused, saying so.
+    #[test]
+    fn a_model_beyond_the_device_s_effect_terms_is_refused() {
+        let slips = |n: usize| Structure {
+            effects: (0..n)
+                .map(|k| EffectTerm {
+                    string: (k % STRINGS) as u8,
+                    effect: Effect::Slip {
+                        at_s: k as f64,
+                        mm: 1.0,
+                    },
+                })
+                .collect(),
+            ..Structure::default()
+        };
+        assert_eq!(beyond_the_device(&slips(MAX_EFFECTS)), None);
+        let reason = beyond_the_device(&slips(MAX_EFFECTS + 1)).unwrap();
+        assert!(
+            reason.contains("33 effect terms") && reason.contains("at most 32"),
+            "{reason}"
+        );
     }
 
     fn blocked(folds: [&[f64]; 3]) -> Validation {
