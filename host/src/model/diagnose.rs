@@ -1135,22 +1135,30 @@ fn marker_offset_candidate(rows: &[Row], strings: StringLayout, before: [f64; 3]
 /// difference lies elsewhere (seed 5 of the independent simulator: a slip
 /// at 1837 s placed at 4077 s).
 fn slip_times(ev: &Evidence) -> Vec<Option<f64>> {
+    let weights: Vec<f64> = ev.rows.iter().map(|r| r.weight).collect();
     (0..STRINGS)
         .map(|i| {
             if !ev.layout.is_active(i) {
                 return None;
             }
-            let rows: Vec<(f64, usize)> = ev
-                .rows
-                .iter()
-                .enumerate()
-                .filter(|(_, r)| r.string == i && r.weight > 0.0)
-                .map(|(k, r)| (r.ctx.time_s, k))
-                .collect();
-            let weights: Vec<f64> = ev.rows.iter().map(|r| r.weight).collect();
-            best_step_off_model(rows, &weights, &ev.residual, &ev.basis).map(|b| b.1)
+            best_step_off_model(&rows_in_time(ev, i), &weights, &ev.residual, &ev.basis)
+                .map(|b| b.1)
         })
         .collect()
+}
+
+/// String `string`'s weighted rows in time order: (time, index into
+/// `ev.rows`).
+fn rows_in_time(ev: &Evidence, string: usize) -> Vec<(f64, usize)> {
+    let mut rows: Vec<(f64, usize)> = ev
+        .rows
+        .iter()
+        .enumerate()
+        .filter(|(_, r)| r.string == string && r.weight > 0.0)
+        .map(|(k, r)| (r.ctx.time_s, k))
+        .collect();
+    rows.sort_by(|a, b| a.0.total_cmp(&b.0));
+    rows
 }
 
 /// Rows on each side of a split that [`jumps_where_it_slipped`] compares.
@@ -1163,15 +1171,9 @@ const LOCAL_STEP_Z: f64 = 3.0;
 /// Whether string `string`'s residual jumps where a slip of `mm` at `at_s`
 /// says ([`jumps_where_it_slipped`] on its rows in time order).
 fn steps_where_it_slipped(ev: &Evidence, string: usize, at_s: f64, mm: f64) -> bool {
-    let mut rows: Vec<(f64, f64)> = ev
-        .rows
-        .iter()
-        .filter(|r| r.string == string && r.weight > 0.0)
-        .map(|r| (r.ctx.time_s, r.residual))
-        .collect();
-    rows.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let rows = rows_in_time(ev, string);
     let split = rows.partition_point(|r| r.0 < at_s);
-    let residuals: Vec<f64> = rows.iter().map(|r| r.1).collect();
+    let residuals: Vec<f64> = rows.iter().map(|&(_, k)| ev.rows[k].residual).collect();
     jumps_where_it_slipped(&residuals, split, mm)
 }
 
@@ -1225,7 +1227,7 @@ fn jumps_where_it_slipped(residuals: &[f64], split: usize, mm: f64) -> bool {
 /// ([`jumps_where_it_slipped`]), rows.
 const NEIGHBOURING_ROWS: usize = 60;
 
-/// The best single step over rows `(key, row)` ordered by the key, judged
+/// The best single step over rows `(key, row)` in key order, judged
 /// off the model: a step column `x` (the rows after the split, each
 /// `sqrt(weight)`) explains `(x . r)^2 / (x . x - |B^T x|^2)` of the
 /// projected weighted residual `r` (`B`: the model's orthonormal basis; `r`
@@ -1234,7 +1236,7 @@ const NEIGHBOURING_ROWS: usize = 60;
 /// at least `MIN_SIDE` rows on each side and a step not (almost) in the
 /// model's span; `None` with too few rows.
 fn best_step_off_model(
-    mut rows: Vec<(f64, usize)>,
+    rows: &[(f64, usize)],
     weights: &[f64],
     residual: &DVector<f64>,
     basis: &DMatrix<f64>,
@@ -1245,7 +1247,6 @@ fn best_step_off_model(
     if n < 2 * MIN_SIDE {
         return None;
     }
-    rows.sort_by(|a, b| a.0.total_cmp(&b.0));
     let mut x_r = 0.0;
     let mut x_x = 0.0;
     let mut bt_x = vec![0.0; basis.ncols()];
@@ -2897,7 +2898,7 @@ mod tests {
         let residual = &truth - &basis * (basis.transpose() * &truth);
         let rows: Vec<(f64, usize)> = keys.iter().copied().zip(0..n).collect();
         let weights = vec![1.0; n];
-        let (_, at) = best_step_off_model(rows.clone(), &weights, &residual, &basis).unwrap();
+        let (_, at) = best_step_off_model(&rows, &weights, &residual, &basis).unwrap();
         assert!((at - 124.5).abs() < 1e-9, "{at}");
         // The raw residual's largest mean difference lies far from the step.
         let mean_difference = |j: usize| {
@@ -2908,7 +2909,7 @@ mod tests {
             .max_by(|&a, &b| mean_difference(a).total_cmp(&mean_difference(b)))
             .unwrap();
         assert!(raw.abs_diff(125) > 100, "{raw}");
-        assert!(best_step_off_model(rows[..39].to_vec(), &weights, &residual, &basis).is_none());
+        assert!(best_step_off_model(&rows[..39], &weights, &residual, &basis).is_none());
         // The first rows alone off: the best split is on the edge, no step.
         let start = DVector::from_iterator(n, (0..n).map(|k| if k < 10 { 2.0 } else { 0.0 }));
         let basis = orthonormal(vec![
@@ -2916,7 +2917,10 @@ mod tests {
             DVector::from_iterator(n, keys.iter().map(|k| k / n as f64)),
         ]);
         let residual = &start - &basis * (basis.transpose() * &start);
-        assert_eq!(best_step_off_model(rows, &weights, &residual, &basis), None);
+        assert_eq!(
+            best_step_off_model(&rows, &weights, &residual, &basis),
+            None
+        );
     }
 
     /// A slip's jump stands out among the string's jumps at every row; a
