@@ -191,15 +191,7 @@ fn slips_of_several_strings_and_a_second_slip_of_one() {
             "slip:6:at_s=600,mm=-2.5",
         ],
     );
-    let mut slips: Vec<(u8, f64, f64)> = result
-        .identification
-        .effects
-        .iter()
-        .filter_map(|t| match t.effect {
-            Effect::Slip { at_s, mm } => Some((t.string, at_s, mm)),
-            _ => None,
-        })
-        .collect();
+    let mut slips = super::slips_of(&result);
     slips.sort_by(|a, b| a.1.total_cmp(&b.1));
     let truth = [
         (6, 600.0, -2.5),

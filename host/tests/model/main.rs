@@ -10,3 +10,17 @@ mod loop_closing;
 mod n_strings;
 mod sim;
 mod sim_physics;
+
+/// The slips of `r`'s model: (string, time, mm), in the model's order
+/// (sim_physics, loop_closing).
+fn slips_of(r: &spidar::model::diagnose::LoopResult) -> Vec<(u8, f64, f64)> {
+    use spidar_core::model::Effect;
+    r.identification
+        .effects
+        .iter()
+        .filter_map(|t| match t.effect {
+            Effect::Slip { at_s, mm } => Some((t.string, at_s, mm)),
+            _ => None,
+        })
+        .collect()
+}

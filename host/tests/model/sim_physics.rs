@@ -5,6 +5,7 @@
 
 use std::path::{Path, PathBuf};
 
+use super::slips_of;
 use spidar::data::dataset::Session;
 use spidar::procedures::calibrate::{calibrate, CalibrateConfig, NamedSession};
 use spidar::sim::physics::{
@@ -593,19 +594,6 @@ fn early_slips_are_sized_with_the_layer_tables() {
     assert!((s6.abs() - 4.66).abs() < 0.15 * 4.66, "string 6: {s6} mm");
     let test = r.stages.last().unwrap().test.unwrap();
     assert!(test.mean_mm < 0.45, "{test:?}");
-}
-
-/// The slips of `r`'s model: (string, time, mm).
-fn slips_of(r: &spidar::model::diagnose::LoopResult) -> Vec<(u8, f64, f64)> {
-    use spidar_core::model::Effect;
-    r.identification
-        .effects
-        .iter()
-        .filter_map(|t| match t.effect {
-            Effect::Slip { at_s, mm } => Some((t.string, at_s, mm)),
-            _ => None,
-        })
-        .collect()
 }
 
 /// Asserts that `slips` holds each of `truth` (string, time, mm: the
