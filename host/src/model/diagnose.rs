@@ -1227,7 +1227,8 @@ fn steps_where_it_slipped(ev: &Evidence, string: usize, at_s: f64, mm: f64) -> b
 /// on 20 clean independent devices such steps, alone or several strings at
 /// once, passed the held-out folds (which cannot judge an early step on
 /// both time halves), e.g. at a session's start where the first rows,
-/// alone in their corner, bend away. Medians: a jammed encoder's repeated
+/// alone in their corner, bend away. And the jump holds beyond those rows
+/// ([`holds_beyond_its_windows`]). Medians: a jammed encoder's repeated
 /// reading is one row far off.
 fn jumps_where_it_slipped(residuals: &[f64], split: usize, mm: f64) -> bool {
     let k = LOCAL_STEP_ROWS;
@@ -1258,6 +1259,29 @@ fn jumps_where_it_slipped(residuals: &[f64], split: usize, mm: f64) -> bool {
     local * mm > 0.0
         && local.abs() >= 0.5 * mm.abs()
         && local.abs() >= LOCAL_STEP_Z * sd.max(sd_near)
+        && holds_beyond_its_windows(residuals, split, local)
+}
+
+/// Whether a `jump` at row `split` holds beyond the windows that measured
+/// it: the median of the [`NEIGHBOURING_ROWS`] rows past the window after
+/// minus that of those before the window before has its sign and half its
+/// size at least. A slip stays; an error that comes and goes jumps and
+/// falls back: the abnormal motor's string off its groove while the walk
+/// crosses its region (clean independent seed 11: a jump of -1.9 mm, -0.2
+/// mm beyond; it was added as a slip and raised the test error 4 %). Half
+/// the jump, not half the fitted step: a step fitted before the session's
+/// other slips are in is larger than its jump (slip seed 1: 3.5 mm fitted,
+/// 2.2 jump, 1.4 beyond). With fewer than [`LOCAL_STEP_ROWS`] rows on a
+/// side there (a slip near the session's end) the jump alone decides.
+fn holds_beyond_its_windows(residuals: &[f64], split: usize, jump: f64) -> bool {
+    let (k, n) = (LOCAL_STEP_ROWS, residuals.len());
+    let before = split.saturating_sub(k + NEIGHBOURING_ROWS)..split.saturating_sub(k);
+    let after = (split + k).min(n)..(split + k + NEIGHBOURING_ROWS).min(n);
+    if before.len() < k || after.len() < k {
+        return true;
+    }
+    let beyond = median(&mut residuals[after].to_vec()) - median(&mut residuals[before].to_vec());
+    beyond * jump > 0.0 && beyond.abs() >= 0.5 * jump.abs()
 }
 
 /// How far from a proposed slip its neighbours' jumps are taken
@@ -2609,11 +2633,15 @@ impl LoopState<'_> {
                 .filter(|f| f.family == Family::Slip && f.strings.len() == 1)
                 .collect();
             let together = slips_together(&slips);
-            for finding in proposals.into_iter().take(3) {
-                let Some(change) = finding.change else {
+            let mut frame_wide_below = Vec::new();
+            for (rank, finding) in proposals.into_iter().enumerate() {
+                if rank >= STRONGEST_TRIED {
+                    if finding.strings.is_empty() {
+                        frame_wide_below.push(finding);
+                    }
                     continue;
-                };
-                if self.try_change(finding, change)? {
+                }
+                if self.try_finding(finding)? {
                     continue 'outer;
                 }
             }
@@ -2627,9 +2655,29 @@ impl LoopState<'_> {
                     continue 'outer;
                 }
             }
+            // A term of the whole frame or of the tracked body below them
+            // (clean independent seed 4's marker offset, -24 %, sat under
+            // three per-string proposals that were refused): one parameter
+            // set for every string, which the blocked folds judge as well as
+            // the strongest; the per-string proposals below stay untried
+            // (about 50 of them, the ones that stood in for other physics).
+            for finding in frame_wide_below {
+                if self.try_finding(finding)? {
+                    continue 'outer;
+                }
+            }
             break;
         }
         Ok(())
+    }
+
+    /// [`try_change`](Self::try_change) with the finding's own change;
+    /// `false` for a finding without one (an anchor to inspect).
+    fn try_finding(&mut self, finding: Finding) -> Result<bool, IdentifyError> {
+        match finding.change {
+            Some(change) => self.try_change(finding, change),
+            None => Ok(false),
+        }
     }
 
     /// Validates the model with `finding`'s `change` and judges it; adds it
@@ -2788,6 +2836,10 @@ impl LoopState<'_> {
         }
     }
 }
+
+/// How many of a diagnosis's strongest proposals the loop tries before
+/// the slips of several strings together and the frame-wide terms below.
+const STRONGEST_TRIED: usize = 3;
 
 /// Whether `change` adds a term on one string (not a slip, not a shared
 /// term).
@@ -3099,6 +3151,19 @@ mod tests {
         jammed[200] = -10.0;
         assert!(!jumps_where_it_slipped(&jammed, 200, -3.0));
         assert!(!jumps_where_it_slipped(&jammed, 201, 3.0));
+        // An error that comes and goes: the abnormal motor's string off its
+        // groove for 40 rows, then back. It jumps where it starts, but the
+        // rows beyond the jump's window are back where they were: no slip.
+        let visit: Vec<f64> = (0..400)
+            .map(|k| path(k) + if (200..240).contains(&k) { 2.0 } else { 0.0 })
+            .collect();
+        assert!(!jumps_where_it_slipped(&visit, 200, 2.0));
+        // A slip 20 rows from the end: no rows beyond its window to hold
+        // it against, its jump alone decides.
+        let late: Vec<f64> = (0..400)
+            .map(|k| path(k) + if k >= 380 { 3.0 } else { 0.0 })
+            .collect();
+        assert!(jumps_where_it_slipped(&late, 380, 3.0));
     }
 
     /// A change that would give the model more effect terms than the
