@@ -114,14 +114,15 @@ pub enum FkStatus {
     /// All strings agree (RMS residual <= `fault_threshold_mm`), converged.
     Ok,
     /// One string disagreed with the others; the position is solved from the
-    /// other 7 and `excluded` names it.
+    /// other active strings and `excluded` names it.
     FaultyStringExcluded,
     /// The strings disagree and no single exclusion explains it (two or more
     /// faulty strings, or a bad calibration). The position is the all-string
-    /// least-squares compromise or, with 4 or more spare strings, when
-    /// leaving one string out lowers the RMS residual [`DOMINANT_EXCLUSION`]
-    /// times or more, that solve's (`excluded` names the string): do not
-    /// trust it either way.
+    /// least-squares compromise or, with 4 or more spare strings (3 when
+    /// that exclusion fits [`DOMINANT_EXCLUSION`] times better than any
+    /// other), when leaving one string out lowers the RMS residual
+    /// [`DOMINANT_EXCLUSION`] times or more, that solve's (`excluded` names
+    /// the string): do not trust it either way.
     Inconsistent,
     /// The iteration limit was reached before convergence; the position is
     /// the best found.
