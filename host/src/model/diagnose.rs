@@ -683,6 +683,40 @@ impl Evidence {
         Some(projected)
     }
 
+    /// The residual's sum of squares explained by the span of `columns`
+    /// off the model's, dropping the directions (almost) in the model's
+    /// span or in that of the other columns: a rival's columns may be
+    /// degenerate on a session (a planar device's tracked z is one value:
+    /// its position columns in z repeat the others), which [`project`]
+    /// and [`fit`] refuse as a whole.
+    ///
+    /// [`project`]: Self::project
+    /// [`fit`]: Self::fit
+    fn explained_by_span(&self, columns: &[Vec<f64>]) -> f64 {
+        const MIN_OUTSIDE_SPAN: f64 = 1e-2;
+        let n = self.rows.len();
+        let mut x = DMatrix::zeros(n, columns.len());
+        for (c, col) in columns.iter().enumerate() {
+            for (r, row) in self.rows.iter().enumerate() {
+                x[(r, c)] = col[r] * row.weight.sqrt();
+            }
+        }
+        let largest = (0..columns.len())
+            .map(|c| x.column(c).norm())
+            .fold(0.0, f64::max);
+        let projected = &x - &self.basis * (&self.basis_t * &x);
+        let svd = projected.svd(true, false);
+        let Some(u) = svd.u else {
+            return 0.0;
+        };
+        svd.singular_values
+            .iter()
+            .enumerate()
+            .filter(|(_, &s)| s > MIN_OUTSIDE_SPAN * largest)
+            .map(|(k, _)| u.column(k).dot(&self.residual).powi(2))
+            .sum()
+    }
+
     /// Least-squares fit of projected regressors to the projected residual:
     /// (coefficients, explained sum of squares).
     fn fit(&self, projected: &DMatrix<f64>) -> Option<(Vec<f64>, f64)> {
@@ -1432,16 +1466,16 @@ fn stretch_columns(rows: &[Row], strings: StringLayout) -> Vec<Vec<f64>> {
 /// Whether candidate `c` explains the residual beyond its rival's columns:
 /// its chi-square over the rival's alone, at the candidate's dof.
 fn beyond_rival(ev: &Evidence, c: &Candidate, config: &LoopConfig) -> bool {
-    let explained =
-        |columns: &[Vec<f64>]| ev.project(columns).and_then(|p| ev.fit(&p)).map(|(_, e)| e);
+    // The plain fit where it stands (every rival so far), the span's
+    // directions where a column is degenerate.
+    let explained = |columns: &[Vec<f64>]| {
+        ev.project(columns)
+            .and_then(|p| ev.fit(&p))
+            .map_or_else(|| ev.explained_by_span(columns), |(_, e)| e)
+    };
     let both: Vec<Vec<f64>> = c.rival.iter().chain(&c.columns).cloned().collect();
-    match (explained(&both), explained(&c.rival)) {
-        (Some(with), Some(without)) => {
-            (with - without) / ev.sigma2
-                >= chi2_threshold(config, c.columns.len(), c.search_penalty)
-        }
-        _ => false,
-    }
+    (explained(&both) - explained(&c.rival)) / ev.sigma2
+        >= chi2_threshold(config, c.columns.len(), c.search_penalty)
 }
 
 fn chi2_threshold(config: &LoopConfig, dof: usize, penalty: f64) -> f64 {
@@ -2719,7 +2753,19 @@ impl LoopState<'_> {
                 &candidate,
             )?;
             let in_sample = |id: &Identification| ErrorStats::of(&held_out_error_list(id, train));
-            refuse_a_fold_repair(&mut check, in_sample(&self.id), in_sample(&refit));
+            // Not a drift: where time goes with position the fit on every
+            // row absorbs it into position terms (which is why it must beat
+            // a position error, its rival) and only a fold fitted on one
+            // half in time can show it.
+            if !matches!(
+                change,
+                Change::Effect(EffectTerm {
+                    effect: Effect::Drift { .. },
+                    ..
+                })
+            ) {
+                refuse_a_fold_repair(&mut check, in_sample(&self.id), in_sample(&refit));
+            }
             refit_now = Some(refit);
         }
         let accepted = check.accepted;
