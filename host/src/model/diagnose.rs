@@ -1285,8 +1285,9 @@ fn jumps_where_it_slipped(residuals: &[f64], split: usize, mm: f64) -> bool {
     // windows do not hold it): where the rows vary more than elsewhere (the
     // session's first rows, alone in their corner), a jump there is no news.
     let neighbours: Vec<f64> = (k..=n - k)
-        .filter(|&j| j.abs_diff(split) >= k && j.abs_diff(split) <= NEIGHBOURING_ROWS)
-        .map(jump)
+        .zip(&jumps)
+        .filter(|&(j, _)| j.abs_diff(split) >= k && j.abs_diff(split) <= NEIGHBOURING_ROWS)
+        .map(|(_, &v)| v)
         .collect();
     let sd_near = if neighbours.len() >= k {
         robust_centre_and_sd(&neighbours).1
