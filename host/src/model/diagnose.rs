@@ -2760,13 +2760,7 @@ impl LoopState<'_> {
             // row absorbs it into position terms (which is why it must beat
             // a position error, its rival) and only a fold fitted on one
             // half in time can show it.
-            if !matches!(
-                change,
-                Change::Effect(EffectTerm {
-                    effect: Effect::Drift { .. },
-                    ..
-                })
-            ) {
+            if !adds_a_drift(change) {
                 refuse_a_fold_repair(&mut check, in_sample(&self.id), in_sample(&refit));
             }
             refit_now = Some(refit);
@@ -2873,17 +2867,23 @@ impl LoopState<'_> {
                 self.config.min_relative_gain,
             ),
         };
-        match (change, check.accepted) {
-            (
-                Change::Effect(EffectTerm {
-                    effect: Effect::Drift { .. },
-                    ..
-                }),
-                true,
-            ) => refuse_on_fold_rise(check),
-            _ => check,
+        if check.accepted && adds_a_drift(change) {
+            refuse_on_fold_rise(check)
+        } else {
+            check
         }
     }
+}
+
+/// Whether `change` adds a drift (of one string or of every string).
+fn adds_a_drift(change: Change) -> bool {
+    matches!(
+        change,
+        Change::Effect(EffectTerm {
+            effect: Effect::Drift { .. },
+            ..
+        })
+    )
 }
 
 /// How many of a diagnosis's strongest proposals the loop tries before
