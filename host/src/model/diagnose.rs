@@ -566,6 +566,10 @@ struct Evidence {
 /// absorbs it and the data cannot show it.
 const MIN_OUTSIDE_SPAN: f64 = 1e-2;
 
+/// A direction of unit columns off the model's span with a singular value
+/// under this is (numerically) in the span ([`Evidence::explained_by_span`]).
+const NUMERICALLY_IN_SPAN: f64 = 1e-6;
+
 fn pulley_turn_angle(theta: f64) -> f64 {
     theta.rem_euclid(2.0 * std::f64::consts::PI)
 }
@@ -694,19 +698,29 @@ impl Evidence {
     }
 
     /// The residual's sum of squares explained by the span of `columns`
-    /// off the model's, dropping the directions (almost) in the model's
+    /// off the model's, dropping the directions numerically in the model's
     /// span or in that of the other columns: a rival's columns may be
     /// degenerate on a session (a planar device's tracked z is one value:
     /// its position columns in z repeat the others), which [`project`]
-    /// and [`fit`] refuse as a whole.
+    /// and [`fit`] would refuse as a whole. With full rank it is `fit`'s
+    /// explained sum of squares.
     ///
     /// [`project`]: Self::project
     /// [`fit`]: Self::fit
     fn explained_by_span(&self, columns: &[Vec<f64>]) -> f64 {
-        let x = self.weighted(columns);
-        let largest = (0..columns.len())
-            .map(|c| x.column(c).norm())
-            .fold(0.0, f64::max);
+        // Unit columns: the tolerance is a share of each column, whatever
+        // its units (a sag's home column is far smaller than the stretch's).
+        // Only the directions numerically in the span are dropped: a rival
+        // explains with everything it spans (with the 1 % of
+        // MIN_OUTSIDE_SPAN, correlated position columns lost directions and
+        // a drift stood in on clean independent seed 11).
+        let mut x = self.weighted(columns);
+        for mut column in x.column_iter_mut() {
+            let norm = column.norm();
+            if norm > 0.0 {
+                column /= norm;
+            }
+        }
         let projected = &x - &self.basis * (&self.basis_t * &x);
         let svd = projected.svd(true, false);
         let Some(u) = svd.u else {
@@ -715,7 +729,7 @@ impl Evidence {
         svd.singular_values
             .iter()
             .enumerate()
-            .filter(|(_, &s)| s > MIN_OUTSIDE_SPAN * largest)
+            .filter(|(_, &s)| s > NUMERICALLY_IN_SPAN)
             .map(|(k, _)| u.column(k).dot(&self.residual).powi(2))
             .sum()
     }
@@ -1469,15 +1483,8 @@ fn stretch_columns(rows: &[Row], strings: StringLayout) -> Vec<Vec<f64>> {
 /// Whether candidate `c` explains the residual beyond its rival's columns:
 /// its chi-square over the rival's alone, at the candidate's dof.
 fn beyond_rival(ev: &Evidence, c: &Candidate, config: &LoopConfig) -> bool {
-    // The plain fit where it stands (every rival so far), the span's
-    // directions where a column is degenerate.
-    let explained = |columns: &[Vec<f64>]| {
-        ev.project(columns)
-            .and_then(|p| ev.fit(&p))
-            .map_or_else(|| ev.explained_by_span(columns), |(_, e)| e)
-    };
     let both: Vec<Vec<f64>> = c.rival.iter().chain(&c.columns).cloned().collect();
-    (explained(&both) - explained(&c.rival)) / ev.sigma2
+    (ev.explained_by_span(&both) - ev.explained_by_span(&c.rival)) / ev.sigma2
         >= chi2_threshold(config, c.columns.len(), c.search_penalty)
 }
 
