@@ -252,6 +252,7 @@ fn run_on_virtual_device(
         strings: geometry.nominal_string_laws(),
         effects: Vec::new(),
         correction: CorrectionModel::None,
+        length_scale_mm: [0.0; spidar_core::STRINGS],
     };
     let calibrated =
         spidar::model::compile::load_calibration(&calibration_dir.join("calibration.json"))?;

@@ -4,7 +4,8 @@
 //! blob = protocol::blob header (40 bytes: magic, version, kind, dimensions, Q formats, CRCs)
 //!      + body
 //! body = postcard(BlobHead { frame: Frame<f32>, laws: [CompiledStringLaw; 8],
-//!                            effects: heapless::Vec<CompiledEffect, MAX_EFFECTS> })
+//!                            effects: heapless::Vec<CompiledEffect, MAX_EFFECTS>,
+//!                            residual_weight: [f32; 8] })
 //!      + 0 to 3 zero bytes, so that the correction starts at a multiple of
 //!        CORRECTION_ALIGN = 4 bytes from the blob start (format version 2)
 //!      + correction bytes (layout in `correction`, read in place, zero-copy)
@@ -64,6 +65,12 @@ pub struct BlobHead {
     pub frame: Frame<f32>,
     pub laws: [CompiledStringLaw; STRINGS],
     pub effects: heapless::Vec<CompiledEffect, MAX_EFFECTS>,
+    /// Weight of each string's residual in forward kinematics
+    /// ([`crate::kinematics::FkConfig::residual_weight`]), compiled from the
+    /// calibration's measured length residual scales by
+    /// [`crate::kinematics::residual_weights`]; within
+    /// `[MIN_RESIDUAL_WEIGHT, 1]` (1 on inactive channels). Format 8.
+    pub residual_weight: [f32; STRINGS],
 }
 
 /// A parsed, checked blob, borrowing the correction's parameters from the
@@ -156,6 +163,16 @@ impl<'a> CompiledCalibration<'a> {
                 .map_err(|_| BlobError::Body { field: "effects" })?;
         }
         check_layout(&header, &head)?;
+        let lowest = crate::kinematics::MIN_RESIDUAL_WEIGHT as f32;
+        if head
+            .residual_weight
+            .iter()
+            .any(|w| !(lowest..=1.0).contains(w))
+        {
+            return Err(BlobError::Body {
+                field: "residual_weight",
+            });
+        }
         // Laws of inactive channels are never evaluated (the compiler writes
         // zeros there).
         for (i, law) in head.laws.iter().enumerate() {
@@ -333,10 +350,14 @@ mod compiler {
                 max: MAX_EFFECTS,
             })?;
         }
+        let residual_weight =
+            crate::kinematics::residual_weights(layout, &calibration.length_scale_mm)
+                .map(|w| w as f32);
         let head = BlobHead {
             frame,
             laws,
             effects,
+            residual_weight,
         };
         let correction = calibration
             .correction

@@ -271,6 +271,8 @@ pub fn nominal_calibration(
             },
             laws,
             effects: heapless::Vec::new(),
+            // Nothing measured yet: every string weighs alike.
+            residual_weight: [1.0; STRINGS],
         },
         correction: Correction::None,
     })

@@ -83,6 +83,15 @@ pub struct FkConfig<F> {
     /// Initial Levenberg-Marquardt damping (dimensionless, relative to
     /// `J^T J` whose eigenvalues are ~1-4 for unit Jacobian rows; default 1e-3).
     pub initial_damping: F,
+    /// Weight of each string's residual (default 1 for every string): the
+    /// solve minimises `sum_i (w_i (|p - anchor_i| - length_i))^2`, and the
+    /// thresholds above, the RMS and the choice of the string to leave out
+    /// read the weighted residuals, so a string of weight `w` counts as
+    /// faulty only at `1/w` times the length error of a string of weight 1.
+    /// [`residual_weights`] sets them from each string's measured residual
+    /// scale. A weight of exactly 1 multiplies exactly: the unweighted solve
+    /// is bit for bit what it was.
+    pub residual_weight: [F; STRINGS],
 }
 
 impl<F: Real> Default for FkConfig<F> {
@@ -96,6 +105,7 @@ impl<F: Real> Default for FkConfig<F> {
             fault_threshold_mm: lit(2.0),
             exclusion_threshold_mm: lit(1.0),
             initial_damping: lit(1e-3),
+            residual_weight: [F::one(); STRINGS],
         }
     }
 }
@@ -141,7 +151,8 @@ pub struct FkSolution<F> {
     /// Encoder index of the string left out, with [`FkStatus::FaultyStringExcluded`]
     /// (and with [`FkStatus::Inconsistent`] when one exclusion dominates).
     pub excluded: Option<u8>,
-    /// RMS of `|position - anchor_i| - length_i` over the strings used (mm);
+    /// RMS of `w_i (|position - anchor_i| - length_i)` over the strings used
+    /// (mm, weights [`FkConfig::residual_weight`]);
     /// infinite with [`FkStatus::InvalidInput`] or when it overflows.
     pub rms_residual_mm: F,
     /// Iterations run in total, fault handling included (see
@@ -162,6 +173,7 @@ fn evaluate<F: Real>(
     anchors: &[Vec3<F>; STRINGS],
     layout: StringLayout,
     lengths: &[F; STRINGS],
+    weights: &[F; STRINGS],
     skip: Option<usize>,
     p: Vec3<F>,
 ) -> Eval<F> {
@@ -179,13 +191,14 @@ fn evaluate<F: Real>(
         let dy = p[1] - a[1];
         let dz = p[2] - a[2];
         let dist = (dx * dx + dy * dy + dz * dz).sqrt_rounded();
-        let r = dist - lengths[i];
+        let w = weights[i];
+        let r = (dist - lengths[i]) * w;
         e.cost = e.cost + r * r;
         // At an anchor the residual has no direction: no Jacobian row.
         if dist > F::zero() {
-            let ux = dx / dist;
-            let uy = dy / dist;
-            let uz = dz / dist;
+            let ux = dx / dist * w;
+            let uy = dy / dist * w;
+            let uz = dz / dist * w;
             e.jtj[0] = e.jtj[0] + ux * ux;
             e.jtj[1] = e.jtj[1] + ux * uy;
             e.jtj[2] = e.jtj[2] + ux * uz;
@@ -263,7 +276,7 @@ fn solve<F: Real>(
     let tol2 = config.step_tolerance_mm * config.step_tolerance_mm;
     let trust2 = config.trusted_step_mm * config.trusted_step_mm;
     let mut p = start;
-    let mut cur = evaluate(anchors, layout, lengths, skip, p);
+    let mut cur = evaluate(anchors, layout, lengths, &config.residual_weight, skip, p);
     let mut lambda = config.initial_damping;
     let mut iterations = 0;
     let mut converged = false;
@@ -275,7 +288,7 @@ fn solve<F: Real>(
         };
         let step2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
         let q = [p[0] + d[0], p[1] + d[1], p[2] + d[2]];
-        let next = evaluate(anchors, layout, lengths, skip, q);
+        let next = evaluate(anchors, layout, lengths, &config.residual_weight, skip, q);
         // Short steps are taken without the cost test: there the model is
         // linear far below float resolution, while the cost difference of a
         // millimetre-scale step drowns in f32 rounding near the minimum.
@@ -305,6 +318,7 @@ fn largest_residual<F: Real>(
     anchors: &[Vec3<F>; STRINGS],
     layout: StringLayout,
     lengths: &[F; STRINGS],
+    weights: &[F; STRINGS],
     p: Vec3<F>,
 ) -> usize {
     let mut worst = layout.indices().next().unwrap_or(0);
@@ -314,7 +328,7 @@ fn largest_residual<F: Real>(
         let dx = p[0] - a[0];
         let dy = p[1] - a[1];
         let dz = p[2] - a[2];
-        let r = ((dx * dx + dy * dy + dz * dz).sqrt_rounded() - lengths[i]).abs();
+        let r = (((dx * dx + dy * dy + dz * dz).sqrt_rounded() - lengths[i]) * weights[i]).abs();
         if r > worst_r {
             worst = i;
             worst_r = r;
@@ -472,13 +486,35 @@ pub fn forward_kinematics<F: Real>(
     // explains the lengths (converged, RMS within the threshold), which
     // spares the other solves in the common single-fault case. Otherwise
     // every exclusion is tried and the best one kept.
-    let first = largest_residual(anchors, layout, lengths, all.position);
+    let first = largest_residual(
+        anchors,
+        layout,
+        lengths,
+        &config.residual_weight,
+        all.position,
+    );
     let exclude = |k: usize| {
         let skip = Some(k);
         // Start from whichever of the previous position and the all-string
         // solution fits the remaining strings better.
-        let c_start = evaluate(anchors, layout, lengths, skip, start).cost;
-        let c_all = evaluate(anchors, layout, lengths, skip, all.position).cost;
+        let c_start = evaluate(
+            anchors,
+            layout,
+            lengths,
+            &config.residual_weight,
+            skip,
+            start,
+        )
+        .cost;
+        let c_all = evaluate(
+            anchors,
+            layout,
+            lengths,
+            &config.residual_weight,
+            skip,
+            all.position,
+        )
+        .cost;
         let from = if c_start < c_all { start } else { all.position };
         solve(
             anchors,
@@ -579,6 +615,64 @@ pub fn forward_kinematics<F: Real>(
         iterations,
         ..all_strings
     }
+}
+
+/// The lowest weight [`residual_weights`] gives a string: one ten times
+/// noisier than the device's typical string still counts (1 % of a typical
+/// string's share of the fit, in variance), so that a fault on it can still
+/// be seen and a device's redundancy is not silently lost.
+pub const MIN_RESIDUAL_WEIGHT: f64 = 0.1;
+
+/// Weights of the strings' residuals in [`forward_kinematics`]
+/// ([`FkConfig::residual_weight`]) from each string's measured length
+/// residual scale (mm, the robust standard deviation of its length against
+/// the tracker on the training session): `w_i = s_ref / s_i`, at most 1 and
+/// at least [`MIN_RESIDUAL_WEIGHT`], with `s_ref` the median scale of the
+/// active strings (the lower one of the middle two). This is weighted least
+/// squares with each string's measured variance, that is, down-weighting
+/// only the strings noisier than the device's typical one: a string whose
+/// reading carries an error the model lacks (an encoder that lags, a spool
+/// that winds unevenly) pulls the position less, and its fault threshold
+/// follows its own scale.
+///
+/// Without a measured scale for every active string (any of them zero,
+/// negative or not finite: a calibration that did not measure them), every
+/// weight is 1.
+pub fn residual_weights<F: Real>(layout: StringLayout, scale_mm: &[F; STRINGS]) -> [F; STRINGS] {
+    let ones = [F::one(); STRINGS];
+    let mut sorted = [F::zero(); STRINGS];
+    let mut n = 0;
+    for i in layout.indices() {
+        let s = scale_mm[i];
+        if !(s.is_finite() && s > F::zero()) {
+            return ones;
+        }
+        // Insertion sort of at most 8 values.
+        let mut k = n;
+        while k > 0 && sorted[k - 1] > s {
+            sorted[k] = sorted[k - 1];
+            k -= 1;
+        }
+        sorted[k] = s;
+        n += 1;
+    }
+    if n == 0 {
+        return ones;
+    }
+    let reference = sorted[(n - 1) / 2];
+    let floor: F = lit(MIN_RESIDUAL_WEIGHT);
+    let mut w = ones;
+    for i in layout.indices() {
+        let ratio = reference / scale_mm[i];
+        w[i] = if ratio >= F::one() {
+            F::one()
+        } else if ratio > floor {
+            ratio
+        } else {
+            floor
+        };
+    }
+    w
 }
 
 /// An exclusion that does not bring the RMS residual within the threshold

@@ -505,5 +505,13 @@ mod whole {
         /// Applied in order; at most [`MAX_EFFECTS`].
         pub effects: Vec<EffectTerm>,
         pub correction: CorrectionModel,
+        /// Each string's measured length residual scale (mm): the robust
+        /// standard deviation of its modelled length against the tracked
+        /// position on the training session, what the forward kinematics
+        /// weighs the strings by ([`crate::kinematics::residual_weights`]).
+        /// Zeros (a calibration written before they were measured) weigh
+        /// every string alike.
+        #[serde(default)]
+        pub length_scale_mm: [f64; STRINGS],
     }
 }

@@ -304,11 +304,7 @@ fn extrapolation(
 ) -> (ErrorStats, ErrorStats) {
     let cal = &c.calibration;
     let obs = observations(&test.samples);
-    let model = spidar::model::predict::KinematicModel {
-        frame: &cal.frame,
-        laws: &cal.strings,
-        effects: &cal.effects,
-    };
+    let model = spidar::model::predict::KinematicModel::of(cal);
     let predicted = spidar::model::predict::predict(model, &obs);
     let (mut inside, mut outside) = (vec![], vec![]);
     for (o, p) in obs.iter().zip(&predicted) {

@@ -43,6 +43,8 @@ pub fn calibration(device: &sim::SimDevice, correction: CorrectionModel) -> Cali
         strings: device.laws,
         effects: device.effects.clone(),
         correction,
+        // The true model: no string noisier than another.
+        length_scale_mm: [0.0; spidar_core::STRINGS],
     }
 }
 

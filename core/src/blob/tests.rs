@@ -31,6 +31,39 @@ fn calibration() -> Calibration {
             },
         ],
         correction: CorrectionModel::None,
+        // String 3 four times noisier than the others.
+        length_scale_mm: [0.2, 0.2, 0.2, 0.8, 0.2, 0.2, 0.2, 0.2],
+    }
+}
+
+#[test]
+fn the_strings_weights_are_compiled_from_their_measured_scales_and_checked() {
+    let blob = compile(&calibration(), 7, 0).unwrap();
+    let c = CompiledCalibration::from_blob(&blob).unwrap();
+    assert_eq!(
+        c.head.residual_weight,
+        [1.0, 1.0, 1.0, 0.25, 1.0, 1.0, 1.0, 1.0]
+    );
+    // Unmeasured scales weigh every string alike.
+    let mut unmeasured = calibration();
+    unmeasured.length_scale_mm = [0.0; STRINGS];
+    let c = compile(&unmeasured, 7, 0).unwrap();
+    let c = CompiledCalibration::from_blob(&c).unwrap();
+    assert_eq!(c.head.residual_weight, [1.0; STRINGS]);
+    // A weight out of [MIN_RESIDUAL_WEIGHT, 1] from another tool is refused,
+    // naming the field.
+    let (_, body) = split_blob(&blob).unwrap();
+    let (head, rest) = split_body(body).unwrap();
+    for bad in [0.0, 0.05, 1.5, f32::NAN, f32::INFINITY] {
+        let mut h = head.clone();
+        h.residual_weight[2] = bad;
+        assert_eq!(
+            CompiledCalibration::from_blob(&with_head(&blob, &h, rest)),
+            Err(BlobError::Body {
+                field: "residual_weight"
+            }),
+            "{bad}"
+        );
     }
 }
 

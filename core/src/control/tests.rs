@@ -13,6 +13,7 @@ fn calibration() -> Calibration {
         strings: [StringLaw::polynomial(CPR, [RADIUS, 0.0, 0.0, 0.0]); STRINGS],
         effects: alloc::vec![],
         correction: CorrectionModel::None,
+        length_scale_mm: [0.0; STRINGS],
     }
 }
 

@@ -37,6 +37,7 @@ fn calibration(correction: CorrectionModel) -> Calibration {
         strings: [StringLaw::polynomial(CPR, [RADIUS, 0.0, 0.0, 0.0]); STRINGS],
         effects: alloc::vec![],
         correction,
+        length_scale_mm: [0.0; STRINGS],
     }
 }
 

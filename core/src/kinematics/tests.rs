@@ -559,3 +559,83 @@ fn six_strings_leave_out_the_exclusion_that_fits_clearly_best() {
     assert!(right >= 110, "{right} left out, {compromise} compromises");
     assert!(worst < 0.5, "{worst} mm");
 }
+
+#[test]
+fn residual_weights_follow_each_strings_measured_scale() {
+    let all = StringLayout::ALL;
+    // The typical string (the lower median) weighs 1, the quieter ones too;
+    // a string four times noisier a quarter; no string below the floor.
+    let w: [f64; STRINGS] = residual_weights(all, &[0.2, 0.19, 0.21, 0.8, 0.24, 0.2, 0.2, 30.0]);
+    assert_eq!(w[..2], [1.0, 1.0]);
+    assert!((w[2] - 0.2 / 0.21).abs() < 1e-12, "{w:?}");
+    assert!((w[3] - 0.25).abs() < 1e-12, "{w:?}");
+    assert!((w[4] - 0.2 / 0.24).abs() < 1e-12, "{w:?}");
+    assert_eq!(w[7], MIN_RESIDUAL_WEIGHT);
+    // Inactive channels are not read and weigh 1.
+    let four = StringLayout::first(4, false);
+    let w = residual_weights(four, &[0.2, 0.4, 0.2, 0.2, f64::NAN, 0.0, -1.0, 9.0]);
+    assert_eq!(w, [1.0, 0.5, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0]);
+    // A scale not measured on an active string: every string alike.
+    for bad in [0.0, -0.1, f64::NAN, f64::INFINITY] {
+        let mut s = [0.2; STRINGS];
+        s[5] = bad;
+        assert_eq!(residual_weights(all, &s), [1.0; STRINGS], "{bad}");
+    }
+    assert_eq!(residual_weights(all, &[0.0; STRINGS]), [1.0; STRINGS]);
+}
+
+/// A string whose reading lags (its length off by up to 3 mm, more while
+/// it moves fast) on a device whose other strings read to 0.1 mm: weighed by
+/// its measured scale it pulls the position much less, and where it is far
+/// off it is still left out.
+#[test]
+fn a_noisy_string_weighed_by_its_scale_pulls_the_position_less() {
+    let a = anchors::<f64>();
+    let plain = FkConfig::<f64>::default();
+    let weighed = FkConfig {
+        residual_weight: residual_weights(
+            StringLayout::ALL,
+            &[0.1, 0.1, 0.1, 0.6, 0.1, 0.1, 0.1, 0.1],
+        ),
+        ..plain
+    };
+    let mut noise = Noise(0x5EED);
+    let (mut e_plain, mut e_weighed) = (0.0, 0.0);
+    let points = cube(5);
+    for p in &points {
+        let mut l = inverse_kinematics(&a, *p);
+        for v in l.iter_mut() {
+            *v += 0.1 * noise.gauss();
+        }
+        l[3] += 0.6 * noise.gauss().clamp(-5.0, 5.0);
+        let s = forward_kinematics(&a, StringLayout::ALL, &l, [0.0; 3], &plain);
+        let w = forward_kinematics(&a, StringLayout::ALL, &l, [0.0; 3], &weighed);
+        assert!(matches!(
+            w.status,
+            FkStatus::Ok | FkStatus::FaultyStringExcluded
+        ));
+        e_plain += dist(s.position, *p);
+        e_weighed += dist(w.position, *p);
+    }
+    let n = points.len() as f64;
+    let (e_plain, e_weighed) = (e_plain / n, e_weighed / n);
+    assert!(e_weighed < 0.7 * e_plain, "{e_plain} -> {e_weighed}");
+    // Unit weights are the unweighted solve, bit for bit.
+    let l = inverse_kinematics(&a, [120.0, -40.0, 310.0]).map(|v| v + 0.3);
+    let ones = FkConfig {
+        residual_weight: [1.0; STRINGS],
+        ..plain
+    };
+    assert_eq!(
+        forward_kinematics(&a, StringLayout::ALL, &l, [0.0; 3], &plain),
+        forward_kinematics(&a, StringLayout::ALL, &l, [0.0; 3], &ones)
+    );
+    // A slip of 30 mm on the down-weighted string still counts it faulty.
+    let p = [100.0, 200.0, -300.0];
+    let mut l = inverse_kinematics(&a, p);
+    l[3] += 30.0;
+    let w = forward_kinematics(&a, StringLayout::ALL, &l, [0.0; 3], &weighed);
+    assert_eq!(w.status, FkStatus::FaultyStringExcluded, "{w:?}");
+    assert_eq!(w.excluded, Some(3));
+    assert!(dist(w.position, p) < 1e-3, "{w:?}");
+}

@@ -341,6 +341,7 @@ fn blob() -> Vec<u8> {
         strings: [StringLaw::polynomial(4096, [10.0, 0.0, 0.0, 0.0]); crate::STRINGS],
         effects: std::vec![],
         correction: CorrectionModel::None,
+        length_scale_mm: [0.0; crate::STRINGS],
     };
     crate::blob::compile(&calibration, 7, 1_700_000_000).unwrap()
 }

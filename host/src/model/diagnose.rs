@@ -17,7 +17,7 @@ use crate::model::identify::{
     IdentifyError, Start, Structure,
 };
 use crate::model::layers::{self, StringLayers, TableLevel};
-use crate::model::predict::{paired_with_tracker, predict_with};
+use crate::model::predict::{paired_with_tracker, predict_with, KinematicModel, UNMEASURED_SCALES};
 use spidar_core::kinematics::FkConfig;
 use std::borrow::Cow;
 
@@ -1969,9 +1969,10 @@ pub fn tail_noise(errors: &[f64]) -> (f64, f64) {
 }
 
 /// Position errors (eq. 7) of an identified model on the tracked rows, the
-/// kinematics as the device solves them.
+/// kinematics as the device solves them (the strings weighed by their
+/// measured scales).
 fn model_error_list(id: &Identification, observations: &[Observation]) -> Vec<f64> {
-    error_list(id, observations, &FkConfig::default())
+    error_list(id.kinematic_model(), observations, &FkConfig::default())
 }
 
 /// Held-out position errors by which the loop judges a change: the
@@ -1989,11 +1990,19 @@ fn held_out_error_list(id: &Identification, observations: &[Observation]) -> Vec
         exclusion_threshold_mm: judging.fault_threshold_mm,
         ..judging
     };
-    error_list(id, observations, &judging)
+    let unweighted = KinematicModel {
+        length_scale_mm: &UNMEASURED_SCALES,
+        ..id.kinematic_model()
+    };
+    error_list(unweighted, observations, &judging)
 }
 
-fn error_list(id: &Identification, observations: &[Observation], fk: &FkConfig<f64>) -> Vec<f64> {
-    let predictions = predict_with(id.kinematic_model(), observations, fk);
+fn error_list(
+    model: KinematicModel<'_>,
+    observations: &[Observation],
+    fk: &FkConfig<f64>,
+) -> Vec<f64> {
+    let predictions = predict_with(model, observations, fk);
     let room: Vec<[f64; 3]> = predictions.iter().map(|p| p.room).collect();
     let (p, t) = paired_with_tracker(&room, observations);
     position_errors(&p, &t)

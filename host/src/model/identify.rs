@@ -268,6 +268,10 @@ pub struct Identification {
     pub warnings: Vec<String>,
     /// Robust scale of the string-space residuals, mm.
     pub residual_scale_mm: f64,
+    /// Each active string's robust residual scale, mm (0 on inactive
+    /// channels): what forward kinematics weighs the strings by
+    /// ([`spidar_core::kinematics::residual_weights`]).
+    pub length_scale_mm: [f64; STRINGS],
     /// Share of (row, string) residuals the robust weights rejected (weight < 0.1).
     pub rejected_fraction: f64,
     /// LM evaluations over all robust rounds.
@@ -281,6 +285,7 @@ impl Identification {
             frame: &self.frame,
             laws: &self.laws,
             effects: &self.effects,
+            length_scale_mm: &self.length_scale_mm,
         }
     }
 
@@ -1182,6 +1187,43 @@ fn minimize(mut problem: Problem<'_>) -> Result<(Problem<'_>, usize), String> {
 }
 
 /// Robust scale (1.4826 MAD) of the residuals of the active strings.
+/// Rows on each side of a row whose median residual is taken off it before
+/// its string's scale is read ([`fast_residual_scales`]): 41 rows span
+/// three rows of a 13-point lattice walked back and forth, so both
+/// directions of approach.
+const SCALE_WINDOW_ROWS: usize = 20;
+
+/// Each active string's scale of the part of its residual that changes
+/// from row to row (mm; 0 on inactive channels), what forward kinematics
+/// weighs the strings by: the robust sd of the residual less its running
+/// median over `2 SCALE_WINDOW_ROWS + 1` tracked rows in session order.
+/// An error the model lacks that moves slowly (a drift, a slip's step, a
+/// spool's error smooth along the walk) is taken off with the median; one
+/// that changes from capture to capture (an encoder that lags the string,
+/// read at each capture's own speed and direction) stays. Read on the
+/// residuals themselves, a slip the loop had not yet found made its string
+/// weigh less, and the held-out error then hid the slip (slip seeds 4 and
+/// 6 lost theirs: 0.387 -> 0.538, 0.372 -> 0.528 mm); read from one row to
+/// the next, the lag canceled (a lattice row approaches its points from
+/// one side; `docs/benchmarks.md`, "Each string weighed by its scale").
+fn fast_residual_scales(residuals: &[[f64; STRINGS]], layout: StringLayout) -> [f64; STRINGS] {
+    core::array::from_fn(|i| {
+        if !layout.is_active(i) {
+            return 0.0;
+        }
+        let own: Vec<f64> = residuals.iter().map(|r| r[i]).collect();
+        let fast: Vec<f64> = (0..own.len())
+            .map(|t| {
+                let from = t.saturating_sub(SCALE_WINDOW_ROWS);
+                let to = (t + SCALE_WINDOW_ROWS + 1).min(own.len());
+                let mut window = own[from..to].to_vec();
+                own[t] - crate::data::stats::median(&mut window)
+            })
+            .collect();
+        crate::data::stats::robust_centre_and_sd(&fast).1.max(1e-6)
+    })
+}
+
 fn robust_scale(residuals: &[[f64; STRINGS]], layout: StringLayout) -> f64 {
     let all: Vec<f64> = residuals
         .iter()
@@ -1334,6 +1376,7 @@ pub fn identify(
     let laws = state.winding.laws();
     let residuals = fit.string_residuals(&state, &laws);
     let scale = robust_scale(&residuals, strings).max(1e-6);
+    let length_scale_mm = fast_residual_scales(&residuals, strings);
     let rejected = weights
         .iter()
         .flat_map(|w| strings.indices().map(|i| w[i]))
@@ -1363,6 +1406,7 @@ pub fn identify(
         parameters,
         warnings,
         residual_scale_mm: scale,
+        length_scale_mm,
         rejected_fraction,
         evaluations,
     })

@@ -10,7 +10,7 @@
 //! solution ([`spidar_core::model::Effect::reads_inclination`]).
 
 use spidar_core::correction::CorrectionModel;
-use spidar_core::kinematics::{forward_kinematics_inclined, FkConfig, FkStatus};
+use spidar_core::kinematics::{forward_kinematics_inclined, residual_weights, FkConfig, FkStatus};
 use spidar_core::model::{Calibration, EffectTerm, Frame, StringInputs, StringLaw};
 use spidar_core::string_law::string_lengths_f64;
 use spidar_core::STRINGS;
@@ -38,7 +38,16 @@ pub struct KinematicModel<'a> {
     pub frame: &'a Frame<f64>,
     pub laws: &'a [StringLaw; STRINGS],
     pub effects: &'a [EffectTerm],
+    /// Each string's measured length residual scale (mm), which weighs the
+    /// strings in forward kinematics as on the device
+    /// ([`spidar_core::kinematics::residual_weights`]);
+    /// [`UNMEASURED_SCALES`] weighs them alike.
+    pub length_scale_mm: &'a [f64; STRINGS],
 }
+
+/// No string's residual scale measured (a nominal model, a model not yet
+/// identified): every string weighs alike in forward kinematics.
+pub const UNMEASURED_SCALES: [f64; STRINGS] = [0.0; STRINGS];
 
 impl<'a> KinematicModel<'a> {
     pub fn of(calibration: &'a Calibration) -> KinematicModel<'a> {
@@ -46,17 +55,20 @@ impl<'a> KinematicModel<'a> {
             frame: &calibration.frame,
             laws: &calibration.strings,
             effects: &calibration.effects,
+            length_scale_mm: &calibration.length_scale_mm,
         }
     }
 }
 
 /// Forward kinematics of every row (warm-started along the session), as
-/// the device solves it ([`FkConfig::default`]).
+/// the device solves it ([`FkConfig::default`], the strings weighed by the
+/// model's measured scales).
 pub fn predict(model: KinematicModel<'_>, observations: &[Observation]) -> Vec<Prediction> {
     predict_with(model, observations, &FkConfig::default())
 }
 
-/// [`predict`] with the kinematics tuned by `config`.
+/// [`predict`] with the kinematics tuned by `config` (its residual weights
+/// replaced by the model's).
 pub fn predict_with(
     model: KinematicModel<'_>,
     observations: &[Observation],
@@ -66,6 +78,10 @@ pub fn predict_with(
     let inclined = model.effects.iter().any(|t| t.effect.reads_inclination());
     let lengths =
         |inputs: &StringInputs| string_lengths_f64(frame, model.laws, model.effects, inputs);
+    let config = &FkConfig {
+        residual_weight: residual_weights(frame.layout, model.length_scale_mm),
+        ..*config
+    };
     let mut start = frame.home;
     observations
         .iter()

@@ -606,6 +606,7 @@ pub fn identification_of(
         parameters: Vec::new(),
         warnings: Vec::new(),
         residual_scale_mm: 0.0,
+        length_scale_mm: calibration.length_scale_mm,
         rejected_fraction: 0.0,
         evaluations: 0,
     }
@@ -1139,11 +1140,14 @@ impl Monitor<'_> {
         let t0 = Instant::now();
         let window_obs = self.window_observations();
         let RefitModel {
-            id,
+            mut id,
             structure,
             data,
             added,
         } = self.refit_model(check)?;
+        // A window of a few seconds does not measure each string's scale as
+        // the calibration's session did: the strings keep their weights.
+        id.length_scale_mm = self.calibration.length_scale_mm;
         let host_before_mm = model_errors(&self.identification, &window_obs).mean_mm;
         let host_after_mm = model_errors(&id, &window_obs).mean_mm;
         if host_after_mm.partial_cmp(&host_before_mm) != Some(std::cmp::Ordering::Less) {
@@ -1156,6 +1160,7 @@ impl Monitor<'_> {
             strings: id.laws,
             effects: id.effects.clone(),
             correction: self.calibration.correction.clone(),
+            length_scale_mm: id.length_scale_mm,
         };
         let model_id = model_id_of(&calibration);
         let flashed = self.flash_calibration(client, &calibration, model_id)?;

@@ -7,6 +7,7 @@ use spidar::data::observe::observations;
 use spidar::model::diagnose::{close_loop, Family, LoopConfig, LoopResult, Variable};
 use spidar::model::identify::Start;
 use spidar::sim::device_with_lattice_and_test;
+use spidar_core::kinematics::residual_weights;
 use spidar_core::model::{Effect, EVERY_STRING};
 
 /// Runs the loop on a device of `seed` with `effects` injected; returns the
@@ -302,11 +303,32 @@ fn two_effects_at_once() {
     );
 }
 
+/// Encoder latency: an error proportional to the string's speed, which no
+/// family covers. It is reported by its variable, and the lagging string,
+/// weighed by its measured scale, pulls the position less: the held-out
+/// error stays within 1.3 times the clean device's (2.05 times when every
+/// string weighed alike).
 #[test]
 fn structure_no_family_explains_is_reported_by_variable() {
-    // Encoder latency: an error proportional to the string's speed.
-    let (result, _) = run(1, &["speed:3:latency_s=0.02"]);
-    assert_found(&result, Family::Unexplained, &[3], Variable::Speed);
+    for seed in [1, 2] {
+        let (result, after) = run(seed, &["speed:3:latency_s=0.02"]);
+        assert_found(&result, Family::Unexplained, &[3], Variable::Speed);
+        let model = &result.identification;
+        let w = residual_weights(model.frame.layout, &model.length_scale_mm);
+        assert!(
+            w[3] < 0.6 && (0..8).filter(|&i| i != 3).all(|i| w[i] > 0.7),
+            "seed {seed}: weights {w:?}"
+        );
+        let base = baseline(seed);
+        println!(
+            "seed {seed}: string 3 weighs {:.2}; after {after:.3} mm, clean {base:.3}",
+            w[3]
+        );
+        assert!(
+            after <= 1.3 * base,
+            "seed {seed}: after {after:.3} mm, baseline {base:.3} mm"
+        );
+    }
 }
 
 #[test]

@@ -15,7 +15,6 @@ use spidar::sim::{self, SessionKind, SimConfig};
 use spidar_core::blob::{compile, CompiledCalibration};
 use spidar_core::correction::{CorrectionModel, NnModel, OutputMode, Standardization};
 use spidar_core::device::DeviceLink;
-use spidar_core::model::Calibration;
 use spidar_protocol::{
     encode_device_message, encode_request, DeviceMessage, FrameDecoder, Request, Response,
     MAX_FRAME,
@@ -185,22 +184,13 @@ fn the_virtual_device_survives_garbage_on_its_port() {
     c.hello().unwrap();
 }
 
-fn truth_calibration(dev: &sim::SimDevice, correction: CorrectionModel) -> Calibration {
-    Calibration {
-        frame: dev.frame,
-        strings: dev.laws,
-        effects: dev.effects.clone(),
-        correction,
-    }
-}
-
 #[test]
 fn fixed_point_error_is_within_budget_on_a_test_session() {
     let dev = sim_device(5);
     let session = sim::simulate_session(&dev, SessionKind::Random { points: 60 }, 11).unwrap();
     let obs = observations(&session.samples);
     for correction in [CorrectionModel::None, nn(16)] {
-        let cal = truth_calibration(&dev, correction);
+        let cal = spidar_tests::calibration(&dev, correction);
         let blob = compile(&cal, 1, 0).unwrap();
         let parsed = CompiledCalibration::from_blob(&blob).unwrap();
         let e = fixed_point_error(&cal, &parsed, &obs).unwrap();
@@ -222,7 +212,7 @@ fn compile_command_writes_a_checked_blob_and_names_bad_files() {
     let test = dir.join("test.csv");
     session.write(&test).unwrap();
     let cal_path = dir.join("calibration.json");
-    let cal = truth_calibration(&dev, nn(8));
+    let cal = spidar_tests::calibration(&dev, nn(8));
     std::fs::write(&cal_path, serde_json::to_string(&cal).unwrap()).unwrap();
     let geometry = dir.join("geometry.toml");
     dev.nominal.write(&geometry).unwrap();

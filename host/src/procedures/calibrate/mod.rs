@@ -56,7 +56,7 @@ use crate::model::learn::outliers;
 use crate::model::learn::search::{self, SvrSearchConfig, SweepConfig};
 use crate::model::learn::svr::{self, SvrConfig};
 use crate::model::learn::{split_indices, LearnError, OutputMode};
-use crate::model::predict::{predict, KinematicModel};
+use crate::model::predict::{predict, KinematicModel, UNMEASURED_SCALES};
 use spidar_core::geometry::{device_from_room, room_from_device};
 use spidar_core::kinematics::FkStatus;
 
@@ -410,6 +410,7 @@ fn align_clocks(
         frame: nominal,
         laws: nominal_laws,
         effects: &[],
+        length_scale_mm: &UNMEASURED_SCALES,
     };
     let mut id = None;
     let (tr, train_timing) = match align::static_timing(&tr) {
@@ -422,12 +423,11 @@ fn align_clocks(
                 &Start::from_geometry(geometry),
                 &Structure::default(),
             )?;
-            let model = KinematicModel {
-                frame: &quick.frame,
-                laws: &quick.laws,
-                effects: &quick.effects,
-            };
-            let (a, tr2) = align::align(&tr, &positions(model, &tr), first.offset_s)?;
+            let (a, tr2) = align::align(
+                &tr,
+                &positions(quick.kinematic_model(), &tr),
+                first.offset_s,
+            )?;
             id = Some(quick);
             (tr2, align::SessionTiming::Aligned(a))
         }
@@ -435,14 +435,9 @@ fn align_clocks(
     let (te, test_timing) = match align::static_timing(&te) {
         Some(s) => (te, s),
         None => {
-            let (frame, laws, effects) = match &id {
-                Some(q) => (&q.frame, &q.laws, q.effects.as_slice()),
-                None => (nominal, nominal_laws, &[][..]),
-            };
-            let model = KinematicModel {
-                frame,
-                laws,
-                effects,
+            let model = match &id {
+                Some(q) => q.kinematic_model(),
+                None => nominal_model,
             };
             let (a, te1) = align::align(&te, &positions(model, &te), 0.0)?;
             (te1, align::SessionTiming::Aligned(a))
@@ -651,6 +646,7 @@ fn raw_errors(
         frame: nominal,
         laws: nominal_laws,
         effects: &[],
+        length_scale_mm: &UNMEASURED_SCALES,
     };
     let raw_tr = room_positions(raw_model, obs.train);
     let raw_te = room_positions(raw_model, obs.test);
@@ -1375,6 +1371,7 @@ impl Run<'_> {
                 self.geometry.layout,
                 self.train_info.tracked,
                 fin.residual_scale_mm,
+                &fin.length_scale_mm,
                 self.cfg.loop_config.chi2_threshold,
                 f.rejections,
             ),
@@ -1494,6 +1491,7 @@ pub fn calibrate(
         strings: fin_new.laws,
         effects: fin_new.effects.clone(),
         correction: final_corr,
+        length_scale_mm: fin_new.length_scale_mm,
     };
     run.timings.calibration_s = t_start.elapsed().as_secs_f64();
     let report = run.report(Findings {

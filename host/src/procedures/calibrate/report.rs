@@ -83,7 +83,27 @@ pub struct DeviceReport {
     /// model, per session: strings excluded as faulty, rows whose strings
     /// disagree with no single culprit.
     pub rejections: SessionRejections,
+    /// Each string's measured scale and its weight in forward kinematics,
+    /// in channel order.
+    pub string_weights: Vec<StringWeight>,
 }
+
+/// How much forward kinematics trusts one string
+/// ([`spidar_core::kinematics::residual_weights`]).
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct StringWeight {
+    pub channel: usize,
+    /// Robust scale of the part of its length residual that changes from
+    /// row to row on the training session, mm.
+    pub scale_mm: f64,
+    /// Its residual's weight in forward kinematics (1: as the typical
+    /// string; at least `MIN_RESIDUAL_WEIGHT`).
+    pub weight: f64,
+}
+
+/// Below this weight the report names the string: it pulls the position
+/// noticeably less than the others.
+const NOTABLE_WEIGHT: f64 = 0.8;
 
 /// [`Rejections`] of the training and the test session.
 #[derive(Clone, Debug, Default, Serialize)]
@@ -184,14 +204,25 @@ impl Rejections {
 
 impl DeviceReport {
     /// The report of `layout` calibrated from `tracked_rows` rows whose
-    /// string residuals scatter by `residual_scale_mm`.
+    /// string residuals scatter by `residual_scale_mm` (each string's own
+    /// scale `length_scale_mm`).
     pub fn of(
         layout: spidar_core::model::StringLayout,
         tracked_rows: usize,
         residual_scale_mm: f64,
+        length_scale_mm: &[f64; spidar_core::STRINGS],
         chi2_threshold: f64,
         rejections: SessionRejections,
     ) -> DeviceReport {
+        let weights = spidar_core::kinematics::residual_weights(layout, length_scale_mm);
+        let string_weights = layout
+            .indices()
+            .map(|channel| StringWeight {
+                channel,
+                scale_mm: length_scale_mm[channel],
+                weight: weights[channel],
+            })
+            .collect();
         let redundancy = layout.redundancy();
         let mut limits = Vec::new();
         match redundancy {
@@ -227,7 +258,35 @@ impl DeviceReport {
             smallest_detectable_offset_mm: smallest,
             limits,
             rejections,
+            string_weights,
         }
+    }
+
+    /// The strings forward kinematics trusts noticeably less than the
+    /// typical one, in words (None when there is none).
+    fn describe_weights(&self) -> Option<String> {
+        let notable: Vec<String> = self
+            .string_weights
+            .iter()
+            .filter(|w| w.weight < NOTABLE_WEIGHT)
+            .map(|w| {
+                format!(
+                    "string {} by {:.2} (its length scatters {:.2} mm)",
+                    w.channel, w.weight, w.scale_mm
+                )
+            })
+            .collect();
+        if notable.is_empty() {
+            return None;
+        }
+        let mut scales: Vec<f64> = self.string_weights.iter().map(|w| w.scale_mm).collect();
+        scales.sort_by(f64::total_cmp);
+        let typical = scales[(scales.len() - 1) / 2];
+        Some(format!(
+            "forward kinematics weighs {} against the typical string's {typical:.2} mm: \
+             a string noisier than the others pulls the position less",
+            notable.join(", ")
+        ))
     }
 }
 
@@ -645,6 +704,9 @@ impl Report {
         );
         for l in &d.limits {
             let _ = writeln!(o, "  limit: {l}");
+        }
+        if let Some(w) = d.describe_weights() {
+            let _ = writeln!(o, "  {w}");
         }
         for (name, r) in [
             ("training", &d.rejections.train),
