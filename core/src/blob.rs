@@ -227,6 +227,13 @@ mod compiler {
             field: &'static str,
             string: Option<u8>,
         },
+        /// An active string's measured residual scale (`length_scale_mm`)
+        /// is not a positive finite number while others are measured
+        /// (a calibration that did not measure them has zeros on every
+        /// string).
+        LengthScale {
+            string: u8,
+        },
         /// The body could not be encoded (should not happen).
         Encode,
     }
@@ -255,6 +262,11 @@ mod compiler {
                 } => write!(
                     f,
                     "`{field}` has fewer active strings than the end-effector's degrees of freedom"
+                ),
+                CompileError::LengthScale { string } => write!(
+                    f,
+                    "`length_scale_mm` of string {string} is not a positive number \
+                     (zeros on every string: not measured)"
                 ),
                 CompileError::Encode => write!(f, "blob body could not be encoded"),
             }
@@ -350,9 +362,15 @@ mod compiler {
                 max: MAX_EFFECTS,
             })?;
         }
-        let residual_weight =
-            crate::kinematics::residual_weights(layout, &calibration.length_scale_mm)
-                .map(|w| w as f32);
+        let scales = &calibration.length_scale_mm;
+        let unmeasured = layout.indices().all(|i| scales[i] == 0.0);
+        let measured = |s: f64| s.is_finite() && s > 0.0;
+        if !unmeasured {
+            if let Some(bad) = layout.indices().find(|&i| !measured(scales[i])) {
+                return Err(CompileError::LengthScale { string: bad as u8 });
+            }
+        }
+        let residual_weight = crate::kinematics::residual_weights(layout, scales).map(|w| w as f32);
         let head = BlobHead {
             frame,
             laws,

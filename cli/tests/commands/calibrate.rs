@@ -196,6 +196,17 @@ fn cli_calibrate_writes_the_report_the_scripts_read() {
         serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
     assert_eq!(report["stages"], same["stages"]);
     assert_eq!(report["schema"], SCHEMA);
+    // Each string's scale and weight in forward kinematics, by channel.
+    let weights = report["device"]["string_weights"].as_array().unwrap();
+    assert_eq!(weights.len(), 8, "{weights:?}");
+    for (k, w) in weights.iter().enumerate() {
+        assert_eq!(w["channel"], k);
+        let (scale, weight) = (
+            w["scale_mm"].as_f64().unwrap(),
+            w["weight"].as_f64().unwrap(),
+        );
+        assert!(scale > 0.0 && (0.1..=1.0).contains(&weight), "{w}");
+    }
     let stages = report["stages"].as_array().unwrap();
     assert!(stages.len() >= 5);
     assert_eq!(stages[0]["name"], "raw");
@@ -325,6 +336,31 @@ fn cli_calibrate_writes_the_report_the_scripts_read() {
         serde_json::from_str(&std::fs::read_to_string(out.join("calibration.json")).unwrap())
             .unwrap();
     assert!(cal.frame.room_scale > 0.0);
+    // It holds each string's measured scale; `spidar compile` refuses one
+    // that is not a positive number, naming the file, the field and the
+    // string.
+    assert!(
+        cal.length_scale_mm.iter().all(|&v| v > 0.0),
+        "{:?}",
+        cal.length_scale_mm
+    );
+    let mut bad = cal.clone();
+    bad.length_scale_mm[2] = -0.3;
+    let bad_path = dir.join("bad_scale.json");
+    std::fs::write(&bad_path, serde_json::to_string(&bad).unwrap()).unwrap();
+    let o = spidar(&[
+        "compile",
+        "--calibration",
+        s(&bad_path),
+        "--out",
+        s(&dir.join("bad.bin")),
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success());
+    assert!(
+        err.contains("bad_scale.json") && err.contains("`length_scale_mm` of string 2"),
+        "{err}"
+    );
 
     // `--json -`: the report on stdout, the summary on stderr.
     let o = spidar(&[

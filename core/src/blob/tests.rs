@@ -50,6 +50,20 @@ fn the_strings_weights_are_compiled_from_their_measured_scales_and_checked() {
     let c = compile(&unmeasured, 7, 0).unwrap();
     let c = CompiledCalibration::from_blob(&c).unwrap();
     assert_eq!(c.head.residual_weight, [1.0; STRINGS]);
+    // A scale that is not a positive number beside measured ones does not
+    // compile, naming the string; inactive channels are not read.
+    for bad in [0.0, -0.2, f64::NAN, f64::INFINITY] {
+        let mut cal = calibration();
+        cal.length_scale_mm[6] = bad;
+        assert_eq!(
+            compile(&cal, 7, 0),
+            Err(CompileError::LengthScale { string: 6 }),
+            "{bad}"
+        );
+    }
+    let mut four = four_strings();
+    four.length_scale_mm[1] = f64::NAN;
+    assert!(compile(&four, 7, 0).is_ok());
     // A weight out of [MIN_RESIDUAL_WEIGHT, 1] from another tool is refused,
     // naming the field.
     let (_, body) = split_blob(&blob).unwrap();
