@@ -381,8 +381,9 @@ pub fn forward_kinematics_inclined<F: Real>(
 /// the frame centre on a cold start). Inactive channels' anchors and lengths
 /// are not read.
 ///
-/// 1. Damped Gauss-Newton (Levenberg-Marquardt) on the residuals
-///    `|p - anchor_i| - length_i` of the `n` active strings, at most
+/// 1. Damped Gauss-Newton (Levenberg-Marquardt) on the weighted residuals
+///    `w_i (|p - anchor_i| - length_i)` of the `n` active strings
+///    ([`FkConfig::residual_weight`]; every RMS below is of them), at most
 ///    `config.max_iterations` iterations (planar layouts keep `z`).
 /// 2. If the RMS residual exceeds `config.exclusion_threshold_mm` and the layout
 ///    has at least 2 spare strings ([`StringLayout::redundancy`]; with one
@@ -639,29 +640,11 @@ pub const MIN_RESIDUAL_WEIGHT: f64 = 0.1;
 /// negative or not finite: a calibration that did not measure them), every
 /// weight is 1.
 pub fn residual_weights<F: Real>(layout: StringLayout, scale_mm: &[F; STRINGS]) -> [F; STRINGS] {
-    let ones = [F::one(); STRINGS];
-    let mut sorted = [F::zero(); STRINGS];
-    let mut n = 0;
-    for i in layout.indices() {
-        let s = scale_mm[i];
-        if !(s.is_finite() && s > F::zero()) {
-            return ones;
-        }
-        // Insertion sort of at most 8 values.
-        let mut k = n;
-        while k > 0 && sorted[k - 1] > s {
-            sorted[k] = sorted[k - 1];
-            k -= 1;
-        }
-        sorted[k] = s;
-        n += 1;
-    }
-    if n == 0 {
-        return ones;
-    }
-    let reference = sorted[(n - 1) / 2];
+    let mut w = [F::one(); STRINGS];
+    let Some(reference) = typical_scale(layout, scale_mm) else {
+        return w;
+    };
     let floor: F = lit(MIN_RESIDUAL_WEIGHT);
-    let mut w = ones;
     for i in layout.indices() {
         let ratio = reference / scale_mm[i];
         w[i] = if ratio >= F::one() {
@@ -673,6 +656,31 @@ pub fn residual_weights<F: Real>(layout: StringLayout, scale_mm: &[F; STRINGS]) 
         };
     }
     w
+}
+
+/// The scale of the device's typical string, which [`residual_weights`]
+/// weighs the others against: the median of the active strings' scales
+/// (the lower one of the middle two). `None` when a scale is not measured
+/// (an active string's is zero, negative or not finite) or no string is
+/// active.
+pub fn typical_scale<F: Real>(layout: StringLayout, scale_mm: &[F; STRINGS]) -> Option<F> {
+    let mut sorted = [F::zero(); STRINGS];
+    let mut n = 0;
+    for i in layout.indices() {
+        let s = scale_mm[i];
+        if !(s.is_finite() && s > F::zero()) {
+            return None;
+        }
+        // Insertion sort of at most 8 values.
+        let mut k = n;
+        while k > 0 && sorted[k - 1] > s {
+            sorted[k] = sorted[k - 1];
+            k -= 1;
+        }
+        sorted[k] = s;
+        n += 1;
+    }
+    (n > 0).then(|| sorted[(n - 1) / 2])
 }
 
 /// An exclusion that does not bring the RMS residual within the threshold

@@ -582,6 +582,14 @@ fn residual_weights_follow_each_strings_measured_scale() {
         assert_eq!(residual_weights(all, &s), [1.0; STRINGS], "{bad}");
     }
     assert_eq!(residual_weights(all, &[0.0; STRINGS]), [1.0; STRINGS]);
+    // The typical scale is the lower median, measured or not at all.
+    let scales = [0.2, 0.19, 0.21, 0.8, 0.24, 0.2, 0.2, 30.0];
+    assert_eq!(typical_scale(all, &scales), Some(0.2));
+    assert_eq!(
+        typical_scale(four, &[0.3, 0.4, 0.1, 0.2, 0.0, 0.0, 0.0, 0.0]),
+        Some(0.2)
+    );
+    assert_eq!(typical_scale(all, &[0.0; STRINGS]), None::<f64>);
 }
 
 /// A string whose reading lags (its length off by up to 3 mm, more while

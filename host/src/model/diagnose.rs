@@ -1984,6 +1984,13 @@ fn model_error_list(id: &Identification, observations: &[Observation]) -> Vec<f6
 /// device's kinematics, 20 clean independent devices took 36 terms of other
 /// families instead of 27 (with the tables' level dropped; `docs/benchmarks.md`,
 /// "A faulty string looked for from 1 mm").
+///
+/// For the same reason every string weighs alike here, not by its measured
+/// scale as on the device: a missing effect raises its string's scale, and
+/// weighed by it the string hides the effect from the judge. Judged
+/// weighed, slip seeds 4 and 6 lost their slips (0.387 -> 0.538, 0.372 ->
+/// 0.528 mm) and 20 clean independent devices took 5 to 7 stand-ins
+/// (`docs/benchmarks.md`, "Each string weighed by its scale").
 fn held_out_error_list(id: &Identification, observations: &[Observation]) -> Vec<f64> {
     let judging = FkConfig::<f64>::default();
     let judging = FkConfig {

@@ -268,9 +268,10 @@ pub struct Identification {
     pub warnings: Vec<String>,
     /// Robust scale of the string-space residuals, mm.
     pub residual_scale_mm: f64,
-    /// Each active string's robust residual scale, mm (0 on inactive
-    /// channels): what forward kinematics weighs the strings by
-    /// ([`spidar_core::kinematics::residual_weights`]).
+    /// Each active string's scale of the part of its residual that changes
+    /// from row to row (the residual less its running median over 41 rows),
+    /// mm (0 on inactive channels): what forward kinematics weighs the
+    /// strings by ([`spidar_core::kinematics::residual_weights`]).
     pub length_scale_mm: [f64; STRINGS],
     /// Share of (row, string) residuals the robust weights rejected (weight < 0.1).
     pub rejected_fraction: f64,

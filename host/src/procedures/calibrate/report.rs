@@ -86,6 +86,9 @@ pub struct DeviceReport {
     /// Each string's measured scale and its weight in forward kinematics,
     /// in channel order.
     pub string_weights: Vec<StringWeight>,
+    /// The typical string's scale, which the others are weighed against
+    /// (mm; 0 when not measured).
+    pub typical_scale_mm: f64,
 }
 
 /// How much forward kinematics trusts one string
@@ -215,6 +218,8 @@ impl DeviceReport {
         rejections: SessionRejections,
     ) -> DeviceReport {
         let weights = spidar_core::kinematics::residual_weights(layout, length_scale_mm);
+        let typical_scale_mm =
+            spidar_core::kinematics::typical_scale(layout, length_scale_mm).unwrap_or(0.0);
         let string_weights = layout
             .indices()
             .map(|channel| StringWeight {
@@ -259,6 +264,7 @@ impl DeviceReport {
             limits,
             rejections,
             string_weights,
+            typical_scale_mm,
         }
     }
 
@@ -279,13 +285,11 @@ impl DeviceReport {
         if notable.is_empty() {
             return None;
         }
-        let mut scales: Vec<f64> = self.string_weights.iter().map(|w| w.scale_mm).collect();
-        scales.sort_by(f64::total_cmp);
-        let typical = scales[(scales.len() - 1) / 2];
         Some(format!(
-            "forward kinematics weighs {} against the typical string's {typical:.2} mm: \
+            "forward kinematics weighs {} against the typical string's {:.2} mm: \
              a string noisier than the others pulls the position less",
-            notable.join(", ")
+            notable.join(", "),
+            self.typical_scale_mm
         ))
     }
 }
