@@ -2779,13 +2779,20 @@ impl LoopState<'_> {
                 &candidate,
             )?;
             let in_sample = |id: &Identification| ErrorStats::of(&held_out_error_list(id, train));
-            // Not a drift: where time goes with position the fit on every
-            // row absorbs it into position terms (which is why it must beat
-            // a position error, its rival) and only a fold fitted on one
-            // half in time can show it.
-            if !adds_a_drift(change) {
-                refuse_a_fold_repair(&mut check, in_sample(&self.id), in_sample(&refit));
-            }
+            // A drift need only not raise the error of the rows it is fitted
+            // on: where time goes with position the fit on every row absorbs
+            // it into position terms (which is why it must beat a position
+            // error, its rival) and only a fold fitted on one half in time
+            // shows its gain. The model simulator's planar drift device: -24 %
+            // held out, -5 % in sample; a planar independent device whose
+            // string 1 rides out of its groove (seed 2): `drift string 3`,
+            // -5.6 % held out, +0.5 % in sample, test 1.08 -> 1.55 mm.
+            let share = if adds_a_drift(change) {
+                0.0
+            } else {
+                IN_SAMPLE_SHARE_OF_GAIN
+            };
+            refuse_a_fold_repair(&mut check, in_sample(&self.id), in_sample(&refit), share);
             refit_now = Some(refit);
         }
         let accepted = check.accepted;
@@ -2929,18 +2936,19 @@ fn one_string_term(change: Change) -> bool {
 const IN_SAMPLE_SHARE_OF_GAIN: f64 = 0.25;
 
 /// Refuses an accepted `check` whose held-out gain the fit on every row
-/// (`before` -> `after`, the in-sample errors) does not show: below
-/// [`IN_SAMPLE_SHARE_OF_GAIN`] of it. A real term lowers the error of the
+/// (`before` -> `after`, the in-sample errors) does not show: below `share`
+/// of it ([`IN_SAMPLE_SHARE_OF_GAIN`]; 0 for a drift: the in-sample error
+/// must not rise). A real term lowers the error of the
 /// rows it is fitted on at least as much as that of rows it is not; one
 /// whose gain shows only held out repairs how the folds were fitted (each
 /// fold refits anchors and home with the layer tables' levels held from
 /// the fit on every row, and a free constant on one string lets it follow
 /// them): on clean independent devices, `offset` terms gained 3.6 and 6.5 %
 /// on the blocked folds and 0.5 % on every row.
-fn refuse_a_fold_repair(check: &mut Check, before: ErrorStats, after: ErrorStats) {
+fn refuse_a_fold_repair(check: &mut Check, before: ErrorStats, after: ErrorStats, share: f64) {
     let held = 1.0 - check.after.held.mean_mm / check.before.held.mean_mm.max(1e-12);
     let in_sample = 1.0 - after.mean_mm / before.mean_mm.max(1e-12);
-    if check.accepted && in_sample < IN_SAMPLE_SHARE_OF_GAIN * held {
+    if check.accepted && in_sample < share * held {
         check.accepted = false;
         check.reason = format!(
             "not added: it lowers the held-out mean by {:.1} % but that of the rows it is \
@@ -3294,7 +3302,12 @@ mod tests {
         let stats = |mean: f64| ErrorStats::of(&[mean, mean]);
         // About 6 % held out, 0.5 % on every row: a fold repair.
         let mut check = accepted();
-        refuse_a_fold_repair(&mut check, stats(0.372), stats(0.370));
+        refuse_a_fold_repair(
+            &mut check,
+            stats(0.372),
+            stats(0.370),
+            IN_SAMPLE_SHARE_OF_GAIN,
+        );
         assert!(!check.accepted);
         assert!(
             check
@@ -3306,8 +3319,21 @@ mod tests {
         );
         // 5 % on every row too: kept.
         let mut check = accepted();
-        refuse_a_fold_repair(&mut check, stats(0.400), stats(0.380));
+        refuse_a_fold_repair(
+            &mut check,
+            stats(0.400),
+            stats(0.380),
+            IN_SAMPLE_SHARE_OF_GAIN,
+        );
         assert!(check.accepted, "{}", check.reason);
+        // A drift (share 0) need only not raise the in-sample error: 0.5 %
+        // is enough, a rise is not.
+        let mut check = accepted();
+        refuse_a_fold_repair(&mut check, stats(0.372), stats(0.370), 0.0);
+        assert!(check.accepted, "{}", check.reason);
+        let mut check = accepted();
+        refuse_a_fold_repair(&mut check, stats(0.370), stats(0.372), 0.0);
+        assert!(!check.accepted, "{}", check.reason);
     }
 
     /// A drift that lowers the pooled error by moving it from one time half
