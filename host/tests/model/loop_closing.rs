@@ -305,9 +305,11 @@ fn two_effects_at_once() {
 
 /// Encoder latency: an error proportional to the string's speed, which no
 /// family covers. It is reported by its variable, and the lagging string,
-/// weighed by its measured scale, pulls the position less: the held-out
-/// error stays within 1.3 times the clean device's (2.05 times when every
-/// string weighed alike).
+/// weighed by its measured scale (with the unexplained structure counted
+/// once more: the device moves faster in use than at the lattice's
+/// captures), pulls the position less: the held-out error stays within 1.3
+/// times the clean device's (measured 1.13 and 1.05; 2.05 times when every
+/// string weighed alike, 1.29 without the structure counted again).
 #[test]
 fn structure_no_family_explains_is_reported_by_variable() {
     for seed in [1, 2] {
@@ -316,8 +318,16 @@ fn structure_no_family_explains_is_reported_by_variable() {
         let model = &result.identification;
         let w = residual_weights(model.frame.layout, &model.length_scale_mm);
         assert!(
-            w[3] < 0.6 && (0..8).filter(|&i| i != 3).all(|i| w[i] > 0.7),
+            w[3] < 0.5 && (0..8).filter(|&i| i != 3).all(|i| w[i] > 0.7),
             "seed {seed}: weights {w:?}"
+        );
+        assert!(
+            model
+                .warnings
+                .iter()
+                .any(|w| w.starts_with("string 3's residual follows speed")),
+            "seed {seed}: {:?}",
+            model.warnings
         );
         let base = baseline(seed);
         println!(
