@@ -950,9 +950,7 @@ fn a_small_session_falls_back_to_interleaved_folds() {
 fn a_six_string_device_leaves_its_faulty_string_out() {
     let mut config = PhysicsConfig::default();
     config.nominal.strings = 6;
-    let device = PhysicsDevice::new(&config, 3).unwrap();
-    let (train, _) = simulate_session(&device, SessionKind::Lattice, 4).unwrap();
-    let (test, _) = simulate_session(&device, SessionKind::Random { points: 500 }, 5).unwrap();
+    let (device, train, _, test) = device_and_sessions(&config, 3, 500);
     let c = calibrate_quick(&device, &train, &test);
     assert_eq!(c.report.device.redundancy, 3);
     let rejections = &c.report.device.rejections.test;
@@ -967,8 +965,7 @@ fn a_planar_device_of_other_physics_calibrates() {
     config.nominal.strings = 4;
     config.nominal.planar = true;
     config.abnormal_motor.enabled = false;
-    let device = PhysicsDevice::new(&config, 1).unwrap();
-    let (train, truth) = simulate_session(&device, SessionKind::Lattice, 2).unwrap();
+    let (device, train, truth, test) = device_and_sessions(&config, 1, 300);
     let plane_z = device.nominal.home_mm[2];
     for t in &truth {
         assert!(
@@ -977,7 +974,6 @@ fn a_planar_device_of_other_physics_calibrates() {
             t.meeting_mm
         );
     }
-    let (test, _) = simulate_session(&device, SessionKind::Random { points: 300 }, 3).unwrap();
     let c = calibrate_quick(&device, &train, &test);
     assert!(c.report.device.redundancy == 2);
     // Measured 0.315 mm mean, 0.96 max on a 500-point test (seed 1).
@@ -996,9 +992,7 @@ fn a_drift_that_raises_the_error_of_its_own_rows_is_not_added() {
     config.nominal.strings = 4;
     config.nominal.planar = true;
     config.abnormal_motor.string = 1;
-    let device = PhysicsDevice::new(&config, 2).unwrap();
-    let (train, _) = simulate_session(&device, SessionKind::Lattice, 3).unwrap();
-    let (test, _) = simulate_session(&device, SessionKind::Random { points: 500 }, 4).unwrap();
+    let (device, train, _, test) = device_and_sessions(&config, 2, 500);
     let c = calibrate_quick(&device, &train, &test);
     let drifts: Vec<_> = c
         .report
@@ -1022,6 +1016,25 @@ fn a_drift_that_raises_the_error_of_its_own_rows_is_not_added() {
         .find(|s| s.name == "identified")
         .unwrap();
     assert!(identified.test.mean_mm < 1.2, "{:?}", identified.test);
+}
+
+/// Device `seed` of `config`, its lattice (session seed + 1, with the
+/// truth of each row) and a test session of `points` random points (+ 2),
+/// as `spidar simulate` makes them.
+fn device_and_sessions(
+    config: &PhysicsConfig,
+    seed: u64,
+    points: usize,
+) -> (
+    PhysicsDevice,
+    Session,
+    Vec<spidar::sim::physics::PhysicsTruth>,
+    Session,
+) {
+    let device = PhysicsDevice::new(config, seed).unwrap();
+    let (train, truth) = simulate_session(&device, SessionKind::Lattice, seed + 1).unwrap();
+    let (test, _) = simulate_session(&device, SessionKind::Random { points }, seed + 2).unwrap();
+    (device, train, truth, test)
 }
 
 /// The final stage's held-out mean and max are under `mean_mm` and `max_mm`.
