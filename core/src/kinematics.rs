@@ -128,8 +128,8 @@ pub enum FkStatus {
     FaultyStringExcluded,
     /// The strings disagree and no single exclusion explains it (two or more
     /// faulty strings, or a bad calibration). The position is the all-string
-    /// least-squares compromise or, with 4 or more spare strings (3 when
-    /// that exclusion fits [`DOMINANT_EXCLUSION`] times better than any
+    /// least-squares compromise or, with 4 or more spare strings (2 or 3
+    /// when that exclusion fits [`DOMINANT_EXCLUSION`] times better than any
     /// other), when leaving one string out lowers the RMS residual
     /// [`DOMINANT_EXCLUSION`] times or more, that solve's (`excluded` names
     /// the string): do not trust it either way.
@@ -581,9 +581,9 @@ pub fn forward_kinematics<F: Real>(
         // spares, a wrong exclusion leaves one spare, which can fit by
         // chance: only the one set that fits is trusted (a 4-string planar
         // device's test error rose 0.37 -> 0.55 mm with this rule).
-        let clearly_best = layout.redundancy() >= 3
-            && rms(runner_up, n_strings - 1) >= r * lit(DOMINANT_EXCLUSION);
-        let trusted = !unique_required || fitting == 1 || clearly_best;
+        let clearly_best = rms(runner_up, n_strings - 1) >= r * lit(DOMINANT_EXCLUSION);
+        let trusted =
+            !unique_required || fitting == 1 || (clearly_best && layout.redundancy() >= 3);
         if s.converged && r <= fit_mm && trusted {
             return FkSolution {
                 position: s.position,
@@ -593,13 +593,27 @@ pub fn forward_kinematics<F: Real>(
                 iterations,
             };
         }
-        // No exclusion fits, but one explains most of the disagreement (a
-        // faulty string on a device whose other strings disagree a little
-        // too): its position is a better estimate than the compromise that
-        // spreads the faulty string's error over all of them. Still
-        // inconsistent: not to be trusted for force.
+        // No exclusion is trusted, but one explains most of the
+        // disagreement (a faulty string on a device whose other strings
+        // disagree a little too, or, with 2 spares, a second exclusion that
+        // fits by chance): its position is a better estimate than the
+        // compromise that spreads the faulty string's error over all of
+        // them (a 4-string planar device's string 127 mm off: the compromise
+        // 66 mm off the tracker, the exclusion 1 mm). Still inconsistent:
+        // not to be trusted for force.
+        // With 2 spares, where a string weighed below 1 stays in, it must
+        // also be the string the compromise blames most: the noisy string's
+        // residual, weighed low, let a wrong exclusion fit by chance (24 mm
+        // off on a planar 4-string device's test session whose string 1
+        // weighs 0.23). With every string weighed alike, the compromise
+        // often blames another string most, and the right exclusion would
+        // be lost (29 of 29 named on a 5-string device, 16 with this rule).
+        let weighed_low_in = layout
+            .indices()
+            .any(|i| i != k && config.residual_weight[i] < F::one());
+        let blamed = layout.redundancy() >= 3 || k == first || !weighed_low_in;
         if !agree
-            && (!unique_required || clearly_best)
+            && (!unique_required || (clearly_best && blamed))
             && s.converged
             && r * lit(DOMINANT_EXCLUSION) <= all_rms
         {

@@ -985,7 +985,11 @@ fn a_planar_device_of_other_physics_calibrates() {
 /// only, and a drift on string 3 gained 5.6 % on the blocked folds while it
 /// raised the error of the rows it was fitted on by 0.5 %. Added, it raised
 /// the test error 1.08 -> 1.55 mm (the test session starts its own time
-/// from home); a drift must not raise the in-sample error.
+/// from home); a drift must not raise the in-sample error. Since the
+/// kinematics give an inconsistent row of a 2-spare device the exclusion
+/// that fits clearly best, the drift's later half fold also gets worse
+/// (1.43 -> 1.55 mm), which refuses it first; either refusal will do (the
+/// in-sample rule alone: `a_gain_only_the_folds_show_is_refused`).
 #[test]
 fn a_drift_that_raises_the_error_of_its_own_rows_is_not_added() {
     let mut config = PhysicsConfig::default();
@@ -1007,7 +1011,10 @@ fn a_drift_that_raises_the_error_of_its_own_rows_is_not_added() {
     let refused = drifts
         .iter()
         .filter_map(|d| d.validation.as_ref())
-        .any(|v| v.reason.contains("repairs how the folds were fitted"));
+        .any(|v| {
+            v.reason.contains("repairs how the folds were fitted")
+                || v.reason.contains("fold gets worse")
+        });
     assert!(refused, "{drifts:#?}");
     let identified = c
         .report
