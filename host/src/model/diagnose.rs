@@ -18,7 +18,7 @@ use crate::model::identify::{
 };
 use crate::model::layers::{self, StringLayers, TableLevel};
 use crate::model::predict::{paired_with_tracker, predict_with, KinematicModel, UNMEASURED_SCALES};
-use spidar_core::kinematics::FkConfig;
+use spidar_core::kinematics::{FkConfig, FkStatus};
 use std::borrow::Cow;
 
 /// Effect families (the JSON report's `family`).
@@ -1872,6 +1872,14 @@ pub struct Validation {
     /// The interleaved folds' errors behind `interleaved`, row by row, mm.
     #[serde(skip)]
     pub interleaved_errors: Vec<f64>,
+    /// Row by row as `held_errors`: the kinematics found the row's strings
+    /// inconsistent ([`FkStatus::Inconsistent`]; the device turns force
+    /// off there).
+    #[serde(skip)]
+    pub held_inconsistent: Vec<bool>,
+    /// Row by row as `interleaved_errors`, as `held_inconsistent`.
+    #[serde(skip)]
+    pub interleaved_inconsistent: Vec<bool>,
 }
 
 impl Validation {
@@ -1881,20 +1889,24 @@ impl Validation {
     /// fit rows reach both sides of the step, `judgeable_folds`).
     pub fn for_step(&self, keep: &[bool]) -> Validation {
         let mut held_errors = Vec::with_capacity(self.held_errors.len());
+        let mut held_inconsistent = Vec::with_capacity(self.held_errors.len());
         let mut fold_sizes = Vec::with_capacity(self.fold_sizes.len());
         if self.folds == Folds::Blocked {
             held_errors.extend_from_slice(&self.interleaved_errors);
+            held_inconsistent.extend_from_slice(&self.interleaved_inconsistent);
             fold_sizes.push(self.interleaved_errors.len());
             let mut from = 0;
             for (k, &size) in self.fold_sizes.iter().enumerate() {
                 if keep.get(k).copied().unwrap_or(true) {
                     held_errors.extend_from_slice(&self.held_errors[from..from + size]);
+                    held_inconsistent.extend_from_slice(&self.held_inconsistent[from..from + size]);
                     fold_sizes.push(size);
                 }
                 from += size;
             }
         } else {
             held_errors.extend_from_slice(&self.held_errors);
+            held_inconsistent.extend_from_slice(&self.held_inconsistent);
             fold_sizes.extend_from_slice(&self.fold_sizes);
         }
         let (noise_p95_mm, noise_max_mm) = tail_noise(&held_errors);
@@ -1907,6 +1919,8 @@ impl Validation {
             held_errors,
             fold_sizes,
             interleaved_errors: self.interleaved_errors.clone(),
+            held_inconsistent,
+            interleaved_inconsistent: self.interleaved_inconsistent.clone(),
         }
     }
 }
@@ -1992,6 +2006,12 @@ fn model_error_list(id: &Identification, observations: &[Observation]) -> Vec<f6
 /// 0.528 mm) and 20 clean independent devices took 5 to 7 stand-ins
 /// (`docs/benchmarks.md`, "Each string weighed by its scale").
 fn held_out_error_list(id: &Identification, observations: &[Observation]) -> Vec<f64> {
+    held_out_errors(id, observations).0
+}
+
+/// [`held_out_error_list`] and, row by row, whether the kinematics found
+/// the row's strings inconsistent ([`FkStatus::Inconsistent`]).
+fn held_out_errors(id: &Identification, observations: &[Observation]) -> (Vec<f64>, Vec<bool>) {
     let judging = FkConfig::<f64>::default();
     let judging = FkConfig {
         exclusion_threshold_mm: judging.fault_threshold_mm,
@@ -2001,7 +2021,17 @@ fn held_out_error_list(id: &Identification, observations: &[Observation]) -> Vec
         length_scale_mm: &UNMEASURED_SCALES,
         ..id.kinematic_model()
     };
-    error_list(unweighted, observations, &judging)
+    let predictions = predict_with(unweighted, observations, &judging);
+    let tracked = predictions
+        .iter()
+        .zip(observations)
+        .filter(|(_, o)| o.tracker.is_some());
+    let inconsistent = tracked
+        .map(|(p, _)| p.status == FkStatus::Inconsistent)
+        .collect();
+    let room: Vec<[f64; 3]> = predictions.iter().map(|p| p.room).collect();
+    let (p, t) = paired_with_tracker(&room, observations);
+    (position_errors(&p, &t), inconsistent)
 }
 
 fn error_list(
@@ -2117,15 +2147,21 @@ pub(crate) fn validate_by(
     let (kind, folds) = folds(&tracked);
     let pick =
         |rows: &[usize]| -> Vec<Observation> { rows.iter().map(|&k| tracked[k].clone()).collect() };
-    let fits: Vec<(Identification, Vec<f64>)> = folds
+    let fits: Vec<(Identification, Vec<f64>, Vec<bool>)> = folds
         .par_iter()
         .map(|(rows, held)| {
             let id = fit(&pick(rows))?;
-            let errors = held_out_error_list(&id, &pick(held));
-            Ok((id, errors))
+            let (errors, inconsistent) = held_out_errors(&id, &pick(held));
+            Ok((id, errors, inconsistent))
         })
         .collect::<Result<_, IdentifyError>>()?;
     let errors: Vec<&[f64]> = fits.iter().map(|f| f.1.as_slice()).collect();
+    let statuses: Vec<&[bool]> = fits.iter().map(|f| f.2.as_slice()).collect();
+    let interleaved_inconsistent = statuses[..2].concat();
+    let held_inconsistent = match kind {
+        Folds::Blocked => statuses[2..].concat(),
+        Folds::Interleaved => statuses[..2].concat(),
+    };
     let interleaved_errors = errors[..2].concat();
     let interleaved = ErrorStats::of(&interleaved_errors);
     let pooled = match kind {
@@ -2146,6 +2182,8 @@ pub(crate) fn validate_by(
             held_errors,
             fold_sizes,
             interleaved_errors,
+            held_inconsistent,
+            interleaved_inconsistent,
         },
         fits.into_iter().map(|f| f.0).collect(),
     ))
@@ -2307,9 +2345,33 @@ fn stability(change: Change, fits: &[Identification]) -> Option<(f64, usize)> {
     Some((chi2, k))
 }
 
+/// How many held-out rows a change turns inconsistent
+/// ([`FkStatus::Inconsistent`]) and how many it settles, row by row; (0, 0)
+/// when the two validations do not hold the same rows.
+fn inconsistency_changes(before: &Validation, after: &Validation) -> (usize, usize) {
+    let n = before.held_errors.len();
+    if before.held_inconsistent.len() != n || after.held_inconsistent.len() != n {
+        return (0, 0);
+    }
+    let pairs = before
+        .held_inconsistent
+        .iter()
+        .zip(&after.held_inconsistent);
+    pairs.fold((0, 0), |(became, recovered), (&x, &y)| {
+        (
+            became + usize::from(y && !x),
+            recovered + usize::from(x && !y),
+        )
+    })
+}
+
 /// Whether a change that turns held-out errors `before` into `after` is
 /// taken: the mean must fall by `min_gain` (relative) and neither the p95
-/// nor the max may rise beyond its noise (that of `before`).
+/// nor the max may rise beyond its noise (that of `before`); nor may the
+/// rows the kinematics find inconsistent grow by more than twice the
+/// standard deviation of the difference between the rows that become
+/// inconsistent and those that cease to be, were each flip as likely either
+/// way (`sqrt` of their sum).
 pub fn judge(
     before: &Validation,
     after: &Validation,
@@ -2344,8 +2406,23 @@ pub fn judge(
         let mut mb = 0.0f64;
         let mut ma = 0.0f64;
         let mut worst: Option<(f64, f64)> = None;
-        for (&x, &y) in before.held_errors.iter().zip(&after.held_errors) {
+        for (k, (&x, &y)) in before
+            .held_errors
+            .iter()
+            .zip(&after.held_errors)
+            .enumerate()
+        {
             if failing(x) || failing(y) {
+                // Where the kinematics find the strings inconsistent after
+                // the change, the row's position is a guess among solutions
+                // that fit alike (with 2 spare strings a second exclusion
+                // fits by chance, and any change of the lengths flips it:
+                // 1.4 -> 67 mm on a planar 4-string device) and the device
+                // turns force off: such rows are counted below, not held
+                // to their error.
+                if after.held_inconsistent.get(k) == Some(&true) {
+                    continue;
+                }
                 if y > x * (1.0 + FAILING_ROW_RISE) + before.noise_max_mm
                     && worst.is_none_or(|w| y - x > w.1 - w.0)
                 {
@@ -2360,6 +2437,7 @@ pub fn judge(
     } else {
         (b.max_mm, a.max_mm, None)
     };
+    let (became, recovered) = inconsistency_changes(before, after);
     let limit = |k: usize| STABLE_CHI2[k.clamp(1, 2) - 1];
     let (accepted, why) = if let Some((chi2, k)) = stable.filter(|s| s.0 > limit(s.1)) {
         (
@@ -2391,6 +2469,15 @@ pub fn judge(
                 "the max rises beyond its noise ({:.2} mm): {max_before:.2} -> {max_after:.2} mm \
                  on the rows the model does not fail on",
                 before.noise_max_mm
+            ),
+        )
+    } else if became as f64 > recovered as f64 + 2.0 * ((became + recovered) as f64).sqrt() {
+        (
+            false,
+            format!(
+                "more held-out rows become inconsistent (the kinematics cannot settle them, the \
+                 device turns force off) than their noise allows: {became} become so, \
+                 {recovered} cease to be"
             ),
         )
     } else if let Some((x, y)) = worst_failing {
@@ -3333,6 +3420,8 @@ mod tests {
             noise_max_mm,
             fold_sizes: folds.iter().map(|f| f.len()).collect(),
             interleaved_errors: held_errors.clone(),
+            held_inconsistent: vec![false; held_errors.len()],
+            interleaved_inconsistent: vec![false; held_errors.len()],
             held_errors,
         }
     }
@@ -3424,6 +3513,66 @@ mod tests {
         assert!(check.accepted, "{}", check.reason);
     }
 
+    /// A row the model fails on that the change leaves inconsistent (the
+    /// kinematics cannot settle it: with 2 spares a second exclusion fits
+    /// by chance, and its error flips 1.4 -> 67 mm with any change) is not
+    /// held to its error; the same row settled at that error is. More rows
+    /// turned inconsistent than their noise allows refuse the change.
+    #[test]
+    fn rows_the_kinematics_cannot_settle_are_counted_not_held_to_their_error() {
+        let fold = |level: f64| -> Vec<f64> {
+            (0..400)
+                .map(|k| level + 0.05 * ((k * 7919) % 13) as f64 / 13.0)
+                .collect()
+        };
+        let before = blocked([&fold(0.50), &fold(0.50), &fold(0.50)]);
+        let mut after = blocked([&fold(0.45), &fold(0.45), &fold(0.45)]);
+        after.held_errors[326] = 66.9;
+        let with = |v: &Validation, inconsistent: &[usize]| {
+            let mut v = v.clone();
+            for &k in inconsistent {
+                v.held_inconsistent[k] = true;
+            }
+            v
+        };
+        // Settled at 66.9 mm: refused as before.
+        let check = judge(&before, &with(&after, &[]), None, 0.02);
+        assert!(!check.accepted);
+        assert!(
+            check.reason.contains("a row the model fails on gets worse"),
+            "{}",
+            check.reason
+        );
+        // Inconsistent after the change: counted, one row is within noise.
+        let check = judge(&before, &with(&after, &[326]), None, 0.02);
+        assert!(check.accepted, "{}", check.reason);
+        // Ten more rows inconsistent, two settled: refused (8 > 2 sqrt(12)).
+        let rows: Vec<usize> = (300..310).collect();
+        let check = judge(
+            &with(&before, &[500, 501]),
+            &with(&after, &[&rows[..], &[326]].concat()),
+            None,
+            0.02,
+        );
+        assert!(!check.accepted);
+        assert!(
+            check
+                .reason
+                .contains("more held-out rows become inconsistent")
+                && check.reason.contains("11 become so, 2 cease to be"),
+            "{}",
+            check.reason
+        );
+        // Six more and four settled: within noise.
+        let check = judge(
+            &with(&before, &[500, 501, 502, 503]),
+            &with(&after, &[300, 301, 302, 303, 304, 326]),
+            None,
+            0.02,
+        );
+        assert!(check.accepted, "{}", check.reason);
+    }
+
     /// A step is judged on the interleaved folds and the blocked folds kept.
     #[test]
     fn a_step_is_judged_on_the_interleaved_folds_and_the_folds_that_straddle_it() {
@@ -3436,9 +3585,15 @@ mod tests {
             held_errors: vec![1.0, 2.0, 3.0, 4.0, 5.0, 6.0],
             fold_sizes: vec![1, 2, 3],
             interleaved_errors: vec![0.5, 0.5],
+            held_inconsistent: vec![false, false, true, false, false, false],
+            interleaved_inconsistent: vec![true, false],
         };
         let step = v.for_step(&[true, false, true]);
         assert_eq!(step.held_errors, vec![0.5, 0.5, 1.0, 4.0, 5.0, 6.0]);
+        assert_eq!(
+            step.held_inconsistent,
+            vec![true, false, false, false, false, false]
+        );
         assert_eq!(step.fold_sizes, vec![2, 1, 3]);
         assert_eq!(step.held.n, 6);
         let means: Vec<f64> = fold_means(&step).collect();
