@@ -123,9 +123,14 @@ pub struct Rejections {
     /// Rows where this channel's string was excluded as faulty, per
     /// channel (0..8; channels without a string stay 0).
     pub excluded_by_channel: [usize; spidar_core::STRINGS],
-    /// Rows whose strings disagree and no single exclusion fits (the
-    /// position is the least-squares compromise).
+    /// Rows whose strings disagree and no single exclusion is trusted (the
+    /// device turns force off there), `inconsistent_excluded_by_channel`
+    /// among them.
     pub inconsistent: usize,
+    /// Of the inconsistent rows, those whose position leaves this channel's
+    /// string out (the exclusion that fits clearly best, not trusted), per
+    /// channel; the others are the all-string compromise.
+    pub inconsistent_excluded_by_channel: [usize; spidar_core::STRINGS],
     /// Rows where the solve did not converge.
     pub not_converged: usize,
     /// Rows with an invalid length (NaN, negative).
@@ -150,7 +155,15 @@ impl Rejections {
                         *c += 1;
                     }
                 }
-                FkStatus::Inconsistent => r.inconsistent += 1,
+                FkStatus::Inconsistent => {
+                    r.inconsistent += 1;
+                    if let Some(c) = p
+                        .excluded
+                        .and_then(|s| r.inconsistent_excluded_by_channel.get_mut(usize::from(s)))
+                    {
+                        *c += 1;
+                    }
+                }
                 FkStatus::NotConverged => r.not_converged += 1,
                 FkStatus::InvalidInput => r.invalid += 1,
             }
@@ -180,11 +193,29 @@ impl Rejections {
                 )
             })
             .collect();
+        let placed: usize = self.inconsistent_excluded_by_channel.iter().sum();
+        if self.inconsistent > 0 {
+            let mut line = format!(
+                "{} inconsistent (strings disagreeing, no exclusion trusted",
+                self.inconsistent
+            );
+            let without: Vec<String> = self
+                .inconsistent_excluded_by_channel
+                .iter()
+                .enumerate()
+                .filter(|(_, &n)| n > 0)
+                .map(|(s, &n)| format!("{n} without string {s}"))
+                .collect();
+            if !without.is_empty() {
+                line += &format!(
+                    "; placed {}, {} by all strings",
+                    without.join(", "),
+                    self.inconsistent - placed
+                );
+            }
+            parts.push(line + ")");
+        }
         for (n, what) in [
-            (
-                self.inconsistent,
-                "strings disagreeing with no single culprit",
-            ),
             (self.not_converged, "not converged"),
             (self.invalid, "invalid lengths"),
         ] {
@@ -936,19 +967,26 @@ mod tests {
             row(FkStatus::FaultyStringExcluded, Some(2)),
             row(FkStatus::FaultyStringExcluded, Some(7)),
             row(FkStatus::Inconsistent, None),
+            row(FkStatus::Inconsistent, Some(1)),
             row(FkStatus::NotConverged, None),
             row(FkStatus::InvalidInput, None),
             row(FkStatus::Ok, None),
         ];
         let r = Rejections::of(&rows);
-        assert_eq!(r.rows, 8);
+        assert_eq!(r.rows, 9);
         assert_eq!(r.excluded_by_channel, [0, 0, 2, 0, 0, 0, 0, 1]);
-        assert_eq!((r.inconsistent, r.not_converged, r.invalid), (1, 1, 1));
-        assert_eq!(r.flagged(), 6);
+        assert_eq!(r.inconsistent_excluded_by_channel, [0, 1, 0, 0, 0, 0, 0, 0]);
+        assert_eq!((r.inconsistent, r.not_converged, r.invalid), (2, 1, 1));
+        assert_eq!(r.flagged(), 7);
         assert_eq!(
             r.describe(),
-            "6 of 8 rows: string 2 excluded 2 times, string 7 excluded 1 time, \
-             1 strings disagreeing with no single culprit, 1 not converged, 1 invalid lengths"
+            "7 of 9 rows: string 2 excluded 2 times, string 7 excluded 1 time, \
+             2 inconsistent (strings disagreeing, no exclusion trusted; placed 1 without \
+             string 1, 1 by all strings), 1 not converged, 1 invalid lengths"
+        );
+        assert_eq!(
+            Rejections::of(&rows[4..5]).describe(),
+            "1 of 1 rows: 1 inconsistent (strings disagreeing, no exclusion trusted)"
         );
         let clean = Rejections::of(&rows[..1]);
         assert_eq!(clean.describe(), "all 1 rows solved with every string");
