@@ -179,6 +179,7 @@ pub const CASES: &[Case] = &[
     case("kinematics::inverse_kinematics::<f32>", 32, inverse_kinematics),
     case("kinematics::forward_kinematics::<f32> (warm)", 48, fk_warm),
     case("kinematics::forward_kinematics::<f32> (cold, faulty string)", 24, fk_faulty),
+    case("kinematics::forward_kinematics::<f32> (5 strings, one 40-120 mm off)", 32, fk_two_spares),
     case("correction::NnView::evaluate (3-20-3)", 48, nn_evaluate),
     case("correction::SvrView::evaluate (1000 SV)", 16, svr_evaluate),
     case("correction::SvrView::evaluate (1000 SV, words/bytes, near/far)", 24, svr_paths),
@@ -517,6 +518,25 @@ fn fk_faulty(_: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
             &FkConfig::default(),
         ),
     );
+}
+
+/// Five strings (2 spares), one 40-120 mm off, 0.1 mm noise, cold start;
+/// every string weighed alike or a good one weighed low: the 2-spare
+/// inconsistent path (the exclusion that fits clearly best, or the
+/// all-string compromise).
+fn fk_two_spares(_: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    use spidar_core::kinematics::{forward_kinematics, FkConfig};
+    let five = spidar_core::model::StringLayout { active: 0b0001_1111, planar: false };
+    let p = central_position(rng);
+    let mut lengths = lengths_at(p, rng, 0.1);
+    let bad = rng.i32_in(0, 4) as usize;
+    let size = rng.f32_in(40.0, 120.0);
+    lengths[bad] += if rng.i32_in(0, 1) == 0 { size } else { -size };
+    let mut config = FkConfig::default();
+    if rng.i32_in(0, 1) == 0 {
+        config.residual_weight[(bad + 1) % 5] = rng.f32_in(0.2, 0.9);
+    }
+    fk_solution(out, &forward_kinematics(&cube_anchors(), five, &lengths, [0.0; 3], &config));
 }
 
 fn correction_case(fx: &Fixtures, svr: bool, rng: &mut Rng, out: &mut dyn Out) {
