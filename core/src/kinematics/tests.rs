@@ -446,18 +446,25 @@ fn two_spare_strings_exclude_a_faulty_one() {
     assert!(excluded_right >= 9, "{excluded_right} of 12");
 }
 
-#[test]
-fn planar_layout_solves_in_the_anchors_plane() {
+/// A planar device's anchors on channels 0..4: the corners of a 1.6 m x
+/// 1.2 m frame in z = 25 mm.
+fn planar_anchors() -> [Vec3<f64>; STRINGS] {
     let mut a = [[0.0; 3]; STRINGS];
-    for (i, v) in a.iter_mut().take(4).enumerate() {
-        let (x, y) = [
-            (-800.0, -600.0),
-            (800.0, -600.0),
-            (800.0, 600.0),
-            (-800.0, 600.0),
-        ][i];
+    let corners = [
+        (-800.0, -600.0),
+        (800.0, -600.0),
+        (800.0, 600.0),
+        (-800.0, 600.0),
+    ];
+    for (v, (x, y)) in a.iter_mut().zip(corners) {
         *v = [x, y, 25.0];
     }
+    a
+}
+
+#[test]
+fn planar_layout_solves_in_the_anchors_plane() {
+    let a = planar_anchors();
     for n in [3usize, 4] {
         let layout = StringLayout::first(n, true);
         assert_eq!(layout.dof(), 2);
@@ -657,16 +664,7 @@ fn a_noisy_string_weighed_by_its_scale_pulls_the_position_less() {
 /// string is never named.
 #[test]
 fn two_spares_give_an_inconsistent_row_the_exclusion_that_fits_clearly_best() {
-    let mut square = [[0.0; 3]; STRINGS];
-    for (i, v) in square.iter_mut().take(4).enumerate() {
-        let (x, y) = [
-            (-800.0, -600.0),
-            (800.0, -600.0),
-            (800.0, 600.0),
-            (-800.0, 600.0),
-        ][i];
-        *v = [x, y, 25.0];
-    }
+    let square = planar_anchors();
     let five = StringLayout {
         active: 0b0001_1111,
         planar: false,

@@ -3477,6 +3477,13 @@ mod tests {
         assert!(!check.accepted, "{}", check.reason);
     }
 
+    /// 400 held-out row errors from `level` to `level` + 0.05 mm.
+    fn spread_fold(level: f64) -> Vec<f64> {
+        (0..400)
+            .map(|k| level + 0.05 * ((k * 7919) % 13) as f64 / 13.0)
+            .collect()
+    }
+
     /// A drift that lowers the pooled error by moving it from one time half
     /// to the other is refused, naming the fold; one that helps every fold
     /// is kept.
@@ -3484,11 +3491,7 @@ mod tests {
     fn a_drift_that_only_moves_error_between_the_halves_is_refused() {
         // Row errors with a spread, and a change that moves each row by its
         // own amount around the fold's shift.
-        let fold = |level: f64| -> Vec<f64> {
-            (0..400)
-                .map(|k| level + 0.05 * ((k * 7919) % 13) as f64 / 13.0)
-                .collect()
-        };
+        let fold = spread_fold;
         let before = blocked([&fold(0.50), &fold(0.60), &fold(0.45)]);
         let jitter = |v: Vec<f64>| -> Vec<f64> {
             v.iter()
@@ -3520,11 +3523,7 @@ mod tests {
     /// turned inconsistent than their noise allows refuse the change.
     #[test]
     fn rows_the_kinematics_cannot_settle_are_counted_not_held_to_their_error() {
-        let fold = |level: f64| -> Vec<f64> {
-            (0..400)
-                .map(|k| level + 0.05 * ((k * 7919) % 13) as f64 / 13.0)
-                .collect()
-        };
+        let fold = spread_fold;
         let before = blocked([&fold(0.50), &fold(0.50), &fold(0.50)]);
         let mut after = blocked([&fold(0.45), &fold(0.45), &fold(0.45)]);
         after.held_errors[326] = 66.9;
