@@ -708,7 +708,10 @@ fn a_device_that_stops_answering_is_the_link_error() {
     cfg.tracker_label = format!("the tracker (UDP {})", receiver.local_addr());
     let started = Instant::now();
     let e = collect(&mut client, &mut receiver, &lattice, &cfg, &path, &mut sink).unwrap_err();
-    assert!(sink.action.is_none(), "the device was shut down");
+    assert!(
+        sink.action.is_none(),
+        "the collection failed before the device was shut down: {e}"
+    );
     drop(operator);
     assert!(
         matches!(e, CollectError::Link(_) | CollectError::DeviceSilent { .. }),
