@@ -970,6 +970,11 @@ fn a_five_string_device_places_its_inconsistent_rows_without_its_faulty_string()
     let (device, train, _, test) = device_and_sessions(&config, 2, 500);
     let c = calibrate_quick(&device, &train, &test);
     assert_eq!(c.report.device.redundancy, 2);
+    let limits = &c.report.device.limits;
+    assert!(
+        limits.iter().any(|l| l.starts_with("two spare strings")),
+        "{limits:?}"
+    );
     let rejections = &c.report.device.rejections.test;
     let placed = rejections.inconsistent_excluded_by_channel;
     assert!(placed[4] > 0, "{rejections:?}");

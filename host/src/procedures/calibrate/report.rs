@@ -274,6 +274,13 @@ impl DeviceReport {
                  the position the least-squares compromise, flagged inconsistent"
                     .to_string(),
             ),
+            2 => limits.push(
+                "two spare strings: a faulty string is left out where its exclusion is the one \
+                 set of strings that fits; where another fits by chance too, the row is flagged \
+                 inconsistent (force off) and placed by the exclusion that fits clearly best, \
+                 else by the least-squares compromise"
+                    .to_string(),
+            ),
             _ => {}
         }
         let smallest = residual_scale_mm * (chi2_threshold / tracked_rows.max(1) as f64).sqrt();
