@@ -736,4 +736,32 @@ impl SimulatedRig {
     pub fn port(&self) -> &str {
         self.virtual_device.port_path()
     }
+
+    /// Where each part of the lock-step world stands, in one line: for a
+    /// test that failed on a silent device or tracker, which part stood
+    /// still (the device's ticks and frames, the hand's plant and
+    /// committed path, the frames the procedure took).
+    pub fn describe(&self) -> String {
+        let d = self.virtual_device.status();
+        let progress = self.receiver.progress();
+        format!(
+            "virtual device: boots {}, device time {} us, ticks {}, frames sent {}, dropped {}, \
+             armed {}, power lost {}, plant error {:?}; hand: plant at {} us, path until {:?} us, \
+             clock {} us; tracker: {} datagrams received, {} frames taken, busy {}",
+            d.boots,
+            d.device_time_us,
+            d.ticks,
+            d.tx_frames,
+            d.tx_dropped,
+            d.armed,
+            d.power_lost,
+            d.plant_error,
+            self.hand.plant_time_us(),
+            self.hand.ready_until(),
+            self.hand.clock().now_us(),
+            self.receiver.receiver_stats().datagrams,
+            progress.taken(),
+            progress.busy(),
+        )
+    }
 }

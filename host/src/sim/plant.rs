@@ -182,6 +182,11 @@ impl Hand {
         }
     }
 
+    /// Simulated time of the plant's last tick, µs.
+    pub fn plant_time_us(&self) -> u64 {
+        self.lock().plant_us
+    }
+
     /// Clocked: the simulated time up to which the path is committed (the
     /// plant must not tick past it); free: `None` (no limit).
     pub fn ready_until(&self) -> Option<u64> {
