@@ -311,6 +311,12 @@ impl SimOperator {
         }
     }
 
+    /// The operator's thread has ended (stopped, out of time, or failed:
+    /// [`SimOperator::stop`] says which).
+    pub fn is_finished(&self) -> bool {
+        self.thread.as_ref().is_none_or(|t| t.is_finished())
+    }
+
     /// Stops the operator and reports what it did.
     pub fn stop(mut self) -> Result<SimOperatorReport, TrackerError> {
         self.stop.store(true, Ordering::SeqCst);
@@ -747,7 +753,8 @@ impl SimulatedRig {
         format!(
             "virtual device: boots {}, device time {} us, ticks {}, frames sent {}, dropped {}, \
              armed {}, power lost {}, plant error {:?}; hand: plant at {} us, path until {:?} us, \
-             clock {} us; tracker: {} datagrams received, {} frames taken, busy {}",
+             clock {} us; tracker: {} datagrams received, {} frames taken, busy {}; operator \
+             thread ended {}",
             d.boots,
             d.device_time_us,
             d.ticks,
@@ -762,6 +769,7 @@ impl SimulatedRig {
             self.receiver.receiver_stats().datagrams,
             progress.taken(),
             progress.busy(),
+            self.operator.is_finished(),
         )
     }
 }
