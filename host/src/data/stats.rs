@@ -169,24 +169,24 @@ pub fn error_stats_checked(what: &str, errors: &[f64]) -> Result<ErrorStats, Sta
 
 #[cfg(test)]
 mod tests {
+    use super::*;
+
     #[test]
     fn running_median_is_the_median_of_each_window() {
         let values: Vec<f64> = (0..57)
             .map(|k| ((k * 37) % 23) as f64 - 0.5 * k as f64)
             .collect();
         for half in [0, 1, 4, 20, 60] {
-            let fast = super::running_median(&values, half);
+            let fast = running_median(&values, half);
             for (t, m) in fast.iter().enumerate() {
                 let from = t.saturating_sub(half);
                 let to = (t + half + 1).min(values.len());
                 let mut w = values[from..to].to_vec();
-                assert_eq!(*m, super::median(&mut w), "half {half}, t {t}");
+                assert_eq!(*m, median(&mut w), "half {half}, t {t}");
             }
         }
-        assert!(super::running_median(&[], 3).is_empty());
+        assert!(running_median(&[], 3).is_empty());
     }
-
-    use super::*;
 
     #[test]
     fn eq7_and_summary() {

@@ -1187,7 +1187,6 @@ fn minimize(mut problem: Problem<'_>) -> Result<(Problem<'_>, usize), String> {
     Ok((problem, evaluations))
 }
 
-/// Robust scale (1.4826 MAD) of the residuals of the active strings.
 /// Rows on each side of a row whose median residual is taken off it before
 /// its string's scale is read ([`fast_residual_scales`]): 41 rows span
 /// three rows of a 13-point lattice walked back and forth, so both
@@ -1219,6 +1218,7 @@ fn fast_residual_scales(residuals: &[[f64; STRINGS]], layout: StringLayout) -> [
     })
 }
 
+/// Robust scale (1.4826 MAD) of the residuals of the active strings.
 fn robust_scale(residuals: &[[f64; STRINGS]], layout: StringLayout) -> f64 {
     let all: Vec<f64> = residuals
         .iter()
