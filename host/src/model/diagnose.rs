@@ -2021,17 +2021,7 @@ fn held_out_errors(id: &Identification, observations: &[Observation]) -> (Vec<f6
         length_scale_mm: &UNMEASURED_SCALES,
         ..id.kinematic_model()
     };
-    let predictions = predict_with(unweighted, observations, &judging);
-    let tracked = predictions
-        .iter()
-        .zip(observations)
-        .filter(|(_, o)| o.tracker.is_some());
-    let inconsistent = tracked
-        .map(|(p, _)| p.status == FkStatus::Inconsistent)
-        .collect();
-    let room: Vec<[f64; 3]> = predictions.iter().map(|p| p.room).collect();
-    let (p, t) = paired_with_tracker(&room, observations);
-    (position_errors(&p, &t), inconsistent)
+    errors_and_inconsistency(unweighted, observations, &judging)
 }
 
 fn error_list(
@@ -2039,10 +2029,26 @@ fn error_list(
     observations: &[Observation],
     fk: &FkConfig<f64>,
 ) -> Vec<f64> {
+    errors_and_inconsistency(model, observations, fk).0
+}
+
+/// Position errors of `model` on the tracked rows and, row by row, whether
+/// the kinematics found the row's strings inconsistent.
+fn errors_and_inconsistency(
+    model: KinematicModel<'_>,
+    observations: &[Observation],
+    fk: &FkConfig<f64>,
+) -> (Vec<f64>, Vec<bool>) {
     let predictions = predict_with(model, observations, fk);
+    let inconsistent = predictions
+        .iter()
+        .zip(observations)
+        .filter(|(_, o)| o.tracker.is_some())
+        .map(|(p, _)| p.status == FkStatus::Inconsistent)
+        .collect();
     let room: Vec<[f64; 3]> = predictions.iter().map(|p| p.room).collect();
     let (p, t) = paired_with_tracker(&room, observations);
-    position_errors(&p, &t)
+    (position_errors(&p, &t), inconsistent)
 }
 
 /// One fold: (fit rows, held-out rows), by index into the tracked rows.
@@ -3491,15 +3497,18 @@ mod tests {
     fn a_drift_that_only_moves_error_between_the_halves_is_refused() {
         // Row errors with a spread, and a change that moves each row by its
         // own amount around the fold's shift.
-        let fold = spread_fold;
-        let before = blocked([&fold(0.50), &fold(0.60), &fold(0.45)]);
+        let before = blocked([&spread_fold(0.50), &spread_fold(0.60), &spread_fold(0.45)]);
         let jitter = |v: Vec<f64>| -> Vec<f64> {
             v.iter()
                 .enumerate()
                 .map(|(k, x)| x + 0.02 * ((k * 104729) % 7) as f64 / 7.0 - 0.01)
                 .collect()
         };
-        let moved = blocked([&jitter(fold(0.52)), &jitter(fold(0.50)), &fold(0.45)]);
+        let moved = blocked([
+            &jitter(spread_fold(0.52)),
+            &jitter(spread_fold(0.50)),
+            &spread_fold(0.45),
+        ]);
         let check = judge(&before, &moved, None, 0.02);
         assert!(check.accepted, "{}", check.reason);
         let check = refuse_on_fold_rise(check);
@@ -3511,7 +3520,7 @@ mod tests {
             "{}",
             check.reason
         );
-        let helped = blocked([&fold(0.48), &fold(0.55), &fold(0.44)]);
+        let helped = blocked([&spread_fold(0.48), &spread_fold(0.55), &spread_fold(0.44)]);
         let check = refuse_on_fold_rise(judge(&before, &helped, None, 0.02));
         assert!(check.accepted, "{}", check.reason);
     }
@@ -3523,9 +3532,8 @@ mod tests {
     /// turned inconsistent than their noise allows refuse the change.
     #[test]
     fn rows_the_kinematics_cannot_settle_are_counted_not_held_to_their_error() {
-        let fold = spread_fold;
-        let before = blocked([&fold(0.50), &fold(0.50), &fold(0.50)]);
-        let mut after = blocked([&fold(0.45), &fold(0.45), &fold(0.45)]);
+        let before = blocked([&spread_fold(0.50), &spread_fold(0.50), &spread_fold(0.50)]);
+        let mut after = blocked([&spread_fold(0.45), &spread_fold(0.45), &spread_fold(0.45)]);
         after.held_errors[326] = 66.9;
         let with = |v: &Validation, inconsistent: &[usize]| {
             let mut v = v.clone();
