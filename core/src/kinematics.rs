@@ -601,6 +601,7 @@ pub fn forward_kinematics<F: Real>(
         // them (a 4-string planar device's string 127 mm off: the compromise
         // 66 mm off the tracker, the exclusion 1 mm). Still inconsistent:
         // not to be trusted for force.
+        //
         // With 2 spares, where a string weighed below 1 stays in, it must
         // also be the string the compromise blames most: the noisy string's
         // residual, weighed low, let a wrong exclusion fit by chance (24 mm
@@ -608,10 +609,11 @@ pub fn forward_kinematics<F: Real>(
         // weighs 0.23). With every string weighed alike, the compromise
         // often blames another string most, and the right exclusion would
         // be lost (29 of 29 named on a 5-string device, 16 with this rule).
-        let weighed_low_in = layout
-            .indices()
-            .any(|i| i != k && config.residual_weight[i] < F::one());
-        let blamed = layout.redundancy() >= 3 || k == first || !weighed_low_in;
+        let blamed = layout.redundancy() >= 3
+            || k == first
+            || layout
+                .indices()
+                .all(|i| i == k || config.residual_weight[i] >= F::one());
         if !agree
             && (!unique_required || (clearly_best && blamed))
             && s.converged
