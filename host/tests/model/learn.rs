@@ -577,3 +577,85 @@ fn bad_input_gives_typed_errors() {
         Err(LearnError::TooLarge { .. })
     ));
 }
+
+// ------------------------------------------- a session beyond the cap --
+
+/// A training session larger than the corrections' learning cap: they learn
+/// from an even thinning of it (at most the cap, every kept point near one
+/// of them), the report says so, and the held-out error stays that of
+/// corrections learned from every point. (Before the cap, a 20 000-row
+/// session ran the SVR search out of its time limit and the calibration
+/// failed.)
+#[test]
+fn corrections_learn_from_an_even_thinning_of_a_session_beyond_the_cap() {
+    use spidar::procedures::calibrate::{calibrate, CalibrateConfig, NamedSession};
+    use spidar::sim::{simulate_session, SessionKind, SimConfig, SimDevice};
+    use std::path::Path;
+
+    let mut c = SimConfig::default();
+    c.abnormal_motor.enabled = false;
+    let device = SimDevice::new(&c, 4).unwrap();
+    let train = simulate_session(&device, SessionKind::Random { points: 1500 }, 5).unwrap();
+    let test = simulate_session(&device, SessionKind::Random { points: 300 }, 6).unwrap();
+    let run = |cap: usize| {
+        let mut cfg = CalibrateConfig::quick();
+        cfg.quiet = true;
+        cfg.max_learning_points = cap;
+        calibrate(
+            &c.nominal.geometry(),
+            Path::new("geometry.toml"),
+            NamedSession {
+                path: Path::new("train.csv"),
+                session: &train,
+            },
+            NamedSession {
+                path: Path::new("test.csv"),
+                session: &test,
+            },
+            &cfg,
+        )
+        .expect("calibrate")
+    };
+    let thinned = run(400);
+    let whole = run(2500);
+    let points = &thinned.report.corrections.learning_points;
+    assert!(
+        (300..=400).contains(&points.used) && points.cell_mm.is_some(),
+        "{points:?}"
+    );
+    assert_eq!(points.kept, whole.report.corrections.learning_points.kept);
+    assert_eq!(whole.report.corrections.learning_points.cell_mm, None);
+    assert_eq!(
+        whole.report.corrections.learning_points.used,
+        whole.report.corrections.learning_points.kept
+    );
+    // The learners saw the thinned points only: the selection split is a
+    // fifth of them, and the SVR has no more support vectors than points.
+    let selection = &thinned.report.selection;
+    assert_eq!(
+        selection.fit_points + selection.selection_points,
+        points.used
+    );
+    assert!(thinned.report.corrections.svr.support_vectors <= selection.fit_points);
+    assert!(thinned.report.summary().contains(&format!(
+        "learned from {} of the {} kept training points",
+        points.used, points.kept
+    )));
+    // Every error figure still counts every row.
+    let stage = |r: &spidar::procedures::calibrate::Calibrated, name: &str| {
+        r.report
+            .stages
+            .iter()
+            .find(|s| s.name == name)
+            .unwrap_or_else(|| panic!("no stage {name}"))
+            .clone()
+    };
+    assert_eq!(stage(&thinned, "raw").train.n, stage(&whole, "raw").train.n);
+    for name in ["nn", "svr"] {
+        let (a, b) = (
+            stage(&thinned, name).test.mean_mm,
+            stage(&whole, name).test.mean_mm,
+        );
+        assert!(a < 1.1 * b, "{name}: thinned {a} mm, whole {b} mm");
+    }
+}

@@ -8,7 +8,8 @@
 //! - [`svr`]: an RBF epsilon-SVR per axis (our own SMO solver, see there why);
 //! - [`search`]: the hidden-size sweep of figure 13 and the SVR
 //!   hyperparameter search;
-//! - [`synthetic`]: a smooth distortion field for tests and benchmarks.
+//! - [`synthetic`]: a smooth distortion field for tests and benchmarks;
+//! - [`thin`]: a large session thinned evenly through its volume.
 //!
 //! Trainers output the f64 model types of `spidar_core::correction`, which the
 //! fixed-point compiler reads.
@@ -19,6 +20,7 @@ pub mod search;
 pub mod standardize;
 pub mod svr;
 pub mod synthetic;
+pub mod thin;
 
 use std::fmt;
 use std::time::{Duration, Instant};

@@ -55,6 +55,7 @@ use crate::model::learn::nn::{self, NnConfig};
 use crate::model::learn::outliers;
 use crate::model::learn::search::{self, SvrSearchConfig, SweepConfig};
 use crate::model::learn::svr::{self, SvrConfig};
+use crate::model::learn::thin::{thin_evenly, Thinning};
 use crate::model::learn::{split_indices, LearnError, OutputMode};
 use crate::model::predict::{predict, KinematicModel, UNMEASURED_SCALES};
 use spidar_core::geometry::{device_from_room, room_from_device};
@@ -117,6 +118,14 @@ pub struct CalibrateConfig {
     pub nn: SweepConfig,
     /// Residual-mode SVR: hyperparameter grid.
     pub svr: SvrSearchConfig,
+    /// Most training points the corrections learn from (fit part and
+    /// selection split together): a larger session is thinned evenly
+    /// through its volume ([`thin_evenly`]); every row still counts in the
+    /// identification and in the error figures. 2500 keeps a 13^3 lattice
+    /// (2197 points) whole, so the SVR's kernel and the NN's steps stay as
+    /// measured on it; a 20 000-row session otherwise ran the SVR search
+    /// out of its time limit and failed the calibration.
+    pub max_learning_points: usize,
     /// Share of the kept training points held out to choose the final model.
     pub selection_fraction: f64,
     /// Relative gain over the identified model a correction needs, on the
@@ -159,6 +168,7 @@ impl CalibrateConfig {
             loop_config: LoopConfig::default(),
             nn,
             svr,
+            max_learning_points: 2500,
             selection_fraction: 0.2,
             min_correction_gain: 0.01,
             blackbox: false,
@@ -791,12 +801,18 @@ fn effect_stages(loop_result: &LoopResult, fin: &StageErrors) -> Vec<report::Sta
 }
 
 /// The residual learners' data: the final identified model's tracked pairs,
-/// Tukey's box plot on the training ones, and the kept training pairs split
-/// into a fit part and the selection split.
+/// Tukey's box plot on the training ones, the kept training pairs thinned
+/// evenly through the volume ([`CalibrateConfig::max_learning_points`]),
+/// and the thinned pairs split into a fit part and the selection split.
 struct ResidualData {
     outliers: outliers::OutlierReport,
     /// Kept training pairs and all tracked test pairs.
     pairs: PairSet,
+    /// Which kept training pairs the corrections learn from.
+    thinning: Thinning,
+    /// The thinned pairs: what the chosen correction is refitted on.
+    x_learn: Vec<[f64; 3]>,
+    t_learn: Vec<[f64; 3]>,
     x_fit: Vec<[f64; 3]>,
     t_fit: Vec<[f64; 3]>,
     x_sel: Vec<[f64; 3]>,
@@ -813,9 +829,12 @@ impl ResidualData {
         let outl = outliers::tukey(&x_all, &t_all).map_err(learn("outliers (Tukey box plot)"))?;
         let (x_kept, t_kept) = outliers::select(&outl, &x_all, &t_all);
         let (xt_all, tt_all) = tracked_pairs(obs.test, positions.test);
-        let (fit_idx, sel_idx) = split_indices(x_kept.len(), cfg.selection_fraction, cfg.seed);
-        let (x_fit, t_fit) = (subset(&x_kept, &fit_idx), subset(&t_kept, &fit_idx));
-        let (x_sel, t_sel) = (subset(&x_kept, &sel_idx), subset(&t_kept, &sel_idx));
+        let thinning = thin_evenly(&x_kept, cfg.max_learning_points);
+        let x_learn = subset(&x_kept, &thinning.indices);
+        let t_learn = subset(&t_kept, &thinning.indices);
+        let (fit_idx, sel_idx) = split_indices(x_learn.len(), cfg.selection_fraction, cfg.seed);
+        let (x_fit, t_fit) = (subset(&x_learn, &fit_idx), subset(&t_learn, &fit_idx));
+        let (x_sel, t_sel) = (subset(&x_learn, &sel_idx), subset(&t_learn, &sel_idx));
         Ok(ResidualData {
             outliers: outl,
             pairs: PairSet {
@@ -824,6 +843,9 @@ impl ResidualData {
                 test_inputs: xt_all,
                 test_targets: tt_all,
             },
+            thinning,
+            x_learn,
+            t_learn,
             x_fit,
             t_fit,
             x_sel,
@@ -971,15 +993,17 @@ fn judge_on_selection_split(
     }
 }
 
-/// The chosen correction refitted on all kept training points with the
-/// hyperparameters the search found (none for the identified model).
+/// The chosen correction refitted on all the training points it learns
+/// from (the kept ones, thinned when there are more than
+/// [`CalibrateConfig::max_learning_points`]) with the hyperparameters the
+/// search found (none for the identified model).
 fn refit_chosen(
     choice: report::Choice,
     data: &ResidualData,
     learned: &Learned,
     cfg: &CalibrateConfig,
 ) -> Result<CorrectionModel, CalibrateError> {
-    let (x_kept, t_kept) = (&data.pairs.train_inputs, &data.pairs.train_targets);
+    let (x_kept, t_kept) = (&data.x_learn, &data.t_learn);
     let pb = spinner("refitting the chosen correction", cfg.quiet);
     let final_corr = match choice {
         report::Choice::Identified => CorrectionModel::None,
@@ -1409,6 +1433,7 @@ fn residual_report(data: &ResidualData, learned: &Learned) -> report::Correction
             &data.outliers,
             "final identified model vs tracker, training session",
         ),
+        learning_points: report::LearningPoints::of(&data.thinning, data.pairs.train_inputs.len()),
         nn: report::NnReport::of(&learned.sweep),
         svr: report::SvrReport::of(&learned.svr_search),
     }
@@ -1584,7 +1609,9 @@ fn blackbox(
     cfg: &CalibrateConfig,
     points: &mut Vec<StagePoints>,
 ) -> Result<report::Blackbox, CalibrateError> {
-    let (xk, yk) = (&lp.kept.train_inputs, &lp.kept.train_targets);
+    let thinning = thin_evenly(&lp.kept.train_inputs, cfg.max_learning_points);
+    let xk = &subset(&lp.kept.train_inputs, &thinning.indices);
+    let yk = &subset(&lp.kept.train_targets, &thinning.indices);
     let sweep = search::nn_sweep(xk, yk, &cfg.blackbox_nn).map_err(learn("black-box NN sweep"))?;
     let svr_search =
         search::svr_search(xk, yk, &cfg.blackbox_svr).map_err(learn("black-box SVR search"))?;
@@ -1645,6 +1672,7 @@ fn blackbox(
             &lp.outliers,
             "legacy position vs tracker, training session",
         ),
+        learning_points: report::LearningPoints::of(&thinning, lp.kept.train_inputs.len()),
         nn: report::NnReport::of(&sweep),
         svr: report::SvrReport::of(&svr_search),
     })

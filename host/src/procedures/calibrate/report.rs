@@ -545,8 +545,31 @@ pub struct Corrections {
     pub mode: &'static str,
     pub input: &'static str,
     pub outliers: Outliers,
+    /// The kept training points the corrections learn from.
+    pub learning_points: LearningPoints,
     pub nn: NnReport,
     pub svr: SvrReport,
+}
+
+/// How many of the kept training points a correction learns from: all of
+/// them up to the calibration's `max_learning_points`, one per cell of a
+/// cubic grid beyond ([`crate::model::learn::thin`]).
+#[derive(Clone, Debug, Serialize)]
+pub struct LearningPoints {
+    pub used: usize,
+    pub kept: usize,
+    /// Edge of the grid's cells, mm; `null` when every kept point is used.
+    pub cell_mm: Option<f64>,
+}
+
+impl LearningPoints {
+    pub fn of(thinning: &crate::model::learn::thin::Thinning, kept: usize) -> LearningPoints {
+        LearningPoints {
+            used: thinning.indices.len(),
+            kept,
+            cell_mm: thinning.cell_mm,
+        }
+    }
 }
 
 /// The paper's black-box procedure.
@@ -558,6 +581,7 @@ pub struct Blackbox {
     /// legacy and a tracker position.
     pub stages: Vec<Stage>,
     pub outliers: Outliers,
+    pub learning_points: LearningPoints,
     pub nn: NnReport,
     pub svr: SvrReport,
 }
@@ -621,7 +645,7 @@ pub struct Timings {
     pub nn_s: f64,
     /// Residual SVR search and refit.
     pub svr_s: f64,
-    /// Choice of the final model and its refit on all kept points.
+    /// Choice of the final model and its refit on all the points it learns from.
     pub selection_s: f64,
     pub blackbox_s: Option<f64>,
     /// Everything [`super::calibrate`] did (black-box included when run).
@@ -859,6 +883,13 @@ impl Report {
             "  outliers (Tukey box plot): {} of {} training points removed (fences {:.3} .. {:.3} mm)",
             c.outliers.removed, c.outliers.points, c.outliers.lower_fence_mm, c.outliers.upper_fence_mm
         );
+        if let Some(cell) = c.learning_points.cell_mm {
+            let _ = writeln!(
+                o,
+                "  learned from {} of the {} kept training points, one per {:.1} mm cell (a larger session is thinned evenly through its volume)",
+                c.learning_points.used, c.learning_points.kept, cell
+            );
+        }
         let _ = writeln!(
             o,
             "  nn: sweep of {} hidden sizes, best {} neurons; svr: C = {}, epsilon = {}, gamma = {}, {} support vectors",
@@ -880,9 +911,13 @@ impl Report {
                  raising its p95 or max beyond noise, on",
                 pct(s.min_correction_gain)
             ),
-            Choice::Nn => "the NN correction, refitted on all kept points; lowest error on".into(),
+            Choice::Nn => {
+                "the NN correction, refitted on all the points it learns from; lowest error on"
+                    .into()
+            }
             Choice::Svr => {
-                "the SVR correction, refitted on all kept points; lowest error on".into()
+                "the SVR correction, refitted on all the points it learns from; lowest error on"
+                    .into()
             }
         };
         let _ = writeln!(
