@@ -124,7 +124,7 @@ const MAX_DIRECTION_SUPPORT: usize = 64;
 /// libsvm's `TAU`: the curvature used when a pair's `quad_coef` is not positive.
 const TAU: f64 = 1e-12;
 
-/// Default cap on points for the dense kernel: 16000^2 f64 is 2 GB.
+/// Default cap on points for the dense kernel: 16000^2 f32 is 1 GB.
 pub const DEFAULT_MAX_DENSE_POINTS: usize = 16_000;
 
 /// SVR hyperparameters (on standardized inputs and outputs).
