@@ -42,8 +42,9 @@
 //! - `t_s` must be finite, non-negative and **non-decreasing**: a time going
 //!   backwards is an error (time-dependent effects such as drift and slip are
 //!   fitted against it). Equal consecutive times are allowed.
-//! - Counts must be integers within the `i32` range; every other value must be
-//!   a finite number.
+//! - Counts must be whole numbers within the `i32` range (`483489` or
+//!   `483489.0`, as pandas writes an integer column that had a missing
+//!   value; `1.5` is an error); every other value must be a finite number.
 //! - Occluded rows (no tracker) are kept: they serve diagnosis, not fitting.
 //!
 //! Every error names the file, the line (1-based, header = line 1) and the
@@ -922,16 +923,19 @@ impl RowReader<'_> {
         match text.parse::<i64>() {
             Ok(v) => i32::try_from(v)
                 .map_err(|_| self.error(index, ValueProblem::CountOutOfRange(text.to_string()))),
-            Err(_) => {
-                let problem = match text.parse::<f64>() {
-                    Ok(v) if v.is_finite() && v.fract() == 0.0 => {
-                        ValueProblem::CountOutOfRange(text.to_string())
+            // A whole number written as a float (`483489.0`: pandas writes
+            // an integer column that had a missing value so) is that count.
+            Err(_) => match text.parse::<f64>() {
+                Ok(v) if v.is_finite() && v.fract() == 0.0 => {
+                    if (f64::from(i32::MIN)..=f64::from(i32::MAX)).contains(&v) {
+                        Ok(v as i32)
+                    } else {
+                        Err(self.error(index, ValueProblem::CountOutOfRange(text.to_string())))
                     }
-                    Ok(_) => ValueProblem::NotAnInteger(text.to_string()),
-                    Err(_) => ValueProblem::NotANumber(text.to_string()),
-                };
-                Err(self.error(index, problem))
-            }
+                }
+                Ok(_) => Err(self.error(index, ValueProblem::NotAnInteger(text.to_string()))),
+                Err(_) => Err(self.error(index, ValueProblem::NotANumber(text.to_string()))),
+            },
         }
     }
 

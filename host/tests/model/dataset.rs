@@ -249,6 +249,15 @@ fn error_empty_time_and_counts() {
     assert_eq!(value_error(&text, 2, "enc2"), ValueProblem::Empty);
 }
 
+/// Counts written as whole floats (pandas writes an integer column that
+/// had a missing value so) read as those counts.
+#[test]
+fn counts_written_as_whole_floats_are_those_counts() {
+    let text = format!("{HEADER}\n0,483489.0,-7.0,2,3,4,5,6,-2147483648.0,1,2,3\n");
+    let s = read(&text).unwrap();
+    assert_eq!(s.samples[0].counts, [483489, -7, 2, 3, 4, 5, 6, i32::MIN]);
+}
+
 #[test]
 fn error_count_out_of_range_or_not_integer() {
     let text = format!("{HEADER}\n0,1,2,3,4,5,6,2147483648,8,1,2,3\n");
@@ -261,6 +270,11 @@ fn error_count_out_of_range_or_not_integer() {
         value_error(&text, 2, "enc7"),
         ValueProblem::CountOutOfRange(_)
     ));
+    let text = format!("{HEADER}\n0,1,2,3,4,5,6,7,2147483648.0,1,2,3\n");
+    assert_eq!(
+        value_error(&text, 2, "enc7"),
+        ValueProblem::CountOutOfRange("2147483648.0".into())
+    );
     let text = format!("{HEADER}\n0,1.5,2,3,4,5,6,7,8,1,2,3\n");
     assert_eq!(
         value_error(&text, 2, "enc0"),
