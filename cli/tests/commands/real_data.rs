@@ -181,3 +181,50 @@ fn a_session_with_other_strings_than_its_geometry_is_refused_naming_both() {
         .unwrap_err();
     assert!(matches!(err, DatasetError::StringCount { .. }), "{err}");
 }
+
+/// The Hangprinter's sessions with the tracker in metres: refused, naming
+/// the file and the unit, where before the pulley radii shrank a
+/// thousandfold and the report said 0.057 "mm".
+#[test]
+fn a_tracker_in_metres_is_refused_naming_the_unit() {
+    let d = data_dir();
+    let dir = std::env::temp_dir().join(format!("spidar-real-metres-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let in_metres = |name: &str| {
+        let mut s = Session::load(d.join(name)).unwrap();
+        for sample in &mut s.samples {
+            if let Some(t) = sample.tracker.as_mut() {
+                *t = t.map(|x| x / 1000.0);
+            }
+        }
+        let path = dir.join(name);
+        s.write(&path).unwrap();
+        path
+    };
+    let (train, test) = (in_metres("train.csv"), in_metres("test.csv"));
+    let o = Command::new(env!("CARGO_BIN_EXE_spidar"))
+        .args([
+            "calibrate",
+            "--quick",
+            "--quiet",
+            "--no-figures",
+            "--geometry",
+        ])
+        .arg(d.join("geometry.toml"))
+        .arg("--train")
+        .arg(&train)
+        .arg("--test")
+        .arg(&test)
+        .arg("--out")
+        .arg(dir.join("out"))
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        e.contains("train.csv") && e.contains("geometry.toml"),
+        "{e}"
+    );
+    assert!(e.contains("look like metres"), "{e}");
+    assert!(!dir.join("out").join("calibration.json").exists());
+}

@@ -651,7 +651,7 @@ fn raw_errors(
     obs: PerSession<&[Observation]>,
     nominal: &spidar_core::model::Frame<f64>,
     nominal_laws: &[spidar_core::model::StringLaw; spidar_core::STRINGS],
-) -> Result<StageErrors, StatsError> {
+) -> Result<(StageErrors, Vec<[f64; 3]>), StatsError> {
     let raw_model = KinematicModel {
         frame: nominal,
         laws: nominal_laws,
@@ -660,7 +660,7 @@ fn raw_errors(
     };
     let raw_tr = room_positions(raw_model, obs.train);
     let raw_te = room_positions(raw_model, obs.test);
-    StageErrors::of(
+    let errors = StageErrors::of(
         "raw",
         obs,
         PerSession {
@@ -668,7 +668,100 @@ fn raw_errors(
             test: &raw_te,
         },
         nominal,
-    )
+    )?;
+    Ok((errors, raw_tr))
+}
+
+/// How far the tracker's spread may be from the nominal model's before a
+/// calibration refuses the sessions: a unit mistake (metres, centimetres or
+/// inches against the millimetres of the format) is a factor of 10 or more,
+/// and was fitted away before (pulley radii a thousandth of the device's
+/// made a Hangprinter session in metres report 0.057 "mm"). The simulated
+/// paper-sized devices, whose nominal pulley radius is half the wound one,
+/// are at 1.9 to 2.4; the Hangprinter at 1.01; other simulated devices at
+/// 1.3 to 1.4.
+const TRACKER_SCALE_REFUSED: f64 = 5.0;
+/// Beyond this factor (and within [`TRACKER_SCALE_REFUSED`]) the report
+/// warns.
+const TRACKER_SCALE_WARNED: f64 = 3.0;
+
+/// Refuses a training session whose tracker positions spread a factor of
+/// [`TRACKER_SCALE_REFUSED`] or more off the nominal model's positions of
+/// the same rows, naming the likely unit; beyond [`TRACKER_SCALE_WARNED`],
+/// a warning.
+fn check_tracker_scale(
+    train_path: &Path,
+    geometry_path: &Path,
+    tr: &[Observation],
+    raw_tr: &[[f64; 3]],
+) -> Result<Option<String>, CalibrateError> {
+    let Some((tracker_mm, nominal_mm)) = tracker_spread_ratio(tr, raw_tr) else {
+        return Ok(None);
+    };
+    let ratio = tracker_mm / nominal_mm;
+    let factor = ratio.max(1.0 / ratio);
+    if factor < TRACKER_SCALE_WARNED {
+        return Ok(None);
+    }
+    let unit = [(1000.0, "metres"), (25.4, "inches"), (10.0, "centimetres")]
+        .iter()
+        .find(|(k, _)| (factor / k - 1.0).abs() < 0.2)
+        .map(|(_, unit)| unit);
+    let what = format!(
+        "the tracker's positions spread {tracker_mm:.3} (root mean square distance from their \
+         centroid) where the nominal geometry {} puts the same rows {nominal_mm:.3} mm from \
+         theirs: {ratio:.4} times",
+        geometry_path.display()
+    );
+    let hint = match unit {
+        Some(unit) if ratio < 1.0 => {
+            format!("the session's `ots_*` columns look like {unit}; the format is in millimetres")
+        }
+        Some(unit) => format!(
+            "the geometry's lengths (anchors, home, pulley radius) look like {unit}, or the \
+             tracker's `ots_*` columns like a unit finer than millimetres; the format is in \
+             millimetres"
+        ),
+        None => "check the geometry's pulley_radius_mm, counts_per_rev and mechanical_advantage \
+                 against the device, and that the tracker gives millimetres"
+            .to_string(),
+    };
+    if factor >= TRACKER_SCALE_REFUSED {
+        return Err(CalibrateError::Session {
+            file: train_path.to_path_buf(),
+            problem: format!("{what}: {hint}"),
+        });
+    }
+    Ok(Some(format!("{}: {what}: {hint}", train_path.display())))
+}
+
+/// The tracker's spread over the training session against the nominal
+/// model's over the same rows: the root mean square distance of the tracked
+/// positions from their centroid, over that of the nominal model's room
+/// positions of those rows. `None` with fewer than 3 tracked rows or no
+/// spread.
+fn tracker_spread_ratio(obs: &[Observation], raw: &[[f64; 3]]) -> Option<(f64, f64)> {
+    let (tracked, nominal): (Vec<[f64; 3]>, Vec<[f64; 3]>) = obs
+        .iter()
+        .zip(raw)
+        .filter_map(|(o, p)| o.tracker.map(|t| (t, *p)))
+        .filter(|(t, p)| t.iter().chain(p).all(|x| x.is_finite()))
+        .unzip();
+    if tracked.len() < 3 {
+        return None;
+    }
+    let spread = |points: &[[f64; 3]]| {
+        let n = points.len() as f64;
+        let c: [f64; 3] = core::array::from_fn(|k| points.iter().map(|p| p[k]).sum::<f64>() / n);
+        (points
+            .iter()
+            .map(|p| (0..3).map(|k| (p[k] - c[k]).powi(2)).sum::<f64>())
+            .sum::<f64>()
+            / n)
+            .sqrt()
+    };
+    let (t, m) = (spread(&tracked), spread(&nominal));
+    (t > 0.0 && m > 0.0).then_some((t, m))
 }
 
 /// Refuses a training session too small for the diagnosis loop, in the
@@ -1282,8 +1375,11 @@ impl Run<'_> {
 
         // 1. Raw: nominal geometry through the device pipeline.
         let t = Instant::now();
-        let raw = raw_errors(obs, &nominal, &nominal_laws)?;
+        let (raw, raw_tr) = raw_errors(obs, &nominal, &nominal_laws)?;
         self.timings.raw_s = t.elapsed().as_secs_f64();
+        if let Some(w) = check_tracker_scale(train.path, self.geometry_path, &tr, &raw_tr)? {
+            self.warnings.push(w);
+        }
         let mut list = StageList::default();
         list.push("raw".into(), report::StageKind::Raw, raw);
 
@@ -1796,5 +1892,71 @@ mod tests {
         assert_eq!(y[1], [100.0, 200.0, 300.0], "a row without orientation");
         let (_, _, plain) = legacy_pairs(&geometry, &session, None);
         assert_eq!(plain[0], [100.0, 200.0, 300.0]);
+    }
+
+    /// The tracker's spread against the nominal model's: at a factor of 3
+    /// a warning, at 5 a refusal naming the unit it looks like, both ways;
+    /// the paper-sized factor of 2 passes; too few rows say nothing.
+    #[test]
+    fn a_tracker_spread_off_the_nominal_model_is_warned_or_refused() {
+        let nominal: Vec<[f64; 3]> = (0..20)
+            .map(|k| {
+                [
+                    k as f64 * 30.0,
+                    (k % 4) as f64 * 50.0,
+                    (k % 3) as f64 * 70.0,
+                ]
+            })
+            .collect();
+        let obs = |scale: f64| -> Vec<Observation> {
+            let samples: Vec<Sample> = nominal
+                .iter()
+                .map(|p| Sample {
+                    t_s: 0.0,
+                    counts: [0; STRINGS],
+                    tracker: Some(p.map(|x| x * scale + 5.0)),
+                    orientation: None,
+                    legacy: None,
+                    tension_n: None,
+                })
+                .collect();
+            observations(&samples)
+        };
+        let check = |scale: f64| {
+            check_tracker_scale(
+                Path::new("train.csv"),
+                Path::new("geometry.toml"),
+                &obs(scale),
+                &nominal,
+            )
+        };
+        for scale in [1.0, 2.0, 0.5, 2.9] {
+            assert!(matches!(check(scale), Ok(None)), "{scale}");
+        }
+        let warned = check(4.0).unwrap().unwrap();
+        assert!(
+            warned.contains("train.csv") && warned.contains("4.0000 times"),
+            "{warned}"
+        );
+        let refused = |scale: f64| check(scale).unwrap_err().to_string();
+        assert!(refused(0.001).contains("`ots_*` columns look like metres"));
+        assert!(refused(0.1).contains("look like centimetres"));
+        assert!(refused(1.0 / 25.4).contains("look like inches"));
+        assert!(refused(1000.0).contains("the geometry's lengths"));
+        let other = refused(6.0);
+        assert!(
+            other.contains("pulley_radius_mm") && other.contains("geometry.toml"),
+            "{other}"
+        );
+        // Two tracked rows: no spread to judge.
+        assert!(matches!(
+            check_tracker_scale(
+                Path::new("t"),
+                Path::new("g"),
+                &obs(0.001)[..2],
+                &nominal[..2]
+            ),
+            Ok(None)
+        ));
     }
 }
