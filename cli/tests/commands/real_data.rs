@@ -228,3 +228,48 @@ fn a_tracker_in_metres_is_refused_naming_the_unit() {
     assert!(e.contains("look like metres"), "{e}");
     assert!(!dir.join("out").join("calibration.json").exists());
 }
+
+/// The Hangprinter's line B (string 1) with its counts negated, as an
+/// encoder wired the other way gives them: the identification follows the
+/// sign (a negative radius), the held-out target is met as recorded, and
+/// the report says which string counts down.
+#[test]
+fn a_string_whose_encoder_counts_down_is_followed_and_named() {
+    let (g, mut train, mut test) = load();
+    for s in train.samples.iter_mut().chain(test.samples.iter_mut()) {
+        s.counts[1] = -s.counts[1];
+    }
+    let d = data_dir();
+    let mut cfg = CalibrateConfig::quick();
+    cfg.quiet = true;
+    let c = calibrate(
+        &g,
+        &d.join("geometry.toml"),
+        NamedSession {
+            path: Path::new("train-b-negated.csv"),
+            session: &train,
+        },
+        NamedSession {
+            path: Path::new("test-b-negated.csv"),
+            session: &test,
+        },
+        &cfg,
+    )
+    .expect("calibrate");
+    let last = c.report.stages.last().unwrap();
+    assert!(
+        last.test.mean_mm <= HELD_OUT_MEAN_TARGET_MM,
+        "{}",
+        last.test.mean_mm
+    );
+    let r_home = c.loop_result.identification.winding.r_home_mm;
+    assert!(r_home[1] < 0.0 && r_home[0] > 0.0 && r_home[2] > 0.0 && r_home[3] > 0.0);
+    let named: Vec<&String> = c
+        .report
+        .warnings
+        .iter()
+        .filter(|w| w.contains("counts fall as its string pays out"))
+        .collect();
+    assert_eq!(named.len(), 1, "{:?}", c.report.warnings);
+    assert!(named[0].contains("string 1:"), "{}", named[0]);
+}

@@ -1392,7 +1392,8 @@ pub fn identify(
     let (info, _) = problem
         .normal_equations(&DVector::zeros(problem.n_rows()))
         .ok_or_else(|| IdentifyError::Diverged("Jacobian not finite at the solution".into()))?;
-    let (parameters, warnings) = fit.estimates(&state, info);
+    let (parameters, mut warnings) = fit.estimates(&state, info);
+    warnings.extend(counting_down_warnings(&laws, strings));
     Ok(Identification {
         frame: state.frame,
         winding: state.winding,
@@ -1599,6 +1600,28 @@ impl Fit<'_> {
         }
         (parameters, warnings)
     }
+}
+
+/// A string whose identified winding radius at home is negative: its
+/// encoder counts down as the string pays out (wired or mounted the other
+/// way from the geometry's convention). The identification follows it (the
+/// radius is free to change sign) and so does the calibration the device
+/// reads; the nominal geometry (the raw stage) does not, which is why that
+/// stage's error is large. A Hangprinter session with one string's counts
+/// negated calibrated to 2.686 mm (2.689 as recorded) and said nothing.
+fn counting_down_warnings(laws: &[StringLaw; STRINGS], strings: StringLayout) -> Vec<String> {
+    strings
+        .indices()
+        .filter(|&i| laws[i].winding_mm[0] < 0.0)
+        .map(|i| {
+            format!(
+                "string {i}: its counts fall as its string pays out (identified winding radius at \
+                 home {:.3} mm): its encoder counts the other way from the geometry's convention; \
+                 the calibration carries the sign, the nominal geometry (the raw stage) does not",
+                laws[i].winding_mm[0]
+            )
+        })
+        .collect()
 }
 
 /// The physical value of column `c` at `state`.
