@@ -18,7 +18,7 @@ use std::process::Command;
 
 use spidar::data::dataset::{DatasetError, Geometry, Session};
 use spidar::procedures::calibrate::report::StageKind;
-use spidar::procedures::calibrate::{calibrate, CalibrateConfig, NamedSession};
+use spidar::procedures::calibrate::{calibrate, CalibrateConfig, Calibrated, NamedSession};
 
 /// The target for the held-out mean (mm): a careful fit of anchors,
 /// per-string radius and spool build-up reaches it; the nominal geometry is
@@ -36,6 +36,27 @@ fn load() -> (Geometry, Session, Session) {
         Session::load(d.join("train.csv")).expect("train"),
         Session::load(d.join("test.csv")).expect("test"),
     )
+}
+
+/// The quick calibration of the Hangprinter's geometry from a training and
+/// a test session (path, session).
+fn calibrate_quick(g: &Geometry, train: (&Path, &Session), test: (&Path, &Session)) -> Calibrated {
+    let mut cfg = CalibrateConfig::quick();
+    cfg.quiet = true;
+    calibrate(
+        g,
+        &data_dir().join("geometry.toml"),
+        NamedSession {
+            path: train.0,
+            session: train.1,
+        },
+        NamedSession {
+            path: test.0,
+            session: test.1,
+        },
+        &cfg,
+    )
+    .expect("calibrate the Hangprinter")
 }
 
 #[test]
@@ -63,22 +84,11 @@ fn the_n_string_formats_read_the_hangprinter_files() {
 fn a_model_fitted_on_train_meets_the_held_out_target() {
     let (g, train, test) = load();
     let d = data_dir();
-    let mut cfg = CalibrateConfig::quick();
-    cfg.quiet = true;
-    let c = calibrate(
+    let c = calibrate_quick(
         &g,
-        &d.join("geometry.toml"),
-        NamedSession {
-            path: &d.join("train.csv"),
-            session: &train,
-        },
-        NamedSession {
-            path: &d.join("test.csv"),
-            session: &test,
-        },
-        &cfg,
-    )
-    .expect("calibrate the Hangprinter");
+        (&d.join("train.csv"), &train),
+        (&d.join("test.csv"), &test),
+    );
     let r = &c.report;
     let test_mean = |name: &str| {
         r.stages
@@ -239,23 +249,11 @@ fn a_string_whose_encoder_counts_down_is_followed_and_named() {
     for s in train.samples.iter_mut().chain(test.samples.iter_mut()) {
         s.counts[1] = -s.counts[1];
     }
-    let d = data_dir();
-    let mut cfg = CalibrateConfig::quick();
-    cfg.quiet = true;
-    let c = calibrate(
+    let c = calibrate_quick(
         &g,
-        &d.join("geometry.toml"),
-        NamedSession {
-            path: Path::new("train-b-negated.csv"),
-            session: &train,
-        },
-        NamedSession {
-            path: Path::new("test-b-negated.csv"),
-            session: &test,
-        },
-        &cfg,
-    )
-    .expect("calibrate");
+        (Path::new("train-b-negated.csv"), &train),
+        (Path::new("test-b-negated.csv"), &test),
+    );
     let last = c.report.stages.last().unwrap();
     assert!(
         last.test.mean_mm <= HELD_OUT_MEAN_TARGET_MM,
