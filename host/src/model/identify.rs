@@ -825,7 +825,7 @@ pub fn inputs_at(frame: &Frame<f64>, o: &Observation, p: &[f64; 3]) -> StringInp
 
 /// String-space residuals (geometric minus model, mm) of one observation; 0
 /// on channels without a string.
-fn residuals_at(
+pub(crate) fn residuals_at(
     frame: &Frame<f64>,
     laws: &[StringLaw; STRINGS],
     effects: &[EffectTerm],

@@ -764,6 +764,57 @@ fn tracker_spread_ratio(obs: &[Observation], raw: &[[f64; 3]]) -> Option<(f64, f
     (t > 0.0 && m > 0.0).then_some((t, m))
 }
 
+/// The warning for the training rows whose tracker the loop set aside
+/// (or found far off in too great a number to set aside), naming their
+/// lines.
+fn tracker_outlier_warning(
+    train_path: &Path,
+    outliers: &crate::model::diagnose::TrackerOutliers,
+) -> Option<String> {
+    if outliers.kept_too_many > 0 {
+        return Some(format!(
+            "{}: the tracker of {} rows disagrees with most of their strings by more than {:.1} \
+             mm ({}x the median {:.3} mm) under the identified model: too many to be the \
+             tracker's glitches, so all are kept; the model does not fit this session",
+            train_path.display(),
+            outliers.kept_too_many,
+            outliers.threshold_mm,
+            crate::model::diagnose::GROSS_TRACKER_MEDIANS,
+            outliers.median_mm
+        ));
+    }
+    if outliers.rows.is_empty() {
+        return None;
+    }
+    const SHOWN: usize = 12;
+    let lines: Vec<String> = outliers
+        .session_rows
+        .iter()
+        .zip(&outliers.errors_mm)
+        .take(SHOWN)
+        .map(|(row, e)| format!("{} ({e:.0} mm)", row + 2))
+        .collect();
+    let more = outliers.rows.len().saturating_sub(SHOWN);
+    Some(format!(
+        "{}: the tracker of {} rows disagrees with most of their strings by more than {:.1} mm \
+         ({}x the median {:.3} mm) under the identified model: a tracker's glitch (a reflection, \
+         a swapped or lost marker), not a position; they are read as occluded rows (out of the \
+         fit, the loop's judgement and the training figures; the raw stage still has them): \
+         lines {}{}",
+        train_path.display(),
+        outliers.rows.len(),
+        outliers.threshold_mm,
+        crate::model::diagnose::GROSS_TRACKER_MEDIANS,
+        outliers.median_mm,
+        lines.join(", "),
+        if more > 0 {
+            format!(" and {more} more (the JSON report's `identification.tracker_outliers`)")
+        } else {
+            String::new()
+        }
+    ))
+}
+
 /// Refuses a training session too small for the diagnosis loop, in the
 /// user's terms before it fails in a fold: every change is judged on two
 /// halves.
@@ -1388,6 +1439,17 @@ impl Run<'_> {
         let t = Instant::now();
         let loop_result = identify_and_diagnose(geometry, obs, &nominal, &self.cfg)?;
         self.timings.identification_s = t.elapsed().as_secs_f64();
+        // The rows whose tracker the loop set aside count as occluded from
+        // here on (the raw stage above is the sessions as read).
+        let tr = loop_result.tracker_outliers.without(&tr).unwrap_or(tr);
+        self.warnings.extend(tracker_outlier_warning(
+            train.path,
+            &loop_result.tracker_outliers,
+        ));
+        let obs = PerSession {
+            train: &tr[..],
+            test: &te[..],
+        };
         let identified = identified_errors(&loop_result.base, obs)?;
         list.push(
             "identified".into(),
@@ -1507,6 +1569,7 @@ impl Run<'_> {
                 fin,
                 &f.loop_result.layers,
                 f.loop_result.structure.marker_body_mm,
+                &f.loop_result.tracker_outliers,
             ),
             selection: f.selection,
             corrections: f.corrections,
