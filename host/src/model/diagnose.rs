@@ -244,19 +244,31 @@ impl TrackerOutliers {
     /// The rows of `train` whose tracker disagrees with their strings under
     /// `id` beyond the threshold.
     pub fn of(id: &Identification, train: &[Observation]) -> TrackerOutliers {
-        let strings = id.frame.layout;
-        let disagreement: Vec<(usize, f64)> = train
-            .iter()
-            .enumerate()
-            .filter(|(_, o)| o.tracker.is_some())
-            .map(|(k, o)| {
-                let r = residuals_at(&id.frame, &id.laws, &id.effects, o);
-                let mut abs: Vec<f64> = strings.indices().map(|i| r[i].abs()).collect();
-                (k, median(&mut abs))
-            })
-            .collect();
+        let disagreement = tracker_disagreement(id, train);
         let median_mm = median(&mut disagreement.iter().map(|d| d.1).collect::<Vec<_>>());
         let threshold_mm = (GROSS_TRACKER_MEDIANS * median_mm).max(GROSS_TRACKER_FLOOR_MM);
+        Self::beyond(disagreement, train, median_mm, threshold_mm)
+    }
+
+    /// The rows of another session (the test session) whose tracker
+    /// disagrees with their strings under `id` beyond `threshold_mm` (the
+    /// training session's).
+    pub fn of_session(
+        id: &Identification,
+        session: &[Observation],
+        threshold_mm: f64,
+    ) -> TrackerOutliers {
+        let disagreement = tracker_disagreement(id, session);
+        let median_mm = median(&mut disagreement.iter().map(|d| d.1).collect::<Vec<_>>());
+        Self::beyond(disagreement, session, median_mm, threshold_mm)
+    }
+
+    fn beyond(
+        disagreement: Vec<(usize, f64)>,
+        train: &[Observation],
+        median_mm: f64,
+        threshold_mm: f64,
+    ) -> TrackerOutliers {
         let far: Vec<(usize, f64)> = disagreement
             .into_iter()
             // A row the model cannot place (NaN) is as far as one can be.
@@ -295,6 +307,22 @@ impl TrackerOutliers {
         }
         Some(out)
     }
+}
+
+/// Each tracked row of `session` (its index) and the median over its
+/// strings of `| |p - anchor_i| - L_i |` under `id`, mm.
+fn tracker_disagreement(id: &Identification, session: &[Observation]) -> Vec<(usize, f64)> {
+    let strings = id.frame.layout;
+    session
+        .iter()
+        .enumerate()
+        .filter(|(_, o)| o.tracker.is_some())
+        .map(|(k, o)| {
+            let r = residuals_at(&id.frame, &id.laws, &id.effects, o);
+            let mut abs: Vec<f64> = strings.indices().map(|i| r[i].abs()).collect();
+            (k, median(&mut abs))
+        })
+        .collect()
 }
 
 /// What the loop did.

@@ -786,6 +786,56 @@ fn tracker_outlier_warning(
     if outliers.rows.is_empty() {
         return None;
     }
+    Some(format!(
+        "{}: the tracker of {} rows disagrees with most of their strings by more than {:.1} mm \
+         ({}x the median {:.3} mm) under the identified model: a tracker's glitch (a reflection, \
+         a swapped or lost marker), not a position; they are read as occluded rows (out of the \
+         fit, the loop's judgement and the training figures; the raw stage still has them): \
+         lines {}",
+        train_path.display(),
+        outliers.rows.len(),
+        outliers.threshold_mm,
+        crate::model::diagnose::GROSS_TRACKER_MEDIANS,
+        outliers.median_mm,
+        outlier_lines(
+            outliers,
+            Some("the JSON report's `identification.tracker_outliers`")
+        ),
+    ))
+}
+
+/// The warning for the test rows whose tracker disagrees with most of
+/// their strings under the final model beyond the training session's
+/// threshold: the held-out figures keep them (they are the test), and the
+/// user learns which lines to look at.
+fn test_outlier_warning(
+    test_path: &Path,
+    outliers: &crate::model::diagnose::TrackerOutliers,
+) -> Option<String> {
+    if outliers.rows.is_empty() && outliers.kept_too_many == 0 {
+        return None;
+    }
+    let count = outliers.rows.len().max(outliers.kept_too_many);
+    Some(format!(
+        "{}: the tracker of {count} rows disagrees with most of their strings by more than \
+         {:.1} mm (the training session's threshold) under the final model: a tracker's \
+         glitch, or a model that does not hold there; the held-out figures include them{}",
+        test_path.display(),
+        outliers.threshold_mm,
+        if outliers.rows.is_empty() {
+            String::new()
+        } else {
+            format!(": lines {}", outlier_lines(outliers, None))
+        }
+    ))
+}
+
+/// The first lines of `outliers` with their disagreement, and how many
+/// more there are (`where_all`: where the rest is listed).
+fn outlier_lines(
+    outliers: &crate::model::diagnose::TrackerOutliers,
+    where_all: Option<&str>,
+) -> String {
     const SHOWN: usize = 12;
     let lines: Vec<String> = outliers
         .session_rows
@@ -794,25 +844,12 @@ fn tracker_outlier_warning(
         .take(SHOWN)
         .map(|(row, e)| format!("{} ({e:.0} mm)", row + 2))
         .collect();
-    let more = outliers.rows.len().saturating_sub(SHOWN);
-    Some(format!(
-        "{}: the tracker of {} rows disagrees with most of their strings by more than {:.1} mm \
-         ({}x the median {:.3} mm) under the identified model: a tracker's glitch (a reflection, \
-         a swapped or lost marker), not a position; they are read as occluded rows (out of the \
-         fit, the loop's judgement and the training figures; the raw stage still has them): \
-         lines {}{}",
-        train_path.display(),
-        outliers.rows.len(),
-        outliers.threshold_mm,
-        crate::model::diagnose::GROSS_TRACKER_MEDIANS,
-        outliers.median_mm,
-        lines.join(", "),
-        if more > 0 {
-            format!(" and {more} more (the JSON report's `identification.tracker_outliers`)")
-        } else {
-            String::new()
-        }
-    ))
+    let more = outliers.session_rows.len().saturating_sub(SHOWN);
+    match (more, where_all) {
+        (0, _) => lines.join(", "),
+        (_, Some(place)) => format!("{} and {more} more ({place})", lines.join(", ")),
+        (_, None) => format!("{} and {more} more", lines.join(", ")),
+    }
 }
 
 /// Refuses a training session too small for the diagnosis loop, in the
@@ -1468,6 +1505,14 @@ impl Run<'_> {
             test: &te[..],
         };
         let (final_identified, errors) = FinalIdentified::of(&loop_result.identification, obs)?;
+        self.warnings.extend(test_outlier_warning(
+            test.path,
+            &crate::model::diagnose::TrackerOutliers::of_session(
+                &final_identified.new_session,
+                &te,
+                loop_result.tracker_outliers.threshold_mm,
+            ),
+        ));
         list.stages.extend(effect_stages(&loop_result, &errors));
         if !loop_result.stages.is_empty() {
             list.points
@@ -1955,6 +2000,43 @@ mod tests {
         assert_eq!(y[1], [100.0, 200.0, 300.0], "a row without orientation");
         let (_, _, plain) = legacy_pairs(&geometry, &session, None);
         assert_eq!(plain[0], [100.0, 200.0, 300.0]);
+    }
+
+    /// The warnings name the lines (CSV line = row + 2) with their
+    /// disagreement, the first 12 and how many more.
+    #[test]
+    fn tracker_outlier_warnings_name_their_lines() {
+        use crate::model::diagnose::TrackerOutliers;
+        let outliers = TrackerOutliers {
+            rows: (0..13).collect(),
+            session_rows: (10..23).collect(),
+            errors_mm: (0..13).map(|k| 50.0 + k as f64).collect(),
+            median_mm: 0.9,
+            threshold_mm: 18.0,
+            kept_too_many: 0,
+        };
+        let w = tracker_outlier_warning(Path::new("train.csv"), &outliers).unwrap();
+        assert!(w.starts_with("train.csv: the tracker of 13 rows"), "{w}");
+        assert!(w.contains("lines 12 (50 mm), 13 (51 mm)"), "{w}");
+        assert!(
+            w.contains("23 (61 mm) and 1 more (the JSON report's"),
+            "{w}"
+        );
+        let t = test_outlier_warning(Path::new("test.csv"), &outliers).unwrap();
+        assert!(
+            t.contains("the held-out figures include them: lines 12 (50 mm)"),
+            "{t}"
+        );
+        assert!(t.ends_with("23 (61 mm) and 1 more"), "{t}");
+        let none = TrackerOutliers::default();
+        assert_eq!(tracker_outlier_warning(Path::new("t"), &none), None);
+        assert_eq!(test_outlier_warning(Path::new("t"), &none), None);
+        let too_many = TrackerOutliers {
+            kept_too_many: 40,
+            ..none
+        };
+        let w = tracker_outlier_warning(Path::new("t"), &too_many).unwrap();
+        assert!(w.contains("40 rows") && w.contains("all are kept"), "{w}");
     }
 
     /// The tracker's spread against the nominal model's: at a factor of 3
