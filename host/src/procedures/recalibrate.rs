@@ -69,7 +69,8 @@ use crate::device::tracker::{ClockSync, HostClock, StateHistory};
 use crate::device::tracker::{Next, TrackerError, TrackerFrame, TrackerSource};
 use crate::model::compile::{compile_checked, model_id_of, CompileCmdError};
 use crate::model::diagnose::{
-    cross_validated_error, diagnose, family_name, model_errors, Change, Family, Finding, LoopConfig,
+    cross_validated_error, diagnose, family_name, model_errors, Change, Family, Finding,
+    LoopConfig, GROSS_TRACKER_FLOOR_MM, GROSS_TRACKER_MAX_SHARE, GROSS_TRACKER_MEDIANS,
 };
 use crate::model::identify::{
     identify, Identification, IdentifyError, Start, Structure, WindingPhysics,
@@ -430,6 +431,11 @@ pub struct MonitorReport {
     pub unoriented: usize,
     pub states: usize,
     pub pairs: usize,
+    /// Pairs set aside as the tracker's glitches ([`GlitchGate`]): not in
+    /// the window, nor in `pairs`.
+    pub glitches: usize,
+    /// The error beyond which a pair is a glitch (set with the baseline), mm.
+    pub glitch_threshold_mm: Option<f64>,
     pub baseline: Option<ErrorStats>,
     pub checks: Vec<Check>,
     pub refits: Vec<Refit>,
@@ -665,6 +671,63 @@ impl ArrivalClock {
     }
 }
 
+/// Sets aside the pairs whose tracker is a glitch (a reflection, a swapped
+/// marker): an error beyond [`GROSS_TRACKER_MEDIANS`] times the baseline
+/// window's median and [`GROSS_TRACKER_FLOOR_MM`], as the calibration's
+/// loop sets such training rows aside
+/// ([`crate::model::diagnose::TrackerOutliers`]). One glitch of 200 mm
+/// raises a 400-pair window's mean by half a millimetre, more than the
+/// baseline: a tracker glitching on 1 % of its frames made a device that
+/// did not drift report drift at 3 of 9 checks. Pairs that far off in more
+/// than [`GROSS_TRACKER_MAX_SHARE`] of a window are not glitches (the
+/// device's position changed: a large slip on a device that cannot exclude
+/// the string): they go into the window, for the drift check to see.
+#[derive(Clone, Debug)]
+pub struct GlitchGate {
+    /// The error beyond which a pair is far, mm; `None` before the
+    /// baseline (every pair is admitted).
+    threshold_mm: Option<f64>,
+    /// Whether each of the last `capacity` pairs was far.
+    recent: VecDeque<bool>,
+    capacity: usize,
+}
+
+impl GlitchGate {
+    /// A gate judging over the last `capacity` pairs (the window's size).
+    pub fn new(capacity: usize) -> GlitchGate {
+        GlitchGate {
+            threshold_mm: None,
+            recent: VecDeque::with_capacity(capacity + 1),
+            capacity: capacity.max(1),
+        }
+    }
+
+    /// Sets the threshold from the baseline window's median error (mm);
+    /// returns it.
+    pub fn set_baseline(&mut self, median_mm: f64) -> f64 {
+        let t = (GROSS_TRACKER_MEDIANS * median_mm).max(GROSS_TRACKER_FLOOR_MM);
+        self.threshold_mm = Some(t);
+        t
+    }
+
+    /// Whether a pair of error `error_mm` goes into the window.
+    pub fn admit(&mut self, error_mm: f64) -> bool {
+        let Some(threshold) = self.threshold_mm else {
+            return true;
+        };
+        let far = error_mm.is_nan() || error_mm > threshold;
+        self.recent.push_back(far);
+        while self.recent.len() > self.capacity {
+            self.recent.pop_front();
+        }
+        if !far {
+            return true;
+        }
+        let far_count = self.recent.iter().filter(|&&f| f).count();
+        far_count as f64 > GROSS_TRACKER_MAX_SHARE * self.capacity as f64
+    }
+}
+
 /// The monitor's loop state.
 struct Monitor<'a> {
     config: &'a MonitorConfig,
@@ -681,6 +744,8 @@ struct Monitor<'a> {
     /// host read time, marker).
     pending: VecDeque<(f64, f64, [f64; 3])>,
     window: VecDeque<Pair>,
+    /// Sets aside the pairs whose tracker is a glitch.
+    gate: GlitchGate,
     since_check: usize,
     /// Device time (since boot) of the newest home: `time_us -
     /// since_home_us` of the newest state.
@@ -756,6 +821,7 @@ pub fn monitor(
         states: StateHistory::new(),
         pending: VecDeque::new(),
         window: VecDeque::new(),
+        gate: GlitchGate::new(config.window),
         since_check: 0,
         home_us: 0,
         report: MonitorReport::default(),
@@ -894,6 +960,25 @@ impl Monitor<'_> {
     /// once the window is full again.
     fn note_windows(&mut self, on_event: &mut dyn FnMut(&MonitorEvent)) {
         if self.report.baseline.is_none() && self.window.len() >= self.config.window {
+            // The first window's glitches came before there was a
+            // threshold: they leave it, and the baseline is the rest's.
+            let threshold = self.gate.set_baseline(self.window_stats().median_mm);
+            self.report.glitch_threshold_mm = Some(threshold);
+            let before = self.window.len();
+            let kept: VecDeque<Pair> = self
+                .window
+                .iter()
+                .filter(|p| p.error_mm <= threshold)
+                .cloned()
+                .collect();
+            if (before - kept.len()) as f64 <= GROSS_TRACKER_MAX_SHARE * before as f64 {
+                self.report.glitches += before - kept.len();
+                self.report.pairs -= before - kept.len();
+                self.report
+                    .recorded
+                    .retain(|(_, p)| p.error_mm <= threshold);
+                self.window = kept;
+            }
             let b = self.window_stats();
             self.report.baseline = Some(b);
             self.since_check = 0;
@@ -1048,6 +1133,10 @@ impl Monitor<'_> {
                 error_mm: position_error(device_room_mm, marker),
                 gap_ms: nearest_ms,
             };
+            if !self.gate.admit(pair.error_mm) {
+                self.report.glitches += 1;
+                continue;
+            }
             if self.config.record_pairs {
                 self.report.recorded.push((ts_s, pair.clone()));
             }
@@ -1385,6 +1474,9 @@ pub struct SimRigConfig {
     pub wander_speed_mm_s: f64,
     /// Probability that a tracker frame has the marker occluded.
     pub occlusion: f64,
+    /// Probability that a tracker frame's position is a glitch, thrown 50
+    /// to 300 mm ([`crate::sim::operator::SimOperatorConfig::glitch`]).
+    pub glitch: f64,
     pub operator_seed: u64,
     /// The tracker's frame rate, Hz (the device streams at 100 Hz: another
     /// rate puts frames between its states).
@@ -1400,6 +1492,7 @@ impl Default for SimRigConfig {
             wander_half_size_mm: 120.0,
             wander_speed_mm_s: 60.0,
             occlusion: 0.02,
+            glitch: 0.0,
             operator_seed: 1,
             frame_rate_hz: 100.0,
             max_duration: Duration::from_secs(600),
@@ -1473,6 +1566,7 @@ impl SimulatedMonitorRig {
                     speed_mm_s: config.wander_speed_mm_s,
                 };
                 op.occlusion = config.occlusion;
+                op.glitch = config.glitch;
                 op.seed = config.operator_seed;
                 op.frame_rate_hz = config.frame_rate_hz;
                 op.max_duration = config.max_duration;
@@ -1539,12 +1633,13 @@ pub fn event_line(e: &MonitorEvent) -> String {
 /// The run's summary.
 pub fn summary(r: &MonitorReport) -> String {
     let mut s = format!(
-        "monitored {:.1} s: {} tracker frames ({} occluded, {} unpaired, {} before a reflash or home), {} device states, {} pairs, {} checks, {} drift reports, {} refits\n",
+        "monitored {:.1} s: {} tracker frames ({} occluded, {} unpaired, {} before a reflash or home, {} glitches set aside), {} device states, {} pairs, {} checks, {} drift reports, {} refits\n",
         r.seconds,
         r.frames,
         r.occluded,
         r.unpaired,
         r.superseded,
+        r.glitches,
         r.states,
         r.pairs,
         r.checks.len(),
@@ -1552,7 +1647,13 @@ pub fn summary(r: &MonitorReport) -> String {
         r.refits.len()
     );
     if let Some(b) = &r.baseline {
-        s.push_str(&format!("baseline: mean {:.3} mm (n {})\n", b.mean_mm, b.n));
+        s.push_str(&format!("baseline: mean {:.3} mm (n {})", b.mean_mm, b.n));
+        if let Some(t) = r.glitch_threshold_mm {
+            s.push_str(&format!(
+                "; a pair more than {t:.1} mm off is the tracker's glitch"
+            ));
+        }
+        s.push('\n');
     }
     for (k, f) in r.refits.iter().enumerate() {
         let after = f.after.or(f.after_partial);
@@ -1598,6 +1699,30 @@ mod tests {
     }
 
     /// An offset of the tracked body that is not finite is refused by name.
+    /// Before the baseline every pair is admitted; after it, a lone pair
+    /// beyond the threshold is set aside, and far pairs in more than a
+    /// quarter of the window are admitted (the position did change).
+    #[test]
+    fn the_glitch_gate_sets_lone_far_pairs_aside_and_admits_persistent_ones() {
+        let mut gate = GlitchGate::new(40);
+        assert!(gate.admit(500.0), "no threshold before the baseline");
+        assert_eq!(gate.set_baseline(0.2), 10.0, "the floor");
+        assert_eq!(GlitchGate::new(40).set_baseline(1.0), 20.0);
+        for k in 0..100 {
+            // One far pair in 20: set aside, the others admitted.
+            let far = k % 20 == 0;
+            let e = if far { 200.0 } else { 0.3 };
+            assert_eq!(gate.admit(e), !far, "pair {k}");
+        }
+        assert!(!gate.admit(f64::NAN), "a pair the device cannot place");
+        // From here on every pair is 30 mm off: set aside until far pairs
+        // are more than a quarter of the last 40, admitted after.
+        let admitted: Vec<bool> = (0..20).map(|_| gate.admit(30.0)).collect();
+        let first = admitted.iter().position(|&a| a).expect("admitted at last");
+        assert!(admitted[first..].iter().all(|&a| a), "{admitted:?}");
+        assert!((7..=10).contains(&first), "{admitted:?}");
+    }
+
     #[test]
     fn a_marker_offset_that_is_not_finite_is_refused() {
         let config = MonitorConfig {

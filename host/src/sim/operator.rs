@@ -92,6 +92,11 @@ pub struct SimOperatorConfig {
     pub occlusion: f64,
     /// Probability that a datagram is lost.
     pub loss: f64,
+    /// Probability that a frame's marker position is a glitch (a
+    /// reflection, a swapped marker): thrown 50 to 300 mm in a random
+    /// direction. Drawn from its own random stream, so that 0 leaves every
+    /// other draw as it was.
+    pub glitch: f64,
     /// Hand velocity per newton of string force it follows, mm/s/N.
     pub compliance_mm_s_per_n: f64,
     /// Weakest force the operator follows, N.
@@ -133,6 +138,7 @@ impl SimOperatorConfig {
             tracker_noise_mm: 0.1,
             occlusion: 0.0,
             loss: 0.0,
+            glitch: 0.0,
             compliance_mm_s_per_n: 40.0,
             feel_n: 0.4,
             reach_speed_mm_s: 600.0,
@@ -167,7 +173,11 @@ impl SimOperatorConfig {
                 format!("{} is not a positive rate", self.frame_rate_hz),
             ));
         }
-        for (field, p) in [("occlusion", self.occlusion), ("loss", self.loss)] {
+        for (field, p) in [
+            ("occlusion", self.occlusion),
+            ("loss", self.loss),
+            ("glitch", self.glitch),
+        ] {
             if !(0.0..=1.0).contains(&p) {
                 return Err(bad(field, format!("{p} is not a probability")));
             }
@@ -208,6 +218,8 @@ pub struct SimOperatorReport {
     pub sent: u32,
     /// Frames with the marker occluded.
     pub occluded: u32,
+    /// Frames sent with a glitch ([`SimOperatorConfig::glitch`]).
+    pub glitches: u32,
     /// Path length of the hand, mm.
     pub path_mm: f64,
 }
@@ -529,6 +541,7 @@ fn run(
     links: &HostLinks<'_>,
 ) -> Result<SimOperatorReport, TrackerError> {
     let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
+    let mut glitches = ChaCha8Rng::seed_from_u64(config.seed ^ 0x6C17_C4E5);
     let noise = operator_normal("tracker_noise_mm", config.tracker_noise_mm)?;
     let tremor = operator_normal("tremor_mm", config.tremor_mm)?;
     let dt = 1.0 / config.frame_rate_hz;
@@ -581,7 +594,13 @@ fn run(
         if !lost {
             // In step: the procedure has read everything sent so far.
             links.wait_in_step(report.sent);
-            let seen = room.map(|x| x + noise.sample(&mut rng));
+            let mut seen = room.map(|x| x + noise.sample(&mut rng));
+            if config.glitch > 0.0 && glitches.random::<f64>() < config.glitch {
+                let d: [f64; 3] = core::array::from_fn(|_| glitches.random::<f64>() - 0.5);
+                let size = glitches.random_range(50.0..300.0) / distance(d, [0.0; 3]).max(1e-9);
+                seen = core::array::from_fn(|k| seen[k] + size * d[k]);
+                report.glitches += 1;
+            }
             send_frame(
                 config,
                 links.socket,
