@@ -349,7 +349,7 @@ fn coarse(
         return Err(SyncError::NoMotion { stream: "tracker" });
     }
     let mut corr: Vec<Option<f64>> = Vec::with_capacity(2 * lmax + 1);
-    let mut most_pairs = 0;
+    let mut counts: Vec<usize> = Vec::with_capacity(2 * lmax + 1);
     let mut pairs = Vec::with_capacity(n);
     for lag in 0..=2 * lmax {
         pairs.clear();
@@ -358,12 +358,22 @@ fn coarse(
                 .zip(&st[lag..lag + n])
                 .filter_map(|(a, b)| Some(((*a)?, (*b)?))),
         );
-        most_pairs = most_pairs.max(pairs.len());
+        counts.push(pairs.len());
         corr.push(if pairs.len() >= MIN_LAG_PAIRS {
             pearson(&pairs)
         } else {
             None
         });
+    }
+    // A lag whose overlap is a sliver of the streams correlates by chance:
+    // only lags pairing at least half as many samples as the best-paired
+    // one compete (a 10 s stream 4.5 s off, centred on its true offset,
+    // peaked at +9.2 s on 76 pairs against 550 at 4.5 s).
+    let most_pairs = counts.iter().copied().max().unwrap_or(0);
+    for (c, &k) in corr.iter_mut().zip(&counts) {
+        if 2 * k < most_pairs {
+            *c = None;
+        }
     }
     let best = corr
         .iter()
