@@ -182,6 +182,12 @@ pub struct TrackerConfig {
     /// clocks' timestamps). Rows before the first tracked instant are
     /// occluded. Calibration finds and removes it for dynamic sessions.
     pub clock_offset_s: f64,
+    /// How much faster the tracker's clock runs than the device's, parts
+    /// per million: the offset grows by this much per second of the session
+    /// (`clock_offset_s + 1e-6 clock_drift_ppm t` at device time `t`). Two
+    /// crystal clocks differ by tens of ppm: 50 ppm is 15 ms after five
+    /// minutes, 15 mm at a hand's 1 m/s.
+    pub clock_drift_ppm: f64,
 }
 
 impl Default for TrackerConfig {
@@ -195,6 +201,7 @@ impl Default for TrackerConfig {
             occlusion_mean_rows: 4.0,
             frame_rate_hz: 60.0,
             clock_offset_s: 0.0,
+            clock_drift_ppm: 0.0,
         }
     }
 }
@@ -437,6 +444,12 @@ impl SimConfig {
             ));
         }
         positive("tracker.frame_rate_hz", t.frame_rate_hz)?;
+        if !(t.clock_drift_ppm.is_finite() && t.clock_drift_ppm.abs() <= 10_000.0) {
+            return Err(bad(
+                "tracker.clock_drift_ppm",
+                "must be a finite number of parts per million, at most 10000 either way",
+            ));
+        }
         if !t.clock_offset_s.is_finite() {
             return Err(bad("tracker.clock_offset_s", "must be a finite number"));
         }

@@ -415,7 +415,8 @@ impl<'a> ModelSession<'a> {
     }
 
     /// The tracker's reading of the marker at capture `c` (noisy, whole
-    /// micrometres; `tracker.clock_offset_s` late), unless occluded.
+    /// micrometres; `tracker.clock_offset_s` late, and later by
+    /// `tracker.clock_drift_ppm` each second), unless occluded.
     fn track(
         &mut self,
         c: &trajectory::Capture,
@@ -428,7 +429,7 @@ impl<'a> ModelSession<'a> {
         } else {
             self.occlusion_rng.random_bool(tr.occlusion_probability)
         };
-        let offset_s = tr.clock_offset_s;
+        let offset_s = tr.clock_offset_s + 1e-6 * tr.clock_drift_ppm * t_s;
         let marker = if offset_s == 0.0 {
             Some(c.room)
         } else {

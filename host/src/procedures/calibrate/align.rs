@@ -40,6 +40,13 @@ pub const MAX_OFFSET_S: f64 = 5.0;
 pub const OFFSET_SETTLED_S: f64 = 0.0005;
 /// ... or this many rounds have run.
 pub const MAX_ALIGN_ROUNDS: usize = 6;
+/// A clock-rate difference is kept when it is this many standard
+/// deviations from 0 ...
+pub const DRIFT_SIGNIFICANCE: f64 = 3.0;
+/// ... and moves the stream's ends by at least this much (s) ...
+pub const DRIFT_MIN_EFFECT_S: f64 = 0.001;
+/// ... on a stream at least this long (s); else the offset is fitted alone.
+pub const DRIFT_MIN_SPAN_S: f64 = 60.0;
 
 /// What the calibration did about the clocks of one session.
 #[derive(Clone, Debug, PartialEq, Serialize)]
@@ -58,11 +65,19 @@ pub enum SessionTiming {
 /// The tracker-minus-device clock offset of a dynamic session.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct ClockAlignment {
-    /// `tracker time - device time` (s): the row stamped `t` holds where
-    /// the marker was at `t - offset_s`.
+    /// `tracker time - device time` (s) at device time `reference_t_s`: the
+    /// row stamped `t` holds where the marker was at `t - offset_s` there.
     pub offset_s: f64,
     /// One standard deviation of `offset_s` (s).
     pub offset_sd_s: f64,
+    /// How much faster the tracker's clock runs, parts per million (0 when
+    /// the data do not tell it from nothing): the offset at device time `t`
+    /// is `offset_s + 1e-6 drift_ppm (t - reference_t_s)`.
+    pub drift_ppm: f64,
+    /// One standard deviation of `drift_ppm` (0 when not kept).
+    pub drift_sd_ppm: f64,
+    /// The device time `offset_s` refers to (the middle of the stream), s.
+    pub reference_t_s: f64,
     /// Peak correlation of the speed profiles (-1..1).
     pub correlation: f64,
     /// Rows paired in the fit.
@@ -104,11 +119,13 @@ pub fn static_timing(obs: &[Observation]) -> Option<SessionTiming> {
 }
 
 /// The clock offset between the tracker positions of `obs` and `positions`
-/// (room frame, mm; one per row, `None` where the model has none).
+/// (room frame, mm; one per row, `None` where the model has none), and with
+/// `drift` the clocks' rate difference too.
 pub fn estimate_offset(
     obs: &[Observation],
     positions: &[Option<[f64; 3]>],
     prior_offset_s: f64,
+    drift: bool,
 ) -> Result<TimeShift, AlignError> {
     let device: Vec<TimedPosition> = obs
         .iter()
@@ -136,7 +153,7 @@ pub fn estimate_offset(
         grid_step_s: None,
         // A gap of a few missing rows (an occlusion) is not bridged.
         max_gap_s: 4.0 * interval,
-        estimate_drift: false,
+        estimate_drift: drift,
         max_iterations: 50,
     };
     Ok(estimate_time_shift(&device, &tracker, &config)?)
@@ -150,6 +167,16 @@ pub fn estimate_offset(
 /// its position: interpolated (slerp) between the same two recorded rows,
 /// `None` when either has none.
 pub fn repaired(obs: &[Observation], offset_s: f64, max_gap_s: f64) -> (Vec<Observation>, usize) {
+    repaired_at(obs, |t| t + offset_s, max_gap_s)
+}
+
+/// [`repaired`] with the tracker's time of each device time given by
+/// `tracker_time` (an offset that drifts).
+pub fn repaired_at(
+    obs: &[Observation],
+    tracker_time: impl Fn(f64) -> f64,
+    max_gap_s: f64,
+) -> (Vec<Observation>, usize) {
     type Rotation = [[f64; 3]; 3];
     let stream: Vec<(f64, [f64; 3], Option<Rotation>)> = obs
         .iter()
@@ -178,7 +205,7 @@ pub fn repaired(obs: &[Observation], offset_s: f64, max_gap_s: f64) -> (Vec<Obse
         .map(|o| {
             let mut o = o.clone();
             let had = o.tracker.is_some();
-            let seen = at(o.t_s + offset_s);
+            let seen = at(tracker_time(o.t_s));
             o.tracker = seen.map(|s| s.0);
             o.tracker_rotation = seen.and_then(|s| s.1);
             lost += usize::from(had && o.tracker.is_none());
@@ -210,8 +237,34 @@ pub fn align(
     obs: &[Observation],
     model_positions: &[Option<[f64; 3]>],
     prior_offset_s: f64,
+    drift: bool,
 ) -> Result<(ClockAlignment, Vec<Observation>), AlignError> {
-    let shift = estimate_offset(obs, model_positions, prior_offset_s)?;
+    // With `drift`, the clocks' rate difference is kept where it matters
+    // and the data tell it from nothing: beyond DRIFT_SIGNIFICANCE standard
+    // deviations, and moving the stream's ends by DRIFT_MIN_EFFECT_S or
+    // more, on a stream of DRIFT_MIN_SPAN_S or longer. A 120 s stream whose
+    // tracker clock ran 100 ppm fast was paired 6 ms off at either end with
+    // one offset (0.761 mm held out; 0.356 with the drift). Over a short
+    // stream the model's own position errors, which follow the hand's path
+    // and so its time, pass for a drift: a 10 s stream with none found
+    // 428 +- 36 ppm, a 30 s one up to 70 ppm.
+    let offset_only = || estimate_offset(obs, model_positions, prior_offset_s, false);
+    let span_s = obs
+        .first()
+        .zip(obs.last())
+        .map_or(0.0, |(a, b)| b.t_s - a.t_s);
+    let shift = if drift && span_s >= DRIFT_MIN_SPAN_S {
+        let with_drift = estimate_offset(obs, model_positions, prior_offset_s, true)?;
+        if with_drift.drift.abs() > DRIFT_SIGNIFICANCE * with_drift.drift_std
+            && with_drift.drift.abs() * 0.5 * span_s >= DRIFT_MIN_EFFECT_S
+        {
+            with_drift
+        } else {
+            offset_only()?
+        }
+    } else {
+        offset_only()?
+    };
     let interval = median_interval_s(obs).unwrap_or(MAX_STREAM_INTERVAL_S);
     // The fine fit compares positions: with a model far from the tracker
     // (the nominal geometry of a paper-sized device, 200 mm off) it is not
@@ -222,16 +275,29 @@ pub fn align(
     // than the profiles' grid step keeps the peak; the second pass, with
     // the identified model, refines it.
     let refined = shift.offset_std_s <= interval;
-    let (offset_s, offset_sd_s) = if refined {
-        (shift.offset_s, shift.offset_std_s)
+    let (offset_s, offset_sd_s, drift, drift_sd) = if refined {
+        (
+            shift.offset_s,
+            shift.offset_std_s,
+            shift.drift,
+            shift.drift_std,
+        )
     } else {
-        (shift.coarse_offset_s, interval / 12f64.sqrt())
+        (shift.coarse_offset_s, interval / 12f64.sqrt(), 0.0, 0.0)
     };
-    let (rows, lost) = repaired(obs, offset_s, 4.0 * interval);
+    let reference_t_s = shift.reference_t_s;
+    let (rows, lost) = repaired_at(
+        obs,
+        |t| t + offset_s + drift * (t - reference_t_s),
+        4.0 * interval,
+    );
     Ok((
         ClockAlignment {
             offset_s,
             offset_sd_s,
+            drift_ppm: drift * 1e6,
+            drift_sd_ppm: drift_sd * 1e6,
+            reference_t_s,
             correlation: shift.correlation,
             pairs: shift.pairs,
             rows_unpaired: lost,

@@ -431,7 +431,7 @@ fn align_clocks(
             // two are alternated until the offset holds (a planar device
             // whose first pass was 10 ms off ended 3.9 ms off after one
             // round, 0.25 mm held out against 0.58).
-            let (mut a, mut rows) = align::align(&tr, &positions(nominal_model, &tr), 0.0)?;
+            let (mut a, mut rows) = align::align(&tr, &positions(nominal_model, &tr), 0.0, false)?;
             let mut quick;
             let mut rounds = 0;
             loop {
@@ -441,8 +441,12 @@ fn align_clocks(
                     &Start::from_geometry(geometry),
                     &Structure::default(),
                 )?;
-                let (next, next_rows) =
-                    align::align(&tr, &positions(quick.kinematic_model(), &tr), a.offset_s)?;
+                let (next, next_rows) = align::align(
+                    &tr,
+                    &positions(quick.kinematic_model(), &tr),
+                    a.offset_s,
+                    true,
+                )?;
                 let step = (next.offset_s - a.offset_s).abs();
                 (a, rows) = (next, next_rows);
                 rounds += 1;
@@ -471,7 +475,9 @@ fn align_clocks(
                 align::SessionTiming::Aligned(a) => a.offset_s,
                 align::SessionTiming::Static { .. } => 0.0,
             };
-            let (a, te1) = align::align(&te, &positions(model, &te), prior)?;
+            // The offset alone: a test stream is most often too short to
+            // tell a drift from the model's own errors.
+            let (a, te1) = align::align(&te, &positions(model, &te), prior, false)?;
             (te1, align::SessionTiming::Aligned(a))
         }
     };

@@ -815,10 +815,19 @@ impl Report {
             ("test", &self.timing.test),
         ] {
             if let super::align::SessionTiming::Aligned(a) = t {
+                let drift = if a.drift_ppm != 0.0 {
+                    format!(
+                        " at {:.1} s, running {:+.1} ppm fast (sd {:.1} ppm)",
+                        a.reference_t_s, a.drift_ppm, a.drift_sd_ppm
+                    )
+                } else {
+                    String::new()
+                };
                 let _ = writeln!(
                     o,
-                    "{name} session: tracker clock {:+.2} ms (sd {:.3} ms) from the device's, \
-                     found from the motion ({} pairs, speed correlation {:.3}); rows re-paired",
+                    "{name} session: tracker clock {:+.2} ms (sd {:.3} ms){drift} from the \
+                     device's, found from the motion ({} pairs, speed correlation {:.3}); rows \
+                     re-paired",
                     a.offset_s * 1e3,
                     a.offset_sd_s * 1e3,
                     a.pairs,
