@@ -30,9 +30,11 @@ use crate::tension::{
 use crate::STRINGS;
 
 /// The largest residual (N) of a `NotConverged` tension solution the loop
-/// still renders (see [`Controller::step`]): a millinewton, ten times the
-/// solver's tolerance.
-pub const USABLE_RESIDUAL_N: f32 = 1e-3;
+/// still renders (see [`Controller::step`]): 5 mN, far below what a hand
+/// feels of forces of newtons. At 1 mN a scaled force at a frame corner
+/// (p = [401.9, -468.3, -475.0] mm, 5.2 N) ended 1.02 mN short and the loop
+/// commanded a tick of pretension instead (found by the tension proptest).
+pub const USABLE_RESIDUAL_N: f32 = 5e-3;
 
 /// Fixed parameters of the loop.
 #[derive(Clone, Copy, Debug, PartialEq)]

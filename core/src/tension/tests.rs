@@ -150,22 +150,31 @@ proptest! {
         // free strings a fraction of a millinewton short of the
         // tolerance (e.g. p = [-445.5, 29.7, 65.9], dir = [-0.07, -0.37,
         // 0.84], 200 N: 3 strings at t_max, 4 at t_min, residual 0.19 mN
-        // on a 34 N force): NotConverged, rendered by the controller as
-        // it is (`control::USABLE_RESIDUAL_N`).
+        // on a 34 N force; 1.02 mN at p = [401.9, -468.3, -475.0], dir =
+        // [-0.50, 0.56, -0.74], 200 N, in `proptest-regressions`):
+        // NotConverged, rendered by the controller as it is
+        // (`control::USABLE_RESIDUAL_N`), its direction and size off by
+        // the residual at most.
         prop_assert!(
             s.status == TensionStatus::Scaled
-                || (s.status == TensionStatus::NotConverged && s.residual_n < 1e-3),
+                || (s.status == TensionStatus::NotConverged
+                    && s.residual_n < crate::control::USABLE_RESIDUAL_N),
             "{:?}", s
         );
+        let residual = if s.status == TensionStatus::Scaled { 0.0 } else { s.residual_n as f64 };
         prop_assert!(!s.feasible);
         prop_assert!(s.rendered_fraction > 0.0 && s.rendered_fraction < 1.0);
         prop_assert!(within_limits(&s.tensions, LIMITS));
         prop_assert!(s.iterations <= MAX_ITERATIONS);
         let f64f = f.map(|x| x as f64);
         let res = resultant_f64(&anchors, p, &s.tensions);
-        prop_assert!(angle(res, f64f) < 1e-5, "angle {} rad", angle(res, f64f));
+        let size = dist3(res, [0.0; 3]).max(1e-9);
+        prop_assert!(
+            angle(res, f64f) < 1e-5 + residual / size,
+            "angle {} rad", angle(res, f64f)
+        );
         let alpha = s.rendered_fraction as f64;
-        prop_assert!(dist3(res, f64f.map(|x| x * alpha)) < 1e-3);
+        prop_assert!(dist3(res, f64f.map(|x| x * alpha)) < 1e-3 + residual);
         let exact = alpha_max_f64(&anchors, p, f64f, LIMITS, magnitude.to_bits() as u64);
         prop_assert!((alpha - exact).abs() <= 3e-4 * exact, "alpha {} vs exact {}", alpha, exact);
     }
