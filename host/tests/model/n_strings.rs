@@ -41,6 +41,28 @@ fn final_test_mean(c: &Calibrated) -> f64 {
     c.report.stages.last().unwrap().test.mean_mm
 }
 
+/// A device of `strings` (planar or not, device seed `seed`) and two 100 Hz
+/// streams of it, `train` and `test` rows long (session seeds 11 and 12),
+/// whose tracker clock is `offset_s` ahead and runs `drift_ppm` fast.
+fn clock_streams(
+    strings: usize,
+    planar: bool,
+    seed: u64,
+    (offset_s, drift_ppm): (f64, f64),
+    (train, test): (usize, usize),
+) -> (SimConfig, Session, Session) {
+    let mut c = config(strings, planar);
+    c.random.capture_interval_s = 0.01;
+    c.tracker.clock_offset_s = offset_s;
+    c.tracker.clock_drift_ppm = drift_ppm;
+    let device = SimDevice::new(&c, seed).unwrap();
+    let stream = |points: usize, session_seed: u64| {
+        simulate_session(&device, SessionKind::Random { points }, session_seed).unwrap()
+    };
+    let (train, test) = (stream(train, 11), stream(test, 12));
+    (c, train, test)
+}
+
 #[test]
 fn four_strings_in_3d_and_three_in_the_plane_calibrate_to_the_tracker_noise() {
     for (strings, planar, floor_mm) in [(4, false, 0.32), (3, true, 0.25)] {
@@ -85,12 +107,7 @@ fn four_strings_in_3d_and_three_in_the_plane_calibrate_to_the_tracker_noise() {
 fn a_two_second_tracker_clock_offset_is_found_and_removed() {
     let mut errors = Vec::new();
     for offset_s in [0.0, 2.0] {
-        let mut c = config(4, true);
-        c.random.capture_interval_s = 0.01;
-        c.tracker.clock_offset_s = offset_s;
-        let device = SimDevice::new(&c, 5).unwrap();
-        let train = simulate_session(&device, SessionKind::Random { points: 3000 }, 11).unwrap();
-        let test = simulate_session(&device, SessionKind::Random { points: 1000 }, 12).unwrap();
+        let (c, train, test) = clock_streams(4, true, 5, (offset_s, 0.0), (3000, 1000));
         let r = run(&c, &train, &test);
         for t in [&r.report.timing.train, &r.report.timing.test] {
             let SessionTiming::Aligned(a) = t else {
@@ -117,12 +134,7 @@ fn a_two_second_tracker_clock_offset_is_found_and_removed() {
 #[test]
 fn a_stream_with_no_or_a_negative_clock_offset_is_aligned_to_the_millisecond() {
     for offset_s in [0.0, -0.5] {
-        let mut c = config(8, false);
-        c.random.capture_interval_s = 0.01;
-        c.tracker.clock_offset_s = offset_s;
-        let device = SimDevice::new(&c, 7).unwrap();
-        let train = simulate_session(&device, SessionKind::Random { points: 3000 }, 11).unwrap();
-        let test = simulate_session(&device, SessionKind::Random { points: 1000 }, 12).unwrap();
+        let (c, train, test) = clock_streams(8, false, 7, (offset_s, 0.0), (3000, 1000));
         let r = run(&c, &train, &test);
         for t in [&r.report.timing.train, &r.report.timing.test] {
             let SessionTiming::Aligned(a) = t else {
@@ -146,23 +158,7 @@ fn a_stream_with_no_or_a_negative_clock_offset_is_aligned_to_the_millisecond() {
 /// is refused naming the file, where it was calibrated to 536 mm.
 #[test]
 fn a_short_stream_far_off_is_aligned_and_one_beyond_the_search_is_refused() {
-    let stream = |offset_s: f64, strings: usize, planar: bool, seed: u64, test_points: usize| {
-        let mut c = config(strings, planar);
-        c.random.capture_interval_s = 0.01;
-        c.tracker.clock_offset_s = offset_s;
-        let device = SimDevice::new(&c, seed).unwrap();
-        let train = simulate_session(&device, SessionKind::Random { points: 3000 }, 11).unwrap();
-        let test = simulate_session(
-            &device,
-            SessionKind::Random {
-                points: test_points,
-            },
-            12,
-        )
-        .unwrap();
-        (c, train, test)
-    };
-    let (c, train, test) = stream(4.5, 4, true, 5, 1000);
+    let (c, train, test) = clock_streams(4, true, 5, (4.5, 0.0), (3000, 1000));
     let r = run(&c, &train, &test);
     let SessionTiming::Aligned(a) = &r.report.timing.test else {
         panic!("{:?}", r.report.timing.test);
@@ -171,7 +167,7 @@ fn a_short_stream_far_off_is_aligned_and_one_beyond_the_search_is_refused() {
     assert!(final_test_mean(&r) < 0.35, "{}", final_test_mean(&r));
 
     // 30 s streams, the first 12 s of each without a tracker position.
-    let (c, train, test) = stream(12.0, 8, false, 7, 3000);
+    let (c, train, test) = clock_streams(8, false, 7, (12.0, 0.0), (3000, 3000));
     let mut cfg = CalibrateConfig::quick();
     cfg.quiet = true;
     let err = calibrate(
@@ -202,13 +198,7 @@ fn a_short_stream_far_off_is_aligned_and_one_beyond_the_search_is_refused() {
 /// 30 s streams above keep the offset alone.
 #[test]
 fn a_long_stream_s_clock_drift_is_found_and_removed() {
-    let mut c = config(8, false);
-    c.random.capture_interval_s = 0.01;
-    c.tracker.clock_offset_s = 1.0;
-    c.tracker.clock_drift_ppm = 100.0;
-    let device = SimDevice::new(&c, 7).unwrap();
-    let train = simulate_session(&device, SessionKind::Random { points: 12000 }, 11).unwrap();
-    let test = simulate_session(&device, SessionKind::Random { points: 3000 }, 12).unwrap();
+    let (c, train, test) = clock_streams(8, false, 7, (1.0, 100.0), (12000, 3000));
     let r = run(&c, &train, &test);
     let SessionTiming::Aligned(a) = &r.report.timing.train else {
         panic!("{:?}", r.report.timing.train);

@@ -285,13 +285,10 @@ fn a_four_string_rig_is_monitored_and_its_slip_refitted_alone() {
     );
 }
 
-#[test]
-fn a_clean_run_reports_no_drift() {
-    let seconds = 14.0;
-    // 125 Hz: most frames fall between two of the device's states (100 Hz)
-    // and are paired with the state interpolated at their instant.
-    let mut rig = rig_at(&[], seconds, 125.0);
-    let (report, _) = run(&mut rig, &config(seconds));
+/// Runs the monitor on `rig` for `seconds` of a device that does not
+/// drift: at least 6 checks, none reporting drift, nothing refitted.
+fn run_without_drift(rig: &mut SimulatedMonitorRig, seconds: f64) -> MonitorReport {
+    let (report, _) = run(rig, &config(seconds));
     let report = report.expect("monitor");
     eprintln!(
         "{}",
@@ -300,6 +297,16 @@ fn a_clean_run_reports_no_drift() {
     assert!(report.checks.len() >= 6, "{} checks", report.checks.len());
     assert_eq!(report.drifts().count(), 0);
     assert!(report.refits.is_empty());
+    report
+}
+
+#[test]
+fn a_clean_run_reports_no_drift() {
+    let seconds = 14.0;
+    // 125 Hz: most frames fall between two of the device's states (100 Hz)
+    // and are paired with the state interpolated at their instant.
+    let mut rig = rig_at(&[], seconds, 125.0);
+    let report = run_without_drift(&mut rig, seconds);
     assert!(
         report.occluded > 0,
         "the tracker occludes 2 % of its frames"
@@ -326,15 +333,7 @@ fn tracker_glitches_are_set_aside_and_report_no_drift() {
         },
     )
     .expect("simulated rig");
-    let (report, _) = run(&mut rig, &config(seconds));
-    let report = report.expect("monitor");
-    eprintln!(
-        "{}",
-        spidar::procedures::recalibrate::summary(&report).trim_end()
-    );
-    assert!(report.checks.len() >= 6, "{} checks", report.checks.len());
-    assert_eq!(report.drifts().count(), 0);
-    assert!(report.refits.is_empty());
+    let report = run_without_drift(&mut rig, seconds);
     // About 1 % of 1400 frames; none of them in the window or the baseline.
     assert!(report.glitches >= 5, "{} glitches", report.glitches);
     let threshold = report.glitch_threshold_mm.expect("set with the baseline");
