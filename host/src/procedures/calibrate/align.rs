@@ -96,9 +96,16 @@ pub struct ClockAlignment {
 #[error("tracker clock alignment: {0}")]
 pub struct AlignError(#[from] pub crate::device::tracker::sync::SyncError);
 
-/// Median time between consecutive rows (s); `None` with fewer than 2 rows.
+/// Median time between consecutive rows that are apart in time (s); `None`
+/// with no two such rows. Rows of one instant (a logger that wrote a row
+/// twice) do not count: with every row written twice the median was 0, and
+/// the alignment failed on "`max_gap_s`: 0 is not a positive duration".
 pub fn median_interval_s(obs: &[Observation]) -> Option<f64> {
-    let mut d: Vec<f64> = obs.windows(2).map(|w| w[1].t_s - w[0].t_s).collect();
+    let mut d: Vec<f64> = obs
+        .windows(2)
+        .map(|w| w[1].t_s - w[0].t_s)
+        .filter(|&dt| dt > 0.0)
+        .collect();
     if d.is_empty() {
         return None;
     }
@@ -329,6 +336,20 @@ mod tests {
             tracker_rotation: rotation,
             legacy: None,
         }
+    }
+
+    /// Rows written twice (one instant) do not make the interval 0.
+    #[test]
+    fn rows_of_one_instant_do_not_make_the_interval_zero() {
+        let twice: Vec<Observation> = (0..10)
+            .flat_map(|k| {
+                let r = row(k as f64 * 0.01, 0.0, None);
+                [r.clone(), r]
+            })
+            .collect();
+        let interval = median_interval_s(&twice).unwrap();
+        assert!((interval - 0.01).abs() < 1e-12, "{interval}");
+        assert_eq!(median_interval_s(&twice[..2]), None);
     }
 
     /// Re-paired rows take the body's orientation from the same two
