@@ -216,6 +216,40 @@ fn a_long_stream_s_clock_drift_is_found_and_removed() {
     assert!(r.report.summary().contains("ppm fast"));
 }
 
+/// A log of device states at 1 kHz with the 100 Hz tracker's position on
+/// every tenth row (nine rows of counts between two frames, no tracker):
+/// aligned as the 100 Hz stream it holds. (The gaps the alignment bridges
+/// were bounded by the 1 ms row interval: "the streams overlap in 0
+/// samples".)
+#[test]
+fn a_kilohertz_device_log_with_a_slower_tracker_is_aligned() {
+    let (c, train, test) = clock_streams(4, true, 5, (0.5, 0.0), (3000, 1000));
+    let mut log = train.clone();
+    log.samples.clear();
+    for pair in train.samples.windows(2) {
+        let (a, b) = (&pair[0], &pair[1]);
+        log.samples.push(a.clone());
+        for k in 1..10 {
+            let f = k as f64 / 10.0;
+            let mut between = a.clone();
+            between.t_s = a.t_s + f * (b.t_s - a.t_s);
+            between.counts = core::array::from_fn(|i| {
+                (f64::from(a.counts[i]) + f * f64::from(b.counts[i] - a.counts[i])).round() as i32
+            });
+            between.tracker = None;
+            between.orientation = None;
+            log.samples.push(between);
+        }
+    }
+    let r = run(&c, &log, &test);
+    let SessionTiming::Aligned(a) = &r.report.timing.train else {
+        panic!("{:?}", r.report.timing.train);
+    };
+    assert!((a.offset_s - 0.5).abs() < 0.001, "{a:?}");
+    let mean = final_test_mean(&r);
+    assert!(mean < 0.3, "held out {mean} mm");
+}
+
 /// Warnings where a result is not what it seems (issue 13): a test session
 /// that is the training session, test points beyond the training volume.
 #[test]

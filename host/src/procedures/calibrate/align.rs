@@ -113,6 +113,29 @@ pub fn median_interval_s(obs: &[Observation]) -> Option<f64> {
     Some(d[d.len() / 2])
 }
 
+/// Median time between consecutive *tracked* rows that are apart in time
+/// (s): the tracker stream's period, which bounds the gaps the alignment
+/// bridges. A log of device states at 1 kHz with a 100 Hz tracker's
+/// positions on every tenth row has a row interval of 1 ms; gaps bounded by
+/// it left no tracker sample bridged ("the streams overlap in 0 samples").
+pub fn tracked_interval_s(obs: &[Observation]) -> Option<f64> {
+    let times: Vec<f64> = obs
+        .iter()
+        .filter(|o| o.tracker.is_some())
+        .map(|o| o.t_s)
+        .collect();
+    let mut d: Vec<f64> = times
+        .windows(2)
+        .map(|w| w[1] - w[0])
+        .filter(|&dt| dt > 0.0)
+        .collect();
+    if d.is_empty() {
+        return None;
+    }
+    d.sort_by(f64::total_cmp);
+    Some(d[d.len() / 2])
+}
+
 /// `Some(static timing)` when `obs` is not a stream to align.
 pub fn static_timing(obs: &[Observation]) -> Option<SessionTiming> {
     let tracked = obs.iter().filter(|o| o.tracker.is_some()).count();
@@ -153,7 +176,7 @@ pub fn estimate_offset(
             })
         })
         .collect();
-    let interval = median_interval_s(obs).unwrap_or(MAX_STREAM_INTERVAL_S);
+    let interval = tracked_interval_s(obs).unwrap_or(MAX_STREAM_INTERVAL_S);
     let config = ShiftConfig {
         prior_offset_s,
         max_shift_s: MAX_OFFSET_S,
@@ -272,7 +295,7 @@ pub fn align(
     } else {
         offset_only()?
     };
-    let interval = median_interval_s(obs).unwrap_or(MAX_STREAM_INTERVAL_S);
+    let interval = tracked_interval_s(obs).unwrap_or(MAX_STREAM_INTERVAL_S);
     // The fine fit compares positions: with a model far from the tracker
     // (the nominal geometry of a paper-sized device, 200 mm off) it is not
     // determined and wanders off the speed profiles' peak (60 ms off, sd
@@ -350,6 +373,23 @@ mod tests {
         let interval = median_interval_s(&twice).unwrap();
         assert!((interval - 0.01).abs() < 1e-12, "{interval}");
         assert_eq!(median_interval_s(&twice[..2]), None);
+    }
+
+    /// Device rows at 1 ms, the tracker's position on every tenth: the
+    /// tracker's period is 10 ms.
+    #[test]
+    fn the_tracked_interval_is_the_tracker_s_period() {
+        let log: Vec<Observation> = (0..100)
+            .map(|k| {
+                let mut r = row(k as f64 * 0.001, 0.0, None);
+                if k % 10 != 0 {
+                    r.tracker = None;
+                }
+                r
+            })
+            .collect();
+        assert!((median_interval_s(&log).unwrap() - 0.001).abs() < 1e-12);
+        assert!((tracked_interval_s(&log).unwrap() - 0.01).abs() < 1e-12);
     }
 
     /// Re-paired rows take the body's orientation from the same two
