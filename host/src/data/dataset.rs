@@ -39,7 +39,8 @@
 //! - An orientation is a unit quaternion (a norm off 1 by more than 1e-3 is
 //!   an error, not normalized away) on a row with a position: the body is
 //!   occluded (both empty) or seen (a position, with or without orientation).
-//! - `t_s` must be finite, non-negative and **non-decreasing**: a time going
+//! - `t_s` must be finite, non-negative, at most [`MAX_SESSION_TIME_S`]
+//!   (49.7 days; a clock's timestamp is refused) and **non-decreasing**: a time going
 //!   backwards is an error (time-dependent effects such as drift and slip are
 //!   fitted against it). Equal consecutive times are allowed.
 //! - Counts must be whole numbers within the `i32` range (`483489` or
@@ -84,6 +85,10 @@ pub const ORIENTATION_COLUMNS: [&str; 4] = ["ots_qw", "ots_qx", "ots_qy", "ots_q
 /// How far from 1 the norm of an orientation quaternion may be (its values
 /// are rounded, but a rotation is a unit quaternion).
 const ORIENTATION_NORM_TOLERANCE: f64 = 1e-3;
+/// The latest `t_s` a session may have (s): the device counts time since
+/// home in `u32` milliseconds. A session stamped with a clock's time (Unix
+/// seconds, 1.7e9) read as one instant, `u32::MAX` ms, on every row.
+pub const MAX_SESSION_TIME_S: f64 = u32::MAX as f64 / 1000.0;
 /// Names of the legacy-controller columns (device frame, mm).
 pub const LEGACY_COLUMNS: [&str; 3] = ["dev_x", "dev_y", "dev_z"];
 /// Names of the commanded-tension columns (N), index = encoder index.
@@ -106,6 +111,8 @@ pub enum ValueProblem {
     CountOutOfRange(String),
     #[error("negative time {0} s (time is counted from the start of the session)")]
     NegativeTime(f64),
+    #[error("time {0} s is beyond {MAX_SESSION_TIME_S} s (49.7 days): time is counted from the start of the session, in the device's 32-bit milliseconds (a clock's timestamp? subtract the first row's)")]
+    TimeTooLarge(f64),
     #[error("time goes backwards: {value} s after {previous} s on line {previous_line}")]
     TimeDecreasing {
         value: f64,
@@ -1060,6 +1067,9 @@ impl Session {
             if t_s < 0.0 {
                 return Err(row.error(layout.time, ValueProblem::NegativeTime(t_s)));
             }
+            if t_s > MAX_SESSION_TIME_S {
+                return Err(row.error(layout.time, ValueProblem::TimeTooLarge(t_s)));
+            }
             if let Some((prev, prev_line)) = previous {
                 if t_s < prev {
                     return Err(row.error(
@@ -1295,6 +1305,9 @@ fn check_sample(
     finite(TIME_COLUMN, s.t_s)?;
     if s.t_s < 0.0 {
         return Err(value_error(TIME_COLUMN, ValueProblem::NegativeTime(s.t_s)));
+    }
+    if s.t_s > MAX_SESSION_TIME_S {
+        return Err(value_error(TIME_COLUMN, ValueProblem::TimeTooLarge(s.t_s)));
     }
     if let Some((prev, prev_line)) = previous {
         if s.t_s < prev {

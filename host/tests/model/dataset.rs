@@ -241,6 +241,20 @@ fn error_negative_time() {
     );
 }
 
+/// A clock's timestamp (Unix seconds) is not time since the session's
+/// start: refused naming the line, where every row read as one instant.
+#[test]
+fn a_timestamp_of_a_clock_is_refused_as_time() {
+    let text = format!("{HEADER}\n1700000000.5,1,2,3,4,5,6,7,8,1,2,3\n");
+    assert_eq!(
+        value_error(&text, 2, "t_s"),
+        ValueProblem::TimeTooLarge(1_700_000_000.5)
+    );
+    // 49 days is a session still.
+    let text = format!("{HEADER}\n4233600,1,2,3,4,5,6,7,8,1,2,3\n");
+    assert!(read(&text).is_ok());
+}
+
 #[test]
 fn error_empty_time_and_counts() {
     let text = format!("{HEADER}\n,1,2,3,4,5,6,7,8,1,2,3\n");
