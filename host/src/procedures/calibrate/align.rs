@@ -101,16 +101,7 @@ pub struct AlignError(#[from] pub crate::device::tracker::sync::SyncError);
 /// twice) do not count: with every row written twice the median was 0, and
 /// the alignment failed on "`max_gap_s`: 0 is not a positive duration".
 pub fn median_interval_s(obs: &[Observation]) -> Option<f64> {
-    let mut d: Vec<f64> = obs
-        .windows(2)
-        .map(|w| w[1].t_s - w[0].t_s)
-        .filter(|&dt| dt > 0.0)
-        .collect();
-    if d.is_empty() {
-        return None;
-    }
-    d.sort_by(f64::total_cmp);
-    Some(d[d.len() / 2])
+    median_step_s(obs.iter().map(|o| o.t_s))
 }
 
 /// Median time between consecutive *tracked* rows that are apart in time
@@ -119,11 +110,12 @@ pub fn median_interval_s(obs: &[Observation]) -> Option<f64> {
 /// positions on every tenth row has a row interval of 1 ms; gaps bounded by
 /// it left no tracker sample bridged ("the streams overlap in 0 samples").
 pub fn tracked_interval_s(obs: &[Observation]) -> Option<f64> {
-    let times: Vec<f64> = obs
-        .iter()
-        .filter(|o| o.tracker.is_some())
-        .map(|o| o.t_s)
-        .collect();
+    median_step_s(obs.iter().filter(|o| o.tracker.is_some()).map(|o| o.t_s))
+}
+
+/// The median of the positive steps between consecutive `times` (s).
+fn median_step_s(times: impl Iterator<Item = f64>) -> Option<f64> {
+    let times: Vec<f64> = times.collect();
     let mut d: Vec<f64> = times
         .windows(2)
         .map(|w| w[1] - w[0])
