@@ -244,10 +244,9 @@ impl TrackerOutliers {
     /// The rows of `train` whose tracker disagrees with their strings under
     /// `id` beyond the threshold.
     pub fn of(id: &Identification, train: &[Observation]) -> TrackerOutliers {
-        let disagreement = tracker_disagreement(id, train);
-        let median_mm = median(&mut disagreement.iter().map(|d| d.1).collect::<Vec<_>>());
-        let threshold_mm = (GROSS_TRACKER_MEDIANS * median_mm).max(GROSS_TRACKER_FLOOR_MM);
-        Self::beyond(disagreement, train, median_mm, threshold_mm)
+        Self::beyond(id, train, |median_mm| {
+            (GROSS_TRACKER_MEDIANS * median_mm).max(GROSS_TRACKER_FLOOR_MM)
+        })
     }
 
     /// The rows of another session (the test session) whose tracker
@@ -258,23 +257,25 @@ impl TrackerOutliers {
         session: &[Observation],
         threshold_mm: f64,
     ) -> TrackerOutliers {
-        let disagreement = tracker_disagreement(id, session);
-        let median_mm = median(&mut disagreement.iter().map(|d| d.1).collect::<Vec<_>>());
-        Self::beyond(disagreement, session, median_mm, threshold_mm)
+        Self::beyond(id, session, |_| threshold_mm)
     }
 
+    /// The rows of `session` beyond the threshold `threshold` gives for the
+    /// median disagreement of its tracked rows.
     fn beyond(
-        disagreement: Vec<(usize, f64)>,
-        train: &[Observation],
-        median_mm: f64,
-        threshold_mm: f64,
+        id: &Identification,
+        session: &[Observation],
+        threshold: impl FnOnce(f64) -> f64,
     ) -> TrackerOutliers {
+        let disagreement = tracker_disagreement(id, session);
+        let tracked = disagreement.len();
+        let median_mm = median(&mut disagreement.iter().map(|d| d.1).collect::<Vec<_>>());
+        let threshold_mm = threshold(median_mm);
         let far: Vec<(usize, f64)> = disagreement
             .into_iter()
             // A row the model cannot place (NaN) is as far as one can be.
             .filter(|(_, e)| e.is_nan() || *e > threshold_mm)
             .collect();
-        let tracked = train.iter().filter(|o| o.tracker.is_some()).count();
         if far.len() as f64 > GROSS_TRACKER_MAX_SHARE * tracked as f64 {
             return TrackerOutliers {
                 median_mm,
@@ -285,7 +286,7 @@ impl TrackerOutliers {
         }
         TrackerOutliers {
             rows: far.iter().map(|f| f.0).collect(),
-            session_rows: far.iter().map(|f| train[f.0].row).collect(),
+            session_rows: far.iter().map(|f| session[f.0].row).collect(),
             errors_mm: far.iter().map(|f| f.1).collect(),
             median_mm,
             threshold_mm,
