@@ -224,10 +224,13 @@ pub const GROSS_TRACKER_MAX_SHARE: f64 = 0.25;
 /// report lists them.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct TrackerOutliers {
-    /// Indices (into the training observations) of the rows set aside.
+    /// Indices (into the observations given) of the rows set aside; not
+    /// written (they index this run's observations).
+    #[serde(skip)]
     pub rows: Vec<usize>,
-    /// Their rows in the session ([`Observation::row`]; CSV line = row + 2).
-    pub session_rows: Vec<usize>,
+    /// Their lines in the session file ([`Observation::row`] + 2: the header
+    /// is line 1).
+    pub lines: Vec<usize>,
     /// Their disagreement with their strings under the first base
     /// identification, mm.
     pub errors_mm: Vec<f64>,
@@ -286,7 +289,7 @@ impl TrackerOutliers {
         }
         TrackerOutliers {
             rows: far.iter().map(|f| f.0).collect(),
-            session_rows: far.iter().map(|f| session[f.0].row).collect(),
+            lines: far.iter().map(|f| session[f.0].row + 2).collect(),
             errors_mm: far.iter().map(|f| f.1).collect(),
             median_mm,
             threshold_mm,

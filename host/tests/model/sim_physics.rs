@@ -1155,8 +1155,8 @@ fn a_tracker_s_glitches_are_set_aside_and_the_loop_runs_as_without_them() {
     let result = run(&glitched);
     assert_eq!(result.tracker_outliers.rows, thrown);
     assert_eq!(
-        result.tracker_outliers.session_rows,
-        thrown.iter().map(|&k| clean[k].row).collect::<Vec<_>>()
+        result.tracker_outliers.lines,
+        thrown.iter().map(|&k| clean[k].row + 2).collect::<Vec<_>>()
     );
     assert!(result
         .tracker_outliers

@@ -897,13 +897,13 @@ fn outlier_lines(
 ) -> String {
     const SHOWN: usize = 12;
     let lines: Vec<String> = outliers
-        .session_rows
+        .lines
         .iter()
         .zip(&outliers.errors_mm)
         .take(SHOWN)
-        .map(|(row, e)| format!("{} ({e:.0} mm)", row + 2))
+        .map(|(line, e)| format!("{line} ({e:.0} mm)"))
         .collect();
-    let more = outliers.session_rows.len().saturating_sub(SHOWN);
+    let more = outliers.lines.len().saturating_sub(SHOWN);
     match (more, where_all) {
         (0, _) => lines.join(", "),
         (_, Some(place)) => format!("{} and {more} more ({place})", lines.join(", ")),
@@ -2071,7 +2071,7 @@ mod tests {
         use crate::model::diagnose::TrackerOutliers;
         let outliers = TrackerOutliers {
             rows: (0..13).collect(),
-            session_rows: (10..23).collect(),
+            lines: (12..25).collect(),
             errors_mm: (0..13).map(|k| 50.0 + k as f64).collect(),
             median_mm: 0.9,
             threshold_mm: 18.0,

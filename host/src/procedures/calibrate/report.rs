@@ -611,25 +611,7 @@ pub struct IdentificationReport {
     /// that compares the device with the tracker must do the same.
     pub marker_body_mm: Option<[f64; 3]>,
     /// Training rows whose tracker the loop set aside as a glitch.
-    pub tracker_outliers: TrackerOutliersReport,
-}
-
-/// The training rows whose tracker was far from where the base model's
-/// strings put the end-effector ([`crate::model::diagnose::TrackerOutliers`]):
-/// read as occluded after the raw stage.
-#[derive(Clone, Debug, Serialize)]
-pub struct TrackerOutliersReport {
-    /// Their lines in the training file (header = line 1).
-    pub lines: Vec<usize>,
-    /// Their position errors under the first base identification, mm.
-    pub errors_mm: Vec<f64>,
-    /// The median position error of the tracked rows under it, mm.
-    pub median_mm: f64,
-    /// The distance beyond which a row is set aside, mm.
-    pub threshold_mm: f64,
-    /// Rows beyond it that were kept because they were too many to be
-    /// glitches (then `lines` is empty).
-    pub kept_too_many: usize,
+    pub tracker_outliers: crate::model::diagnose::TrackerOutliers,
 }
 
 impl IdentificationReport {
@@ -650,13 +632,7 @@ impl IdentificationReport {
             base_residual_scale_mm: base.residual_scale_mm,
             layer_tables: layer_tables.to_vec(),
             marker_body_mm,
-            tracker_outliers: TrackerOutliersReport {
-                lines: outliers.session_rows.iter().map(|r| r + 2).collect(),
-                errors_mm: outliers.errors_mm.clone(),
-                median_mm: outliers.median_mm,
-                threshold_mm: outliers.threshold_mm,
-                kept_too_many: outliers.kept_too_many,
-            },
+            tracker_outliers: outliers.clone(),
         }
     }
 }
