@@ -203,6 +203,13 @@ pub const GROSS_TRACKER_MEDIANS: f64 = 20.0;
 /// The least disagreement (mm) at which a row's tracker is set aside: more
 /// than a slip or a missing effect puts a string off.
 pub const GROSS_TRACKER_FLOOR_MM: f64 = 10.0;
+/// The disagreement (mm) beyond which a tracker position is a glitch, for
+/// a median disagreement of `median_mm`: [`GROSS_TRACKER_MEDIANS`] times
+/// it, and at least [`GROSS_TRACKER_FLOOR_MM`].
+pub fn gross_tracker_threshold_mm(median_mm: f64) -> f64 {
+    (GROSS_TRACKER_MEDIANS * median_mm).max(GROSS_TRACKER_FLOOR_MM)
+}
+
 /// Above this share of the tracked rows, rows far off are not a tracker's
 /// glitches but a model that does not fit: none is set aside.
 pub const GROSS_TRACKER_MAX_SHARE: f64 = 0.25;
@@ -247,9 +254,7 @@ impl TrackerOutliers {
     /// The rows of `train` whose tracker disagrees with their strings under
     /// `id` beyond the threshold.
     pub fn of(id: &Identification, train: &[Observation]) -> TrackerOutliers {
-        Self::beyond(id, train, |median_mm| {
-            (GROSS_TRACKER_MEDIANS * median_mm).max(GROSS_TRACKER_FLOOR_MM)
-        })
+        Self::beyond(id, train, gross_tracker_threshold_mm)
     }
 
     /// The rows of another session (the test session) whose tracker

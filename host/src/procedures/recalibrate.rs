@@ -69,8 +69,8 @@ use crate::device::tracker::{ClockSync, HostClock, StateHistory};
 use crate::device::tracker::{Next, TrackerError, TrackerFrame, TrackerSource};
 use crate::model::compile::{compile_checked, model_id_of, CompileCmdError};
 use crate::model::diagnose::{
-    cross_validated_error, diagnose, family_name, model_errors, Change, Family, Finding,
-    LoopConfig, GROSS_TRACKER_FLOOR_MM, GROSS_TRACKER_MAX_SHARE, GROSS_TRACKER_MEDIANS,
+    cross_validated_error, diagnose, family_name, gross_tracker_threshold_mm, model_errors, Change,
+    Family, Finding, LoopConfig, GROSS_TRACKER_MAX_SHARE,
 };
 use crate::model::identify::{
     identify, Identification, IdentifyError, Start, Structure, WindingPhysics,
@@ -672,8 +672,8 @@ impl ArrivalClock {
 }
 
 /// Sets aside the pairs whose tracker is a glitch (a reflection, a swapped
-/// marker): an error beyond [`GROSS_TRACKER_MEDIANS`] times the baseline
-/// window's median and [`GROSS_TRACKER_FLOOR_MM`], as the calibration's
+/// marker): an error beyond [`gross_tracker_threshold_mm`] of the baseline
+/// window's median, as the calibration's
 /// loop sets such training rows aside
 /// ([`crate::model::diagnose::TrackerOutliers`]). One glitch of 200 mm
 /// raises a 400-pair window's mean by half a millimetre, more than the
@@ -705,7 +705,7 @@ impl GlitchGate {
     /// Sets the threshold from the baseline window's median error (mm);
     /// returns it.
     pub fn set_baseline(&mut self, median_mm: f64) -> f64 {
-        let t = (GROSS_TRACKER_MEDIANS * median_mm).max(GROSS_TRACKER_FLOOR_MM);
+        let t = gross_tracker_threshold_mm(median_mm);
         self.threshold_mm = Some(t);
         t
     }
