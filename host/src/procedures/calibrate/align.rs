@@ -297,31 +297,27 @@ pub fn align(
     // than the profiles' grid step keeps the peak; the second pass, with
     // the identified model, refines it.
     let refined = shift.offset_std_s <= interval;
-    let (offset_s, offset_sd_s, drift, drift_sd) = if refined {
-        (
-            shift.offset_s,
-            shift.offset_std_s,
-            shift.drift,
-            shift.drift_std,
-        )
+    let used = if refined {
+        shift
     } else {
-        (shift.coarse_offset_s, interval / 12f64.sqrt(), 0.0, 0.0)
+        TimeShift {
+            offset_s: shift.coarse_offset_s,
+            offset_std_s: interval / 12f64.sqrt(),
+            drift: 0.0,
+            drift_std: 0.0,
+            ..shift
+        }
     };
-    let reference_t_s = shift.reference_t_s;
-    let (rows, lost) = repaired_at(
-        obs,
-        |t| t + offset_s + drift * (t - reference_t_s),
-        4.0 * interval,
-    );
+    let (rows, lost) = repaired_at(obs, |t| used.tracker_time(t), 4.0 * interval);
     Ok((
         ClockAlignment {
-            offset_s,
-            offset_sd_s,
-            drift_ppm: drift * 1e6,
-            drift_sd_ppm: drift_sd * 1e6,
-            reference_t_s,
-            correlation: shift.correlation,
-            pairs: shift.pairs,
+            offset_s: used.offset_s,
+            offset_sd_s: used.offset_std_s,
+            drift_ppm: used.drift * 1e6,
+            drift_sd_ppm: used.drift_std * 1e6,
+            reference_t_s: used.reference_t_s,
+            correlation: used.correlation,
+            pairs: used.pairs,
             rows_unpaired: lost,
             refined,
         },
