@@ -253,6 +253,7 @@ fn run_on_virtual_device(
         effects: Vec::new(),
         correction: CorrectionModel::None,
         length_scale_mm: [0.0; spidar_core::STRINGS],
+        kinematics: Default::default(),
     };
     let calibrated =
         spidar::model::compile::load_calibration(&calibration_dir.join("calibration.json"))?;

@@ -5,7 +5,8 @@
 //!      + body
 //! body = postcard(BlobHead { frame: Frame<f32>, laws: [CompiledStringLaw; 8],
 //!                            effects: heapless::Vec<CompiledEffect, MAX_EFFECTS>,
-//!                            residual_weight: [f32; 8] })
+//!                            residual_weight: [f32; 8],
+//!                            exclusion_threshold_mm: f32, fault_threshold_mm: f32 })
 //!      + 0 to 3 zero bytes, so that the correction starts at a multiple of
 //!        CORRECTION_ALIGN = 4 bytes from the blob start (format version 2)
 //!      + correction bytes (layout in `correction`, read in place, zero-copy)
@@ -71,6 +72,27 @@ pub struct BlobHead {
     /// [`crate::kinematics::residual_weights`]; within
     /// `[MIN_RESIDUAL_WEIGHT, 1]` (1 on inactive channels). Format 8.
     pub residual_weight: [f32; STRINGS],
+    /// [`crate::kinematics::FkConfig::exclusion_threshold_mm`] the
+    /// calibration chose ([`crate::kinematics::KinematicsRule`]), mm;
+    /// positive, at most `fault_threshold_mm`. Format 9.
+    pub exclusion_threshold_mm: f32,
+    /// [`crate::kinematics::FkConfig::fault_threshold_mm`], mm. Format 9.
+    pub fault_threshold_mm: f32,
+}
+
+impl BlobHead {
+    /// `config` with the blob's residual weights and thresholds.
+    pub fn fk_config(
+        &self,
+        config: &crate::kinematics::FkConfig<f32>,
+    ) -> crate::kinematics::FkConfig<f32> {
+        crate::kinematics::FkConfig {
+            residual_weight: self.residual_weight,
+            exclusion_threshold_mm: self.exclusion_threshold_mm,
+            fault_threshold_mm: self.fault_threshold_mm,
+            ..*config
+        }
+    }
 }
 
 /// A parsed, checked blob, borrowing the correction's parameters from the
@@ -173,6 +195,17 @@ impl<'a> CompiledCalibration<'a> {
                 field: "residual_weight",
             });
         }
+        let (exclusion, fault) = (head.exclusion_threshold_mm, head.fault_threshold_mm);
+        if !(exclusion.is_finite() && exclusion > 0.0) {
+            return Err(BlobError::Body {
+                field: "exclusion_threshold_mm",
+            });
+        }
+        if !(fault.is_finite() && fault >= exclusion) {
+            return Err(BlobError::Body {
+                field: "fault_threshold_mm",
+            });
+        }
         // Laws of inactive channels are never evaluated (the compiler writes
         // zeros there).
         for (i, law) in head.laws.iter().enumerate() {
@@ -234,6 +267,12 @@ mod compiler {
         LengthScale {
             string: u8,
         },
+        /// The kinematics rule's thresholds are not positive numbers with
+        /// the exclusion's at most the fault's (`kinematics`).
+        KinematicsRule {
+            exclusion_threshold_mm: f64,
+            fault_threshold_mm: f64,
+        },
         /// The body could not be encoded (should not happen).
         Encode,
     }
@@ -249,6 +288,15 @@ mod compiler {
                     write!(f, "{found} effect terms, a blob carries at most {max}")
                 }
                 CompileError::Correction(e) => write!(f, "position correction: {e}"),
+                CompileError::KinematicsRule {
+                    exclusion_threshold_mm,
+                    fault_threshold_mm,
+                } => write!(
+                    f,
+                    "`kinematics`: exclusion threshold {exclusion_threshold_mm} mm and fault \
+                     threshold {fault_threshold_mm} mm must be positive numbers, the exclusion's \
+                     at most the fault's"
+                ),
                 CompileError::Layout {
                     field,
                     string: Some(s),
@@ -371,11 +419,20 @@ mod compiler {
             }
         }
         let residual_weight = crate::kinematics::residual_weights(layout, scales).map(|w| w as f32);
+        let rule = calibration.kinematics;
+        if !rule.is_valid() {
+            return Err(CompileError::KinematicsRule {
+                exclusion_threshold_mm: rule.exclusion_threshold_mm,
+                fault_threshold_mm: rule.fault_threshold_mm,
+            });
+        }
         let head = BlobHead {
             frame,
             laws,
             effects,
             residual_weight,
+            exclusion_threshold_mm: rule.exclusion_threshold_mm as f32,
+            fault_threshold_mm: rule.fault_threshold_mm as f32,
         };
         let correction = calibration
             .correction

@@ -270,10 +270,7 @@ impl Controller {
         let lengths = lengths_q16.map(|l| l as f32 / 65536.0);
 
         let fk_config = if self.lengths_calibrated {
-            FkConfig {
-                residual_weight: head.residual_weight,
-                ..self.config.fk
-            }
+            head.fk_config(&self.config.fk)
         } else {
             FkConfig {
                 fault_threshold_mm: f32::INFINITY,

@@ -258,6 +258,7 @@ pub fn nominal_calibration(
         model_id: 0,
         created_unix_s: 0,
     };
+    let nominal_rule = crate::kinematics::KinematicsRule::default();
     Ok(CompiledCalibration {
         header,
         head: BlobHead {
@@ -271,8 +272,11 @@ pub fn nominal_calibration(
             },
             laws,
             effects: heapless::Vec::new(),
-            // Nothing measured yet: every string weighs alike.
+            // Nothing measured yet: every string weighs alike, and the
+            // thresholds are the device's defaults.
             residual_weight: [1.0; STRINGS],
+            exclusion_threshold_mm: nominal_rule.exclusion_threshold_mm as f32,
+            fault_threshold_mm: nominal_rule.fault_threshold_mm as f32,
         },
         correction: Correction::None,
     })

@@ -118,6 +118,57 @@ impl<F: Real> FkConfig<F> {
     }
 }
 
+/// When forward kinematics looks for a faulty string and when it calls the
+/// strings inconsistent: the two thresholds of [`FkConfig`] a calibration
+/// chooses for its device and the blob carries (format 9). The defaults are
+/// [`FkConfig::default`]'s. A rule whose `exclusion_threshold_mm` equals its
+/// `fault_threshold_mm` never leaves a string out of an agreeing row: the
+/// position is the all-string least squares until the strings are
+/// inconsistent.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct KinematicsRule {
+    /// [`FkConfig::exclusion_threshold_mm`], mm.
+    pub exclusion_threshold_mm: f64,
+    /// [`FkConfig::fault_threshold_mm`], mm.
+    pub fault_threshold_mm: f64,
+}
+
+impl Default for KinematicsRule {
+    fn default() -> Self {
+        let fk = FkConfig::<f64>::default();
+        KinematicsRule {
+            exclusion_threshold_mm: fk.exclusion_threshold_mm,
+            fault_threshold_mm: fk.fault_threshold_mm,
+        }
+    }
+}
+
+impl KinematicsRule {
+    /// Whether both thresholds are positive numbers and the exclusion's is
+    /// not above the fault's (what a device can run).
+    pub fn is_valid(&self) -> bool {
+        let ok = |t: f64| t.is_finite() && t > 0.0;
+        ok(self.exclusion_threshold_mm)
+            && ok(self.fault_threshold_mm)
+            && self.exclusion_threshold_mm <= self.fault_threshold_mm
+    }
+
+    /// Whether an agreeing row may lose a string (the exclusion threshold
+    /// is below the fault threshold).
+    pub fn excludes_below_fault(&self) -> bool {
+        self.exclusion_threshold_mm < self.fault_threshold_mm
+    }
+
+    /// `config` with this rule's thresholds.
+    pub fn apply<F: Real>(&self, config: &FkConfig<F>) -> FkConfig<F> {
+        FkConfig {
+            exclusion_threshold_mm: lit(self.exclusion_threshold_mm),
+            fault_threshold_mm: lit(self.fault_threshold_mm),
+            ..*config
+        }
+    }
+}
+
 /// Outcome of [`forward_kinematics`].
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum FkStatus {

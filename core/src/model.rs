@@ -513,5 +513,10 @@ mod whole {
         /// every string alike.
         #[serde(default)]
         pub length_scale_mm: [f64; STRINGS],
+        /// When forward kinematics leaves a string out and calls the
+        /// strings inconsistent (the calibration chooses it on held-out
+        /// data; the default is the device's fixed 1 mm / 2 mm).
+        #[serde(default)]
+        pub kinematics: crate::kinematics::KinematicsRule,
     }
 }

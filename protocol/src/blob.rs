@@ -26,8 +26,10 @@ use serde::{Deserialize, Serialize};
 
 /// Magic bytes at the start of every model blob.
 pub const MAGIC: [u8; 4] = *b"SPDM";
-/// Blob format this crate reads and writes. Version 8 (any other is refused
-/// with [`BlobError::UnsupportedVersion`]): the string model carries each
+/// Blob format this crate reads and writes. Version 9 (any other is refused
+/// with [`BlobError::UnsupportedVersion`]): the string model carries the
+/// forward kinematics' exclusion and fault thresholds the calibration chose
+/// (`spidar-core::kinematics::KinematicsRule`). Version 8: the string model carries each
 /// string's weight in forward kinematics, from its measured residual scale
 /// (`spidar-core::kinematics::residual_weights`). Version 7: a frame-flex term, read against
 /// the total tension of the strings (`spidar-core::model::Effect::FrameFlex`).
@@ -43,7 +45,7 @@ pub const MAGIC: [u8; 4] = *b"SPDM";
 /// zero padding after the string model so that the correction starts at a
 /// multiple of 4 bytes from the blob start (`spidar-core::blob`), which lets
 /// the device read the SVR records as aligned words; version 1 had none.
-pub const FORMAT_VERSION: u16 = 8;
+pub const FORMAT_VERSION: u16 = 9;
 /// Size of the header in bytes.
 pub const HEADER_LEN: usize = 40;
 

@@ -77,6 +77,7 @@ fn calibration(correction: CorrectionModel) -> Calibration {
         // Uneven measured scales: the forward kinematics weighs strings 3 and
         // 5 less (weights 1/3 and 2/3 of the others').
         length_scale_mm: [0.2, 0.2, 0.2, 0.6, 0.2, 0.3, 0.2, 0.2],
+        kinematics: Default::default(),
     }
 }
 

@@ -45,6 +45,7 @@ pub fn calibration(device: &sim::SimDevice, correction: CorrectionModel) -> Cali
         correction,
         // The true model: no string noisier than another.
         length_scale_mm: [0.0; spidar_core::STRINGS],
+        kinematics: Default::default(),
     }
 }
 

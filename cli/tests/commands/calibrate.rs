@@ -548,11 +548,25 @@ fn a_chosen_correction_is_refitted_and_stored() {
         spidar_core::correction::CorrectionModel::Svr(m) => {
             assert_eq!(Some(m.support.len()), r.selection.final_support_vectors);
             // Refitted on all kept points, not only the fit split.
-            assert!(m.support.len() > r.corrections.svr.support_vectors);
+            assert!(
+                m.support.len()
+                    > r.corrections
+                        .as_ref()
+                        .expect("learned corrections")
+                        .svr
+                        .support_vectors
+            );
         }
         spidar_core::correction::CorrectionModel::Nn(m) => {
             assert_eq!(Some(m.w1.len()), r.selection.final_hidden);
-            assert_eq!(m.w1.len(), r.corrections.nn.best_hidden);
+            assert_eq!(
+                m.w1.len(),
+                r.corrections
+                    .as_ref()
+                    .expect("learned corrections")
+                    .nn
+                    .best_hidden
+            );
         }
         spidar_core::correction::CorrectionModel::None => panic!("a correction was chosen"),
     }

@@ -33,6 +33,7 @@ fn calibration() -> Calibration {
         correction: CorrectionModel::None,
         // String 3 four times noisier than the others.
         length_scale_mm: [0.2, 0.2, 0.2, 0.8, 0.2, 0.2, 0.2, 0.2],
+        kinematics: Default::default(),
     }
 }
 

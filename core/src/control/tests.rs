@@ -14,6 +14,7 @@ fn calibration() -> Calibration {
         effects: alloc::vec![],
         correction: CorrectionModel::None,
         length_scale_mm: [0.0; STRINGS],
+        kinematics: Default::default(),
     }
 }
 

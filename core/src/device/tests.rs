@@ -38,6 +38,7 @@ fn calibration(correction: CorrectionModel) -> Calibration {
         effects: alloc::vec![],
         correction,
         length_scale_mm: [0.0; STRINGS],
+        kinematics: Default::default(),
     }
 }
 

@@ -342,6 +342,7 @@ fn blob() -> Vec<u8> {
         effects: std::vec![],
         correction: CorrectionModel::None,
         length_scale_mm: [0.0; crate::STRINGS],
+        kinematics: Default::default(),
     };
     crate::blob::compile(&calibration, 7, 1_700_000_000).unwrap()
 }

@@ -136,6 +136,18 @@ impl ErrorStats {
     }
 }
 
+/// The `q` quantile (nearest rank, `q` in 0..=1) of `values`; NaN when
+/// there are none.
+pub fn quantile(values: &[f64], q: f64) -> f64 {
+    if values.is_empty() {
+        return f64::NAN;
+    }
+    let mut sorted = values.to_vec();
+    sorted.sort_by(f64::total_cmp);
+    let n = sorted.len();
+    sorted[(((q * n as f64).ceil() as usize).max(1) - 1).min(n - 1)]
+}
+
 /// Errors that make statistics meaningless.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum StatsError {

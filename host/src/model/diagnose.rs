@@ -147,6 +147,10 @@ pub struct LoopConfig {
     /// heavy-string seed 2's string model went 0.421 -> 0.640 mm).
     #[serde(default)]
     pub home_tension_n: Option<f64>,
+    /// Look for effects at all: false stops after the base identification
+    /// (a session too small to judge a change on held-out folds).
+    #[serde(default = "yes")]
+    pub diagnose: bool,
 }
 
 impl LoopConfig {
@@ -176,6 +180,7 @@ impl Default for LoopConfig {
             min_relative_gain_one_string: one_string_gain(),
             layer_tables: true,
             home_tension_n: None,
+            diagnose: true,
         }
     }
 }
@@ -2129,7 +2134,11 @@ pub fn tail_noise(errors: &[f64]) -> (f64, f64) {
 /// kinematics as the device solves them (the strings weighed by their
 /// measured scales).
 fn model_error_list(id: &Identification, observations: &[Observation]) -> Vec<f64> {
-    error_list(id.kinematic_model(), observations, &FkConfig::default())
+    error_list(
+        id.kinematic_model(),
+        observations,
+        &id.kinematics.apply(&FkConfig::default()),
+    )
 }
 
 /// Held-out position errors by which the loop judges a change: the
@@ -2336,6 +2345,29 @@ pub(crate) fn validate_by(
         },
         fits.into_iter().map(|f| f.0).collect(),
     ))
+}
+
+/// The models of the folds [`validate_by`] judges by (the blocked ones when
+/// the session has them, else the interleaved), each made by `fit` from its
+/// fold's fitting rows, with the rows it holds out: for choices made after
+/// the model (the kinematics' rule, [`crate::model::rule`]).
+pub(crate) fn judged_fold_fits(
+    train: &[Observation],
+    fit: impl Fn(&[Observation]) -> Result<Identification, IdentifyError> + Sync,
+) -> Result<Vec<(Identification, Vec<Observation>)>, IdentifyError> {
+    use rayon::prelude::*;
+    let tracked: Vec<&Observation> = train.iter().filter(|o| o.tracker.is_some()).collect();
+    let (kind, folds) = folds(&tracked);
+    let judged = match kind {
+        Folds::Blocked => &folds[2..],
+        Folds::Interleaved => &folds[..2],
+    };
+    let pick =
+        |rows: &[usize]| -> Vec<Observation> { rows.iter().map(|&k| tracked[k].clone()).collect() };
+    judged
+        .par_iter()
+        .map(|(rows, held)| Ok((fit(&pick(rows))?, pick(held))))
+        .collect()
 }
 
 /// Fewest fit rows a fold needs on each side of a step in time (a slip) to
@@ -2767,6 +2799,19 @@ pub fn close_loop(
     };
     let base_train = model_errors(&base, train);
     let base_test = test.map(|t| model_errors(&base, t));
+    if !config.diagnose {
+        return Ok(LoopResult {
+            identification: base.clone(),
+            base,
+            base_train,
+            base_test,
+            structure,
+            stages: Vec::new(),
+            findings: Vec::new(),
+            layers: Vec::new(),
+            tracker_outliers,
+        });
+    }
     let id = base.clone();
     let validation = validate(train, nominal, &id, &structure)?;
     let mut state = LoopState {

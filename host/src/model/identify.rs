@@ -79,6 +79,7 @@ use spidar_core::geometry::{
     cross, device_from_room, distance, mat_mul, mat_vec, rotation_from_vector, sub, transpose,
     vector_from_rotation,
 };
+use spidar_core::kinematics::KinematicsRule;
 use spidar_core::model::{
     Effect, EffectTerm, Frame, LayerTable, StringInputs, StringLaw, StringLayout, EVERY_STRING,
     WINDING_ORDER,
@@ -175,6 +176,11 @@ pub struct Structure {
     /// evaluates: it says how to read the tracker.
     #[serde(default)]
     pub marker_body_mm: Option<[f64; 3]>,
+    /// Reweigh the rows robustly (Huber, then Tukey rounds) after the
+    /// least-squares round; false fits plain least squares, every residual
+    /// weighing alike (the reference stage, [`crate::model::reference`]).
+    #[serde(default = "hold_by_default")]
+    pub robust: bool,
 }
 
 impl Default for Structure {
@@ -186,6 +192,7 @@ impl Default for Structure {
             effects: Vec::new(),
             hold_kappa_each: true,
             marker_body_mm: None,
+            robust: true,
         }
     }
 }
@@ -277,6 +284,11 @@ pub struct Identification {
     pub rejected_fraction: f64,
     /// LM evaluations over all robust rounds.
     pub evaluations: usize,
+    /// When forward kinematics leaves a string out and calls the strings
+    /// inconsistent: the device's defaults until the calibration chooses
+    /// ([`crate::model::rule`]).
+    #[serde(default)]
+    pub kinematics: KinematicsRule,
 }
 
 impl Identification {
@@ -287,6 +299,7 @@ impl Identification {
             laws: &self.laws,
             effects: &self.effects,
             length_scale_mm: &self.length_scale_mm,
+            kinematics: self.kinematics,
         }
     }
 
@@ -1405,6 +1418,7 @@ pub fn identify(
         length_scale_mm,
         rejected_fraction,
         evaluations,
+        kinematics: KinematicsRule::default(),
     })
 }
 
@@ -1500,11 +1514,13 @@ impl Fit<'_> {
         // term explains (the minority side of a slip) no weight before it could
         // explain them.
         let warm_grown = [Round::Huber, Round::Tukey, Round::Tukey];
-        let (rounds, settled_after): (&[Round], usize) = match (self.start.warm, grown) {
-            (true, false) => (&warm, 1),
-            (true, true) => (&warm_grown, 1),
-            (false, _) => (&cold, 3),
-        };
+        let (rounds, settled_after): (&[Round], usize) =
+            match (self.structure.robust, self.start.warm, grown) {
+                (false, _, _) => (&[Round::LeastSquares], 1),
+                (true, true, false) => (&warm, 1),
+                (true, true, true) => (&warm_grown, 1),
+                (true, false, _) => (&cold, 3),
+            };
         for (n, &round) in rounds.iter().enumerate() {
             // Weights from the current state's residuals.
             let laws = state.winding.laws();

@@ -9,6 +9,10 @@
 //! - `normal`: the identification's normal equations, summed from the
 //!   Jacobian's block-arrow rows without forming it;
 //! - [`learn`]: model-less corrections (NN, SVR) and their searches;
+//! - [`rule`]: the forward kinematics' rule (faulty-string exclusion,
+//!   thresholds, weights) chosen on held-out folds;
+//! - [`reference`]: the plain least-squares reference every calibration is
+//!   held to;
 //! - [`compile`]: the model compiled to the device's fixed-point blob, with
 //!   its error against f64.
 
@@ -19,3 +23,5 @@ pub mod layers;
 pub mod learn;
 pub(crate) mod normal;
 pub mod predict;
+pub mod reference;
+pub mod rule;

@@ -10,7 +10,9 @@
 //! solution ([`spidar_core::model::Effect::reads_inclination`]).
 
 use spidar_core::correction::CorrectionModel;
-use spidar_core::kinematics::{forward_kinematics_inclined, residual_weights, FkConfig, FkStatus};
+use spidar_core::kinematics::{
+    forward_kinematics_inclined, residual_weights, FkConfig, FkStatus, KinematicsRule,
+};
 use spidar_core::model::{Calibration, EffectTerm, Frame, StringInputs, StringLaw};
 use spidar_core::string_law::string_lengths_f64;
 use spidar_core::STRINGS;
@@ -28,6 +30,9 @@ pub struct Prediction {
     pub status: FkStatus,
     /// String excluded as faulty by forward kinematics.
     pub excluded: Option<u8>,
+    /// RMS of the (weighted) string-length residuals at the position, mm:
+    /// how well the row's strings agree.
+    pub rms_residual_mm: f64,
 }
 
 /// The kinematic model of a calibration: its frame, string laws and effect
@@ -43,6 +48,9 @@ pub struct KinematicModel<'a> {
     /// ([`spidar_core::kinematics::residual_weights`]);
     /// [`UNMEASURED_SCALES`] weighs them alike.
     pub length_scale_mm: &'a [f64; STRINGS],
+    /// When forward kinematics leaves a string out and calls the strings
+    /// inconsistent.
+    pub kinematics: KinematicsRule,
 }
 
 /// No string's residual scale measured (a nominal model, a model not yet
@@ -56,19 +64,24 @@ impl<'a> KinematicModel<'a> {
             laws: &calibration.strings,
             effects: &calibration.effects,
             length_scale_mm: &calibration.length_scale_mm,
+            kinematics: calibration.kinematics,
         }
     }
 }
 
 /// Forward kinematics of every row (warm-started along the session), as
-/// the device solves it ([`FkConfig::default`], the strings weighed by the
-/// model's measured scales).
+/// the device solves it ([`FkConfig::default`] with the model's thresholds,
+/// the strings weighed by the model's measured scales).
 pub fn predict(model: KinematicModel<'_>, observations: &[Observation]) -> Vec<Prediction> {
-    predict_with(model, observations, &FkConfig::default())
+    predict_with(
+        model,
+        observations,
+        &model.kinematics.apply(&FkConfig::default()),
+    )
 }
 
 /// [`predict`] with the kinematics tuned by `config` (its residual weights
-/// replaced by the model's).
+/// replaced by the model's; its thresholds are `config`'s).
 pub fn predict_with(
     model: KinematicModel<'_>,
     observations: &[Observation],
@@ -103,6 +116,7 @@ pub fn predict_with(
                 room: room_from_device(model.frame, fk.position),
                 status: fk.status,
                 excluded: fk.excluded,
+                rms_residual_mm: fk.rms_residual_mm,
             }
         })
         .collect()

@@ -615,6 +615,7 @@ pub fn identification_of(
         length_scale_mm: calibration.length_scale_mm,
         rejected_fraction: 0.0,
         evaluations: 0,
+        kinematics: calibration.kinematics,
     }
 }
 
@@ -1250,6 +1251,7 @@ impl Monitor<'_> {
             effects: id.effects.clone(),
             correction: self.calibration.correction.clone(),
             length_scale_mm: id.length_scale_mm,
+            kinematics: self.calibration.kinematics,
         };
         let model_id = model_id_of(&calibration);
         let flashed = self.flash_calibration(client, &calibration, model_id)?;

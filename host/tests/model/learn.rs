@@ -618,17 +618,18 @@ fn corrections_learn_from_an_even_thinning_of_a_session_beyond_the_cap() {
     };
     let thinned = run(400);
     let whole = run(2500);
-    let points = &thinned.report.corrections.learning_points;
+    let learned = |c: &spidar::procedures::calibrate::Calibrated| {
+        c.report.corrections.clone().expect("learned corrections")
+    };
+    let (thinned_c, whole_c) = (learned(&thinned), learned(&whole));
+    let points = &thinned_c.learning_points;
     assert!(
         (300..=400).contains(&points.used) && points.cell_mm.is_some(),
         "{points:?}"
     );
-    assert_eq!(points.kept, whole.report.corrections.learning_points.kept);
-    assert_eq!(whole.report.corrections.learning_points.cell_mm, None);
-    assert_eq!(
-        whole.report.corrections.learning_points.used,
-        whole.report.corrections.learning_points.kept
-    );
+    assert_eq!(points.kept, whole_c.learning_points.kept);
+    assert_eq!(whole_c.learning_points.cell_mm, None);
+    assert_eq!(whole_c.learning_points.used, whole_c.learning_points.kept);
     // The learners saw the thinned points only: the selection split is a
     // fifth of them, and the SVR has no more support vectors than points.
     let selection = &thinned.report.selection;
@@ -636,7 +637,7 @@ fn corrections_learn_from_an_even_thinning_of_a_session_beyond_the_cap() {
         selection.fit_points + selection.selection_points,
         points.used
     );
-    assert!(thinned.report.corrections.svr.support_vectors <= selection.fit_points);
+    assert!(thinned_c.svr.support_vectors <= selection.fit_points);
     assert!(thinned.report.summary().contains(&format!(
         "learned from {} of the {} kept training points",
         points.used, points.kept

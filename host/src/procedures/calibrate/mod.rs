@@ -58,8 +58,9 @@ use crate::model::learn::svr::{self, SvrConfig};
 use crate::model::learn::thin::{thin_evenly, Thinning};
 use crate::model::learn::{split_indices, LearnError, OutputMode};
 use crate::model::predict::{predict, KinematicModel, UNMEASURED_SCALES};
+use crate::model::reference;
 use spidar_core::geometry::{device_from_room, room_from_device};
-use spidar_core::kinematics::FkStatus;
+use spidar_core::kinematics::{FkStatus, KinematicsRule};
 
 pub use report::{Report, SCHEMA};
 
@@ -421,6 +422,7 @@ fn align_clocks(
         laws: nominal_laws,
         effects: &[],
         length_scale_mm: &UNMEASURED_SCALES,
+        kinematics: KinematicsRule::default(),
     };
     let mut id = None;
     let (tr, train_timing) = match align::static_timing(&tr) {
@@ -685,6 +687,7 @@ fn raw_errors(
         laws: nominal_laws,
         effects: &[],
         length_scale_mm: &UNMEASURED_SCALES,
+        kinematics: KinematicsRule::default(),
     };
     let raw_tr = room_positions(raw_model, obs.train);
     let raw_te = room_positions(raw_model, obs.test);
@@ -911,29 +914,55 @@ fn outlier_lines(
     }
 }
 
-/// Refuses a training session too small for the diagnosis loop, in the
-/// user's terms before it fails in a fold: every change is judged on two
-/// halves.
+/// What a training session is large enough for.
+#[derive(Clone, Debug)]
+struct Regime {
+    /// The diagnosis loop and the learned corrections run (every change is
+    /// judged on two halves, each of which must identify the model).
+    full: bool,
+    /// Why they do not, in the user's terms.
+    reason: Option<String>,
+}
+
+/// What the training session's tracked rows allow: a refusal below what
+/// identifies the base model (rows x strings against its free parameters,
+/// twice over), identification only below twice that, else everything.
 fn check_enough_tracked_rows(
     train_path: &Path,
     tr: &[Observation],
     nominal: &spidar_core::model::Frame<f64>,
-) -> Result<(), CalibrateError> {
+) -> Result<Regime, CalibrateError> {
     let needed = crate::model::identify::rows_needed_for(&Structure::default(), nominal.layout);
     let tracked = tr.iter().filter(|o| o.tracker.is_some()).count();
-    if tracked < 2 * needed {
+    if tracked < needed {
         return Err(CalibrateError::Session {
             file: train_path.to_path_buf(),
             problem: format!(
-                "{tracked} rows with tracker positions; a calibration needs at least {} ({needed} \
-                 to identify the model's parameters, in each half of the 2-fold cross-validation \
-                 that decides which effects to add): collect a larger lattice (e.g. `spidar \
-                 collect --cells 4`, 64 cells)",
-                2 * needed
+                "{tracked} rows with tracker positions; identifying the model of {} strings \
+                 needs at least {needed} (twice as many string lengths as free parameters): \
+                 collect {} more tracked poses spread through the volume",
+                nominal.layout.count(),
+                needed - tracked
             ),
         });
     }
-    Ok(())
+    if tracked < 2 * needed {
+        return Ok(Regime {
+            full: false,
+            reason: Some(format!(
+                "identification only: the training session has {tracked} tracked rows; the \
+                 diagnosis loop and the learned corrections need {} ({needed} to identify the \
+                 model in each half of the 2-fold validation that judges every change): collect \
+                 {} more tracked poses to enable them",
+                2 * needed,
+                2 * needed - tracked
+            )),
+        });
+    }
+    Ok(Regime {
+        full: true,
+        reason: None,
+    })
 }
 
 /// Stages 2-3: the base identification and the diagnosis loop, from the
@@ -943,11 +972,13 @@ fn identify_and_diagnose(
     obs: PerSession<&[Observation]>,
     nominal: &spidar_core::model::Frame<f64>,
     cfg: &CalibrateConfig,
+    regime: &Regime,
 ) -> Result<LoopResult, CalibrateError> {
     let pb = spinner("identification and diagnosis", cfg.quiet);
     let start = Start::from_geometry(geometry);
     let loop_config = LoopConfig {
         home_tension_n: geometry.home_tension_n.or(cfg.loop_config.home_tension_n),
+        diagnose: cfg.loop_config.diagnose && regime.full,
         ..cfg.loop_config
     };
     let loop_result = close_loop(obs.train, Some(obs.test), nominal, &start, &loop_config);
@@ -1057,6 +1088,8 @@ struct ResidualData {
     t_fit: Vec<[f64; 3]>,
     x_sel: Vec<[f64; 3]>,
     t_sel: Vec<[f64; 3]>,
+    /// The training session's row of each selection point.
+    sel_rows: Vec<usize>,
 }
 
 impl ResidualData {
@@ -1075,6 +1108,13 @@ impl ResidualData {
         let (fit_idx, sel_idx) = split_indices(x_learn.len(), cfg.selection_fraction, cfg.seed);
         let (x_fit, t_fit) = (subset(&x_learn, &fit_idx), subset(&t_learn, &fit_idx));
         let (x_sel, t_sel) = (subset(&x_learn, &sel_idx), subset(&t_learn, &sel_idx));
+        let tracked_rows: Vec<usize> = (0..obs.train.len())
+            .filter(|&k| obs.train[k].tracker.is_some())
+            .collect();
+        let sel_rows = sel_idx
+            .iter()
+            .map(|&k| tracked_rows[outl.kept[thinning.indices[k]]])
+            .collect();
         Ok(ResidualData {
             outliers: outl,
             pairs: PairSet {
@@ -1090,6 +1130,7 @@ impl ResidualData {
             t_fit,
             x_sel,
             t_sel,
+            sel_rows,
         })
     }
 }
@@ -1133,6 +1174,8 @@ struct Judgement {
     identified: ErrorStats,
     nn: ErrorStats,
     svr: ErrorStats,
+    /// The plain least-squares reference on the same points.
+    reference: ErrorStats,
     /// Noise of the identified model's p95 and max on the selection split.
     noise_p95: f64,
     noise_max: f64,
@@ -1140,6 +1183,18 @@ struct Judgement {
     enough_to_choose: bool,
     choice: report::Choice,
     reason: String,
+}
+
+impl Judgement {
+    /// The chosen candidate's statistics on the selection split.
+    fn chosen_stats(&self) -> &ErrorStats {
+        match self.choice {
+            report::Choice::Identified => &self.identified,
+            report::Choice::Nn => &self.nn,
+            report::Choice::Svr => &self.svr,
+            report::Choice::Reference => &self.reference,
+        }
+    }
 }
 
 /// Stage 5: the choice, on the selection split.
@@ -1225,6 +1280,7 @@ fn judge_on_selection_split(
         identified: s_id,
         nn: s_nn,
         svr: s_svr,
+        reference: ErrorStats::of(&[]),
         noise_p95,
         noise_max,
         enough_to_choose,
@@ -1246,7 +1302,7 @@ fn refit_chosen(
     let (x_kept, t_kept) = (&data.x_learn, &data.t_learn);
     let pb = spinner("refitting the chosen correction", cfg.quiet);
     let final_corr = match choice {
-        report::Choice::Identified => CorrectionModel::None,
+        report::Choice::Identified | report::Choice::Reference => CorrectionModel::None,
         report::Choice::Nn => {
             let fit = nn::train(
                 x_kept,
@@ -1370,7 +1426,12 @@ fn selection_report(
     data: &ResidualData,
     cfg: &CalibrateConfig,
 ) -> report::Selection {
-    let (s_id, s_nn, s_svr) = (&judgement.identified, &judgement.nn, &judgement.svr);
+    let (s_id, s_nn, s_svr, s_ref) = (
+        &judgement.identified,
+        &judgement.nn,
+        &judgement.svr,
+        &judgement.reference,
+    );
     report::Selection {
         stage: final_name,
         choice: judgement.choice,
@@ -1386,16 +1447,19 @@ fn selection_report(
             identified: s_id.mean_mm,
             nn: s_nn.mean_mm,
             svr: s_svr.mean_mm,
+            reference: s_ref.mean_mm,
         },
         validation_p95_mm: report::Candidates {
             identified: s_id.p95_mm,
             nn: s_nn.p95_mm,
             svr: s_svr.p95_mm,
+            reference: s_ref.p95_mm,
         },
         validation_max_mm: report::Candidates {
             identified: s_id.max_mm,
             nn: s_nn.max_mm,
             svr: s_svr.max_mm,
+            reference: s_ref.max_mm,
         },
         noise_p95_mm: judgement.noise_p95,
         noise_max_mm: judgement.noise_max,
@@ -1415,13 +1479,16 @@ fn selection_report(
 /// their search.
 fn learner_warnings(
     fin: &crate::model::identify::Identification,
-    learned: &Learned,
+    learned: Option<&Learned>,
     cfg: &CalibrateConfig,
 ) -> Vec<String> {
     let mut warnings = Vec::new();
     for w in &fin.warnings {
         warnings.push(format!("identification: {w}"));
     }
+    let Some(learned) = learned else {
+        return warnings;
+    };
     let (sweep, svr_search) = (&learned.sweep, &learned.svr_search);
     if sweep.curve.len() < cfg.nn.sizes.len() {
         warnings.push(format!(
@@ -1458,6 +1525,12 @@ impl StageList {
         self.stages.push(errors.stage(&name, kind));
         self.points.push(errors.points(name));
     }
+
+    /// A stage with its figures' points, at `index` of both lists.
+    fn insert(&mut self, index: usize, name: String, kind: report::StageKind, errors: StageErrors) {
+        self.stages.insert(index, errors.stage(&name, kind));
+        self.points.insert(index, errors.points(name));
+    }
 }
 
 /// Stages 0-3: the identified model and its stages, with the sessions'
@@ -1470,8 +1543,62 @@ struct IdentifiedModel {
     te: Vec<Observation>,
     loop_result: LoopResult,
     final_identified: FinalIdentified,
-    /// `raw`, `identified` and one stage per added effect.
+    /// `raw`, the reference, `identified` and one stage per added effect.
     list: StageList,
+    regime: Regime,
+    reference: ReferenceModel,
+    rule: report::KinematicsReport,
+}
+
+/// The plain least-squares reference ([`crate::model::reference`]) and its
+/// positions on both sessions (read as the loop's base reads them).
+struct ReferenceModel {
+    id: crate::model::identify::Identification,
+    positions: PerSession<Vec<[f64; 3]>>,
+    /// Its error on each training row (`None`: not tracked).
+    train_errors_by_row: Vec<Option<f64>>,
+}
+
+impl ReferenceModel {
+    fn of(
+        geometry: &Geometry,
+        nominal: &spidar_core::model::Frame<f64>,
+        obs: PerSession<&[Observation]>,
+    ) -> Result<ReferenceModel, CalibrateError> {
+        let id =
+            reference::identify_reference(obs.train, nominal, &Start::from_geometry(geometry))?;
+        let positions = PerSession {
+            train: room_positions(id.kinematic_model(), obs.train),
+            test: room_positions(id.kinematic_model(), obs.test),
+        };
+        let train_errors_by_row = obs
+            .train
+            .iter()
+            .zip(&positions.train)
+            .map(|(o, p)| o.tracker.map(|t| crate::data::stats::position_error(*p, t)))
+            .collect();
+        Ok(ReferenceModel {
+            id,
+            positions,
+            train_errors_by_row,
+        })
+    }
+
+    fn errors(
+        &self,
+        obs: PerSession<&[Observation]>,
+        frame: &spidar_core::model::Frame<f64>,
+    ) -> Result<StageErrors, StatsError> {
+        StageErrors::of(
+            reference::STAGE_NAME,
+            obs,
+            PerSession {
+                train: &self.positions.train,
+                test: &self.positions.test,
+            },
+            frame,
+        )
+    }
 }
 
 /// What the stages of one calibration share: its inputs and settings, and
@@ -1493,7 +1620,8 @@ struct Findings<'a> {
     loop_result: &'a LoopResult,
     rejections: report::SessionRejections,
     selection: report::Selection,
-    corrections: report::Corrections,
+    corrections: Option<report::Corrections>,
+    kinematics: report::KinematicsReport,
     blackbox: Option<report::Blackbox>,
 }
 
@@ -1534,9 +1662,10 @@ impl Run<'_> {
         list.push("raw".into(), report::StageKind::Raw, raw);
 
         // 2-3. Identification and the diagnosis loop.
-        check_enough_tracked_rows(train.path, &tr, &nominal)?;
+        let regime = check_enough_tracked_rows(train.path, &tr, &nominal)?;
+        self.warnings.extend(regime.reason.clone());
         let t = Instant::now();
-        let loop_result = identify_and_diagnose(geometry, obs, &nominal, &self.cfg)?;
+        let mut loop_result = identify_and_diagnose(geometry, obs, &nominal, &self.cfg, &regime)?;
         self.timings.identification_s = t.elapsed().as_secs_f64();
         // The rows whose tracker the loop set aside count as occluded from
         // here on (the raw stage above is the sessions as read).
@@ -1556,16 +1685,36 @@ impl Run<'_> {
             identified,
         );
 
+        // The plain least-squares reference, on the same rows.
+        let t = Instant::now();
+        let reference = ReferenceModel::of(geometry, &nominal, obs)?;
+        self.timings.reference_s = t.elapsed().as_secs_f64();
+        list.insert(
+            1,
+            reference::STAGE_NAME.into(),
+            report::StageKind::Reference,
+            reference.errors(obs, &reference.id.frame)?,
+        );
+
         // From here on the sessions are read at the strings' meeting point when
         // the loop found the tracked body's origin off it (the errors are then
         // those of the tracker's position predicted with its orientation).
         let marker = loop_result.structure.marker_body_mm;
         let tr = crate::data::observe::at_meeting_points(&tr, marker).into_owned();
         let te = crate::data::observe::at_meeting_points(&te, marker).into_owned();
-        let obs = PerSession {
+        let obs_seen = PerSession {
             train: &tr[..],
             test: &te[..],
         };
+
+        // The kinematics' rule, on the held-out folds.
+        let t = Instant::now();
+        let rule = self.choose_rule(&loop_result, &tr, &nominal, &regime);
+        if let Ok(choice) = &rule {
+            loop_result.identification = choice.apply(&loop_result.identification);
+        }
+        self.timings.rule_s = t.elapsed().as_secs_f64();
+        let obs = obs_seen;
         let (final_identified, errors) = FinalIdentified::of(&loop_result.identification, obs)?;
         self.warnings.extend(test_outlier_warning(
             test.path,
@@ -1587,7 +1736,36 @@ impl Run<'_> {
             loop_result,
             final_identified,
             list,
+            regime,
+            reference,
+            rule: report::KinematicsReport::of(rule),
         })
+    }
+
+    /// The forward kinematics' rule for the final identified model, chosen
+    /// on the held-out folds ([`crate::model::rule`]); why not, when the
+    /// session is too small for them (the device's rule then stays).
+    fn choose_rule(
+        &self,
+        loop_result: &LoopResult,
+        train: &[Observation],
+        nominal: &spidar_core::model::Frame<f64>,
+        regime: &Regime,
+    ) -> Result<crate::model::rule::RuleChoice, String> {
+        if !regime.full {
+            return Err("the device's rule: the session is too small for held-out folds".into());
+        }
+        let pb = spinner("choosing the kinematics' rule", self.cfg.quiet);
+        let choice = crate::model::rule::choose(
+            train,
+            nominal,
+            &loop_result.identification,
+            &loop_result.structure,
+            &self.cfg.loop_config,
+        )
+        .map_err(|e| format!("the device's rule: the folds could not be fitted ({e})"));
+        pb.finish_and_clear();
+        choice
     }
 
     /// Stage 5: the choice on the selection split, and the chosen correction
@@ -1680,6 +1858,7 @@ impl Run<'_> {
             ),
             selection: f.selection,
             corrections: f.corrections,
+            kinematics: f.kinematics,
             blackbox: f.blackbox,
             warnings: self.warnings,
             notes: Vec::new(),
@@ -1734,6 +1913,9 @@ pub fn calibrate(
         loop_result,
         final_identified,
         mut list,
+        regime,
+        reference,
+        rule,
     } = run.identify_model(train, test)?;
     let fin = &loop_result.identification;
     let obs = PerSession {
@@ -1745,26 +1927,64 @@ pub fn calibrate(
         test: &final_identified.positions.test[..],
     };
 
-    // 4. Residual corrections on top of the final identified model.
+    // 4. Residual corrections on top of the final identified model (a
+    // session too small for the loop is too small for them).
     let data = ResidualData::of(obs, positions, &run.cfg)?;
-    let learned = train_corrections(&data, &run.cfg, &mut run.timings)?;
+    let learned = if regime.full {
+        Some(train_corrections(&data, &run.cfg, &mut run.timings)?)
+    } else {
+        None
+    };
 
-    // 5. The choice, on the selection split.
-    let (judgement, final_corr) = run.choose_final_model(&data, &learned)?;
-    let final_name = format!("final ({})", judgement.choice.name());
-    for (name, corr, kind) in [
-        ("nn".to_string(), &learned.nn, report::StageKind::Correction),
-        ("svr".into(), &learned.svr, report::StageKind::Correction),
-        (final_name.clone(), &final_corr, report::StageKind::Final),
-    ] {
-        let errors = correction_errors(&name, corr, obs, positions, &fin.frame)?;
-        list.push(name, kind, errors);
+    // 5. The choice, on the selection split, held to the reference there.
+    let (mut judgement, mut final_corr) = match &learned {
+        Some(learned) => run.choose_final_model(&data, learned)?,
+        None => (
+            identification_only(&data, regime.reason.clone().unwrap_or_default()),
+            CorrectionModel::None,
+        ),
+    };
+    let reference_rows = &reference.train_errors_by_row;
+    judgement.reference = ErrorStats::of(
+        &data
+            .sel_rows
+            .iter()
+            .filter_map(|&r| reference_rows[r])
+            .collect::<Vec<f64>>(),
+    );
+    let chosen_mean = judgement.chosen_stats().mean_mm;
+    let fall_back = judgement.reference.mean_mm < chosen_mean;
+    if fall_back {
+        judgement.reason = format!(
+            "the plain least-squares reference: {} has {:.3} mm on the selection split, the \
+             reference {:.3} mm (before: {})",
+            judgement.choice.name(),
+            chosen_mean,
+            judgement.reference.mean_mm,
+            judgement.reason
+        );
+        judgement.choice = report::Choice::Reference;
+        final_corr = CorrectionModel::None;
     }
+    let final_name = format!("final ({})", judgement.choice.name());
+    if let Some(learned) = &learned {
+        for (name, corr) in [("nn", &learned.nn), ("svr", &learned.svr)] {
+            let errors = correction_errors(name, corr, obs, positions, &fin.frame)?;
+            list.push(name.into(), report::StageKind::Correction, errors);
+        }
+    }
+    let final_errors = if fall_back {
+        reference.errors(obs, &reference.id.frame)?
+    } else {
+        correction_errors(&final_name, &final_corr, obs, positions, &fin.frame)?
+    };
+    list.push(final_name.clone(), report::StageKind::Final, final_errors);
+    run.warnings.extend(reference_warning(&list.stages));
     let final_points = list.points.iter().find(|p| p.name == final_name);
     run.warnings
         .extend(trust_warnings(&fin.frame, &tr, final_points));
     let selection = selection_report(final_name, judgement, &final_corr, &data, &run.cfg);
-    let corrections = residual_report(&data, &learned);
+    let corrections = learned.as_ref().map(|l| residual_report(&data, l));
 
     // Black-box comparison.
     let (legacy, blackbox) = run.blackbox_comparison(
@@ -1774,15 +1994,29 @@ pub fn calibrate(
         &mut list.points,
     )?;
     run.warnings
-        .extend(learner_warnings(fin, &learned, &run.cfg));
+        .extend(learner_warnings(fin, learned.as_ref(), &run.cfg));
 
-    let fin_new = final_identified.new_session;
+    let fin_new = if fall_back {
+        reference.id.clone()
+    } else {
+        final_identified.new_session
+    };
     let calibration = Calibration {
         frame: fin_new.frame,
         strings: fin_new.laws,
         effects: fin_new.effects.clone(),
         correction: final_corr,
         length_scale_mm: fin_new.length_scale_mm,
+        kinematics: fin_new.kinematics,
+    };
+    let rule = if fall_back {
+        report::KinematicsReport::of(Err(format!(
+            "the plain least-squares reference's: every string alike, up to {:.2} mm RMS",
+            fin_new.kinematics.fault_threshold_mm
+        )))
+        .with_rule(fin_new.kinematics, false)
+    } else {
+        rule
     };
     run.timings.calibration_s = t_start.elapsed().as_secs_f64();
     let report = run.report(Findings {
@@ -1792,6 +2026,7 @@ pub fn calibrate(
         rejections: final_identified.rejections,
         selection,
         corrections,
+        kinematics: rule,
         blackbox,
     });
     let pairs = Pairs {
@@ -1804,6 +2039,43 @@ pub fn calibrate(
         points: list.points,
         loop_result,
         pairs,
+    })
+}
+
+/// The judgement of a session too small for the learners: the identified
+/// model, for `reason`.
+fn identification_only(data: &ResidualData, reason: String) -> Judgement {
+    let e_id = point_error_list(|p| p, &data.x_sel, &data.t_sel);
+    let (noise_p95, noise_max) = tail_noise(&e_id);
+    Judgement {
+        identified: ErrorStats::of(&e_id),
+        nn: ErrorStats::of(&[]),
+        svr: ErrorStats::of(&[]),
+        reference: ErrorStats::of(&[]),
+        noise_p95,
+        noise_max,
+        enough_to_choose: false,
+        choice: report::Choice::Identified,
+        reason,
+    }
+}
+
+/// A warning when the final model's held-out mean is above the plain
+/// least-squares reference's: the rules the calibration adds on top of a
+/// plain fit lost on this device's test session.
+fn reference_warning(stages: &[report::Stage]) -> Option<String> {
+    let reference = stages
+        .iter()
+        .find(|s| s.kind == report::StageKind::Reference)?;
+    let fin = stages.iter().find(|s| s.kind == report::StageKind::Final)?;
+    (fin.test.mean_mm > reference.test.mean_mm).then(|| {
+        format!(
+            "the final model's held-out mean {:.3} mm is above the plain least-squares \
+             reference's {:.3} mm: what the calibration adds to a plain fit (robust weights, \
+             the geometry's priors, the loop's terms, the kinematics' rule) lost on this test \
+             session; compare the stages above",
+            fin.test.mean_mm, reference.test.mean_mm
+        )
     })
 }
 

@@ -338,12 +338,14 @@ pub(super) fn draw_all(c: &Calibrated, dir: &Path) -> Result<Vec<Figure>, Calibr
     residual_figures(&mut out, c)?;
 
     // Mean error against hidden neurons (fig. 13).
-    sweep_figure(
-        &mut out,
-        "nn_sweep",
-        "residual NN: mean error against hidden neurons",
-        &r.corrections.nn,
-    )?;
+    if let Some(corrections) = &r.corrections {
+        sweep_figure(
+            &mut out,
+            "nn_sweep",
+            "residual NN: mean error against hidden neurons",
+            &corrections.nn,
+        )?;
+    }
 
     // The paper's black-box procedure.
     if let Some(bb) = &r.blackbox {

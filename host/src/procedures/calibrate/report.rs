@@ -35,8 +35,12 @@ pub struct Report {
     pub identification: IdentificationReport,
     /// How the final model was chosen.
     pub selection: Selection,
-    /// Residual-mode corrections (the `nn` and `svr` stages).
-    pub corrections: Corrections,
+    /// Residual-mode corrections (the `nn` and `svr` stages); `null` when
+    /// the training session is too small to learn them (see `warnings`).
+    pub corrections: Option<Corrections>,
+    /// The forward kinematics' rule the final model runs, and the
+    /// candidates' held-out errors.
+    pub kinematics: KinematicsReport,
     /// The paper's black-box procedure, when run (`null` otherwise).
     pub blackbox: Option<Blackbox>,
     pub warnings: Vec<String>,
@@ -372,6 +376,8 @@ pub struct SessionInfo {
 pub enum StageKind {
     /// No calibration: nominal geometry (or the legacy controller).
     Raw,
+    /// The plain least-squares reference ([`crate::model::reference`]).
+    Reference,
     /// The base kinematic identification.
     Identified,
     /// The identification with one more effect added by diagnosis.
@@ -399,6 +405,9 @@ pub enum Choice {
     Identified,
     Nn,
     Svr,
+    /// The plain least-squares reference: the chosen model was not better
+    /// on the selection split.
+    Reference,
 }
 
 impl Choice {
@@ -410,6 +419,62 @@ impl Choice {
             Choice::Identified => "string model",
             Choice::Nn => "nn",
             Choice::Svr => "svr",
+            Choice::Reference => "plain least squares",
+        }
+    }
+}
+
+/// The forward kinematics' rule ([`crate::model::rule`]).
+#[derive(Clone, Debug, Serialize)]
+pub struct KinematicsReport {
+    /// The rule the final model runs.
+    pub rule: spidar_core::kinematics::KinematicsRule,
+    /// The strings weigh by their measured scales (else alike).
+    pub weighted: bool,
+    /// Why this rule.
+    pub reason: String,
+    /// The candidates and their held-out errors (empty when not chosen on
+    /// folds).
+    pub candidates: Vec<crate::model::rule::RuleScore>,
+    /// The training rows' string disagreement (RMS) at its 99th
+    /// percentile, mm (`null` when not measured).
+    pub disagreement_q99_mm: Option<f64>,
+}
+
+impl KinematicsReport {
+    /// From the choice on the folds, or why there was none (the device's
+    /// rule then stays).
+    pub fn of(choice: Result<crate::model::rule::RuleChoice, String>) -> KinematicsReport {
+        match choice {
+            Ok(c) => KinematicsReport {
+                rule: c.candidate().rule,
+                weighted: c.candidate().weighted,
+                reason: c.reason.clone(),
+                disagreement_q99_mm: Some(c.disagreement_q99_mm),
+                candidates: c.scores,
+            },
+            Err(reason) => KinematicsReport {
+                rule: Default::default(),
+                weighted: true,
+                reason,
+                candidates: Vec::new(),
+                disagreement_q99_mm: None,
+            },
+        }
+    }
+}
+
+impl KinematicsReport {
+    /// The same account of another rule.
+    pub fn with_rule(
+        self,
+        rule: spidar_core::kinematics::KinematicsRule,
+        weighted: bool,
+    ) -> KinematicsReport {
+        KinematicsReport {
+            rule,
+            weighted,
+            ..self
         }
     }
 }
@@ -420,6 +485,8 @@ pub struct Candidates {
     pub identified: f64,
     pub nn: f64,
     pub svr: f64,
+    /// The plain least-squares reference, on the same points.
+    pub reference: f64,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -645,6 +712,10 @@ pub struct Timings {
     pub raw_s: f64,
     /// Identification and the diagnosis loop.
     pub identification_s: f64,
+    /// The plain least-squares reference.
+    pub reference_s: f64,
+    /// The kinematics' rule on the held-out folds.
+    pub rule_s: f64,
     /// Residual NN sweep and final training.
     pub nn_s: f64,
     /// Residual SVR search and refit.
@@ -884,8 +955,43 @@ impl Report {
 
     /// The residual corrections and the choice of the final stage.
     fn write_corrections(&self, o: &mut String) {
-        let c = &self.corrections;
         let s = &self.selection;
+        let k = &self.kinematics;
+        let _ = writeln!(
+            o,
+            "\nKinematics: leave a string out from {:.2} mm RMS, inconsistent from {:.2} mm, \
+             strings {} - {}",
+            k.rule.exclusion_threshold_mm,
+            k.rule.fault_threshold_mm,
+            if k.weighted {
+                "weighed by their scales"
+            } else {
+                "weighing alike"
+            },
+            k.reason
+        );
+        for c in &k.candidates {
+            let _ = writeln!(
+                o,
+                "  {:36} held out {} mm mean, {} p95",
+                c.candidate.name,
+                num(c.held_out.mean_mm),
+                num(c.held_out.p95_mm)
+            );
+        }
+        let Some(c) = &self.corrections else {
+            let _ = writeln!(
+                o,
+                "\nFinal stage `{}` (no learned corrections): {} (selection split of {} points: \
+                 identified {}, plain least squares {} mm)",
+                s.stage,
+                s.reason,
+                s.selection_points,
+                num(s.validation_mean_mm.identified),
+                num(s.validation_mean_mm.reference)
+            );
+            return;
+        };
         let _ = writeln!(
             o,
             "\nCorrections ({} mode, on top of the identified model):",
@@ -932,16 +1038,20 @@ impl Report {
                 "the SVR correction, refitted on all the points it learns from; lowest error on"
                     .into()
             }
+            Choice::Reference => {
+                "the plain least-squares reference: the chosen model was not better on".into()
+            }
         };
         let _ = writeln!(
             o,
             "  final stage `{}`: {why} a {}-point selection split of the training session \
-             (identified {}, nn {}, svr {} mm)",
+             (identified {}, nn {}, svr {}, plain least squares {} mm)",
             s.stage,
             s.selection_points,
             num(s.validation_mean_mm.identified),
             num(s.validation_mean_mm.nn),
-            num(s.validation_mean_mm.svr)
+            num(s.validation_mean_mm.svr),
+            num(s.validation_mean_mm.reference)
         );
         let _ = writeln!(o, "    why: {}", s.reason);
     }
@@ -1011,6 +1121,7 @@ mod tests {
             room: [0.0; 3],
             status,
             excluded,
+            rms_residual_mm: 0.0,
         }
     }
 

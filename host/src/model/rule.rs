@@ -1,0 +1,297 @@
+//! The forward kinematics' rule for a calibrated device, chosen on held-out
+//! data: when it leaves a string out of a row, when it calls a row's
+//! strings inconsistent, and whether the strings weigh by their measured
+//! scales.
+//!
+//! The device's fixed rule (look for a faulty string from 1 mm RMS, call the
+//! strings inconsistent from 2 mm, weigh each string by its scale) suits a
+//! device whose strings agree to a fraction of a millimetre. On a rig whose
+//! strings disagree by a few millimetres in a smooth, shared way (a planar
+//! robot whose cables attach at the carriage's corners), it leaves a string
+//! out of most rows and loses the balance the all-string least squares
+//! keeps. So the thresholds scale with what the training rows measured
+//! ([`scaled_thresholds`]), and the rule is one of a few candidates
+//! ([`candidates`]) chosen by the held-out error of the blocked folds, as
+//! the diagnosis loop chooses its changes: each fold's model, fitted on the
+//! fold's rows, places its held-out rows under each candidate. The device's
+//! rule stays unless another lowers the held-out mean by the loop's
+//! [`LoopConfig::min_relative_gain`].
+
+use serde::Serialize;
+use spidar_core::kinematics::KinematicsRule;
+
+use crate::data::observe::Observation;
+use crate::data::stats::{position_errors, quantile, ErrorStats};
+use crate::model::diagnose::{judged_fold_fits, LoopConfig};
+use crate::model::identify::{identify, Identification, IdentifyError, Start, Structure};
+use crate::model::predict::{paired_with_tracker, predict, KinematicModel, UNMEASURED_SCALES};
+use spidar_core::model::Frame;
+
+/// The quantile of the training rows' string disagreement (the RMS of the
+/// string-length residuals at the all-string position) that the scaled
+/// exclusion threshold sits at: one row in a hundred of the device's own
+/// rows disagrees more.
+pub const DISAGREEMENT_QUANTILE: f64 = 0.99;
+
+/// A row whose strings disagree this many times the quantile above is
+/// unlike any training row: the scaled fault threshold.
+pub const FAULT_OVER_QUANTILE: f64 = 2.0;
+
+/// A rule forward kinematics may run with.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct RuleCandidate {
+    pub name: &'static str,
+    pub rule: KinematicsRule,
+    /// The strings weigh by their measured scales (else alike).
+    pub weighted: bool,
+}
+
+/// A candidate and its held-out error.
+#[derive(Clone, Debug, Serialize)]
+pub struct RuleScore {
+    #[serde(flatten)]
+    pub candidate: RuleCandidate,
+    /// Over the rows the judged folds hold out.
+    pub held_out: ErrorStats,
+}
+
+/// What the folds said, and the choice.
+#[derive(Clone, Debug, Serialize)]
+pub struct RuleChoice {
+    /// Index into `scores` of the chosen rule.
+    pub chosen: usize,
+    pub scores: Vec<RuleScore>,
+    /// The training rows' string disagreement at the quantile the scaled
+    /// thresholds read, mm.
+    pub disagreement_q99_mm: f64,
+    pub reason: String,
+}
+
+impl RuleChoice {
+    /// The chosen candidate.
+    pub fn candidate(&self) -> RuleCandidate {
+        self.scores[self.chosen].candidate
+    }
+
+    /// `id` running the chosen rule: its thresholds, and its scales zeroed
+    /// when the strings weigh alike.
+    pub fn apply(&self, id: &Identification) -> Identification {
+        with_rule(id, &self.candidate())
+    }
+}
+
+/// `id` with `candidate`'s thresholds, and its scales zeroed (every string
+/// weighs alike on the device too) when the candidate does not weigh.
+pub fn with_rule(id: &Identification, candidate: &RuleCandidate) -> Identification {
+    let mut out = id.clone();
+    out.kinematics = candidate.rule;
+    if !candidate.weighted {
+        out.length_scale_mm = UNMEASURED_SCALES;
+    }
+    out
+}
+
+/// The thresholds scaled to how well the training rows' strings agree
+/// under `id` (all strings, alike): the exclusion at the disagreement's
+/// [`DISAGREEMENT_QUANTILE`], the fault at [`FAULT_OVER_QUANTILE`] times it,
+/// neither below the device's defaults (a well-calibrated device's strings
+/// agree far within them, and its safety rule stays). Also the quantile.
+pub fn scaled_thresholds(id: &Identification, train: &[Observation]) -> (KinematicsRule, f64) {
+    let all_strings = all_strings_model(id, f64::MAX);
+    let disagreement: Vec<f64> = predict(all_strings.kinematic_model(), train)
+        .iter()
+        .zip(train)
+        .filter(|(p, o)| o.tracker.is_some() && p.rms_residual_mm.is_finite())
+        .map(|(p, _)| p.rms_residual_mm)
+        .collect();
+    let q = quantile(&disagreement, DISAGREEMENT_QUANTILE);
+    let device = KinematicsRule::default();
+    let q_ok = if q.is_finite() { q } else { 0.0 };
+    let rule = KinematicsRule {
+        exclusion_threshold_mm: device.exclusion_threshold_mm.max(q_ok),
+        fault_threshold_mm: device.fault_threshold_mm.max(FAULT_OVER_QUANTILE * q_ok),
+    };
+    (rule, q)
+}
+
+/// `id` placing every row with all its strings, alike, up to `fault_mm`.
+fn all_strings_model(id: &Identification, fault_mm: f64) -> Identification {
+    with_rule(
+        id,
+        &RuleCandidate {
+            name: "all strings",
+            rule: KinematicsRule {
+                exclusion_threshold_mm: fault_mm,
+                fault_threshold_mm: fault_mm,
+            },
+            weighted: false,
+        },
+    )
+}
+
+/// The rules tried, the device's first: the device's thresholds; the
+/// thresholds scaled to the training rows; and every string in every row
+/// that agrees within the scaled fault threshold, weighed by scale and
+/// alike.
+pub fn candidates(scaled: KinematicsRule) -> Vec<RuleCandidate> {
+    let all_strings = KinematicsRule {
+        exclusion_threshold_mm: scaled.fault_threshold_mm,
+        fault_threshold_mm: scaled.fault_threshold_mm,
+    };
+    let mut out = vec![RuleCandidate {
+        name: "device thresholds, strings weighed",
+        rule: KinematicsRule::default(),
+        weighted: true,
+    }];
+    if scaled != KinematicsRule::default() {
+        out.push(RuleCandidate {
+            name: "scaled thresholds, strings weighed",
+            rule: scaled,
+            weighted: true,
+        });
+    }
+    out.push(RuleCandidate {
+        name: "all strings, weighed",
+        rule: all_strings,
+        weighted: true,
+    });
+    out.push(RuleCandidate {
+        name: "all strings, alike",
+        rule: all_strings,
+        weighted: false,
+    });
+    out
+}
+
+/// Held-out position errors of `model` on `rows`.
+fn held_out(model: KinematicModel<'_>, rows: &[Observation]) -> Vec<f64> {
+    let room: Vec<[f64; 3]> = predict(model, rows).iter().map(|p| p.room).collect();
+    let (p, t) = paired_with_tracker(&room, rows);
+    position_errors(&p, &t)
+}
+
+/// Chooses the rule for `id` (of `structure`, identified on `train`) on
+/// the held-out rows of the judged folds.
+pub fn choose(
+    train: &[Observation],
+    nominal: &Frame<f64>,
+    id: &Identification,
+    structure: &Structure,
+    config: &LoopConfig,
+) -> Result<RuleChoice, IdentifyError> {
+    let (scaled, q99) = scaled_thresholds(id, train);
+    let tried = candidates(scaled);
+    let start = Start::from_identification(id);
+    let fits = judged_fold_fits(train, |rows| identify(rows, nominal, &start, structure))?;
+    let scores: Vec<RuleScore> = tried
+        .iter()
+        .map(|c| {
+            let errors: Vec<f64> = fits
+                .iter()
+                .flat_map(|(fold, held)| held_out(with_rule(fold, c).kinematic_model(), held))
+                .collect();
+            RuleScore {
+                candidate: *c,
+                held_out: ErrorStats::of(&errors),
+            }
+        })
+        .collect();
+    Ok(decide(scores, q99, config.min_relative_gain))
+}
+
+/// The device's rule (the first score) unless another lowers the held-out
+/// mean by `min_gain` (relative); then the lowest.
+fn decide(scores: Vec<RuleScore>, q99: f64, min_gain: f64) -> RuleChoice {
+    let device = scores[0].held_out.mean_mm;
+    let best = scores
+        .iter()
+        .enumerate()
+        .filter(|(_, s)| s.held_out.mean_mm.is_finite())
+        .min_by(|a, b| a.1.held_out.mean_mm.total_cmp(&b.1.held_out.mean_mm))
+        .map(|(k, _)| k)
+        .unwrap_or(0);
+    let gains = |k: usize| scores[k].held_out.mean_mm < device * (1.0 - min_gain);
+    let chosen = if best != 0 && (gains(best) || !device.is_finite()) {
+        best
+    } else {
+        0
+    };
+    let reason = if chosen == 0 {
+        format!(
+            "the device's rule: no other lowers the held-out mean {:.3} mm by {:.0} %{}",
+            device,
+            100.0 * min_gain,
+            if best != 0 {
+                format!(
+                    " (best: {}, {:.3} mm)",
+                    scores[best].candidate.name, scores[best].held_out.mean_mm
+                )
+            } else {
+                String::new()
+            }
+        )
+    } else {
+        format!(
+            "{} lowers the held-out mean {:.3} -> {:.3} mm (strings disagree up to {:.2} mm RMS \
+             on 99 % of the training rows)",
+            scores[chosen].candidate.name, device, scores[chosen].held_out.mean_mm, q99
+        )
+    };
+    RuleChoice {
+        chosen,
+        scores,
+        disagreement_q99_mm: q99,
+        reason,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn score(name: &'static str, mean: f64) -> RuleScore {
+        let mut held_out = ErrorStats::of(&[mean]);
+        held_out.mean_mm = mean;
+        RuleScore {
+            candidate: RuleCandidate {
+                name,
+                rule: KinematicsRule::default(),
+                weighted: true,
+            },
+            held_out,
+        }
+    }
+
+    #[test]
+    fn the_device_rule_stays_unless_another_gains_the_loops_margin() {
+        let kept = decide(vec![score("device", 1.0), score("other", 0.99)], 0.5, 0.02);
+        assert_eq!(kept.chosen, 0, "{}", kept.reason);
+        let taken = decide(vec![score("device", 1.0), score("other", 0.9)], 0.5, 0.02);
+        assert_eq!(taken.chosen, 1, "{}", taken.reason);
+        assert!(taken.reason.contains("other"), "{}", taken.reason);
+    }
+
+    #[test]
+    fn a_device_rule_that_places_nothing_gives_way() {
+        let taken = decide(
+            vec![score("device", f64::NAN), score("other", 3.0)],
+            0.5,
+            0.02,
+        );
+        assert_eq!(taken.chosen, 1);
+    }
+
+    #[test]
+    fn scaled_candidates_never_exclude_below_the_devices_thresholds() {
+        let scaled = KinematicsRule {
+            exclusion_threshold_mm: 3.0,
+            fault_threshold_mm: 6.0,
+        };
+        for c in candidates(scaled) {
+            assert!(c.rule.is_valid(), "{c:?}");
+            assert!(c.rule.exclusion_threshold_mm >= 1.0, "{c:?}");
+        }
+        let same = candidates(KinematicsRule::default());
+        assert_eq!(same.len(), 3, "no scaled duplicate of the device's rule");
+    }
+}
