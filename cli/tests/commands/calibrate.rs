@@ -91,7 +91,9 @@ fn library_pipeline_meets_the_held_out_targets() {
     let r = &c.report;
     let names: Vec<&str> = r.stages.iter().map(|s| s.name.as_str()).collect();
     assert_eq!(names[0], "raw");
-    assert_eq!(names[1], "identified");
+    assert_eq!(names[1], spidar::model::reference::STAGE_NAME);
+    assert_eq!(r.stages[1].kind, StageKind::Reference);
+    assert_eq!(names[2], "identified");
     let n = names.len();
     assert_eq!(&names[n - 3..n - 1], &["nn", "svr"]);
     let last = r.stages.last().unwrap();
@@ -210,7 +212,16 @@ fn cli_calibrate_writes_the_report_the_scripts_read() {
     let stages = report["stages"].as_array().unwrap();
     assert!(stages.len() >= 5);
     assert_eq!(stages[0]["name"], "raw");
-    assert_eq!(stages[1]["name"], "identified");
+    assert_eq!(stages[1]["name"], "reference (plain least squares)");
+    assert_eq!(stages[1]["kind"], "reference");
+    assert_eq!(stages[2]["name"], "identified");
+    assert!(
+        report["kinematics"]["rule"]["fault_threshold_mm"]
+            .as_f64()
+            .unwrap()
+            >= 2.0
+    );
+    assert!(report["selection"]["validation_mean_mm"]["reference"].is_number());
     for st in stages {
         assert!(st["name"].is_string());
         stats(&st["train"]);
@@ -618,7 +629,7 @@ fn effects_found_by_the_loop_become_stages_and_json_effects() {
         .map(|s| s.name.as_str())
         .collect();
     assert_eq!(effect_stages, loop_names);
-    assert_eq!(r.stages[2].name, effect_stages[0]);
+    assert_eq!(r.stages[3].name, effect_stages[0]);
     assert!(effect_stages[0].contains("backlash"), "{effect_stages:?}");
     // Adding the effect lowered the held-out error by which the loop judges
     // (every string weighed alike). The stages are reported as the device
@@ -689,14 +700,14 @@ fn calibrate_pilot(dir: &Path, points: u32) -> (std::process::Output, PathBuf) {
     (o, out)
 }
 
-/// A pilot session too small to calibrate is refused in the user's terms:
-/// how many rows, why, and what to collect (not the row count of one
-/// cross-validation half, which is what identification saw). A 27-point
-/// pilot calibrates (25 tracked rows, 20 needed).
+/// A pilot session too small to identify the model is refused in the
+/// user's terms: how many rows, why, and what to collect. One too small for
+/// the loop's 2-fold validation is identified alone, and the report says
+/// how many more rows enable the loop and the learners.
 #[test]
 fn a_pilot_session_too_small_says_how_many_rows_and_why() {
     let dir = temp_dir("pilot");
-    let (o, _) = calibrate_pilot(&dir, 15);
+    let (o, _) = calibrate_pilot(&dir, 9);
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(
         !o.status.success(),
@@ -706,11 +717,22 @@ fn a_pilot_session_too_small_says_how_many_rows_and_why() {
     assert!(
         err.contains("pilot.csv")
             && err.contains("rows with tracker positions")
-            && err.contains("needs at least 20 (10 to identify")
-            && err.contains("cross-validation")
-            && err.contains("--cells"),
+            && err.contains("needs at least 10")
+            && err.contains("more tracked poses"),
         "{err}"
     );
+    let (o, out) = calibrate_pilot(&dir, 15);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
+    assert!(report["corrections"].is_null());
+    let warned = report["warnings"].as_array().unwrap().iter().any(|w| {
+        let w = w.as_str().unwrap();
+        w.contains("identification only")
+            && w.contains("need 20")
+            && w.contains("more tracked poses")
+    });
+    assert!(warned, "{}", report["warnings"]);
     std::fs::remove_dir_all(&dir).ok();
 }
 

@@ -249,6 +249,14 @@ pub struct Geometry {
     /// stretch is counted from it; `None`: the firmware's default, 1 N,
     /// within 1 N.
     pub home_tension_n: Option<f64>,
+    /// How far each anchor (string exit point) may be from where the
+    /// geometry puts it, per coordinate, mm (one sd; a hand-measured rig's
+    /// tolerance): the identification's prior. `None`: the calibration's
+    /// default ([`crate::model::identify::Priors::anchor_sd_mm`]).
+    pub anchor_sd_mm: Option<[f64; STRINGS]>,
+    /// How far home may be from `home_mm`, per coordinate, mm (one sd).
+    /// `None`: the calibration's default.
+    pub home_sd_mm: Option<f64>,
 }
 
 /// Largest home tension a geometry may declare, N (the firmware's tension
@@ -318,6 +326,10 @@ struct GeometryFile {
     room_from_device_translation_mm: Vec3<f64>,
     #[serde(default)]
     home_tension_n: Option<f64>,
+    #[serde(default)]
+    anchor_sd_mm: Option<PerString<f64>>,
+    #[serde(default)]
+    home_sd_mm: Option<f64>,
 }
 
 fn field_error(file: &Path, field: impl Into<String>, problem: impl Into<String>) -> DatasetError {
@@ -415,6 +427,12 @@ impl Geometry {
                 .per_channel(n)
                 .map_err(|len| per_string("mechanical_advantage", len))?,
         };
+        let anchor_sd_mm = raw
+            .anchor_sd_mm
+            .as_ref()
+            .map(|sd| sd.per_channel(n))
+            .transpose()
+            .map_err(|len| per_string("anchor_sd_mm", len))?;
         let geometry = Geometry {
             layout: StringLayout::first(n, planar),
             counts_per_rev,
@@ -424,6 +442,8 @@ impl Geometry {
             anchors_mm,
             room_from_device_translation_mm: raw.room_from_device_translation_mm,
             home_tension_n: raw.home_tension_n,
+            anchor_sd_mm,
+            home_sd_mm: raw.home_sd_mm,
         };
         geometry.validate(file)?;
         Ok(geometry)
@@ -483,6 +503,25 @@ impl Geometry {
                          at most {MAX_HOME_TENSION_N} N"
                     ),
                 ));
+            }
+        }
+        let tolerance = |field: String, sd: f64| {
+            if sd.is_finite() && sd > 0.0 {
+                Ok(())
+            } else {
+                Err(field_error(
+                    file,
+                    field,
+                    format!("{sd} mm: a tolerance (one standard deviation) is a positive number"),
+                ))
+            }
+        };
+        if let Some(sd) = self.home_sd_mm {
+            tolerance("home_sd_mm".into(), sd)?;
+        }
+        if let Some(sd) = self.anchor_sd_mm {
+            for i in self.layout.indices() {
+                tolerance(format!("anchor_sd_mm[{i}]"), sd[i])?;
             }
         }
         for i in self.layout.indices() {
@@ -626,6 +665,13 @@ impl Geometry {
         );
         if let Some(t) = self.home_tension_n {
             let _ = writeln!(s, "home_tension_n = {t:?}");
+        }
+        if let Some(sd) = self.anchor_sd_mm {
+            let sd: Vec<String> = sd[..n].iter().map(|v| format!("{v:?}")).collect();
+            one_or_each(&mut s, "anchor_sd_mm", &sd);
+        }
+        if let Some(sd) = self.home_sd_mm {
+            let _ = writeln!(s, "home_sd_mm = {sd:?}");
         }
         s
     }

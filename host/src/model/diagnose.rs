@@ -151,15 +151,44 @@ pub struct LoopConfig {
     /// (a session too small to judge a change on held-out folds).
     #[serde(default = "yes")]
     pub diagnose: bool,
+    /// The anchors' and home's tolerances the geometry declares
+    /// ([`crate::data::dataset::Geometry::anchor_sd_mm`], `home_sd_mm`),
+    /// the identification's priors; `None`: [`Priors::default`]'s.
+    #[serde(default)]
+    pub anchor_sd_mm: Option<[f64; STRINGS]>,
+    #[serde(default)]
+    pub home_sd_mm: Option<f64>,
 }
 
 impl LoopConfig {
     /// The defaults with what `geometry` declares (the home tension).
     pub fn for_geometry(geometry: &crate::data::dataset::Geometry) -> LoopConfig {
+        LoopConfig::default().with_geometry(geometry)
+    }
+
+    /// These settings with what `geometry` declares (the home tension, the
+    /// anchors' and home's tolerances) where it declares it.
+    pub fn with_geometry(&self, geometry: &crate::data::dataset::Geometry) -> LoopConfig {
         LoopConfig {
-            home_tension_n: geometry.home_tension_n,
-            ..LoopConfig::default()
+            home_tension_n: geometry.home_tension_n.or(self.home_tension_n),
+            anchor_sd_mm: geometry.anchor_sd_mm.or(self.anchor_sd_mm),
+            home_sd_mm: geometry.home_sd_mm.or(self.home_sd_mm),
+            ..*self
         }
+    }
+
+    /// The base model's structure these settings give: the priors the
+    /// geometry declares.
+    pub fn base_structure(&self) -> Structure {
+        let mut structure = Structure::default();
+        if let Some(t) = self.home_tension_n {
+            structure.priors.home_tension_n = t;
+        }
+        if let Some(sd) = self.home_sd_mm {
+            structure.priors.home_sd_mm = sd;
+        }
+        structure.priors.anchor_sd_each_mm = self.anchor_sd_mm;
+        structure
     }
 }
 
@@ -181,6 +210,8 @@ impl Default for LoopConfig {
             layer_tables: true,
             home_tension_n: None,
             diagnose: true,
+            anchor_sd_mm: None,
+            home_sd_mm: None,
         }
     }
 }
@@ -1724,7 +1755,7 @@ fn anchors_beyond_tolerance(
         .filter(|&i| nominal.layout.is_active(i))
         .filter(|&i| structure.anchor_sd_override_mm[i].is_none())
         .filter_map(|i| {
-            let sd = structure.priors.anchor_sd_mm;
+            let sd = structure.priors.anchor_tolerance_mm(i);
             let d = [
                 id.frame.anchors[i][0] - nominal.anchors[i][0],
                 id.frame.anchors[i][1] - nominal.anchors[i][1],
@@ -2786,10 +2817,7 @@ pub fn close_loop(
     start: &Start,
     config: &LoopConfig,
 ) -> Result<LoopResult, IdentifyError> {
-    let mut structure = Structure::default();
-    if let Some(t) = config.home_tension_n {
-        structure.priors.home_tension_n = t;
-    }
+    let structure = config.base_structure();
     let first = identify(train, nominal, start, &structure)?;
     let tracker_outliers = TrackerOutliers::of(&first, train);
     let cleaned = tracker_outliers.without(train);

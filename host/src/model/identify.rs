@@ -97,6 +97,11 @@ use crate::model::normal::{ArrowColumns, NormalEquations};
 pub struct Priors {
     /// As-built tolerance of each anchor coordinate, mm.
     pub anchor_sd_mm: f64,
+    /// Each anchor's own tolerance, mm, when the geometry gives them
+    /// ([`crate::data::dataset::Geometry::anchor_sd_mm`]); else
+    /// `anchor_sd_mm` for every anchor.
+    #[serde(default)]
+    pub anchor_sd_each_mm: Option<[f64; STRINGS]>,
     /// Home (initialization point) tolerance, mm.
     pub home_sd_mm: f64,
     /// Tracker frame rotation tolerance, rad.
@@ -134,10 +139,19 @@ fn default_kappa_each_sd() -> f64 {
 /// is 0.02 mm/rad^2, and spools twice as wide as others thin half as fast.
 pub const KAPPA_EACH_SD_MM: f64 = 0.02;
 
+impl Priors {
+    /// Anchor `i`'s as-built tolerance, mm.
+    pub fn anchor_tolerance_mm(&self, i: usize) -> f64 {
+        self.anchor_sd_each_mm
+            .map_or(self.anchor_sd_mm, |each| each[i])
+    }
+}
+
 impl Default for Priors {
     fn default() -> Self {
         Priors {
             anchor_sd_mm: 15.0,
+            anchor_sd_each_mm: None,
             home_sd_mm: 200.0,
             rotation_sd_rad: 0.2,
             translation_sd_mm: 500.0,
@@ -814,7 +828,7 @@ fn anchor_prior_sd(structure: &Structure, layout: StringLayout, i: usize) -> f64
     if !layout.is_active(i) {
         return HELD_SD;
     }
-    structure.anchor_sd_override_mm[i].unwrap_or(structure.priors.anchor_sd_mm)
+    structure.anchor_sd_override_mm[i].unwrap_or(structure.priors.anchor_tolerance_mm(i))
 }
 
 /// The tracker position of `o` in the device frame (mm); on a planar

@@ -111,6 +111,8 @@ impl NominalConfig {
             // The design says nothing of it; the simulators' initialization
             // declares its pretension (`SimConfig::tension`).
             home_tension_n: None,
+            anchor_sd_mm: None,
+            home_sd_mm: None,
         }
     }
 }

@@ -91,6 +91,8 @@ fn draw_anchors(
 pub(crate) fn declaring_pretension(nominal: Geometry, pretension_n: f64) -> Geometry {
     Geometry {
         home_tension_n: (pretension_n > 0.0).then_some(pretension_n),
+        anchor_sd_mm: None,
+        home_sd_mm: None,
         ..nominal
     }
 }

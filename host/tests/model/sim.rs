@@ -181,6 +181,8 @@ fn outputs_nominal_geometry_and_a_loadable_truth() {
         g,
         Geometry {
             home_tension_n: Some(1.0),
+            anchor_sd_mm: None,
+            home_sd_mm: None,
             ..SimConfig::default().nominal.geometry()
         }
     );

@@ -977,9 +977,8 @@ fn identify_and_diagnose(
     let pb = spinner("identification and diagnosis", cfg.quiet);
     let start = Start::from_geometry(geometry);
     let loop_config = LoopConfig {
-        home_tension_n: geometry.home_tension_n.or(cfg.loop_config.home_tension_n),
         diagnose: cfg.loop_config.diagnose && regime.full,
-        ..cfg.loop_config
+        ..cfg.loop_config.with_geometry(geometry)
     };
     let loop_result = close_loop(obs.train, Some(obs.test), nominal, &start, &loop_config);
     pb.finish_and_clear();
