@@ -177,6 +177,7 @@ pub fn run_demo(args: &DemoArgs) -> Result<String, CalibrateError> {
         out: args.out.clone(),
         seed: args.seed,
         config: args.config.clone(),
+        preset: None,
         kind,
         points: None,
         effects: args.effects.clone(),

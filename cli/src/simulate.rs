@@ -19,10 +19,21 @@ pub struct SimulateArgs {
     /// Simulator configuration TOML (every key optional).
     #[arg(long)]
     pub config: Option<PathBuf>,
-    /// Path of the end-effector.
+    /// A named device of the independent simulator instead of `--config`:
+    /// `wall-robot` (a planar 4-cable wall robot: 2 m x 1.5 m frame, cable
+    /// exits tens of mm off its corners, 30 mm spools, a 100 mm carriage
+    /// that yaws, a tracker clock 1.8 s ahead; its sessions are streams).
+    /// The presets are configuration files in `host/src/sim/physics/presets/`.
+    #[arg(long)]
+    pub preset: Option<String>,
+    /// Path of the end-effector: the paper's lattice, random test points,
+    /// or (independent simulator) a stream at a tracker's rate over the
+    /// training part of the workspace (`stream`) or the whole of it
+    /// (`wide-stream`), `[stream]` of the configuration.
     #[arg(long, value_enum, default_value_t = KindArg::Lattice)]
     pub kind: KindArg,
-    /// Number of captures of a random session (default: `random.points`).
+    /// Number of captures of a random session or a stream (default:
+    /// `random.points`, `stream.rows`).
     #[arg(long)]
     pub points: Option<usize>,
     /// Injected effect (repeatable), `KIND:STRING:KEY=VALUE,...` with STRING
@@ -39,7 +50,8 @@ pub struct SimulateArgs {
     /// File stem of the session CSV (default: `lattice` or `random`).
     #[arg(long)]
     pub name: Option<String>,
-    /// Session seed (default: the device seed + 1 for lattice, + 2 for random).
+    /// Session seed (default: the device seed + 1 for lattice, + 2 for
+    /// random, + 3 for stream, + 4 for wide-stream).
     #[arg(long)]
     pub session_seed: Option<u64>,
     /// Which simulator: `model` (the calibration model's own equations) or
@@ -62,6 +74,8 @@ pub enum PhysicsArg {
 pub enum KindArg {
     Lattice,
     Random,
+    Stream,
+    WideStream,
 }
 
 impl SimulateArgs {
@@ -71,9 +85,12 @@ impl SimulateArgs {
             out: self.out.clone(),
             seed: self.seed,
             config: self.config.clone(),
+            preset: self.preset.clone(),
             kind: match self.kind {
                 KindArg::Lattice => SessionPath::Lattice,
                 KindArg::Random => SessionPath::Random,
+                KindArg::Stream => SessionPath::Stream,
+                KindArg::WideStream => SessionPath::WideStream,
             },
             points: self.points,
             effects: self.effects.clone(),

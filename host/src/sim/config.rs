@@ -48,6 +48,11 @@ pub struct NominalConfig {
     pub home_mm: Vec3<f64>,
     /// Eq. 6: `p_room = p_device + t`.
     pub room_from_device_translation_mm: Vec3<f64>,
+    /// The design's anchors (string exit points), one per string in encoder
+    /// order, mm: a frame that is not the cube or the regular polygon (a
+    /// wall robot's rectangle). Empty: the corners above.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub anchors_mm: Vec<Vec3<f64>>,
 }
 
 impl Default for NominalConfig {
@@ -60,6 +65,7 @@ impl Default for NominalConfig {
             frame_half_size_mm: 1100.0,
             home_mm: [0.0; 3],
             room_from_device_translation_mm: [0.0, 0.0, 1500.0],
+            anchors_mm: Vec::new(),
         }
     }
 }
@@ -70,7 +76,8 @@ impl NominalConfig {
     /// upper square. Fewer in 3-D: the cube corners in the order 0, 2, 5, 7
     /// (a tetrahedron), then 1, 3, 4, 6 (index as in the 8-string order).
     /// Planar: a regular polygon of circumradius `h sqrt 2` in `z = 0`, its
-    /// first corner at `(-h, -h)`; home is put in the plane.
+    /// first corner at `(-h, -h)`; home is put in the plane. Given
+    /// `anchors_mm`, those (a planar home is put in their plane).
     pub fn geometry(&self) -> Geometry {
         let h = self.frame_half_size_mm;
         let n = self.strings.clamp(1, STRINGS);
@@ -88,7 +95,9 @@ impl NominalConfig {
         };
         let anchor = |i: usize| {
             let i = i.min(n - 1);
-            if self.planar {
+            if let Some(last) = self.anchors_mm.len().checked_sub(1) {
+                self.anchors_mm[i.min(last)]
+            } else if self.planar {
                 polygon(i)
             } else if n == STRINGS {
                 cube(i)
@@ -98,7 +107,7 @@ impl NominalConfig {
         };
         let mut home_mm = self.home_mm;
         if self.planar {
-            home_mm[2] = 0.0;
+            home_mm[2] = self.anchors_mm.first().map_or(0.0, |a| a[2]);
         }
         Geometry {
             layout: spidar_core::model::StringLayout::first(n, self.planar),
@@ -416,6 +425,19 @@ impl SimConfig {
         }
         positive("nominal.pulley_radius_mm", n.pulley_radius_mm)?;
         positive("nominal.frame_half_size_mm", n.frame_half_size_mm)?;
+        if !n.anchors_mm.is_empty() && n.anchors_mm.len() != n.strings {
+            return Err(bad(
+                "nominal.anchors_mm",
+                format!(
+                    "{} anchors for {} strings: give one per string, or none for the frame's corners",
+                    n.anchors_mm.len(),
+                    n.strings
+                ),
+            ));
+        }
+        if n.anchors_mm.iter().flatten().any(|x| !x.is_finite()) {
+            return Err(bad("nominal.anchors_mm", "must be finite numbers (mm)"));
+        }
         n.geometry()
             .validate(Path::new("[nominal] of the simulator configuration"))
             .map_err(|e| bad("nominal", e.to_string()))?;

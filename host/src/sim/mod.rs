@@ -87,6 +87,22 @@ pub enum SessionKind {
     Lattice,
     /// Random trajectories of sequential points through the same volume.
     Random { points: usize },
+    /// A stream of the independent simulator (`[stream]` of its
+    /// configuration): `rows` captures at `stream.rate_hz` of a continuous
+    /// path at about `stream.speed_mm_s`, over the training part of the
+    /// workspace or the whole of it.
+    Stream { rows: usize, area: StreamArea },
+}
+
+/// Where a stream goes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum StreamArea {
+    /// The central part of the workspace a training session covers
+    /// (`stream.training_span` of each side).
+    Training,
+    /// The whole workspace (`stream.area_mm`): a test session that reaches
+    /// beyond the training area.
+    Whole,
 }
 
 impl SessionKind {
@@ -95,6 +111,14 @@ impl SessionKind {
         match self {
             SessionKind::Lattice => "lattice",
             SessionKind::Random { .. } => "random",
+            SessionKind::Stream {
+                area: StreamArea::Training,
+                ..
+            } => "stream",
+            SessionKind::Stream {
+                area: StreamArea::Whole,
+                ..
+            } => "wide-stream",
         }
     }
 }
@@ -454,9 +478,13 @@ pub struct SimulateRequest {
     pub seed: u64,
     /// Simulator configuration TOML (every key optional).
     pub config: Option<PathBuf>,
+    /// A named device of the independent simulator instead of a
+    /// configuration file ([`physics::PRESET_NAMES`]).
+    pub preset: Option<String>,
     /// Path of the end-effector.
     pub kind: SessionPath,
-    /// Number of captures of a random session (default: `random.points`).
+    /// Number of captures of a random session or a stream (default:
+    /// `random.points`, `stream.rows`).
     pub points: Option<usize>,
     /// Injected effects, `KIND:STRING:KEY=VALUE,...` (model simulator,
     /// [`effects::parse_effect`]) or `NAME[:KEY=VALUE,...]` (independent
@@ -489,6 +517,11 @@ pub enum SessionPath {
     Lattice,
     /// Random test points.
     Random,
+    /// A stream over the training part of the workspace (independent
+    /// simulator).
+    Stream,
+    /// A stream over the whole workspace (independent simulator).
+    WideStream,
 }
 
 /// What [`run_simulate`] wrote, and the legacy controller's raw error.
@@ -548,12 +581,28 @@ pub fn legacy_raw_errors(session: &Session, geometry: &crate::data::dataset::Geo
 }
 
 /// The session kind `args` ask for (`default_points`: the configuration's
-/// `random.points`).
+/// `random.points`; `stream_rows`: its `stream.rows`, None for a simulator
+/// without streams).
 pub(crate) fn session_kind(
     args: &SimulateRequest,
     default_points: usize,
+    stream_rows: Option<usize>,
 ) -> Result<SessionKind, SimError> {
+    let stream = |area| match stream_rows {
+        Some(rows) => Ok(SessionKind::Stream {
+            rows: args.points.unwrap_or(rows),
+            area,
+        }),
+        None => Err(SimError::Config(crate::ConfigError::new(
+            "--kind",
+            "a stream is a session of the independent simulator (--physics independent); \
+             the model simulator's streams are random sessions with \
+             random.capture_interval_s = 0.01",
+        ))),
+    };
     match args.kind {
+        SessionPath::Stream => stream(StreamArea::Training),
+        SessionPath::WideStream => stream(StreamArea::Whole),
         SessionPath::Lattice => match args.points {
             Some(_) => Err(SimError::Config(crate::ConfigError::new(
                 "--points",
@@ -567,12 +616,20 @@ pub(crate) fn session_kind(
     }
 }
 
-/// The session seed of `args`: given, or the device seed + 1 (lattice) or
-/// + 2 (random).
+/// The session seed of `args`: given, or the device seed + 1 (lattice),
+/// + 2 (random), + 3 (stream) or + 4 (wide stream).
 pub(crate) fn session_seed(args: &SimulateRequest, kind: SessionKind) -> u64 {
     args.session_seed.unwrap_or(match kind {
         SessionKind::Lattice => args.seed.wrapping_add(1),
         SessionKind::Random { .. } => args.seed.wrapping_add(2),
+        SessionKind::Stream {
+            area: StreamArea::Training,
+            ..
+        } => args.seed.wrapping_add(3),
+        SessionKind::Stream {
+            area: StreamArea::Whole,
+            ..
+        } => args.seed.wrapping_add(4),
     })
 }
 
@@ -618,12 +675,18 @@ pub fn run_simulate(args: &SimulateRequest) -> Result<SimulateReport, SimError> 
     if args.physics == Physics::Independent {
         return physics::run_simulate(args);
     }
+    if args.preset.is_some() {
+        return Err(SimError::Config(crate::ConfigError::new(
+            "--preset",
+            "the presets are devices of the independent simulator: add --physics independent",
+        )));
+    }
     let mut config = match &args.config {
         Some(path) => SimConfig::load(path)?,
         None => SimConfig::default(),
     };
     config.effects.extend(args.effects.iter().cloned());
-    let kind = session_kind(args, config.random.points)?;
+    let kind = session_kind(args, config.random.points, None)?;
     let device = SimDevice::new(&config, args.seed)?;
     let session = simulate_session(&device, kind, session_seed(args, kind))?;
     let errors = legacy_raw_errors(&session, &device.nominal);

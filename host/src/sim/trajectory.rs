@@ -174,6 +174,88 @@ pub(crate) fn random(
     Ok(captures)
 }
 
+/// A stream's path: waypoints in a box, the hand's speed, the capture rate.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) struct StreamPath {
+    /// Captures.
+    pub rows: usize,
+    /// Captures per second.
+    pub rate_hz: f64,
+    /// Range of each leg's mean speed, mm/s.
+    pub speed_mm_s: [f64; 2],
+    /// Half the sides of the box the waypoints fill (room axes, centred on
+    /// the volume's centre), mm.
+    pub half_extent_mm: Vec3<f64>,
+}
+
+/// The hand's position and velocity a fraction `tau` (0..1) along a
+/// minimum-jerk stroke from `from` to `to` that lasts `duration_s`: the
+/// stroke a hand (or a trajectory planner) makes between two points,
+/// starting and ending at rest, `s(tau) = 10 tau^3 - 15 tau^4 + 6 tau^5`.
+fn minimum_jerk(
+    from: &Vec3<f64>,
+    to: &Vec3<f64>,
+    duration_s: f64,
+    tau: f64,
+) -> (Vec3<f64>, Vec3<f64>) {
+    let t2 = tau * tau;
+    let s = t2 * tau * (10.0 - 15.0 * tau + 6.0 * t2);
+    let ds = 30.0 * t2 * (1.0 - tau) * (1.0 - tau) / duration_s;
+    let d = sub(*to, *from);
+    (
+        core::array::from_fn(|k| from[k] + s * d[k]),
+        d.map(|x| x * ds),
+    )
+}
+
+/// A stream (a dynamic session, captured at `rate_hz`): the hand moves from
+/// waypoint to waypoint, random in the box `half_extent_mm` around
+/// `centre`, each leg a minimum-jerk stroke at its own mean speed (drawn in
+/// `speed_mm_s`), so position and velocity are continuous and the speed
+/// rises and falls along every leg, as the speed profiles a clock alignment
+/// compares need.
+pub(crate) fn stream(
+    path: &StreamPath,
+    centre: Vec3<f64>,
+    start: Vec3<f64>,
+    rng: &mut ChaCha8Rng,
+) -> Result<Vec<Capture>, SimError> {
+    let h = path.half_extent_mm;
+    let waypoint = |rng: &mut ChaCha8Rng| -> Vec3<f64> {
+        core::array::from_fn(|k| centre[k] + rng.random_range(-h[k]..=h[k]))
+    };
+    let leg = |from: &Vec3<f64>, rng: &mut ChaCha8Rng| {
+        let to = waypoint(rng);
+        let speed = rng.random_range(path.speed_mm_s[0]..=path.speed_mm_s[1]);
+        // A leg of (almost) no length still takes a frame: the hand pauses.
+        let duration_s = (norm(sub(to, *from)) / speed).max(1.0 / path.rate_hz);
+        (to, duration_s)
+    };
+    let mut from = start;
+    let (mut to, mut duration_s) = leg(&from, rng);
+    let mut leg_start_s = 0.0;
+    let mut captures = Vec::with_capacity(path.rows);
+    for k in 0..path.rows {
+        // The pose at the time the row is stamped with (whole milliseconds).
+        let t_ms = to_ms(k as f64 / path.rate_hz)?;
+        let t = f64::from(t_ms) / 1000.0;
+        while t > leg_start_s + duration_s {
+            leg_start_s += duration_s;
+            from = to;
+            (to, duration_s) = leg(&from, rng);
+        }
+        let tau = ((t - leg_start_s) / duration_s).clamp(0.0, 1.0);
+        let (room, velocity) = minimum_jerk(&from, &to, duration_s, tau);
+        captures.push(Capture {
+            t_ms,
+            room,
+            velocity,
+            cell: None,
+        });
+    }
+    Ok(captures)
+}
+
 /// The captures of a session of `kind` (both simulators' path): the
 /// lattice protocol, or `points` random captures.
 pub(crate) fn captures(
@@ -194,5 +276,11 @@ pub(crate) fn captures(
         super::SessionKind::Random { points } => {
             random(random_cfg, lattice_cfg, centre, start, points, rng)
         }
+        super::SessionKind::Stream { .. } => Err(SimError::Config(crate::ConfigError::new(
+            "--kind",
+            "a stream is a session of the independent simulator (--physics independent); \
+             the model simulator's streams are random sessions with random.capture_interval_s \
+             = 0.01",
+        ))),
     }
 }

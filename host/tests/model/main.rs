@@ -10,6 +10,7 @@ mod loop_closing;
 mod n_strings;
 mod sim;
 mod sim_physics;
+mod sim_physics_real_robot;
 
 /// The slips of `r`'s model: (string, time, mm), in the model's order
 /// (sim_physics, loop_closing).

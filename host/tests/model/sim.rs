@@ -26,6 +26,7 @@ fn args(out: PathBuf, seed: u64, kind: SessionPath) -> SimulateRequest {
         out,
         seed,
         config: None,
+        preset: None,
         kind,
         points: None,
         effects: vec![],

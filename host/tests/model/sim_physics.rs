@@ -32,6 +32,7 @@ fn args(out: PathBuf, seed: u64, kind: SessionPath, name: &str) -> SimulateReque
         out,
         seed,
         config: None,
+        preset: None,
         kind,
         points: None,
         effects: vec![],

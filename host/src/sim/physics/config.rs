@@ -29,6 +29,122 @@ pub struct PhysicsConfig {
     pub orientation: OrientationConfig,
     /// Undeclared effects, `NAME` or `NAME:KEY=VALUE,...` (see [`super::effects`]).
     pub effects: Vec<String>,
+    #[serde(skip_serializing_if = "CarriageConfig::is_point")]
+    pub carriage: CarriageConfig,
+    #[serde(skip_serializing_if = "StreamConfig::is_default")]
+    pub stream: StreamConfig,
+}
+
+/// Where the strings attach to the end-effector. A SPIDAR's strings meet
+/// at one point (a ring, a grip); a cable robot's carriage is a rigid
+/// plate with each cable tied at its own corner, so a string's length is
+/// `|exit - (p + R attachment)|` and the carriage's turn (the hand's
+/// posture, `as_built.posture_*`; on a planar device its yaw) changes it.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct CarriageConfig {
+    /// Each string's attachment point in the carriage's body frame, from
+    /// the point the tracker's marker offset is measured from (the
+    /// carriage's reference point), mm, one per string in encoder order.
+    /// Empty: the strings meet at that point.
+    pub attachment_mm: Vec<[f64; 3]>,
+}
+
+impl CarriageConfig {
+    /// The strings meet at one point (no carriage).
+    pub fn is_point(&self) -> bool {
+        self.attachment_mm.is_empty()
+    }
+}
+
+/// Streams (`--kind stream`, `--kind wide-stream`): a continuous path
+/// through the workspace captured at a tracker's rate, as a cable robot's
+/// calibration run records it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct StreamConfig {
+    /// Captures of a stream (`--points` overrides), 10..=30000.
+    pub rows: usize,
+    /// Captures per second (the device time `t_s` of row `k` is `k /
+    /// rate_hz`, whole milliseconds), at most 1000.
+    pub rate_hz: f64,
+    /// Range of each leg's mean speed, mm/s (the speed rises and falls
+    /// along a leg: its peak is 1.875 times its mean).
+    pub speed_mm_s: [f64; 2],
+    /// Sides of the workspace, a box centred on the room image of the
+    /// nominal home (room axes), mm: a wide stream covers it.
+    pub area_mm: [f64; 3],
+    /// A training stream covers the central part of the workspace: this
+    /// fraction of each side (0.8: 64 % of a planar workspace's area).
+    pub training_span: f64,
+}
+
+impl Default for StreamConfig {
+    fn default() -> Self {
+        StreamConfig {
+            rows: 6000,
+            rate_hz: 100.0,
+            speed_mm_s: [800.0, 1200.0],
+            area_mm: [1000.0, 1000.0, 1000.0],
+            training_span: 0.8,
+        }
+    }
+}
+
+impl StreamConfig {
+    fn is_default(&self) -> bool {
+        *self == StreamConfig::default()
+    }
+
+    /// Checks the keys of `[stream]`; errors name the key.
+    fn validate(&self) -> Result<(), SimError> {
+        stream_rows("stream.rows", self.rows)?;
+        if !(self.rate_hz.is_finite() && self.rate_hz > 0.0 && self.rate_hz <= 1000.0) {
+            return Err(bad(
+                "stream.rate_hz",
+                format!(
+                    "{} is not a capture rate in (0, 1000] Hz (rows are stamped in whole milliseconds)",
+                    self.rate_hz
+                ),
+            ));
+        }
+        range("stream.speed_mm_s", self.speed_mm_s, true)?;
+        for (k, x) in self.area_mm.iter().enumerate() {
+            non_negative(&format!("stream.area_mm[{k}]"), *x)?;
+        }
+        if !(self.training_span > 0.0 && self.training_span <= 1.0) {
+            return Err(bad(
+                "stream.training_span",
+                format!("{} is not a fraction in (0, 1]", self.training_span),
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// A stream holds 10 to 30000 rows; `field` names where the count came from.
+pub(crate) fn stream_rows(field: &str, rows: usize) -> Result<(), SimError> {
+    if (10..=30_000).contains(&rows) {
+        Ok(())
+    } else {
+        Err(bad(
+            field,
+            format!("{rows} rows: a stream holds 10 to 30000"),
+        ))
+    }
+}
+
+/// The named devices of the independent simulator (`spidar simulate
+/// --physics independent --preset NAME`), each a configuration file of
+/// this directory: copy one to change it and pass it as `--config`.
+pub const PRESET_NAMES: [&str; 1] = ["wall-robot"];
+
+/// The configuration text of preset `name`.
+fn preset_text(name: &str) -> Option<&'static str> {
+    match name {
+        "wall-robot" => Some(include_str!("presets/wall-robot.toml")),
+        _ => None,
+    }
 }
 
 /// The tracker's orientation of the tracked body (a rigid body of markers,
@@ -199,6 +315,23 @@ impl PhysicsConfig {
         Ok(config)
     }
 
+    /// The configuration of preset `name` ([`PRESET_NAMES`]).
+    pub fn preset(name: &str) -> Result<Self, SimError> {
+        let text = preset_text(name).ok_or_else(|| {
+            bad(
+                "--preset",
+                format!(
+                    "`{name}` is not a preset of the independent simulator (presets: {})",
+                    PRESET_NAMES.join(", ")
+                ),
+            )
+        })?;
+        let config: PhysicsConfig = toml::from_str(text)
+            .map_err(|e| bad("--preset", format!("preset `{name}` does not parse: {e}")))?;
+        config.validate()?;
+        Ok(config)
+    }
+
     /// Check every parameter; errors name the field (`section.key`). The
     /// sections shared with the model simulator are checked by its own rules.
     pub fn validate(&self) -> Result<(), SimError> {
@@ -315,6 +448,21 @@ impl PhysicsConfig {
         range("abnormal_motor.radius_excess", m.radius_excess, false)?;
         probability("abnormal_motor.jam_probability", m.jam_probability)?;
         super::effects::parse_effects(&self.effects)?;
+        let attachments = &self.carriage.attachment_mm;
+        if !attachments.is_empty() && attachments.len() != strings {
+            return Err(bad(
+                "carriage.attachment_mm",
+                format!(
+                    "{} attachment points for {strings} strings: give one per string, or none \
+                     for strings that meet at one point",
+                    attachments.len()
+                ),
+            ));
+        }
+        if attachments.iter().flatten().any(|x| !x.is_finite()) {
+            return Err(bad("carriage.attachment_mm", "must be finite numbers (mm)"));
+        }
+        self.stream.validate()?;
         Ok(())
     }
 }

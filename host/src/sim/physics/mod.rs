@@ -3,8 +3,9 @@
 //! description than the calibration model, so that the model cannot be
 //! exact on its data. It shares with the model simulator ([`super`]) only
 //! what is not physics: the design (`[nominal]`), the tracker's frame,
-//! noise and occlusions, the commanded tensions, the paper's lattice and
-//! the random test paths (the model simulator's `trajectory` module), and the dataset writer. It
+//! noise, occlusions and clock, the commanded tensions, the paper's lattice,
+//! the random test paths and the streams (the model simulator's
+//! `trajectory` module), and the dataset writer. It
 //! never evaluates the model's string law, effect terms, identification or
 //! kinematics.
 //!
@@ -27,7 +28,9 @@
 //!    wraps `rho beta` and leaves at a tangent point that moves with its
 //!    direction; free length `l = sqrt(m^2 - rho^2)`. The design anchor is
 //!    the exit point for a string to the nominal home (each as-built exit
-//!    point 3 mm sd off the design).
+//!    point 3 mm sd per coordinate off the design, `as_built.anchor_sigma_mm`;
+//!    a wall robot's cables leave from pulleys tens of mm off the frame's
+//!    corners its drawing gives: 60 mm in the `wall-robot` preset).
 //! 4. **Frame flex**: each guide moves by `k_i * sum_j T_j` along its own
 //!    direction (towards the frame centre, tilted at random), `k_i` in
 //!    0.005..0.02 mm/N.
@@ -49,15 +52,47 @@
 //!    end-effector turns with the hand's posture, a smooth rotation of
 //!    2 degrees amplitude per axis across the volume (wavelength 2 m) plus
 //!    0.3 degrees sd of jitter per capture. The paths are the marker's.
-//! 9. **Home error**: the true home is 25 mm sd off the nominal one.
-//! 10. **Abnormal motor** (string 4): when its free string is shorter than
+//! 9. **Carriage** (`[carriage]`, off by default: the strings meet at one
+//!    point): each string is tied at its own attachment point `a_i` of a
+//!    rigid carriage (fixed in the end-effector's body, from its reference
+//!    point `p`, the meeting point above), so its free span ends at
+//!    `p + R a_i` and its length is `|exit - (p + R a_i)|` over the guide;
+//!    `R` is the end-effector's turn of item 8, about the plane's normal
+//!    only on a planar device (the carriage's yaw, a few degrees: a smooth
+//!    function of position plus jitter). The `wall-robot` preset ties each
+//!    cable at the corner of a 100 mm square carriage facing its anchor.
+//! 10. **Home error**: the true home is 25 mm sd off the nominal one.
+//! 11. **Abnormal motor** (string 4): when its free string is shorter than
 //!     1600 mm the string may ride out of its groove (probability 0.7 per
 //!     visit of that region) onto a radius 10..30 % larger, so the encoder
 //!     under-counts what is wound in since the visit began; and the spool
 //!     jams (probability 0.1 per capture there): the encoder repeats its
 //!     previous reading.
-//! 11. **Tracker**: the model simulator's (`[tracker]`): 0.2 mm sd per axis,
-//!     1 degree rotation, occlusions (empty ots fields).
+//! 12. **Tracker**: the model simulator's (`[tracker]`): 0.2 mm sd per axis,
+//!     1 degree rotation, occlusions (empty ots fields), and its clock:
+//!     the row stamped `t` (device time) holds the marker where it was at
+//!     `t - tracker.clock_offset_s` (plus `tracker.clock_drift_ppm`),
+//!     interpolated between captures; rows before the tracker's first
+//!     instant are occluded.
+//!
+//! # Sessions
+//!
+//! The paper's lattice and random test points (the model simulator's), and
+//! **streams** (`[stream]`, `--kind stream` / `--kind wide-stream`): a
+//! continuous path captured at `stream.rate_hz` (100 Hz), the hand moving
+//! between random waypoints in minimum-jerk strokes at about
+//! `stream.speed_mm_s` (0.8..1.2 m/s mean per leg), 10 to 30000 rows; a
+//! training stream covers the central `stream.training_span` of each side
+//! of the workspace `stream.area_mm`, a wide stream (a test session) the
+//! whole of it, beyond the training area.
+//!
+//! # Presets
+//!
+//! Named devices ([`PRESET_NAMES`], `--preset NAME`), each a configuration
+//! file in `presets/`: `wall-robot`, a planar 4-cable wall robot (2 m x
+//! 1.5 m frame, exits 60 mm sd off its corners, 30 mm spools, the carriage
+//! above, a position-only tracker 0.3 mm sd whose clock is 1.8 s ahead,
+//! 60 s streams at 100 Hz).
 //!
 //! Undeclared effects ([`effects`]): `drift-all`, `frame-flex`,
 //! `marker-offset`, `slip`, `heavy-string`.
@@ -74,13 +109,15 @@ use serde::{Deserialize, Serialize};
 use spidar_core::model::Vec3;
 use std::f64::consts::TAU;
 
-pub use config::{PhysicsAbnormalMotor, PhysicsAsBuilt, PhysicsConfig};
+pub use config::{
+    CarriageConfig, PhysicsAbnormalMotor, PhysicsAsBuilt, PhysicsConfig, StreamConfig, PRESET_NAMES,
+};
 pub use effects::{parse_effect, parse_effects, PhysicsEffect, EFFECT_NAMES};
 pub use guide::{Guide, GuidePath};
 pub use spool::{Spool, SpoolParams};
 
 use super::device::{declaring_pretension, draw_home, normal, stream};
-use super::{trajectory, SessionKind, SimError, SimulateReport, SimulateRequest};
+use super::{trajectory, SessionKind, SimError, SimulateReport, SimulateRequest, StreamArea};
 use crate::data::dataset::{Geometry, Sample, Session};
 use spidar_core::geometry::{
     dot, mat_t_vec, mat_vec, norm, rotation_about_axis, rotation_from_vector, sub,
@@ -179,8 +216,15 @@ pub struct PhysicsDevice {
 /// What really happened at one capture (for tests and benchmarks).
 #[derive(Clone, Debug, PartialEq)]
 pub struct PhysicsTruth {
-    /// Strings' meeting point, device frame, mm.
+    /// Strings' meeting point, device frame, mm (on a carriage, its
+    /// reference point: where the strings would meet without it).
     pub meeting_mm: Vec3<f64>,
+    /// The end-effector's (carriage's) turn, a rotation vector in the
+    /// device frame, rad: `[0, 0, yaw]` on a planar device.
+    pub carriage_turn_rad: Vec3<f64>,
+    /// Per string: where it is tied to the end-effector, device frame, mm
+    /// (the meeting point, or the carriage's attachment point).
+    pub attachment_mm: Vec<Vec3<f64>>,
     /// True marker position, room frame, mm.
     pub marker_room_mm: Vec3<f64>,
     /// Per string: the guide's exit point, mm.
@@ -368,7 +412,8 @@ fn place_guides(
 struct StringBuild<'a> {
     nominal: &'a Geometry,
     ab: &'a PhysicsAsBuilt,
-    home_mm: Vec3<f64>,
+    /// Where each string is tied at the home capture.
+    home_attachments: Vec<Vec3<f64>>,
     home_tension_n: f64,
     /// `heavy-string`: every string's linear mass, g/m.
     heavy: Option<f64>,
@@ -480,7 +525,12 @@ impl StringBuild<'_> {
             home_spool_rad: 0.0,
         };
         let home = s
-            .natural_length(&self.home_mm, self.home_tension_n, home_total_tension, 0.0)
+            .natural_length(
+                &self.home_attachments[i],
+                self.home_tension_n,
+                home_total_tension,
+                0.0,
+            )
             .map_err(|e| string_error(i, e))?;
         let wound = total_mm - home.natural_mm;
         s.home_spool_rad = spool
@@ -579,6 +629,29 @@ fn draw_room_transform(
     Ok((room_rotation, room_translation_mm))
 }
 
+/// A turn as the end-effector makes it: on a planar device about the
+/// plane's normal only (its yaw).
+fn planar_turn(nominal: &Geometry, mut turn: Vec3<f64>) -> Vec3<f64> {
+    if nominal.layout.planar {
+        turn[0] = 0.0;
+        turn[1] = 0.0;
+    }
+    turn
+}
+
+/// Where string `i` is tied when the end-effector's reference point is at
+/// `p` and it is turned by `turn`: `p` itself when the strings meet there,
+/// else `p + R(turn) attachment_i` (the carriage's corner).
+fn string_end(carriage: &CarriageConfig, i: usize, p: &Vec3<f64>, turn: &Vec3<f64>) -> Vec3<f64> {
+    match carriage.attachment_mm.get(i) {
+        None => *p,
+        Some(a) => {
+            let r = mat_vec(&rotation_from_vector(*turn), *a);
+            core::array::from_fn(|k| p[k] + r[k])
+        }
+    }
+}
+
 impl PhysicsDevice {
     /// Build the device: draw its as-built physics from `seed`, apply the
     /// configured undeclared effects.
@@ -595,12 +668,18 @@ impl PhysicsDevice {
         let exits = draw_exits(&nominal, ab, seed)?;
         let home_mm = draw_home(&nominal, ab.home_sigma_mm, seed, 102)?;
         let guides = place_guides(&nominal, ab, &exits, seed)?;
+        let (marker_body_mm, posture) = draw_marker_and_posture(ab, &effects, seed);
+        // The carriage at home turned as the posture has it there (no jitter).
+        let home_turn = planar_turn(&nominal, posture.rotation_vector(&home_mm));
+        let home_attachments = (0..guides.len())
+            .map(|i| string_end(&config.carriage, i, &home_mm, &home_turn))
+            .collect();
 
         let home_tension_n = config.tension.pretension_n + config.tension.jitter_n / 2.0;
         let build = StringBuild {
             nominal: &nominal,
             ab,
-            home_mm,
+            home_attachments,
             home_tension_n,
             heavy: effects.iter().find_map(|e| match e {
                 PhysicsEffect::HeavyString { g_per_m } => Some(*g_per_m),
@@ -616,7 +695,6 @@ impl PhysicsDevice {
         };
         let (strings, spools) = build.strings(guides, seed)?;
 
-        let (marker_body_mm, posture) = draw_marker_and_posture(ab, &effects, seed);
         let (room_rotation, room_translation_mm) =
             draw_room_transform(&nominal, &config.tracker, seed)?;
 
@@ -635,6 +713,13 @@ impl PhysicsDevice {
             config: config.clone(),
             spools,
         })
+    }
+
+    /// Where `string` is tied when the end-effector's reference point is at
+    /// `p` and it is turned by `turn` (rotation vector): `p`, or the
+    /// carriage's attachment point `p + R(turn) attachment`.
+    pub fn string_end(&self, string: usize, p: &Vec3<f64>, turn: &Vec3<f64>) -> Vec3<f64> {
+        string_end(&self.config.carriage, string, p, turn)
     }
 
     /// Number of strings (the design's anchors).
@@ -806,26 +891,114 @@ pub fn simulate_rows(
     let home_omega = device.posture.rotation_vector(&device.home_mm);
     let start = device.room_from_device(&device.marker_of(&device.home_mm, &home_omega));
     let mut path_rng = stream(seed, 110);
-    let captures = trajectory::captures(
-        kind,
-        &cfg.lattice,
-        &cfg.random,
-        &cfg.tracker,
-        centre,
-        start,
-        &mut path_rng,
-    )?;
+    let captures = match kind {
+        SessionKind::Stream { rows, area } => {
+            config::stream_rows("stream rows (--points or stream.rows)", rows)?;
+            trajectory::stream(
+                &stream_path(&cfg.stream, rows, area),
+                centre,
+                start,
+                &mut path_rng,
+            )?
+        }
+        _ => trajectory::captures(
+            kind,
+            &cfg.lattice,
+            &cfg.random,
+            &cfg.tracker,
+            centre,
+            start,
+            &mut path_rng,
+        )?,
+    };
     let duration_s = captures.last().map_or(0.0, |c| f64::from(c.t_ms) / 1000.0);
 
     let mut session = PhysicsSession::new(device, seed, duration_s)?;
+    // The hand's whole path first: the tracker, whose clock may run apart
+    // from the device's, sees the marker where it was at another capture's time.
+    let poses: Vec<HandPose> = captures.iter().map(|c| session.hand_pose(c)).collect();
+    let tracker_clock = TrackerClock::new(&cfg.tracker, &captures, &poses);
     let mut rows = Vec::with_capacity(captures.len());
     let mut truths = Vec::with_capacity(captures.len());
-    for c in &captures {
-        let (row, truth) = session.capture(c)?;
+    for (c, pose) in captures.iter().zip(&poses) {
+        let seen = tracker_clock.seen(f64::from(c.t_ms) / 1000.0, pose);
+        let (row, truth) = session.capture(c, pose, seen)?;
         rows.push(row);
         truths.push(truth);
     }
     Ok((rows, truths))
+}
+
+/// The path of a stream of `rows` captures over `area` of the workspace.
+fn stream_path(cfg: &StreamConfig, rows: usize, area: StreamArea) -> trajectory::StreamPath {
+    let span = match area {
+        StreamArea::Training => cfg.training_span,
+        StreamArea::Whole => 1.0,
+    };
+    trajectory::StreamPath {
+        rows,
+        rate_hz: cfg.rate_hz,
+        speed_mm_s: cfg.speed_mm_s,
+        half_extent_mm: cfg.area_mm.map(|x| x * span / 2.0),
+    }
+}
+
+/// The tracker's clock against the device's: the row stamped `t` (device
+/// time) holds the marker where it was at `t - offset`, with `offset =
+/// tracker.clock_offset_s + 1e-6 tracker.clock_drift_ppm t` (as the model
+/// simulator's tracker), between captures by linear interpolation.
+struct TrackerClock<'a> {
+    offset_s: f64,
+    drift_ppm: f64,
+    times_s: Vec<f64>,
+    poses: &'a [HandPose],
+}
+
+/// What the tracker sees at one row: the marker (room frame, mm) and the
+/// body's turn (rotation vector, device frame).
+type Seen = (Vec3<f64>, Vec3<f64>);
+
+impl<'a> TrackerClock<'a> {
+    fn new(
+        tracker: &crate::sim::config::TrackerConfig,
+        captures: &[trajectory::Capture],
+        poses: &'a [HandPose],
+    ) -> TrackerClock<'a> {
+        TrackerClock {
+            offset_s: tracker.clock_offset_s,
+            drift_ppm: tracker.clock_drift_ppm,
+            times_s: captures
+                .iter()
+                .map(|c| f64::from(c.t_ms) / 1000.0)
+                .collect(),
+            poses,
+        }
+    }
+
+    /// What the row at device time `t_s` (the hand at `pose`) holds; None
+    /// before the session's first instant or after its last.
+    fn seen(&self, t_s: f64, pose: &HandPose) -> Option<Seen> {
+        let offset_s = self.offset_s + 1e-6 * self.drift_ppm * t_s;
+        if offset_s == 0.0 {
+            return Some((pose.marker_room, pose.omega));
+        }
+        let t = t_s - offset_s;
+        let k = self.times_s.partition_point(|&s| s <= t);
+        let a = &self.poses[k.checked_sub(1)?];
+        let ta = self.times_s[k - 1];
+        if ta == t {
+            return Some((a.marker_room, a.omega));
+        }
+        let (b, tb) = (self.poses.get(k)?, self.times_s[k]);
+        let f = (t - ta) / (tb - ta);
+        let lerp = |x: &Vec3<f64>, y: &Vec3<f64>| -> Vec3<f64> {
+            core::array::from_fn(|i| x[i] + f * (y[i] - x[i]))
+        };
+        Some((
+            lerp(&a.marker_room, &b.marker_room),
+            lerp(&a.omega, &b.omega),
+        ))
+    }
 }
 
 /// One session of the independent simulator under way: each part of the
@@ -932,15 +1105,21 @@ impl<'a> PhysicsSession<'a> {
         })
     }
 
-    /// One capture: the hand's pose, the commanded tensions, the encoders,
-    /// the tracker.
-    fn capture(&mut self, c: &trajectory::Capture) -> Result<(PhysicsRow, PhysicsTruth), SimError> {
+    /// One capture: the hand at `pose`, the commanded tensions, the
+    /// encoders, the tracker (which sees `seen`).
+    fn capture(
+        &mut self,
+        c: &trajectory::Capture,
+        pose: &HandPose,
+        seen: Option<Seen>,
+    ) -> Result<(PhysicsRow, PhysicsTruth), SimError> {
         let n = self.device.string_count();
         let t_s = f64::from(c.t_ms) / 1000.0;
-        let pose = self.hand_pose(c);
         let tension_n = self.draw_tensions();
         let mut truth = PhysicsTruth {
             meeting_mm: pose.meeting,
+            carriage_turn_rad: pose.omega,
+            attachment_mm: Vec::with_capacity(n),
             marker_room_mm: pose.marker_room,
             exit_mm: Vec::with_capacity(n),
             free_mm: Vec::with_capacity(n),
@@ -951,8 +1130,8 @@ impl<'a> PhysicsSession<'a> {
             abnormal: false,
             cell: c.cell,
         };
-        let counts = self.read_encoders(&pose.meeting, &tension_n, t_s, &mut truth)?;
-        let (tracker, orientation) = self.track(&pose);
+        let counts = self.read_encoders(pose, &tension_n, t_s, &mut truth)?;
+        let (tracker, orientation) = self.track(seen);
         let row = PhysicsRow {
             t_s,
             counts,
@@ -1016,12 +1195,13 @@ impl<'a> PhysicsSession<'a> {
             .collect()
     }
 
-    /// Every string's encoder counts with the strings meeting at `meeting`
-    /// under `tension_n` at `t_s` (slips, drift and the abnormal motor
-    /// included); what really happened goes to `truth`.
+    /// Every string's encoder counts with the hand at `pose` (each string
+    /// tied where the pose puts its end) under `tension_n` at `t_s` (slips,
+    /// drift and the abnormal motor included); what really happened goes to
+    /// `truth`.
     fn read_encoders(
         &mut self,
-        meeting: &Vec3<f64>,
+        pose: &HandPose,
         tension_n: &[f64],
         t_s: f64,
         truth: &mut PhysicsTruth,
@@ -1032,7 +1212,9 @@ impl<'a> PhysicsSession<'a> {
         let strain = self.drift_per_s * t_s;
         let mut counts = Vec::with_capacity(n);
         for (i, &tension) in tension_n.iter().enumerate() {
-            let state = device.natural_length(i, meeting, tension, total_tension, strain)?;
+            let end = device.string_end(i, &pose.meeting, &pose.omega);
+            let state = device.natural_length(i, &end, tension, total_tension, strain)?;
+            truth.attachment_mm.push(end);
             let slipped: f64 = self
                 .slips
                 .iter()
@@ -1066,9 +1248,11 @@ impl<'a> PhysicsSession<'a> {
         Ok(counts)
     }
 
-    /// The tracker's reading of the hand: the marker's position (noisy,
-    /// whole micrometres) and the body's orientation, unless occluded.
-    fn track(&mut self, pose: &HandPose) -> (Option<Vec3<f64>>, Option<[f64; 4]>) {
+    /// The tracker's reading of what it sees (the marker and the body's
+    /// turn, [`TrackerClock::seen`]): the marker's position (noisy, whole
+    /// micrometres) and the body's orientation, unless occluded or outside
+    /// the tracker's recording.
+    fn track(&mut self, seen: Option<Seen>) -> (Option<Vec3<f64>>, Option<[f64; 4]>) {
         let device = self.device;
         let cfg = &device.config;
         let tr = &cfg.tracker;
@@ -1078,10 +1262,12 @@ impl<'a> PhysicsSession<'a> {
             self.occlusion_rng.random_bool(tr.occlusion_probability)
         };
         let occluded = self.occluded;
+        // Every draw is made whatever the tracker sees, so that the clock
+        // changes nothing else.
+        let (marker_room, omega) = seen.unwrap_or(([0.0; 3], [0.0; 3]));
         let (noise, noise_rng) = (&self.noise, &mut self.noise_rng);
-        let measured: Vec3<f64> = core::array::from_fn(|k| {
-            round_to(pose.marker_room[k] + noise.sample(noise_rng), 1000.0)
-        });
+        let measured: Vec3<f64> =
+            core::array::from_fn(|k| round_to(marker_room[k] + noise.sample(noise_rng), 1000.0));
         // The body turns with the hand (`omega`, device frame); the tracker
         // reads its orientation in the room, with its own noise.
         let (orientation_noise, orientation_rng) =
@@ -1090,10 +1276,12 @@ impl<'a> PhysicsSession<'a> {
             .then(|| {
                 let err: [f64; 3] =
                     core::array::from_fn(|_| orientation_noise.sample(orientation_rng));
-                body_to_room_quaternion(&device.room_rotation, &pose.omega, &err)
+                body_to_room_quaternion(&device.room_rotation, &omega, &err)
             })
-            .flatten();
-        ((!occluded).then_some(measured), orientation)
+            .flatten()
+            .filter(|_| seen.is_some());
+        let visible = !occluded && seen.is_some();
+        (visible.then_some(measured), orientation)
     }
 }
 
@@ -1186,12 +1374,20 @@ fn write_truth(device: &PhysicsDevice, path: &std::path::Path) -> Result<(), Sim
 /// `spidar simulate --physics independent`: the same files as the model
 /// simulator (nominal `geometry.toml`, the session CSV, `truth.toml`).
 pub fn run_simulate(args: &SimulateRequest) -> Result<SimulateReport, SimError> {
-    let mut config = match &args.config {
-        Some(path) => PhysicsConfig::load(path)?,
-        None => PhysicsConfig::default(),
+    let mut config = match (&args.config, &args.preset) {
+        (Some(_), Some(_)) => {
+            return Err(SimError::Config(crate::ConfigError::new(
+                "--preset",
+                "give a preset or a --config file, not both (a preset is a configuration \
+                 file: copy it from host/src/sim/physics/presets/ to change it)",
+            )))
+        }
+        (Some(path), None) => PhysicsConfig::load(path)?,
+        (None, Some(name)) => PhysicsConfig::preset(name)?,
+        (None, None) => PhysicsConfig::default(),
     };
     config.effects.extend(args.effects.iter().cloned());
-    let kind = super::session_kind(args, config.random.points)?;
+    let kind = super::session_kind(args, config.random.points, Some(config.stream.rows))?;
     let device = PhysicsDevice::new(&config, args.seed)?;
     let (session, _) = simulate_session(&device, kind, super::session_seed(args, kind))?;
     super::write_outputs(
