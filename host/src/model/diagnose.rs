@@ -153,7 +153,7 @@ pub struct LoopConfig {
     pub diagnose: bool,
     /// The anchors' and home's tolerances the geometry declares
     /// ([`crate::data::dataset::Geometry::anchor_sd_mm`], `home_sd_mm`),
-    /// the identification's priors; `None`: [`Priors::default`]'s.
+    /// the identification's priors; `None`: [`crate::model::identify::Priors::default`]'s.
     #[serde(default)]
     pub anchor_sd_mm: Option<[f64; STRINGS]>,
     #[serde(default)]

@@ -11,7 +11,7 @@
 //! - [`learn`]: model-less corrections (NN, SVR) and their searches;
 //! - [`rule`]: the forward kinematics' rule (faulty-string exclusion,
 //!   thresholds, weights) chosen on held-out folds;
-//! - [`reference`]: the plain least-squares reference every calibration is
+//! - [`mod@reference`]: the plain least-squares reference every calibration is
 //!   held to;
 //! - [`compile`]: the model compiled to the device's fixed-point blob, with
 //!   its error against f64.
