@@ -401,13 +401,14 @@ mod tests {
     #[test]
     fn newer_version_is_refused_by_name() {
         let mut bytes = header().to_bytes();
-        bytes[4] = 9;
+        let newer = FORMAT_VERSION + 1;
+        bytes[4..6].copy_from_slice(&newer.to_le_bytes());
         let crc = CRC32.checksum(&bytes[0..36]);
         bytes[36..40].copy_from_slice(&crc.to_le_bytes());
         assert_eq!(
             ModelHeader::parse(&bytes),
             Err(BlobError::UnsupportedVersion {
-                found: 9,
+                found: newer,
                 supported: FORMAT_VERSION
             })
         );
