@@ -2188,7 +2188,7 @@ fn model_error_list(id: &Identification, observations: &[Observation]) -> Vec<f6
 /// weighed, slip seeds 4 and 6 lost their slips (0.387 -> 0.538, 0.372 ->
 /// 0.528 mm) and 20 clean independent devices took 5 to 7 stand-ins
 /// (`docs/benchmarks.md`, "Each string weighed by its scale").
-fn held_out_error_list(id: &Identification, observations: &[Observation]) -> Vec<f64> {
+pub(crate) fn held_out_error_list(id: &Identification, observations: &[Observation]) -> Vec<f64> {
     held_out_errors(id, observations).0
 }
 

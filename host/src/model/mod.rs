@@ -11,6 +11,8 @@
 //! - [`learn`]: model-less corrections (NN, SVR) and their searches;
 //! - [`rule`]: the forward kinematics' rule (faulty-string exclusion,
 //!   thresholds, weights) chosen on held-out folds;
+//! - [`tolerance`]: how far the anchors may be from the drawing, chosen
+//!   on held-out rows;
 //! - [`mod@reference`]: the plain least-squares reference every calibration is
 //!   held to;
 //! - [`compile`]: the model compiled to the device's fixed-point blob, with
@@ -25,3 +27,4 @@ pub(crate) mod normal;
 pub mod predict;
 pub mod reference;
 pub mod rule;
+pub mod tolerance;

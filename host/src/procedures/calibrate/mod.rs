@@ -973,16 +973,21 @@ fn identify_and_diagnose(
     nominal: &spidar_core::model::Frame<f64>,
     cfg: &CalibrateConfig,
     regime: &Regime,
-) -> Result<LoopResult, CalibrateError> {
+) -> Result<(LoopResult, crate::model::tolerance::ToleranceChoice), CalibrateError> {
     let pb = spinner("identification and diagnosis", cfg.quiet);
     let start = Start::from_geometry(geometry);
     let loop_config = LoopConfig {
         diagnose: cfg.loop_config.diagnose && regime.full,
         ..cfg.loop_config.with_geometry(geometry)
     };
+    let tolerance = crate::model::tolerance::choose(obs.train, nominal, &start, &loop_config);
+    let loop_config = LoopConfig {
+        anchor_sd_mm: Some(tolerance.anchor_sd_mm),
+        ..loop_config
+    };
     let loop_result = close_loop(obs.train, Some(obs.test), nominal, &start, &loop_config);
     pb.finish_and_clear();
-    Ok(loop_result?)
+    Ok((loop_result?, tolerance))
 }
 
 /// The base identification's errors (stage `identified`).
@@ -1547,6 +1552,8 @@ struct IdentifiedModel {
     regime: Regime,
     reference: ReferenceModel,
     rule: report::KinematicsReport,
+    /// The anchors' tolerance the identification used.
+    tolerance: crate::model::tolerance::ToleranceChoice,
 }
 
 /// The plain least-squares reference ([`crate::model::reference`]) and its
@@ -1621,6 +1628,7 @@ struct Findings<'a> {
     selection: report::Selection,
     corrections: Option<report::Corrections>,
     kinematics: report::KinematicsReport,
+    anchor_tolerance: crate::model::tolerance::ToleranceChoice,
     blackbox: Option<report::Blackbox>,
 }
 
@@ -1664,7 +1672,8 @@ impl Run<'_> {
         let regime = check_enough_tracked_rows(train.path, &tr, &nominal)?;
         self.warnings.extend(regime.reason.clone());
         let t = Instant::now();
-        let mut loop_result = identify_and_diagnose(geometry, obs, &nominal, &self.cfg, &regime)?;
+        let (mut loop_result, tolerance) =
+            identify_and_diagnose(geometry, obs, &nominal, &self.cfg, &regime)?;
         self.timings.identification_s = t.elapsed().as_secs_f64();
         // The rows whose tracker the loop set aside count as occluded from
         // here on (the raw stage above is the sessions as read).
@@ -1738,6 +1747,7 @@ impl Run<'_> {
             regime,
             reference,
             rule: report::KinematicsReport::of(rule),
+            tolerance,
         })
     }
 
@@ -1858,6 +1868,7 @@ impl Run<'_> {
             selection: f.selection,
             corrections: f.corrections,
             kinematics: f.kinematics,
+            anchor_tolerance: f.anchor_tolerance,
             blackbox: f.blackbox,
             warnings: self.warnings,
             notes: Vec::new(),
@@ -1915,6 +1926,7 @@ pub fn calibrate(
         regime,
         reference,
         rule,
+        tolerance,
     } = run.identify_model(train, test)?;
     let fin = &loop_result.identification;
     let obs = PerSession {
@@ -2026,6 +2038,7 @@ pub fn calibrate(
         selection,
         corrections,
         kinematics: rule,
+        anchor_tolerance: tolerance,
         blackbox,
     });
     let pairs = Pairs {

@@ -41,6 +41,9 @@ pub struct Report {
     /// The forward kinematics' rule the final model runs, and the
     /// candidates' held-out errors.
     pub kinematics: KinematicsReport,
+    /// The anchors' tolerance (the identification's prior), given by the
+    /// geometry or chosen on held-out rows ([`crate::model::tolerance`]).
+    pub anchor_tolerance: crate::model::tolerance::ToleranceChoice,
     /// The paper's black-box procedure, when run (`null` otherwise).
     pub blackbox: Option<Blackbox>,
     pub warnings: Vec<String>,
@@ -979,6 +982,13 @@ impl Report {
                 num(c.held_out.p95_mm)
             );
         }
+        let t = &self.anchor_tolerance;
+        let _ = writeln!(
+            o,
+            "Anchors' tolerance: {} mm - {}",
+            num(t.anchor_sd_mm[0]),
+            t.reason
+        );
         let Some(c) = &self.corrections else {
             let _ = writeln!(
                 o,

@@ -1,0 +1,238 @@
+//! How far the anchors may be from the drawing: the identification's prior
+//! on each anchor, chosen on held-out rows when the geometry does not say.
+//!
+//! A frame built to its drawing has its string exits within millimetres of
+//! it; a rig measured by hand (a cable robot whose exits are pulleys tens
+//! of mm off the frame's corners) has them 30 to 130 mm off. A tight prior
+//! keeps the anchors where the data would move them and costs most outside
+//! the training area; a loose one lets a few rows move them where noise
+//! says. Which holds is a fact of the rig, so the data choose: the base
+//! model is fitted with each candidate tolerance on the fitting rows of
+//! held-out folds and judged on the rows they hold out (the loop's judge,
+//! every string alike). The tightest candidate stays unless a looser one
+//! lowers the held-out mean by the loop's [`LoopConfig::min_relative_gain`].
+//! A geometry that declares `anchor_sd_mm` is taken at its word.
+
+use rayon::prelude::*;
+use serde::Serialize;
+use spidar_core::model::Frame;
+use spidar_core::STRINGS;
+
+use crate::data::observe::Observation;
+use crate::data::stats::ErrorStats;
+use crate::model::diagnose::{folds, held_out_error_list, Fold, LoopConfig};
+use crate::model::identify::{identify, rows_needed_for, Priors, Start};
+
+/// The tolerances tried (mm, one sd per coordinate): the drawing's
+/// ([`Priors::default`]), four and ten times it (a hand-measured rig).
+pub fn candidates_mm() -> [f64; 3] {
+    let drawing = Priors::default().anchor_sd_mm;
+    [drawing, 4.0 * drawing, 10.0 * drawing]
+}
+
+/// Folds of a session too small for the blocked ones: each holds out a
+/// tenth.
+const SMALL_SESSION_FOLDS: usize = 10;
+
+/// One tolerance and its held-out error.
+#[derive(Clone, Debug, Serialize)]
+pub struct ToleranceScore {
+    pub anchor_sd_mm: f64,
+    pub held_out: ErrorStats,
+}
+
+/// What the folds said of the anchors' tolerance, and the choice.
+#[derive(Clone, Debug, Serialize)]
+pub struct ToleranceChoice {
+    /// The tolerance the calibration used, mm (per anchor).
+    pub anchor_sd_mm: [f64; STRINGS],
+    /// The candidates (empty when the geometry declared it or the session
+    /// has too few rows to hold any out).
+    pub scores: Vec<ToleranceScore>,
+    /// How the rows were held out.
+    pub folds: String,
+    pub reason: String,
+}
+
+/// Folds whose fitting rows each identify the base model (`needed` rows):
+/// the loop's (interleaved, then blocked) when the session has twice
+/// `needed`, else `k` interleaved folds, the fewest with `needed` fitting
+/// rows; none when the session cannot spare a row.
+fn tolerance_folds(tracked: &[&Observation], needed: usize) -> (String, Vec<Fold>) {
+    let n = tracked.len();
+    if n >= crate::model::diagnose::MIN_BLOCKED_ROWS {
+        let (kind, all) = folds(tracked);
+        let judged = match kind {
+            crate::model::diagnose::Folds::Blocked => all[2..].to_vec(),
+            crate::model::diagnose::Folds::Interleaved => all[..2].to_vec(),
+        };
+        let name = match kind {
+            crate::model::diagnose::Folds::Blocked => {
+                "blocked folds (later, earlier half, outer shell)"
+            }
+            crate::model::diagnose::Folds::Interleaved => "2 interleaved folds",
+        };
+        return (name.into(), judged);
+    }
+    match small_session_folds(n, needed) {
+        Some(f) => (format!("{} interleaved folds", f.len()), f),
+        None => ("none".into(), Vec::new()),
+    }
+}
+
+/// `k` interleaved folds of `n` rows: each fits on all but a tenth of the
+/// rows (or all but one, leave-one-out, below ten rows), so that a fold's
+/// model is determined almost as the session's is; `None` when no fold can
+/// hold a row out and keep `needed` rows to fit.
+fn small_session_folds(n: usize, needed: usize) -> Option<Vec<Fold>> {
+    let k = n.min(SMALL_SESSION_FOLDS);
+    if k < 2 || n - n.div_ceil(k) < needed {
+        return None;
+    }
+    let fold = |p: usize| {
+        (
+            (0..n).filter(|r| r % k != p).collect(),
+            (0..n).filter(|r| r % k == p).collect(),
+        )
+    };
+    Some((0..k).map(fold).collect())
+}
+
+/// Chooses the anchors' tolerance for `train` (see the module doc), or
+/// takes the geometry's (`config.anchor_sd_mm`).
+pub fn choose(
+    train: &[Observation],
+    nominal: &Frame<f64>,
+    start: &Start,
+    config: &LoopConfig,
+) -> ToleranceChoice {
+    if let Some(given) = config.anchor_sd_mm {
+        return ToleranceChoice {
+            anchor_sd_mm: given,
+            scores: Vec::new(),
+            folds: "none".into(),
+            reason: "the geometry's `anchor_sd_mm`".into(),
+        };
+    }
+    let drawing = candidates_mm()[0];
+    let tracked: Vec<&Observation> = train.iter().filter(|o| o.tracker.is_some()).collect();
+    let structure = config.base_structure();
+    let needed = rows_needed_for(&structure, nominal.layout);
+    let (folds_name, folds) = tolerance_folds(&tracked, needed);
+    let pick =
+        |rows: &[usize]| -> Vec<Observation> { rows.iter().map(|&k| tracked[k].clone()).collect() };
+    let scores: Vec<ToleranceScore> = candidates_mm()
+        .par_iter()
+        .map(|&sd| {
+            let mut s = structure.clone();
+            s.priors.anchor_sd_each_mm = Some([sd; STRINGS]);
+            let errors: Option<Vec<f64>> = folds
+                .iter()
+                .map(|(fit, held)| {
+                    let id = identify(&pick(fit), nominal, start, &s).ok()?;
+                    Some(held_out_error_list(&id, &pick(held)))
+                })
+                .collect::<Option<Vec<Vec<f64>>>>()
+                .map(|e| e.concat());
+            ToleranceScore {
+                anchor_sd_mm: sd,
+                held_out: ErrorStats::of(&errors.unwrap_or_default()),
+            }
+        })
+        .collect();
+    decide(scores, drawing, folds_name, config.min_relative_gain)
+}
+
+/// The tightest tolerance unless a looser one lowers the held-out mean by
+/// `min_gain`; then the one with the lowest mean.
+fn decide(
+    scores: Vec<ToleranceScore>,
+    drawing: f64,
+    folds: String,
+    min_gain: f64,
+) -> ToleranceChoice {
+    let first = scores.first().map_or(f64::NAN, |s| s.held_out.mean_mm);
+    let best = scores
+        .iter()
+        .filter(|s| s.held_out.mean_mm.is_finite())
+        .min_by(|a, b| a.held_out.mean_mm.total_cmp(&b.held_out.mean_mm));
+    let (sd, reason) = match best {
+        Some(b) if b.anchor_sd_mm != drawing && (b.held_out.mean_mm < first * (1.0 - min_gain) || !first.is_finite()) => (
+            b.anchor_sd_mm,
+            format!(
+                "{} mm lowers the held-out mean {:.3} -> {:.3} mm against the drawing's {drawing} mm ({folds})",
+                b.anchor_sd_mm, first, b.held_out.mean_mm
+            ),
+        ),
+        Some(_) => (
+            drawing,
+            format!(
+                "the drawing's {drawing} mm: no looser tolerance lowers the held-out mean {first:.3} mm by {:.0} % ({folds})",
+                100.0 * min_gain
+            ),
+        ),
+        None => (
+            drawing,
+            format!("the drawing's {drawing} mm: the session has too few rows to hold any out"),
+        ),
+    };
+    ToleranceChoice {
+        anchor_sd_mm: [sd; STRINGS],
+        scores,
+        folds,
+        reason,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn score(sd: f64, mean: f64) -> ToleranceScore {
+        let mut held_out = ErrorStats::of(&[mean]);
+        held_out.mean_mm = mean;
+        ToleranceScore {
+            anchor_sd_mm: sd,
+            held_out,
+        }
+    }
+
+    #[test]
+    fn the_drawing_stays_unless_a_looser_tolerance_gains_the_loops_margin() {
+        let kept = decide(
+            vec![score(15.0, 1.0), score(60.0, 0.99)],
+            15.0,
+            "f".into(),
+            0.02,
+        );
+        assert_eq!(kept.anchor_sd_mm[0], 15.0, "{}", kept.reason);
+        let loose = decide(
+            vec![score(15.0, 1.0), score(60.0, 0.9), score(150.0, 0.95)],
+            15.0,
+            "f".into(),
+            0.02,
+        );
+        assert_eq!(loose.anchor_sd_mm[0], 60.0, "{}", loose.reason);
+    }
+
+    #[test]
+    fn small_sessions_hold_out_a_tenth_and_leave_enough_to_fit() {
+        // 12 rows, 10 to fit: 10 folds of 1 or 2 held-out rows, every row
+        // held out once.
+        let f = small_session_folds(12, 10).unwrap();
+        assert_eq!(f.len(), 10);
+        for (fit, held) in &f {
+            assert!(
+                fit.len() >= 10 && (1..=2).contains(&held.len()),
+                "{fit:?} {held:?}"
+            );
+        }
+        let mut held: Vec<usize> = f.iter().flat_map(|(_, h)| h.clone()).collect();
+        held.sort_unstable();
+        assert_eq!(held, (0..12).collect::<Vec<_>>());
+        // Below ten rows, leave-one-out.
+        assert_eq!(small_session_folds(9, 8).unwrap().len(), 9);
+        // As many rows as the fit needs: nothing can be held out.
+        assert!(small_session_folds(10, 10).is_none());
+    }
+}
