@@ -42,6 +42,7 @@ use spidar::data::stats::{position_error, ErrorStats};
 use spidar::model::diagnose::{family_name, variable_name};
 use spidar::model::identify::inputs_at;
 use spidar::procedures::calibrate::align::{repaired_at, tracked_interval_s, SessionTiming};
+use spidar::procedures::calibrate::report::{Stage, StageKind};
 use spidar::procedures::calibrate::{calibrate, CalibrateConfig, Calibrated, NamedSession};
 use spidar::sim::physics::{self, PhysicsConfig, PhysicsDevice, PhysicsTruth};
 use spidar::sim::{simulate_session, SessionKind, SimConfig, SimDevice, StreamArea};
@@ -177,21 +178,32 @@ fn three(s: &ErrorStats) -> String {
     format!("{:.3} / {:.3} / {:.2}", s.mean_mm, s.p95_mm, s.max_mm)
 }
 
+/// The first stage of `kind` (every calibration has a reference, an
+/// identified and a final stage).
+fn stage_of(c: &Calibrated, kind: StageKind) -> &Stage {
+    c.report
+        .stages
+        .iter()
+        .find(|s| s.kind == kind)
+        .expect("a stage of every calibration")
+}
+
 /// One table row: the stages of one calibration, held-out.
 fn print_row(simulator: &str, effect: &str, seed: u64, c: &Calibrated) -> (f64, f64, f64, f64) {
     let stages = &c.report.stages;
     let raw = &stages[0].test;
-    let identified = &stages[1].test;
+    let identified = &stage_of(c, StageKind::Identified).test;
+    let reference = &stage_of(c, StageKind::Reference).test;
     let added: Vec<String> = stages
         .iter()
-        .skip(2)
-        .filter(|s| !matches!(s.name.as_str(), "nn" | "svr") && !s.name.starts_with("final"))
+        .filter(|s| s.kind == StageKind::Effect)
         .map(|s| format!("{} ({:.3})", s.name, s.test.mean_mm))
         .collect();
     let last = stages.last().expect("final stage");
     println!(
-        "| {simulator} | {effect} | {seed} | {:.1} | {} | {} | {} | {} |",
+        "| {simulator} | {effect} | {seed} | {:.1} | {} | {} | {} | {} | {} |",
         raw.mean_mm,
+        three(reference),
         three(identified),
         if added.is_empty() {
             "none".to_string()
@@ -402,14 +414,13 @@ fn ablation(quick: bool) {
         let stages = &cal.report.stages;
         let added: Vec<&str> = stages
             .iter()
-            .skip(2)
-            .filter(|s| !matches!(s.name.as_str(), "nn" | "svr") && !s.name.starts_with("final"))
+            .filter(|s| s.kind == StageKind::Effect)
             .map(|s| s.name.as_str())
             .collect();
         let last = stages.last().expect("final stage");
         println!(
             "| {name} | {} | {} | {} | {} |",
-            three(&stages[1].test),
+            three(&stage_of(&cal, StageKind::Identified).test),
             if added.is_empty() {
                 "none".to_string()
             } else {
@@ -924,8 +935,8 @@ fn main() {
         if options.quick { "quick" } else { "full" }
     );
     println!();
-    println!("| simulator | effect | seed | raw mean | identified | added by the loop (test mean after) | final stage | final |");
-    println!("|---|---|---:|---:|---|---|---|---|");
+    println!("| simulator | effect | seed | raw mean | plain least squares | identified | added by the loop (test mean after) | final stage | final |");
+    println!("|---|---|---:|---:|---|---|---|---|---|");
     let mut summary = Vec::new();
     let mut notes = Vec::new();
     model_cases(&options, &config, &mut summary);

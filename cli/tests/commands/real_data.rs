@@ -20,10 +20,10 @@ use spidar::data::dataset::{DatasetError, Geometry, Session};
 use spidar::procedures::calibrate::report::{Choice, StageKind};
 use spidar::procedures::calibrate::{calibrate, CalibrateConfig, Calibrated, NamedSession};
 
-/// The issue's target for the held-out mean (mm): a careful fit of anchors,
-/// per-string radius and spool build-up reaches it; the nominal geometry is
-/// at ~16 mm.
-const HELD_OUT_MEAN_TARGET_MM: f64 = 2.9;
+/// The issues' target for the held-out mean (mm): issue 11's 2.9 (a careful
+/// fit of anchors, per-string radius and spool build-up reaches 2.85),
+/// issue 32's 2.7; the nominal geometry is at ~16 mm.
+const HELD_OUT_MEAN_TARGET_MM: f64 = 2.7;
 
 fn data_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/hangprinter-hp4-2022")
@@ -105,8 +105,9 @@ fn a_model_fitted_on_train_meets_the_held_out_target() {
     assert_eq!(last.test.n, 10);
     // Nominal geometry: ~16 mm (hand-measured anchors 27-68 mm off).
     assert!((12.0..20.0).contains(&raw), "raw {raw}");
-    // Measured 2.69 mm with the identified model (anchors, home, tracker
-    // frame, per-string radius, shared spool build-up).
+    // Measured 2.51 mm with the identified model (anchors, home, tracker
+    // frame, per-string radius, shared spool build-up; the anchors'
+    // tolerance chosen on ten folds: 60 mm).
     assert!(
         identified <= HELD_OUT_MEAN_TARGET_MM,
         "identified {identified}"
@@ -116,6 +117,12 @@ fn a_model_fitted_on_train_meets_the_held_out_target() {
         "final {}",
         last.test.mean_mm
     );
+    // The anchors' tolerance was chosen on held-out folds (the geometry gives
+    // none): the hand-measured anchors are tens of mm off, a looser prior
+    // than the drawing's 15 mm won.
+    let tolerance = &r.anchor_tolerance;
+    assert_eq!(tolerance.scores.len(), 3, "{tolerance:?}");
+    assert!(tolerance.anchor_sd_mm[0] > 15.0, "{tolerance:?}");
     // The spool build-up has the author's sign and size: kappa = Q / 4,
     // Q ~ 0.07-0.08 mm from a free fit.
     let kappa = c.loop_result.identification.winding.kappa_mm;
@@ -196,7 +203,7 @@ fn every_kth_tracked(train: &Session, n: usize) -> Session {
 fn twelve_and_sixteen_training_rows_are_identified_alone_with_their_sds() {
     let (g, train, test) = load();
     let d = data_dir();
-    for (n, held_out_max_mm) in [(12, 3.8), (16, 3.5)] {
+    for (n, held_out_max_mm) in [(12, 3.8), (16, 3.2)] {
         let small = every_kth_tracked(&train, n);
         let path = d.join(format!("train-{n}-rows.csv"));
         let c = calibrate_quick(&g, (&path, &small), (&d.join("test.csv"), &test));
@@ -204,7 +211,7 @@ fn twelve_and_sixteen_training_rows_are_identified_alone_with_their_sds() {
         let stage = |kind: StageKind| r.stages.iter().find(|s| s.kind == kind).unwrap();
         let fin = stage(StageKind::Final);
         let reference = stage(StageKind::Reference);
-        // Measured: 12 rows 3.54 mm (reference 3.83), 16 rows 3.27 (3.87).
+        // Measured: 12 rows 3.54 mm (reference 3.83), 16 rows 2.78 (3.87).
         assert!(
             fin.test.mean_mm <= held_out_max_mm,
             "{n} rows: final {}",
