@@ -1990,7 +1990,18 @@ pub fn calibrate(
         correction_errors(&final_name, &final_corr, obs, positions, &fin.frame)?
     };
     list.push(final_name.clone(), report::StageKind::Final, final_errors);
-    run.warnings.extend(reference_warning(&list.stages));
+    let plain_rule = crate::model::rule::with_rule(
+        &final_identified.new_session,
+        &crate::model::rule::RuleCandidate {
+            name: "the reference's",
+            rule: reference.id.kinematics,
+            weighted: false,
+        },
+    );
+    let (x, t) = tracked_pairs(&te, &room_positions(plain_rule.kinematic_model(), &te));
+    let plain_rule_test = ErrorStats::of(&point_error_list(|p| p, &x, &t));
+    run.warnings
+        .extend(reference_warning(&list.stages, plain_rule_test.mean_mm));
     let final_points = list.points.iter().find(|p| p.name == final_name);
     run.warnings
         .extend(trust_warnings(&fin.frame, &tr, final_points));
@@ -2073,22 +2084,49 @@ fn identification_only(data: &ResidualData, reason: String) -> Judgement {
 }
 
 /// A warning when the final model's held-out mean is above the plain
-/// least-squares reference's: the rules the calibration adds on top of a
-/// plain fit lost on this device's test session.
-fn reference_warning(stages: &[report::Stage]) -> Option<String> {
-    let reference = stages
-        .iter()
-        .find(|s| s.kind == report::StageKind::Reference)?;
-    let fin = stages.iter().find(|s| s.kind == report::StageKind::Final)?;
-    (fin.test.mean_mm > reference.test.mean_mm).then(|| {
+/// least-squares reference's, naming what the calibration adds to a plain
+/// fit that lost on this test session: the learned correction (the final
+/// stage above the model it corrects), the kinematics' rule (the final
+/// identified model placing the rows as the reference does beats the
+/// reference), the loop's terms (the base identification beats the
+/// reference) or, failing those, the identification's robust weights and
+/// priors. `plain_rule_test_mm`: the final identified model's held-out
+/// mean under the reference's rule.
+fn reference_warning(stages: &[report::Stage], plain_rule_test_mm: f64) -> Option<String> {
+    let of = |kind| {
+        stages
+            .iter()
+            .filter(move |s: &&report::Stage| s.kind == kind)
+    };
+    let reference = of(report::StageKind::Reference).next()?.test.mean_mm;
+    let fin = of(report::StageKind::Final).next()?;
+    if fin.test.mean_mm <= reference {
+        return None;
+    }
+    let identified = of(report::StageKind::Identified).next()?.test.mean_mm;
+    let model = of(report::StageKind::Effect)
+        .next_back()
+        .map_or(identified, |s| s.test.mean_mm);
+    let lost = if fin.test.mean_mm > model && model <= reference {
+        format!("the learned correction ({} on {model:.3} mm)", fin.name)
+    } else if plain_rule_test_mm <= reference {
         format!(
-            "the final model's held-out mean {:.3} mm is above the plain least-squares \
-             reference's {:.3} mm: what the calibration adds to a plain fit (robust weights, \
-             the geometry's priors, the loop's terms, the kinematics' rule) lost on this test \
-             session; compare the stages above",
-            fin.test.mean_mm, reference.test.mean_mm
+            "the kinematics' rule (the same model placing every row with all its strings alike: \
+             {plain_rule_test_mm:.3} mm)"
         )
-    })
+    } else if identified <= reference {
+        format!("the loop's terms (the base identification: {identified:.3} mm)")
+    } else {
+        format!(
+            "the identification's robust weights and priors (the base identification: \
+             {identified:.3} mm; `anchor_sd_mm` in the geometry sets the anchors' tolerance)"
+        )
+    };
+    Some(format!(
+        "the final model's held-out mean {:.3} mm is above the plain least-squares reference's \
+         {reference:.3} mm: what lost is {lost}",
+        fin.test.mean_mm
+    ))
 }
 
 /// Legacy position in the room (eq. 6: `p_room = p_device + t`), paired with
@@ -2313,6 +2351,34 @@ mod tests {
     use super::*;
     use crate::data::dataset::Sample;
     use spidar_core::STRINGS;
+
+    fn stage_at(kind: report::StageKind, name: &str, test_mean: f64) -> report::Stage {
+        let mut test = ErrorStats::of(&[test_mean]);
+        test.mean_mm = test_mean;
+        stage(name, kind, test, test)
+    }
+
+    /// A final model worse than the plain fit held out is named with the
+    /// part that lost, read off the stages.
+    #[test]
+    fn a_final_model_worse_than_the_reference_names_what_lost() {
+        use report::StageKind::*;
+        let stages = |identified, effect, fin| {
+            vec![
+                stage_at(Raw, "raw", 20.0),
+                stage_at(Reference, reference::STAGE_NAME, 1.0),
+                stage_at(Identified, "identified", identified),
+                stage_at(Effect, "offset string 1", effect),
+                stage_at(Final, "final (svr)", fin),
+            ]
+        };
+        assert_eq!(reference_warning(&stages(1.2, 1.1, 0.9), 2.0), None);
+        let w = |s: Vec<report::Stage>, plain| reference_warning(&s, plain).expect("a warning");
+        assert!(w(stages(1.2, 0.9, 1.1), 2.0).contains("learned correction"));
+        assert!(w(stages(1.2, 1.1, 1.1), 0.95).contains("kinematics' rule"));
+        assert!(w(stages(0.95, 1.1, 1.1), 2.0).contains("loop's terms"));
+        assert!(w(stages(1.2, 1.1, 1.1), 2.0).contains("robust weights and priors"));
+    }
 
     /// The black box reads the tracker where the model's stages do: at the
     /// strings' meeting point `p - R_body d` once the loop found the body's
