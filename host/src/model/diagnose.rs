@@ -158,6 +158,9 @@ pub struct LoopConfig {
     pub anchor_sd_mm: Option<[f64; STRINGS]>,
     #[serde(default)]
     pub home_sd_mm: Option<f64>,
+    /// Reweigh the rows robustly ([`Structure::robust`]).
+    #[serde(default = "yes")]
+    pub robust: bool,
 }
 
 impl LoopConfig {
@@ -188,6 +191,7 @@ impl LoopConfig {
             structure.priors.home_sd_mm = sd;
         }
         structure.priors.anchor_sd_each_mm = self.anchor_sd_mm;
+        structure.robust = self.robust;
         structure
     }
 }
@@ -212,6 +216,7 @@ impl Default for LoopConfig {
             diagnose: true,
             anchor_sd_mm: None,
             home_sd_mm: None,
+            robust: true,
         }
     }
 }

@@ -11,7 +11,9 @@
 //! held-out folds and judged on the rows they hold out (the loop's judge,
 //! every string alike). The tightest candidate stays unless a looser one
 //! lowers the held-out mean by the loop's [`LoopConfig::min_relative_gain`].
-//! A geometry that declares `anchor_sd_mm` is taken at its word.
+//! A geometry that declares `anchor_sd_mm` is taken at its word. On the
+//! same folds, the rows' robust reweighing is kept or dropped for plain
+//! least-squares weights ([`choose`]).
 
 use rayon::prelude::*;
 use serde::Serialize;
@@ -52,6 +54,12 @@ pub struct ToleranceChoice {
     /// How the rows were held out.
     pub folds: String,
     pub reason: String,
+    /// The rows are reweighed robustly (Huber, Tukey) after the
+    /// least-squares round; false: plain least-squares weights.
+    pub robust: bool,
+    /// The held-out error with plain least-squares weights at the chosen
+    /// tolerance (`null` when not tried).
+    pub unweighted: Option<ErrorStats>,
 }
 
 /// Folds whose fitting rows each identify the base model (`needed` rows):
@@ -99,21 +107,20 @@ fn small_session_folds(n: usize, needed: usize) -> Option<Vec<Fold>> {
 }
 
 /// Chooses the anchors' tolerance for `train` (see the module doc), or
-/// takes the geometry's (`config.anchor_sd_mm`).
+/// takes the geometry's (`config.anchor_sd_mm`); then whether the rows are
+/// reweighed robustly, on the same folds: the plain least-squares weights
+/// are taken when they lower the held-out mean by the loop's margin (a rig
+/// whose model error is smooth and shared extrapolates better balanced
+/// than with its largest residuals down-weighted; a misbehaving motor's
+/// rows want the robust weights). Every fold fits from the session's
+/// start: a fold started from the whole session's fit chose other
+/// tolerances on a 12-row session, and worse ones.
 pub fn choose(
     train: &[Observation],
     nominal: &Frame<f64>,
     start: &Start,
     config: &LoopConfig,
 ) -> ToleranceChoice {
-    if let Some(given) = config.anchor_sd_mm {
-        return ToleranceChoice {
-            anchor_sd_mm: given,
-            scores: Vec::new(),
-            folds: "none".into(),
-            reason: "the geometry's `anchor_sd_mm`".into(),
-        };
-    }
     let drawing = candidates_mm()[0];
     let tracked: Vec<&Observation> = train.iter().filter(|o| o.tracker.is_some()).collect();
     let structure = config.base_structure();
@@ -121,26 +128,73 @@ pub fn choose(
     let (folds_name, folds) = tolerance_folds(&tracked, needed);
     let pick =
         |rows: &[usize]| -> Vec<Observation> { rows.iter().map(|&k| tracked[k].clone()).collect() };
-    let scores: Vec<ToleranceScore> = candidates_mm()
-        .par_iter()
-        .map(|&sd| {
-            let mut s = structure.clone();
-            s.priors.anchor_sd_each_mm = Some([sd; STRINGS]);
-            let errors: Option<Vec<f64>> = folds
-                .iter()
-                .map(|(fit, held)| {
-                    let id = identify(&pick(fit), nominal, start, &s).ok()?;
-                    Some(held_out_error_list(&id, &pick(held)))
+    let held_out = |sd: [f64; STRINGS], robust: bool| -> ErrorStats {
+        let mut s = structure.clone();
+        s.priors.anchor_sd_each_mm = Some(sd);
+        s.robust = robust;
+        let errors: Option<Vec<f64>> = folds
+            .iter()
+            .map(|(fit, held)| {
+                let id = identify(&pick(fit), nominal, start, &s).ok()?;
+                Some(held_out_error_list(&id, &pick(held)))
+            })
+            .collect::<Option<Vec<Vec<f64>>>>()
+            .map(|e| e.concat());
+        ErrorStats::of(&errors.unwrap_or_default())
+    };
+    let mut choice = match config.anchor_sd_mm {
+        Some(given) => ToleranceChoice {
+            anchor_sd_mm: given,
+            scores: Vec::new(),
+            folds: folds_name.clone(),
+            reason: "the geometry's `anchor_sd_mm`".into(),
+            robust: true,
+            unweighted: None,
+        },
+        None => {
+            let scores: Vec<ToleranceScore> = candidates_mm()
+                .par_iter()
+                .map(|&sd| ToleranceScore {
+                    anchor_sd_mm: sd,
+                    held_out: held_out([sd; STRINGS], true),
                 })
-                .collect::<Option<Vec<Vec<f64>>>>()
-                .map(|e| e.concat());
-            ToleranceScore {
-                anchor_sd_mm: sd,
-                held_out: ErrorStats::of(&errors.unwrap_or_default()),
-            }
-        })
-        .collect();
-    decide(scores, drawing, folds_name, config.min_relative_gain)
+                .collect();
+            decide(
+                scores,
+                drawing,
+                folds_name.clone(),
+                config.min_relative_gain,
+            )
+        }
+    };
+    if folds.is_empty() || !structure.robust {
+        return choice;
+    }
+    let robust = choice
+        .scores
+        .iter()
+        .find(|s| s.anchor_sd_mm == choice.anchor_sd_mm[0])
+        .map(|s| s.held_out)
+        .unwrap_or_else(|| held_out(choice.anchor_sd_mm, true));
+    let plain = held_out(choice.anchor_sd_mm, false);
+    if plain.mean_mm < robust.mean_mm * (1.0 - config.min_relative_gain) {
+        choice.robust = false;
+        choice.reason += &format!(
+            "; plain least-squares weights: they lower the held-out mean {:.3} -> {:.3} mm \
+             against the robust ones",
+            robust.mean_mm, plain.mean_mm
+        );
+    } else {
+        choice.reason += &format!(
+            "; robust weights: plain ones do not lower the held-out mean {:.3} mm by {:.0} % \
+             ({:.3} mm)",
+            robust.mean_mm,
+            100.0 * config.min_relative_gain,
+            plain.mean_mm
+        );
+    }
+    choice.unweighted = Some(plain);
+    choice
 }
 
 /// The tightest tolerance unless a looser one lowers the held-out mean by
@@ -181,6 +235,8 @@ fn decide(
         scores,
         folds,
         reason,
+        robust: true,
+        unweighted: None,
     }
 }
 

@@ -983,6 +983,7 @@ fn identify_and_diagnose(
     let tolerance = crate::model::tolerance::choose(obs.train, nominal, &start, &loop_config);
     let loop_config = LoopConfig {
         anchor_sd_mm: Some(tolerance.anchor_sd_mm),
+        robust: tolerance.robust,
         ..loop_config
     };
     let loop_result = close_loop(obs.train, Some(obs.test), nominal, &start, &loop_config);
