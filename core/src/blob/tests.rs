@@ -282,3 +282,80 @@ fn nan_frame_does_not_compile() {
         Err(CompileError::Frame { field: "home" })
     );
 }
+
+#[test]
+fn the_kinematics_rule_is_carried_checked_and_run() {
+    use crate::kinematics::{FkConfig, KinematicsRule};
+    let mut cal = calibration();
+    cal.kinematics = KinematicsRule {
+        exclusion_threshold_mm: 6.0,
+        fault_threshold_mm: 6.0,
+    };
+    let blob = compile(&cal, 7, 0).unwrap();
+    let c = CompiledCalibration::from_blob(&blob).unwrap();
+    assert_eq!(
+        (c.head.exclusion_threshold_mm, c.head.fault_threshold_mm),
+        (6.0, 6.0)
+    );
+    // The device's configuration takes the blob's thresholds and weights.
+    let fk = c.head.fk_config(&FkConfig::default());
+    assert_eq!(
+        (fk.exclusion_threshold_mm, fk.fault_threshold_mm),
+        (6.0, 6.0)
+    );
+    assert_eq!(fk.residual_weight, c.head.residual_weight);
+    // The default rule is the device's fixed one.
+    let default_blob = compile(&calibration(), 7, 0).unwrap();
+    let c = CompiledCalibration::from_blob(&default_blob).unwrap();
+    let fixed = FkConfig::<f32>::default();
+    assert_eq!(
+        (c.head.exclusion_threshold_mm, c.head.fault_threshold_mm),
+        (fixed.exclusion_threshold_mm, fixed.fault_threshold_mm)
+    );
+    // A rule a device cannot run does not compile.
+    for (exclusion, fault) in [
+        (3.0, 2.0),
+        (0.0, 2.0),
+        (1.0, f64::NAN),
+        (1.0, f64::INFINITY),
+    ] {
+        cal.kinematics = KinematicsRule {
+            exclusion_threshold_mm: exclusion,
+            fault_threshold_mm: fault,
+        };
+        assert!(
+            matches!(
+                compile(&cal, 7, 0),
+                Err(CompileError::KinematicsRule { .. })
+            ),
+            "{exclusion} {fault}"
+        );
+    }
+    // One from another tool is refused at load, naming the field.
+    let (_, body) = split_blob(&blob).unwrap();
+    let (head, rest) = split_body(body).unwrap();
+    let refused = |exclusion: f32, fault: f32| {
+        let mut h = head.clone();
+        h.exclusion_threshold_mm = exclusion;
+        h.fault_threshold_mm = fault;
+        CompiledCalibration::from_blob(&with_head(&blob, &h, rest)).map(|_| ())
+    };
+    assert_eq!(
+        refused(-1.0, 2.0),
+        Err(BlobError::Body {
+            field: "exclusion_threshold_mm"
+        })
+    );
+    assert_eq!(
+        refused(3.0, 2.0),
+        Err(BlobError::Body {
+            field: "fault_threshold_mm"
+        })
+    );
+    assert_eq!(
+        refused(1.0, f32::NAN),
+        Err(BlobError::Body {
+            field: "fault_threshold_mm"
+        })
+    );
+}

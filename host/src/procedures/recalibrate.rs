@@ -1250,7 +1250,13 @@ impl Monitor<'_> {
             strings: id.laws,
             effects: id.effects.clone(),
             correction: self.calibration.correction.clone(),
-            length_scale_mm: id.length_scale_mm,
+            // A calibration whose strings weigh alike (its rule, chosen on
+            // held-out folds) keeps them alike.
+            length_scale_mm: if self.calibration.length_scale_mm.iter().all(|&s| s == 0.0) {
+                self.calibration.length_scale_mm
+            } else {
+                id.length_scale_mm
+            },
             kinematics: self.calibration.kinematics,
         };
         let model_id = model_id_of(&calibration);

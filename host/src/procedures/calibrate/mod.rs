@@ -1711,7 +1711,7 @@ impl Run<'_> {
         let marker = loop_result.structure.marker_body_mm;
         let tr = crate::data::observe::at_meeting_points(&tr, marker).into_owned();
         let te = crate::data::observe::at_meeting_points(&te, marker).into_owned();
-        let obs_seen = PerSession {
+        let obs = PerSession {
             train: &tr[..],
             test: &te[..],
         };
@@ -1723,7 +1723,6 @@ impl Run<'_> {
             loop_result.identification = choice.apply(&loop_result.identification);
         }
         self.timings.rule_s = t.elapsed().as_secs_f64();
-        let obs = obs_seen;
         let (final_identified, errors) = FinalIdentified::of(&loop_result.identification, obs)?;
         self.warnings.extend(test_outlier_warning(
             test.path,
