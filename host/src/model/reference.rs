@@ -18,8 +18,7 @@
 
 use crate::data::observe::Observation;
 use crate::model::identify::{identify, Identification, IdentifyError, Priors, Start, Structure};
-use crate::model::rule::{scaled_thresholds, with_rule, RuleCandidate};
-use spidar_core::kinematics::KinematicsRule;
+use crate::model::rule::{all_strings_alike, scaled_thresholds, with_rule};
 use spidar_core::model::Frame;
 
 /// Name of the reference stage in reports.
@@ -57,13 +56,6 @@ pub fn identify_reference(
     let (scaled, _) = scaled_thresholds(&id, train);
     Ok(with_rule(
         &id,
-        &RuleCandidate {
-            name: "all strings, alike",
-            rule: KinematicsRule {
-                exclusion_threshold_mm: scaled.fault_threshold_mm,
-                fault_threshold_mm: scaled.fault_threshold_mm,
-            },
-            weighted: false,
-        },
+        &all_strings_alike(scaled.fault_threshold_mm),
     ))
 }

@@ -114,19 +114,22 @@ pub fn scaled_thresholds(id: &Identification, train: &[Observation]) -> (Kinemat
     (rule, q)
 }
 
+/// Every string in every row whose strings agree within `fault_mm`, each
+/// weighing alike: the plain least-squares placement.
+pub fn all_strings_alike(fault_mm: f64) -> RuleCandidate {
+    RuleCandidate {
+        name: "all strings, alike",
+        rule: KinematicsRule {
+            exclusion_threshold_mm: fault_mm,
+            fault_threshold_mm: fault_mm,
+        },
+        weighted: false,
+    }
+}
+
 /// `id` placing every row with all its strings, alike, up to `fault_mm`.
 fn all_strings_model(id: &Identification, fault_mm: f64) -> Identification {
-    with_rule(
-        id,
-        &RuleCandidate {
-            name: "all strings",
-            rule: KinematicsRule {
-                exclusion_threshold_mm: fault_mm,
-                fault_threshold_mm: fault_mm,
-            },
-            weighted: false,
-        },
-    )
+    with_rule(id, &all_strings_alike(fault_mm))
 }
 
 /// The rules tried, the device's first: the device's thresholds; the
@@ -134,10 +137,7 @@ fn all_strings_model(id: &Identification, fault_mm: f64) -> Identification {
 /// that agrees within the scaled fault threshold, weighed by scale and
 /// alike.
 pub fn candidates(scaled: KinematicsRule) -> Vec<RuleCandidate> {
-    let all_strings = KinematicsRule {
-        exclusion_threshold_mm: scaled.fault_threshold_mm,
-        fault_threshold_mm: scaled.fault_threshold_mm,
-    };
+    let alike = all_strings_alike(scaled.fault_threshold_mm);
     let mut out = vec![RuleCandidate {
         name: "device thresholds, strings weighed",
         rule: KinematicsRule::default(),
@@ -152,14 +152,10 @@ pub fn candidates(scaled: KinematicsRule) -> Vec<RuleCandidate> {
     }
     out.push(RuleCandidate {
         name: "all strings, weighed",
-        rule: all_strings,
         weighted: true,
+        ..alike
     });
-    out.push(RuleCandidate {
-        name: "all strings, alike",
-        rule: all_strings,
-        weighted: false,
-    });
+    out.push(alike);
     out
 }
 

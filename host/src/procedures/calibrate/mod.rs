@@ -1992,11 +1992,7 @@ pub fn calibrate(
     list.push(final_name.clone(), report::StageKind::Final, final_errors);
     let plain_rule = crate::model::rule::with_rule(
         &final_identified.new_session,
-        &crate::model::rule::RuleCandidate {
-            name: "the reference's",
-            rule: reference.id.kinematics,
-            weighted: false,
-        },
+        &crate::model::rule::all_strings_alike(reference.id.kinematics.fault_threshold_mm),
     );
     let (x, t) = tracked_pairs(&te, &room_positions(plain_rule.kinematic_model(), &te));
     let plain_rule_test = ErrorStats::of(&point_error_list(|p| p, &x, &t));
