@@ -2393,17 +2393,26 @@ pub(crate) fn judged_fold_fits(
 ) -> Result<Vec<(Identification, Vec<Observation>)>, IdentifyError> {
     use rayon::prelude::*;
     let tracked: Vec<&Observation> = train.iter().filter(|o| o.tracker.is_some()).collect();
-    let (kind, folds) = folds(&tracked);
-    let judged = match kind {
-        Folds::Blocked => &folds[2..],
-        Folds::Interleaved => &folds[..2],
-    };
+    let (_, judged) = judged_folds(&tracked);
     let pick =
         |rows: &[usize]| -> Vec<Observation> { rows.iter().map(|&k| tracked[k].clone()).collect() };
     judged
         .par_iter()
         .map(|(rows, held)| Ok((fit(&pick(rows))?, pick(held))))
         .collect()
+}
+
+/// The folds [`validate_by`] judges by: the blocked ones when the session
+/// has them, else the two interleaved ones.
+pub(crate) fn judged_folds(tracked: &[&Observation]) -> (Folds, Vec<Fold>) {
+    let (kind, mut all) = folds(tracked);
+    match kind {
+        Folds::Blocked => {
+            all.drain(..2);
+        }
+        Folds::Interleaved => all.truncate(2),
+    }
+    (kind, all)
 }
 
 /// Fewest fit rows a fold needs on each side of a step in time (a slip) to

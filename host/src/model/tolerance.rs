@@ -22,7 +22,9 @@ use spidar_core::STRINGS;
 
 use crate::data::observe::Observation;
 use crate::data::stats::ErrorStats;
-use crate::model::diagnose::{folds, held_out_error_list, Fold, LoopConfig};
+use crate::model::diagnose::{
+    held_out_error_list, judged_folds, Fold, LoopConfig, MIN_BLOCKED_ROWS,
+};
 use crate::model::identify::{identify, rows_needed_for, Priors, Start};
 
 /// The tolerances tried (mm, one sd per coordinate): the drawing's
@@ -62,25 +64,18 @@ pub struct ToleranceChoice {
     pub unweighted: Option<ErrorStats>,
 }
 
-/// Folds whose fitting rows each identify the base model (`needed` rows):
-/// the loop's (interleaved, then blocked) when the session has twice
-/// `needed`, else `k` interleaved folds, the fewest with `needed` fitting
-/// rows; none when the session cannot spare a row.
+/// Folds whose fitting rows each identify the base model (`needed` rows),
+/// and their name: the loop's blocked folds from [`MIN_BLOCKED_ROWS`]
+/// tracked rows, else ten interleaved ones ([`small_session_folds`]); none
+/// when the session cannot spare a row.
 fn tolerance_folds(tracked: &[&Observation], needed: usize) -> (String, Vec<Fold>) {
     let n = tracked.len();
-    if n >= crate::model::diagnose::MIN_BLOCKED_ROWS {
-        let (kind, all) = folds(tracked);
-        let judged = match kind {
-            crate::model::diagnose::Folds::Blocked => all[2..].to_vec(),
-            crate::model::diagnose::Folds::Interleaved => all[..2].to_vec(),
-        };
-        let name = match kind {
-            crate::model::diagnose::Folds::Blocked => {
-                "blocked folds (later, earlier half, outer shell)"
-            }
-            crate::model::diagnose::Folds::Interleaved => "2 interleaved folds",
-        };
-        return (name.into(), judged);
+    if n >= MIN_BLOCKED_ROWS {
+        let (_, blocked) = judged_folds(tracked);
+        return (
+            "blocked folds (later, earlier half, outer shell)".into(),
+            blocked,
+        );
     }
     match small_session_folds(n, needed) {
         Some(f) => (format!("{} interleaved folds", f.len()), f),
