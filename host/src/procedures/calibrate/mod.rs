@@ -2014,10 +2014,19 @@ pub fn calibrate(
     run.warnings
         .extend(learner_warnings(fin, learned.as_ref(), &run.cfg));
 
-    let fin_new = if fall_back {
-        reference.id.clone()
+    // The rows the final model's kinematics flagged: the reference's when
+    // it is the final model.
+    let (fin_new, rejections) = if fall_back {
+        let flagged = |rows: &[Observation]| {
+            report::Rejections::of(&predict(reference.id.kinematic_model(), rows))
+        };
+        let rejections = report::SessionRejections {
+            train: flagged(&tr),
+            test: flagged(&te),
+        };
+        (reference.id.clone(), rejections)
     } else {
-        final_identified.new_session
+        (final_identified.new_session, final_identified.rejections)
     };
     let calibration = Calibration {
         frame: fin_new.frame,
@@ -2041,7 +2050,7 @@ pub fn calibrate(
         timing,
         stages: list.stages,
         loop_result: &loop_result,
-        rejections: final_identified.rejections,
+        rejections,
         selection,
         corrections,
         kinematics: rule,
