@@ -153,12 +153,6 @@ impl KinematicsRule {
             && self.exclusion_threshold_mm <= self.fault_threshold_mm
     }
 
-    /// Whether an agreeing row may lose a string (the exclusion threshold
-    /// is below the fault threshold).
-    pub fn excludes_below_fault(&self) -> bool {
-        self.exclusion_threshold_mm < self.fault_threshold_mm
-    }
-
     /// `config` with this rule's thresholds.
     pub fn apply<F: Real>(&self, config: &FkConfig<F>) -> FkConfig<F> {
         FkConfig {
