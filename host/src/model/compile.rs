@@ -283,14 +283,26 @@ impl std::fmt::Display for CompileReport {
     }
 }
 
+/// The blob's creation time (Unix seconds): `SOURCE_DATE_EPOCH` when set to
+/// a whole number (the reproducible-builds convention, so that compiling the
+/// same calibration twice gives the same bytes), else the clock.
+pub fn created_now() -> u32 {
+    let from_env = std::env::var("SOURCE_DATE_EPOCH")
+        .ok()
+        .and_then(|v| v.trim().parse::<u64>().ok());
+    let seconds = from_env.unwrap_or_else(|| {
+        std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_secs())
+    });
+    u32::try_from(seconds).unwrap_or(u32::MAX)
+}
+
 /// Runs `spidar compile`.
 pub fn run_compile(args: &CompileRequest) -> Result<CompileReport, CompileCmdError> {
     let calibration = load_calibration(&args.calibration)?;
     let model_id = args.model_id.unwrap_or_else(|| model_id_of(&calibration));
-    let created = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| u32::try_from(d.as_secs()).unwrap_or(u32::MAX));
-    let blob = compile_checked(&calibration, model_id, created, &args.calibration)?;
+    let blob = compile_checked(&calibration, model_id, created_now(), &args.calibration)?;
     let parsed = CompiledCalibration::from_blob(&blob).map_err(CompileCmdError::ParseBack)?;
     if let Some(g) = &args.geometry {
         let geometry = Geometry::load(g)?;

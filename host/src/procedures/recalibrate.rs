@@ -1356,10 +1356,12 @@ impl Monitor<'_> {
         calibration: &Calibration,
         model_id: u32,
     ) -> Result<crate::device::link::FlashReport, MonitorError> {
-        let created = std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map_or(0, |d| d.as_secs().min(u64::from(u32::MAX)) as u32);
-        let blob = compile_checked(calibration, model_id, created, Path::new("(runtime refit)"))?;
+        let blob = compile_checked(
+            calibration,
+            model_id,
+            crate::model::compile::created_now(),
+            Path::new("(runtime refit)"),
+        )?;
         // Flashing needs the motors off; the stream pauses meanwhile.
         client.stream_off()?;
         client.disarm()?;
