@@ -284,30 +284,23 @@ pub fn nominal_calibration(
 
 /// The protocol's fault bits for the loop's faults.
 ///
-/// `SLACK`, `FK_FAULT` and `NON_FINITE` all report as `KINEMATICS` (the
-/// protocol has no bit of their own; `State::slack` says which strings are
-/// slack). `TENSION_CLAMPED` is present (not latched) while armed and the
+/// The faults the wire names share its bits and pass as they are
+/// ([`SafetyFaults::ON_THE_WIRE`]); `SLACK`, `FK_FAULT` and `NON_FINITE`
+/// all report as `KINEMATICS` (the protocol has no bit of their own;
+/// `State::slack` says which strings are slack); `OVERFORCE` is not
+/// reported. `TENSION_CLAMPED` is present (not latched) while armed and the
 /// tension distribution had to scale the force down.
 pub fn protocol_faults(out: &LoopOutput, loop_overrun: bool) -> Faults {
     let f = out.faults;
-    let mut bits = 0u16;
+    let mut bits = f.bits() & SafetyFaults::ON_THE_WIRE.bits();
     let mut set = |cond: bool, bit: Faults| {
         if cond {
             bits |= bit.0;
         }
     };
     set(
-        f.contains(SafetyFaults::HEARTBEAT_LOST),
-        Faults::HEARTBEAT_LOST,
-    );
-    set(
         f.intersects(SafetyFaults::SLACK | SafetyFaults::FK_FAULT | SafetyFaults::NON_FINITE),
         Faults::KINEMATICS,
-    );
-    set(f.contains(SafetyFaults::ESTOP), Faults::ESTOP);
-    set(
-        f.contains(SafetyFaults::MODEL_INVALID),
-        Faults::MODEL_INVALID,
     );
     set(
         out.armed && out.tension_status == TensionStatus::Scaled,

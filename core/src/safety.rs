@@ -32,41 +32,57 @@
 use core::ops::{BitOr, BitOrAssign};
 
 use serde::{Deserialize, Serialize};
+use spidar_protocol::messages::Faults;
 
 use crate::real::Real;
 use crate::STRINGS;
 
 /// A set of safety faults, one bit each (see the module doc for which latch).
-/// The device's own: the wire's fault bits are `spidar_protocol::Faults`,
-/// which [`crate::device::protocol_faults`] maps these onto (`SLACK`,
-/// `FK_FAULT` and `NON_FINITE` all report as `KINEMATICS`).
+/// The loop's faults, in the wire's bit layout: a fault the wire names sits
+/// on the wire's bit (`HEARTBEAT_LOST`, `MODEL_INVALID`, `ESTOP` are
+/// `spidar_protocol::Faults`' bits), and the loop's own faults sit on bits
+/// the wire leaves unnamed (checked at compile time). They never go on the
+/// wire as they are: [`crate::device::protocol_faults`] maps them (`SLACK`,
+/// `FK_FAULT` and `NON_FINITE` all report as `KINEMATICS`; `OVERFORCE` is a
+/// warning the wire does not carry).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
 pub struct SafetyFaults(u16);
 
 impl SafetyFaults {
     /// No fault.
     pub const NONE: SafetyFaults = SafetyFaults(0);
-    /// No heartbeat from the host for longer than `heartbeat_timeout_ms`. Latched.
-    pub const HEARTBEAT_LOST: SafetyFaults = SafetyFaults(1 << 0);
-    /// A string is slack: measured longer than its geometric length by more
-    /// than `slack_threshold_mm` (which strings: [`SafetyMonitor::slack_mask`]). Latched.
-    pub const SLACK: SafetyFaults = SafetyFaults(1 << 1);
-    /// Forward kinematics found no consistent position. Latched.
-    pub const FK_FAULT: SafetyFaults = SafetyFaults(1 << 2);
-    /// A NaN or infinity in lengths, force or tensions. Latched.
-    pub const NON_FINITE: SafetyFaults = SafetyFaults(1 << 3);
-    /// The last commanded force exceeded `f_max` and was clamped. Warning
-    /// only, never latched.
-    pub const OVERFORCE: SafetyFaults = SafetyFaults(1 << 4);
-    /// Hardware emergency-stop input active. Latched; survives `clear()`
-    /// while the input is still active.
-    pub const ESTOP: SafetyFaults = SafetyFaults(1 << 5);
+    /// No heartbeat from the host for longer than `heartbeat_timeout_ms`.
+    /// Latched. The wire's `HEARTBEAT_LOST` bit.
+    pub const HEARTBEAT_LOST: SafetyFaults = SafetyFaults(Faults::HEARTBEAT_LOST.0);
     /// The calibration model is invalid (e.g. blob failed to load). Latched;
-    /// survives `clear()` while the model is still flagged invalid.
-    pub const MODEL_INVALID: SafetyFaults = SafetyFaults(1 << 6);
+    /// survives `clear()` while the model is still flagged invalid. The
+    /// wire's `MODEL_INVALID` bit.
+    pub const MODEL_INVALID: SafetyFaults = SafetyFaults(Faults::MODEL_INVALID.0);
+    /// Hardware emergency-stop input active. Latched; survives `clear()`
+    /// while the input is still active. The wire's `ESTOP` bit.
+    pub const ESTOP: SafetyFaults = SafetyFaults(Faults::ESTOP.0);
+    /// A string is slack: measured longer than its geometric length by more
+    /// than `slack_threshold_mm` (which strings: [`SafetyMonitor::slack_mask`]).
+    /// Latched. The loop's own (reported as `KINEMATICS`).
+    pub const SLACK: SafetyFaults = SafetyFaults(1 << 9);
+    /// Forward kinematics found no consistent position. Latched. The loop's
+    /// own (reported as `KINEMATICS`).
+    pub const FK_FAULT: SafetyFaults = SafetyFaults(1 << 10);
+    /// A NaN or infinity in lengths, force or tensions. Latched. The loop's
+    /// own (reported as `KINEMATICS`).
+    pub const NON_FINITE: SafetyFaults = SafetyFaults(1 << 11);
+    /// The last commanded force exceeded `f_max` and was clamped. Warning
+    /// only, never latched, not on the wire.
+    pub const OVERFORCE: SafetyFaults = SafetyFaults(1 << 12);
 
+    /// The faults the wire names, on the wire's bits.
+    pub const ON_THE_WIRE: SafetyFaults =
+        SafetyFaults(Self::HEARTBEAT_LOST.0 | Self::MODEL_INVALID.0 | Self::ESTOP.0);
+    /// The loop's own faults, on bits the wire leaves unnamed.
+    pub const LOOP_ONLY: SafetyFaults =
+        SafetyFaults(Self::SLACK.0 | Self::FK_FAULT.0 | Self::NON_FINITE.0 | Self::OVERFORCE.0);
     /// Every defined bit.
-    pub const ALL: SafetyFaults = SafetyFaults(0x7f);
+    pub const ALL: SafetyFaults = SafetyFaults(Self::ON_THE_WIRE.0 | Self::LOOP_ONLY.0);
 
     /// The raw bits.
     pub const fn bits(self) -> u16 {
@@ -103,6 +119,17 @@ impl SafetyFaults {
         self.0 &= !other.0;
     }
 }
+
+// The loop's own faults must not sit on a bit the wire names.
+const _: () = {
+    let mut named = 0u16;
+    let mut i = 0;
+    while i < Faults::NAMED.len() {
+        named |= Faults::NAMED[i].0 .0;
+        i += 1;
+    }
+    assert!(SafetyFaults::LOOP_ONLY.0 & named == 0);
+};
 
 impl BitOr for SafetyFaults {
     type Output = SafetyFaults;

@@ -1142,3 +1142,52 @@ fn tick_cost() {
         );
     }
 }
+
+/// Every combination of the loop's faults maps to the wire by name: a fault
+/// the wire names keeps its bit, the kinematic ones become `KINEMATICS`,
+/// `OVERFORCE` does not go out, and nothing else is set.
+#[test]
+fn every_loop_fault_combination_reaches_the_wire_by_name() {
+    let singles = [
+        (SafetyFaults::HEARTBEAT_LOST, Faults::HEARTBEAT_LOST),
+        (SafetyFaults::MODEL_INVALID, Faults::MODEL_INVALID),
+        (SafetyFaults::ESTOP, Faults::ESTOP),
+        (SafetyFaults::SLACK, Faults::KINEMATICS),
+        (SafetyFaults::FK_FAULT, Faults::KINEMATICS),
+        (SafetyFaults::NON_FINITE, Faults::KINEMATICS),
+        (SafetyFaults::OVERFORCE, Faults(0)),
+    ];
+    let mut every = SafetyFaults::NONE;
+    for (f, _) in singles {
+        assert!(!every.intersects(f), "two loop faults share a bit");
+        every |= f;
+    }
+    assert_eq!(every, SafetyFaults::ALL);
+    for combination in 0u32..(1 << singles.len()) {
+        let mut faults = SafetyFaults::NONE;
+        let mut expected = 0u16;
+        for (k, (f, wire)) in singles.iter().enumerate() {
+            if combination & (1 << k) != 0 {
+                faults |= *f;
+                expected |= wire.0;
+            }
+        }
+        let mut out = idle_output(false, false);
+        out.faults = faults;
+        assert_eq!(protocol_faults(&out, false), Faults(expected), "{faults:?}");
+        assert_eq!(
+            protocol_faults(&out, true),
+            Faults(expected | Faults::LOOP_OVERRUN.0)
+        );
+    }
+    // The shared names sit on the same bits on both sides.
+    for (f, name) in Faults::NAMED {
+        let loop_side = match name {
+            "HEARTBEAT_LOST" => SafetyFaults::HEARTBEAT_LOST,
+            "MODEL_INVALID" => SafetyFaults::MODEL_INVALID,
+            "ESTOP" => SafetyFaults::ESTOP,
+            _ => continue,
+        };
+        assert_eq!(loop_side.bits(), f.0, "{name}");
+    }
+}
