@@ -246,10 +246,23 @@ impl Message for FutureHello {
     }
 }
 
+/// One session over the frames, phase by phase: hello and upload, arm,
+/// force and stream, corrupted frames, heartbeat loss, version mismatch.
 #[test]
 fn full_session_through_frames() {
     let (mut ram, mut spare) = (ModelBuffer::<SLOT>::new(), ModelBuffer::<SLOT>::new());
     let mut b = Bench::new(Flash::new(), ram.bytes(), spare.bytes());
+    let begin = session_hello_and_upload(&mut b);
+    let p = [100.0, -50.0, 200.0];
+    session_arm_force_and_stream(&mut b, &begin, p);
+    session_corrupted_frames(&mut b);
+    session_heartbeat_loss(&mut b, &begin, p);
+    session_version_mismatch(&mut b);
+}
+
+/// Hello, then an upload in chunks with a gap, a resend, a status and a
+/// resume; returns the upload's begin request (refused later while armed).
+fn session_hello_and_upload(b: &mut Bench<'_>) -> Request<'static> {
     // A host flushing the line first: a lone delimiter is ignored.
     assert!(b.feed(&[0]).is_empty());
     let Response::HelloAck(ack) = b.request(&Request::Hello {
@@ -343,8 +356,11 @@ fn full_session_through_frames() {
     assert_eq!(info.header.model_id, 42);
     assert_eq!(info.header.kind, CorrectionKind::Nn);
     assert_eq!(info.blob_crc32, crc);
+    begin
+}
 
-    // Arm, render a force, stream.
+/// Arm, render a force at `p`, stream; no model change while armed.
+fn session_arm_force_and_stream(b: &mut Bench<'_>, begin: &Request<'static>, p: [f64; 3]) {
     let home = raw_at([0.0; 3]);
     b.tick_at(home);
     assert_eq!(b.request(&Request::Arm), Response::Ack);
@@ -360,7 +376,6 @@ fn full_session_through_frames() {
         Response::Ack
     );
     b.stream.clear();
-    let p = [100.0, -50.0, 200.0];
     let mut out = None;
     for k in 0..40 {
         if k % 5 == 0 {
@@ -391,14 +406,17 @@ fn full_session_through_frames() {
         assert!((got - want as f32).abs() < 0.05);
     }
     // No model change while armed.
-    assert_eq!(b.request(&begin), bad_state(BadState::Armed));
+    assert_eq!(b.request(begin), bad_state(BadState::Armed));
     assert_eq!(b.request(&Request::ClearModel), bad_state(BadState::Armed));
     assert_eq!(
         b.request(&Request::SetStringModel(string_model())),
         bad_state(BadState::Armed)
     );
+}
 
-    // Corrupted frames: rejected, counted, no reply.
+/// Corrupted frames: rejected, counted, no reply; an out-of-range field is
+/// answered, naming it.
+fn session_corrupted_frames(b: &mut Bench<'_>) {
     let mut buf = [0u8; MAX_FRAME];
     let mut bad = encode_request(900, &Request::Heartbeat, &mut buf)
         .unwrap()
@@ -429,8 +447,10 @@ fn full_session_through_frames() {
             field: name("force_n")
         }))
     );
+}
 
-    // Heartbeat loss: the host goes silent.
+/// Heartbeat loss: the host goes silent; pre-tension until Disarm.
+fn session_heartbeat_loss(b: &mut Bench<'_>, begin: &Request<'static>, p: [f64; 3]) {
     b.stream.clear();
     let timeout = config().control.safety.heartbeat_timeout_ms;
     let last_request_ms = (b.now_us / 1000) as u32;
@@ -463,7 +483,7 @@ fn full_session_through_frames() {
         raised: Faults::HEARTBEAT_LOST
     }));
     // Still holding pre-tension: no flash work until Disarm.
-    assert_eq!(b.request(&begin), bad_state(BadState::Armed));
+    assert_eq!(b.request(begin), bad_state(BadState::Armed));
     let last = b.states().next_back().unwrap();
     assert!(!last.armed && last.faults.contains(Faults::HEARTBEAT_LOST));
     assert_eq!(last.tensions_n, [pretension; STRINGS]);
@@ -477,8 +497,11 @@ fn full_session_through_frames() {
     assert!(b.tick_at(raw_at(p)).armed);
     assert_eq!(b.request(&Request::Disarm), Response::Ack);
     assert!(!b.dev.motors_enabled());
+}
 
-    // Version mismatch: typed error until a matching Hello.
+/// Version mismatch: typed error until a matching Hello; a future Hello
+/// this version cannot decode still gets a HelloAck.
+fn session_version_mismatch(b: &mut Bench<'_>) {
     let Response::HelloAck(ack) = b.request(&Request::Hello {
         protocol_version: 99,
     }) else {

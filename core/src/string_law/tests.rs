@@ -504,10 +504,9 @@ fn f64_gradients_match_finite_differences() {
 }
 
 #[test]
-fn compile_errors_name_the_field() {
+fn string_law_compile_errors_name_the_field() {
     let f = cube_frame([0.0; 3]);
     let law = StringLaw::polynomial(4096, [10.0, -0.02, 0.0, 0.0]);
-    let laws = [law; STRINGS];
     assert_eq!(
         compile_string_law(&f, 8, &law),
         Err(CompileError::StringOutOfRange { string: 8 })
@@ -566,139 +565,6 @@ fn compile_errors_name_the_field() {
         })
     );
 
-    let term = |string, effect| EffectTerm { string, effect };
-    assert_eq!(
-        compile_effect(&term(8, Effect::Offset { mm: 1.0 }), &laws),
-        Err(CompileError::StringOutOfRange { string: 8 })
-    );
-    assert!(matches!(
-        compile_effect(&term(0, Effect::Scale { relative: 2.5 }), &laws),
-        Err(CompileError::DoesNotFit {
-            field: "relative",
-            ..
-        })
-    ));
-    assert!(matches!(
-        compile_effect(
-            &term(
-                0,
-                Effect::Winding {
-                    power: 0,
-                    mm_per_rad_pow: 1.0
-                }
-            ),
-            &laws
-        ),
-        Err(CompileError::OutOfRange { field: "power", .. })
-    ));
-    assert!(matches!(
-        compile_effect(&term(0, Effect::Elasticity { per_newton: 0.1 }), &laws),
-        Err(CompileError::DoesNotFit {
-            field: "per_newton",
-            ..
-        })
-    ));
-    assert!(matches!(
-        compile_effect(
-            &term(
-                0,
-                Effect::Slip {
-                    at_s: -1.0,
-                    mm: 1.0
-                }
-            ),
-            &laws
-        ),
-        Err(CompileError::OutOfRange { field: "at_s", .. })
-    ));
-    assert!(matches!(
-        compile_effect(
-            &term(
-                0,
-                Effect::Slip {
-                    at_s: 1.0,
-                    mm: f64::NAN
-                }
-            ),
-            &laws
-        ),
-        Err(CompileError::NotFinite { field: "mm", .. })
-    ));
-    assert!(matches!(
-        compile_effect(
-            &term(
-                0,
-                Effect::Sag {
-                    mm_at_1m_1n: 101.0,
-                    home_mm_at_1m: 1.0
-                }
-            ),
-            &laws
-        ),
-        Err(CompileError::OutOfRange {
-            field: "mm_at_1m_1n",
-            ..
-        })
-    ));
-    assert!(matches!(
-        compile_effect(
-            &term(
-                0,
-                Effect::Sag {
-                    mm_at_1m_1n: 1.6,
-                    home_mm_at_1m: -101.0
-                }
-            ),
-            &laws
-        ),
-        Err(CompileError::OutOfRange {
-            field: "home_mm_at_1m",
-            ..
-        })
-    ));
-    assert!(matches!(
-        compile_effect(
-            &term(
-                0,
-                Effect::Sag {
-                    mm_at_1m_1n: f64::NAN,
-                    home_mm_at_1m: 0.0
-                }
-            ),
-            &laws
-        ),
-        Err(CompileError::NotFinite {
-            field: "mm_at_1m_1n",
-            ..
-        })
-    ));
-    assert!(matches!(
-        compile_effect(&term(0, Effect::Drift { mm_per_s: 1e30 }), &laws),
-        Err(CompileError::DoesNotFit {
-            field: "mm_per_s",
-            ..
-        })
-    ));
-    let zero = [StringLaw {
-        counts_per_rev: 0,
-        ..law
-    }; STRINGS];
-    assert!(matches!(
-        compile_effect(
-            &term(
-                0,
-                Effect::Eccentricity {
-                    sin_mm: 1.0,
-                    cos_mm: 0.0
-                }
-            ),
-            &zero
-        ),
-        Err(CompileError::OutOfRange {
-            field: "counts_per_rev",
-            ..
-        })
-    ));
     let msg = format!(
         "{}",
         CompileError::NotFinite {
@@ -707,6 +573,89 @@ fn compile_errors_name_the_field() {
         }
     );
     assert_eq!(msg, "string 2: winding_mm[1] is not finite");
+}
+
+/// Which kind of compile error, and for which field.
+fn kind_and_field(e: CompileError) -> (&'static str, &'static str) {
+    match e {
+        CompileError::StringOutOfRange { .. } => ("StringOutOfRange", "string"),
+        CompileError::NotFinite { field, .. } => ("NotFinite", field),
+        CompileError::DoesNotFit { field, .. } => ("DoesNotFit", field),
+        CompileError::OutOfRange { field, .. } => ("OutOfRange", field),
+    }
+}
+
+#[test]
+fn effect_compile_errors_name_the_field() {
+    let law = StringLaw::polynomial(4096, [10.0, -0.02, 0.0, 0.0]);
+    let laws = [law; STRINGS];
+    let term = |string, effect| EffectTerm { string, effect };
+    assert_eq!(
+        compile_effect(&term(8, Effect::Offset { mm: 1.0 }), &laws),
+        Err(CompileError::StringOutOfRange { string: 8 })
+    );
+    let sag = |mm_at_1m_1n, home_mm_at_1m| Effect::Sag {
+        mm_at_1m_1n,
+        home_mm_at_1m,
+    };
+    let cases = [
+        (Effect::Scale { relative: 2.5 }, "DoesNotFit", "relative"),
+        (
+            Effect::Winding {
+                power: 0,
+                mm_per_rad_pow: 1.0,
+            },
+            "OutOfRange",
+            "power",
+        ),
+        (
+            Effect::Elasticity { per_newton: 0.1 },
+            "DoesNotFit",
+            "per_newton",
+        ),
+        (
+            Effect::Slip {
+                at_s: -1.0,
+                mm: 1.0,
+            },
+            "OutOfRange",
+            "at_s",
+        ),
+        (
+            Effect::Slip {
+                at_s: 1.0,
+                mm: f64::NAN,
+            },
+            "NotFinite",
+            "mm",
+        ),
+        (sag(101.0, 1.0), "OutOfRange", "mm_at_1m_1n"),
+        (sag(1.6, -101.0), "OutOfRange", "home_mm_at_1m"),
+        (sag(f64::NAN, 0.0), "NotFinite", "mm_at_1m_1n"),
+        (Effect::Drift { mm_per_s: 1e30 }, "DoesNotFit", "mm_per_s"),
+    ];
+    for (effect, kind, field) in cases {
+        let got = compile_effect(&term(0, effect), &laws).map(|_| ());
+        assert_eq!(
+            got.map_err(kind_and_field),
+            Err((kind, field)),
+            "{effect:?}"
+        );
+    }
+    let zero = [StringLaw {
+        counts_per_rev: 0,
+        ..law
+    }; STRINGS];
+    let eccentricity = Effect::Eccentricity {
+        sin_mm: 1.0,
+        cos_mm: 0.0,
+    };
+    assert_eq!(
+        compile_effect(&term(0, eccentricity), &zero)
+            .map(|_| ())
+            .map_err(kind_and_field),
+        Err(("OutOfRange", "counts_per_rev"))
+    );
 }
 
 #[test]

@@ -409,6 +409,18 @@ impl SimConfig {
 
     /// Check every parameter; errors name the field (`section.key`).
     pub fn validate(&self) -> Result<(), SimError> {
+        self.validate_device()?;
+        self.validate_tracker()?;
+        self.validate_motor_and_tension()?;
+        self.validate_sessions()?;
+        for spec in &self.effects {
+            super::effects::parse_effect(spec)?;
+        }
+        Ok(())
+    }
+
+    /// `[nominal]` and `[as_built]`.
+    fn validate_device(&self) -> Result<(), SimError> {
         let n = &self.nominal;
         if !(crate::data::dataset::MIN_STRINGS..=STRINGS).contains(&n.strings) {
             return Err(bad(
@@ -454,7 +466,11 @@ impl SimConfig {
         )?;
         positive("as_built.string_diameter_mm", a.string_diameter_mm)?;
         positive("as_built.string_total_mm", a.string_total_mm)?;
-        non_negative("as_built.string_total_sigma_mm", a.string_total_sigma_mm)?;
+        non_negative("as_built.string_total_sigma_mm", a.string_total_sigma_mm)
+    }
+
+    /// `[tracker]`.
+    fn validate_tracker(&self) -> Result<(), SimError> {
         let t = &self.tracker;
         non_negative("tracker.noise_sigma_mm", t.noise_sigma_mm)?;
         non_negative("tracker.rotation_deg", t.rotation_deg)?;
@@ -477,6 +493,12 @@ impl SimConfig {
         if !t.clock_offset_s.is_finite() {
             return Err(bad("tracker.clock_offset_s", "must be a finite number"));
         }
+        Ok(())
+    }
+
+    /// `[abnormal_motor]` and `[tension]`.
+    fn validate_motor_and_tension(&self) -> Result<(), SimError> {
+        let n = &self.nominal;
         let m = &self.abnormal_motor;
         if m.enabled && usize::from(m.string) >= n.strings {
             return Err(bad(
@@ -506,6 +528,11 @@ impl SimConfig {
                 format!("tensions up to {max_n} N exceed the 65 N a u16 in mN holds"),
             ));
         }
+        Ok(())
+    }
+
+    /// `[lattice]` and `[random]`.
+    fn validate_sessions(&self) -> Result<(), SimError> {
         let l = &self.lattice;
         if l.cells_per_axis == 0 || l.cells_per_axis > 1000 {
             return Err(bad(
@@ -527,10 +554,6 @@ impl SimConfig {
             return Err(bad("random.points", "must be positive"));
         }
         positive("random.capture_interval_s", r.capture_interval_s)?;
-        speed_range("random.speed_mm_s", r.speed_mm_s)?;
-        for spec in &self.effects {
-            super::effects::parse_effect(spec)?;
-        }
-        Ok(())
+        speed_range("random.speed_mm_s", r.speed_mm_s)
     }
 }

@@ -353,6 +353,14 @@ impl PhysicsConfig {
         if self.orientation.sigma_deg > 10.0 {
             return Err(bad("orientation.sigma_deg", "must be at most 10 degrees"));
         }
+        self.validate_as_built()?;
+        self.validate_motor_effects_and_carriage()?;
+        self.stream.validate()?;
+        Ok(())
+    }
+
+    /// `[as_built]`: the anchors, guides, spools, strings, frame and marker.
+    fn validate_as_built(&self) -> Result<(), SimError> {
         let a = &self.as_built;
         non_negative("as_built.anchor_sigma_mm", a.anchor_sigma_mm)?;
         non_negative("as_built.home_sigma_mm", a.home_sigma_mm)?;
@@ -427,6 +435,11 @@ impl PhysicsConfig {
                 "must be a finite number > 0",
             ));
         }
+        Ok(())
+    }
+
+    /// `[abnormal_motor]`, the injected effects and `[carriage]`.
+    fn validate_motor_effects_and_carriage(&self) -> Result<(), SimError> {
         let m = &self.abnormal_motor;
         let strings = self.nominal.geometry().strings();
         if m.enabled && usize::from(m.string) >= strings {
@@ -462,7 +475,6 @@ impl PhysicsConfig {
         if attachments.iter().flatten().any(|x| !x.is_finite()) {
             return Err(bad("carriage.attachment_mm", "must be finite numbers (mm)"));
         }
-        self.stream.validate()?;
         Ok(())
     }
 }
