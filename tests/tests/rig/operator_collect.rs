@@ -210,8 +210,14 @@ fn the_operator_fills_a_small_lattice_cell_by_cell_and_the_rows_are_true() {
         .map(|(s, t)| distance(&t.room_mm, &s.tracker.unwrap()))
         .fold(0.0, f64::max);
     assert!(worst_tracker < 1.0, "{worst_tracker} mm");
-    // Device columns, one state: `dev_*` is the forward kinematics of the
-    // row's counts on the nominal model.
+    assert_legacy_columns_are_the_nominal_fk(&rig, &session);
+    assert_counts_are_the_tracker_frames_instant(&rig, &session, &truths);
+    assert_the_operator_saw_each_cell_in_turn(&recorder, &lattice);
+}
+
+/// Device columns, one state: `dev_*` is the forward kinematics of the
+/// row's counts on the nominal model.
+fn assert_legacy_columns_are_the_nominal_fk(rig: &SimulatedRig, session: &Session) {
     let nominal = &rig.device.nominal;
     let mm_per_count = nominal.nominal_mm_per_count();
     let home_lengths = nominal.home_lengths_mm();
@@ -239,7 +245,16 @@ fn the_operator_fills_a_small_lattice_cell_by_cell_and_the_rows_are_true() {
         })
         .fold(0.0, f64::max);
     assert!(worst_fk < 0.5, "dev_* vs FK of the counts: {worst_fk} mm");
-    // ... of the moment of the tracker frame: each string's counts follow
+}
+
+/// Counts of the moment of the tracker frame.
+fn assert_counts_are_the_tracker_frames_instant(
+    rig: &SimulatedRig,
+    session: &Session,
+    truths: &[&HandSample],
+) {
+    let mm_per_count = rig.device.nominal.nominal_mm_per_count();
+    // The counts of the moment of the tracker frame: each string's counts follow
     // its true length change (the winding law, smooth: a quadratic) within
     // a few mm (the simulated device's own effects, and what the hand moves
     // in a few milliseconds; a state one tracker frame off would be ~5 mm
@@ -250,7 +265,7 @@ fn the_operator_fills_a_small_lattice_cell_by_cell_and_the_rows_are_true() {
     let pairing: Vec<f64> = session
         .samples
         .iter()
-        .zip(&truths)
+        .zip(truths)
         .flat_map(|(s, t)| {
             (0..8)
                 .map(|i| f64::from(s.counts[i] - t.counts[i]).abs() * mm_per_count[i])
@@ -296,9 +311,11 @@ fn the_operator_fills_a_small_lattice_cell_by_cell_and_the_rows_are_true() {
             "string {i}: counts off the true length by {worst:.2} mm"
         );
     }
+}
 
-    // What the operator saw: each cell highlighted in turn, with progress
-    // and, after a few captures, the time left.
+/// What the operator saw: each cell highlighted in turn, with progress and,
+/// after a few captures, the time left.
+fn assert_the_operator_saw_each_cell_in_turn(recorder: &Recorder, lattice: &Lattice) {
     let order = lattice.order();
     let mut next = 0;
     for c in &recorder.shown {
