@@ -17,7 +17,9 @@
 //! real time: `RealTime { speed }` keeps device time at `speed` x real time
 //! (1.0: like the hardware); `Fast` runs ticks back to back while a state
 //! stream is on (paced by the reader: a full pseudo-terminal holds the
-//! device back) and in real time otherwise. Requests are handled at the
+//! device back) and holds the device's clock otherwise, so a stream always
+//! starts where the last one stopped (at boot: time 0), whatever the host's
+//! speed. Requests are handled at the
 //! device time of the last tick, so heartbeat timeouts are in device time.
 //! `Virtual` is virtual time for a simulated rig: the plant's end-effector
 //! is in a simulated operator's clocked [`Hand`], and the device ticks as
@@ -86,7 +88,9 @@ pub enum VirtualDeviceError {
 pub enum Pace {
     /// Device time runs `speed` times as fast as real time.
     RealTime { speed: f64 },
-    /// Back-to-back ticks while streaming, real time otherwise.
+    /// Back-to-back ticks while streaming; the device's clock holds
+    /// otherwise (no tick, no timeout), so what a stream shows does not
+    /// depend on how fast the host opened it.
     Fast,
     /// Virtual time: the device ticks as far as the simulated world has
     /// been computed (a clocked [`Hand`]'s committed path,
@@ -598,6 +602,8 @@ struct Pass {
     run_virtual: bool,
     /// Ticks back to back (`Fast` while streaming, or virtual time).
     run_fast: bool,
+    /// No tick at all (`Fast` while not streaming).
+    hold: bool,
 }
 
 impl Pass {
@@ -648,6 +654,7 @@ impl Boot<'_> {
             run_virtual,
             run_fast: (matches!(self.config.pace, Pace::Fast) && self.streaming && !dead)
                 || run_virtual,
+            hold: matches!(self.config.pace, Pace::Fast) && !self.streaming,
         };
         let n = self.read_requests(buf, &pass);
         self.answer(&buf[..n]);
@@ -657,8 +664,11 @@ impl Boot<'_> {
             self.publish();
             return;
         }
-        self.run_ticks(&pass);
+        if !pass.hold {
+            self.run_ticks(&pass);
+        }
         if pass.run_fast
+            || pass.hold
             || pass.gated(self.now_us + tick_us)
             || self.real_at(self.now_us + 100 * tick_us) < Instant::now()
         {
