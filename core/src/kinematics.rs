@@ -77,8 +77,8 @@ pub struct FkConfig<F> {
     /// of 8 strings by ~1 mm, under the 2 mm at which the strings are
     /// inconsistent, and pulls the all-string position by that much; a
     /// calibrated device's strings agree to 0.15 mm RMS (p99 0.4 mm) on
-    /// independent physics (`docs/benchmarks.md`, "A faulty string looked
-    /// for from 1 mm").
+    /// independent physics (decision record 0030,
+    /// `docs/decisions/0030-faulty-string-from-1mm.md`).
     pub exclusion_threshold_mm: F,
     /// Initial Levenberg-Marquardt damping (dimensionless, relative to
     /// `J^T J` whose eigenvalues are ~1-4 for unit Jacobian rows; default 1e-3).

@@ -474,8 +474,8 @@ fn missing_busy_silent_and_mismatched_ports_are_named() {
     drop(slave);
 }
 
-/// Benchmarks of docs/benchmarks.md ("Link"):
-/// `cargo test -p spidar --test link -- --ignored --nocapture link_benchmarks`
+/// Benchmarks of docs/benchmarks.md ("Link, virtual device and simulated rig"):
+/// `cargo test -p spidar-tests --test rig -- --ignored --nocapture link_benchmarks`
 #[test]
 #[ignore]
 fn link_benchmarks() {
