@@ -26,6 +26,10 @@ pub struct CompileArgs {
     /// Largest mean fixed-point error accepted, mm.
     #[arg(long, default_value_t = FIXED_POINT_BUDGET_MM)]
     pub budget_mm: f64,
+    /// Write the blob even when its fixed-point error is over the budget or
+    /// it is too large for the firmware (the command still fails).
+    #[arg(long)]
+    pub write_over_budget: bool,
 }
 
 /// Runs `spidar compile`; returns what to print.
@@ -37,6 +41,7 @@ pub fn run(args: &CompileArgs) -> anyhow::Result<String> {
         geometry: args.geometry.clone(),
         model_id: args.model_id,
         budget_mm: args.budget_mm,
+        write_over_budget: args.write_over_budget,
     };
     Ok(spidar::model::compile::run_compile(&request)?.to_string())
 }

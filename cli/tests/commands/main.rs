@@ -2,6 +2,7 @@
 //! sessions), demo, the device commands, help texts and error messages.
 
 mod calibrate;
+mod compile;
 mod device;
 mod help;
 mod real_data;

@@ -8,4 +8,5 @@
 
 pub mod dataset;
 pub mod observe;
+pub mod output;
 pub mod stats;

@@ -24,6 +24,7 @@ use spidar_protocol::blob::{BlobError, CRC32};
 
 use crate::data::dataset::{DatasetError, Geometry, Session};
 use crate::data::observe::{observations, Observation};
+use crate::data::output::{refuse_output_over_input, write_atomically};
 use crate::data::stats::ErrorStats;
 use crate::model::predict::{corrected, predict, KinematicModel};
 
@@ -67,12 +68,20 @@ pub enum CompileCmdError {
     },
     #[error("{}: no row of the session has a usable position to compare", file.display())]
     NoRows { file: PathBuf },
-    #[error("fixed-point error {mean_mm:.5} mm mean exceeds the budget of {budget_mm} mm (blob written to {})", out.display())]
+    #[error("{why} ({})", if *written {
+        format!("blob written to {} as asked", out.display())
+    } else {
+        format!("no blob written to {}; --write-over-budget writes it anyway", out.display())
+    })]
     OverBudget {
-        mean_mm: f64,
-        budget_mm: f64,
+        why: String,
         out: PathBuf,
+        written: bool,
     },
+    #[error("--budget-mm is {value}: the budget must be a positive number of mm")]
+    Budget { value: f64 },
+    #[error("{0}")]
+    Output(#[from] crate::data::output::OutputError),
 }
 
 /// The fixed-point error of a blob against its f64 calibration.
@@ -224,6 +233,9 @@ pub struct CompileRequest {
     /// Largest mean fixed-point error accepted, mm
     /// ([`FIXED_POINT_BUDGET_MM`] by default on the command line).
     pub budget_mm: f64,
+    /// Write the blob even when it is over the budget or too large for the
+    /// firmware (the command still fails, saying so).
+    pub write_over_budget: bool,
 }
 
 /// What `spidar compile` did.
@@ -298,25 +310,26 @@ pub fn created_now() -> u32 {
     u32::try_from(seconds).unwrap_or(u32::MAX)
 }
 
-/// Runs `spidar compile`.
+/// Runs `spidar compile`: refuses an output over an input and a budget that
+/// is not a positive number before any work; writes the blob (atomically)
+/// only when it fits the firmware and the fixed-point budget, unless
+/// `write_over_budget`.
 pub fn run_compile(args: &CompileRequest) -> Result<CompileReport, CompileCmdError> {
+    if !(args.budget_mm.is_finite() && args.budget_mm > 0.0) {
+        return Err(CompileCmdError::Budget {
+            value: args.budget_mm,
+        });
+    }
+    let mut inputs = vec![("--calibration", args.calibration.as_path())];
+    inputs.extend(args.test.as_deref().map(|p| ("--test", p)));
+    inputs.extend(args.geometry.as_deref().map(|p| ("--geometry", p)));
+    refuse_output_over_input(&[("--out", &args.out)], &inputs)?;
     let calibration = load_calibration(&args.calibration)?;
     let model_id = args.model_id.unwrap_or_else(|| model_id_of(&calibration));
     let blob = compile_checked(&calibration, model_id, created_now(), &args.calibration)?;
     let parsed = CompiledCalibration::from_blob(&blob).map_err(CompileCmdError::ParseBack)?;
     if let Some(g) = &args.geometry {
-        let geometry = Geometry::load(g)?;
-        for i in geometry.layout.indices() {
-            let law = &calibration.strings[i];
-            if law.counts_per_rev != geometry.counts_per_rev[i] {
-                return Err(CompileCmdError::GeometryMismatch {
-                    file: g.clone(),
-                    field: "counts_per_rev",
-                    found: geometry.counts_per_rev[i].to_string(),
-                    expected: law.counts_per_rev.to_string(),
-                });
-            }
-        }
+        check_counts_per_rev(&calibration, g)?;
     }
     let error = match &args.test {
         Some(test) => {
@@ -329,18 +342,6 @@ pub fn run_compile(args: &CompileRequest) -> Result<CompileReport, CompileCmdErr
         }
         None => None,
     };
-    if let Some(parent) = args.out.parent().filter(|p| !p.as_os_str().is_empty()) {
-        std::fs::create_dir_all(parent).map_err(|source| CompileCmdError::Io {
-            file: parent.to_path_buf(),
-            action: "cannot create the output directory",
-            source,
-        })?;
-    }
-    std::fs::write(&args.out, &blob).map_err(|source| CompileCmdError::Io {
-        file: args.out.clone(),
-        action: "cannot write the model blob",
-        source,
-    })?;
     let report = CompileReport {
         out: args.out.clone(),
         bytes: blob.len(),
@@ -349,14 +350,66 @@ pub fn run_compile(args: &CompileRequest) -> Result<CompileReport, CompileCmdErr
         error,
         budget_mm: args.budget_mm,
     };
-    if let Some(e) = &report.error {
-        if e.corrected.mean_mm.is_nan() || e.corrected.mean_mm > args.budget_mm {
-            return Err(CompileCmdError::OverBudget {
-                mean_mm: e.corrected.mean_mm,
-                budget_mm: args.budget_mm,
-                out: args.out.clone(),
+    let refusal = over_budget(&report);
+    if refusal.is_none() || args.write_over_budget {
+        write_blob(&args.out, &blob)?;
+    }
+    match refusal {
+        Some(why) => Err(CompileCmdError::OverBudget {
+            why,
+            out: args.out.clone(),
+            written: args.write_over_budget,
+        }),
+        None => Ok(report),
+    }
+}
+
+/// The geometry's counts per revolution against the calibration's.
+fn check_counts_per_rev(calibration: &Calibration, g: &Path) -> Result<(), CompileCmdError> {
+    let geometry = Geometry::load(g)?;
+    for i in geometry.layout.indices() {
+        let law = &calibration.strings[i];
+        if law.counts_per_rev != geometry.counts_per_rev[i] {
+            return Err(CompileCmdError::GeometryMismatch {
+                file: g.to_path_buf(),
+                field: "counts_per_rev",
+                found: geometry.counts_per_rev[i].to_string(),
+                expected: law.counts_per_rev.to_string(),
             });
         }
     }
-    Ok(report)
+    Ok(())
+}
+
+/// Why a compiled blob must not be written: too large for the firmware, or
+/// its fixed-point error over the budget.
+fn over_budget(report: &CompileReport) -> Option<String> {
+    let capacity = spidar_protocol::blob::REFERENCE_FIRMWARE_BLOB_CAPACITY;
+    if report.bytes > capacity {
+        return Some(format!(
+            "the blob of {} bytes is too large for the firmware's {capacity} bytes",
+            report.bytes
+        ));
+    }
+    let e = report.error.as_ref()?;
+    if e.corrected.mean_mm.is_nan() || e.corrected.mean_mm > report.budget_mm {
+        return Some(format!(
+            "fixed-point error {:.5} mm mean exceeds the budget of {} mm",
+            e.corrected.mean_mm, report.budget_mm
+        ));
+    }
+    None
+}
+
+/// Writes the blob atomically, creating its folder.
+fn write_blob(out: &Path, blob: &[u8]) -> Result<(), CompileCmdError> {
+    if let Some(parent) = out.parent().filter(|p| !p.as_os_str().is_empty()) {
+        std::fs::create_dir_all(parent).map_err(|source| CompileCmdError::Io {
+            file: parent.to_path_buf(),
+            action: "cannot create the output directory",
+            source,
+        })?;
+    }
+    write_atomically(out, blob)?;
+    Ok(())
 }

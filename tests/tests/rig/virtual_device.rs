@@ -224,6 +224,7 @@ fn compile_command_writes_a_checked_blob_and_names_bad_files() {
         geometry: Some(geometry),
         model_id: Some(77),
         budget_mm: FIXED_POINT_BUDGET_MM,
+        write_over_budget: false,
     };
     let report = run_compile(&args).unwrap();
     let bytes = std::fs::read(&out).unwrap();

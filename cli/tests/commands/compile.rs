@@ -1,0 +1,209 @@
+//! `spidar compile` refuses what cannot be a device and never spoils a file:
+//! an output path over an input, impossible calibrations, budgets that are
+//! not numbers, blobs over the budget (issue 37, findings 2 and 6).
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use spidar_core::correction::CorrectionModel;
+use spidar_core::model::{Calibration, Frame, StringLaw, StringLayout};
+use spidar_core::STRINGS;
+
+fn temp_dir(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("spidar-compile-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+fn spidar(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_spidar"))
+        .args(args)
+        .env("SOURCE_DATE_EPOCH", "0")
+        .output()
+        .expect("run the spidar binary")
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+/// A 2 m cube with the strings' exits at its corners, home at its centre,
+/// 10 mm spools that shrink a little as they pay out.
+fn cube() -> Calibration {
+    let half = 1000.0;
+    Calibration {
+        frame: Frame {
+            anchors: core::array::from_fn(|i| {
+                [1, 2, 4].map(|bit| if i & bit == 0 { -half } else { half })
+            }),
+            layout: StringLayout::ALL,
+            home: [0.0; 3],
+            room_rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            room_translation: [0.0, 0.0, 1500.0],
+            room_scale: 1.0,
+        },
+        strings: [StringLaw::polynomial(4096, [10.0, -0.002, 0.0, 0.0]); STRINGS],
+        effects: Vec::new(),
+        correction: CorrectionModel::None,
+        length_scale_mm: [0.0; STRINGS],
+        kinematics: Default::default(),
+    }
+}
+
+fn write(dir: &Path, name: &str, c: &Calibration) -> PathBuf {
+    let path = dir.join(name);
+    std::fs::write(&path, serde_json::to_string(c).unwrap()).unwrap();
+    path
+}
+
+fn failure(o: &Output) -> String {
+    assert!(
+        !o.status.success(),
+        "{}",
+        String::from_utf8_lossy(&o.stdout)
+    );
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+#[test]
+fn an_output_over_its_input_is_refused_and_the_input_kept() {
+    let dir = temp_dir("over");
+    let cal = write(&dir, "calibration.json", &cube());
+    let before = std::fs::read(&cal).unwrap();
+    let o = spidar(&["compile", "--calibration", s(&cal), "--out", s(&cal)]);
+    let err = failure(&o);
+    assert!(
+        err.contains("`--out`") && err.contains("`--calibration`"),
+        "{err}"
+    );
+    assert_eq!(
+        std::fs::read(&cal).unwrap(),
+        before,
+        "the calibration was overwritten"
+    );
+    // The same file by another spelling.
+    let other = dir.join(".").join("calibration.json");
+    let err = failure(&spidar(&[
+        "compile",
+        "--calibration",
+        s(&cal),
+        "--out",
+        s(&other),
+    ]));
+    assert!(err.contains("`--out`"), "{err}");
+    assert_eq!(std::fs::read(&cal).unwrap(), before);
+    // A plausible calibration to another path compiles.
+    let blob = dir.join("model.blob");
+    let o = spidar(&["compile", "--calibration", s(&cal), "--out", s(&blob)]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(blob.exists());
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn calibrations_that_cannot_be_a_device_do_not_compile() {
+    let dir = temp_dir("impossible");
+    let mut cases: Vec<(&str, Calibration, &str)> = Vec::new();
+    let mut c = cube();
+    c.frame.room_rotation[0][1] = 0.2;
+    cases.push(("skewed", c, "frame.room_rotation"));
+    let mut c = cube();
+    c.frame.anchors[5] = c.frame.anchors[1];
+    cases.push(("coincident", c, "frame.anchors[1] and frame.anchors[5]"));
+    let mut c = cube();
+    c.frame.anchors[2] = [1e12, 0.0, 0.0];
+    cases.push(("far", c, "frame.anchors[2]"));
+    let mut c = cube();
+    c.strings[4].winding_mm[0] = -10.0;
+    cases.push(("negative-winding", c, "strings[4].winding_mm"));
+    for (name, calibration, field) in cases {
+        let cal = write(&dir, &format!("{name}.json"), &calibration);
+        let blob = dir.join(format!("{name}.blob"));
+        let err = failure(&spidar(&[
+            "compile",
+            "--calibration",
+            s(&cal),
+            "--out",
+            s(&blob),
+        ]));
+        assert!(
+            err.contains(&format!("{name}.json"))
+                && err.contains(field)
+                && err.contains("not a device"),
+            "{name}: {err}"
+        );
+        assert!(!blob.exists(), "{name}: a blob was written");
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn budgets_that_are_not_numbers_are_refused_and_over_budget_blobs_not_written() {
+    let dir = temp_dir("budget");
+    let cal = write(&dir, "calibration.json", &cube());
+    let blob = dir.join("model.blob");
+    for budget in ["NaN", "-1", "0", "inf"] {
+        let option = format!("--budget-mm={budget}");
+        let err = failure(&spidar(&[
+            "compile",
+            "--calibration",
+            s(&cal),
+            "--out",
+            s(&blob),
+            &option,
+        ]));
+        assert!(err.contains("--budget-mm"), "{budget}: {err}");
+        assert!(!blob.exists(), "{budget}: a blob was written");
+    }
+    // A test session measures the fixed-point error; no blob meets a
+    // budget of 1e-300 mm.
+    let o = spidar(&[
+        "simulate",
+        "--out",
+        s(&dir),
+        "--seed",
+        "2",
+        "--kind",
+        "random",
+        "--name",
+        "test",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let test = dir.join("test.csv");
+    let args = |extra: &[&'static str]| {
+        let mut a = vec![
+            "compile".to_string(),
+            "--calibration".into(),
+            s(&cal).into(),
+            "--out".into(),
+            s(&blob).into(),
+            "--test".into(),
+            s(&test).into(),
+            "--budget-mm".into(),
+            "1e-300".into(),
+        ];
+        a.extend(extra.iter().map(|e| e.to_string()));
+        a
+    };
+    let run = |a: Vec<String>| {
+        Command::new(env!("CARGO_BIN_EXE_spidar"))
+            .args(a)
+            .output()
+            .unwrap()
+    };
+    let err = failure(&run(args(&[])));
+    assert!(
+        err.contains("exceeds the budget") && err.contains("no blob written"),
+        "{err}"
+    );
+    assert!(!blob.exists());
+    // Asked for: written, and the command still fails saying so.
+    let err = failure(&run(args(&["--write-over-budget"])));
+    assert!(
+        err.contains("written to") && err.contains("as asked"),
+        "{err}"
+    );
+    assert!(blob.exists());
+    std::fs::remove_dir_all(&dir).ok();
+}
