@@ -273,6 +273,9 @@ mod compiler {
             exclusion_threshold_mm: f64,
             fault_threshold_mm: f64,
         },
+        /// The calibration cannot be a device (a rotation that is not one,
+        /// coincident or far-flung anchors, a payout that falls).
+        Implausible(crate::plausible::Implausible),
         /// The body could not be encoded (should not happen).
         Encode,
     }
@@ -316,6 +319,7 @@ mod compiler {
                     "`length_scale_mm` of string {string} is not a positive number \
                      (zeros on every string: not measured)"
                 ),
+                CompileError::Implausible(e) => write!(f, "not a device: {e}"),
                 CompileError::Encode => write!(f, "blob body could not be encoded"),
             }
         }
@@ -371,6 +375,8 @@ mod compiler {
         created_unix_s: u32,
     ) -> Result<Vec<u8>, CompileError> {
         let frame = frame_f32(&calibration.frame)?;
+        crate::plausible::check_device(&calibration.frame, &calibration.strings)
+            .map_err(CompileError::Implausible)?;
         let layout = calibration.frame.layout;
         if layout.count() < layout.dof() {
             return Err(CompileError::Layout {

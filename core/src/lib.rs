@@ -37,6 +37,7 @@ pub mod guidance;
 pub mod kinematics;
 pub mod model;
 pub mod model_store;
+pub mod plausible;
 pub mod real;
 pub mod safety;
 pub mod string_law;

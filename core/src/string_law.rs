@@ -214,11 +214,15 @@ pub fn payout_f64(law: &StringLaw, counts: i32) -> f64 {
 
 /// The winding polynomial alone (mm), without the layer table.
 pub fn polynomial_payout_f64(law: &StringLaw, counts: i32) -> f64 {
-    let t = pulley_angle(law, counts);
+    polynomial_payout_at_f64(law, pulley_angle(law, counts))
+}
+
+/// The winding polynomial (mm) at pulley angle `theta` (rad from home).
+pub fn polynomial_payout_at_f64(law: &StringLaw, theta: f64) -> f64 {
     let w = &law.winding_mm;
     let mut acc = 0.0;
     for k in (0..WINDING_ORDER).rev() {
-        acc = (acc + w[k]) * t;
+        acc = (acc + w[k]) * theta;
     }
     acc
 }

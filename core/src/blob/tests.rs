@@ -19,7 +19,7 @@ fn with_head(blob: &[u8], head: &BlobHead, rest: &[u8]) -> alloc::vec::Vec<u8> {
 fn calibration() -> Calibration {
     Calibration {
         frame: cube_frame([1.0, -2.0, 3.0]),
-        strings: [StringLaw::polynomial(4096, [12.0, -0.02, 0.0, 0.0]); STRINGS],
+        strings: [StringLaw::polynomial(4096, [12.0, -0.004, 0.0, 0.0]); STRINGS],
         effects: alloc::vec![
             EffectTerm {
                 string: 3,
