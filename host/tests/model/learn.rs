@@ -325,6 +325,49 @@ fn nn_corrects_synthetic_field() {
     }
 }
 
+/// A planar device's positions all have one z: nothing constrains the
+/// weights of that input, and the network must still fit the device's
+/// fixed point (they had wandered to 1e9 on the wall robot).
+#[test]
+fn a_planar_session_trains_a_network_the_device_can_hold() {
+    let (train, test) = data();
+    // A smooth error of a few mm across the plane.
+    let flat = |d: &Dataset| -> (Vec<[f64; 3]>, Vec<[f64; 3]>) {
+        let z = 2000.0;
+        let inputs: Vec<[f64; 3]> = d.inputs.iter().map(|p| [p[0], p[1], z]).collect();
+        let targets = inputs
+            .iter()
+            .map(|p| {
+                [
+                    p[0] + 3.0 * (p[0] / 300.0).sin(),
+                    p[1] + 2.0 * (p[1] / 400.0).cos(),
+                    z,
+                ]
+            })
+            .collect();
+        (inputs, targets)
+    };
+    let (inputs, targets) = flat(&train);
+    let fit = nn::train(&inputs, &targets, &nn_cfg(10, 60, OutputMode::Residual)).unwrap();
+    assert!(
+        fit.model.w1.iter().all(|w| w[2] == 0.0),
+        "{:?}",
+        fit.model.w1
+    );
+    spidar_core::correction::CorrectionModel::Nn(fit.model.clone())
+        .compile()
+        .expect("the device holds the planar network");
+    let (test_inputs, test_targets) = flat(&test);
+    let t = search::evaluate(|p| nn::predict(&fit.model, p), &test_inputs, &test_targets);
+    let raw = search::evaluate(|p| *p, &test_inputs, &test_targets);
+    assert!(
+        t.mean < 0.3 * raw.mean,
+        "planar NN test mean {} (raw {})",
+        t.mean,
+        raw.mean
+    );
+}
+
 #[test]
 fn hidden_sweep_gives_a_curve_and_the_best_size() {
     let (train, test) = data();

@@ -281,13 +281,25 @@ impl Prepared {
         })
     }
 
+    /// The network of weights `w`. An input axis that is constant over the
+    /// training points (z of a planar device) is 0 after standardization:
+    /// nothing constrains its weights, which LM's damping lets wander to
+    /// any size (1e9 seen), beyond what the device's fixed point holds.
+    /// They are written as 0, which changes no prediction on that plane.
     pub fn model(&self, h: usize, w: &[f64]) -> NnModel {
         let l = Layout { h };
+        let weight = |j: usize, a: usize| {
+            if self.lo[a] == self.hi[a] {
+                0.0
+            } else {
+                w[l.w1(j, a)]
+            }
+        };
         NnModel {
             input: self.input,
             output: self.output,
             w1: (0..h)
-                .map(|j| [w[l.w1(j, 0)], w[l.w1(j, 1)], w[l.w1(j, 2)]])
+                .map(|j| [weight(j, 0), weight(j, 1), weight(j, 2)])
                 .collect(),
             b1: (0..h).map(|j| w[l.b1(j)]).collect(),
             w2: [0, 1, 2].map(|k| (0..h).map(|j| w[l.w2(k, j)]).collect()),
