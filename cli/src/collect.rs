@@ -34,7 +34,7 @@ pub struct CollectArgs {
     #[arg(long, default_value_t = 13)]
     pub cells: u32,
     /// Edge of the sampled cube, mm.
-    #[arg(long, default_value_t = 1000.0)]
+    #[arg(long, default_value_t = 1000.0, value_parser = crate::args::positive)]
     pub size_mm: f64,
     /// Centre of the cube, room frame, mm, `x,y,z` (default: the home of
     /// --init, else the geometry's frame centre through eq. 6).
@@ -44,7 +44,7 @@ pub struct CollectArgs {
     #[arg(long)]
     pub max_cells: Option<usize>,
     /// Fail when the tracker sends nothing for this long, s.
-    #[arg(long, default_value_t = 5.0)]
+    #[arg(long, default_value_t = 5.0, value_parser = crate::args::positive)]
     pub tracker_timeout_s: f64,
     /// Audio cue output (collection plays no beep; the view is visual):
     /// auto (a PCM player if one is installed, else the terminal bell), player

@@ -75,11 +75,11 @@ pub enum DeviceCommand {
         /// One frame every N loop iterations.
         #[arg(long, default_value_t = 10)]
         decimation: u16,
-        /// Stop after this many frames.
-        #[arg(long)]
+        /// Stop after this many frames (at least 1).
+        #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
         frames: Option<u64>,
         /// Stop after this many seconds.
-        #[arg(long, default_value_t = 1.0)]
+        #[arg(long, default_value_t = 1.0, value_parser = crate::args::positive)]
         seconds: f64,
     },
     /// Arm the motors (pre-tension). The device needs a request at least
@@ -87,7 +87,7 @@ pub enum DeviceCommand {
     /// heartbeat for --hold seconds; after it, the device drops to
     /// pre-tension and latches HEARTBEAT_LOST until `disarm`/`arm`.
     Arm {
-        #[arg(long, default_value_t = 0.0)]
+        #[arg(long, default_value_t = 0.0, value_parser = crate::args::non_negative)]
         hold: f64,
     },
     /// Disarm the motors.
@@ -104,7 +104,7 @@ pub enum DeviceCommand {
         /// Force along z, N.
         #[arg(allow_hyphen_values = true, value_parser = finite_newtons)]
         fz: f32,
-        #[arg(long, default_value_t = 1.0)]
+        #[arg(long, default_value_t = 1.0, value_parser = crate::args::non_negative)]
         hold: f64,
     },
 }

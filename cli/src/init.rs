@@ -33,13 +33,13 @@ pub struct InitArgs {
     #[arg(long, default_value_t = 3.0)]
     pub f_max_n: f32,
     /// The marker must hold within this distance of the target, mm.
-    #[arg(long, default_value_t = 2.0)]
+    #[arg(long, default_value_t = 2.0, value_parser = crate::args::positive)]
     pub tolerance_mm: f64,
     /// ... for this long, s.
-    #[arg(long, default_value_t = 0.5)]
+    #[arg(long, default_value_t = 0.5, value_parser = crate::args::non_negative)]
     pub hold_s: f64,
     /// Give up after this long, s.
-    #[arg(long, default_value_t = 120.0)]
+    #[arg(long, default_value_t = 120.0, value_parser = crate::args::positive)]
     pub timeout_s: f64,
     /// Audio cue output: auto (a PCM player if one is installed, else the terminal bell), player
     /// (`aplay` or `pacat`; fails if neither is on PATH), bell (the terminal

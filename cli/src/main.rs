@@ -2,6 +2,7 @@
 //! the arguments (clap), the progress bars and terminal output, and the
 //! error context; every computation is the library's.
 
+mod args;
 mod audio;
 mod calibrate;
 mod collect;

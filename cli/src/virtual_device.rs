@@ -28,7 +28,7 @@ pub struct VirtualDeviceArgs {
     #[arg(long, default_value_t = 50)]
     pub points: usize,
     /// Device time per real time (1 = like the hardware).
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, default_value_t = 1.0, value_parser = crate::args::positive)]
     pub speed: f64,
     /// Largest model blob, KiB, at most 128 (the virtual flash slot). The
     /// default is the reference firmware's capacity, so that a blob the
@@ -36,7 +36,7 @@ pub struct VirtualDeviceArgs {
     #[arg(long, default_value_t = FIRMWARE_BLOB_CAPACITY / 1024)]
     pub capacity_kib: usize,
     /// Stop after this many seconds (default: run until killed).
-    #[arg(long)]
+    #[arg(long, value_parser = crate::args::positive)]
     pub seconds: Option<f64>,
 }
 

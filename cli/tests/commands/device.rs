@@ -74,6 +74,40 @@ fn device_command_line_takes_the_port_anywhere() {
         !ok && err.contains("--hold") && !err.contains("serial port"),
         "{err}"
     );
+    // Durations and counts that cannot be: refused before any port opens
+    // (`--frames 0` printed a frame, `--seconds NaN` ran for ever).
+    for args in [
+        &[
+            "device",
+            "stream",
+            "--frames",
+            "0",
+            "--port",
+            "/nonexistent/tty",
+        ][..],
+        &[
+            "device",
+            "stream",
+            "--seconds",
+            "NaN",
+            "--port",
+            "/nonexistent/tty",
+        ][..],
+        &[
+            "device", "force", "1", "0", "0", "--hold", "NaN", "--port", "/x",
+        ][..],
+        &["virtual-device", "--seconds", "NaN"][..],
+        &["virtual-device", "--seconds", "0"][..],
+        &["virtual-device", "--speed=-2"][..],
+    ] {
+        let (ok, err) = spidar(args);
+        let option = args.iter().find(|a| a.starts_with("--") && **a != "--port");
+        let option = option.unwrap().split('=').next().unwrap();
+        assert!(
+            !ok && err.contains(option) && !err.contains("serial port"),
+            "{args:?}: {err}"
+        );
+    }
 }
 
 /// A reply timeout for the client that a busy machine cannot exceed: this
