@@ -31,7 +31,7 @@
 //!   refitted on its residuals ([`REFINE_ROUNDS`] times).
 //!
 //! Whether the tables are kept is decided as every change of the loop is
-//! ([`crate::model::diagnose::judge`]): held-out position error on the blocked
+//! ([`crate::model::validate::judge`]): held-out position error on the blocked
 //! folds, every fold refitting geometry *and tables* on its own rows.
 //!
 //! Tables the loop kept are then refitted with their level ([`TableLevel`]),
@@ -67,9 +67,9 @@ pub const MIN_STRING_GAIN: f64 = 0.03;
 pub const MIN_ROWS_PER_KNOT: usize = 8;
 
 /// Fewest rows on each side of a slip for its step to be refitted with the
-/// tables ([`crate::model::diagnose::MIN_STEP_SIDE_ROWS`], as a step is
+/// tables ([`crate::model::validate::MIN_STEP_SIDE_ROWS`], as a step is
 /// judged).
-const MIN_STEP_SIDE_ROWS: usize = crate::model::diagnose::MIN_STEP_SIDE_ROWS;
+const MIN_STEP_SIDE_ROWS: usize = crate::model::validate::MIN_STEP_SIDE_ROWS;
 
 /// Coarser spacings tried after the finest that fits [`LAYER_KNOTS`] knots.
 pub const COARSER_SPACINGS: u8 = 4;
