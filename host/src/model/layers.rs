@@ -1,5 +1,4 @@
-//! Layer tables: the part of a spool's winding law no polynomial follows
-//! (issue 10, point 2).
+//! Layer tables: the part of a spool's winding law no polynomial follows.
 //!
 //! A string wound in level layers has a constant radius within a layer and
 //! steps by about one diameter at each layer change, so its payout is a
@@ -31,7 +30,7 @@
 //!   refitted on its residuals ([`REFINE_ROUNDS`] times).
 //!
 //! Whether the tables are kept is decided as every change of the loop is
-//! ([`crate::model::diagnose::judge`]): held-out position error on the blocked
+//! ([`crate::model::validate::judge`]): held-out position error on the blocked
 //! folds, every fold refitting geometry *and tables* on its own rows.
 //!
 //! Tables the loop kept are then refitted with their level ([`TableLevel`]),
@@ -67,19 +66,17 @@ pub const MIN_STRING_GAIN: f64 = 0.03;
 pub const MIN_ROWS_PER_KNOT: usize = 8;
 
 /// Fewest rows on each side of a slip for its step to be refitted with the
-/// tables ([`crate::model::diagnose::MIN_STEP_SIDE_ROWS`], as a step is
+/// tables ([`crate::model::validate::MIN_STEP_SIDE_ROWS`], as a step is
 /// judged).
-const MIN_STEP_SIDE_ROWS: usize = crate::model::diagnose::MIN_STEP_SIDE_ROWS;
+const MIN_STEP_SIDE_ROWS: usize = crate::model::validate::MIN_STEP_SIDE_ROWS;
 
 /// Coarser spacings tried after the finest that fits [`LAYER_KNOTS`] knots.
 pub const COARSER_SPACINGS: u8 = 4;
 
 /// Geometry refits with the tables held, each followed by a table refit.
-/// Measured on the clean and drift-all independent devices of seeds 1-3
-/// (final held-out mean, worst max): 1 round 0.763 / 3.29 and 0.484 / 2.95
-/// mm, 2 rounds 0.437 / 3.01 and 0.491 / 2.98, 3 rounds 0.515 / 3.08 and
-/// 0.787 / 5.31 (the effects the loop adds after the tables change with
-/// the refit, not the tables themselves).
+/// Two: of one, two and three rounds, the best final held-out mean and
+/// worst max on independent devices (a third round changes the effects
+/// the loop adds after the tables, not the tables themselves).
 pub const REFINE_ROUNDS: usize = 2;
 
 /// Who takes a string's level (its mean departure) when a layer table is
@@ -90,15 +87,14 @@ pub enum TableLevel {
     /// `theta^2` terms): the table's level is what its knots' prior leaves.
     /// How the tables are chosen and judged: a table with a free level
     /// stands in for a drift or a step in time (a lattice collected plane
-    /// by plane ties the counts to time), and was accepted on the model
-    /// simulator's drifting string, whose spool has no layers.
+    /// by plane ties the counts to time), and is accepted on a drifting
+    /// string whose spool has no layers.
     Dropped,
     /// The level is the table's: nothing else in the model takes a
     /// string's level (its payout law is 0 at home), so with the constant
-    /// dropped an `offset` stood in for it (most of the terms of other
-    /// families the loop added on clean independent devices: 27 on 20
-    /// devices, 8 with the level kept). How tables the loop accepted are
-    /// refitted, and refitted with a slip.
+    /// dropped an `offset` stands in for it (`docs/benchmarks.md`, "A faulty
+    /// string looked for from 1 mm; tables keep the string's level"). How
+    /// tables the loop accepted are refitted, and refitted with a slip.
     Kept,
 }
 

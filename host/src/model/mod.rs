@@ -6,6 +6,8 @@
 //! - [`diagnose`]: the loop that finds what the model still misses in the
 //!   residual, traces it to an effect and adds it when validation agrees;
 //! - [`layers`]: each spool's layer table in the string law;
+//! - [`validate`]: held-out validation (folds blocked in time and space)
+//!   and the verdict on a change, which the loop and the layer tables use;
 //! - `normal`: the identification's normal equations, summed from the
 //!   Jacobian's block-arrow rows without forming it;
 //! - [`learn`]: model-less corrections (NN, SVR) and their searches;
@@ -28,3 +30,4 @@ pub mod predict;
 pub mod reference;
 pub mod rule;
 pub mod tolerance;
+pub mod validate;

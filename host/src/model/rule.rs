@@ -22,9 +22,10 @@ use spidar_core::kinematics::KinematicsRule;
 
 use crate::data::observe::Observation;
 use crate::data::stats::{position_errors, quantile, ErrorStats};
-use crate::model::diagnose::{judged_fold_fits, LoopConfig};
+use crate::model::diagnose::LoopConfig;
 use crate::model::identify::{identify, Identification, IdentifyError, Start, Structure};
 use crate::model::predict::{paired_with_tracker, predict, KinematicModel, UNMEASURED_SCALES};
+use crate::model::validate::judged_fold_fits;
 use spidar_core::model::Frame;
 
 /// The quantile of the training rows' string disagreement (the RMS of the

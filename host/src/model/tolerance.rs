@@ -22,10 +22,9 @@ use spidar_core::STRINGS;
 
 use crate::data::observe::Observation;
 use crate::data::stats::ErrorStats;
-use crate::model::diagnose::{
-    held_out_error_list, judged_folds, Fold, LoopConfig, MIN_BLOCKED_ROWS,
-};
+use crate::model::diagnose::LoopConfig;
 use crate::model::identify::{identify, rows_needed_for, Priors, Start};
+use crate::model::validate::{held_out_error_list, judged_folds, Fold, MIN_BLOCKED_ROWS};
 
 /// The tolerances tried (mm, one sd per coordinate): the drawing's
 /// ([`Priors::default`]), four and ten times it (a hand-measured rig).

@@ -425,7 +425,8 @@ fn loop_with(
 /// an offset on string 4 was taken on the 15 % between the two).
 #[test]
 fn the_change_after_the_layer_tables_is_judged_against_them_validated_as_it_is() {
-    use spidar::model::diagnose::{validate, LoopConfig};
+    use spidar::model::diagnose::LoopConfig;
+    use spidar::model::validate::validate;
     let (full, train, nominal) = loop_with(1, &[], &LoopConfig::default());
     let (tables, _, _) = loop_with(
         1,
@@ -469,7 +470,8 @@ fn the_change_after_the_layer_tables_is_judged_against_them_validated_as_it_is()
 /// the check that refused it.
 #[test]
 fn a_clean_independent_device_gets_spool_rates_and_layer_tables_first_and_each_decision_says_why() {
-    use spidar::model::diagnose::{Family, Folds, LoopConfig};
+    use spidar::model::diagnose::{Family, LoopConfig};
+    use spidar::model::validate::Folds;
     let r = clean_loop(1);
     assert_eq!(
         r.stages[0].name,
@@ -918,8 +920,8 @@ fn a_clean_model_device_gets_no_layer_table() {
 #[test]
 fn a_small_session_falls_back_to_interleaved_folds() {
     use spidar::data::observe::observations;
-    use spidar::model::diagnose::{validate, Folds, MIN_BLOCKED_ROWS};
     use spidar::model::identify::{identify, Start, Structure};
+    use spidar::model::validate::{validate, Folds, MIN_BLOCKED_ROWS};
     let device = PhysicsDevice::new(&quiet_config(), 2).unwrap();
     let (train, _) = simulate_session(&device, SessionKind::Random { points: 150 }, 3).unwrap();
     let obs = observations(&train.samples);

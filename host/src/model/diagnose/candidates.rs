@@ -1,0 +1,539 @@
+//! The candidate effects diagnosis tests on the residual: each family's
+//! columns on the rows (per string, shared by every string, the tracked
+//! body's offset, the tracker's scale), the rivals some must explain the
+//! residual beyond, and the anchors the data pull beyond their tolerance.
+
+use spidar_core::model::{Effect, EffectTerm, Frame, StringLayout, EVERY_STRING};
+use spidar_core::string_law::{sag_home_variable, sag_variable};
+use spidar_core::STRINGS;
+
+use crate::model::identify::{Identification, Structure};
+
+use super::evidence::{Evidence, Row};
+use super::vocabulary::{Change, Family, Finding, LoopConfig, Variable};
+
+#[cfg(test)]
+mod tests;
+
+/// Turns fitted coefficients into the model change a candidate proposes.
+pub(super) type BuildChange = Box<dyn Fn(&[f64]) -> Change>;
+
+/// A candidate effect: its regressors over all rows and what adding it means.
+pub(super) struct Candidate {
+    pub(super) family: Family,
+    pub(super) strings: Vec<u8>,
+    pub(super) variable: Variable,
+    pub(super) columns: Vec<Vec<f64>>,
+    /// Extra chi-square demanded for a searched parameter (a slip's time).
+    pub(super) search_penalty: f64,
+    /// Columns of a simpler explanation the candidate must explain the
+    /// residual beyond (nested test at its own dof); empty: none.
+    pub(super) rival: Vec<Vec<f64>>,
+    pub(super) build: BuildChange,
+    pub(super) describe: String,
+}
+
+fn string_column(rows: &[Row], string: usize, f: impl Fn(&Row) -> f64) -> Vec<f64> {
+    rows.iter()
+        .map(|r| if r.string == string { f(r) } else { 0.0 })
+        .collect()
+}
+
+/// The column of a term shared by every string: `f` on the active
+/// strings' rows.
+fn shared_column(rows: &[Row], strings: StringLayout, f: impl Fn(&Row) -> f64) -> Vec<f64> {
+    rows.iter()
+        .map(|r| {
+            if strings.is_active(r.string) {
+                f(r)
+            } else {
+                0.0
+            }
+        })
+        .collect()
+}
+
+pub(super) fn candidates(
+    ev: &Evidence,
+    structure: &Structure,
+    time_split: &[Option<f64>],
+) -> Vec<Candidate> {
+    let rows = &ev.rows;
+    let mut out = Vec::new();
+    let has_effect = |string: usize, f: fn(&Effect) -> bool| {
+        structure
+            .effects
+            .iter()
+            .any(|t| t.string as usize == string && f(&t.effect))
+    };
+    let strings = ev.layout;
+    for (i, split) in time_split.iter().enumerate().take(STRINGS) {
+        if !strings.is_active(i) {
+            continue;
+        }
+        for term in string_terms(rows, i, *split) {
+            if !has_effect(i, term.is_term) {
+                out.push(term.candidate(rows, i));
+            }
+        }
+    }
+    // One drift shared by every string (creep or temperature of the whole
+    // device): one parameter where per-string drifts take one each, and the
+    // same value on every string, which the per-string terms, added one at a
+    // time, do not find.
+    let shared = usize::from(EVERY_STRING);
+    if !has_effect(shared, |e| matches!(e, Effect::Drift { .. })) {
+        out.push(shared_drift_candidate(rows, strings));
+    }
+    if !has_effect(shared, |e| matches!(e, Effect::Stretch { .. })) {
+        out.push(shared_stretch_candidate(
+            rows,
+            strings,
+            structure.priors.home_tension_n,
+        ));
+    }
+    if !has_effect(shared, |e| matches!(e, Effect::FrameFlex { .. })) {
+        out.push(frame_flex_candidate(rows, strings));
+    }
+    if !has_effect(shared, |e| matches!(e, Effect::Sag { .. })) {
+        out.push(shared_sag_candidate(rows, strings));
+    }
+    // The tracked body's origin off the strings' meeting point, seen through
+    // the body's orientation (a tracker of rigid bodies gives it): the
+    // meeting point is `p - R_body d`. Tried when every tracked row has an
+    // orientation; a found offset is refined by the next diagnosis.
+    if rows.iter().all(|r| r.marker_column.is_some()) {
+        out.push(marker_offset_candidate(
+            rows,
+            strings,
+            structure.marker_body_mm.unwrap_or([0.0; 3]),
+        ));
+    }
+    if !structure.fit_room_scale {
+        out.push(Candidate {
+            family: Family::Geometry,
+            strings: Vec::new(),
+            variable: Variable::Position,
+            columns: vec![rows.iter().map(|r| r.scale_gradient).collect()],
+            search_penalty: 0.0,
+            rival: Vec::new(),
+            build: Box::new(|_| Change::RoomScale),
+            describe: "the tracker's scale differs from the device's (frame error)".into(),
+        });
+    }
+    out
+}
+
+/// A column's value on one row.
+type RowColumn = Box<dyn Fn(&Row) -> f64>;
+
+/// A term's effect from its fitted parameters.
+type BuildEffect = Box<dyn Fn(&[f64]) -> Effect>;
+
+/// One string's term a candidate would add: what differs between the
+/// per-string candidates.
+struct StringTerm {
+    family: Family,
+    variable: Variable,
+    /// Whether an effect of the structure is this term already.
+    is_term: fn(&Effect) -> bool,
+    /// The term's columns, each read off the string's rows.
+    columns: Vec<RowColumn>,
+    /// Columns of a simpler explanation on the same rows the term must
+    /// explain the residual beyond ([`Candidate::rival`]); empty: none.
+    rival: Vec<RowColumn>,
+    search_penalty: f64,
+    /// The fitted parameters as the effect.
+    effect: BuildEffect,
+    describe: String,
+}
+
+impl StringTerm {
+    /// The candidate adding this term on string `i`.
+    fn candidate(self, rows: &[Row], i: usize) -> Candidate {
+        let s = i as u8;
+        let effect = self.effect;
+        Candidate {
+            family: self.family,
+            strings: vec![s],
+            variable: self.variable,
+            columns: self
+                .columns
+                .iter()
+                .map(|f| string_column(rows, i, f))
+                .collect(),
+            search_penalty: self.search_penalty,
+            rival: self
+                .rival
+                .iter()
+                .map(|f| string_column(rows, i, f))
+                .collect(),
+            build: Box::new(move |b| {
+                Change::Effect(EffectTerm {
+                    string: s,
+                    effect: effect(b),
+                })
+            }),
+            describe: self.describe,
+        }
+    }
+}
+
+/// The terms one string `i` can gain, in the order they are tried; a slip
+/// when the string's residual steps at `split` (its most likely slip time).
+fn string_terms(rows: &[Row], i: usize, split: Option<f64>) -> Vec<StringTerm> {
+    let mut terms = vec![
+        StringTerm {
+            family: Family::Offset,
+            variable: Variable::Length,
+            is_term: |e| matches!(e, Effect::Offset { .. }),
+            columns: vec![Box::new(|_| 1.0)],
+            rival: Vec::new(),
+            search_penalty: 0.0,
+            effect: Box::new(|b| Effect::Offset { mm: b[0] }),
+            describe: format!("string {i} reads a constant length error (its home length is off)"),
+        },
+        StringTerm {
+            family: Family::Scale,
+            variable: Variable::WoundLength,
+            is_term: |e| matches!(e, Effect::Scale { .. }),
+            columns: vec![Box::new(|r| r.ctx.payout_mm)],
+            rival: Vec::new(),
+            search_penalty: 0.0,
+            effect: Box::new(|b| Effect::Scale { relative: b[0] }),
+            describe: format!("string {i}'s payout is off in proportion to the string wound out"),
+        },
+        StringTerm {
+            family: Family::Winding,
+            variable: Variable::WoundLength,
+            is_term: |e| matches!(e, Effect::Winding { power: 3, .. }),
+            columns: vec![Box::new(|r| r.ctx.theta.powi(3))],
+            rival: Vec::new(),
+            search_penalty: 0.0,
+            effect: Box::new(|b| Effect::Winding {
+                power: 3,
+                mm_per_rad_pow: b[0],
+            }),
+            describe: format!("string {i}'s winding law needs a third-order term (uneven layers)"),
+        },
+        StringTerm {
+            family: Family::Eccentricity,
+            variable: Variable::PulleyAngle,
+            is_term: |e| matches!(e, Effect::Eccentricity { .. }),
+            columns: vec![
+                Box::new(|r| r.ctx.theta.sin()),
+                Box::new(|r| r.ctx.theta.cos() - 1.0),
+            ],
+            rival: Vec::new(),
+            search_penalty: 3.0,
+            effect: Box::new(|b| Effect::Eccentricity {
+                sin_mm: b[0],
+                cos_mm: b[1],
+            }),
+            describe: format!(
+                "string {i}'s error is periodic in its pulley angle (eccentric pulley)"
+            ),
+        },
+        StringTerm {
+            family: Family::Elasticity,
+            variable: Variable::Tension,
+            is_term: |e| matches!(e, Effect::Elasticity { .. }),
+            columns: vec![Box::new(|r| {
+                r.ctx.tension_n * (r.ctx.home_length_mm + r.ctx.payout_mm)
+            })],
+            rival: Vec::new(),
+            search_penalty: 0.0,
+            effect: Box::new(|b| Effect::Elasticity { per_newton: b[0] }),
+            describe: format!("string {i} stretches with its tension (elastic string)"),
+        },
+        StringTerm {
+            family: Family::Backlash,
+            variable: Variable::Direction,
+            is_term: |e| matches!(e, Effect::Backlash { .. }),
+            columns: vec![Box::new(|r| f64::from(r.ctx.direction.signum()))],
+            rival: Vec::new(),
+            search_penalty: 0.0,
+            effect: Box::new(|b| Effect::Backlash {
+                half_width_mm: b[0],
+            }),
+            describe: format!("string {i}'s error depends on its direction of motion (backlash)"),
+        },
+        StringTerm {
+            family: Family::Drift,
+            variable: Variable::Time,
+            is_term: |e| matches!(e, Effect::Drift { .. }),
+            columns: vec![Box::new(|r| r.ctx.time_s)],
+            rival: position_columns(),
+            search_penalty: 0.0,
+            effect: Box::new(|b| Effect::Drift { mm_per_s: b[0] }),
+            describe: format!("string {i}'s length drifts with time since initialization"),
+        },
+    ];
+    if let Some(at_s) = split {
+        terms.push(slip_term(rows, i, at_s));
+    }
+    terms
+}
+
+/// A slip of string `i` at `at_s`: a step in its length, with the search
+/// penalty of a time picked among the string's rows.
+fn slip_term(rows: &[Row], i: usize, at_s: f64) -> StringTerm {
+    let n = rows.iter().filter(|r| r.string == i).count().max(2) as f64;
+    StringTerm {
+        family: Family::Slip,
+        variable: Variable::Time,
+        // A string may slip again: its next step is looked for off the
+        // model, which holds the steps found (a step at their times is
+        // in the model's span).
+        is_term: |_| false,
+        columns: vec![Box::new(
+            move |r| {
+                if r.ctx.time_s >= at_s {
+                    1.0
+                } else {
+                    0.0
+                }
+            },
+        )],
+        rival: Vec::new(),
+        search_penalty: 2.0 * n.ln(),
+        effect: Box::new(move |b| Effect::Slip { at_s, mm: b[0] }),
+        describe: format!("string {i} slipped at t = {at_s:.1} s (a step in its length)"),
+    }
+}
+
+/// A string's error quadratic in the tracked position (m, device frame):
+/// what a drift can stand in for on a lattice walked plane by plane, where
+/// time goes with position. A drift must explain the residual beyond it
+/// (its nine columns); what tells a drift from a position error within one
+/// session is the rows' time off any smooth function of the position (the
+/// walk turning back at each row and plane, the user's pauses). Quadratic,
+/// not linear: past a linear rival a drift still stands in for what an
+/// offset explains, and the model simulator's drifts are found past the
+/// quadratic one (`docs/benchmarks.md`, "A drift must beat a position
+/// error").
+fn position_columns() -> Vec<RowColumn> {
+    let mut out: Vec<RowColumn> = (0..3)
+        .map(|k| Box::new(move |r: &Row| r.position[k] / 1000.0) as RowColumn)
+        .collect();
+    for a in 0..3 {
+        for b in a..3 {
+            out.push(Box::new(move |r: &Row| r.position[a] * r.position[b] / 1e6));
+        }
+    }
+    out
+}
+
+/// The change of a term shared by every string.
+fn every_string(effect: Effect) -> Change {
+    Change::Effect(EffectTerm {
+        string: EVERY_STRING,
+        effect,
+    })
+}
+
+/// One drift shared by every string.
+fn shared_drift_candidate(rows: &[Row], strings: StringLayout) -> Candidate {
+    Candidate {
+        family: Family::Drift,
+        strings: Vec::new(),
+        variable: Variable::Time,
+        columns: vec![shared_column(rows, strings, |r| r.ctx.time_s)],
+        search_penalty: 0.0,
+        rival: Vec::new(),
+        build: Box::new(|b| every_string(Effect::Drift { mm_per_s: b[0] })),
+        describe: "every string's length drifts alike with time since initialization (creep, \
+                   temperature of the whole device)"
+            .into(),
+    }
+}
+
+/// One stretch shared by every string (strings of one kind: one
+/// stiffness, a similar lead from spool to guide, one tension at the home
+/// capture): `k (T l - T_home l_home) + m (T - T_home)`. Detected with the
+/// linear columns `T l`, `T` and `-1` (`T_home (k l_home + m)` at the mean
+/// home length); the refit frees `T_home` around the pretension. With its
+/// lead and home parts: without them the shared sag stands in for it
+/// (`docs/benchmarks.md`, "The strings' stretch").
+fn shared_stretch_candidate(rows: &[Row], strings: StringLayout, pretension: f64) -> Candidate {
+    let (sum_lh, n_lh) = rows
+        .iter()
+        .filter(|r| strings.is_active(r.string))
+        .fold((0.0, 0usize), |(s, n), r| (s + r.ctx.home_length_mm, n + 1));
+    let mean_lh = sum_lh / n_lh.max(1) as f64;
+    Candidate {
+        family: Family::Elasticity,
+        strings: Vec::new(),
+        variable: Variable::Tension,
+        columns: stretch_columns(rows, strings),
+        search_penalty: 0.0,
+        rival: Vec::new(),
+        build: Box::new(move |b| {
+            let home_tension_n = b[2] / (b[0] * mean_lh + b[1]);
+            every_string(Effect::Stretch {
+                per_newton: b[0],
+                mm_per_newton: b[1],
+                home_tension_n: if (0.0..=2.0 * pretension + 1.0).contains(&home_tension_n) {
+                    home_tension_n
+                } else {
+                    pretension
+                },
+            })
+        }),
+        describe: "every string stretches with its tension, over its free span and its \
+                   lead, less its stretch at the home capture (elastic strings of one kind)"
+            .into(),
+    }
+}
+
+/// The strings' stretch's columns on every active string, `T l`, `T` and
+/// `-1` ([`Effect::Stretch`] linearized at the mean home length): the
+/// stretch candidate's; the first is what a shared sag must explain the
+/// residual beyond. Both grow with the tension's effect on the string, and
+/// without that test a sag many times what the strings weigh stands in for
+/// the stretch of light elastic strings.
+fn stretch_columns(rows: &[Row], strings: StringLayout) -> Vec<Vec<f64>> {
+    vec![
+        shared_column(rows, strings, |r| {
+            r.ctx.tension_n * (r.ctx.home_length_mm + r.ctx.payout_mm)
+        }),
+        shared_column(rows, strings, |r| r.ctx.tension_n),
+        shared_column(rows, strings, |_| -1.0),
+    ]
+}
+
+/// The frame flexing under the strings' total pull: every guide moves
+/// with `sum_j T_j`, one compliance for the frame, less the flex at the
+/// home capture (a length every string shares).
+fn frame_flex_candidate(rows: &[Row], strings: StringLayout) -> Candidate {
+    Candidate {
+        family: Family::FrameFlex,
+        strings: Vec::new(),
+        variable: Variable::Tension,
+        columns: vec![
+            shared_column(rows, strings, |r| r.ctx.total_tension_n),
+            shared_column(rows, strings, |_| -1.0),
+        ],
+        search_penalty: 0.0,
+        rival: Vec::new(),
+        build: Box::new(|b| {
+            every_string(Effect::FrameFlex {
+                mm_per_newton: b[0],
+                home_mm: b[1],
+            })
+        }),
+        describe: "every string's length moves with the strings' total tension (the frame \
+                   flexes under their pull)"
+            .into(),
+    }
+}
+
+/// One sag shared by every string (strings of one kind: one weight per
+/// metre, one tension at the home capture), each string at its own
+/// length, tension and inclination. Not one string's: its home part is a
+/// constant on that string (an offset), and per-string sags stand in for
+/// offsets and raise the test error (docs/benchmarks.md, "Sag at the
+/// string's inclination").
+fn shared_sag_candidate(rows: &[Row], strings: StringLayout) -> Candidate {
+    Candidate {
+        family: Family::Sag,
+        strings: Vec::new(),
+        variable: Variable::Tension,
+        columns: vec![
+            shared_column(rows, strings, |r| -sag_variable(&r.ctx)),
+            shared_column(rows, strings, |r| sag_home_variable(&r.ctx)),
+        ],
+        search_penalty: 0.0,
+        // The stretch's `T l` column only: with its three columns as the
+        // rival a different sag gets through, and a drift after it, which
+        // raise the test error.
+        rival: stretch_columns(rows, strings).into_iter().take(1).collect(),
+        build: Box::new(|b| {
+            every_string(Effect::Sag {
+                mm_at_1m_1n: b[0],
+                home_mm_at_1m: b[1],
+            })
+        }),
+        describe: "every string sags under its own weight, by cos^2(inclination) (l / 1 m)^3 \
+                   / (T / 1 N)^2 less its sag at the home capture (heavy strings of one kind)"
+            .into(),
+    }
+}
+
+/// The tracked body's origin off the strings' meeting point: three
+/// columns, the body's orientation applied to each axis; the change adds
+/// the fitted offset to the one found `before`.
+fn marker_offset_candidate(rows: &[Row], strings: StringLayout, before: [f64; 3]) -> Candidate {
+    Candidate {
+        family: Family::Marker,
+        strings: Vec::new(),
+        variable: Variable::Orientation,
+        columns: (0..3)
+            .map(|j| shared_column(rows, strings, |r| r.marker_column.map_or(0.0, |c| c[j])))
+            .collect(),
+        search_penalty: 0.0,
+        rival: Vec::new(),
+        build: Box::new(move |b| Change::MarkerOffset(core::array::from_fn(|j| before[j] + b[j]))),
+        describe: "the tracked body's origin is off the strings' meeting point: it turns \
+                   with the body (the tracker's orientation)"
+            .into(),
+    }
+}
+
+/// Whether candidate `c` explains the residual beyond its rival's columns:
+/// its chi-square over the rival's alone, at the candidate's dof.
+pub(super) fn beyond_rival(ev: &Evidence, c: &Candidate, config: &LoopConfig) -> bool {
+    let both: Vec<Vec<f64>> = c.rival.iter().chain(&c.columns).cloned().collect();
+    (ev.explained_by_span(&both) - ev.explained_by_span(&c.rival)) / ev.sigma2
+        >= chi2_threshold(config, c.columns.len(), c.search_penalty)
+}
+
+pub(super) fn chi2_threshold(config: &LoopConfig, dof: usize, penalty: f64) -> f64 {
+    config.chi2_threshold + 3.0 * (dof.saturating_sub(1)) as f64 + penalty
+}
+
+/// Anchors the data pull far beyond their design tolerance: the fitted
+/// anchor's distance from its design position, in prior standard deviations,
+/// is beyond what the tolerance explains (chi-square, 3 dof, p = 0.001), so
+/// the prior is fighting the data (a bracket mounted in another hole, a frame
+/// built off the drawing). Releasing the prior is the geometry change.
+pub(super) fn anchors_beyond_tolerance(
+    id: &Identification,
+    nominal: &Frame<f64>,
+    structure: &Structure,
+) -> Vec<Finding> {
+    (0..STRINGS)
+        .filter(|&i| nominal.layout.is_active(i))
+        .filter(|&i| structure.anchor_sd_override_mm[i].is_none())
+        .filter_map(|i| {
+            let sd = structure.priors.anchor_tolerance_mm(i);
+            let d = [
+                id.frame.anchors[i][0] - nominal.anchors[i][0],
+                id.frame.anchors[i][1] - nominal.anchors[i][1],
+                id.frame.anchors[i][2] - nominal.anchors[i][2],
+            ];
+            let chi2 = d.iter().map(|v| (v / sd).powi(2)).sum::<f64>();
+            // Mahalanobis distance under the prior beyond chi-square(3 dof)
+            // at p = 0.001: the as-built tolerance does not explain it.
+            const CHI2_3DOF_P001: f64 = 16.27;
+            (chi2 > CHI2_3DOF_P001).then(|| Finding {
+                family: Family::Geometry,
+                strings: vec![i as u8],
+                variable: Variable::Position,
+                amplitude_mm: (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt(),
+                explained: 0.0,
+                added: false,
+                chi2,
+                description: format!(
+                    "anchor {i} sits {:.1} mm from its design position ({:+.1}, {:+.1}, {:+.1}), beyond the {sd} mm tolerance",
+                    (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt(),
+                    d[0],
+                    d[1],
+                    d[2]
+                ),
+                validation: None,
+                change: Some(Change::ReleaseAnchor(i as u8)),
+            })
+        })
+        .collect()
+}

@@ -1,0 +1,670 @@
+//! Closing the loop: find what the identified model still misses in the
+//! residual, trace it to a physical effect, add the effect, refit, and keep it
+//! only if it helps on data it was not fitted on ([`crate::model::validate`]).
+//!
+//! This file holds the loop ([`close_loop`]) and the diagnosis it runs at
+//! each step ([`diagnose`]); beside it:
+//! - `vocabulary`: the families, variables, changes and findings, the
+//!   loop's settings and what it reports;
+//! - `outliers`: the training rows whose tracker the loop sets aside;
+//! - `trials`: each spool's own thinning rate and the layer tables, tried
+//!   before the effect families;
+//! - `evidence`: the residual rows and the model's span diagnosis reads;
+//! - `candidates`: the effect families' columns, tested on the residual;
+//! - `slips`: where a string slipped, whether it jumps there, and slips of
+//!   several strings together;
+//! - `unexplained`: structure no family explains;
+//! - `describe`: the report's words for all of these.
+
+mod candidates;
+mod describe;
+mod evidence;
+mod outliers;
+mod slips;
+mod trials;
+mod unexplained;
+mod vocabulary;
+
+#[cfg(test)]
+mod tests;
+
+use std::borrow::Cow;
+
+use spidar_core::model::{Effect, EffectTerm, Frame, EVERY_STRING, MAX_EFFECTS};
+
+use crate::data::observe::{at_meeting_points, Observation};
+use crate::data::stats::ErrorStats;
+use crate::model::identify::{identify, Identification, IdentifyError, Start, Structure};
+use crate::model::layers::{self, StringLayers, TableLevel};
+use crate::model::validate::{
+    held_out_error_list, judge, judge_step, judgeable_folds, refuse_a_fold_repair,
+    refuse_on_fold_rise, stability, validate, validate_fits, IN_SAMPLE_SHARE_OF_GAIN,
+};
+
+use candidates::{anchors_beyond_tolerance, beyond_rival, candidates, chi2_threshold};
+use describe::{fitted_in_physical_terms, stage_name};
+use evidence::Evidence;
+use slips::{slip_times, slips_together, steps_where_it_slipped};
+use trials::{add_layer_tables, free_spool_rates};
+
+/// The held-out validation's figures and verdict, which the loop's findings
+/// carry ([`Finding::validation`]), and the error figures its users report
+/// beside the loop's.
+pub use crate::model::validate::{
+    cross_validated_error, model_errors, tail_noise, Check, Validation,
+};
+pub use describe::{family_name, variable_name};
+pub use outliers::{
+    gross_tracker_threshold_mm, TrackerOutliers, GROSS_TRACKER_FLOOR_MM, GROSS_TRACKER_MAX_SHARE,
+    GROSS_TRACKER_MEDIANS,
+};
+pub use unexplained::unexplained;
+pub use vocabulary::{
+    Change, Family, Finding, LoopConfig, LoopResult, LoopStage, Variable, RELEASED_ANCHOR_SD_MM,
+};
+
+/// Significant candidate effects of the current fit, strongest first.
+pub fn diagnose(
+    id: &Identification,
+    observations: &[Observation],
+    nominal: &Frame<f64>,
+    structure: &Structure,
+    config: &LoopConfig,
+) -> Vec<Finding> {
+    let Some(ev) = Evidence::gather(id, observations, nominal, structure) else {
+        return Vec::new();
+    };
+    let splits = slip_times(&ev);
+    let mut findings: Vec<Finding> = candidates(&ev, structure, &splits)
+        .into_iter()
+        .filter_map(|c| {
+            let projected = ev.project(&c.columns)?;
+            let (beta, explained) = ev.fit(&projected)?;
+            let chi2 = explained / ev.sigma2;
+            if chi2 < chi2_threshold(config, c.columns.len(), c.search_penalty) {
+                return None;
+            }
+            if !c.rival.is_empty() && !beyond_rival(&ev, &c, config) {
+                return None;
+            }
+            let amplitude_mm = ev
+                .rows
+                .iter()
+                .enumerate()
+                .filter(|(_, r)| r.weight > 0.1)
+                .map(|(k, _)| {
+                    c.columns
+                        .iter()
+                        .zip(&beta)
+                        .map(|(col, b)| col[k] * b)
+                        .sum::<f64>()
+                        .abs()
+                })
+                .fold(0.0, f64::max);
+            let change = (c.build)(&beta);
+            if let Change::Effect(EffectTerm {
+                string,
+                effect: Effect::Slip { at_s, mm },
+            }) = change
+            {
+                if !steps_where_it_slipped(&ev, usize::from(string), at_s, mm) {
+                    return None;
+                }
+            }
+            Some(Finding {
+                family: c.family,
+                strings: c.strings.clone(),
+                variable: c.variable,
+                amplitude_mm,
+                explained: explained / ev.rss.max(1e-12),
+                added: false,
+                chi2,
+                description: c.describe.clone(),
+                validation: None,
+                change: Some(change),
+            })
+        })
+        .collect();
+    findings.extend(anchors_beyond_tolerance(id, nominal, structure));
+    findings.sort_by(|a, b| b.chi2.total_cmp(&a.chi2));
+    findings
+}
+
+/// Runs the loop: identify, diagnose, add the strongest significant effect,
+/// refit, repeat until nothing significant that helps on held-out data
+/// remains; then report the structure no family explains. "Helps" is
+/// [`judge`] on [`validate`]: folds blocked in time and space, so that a
+/// change that only interpolates (a drift standing in for position on a
+/// lattice collected plane by plane) is refused; every tested finding carries
+/// its check.
+pub fn close_loop(
+    train: &[Observation],
+    test: Option<&[Observation]>,
+    nominal: &Frame<f64>,
+    start: &Start,
+    config: &LoopConfig,
+) -> Result<LoopResult, IdentifyError> {
+    let structure = config.base_structure();
+    let first = identify(train, nominal, start, &structure)?;
+    let tracker_outliers = TrackerOutliers::of(&first, train);
+    let cleaned = tracker_outliers.without(train);
+    let (train, base) = match &cleaned {
+        None => (train, first),
+        Some(cleaned) => (&cleaned[..], identify(cleaned, nominal, start, &structure)?),
+    };
+    let base_train = model_errors(&base, train);
+    let base_test = test.map(|t| model_errors(&base, t));
+    if !config.diagnose {
+        return Ok(LoopResult {
+            identification: base.clone(),
+            base,
+            base_train,
+            base_test,
+            structure,
+            stages: Vec::new(),
+            findings: Vec::new(),
+            layers: Vec::new(),
+            tracker_outliers,
+        });
+    }
+    let id = base.clone();
+    let validation = validate(train, nominal, &id, &structure)?;
+    let mut state = LoopState {
+        train,
+        test,
+        nominal,
+        config,
+        id,
+        structure,
+        validation,
+        stages: Vec::new(),
+        findings: Vec::new(),
+        seen_train: Cow::Borrowed(train),
+        seen_test: test.map(Cow::Borrowed),
+    };
+    let mut layers = Vec::new();
+    if state.structure.hold_kappa_each && nominal.layout.count() > 1 {
+        state.try_spool_rates()?;
+    }
+    // Layer tables first; refused ones are tried once more after the
+    // effects (an effect the model lacked, a heavy string's sag, can hide
+    // what the tables gain until it is in).
+    let mut layers_refused = false;
+    if config.layer_tables {
+        let (added, choice) = state.try_layer_tables()?;
+        layers = choice;
+        layers_refused = added == Some(false);
+    }
+    let effects_before = state.stages.len();
+    state.add_effects()?;
+    if layers_refused && state.stages.len() > effects_before {
+        let (added, choice) = state.try_layer_tables()?;
+        if added == Some(true) {
+            layers = choice;
+            // What the tables' staircase hid (a slip's jump among the
+            // layers' jumps) is looked for again with them in.
+            state.add_effects()?;
+        }
+    }
+    let LoopState {
+        mut id,
+        structure,
+        mut stages,
+        mut findings,
+        seen_train,
+        seen_test,
+        ..
+    } = state;
+    findings.extend(unexplained(&id, &seen_train, nominal, &structure, config));
+    if weigh_what_follows_speed(&mut id, &findings) {
+        // The last stage is the final model: its errors with the weights it
+        // now has.
+        if let Some(last) = stages.last_mut() {
+            *last = LoopStage::of(
+                last.name.clone(),
+                &last.finding,
+                &id,
+                &seen_train,
+                seen_test.as_deref(),
+            );
+        }
+    }
+    Ok(LoopResult {
+        layers,
+        base,
+        base_train,
+        base_test,
+        identification: id,
+        structure,
+        stages,
+        findings,
+        tracker_outliers,
+    })
+}
+
+/// A string whose residual follows the speed of motion (an encoder that
+/// lags its string), which no term of the model reads, keeps that error in
+/// use, and a device in use moves faster than a lattice's captures (the
+/// hand slows at each point): its scale counts the unexplained structure's
+/// amplitude once more, in quadrature, so that forward kinematics weighs
+/// it less ([`Identification::length_scale_mm`]); the identification's
+/// warnings say so. Without it such a string takes a stand-in (a
+/// `backlash`) and scatters in use (`docs/benchmarks.md`, "Each string
+/// weighed by its scale"). Other variables are read by a term or do not range wider in use than
+/// on the lattice (time restarts at home, positions stay in the frame).
+/// Whether a scale changed.
+fn weigh_what_follows_speed(id: &mut Identification, findings: &[Finding]) -> bool {
+    let mut changed = false;
+    for f in findings
+        .iter()
+        .filter(|f| f.family == Family::Unexplained && f.variable == Variable::Speed)
+    {
+        for &k in &f.strings {
+            let k = usize::from(k);
+            let before = id.length_scale_mm[k];
+            if before <= 0.0 || !f.amplitude_mm.is_finite() {
+                continue;
+            }
+            id.length_scale_mm[k] = before.hypot(f.amplitude_mm);
+            changed = true;
+            id.warnings.push(format!(
+                "string {k}'s residual follows speed, which no term of the model reads (an \
+                 encoder that lags its string?), and the device moves faster in use than at \
+                 the lattice's captures: its scale counts that structure's {:.2} mm once more \
+                 ({before:.2} -> {:.2} mm), so forward kinematics weighs it less",
+                f.amplitude_mm, id.length_scale_mm[k]
+            ));
+        }
+    }
+    changed
+}
+
+/// What [`close_loop`] carries from step to step: the model so far, its
+/// validation, the stages and findings reported, and the sessions.
+struct LoopState<'a> {
+    train: &'a [Observation],
+    test: Option<&'a [Observation]>,
+    nominal: &'a Frame<f64>,
+    config: &'a LoopConfig,
+    id: Identification,
+    structure: Structure,
+    validation: Validation,
+    stages: Vec<LoopStage>,
+    findings: Vec<Finding>,
+    /// The sessions as the model reads them: at the strings' meeting point
+    /// once a marker offset is found (the tracker sees the body's origin).
+    seen_train: Cow<'a, [Observation]>,
+    seen_test: Option<Cow<'a, [Observation]>>,
+}
+
+impl LoopState<'_> {
+    /// Each spool's own thinning rate ([`free_spool_rates`]): its finding,
+    /// and the refit when accepted.
+    fn try_spool_rates(&mut self) -> Result<(), IdentifyError> {
+        let (finding, added) = free_spool_rates(
+            self.train,
+            self.nominal,
+            &self.id,
+            &self.structure,
+            &self.validation,
+            self.config,
+        )?;
+        match added {
+            Some((refit, free, after)) => {
+                let name = format!("spool rates strings {:?}", finding.strings);
+                self.accept(name, finding, refit, free, after, None);
+            }
+            None => self.findings.push(finding),
+        }
+        Ok(())
+    }
+
+    /// One try of the layer tables ([`add_layer_tables`]): `None` when no
+    /// string wanted a table, else whether they were added; the strings'
+    /// choices.
+    fn try_layer_tables(&mut self) -> Result<(Option<bool>, Vec<StringLayers>), IdentifyError> {
+        let tried = add_layer_tables(
+            &self.seen_train,
+            self.nominal,
+            &self.id,
+            &self.structure,
+            &self.validation,
+            self.config,
+        )?;
+        let Some(mut finding) = tried.finding else {
+            return Ok((None, tried.choice));
+        };
+        let added = tried.added.is_some();
+        self.findings.retain(|f| f.family != Family::Layers);
+        match tried.added {
+            Some((refit, _)) => {
+                // The tables' own check fits each fold's tables on the
+                // fold's rows; every later change is validated with the
+                // tables held (fitted on every row, the held-out ones
+                // included), and must be judged against the same structure
+                // validated the same way. The check's own figure as the
+                // baseline would give the first change after the tables a
+                // gain it does not make, and an offset or a drift would
+                // stand in on that (docs/benchmarks.md, "One baseline for
+                // the changes after the layer tables").
+                let held = validate(&self.seen_train, self.nominal, &refit, &self.structure)?;
+                finding.description += &format!(
+                    " (the changes after the tables are judged against {:.3} mm: the same \
+                     held-out folds with the tables held, as those changes are validated)",
+                    held.held.mean_mm
+                );
+                let name = stage_name(&finding);
+                // The tables are the refit's string laws: the structure
+                // stays.
+                let structure = self.structure.clone();
+                self.accept(name, finding, refit, structure, held, None);
+            }
+            None => self.findings.push(finding),
+        }
+        Ok((Some(added), tried.choice))
+    }
+
+    /// Diagnose, add the first of the three strongest proposals (then the
+    /// slips of several strings together) that helps on held-out data,
+    /// repeat until none helps or the loop holds its most effects.
+    fn add_effects(&mut self) -> Result<(), IdentifyError> {
+        'outer: while self.stages.len() < self.config.max_effects {
+            let proposals = diagnose(
+                &self.id,
+                &self.seen_train,
+                self.nominal,
+                &self.structure,
+                self.config,
+            );
+            let slips: Vec<&Finding> = proposals
+                .iter()
+                .filter(|f| f.family == Family::Slip && f.strings.len() == 1)
+                .collect();
+            let together = slips_together(&slips);
+            let mut frame_wide_below = Vec::new();
+            for (rank, finding) in proposals.into_iter().enumerate() {
+                if rank >= STRONGEST_TRIED {
+                    if finding.strings.is_empty() {
+                        frame_wide_below.push(finding);
+                    }
+                    continue;
+                }
+                if self.try_finding(finding)? {
+                    continue 'outer;
+                }
+            }
+            // Several strings that slipped in one session: each step alone
+            // leaves the others to the rest of the model (and the layer
+            // tables, which a step in time bends, were refused), so none
+            // helps alone. Tried together, as one change, when none of the
+            // strongest helped alone.
+            if let Some((finding, change)) = together {
+                if self.try_change(finding, change)? {
+                    continue 'outer;
+                }
+            }
+            // A term of the whole frame or of the tracked body below them
+            // (a marker offset can sit under three per-string proposals
+            // that are refused): one parameter
+            // set for every string, which the blocked folds judge as well as
+            // the strongest; the per-string proposals below stay untried
+            // (about 50 of them, the ones that stand in for other physics).
+            for finding in frame_wide_below {
+                if self.try_finding(finding)? {
+                    continue 'outer;
+                }
+            }
+            break;
+        }
+        Ok(())
+    }
+
+    /// [`try_change`](Self::try_change) with the finding's own change;
+    /// `false` for a finding without one (an anchor to inspect).
+    fn try_finding(&mut self, finding: Finding) -> Result<bool, IdentifyError> {
+        match finding.change {
+            Some(change) => self.try_change(finding, change),
+            None => Ok(false),
+        }
+    }
+
+    /// Validates the model with `finding`'s `change` and judges it; adds it
+    /// (a stage, the refit) when accepted. The finding, with its check,
+    /// replaces an earlier one of the same family and strings that was not
+    /// added (an added one is a stage of the model: a string's second slip
+    /// must not take its first out of the report). Whether the change was
+    /// added.
+    fn try_change(&mut self, mut finding: Finding, change: Change) -> Result<bool, IdentifyError> {
+        let candidate = self.structure.with(change);
+        let same = |a: &Finding, b: &Finding| a.family == b.family && a.strings == b.strings;
+        if let Some(reason) = beyond_the_device(&candidate) {
+            finding.validation = Some(Check {
+                before: self.validation.clone(),
+                after: self.validation.clone(),
+                stability_chi2: None,
+                accepted: false,
+                reason,
+            });
+            self.findings.retain(|f| f.added || !same(f, &finding));
+            self.findings.push(finding);
+            return Ok(false);
+        }
+        let moved = (candidate.marker_body_mm != self.structure.marker_body_mm)
+            .then(|| at_meeting_points(self.train, candidate.marker_body_mm).into_owned());
+        let train: &[Observation] = moved.as_deref().unwrap_or(&self.seen_train);
+        let retabled = self.with_step_in_the_tables(change, train, &candidate)?;
+        let from = retabled.as_ref().unwrap_or(&self.id);
+        let (after, fits) = validate_fits(train, self.nominal, from, &candidate)?;
+        let mut check = self.judge_change(change, train, &after, &fits);
+        // A term on one string that gains held out must also gain on every
+        // row: the refit it would be is made now, and kept if accepted.
+        let mut refit_now = None;
+        if check.accepted && one_string_term(change) && retabled.is_none() {
+            let refit = identify(
+                train,
+                self.nominal,
+                &Start::from_identification(&self.id),
+                &candidate,
+            )?;
+            let in_sample = |id: &Identification| ErrorStats::of(&held_out_error_list(id, train));
+            // A drift need only not raise the error of the rows it is fitted
+            // on: where time goes with position the fit on every row absorbs
+            // it into position terms (which is why it must beat a position
+            // error, its rival) and only a fold fitted on one half in time
+            // shows its gain; a drift that raises it stands in for something
+            // else (a string riding out of its groove) and raises the test
+            // error.
+            let share = if adds_a_drift(change) {
+                0.0
+            } else {
+                IN_SAMPLE_SHARE_OF_GAIN
+            };
+            refuse_a_fold_repair(&mut check, in_sample(&self.id), in_sample(&refit), share);
+            refit_now = Some(refit);
+        }
+        let accepted = check.accepted;
+        finding.validation = Some(check);
+        self.findings.retain(|f| f.added || !same(f, &finding));
+        if !accepted {
+            self.findings.push(finding);
+            return Ok(false);
+        }
+        let refit = match retabled.or(refit_now) {
+            Some(refit) => refit,
+            None => identify(
+                train,
+                self.nominal,
+                &Start::from_identification(&self.id),
+                &candidate,
+            )?,
+        };
+        if let Some(fitted) = fitted_in_physical_terms(change, &refit) {
+            finding.description += &fitted;
+        }
+        let name = stage_name(&finding);
+        self.accept(name, finding, refit, candidate, after, moved);
+        Ok(true)
+    }
+
+    /// Takes a change judged good into the model: the sessions as the new
+    /// model reads them (`moved`: the training session at the strings'
+    /// meeting point, when the change is a marker offset; the test session
+    /// is moved alike), the stage `name` with the refit's errors on them,
+    /// the finding (added), and the model (`refit`, its `structure` and
+    /// `validation`) every later change is judged against.
+    fn accept(
+        &mut self,
+        name: String,
+        mut finding: Finding,
+        refit: Identification,
+        structure: Structure,
+        validation: Validation,
+        moved: Option<Vec<Observation>>,
+    ) {
+        if let Some(moved) = moved {
+            self.seen_train = Cow::Owned(moved);
+            self.seen_test = self
+                .test
+                .map(|t| at_meeting_points(t, structure.marker_body_mm));
+        }
+        finding.added = true;
+        self.stages.push(LoopStage::of(
+            name,
+            &finding,
+            &refit,
+            &self.seen_train,
+            self.seen_test.as_deref(),
+        ));
+        self.findings.push(finding);
+        self.validation = validation;
+        self.structure = structure;
+        self.id = refit;
+    }
+
+    /// With a step (a slip) proposed on a model with layer tables: the
+    /// model with the step, its tables refitted together with it
+    /// ([`layers::fit_table_with_slips`]), which the step is validated from
+    /// and, accepted, is the refit. `None` for other changes or without
+    /// tables: they are validated from the current model, tables held.
+    fn with_step_in_the_tables(
+        &self,
+        change: Change,
+        train: &[Observation],
+        candidate: &Structure,
+    ) -> Result<Option<Identification>, IdentifyError> {
+        if steps_of(change).is_none() {
+            return Ok(None);
+        }
+        let steps = layers::steps_in(&self.id);
+        if steps.iter().all(Option::is_none) {
+            return Ok(None);
+        }
+        let sized = identify(
+            train,
+            self.nominal,
+            &Start::from_identification(&self.id),
+            candidate,
+        )?;
+        layers::identify_with_layers(
+            train,
+            self.nominal,
+            &sized,
+            candidate,
+            &steps,
+            TableLevel::Kept,
+        )
+        .map(Some)
+    }
+
+    /// The check of `change` validated on `train` (`after`, each fold's
+    /// fit in `fits`): a slip on the folds that can judge a step, any other
+    /// change on the blocked folds with its stability; an accepted drift is
+    /// refused when it only moves error between folds.
+    fn judge_change(
+        &self,
+        change: Change,
+        train: &[Observation],
+        after: &Validation,
+        fits: &[Identification],
+    ) -> Check {
+        let min_gain = if one_string_term(change) {
+            self.config.min_relative_gain_one_string
+        } else {
+            self.config.min_relative_gain
+        };
+        let check = match steps_of(change) {
+            None => {
+                let stable = match change {
+                    Change::Effect(term) => stability(&term.effect, fits),
+                    _ => None,
+                };
+                judge(&self.validation, after, stable, min_gain)
+            }
+            Some(steps_at_s) => {
+                let (keep, left_out) = judgeable_folds(&steps_at_s, train);
+                judge_step(
+                    &self.validation,
+                    after,
+                    &keep,
+                    &left_out,
+                    self.config.min_relative_gain,
+                )
+            }
+        };
+        if check.accepted && adds_a_drift(change) {
+            refuse_on_fold_rise(check)
+        } else {
+            check
+        }
+    }
+}
+
+/// The times of the steps in time (slips) `change` adds; `None` for a
+/// change that adds none.
+fn steps_of(change: Change) -> Option<Vec<f64>> {
+    match change {
+        Change::Effect(EffectTerm {
+            effect: Effect::Slip { at_s, .. },
+            ..
+        }) => Some(vec![at_s]),
+        Change::Slips(slips) => Some(slips.iter().flatten().map(|s| s.0).collect()),
+        _ => None,
+    }
+}
+
+/// Whether `change` adds a drift (of one string or of every string).
+fn adds_a_drift(change: Change) -> bool {
+    matches!(
+        change,
+        Change::Effect(EffectTerm {
+            effect: Effect::Drift { .. },
+            ..
+        })
+    )
+}
+
+/// How many of a diagnosis's strongest proposals the loop tries before
+/// the slips of several strings together and the frame-wide terms below.
+const STRONGEST_TRIED: usize = 3;
+
+/// Whether `change` adds a term on one string (not a slip, not a shared
+/// term).
+fn one_string_term(change: Change) -> bool {
+    matches!(
+        change,
+        Change::Effect(EffectTerm { string, effect })
+            if string != EVERY_STRING && !matches!(effect, Effect::Slip { .. })
+    )
+}
+
+/// Why `structure` cannot run on the device, if it cannot: its blob holds at
+/// most [`MAX_EFFECTS`] effect terms (several strings' slips added together
+/// take one each, and a string may slip more than once).
+fn beyond_the_device(structure: &Structure) -> Option<String> {
+    (structure.effects.len() > MAX_EFFECTS).then(|| {
+        format!(
+            "not added: the model would hold {} effect terms, the device at most {MAX_EFFECTS}",
+            structure.effects.len()
+        )
+    })
+}

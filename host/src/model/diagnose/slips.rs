@@ -1,0 +1,235 @@
+//! The slip search: each string's most likely slip time (the best step in
+//! its residual off the model), whether the residual really jumps there,
+//! and the slips of several strings tried together.
+
+use nalgebra::{DMatrix, DVector};
+use spidar_core::model::{Effect, EffectTerm};
+use spidar_core::STRINGS;
+
+use crate::data::stats::{median, robust_centre_and_sd};
+
+use super::evidence::{Evidence, MIN_OUTSIDE_SPAN};
+use super::vocabulary::{Change, Family, Finding, Variable};
+
+#[cfg(test)]
+mod tests;
+
+/// The most likely slip time of each string: the split of its rows (in time
+/// order) whose step, once the model's own directions are projected out,
+/// explains the most of the residual; `None` when the string has too few
+/// rows. The step is judged as the slip candidate is, off the model: a step
+/// in the raw residual is partly absorbed by the offset, anchor and winding
+/// parameters whenever time and position go together (a lattice walked
+/// layer by layer), which leaves a step plus a ramp whose largest mean
+/// difference lies elsewhere, far from the slip.
+pub(super) fn slip_times(ev: &Evidence) -> Vec<Option<f64>> {
+    let weights: Vec<f64> = ev.rows.iter().map(|r| r.weight).collect();
+    (0..STRINGS)
+        .map(|i| {
+            if !ev.layout.is_active(i) {
+                return None;
+            }
+            best_step_off_model(&rows_in_time(ev, i), &weights, &ev.residual, &ev.basis)
+                .map(|b| b.1)
+        })
+        .collect()
+}
+
+/// String `string`'s weighted rows in time order: (time, index into
+/// `ev.rows`).
+fn rows_in_time(ev: &Evidence, string: usize) -> Vec<(f64, usize)> {
+    let mut rows: Vec<(f64, usize)> = ev
+        .rows
+        .iter()
+        .enumerate()
+        .filter(|(_, r)| r.string == string && r.weight > 0.0)
+        .map(|(k, r)| (r.ctx.time_s, k))
+        .collect();
+    rows.sort_by(|a, b| a.0.total_cmp(&b.0));
+    rows
+}
+
+/// Rows on each side of a split that [`jumps_where_it_slipped`] compares.
+const LOCAL_STEP_ROWS: usize = 15;
+
+/// How many robust standard deviations of a string's jumps at every row the
+/// jump at a proposed slip must reach ([`jumps_where_it_slipped`]).
+const LOCAL_STEP_Z: f64 = 3.0;
+
+/// Whether string `string`'s residual jumps where a slip of `mm` at `at_s`
+/// says ([`jumps_where_it_slipped`] on its rows in time order).
+pub(super) fn steps_where_it_slipped(ev: &Evidence, string: usize, at_s: f64, mm: f64) -> bool {
+    let rows = rows_in_time(ev, string);
+    let split = rows.partition_point(|r| r.0 < at_s);
+    let residuals: Vec<f64> = rows.iter().map(|&(_, k)| ev.rows[k].residual).collect();
+    jumps_where_it_slipped(&residuals, split, mm)
+}
+
+/// Whether residuals in time order jump before row `split` as a slip of
+/// `mm` does: the median of the [`LOCAL_STEP_ROWS`] rows after minus that of
+/// the rows before has the step's sign, at least half its size, and stands
+/// out among the same jump taken before every other row (beyond
+/// [`LOCAL_STEP_Z`] times their robust standard deviation). A slip is a
+/// jump in time where the end-effector barely moved (a session walks its
+/// path point to point), so the rows beside it see the whole step. An error
+/// that follows position varies along the path as much before any row as
+/// before this one, and a step fitted to it over the session (it goes with
+/// time when the session goes plane by plane) has no jump of its own there,
+/// yet such steps, alone or on several strings at once, pass the held-out
+/// folds (which cannot judge an early step on both time halves), e.g. at a
+/// session's start where the first rows, alone in their corner, bend away. And the jump holds beyond those rows
+/// ([`holds_beyond_its_windows`]). Medians: a jammed encoder's repeated
+/// reading is one row far off.
+fn jumps_where_it_slipped(residuals: &[f64], split: usize, mm: f64) -> bool {
+    let k = LOCAL_STEP_ROWS;
+    let n = residuals.len();
+    let jump = |j: usize| {
+        let mut before = residuals[j.saturating_sub(k)..j].to_vec();
+        let mut after = residuals[j..(j + k).min(n)].to_vec();
+        median(&mut after) - median(&mut before)
+    };
+    if split < 2 || n < split + 2 || n < 4 * k {
+        return false;
+    }
+    let local = jump(split);
+    let jumps: Vec<f64> = (k..=n - k).map(jump).collect();
+    let (_, sd) = robust_centre_and_sd(&jumps);
+    // And among its neighbours' (the splits 15 to 60 rows away, whose
+    // windows do not hold it): where the rows vary more than elsewhere (the
+    // session's first rows, alone in their corner), a jump there is no news.
+    let neighbours: Vec<f64> = (k..=n - k)
+        .zip(&jumps)
+        .filter(|&(j, _)| j.abs_diff(split) >= k && j.abs_diff(split) <= NEIGHBOURING_ROWS)
+        .map(|(_, &v)| v)
+        .collect();
+    let sd_near = if neighbours.len() >= k {
+        robust_centre_and_sd(&neighbours).1
+    } else {
+        0.0
+    };
+    local * mm > 0.0
+        && local.abs() >= 0.5 * mm.abs()
+        && local.abs() >= LOCAL_STEP_Z * sd.max(sd_near)
+        && holds_beyond_its_windows(residuals, split, local)
+}
+
+/// Whether a `jump` at row `split` holds beyond the windows that measured
+/// it: the median of the [`NEIGHBOURING_ROWS`] rows past the window after
+/// minus that of those before the window before has its sign and half its
+/// size at least. A slip stays; an error that comes and goes jumps and
+/// falls back: the abnormal motor's string off its groove while the walk
+/// crosses its region, which taken as a slip raises the test error. Half
+/// the jump, not half the fitted step: a step fitted before the session's
+/// other slips are in is larger than its jump. With fewer than [`LOCAL_STEP_ROWS`] rows on a
+/// side there (a slip near the session's end) the jump alone decides.
+fn holds_beyond_its_windows(residuals: &[f64], split: usize, jump: f64) -> bool {
+    let (k, n) = (LOCAL_STEP_ROWS, residuals.len());
+    let before = split.saturating_sub(k + NEIGHBOURING_ROWS)..split.saturating_sub(k);
+    let after = (split + k).min(n)..(split + k + NEIGHBOURING_ROWS).min(n);
+    if before.len() < k || after.len() < k {
+        return true;
+    }
+    let beyond = median(&mut residuals[after].to_vec()) - median(&mut residuals[before].to_vec());
+    beyond * jump > 0.0 && beyond.abs() >= 0.5 * jump.abs()
+}
+
+/// How far from a proposed slip its neighbours' jumps are taken
+/// ([`jumps_where_it_slipped`]), rows.
+const NEIGHBOURING_ROWS: usize = 60;
+
+/// The best single step over rows `(key, row)` in key order, judged
+/// off the model: a step column `x` (the rows after the split, each
+/// `sqrt(weight)`) explains `(x . r)^2 / (x . x - |B^T x|^2)` of the
+/// projected weighted residual `r` (`B`: the model's orthonormal basis; `r`
+/// is already orthogonal to it, so `x . r` needs no projection). Suffix sums
+/// give every split in one pass. (Its statistic, the key halfway across it),
+/// at least `MIN_SIDE` rows on each side and a step not (almost) in the
+/// model's span; `None` with too few rows.
+fn best_step_off_model(
+    rows: &[(f64, usize)],
+    weights: &[f64],
+    residual: &DVector<f64>,
+    basis: &DMatrix<f64>,
+) -> Option<(f64, f64)> {
+    const MIN_SIDE: usize = 20;
+    let n = rows.len();
+    if n < 2 * MIN_SIDE {
+        return None;
+    }
+    let mut x_r = 0.0;
+    let mut x_x = 0.0;
+    let mut bt_x = vec![0.0; basis.ncols()];
+    let mut best = (0.0, None);
+    // The split before `rows[j]`: `x` holds rows j..n.
+    for j in (1..n).rev() {
+        let (_, k) = rows[j];
+        let sw = weights[k].sqrt();
+        x_r += sw * residual[k];
+        x_x += weights[k];
+        for (c, b) in bt_x.iter_mut().enumerate() {
+            *b += sw * basis[(k, c)];
+        }
+        if j < MIN_SIDE || n - j < MIN_SIDE || rows[j].0 == rows[j - 1].0 {
+            continue;
+        }
+        let outside = x_x - bt_x.iter().map(|b| b * b).sum::<f64>();
+        if outside <= MIN_OUTSIDE_SPAN * MIN_OUTSIDE_SPAN * x_x {
+            continue;
+        }
+        let stat = x_r * x_r / outside;
+        if stat > best.0 {
+            best = (stat, Some((j, 0.5 * (rows[j - 1].0 + rows[j].0))));
+        }
+    }
+    // A best split on the edge of the allowed range is no step found: what
+    // stands out is the first or last few rows (the session's start), which
+    // a step further in would fit better still.
+    let (j, at) = best.1?;
+    (j > MIN_SIDE && n - j > MIN_SIDE).then_some((best.0, at))
+}
+
+/// The significant slips of several strings as one finding and change
+/// ([`Change::Slips`]): its chi-square and share explained the sums of the
+/// strings' own (their steps lie on different strings, nearly orthogonal);
+/// `None` for fewer than two strings.
+pub(super) fn slips_together(slips: &[&Finding]) -> Option<(Finding, Change)> {
+    if slips.len() < 2 {
+        return None;
+    }
+    let mut steps = [None; STRINGS];
+    let mut strings = Vec::new();
+    let mut times = Vec::new();
+    for f in slips {
+        if let Some(Change::Effect(EffectTerm {
+            string,
+            effect: Effect::Slip { at_s, mm },
+        })) = f.change
+        {
+            steps[usize::from(string)] = Some((at_s, mm));
+            strings.push(string);
+            times.push(format!("string {string} at {at_s:.1} s"));
+        }
+    }
+    if strings.len() < 2 {
+        return None;
+    }
+    strings.sort_unstable();
+    let change = Change::Slips(steps);
+    let finding = Finding {
+        family: Family::Slip,
+        strings,
+        variable: Variable::Time,
+        amplitude_mm: slips.iter().map(|f| f.amplitude_mm).fold(0.0, f64::max),
+        explained: slips.iter().map(|f| f.explained).sum(),
+        added: false,
+        chi2: slips.iter().map(|f| f.chi2).sum(),
+        description: format!(
+            "several strings slipped ({}; steps in their lengths), tried together: none of the \
+             steps helped alone while the others were missing",
+            times.join(", ")
+        ),
+        validation: None,
+        change: Some(change),
+    };
+    Some((finding, change))
+}

@@ -1,0 +1,317 @@
+//! The loop's vocabulary: the effect families and residual variables
+//! findings are named by, the changes they propose, the findings, the
+//! loop's settings, and what the loop reports (its stages and result).
+
+use serde::{Deserialize, Serialize};
+use spidar_core::model::{Effect, EffectTerm};
+use spidar_core::STRINGS;
+
+use crate::data::observe::Observation;
+use crate::data::stats::ErrorStats;
+use crate::model::identify::{Identification, Structure};
+use crate::model::layers::StringLayers;
+use crate::model::validate::{model_errors, Check};
+
+use super::outliers::TrackerOutliers;
+
+/// Effect families (the JSON report's `family`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Family {
+    Offset,
+    Scale,
+    Winding,
+    Eccentricity,
+    Elasticity,
+    Backlash,
+    Drift,
+    Slip,
+    /// A heavy string's sag, `l^3 / T^2` ([`Effect::Sag`]).
+    Sag,
+    /// The guides moving with the strings' total pull ([`Effect::FrameFlex`]).
+    FrameFlex,
+    /// Layer tables ([`crate::model::layers`]): the spool's departure from the
+    /// smooth winding law, per string.
+    Layers,
+    Geometry,
+    /// The tracked body's origin off the strings' meeting point, seen
+    /// through the tracker's orientation ([`Change::MarkerOffset`]).
+    Marker,
+    Unexplained,
+}
+
+/// Variables a residual is tested against (the JSON report's `variable`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Variable {
+    Position,
+    Length,
+    WoundLength,
+    PulleyAngle,
+    Tension,
+    Direction,
+    Speed,
+    Time,
+    Order,
+    /// The tracked body's orientation.
+    Orientation,
+}
+
+/// A structural change to the model that a finding proposes.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Change {
+    /// Add an effect term (its parameters are refitted).
+    Effect(EffectTerm),
+    /// Free the tracker's scale relative to the device.
+    RoomScale,
+    /// Release an anchor from its design tolerance (it was built elsewhere).
+    ReleaseAnchor(u8),
+    /// Read the tracker at the strings' meeting point, the tracked body's
+    /// origin being this far from it (body frame, mm;
+    /// [`Structure::marker_body_mm`]).
+    MarkerOffset([f64; 3]),
+    /// Add a slip on each of several strings at once (`(at_s, mm)` per
+    /// encoder index, `None`: no slip): several strings that slipped
+    /// during one session, none of whose steps helps alone while the others
+    /// are missing (`slips_together`, tried when no single change helps).
+    Slips([Option<(f64, f64)>; STRINGS]),
+}
+
+impl Structure {
+    /// This structure with `change` applied.
+    pub fn with(&self, change: Change) -> Structure {
+        let mut s = self.clone();
+        match change {
+            Change::Effect(term) => s.effects.push(term),
+            Change::RoomScale => s.fit_room_scale = true,
+            Change::ReleaseAnchor(i) => {
+                if let Some(sd) = s.anchor_sd_override_mm.get_mut(i as usize) {
+                    *sd = Some(RELEASED_ANCHOR_SD_MM);
+                }
+            }
+            Change::MarkerOffset(d) => s.marker_body_mm = Some(d),
+            Change::Slips(slips) => {
+                for (i, slip) in slips.iter().enumerate() {
+                    if let Some((at_s, mm)) = *slip {
+                        s.effects.push(EffectTerm {
+                            string: i as u8,
+                            effect: Effect::Slip { at_s, mm },
+                        });
+                    }
+                }
+            }
+        }
+        s
+    }
+}
+
+/// Prior sd (mm) of an anchor the geometry family released.
+pub const RELEASED_ANCHOR_SD_MM: f64 = 1000.0;
+
+/// One thing diagnosis found in the residual.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Finding {
+    pub family: Family,
+    /// Encoder indices; empty for a frame-wide effect.
+    pub strings: Vec<u8>,
+    pub variable: Variable,
+    /// Largest contribution of the effect over the data, mm.
+    pub amplitude_mm: f64,
+    /// Share of the string-space residual sum of squares it explains.
+    pub explained: f64,
+    /// Whether the loop added it to the model.
+    pub added: bool,
+    /// Test statistic (chi-square with the effect's degrees of freedom).
+    pub chi2: f64,
+    /// One line for people.
+    pub description: String,
+    /// The held-out check that decided `added` (figures before and after the
+    /// change, and why); `None` for findings the loop did not test
+    /// (unexplained structure).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub validation: Option<Check>,
+    /// What adding it means; `None` for unexplained structure.
+    #[serde(skip)]
+    pub change: Option<Change>,
+}
+
+/// Settings of the loop.
+#[derive(Clone, Copy, Debug, Serialize, Deserialize)]
+pub struct LoopConfig {
+    /// At most this many effects are added.
+    pub max_effects: usize,
+    /// A candidate is significant when its chi-square exceeds this (after
+    /// accounting for the number of candidates tested).
+    pub chi2_threshold: f64,
+    /// A step is kept only if the held-out error (blocked folds, see
+    /// [`validate`](crate::model::validate::validate())) falls by this
+    /// fraction. 2 %: the terms a lower bar adds gain 0.5 to 2 % each and
+    /// leave the held-out error where it was, and every injected family of
+    /// the model simulator is still found (`loop_bench`).
+    pub min_relative_gain: f64,
+    /// What a term on one string (not a slip: a step has its own test, that
+    /// the residual jumps where it slipped) must gain instead of
+    /// `min_relative_gain`. The loop searches a family on each string, and
+    /// the best of some fifty per-string terms gains 2 to 3 % on a clean
+    /// independent device by standing in for what no family has; a shared
+    /// term or a table is one candidate. 3.5 %: every injected family of
+    /// the model simulator is still found (`loop_bench`; `docs/benchmarks.md`,
+    /// "A term on one string must gain 3.5 %").
+    #[serde(default = "one_string_gain")]
+    pub min_relative_gain_one_string: f64,
+    /// Try layer tables ([`crate::model::layers`]) before the effect families.
+    #[serde(default = "yes")]
+    pub layer_tables: bool,
+    /// The tension the strings held at the home capture, when the device's
+    /// geometry declares it ([`crate::data::dataset::Geometry::home_tension_n`]):
+    /// the stretch's home tension is then fitted around it instead of the
+    /// firmware's default 1 N (within 1 N either way: in a narrower range
+    /// the stretch can no longer take the length every string's home
+    /// shares; `docs/benchmarks.md`, "The home tension the geometry
+    /// declares").
+    #[serde(default)]
+    pub home_tension_n: Option<f64>,
+    /// Look for effects at all: false stops after the base identification
+    /// (a session too small to judge a change on held-out folds).
+    #[serde(default = "yes")]
+    pub diagnose: bool,
+    /// The anchors' and home's tolerances the geometry declares
+    /// ([`crate::data::dataset::Geometry::anchor_sd_mm`], `home_sd_mm`),
+    /// the identification's priors; `None`: [`crate::model::identify::Priors::default`]'s.
+    #[serde(default)]
+    pub anchor_sd_mm: Option<[f64; STRINGS]>,
+    #[serde(default)]
+    pub home_sd_mm: Option<f64>,
+    /// Reweigh the rows robustly ([`Structure::robust`]).
+    #[serde(default = "yes")]
+    pub robust: bool,
+}
+
+impl LoopConfig {
+    /// The defaults with what `geometry` declares (the home tension).
+    pub fn for_geometry(geometry: &crate::data::dataset::Geometry) -> LoopConfig {
+        LoopConfig::default().with_geometry(geometry)
+    }
+
+    /// These settings with what `geometry` declares (the home tension, the
+    /// anchors' and home's tolerances) where it declares it.
+    pub fn with_geometry(&self, geometry: &crate::data::dataset::Geometry) -> LoopConfig {
+        LoopConfig {
+            home_tension_n: geometry.home_tension_n.or(self.home_tension_n),
+            anchor_sd_mm: geometry.anchor_sd_mm.or(self.anchor_sd_mm),
+            home_sd_mm: geometry.home_sd_mm.or(self.home_sd_mm),
+            ..*self
+        }
+    }
+
+    /// The base model's structure these settings give: the priors the
+    /// geometry declares.
+    pub fn base_structure(&self) -> Structure {
+        let mut structure = Structure::default();
+        if let Some(t) = self.home_tension_n {
+            structure.priors.home_tension_n = t;
+        }
+        if let Some(sd) = self.home_sd_mm {
+            structure.priors.home_sd_mm = sd;
+        }
+        structure.priors.anchor_sd_each_mm = self.anchor_sd_mm;
+        structure.robust = self.robust;
+        structure
+    }
+}
+
+fn yes() -> bool {
+    true
+}
+
+fn one_string_gain() -> f64 {
+    0.035
+}
+
+impl Default for LoopConfig {
+    fn default() -> Self {
+        LoopConfig {
+            max_effects: 8,
+            chi2_threshold: 40.0,
+            min_relative_gain: 0.02,
+            min_relative_gain_one_string: one_string_gain(),
+            layer_tables: true,
+            home_tension_n: None,
+            diagnose: true,
+            anchor_sd_mm: None,
+            home_sd_mm: None,
+            robust: true,
+        }
+    }
+}
+
+/// One added effect, with the error before and after.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct LoopStage {
+    /// Named after the effect, e.g. "offset string 3".
+    pub name: String,
+    pub finding: Finding,
+    /// Position error against the tracker after adding the effect.
+    pub train: ErrorStats,
+    pub test: Option<ErrorStats>,
+    /// Held-out mean error (blocked folds, [`Validation::held`](crate::model::validate::Validation::held); a slip's:
+    /// [`Validation::for_step`](crate::model::validate::Validation::for_step)) before and after, mm.
+    pub validation_before_mm: f64,
+    pub validation_after_mm: f64,
+}
+
+impl LoopStage {
+    /// The stage `name` of an accepted `finding`: the refit's errors on the
+    /// training (and test) sessions and the held-out means its check judged
+    /// (an accepted finding carries its check).
+    pub(super) fn of(
+        name: String,
+        finding: &Finding,
+        refit: &Identification,
+        train: &[Observation],
+        test: Option<&[Observation]>,
+    ) -> LoopStage {
+        let (validation_before_mm, validation_after_mm) = finding
+            .validation
+            .as_ref()
+            .map_or((f64::NAN, f64::NAN), |c| {
+                (c.before.held.mean_mm, c.after.held.mean_mm)
+            });
+        LoopStage {
+            name,
+            train: model_errors(refit, train),
+            // The test session is another session: the training
+            // session's slips are not in it.
+            test: test.map(|t| model_errors(&refit.for_a_new_session(), t)),
+            finding: finding.clone(),
+            validation_before_mm,
+            validation_after_mm,
+        }
+    }
+}
+
+/// What the loop did.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct LoopResult {
+    /// The base identification (before any effect).
+    pub base: Identification,
+    pub base_train: ErrorStats,
+    pub base_test: Option<ErrorStats>,
+    /// The final identification (with the added effects).
+    pub identification: Identification,
+    pub structure: Structure,
+    /// One stage per added effect, in order.
+    pub stages: Vec<LoopStage>,
+    /// Everything diagnosis reported: added effects, significant candidates
+    /// that did not help on held-out data, and unexplained structure.
+    pub findings: Vec<Finding>,
+    /// The layer-table spacing chosen for each active string (before the
+    /// position-space check; see the `layers` finding for whether the
+    /// tables were kept).
+    #[serde(default)]
+    pub layers: Vec<StringLayers>,
+    /// Training rows whose tracker the loop set aside (their errors in
+    /// `base_train` and the stages are those of the rows left).
+    #[serde(default)]
+    pub tracker_outliers: TrackerOutliers,
+}

@@ -1,0 +1,31 @@
+//! Held-out validation: whether a change to the model helps on data it was
+//! not fitted on. Below the diagnosis loop (`diagnose`) and the layer
+//! tables (`layers`), which both judge their changes here; it knows neither.
+//!
+//! - folds: the folds of a session, interleaved and blocked (in time: the
+//!   later and the earlier half; in space: the outer shell), which see
+//!   extrapolation;
+//! - errors: a model's position errors on tracked rows, as the device
+//!   solves them ([`model_errors`]) and as the judge does (held out), and
+//!   the sampling noise of their tail ([`tail_noise`]);
+//! - held out: a structure refitted on each fold and its errors on the rows
+//!   the fold holds out ([`validate`], [`Validation`]);
+//! - the verdict: [`judge`] on the figures before and after a change
+//!   ([`Check`]), and the tests particular to steps in time, drifts and
+//!   terms on one string.
+
+mod errors;
+mod folds;
+mod held_out;
+mod judge;
+
+pub(crate) use errors::held_out_error_list;
+pub use errors::{model_errors, tail_noise};
+pub(crate) use folds::{folds, judgeable_folds, judged_folds, Fold};
+pub use folds::{Folds, MIN_BLOCKED_ROWS, MIN_STEP_SIDE_ROWS};
+pub use held_out::{cross_validated_error, validate, Validation};
+pub(crate) use held_out::{judged_fold_fits, validate_by, validate_fits};
+pub use judge::{judge, Check, FAILING_ROW_FACTOR, FAILING_ROW_RISE};
+pub(crate) use judge::{
+    judge_step, refuse_a_fold_repair, refuse_on_fold_rise, stability, IN_SAMPLE_SHARE_OF_GAIN,
+};
