@@ -175,9 +175,9 @@ fn whole_search(p: &Profile, xt: &[[f64; 3]], tt: &[[f64; 3]]) {
         res.fit.kernel_seconds,
         res.best,
         res.fit.axes.map(|a| a.iterations),
-        s.mean,
-        s.sd,
-        s.max
+        s.mean_mm,
+        s.sd_mm,
+        s.max_mm
     );
 }
 

@@ -36,7 +36,7 @@ fn cpu_since(c0: Option<f64>) -> String {
 fn line(name: &str, s: &ErrorStats) {
     println!(
         "  {name:<28} mean {:7.3} mm  sd {:7.3}  max {:8.3}  (n = {})",
-        s.mean, s.sd, s.max, s.n
+        s.mean_mm, s.sd_mm, s.max_mm, s.n
     );
 }
 
@@ -73,7 +73,7 @@ fn svr_reference(b: &mut Bench) -> f64 {
     line("SVR train", &fit.train);
     line("SVR test", &t);
     json.insert("svr_fit_s".into(), fit.seconds.into());
-    json.insert("svr_test_mean_mm".into(), t.mean.into());
+    json.insert("svr_test_mean_mm".into(), t.mean_mm.into());
     fit.seconds
 }
 
@@ -93,7 +93,7 @@ fn svr_variants(b: &Bench) {
         "  without shrinking: fit {:.3} s, iterations {:?}, test mean {:.3} mm",
         fit.seconds,
         fit.axes.map(|a| a.iterations),
-        t.mean
+        t.mean_mm
     );
     let cfg = SvrConfig {
         params: SvrParams {
@@ -108,7 +108,7 @@ fn svr_variants(b: &Bench) {
         "  epsilon 0.003: fit {:.3} s, SVs {:?}, test mean {:.3} mm",
         fit.seconds,
         fit.axes.map(|a| a.support_vectors),
-        t.mean
+        t.mean_mm
     );
 }
 
@@ -176,7 +176,7 @@ fn nn_sweep(b: &mut Bench) -> f64 {
     json.insert("nn_sweep_s".into(), sweep.sweep_seconds.into());
     json.insert("nn_final_s".into(), sweep.final_seconds.into());
     json.insert("nn_best_hidden".into(), sweep.best_hidden.into());
-    json.insert("nn_test_mean_mm".into(), t.mean.into());
+    json.insert("nn_test_mean_mm".into(), t.mean_mm.into());
     sweep.sweep_seconds + sweep.final_seconds
 }
 
@@ -218,7 +218,7 @@ fn svr_search(b: &mut Bench) -> f64 {
     line("SVR (searched) test", &t);
     json.insert("svr_search_s".into(), s.search_seconds.into());
     json.insert("svr_refit_s".into(), s.refit_seconds.into());
-    json.insert("svr_searched_test_mean_mm".into(), t.mean.into());
+    json.insert("svr_searched_test_mean_mm".into(), t.mean_mm.into());
 
     s.search_seconds + s.refit_seconds
 }
@@ -247,7 +247,7 @@ fn nn_long(b: &Bench) {
         fit.epochs,
         fit.stop,
         1000.0 * fit.seconds / fit.epochs.max(1) as f64,
-        t.mean
+        t.mean_mm
     );
 }
 

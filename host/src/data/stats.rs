@@ -136,6 +136,19 @@ impl ErrorStats {
     }
 }
 
+impl ErrorStats {
+    /// Statistics of `|a_i - b_i|` over paired positions (eq. 7; the
+    /// shorter slice decides how many).
+    pub fn between(a: &[[f64; 3]], b: &[[f64; 3]]) -> ErrorStats {
+        let d: Vec<f64> = a
+            .iter()
+            .zip(b)
+            .map(|(p, q)| position_error(*p, *q))
+            .collect();
+        ErrorStats::of(&d)
+    }
+}
+
 /// The `q` quantile (nearest rank, `q` in 0..=1) of `values`; NaN when
 /// there are none.
 pub fn quantile(values: &[f64], q: f64) -> f64 {

@@ -258,17 +258,17 @@ fn svr_corrects_synthetic_field() {
     let r = raw(&test);
     eprintln!(
         "SVR absolute: raw {:.2} mm -> test {:.3} ± {:.3} (max {:.2}) mm, {} SVs",
-        r.mean,
-        t.mean,
-        t.sd,
-        t.max,
+        r.mean_mm,
+        t.mean_mm,
+        t.sd_mm,
+        t.max_mm,
         fit.model.support.len()
     );
     // Measured 2.52 mm: epsilon = 0.01 of the output spread (~290 mm) is a
     // 2.9 mm tube, which bounds what the absolute mode can do.
-    assert!(r.mean > 25.0);
-    assert!(t.mean < 3.0, "SVR test mean {}", t.mean);
-    assert!(t.max < 8.0, "SVR test max {}", t.max);
+    assert!(r.mean_mm > 25.0);
+    assert!(t.mean_mm < 3.0, "SVR test mean {}", t.mean_mm);
+    assert!(t.max_mm < 8.0, "SVR test max {}", t.max_mm);
 
     // Residual mode: epsilon now scales with the residual's spread (~15 mm
     // here), so 0.05 is a 0.75 mm tube. (0.01 would be 0.15 mm, below the
@@ -285,10 +285,10 @@ fn svr_corrects_synthetic_field() {
     let t = search::evaluate(|p| svr::predict(&fit.model, p), &test.inputs, &test.targets);
     eprintln!(
         "SVR residual: test {:.3} ± {:.3} (max {:.2}) mm",
-        t.mean, t.sd, t.max
+        t.mean_mm, t.sd_mm, t.max_mm
     );
     // Measured 0.54 mm.
-    assert!(t.mean < 0.8, "SVR residual test mean {}", t.mean);
+    assert!(t.mean_mm < 0.8, "SVR residual test mean {}", t.mean_mm);
 }
 
 fn nn_cfg(hidden: usize, epochs: usize, mode: OutputMode) -> NnConfig {
@@ -316,12 +316,12 @@ fn nn_corrects_synthetic_field() {
         let t = search::evaluate(|p| nn::predict(&fit.model, p), &test.inputs, &test.targets);
         eprintln!(
             "NN {mode:?} H=16: raw {:.2} -> test {:.3} ± {:.3} (max {:.2}) mm, {} epochs ({:?}), {:.2} s",
-            r.mean, t.mean, t.sd, t.max, fit.epochs, fit.stop, fit.seconds
+            r.mean_mm, t.mean_mm, t.sd_mm, t.max_mm, fit.epochs, fit.stop, fit.seconds
         );
         // Measured about 0.5-1 mm in 60 epochs.
-        assert!(t.mean < 2.0, "NN {mode:?} test mean {}", t.mean);
-        assert!(t.max < 8.0, "NN {mode:?} test max {}", t.max);
-        assert!((fit.validation.mean - t.mean).abs() < 1.0);
+        assert!(t.mean_mm < 2.0, "NN {mode:?} test mean {}", t.mean_mm);
+        assert!(t.max_mm < 8.0, "NN {mode:?} test max {}", t.max_mm);
+        assert!((fit.validation.mean_mm - t.mean_mm).abs() < 1.0);
     }
 }
 
@@ -361,10 +361,10 @@ fn a_planar_session_trains_a_network_the_device_can_hold() {
     let t = search::evaluate(|p| nn::predict(&fit.model, p), &test_inputs, &test_targets);
     let raw = search::evaluate(|p| *p, &test_inputs, &test_targets);
     assert!(
-        t.mean < 0.3 * raw.mean,
+        t.mean_mm < 0.3 * raw.mean_mm,
         "planar NN test mean {} (raw {})",
-        t.mean,
-        raw.mean
+        t.mean_mm,
+        raw.mean_mm
     );
 }
 
@@ -402,13 +402,13 @@ fn hidden_sweep_gives_a_curve_and_the_best_size() {
     // Three neurons cannot follow this field; sixteen can.
     assert!(res.curve[0].validation_mean_mm > 2.0 * res.curve[2].validation_mean_mm);
     // The final training never loses to the sweep's network.
-    assert!(res.fit.validation.mean <= best.validation_mean_mm + 1e-9);
+    assert!(res.fit.validation.mean_mm <= best.validation_mean_mm + 1e-9);
     let t = search::evaluate(
         |p| nn::predict(&res.fit.model, p),
         &test.inputs,
         &test.targets,
     );
-    assert!(t.mean < 2.0, "swept NN test mean {}", t.mean);
+    assert!(t.mean_mm < 2.0, "swept NN test mean {}", t.mean_mm);
 }
 
 #[test]
@@ -439,8 +439,8 @@ fn svr_search_picks_the_best_candidate() {
         &test.inputs,
         &test.targets,
     );
-    eprintln!("SVR search best {:?}: test {:.3} mm", res.best, t.mean);
-    assert!(t.mean < 4.0);
+    eprintln!("SVR search best {:?}: test {:.3} mm", res.best, t.mean_mm);
+    assert!(t.mean_mm < 4.0);
 }
 
 // -------------------------------------------------------------- outliers --

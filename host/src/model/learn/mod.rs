@@ -105,50 +105,8 @@ impl fmt::Display for LearnError {
 
 impl std::error::Error for LearnError {}
 
-/// Error statistics of corrected positions against the truth, in mm
-/// (Euclidean distance per point, as eq. 7).
-#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
-pub struct ErrorStats {
-    pub n: usize,
-    pub mean: f64,
-    /// Sample standard deviation (n - 1), as the paper's tables.
-    pub sd: f64,
-    pub max: f64,
-}
-
-impl ErrorStats {
-    /// Statistics of per-point distances. Empty input gives all zeros.
-    pub fn from_distances(d: &[f64]) -> Self {
-        let n = d.len();
-        if n == 0 {
-            return ErrorStats {
-                n,
-                mean: 0.0,
-                sd: 0.0,
-                max: 0.0,
-            };
-        }
-        let mean = d.iter().sum::<f64>() / n as f64;
-        let var = if n > 1 {
-            d.iter().map(|v| (v - mean) * (v - mean)).sum::<f64>() / (n - 1) as f64
-        } else {
-            0.0
-        };
-        let max = d.iter().cloned().fold(0.0, f64::max);
-        ErrorStats {
-            n,
-            mean,
-            sd: var.sqrt(),
-            max,
-        }
-    }
-
-    /// Statistics of `|a_i - b_i|` over paired positions (shorter length wins).
-    pub fn between(a: &[[f64; 3]], b: &[[f64; 3]]) -> Self {
-        let d: Vec<f64> = a.iter().zip(b).map(|(p, q)| dist(p, q)).collect();
-        Self::from_distances(&d)
-    }
-}
+/// The one error statistic (eq. 7), as every report uses it.
+pub use crate::data::stats::ErrorStats;
 
 pub(crate) fn dist(a: &[f64; 3], b: &[f64; 3]) -> f64 {
     let dx = a[0] - b[0];

@@ -228,11 +228,11 @@ fn sweep_curve(
         let model = data.model(h, &run.w);
         let (train, val) = data.stats(&model);
         // Without a validation split the training error ranks the sizes.
-        let score = if val.n > 0 { val.mean } else { train.mean };
+        let score = if val.n > 0 { val.mean_mm } else { train.mean_mm };
         curve.push(SweepPoint {
             hidden: h,
-            validation_mean_mm: val.mean,
-            train_mean_mm: train.mean,
+            validation_mean_mm: val.mean_mm,
+            train_mean_mm: train.mean_mm,
             epochs: run.epochs,
             stop: run.stop,
         });
