@@ -8,9 +8,8 @@ use std::path::{Path, PathBuf};
 use spidar_core::STRINGS;
 
 use super::columns::{session_header_for, OptionalColumns};
-use super::session::csv_write_error;
-use super::values::{check_sample, row_fields};
-use super::{io_error, DatasetError, Sample, Session, MIN_STRINGS};
+use super::session::{check_sample, csv_write_error, row_fields, Sample, Session};
+use super::{io_error, DatasetError, MIN_STRINGS};
 
 /// An unterminated last line found when a session was opened for appending:
 /// the remains of a write that a crash or power loss cut short. It was
@@ -38,12 +37,12 @@ pub struct OpenedSession {
 /// written whole and ends in a newline, then flushed to the disk
 /// (`sync_data`) before [`SessionAppender::append`] returns, so a crash or a
 /// power loss loses at most the row being written. A new file gets
-/// [`session_header`] with `ots_q*`, `dev_*` and `tension0..` (a row
-/// without an orientation leaves `ots_q*` empty). An existing file may also
-/// have that header without `ots_q*` (as an older `spidar collect` starts
-/// a file): rows are appended to it as they are, and a sample
-/// with an orientation is refused rather than written without it
-/// ([`DatasetError::OrientationNotAppended`]).
+/// [`session_header`](super::session_header) with `ots_q*`, `dev_*` and
+/// `tension0..` (a row without an orientation leaves `ots_q*` empty). An
+/// existing file may also have that header without `ots_q*` (as an older
+/// `spidar collect` starts a file): rows are appended to it as they are,
+/// and a sample with an orientation is refused rather than written without
+/// it ([`DatasetError::OrientationNotAppended`]).
 ///
 /// A row is committed once its newline is on the disk: when a file is
 /// opened again, an unterminated last line is a write that was cut short

@@ -61,9 +61,10 @@
 //! `spidar`) is still appended to, with position-only rows.
 //!
 //! The reader in parts: `geometry` (the TOML format), `columns` (a session's
-//! column names, found in a header and written in one), `values` (the rules
-//! each value keeps, read, checked and written), `session` (the CSV format,
-//! read and written whole) and `append` (one row at a time, crash-safe).
+//! column names, found in a header and written in one), `values` (a row's
+//! values read from its text), `session` (the CSV format, read and written,
+//! with the checks every written row passes) and `append` (one row at a
+//! time, crash-safe).
 
 mod append;
 mod columns;

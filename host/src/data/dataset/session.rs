@@ -1,5 +1,6 @@
 //! The session format (CSV, [`Session`]): captures in time order, read
-//! strictly and written so that they read back.
+//! strictly, and written (whole, or one row at a time by the appender)
+//! only after the checks the reader makes, so that they read back.
 
 use std::fs;
 use std::io;
@@ -8,9 +9,13 @@ use std::path::Path;
 use spidar_core::model::Vec3;
 use spidar_core::STRINGS;
 
-use super::columns::{session_header_for, Layout, OptionalColumns, ORIENTATION_COLUMNS};
-use super::values::{check_sample, orientation_problem, row_fields, RowReader, MAX_SESSION_TIME_S};
-use super::{io_error, DatasetError, Geometry, ValueProblem};
+use super::columns::{
+    session_header_for, Layout, OptionalColumns, LEGACY_COLUMNS, ORIENTATION_COLUMNS,
+    TENSION_COLUMNS, TIME_COLUMN, TRACKER_COLUMNS,
+};
+use super::geometry::Geometry;
+use super::values::{orientation_problem, RowReader, MAX_SESSION_TIME_S};
+use super::{io_error, DatasetError, ValueProblem};
 
 /// One capture.
 #[derive(Clone, Debug, PartialEq)]
@@ -244,6 +249,101 @@ impl Session {
                 .map_err(|e| csv_write_error(file, e))?;
         }
         w.flush().map_err(|e| io_error(file, "cannot write", e))
+    }
+}
+
+/// What the reader requires of one sample written at `line`, after a sample
+/// at `previous` (time, line).
+pub(super) fn check_sample(
+    file: &Path,
+    line: u64,
+    s: &Sample,
+    previous: Option<(f64, u64)>,
+) -> Result<(), DatasetError> {
+    let value_error = |column: &str, problem| DatasetError::Value {
+        file: file.to_path_buf(),
+        line,
+        column: column.to_string(),
+        problem,
+    };
+    let finite = |column: &str, v: f64| {
+        if v.is_finite() {
+            Ok(())
+        } else {
+            Err(value_error(column, ValueProblem::NotFinite(v.to_string())))
+        }
+    };
+    finite(TIME_COLUMN, s.t_s)?;
+    if s.t_s < 0.0 {
+        return Err(value_error(TIME_COLUMN, ValueProblem::NegativeTime(s.t_s)));
+    }
+    if s.t_s > MAX_SESSION_TIME_S {
+        return Err(value_error(TIME_COLUMN, ValueProblem::TimeTooLarge(s.t_s)));
+    }
+    if let Some((prev, prev_line)) = previous {
+        if s.t_s < prev {
+            return Err(value_error(
+                TIME_COLUMN,
+                ValueProblem::TimeDecreasing {
+                    value: s.t_s,
+                    previous: prev,
+                    previous_line: prev_line,
+                },
+            ));
+        }
+    }
+    if let Some(v) = &s.tracker {
+        for (x, name) in v.iter().zip(&TRACKER_COLUMNS) {
+            finite(name, *x)?;
+        }
+    }
+    if let Some(q) = &s.orientation {
+        for (x, name) in q.iter().zip(&ORIENTATION_COLUMNS) {
+            finite(name, *x)?;
+        }
+        if let Some(p) = orientation_problem(q, s.tracker.is_some()) {
+            return Err(value_error(ORIENTATION_COLUMNS[0], p));
+        }
+    }
+    if let Some(v) = &s.legacy {
+        for (x, name) in v.iter().zip(&LEGACY_COLUMNS) {
+            finite(name, *x)?;
+        }
+    }
+    if let Some(v) = &s.tension_n {
+        for (x, name) in v.iter().zip(&TENSION_COLUMNS) {
+            finite(name, *x)?;
+        }
+    }
+    Ok(())
+}
+
+/// The fields of one row, in the order of
+/// [`session_header`](super::session_header); floats in their shortest
+/// exact form, an absent group as empty fields.
+pub(super) fn row_fields(
+    s: &Sample,
+    strings: usize,
+    columns: OptionalColumns,
+    fields: &mut Vec<String>,
+) {
+    let n = strings.min(STRINGS);
+    let push_group = |fields: &mut Vec<String>, g: Option<&[f64]>, n: usize| match g {
+        Some(v) => fields.extend(v.iter().map(|x| x.to_string())),
+        None => fields.extend(std::iter::repeat_n(String::new(), n)),
+    };
+    fields.clear();
+    fields.push(s.t_s.to_string());
+    fields.extend(s.counts[..n].iter().map(|c| c.to_string()));
+    push_group(fields, s.tracker.as_ref().map(|v| &v[..]), 3);
+    if columns.orientation {
+        push_group(fields, s.orientation.as_ref().map(|v| &v[..]), 4);
+    }
+    if columns.legacy {
+        push_group(fields, s.legacy.as_ref().map(|v| &v[..]), 3);
+    }
+    if columns.tension {
+        push_group(fields, s.tension_n.as_ref().map(|v| &v[..n]), n);
     }
 }
 

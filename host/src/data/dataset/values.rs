@@ -1,15 +1,10 @@
-//! One row's values: the rules each keeps, read from a row's text, checked
-//! before a sample is written, and written as the row's fields.
+//! One row's values as the reader takes them from the row's text, and the
+//! rules every value keeps (the writer checks the same,
+//! `session::check_sample`).
 
 use std::path::Path;
 
-use spidar_core::STRINGS;
-
-use super::columns::{
-    OptionalColumns, LEGACY_COLUMNS, ORIENTATION_COLUMNS, TENSION_COLUMNS, TIME_COLUMN,
-    TRACKER_COLUMNS,
-};
-use super::{DatasetError, Sample, ValueProblem};
+use super::{DatasetError, ValueProblem};
 
 /// How far from 1 the norm of an orientation quaternion may be (its values
 /// are rounded, but a rotation is a unit quaternion).
@@ -118,99 +113,5 @@ fn parse_float(text: &str) -> Result<f64, ValueProblem> {
         Ok(v) if v.is_finite() => Ok(v),
         Ok(_) => Err(ValueProblem::NotFinite(text.to_string())),
         Err(_) => Err(ValueProblem::NotANumber(text.to_string())),
-    }
-}
-
-/// What the reader requires of one sample written at `line`, after a sample
-/// at `previous` (time, line).
-pub(super) fn check_sample(
-    file: &Path,
-    line: u64,
-    s: &Sample,
-    previous: Option<(f64, u64)>,
-) -> Result<(), DatasetError> {
-    let value_error = |column: &str, problem| DatasetError::Value {
-        file: file.to_path_buf(),
-        line,
-        column: column.to_string(),
-        problem,
-    };
-    let finite = |column: &str, v: f64| {
-        if v.is_finite() {
-            Ok(())
-        } else {
-            Err(value_error(column, ValueProblem::NotFinite(v.to_string())))
-        }
-    };
-    finite(TIME_COLUMN, s.t_s)?;
-    if s.t_s < 0.0 {
-        return Err(value_error(TIME_COLUMN, ValueProblem::NegativeTime(s.t_s)));
-    }
-    if s.t_s > MAX_SESSION_TIME_S {
-        return Err(value_error(TIME_COLUMN, ValueProblem::TimeTooLarge(s.t_s)));
-    }
-    if let Some((prev, prev_line)) = previous {
-        if s.t_s < prev {
-            return Err(value_error(
-                TIME_COLUMN,
-                ValueProblem::TimeDecreasing {
-                    value: s.t_s,
-                    previous: prev,
-                    previous_line: prev_line,
-                },
-            ));
-        }
-    }
-    if let Some(v) = &s.tracker {
-        for (x, name) in v.iter().zip(&TRACKER_COLUMNS) {
-            finite(name, *x)?;
-        }
-    }
-    if let Some(q) = &s.orientation {
-        for (x, name) in q.iter().zip(&ORIENTATION_COLUMNS) {
-            finite(name, *x)?;
-        }
-        if let Some(p) = orientation_problem(q, s.tracker.is_some()) {
-            return Err(value_error(ORIENTATION_COLUMNS[0], p));
-        }
-    }
-    if let Some(v) = &s.legacy {
-        for (x, name) in v.iter().zip(&LEGACY_COLUMNS) {
-            finite(name, *x)?;
-        }
-    }
-    if let Some(v) = &s.tension_n {
-        for (x, name) in v.iter().zip(&TENSION_COLUMNS) {
-            finite(name, *x)?;
-        }
-    }
-    Ok(())
-}
-
-/// The fields of one row, in the order of [`session_header`]; floats in
-/// their shortest exact form, an absent group as empty fields.
-pub(super) fn row_fields(
-    s: &Sample,
-    strings: usize,
-    columns: OptionalColumns,
-    fields: &mut Vec<String>,
-) {
-    let n = strings.min(STRINGS);
-    let push_group = |fields: &mut Vec<String>, g: Option<&[f64]>, n: usize| match g {
-        Some(v) => fields.extend(v.iter().map(|x| x.to_string())),
-        None => fields.extend(std::iter::repeat_n(String::new(), n)),
-    };
-    fields.clear();
-    fields.push(s.t_s.to_string());
-    fields.extend(s.counts[..n].iter().map(|c| c.to_string()));
-    push_group(fields, s.tracker.as_ref().map(|v| &v[..]), 3);
-    if columns.orientation {
-        push_group(fields, s.orientation.as_ref().map(|v| &v[..]), 4);
-    }
-    if columns.legacy {
-        push_group(fields, s.legacy.as_ref().map(|v| &v[..]), 3);
-    }
-    if columns.tension {
-        push_group(fields, s.tension_n.as_ref().map(|v| &v[..n]), n);
     }
 }
