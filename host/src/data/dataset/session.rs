@@ -1,0 +1,383 @@
+//! The session format (CSV, [`Session`]): captures in time order, read
+//! strictly, and written (whole, or one row at a time by the appender)
+//! only after the checks the reader makes, so that they read back.
+
+use std::fs;
+use std::io;
+use std::path::Path;
+
+use spidar_core::model::Vec3;
+use spidar_core::STRINGS;
+
+use super::columns::{
+    session_header_for, Layout, OptionalColumns, LEGACY_COLUMNS, ORIENTATION_COLUMNS,
+    TENSION_COLUMNS, TIME_COLUMN, TRACKER_COLUMNS,
+};
+use super::geometry::Geometry;
+use super::values::{orientation_problem, RowReader, MAX_SESSION_TIME_S};
+use super::{io_error, DatasetError, ValueProblem};
+
+/// One capture.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Sample {
+    /// Seconds since the session started.
+    pub t_s: f64,
+    /// Encoder counts relative to initialization; increase as string is paid out.
+    pub counts: [i32; STRINGS],
+    /// Tracker position of the marker (room frame, mm); `None` while occluded.
+    pub tracker: Option<Vec3<f64>>,
+    /// Orientation of the tracked body when the tracker gives one: the unit
+    /// quaternion `[w, x, y, z]` that turns the body's frame into the room
+    /// frame. `None` while occluded or when the session has no orientation.
+    pub orientation: Option<[f64; 4]>,
+    /// Position reported by a legacy controller (device frame, mm), if any.
+    pub legacy: Option<Vec3<f64>>,
+    /// Commanded tensions (N), if recorded.
+    pub tension_n: Option<[f64; STRINGS]>,
+}
+
+/// A recorded (or simulated) session: captures in time order.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Session {
+    /// Number of strings: the encoder columns `enc0..enc{strings-1}` (3..=8).
+    /// Counts and tensions of the other channels are 0 in every sample.
+    pub strings: usize,
+    pub samples: Vec<Sample>,
+    /// Columns found in the file that this reader does not know; they were
+    /// ignored. Empty for sessions not read from a file.
+    pub ignored_columns: Vec<String>,
+    /// The tracker columns include `ots_z` (false: a planar session's file
+    /// gave `ots_x, ots_y` only, and every sample's tracker z reads 0; a
+    /// 3-D geometry refuses it, [`Session::check_strings`]).
+    pub tracker_z: bool,
+}
+
+impl Default for Session {
+    /// An empty session of an 8-string device.
+    fn default() -> Self {
+        Session {
+            strings: STRINGS,
+            samples: Vec::new(),
+            ignored_columns: Vec::new(),
+            tracker_z: true,
+        }
+    }
+}
+
+impl Session {
+    /// Read a session CSV file.
+    pub fn load(path: impl AsRef<Path>) -> Result<Self, DatasetError> {
+        let path = path.as_ref();
+        let f = fs::File::open(path).map_err(|e| io_error(path, "cannot open", e))?;
+        Self::read_from(io::BufReader::new(f), path)
+    }
+
+    /// Read a session from any reader; `file` names it in errors.
+    pub fn read_from<R: io::Read>(reader: R, file: &Path) -> Result<Self, DatasetError> {
+        let mut csv = csv::ReaderBuilder::new()
+            .has_headers(true)
+            .flexible(false)
+            .trim(csv::Trim::All)
+            .from_reader(reader);
+        let header = csv.headers().map_err(|e| csv_error(file, e))?.clone();
+        let (layout, ignored_columns) = Layout::from_header(file, &header)?;
+        let strings = layout.counts.len();
+        let tracker_group = if layout.tracker.len() == 3 {
+            "ots_x, ots_y, ots_z"
+        } else {
+            "ots_x, ots_y"
+        };
+        let tension_group = format!("tension0..tension{}", strings - 1);
+        let orientation_group = ORIENTATION_COLUMNS.join(", ");
+        let mut samples = Vec::new();
+        let mut record = csv::StringRecord::new();
+        let mut previous: Option<(f64, u64)> = None;
+        loop {
+            match csv.read_record(&mut record) {
+                Ok(true) => {}
+                Ok(false) => break,
+                Err(e) => return Err(csv_error(file, e)),
+            }
+            let line = record.position().map(|p| p.line()).unwrap_or(0);
+            let row = RowReader {
+                file,
+                line,
+                header: &header,
+                record: &record,
+            };
+            let t_s = row.float(layout.time)?;
+            if t_s < 0.0 {
+                return Err(row.error(layout.time, ValueProblem::NegativeTime(t_s)));
+            }
+            if t_s > MAX_SESSION_TIME_S {
+                return Err(row.error(layout.time, ValueProblem::TimeTooLarge(t_s)));
+            }
+            if let Some((prev, prev_line)) = previous {
+                if t_s < prev {
+                    return Err(row.error(
+                        layout.time,
+                        ValueProblem::TimeDecreasing {
+                            value: t_s,
+                            previous: prev,
+                            previous_line: prev_line,
+                        },
+                    ));
+                }
+            }
+            previous = Some((t_s, line));
+            let mut counts = [0i32; STRINGS];
+            for (c, &k) in counts.iter_mut().zip(&layout.counts) {
+                *c = row.count(k)?;
+            }
+            let tracker = row.group(&layout.tracker, tracker_group)?;
+            let orientation = match &layout.orientation {
+                Some(ix) => {
+                    let q = row.group(ix, &orientation_group)?;
+                    if let Some(p) = q.and_then(|q| orientation_problem(&q, tracker.is_some())) {
+                        return Err(row.error(ix[0], p));
+                    }
+                    q
+                }
+                None => None,
+            };
+            let legacy = match &layout.legacy {
+                Some(ix) => row.group(ix, "dev_x, dev_y, dev_z")?,
+                None => None,
+            };
+            let tension_n = match &layout.tension {
+                Some(ix) => row.group(ix, &tension_group)?,
+                None => None,
+            };
+            samples.push(Sample {
+                t_s,
+                counts,
+                tracker,
+                orientation,
+                legacy,
+                tension_n,
+            });
+        }
+        Ok(Session {
+            strings,
+            samples,
+            ignored_columns,
+            tracker_z: layout.tracker.len() == 3,
+        })
+    }
+
+    /// Checks that this session has `geometry`'s number of strings, and
+    /// tracker z positions unless the geometry is planar; the error names
+    /// both files.
+    pub fn check_strings(
+        &self,
+        file: &Path,
+        geometry: &Geometry,
+        geometry_file: &Path,
+    ) -> Result<(), DatasetError> {
+        if self.strings != geometry.strings() {
+            return Err(DatasetError::StringCount {
+                file: file.to_path_buf(),
+                strings: self.strings,
+                geometry_file: geometry_file.to_path_buf(),
+                geometry_strings: geometry.strings(),
+            });
+        }
+        if !self.tracker_z && !geometry.layout.planar {
+            return Err(DatasetError::NoTrackerZ {
+                file: file.to_path_buf(),
+                geometry_file: geometry_file.to_path_buf(),
+            });
+        }
+        Ok(())
+    }
+
+    /// True if any sample has an orientation (the `ots_q*` columns are written).
+    pub fn has_orientation(&self) -> bool {
+        self.samples.iter().any(|s| s.orientation.is_some())
+    }
+
+    /// True if any sample has a legacy position (the `dev_*` columns are written).
+    pub fn has_legacy(&self) -> bool {
+        self.samples.iter().any(|s| s.legacy.is_some())
+    }
+
+    /// True if any sample has tensions (the `tension*` columns are written).
+    pub fn has_tension(&self) -> bool {
+        self.samples.iter().any(|s| s.tension_n.is_some())
+    }
+
+    /// Check what [`Session::read_from`] would check, naming the line and
+    /// column each sample would be written at.
+    pub fn validate(&self, file: &Path) -> Result<(), DatasetError> {
+        let mut previous: Option<(f64, u64)> = None;
+        for (row, s) in self.samples.iter().enumerate() {
+            let line = row as u64 + 2;
+            check_sample(file, line, s, previous)?;
+            previous = Some((s.t_s, line));
+        }
+        Ok(())
+    }
+
+    /// Write the session as CSV (after [`Session::validate`]).
+    pub fn write(&self, path: impl AsRef<Path>) -> Result<(), DatasetError> {
+        let path = path.as_ref();
+        self.validate(path)?;
+        let f = fs::File::create(path).map_err(|e| io_error(path, "cannot create", e))?;
+        self.write_to(io::BufWriter::new(f), path)
+    }
+
+    /// Write the session as CSV to any writer; `file` names it in errors.
+    /// Columns: `t_s`, `enc0..7`, `ots_x, ots_y, ots_z`, then
+    /// `ots_qw, ots_qx, ots_qy, ots_qz` if any sample has an orientation,
+    /// `dev_*` if any has a legacy position and `tension0..7` if any has
+    /// tensions.
+    pub fn write_to<W: io::Write>(&self, writer: W, file: &Path) -> Result<(), DatasetError> {
+        self.validate(file)?;
+        let columns = OptionalColumns {
+            orientation: self.has_orientation(),
+            legacy: self.has_legacy(),
+            tension: self.has_tension(),
+        };
+        let header = session_header_for(self.strings, columns);
+        let mut w = csv::WriterBuilder::new().from_writer(writer);
+        w.write_record(&header)
+            .map_err(|e| csv_write_error(file, e))?;
+        let mut fields: Vec<String> = Vec::with_capacity(header.len());
+        for s in &self.samples {
+            row_fields(s, self.strings, columns, &mut fields);
+            w.write_record(&fields)
+                .map_err(|e| csv_write_error(file, e))?;
+        }
+        w.flush().map_err(|e| io_error(file, "cannot write", e))
+    }
+}
+
+/// What the reader requires of one sample written at `line`, after a sample
+/// at `previous` (time, line).
+pub(super) fn check_sample(
+    file: &Path,
+    line: u64,
+    s: &Sample,
+    previous: Option<(f64, u64)>,
+) -> Result<(), DatasetError> {
+    let value_error = |column: &str, problem| DatasetError::Value {
+        file: file.to_path_buf(),
+        line,
+        column: column.to_string(),
+        problem,
+    };
+    let finite = |column: &str, v: f64| {
+        if v.is_finite() {
+            Ok(())
+        } else {
+            Err(value_error(column, ValueProblem::NotFinite(v.to_string())))
+        }
+    };
+    finite(TIME_COLUMN, s.t_s)?;
+    if s.t_s < 0.0 {
+        return Err(value_error(TIME_COLUMN, ValueProblem::NegativeTime(s.t_s)));
+    }
+    if s.t_s > MAX_SESSION_TIME_S {
+        return Err(value_error(TIME_COLUMN, ValueProblem::TimeTooLarge(s.t_s)));
+    }
+    if let Some((prev, prev_line)) = previous {
+        if s.t_s < prev {
+            return Err(value_error(
+                TIME_COLUMN,
+                ValueProblem::TimeDecreasing {
+                    value: s.t_s,
+                    previous: prev,
+                    previous_line: prev_line,
+                },
+            ));
+        }
+    }
+    if let Some(v) = &s.tracker {
+        for (x, name) in v.iter().zip(&TRACKER_COLUMNS) {
+            finite(name, *x)?;
+        }
+    }
+    if let Some(q) = &s.orientation {
+        for (x, name) in q.iter().zip(&ORIENTATION_COLUMNS) {
+            finite(name, *x)?;
+        }
+        if let Some(p) = orientation_problem(q, s.tracker.is_some()) {
+            return Err(value_error(ORIENTATION_COLUMNS[0], p));
+        }
+    }
+    if let Some(v) = &s.legacy {
+        for (x, name) in v.iter().zip(&LEGACY_COLUMNS) {
+            finite(name, *x)?;
+        }
+    }
+    if let Some(v) = &s.tension_n {
+        for (x, name) in v.iter().zip(&TENSION_COLUMNS) {
+            finite(name, *x)?;
+        }
+    }
+    Ok(())
+}
+
+/// The fields of one row, in the order of
+/// [`session_header`](super::session_header); floats in their shortest
+/// exact form, an absent group as empty fields.
+pub(super) fn row_fields(
+    s: &Sample,
+    strings: usize,
+    columns: OptionalColumns,
+    fields: &mut Vec<String>,
+) {
+    let n = strings.min(STRINGS);
+    let push_group = |fields: &mut Vec<String>, g: Option<&[f64]>, n: usize| match g {
+        Some(v) => fields.extend(v.iter().map(|x| x.to_string())),
+        None => fields.extend(std::iter::repeat_n(String::new(), n)),
+    };
+    fields.clear();
+    fields.push(s.t_s.to_string());
+    fields.extend(s.counts[..n].iter().map(|c| c.to_string()));
+    push_group(fields, s.tracker.as_ref().map(|v| &v[..]), 3);
+    if columns.orientation {
+        push_group(fields, s.orientation.as_ref().map(|v| &v[..]), 4);
+    }
+    if columns.legacy {
+        push_group(fields, s.legacy.as_ref().map(|v| &v[..]), 3);
+    }
+    if columns.tension {
+        push_group(fields, s.tension_n.as_ref().map(|v| &v[..n]), n);
+    }
+}
+
+fn csv_error(file: &Path, e: csv::Error) -> DatasetError {
+    let line = e.position().map(|p| p.line()).unwrap_or(0);
+    match e.into_kind() {
+        csv::ErrorKind::Io(source) => io_error(file, "cannot read", source),
+        csv::ErrorKind::UnequalLengths {
+            expected_len, len, ..
+        } => DatasetError::Csv {
+            file: file.to_path_buf(),
+            line,
+            message: format!("{len} fields, but the header has {expected_len}"),
+        },
+        csv::ErrorKind::Utf8 { err, .. } => DatasetError::Csv {
+            file: file.to_path_buf(),
+            line,
+            message: format!("invalid UTF-8 in field {}", err.field() + 1),
+        },
+        other => DatasetError::Csv {
+            file: file.to_path_buf(),
+            line,
+            message: format!("{other:?}"),
+        },
+    }
+}
+
+pub(super) fn csv_write_error(file: &Path, e: csv::Error) -> DatasetError {
+    match e.into_kind() {
+        csv::ErrorKind::Io(source) => io_error(file, "cannot write", source),
+        other => DatasetError::Csv {
+            file: file.to_path_buf(),
+            line: 0,
+            message: format!("{other:?}"),
+        },
+    }
+}

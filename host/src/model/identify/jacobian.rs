@@ -1,0 +1,294 @@
+//! The problem's Jacobian: each string residual's row on its own and the
+//! shared columns (analytic), the prior rows, their sum into the normal
+//! equations; and the data Jacobian diagnosis projects candidate effects on.
+
+use nalgebra::{DMatrix, DVector};
+use spidar_core::geometry::{cross, distance, mat_vec, sub};
+use spidar_core::model::{Effect, EffectTerm, Frame, EVERY_STRING};
+use spidar_core::string_law::{sag_home_slope, sag_slope, EffectContext};
+use spidar_core::STRINGS;
+
+use super::layout::{encode, Layout, State, HOME, ROTATION, TRANSLATION};
+use super::problem::Problem;
+use super::residuals::{device_position, inputs_at, GROSS_RESIDUAL_MM};
+use super::result::Identification;
+use super::structure::Structure;
+use crate::data::observe::Observation;
+use crate::model::normal::NormalEquations;
+
+impl Problem<'_> {
+    /// The effect columns of one observation, per column and string:
+    /// analytic gradients of the terms (each term touches only its own
+    /// string) at each string's `contexts`.
+    fn effect_gradients(
+        &self,
+        state: &State,
+        contexts: &[Option<EffectContext>; STRINGS],
+    ) -> Vec<[f64; STRINGS]> {
+        let mut effect_grad = vec![[0.0; STRINGS]; self.layout.effect_columns.len()];
+        for (c, &(e, pi)) in self.layout.effect_columns.iter().enumerate() {
+            let term = &state.effects[e];
+            for s in state.frame.layout.indices().filter(|&s| term.applies_to(s)) {
+                if let Some(ctx) = &contexts[s] {
+                    if let Some(g) = term.effect.gradient_f64(ctx).get(pi) {
+                        effect_grad[c][s] = -g;
+                    }
+                }
+            }
+        }
+        effect_grad
+    }
+
+    /// Each string residual's row of the Jacobian (over the scaled LM
+    /// variables) at `state`, in row order: `visit(row, string, own,
+    /// shared)` with its values on the string's own columns and on the
+    /// shared ones ([`Layout::arrow`]); it is zero elsewhere. Rows of
+    /// weight 0 (zero) are not visited. False when a value is not finite.
+    pub(super) fn string_rows(
+        &self,
+        state: &State,
+        mut visit: impl FnMut(usize, usize, &[f64], &[f64]),
+    ) -> bool {
+        let laws = state.winding.laws();
+        let layout = self.layout;
+        let columns = &layout.arrow;
+        let shared_terms: Vec<usize> = layout.term_columns(self.structure, EVERY_STRING).collect();
+        let own_terms: [Vec<usize>; STRINGS] =
+            core::array::from_fn(|i| layout.term_columns(self.structure, i as u8).collect());
+        let frame = &state.frame;
+        let w = &state.winding;
+        let home_lengths: Vec<f64> = (0..STRINGS)
+            .map(|i| distance(frame.home, frame.anchors[i]))
+            .collect();
+        let two_pi = 2.0 * std::f64::consts::PI;
+        let planar = frame.layout.planar;
+        let mut own = Vec::with_capacity(columns.n);
+        let mut shared = Vec::with_capacity(columns.n);
+        let mut finite = true;
+        for (k, o) in self.observations.iter().enumerate() {
+            let p = device_position(frame, o);
+            let inputs = inputs_at(frame, o, &p);
+            // Each string's context once per row, not once per column.
+            let contexts: [Option<EffectContext>; STRINGS] =
+                core::array::from_fn(|s| EffectContext::for_string(frame, &laws, &inputs, s));
+            let effect_grad = self.effect_gradients(state, &contexts);
+            for i in 0..STRINGS {
+                let row = k * STRINGS + i;
+                let f = self.weights[k][i].sqrt() / self.residual_sd;
+                if f == 0.0 {
+                    continue;
+                }
+                let a = frame.anchors[i];
+                let geo = distance(p, a);
+                let up = {
+                    let d = sub(p, a);
+                    [d[0] / geo, d[1] / geo, d[2] / geo]
+                };
+                let lh = home_lengths[i];
+                let uh = {
+                    let d = sub(frame.home, a);
+                    [d[0] / lh, d[1] / lh, d[2] / lh]
+                };
+                let theta = two_pi * o.inputs.counts[i] as f64 / w.counts_per_rev[i] as f64;
+                let (d_payout, d_home) =
+                    length_derivatives(&state.effects, i, o, contexts[i].as_ref());
+                own.clear();
+                shared.clear();
+                // Anchor, then home.
+                own.extend((0..3).map(|c| f * (-up[c] + d_home * uh[c])));
+                shared.extend((0..3).map(|c| f * (-d_home * uh[c])));
+                // The tracker frame: rotation, translation.
+                let rup = mat_vec(&frame.room_rotation, up);
+                let wgrad = cross(up, p);
+                shared.extend((0..3).map(|c| f * wgrad[c]));
+                shared.extend((0..3).map(|c| f * (-rup[c] / frame.room_scale)));
+                if planar {
+                    // The position is held in the plane: the tracker's
+                    // tilts and z translation do not move it.
+                    shared[ROTATION - HOME] = 0.0;
+                    shared[ROTATION + 1 - HOME] = 0.0;
+                    shared[TRANSLATION + 2 - HOME] = 0.0;
+                }
+                if layout.fit_scale {
+                    let dot = up[0] * p[0] + up[1] * p[1] + up[2] * p[2];
+                    shared.push(f * (-dot / frame.room_scale));
+                }
+                // The winding law: radius, shared and own thinning rates.
+                own.push(f * (-theta * d_payout));
+                let d_kappa = f * (theta * theta * d_payout / w.mechanical_advantage[i]);
+                shared.push(d_kappa);
+                own.push(if self.structure.hold_kappa_each {
+                    0.0
+                } else {
+                    d_kappa
+                });
+                own.extend(own_terms[i].iter().map(|&c| f * effect_grad[c][i]));
+                shared.extend(shared_terms.iter().map(|&c| f * effect_grad[c][i]));
+                // To the scaled LM variables.
+                for (v, &c) in own.iter_mut().zip(&columns.own[i]) {
+                    *v *= layout.scale[c];
+                }
+                for (v, &c) in shared.iter_mut().zip(&columns.shared) {
+                    *v *= layout.scale[c];
+                }
+                finite &= own.iter().chain(&shared).all(|v| v.is_finite());
+                visit(row, i, &own, &shared);
+            }
+        }
+        finite
+    }
+
+    /// The prior rows of the Jacobian (over the scaled LM variables) at
+    /// `state`, each on every column.
+    pub(super) fn scaled_prior_rows(&self, state: &State) -> Vec<Vec<f64>> {
+        let scale = &self.layout.scale;
+        self.prior_rows(state)
+            .into_iter()
+            .map(|(_, grad)| {
+                let mut values = vec![0.0; scale.len()];
+                for (c, d) in grad {
+                    values[c] += d;
+                }
+                for (v, s) in values.iter_mut().zip(scale) {
+                    *v *= s;
+                }
+                values
+            })
+            .collect()
+    }
+
+    /// `J^T J` and `J^T residuals` of the Jacobian `J` at the current
+    /// variables, summed without forming `J` ([`crate::model::normal`]):
+    /// the same figures as the dense products. `None` when `J` is not
+    /// finite.
+    pub(super) fn normal_equations(
+        &self,
+        residuals: &DVector<f64>,
+    ) -> Option<(DMatrix<f64>, DVector<f64>)> {
+        let state = self.state();
+        let mut normal = NormalEquations::new(&self.layout.arrow);
+        let strings_finite = self.string_rows(&state, |row, i, own, shared| {
+            normal.add_string_row(row, i, own, shared, residuals[row]);
+        });
+        let base = self.observations.len() * STRINGS;
+        let mut priors_finite = true;
+        for (j, values) in self.scaled_prior_rows(&state).into_iter().enumerate() {
+            priors_finite &= values.iter().all(|v| v.is_finite());
+            normal.add_row(base + j, &values, residuals[base + j]);
+        }
+        (strings_finite && priors_finite).then(|| normal.finish())
+    }
+}
+
+/// The derivatives of string `i`'s model length over its payout and over
+/// its home length at `o` (1 each without effects): effects that scale with
+/// the payout or the home length (scale, elasticity, stretch, sag) carry
+/// those derivatives along. `context`: the string's, for the sag.
+fn length_derivatives(
+    effects: &[EffectTerm],
+    i: usize,
+    o: &Observation,
+    context: Option<&EffectContext>,
+) -> (f64, f64) {
+    let (mut d_payout, mut d_home) = (1.0, 1.0);
+    for term in effects.iter().filter(|t| t.applies_to(i)) {
+        match term.effect {
+            Effect::Scale { relative } => d_payout += relative,
+            Effect::Elasticity { per_newton } => {
+                let t = f64::from(o.inputs.tension_mn[i]) / 1000.0;
+                d_payout += per_newton * t;
+                d_home += per_newton * t;
+            }
+            Effect::Stretch {
+                per_newton,
+                home_tension_n,
+                ..
+            } => {
+                let t = f64::from(o.inputs.tension_mn[i]) / 1000.0;
+                d_payout += per_newton * t;
+                d_home += per_newton * (t - home_tension_n);
+            }
+            Effect::Sag {
+                mm_at_1m_1n,
+                home_mm_at_1m,
+            } => {
+                if let Some(ctx) = context {
+                    let slope = sag_slope(mm_at_1m_1n, ctx);
+                    d_payout += slope;
+                    d_home += slope + sag_home_slope(home_mm_at_1m, ctx);
+                }
+            }
+            _ => {}
+        }
+    }
+    (d_payout, d_home)
+}
+
+/// The weighted Jacobian of the string-space residuals at an identified
+/// solution (rows `k * STRINGS + i` for the k-th observation with a tracker
+/// position and string i; weight 1, or 0 for residuals beyond
+/// [`GROSS_RESIDUAL_MM`]; prior rows left out), the matching weighted
+/// residuals, and the weights. Diagnosis projects candidate effects on the
+/// complement of its columns: what the current model can already absorb is
+/// not evidence of an effect.
+pub fn data_jacobian(
+    id: &Identification,
+    observations: &[Observation],
+    nominal: &Frame<f64>,
+    structure: &Structure,
+) -> Option<DataJacobian> {
+    let used: Vec<&Observation> = observations
+        .iter()
+        .filter(|o| o.tracker.is_some())
+        .collect();
+    let layout = Layout::new(structure);
+    let state = State {
+        frame: id.frame,
+        winding: id.winding,
+        effects: id.effects.clone(),
+    };
+    let laws = state.winding.laws();
+    let weights: Vec<[f64; STRINGS]> = used
+        .iter()
+        .map(|o| {
+            let r = Problem::string_residuals(&state, &laws, o);
+            core::array::from_fn(|i| {
+                if nominal.layout.is_active(i) && r[i].abs() <= GROSS_RESIDUAL_MM {
+                    1.0
+                } else {
+                    0.0
+                }
+            })
+        })
+        .collect();
+    let problem = Problem {
+        observations: &used,
+        weights: &weights,
+        residual_sd: 1.0,
+        structure,
+        nominal,
+        layout: &layout,
+        base_rotation: state.frame.room_rotation,
+        winding_fixed: state.winding,
+        x: encode(&state, &layout),
+    };
+    use levenberg_marquardt::LeastSquaresProblem;
+    let jac = problem.jacobian()?;
+    let residuals = problem.residuals()?;
+    let rows = used.len() * STRINGS;
+    Some(DataJacobian {
+        jacobian: jac.rows(0, rows).into_owned(),
+        residuals: residuals.rows(0, rows).into_owned(),
+        weights,
+    })
+}
+
+/// See [`data_jacobian`].
+pub struct DataJacobian {
+    /// Weighted Jacobian of the string residuals (scaled parameters).
+    pub jacobian: DMatrix<f64>,
+    /// Weighted string residuals, mm.
+    pub residuals: DVector<f64>,
+    /// Per observation with a tracker position, per string: 1 or 0 (gross).
+    pub weights: Vec<[f64; STRINGS]>,
+}

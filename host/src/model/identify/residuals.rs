@@ -1,0 +1,69 @@
+//! The string-space residual of one row: the tracker's geometric string
+//! length less the model's.
+
+use spidar_core::geometry::{device_from_room, distance};
+use spidar_core::model::{EffectTerm, Frame, StringInputs, StringLaw};
+use spidar_core::string_law::{cos2_inclinations, string_lengths_f64};
+use spidar_core::STRINGS;
+
+use crate::data::observe::Observation;
+
+/// The tracker position of `o` in the device frame (mm); on a planar
+/// device, in the anchors' plane whatever the tracker's z.
+pub fn device_position(frame: &Frame<f64>, o: &Observation) -> [f64; 3] {
+    let mut p = device_from_room(frame, o.tracker.unwrap_or([0.0; 3]));
+    if frame.layout.planar {
+        p[2] = frame.anchors[0][2];
+    }
+    p
+}
+
+/// `o`'s inputs with each string's inclination (what a sag term reads) at
+/// `p`, the tracker's position in the device frame ([`device_position`]).
+pub fn inputs_at(frame: &Frame<f64>, o: &Observation, p: &[f64; 3]) -> StringInputs {
+    StringInputs {
+        cos2_inclination_q16: cos2_inclinations(&frame.anchors, p),
+        ..o.inputs
+    }
+}
+
+/// String-space residuals (geometric minus model, mm) of one observation; 0
+/// on channels without a string.
+pub(crate) fn residuals_at(
+    frame: &Frame<f64>,
+    laws: &[StringLaw; STRINGS],
+    effects: &[EffectTerm],
+    o: &Observation,
+) -> [f64; STRINGS] {
+    let p = device_position(frame, o);
+    let lengths = string_lengths_f64(frame, laws, effects, &inputs_at(frame, o, &p));
+    let mut r = [0.0; STRINGS];
+    for i in frame.layout.indices() {
+        r[i] = distance(p, frame.anchors[i]) - lengths[i];
+    }
+    r
+}
+
+/// String-space residuals (geometric minus model, mm) of every observation
+/// with a tracker position under an identified model; `None` for occluded rows.
+pub fn string_residuals(
+    frame: &Frame<f64>,
+    laws: &[StringLaw; STRINGS],
+    effects: &[EffectTerm],
+    observations: &[Observation],
+) -> Vec<Option<[f64; STRINGS]>> {
+    observations
+        .iter()
+        .map(|o| {
+            o.tracker?;
+            Some(residuals_at(frame, laws, effects, o))
+        })
+        .collect()
+}
+
+/// String residuals larger than this (mm) are gross failures (a string off
+/// its pulley, a jammed motor), not calibration effects: diagnosis leaves them
+/// out. Everything smaller stays in, even what the robust fit down-weighted:
+/// a systematic effect the model lacks (a slip, say) looks like outliers to
+/// the fit, and diagnosis must see it to name it.
+pub const GROSS_RESIDUAL_MM: f64 = 25.0;

@@ -1,0 +1,93 @@
+//! What an identification gives: the identified model, each parameter's
+//! estimate, the warnings; or why it failed.
+
+use serde::{Deserialize, Serialize};
+use spidar_core::kinematics::KinematicsRule;
+use spidar_core::model::{Effect, EffectTerm, Frame, StringLaw};
+use spidar_core::STRINGS;
+
+use super::winding::WindingPhysics;
+
+/// One identified parameter with its uncertainty.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct ParameterEstimate {
+    pub name: String,
+    pub unit: String,
+    pub value: f64,
+    /// Posterior standard deviation (from the Gauss-Newton covariance).
+    pub sd: f64,
+    /// Prior standard deviation, when the parameter has a prior.
+    pub prior_sd: Option<f64>,
+    /// False when the data do not determine the parameter (see warnings).
+    pub determined: bool,
+}
+
+/// Result of an identification.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct Identification {
+    pub frame: Frame<f64>,
+    pub winding: WindingPhysics,
+    pub laws: [StringLaw; STRINGS],
+    pub effects: Vec<EffectTerm>,
+    pub parameters: Vec<ParameterEstimate>,
+    pub warnings: Vec<String>,
+    /// Robust scale of the string-space residuals, mm.
+    pub residual_scale_mm: f64,
+    /// Each active string's scale of the part of its residual that changes
+    /// from row to row (the residual less its running median over 41 rows),
+    /// mm (0 on inactive channels): what forward kinematics weighs the
+    /// strings by ([`spidar_core::kinematics::residual_weights`]).
+    pub length_scale_mm: [f64; STRINGS],
+    /// Share of (row, string) residuals the robust weights rejected (weight < 0.1).
+    pub rejected_fraction: f64,
+    /// LM evaluations over all robust rounds.
+    pub evaluations: usize,
+    /// When forward kinematics leaves a string out and calls the strings
+    /// inconsistent: the device's defaults until the calibration chooses
+    /// ([`crate::model::rule`]).
+    #[serde(default)]
+    pub kinematics: KinematicsRule,
+}
+
+impl Identification {
+    /// Its kinematic model (what forward kinematics needs).
+    pub fn kinematic_model(&self) -> crate::model::predict::KinematicModel<'_> {
+        crate::model::predict::KinematicModel {
+            frame: &self.frame,
+            laws: &self.laws,
+            effects: &self.effects,
+            length_scale_mm: &self.length_scale_mm,
+            kinematics: self.kinematics,
+        }
+    }
+
+    /// The model as it holds for another session, started from a new home
+    /// capture: without the slips found in this one. A slip is an event of
+    /// the session it happened in (the string slid on its spool); a new home
+    /// capture counts from the string as it is, so the step is not there.
+    /// Applied to a later session by its time since home, a training
+    /// session's early slip would put its step on one string of every test
+    /// row after it.
+    pub fn for_a_new_session(&self) -> Identification {
+        Identification {
+            effects: self
+                .effects
+                .iter()
+                .filter(|t| !matches!(t.effect, Effect::Slip { .. }))
+                .copied()
+                .collect(),
+            ..self.clone()
+        }
+    }
+}
+
+/// Why an identification failed.
+#[derive(Debug, thiserror::Error)]
+pub enum IdentifyError {
+    #[error(
+        "identification needs at least {needed} rows with tracker positions, the session has {got}"
+    )]
+    TooFewRows { needed: usize, got: usize },
+    #[error("identification diverged: {0}")]
+    Diverged(String),
+}
