@@ -229,7 +229,7 @@ impl<'a> CompiledCalibration<'a> {
 }
 
 #[cfg(feature = "alloc")]
-pub use compiler::{compile, CompileError};
+pub use compiler::{compile, BlobCompileError};
 
 #[cfg(feature = "alloc")]
 mod compiler {
@@ -242,17 +242,17 @@ mod compiler {
     /// Why a calibration does not compile into a blob; names the part.
     #[cfg_attr(feature = "defmt", derive(defmt::Format))]
     #[derive(Clone, Copy, Debug, PartialEq)]
-    pub enum CompileError {
+    pub enum BlobCompileError {
         /// A frame value that is not finite or does not fit f32.
         Frame {
             field: &'static str,
         },
-        StringLaw(crate::string_law::CompileError),
+        StringLaw(crate::string_law::StringLawCompileError),
         TooManyEffects {
             found: usize,
             max: usize,
         },
-        Correction(crate::correction::CompileError),
+        Correction(crate::correction::CorrectionCompileError),
         /// The frame's string layout has fewer active strings than the
         /// end-effector's degrees of freedom (`frame.layout`), or an effect
         /// term is on a channel it marks inactive (`effects`, `string`).
@@ -280,18 +280,18 @@ mod compiler {
         Encode,
     }
 
-    impl core::fmt::Display for CompileError {
+    impl core::fmt::Display for BlobCompileError {
         fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
             match self {
-                CompileError::Frame { field } => {
+                BlobCompileError::Frame { field } => {
                     write!(f, "frame field `{field}` is not a finite f32")
                 }
-                CompileError::StringLaw(e) => write!(f, "string model: {e}"),
-                CompileError::TooManyEffects { found, max } => {
+                BlobCompileError::StringLaw(e) => write!(f, "string model: {e}"),
+                BlobCompileError::TooManyEffects { found, max } => {
                     write!(f, "{found} effect terms, a blob carries at most {max}")
                 }
-                CompileError::Correction(e) => write!(f, "position correction: {e}"),
-                CompileError::KinematicsRule {
+                BlobCompileError::Correction(e) => write!(f, "position correction: {e}"),
+                BlobCompileError::KinematicsRule {
                     exclusion_threshold_mm,
                     fault_threshold_mm,
                 } => write!(
@@ -300,43 +300,43 @@ mod compiler {
                      threshold {fault_threshold_mm} mm must be positive numbers, the exclusion's \
                      at most the fault's"
                 ),
-                CompileError::Layout {
+                BlobCompileError::Layout {
                     field,
                     string: Some(s),
                 } => write!(
                     f,
                     "`{field}` refers to string {s}, which `frame.layout` marks inactive"
                 ),
-                CompileError::Layout {
+                BlobCompileError::Layout {
                     field,
                     string: None,
                 } => write!(
                     f,
                     "`{field}` has fewer active strings than the end-effector's degrees of freedom"
                 ),
-                CompileError::LengthScale { string } => write!(
+                BlobCompileError::LengthScale { string } => write!(
                     f,
                     "`length_scale_mm` of string {string} is not a positive number \
                      (zeros on every string: not measured)"
                 ),
-                CompileError::Implausible(e) => write!(f, "not a device: {e}"),
-                CompileError::Encode => write!(f, "blob body could not be encoded"),
+                BlobCompileError::Implausible(e) => write!(f, "not a device: {e}"),
+                BlobCompileError::Encode => write!(f, "blob body could not be encoded"),
             }
         }
     }
 
-    impl core::error::Error for CompileError {}
+    impl core::error::Error for BlobCompileError {}
 
-    fn to_f32(v: f64, field: &'static str) -> Result<f32, CompileError> {
+    fn to_f32(v: f64, field: &'static str) -> Result<f32, BlobCompileError> {
         let x = v as f32;
         if x.is_finite() {
             Ok(x)
         } else {
-            Err(CompileError::Frame { field })
+            Err(BlobCompileError::Frame { field })
         }
     }
 
-    fn frame_f32(frame: &Frame<f64>) -> Result<Frame<f32>, CompileError> {
+    fn frame_f32(frame: &Frame<f64>) -> Result<Frame<f32>, BlobCompileError> {
         let mut out = Frame {
             layout: frame.layout,
             anchors: [[0.0f32; 3]; STRINGS],
@@ -361,7 +361,7 @@ mod compiler {
             }
         }
         if out.room_scale <= 0.0 {
-            return Err(CompileError::Frame {
+            return Err(BlobCompileError::Frame {
                 field: "room_scale",
             });
         }
@@ -373,13 +373,13 @@ mod compiler {
         calibration: &Calibration,
         model_id: u32,
         created_unix_s: u32,
-    ) -> Result<Vec<u8>, CompileError> {
+    ) -> Result<Vec<u8>, BlobCompileError> {
         let frame = frame_f32(&calibration.frame)?;
         crate::plausible::check_device(&calibration.frame, &calibration.strings)
-            .map_err(CompileError::Implausible)?;
+            .map_err(BlobCompileError::Implausible)?;
         let layout = calibration.frame.layout;
         if layout.count() < layout.dof() {
-            return Err(CompileError::Layout {
+            return Err(BlobCompileError::Layout {
                 field: "frame.layout",
                 string: None,
             });
@@ -389,7 +389,7 @@ mod compiler {
             .iter()
             .find(|t| usize::from(t.string) < STRINGS && !layout.is_active(usize::from(t.string)))
         {
-            return Err(CompileError::Layout {
+            return Err(BlobCompileError::Layout {
                 field: "effects",
                 string: Some(term.string),
             });
@@ -399,35 +399,38 @@ mod compiler {
         for (i, law) in calibration.strings.iter().enumerate() {
             if layout.is_active(i) {
                 laws[i] = compile_string_law(&calibration.frame, i, law)
-                    .map_err(CompileError::StringLaw)?;
+                    .map_err(BlobCompileError::StringLaw)?;
             }
         }
         if calibration.effects.len() > MAX_EFFECTS {
-            return Err(CompileError::TooManyEffects {
+            return Err(BlobCompileError::TooManyEffects {
                 found: calibration.effects.len(),
                 max: MAX_EFFECTS,
             });
         }
         let mut effects = heapless::Vec::new();
         for term in &calibration.effects {
-            let e = compile_effect(term, &calibration.strings).map_err(CompileError::StringLaw)?;
-            effects.push(e).map_err(|_| CompileError::TooManyEffects {
-                found: calibration.effects.len(),
-                max: MAX_EFFECTS,
-            })?;
+            let e =
+                compile_effect(term, &calibration.strings).map_err(BlobCompileError::StringLaw)?;
+            effects
+                .push(e)
+                .map_err(|_| BlobCompileError::TooManyEffects {
+                    found: calibration.effects.len(),
+                    max: MAX_EFFECTS,
+                })?;
         }
         let scales = &calibration.length_scale_mm;
         let unmeasured = layout.indices().all(|i| scales[i] == 0.0);
         let measured = |s: f64| s.is_finite() && s > 0.0;
         if !unmeasured {
             if let Some(bad) = layout.indices().find(|&i| !measured(scales[i])) {
-                return Err(CompileError::LengthScale { string: bad as u8 });
+                return Err(BlobCompileError::LengthScale { string: bad as u8 });
             }
         }
         let residual_weight = crate::kinematics::residual_weights(layout, scales).map(|w| w as f32);
         let rule = calibration.kinematics;
         if !rule.is_valid() {
-            return Err(CompileError::KinematicsRule {
+            return Err(BlobCompileError::KinematicsRule {
                 exclusion_threshold_mm: rule.exclusion_threshold_mm,
                 fault_threshold_mm: rule.fault_threshold_mm,
             });
@@ -443,8 +446,8 @@ mod compiler {
         let correction = calibration
             .correction
             .compile()
-            .map_err(CompileError::Correction)?;
-        let mut body = postcard::to_allocvec(&head).map_err(|_| CompileError::Encode)?;
+            .map_err(BlobCompileError::Correction)?;
+        let mut body = postcard::to_allocvec(&head).map_err(|_| BlobCompileError::Encode)?;
         body.resize(body.len() + correction_padding(HEADER_LEN + body.len()), 0);
         body.extend_from_slice(&correction.bytes);
         let header = ModelHeader {
@@ -463,7 +466,7 @@ mod compiler {
             created_unix_s,
         };
         let mut out = alloc::vec![0u8; HEADER_LEN + body.len()];
-        let n = write_blob(&header, &body, &mut out).ok_or(CompileError::Encode)?;
+        let n = write_blob(&header, &body, &mut out).ok_or(BlobCompileError::Encode)?;
         out.truncate(n);
         Ok(out)
     }

@@ -16,13 +16,13 @@
 //! # Which calibration runs
 //!
 //! The committed model blob if there is one (it takes precedence), else the
-//! nominal one built from `SetStringModel` (anchors, home, linear string law
+//! nominal one built from `SetNominalGeometry` (anchors, home, linear string law
 //! `payout = r theta`, no effects, no correction), else none: no geometry,
 //! the loop idles and `Arm` is refused with `BadState(NoGeometry)`.
 //!
 //! **Home** (counts 0, end-effector at the calibration's home point) is
 //! declared when the controller is created: at boot if a stored model loads,
-//! else when the first geometry arrives (`SetStringModel` or a commit), and
+//! else when the first geometry arrives (`SetNominalGeometry` or a commit), and
 //! again at each `Home` request (the host's guided initialization). A
 //! later change of calibration keeps the counts (same physical home);
 //! `ClearModel` without a nominal model drops the geometry, and the next one
@@ -62,8 +62,8 @@ use spidar_protocol::blob::{BlobError, CorrectionKind, ModelHeader, FORMAT_VERSI
 use spidar_protocol::messages::name;
 use spidar_protocol::{
     encode_device_message, BadState, Capabilities, DecodeStats, DeviceError, DeviceMessage, Event,
-    Faults, FrameDecoder, FrameError, HelloAck, Limits, LinkStats, ModelInfo, Packet, Request,
-    Response, State, StringModel, UploadState, MAX_CHUNK, MAX_FRAME, PROTOCOL_VERSION,
+    Faults, FrameDecoder, FrameError, HelloAck, Limits, LinkStats, ModelInfo, NominalGeometry,
+    Packet, Request, Response, State, UploadState, MAX_CHUNK, MAX_FRAME, PROTOCOL_VERSION,
 };
 
 use crate::blob::{split_body, BlobHead, CompiledCalibration, LENGTH_FRAC};
@@ -73,7 +73,7 @@ use crate::kinematics::FkStatus;
 use crate::model::{Frame, StringLaw, StringLayout};
 use crate::model_store::{CommitError, ModelFlash, ModelStore, StoreError, StoredModel};
 use crate::safety::{SafetyConfig, SafetyConfigError, SafetyFaults, SafetyMonitor};
-use crate::string_law::{compile_string_law, CompileError, CompiledStringLaw};
+use crate::string_law::{compile_string_law, CompiledStringLaw, StringLawCompileError};
 use crate::tension::{force_closure, TensionStatus};
 use crate::STRINGS;
 
@@ -187,14 +187,14 @@ fn parse_model(bytes: &[u8]) -> Result<ParsedModel, BlobError> {
 
 const IDENTITY: [[f32; 3]; 3] = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
 
-/// The nominal calibration of a [`StringModel`]: its string layout, anchors
+/// The nominal calibration of a [`NominalGeometry`]: its string layout, anchors
 /// and home, the device frame as room frame, a linear string law
 /// `payout = r theta` per string (`winding_mm = [r, 0, 0, 0]`), no effects,
 /// no correction. Channels without a string get a zero anchor and law
 /// (never read). Built directly in its compiled form (no blob, no
 /// allocation). `Err` names the field of the request that is out of range.
 pub fn nominal_calibration(
-    model: &StringModel,
+    model: &NominalGeometry,
 ) -> Result<CompiledCalibration<'static>, &'static str> {
     let layout = StringLayout {
         active: model.active_strings,
@@ -232,15 +232,15 @@ pub fn nominal_calibration(
         }
         let nominal = StringLaw::polynomial(model.counts_per_rev[i], [f64::from(r), 0.0, 0.0, 0.0]);
         *law = compile_string_law(&frame64, i, &nominal).map_err(|e| match e {
-            CompileError::NotFinite { field, .. }
-            | CompileError::DoesNotFit { field, .. }
-            | CompileError::OutOfRange { field, .. } => match field {
+            StringLawCompileError::NotFinite { field, .. }
+            | StringLawCompileError::DoesNotFit { field, .. }
+            | StringLawCompileError::OutOfRange { field, .. } => match field {
                 "counts_per_rev" => "counts_per_rev",
                 "anchor" => "anchors_mm",
                 "home" => "home_mm",
                 _ => "pulley_radius_mm",
             },
-            CompileError::StringOutOfRange { .. } => "anchors_mm",
+            StringLawCompileError::StringOutOfRange { .. } => "anchors_mm",
         })?;
     }
     let header = ModelHeader {
@@ -690,7 +690,7 @@ impl<'m, F: ModelFlash> Device<'m, F> {
                 s.uptime_us = now_us;
                 Ok(Response::Stats(s))
             }
-            Request::SetStringModel(ref m) => self.set_string_model(m),
+            Request::SetNominalGeometry(ref m) => self.set_string_model(m),
             Request::SetLimits(limits) => {
                 self.refuse_if_armed()?;
                 self.set_limits(&limits)?;
@@ -766,9 +766,9 @@ impl<'m, F: ModelFlash> Device<'m, F> {
         })
     }
 
-    /// `SetStringModel`: the nominal calibration (used while no model is
+    /// `SetNominalGeometry`: the nominal calibration (used while no model is
     /// committed); homes the controller if it is the first geometry.
-    fn set_string_model(&mut self, m: &StringModel) -> Result<Response, DeviceError> {
+    fn set_string_model(&mut self, m: &NominalGeometry) -> Result<Response, DeviceError> {
         self.refuse_if_armed()?;
         let cal = nominal_calibration(m)
             .map_err(|field| DeviceError::InvalidArgument { field: name(field) })?;

@@ -453,6 +453,10 @@ pub fn forward_kinematics_inclined<F: Real>(
 /// of step 2 as a function of its own changes the code the device runs
 /// (out of line: 1 % more instructions with a faulty string; always inlined:
 /// a few instructions more or fewer per call, under `scripts/qemu-bench`).
+#[allow(
+    clippy::too_many_lines,
+    reason = "a numerical kernel of the control loop: splitting it changes the device's code"
+)]
 pub fn forward_kinematics<F: Real>(
     anchors: &[Vec3<F>; STRINGS],
     layout: StringLayout,

@@ -56,11 +56,11 @@ const _: () = {
     format::<model_store::FlashError>();
     format::<model_store::StoreError>();
     format::<model_store::CommitError<spidar_protocol::DeviceError>>();
-    format::<string_law::CompileError>();
+    format::<string_law::StringLawCompileError>();
     #[cfg(feature = "alloc")]
     {
-        format::<correction::CompileError>();
-        format::<blob::CompileError>();
+        format::<correction::CorrectionCompileError>();
+        format::<blob::BlobCompileError>();
     }
 };
 
@@ -71,9 +71,9 @@ mod tests {
     #[test]
     fn errors_are_errors() {
         fn error<E: core::error::Error>() {}
-        error::<crate::string_law::CompileError>();
-        error::<crate::correction::CompileError>();
-        error::<crate::blob::CompileError>();
+        error::<crate::string_law::StringLawCompileError>();
+        error::<crate::correction::CorrectionCompileError>();
+        error::<crate::blob::BlobCompileError>();
         error::<crate::safety::SafetyConfigError>();
         error::<crate::model_store::FlashError>();
         error::<crate::model_store::StoreError>();

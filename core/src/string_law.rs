@@ -556,7 +556,7 @@ pub fn string_lengths_f64(
 /// and [`Frame`].
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub enum CompileError {
+pub enum StringLawCompileError {
     /// The string index is not in `0..STRINGS`.
     StringOutOfRange { string: usize },
     /// A parameter is NaN or infinite.
@@ -578,16 +578,16 @@ pub enum CompileError {
     },
 }
 
-impl fmt::Display for CompileError {
+impl fmt::Display for StringLawCompileError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match *self {
-            CompileError::StringOutOfRange { string } => {
+            StringLawCompileError::StringOutOfRange { string } => {
                 write!(f, "string {string} is out of range 0..{STRINGS}")
             }
-            CompileError::NotFinite { string, field } => {
+            StringLawCompileError::NotFinite { string, field } => {
                 write!(f, "string {string}: {field} is not finite")
             }
-            CompileError::DoesNotFit {
+            StringLawCompileError::DoesNotFit {
                 string,
                 field,
                 value,
@@ -596,7 +596,7 @@ impl fmt::Display for CompileError {
                 f,
                 "string {string}: {field} = {value} does not fit {format}"
             ),
-            CompileError::OutOfRange {
+            StringLawCompileError::OutOfRange {
                 string,
                 field,
                 value,
@@ -610,7 +610,7 @@ impl fmt::Display for CompileError {
     }
 }
 
-impl core::error::Error for CompileError {}
+impl core::error::Error for StringLawCompileError {}
 
 const WINDING_FIELDS: [&str; WINDING_ORDER] = [
     "winding_mm[0]",
@@ -619,11 +619,11 @@ const WINDING_FIELDS: [&str; WINDING_ORDER] = [
     "winding_mm[3]",
 ];
 
-fn finite(string: usize, field: &'static str, v: f64) -> Result<f64, CompileError> {
+fn finite(string: usize, field: &'static str, v: f64) -> Result<f64, StringLawCompileError> {
     if v.is_finite() {
         Ok(v)
     } else {
-        Err(CompileError::NotFinite { string, field })
+        Err(StringLawCompileError::NotFinite { string, field })
     }
 }
 
@@ -634,12 +634,12 @@ fn in_range(
     v: f64,
     min: f64,
     max: f64,
-) -> Result<f64, CompileError> {
+) -> Result<f64, StringLawCompileError> {
     let v = finite(string, field, v)?;
     if (min..=max).contains(&v) {
         Ok(v)
     } else {
-        Err(CompileError::OutOfRange {
+        Err(StringLawCompileError::OutOfRange {
             string,
             field,
             value: v,
@@ -656,13 +656,13 @@ fn to_fixed(
     v: f64,
     frac: i32,
     format: &'static str,
-) -> Result<i64, CompileError> {
+) -> Result<i64, StringLawCompileError> {
     let v = finite(string, field, v)?;
     let scaled = libm::round(v * libm::exp2(f64::from(frac)));
     // 2^63 is exactly representable; i64::MAX is not.
     const TWO_63: f64 = 9_223_372_036_854_775_808.0;
     if !(-TWO_63..TWO_63).contains(&scaled) {
-        return Err(CompileError::DoesNotFit {
+        return Err(StringLawCompileError::DoesNotFit {
             string,
             field,
             value: v,
@@ -678,9 +678,9 @@ fn to_fixed_i32(
     v: f64,
     frac: i32,
     format: &'static str,
-) -> Result<i32, CompileError> {
+) -> Result<i32, StringLawCompileError> {
     let q = to_fixed(string, field, v, frac, format)?;
-    i32::try_from(q).map_err(|_| CompileError::DoesNotFit {
+    i32::try_from(q).map_err(|_| StringLawCompileError::DoesNotFit {
         string,
         field,
         value: v,
@@ -688,9 +688,9 @@ fn to_fixed_i32(
     })
 }
 
-fn check_counts_per_rev(string: usize, counts_per_rev: u32) -> Result<(), CompileError> {
+fn check_counts_per_rev(string: usize, counts_per_rev: u32) -> Result<(), StringLawCompileError> {
     if counts_per_rev == 0 || counts_per_rev > i32::MAX as u32 {
-        return Err(CompileError::OutOfRange {
+        return Err(StringLawCompileError::OutOfRange {
             string,
             field: "counts_per_rev",
             value: f64::from(counts_per_rev),
@@ -918,18 +918,19 @@ pub fn compile_string_law(
     frame: &Frame<f64>,
     string: usize,
     law: &StringLaw,
-) -> Result<CompiledStringLaw, CompileError> {
+) -> Result<CompiledStringLaw, StringLawCompileError> {
     let anchor = frame
         .anchors
         .get(string)
-        .ok_or(CompileError::StringOutOfRange { string })?;
+        .ok_or(StringLawCompileError::StringOutOfRange { string })?;
     for v in anchor {
         finite(string, "anchor", *v)?;
     }
     for v in &frame.home {
         finite(string, "home", *v)?;
     }
-    let home = home_length_f64(frame, string).ok_or(CompileError::StringOutOfRange { string })?;
+    let home =
+        home_length_f64(frame, string).ok_or(StringLawCompileError::StringOutOfRange { string })?;
     let home_length_q16 = to_fixed(string, "home", home, 16, "Q47.16 mm")?;
     check_counts_per_rev(string, law.counts_per_rev)?;
     let r = rad_per_x(law.counts_per_rev);
@@ -957,9 +958,9 @@ pub fn compile_string_law(
     })
 }
 
-fn check_layer_step(string: usize, step_log2: u8) -> Result<(), CompileError> {
+fn check_layer_step(string: usize, step_log2: u8) -> Result<(), StringLawCompileError> {
     if step_log2 > MAX_LAYER_STEP_LOG2 {
-        return Err(CompileError::OutOfRange {
+        return Err(StringLawCompileError::OutOfRange {
             string,
             field: "layers.step_log2",
             value: f64::from(step_log2),
@@ -975,7 +976,10 @@ fn check_layer_step(string: usize, step_log2: u8) -> Result<(), CompileError> {
 /// non-monotone law has one string length for two counts, and the fit that
 /// made it followed noise). Checked on every segment at both ends against
 /// the polynomial's slope there.
-fn compile_layer_table(string: usize, law: &StringLaw) -> Result<CompiledLayerTable, CompileError> {
+fn compile_layer_table(
+    string: usize,
+    law: &StringLaw,
+) -> Result<CompiledLayerTable, StringLawCompileError> {
     let table = &law.layers;
     check_layer_step(string, table.step_log2)?;
     let values = table.knots_mm.as_slice();
@@ -983,7 +987,7 @@ fn compile_layer_table(string: usize, law: &StringLaw) -> Result<CompiledLayerTa
     for (k, &v) in values.iter().enumerate() {
         let v = finite(string, "layers.knots_mm", v)?;
         if v.abs() > MAX_LAYER_MM {
-            return Err(CompileError::OutOfRange {
+            return Err(StringLawCompileError::OutOfRange {
                 string,
                 field: "layers.knots_mm",
                 value: v,
@@ -1002,7 +1006,7 @@ fn compile_layer_table(string: usize, law: &StringLaw) -> Result<CompiledLayerTa
             let polynomial = polynomial_slope_f64(law, theta);
             let total = polynomial + slope;
             if polynomial > 0.0 && total <= 0.0 {
-                return Err(CompileError::OutOfRange {
+                return Err(StringLawCompileError::OutOfRange {
                     string,
                     field: "layers (payout slope, mm/rad)",
                     value: total,
@@ -1033,16 +1037,16 @@ impl CompiledStringLaw {
     }
 
     /// Checks a compiled law read from a blob.
-    pub fn validate(&self, string: usize) -> Result<(), CompileError> {
+    pub fn validate(&self, string: usize) -> Result<(), StringLawCompileError> {
         if string >= STRINGS {
-            return Err(CompileError::StringOutOfRange { string });
+            return Err(StringLawCompileError::StringOutOfRange { string });
         }
         check_counts_per_rev(string, self.counts_per_rev)?;
         check_layer_step(string, self.layers.step_log2)?;
         let limit = (MAX_LAYER_MM * 65536.0) as i64;
         for &v in self.layers.knots_q16.as_slice() {
             if !(-limit..=limit).contains(&v) {
-                return Err(CompileError::OutOfRange {
+                return Err(StringLawCompileError::OutOfRange {
                     string,
                     field: "layers.knots_mm",
                     value: v as f64 / 65536.0,
@@ -1159,7 +1163,7 @@ pub struct FixedContext {
 pub fn compile_effect(
     term: &EffectTerm,
     laws: &[StringLaw; STRINGS],
-) -> Result<CompiledEffect, CompileError> {
+) -> Result<CompiledEffect, StringLawCompileError> {
     let s = usize::from(term.string);
     let law = law_of_term(term, laws)?;
     let string = term.string;
@@ -1218,7 +1222,7 @@ pub fn compile_effect(
 fn law_of_term<'a>(
     term: &EffectTerm,
     laws: &'a [StringLaw; STRINGS],
-) -> Result<&'a StringLaw, CompileError> {
+) -> Result<&'a StringLaw, StringLawCompileError> {
     let s = usize::from(term.string);
     let shared = term.string == EVERY_STRING;
     match laws.get(s) {
@@ -1231,7 +1235,7 @@ fn law_of_term<'a>(
         {
             Ok(&laws[0])
         }
-        None => Err(CompileError::StringOutOfRange { string: s }),
+        None => Err(StringLawCompileError::StringOutOfRange { string: s }),
     }
 }
 
@@ -1244,9 +1248,9 @@ fn compile_winding(
     power: u8,
     mm_per_rad_pow: f64,
     law: &StringLaw,
-) -> Result<CompiledEffect, CompileError> {
+) -> Result<CompiledEffect, StringLawCompileError> {
     if power == 0 || power > MAX_EFFECT_WINDING_POWER {
-        return Err(CompileError::OutOfRange {
+        return Err(StringLawCompileError::OutOfRange {
             string: s,
             field: "power",
             value: f64::from(power),
@@ -1271,7 +1275,7 @@ fn compile_sag(
     string: u8,
     mm_at_1m_1n: f64,
     home_mm_at_1m: f64,
-) -> Result<CompiledEffect, CompileError> {
+) -> Result<CompiledEffect, StringLawCompileError> {
     let bounded = |field, v| in_range(s, field, v, -MAX_SAG_MM_AT_1M_1N, MAX_SAG_MM_AT_1M_1N);
     let m = bounded("mm_at_1m_1n", mm_at_1m_1n)?;
     let h = bounded("home_mm_at_1m", home_mm_at_1m)?;
@@ -1296,7 +1300,7 @@ fn compile_frame_flex(
     string: u8,
     mm_per_newton: f64,
     home_mm: f64,
-) -> Result<CompiledEffect, CompileError> {
+) -> Result<CompiledEffect, StringLawCompileError> {
     let k = in_range(
         s,
         "mm_per_newton",
@@ -1320,11 +1324,16 @@ fn compile_frame_flex(
 
 /// A slip term: its time rounded up to whole milliseconds since home (a
 /// `u32`).
-fn compile_slip(s: usize, string: u8, at_s: f64, mm: f64) -> Result<CompiledEffect, CompileError> {
+fn compile_slip(
+    s: usize,
+    string: u8,
+    at_s: f64,
+    mm: f64,
+) -> Result<CompiledEffect, StringLawCompileError> {
     let at = finite(s, "at_s", at_s)?;
     let at_ms = libm::ceil(at * 1000.0);
     if !(0.0..=f64::from(u32::MAX)).contains(&at_ms) {
-        return Err(CompileError::OutOfRange {
+        return Err(StringLawCompileError::OutOfRange {
             string: s,
             field: "at_s",
             value: at,
@@ -1347,10 +1356,10 @@ fn compile_stretch(
     per_newton: f64,
     mm_per_newton: f64,
     home_tension_n: f64,
-) -> Result<CompiledEffect, CompileError> {
+) -> Result<CompiledEffect, StringLawCompileError> {
     let e = finite(s, "per_newton", per_newton)?;
     if e.abs() > MAX_ELASTICITY_PER_NEWTON {
-        return Err(CompileError::DoesNotFit {
+        return Err(StringLawCompileError::DoesNotFit {
             string: s,
             field: "per_newton",
             value: e,
@@ -1403,20 +1412,20 @@ impl CompiledEffect {
 
     /// Checks a compiled term read from a blob: string in range, winding
     /// power in range, eccentricity counts per revolution consistent.
-    pub fn validate(&self) -> Result<(), CompileError> {
+    pub fn validate(&self) -> Result<(), StringLawCompileError> {
         let s = usize::from(self.string());
         let law_free = !matches!(
             self,
             CompiledEffect::Winding { .. } | CompiledEffect::Eccentricity { .. }
         );
         if s >= STRINGS && !(self.string() == EVERY_STRING && law_free) {
-            return Err(CompileError::StringOutOfRange { string: s });
+            return Err(StringLawCompileError::StringOutOfRange { string: s });
         }
         match *self {
             CompiledEffect::Winding { power, .. }
                 if power == 0 || power > MAX_EFFECT_WINDING_POWER =>
             {
-                Err(CompileError::OutOfRange {
+                Err(StringLawCompileError::OutOfRange {
                     string: s,
                     field: "power",
                     value: f64::from(power),
@@ -1431,7 +1440,7 @@ impl CompiledEffect {
             } => {
                 check_counts_per_rev(s, counts_per_rev)?;
                 if t != turns_per_count_q48(counts_per_rev) {
-                    return Err(CompileError::OutOfRange {
+                    return Err(StringLawCompileError::OutOfRange {
                         string: s,
                         field: "turns_per_count_q48",
                         value: t as f64,

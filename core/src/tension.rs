@@ -363,6 +363,10 @@ pub fn distribute_warm<F: Real>(
 /// always-inlined helper: 12 more instructions per call for N = 4 under
 /// `scripts/qemu-bench`; the Newton iteration too: 5 more for 8 strings).
 #[inline(always)]
+#[allow(
+    clippy::too_many_lines,
+    reason = "a numerical kernel of the control loop: splitting it changes the device's code"
+)]
 fn solve<F: Real, const ALL: bool>(
     anchors: &[Vec3<F>; STRINGS],
     layout: StringLayout,

@@ -95,7 +95,7 @@
 //! | message | message | frame on the wire |
 //! |---|---|---|
 //! | `Request::UploadChunk` ([`MAX_CHUNK`] data bytes) | 264 | 274 = [`MAX_FRAME`] |
-//! | `Request::SetStringModel` | 183 | 192 |
+//! | `Request::SetNominalGeometry` | 183 | 192 |
 //! | `Request::SetGuidanceTarget` | 21 | 30 |
 //! | `Request::UploadBegin` | 16 | 25 |
 //! | `Request::SetForceTarget` | 13 | 22 |
@@ -126,7 +126,7 @@ pub use frame::{
 };
 pub use messages::{
     BadState, BlobRejection, Capabilities, DeviceError, DeviceMessage, Event, Faults, HelloAck,
-    Limits, LinkStats, Message, ModelInfo, Name, Request, Response, State, StringModel,
+    Limits, LinkStats, Message, ModelInfo, Name, NominalGeometry, Request, Response, State,
     UploadState,
 };
 
@@ -147,7 +147,7 @@ const _: () = {
 /// (`rendered_force_n`), so that a host that asked for a force sees what the
 /// device made of it. Version 4: `State` carries `since_home_us` next to `time_us` (both from
 /// the loop's timer), so the host pairs tracker frames by the device's own
-/// sample time. Version 3: `StringModel` carries the string layout
+/// sample time. Version 3: `NominalGeometry` carries the string layout
 /// (`active_strings`, `planar`); `DeviceError::NotForceClosed`;
 /// `BlobRejection::TooFewStrings` and `InactiveString`.
 pub const PROTOCOL_VERSION: u16 = 5;

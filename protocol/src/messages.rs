@@ -66,7 +66,7 @@ pub enum Request<'a> {
     GetStats,
     /// Nominal geometry and string law, used when no model blob is loaded (a
     /// loaded blob's calibration takes precedence). Refused while armed.
-    SetStringModel(StringModel),
+    SetNominalGeometry(NominalGeometry),
     /// Safety limits. Refused while armed.
     SetLimits(Limits),
     /// Force mode: render this force at the end-effector. Answered by `Ack`.
@@ -130,7 +130,7 @@ pub enum Request<'a> {
     UploadAbort,
     /// Where the upload stands: answered by [`Response::UploadStatus`].
     UploadStatus,
-    /// Erases the active model (the device falls back to [`StringModel`]).
+    /// Erases the active model (the device falls back to [`NominalGeometry`]).
     /// Refused while armed.
     ClearModel,
     /// Declares home now: the current encoder readings become the zero of
@@ -148,7 +148,7 @@ pub enum Request<'a> {
 /// encoder channel; entries of channels that carry no string
 /// (`active_strings`) are ignored and not checked.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct StringModel {
+pub struct NominalGeometry {
     /// Quadrature encoder counts per pulley revolution, per string (> 0).
     pub counts_per_rev: [u32; STRINGS],
     /// Pulley winding radius per string, millimetres (> 0).
@@ -165,7 +165,7 @@ pub struct StringModel {
     pub planar: bool,
 }
 
-impl StringModel {
+impl NominalGeometry {
     /// Whether channel `i` carries a string.
     pub const fn is_active(&self, i: usize) -> bool {
         i < STRINGS && self.active_strings & (1 << i) != 0
@@ -398,7 +398,7 @@ pub enum BadState {
     Faulted,
     /// `UploadChunk`/`UploadCommit` without `UploadBegin`.
     NoUpload,
-    /// The request needs a geometry (`SetStringModel` or a model blob).
+    /// The request needs a geometry (`SetNominalGeometry` or a model blob).
     NoGeometry,
 }
 
@@ -671,7 +671,7 @@ impl Request<'_> {
             Request::Heartbeat => "Heartbeat",
             Request::GetInfo => "GetInfo",
             Request::GetStats => "GetStats",
-            Request::SetStringModel(_) => "SetStringModel",
+            Request::SetNominalGeometry(_) => "SetNominalGeometry",
             Request::SetLimits(_) => "SetLimits",
             Request::SetForceTarget { .. } => "SetForceTarget",
             Request::SetGuidanceTarget { .. } => "SetGuidanceTarget",
@@ -694,7 +694,7 @@ impl Request<'_> {
 impl Message for Request<'_> {
     fn validate(&self) -> Result<(), &'static str> {
         match self {
-            Request::SetStringModel(m) => {
+            Request::SetNominalGeometry(m) => {
                 if m.active_strings.count_ones() < u32::from(m.dof()) {
                     return Err("active_strings");
                 }

@@ -368,7 +368,10 @@ fn invalid_values_are_refused_when_encoding_and_decoding() {
             },
             "offset",
         ),
-        (Request::SetStringModel(string_model(0)), "counts_per_rev"),
+        (
+            Request::SetNominalGeometry(string_model(0)),
+            "counts_per_rev",
+        ),
     ];
     for (r, field) in cases {
         assert_eq!(
@@ -386,7 +389,7 @@ fn invalid_values_are_refused_when_encoding_and_decoding() {
     let mut m = string_model(4096);
     m.pulley_radius_mm[3] = 0.0;
     assert_eq!(
-        encode_request(1, &Request::SetStringModel(m), &mut buf),
+        encode_request(1, &Request::SetNominalGeometry(m), &mut buf),
         Err(FrameError::Invalid {
             field: "pulley_radius_mm",
             seq: 1
@@ -395,7 +398,7 @@ fn invalid_values_are_refused_when_encoding_and_decoding() {
     let mut m = string_model(4096);
     m.anchors_mm[7][2] = f32::NEG_INFINITY;
     assert_eq!(
-        encode_request(1, &Request::SetStringModel(m), &mut buf),
+        encode_request(1, &Request::SetNominalGeometry(m), &mut buf),
         Err(FrameError::Invalid {
             field: "anchors_mm",
             seq: 1

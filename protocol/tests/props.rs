@@ -35,7 +35,7 @@ fn request(f: fn() -> F) -> impl Strategy<Value = Request<'static>> {
         any::<bool>(),
     )
         .prop_map(|(c, r, a, h, active_strings, planar)| {
-            Request::SetStringModel(StringModel {
+            Request::SetNominalGeometry(NominalGeometry {
                 counts_per_rev: c,
                 pulley_radius_mm: r,
                 anchors_mm: a,

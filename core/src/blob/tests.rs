@@ -58,7 +58,7 @@ fn the_strings_weights_are_compiled_from_their_measured_scales_and_checked() {
         cal.length_scale_mm[6] = bad;
         assert_eq!(
             compile(&cal, 7, 0),
-            Err(CompileError::LengthScale { string: 6 }),
+            Err(BlobCompileError::LengthScale { string: 6 }),
             "{bad}"
         );
     }
@@ -227,7 +227,7 @@ fn layouts_below_the_degrees_of_freedom_and_effects_on_inactive_strings_are_refu
     cal.effects[1].string = 4;
     assert_eq!(
         compile(&cal, 0, 0),
-        Err(CompileError::Layout {
+        Err(BlobCompileError::Layout {
             field: "effects",
             string: Some(4)
         })
@@ -254,7 +254,7 @@ fn layouts_below_the_degrees_of_freedom_and_effects_on_inactive_strings_are_refu
     cal.frame.layout = crate::model::StringLayout::first(2, false);
     assert_eq!(
         compile(&cal, 0, 0),
-        Err(CompileError::Layout {
+        Err(BlobCompileError::Layout {
             field: "frame.layout",
             string: None
         })
@@ -279,7 +279,7 @@ fn nan_frame_does_not_compile() {
     cal.frame.home[1] = f64::NAN;
     assert_eq!(
         compile(&cal, 0, 0),
-        Err(CompileError::Frame { field: "home" })
+        Err(BlobCompileError::Frame { field: "home" })
     );
 }
 
@@ -326,7 +326,7 @@ fn the_kinematics_rule_is_carried_checked_and_run() {
         assert!(
             matches!(
                 compile(&cal, 7, 0),
-                Err(CompileError::KinematicsRule { .. })
+                Err(BlobCompileError::KinematicsRule { .. })
             ),
             "{exclusion} {fault}"
         );

@@ -8,7 +8,7 @@ use alloc::vec::Vec;
 /// Why a model does not compile. Each variant names the parameter.
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub enum CompileError {
+pub enum CorrectionCompileError {
     /// Parameter vectors of inconsistent lengths, or a count beyond what
     /// the blob can carry.
     Dimension {
@@ -34,10 +34,10 @@ pub enum CompileError {
     },
 }
 
-impl core::fmt::Display for CompileError {
+impl core::fmt::Display for CorrectionCompileError {
     fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
         match *self {
-            CompileError::Dimension {
+            CorrectionCompileError::Dimension {
                 field,
                 found,
                 expected,
@@ -45,10 +45,10 @@ impl core::fmt::Display for CompileError {
                 f,
                 "correction parameter `{field}` has {found} entries, expected {expected}"
             ),
-            CompileError::NotFinite { field, index } => {
+            CorrectionCompileError::NotFinite { field, index } => {
                 write!(f, "correction parameter `{field}`[{index}] is not finite")
             }
-            CompileError::NotPositive {
+            CorrectionCompileError::NotPositive {
                 field,
                 index,
                 value,
@@ -56,7 +56,7 @@ impl core::fmt::Display for CompileError {
                 f,
                 "correction parameter `{field}`[{index}] = {value} must be strictly positive"
             ),
-            CompileError::OutOfRange {
+            CorrectionCompileError::OutOfRange {
                 field,
                 index,
                 value,
@@ -69,7 +69,7 @@ impl core::fmt::Display for CompileError {
     }
 }
 
-impl core::error::Error for CompileError {}
+impl core::error::Error for CorrectionCompileError {}
 
 /// A compiled correction: the blob header fields it sets and the
 /// correction bytes of the blob body.
@@ -94,14 +94,14 @@ fn pow2(e: u32) -> f64 {
     libm::ldexp(1.0, e as i32)
 }
 
-fn check_finite(field: &'static str, values: &[f64]) -> Result<(), CompileError> {
+fn check_finite(field: &'static str, values: &[f64]) -> Result<(), CorrectionCompileError> {
     match values.iter().position(|v| !v.is_finite()) {
-        Some(index) => Err(CompileError::NotFinite { field, index }),
+        Some(index) => Err(CorrectionCompileError::NotFinite { field, index }),
         None => Ok(()),
     }
 }
 
-fn check_standardization(s: &Standardization, side: u8) -> Result<(), CompileError> {
+fn check_standardization(s: &Standardization, side: u8) -> Result<(), CorrectionCompileError> {
     let (mean, std) = if side == 0 {
         ("input.mean", "input.std")
     } else {
@@ -111,7 +111,7 @@ fn check_standardization(s: &Standardization, side: u8) -> Result<(), CompileErr
     check_finite(std, &s.std)?;
     for (index, &value) in s.std.iter().enumerate() {
         if value <= 0.0 {
-            return Err(CompileError::NotPositive {
+            return Err(CorrectionCompileError::NotPositive {
                 field: std,
                 index,
                 value,
@@ -121,8 +121,8 @@ fn check_standardization(s: &Standardization, side: u8) -> Result<(), CompileErr
     Ok(())
 }
 
-fn q16(field: &'static str, index: usize, v: f64) -> Result<i32, CompileError> {
-    to_q_i32(v, POSITION_FRAC as u32).ok_or(CompileError::OutOfRange {
+fn q16(field: &'static str, index: usize, v: f64) -> Result<i32, CorrectionCompileError> {
+    to_q_i32(v, POSITION_FRAC as u32).ok_or(CorrectionCompileError::OutOfRange {
         field,
         index,
         value: v,
@@ -170,7 +170,7 @@ fn largest(
     field: &'static str,
     values: impl Iterator<Item = f64>,
     format: &'static str,
-) -> CompileError {
+) -> CorrectionCompileError {
     let (index, value) = values.enumerate().fold((0, 0f64), |(bi, bv), (i, v)| {
         if libm::fabs(v) > libm::fabs(bv) {
             (i, v)
@@ -178,7 +178,7 @@ fn largest(
             (bi, bv)
         }
     });
-    CompileError::OutOfRange {
+    CorrectionCompileError::OutOfRange {
         field,
         index,
         value,
@@ -220,10 +220,10 @@ fn check_axes(
     fields: [&'static str; 3],
     axes: &[Vec<f64>; 3],
     expected: usize,
-) -> Result<(), CompileError> {
+) -> Result<(), CorrectionCompileError> {
     for (a, values) in axes.iter().enumerate() {
         if values.len() != expected {
-            return Err(CompileError::Dimension {
+            return Err(CorrectionCompileError::Dimension {
                 field: fields[a],
                 found: values.len(),
                 expected,
@@ -236,7 +236,7 @@ fn check_axes(
 
 /// The input mean in Q15.16 and the rounding residual (mm) that the first
 /// layer (NN) or the support vectors (SVR) absorb.
-fn input_mean_q16(input: &Standardization) -> Result<([i32; 3], [f64; 3]), CompileError> {
+fn input_mean_q16(input: &Standardization) -> Result<([i32; 3], [f64; 3]), CorrectionCompileError> {
     let mut mean = [0i32; 3];
     let mut mean_residual = [0f64; 3];
     for i in 0..3 {
@@ -255,7 +255,7 @@ fn fold_output_scale(
     output: &Standardization,
     frac: fn(&[f64]) -> Option<u8>,
     format: &'static str,
-) -> Result<([Vec<f64>; 3], [u8; 3]), CompileError> {
+) -> Result<([Vec<f64>; 3], [u8; 3]), CorrectionCompileError> {
     let mut fracs = [0u8; 3];
     let mut folded: [Vec<f64>; 3] = [Vec::new(), Vec::new(), Vec::new()];
     for a in 0..3 {
@@ -272,7 +272,7 @@ fn output_offset_q16(
     field: &'static str,
     bias: &[f64; 3],
     output: &Standardization,
-) -> Result<[i32; 3], CompileError> {
+) -> Result<[i32; 3], CorrectionCompileError> {
     let mut offset = [0i32; 3];
     for (a, o) in offset.iter_mut().enumerate() {
         *o = q16(field, a, bias[a] * output.std[a] + output.mean[a])?;
@@ -331,7 +331,7 @@ impl NnModel {
     /// and the output scale and mean into the output weights and offsets;
     /// picks the fractional bits of each layer (each output axis) to use
     /// the full `i32` range.
-    pub fn compile(&self) -> Result<Vec<u8>, CompileError> {
+    pub fn compile(&self) -> Result<Vec<u8>, CorrectionCompileError> {
         let hidden = self.check_parameters()?;
         // Input mean in Q15.16; the rounding residual goes into b1.
         let (mean, mean_residual) = input_mean_q16(&self.input)?;
@@ -387,12 +387,13 @@ impl NnModel {
                 - (w1h[0] * mean_residual[0]
                     + w1h[1] * mean_residual[1]
                     + w1h[2] * mean_residual[2]);
-            let b1q = to_q_i32(b1, PREACTIVATION_FRAC).ok_or(CompileError::OutOfRange {
-                field: "b1",
-                index: h,
-                value: self.b1[h],
-                format: "i32 Q4.27",
-            })?;
+            let b1q =
+                to_q_i32(b1, PREACTIVATION_FRAC).ok_or(CorrectionCompileError::OutOfRange {
+                    field: "b1",
+                    index: h,
+                    value: self.b1[h],
+                    format: "i32 Q4.27",
+                })?;
             push_i32(&mut out, b1q);
             push_output_weights(&mut out, &w2, w2_frac, h);
         }
@@ -402,17 +403,17 @@ impl NnModel {
     /// The parameters' counts (1 to `u16::MAX` neurons, the same in every
     /// vector) and that they are finite, standard deviations positive;
     /// the neuron count.
-    fn check_parameters(&self) -> Result<usize, CompileError> {
+    fn check_parameters(&self) -> Result<usize, CorrectionCompileError> {
         let hidden = self.w1.len();
         if hidden == 0 || hidden > u16::MAX as usize {
-            return Err(CompileError::Dimension {
+            return Err(CorrectionCompileError::Dimension {
                 field: "w1",
                 found: hidden,
                 expected: if hidden == 0 { 1 } else { u16::MAX as usize },
             });
         }
         if self.b1.len() != hidden {
-            return Err(CompileError::Dimension {
+            return Err(CorrectionCompileError::Dimension {
                 field: "b1",
                 found: self.b1.len(),
                 expected: hidden,
@@ -454,7 +455,7 @@ impl SvrModel {
     /// rounding folded in), coefficients with the output scale folded in,
     /// fractional bits per axis. The support-vector count (header
     /// `support_vectors`) is `self.support.len()`.
-    pub fn compile(&self) -> Result<Vec<u8>, CompileError> {
+    pub fn compile(&self) -> Result<Vec<u8>, CorrectionCompileError> {
         let n = self.check_parameters()?;
         let r = libm::sqrt(self.gamma * LOG2_E);
         let g = [
@@ -507,7 +508,7 @@ impl SvrModel {
                 let s = sv[i] * r + mean_residual[i] * g[i];
                 let sq = libm::round(s * space);
                 if !(-(SUPPORT_MAX as f64)..=SUPPORT_MAX as f64).contains(&sq) {
-                    return Err(CompileError::OutOfRange {
+                    return Err(CorrectionCompileError::OutOfRange {
                         field: "support",
                         index: 3 * j + i,
                         value: sv[i],
@@ -524,10 +525,10 @@ impl SvrModel {
     /// The parameters' counts (as many coefficients per axis as support
     /// vectors, no more than a blob carries) and that they are finite,
     /// standard deviations and `gamma` positive; the support-vector count.
-    fn check_parameters(&self) -> Result<usize, CompileError> {
+    fn check_parameters(&self) -> Result<usize, CorrectionCompileError> {
         let n = self.support.len();
         if n > (u32::MAX as usize - SVR_HEADER_LEN) / SVR_RECORD_LEN {
-            return Err(CompileError::Dimension {
+            return Err(CorrectionCompileError::Dimension {
                 field: "support",
                 found: n,
                 expected: (u32::MAX as usize - SVR_HEADER_LEN) / SVR_RECORD_LEN,
@@ -539,13 +540,13 @@ impl SvrModel {
         check_finite("support", self.support.as_flattened())?;
         check_finite("bias", &self.bias)?;
         if !self.gamma.is_finite() {
-            return Err(CompileError::NotFinite {
+            return Err(CorrectionCompileError::NotFinite {
                 field: "gamma",
                 index: 0,
             });
         }
         if self.gamma <= 0.0 {
-            return Err(CompileError::NotPositive {
+            return Err(CorrectionCompileError::NotPositive {
                 field: "gamma",
                 index: 0,
                 value: self.gamma,
@@ -566,7 +567,7 @@ impl CorrectionModel {
     }
 
     /// Compiles the correction: its bytes and the header fields they need.
-    pub fn compile(&self) -> Result<CompiledCorrection, CompileError> {
+    pub fn compile(&self) -> Result<CompiledCorrection, CorrectionCompileError> {
         let (kind, hidden, support_vectors, bytes) = match self {
             CorrectionModel::None => (CorrectionKind::None, 0, 0, Vec::new()),
             CorrectionModel::Nn(nn) => (CorrectionKind::Nn, nn.w1.len() as u16, 0, nn.compile()?),

@@ -372,7 +372,7 @@ impl<'a> Correction<'a> {
 // The host side (alloc): f64 reference evaluation and compilation.
 
 #[cfg(feature = "alloc")]
-pub use compiler::{CompileError, CompiledCorrection};
+pub use compiler::{CompiledCorrection, CorrectionCompileError};
 
 #[cfg(feature = "alloc")]
 mod compiler;

@@ -453,7 +453,7 @@ fn compile_errors_name_the_parameter() {
     m.b1.pop();
     assert_eq!(
         m.compile(),
-        Err(CompileError::Dimension {
+        Err(CorrectionCompileError::Dimension {
             field: "b1",
             found: 3,
             expected: 4
@@ -463,7 +463,7 @@ fn compile_errors_name_the_parameter() {
     m.w2[1][2] = f64::NAN;
     assert_eq!(
         m.compile(),
-        Err(CompileError::NotFinite {
+        Err(CorrectionCompileError::NotFinite {
             field: "w2[1]",
             index: 2
         })
@@ -472,7 +472,7 @@ fn compile_errors_name_the_parameter() {
     m.input.std[2] = 0.0;
     assert!(matches!(
         m.compile(),
-        Err(CompileError::NotPositive {
+        Err(CorrectionCompileError::NotPositive {
             field: "input.std",
             index: 2,
             ..
@@ -482,7 +482,7 @@ fn compile_errors_name_the_parameter() {
     m.b1[3] = 20.0;
     assert!(matches!(
         m.compile(),
-        Err(CompileError::OutOfRange {
+        Err(CorrectionCompileError::OutOfRange {
             field: "b1",
             index: 3,
             ..
@@ -492,7 +492,7 @@ fn compile_errors_name_the_parameter() {
     m.w1[1][0] = 1e9;
     assert!(matches!(
         m.compile(),
-        Err(CompileError::OutOfRange {
+        Err(CorrectionCompileError::OutOfRange {
             field: "w1",
             index: 3,
             ..
@@ -502,7 +502,7 @@ fn compile_errors_name_the_parameter() {
     m.input.mean[0] = 40_000.0;
     assert!(matches!(
         m.compile(),
-        Err(CompileError::OutOfRange {
+        Err(CorrectionCompileError::OutOfRange {
             field: "input.mean",
             index: 0,
             ..
@@ -512,7 +512,7 @@ fn compile_errors_name_the_parameter() {
     m.support[2][1] = 30.0;
     assert!(matches!(
         m.compile(),
-        Err(CompileError::OutOfRange {
+        Err(CorrectionCompileError::OutOfRange {
             field: "support",
             index: 7,
             ..
@@ -522,19 +522,19 @@ fn compile_errors_name_the_parameter() {
     m.gamma = -1.0;
     assert!(matches!(
         m.compile(),
-        Err(CompileError::NotPositive { field: "gamma", .. })
+        Err(CorrectionCompileError::NotPositive { field: "gamma", .. })
     ));
     let mut m = svr_model(4, 6, OutputMode::Absolute);
     m.coef[2][0] = 1e30;
     assert!(matches!(
         m.compile(),
-        Err(CompileError::OutOfRange {
+        Err(CorrectionCompileError::OutOfRange {
             field: "coef[2]",
             index: 0,
             ..
         })
     ));
-    let e = CompileError::OutOfRange {
+    let e = CorrectionCompileError::OutOfRange {
         field: "w1",
         index: 3,
         value: 1e9,

@@ -65,8 +65,8 @@ fn config() -> DeviceConfig {
     }
 }
 
-fn string_model() -> StringModel {
-    StringModel {
+fn string_model() -> NominalGeometry {
+    NominalGeometry {
         counts_per_rev: [CPR; STRINGS],
         pulley_radius_mm: [RADIUS as f32; STRINGS],
         anchors_mm: cube_anchors().map(|a| a.map(|v| v as f32)),
@@ -409,7 +409,7 @@ fn session_arm_force_and_stream(b: &mut Bench<'_>, begin: &Request<'static>, p: 
     assert_eq!(b.request(begin), bad_state(BadState::Armed));
     assert_eq!(b.request(&Request::ClearModel), bad_state(BadState::Armed));
     assert_eq!(
-        b.request(&Request::SetStringModel(string_model())),
+        b.request(&Request::SetNominalGeometry(string_model())),
         bad_state(BadState::Armed)
     );
 }
@@ -754,7 +754,7 @@ fn home_rezeroes_the_strings_where_the_operator_holds_the_end_effector() {
     // No geometry yet: nothing to home.
     assert_eq!(b.request(&Request::Home), bad_state(BadState::NoGeometry));
     assert_eq!(
-        b.request(&Request::SetStringModel(string_model())),
+        b.request(&Request::SetNominalGeometry(string_model())),
         Response::Ack
     );
     let out = b.tick_at(raw_at([0.0; 3]));
@@ -821,7 +821,7 @@ fn raw_for(anchors: &[[f64; 3]; STRINGS], home: [f64; 3], p: [f64; 3]) -> [u16; 
     })
 }
 
-/// Devices with fewer strings: the layout travels in `SetStringModel`;
+/// Devices with fewer strings: the layout travels in `SetNominalGeometry`;
 /// `Arm` is refused, saying why, when the strings cannot pull in every
 /// direction, and the device still tracks and streams; a tetrahedron of
 /// 4 strings around the end-effector arms and renders, with the unused
@@ -834,7 +834,7 @@ fn string_layouts_arm_only_when_force_closed_and_track_either_way() {
     let mut m = string_model();
     m.active_strings = 0b0000_0011;
     assert_eq!(
-        b.dev.handle(&Request::SetStringModel(m), 0),
+        b.dev.handle(&Request::SetNominalGeometry(m), 0),
         Response::Error(DeviceError::InvalidArgument {
             field: name("active_strings")
         })
@@ -845,7 +845,7 @@ fn string_layouts_arm_only_when_force_closed_and_track_either_way() {
     m.counts_per_rev[0] = 0;
     m.pulley_radius_mm[3] = f32::NAN;
     m.anchors_mm[7] = [f32::NAN; 3];
-    assert_eq!(b.request(&Request::SetStringModel(m)), Response::Ack);
+    assert_eq!(b.request(&Request::SetNominalGeometry(m)), Response::Ack);
     // Three strings in space: never force closed.
     assert_eq!(
         b.request(&Request::Arm),
@@ -866,7 +866,7 @@ fn string_layouts_arm_only_when_force_closed_and_track_either_way() {
     let mut m = string_model();
     m.active_strings = 0b0000_1111;
     m.anchors_mm = hanging.map(|a| a.map(|v| v as f32));
-    assert_eq!(b.request(&Request::SetStringModel(m)), Response::Ack);
+    assert_eq!(b.request(&Request::SetNominalGeometry(m)), Response::Ack);
     assert_eq!(
         b.request(&Request::Arm),
         Response::Error(DeviceError::NotForceClosed {
@@ -907,7 +907,7 @@ fn string_layouts_arm_only_when_force_closed_and_track_either_way() {
     // armed, renders, unused channels at 0. Home is declared again.
     let mut m = string_model();
     m.active_strings = 0b0110_1001;
-    assert_eq!(b.request(&Request::SetStringModel(m)), Response::Ack);
+    assert_eq!(b.request(&Request::SetNominalGeometry(m)), Response::Ack);
     assert_eq!(b.request(&Request::Home), Response::Ack);
     assert_eq!(b.request(&Request::Arm), Response::Ack);
     assert_eq!(
@@ -955,7 +955,7 @@ fn nominal_string_model_limits_and_estop() {
     let mut m = string_model();
     m.pulley_radius_mm[3] = -1.0;
     assert_eq!(
-        b.dev.handle(&Request::SetStringModel(m), 0),
+        b.dev.handle(&Request::SetNominalGeometry(m), 0),
         Response::Error(DeviceError::InvalidArgument {
             field: name("pulley_radius_mm")
         })
@@ -963,14 +963,14 @@ fn nominal_string_model_limits_and_estop() {
     m = string_model();
     m.anchors_mm[2][1] = f32::INFINITY;
     assert_eq!(
-        b.dev.handle(&Request::SetStringModel(m), 0),
+        b.dev.handle(&Request::SetNominalGeometry(m), 0),
         Response::Error(DeviceError::InvalidArgument {
             field: name("anchors_mm")
         })
     );
     // The nominal model homes the device now (end-effector at home).
     assert_eq!(
-        b.request(&Request::SetStringModel(string_model())),
+        b.request(&Request::SetNominalGeometry(string_model())),
         Response::Ack
     );
     assert_eq!(b.request(&Request::GetInfo), Response::Info(None));

@@ -147,7 +147,7 @@ fn a_shared_term_is_one_term_on_every_string() {
         };
         assert_eq!(
             compile_effect(&term, &laws),
-            Err(CompileError::StringOutOfRange { string: 255 })
+            Err(StringLawCompileError::StringOutOfRange { string: 255 })
         );
     }
 }
@@ -206,7 +206,7 @@ fn layer_table_compile_errors_name_the_field() {
     assert!(
         matches!(
             err,
-            CompileError::OutOfRange {
+            StringLawCompileError::OutOfRange {
                 string: 3,
                 field: "layers.step_log2",
                 ..
@@ -217,7 +217,7 @@ fn layer_table_compile_errors_name_the_field() {
     let err = compile_string_law(&f, 2, &layered(0, 10, &[0.0, f64::NAN])).unwrap_err();
     assert_eq!(
         err,
-        CompileError::NotFinite {
+        StringLawCompileError::NotFinite {
             string: 2,
             field: "layers.knots_mm"
         }
@@ -226,7 +226,7 @@ fn layer_table_compile_errors_name_the_field() {
     assert!(
         matches!(
             err,
-            CompileError::OutOfRange {
+            StringLawCompileError::OutOfRange {
                 string: 1,
                 field: "layers.knots_mm",
                 ..
@@ -240,7 +240,7 @@ fn layer_table_compile_errors_name_the_field() {
     assert!(
         matches!(
             err,
-            CompileError::OutOfRange {
+            StringLawCompileError::OutOfRange {
                 string: 0,
                 field: "layers (payout slope, mm/rad)",
                 ..
@@ -256,7 +256,7 @@ fn layer_table_compile_errors_name_the_field() {
     c.layers.knots_q16.as_mut_slice()[1] = 101 << 16;
     assert!(matches!(
         c.validate(0),
-        Err(CompileError::OutOfRange {
+        Err(StringLawCompileError::OutOfRange {
             field: "layers.knots_mm",
             ..
         })
@@ -265,7 +265,7 @@ fn layer_table_compile_errors_name_the_field() {
     c.layers.step_log2 = 40;
     assert!(matches!(
         c.validate(0),
-        Err(CompileError::OutOfRange {
+        Err(StringLawCompileError::OutOfRange {
             field: "layers.step_log2",
             ..
         })
@@ -509,7 +509,7 @@ fn string_law_compile_errors_name_the_field() {
     let law = StringLaw::polynomial(4096, [10.0, -0.02, 0.0, 0.0]);
     assert_eq!(
         compile_string_law(&f, 8, &law),
-        Err(CompileError::StringOutOfRange { string: 8 })
+        Err(StringLawCompileError::StringOutOfRange { string: 8 })
     );
     let bad = StringLaw {
         counts_per_rev: 0,
@@ -517,7 +517,7 @@ fn string_law_compile_errors_name_the_field() {
     };
     assert!(matches!(
         compile_string_law(&f, 1, &bad),
-        Err(CompileError::OutOfRange {
+        Err(StringLawCompileError::OutOfRange {
             string: 1,
             field: "counts_per_rev",
             ..
@@ -529,7 +529,7 @@ fn string_law_compile_errors_name_the_field() {
     };
     assert_eq!(
         compile_string_law(&f, 2, &bad),
-        Err(CompileError::NotFinite {
+        Err(StringLawCompileError::NotFinite {
             string: 2,
             field: "winding_mm[1]"
         })
@@ -540,7 +540,7 @@ fn string_law_compile_errors_name_the_field() {
     };
     assert!(matches!(
         compile_string_law(&f, 3, &bad),
-        Err(CompileError::DoesNotFit {
+        Err(StringLawCompileError::DoesNotFit {
             string: 3,
             field: "winding_mm[3]",
             ..
@@ -550,7 +550,7 @@ fn string_law_compile_errors_name_the_field() {
     nf.home[1] = f64::INFINITY;
     assert_eq!(
         compile_string_law(&nf, 0, &law),
-        Err(CompileError::NotFinite {
+        Err(StringLawCompileError::NotFinite {
             string: 0,
             field: "home"
         })
@@ -559,7 +559,7 @@ fn string_law_compile_errors_name_the_field() {
     nf.anchors[5][2] = f64::NAN;
     assert_eq!(
         compile_string_law(&nf, 5, &law),
-        Err(CompileError::NotFinite {
+        Err(StringLawCompileError::NotFinite {
             string: 5,
             field: "anchor"
         })
@@ -567,7 +567,7 @@ fn string_law_compile_errors_name_the_field() {
 
     let msg = format!(
         "{}",
-        CompileError::NotFinite {
+        StringLawCompileError::NotFinite {
             string: 2,
             field: "winding_mm[1]"
         }
@@ -576,12 +576,12 @@ fn string_law_compile_errors_name_the_field() {
 }
 
 /// Which kind of compile error, and for which field.
-fn kind_and_field(e: CompileError) -> (&'static str, &'static str) {
+fn kind_and_field(e: StringLawCompileError) -> (&'static str, &'static str) {
     match e {
-        CompileError::StringOutOfRange { .. } => ("StringOutOfRange", "string"),
-        CompileError::NotFinite { field, .. } => ("NotFinite", field),
-        CompileError::DoesNotFit { field, .. } => ("DoesNotFit", field),
-        CompileError::OutOfRange { field, .. } => ("OutOfRange", field),
+        StringLawCompileError::StringOutOfRange { .. } => ("StringOutOfRange", "string"),
+        StringLawCompileError::NotFinite { field, .. } => ("NotFinite", field),
+        StringLawCompileError::DoesNotFit { field, .. } => ("DoesNotFit", field),
+        StringLawCompileError::OutOfRange { field, .. } => ("OutOfRange", field),
     }
 }
 
@@ -592,7 +592,7 @@ fn effect_compile_errors_name_the_field() {
     let term = |string, effect| EffectTerm { string, effect };
     assert_eq!(
         compile_effect(&term(8, Effect::Offset { mm: 1.0 }), &laws),
-        Err(CompileError::StringOutOfRange { string: 8 })
+        Err(StringLawCompileError::StringOutOfRange { string: 8 })
     );
     let sag = |mm_at_1m_1n, home_mm_at_1m| Effect::Sag {
         mm_at_1m_1n,

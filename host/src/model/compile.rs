@@ -51,7 +51,7 @@ pub enum CompileCmdError {
     Compile {
         file: PathBuf,
         #[source]
-        error: spidar_core::blob::CompileError,
+        error: spidar_core::blob::BlobCompileError,
     },
     #[error("compiled blob does not parse back: {0}")]
     ParseBack(#[source] BlobError),

@@ -37,7 +37,7 @@ pub struct Prediction {
 
 /// The kinematic model of a calibration: its frame, string laws and effect
 /// terms, what forward kinematics needs (not the nominal string model a
-/// device is given over the link, `spidar_protocol::StringModel`).
+/// device is given over the link, `spidar_protocol::NominalGeometry`).
 #[derive(Clone, Copy, Debug)]
 pub struct KinematicModel<'a> {
     pub frame: &'a Frame<f64>,

@@ -7,7 +7,7 @@
 //! highlighted cell; at that tracker frame the program records the
 //! tracker's position and the device's state, and the next cell is shown.
 //!
-//! 1. The device runs its nominal string model (`SetStringModel`, from
+//! 1. The device runs its nominal string model (`SetNominalGeometry`, from
 //!    [`CollectConfig::string_model`]) unless it has a calibration blob, and
 //!    is armed at pre-tension (no target: the strings stay taut, nothing
 //!    pulls). `Limits::heartbeat_timeout_ms` must exceed the tracker's frame
@@ -63,7 +63,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use spidar_protocol::{Limits, State, StringModel};
+use spidar_protocol::{Limits, NominalGeometry, State};
 
 use super::arm_watch::{ArmWatch, ArmWatchError};
 use crate::data::dataset::{DatasetError, Geometry, Sample, Session, SessionAppender, TornLine};
@@ -87,7 +87,7 @@ pub struct CollectConfig {
     /// Fail when the tracker sends nothing for this long.
     pub tracker_timeout: Duration,
     /// Sent to a device that has no calibration blob.
-    pub string_model: Option<StringModel>,
+    pub string_model: Option<NominalGeometry>,
     /// Safety limits: pre-tension while armed; the heartbeat timeout must
     /// exceed `heartbeat_every` (and the tracker's frame period).
     pub limits: Limits,

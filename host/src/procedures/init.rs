@@ -5,7 +5,7 @@
 //! guides the operator's hand to the centre (the target, room frame) and
 //! declares home there:
 //!
-//! 1. the device runs its nominal string model (`SetStringModel` from the
+//! 1. the device runs its nominal string model (`SetNominalGeometry` from the
 //!    geometry) unless it has a calibration blob, and is armed;
 //! 2. for every tracker frame with the marker visible: `v = target -
 //!    marker`, `d = |v|`; the haptic cue `F = guidance_force(v, d_min,

@@ -19,7 +19,7 @@ pub struct SimConfig {
     pub as_built: AsBuiltConfig,
     pub tracker: TrackerConfig,
     pub abnormal_motor: AbnormalMotorConfig,
-    pub tension: TensionConfig,
+    pub tension: CommandedTensions,
     pub lattice: LatticeConfig,
     pub random: RandomConfig,
     pub legacy: LegacyConfig,
@@ -259,7 +259,7 @@ impl Default for AbnormalMotorConfig {
 /// tension-dependent effects are observable.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
-pub struct TensionConfig {
+pub struct CommandedTensions {
     pub pretension_n: f64,
     /// Uniform jitter added to the pre-tension, N.
     pub jitter_n: f64,
@@ -269,9 +269,9 @@ pub struct TensionConfig {
     pub active_max_n: f64,
 }
 
-impl Default for TensionConfig {
+impl Default for CommandedTensions {
     fn default() -> Self {
-        TensionConfig {
+        CommandedTensions {
             pretension_n: 1.0,
             jitter_n: 0.2,
             active_probability: 0.35,

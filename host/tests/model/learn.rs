@@ -3,7 +3,7 @@
 //! libsvm (fixture written by scripts/reference/svr_reference.py).
 
 use spidar::model::learn::nn::{self, LmConfig, NnConfig};
-use spidar::model::learn::search::{self, SvrSearchConfig, SweepConfig, Validation};
+use spidar::model::learn::search::{self, Scoring, SvrSearchConfig, SweepConfig};
 use spidar::model::learn::svr::{self, KernelMatrix, SolverConfig, SvrConfig, SvrParams};
 use spidar::model::learn::synthetic::{self, Dataset};
 use spidar::model::learn::{outliers, standardize, Deadline, ErrorStats, LearnError, OutputMode};
@@ -420,7 +420,7 @@ fn svr_search_picks_the_best_candidate() {
         c: vec![10.0, 100.0],
         epsilon: vec![0.05, 0.01],
         gamma: vec![0.3, 1.0],
-        validation: Validation::KFold { k: 3 },
+        validation: Scoring::KFold { k: 3 },
         ..SvrSearchConfig::default()
     };
     let res = search::svr_search(&train.inputs, &train.targets, &cfg).unwrap();

@@ -10,13 +10,13 @@ use spidar_protocol::*;
 pub static CHUNK: [u8; MAX_CHUNK] = [0xA5; MAX_CHUNK];
 pub static FULL_CHUNK: [u8; MAX_CHUNK] = [0xFF; MAX_CHUNK];
 
-pub fn string_model(counts: u32) -> StringModel {
+pub fn string_model(counts: u32) -> NominalGeometry {
     let mut anchors = [[0.0f32; 3]; STRINGS];
     for (i, a) in anchors.iter_mut().enumerate() {
         let s = |b: usize| if i >> b & 1 == 1 { 250.0 } else { -250.0 };
         *a = [s(0), s(1), s(2)];
     }
-    StringModel {
+    NominalGeometry {
         counts_per_rev: [counts; STRINGS],
         pulley_radius_mm: [7.5; STRINGS],
         anchors_mm: anchors,
@@ -60,7 +60,7 @@ pub fn requests(max: bool) -> Vec<Request<'static>> {
         Request::Heartbeat,
         Request::GetInfo,
         Request::GetStats,
-        Request::SetStringModel(string_model(w)),
+        Request::SetNominalGeometry(string_model(w)),
         Request::SetLimits(Limits {
             pre_tension_n: 0.3,
             max_tension_n: 12.0,

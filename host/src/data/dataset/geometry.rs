@@ -509,11 +509,11 @@ impl Geometry {
             .map(|law| spidar_core::string_law::payout_f64(&law, 1))
     }
 
-    /// The device's nominal string model (`SetStringModel`): what a device
+    /// The device's nominal string model (`SetNominalGeometry`): what a device
     /// without a calibration blob runs on.
-    pub fn string_model(&self) -> spidar_protocol::StringModel {
+    pub fn string_model(&self) -> spidar_protocol::NominalGeometry {
         let layout = self.nominal_frame().layout;
-        spidar_protocol::StringModel {
+        spidar_protocol::NominalGeometry {
             counts_per_rev: self.counts_per_rev,
             pulley_radius_mm: core::array::from_fn(|i| {
                 (self.pulley_radius_mm[i] / self.mechanical_advantage[i]) as f32

@@ -27,8 +27,8 @@ use std::time::{Duration, Instant};
 use spidar_protocol::blob::{ModelHeader, CRC32};
 use spidar_protocol::{
     encode_request, DecodeStats, DeviceError, DeviceMessage, Event, FrameDecoder, FrameError,
-    HelloAck, Limits, LinkStats, ModelInfo, Packet, Request, Response, SeqTracker, State,
-    StringModel, UploadState, MAX_CHUNK, MAX_FRAME, PROTOCOL_VERSION,
+    HelloAck, Limits, LinkStats, ModelInfo, NominalGeometry, Packet, Request, Response, SeqTracker,
+    State, UploadState, MAX_CHUNK, MAX_FRAME, PROTOCOL_VERSION,
 };
 
 /// Stream frames kept while waiting for a reply (the oldest are dropped).
@@ -575,8 +575,8 @@ impl Client {
         self.expect_ack(&Request::SetLimits(limits))
     }
 
-    pub fn set_string_model(&mut self, model: StringModel) -> Result<(), LinkError> {
-        self.expect_ack(&Request::SetStringModel(model))
+    pub fn set_string_model(&mut self, model: NominalGeometry) -> Result<(), LinkError> {
+        self.expect_ack(&Request::SetNominalGeometry(model))
     }
 
     /// `ClearModel`.

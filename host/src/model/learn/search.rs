@@ -228,7 +228,11 @@ fn sweep_curve(
         let model = data.model(h, &run.w);
         let (train, val) = data.stats(&model);
         // Without a validation split the training error ranks the sizes.
-        let score = if val.n > 0 { val.mean_mm } else { train.mean_mm };
+        let score = if val.n > 0 {
+            val.mean_mm
+        } else {
+            train.mean_mm
+        };
         curve.push(SweepPoint {
             hidden: h,
             validation_mean_mm: val.mean_mm,
@@ -291,7 +295,7 @@ fn final_training(
 
 /// How candidates are scored.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub enum Validation {
+pub enum Scoring {
     /// One seeded split; `fraction` of the points are held out.
     HoldOut { fraction: f64 },
     /// Seeded k-fold cross-validation.
@@ -304,7 +308,7 @@ pub struct SvrSearchConfig {
     /// Standardized output units.
     pub epsilon: Vec<f64>,
     pub gamma: Vec<f64>,
-    pub validation: Validation,
+    pub validation: Scoring,
     pub solver: SolverConfig,
     pub mode: OutputMode,
     pub seed: u64,
@@ -327,7 +331,7 @@ impl Default for SvrSearchConfig {
             c: vec![30.0, 300.0],
             epsilon: vec![0.01, 0.005],
             gamma: vec![0.3, 1.0],
-            validation: Validation::HoldOut { fraction: 0.2 },
+            validation: Scoring::HoldOut { fraction: 0.2 },
             solver: SolverConfig::default(),
             mode: OutputMode::Absolute,
             seed: 1,
@@ -446,11 +450,11 @@ type Fold = (Vec<usize>, Vec<usize>);
 /// The (training, held-out) point indices of each fold.
 fn validation_folds(n: usize, cfg: &SvrSearchConfig) -> Result<Vec<Fold>, LearnError> {
     Ok(match cfg.validation {
-        Validation::HoldOut { fraction } => {
+        Scoring::HoldOut { fraction } => {
             check_range("fraction", fraction, 0.01, 0.9, "0.01 <= fraction <= 0.9")?;
             vec![split_indices(n, fraction, cfg.seed)]
         }
-        Validation::KFold { k } => {
+        Scoring::KFold { k } => {
             check_range("k", k as f64, 2.0, n as f64, "2 <= k <= points")?;
             let mut idx: Vec<usize> = (0..n).collect();
             Rng::derive(cfg.seed, 0xF01D).shuffle(&mut idx);

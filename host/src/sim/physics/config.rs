@@ -10,7 +10,7 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 use crate::sim::config::{
-    bad, non_negative, probability, LatticeConfig, NominalConfig, RandomConfig, TensionConfig,
+    bad, non_negative, probability, CommandedTensions, LatticeConfig, NominalConfig, RandomConfig,
     TrackerConfig,
 };
 use crate::sim::SimError;
@@ -23,7 +23,7 @@ pub struct PhysicsConfig {
     pub as_built: PhysicsAsBuilt,
     pub tracker: TrackerConfig,
     pub abnormal_motor: PhysicsAbnormalMotor,
-    pub tension: TensionConfig,
+    pub tension: CommandedTensions,
     pub lattice: LatticeConfig,
     pub random: RandomConfig,
     pub orientation: OrientationConfig,
