@@ -8,7 +8,7 @@
 //!   cues (eqs. 2-5) bring the marker to the frame centre, home is declared
 //!   when it holds there, and the room-to-device transform is recorded;
 //! - [`collect`]: lattice data collection (`spidar collect`);
-//! - [`recalibrate`]: runtime monitoring and refit (`spidar monitor`);
+//! - [`monitor`]: runtime monitoring and refit (`spidar monitor`);
 //! - what the operator is shown and hears is [`crate::device::cues`] (the
 //!   command line draws it in the terminal and plays the beep).
 //!
@@ -19,4 +19,4 @@ pub mod calibrate;
 pub mod collect;
 pub mod demo;
 pub mod init;
-pub mod recalibrate;
+pub mod monitor;

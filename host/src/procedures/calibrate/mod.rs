@@ -124,11 +124,12 @@ pub struct CalibrateConfig {
     pub svr: SvrSearchConfig,
     /// Most training points the corrections learn from (fit part and
     /// selection split together): a larger session is thinned evenly
-    /// through its volume ([`thin_evenly`]); every row still counts in the
-    /// identification and in the error figures. 2500 keeps a 13^3 lattice
-    /// (2197 points) whole, so the SVR's kernel and the NN's steps stay as
-    /// measured on it; a much larger session runs the SVR search out of
-    /// its time limit, which fails the calibration.
+    /// through its volume
+    /// ([`thin_evenly`](crate::model::learn::thin::thin_evenly)); every row
+    /// still counts in the identification and in the error figures. 2500
+    /// keeps a 13^3 lattice (2197 points) whole, so the SVR's kernel and
+    /// the NN's steps stay as measured on it; a much larger session runs
+    /// the SVR search out of its time limit, which fails the calibration.
     pub max_learning_points: usize,
     /// Share of the kept training points held out to choose the final model.
     pub selection_fraction: f64,
