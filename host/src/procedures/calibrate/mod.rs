@@ -32,6 +32,17 @@
 //!
 //! Every error statistic comes from [`crate::data::stats`] (eq. 7 against the
 //! tracker, room frame, over the rows the tracker saw).
+//!
+//! ## Where each part lives
+//!
+//! This file holds the pipeline ([`calibrate`], its settings and its error).
+//! Beside it: `checks.rs` (what a calibration refuses and warns about),
+//! `evaluate.rs` (a stage's errors on both sessions), `identified.rs`
+//! (stages 0-3), `corrections.rs` (stages 4-5), `blackbox.rs` (the paper's
+//! procedure), `outputs.rs` (the files written), `request.rs` (files in,
+//! files out: [`run_calibrate`]); [`align`] (the tracker's clock), [`report`]
+//! (the JSON report), [`trust`] (where the held-out figure is not what it
+//! seems), `figures.rs` and `plots.rs` (the figures).
 
 pub mod align;
 mod blackbox;
