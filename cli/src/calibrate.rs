@@ -3,7 +3,7 @@
 use std::path::{Path, PathBuf};
 
 use spidar::procedures::calibrate::{CalibrateConfig, CalibrateError, CalibrateRequest};
-use spidar::procedures::demo::{run_demo as run_demo_request, DemoError, DemoRequest};
+use spidar::procedures::demo::{DemoError, DemoRequest};
 
 /// `spidar calibrate`: identify the model, diagnose it, train the NN and SVR
 /// corrections, and report every stage on the training and test sessions.
@@ -164,7 +164,7 @@ impl DemoArgs {
 
 /// Run `spidar demo`; returns the text to print.
 pub fn run_demo(args: &DemoArgs) -> Result<String, DemoError> {
-    Ok(run_demo_request(&args.request())?.to_string())
+    Ok(spidar::procedures::demo::run_demo(&args.request())?.to_string())
 }
 
 #[cfg(test)]
