@@ -2,11 +2,8 @@
 
 use std::path::{Path, PathBuf};
 
-use spidar::data::dataset::{Geometry, Session};
-use spidar::procedures::calibrate::{
-    calibrate, write_outputs, CalibrateConfig, CalibrateError, NamedSession,
-};
-use spidar::sim::{run_simulate, SessionPath, SimulateRequest};
+use spidar::procedures::calibrate::{CalibrateConfig, CalibrateError, CalibrateRequest};
+use spidar::procedures::demo::{DemoError, DemoRequest};
 
 /// `spidar calibrate`: identify the model, diagnose it, train the NN and SVR
 /// corrections, and report every stage on the training and test sessions.
@@ -82,47 +79,25 @@ impl CalibrateArgs {
         c.loop_config.layer_tables = !self.no_layer_tables;
         c
     }
+
+    /// What the library is asked to calibrate.
+    pub fn request(&self) -> CalibrateRequest {
+        CalibrateRequest {
+            geometry: self.geometry.clone(),
+            train: self.train.clone(),
+            test: self.test.clone(),
+            out: self.out.clone(),
+            json: self.json.clone(),
+            export_pairs: self.export_pairs.clone(),
+            figures: !self.no_figures,
+            config: self.config(),
+        }
+    }
 }
 
 /// Run `spidar calibrate`.
 pub fn run_calibrate(args: &CalibrateArgs) -> Result<CalibrateOutput, CalibrateError> {
-    let geometry = Geometry::load(&args.geometry)?;
-    let train = Session::load(&args.train)?;
-    let test = Session::load(&args.test)?;
-    let config = args.config();
-    let mut calibrated = calibrate(
-        &geometry,
-        &args.geometry,
-        NamedSession {
-            path: &args.train,
-            session: &train,
-        },
-        NamedSession {
-            path: &args.test,
-            session: &test,
-        },
-        &config,
-    )?;
-    if !config.blackbox && train.has_legacy() && test.has_legacy() {
-        calibrated.report.notes.push(
-            "the sessions have dev_* columns: --blackbox adds the paper's black-box NN and SVR \
-             for comparison"
-                .into(),
-        );
-    }
-    if let Some(dir) = &args.export_pairs {
-        calibrated.pairs.residual.write(dir, "residual")?;
-        if let Some(bb) = &calibrated.pairs.blackbox {
-            bb.write(dir, "blackbox")?;
-        }
-    }
-    write_outputs(
-        &mut calibrated,
-        &args.out,
-        args.json.as_deref(),
-        !args.no_figures,
-        args.quiet,
-    )?;
+    let calibrated = spidar::procedures::calibrate::run_calibrate(&args.request())?;
     let json_stdout = match args.json.as_deref() {
         Some(p) if p == Path::new("-") => Some(
             serde_json::to_string_pretty(&calibrated.report).map_err(|source| {
@@ -171,125 +146,25 @@ pub struct DemoArgs {
     pub no_device: bool,
 }
 
-/// Run `spidar demo`; returns the text to print.
-pub fn run_demo(args: &DemoArgs) -> Result<String, CalibrateError> {
-    let simulate = |kind: SessionPath, name: &str| SimulateRequest {
-        out: args.out.clone(),
-        seed: args.seed,
-        config: args.config.clone(),
-        preset: None,
-        kind,
-        points: None,
-        effects: args.effects.clone(),
-        name: Some(name.to_string()),
-        session_seed: None,
-        physics: Default::default(),
-    };
-    let lattice = run_simulate(&simulate(SessionPath::Lattice, "lattice"))?;
-    let test = run_simulate(&simulate(SessionPath::Random, "test"))?;
-    let mut text = format!(
-        "simulated device (seed {}): {}, {} ({} rows), {} ({} rows), {} (the truth, not used)\n\n",
-        args.seed,
-        lattice.geometry.display(),
-        lattice.session.display(),
-        lattice.rows,
-        test.session.display(),
-        test.rows,
-        lattice.truth.display(),
-    );
-    let out = args.out.join("calibration");
-    let out_dir = out.clone();
-    let output = run_calibrate(&CalibrateArgs {
-        geometry: lattice.geometry.clone(),
-        train: lattice.session.clone(),
-        test: test.session.clone(),
-        json: Some(out.join("report.json")),
-        out,
-        seed: 1,
-        blackbox: args.blackbox,
-        quick: args.quick,
-        no_figures: false,
-        no_layer_tables: false,
-        quiet: args.quiet,
-        export_pairs: None,
-    })?;
-    text.push_str(&output.summary);
-    if !args.no_device {
-        text.push_str(&run_on_virtual_device(args, &lattice.geometry, &out_dir)?);
+impl DemoArgs {
+    /// What the library is asked to run.
+    pub fn request(&self) -> DemoRequest {
+        DemoRequest {
+            out: self.out.clone(),
+            seed: self.seed,
+            config: self.config.clone(),
+            effects: self.effects.clone(),
+            blackbox: self.blackbox,
+            quick: self.quick,
+            quiet: self.quiet,
+            virtual_device: !self.no_device,
+        }
     }
-    Ok(text)
 }
 
-/// The demo's last act: compile the nominal and the calibrated model, flash
-/// each to a virtual device whose plant follows the test trajectory, and
-/// measure what the device reports against the true position.
-fn run_on_virtual_device(
-    args: &DemoArgs,
-    geometry_path: &Path,
-    calibration_dir: &Path,
-) -> Result<String, CalibrateError> {
-    use spidar::sim::measure::measure_on_virtual_device;
-    use spidar::sim::{simulate_session_with_truth, SessionKind, SimConfig, SimDevice};
-    use spidar_core::correction::CorrectionModel;
-    use spidar_core::model::Calibration;
-
-    let mut config = match &args.config {
-        Some(path) => SimConfig::load(path)?,
-        None => SimConfig::default(),
-    };
-    config.effects.extend(args.effects.iter().cloned());
-    let device = SimDevice::new(&config, args.seed)?;
-    // The test session's trajectory (run_simulate's seed rule for random sessions).
-    let (_, truths) = simulate_session_with_truth(
-        &device,
-        SessionKind::Random {
-            points: config.random.points,
-        },
-        args.seed.wrapping_add(2),
-    )?;
-    let geometry = Geometry::load(geometry_path)?;
-    let nominal = Calibration {
-        frame: geometry.nominal_frame(),
-        strings: geometry.nominal_string_laws(),
-        effects: Vec::new(),
-        correction: CorrectionModel::None,
-        length_scale_mm: [0.0; spidar_core::STRINGS],
-        kinematics: Default::default(),
-    };
-    let calibrated =
-        spidar::model::compile::load_calibration(&calibration_dir.join("calibration.json"))?;
-    let blob = |what: &'static str, c: &Calibration| {
-        spidar_core::blob::compile(c, spidar::model::compile::model_id_of(c), 0).map_err(|e| {
-            CalibrateError::Blob {
-                what,
-                message: e.to_string(),
-            }
-        })
-    };
-    let before =
-        measure_on_virtual_device(&device, &truths, &blob("the nominal model", &nominal)?)?;
-    let after =
-        measure_on_virtual_device(&device, &truths, &blob("the calibration", &calibrated)?)?;
-    let row = |name: &str, r: &spidar::sim::measure::DeviceRun| {
-        format!(
-            "  {name:<22} {:>9.3} {:>8.3} {:>9.3} {:>8} {:>6} {:>8}\n",
-            r.error.mean_mm, r.error.sd_mm, r.error.max_mm, r.frames, r.lost, r.blob_len
-        )
-    };
-    Ok(format!(
-        "\nOn the virtual device (flashed over its serial link, test trajectory replayed by the plant;\n\
-         error of the position the device reports against the true position, room frame, mm):\n\
-         \x20 {:<22} {:>9} {:>8} {:>9} {:>8} {:>6} {:>8}\n{}{}",
-        "model",
-        "mean",
-        "sd",
-        "max",
-        "frames",
-        "lost",
-        "blob B",
-        row("before (nominal)", &before),
-        row("after (calibrated)", &after),
-    ))
+/// Run `spidar demo`; returns the text to print.
+pub fn run_demo(args: &DemoArgs) -> Result<String, DemoError> {
+    Ok(spidar::procedures::demo::run_demo(&args.request())?.to_string())
 }
 
 #[cfg(test)]

@@ -5,7 +5,7 @@ use std::time::Duration;
 
 use spidar::data::dataset::Session;
 use spidar::model::compile::load_calibration;
-use spidar::procedures::recalibrate::{
+use spidar::procedures::monitor::{
     calibrate_simulated_with, event_line, monitor, summary, Check, MonitorConfig, MonitorError,
     MonitorEvent, MonitorInputs, RefitPolicy, SimRigConfig, SimulatedMonitorRig,
 };

@@ -145,7 +145,7 @@ fn a_model_fitted_on_train_meets_the_held_out_target() {
     // doubled and quadrupled (issue 11): its laws are of the identified form
     // with the geometry's mechanical advantage, and read back as the same
     // shared spool build-up.
-    use spidar::procedures::recalibrate::{check_calibration, identification_of};
+    use spidar::procedures::monitor::{check_calibration, identification_of};
     check_calibration(&c.calibration, &g, 100.0, &d.join("calibration.json"))
         .expect("the monitor accepts a calibration of a device with mechanical advantage");
     let back = identification_of(&c.calibration, &g.mechanical_advantage);

@@ -1,12 +1,14 @@
 //! What a lab engineer runs (the paper's sections 4.1, 4.3.1, 5 and 5.5).
 //!
 //! - [`calibrate`]: the whole calibration of a device from a training and a
-//!   test session (`spidar calibrate`, `spidar demo`);
+//!   test session (`spidar calibrate`);
+//! - [`demo`]: a simulated device calibrated from its simulated sessions,
+//!   then measured on a virtual device (`spidar demo`);
 //! - [`init`]: guided initialization (`spidar init`): the haptic and audio
 //!   cues (eqs. 2-5) bring the marker to the frame centre, home is declared
 //!   when it holds there, and the room-to-device transform is recorded;
 //! - [`collect`]: lattice data collection (`spidar collect`);
-//! - [`recalibrate`]: runtime monitoring and refit (`spidar monitor`);
+//! - [`monitor`]: runtime monitoring and refit (`spidar monitor`);
 //! - what the operator is shown and hears is [`crate::device::cues`] (the
 //!   command line draws it in the terminal and plays the beep).
 //!
@@ -15,5 +17,6 @@
 mod arm_watch;
 pub mod calibrate;
 pub mod collect;
+pub mod demo;
 pub mod init;
-pub mod recalibrate;
+pub mod monitor;

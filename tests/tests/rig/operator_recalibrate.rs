@@ -2,7 +2,7 @@
 //! simulated lattice, the blob flashed to a real-time virtual device whose
 //! end-effector is in the hand of a simulated operator who wanders about,
 //! the operator's DTrack2 tracker on loopback, and
-//! `spidar::procedures::recalibrate::monitor` between them over the serial
+//! `spidar::procedures::monitor::monitor` between them over the serial
 //! link. A string slips at a known device time: the monitor must report it
 //! after (never before), name it, refit, reflash, and bring the error the
 //! device reports back down.
@@ -14,7 +14,7 @@ use std::time::{Duration, Instant};
 
 use spidar::device::link::Client;
 use spidar::model::diagnose::{Change, Family};
-use spidar::procedures::recalibrate::{
+use spidar::procedures::monitor::{
     calibrate_simulated, calibrate_simulated_with, event_line, monitor, MonitorConfig,
     MonitorError, MonitorEvent, MonitorInputs, MonitorReport, RefitPolicy, SimCalibration,
     SimRigConfig, SimulatedMonitorRig,
@@ -152,7 +152,7 @@ fn a_slipped_string_is_reported_named_refitted_and_reflashed() {
     let report = report.expect("monitor");
     eprintln!(
         "{}",
-        spidar::procedures::recalibrate::summary(&report).trim_end()
+        spidar::procedures::monitor::summary(&report).trim_end()
     );
     let baseline = report.baseline.expect("a baseline window");
     pairing_error(&rig, &report);
@@ -292,7 +292,7 @@ fn run_without_drift(rig: &mut SimulatedMonitorRig, seconds: f64) -> MonitorRepo
     let report = report.expect("monitor");
     eprintln!(
         "{}",
-        spidar::procedures::recalibrate::summary(&report).trim_end()
+        spidar::procedures::monitor::summary(&report).trim_end()
     );
     assert!(report.checks.len() >= 6, "{} checks", report.checks.len());
     assert_eq!(report.drifts().count(), 0);
@@ -359,7 +359,7 @@ fn bad_input_gives_clear_errors() {
     let mut rig = rig(&[], 8.0);
     let mut client = rig.client().unwrap();
     let mut never = |_: &MonitorEvent| {};
-    let mut no = |_: &spidar::procedures::recalibrate::Check| false;
+    let mut no = |_: &spidar::procedures::monitor::Check| false;
     let mut attempt = |client: &mut Client,
                        tracker: &mut dyn spidar::device::tracker::TrackerSource,
                        geometry: &spidar::data::dataset::Geometry,

@@ -1,0 +1,469 @@
+//! What a calibration refuses and warns about: sessions that do not fit the
+//! geometry or one another, a tracker in another unit, a clock the motion
+//! could not align, too few tracked rows, the tracker's glitches, and a
+//! held-out figure that is not what it seems (test points outside the
+//! training volume, anchors that determine the position poorly, a final
+//! model above the plain least-squares reference).
+
+use std::path::Path;
+
+use spidar_core::geometry::device_from_room;
+
+use crate::data::dataset::Geometry;
+use crate::data::observe::Observation;
+use crate::model::identify::Structure;
+
+use super::{align, report, trust, CalibrateError, NamedSession, StagePoints};
+
+/// Both sessions' facts for the report, after checking their strings
+/// against the geometry, and the warnings they call for: test rows that are
+/// training rows, columns nobody reads.
+pub(super) fn checked_sessions(
+    geometry: &Geometry,
+    geometry_path: &Path,
+    train: NamedSession<'_>,
+    test: NamedSession<'_>,
+) -> Result<(report::SessionInfo, report::SessionInfo, Vec<String>), CalibrateError> {
+    let mut warnings: Vec<String> = Vec::new();
+    for s in [&train, &test] {
+        s.session.check_strings(s.path, geometry, geometry_path)?;
+    }
+    let train_info = session_info(train)?;
+    let test_info = session_info(test)?;
+    match trust::shared_rows(train.session, test.session) {
+        (0, _) => {}
+        (shared, rows) if shared == rows => warnings.push(format!(
+            "the test session {} holds only rows of the training session {}: the held-out \
+             figures are training errors, not a test; record a separate test session",
+            test.path.display(),
+            train.path.display()
+        )),
+        (shared, rows) => warnings.push(format!(
+            "{shared} of the {rows} test rows also appear in the training session: the \
+             held-out figures are partly training errors; remove them from one of the files"
+        )),
+    }
+    for (info, s) in [(&train_info, &train), (&test_info, &test)] {
+        if !info.ignored_columns.is_empty() {
+            warnings.push(format!(
+                "{}: ignored unknown columns {}",
+                s.path.display(),
+                info.ignored_columns.join(", ")
+            ));
+        }
+    }
+    Ok((train_info, test_info, warnings))
+}
+
+/// Session facts for the report; refuses a session the tracker never saw.
+fn session_info(s: NamedSession<'_>) -> Result<report::SessionInfo, CalibrateError> {
+    let rows = s.session.samples.len();
+    let tracked = s
+        .session
+        .samples
+        .iter()
+        .filter(|r| r.tracker.is_some())
+        .count();
+    if tracked == 0 {
+        return Err(CalibrateError::Session {
+            file: s.path.to_path_buf(),
+            problem: format!(
+                "none of its {rows} rows has a tracker position (ots_x, ots_y, ots_z): \
+                 nothing to calibrate or evaluate against"
+            ),
+        });
+    }
+    Ok(report::SessionInfo {
+        path: s.path.display().to_string(),
+        rows,
+        tracked,
+        occluded: rows - tracked,
+        has_legacy: s.session.has_legacy(),
+        has_tension: s.session.has_tension(),
+        ignored_columns: s.session.ignored_columns.clone(),
+    })
+}
+
+/// A warning for each session whose clock alignment left rows without a
+/// tracker position.
+pub(super) fn unpaired_rows_warnings(timing: &report::Timing) -> Vec<String> {
+    let mut warnings = Vec::new();
+    for (name, t) in [("training", &timing.train), ("test", &timing.test)] {
+        if let align::SessionTiming::Aligned(a) = t {
+            if a.rows_unpaired > 0 {
+                warnings.push(format!(
+                    "{name} session: {} rows lost their tracker position when re-paired by the \
+                     {:+.4} s clock offset (before the tracker's first or after its last frame, \
+                     or across a gap)",
+                    a.rows_unpaired, a.offset_s
+                ));
+            }
+        }
+    }
+    warnings
+}
+
+/// How far the tracker's spread may be from the nominal model's before a
+/// calibration refuses the sessions: a unit mistake (metres, centimetres or
+/// inches against the millimetres of the format) is a factor of 10 or more,
+/// which the identification would otherwise fit away (into pulley radii a
+/// thousandth of the device's, reporting errors in the wrong unit). The
+/// simulated paper-sized devices, whose nominal pulley radius is half the
+/// wound one, are at 1.9 to 2.4; the Hangprinter at 1.01; other simulated
+/// devices at 1.3 to 1.4.
+const TRACKER_SCALE_REFUSED: f64 = 5.0;
+
+/// Beyond this factor (and within [`TRACKER_SCALE_REFUSED`]) the report
+/// warns.
+const TRACKER_SCALE_WARNED: f64 = 3.0;
+
+/// Refuses a training session whose tracker positions spread a factor of
+/// [`TRACKER_SCALE_REFUSED`] or more off the nominal model's positions of
+/// the same rows, naming the likely unit; beyond [`TRACKER_SCALE_WARNED`],
+/// a warning.
+pub(super) fn check_tracker_scale(
+    train_path: &Path,
+    geometry_path: &Path,
+    tr: &[Observation],
+    raw_tr: &[[f64; 3]],
+) -> Result<Option<String>, CalibrateError> {
+    let Some((tracker_mm, nominal_mm)) = tracker_spread_ratio(tr, raw_tr) else {
+        return Ok(None);
+    };
+    let ratio = tracker_mm / nominal_mm;
+    let factor = ratio.max(1.0 / ratio);
+    if factor < TRACKER_SCALE_WARNED {
+        return Ok(None);
+    }
+    let unit = [(1000.0, "metres"), (25.4, "inches"), (10.0, "centimetres")]
+        .iter()
+        .find(|(k, _)| (factor / k - 1.0).abs() < 0.2)
+        .map(|(_, unit)| unit);
+    let what = format!(
+        "the tracker's positions spread {tracker_mm:.3} (root mean square distance from their \
+         centroid) where the nominal geometry {} puts the same rows {nominal_mm:.3} mm from \
+         theirs: {ratio:.4} times",
+        geometry_path.display()
+    );
+    let hint = match unit {
+        Some(unit) if ratio < 1.0 => {
+            format!("the session's `ots_*` columns look like {unit}; the format is in millimetres")
+        }
+        Some(unit) => format!(
+            "the geometry's lengths (anchors, home, pulley radius) look like {unit}, or the \
+             tracker's `ots_*` columns like a unit finer than millimetres; the format is in \
+             millimetres"
+        ),
+        None => "check the geometry's pulley_radius_mm, counts_per_rev and mechanical_advantage \
+                 against the device, and that the tracker gives millimetres"
+            .to_string(),
+    };
+    if factor >= TRACKER_SCALE_REFUSED {
+        return Err(CalibrateError::Session {
+            file: train_path.to_path_buf(),
+            problem: format!("{what}: {hint}"),
+        });
+    }
+    Ok(Some(format!("{}: {what}: {hint}", train_path.display())))
+}
+
+/// The tracker's spread over the training session against the nominal
+/// model's over the same rows: the root mean square distance of the tracked
+/// positions from their centroid, over that of the nominal model's room
+/// positions of those rows. `None` with fewer than 3 tracked rows or no
+/// spread.
+fn tracker_spread_ratio(obs: &[Observation], raw: &[[f64; 3]]) -> Option<(f64, f64)> {
+    let (tracked, nominal): (Vec<[f64; 3]>, Vec<[f64; 3]>) = obs
+        .iter()
+        .zip(raw)
+        .filter_map(|(o, p)| o.tracker.map(|t| (t, *p)))
+        .filter(|(t, p)| t.iter().chain(p).all(|x| x.is_finite()))
+        .unzip();
+    if tracked.len() < 3 {
+        return None;
+    }
+    let spread = |points: &[[f64; 3]]| {
+        let n = points.len() as f64;
+        let c: [f64; 3] = core::array::from_fn(|k| points.iter().map(|p| p[k]).sum::<f64>() / n);
+        (points
+            .iter()
+            .map(|p| (0..3).map(|k| (p[k] - c[k]).powi(2)).sum::<f64>())
+            .sum::<f64>()
+            / n)
+            .sqrt()
+    };
+    let (t, m) = (spread(&tracked), spread(&nominal));
+    (t > 0.0 && m > 0.0).then_some((t, m))
+}
+
+/// Refuses a session whose tracker clock the motion could not align: with
+/// the model identified from the data (the last round of the training
+/// session's alignment, the test session's), the positions did not confirm
+/// the speed profiles' peak ([`align::ClockAlignment::refined`]). Re-paired
+/// by such an offset, every row holds the marker from elsewhere, and the
+/// calibration fitted to them is meaningless. (The profiles' correlation
+/// does not tell: a short test stream that is well aligned still correlates
+/// weakly.)
+pub(super) fn check_alignment(
+    path: &Path,
+    timing: &align::SessionTiming,
+) -> Result<(), CalibrateError> {
+    let align::SessionTiming::Aligned(a) = timing else {
+        return Ok(());
+    };
+    if a.refined {
+        return Ok(());
+    }
+    Err(CalibrateError::Session {
+        file: path.to_path_buf(),
+        problem: format!(
+            "the tracker's clock could not be aligned with the device's from the motion: the \
+             speed profiles peak at {:+.3} s (correlation {:.2}), but the positions the \
+             identified model gives do not confirm it. The search reaches {} s around the \
+             offset it starts from: is the tracker's clock further off, or did the hand hardly \
+             move? Record the session with the tracker's and the device's clocks paired by a \
+             common time",
+            a.offset_s,
+            a.correlation,
+            align::MAX_OFFSET_S
+        ),
+    })
+}
+
+/// The warning for the training rows whose tracker the loop set aside
+/// (or found far off in too great a number to set aside), naming their
+/// lines.
+pub(super) fn tracker_outlier_warning(
+    train_path: &Path,
+    outliers: &crate::model::diagnose::TrackerOutliers,
+) -> Option<String> {
+    if outliers.kept_too_many > 0 {
+        return Some(format!(
+            "{}: the tracker of {} rows disagrees with most of their strings by more than {:.1} \
+             mm ({}x the median {:.3} mm) under the identified model: too many to be the \
+             tracker's glitches, so all are kept; the model does not fit this session",
+            train_path.display(),
+            outliers.kept_too_many,
+            outliers.threshold_mm,
+            crate::model::diagnose::GROSS_TRACKER_MEDIANS,
+            outliers.median_mm
+        ));
+    }
+    if outliers.rows.is_empty() {
+        return None;
+    }
+    Some(format!(
+        "{}: the tracker of {} rows disagrees with most of their strings by more than {:.1} mm \
+         ({}x the median {:.3} mm) under the identified model: a tracker's glitch (a reflection, \
+         a swapped or lost marker), not a position; they are read as occluded rows (out of the \
+         fit, the loop's judgement and the training figures; the raw stage still has them): \
+         lines {}",
+        train_path.display(),
+        outliers.rows.len(),
+        outliers.threshold_mm,
+        crate::model::diagnose::GROSS_TRACKER_MEDIANS,
+        outliers.median_mm,
+        outlier_lines(
+            outliers,
+            Some("the JSON report's `identification.tracker_outliers`")
+        ),
+    ))
+}
+
+/// The warning for the test rows whose tracker disagrees with most of
+/// their strings under the final model beyond the training session's
+/// threshold: the held-out figures keep them (they are the test), and the
+/// user learns which lines to look at.
+pub(super) fn test_outlier_warning(
+    test_path: &Path,
+    outliers: &crate::model::diagnose::TrackerOutliers,
+) -> Option<String> {
+    if outliers.rows.is_empty() && outliers.kept_too_many == 0 {
+        return None;
+    }
+    let count = outliers.rows.len().max(outliers.kept_too_many);
+    Some(format!(
+        "{}: the tracker of {count} rows disagrees with most of their strings by more than \
+         {:.1} mm (the training session's threshold) under the final model: a tracker's \
+         glitch, or a model that does not hold there; the held-out figures include them{}",
+        test_path.display(),
+        outliers.threshold_mm,
+        if outliers.rows.is_empty() {
+            String::new()
+        } else {
+            format!(": lines {}", outlier_lines(outliers, None))
+        }
+    ))
+}
+
+/// The first lines of `outliers` with their disagreement, and how many
+/// more there are (`where_all`: where the rest is listed).
+fn outlier_lines(
+    outliers: &crate::model::diagnose::TrackerOutliers,
+    where_all: Option<&str>,
+) -> String {
+    const SHOWN: usize = 12;
+    let lines: Vec<String> = outliers
+        .lines
+        .iter()
+        .zip(&outliers.errors_mm)
+        .take(SHOWN)
+        .map(|(line, e)| format!("{line} ({e:.0} mm)"))
+        .collect();
+    let more = outliers.lines.len().saturating_sub(SHOWN);
+    match (more, where_all) {
+        (0, _) => lines.join(", "),
+        (_, Some(place)) => format!("{} and {more} more ({place})", lines.join(", ")),
+        (_, None) => format!("{} and {more} more", lines.join(", ")),
+    }
+}
+
+/// What a training session is large enough for.
+#[derive(Clone, Debug)]
+pub(super) struct Regime {
+    /// The diagnosis loop and the learned corrections run (every change is
+    /// judged on two halves, each of which must identify the model).
+    pub(super) full: bool,
+    /// Why they do not, in the user's terms.
+    pub(super) reason: Option<String>,
+}
+
+/// What the training session's tracked rows allow: a refusal below what
+/// identifies the base model (rows x strings against its free parameters,
+/// twice over), identification only below twice that, else everything.
+pub(super) fn check_enough_tracked_rows(
+    train_path: &Path,
+    tr: &[Observation],
+    nominal: &spidar_core::model::Frame<f64>,
+) -> Result<Regime, CalibrateError> {
+    let needed = crate::model::identify::rows_needed_for(&Structure::default(), nominal.layout);
+    let tracked = tr.iter().filter(|o| o.tracker.is_some()).count();
+    if tracked < needed {
+        return Err(CalibrateError::Session {
+            file: train_path.to_path_buf(),
+            problem: format!(
+                "{tracked} rows with tracker positions; identifying the model of {} strings \
+                 needs at least {needed} (twice as many string lengths as free parameters): \
+                 collect {} more tracked poses spread through the volume",
+                nominal.layout.count(),
+                needed - tracked
+            ),
+        });
+    }
+    if tracked < 2 * needed {
+        return Ok(Regime {
+            full: false,
+            reason: Some(format!(
+                "identification only: the training session has {tracked} tracked rows; the \
+                 diagnosis loop and the learned corrections need {} ({needed} to identify the \
+                 model in each half of the 2-fold validation that judges every change): collect \
+                 {} more tracked poses to enable them",
+                2 * needed,
+                2 * needed - tracked
+            )),
+        });
+    }
+    Ok(Regime {
+        full: true,
+        reason: None,
+    })
+}
+
+/// Where the held-out figure is not what it seems: test points outside the
+/// training volume, and anchors that determine the position poorly.
+pub(super) fn trust_warnings(
+    frame: &spidar_core::model::Frame<f64>,
+    tr: &[Observation],
+    final_points: Option<&StagePoints>,
+) -> Vec<String> {
+    let mut warnings = Vec::new();
+    let train_room: Vec<[f64; 3]> = tr.iter().filter_map(|o| o.tracker).collect();
+    const BOX_MARGIN_MM: f64 = 1.0;
+    if let (Some(bx), Some(fp)) = (
+        trust::TrainingBox::of(frame, &train_room, BOX_MARGIN_MM),
+        final_points,
+    ) {
+        let x = trust::extrapolation(frame, &bx, &fp.test.tracker, &fp.test.errors);
+        if x.outside.n > 0 {
+            warnings.push(format!(
+                "{} of {} test points lie outside the volume the training session covers (its \
+                 box, {BOX_MARGIN_MM} mm margin): the model extrapolates there; final error \
+                 outside {:.3} mm mean, {:.3} max, inside {:.3} mean, {:.3} max",
+                x.outside.n,
+                x.outside.n + x.inside.n,
+                x.outside.mean_mm,
+                x.outside.max_mm,
+                x.inside.mean_mm,
+                x.inside.max_mm
+            ));
+        }
+    }
+    let train_device: Vec<[f64; 3]> = train_room
+        .iter()
+        .map(|r| device_from_room(frame, *r))
+        .collect();
+    if let Some(d) = trust::determination(frame, &train_device) {
+        if d.gain > trust::POOR_DETERMINATION_GAIN {
+            warnings.push(format!(
+                "the anchors determine the position poorly along ({:+.2}, {:+.2}, {:+.2}) \
+                 (device frame): there a string-length error moves the position {:.1} times as \
+                 much (median over the training points; a cube SPIDAR: ~0.6). Anchors nearly in \
+                 one plane or line? Spread them, or expect errors along that direction",
+                d.direction[0], d.direction[1], d.direction[2], d.gain
+            ));
+        }
+    }
+    warnings
+}
+
+/// A warning when the final model's held-out mean is above the plain
+/// least-squares reference's, naming what the calibration adds to a plain
+/// fit that lost on this test session: the learned correction (the final
+/// stage above the model it corrects), the kinematics' rule (the final
+/// identified model placing the rows as the reference does beats the
+/// reference), the loop's terms (the base identification beats the
+/// reference) or, failing those, the identification's robust weights and
+/// priors. `plain_rule_test_mm`: the final identified model's held-out
+/// mean under the reference's rule.
+pub(super) fn reference_warning(
+    stages: &[report::Stage],
+    plain_rule_test_mm: f64,
+) -> Option<String> {
+    let of = |kind| {
+        stages
+            .iter()
+            .filter(move |s: &&report::Stage| s.kind == kind)
+    };
+    let reference = of(report::StageKind::Reference).next()?.test.mean_mm;
+    let fin = of(report::StageKind::Final).next()?;
+    if fin.test.mean_mm <= reference {
+        return None;
+    }
+    let identified = of(report::StageKind::Identified).next()?.test.mean_mm;
+    let model = of(report::StageKind::Effect)
+        .next_back()
+        .map_or(identified, |s| s.test.mean_mm);
+    let lost = if fin.test.mean_mm > model && model <= reference {
+        format!("the learned correction ({} on {model:.3} mm)", fin.name)
+    } else if plain_rule_test_mm <= reference {
+        format!(
+            "the kinematics' rule (the same model placing every row with all its strings alike: \
+             {plain_rule_test_mm:.3} mm)"
+        )
+    } else if identified <= reference {
+        format!("the loop's terms (the base identification: {identified:.3} mm)")
+    } else {
+        format!(
+            "the identification's robust weights and priors (the base identification: \
+             {identified:.3} mm; `anchor_sd_mm` in the geometry sets the anchors' tolerance)"
+        )
+    };
+    Some(format!(
+        "the final model's held-out mean {:.3} mm is above the plain least-squares reference's \
+         {reference:.3} mm: what lost is {lost}",
+        fin.test.mean_mm
+    ))
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,142 @@
+//! Tests of the calibration's checks and warnings.
+
+use std::path::Path;
+
+use super::*;
+use crate::data::dataset::Sample;
+use crate::data::observe::observations;
+use crate::data::stats::ErrorStats;
+use crate::model::reference;
+use crate::procedures::calibrate::evaluate::stage;
+use spidar_core::STRINGS;
+
+fn stage_at(kind: report::StageKind, name: &str, test_mean: f64) -> report::Stage {
+    let mut test = ErrorStats::of(&[test_mean]);
+    test.mean_mm = test_mean;
+    stage(name, kind, test, test)
+}
+
+/// A final model worse than the plain fit held out is named with the
+/// part that lost, read off the stages.
+#[test]
+fn a_final_model_worse_than_the_reference_names_what_lost() {
+    use report::StageKind::*;
+    let stages = |identified, effect, fin| {
+        vec![
+            stage_at(Raw, "raw", 20.0),
+            stage_at(Reference, reference::STAGE_NAME, 1.0),
+            stage_at(Identified, "identified", identified),
+            stage_at(Effect, "offset string 1", effect),
+            stage_at(Final, "final (svr)", fin),
+        ]
+    };
+    assert_eq!(reference_warning(&stages(1.2, 1.1, 0.9), 2.0), None);
+    let w = |s: Vec<report::Stage>, plain| reference_warning(&s, plain).expect("a warning");
+    assert!(w(stages(1.2, 0.9, 1.1), 2.0).contains("learned correction"));
+    assert!(w(stages(1.2, 1.1, 1.1), 0.95).contains("kinematics' rule"));
+    assert!(w(stages(0.95, 1.1, 1.1), 2.0).contains("loop's terms"));
+    assert!(w(stages(1.2, 1.1, 1.1), 2.0).contains("robust weights and priors"));
+}
+
+/// The warnings name the lines (CSV line = row + 2) with their
+/// disagreement, the first 12 and how many more.
+#[test]
+fn tracker_outlier_warnings_name_their_lines() {
+    use crate::model::diagnose::TrackerOutliers;
+    let outliers = TrackerOutliers {
+        rows: (0..13).collect(),
+        lines: (12..25).collect(),
+        errors_mm: (0..13).map(|k| 50.0 + k as f64).collect(),
+        median_mm: 0.9,
+        threshold_mm: 18.0,
+        kept_too_many: 0,
+    };
+    let w = tracker_outlier_warning(Path::new("train.csv"), &outliers).unwrap();
+    assert!(w.starts_with("train.csv: the tracker of 13 rows"), "{w}");
+    assert!(w.contains("lines 12 (50 mm), 13 (51 mm)"), "{w}");
+    assert!(
+        w.contains("23 (61 mm) and 1 more (the JSON report's"),
+        "{w}"
+    );
+    let t = test_outlier_warning(Path::new("test.csv"), &outliers).unwrap();
+    assert!(
+        t.contains("the held-out figures include them: lines 12 (50 mm)"),
+        "{t}"
+    );
+    assert!(t.ends_with("23 (61 mm) and 1 more"), "{t}");
+    let none = TrackerOutliers::default();
+    assert_eq!(tracker_outlier_warning(Path::new("t"), &none), None);
+    assert_eq!(test_outlier_warning(Path::new("t"), &none), None);
+    let too_many = TrackerOutliers {
+        kept_too_many: 40,
+        ..none
+    };
+    let w = tracker_outlier_warning(Path::new("t"), &too_many).unwrap();
+    assert!(w.contains("40 rows") && w.contains("all are kept"), "{w}");
+}
+
+/// The tracker's spread against the nominal model's: at a factor of 3
+/// a warning, at 5 a refusal naming the unit it looks like, both ways;
+/// the paper-sized factor of 2 passes; too few rows say nothing.
+#[test]
+fn a_tracker_spread_off_the_nominal_model_is_warned_or_refused() {
+    let nominal: Vec<[f64; 3]> = (0..20)
+        .map(|k| {
+            [
+                k as f64 * 30.0,
+                (k % 4) as f64 * 50.0,
+                (k % 3) as f64 * 70.0,
+            ]
+        })
+        .collect();
+    let obs = |scale: f64| -> Vec<Observation> {
+        let samples: Vec<Sample> = nominal
+            .iter()
+            .map(|p| Sample {
+                t_s: 0.0,
+                counts: [0; STRINGS],
+                tracker: Some(p.map(|x| x * scale + 5.0)),
+                orientation: None,
+                legacy: None,
+                tension_n: None,
+            })
+            .collect();
+        observations(&samples)
+    };
+    let check = |scale: f64| {
+        check_tracker_scale(
+            Path::new("train.csv"),
+            Path::new("geometry.toml"),
+            &obs(scale),
+            &nominal,
+        )
+    };
+    for scale in [1.0, 2.0, 0.5, 2.9] {
+        assert!(matches!(check(scale), Ok(None)), "{scale}");
+    }
+    let warned = check(4.0).unwrap().unwrap();
+    assert!(
+        warned.contains("train.csv") && warned.contains("4.0000 times"),
+        "{warned}"
+    );
+    let refused = |scale: f64| check(scale).unwrap_err().to_string();
+    assert!(refused(0.001).contains("`ots_*` columns look like metres"));
+    assert!(refused(0.1).contains("look like centimetres"));
+    assert!(refused(1.0 / 25.4).contains("look like inches"));
+    assert!(refused(1000.0).contains("the geometry's lengths"));
+    let other = refused(6.0);
+    assert!(
+        other.contains("pulley_radius_mm") && other.contains("geometry.toml"),
+        "{other}"
+    );
+    // Two tracked rows: no spread to judge.
+    assert!(matches!(
+        check_tracker_scale(
+            Path::new("t"),
+            Path::new("g"),
+            &obs(0.001)[..2],
+            &nominal[..2]
+        ),
+        Ok(None)
+    ));
+}

@@ -1,0 +1,480 @@
+//! Stages 4-5 of a calibration: the residual NN and SVR on top of the final
+//! identified model (Tukey's outlier removal, even thinning, the fit part and
+//! the selection split), the choice of the final model on the selection
+//! split, and the chosen correction refitted.
+
+use std::time::Instant;
+
+use spidar_core::correction::CorrectionModel;
+
+use crate::data::observe::Observation;
+use crate::data::stats::ErrorStats;
+use crate::model::diagnose::tail_noise;
+use crate::model::learn::nn::{self, NnConfig};
+use crate::model::learn::outliers;
+use crate::model::learn::search;
+use crate::model::learn::svr::{self, SvrConfig};
+use crate::model::learn::thin::{thin_evenly, Thinning};
+use crate::model::learn::{split_indices, OutputMode};
+
+use super::evaluate::{point_error_list, subset, tracked_pairs, PerSession};
+use super::{
+    learn, report, spinner, CalibrateConfig, CalibrateError, PairSet, Run, MIN_SELECTION_POINTS,
+};
+
+/// The residual learners' data: the final identified model's tracked pairs,
+/// Tukey's box plot on the training ones, the kept training pairs thinned
+/// evenly through the volume ([`CalibrateConfig::max_learning_points`]),
+/// and the thinned pairs split into a fit part and the selection split.
+pub(super) struct ResidualData {
+    outliers: outliers::OutlierReport,
+    /// Kept training pairs and all tracked test pairs.
+    pub(super) pairs: PairSet,
+    /// Which kept training pairs the corrections learn from.
+    thinning: Thinning,
+    /// The thinned pairs: what the chosen correction is refitted on.
+    x_learn: Vec<[f64; 3]>,
+    t_learn: Vec<[f64; 3]>,
+    x_fit: Vec<[f64; 3]>,
+    t_fit: Vec<[f64; 3]>,
+    x_sel: Vec<[f64; 3]>,
+    t_sel: Vec<[f64; 3]>,
+    /// The training session's row of each selection point.
+    sel_rows: Vec<usize>,
+}
+
+impl ResidualData {
+    pub(super) fn of(
+        obs: PerSession<&[Observation]>,
+        positions: PerSession<&[[f64; 3]]>,
+        cfg: &CalibrateConfig,
+    ) -> Result<ResidualData, CalibrateError> {
+        let (x_all, t_all) = tracked_pairs(obs.train, positions.train);
+        let outl = outliers::tukey(&x_all, &t_all).map_err(learn("outliers (Tukey box plot)"))?;
+        let (x_kept, t_kept) = outliers::select(&outl, &x_all, &t_all);
+        let (xt_all, tt_all) = tracked_pairs(obs.test, positions.test);
+        let thinning = thin_evenly(&x_kept, cfg.max_learning_points);
+        let x_learn = subset(&x_kept, &thinning.indices);
+        let t_learn = subset(&t_kept, &thinning.indices);
+        let (fit_idx, sel_idx) = split_indices(x_learn.len(), cfg.selection_fraction, cfg.seed);
+        let (x_fit, t_fit) = (subset(&x_learn, &fit_idx), subset(&t_learn, &fit_idx));
+        let (x_sel, t_sel) = (subset(&x_learn, &sel_idx), subset(&t_learn, &sel_idx));
+        let tracked_rows: Vec<usize> = (0..obs.train.len())
+            .filter(|&k| obs.train[k].tracker.is_some())
+            .collect();
+        let sel_rows = sel_idx
+            .iter()
+            .map(|&k| tracked_rows[outl.kept[thinning.indices[k]]])
+            .collect();
+        Ok(ResidualData {
+            outliers: outl,
+            pairs: PairSet {
+                train_inputs: x_kept,
+                train_targets: t_kept,
+                test_inputs: xt_all,
+                test_targets: tt_all,
+            },
+            thinning,
+            x_learn,
+            t_learn,
+            x_fit,
+            t_fit,
+            x_sel,
+            t_sel,
+            sel_rows,
+        })
+    }
+}
+
+/// The residual NN and SVR, searched and trained on the fit part.
+pub(super) struct Learned {
+    sweep: search::SweepResult,
+    svr_search: search::SvrSearchResult,
+    pub(super) nn: CorrectionModel,
+    pub(super) svr: CorrectionModel,
+}
+
+/// Stage 4: the NN hidden-size sweep and the SVR search on the fit part
+/// (their times into `timings`).
+pub(super) fn train_corrections(
+    data: &ResidualData,
+    cfg: &CalibrateConfig,
+    timings: &mut report::Timings,
+) -> Result<Learned, CalibrateError> {
+    let t = Instant::now();
+    let sweep = search::nn_sweep(&data.x_fit, &data.t_fit, &cfg.nn)
+        .map_err(learn("NN hidden-size sweep"))?;
+    timings.nn_s = t.elapsed().as_secs_f64();
+    let t = Instant::now();
+    let svr_search =
+        search::svr_search(&data.x_fit, &data.t_fit, &cfg.svr).map_err(learn("SVR search"))?;
+    timings.svr_s = t.elapsed().as_secs_f64();
+    let nn = CorrectionModel::Nn(sweep.fit.model.clone());
+    let svr = CorrectionModel::Svr(svr_search.fit.model.clone());
+    Ok(Learned {
+        sweep,
+        svr_search,
+        nn,
+        svr,
+    })
+}
+
+/// What the selection split said of the identified model and the two
+/// corrections, and the choice it made.
+pub(super) struct Judgement {
+    identified: ErrorStats,
+    nn: ErrorStats,
+    svr: ErrorStats,
+    /// The plain least-squares reference on the same points.
+    reference: ErrorStats,
+    /// Noise of the identified model's p95 and max on the selection split.
+    noise_p95: f64,
+    noise_max: f64,
+    /// The selection split has enough points to choose a correction.
+    enough_to_choose: bool,
+    pub(super) choice: report::Choice,
+    reason: String,
+}
+
+impl Judgement {
+    /// The chosen candidate's statistics on the selection split.
+    fn chosen_stats(&self) -> &ErrorStats {
+        match self.choice {
+            report::Choice::Identified => &self.identified,
+            report::Choice::Nn => &self.nn,
+            report::Choice::Svr => &self.svr,
+            report::Choice::Reference => &self.reference,
+        }
+    }
+}
+
+/// Stage 5: the choice, on the selection split.
+fn judge_on_selection_split(
+    data: &ResidualData,
+    learned: &Learned,
+    cfg: &CalibrateConfig,
+) -> Judgement {
+    let (x_sel, t_sel) = (&data.x_sel, &data.t_sel);
+    let e_id = point_error_list(|p| p, x_sel, t_sel);
+    let s_id = ErrorStats::of(&e_id);
+    let s_nn = ErrorStats::of(&point_error_list(|p| learned.nn.evaluate(p), x_sel, t_sel));
+    let s_svr = ErrorStats::of(&point_error_list(|p| learned.svr.evaluate(p), x_sel, t_sel));
+    // Noise of the identified model's p95 and max on the selection split.
+    let (noise_p95, noise_max) = tail_noise(&e_id);
+    let enough_to_choose = x_sel.len() >= MIN_SELECTION_POINTS;
+    // A correction is eligible when it lowers the mean by the configured gain
+    // without raising the p95 or the max beyond their noise; the eligible one
+    // with the lower mean is chosen.
+    let verdict = |name: &str, c: &ErrorStats| -> Result<(), String> {
+        if !c.mean_mm.is_finite() || c.mean_mm >= s_id.mean_mm * (1.0 - cfg.min_correction_gain) {
+            Err(format!(
+                "{name} does not lower the mean by {:.0} % ({:.3} vs {:.3} mm)",
+                100.0 * cfg.min_correction_gain,
+                c.mean_mm,
+                s_id.mean_mm
+            ))
+        } else if c.p95_mm > s_id.p95_mm + noise_p95 {
+            Err(format!(
+                "{name} raises the p95 beyond its noise ({:.3} vs {:.3} + {:.3} mm)",
+                c.p95_mm, s_id.p95_mm, noise_p95
+            ))
+        } else if c.max_mm > s_id.max_mm + noise_max {
+            Err(format!(
+                "{name} raises the max beyond its noise ({:.2} vs {:.2} + {:.2} mm)",
+                c.max_mm, s_id.max_mm, noise_max
+            ))
+        } else {
+            Ok(())
+        }
+    };
+    let judged = [
+        (report::Choice::Nn, &s_nn, verdict("nn", &s_nn)),
+        (report::Choice::Svr, &s_svr, verdict("svr", &s_svr)),
+    ];
+    let best = judged
+        .iter()
+        .filter(|j| j.2.is_ok())
+        .min_by(|a, b| a.1.mean_mm.total_cmp(&b.1.mean_mm));
+    let refused: Vec<String> = judged.iter().filter_map(|j| j.2.clone().err()).collect();
+    let (choice, reason) = match best {
+        _ if !enough_to_choose => (
+            report::Choice::Identified,
+            format!(
+                "the selection split has {} points, fewer than {MIN_SELECTION_POINTS}",
+                x_sel.len()
+            ),
+        ),
+        Some(b) => (
+            b.0,
+            format!(
+                "{} lowers the mean {:.3} -> {:.3} mm with p95 {:.3} -> {:.3} and max {:.2} -> {:.2} \
+                 within their noise ({:.3}, {:.2} mm){}",
+                b.0.name(),
+                s_id.mean_mm,
+                b.1.mean_mm,
+                s_id.p95_mm,
+                b.1.p95_mm,
+                s_id.max_mm,
+                b.1.max_mm,
+                noise_p95,
+                noise_max,
+                if refused.is_empty() {
+                    String::new()
+                } else {
+                    format!("; {}", refused.join("; "))
+                }
+            ),
+        ),
+        None => (report::Choice::Identified, refused.join("; ")),
+    };
+    Judgement {
+        identified: s_id,
+        nn: s_nn,
+        svr: s_svr,
+        reference: ErrorStats::of(&[]),
+        noise_p95,
+        noise_max,
+        enough_to_choose,
+        choice,
+        reason,
+    }
+}
+
+/// The judgement of a session too small for the learners: the identified
+/// model, for `reason`.
+pub(super) fn identification_only(data: &ResidualData, reason: String) -> Judgement {
+    let e_id = point_error_list(|p| p, &data.x_sel, &data.t_sel);
+    let (noise_p95, noise_max) = tail_noise(&e_id);
+    Judgement {
+        identified: ErrorStats::of(&e_id),
+        nn: ErrorStats::of(&[]),
+        svr: ErrorStats::of(&[]),
+        reference: ErrorStats::of(&[]),
+        noise_p95,
+        noise_max,
+        enough_to_choose: false,
+        choice: report::Choice::Identified,
+        reason,
+    }
+}
+
+/// Holds the choice to the plain least-squares reference on the selection
+/// split: the reference's statistics on the same rows go into `judgement`
+/// (`reference_rows`: its error on each training row), and when its mean is
+/// below the chosen candidate's, the reference is the final model (no
+/// correction). True then.
+pub(super) fn hold_to_reference(
+    judgement: &mut Judgement,
+    final_corr: &mut CorrectionModel,
+    data: &ResidualData,
+    reference_rows: &[Option<f64>],
+) -> bool {
+    judgement.reference = ErrorStats::of(
+        &data
+            .sel_rows
+            .iter()
+            .filter_map(|&r| reference_rows[r])
+            .collect::<Vec<f64>>(),
+    );
+    let chosen_mean = judgement.chosen_stats().mean_mm;
+    let fall_back = judgement.reference.mean_mm < chosen_mean;
+    if fall_back {
+        judgement.reason = format!(
+            "the plain least-squares reference: {} has {:.3} mm on the selection split, the \
+             reference {:.3} mm (before: {})",
+            judgement.choice.name(),
+            chosen_mean,
+            judgement.reference.mean_mm,
+            judgement.reason
+        );
+        judgement.choice = report::Choice::Reference;
+        *final_corr = CorrectionModel::None;
+    }
+    fall_back
+}
+
+/// The chosen correction refitted on all the training points it learns
+/// from (the kept ones, thinned when there are more than
+/// [`CalibrateConfig::max_learning_points`]) with the hyperparameters the
+/// search found (none for the identified model).
+fn refit_chosen(
+    choice: report::Choice,
+    data: &ResidualData,
+    learned: &Learned,
+    cfg: &CalibrateConfig,
+) -> Result<CorrectionModel, CalibrateError> {
+    let (x_kept, t_kept) = (&data.x_learn, &data.t_learn);
+    let pb = spinner("refitting the chosen correction", cfg.quiet);
+    let final_corr = match choice {
+        report::Choice::Identified | report::Choice::Reference => CorrectionModel::None,
+        report::Choice::Nn => {
+            let fit = nn::train(
+                x_kept,
+                t_kept,
+                &NnConfig {
+                    hidden: learned.sweep.best_hidden,
+                    mode: OutputMode::Residual,
+                    lm: cfg.nn.final_lm.clone(),
+                    restarts: cfg.nn.final_restarts,
+                    validation_fraction: cfg.nn.validation_fraction,
+                    seed: cfg.seed,
+                    time_limit: cfg.nn.final_time_limit,
+                    quiet: true,
+                },
+            )
+            .map_err(learn("NN final training"));
+            CorrectionModel::Nn(fit?.model)
+        }
+        report::Choice::Svr => {
+            let fit = svr::train(
+                x_kept,
+                t_kept,
+                &SvrConfig {
+                    params: learned.svr_search.best,
+                    solver: cfg.svr.solver,
+                    mode: OutputMode::Residual,
+                    time_limit: cfg.svr.time_limit,
+                    max_dense_points: cfg.svr.max_dense_points,
+                    quiet: true,
+                },
+            )
+            .map_err(learn("SVR final training"));
+            CorrectionModel::Svr(fit?.model)
+        }
+    };
+    pb.finish_and_clear();
+    Ok(final_corr)
+}
+
+/// The report's account of the choice of the final model.
+pub(super) fn selection_report(
+    final_name: String,
+    judgement: Judgement,
+    final_corr: &CorrectionModel,
+    data: &ResidualData,
+    cfg: &CalibrateConfig,
+) -> report::Selection {
+    let (s_id, s_nn, s_svr, s_ref) = (
+        &judgement.identified,
+        &judgement.nn,
+        &judgement.svr,
+        &judgement.reference,
+    );
+    report::Selection {
+        stage: final_name,
+        choice: judgement.choice,
+        correction: match final_corr {
+            CorrectionModel::None => "none",
+            CorrectionModel::Nn(_) => "nn",
+            CorrectionModel::Svr(_) => "svr",
+        },
+        selection_points: data.x_sel.len(),
+        fit_points: data.x_fit.len(),
+        min_correction_gain: cfg.min_correction_gain,
+        validation_mean_mm: report::Candidates {
+            identified: s_id.mean_mm,
+            nn: s_nn.mean_mm,
+            svr: s_svr.mean_mm,
+            reference: s_ref.mean_mm,
+        },
+        validation_p95_mm: report::Candidates {
+            identified: s_id.p95_mm,
+            nn: s_nn.p95_mm,
+            svr: s_svr.p95_mm,
+            reference: s_ref.p95_mm,
+        },
+        validation_max_mm: report::Candidates {
+            identified: s_id.max_mm,
+            nn: s_nn.max_mm,
+            svr: s_svr.max_mm,
+            reference: s_ref.max_mm,
+        },
+        noise_p95_mm: judgement.noise_p95,
+        noise_max_mm: judgement.noise_max,
+        reason: judgement.reason,
+        final_support_vectors: match final_corr {
+            CorrectionModel::Svr(m) => Some(m.support.len()),
+            _ => None,
+        },
+        final_hidden: match final_corr {
+            CorrectionModel::Nn(m) => Some(m.w1.len()),
+            _ => None,
+        },
+    }
+}
+
+/// The report's account of the residual corrections.
+pub(super) fn residual_report(data: &ResidualData, learned: &Learned) -> report::Corrections {
+    report::Corrections {
+        mode: "residual",
+        input: "final identified model, room position (mm)",
+        outliers: report::Outliers::of(
+            &data.outliers,
+            "final identified model vs tracker, training session",
+        ),
+        learning_points: report::LearningPoints::of(&data.thinning, data.pairs.train_inputs.len()),
+        nn: report::NnReport::of(&learned.sweep),
+        svr: report::SvrReport::of(&learned.svr_search),
+    }
+}
+
+/// The identification's own warnings, and the learners' time limits that cut
+/// their search.
+pub(super) fn learner_warnings(
+    fin: &crate::model::identify::Identification,
+    learned: Option<&Learned>,
+    cfg: &CalibrateConfig,
+) -> Vec<String> {
+    let mut warnings = Vec::new();
+    for w in &fin.warnings {
+        warnings.push(format!("identification: {w}"));
+    }
+    let Some(learned) = learned else {
+        return warnings;
+    };
+    let (sweep, svr_search) = (&learned.sweep, &learned.svr_search);
+    if sweep.curve.len() < cfg.nn.sizes.len() {
+        warnings.push(format!(
+            "NN sweep: the time limit cut {} of {} hidden sizes",
+            cfg.nn.sizes.len() - sweep.curve.len(),
+            cfg.nn.sizes.len()
+        ));
+    }
+    let cut = svr_search
+        .candidates
+        .iter()
+        .filter(|c| c.validation_mean_mm.is_none())
+        .count();
+    if cut > 0 {
+        warnings.push(format!(
+            "SVR search: {cut} of {} candidates were not scored (time limit or no convergence)",
+            svr_search.candidates.len()
+        ));
+    }
+    warnings
+}
+
+impl Run<'_> {
+    /// Stage 5: the choice on the selection split, and the chosen correction
+    /// refitted (its time into `selection_s`).
+    pub(super) fn choose_final_model(
+        &mut self,
+        data: &ResidualData,
+        learned: &Learned,
+    ) -> Result<(Judgement, CorrectionModel), CalibrateError> {
+        let t = Instant::now();
+        let judgement = judge_on_selection_split(data, learned, &self.cfg);
+        if !judgement.enough_to_choose {
+            self.warnings.push(format!(
+                "the NN and SVR corrections are reported but not chosen: the selection split of \
+                 the training session has {} points, at least {MIN_SELECTION_POINTS} are needed \
+                 to tell a correction from noise (the final model is the identified one; collect \
+                 a larger training session to use a learned correction)",
+                data.x_sel.len()
+            ));
+        }
+        let final_corr = refit_chosen(judgement.choice, data, learned, &self.cfg)?;
+        self.timings.selection_s = t.elapsed().as_secs_f64();
+        Ok((judgement, final_corr))
+    }
+}

@@ -1,0 +1,544 @@
+//! Stages 0-3 of a calibration: the tracker's clock aligned with the
+//! device's, the raw (nominal) model, the identification and the diagnosis
+//! loop, the plain least-squares reference, the kinematics' rule, and the
+//! final identified model on both sessions.
+
+use std::path::Path;
+use std::time::Instant;
+
+use spidar_core::geometry::room_from_device;
+use spidar_core::kinematics::{FkStatus, KinematicsRule};
+
+use crate::data::dataset::{Geometry, Session};
+use crate::data::observe::{observations, Observation};
+use crate::data::stats::{ErrorStats, StatsError};
+use crate::model::diagnose::{close_loop, LoopConfig, LoopResult};
+use crate::model::identify::{identify, Start, Structure};
+use crate::model::predict::{predict, KinematicModel, UNMEASURED_SCALES};
+use crate::model::reference;
+use crate::model::rule::RuleChoice;
+
+use super::checks::{
+    check_alignment, check_enough_tracked_rows, check_tracker_scale, test_outlier_warning,
+    tracker_outlier_warning, unpaired_rows_warnings, Regime,
+};
+use super::evaluate::{room_positions, stage, PerSession, StageErrors, StageList};
+use super::{align, report, spinner, CalibrateConfig, CalibrateError, NamedSession, Run};
+
+/// The observations of both sessions; on a planar device the tracker's z
+/// set to the anchors' plane.
+fn session_observations(
+    nominal: &spidar_core::model::Frame<f64>,
+    train: &Session,
+    test: &Session,
+) -> (Vec<Observation>, Vec<Observation>) {
+    let mut tr = observations(&train.samples);
+    let mut te = observations(&test.samples);
+    if nominal.layout.planar {
+        // A planar device's tracker gives the position in the plane; its z
+        // (absent, or the marker's height) is not used: the errors are in
+        // the plane.
+        let plane_z = room_from_device(nominal, [0.0, 0.0, nominal.anchors[0][2]])[2];
+        for o in tr.iter_mut().chain(te.iter_mut()) {
+            if let Some(t) = o.tracker.as_mut() {
+                t[2] = plane_z;
+            }
+        }
+    }
+    (tr, te)
+}
+
+/// Aligns the tracker's clock of dynamic sessions (see [`align`]): twice
+/// for the training session (nominal model, then a model identified from
+/// the first alignment), once for the test session with that model.
+fn align_clocks(
+    tr: Vec<Observation>,
+    te: Vec<Observation>,
+    geometry: &Geometry,
+    nominal: &spidar_core::model::Frame<f64>,
+    nominal_laws: &[spidar_core::model::StringLaw; spidar_core::STRINGS],
+) -> Result<(Vec<Observation>, Vec<Observation>, report::Timing), CalibrateError> {
+    let positions = |model: KinematicModel<'_>, obs: &[Observation]| -> Vec<Option<[f64; 3]>> {
+        predict(model, obs)
+            .iter()
+            .map(|p| {
+                matches!(
+                    p.status,
+                    FkStatus::Ok | FkStatus::FaultyStringExcluded | FkStatus::Inconsistent
+                )
+                .then_some(p.room)
+            })
+            .collect()
+    };
+    let nominal_model = KinematicModel {
+        frame: nominal,
+        laws: nominal_laws,
+        effects: &[],
+        length_scale_mm: &UNMEASURED_SCALES,
+        kinematics: KinematicsRule::default(),
+    };
+    let mut id = None;
+    let (tr, train_timing) = match align::static_timing(&tr) {
+        Some(s) => (tr, s),
+        None => {
+            // The model identified on rows paired a little off takes up part
+            // of the offset, and the next pass with it finds the rest: the
+            // two are alternated until the offset holds.
+            let (mut a, mut rows) = align::align(&tr, &positions(nominal_model, &tr), 0.0, false)?;
+            let mut quick;
+            let mut rounds = 0;
+            loop {
+                quick = identify(
+                    &rows,
+                    nominal,
+                    &Start::from_geometry(geometry),
+                    &Structure::default(),
+                )?;
+                let (next, next_rows) = align::align(
+                    &tr,
+                    &positions(quick.kinematic_model(), &tr),
+                    a.offset_s,
+                    true,
+                )?;
+                let step = (next.offset_s - a.offset_s).abs();
+                (a, rows) = (next, next_rows);
+                rounds += 1;
+                if step <= align::OFFSET_SETTLED_S.max(2.0 * a.offset_sd_s)
+                    || rounds >= align::MAX_ALIGN_ROUNDS
+                {
+                    break;
+                }
+            }
+            id = Some(quick);
+            (rows, align::SessionTiming::Aligned(a))
+        }
+    };
+    let (te, test_timing) = match align::static_timing(&te) {
+        Some(s) => (te, s),
+        None => {
+            let model = match &id {
+                Some(q) => q.kinematic_model(),
+                None => nominal_model,
+            };
+            // The rig that recorded the training stream most likely kept its
+            // clocks: the search is centred on the training session's
+            // offset (its +-5 s window then holds it whole, where a window
+            // centred on 0 can find an edge of itself instead of the offset).
+            let prior = match &train_timing {
+                align::SessionTiming::Aligned(a) => a.offset_s,
+                align::SessionTiming::Static { .. } => 0.0,
+            };
+            // The offset alone: a test stream is most often too short to
+            // tell a drift from the model's own errors.
+            let (a, te1) = align::align(&te, &positions(model, &te), prior, false)?;
+            (te1, align::SessionTiming::Aligned(a))
+        }
+    };
+    Ok((
+        tr,
+        te,
+        report::Timing {
+            train: train_timing,
+            test: test_timing,
+        },
+    ))
+}
+
+/// Stage 1, raw: the nominal geometry through the device pipeline.
+fn raw_errors(
+    obs: PerSession<&[Observation]>,
+    nominal: &spidar_core::model::Frame<f64>,
+    nominal_laws: &[spidar_core::model::StringLaw; spidar_core::STRINGS],
+) -> Result<(StageErrors, Vec<[f64; 3]>), StatsError> {
+    let raw_model = KinematicModel {
+        frame: nominal,
+        laws: nominal_laws,
+        effects: &[],
+        length_scale_mm: &UNMEASURED_SCALES,
+        kinematics: KinematicsRule::default(),
+    };
+    let raw_tr = room_positions(raw_model, obs.train);
+    let raw_te = room_positions(raw_model, obs.test);
+    let errors = StageErrors::of(
+        "raw",
+        obs,
+        PerSession {
+            train: &raw_tr,
+            test: &raw_te,
+        },
+        nominal,
+    )?;
+    Ok((errors, raw_tr))
+}
+
+/// Stages 2-3: the base identification and the diagnosis loop, from the
+/// geometry file's start (and its home tension when it gives one).
+fn identify_and_diagnose(
+    geometry: &Geometry,
+    obs: PerSession<&[Observation]>,
+    nominal: &spidar_core::model::Frame<f64>,
+    cfg: &CalibrateConfig,
+    regime: &Regime,
+) -> Result<(LoopResult, crate::model::tolerance::ToleranceChoice), CalibrateError> {
+    let pb = spinner("identification and diagnosis", cfg.quiet);
+    let start = Start::from_geometry(geometry);
+    let loop_config = LoopConfig {
+        diagnose: cfg.loop_config.diagnose && regime.full,
+        ..cfg.loop_config.with_geometry(geometry)
+    };
+    let tolerance = crate::model::tolerance::choose(obs.train, nominal, &start, &loop_config);
+    let loop_config = LoopConfig {
+        anchor_sd_mm: Some(tolerance.anchor_sd_mm),
+        robust: tolerance.robust,
+        ..loop_config
+    };
+    let loop_result = close_loop(obs.train, Some(obs.test), nominal, &start, &loop_config);
+    pb.finish_and_clear();
+    Ok((loop_result?, tolerance))
+}
+
+/// The base identification's errors (stage `identified`).
+fn identified_errors(
+    base: &crate::model::identify::Identification,
+    obs: PerSession<&[Observation]>,
+) -> Result<StageErrors, StatsError> {
+    let base_model = base.kinematic_model();
+    let id_tr = room_positions(base_model, obs.train);
+    let id_te = room_positions(base_model, obs.test);
+    StageErrors::of(
+        "identified",
+        obs,
+        PerSession {
+            train: &id_tr,
+            test: &id_te,
+        },
+        &base.frame,
+    )
+}
+
+/// The final identified model (the base when no effect was added) on both
+/// sessions: on the test session, and in the calibration the device runs
+/// from its next home capture, without the training session's slips.
+pub(super) struct FinalIdentified {
+    /// The model for a new session (the calibration's).
+    pub(super) new_session: crate::model::identify::Identification,
+    /// Room positions on each session.
+    pub(super) positions: PerSession<Vec<[f64; 3]>>,
+    pub(super) rejections: report::SessionRejections,
+}
+
+impl FinalIdentified {
+    /// The model's predictions on both sessions, and their errors.
+    pub(super) fn of(
+        fin: &crate::model::identify::Identification,
+        obs: PerSession<&[Observation]>,
+    ) -> Result<(FinalIdentified, StageErrors), StatsError> {
+        let fin_new = fin.for_a_new_session();
+        let fin_tr_pred = predict(fin.kinematic_model(), obs.train);
+        let fin_te_pred = predict(fin_new.kinematic_model(), obs.test);
+        let rejections = report::SessionRejections {
+            train: report::Rejections::of(&fin_tr_pred),
+            test: report::Rejections::of(&fin_te_pred),
+        };
+        let room = |p: Vec<crate::model::predict::Prediction>| -> Vec<[f64; 3]> {
+            p.iter().map(|p| p.room).collect()
+        };
+        let (fin_tr, fin_te) = (room(fin_tr_pred), room(fin_te_pred));
+        let errors = StageErrors::of(
+            "identified with effects",
+            obs,
+            PerSession {
+                train: &fin_tr,
+                test: &fin_te,
+            },
+            &fin.frame,
+        )?;
+        let final_identified = FinalIdentified {
+            new_session: fin_new,
+            positions: PerSession {
+                train: fin_tr,
+                test: fin_te,
+            },
+            rejections,
+        };
+        Ok((final_identified, errors))
+    }
+}
+
+/// One stage per effect the diagnosis loop added.
+fn effect_stages(loop_result: &LoopResult, fin: &StageErrors) -> Vec<report::Stage> {
+    let n_effects = loop_result.stages.len();
+    let mut stages = Vec::new();
+    for (k, s) in loop_result.stages.iter().enumerate() {
+        // The last effect stage is the final identified model: its statistics
+        // are recomputed here so that they match the corrections' base exactly.
+        let (train_s, test_s) = if k + 1 == n_effects {
+            (fin.train_stats, fin.test_stats)
+        } else {
+            (s.train, s.test.unwrap_or_else(|| ErrorStats::of(&[])))
+        };
+        stages.push(stage(&s.name, report::StageKind::Effect, train_s, test_s));
+    }
+    stages
+}
+
+/// Stages 0-3: the identified model and its stages, with the sessions'
+/// observations it leaves for the corrections.
+pub(super) struct IdentifiedModel {
+    /// The tracker's clock against the device's.
+    pub(super) timing: report::Timing,
+    /// The sessions' observations, read at the strings' meeting point.
+    pub(super) tr: Vec<Observation>,
+    pub(super) te: Vec<Observation>,
+    pub(super) loop_result: LoopResult,
+    pub(super) final_identified: FinalIdentified,
+    /// `raw`, the reference, `identified` and one stage per added effect.
+    pub(super) list: StageList,
+    pub(super) regime: Regime,
+    pub(super) reference: ReferenceModel,
+    pub(super) rule: report::KinematicsReport,
+    /// The anchors' tolerance the identification used.
+    pub(super) tolerance: crate::model::tolerance::ToleranceChoice,
+}
+
+/// The plain least-squares reference ([`crate::model::reference`]) and its
+/// positions on both sessions (read as the loop's base reads them).
+pub(super) struct ReferenceModel {
+    pub(super) id: crate::model::identify::Identification,
+    positions: PerSession<Vec<[f64; 3]>>,
+    /// Its error on each training row (`None`: not tracked).
+    pub(super) train_errors_by_row: Vec<Option<f64>>,
+}
+
+impl ReferenceModel {
+    pub(super) fn of(
+        geometry: &Geometry,
+        nominal: &spidar_core::model::Frame<f64>,
+        obs: PerSession<&[Observation]>,
+    ) -> Result<ReferenceModel, CalibrateError> {
+        let id =
+            reference::identify_reference(obs.train, nominal, &Start::from_geometry(geometry))?;
+        let positions = PerSession {
+            train: room_positions(id.kinematic_model(), obs.train),
+            test: room_positions(id.kinematic_model(), obs.test),
+        };
+        let train_errors_by_row = obs
+            .train
+            .iter()
+            .zip(&positions.train)
+            .map(|(o, p)| o.tracker.map(|t| crate::data::stats::position_error(*p, t)))
+            .collect();
+        Ok(ReferenceModel {
+            id,
+            positions,
+            train_errors_by_row,
+        })
+    }
+
+    pub(super) fn errors(
+        &self,
+        obs: PerSession<&[Observation]>,
+        frame: &spidar_core::model::Frame<f64>,
+    ) -> Result<StageErrors, StatsError> {
+        StageErrors::of(
+            reference::STAGE_NAME,
+            obs,
+            PerSession {
+                train: &self.positions.train,
+                test: &self.positions.test,
+            },
+            frame,
+        )
+    }
+}
+
+impl Run<'_> {
+    /// Stages 0-3: the clocks aligned, the raw model, the identification and
+    /// the diagnosis loop, and the final identified model.
+    pub(super) fn identify_model(
+        &mut self,
+        train: NamedSession<'_>,
+        test: NamedSession<'_>,
+    ) -> Result<IdentifiedModel, CalibrateError> {
+        let geometry = self.geometry;
+        let nominal = geometry.nominal_frame();
+        let nominal_laws = geometry.nominal_string_laws();
+
+        // 0. The tracker's clock against the device's (dynamic sessions only).
+        let (tr, te, timing) = self.aligned_observations(train, test, &nominal, &nominal_laws)?;
+        let obs = PerSession {
+            train: &tr[..],
+            test: &te[..],
+        };
+
+        // 1. Raw: nominal geometry through the device pipeline.
+        let t = Instant::now();
+        let (raw, raw_tr) = raw_errors(obs, &nominal, &nominal_laws)?;
+        self.timings.raw_s = t.elapsed().as_secs_f64();
+        if let Some(w) = check_tracker_scale(train.path, self.geometry_path, &tr, &raw_tr)? {
+            self.warnings.push(w);
+        }
+        let mut list = StageList::default();
+        list.push("raw".into(), report::StageKind::Raw, raw);
+
+        // 2-3. Identification and the diagnosis loop.
+        let regime = check_enough_tracked_rows(train.path, &tr, &nominal)?;
+        self.warnings.extend(regime.reason.clone());
+        let t = Instant::now();
+        let (mut loop_result, tolerance) =
+            identify_and_diagnose(geometry, obs, &nominal, &self.cfg, &regime)?;
+        self.timings.identification_s = t.elapsed().as_secs_f64();
+        // The rows whose tracker the loop set aside count as occluded from
+        // here on (the raw stage above is the sessions as read).
+        let tr = loop_result.tracker_outliers.without(&tr).unwrap_or(tr);
+        self.warnings.extend(tracker_outlier_warning(
+            train.path,
+            &loop_result.tracker_outliers,
+        ));
+        let obs = PerSession {
+            train: &tr[..],
+            test: &te[..],
+        };
+        let identified = identified_errors(&loop_result.base, obs)?;
+        list.push(
+            "identified".into(),
+            report::StageKind::Identified,
+            identified,
+        );
+        let reference = self.reference(obs, &nominal, &mut list)?;
+
+        // From here on the sessions are read at the strings' meeting point when
+        // the loop found the tracked body's origin off it (the errors are then
+        // those of the tracker's position predicted with its orientation).
+        let marker = loop_result.structure.marker_body_mm;
+        let tr = crate::data::observe::at_meeting_points(&tr, marker).into_owned();
+        let te = crate::data::observe::at_meeting_points(&te, marker).into_owned();
+        let obs = PerSession {
+            train: &tr[..],
+            test: &te[..],
+        };
+        let (final_identified, rule) = self.final_identified(
+            &mut loop_result,
+            obs,
+            &nominal,
+            &regime,
+            test.path,
+            &mut list,
+        )?;
+        Ok(IdentifiedModel {
+            timing,
+            tr,
+            te,
+            loop_result,
+            final_identified,
+            list,
+            regime,
+            reference,
+            rule: report::KinematicsReport::of(rule),
+            tolerance,
+        })
+    }
+
+    /// Stage 0: both sessions' observations, their tracker's clock aligned
+    /// with the device's (its time into `alignment_s`); refuses a clock the
+    /// motion could not align, warns of rows the alignment left unpaired.
+    fn aligned_observations(
+        &mut self,
+        train: NamedSession<'_>,
+        test: NamedSession<'_>,
+        nominal: &spidar_core::model::Frame<f64>,
+        nominal_laws: &[spidar_core::model::StringLaw; spidar_core::STRINGS],
+    ) -> Result<(Vec<Observation>, Vec<Observation>, report::Timing), CalibrateError> {
+        let (tr, te) = session_observations(nominal, train.session, test.session);
+        let t = Instant::now();
+        let (tr, te, timing) = align_clocks(tr, te, self.geometry, nominal, nominal_laws)?;
+        for (path, t) in [(train.path, &timing.train), (test.path, &timing.test)] {
+            check_alignment(path, t)?;
+        }
+        self.timings.alignment_s = t.elapsed().as_secs_f64();
+        self.warnings.extend(unpaired_rows_warnings(&timing));
+        Ok((tr, te, timing))
+    }
+
+    /// The plain least-squares reference, on the same rows as the base
+    /// identification; its stage goes second in `list` (after `raw`).
+    fn reference(
+        &mut self,
+        obs: PerSession<&[Observation]>,
+        nominal: &spidar_core::model::Frame<f64>,
+        list: &mut StageList,
+    ) -> Result<ReferenceModel, CalibrateError> {
+        let t = Instant::now();
+        let reference = ReferenceModel::of(self.geometry, nominal, obs)?;
+        self.timings.reference_s = t.elapsed().as_secs_f64();
+        list.insert(
+            1,
+            reference::STAGE_NAME.into(),
+            report::StageKind::Reference,
+            reference.errors(obs, &reference.id.frame)?,
+        );
+        Ok(reference)
+    }
+
+    /// The kinematics' rule, on the held-out folds, applied to the loop's
+    /// model; the final identified model on both sessions, its effect stages
+    /// in `list`, and the warning for the test rows whose tracker disagrees
+    /// with it.
+    fn final_identified(
+        &mut self,
+        loop_result: &mut LoopResult,
+        obs: PerSession<&[Observation]>,
+        nominal: &spidar_core::model::Frame<f64>,
+        regime: &Regime,
+        test_path: &Path,
+        list: &mut StageList,
+    ) -> Result<(FinalIdentified, Result<RuleChoice, String>), CalibrateError> {
+        let t = Instant::now();
+        let rule = self.choose_rule(loop_result, obs.train, nominal, regime);
+        if let Ok(choice) = &rule {
+            loop_result.identification = choice.apply(&loop_result.identification);
+        }
+        self.timings.rule_s = t.elapsed().as_secs_f64();
+        let (final_identified, errors) = FinalIdentified::of(&loop_result.identification, obs)?;
+        self.warnings.extend(test_outlier_warning(
+            test_path,
+            &crate::model::diagnose::TrackerOutliers::of_session(
+                &final_identified.new_session,
+                obs.test,
+                loop_result.tracker_outliers.threshold_mm,
+            ),
+        ));
+        list.stages.extend(effect_stages(loop_result, &errors));
+        if !loop_result.stages.is_empty() {
+            list.points
+                .push(errors.points("identified with effects".into()));
+        }
+        Ok((final_identified, rule))
+    }
+
+    /// The forward kinematics' rule for the final identified model, chosen
+    /// on the held-out folds ([`crate::model::rule`]); why not, when the
+    /// session is too small for them (the device's rule then stays).
+    fn choose_rule(
+        &self,
+        loop_result: &LoopResult,
+        train: &[Observation],
+        nominal: &spidar_core::model::Frame<f64>,
+        regime: &Regime,
+    ) -> Result<RuleChoice, String> {
+        if !regime.full {
+            return Err("the device's rule: the session is too small for held-out folds".into());
+        }
+        let pb = spinner("choosing the kinematics' rule", self.cfg.quiet);
+        let choice = crate::model::rule::choose(
+            train,
+            nominal,
+            &loop_result.identification,
+            &loop_result.structure,
+            &self.cfg.loop_config,
+        )
+        .map_err(|e| format!("the device's rule: the folds could not be fitted ({e})"));
+        pb.finish_and_clear();
+        choice
+    }
+}

@@ -1,0 +1,74 @@
+//! A calibration from files to files, as `spidar calibrate` and the demo
+//! run it: the geometry and both sessions read, [`calibrate`] run, the
+//! learners' pairs exported when asked, and the outputs written
+//! ([`write_outputs`]).
+
+use std::path::PathBuf;
+
+use crate::data::dataset::{Geometry, Session};
+
+use super::{calibrate, write_outputs, CalibrateConfig, CalibrateError, Calibrated, NamedSession};
+
+/// What a calibration from files is asked for.
+#[derive(Clone, Debug)]
+pub struct CalibrateRequest {
+    /// Nominal geometry (TOML).
+    pub geometry: PathBuf,
+    /// Training session (CSV).
+    pub train: PathBuf,
+    /// Test session (CSV).
+    pub test: PathBuf,
+    /// Output directory: calibration.json, report.json, figures/.
+    pub out: PathBuf,
+    /// Also write the JSON report here (`-`: the caller writes it to stdout).
+    pub json: Option<PathBuf>,
+    /// Write the learners' data to this directory as `x,y,z,tx,ty,tz` CSVs
+    /// ([`super::PairSet::write`]).
+    pub export_pairs: Option<PathBuf>,
+    /// Draw the figures.
+    pub figures: bool,
+    pub config: CalibrateConfig,
+}
+
+/// Runs a calibration from files and writes its outputs; returns what it
+/// computed, the report's file paths filled in.
+pub fn run_calibrate(request: &CalibrateRequest) -> Result<Calibrated, CalibrateError> {
+    let geometry = Geometry::load(&request.geometry)?;
+    let train = Session::load(&request.train)?;
+    let test = Session::load(&request.test)?;
+    let config = &request.config;
+    let mut calibrated = calibrate(
+        &geometry,
+        &request.geometry,
+        NamedSession {
+            path: &request.train,
+            session: &train,
+        },
+        NamedSession {
+            path: &request.test,
+            session: &test,
+        },
+        config,
+    )?;
+    if !config.blackbox && train.has_legacy() && test.has_legacy() {
+        calibrated.report.notes.push(
+            "the sessions have dev_* columns: --blackbox adds the paper's black-box NN and SVR \
+             for comparison"
+                .into(),
+        );
+    }
+    if let Some(dir) = &request.export_pairs {
+        calibrated.pairs.residual.write(dir, "residual")?;
+        if let Some(bb) = &calibrated.pairs.blackbox {
+            bb.write(dir, "blackbox")?;
+        }
+    }
+    write_outputs(
+        &mut calibrated,
+        &request.out,
+        request.json.as_deref(),
+        request.figures,
+        config.quiet,
+    )?;
+    Ok(calibrated)
+}

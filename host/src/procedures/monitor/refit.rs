@@ -1,0 +1,236 @@
+//! The refit and reflash: the check's findings added as terms where the
+//! cross-validated error says they help, the model identified again on the
+//! window (and the training session), compiled, flashed and verified.
+
+use std::path::Path;
+use std::time::Instant;
+
+use spidar_core::model::{Calibration, Effect};
+
+use crate::data::dataset::Sample;
+use crate::data::observe::{observations, Observation};
+use crate::data::stats::ErrorStats;
+use crate::device::link::Client;
+use crate::model::compile::{compile_checked, model_id_of};
+use crate::model::diagnose::{cross_validated_error, model_errors};
+use crate::model::identify::{identify, Identification, IdentifyError, Start, Structure};
+
+use super::{describe_finding, Check, Monitor, MonitorError};
+
+/// A refit and reflash.
+#[derive(Clone, Debug)]
+pub struct Refit {
+    /// The window at detection (the error before).
+    pub before: ErrorStats,
+    /// The first full window after the reflash (the error after); `None`
+    /// when the run ended first (see `after_partial`).
+    pub after: Option<ErrorStats>,
+    /// The pairs after the reflash when the run ended before a full window.
+    pub after_partial: Option<ErrorStats>,
+    /// What was added, in the device's terms.
+    pub added: Vec<String>,
+    /// Host (f64, before the learned correction) mean error on the window
+    /// of the old and the new model, mm.
+    pub host_before_mm: f64,
+    pub host_after_mm: f64,
+    pub model_id: u32,
+    pub blob_len: u32,
+    /// Pairs in the refit (window, plus training rows).
+    pub rows: usize,
+    pub calibration: Calibration,
+    /// Refit, compile and flash, s.
+    pub seconds: f64,
+}
+
+/// A refit's model before it is flashed: the identification, its
+/// structure, the data it was fitted on and the terms added (in words).
+struct RefitModel {
+    id: Identification,
+    structure: Structure,
+    data: Vec<Observation>,
+    added: Vec<String>,
+}
+
+impl Monitor<'_> {
+    /// The refit's data: the window, plus the training session (time since
+    /// home 0) when given and the model has no time drift term.
+    fn refit_data(&self, structure: &Structure) -> Vec<Observation> {
+        let has_drift = structure
+            .effects
+            .iter()
+            .any(|t| matches!(t.effect, Effect::Drift { .. }));
+        let mut samples: Vec<Sample> = Vec::new();
+        if let (Some(train), false) = (self.training, has_drift) {
+            samples.extend(train.samples.iter().map(|s| Sample {
+                t_s: 0.0,
+                ..s.clone()
+            }));
+        }
+        samples.extend(self.window.iter().map(|p| p.sample.clone()));
+        // The training rows as the calibration read them (the window's are
+        // paired at the meeting point already and carry no orientation).
+        crate::data::observe::at_meeting_points(&observations(&samples), self.config.marker_body_mm)
+            .into_owned()
+    }
+
+    pub(super) fn refit_and_flash(
+        &mut self,
+        client: &mut Client,
+        check: &Check,
+    ) -> Result<Refit, MonitorError> {
+        let t0 = Instant::now();
+        let window_obs = self.window_observations();
+        let RefitModel {
+            mut id,
+            structure,
+            data,
+            added,
+        } = self.refit_model(check)?;
+        // A window of a few seconds does not measure each string's scale as
+        // the calibration's session did: the strings keep their weights.
+        id.length_scale_mm = self.calibration.length_scale_mm;
+        let host_before_mm = model_errors(&self.identification, &window_obs).mean_mm;
+        let host_after_mm = model_errors(&id, &window_obs).mean_mm;
+        if host_after_mm.partial_cmp(&host_before_mm) != Some(std::cmp::Ordering::Less) {
+            return Err(MonitorError::Identify(IdentifyError::Diverged(format!(
+                "the refit does not lower the window error ({host_before_mm:.3} mm -> {host_after_mm:.3} mm); nothing flashed"
+            ))));
+        }
+        let calibration = Calibration {
+            frame: id.frame,
+            strings: id.laws,
+            effects: id.effects.clone(),
+            correction: self.calibration.correction.clone(),
+            // A calibration whose strings weigh alike (its rule, chosen on
+            // held-out folds) keeps them alike.
+            length_scale_mm: if self.calibration.length_scale_mm.iter().all(|&s| s == 0.0) {
+                self.calibration.length_scale_mm
+            } else {
+                id.length_scale_mm
+            },
+            kinematics: self.calibration.kinematics,
+        };
+        let model_id = model_id_of(&calibration);
+        let flashed = self.flash_calibration(client, &calibration, model_id)?;
+        self.calibration = calibration.clone();
+        self.identification = id;
+        self.structure = structure;
+        Ok(Refit {
+            before: check.window,
+            after: None,
+            after_partial: None,
+            added,
+            host_before_mm,
+            host_after_mm,
+            model_id,
+            blob_len: flashed.blob_len,
+            rows: data.iter().filter(|o| o.tracker.is_some()).count(),
+            calibration,
+            seconds: t0.elapsed().as_secs_f64(),
+        })
+    }
+
+    /// The refitted model: the check's findings added as terms where they
+    /// lower the cross-validated error enough, else the model as it is
+    /// refitted.
+    fn refit_model(&self, check: &Check) -> Result<RefitModel, MonitorError> {
+        let nominal = self.geometry.nominal_frame();
+        let mut structure = self.structure.clone();
+        let mut id = self.identification.clone();
+        let mut data = self.refit_data(&structure);
+        let mut validation = cross_validated_error(&data, &nominal, &id, &structure)?;
+        let mut added = Vec::new();
+        // One new term per string per refit, the strongest (findings come
+        // strongest first): a step on a string also scores as an offset and
+        // as a drift, and a drift fitted across a step inside a few seconds
+        // of data extrapolates wildly (the error after the reflash rises
+        // instead of falling).
+        let mut strings_changed: Vec<u8> = Vec::new();
+        let weaker = check.weaker.iter().filter(|_| check.error_exceeded);
+        for f in check.findings.iter().chain(weaker) {
+            if added.len() >= self.config.loop_config.max_effects {
+                break;
+            }
+            let Some(change) = f.change else { continue };
+            // A term shared by every string (no strings named) touches them
+            // all.
+            let touched: Vec<u8> = if f.strings.is_empty() {
+                self.geometry.layout.indices().map(|i| i as u8).collect()
+            } else {
+                f.strings.clone()
+            };
+            if touched.iter().any(|s| strings_changed.contains(s)) {
+                continue;
+            }
+            let candidate = structure.with(change);
+            let candidate_data = self.refit_data(&candidate);
+            let after = cross_validated_error(&candidate_data, &nominal, &id, &candidate)?;
+            if after < validation * (1.0 - self.config.loop_config.min_relative_gain) {
+                id = identify(
+                    &candidate_data,
+                    &nominal,
+                    &Start::from_identification(&id),
+                    &candidate,
+                )?;
+                structure = candidate;
+                data = candidate_data;
+                validation = after;
+                strings_changed.extend(&touched);
+                added.push(describe_finding(f));
+            }
+        }
+        if added.is_empty() {
+            // Nothing the diagnosis named helps: refit the model as it is
+            // (the error rule fired, or the effect is already a term).
+            id = identify(
+                &data,
+                &nominal,
+                &Start::from_identification(&id),
+                &structure,
+            )?;
+            added.push("no new term: the model's parameters refitted".into());
+        }
+        Ok(RefitModel {
+            id,
+            structure,
+            data,
+            added,
+        })
+    }
+
+    /// Compiles `calibration` and flashes it with the motors off and the
+    /// stream paused; checks that the device runs it, then streams again.
+    fn flash_calibration(
+        &self,
+        client: &mut Client,
+        calibration: &Calibration,
+        model_id: u32,
+    ) -> Result<crate::device::link::FlashReport, MonitorError> {
+        let blob = compile_checked(
+            calibration,
+            model_id,
+            crate::model::compile::created_now(),
+            Path::new("(runtime refit)"),
+        )?;
+        // Flashing needs the motors off; the stream pauses meanwhile.
+        client.stream_off()?;
+        client.disarm()?;
+        let flashed = client.flash(&blob, |_| {})?;
+        match client.info()? {
+            Some(info) if info.header.model_id == model_id => {}
+            other => {
+                return Err(MonitorError::Verify {
+                    what: match other {
+                        Some(i) => format!(
+                            "model {:#010x}, flashed {model_id:#010x}",
+                            i.header.model_id
+                        ),
+                        None => "no model".into(),
+                    },
+                })
+            }
+        }
+        client.stream_on(self.config.decimation)?;
+        Ok(flashed)
+    }
+}
