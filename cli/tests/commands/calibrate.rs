@@ -198,6 +198,18 @@ fn cli_calibrate_writes_the_report_the_scripts_read() {
         serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
     assert_eq!(report["stages"], same["stages"]);
     assert_eq!(report["schema"], SCHEMA);
+    report_device_and_stages(&report, &stdout);
+    report_sections(&report);
+    report_figures(&report);
+    calibration_json_and_compile(&dir, &out);
+    let stages = report["stages"].as_array().unwrap().len();
+    report_on_stdout(&dir, &geometry, &train, &test, stages);
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// The device's string weights, what forward kinematics excluded, and the
+/// stage table.
+fn report_device_and_stages(report: &Value, stdout: &str) {
     // Each string's scale and weight in forward kinematics, by channel.
     let weights = report["device"]["string_weights"].as_array().unwrap();
     assert_eq!(weights.len(), 8, "{weights:?}");
@@ -262,9 +274,11 @@ fn cli_calibrate_writes_the_report_the_scripts_read() {
     assert!(raw_mean >= 150.0);
     let (mean, _, max) = stats(&last["test"]);
     assert!(mean <= TEST_MEAN_MAX_MM && max <= TEST_MAX_MAX_MM, "{last}");
+}
 
-    // Effects (a list; each with the keys), identification, outliers,
-    // the sweep curve, the SVR choice, timings and figures.
+/// Effects (a list; each with the keys), identification, outliers,
+/// the sweep curve, the SVR choice and timings.
+fn report_sections(report: &Value) {
     for e in report["effects"].as_array().unwrap() {
         for k in [
             "family",
@@ -289,6 +303,10 @@ fn cli_calibrate_writes_the_report_the_scripts_read() {
     assert!(svr["best"]["c"].is_number() && svr["support_vectors"].is_u64());
     assert!(report["timings_s"]["calibration_s"].as_f64().unwrap() > 0.0);
     assert!(report["blackbox"].is_null());
+}
+
+/// The figures: written, and what they show from the data drawn.
+fn report_figures(report: &Value) {
     let figures = report["figures"].as_array().unwrap();
     assert!(figures.len() >= 10);
     for f in figures {
@@ -341,8 +359,11 @@ fn cli_calibrate_writes_the_report_the_scripts_read() {
     let (lo, hi) = range(&pair, "x");
     assert!(lo < 0.5 && hi > 150.0, "{pair}");
     assert!(range(&figure("histogram_final"), "x").1 < 10.0);
+}
 
-    // calibration.json is the core's Calibration.
+/// calibration.json is the core's Calibration, and `spidar compile` refuses
+/// a scale that is not a positive number.
+fn calibration_json_and_compile(dir: &Path, out: &Path) {
     let cal: spidar_core::model::Calibration =
         serde_json::from_str(&std::fs::read_to_string(out.join("calibration.json")).unwrap())
             .unwrap();
@@ -372,16 +393,18 @@ fn cli_calibrate_writes_the_report_the_scripts_read() {
         err.contains("bad_scale.json") && err.contains("`length_scale_mm` of string 2"),
         "{err}"
     );
+}
 
-    // `--json -`: the report on stdout, the summary on stderr.
+/// `--json -`: the report on stdout, the summary on stderr.
+fn report_on_stdout(dir: &Path, geometry: &Path, train: &Path, test: &Path, stages: usize) {
     let o = spidar(&[
         "calibrate",
         "--geometry",
-        s(&geometry),
+        s(geometry),
         "--train",
-        s(&train),
+        s(train),
         "--test",
-        s(&test),
+        s(test),
         "--out",
         s(&dir.join("cal2")),
         "--json",
@@ -392,9 +415,8 @@ fn cli_calibrate_writes_the_report_the_scripts_read() {
     ]);
     assert!(o.status.success());
     let v: Value = serde_json::from_slice(&o.stdout).expect("stdout is the JSON report");
-    assert_eq!(v["stages"].as_array().unwrap().len(), stages.len());
+    assert_eq!(v["stages"].as_array().unwrap().len(), stages);
     assert!(String::from_utf8_lossy(&o.stderr).contains("final ("));
-    std::fs::remove_dir_all(&dir).ok();
 }
 
 #[test]
