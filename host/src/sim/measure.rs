@@ -11,7 +11,7 @@ use std::time::Duration;
 use spidar_protocol::messages::q16_to_mm;
 
 use crate::data::stats::{position_error, ErrorStats};
-use crate::device::link::{Client, LinkError, StreamOptions};
+use crate::device::link::{Client, ClientOptions, LinkError, StreamOptions};
 use crate::sim::virtual_device::{
     spawn, Pace, Plant, Trajectory, VirtualDeviceConfig, VirtualDeviceError,
 };
@@ -57,12 +57,12 @@ pub fn measure_on_virtual_device(
     };
     let vd = spawn(config, Plant::new(device.clone(), trajectory))?;
     {
-        let mut client = Client::open(vd.port_path())?;
+        let mut client = Client::open_with(vd.port_path(), ClientOptions::for_simulated_device())?;
         client.flash(blob, |_| {})?;
     }
     // The device homes where it boots: at the trajectory's start, t = 0.
     vd.power_cycle()?;
-    let mut client = Client::open(vd.port_path())?;
+    let mut client = Client::open_with(vd.port_path(), ClientOptions::for_simulated_device())?;
     let mut errors = Vec::new();
     let report = client.stream(
         StreamOptions {

@@ -44,7 +44,7 @@ fn quick() -> ClientOptions {
 fn flash_commits_reads_back_and_the_stream_reports_the_model() {
     let dev = sim_device();
     let vd = virtual_device(Trajectory::Hold);
-    let mut c = Client::open(vd.port_path()).unwrap();
+    let mut c = Client::open_with(vd.port_path(), ClientOptions::for_simulated_device()).unwrap();
     assert!(c.info().unwrap().is_none());
     let b = blob(&dev, nn(6), 0xA11C_E001);
     let mut phases = Vec::new();
@@ -81,7 +81,7 @@ fn flash_commits_reads_back_and_the_stream_reports_the_model() {
 fn upload_resumes_where_the_device_stands() {
     let dev = sim_device();
     let vd = virtual_device(Trajectory::Hold);
-    let mut c = Client::open(vd.port_path()).unwrap();
+    let mut c = Client::open_with(vd.port_path(), ClientOptions::for_simulated_device()).unwrap();
     let b = blob(&dev, nn(40), 42);
     assert!(b.len() > 1024);
     let crc32 = CRC32.checksum(&b);
@@ -112,7 +112,7 @@ fn upload_resumes_where_the_device_stands() {
         .unwrap();
     assert_eq!(again, Response::ChunkAck { next_offset: 768 });
     drop(c);
-    let mut c = Client::open(vd.port_path()).unwrap();
+    let mut c = Client::open_with(vd.port_path(), ClientOptions::for_simulated_device()).unwrap();
     let report = c.flash(&b, |_| {}).unwrap();
     assert_eq!(report.resumed_at, 768);
     assert_eq!(c.info().unwrap().unwrap().header.model_id, 42);
@@ -133,7 +133,7 @@ fn upload_cut_at_every_flash_operation_keeps_the_previous_model() {
     // lost its power never answers; one reply late under load is resent).
     let opts = ClientOptions {
         max_chunk: 64,
-        ..ClientOptions::default()
+        ..ClientOptions::for_simulated_device()
     };
     let cutting = ClientOptions {
         timeout: Duration::from_millis(40),
@@ -170,7 +170,7 @@ fn upload_cut_at_every_flash_operation_keeps_the_previous_model() {
     // erase + one op per 32-byte word + the record
     assert!(cuts_survived > new.len() / 32, "{cuts_survived} cuts");
     vd.power_cycle().unwrap();
-    let mut c = Client::open(vd.port_path()).unwrap();
+    let mut c = Client::open_with(vd.port_path(), ClientOptions::for_simulated_device()).unwrap();
     let info = c.info().unwrap().unwrap();
     assert_eq!(info.header.model_id, 2);
     assert_eq!(info.blob_crc32, CRC32.checksum(&new));
@@ -184,7 +184,7 @@ fn half_a_chunk_frame_then_a_power_cycle() {
     let vd = virtual_device(Trajectory::Hold);
     let old = blob(&dev, CorrectionModel::None, 10);
     let new = blob(&dev, nn(4), 11);
-    let mut c = Client::open(vd.port_path()).unwrap();
+    let mut c = Client::open_with(vd.port_path(), ClientOptions::for_simulated_device()).unwrap();
     c.flash(&old, |_| {}).unwrap();
     let old_info = c.info().unwrap().unwrap();
     c.request(&Request::UploadBegin {
@@ -206,7 +206,7 @@ fn half_a_chunk_frame_then_a_power_cycle() {
     c.write_raw(&frame[..frame.len() / 2]).unwrap();
     drop(c);
     vd.power_cycle().unwrap();
-    let mut c = Client::open(vd.port_path()).unwrap();
+    let mut c = Client::open_with(vd.port_path(), ClientOptions::for_simulated_device()).unwrap();
     assert_eq!(c.info().unwrap().unwrap(), old_info);
     let r = c.flash(&new, |_| {}).unwrap();
     assert_eq!(r.resumed_at, 0);
@@ -217,7 +217,7 @@ fn half_a_chunk_frame_then_a_power_cycle() {
 fn a_blob_the_device_refuses_leaves_the_old_model() {
     let dev = sim_device();
     let vd = virtual_device(Trajectory::Hold);
-    let mut c = Client::open(vd.port_path()).unwrap();
+    let mut c = Client::open_with(vd.port_path(), ClientOptions::for_simulated_device()).unwrap();
     let good = blob(&dev, CorrectionModel::None, 5);
     c.flash(&good, |_| {}).unwrap();
     // Header and CRCs fine, but 7 strings: the device's parser refuses it.
@@ -254,7 +254,7 @@ fn a_blob_larger_than_the_firmware_capacity_is_refused() {
         Plant::new(dev.clone(), Trajectory::Hold),
     )
     .unwrap();
-    let mut c = Client::open(vd.port_path()).unwrap();
+    let mut c = Client::open_with(vd.port_path(), ClientOptions::for_simulated_device()).unwrap();
     let capacity = spidar::sim::virtual_device::FIRMWARE_BLOB_CAPACITY;
     let big = blob(&dev, nn(3600), 3);
     assert!(big.len() > capacity);
@@ -268,7 +268,7 @@ fn a_blob_larger_than_the_firmware_capacity_is_refused() {
 #[test]
 fn corrupted_frames_are_rejected_and_counted() {
     let vd = virtual_device(Trajectory::Hold);
-    let mut c = Client::open(vd.port_path()).unwrap();
+    let mut c = Client::open_with(vd.port_path(), ClientOptions::for_simulated_device()).unwrap();
     let before = c.stats().unwrap().rx;
     let mut tx = [0u8; MAX_FRAME];
     let good = encode_request(77, &Request::GetInfo, &mut tx)
@@ -295,7 +295,7 @@ fn corrupted_frames_are_rejected_and_counted() {
 fn heartbeat_loss_drops_tensions_to_pretension_within_30_ms() {
     let dev = sim_device();
     let vd = virtual_device(Trajectory::Hold);
-    let mut c = Client::open(vd.port_path()).unwrap();
+    let mut c = Client::open_with(vd.port_path(), ClientOptions::for_simulated_device()).unwrap();
     c.flash(&blob(&dev, CorrectionModel::None, 9), |_| {})
         .unwrap();
     c.arm().unwrap();
@@ -363,7 +363,7 @@ fn streamed_positions_follow_the_plant() {
         radius_mm: 100.0,
         period_s: 2.0,
     });
-    let mut c = Client::open(vd.port_path()).unwrap();
+    let mut c = Client::open_with(vd.port_path(), ClientOptions::for_simulated_device()).unwrap();
     // The end-effector moves while the model is flashed, and the first
     // geometry homes the device where it is: boot again with the model (the
     // end-effector at home, as the firmware expects at power-up).
@@ -371,7 +371,7 @@ fn streamed_positions_follow_the_plant() {
         .unwrap();
     drop(c);
     vd.power_cycle().unwrap();
-    let mut c = Client::open(vd.port_path()).unwrap();
+    let mut c = Client::open_with(vd.port_path(), ClientOptions::for_simulated_device()).unwrap();
     let mut worst: f64 = 0.0;
     let r = c
         .stream(
@@ -407,8 +407,8 @@ fn missing_busy_silent_and_mismatched_ports_are_named() {
         Ok(_) => panic!("opened a missing port"),
     }
     let vd = virtual_device(Trajectory::Hold);
-    let _first = Client::open(vd.port_path()).unwrap();
-    match Client::open(vd.port_path()) {
+    let _first = Client::open_with(vd.port_path(), ClientOptions::for_simulated_device()).unwrap();
+    match Client::open_with(vd.port_path(), ClientOptions::for_simulated_device()) {
         Err(LinkError::PortBusy { port }) => assert_eq!(port, vd.port_path()),
         Err(e) => panic!("{e}"),
         Ok(_) => panic!("opened a busy port"),
@@ -495,7 +495,7 @@ fn link_benchmarks() {
         Plant::new(dev.clone(), Trajectory::Hold),
     )
     .unwrap();
-    let mut c = Client::open(vd.port_path()).unwrap();
+    let mut c = Client::open_with(vd.port_path(), ClientOptions::for_simulated_device()).unwrap();
     let mut runs = Vec::new();
     for _ in 0..5 {
         c.clear_model().unwrap();

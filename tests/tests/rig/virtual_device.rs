@@ -6,7 +6,7 @@ use std::time::Duration;
 
 use proptest::prelude::*;
 use spidar::data::observe::observations;
-use spidar::device::link::Client;
+use spidar::device::link::{Client, ClientOptions};
 use spidar::model::compile::{
     fixed_point_error, run_compile, CompileRequest, FIXED_POINT_BUDGET_MM,
 };
@@ -167,7 +167,7 @@ fn the_virtual_device_survives_garbage_on_its_port() {
         Plant::new(sim_device(1), Trajectory::Hold),
     )
     .unwrap();
-    let mut c = Client::open(vd.port_path()).unwrap();
+    let mut c = Client::open_with(vd.port_path(), ClientOptions::for_simulated_device()).unwrap();
     let mut x = 0x1234_5678u32;
     let mut garbage = Vec::new();
     for _ in 0..20_000 {

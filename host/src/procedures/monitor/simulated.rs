@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 use spidar_core::model::Calibration;
 
 use crate::data::dataset::{Geometry, Session};
-use crate::device::link::Client;
+use crate::device::link::{Client, ClientOptions};
 use crate::model::compile::{compile_checked, model_id_of};
 
 use super::MonitorError;
@@ -176,7 +176,7 @@ impl SimulatedMonitorRig {
             [0.0; 3],
             |virtual_device| -> Result<(), MonitorError> {
                 {
-                    let mut client = Client::open(virtual_device.port_path())?;
+                    let mut client = Client::open_with(virtual_device.port_path(), ClientOptions::for_simulated_device())?;
                     client.flash(&blob, |_| {})?;
                 }
                 Ok(virtual_device.power_cycle()?)
