@@ -783,3 +783,54 @@ fn a_pilot_session_of_the_minimum_size_calibrates_and_says_what_it_did_not_try()
     );
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// An output that is an input is refused before anything is read or
+/// written: the input keeps its bytes (issue 37, finding 2).
+#[test]
+fn calibrate_refuses_an_output_over_an_input() {
+    let dir = temp_dir("over-input");
+    let train = dir.join("train.csv");
+    std::fs::write(&train, "t_s,enc0\n").unwrap();
+    let test = dir.join("test.csv");
+    std::fs::write(&test, "t_s,enc0\n").unwrap();
+    let geometry = dir.join("geometry.toml");
+    std::fs::write(&geometry, "# not read\n").unwrap();
+    let o = spidar(&[
+        "calibrate",
+        "--geometry",
+        s(&geometry),
+        "--train",
+        s(&train),
+        "--test",
+        s(&test),
+        "--out",
+        s(&dir),
+        "--json",
+        s(&train),
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success());
+    assert!(
+        err.contains("`--json`") && err.contains("`--train`"),
+        "{err}"
+    );
+    assert_eq!(std::fs::read_to_string(&train).unwrap(), "t_s,enc0\n");
+    // A training session named calibration.json in the output folder.
+    let inside = dir.join("calibration.json");
+    std::fs::write(&inside, "t_s,enc0\n").unwrap();
+    let o = spidar(&[
+        "calibrate",
+        "--geometry",
+        s(&geometry),
+        "--train",
+        s(&inside),
+        "--test",
+        s(&test),
+        "--out",
+        s(&dir),
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("`--train`"), "{err}");
+    assert_eq!(std::fs::read_to_string(&inside).unwrap(), "t_s,enc0\n");
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -81,7 +81,7 @@ pub enum CompileCmdError {
     #[error("--budget-mm is {value}: the budget must be a positive number of mm")]
     Budget { value: f64 },
     #[error("{0}")]
-    Output(#[from] crate::data::output::OutputError),
+    OutputOverInput(#[from] crate::data::output::OutputOverInput),
 }
 
 /// The fixed-point error of a blob against its f64 calibration.
@@ -410,6 +410,9 @@ fn write_blob(out: &Path, blob: &[u8]) -> Result<(), CompileCmdError> {
             source,
         })?;
     }
-    write_atomically(out, blob)?;
-    Ok(())
+    write_atomically(out, blob).map_err(|source| CompileCmdError::Io {
+        file: out.to_path_buf(),
+        action: "cannot write the model blob (the previous file, if any, is kept)",
+        source,
+    })
 }

@@ -215,9 +215,11 @@ impl InitRecord {
             path: path.to_path_buf(),
             source: std::io::Error::other(e.to_string()),
         })?;
-        std::fs::write(path, text).map_err(|source| InitError::Write {
-            path: path.to_path_buf(),
-            source,
+        crate::data::output::write_atomically(path, text.as_bytes()).map_err(|source| {
+            InitError::Write {
+                path: path.to_path_buf(),
+                source,
+            }
         })
     }
 

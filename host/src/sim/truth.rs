@@ -68,10 +68,13 @@ impl Truth {
 
     pub fn write(&self, path: impl AsRef<Path>) -> Result<(), SimError> {
         let path = path.as_ref();
-        std::fs::write(path, self.to_toml_string()?).map_err(|source| SimError::Io {
-            file: path.to_path_buf(),
-            action: "cannot write",
-            source,
+        let text = self.to_toml_string()?;
+        crate::data::output::write_atomically(path, text.as_bytes()).map_err(|source| {
+            SimError::Io {
+                file: path.to_path_buf(),
+                action: "cannot write",
+                source,
+            }
         })
     }
 

@@ -666,7 +666,8 @@ fn device_without_tracker() -> (
 fn a_silent_tracker_is_an_error_naming_it_and_the_device_is_left_disarmed() {
     let (device, vd, mut receiver) = device_without_tracker();
     let lattice = Lattice::new(device.volume_centre_room(), 300.0, 3).unwrap();
-    let mut client = Client::open_with(vd.port_path(), ClientOptions::for_simulated_device()).unwrap();
+    let mut client =
+        Client::open_with(vd.port_path(), ClientOptions::for_simulated_device()).unwrap();
     let mut cfg = CollectConfig::for_geometry(&device.nominal);
     cfg.tracker_label = format!("the tracker (UDP {})", receiver.local_addr());
     cfg.tracker_timeout = Duration::from_millis(300);

@@ -473,7 +473,8 @@ impl Geometry {
     pub fn write(&self, path: impl AsRef<Path>) -> Result<(), DatasetError> {
         let path = path.as_ref();
         self.validate(path)?;
-        fs::write(path, self.to_toml_string()).map_err(|e| io_error(path, "cannot write", e))
+        crate::data::output::write_atomically(path, self.to_toml_string().as_bytes())
+            .map_err(|e| io_error(path, "cannot write", e))
     }
 
     /// The nominal frame: nominal anchors and home, identity rotation, unit

@@ -222,8 +222,11 @@ impl Session {
     pub fn write(&self, path: impl AsRef<Path>) -> Result<(), DatasetError> {
         let path = path.as_ref();
         self.validate(path)?;
-        let f = fs::File::create(path).map_err(|e| io_error(path, "cannot create", e))?;
-        self.write_to(io::BufWriter::new(f), path)
+        crate::data::output::write_atomically_with(
+            path,
+            |w| self.write_to(w, path),
+            |e| io_error(path, "cannot write", e),
+        )
     }
 
     /// Write the session as CSV to any writer; `file` names it in errors.

@@ -9,6 +9,7 @@
 //! Text is drawn with a font compiled into the binary (the Ubuntu Light face
 //! that `epaint_default_fonts` ships), so figures need no system font stack.
 
+use crate::data::output::PartialFile;
 use std::path::{Path, PathBuf};
 use std::sync::Once;
 
@@ -156,7 +157,9 @@ pub fn spatial_error_map(
     errors_mm: &[f64],
 ) -> Result<Drawn, FigureError> {
     register_font();
-    let root = BitMapBackend::new(path, SIZE).into_drawing_area();
+    let partial = PartialFile::beside(path).map_err(|e| fail(path, e))?;
+    let target = partial.path().to_path_buf();
+    let root = BitMapBackend::new(&target, SIZE).into_drawing_area();
     root.fill(&WHITE).map_err(|e| fail(path, e))?;
     let (main, bar) = root.split_horizontally(SIZE.0 - 110);
     let x = span(positions.iter().map(|p| p[0]));
@@ -223,6 +226,7 @@ pub fn spatial_error_map(
         }))
         .map_err(|e| fail(path, e))?;
     root.present().map_err(|e| fail(path, e))?;
+    partial.commit(path).map_err(|e| fail(path, e))?;
     Ok(Drawn {
         x,
         y: (0.0, emax),
@@ -391,7 +395,9 @@ pub fn xy_chart(
     options: XyOptions<'_>,
 ) -> Result<Drawn, FigureError> {
     register_font();
-    let root = BitMapBackend::new(path, SIZE).into_drawing_area();
+    let partial = PartialFile::beside(path).map_err(|e| fail(path, e))?;
+    let target = partial.path().to_path_buf();
+    let root = BitMapBackend::new(&target, SIZE).into_drawing_area();
     root.fill(&WHITE).map_err(|e| fail(path, e))?;
     let x = span(series.iter().flat_map(|s| s.x.iter().copied()));
     let (log_y, y) = xy_y_axis(series, &options);
@@ -428,6 +434,7 @@ pub fn xy_chart(
         )?;
     }
     root.present().map_err(|e| fail(path, e))?;
+    partial.commit(path).map_err(|e| fail(path, e))?;
     Ok(Drawn {
         x,
         y,
@@ -458,7 +465,9 @@ pub fn histogram(
         counts[b] += 1;
     }
     let top = counts.iter().copied().max().unwrap_or(1).max(1) as f64 * 1.05;
-    let root = BitMapBackend::new(path, SIZE).into_drawing_area();
+    let partial = PartialFile::beside(path).map_err(|e| fail(path, e))?;
+    let target = partial.path().to_path_buf();
+    let root = BitMapBackend::new(&target, SIZE).into_drawing_area();
     root.fill(&WHITE).map_err(|e| fail(path, e))?;
     let mut chart = ChartBuilder::on(&root)
         .caption(title, ("sans-serif", 22))
@@ -484,6 +493,7 @@ pub fn histogram(
         }))
         .map_err(|e| fail(path, e))?;
     root.present().map_err(|e| fail(path, e))?;
+    partial.commit(path).map_err(|e| fail(path, e))?;
     Ok(Drawn {
         x: (lo, hi),
         y: (0.0, top),
@@ -531,7 +541,9 @@ pub fn histogram_pair(
         .collect();
     let top_count = counts.iter().flatten().copied().max().unwrap_or(1).max(1);
     let top = top_count as f64 * 1.05;
-    let root = BitMapBackend::new(path, SIZE).into_drawing_area();
+    let partial = PartialFile::beside(path).map_err(|e| fail(path, e))?;
+    let target = partial.path().to_path_buf();
+    let root = BitMapBackend::new(&target, SIZE).into_drawing_area();
     root.fill(&WHITE).map_err(|e| fail(path, e))?;
     let mut chart = ChartBuilder::on(&root)
         .caption(title, ("sans-serif", 22))
@@ -568,6 +580,7 @@ pub fn histogram_pair(
         .draw()
         .map_err(|e| fail(path, e))?;
     root.present().map_err(|e| fail(path, e))?;
+    partial.commit(path).map_err(|e| fail(path, e))?;
     Ok(Drawn {
         x: (lo, hi),
         y: (0.0, top),

@@ -90,6 +90,8 @@ pub use request::{run_calibrate, CalibrateRequest};
 #[derive(Debug, thiserror::Error)]
 pub enum CalibrateError {
     #[error("{0}")]
+    OutputOverInput(#[from] crate::data::output::OutputOverInput),
+    #[error("{0}")]
     Dataset(#[from] DatasetError),
     #[error("{}: {problem}", file.display())]
     Session { file: PathBuf, problem: String },

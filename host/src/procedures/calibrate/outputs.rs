@@ -2,6 +2,7 @@
 //! report wherever `--json` asks), the figures, and the learners' pairs as
 //! CSV.
 
+use crate::data::output::write_atomically;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -35,7 +36,7 @@ impl PairSet {
                     a[0], a[1], a[2], b[0], b[1], b[2]
                 ));
             }
-            std::fs::write(&path, text).map_err(|source| CalibrateError::Io {
+            write_atomically(&path, text.as_bytes()).map_err(|source| CalibrateError::Io {
                 file: path.clone(),
                 action: "cannot write",
                 source,
@@ -130,7 +131,7 @@ fn write_json<T: serde::Serialize>(path: &Path, value: &T) -> Result<(), Calibra
         source,
     })?;
     text.push('\n');
-    std::fs::write(path, text).map_err(|source| CalibrateError::Io {
+    write_atomically(path, text.as_bytes()).map_err(|source| CalibrateError::Io {
         file: path.to_path_buf(),
         action: "cannot write",
         source,

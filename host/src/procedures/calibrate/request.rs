@@ -3,9 +3,10 @@
 //! learners' pairs exported when asked, and the outputs written
 //! ([`write_outputs`]).
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use crate::data::dataset::{Geometry, Session};
+use crate::data::output::refuse_output_over_input;
 
 use super::{calibrate, write_outputs, CalibrateConfig, CalibrateError, Calibrated, NamedSession};
 
@@ -33,6 +34,7 @@ pub struct CalibrateRequest {
 /// Runs a calibration from files and writes its outputs; returns what it
 /// computed, the report's file paths filled in.
 pub fn run_calibrate(request: &CalibrateRequest) -> Result<Calibrated, CalibrateError> {
+    refuse_outputs_over_inputs(request)?;
     let geometry = Geometry::load(&request.geometry)?;
     let train = Session::load(&request.train)?;
     let test = Session::load(&request.test)?;
@@ -71,4 +73,24 @@ pub fn run_calibrate(request: &CalibrateRequest) -> Result<Calibrated, Calibrate
         config.quiet,
     )?;
     Ok(calibrated)
+}
+
+/// Refuses, before any work, a run whose outputs (the calibration and the
+/// report in `--out`, `--json`) would overwrite one of its inputs.
+fn refuse_outputs_over_inputs(request: &CalibrateRequest) -> Result<(), CalibrateError> {
+    let calibration = request.out.join("calibration.json");
+    let report = request.out.join("report.json");
+    let mut outputs: Vec<(&'static str, &Path)> = vec![
+        ("--out (calibration.json)", &calibration),
+        ("--out (report.json)", &report),
+    ];
+    if let Some(json) = request.json.as_deref().filter(|j| *j != Path::new("-")) {
+        outputs.push(("--json", json));
+    }
+    let inputs = [
+        ("--geometry", request.geometry.as_path()),
+        ("--train", request.train.as_path()),
+        ("--test", request.test.as_path()),
+    ];
+    Ok(refuse_output_over_input(&outputs, &inputs)?)
 }

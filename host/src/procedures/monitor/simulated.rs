@@ -176,7 +176,10 @@ impl SimulatedMonitorRig {
             [0.0; 3],
             |virtual_device| -> Result<(), MonitorError> {
                 {
-                    let mut client = Client::open_with(virtual_device.port_path(), ClientOptions::for_simulated_device())?;
+                    let mut client = Client::open_with(
+                        virtual_device.port_path(),
+                        ClientOptions::for_simulated_device(),
+                    )?;
                     client.flash(&blob, |_| {})?;
                 }
                 Ok(virtual_device.power_cycle()?)

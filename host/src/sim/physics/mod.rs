@@ -1364,7 +1364,7 @@ fn write_truth(device: &PhysicsDevice, path: &std::path::Path) -> Result<(), Sim
         "# Independent simulator ground truth: the device as built.\n\
          # For tests and benchmarks only; calibration never reads this file.\n{body}"
     );
-    std::fs::write(path, text).map_err(|source| SimError::Io {
+    crate::data::output::write_atomically(path, text.as_bytes()).map_err(|source| SimError::Io {
         file: path.to_path_buf(),
         action: "cannot write",
         source,
