@@ -625,11 +625,12 @@ pub fn forward_kinematics<F: Real>(
         // too (the fault absorbed by the position), but it fits worse: with
         // 3 spares (six strings in 3-D) the faulty string's exclusion is
         // still trusted when every other one leaves DOMINANT_EXCLUSION times
-        // its RMS residual or more (the abnormal motor's string 8 mm off:
-        // the all-string compromise was 3.8 mm off the tracker). With 2
-        // spares, a wrong exclusion leaves one spare, which can fit by
-        // chance: only the one set that fits is trusted (a 4-string planar
-        // device's test error rose 0.37 -> 0.55 mm with this rule).
+        // its RMS residual or more (the all-string compromise spreads the
+        // faulty string's error over the position). With 2 spares, a wrong
+        // exclusion leaves one spare, which can fit by chance: only the one
+        // set that fits is trusted (the clearly best one there raises a
+        // planar 4-string device's test error; decision record 0011,
+        // `docs/decisions/0011-devices-3-to-8-strings.md`).
         let clearly_best = rms(runner_up, n_strings - 1) >= r * lit(DOMINANT_EXCLUSION);
         let trusted =
             !unique_required || fitting == 1 || (clearly_best && layout.redundancy() >= 3);

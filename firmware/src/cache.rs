@@ -2,7 +2,8 @@
 //!
 //! With the L1 data cache on, the control loop reads the model buffers (AXI
 //! SRAM) and the lookup tables (`.rodata` in flash) without wait states once
-//! they are cached: what the cycle estimates of docs/benchmarks.md ("Device") assume.
+//! they are cached: what the cycle estimates of docs/benchmarks.md ("Device
+//! (Cortex-M7 under QEMU)") assume.
 //! It is coherent because no DMA touches memory (USB runs in FIFO mode,
 //! flash is programmed by the CPU); the only memory that changes behind the
 //! cache's back is the flash of the model slots, erased and programmed by

@@ -1,6 +1,6 @@
 //! Timings and accuracies of the learned corrections on the synthetic field
 //! (13^3 lattice over a 1 m cube for training, 500 random test points, 0.2 mm
-//! tracker noise), for docs/benchmarks.md.
+//! tracker noise).
 //!
 //! ```text
 //! cargo run --release -p spidar --example learn_bench -- [--quiet] [--long]

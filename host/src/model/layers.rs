@@ -5,8 +5,8 @@
 //! chain of straight pieces around the smooth law `r_home theta - kappa
 //! theta^2`; the departure is a few mm peak to peak with a period of one layer
 //! (tens of turns), uneven when the layers hold different numbers of turns
-//! (`docs/benchmarks.md`, "Where the model fails on the independent
-//! physics"). No effect family follows it (`winding` bends the whole range,
+//! (decision record 0006, `docs/decisions/0006-independent-simulator.md`).
+//! No effect family follows it (`winding` bends the whole range,
 //! `eccentricity` has the period of one turn), so it gets a flexible term:
 //! a [`LayerTable`] per string, piecewise linear in the encoder counts, held
 //! constant beyond the counts it was fitted on (it cannot grow there).
@@ -92,8 +92,8 @@ pub enum TableLevel {
     Dropped,
     /// The level is the table's: nothing else in the model takes a
     /// string's level (its payout law is 0 at home), so with the constant
-    /// dropped an `offset` stands in for it (`docs/benchmarks.md`, "A faulty
-    /// string looked for from 1 mm; tables keep the string's level"). How
+    /// dropped an `offset` stands in for it (decision record 0030,
+    /// `docs/decisions/0030-faulty-string-from-1mm.md`). How
     /// tables the loop accepted are refitted, and refitted with a slip.
     Kept,
 }

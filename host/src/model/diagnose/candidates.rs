@@ -310,8 +310,8 @@ fn slip_term(rows: &[Row], i: usize, at_s: f64) -> StringTerm {
 /// walk turning back at each row and plane, the user's pauses). Quadratic,
 /// not linear: past a linear rival a drift still stands in for what an
 /// offset explains, and the model simulator's drifts are found past the
-/// quadratic one (`docs/benchmarks.md`, "A drift must beat a position
-/// error").
+/// quadratic one (decision record 0035,
+/// `docs/decisions/0035-drift-beyond-position.md`).
 fn position_columns() -> Vec<RowColumn> {
     let mut out: Vec<RowColumn> = (0..3)
         .map(|k| Box::new(move |r: &Row| r.position[k] / 1000.0) as RowColumn)
@@ -354,7 +354,7 @@ fn shared_drift_candidate(rows: &[Row], strings: StringLayout) -> Candidate {
 /// linear columns `T l`, `T` and `-1` (`T_home (k l_home + m)` at the mean
 /// home length); the refit frees `T_home` around the pretension. With its
 /// lead and home parts: without them the shared sag stands in for it
-/// (`docs/benchmarks.md`, "The strings' stretch").
+/// (decision record 0022, `docs/decisions/0022-stretch.md`).
 fn shared_stretch_candidate(rows: &[Row], strings: StringLayout, pretension: f64) -> Candidate {
     let (sum_lh, n_lh) = rows
         .iter()
@@ -432,8 +432,8 @@ fn frame_flex_candidate(rows: &[Row], strings: StringLayout) -> Candidate {
 /// metre, one tension at the home capture), each string at its own
 /// length, tension and inclination. Not one string's: its home part is a
 /// constant on that string (an offset), and per-string sags stand in for
-/// offsets and raise the test error (docs/benchmarks.md, "Sag at the
-/// string's inclination").
+/// offsets and raise the test error (decision record 0021,
+/// `docs/decisions/0021-sag.md`).
 fn shared_sag_candidate(rows: &[Row], strings: StringLayout) -> Candidate {
     Candidate {
         family: Family::Sag,

@@ -249,9 +249,10 @@ pub fn close_loop(
 /// amplitude once more, in quadrature, so that forward kinematics weighs
 /// it less ([`Identification::length_scale_mm`]); the identification's
 /// warnings say so. Without it such a string takes a stand-in (a
-/// `backlash`) and scatters in use (`docs/benchmarks.md`, "Each string
-/// weighed by its scale"). Other variables are read by a term or do not range wider in use than
-/// on the lattice (time restarts at home, positions stay in the frame).
+/// `backlash`) and scatters in use (decision record 0036,
+/// `docs/decisions/0036-strings-weighed-by-scale.md`). Other variables are
+/// read by a term or do not range wider in use than on the lattice (time
+/// restarts at home, positions stay in the frame).
 /// Whether a scale changed.
 fn weigh_what_follows_speed(id: &mut Identification, findings: &[Finding]) -> bool {
     let mut changed = false;
@@ -345,8 +346,8 @@ impl LoopState<'_> {
                 // validated the same way. The check's own figure as the
                 // baseline would give the first change after the tables a
                 // gain it does not make, and an offset or a drift would
-                // stand in on that (docs/benchmarks.md, "One baseline for
-                // the changes after the layer tables").
+                // stand in on that (decision record 0025,
+                // `docs/decisions/0025-one-baseline-after-tables.md`).
                 let held = validate(&self.seen_train, self.nominal, &refit, &self.structure)?;
                 finding.description += &format!(
                     " (the changes after the tables are judged against {:.3} mm: the same \

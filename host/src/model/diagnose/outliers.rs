@@ -38,9 +38,9 @@ pub const GROSS_TRACKER_MAX_SHARE: f64 = 0.25;
 /// held-out means and quantiles, which a few of them dominate: a few
 /// percent of rows thrown tens to hundreds of mm put the held-out mean the
 /// changes are judged against an order of magnitude up, and the loop then
-/// misses effects (`docs/benchmarks.md`, "A tracker's glitches in the
-/// lattice"). The loop fits and judges without their tracker (as occluded
-/// rows), and the report lists them.
+/// misses effects (decision record 0039,
+/// `docs/decisions/0039-tracker-glitches.md`). The loop fits and judges
+/// without their tracker (as occluded rows), and the report lists them.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct TrackerOutliers {
     /// Indices (into the observations given) of the rows set aside; not

@@ -155,8 +155,8 @@ pub struct LoopConfig {
     /// the best of some fifty per-string terms gains 2 to 3 % on a clean
     /// independent device by standing in for what no family has; a shared
     /// term or a table is one candidate. 3.5 %: every injected family of
-    /// the model simulator is still found (`loop_bench`; `docs/benchmarks.md`,
-    /// "A term on one string must gain 3.5 %").
+    /// the model simulator is still found (`loop_bench`;
+    /// decision record 0032, `docs/decisions/0032-one-string-term-gain.md`).
     #[serde(default = "one_string_gain")]
     pub min_relative_gain_one_string: f64,
     /// Try layer tables ([`crate::model::layers`]) before the effect families.
@@ -167,8 +167,8 @@ pub struct LoopConfig {
     /// the stretch's home tension is then fitted around it instead of the
     /// firmware's default 1 N (within 1 N either way: in a narrower range
     /// the stretch can no longer take the length every string's home
-    /// shares; `docs/benchmarks.md`, "The home tension the geometry
-    /// declares").
+    /// shares; decision record 0028,
+    /// `docs/decisions/0028-home-tension-declared.md`).
     #[serde(default)]
     pub home_tension_n: Option<f64>,
     /// Look for effects at all: false stops after the base identification

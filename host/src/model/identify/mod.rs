@@ -31,7 +31,8 @@
 //! frees them first, kept when the blocked-fold error falls
 //! ([`Structure::hold_kappa_each`]): spools of other widths need them, but
 //! a short session that fits them unconditionally over-fits them (its
-//! held-out error rises; `docs/benchmarks.md`). With them free, a payout
+//! held-out error rises; decision record 0017,
+//! `docs/decisions/0017-spool-thinning-rates.md`). With them free, a payout
 //! scale error of one string (another pulley diameter, another encoder
 //! resolution) is the string's own `r_home` and `kappa_i`. What a string
 //! needs beyond this law (a constant offset, a higher order, ...) is an

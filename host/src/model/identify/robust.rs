@@ -21,8 +21,8 @@ const SCALE_WINDOW_ROWS: usize = 20;
 /// residuals themselves, a slip the loop has not yet found would make its
 /// string weigh less, and the held-out error would then hide the slip; read
 /// from one row to the next, the lag would cancel (a lattice row approaches
-/// its points from one side; `docs/benchmarks.md`, "Each string weighed by
-/// its scale").
+/// its points from one side; decision record 0036,
+/// `docs/decisions/0036-strings-weighed-by-scale.md`).
 pub(super) fn fast_residual_scales(
     residuals: &[[f64; STRINGS]],
     layout: StringLayout,

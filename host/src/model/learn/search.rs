@@ -387,7 +387,7 @@ fn check_grid(
 /// Grid search over C x epsilon x gamma, scored by held-out or k-fold mean
 /// position error (mm), then a refit of the best on all points.
 ///
-/// How the work is shared (issue 15, point 2): one kernel matrix per gamma
+/// How the work is shared: one kernel matrix per gamma
 /// over all points serves every fold, axis and (C, epsilon) (a fold trains on
 /// some of its rows) and then the refit. For each (gamma, fold, axis) the
 /// (C, epsilon) pairs are solved in one chain, each from the previous
@@ -395,7 +395,8 @@ fn check_grid(
 /// previous C's solution scaled by the ratio of the C's for the next C. The
 /// chains run in parallel; the refit on all points starts from the chosen
 /// candidate's solution (held-out points at 0). Each solve still stops on
-/// the same KKT gap as from 0.
+/// the same KKT gap as from 0 (decision record 0018,
+/// `docs/decisions/0018-blackbox-conjugate-smo.md`).
 pub fn svr_search(
     inputs: &[[f64; 3]],
     targets: &[[f64; 3]],

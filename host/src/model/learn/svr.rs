@@ -20,9 +20,8 @@
 //! search clipped to the box, and libsvm's plain step whenever that is not a
 //! descent step. The selection, the shrinking and the stopping rule (KKT gap
 //! below `tol`) are libsvm's. On the black-box grid it halves the iterations
-//! (issue 15, point 2: C 300, epsilon 0.005 went from 1.37 to 0.55 million
-//! iterations for one axis), and on the fixture it ends at least as close to
-//! the optimum as libsvm.
+//! (decision record 0018, `docs/decisions/0018-blackbox-conjugate-smo.md`),
+//! and on the fixture it ends at least as close to the optimum as libsvm.
 //!
 //! By default ([`SolverConfig::per_point`]) the dual is solved in one variable
 //! per point, `alpha_i - alpha*_i` (`svr/point.rs`): the same selection,

@@ -30,14 +30,14 @@ fn model_error_list(id: &Identification, observations: &[Observation]) -> Vec<f6
 /// tighter [`FkConfig::exclusion_threshold_mm`]. A string a missing effect
 /// puts a few mm off (the rows before an early slip) is what the loop is
 /// looking for; leaving it out of the position hides it, and the loop then
-/// takes terms of other families in its stead (`docs/benchmarks.md`, "A
-/// faulty string looked for from 1 mm").
+/// takes terms of other families in its stead (decision record 0030,
+/// `docs/decisions/0030-faulty-string-from-1mm.md`).
 ///
 /// For the same reason every string weighs alike here, not by its measured
 /// scale as on the device: a missing effect raises its string's scale, and
 /// weighed by it the string hides the effect from the judge, which then
-/// loses slips and takes stand-ins (`docs/benchmarks.md`, "Each string
-/// weighed by its scale").
+/// loses slips and takes stand-ins (decision record 0036,
+/// `docs/decisions/0036-strings-weighed-by-scale.md`).
 pub(crate) fn held_out_error_list(id: &Identification, observations: &[Observation]) -> Vec<f64> {
     held_out_errors(id, observations).0
 }

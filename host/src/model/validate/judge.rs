@@ -346,7 +346,7 @@ pub(crate) fn judge_step(
 /// something else, and raises the test error. Drifts only: other changes
 /// trade one fold for another when something else is missing too, and
 /// refusing them for it would lose real terms (offsets, a stretch;
-/// `docs/benchmarks.md`, "A drift must help both halves").
+/// decision record 0027, `docs/decisions/0027-drift-helps-both-halves.md`).
 const FOLD_RISE_Z: f64 = 3.0;
 
 /// `check` (an accepted drift's) refused when a blocked fold gets worse
@@ -427,7 +427,7 @@ pub(crate) const IN_SAMPLE_SHARE_OF_GAIN: f64 = 0.25;
 /// whose gain shows only held out repairs how the folds were fitted (each
 /// fold refits anchors and home with the layer tables' levels held from
 /// the fit on every row, and a free constant on one string lets it follow
-/// them; `docs/benchmarks.md`, "A gain only the folds show is no gain").
+/// them; decision record 0033, `docs/decisions/0033-fold-repair.md`).
 pub(crate) fn refuse_a_fold_repair(
     check: &mut Check,
     before: ErrorStats,

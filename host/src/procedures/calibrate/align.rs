@@ -98,8 +98,9 @@ pub struct AlignError(#[from] pub crate::device::tracker::sync::SyncError);
 
 /// Median time between consecutive rows that are apart in time (s); `None`
 /// with no two such rows. Rows of one instant (a logger that wrote a row
-/// twice) do not count: with every row written twice the median was 0, and
-/// the alignment failed on "`max_gap_s`: 0 is not a positive duration".
+/// twice) do not count: with every row written twice the median would be
+/// 0, and the alignment would fail on "`max_gap_s`: 0 is not a positive
+/// duration" (decision record 0013, `docs/decisions/0013-clock-offsets.md`).
 pub fn median_interval_s(obs: &[Observation]) -> Option<f64> {
     median_step_s(obs.iter().map(|o| o.t_s))
 }
@@ -290,12 +291,11 @@ pub fn align(
     let interval = tracked_interval_s(obs).unwrap_or(MAX_STREAM_INTERVAL_S);
     // The fine fit compares positions: with a model far from the tracker
     // (the nominal geometry of a paper-sized device, 200 mm off) it is not
-    // determined and wanders off the speed profiles' peak (60 ms off, sd
-    // 233 ms, on a stream with no offset at all; the model identified on
-    // rows paired that far off then put the second pass 15 ms off, and the
-    // held-out error was 3.9 mm instead of 0.32). A fine fit less certain
-    // than the profiles' grid step keeps the peak; the second pass, with
-    // the identified model, refines it.
+    // determined and wanders off the speed profiles' peak, and a model
+    // identified on rows paired that far off keeps the next pass off too
+    // (decision record 0013, `docs/decisions/0013-clock-offsets.md`). A
+    // fine fit less certain than the profiles' grid step keeps the peak;
+    // the second pass, with the identified model, refines it.
     let refined = shift.offset_std_s <= interval;
     let used = if refined {
         shift

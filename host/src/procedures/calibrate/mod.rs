@@ -164,7 +164,8 @@ impl CalibrateConfig {
     /// about 0.05 in standardized units: the residual is mostly tracker noise,
     /// and a narrower tube only buys support vectors). Time limits are guards
     /// against pathological data, not part of the normal run: they do not
-    /// trigger on the reference sessions (see `docs/benchmarks.md`).
+    /// trigger on the reference sessions (`docs/benchmarks.md`, "Speed of a
+    /// calibration").
     pub fn full() -> Self {
         let nn = SweepConfig {
             sizes: (3..=24).collect(),

@@ -240,7 +240,8 @@ struct Monitor<'a> {
     /// Drift was found and a refit is due once the window holds a quarter
     /// window of pairs after it (a change seen a fraction of a
     /// second ago is poorly determined: the slip's size is underestimated,
-    /// and a refit on it can leave the device worse than it was).
+    /// and a refit on it can leave the device worse than it was;
+    /// decision record 0042, `docs/decisions/0042-monitor-refits-once-settled.md`).
     settling: bool,
     /// The changes (family, strings) the drift check that began the
     /// settling found: the settled check confirms the drift when it names

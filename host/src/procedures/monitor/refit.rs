@@ -144,7 +144,8 @@ impl Monitor<'_> {
         // strongest first): a step on a string also scores as an offset and
         // as a drift, and a drift fitted across a step inside a few seconds
         // of data extrapolates wildly (the error after the reflash rises
-        // instead of falling).
+        // instead of falling; decision record 0042,
+        // `docs/decisions/0042-monitor-refits-once-settled.md`).
         let mut strings_changed: Vec<u8> = Vec::new();
         let weaker = check.weaker.iter().filter(|_| check.error_exceeded);
         for f in check.findings.iter().chain(weaker) {

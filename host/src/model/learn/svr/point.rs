@@ -1,5 +1,6 @@
-//! The epsilon-SVR dual in one variable per training point (issue 15,
-//! point 2): `beta_i = alpha_i - alpha*_i` in `[-C, C]`,
+//! The epsilon-SVR dual in one variable per training point
+//! (decision record 0019, `docs/decisions/0019-blackbox-per-point-dual.md`):
+//! `beta_i = alpha_i - alpha*_i` in `[-C, C]`,
 //!
 //! ```text
 //! minimize  beta^T K beta / 2 - z^T beta + eps sum |beta_i|   s.t.  sum beta_i = 0,

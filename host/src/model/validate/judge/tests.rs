@@ -113,7 +113,7 @@ fn a_drift_that_only_moves_error_between_the_halves_is_refused() {
 
 /// A row the model fails on that the change leaves inconsistent (the
 /// kinematics cannot settle it: with 2 spares a second exclusion fits
-/// by chance, and its error flips 1.4 -> 67 mm with any change) is not
+/// by chance, and its error flips by tens of mm with any change) is not
 /// held to its error; the same row settled at that error is. More rows
 /// turned inconsistent than their noise allows refuse the change.
 #[test]
