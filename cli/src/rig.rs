@@ -58,8 +58,8 @@ impl RigArgs {
     pub fn simulated_device(
         &self,
         seed: u64,
-    ) -> Result<spidar::sim::SimDevice, spidar::sim::operator::RigError> {
+    ) -> Result<spidar::sim::SimulatedDevice, spidar::sim::operator::RigError> {
         let config = spidar::sim::SimConfig::load_or_default(self.sim_config.as_deref())?;
-        Ok(spidar::sim::SimDevice::new(&config, seed)?)
+        Ok(spidar::sim::SimulatedDevice::new(&config, seed)?)
     }
 }

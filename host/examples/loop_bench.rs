@@ -20,7 +20,7 @@ use spidar::model::diagnose::{
 use spidar::model::identify::Start;
 use spidar::sim::config::SimConfig;
 use spidar::sim::physics::{self, PhysicsConfig, PhysicsDevice};
-use spidar::sim::{device_with_lattice_and_test, simulate_session, SessionKind, SimDevice};
+use spidar::sim::{device_with_lattice_and_test, simulate_session, SessionKind, SimulatedDevice};
 
 struct Outcome {
     found: bool,
@@ -146,7 +146,7 @@ fn clean_only(seeds: u64) {
     let mut physics_named = 0usize;
     for seed in 1..=seeds {
         let config = SimConfig::default();
-        let device = SimDevice::new(&config, seed).expect("device");
+        let device = SimulatedDevice::new(&config, seed).expect("device");
         let train = simulate_session(&device, SessionKind::Lattice, seed + 100).expect("lattice");
         let test = simulate_session(&device, SessionKind::Random { points: 500 }, seed + 200)
             .expect("test session");

@@ -45,7 +45,7 @@ use spidar::procedures::calibrate::align::{repaired_at, tracked_interval_s, Sess
 use spidar::procedures::calibrate::report::{Stage, StageKind};
 use spidar::procedures::calibrate::{calibrate, CalibrateConfig, Calibrated, NamedSession};
 use spidar::sim::physics::{self, PhysicsConfig, PhysicsDevice, PhysicsTruth};
-use spidar::sim::{simulate_session, SessionKind, SimConfig, SimDevice, StreamArea};
+use spidar::sim::{simulate_session, SessionKind, SimConfig, SimulatedDevice, StreamArea};
 use spidar_core::geometry::device_from_room;
 use spidar_core::string_law::string_lengths_f64;
 use spidar_core::STRINGS;
@@ -63,7 +63,7 @@ fn model_run(seed: u64, effect: Option<&str>) -> Run {
         effects: effect.map(|e| vec![e.to_string()]).unwrap_or_default(),
         ..SimConfig::default()
     };
-    let device = SimDevice::new(&config, seed).expect("model device");
+    let device = SimulatedDevice::new(&config, seed).expect("model device");
     Run {
         geometry: device.nominal.clone(),
         train: simulate_session(&device, SessionKind::Lattice, seed + 1).expect("lattice"),
@@ -589,7 +589,7 @@ fn print_extrapolation(seeds: u64, config: &CalibrateConfig, clean_physics: &[Cl
         let c = run_calibration(&run, config);
         let mut wide = SimConfig::default();
         wide.lattice.size_mm = 1200.0;
-        let device = SimDevice::new(&wide, seed).expect("model device");
+        let device = SimulatedDevice::new(&wide, seed).expect("model device");
         let test = simulate_session(
             &device,
             SessionKind::Random {

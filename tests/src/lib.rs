@@ -29,15 +29,15 @@ pub fn eventually(condition: impl Fn() -> bool) -> bool {
 
 /// The simulated device as built (no injected effects, no abnormal motor, so
 /// its true parameters are an exact calibration).
-pub fn sim_device() -> sim::SimDevice {
+pub fn sim_device() -> sim::SimulatedDevice {
     let mut config = SimConfig::default();
     config.abnormal_motor.enabled = false;
     config.effects.clear();
-    sim::SimDevice::new(&config, 7).expect("simulated device")
+    sim::SimulatedDevice::new(&config, 7).expect("simulated device")
 }
 
 /// The device's true calibration with an optional correction.
-pub fn calibration(device: &sim::SimDevice, correction: CorrectionModel) -> Calibration {
+pub fn calibration(device: &sim::SimulatedDevice, correction: CorrectionModel) -> Calibration {
     Calibration {
         frame: device.frame,
         strings: device.laws,
@@ -50,7 +50,7 @@ pub fn calibration(device: &sim::SimDevice, correction: CorrectionModel) -> Cali
 }
 
 /// The device's true calibration compiled into a model blob.
-pub fn blob(device: &sim::SimDevice, correction: CorrectionModel, model_id: u32) -> Vec<u8> {
+pub fn blob(device: &sim::SimulatedDevice, correction: CorrectionModel, model_id: u32) -> Vec<u8> {
     compile(&calibration(device, correction), model_id, 0).expect("compiles")
 }
 

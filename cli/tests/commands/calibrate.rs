@@ -9,7 +9,7 @@ use std::process::Command;
 use serde_json::Value;
 use spidar::procedures::calibrate::report::StageKind;
 use spidar::procedures::calibrate::{calibrate, CalibrateConfig, NamedSession, SCHEMA};
-use spidar::sim::{simulate_session, SessionKind, SimConfig, SimDevice};
+use spidar::sim::{simulate_session, SessionKind, SimConfig, SimulatedDevice};
 
 /// Held-out targets of the issue (test session, mm).
 const TEST_MEAN_MAX_MM: f64 = 0.45;
@@ -65,7 +65,7 @@ fn stats(v: &Value) -> (f64, f64, f64) {
 #[test]
 fn library_pipeline_meets_the_held_out_targets() {
     let config = SimConfig::default();
-    let device = SimDevice::new(&config, 2).unwrap();
+    let device = SimulatedDevice::new(&config, 2).unwrap();
     let geometry = config.nominal.geometry();
     let train = simulate_session(&device, SessionKind::Lattice, 3).unwrap();
     let test = simulate_session(&device, SessionKind::Random { points: 400 }, 4).unwrap();
@@ -551,7 +551,7 @@ fn a_chosen_correction_is_refitted_and_stored() {
     // floor and no correction earns its place; accept any (gain -100 %) to
     // exercise the choice and the refit on all kept points.
     let config = SimConfig::default();
-    let device = SimDevice::new(&config, 3).unwrap();
+    let device = SimulatedDevice::new(&config, 3).unwrap();
     let geometry = config.nominal.geometry();
     let train = simulate_session(&device, SessionKind::Lattice, 5).unwrap();
     let test = simulate_session(&device, SessionKind::Random { points: 300 }, 6).unwrap();
@@ -613,7 +613,7 @@ fn effects_found_by_the_loop_become_stages_and_json_effects() {
         effects: vec!["backlash:3:half_width_mm=0.5".into()],
         ..SimConfig::default()
     };
-    let device = SimDevice::new(&config, 1).unwrap();
+    let device = SimulatedDevice::new(&config, 1).unwrap();
     let geometry = config.nominal.geometry();
     let train = simulate_session(&device, SessionKind::Lattice, 2).unwrap();
     let test = simulate_session(&device, SessionKind::Random { points: 300 }, 3).unwrap();

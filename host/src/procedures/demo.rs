@@ -14,10 +14,10 @@ use crate::model::compile::CompileCmdError;
 use crate::procedures::calibrate::{
     run_calibrate, CalibrateConfig, CalibrateError, CalibrateRequest,
 };
-use crate::sim::measure::{measure_on_virtual_device, DeviceRun, DeviceRunError};
+use crate::sim::measure::{measure_on_virtual_device, VirtualDeviceRun, VirtualDeviceRunError};
 use crate::sim::{
-    run_simulate, simulate_session_with_truth, SessionKind, SessionPath, SimConfig, SimDevice,
-    SimError, SimulateReport, SimulateRequest,
+    run_simulate, simulate_session_with_truth, SessionKind, SessionPath, SimConfig, SimError,
+    SimulateReport, SimulateRequest, SimulatedDevice,
 };
 
 /// Any failure of the demo; the calibration's own errors as they are.
@@ -34,7 +34,7 @@ pub enum DemoError {
     #[error("model blob of {what}: {message}")]
     Blob { what: &'static str, message: String },
     #[error("{0}")]
-    Device(#[from] DeviceRunError),
+    Device(#[from] VirtualDeviceRunError),
 }
 
 /// What the demo is asked for.
@@ -79,8 +79,8 @@ pub struct Demo {
 /// The nominal and the calibrated model flashed to the virtual device.
 #[derive(Clone, Copy, Debug)]
 pub struct OnDevice {
-    pub before: DeviceRun,
-    pub after: DeviceRun,
+    pub before: VirtualDeviceRun,
+    pub after: VirtualDeviceRun,
 }
 
 /// Runs the demo: simulate, calibrate (outputs in `OUT/calibration`), and the
@@ -148,7 +148,7 @@ fn run_on_virtual_device(
         None => SimConfig::default(),
     };
     config.effects.extend(request.effects.iter().cloned());
-    let device = SimDevice::new(&config, request.seed)?;
+    let device = SimulatedDevice::new(&config, request.seed)?;
     // The test session's trajectory (run_simulate's seed rule for random sessions).
     let (_, truths) = simulate_session_with_truth(
         &device,
@@ -206,7 +206,7 @@ impl std::fmt::Display for Demo {
 
 impl std::fmt::Display for OnDevice {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        let row = |name: &str, r: &DeviceRun| {
+        let row = |name: &str, r: &VirtualDeviceRun| {
             format!(
                 "  {name:<22} {:>9.3} {:>8.3} {:>9.3} {:>8} {:>6} {:>8}\n",
                 r.error.mean_mm, r.error.sd_mm, r.error.max_mm, r.frames, r.lost, r.blob_len

@@ -15,11 +15,11 @@ use crate::device::link::{Client, ClientOptions, LinkError, StreamOptions};
 use crate::sim::virtual_device::{
     spawn, Pace, Plant, Trajectory, VirtualDeviceConfig, VirtualDeviceError,
 };
-use crate::sim::{SampleTruth, SimDevice};
+use crate::sim::{SampleTruth, SimulatedDevice};
 
 /// Why a device run failed.
 #[derive(Debug, thiserror::Error)]
-pub enum DeviceRunError {
+pub enum VirtualDeviceRunError {
     #[error("virtual device: {0}")]
     VirtualDevice(#[from] VirtualDeviceError),
     #[error("device link: {0}")]
@@ -32,7 +32,7 @@ pub enum DeviceRunError {
 
 /// What the device reported along the trajectory.
 #[derive(Clone, Copy, Debug)]
-pub struct DeviceRun {
+pub struct VirtualDeviceRun {
     /// Corrected position (device output) against the true room position, mm.
     pub error: ErrorStats,
     pub frames: u64,
@@ -44,12 +44,14 @@ pub struct DeviceRun {
 /// plant), power-cycles it so it homes at the trajectory's start, streams the
 /// whole trajectory and measures the reported positions.
 pub fn measure_on_virtual_device(
-    device: &SimDevice,
+    device: &SimulatedDevice,
     trajectory: &[SampleTruth],
     blob: &[u8],
-) -> Result<DeviceRun, DeviceRunError> {
+) -> Result<VirtualDeviceRun, VirtualDeviceRunError> {
     let trajectory = Trajectory::from_truth(trajectory);
-    let end_us = trajectory.end_us().ok_or(DeviceRunError::EmptyTrajectory)?;
+    let end_us = trajectory
+        .end_us()
+        .ok_or(VirtualDeviceRunError::EmptyTrajectory)?;
     let config = VirtualDeviceConfig {
         pace: Pace::Fast,
         tick_us: 2000,
@@ -78,9 +80,9 @@ pub fn measure_on_virtual_device(
         },
     )?;
     if errors.is_empty() {
-        return Err(DeviceRunError::NoStates);
+        return Err(VirtualDeviceRunError::NoStates);
     }
-    Ok(DeviceRun {
+    Ok(VirtualDeviceRun {
         error: ErrorStats::of(&errors),
         frames: report.frames,
         lost: u64::from(report.lost),

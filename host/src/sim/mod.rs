@@ -1,6 +1,6 @@
 //! Physical simulator of an 8-string Scalable-SPIDAR and an optical tracker.
 //!
-//! A [`SimDevice`] is one device as built: true anchors (a few mm off the
+//! A [`SimulatedDevice`] is one device as built: true anchors (a few mm off the
 //! design), true home (the built-in initialization is a few cm off), true
 //! pulleys (shared machining error) on which the string winds in level
 //! layers (the winding radius shrinks linearly as string is paid out), the
@@ -20,7 +20,6 @@
 //! parameters, for tests and benchmarks only).
 
 pub mod config;
-pub mod device;
 pub mod effects;
 pub mod lattice;
 mod legacy;
@@ -28,6 +27,7 @@ pub mod measure;
 pub mod operator;
 pub mod physics;
 pub mod plant;
+pub mod simulated_device;
 pub mod tracker;
 mod trajectory;
 pub mod truth;
@@ -41,13 +41,13 @@ use spidar_core::string_law::cos2_inclinations;
 use spidar_core::STRINGS;
 
 pub use config::SimConfig;
-pub use device::SimDevice;
 pub use effects::{parse_effect, parse_effects, InjectedEffect};
 pub use lattice::{Lattice, LatticeError};
+pub use simulated_device::SimulatedDevice;
 pub use truth::Truth;
 
 use crate::data::dataset::{DatasetError, Sample, Session};
-use device::{normal, stream};
+use simulated_device::{normal, stream};
 use rand_distr::Distribution;
 use spidar_core::geometry::{dot, norm, sub};
 
@@ -151,12 +151,12 @@ pub fn device_with_lattice_and_test(
     seed: u64,
     effects: &[&str],
     points: usize,
-) -> Result<(SimDevice, Session, Session), SimError> {
+) -> Result<(SimulatedDevice, Session, Session), SimError> {
     let config = SimConfig {
         effects: effects.iter().map(|s| s.to_string()).collect(),
         ..SimConfig::default()
     };
-    let device = SimDevice::new(&config, seed)?;
+    let device = SimulatedDevice::new(&config, seed)?;
     let lattice = simulate_session(&device, SessionKind::Lattice, seed + 100)?;
     let test = simulate_session(&device, SessionKind::Random { points }, seed + 200)?;
     Ok((device, lattice, test))
@@ -164,7 +164,7 @@ pub fn device_with_lattice_and_test(
 
 /// Simulate one session of `device` (see [`simulate_session_with_truth`]).
 pub fn simulate_session(
-    device: &SimDevice,
+    device: &SimulatedDevice,
     kind: SessionKind,
     seed: u64,
 ) -> Result<Session, SimError> {
@@ -180,7 +180,7 @@ fn round_to(x: f64, per_unit: f64) -> f64 {
 /// from its own stream). Times are whole milliseconds, tensions whole
 /// millinewtons, positions whole micrometres, as written to the CSV.
 pub fn simulate_session_with_truth(
-    device: &SimDevice,
+    device: &SimulatedDevice,
     kind: SessionKind,
     seed: u64,
 ) -> Result<(Session, Vec<SampleTruth>), SimError> {
@@ -221,7 +221,7 @@ pub fn simulate_session_with_truth(
 /// A planar device's end-effector moves in the anchors' plane: the path
 /// is projected onto it (a 3-D device's path as it is).
 fn onto_the_plane(
-    device: &SimDevice,
+    device: &SimulatedDevice,
     captures: Vec<trajectory::Capture>,
 ) -> Vec<trajectory::Capture> {
     if !device.frame.layout.planar {
@@ -269,7 +269,7 @@ fn marker_at(captures: &[trajectory::Capture], offset_s: f64, t_s: f64) -> Optio
 /// capture to the next (each string's direction of motion, the tracker's
 /// occlusion).
 struct ModelSession<'a> {
-    device: &'a SimDevice,
+    device: &'a SimulatedDevice,
     tension_rng: rand::rngs::ChaCha8Rng,
     noise_rng: rand::rngs::ChaCha8Rng,
     occlusion_rng: rand::rngs::ChaCha8Rng,
@@ -293,7 +293,7 @@ struct StringReadings {
 
 impl<'a> ModelSession<'a> {
     /// The streams of the session `seed` (11..14).
-    fn new(device: &'a SimDevice, seed: u64) -> Result<ModelSession<'a>, SimError> {
+    fn new(device: &'a SimulatedDevice, seed: u64) -> Result<ModelSession<'a>, SimError> {
         let cfg = &device.config;
         let tension_rng = stream(seed, 11);
         let noise_rng = stream(seed, 12);
@@ -687,7 +687,7 @@ pub fn run_simulate(args: &SimulateRequest) -> Result<SimulateReport, SimError> 
     };
     config.effects.extend(args.effects.iter().cloned());
     let kind = session_kind(args, config.random.points, None)?;
-    let device = SimDevice::new(&config, args.seed)?;
+    let device = SimulatedDevice::new(&config, args.seed)?;
     let session = simulate_session(&device, kind, session_seed(args, kind))?;
     let errors = legacy_raw_errors(&session, &device.nominal);
     write_outputs(

@@ -49,7 +49,7 @@ use crate::device::tracker::dtrack::{format_datagram, BodyPose, DtrackFrame};
 use crate::device::tracker::ReadProgress;
 use crate::device::tracker::TrackerError;
 use crate::sim::virtual_device::Hand;
-use crate::sim::SimDevice;
+use crate::sim::SimulatedDevice;
 use spidar_core::geometry::distance;
 
 /// What the hand does when no target is shown and no beep says "hold".
@@ -257,7 +257,7 @@ impl SimOperator {
     /// simulated `device` and reads its cues from `cues`.
     pub fn spawn(
         config: SimOperatorConfig,
-        device: SimDevice,
+        device: SimulatedDevice,
         hand: Hand,
         cues: SharedCues,
     ) -> Result<SimOperator, TrackerError> {
@@ -276,7 +276,7 @@ impl SimOperator {
     /// however the machine schedules it.
     pub fn spawn_in_step(
         config: SimOperatorConfig,
-        device: SimDevice,
+        device: SimulatedDevice,
         hand: Hand,
         cues: SharedCues,
         progress: Option<ReadProgress>,
@@ -373,7 +373,7 @@ fn random_direction(rng: &mut ChaCha8Rng) -> [f64; 3] {
 /// Velocity of the hand for these cues, device frame, mm/s.
 fn velocity(
     config: &SimOperatorConfig,
-    device: &SimDevice,
+    device: &SimulatedDevice,
     cues: &Cues,
     hand_mm: &[f64; 3],
     force_n: &[f64; 3],
@@ -535,7 +535,7 @@ fn send_frame(
 /// documentation) until `stop` or `max_duration`.
 fn run(
     config: &SimOperatorConfig,
-    device: &SimDevice,
+    device: &SimulatedDevice,
     hand: &Hand,
     cues: &SharedCues,
     links: &HostLinks<'_>,
@@ -651,7 +651,7 @@ pub enum RigError {
 /// procedure reads. Used by the `--simulate` option of the operator
 /// commands and by their tests.
 pub struct SimulatedRig {
-    pub device: SimDevice,
+    pub device: SimulatedDevice,
     pub hand: Hand,
     pub cues: SharedCues,
     pub virtual_device: crate::sim::virtual_device::VirtualDevice,
@@ -669,7 +669,7 @@ impl SimulatedRig {
     ///
     /// [`Pace::Virtual`]: crate::sim::virtual_device::Pace::Virtual
     pub fn start(
-        device: SimDevice,
+        device: SimulatedDevice,
         offset_mm: [f64; 3],
         configure: impl FnOnce(&mut SimOperatorConfig),
     ) -> Result<SimulatedRig, RigError> {
@@ -680,7 +680,7 @@ impl SimulatedRig {
     /// before the operator takes the hand (flash a model and power-cycle
     /// it, so that it homes where the hand is).
     pub fn start_prepared<E: From<RigError>>(
-        device: SimDevice,
+        device: SimulatedDevice,
         offset_mm: [f64; 3],
         prepare: impl FnOnce(&crate::sim::virtual_device::VirtualDevice) -> Result<(), E>,
         configure: impl FnOnce(&mut SimOperatorConfig),

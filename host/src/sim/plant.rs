@@ -1,5 +1,5 @@
 //! The physical side of the virtual device: a simulated SPIDAR
-//! ([`crate::sim::SimDevice`]: true anchors, home, winding laws and injected
+//! ([`crate::sim::SimulatedDevice`]: true anchors, home, winding laws and injected
 //! effects) whose end-effector follows a [`Trajectory`], motors whose string
 //! tension follows the commanded tension with a first-order lag, and 16-bit
 //! encoder counters that read the true string lengths (and wrap).
@@ -11,7 +11,7 @@ use std::time::Duration;
 use spidar_core::STRINGS;
 
 pub use crate::device::tracker::clock::SimClock;
-use crate::sim::{InjectedEffect, SampleTruth, SimDevice};
+use crate::sim::{InjectedEffect, SampleTruth, SimulatedDevice};
 use spidar_core::geometry::{norm, sub};
 
 /// A point of a [`Trajectory::Waypoints`] path.
@@ -318,7 +318,7 @@ impl Trajectory {
 /// The plant: strings, end-effector, motors, encoders.
 #[derive(Clone, Debug)]
 pub struct Plant {
-    pub device: SimDevice,
+    pub device: SimulatedDevice,
     pub trajectory: Trajectory,
     /// Time constant of the motors' tension response, s.
     pub motor_tau_s: f64,
@@ -340,7 +340,7 @@ pub struct Plant {
 
 impl Plant {
     /// A plant at home, motors off; counters read `raw_home` there.
-    pub fn new(device: SimDevice, trajectory: Trajectory) -> Plant {
+    pub fn new(device: SimulatedDevice, trajectory: Trajectory) -> Plant {
         Plant {
             device,
             trajectory,

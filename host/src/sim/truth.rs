@@ -8,8 +8,8 @@ use spidar_core::model::{EffectTerm, Frame, StringLaw};
 use spidar_core::STRINGS;
 
 use super::config::SimConfig;
-use super::device::SimDevice;
 use super::effects::InjectedEffect;
+use super::simulated_device::SimulatedDevice;
 use super::SimError;
 
 const HEADER: &str = "# Simulator ground truth: the device as built and the injected effects.\n\
@@ -41,7 +41,7 @@ pub struct Truth {
 
 impl Truth {
     /// The truth of `device`.
-    pub fn of(device: &SimDevice) -> Truth {
+    pub fn of(device: &SimulatedDevice) -> Truth {
         Truth {
             seed: device.seed,
             frame: device.frame,

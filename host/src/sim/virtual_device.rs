@@ -847,7 +847,7 @@ pub fn plant_of(request: &PlantRequest) -> Result<Plant, crate::sim::SimError> {
         None => crate::sim::SimConfig::default(),
     };
     sim_config.effects.extend(request.effects.iter().cloned());
-    let device = crate::sim::SimDevice::new(&sim_config, request.seed)?;
+    let device = crate::sim::SimulatedDevice::new(&sim_config, request.seed)?;
     let trajectory = match request.path {
         PlantPath::Hold => Trajectory::Hold,
         PlantPath::Orbit => Trajectory::Orbit {

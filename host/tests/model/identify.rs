@@ -4,7 +4,7 @@
 
 use spidar::data::observe::observations;
 use spidar::model::identify::{identify, Start, Structure};
-use spidar::sim::{simulate_session, SessionKind, SimConfig, SimDevice};
+use spidar::sim::{simulate_session, SessionKind, SimConfig, SimulatedDevice};
 use spidar_core::model::{Effect, EffectTerm};
 
 fn lattice(
@@ -14,7 +14,7 @@ fn lattice(
     spidar::data::dataset::Geometry,
 ) {
     let config = SimConfig::default();
-    let device = SimDevice::new(&config, seed).expect("device");
+    let device = SimulatedDevice::new(&config, seed).expect("device");
     let session = simulate_session(&device, SessionKind::Lattice, seed + 100).expect("lattice");
     (observations(&session.samples), config.nominal.geometry())
 }
@@ -43,7 +43,7 @@ fn an_effect_the_data_cannot_show_is_reported_as_undetermined() {
     // Elasticity needs tension; a session recorded without tension columns
     // cannot determine it (the observations read tension 0).
     let config = SimConfig::default();
-    let device = SimDevice::new(&config, 1).expect("device");
+    let device = SimulatedDevice::new(&config, 1).expect("device");
     let mut session = simulate_session(&device, SessionKind::Lattice, 101).expect("lattice");
     for s in session.samples.iter_mut() {
         s.tension_n = None;

@@ -632,12 +632,12 @@ fn bad_input_gives_typed_errors() {
 #[test]
 fn corrections_learn_from_an_even_thinning_of_a_session_beyond_the_cap() {
     use spidar::procedures::calibrate::{calibrate, CalibrateConfig, NamedSession};
-    use spidar::sim::{simulate_session, SessionKind, SimConfig, SimDevice};
+    use spidar::sim::{simulate_session, SessionKind, SimConfig, SimulatedDevice};
     use std::path::Path;
 
     let mut c = SimConfig::default();
     c.abnormal_motor.enabled = false;
-    let device = SimDevice::new(&c, 4).unwrap();
+    let device = SimulatedDevice::new(&c, 4).unwrap();
     let train = simulate_session(&device, SessionKind::Random { points: 1500 }, 5).unwrap();
     let test = simulate_session(&device, SessionKind::Random { points: 300 }, 6).unwrap();
     let run = |cap: usize| {

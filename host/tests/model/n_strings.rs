@@ -8,7 +8,7 @@ use std::path::Path;
 use spidar::data::dataset::Session;
 use spidar::procedures::calibrate::align::SessionTiming;
 use spidar::procedures::calibrate::{calibrate, CalibrateConfig, Calibrated, NamedSession};
-use spidar::sim::{simulate_session, SessionKind, SimConfig, SimDevice};
+use spidar::sim::{simulate_session, SessionKind, SimConfig, SimulatedDevice};
 
 fn config(strings: usize, planar: bool) -> SimConfig {
     let mut c = SimConfig::default();
@@ -55,7 +55,7 @@ fn clock_streams(
     c.random.capture_interval_s = 0.01;
     c.tracker.clock_offset_s = offset_s;
     c.tracker.clock_drift_ppm = drift_ppm;
-    let device = SimDevice::new(&c, seed).unwrap();
+    let device = SimulatedDevice::new(&c, seed).unwrap();
     let stream = |points: usize, session_seed: u64| {
         simulate_session(&device, SessionKind::Random { points }, session_seed).unwrap()
     };
@@ -68,7 +68,7 @@ fn four_strings_in_3d_and_three_in_the_plane_calibrate_to_the_tracker_noise() {
     for (strings, planar, floor_mm) in [(4, false, 0.32), (3, true, 0.25)] {
         let mut c = config(strings, planar);
         c.lattice.cells_per_axis = 7;
-        let device = SimDevice::new(&c, 3).unwrap();
+        let device = SimulatedDevice::new(&c, 3).unwrap();
         let train = simulate_session(&device, SessionKind::Lattice, 4).unwrap();
         let test = simulate_session(&device, SessionKind::Random { points: 300 }, 5).unwrap();
         assert_eq!((train.strings, test.strings), (strings, strings));
@@ -257,7 +257,7 @@ fn shared_rows_and_points_beyond_the_training_volume_are_warned_about() {
     let mut c = config(8, false);
     c.lattice.cells_per_axis = 5;
     c.lattice.size_mm = 400.0;
-    let device = SimDevice::new(&c, 2).unwrap();
+    let device = SimulatedDevice::new(&c, 2).unwrap();
     let train = simulate_session(&device, SessionKind::Lattice, 3).unwrap();
     // The test session is the training session.
     let r = run(&c, &train, &train);
@@ -271,7 +271,7 @@ fn shared_rows_and_points_beyond_the_training_volume_are_warned_about() {
     );
     // Random points over a 1 m cube against a 0.4 m training lattice.
     c.lattice.size_mm = 1000.0;
-    let wide = SimDevice::new(&c, 2).unwrap();
+    let wide = SimulatedDevice::new(&c, 2).unwrap();
     let test = simulate_session(&wide, SessionKind::Random { points: 200 }, 4).unwrap();
     let r = run(&c, &train, &test);
     let w = r
@@ -298,7 +298,7 @@ fn a_drifting_string_of_a_planar_device_is_found() {
     use spidar::model::diagnose::Family;
     let mut c = config(4, true);
     c.effects = vec!["drift:1:mm_per_s=0.001".into()];
-    let device = SimDevice::new(&c, 3).unwrap();
+    let device = SimulatedDevice::new(&c, 3).unwrap();
     let train = simulate_session(&device, SessionKind::Lattice, 4).unwrap();
     let test = simulate_session(&device, SessionKind::Random { points: 500 }, 5).unwrap();
     let r = run(&c, &train, &test);

@@ -9,7 +9,8 @@ use spidar::data::dataset::{Geometry, Session};
 use spidar::data::stats::ErrorStats;
 use spidar::sim::{
     legacy_raw_errors, run_simulate, simulate_session, simulate_session_with_truth, InjectedEffect,
-    SampleTruth, SessionKind, SessionPath, SimConfig, SimDevice, SimError, SimulateRequest, Truth,
+    SampleTruth, SessionKind, SessionPath, SimConfig, SimError, SimulateRequest, SimulatedDevice,
+    Truth,
 };
 use spidar_core::model::Effect;
 use spidar_core::string_law::string_lengths_f64;
@@ -49,7 +50,7 @@ const QUANTIZATION_MM: f64 = 0.015;
 
 #[test]
 fn legacy_raw_error_is_paper_sized() {
-    let device = SimDevice::new(&SimConfig::default(), 1).unwrap();
+    let device = SimulatedDevice::new(&SimConfig::default(), 1).unwrap();
     let lattice = simulate_session(&device, SessionKind::Lattice, 2).unwrap();
     let errors = legacy_raw_errors(&lattice, &device.nominal);
     let s = ErrorStats::of(&errors);
@@ -66,7 +67,7 @@ fn legacy_raw_error_is_paper_sized() {
 
 #[test]
 fn lattice_is_2197_cells_plane_by_plane_from_the_front() {
-    let device = SimDevice::new(&SimConfig::default(), 4).unwrap();
+    let device = SimulatedDevice::new(&SimConfig::default(), 4).unwrap();
     let (session, truth) = simulate_session_with_truth(&device, SessionKind::Lattice, 5).unwrap();
     assert_eq!(session.samples.len(), 2197);
     let n = 13u32;
@@ -193,7 +194,7 @@ fn outputs_nominal_geometry_and_a_loadable_truth() {
         effects: a.effects.clone(),
         ..SimConfig::default()
     };
-    let device = SimDevice::new(&config, 11).unwrap();
+    let device = SimulatedDevice::new(&config, 11).unwrap();
     assert_eq!(truth, Truth::of(&device));
     assert_ne!(
         truth.frame.anchors, g.anchors_mm,
@@ -225,7 +226,7 @@ fn seeds_reproduce_files_byte_for_byte() {
 #[test]
 fn train_and_test_sessions_of_one_device_are_fast() {
     let start = Instant::now();
-    let device = SimDevice::new(&SimConfig::default(), 21).unwrap();
+    let device = SimulatedDevice::new(&SimConfig::default(), 21).unwrap();
     let train = simulate_session(&device, SessionKind::Lattice, 1).unwrap();
     let test = simulate_session(&device, SessionKind::Random { points: 500 }, 2).unwrap();
     let elapsed = start.elapsed();
@@ -236,15 +237,15 @@ fn train_and_test_sessions_of_one_device_are_fast() {
 }
 
 /// True length minus the base law's length from the counts, per string.
-fn residuals(device: &SimDevice, truth: &[SampleTruth], string: usize) -> Vec<f64> {
+fn residuals(device: &SimulatedDevice, truth: &[SampleTruth], string: usize) -> Vec<f64> {
     truth
         .iter()
         .map(|t| t.lengths_mm[string] - device.base_length_mm(string, t.inputs.counts[string]))
         .collect()
 }
 
-fn quiet_session(effects: &[&str]) -> (SimDevice, Vec<SampleTruth>) {
-    let device = SimDevice::new(&quiet_config(effects), 31).unwrap();
+fn quiet_session(effects: &[&str]) -> (SimulatedDevice, Vec<SampleTruth>) {
+    let device = SimulatedDevice::new(&quiet_config(effects), 31).unwrap();
     let (_, truth) =
         simulate_session_with_truth(&device, SessionKind::Random { points: 400 }, 32).unwrap();
     (device, truth)
@@ -264,7 +265,7 @@ fn without_effects_the_true_law_explains_every_string() {
 /// its base-law length by the term's value, and leaves the others alone.
 #[test]
 fn each_injected_effect_changes_its_string_by_the_expected_amount() {
-    type Expect = fn(&SimDevice, &SampleTruth) -> f64;
+    type Expect = fn(&SimulatedDevice, &SampleTruth) -> f64;
     let cases: [(&str, Expect); 9] = [
         ("offset:3:mm=10", |_, _| 10.0),
         ("scale:3:relative=0.01", |d, t| {
@@ -341,15 +342,15 @@ fn each_injected_effect_changes_its_string_by_the_expected_amount() {
 
 #[test]
 fn wildcard_and_geometry_effects() {
-    let device = SimDevice::new(&quiet_config(&["backlash:*:half_width_mm=0.4"]), 1).unwrap();
+    let device = SimulatedDevice::new(&quiet_config(&["backlash:*:half_width_mm=0.4"]), 1).unwrap();
     assert_eq!(device.effects.len(), 8);
     assert!(device
         .effects
         .iter()
         .all(|t| t.effect == Effect::Backlash { half_width_mm: 0.4 }));
 
-    let plain = SimDevice::new(&quiet_config(&[]), 1).unwrap();
-    let moved = SimDevice::new(
+    let plain = SimulatedDevice::new(&quiet_config(&[]), 1).unwrap();
+    let moved = SimulatedDevice::new(
         &quiet_config(&["anchor:2:dx=10,dz=-4", "tracker_scale:relative=0.002"]),
         1,
     )
@@ -407,7 +408,7 @@ fn direction_and_speed_agree_with_the_path() {
 
 #[test]
 fn abnormal_motor_gives_large_errors_in_one_corner() {
-    let device = SimDevice::new(&SimConfig::default(), 8).unwrap();
+    let device = SimulatedDevice::new(&SimConfig::default(), 8).unwrap();
     let (_, truth) = simulate_session_with_truth(&device, SessionKind::Lattice, 9).unwrap();
     let hit: Vec<&SampleTruth> = truth.iter().filter(|t| t.abnormal_mm != 0.0).collect();
     let share = hit.len() as f64 / truth.len() as f64;
@@ -435,7 +436,7 @@ fn abnormal_motor_gives_large_errors_in_one_corner() {
 
 #[test]
 fn tracker_noise_is_as_configured() {
-    let device = SimDevice::new(&SimConfig::default(), 12).unwrap();
+    let device = SimulatedDevice::new(&SimConfig::default(), 12).unwrap();
     let (session, truth) = simulate_session_with_truth(&device, SessionKind::Lattice, 13).unwrap();
     let d: Vec<f64> = session
         .samples
@@ -465,7 +466,7 @@ fn configuration_and_effect_errors_name_what_is_wrong() {
 
     std::fs::write(&path, "[lattice]\ncells_per_axis = 5\nduration_s = 100.0\n").unwrap();
     let c = SimConfig::load(&path).unwrap();
-    let device = SimDevice::new(&c, 1).unwrap();
+    let device = SimulatedDevice::new(&c, 1).unwrap();
     assert_eq!(
         simulate_session(&device, SessionKind::Lattice, 1)
             .unwrap()
@@ -487,7 +488,7 @@ fn configuration_and_effect_errors_name_what_is_wrong() {
             effects: vec![spec.to_string()],
             ..SimConfig::default()
         };
-        let err = SimDevice::new(&c, 1).unwrap_err();
+        let err = SimulatedDevice::new(&c, 1).unwrap_err();
         assert!(matches!(err, SimError::EffectSpec { .. }), "{spec}: {err}");
         let msg = err.to_string();
         assert!(msg.contains(spec) && msg.contains(needle), "{spec}: {msg}");

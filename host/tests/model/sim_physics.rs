@@ -894,7 +894,7 @@ fn a_clean_model_device_gets_no_layer_table() {
     use spidar::model::diagnose::{close_loop, LoopConfig};
     use spidar::model::identify::Start;
     let device =
-        spidar::sim::SimDevice::new(&spidar::sim::config::SimConfig::default(), 1).unwrap();
+        spidar::sim::SimulatedDevice::new(&spidar::sim::config::SimConfig::default(), 1).unwrap();
     let train = spidar::sim::simulate_session(&device, SessionKind::Lattice, 101).unwrap();
     let r = close_loop(
         &observations(&train.samples),

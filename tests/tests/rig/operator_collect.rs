@@ -20,7 +20,7 @@ use spidar::procedures::collect::{
 };
 use spidar::sim::operator::{HandSample, SimulatedRig};
 use spidar::sim::virtual_device::{spawn, Hand, Pace, Plant, Trajectory, VirtualDeviceConfig};
-use spidar::sim::{SimConfig, SimDevice};
+use spidar::sim::{SimConfig, SimulatedDevice};
 use spidar_core::kinematics::{forward_kinematics, FkConfig};
 
 fn distance(a: &[f64; 3], b: &[f64; 3]) -> f64 {
@@ -68,7 +68,7 @@ impl CueSink for Recorder {
 /// A device as built (seed 3) with the end-effector at its true home, a
 /// steady operator and a tracker with some occlusion and loss.
 fn rig(seed: u64) -> SimulatedRig {
-    let device = SimDevice::new(&SimConfig::default(), 3).unwrap();
+    let device = SimulatedDevice::new(&SimConfig::default(), 3).unwrap();
     SimulatedRig::start(device, [0.0; 3], |c| {
         c.seed = seed;
         c.occlusion = 0.05;
@@ -341,7 +341,7 @@ fn assert_the_operator_saw_each_cell_in_turn(recorder: &Recorder, lattice: &Latt
 /// A rig like [`rig`] whose tracker reports the marker body turned by
 /// `rotation` (row-major body -> room), with `max_cells` captures.
 fn turned_rig(seed: u64, rotation: [[f64; 3]; 3]) -> SimulatedRig {
-    let device = SimDevice::new(&SimConfig::default(), 3).unwrap();
+    let device = SimulatedDevice::new(&SimConfig::default(), 3).unwrap();
     SimulatedRig::start(device, [0.0; 3], |c| {
         c.seed = seed;
         c.occlusion = 0.05;
@@ -642,11 +642,11 @@ fn a_file_of_another_layout_or_volume_is_refused_naming_it() {
 
 /// A virtual device and a tracker receiver nobody sends to.
 fn device_without_tracker() -> (
-    SimDevice,
+    SimulatedDevice,
     spidar::sim::virtual_device::VirtualDevice,
     DtrackReceiver,
 ) {
-    let device = SimDevice::new(&SimConfig::default(), 3).unwrap();
+    let device = SimulatedDevice::new(&SimConfig::default(), 3).unwrap();
     let hand = Hand::at(device.frame.home);
     let plant = Plant::new(device.clone(), Trajectory::Held(hand));
     let vd = spawn(

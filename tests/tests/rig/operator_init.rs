@@ -14,7 +14,7 @@ use spidar::device::tracker::{DtrackReceiver, ReceiverConfig, TrackerSource};
 use spidar::procedures::init::{initialize, InitConfig, InitError};
 use spidar::sim::operator::{FreeMotion, SimOperator, SimOperatorConfig};
 use spidar::sim::virtual_device::{spawn, Hand, Pace, Plant, Trajectory, VirtualDeviceConfig};
-use spidar::sim::{SimConfig, SimDevice};
+use spidar::sim::{SimConfig, SimulatedDevice};
 
 fn distance(a: &[f64; 3], b: &[f64; 3]) -> f64 {
     ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
@@ -34,7 +34,7 @@ impl CueSink for Recorder {
 }
 
 struct World {
-    device: SimDevice,
+    device: SimulatedDevice,
     hand: Hand,
     vd: spidar::sim::virtual_device::VirtualDevice,
     receiver: DtrackReceiver,
@@ -64,7 +64,7 @@ fn operator_and_client(w: &World, op_config: SimOperatorConfig) -> (SimOperator,
 /// A device as built (seed 3), its end-effector `offset` (device frame) off
 /// where the built-in homing left it.
 fn world(offset: [f64; 3]) -> World {
-    let device = SimDevice::new(&SimConfig::default(), 3).unwrap();
+    let device = SimulatedDevice::new(&SimConfig::default(), 3).unwrap();
     let start: [f64; 3] = core::array::from_fn(|k| device.frame.home[k] + offset[k]);
     let hand = Hand::at(start);
     // On the simulated clock from the start, as `SimulatedRig` does.

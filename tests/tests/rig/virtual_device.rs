@@ -20,14 +20,14 @@ use spidar_protocol::{
     MAX_FRAME,
 };
 
-fn sim_device(seed: u64) -> sim::SimDevice {
+fn sim_device(seed: u64) -> sim::SimulatedDevice {
     let mut config = SimConfig::default();
     config.abnormal_motor.enabled = false;
     config.effects = vec![
         "offset:2:mm=3".into(),
         "backlash:5:half_width_mm=0.4".into(),
     ];
-    sim::SimDevice::new(&config, seed).expect("simulated device")
+    sim::SimulatedDevice::new(&config, seed).expect("simulated device")
 }
 
 fn nn(hidden: usize) -> CorrectionModel {

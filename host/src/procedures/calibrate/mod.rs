@@ -436,7 +436,7 @@ impl Run<'_> {
             schema: SCHEMA,
             tool: report::Tool::current(),
             timing: f.timing,
-            device: report::DeviceReport::of(
+            device: report::StringsReport::of(
                 self.geometry.layout,
                 self.train_info.tracked,
                 fin.residual_scale_mm,

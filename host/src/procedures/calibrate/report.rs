@@ -25,7 +25,7 @@ pub struct Report {
     pub tool: Tool,
     pub inputs: Inputs,
     /// The device's strings and what their number allows.
-    pub device: DeviceReport,
+    pub device: StringsReport,
     /// The tracker's clock against the device's, per session.
     pub timing: Timing,
     /// Pipeline order; the last stage is the final model.
@@ -66,7 +66,7 @@ pub struct Timing {
 /// The strings of the calibrated device and what their number means for
 /// what calibration and tracking can check.
 #[derive(Clone, Debug, Serialize)]
-pub struct DeviceReport {
+pub struct StringsReport {
     /// Number of strings (anchors), 3..=8.
     pub strings: usize,
     /// Encoder channels that carry them.
@@ -243,7 +243,7 @@ impl Rejections {
     }
 }
 
-impl DeviceReport {
+impl StringsReport {
     /// The report of `layout` calibrated from `tracked_rows` rows whose
     /// string residuals scatter by `residual_scale_mm` (each string's own
     /// scale `length_scale_mm`).
@@ -254,7 +254,7 @@ impl DeviceReport {
         length_scale_mm: &[f64; spidar_core::STRINGS],
         chi2_threshold: f64,
         rejections: SessionRejections,
-    ) -> DeviceReport {
+    ) -> StringsReport {
         let weights = spidar_core::kinematics::residual_weights(layout, length_scale_mm);
         let typical_scale_mm =
             spidar_core::kinematics::typical_scale(layout, length_scale_mm).unwrap_or(0.0);
@@ -298,7 +298,7 @@ impl DeviceReport {
                  are only testable with many rows spread over them"
             ));
         }
-        DeviceReport {
+        StringsReport {
             strings: layout.count(),
             channels: layout.indices().collect(),
             planar: layout.planar,

@@ -43,13 +43,13 @@ pub fn calibrate_simulated_with(
     sim_config: &crate::sim::SimConfig,
 ) -> Result<SimCalibration, MonitorError> {
     use crate::procedures::calibrate::{calibrate, CalibrateConfig, NamedSession};
-    use crate::sim::{simulate_session, SessionKind, SimConfig, SimDevice};
+    use crate::sim::{simulate_session, SessionKind, SimConfig, SimulatedDevice};
     let t0 = Instant::now();
     let config = SimConfig {
         effects: Vec::new(),
         ..sim_config.clone()
     };
-    let device = SimDevice::new(&config, seed)?;
+    let device = SimulatedDevice::new(&config, seed)?;
     let training = simulate_session(&device, SessionKind::Lattice, seed.wrapping_add(100))?;
     let test = simulate_session(
         &device,
@@ -157,12 +157,12 @@ impl SimulatedMonitorRig {
         config: &SimRigConfig,
     ) -> Result<SimulatedMonitorRig, MonitorError> {
         use crate::sim::operator::{FreeMotion, SimulatedRig};
-        use crate::sim::{SimConfig, SimDevice};
+        use crate::sim::{SimConfig, SimulatedDevice};
         let sim_config = SimConfig {
             effects: config.effects.clone(),
             ..calibrated.sim_config.clone()
         };
-        let device = SimDevice::new(&sim_config, calibrated.seed)?;
+        let device = SimulatedDevice::new(&sim_config, calibrated.seed)?;
         let model_id = model_id_of(&calibrated.calibration);
         let blob = compile_checked(
             &calibrated.calibration,

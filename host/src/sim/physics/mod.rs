@@ -116,7 +116,7 @@ pub use effects::{parse_effect, parse_effects, PhysicsEffect, EFFECT_NAMES};
 pub use guide::{Guide, GuidePath};
 pub use spool::{Spool, SpoolParams};
 
-use super::device::{declaring_pretension, draw_home, normal, stream};
+use super::simulated_device::{declaring_pretension, draw_home, normal, stream};
 use super::{trajectory, SessionKind, SimError, SimulateReport, SimulateRequest, StreamArea};
 use crate::data::dataset::{Geometry, Sample, Session};
 use spidar_core::geometry::{

@@ -40,7 +40,7 @@ pub(crate) fn normal(field: &str, sigma: f64) -> Result<Normal<f64>, SimError> {
 /// One simulated device as built. The same device gives any number of
 /// sessions (train and test) with the same as-built errors.
 #[derive(Clone, Debug)]
-pub struct SimDevice {
+pub struct SimulatedDevice {
     pub config: SimConfig,
     /// The device seed.
     pub seed: u64,
@@ -264,10 +264,10 @@ fn home_windings(
     Ok((laws, home_wound_mm))
 }
 
-impl SimDevice {
+impl SimulatedDevice {
     /// Build the device: draw its as-built errors from `seed`, apply the
     /// configured injected effects.
-    pub fn new(config: &SimConfig, seed: u64) -> Result<SimDevice, SimError> {
+    pub fn new(config: &SimConfig, seed: u64) -> Result<SimulatedDevice, SimError> {
         config.validate()?;
         let nominal = declaring_pretension(config.nominal.geometry(), config.tension.pretension_n);
         let ab = &config.as_built;
@@ -297,7 +297,7 @@ impl SimDevice {
             nominal.counts_per_rev[0],
         )?;
 
-        Ok(SimDevice {
+        Ok(SimulatedDevice {
             config: config.clone(),
             seed,
             nominal,
