@@ -47,8 +47,8 @@ pub use simulated_device::SimulatedDevice;
 pub use truth::Truth;
 
 use crate::data::dataset::{DatasetError, Sample, Session};
-use simulated_device::{normal, stream};
 use rand_distr::Distribution;
+use simulated_device::{normal, stream};
 use spidar_core::geometry::{dot, norm, sub};
 
 /// Any failure of the simulator; each names the file, field or string concerned.

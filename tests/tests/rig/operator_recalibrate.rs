@@ -342,6 +342,30 @@ fn tracker_glitches_are_set_aside_and_report_no_drift() {
     assert!(report.checks.iter().all(|c| c.window.max_mm <= threshold));
 }
 
+/// One monitor run that must fail; its error.
+fn attempt(
+    client: &mut Client,
+    tracker: &mut dyn spidar::device::tracker::TrackerSource,
+    geometry: &spidar::data::dataset::Geometry,
+    calibration: &spidar_core::model::Calibration,
+    config: &MonitorConfig,
+) -> MonitorError {
+    monitor(
+        client,
+        tracker,
+        MonitorInputs {
+            geometry,
+            calibration,
+            calibration_file: Path::new("calibration.json"),
+            training: None,
+        },
+        config,
+        &mut |_: &MonitorEvent| {},
+        &mut |_: &spidar::procedures::monitor::Check| false,
+    )
+    .unwrap_err()
+}
+
 #[test]
 fn bad_input_gives_clear_errors() {
     let cal = calibrated();
@@ -358,28 +382,6 @@ fn bad_input_gives_clear_errors() {
     assert!(e.to_string().contains("frame_rate_hz"), "{e}");
     let mut rig = rig(&[], 8.0);
     let mut client = rig.client().unwrap();
-    let mut never = |_: &MonitorEvent| {};
-    let mut no = |_: &spidar::procedures::monitor::Check| false;
-    let mut attempt = |client: &mut Client,
-                       tracker: &mut dyn spidar::device::tracker::TrackerSource,
-                       geometry: &spidar::data::dataset::Geometry,
-                       calibration: &spidar_core::model::Calibration,
-                       config: &MonitorConfig| {
-        monitor(
-            client,
-            tracker,
-            MonitorInputs {
-                geometry,
-                calibration,
-                calibration_file: Path::new("calibration.json"),
-                training: None,
-            },
-            config,
-            &mut never,
-            &mut no,
-        )
-        .unwrap_err()
-    };
     let short = config(5.0);
 
     // A geometry of another device: anchors far from the calibration's.
@@ -451,8 +453,16 @@ fn bad_input_gives_clear_errors() {
         &tiny,
     );
     assert!(e.to_string().contains("`window`"), "{e}");
+}
 
-    // A tracker that goes silent: a receiver nobody sends to.
+/// A tracker that goes silent (a receiver nobody sends to) fails the
+/// monitor instead of leaving it waiting.
+#[test]
+fn a_silent_tracker_is_an_error_not_a_wait() {
+    let cal = calibrated();
+    let rig = rig(&[], 8.0);
+    let mut client = rig.client().unwrap();
+    let short = config(5.0);
     let mut silent = spidar::device::tracker::DtrackReceiver::bind(
         spidar::device::tracker::ReceiverConfig::new(std::net::SocketAddr::from((
             [127, 0, 0, 1],
