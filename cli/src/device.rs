@@ -85,7 +85,9 @@ pub enum DeviceCommand {
     /// Arm the motors (pre-tension). The device needs a request at least
     /// every heartbeat timeout (20 ms) while armed: this command keeps the
     /// heartbeat for --hold seconds; after it, the device drops to
-    /// pre-tension and latches HEARTBEAT_LOST until `disarm`/`arm`.
+    /// pre-tension, holds it (the motors stay on: model changes are refused
+    /// until `disarm`) and latches HEARTBEAT_LOST until the next `arm`
+    /// clears it (`disarm` turns the motors off and leaves it latched).
     Arm {
         #[arg(long, default_value_t = 0.0, value_parser = crate::args::non_negative)]
         hold: f64,

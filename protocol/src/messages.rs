@@ -402,6 +402,24 @@ pub enum BadState {
     NoGeometry,
 }
 
+impl fmt::Display for BadState {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            BadState::Armed => {
+                "Armed: the motors are on (armed, or holding pre-tension after a fault such as \
+                 HEARTBEAT_LOST); disarm first"
+            }
+            BadState::NotArmed => "NotArmed: the request needs the device armed",
+            BadState::Faulted => "Faulted: a latched fault must be cleared first",
+            BadState::NoUpload => "NoUpload: no upload was begun",
+            BadState::NoGeometry => {
+                "NoGeometry: the device has no geometry yet (flash a model or send the nominal \
+                 geometry)"
+            }
+        })
+    }
+}
+
 /// A [`BlobError`] as it travels on the wire: field names are carried as
 /// [`Name`]s instead of `&'static str`, so the host can decode it from a
 /// transient buffer. Same variants, same messages.
@@ -445,7 +463,7 @@ impl fmt::Display for DeviceError {
                 f,
                 "protocol version mismatch: device speaks {device}, host speaks {host}"
             ),
-            Self::BadState(s) => write!(f, "refused in this state: {s:?}"),
+            Self::BadState(s) => write!(f, "refused in this state: {s}"),
             Self::InvalidArgument { field } => write!(f, "invalid argument `{field}`"),
             Self::Unsupported => write!(f, "request not supported by this firmware"),
             Self::TooLarge {

@@ -37,10 +37,7 @@ const N: usize = 32;
 // composed pipeline -0.4 %), which the 1 % repeatability of these figures
 // does not allow.
 #[cortex_m_rt::entry]
-#[allow(
-    clippy::too_many_lines,
-    reason = "a benchmark driver in one piece: split, the counts it measures move"
-)]
+#[allow(clippy::too_many_lines, reason = "a benchmark driver in one piece: split, the counts it measures move")]
 fn main() -> ! {
     if !spidar_qemu::fpu_enabled() {
         hprintln!("FAIL: FPU not enabled (CPACR)");
