@@ -57,6 +57,7 @@ const _: () = {
     format::<model_store::StoreError>();
     format::<model_store::CommitError<spidar_protocol::DeviceError>>();
     format::<string_law::StringLawCompileError>();
+    format::<plausible::Implausible>();
     #[cfg(feature = "alloc")]
     {
         format::<correction::CorrectionCompileError>();
@@ -74,6 +75,7 @@ mod tests {
         error::<crate::string_law::StringLawCompileError>();
         error::<crate::correction::CorrectionCompileError>();
         error::<crate::blob::BlobCompileError>();
+        error::<crate::plausible::Implausible>();
         error::<crate::safety::SafetyConfigError>();
         error::<crate::model_store::FlashError>();
         error::<crate::model_store::StoreError>();

@@ -37,6 +37,7 @@ pub const ROTATION_TOLERANCE: f64 = 1e-6;
 const PAYOUT_STEPS: usize = 1024;
 
 /// Why a calibration cannot be a device, naming the field.
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Implausible {
     /// `frame.room_rotation` is not orthonormal.
@@ -93,6 +94,8 @@ impl fmt::Display for Implausible {
         }
     }
 }
+
+impl core::error::Error for Implausible {}
 
 /// Checks that `frame` and `strings` can be a device (see the module's
 /// documentation); the first problem found.
