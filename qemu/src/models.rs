@@ -85,7 +85,7 @@ fn calibration(correction: CorrectionModel) -> Calibration {
 /// 4096 or 8192 counts apart that starts inside the cases' +-30 turns, so
 /// that the cases read its interpolation, its start and its held end.
 fn layered_law(i: usize) -> StringLaw {
-    let mut law = StringLaw::polynomial(4096, [12.0, -0.02, 0.0, 0.0]);
+    let mut law = StringLaw::polynomial(4096, [12.0, -0.004, 0.0, 0.0]);
     let knots: Vec<f64> = (0..LAYER_KNOTS).map(|k| 0.8 * (0.9 * k as f64 + i as f64).sin()).collect();
     law.layers = LayerTable {
         start_counts: -30 * 4096 + 2000 * i as i32,
