@@ -186,12 +186,7 @@ fn budgets_that_are_not_numbers_are_refused_and_over_budget_blobs_not_written() 
         a.extend(extra.iter().map(|e| e.to_string()));
         a
     };
-    let run = |a: Vec<String>| {
-        Command::new(env!("CARGO_BIN_EXE_spidar"))
-            .args(a)
-            .output()
-            .unwrap()
-    };
+    let run = |a: Vec<String>| spidar(&a.iter().map(String::as_str).collect::<Vec<_>>());
     let err = failure(&run(args(&[])));
     assert!(
         err.contains("exceeds the budget") && err.contains("no blob written"),
