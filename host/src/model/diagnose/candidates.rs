@@ -9,7 +9,7 @@ use spidar_core::STRINGS;
 
 use crate::model::identify::{Identification, Structure};
 
-use super::evidence::{Evidence, Row};
+use super::evidence::{Columns, Evidence, OffSpan, Row, RowColumn};
 use super::vocabulary::{Change, Family, Finding, LoopConfig, Variable};
 
 #[cfg(test)]
@@ -18,39 +18,57 @@ mod tests;
 /// Turns fitted coefficients into the model change a candidate proposes.
 pub(super) type BuildChange = Box<dyn Fn(&[f64]) -> Change>;
 
-/// A candidate effect: its regressors over all rows and what adding it means.
+/// A candidate effect: its regressors on the rows and what adding it means.
 pub(super) struct Candidate {
     pub(super) family: Family,
     pub(super) strings: Vec<u8>,
     pub(super) variable: Variable,
-    pub(super) columns: Vec<Vec<f64>>,
+    pub(super) columns: Vec<RowColumn>,
+    /// The string whose rows alone the columns (and the rival's) are not
+    /// zero on, for a term of one string.
+    pub(super) on_string: Option<usize>,
     /// Extra chi-square demanded for a searched parameter (a slip's time).
     pub(super) search_penalty: f64,
     /// Columns of a simpler explanation the candidate must explain the
     /// residual beyond (nested test at its own dof); empty: none.
-    pub(super) rival: Vec<Vec<f64>>,
+    pub(super) rival: Vec<RowColumn>,
     pub(super) build: BuildChange,
     pub(super) describe: String,
 }
 
-fn string_column(rows: &[Row], string: usize, f: impl Fn(&Row) -> f64) -> Vec<f64> {
-    rows.iter()
-        .map(|r| if r.string == string { f(r) } else { 0.0 })
-        .collect()
+impl Candidate {
+    /// Its columns, to test off the model's span.
+    pub(super) fn own(&self) -> Columns<'_> {
+        Columns {
+            columns: self.columns.iter().collect(),
+            string: self.on_string,
+        }
+    }
+
+    /// The rival's columns, then its own.
+    fn with_rival(&self) -> Columns<'_> {
+        Columns {
+            columns: self.rival.iter().chain(&self.columns).collect(),
+            string: self.on_string,
+        }
+    }
+}
+
+/// The column of a term of string `string`: `f` on its rows.
+fn string_column(string: usize, f: RowColumn) -> RowColumn {
+    Box::new(move |r| if r.string == string { f(r) } else { 0.0 })
 }
 
 /// The column of a term shared by every string: `f` on the active
 /// strings' rows.
-fn shared_column(rows: &[Row], strings: StringLayout, f: impl Fn(&Row) -> f64) -> Vec<f64> {
-    rows.iter()
-        .map(|r| {
-            if strings.is_active(r.string) {
-                f(r)
-            } else {
-                0.0
-            }
-        })
-        .collect()
+fn shared_column(strings: StringLayout, f: impl Fn(&Row) -> f64 + 'static) -> RowColumn {
+    Box::new(move |r| {
+        if strings.is_active(r.string) {
+            f(r)
+        } else {
+            0.0
+        }
+    })
 }
 
 pub(super) fn candidates(
@@ -58,7 +76,6 @@ pub(super) fn candidates(
     structure: &Structure,
     time_split: &[Option<f64>],
 ) -> Vec<Candidate> {
-    let rows = &ev.rows;
     let mut out = Vec::new();
     let has_effect = |string: usize, f: fn(&Effect) -> bool| {
         structure
@@ -71,9 +88,9 @@ pub(super) fn candidates(
         if !strings.is_active(i) {
             continue;
         }
-        for term in string_terms(rows, i, *split) {
+        for term in string_terms(ev.rows_of_string(i), i, *split) {
             if !has_effect(i, term.is_term) {
-                out.push(term.candidate(rows, i));
+                out.push(term.candidate(i));
             }
         }
     }
@@ -83,28 +100,27 @@ pub(super) fn candidates(
     // time, do not find.
     let shared = usize::from(EVERY_STRING);
     if !has_effect(shared, |e| matches!(e, Effect::Drift { .. })) {
-        out.push(shared_drift_candidate(rows, strings));
+        out.push(shared_drift_candidate(strings));
     }
     if !has_effect(shared, |e| matches!(e, Effect::Stretch { .. })) {
         out.push(shared_stretch_candidate(
-            rows,
+            ev,
             strings,
             structure.priors.home_tension_n,
         ));
     }
     if !has_effect(shared, |e| matches!(e, Effect::FrameFlex { .. })) {
-        out.push(frame_flex_candidate(rows, strings));
+        out.push(frame_flex_candidate(strings));
     }
     if !has_effect(shared, |e| matches!(e, Effect::Sag { .. })) {
-        out.push(shared_sag_candidate(rows, strings));
+        out.push(shared_sag_candidate(strings));
     }
     // The tracked body's origin off the strings' meeting point, seen through
     // the body's orientation (a tracker of rigid bodies gives it): the
     // meeting point is `p - R_body d`. Tried when every tracked row has an
     // orientation; a found offset is refined by the next diagnosis.
-    if rows.iter().all(|r| r.marker_column.is_some()) {
+    if ev.every_row_oriented() {
         out.push(marker_offset_candidate(
-            rows,
             strings,
             structure.marker_body_mm.unwrap_or([0.0; 3]),
         ));
@@ -114,7 +130,8 @@ pub(super) fn candidates(
             family: Family::Geometry,
             strings: Vec::new(),
             variable: Variable::Position,
-            columns: vec![rows.iter().map(|r| r.scale_gradient).collect()],
+            columns: vec![Box::new(|r| r.scale_gradient)],
+            on_string: None,
             search_penalty: 0.0,
             rival: Vec::new(),
             build: Box::new(|_| Change::RoomScale),
@@ -123,9 +140,6 @@ pub(super) fn candidates(
     }
     out
 }
-
-/// A column's value on one row.
-type RowColumn = Box<dyn Fn(&Row) -> f64>;
 
 /// A term's effect from its fitted parameters.
 type BuildEffect = Box<dyn Fn(&[f64]) -> Effect>;
@@ -150,7 +164,7 @@ struct StringTerm {
 
 impl StringTerm {
     /// The candidate adding this term on string `i`.
-    fn candidate(self, rows: &[Row], i: usize) -> Candidate {
+    fn candidate(self, i: usize) -> Candidate {
         let s = i as u8;
         let effect = self.effect;
         Candidate {
@@ -159,14 +173,15 @@ impl StringTerm {
             variable: self.variable,
             columns: self
                 .columns
-                .iter()
-                .map(|f| string_column(rows, i, f))
+                .into_iter()
+                .map(|f| string_column(i, f))
                 .collect(),
+            on_string: Some(i),
             search_penalty: self.search_penalty,
             rival: self
                 .rival
-                .iter()
-                .map(|f| string_column(rows, i, f))
+                .into_iter()
+                .map(|f| string_column(i, f))
                 .collect(),
             build: Box::new(move |b| {
                 Change::Effect(EffectTerm {
@@ -179,9 +194,10 @@ impl StringTerm {
     }
 }
 
-/// The terms one string `i` can gain, in the order they are tried; a slip
-/// when the string's residual steps at `split` (its most likely slip time).
-fn string_terms(rows: &[Row], i: usize, split: Option<f64>) -> Vec<StringTerm> {
+/// The terms one string `i` (of `rows` rows) can gain, in the order they
+/// are tried; a slip when the string's residual steps at `split` (its most
+/// likely slip time).
+fn string_terms(rows: usize, i: usize, split: Option<f64>) -> Vec<StringTerm> {
     let mut terms = vec![
         StringTerm {
             family: Family::Offset,
@@ -275,10 +291,10 @@ fn string_terms(rows: &[Row], i: usize, split: Option<f64>) -> Vec<StringTerm> {
     terms
 }
 
-/// A slip of string `i` at `at_s`: a step in its length, with the search
-/// penalty of a time picked among the string's rows.
-fn slip_term(rows: &[Row], i: usize, at_s: f64) -> StringTerm {
-    let n = rows.iter().filter(|r| r.string == i).count().max(2) as f64;
+/// A slip of string `i` (of `rows` rows) at `at_s`: a step in its length,
+/// with the search penalty of a time picked among the string's rows.
+fn slip_term(rows: usize, i: usize, at_s: f64) -> StringTerm {
+    let n = rows.max(2) as f64;
     StringTerm {
         family: Family::Slip,
         variable: Variable::Time,
@@ -333,12 +349,13 @@ fn every_string(effect: Effect) -> Change {
 }
 
 /// One drift shared by every string.
-fn shared_drift_candidate(rows: &[Row], strings: StringLayout) -> Candidate {
+fn shared_drift_candidate(strings: StringLayout) -> Candidate {
     Candidate {
         family: Family::Drift,
         strings: Vec::new(),
         variable: Variable::Time,
-        columns: vec![shared_column(rows, strings, |r| r.ctx.time_s)],
+        columns: vec![shared_column(strings, |r| r.ctx.time_s)],
+        on_string: None,
         search_penalty: 0.0,
         rival: Vec::new(),
         build: Box::new(|b| every_string(Effect::Drift { mm_per_s: b[0] })),
@@ -355,17 +372,21 @@ fn shared_drift_candidate(rows: &[Row], strings: StringLayout) -> Candidate {
 /// home length); the refit frees `T_home` around the pretension. With its
 /// lead and home parts: without them the shared sag stands in for it
 /// (decision record 0022, `docs/decisions/0022-stretch.md`).
-fn shared_stretch_candidate(rows: &[Row], strings: StringLayout, pretension: f64) -> Candidate {
-    let (sum_lh, n_lh) = rows
-        .iter()
-        .filter(|r| strings.is_active(r.string))
-        .fold((0.0, 0usize), |(s, n), r| (s + r.ctx.home_length_mm, n + 1));
+fn shared_stretch_candidate(ev: &Evidence, strings: StringLayout, pretension: f64) -> Candidate {
+    let (mut sum_lh, mut n_lh) = (0.0, 0usize);
+    ev.for_each_row(None, |_, r| {
+        if strings.is_active(r.string) {
+            sum_lh += r.ctx.home_length_mm;
+            n_lh += 1;
+        }
+    });
     let mean_lh = sum_lh / n_lh.max(1) as f64;
     Candidate {
         family: Family::Elasticity,
         strings: Vec::new(),
         variable: Variable::Tension,
-        columns: stretch_columns(rows, strings),
+        columns: stretch_columns(strings),
+        on_string: None,
         search_penalty: 0.0,
         rival: Vec::new(),
         build: Box::new(move |b| {
@@ -392,28 +413,29 @@ fn shared_stretch_candidate(rows: &[Row], strings: StringLayout, pretension: f64
 /// residual beyond. Both grow with the tension's effect on the string, and
 /// without that test a sag many times what the strings weigh stands in for
 /// the stretch of light elastic strings.
-fn stretch_columns(rows: &[Row], strings: StringLayout) -> Vec<Vec<f64>> {
+fn stretch_columns(strings: StringLayout) -> Vec<RowColumn> {
     vec![
-        shared_column(rows, strings, |r| {
+        shared_column(strings, |r| {
             r.ctx.tension_n * (r.ctx.home_length_mm + r.ctx.payout_mm)
         }),
-        shared_column(rows, strings, |r| r.ctx.tension_n),
-        shared_column(rows, strings, |_| -1.0),
+        shared_column(strings, |r| r.ctx.tension_n),
+        shared_column(strings, |_| -1.0),
     ]
 }
 
 /// The frame flexing under the strings' total pull: every guide moves
 /// with `sum_j T_j`, one compliance for the frame, less the flex at the
 /// home capture (a length every string shares).
-fn frame_flex_candidate(rows: &[Row], strings: StringLayout) -> Candidate {
+fn frame_flex_candidate(strings: StringLayout) -> Candidate {
     Candidate {
         family: Family::FrameFlex,
         strings: Vec::new(),
         variable: Variable::Tension,
         columns: vec![
-            shared_column(rows, strings, |r| r.ctx.total_tension_n),
-            shared_column(rows, strings, |_| -1.0),
+            shared_column(strings, |r| r.ctx.total_tension_n),
+            shared_column(strings, |_| -1.0),
         ],
+        on_string: None,
         search_penalty: 0.0,
         rival: Vec::new(),
         build: Box::new(|b| {
@@ -434,20 +456,21 @@ fn frame_flex_candidate(rows: &[Row], strings: StringLayout) -> Candidate {
 /// constant on that string (an offset), and per-string sags stand in for
 /// offsets and raise the test error (decision record 0021,
 /// `docs/decisions/0021-sag.md`).
-fn shared_sag_candidate(rows: &[Row], strings: StringLayout) -> Candidate {
+fn shared_sag_candidate(strings: StringLayout) -> Candidate {
     Candidate {
         family: Family::Sag,
         strings: Vec::new(),
         variable: Variable::Tension,
         columns: vec![
-            shared_column(rows, strings, |r| -sag_variable(&r.ctx)),
-            shared_column(rows, strings, |r| sag_home_variable(&r.ctx)),
+            shared_column(strings, |r| -sag_variable(&r.ctx)),
+            shared_column(strings, |r| sag_home_variable(&r.ctx)),
         ],
+        on_string: None,
         search_penalty: 0.0,
         // The stretch's `T l` column only: with its three columns as the
         // rival a different sag gets through, and a drift after it, which
         // raise the test error.
-        rival: stretch_columns(rows, strings).into_iter().take(1).collect(),
+        rival: stretch_columns(strings).into_iter().take(1).collect(),
         build: Box::new(|b| {
             every_string(Effect::Sag {
                 mm_at_1m_1n: b[0],
@@ -463,14 +486,15 @@ fn shared_sag_candidate(rows: &[Row], strings: StringLayout) -> Candidate {
 /// The tracked body's origin off the strings' meeting point: three
 /// columns, the body's orientation applied to each axis; the change adds
 /// the fitted offset to the one found `before`.
-fn marker_offset_candidate(rows: &[Row], strings: StringLayout, before: [f64; 3]) -> Candidate {
+fn marker_offset_candidate(strings: StringLayout, before: [f64; 3]) -> Candidate {
     Candidate {
         family: Family::Marker,
         strings: Vec::new(),
         variable: Variable::Orientation,
         columns: (0..3)
-            .map(|j| shared_column(rows, strings, |r| r.marker_column.map_or(0.0, |c| c[j])))
+            .map(|j| shared_column(strings, move |r| r.marker_column.map_or(0.0, |c| c[j])))
             .collect(),
+        on_string: None,
         search_penalty: 0.0,
         rival: Vec::new(),
         build: Box::new(move |b| Change::MarkerOffset(core::array::from_fn(|j| before[j] + b[j]))),
@@ -480,11 +504,24 @@ fn marker_offset_candidate(rows: &[Row], strings: StringLayout, before: [f64; 3]
     }
 }
 
-/// Whether candidate `c` explains the residual beyond its rival's columns:
-/// its chi-square over the rival's alone, at the candidate's dof.
-pub(super) fn beyond_rival(ev: &Evidence, c: &Candidate, config: &LoopConfig) -> bool {
-    let both: Vec<Vec<f64>> = c.rival.iter().chain(&c.columns).cloned().collect();
-    (ev.explained_by_span(&both) - ev.explained_by_span(&c.rival)) / ev.sigma2
+/// Whether each candidate explains the residual beyond its rival's
+/// columns: its chi-square over the rival's alone, at the candidate's dof.
+/// In one pass over the rows for all of them.
+pub(super) fn beyond_rivals(ev: &Evidence, tried: &[&Candidate], config: &LoopConfig) -> Vec<bool> {
+    let sets: Vec<Columns> = tried.iter().map(|c| c.with_rival()).collect();
+    ev.off_span(&sets)
+        .iter()
+        .zip(tried)
+        .map(|(off, c)| beyond_rival(ev, off, c, config))
+        .collect()
+}
+
+/// [`beyond_rivals`] of `c` from its rival's and its own columns off the
+/// model's span (`off`).
+fn beyond_rival(ev: &Evidence, off: &OffSpan, c: &Candidate, config: &LoopConfig) -> bool {
+    let rival = c.rival.len();
+    (off.explained_by_span(0..rival + c.columns.len()) - off.explained_by_span(0..rival))
+        / ev.sigma2
         >= chi2_threshold(config, c.columns.len(), c.search_penalty)
 }
 

@@ -1,16 +1,33 @@
 //! The evidence diagnosis reads: every (row, string) residual of the
 //! current fit with what it depends on ([`Row`]), and the model's span the
 //! candidates are tested off ([`Evidence`]).
+//!
+//! ## Rows made when read
+//! A tracked observation gives a row per string: 800,000 rows for a
+//! 100,000-row session. Neither the rows nor the model's span (an
+//! orthonormal basis of the data Jacobian's columns, a value per row and
+//! parameter) are held: each pass over the rows makes them again from the
+//! observations, the fit and the data Jacobian ([`DataJacobian`]), and what
+//! is held is a few numbers per row (the weights and the residuals). Held,
+//! rows, basis and the candidates' columns took 1.6 GB for a 15 MB session.
+//! The sums over the rows are taken in the order and with the rounding of
+//! the dense matrix products they stand for (`span`), so every figure is
+//! the same as theirs.
 
-use nalgebra::{DMatrix, DVector};
-use spidar_core::model::{Frame, StringLayout};
+mod span;
+
+#[cfg(test)]
+use nalgebra::DMatrix;
+use nalgebra::DVector;
+use spidar_core::model::{Frame, StringInputs, StringLayout};
 use spidar_core::string_law::{payout_f64, EffectContext};
 use spidar_core::STRINGS;
 
 use crate::data::observe::Observation;
-use crate::model::identify::{
-    data_jacobian, device_position, inputs_at, DataJacobian, Identification, Structure,
-};
+use crate::model::identify::{device_position, inputs_at, DataJacobian, Identification, Structure};
+
+pub(super) use span::{Columns, OffSpan};
+use span::{Span, SquaresSum};
 
 /// What one (row, string) residual depends on.
 #[derive(Clone, Copy, Debug)]
@@ -20,8 +37,6 @@ pub(super) struct Row {
     pub(super) string: usize,
     /// Weight of the robust fit (0 for rejected residuals).
     pub(super) weight: f64,
-    /// Residual (geometric minus model), mm, unweighted.
-    pub(super) residual: f64,
     pub(super) ctx: EffectContext,
     /// Geometric length from the tracker, mm.
     pub(super) length: f64,
@@ -37,18 +52,16 @@ pub(super) struct Row {
     pub(super) scale_gradient: f64,
 }
 
+/// A column's value on one row (a candidate effect's regressor).
+pub(super) type RowColumn = Box<dyn Fn(&Row) -> f64>;
+
 /// Everything diagnosis needs about the current fit.
-pub(super) struct Evidence {
+pub(super) struct Evidence<'a> {
     /// Which channels carry a string (rows of the others have weight 0).
     pub(super) layout: StringLayout,
-    pub(super) rows: Vec<Row>,
-    /// Orthonormal basis of the model's (weighted) Jacobian columns.
-    pub(super) basis: DMatrix<f64>,
-    /// `basis` transposed, made once: every candidate's projection
-    /// multiplies by it, and transposing the basis (a row per residual)
-    /// anew for each candidate takes a tenth of the loop's time.
-    pub(super) basis_t: DMatrix<f64>,
-    /// Weighted residual with the model's directions projected out.
+    source: Source<'a>,
+    /// Weighted residual with the model's directions projected out, row by
+    /// row.
     pub(super) residual: DVector<f64>,
     /// Residual variance per unit weight, mm^2.
     pub(super) sigma2: f64,
@@ -56,188 +69,424 @@ pub(super) struct Evidence {
     pub(super) rss: f64,
 }
 
+/// Where the rows and the model's span come from.
+enum Source<'a> {
+    /// A fit's: made from its observations when read.
+    Fit(FitRows<'a>),
+    /// Given whole, with their residuals (unweighted) and the span's
+    /// orthonormal basis (a row per row): tests' evidence of their own
+    /// making.
+    #[cfg(test)]
+    Given {
+        rows: Vec<Row>,
+        residuals: Vec<f64>,
+        basis: DMatrix<f64>,
+    },
+}
+
+/// A fit's rows: row `u * STRINGS + i` is string `i` of the `u`-th
+/// observation with a tracker position.
+struct FitRows<'a> {
+    id: &'a Identification,
+    observations: &'a [Observation],
+    /// Index into `observations` of each one with a tracker position.
+    used: Vec<usize>,
+    jacobian: DataJacobian<'a>,
+    span: Span,
+}
+
+/// What a row's strings share: its observation as the fit reads it.
+struct Observed<'o> {
+    k: usize,
+    o: &'o Observation,
+    previous: Option<&'o Observation>,
+    p: [f64; 3],
+    inputs: StringInputs,
+    body_in_device: Option<[[f64; 3]; 3]>,
+}
+
 /// A column whose part off the model's span (or off the other columns')
 /// is under this share of its norm lies (almost) in it: the model already
 /// absorbs it and the data cannot show it.
 pub(super) const MIN_OUTSIDE_SPAN: f64 = 1e-2;
 
-/// A direction of unit columns off the model's span with a singular value
-/// under this is (numerically) in the span ([`Evidence::explained_by_span`]).
-const NUMERICALLY_IN_SPAN: f64 = 1e-6;
-
 pub(super) fn pulley_turn_angle(theta: f64) -> f64 {
     theta.rem_euclid(2.0 * std::f64::consts::PI)
 }
 
-impl Evidence {
+impl<'a> Evidence<'a> {
     pub(super) fn gather(
-        id: &Identification,
-        observations: &[Observation],
-        nominal: &Frame<f64>,
-        structure: &Structure,
-    ) -> Option<Evidence> {
-        let DataJacobian {
-            jacobian: jac,
-            residuals: weighted,
-            weights,
-        } = data_jacobian(id, observations, nominal, structure)?;
+        id: &'a Identification,
+        observations: &'a [Observation],
+        nominal: &'a Frame<f64>,
+        structure: &'a Structure,
+    ) -> Option<Evidence<'a>> {
+        let jacobian = DataJacobian::new(id, observations, nominal, structure)?;
         let used: Vec<usize> = observations
             .iter()
             .enumerate()
             .filter(|(_, o)| o.tracker.is_some())
             .map(|(k, _)| k)
             .collect();
-        let mut rows = Vec::with_capacity(used.len() * STRINGS);
-        for (u, &k) in used.iter().enumerate() {
-            let o = &observations[k];
-            o.tracker?;
-            let p = device_position(&id.frame, o);
-            let inputs = inputs_at(&id.frame, o, &p);
-            let prev = k.checked_sub(1).map(|j| &observations[j]);
-            // The body's turn as the device frame sees it, once per row.
-            let body_in_device = o
-                .tracker_rotation
-                .map(|body| body_in_device(&id.frame, &body));
-            for i in 0..STRINGS {
-                let ctx = EffectContext::for_string(&id.frame, &id.laws, &inputs, i)?;
-                let d = [
-                    p[0] - id.frame.anchors[i][0],
-                    p[1] - id.frame.anchors[i][1],
-                    p[2] - id.frame.anchors[i][2],
-                ];
-                let length = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-                let up = [d[0] / length, d[1] / length, d[2] / length];
-                let speed = match prev {
-                    Some(q) if o.t_s > q.t_s => {
-                        let before = payout_f64(&id.laws[i], q.inputs.counts[i]);
-                        (ctx.payout_mm - before) / (o.t_s - q.t_s)
-                    }
-                    _ => 0.0,
-                };
-                let w = weights[u][i];
-                rows.push(Row {
-                    obs: k,
-                    string: i,
-                    weight: w,
-                    residual: if w > 0.0 {
-                        weighted[u * STRINGS + i] / w.sqrt()
-                    } else {
-                        0.0
-                    },
-                    ctx,
-                    length,
-                    speed,
-                    position: p,
-                    marker_column: body_in_device.map(|m| marker_column(&m, &up)),
-                    scale_gradient: -(up[0] * p[0] + up[1] * p[1] + up[2] * p[2])
-                        / id.frame.room_scale,
-                });
-            }
-        }
         // Orthonormal basis of the column space from the eigenvectors of J^T J
         // (the data Jacobian alone is rank deficient: the gauge is fixed by priors).
-        let gram = jac.transpose() * &jac;
+        let gram = jacobian.gram()?;
         let eig = gram.symmetric_eigen();
         let max = eig.eigenvalues.iter().cloned().fold(0.0, f64::max);
         let keep: Vec<usize> = (0..eig.eigenvalues.len())
             .filter(|&j| eig.eigenvalues[j] > 1e-10 * max)
             .collect();
-        let mut basis = DMatrix::zeros(jac.nrows(), keep.len());
-        for (c, &j) in keep.iter().enumerate() {
-            let v = eig.eigenvectors.column(j);
-            let u = &jac * v / eig.eigenvalues[j].sqrt();
-            basis.set_column(c, &u);
-        }
-        let basis_t = basis.transpose();
-        let residual = &weighted - &basis * (&basis_t * &weighted);
-        let rss = residual.norm_squared();
-        let effective = weights.iter().flatten().filter(|&&w| w > 0.0).count();
-        let dof = (effective as f64 - keep.len() as f64).max(1.0);
-        Some(Evidence {
-            layout: nominal.layout,
-            rows,
-            basis,
-            basis_t,
-            residual,
-            sigma2: rss / dof,
-            rss,
-        })
-    }
-
-    /// The columns as a matrix, each row scaled by the square root of its
-    /// robust weight (as the residual is).
-    fn weighted(&self, columns: &[Vec<f64>]) -> DMatrix<f64> {
-        let mut x = DMatrix::zeros(self.rows.len(), columns.len());
-        for (c, col) in columns.iter().enumerate() {
-            for (r, row) in self.rows.iter().enumerate() {
-                x[(r, c)] = col[r] * row.weight.sqrt();
-            }
-        }
-        x
-    }
-
-    /// Projects weighted regressor columns (one value per row) off the model.
-    /// `None` when a column lies (almost) in the model's span: the current
-    /// model already absorbs that effect, so the data cannot show it.
-    pub(super) fn project(&self, columns: &[Vec<f64>]) -> Option<DMatrix<f64>> {
-        let x = self.weighted(columns);
-        let coef = &self.basis_t * &x;
-        let projected = &x - &self.basis * coef;
-        for c in 0..columns.len() {
-            let before = x.column(c).norm();
-            if before == 0.0 || projected.column(c).norm() < MIN_OUTSIDE_SPAN * before {
-                return None;
-            }
-        }
-        Some(projected)
-    }
-
-    /// The residual's sum of squares explained by the span of `columns`
-    /// off the model's, dropping the directions numerically in the model's
-    /// span or in that of the other columns: a rival's columns may be
-    /// degenerate on a session (a planar device's tracked z is one value:
-    /// its position columns in z repeat the others), which [`project`]
-    /// and [`fit`] would refuse as a whole. With full rank it is `fit`'s
-    /// explained sum of squares.
-    ///
-    /// [`project`]: Self::project
-    /// [`fit`]: Self::fit
-    pub(super) fn explained_by_span(&self, columns: &[Vec<f64>]) -> f64 {
-        // Unit columns: the tolerance is a share of each column, whatever
-        // its units (a sag's home column is far smaller than the stretch's).
-        // Only the directions numerically in the span are dropped: a rival
-        // explains with everything it spans (with the 1 % of
-        // MIN_OUTSIDE_SPAN, correlated position columns lose directions and
-        // a drift stands in for them).
-        let mut x = self.weighted(columns);
-        for mut column in x.column_iter_mut() {
-            let norm = column.norm();
-            if norm > 0.0 {
-                column /= norm;
-            }
-        }
-        let projected = &x - &self.basis * (&self.basis_t * &x);
-        let svd = projected.svd(true, false);
-        let Some(u) = svd.u else {
-            return 0.0;
-        };
-        svd.singular_values
+        let span = Span::new(&jacobian, &eig, &keep);
+        let effective = jacobian
+            .weights()
             .iter()
-            .enumerate()
-            .filter(|(_, &s)| s > NUMERICALLY_IN_SPAN)
-            .map(|(k, _)| u.column(k).dot(&self.residual).powi(2))
-            .sum()
+            .flatten()
+            .filter(|&&w| w > 0.0)
+            .count();
+        let mut ev = Evidence {
+            layout: nominal.layout,
+            source: Source::Fit(FitRows {
+                id,
+                observations,
+                used,
+                jacobian,
+                span,
+            }),
+            residual: DVector::zeros(0),
+            sigma2: 0.0,
+            rss: 0.0,
+        };
+        let weighted = match &ev.source {
+            Source::Fit(fit) => DVector::from_column_slice(fit.jacobian.residuals()),
+            #[cfg(test)]
+            Source::Given { .. } => DVector::zeros(0),
+        };
+        ev.project_residual(&weighted, keep.len());
+        let dof = (effective as f64 - keep.len() as f64).max(1.0);
+        ev.sigma2 = ev.rss / dof;
+        Some(ev)
     }
 
-    /// Least-squares fit of projected regressors to the projected residual:
-    /// (coefficients, explained sum of squares).
-    pub(super) fn fit(&self, projected: &DMatrix<f64>) -> Option<(Vec<f64>, f64)> {
-        let gram = projected.transpose() * projected;
-        let rhs = projected.transpose() * &self.residual;
-        let beta = gram.clone().cholesky()?.solve(&rhs);
-        let explained = beta.dot(&rhs);
-        (explained.is_finite() && explained >= 0.0)
-            .then(|| (beta.iter().copied().collect(), explained))
+    /// Evidence of `rows` (their `weight` as the fit's), their
+    /// `residuals` (unweighted), the model's span given by its orthonormal
+    /// `basis` (a row per row), and the residual variance `sigma2`.
+    #[cfg(test)]
+    pub(super) fn of_rows(
+        rows: Vec<Row>,
+        residuals: Vec<f64>,
+        basis: DMatrix<f64>,
+        sigma2: f64,
+    ) -> Evidence<'static> {
+        let weighted = DVector::from_iterator(
+            rows.len(),
+            rows.iter()
+                .zip(&residuals)
+                .map(|(r, e)| e * r.weight.sqrt()),
+        );
+        let dims = basis.ncols();
+        let mut ev = Evidence {
+            layout: StringLayout::ALL,
+            source: Source::Given {
+                rows,
+                residuals,
+                basis,
+            },
+            residual: DVector::zeros(0),
+            sigma2,
+            rss: 0.0,
+        };
+        ev.project_residual(&weighted, dims);
+        ev
+    }
+
+    /// `residual` and `rss` from the weighted residual: `r - B (B^T r)`
+    /// (`B` the span's basis) and its sum of squares.
+    fn project_residual(&mut self, weighted: &DVector<f64>, dims: usize) {
+        let mut coef = vec![0.0; dims];
+        self.visit_rows(None, Visit::Basis, |k, _, b| {
+            let w = weighted[k];
+            if w != 0.0 {
+                for (c, &bc) in coef.iter_mut().zip(b) {
+                    *c = bc * w + *c;
+                }
+            }
+        });
+        let mut residual = DVector::zeros(weighted.len());
+        let mut squares = SquaresSum::new(weighted.len());
+        self.visit_rows(None, Visit::Basis, |k, _, b| {
+            let r = weighted[k] - span::dot_in_turn(b, &coef);
+            residual[k] = r;
+            squares.add(k, r);
+        });
+        self.residual = residual;
+        self.rss = squares.total();
+    }
+
+    /// Number of rows.
+    pub(super) fn rows(&self) -> usize {
+        self.residual.len()
+    }
+
+    /// Row `k`'s string.
+    pub(super) fn string_of(&self, k: usize) -> usize {
+        match &self.source {
+            Source::Fit(_) => k % STRINGS,
+            #[cfg(test)]
+            Source::Given { rows, .. } => rows[k].string,
+        }
+    }
+
+    /// Row `k`'s robust weight.
+    pub(super) fn weight(&self, k: usize) -> f64 {
+        match &self.source {
+            Source::Fit(fit) => fit.jacobian.weights()[k / STRINGS][k % STRINGS],
+            #[cfg(test)]
+            Source::Given { rows, .. } => rows[k].weight,
+        }
+    }
+
+    /// Row `k`'s time since initialization (s), as its context reads it.
+    pub(super) fn time_of(&self, k: usize) -> f64 {
+        match &self.source {
+            Source::Fit(fit) => {
+                f64::from(fit.observations[fit.used[k / STRINGS]].inputs.time_ms) / 1000.0
+            }
+            #[cfg(test)]
+            Source::Given { rows, .. } => rows[k].ctx.time_s,
+        }
+    }
+
+    /// Row `k`'s residual (geometric minus model, mm), unweighted.
+    pub(super) fn residual_of(&self, k: usize) -> f64 {
+        match &self.source {
+            Source::Fit(fit) => {
+                let w = self.weight(k);
+                if w > 0.0 {
+                    fit.jacobian.residuals()[k] / w.sqrt()
+                } else {
+                    0.0
+                }
+            }
+            #[cfg(test)]
+            Source::Given { residuals, .. } => residuals[k],
+        }
+    }
+
+    /// How many rows string `string` has.
+    pub(super) fn rows_of_string(&self, string: usize) -> usize {
+        (0..self.rows())
+            .filter(|&k| self.string_of(k) == string)
+            .count()
+    }
+
+    /// Whether the tracker gave the body's orientation on every row.
+    pub(super) fn every_row_oriented(&self) -> bool {
+        match &self.source {
+            Source::Fit(fit) => fit
+                .used
+                .iter()
+                .all(|&k| fit.observations[k].tracker_rotation.is_some()),
+            #[cfg(test)]
+            Source::Given { rows, .. } => rows.iter().all(|r| r.marker_column.is_some()),
+        }
+    }
+
+    /// The rows of weight above 0 (of string `string`, or of every
+    /// string) in time order: (time, row). Rows of one time keep their
+    /// order, so that each string's rows keep theirs among every string's.
+    pub(super) fn rows_in_time(&self, string: Option<usize>) -> Vec<(f64, usize)> {
+        let mut rows: Vec<(f64, usize)> = (0..self.rows())
+            .filter(|&k| string.is_none_or(|s| self.string_of(k) == s) && self.weight(k) > 0.0)
+            .map(|k| (self.time_of(k), k))
+            .collect();
+        rows.sort_by(|a, b| a.0.total_cmp(&b.0));
+        rows
+    }
+
+    /// Calls `visit(k, row)` on every row of `string` (of every string with
+    /// `None`), in order.
+    pub(super) fn for_each_row(&self, string: Option<usize>, mut visit: impl FnMut(usize, &Row)) {
+        self.visit_rows(string, Visit::Rows, |k, row, _| {
+            if let Some(row) = row {
+                visit(k, row);
+            }
+        });
+    }
+
+    /// Calls `visit(k, row, basis)` on every row in order, with the row of
+    /// the span's orthonormal basis.
+    pub(super) fn for_each_row_with_basis(&self, mut visit: impl FnMut(usize, &Row, &[f64])) {
+        self.visit_rows(None, Visit::Both, |k, row, b| {
+            if let Some(row) = row {
+                visit(k, row, b);
+            }
+        });
+    }
+
+    /// Calls `visit(k, basis)` on rows `rows` in that order, with each
+    /// one's row of the span's orthonormal basis. A fit's rows of one
+    /// observation are made together: rows in observation order cost least.
+    pub(super) fn for_basis_rows_in(
+        &self,
+        rows: impl Iterator<Item = usize>,
+        mut visit: impl FnMut(usize, &[f64]),
+    ) {
+        match &self.source {
+            Source::Fit(fit) => {
+                let mut pass = fit.jacobian.pass();
+                let mut basis = vec![0.0; STRINGS * fit.span.dims()];
+                let mut made = None;
+                for k in rows {
+                    let u = k / STRINGS;
+                    if made != Some(u) {
+                        fit.basis_rows(&mut pass, u, &mut basis);
+                        made = Some(u);
+                    }
+                    let dims = fit.span.dims();
+                    visit(k, &basis[(k % STRINGS) * dims..][..dims]);
+                }
+            }
+            #[cfg(test)]
+            Source::Given { basis, .. } => {
+                for k in rows {
+                    let b: Vec<f64> = basis.row(k).iter().copied().collect();
+                    visit(k, &b);
+                }
+            }
+        }
+    }
+
+    /// Calls `visit(k, row, basis)` on the rows of `string` (or every row)
+    /// in order: with the row when `what` asks for it (`None` for a row
+    /// without, which a fit's rows never are), with its row of the span's
+    /// basis when `what` asks for it (else empty).
+    fn visit_rows(
+        &self,
+        string: Option<usize>,
+        what: Visit,
+        mut visit: impl FnMut(usize, Option<&Row>, &[f64]),
+    ) {
+        match &self.source {
+            Source::Fit(fit) => fit.visit_rows(string, what, &mut visit),
+            #[cfg(test)]
+            Source::Given { rows, basis, .. } => {
+                for (k, row) in rows.iter().enumerate() {
+                    if string.is_none_or(|s| row.string == s) {
+                        let b: Vec<f64> = match what {
+                            Visit::Rows => Vec::new(),
+                            Visit::Basis | Visit::Both => basis.row(k).iter().copied().collect(),
+                        };
+                        visit(k, Some(row), &b);
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// What a pass over the rows makes.
+#[derive(Clone, Copy, PartialEq)]
+enum Visit {
+    Rows,
+    Basis,
+    Both,
+}
+
+impl FitRows<'_> {
+    fn visit_rows(
+        &self,
+        string: Option<usize>,
+        what: Visit,
+        visit: &mut impl FnMut(usize, Option<&Row>, &[f64]),
+    ) {
+        let dims = self.span.dims();
+        let mut pass = (what != Visit::Rows).then(|| self.jacobian.pass());
+        let mut basis = vec![0.0; STRINGS * dims];
+        for u in 0..self.used.len() {
+            if let Some(pass) = pass.as_mut() {
+                self.basis_rows(pass, u, &mut basis);
+            }
+            let observed = (what != Visit::Basis).then(|| self.observed(u));
+            for i in 0..STRINGS {
+                if string.is_some_and(|s| s != i) {
+                    continue;
+                }
+                let row = observed.as_ref().and_then(|at| self.row(u, at, i));
+                let b = match what {
+                    Visit::Rows => &[][..],
+                    Visit::Basis | Visit::Both => &basis[i * dims..(i + 1) * dims],
+                };
+                visit(u * STRINGS + i, row.as_ref(), b);
+            }
+        }
+    }
+
+    /// The rows of the span's basis of the `u`-th tracked observation's
+    /// strings into `basis` (a string's after another's; zero where the
+    /// row has weight 0).
+    fn basis_rows(
+        &self,
+        pass: &mut crate::model::identify::DataJacobianPass<'_>,
+        u: usize,
+        basis: &mut [f64],
+    ) {
+        let dims = self.span.dims();
+        basis.fill(0.0);
+        pass.rows_of(u, |i, own, shared| {
+            self.span
+                .basis_row(i, own, shared, &mut basis[i * dims..(i + 1) * dims]);
+        });
+    }
+
+    /// The `u`-th tracked observation as the fit reads it.
+    fn observed(&self, u: usize) -> Observed<'_> {
+        let frame = &self.id.frame;
+        let k = self.used[u];
+        let o = &self.observations[k];
+        let p = device_position(frame, o);
+        let inputs = inputs_at(frame, o, &p);
+        Observed {
+            k,
+            o,
+            previous: k.checked_sub(1).map(|j| &self.observations[j]),
+            p,
+            inputs,
+            // The body's turn as the device frame sees it, once per row.
+            body_in_device: o.tracker_rotation.map(|body| body_in_device(frame, &body)),
+        }
+    }
+
+    /// String `i`'s row of the `u`-th tracked observation (`at`); `None`
+    /// without a context (every string index has one).
+    fn row(&self, u: usize, at: &Observed<'_>, i: usize) -> Option<Row> {
+        let id = self.id;
+        let p = at.p;
+        let ctx = EffectContext::for_string(&id.frame, &id.laws, &at.inputs, i)?;
+        let d = [
+            p[0] - id.frame.anchors[i][0],
+            p[1] - id.frame.anchors[i][1],
+            p[2] - id.frame.anchors[i][2],
+        ];
+        let length = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+        let up = [d[0] / length, d[1] / length, d[2] / length];
+        let speed = match at.previous {
+            Some(q) if at.o.t_s > q.t_s => {
+                let before = payout_f64(&id.laws[i], q.inputs.counts[i]);
+                (ctx.payout_mm - before) / (at.o.t_s - q.t_s)
+            }
+            _ => 0.0,
+        };
+        Some(Row {
+            obs: at.k,
+            string: i,
+            weight: self.jacobian.weights()[u][i],
+            ctx,
+            length,
+            speed,
+            position: p,
+            marker_column: at.body_in_device.map(|m| marker_column(&m, &up)),
+            scale_gradient: -(up[0] * p[0] + up[1] * p[1] + up[2] * p[2]) / id.frame.room_scale,
+        })
     }
 }
 

@@ -41,9 +41,9 @@ use crate::model::validate::{
     refuse_on_fold_rise, stability, validate, validate_fits, IN_SAMPLE_SHARE_OF_GAIN,
 };
 
-use candidates::{anchors_beyond_tolerance, beyond_rival, candidates, chi2_threshold};
+use candidates::{anchors_beyond_tolerance, beyond_rivals, candidates, chi2_threshold, Candidate};
 use describe::{fitted_in_physical_terms, stage_name};
-use evidence::Evidence;
+use evidence::{Columns, Evidence};
 use slips::{slip_times, slips_together, steps_where_it_slipped};
 use trials::{add_layer_tables, free_spool_rates};
 
@@ -75,39 +75,58 @@ pub fn diagnose(
         return Vec::new();
     };
     let splits = slip_times(&ev);
-    let mut findings: Vec<Finding> = candidates(&ev, structure, &splits)
-        .into_iter()
-        .filter_map(|c| {
-            let projected = ev.project(&c.columns)?;
-            let (beta, explained) = ev.fit(&projected)?;
+    let candidates = candidates(&ev, structure, &splits);
+    let mut findings = significant(&ev, &candidates, config);
+    findings.extend(anchors_beyond_tolerance(id, nominal, structure));
+    findings.sort_by(|a, b| b.chi2.total_cmp(&a.chi2));
+    findings
+}
+
+/// The candidates that explain the residual significantly off the model's
+/// span (and beyond their rival's columns), in order, as findings; a slip
+/// only where the residual jumps. Each test's passes over the rows serve
+/// every candidate at once.
+fn significant(ev: &Evidence, candidates: &[Candidate], config: &LoopConfig) -> Vec<Finding> {
+    let own: Vec<Columns> = candidates.iter().map(Candidate::own).collect();
+    let fitted: Vec<(&Candidate, Vec<f64>, f64)> = ev
+        .off_span(&own)
+        .iter()
+        .zip(candidates)
+        .filter_map(|(off, c)| {
+            if !off.outside() {
+                return None;
+            }
+            let (beta, explained) = off.fit()?;
             let chi2 = explained / ev.sigma2;
-            if chi2 < chi2_threshold(config, c.columns.len(), c.search_penalty) {
-                return None;
-            }
-            if !c.rival.is_empty() && !beyond_rival(&ev, &c, config) {
-                return None;
-            }
-            let amplitude_mm = ev
-                .rows
-                .iter()
-                .enumerate()
-                .filter(|(_, r)| r.weight > 0.1)
-                .map(|(k, _)| {
-                    c.columns
-                        .iter()
-                        .zip(&beta)
-                        .map(|(col, b)| col[k] * b)
-                        .sum::<f64>()
-                        .abs()
-                })
-                .fold(0.0, f64::max);
+            (chi2 >= chi2_threshold(config, c.columns.len(), c.search_penalty))
+                .then_some((c, beta, explained))
+        })
+        .collect();
+    let with_rival: Vec<&Candidate> = fitted
+        .iter()
+        .map(|f| f.0)
+        .filter(|c| !c.rival.is_empty())
+        .collect();
+    let mut beyond = beyond_rivals(ev, &with_rival, config).into_iter();
+    let kept: Vec<(&Candidate, Vec<f64>, f64)> = fitted
+        .into_iter()
+        .filter(|(c, _, _)| c.rival.is_empty() || beyond.next().unwrap_or(false))
+        .collect();
+    let sets: Vec<(Columns, &[f64])> = kept
+        .iter()
+        .map(|(c, beta, _)| (c.own(), &beta[..]))
+        .collect();
+    let amplitudes = ev.amplitudes(&sets);
+    kept.into_iter()
+        .zip(amplitudes)
+        .filter_map(|((c, beta, explained), amplitude_mm)| {
             let change = (c.build)(&beta);
             if let Change::Effect(EffectTerm {
                 string,
                 effect: Effect::Slip { at_s, mm },
             }) = change
             {
-                if !steps_where_it_slipped(&ev, usize::from(string), at_s, mm) {
+                if !steps_where_it_slipped(ev, usize::from(string), at_s, mm) {
                     return None;
                 }
             }
@@ -118,16 +137,13 @@ pub fn diagnose(
                 amplitude_mm,
                 explained: explained / ev.rss.max(1e-12),
                 added: false,
-                chi2,
+                chi2: explained / ev.sigma2,
                 description: c.describe.clone(),
                 validation: None,
                 change: Some(change),
             })
         })
-        .collect();
-    findings.extend(anchors_beyond_tolerance(id, nominal, structure));
-    findings.sort_by(|a, b| b.chi2.total_cmp(&a.chi2));
-    findings
+        .collect()
 }
 
 /// Runs the loop: identify, diagnose, add the strongest significant effect,

@@ -2,7 +2,6 @@
 //! its residual off the model), whether the residual really jumps there,
 //! and the slips of several strings tried together.
 
-use nalgebra::{DMatrix, DVector};
 use spidar_core::model::{Effect, EffectTerm};
 use spidar_core::STRINGS;
 
@@ -21,32 +20,28 @@ mod tests;
 /// in the raw residual is partly absorbed by the offset, anchor and winding
 /// parameters whenever time and position go together (a lattice walked
 /// layer by layer), which leaves a step plus a ramp whose largest mean
-/// difference lies elsewhere, far from the slip.
+/// difference lies elsewhere, far from the slip. Every string's search in
+/// one pass over the rows, latest first.
 pub(super) fn slip_times(ev: &Evidence) -> Vec<Option<f64>> {
-    let weights: Vec<f64> = ev.rows.iter().map(|r| r.weight).collect();
-    (0..STRINGS)
-        .map(|i| {
-            if !ev.layout.is_active(i) {
-                return None;
-            }
-            best_step_off_model(&rows_in_time(ev, i), &weights, &ev.residual, &ev.basis)
-                .map(|b| b.1)
-        })
+    let rows = ev.rows_in_time(None);
+    let mut counts = [0; STRINGS];
+    for &(_, k) in &rows {
+        counts[ev.string_of(k)] += 1;
+    }
+    let mut searches: [Option<StepSearch>; STRINGS] =
+        core::array::from_fn(|i| ev.layout.is_active(i).then(|| StepSearch::new(counts[i])));
+    let time: Vec<f64> = rows.iter().map(|r| r.0).collect();
+    let mut at = rows.len();
+    ev.for_basis_rows_in(rows.iter().rev().map(|r| r.1), |k, b| {
+        at -= 1;
+        if let Some(search) = searches[ev.string_of(k)].as_mut() {
+            search.add(time[at], ev.weight(k), ev.residual[k], b);
+        }
+    });
+    searches
+        .into_iter()
+        .map(|s| s.and_then(StepSearch::best).map(|b| b.1))
         .collect()
-}
-
-/// String `string`'s weighted rows in time order: (time, index into
-/// `ev.rows`).
-fn rows_in_time(ev: &Evidence, string: usize) -> Vec<(f64, usize)> {
-    let mut rows: Vec<(f64, usize)> = ev
-        .rows
-        .iter()
-        .enumerate()
-        .filter(|(_, r)| r.string == string && r.weight > 0.0)
-        .map(|(k, r)| (r.ctx.time_s, k))
-        .collect();
-    rows.sort_by(|a, b| a.0.total_cmp(&b.0));
-    rows
 }
 
 /// Rows on each side of a split that [`jumps_where_it_slipped`] compares.
@@ -59,9 +54,9 @@ const LOCAL_STEP_Z: f64 = 3.0;
 /// Whether string `string`'s residual jumps where a slip of `mm` at `at_s`
 /// says ([`jumps_where_it_slipped`] on its rows in time order).
 pub(super) fn steps_where_it_slipped(ev: &Evidence, string: usize, at_s: f64, mm: f64) -> bool {
-    let rows = rows_in_time(ev, string);
+    let rows = ev.rows_in_time(Some(string));
     let split = rows.partition_point(|r| r.0 < at_s);
-    let residuals: Vec<f64> = rows.iter().map(|&(_, k)| ev.rows[k].residual).collect();
+    let residuals: Vec<f64> = rows.iter().map(|&(_, k)| ev.residual_of(k)).collect();
     jumps_where_it_slipped(&residuals, split, mm)
 }
 
@@ -137,55 +132,115 @@ fn holds_beyond_its_windows(residuals: &[f64], split: usize, jump: f64) -> bool 
 /// ([`jumps_where_it_slipped`]), rows.
 const NEIGHBOURING_ROWS: usize = 60;
 
-/// The best single step over rows `(key, row)` in key order, judged
-/// off the model: a step column `x` (the rows after the split, each
-/// `sqrt(weight)`) explains `(x . r)^2 / (x . x - |B^T x|^2)` of the
-/// projected weighted residual `r` (`B`: the model's orthonormal basis; `r`
-/// is already orthogonal to it, so `x . r` needs no projection). Suffix sums
-/// give every split in one pass. (Its statistic, the key halfway across it),
-/// at least `MIN_SIDE` rows on each side and a step not (almost) in the
-/// model's span; `None` with too few rows.
-fn best_step_off_model(
-    rows: &[(f64, usize)],
-    weights: &[f64],
-    residual: &DVector<f64>,
-    basis: &DMatrix<f64>,
-) -> Option<(f64, f64)> {
-    const MIN_SIDE: usize = 20;
-    let n = rows.len();
-    if n < 2 * MIN_SIDE {
-        return None;
+/// Fewest rows on each side of a step [`StepSearch`] takes.
+const MIN_SIDE: usize = 20;
+
+/// The best single step of one string's rows in key order, judged off the
+/// model: a step column `x` (the rows after the split, each `sqrt(weight)`)
+/// explains `(x . r)^2 / (x . x - |B^T x|^2)` of the projected weighted
+/// residual `r` (`B`: the model's orthonormal basis; `r` is already
+/// orthogonal to it, so `x . r` needs no projection). The rows come last
+/// first ([`StepSearch::add`]): running sums give every split in one pass.
+pub(super) struct StepSearch {
+    /// The string's rows.
+    n: usize,
+    /// Index of the next row to come.
+    next: usize,
+    x_r: f64,
+    x_x: f64,
+    bt_x: Vec<f64>,
+    /// The split before the last row added, judged once the row before it
+    /// (its key) comes.
+    pending: Option<Split>,
+    best: (f64, Option<(usize, f64)>),
+}
+
+/// The split before row `j`: `x` holds rows `j..n`.
+struct Split {
+    j: usize,
+    key: f64,
+    x_r: f64,
+    x_x: f64,
+    outside: f64,
+}
+
+impl StepSearch {
+    /// A search over `n` rows.
+    pub(super) fn new(n: usize) -> StepSearch {
+        StepSearch {
+            n,
+            next: n.saturating_sub(1),
+            x_r: 0.0,
+            x_x: 0.0,
+            bt_x: Vec::new(),
+            pending: None,
+            best: (0.0, None),
+        }
     }
-    let mut x_r = 0.0;
-    let mut x_x = 0.0;
-    let mut bt_x = vec![0.0; basis.ncols()];
-    let mut best = (0.0, None);
-    // The split before `rows[j]`: `x` holds rows j..n.
-    for j in (1..n).rev() {
-        let (_, k) = rows[j];
-        let sw = weights[k].sqrt();
-        x_r += sw * residual[k];
-        x_x += weights[k];
-        for (c, b) in bt_x.iter_mut().enumerate() {
-            *b += sw * basis[(k, c)];
+
+    /// The next row, last first: its key, robust weight, projected
+    /// weighted residual and row of the model's basis.
+    pub(super) fn add(&mut self, key: f64, weight: f64, residual: f64, basis: &[f64]) {
+        let j = self.next;
+        if let Some(split) = self.pending.take() {
+            self.judge(split, key);
         }
-        if j < MIN_SIDE || n - j < MIN_SIDE || rows[j].0 == rows[j - 1].0 {
-            continue;
+        // The first row is never in `x`.
+        if j >= 1 {
+            let sw = weight.sqrt();
+            self.x_r += sw * residual;
+            self.x_x += weight;
+            self.bt_x.resize(basis.len(), 0.0);
+            for (b, &v) in self.bt_x.iter_mut().zip(basis) {
+                *b += sw * v;
+            }
+            let outside = self.x_x - self.bt_x.iter().map(|b| b * b).sum::<f64>();
+            self.pending = Some(Split {
+                j,
+                key,
+                x_r: self.x_r,
+                x_x: self.x_x,
+                outside,
+            });
         }
-        let outside = x_x - bt_x.iter().map(|b| b * b).sum::<f64>();
+        self.next = j.saturating_sub(1);
+    }
+
+    /// Scores `split`, whose row before has key `before`: at least
+    /// `MIN_SIDE` rows on each side, a step between two keys and not
+    /// (almost) in the model's span.
+    fn judge(&mut self, split: Split, before: f64) {
+        let Split {
+            j,
+            key,
+            x_r,
+            x_x,
+            outside,
+        } = split;
+        if j < MIN_SIDE || self.n - j < MIN_SIDE || key == before {
+            return;
+        }
         if outside <= MIN_OUTSIDE_SPAN * MIN_OUTSIDE_SPAN * x_x {
-            continue;
+            return;
         }
         let stat = x_r * x_r / outside;
-        if stat > best.0 {
-            best = (stat, Some((j, 0.5 * (rows[j - 1].0 + rows[j].0))));
+        if stat > self.best.0 {
+            self.best = (stat, Some((j, 0.5 * (before + key))));
         }
     }
-    // A best split on the edge of the allowed range is no step found: what
-    // stands out is the first or last few rows (the session's start), which
-    // a step further in would fit better still.
-    let (j, at) = best.1?;
-    (j > MIN_SIDE && n - j > MIN_SIDE).then_some((best.0, at))
+
+    /// (Its statistic, the key halfway across it) of the best step;
+    /// `None` with too few rows. A best split on the edge of the allowed
+    /// range is no step found: what stands out is the first or last few
+    /// rows (the session's start), which a step further in would fit
+    /// better still.
+    pub(super) fn best(self) -> Option<(f64, f64)> {
+        if self.n < 2 * MIN_SIDE {
+            return None;
+        }
+        let (j, at) = self.best.1?;
+        (j > MIN_SIDE && self.n - j > MIN_SIDE).then_some((self.best.0, at))
+    }
 }
 
 /// The significant slips of several strings as one finding and change

@@ -45,20 +45,23 @@ pub fn unexplained(
     let threshold = chi2_threshold(config, BINS, 15.0);
     let mut by_variable: Vec<(Variable, Vec<u8>, f64, f64, f64)> = Vec::new();
     for i in ev.layout.indices() {
-        let rows: Vec<(usize, &Row)> = ev
-            .rows
-            .iter()
-            .enumerate()
-            .filter(|(_, r)| r.string == i && r.weight > 0.1)
-            .collect();
+        // The string's rows the fit keeps: each variable's value, the
+        // projected residual and the square root of the weight.
+        let mut rows: Vec<([f64; 10], f64, f64)> = Vec::new();
+        ev.for_each_row(Some(i), |k, r| {
+            if r.weight > 0.1 {
+                let values = variables.map(|(_, value)| value(r));
+                rows.push((values, ev.residual[k], r.weight.sqrt()));
+            }
+        });
         if rows.len() < 4 * BINS {
             continue;
         }
         let mut best: Option<(Variable, f64, f64, f64)> = None;
-        for (variable, value) in variables.iter() {
+        for (j, (variable, _)) in variables.iter().enumerate() {
             let mut v: Vec<(f64, f64, f64)> = rows
                 .iter()
-                .map(|(k, r)| (value(r), ev.residual[*k], r.weight.sqrt()))
+                .map(|(values, residual, sw)| (values[j], *residual, *sw))
                 .collect();
             v.sort_by(|a, b| a.0.total_cmp(&b.0));
             let mut between = 0.0;

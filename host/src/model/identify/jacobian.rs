@@ -4,7 +4,7 @@
 
 use nalgebra::{DMatrix, DVector};
 use spidar_core::geometry::{cross, distance, mat_vec, sub};
-use spidar_core::model::{Effect, EffectTerm, Frame, EVERY_STRING};
+use spidar_core::model::{Effect, EffectTerm, Frame, StringLaw, EVERY_STRING};
 use spidar_core::string_law::{sag_home_slope, sag_slope, EffectContext};
 use spidar_core::STRINGS;
 
@@ -13,6 +13,7 @@ use super::problem::Problem;
 use super::residuals::{device_position, inputs_at, GROSS_RESIDUAL_MM};
 use super::result::Identification;
 use super::structure::Structure;
+use super::winding::WindingPhysics;
 use crate::data::observe::Observation;
 use crate::model::normal::NormalEquations;
 
@@ -49,91 +50,10 @@ impl Problem<'_> {
         state: &State,
         mut visit: impl FnMut(usize, usize, &[f64], &[f64]),
     ) -> bool {
-        let laws = state.winding.laws();
-        let layout = self.layout;
-        let columns = &layout.arrow;
-        let shared_terms: Vec<usize> = layout.term_columns(self.structure, EVERY_STRING).collect();
-        let own_terms: [Vec<usize>; STRINGS] =
-            core::array::from_fn(|i| layout.term_columns(self.structure, i as u8).collect());
-        let frame = &state.frame;
-        let w = &state.winding;
-        let home_lengths: Vec<f64> = (0..STRINGS)
-            .map(|i| distance(frame.home, frame.anchors[i]))
-            .collect();
-        let two_pi = 2.0 * std::f64::consts::PI;
-        let planar = frame.layout.planar;
-        let mut own = Vec::with_capacity(columns.n);
-        let mut shared = Vec::with_capacity(columns.n);
+        let mut pass = RowPass::new(self, state.clone());
         let mut finite = true;
         for (k, o) in self.observations.iter().enumerate() {
-            let p = device_position(frame, o);
-            let inputs = inputs_at(frame, o, &p);
-            // Each string's context once per row, not once per column.
-            let contexts: [Option<EffectContext>; STRINGS] =
-                core::array::from_fn(|s| EffectContext::for_string(frame, &laws, &inputs, s));
-            let effect_grad = self.effect_gradients(state, &contexts);
-            for i in 0..STRINGS {
-                let row = k * STRINGS + i;
-                let f = self.weights[k][i].sqrt() / self.residual_sd;
-                if f == 0.0 {
-                    continue;
-                }
-                let a = frame.anchors[i];
-                let geo = distance(p, a);
-                let up = {
-                    let d = sub(p, a);
-                    [d[0] / geo, d[1] / geo, d[2] / geo]
-                };
-                let lh = home_lengths[i];
-                let uh = {
-                    let d = sub(frame.home, a);
-                    [d[0] / lh, d[1] / lh, d[2] / lh]
-                };
-                let theta = two_pi * o.inputs.counts[i] as f64 / w.counts_per_rev[i] as f64;
-                let (d_payout, d_home) =
-                    length_derivatives(&state.effects, i, o, contexts[i].as_ref());
-                own.clear();
-                shared.clear();
-                // Anchor, then home.
-                own.extend((0..3).map(|c| f * (-up[c] + d_home * uh[c])));
-                shared.extend((0..3).map(|c| f * (-d_home * uh[c])));
-                // The tracker frame: rotation, translation.
-                let rup = mat_vec(&frame.room_rotation, up);
-                let wgrad = cross(up, p);
-                shared.extend((0..3).map(|c| f * wgrad[c]));
-                shared.extend((0..3).map(|c| f * (-rup[c] / frame.room_scale)));
-                if planar {
-                    // The position is held in the plane: the tracker's
-                    // tilts and z translation do not move it.
-                    shared[ROTATION - HOME] = 0.0;
-                    shared[ROTATION + 1 - HOME] = 0.0;
-                    shared[TRANSLATION + 2 - HOME] = 0.0;
-                }
-                if layout.fit_scale {
-                    let dot = up[0] * p[0] + up[1] * p[1] + up[2] * p[2];
-                    shared.push(f * (-dot / frame.room_scale));
-                }
-                // The winding law: radius, shared and own thinning rates.
-                own.push(f * (-theta * d_payout));
-                let d_kappa = f * (theta * theta * d_payout / w.mechanical_advantage[i]);
-                shared.push(d_kappa);
-                own.push(if self.structure.hold_kappa_each {
-                    0.0
-                } else {
-                    d_kappa
-                });
-                own.extend(own_terms[i].iter().map(|&c| f * effect_grad[c][i]));
-                shared.extend(shared_terms.iter().map(|&c| f * effect_grad[c][i]));
-                // To the scaled LM variables.
-                for (v, &c) in own.iter_mut().zip(&columns.own[i]) {
-                    *v *= layout.scale[c];
-                }
-                for (v, &c) in shared.iter_mut().zip(&columns.shared) {
-                    *v *= layout.scale[c];
-                }
-                finite &= own.iter().chain(&shared).all(|v| v.is_finite());
-                visit(row, i, &own, &shared);
-            }
+            finite &= pass.observation_rows(self, k, o, &mut visit);
         }
         finite
     }
@@ -177,6 +97,129 @@ impl Problem<'_> {
             normal.add_row(base + j, &values, residuals[base + j]);
         }
         (strings_finite && priors_finite).then(|| normal.finish())
+    }
+}
+
+/// What every row of the Jacobian at one state shares, and one row's
+/// values, reused.
+pub(super) struct RowPass {
+    state: State,
+    laws: [StringLaw; STRINGS],
+    /// The effect columns (counted from the first) of the every-string
+    /// terms and of each string's own.
+    shared_terms: Vec<usize>,
+    own_terms: [Vec<usize>; STRINGS],
+    home_lengths: [f64; STRINGS],
+    own: Vec<f64>,
+    shared: Vec<f64>,
+}
+
+impl RowPass {
+    pub(super) fn new(problem: &Problem<'_>, state: State) -> RowPass {
+        let layout = problem.layout;
+        let frame = &state.frame;
+        RowPass {
+            laws: state.winding.laws(),
+            shared_terms: layout
+                .term_columns(problem.structure, EVERY_STRING)
+                .collect(),
+            own_terms: core::array::from_fn(|i| {
+                layout.term_columns(problem.structure, i as u8).collect()
+            }),
+            home_lengths: core::array::from_fn(|i| distance(frame.home, frame.anchors[i])),
+            own: Vec::with_capacity(layout.arrow.n),
+            shared: Vec::with_capacity(layout.arrow.n),
+            state,
+        }
+    }
+
+    /// The rows of observation `k` (`o`) of `problem`, as
+    /// [`Problem::string_rows`] visits them. False when a value is not
+    /// finite.
+    pub(super) fn observation_rows(
+        &mut self,
+        problem: &Problem<'_>,
+        k: usize,
+        o: &Observation,
+        visit: &mut impl FnMut(usize, usize, &[f64], &[f64]),
+    ) -> bool {
+        let layout = problem.layout;
+        let columns = &layout.arrow;
+        let state = &self.state;
+        let frame = &state.frame;
+        let w = &state.winding;
+        let two_pi = 2.0 * std::f64::consts::PI;
+        let planar = frame.layout.planar;
+        let (own, shared) = (&mut self.own, &mut self.shared);
+        let mut finite = true;
+        let p = device_position(frame, o);
+        let inputs = inputs_at(frame, o, &p);
+        // Each string's context once per row, not once per column.
+        let contexts: [Option<EffectContext>; STRINGS] =
+            core::array::from_fn(|s| EffectContext::for_string(frame, &self.laws, &inputs, s));
+        let effect_grad = problem.effect_gradients(state, &contexts);
+        for i in 0..STRINGS {
+            let row = k * STRINGS + i;
+            let f = problem.weights[k][i].sqrt() / problem.residual_sd;
+            if f == 0.0 {
+                continue;
+            }
+            let a = frame.anchors[i];
+            let geo = distance(p, a);
+            let up = {
+                let d = sub(p, a);
+                [d[0] / geo, d[1] / geo, d[2] / geo]
+            };
+            let lh = self.home_lengths[i];
+            let uh = {
+                let d = sub(frame.home, a);
+                [d[0] / lh, d[1] / lh, d[2] / lh]
+            };
+            let theta = two_pi * o.inputs.counts[i] as f64 / w.counts_per_rev[i] as f64;
+            let (d_payout, d_home) = length_derivatives(&state.effects, i, o, contexts[i].as_ref());
+            own.clear();
+            shared.clear();
+            // Anchor, then home.
+            own.extend((0..3).map(|c| f * (-up[c] + d_home * uh[c])));
+            shared.extend((0..3).map(|c| f * (-d_home * uh[c])));
+            // The tracker frame: rotation, translation.
+            let rup = mat_vec(&frame.room_rotation, up);
+            let wgrad = cross(up, p);
+            shared.extend((0..3).map(|c| f * wgrad[c]));
+            shared.extend((0..3).map(|c| f * (-rup[c] / frame.room_scale)));
+            if planar {
+                // The position is held in the plane: the tracker's
+                // tilts and z translation do not move it.
+                shared[ROTATION - HOME] = 0.0;
+                shared[ROTATION + 1 - HOME] = 0.0;
+                shared[TRANSLATION + 2 - HOME] = 0.0;
+            }
+            if layout.fit_scale {
+                let dot = up[0] * p[0] + up[1] * p[1] + up[2] * p[2];
+                shared.push(f * (-dot / frame.room_scale));
+            }
+            // The winding law: radius, shared and own thinning rates.
+            own.push(f * (-theta * d_payout));
+            let d_kappa = f * (theta * theta * d_payout / w.mechanical_advantage[i]);
+            shared.push(d_kappa);
+            own.push(if problem.structure.hold_kappa_each {
+                0.0
+            } else {
+                d_kappa
+            });
+            own.extend(self.own_terms[i].iter().map(|&c| f * effect_grad[c][i]));
+            shared.extend(self.shared_terms.iter().map(|&c| f * effect_grad[c][i]));
+            // To the scaled LM variables.
+            for (v, &c) in own.iter_mut().zip(&columns.own[i]) {
+                *v *= layout.scale[c];
+            }
+            for (v, &c) in shared.iter_mut().zip(&columns.shared) {
+                *v *= layout.scale[c];
+            }
+            finite &= own.iter().chain(shared.iter()).all(|v| v.is_finite());
+            visit(row, i, own, shared);
+        }
+        finite
     }
 }
 
@@ -225,70 +268,170 @@ fn length_derivatives(
 }
 
 /// The weighted Jacobian of the string-space residuals at an identified
-/// solution (rows `k * STRINGS + i` for the k-th observation with a tracker
+/// solution (rows `u * STRINGS + i` for the u-th observation with a tracker
 /// position and string i; weight 1, or 0 for residuals beyond
 /// [`GROSS_RESIDUAL_MM`]; prior rows left out), the matching weighted
 /// residuals, and the weights. Diagnosis projects candidate effects on the
 /// complement of its columns: what the current model can already absorb is
 /// not evidence of an effect.
-pub fn data_jacobian(
-    id: &Identification,
-    observations: &[Observation],
-    nominal: &Frame<f64>,
-    structure: &Structure,
-) -> Option<DataJacobian> {
-    let used: Vec<&Observation> = observations
-        .iter()
-        .filter(|o| o.tracker.is_some())
-        .collect();
-    let layout = Layout::new(structure);
-    let state = State {
-        frame: id.frame,
-        winding: id.winding,
-        effects: id.effects.clone(),
-    };
-    let laws = state.winding.laws();
-    let weights: Vec<[f64; STRINGS]> = used
-        .iter()
-        .map(|o| {
-            let r = Problem::string_residuals(&state, &laws, o);
-            core::array::from_fn(|i| {
-                if nominal.layout.is_active(i) && r[i].abs() <= GROSS_RESIDUAL_MM {
-                    1.0
-                } else {
-                    0.0
-                }
-            })
-        })
-        .collect();
-    let problem = Problem {
-        observations: &used,
-        weights: &weights,
-        residual_sd: 1.0,
-        structure,
-        nominal,
-        layout: &layout,
-        base_rotation: state.frame.room_rotation,
-        winding_fixed: state.winding,
-        x: encode(&state, &layout),
-    };
-    use levenberg_marquardt::LeastSquaresProblem;
-    let jac = problem.jacobian()?;
-    let residuals = problem.residuals()?;
-    let rows = used.len() * STRINGS;
-    Some(DataJacobian {
-        jacobian: jac.rows(0, rows).into_owned(),
-        residuals: residuals.rows(0, rows).into_owned(),
-        weights,
-    })
+///
+/// The rows are made when asked for ([`DataJacobian::pass`]), not held: a
+/// 100,000-row session has 800,000 of them, 0.35 GB over the base model's
+/// 55 columns.
+pub struct DataJacobian<'a> {
+    used: Vec<&'a Observation>,
+    weights: Vec<[f64; STRINGS]>,
+    residuals: Vec<f64>,
+    layout: Layout,
+    structure: &'a Structure,
+    nominal: &'a Frame<f64>,
+    base_rotation: [[f64; 3]; 3],
+    winding_fixed: WindingPhysics,
+    /// The identified solution in the LM variables.
+    x: DVector<f64>,
 }
 
-/// See [`data_jacobian`].
-pub struct DataJacobian {
-    /// Weighted Jacobian of the string residuals (scaled parameters).
-    pub jacobian: DMatrix<f64>,
-    /// Weighted string residuals, mm.
-    pub residuals: DVector<f64>,
+impl<'a> DataJacobian<'a> {
+    /// The data Jacobian of `id` on `observations`; `None` when a residual
+    /// or a prior row is not finite.
+    pub fn new(
+        id: &Identification,
+        observations: &'a [Observation],
+        nominal: &'a Frame<f64>,
+        structure: &'a Structure,
+    ) -> Option<DataJacobian<'a>> {
+        use levenberg_marquardt::LeastSquaresProblem;
+        let used: Vec<&Observation> = observations
+            .iter()
+            .filter(|o| o.tracker.is_some())
+            .collect();
+        let layout = Layout::new(structure);
+        let state = State {
+            frame: id.frame,
+            winding: id.winding,
+            effects: id.effects.clone(),
+        };
+        let laws = state.winding.laws();
+        let weights: Vec<[f64; STRINGS]> = used
+            .iter()
+            .map(|o| {
+                let r = Problem::string_residuals(&state, &laws, o);
+                core::array::from_fn(|i| {
+                    if nominal.layout.is_active(i) && r[i].abs() <= GROSS_RESIDUAL_MM {
+                        1.0
+                    } else {
+                        0.0
+                    }
+                })
+            })
+            .collect();
+        let x = encode(&state, &layout);
+        let mut jacobian = DataJacobian {
+            used,
+            weights,
+            residuals: Vec::new(),
+            layout,
+            structure,
+            nominal,
+            base_rotation: state.frame.room_rotation,
+            winding_fixed: state.winding,
+            x,
+        };
+        let problem = jacobian.problem();
+        let residuals = problem.residuals()?;
+        let priors_finite = problem
+            .scaled_prior_rows(&problem.state())
+            .iter()
+            .flatten()
+            .all(|v| v.is_finite());
+        let rows = jacobian.rows();
+        let residuals = residuals.as_slice()[..rows].to_vec();
+        jacobian.residuals = residuals;
+        priors_finite.then_some(jacobian)
+    }
+
+    /// The identification's problem at the solution, every row weighed as
+    /// [`Self::weights`] says.
+    fn problem(&self) -> Problem<'_> {
+        Problem {
+            observations: &self.used,
+            weights: &self.weights,
+            residual_sd: 1.0,
+            structure: self.structure,
+            nominal: self.nominal,
+            layout: &self.layout,
+            base_rotation: self.base_rotation,
+            winding_fixed: self.winding_fixed,
+            x: self.x.clone(),
+        }
+    }
+
+    /// Number of rows: [`STRINGS`] per observation with a tracker position.
+    pub fn rows(&self) -> usize {
+        self.used.len() * STRINGS
+    }
+
+    /// Number of columns (the scaled parameters).
+    pub fn columns(&self) -> usize {
+        self.layout.len()
+    }
+
     /// Per observation with a tracker position, per string: 1 or 0 (gross).
-    pub weights: Vec<[f64; STRINGS]>,
+    pub fn weights(&self) -> &[[f64; STRINGS]] {
+        &self.weights
+    }
+
+    /// Weighted string residuals, mm, row by row.
+    pub fn residuals(&self) -> &[f64] {
+        &self.residuals
+    }
+
+    /// The columns string `i`'s rows touch, in the order a pass gives
+    /// their values ([`DataJacobianPass::rows_of`]: its own, then the
+    /// shared ones); zero elsewhere.
+    pub fn row_columns(&self, i: usize) -> impl Iterator<Item = usize> + '_ {
+        let arrow = &self.layout.arrow;
+        arrow.own[i].iter().chain(&arrow.shared).copied()
+    }
+
+    /// `J^T J`, summed as the dense product `J^T * J` sums it
+    /// ([`crate::model::normal`]); `None` when a value of `J` is not finite.
+    pub fn gram(&self) -> Option<DMatrix<f64>> {
+        let problem = self.problem();
+        let state = problem.state();
+        let mut normal = NormalEquations::new(&self.layout.arrow);
+        let finite = problem.string_rows(&state, |row, i, own, shared| {
+            normal.add_string_row(row, i, own, shared, 0.0);
+        });
+        finite.then(|| normal.finish().0)
+    }
+
+    /// A pass over the rows, in any order.
+    pub fn pass(&self) -> DataJacobianPass<'_> {
+        let problem = self.problem();
+        let rows = RowPass::new(&problem, problem.state());
+        DataJacobianPass { problem, rows }
+    }
+}
+
+/// The rows of a [`DataJacobian`], observation by observation.
+pub struct DataJacobianPass<'p> {
+    problem: Problem<'p>,
+    rows: RowPass,
+}
+
+impl DataJacobianPass<'_> {
+    /// The rows of the `u`-th observation with a tracker position:
+    /// `visit(string, own, shared)` with the row's values on the
+    /// [`DataJacobian::row_columns`] of its string, its own then the shared
+    /// ones. Rows of weight 0 (zero) are not visited.
+    pub fn rows_of(&mut self, u: usize, mut visit: impl FnMut(usize, &[f64], &[f64])) {
+        let problem = &self.problem;
+        if let Some(o) = problem.observations.get(u) {
+            self.rows
+                .observation_rows(problem, u, o, &mut |_, i, own, shared| {
+                    visit(i, own, shared)
+                });
+        }
+    }
 }

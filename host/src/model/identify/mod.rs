@@ -108,7 +108,7 @@ use spidar_core::model::{Frame, StringLayout};
 
 use crate::data::observe::Observation;
 
-pub use jacobian::{data_jacobian, DataJacobian};
+pub use jacobian::{DataJacobian, DataJacobianPass};
 pub(crate) use residuals::residuals_at;
 pub use residuals::{device_position, inputs_at, string_residuals, GROSS_RESIDUAL_MM};
 pub use result::{Identification, IdentifyError, ParameterEstimate};

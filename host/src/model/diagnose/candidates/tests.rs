@@ -1,4 +1,4 @@
-use nalgebra::{DMatrix, DVector};
+use nalgebra::DMatrix;
 use spidar_core::string_law::EffectContext;
 
 use super::*;
@@ -8,7 +8,7 @@ use super::*;
 /// random) with residual `error(position, t)` plus 0.2 mm of noise,
 /// the model's span its constant (the string's home length), the
 /// residual variance that of the noise (the other strings' rows).
-fn lattice_evidence(error: impl Fn([f64; 3], f64) -> f64) -> Evidence {
+fn lattice_evidence(error: impl Fn([f64; 3], f64) -> f64) -> Evidence<'static> {
     use rand::SeedableRng;
     use rand_distr::{Distribution, Exp1, StandardNormal};
     let mut rng = rand::rngs::ChaCha8Rng::seed_from_u64(7);
@@ -28,15 +28,16 @@ fn lattice_evidence(error: impl Fn([f64; 3], f64) -> f64) -> Evidence {
     };
     let mut t = 0.0;
     let mut rows = Vec::new();
+    let mut residuals = Vec::new();
     for (k, (p, cell)) in pause.iter().zip(lattice.order()).enumerate() {
         let position = lattice.cell_centre(cell);
         t += p * per_pause;
         let noise: f64 = StandardNormal.sample(&mut rng);
+        residuals.push(error(position, t) + 0.2 * noise);
         rows.push(Row {
             obs: k,
             string: 0,
             weight: 1.0,
-            residual: error(position, t) + 0.2 * noise,
             ctx: EffectContext { time_s: t, ..ctx },
             length: 1000.0,
             speed: 0.0,
@@ -47,19 +48,8 @@ fn lattice_evidence(error: impl Fn([f64; 3], f64) -> f64) -> Evidence {
     }
     let n = rows.len();
     let basis = DMatrix::from_element(n, 1, 1.0 / (n as f64).sqrt());
-    let raw = DVector::from_iterator(n, rows.iter().map(|r| r.residual));
-    let residual = &raw - &basis * (basis.transpose() * &raw);
-    let rss = residual.norm_squared();
-    Evidence {
-        layout: StringLayout::ALL,
-        basis_t: basis.transpose(),
-        basis,
-        // The noise, as the device's other strings (clean) give it.
-        sigma2: 0.2 * 0.2,
-        rss,
-        residual,
-        rows,
-    }
+    // The noise, as the device's other strings (clean) give it.
+    Evidence::of_rows(rows, residuals, basis, 0.2 * 0.2)
 }
 
 /// A string's error that goes with position on a lattice walked plane
@@ -72,13 +62,15 @@ fn lattice_evidence(error: impl Fn([f64; 3], f64) -> f64) -> Evidence {
 fn a_drift_must_explain_what_the_position_does_not() {
     let config = LoopConfig::default();
     let drift_on = |ev: &Evidence| {
-        let term = string_terms(&ev.rows, 0, None)
+        let term = string_terms(ev.rows_of_string(0), 0, None)
             .into_iter()
             .find(|t| t.family == Family::Drift)
             .unwrap();
-        let c = term.candidate(&ev.rows, 0);
-        let (_, explained) = ev.fit(&ev.project(&c.columns).unwrap()).unwrap();
-        (explained / ev.sigma2, beyond_rival(ev, &c, &config))
+        let c = term.candidate(0);
+        let off = ev.off_span(&[c.own()]);
+        assert!(off[0].outside());
+        let (_, explained) = off[0].fit().unwrap();
+        (explained / ev.sigma2, beyond_rivals(ev, &[&c], &config)[0])
     };
     // Across the volume, 1.5 mm, highest in the back planes.
     let bowl = lattice_evidence(|p, _| {

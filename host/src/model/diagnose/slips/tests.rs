@@ -1,4 +1,22 @@
+use nalgebra::{DMatrix, DVector};
+
 use super::*;
+
+/// [`StepSearch`] over `rows` (key, row) in key order, their weights,
+/// projected residual and the model's orthonormal basis (a row per row).
+fn best_step_off_model(
+    rows: &[(f64, usize)],
+    weights: &[f64],
+    residual: &DVector<f64>,
+    basis: &DMatrix<f64>,
+) -> Option<(f64, f64)> {
+    let mut search = StepSearch::new(rows.len());
+    for &(key, k) in rows.iter().rev() {
+        let b: Vec<f64> = basis.row(k).iter().copied().collect();
+        search.add(key, weights[k], residual[k], &b);
+    }
+    search.best()
+}
 
 /// The best step of a residual off the model: where the residual steps,
 /// though a model direction that turns over around that time (a
