@@ -39,6 +39,8 @@
 //! fitted on residuals with a step in time it takes the step's level and
 //! bends to follow the rows on one side of it.
 
+use std::borrow::Borrow;
+
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 use spidar_core::model::{
@@ -130,9 +132,13 @@ impl StringLayers {
 /// The residual points of every string over the tracked rows of `rows`
 /// (indexed as the folds index them: tracked rows only, in order), with
 /// each string's current table added back.
-fn points_by_string(id: &Identification, rows: &[Observation]) -> Vec<Vec<Option<(i32, f64)>>> {
+fn points_by_string<O: Borrow<Observation>>(
+    id: &Identification,
+    rows: &[O],
+) -> Vec<Vec<Option<(i32, f64)>>> {
     let tracked: Vec<(&Observation, [f64; STRINGS])> = rows
         .iter()
+        .map(Borrow::borrow)
         .zip(string_residuals(&id.frame, &id.laws, &id.effects, rows))
         .filter_map(|(o, r)| Some((o, r?)))
         .collect();
@@ -367,15 +373,16 @@ pub fn choose_spacings(
 /// Tables of every string with a spacing in `steps`, fitted on the
 /// residuals of `id` over the tracked rows of `rows`; a table the device would
 /// refuse (it makes the payout fall) is dropped.
-fn fit_all(
+fn fit_all<O: Borrow<Observation>>(
     id: &Identification,
-    rows: &[Observation],
+    rows: &[O],
     steps: &[Option<u8>; STRINGS],
     level: TableLevel,
 ) -> ([LayerTable; STRINGS], Vec<(usize, f64)>) {
     let points = points_by_string(id, rows);
     let times_s: Vec<f64> = rows
         .iter()
+        .map(Borrow::borrow)
         .filter(|o| o.tracker.is_some())
         .map(|o| f64::from(o.inputs.time_ms) / 1000.0)
         .collect();
@@ -445,8 +452,8 @@ fn fit_all(
 /// The identification of `rows` with layer tables of the spacings `steps`:
 /// from `from` (whose tables are replaced), [`REFINE_ROUNDS`] times fit the
 /// tables on the residuals, then refit the geometry with them held.
-pub fn identify_with_layers(
-    rows: &[Observation],
+pub fn identify_with_layers<O: Borrow<Observation>>(
+    rows: &[O],
     nominal: &Frame<f64>,
     from: &Identification,
     structure: &Structure,

@@ -9,6 +9,8 @@
 //! rows are solved twice, the second time at the inclinations of the first
 //! solution ([`spidar_core::model::Effect::reads_inclination`]).
 
+use std::borrow::Borrow;
+
 use spidar_core::correction::CorrectionModel;
 use spidar_core::kinematics::{
     forward_kinematics_inclined, residual_weights, FkConfig, FkStatus, KinematicsRule,
@@ -72,7 +74,10 @@ impl<'a> KinematicModel<'a> {
 /// Forward kinematics of every row (warm-started along the session), as
 /// the device solves it ([`FkConfig::default`] with the model's thresholds,
 /// the strings weighed by the model's measured scales).
-pub fn predict(model: KinematicModel<'_>, observations: &[Observation]) -> Vec<Prediction> {
+pub fn predict<O: Borrow<Observation>>(
+    model: KinematicModel<'_>,
+    observations: &[O],
+) -> Vec<Prediction> {
     predict_with(
         model,
         observations,
@@ -82,9 +87,9 @@ pub fn predict(model: KinematicModel<'_>, observations: &[Observation]) -> Vec<P
 
 /// [`predict`] with the kinematics tuned by `config` (its residual weights
 /// replaced by the model's; its thresholds are `config`'s).
-pub fn predict_with(
+pub fn predict_with<O: Borrow<Observation>>(
     model: KinematicModel<'_>,
-    observations: &[Observation],
+    observations: &[O],
     config: &FkConfig<f64>,
 ) -> Vec<Prediction> {
     let frame = model.frame;
@@ -99,6 +104,7 @@ pub fn predict_with(
     observations
         .iter()
         .map(|o| {
+            let o = o.borrow();
             let fk = forward_kinematics_inclined(
                 &frame.anchors,
                 frame.layout,
@@ -131,13 +137,13 @@ pub fn corrected(correction: &CorrectionModel, predictions: &[Prediction]) -> Ve
 }
 
 /// Pairs of (position, tracker) for the rows the tracker saw.
-pub fn paired_with_tracker(
+pub fn paired_with_tracker<O: Borrow<Observation>>(
     positions: &[[f64; 3]],
-    observations: &[Observation],
+    observations: &[O],
 ) -> (Vec<[f64; 3]>, Vec<[f64; 3]>) {
     positions
         .iter()
         .zip(observations)
-        .filter_map(|(p, o)| o.tracker.map(|t| (*p, t)))
+        .filter_map(|(p, o)| o.borrow().tracker.map(|t| (*p, t)))
         .unzip()
 }

@@ -161,7 +161,7 @@ pub fn candidates(scaled: KinematicsRule) -> Vec<RuleCandidate> {
 }
 
 /// Held-out position errors of `model` on `rows`.
-fn held_out(model: KinematicModel<'_>, rows: &[Observation]) -> Vec<f64> {
+fn held_out(model: KinematicModel<'_>, rows: &[&Observation]) -> Vec<f64> {
     let room: Vec<[f64; 3]> = predict(model, rows).iter().map(|p| p.room).collect();
     let (p, t) = paired_with_tracker(&room, rows);
     position_errors(&p, &t)

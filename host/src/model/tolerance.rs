@@ -120,8 +120,7 @@ pub fn choose(
     let structure = config.base_structure();
     let needed = rows_needed_for(&structure, nominal.layout);
     let (folds_name, folds) = tolerance_folds(&tracked, needed);
-    let pick =
-        |rows: &[usize]| -> Vec<Observation> { rows.iter().map(|&k| tracked[k].clone()).collect() };
+    let pick = |rows: &[usize]| -> Vec<&Observation> { rows.iter().map(|&k| tracked[k]).collect() };
     let held_out = |sd: [f64; STRINGS], robust: bool| -> ErrorStats {
         let mut s = structure.clone();
         s.priors.anchor_sd_each_mm = Some(sd);

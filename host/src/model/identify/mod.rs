@@ -102,6 +102,8 @@ mod start;
 mod structure;
 mod winding;
 
+use std::borrow::Borrow;
+
 use nalgebra::DVector;
 use spidar_core::kinematics::KinematicsRule;
 use spidar_core::model::{Frame, StringLayout};
@@ -122,16 +124,17 @@ use layout::{rows_needed, Layout};
 use robust::{fast_residual_scales, robust_scale};
 
 /// Identifies the model of `structure` from the observations that have a
-/// tracker position. `nominal` is the design geometry (the priors' centre and
+/// tracker position (held, or referred to: a fold's rows are the session's). `nominal` is the design geometry (the priors' centre and
 /// the gauge); `start` the starting point.
-pub fn identify(
-    observations: &[Observation],
+pub fn identify<O: Borrow<Observation>>(
+    observations: &[O],
     nominal: &Frame<f64>,
     start: &Start,
     structure: &Structure,
 ) -> Result<Identification, IdentifyError> {
     let used: Vec<&Observation> = observations
         .iter()
+        .map(Borrow::borrow)
         .filter(|o| o.tracker.is_some())
         .collect();
     let layout = Layout::new(structure);

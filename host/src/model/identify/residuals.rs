@@ -1,6 +1,8 @@
 //! The string-space residual of one row: the tracker's geometric string
 //! length less the model's.
 
+use std::borrow::Borrow;
+
 use spidar_core::geometry::{device_from_room, distance};
 use spidar_core::model::{EffectTerm, Frame, StringInputs, StringLaw};
 use spidar_core::string_law::{cos2_inclinations, string_lengths_f64};
@@ -46,15 +48,16 @@ pub(crate) fn residuals_at(
 
 /// String-space residuals (geometric minus model, mm) of every observation
 /// with a tracker position under an identified model; `None` for occluded rows.
-pub fn string_residuals(
+pub fn string_residuals<O: Borrow<Observation>>(
     frame: &Frame<f64>,
     laws: &[StringLaw; STRINGS],
     effects: &[EffectTerm],
-    observations: &[Observation],
+    observations: &[O],
 ) -> Vec<Option<[f64; STRINGS]>> {
     observations
         .iter()
         .map(|o| {
+            let o = o.borrow();
             o.tracker?;
             Some(residuals_at(frame, laws, effects, o))
         })

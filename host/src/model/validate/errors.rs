@@ -1,6 +1,8 @@
 //! Position errors of a model on tracked rows: as the device solves them
 //! (the reports' figures) and as the loop's judge does (held out).
 
+use std::borrow::Borrow;
+
 use spidar_core::kinematics::{FkConfig, FkStatus};
 
 use crate::data::observe::Observation;
@@ -38,15 +40,18 @@ fn model_error_list(id: &Identification, observations: &[Observation]) -> Vec<f6
 /// weighed by it the string hides the effect from the judge, which then
 /// loses slips and takes stand-ins (decision record 0036,
 /// `docs/decisions/0036-strings-weighed-by-scale.md`).
-pub(crate) fn held_out_error_list(id: &Identification, observations: &[Observation]) -> Vec<f64> {
+pub(crate) fn held_out_error_list<O: Borrow<Observation>>(
+    id: &Identification,
+    observations: &[O],
+) -> Vec<f64> {
     held_out_errors(id, observations).0
 }
 
 /// [`held_out_error_list`] and, row by row, whether the kinematics found
 /// the row's strings inconsistent ([`FkStatus::Inconsistent`]).
-pub(super) fn held_out_errors(
+pub(super) fn held_out_errors<O: Borrow<Observation>>(
     id: &Identification,
-    observations: &[Observation],
+    observations: &[O],
 ) -> (Vec<f64>, Vec<bool>) {
     let judging = FkConfig::<f64>::default();
     let judging = FkConfig {
@@ -70,16 +75,16 @@ fn error_list(
 
 /// Position errors of `model` on the tracked rows and, row by row, whether
 /// the kinematics found the row's strings inconsistent.
-fn errors_and_inconsistency(
+fn errors_and_inconsistency<O: Borrow<Observation>>(
     model: KinematicModel<'_>,
-    observations: &[Observation],
+    observations: &[O],
     fk: &FkConfig<f64>,
 ) -> (Vec<f64>, Vec<bool>) {
     let predictions = predict_with(model, observations, fk);
     let inconsistent = predictions
         .iter()
         .zip(observations)
-        .filter(|(_, o)| o.tracker.is_some())
+        .filter(|(_, o)| Borrow::<Observation>::borrow(*o).tracker.is_some())
         .map(|(p, _)| p.status == FkStatus::Inconsistent)
         .collect();
     let room: Vec<[f64; 3]> = predictions.iter().map(|p| p.room).collect();

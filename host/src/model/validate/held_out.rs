@@ -131,16 +131,16 @@ pub(crate) fn validate_fits(
 }
 
 /// [`validate_fits`] with each fold's model made by `fit` from the fold's
-/// fitting rows.
+/// fitting rows (the session's, referred to: a copy of each fold's rows
+/// took the session's size again per fold in flight).
 pub(crate) fn validate_by(
     train: &[Observation],
-    fit: impl Fn(&[Observation]) -> Result<Identification, IdentifyError> + Sync,
+    fit: impl Fn(&[&Observation]) -> Result<Identification, IdentifyError> + Sync,
 ) -> Result<(Validation, Vec<Identification>), IdentifyError> {
     use rayon::prelude::*;
     let tracked: Vec<&Observation> = train.iter().filter(|o| o.tracker.is_some()).collect();
     let (kind, folds) = folds(&tracked);
-    let pick =
-        |rows: &[usize]| -> Vec<Observation> { rows.iter().map(|&k| tracked[k].clone()).collect() };
+    let pick = |rows: &[usize]| -> Vec<&Observation> { rows.iter().map(|&k| tracked[k]).collect() };
     let fits: Vec<(Identification, Vec<f64>, Vec<bool>)> = folds
         .par_iter()
         .map(|(rows, held)| {
@@ -187,15 +187,14 @@ pub(crate) fn validate_by(
 /// the session has them, else the interleaved), each made by `fit` from its
 /// fold's fitting rows, with the rows it holds out: for choices made after
 /// the model (the kinematics' rule, `rule`).
-pub(crate) fn judged_fold_fits(
-    train: &[Observation],
-    fit: impl Fn(&[Observation]) -> Result<Identification, IdentifyError> + Sync,
-) -> Result<Vec<(Identification, Vec<Observation>)>, IdentifyError> {
+pub(crate) fn judged_fold_fits<'t>(
+    train: &'t [Observation],
+    fit: impl Fn(&[&Observation]) -> Result<Identification, IdentifyError> + Sync,
+) -> Result<Vec<(Identification, Vec<&'t Observation>)>, IdentifyError> {
     use rayon::prelude::*;
     let tracked: Vec<&Observation> = train.iter().filter(|o| o.tracker.is_some()).collect();
     let (_, judged) = judged_folds(&tracked);
-    let pick =
-        |rows: &[usize]| -> Vec<Observation> { rows.iter().map(|&k| tracked[k].clone()).collect() };
+    let pick = |rows: &[usize]| -> Vec<&Observation> { rows.iter().map(|&k| tracked[k]).collect() };
     judged
         .par_iter()
         .map(|(rows, held)| Ok((fit(&pick(rows))?, pick(held))))
@@ -211,17 +210,17 @@ pub fn cross_validated_error(
     structure: &Structure,
 ) -> Result<f64, IdentifyError> {
     let fold = |parity: usize| -> Result<(f64, usize), IdentifyError> {
-        let fit: Vec<Observation> = train
+        let fit: Vec<&Observation> = train
             .iter()
             .enumerate()
             .filter(|(k, _)| k % 2 != parity)
-            .map(|(_, o)| o.clone())
+            .map(|(_, o)| o)
             .collect();
-        let held: Vec<Observation> = train
+        let held: Vec<&Observation> = train
             .iter()
             .enumerate()
             .filter(|(k, _)| k % 2 == parity)
-            .map(|(_, o)| o.clone())
+            .map(|(_, o)| o)
             .collect();
         let id = identify(&fit, nominal, &Start::from_identification(from), structure)?;
         let s = ErrorStats::of(&held_out_error_list(&id, &held));

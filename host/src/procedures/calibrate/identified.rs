@@ -411,8 +411,8 @@ impl Run<'_> {
         // the loop found the tracked body's origin off it (the errors are then
         // those of the tracker's position predicted with its orientation).
         let marker = loop_result.structure.marker_body_mm;
-        let tr = crate::data::observe::at_meeting_points(&tr, marker).into_owned();
-        let te = crate::data::observe::at_meeting_points(&te, marker).into_owned();
+        let tr = at_meeting_points_moved(tr, marker);
+        let te = at_meeting_points_moved(te, marker);
         let obs = PerSession {
             train: &tr[..],
             test: &te[..],
@@ -541,4 +541,18 @@ impl Run<'_> {
         pb.finish_and_clear();
         choice
     }
+}
+
+/// `observations` read at the strings' meeting point
+/// ([`at_meeting_points`](crate::data::observe::at_meeting_points)), moved
+/// as they are without a marker offset (a copy of a long session is its
+/// size again) and dropped once read anew.
+fn at_meeting_points_moved(
+    observations: Vec<Observation>,
+    marker_body_mm: Option<[f64; 3]>,
+) -> Vec<Observation> {
+    if marker_body_mm.is_none() {
+        return observations;
+    }
+    crate::data::observe::at_meeting_points(&observations, marker_body_mm).into_owned()
 }
