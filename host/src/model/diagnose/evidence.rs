@@ -156,12 +156,7 @@ impl<'a> Evidence<'a> {
             sigma2: 0.0,
             rss: 0.0,
         };
-        let weighted = match &ev.source {
-            Source::Fit(fit) => DVector::from_column_slice(fit.jacobian.residuals()),
-            #[cfg(test)]
-            Source::Given { .. } => DVector::zeros(0),
-        };
-        ev.project_residual(&weighted, keep.len());
+        ev.project_residual(keep.len());
         let dof = (effective as f64 - keep.len() as f64).max(1.0);
         ev.sigma2 = ev.rss / dof;
         Some(ev)
@@ -177,12 +172,6 @@ impl<'a> Evidence<'a> {
         basis: DMatrix<f64>,
         sigma2: f64,
     ) -> Evidence<'static> {
-        let weighted = DVector::from_iterator(
-            rows.len(),
-            rows.iter()
-                .zip(&residuals)
-                .map(|(r, e)| e * r.weight.sqrt()),
-        );
         let dims = basis.ncols();
         let mut ev = Evidence {
             layout: StringLayout::ALL,
@@ -195,26 +184,28 @@ impl<'a> Evidence<'a> {
             sigma2,
             rss: 0.0,
         };
-        ev.project_residual(&weighted, dims);
+        ev.project_residual(dims);
         ev
     }
 
-    /// `residual` and `rss` from the weighted residual: `r - B (B^T r)`
-    /// (`B` the span's basis) and its sum of squares.
-    fn project_residual(&mut self, weighted: &DVector<f64>, dims: usize) {
+    /// `residual` and `rss` from the weighted residual `r`: `r - B (B^T
+    /// r)` (`B` the span's basis, of `dims` directions) and its sum of
+    /// squares.
+    fn project_residual(&mut self, dims: usize) {
+        let rows = self.rows();
         let mut coef = vec![0.0; dims];
         self.visit_rows(None, Visit::Basis, |k, _, b| {
-            let w = weighted[k];
+            let w = self.weighted(k);
             if w != 0.0 {
                 for (c, &bc) in coef.iter_mut().zip(b) {
                     *c = bc * w + *c;
                 }
             }
         });
-        let mut residual = DVector::zeros(weighted.len());
-        let mut squares = SquaresSum::new(weighted.len());
+        let mut residual = DVector::zeros(rows);
+        let mut squares = SquaresSum::new(rows);
         self.visit_rows(None, Visit::Basis, |k, _, b| {
-            let r = weighted[k] - span::dot_in_turn(b, &coef);
+            let r = self.weighted(k) - span::dot_in_turn(b, &coef);
             residual[k] = r;
             squares.add(k, r);
         });
@@ -224,7 +215,23 @@ impl<'a> Evidence<'a> {
 
     /// Number of rows.
     pub(super) fn rows(&self) -> usize {
-        self.residual.len()
+        match &self.source {
+            Source::Fit(fit) => fit.jacobian.rows(),
+            #[cfg(test)]
+            Source::Given { rows, .. } => rows.len(),
+        }
+    }
+
+    /// Row `k`'s residual weighted by the square root of its robust
+    /// weight.
+    fn weighted(&self, k: usize) -> f64 {
+        match &self.source {
+            Source::Fit(fit) => fit.jacobian.residuals()[k],
+            #[cfg(test)]
+            Source::Given {
+                rows, residuals, ..
+            } => residuals[k] * rows[k].weight.sqrt(),
+        }
     }
 
     /// Row `k`'s string.
@@ -259,10 +266,10 @@ impl<'a> Evidence<'a> {
     /// Row `k`'s residual (geometric minus model, mm), unweighted.
     pub(super) fn residual_of(&self, k: usize) -> f64 {
         match &self.source {
-            Source::Fit(fit) => {
+            Source::Fit(_) => {
                 let w = self.weight(k);
                 if w > 0.0 {
-                    fit.jacobian.residuals()[k] / w.sqrt()
+                    self.weighted(k) / w.sqrt()
                 } else {
                     0.0
                 }
@@ -323,34 +330,36 @@ impl<'a> Evidence<'a> {
         });
     }
 
-    /// Calls `visit(k, basis)` on rows `rows` in that order, with each
-    /// one's row of the span's orthonormal basis. A fit's rows of one
-    /// observation are made together: rows in observation order cost least.
-    pub(super) fn for_basis_rows_in(
-        &self,
-        rows: impl Iterator<Item = usize>,
-        mut visit: impl FnMut(usize, &[f64]),
-    ) {
+    /// Calls `visit(k, time, basis)` on the rows of weight above 0 in the
+    /// reverse of [`rows_in_time`](Self::rows_in_time)'s order (every
+    /// string's), with each one's row of the span's orthonormal basis: a
+    /// fit's observations in time order (held, a row's place in it would
+    /// take eight times the room), each observation's strings last first.
+    pub(super) fn for_basis_rows_latest_first(&self, mut visit: impl FnMut(usize, f64, &[f64])) {
         match &self.source {
             Source::Fit(fit) => {
+                let mut order: Vec<(f64, usize)> = (0..fit.used.len())
+                    .map(|u| (self.time_of(u * STRINGS), u))
+                    .collect();
+                order.sort_by(|a, b| a.0.total_cmp(&b.0));
+                let dims = fit.span.dims();
                 let mut pass = fit.jacobian.pass();
-                let mut basis = vec![0.0; STRINGS * fit.span.dims()];
-                let mut made = None;
-                for k in rows {
-                    let u = k / STRINGS;
-                    if made != Some(u) {
-                        fit.basis_rows(&mut pass, u, &mut basis);
-                        made = Some(u);
+                let mut basis = vec![0.0; STRINGS * dims];
+                for &(time, u) in order.iter().rev() {
+                    fit.basis_rows(&mut pass, u, &mut basis);
+                    for i in (0..STRINGS).rev() {
+                        let k = u * STRINGS + i;
+                        if self.weight(k) > 0.0 {
+                            visit(k, time, &basis[i * dims..(i + 1) * dims]);
+                        }
                     }
-                    let dims = fit.span.dims();
-                    visit(k, &basis[(k % STRINGS) * dims..][..dims]);
                 }
             }
             #[cfg(test)]
             Source::Given { basis, .. } => {
-                for k in rows {
+                for (time, k) in self.rows_in_time(None).into_iter().rev() {
                     let b: Vec<f64> = basis.row(k).iter().copied().collect();
-                    visit(k, &b);
+                    visit(k, time, &b);
                 }
             }
         }

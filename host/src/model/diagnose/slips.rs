@@ -23,19 +23,17 @@ mod tests;
 /// difference lies elsewhere, far from the slip. Every string's search in
 /// one pass over the rows, latest first.
 pub(super) fn slip_times(ev: &Evidence) -> Vec<Option<f64>> {
-    let rows = ev.rows_in_time(None);
     let mut counts = [0; STRINGS];
-    for &(_, k) in &rows {
-        counts[ev.string_of(k)] += 1;
+    for k in 0..ev.rows() {
+        if ev.weight(k) > 0.0 {
+            counts[ev.string_of(k)] += 1;
+        }
     }
     let mut searches: [Option<StepSearch>; STRINGS] =
         core::array::from_fn(|i| ev.layout.is_active(i).then(|| StepSearch::new(counts[i])));
-    let time: Vec<f64> = rows.iter().map(|r| r.0).collect();
-    let mut at = rows.len();
-    ev.for_basis_rows_in(rows.iter().rev().map(|r| r.1), |k, b| {
-        at -= 1;
+    ev.for_basis_rows_latest_first(|k, time, b| {
         if let Some(search) = searches[ev.string_of(k)].as_mut() {
-            search.add(time[at], ev.weight(k), ev.residual[k], b);
+            search.add(time, ev.weight(k), ev.residual[k], b);
         }
     });
     searches
@@ -43,13 +41,6 @@ pub(super) fn slip_times(ev: &Evidence) -> Vec<Option<f64>> {
         .map(|s| s.and_then(StepSearch::best).map(|b| b.1))
         .collect()
 }
-
-/// Rows on each side of a split that [`jumps_where_it_slipped`] compares.
-const LOCAL_STEP_ROWS: usize = 15;
-
-/// How many robust standard deviations of a string's jumps at every row the
-/// jump at a proposed slip must reach ([`jumps_where_it_slipped`]).
-const LOCAL_STEP_Z: f64 = 3.0;
 
 /// Whether string `string`'s residual jumps where a slip of `mm` at `at_s`
 /// says ([`jumps_where_it_slipped`] on its rows in time order).
@@ -59,6 +50,13 @@ pub(super) fn steps_where_it_slipped(ev: &Evidence, string: usize, at_s: f64, mm
     let residuals: Vec<f64> = rows.iter().map(|&(_, k)| ev.residual_of(k)).collect();
     jumps_where_it_slipped(&residuals, split, mm)
 }
+
+/// Rows on each side of a split that [`jumps_where_it_slipped`] compares.
+const LOCAL_STEP_ROWS: usize = 15;
+
+/// How many robust standard deviations of a string's jumps at every row the
+/// jump at a proposed slip must reach ([`jumps_where_it_slipped`]).
+const LOCAL_STEP_Z: f64 = 3.0;
 
 /// Whether residuals in time order jump before row `split` as a slip of
 /// `mm` does: the median of the [`LOCAL_STEP_ROWS`] rows after minus that of

@@ -120,14 +120,18 @@ impl Fit<'_> {
                 (true, false, _) => (&cold, 3),
             };
         for (n, &round) in rounds.iter().enumerate() {
-            // Weights from the current state's residuals.
-            let laws = state.winding.laws();
-            let residuals = self.string_residuals(&state, &laws);
-            let scale = robust_scale(&residuals, strings).max(1e-3);
-            let new_weights: Vec<[f64; STRINGS]> = residuals
-                .iter()
-                .map(|r| self.active_weights(r.map(|v| weight(round, v, scale))))
-                .collect();
+            // Weights from the current state's residuals (dropped before
+            // the fit: a long session's are megabytes).
+            let (scale, new_weights) = {
+                let laws = state.winding.laws();
+                let residuals = self.string_residuals(&state, &laws);
+                let scale = robust_scale(&residuals, strings).max(1e-3);
+                let new_weights: Vec<[f64; STRINGS]> = residuals
+                    .iter()
+                    .map(|r| self.active_weights(r.map(|v| weight(round, v, scale))))
+                    .collect();
+                (scale, new_weights)
+            };
             let changed = new_weights
                 .iter()
                 .flatten()

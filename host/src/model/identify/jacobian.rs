@@ -345,7 +345,8 @@ impl<'a> DataJacobian<'a> {
             .flatten()
             .all(|v| v.is_finite());
         let rows = jacobian.rows();
-        let residuals = residuals.as_slice()[..rows].to_vec();
+        let mut residuals = Vec::from(residuals.data);
+        residuals.truncate(rows);
         jacobian.residuals = residuals;
         priors_finite.then_some(jacobian)
     }

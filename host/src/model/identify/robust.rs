@@ -38,13 +38,20 @@ pub(super) fn fast_residual_scales(
     })
 }
 
-/// Robust scale (1.4826 MAD) of the residuals of the active strings.
+/// Robust scale (1.4826 MAD) of the residuals of the active strings:
+/// [`robust_centre_and_sd`](crate::data::stats::robust_centre_and_sd)'s,
+/// taken in place (a long session's residuals are megabytes).
 pub(super) fn robust_scale(residuals: &[[f64; STRINGS]], layout: StringLayout) -> f64 {
-    let all: Vec<f64> = residuals
+    use crate::data::stats::median;
+    let mut all: Vec<f64> = residuals
         .iter()
         .flat_map(|r| layout.indices().map(|i| r[i]))
         .collect();
-    crate::data::stats::robust_centre_and_sd(&all).1
+    let centre = median(&mut all);
+    for x in all.iter_mut() {
+        *x = (*x - centre).abs();
+    }
+    1.4826 * median(&mut all)
 }
 
 #[derive(Clone, Copy)]
