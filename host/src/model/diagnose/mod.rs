@@ -456,8 +456,8 @@ impl LoopState<'_> {
         let same = |a: &Finding, b: &Finding| a.family == b.family && a.strings == b.strings;
         if let Some(reason) = beyond_the_device(&candidate) {
             finding.validation = Some(Check {
-                before: self.validation.clone(),
-                after: self.validation.clone(),
+                before: self.validation.summary(),
+                after: self.validation.summary(),
                 stability_chi2: None,
                 accepted: false,
                 reason,
@@ -466,8 +466,13 @@ impl LoopState<'_> {
             self.findings.push(finding);
             return Ok(false);
         }
-        let moved = (candidate.marker_body_mm != self.structure.marker_body_mm)
-            .then(|| at_meeting_points(self.train, candidate.marker_body_mm).into_owned());
+        let moved = (candidate.marker_body_mm != self.structure.marker_body_mm).then(|| {
+            // The session as the current offset reads it is set down while
+            // another offset is tried, and read again if that is refused:
+            // each reading of a long session is its size again.
+            self.seen_train = Cow::Borrowed(self.train);
+            at_meeting_points(self.train, candidate.marker_body_mm).into_owned()
+        });
         let train: &[Observation] = moved.as_deref().unwrap_or(&self.seen_train);
         let retabled = self.with_step_in_the_tables(change, train, &candidate)?;
         let from = retabled.as_ref().unwrap_or(&self.id);
@@ -500,9 +505,12 @@ impl LoopState<'_> {
             refit_now = Some(refit);
         }
         let accepted = check.accepted;
-        finding.validation = Some(check);
+        finding.validation = Some(check.summarized());
         self.findings.retain(|f| f.added || !same(f, &finding));
         if !accepted {
+            if moved.is_some() {
+                self.seen_train = at_meeting_points(self.train, self.structure.marker_body_mm);
+            }
             self.findings.push(finding);
             return Ok(false);
         }

@@ -198,7 +198,7 @@ fn layers_finding(
             "the spool departs from the smooth winding law (layers): {}{coarser_note}",
             per_string.join("; ")
         ),
-        validation: Some(check),
+        validation: Some(check.summarized()),
         change: None,
     }
 }
@@ -270,5 +270,8 @@ pub(super) fn free_spool_rates(
         "each spool thins at its own rate as string is paid out (spools of other widths, packing \
          or pitch){rates}"
     );
-    Ok((finding(description, explained, Some(check)), added))
+    Ok((
+        finding(description, explained, Some(check.summarized())),
+        added,
+    ))
 }

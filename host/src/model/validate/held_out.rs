@@ -51,6 +51,24 @@ pub struct Validation {
 }
 
 impl Validation {
+    /// Its figures without the errors row by row (empty), as a finding's
+    /// check keeps them once judged: nothing reads those again, and a long
+    /// session's are megabytes a validation.
+    pub fn summary(&self) -> Validation {
+        Validation {
+            folds: self.folds,
+            held: self.held,
+            interleaved: self.interleaved,
+            noise_p95_mm: self.noise_p95_mm,
+            noise_max_mm: self.noise_max_mm,
+            held_errors: Vec::new(),
+            fold_sizes: Vec::new(),
+            interleaved_errors: Vec::new(),
+            held_inconsistent: Vec::new(),
+            interleaved_inconsistent: Vec::new(),
+        }
+    }
+
     /// What a step in time (a slip) is judged on: the interleaved folds
     /// (every fit straddles the step and every held-out set has rows on
     /// both sides of it) and, of the blocked folds, those `keep` says (their

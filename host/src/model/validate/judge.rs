@@ -42,6 +42,18 @@ pub struct Check {
     pub reason: String,
 }
 
+impl Check {
+    /// The check as a finding keeps it: its validations' figures
+    /// ([`Validation::summary`]) and the verdict.
+    pub fn summarized(self) -> Check {
+        Check {
+            before: self.before.summary(),
+            after: self.after.summary(),
+            ..self
+        }
+    }
+}
+
 /// Whether a change that turns held-out errors `before` into `after` is
 /// taken: the mean must fall by `min_gain` (relative) and neither the p95
 /// nor the max may rise beyond its noise (that of `before`); nor may the
