@@ -39,7 +39,19 @@ fn point_errors(
     positions: &[[f64; 3]],
     frame: &spidar_core::model::Frame<f64>,
 ) -> Result<(PointErrors, ErrorStats), StatsError> {
-    let mut pe = PointErrors::default();
+    // Each stage keeps its points for the figures: sized to them, not
+    // grown by doubling (a long session's are megabytes a stage).
+    let tracked = obs
+        .iter()
+        .zip(positions)
+        .filter(|(o, _)| o.tracker.is_some())
+        .count();
+    let mut pe = PointErrors {
+        rows: Vec::with_capacity(tracked),
+        tracker: Vec::with_capacity(tracked),
+        distance_mm: Vec::with_capacity(tracked),
+        errors: Vec::with_capacity(tracked),
+    };
     for (o, p) in obs.iter().zip(positions) {
         if let Some(t) = o.tracker {
             pe.rows.push(o.row);
