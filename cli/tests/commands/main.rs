@@ -1,6 +1,7 @@
 //! The `spidar` binary as a user runs it: calibrate (simulated and measured
 //! sessions), demo, the device commands, help texts and error messages.
 
+mod bad_rows;
 mod calibrate;
 mod compile;
 mod device;

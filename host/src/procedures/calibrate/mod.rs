@@ -57,6 +57,7 @@ pub mod report;
 mod request;
 pub mod trust;
 
+use std::borrow::Cow;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
@@ -65,6 +66,7 @@ use spidar_core::correction::CorrectionModel;
 use spidar_core::model::Calibration;
 
 use crate::data::dataset::{DatasetError, Geometry, Session};
+use crate::data::impossible::SetAside;
 use crate::data::observe::Observation;
 use crate::data::stats::{ErrorStats, StatsError};
 use crate::model::diagnose::{LoopConfig, LoopResult};
@@ -484,7 +486,32 @@ pub fn calibrate(
 ) -> Result<Calibrated, CalibrateError> {
     let cfg = config.with_seed_and_quiet();
     let t_start = Instant::now();
-    let (train_info, test_info, warnings) = checked_sessions(geometry, geometry_path, train, test)?;
+    // Rows no device of the geometry could produce are set aside before
+    // anything reads the sessions: their positions emptied here, their
+    // whole rows skipped where the sessions become observations.
+    let set_aside = [train, test].map(|s| SetAside::find(s.session, geometry));
+    let kept = [(train, &set_aside[0]), (test, &set_aside[1])].map(|(s, found)| {
+        if found.is_empty() {
+            Cow::Borrowed(s.session)
+        } else {
+            Cow::Owned(found.without_positions(s.session))
+        }
+    });
+    let train = NamedSession {
+        path: train.path,
+        session: &kept[0],
+    };
+    let test = NamedSession {
+        path: test.path,
+        session: &kept[1],
+    };
+    let (train_info, test_info, warnings) = checked_sessions(
+        geometry,
+        geometry_path,
+        train,
+        test,
+        [&set_aside[0], &set_aside[1]],
+    )?;
     let mut run = Run {
         geometry,
         geometry_path,

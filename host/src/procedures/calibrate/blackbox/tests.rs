@@ -25,6 +25,7 @@ fn the_black_box_reads_the_tracker_at_the_meeting_point_the_loop_found() {
         strings: STRINGS,
         samples: vec![row(Some([h, 0.0, 0.0, h])), row(None)],
         ignored_columns: Vec::new(),
+        unread_columns: Vec::new(),
         tracker_z: true,
     };
     let (rows, x, y) = legacy_pairs(&geometry, &session, Some([10.0, 0.0, 0.0]));
