@@ -10,7 +10,7 @@ use std::path::Path;
 use spidar_core::geometry::device_from_room;
 
 use crate::data::dataset::Geometry;
-use crate::data::impossible::SetAside;
+use crate::data::impossible::{SetAside, NOMINAL_SCALE_LIMIT};
 use crate::data::observe::Observation;
 use crate::model::identify::Structure;
 
@@ -184,7 +184,7 @@ pub(super) fn unpaired_rows_warnings(timing: &report::Timing) -> Vec<String> {
 /// simulated paper-sized devices, whose nominal pulley radius is half the
 /// wound one, are at 1.9 to 2.4; the Hangprinter at 1.01; other simulated
 /// devices at 1.3 to 1.4.
-const TRACKER_SCALE_REFUSED: f64 = 5.0;
+const TRACKER_SCALE_REFUSED: f64 = NOMINAL_SCALE_LIMIT;
 
 /// Beyond this factor (and within [`TRACKER_SCALE_REFUSED`]) the report
 /// warns.

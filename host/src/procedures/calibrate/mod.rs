@@ -59,7 +59,7 @@ pub mod trust;
 
 use std::borrow::Cow;
 use std::path::{Path, PathBuf};
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 use crate::progress::Step;
 use spidar_core::correction::CorrectionModel;
@@ -143,8 +143,8 @@ pub struct CalibrateConfig {
     /// ([`thin_evenly`](crate::model::learn::thin::thin_evenly)); every row
     /// still counts in the identification and in the error figures. 2500
     /// keeps a 13^3 lattice (2197 points) whole, so the SVR's kernel and
-    /// the NN's steps stay as measured on it; a much larger session runs
-    /// the SVR search out of its time limit, which fails the calibration.
+    /// the NN's steps stay as measured on it, and the learners' time stays
+    /// bounded however long the session.
     pub max_learning_points: usize,
     /// Share of the kept training points held out to choose the final model.
     pub selection_fraction: f64,
@@ -164,16 +164,15 @@ impl CalibrateConfig {
     /// restarts; RBF epsilon-SVR with a C x epsilon x gamma search. The
     /// residual SVR grid is centred where residual targets need it (epsilon
     /// about 0.05 in standardized units: the residual is mostly tracker noise,
-    /// and a narrower tube only buys support vectors). Time limits are guards
-    /// against pathological data, not part of the normal run: they do not
-    /// trigger on the reference sessions (`docs/benchmarks.md`, "Speed of a
-    /// calibration").
+    /// and a narrower tube only buys support vectors). No wall-clock limit:
+    /// a calibration's result never depends on how fast or how busy the
+    /// machine is. The learners' work is bounded by the data instead: at
+    /// most [`CalibrateConfig::max_learning_points`] points, LM epochs and
+    /// SMO iterations capped.
     pub fn full() -> Self {
         let nn = SweepConfig {
             sizes: (3..=24).collect(),
             mode: OutputMode::Residual,
-            sweep_time_limit: Some(Duration::from_secs(6)),
-            final_time_limit: Some(Duration::from_secs(4)),
             ..SweepConfig::default()
         };
         let svr = SvrSearchConfig {
@@ -181,7 +180,6 @@ impl CalibrateConfig {
             epsilon: vec![0.1, 0.05],
             gamma: vec![0.3, 1.0],
             mode: OutputMode::Residual,
-            time_limit: Some(Duration::from_secs(8)),
             ..SvrSearchConfig::default()
         };
         CalibrateConfig {
