@@ -753,10 +753,14 @@ fn home_rezeroes_the_strings_where_the_operator_holds_the_end_effector() {
     let mut b = Bench::new_at(Flash::new(), ram.bytes(), spare.bytes(), raw_at(off));
     // No geometry yet: nothing to home.
     assert_eq!(b.request(&Request::Home), bad_state(BadState::NoGeometry));
+    assert_eq!(b.dev.home_declared_us(), None);
+    b.tick_at(raw_at(off));
     assert_eq!(
         b.request(&Request::SetNominalGeometry(string_model())),
         Response::Ack
     );
+    // The first geometry homes the device where it is, at the last tick.
+    assert_eq!(b.dev.home_declared_us(), Some(b.now_us));
     let out = b.tick_at(raw_at([0.0; 3]));
     assert!(
         (out.position_mm[0] + 40.0).abs() < 0.5,
@@ -779,6 +783,7 @@ fn home_rezeroes_the_strings_where_the_operator_holds_the_end_effector() {
     );
     let homed_at_us = b.now_us;
     assert_eq!(b.request(&Request::Home), Response::Ack);
+    assert_eq!(b.dev.home_declared_us(), Some(homed_at_us));
     let mut out = b.tick_at(raw_at([0.0; 3]));
     for _ in 0..5 {
         out = b.tick_at(raw_at([0.0; 3]));
