@@ -541,6 +541,7 @@ mod tests {
             loop_us: 0,
             loop_max_us: 0,
             armed,
+            motors_on: armed,
             model_id: None,
         }
     }

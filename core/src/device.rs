@@ -1151,6 +1151,7 @@ impl<'m, F: ModelFlash> Device<'m, F> {
             loop_us: self.loop_us,
             loop_max_us: self.loop_max_us,
             armed: out.armed,
+            motors_on: self.motors_enabled(),
             model_id: self.active.as_ref().map(|a| a.calibration.header.model_id),
         };
         self.loop_max_us = 0;

@@ -482,10 +482,12 @@ fn session_heartbeat_loss(b: &mut Bench<'_>, begin: &Request<'static>, p: [f64; 
     assert!(events.contains(&Event::Fault {
         raised: Faults::HEARTBEAT_LOST
     }));
-    // Still holding pre-tension: no flash work until Disarm.
+    // Still holding pre-tension: no flash work until Disarm, and the state
+    // says why (the loop disarmed, the motors on).
     assert_eq!(b.request(begin), bad_state(BadState::Armed));
     let last = b.states().next_back().unwrap();
     assert!(!last.armed && last.faults.contains(Faults::HEARTBEAT_LOST));
+    assert!(last.motors_on, "{last:?}");
     assert_eq!(last.tensions_n, [pretension; STRINGS]);
     assert_eq!(b.stream_seq.lost, 0);
     let Response::Stats(stats) = b.request(&Request::GetStats) else {
@@ -497,6 +499,12 @@ fn session_heartbeat_loss(b: &mut Bench<'_>, begin: &Request<'static>, p: [f64; 
     assert!(b.tick_at(raw_at(p)).armed);
     assert_eq!(b.request(&Request::Disarm), Response::Ack);
     assert!(!b.dev.motors_enabled());
+    b.stream.clear();
+    while b.states().next().is_none() {
+        b.tick_at(raw_at(p));
+    }
+    let last = b.states().next_back().unwrap();
+    assert!(!last.armed && !last.motors_on, "{last:?}");
 }
 
 /// Version mismatch: typed error until a matching Hello; a future Hello

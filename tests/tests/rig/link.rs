@@ -11,8 +11,8 @@ use spidar::sim::virtual_device::{spawn, Pace, Plant, Trajectory, VirtualDeviceC
 use spidar_core::correction::{CorrectionModel, NnModel, OutputMode, Standardization};
 use spidar_protocol::blob::{split_blob, write_blob, CRC32};
 use spidar_protocol::{
-    encode_device_message, encode_request, BlobRejection, DeviceError, DeviceMessage, Event,
-    Faults, FrameDecoder, HelloAck, Request, Response, State, MAX_FRAME,
+    encode_device_message, encode_request, BadState, BlobRejection, DeviceError, DeviceMessage,
+    Event, Faults, FrameDecoder, HelloAck, Request, Response, State, MAX_FRAME,
 };
 
 fn nn(hidden: usize) -> CorrectionModel {
@@ -354,6 +354,82 @@ fn heartbeat_loss_drops_tensions_to_pretension_within_30_ms() {
         .iter()
         .all(|&t| (t - f64::from(pre)).abs() < 0.05)));
     c.disarm().unwrap();
+}
+
+/// What the device streams and what it enforces agree: after a heartbeat
+/// loss the loop is disarmed but the motors hold pre-tension, and the state
+/// says so (`motors_on`) while every model change is refused as `Armed`;
+/// after `Disarm` both say off. In device time (`Pace::Fast`: no tick
+/// between streams), so the heartbeat lapses inside one stream whatever
+/// the host's speed.
+#[test]
+fn the_state_says_the_motors_are_on_while_model_changes_are_refused() {
+    let dev = sim_device();
+    let fast = VirtualDeviceConfig {
+        pace: Pace::Fast,
+        ..VirtualDeviceConfig::default()
+    };
+    let vd = spawn(fast, Plant::new(dev.clone(), Trajectory::Hold)).unwrap();
+    let mut c = Client::open_with(vd.port_path(), ClientOptions::for_simulated_device()).unwrap();
+    c.flash(&blob(&dev, CorrectionModel::None, 21), |_| {})
+        .unwrap();
+    c.arm().unwrap();
+    let mut states: Vec<State> = Vec::new();
+    c.stream(
+        StreamOptions {
+            heartbeat: None,
+            ..StreamOptions::default()
+        },
+        |s| {
+            states.push(*s);
+            !s.faults.contains(Faults::HEARTBEAT_LOST)
+        },
+    )
+    .unwrap();
+    assert!(states[0].armed && states[0].motors_on, "{:?}", states[0]);
+    let lost = states.last().unwrap();
+    assert!(
+        lost.faults.contains(Faults::HEARTBEAT_LOST) && !lost.armed && lost.motors_on,
+        "{lost:?}"
+    );
+    assert!(states.iter().all(|s| s.motors_on), "{states:?}");
+    let refused = |c: &mut Client| {
+        let e = c
+            .flash(&blob(&dev, CorrectionModel::None, 22), |_| {})
+            .unwrap_err();
+        matches!(
+            e.device_error(),
+            Some(DeviceError::BadState(BadState::Armed))
+        )
+    };
+    assert!(refused(&mut c));
+    let some_states = |c: &mut Client| {
+        let mut got = Vec::new();
+        c.stream(
+            StreamOptions {
+                max_frames: Some(3),
+                ..StreamOptions::default()
+            },
+            |s| {
+                got.push(*s);
+                true
+            },
+        )
+        .unwrap();
+        got
+    };
+    let holding = some_states(&mut c);
+    assert!(
+        holding.iter().all(|s| !s.armed && s.motors_on),
+        "{holding:?}"
+    );
+    c.disarm().unwrap();
+    let off = some_states(&mut c);
+    assert!(off.iter().all(|s| !s.armed && !s.motors_on), "{off:?}");
+    let flashed = c
+        .flash(&blob(&dev, CorrectionModel::None, 22), |_| {})
+        .unwrap();
+    assert_eq!(flashed.model_id, 22);
 }
 
 #[test]
