@@ -10,16 +10,16 @@ use std::fmt::Write as _;
 
 use super::html::{escape, Html};
 
-/// The drawing's width in SVG units: at a phone's width (about 340 CSS
-/// pixels for the figure) its 12-unit text reads at about 9 pixels, at the
-/// page's widest (640) at 16.
-pub(super) const WIDTH: f64 = 480.0;
+/// The drawing's width in SVG units: at a phone's width (about 370 CSS
+/// pixels for the figure) its 12-unit text reads at about 11 pixels, at the
+/// page's widest (544) at 16.
+pub(super) const WIDTH: f64 = 400.0;
 /// Height of an x-y plot.
 pub(super) const HEIGHT: f64 = 300.0;
 /// Width of one panel of several side by side (small multiples, a map's
 /// views): as wide as it is shown on the page, so its text reads as the
 /// others'.
-pub(super) const PANEL_WIDTH: f64 = 320.0;
+pub(super) const PANEL_WIDTH: f64 = 280.0;
 const LEFT: f64 = 62.0;
 const RIGHT: f64 = 20.0;
 const TOP: f64 = 12.0;
@@ -569,7 +569,7 @@ pub(super) fn dot_chart(
     description: &str,
 ) -> (Html, usize) {
     const ROW: f64 = 22.0;
-    const NAMES: f64 = 176.0;
+    const NAMES: f64 = 166.0;
     let height = TOP + ROW * rows.len() as f64 + BOTTOM;
     let (x0, x1) = (NAMES, WIDTH - RIGHT);
     let px = |v: f64| axis.fraction(v).map(|f| x0 + f.clamp(0.0, 1.0) * (x1 - x0));
@@ -598,7 +598,7 @@ pub(super) fn dot_chart(
             x0 - 6.0,
             y + 4.0,
             escape(name),
-            escape(&shortened(name, 27))
+            escape(&shortened(name, 25))
         );
         let n = series.len().max(1) as f64;
         for (k, ser) in series.iter().enumerate() {
@@ -707,7 +707,7 @@ mod tests {
         let svg = p.svg("x \"quoted\"").0;
         assert!(svg.contains("x &lt;mm&gt;") && svg.contains("&quot;quoted&quot;"));
         // The missing value breaks the line into two pieces of one point.
-        assert!(svg.contains("d=\"M62.0,254.0M460.0,12.0\""), "{svg}");
+        assert!(svg.contains("d=\"M62.0,254.0M380.0,12.0\""), "{svg}");
         assert!(p.legend().0.contains("a &amp; b"));
         assert!(!p.legend().0.contains("off the axes"));
     }
