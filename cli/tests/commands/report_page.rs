@@ -17,6 +17,7 @@
 //! eff69f9e6522a526ed2dce2d83eed9bc3843a5cc), MIT licence (see that
 //! folder's LICENSE and README).
 
+use std::io::Write as _;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -82,7 +83,10 @@ fn browser_or_skip(test: &str) -> Option<PathBuf> {
             "{test}: no headless Chromium on the PATH; scripts/install-deps installs \
              chromium-headless-shell (CI runs it)"
         );
-        eprintln!(
+        // Straight to the process's stderr, past the test harness's
+        // capture: a skipped check is said even when the test passes.
+        let _ = writeln!(
+            std::io::stderr(),
             "{test}: SKIPPED the browser check: no headless Chromium (chromium-headless-shell, \
              chromium) on the PATH; scripts/install-deps installs it"
         );
