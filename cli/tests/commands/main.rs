@@ -1,5 +1,6 @@
 //! The `spidar` binary as a user runs it: calibrate (simulated and measured
-//! sessions), demo, the device commands, help texts and error messages.
+//! sessions), demo, the report page in a browser, the device commands, help
+//! texts and error messages.
 
 mod bad_rows;
 mod calibrate;
@@ -7,3 +8,4 @@ mod compile;
 mod device;
 mod help;
 mod real_data;
+mod report_page;

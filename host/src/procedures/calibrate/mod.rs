@@ -84,6 +84,7 @@ use evaluate::{correction_errors, point_error_list, room_positions, tracked_pair
 use identified::{FinalIdentified, IdentifiedModel, ReferenceModel};
 
 pub use evaluate::{PointErrors, StagePoints};
+pub use figures::robust_colour_max;
 pub use outputs::{write_outputs, PairSet, Written};
 pub use report::{Report, SCHEMA};
 pub use request::{run_calibrate, CalibrateRequest};
@@ -121,6 +122,8 @@ pub enum CalibrateError {
     },
     #[error("{0}")]
     Align(#[from] align::AlignError),
+    #[error("{0}")]
+    Page(#[from] crate::procedures::report_page::PageError),
 }
 
 fn learn(step: &'static str) -> impl FnOnce(LearnError) -> CalibrateError {
@@ -269,6 +272,12 @@ pub struct Calibrated {
     /// The learners' data: residual pairs, and black-box pairs when both
     /// sessions have `dev_*` columns (whether or not the black-box ran).
     pub pairs: Pairs,
+    /// The sessions' rows as every stage after the raw one read them (rows
+    /// set aside, the tracker's clock aligned, its glitches occluded, at the
+    /// strings' meeting point): what the report page's evidence figures and
+    /// its fixed-point error read.
+    pub train_rows: Vec<Observation>,
+    pub test_rows: Vec<Observation>,
 }
 
 #[derive(Clone, Debug, Default)]
@@ -584,6 +593,8 @@ pub fn calibrate(
         points: list.points,
         loop_result,
         pairs,
+        train_rows: tr,
+        test_rows: te,
     })
 }
 

@@ -772,6 +772,9 @@ pub struct Files {
     /// effects, correction): what later commands read.
     pub calibration: String,
     pub reports: Vec<String>,
+    /// The report as one page for people (`report.html`, beside
+    /// `report.json`).
+    pub page: String,
 }
 
 fn stage_table(out: &mut String, stages: &[Stage]) {
@@ -1128,6 +1131,13 @@ impl Report {
             let _ = writeln!(o, "  {} (the calibration)", self.files.calibration);
             for r in &self.files.reports {
                 let _ = writeln!(o, "  {r} (JSON report)");
+            }
+            if !self.files.page.is_empty() {
+                let _ = writeln!(
+                    o,
+                    "  {} (the report as a page: open it in a browser)",
+                    self.files.page
+                );
             }
             if let Some(first) = self.figures.first() {
                 let dir = std::path::Path::new(&first.path)
