@@ -50,7 +50,8 @@ pub struct CalibrateArgs {
     pub quiet: bool,
     /// Write the learners' data to DIR as `x,y,z,tx,ty,tz` CSVs (input and
     /// tracker, mm), for `scripts/reference/reference.py`:
-    /// residual_{train,test}.csv and, when the sessions have dev_* columns,
+    /// residual_{train,test}.csv and, when the sessions have dev_* columns
+    /// (read, and checked, only with --blackbox or this option),
     /// blackbox_{train,test}.csv. Training files hold the pairs left after
     /// outlier removal, test files every tracked row.
     #[arg(long, value_name = "DIR")]

@@ -11,6 +11,7 @@ mod device;
 mod init;
 mod monitor;
 mod progress;
+mod report;
 mod rig;
 mod simulate;
 mod view;
@@ -47,6 +48,9 @@ enum Command {
     Calibrate(calibrate::CalibrateArgs),
     /// Simulate a device with a lattice and a test session, and calibrate it.
     Demo(calibrate::DemoArgs),
+    /// Rebuild a calibration's report page (report.html) from the
+    /// report.json and report-figures.json in its folder.
+    Report(report::ReportArgs),
     /// Guided initialization: haptic and audio cues bring the marker to the
     /// frame centre, home is declared there, the room transform recorded.
     Init(init::InitArgs),
@@ -83,6 +87,7 @@ fn run(command: &Command) -> anyhow::Result<String> {
             }
         }
         Command::Demo(args) => calibrate::run_demo(args)?,
+        Command::Report(args) => report::run(args)?,
         Command::Compile(args) => compile::run(args)?,
         Command::Flash(args) => device::run_flash(args)?,
         Command::Device(args) => device::run_device(args)?,

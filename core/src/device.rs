@@ -549,6 +549,13 @@ impl<'m, F: ModelFlash> Device<'m, F> {
             .is_some_and(|c| c.safety().is_armed())
     }
 
+    /// Device time (µs since boot) at which home was last declared: at boot
+    /// with a stored model, when the first geometry arrived, or at the last
+    /// `Home`. `None` while the device has no geometry (nothing is homed).
+    pub fn home_declared_us(&self) -> Option<u64> {
+        self.controller.as_ref().map(|_| self.home_us)
+    }
+
     /// The last tick's output.
     pub fn last_output(&self) -> &LoopOutput {
         &self.last_out
@@ -1144,6 +1151,7 @@ impl<'m, F: ModelFlash> Device<'m, F> {
             loop_us: self.loop_us,
             loop_max_us: self.loop_max_us,
             armed: out.armed,
+            motors_on: self.motors_enabled(),
             model_id: self.active.as_ref().map(|a| a.calibration.header.model_id),
         };
         self.loop_max_us = 0;

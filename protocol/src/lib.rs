@@ -101,7 +101,7 @@
 //! | `Request::SetForceTarget` | 13 | 22 |
 //! | `Request::SetLimits` | 12 | 21 |
 //! | other requests | <= 6 | <= 15 |
-//! | `DeviceMessage::State` | 151 | 160 |
+//! | `DeviceMessage::State` | 152 | 161 |
 //! | `Reply(Stats)` | 72 | 81 |
 //! | `Reply(Info(Some))` | 46 | 55 |
 //! | `Reply(HelloAck)` | 43 | 52 |
@@ -110,7 +110,7 @@
 //!
 //! A frame adds to its message the `seq` varint (1-3 bytes), the CRC (4),
 //! COBS (1 byte per started 254 bytes) and the `0x00` delimiter (1). A typical
-//! `State` frame (test `state_frame_overhead`): `State` 113 bytes, frame 122
+//! `State` frame (test `state_frame_overhead`): `State` 114 bytes, frame 123
 //! bytes, protocol overhead 9 bytes (message tag 1, seq 2, CRC 4, COBS 1,
 //! delimiter 1); 10 bytes at worst.
 #![cfg_attr(not(test), no_std)]
@@ -143,14 +143,17 @@ const _: () = {
 };
 
 /// Version of this protocol. Bumped whenever a message's layout changes.
-/// Version 5: `State` carries the force the tensions render
+/// Version 6: `State` says whether the motors are on (`motors_on`): after a
+/// fault they hold pre-tension with the loop disarmed, and the device
+/// refuses model changes until `Disarm`, which a host reading `armed` alone
+/// could not tell. Version 5: `State` carries the force the tensions render
 /// (`rendered_force_n`), so that a host that asked for a force sees what the
 /// device made of it. Version 4: `State` carries `since_home_us` next to `time_us` (both from
 /// the loop's timer), so the host pairs tracker frames by the device's own
 /// sample time. Version 3: `NominalGeometry` carries the string layout
 /// (`active_strings`, `planar`); `DeviceError::NotForceClosed`;
 /// `BlobRejection::TooFewStrings` and `InactiveString`.
-pub const PROTOCOL_VERSION: u16 = 5;
+pub const PROTOCOL_VERSION: u16 = 6;
 
 /// Number of strings (and motors, and encoders) of the device.
 pub const STRINGS: usize = 8;

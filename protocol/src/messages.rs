@@ -555,8 +555,14 @@ pub struct State {
     pub loop_us: u16,
     /// Longest iteration since the previous state frame, microseconds (saturating).
     pub loop_max_us: u16,
-    /// Motors enabled.
+    /// The loop renders forces: armed by the host, no fault latched since.
     pub armed: bool,
+    /// The motor drivers are on: armed by the host and not disarmed since,
+    /// no emergency stop. They stay on, every string at pre-tension, after a
+    /// fault disarmed the loop (`armed` false), and while they are on the
+    /// device refuses geometry, limit and model changes
+    /// ([`BadState::Armed`]) until `Disarm`. Protocol v6.
+    pub motors_on: bool,
     /// `model_id` of the active model blob, `None` without one.
     pub model_id: Option<u32>,
 }

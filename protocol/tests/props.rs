@@ -186,12 +186,12 @@ fn state(f: fn() -> F) -> impl Strategy<Value = State> {
         (
             any::<u16>(),
             any::<u16>(),
-            any::<bool>(),
+            (any::<bool>(), any::<bool>()),
             proptest::option::of(any::<u32>()),
         ),
     )
         .prop_map(
-            |((t, h), c, p, q, (tn, rf), (fl, sl, ex), (lu, lm, ar, mi))| State {
+            |((t, h), c, p, q, (tn, rf), (fl, sl, ex), (lu, lm, (ar, mo), mi))| State {
                 time_us: t,
                 since_home_us: h,
                 counts: c,
@@ -205,6 +205,7 @@ fn state(f: fn() -> F) -> impl Strategy<Value = State> {
                 loop_us: lu,
                 loop_max_us: lm,
                 armed: ar,
+                motors_on: mo,
                 model_id: mi,
             },
         )

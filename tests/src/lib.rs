@@ -27,6 +27,20 @@ pub fn eventually(condition: impl Fn() -> bool) -> bool {
     }
 }
 
+/// Whether the virtual device's clock comes to `t_us` (µs since boot):
+/// waits on device time, not on a length of wall-clock time. The 60 s
+/// limit only detects a device that stopped ticking.
+pub fn device_time_reaches(vd: &VirtualDevice, t_us: u64) -> bool {
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while vd.status().device_time_us < t_us {
+        if Instant::now() > deadline || !vd.is_running() {
+            return false;
+        }
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    true
+}
+
 /// The simulated device as built (no injected effects, no abnormal motor, so
 /// its true parameters are an exact calibration).
 pub fn sim_device() -> sim::SimulatedDevice {

@@ -482,10 +482,12 @@ fn session_heartbeat_loss(b: &mut Bench<'_>, begin: &Request<'static>, p: [f64; 
     assert!(events.contains(&Event::Fault {
         raised: Faults::HEARTBEAT_LOST
     }));
-    // Still holding pre-tension: no flash work until Disarm.
+    // Still holding pre-tension: no flash work until Disarm, and the state
+    // says why (the loop disarmed, the motors on).
     assert_eq!(b.request(begin), bad_state(BadState::Armed));
     let last = b.states().next_back().unwrap();
     assert!(!last.armed && last.faults.contains(Faults::HEARTBEAT_LOST));
+    assert!(last.motors_on, "{last:?}");
     assert_eq!(last.tensions_n, [pretension; STRINGS]);
     assert_eq!(b.stream_seq.lost, 0);
     let Response::Stats(stats) = b.request(&Request::GetStats) else {
@@ -497,6 +499,12 @@ fn session_heartbeat_loss(b: &mut Bench<'_>, begin: &Request<'static>, p: [f64; 
     assert!(b.tick_at(raw_at(p)).armed);
     assert_eq!(b.request(&Request::Disarm), Response::Ack);
     assert!(!b.dev.motors_enabled());
+    b.stream.clear();
+    while b.states().next().is_none() {
+        b.tick_at(raw_at(p));
+    }
+    let last = b.states().next_back().unwrap();
+    assert!(!last.armed && !last.motors_on, "{last:?}");
 }
 
 /// Version mismatch: typed error until a matching Hello; a future Hello
@@ -753,10 +761,14 @@ fn home_rezeroes_the_strings_where_the_operator_holds_the_end_effector() {
     let mut b = Bench::new_at(Flash::new(), ram.bytes(), spare.bytes(), raw_at(off));
     // No geometry yet: nothing to home.
     assert_eq!(b.request(&Request::Home), bad_state(BadState::NoGeometry));
+    assert_eq!(b.dev.home_declared_us(), None);
+    b.tick_at(raw_at(off));
     assert_eq!(
         b.request(&Request::SetNominalGeometry(string_model())),
         Response::Ack
     );
+    // The first geometry homes the device where it is, at the last tick.
+    assert_eq!(b.dev.home_declared_us(), Some(b.now_us));
     let out = b.tick_at(raw_at([0.0; 3]));
     assert!(
         (out.position_mm[0] + 40.0).abs() < 0.5,
@@ -779,6 +791,7 @@ fn home_rezeroes_the_strings_where_the_operator_holds_the_end_effector() {
     );
     let homed_at_us = b.now_us;
     assert_eq!(b.request(&Request::Home), Response::Ack);
+    assert_eq!(b.dev.home_declared_us(), Some(homed_at_us));
     let mut out = b.tick_at(raw_at([0.0; 3]));
     for _ in 0..5 {
         out = b.tick_at(raw_at([0.0; 3]));

@@ -35,12 +35,25 @@ pub struct Observation {
 
 /// The observations of a session's rows, in order.
 pub fn observations(samples: &[Sample]) -> Vec<Observation> {
+    observations_skipping(samples, &[])
+}
+
+/// The observations of a session's rows but `skipped` (ascending row
+/// indices: rows set aside whole, [`crate::data::impossible`]), in order;
+/// every observation keeps its row's index, and the direction of motion
+/// is followed over the rows kept.
+pub fn observations_skipping(samples: &[Sample], skipped: &[usize]) -> Vec<Observation> {
     let mut trackers: Vec<DirectionTracker> = (0..STRINGS)
         .map(|_| DirectionTracker::new(DIRECTION_HYSTERESIS_COUNTS))
         .collect();
+    let mut skipped = skipped.iter().peekable();
     samples
         .iter()
         .enumerate()
+        .filter(|(row, _)| {
+            while skipped.next_if(|&&k| k < *row).is_some() {}
+            skipped.next_if(|&&k| k == *row).is_none()
+        })
         .map(|(row, s)| {
             let tension_n = s.tension_n.unwrap_or([0.0; STRINGS]);
             let mut inputs = StringInputs {

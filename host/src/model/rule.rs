@@ -25,7 +25,7 @@ use crate::data::stats::{position_errors, quantile, ErrorStats};
 use crate::model::diagnose::LoopConfig;
 use crate::model::identify::{identify, Identification, IdentifyError, Start, Structure};
 use crate::model::predict::{paired_with_tracker, predict, KinematicModel, UNMEASURED_SCALES};
-use crate::model::validate::judged_fold_fits;
+use crate::model::validate::{judged_fold_fits, preferred, Preferred};
 use spidar_core::model::Frame;
 
 /// The quantile of the training rows' string disagreement (the RMS of the
@@ -199,20 +199,10 @@ pub fn choose(
 /// The device's rule (the first score) unless another lowers the held-out
 /// mean by `min_gain` (relative); then the lowest.
 fn decide(scores: Vec<RuleScore>, q99: f64, min_gain: f64) -> RuleChoice {
-    let device = scores[0].held_out.mean_mm;
-    let best = scores
-        .iter()
-        .enumerate()
-        .filter(|(_, s)| s.held_out.mean_mm.is_finite())
-        .min_by(|a, b| a.1.held_out.mean_mm.total_cmp(&b.1.held_out.mean_mm))
-        .map(|(k, _)| k)
-        .unwrap_or(0);
-    let gains = |k: usize| scores[k].held_out.mean_mm < device * (1.0 - min_gain);
-    let chosen = if best != 0 && (gains(best) || !device.is_finite()) {
-        best
-    } else {
-        0
-    };
+    let means: Vec<f64> = scores.iter().map(|s| s.held_out.mean_mm).collect();
+    let device = means[0];
+    let Preferred { best, chosen } = preferred(&means, min_gain);
+    let best = best.unwrap_or(0);
     let reason = if chosen == 0 {
         format!(
             "the device's rule: no other lowers the held-out mean {:.3} mm by {:.0} %{}",

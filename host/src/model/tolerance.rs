@@ -24,7 +24,9 @@ use crate::data::observe::Observation;
 use crate::data::stats::ErrorStats;
 use crate::model::diagnose::LoopConfig;
 use crate::model::identify::{identify, rows_needed_for, Priors, Start};
-use crate::model::validate::{held_out_error_list, judged_folds, Fold, MIN_BLOCKED_ROWS};
+use crate::model::validate::{
+    held_out_error_list, judged_folds, preferred, Fold, Preferred, MIN_BLOCKED_ROWS,
+};
 
 /// The tolerances tried (mm, one sd per coordinate): the drawing's
 /// ([`Priors::default`]), four and ten times it (a hand-measured rig).
@@ -198,13 +200,11 @@ fn decide(
     folds: String,
     min_gain: f64,
 ) -> ToleranceChoice {
-    let first = scores.first().map_or(f64::NAN, |s| s.held_out.mean_mm);
-    let best = scores
-        .iter()
-        .filter(|s| s.held_out.mean_mm.is_finite())
-        .min_by(|a, b| a.held_out.mean_mm.total_cmp(&b.held_out.mean_mm));
-    let (sd, reason) = match best {
-        Some(b) if b.anchor_sd_mm != drawing && (b.held_out.mean_mm < first * (1.0 - min_gain) || !first.is_finite()) => (
+    let means: Vec<f64> = scores.iter().map(|s| s.held_out.mean_mm).collect();
+    let first = means.first().copied().unwrap_or(f64::NAN);
+    let Preferred { best, chosen } = preferred(&means, min_gain);
+    let (sd, reason) = match best.map(|_| &scores[chosen]) {
+        Some(b) if b.anchor_sd_mm != drawing => (
             b.anchor_sd_mm,
             format!(
                 "{} mm lowers the held-out mean {:.3} -> {:.3} mm against the drawing's {drawing} mm ({folds})",

@@ -1073,6 +1073,7 @@ mod tests {
                 row([130.0, -100.0, -100.0]),
             ],
             ignored_columns: Vec::new(),
+            unread_columns: Vec::new(),
             tracker_z: true,
         };
         let done = done_cells(&lattice, &session, file).unwrap();

@@ -71,6 +71,8 @@ pub struct Demo {
     pub test: SimulateReport,
     /// The calibration's summary.
     pub summary: String,
+    /// The calibration's report as a page for people (`report.html`).
+    pub page: PathBuf,
     /// The last act: the nominal and the calibrated model on the virtual
     /// device (`None` when not asked for).
     pub on_device: Option<OnDevice>,
@@ -131,6 +133,7 @@ pub fn run_demo(request: &DemoRequest) -> Result<Demo, DemoError> {
         lattice,
         test,
         summary: calibrated.report.summary(),
+        page: PathBuf::from(&calibrated.report.files.page),
         on_device,
     })
 }
@@ -200,6 +203,10 @@ impl std::fmt::Display for Demo {
         if let Some(on_device) = &self.on_device {
             text.push_str(&on_device.to_string());
         }
+        text.push_str(&format!(
+            "\nThe report, for people: {} (open it in a browser)\n",
+            self.page.display()
+        ));
         f.write_str(&text)
     }
 }

@@ -2,6 +2,8 @@
 //!
 //! - [`calibrate`]: the whole calibration of a device from a training and a
 //!   test session (`spidar calibrate`);
+//! - [`report_page`]: the calibration's report as one page for people,
+//!   `report.html` (written by `calibrate`, rebuilt by `spidar report`);
 //! - [`demo`]: a simulated device calibrated from its simulated sessions,
 //!   then measured on a virtual device (`spidar demo`);
 //! - [`init`]: guided initialization (`spidar init`): the haptic and audio
@@ -20,3 +22,4 @@ pub mod collect;
 pub mod demo;
 pub mod init;
 pub mod monitor;
+pub mod report_page;

@@ -41,8 +41,8 @@ pub struct VirtualDeviceRun {
 }
 
 /// Flashes `blob` to a fresh virtual device of `device` (the simulated
-/// plant), power-cycles it so it homes at the trajectory's start, streams the
-/// whole trajectory and measures the reported positions.
+/// plant), which homes it at the trajectory's start, streams the whole
+/// trajectory and measures the reported positions.
 pub fn measure_on_virtual_device(
     device: &SimulatedDevice,
     trajectory: &[SampleTruth],
@@ -58,13 +58,10 @@ pub fn measure_on_virtual_device(
         ..VirtualDeviceConfig::default()
     };
     let vd = spawn(config, Plant::new(device.clone(), trajectory))?;
-    {
-        let mut client = Client::open_with(vd.port_path(), ClientOptions::for_simulated_device())?;
-        client.flash(blob, |_| {})?;
-    }
-    // The device homes where it boots: at the trajectory's start, t = 0.
-    vd.power_cycle()?;
     let mut client = Client::open_with(vd.port_path(), ClientOptions::for_simulated_device())?;
+    // The model homes the device at the trajectory's start, where the
+    // end-effector waits until then.
+    client.flash(blob, |_| {})?;
     let mut errors = Vec::new();
     let report = client.stream(
         StreamOptions {

@@ -212,6 +212,7 @@ pub fn simulate_session_with_truth(
             strings: device.frame.layout.count(),
             samples,
             ignored_columns: Vec::new(),
+            unread_columns: Vec::new(),
             tracker_z: true,
         },
         truths,

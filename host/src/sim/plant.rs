@@ -335,6 +335,10 @@ pub struct Plant {
     /// Simulated time at the last boot, µs: device time restarts at each
     /// boot, the simulated clock (a clocked [`Hand`]'s) does not.
     sim_epoch_us: u64,
+    /// Device time (µs since this boot) at which the end-effector sets off
+    /// on its trajectory; `None`: it rests at the trajectory's start until
+    /// [`Plant::start_path`] (see [`Plant::rest_until_started`]).
+    path_start_us: Option<u64>,
     error: Option<String>,
 }
 
@@ -353,16 +357,18 @@ impl Plant {
             counts: [0; STRINGS],
             boot_counts: [0; STRINGS],
             sim_epoch_us: 0,
+            path_start_us: Some(0),
             error: None,
         }
     }
 
     /// Back to time 0, motors off (power cycle): a trajectory starts at
-    /// home again; a held end-effector stays where the hand holds it, and
-    /// the counters read `raw_home` there (as a real controller's counters
-    /// start wherever the strings are at power-on).
+    /// home again, and sets off at once; a held end-effector stays where
+    /// the hand holds it, and the counters read `raw_home` there (as a real
+    /// controller's counters start wherever the strings are at power-on).
     pub fn reset(&mut self) {
         self.sim_epoch_us += self.prev_t_us;
+        self.path_start_us = Some(0);
         self.tension_n = [0.0; STRINGS];
         self.direction = [0; STRINGS];
         self.prev_length = None;
@@ -417,9 +423,36 @@ impl Plant {
         self.sim_epoch_us
     }
 
+    /// The end-effector rests at its trajectory's start (home, for every
+    /// path but a session's that starts elsewhere) until
+    /// [`Plant::start_path`]: as an operator holds it at home until the
+    /// device has declared home there.
+    pub fn rest_until_started(&mut self) {
+        self.path_start_us = None;
+    }
+
+    /// The end-effector sets off on its trajectory at device time `t_us`
+    /// (µs since this boot), unless it already has this boot.
+    pub fn start_path(&mut self, t_us: u64) {
+        self.path_start_us.get_or_insert(t_us);
+    }
+
+    /// Device time at which the end-effector set off on its trajectory this
+    /// boot (`None`: it rests at the start).
+    pub fn path_start_us(&self) -> Option<u64> {
+        self.path_start_us
+    }
+
     /// True end-effector position at `t_us`, device frame, mm.
     pub fn device_mm_at(&self, t_us: u64) -> [f64; 3] {
-        self.trajectory.position_at(self.device.frame.home, t_us)
+        self.device_mm_on_path(t_us, self.path_start_us)
+    }
+
+    /// True end-effector position at `t_us`, device frame, mm, had it set
+    /// off on its trajectory at `path_start_us` (`None`: not yet).
+    pub fn device_mm_on_path(&self, t_us: u64, path_start_us: Option<u64>) -> [f64; 3] {
+        let path_us = path_start_us.map_or(0, |start| t_us.saturating_sub(start));
+        self.trajectory.position_at(self.device.frame.home, path_us)
     }
 
     /// True end-effector position at `t_us`, room (tracker) frame, mm.

@@ -31,6 +31,17 @@
 //! still trips the device, after 100 ms of simulated time. Whatever the
 //! pace, a plant with a clocked hand never ticks past the committed path.
 //!
+//! # Home
+//!
+//! The device declares home (its encoders' zero, the calibration's home
+//! point) at boot when a model is stored, else when its first geometry
+//! arrives (a flashed model, `SetNominalGeometry`). The end-effector waits
+//! at home until then and sets off on its trajectory at that instant
+//! ([`VirtualStatus::path_start_us`]), as an operator holds it at home
+//! until the device is initialized: flashed over the link at any time,
+//! a model reads the positions it was made for
+//! (`docs/decisions/0043-virtual-path-and-motors-on.md`).
+//!
 //! # Power
 //!
 //! [`VirtualDevice::cut_flash_after`] plans a power loss at the n-th next
@@ -157,6 +168,10 @@ pub struct VirtualStatus {
     pub plant_error: Option<String>,
     /// Flash operations (word writes and erases) since spawn.
     pub flash_operations: usize,
+    /// Device time at which the end-effector set off on its trajectory
+    /// this boot: when the device declared home (at boot with a stored
+    /// model, else at its first geometry); `None`: it waits at home.
+    pub path_start_us: Option<u64>,
 }
 
 enum Control {
@@ -380,15 +395,20 @@ impl VirtualDevice {
         &self.plant
     }
 
-    /// True end-effector position at device time `t_us`, device frame, mm.
+    /// True end-effector position at device time `t_us` of this boot,
+    /// device frame, mm (on its trajectory from when the device declared
+    /// home, [`VirtualStatus::path_start_us`]).
     pub fn truth_device_mm(&self, t_us: u64) -> [f64; 3] {
-        self.plant.device_mm_at(t_us)
+        self.plant
+            .device_mm_on_path(t_us, self.status().path_start_us)
     }
 
-    /// True end-effector position at device time `t_us`, room frame, mm
-    /// (what a perfect tracker sees).
+    /// True end-effector position at device time `t_us` of this boot, room
+    /// frame, mm (what a perfect tracker sees).
     pub fn truth_room_mm(&self, t_us: u64) -> [f64; 3] {
-        self.plant.room_mm_at(t_us)
+        self.plant
+            .device
+            .room_from_device(&self.truth_device_mm(t_us))
     }
 
     /// Stops the device thread.
@@ -516,6 +536,11 @@ fn run_boot(
         // boot.
         Err(_) => return stay_unbooted(control, shared),
     };
+    if dev.home_declared_us().is_none() {
+        // No model to home with at boot: the end-effector waits at home
+        // until the device declares home there (its first geometry).
+        plant.rest_until_started();
+    }
     let mut boot = Boot {
         master,
         config,
@@ -620,6 +645,18 @@ impl Boot<'_> {
         anchor.0 + Duration::from_secs_f64(t_us.saturating_sub(anchor.1) as f64 / 1e6 / self.speed)
     }
 
+    /// The end-effector sets off on its trajectory when the device
+    /// declares home with it there: a device homed anywhere else reads
+    /// every string off by where it was (on the default orbit, strings
+    /// that disagree by more than the faulty-string threshold).
+    fn start_path_at_home(&mut self) {
+        if self.plant.path_start_us().is_none() {
+            if let Some(home_us) = self.dev.home_declared_us() {
+                self.plant.start_path(home_us);
+            }
+        }
+    }
+
     /// Writes the device's status for the [`VirtualDevice`].
     fn publish(&mut self) {
         if let Ok(mut s) = self.status.lock() {
@@ -638,6 +675,7 @@ impl Boot<'_> {
             s.armed = self.dev.armed();
             s.plant_error = self.plant.error().map(str::to_string);
             s.flash_operations = self.shared.ops.load(Ordering::SeqCst);
+            s.path_start_us = self.plant.path_start_us();
         }
     }
 
@@ -724,6 +762,7 @@ impl Boot<'_> {
             // has seen a reply reads a status that already counts its request
             // (and the frames rejected before it).
             let reply = reply.map(<[u8]>::to_vec);
+            self.start_path_at_home();
             self.publish();
             // A reply to a request during which the power went is never sent.
             if let Some(frame) = reply {

@@ -117,6 +117,7 @@ fn session_round_trip_is_lossless() {
         strings: 8,
         samples,
         ignored_columns: vec![],
+        unread_columns: Vec::new(),
         tracker_z: true,
     };
     s.write(&path).unwrap();
@@ -322,6 +323,7 @@ fn writing_rejects_what_reading_would_reject() {
             tension_n: None,
         }],
         ignored_columns: vec![],
+        unread_columns: Vec::new(),
         tracker_z: true,
     };
     let err = s.write(tmp("bad.csv")).unwrap_err();
@@ -645,6 +647,7 @@ fn orientation_round_trip_is_lossless_with_rows_without_one() {
             oriented(2.0, Some([4.0, 5.0, 6.0]), Some([-1.0, 0.0, -0.0, 0.0])),
         ],
         ignored_columns: vec![],
+        unread_columns: Vec::new(),
         tracker_z: true,
     };
     assert!(s.has_orientation());
@@ -834,6 +837,7 @@ fn writing_rejects_an_orientation_reading_would_reject() {
                 oriented(1.0, tracker, Some(orientation)),
             ],
             ignored_columns: vec![],
+            unread_columns: Vec::new(),
             tracker_z: true,
         };
         let path = tmp("bad-orientation.csv");

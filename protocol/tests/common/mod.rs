@@ -121,6 +121,7 @@ pub fn state(max: bool) -> State {
             loop_us: u16::MAX,
             loop_max_us: u16::MAX,
             armed: true,
+            motors_on: true,
             model_id: Some(u32::MAX),
         }
     } else {
@@ -144,6 +145,7 @@ pub fn state(max: bool) -> State {
             loop_us: 143,
             loop_max_us: 171,
             armed: true,
+            motors_on: true,
             model_id: Some(0x5eed_1234),
         }
     }

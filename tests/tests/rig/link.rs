@@ -11,8 +11,8 @@ use spidar::sim::virtual_device::{spawn, Pace, Plant, Trajectory, VirtualDeviceC
 use spidar_core::correction::{CorrectionModel, NnModel, OutputMode, Standardization};
 use spidar_protocol::blob::{split_blob, write_blob, CRC32};
 use spidar_protocol::{
-    encode_device_message, encode_request, BlobRejection, DeviceError, DeviceMessage, Event,
-    Faults, FrameDecoder, HelloAck, Request, Response, State, MAX_FRAME,
+    encode_device_message, encode_request, BadState, BlobRejection, DeviceError, DeviceMessage,
+    Event, Faults, FrameDecoder, HelloAck, Request, Response, State, MAX_FRAME,
 };
 
 fn nn(hidden: usize) -> CorrectionModel {
@@ -356,6 +356,82 @@ fn heartbeat_loss_drops_tensions_to_pretension_within_30_ms() {
     c.disarm().unwrap();
 }
 
+/// What the device streams and what it enforces agree: after a heartbeat
+/// loss the loop is disarmed but the motors hold pre-tension, and the state
+/// says so (`motors_on`) while every model change is refused as `Armed`;
+/// after `Disarm` both say off. In device time (`Pace::Fast`: no tick
+/// between streams), so the heartbeat lapses inside one stream whatever
+/// the host's speed.
+#[test]
+fn the_state_says_the_motors_are_on_while_model_changes_are_refused() {
+    let dev = sim_device();
+    let fast = VirtualDeviceConfig {
+        pace: Pace::Fast,
+        ..VirtualDeviceConfig::default()
+    };
+    let vd = spawn(fast, Plant::new(dev.clone(), Trajectory::Hold)).unwrap();
+    let mut c = Client::open_with(vd.port_path(), ClientOptions::for_simulated_device()).unwrap();
+    c.flash(&blob(&dev, CorrectionModel::None, 21), |_| {})
+        .unwrap();
+    c.arm().unwrap();
+    let mut states: Vec<State> = Vec::new();
+    c.stream(
+        StreamOptions {
+            heartbeat: None,
+            ..StreamOptions::default()
+        },
+        |s| {
+            states.push(*s);
+            !s.faults.contains(Faults::HEARTBEAT_LOST)
+        },
+    )
+    .unwrap();
+    assert!(states[0].armed && states[0].motors_on, "{:?}", states[0]);
+    let lost = states.last().unwrap();
+    assert!(
+        lost.faults.contains(Faults::HEARTBEAT_LOST) && !lost.armed && lost.motors_on,
+        "{lost:?}"
+    );
+    assert!(states.iter().all(|s| s.motors_on), "{states:?}");
+    let refused = |c: &mut Client| {
+        let e = c
+            .flash(&blob(&dev, CorrectionModel::None, 22), |_| {})
+            .unwrap_err();
+        matches!(
+            e.device_error(),
+            Some(DeviceError::BadState(BadState::Armed))
+        )
+    };
+    assert!(refused(&mut c));
+    let some_states = |c: &mut Client| {
+        let mut got = Vec::new();
+        c.stream(
+            StreamOptions {
+                max_frames: Some(3),
+                ..StreamOptions::default()
+            },
+            |s| {
+                got.push(*s);
+                true
+            },
+        )
+        .unwrap();
+        got
+    };
+    let holding = some_states(&mut c);
+    assert!(
+        holding.iter().all(|s| !s.armed && s.motors_on),
+        "{holding:?}"
+    );
+    c.disarm().unwrap();
+    let off = some_states(&mut c);
+    assert!(off.iter().all(|s| !s.armed && !s.motors_on), "{off:?}");
+    let flashed = c
+        .flash(&blob(&dev, CorrectionModel::None, 22), |_| {})
+        .unwrap();
+    assert_eq!(flashed.model_id, 22);
+}
+
 #[test]
 fn streamed_positions_follow_the_plant() {
     let dev = sim_device();
@@ -363,21 +439,21 @@ fn streamed_positions_follow_the_plant() {
         radius_mm: 100.0,
         period_s: 2.0,
     });
+    // Flashed a fifth of an orbit (device time) after boot: the end-effector
+    // waits at home until the model homes the device there, then sets off;
+    // a device homed anywhere else reads every position off by as much.
+    assert!(eventually(|| vd.status().device_time_us >= 400_000));
     let mut c = Client::open_with(vd.port_path(), ClientOptions::for_simulated_device()).unwrap();
-    // The end-effector moves while the model is flashed, and the first
-    // geometry homes the device where it is: boot again with the model (the
-    // end-effector at home, as the firmware expects at power-up).
     c.flash(&blob(&dev, CorrectionModel::None, 4), |_| {})
         .unwrap();
-    drop(c);
-    vd.power_cycle().unwrap();
-    let mut c = Client::open_with(vd.port_path(), ClientOptions::for_simulated_device()).unwrap();
+    let started = vd.status().path_start_us.expect("homed by the model");
+    assert!(started >= 400_000, "{started}");
     let mut worst: f64 = 0.0;
     let r = c
         .stream(
             StreamOptions {
                 decimation: 2,
-                duration: Some(Duration::from_millis(200)),
+                max_frames: Some(100),
                 ..StreamOptions::default()
             },
             |s| {
@@ -393,7 +469,7 @@ fn streamed_positions_follow_the_plant() {
             },
         )
         .unwrap();
-    assert!(r.frames >= 40, "{r:?}");
+    assert_eq!(r.frames, 100, "{r:?}");
     assert_eq!(r.lost, 0);
     // One count is 2 pi r / 4096, about 0.02 mm of string.
     assert!(worst < 0.1, "worst {worst} mm");

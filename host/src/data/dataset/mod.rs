@@ -47,6 +47,15 @@
 //!   `483489.0`, as pandas writes an integer column that had a missing
 //!   value; `1.5` is an error); every other value must be a finite number.
 //! - Occluded rows (no tracker) are kept: they serve diagnosis, not fitting.
+//! - A read may leave an optional group unread ([`ReadOptions`]: the legacy
+//!   `dev_*`, which only `calibrate --blackbox` and `--export-pairs` use);
+//!   its values are then neither parsed nor checked, and its columns are
+//!   listed in [`Session::unread_columns`].
+//!
+//! Values that parse but no device could produce (a count beyond the
+//! frame, a position kilometres off) are the calibration's to set aside by
+//! line (`crate::data::impossible`), not the reader's: the file is read as
+//! written.
 //!
 //! Every error names the file, the line (1-based, header = line 1) and the
 //! column. Writing checks the same rules, so a written file always reads back,
@@ -81,7 +90,7 @@ pub use columns::{
     ORIENTATION_COLUMNS, TENSION_COLUMNS, TIME_COLUMN, TRACKER_COLUMNS,
 };
 pub use geometry::{Geometry, MAX_HOME_TENSION_N};
-pub use session::{Sample, Session};
+pub use session::{ReadOptions, Sample, Session};
 pub use values::MAX_SESSION_TIME_S;
 
 /// Fewest strings a device may have (3 hold a point in 3-D, with no spare).

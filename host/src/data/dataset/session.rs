@@ -50,6 +50,27 @@ pub struct Session {
     /// gave `ots_x, ots_y` only, and every sample's tracker z reads 0; a
     /// 3-D geometry refuses it, [`Session::check_strings`]).
     pub tracker_z: bool,
+    /// Known columns the file has but this read was asked to leave unread
+    /// ([`ReadOptions`]): their values are neither parsed nor checked, and
+    /// their group is `None` on every sample. Empty for a full read.
+    pub unread_columns: Vec<String>,
+}
+
+/// Which of a session's optional groups a read parses. A group left unread
+/// is not checked either: a value only an option uses (the legacy
+/// controller's `dev_*`, read by `calibrate --blackbox`) cannot stop a run
+/// that does not use it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ReadOptions {
+    /// Parse the legacy controller's `dev_x, dev_y, dev_z`.
+    pub legacy: bool,
+}
+
+impl Default for ReadOptions {
+    /// Every group read (and checked).
+    fn default() -> Self {
+        ReadOptions { legacy: true }
+    }
 }
 
 impl Default for Session {
@@ -60,27 +81,47 @@ impl Default for Session {
             samples: Vec::new(),
             ignored_columns: Vec::new(),
             tracker_z: true,
+            unread_columns: Vec::new(),
         }
     }
 }
 
 impl Session {
-    /// Read a session CSV file.
+    /// Read a session CSV file, every group.
     pub fn load(path: impl AsRef<Path>) -> Result<Self, DatasetError> {
-        let path = path.as_ref();
-        let f = fs::File::open(path).map_err(|e| io_error(path, "cannot open", e))?;
-        Self::read_from(io::BufReader::new(f), path)
+        Self::load_with(path, ReadOptions::default())
     }
 
-    /// Read a session from any reader; `file` names it in errors.
+    /// Read a session CSV file, the optional groups `options` asks for.
+    pub fn load_with(path: impl AsRef<Path>, options: ReadOptions) -> Result<Self, DatasetError> {
+        let path = path.as_ref();
+        let f = fs::File::open(path).map_err(|e| io_error(path, "cannot open", e))?;
+        Self::read_from_with(io::BufReader::new(f), path, options)
+    }
+
+    /// Read a session from any reader, every group; `file` names it in errors.
     pub fn read_from<R: io::Read>(reader: R, file: &Path) -> Result<Self, DatasetError> {
+        Self::read_from_with(reader, file, ReadOptions::default())
+    }
+
+    /// Read a session from any reader, the optional groups `options` asks
+    /// for; `file` names it in errors.
+    pub fn read_from_with<R: io::Read>(
+        reader: R,
+        file: &Path,
+        options: ReadOptions,
+    ) -> Result<Self, DatasetError> {
         let mut csv = csv::ReaderBuilder::new()
             .has_headers(true)
             .flexible(false)
             .trim(csv::Trim::All)
             .from_reader(reader);
         let header = csv.headers().map_err(|e| csv_error(file, e))?.clone();
-        let (layout, ignored_columns) = Layout::from_header(file, &header)?;
+        let (mut layout, ignored_columns) = Layout::from_header(file, &header)?;
+        let mut unread_columns = Vec::new();
+        if !options.legacy && layout.legacy.take().is_some() {
+            unread_columns.extend(LEGACY_COLUMNS.iter().map(|c| c.to_string()));
+        }
         let strings = layout.counts.len();
         let tracker_group = if layout.tracker.len() == 3 {
             "ots_x, ots_y, ots_z"
@@ -162,6 +203,7 @@ impl Session {
             samples,
             ignored_columns,
             tracker_z: layout.tracker.len() == 3,
+            unread_columns,
         })
     }
 

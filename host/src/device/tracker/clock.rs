@@ -361,6 +361,7 @@ impl StateHistory {
                 mix(f64::from(a.corrected_mm[k]), f64::from(b.corrected_mm[k])).round() as i32;
         }
         s.armed = a.armed && b.armed;
+        s.motors_on = a.motors_on && b.motors_on;
         Some(s)
     }
 }
@@ -413,6 +414,7 @@ mod tests {
             loop_us: 0,
             loop_max_us: 0,
             armed: true,
+            motors_on: true,
             model_id: None,
         }
     }

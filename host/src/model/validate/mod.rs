@@ -10,6 +10,8 @@
 //!   the sampling noise of their tail ([`tail_noise`]);
 //! - held out: a structure refitted on each fold and its errors on the rows
 //!   the fold holds out ([`validate`], [`Validation`]);
+//! - preferred: a choice among alternatives by their held-out means, the
+//!   first being the default ([`preferred`]);
 //! - the verdict: [`judge`] on the figures before and after a change
 //!   ([`Check`]), and the tests particular to steps in time, drifts and
 //!   terms on one string.
@@ -18,6 +20,7 @@ mod errors;
 mod folds;
 mod held_out;
 mod judge;
+mod preferred;
 
 pub(crate) use errors::held_out_error_list;
 pub use errors::{model_errors, tail_noise};
@@ -29,3 +32,4 @@ pub use judge::{judge, Check, FAILING_ROW_FACTOR, FAILING_ROW_RISE};
 pub(crate) use judge::{
     judge_step, refuse_a_fold_repair, refuse_on_fold_rise, stability, IN_SAMPLE_SHARE_OF_GAIN,
 };
+pub use preferred::{preferred, Preferred};

@@ -24,6 +24,7 @@ use super::{
 fn legacy_pairs(
     geometry: &Geometry,
     session: &Session,
+    skipped: &[usize],
     marker_body_mm: Option<[f64; 3]>,
 ) -> (Vec<usize>, Vec<[f64; 3]>, Vec<[f64; 3]>) {
     let t = geometry.room_from_device_translation_mm;
@@ -31,6 +32,9 @@ fn legacy_pairs(
     let mut x = Vec::new();
     let mut y = Vec::new();
     for (row, s) in session.samples.iter().enumerate() {
+        if skipped.binary_search(&row).is_ok() {
+            continue;
+        }
         if let (Some(d), Some(o)) = (s.legacy, s.tracker) {
             rows.push(row);
             x.push([d[0] + t[0], d[1] + t[1], d[2] + t[2]]);
@@ -57,12 +61,12 @@ pub(super) struct LegacyPairs {
 
 fn blackbox_pairs(
     geometry: &Geometry,
-    train: &Session,
-    test: &Session,
+    [train, test]: [&Session; 2],
+    skipped: [&[usize]; 2],
     marker_body_mm: Option<[f64; 3]>,
 ) -> Result<LegacyPairs, CalibrateError> {
-    let (rows_tr, x_tr, y_tr) = legacy_pairs(geometry, train, marker_body_mm);
-    let (rows_te, x_te, y_te) = legacy_pairs(geometry, test, marker_body_mm);
+    let (rows_tr, x_tr, y_tr) = legacy_pairs(geometry, train, skipped[0], marker_body_mm);
+    let (rows_te, x_te, y_te) = legacy_pairs(geometry, test, skipped[1], marker_body_mm);
     let outl =
         outliers::tukey(&x_tr, &y_tr).map_err(learn("black-box outliers (Tukey box plot)"))?;
     let (xk, yk) = outliers::select(&outl, &x_tr, &y_tr);
@@ -171,8 +175,16 @@ impl Run<'_> {
         marker_body_mm: Option<[f64; 3]>,
         points: &mut Vec<StagePoints>,
     ) -> Result<(Option<LegacyPairs>, Option<report::Blackbox>), CalibrateError> {
+        let skipped = [&self.train_info, &self.test_info].map(|info| info.rows_set_aside());
         let legacy = (self.train_info.has_legacy && self.test_info.has_legacy)
-            .then(|| blackbox_pairs(self.geometry, train, test, marker_body_mm))
+            .then(|| {
+                blackbox_pairs(
+                    self.geometry,
+                    [train, test],
+                    [&skipped[0], &skipped[1]],
+                    marker_body_mm,
+                )
+            })
             .transpose()?;
         if !self.cfg.blackbox {
             return Ok((legacy, None));

@@ -10,6 +10,7 @@ use std::path::Path;
 use spidar_core::geometry::device_from_room;
 
 use crate::data::dataset::Geometry;
+use crate::data::impossible::{SetAside, NOMINAL_SCALE_LIMIT};
 use crate::data::observe::Observation;
 use crate::model::identify::Structure;
 
@@ -17,19 +18,25 @@ use super::{align, report, trust, CalibrateError, NamedSession, StagePoints};
 
 /// Both sessions' facts for the report, after checking their strings
 /// against the geometry, and the warnings they call for: test rows that are
-/// training rows, columns nobody reads.
+/// training rows, columns nobody reads, rows set aside as impossible
+/// (`set_aside`, found on the sessions as read; a session most of whose
+/// rows are impossible is refused).
 pub(super) fn checked_sessions(
     geometry: &Geometry,
     geometry_path: &Path,
     train: NamedSession<'_>,
     test: NamedSession<'_>,
+    set_aside: [&SetAside; 2],
 ) -> Result<(report::SessionInfo, report::SessionInfo, Vec<String>), CalibrateError> {
     let mut warnings: Vec<String> = Vec::new();
     for s in [&train, &test] {
         s.session.check_strings(s.path, geometry, geometry_path)?;
     }
-    let train_info = session_info(train)?;
-    let test_info = session_info(test)?;
+    for (s, found) in [&train, &test].into_iter().zip(set_aside) {
+        check_set_aside(s, found, geometry_path)?;
+    }
+    let train_info = session_info(train, set_aside[0])?;
+    let test_info = session_info(test, set_aside[1])?;
     match trust::shared_rows(train.session, test.session) {
         (0, _) => {}
         (shared, rows) if shared == rows => warnings.push(format!(
@@ -52,24 +59,88 @@ pub(super) fn checked_sessions(
             ));
         }
     }
+    for ((s, found), name) in [&train, &test]
+        .into_iter()
+        .zip(set_aside)
+        .zip(["training", "test"])
+    {
+        warnings.extend(set_aside_warning(s.path, found, name));
+    }
     Ok((train_info, test_info, warnings))
 }
 
-/// Session facts for the report; refuses a session the tracker never saw.
-fn session_info(s: NamedSession<'_>) -> Result<report::SessionInfo, CalibrateError> {
+/// How many set-aside rows a message lists (the JSON report has them all).
+const SET_ASIDE_SHOWN: usize = 12;
+
+/// Refuses a session most of whose rows no device of the geometry could
+/// produce: not bad rows, but a geometry or a unit that does not fit it.
+fn check_set_aside(
+    s: &NamedSession<'_>,
+    found: &SetAside,
+    geometry_path: &Path,
+) -> Result<(), CalibrateError> {
     let rows = s.session.samples.len();
+    if !found.is_most_of(rows) {
+        return Ok(());
+    }
+    Err(CalibrateError::Session {
+        file: s.path.to_path_buf(),
+        problem: format!(
+            "{} of its {rows} rows hold values no device of the geometry {} could produce, too \
+             many to be bad rows: check the geometry's anchors, pulley_radius_mm, \
+             counts_per_rev and mechanical_advantage against the device, and that the tracker \
+             gives millimetres. {}",
+            found.values.len(),
+            geometry_path.display(),
+            found.lines(SET_ASIDE_SHOWN)
+        ),
+    })
+}
+
+/// The warning that names the rows of a session set aside as impossible
+/// (`key`: the session's name in the JSON report's `inputs`).
+fn set_aside_warning(path: &Path, found: &SetAside, key: &str) -> Option<String> {
+    if found.is_empty() {
+        return None;
+    }
+    let count = found.values.len();
+    Some(format!(
+        "{}: {count} row{} set aside, holding values no device of this geometry could produce \
+         (a row whose counts cannot be is left out of the calibration and its figures; one \
+         whose position cannot be reads as occluded, or without its legacy position); the JSON \
+         report's `inputs.{key}.set_aside` lists them all: {}",
+        path.display(),
+        if count == 1 { "" } else { "s" },
+        found.lines(SET_ASIDE_SHOWN)
+    ))
+}
+
+/// Session facts for the report; refuses a session the tracker never saw
+/// (after the rows set aside).
+fn session_info(
+    s: NamedSession<'_>,
+    set_aside: &SetAside,
+) -> Result<report::SessionInfo, CalibrateError> {
+    let rows = s.session.samples.len();
+    let skipped = set_aside.rows();
     let tracked = s
         .session
         .samples
         .iter()
-        .filter(|r| r.tracker.is_some())
+        .enumerate()
+        .filter(|(row, r)| r.tracker.is_some() && skipped.binary_search(row).is_err())
         .count();
     if tracked == 0 {
         return Err(CalibrateError::Session {
             file: s.path.to_path_buf(),
             problem: format!(
-                "none of its {rows} rows has a tracker position (ots_x, ots_y, ots_z): \
-                 nothing to calibrate or evaluate against"
+                "none of its {rows} rows has a tracker position (ots_x, ots_y, ots_z){}: \
+                 nothing to calibrate or evaluate against",
+                if set_aside.is_empty() {
+                    String::new()
+                } else {
+                    format!(" after {} set aside as impossible", set_aside.values.len())
+                }
             ),
         });
     }
@@ -77,10 +148,12 @@ fn session_info(s: NamedSession<'_>) -> Result<report::SessionInfo, CalibrateErr
         path: s.path.display().to_string(),
         rows,
         tracked,
-        occluded: rows - tracked,
+        occluded: rows - skipped.len() - tracked,
         has_legacy: s.session.has_legacy(),
         has_tension: s.session.has_tension(),
         ignored_columns: s.session.ignored_columns.clone(),
+        unread_columns: s.session.unread_columns.clone(),
+        set_aside: set_aside.values.clone(),
     })
 }
 
@@ -111,7 +184,7 @@ pub(super) fn unpaired_rows_warnings(timing: &report::Timing) -> Vec<String> {
 /// simulated paper-sized devices, whose nominal pulley radius is half the
 /// wound one, are at 1.9 to 2.4; the Hangprinter at 1.01; other simulated
 /// devices at 1.3 to 1.4.
-const TRACKER_SCALE_REFUSED: f64 = 5.0;
+const TRACKER_SCALE_REFUSED: f64 = NOMINAL_SCALE_LIMIT;
 
 /// Beyond this factor (and within [`TRACKER_SCALE_REFUSED`]) the report
 /// warns.

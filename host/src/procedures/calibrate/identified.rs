@@ -10,7 +10,7 @@ use spidar_core::geometry::room_from_device;
 use spidar_core::kinematics::{FkStatus, KinematicsRule};
 
 use crate::data::dataset::{Geometry, Session};
-use crate::data::observe::{observations, Observation};
+use crate::data::observe::{observations_skipping, Observation};
 use crate::data::stats::{ErrorStats, StatsError};
 use crate::model::diagnose::{close_loop, LoopConfig, LoopResult};
 use crate::model::identify::{identify, Start, Structure};
@@ -25,15 +25,17 @@ use super::checks::{
 use super::evaluate::{room_positions, stage, PerSession, StageErrors, StageList};
 use super::{align, report, spinner, CalibrateConfig, CalibrateError, NamedSession, Run};
 
-/// The observations of both sessions; on a planar device the tracker's z
-/// set to the anchors' plane.
+/// The observations of both sessions but their rows set aside whole
+/// (`skipped`, ascending); on a planar device the tracker's z set to the
+/// anchors' plane.
 fn session_observations(
     nominal: &spidar_core::model::Frame<f64>,
     train: &Session,
     test: &Session,
+    skipped: [&[usize]; 2],
 ) -> (Vec<Observation>, Vec<Observation>) {
-    let mut tr = observations(&train.samples);
-    let mut te = observations(&test.samples);
+    let mut tr = observations_skipping(&train.samples, skipped[0]);
+    let mut te = observations_skipping(&test.samples, skipped[1]);
     if nominal.layout.planar {
         // A planar device's tracker gives the position in the plane; its z
         // (absent, or the marker's height) is not used: the errors are in
@@ -449,7 +451,13 @@ impl Run<'_> {
         nominal: &spidar_core::model::Frame<f64>,
         nominal_laws: &[spidar_core::model::StringLaw; spidar_core::STRINGS],
     ) -> Result<(Vec<Observation>, Vec<Observation>, report::Timing), CalibrateError> {
-        let (tr, te) = session_observations(nominal, train.session, test.session);
+        let skipped = [&self.train_info, &self.test_info].map(|info| info.rows_set_aside());
+        let (tr, te) = session_observations(
+            nominal,
+            train.session,
+            test.session,
+            [&skipped[0], &skipped[1]],
+        );
         let t = Instant::now();
         let (tr, te, timing) = align_clocks(tr, te, self.geometry, nominal, nominal_laws)?;
         for (path, t) in [(train.path, &timing.train), (test.path, &timing.test)] {

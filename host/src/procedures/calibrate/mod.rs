@@ -57,14 +57,16 @@ pub mod report;
 mod request;
 pub mod trust;
 
+use std::borrow::Cow;
 use std::path::{Path, PathBuf};
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 use crate::progress::Step;
 use spidar_core::correction::CorrectionModel;
 use spidar_core::model::Calibration;
 
 use crate::data::dataset::{DatasetError, Geometry, Session};
+use crate::data::impossible::SetAside;
 use crate::data::observe::Observation;
 use crate::data::stats::{ErrorStats, StatsError};
 use crate::model::diagnose::{LoopConfig, LoopResult};
@@ -82,6 +84,7 @@ use evaluate::{correction_errors, point_error_list, room_positions, tracked_pair
 use identified::{FinalIdentified, IdentifiedModel, ReferenceModel};
 
 pub use evaluate::{PointErrors, StagePoints};
+pub use figures::robust_colour_max;
 pub use outputs::{write_outputs, PairSet, Written};
 pub use report::{Report, SCHEMA};
 pub use request::{run_calibrate, CalibrateRequest};
@@ -119,6 +122,8 @@ pub enum CalibrateError {
     },
     #[error("{0}")]
     Align(#[from] align::AlignError),
+    #[error("{0}")]
+    Page(#[from] crate::procedures::report_page::PageError),
 }
 
 fn learn(step: &'static str) -> impl FnOnce(LearnError) -> CalibrateError {
@@ -141,8 +146,8 @@ pub struct CalibrateConfig {
     /// ([`thin_evenly`](crate::model::learn::thin::thin_evenly)); every row
     /// still counts in the identification and in the error figures. 2500
     /// keeps a 13^3 lattice (2197 points) whole, so the SVR's kernel and
-    /// the NN's steps stay as measured on it; a much larger session runs
-    /// the SVR search out of its time limit, which fails the calibration.
+    /// the NN's steps stay as measured on it, and the learners' time stays
+    /// bounded however long the session.
     pub max_learning_points: usize,
     /// Share of the kept training points held out to choose the final model.
     pub selection_fraction: f64,
@@ -162,16 +167,15 @@ impl CalibrateConfig {
     /// restarts; RBF epsilon-SVR with a C x epsilon x gamma search. The
     /// residual SVR grid is centred where residual targets need it (epsilon
     /// about 0.05 in standardized units: the residual is mostly tracker noise,
-    /// and a narrower tube only buys support vectors). Time limits are guards
-    /// against pathological data, not part of the normal run: they do not
-    /// trigger on the reference sessions (`docs/benchmarks.md`, "Speed of a
-    /// calibration").
+    /// and a narrower tube only buys support vectors). No wall-clock limit:
+    /// a calibration's result never depends on how fast or how busy the
+    /// machine is. The learners' work is bounded by the data instead: at
+    /// most [`CalibrateConfig::max_learning_points`] points, LM epochs and
+    /// SMO iterations capped.
     pub fn full() -> Self {
         let nn = SweepConfig {
             sizes: (3..=24).collect(),
             mode: OutputMode::Residual,
-            sweep_time_limit: Some(Duration::from_secs(6)),
-            final_time_limit: Some(Duration::from_secs(4)),
             ..SweepConfig::default()
         };
         let svr = SvrSearchConfig {
@@ -179,7 +183,6 @@ impl CalibrateConfig {
             epsilon: vec![0.1, 0.05],
             gamma: vec![0.3, 1.0],
             mode: OutputMode::Residual,
-            time_limit: Some(Duration::from_secs(8)),
             ..SvrSearchConfig::default()
         };
         CalibrateConfig {
@@ -269,6 +272,12 @@ pub struct Calibrated {
     /// The learners' data: residual pairs, and black-box pairs when both
     /// sessions have `dev_*` columns (whether or not the black-box ran).
     pub pairs: Pairs,
+    /// The sessions' rows as every stage after the raw one read them (rows
+    /// set aside, the tracker's clock aligned, its glitches occluded, at the
+    /// strings' meeting point): what the report page's evidence figures and
+    /// its fixed-point error read.
+    pub train_rows: Vec<Observation>,
+    pub test_rows: Vec<Observation>,
 }
 
 #[derive(Clone, Debug, Default)]
@@ -484,7 +493,32 @@ pub fn calibrate(
 ) -> Result<Calibrated, CalibrateError> {
     let cfg = config.with_seed_and_quiet();
     let t_start = Instant::now();
-    let (train_info, test_info, warnings) = checked_sessions(geometry, geometry_path, train, test)?;
+    // Rows no device of the geometry could produce are set aside before
+    // anything reads the sessions: their positions emptied here, their
+    // whole rows skipped where the sessions become observations.
+    let set_aside = [train, test].map(|s| SetAside::find(s.session, geometry));
+    let kept = [(train, &set_aside[0]), (test, &set_aside[1])].map(|(s, found)| {
+        if found.is_empty() {
+            Cow::Borrowed(s.session)
+        } else {
+            Cow::Owned(found.without_positions(s.session))
+        }
+    });
+    let train = NamedSession {
+        path: train.path,
+        session: &kept[0],
+    };
+    let test = NamedSession {
+        path: test.path,
+        session: &kept[1],
+    };
+    let (train_info, test_info, warnings) = checked_sessions(
+        geometry,
+        geometry_path,
+        train,
+        test,
+        [&set_aside[0], &set_aside[1]],
+    )?;
     let mut run = Run {
         geometry,
         geometry_path,
@@ -559,6 +593,8 @@ pub fn calibrate(
         points: list.points,
         loop_result,
         pairs,
+        train_rows: tr,
+        test_rows: te,
     })
 }
 

@@ -1,8 +1,9 @@
 //! What a calibration writes: `calibration.json`, `report.json` (and the
-//! report wherever `--json` asks), the figures, and the learners' pairs as
-//! CSV.
+//! report wherever `--json` asks), the report as a page (`report.html` and
+//! its figures' data), the figures, and the learners' pairs as CSV.
 
 use crate::data::output::write_atomically;
+use crate::procedures::report_page;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -63,12 +64,15 @@ impl PairSet {
 pub struct Written {
     pub calibration: PathBuf,
     pub report: Vec<PathBuf>,
+    /// The report as a page for people (`report.html`).
+    pub page: PathBuf,
     pub figures: Vec<PathBuf>,
 }
 
 /// Write the figures (unless `figures` is false), `DIR/calibration.json`,
 /// `DIR/report.json` and, when given, the JSON report at `json` too (`-` is
-/// stdout, written by the caller). Fills the report's file paths.
+/// stdout, written by the caller), then the page `DIR/report.html`. Fills
+/// the report's file paths.
 pub fn write_outputs(
     calibrated: &mut Calibrated,
     out: &Path,
@@ -102,6 +106,7 @@ pub fn write_outputs(
         calibration: calibration_path.display().to_string(),
         reports: reports.iter().map(|p| p.display().to_string()).collect(),
         out_dir: out.display().to_string(),
+        page: out.join(report_page::PAGE_FILE).display().to_string(),
     };
     for r in &reports {
         if let Some(parent) = r.parent().filter(|p| !p.as_os_str().is_empty()) {
@@ -113,9 +118,11 @@ pub fn write_outputs(
         }
         write_json(r, &calibrated.report)?;
     }
+    let page = write_page(calibrated, out)?;
     Ok(Written {
         calibration: calibration_path,
         report: reports,
+        page,
         figures: calibrated
             .report
             .figures
@@ -123,6 +130,18 @@ pub fn write_outputs(
             .map(|f| PathBuf::from(&f.path))
             .collect(),
     })
+}
+
+/// `DIR/report.html` and the data of its figures, from the report as
+/// `report.json` holds it: its JSON text read back, as `spidar report DIR`
+/// reads it, so that both draw the same page.
+fn write_page(calibrated: &Calibrated, out: &Path) -> Result<PathBuf, CalibrateError> {
+    let file = out.join(report_page::REPORT_FILE);
+    let report = serde_json::to_string(&calibrated.report)
+        .and_then(|text| serde_json::from_str(&text))
+        .map_err(|source| CalibrateError::Json { file, source })?;
+    let figures = report_page::FigureData::of(calibrated);
+    Ok(report_page::write_page(out, &report, &figures)?)
 }
 
 fn write_json<T: serde::Serialize>(path: &Path, value: &T) -> Result<(), CalibrateError> {

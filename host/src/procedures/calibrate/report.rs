@@ -365,12 +365,33 @@ pub struct Inputs {
 pub struct SessionInfo {
     pub path: String,
     pub rows: usize,
-    /// Rows with a tracker position (the rows every statistic is over).
+    /// Rows with a tracker position (the rows every statistic is over),
+    /// after the rows set aside.
     pub tracked: usize,
+    /// Rows without a tracker position (after the rows set aside).
     pub occluded: usize,
     pub has_legacy: bool,
     pub has_tension: bool,
     pub ignored_columns: Vec<String>,
+    /// Known columns left unread (the legacy controller's `dev_*` without
+    /// `--blackbox` or `--export-pairs`): not checked, not used.
+    pub unread_columns: Vec<String>,
+    /// Values no device of the geometry could produce, by line: a row
+    /// whose counts cannot be is out of every figure; a position that cannot
+    /// be is emptied (the row reads as occluded, or without its legacy
+    /// position).
+    pub set_aside: Vec<crate::data::impossible::ImpossibleValue>,
+}
+
+impl SessionInfo {
+    /// The rows set aside whole (their counts cannot be), ascending.
+    pub fn rows_set_aside(&self) -> Vec<usize> {
+        self.set_aside
+            .iter()
+            .filter(|v| v.part == crate::data::impossible::SetAsidePart::Row)
+            .map(|v| v.row)
+            .collect()
+    }
 }
 
 /// What a stage is.
@@ -751,6 +772,9 @@ pub struct Files {
     /// effects, correction): what later commands read.
     pub calibration: String,
     pub reports: Vec<String>,
+    /// The report as one page for people (`report.html`, beside
+    /// `report.json`).
+    pub page: String,
 }
 
 fn stage_table(out: &mut String, stages: &[Stage]) {
@@ -1107,6 +1131,13 @@ impl Report {
             let _ = writeln!(o, "  {} (the calibration)", self.files.calibration);
             for r in &self.files.reports {
                 let _ = writeln!(o, "  {r} (JSON report)");
+            }
+            if !self.files.page.is_empty() {
+                let _ = writeln!(
+                    o,
+                    "  {} (the report as a page: open it in a browser)",
+                    self.files.page
+                );
             }
             if let Some(first) = self.figures.first() {
                 let dir = std::path::Path::new(&first.path)

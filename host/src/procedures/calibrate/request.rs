@@ -5,7 +5,7 @@
 
 use std::path::{Path, PathBuf};
 
-use crate::data::dataset::{Geometry, Session};
+use crate::data::dataset::{Geometry, ReadOptions, Session};
 use crate::data::output::refuse_output_over_input;
 
 use super::{calibrate, write_outputs, CalibrateConfig, CalibrateError, Calibrated, NamedSession};
@@ -36,9 +36,14 @@ pub struct CalibrateRequest {
 pub fn run_calibrate(request: &CalibrateRequest) -> Result<Calibrated, CalibrateError> {
     refuse_outputs_over_inputs(request)?;
     let geometry = Geometry::load(&request.geometry)?;
-    let train = Session::load(&request.train)?;
-    let test = Session::load(&request.test)?;
     let config = &request.config;
+    // The legacy controller's columns are read (and checked) only by what
+    // uses them: the black-box comparison and the exported pairs.
+    let read = ReadOptions {
+        legacy: config.blackbox || request.export_pairs.is_some(),
+    };
+    let train = Session::load_with(&request.train, read)?;
+    let test = Session::load_with(&request.test, read)?;
     let mut calibrated = calibrate(
         &geometry,
         &request.geometry,
@@ -52,7 +57,8 @@ pub fn run_calibrate(request: &CalibrateRequest) -> Result<Calibrated, Calibrate
         },
         config,
     )?;
-    if !config.blackbox && train.has_legacy() && test.has_legacy() {
+    let has_legacy = |s: &Session| s.has_legacy() || !s.unread_columns.is_empty();
+    if !config.blackbox && has_legacy(&train) && has_legacy(&test) {
         calibrated.report.notes.push(
             "the sessions have dev_* columns: --blackbox adds the paper's black-box NN and SVR \
              for comparison"

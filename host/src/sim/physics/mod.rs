@@ -292,6 +292,7 @@ pub fn rows_to_session(rows: Vec<PhysicsRow>) -> Result<Session, SimError> {
         strings,
         samples,
         ignored_columns: Vec::new(),
+        unread_columns: Vec::new(),
         tracker_z: true,
     })
 }

@@ -25,15 +25,16 @@ fn the_black_box_reads_the_tracker_at_the_meeting_point_the_loop_found() {
         strings: STRINGS,
         samples: vec![row(Some([h, 0.0, 0.0, h])), row(None)],
         ignored_columns: Vec::new(),
+        unread_columns: Vec::new(),
         tracker_z: true,
     };
-    let (rows, x, y) = legacy_pairs(&geometry, &session, Some([10.0, 0.0, 0.0]));
+    let (rows, x, y) = legacy_pairs(&geometry, &session, &[], Some([10.0, 0.0, 0.0]));
     assert_eq!(rows, [0, 1]);
     assert_eq!(x[0], [1.0 + t[0], 2.0 + t[1], 3.0 + t[2]]);
     for (got, want) in y[0].iter().zip([100.0, 190.0, 300.0]) {
         assert!((got - want).abs() < 1e-9, "{:?}", y[0]);
     }
     assert_eq!(y[1], [100.0, 200.0, 300.0], "a row without orientation");
-    let (_, _, plain) = legacy_pairs(&geometry, &session, None);
+    let (_, _, plain) = legacy_pairs(&geometry, &session, &[], None);
     assert_eq!(plain[0], [100.0, 200.0, 300.0]);
 }

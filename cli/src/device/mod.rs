@@ -5,10 +5,15 @@ use std::io::Write as _;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
+use anyhow::bail;
 use spidar_protocol::messages::q16_to_mm;
-use spidar_protocol::{Faults, State};
+use spidar_protocol::State;
 
 use spidar::device::link::{Client, ClientOptions, FlashPhase, LinkError, StreamOptions};
+
+mod report;
+
+use report::{force_report, state_line, Hold};
 
 /// Port and link settings shared by the device commands. Global: they may
 /// come before or after a subcommand (`spidar device info --port P` as
@@ -68,9 +73,11 @@ pub struct DeviceArgs {
 /// The device subcommands.
 #[derive(Clone, Debug, clap::Subcommand)]
 pub enum DeviceCommand {
-    /// Firmware, protocol, active model, link counters.
+    /// Firmware, protocol, active model, link counters, and the state now:
+    /// armed or not, motors on or off (they hold pre-tension after a fault
+    /// until `disarm`), faults by name.
     Info,
-    /// Print the state stream (CSV on stdout).
+    /// Print the state stream (CSV on stdout); fails if no frame comes.
     Stream {
         /// One frame every N loop iterations.
         #[arg(long, default_value_t = 10)]
@@ -88,6 +95,8 @@ pub enum DeviceCommand {
     /// pre-tension, holds it (the motors stay on: model changes are refused
     /// until `disarm`) and latches HEARTBEAT_LOST until the next `arm`
     /// clears it (`disarm` turns the motors off and leaves it latched).
+    /// Fails, naming the faults, if the device did not stay armed through
+    /// the hold (a heartbeat lost, a fault).
     Arm {
         #[arg(long, default_value_t = 0.0, value_parser = crate::args::non_negative)]
         hold: f64,
@@ -95,7 +104,8 @@ pub enum DeviceCommand {
     /// Disarm the motors.
     Disarm,
     /// Arm and render a force (device frame, N) for --hold seconds, then
-    /// go back to no force and disarm.
+    /// go back to no force and disarm. Fails, naming the faults, if the
+    /// device did not stay armed to render it (a heartbeat lost, a fault).
     Force {
         /// Force along x, N.
         #[arg(allow_hyphen_values = true, value_parser = finite_newtons)]
@@ -243,7 +253,7 @@ fn hex(bytes: &[u8]) -> String {
 }
 
 /// CSV header of `spidar device stream`.
-pub const STREAM_HEADER: &str = "time_us,x_mm,y_mm,z_mm,room_x_mm,room_y_mm,room_z_mm,t0_n,t1_n,t2_n,t3_n,t4_n,t5_n,t6_n,t7_n,faults,armed,model_id";
+pub const STREAM_HEADER: &str = "time_us,x_mm,y_mm,z_mm,room_x_mm,room_y_mm,room_z_mm,t0_n,t1_n,t2_n,t3_n,t4_n,t5_n,t6_n,t7_n,faults,armed,motors_on,model_id";
 
 /// One CSV line of a state frame.
 pub fn state_csv(s: &State) -> String {
@@ -262,15 +272,17 @@ pub fn state_csv(s: &State) -> String {
     }
     let _ = write!(
         line,
-        ",{:#06x},{},{}",
+        ",{:#06x},{},{},{}",
         s.faults.0,
         u8::from(s.armed),
+        u8::from(s.motors_on),
         s.model_id.map_or(String::new(), |m| format!("{m:#010x}"))
     );
     line
 }
 
-/// Runs `spidar device ...`.
+/// Runs `spidar device ...`. An error when a request fails, and when the
+/// device did not do what was asked (see [`Hold`]).
 pub fn run_device(args: &DeviceArgs) -> anyhow::Result<String> {
     // Arguments first: a bad one is an argument error, whatever the port.
     match &args.command {
@@ -296,13 +308,11 @@ pub fn run_device(args: &DeviceArgs) -> anyhow::Result<String> {
         }
         DeviceCommand::Arm { hold } => {
             let hold = seconds(*hold, "--hold")?;
-            client.arm()?;
-            hold_heartbeat(&mut client, hold, false)?;
-            let _ = writeln!(out, "armed");
+            arm_and_hold(&mut client, hold, &mut out)?;
         }
         DeviceCommand::Disarm => {
             client.disarm()?;
-            let _ = writeln!(out, "disarmed");
+            let _ = writeln!(out, "disarmed, motors off");
         }
         DeviceCommand::Force { fx, fy, fz, hold } => {
             let hold = seconds(*hold, "--hold")?;
@@ -313,8 +323,10 @@ pub fn run_device(args: &DeviceArgs) -> anyhow::Result<String> {
 }
 
 /// `spidar device info`: the device, its active model, the link counters
-/// and its state now (armed or not, its fault bits by name), into `out`.
-fn device_info(client: &mut Client, out: &mut String) -> Result<(), LinkError> {
+/// and its state now (armed or not, motors on or off, its fault bits by
+/// name), into `out`. A device that sends no state frame when asked is an
+/// error, after what it did say is printed.
+fn device_info(client: &mut Client, out: &mut String) -> anyhow::Result<()> {
     if let Some(h) = client.device().copied() {
         let _ = writeln!(
             out,
@@ -354,20 +366,22 @@ fn device_info(client: &mut Client, out: &mut String) -> Result<(), LinkError> {
     }
     let s = client.stats()?;
     let _ = writeln!(out, "{}", link_line(&s));
-    // The device's state now: armed or not, its fault bits by name.
     client.stream_on(1)?;
     let last = hold_heartbeat(client, Duration::ZERO, true)?;
     client.stream_off()?;
-    let _ = match last {
-        Some(st) => writeln!(
-            out,
-            "state: {}, faults {}",
-            if st.armed { "armed" } else { "disarmed" },
-            fault_names(st.faults)
-        ),
-        None => writeln!(out, "state: no state frame came (faults unknown)"),
-    };
-    Ok(())
+    match last {
+        Some(st) => {
+            let _ = writeln!(out, "{}", state_line(&st));
+            Ok(())
+        }
+        None => {
+            print!("{out}");
+            bail!(
+                "{}: the device sent no state frame after StreamOn: its state (armed, motors, faults) is unknown",
+                client.port_name()
+            )
+        }
+    }
 }
 
 /// `spidar device stream`: the state stream as CSV on stdout, its counters
@@ -377,7 +391,7 @@ fn stream_csv(
     decimation: u16,
     frames: Option<u64>,
     duration: Duration,
-) -> Result<(), LinkError> {
+) -> anyhow::Result<()> {
     let stdout = std::io::stdout();
     let mut lock = stdout.lock();
     let _ = writeln!(lock, "{STREAM_HEADER}");
@@ -399,17 +413,55 @@ fn stream_csv(
         report.rejected,
         report.bytes
     );
+    if report.frames == 0 {
+        bail!(
+            "{}: the device sent no state frame in {:.2} s of streaming",
+            client.port_name(),
+            report.elapsed.as_secs_f64()
+        );
+    }
+    Ok(())
+}
+
+/// `spidar device arm`: arms; with a hold, keeps the heartbeat that long
+/// and fails when the device did not stay armed through it.
+fn arm_and_hold(client: &mut Client, hold: Duration, out: &mut String) -> anyhow::Result<()> {
+    if hold.is_zero() {
+        client.arm()?;
+        let _ = writeln!(out, "armed");
+        return Ok(());
+    }
+    let losses = client.stats()?.heartbeat_losses;
+    client.arm()?;
+    // State frames (every 10th loop iteration) tell whether it stays armed.
+    client.stream_on(10)?;
+    let last = hold_heartbeat(client, hold, true)?;
+    let held = Hold {
+        last,
+        heartbeat_losses: client.stats()?.heartbeat_losses.wrapping_sub(losses),
+    };
+    client.stream_off()?;
+    if let Some(why) = held.shortfall() {
+        bail!(
+            "{}: armed, then {why}; its motors hold pre-tension until `spidar device disarm`, \
+             and `spidar device arm` clears the faults and arms again",
+            client.port_name()
+        );
+    }
+    let _ = writeln!(out, "armed, held {:.1} s", hold.as_secs_f64());
     Ok(())
 }
 
 /// `spidar device force`: arms, renders `requested` (device frame, N) for
-/// `hold`, then no force and disarms; what the device rendered into `out`.
+/// `hold`, then no force and disarms; what the device rendered into `out`,
+/// or an error when the device did not stay armed to render it.
 fn render_force(
     client: &mut Client,
     requested: [f32; 3],
     hold: Duration,
     out: &mut String,
-) -> Result<(), LinkError> {
+) -> anyhow::Result<()> {
+    let losses = client.stats()?.heartbeat_losses;
     client.arm()?;
     // State frames (every 10th loop iteration) tell what the device
     // renders; the last one taken while holding is reported.
@@ -419,15 +471,25 @@ fn render_force(
     // from before it was applied.
     client.take_states();
     let last = hold_heartbeat(client, hold, true)?;
+    let held = Hold {
+        last,
+        heartbeat_losses: client.stats()?.heartbeat_losses.wrapping_sub(losses),
+    };
     client.set_force([0.0; 3])?;
     client.stream_off()?;
     client.disarm()?;
-    let _ = writeln!(
-        out,
-        "{} (held {:.1} s), disarmed",
-        force_report(requested, last.as_ref()),
+    let report = format!(
+        "{} (held {:.1} s)",
+        force_report(requested, held.last.as_ref()),
         hold.as_secs_f64()
     );
+    if let Some(why) = held.shortfall() {
+        bail!(
+            "{}: {report}: {why}; the force is off and the device disarmed",
+            client.port_name()
+        );
+    }
+    let _ = writeln!(out, "{report}, disarmed");
     Ok(())
 }
 
@@ -469,120 +531,9 @@ fn hold_heartbeat(
 /// How long `device force` waits past its hold for the device's state frames.
 const STATE_WAIT: Duration = Duration::from_secs(2);
 
-/// The fault bits of a state by name (`none` when clear).
-pub fn fault_names(faults: Faults) -> String {
-    let mut names: Vec<String> = faults.names().map(str::to_string).collect();
-    if faults.unnamed() != 0 {
-        names.push(format!("unnamed bits {:#06x}", faults.unnamed()));
-    }
-    if names.is_empty() {
-        "none".into()
-    } else {
-        names.join(", ")
-    }
-}
-
-/// What `device force` says: the force asked for, the force the device's
-/// last state frame says its tensions render, and why they differ.
-pub fn force_report(requested: [f32; 3], last: Option<&State>) -> String {
-    let norm = |f: [f32; 3]| (f[0] * f[0] + f[1] * f[1] + f[2] * f[2]).sqrt();
-    let show = |f: [f32; 3]| format!("[{:.3}, {:.3}, {:.3}] N", f[0], f[1], f[2]);
-    let asked = format!(
-        "requested [{}, {}, {}] N",
-        requested[0], requested[1], requested[2]
-    );
-    let Some(s) = last else {
-        return format!("{asked}; rendered: unknown (no state frame came while holding)");
-    };
-    let rendered = s.rendered_force_n;
-    let mut line = format!("{asked}; rendered {} (device frame)", show(rendered));
-    let (r, q) = (norm(rendered), norm(requested));
-    let limited = r + 1e-3 < 0.99 * q;
-    if !s.armed {
-        let _ = write!(
-            line,
-            ": the device disarmed itself (faults {})",
-            fault_names(s.faults)
-        );
-    } else if limited {
-        let _ = write!(
-            line,
-            ": the device limited it to {:.1} % ({}; faults {})",
-            100.0 * r / q.max(f32::MIN_POSITIVE),
-            if s.faults.contains(Faults::TENSION_CLAMPED) {
-                "a tension reached the maximum"
-            } else {
-                "its force limit or the tension range"
-            },
-            fault_names(s.faults)
-        );
-    } else if !s.faults.is_empty() {
-        let _ = write!(line, " (faults {})", fault_names(s.faults));
-    }
-    line
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn state(rendered: [f32; 3], faults: Faults, armed: bool) -> State {
-        State {
-            time_us: 0,
-            since_home_us: 0,
-            counts: [0; 8],
-            position_mm: [0.0; 3],
-            corrected_mm: [0; 3],
-            tensions_n: [1.0; 8],
-            rendered_force_n: rendered,
-            faults,
-            slack: 0,
-            excluded: None,
-            loop_us: 0,
-            loop_max_us: 0,
-            armed,
-            model_id: None,
-        }
-    }
-
-    #[test]
-    fn the_force_report_says_what_was_rendered_and_why() {
-        let r = force_report(
-            [0.0, 0.0, 2.0],
-            Some(&state([0.0, 0.0, 2.0], Faults(0), true)),
-        );
-        assert_eq!(
-            r,
-            "requested [0, 0, 2] N; rendered [0.000, 0.000, 2.000] N (device frame)"
-        );
-        let r = force_report(
-            [1e9, 0.0, 0.0],
-            Some(&state([10.0, 0.0, 0.0], Faults::TENSION_CLAMPED, true)),
-        );
-        assert!(
-            r.starts_with("requested [1000000000, 0, 0] N; rendered [10.000, 0.000, 0.000] N"),
-            "{r}"
-        );
-        assert!(r.contains("limited it to 0.0 %"), "{r}");
-        assert!(
-            r.contains("a tension reached the maximum; faults TENSION_CLAMPED"),
-            "{r}"
-        );
-        let r = force_report(
-            [3.0, 0.0, 0.0],
-            Some(&state([0.0; 3], Faults(1 | 1 << 12), false)),
-        );
-        assert!(
-            r.contains("disarmed itself (faults HEARTBEAT_LOST, unnamed bits 0x1000)"),
-            "{r}"
-        );
-        assert!(force_report([1.0, 0.0, 0.0], None).contains("unknown"));
-        assert_eq!(fault_names(Faults(0)), "none");
-        assert_eq!(
-            fault_names(Faults::ESTOP.union(Faults::WORKSPACE)),
-            "ESTOP, WORKSPACE"
-        );
-    }
 
     #[test]
     fn dates_names_and_forces_read_as_people_write_them() {
