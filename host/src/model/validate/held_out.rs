@@ -205,10 +205,10 @@ pub(crate) fn validate_by(
 /// the session has them, else the interleaved), each made by `fit` from its
 /// fold's fitting rows, with the rows it holds out: for choices made after
 /// the model (the kinematics' rule, `rule`).
-pub(crate) fn judged_fold_fits<'t>(
-    train: &'t [Observation],
+pub(crate) fn judged_fold_fits(
+    train: &[Observation],
     fit: impl Fn(&[&Observation]) -> Result<Identification, IdentifyError> + Sync,
-) -> Result<Vec<(Identification, Vec<&'t Observation>)>, IdentifyError> {
+) -> Result<Vec<(Identification, Vec<&Observation>)>, IdentifyError> {
     use rayon::prelude::*;
     let tracked: Vec<&Observation> = train.iter().filter(|o| o.tracker.is_some()).collect();
     let (_, judged) = judged_folds(&tracked);

@@ -103,7 +103,7 @@ impl Span {
         {
             let mut sum = 0.0;
             for (t, &v) in vector.iter().enumerate() {
-                sum = value(t) * v + sum;
+                sum += value(t) * v;
             }
             *b = sum / root;
         }
@@ -223,9 +223,9 @@ impl OffSpanSums {
         }
         for (a, &pa) in p.iter().enumerate() {
             for (g, &pb) in self.gram[a * m..(a + 1) * m].iter_mut().zip(p) {
-                *g = pa * pb + *g;
+                *g += pa * pb;
             }
-            self.rhs[a] = pa * r + self.rhs[a];
+            self.rhs[a] += pa * r;
         }
     }
 
@@ -333,7 +333,7 @@ impl Evidence<'_> {
                     let x = f(row) * sw;
                     if x != 0.0 {
                         for (c, &bc) in coef.iter_mut().zip(b) {
-                            *c = bc * x + *c;
+                            *c += bc * x;
                         }
                     }
                 }
