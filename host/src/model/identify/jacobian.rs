@@ -396,7 +396,7 @@ impl<'a> DataJacobian<'a> {
     }
 
     /// `J^T J`, summed as the dense product `J^T * J` sums it
-    /// ([`crate::model::normal`]); `None` when a value of `J` is not finite.
+    /// (`model::normal`); `None` when a value of `J` is not finite.
     pub fn gram(&self) -> Option<DMatrix<f64>> {
         let problem = self.problem();
         let state = problem.state();
