@@ -111,7 +111,7 @@ impl Reader {
         self.thread
             .take()
             .and_then(|h| h.join().ok())
-            .unwrap_or_else(FrameDecoder::new)
+            .unwrap_or_default()
     }
 }
 
