@@ -226,8 +226,9 @@ pub extern "C" fn spidar_get_state(dev: *mut spidar_device, out: *mut spidar_sta
     })
 }
 
-/// The first state frame newer than the last one this handle returned,
-/// waiting at most `timeout_ms` (`SPIDAR_E_TIMEOUT`).
+/// Waits (at most `timeout_ms`, else `SPIDAR_E_TIMEOUT`) until a state
+/// frame newer than the last one this handle returned has come, and
+/// returns the newest (frames between are skipped: `index` counts them).
 #[no_mangle]
 pub extern "C" fn spidar_wait_state(
     dev: *mut spidar_device,

@@ -242,8 +242,8 @@ impl Session {
         })
     }
 
-    /// The first state newer than the last one handed out, waiting at most
-    /// `timeout`.
+    /// The newest state once one newer than the last one handed out has
+    /// come, waiting at most `timeout`.
     pub fn wait_state(&self, timeout: Duration) -> Result<spidar_state, Error> {
         let rotation = self.intent().rotation;
         self.with_link(|link| {

@@ -329,7 +329,8 @@ class Device:
         return _state_dict(s)
 
     def wait_state(self, timeout_ms=2000):
-        """The next state newer than the last one returned."""
+        """The newest state, once one newer than the last one returned has
+        come (waits at most timeout_ms)."""
         s = _State()
         _check(library().spidar_wait_state(self._handle(), timeout_ms, ctypes.byref(s)))
         return _state_dict(s)
