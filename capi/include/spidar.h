@@ -269,8 +269,9 @@ int32_t spidar_set_force(struct spidar_device *dev, double fx_n, double fy_n, do
 // the first.
 int32_t spidar_get_state(struct spidar_device *dev, struct spidar_state *out);
 
-// The first state frame newer than the last one this handle returned,
-// waiting at most `timeout_ms` (`SPIDAR_E_TIMEOUT`).
+// Waits (at most `timeout_ms`, else `SPIDAR_E_TIMEOUT`) until a state
+// frame newer than the last one this handle returned has come, and
+// returns the newest (frames between are skipped: `index` counts them).
 int32_t spidar_wait_state(struct spidar_device *dev, uint32_t timeout_ms, struct spidar_state *out);
 
 // Uploads the model blob `blob[0..len]` (a `spidar compile` output),
@@ -282,7 +283,8 @@ int32_t spidar_flash(struct spidar_device *dev,
                      struct spidar_model_info *out);
 
 // Tells the library that the device's model is `blob[0..len]` (flashed
-// before this session), checked against the device's blob CRC: forces
+// before this session), checked against the device's model header and
+// blob CRC: forces
 // and the rendered force use its room frame from now on.
 int32_t spidar_use_model(struct spidar_device *dev, const uint8_t *blob, size_t len);
 

@@ -269,7 +269,8 @@ pub extern "C" fn spidar_flash(
 }
 
 /// Tells the library that the device's model is `blob[0..len]` (flashed
-/// before this session), checked against the device's blob CRC: forces
+/// before this session), checked against the device's model header and
+/// blob CRC: forces
 /// and the rendered force use its room frame from now on.
 #[no_mangle]
 pub extern "C" fn spidar_use_model(dev: *mut spidar_device, blob: *const u8, len: usize) -> i32 {

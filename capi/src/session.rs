@@ -304,20 +304,26 @@ impl Session {
     }
 
     /// Says that the device's active model is `blob` (checked against the
-    /// device's blob CRC): its room frame is used from now on.
+    /// device's model header and blob CRC): its room frame is used from now
+    /// on.
     pub fn use_model(&self, blob: &[u8]) -> Result<(), Error> {
         let rotation = rotation_of(blob)?;
+        let (header, _) = spidar_protocol::blob::split_blob(blob)
+            .map_err(|e| Error::new(SPIDAR_E_BLOB, format!("model blob: {e}")))?;
+        // The CRC alone does not tell two blobs apart whose headers (which
+        // end with their own CRC) differ and bodies agree: the header too.
         let crc = spidar_protocol::blob::CRC32.checksum(blob);
         self.with_link(|link| match self.get_info(link)? {
-            Some(info) if info.blob_crc32 == crc => {
+            Some(info) if info.blob_crc32 == crc && info.header == header => {
                 self.intent().rotation = Some(rotation);
                 Ok(())
             }
             other => Err(Error::new(
                 SPIDAR_E_BLOB,
                 format!(
-                    "serial port {}: the device's model is not this blob (blob CRC {crc:#010x}; the device has {})",
+                    "serial port {}: the device's model is not this blob (model {:#010x}, blob CRC {crc:#010x}; the device has {})",
                     self.port,
+                    header.model_id,
                     other.map_or("no model".into(), |i| format!(
                         "model {:#010x}, blob CRC {:#010x}",
                         i.header.model_id, i.blob_crc32

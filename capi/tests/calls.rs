@@ -151,3 +151,110 @@ fn a_stalled_application_is_disarmed_by_the_watchdog_and_told_on_its_next_call()
     assert_eq!(s.lost, 0);
     assert_eq!(spidar_close(dev), SPIDAR_OK, "{}", last_error());
 }
+
+/// The virtual device's calibration again (the same simulated device as
+/// `spidar_open_virtual` with `seed`), compiled under another model id.
+fn virtual_blob(seed: u64, model_id: u32) -> Vec<u8> {
+    let mut sim = host::sim::SimConfig::default();
+    sim.abnormal_motor.enabled = false;
+    sim.effects.clear();
+    let device = host::sim::SimulatedDevice::new(&sim, seed).unwrap();
+    let calibration = spidar_core::model::Calibration {
+        frame: device.frame,
+        strings: device.laws,
+        effects: device.effects.clone(),
+        correction: spidar_core::correction::CorrectionModel::None,
+        length_scale_mm: [0.0; spidar_core::STRINGS],
+        kinematics: Default::default(),
+    };
+    spidar_core::blob::compile(&calibration, model_id, 0).unwrap()
+}
+
+#[test]
+fn a_model_is_flashed_while_the_stream_runs_and_a_bad_blob_is_refused() {
+    let options = spidar_virtual_options {
+        seed: 4,
+        heartbeat_timeout_ms: 0,
+        fast: 1,
+        hold: 1,
+    };
+    let mut dev = null_mut();
+    assert_eq!(
+        spidar_open_virtual(&options, &mut dev),
+        SPIDAR_OK,
+        "{}",
+        last_error()
+    );
+    let mut s: spidar_state = zeroed();
+    assert_eq!(spidar_wait_state(dev, 10_000, &mut s), SPIDAR_OK);
+    assert_eq!(s.model_id, SPIDAR_VIRTUAL_MODEL_ID);
+    // A blob that is not one: refused before anything is sent, named.
+    let junk = [7u8; 64];
+    assert_eq!(
+        spidar_flash(dev, junk.as_ptr(), junk.len(), null_mut()),
+        SPIDAR_E_BLOB
+    );
+    assert!(last_error().starts_with("model blob: "), "{}", last_error());
+    assert_eq!(
+        spidar_flash(dev, junk.as_ptr(), 0, null_mut()),
+        SPIDAR_E_ARGUMENT
+    );
+    // A real one: uploaded with the stream paused, read back, and the
+    // stream's states carry it from then on.
+    let blob = virtual_blob(4, 0x0BAD_CAFE);
+    let mut model: spidar_model_info = zeroed();
+    assert_eq!(
+        spidar_flash(dev, blob.as_ptr(), blob.len(), &mut model),
+        SPIDAR_OK,
+        "{}",
+        last_error()
+    );
+    assert_eq!((model.has_model, model.model_id), (1, 0x0BAD_CAFE));
+    let mut again: spidar_model_info = zeroed();
+    assert_eq!(spidar_get_model_info(dev, &mut again), SPIDAR_OK);
+    assert_eq!(again.blob_crc32, model.blob_crc32);
+    let mut seen = false;
+    for _ in 0..1000 {
+        assert_eq!(
+            spidar_wait_state(dev, 10_000, &mut s),
+            SPIDAR_OK,
+            "{}",
+            last_error()
+        );
+        if s.model_id == 0x0BAD_CAFE {
+            seen = true;
+            break;
+        }
+    }
+    assert!(seen, "the stream never carried the new model: {s:?}");
+    // Another blob is not the device's model: use_model refuses it,
+    // naming both CRCs; the flashed one is accepted.
+    let other = virtual_blob(4, 0x0BAD_F00D);
+    assert_eq!(
+        spidar_use_model(dev, other.as_ptr(), other.len()),
+        SPIDAR_E_BLOB
+    );
+    assert!(
+        last_error().contains("is not this blob"),
+        "{}",
+        last_error()
+    );
+    assert_eq!(spidar_use_model(dev, blob.as_ptr(), blob.len()), SPIDAR_OK);
+    // Refused while the motors are on: the device's reason, named.
+    assert_eq!(spidar_arm(dev), SPIDAR_OK);
+    assert_eq!(
+        spidar_flash(dev, other.as_ptr(), other.len(), null_mut()),
+        SPIDAR_E_REFUSED
+    );
+    assert!(last_error().contains("refused"), "{}", last_error());
+    // The stream runs on after the refusal.
+    let before = s.index;
+    assert_eq!(
+        spidar_wait_state(dev, 10_000, &mut s),
+        SPIDAR_OK,
+        "{}",
+        last_error()
+    );
+    assert!(s.index > before);
+    assert_eq!(spidar_close(dev), SPIDAR_OK, "{}", last_error());
+}

@@ -196,3 +196,25 @@ fn the_python_spring_example_renders_a_spring_on_a_virtual_device() {
     );
     check_spring(&out);
 }
+
+#[test]
+fn the_python_package_names_a_missing_library_and_how_to_build_it() {
+    if Command::new("python3").arg("--version").output().is_err() {
+        eprintln!("SKIPPED: python3 is not installed, the Python package was not loaded");
+        return;
+    }
+    let out = run(
+        Command::new("python3")
+            .args(["-c", "import spidar; spidar.library()"])
+            .env("PYTHONPATH", repo().join("python"))
+            .env("SPIDAR_LIBRARY", "/nonexistent/libspidar_capi.so"),
+        Duration::from_secs(60),
+    );
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        stderr.contains("SPIDAR_LIBRARY=/nonexistent/libspidar_capi.so: no such file")
+            && stderr.contains("cargo build --release -p spidar-capi"),
+        "{stderr}"
+    );
+}

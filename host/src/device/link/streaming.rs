@@ -385,8 +385,9 @@ impl StreamingClient {
         self.reader.shared.lock().latest
     }
 
-    /// The first state frame newer than the `after`-th (its
-    /// [`Received::index`]; 0: any), waiting at most `timeout` for it. A
+    /// The newest state frame, once it is newer than the `after`-th (its
+    /// [`Received::index`]; 0: any), waiting at most `timeout` for that.
+    /// Frames between are not returned (their count is in the index). A
     /// stream silent that long is [`LinkError::Timeout`].
     pub fn wait_newer(&self, after: u64, timeout: Duration) -> Result<Received, LinkError> {
         let deadline = Instant::now() + timeout;
