@@ -8,5 +8,6 @@ mod link;
 mod operator_collect;
 mod operator_init;
 mod operator_recalibrate;
+mod streaming;
 mod tracker;
 mod virtual_device;

@@ -19,9 +19,12 @@
 //!   info back.
 //! - [`Client::stream`] runs the state stream, keeping an armed device's
 //!   heartbeat alive.
+//! - [`StreamingClient`] (`streaming.rs`) is a client split in two: a
+//!   thread of its own reads the state stream while the caller sends
+//!   requests from its threads (an application's SDK calls); it joins back
+//!   into a [`Client`].
 
 use std::collections::VecDeque;
-use std::io::{Read, Write};
 use std::time::{Duration, Instant};
 
 use spidar_protocol::blob::{ModelHeader, CRC32};
@@ -30,6 +33,10 @@ use spidar_protocol::{
     HelloAck, Limits, LinkStats, ModelInfo, NominalGeometry, Packet, Request, Response, SeqTracker,
     State, UploadState, MAX_CHUNK, MAX_FRAME, PROTOCOL_VERSION,
 };
+
+mod streaming;
+
+pub use streaming::{Received, StreamingClient};
 
 /// Stream frames kept while waiting for a reply (the oldest are dropped).
 const PENDING_CAPACITY: usize = 1 << 16;
@@ -225,6 +232,74 @@ pub struct Client {
     bytes_out: u64,
 }
 
+/// Writes all of `bytes` to `port`, retrying what would block until
+/// `timeout`; counts the bytes written into `bytes_out`.
+fn write_port(
+    port: &mut dyn serialport::SerialPort,
+    bytes: &[u8],
+    timeout: Duration,
+    bytes_out: &mut u64,
+) -> Result<(), std::io::Error> {
+    let deadline = Instant::now() + timeout;
+    let mut rest = bytes;
+    while !rest.is_empty() {
+        match port.write(rest) {
+            Ok(0) => return Err(std::io::ErrorKind::WriteZero.into()),
+            Ok(n) => {
+                *bytes_out += n as u64;
+                rest = &rest[n..];
+            }
+            Err(e) if is_transient(&e) && Instant::now() < deadline => {}
+            Err(e) => return Err(e),
+        }
+    }
+    Ok(())
+}
+
+/// Reads what `port` has into `buf`, waiting at most the port's timeout:
+/// the number of bytes (0 when nothing came).
+fn read_port(
+    port: &mut dyn serialport::SerialPort,
+    buf: &mut [u8],
+) -> Result<usize, std::io::Error> {
+    match port.read(buf) {
+        Ok(n) => Ok(n),
+        Err(e) if is_transient(&e) => Ok(0),
+        Err(e) => Err(e),
+    }
+}
+
+/// A read or write that found nothing to do yet (not a lost port).
+fn is_transient(e: &std::io::Error) -> bool {
+    matches!(
+        e.kind(),
+        std::io::ErrorKind::TimedOut
+            | std::io::ErrorKind::WouldBlock
+            | std::io::ErrorKind::Interrupted
+    )
+}
+
+/// The device's answer to `request` on `port` as a result: an `Error`
+/// response becomes [`LinkError::Rejected`] (or
+/// [`LinkError::VersionMismatch`]).
+fn refusal_as_error(port: &str, request: &'static str, r: Response) -> Result<Response, LinkError> {
+    match r {
+        Response::Error(DeviceError::VersionMismatch { device, host }) => {
+            Err(LinkError::VersionMismatch {
+                port: port.to_string(),
+                device,
+                host,
+            })
+        }
+        Response::Error(reason) => Err(LinkError::Rejected {
+            port: port.to_string(),
+            request,
+            reason,
+        }),
+        r => Ok(r),
+    }
+}
+
 fn open_error(port: &str, e: serialport::Error) -> LinkError {
     match e.kind() {
         serialport::ErrorKind::NoDevice => LinkError::PortBusy {
@@ -338,28 +413,13 @@ impl Client {
     }
 
     fn write_all(&mut self, bytes: &[u8], action: &'static str) -> Result<(), LinkError> {
-        let deadline = Instant::now() + self.options.timeout;
-        let mut rest = bytes;
-        while !rest.is_empty() {
-            match self.port.write(rest) {
-                Ok(0) => {
-                    return Err(self.io(action, std::io::ErrorKind::WriteZero.into()));
-                }
-                Ok(n) => {
-                    self.bytes_out += n as u64;
-                    rest = &rest[n..];
-                }
-                Err(e)
-                    if matches!(
-                        e.kind(),
-                        std::io::ErrorKind::TimedOut
-                            | std::io::ErrorKind::WouldBlock
-                            | std::io::ErrorKind::Interrupted
-                    ) && Instant::now() < deadline => {}
-                Err(e) => return Err(self.io(action, e)),
-            }
-        }
-        Ok(())
+        write_port(
+            self.port.as_mut(),
+            bytes,
+            self.options.timeout,
+            &mut self.bytes_out,
+        )
+        .map_err(|e| self.io(action, e))
     }
 
     /// Reads what the port has (waiting at most a few ms) and decodes it.
@@ -367,20 +427,7 @@ impl Client {
     /// counted by the sequence tracker.
     fn poll_frames(&mut self) -> Result<Vec<Packet<DeviceMessage>>, LinkError> {
         let mut buf = [0u8; 4096];
-        let n = match self.port.read(&mut buf) {
-            Ok(n) => n,
-            Err(e)
-                if matches!(
-                    e.kind(),
-                    std::io::ErrorKind::TimedOut
-                        | std::io::ErrorKind::WouldBlock
-                        | std::io::ErrorKind::Interrupted
-                ) =>
-            {
-                0
-            }
-            Err(e) => return Err(self.io("read", e)),
-        };
+        let n = read_port(self.port.as_mut(), &mut buf).map_err(|e| self.io("read", e))?;
         self.bytes_in += n as u64;
         let mut out = Vec::new();
         let mut version = None;
@@ -474,21 +521,8 @@ impl Client {
     /// Sends `req`; an `Error` response becomes [`LinkError::Rejected`] (or
     /// [`LinkError::VersionMismatch`]).
     pub fn request(&mut self, req: &Request<'_>) -> Result<Response, LinkError> {
-        match self.request_raw(req)? {
-            Response::Error(DeviceError::VersionMismatch { device, host }) => {
-                Err(LinkError::VersionMismatch {
-                    port: self.name.clone(),
-                    device,
-                    host,
-                })
-            }
-            Response::Error(reason) => Err(LinkError::Rejected {
-                port: self.name.clone(),
-                request: req.name(),
-                reason,
-            }),
-            r => Ok(r),
-        }
+        let r = self.request_raw(req)?;
+        refusal_as_error(&self.name, req.name(), r)
     }
 
     fn unexpected(&self, req: &'static str, got: &Response) -> LinkError {
