@@ -48,6 +48,12 @@ pub struct CalibrateArgs {
     /// No progress bars.
     #[arg(long)]
     pub quiet: bool,
+    /// Most training rows the identification loop decides on (which
+    /// effects, tolerance and kinematics' rule): a longer session is read
+    /// one row in every k, in time order, and the model it chose is then
+    /// refitted on every row. 0: every row.
+    #[arg(long, value_name = "ROWS", default_value_t = CalibrateConfig::full().max_loop_rows)]
+    pub loop_rows: usize,
     /// Write the learners' data to DIR as `x,y,z,tx,ty,tz` CSVs (input and
     /// tracker, mm), for `scripts/reference/reference.py`:
     /// residual_{train,test}.csv and, when the sessions have dev_* columns
@@ -78,6 +84,7 @@ impl CalibrateArgs {
         c.blackbox = self.blackbox;
         c.quiet = self.quiet;
         c.loop_config.layer_tables = !self.no_layer_tables;
+        c.max_loop_rows = self.loop_rows;
         c
     }
 

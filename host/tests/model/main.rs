@@ -7,6 +7,7 @@ mod dataset;
 mod identify;
 mod learn;
 mod loop_closing;
+mod loop_rows;
 mod n_strings;
 mod sim;
 mod sim_physics;

@@ -23,6 +23,7 @@ use super::checks::{
     tracker_outlier_warning, unpaired_rows_warnings, Regime,
 };
 use super::evaluate::{room_positions, stage, PerSession, StageErrors, StageList};
+use super::loop_rows::LoopRows;
 use super::{align, report, spinner, CalibrateConfig, CalibrateError, NamedSession, Run};
 
 /// The observations of both sessions but their rows set aside whole
@@ -301,6 +302,8 @@ pub(super) struct IdentifiedModel {
     pub(super) rule: report::KinematicsReport,
     /// The anchors' tolerance the identification used.
     pub(super) tolerance: crate::model::tolerance::ToleranceChoice,
+    /// The training rows the loop decided on.
+    pub(super) loop_rows: LoopRows,
 }
 
 /// The plain least-squares reference ([`crate::model::reference`]) and its
@@ -386,9 +389,22 @@ impl Run<'_> {
         // 2-3. Identification and the diagnosis loop.
         let regime = check_enough_tracked_rows(train.path, &tr, &nominal)?;
         self.warnings.extend(regime.reason.clone());
+        let loop_rows = LoopRows::of(tr.len(), self.cfg.max_loop_rows);
         let t = Instant::now();
-        let (mut loop_result, tolerance) =
-            identify_and_diagnose(geometry, obs, &nominal, &self.cfg, &regime)?;
+        let (mut loop_result, tolerance) = {
+            let read = loop_rows.pick(&tr);
+            let obs = PerSession {
+                train: &read[..],
+                test: obs.test,
+            };
+            identify_and_diagnose(geometry, obs, &nominal, &self.cfg, &regime)?
+        };
+        if loop_rows.thinned() {
+            // The glitches the loop found are among the rows it read: every
+            // row is judged by its base model, on the same threshold rule.
+            loop_result.tracker_outliers =
+                crate::model::diagnose::TrackerOutliers::of(&loop_result.base, &tr);
+        }
         self.timings.identification_s = t.elapsed().as_secs_f64();
         // The rows whose tracker the loop set aside count as occluded from
         // here on (the raw stage above is the sessions as read).
@@ -419,11 +435,17 @@ impl Run<'_> {
             train: &tr[..],
             test: &te[..],
         };
+        if loop_rows.thinned() {
+            let t = Instant::now();
+            loop_result.identification = on_every_row(&loop_result, obs.train, &nominal)?;
+            self.timings.identification_s += t.elapsed().as_secs_f64();
+        }
         let (final_identified, rule) = self.final_identified(
             &mut loop_result,
             obs,
             &nominal,
             &regime,
+            &loop_rows,
             test.path,
             &mut list,
         )?;
@@ -438,6 +460,7 @@ impl Run<'_> {
             reference,
             rule: report::KinematicsReport::of(rule),
             tolerance,
+            loop_rows,
         })
     }
 
@@ -498,11 +521,12 @@ impl Run<'_> {
         obs: PerSession<&[Observation]>,
         nominal: &spidar_core::model::Frame<f64>,
         regime: &Regime,
+        loop_rows: &LoopRows,
         test_path: &Path,
         list: &mut StageList,
     ) -> Result<(FinalIdentified, Result<RuleChoice, String>), CalibrateError> {
         let t = Instant::now();
-        let rule = self.choose_rule(loop_result, obs.train, nominal, regime);
+        let rule = self.choose_rule(loop_result, &loop_rows.pick(obs.train), nominal, regime);
         if let Ok(choice) = &rule {
             loop_result.identification = choice.apply(&loop_result.identification);
         }
@@ -549,6 +573,22 @@ impl Run<'_> {
         pb.finish_and_clear();
         choice
     }
+}
+
+/// The structure the loop chose on its thinned rows, fitted on every
+/// training row (the glitches set aside, read at the strings' meeting point
+/// when the loop found the marker off it), from where the loop left it.
+fn on_every_row(
+    loop_result: &LoopResult,
+    train: &[Observation],
+    nominal: &spidar_core::model::Frame<f64>,
+) -> Result<crate::model::identify::Identification, crate::model::identify::IdentifyError> {
+    identify(
+        train,
+        nominal,
+        &Start::from_identification(&loop_result.identification),
+        &loop_result.structure,
+    )
 }
 
 /// `observations` read at the strings' meeting point

@@ -703,6 +703,11 @@ pub struct IdentificationReport {
     pub marker_body_mm: Option<[f64; 3]>,
     /// Training rows whose tracker the loop set aside as a glitch.
     pub tracker_outliers: crate::model::diagnose::TrackerOutliers,
+    /// The training rows the loop decided on (the anchors' tolerance, the
+    /// effects, the kinematics' rule): one in every `stride` of a session
+    /// longer than the calibration's `max_loop_rows`; the parameters above
+    /// are then those of the chosen structure refitted on every row.
+    pub loop_rows: super::loop_rows::LoopRows,
 }
 
 impl IdentificationReport {
@@ -712,6 +717,7 @@ impl IdentificationReport {
         layer_tables: &[crate::model::layers::StringLayers],
         marker_body_mm: Option<[f64; 3]>,
         outliers: &crate::model::diagnose::TrackerOutliers,
+        loop_rows: super::loop_rows::LoopRows,
     ) -> IdentificationReport {
         IdentificationReport {
             parameters: fin.parameters.clone(),
@@ -724,6 +730,7 @@ impl IdentificationReport {
             layer_tables: layer_tables.to_vec(),
             marker_body_mm,
             tracker_outliers: outliers.clone(),
+            loop_rows,
         }
     }
 }
@@ -1004,6 +1011,14 @@ impl Report {
                 c.candidate.name,
                 num(c.held_out.mean_mm),
                 num(c.held_out.p95_mm)
+            );
+        }
+        let r = &self.identification.loop_rows;
+        if r.stride > 1 {
+            let _ = writeln!(
+                o,
+                "Identification loop: decided on {} of the {} training rows (one in every {}, in time order); the model it chose refitted on every row",
+                r.rows, r.of, r.stride
             );
         }
         let t = &self.anchor_tolerance;

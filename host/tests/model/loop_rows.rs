@@ -1,0 +1,108 @@
+//! A session longer than the loop's rows: the loop decides on one row in
+//! every k, the structure it chose is refitted on every row, and the
+//! result is that of deciding on every row.
+
+use std::path::Path;
+
+use spidar::procedures::calibrate::{calibrate, CalibrateConfig, Calibrated, NamedSession};
+use spidar::sim::{simulate_session, SessionKind, SimConfig, SimulatedDevice};
+use spidar_core::model::Effect;
+
+/// A device with an 8 mm offset on string 3 (an effect the model does not
+/// start with), 1500 random training rows, 300 test rows; calibrated with
+/// the loop reading at most `max_loop_rows` of them.
+fn calibrated(max_loop_rows: usize) -> Calibrated {
+    let c = SimConfig {
+        effects: vec!["offset:3:mm=8".into()],
+        ..SimConfig::default()
+    };
+    let device = SimulatedDevice::new(&c, 4).unwrap();
+    let train = simulate_session(&device, SessionKind::Random { points: 1500 }, 5).unwrap();
+    let test = simulate_session(&device, SessionKind::Random { points: 300 }, 6).unwrap();
+    let mut cfg = CalibrateConfig::quick();
+    cfg.quiet = true;
+    cfg.max_loop_rows = max_loop_rows;
+    calibrate(
+        &c.nominal.geometry(),
+        Path::new("geometry.toml"),
+        NamedSession {
+            path: Path::new("train.csv"),
+            session: &train,
+        },
+        NamedSession {
+            path: Path::new("test.csv"),
+            session: &test,
+        },
+        &cfg,
+    )
+    .expect("calibrate")
+}
+
+/// The held-out mean of the identified model with its effects (the last
+/// effect stage), mm.
+fn identified_test_mean_mm(c: &Calibrated) -> f64 {
+    use spidar::procedures::calibrate::report::StageKind;
+    c.report
+        .stages
+        .iter()
+        .rev()
+        .find(|s| s.kind == StageKind::Effect)
+        .expect("an effect stage")
+        .test
+        .mean_mm
+}
+
+fn offset_on_string_3_mm(c: &Calibrated) -> f64 {
+    c.report
+        .identification
+        .effect_terms
+        .iter()
+        .find_map(|t| match t.effect {
+            Effect::Offset { mm } if t.string == 3 => Some(mm),
+            _ => None,
+        })
+        .expect("an offset on string 3")
+}
+
+#[test]
+fn the_loop_decides_on_every_third_row_and_the_model_is_refitted_on_every_row() {
+    let thinned = calibrated(500);
+    let whole = calibrated(0);
+    let rows = thinned.report.identification.loop_rows;
+    assert_eq!(
+        (rows.stride, rows.rows, rows.of),
+        (3, 500, 1500),
+        "{rows:?}"
+    );
+    assert_eq!(whole.report.identification.loop_rows.stride, 1);
+    assert!(thinned.report.summary().contains(
+        "Identification loop: decided on 500 of the 1500 training rows (one in every 3, in time order)"
+    ));
+    // The loop found the same effect on the rows it read ...
+    let (t, w) = (
+        offset_on_string_3_mm(&thinned),
+        offset_on_string_3_mm(&whole),
+    );
+    assert!((t - 8.0).abs() < 0.5 && (w - 8.0).abs() < 0.5, "{t} {w}");
+    // ... and the parameters are those of every row: the refit's estimate
+    // agrees with the every-row loop's well within what a third of the rows
+    // could give (its uncertainty is sqrt(3) times as large).
+    let sd = thinned
+        .report
+        .identification
+        .parameters
+        .iter()
+        .find(|p| p.name.starts_with("string3.offset"))
+        .map(|p| p.sd)
+        .expect("the offset's estimate");
+    assert!((t - w).abs() < sd, "{t} vs {w} (sd {sd})");
+    // Every error figure counts every row; held out, the same result.
+    let (te_t, te_w) = (
+        identified_test_mean_mm(&thinned),
+        identified_test_mean_mm(&whole),
+    );
+    assert!(
+        te_t <= te_w * 1.05,
+        "held-out {te_t} mm, {te_w} mm deciding on every row"
+    );
+}
