@@ -440,15 +440,11 @@ impl Run<'_> {
             loop_result.identification = on_every_row(&loop_result, obs.train, &nominal)?;
             self.timings.identification_s += t.elapsed().as_secs_f64();
         }
-        let (final_identified, rule) = self.final_identified(
-            &mut loop_result,
-            obs,
-            &nominal,
-            &regime,
-            &loop_rows,
-            test.path,
-            &mut list,
-        )?;
+        let t = Instant::now();
+        let rule = self.choose_rule(&loop_result, &loop_rows.pick(obs.train), &nominal, &regime);
+        self.timings.rule_s = t.elapsed().as_secs_f64();
+        let final_identified =
+            self.final_identified(&mut loop_result, obs, &rule, test.path, &mut list)?;
         Ok(IdentifiedModel {
             timing,
             tr,
@@ -511,26 +507,21 @@ impl Run<'_> {
         Ok(reference)
     }
 
-    /// The kinematics' rule, on the held-out folds, applied to the loop's
-    /// model; the final identified model on both sessions, its effect stages
-    /// in `list`, and the warning for the test rows whose tracker disagrees
-    /// with it.
+    /// The kinematics' rule (chosen on the held-out folds) applied to the
+    /// loop's model; the final identified model on both sessions, its effect
+    /// stages in `list`, and the warning for the test rows whose tracker
+    /// disagrees with it.
     fn final_identified(
         &mut self,
         loop_result: &mut LoopResult,
         obs: PerSession<&[Observation]>,
-        nominal: &spidar_core::model::Frame<f64>,
-        regime: &Regime,
-        loop_rows: &LoopRows,
+        rule: &Result<RuleChoice, String>,
         test_path: &Path,
         list: &mut StageList,
-    ) -> Result<(FinalIdentified, Result<RuleChoice, String>), CalibrateError> {
-        let t = Instant::now();
-        let rule = self.choose_rule(loop_result, &loop_rows.pick(obs.train), nominal, regime);
-        if let Ok(choice) = &rule {
+    ) -> Result<FinalIdentified, CalibrateError> {
+        if let Ok(choice) = rule {
             loop_result.identification = choice.apply(&loop_result.identification);
         }
-        self.timings.rule_s = t.elapsed().as_secs_f64();
         let (final_identified, errors) = FinalIdentified::of(&loop_result.identification, obs)?;
         self.warnings.extend(test_outlier_warning(
             test_path,
@@ -545,7 +536,7 @@ impl Run<'_> {
             list.points
                 .push(errors.points("identified with effects".into()));
         }
-        Ok((final_identified, rule))
+        Ok(final_identified)
     }
 
     /// The forward kinematics' rule for the final identified model, chosen
