@@ -631,9 +631,8 @@ fn bad_input_gives_typed_errors() {
 /// failed.)
 #[test]
 fn corrections_learn_from_an_even_thinning_of_a_session_beyond_the_cap() {
-    use spidar::procedures::calibrate::{calibrate, CalibrateConfig, NamedSession};
+    use spidar::procedures::calibrate::CalibrateConfig;
     use spidar::sim::{simulate_session, SessionKind, SimConfig, SimulatedDevice};
-    use std::path::Path;
 
     let mut c = SimConfig::default();
     c.abnormal_motor.enabled = false;
@@ -644,20 +643,7 @@ fn corrections_learn_from_an_even_thinning_of_a_session_beyond_the_cap() {
         let mut cfg = CalibrateConfig::quick();
         cfg.quiet = true;
         cfg.max_learning_points = cap;
-        calibrate(
-            &c.nominal.geometry(),
-            Path::new("geometry.toml"),
-            NamedSession {
-                path: Path::new("train.csv"),
-                session: &train,
-            },
-            NamedSession {
-                path: Path::new("test.csv"),
-                session: &test,
-            },
-            &cfg,
-        )
-        .expect("calibrate")
+        crate::calibrate_in_memory(&c.nominal.geometry(), &train, &test, &cfg)
     };
     let thinned = run(400);
     let whole = run(2500);

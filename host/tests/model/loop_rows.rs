@@ -2,9 +2,7 @@
 //! every k, the structure it chose is refitted on every row, and the
 //! result is that of deciding on every row.
 
-use std::path::Path;
-
-use spidar::procedures::calibrate::{calibrate, CalibrateConfig, Calibrated, NamedSession};
+use spidar::procedures::calibrate::{CalibrateConfig, Calibrated};
 use spidar::sim::{simulate_session, SessionKind, SimConfig, SimulatedDevice};
 use spidar_core::model::Effect;
 
@@ -22,20 +20,7 @@ fn calibrated(max_loop_rows: usize) -> Calibrated {
     let mut cfg = CalibrateConfig::quick();
     cfg.quiet = true;
     cfg.max_loop_rows = max_loop_rows;
-    calibrate(
-        &c.nominal.geometry(),
-        Path::new("geometry.toml"),
-        NamedSession {
-            path: Path::new("train.csv"),
-            session: &train,
-        },
-        NamedSession {
-            path: Path::new("test.csv"),
-            session: &test,
-        },
-        &cfg,
-    )
-    .expect("calibrate")
+    crate::calibrate_in_memory(&c.nominal.geometry(), &train, &test, &cfg)
 }
 
 /// The held-out mean of the identified model with its effects (the last

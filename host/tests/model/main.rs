@@ -26,3 +26,30 @@ fn slips_of(r: &spidar::model::diagnose::LoopResult) -> Vec<(u8, f64, f64)> {
         })
         .collect()
 }
+
+/// A calibration of two sessions held in memory, named `train.csv` and
+/// `test.csv` beside a `geometry.toml` as the command line would read them
+/// (learn, loop_rows).
+fn calibrate_in_memory(
+    geometry: &spidar::data::dataset::Geometry,
+    train: &spidar::data::dataset::Session,
+    test: &spidar::data::dataset::Session,
+    cfg: &spidar::procedures::calibrate::CalibrateConfig,
+) -> spidar::procedures::calibrate::Calibrated {
+    use spidar::procedures::calibrate::{calibrate, NamedSession};
+    use std::path::Path;
+    calibrate(
+        geometry,
+        Path::new("geometry.toml"),
+        NamedSession {
+            path: Path::new("train.csv"),
+            session: train,
+        },
+        NamedSession {
+            path: Path::new("test.csv"),
+            session: test,
+        },
+        cfg,
+    )
+    .expect("calibrate")
+}
