@@ -77,6 +77,21 @@ pub fn virtual_device(trajectory: Trajectory) -> VirtualDevice {
     .expect("virtual device starts")
 }
 
+/// A virtual device in device time (`Pace::Fast`: its clock holds between
+/// requests and ticks run back to back while it streams) holding still on
+/// [`sim_device`], with the default heartbeat timeout or `heartbeat_timeout_ms`:
+/// for tests of timeouts that must not depend on how fast the host runs.
+pub fn virtual_device_in_device_time(heartbeat_timeout_ms: Option<u32>) -> VirtualDevice {
+    let mut config = VirtualDeviceConfig {
+        pace: spidar::sim::virtual_device::Pace::Fast,
+        ..VirtualDeviceConfig::default()
+    };
+    if let Some(ms) = heartbeat_timeout_ms {
+        config.device.control.safety.heartbeat_timeout_ms = ms;
+    }
+    spawn(config, Plant::new(sim_device(), Trajectory::Hold)).expect("virtual device starts")
+}
+
 /// A virtual device in real time whose heartbeat timeout is 2 s instead of
 /// 20 ms: for tests of what an armed device renders, which must not depend
 /// on how fast a busy machine schedules the host (a host process held off

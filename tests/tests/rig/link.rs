@@ -3,11 +3,11 @@
 //! virtual device's pseudo-terminal, the firmware's `Device`/`DeviceLink` on
 //! the master side.
 
-use spidar_tests::{blob, eventually, sim_device, virtual_device};
+use spidar_tests::{blob, eventually, sim_device, virtual_device, virtual_device_in_device_time};
 use std::time::Duration;
 
 use spidar::device::link::{Client, ClientOptions, FlashPhase, LinkError, StreamOptions};
-use spidar::sim::virtual_device::{spawn, Pace, Plant, Trajectory, VirtualDeviceConfig};
+use spidar::sim::virtual_device::{spawn, Plant, Trajectory, VirtualDeviceConfig};
 use spidar_core::correction::{CorrectionModel, NnModel, OutputMode, Standardization};
 use spidar_protocol::blob::{split_blob, write_blob, CRC32};
 use spidar_protocol::{
@@ -302,11 +302,7 @@ fn corrupted_frames_are_rejected_and_counted() {
 #[test]
 fn heartbeat_loss_drops_tensions_to_pretension_within_30_ms() {
     let dev = sim_device();
-    let fast = VirtualDeviceConfig {
-        pace: Pace::Fast,
-        ..VirtualDeviceConfig::default()
-    };
-    let vd = spawn(fast, Plant::new(dev.clone(), Trajectory::Hold)).unwrap();
+    let vd = virtual_device_in_device_time(None);
     let mut c = Client::open_with(vd.port_path(), ClientOptions::for_simulated_device()).unwrap();
     c.flash(&blob(&dev, CorrectionModel::None, 9), |_| {})
         .unwrap();
@@ -363,11 +359,7 @@ fn heartbeat_loss_drops_tensions_to_pretension_within_30_ms() {
 #[test]
 fn the_state_says_the_motors_are_on_while_model_changes_are_refused() {
     let dev = sim_device();
-    let fast = VirtualDeviceConfig {
-        pace: Pace::Fast,
-        ..VirtualDeviceConfig::default()
-    };
-    let vd = spawn(fast, Plant::new(dev.clone(), Trajectory::Hold)).unwrap();
+    let vd = virtual_device_in_device_time(None);
     let mut c = Client::open_with(vd.port_path(), ClientOptions::for_simulated_device()).unwrap();
     c.flash(&blob(&dev, CorrectionModel::None, 21), |_| {})
         .unwrap();
@@ -563,14 +555,7 @@ fn link_benchmarks() {
         hidden += 20;
         big = blob(&dev, nn(hidden), 32);
     }
-    let vd = spawn(
-        VirtualDeviceConfig {
-            pace: Pace::Fast,
-            ..VirtualDeviceConfig::default()
-        },
-        Plant::new(dev.clone(), Trajectory::Hold),
-    )
-    .unwrap();
+    let vd = virtual_device_in_device_time(None);
     let mut c = Client::open_with(vd.port_path(), ClientOptions::for_simulated_device()).unwrap();
     let mut runs = Vec::new();
     for _ in 0..5 {

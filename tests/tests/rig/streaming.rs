@@ -4,11 +4,10 @@
 //! (`Pace::Fast`: the device ticks only while the stream is on, back to
 //! back as the reader takes it), judged by the frames' timestamps.
 
-use spidar_tests::{blob, sim_device};
+use spidar_tests::{blob, sim_device, virtual_device_in_device_time};
 use std::time::Duration;
 
 use spidar::device::link::{Client, ClientOptions, StreamingClient};
-use spidar::sim::virtual_device::{spawn, Pace, Plant, Trajectory, VirtualDeviceConfig};
 use spidar_core::correction::CorrectionModel;
 use spidar_protocol::{Event, Faults, Request, Response};
 
@@ -16,12 +15,7 @@ fn fast_device_with_model(
     heartbeat_timeout_ms: u32,
 ) -> (spidar::sim::virtual_device::VirtualDevice, Client) {
     let dev = sim_device();
-    let mut config = VirtualDeviceConfig {
-        pace: Pace::Fast,
-        ..VirtualDeviceConfig::default()
-    };
-    config.device.control.safety.heartbeat_timeout_ms = heartbeat_timeout_ms;
-    let vd = spawn(config, Plant::new(dev.clone(), Trajectory::Hold)).unwrap();
+    let vd = virtual_device_in_device_time(Some(heartbeat_timeout_ms));
     let mut c = Client::open_with(vd.port_path(), ClientOptions::for_simulated_device()).unwrap();
     c.flash(&blob(&dev, CorrectionModel::None, 0x57EA_0001), |_| {})
         .unwrap();
