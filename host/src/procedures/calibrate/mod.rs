@@ -154,7 +154,9 @@ pub struct CalibrateConfig {
     /// tolerance, which effects to add, the kinematics' rule): a longer
     /// session is read one row in every k, in time order
     /// ([`LoopRows`](loop_rows::LoopRows)), and the structure the loop chose
-    /// is refitted on every row; every error figure counts every row. 0
+    /// is refitted on every row. Every error figure counts every row but
+    /// the training figures of the effect stages before the last (the
+    /// loop's, over its rows: their `n` says so). 0
     /// (the default): every row. A bound trades accuracy for time: on
     /// 30,000-row sessions, 6000 made the loop 4 times as fast and its
     /// layer tables coarser, held out up to 3 % worse (docs/benchmarks.md,
