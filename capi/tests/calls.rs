@@ -15,6 +15,26 @@ fn last_error() -> String {
         .to_string()
 }
 
+/// A virtual device of simulator seed `seed` holding still, in device
+/// time (its clock runs only while the stream is read), the default
+/// heartbeat timeout.
+fn open_virtual_in_device_time(seed: u64) -> *mut spidar_device {
+    let options = spidar_virtual_options {
+        seed,
+        heartbeat_timeout_ms: 0,
+        fast: 1,
+        hold: 1,
+    };
+    let mut dev = null_mut();
+    assert_eq!(
+        spidar_open_virtual(&options, &mut dev),
+        SPIDAR_OK,
+        "{}",
+        last_error()
+    );
+    dev
+}
+
 fn zeroed<T>() -> T {
     // SAFETY: the library's structs are plain integers, floats and arrays.
     unsafe { std::mem::zeroed() }
@@ -93,19 +113,7 @@ fn a_missing_port_is_named() {
 fn a_stalled_application_is_disarmed_by_the_watchdog_and_told_on_its_next_call() {
     // Device time runs only while the stream is read, back to back: the
     // application's stall is measured in device time, whatever the machine.
-    let options = spidar_virtual_options {
-        seed: 3,
-        heartbeat_timeout_ms: 0,
-        fast: 1,
-        hold: 1,
-    };
-    let mut dev = null_mut();
-    assert_eq!(
-        spidar_open_virtual(&options, &mut dev),
-        SPIDAR_OK,
-        "{}",
-        last_error()
-    );
+    let dev = open_virtual_in_device_time(3);
     let mut model: spidar_model_info = zeroed();
     assert_eq!(spidar_get_model_info(dev, &mut model), SPIDAR_OK);
     assert_eq!(
@@ -172,19 +180,7 @@ fn virtual_blob(seed: u64, model_id: u32) -> Vec<u8> {
 
 #[test]
 fn a_model_is_flashed_while_the_stream_runs_and_a_bad_blob_is_refused() {
-    let options = spidar_virtual_options {
-        seed: 4,
-        heartbeat_timeout_ms: 0,
-        fast: 1,
-        hold: 1,
-    };
-    let mut dev = null_mut();
-    assert_eq!(
-        spidar_open_virtual(&options, &mut dev),
-        SPIDAR_OK,
-        "{}",
-        last_error()
-    );
+    let dev = open_virtual_in_device_time(4);
     let mut s: spidar_state = zeroed();
     assert_eq!(spidar_wait_state(dev, 10_000, &mut s), SPIDAR_OK);
     assert_eq!(s.model_id, SPIDAR_VIRTUAL_MODEL_ID);
