@@ -299,6 +299,35 @@ impl StreamingClient {
         })
     }
 
+    /// Waits until `take` finds in the inbox what the caller waits for
+    /// (`Some`), the reader fails (its error), or `deadline` passes (`None`).
+    fn wait_for<R>(
+        &self,
+        deadline: Instant,
+        mut take: impl FnMut(&mut Inbox) -> Option<R>,
+    ) -> Result<Option<R>, LinkError> {
+        let mut inbox = self.reader.shared.lock();
+        loop {
+            if let Some(r) = take(&mut inbox) {
+                return Ok(Some(r));
+            }
+            if let Some(e) = self.failed(&inbox) {
+                return Err(e);
+            }
+            let now = Instant::now();
+            if now >= deadline {
+                return Ok(None);
+            }
+            inbox = self
+                .reader
+                .shared
+                .changed
+                .wait_timeout(inbox, deadline - now)
+                .unwrap_or_else(PoisonError::into_inner)
+                .0;
+        }
+    }
+
     /// The reader's failure, as an error of this call.
     fn failed(&self, inbox: &Inbox) -> Option<LinkError> {
         inbox.failure.as_ref().map(|f| match f {
@@ -331,26 +360,13 @@ impl StreamingClient {
         for _ in 0..attempts {
             self.send(&mut w, &frame)?;
             let deadline = Instant::now() + self.options.timeout;
-            let mut inbox = self.reader.shared.lock();
-            loop {
-                if let Some(r) = inbox.reply.take() {
-                    inbox.awaiting = None;
-                    return Ok(r);
-                }
-                if let Some(e) = self.failed(&inbox) {
-                    return Err(e);
-                }
-                let now = Instant::now();
-                if now >= deadline {
-                    break;
-                }
-                inbox = self
-                    .reader
-                    .shared
-                    .changed
-                    .wait_timeout(inbox, deadline - now)
-                    .unwrap_or_else(PoisonError::into_inner)
-                    .0;
+            let reply = self.wait_for(deadline, |inbox| {
+                let r = inbox.reply.take()?;
+                inbox.awaiting = None;
+                Some(r)
+            })?;
+            if let Some(r) = reply {
+                return Ok(r);
             }
         }
         self.reader.shared.lock().awaiting = None;
@@ -391,31 +407,13 @@ impl StreamingClient {
     /// stream silent that long is [`LinkError::Timeout`].
     pub fn wait_newer(&self, after: u64, timeout: Duration) -> Result<Received, LinkError> {
         let deadline = Instant::now() + timeout;
-        let mut inbox = self.reader.shared.lock();
-        loop {
-            if let Some(r) = inbox.latest.filter(|r| r.index > after) {
-                return Ok(r);
-            }
-            if let Some(e) = self.failed(&inbox) {
-                return Err(e);
-            }
-            let now = Instant::now();
-            if now >= deadline {
-                return Err(LinkError::Timeout {
-                    port: self.name.clone(),
-                    request: "StreamOn",
-                    attempts: 1,
-                    timeout_ms: timeout.as_millis() as u64,
-                });
-            }
-            inbox = self
-                .reader
-                .shared
-                .changed
-                .wait_timeout(inbox, deadline - now)
-                .unwrap_or_else(PoisonError::into_inner)
-                .0;
-        }
+        self.wait_for(deadline, |inbox| inbox.latest.filter(|r| r.index > after))?
+            .ok_or_else(|| LinkError::Timeout {
+                port: self.name.clone(),
+                request: "StreamOn",
+                attempts: 1,
+                timeout_ms: timeout.as_millis() as u64,
+            })
     }
 
     /// Events received so far (drained), in the order they came.
