@@ -330,10 +330,9 @@ fn the_demo_report_renders_in_a_browser() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-#[test]
-fn the_hangprinter_report_renders_in_a_browser() {
-    let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/hangprinter-hp4-2022");
-    let dir = temp_dir("hangprinter");
+/// A quick calibration, without figures, of `data`'s `geometry.toml`,
+/// `train.csv` and `test.csv`, written to `out`.
+fn quick_calibration(data: &Path, out: &Path) {
     spidar(&[
         "calibrate",
         "--quick",
@@ -346,8 +345,15 @@ fn the_hangprinter_report_renders_in_a_browser() {
         "--test",
         s(&data.join("test.csv")),
         "--out",
-        s(&dir),
+        s(out),
     ]);
+}
+
+#[test]
+fn the_hangprinter_report_renders_in_a_browser() {
+    let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/hangprinter-hp4-2022");
+    let dir = temp_dir("hangprinter");
+    quick_calibration(&data, &dir);
     check_page(&dir, "hangprinter");
     let _ = std::fs::remove_dir_all(&dir);
 }
@@ -371,20 +377,7 @@ fn a_planar_report_renders_in_a_browser() {
         ]);
     }
     let out = dir.join("calibration");
-    spidar(&[
-        "calibrate",
-        "--quick",
-        "--quiet",
-        "--no-figures",
-        "--geometry",
-        s(&dir.join("geometry.toml")),
-        "--train",
-        s(&dir.join("train.csv")),
-        "--test",
-        s(&dir.join("test.csv")),
-        "--out",
-        s(&out),
-    ]);
+    quick_calibration(&dir, &out);
     check_page(&out, "wall-robot");
     let _ = std::fs::remove_dir_all(&dir);
 }
