@@ -9,6 +9,7 @@
 //! - [`stats`]: eq. 7's error statistics, used by every report.
 
 pub mod dataset;
+pub mod home;
 pub mod impossible;
 pub mod observe;
 pub mod output;

@@ -4,7 +4,8 @@
 //!
 //! Direction comes from the same `encoder::DirectionTracker` the firmware
 //! runs, fed with the recorded counts in session order; time since home is
-//! the session's `t_s` (sessions start at initialization).
+//! the session's `since_home_s` when it has one, else its `t_s` (the
+//! session's clock then starts at the home capture).
 
 use spidar_core::encoder::DirectionTracker;
 use spidar_core::model::StringInputs;
@@ -31,6 +32,11 @@ pub struct Observation {
     pub tracker_rotation: Option<[[f64; 3]; 3]>,
     /// Legacy controller position, device frame, mm, when recorded.
     pub legacy: Option<[f64; 3]>,
+    /// The row follows a home capture later than the training session's
+    /// ([`crate::data::home`]): the strings are counted from where they
+    /// were then, so the training session's slips are not in it. Set on a
+    /// later session's rows only (false on the training session's).
+    pub new_home: bool,
 }
 
 /// The observations of a session's rows, in order.
@@ -58,7 +64,9 @@ pub fn observations_skipping(samples: &[Sample], skipped: &[usize]) -> Vec<Obser
             let tension_n = s.tension_n.unwrap_or([0.0; STRINGS]);
             let mut inputs = StringInputs {
                 counts: s.counts,
-                time_ms: (s.t_s * 1000.0).round().clamp(0.0, u32::MAX as f64) as u32,
+                time_ms: (s.since_home_s.unwrap_or(s.t_s) * 1000.0)
+                    .round()
+                    .clamp(0.0, u32::MAX as f64) as u32,
                 ..StringInputs::default()
             };
             for i in 0..STRINGS {
@@ -74,6 +82,7 @@ pub fn observations_skipping(samples: &[Sample], skipped: &[usize]) -> Vec<Obser
                 tracker: s.tracker,
                 tracker_rotation: s.orientation.map(rotation_of_quaternion),
                 legacy: s.legacy,
+                new_home: false,
             }
         })
         .collect()
@@ -228,6 +237,7 @@ mod tests {
             tracker: Some([100.0, 200.0, 300.0]),
             tracker_rotation: Some(rotation_of_quaternion(quarter_turn_about_z)),
             legacy: None,
+            new_home: false,
         };
         // The body's x axis points along the room's y.
         let p = o.at_meeting_point(&[10.0, 0.0, 5.0]).tracker.unwrap();

@@ -964,6 +964,9 @@ impl Collection<'_, '_> {
             fits
         });
         report.oriented += u64::from(orientation.is_some());
+        // A file an older collect started has no home columns: its rows
+        // go on without them (as its header says).
+        let home_fits = self.plan.appender.has_home_columns();
         Sample {
             t_s,
             counts: s.counts,
@@ -971,6 +974,8 @@ impl Collection<'_, '_> {
             orientation,
             legacy: Some(s.position_mm.map(f64::from)),
             tension_n: Some(s.tensions_n.map(f64::from)),
+            since_home_s: Some(s.since_home_us as f64 / 1e6).filter(|_| home_fits),
+            home: None.filter(|_| home_fits),
         }
     }
 }
@@ -1056,6 +1061,8 @@ mod tests {
             orientation: None,
             legacy: None,
             tension_n: None,
+            since_home_s: None,
+            home: None,
         }
     }
 

@@ -162,6 +162,24 @@ pub fn device_with_lattice_and_test(
     Ok((device, lattice, test))
 }
 
+/// How long after an earlier session of the same home capture a session
+/// that continues it starts (s): the operator takes a minute between them.
+pub const CONTINUATION_GAP_S: f64 = 60.0;
+
+/// A session of `device` that continues `earlier` under the same home
+/// capture, [`CONTINUATION_GAP_S`] after its last row: its clock goes on,
+/// so the effects that read the time since home (a slip that happened, a
+/// drift) are in it as they were at the end of `earlier`.
+pub fn simulate_session_after(
+    device: &SimulatedDevice,
+    kind: SessionKind,
+    seed: u64,
+    earlier: &Session,
+) -> Result<(Session, Vec<SampleTruth>), SimError> {
+    let start_s = earlier.samples.last().map_or(0.0, |s| s.t_s) + CONTINUATION_GAP_S;
+    simulate_session_from(device, kind, seed, start_s)
+}
+
 /// Simulate one session of `device` (see [`simulate_session_with_truth`]).
 pub fn simulate_session(
     device: &SimulatedDevice,
@@ -184,6 +202,17 @@ pub fn simulate_session_with_truth(
     kind: SessionKind,
     seed: u64,
 ) -> Result<(Session, Vec<SampleTruth>), SimError> {
+    simulate_session_from(device, kind, seed, 0.0)
+}
+
+/// [`simulate_session_with_truth`] of a session whose clock starts
+/// `start_s` after the home capture.
+fn simulate_session_from(
+    device: &SimulatedDevice,
+    kind: SessionKind,
+    seed: u64,
+    start_s: f64,
+) -> Result<(Session, Vec<SampleTruth>), SimError> {
     let cfg = &device.config;
     let centre = device.volume_centre_room();
     let start = device.room_from_device(&device.frame.home);
@@ -198,6 +227,7 @@ pub fn simulate_session_with_truth(
         &mut path_rng,
     )?;
 
+    let captures = trajectory::starting_at(captures, start_s)?;
     let mut session = ModelSession::new(device, seed)?;
     let captures = onto_the_plane(device, captures);
     let mut samples = Vec::with_capacity(captures.len());
@@ -347,6 +377,8 @@ impl<'a> ModelSession<'a> {
             orientation: None,
             legacy: legacy_position,
             tension_n: Some(tension_mn.map(|t| f64::from(t) / 1000.0)),
+            since_home_s: None,
+            home: None,
         };
         let truth = SampleTruth {
             device_mm: p,

@@ -27,6 +27,26 @@ pub(crate) struct Capture {
     pub cell: Option<[u32; 3]>,
 }
 
+/// `captures` of a session whose clock starts `start_s` after the home
+/// capture (0: at it).
+pub(crate) fn starting_at(
+    mut captures: Vec<Capture>,
+    start_s: f64,
+) -> Result<Vec<Capture>, SimError> {
+    if start_s != 0.0 {
+        let start_ms = to_ms(start_s)?;
+        for c in &mut captures {
+            c.t_ms = c.t_ms.checked_add(start_ms).ok_or_else(|| {
+                SimError::Config(crate::ConfigError::new(
+                    "session start",
+                    format!("a session {start_s} s after home does not fit the 49-day counter"),
+                ))
+            })?;
+        }
+    }
+    Ok(captures)
+}
+
 fn to_ms(t_s: f64) -> Result<u32, SimError> {
     let ms = (t_s * 1000.0).round();
     if !(0.0..=f64::from(u32::MAX)).contains(&ms) {

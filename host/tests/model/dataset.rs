@@ -104,6 +104,8 @@ fn session_round_trip_is_lossless() {
         orientation: None,
         legacy: None,
         tension_n: Some([1.0, 2.5, 0.001, 3.0, 4.0, 5.0, 6.0, 7.0]),
+        since_home_s: None,
+        home: None,
     }];
     samples.push(Sample {
         t_s: 0.3 + 1e-12,
@@ -112,6 +114,8 @@ fn session_round_trip_is_lossless() {
         orientation: None,
         legacy: Some([1.5, -2.5, 3.25]),
         tension_n: None,
+        since_home_s: None,
+        home: None,
     });
     let s = Session {
         strings: 8,
@@ -321,6 +325,8 @@ fn writing_rejects_what_reading_would_reject() {
             orientation: None,
             legacy: None,
             tension_n: None,
+            since_home_s: None,
+            home: None,
         }],
         ignored_columns: vec![],
         unread_columns: Vec::new(),
@@ -625,6 +631,8 @@ fn oriented(t_s: f64, tracker: Option<[f64; 3]>, orientation: Option<[f64; 4]>) 
         orientation,
         legacy: None,
         tension_n: Some([1.5, 2.0, 2.5, 0.0, 0.0, 0.0, 0.0, 0.0]),
+        since_home_s: None,
+        home: None,
     }
 }
 

@@ -4,6 +4,7 @@
 //! test binary (issue 14, point 7: a few links, not twelve).
 
 mod dataset;
+mod home_epochs;
 mod identify;
 mod learn;
 mod loop_closing;

@@ -952,6 +952,8 @@ fn replay_plays_back_a_session_s_orientation_as_the_body_s_rotation() {
         orientation,
         legacy: None,
         tension_n: None,
+        since_home_s: None,
+        home: None,
     };
     // A quarter turn about z: x goes to y.
     let h = std::f64::consts::FRAC_1_SQRT_2;

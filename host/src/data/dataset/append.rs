@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use spidar_core::STRINGS;
 
 use super::columns::{session_header_for, OptionalColumns};
-use super::session::{check_sample, csv_write_error, row_fields, Sample, Session};
+use super::session::{check_home, check_sample, csv_write_error, row_fields, Sample, Session};
 use super::{io_error, DatasetError, MIN_STRINGS};
 
 /// An unterminated last line found when a session was opened for appending:
@@ -61,6 +61,9 @@ pub struct SessionAppender {
     columns: OptionalColumns,
     rows: usize,
     last: Option<(f64, u64)>,
+    /// The last row's time since home and home id (what the next row's
+    /// are checked against).
+    last_home: Option<Sample>,
     /// A write failed part-way: the file may end in a partial row, so no
     /// more rows go after it (open the file again to repair it).
     failed: bool,
@@ -68,21 +71,42 @@ pub struct SessionAppender {
 
 impl SessionAppender {
     /// The optional groups of a new appended session: orientation (empty
-    /// on rows without one), legacy positions and tensions. The header is
-    /// fixed whatever the rows hold, so that a file can be reopened.
+    /// on rows without one), legacy positions, tensions, the time since home
+    /// and the home capture's id. The header is fixed whatever the rows
+    /// hold, so that a file can be reopened.
     pub const COLUMNS: OptionalColumns = OptionalColumns {
         orientation: true,
         legacy: true,
         tension: true,
+        since_home: true,
+        home: true,
     };
 
-    /// The optional groups of a session an older `spidar collect` started:
-    /// [`SessionAppender::COLUMNS`] without the orientation. Such a file is
-    /// still appended to (with position-only rows).
-    pub const COLUMNS_WITHOUT_ORIENTATION: OptionalColumns = OptionalColumns {
-        orientation: false,
+    /// The optional groups of a session an older `spidar collect` started
+    /// before it recorded the home: [`SessionAppender::COLUMNS`] without
+    /// `since_home_s` and `home`. Such a file is still appended to (its rows
+    /// without them).
+    pub const COLUMNS_WITHOUT_HOME: OptionalColumns = OptionalColumns {
+        since_home: false,
+        home: false,
         ..Self::COLUMNS
     };
+
+    /// The optional groups of a session a still older `spidar collect`
+    /// started: [`SessionAppender::COLUMNS_WITHOUT_HOME`] without the
+    /// orientation. Such a file is still appended to (with position-only
+    /// rows).
+    pub const COLUMNS_WITHOUT_ORIENTATION: OptionalColumns = OptionalColumns {
+        orientation: false,
+        ..Self::COLUMNS_WITHOUT_HOME
+    };
+
+    /// Every header this writer appends to, the one it starts files with first.
+    const HEADERS: [OptionalColumns; 3] = [
+        Self::COLUMNS,
+        Self::COLUMNS_WITHOUT_HOME,
+        Self::COLUMNS_WITHOUT_ORIENTATION,
+    ];
 
     /// The header line this writer writes for an 8-string device (no newline).
     pub fn header_line() -> String {
@@ -126,7 +150,10 @@ impl SessionAppender {
         file.read_to_end(&mut bytes)
             .map_err(|e| io_error(path, "cannot read", e))?;
         let header = Self::header_line_for(strings);
-        let old_header = Self::header_line_without_orientation_for(strings);
+        let headers: Vec<(String, OptionalColumns)> = Self::HEADERS
+            .iter()
+            .map(|&c| (session_header_for(strings, c).join(","), c))
+            .collect();
         let mismatch = |found: &[u8]| DatasetError::HeaderMismatch {
             file: path.to_path_buf(),
             found: String::from_utf8_lossy(found).trim_end().to_string(),
@@ -139,8 +166,9 @@ impl SessionAppender {
             // Not even the header's newline: a header cut short (either
             // one: the file has no row yet) is started again, with the new
             // one; anything else is not this writer's file.
-            None if header.as_bytes().starts_with(&bytes)
-                || old_header.as_bytes().starts_with(&bytes) =>
+            None if headers
+                .iter()
+                .any(|(h, _)| h.as_bytes().starts_with(&bytes)) =>
             {
                 torn = Some(TornLine {
                     line: 1,
@@ -159,11 +187,8 @@ impl SessionAppender {
         } else {
             let first_line = bytes[..keep].split(|&b| b == b'\n').next().unwrap_or(&[]);
             let first_line = first_line.strip_suffix(b"\r").unwrap_or(first_line);
-            let columns = if first_line == header.as_bytes() {
-                Self::COLUMNS
-            } else if first_line == old_header.as_bytes() {
-                Self::COLUMNS_WITHOUT_ORIENTATION
-            } else {
+            let Some(&(_, columns)) = headers.iter().find(|(h, _)| first_line == h.as_bytes())
+            else {
                 return Err(mismatch(first_line));
             };
             (Session::read_from(&bytes[..keep], path)?, columns)
@@ -192,6 +217,7 @@ impl SessionAppender {
         }
         let rows = existing.samples.len();
         let last = existing.samples.last().map(|s| (s.t_s, rows as u64 + 1));
+        let last_home = existing.samples.last().cloned();
         Ok(OpenedSession {
             appender: SessionAppender {
                 file,
@@ -200,6 +226,7 @@ impl SessionAppender {
                 columns,
                 rows,
                 last,
+                last_home,
                 failed: false,
             },
             existing,
@@ -217,6 +244,12 @@ impl SessionAppender {
     /// file started without them, which refuses a row with an orientation.
     pub fn has_orientation_columns(&self) -> bool {
         self.columns.orientation
+    }
+
+    /// The file has the `since_home_s` and `home` columns: false for a file
+    /// an older `spidar collect` started, which refuses a row with them.
+    pub fn has_home_columns(&self) -> bool {
+        self.columns.home
     }
 
     /// Rows in the file.
@@ -243,6 +276,18 @@ impl SessionAppender {
             ));
         }
         check_sample(&self.path, line, sample, self.last)?;
+        check_home(
+            &self.path,
+            line,
+            sample,
+            self.last_home.as_ref().map(|s| (s, line - 1)),
+        )?;
+        if (sample.since_home_s.is_some() || sample.home.is_some()) && !self.columns.home {
+            return Err(DatasetError::HomeNotAppended {
+                file: self.path.clone(),
+                line,
+            });
+        }
         if sample.orientation.is_some() && !self.columns.orientation {
             return Err(DatasetError::OrientationNotAppended {
                 file: self.path.clone(),
@@ -272,6 +317,7 @@ impl SessionAppender {
         }
         self.rows += 1;
         self.last = Some((sample.t_s, line));
+        self.last_home = Some(sample.clone());
         Ok(line)
     }
 }

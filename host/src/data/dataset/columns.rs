@@ -25,6 +25,15 @@ pub const TENSION_COLUMNS: [&str; STRINGS] = [
     "tension0", "tension1", "tension2", "tension3", "tension4", "tension5", "tension6", "tension7",
 ];
 
+/// Name of the column of the time since the device's home capture (s):
+/// `State::since_home_us`, what the string law's time terms read. Optional;
+/// without it they read `t_s`.
+pub const SINCE_HOME_COLUMN: &str = "since_home_s";
+/// Name of the column naming the home capture a row follows (an integer
+/// id, `State::home_id`): rows of two sessions with the same id count from
+/// the same home, so a slip of one is still in the other. Optional.
+pub const HOME_COLUMN: &str = "home";
+
 /// Which optional column groups a session file has.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct OptionalColumns {
@@ -34,11 +43,16 @@ pub struct OptionalColumns {
     pub legacy: bool,
     /// `tension0..tension{N-1}`.
     pub tension: bool,
+    /// `since_home_s` ([`SINCE_HOME_COLUMN`]).
+    pub since_home: bool,
+    /// `home` ([`HOME_COLUMN`]).
+    pub home: bool,
 }
 
 /// The header [`Session::write_to`](super::Session::write_to) writes for an
 /// 8-string device: `t_s`, `enc0..7`, `ots_x, ots_y, ots_z`, then the
-/// optional groups of `columns`: `ots_q*`, `dev_*`, `tension0..7`.
+/// optional groups of `columns`: `ots_q*`, `dev_*`, `tension0..7`,
+/// `since_home_s`, `home`.
 pub fn session_header(columns: OptionalColumns) -> Vec<&'static str> {
     session_header_for(STRINGS, columns)
 }
@@ -59,6 +73,12 @@ pub fn session_header_for(strings: usize, columns: OptionalColumns) -> Vec<&'sta
     if columns.tension {
         header.extend(&TENSION_COLUMNS[..n]);
     }
+    if columns.since_home {
+        header.push(SINCE_HOME_COLUMN);
+    }
+    if columns.home {
+        header.push(HOME_COLUMN);
+    }
     header
 }
 
@@ -74,6 +94,8 @@ pub(super) struct Layout {
     pub(super) legacy: Option<[usize; 3]>,
     /// `tension0..tension{N-1}`.
     pub(super) tension: Option<Vec<usize>>,
+    pub(super) since_home: Option<usize>,
+    pub(super) home: Option<usize>,
 }
 
 /// The columns `names[..n]` as a group: all present (`Some`), all absent
@@ -196,6 +218,8 @@ impl Layout {
                 || ORIENTATION_COLUMNS.contains(&n)
                 || LEGACY_COLUMNS.contains(&n)
                 || TENSION_COLUMNS.contains(&n)
+                || n == SINCE_HOME_COLUMN
+                || n == HOME_COLUMN
         };
         let ignored = names
             .iter()
@@ -210,6 +234,8 @@ impl Layout {
                 orientation,
                 legacy,
                 tension,
+                since_home: index_of(SINCE_HOME_COLUMN),
+                home: index_of(HOME_COLUMN),
             },
             ignored,
         ))

@@ -86,8 +86,9 @@ use std::path::{Path, PathBuf};
 
 pub use append::{OpenedSession, SessionAppender, TornLine};
 pub use columns::{
-    session_header, session_header_for, OptionalColumns, ENCODER_COLUMNS, LEGACY_COLUMNS,
-    ORIENTATION_COLUMNS, TENSION_COLUMNS, TIME_COLUMN, TRACKER_COLUMNS,
+    session_header, session_header_for, OptionalColumns, ENCODER_COLUMNS, HOME_COLUMN,
+    LEGACY_COLUMNS, ORIENTATION_COLUMNS, SINCE_HOME_COLUMN, TENSION_COLUMNS, TIME_COLUMN,
+    TRACKER_COLUMNS,
 };
 pub use geometry::{Geometry, MAX_HOME_TENSION_N};
 pub use session::{ReadOptions, Sample, Session};
@@ -119,12 +120,30 @@ pub enum ValueProblem {
         previous: f64,
         previous_line: u64,
     },
+    #[error("negative time since home {0} s")]
+    NegativeSinceHome(f64),
+    #[error("time since home goes backwards: {value} s after {previous} s on line {previous_line}, under the same home capture {home} (a new home capture has a new `home` id)")]
+    SinceHomeDecreasing {
+        value: f64,
+        previous: f64,
+        previous_line: u64,
+        home: u64,
+    },
+    #[error("`{0}` is not a home capture's id (a whole number from 0 to 2^64-1)")]
+    NotAHomeId(String),
     #[error("empty while `{filled}` is filled: the group {group} must be all empty or all filled")]
     PartialGroup { filled: String, group: String },
     #[error("orientation quaternion has norm {0:.4}; a rotation needs a unit quaternion (norm within 1e-3 of 1)")]
     NotUnitQuaternion(f64),
     #[error("an orientation on a row whose position (`ots_x`...) is empty: the body is occluded (position and orientation empty) or seen (a position, with or without an orientation)")]
     OrientationWithoutPosition,
+}
+
+impl ValueProblem {
+    /// A problem of the time since home (`since_home_s`), not of the home id.
+    pub(crate) fn is_since_home(&self) -> bool {
+        !matches!(self, ValueProblem::NotAHomeId(_))
+    }
 }
 
 /// Any failure to read or write a geometry or session file.
@@ -175,6 +194,10 @@ pub enum DatasetError {
     /// file was started without orientation columns.
     #[error("{}: line {line}: the row has an orientation, but the file was started without orientation columns (ots_qw..ots_qz; an older spidar's header), so it would be lost: append it to a new file", file.display())]
     OrientationNotAppended { file: PathBuf, line: u64 },
+    /// [`SessionAppender::append`] of a row with a time since home or a home
+    /// id when the file was started without those columns.
+    #[error("{}: line {line}: the row has a time since home or a home id, but the file was started without the `since_home_s` and `home` columns (an older spidar's header), so they would be lost: append it to a new file", file.display())]
+    HomeNotAppended { file: PathBuf, line: u64 },
     /// A session without `ots_z` for a 3-D device.
     #[error("{}: line 1: no `ots_z` column (tracker positions in x, y only, as a planar device's), but {} is a 3-D device (no `planar = true`): its tracker positions need ots_z", file.display(), geometry_file.display())]
     NoTrackerZ {

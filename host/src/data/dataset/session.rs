@@ -10,8 +10,8 @@ use spidar_core::model::Vec3;
 use spidar_core::STRINGS;
 
 use super::columns::{
-    session_header_for, Layout, OptionalColumns, LEGACY_COLUMNS, ORIENTATION_COLUMNS,
-    TENSION_COLUMNS, TIME_COLUMN, TRACKER_COLUMNS,
+    session_header_for, Layout, OptionalColumns, HOME_COLUMN, LEGACY_COLUMNS, ORIENTATION_COLUMNS,
+    SINCE_HOME_COLUMN, TENSION_COLUMNS, TIME_COLUMN, TRACKER_COLUMNS,
 };
 use super::geometry::Geometry;
 use super::values::{orientation_problem, RowReader, MAX_SESSION_TIME_S};
@@ -34,6 +34,11 @@ pub struct Sample {
     pub legacy: Option<Vec3<f64>>,
     /// Commanded tensions (N), if recorded.
     pub tension_n: Option<[f64; STRINGS]>,
+    /// Seconds since the device's home capture (`since_home_s`), if
+    /// recorded: what the string law's time terms read (else `t_s`).
+    pub since_home_s: Option<f64>,
+    /// Id of the home capture the row follows (`home`), if recorded.
+    pub home: Option<u64>,
 }
 
 /// A recorded (or simulated) session: captures in time order.
@@ -165,6 +170,7 @@ impl Session {
                     ));
                 }
             }
+            let previous_line = previous.map(|(_, l)| l);
             previous = Some((t_s, line));
             let mut counts = [0i32; STRINGS];
             for (c, &k) in counts.iter_mut().zip(&layout.counts) {
@@ -189,14 +195,28 @@ impl Session {
                 Some(ix) => row.group(ix, &tension_group)?,
                 None => None,
             };
-            samples.push(Sample {
+            let since_home_s = layout.since_home.map(|k| row.float(k)).transpose()?;
+            let home = layout.home.map(|k| row.home_id(k)).transpose()?.flatten();
+            let sample = Sample {
                 t_s,
                 counts,
                 tracker,
                 orientation,
                 legacy,
                 tension_n,
-            });
+                since_home_s,
+                home,
+            };
+            let before = samples.last().zip(previous_line);
+            if let Some(p) = home_problem(&sample, before) {
+                let column = if p.is_since_home() {
+                    layout.since_home
+                } else {
+                    layout.home
+                };
+                return Err(row.error(column.unwrap_or(layout.time), p));
+            }
+            samples.push(sample);
         }
         Ok(Session {
             strings,
@@ -255,6 +275,8 @@ impl Session {
         for (row, s) in self.samples.iter().enumerate() {
             let line = row as u64 + 2;
             check_sample(file, line, s, previous)?;
+            let before = row.checked_sub(1).map(|r| (&self.samples[r], line - 1));
+            check_home(file, line, s, before)?;
             previous = Some((s.t_s, line));
         }
         Ok(())
@@ -282,6 +304,8 @@ impl Session {
             orientation: self.has_orientation(),
             legacy: self.has_legacy(),
             tension: self.has_tension(),
+            since_home: self.samples.iter().any(|s| s.since_home_s.is_some()),
+            home: self.samples.iter().any(|s| s.home.is_some()),
         };
         let header = session_header_for(self.strings, columns);
         let mut w = csv::WriterBuilder::new().from_writer(writer);
@@ -360,7 +384,59 @@ pub(super) fn check_sample(
             finite(name, *x)?;
         }
     }
+    if let Some(v) = s.since_home_s {
+        finite(SINCE_HOME_COLUMN, v)?;
+    }
     Ok(())
+}
+
+/// [`home_problem`] as the error the reader gives, naming `line` of `file`.
+pub(super) fn check_home(
+    file: &Path,
+    line: u64,
+    s: &Sample,
+    previous: Option<(&Sample, u64)>,
+) -> Result<(), DatasetError> {
+    match home_problem(s, previous) {
+        None => Ok(()),
+        Some(problem) => Err(DatasetError::Value {
+            file: file.to_path_buf(),
+            line,
+            column: if problem.is_since_home() {
+                SINCE_HOME_COLUMN
+            } else {
+                HOME_COLUMN
+            }
+            .to_string(),
+            problem,
+        }),
+    }
+}
+
+/// What is wrong with `s`'s time since home, alone or after the row
+/// before it, `previous` (and its line): negative, beyond the
+/// device's 32-bit milliseconds, or going backwards under the same home
+/// capture (without a `home` column a step back is a new home capture).
+pub(super) fn home_problem(s: &Sample, previous: Option<(&Sample, u64)>) -> Option<ValueProblem> {
+    let t = s.since_home_s?;
+    if t < 0.0 {
+        return Some(ValueProblem::NegativeSinceHome(t));
+    }
+    if t > MAX_SESSION_TIME_S {
+        return Some(ValueProblem::TimeTooLarge(t));
+    }
+    let (p, previous_line) = previous?;
+    match (p.since_home_s, p.home, s.home) {
+        (Some(before), Some(h0), Some(h1)) if h0 == h1 && t < before => {
+            Some(ValueProblem::SinceHomeDecreasing {
+                value: t,
+                previous: before,
+                previous_line,
+                home: h1,
+            })
+        }
+        _ => None,
+    }
 }
 
 /// The fields of one row, in the order of
@@ -389,6 +465,12 @@ pub(super) fn row_fields(
     }
     if columns.tension {
         push_group(fields, s.tension_n.as_ref().map(|v| &v[..n]), n);
+    }
+    if columns.since_home {
+        fields.push(s.since_home_s.map_or_else(String::new, |v| v.to_string()));
+    }
+    if columns.home {
+        fields.push(s.home.map_or_else(String::new, |v| v.to_string()));
     }
 }
 

@@ -64,6 +64,18 @@ impl RowReader<'_> {
         }
     }
 
+    /// A home capture's id: a whole number, `u64`; `None` when empty (a
+    /// row whose home is not known).
+    pub(super) fn home_id(&self, index: usize) -> Result<Option<u64>, DatasetError> {
+        let text = self.text(index);
+        if text.is_empty() {
+            return Ok(None);
+        }
+        text.parse::<u64>()
+            .map(Some)
+            .map_err(|_| self.error(index, ValueProblem::NotAHomeId(text.to_string())))
+    }
+
     /// A group that is all filled (`Some`) or all empty (`None`).
     /// The values of `indices` in order (`out[k]` from `indices[k]`; `out`
     /// may be longer: its other entries stay 0).

@@ -25,6 +25,8 @@ fn rig(rows: usize) -> (Geometry, Session) {
                 orientation: None,
                 legacy: Some([x, 250.0, 250.0]),
                 tension_n: None,
+                since_home_s: None,
+                home: None,
             }
         })
         .collect();

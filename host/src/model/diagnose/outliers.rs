@@ -134,12 +134,19 @@ impl TrackerOutliers {
 /// strings of `| |p - anchor_i| - L_i |` under `id`, mm.
 fn tracker_disagreement(id: &Identification, session: &[Observation]) -> Vec<(usize, f64)> {
     let strings = id.frame.layout;
+    // A row after a new home capture reads without the training's slips.
+    let new_home = id.for_a_new_session();
     session
         .iter()
         .enumerate()
         .filter(|(_, o)| o.tracker.is_some())
         .map(|(k, o)| {
-            let r = residuals_at(&id.frame, &id.laws, &id.effects, o);
+            let effects = if o.new_home {
+                &new_home.effects
+            } else {
+                &id.effects
+            };
+            let r = residuals_at(&id.frame, &id.laws, effects, o);
             let mut abs: Vec<f64> = strings.indices().map(|i| r[i].abs()).collect();
             (k, median(&mut abs))
         })

@@ -10,7 +10,7 @@ use crate::data::observe::Observation;
 use crate::data::stats::ErrorStats;
 use crate::model::identify::{Identification, Structure};
 use crate::model::layers::StringLayers;
-use crate::model::validate::{model_errors, Check};
+use crate::model::validate::{later_session_errors, model_errors, Check};
 
 use super::outliers::TrackerOutliers;
 
@@ -280,9 +280,9 @@ impl LoopStage {
         LoopStage {
             name,
             train: model_errors(refit, train),
-            // The test session is another session: the training
-            // session's slips are not in it.
-            test: test.map(|t| model_errors(&refit.for_a_new_session(), t)),
+            // The test session's rows after a new home capture are
+            // without the training session's slips.
+            test: test.map(|t| later_session_errors(refit, t)),
             finding: finding.clone(),
             validation_before_mm,
             validation_after_mm,

@@ -8,7 +8,39 @@ use spidar_core::kinematics::{FkConfig, FkStatus};
 use crate::data::observe::Observation;
 use crate::data::stats::{position_errors, ErrorStats};
 use crate::model::identify::Identification;
-use crate::model::predict::{paired_with_tracker, predict_with, KinematicModel, UNMEASURED_SCALES};
+use crate::model::predict::{
+    paired_with_tracker, predict, predict_with, KinematicModel, Prediction, UNMEASURED_SCALES,
+};
+
+/// Forward kinematics of `id` on a later session's rows ([`predict`]): a
+/// row that follows a new home capture ([`Observation::new_home`]) is read
+/// without the training session's slips
+/// ([`Identification::for_a_new_session`]), the rows before it with them.
+/// The rows after a new home capture are the session's last (a home
+/// capture is not undone).
+pub fn predict_later(id: &Identification, observations: &[Observation]) -> Vec<Prediction> {
+    let k = observations
+        .iter()
+        .position(|o| o.new_home)
+        .unwrap_or(observations.len());
+    let mut predictions = predict(id.kinematic_model(), &observations[..k]);
+    if k < observations.len() {
+        let new_home = id.for_a_new_session();
+        predictions.extend(predict(new_home.kinematic_model(), &observations[k..]));
+    }
+    predictions
+}
+
+/// [`model_errors`] on a later session's rows, each read with the slips
+/// of its home capture ([`predict_later`]).
+pub fn later_session_errors(id: &Identification, observations: &[Observation]) -> ErrorStats {
+    let room: Vec<[f64; 3]> = predict_later(id, observations)
+        .iter()
+        .map(|p| p.room)
+        .collect();
+    let (p, t) = paired_with_tracker(&room, observations);
+    ErrorStats::of(&position_errors(&p, &t))
+}
 
 /// Position errors of an identified string model against the tracker.
 pub fn model_errors(id: &Identification, observations: &[Observation]) -> ErrorStats {

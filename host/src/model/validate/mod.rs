@@ -23,7 +23,7 @@ mod judge;
 mod preferred;
 
 pub(crate) use errors::held_out_error_list;
-pub use errors::{model_errors, tail_noise};
+pub use errors::{later_session_errors, model_errors, predict_later, tail_noise};
 pub(crate) use folds::{folds, judgeable_folds, judged_folds, Fold};
 pub use folds::{Folds, MIN_BLOCKED_ROWS, MIN_STEP_SIDE_ROWS};
 pub use held_out::{cross_validated_error, validate, Validation};

@@ -346,6 +346,7 @@ mod tests {
             tracker: Some([x, 0.0, 0.0]),
             tracker_rotation: rotation,
             legacy: None,
+            new_home: false,
         }
     }
 

@@ -36,7 +36,13 @@ pub(super) fn checked_sessions(
         check_set_aside(s, found, geometry_path)?;
     }
     let train_info = session_info(train, set_aside[0])?;
-    let test_info = session_info(test, set_aside[1])?;
+    let test_info = report::SessionInfo {
+        home: Some(crate::data::home::LaterHome::of(
+            train.session,
+            test.session,
+        )),
+        ..session_info(test, set_aside[1])?
+    };
     match trust::shared_rows(train.session, test.session) {
         (0, _) => {}
         (shared, rows) if shared == rows => warnings.push(format!(
@@ -154,6 +160,7 @@ fn session_info(
         ignored_columns: s.session.ignored_columns.clone(),
         unread_columns: s.session.unread_columns.clone(),
         set_aside: set_aside.values.clone(),
+        home: None,
     })
 }
 

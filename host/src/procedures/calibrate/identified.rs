@@ -10,6 +10,7 @@ use spidar_core::geometry::room_from_device;
 use spidar_core::kinematics::{FkStatus, KinematicsRule};
 
 use crate::data::dataset::{Geometry, Session};
+use crate::data::home::LaterHome;
 use crate::data::observe::{observations_skipping, Observation};
 use crate::data::stats::{ErrorStats, StatsError};
 use crate::model::diagnose::{close_loop, LoopConfig, LoopResult};
@@ -27,16 +28,23 @@ use super::loop_rows::LoopRows;
 use super::{align, report, spinner, CalibrateConfig, CalibrateError, NamedSession, Run};
 
 /// The observations of both sessions but their rows set aside whole
-/// (`skipped`, ascending); on a planar device the tracker's z set to the
-/// anchors' plane.
+/// (`skipped`, ascending), the test rows after a new home capture marked
+/// (`test_home`); on a planar device the tracker's z set to the anchors'
+/// plane.
 fn session_observations(
     nominal: &spidar_core::model::Frame<f64>,
     train: &Session,
     test: &Session,
     skipped: [&[usize]; 2],
+    test_home: Option<&LaterHome>,
 ) -> (Vec<Observation>, Vec<Observation>) {
     let mut tr = observations_skipping(&train.samples, skipped[0]);
     let mut te = observations_skipping(&test.samples, skipped[1]);
+    if let Some(home) = test_home {
+        for o in &mut te {
+            o.new_home = o.row >= home.first_new_home_row;
+        }
+    }
     if nominal.layout.planar {
         // A planar device's tracker gives the position in the plane; its z
         // (absent, or the marker's height) is not used: the errors are in
@@ -220,8 +228,9 @@ fn identified_errors(
 }
 
 /// The final identified model (the base when no effect was added) on both
-/// sessions: on the test session, and in the calibration the device runs
-/// from its next home capture, without the training session's slips.
+/// sessions: on the test session's rows after a new home capture, and in
+/// the calibration the device runs from its next home capture, without the
+/// training session's slips.
 pub(super) struct FinalIdentified {
     /// The model for a new session (the calibration's).
     pub(super) new_session: crate::model::identify::Identification,
@@ -238,7 +247,8 @@ impl FinalIdentified {
     ) -> Result<(FinalIdentified, StageErrors), StatsError> {
         let fin_new = fin.for_a_new_session();
         let fin_tr_pred = predict(fin.kinematic_model(), obs.train);
-        let fin_te_pred = predict(fin_new.kinematic_model(), obs.test);
+        // Test rows under the training's home capture keep its slips.
+        let fin_te_pred = crate::model::validate::predict_later(fin, obs.test);
         let rejections = report::SessionRejections {
             train: report::Rejections::of(&fin_tr_pred),
             test: report::Rejections::of(&fin_te_pred),
@@ -476,6 +486,7 @@ impl Run<'_> {
             train.session,
             test.session,
             [&skipped[0], &skipped[1]],
+            self.test_info.home.as_ref(),
         );
         let t = Instant::now();
         let (tr, te, timing) = align_clocks(tr, te, self.geometry, nominal, nominal_laws)?;
@@ -526,7 +537,7 @@ impl Run<'_> {
         self.warnings.extend(test_outlier_warning(
             test_path,
             &crate::model::diagnose::TrackerOutliers::of_session(
-                &final_identified.new_session,
+                &loop_result.identification,
                 obs.test,
                 loop_result.tracker_outliers.threshold_mm,
             ),

@@ -81,7 +81,7 @@ use corrections::{
     hold_to_reference, identification_only, learner_warnings, residual_report, selection_report,
     train_corrections, Learned, ResidualData,
 };
-use evaluate::{correction_errors, point_error_list, room_positions, tracked_pairs, PerSession};
+use evaluate::{correction_errors, point_error_list, tracked_pairs, PerSession};
 use identified::{FinalIdentified, IdentifiedModel, ReferenceModel};
 
 pub use evaluate::{PointErrors, StagePoints};
@@ -440,10 +440,14 @@ impl Run<'_> {
         };
         list.push(final_name.into(), report::StageKind::Final, final_errors);
         let plain_rule = crate::model::rule::with_rule(
-            &model.final_identified.new_session,
+            fin,
             &crate::model::rule::all_strings_alike(reference.id.kinematics.fault_threshold_mm),
         );
-        let (x, t) = tracked_pairs(te, &room_positions(plain_rule.kinematic_model(), te));
+        let plain_rule_te: Vec<[f64; 3]> = crate::model::validate::predict_later(&plain_rule, te)
+            .iter()
+            .map(|p| p.room)
+            .collect();
+        let (x, t) = tracked_pairs(te, &plain_rule_te);
         let plain_rule_test = ErrorStats::of(&point_error_list(|p| p, &x, &t));
         self.warnings
             .extend(reference_warning(&list.stages, plain_rule_test.mean_mm));

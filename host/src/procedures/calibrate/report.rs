@@ -381,6 +381,11 @@ pub struct SessionInfo {
     /// be is emptied (the row reads as occluded, or without its legacy
     /// position).
     pub set_aside: Vec<crate::data::impossible::ImpossibleValue>,
+    /// The test session only: which home capture its rows count from, the
+    /// training session's (its slips and drifts go on) or a new one, and
+    /// what told it ([`crate::data::home`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub home: Option<crate::data::home::LaterHome>,
 }
 
 impl SessionInfo {
@@ -867,6 +872,9 @@ impl Report {
             "training session {} ({} rows, {} tracked); test session {} ({} rows, {} tracked)",
             i.train.path, i.train.rows, i.train.tracked, i.test.path, i.test.rows, i.test.tracked
         );
+        if let Some(h) = &i.test.home {
+            let _ = writeln!(o, "test session's home capture: {}", h.reason);
+        }
         let d = &self.device;
         let _ = writeln!(
             o,

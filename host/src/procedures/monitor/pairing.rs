@@ -254,6 +254,8 @@ impl Monitor<'_> {
                     orientation: None,
                     legacy: None,
                     tension_n: Some(state.tensions_n.map(f64::from)),
+                    since_home_s: None,
+                    home: None,
                 },
                 device_time_s: t.round() / 1e6,
                 device_room_mm,

@@ -285,6 +285,8 @@ pub fn rows_to_session(rows: Vec<PhysicsRow>) -> Result<Session, SimError> {
                 orientation: r.orientation,
                 legacy: None,
                 tension_n: Some(tension),
+                since_home_s: None,
+                home: None,
             })
         })
         .collect::<Result<Vec<_>, SimError>>()?;
@@ -880,12 +882,47 @@ pub fn simulate_session(
     Ok((rows_to_session(rows)?, truths))
 }
 
+/// An earlier session of the same home capture, which a later one
+/// continues ([`simulate_session_after`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct EarlierSession {
+    /// Its seed (its slip events are drawn again from it).
+    pub seed: u64,
+    /// Its last capture's time since home, s.
+    pub end_s: f64,
+}
+
+/// A session that continues `earlier` under the same home capture, a
+/// minute ([`crate::sim::CONTINUATION_GAP_S`]) after its last capture: its
+/// clock goes on, and the earlier session's slips and drift stay in the
+/// strings (its own slips add to them).
+pub fn simulate_session_after(
+    device: &PhysicsDevice,
+    kind: SessionKind,
+    seed: u64,
+    earlier: EarlierSession,
+) -> Result<(Session, Vec<PhysicsTruth>), SimError> {
+    let (rows, truths) = simulate_rows_from(device, kind, seed, Some(earlier))?;
+    Ok((rows_to_session(rows)?, truths))
+}
+
 /// [`simulate_session`] before the rows become a dataset session (any
 /// number of strings).
 pub fn simulate_rows(
     device: &PhysicsDevice,
     kind: SessionKind,
     seed: u64,
+) -> Result<(Vec<PhysicsRow>, Vec<PhysicsTruth>), SimError> {
+    simulate_rows_from(device, kind, seed, None)
+}
+
+/// [`simulate_rows`] of a session that starts at a home capture
+/// (`earlier` None) or continues `earlier`.
+fn simulate_rows_from(
+    device: &PhysicsDevice,
+    kind: SessionKind,
+    seed: u64,
+    earlier: Option<EarlierSession>,
 ) -> Result<(Vec<PhysicsRow>, Vec<PhysicsTruth>), SimError> {
     let cfg = &device.config;
     let centre = device.volume_centre_room();
@@ -913,8 +950,13 @@ pub fn simulate_rows(
         )?,
     };
     let duration_s = captures.last().map_or(0.0, |c| f64::from(c.t_ms) / 1000.0);
+    let start_s = earlier.map_or(0.0, |e| e.end_s + crate::sim::CONTINUATION_GAP_S);
+    let captures = crate::sim::trajectory::starting_at(captures, start_s)?;
 
     let mut session = PhysicsSession::new(device, seed, duration_s)?;
+    if let Some(e) = earlier {
+        session.continue_after(e, start_s);
+    }
     // The hand's whole path first: the tracker, whose clock may run apart
     // from the device's, sees the marker where it was at another capture's time.
     let poses: Vec<HandPose> = captures.iter().map(|c| session.hand_pose(c)).collect();
@@ -1104,6 +1146,21 @@ impl<'a> PhysicsSession<'a> {
             abnormal,
             occluded: false,
         })
+    }
+
+    /// This session continues `earlier` from `start_s`: the earlier
+    /// session's slip events (drawn again from its seed) come first, this
+    /// session's own move to its start.
+    fn continue_after(&mut self, earlier: EarlierSession, start_s: f64) {
+        let n = self.device.string_count();
+        let mut slips = slip_events(
+            &self.device.effects,
+            n,
+            earlier.end_s,
+            &mut stream(earlier.seed, 116),
+        );
+        slips.extend(self.slips.iter().map(|&(t, i, mm)| (t + start_s, i, mm)));
+        self.slips = slips;
     }
 
     /// One capture: the hand at `pose`, the commanded tensions, the

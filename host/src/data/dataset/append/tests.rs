@@ -9,6 +9,8 @@ fn sample(t_s: f64, x: f64) -> Sample {
         orientation: None,
         legacy: Some([0.1, 0.2, 0.3]),
         tension_n: Some([1.0; STRINGS]),
+        since_home_s: None,
+        home: None,
     }
 }
 
@@ -242,6 +244,8 @@ fn a_four_string_device_appends_its_own_columns_and_refuses_an_eight_string_file
         orientation: None,
         legacy: None,
         tension_n: Some([1.0, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0]),
+        since_home_s: None,
+        home: None,
     };
     opened.appender.append(&sample).unwrap();
     drop(opened);

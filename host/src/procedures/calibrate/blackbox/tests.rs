@@ -20,6 +20,8 @@ fn the_black_box_reads_the_tracker_at_the_meeting_point_the_loop_found() {
         orientation,
         legacy: Some([1.0, 2.0, 3.0]),
         tension_n: None,
+        since_home_s: None,
+        home: None,
     };
     let session = Session {
         strings: STRINGS,

@@ -99,6 +99,8 @@ fn a_tracker_spread_off_the_nominal_model_is_warned_or_refused() {
                 orientation: None,
                 legacy: None,
                 tension_n: None,
+                since_home_s: None,
+                home: None,
             })
             .collect();
         observations(&samples)

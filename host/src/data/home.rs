@@ -1,0 +1,161 @@
+//! Which home capture a later session's rows count from: the training
+//! session's (a slip found in training is still in them, a drift goes on)
+//! or a new one (the strings are counted from where they are, the slips are
+//! gone and the time since home starts again).
+//!
+//! A new home capture cannot be undone, so the rows that share the training
+//! session's home are the later session's first rows, up to the first row
+//! of a new home ([`LaterHome::first_new_home_row`]). The sessions say it,
+//! in this order of trust:
+//! 1. `home` on both sessions' rows: a row shares the training's home while
+//!    its id is the training's last row's.
+//! 2. `since_home_s` on both: the later session shares the home when its
+//!    first time since home is not before the training's last, until its
+//!    time since home steps back (a new capture).
+//! 3. `t_s` alone: sessions whose clocks continue one another (the later
+//!    session's first `t_s` not before the training's last) share a home; a
+//!    session whose `t_s` starts again before it follows a new one.
+
+use serde::{Deserialize, Serialize};
+
+use crate::data::dataset::{Sample, Session};
+
+/// What told which home a later session follows.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum HomeBasis {
+    /// The sessions' `home` columns.
+    HomeId,
+    /// The sessions' `since_home_s` columns.
+    SinceHome,
+    /// The sessions' `t_s` clocks.
+    Clock,
+    /// The training session has no rows to compare with.
+    Unknown,
+}
+
+/// Which home capture a later session's rows count from.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LaterHome {
+    /// Index (session row) of the later session's first row that follows a
+    /// new home capture; the session's length when every row shares the
+    /// training session's home, 0 when none does.
+    pub first_new_home_row: usize,
+    /// Rows in the later session.
+    pub rows: usize,
+    pub basis: HomeBasis,
+    /// Why, in a sentence the report prints.
+    pub reason: String,
+}
+
+impl LaterHome {
+    /// Every row of the later session shares the training session's home.
+    pub fn shares_home(&self) -> bool {
+        self.first_new_home_row == self.rows
+    }
+
+    /// Which home `later`'s rows follow, after `training`.
+    pub fn of(training: &Session, later: &Session) -> LaterHome {
+        let rows = later.samples.len();
+        let (Some(last), Some(first)) = (training.samples.last(), later.samples.first()) else {
+            return LaterHome {
+                first_new_home_row: 0,
+                rows,
+                basis: HomeBasis::Unknown,
+                reason: "a new home capture: the training session has no row to continue".into(),
+            };
+        };
+        let every = |s: &Session, has: fn(&Sample) -> bool| s.samples.iter().all(has);
+        let (k, basis, reason) =
+            if every(training, |s| s.home.is_some()) && every(later, |s| s.home.is_some()) {
+                by_home_id(last, later)
+            } else if every(training, |s| s.since_home_s.is_some())
+                && every(later, |s| s.since_home_s.is_some())
+            {
+                by_since_home(last, later)
+            } else {
+                by_clock(last, first, rows)
+            };
+        LaterHome {
+            first_new_home_row: k,
+            rows,
+            basis,
+            reason,
+        }
+    }
+}
+
+fn share_sentence(k: usize, rows: usize) -> String {
+    if k == rows {
+        "every row shares the training session's home capture (its slips and drifts go on)".into()
+    } else if k == 0 {
+        "every row follows a new home capture (the training session's slips are not in it)".into()
+    } else {
+        format!(
+            "rows before line {} share the training session's home capture, the {} rows from it \
+             on follow a new one",
+            k + 2,
+            rows - k
+        )
+    }
+}
+
+fn by_home_id(last: &Sample, later: &Session) -> (usize, HomeBasis, String) {
+    let home = last.home.unwrap_or_default();
+    let rows = later.samples.len();
+    let k = later
+        .samples
+        .iter()
+        .position(|s| s.home != Some(home))
+        .unwrap_or(rows);
+    let reason = format!(
+        "`home`: the training session ends under home capture {home}; {}",
+        share_sentence(k, rows)
+    );
+    (k, HomeBasis::HomeId, reason)
+}
+
+fn by_since_home(last: &Sample, later: &Session) -> (usize, HomeBasis, String) {
+    let end = last.since_home_s.unwrap_or_default();
+    let rows = later.samples.len();
+    let times: Vec<f64> = later
+        .samples
+        .iter()
+        .map(|s| s.since_home_s.unwrap_or_default())
+        .collect();
+    let k = if times[0] < end {
+        0
+    } else {
+        times
+            .windows(2)
+            .position(|w| w[1] < w[0])
+            .map_or(rows, |i| i + 1)
+    };
+    let reason = format!(
+        "`since_home_s`: the training session ends {end} s after its home capture and the test \
+         session starts {} s after its own; {}",
+        times[0],
+        share_sentence(k, rows)
+    );
+    (k, HomeBasis::SinceHome, reason)
+}
+
+fn by_clock(last: &Sample, first: &Sample, rows: usize) -> (usize, HomeBasis, String) {
+    let k = if first.t_s >= last.t_s { rows } else { 0 };
+    let how = if k == rows {
+        "continues the training session's clock"
+    } else {
+        "starts its clock again"
+    };
+    let reason = format!(
+        "`t_s` (no `home` or `since_home_s` columns): the test session starts at {} s, the \
+         training session ends at {} s, so the test session {how}; {}",
+        first.t_s,
+        last.t_s,
+        share_sentence(k, rows)
+    );
+    (k, HomeBasis::Clock, reason)
+}
+
+#[cfg(test)]
+mod tests;

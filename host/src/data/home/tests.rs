@@ -1,0 +1,76 @@
+use super::*;
+
+fn session(rows: &[(f64, Option<f64>, Option<u64>)]) -> Session {
+    Session {
+        samples: rows
+            .iter()
+            .map(|&(t_s, since_home_s, home)| Sample {
+                t_s,
+                counts: [0; spidar_core::STRINGS],
+                tracker: None,
+                orientation: None,
+                legacy: None,
+                tension_n: None,
+                since_home_s,
+                home,
+            })
+            .collect(),
+        ..Session::default()
+    }
+}
+
+#[test]
+fn a_clock_that_continues_shares_the_home_and_one_that_starts_again_does_not() {
+    let training = session(&[(0.0, None, None), (100.0, None, None)]);
+    let continuing = LaterHome::of(
+        &training,
+        &session(&[(100.0, None, None), (150.0, None, None)]),
+    );
+    assert!(continuing.shares_home());
+    assert_eq!(continuing.basis, HomeBasis::Clock);
+    assert!(
+        continuing.reason.contains("continues"),
+        "{}",
+        continuing.reason
+    );
+    let again = LaterHome::of(
+        &training,
+        &session(&[(0.5, None, None), (50.0, None, None)]),
+    );
+    assert_eq!(again.first_new_home_row, 0);
+    assert!(
+        again.reason.contains("starts its clock again"),
+        "{}",
+        again.reason
+    );
+}
+
+#[test]
+fn home_ids_are_trusted_over_clocks_and_a_new_id_ends_the_shared_rows() {
+    let training = session(&[(0.0, Some(0.0), Some(7)), (100.0, Some(100.0), Some(7))]);
+    // The clock starts again, but the id says the same home: then a new one.
+    let later = session(&[
+        (1.0, Some(101.0), Some(7)),
+        (2.0, Some(102.0), Some(7)),
+        (3.0, Some(0.5), Some(8)),
+    ]);
+    let home = LaterHome::of(&training, &later);
+    assert_eq!(home.basis, HomeBasis::HomeId);
+    assert_eq!(home.first_new_home_row, 2);
+    assert!(home.reason.contains("line 4"), "{}", home.reason);
+}
+
+#[test]
+fn time_since_home_tells_without_ids() {
+    let training = session(&[(0.0, Some(10.0), None), (100.0, Some(110.0), None)]);
+    let shared = session(&[(0.0, Some(120.0), None), (1.0, Some(121.0), None)]);
+    assert!(LaterHome::of(&training, &shared).shares_home());
+    let stepped = session(&[(0.0, Some(120.0), None), (1.0, Some(0.2), None)]);
+    let home = LaterHome::of(&training, &stepped);
+    assert_eq!(
+        (home.basis, home.first_new_home_row),
+        (HomeBasis::SinceHome, 1)
+    );
+    let new = session(&[(200.0, Some(3.0), None)]);
+    assert_eq!(LaterHome::of(&training, &new).first_new_home_row, 0);
+}
