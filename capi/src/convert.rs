@@ -272,6 +272,7 @@ mod tests {
         let state = State {
             time_us: 5_000,
             since_home_us: 4_000,
+            home_id: 1 << 32,
             corrected_mm: [65536, -32768, 1 << 20],
             rendered_force_n: [1.0, 0.0, 0.0],
             counts: [0; STRINGS],

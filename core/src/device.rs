@@ -118,6 +118,10 @@ pub struct DeviceConfig {
     pub device_id: [u8; 12],
     /// Control-loop period, µs (overrun threshold, `HelloAck`).
     pub loop_period_us: u32,
+    /// This boot's id, a number that differs from one boot to the next (the
+    /// RNG on hardware): the upper half of every home capture's id
+    /// ([`State::home_id`]).
+    pub boot_id: u32,
     /// Loop and safety parameters (`SetLimits` changes the safety part).
     pub control: ControlConfig,
 }
@@ -421,6 +425,9 @@ pub struct Device<'m, F: ModelFlash> {
     last_now_us: u64,
     /// Device time at which home was last declared (boot or `Home`), µs.
     home_us: u64,
+    /// Home captures declared since boot (the lower half of
+    /// [`State::home_id`]).
+    homes_declared: u32,
     estop: bool,
     last_out: LoopOutput,
     stream: Option<Stream>,
@@ -488,6 +495,7 @@ impl<'m, F: ModelFlash> Device<'m, F> {
             last_raw: raw_counts,
             last_now_us: now_us,
             home_us: now_us,
+            homes_declared: 0,
             estop: false,
             last_out: idle_output(false, model_invalid),
             stream: None,
@@ -592,6 +600,18 @@ impl<'m, F: ModelFlash> Device<'m, F> {
         self.active.is_some() || self.nominal.is_some()
     }
 
+    /// A home capture at `now_us`: the time since home and the home's id
+    /// start again.
+    fn declare_home(&mut self, now_us: u64) {
+        self.home_us = now_us;
+        self.homes_declared = self.homes_declared.wrapping_add(1);
+    }
+
+    /// The id of the home capture the counts are from ([`State::home_id`]).
+    pub fn home_id(&self) -> u64 {
+        u64::from(self.config.boot_id) << 32 | u64::from(self.homes_declared)
+    }
+
     /// Creates (and homes) the controller when a geometry is there and no
     /// controller is; drops it when the geometry is gone.
     fn ensure_controller(&mut self) {
@@ -610,7 +630,7 @@ impl<'m, F: ModelFlash> Device<'m, F> {
         };
         let now_ms = ms(self.last_now_us);
         if let Ok(mut c) = Controller::new(self.config.control, cal, self.last_raw, now_ms) {
-            self.home_us = self.last_now_us;
+            self.declare_home(self.last_now_us);
             if let Some(t) = self.last_heartbeat_ms {
                 c.safety().heartbeat(t);
             }
@@ -905,8 +925,8 @@ impl<'m, F: ModelFlash> Device<'m, F> {
             return Err(DeviceError::BadState(BadState::NoGeometry));
         };
         c.home(cal, self.last_raw, ms(now_us));
-        self.home_us = now_us;
         c.set_target(Target::Idle);
+        self.declare_home(now_us);
         self.target = Target::Idle;
         self.push_event(Event::Homed);
         Ok(Response::Ack)
@@ -1136,6 +1156,7 @@ impl<'m, F: ModelFlash> Device<'m, F> {
         let state = State {
             time_us: self.last_now_us,
             since_home_us: self.last_now_us.saturating_sub(self.home_us),
+            home_id: self.home_id(),
             counts: out.counts,
             position_mm: out.position_mm,
             corrected_mm: out.corrected_q16,

@@ -46,5 +46,7 @@ pub fn config() -> Config {
     rcc.voltage_scale = VoltageScale::Scale0;
     rcc.supply_config = SupplyConfig::LDO;
     rcc.mux.usbsel = mux::Usbsel::HSI48;
+    // The RNG (the boot's id) runs on the HSI48 too.
+    rcc.mux.rngsel = mux::Rngsel::HSI48;
     config
 }

@@ -112,6 +112,17 @@ const fn parse_u16(s: &str) -> u16 {
     v
 }
 
+embassy_stm32::bind_interrupts!(struct RngIrqs {
+    RNG => embassy_stm32::rng::InterruptHandler<embassy_stm32::peripherals::RNG>;
+});
+
+/// This boot's id ([`DeviceConfig::boot_id`]): a random number from the
+/// RNG (HSI48, `clocks`), so that home captures of two boots never share an
+/// id. The RNG is dropped (clock off) once read.
+fn boot_id(rng: embassy_stm32::Peri<'static, embassy_stm32::peripherals::RNG>) -> u32 {
+    embassy_stm32::rng::Rng::new(rng, RngIrqs).next_u32()
+}
+
 /// Executor of the control loop, preempting the thread-mode tasks.
 static EXECUTOR_HIGH: InterruptExecutor = InterruptExecutor::new();
 
@@ -201,6 +212,7 @@ async fn main(spawner: Spawner) {
         firmware_version: FIRMWARE_VERSION,
         device_id: embassy_stm32::uid::uid(),
         loop_period_us: control::PERIOD_US,
+        boot_id: boot_id(p.RNG),
         control: ControlConfig::default(),
     };
     let (model_ram, spare_ram) = take_model_ram();

@@ -41,6 +41,7 @@ use spidar::data::observe::Observation;
 use spidar::data::stats::{position_error, ErrorStats};
 use spidar::model::diagnose::{family_name, variable_name};
 use spidar::model::identify::inputs_at;
+use spidar::model::validate::{later_session_errors, model_errors};
 use spidar::procedures::calibrate::align::{repaired_at, tracked_interval_s, SessionTiming};
 use spidar::procedures::calibrate::report::{Stage, StageKind};
 use spidar::procedures::calibrate::{calibrate, CalibrateConfig, Calibrated, NamedSession};
@@ -86,17 +87,29 @@ fn physics_device(seed: u64, effect: Option<&str>) -> PhysicsDevice {
     PhysicsDevice::new(&config, seed).expect("independent device")
 }
 
-/// A run of `device` and the truths of its training and test sessions.
-fn physics_run(device: &PhysicsDevice, seed: u64) -> (Run, Vec<PhysicsTruth>, Vec<PhysicsTruth>) {
+/// A run of `device` and the truths of its training and test sessions;
+/// with `continuing`, the test session goes on under the training
+/// session's home capture (its clock, slips and drift go on), else it
+/// follows a new home capture.
+fn physics_run(
+    device: &PhysicsDevice,
+    seed: u64,
+    continuing: bool,
+) -> (Run, Vec<PhysicsTruth>, Vec<PhysicsTruth>) {
     let (train, truths) =
         physics::simulate_session(device, SessionKind::Lattice, seed + 1).expect("lattice");
-    let (test, test_truths) = physics::simulate_session(
-        device,
-        SessionKind::Random {
-            points: TEST_POINTS,
-        },
-        seed + 2,
-    )
+    let kind = SessionKind::Random {
+        points: TEST_POINTS,
+    };
+    let (test, test_truths) = if continuing {
+        let earlier = physics::EarlierSession {
+            seed: seed + 1,
+            end_s: train.samples.last().map_or(0.0, |s| s.t_s),
+        };
+        physics::simulate_session_after(device, kind, seed + 2, earlier)
+    } else {
+        physics::simulate_session(device, kind, seed + 2)
+    }
     .expect("test");
     (
         Run {
@@ -155,6 +168,30 @@ fn test_session_slips(test_truths: &[PhysicsTruth], c: &Calibrated) -> Option<St
         after.mean_mm,
         after.n
     ))
+}
+
+/// The identified model's (with its effects) held-out mean on a test
+/// session of the training's home, judged with the training session's
+/// slips (as the calibration now does) and without them (as if the test
+/// followed a new home capture, the rule before sessions knew their home).
+fn home_judged(c: &Calibrated) -> String {
+    let id = &c.loop_result.identification;
+    let with_slips = later_session_errors(id, &c.test_rows).mean_mm;
+    let without = model_errors(&id.for_a_new_session(), &c.test_rows).mean_mm;
+    format!(
+        "test session of the training's home ({}): identified with effects {with_slips:.3} mm \
+         judged with the training's slips, {without:.3} mm judged as after a new home capture",
+        c.report
+            .inputs
+            .test
+            .home
+            .as_ref()
+            .map_or("?", |h| if h.shares_home() {
+                "shared"
+            } else {
+                "not shared"
+            })
+    )
 }
 
 fn run_calibration(run: &Run, config: &CalibrateConfig) -> Calibrated {
@@ -409,7 +446,7 @@ fn ablation(quick: bool) {
         let mut c = PhysicsConfig::default();
         switch(&mut c);
         let device = PhysicsDevice::new(&c, 1).expect("independent device");
-        let (run, _, _) = physics_run(&device, 1);
+        let (run, _, _) = physics_run(&device, 1, false);
         let cal = run_calibration(&run, &config);
         let stages = &cal.report.stages;
         let added: Vec<&str> = stages
@@ -518,16 +555,19 @@ fn physics_cases(
         Some("frame-flex"),
         Some("marker-offset"),
         Some("slip"),
+        // The same slips, the test session continuing the training's home.
+        Some("slip-continuing"),
         Some("heavy-string"),
     ] {
         if !options.wanted("independent", effect) {
             continue;
         }
         let name = effect.unwrap_or("clean");
+        let continuing = effect == Some("slip-continuing");
         let mut rows = Vec::new();
         for seed in 1..=options.seeds {
-            let device = physics_device(seed, effect);
-            let (run, truths, test_truths) = physics_run(&device, seed);
+            let device = physics_device(seed, effect.map(|e| e.trim_end_matches("-continuing")));
+            let (run, truths, test_truths) = physics_run(&device, seed, continuing);
             let c = run_calibration(&run, config);
             let steps = slip_steps(&truths);
             if !steps.is_empty() {
@@ -538,6 +578,12 @@ fn physics_cases(
             }
             if let Some(slips) = test_session_slips(&test_truths, &c) {
                 notes.push(format!("independent {name} seed {seed}: {slips}"));
+            }
+            if continuing {
+                notes.push(format!(
+                    "independent {name} seed {seed}: {}",
+                    home_judged(&c)
+                ));
             }
             rows.push(print_row("independent", name, seed, &c));
             let n = not_added(&c);

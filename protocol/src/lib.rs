@@ -143,6 +143,9 @@ const _: () = {
 };
 
 /// Version of this protocol. Bumped whenever a message's layout changes.
+/// Version 7: `State` names the home capture its counts are from
+/// (`home_id`), so that sessions recorded under one home (a slip found in
+/// one is still in the other) are told from sessions after a new one.
 /// Version 6: `State` says whether the motors are on (`motors_on`): after a
 /// fault they hold pre-tension with the loop disarmed, and the device
 /// refuses model changes until `Disarm`, which a host reading `armed` alone
@@ -153,7 +156,7 @@ const _: () = {
 /// sample time. Version 3: `NominalGeometry` carries the string layout
 /// (`active_strings`, `planar`); `DeviceError::NotForceClosed`;
 /// `BlobRejection::TooFewStrings` and `InactiveString`.
-pub const PROTOCOL_VERSION: u16 = 6;
+pub const PROTOCOL_VERSION: u16 = 7;
 
 /// Number of strings (and motors, and encoders) of the device.
 pub const STRINGS: usize = 8;

@@ -528,6 +528,13 @@ pub struct State {
     /// last `Request::Home`): the time the string law's time-dependent terms
     /// (drift, slip) read. Protocol v3.
     pub since_home_us: u64,
+    /// The home capture the counts are from: the boot's id (upper 32 bits,
+    /// a new random number at each boot) and the number of home captures
+    /// declared since that boot (lower 32). Two states with the same id
+    /// count from the same home; a session that records it (`spidar
+    /// collect`'s `home` column) tells the calibration which of its
+    /// sessions share a home. Protocol v7.
+    pub home_id: u64,
     /// Encoder counts since home, per string (extended to 32 bits).
     pub counts: [i32; STRINGS],
     /// End-effector position from forward kinematics, device frame, millimetres.

@@ -177,7 +177,7 @@ fn device_error() -> impl Strategy<Value = DeviceError> {
 
 fn state(f: fn() -> F) -> impl Strategy<Value = State> {
     (
-        (any::<u64>(), any::<u64>()),
+        (any::<u64>(), any::<u64>(), any::<u64>()),
         uniform8(any::<i32>()),
         uniform3(f()),
         uniform3(any::<i32>()),
@@ -191,9 +191,10 @@ fn state(f: fn() -> F) -> impl Strategy<Value = State> {
         ),
     )
         .prop_map(
-            |((t, h), c, p, q, (tn, rf), (fl, sl, ex), (lu, lm, (ar, mo), mi))| State {
+            |((t, h, id), c, p, q, (tn, rf), (fl, sl, ex), (lu, lm, (ar, mo), mi))| State {
                 time_us: t,
                 since_home_us: h,
+                home_id: id,
                 counts: c,
                 position_mm: p,
                 corrected_mm: q,

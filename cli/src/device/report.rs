@@ -187,6 +187,7 @@ mod tests {
         State {
             time_us: 0,
             since_home_us: 0,
+            home_id: 0,
             counts: [0; 8],
             position_mm: [0.0; 3],
             corrected_mm: [0; 3],

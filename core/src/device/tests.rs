@@ -61,6 +61,7 @@ fn config() -> DeviceConfig {
         firmware_version: [0, 1, 0],
         device_id: [7; 12],
         loop_period_us: 100,
+        boot_id: 0x5eed,
         control: ControlConfig::default(),
     }
 }
@@ -790,7 +791,14 @@ fn home_rezeroes_the_strings_where_the_operator_holds_the_end_effector() {
         Response::Ack
     );
     let homed_at_us = b.now_us;
+    // The first geometry was this boot's first home capture.
+    assert_eq!(b.dev.home_id(), 0x5eed << 32 | 1);
     assert_eq!(b.request(&Request::Home), Response::Ack);
+    assert_eq!(
+        b.dev.home_id(),
+        0x5eed << 32 | 2,
+        "a new home capture, a new id"
+    );
     assert_eq!(b.dev.home_declared_us(), Some(homed_at_us));
     let mut out = b.tick_at(raw_at([0.0; 3]));
     for _ in 0..5 {
@@ -801,6 +809,7 @@ fn home_rezeroes_the_strings_where_the_operator_holds_the_end_effector() {
     assert_eq!(last.time_us, b.now_us);
     assert_eq!(last.since_home_us, b.now_us - homed_at_us);
     assert_eq!(last.since_home_us, 6000);
+    assert_eq!(last.home_id, b.dev.home_id());
     assert_eq!(out.counts, [0; STRINGS]);
     assert!(out.armed);
     assert_eq!(out.force_n, [0.0; 3]);

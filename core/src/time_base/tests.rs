@@ -368,6 +368,7 @@ fn upload_through_the_device(clock: &mut dyn Clock) -> Vec<(u64, u64)> {
         firmware_version: [0, 1, 0],
         device_id: [7; 12],
         loop_period_us: 100,
+        boot_id: 1,
         control: crate::control::ControlConfig::default(),
     };
     let raw = [1000u16; crate::STRINGS];

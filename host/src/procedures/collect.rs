@@ -975,7 +975,7 @@ impl Collection<'_, '_> {
             legacy: Some(s.position_mm.map(f64::from)),
             tension_n: Some(s.tensions_n.map(f64::from)),
             since_home_s: Some(s.since_home_us as f64 / 1e6).filter(|_| home_fits),
-            home: None.filter(|_| home_fits),
+            home: Some(s.home_id).filter(|_| home_fits),
         }
     }
 }

@@ -133,6 +133,7 @@ impl Default for VirtualDeviceConfig {
                 firmware_version: [0, 1, 0],
                 device_id: *b"VIRTUAL-0001",
                 loop_period_us: 1000,
+                boot_id: 1,
                 control: ControlConfig::default(),
             },
             blob_capacity: SLOT_LEN - RECORD_LEN,
@@ -530,7 +531,13 @@ fn run_boot(
     boots: u32,
 ) -> (VirtualFlash, Exit) {
     let shared = flash.shared.clone();
-    let dev = match Device::new(config.device, flash, ram, spare, plant.raw_home, 0) {
+    // Each boot has its own id, as the firmware's random one: the configured
+    // id plus the boots before it.
+    let device_config = DeviceConfig {
+        boot_id: config.device.boot_id.wrapping_add(boots.saturating_sub(1)),
+        ..config.device
+    };
+    let dev = match Device::new(device_config, flash, ram, spare, plant.raw_home, 0) {
         Ok(d) => d,
         // Invalid safety limits in the configuration: the device cannot
         // boot.

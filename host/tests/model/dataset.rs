@@ -863,3 +863,69 @@ fn writing_rejects_an_orientation_reading_would_reject() {
         }
     }
 }
+
+/// `since_home_s` and `home`: read, written back, and checked as the
+/// device's clock and home captures allow.
+#[test]
+fn time_since_home_and_home_ids_read_back_and_are_checked() {
+    let header = "t_s,enc0,enc1,enc2,enc3,enc4,enc5,enc6,enc7,ots_x,ots_y,ots_z,since_home_s,home";
+    let row =
+        |t: &str, since: &str, home: &str| format!("{t},0,0,0,0,0,0,0,0,1,2,3,{since},{home}");
+    let text = [
+        header.to_string(),
+        row("10", "5", "7"),
+        row("11", "6", "7"),
+        // A new home capture: the time since home starts again.
+        row("12", "0.5", "8"),
+        row("13", "", ""),
+    ]
+    .join("\n");
+    let s = read(&text).unwrap();
+    let got: Vec<(Option<f64>, Option<u64>)> =
+        s.samples.iter().map(|r| (r.since_home_s, r.home)).collect();
+    assert_eq!(
+        got,
+        [
+            (Some(5.0), Some(7)),
+            (Some(6.0), Some(7)),
+            (Some(0.5), Some(8)),
+            (None, None)
+        ]
+    );
+    let mut written = Vec::new();
+    s.write_to(&mut written, Path::new("mem/out.csv")).unwrap();
+    let written = String::from_utf8(written).unwrap();
+    assert!(written.starts_with(header), "{written}");
+    assert_eq!(read(&written).unwrap(), s);
+
+    let back = [header.to_string(), row("10", "5", "7"), row("11", "4", "7")].join("\n");
+    assert!(matches!(
+        value_error(&back, 3, "since_home_s"),
+        ValueProblem::SinceHomeDecreasing {
+            previous_line: 2,
+            home: 7,
+            ..
+        }
+    ));
+    let negative = [header.to_string(), row("10", "-1", "7")].join("\n");
+    assert!(matches!(
+        value_error(&negative, 2, "since_home_s"),
+        ValueProblem::NegativeSinceHome(_)
+    ));
+    let not_an_id = [header.to_string(), row("10", "1", "7.5")].join("\n");
+    assert!(matches!(
+        value_error(&not_an_id, 2, "home"),
+        ValueProblem::NotAHomeId(_)
+    ));
+    // The writer refuses what the reader would.
+    let mut bad =
+        read(&[header.to_string(), row("10", "5", "7"), row("11", "6", "7")].join("\n")).unwrap();
+    bad.samples[1].since_home_s = Some(1.0);
+    let e = bad
+        .write_to(Vec::new(), Path::new("mem/bad.csv"))
+        .unwrap_err();
+    assert!(
+        e.to_string().contains("line 3, column `since_home_s`"),
+        "{e}"
+    );
+}

@@ -110,6 +110,7 @@ pub fn state(max: bool) -> State {
         State {
             time_us: u64::MAX,
             since_home_us: u64::MAX,
+            home_id: u64::MAX,
             counts: [i32::MIN; STRINGS],
             position_mm: [f32::MAX; 3],
             corrected_mm: [i32::MIN; 3],
@@ -130,6 +131,7 @@ pub fn state(max: bool) -> State {
         State {
             time_us: 3_600_000_000,
             since_home_us: 3_540_000_000,
+            home_id: (0x5eed_0001 << 32) | 3,
             counts: [12_000, -8_500, 3_100, -15_000, 22_000, 650, -4_200, 9_900],
             position_mm: [102.5, -48.25, 77.0],
             corrected_mm: [

@@ -522,6 +522,7 @@ fn boot(flash: StaticFlash, ram: &'static mut [u8], spare: &'static mut [u8]) ->
         firmware_version: [0, 1, 0],
         device_id: [7; 12],
         loop_period_us: 100,
+        boot_id: 1,
         control: ControlConfig::default(),
     };
     let Ok(dev) = Device::new(config, flash, ram, spare, [0; STRINGS], 0) else {

@@ -196,6 +196,20 @@ fn the_operator_fills_a_small_lattice_cell_by_cell_and_the_rows_are_true() {
         .samples
         .iter()
         .all(|s| s.orientation == Some([1.0, 0.0, 0.0, 0.0])));
+    // Every row names its home capture (one: the device homed once) and
+    // the time since it, which goes on with the device's clock.
+    let home = session.samples[0].home;
+    assert!(home.is_some());
+    for w in session.samples.windows(2) {
+        assert_eq!(w[1].home, home);
+        let (a, b) = (w[0].since_home_s.unwrap(), w[1].since_home_s.unwrap());
+        assert!(
+            ((b - a) - (w[1].t_s - w[0].t_s)).abs() < 1e-6,
+            "since_home_s {a} -> {b} against t_s {} -> {}",
+            w[0].t_s,
+            w[1].t_s
+        );
+    }
 
     // Tracker columns: the true marker plus the tracker's noise.
     let truths: Vec<&HandSample> = session
@@ -441,6 +455,10 @@ fn a_file_started_without_orientation_columns_is_resumed_with_position_only_rows
     let session = Session::load(&path).unwrap();
     assert_eq!(session.samples.len(), 3);
     assert!(session.samples.iter().all(|s| s.orientation.is_none()));
+    assert!(session
+        .samples
+        .iter()
+        .all(|s| s.home.is_none() && s.since_home_s.is_none()));
     let said = summary(&report);
     assert!(
         said.contains("old-header.csv: started without orientation columns"),
@@ -616,11 +634,12 @@ fn a_file_of_another_layout_or_volume_is_refused_naming_it() {
     // A row outside this lattice: collected over another volume.
     let elsewhere = temp_csv("elsewhere.csv");
     let header = SessionAppender::header_line();
-    // No orientation (empty `ots_q*`), then `dev_*` and `tension0..7`.
+    // No orientation (empty `ots_q*`), then `dev_*`, `tension0..7`,
+    // `since_home_s` and `home`.
     let far = format!(
         "0.5,{}9000,9000,9000,,,,,{}\n",
         "0,".repeat(8),
-        ["1"; 11].join(",")
+        ["1"; 13].join(",")
     );
     std::fs::write(&elsewhere, format!("{header}\n{far}")).unwrap();
     let cfg_here = config(&rig);

@@ -35,7 +35,8 @@ pub struct Sample {
     /// Commanded tensions (N), if recorded.
     pub tension_n: Option<[f64; STRINGS]>,
     /// Seconds since the device's home capture (`since_home_s`), if
-    /// recorded: what the string law's time terms read (else `t_s`).
+    /// recorded (the column may leave a row's empty): what the string
+    /// law's time terms read (else `t_s`).
     pub since_home_s: Option<f64>,
     /// Id of the home capture the row follows (`home`), if recorded.
     pub home: Option<u64>,
@@ -195,7 +196,11 @@ impl Session {
                 Some(ix) => row.group(ix, &tension_group)?,
                 None => None,
             };
-            let since_home_s = layout.since_home.map(|k| row.float(k)).transpose()?;
+            let since_home_s = layout
+                .since_home
+                .map(|k| row.optional_float(k))
+                .transpose()?
+                .flatten();
             let home = layout.home.map(|k| row.home_id(k)).transpose()?.flatten();
             let sample = Sample {
                 t_s,

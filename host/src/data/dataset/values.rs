@@ -64,6 +64,14 @@ impl RowReader<'_> {
         }
     }
 
+    /// A number, or `None` when empty.
+    pub(super) fn optional_float(&self, index: usize) -> Result<Option<f64>, DatasetError> {
+        if self.text(index).is_empty() {
+            return Ok(None);
+        }
+        self.float(index).map(Some)
+    }
+
     /// A home capture's id: a whole number, `u64`; `None` when empty (a
     /// row whose home is not known).
     pub(super) fn home_id(&self, index: usize) -> Result<Option<u64>, DatasetError> {

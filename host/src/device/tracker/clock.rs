@@ -403,6 +403,7 @@ mod tests {
         State {
             time_us: t_us,
             since_home_us: t_us,
+            home_id: 1,
             counts: [c; 8],
             position_mm: [c as f32; 3],
             corrected_mm: [c; 3],
