@@ -28,7 +28,10 @@
 //! with one part of its physics switched off at a time (the identified and
 //! final held-out error tell what each part costs the model).
 //!
-//! `cargo run --release -p spidar --example physics_bench -- [SEEDS] [--quick] [--no-analysis] [--ablation] [--only=SIM:EFFECT,..]`
+//! `cargo run --release -p spidar --example physics_bench -- [SEEDS] [--quick] [--no-analysis] [--ablation] [--no-forward] [--only=SIM:EFFECT,..]`
+//! (`--no-forward`: drifts judged without forward chaining, to measure it;
+//! an effect `NAME-continuing`, e.g. `slip-continuing`: the test session
+//! continues the training's home capture instead of following a new one)
 //! (`--only=independent:slip,model:clean`: just those cases;
 //! `--only=independent:wall-robot`: the wall robot alone)
 //! (default 3 seeds).
@@ -477,6 +480,9 @@ struct Options {
     /// `--only=independent:slip,model:clean`: just these cases.
     only: Option<Vec<String>>,
     ablation: bool,
+    /// `--no-forward`: drifts judged on the blocked folds alone (to
+    /// measure what forward chaining does).
+    no_forward: bool,
 }
 
 impl Options {
@@ -487,6 +493,7 @@ impl Options {
             analysis: true,
             only: None,
             ablation: false,
+            no_forward: false,
         };
         for a in std::env::args().skip(1) {
             if let Some(list) = a.strip_prefix("--only=") {
@@ -497,9 +504,13 @@ impl Options {
                 "--quick" => o.quick = true,
                 "--no-analysis" => o.analysis = false,
                 "--ablation" => o.ablation = true,
-                s => o.seeds = s.parse().expect(
-                    "usage: physics_bench [SEEDS] [--quick] [--no-analysis] [--only=SIM:EFFECT,..]",
-                ),
+                "--no-forward" => o.no_forward = true,
+                s => {
+                    o.seeds = s.parse().expect(
+                        "usage: physics_bench [SEEDS] [--quick] [--no-analysis] [--no-forward] \
+                     [--only=SIM:EFFECT,..]",
+                    )
+                }
             }
         }
         o
@@ -552,6 +563,9 @@ fn physics_cases(
     for effect in [
         None,
         Some("drift-all"),
+        // The test session continuing the training's home: the drift goes
+        // on into it.
+        Some("drift-all-continuing"),
         Some("frame-flex"),
         Some("marker-offset"),
         Some("slip"),
@@ -563,7 +577,7 @@ fn physics_cases(
             continue;
         }
         let name = effect.unwrap_or("clean");
-        let continuing = effect == Some("slip-continuing");
+        let continuing = effect.is_some_and(|e| e.ends_with("-continuing"));
         let mut rows = Vec::new();
         for seed in 1..=options.seeds {
             let device = physics_device(seed, effect.map(|e| e.trim_end_matches("-continuing")));
@@ -975,6 +989,7 @@ fn main() {
         CalibrateConfig::full()
     };
     config.quiet = true;
+    config.loop_config.time_terms_forward = !options.no_forward;
 
     println!(
         "held-out (test session, {TEST_POINTS} points) eq. 7 error, mm: mean / p95 / max; config {}",

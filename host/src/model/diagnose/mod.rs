@@ -38,7 +38,8 @@ use crate::model::identify::{identify, Identification, IdentifyError, Start, Str
 use crate::model::layers::{self, StringLayers, TableLevel};
 use crate::model::validate::{
     held_out_error_list, judge, judge_step, judgeable_folds, refuse_a_fold_repair,
-    refuse_on_fold_rise, stability, validate, validate_fits, IN_SAMPLE_SHARE_OF_GAIN,
+    refuse_on_fold_rise, stability, validate, validate_fits, validate_forward,
+    IN_SAMPLE_SHARE_OF_GAIN,
 };
 
 use candidates::{anchors_beyond_tolerance, beyond_rivals, candidates, chi2_threshold, Candidate};
@@ -478,6 +479,9 @@ impl LoopState<'_> {
         let from = retabled.as_ref().unwrap_or(&self.id);
         let (after, fits) = validate_fits(train, self.nominal, from, &candidate)?;
         let mut check = self.judge_change(change, train, &after, &fits);
+        if check.accepted && adds_a_drift(change) && self.config.time_terms_forward {
+            check = self.judge_forward(check, train, from, &candidate)?;
+        }
         // A term on one string that gains held out must also gain on every
         // row: the refit it would be is made now, and kept if accepted.
         let mut refit_now = None;
@@ -564,6 +568,48 @@ impl LoopState<'_> {
         self.validation = validation;
         self.structure = structure;
         self.id = refit;
+    }
+
+    /// `check` (an accepted drift's) refused when the drift, fitted on the
+    /// earlier rows, predicts the later ones worse than the model without
+    /// it ([`validate_forward`]): a term that reads time is used later than
+    /// it was fitted, so it must predict forward, whatever the blocked folds
+    /// (which also fit the later half and predict the earlier) say.
+    fn judge_forward(
+        &self,
+        check: Check,
+        train: &[Observation],
+        from: &Identification,
+        candidate: &Structure,
+    ) -> Result<Check, IdentifyError> {
+        let before = validate_forward(train, self.nominal, &self.id, &self.structure)?;
+        let after = validate_forward(train, self.nominal, from, candidate)?;
+        let (Some(before), Some(after)) = (before, after) else {
+            return Ok(check);
+        };
+        if after.mean_mm <= before.mean_mm {
+            return Ok(Check {
+                reason: format!(
+                    "{}; forward (fitted on the earlier rows, the later predicted) {:.3} -> {:.3} mm",
+                    check.reason, before.mean_mm, after.mean_mm
+                ),
+                ..check
+            });
+        }
+        let figures = check
+            .reason
+            .strip_prefix("added: ")
+            .unwrap_or(&check.reason)
+            .to_string();
+        Ok(Check {
+            accepted: false,
+            reason: format!(
+                "not added: fitted on the earlier rows it predicts the later ones worse, {:.3} -> \
+                 {:.3} mm (forward chaining), though the blocked folds took it: {figures}",
+                before.mean_mm, after.mean_mm
+            ),
+            ..check
+        })
     }
 
     /// With a step (a slip) proposed on a model with layer tables: the

@@ -185,6 +185,12 @@ pub struct LoopConfig {
     /// Reweigh the rows robustly ([`Structure::robust`]).
     #[serde(default = "yes")]
     pub robust: bool,
+    /// A drift must also predict forward: fitted on the earlier rows, it
+    /// may not predict the later ones worse than the model without it
+    /// ([`crate::model::validate::validate_forward`]). Off only to measure
+    /// what the rule does (`physics_bench`).
+    #[serde(default = "yes")]
+    pub time_terms_forward: bool,
 }
 
 impl LoopConfig {
@@ -241,6 +247,7 @@ impl Default for LoopConfig {
             anchor_sd_mm: None,
             home_sd_mm: None,
             robust: true,
+            time_terms_forward: true,
         }
     }
 }

@@ -110,6 +110,37 @@ pub(crate) fn judged_folds(tracked: &[&Observation]) -> (Folds, Vec<Fold>) {
     (kind, all)
 }
 
+/// The forward-chaining folds of a session of at least [`MIN_BLOCKED_ROWS`]
+/// tracked rows (none for a smaller one): in time order, fit the earlier
+/// half and hold out the third quarter, fit the earlier three quarters and
+/// hold out the last. Every fit is earlier than what it predicts, as every
+/// use of a calibration is later than its training: what a term that reads
+/// time (a drift) is judged on besides the blocked folds.
+pub(crate) fn forward_folds(tracked: &[&Observation]) -> Vec<Fold> {
+    let n = tracked.len();
+    if n < MIN_BLOCKED_ROWS {
+        return Vec::new();
+    }
+    let mut by_time: Vec<usize> = (0..n).collect();
+    by_time.sort_by(|&a, &b| tracked[a].t_s.total_cmp(&tracked[b].t_s).then(a.cmp(&b)));
+    let sorted = |rows: &[usize]| {
+        let mut rows = rows.to_vec();
+        rows.sort_unstable();
+        rows
+    };
+    let (half, three_quarters) = (n / 2, 3 * n / 4);
+    vec![
+        (
+            sorted(&by_time[..half]),
+            sorted(&by_time[half..three_quarters]),
+        ),
+        (
+            sorted(&by_time[..three_quarters]),
+            sorted(&by_time[three_quarters..]),
+        ),
+    ]
+}
+
 /// Fewest fit rows a fold needs on each side of a step in time (a slip) to
 /// fit the step's size.
 pub const MIN_STEP_SIDE_ROWS: usize = 20;

@@ -201,6 +201,34 @@ pub(crate) fn validate_by(
     ))
 }
 
+/// Held-out errors of `structure` on the forward-chaining folds of `train`
+/// ([`forward_folds`](super::folds::forward_folds): each fit, warm from
+/// `from`, earlier than the rows it predicts), pooled; `None` for a session
+/// too small for them.
+pub fn validate_forward(
+    train: &[Observation],
+    nominal: &Frame<f64>,
+    from: &Identification,
+    structure: &Structure,
+) -> Result<Option<ErrorStats>, IdentifyError> {
+    use rayon::prelude::*;
+    let tracked: Vec<&Observation> = train.iter().filter(|o| o.tracker.is_some()).collect();
+    let folds = super::folds::forward_folds(&tracked);
+    if folds.is_empty() {
+        return Ok(None);
+    }
+    let start = Start::from_identification(from);
+    let pick = |rows: &[usize]| -> Vec<&Observation> { rows.iter().map(|&k| tracked[k]).collect() };
+    let errors: Vec<Vec<f64>> = folds
+        .par_iter()
+        .map(|(rows, held)| {
+            let id = identify(&pick(rows), nominal, &start, structure)?;
+            Ok(held_out_error_list(&id, &pick(held)))
+        })
+        .collect::<Result<_, IdentifyError>>()?;
+    Ok(Some(ErrorStats::of(&errors.concat())))
+}
+
 /// The models of the folds [`validate_by`] judges by (the blocked ones when
 /// the session has them, else the interleaved), each made by `fit` from its
 /// fold's fitting rows, with the rows it holds out: for choices made after

@@ -33,3 +33,38 @@ fn a_step_is_judged_on_the_interleaved_folds_and_the_folds_that_straddle_it() {
     };
     assert_eq!(small.for_step(&[false]).held_errors, v.held_errors);
 }
+
+/// Forward chaining: every fit is earlier than the rows it predicts, in the
+/// session's time (not its row order), and a small session has none.
+#[test]
+fn forward_folds_fit_the_past_and_predict_the_future() {
+    use super::super::folds::{forward_folds, MIN_BLOCKED_ROWS};
+    let rows: Vec<Observation> = (0..400)
+        .map(|k| Observation {
+            row: k,
+            // Rows not in time order: the folds follow t_s.
+            t_s: ((k * 7919) % 400) as f64,
+            inputs: Default::default(),
+            tension_n: [0.0; spidar_core::STRINGS],
+            tracker: Some([0.0; 3]),
+            tracker_rotation: None,
+            legacy: None,
+            new_home: false,
+        })
+        .collect();
+    let tracked: Vec<&Observation> = rows.iter().collect();
+    let folds = forward_folds(&tracked);
+    assert_eq!(folds.len(), 2);
+    let t = |k: &usize| tracked[*k].t_s;
+    for (fit, held) in &folds {
+        let latest_fit = fit.iter().map(t).fold(f64::MIN, f64::max);
+        let earliest_held = held.iter().map(t).fold(f64::MAX, f64::min);
+        assert!(
+            latest_fit < earliest_held,
+            "{latest_fit} >= {earliest_held}"
+        );
+    }
+    assert_eq!((folds[0].0.len(), folds[0].1.len()), (200, 100));
+    assert_eq!((folds[1].0.len(), folds[1].1.len()), (300, 100));
+    assert!(forward_folds(&tracked[..MIN_BLOCKED_ROWS - 1]).is_empty());
+}
