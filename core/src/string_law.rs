@@ -34,6 +34,7 @@
 //! | sine table | `i32` | Q1.30, 512 segments per quarter turn, linear interpolation |
 //! | inclination of a string (sag) | `u16` | Q0.16 `cos^2`, 65535 level |
 //! | layer table knots | `i64` | Q47.16 mm (`|v| <= MAX_LAYER_MM`), knots `2^step_log2` counts apart; added to the payout |
+//! | count rate (latency) | `i32` | counts per second; latency Q0.31 s, payout rate Q31.32 mm/s ([`latency`](self::latency)) |
 //!
 //! Every product is `i64 x i32 -> 96 bits`, rounded (half up) and shifted back
 //! to `i64`, saturating; every sum saturates. No input or compiled parameter
@@ -50,6 +51,10 @@ use crate::model::{
 };
 use crate::real::Real;
 use crate::STRINGS;
+
+mod latency;
+
+pub use latency::{payout_rate_mm_s, MAX_LATENCY_S};
 
 /// The winding polynomial is evaluated in `x = counts / 2^COUNTS_SHIFT`, so
 /// `|x| <= 1` for `|counts| <= 262144`.
@@ -270,6 +275,9 @@ pub struct EffectContext {
     /// `cos^2` of the string's inclination at home, from the frame,
     /// quantized as the device's ([`cos2_inclination_q16`]) / 65536.
     pub home_cos2_inclination: f64,
+    /// The payout's rate of change (mm/s) at the string's count rate,
+    /// [`payout_rate_mm_s`]: what a latency term scales with.
+    pub payout_rate_mm_s: f64,
 }
 
 impl EffectContext {
@@ -309,6 +317,7 @@ impl EffectContext {
                 frame.anchors.get(string)?,
                 &frame.home,
             )) / 65536.0,
+            payout_rate_mm_s: payout_rate_mm_s(law, counts, *inputs.count_rate_cps.get(string)?),
         })
     }
 }
@@ -348,6 +357,11 @@ impl Effect {
         matches!(self, Effect::Sag { .. })
     }
 
+    /// Whether the term reads the strings' count rate (a latency).
+    pub fn reads_speed(&self) -> bool {
+        matches!(self, Effect::Latency { .. })
+    }
+
     /// Contribution of this term to the string length (mm), f64 reference.
     pub fn contribution_f64(&self, ctx: &EffectContext) -> f64 {
         match *self {
@@ -385,6 +399,7 @@ impl Effect {
                 mm_at_1m_1n,
                 home_mm_at_1m,
             } => sag_mm(mm_at_1m_1n, home_mm_at_1m, ctx),
+            Effect::Latency { latency_s } => latency_s * ctx.payout_rate_mm_s,
         }
     }
 
@@ -404,6 +419,7 @@ impl Effect {
     /// | Sag | `mm_at_1m_1n, home_mm_at_1m` | `[-cos^2(a) (l / 1 m)^3 / (T / 1 N)^2, cos^2(a_home) (home_length / 1 m)^3]` (0 where a part is clamped) |
     /// | FrameFlex | `mm_per_newton, home_mm` | `[sum_j T_j, -1]` |
     /// | Stretch | `per_newton, mm_per_newton, home_tension_n` | `[T (home_length + payout) - T_home home_length, T - T_home, -(per_newton home_length + mm_per_newton)]` |
+    /// | Latency | `latency_s` | `[payout rate]` |
     pub fn gradient_f64(&self, ctx: &EffectContext) -> heapless::Vec<f64, 3> {
         match *self {
             Effect::Offset { .. } => values(&[1.0]),
@@ -448,6 +464,7 @@ impl Effect {
                     },
                 ])
             }
+            Effect::Latency { .. } => values(&[ctx.payout_rate_mm_s]),
         }
     }
 
@@ -475,6 +492,7 @@ impl Effect {
                 mm_at_1m_1n,
                 home_mm_at_1m,
             } => values(&[mm_at_1m_1n, home_mm_at_1m]),
+            Effect::Latency { latency_s } => values(&[latency_s]),
         }
     }
 
@@ -515,6 +533,7 @@ impl Effect {
                 mm_at_1m_1n: p[0],
                 home_mm_at_1m: p[1],
             },
+            Effect::Latency { .. } => Effect::Latency { latency_s: p[0] },
         })
     }
 }
@@ -1133,6 +1152,9 @@ pub enum CompiledEffect {
         per_mn_q48: i64,
         home_q32: i64,
     },
+    /// `+ latency_q31 * payout_rate` (Q0.31 s times the context's
+    /// [`FixedContext::payout_rate_q32`], Q31.32 mm/s; module `latency`).
+    Latency { string: u8, latency_q31: i32 },
 }
 
 /// What a compiled effect of one string depends on, in device units.
@@ -1156,6 +1178,10 @@ pub struct FixedContext {
     pub home_sag_q30: i64,
     /// Sum of the active strings' commanded tensions, mN ([`total_tension_mn`]).
     pub total_tension_mn: u32,
+    /// The payout's rate of change, Q31.32 mm/s
+    /// ([`CompiledStringLaw::payout_rate_q32`] at the string's count rate);
+    /// 0 when no term reads it.
+    pub payout_rate_q32: i64,
 }
 
 /// Compiles one effect term; `laws` gives the counts per revolution of its
@@ -1213,6 +1239,7 @@ pub fn compile_effect(
             mm_per_ms_q48: to_fixed(s, "mm_per_s", mm_per_s / 1000.0, 48, "Q15.48 mm per ms")?,
         },
         Effect::Slip { at_s, mm } => compile_slip(s, string, at_s, mm)?,
+        Effect::Latency { latency_s } => latency::compile_latency(s, string, latency_s)?,
     })
 }
 
@@ -1406,7 +1433,8 @@ impl CompiledEffect {
             | CompiledEffect::Drift { string, .. }
             | CompiledEffect::Slip { string, .. }
             | CompiledEffect::Sag { string, .. }
-            | CompiledEffect::FrameFlex { string, .. } => string,
+            | CompiledEffect::FrameFlex { string, .. }
+            | CompiledEffect::Latency { string, .. } => string,
         }
     }
 
@@ -1450,6 +1478,18 @@ impl CompiledEffect {
                 }
                 Ok(())
             }
+            CompiledEffect::Latency { latency_q31, .. }
+                if !(-latency::MAX_LATENCY_Q31..=latency::MAX_LATENCY_Q31)
+                    .contains(&latency_q31) =>
+            {
+                Err(StringLawCompileError::OutOfRange {
+                    string: s,
+                    field: "latency_s",
+                    value: f64::from(latency_q31) / 2_147_483_648.0,
+                    min: -MAX_LATENCY_S,
+                    max: MAX_LATENCY_S,
+                })
+            }
             _ => Ok(()),
         }
     }
@@ -1457,6 +1497,11 @@ impl CompiledEffect {
     /// Whether the term reads the string's inclination ([`Effect::reads_inclination`]).
     pub fn reads_inclination(&self) -> bool {
         matches!(self, CompiledEffect::Sag { .. })
+    }
+
+    /// Whether the term reads the strings' count rate ([`Effect::reads_speed`]).
+    pub fn reads_speed(&self) -> bool {
+        matches!(self, CompiledEffect::Latency { .. })
     }
 
     /// Contribution of this term (Q31.32 mm), integer only, saturating.
@@ -1556,6 +1601,7 @@ impl CompiledEffect {
                 let flex = (per * i64::from(ctx.total_tension_mn) + (1 << 15)) >> 16;
                 flex.saturating_sub(home_q32)
             }
+            CompiledEffect::Latency { latency_q31, .. } => latency::latency_q32(latency_q31, ctx),
         }
     }
 }
@@ -1671,6 +1717,8 @@ fn lengths_of<const ALL: bool>(
         acc[i] = q16_to_q32(laws[i].home_length_q16).saturating_add(payout[i]);
     }
     let total_tension_mn = total_tension_mn(if ALL { u8::MAX } else { active }, &inputs.tension_mn);
+    // The payout's rate only for a model with a term that reads it.
+    let speed = effects.iter().any(CompiledEffect::reads_speed);
     // Each string's context built once, not once per term that reads it
     // (a shared term reads all eight).
     let contexts: [FixedContext; STRINGS] = core::array::from_fn(|s| FixedContext {
@@ -1683,6 +1731,11 @@ fn lengths_of<const ALL: bool>(
         cos2_inclination_q16: inputs.cos2_inclination_q16[s],
         home_sag_q30: laws[s].home_sag_q30,
         total_tension_mn,
+        payout_rate_q32: if speed {
+            laws[s].payout_rate_q32(inputs.counts[s], inputs.count_rate_cps[s])
+        } else {
+            0
+        },
     });
     for e in effects {
         let s = usize::from(e.string());

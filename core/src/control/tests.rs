@@ -57,6 +57,7 @@ fn tracks_a_trajectory_and_renders_a_force_when_armed() {
             &LoopInput {
                 raw_counts: raw_counts_at(&cal, p),
                 now_ms: k,
+                now_us: k * 1000,
                 estop: false,
             },
         );
@@ -118,6 +119,7 @@ fn uncalibrated_lengths_raise_no_consistency_fault() {
                 &LoopInput {
                     raw_counts: raw_at([-400.0 * t, -400.0 * t, -400.0 * t]),
                     now_ms: k,
+                    now_us: k * 1000,
                     estop: false,
                 },
             ));
@@ -175,6 +177,7 @@ fn four_strings_track_and_render_with_inactive_channels_at_zero() {
             &LoopInput {
                 raw_counts: raw_at(p),
                 now_ms: k,
+                now_us: k * 1000,
                 estop: false,
             },
         );
@@ -202,6 +205,7 @@ fn four_strings_track_and_render_with_inactive_channels_at_zero() {
         &LoopInput {
             raw_counts: raw_at([200.0, -150.0, 600.0]),
             now_ms: 201,
+            now_us: 201 * 1000,
             estop: false,
         },
     );
@@ -226,6 +230,7 @@ fn heartbeat_loss_drops_to_pretension() {
             &LoopInput {
                 raw_counts: raw,
                 now_ms: ms,
+                now_us: ms * 1000,
                 estop: false,
             },
         )

@@ -25,6 +25,7 @@ fn lattice_evidence(error: impl Fn([f64; 3], f64) -> f64) -> Evidence<'static> {
         time_s: 0.0,
         cos2_inclination: 1.0,
         home_cos2_inclination: 1.0,
+        payout_rate_mm_s: 0.0,
     };
     let mut t = 0.0;
     let mut rows = Vec::new();

@@ -1,0 +1,101 @@
+//! The latency family ([`Effect::Latency`]): a string whose encoder is read
+//! `tau` late is short of its length by what it moved meanwhile,
+//! `L(t) = L(t - tau) + tau dL/dt`. The term is
+//!
+//! ```text
+//! + tau * d payout/d counts (counts) * count_rate
+//! ```
+//!
+//! with the winding polynomial's slope (the layer table's is left out: its
+//! knots change the slope by a few parts per thousand, see
+//! `docs/fixed-point.md`, "Latency") and the string's count rate
+//! ([`StringInputs::count_rate_cps`](crate::model::StringInputs::count_rate_cps)).
+//!
+//! # Fixed point
+//!
+//! | quantity | type | format |
+//! |---|---|---|
+//! | count rate | `i32` | counts per second |
+//! | latency `tau` | `i32` | Q0.31 s (`|tau| <=` [`MAX_LATENCY_S`]) |
+//! | polynomial slope | `i64` | Q31.32 mm per unit of `x = counts / 2^18`, by Horner on the law's coefficients (`k c_k x^(k-1)`), saturating |
+//! | payout rate | `i64` | Q31.32 mm/s: `slope * rate / 2^18`, rounded, saturating |
+//! | contribution | `i64` | Q31.32 mm: `rate_q32 * tau_q31 / 2^31`, rounded, saturating |
+//!
+//! Every step rounds half up at 2^-32 mm (per x or per s): the compiled term
+//! is the f64 term to about 1e-9 mm (`fixed_point_error_budget`).
+
+use core::f64::consts::TAU;
+
+use super::{
+    finite, mul_i32_shr, polynomial_slope_f64, pulley_angle, CompiledEffect, CompiledStringLaw,
+    FixedContext, StringLawCompileError, COUNTS_SHIFT,
+};
+use crate::model::{StringLaw, WINDING_ORDER};
+
+/// Largest `|latency_s|` of a latency term (s): an encoder a quarter of a
+/// second late is no encoder; a fit beyond it stands in for something else.
+pub const MAX_LATENCY_S: f64 = 0.25;
+
+/// The rate at which string `law`'s payout changes (mm/s) at `counts`
+/// moving at `count_rate_cps`: the winding polynomial's slope per count
+/// times the count rate (f64 reference of
+/// [`CompiledStringLaw::payout_rate_q32`]).
+pub fn payout_rate_mm_s(law: &StringLaw, counts: i32, count_rate_cps: i32) -> f64 {
+    if law.counts_per_rev == 0 {
+        return 0.0;
+    }
+    let per_count = TAU / f64::from(law.counts_per_rev);
+    polynomial_slope_f64(law, pulley_angle(law, counts)) * per_count * f64::from(count_rate_cps)
+}
+
+impl CompiledStringLaw {
+    /// The payout's rate of change (Q31.32 mm/s) at `counts` moving at
+    /// `count_rate_cps`: the winding polynomial's slope in `x` (Horner on
+    /// `k c_k`, Q31.32 mm per x) times the rate over `2^COUNTS_SHIFT`,
+    /// rounded and saturating.
+    #[inline]
+    pub fn payout_rate_q32(&self, counts: i32, count_rate_cps: i32) -> i64 {
+        if count_rate_cps == 0 {
+            return 0;
+        }
+        let mut slope: i64 = 0;
+        for k in (0..WINDING_ORDER).rev() {
+            slope = mul_i32_shr(slope, counts, COUNTS_SHIFT);
+            slope = slope.saturating_add(self.winding_q32[k].saturating_mul(k as i64 + 1));
+        }
+        mul_i32_shr(slope, count_rate_cps, COUNTS_SHIFT)
+    }
+}
+
+/// A latency term: `latency_s` within `+-`[`MAX_LATENCY_S`], Q0.31 s.
+pub(super) fn compile_latency(
+    s: usize,
+    string: u8,
+    latency_s: f64,
+) -> Result<CompiledEffect, StringLawCompileError> {
+    let tau = finite(s, "latency_s", latency_s)?;
+    if tau.abs() > MAX_LATENCY_S {
+        return Err(StringLawCompileError::OutOfRange {
+            string: s,
+            field: "latency_s",
+            value: tau,
+            min: -MAX_LATENCY_S,
+            max: MAX_LATENCY_S,
+        });
+    }
+    Ok(CompiledEffect::Latency {
+        string,
+        latency_q31: libm::round(tau * libm::exp2(31.0)) as i32,
+    })
+}
+
+/// Largest `|latency_q31|` a blob may carry ([`MAX_LATENCY_S`] in Q0.31).
+pub(super) const MAX_LATENCY_Q31: i32 = (MAX_LATENCY_S * 2_147_483_648.0) as i32;
+
+/// [`CompiledEffect::Latency`]'s contribution (Q31.32 mm): the context's
+/// payout rate times the latency. Always inlined, as
+/// [`CompiledEffect::contribution_q32`].
+#[inline(always)]
+pub(super) fn latency_q32(latency_q31: i32, ctx: &FixedContext) -> i64 {
+    mul_i32_shr(ctx.payout_rate_q32, latency_q31, 31)
+}
