@@ -5,6 +5,7 @@
 
 mod dataset;
 mod identify;
+mod latency;
 mod learn;
 mod loop_closing;
 mod loop_rows;

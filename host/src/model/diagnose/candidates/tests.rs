@@ -63,7 +63,7 @@ fn lattice_evidence(error: impl Fn([f64; 3], f64) -> f64) -> Evidence<'static> {
 fn a_drift_must_explain_what_the_position_does_not() {
     let config = LoopConfig::default();
     let drift_on = |ev: &Evidence| {
-        let term = string_terms(ev.rows_of_string(0), 0, None)
+        let term = string_terms(ev.rows_of_string(0), 0, None, false)
             .into_iter()
             .find(|t| t.family == Family::Drift)
             .unwrap();
