@@ -71,7 +71,7 @@ fn main() -> ! {
 
     // Pipeline stages.
     let inputs: [spidar_core::model::StringInputs; N] = core::array::from_fn(|_| string_inputs(&mut rng));
-    measure("string_law::string_lengths (8 strings, 9 effects + 3 shared)", None, N as u32, |i| {
+    measure("string_law::string_lengths (8 strings, 10 effects + 4 shared)", None, N as u32, |i| {
         spidar_core::string_law::string_lengths(StringLayout::ALL, laws, effects, &inputs[at(i)])
     });
     measure("kinematics::inverse_kinematics f32", None, N as u32, |i| inverse_kinematics(&anchors, positions[at(i)]));
@@ -164,7 +164,7 @@ fn main() -> ! {
         let mut fk_ok = 0;
         measure(name, Some(55_000), N as u32, |i| {
             ctl.safety().heartbeat(i / 10);
-            let out = ctl.step(cal, &LoopInput { raw_counts: raw[at(i)], now_ms: i / 10, estop: false });
+            let out = ctl.step(cal, &LoopInput { raw_counts: raw[at(i)], now_ms: i / 10, now_us: i * 100, estop: false });
             fk_ok += (out.fk_status == spidar_core::kinematics::FkStatus::Ok) as u32;
             out.tensions_n
         });
@@ -236,7 +236,7 @@ fn main() -> ! {
     for (names, cal) in [
         (
             [
-                "N=4 4-line: string_law::string_lengths (4 strings, 9 effects + 3 shared)",
+                "N=4 4-line: string_law::string_lengths (4 strings, 10 effects + 4 shared)",
                 "N=4 4-line: kinematics::forward_kinematics f32 (warm)",
                 "N=4 4-line: tension::distribute f32 (|F_i| <= 3 N)",
                 "N=4 4-line: control::Controller::step (NN 3-20-3)",
@@ -245,7 +245,7 @@ fn main() -> ! {
         ),
         (
             [
-                "N=4 planar: string_law::string_lengths (4 strings, 9 effects + 3 shared)",
+                "N=4 planar: string_law::string_lengths (4 strings, 10 effects + 4 shared)",
                 "N=4 planar: kinematics::forward_kinematics f32 (warm)",
                 "N=4 planar: tension::distribute f32 (|F_i| <= 3 N)",
                 "N=4 planar: control::Controller::step (NN 3-20-3)",
@@ -280,7 +280,7 @@ fn main() -> ! {
         let mut exact = 0;
         measure(names[3], Some(55_000), N as u32, |i| {
             ctl.safety().heartbeat(i / 10);
-            let out = ctl.step(cal, &LoopInput { raw_counts: raw[at(i)], now_ms: i / 10, estop: false });
+            let out = ctl.step(cal, &LoopInput { raw_counts: raw[at(i)], now_ms: i / 10, now_us: i * 100, estop: false });
             fk_ok += (out.fk_status == spidar_core::kinematics::FkStatus::Ok) as u32;
             exact += (out.tension_status == spidar_core::tension::TensionStatus::Exact) as u32;
             out.tensions_n
@@ -450,7 +450,7 @@ fn controller_path(cal: &spidar_core::blob::CompiledCalibration) -> [[u16; STRIN
         for _ in 0..8 {
             let mut trial = ctl.clone();
             trial.safety().heartbeat(now);
-            let out = trial.step(cal, &LoopInput { raw_counts: counts.map(|c| c as u16), now_ms: now, estop: false });
+            let out = trial.step(cal, &LoopInput { raw_counts: counts.map(|c| c as u16), now_ms: now, now_us: k as u32 * 100, estop: false });
             for s in 0..STRINGS {
                 // ~0.0184 mm per count (12 mm radius, 4096 counts per turn).
                 counts[s] = out.counts[s] + ((want[s] - out.string_lengths_mm[s]) / 0.0184) as i32;
@@ -458,7 +458,7 @@ fn controller_path(cal: &spidar_core::blob::CompiledCalibration) -> [[u16; STRIN
         }
         raw[k] = counts.map(|c| c as u16);
         ctl.safety().heartbeat(now);
-        ctl.step(cal, &LoopInput { raw_counts: raw[k], now_ms: now, estop: false });
+        ctl.step(cal, &LoopInput { raw_counts: raw[k], now_ms: now, now_us: k as u32 * 100, estop: false });
     }
     raw
 }
