@@ -604,7 +604,8 @@ fn control_steps(cal: &spidar_core::blob::CompiledCalibration, rng: &mut Rng, ou
         if rng.i32_in(0, 3) != 0 {
             ctl.safety().heartbeat(now);
         }
-        let o = ctl.step(cal, &LoopInput { raw_counts: raw, now_ms: now, now_us: now * 1000, estop: rng.i32_in(0, 15) == 0 });
+        let o = ctl
+            .step(cal, &LoopInput { raw_counts: raw, now_ms: now, now_us: now * 1000, estop: rng.i32_in(0, 15) == 0 });
         out.f32s(&o.string_lengths_mm);
         out.f32s(&o.position_mm);
         out.i32s(&o.corrected_q16);

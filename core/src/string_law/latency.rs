@@ -17,7 +17,7 @@
 //! |---|---|---|
 //! | count rate | `i32` | counts per second |
 //! | latency `tau` | `i32` | Q0.31 s (`|tau| <=` [`MAX_LATENCY_S`]) |
-//! | polynomial slope | `i64` | Q31.32 mm per unit of `x = counts / 2^18`, by Horner on the law's coefficients (`k c_k x^(k-1)`), saturating |
+//! | polynomial slope | `i64` | Q31.32 mm per unit of `x = counts / 2^18`, by Horner on the law's coefficients (`k c_k x^(k-1)`, from the highest that is not 0), saturating |
 //! | payout rate | `i64` | Q31.32 mm/s: `slope * rate / 2^18`, rounded, saturating |
 //! | contribution | `i64` | Q31.32 mm: `rate_q32 * tau_q31 / 2^31`, rounded, saturating |
 //!
@@ -27,8 +27,8 @@
 use core::f64::consts::TAU;
 
 use super::{
-    finite, mul_i32_shr, polynomial_slope_f64, pulley_angle, CompiledEffect, CompiledStringLaw,
-    FixedContext, StringLawCompileError, COUNTS_SHIFT,
+    finite, mul_i32_shr, polynomial_slope_f64, pulley_angle, shl_sat, CompiledEffect,
+    CompiledStringLaw, FixedContext, StringLawCompileError, COUNTS_SHIFT,
 };
 use crate::model::{StringLaw, WINDING_ORDER};
 
@@ -53,17 +53,34 @@ impl CompiledStringLaw {
     /// `count_rate_cps`: the winding polynomial's slope in `x` (Horner on
     /// `k c_k`, Q31.32 mm per x) times the rate over `2^COUNTS_SHIFT`,
     /// rounded and saturating.
+    /// Horner from the highest coefficient that is not 0 (an identified
+    /// law is quadratic: one product instead of three), `k c_k` by shifts.
     #[inline]
     pub fn payout_rate_q32(&self, counts: i32, count_rate_cps: i32) -> i64 {
         if count_rate_cps == 0 {
             return 0;
         }
-        let mut slope: i64 = 0;
-        for k in (0..WINDING_ORDER).rev() {
-            slope = mul_i32_shr(slope, counts, COUNTS_SHIFT);
-            slope = slope.saturating_add(self.winding_q32[k].saturating_mul(k as i64 + 1));
+        let w = &self.winding_q32;
+        let mut k = WINDING_ORDER;
+        while k > 1 && w[k - 1] == 0 {
+            k -= 1;
+        }
+        let mut slope = times(w[k - 1], k);
+        for j in (1..k).rev() {
+            slope = mul_i32_shr(slope, counts, COUNTS_SHIFT).saturating_add(times(w[j - 1], j));
         }
         mul_i32_shr(slope, count_rate_cps, COUNTS_SHIFT)
+    }
+}
+
+/// `k c` (`k` in `1..=4`), saturating, by shifts.
+#[inline(always)]
+fn times(c: i64, k: usize) -> i64 {
+    match k {
+        1 => c,
+        2 => shl_sat(c, 1),
+        3 => c.saturating_add(shl_sat(c, 1)),
+        _ => shl_sat(c, 2),
     }
 }
 

@@ -164,7 +164,8 @@ fn main() -> ! {
         let mut fk_ok = 0;
         measure(name, Some(55_000), N as u32, |i| {
             ctl.safety().heartbeat(i / 10);
-            let out = ctl.step(cal, &LoopInput { raw_counts: raw[at(i)], now_ms: i / 10, now_us: i * 100, estop: false });
+            let out =
+                ctl.step(cal, &LoopInput { raw_counts: raw[at(i)], now_ms: i / 10, now_us: i * 100, estop: false });
             fk_ok += (out.fk_status == spidar_core::kinematics::FkStatus::Ok) as u32;
             out.tensions_n
         });
@@ -280,7 +281,8 @@ fn main() -> ! {
         let mut exact = 0;
         measure(names[3], Some(55_000), N as u32, |i| {
             ctl.safety().heartbeat(i / 10);
-            let out = ctl.step(cal, &LoopInput { raw_counts: raw[at(i)], now_ms: i / 10, now_us: i * 100, estop: false });
+            let out =
+                ctl.step(cal, &LoopInput { raw_counts: raw[at(i)], now_ms: i / 10, now_us: i * 100, estop: false });
             fk_ok += (out.fk_status == spidar_core::kinematics::FkStatus::Ok) as u32;
             exact += (out.tension_status == spidar_core::tension::TensionStatus::Exact) as u32;
             out.tensions_n
@@ -447,14 +449,32 @@ fn controller_path(cal: &spidar_core::blob::CompiledCalibration) -> [[u16; STRIN
         let want =
             inverse_kinematics(&cal.head.frame.anchors, [home[0] + 0.1 * t, home[1] - 0.05 * t, home[2] + 0.03 * t]);
         let now = k as u32 / 10;
-        for _ in 0..8 {
+        // Secant steps: a latency term makes a string's length move with
+        // its counts through the count rate too (several times the payout's
+        // own ~0.0184 mm per count early in the rate's window).
+        let mut previous: Option<([i32; STRINGS], [f32; STRINGS])> = None;
+        for _ in 0..12 {
             let mut trial = ctl.clone();
             trial.safety().heartbeat(now);
-            let out = trial.step(cal, &LoopInput { raw_counts: counts.map(|c| c as u16), now_ms: now, now_us: k as u32 * 100, estop: false });
+            let out = trial.step(
+                cal,
+                &LoopInput { raw_counts: counts.map(|c| c as u16), now_ms: now, now_us: k as u32 * 100, estop: false },
+            );
+            let err: [f32; STRINGS] = core::array::from_fn(|s| want[s] - out.string_lengths_mm[s]);
+            let here = out.counts;
             for s in 0..STRINGS {
                 // ~0.0184 mm per count (12 mm radius, 4096 counts per turn).
-                counts[s] = out.counts[s] + ((want[s] - out.string_lengths_mm[s]) / 0.0184) as i32;
+                let mut per_count = 0.0184;
+                if let Some((pc, pe)) = previous {
+                    let (dc, de) = ((here[s] - pc[s]) as f32, pe[s] - err[s]);
+                    if dc != 0.0 && de / dc > 0.001 {
+                        per_count = de / dc;
+                    }
+                }
+                let q = err[s] / per_count;
+                counts[s] = here[s] + (if q >= 0.0 { q + 0.5 } else { q - 0.5 }) as i32;
             }
+            previous = Some((here, err));
         }
         raw[k] = counts.map(|c| c as u16);
         ctl.safety().heartbeat(now);
