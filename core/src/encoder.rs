@@ -198,8 +198,8 @@ impl CountRate {
         let scale = i64::from(4_096_000_000u32 / dt);
         let old = &self.counts[oldest];
         core::array::from_fn(|i| {
-            // |moved| <= 2^30: |moved scale| < 2^62.
-            let moved = (i64::from(counts[i]) - i64::from(old[i])).clamp(-(1 << 30), 1 << 30);
+            // |moved| <= 2^31 and scale < 2^32: |moved scale| < 2^63.
+            let moved = i64::from(counts[i].saturating_sub(old[i]));
             ((moved * scale + (1 << 11)) >> 12).clamp(i64::from(i32::MIN), i64::from(i32::MAX))
                 as i32
         })

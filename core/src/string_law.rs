@@ -34,7 +34,7 @@
 //! | sine table | `i32` | Q1.30, 512 segments per quarter turn, linear interpolation |
 //! | inclination of a string (sag) | `u16` | Q0.16 `cos^2`, 65535 level |
 //! | layer table knots | `i64` | Q47.16 mm (`|v| <= MAX_LAYER_MM`), knots `2^step_log2` counts apart; added to the payout |
-//! | count rate (latency) | `i32` | counts per second; latency Q0.31 s, payout rate Q31.32 mm/s ([`latency`](self::latency)) |
+//! | count rate (latency) | `i32` | counts per second; latency Q0.31 s, slope Q2.30 mm per count, payout rate Q17.14 mm/s ([`latency`](self::latency)) |
 //!
 //! Every product is `i64 x i32 -> 96 bits`, rounded (half up) and shifted back
 //! to `i64`, saturating; every sum saturates. No input or compiled parameter
@@ -1153,7 +1153,7 @@ pub enum CompiledEffect {
         home_q32: i64,
     },
     /// `+ latency_q31 * payout_rate` (Q0.31 s times the context's
-    /// [`FixedContext::payout_rate_q32`], Q31.32 mm/s; module `latency`).
+    /// [`FixedContext::payout_rate_q14`], Q17.14 mm/s; module `latency`).
     Latency { string: u8, latency_q31: i32 },
 }
 
@@ -1178,10 +1178,10 @@ pub struct FixedContext {
     pub home_sag_q30: i64,
     /// Sum of the active strings' commanded tensions, mN ([`total_tension_mn`]).
     pub total_tension_mn: u32,
-    /// The payout's rate of change, Q31.32 mm/s
-    /// ([`CompiledStringLaw::payout_rate_q32`] at the string's count rate);
-    /// 0 when no term reads it.
-    pub payout_rate_q32: i64,
+    /// The payout's rate of change, Q17.14 mm/s
+    /// ([`CompiledStringLaw::payout_rate_q14`] at the string's count rate;
+    /// 0 at a rate of 0).
+    pub payout_rate_q14: i32,
 }
 
 /// Compiles one effect term; `laws` gives the counts per revolution of its
@@ -1717,8 +1717,6 @@ fn lengths_of<const ALL: bool>(
         acc[i] = q16_to_q32(laws[i].home_length_q16).saturating_add(payout[i]);
     }
     let total_tension_mn = total_tension_mn(if ALL { u8::MAX } else { active }, &inputs.tension_mn);
-    // The payout's rate only for a model with a term that reads it.
-    let speed = effects.iter().any(CompiledEffect::reads_speed);
     // Each string's context built once, not once per term that reads it
     // (a shared term reads all eight).
     let contexts: [FixedContext; STRINGS] = core::array::from_fn(|s| FixedContext {
@@ -1731,11 +1729,9 @@ fn lengths_of<const ALL: bool>(
         cos2_inclination_q16: inputs.cos2_inclination_q16[s],
         home_sag_q30: laws[s].home_sag_q30,
         total_tension_mn,
-        payout_rate_q32: if speed {
-            laws[s].payout_rate_q32(inputs.counts[s], inputs.count_rate_cps[s])
-        } else {
-            0
-        },
+        // 0 at once where the string's count rate is 0: the device's loop
+        // gives a rate only to a model with a term that reads it.
+        payout_rate_q14: laws[s].payout_rate_q14(inputs.counts[s], inputs.count_rate_cps[s]),
     });
     for e in effects {
         let s = usize::from(e.string());

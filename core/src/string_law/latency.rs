@@ -17,12 +17,17 @@
 //! |---|---|---|
 //! | count rate | `i32` | counts per second |
 //! | latency `tau` | `i32` | Q0.31 s (`|tau| <=` [`MAX_LATENCY_S`]) |
-//! | polynomial slope | `i64` | Q31.32 mm per unit of `x = counts / 2^18`, by Horner on the law's coefficients (`k c_k x^(k-1)`, from the highest that is not 0), saturating |
-//! | payout rate | `i64` | Q31.32 mm/s: `slope * rate / 2^18`, rounded, saturating |
-//! | contribution | `i64` | Q31.32 mm: `rate_q32 * tau_q31 / 2^31`, rounded, saturating |
+//! | polynomial slope in `x = counts / 2^18` | `i64` | Q31.32 mm per unit of `x`, by Horner on the law's coefficients (`k c_k x^(k-1)`, from the highest that is not 0), saturating |
+//! | slope per count | `i32` | Q2.30 mm per count: the slope over 2^18, rounded, saturated (a spool paying out 2 mm a count is none) |
+//! | payout rate | `i32` | Q17.14 mm/s: slope per count times the rate (one 32 x 32 -> 64 bit product) over 2^16, rounded, saturated at `+-131 m/s` |
+//! | contribution | `i64` | Q31.32 mm: `rate_q14 * tau_q31 / 2^13`, one 32 x 32 -> 64 bit product, rounded |
 //!
-//! Every step rounds half up at 2^-32 mm (per x or per s): the compiled term
-//! is the f64 term to about 1e-9 mm (`fixed_point_error_budget`).
+//! The slope per count is rounded at 2^-31 mm (1e-7 of a 12 mm spool's
+//! 0.018 mm), the rate at 2^-15 mm/s (8e-6 mm times a quarter of a second):
+//! the compiled term is the f64 term to a few 1e-6 mm
+//! (`fixed_point_error_budget`). Two products of 32-bit values a string
+//! and one a term: a model with a latency term shared by every string costs
+//! the tick about 1,000 instructions (`docs/benchmarks.md`).
 
 use core::f64::consts::TAU;
 
@@ -39,7 +44,7 @@ pub const MAX_LATENCY_S: f64 = 0.25;
 /// The rate at which string `law`'s payout changes (mm/s) at `counts`
 /// moving at `count_rate_cps`: the winding polynomial's slope per count
 /// times the count rate (f64 reference of
-/// [`CompiledStringLaw::payout_rate_q32`]).
+/// [`CompiledStringLaw::payout_rate_q14`]).
 pub fn payout_rate_mm_s(law: &StringLaw, counts: i32, count_rate_cps: i32) -> f64 {
     if law.counts_per_rev == 0 {
         return 0.0;
@@ -49,14 +54,14 @@ pub fn payout_rate_mm_s(law: &StringLaw, counts: i32, count_rate_cps: i32) -> f6
 }
 
 impl CompiledStringLaw {
-    /// The payout's rate of change (Q31.32 mm/s) at `counts` moving at
+    /// The payout's rate of change (Q17.14 mm/s) at `counts` moving at
     /// `count_rate_cps`: the winding polynomial's slope in `x` (Horner on
-    /// `k c_k`, Q31.32 mm per x) times the rate over `2^COUNTS_SHIFT`,
-    /// rounded and saturating.
-    /// Horner from the highest coefficient that is not 0 (an identified
-    /// law is quadratic: one product instead of three), `k c_k` by shifts.
+    /// `k c_k`, Q31.32 mm per x, from the highest coefficient that is not 0:
+    /// an identified law is quadratic, one product instead of three; `k c_k`
+    /// by shifts), per count in Q2.30 (rounded, saturated), times the rate,
+    /// rounded to Q17.14 and saturated.
     #[inline]
-    pub fn payout_rate_q32(&self, counts: i32, count_rate_cps: i32) -> i64 {
+    pub fn payout_rate_q14(&self, counts: i32, count_rate_cps: i32) -> i32 {
         if count_rate_cps == 0 {
             return 0;
         }
@@ -69,7 +74,11 @@ impl CompiledStringLaw {
         for j in (1..k).rev() {
             slope = mul_i32_shr(slope, counts, COUNTS_SHIFT).saturating_add(times(w[j - 1], j));
         }
-        mul_i32_shr(slope, count_rate_cps, COUNTS_SHIFT)
+        // Q31.32 per x to Q2.30 per count: 2 + COUNTS_SHIFT bits.
+        let per_count = ((slope >> (COUNTS_SHIFT + 1)) + 1) >> 1;
+        let per_count = per_count.clamp(i64::from(i32::MIN), i64::from(i32::MAX));
+        let rate_q30 = per_count * i64::from(count_rate_cps);
+        ((rate_q30 + (1 << 15)) >> 16).clamp(i64::from(i32::MIN), i64::from(i32::MAX)) as i32
     }
 }
 
@@ -114,5 +123,5 @@ pub(super) const MAX_LATENCY_Q31: i32 = (MAX_LATENCY_S * 2_147_483_648.0) as i32
 /// [`CompiledEffect::contribution_q32`].
 #[inline(always)]
 pub(super) fn latency_q32(latency_q31: i32, ctx: &FixedContext) -> i64 {
-    mul_i32_shr(ctx.payout_rate_q32, latency_q31, 31)
+    (i64::from(ctx.payout_rate_q14) * i64::from(latency_q31) + (1 << 12)) >> 13
 }

@@ -1008,7 +1008,7 @@ fn a_frame_flex_reads_the_total_tension_of_the_active_strings() {
         cos2_inclination_q16: 0,
         home_sag_q30: 0,
         total_tension_mn: 8 * u32::from(u16::MAX),
-        payout_rate_q32: 0,
+        payout_rate_q14: 0,
     };
     assert_eq!(worst.contribution_q32(&ctx), i64::MAX);
 }
