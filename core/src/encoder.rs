@@ -138,6 +138,11 @@ pub const RATE_SLOTS: usize = 8;
 /// Least device time between two samples a [`CountRate`] keeps, µs.
 pub const RATE_SLOT_US: u32 = 400;
 
+/// Shortest window a [`CountRate`] gives a rate over, µs (its window once
+/// filled at 10 kHz): until then (home, start) the rate is 0. Over 100 µs
+/// one count would be 10,000 counts/s, 1.4 mm of a 7.5 ms latency term.
+pub const RATE_MIN_WINDOW_US: u32 = (RATE_SLOTS as u32 - 1) * RATE_SLOT_US;
+
 /// Each string's count rate (counts per second), a windowed difference in
 /// device time: the counts now less the counts of the oldest of
 /// [`RATE_SLOTS`] kept samples, over the device time between them. A
@@ -187,11 +192,11 @@ impl CountRate {
     /// Each string's rate (counts/s) at `counts` and `now_us` against the
     /// oldest sample kept: `(counts - old) 10^6 / (now - then)`, through
     /// `4.096e9 / dt` (one 32-bit division) and a 64-bit product, rounded,
-    /// saturating; 0 when no time has passed.
+    /// saturating; 0 until the window spans [`RATE_MIN_WINDOW_US`].
     pub fn rates(&self, counts: &[i32; crate::STRINGS], now_us: u32) -> [i32; crate::STRINGS] {
         let oldest = (self.last + 1) % RATE_SLOTS;
         let dt = now_us.wrapping_sub(self.time_us[oldest]);
-        if dt == 0 {
+        if dt < RATE_MIN_WINDOW_US {
             return [0; crate::STRINGS];
         }
         // 10^6 2^12 / dt fits a u32 for every dt >= 1.
@@ -213,7 +218,8 @@ mod tests {
 
     /// A string moving at a constant rate reads that rate once the window
     /// has filled, in device time (10 kHz or 1 kHz ticks, across the µs
-    /// clock's wrap), 0 at rest and after a reset; extremes saturate.
+    /// clock's wrap), 0 at rest, after a reset and over too short a window;
+    /// extremes saturate.
     #[test]
     fn count_rate_is_the_rate_over_its_window() {
         for (period_us, start_us) in [(100u32, 0u32), (1000, 5), (100, u32::MAX - 3_000)] {
@@ -238,10 +244,14 @@ mod tests {
             rate.reset([0; crate::STRINGS], 7);
             assert_eq!(rate.rates(&[0; crate::STRINGS], 7), [0; crate::STRINGS]);
         }
+        // Too short a window gives 0, not one count over 100 µs.
+        let rate = CountRate::new([0; crate::STRINGS], 0);
+        assert_eq!(rate.rates(&[1; crate::STRINGS], 100), [0; crate::STRINGS]);
         let mut rate = CountRate::new([i32::MIN; crate::STRINGS], 0);
-        rate.update(&[i32::MAX; crate::STRINGS], 1);
+        let w = RATE_MIN_WINDOW_US;
+        rate.update(&[i32::MAX; crate::STRINGS], w);
         assert_eq!(
-            rate.rates(&[i32::MAX; crate::STRINGS], 1),
+            rate.rates(&[i32::MAX; crate::STRINGS], w),
             [i32::MAX; crate::STRINGS]
         );
     }
