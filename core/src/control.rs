@@ -17,7 +17,7 @@
 
 use crate::blob::{position_mm, position_q16, BlobHead, CompiledCalibration};
 use crate::correction::Correction;
-use crate::encoder::{DirectionTracker, EncoderExtender};
+use crate::encoder::{CountRate, DirectionTracker, EncoderExtender};
 use crate::geometry::{device_direction, room_from_device};
 use crate::guidance::guidance_force;
 use crate::kinematics::{forward_kinematics, inverse_kinematics, FkConfig, FkStatus};
@@ -100,6 +100,9 @@ pub struct LoopInput {
     pub raw_counts: [u16; STRINGS],
     /// Monotonic device time, ms (wraps).
     pub now_ms: u32,
+    /// The same clock in µs (wraps every 71 minutes): the count rate's
+    /// ([`CountRate`]).
+    pub now_us: u32,
     /// Hardware emergency stop input active.
     pub estop: bool,
 }
@@ -139,6 +142,10 @@ pub struct Controller {
     config: ControlConfig,
     encoders: [EncoderExtender; STRINGS],
     directions: [DirectionTracker; STRINGS],
+    /// Each string's count rate, for a model with a latency term.
+    rates: CountRate,
+    /// Home was declared: the count rate restarts at the next step.
+    rates_from_home: bool,
     home_ms: u32,
     position: [f32; 3],
     multiplier: [f32; 3],
@@ -163,6 +170,8 @@ impl Controller {
             config,
             encoders: raw_counts.map(EncoderExtender::new),
             directions: [DirectionTracker::new(config.direction_hysteresis_counts); STRINGS],
+            rates: CountRate::new([0; STRINGS], 0),
+            rates_from_home: true,
             home_ms: now_ms,
             position: calibration.head.frame.home,
             multiplier: [0.0; 3],
@@ -188,6 +197,7 @@ impl Controller {
         for d in self.directions.iter_mut() {
             d.reset(0);
         }
+        self.rates_from_home = true;
         self.home_ms = now_ms;
         self.position = calibration.head.frame.home;
         self.multiplier = [0.0; 3];
@@ -265,6 +275,15 @@ impl Controller {
         for i in 0..STRINGS {
             inputs.counts[i] = self.encoders[i].update(input.raw_counts[i]);
             inputs.direction[i] = self.directions[i].update(inputs.counts[i]);
+        }
+        if self.rates_from_home {
+            self.rates.reset(inputs.counts, input.now_us);
+            self.rates_from_home = false;
+        }
+        self.rates.update(&inputs.counts, input.now_us);
+        // Only a model with a latency term pays for the rates.
+        if head.effects.iter().any(CompiledEffect::reads_speed) {
+            inputs.count_rate_cps = self.rates.rates(&inputs.counts, input.now_us);
         }
         let lengths_q16 = string_lengths(frame.layout, &head.laws, &head.effects, &inputs);
         let lengths = lengths_q16.map(|l| l as f32 / 65536.0);

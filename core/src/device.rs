@@ -1060,6 +1060,7 @@ impl<'m, F: ModelFlash> Device<'m, F> {
         let loop_input = LoopInput {
             raw_counts: input.raw_counts,
             now_ms: ms(input.now_us),
+            now_us: input.now_us as u32,
             estop: input.estop,
         };
         let Device {

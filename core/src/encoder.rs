@@ -131,10 +131,130 @@ impl DirectionTracker {
     }
 }
 
+/// Samples a [`CountRate`] keeps (the window is up to this many
+/// [`RATE_SLOT_US`] slots).
+pub const RATE_SLOTS: usize = 8;
+
+/// Least device time between two samples a [`CountRate`] keeps, µs.
+pub const RATE_SLOT_US: u32 = 400;
+
+/// Shortest window a [`CountRate`] gives a rate over, µs (its window once
+/// filled at 10 kHz): until then (home, start) the rate is 0. Over 100 µs
+/// one count would be 10,000 counts/s, 1.4 mm of a 7.5 ms latency term.
+pub const RATE_MIN_WINDOW_US: u32 = (RATE_SLOTS as u32 - 1) * RATE_SLOT_US;
+
+/// Each string's count rate (counts per second), a windowed difference in
+/// device time: the counts now less the counts of the oldest of
+/// [`RATE_SLOTS`] kept samples, over the device time between them. A
+/// sample is kept when [`RATE_SLOT_US`] have passed since the last one, so
+/// the window is 2.8 to 3.2 ms at the loop's 10 kHz (7 to 8 ms at 1 kHz).
+///
+/// What a latency term reads ([`crate::model::StringInputs::count_rate_cps`]).
+/// Its own delay is half its window (the rate is the mean over it: about
+/// 1.5 ms at 10 kHz); its noise is one count over the window (one count in
+/// 3 ms: 330 counts/s, 5 mm/s on a 12 mm spool of 4096 counts a turn, 0.03
+/// mm of a 6 ms latency). Integer only, one 32-bit division a call.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct CountRate {
+    counts: [[i32; crate::STRINGS]; RATE_SLOTS],
+    time_us: [u32; RATE_SLOTS],
+    /// The slot written last; the oldest is the one after it.
+    last: usize,
+}
+
+impl CountRate {
+    /// Every slot at `counts` at device time `now_us` (a rate of 0 until
+    /// the strings move).
+    pub fn new(counts: [i32; crate::STRINGS], now_us: u32) -> Self {
+        Self {
+            counts: [counts; RATE_SLOTS],
+            time_us: [now_us; RATE_SLOTS],
+            last: 0,
+        }
+    }
+
+    /// Starts again from `counts` at `now_us` (home: the counts restart).
+    pub fn reset(&mut self, counts: [i32; crate::STRINGS], now_us: u32) {
+        *self = Self::new(counts, now_us);
+    }
+
+    /// Feeds the counts at device time `now_us` (wrapping µs): kept when
+    /// [`RATE_SLOT_US`] have passed since the last sample kept.
+    #[inline]
+    pub fn update(&mut self, counts: &[i32; crate::STRINGS], now_us: u32) {
+        if now_us.wrapping_sub(self.time_us[self.last]) >= RATE_SLOT_US {
+            self.last = (self.last + 1) % RATE_SLOTS;
+            self.counts[self.last] = *counts;
+            self.time_us[self.last] = now_us;
+        }
+    }
+
+    /// Each string's rate (counts/s) at `counts` and `now_us` against the
+    /// oldest sample kept: `(counts - old) 10^6 / (now - then)`, through
+    /// `4.096e9 / dt` (one 32-bit division) and a 64-bit product, rounded,
+    /// saturating; 0 until the window spans [`RATE_MIN_WINDOW_US`].
+    pub fn rates(&self, counts: &[i32; crate::STRINGS], now_us: u32) -> [i32; crate::STRINGS] {
+        let oldest = (self.last + 1) % RATE_SLOTS;
+        let dt = now_us.wrapping_sub(self.time_us[oldest]);
+        if dt < RATE_MIN_WINDOW_US {
+            return [0; crate::STRINGS];
+        }
+        // 10^6 2^12 / dt fits a u32 for every dt >= 1.
+        let scale = i64::from(4_096_000_000u32 / dt);
+        let old = &self.counts[oldest];
+        core::array::from_fn(|i| {
+            // |moved| <= 2^31 and scale < 2^32: |moved scale| < 2^63.
+            let moved = i64::from(counts[i].saturating_sub(old[i]));
+            ((moved * scale + (1 << 11)) >> 12).clamp(i64::from(i32::MIN), i64::from(i32::MAX))
+                as i32
+        })
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use proptest::prelude::*;
+
+    /// A string moving at a constant rate reads that rate once the window
+    /// has filled, in device time (10 kHz or 1 kHz ticks, across the µs
+    /// clock's wrap), 0 at rest, after a reset and over too short a window;
+    /// extremes saturate.
+    #[test]
+    fn count_rate_is_the_rate_over_its_window() {
+        for (period_us, start_us) in [(100u32, 0u32), (1000, 5), (100, u32::MAX - 3_000)] {
+            // 25,000 counts/s paying out on string 0, reeling in on 7.
+            let at = |k: u32| {
+                let t = f64::from(k * period_us) * 1e-6;
+                let mut c = [0i32; crate::STRINGS];
+                c[0] = (25_000.0 * t).round() as i32;
+                c[7] = (-12_500.0 * t).round() as i32;
+                c
+            };
+            let mut rate = CountRate::new(at(0), start_us);
+            let mut last = [0; crate::STRINGS];
+            for k in 1..200 {
+                let now = start_us.wrapping_add(k * period_us);
+                rate.update(&at(k), now);
+                last = rate.rates(&at(k), now);
+            }
+            assert!((last[0] - 25_000).abs() <= 400, "{period_us}: {last:?}");
+            assert!((last[7] + 12_500).abs() <= 400, "{period_us}: {last:?}");
+            assert_eq!(last[1], 0);
+            rate.reset([0; crate::STRINGS], 7);
+            assert_eq!(rate.rates(&[0; crate::STRINGS], 7), [0; crate::STRINGS]);
+        }
+        // Too short a window gives 0, not one count over 100 µs.
+        let rate = CountRate::new([0; crate::STRINGS], 0);
+        assert_eq!(rate.rates(&[1; crate::STRINGS], 100), [0; crate::STRINGS]);
+        let mut rate = CountRate::new([i32::MIN; crate::STRINGS], 0);
+        let w = RATE_MIN_WINDOW_US;
+        rate.update(&[i32::MAX; crate::STRINGS], w);
+        assert_eq!(
+            rate.rates(&[i32::MAX; crate::STRINGS], w),
+            [i32::MAX; crate::STRINGS]
+        );
+    }
 
     #[test]
     fn extender_wraps_both_ways() {

@@ -135,6 +135,15 @@ pub struct StringInputs {
     /// with ([`Effect::Sag`]); see
     /// [`cos2_inclinations`](crate::string_law::cos2_inclinations).
     pub cos2_inclination_q16: [u16; STRINGS],
+    /// Each string's encoder count rate, counts per second (positive paying
+    /// out), what a latency term scales with ([`Effect::Latency`]): the
+    /// device's windowed difference over the last few milliseconds
+    /// ([`crate::encoder::CountRate`]), the host's from the neighbouring
+    /// rows of a streamed session; 0 where the speed is not observed (a
+    /// static session's rows, captured at rest seconds apart). Absent in
+    /// files written before it existed (zeros).
+    #[serde(default)]
+    pub count_rate_cps: [i32; STRINGS],
 }
 
 /// Highest power of the pulley angle in a winding law.
@@ -458,6 +467,15 @@ pub enum Effect {
     /// shared by every string ([`EVERY_STRING`]): one string's `home_mm` is
     /// an [`Offset`](Effect::Offset).
     FrameFlex { mm_per_newton: f64, home_mm: f64 },
+    /// Encoder latency: a string read `latency_s` late is short of its
+    /// length by what it moved meanwhile, `L(t) = L(t - tau) + tau dL/dt`,
+    /// so `+ latency_s * d payout/d counts * count_rate`: the winding
+    /// polynomial's slope at the counts (mm per count, the layer table's
+    /// left out: a few parts per thousand of it) times the string's count
+    /// rate ([`StringInputs::count_rate_cps`]). 0 where the speed is not
+    /// observed. `|latency_s| <=`
+    /// [`MAX_LATENCY_S`](crate::string_law::MAX_LATENCY_S).
+    Latency { latency_s: f64 },
 }
 
 /// An [`Effect`] applied to one string, or to every string at once.

@@ -34,6 +34,7 @@
 //! | sine table | `i32` | Q1.30, 512 segments per quarter turn, linear interpolation |
 //! | inclination of a string (sag) | `u16` | Q0.16 `cos^2`, 65535 level |
 //! | layer table knots | `i64` | Q47.16 mm (`|v| <= MAX_LAYER_MM`), knots `2^step_log2` counts apart; added to the payout |
+//! | count rate (latency) | `i32` | counts per second; latency Q0.31 s, slope Q2.30 mm per count, payout rate Q17.14 mm/s (module `latency`, [`CompiledStringLaw::payout_rate_q14`]) |
 //!
 //! Every product is `i64 x i32 -> 96 bits`, rounded (half up) and shifted back
 //! to `i64`, saturating; every sum saturates. No input or compiled parameter
@@ -50,6 +51,12 @@ use crate::model::{
 };
 use crate::real::Real;
 use crate::STRINGS;
+
+mod latency;
+mod stretch;
+
+pub use latency::{payout_rate_mm_s, MAX_LATENCY_S};
+pub use stretch::stretch_mm;
 
 /// The winding polynomial is evaluated in `x = counts / 2^COUNTS_SHIFT`, so
 /// `|x| <= 1` for `|counts| <= 262144`.
@@ -130,21 +137,6 @@ fn cube_slope(sag: f64, l: f64) -> f64 {
     } else {
         3.0 * sag / l
     }
-}
-
-/// A stretch term's contribution (mm): `per_newton * (T (home_length +
-/// payout) - T_home home_length) + mm_per_newton (T - T_home)`
-/// ([`Effect::Stretch`]).
-pub fn stretch_mm(
-    per_newton: f64,
-    mm_per_newton: f64,
-    home_tension_n: f64,
-    ctx: &EffectContext,
-) -> f64 {
-    per_newton
-        * (ctx.tension_n * (ctx.home_length_mm + ctx.payout_mm)
-            - home_tension_n * ctx.home_length_mm)
-        + mm_per_newton * (ctx.tension_n - home_tension_n)
 }
 
 /// `cos^2(a_home) (home_length / 1 m)^3` of a sag term: the home capture's
@@ -270,6 +262,9 @@ pub struct EffectContext {
     /// `cos^2` of the string's inclination at home, from the frame,
     /// quantized as the device's ([`cos2_inclination_q16`]) / 65536.
     pub home_cos2_inclination: f64,
+    /// The payout's rate of change (mm/s) at the string's count rate,
+    /// [`payout_rate_mm_s`]: what a latency term scales with.
+    pub payout_rate_mm_s: f64,
 }
 
 impl EffectContext {
@@ -309,6 +304,7 @@ impl EffectContext {
                 frame.anchors.get(string)?,
                 &frame.home,
             )) / 65536.0,
+            payout_rate_mm_s: payout_rate_mm_s(law, counts, *inputs.count_rate_cps.get(string)?),
         })
     }
 }
@@ -348,6 +344,11 @@ impl Effect {
         matches!(self, Effect::Sag { .. })
     }
 
+    /// Whether the term reads the strings' count rate (a latency).
+    pub fn reads_speed(&self) -> bool {
+        matches!(self, Effect::Latency { .. })
+    }
+
     /// Contribution of this term to the string length (mm), f64 reference.
     pub fn contribution_f64(&self, ctx: &EffectContext) -> f64 {
         match *self {
@@ -385,6 +386,7 @@ impl Effect {
                 mm_at_1m_1n,
                 home_mm_at_1m,
             } => sag_mm(mm_at_1m_1n, home_mm_at_1m, ctx),
+            Effect::Latency { latency_s } => latency_s * ctx.payout_rate_mm_s,
         }
     }
 
@@ -404,6 +406,7 @@ impl Effect {
     /// | Sag | `mm_at_1m_1n, home_mm_at_1m` | `[-cos^2(a) (l / 1 m)^3 / (T / 1 N)^2, cos^2(a_home) (home_length / 1 m)^3]` (0 where a part is clamped) |
     /// | FrameFlex | `mm_per_newton, home_mm` | `[sum_j T_j, -1]` |
     /// | Stretch | `per_newton, mm_per_newton, home_tension_n` | `[T (home_length + payout) - T_home home_length, T - T_home, -(per_newton home_length + mm_per_newton)]` |
+    /// | Latency | `latency_s` | `[payout rate]` |
     pub fn gradient_f64(&self, ctx: &EffectContext) -> heapless::Vec<f64, 3> {
         match *self {
             Effect::Offset { .. } => values(&[1.0]),
@@ -448,6 +451,7 @@ impl Effect {
                     },
                 ])
             }
+            Effect::Latency { .. } => values(&[ctx.payout_rate_mm_s]),
         }
     }
 
@@ -475,6 +479,7 @@ impl Effect {
                 mm_at_1m_1n,
                 home_mm_at_1m,
             } => values(&[mm_at_1m_1n, home_mm_at_1m]),
+            Effect::Latency { latency_s } => values(&[latency_s]),
         }
     }
 
@@ -515,6 +520,7 @@ impl Effect {
                 mm_at_1m_1n: p[0],
                 home_mm_at_1m: p[1],
             },
+            Effect::Latency { .. } => Effect::Latency { latency_s: p[0] },
         })
     }
 }
@@ -1133,6 +1139,9 @@ pub enum CompiledEffect {
         per_mn_q48: i64,
         home_q32: i64,
     },
+    /// `+ latency_q31 * payout_rate` (Q0.31 s times the context's
+    /// [`FixedContext::payout_rate_q14`], Q17.14 mm/s; module `latency`).
+    Latency { string: u8, latency_q31: i32 },
 }
 
 /// What a compiled effect of one string depends on, in device units.
@@ -1156,6 +1165,10 @@ pub struct FixedContext {
     pub home_sag_q30: i64,
     /// Sum of the active strings' commanded tensions, mN ([`total_tension_mn`]).
     pub total_tension_mn: u32,
+    /// The payout's rate of change, Q17.14 mm/s
+    /// ([`CompiledStringLaw::payout_rate_q14`] at the string's count rate;
+    /// 0 at a rate of 0).
+    pub payout_rate_q14: i32,
 }
 
 /// Compiles one effect term; `laws` gives the counts per revolution of its
@@ -1190,12 +1203,14 @@ pub fn compile_effect(
                 turns_per_count_q48: turns_per_count_q48(law.counts_per_rev),
             }
         }
-        Effect::Elasticity { per_newton } => compile_stretch(s, string, per_newton, 0.0, 0.0)?,
+        Effect::Elasticity { per_newton } => {
+            stretch::compile_stretch(s, string, per_newton, 0.0, 0.0)?
+        }
         Effect::Stretch {
             per_newton,
             mm_per_newton,
             home_tension_n,
-        } => compile_stretch(s, string, per_newton, mm_per_newton, home_tension_n)?,
+        } => stretch::compile_stretch(s, string, per_newton, mm_per_newton, home_tension_n)?,
         Effect::Sag {
             mm_at_1m_1n,
             home_mm_at_1m,
@@ -1213,6 +1228,7 @@ pub fn compile_effect(
             mm_per_ms_q48: to_fixed(s, "mm_per_s", mm_per_s / 1000.0, 48, "Q15.48 mm per ms")?,
         },
         Effect::Slip { at_s, mm } => compile_slip(s, string, at_s, mm)?,
+        Effect::Latency { latency_s } => latency::compile_latency(s, string, latency_s)?,
     })
 }
 
@@ -1348,42 +1364,6 @@ fn compile_slip(
     })
 }
 
-/// An elasticity or stretch term in its one compiled form (an elasticity is
-/// a stretch without lead and home parts).
-fn compile_stretch(
-    s: usize,
-    string: u8,
-    per_newton: f64,
-    mm_per_newton: f64,
-    home_tension_n: f64,
-) -> Result<CompiledEffect, StringLawCompileError> {
-    let e = finite(s, "per_newton", per_newton)?;
-    if e.abs() > MAX_ELASTICITY_PER_NEWTON {
-        return Err(StringLawCompileError::DoesNotFit {
-            string: s,
-            field: "per_newton",
-            value: e,
-            format: "strain Q0.31 at 65.535 N",
-        });
-    }
-    let m = in_range(
-        s,
-        "mm_per_newton",
-        mm_per_newton,
-        -MAX_ELASTICITY_MM_PER_NEWTON,
-        MAX_ELASTICITY_MM_PER_NEWTON,
-    )?;
-    // A commanded tension is at most 65.535 N (u16 mN).
-    let th = in_range(s, "home_tension_n", home_tension_n, 0.0, 65.535)?;
-    Ok(CompiledEffect::Elasticity {
-        string,
-        per_mn_q47: to_fixed(s, "per_newton", e / 1000.0, 47, "Q16.47 per mN")?,
-        mm_per_mn_q47: to_fixed(s, "mm_per_newton", m / 1000.0, 47, "Q16.47 mm per mN")?,
-        home_strain_q31: to_fixed_i32(s, "home_tension_n", e * th, 31, "strain Q0.31")?,
-        home_lead_q32: to_fixed(s, "home_tension_n", m * th, 32, "Q31.32 mm")?,
-    })
-}
-
 /// `round(2^48 / counts_per_rev)` (0 for 0).
 fn turns_per_count_q48(counts_per_rev: u32) -> u64 {
     if counts_per_rev == 0 {
@@ -1406,7 +1386,8 @@ impl CompiledEffect {
             | CompiledEffect::Drift { string, .. }
             | CompiledEffect::Slip { string, .. }
             | CompiledEffect::Sag { string, .. }
-            | CompiledEffect::FrameFlex { string, .. } => string,
+            | CompiledEffect::FrameFlex { string, .. }
+            | CompiledEffect::Latency { string, .. } => string,
         }
     }
 
@@ -1450,6 +1431,18 @@ impl CompiledEffect {
                 }
                 Ok(())
             }
+            CompiledEffect::Latency { latency_q31, .. }
+                if !(-latency::MAX_LATENCY_Q31..=latency::MAX_LATENCY_Q31)
+                    .contains(&latency_q31) =>
+            {
+                Err(StringLawCompileError::OutOfRange {
+                    string: s,
+                    field: "latency_s",
+                    value: f64::from(latency_q31) / 2_147_483_648.0,
+                    min: -MAX_LATENCY_S,
+                    max: MAX_LATENCY_S,
+                })
+            }
             _ => Ok(()),
         }
     }
@@ -1457,6 +1450,11 @@ impl CompiledEffect {
     /// Whether the term reads the string's inclination ([`Effect::reads_inclination`]).
     pub fn reads_inclination(&self) -> bool {
         matches!(self, CompiledEffect::Sag { .. })
+    }
+
+    /// Whether the term reads the strings' count rate ([`Effect::reads_speed`]).
+    pub fn reads_speed(&self) -> bool {
+        matches!(self, CompiledEffect::Latency { .. })
     }
 
     /// Contribution of this term (Q31.32 mm), integer only, saturating.
@@ -1492,7 +1490,7 @@ impl CompiledEffect {
                 home_strain_q31,
                 home_lead_q32,
                 ..
-            } => elasticity_q32(
+            } => stretch::elasticity_q32(
                 per_mn_q47,
                 mm_per_mn_q47,
                 home_strain_q31,
@@ -1556,6 +1554,7 @@ impl CompiledEffect {
                 let flex = (per * i64::from(ctx.total_tension_mn) + (1 << 15)) >> 16;
                 flex.saturating_sub(home_q32)
             }
+            CompiledEffect::Latency { latency_q31, .. } => latency::latency_q32(latency_q31, ctx),
         }
     }
 }
@@ -1576,48 +1575,6 @@ fn eccentricity_q32(
     let cos = sin_q30(phase.wrapping_add(1 << 30));
     let cos_m1 = (i64::from(cos) - (1 << 30)).clamp(i64::from(i32::MIN), 0) as i32;
     mul_i32_shr(sin_q16, sin, 14).saturating_add(mul_i32_shr(cos_q16, cos_m1, 14))
-}
-
-/// [`CompiledEffect::Elasticity`]'s contribution (Q31.32 mm): the strain
-/// of the commanded tension over the free length, less the home strain over
-/// the home length, plus the lead part. Always inlined, as
-/// [`CompiledEffect::contribution_q32`].
-#[inline(always)]
-fn elasticity_q32(
-    per_mn_q47: i64,
-    mm_per_mn_q47: i64,
-    home_strain_q31: i32,
-    home_lead_q32: i64,
-    ctx: &FixedContext,
-) -> i64 {
-    // |per_mn_q47| <= 2^47 (a compiled model's is below 2^31):
-    // the product fits i64 without a checked multiply, which
-    // the M7 does in a library call.
-    let strain_q47 = per_mn_q47.clamp(-(1 << 47), 1 << 47) * i64::from(ctx.tension_mn);
-    let strain_q31 = ((strain_q47 >> 16) + ((strain_q47 >> 15) & 1))
-        .clamp(i64::from(i32::MIN), i64::from(i32::MAX)) as i32;
-    // Lengths in Q16 (below 2^15 mm: clamped to i32) times
-    // Q0.31 strains: one 32 x 32 -> 64 bit product each, in
-    // Q.47 (the payout rounded to Q16 first: 8e-6 mm times the
-    // strain). The home part is skipped by an elasticity of one
-    // string, which has none.
-    let to_i32 = |v: i64| v.clamp(i64::from(i32::MIN), i64::from(i32::MAX));
-    let home_q16 = to_i32(ctx.home_length_q16);
-    let free_q16 = to_i32(home_q16 + q32_to_q16(ctx.payout_q32).clamp(-(1 << 40), 1 << 40));
-    let mut stretch_q47 = free_q16 * i64::from(strain_q31);
-    if home_strain_q31 != 0 {
-        stretch_q47 -= home_q16 * i64::from(home_strain_q31);
-    }
-    let stretch = (stretch_q47 + (1 << 14)) >> 15;
-    // The lead part: |mm_per_mn_q47| <= 2^47 (a compiled
-    // model's is below 2^37) times a u16 fits i64.
-    if mm_per_mn_q47 == 0 {
-        stretch
-    } else {
-        let m = mm_per_mn_q47.clamp(-(1 << 47), 1 << 47);
-        let lead = (m * i64::from(ctx.tension_mn) + (1 << 14)) >> 15;
-        stretch.saturating_add(lead.saturating_sub(home_lead_q32))
-    }
 }
 
 /// Pulley phase in Q0.32 turns from `counts mod counts_per_rev` (exact for
@@ -1683,6 +1640,9 @@ fn lengths_of<const ALL: bool>(
         cos2_inclination_q16: inputs.cos2_inclination_q16[s],
         home_sag_q30: laws[s].home_sag_q30,
         total_tension_mn,
+        // 0 at once where the string's count rate is 0: the device's loop
+        // gives a rate only to a model with a term that reads it.
+        payout_rate_q14: laws[s].payout_rate_q14(inputs.counts[s], inputs.count_rate_cps[s]),
     });
     for e in effects {
         let s = usize::from(e.string());

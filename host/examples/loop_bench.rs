@@ -7,6 +7,11 @@
 //! `cargo run --release -p spidar --example loop_bench -- [SEEDS] [CLEAN_SEEDS]`
 //! (defaults 5 and 20).
 //!
+//! The encoder's latency is told only where the rows observe the speed:
+//! its rows run the loop on 100 Hz streams of the model simulator (30 s to
+//! train, 10 s to test; `--streams-only [SEEDS]`: only those rows), beside
+//! the lattice's row, where it is not tested and stays unexplained.
+//!
 //! With `--clean-only [CLEAN_SEEDS]`: only the false findings, on clean
 //! sessions of both simulators (the model simulator and the independent
 //! physics, `sim::physics`), each effect added named per seed. The loop
@@ -361,7 +366,147 @@ fn injected_row(
     );
 }
 
+/// A model-simulator device of `seed` with `effects` and two 100 Hz
+/// streams of it (3000 and 1000 rows, session seeds `seed + 100`, `+ 200`).
+fn streams(seed: u64, effects: &[&str]) -> (SimulatedDevice, Vec<Observation>, Vec<Observation>) {
+    let mut config = SimConfig {
+        effects: effects.iter().map(|s| s.to_string()).collect(),
+        ..SimConfig::default()
+    };
+    config.random.capture_interval_s = 0.01;
+    let device = SimulatedDevice::new(&config, seed).expect("device");
+    let stream = |points: usize, session_seed: u64| {
+        let s = simulate_session(&device, SessionKind::Random { points }, session_seed)
+            .expect("stream");
+        observations(&s.samples)
+    };
+    let (train, test) = (stream(3000, seed + 100), stream(1000, seed + 200));
+    (device, train, test)
+}
+
+/// One stream row: `effects` on `seeds` devices; found when every one of
+/// `expect` (family, strings) is added and no `absent` family is; the
+/// worst held-out mean against the same device's clean stream.
+fn stream_row(
+    effects: &[&str],
+    expect: &[(Family, &[u8])],
+    absent: &[Family],
+    seeds: u64,
+) -> (usize, f64, f64) {
+    let (mut found, mut worst, mut seconds) = (0, 0.0f64, 0.0);
+    for seed in 1..=seeds {
+        let mut after = [0.0; 2];
+        for (k, effects) in [effects, &[][..]].iter().enumerate() {
+            let (device, train, test) = streams(seed, effects);
+            let geometry = device.nominal.clone();
+            let t0 = std::time::Instant::now();
+            let r = close_loop(
+                &train,
+                Some(&test),
+                &geometry.nominal_frame(),
+                &Start::from_geometry(&geometry),
+                &LoopConfig::for_geometry(&geometry),
+            )
+            .expect("loop");
+            if k == 0 {
+                seconds += t0.elapsed().as_secs_f64();
+                let added = |family: Family, strings: &[u8]| {
+                    r.findings
+                        .iter()
+                        .any(|f| f.added && f.family == family && f.strings == strings)
+                };
+                let ok = expect.iter().all(|(f, s)| added(*f, s))
+                    && !r
+                        .findings
+                        .iter()
+                        .any(|f| f.added && absent.contains(&f.family));
+                found += usize::from(ok);
+            }
+            after[k] = r
+                .stages
+                .last()
+                .and_then(|s| s.test)
+                .or(r.base_test)
+                .map_or(f64::NAN, |s| s.mean_mm);
+        }
+        worst = worst.max(after[0] / after[1]);
+    }
+    (found, worst, seconds / seeds as f64)
+}
+
+/// A stream row: its name, the effects injected, the (family, strings)
+/// that must be added and the families that must not.
+type StreamCase = (
+    &'static str,
+    &'static [&'static str],
+    &'static [(Family, &'static [u8])],
+    &'static [Family],
+);
+
+/// The stream rows: latency on two strings, one latency shared by every
+/// string, a backlash (which a latency must not take), and clean streams.
+fn stream_rows(seeds: u64) {
+    println!("\n100 Hz streams (3000 rows to train, 1000 to test):\n");
+    println!("| family | injected | found | worst after / baseline | mean loop s |");
+    println!("|---|---|---|---|---|");
+    let rows: [StreamCase; 3] = [
+        (
+            "latency",
+            &["speed:2:latency_s=0.006", "speed:5:latency_s=0.006"],
+            &[(Family::Latency, &[2]), (Family::Latency, &[5])],
+            &[Family::Backlash],
+        ),
+        (
+            "latency (every string)",
+            &["speed:*:latency_s=0.004"],
+            &[(Family::Latency, &[])],
+            &[Family::Backlash],
+        ),
+        (
+            "backlash",
+            &["backlash:4:half_width_mm=0.8"],
+            &[(Family::Backlash, &[4])],
+            &[Family::Latency],
+        ),
+    ];
+    for (name, effects, expect, absent) in rows {
+        let (found, worst, seconds) = stream_row(effects, expect, absent, seeds);
+        let injected: Vec<String> = effects.iter().map(|e| format!("`{e}`")).collect();
+        println!(
+            "| {name} | {} | {found}/{seeds} | {worst:.2} | {seconds:.1} |",
+            injected.join(" ")
+        );
+    }
+    let mut latency_on_clean = 0;
+    for seed in 1..=seeds {
+        let (device, train, test) = streams(seed, &[]);
+        let geometry = device.nominal.clone();
+        let r = close_loop(
+            &train,
+            Some(&test),
+            &geometry.nominal_frame(),
+            &Start::from_geometry(&geometry),
+            &LoopConfig::for_geometry(&geometry),
+        )
+        .expect("loop");
+        latency_on_clean += r
+            .findings
+            .iter()
+            .filter(|f| f.added && f.family == Family::Latency)
+            .count();
+    }
+    println!("\nclean streams: {latency_on_clean} latencies added in {seeds} seeds");
+}
+
 fn main() {
+    if std::env::args().nth(1).as_deref() == Some("--streams-only") {
+        let seeds = std::env::args()
+            .nth(2)
+            .and_then(|s| s.parse().ok())
+            .unwrap_or(5);
+        stream_rows(seeds);
+        return;
+    }
     if std::env::args().nth(1).as_deref() == Some("--clean-only") {
         let seeds = std::env::args()
             .nth(2)
@@ -384,4 +529,5 @@ fn main() {
         false_positives += run(seed, &[], None).added;
     }
     println!("\nclean sessions: {false_positives} effects added in {clean_seeds} seeds");
+    stream_rows(seeds);
 }

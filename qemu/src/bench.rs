@@ -44,7 +44,13 @@ pub extern "C" fn spidar_bench_report() {
 /// and stop markers. `target` is the most instructions per call the issue
 /// allows (`None`: informative). The argument and the result pass through
 /// [`black_box`] inside the markers, so the call can be neither hoisted out
-/// of them nor removed.
+/// of them nor removed. Never inlined: each benchmark's loop is its own
+/// function with its own small frame, so the marker overhead is the same in
+/// every one (inlined into `main`, whose frame grew past the reach of an
+/// immediate offset, the empty body's loop addressed its `black_box` slots
+/// with two more instructions each than the 100 `nop`s' and the self-check
+/// counted 96).
+#[inline(never)]
 pub fn measure<O>(name: &str, target: Option<u32>, calls: u32, mut f: impl FnMut(u32) -> O) {
     crate::hprintln!("BENCH\t{}\t{}\t{}", name, target.unwrap_or(0), calls);
     for i in 0..calls {

@@ -280,6 +280,8 @@ pub fn string_inputs(rng: &mut Rng) -> spidar_core::model::StringInputs {
         s.direction[i] = rng.i32_in(-1, 1) as i8;
         s.tension_mn[i] = rng.i32_in(0, 20_000) as u16;
         s.cos2_inclination_q16[i] = rng.i32_in(0, 65535) as u16;
+        // Up to about 2 m/s of string (0.0184 mm per count).
+        s.count_rate_cps[i] = rng.i32_in(-110_000, 110_000);
     }
     s.time_ms = rng.next_u32() % 3_600_000;
     s
@@ -602,7 +604,8 @@ fn control_steps(cal: &spidar_core::blob::CompiledCalibration, rng: &mut Rng, ou
         if rng.i32_in(0, 3) != 0 {
             ctl.safety().heartbeat(now);
         }
-        let o = ctl.step(cal, &LoopInput { raw_counts: raw, now_ms: now, estop: rng.i32_in(0, 15) == 0 });
+        let o = ctl
+            .step(cal, &LoopInput { raw_counts: raw, now_ms: now, now_us: now * 1000, estop: rng.i32_in(0, 15) == 0 });
         out.f32s(&o.string_lengths_mm);
         out.f32s(&o.position_mm);
         out.i32s(&o.corrected_q16);

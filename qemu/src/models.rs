@@ -1,6 +1,7 @@
 //! Host only (`build.rs`): the deterministic calibrations whose compiled blobs
 //! the device binaries embed. Both have the 2.2 m cube frame, a quadratic
-//! winding law with a layer table per string and one effect term of every family; one carries an
+//! winding law with a layer table per string and one effect term of every family (14: 10 of one
+//! string, 4 shared); one carries an
 //! NN 3-20-3 correction, the other an RBF SVR with 1,000 support vectors (the
 //! issue's benchmark sizes). Weights are shaped like trained ones (see
 //! `spidar_core::correction`'s tests): realistic magnitudes, random values.
@@ -61,6 +62,9 @@ fn calibration(correction: CorrectionModel) -> Calibration {
         },
         // A frame that flexes under the strings' total pull (issue 10).
         EffectTerm { string: EVERY_STRING, effect: Effect::FrameFlex { mm_per_newton: 0.012, home_mm: 0.1 } },
+        // An encoder read 6 ms late, and the loop's shared delay (issue 33).
+        EffectTerm { string: 2, effect: Effect::Latency { latency_s: 0.006 } },
+        EffectTerm { string: EVERY_STRING, effect: Effect::Latency { latency_s: 0.0015 } },
     ];
     Calibration {
         frame: Frame {

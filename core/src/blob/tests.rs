@@ -92,6 +92,50 @@ fn compiled_blob_parses_back() {
     assert_eq!(c.correction.kind(), CorrectionKind::None);
 }
 
+/// Latency terms (one string's, one shared) go through the blob bit for
+/// bit and evaluate as compiled; a latency beyond the format's range from
+/// another tool is refused, naming the field.
+#[test]
+fn latency_terms_round_trip_and_out_of_range_ones_are_refused() {
+    let mut cal = calibration();
+    cal.effects.push(EffectTerm {
+        string: 2,
+        effect: Effect::Latency { latency_s: 0.006 },
+    });
+    cal.effects.push(EffectTerm {
+        string: crate::model::EVERY_STRING,
+        effect: Effect::Latency { latency_s: -0.0015 },
+    });
+    let blob = compile(&cal, 7, 0).unwrap();
+    let c = CompiledCalibration::from_blob(&blob).unwrap();
+    assert_eq!(c.header.effects, 4);
+    let laws = &cal.strings;
+    let expected: alloc::vec::Vec<CompiledEffect> = cal
+        .effects
+        .iter()
+        .map(|t| crate::string_law::compile_effect(t, laws).unwrap())
+        .collect();
+    assert_eq!(c.head.effects.as_slice(), expected.as_slice());
+    assert_eq!(
+        expected[2],
+        CompiledEffect::Latency {
+            string: 2,
+            latency_q31: 12_884_902,
+        }
+    );
+    let (_, body) = split_blob(&blob).unwrap();
+    let (head, rest) = split_body(body).unwrap();
+    let mut h = head.clone();
+    h.effects[2] = CompiledEffect::Latency {
+        string: 2,
+        latency_q31: i32::MIN,
+    };
+    assert!(matches!(
+        CompiledCalibration::from_blob(&with_head(&blob, &h, rest)),
+        Err(BlobError::Body { .. })
+    ));
+}
+
 #[test]
 fn any_corruption_or_truncation_is_refused_not_panicking() {
     let blob = compile(&calibration(), 7, 0).unwrap();

@@ -57,6 +57,7 @@ fn tracks_a_trajectory_and_renders_a_force_when_armed() {
             &LoopInput {
                 raw_counts: raw_counts_at(&cal, p),
                 now_ms: k,
+                now_us: k * 1000,
                 estop: false,
             },
         );
@@ -118,6 +119,7 @@ fn uncalibrated_lengths_raise_no_consistency_fault() {
                 &LoopInput {
                     raw_counts: raw_at([-400.0 * t, -400.0 * t, -400.0 * t]),
                     now_ms: k,
+                    now_us: k * 1000,
                     estop: false,
                 },
             ));
@@ -175,6 +177,7 @@ fn four_strings_track_and_render_with_inactive_channels_at_zero() {
             &LoopInput {
                 raw_counts: raw_at(p),
                 now_ms: k,
+                now_us: k * 1000,
                 estop: false,
             },
         );
@@ -202,6 +205,7 @@ fn four_strings_track_and_render_with_inactive_channels_at_zero() {
         &LoopInput {
             raw_counts: raw_at([200.0, -150.0, 600.0]),
             now_ms: 201,
+            now_us: 201 * 1000,
             estop: false,
         },
     );
@@ -226,6 +230,7 @@ fn heartbeat_loss_drops_to_pretension() {
             &LoopInput {
                 raw_counts: raw,
                 now_ms: ms,
+                now_us: ms * 1000,
                 estop: false,
             },
         )
@@ -237,4 +242,63 @@ fn heartbeat_loss_drops_to_pretension() {
         .tensions_n
         .iter()
         .all(|&t| t == config.safety.pretension_n));
+}
+
+/// A model with a latency on string 2 reads that string's count rate: at
+/// 10 kHz, moving at a steady speed, its length is the same model's
+/// without the term plus the delay times the string's speed (the rate
+/// over the last 3 ms; one count over it is 0.005 mm of the term here),
+/// and nothing at rest.
+#[test]
+fn a_latency_term_adds_the_delay_times_the_string_speed() {
+    let plain = calibration();
+    let mut late = calibration();
+    late.effects.push(crate::model::EffectTerm {
+        string: 2,
+        effect: crate::model::Effect::Latency { latency_s: 0.006 },
+    });
+    let run = |cal: &Calibration, speed_mm_s: f64| {
+        let blob = compile(cal, 1, 0).unwrap();
+        let compiled = CompiledCalibration::from_blob(&blob).unwrap();
+        let mut ctl = Controller::new(
+            ControlConfig::default(),
+            &compiled,
+            raw_counts_at(cal, [0.0; 3]),
+            0,
+        )
+        .unwrap();
+        let mut last = None;
+        for k in 1..=200u32 {
+            // 10 kHz: 100 µs a step.
+            let p = [speed_mm_s * f64::from(k) * 1e-4, 0.0, 0.0];
+            let o = ctl.step(
+                &compiled,
+                &LoopInput {
+                    raw_counts: raw_counts_at(cal, p),
+                    now_ms: k / 10,
+                    now_us: k * 100,
+                    estop: false,
+                },
+            );
+            last = Some(o.string_lengths_mm);
+        }
+        last.unwrap()
+    };
+    // String 2's anchor is [-1100, 1100, -1100]: moving along +x it pays
+    // out at (x - a_x) / |p - a| of the speed.
+    let a = cube_frame([0.0; 3]).anchors[2];
+    let p = [400.0 * 0.02, 0.0, 0.0];
+    let d = [p[0] - a[0], p[1] - a[1], p[2] - a[2]];
+    let string_speed = 400.0 * d[0] / (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+    let (with, without) = (run(&late, 400.0), run(&plain, 400.0));
+    let moved = f64::from(with[2] - without[2]);
+    assert!(
+        (moved - 0.006 * string_speed).abs() < 0.01,
+        "{moved} mm, expected {}",
+        0.006 * string_speed
+    );
+    for i in (0..STRINGS).filter(|&i| i != 2) {
+        assert_eq!(with[i], without[i], "string {i}");
+    }
+    assert_eq!(run(&late, 0.0), run(&plain, 0.0));
 }

@@ -1163,6 +1163,7 @@ fn tick_cost() {
         let li = |k: u32| LoopInput {
             raw_counts: raw,
             now_ms: k / 10,
+            now_us: k * 100,
             estop: false,
         };
         let t = Instant::now();

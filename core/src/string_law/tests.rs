@@ -371,6 +371,9 @@ fn realistic(rng: &mut Rng) -> (Frame<f64>, [StringLaw; STRINGS], Vec<EffectTerm
             mm_at_1m_1n: rng.uniform(-5.0, 5.0),
             home_mm_at_1m: rng.uniform(-5.0, 5.0),
         });
+        push(Effect::Latency {
+            latency_s: rng.uniform(-0.05, 0.05),
+        });
     }
     // Terms shared by every string.
     effects.push(EffectTerm {
@@ -400,6 +403,12 @@ fn realistic(rng: &mut Rng) -> (Frame<f64>, [StringLaw; STRINGS], Vec<EffectTerm
             home_mm: rng.uniform(-5.0, 5.0),
         },
     });
+    effects.push(EffectTerm {
+        string: EVERY_STRING,
+        effect: Effect::Latency {
+            latency_s: rng.uniform(-0.02, 0.02),
+        },
+    });
     (f, laws, effects)
 }
 
@@ -410,6 +419,9 @@ fn random_inputs(rng: &mut Rng) -> StringInputs {
         inputs.direction[i] = rng.int(-1, 1) as i8;
         inputs.tension_mn[i] = rng.int(0, 20_000) as u16;
         inputs.cos2_inclination_q16[i] = rng.int(0, 65535) as u16;
+        // Up to 0.5 to 12 m/s of string (the pulleys' 2.4e-3 to 6.3e-2
+        // mm per count).
+        inputs.count_rate_cps[i] = rng.int(-200_000, 200_000) as i32;
     }
     inputs.time_ms = rng.int(0, 7_200_000) as u32;
     inputs
@@ -451,7 +463,7 @@ fn fixed_point_error_budget() {
     let max_err = measure(0x5EED_0001, 400, 500, |_| true);
     println!("string law: max |fixed - f64| = {max_err:.3e} mm (400 calibrations x 500 inputs x 8 strings)");
     type Keep = fn(&Effect) -> bool;
-    let families: [(&str, Keep); 12] = [
+    let families: [(&str, Keep); 13] = [
         ("no effect", |_| false),
         ("offset", |e| matches!(e, Effect::Offset { .. })),
         ("scale", |e| matches!(e, Effect::Scale { .. })),
@@ -464,6 +476,7 @@ fn fixed_point_error_budget() {
         ("sag", |e| matches!(e, Effect::Sag { .. })),
         ("stretch", |e| matches!(e, Effect::Stretch { .. })),
         ("frame flex", |e| matches!(e, Effect::FrameFlex { .. })),
+        ("latency", |e| matches!(e, Effect::Latency { .. })),
     ];
     for (name, keep) in families {
         let e = measure(0x5EED_0002, 100, 200, keep);
@@ -633,6 +646,18 @@ fn effect_compile_errors_name_the_field() {
         (sag(1.6, -101.0), "OutOfRange", "home_mm_at_1m"),
         (sag(f64::NAN, 0.0), "NotFinite", "mm_at_1m_1n"),
         (Effect::Drift { mm_per_s: 1e30 }, "DoesNotFit", "mm_per_s"),
+        (
+            Effect::Latency { latency_s: 0.3 },
+            "OutOfRange",
+            "latency_s",
+        ),
+        (
+            Effect::Latency {
+                latency_s: f64::INFINITY,
+            },
+            "NotFinite",
+            "latency_s",
+        ),
     ];
     for (effect, kind, field) in cases {
         let got = compile_effect(&term(0, effect), &laws).map(|_| ());
@@ -687,6 +712,63 @@ fn compiled_effects_validate() {
     }
     .validate()
     .is_err());
+    assert!(CompiledEffect::Latency {
+        string: EVERY_STRING,
+        latency_q31: i32::MAX,
+    }
+    .validate()
+    .is_err());
+}
+
+/// A latency term adds `tau` times the payout's rate at the string's count
+/// rate, the same in both paths: nothing at rest, the string's motion over
+/// `tau` when it moves (one string's term or one shared by every string,
+/// each string at its own law's slope), and its sign with the motion's.
+#[test]
+fn a_latency_adds_the_motion_over_its_delay_in_both_paths() {
+    let f = cube_frame([30.0, -20.0, 10.0]);
+    let mut laws = [StringLaw::polynomial(4096, [12.0, -0.004, 0.0, 0.0]); STRINGS];
+    laws[5] = StringLaw::polynomial(8192, [9.0, -0.002, 1e-6, 0.0]);
+    let tau = 0.006;
+    for string in [3, 5, EVERY_STRING] {
+        let terms = [EffectTerm {
+            string,
+            effect: Effect::Latency { latency_s: tau },
+        }];
+        let (cl, ce) = compile_all(&f, &laws, &terms);
+        for (counts, rate) in [(0, 0), (20_000, 0), (20_000, 30_000), (-50_000, -65_000)] {
+            let inputs = StringInputs {
+                counts: [counts; STRINGS],
+                count_rate_cps: [rate; STRINGS],
+                ..StringInputs::default()
+            };
+            let bare = string_lengths_f64(&f, &laws, &[], &inputs);
+            let want = string_lengths_f64(&f, &laws, &terms, &inputs);
+            let got = string_lengths(StringLayout::ALL, &cl, &ce, &inputs);
+            for i in 0..STRINGS {
+                let law = &laws[i];
+                let theta = pulley_angle(law, counts);
+                let mm_per_count =
+                    polynomial_slope_f64(law, theta) * TAU / f64::from(law.counts_per_rev);
+                let moved = if string == EVERY_STRING || usize::from(string) == i {
+                    tau * mm_per_count * f64::from(rate)
+                } else {
+                    0.0
+                };
+                assert!((want[i] - bare[i] - moved).abs() < 1e-9, "string {i}");
+                assert!(
+                    (got[i] as f64 / 65536.0 - want[i]).abs() < 1e-4,
+                    "string {i}"
+                );
+                if rate == 0 {
+                    assert_eq!(want[i], bare[i]);
+                } else if moved != 0.0 {
+                    // Paying out: the late reading is short, the term adds.
+                    assert_eq!(moved > 0.0, rate > 0, "string {i}");
+                }
+            }
+        }
+    }
 }
 
 #[test]
@@ -926,6 +1008,7 @@ fn a_frame_flex_reads_the_total_tension_of_the_active_strings() {
         cos2_inclination_q16: 0,
         home_sag_q30: 0,
         total_tension_mn: 8 * u32::from(u16::MAX),
+        payout_rate_q14: 0,
     };
     assert_eq!(worst.contribution_q32(&ctx), i64::MAX);
 }
@@ -1014,6 +1097,10 @@ fn arb_effect() -> impl Strategy<Value = CompiledEffect> {
                 home_coeff_q32,
             }
         }),
+        (s, any::<i32>()).prop_map(|(string, latency_q31)| CompiledEffect::Latency {
+            string,
+            latency_q31
+        }),
     ]
 }
 
@@ -1058,14 +1145,18 @@ fn arb_inputs() -> impl Strategy<Value = StringInputs> {
         any::<[u16; STRINGS]>(),
         any::<u32>(),
         any::<[u16; STRINGS]>(),
+        any::<[i32; STRINGS]>(),
     )
         .prop_map(
-            |(counts, direction, tension_mn, time_ms, cos2_inclination_q16)| StringInputs {
-                counts,
-                direction,
-                tension_mn,
-                time_ms,
-                cos2_inclination_q16,
+            |(counts, direction, tension_mn, time_ms, cos2_inclination_q16, count_rate_cps)| {
+                StringInputs {
+                    counts,
+                    direction,
+                    tension_mn,
+                    time_ms,
+                    cos2_inclination_q16,
+                    count_rate_cps,
+                }
             },
         )
 }
@@ -1120,6 +1211,7 @@ proptest! {
                 mm_at_1m_1n: v,
                 home_mm_at_1m: w,
             },
+            Effect::Latency { latency_s: v },
         ] {
             if let Ok(c) = compile_effect(&EffectTerm { string, effect }, &laws) {
                 prop_assert!(c.validate().is_ok());

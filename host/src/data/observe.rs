@@ -6,6 +6,12 @@
 //! runs, fed with the recorded counts in session order; time since home is
 //! the session's `since_home_s` when it has one, else its `t_s` (the
 //! session's clock then starts at the home capture).
+//!
+//! The count rate (what a latency term reads) comes from the neighbouring
+//! rows, and only on a session whose rows resolve the motion
+//! ([`speed_observation`]): a lattice's rows are captured seconds apart
+//! (at rest, or anywhere along the way), and a difference between them is
+//! not the speed at the capture. Elsewhere it is 0: speed not observed.
 
 use spidar_core::encoder::DirectionTracker;
 use spidar_core::model::StringInputs;
@@ -53,7 +59,7 @@ pub fn observations_skipping(samples: &[Sample], skipped: &[usize]) -> Vec<Obser
         .map(|_| DirectionTracker::new(DIRECTION_HYSTERESIS_COUNTS))
         .collect();
     let mut skipped = skipped.iter().peekable();
-    samples
+    let mut observations: Vec<Observation> = samples
         .iter()
         .enumerate()
         .filter(|(row, _)| {
@@ -85,7 +91,125 @@ pub fn observations_skipping(samples: &[Sample], skipped: &[usize]) -> Vec<Obser
                 new_home: false,
             }
         })
-        .collect()
+        .collect();
+    if speed_observation(&observations).stream {
+        fill_count_rates(&mut observations);
+    }
+    observations
+}
+
+/// Whether a session's rows observe the strings' speed, and what says so.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct SpeedObservation {
+    /// The rows resolve the motion: each row's count rate is the
+    /// difference of its neighbours.
+    pub stream: bool,
+    /// The median, over the (row, string) pairs that move, of how much a
+    /// string's speed changes from the interval before a row to the one
+    /// after it, relative to the speed (`|v+ - v-| / ((|v+| + |v-|) / 2)`;
+    /// NaN without such pairs).
+    pub speed_change: f64,
+    /// How many (row, string) pairs moved by at least
+    /// [`DIRECTION_HYSTERESIS_COUNTS`] on both sides of their row.
+    pub moving: usize,
+    /// Median time between rows (s; NaN with fewer than two times).
+    pub median_interval_s: f64,
+}
+
+/// The rows resolve the motion when a moving string's speed changes by
+/// less than this share of itself from one row interval to the next (the
+/// median pair): the rows sample the motion at least four times in the
+/// time its speed takes to change by its own size. A stream sampled at
+/// 100 Hz changes by a few percent; a lattice's rows, captured after
+/// pauses of their own length, by about the speed itself (the model
+/// simulator's lattice: near 1; decision record 0048).
+pub const MAX_STREAM_SPEED_CHANGE: f64 = 0.25;
+
+/// [`SpeedObservation`] of `observations` (their times and counts, in
+/// order): a stream when the median moving pair's speed changes by less
+/// than [`MAX_STREAM_SPEED_CHANGE`] of itself between the intervals around
+/// its row. Rows of one instant (a logger that wrote a row twice) are
+/// passed over; a string moves on both sides of its row by at least
+/// [`DIRECTION_HYSTERESIS_COUNTS`] (0.1 mm: a count's rounding is then an
+/// eighth of it at most).
+pub fn speed_observation(observations: &[Observation]) -> SpeedObservation {
+    let distinct = distinct_times(observations);
+    let mut changes = Vec::new();
+    let min = f64::from(DIRECTION_HYSTERESIS_COUNTS);
+    for w in distinct.windows(3) {
+        let (a, b, c) = (
+            &observations[w[0]],
+            &observations[w[1]],
+            &observations[w[2]],
+        );
+        for i in 0..STRINGS {
+            let before = f64::from(b.inputs.counts[i]) - f64::from(a.inputs.counts[i]);
+            let after = f64::from(c.inputs.counts[i]) - f64::from(b.inputs.counts[i]);
+            if before.abs() < min || after.abs() < min {
+                continue;
+            }
+            let v_before = before / (b.t_s - a.t_s);
+            let v_after = after / (c.t_s - b.t_s);
+            changes.push((v_after - v_before).abs() / ((v_after.abs() + v_before.abs()) / 2.0));
+        }
+    }
+    let median = |v: &mut Vec<f64>| {
+        if v.is_empty() {
+            return f64::NAN;
+        }
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    let mut intervals: Vec<f64> = distinct
+        .windows(2)
+        .map(|w| observations[w[1]].t_s - observations[w[0]].t_s)
+        .collect();
+    let moving = changes.len();
+    let speed_change = median(&mut changes);
+    SpeedObservation {
+        stream: speed_change < MAX_STREAM_SPEED_CHANGE,
+        speed_change,
+        moving,
+        median_interval_s: median(&mut intervals),
+    }
+}
+
+/// Indices of the observations at times later than the one before them
+/// (the first of each instant).
+fn distinct_times(observations: &[Observation]) -> Vec<usize> {
+    let mut out: Vec<usize> = Vec::with_capacity(observations.len());
+    for (k, o) in observations.iter().enumerate() {
+        if out.last().is_none_or(|&j| o.t_s > observations[j].t_s) {
+            out.push(k);
+        }
+    }
+    out
+}
+
+/// Each observation's count rate: the central difference of the nearest
+/// rows at other times before and after it (one-sided at the ends),
+/// counts per second rounded, saturating.
+fn fill_count_rates(observations: &mut [Observation]) {
+    let distinct = distinct_times(observations);
+    let rate = |a: &Observation, b: &Observation, i: usize| {
+        let v = (f64::from(b.inputs.counts[i]) - f64::from(a.inputs.counts[i])) / (b.t_s - a.t_s);
+        v.round().clamp(f64::from(i32::MIN), f64::from(i32::MAX)) as i32
+    };
+    let mut rates = vec![[0i32; STRINGS]; observations.len()];
+    for (n, &k) in distinct.iter().enumerate() {
+        let before = distinct[n.saturating_sub(1)];
+        let after = distinct[(n + 1).min(distinct.len() - 1)];
+        if before == after {
+            continue;
+        }
+        let end = distinct.get(n + 1).map_or(observations.len(), |&j| j);
+        for r in &mut rates[k..end] {
+            *r = core::array::from_fn(|i| rate(&observations[before], &observations[after], i));
+        }
+    }
+    for (o, r) in observations.iter_mut().zip(rates) {
+        o.inputs.count_rate_cps = r;
+    }
 }
 
 impl Observation {

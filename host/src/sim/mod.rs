@@ -392,6 +392,9 @@ impl<'a> ModelSession<'a> {
                 tension_mn,
                 time_ms: c.t_ms,
                 cos2_inclination_q16: cos2_inclinations(&device.frame.anchors, &p),
+                // The truth has the string speeds (`string_speed_mm_s`); a
+                // count rate is what the device or the host estimates.
+                count_rate_cps: [0; STRINGS],
             },
             abnormal_mm: strings.abnormal_mm,
             cell: c.cell,

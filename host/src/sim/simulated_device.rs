@@ -390,6 +390,9 @@ impl SimulatedDevice {
             time_s: t_s,
             cos2_inclination: f64::from(cos2) / 65536.0,
             home_cos2_inclination: f64::from(home_cos2) / 65536.0,
+            // The simulators inject a latency as `speed` (the true length's
+            // rate), not as a model term.
+            payout_rate_mm_s: 0.0,
         }
     }
 

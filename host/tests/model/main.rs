@@ -6,6 +6,7 @@
 mod dataset;
 mod home_epochs;
 mod identify;
+mod latency;
 mod learn;
 mod loop_closing;
 mod loop_rows;

@@ -28,6 +28,10 @@ spidar_qemu::fault_handlers!();
 
 /// Calls per benchmark (each with its own input).
 const N: usize = 32;
+/// Control-loop iterations run before the measured ones (3.2 ms at 10 kHz):
+/// the loop's count rate gives a rate once its window spans 2.8 ms, and a
+/// model with a latency term pays for it from then on.
+const WARM: usize = 32;
 
 // One piece, a benchmark driver rather than a kernel, for a measured reason
 // (issue 14): split into step functions, LLVM inlines them back into `main`
@@ -71,7 +75,7 @@ fn main() -> ! {
 
     // Pipeline stages.
     let inputs: [spidar_core::model::StringInputs; N] = core::array::from_fn(|_| string_inputs(&mut rng));
-    measure("string_law::string_lengths (8 strings, 9 effects + 3 shared)", None, N as u32, |i| {
+    measure("string_law::string_lengths (8 strings, 10 effects + 4 shared)", None, N as u32, |i| {
         spidar_core::string_law::string_lengths(StringLayout::ALL, laws, effects, &inputs[at(i)])
     });
     measure("kinematics::inverse_kinematics f32", None, N as u32, |i| inverse_kinematics(&anchors, positions[at(i)]));
@@ -162,9 +166,12 @@ fn main() -> ! {
         ctl.safety().heartbeat(0);
         let armed = ctl.safety().arm().is_ok();
         let mut fk_ok = 0;
+        warm_up(&mut ctl, cal, &raw);
         measure(name, Some(55_000), N as u32, |i| {
+            let i = WARM as u32 + i;
             ctl.safety().heartbeat(i / 10);
-            let out = ctl.step(cal, &LoopInput { raw_counts: raw[at(i)], now_ms: i / 10, estop: false });
+            let out = ctl
+                .step(cal, &LoopInput { raw_counts: raw[i as usize], now_ms: i / 10, now_us: i * 100, estop: false });
             fk_ok += (out.fk_status == spidar_core::kinematics::FkStatus::Ok) as u32;
             out.tensions_n
         });
@@ -204,8 +211,12 @@ fn main() -> ! {
         let armed = dev.armed();
         let mut fk_ok = 0;
         let mut tick_armed = 0;
+        for (i, r) in raw.iter().take(WARM).enumerate() {
+            dev.tick(&TickInput { raw_counts: *r, now_us: i as u64 * 100, estop: false });
+        }
         measure(name, Some(55_000), N as u32, |i| {
-            let out = dev.tick(&TickInput { raw_counts: raw[at(i)], now_us: u64::from(i) * 100, estop: false });
+            let i = WARM as u32 + i;
+            let out = dev.tick(&TickInput { raw_counts: raw[i as usize], now_us: u64::from(i) * 100, estop: false });
             fk_ok += (out.fk_status == spidar_core::kinematics::FkStatus::Ok) as u32;
             tick_armed += out.armed as u32;
             out.tensions_n
@@ -236,7 +247,7 @@ fn main() -> ! {
     for (names, cal) in [
         (
             [
-                "N=4 4-line: string_law::string_lengths (4 strings, 9 effects + 3 shared)",
+                "N=4 4-line: string_law::string_lengths (4 strings, 10 effects + 4 shared)",
                 "N=4 4-line: kinematics::forward_kinematics f32 (warm)",
                 "N=4 4-line: tension::distribute f32 (|F_i| <= 3 N)",
                 "N=4 4-line: control::Controller::step (NN 3-20-3)",
@@ -245,7 +256,7 @@ fn main() -> ! {
         ),
         (
             [
-                "N=4 planar: string_law::string_lengths (4 strings, 9 effects + 3 shared)",
+                "N=4 planar: string_law::string_lengths (4 strings, 10 effects + 4 shared)",
                 "N=4 planar: kinematics::forward_kinematics f32 (warm)",
                 "N=4 planar: tension::distribute f32 (|F_i| <= 3 N)",
                 "N=4 planar: control::Controller::step (NN 3-20-3)",
@@ -278,9 +289,12 @@ fn main() -> ! {
         let armed = ctl.safety().arm().is_ok();
         let mut fk_ok = 0;
         let mut exact = 0;
+        warm_up(&mut ctl, cal, &raw);
         measure(names[3], Some(55_000), N as u32, |i| {
+            let i = WARM as u32 + i;
             ctl.safety().heartbeat(i / 10);
-            let out = ctl.step(cal, &LoopInput { raw_counts: raw[at(i)], now_ms: i / 10, estop: false });
+            let out = ctl
+                .step(cal, &LoopInput { raw_counts: raw[i as usize], now_ms: i / 10, now_us: i * 100, estop: false });
             fk_ok += (out.fk_status == spidar_core::kinematics::FkStatus::Ok) as u32;
             exact += (out.tension_status == spidar_core::tension::TensionStatus::Exact) as u32;
             out.tensions_n
@@ -434,33 +448,61 @@ impl Loop {
 /// which `Controller::step` itself, with the state it will have, computes
 /// the path's string lengths: each reading is refined on a clone of a dry-run
 /// controller (setup, not measured).
-fn controller_path(cal: &spidar_core::blob::CompiledCalibration) -> [[u16; STRINGS]; N] {
+fn controller_path(cal: &spidar_core::blob::CompiledCalibration) -> [[u16; STRINGS]; WARM + N] {
     let Ok(mut ctl) = Controller::new(ControlConfig::default(), cal, [0; STRINGS], 0) else { exit(false) };
     ctl.set_target(Target::Guidance { target_mm: [100.0, -50.0, 1600.0], d_min_mm: 150.0, f_max_n: 5.0 });
     ctl.safety().heartbeat(0);
     let _ = ctl.safety().arm();
     let home = cal.head.frame.home;
-    let mut raw = [[0u16; STRINGS]; N];
+    let mut raw = [[0u16; STRINGS]; WARM + N];
     let mut counts = [0i32; STRINGS];
-    for k in 0..N {
+    for k in 0..WARM + N {
         let t = k as f32;
         let want =
             inverse_kinematics(&cal.head.frame.anchors, [home[0] + 0.1 * t, home[1] - 0.05 * t, home[2] + 0.03 * t]);
         let now = k as u32 / 10;
-        for _ in 0..8 {
+        // Secant steps: a latency term makes a string's length move with
+        // its counts through the count rate too (several times the payout's
+        // own ~0.0184 mm per count early in the rate's window).
+        let mut previous: Option<([i32; STRINGS], [f32; STRINGS])> = None;
+        for _ in 0..12 {
             let mut trial = ctl.clone();
             trial.safety().heartbeat(now);
-            let out = trial.step(cal, &LoopInput { raw_counts: counts.map(|c| c as u16), now_ms: now, estop: false });
+            let out = trial.step(
+                cal,
+                &LoopInput { raw_counts: counts.map(|c| c as u16), now_ms: now, now_us: k as u32 * 100, estop: false },
+            );
+            let err: [f32; STRINGS] = core::array::from_fn(|s| want[s] - out.string_lengths_mm[s]);
+            let here = out.counts;
             for s in 0..STRINGS {
                 // ~0.0184 mm per count (12 mm radius, 4096 counts per turn).
-                counts[s] = out.counts[s] + ((want[s] - out.string_lengths_mm[s]) / 0.0184) as i32;
+                let mut per_count = 0.0184;
+                if let Some((pc, pe)) = previous {
+                    let (dc, de) = ((here[s] - pc[s]) as f32, pe[s] - err[s]);
+                    if dc != 0.0 && de / dc > 0.001 {
+                        per_count = de / dc;
+                    }
+                }
+                let q = err[s] / per_count;
+                counts[s] = here[s] + (if q >= 0.0 { q + 0.5 } else { q - 0.5 }) as i32;
             }
+            previous = Some((here, err));
         }
         raw[k] = counts.map(|c| c as u16);
         ctl.safety().heartbeat(now);
-        ctl.step(cal, &LoopInput { raw_counts: raw[k], now_ms: now, estop: false });
+        ctl.step(cal, &LoopInput { raw_counts: raw[k], now_ms: now, now_us: k as u32 * 100, estop: false });
     }
     raw
+}
+
+/// The first [`WARM`] iterations of `raw` on `ctl`, heartbeats kept, not
+/// measured.
+fn warm_up(ctl: &mut Controller, cal: &spidar_core::blob::CompiledCalibration, raw: &[[u16; STRINGS]; WARM + N]) {
+    for (i, r) in raw.iter().take(WARM).enumerate() {
+        let i = i as u32;
+        ctl.safety().heartbeat(i / 10);
+        ctl.step(cal, &LoopInput { raw_counts: *r, now_ms: i / 10, now_us: i * 100, estop: false });
+    }
 }
 
 /// The firmware's flash slot (`firmware/src/storage.rs`).

@@ -7,6 +7,7 @@ use spidar_core::model::{Effect, EffectTerm, Frame, StringLayout, EVERY_STRING};
 use spidar_core::string_law::{sag_home_variable, sag_variable};
 use spidar_core::STRINGS;
 
+use crate::data::observe::{speed_observation, Observation, MAX_STREAM_SPEED_CHANGE};
 use crate::model::identify::{Identification, Structure};
 
 use super::evidence::{Columns, Evidence, OffSpan, Row, RowColumn};
@@ -88,7 +89,7 @@ pub(super) fn candidates(
         if !strings.is_active(i) {
             continue;
         }
-        for term in string_terms(ev.rows_of_string(i), i, *split) {
+        for term in string_terms(ev.rows_of_string(i), i, *split, ev.speed_observed) {
             if !has_effect(i, term.is_term) {
                 out.push(term.candidate(i));
             }
@@ -114,6 +115,12 @@ pub(super) fn candidates(
     }
     if !has_effect(shared, |e| matches!(e, Effect::Sag { .. })) {
         out.push(shared_sag_candidate(strings));
+    }
+    // A latency only where the rows observe the speed: a lattice's rows
+    // are captured seconds apart, and a difference between them is not the
+    // speed at the capture (the loop says so, `latency_not_tested`).
+    if ev.speed_observed && !has_effect(shared, |e| matches!(e, Effect::Latency { .. })) {
+        out.push(shared_latency_candidate(strings));
     }
     // The tracked body's origin off the strings' meeting point, seen through
     // the body's orientation (a tracker of rigid bodies gives it): the
@@ -195,9 +202,14 @@ impl StringTerm {
 }
 
 /// The terms one string `i` (of `rows` rows) can gain, in the order they
-/// are tried; a slip when the string's residual steps at `split` (its most
-/// likely slip time).
-fn string_terms(rows: usize, i: usize, split: Option<f64>) -> Vec<StringTerm> {
+/// are tried; a latency when the rows observe the speed; a slip when the
+/// string's residual steps at `split` (its most likely slip time).
+fn string_terms(
+    rows: usize,
+    i: usize,
+    split: Option<f64>,
+    speed_observed: bool,
+) -> Vec<StringTerm> {
     let mut terms = vec![
         StringTerm {
             family: Family::Offset,
@@ -266,8 +278,15 @@ fn string_terms(rows: usize, i: usize, split: Option<f64>) -> Vec<StringTerm> {
             family: Family::Backlash,
             variable: Variable::Direction,
             is_term: |e| matches!(e, Effect::Backlash { .. }),
-            columns: vec![Box::new(|r| f64::from(r.ctx.direction.signum()))],
-            rival: Vec::new(),
+            columns: vec![direction_column()],
+            // Both read the motion: where the rows observe the speed, a
+            // backlash must explain the residual beyond a latency's (and a
+            // latency beyond a backlash's, below).
+            rival: if speed_observed {
+                vec![speed_column()]
+            } else {
+                Vec::new()
+            },
             search_penalty: 0.0,
             effect: Box::new(|b| Effect::Backlash {
                 half_width_mm: b[0],
@@ -285,10 +304,52 @@ fn string_terms(rows: usize, i: usize, split: Option<f64>) -> Vec<StringTerm> {
             describe: format!("string {i}'s length drifts with time since initialization"),
         },
     ];
+    if speed_observed {
+        terms.push(StringTerm {
+            family: Family::Latency,
+            variable: Variable::Speed,
+            is_term: |e| matches!(e, Effect::Latency { .. }),
+            columns: vec![speed_column()],
+            rival: vec![direction_column()],
+            search_penalty: 0.0,
+            effect: Box::new(|b| Effect::Latency { latency_s: b[0] }),
+            describe: format!(
+                "string {i}'s error follows its speed (its encoder is read late: latency)"
+            ),
+        });
+    }
     if let Some(at_s) = split {
         terms.push(slip_term(rows, i, at_s));
     }
     terms
+}
+
+/// A backlash's column: the sign of the string's direction of motion.
+fn direction_column() -> RowColumn {
+    Box::new(|r| f64::from(r.ctx.direction.signum()))
+}
+
+/// A latency's column: the payout's rate of change (mm/s) at the row's
+/// count rate, what the term multiplies by its delay.
+fn speed_column() -> RowColumn {
+    Box::new(|r| r.ctx.payout_rate_mm_s)
+}
+
+/// One latency shared by every string (encoders of one kind read by one
+/// loop), where the rows observe the speed.
+fn shared_latency_candidate(strings: StringLayout) -> Candidate {
+    Candidate {
+        family: Family::Latency,
+        strings: Vec::new(),
+        variable: Variable::Speed,
+        columns: vec![shared_column(strings, |r| r.ctx.payout_rate_mm_s)],
+        on_string: None,
+        search_penalty: 0.0,
+        rival: Vec::new(),
+        build: Box::new(|b| every_string(Effect::Latency { latency_s: b[0] })),
+        describe: "every string's error follows its speed alike (the encoders are read late)"
+            .into(),
+    }
 }
 
 /// A slip of string `i` (of `rows` rows) at `at_s`: a step in its length,
@@ -502,6 +563,49 @@ fn marker_offset_candidate(strings: StringLayout, before: [f64; 3]) -> Candidate
                    with the body (the tracker's orientation)"
             .into(),
     }
+}
+
+/// Why the latency family had no candidate, as a finding the report
+/// lists: the rows carry no count rate (`data::observe`: they do not
+/// resolve the motion, [`speed_observation`] of them says how far from it
+/// they are). `None` when they do (the family was tested).
+pub(super) fn latency_not_tested(observations: &[Observation]) -> Option<Finding> {
+    let speed_observed = observations
+        .iter()
+        .any(|o| o.inputs.count_rate_cps.iter().any(|&r| r != 0));
+    if speed_observed || observations.is_empty() {
+        return None;
+    }
+    let s = speed_observation(observations);
+    let why = if s.moving == 0 {
+        "no string moved between its neighbouring rows".to_string()
+    } else {
+        format!(
+            "a moving string's speed changes by {:.0} % of itself from one row interval to the \
+             next (median of {} rows and strings; a stream that resolves the motion changes by \
+             less than {:.0} %)",
+            100.0 * s.speed_change,
+            s.moving,
+            100.0 * MAX_STREAM_SPEED_CHANGE
+        )
+    };
+    Some(Finding {
+        family: Family::Latency,
+        strings: Vec::new(),
+        variable: Variable::Speed,
+        amplitude_mm: 0.0,
+        explained: 0.0,
+        added: false,
+        chi2: 0.0,
+        description: format!(
+            "not tested: the rows do not observe the strings' speed (static session: rows {:.2} s \
+             apart, {why}), so a difference of neighbouring rows is not the speed at a capture \
+             and an encoder's latency cannot be told here",
+            s.median_interval_s
+        ),
+        validation: None,
+        change: None,
+    })
 }
 
 /// Whether each candidate explains the residual beyond its rival's

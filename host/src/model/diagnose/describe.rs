@@ -36,6 +36,7 @@ pub fn family_name(f: Family) -> &'static str {
         Family::Slip => "slip",
         Family::Sag => "sag",
         Family::FrameFlex => "frame flex",
+        Family::Latency => "latency",
         Family::Layers => "layers",
         Family::Geometry => "geometry",
         Family::Marker => "marker offset",
@@ -124,6 +125,11 @@ fn in_physical_terms(effect: &Effect) -> Option<String> {
                  home capture {home_total})"
             ))
         }
+        Effect::Latency { latency_s } => Some(format!(
+            " (fitted: the encoder read {:.2} ms {})",
+            1000.0 * latency_s.abs(),
+            if latency_s >= 0.0 { "late" } else { "early" }
+        )),
         _ => None,
     }
 }

@@ -65,6 +65,9 @@ pub(super) struct Evidence<'a> {
     pub(super) residual: DVector<f64>,
     /// Residual variance per unit weight, mm^2.
     pub(super) sigma2: f64,
+    /// Whether the rows carry the strings' count rates (a stream:
+    /// `data::observe::speed_observation`), so that a latency can be told.
+    pub(super) speed_observed: bool,
     /// Weighted residual sum of squares, mm^2.
     pub(super) rss: f64,
 }
@@ -145,8 +148,12 @@ impl<'a> Evidence<'a> {
             .flatten()
             .filter(|&&w| w > 0.0)
             .count();
+        let speed_observed = observations
+            .iter()
+            .any(|o| o.inputs.count_rate_cps.iter().any(|&r| r != 0));
         let mut ev = Evidence {
             layout: nominal.layout,
+            speed_observed,
             source: Source::Fit(FitRows {
                 id,
                 observations,
@@ -177,6 +184,7 @@ impl<'a> Evidence<'a> {
         let dims = basis.ncols();
         let mut ev = Evidence {
             layout: StringLayout::ALL,
+            speed_observed: false,
             source: Source::Given {
                 rows,
                 residuals,

@@ -42,7 +42,10 @@ use crate::model::validate::{
     IN_SAMPLE_SHARE_OF_GAIN,
 };
 
-use candidates::{anchors_beyond_tolerance, beyond_rivals, candidates, chi2_threshold, Candidate};
+use candidates::{
+    anchors_beyond_tolerance, beyond_rivals, candidates, chi2_threshold, latency_not_tested,
+    Candidate,
+};
 use describe::{fitted_in_physical_terms, stage_name};
 use evidence::{Columns, Evidence};
 use slips::{slip_times, slips_together, steps_where_it_slipped};
@@ -233,6 +236,7 @@ pub fn close_loop(
         ..
     } = state;
     findings.extend(unexplained(&id, &seen_train, nominal, &structure, config));
+    findings.extend(latency_not_tested(&seen_train));
     if weigh_what_follows_speed(&mut id, &findings) {
         // The last stage is the final model: its errors with the weights it
         // now has.

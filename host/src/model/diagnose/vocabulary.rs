@@ -30,6 +30,10 @@ pub enum Family {
     Sag,
     /// The guides moving with the strings' total pull ([`Effect::FrameFlex`]).
     FrameFlex,
+    /// An encoder read late: the string's speed times the delay
+    /// ([`Effect::Latency`]); tested only where the rows observe the speed
+    /// (a stream).
+    Latency,
     /// Layer tables ([`crate::model::layers`]): the spool's departure from the
     /// smooth winding law, per string.
     Layers,

@@ -157,6 +157,7 @@ pub fn effect_parameter_info(effect: &Effect) -> &'static [(&'static str, f64, &
             ("stretch_home_tension", 1.0, "N"),
         ],
         Effect::FrameFlex { .. } => &[("frame_flex", 1e-2, "mm/N"), ("frame_flex_home", 0.1, "mm")],
+        Effect::Latency { .. } => &[("latency", 1e-3, "s")],
     }
 }
 

@@ -68,11 +68,14 @@ pub struct StringEvidence {
 }
 
 /// The findings that get a figure: every one the loop added, then the
-/// strongest others.
+/// strongest others (not one the loop did not test, with neither a check
+/// nor a statistic: a family without a candidate, such as a latency on a
+/// static session, has no evidence).
 pub(super) fn drawn_findings(findings: &[Finding]) -> Vec<usize> {
     let mut added: Vec<usize> = (0..findings.len()).filter(|&i| findings[i].added).collect();
+    let tested = |f: &Finding| f.validation.is_some() || f.chi2 > 0.0;
     let mut others: Vec<usize> = (0..findings.len())
-        .filter(|&i| !findings[i].added)
+        .filter(|&i| !findings[i].added && tested(&findings[i]))
         .collect();
     others.sort_by(|&a, &b| findings[b].chi2.total_cmp(&findings[a].chi2));
     others.truncate(NOT_ADDED_WITH_FIGURE);

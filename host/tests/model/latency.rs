@@ -1,0 +1,187 @@
+//! Encoder latency (issue 33, point 3): a string read `tau` late is short
+//! of its length by `tau dL/dt`. The loop tests the latency family only
+//! where the rows observe the speed (a stream), names it on the lagging
+//! strings and closes the held-out error; on a static lattice it says why
+//! the family was not tested; and where a backlash is the truth, a
+//! backlash is found, not a latency.
+
+use spidar::data::dataset::Session;
+use spidar::data::observe::{observations, speed_observation};
+use spidar::model::diagnose::{close_loop, Family, LoopConfig, LoopResult, Variable};
+use spidar::model::identify::Start;
+use spidar::sim::{simulate_session, SessionKind, SimConfig, SimulatedDevice};
+use spidar_core::model::Effect;
+
+/// A model-simulator device of `seed` with `effects` injected and two
+/// 100 Hz streams of it (the hand along straight legs at 100 to 300 mm/s):
+/// `train` and `test` rows long.
+fn streams(
+    seed: u64,
+    effects: &[&str],
+    (train, test): (usize, usize),
+) -> (SimConfig, Session, Session) {
+    let mut c = SimConfig {
+        effects: effects.iter().map(|s| s.to_string()).collect(),
+        ..SimConfig::default()
+    };
+    c.random.capture_interval_s = 0.01;
+    let device = SimulatedDevice::new(&c, seed).expect("device");
+    let stream = |points: usize, session_seed: u64| {
+        simulate_session(&device, SessionKind::Random { points }, session_seed).expect("stream")
+    };
+    let (train, test) = (stream(train, seed + 100), stream(test, seed + 200));
+    (c, train, test)
+}
+
+/// The loop on `train` (held out: `test`): its result and the test
+/// session's mean error after it.
+fn run(c: &SimConfig, train: &Session, test: &Session) -> (LoopResult, f64) {
+    let geometry = c.nominal.geometry();
+    let train = observations(&train.samples);
+    let test = observations(&test.samples);
+    let result = close_loop(
+        &train,
+        Some(&test),
+        &geometry.nominal_frame(),
+        &Start::from_geometry(&geometry),
+        &LoopConfig::for_geometry(&geometry),
+    )
+    .expect("loop");
+    let after = result
+        .stages
+        .last()
+        .and_then(|s| s.test)
+        .or(result.base_test)
+        .expect("test stats")
+        .mean_mm;
+    (result, after)
+}
+
+/// The loop on 30 s / 10 s streams of device `seed` with `effects`.
+fn streamed(seed: u64, effects: &[&str]) -> (LoopResult, f64) {
+    let (c, train, test) = streams(seed, effects, (3000, 1000));
+    run(&c, &train, &test)
+}
+
+fn added(result: &LoopResult) -> Vec<(Family, Vec<u8>)> {
+    result
+        .findings
+        .iter()
+        .filter(|f| f.added)
+        .map(|f| (f.family, f.strings.clone()))
+        .collect()
+}
+
+/// 6 ms of latency on strings 2 and 5 of a streamed device: a latency on
+/// each (about 6 ms), no other term on them and no backlash anywhere, and
+/// the held-out error within 1.3 times the same device's without it.
+#[test]
+fn latency_on_two_strings_of_a_stream_is_found_and_closed() {
+    let seed = 1;
+    let (result, after) = streamed(
+        seed,
+        &["speed:2:latency_s=0.006", "speed:5:latency_s=0.006"],
+    );
+    let (_, clean) = streamed(seed, &[]);
+    let found = added(&result);
+    println!("added {found:?}; after {after:.3} mm, clean {clean:.3} mm");
+    for s in [2u8, 5] {
+        assert!(
+            found.contains(&(Family::Latency, vec![s])),
+            "string {s}: {found:?}"
+        );
+    }
+    assert!(
+        !found.iter().any(|(f, _)| *f == Family::Backlash),
+        "a backlash stood in: {found:?}"
+    );
+    for t in &result.identification.effects {
+        if let Effect::Latency { latency_s } = t.effect {
+            assert!(
+                [2, 5].contains(&t.string) && (latency_s - 0.006).abs() < 0.0015,
+                "{t:?}"
+            );
+        }
+    }
+    assert!(
+        after <= 1.3 * clean,
+        "after {after:.3} mm, clean {clean:.3} mm"
+    );
+}
+
+/// A clean streamed device: the latency family is tested (the rows
+/// observe the speed) and nothing is found.
+#[test]
+fn a_clean_stream_finds_no_latency() {
+    for seed in [1, 2] {
+        let (result, _) = streamed(seed, &[]);
+        assert!(
+            !result.findings.iter().any(|f| f.family == Family::Latency),
+            "seed {seed}: {:?}",
+            result
+                .findings
+                .iter()
+                .map(|f| (f.family, f.strings.clone(), f.added, &f.description))
+                .collect::<Vec<_>>()
+        );
+    }
+}
+
+/// A backlash on a streamed device (both families read the motion):
+/// the backlash is found, and no latency on its string.
+#[test]
+fn a_streamed_backlash_is_a_backlash_not_a_latency() {
+    let (result, _) = streamed(2, &["backlash:4:half_width_mm=0.8"]);
+    let found = added(&result);
+    assert!(found.contains(&(Family::Backlash, vec![4])), "{found:?}");
+    assert!(
+        !found.iter().any(|(f, _)| *f == Family::Latency),
+        "{found:?}"
+    );
+}
+
+/// The static lattice of a device with latency: its rows do not observe
+/// the speed (the speed changes by about itself between row intervals),
+/// they carry no count rate, no latency is added, and the loop's report
+/// says the family was not tested and why.
+#[test]
+fn a_static_lattice_does_not_test_latency_and_says_so() {
+    let (device, train, test) = spidar::sim::device_with_lattice_and_test(
+        1,
+        &["speed:2:latency_s=0.006", "speed:5:latency_s=0.006"],
+        300,
+    )
+    .expect("sessions");
+    let obs = observations(&train.samples);
+    let seen = speed_observation(&obs);
+    assert!(!seen.stream && seen.speed_change > 0.4, "{seen:?}");
+    assert!(obs.iter().all(|o| o.inputs.count_rate_cps == [0; 8]));
+    let geometry = device.nominal.clone();
+    let result = close_loop(
+        &obs,
+        Some(&observations(&test.samples)),
+        &geometry.nominal_frame(),
+        &Start::from_geometry(&geometry),
+        &LoopConfig::for_geometry(&geometry),
+    )
+    .expect("loop");
+    let latency: Vec<_> = result
+        .findings
+        .iter()
+        .filter(|f| f.family == Family::Latency)
+        .collect();
+    assert_eq!(latency.len(), 1, "{latency:?}");
+    let f = latency[0];
+    assert!(!f.added && f.change.is_none() && f.variable == Variable::Speed);
+    assert!(
+        f.description
+            .starts_with("not tested: the rows do not observe the strings' speed"),
+        "{}",
+        f.description
+    );
+    assert!(!result
+        .identification
+        .effects
+        .iter()
+        .any(|t| t.effect.reads_speed()));
+}
