@@ -202,9 +202,9 @@ pub(crate) fn validate_by(
 }
 
 /// Held-out errors of `structure` on the forward-chaining folds of `train`
-/// ([`forward_folds`](super::folds::forward_folds): each fit, warm from
-/// `from`, earlier than the rows it predicts), pooled; `None` for a session
-/// too small for them.
+/// (fit the earlier half and predict the third quarter, fit three quarters
+/// and predict the last, in time; each fit warm from `from`), pooled;
+/// `None` for a session of fewer than [`MIN_BLOCKED_ROWS`](super::MIN_BLOCKED_ROWS) tracked rows.
 pub fn validate_forward(
     train: &[Observation],
     nominal: &Frame<f64>,
