@@ -384,6 +384,22 @@ fn streams(seed: u64, effects: &[&str]) -> (SimulatedDevice, Vec<Observation>, V
     (device, train, test)
 }
 
+/// The loop on the streams of device `seed` with `effects`, and its time (s).
+fn stream_loop(seed: u64, effects: &[&str]) -> (LoopResult, f64) {
+    let (device, train, test) = streams(seed, effects);
+    let geometry = device.nominal.clone();
+    let t0 = std::time::Instant::now();
+    let r = close_loop(
+        &train,
+        Some(&test),
+        &geometry.nominal_frame(),
+        &Start::from_geometry(&geometry),
+        &LoopConfig::for_geometry(&geometry),
+    )
+    .expect("loop");
+    (r, t0.elapsed().as_secs_f64())
+}
+
 /// One stream row: `effects` on `seeds` devices; found when every one of
 /// `expect` (family, strings) is added and no `absent` family is; the
 /// worst held-out mean against the same device's clean stream.
@@ -397,19 +413,9 @@ fn stream_row(
     for seed in 1..=seeds {
         let mut after = [0.0; 2];
         for (k, effects) in [effects, &[][..]].iter().enumerate() {
-            let (device, train, test) = streams(seed, effects);
-            let geometry = device.nominal.clone();
-            let t0 = std::time::Instant::now();
-            let r = close_loop(
-                &train,
-                Some(&test),
-                &geometry.nominal_frame(),
-                &Start::from_geometry(&geometry),
-                &LoopConfig::for_geometry(&geometry),
-            )
-            .expect("loop");
+            let (r, loop_s) = stream_loop(seed, effects);
             if k == 0 {
-                seconds += t0.elapsed().as_secs_f64();
+                seconds += loop_s;
                 let added = |family: Family, strings: &[u8]| {
                     r.findings
                         .iter()
@@ -479,16 +485,7 @@ fn stream_rows(seeds: u64) {
     }
     let mut latency_on_clean = 0;
     for seed in 1..=seeds {
-        let (device, train, test) = streams(seed, &[]);
-        let geometry = device.nominal.clone();
-        let r = close_loop(
-            &train,
-            Some(&test),
-            &geometry.nominal_frame(),
-            &Start::from_geometry(&geometry),
-            &LoopConfig::for_geometry(&geometry),
-        )
-        .expect("loop");
+        let (r, _) = stream_loop(seed, &[]);
         latency_on_clean += r
             .findings
             .iter()

@@ -36,25 +36,7 @@ fn streams(
 /// The loop on `train` (held out: `test`): its result and the test
 /// session's mean error after it.
 fn run(c: &SimConfig, train: &Session, test: &Session) -> (LoopResult, f64) {
-    let geometry = c.nominal.geometry();
-    let train = observations(&train.samples);
-    let test = observations(&test.samples);
-    let result = close_loop(
-        &train,
-        Some(&test),
-        &geometry.nominal_frame(),
-        &Start::from_geometry(&geometry),
-        &LoopConfig::for_geometry(&geometry),
-    )
-    .expect("loop");
-    let after = result
-        .stages
-        .last()
-        .and_then(|s| s.test)
-        .or(result.base_test)
-        .expect("test stats")
-        .mean_mm;
-    (result, after)
+    crate::loop_on(&c.nominal.geometry(), train, test)
 }
 
 /// The loop on 30 s / 10 s streams of device `seed` with `effects`.

@@ -3,9 +3,7 @@
 //! family, strings and variable, and after adding it the held-out error must
 //! fall to within 1.3 times that of the same device without the effect.
 
-use spidar::data::observe::observations;
-use spidar::model::diagnose::{close_loop, Family, LoopConfig, LoopResult, Variable};
-use spidar::model::identify::Start;
+use spidar::model::diagnose::{Family, LoopResult, Variable};
 use spidar::sim::device_with_lattice_and_test;
 use spidar_core::kinematics::residual_weights;
 use spidar_core::model::{Effect, EVERY_STRING};
@@ -15,27 +13,7 @@ use spidar_core::model::{Effect, EVERY_STRING};
 fn run(seed: u64, effects: &[&str]) -> (LoopResult, f64) {
     let (device, train, test) =
         device_with_lattice_and_test(seed, effects, 500).expect("simulated sessions");
-    let geometry = device.nominal.clone();
-    let train = observations(&train.samples);
-    let test = observations(&test.samples);
-    let nominal = geometry.nominal_frame();
-    let start = Start::from_geometry(&geometry);
-    let result = close_loop(
-        &train,
-        Some(&test),
-        &nominal,
-        &start,
-        &LoopConfig::for_geometry(&geometry),
-    )
-    .expect("loop");
-    let after = result
-        .stages
-        .last()
-        .and_then(|s| s.test)
-        .or(result.base_test)
-        .expect("test stats")
-        .mean_mm;
-    (result, after)
+    crate::loop_on(&device.nominal, &train, &test)
 }
 
 /// The held-out error of the same device without any injected effect.

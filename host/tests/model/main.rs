@@ -29,6 +29,37 @@ fn slips_of(r: &spidar::model::diagnose::LoopResult) -> Vec<(u8, f64, f64)> {
         .collect()
 }
 
+/// The loop on the observations of `train` (held out: `test`) of a device
+/// of `geometry`: its result and the test session's mean error after it
+/// (loop_closing, latency).
+fn loop_on(
+    geometry: &spidar::data::dataset::Geometry,
+    train: &spidar::data::dataset::Session,
+    test: &spidar::data::dataset::Session,
+) -> (spidar::model::diagnose::LoopResult, f64) {
+    use spidar::data::observe::observations;
+    use spidar::model::diagnose::{close_loop, LoopConfig};
+    use spidar::model::identify::Start;
+    let train = observations(&train.samples);
+    let test = observations(&test.samples);
+    let result = close_loop(
+        &train,
+        Some(&test),
+        &geometry.nominal_frame(),
+        &Start::from_geometry(geometry),
+        &LoopConfig::for_geometry(geometry),
+    )
+    .expect("loop");
+    let after = result
+        .stages
+        .last()
+        .and_then(|s| s.test)
+        .or(result.base_test)
+        .expect("test stats")
+        .mean_mm;
+    (result, after)
+}
+
 /// A calibration of two sessions held in memory, named `train.csv` and
 /// `test.csv` beside a `geometry.toml` as the command line would read them
 /// (learn, loop_rows).
