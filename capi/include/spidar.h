@@ -37,7 +37,7 @@
 #include <stdint.h>
 
 // Version of this API: changes when a function or struct changes.
-#define SPIDAR_API_VERSION 1
+#define SPIDAR_API_VERSION 2
 
 // Strings (channels) of the controller: the length of the per-string
 // arrays.
@@ -147,6 +147,10 @@ typedef struct spidar_state {
   uint64_t time_us;
   // The same instant, µs since home was declared.
   uint64_t since_home_us;
+  // The home capture the counts are from: the boot's random id in the
+  // upper 32 bits, the home captures since that boot in the lower 32
+  // (a session's `home` column).
+  uint64_t home_id;
   // State frames received since the handle was opened, this one
   // included (1 for the first).
   uint64_t index;

@@ -38,6 +38,10 @@ pub struct spidar_state {
     pub time_us: u64,
     /// The same instant, µs since home was declared.
     pub since_home_us: u64,
+    /// The home capture the counts are from: the boot's random id in the
+    /// upper 32 bits, the home captures since that boot in the lower 32
+    /// (a session's `home` column).
+    pub home_id: u64,
     /// State frames received since the handle was opened, this one
     /// included (1 for the first).
     pub index: u64,
@@ -181,6 +185,7 @@ pub fn state_of(
     let mut out = spidar_state {
         time_us: s.time_us,
         since_home_us: s.since_home_us,
+        home_id: s.home_id,
         index: r.index,
         age_us: now.saturating_duration_since(r.at).as_micros() as u64,
         lost,

@@ -62,7 +62,7 @@ pub struct spidar_device {
 }
 
 /// Version of this API: changes when a function or struct changes.
-pub const SPIDAR_API_VERSION: u32 = 1;
+pub const SPIDAR_API_VERSION: u32 = 2;
 
 fn device<'a>(function: &str, dev: *mut spidar_device) -> Result<&'a spidar_device, Error> {
     // SAFETY: non-NULL handles come from spidar_open*, valid until

@@ -184,6 +184,8 @@ fn a_model_is_flashed_while_the_stream_runs_and_a_bad_blob_is_refused() {
     let mut s: spidar_state = zeroed();
     assert_eq!(spidar_wait_state(dev, 10_000, &mut s), SPIDAR_OK);
     assert_eq!(s.model_id, SPIDAR_VIRTUAL_MODEL_ID);
+    // The virtual device's first boot (id 1) homed once, with its model.
+    assert_eq!(s.home_id, 1 << 32 | 1);
     // A blob that is not one: refused before anything is sent, named.
     let junk = [7u8; 64];
     assert_eq!(

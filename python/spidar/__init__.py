@@ -51,6 +51,7 @@ class _State(ctypes.Structure):
     _fields_ = [
         ("time_us", ctypes.c_uint64),
         ("since_home_us", ctypes.c_uint64),
+        ("home_id", ctypes.c_uint64),
         ("index", ctypes.c_uint64),
         ("age_us", ctypes.c_uint64),
         ("lost", ctypes.c_uint64),
@@ -122,7 +123,7 @@ _STRUCTS = {
     b"spidar_virtual_options": _VirtualOptions,
 }
 
-_API_VERSION = 1
+_API_VERSION = 2
 _DISARMED = -7
 
 
@@ -221,6 +222,7 @@ def _state_dict(s):
     return {
         "time_us": s.time_us,
         "since_home_us": s.since_home_us,
+        "home_id": s.home_id,
         "index": s.index,
         "age_us": s.age_us,
         "lost": s.lost,
@@ -255,7 +257,7 @@ def _model_dict(m):
 class Device:
     """An open SPIDAR (CHAI3D's cGenericHapticDevice, dhd's device id).
 
-    States are dicts: time_us, since_home_us, position_mm (room frame),
+    States are dicts: time_us, since_home_us, home_id, position_mm (room frame),
     rendered_force_n (room frame), counts, tensions_n, faults (names),
     armed, motors_on, age_us (host time since it arrived), lost, ...
     """
