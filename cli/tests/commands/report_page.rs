@@ -292,6 +292,10 @@ fn check_page(dir: &Path, name: &str) -> usize {
         [loaded.console, phone.console].concat()
     );
     assert!(loaded.dom.contains("</html>"), "{name}: no page loaded");
+    assert!(
+        loaded.dom.contains("The test session's home capture: "),
+        "{name}: the page does not say which home capture the test session follows"
+    );
     let rows = check_stage_table(&loaded.dom, &report);
     let figures = check_figures(&loaded.dom, &page);
     eprintln!(

@@ -53,6 +53,9 @@ fn sessions(inputs: &Value) -> Html {
     h.push(p(
         "Tracked rows are those with a tracker position: every error on this page is over them.",
     ));
+    if let Some(reason) = inputs["test"]["home"]["reason"].as_str() {
+        h.push(p(&format!("The test session's home capture: {reason}.")));
+    }
     h
 }
 
