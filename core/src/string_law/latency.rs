@@ -32,7 +32,7 @@
 use core::f64::consts::TAU;
 
 use super::{
-    finite, mul_i32_shr, polynomial_slope_f64, pulley_angle, shl_sat, CompiledEffect,
+    in_range, mul_i32_shr, polynomial_slope_f64, pulley_angle, shl_sat, CompiledEffect,
     CompiledStringLaw, FixedContext, StringLawCompileError, COUNTS_SHIFT,
 };
 use crate::model::{StringLaw, WINDING_ORDER};
@@ -99,16 +99,7 @@ pub(super) fn compile_latency(
     string: u8,
     latency_s: f64,
 ) -> Result<CompiledEffect, StringLawCompileError> {
-    let tau = finite(s, "latency_s", latency_s)?;
-    if tau.abs() > MAX_LATENCY_S {
-        return Err(StringLawCompileError::OutOfRange {
-            string: s,
-            field: "latency_s",
-            value: tau,
-            min: -MAX_LATENCY_S,
-            max: MAX_LATENCY_S,
-        });
-    }
+    let tau = in_range(s, "latency_s", latency_s, -MAX_LATENCY_S, MAX_LATENCY_S)?;
     Ok(CompiledEffect::Latency {
         string,
         latency_q31: libm::round(tau * libm::exp2(31.0)) as i32,
