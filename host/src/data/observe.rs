@@ -98,6 +98,14 @@ pub fn observations_skipping(samples: &[Sample], skipped: &[usize]) -> Vec<Obser
     observations
 }
 
+/// Whether `observations` carry count rates (a stream's rows,
+/// [`speed_observation`]): what a latency term can be told from.
+pub fn observes_speed(observations: &[Observation]) -> bool {
+    observations
+        .iter()
+        .any(|o| o.inputs.count_rate_cps.iter().any(|&r| r != 0))
+}
+
 /// Whether a session's rows observe the strings' speed, and what says so.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct SpeedObservation {
@@ -155,10 +163,10 @@ pub fn speed_observation(observations: &[Observation]) -> SpeedObservation {
     }
     let median = |v: &mut Vec<f64>| {
         if v.is_empty() {
-            return f64::NAN;
+            f64::NAN
+        } else {
+            crate::data::stats::median(v)
         }
-        v.sort_by(f64::total_cmp);
-        v[v.len() / 2]
     };
     let mut intervals: Vec<f64> = distinct
         .windows(2)

@@ -21,20 +21,7 @@ fn config(strings: usize, planar: bool) -> SimConfig {
 fn run(c: &SimConfig, train: &Session, test: &Session) -> Calibrated {
     let mut cfg = CalibrateConfig::quick();
     cfg.quiet = true;
-    calibrate(
-        &c.nominal.geometry(),
-        Path::new("geometry.toml"),
-        NamedSession {
-            path: Path::new("train.csv"),
-            session: train,
-        },
-        NamedSession {
-            path: Path::new("test.csv"),
-            session: test,
-        },
-        &cfg,
-    )
-    .expect("calibrate")
+    crate::calibrate_in_memory(&c.nominal.geometry(), train, test, &cfg)
 }
 
 fn final_test_mean(c: &Calibrated) -> f64 {

@@ -7,7 +7,9 @@ use spidar_core::model::{Effect, EffectTerm, Frame, StringLayout, EVERY_STRING};
 use spidar_core::string_law::{sag_home_variable, sag_variable};
 use spidar_core::STRINGS;
 
-use crate::data::observe::{speed_observation, Observation, MAX_STREAM_SPEED_CHANGE};
+use crate::data::observe::{
+    observes_speed, speed_observation, Observation, MAX_STREAM_SPEED_CHANGE,
+};
 use crate::model::identify::{Identification, Structure};
 
 use super::evidence::{Columns, Evidence, OffSpan, Row, RowColumn};
@@ -570,10 +572,7 @@ fn marker_offset_candidate(strings: StringLayout, before: [f64; 3]) -> Candidate
 /// resolve the motion, [`speed_observation`] of them says how far from it
 /// they are). `None` when they do (the family was tested).
 pub(super) fn latency_not_tested(observations: &[Observation]) -> Option<Finding> {
-    let speed_observed = observations
-        .iter()
-        .any(|o| o.inputs.count_rate_cps.iter().any(|&r| r != 0));
-    if speed_observed || observations.is_empty() {
+    if observes_speed(observations) || observations.is_empty() {
         return None;
     }
     let s = speed_observation(observations);

@@ -148,9 +148,7 @@ impl<'a> Evidence<'a> {
             .flatten()
             .filter(|&&w| w > 0.0)
             .count();
-        let speed_observed = observations
-            .iter()
-            .any(|o| o.inputs.count_rate_cps.iter().any(|&r| r != 0));
+        let speed_observed = crate::data::observe::observes_speed(observations);
         let mut ev = Evidence {
             layout: nominal.layout,
             speed_observed,

@@ -38,7 +38,7 @@ use crate::model::identify::{identify, Identification, IdentifyError, Start, Str
 use crate::model::layers::{self, StringLayers, TableLevel};
 use crate::model::validate::{
     held_out_error_list, judge, judge_step, judgeable_folds, refuse_a_fold_repair,
-    refuse_on_fold_rise, stability, validate, validate_fits, validate_forward,
+    refuse_on_fold_rise, refused, stability, validate, validate_fits, validate_forward,
     IN_SAMPLE_SHARE_OF_GAIN,
 };
 
@@ -600,20 +600,12 @@ impl LoopState<'_> {
                 ..check
             });
         }
-        let figures = check
-            .reason
-            .strip_prefix("added: ")
-            .unwrap_or(&check.reason)
-            .to_string();
-        Ok(Check {
-            accepted: false,
-            reason: format!(
-                "not added: fitted on the earlier rows it predicts the later ones worse, {:.3} -> \
-                 {:.3} mm (forward chaining), though the blocked folds took it: {figures}",
-                before.mean_mm, after.mean_mm
-            ),
-            ..check
-        })
+        let why = format!(
+            "fitted on the earlier rows it predicts the later ones worse, {:.3} -> {:.3} mm \
+             (forward chaining), though the blocked folds took it",
+            before.mean_mm, after.mean_mm
+        );
+        Ok(refused(check, &why))
     }
 
     /// With a step (a slip) proposed on a model with layer tables: the

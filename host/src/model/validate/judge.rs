@@ -367,19 +367,24 @@ pub(crate) fn refuse_on_fold_rise(check: Check) -> Check {
     let Some(rise) = fold_rise(&check.before, &check.after) else {
         return check;
     };
-    let figures = check
-        .reason
-        .strip_prefix("added: ")
-        .unwrap_or(&check.reason)
-        .to_string();
-    Check {
-        accepted: false,
-        reason: format!(
-            "not added: the {} fold gets worse, {:.3} -> {:.3} mm ({:.1} standard errors of its \
-             paired differences): a drift fitted on either half helps the other, this one only \
-             moves error between them: {figures}",
+    refused(
+        check,
+        &format!(
+            "the {} fold gets worse, {:.3} -> {:.3} mm ({:.1} standard errors of its paired \
+             differences): a drift fitted on either half helps the other, this one only moves \
+             error between them",
             rise.fold, rise.before_mm, rise.after_mm, rise.z
         ),
+    )
+}
+
+/// An accepted `check` refused for `why` by a later rule: "not added:
+/// {why}: " and the figures it was accepted on.
+pub(crate) fn refused(check: Check, why: &str) -> Check {
+    let figures = check.reason.trim_start_matches("added: ");
+    Check {
+        accepted: false,
+        reason: format!("not added: {why}: {figures}"),
         ..check
     }
 }
@@ -449,16 +454,14 @@ pub(crate) fn refuse_a_fold_repair(
     let held = 1.0 - check.after.held.mean_mm / check.before.held.mean_mm.max(1e-12);
     let in_sample = 1.0 - after.mean_mm / before.mean_mm.max(1e-12);
     if check.accepted && in_sample < share * held {
-        check.accepted = false;
-        check.reason = format!(
-            "not added: it lowers the held-out mean by {:.1} % but that of the rows it is \
-             fitted on by {:.1} % ({:.3} -> {:.3} mm): it repairs how the folds were fitted, \
-             not the model: {}",
+        let why = format!(
+            "it lowers the held-out mean by {:.1} % but that of the rows it is fitted on by \
+             {:.1} % ({:.3} -> {:.3} mm): it repairs how the folds were fitted, not the model",
             100.0 * held,
             100.0 * in_sample,
             before.mean_mm,
             after.mean_mm,
-            check.reason.trim_start_matches("added: ")
         );
+        *check = refused(check.clone(), &why);
     }
 }

@@ -30,6 +30,7 @@ pub use held_out::{cross_validated_error, validate, validate_forward, Validation
 pub(crate) use held_out::{judged_fold_fits, validate_by, validate_fits};
 pub use judge::{judge, Check, FAILING_ROW_FACTOR, FAILING_ROW_RISE};
 pub(crate) use judge::{
-    judge_step, refuse_a_fold_repair, refuse_on_fold_rise, stability, IN_SAMPLE_SHARE_OF_GAIN,
+    judge_step, refuse_a_fold_repair, refuse_on_fold_rise, refused, stability,
+    IN_SAMPLE_SHARE_OF_GAIN,
 };
 pub use preferred::{preferred, Preferred};
