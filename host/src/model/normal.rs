@@ -23,6 +23,14 @@
 //! turn. A zero product leaves such a sum as it is, so the zeros the block
 //! structure skips change nothing. Any other order would be as accurate;
 //! this one keeps every figure of the calibration where it was.
+//!
+//! ## Blocks on every core, the same sums
+//! Each block's sums start from zero and are added to the total in block
+//! order, so the blocks can be summed on any thread ([`BlockSums`]) and
+//! added in order ([`NormalEquations::add_block`]): the same figures to the
+//! bit whatever the number of threads. `J^T r` is one chain per column over
+//! every row, so a block keeps each row's rounded products and they are
+//! added in row order.
 
 use nalgebra::{DMatrix, DVector};
 use spidar_core::STRINGS;
@@ -30,6 +38,11 @@ use spidar_core::STRINGS;
 /// Rows per block of matrixmultiply's f64 matrix product (its `D_KC`): each
 /// block's products are summed from zero, then added to the running sum.
 const DENSE_BLOCK_ROWS: usize = 256;
+
+/// Observations per block of string rows (each observation has one row per
+/// channel, [`STRINGS`]).
+pub(crate) const BLOCK_OBSERVATIONS: usize = DENSE_BLOCK_ROWS / STRINGS;
+const _: () = assert!(DENSE_BLOCK_ROWS % STRINGS == 0);
 
 /// The columns a string's rows touch: its own and the shared ones.
 pub(crate) struct ArrowColumns {
@@ -105,17 +118,49 @@ impl<'a> NormalEquations<'a> {
             self.flush_arrow();
             self.block = row / DENSE_BLOCK_ROWS;
         }
-        self.row.clear();
-        self.row.extend_from_slice(own);
-        self.row.extend_from_slice(shared);
-        add_outer_products(self.fused, &mut self.block_shared, shared, shared);
-        add_outer_products(self.fused, &mut self.block_own[string], own, &self.row);
+        add_string_products(
+            self.fused,
+            &mut self.row,
+            &mut self.block_shared,
+            &mut self.block_own[string],
+            own,
+            shared,
+        );
         // nalgebra's gemv: each product rounded, then added.
         for (g, &v) in self.gradient_shared.iter_mut().zip(shared) {
             *g += v * residual;
         }
         for (g, &v) in self.gradient_own[string].iter_mut().zip(own) {
             *g += v * residual;
+        }
+    }
+
+    /// Adds a block's string rows, summed on their own
+    /// ([`BlockSums`]): the same sums as adding its rows one by one with
+    /// [`Self::add_string_row`]. Blocks come in block order.
+    pub fn add_block(&mut self, sums: BlockSums) {
+        debug_assert!(self.block_full.is_none(), "string rows come first");
+        if sums.rows.is_empty() {
+            return;
+        }
+        if sums.block != self.block {
+            self.flush_arrow();
+            self.block = sums.block;
+        }
+        // The current block's sums are zero here (a new block, or the
+        // first), and the block's own sums started from zero.
+        debug_assert!(self.block_shared.iter().all(|&v| v == 0.0));
+        self.block_shared = sums.shared;
+        self.block_own = sums.own;
+        let mut products = sums.products.iter();
+        for &string in &sums.rows {
+            let string = usize::from(string);
+            for g in self.gradient_own[string].iter_mut() {
+                *g += products.next().copied().unwrap_or(0.0);
+            }
+            for g in self.gradient_shared.iter_mut() {
+                *g += products.next().copied().unwrap_or(0.0);
+            }
         }
     }
 
@@ -218,6 +263,76 @@ impl<'a> NormalEquations<'a> {
         }
         g
     }
+}
+
+/// One block's string rows (block `block`: rows `block *
+/// DENSE_BLOCK_ROWS ..`), summed from zero on their own: a thread's share
+/// of [`NormalEquations`], added to it with
+/// [`NormalEquations::add_block`].
+pub(crate) struct BlockSums {
+    block: usize,
+    fused: bool,
+    /// The shared columns' products and each string's, as
+    /// [`NormalEquations`] keeps its current block's.
+    shared: Vec<f64>,
+    own: [Vec<f64>; STRINGS],
+    /// Each row's string, in row order.
+    rows: Vec<u8>,
+    /// Each row's `J^T r` products, rounded: its own columns', then the
+    /// shared ones'.
+    products: Vec<f64>,
+    /// One row's values on (own, shared), reused.
+    row: Vec<f64>,
+}
+
+impl BlockSums {
+    pub fn new(columns: &ArrowColumns, block: usize) -> Self {
+        let s = columns.shared.len();
+        BlockSums {
+            block,
+            fused: dense_product_fuses(),
+            shared: vec![0.0; s * s],
+            own: core::array::from_fn(|i| {
+                let t = columns.own[i].len();
+                vec![0.0; t * (t + s)]
+            }),
+            rows: Vec::with_capacity(DENSE_BLOCK_ROWS),
+            products: Vec::new(),
+            row: Vec::with_capacity(columns.n),
+        }
+    }
+
+    /// Adds a row of this block, as [`NormalEquations::add_string_row`].
+    pub fn add_string_row(&mut self, string: usize, own: &[f64], shared: &[f64], residual: f64) {
+        add_string_products(
+            self.fused,
+            &mut self.row,
+            &mut self.shared,
+            &mut self.own[string],
+            own,
+            shared,
+        );
+        self.rows.push(string as u8);
+        self.products.extend(own.iter().map(|&v| v * residual));
+        self.products.extend(shared.iter().map(|&v| v * residual));
+    }
+}
+
+/// One string row's products into a block's sums: shared x shared, and
+/// own x (own, shared) into its string's (`row`: scratch).
+fn add_string_products(
+    fused: bool,
+    row: &mut Vec<f64>,
+    block_shared: &mut [f64],
+    block_own: &mut [f64],
+    own: &[f64],
+    shared: &[f64],
+) {
+    row.clear();
+    row.extend_from_slice(own);
+    row.extend_from_slice(shared);
+    add_outer_products(fused, block_shared, shared, shared);
+    add_outer_products(fused, block_own, own, row);
 }
 
 /// Whether matrixmultiply's f64 kernel on this CPU fuses its multiply-adds:
@@ -338,5 +453,62 @@ mod tests {
         let jt = jac.transpose();
         assert_eq!(jtj, &jt * &jac);
         assert_eq!(jtr, &jt * &r);
+    }
+
+    /// Blocks summed on their own and added in order give the sums of the
+    /// rows added one by one, to the bit, with rows of weight zero left
+    /// out (a whole block of them too) and general rows after.
+    #[test]
+    fn blocks_sum_as_rows_one_by_one() {
+        let mut seed = 987u64;
+        let mut next = || {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((seed >> 11) as f64 / (1u64 << 53) as f64) * 2.0 - 1.0
+        };
+        let n = 4 + 3 * STRINGS;
+        let columns = ArrowColumns {
+            n,
+            shared: vec![0, 1, 2, 3],
+            own: core::array::from_fn(|i| vec![4 + 3 * i, 5 + 3 * i, 6 + 3 * i]),
+        };
+        let observations = 5 * BLOCK_OBSERVATIONS + 7;
+        let skipped = |k: usize, i: usize| {
+            (BLOCK_OBSERVATIONS..2 * BLOCK_OBSERVATIONS).contains(&k) || (k + i) % 5 == 0
+        };
+        let mut rows = Vec::new();
+        for k in 0..observations {
+            for i in 0..STRINGS {
+                let own: Vec<f64> = (0..3).map(|_| next() * 1e2).collect();
+                let shared: Vec<f64> = (0..4).map(|_| next()).collect();
+                if !skipped(k, i) {
+                    rows.push((k * STRINGS + i, i, own, shared, next()));
+                }
+            }
+        }
+        let general: Vec<f64> = (0..n)
+            .map(|c| if c % 3 == 0 { next() } else { 0.0 })
+            .collect();
+        let general_row = observations * STRINGS;
+
+        let mut one_by_one = NormalEquations::new(&columns);
+        for (row, i, own, shared, r) in &rows {
+            one_by_one.add_string_row(*row, *i, own, shared, *r);
+        }
+        one_by_one.add_row(general_row, &general, 0.5);
+
+        let mut by_block = NormalEquations::new(&columns);
+        for block in 0..observations.div_ceil(BLOCK_OBSERVATIONS) {
+            let mut sums = BlockSums::new(&columns, block);
+            for (row, i, own, shared, r) in &rows {
+                if row / DENSE_BLOCK_ROWS == block {
+                    sums.add_string_row(*i, own, shared, *r);
+                }
+            }
+            by_block.add_block(sums);
+        }
+        by_block.add_row(general_row, &general, 0.5);
+        assert_eq!(one_by_one.finish(), by_block.finish());
     }
 }

@@ -15,7 +15,7 @@ use super::result::Identification;
 use super::structure::Structure;
 use super::winding::WindingPhysics;
 use crate::data::observe::Observation;
-use crate::model::normal::NormalEquations;
+use crate::model::normal::{BlockSums, NormalEquations, BLOCK_OBSERVATIONS};
 
 impl Problem<'_> {
     /// The effect columns of one observation, per column and string:
@@ -87,9 +87,7 @@ impl Problem<'_> {
     ) -> Option<(DMatrix<f64>, DVector<f64>)> {
         let state = self.state();
         let mut normal = NormalEquations::new(&self.layout.arrow);
-        let strings_finite = self.string_rows(&state, |row, i, own, shared| {
-            normal.add_string_row(row, i, own, shared, residuals[row]);
-        });
+        let strings_finite = self.string_blocks(&state, residuals, &mut normal);
         let base = self.observations.len() * STRINGS;
         let mut priors_finite = true;
         for (j, values) in self.scaled_prior_rows(&state).into_iter().enumerate() {
@@ -97,6 +95,56 @@ impl Problem<'_> {
             normal.add_row(base + j, &values, residuals[base + j]);
         }
         (strings_finite && priors_finite).then(|| normal.finish())
+    }
+}
+
+impl Problem<'_> {
+    /// The string rows' sums into `normal`, a block of observations per
+    /// task on every core, added in block order (the same sums as one row
+    /// after the other: [`crate::model::normal`]). False when a value is
+    /// not finite.
+    fn string_blocks(
+        &self,
+        state: &State,
+        residuals: &DVector<f64>,
+        normal: &mut NormalEquations<'_>,
+    ) -> bool {
+        use rayon::prelude::*;
+        // Blocks summed at once: enough to keep every core busy, few
+        // enough that their sums (~50 kB each) stay small.
+        const BATCH_BLOCKS: usize = 64;
+        let columns = &self.layout.arrow;
+        let blocks: Vec<(usize, &[&Observation])> = self
+            .observations
+            .chunks(BLOCK_OBSERVATIONS)
+            .enumerate()
+            .collect();
+        let mut finite = true;
+        for batch in blocks.chunks(BATCH_BLOCKS) {
+            let summed: Vec<(BlockSums, bool)> = batch
+                .par_iter()
+                .map_init(
+                    || RowPass::new(self, state.clone()),
+                    |pass, &(block, observations)| {
+                        let mut sums = BlockSums::new(columns, block);
+                        let mut finite = true;
+                        for (j, o) in observations.iter().enumerate() {
+                            let k = block * BLOCK_OBSERVATIONS + j;
+                            finite &=
+                                pass.observation_rows(self, k, o, &mut |row, i, own, shared| {
+                                    sums.add_string_row(i, own, shared, residuals[row]);
+                                });
+                        }
+                        (sums, finite)
+                    },
+                )
+                .collect();
+            for (sums, block_finite) in summed {
+                finite &= block_finite;
+                normal.add_block(sums);
+            }
+        }
+        finite
     }
 }
 

@@ -138,8 +138,15 @@ impl levenberg_marquardt::LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
         let state = self.state();
         let laws = state.winding.laws();
         let mut r = DVector::zeros(self.n_rows());
-        for (k, o) in self.observations.iter().enumerate() {
-            let res = Problem::string_residuals(&state, &laws, o);
+        // Each row on its own, on every core: the same figures in any order.
+        let string_residuals: Vec<[f64; STRINGS]> = {
+            use rayon::prelude::*;
+            self.observations
+                .par_iter()
+                .map(|o| Problem::string_residuals(&state, &laws, o))
+                .collect()
+        };
+        for (k, res) in string_residuals.iter().enumerate() {
             for i in 0..STRINGS {
                 r[k * STRINGS + i] = self.weights[k][i].sqrt() * res[i] / self.residual_sd;
             }
