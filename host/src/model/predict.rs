@@ -130,9 +130,18 @@ pub fn predict_with<O: Borrow<Observation>>(
 
 /// Room positions after a learned position correction.
 pub fn corrected(correction: &CorrectionModel, predictions: &[Prediction]) -> Vec<[f64; 3]> {
-    predictions
-        .iter()
-        .map(|p| correction.evaluate(p.room))
+    let rooms: Vec<[f64; 3]> = predictions.iter().map(|p| p.room).collect();
+    corrected_positions(correction, &rooms)
+}
+
+/// `positions` after a learned position correction, each on its own on
+/// every core (an SVR of 2,000 support vectors on a 30,000-row session is
+/// 60 million kernel terms).
+pub fn corrected_positions(correction: &CorrectionModel, positions: &[[f64; 3]]) -> Vec<[f64; 3]> {
+    use rayon::prelude::*;
+    positions
+        .par_iter()
+        .map(|&p| correction.evaluate(p))
         .collect()
 }
 

@@ -205,16 +205,8 @@ pub(super) fn correction_errors(
     fin_positions: PerSession<&[[f64; 3]]>,
     frame: &spidar_core::model::Frame<f64>,
 ) -> Result<StageErrors, StatsError> {
-    let ptr: Vec<[f64; 3]> = fin_positions
-        .train
-        .iter()
-        .map(|p| corr.evaluate(*p))
-        .collect();
-    let pte: Vec<[f64; 3]> = fin_positions
-        .test
-        .iter()
-        .map(|p| corr.evaluate(*p))
-        .collect();
+    let ptr = crate::model::predict::corrected_positions(corr, fin_positions.train);
+    let pte = crate::model::predict::corrected_positions(corr, fin_positions.test);
     StageErrors::of(
         name,
         obs,
