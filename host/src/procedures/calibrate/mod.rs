@@ -156,11 +156,12 @@ pub struct CalibrateConfig {
     /// ([`LoopRows`](loop_rows::LoopRows)), and the structure the loop chose
     /// is refitted on every row. Every error figure counts every row but
     /// the training figures of the effect stages before the last (the
-    /// loop's, over its rows: their `n` says so). 0
-    /// (the default): every row. A bound trades accuracy for time: on
-    /// 30,000-row sessions, 6000 made the loop 4 times as fast and its
-    /// layer tables coarser, held out up to 3 % worse (docs/benchmarks.md,
-    /// "Speed of a calibration").
+    /// loop's, over its rows: their `n` says so). 0: every row. The
+    /// default, 4000, leaves a 13^3 lattice (2,197 rows) and sessions up to
+    /// 4,000 rows whole and keeps a 30,000-row stream's calibration near
+    /// 10 s on 2 cores; on the 30,000-row sessions and the 6,000-row wall
+    /// robot it was measured held out within 3 % of every row (record
+    /// 0051, docs/benchmarks.md "Speed of a calibration").
     pub max_loop_rows: usize,
     /// Share of the kept training points held out to choose the final model.
     pub selection_fraction: f64,
@@ -204,7 +205,7 @@ impl CalibrateConfig {
             nn,
             svr,
             max_learning_points: 2500,
-            max_loop_rows: 0,
+            max_loop_rows: 4000,
             selection_fraction: 0.2,
             min_correction_gain: 0.01,
             blackbox: false,
