@@ -263,7 +263,9 @@ impl LayerTable {
         if along == 0 {
             return v[k];
         }
-        let step = libm::exp2(f64::from(self.step_log2.min(MAX_LAYER_STEP_LOG2)));
+        // 2^step_log2 exactly (a power of two below 2^31), without a libm
+        // call per row and string.
+        let step = f64::from(1u32 << self.step_log2.min(MAX_LAYER_STEP_LOG2));
         v[k] + (v[k + 1] - v[k]) * (f64::from(along) / step)
     }
 }

@@ -1219,3 +1219,12 @@ proptest! {
         }
     }
 }
+
+/// The layer table's knot spacing, `2^step_log2` counts, is read as an
+/// integer power of two: the value libm's `exp2` gives, to the bit.
+#[test]
+fn layer_step_is_exp2_of_its_log() {
+    for n in 0..=crate::model::MAX_LAYER_STEP_LOG2 {
+        assert_eq!(f64::from(1u32 << n), libm::exp2(f64::from(n)), "2^{n}");
+    }
+}
