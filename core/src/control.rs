@@ -23,7 +23,7 @@ use crate::guidance::guidance_force;
 use crate::kinematics::{forward_kinematics, inverse_kinematics, FkConfig, FkStatus};
 use crate::model::{Frame, StringInputs};
 use crate::safety::{SafetyConfig, SafetyConfigError, SafetyFaults, SafetyMonitor};
-use crate::string_law::{cos2_inclinations, string_lengths, CompiledEffect};
+use crate::string_law::{cos2_inclinations, guide_elevations, string_lengths, CompiledEffect};
 use crate::tension::{
     distribute_warm, TensionConfig, TensionLimits, TensionSolution, TensionStatus,
 };
@@ -271,6 +271,8 @@ impl Controller {
         };
         if head.effects.iter().any(CompiledEffect::reads_inclination) {
             inputs.cos2_inclination_q16 = cos2_inclinations(&frame.anchors, &self.position);
+            inputs.guide_elevation_q32 =
+                guide_elevations(&frame.anchors, &frame.home, &self.position);
         }
         for i in 0..STRINGS {
             inputs.counts[i] = self.encoders[i].update(input.raw_counts[i]);

@@ -16,7 +16,7 @@
 use crate::real::Real;
 
 use crate::model::{StringInputs, StringLayout, Vec3};
-use crate::string_law::cos2_inclinations;
+use crate::string_law::{cos2_inclinations, guide_elevations};
 use crate::STRINGS;
 
 /// `x` as `F` (constants only; every `f64` converts to `f32`/`f64`).
@@ -404,6 +404,7 @@ fn finite3<F: Real>(v: &Vec3<F>) -> bool {
 /// string lengths of `inputs`.
 pub fn forward_kinematics_inclined<F: Real>(
     anchors: &[Vec3<F>; STRINGS],
+    home: &Vec3<F>,
     layout: StringLayout,
     inputs: &StringInputs,
     start: Vec3<F>,
@@ -413,11 +414,13 @@ pub fn forward_kinematics_inclined<F: Real>(
 ) -> FkSolution<F> {
     let mut inputs = *inputs;
     inputs.cos2_inclination_q16 = cos2_inclinations(anchors, &start);
+    inputs.guide_elevation_q32 = guide_elevations(anchors, home, &start);
     let fk = forward_kinematics(anchors, layout, &lengths(&inputs), start, config);
     if !inclined || !finite3(&fk.position) {
         return fk;
     }
     inputs.cos2_inclination_q16 = cos2_inclinations(anchors, &fk.position);
+    inputs.guide_elevation_q32 = guide_elevations(anchors, home, &fk.position);
     forward_kinematics(anchors, layout, &lengths(&inputs), fk.position, config)
 }
 

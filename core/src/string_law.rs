@@ -35,6 +35,7 @@
 //! | inclination of a string (sag) | `u16` | Q0.16 `cos^2`, 65535 level |
 //! | layer table knots | `i64` | Q47.16 mm (`|v| <= MAX_LAYER_MM`), knots `2^step_log2` counts apart; added to the payout |
 //! | count rate (latency) | `i32` | counts per second; latency Q0.31 s, slope Q2.30 mm per count, payout rate Q17.14 mm/s (module `latency`, [`CompiledStringLaw::payout_rate_q14`]) |
+//! | elevation of a string's chord (guide) | `i32` | Q0.32 turns; radius Q7.24 mm, the series in `r / l` in Q·30 (module `guide`) |
 //!
 //! Every product is `i64 x i32 -> 96 bits`, rounded (half up) and shifted back
 //! to `i64`, saturating; every sum saturates. No input or compiled parameter
@@ -52,9 +53,14 @@ use crate::model::{
 use crate::real::Real;
 use crate::STRINGS;
 
+mod guide;
 mod latency;
 mod stretch;
 
+pub use guide::{
+    guide_elevation_q32, guide_elevation_rad, guide_elevations, guide_mm, guide_path_mm,
+    guide_slope, GUIDE_MIN_RADII, MAX_GUIDE_RADIUS_MM,
+};
 pub use latency::{payout_rate_mm_s, MAX_LATENCY_S};
 pub use stretch::stretch_mm;
 
@@ -265,6 +271,10 @@ pub struct EffectContext {
     /// The payout's rate of change (mm/s) at the string's count rate,
     /// [`payout_rate_mm_s`]: what a latency term scales with.
     pub payout_rate_mm_s: f64,
+    /// The elevation of the string's chord out of the plane across its
+    /// guide's swivel axis (rad), [`guide_elevation_rad`] of
+    /// [`StringInputs::guide_elevation_q32`]: what a guide term reads.
+    pub guide_elevation_rad: f64,
 }
 
 impl EffectContext {
@@ -305,6 +315,7 @@ impl EffectContext {
                 &frame.home,
             )) / 65536.0,
             payout_rate_mm_s: payout_rate_mm_s(law, counts, *inputs.count_rate_cps.get(string)?),
+            guide_elevation_rad: guide_elevation_rad(*inputs.guide_elevation_q32.get(string)?),
         })
     }
 }
@@ -337,11 +348,12 @@ fn values(v: &[f64]) -> heapless::Vec<f64, 3> {
 }
 
 impl Effect {
-    /// Whether the term reads the string's inclination (a sag): forward
-    /// kinematics over sparse rows then solves twice, the second time at the
-    /// inclination of the first solution (`spidar::predict`).
+    /// Whether the term reads the string's direction from the position (a
+    /// sag its inclination, a guide its elevation): forward kinematics over
+    /// sparse rows then solves twice, the second time at the direction of
+    /// the first solution (`spidar::predict`).
     pub fn reads_inclination(&self) -> bool {
-        matches!(self, Effect::Sag { .. })
+        matches!(self, Effect::Sag { .. } | Effect::Guide { .. })
     }
 
     /// Whether the term reads the strings' count rate (a latency).
@@ -387,6 +399,7 @@ impl Effect {
                 home_mm_at_1m,
             } => sag_mm(mm_at_1m_1n, home_mm_at_1m, ctx),
             Effect::Latency { latency_s } => latency_s * ctx.payout_rate_mm_s,
+            Effect::Guide { radius_mm } => guide_mm(radius_mm, ctx),
         }
     }
 
@@ -407,6 +420,7 @@ impl Effect {
     /// | FrameFlex | `mm_per_newton, home_mm` | `[sum_j T_j, -1]` |
     /// | Stretch | `per_newton, mm_per_newton, home_tension_n` | `[T (home_length + payout) - T_home home_length, T - T_home, -(per_newton home_length + mm_per_newton)]` |
     /// | Latency | `latency_s` | `[payout rate]` |
+    /// | Guide | `radius_mm` | `[beta - sin(beta)]` (the wrap angle) |
     pub fn gradient_f64(&self, ctx: &EffectContext) -> heapless::Vec<f64, 3> {
         match *self {
             Effect::Offset { .. } => values(&[1.0]),
@@ -452,6 +466,7 @@ impl Effect {
                 ])
             }
             Effect::Latency { .. } => values(&[ctx.payout_rate_mm_s]),
+            Effect::Guide { radius_mm } => values(&[guide_slope(radius_mm, ctx)]),
         }
     }
 
@@ -480,6 +495,7 @@ impl Effect {
                 home_mm_at_1m,
             } => values(&[mm_at_1m_1n, home_mm_at_1m]),
             Effect::Latency { latency_s } => values(&[latency_s]),
+            Effect::Guide { radius_mm } => values(&[radius_mm]),
         }
     }
 
@@ -521,6 +537,7 @@ impl Effect {
                 home_mm_at_1m: p[1],
             },
             Effect::Latency { .. } => Effect::Latency { latency_s: p[0] },
+            Effect::Guide { .. } => Effect::Guide { radius_mm: p[0] },
         })
     }
 }
@@ -1142,6 +1159,10 @@ pub enum CompiledEffect {
     /// `+ latency_q31 * payout_rate` (Q0.31 s times the context's
     /// [`FixedContext::payout_rate_q14`], Q17.14 mm/s; module `latency`).
     Latency { string: u8, latency_q31: i32 },
+    /// `+ radius_q24 * bracket(elevation, radius / free length)` (Q7.24 mm;
+    /// the series of module `guide`, at the context's
+    /// [`FixedContext::guide_elevation_q32`]).
+    Guide { string: u8, radius_q24: i32 },
 }
 
 /// What a compiled effect of one string depends on, in device units.
@@ -1169,6 +1190,9 @@ pub struct FixedContext {
     /// ([`CompiledStringLaw::payout_rate_q14`] at the string's count rate;
     /// 0 at a rate of 0).
     pub payout_rate_q14: i32,
+    /// The elevation of the string's chord, Q0.32 turns
+    /// ([`StringInputs::guide_elevation_q32`]).
+    pub guide_elevation_q32: i32,
 }
 
 /// Compiles one effect term; `laws` gives the counts per revolution of its
@@ -1229,6 +1253,7 @@ pub fn compile_effect(
         },
         Effect::Slip { at_s, mm } => compile_slip(s, string, at_s, mm)?,
         Effect::Latency { latency_s } => latency::compile_latency(s, string, latency_s)?,
+        Effect::Guide { radius_mm } => guide::compile_guide(s, string, radius_mm)?,
     })
 }
 
@@ -1387,7 +1412,8 @@ impl CompiledEffect {
             | CompiledEffect::Slip { string, .. }
             | CompiledEffect::Sag { string, .. }
             | CompiledEffect::FrameFlex { string, .. }
-            | CompiledEffect::Latency { string, .. } => string,
+            | CompiledEffect::Latency { string, .. }
+            | CompiledEffect::Guide { string, .. } => string,
         }
     }
 
@@ -1443,13 +1469,28 @@ impl CompiledEffect {
                     max: MAX_LATENCY_S,
                 })
             }
+            CompiledEffect::Guide { radius_q24, .. }
+                if !(-guide::MAX_GUIDE_RADIUS_Q24..=guide::MAX_GUIDE_RADIUS_Q24)
+                    .contains(&radius_q24) =>
+            {
+                Err(StringLawCompileError::OutOfRange {
+                    string: s,
+                    field: "radius_mm",
+                    value: f64::from(radius_q24) / 16_777_216.0,
+                    min: -MAX_GUIDE_RADIUS_MM,
+                    max: MAX_GUIDE_RADIUS_MM,
+                })
+            }
             _ => Ok(()),
         }
     }
 
     /// Whether the term reads the string's inclination ([`Effect::reads_inclination`]).
     pub fn reads_inclination(&self) -> bool {
-        matches!(self, CompiledEffect::Sag { .. })
+        matches!(
+            self,
+            CompiledEffect::Sag { .. } | CompiledEffect::Guide { .. }
+        )
     }
 
     /// Whether the term reads the strings' count rate ([`Effect::reads_speed`]).
@@ -1555,6 +1596,7 @@ impl CompiledEffect {
                 flex.saturating_sub(home_q32)
             }
             CompiledEffect::Latency { latency_q31, .. } => latency::latency_q32(latency_q31, ctx),
+            CompiledEffect::Guide { radius_q24, .. } => guide::guide_q32(radius_q24, ctx),
         }
     }
 }
@@ -1643,6 +1685,7 @@ fn lengths_of<const ALL: bool>(
         // 0 at once where the string's count rate is 0: the device's loop
         // gives a rate only to a model with a term that reads it.
         payout_rate_q14: laws[s].payout_rate_q14(inputs.counts[s], inputs.count_rate_cps[s]),
+        guide_elevation_q32: inputs.guide_elevation_q32[s],
     });
     for e in effects {
         let s = usize::from(e.string());

@@ -35,6 +35,7 @@ fn a_row_whose_lengths_read_the_inclination_is_solved_at_its_own() {
     let solve = |inclined| {
         let fk = forward_kinematics_inclined(
             &a,
+            &[0.0; 3],
             StringLayout::ALL,
             &inputs,
             [0.0; 3],

@@ -374,6 +374,9 @@ fn realistic(rng: &mut Rng) -> (Frame<f64>, [StringLaw; STRINGS], Vec<EffectTerm
         push(Effect::Latency {
             latency_s: rng.uniform(-0.05, 0.05),
         });
+        push(Effect::Guide {
+            radius_mm: rng.uniform(0.0, 15.0),
+        });
     }
     // Terms shared by every string.
     effects.push(EffectTerm {
@@ -409,6 +412,12 @@ fn realistic(rng: &mut Rng) -> (Frame<f64>, [StringLaw; STRINGS], Vec<EffectTerm
             latency_s: rng.uniform(-0.02, 0.02),
         },
     });
+    effects.push(EffectTerm {
+        string: EVERY_STRING,
+        effect: Effect::Guide {
+            radius_mm: rng.uniform(-5.0, 15.0),
+        },
+    });
     (f, laws, effects)
 }
 
@@ -422,6 +431,8 @@ fn random_inputs(rng: &mut Rng) -> StringInputs {
         // Up to 0.5 to 12 m/s of string (the pulleys' 2.4e-3 to 6.3e-2
         // mm per count).
         inputs.count_rate_cps[i] = rng.int(-200_000, 200_000) as i32;
+        // Any elevation, the poles and beyond them (clamped) included.
+        inputs.guide_elevation_q32[i] = rng.int(-(1 << 30) - 1000, (1 << 30) + 1000) as i32;
     }
     inputs.time_ms = rng.int(0, 7_200_000) as u32;
     inputs
@@ -463,7 +474,7 @@ fn fixed_point_error_budget() {
     let max_err = measure(0x5EED_0001, 400, 500, |_| true);
     println!("string law: max |fixed - f64| = {max_err:.3e} mm (400 calibrations x 500 inputs x 8 strings)");
     type Keep = fn(&Effect) -> bool;
-    let families: [(&str, Keep); 13] = [
+    let families: [(&str, Keep); 14] = [
         ("no effect", |_| false),
         ("offset", |e| matches!(e, Effect::Offset { .. })),
         ("scale", |e| matches!(e, Effect::Scale { .. })),
@@ -477,6 +488,7 @@ fn fixed_point_error_budget() {
         ("stretch", |e| matches!(e, Effect::Stretch { .. })),
         ("frame flex", |e| matches!(e, Effect::FrameFlex { .. })),
         ("latency", |e| matches!(e, Effect::Latency { .. })),
+        ("guide", |e| matches!(e, Effect::Guide { .. })),
     ];
     for (name, keep) in families {
         let e = measure(0x5EED_0002, 100, 200, keep);
@@ -658,6 +670,14 @@ fn effect_compile_errors_name_the_field() {
             "NotFinite",
             "latency_s",
         ),
+        (Effect::Guide { radius_mm: 51.0 }, "OutOfRange", "radius_mm"),
+        (
+            Effect::Guide {
+                radius_mm: f64::NAN,
+            },
+            "NotFinite",
+            "radius_mm",
+        ),
     ];
     for (effect, kind, field) in cases {
         let got = compile_effect(&term(0, effect), &laws).map(|_| ());
@@ -715,6 +735,12 @@ fn compiled_effects_validate() {
     assert!(CompiledEffect::Latency {
         string: EVERY_STRING,
         latency_q31: i32::MAX,
+    }
+    .validate()
+    .is_err());
+    assert!(CompiledEffect::Guide {
+        string: EVERY_STRING,
+        radius_q24: i32::MIN,
     }
     .validate()
     .is_err());
@@ -1009,6 +1035,7 @@ fn a_frame_flex_reads_the_total_tension_of_the_active_strings() {
         home_sag_q30: 0,
         total_tension_mn: 8 * u32::from(u16::MAX),
         payout_rate_q14: 0,
+        guide_elevation_q32: 0,
     };
     assert_eq!(worst.contribution_q32(&ctx), i64::MAX);
 }
@@ -1101,6 +1128,8 @@ fn arb_effect() -> impl Strategy<Value = CompiledEffect> {
             string,
             latency_q31
         }),
+        (s, any::<i32>())
+            .prop_map(|(string, radius_q24)| CompiledEffect::Guide { string, radius_q24 }),
     ]
 }
 
@@ -1146,9 +1175,18 @@ fn arb_inputs() -> impl Strategy<Value = StringInputs> {
         any::<u32>(),
         any::<[u16; STRINGS]>(),
         any::<[i32; STRINGS]>(),
+        any::<[i32; STRINGS]>(),
     )
         .prop_map(
-            |(counts, direction, tension_mn, time_ms, cos2_inclination_q16, count_rate_cps)| {
+            |(
+                counts,
+                direction,
+                tension_mn,
+                time_ms,
+                cos2_inclination_q16,
+                count_rate_cps,
+                guide_elevation_q32,
+            )| {
                 StringInputs {
                     counts,
                     direction,
@@ -1156,6 +1194,7 @@ fn arb_inputs() -> impl Strategy<Value = StringInputs> {
                     time_ms,
                     cos2_inclination_q16,
                     count_rate_cps,
+                    guide_elevation_q32,
                 }
             },
         )
@@ -1212,6 +1251,7 @@ proptest! {
                 home_mm_at_1m: w,
             },
             Effect::Latency { latency_s: v },
+            Effect::Guide { radius_mm: v },
         ] {
             if let Ok(c) = compile_effect(&EffectTerm { string, effect }, &laws) {
                 prop_assert!(c.validate().is_ok());
