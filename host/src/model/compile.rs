@@ -116,6 +116,7 @@ pub fn device_positions(
         .map(|o| {
             let fk = forward_kinematics_inclined(
                 &frame.anchors,
+                &frame.home,
                 frame.layout,
                 &o.inputs,
                 position,

@@ -107,6 +107,7 @@ pub fn predict_with<O: Borrow<Observation>>(
             let o = o.borrow();
             let fk = forward_kinematics_inclined(
                 &frame.anchors,
+                &frame.home,
                 frame.layout,
                 &o.inputs,
                 start,
