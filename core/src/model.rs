@@ -488,11 +488,12 @@ pub enum Effect {
     /// A guide pulley of radius `radius_mm` whose plane swivels toward the
     /// end-effector about the frame edge (the model's anchor is its entry
     /// point on the swivel axis): the string wraps `r beta` on it and
-    /// leaves along the tangent, so `+ r beta + sqrt(m^2 - r^2) - l`, the
-    /// exact path over the pulley less the chord, `l = home_length +
-    /// payout` the chord and `a` its elevation from
-    /// [`StringInputs::guide_elevation_q32`] (module `string_law::guide`);
-    /// 0 at `r = 0`. `|radius_mm| <=`
+    /// leaves along the tangent: its path is longer than the chord `l` by
+    /// `g(l, a) = r beta + sqrt(m^2 - r^2) - l` (exact, module
+    /// `string_law::guide`), `a` the chord's elevation from
+    /// [`StringInputs::guide_elevation_q32`]. The encoders count the path
+    /// from the home capture, so `+ g(home_length, a_home) - g(l, a)`, `l =
+    /// home_length + payout`; 0 at `r = 0`. `|radius_mm| <=`
     /// [`MAX_GUIDE_RADIUS_MM`](crate::string_law::MAX_GUIDE_RADIUS_MM).
     Guide { radius_mm: f64 },
 }

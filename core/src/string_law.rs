@@ -275,6 +275,9 @@ pub struct EffectContext {
     /// guide's swivel axis (rad), [`guide_elevation_rad`] of
     /// [`StringInputs::guide_elevation_q32`]: what a guide term reads.
     pub guide_elevation_rad: f64,
+    /// The elevation of the string's chord at home (rad), from the frame,
+    /// quantized as the device's ([`CompiledStringLaw::home_guide_elevation_q32`]).
+    pub home_guide_elevation_rad: f64,
 }
 
 impl EffectContext {
@@ -316,6 +319,11 @@ impl EffectContext {
             )) / 65536.0,
             payout_rate_mm_s: payout_rate_mm_s(law, counts, *inputs.count_rate_cps.get(string)?),
             guide_elevation_rad: guide_elevation_rad(*inputs.guide_elevation_q32.get(string)?),
+            home_guide_elevation_rad: guide_elevation_rad(guide_elevation_q32(
+                frame.anchors.get(string)?,
+                &frame.home,
+                &frame.home,
+            )),
         })
     }
 }
@@ -420,7 +428,7 @@ impl Effect {
     /// | FrameFlex | `mm_per_newton, home_mm` | `[sum_j T_j, -1]` |
     /// | Stretch | `per_newton, mm_per_newton, home_tension_n` | `[T (home_length + payout) - T_home home_length, T - T_home, -(per_newton home_length + mm_per_newton)]` |
     /// | Latency | `latency_s` | `[payout rate]` |
-    /// | Guide | `radius_mm` | `[beta - sin(beta)]` (the wrap angle) |
+    /// | Guide | `radius_mm` | `[(beta - sin(beta))(home) - (beta - sin(beta))(now)]` (the wrap angle) |
     pub fn gradient_f64(&self, ctx: &EffectContext) -> heapless::Vec<f64, 3> {
         match *self {
             Effect::Offset { .. } => values(&[1.0]),
@@ -876,6 +884,10 @@ pub struct CompiledStringLaw {
     /// / 4096 mm)^3` in Q·30 (`cos^2` quantized to Q0.16 as the device's,
     /// the length clamped to [`MAX_SAG_LENGTH_MM`]: below 2^33).
     pub home_sag_q30: i64,
+    /// The elevation of the chord from the anchor to home, what a guide
+    /// term's home part reads ([`guide_elevation_q32`] at the frame's home,
+    /// Q0.32 turns).
+    pub home_guide_elevation_q32: i32,
 }
 
 /// The fixed-point form of a [`LayerTable`](crate::model::LayerTable): the same knots (counts), their
@@ -978,6 +990,7 @@ pub fn compile_string_law(
         winding_q32,
         layers: compile_layer_table(string, law)?,
         home_sag_q30: libm::round(home_cos2 * a * a * a * (1u64 << 30) as f64) as i64,
+        home_guide_elevation_q32: guide_elevation_q32(anchor, &frame.home, &frame.home),
     })
 }
 
@@ -1193,6 +1206,8 @@ pub struct FixedContext {
     /// The elevation of the string's chord, Q0.32 turns
     /// ([`StringInputs::guide_elevation_q32`]).
     pub guide_elevation_q32: i32,
+    /// The law's [`CompiledStringLaw::home_guide_elevation_q32`].
+    pub home_guide_elevation_q32: i32,
 }
 
 /// Compiles one effect term; `laws` gives the counts per revolution of its
@@ -1686,6 +1701,7 @@ fn lengths_of<const ALL: bool>(
         // gives a rate only to a model with a term that reads it.
         payout_rate_q14: laws[s].payout_rate_q14(inputs.counts[s], inputs.count_rate_cps[s]),
         guide_elevation_q32: inputs.guide_elevation_q32[s],
+        home_guide_elevation_q32: laws[s].home_guide_elevation_q32,
     });
     for e in effects {
         let s = usize::from(e.string());

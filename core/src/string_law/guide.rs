@@ -15,11 +15,20 @@
 //! with `D = |P - A|` the chord and `a` its elevation: the angle of `P - A`
 //! out of the plane across `e`, positive along `e`
 //! ([`StringInputs::guide_elevation_q32`](crate::model::StringInputs::guide_elevation_q32)).
-//! The term adds `length - D`, so that `r = 0` is the model without it.
-//! The chord is read as the string's free length `l = home_length +
-//! payout` (the model's length before its effect terms: the two differ by a
-//! few mm, which moves the term by `(r / l)^2` of that), clamped to at least
-//! [`GUIDE_MIN_RADII`] radii.
+//! The encoders count the path from the home capture, where the string
+//! already wrapped its home share, and the model's length is the chord, so
+//! the term is the path's excess over the chord at home less the one now,
+//!
+//! ```text
+//! + (length - D)(home) - (length - D)(now)
+//! ```
+//!
+//! and `r = 0` is the model without it. The chord is read as the string's
+//! free length `l = home_length + payout` (the model's length before its
+//! effect terms: the two differ by the term, which moves it by `(r / l)^2`
+//! of that), clamped to at least [`GUIDE_MIN_RADII`] radii; the home part
+//! reads the home length and the home's elevation
+//! ([`CompiledStringLaw::home_guide_elevation_q32`](super::CompiledStringLaw::home_guide_elevation_q32)).
 //!
 //! # The swivel axis
 //!
@@ -49,7 +58,7 @@
 //! | `a` in radians, the bracket and its parts | `i64` | Q·30, each product of two below `2^63` (rounded, shifted) |
 //! | free length | `i64` | Q·16 mm, clamped to at least `16 r` (and 2^-16 mm) |
 //! | `eps` | `i64` | Q·30: `(r << 22) / l`, one 64-bit division a string |
-//! | contribution | `i64` | Q31.32 mm: the bracket times `r`, rounded, saturated |
+//! | contribution | `i64` | Q31.32 mm: the home's bracket less the one now, times `r`, rounded, saturated |
 
 use core::f64::consts::{FRAC_PI_2, PI, TAU};
 
@@ -172,31 +181,42 @@ fn guide_geometry(r: f64, chord_mm: f64, elevation_rad: f64) -> (f64, f64, f64, 
     (l, beta, (r * y + x * free) / m2, m2)
 }
 
-/// A guide term's contribution (mm): [`guide_path_mm`] at the context's
-/// free length and elevation.
+/// A guide term's contribution (mm): [`guide_path_mm`] at the home length
+/// and the home's elevation less the one at the context's free length and
+/// elevation.
 pub fn guide_mm(radius_mm: f64, ctx: &EffectContext) -> f64 {
-    guide_path_mm(
-        radius_mm,
-        ctx.home_length_mm + ctx.payout_mm,
-        ctx.guide_elevation_rad,
-    )
+    guide_path_mm(radius_mm, ctx.home_length_mm, ctx.home_guide_elevation_rad)
+        - guide_path_mm(
+            radius_mm,
+            ctx.home_length_mm + ctx.payout_mm,
+            ctx.guide_elevation_rad,
+        )
 }
 
-/// `d(contribution)/d(radius)` of a guide term: `beta - sin(beta)` (the
-/// wrap angle less its sine; `pi/2 - a - cos a` at `r = 0`, the column the
-/// loop tests); where the free length is clamped, the term over `r`.
+/// `d(contribution)/d(radius)` of a guide term: the path's slope in `r`
+/// at home less the one now (`(pi/2 - a - cos a)` at home less now at `r = 0`, the
+/// column the loop tests).
 pub fn guide_slope(radius_mm: f64, ctx: &EffectContext) -> f64 {
-    let a = ctx.guide_elevation_rad;
+    path_slope(radius_mm, ctx.home_length_mm, ctx.home_guide_elevation_rad)
+        - path_slope(
+            radius_mm,
+            ctx.home_length_mm + ctx.payout_mm,
+            ctx.guide_elevation_rad,
+        )
+}
+
+/// `d(guide_path_mm)/d(radius)`: `beta - sin(beta)` (the wrap angle less
+/// its sine; `pi/2 - a - cos a` at `r = 0`); where the chord is clamped,
+/// the path over `r` (it is `r` times a function of the elevation alone).
+fn path_slope(radius_mm: f64, chord_mm: f64, elevation_rad: f64) -> f64 {
+    let a = elevation_rad;
     if radius_mm == 0.0 {
         return FRAC_PI_2 - a - libm::cos(a);
     }
-    let chord = ctx.home_length_mm + ctx.payout_mm;
-    if chord < GUIDE_MIN_RADII * radius_mm.abs() {
-        // Clamped to a length in proportion to r: the term is r times a
-        // function of the elevation alone.
-        return guide_path_mm(radius_mm, chord, a) / radius_mm;
+    if chord_mm < GUIDE_MIN_RADII * radius_mm.abs() {
+        return guide_path_mm(radius_mm, chord_mm, a) / radius_mm;
     }
-    let (_, beta, sin_beta, _) = guide_geometry(radius_mm, chord, a);
+    let (_, beta, sin_beta, _) = guide_geometry(radius_mm, chord_mm, a);
     beta - sin_beta
 }
 
@@ -238,15 +258,27 @@ fn mul_shr(a: i64, b: i64, s: u32) -> i64 {
 }
 
 /// [`CompiledEffect::Guide`]'s contribution (Q31.32 mm): the series of
-/// the module docs at the context's free length and elevation. Always
-/// inlined, as [`CompiledEffect::contribution_q32`].
+/// the module docs at the home length and the home's elevation less the
+/// one at the context's free length and elevation. Always inlined, as
+/// [`CompiledEffect::contribution_q32`].
 #[inline(always)]
 pub(super) fn guide_q32(radius_q24: i32, ctx: &FixedContext) -> i64 {
     if radius_q24 == 0 {
         return 0;
     }
     let r = radius_q24.clamp(-MAX_GUIDE_RADIUS_Q24, MAX_GUIDE_RADIUS_Q24);
-    let a = ctx.guide_elevation_q32.clamp(-(1 << 30), 1 << 30);
+    let home = bracket_q30(r, ctx.home_guide_elevation_q32, ctx.home_length_q16);
+    let free = q16_to_q32(ctx.home_length_q16).saturating_add(ctx.payout_q32) >> 16;
+    let now = bracket_q30(r, ctx.guide_elevation_q32, free);
+    // Q.30 times Q7.24 to Q31.32 (each bracket below 2^33).
+    mul_i32_shr(home - now, r, 22)
+}
+
+/// The bracket of the module docs (Q.30) for a guide of `r` (Q7.24 mm) at
+/// `elevation_q32` (Q0.32 turns) and the free length `l_q16` (Q.16 mm).
+#[inline(always)]
+fn bracket_q30(r: i32, elevation_q32: i32, l_q16: i64) -> i64 {
+    let a = elevation_q32.clamp(-(1 << 30), 1 << 30);
     let s = i64::from(sin_q30(a as u32));
     let c = i64::from(sin_q30((a as u32).wrapping_add(1 << 30)));
     // pi/2 - a - cos a, Q.30 (a in rad: |a| 2^30 pi/2 < 2^63).
@@ -255,8 +287,7 @@ pub(super) fn guide_q32(radius_q24: i32, ctx: &FixedContext) -> i64 {
     // eps = r / l, Q.30: l in Q.16 at least 16 |r| (r in Q.24 >> 4), so
     // |eps| <= 2^26; |r| 2^22 < 2^52.
     let l_min = (i64::from(r).abs() >> 4).max(1);
-    let l = (q16_to_q32(ctx.home_length_q16).saturating_add(ctx.payout_q32) >> 16).max(l_min);
-    let eps = (i64::from(r) << 22) / l;
+    let eps = (i64::from(r) << 22) / l_q16.max(l_min);
     // u = 1 - sin a in 0..=2 (Q.30: <= 2^31), u^2 <= 2^32, u^3 <= 2^33.
     let u = (1 << 30) - s;
     let u2 = mul_shr(u, u, 30);
@@ -272,9 +303,7 @@ pub(super) fn guide_q32(radius_q24: i32, ctx: &FixedContext) -> i64 {
     let mut h = k4 + mul_shr(eps, k5, 30);
     h = k3 + mul_shr(eps, h, 30);
     h = k2 + mul_shr(eps, h, 30);
-    let bracket = first + mul_shr(eps, h, 30);
-    // Q.30 times Q7.24 to Q31.32.
-    mul_i32_shr(bracket, r, 22)
+    first + mul_shr(eps, h, 30)
 }
 
 #[cfg(test)]

@@ -1033,6 +1033,7 @@ fn a_frame_flex_reads_the_total_tension_of_the_active_strings() {
         payout_q32: 0,
         cos2_inclination_q16: 0,
         home_sag_q30: 0,
+        home_guide_elevation_q32: 0,
         total_tension_mn: 8 * u32::from(u16::MAX),
         payout_rate_q14: 0,
         guide_elevation_q32: 0,
@@ -1153,15 +1154,24 @@ fn arb_law() -> impl Strategy<Value = CompiledStringLaw> {
         any::<[i64; WINDING_ORDER]>(),
         arb_layers(),
         any::<i64>(),
+        any::<i32>(),
     )
         .prop_map(
-            |(home_length_q16, counts_per_rev, winding_q32, layers, home_sag_q30)| {
+            |(
+                home_length_q16,
+                counts_per_rev,
+                winding_q32,
+                layers,
+                home_sag_q30,
+                home_guide_elevation_q32,
+            )| {
                 CompiledStringLaw {
                     home_length_q16,
                     counts_per_rev,
                     winding_q32,
                     home_sag_q30,
                     layers,
+                    home_guide_elevation_q32,
                 }
             },
         )

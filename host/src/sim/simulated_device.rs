@@ -400,6 +400,11 @@ impl SimulatedDevice {
                 &self.frame.home,
                 position,
             )),
+            home_guide_elevation_rad: guide_elevation_rad(guide_elevation_q32(
+                anchor,
+                &self.frame.home,
+                &self.frame.home,
+            )),
         }
     }
 

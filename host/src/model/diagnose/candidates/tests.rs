@@ -26,6 +26,7 @@ fn lattice_evidence(error: impl Fn([f64; 3], f64) -> f64) -> Evidence<'static> {
         cos2_inclination: 1.0,
         home_cos2_inclination: 1.0,
         guide_elevation_rad: 0.0,
+        home_guide_elevation_rad: 0.0,
         payout_rate_mm_s: 0.0,
     };
     let mut t = 0.0;
