@@ -337,7 +337,7 @@ fn string_terms(
             columns: vec![guide_column()],
             rival: Vec::new(),
             search_penalty: 0.0,
-            effect: Box::new(|b| Effect::Guide { radius_mm: b[0] }),
+            effect: Box::new(|_| GUIDE_START),
             describe: format!(
                 "string {i}'s error follows its elevation from the frame edge: it wraps on a \
                  guide pulley swivelling toward the end-effector"
@@ -349,6 +349,15 @@ fn string_terms(
     }
     terms
 }
+
+/// The guide a candidate proposes, refitted from a radius of 0: the
+/// guide's entry point (the model's anchor) is about 1.6 radii from the
+/// exit point the anchor held without it, so a start at the linear
+/// estimate's radius with the anchors where they are lies across the
+/// valley, and a fold's refit from there stopped short (a 20 mm guide on
+/// every string of an independent device: its blocked folds 0.501 mm from
+/// 0, 0.583 from 20 mm, 0.571 without the guide).
+const GUIDE_START: Effect = Effect::Guide { radius_mm: 0.0 };
 
 /// A guide's column: the wrap on a pulley of 1 mm less the chord's saving,
 /// `pi/2 - a - cos a` at the row's elevation `a` (the term's slope in its
@@ -368,7 +377,7 @@ fn shared_guide_candidate(strings: StringLayout) -> Candidate {
         on_string: None,
         search_penalty: 0.0,
         rival: Vec::new(),
-        build: Box::new(|b| every_string(Effect::Guide { radius_mm: b[0] })),
+        build: Box::new(|_| every_string(GUIDE_START)),
         describe: "every string's error follows its elevation from the frame edge alike: the \
                    strings wrap on guide pulleys of one radius swivelling toward the end-effector"
             .into(),
