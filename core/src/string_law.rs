@@ -276,7 +276,7 @@ pub struct EffectContext {
     /// [`StringInputs::guide_elevation_q32`]: what a guide term reads.
     pub guide_elevation_rad: f64,
     /// The elevation of the string's chord at home (rad), from the frame,
-    /// quantized as the device's ([`CompiledStringLaw::home_guide_elevation_q32`]).
+    /// quantized as the device's ([`guide_elevation_q32`] at the frame's home).
     pub home_guide_elevation_rad: f64,
 }
 
@@ -884,10 +884,6 @@ pub struct CompiledStringLaw {
     /// / 4096 mm)^3` in Q·30 (`cos^2` quantized to Q0.16 as the device's,
     /// the length clamped to [`MAX_SAG_LENGTH_MM`]: below 2^33).
     pub home_sag_q30: i64,
-    /// The elevation of the chord from the anchor to home, what a guide
-    /// term's home part reads ([`guide_elevation_q32`] at the frame's home,
-    /// Q0.32 turns).
-    pub home_guide_elevation_q32: i32,
 }
 
 /// The fixed-point form of a [`LayerTable`](crate::model::LayerTable): the same knots (counts), their
@@ -990,7 +986,6 @@ pub fn compile_string_law(
         winding_q32,
         layers: compile_layer_table(string, law)?,
         home_sag_q30: libm::round(home_cos2 * a * a * a * (1u64 << 30) as f64) as i64,
-        home_guide_elevation_q32: guide_elevation_q32(anchor, &frame.home, &frame.home),
     })
 }
 
@@ -1172,10 +1167,16 @@ pub enum CompiledEffect {
     /// `+ latency_q31 * payout_rate` (Q0.31 s times the context's
     /// [`FixedContext::payout_rate_q14`], Q17.14 mm/s; module `latency`).
     Latency { string: u8, latency_q31: i32 },
-    /// `+ radius_q24 * bracket(elevation, radius / free length)` (Q7.24 mm;
-    /// the series of module `guide`, at the context's
-    /// [`FixedContext::guide_elevation_q32`]).
-    Guide { string: u8, radius_q24: i32 },
+    /// `+ home_q20[string] - radius_q24 * bracket(elevation, radius / free
+    /// length)`: the path's excess over the chord at home (Q11.20 mm per
+    /// string, computed when compiled: 0 on the strings the term is not
+    /// on), less the series of module `guide` (radius Q7.24 mm) at the
+    /// context's [`FixedContext::guide_elevation_q32`].
+    Guide {
+        string: u8,
+        radius_q24: i32,
+        home_q20: [i32; STRINGS],
+    },
 }
 
 /// What a compiled effect of one string depends on, in device units.
@@ -1206,14 +1207,16 @@ pub struct FixedContext {
     /// The elevation of the string's chord, Q0.32 turns
     /// ([`StringInputs::guide_elevation_q32`]).
     pub guide_elevation_q32: i32,
-    /// The law's [`CompiledStringLaw::home_guide_elevation_q32`].
-    pub home_guide_elevation_q32: i32,
+    /// The string's encoder index (a shared term's per-string constants).
+    pub string: u8,
 }
 
 /// Compiles one effect term; `laws` gives the counts per revolution of its
-/// string (winding and eccentricity terms).
+/// string (winding and eccentricity terms), `frame` the anchors and home
+/// (a guide's home part).
 pub fn compile_effect(
     term: &EffectTerm,
+    frame: &Frame<f64>,
     laws: &[StringLaw; STRINGS],
 ) -> Result<CompiledEffect, StringLawCompileError> {
     let s = usize::from(term.string);
@@ -1268,7 +1271,7 @@ pub fn compile_effect(
         },
         Effect::Slip { at_s, mm } => compile_slip(s, string, at_s, mm)?,
         Effect::Latency { latency_s } => latency::compile_latency(s, string, latency_s)?,
-        Effect::Guide { radius_mm } => guide::compile_guide(s, string, radius_mm)?,
+        Effect::Guide { radius_mm } => guide::compile_guide(s, string, radius_mm, frame)?,
     })
 }
 
@@ -1611,7 +1614,11 @@ impl CompiledEffect {
                 flex.saturating_sub(home_q32)
             }
             CompiledEffect::Latency { latency_q31, .. } => latency::latency_q32(latency_q31, ctx),
-            CompiledEffect::Guide { radius_q24, .. } => guide::guide_q32(radius_q24, ctx),
+            CompiledEffect::Guide {
+                radius_q24,
+                ref home_q20,
+                ..
+            } => guide::guide_q32(radius_q24, home_q20, ctx),
         }
     }
 }
@@ -1701,7 +1708,7 @@ fn lengths_of<const ALL: bool>(
         // gives a rate only to a model with a term that reads it.
         payout_rate_q14: laws[s].payout_rate_q14(inputs.counts[s], inputs.count_rate_cps[s]),
         guide_elevation_q32: inputs.guide_elevation_q32[s],
-        home_guide_elevation_q32: laws[s].home_guide_elevation_q32,
+        string: s as u8,
     });
     for e in effects {
         let s = usize::from(e.string());

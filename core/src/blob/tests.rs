@@ -113,7 +113,7 @@ fn latency_terms_round_trip_and_out_of_range_ones_are_refused() {
     let expected: alloc::vec::Vec<CompiledEffect> = cal
         .effects
         .iter()
-        .map(|t| crate::string_law::compile_effect(t, laws).unwrap())
+        .map(|t| crate::string_law::compile_effect(t, &cal.frame, laws).unwrap())
         .collect();
     assert_eq!(c.head.effects.as_slice(), expected.as_slice());
     assert_eq!(
@@ -156,7 +156,7 @@ fn guide_terms_round_trip_and_out_of_range_ones_are_refused() {
     let expected: alloc::vec::Vec<CompiledEffect> = cal
         .effects
         .iter()
-        .map(|t| crate::string_law::compile_effect(t, &cal.strings).unwrap())
+        .map(|t| crate::string_law::compile_effect(t, &cal.frame, &cal.strings).unwrap())
         .collect();
     assert_eq!(c.head.effects.as_slice(), expected.as_slice());
     assert_eq!(
@@ -164,14 +164,31 @@ fn guide_terms_round_trip_and_out_of_range_ones_are_refused() {
         CompiledEffect::Guide {
             string: 1,
             radius_q24: 12 << 24,
+            home_q20: match expected[2] {
+                CompiledEffect::Guide { home_q20, .. } => home_q20,
+                _ => [0; 8],
+            },
         }
     );
+    // The home part on its string only (a shared term's on every string).
+    let CompiledEffect::Guide { home_q20, .. } = expected[2] else {
+        panic!("{:?}", expected[2]);
+    };
+    assert!(home_q20
+        .iter()
+        .enumerate()
+        .all(|(i, &h)| (h != 0) == (i == 1)));
+    let CompiledEffect::Guide { home_q20, .. } = expected[3] else {
+        panic!("{:?}", expected[3]);
+    };
+    assert!(home_q20.iter().all(|&h| h > 0));
     let (_, body) = split_blob(&blob).unwrap();
     let (head, rest) = split_body(body).unwrap();
     let mut h = head.clone();
     h.effects[3] = CompiledEffect::Guide {
         string: crate::model::EVERY_STRING,
         radius_q24: 51 << 24,
+        home_q20: [0; 8],
     };
     assert!(matches!(
         CompiledCalibration::from_blob(&with_head(&blob, &h, rest)),

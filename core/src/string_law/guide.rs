@@ -27,8 +27,9 @@
 //! free length `l = home_length + payout` (the model's length before its
 //! effect terms: the two differ by the term, which moves it by `(r / l)^2`
 //! of that), clamped to at least [`GUIDE_MIN_RADII`] radii; the home part
-//! reads the home length and the home's elevation
-//! ([`CompiledStringLaw::home_guide_elevation_q32`](super::CompiledStringLaw::home_guide_elevation_q32)).
+//! reads the home length and the home's elevation (quantized as the
+//! device's input), a constant of each string the compiler computes in f64
+//! (exact) and the compiled term carries.
 //!
 //! # The swivel axis
 //!
@@ -58,13 +59,14 @@
 //! | `a` in radians, the bracket and its parts | `i64` | Q·30, each product of two below `2^63` (rounded, shifted) |
 //! | free length | `i64` | Q·16 mm, clamped to at least `16 r` (and 2^-16 mm) |
 //! | `eps` | `i64` | Q·30: `(r << 22) / l`, one 64-bit division a string |
-//! | contribution | `i64` | Q31.32 mm: the home's bracket less the one now, times `r`, rounded, saturated |
+//! | home part | `[i32; 8]` | Q11.20 mm per string, the exact path's excess at home, rounded when compiled |
+//! | contribution | `i64` | Q31.32 mm: the home part less the bracket now times `r` (rounded), saturated |
 
 use core::f64::consts::{FRAC_PI_2, PI, TAU};
 
-use super::{in_range, mul_i32_shr, q16_to_q32, sin_q30, CompiledEffect, EffectContext};
-use super::{FixedContext, StringLawCompileError};
-use crate::model::Vec3;
+use super::{home_length_f64, in_range, mul_i32_shr, q16_to_q32, sin_q30, to_fixed_i32};
+use super::{CompiledEffect, EffectContext, FixedContext, StringLawCompileError};
+use crate::model::{Frame, Vec3, EVERY_STRING};
 use crate::real::Real;
 use crate::STRINGS;
 
@@ -223,11 +225,15 @@ fn path_slope(radius_mm: f64, chord_mm: f64, elevation_rad: f64) -> f64 {
 /// [`MAX_GUIDE_RADIUS_MM`] in Q7.24.
 pub(super) const MAX_GUIDE_RADIUS_Q24: i32 = (MAX_GUIDE_RADIUS_MM * 16_777_216.0) as i32;
 
-/// A guide term: `radius_mm` within `+-`[`MAX_GUIDE_RADIUS_MM`], Q7.24 mm.
+/// A guide term: `radius_mm` within `+-`[`MAX_GUIDE_RADIUS_MM`], Q7.24 mm,
+/// and its home part on each string it is on (every string of `frame` for
+/// a shared term), Q11.20 mm: the exact path's excess over the chord from
+/// the anchor to home, at the home's elevation as the device quantizes it.
 pub(super) fn compile_guide(
     s: usize,
     string: u8,
     radius_mm: f64,
+    frame: &Frame<f64>,
 ) -> Result<CompiledEffect, StringLawCompileError> {
     let r = in_range(
         s,
@@ -236,9 +242,27 @@ pub(super) fn compile_guide(
         -MAX_GUIDE_RADIUS_MM,
         MAX_GUIDE_RADIUS_MM,
     )?;
+    let mut home_q20 = [0; STRINGS];
+    for (i, h) in home_q20.iter_mut().enumerate() {
+        if string != EVERY_STRING && usize::from(string) != i {
+            continue;
+        }
+        let (Some(anchor), Some(length)) = (frame.anchors.get(i), home_length_f64(frame, i)) else {
+            continue;
+        };
+        let elevation = guide_elevation_rad(guide_elevation_q32(anchor, &frame.home, &frame.home));
+        let home = guide_path_mm(r, length, elevation);
+        // A channel without a string may hold any anchor: its part is never read.
+        *h = if home.is_finite() || string != EVERY_STRING {
+            to_fixed_i32(i, "anchor (guide's home part)", home, 20, "Q11.20 mm")?
+        } else {
+            0
+        };
+    }
     Ok(CompiledEffect::Guide {
         string,
         radius_q24: libm::round(r * 16_777_216.0) as i32,
+        home_q20,
     })
 }
 
@@ -257,21 +281,22 @@ fn mul_shr(a: i64, b: i64, s: u32) -> i64 {
     (a * b + (1 << (s - 1))) >> s
 }
 
-/// [`CompiledEffect::Guide`]'s contribution (Q31.32 mm): the series of
-/// the module docs at the home length and the home's elevation less the
-/// one at the context's free length and elevation. Always inlined, as
-/// [`CompiledEffect::contribution_q32`].
+/// [`CompiledEffect::Guide`]'s contribution (Q31.32 mm): the string's home
+/// part less the series of the module docs at the context's free length
+/// and elevation. Always inlined, as [`CompiledEffect::contribution_q32`].
 #[inline(always)]
-pub(super) fn guide_q32(radius_q24: i32, ctx: &FixedContext) -> i64 {
+pub(super) fn guide_q32(radius_q24: i32, home_q20: &[i32; STRINGS], ctx: &FixedContext) -> i64 {
+    let home = home_q20
+        .get(usize::from(ctx.string))
+        .map_or(0, |&h| i64::from(h) << 12);
     if radius_q24 == 0 {
-        return 0;
+        return home;
     }
     let r = radius_q24.clamp(-MAX_GUIDE_RADIUS_Q24, MAX_GUIDE_RADIUS_Q24);
-    let home = bracket_q30(r, ctx.home_guide_elevation_q32, ctx.home_length_q16);
     let free = q16_to_q32(ctx.home_length_q16).saturating_add(ctx.payout_q32) >> 16;
     let now = bracket_q30(r, ctx.guide_elevation_q32, free);
-    // Q.30 times Q7.24 to Q31.32 (each bracket below 2^33).
-    mul_i32_shr(home - now, r, 22)
+    // Q.30 times Q7.24 to Q31.32 (the bracket below 2^33).
+    home.saturating_sub(mul_i32_shr(now, r, 22))
 }
 
 /// The bracket of the module docs (Q.30) for a guide of `r` (Q7.24 mm) at

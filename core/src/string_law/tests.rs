@@ -32,7 +32,7 @@ fn compile_all(
     }
     let ce = effects
         .iter()
-        .map(|e| compile_effect(e, laws).expect("effect compiles"))
+        .map(|e| compile_effect(e, frame, laws).expect("effect compiles"))
         .collect();
     (cl, ce)
 }
@@ -146,7 +146,7 @@ fn a_shared_term_is_one_term_on_every_string() {
             effect,
         };
         assert_eq!(
-            compile_effect(&term, &laws),
+            compile_effect(&term, &f, &laws),
             Err(StringLawCompileError::StringOutOfRange { string: 255 })
         );
     }
@@ -612,11 +612,12 @@ fn kind_and_field(e: StringLawCompileError) -> (&'static str, &'static str) {
 
 #[test]
 fn effect_compile_errors_name_the_field() {
+    let f = cube_frame([0.0; 3]);
     let law = StringLaw::polynomial(4096, [10.0, -0.02, 0.0, 0.0]);
     let laws = [law; STRINGS];
     let term = |string, effect| EffectTerm { string, effect };
     assert_eq!(
-        compile_effect(&term(8, Effect::Offset { mm: 1.0 }), &laws),
+        compile_effect(&term(8, Effect::Offset { mm: 1.0 }), &f, &laws),
         Err(StringLawCompileError::StringOutOfRange { string: 8 })
     );
     let sag = |mm_at_1m_1n, home_mm_at_1m| Effect::Sag {
@@ -680,7 +681,7 @@ fn effect_compile_errors_name_the_field() {
         ),
     ];
     for (effect, kind, field) in cases {
-        let got = compile_effect(&term(0, effect), &laws).map(|_| ());
+        let got = compile_effect(&term(0, effect), &f, &laws).map(|_| ());
         assert_eq!(
             got.map_err(kind_and_field),
             Err((kind, field)),
@@ -696,7 +697,7 @@ fn effect_compile_errors_name_the_field() {
         cos_mm: 0.0,
     };
     assert_eq!(
-        compile_effect(&term(0, eccentricity), &zero)
+        compile_effect(&term(0, eccentricity), &f, &zero)
             .map(|_| ())
             .map_err(kind_and_field),
         Err(("OutOfRange", "counts_per_rev"))
@@ -706,9 +707,9 @@ fn effect_compile_errors_name_the_field() {
 #[test]
 fn compiled_effects_validate() {
     let mut rng = Rng(11);
-    let (_, laws, effects) = realistic(&mut rng);
+    let (f, laws, effects) = realistic(&mut rng);
     for e in &effects {
-        compile_effect(e, &laws).unwrap().validate().unwrap();
+        compile_effect(e, &f, &laws).unwrap().validate().unwrap();
     }
     assert!(CompiledEffect::Offset {
         string: 9,
@@ -741,6 +742,7 @@ fn compiled_effects_validate() {
     assert!(CompiledEffect::Guide {
         string: EVERY_STRING,
         radius_q24: i32::MIN,
+        home_q20: [0; STRINGS],
     }
     .validate()
     .is_err());
@@ -1033,10 +1035,10 @@ fn a_frame_flex_reads_the_total_tension_of_the_active_strings() {
         payout_q32: 0,
         cos2_inclination_q16: 0,
         home_sag_q30: 0,
-        home_guide_elevation_q32: 0,
         total_tension_mn: 8 * u32::from(u16::MAX),
         payout_rate_q14: 0,
         guide_elevation_q32: 0,
+        string: 0,
     };
     assert_eq!(worst.contribution_q32(&ctx), i64::MAX);
 }
@@ -1129,8 +1131,11 @@ fn arb_effect() -> impl Strategy<Value = CompiledEffect> {
             string,
             latency_q31
         }),
-        (s, any::<i32>())
-            .prop_map(|(string, radius_q24)| CompiledEffect::Guide { string, radius_q24 }),
+        (s, any::<i32>()).prop_map(|(string, radius_q24)| CompiledEffect::Guide {
+            string,
+            radius_q24,
+            home_q20: [1 << 30; STRINGS],
+        }),
     ]
 }
 
@@ -1154,24 +1159,15 @@ fn arb_law() -> impl Strategy<Value = CompiledStringLaw> {
         any::<[i64; WINDING_ORDER]>(),
         arb_layers(),
         any::<i64>(),
-        any::<i32>(),
     )
         .prop_map(
-            |(
-                home_length_q16,
-                counts_per_rev,
-                winding_q32,
-                layers,
-                home_sag_q30,
-                home_guide_elevation_q32,
-            )| {
+            |(home_length_q16, counts_per_rev, winding_q32, layers, home_sag_q30)| {
                 CompiledStringLaw {
                     home_length_q16,
                     counts_per_rev,
                     winding_q32,
                     home_sag_q30,
                     layers,
-                    home_guide_elevation_q32,
                 }
             },
         )
@@ -1263,7 +1259,7 @@ proptest! {
             Effect::Latency { latency_s: v },
             Effect::Guide { radius_mm: v },
         ] {
-            if let Ok(c) = compile_effect(&EffectTerm { string, effect }, &laws) {
+            if let Ok(c) = compile_effect(&EffectTerm { string, effect }, &f, &laws) {
                 prop_assert!(c.validate().is_ok());
             }
         }

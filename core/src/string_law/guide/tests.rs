@@ -96,7 +96,7 @@ fn the_series_in_fixed_point_follows_the_exact_path() {
                 string,
                 effect: Effect::Guide { radius_mm: r },
             }];
-            let ce = [compile_effect(&terms[0], &laws).unwrap()];
+            let ce = [compile_effect(&terms[0], &f, &laws).unwrap()];
             for k in 0..400 {
                 let mut inputs = StringInputs::default();
                 for i in 0..STRINGS {
