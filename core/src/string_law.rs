@@ -1516,6 +1516,12 @@ impl CompiledEffect {
         matches!(self, CompiledEffect::Latency { .. })
     }
 
+    /// Whether the term reads the strings' elevation from their guides'
+    /// swivel planes (a guide; a sag reads `cos^2` of the inclination).
+    pub fn reads_elevation(&self) -> bool {
+        matches!(self, CompiledEffect::Guide { .. })
+    }
+
     /// Contribution of this term (Q31.32 mm), integer only, saturating.
     /// Always inlined: `string_lengths` has a copy of its loop for all 8
     /// channels and one for a layout, and the call would cost each term ~70

@@ -330,19 +330,7 @@ fn string_terms(
         });
     }
     if guides {
-        terms.push(StringTerm {
-            family: Family::Guide,
-            variable: Variable::Elevation,
-            is_term: |e| matches!(e, Effect::Guide { .. }),
-            columns: vec![guide_column()],
-            rival: Vec::new(),
-            search_penalty: 0.0,
-            effect: Box::new(|_| GUIDE_START),
-            describe: format!(
-                "string {i}'s error follows its elevation from the frame edge: it wraps on a \
-                 guide pulley swivelling toward the end-effector"
-            ),
-        });
+        terms.push(guide_term(i));
     }
     if let Some(at_s) = split {
         terms.push(slip_term(rows, i, at_s));
@@ -359,9 +347,26 @@ fn string_terms(
 /// 0, 0.583 from 20 mm, 0.571 without the guide).
 const GUIDE_START: Effect = Effect::Guide { radius_mm: 0.0 };
 
-/// A guide's column: the wrap on a pulley of 1 mm less the chord's saving,
-/// `pi/2 - a - cos a` at the row's elevation `a` (the term's slope in its
-/// radius at 0).
+/// A guide pulley on string `i`.
+fn guide_term(i: usize) -> StringTerm {
+    StringTerm {
+        family: Family::Guide,
+        variable: Variable::Elevation,
+        is_term: |e| matches!(e, Effect::Guide { .. }),
+        columns: vec![guide_column()],
+        rival: Vec::new(),
+        search_penalty: 0.0,
+        effect: Box::new(|_| GUIDE_START),
+        describe: format!(
+            "string {i}'s error follows its elevation from the frame edge: it wraps on a guide \
+             pulley swivelling toward the end-effector"
+        ),
+    }
+}
+
+/// A guide's column: the term's slope in its radius at 0, the wrap on a
+/// pulley of 1 mm less the chord's saving, `pi/2 - a - cos a`, at the
+/// home's elevation less at the row's.
 fn guide_column() -> RowColumn {
     Box::new(|r| guide_slope(0.0, &r.ctx))
 }
