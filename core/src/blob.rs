@@ -410,8 +410,8 @@ mod compiler {
         }
         let mut effects = heapless::Vec::new();
         for term in &calibration.effects {
-            let e =
-                compile_effect(term, &calibration.strings).map_err(BlobCompileError::StringLaw)?;
+            let e = compile_effect(term, &calibration.frame, &calibration.strings)
+                .map_err(BlobCompileError::StringLaw)?;
             effects
                 .push(e)
                 .map_err(|_| BlobCompileError::TooManyEffects {

@@ -23,7 +23,7 @@ use crate::guidance::guidance_force;
 use crate::kinematics::{forward_kinematics, inverse_kinematics, FkConfig, FkStatus};
 use crate::model::{Frame, StringInputs};
 use crate::safety::{SafetyConfig, SafetyConfigError, SafetyFaults, SafetyMonitor};
-use crate::string_law::{cos2_inclinations, string_lengths, CompiledEffect};
+use crate::string_law::{cos2_inclinations, guide_elevations, string_lengths, CompiledEffect};
 use crate::tension::{
     distribute_warm, TensionConfig, TensionLimits, TensionSolution, TensionStatus,
 };
@@ -261,16 +261,26 @@ impl Controller {
         input: &LoopInput,
     ) -> LoopOutput {
         let frame = &head.frame;
-        // Tensions and inclinations (sag) are the last tick's: at the loop's
-        // rate the position moves by less than 0.1 mm between ticks. Only a
-        // model with a term that reads the inclination pays for it.
+        // Tensions, inclinations (sag) and elevations (guide) are the last
+        // tick's: at the loop's rate the position moves by less than 0.1 mm
+        // between ticks.
         let mut inputs = StringInputs {
             tension_mn: self.tensions_mn,
             time_ms: input.now_ms.wrapping_sub(self.home_ms),
             ..StringInputs::default()
         };
-        if head.effects.iter().any(CompiledEffect::reads_inclination) {
+        // A sag reads the inclination, a guide the elevation: each is
+        // computed only for a model that reads it.
+        let effects = &head.effects;
+        if effects
+            .iter()
+            .any(|e| matches!(e, CompiledEffect::Sag { .. }))
+        {
             inputs.cos2_inclination_q16 = cos2_inclinations(&frame.anchors, &self.position);
+        }
+        if effects.iter().any(CompiledEffect::reads_elevation) {
+            inputs.guide_elevation_q32 =
+                guide_elevations(&frame.anchors, &frame.home, &self.position);
         }
         for i in 0..STRINGS {
             inputs.counts[i] = self.encoders[i].update(input.raw_counts[i]);

@@ -15,8 +15,8 @@
 
 use crate::real::Real;
 
-use crate::model::{StringInputs, StringLayout, Vec3};
-use crate::string_law::cos2_inclinations;
+use crate::model::{Frame, StringInputs, StringLayout, Vec3};
+use crate::string_law::{cos2_inclinations, guide_elevations};
 use crate::STRINGS;
 
 /// `x` as `F` (constants only; every `f64` converts to `f32`/`f64`).
@@ -396,28 +396,31 @@ fn finite3<F: Real>(v: &Vec3<F>) -> bool {
 }
 
 /// Forward kinematics of one session row whose string lengths read the
-/// strings' inclination (a sag, [`crate::model::Effect::reads_inclination`]),
-/// for the host's replays of a session (f64 reference and device bits): the
-/// lengths at the inclinations at `start`, then, when `inclined`, at those of
-/// the first solution, solved again from it. The device's loop needs no
-/// second solve: the position it holds is a tick old. `lengths` gives the
-/// string lengths of `inputs`.
+/// strings' direction from the position (a sag its inclination, a guide
+/// its elevation, [`crate::model::Effect::reads_inclination`]), for the
+/// host's replays of a session (f64 reference and device bits): the
+/// lengths at the directions at `start`, then, when `inclined`, at those of
+/// the first solution, solved again from it (the anchors, home and layout
+/// of `frame`). The device's loop needs no second solve: the position it
+/// holds is a tick old. `lengths` gives the string lengths of `inputs`.
 pub fn forward_kinematics_inclined<F: Real>(
-    anchors: &[Vec3<F>; STRINGS],
-    layout: StringLayout,
+    frame: &Frame<F>,
     inputs: &StringInputs,
     start: Vec3<F>,
     config: &FkConfig<F>,
     inclined: bool,
     lengths: impl Fn(&StringInputs) -> [F; STRINGS],
 ) -> FkSolution<F> {
+    let (anchors, home, layout) = (&frame.anchors, &frame.home, frame.layout);
     let mut inputs = *inputs;
     inputs.cos2_inclination_q16 = cos2_inclinations(anchors, &start);
+    inputs.guide_elevation_q32 = guide_elevations(anchors, home, &start);
     let fk = forward_kinematics(anchors, layout, &lengths(&inputs), start, config);
     if !inclined || !finite3(&fk.position) {
         return fk;
     }
     inputs.cos2_inclination_q16 = cos2_inclinations(anchors, &fk.position);
+    inputs.guide_elevation_q32 = guide_elevations(anchors, home, &fk.position);
     forward_kinematics(anchors, layout, &lengths(&inputs), fk.position, config)
 }
 

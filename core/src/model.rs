@@ -144,6 +144,15 @@ pub struct StringInputs {
     /// files written before it existed (zeros).
     #[serde(default)]
     pub count_rate_cps: [i32; STRINGS],
+    /// The elevation of each string's chord from its anchor to the
+    /// position the loop holds, out of the plane across the string's guide
+    /// swivel axis (the frame edge: device `z`, pointing away from the home
+    /// height), Q0.32 turns, what a guide term reads ([`Effect::Guide`]);
+    /// taken where [`cos2_inclination_q16`](Self::cos2_inclination_q16) is,
+    /// see [`guide_elevations`](crate::string_law::guide_elevations). Absent
+    /// in files written before it existed (zeros).
+    #[serde(default)]
+    pub guide_elevation_q32: [i32; STRINGS],
 }
 
 /// Highest power of the pulley angle in a winding law.
@@ -478,6 +487,17 @@ pub enum Effect {
     /// observed. `|latency_s| <=`
     /// [`MAX_LATENCY_S`](crate::string_law::MAX_LATENCY_S).
     Latency { latency_s: f64 },
+    /// A guide pulley of radius `radius_mm` whose plane swivels toward the
+    /// end-effector about the frame edge (the model's anchor is its entry
+    /// point on the swivel axis): the string wraps `r beta` on it and
+    /// leaves along the tangent: its path is longer than the chord `l` by
+    /// `g(l, a) = r beta + sqrt(m^2 - r^2) - l` (exact, module
+    /// `string_law::guide`), `a` the chord's elevation from
+    /// [`StringInputs::guide_elevation_q32`]. The encoders count the path
+    /// from the home capture, so `+ g(home_length, a_home) - g(l, a)`, `l =
+    /// home_length + payout`; 0 at `r = 0`. `|radius_mm| <=`
+    /// [`MAX_GUIDE_RADIUS_MM`](crate::string_law::MAX_GUIDE_RADIUS_MM).
+    Guide { radius_mm: f64 },
 }
 
 /// An [`Effect`] applied to one string, or to every string at once.

@@ -35,6 +35,7 @@
 //! | inclination of a string (sag) | `u16` | Q0.16 `cos^2`, 65535 level |
 //! | layer table knots | `i64` | Q47.16 mm (`|v| <= MAX_LAYER_MM`), knots `2^step_log2` counts apart; added to the payout |
 //! | count rate (latency) | `i32` | counts per second; latency Q0.31 s, slope Q2.30 mm per count, payout rate Q17.14 mm/s (module `latency`, [`CompiledStringLaw::payout_rate_q14`]) |
+//! | elevation of a string's chord (guide) | `i32` | Q0.32 turns; radius Q7.24 mm, the series in `r / l` in Q·30 (module `guide`) |
 //!
 //! Every product is `i64 x i32 -> 96 bits`, rounded (half up) and shifted back
 //! to `i64`, saturating; every sum saturates. No input or compiled parameter
@@ -46,16 +47,27 @@ use core::fmt;
 use serde::{Deserialize, Serialize};
 
 use crate::model::{
-    locate_knot, Effect, EffectTerm, Frame, Knots, StringInputs, StringLaw, StringLayout, Vec3,
+    locate_knot, Effect, EffectTerm, Frame, Knots, StringInputs, StringLaw, StringLayout,
     EVERY_STRING, LAYER_KNOTS, MAX_LAYER_MM, MAX_LAYER_STEP_LOG2, WINDING_ORDER,
 };
-use crate::real::Real;
 use crate::STRINGS;
 
+mod frame_flex;
+mod guide;
 mod latency;
+mod sag;
 mod stretch;
 
+pub use frame_flex::{MAX_FRAME_FLEX_HOME_MM, MAX_FRAME_FLEX_MM_PER_NEWTON};
+pub use guide::{
+    guide_elevation_q32, guide_elevation_rad, guide_elevations, guide_mm, guide_path_mm,
+    guide_slope, GUIDE_MIN_RADII, MAX_GUIDE_RADIUS_MM,
+};
 pub use latency::{payout_rate_mm_s, MAX_LATENCY_S};
+pub use sag::{
+    cos2_inclination_q16, cos2_inclinations, sag_home_slope, sag_home_variable, sag_mm, sag_slope,
+    sag_variable, MAX_SAG_LENGTH_MM, MAX_SAG_MM, MAX_SAG_MM_AT_1M_1N, SAG_MIN_TENSION_N,
+};
 pub use stretch::stretch_mm;
 
 /// The winding polynomial is evaluated in `x = counts / 2^COUNTS_SHIFT`, so
@@ -72,120 +84,6 @@ pub const MAX_ELASTICITY_PER_NEWTON: f64 = 0.015;
 /// Largest `|mm_per_newton|` of an elasticity term (mm/N): 1 m of lead on a
 /// string of 1 kN stiffness.
 pub const MAX_ELASTICITY_MM_PER_NEWTON: f64 = 1.0;
-
-/// Largest `|mm_per_newton|` of a frame-flex term (mm/N): a frame that
-/// gives 10 mm per newton of total pull is no frame.
-pub const MAX_FRAME_FLEX_MM_PER_NEWTON: f64 = 10.0;
-
-/// Largest `|home_mm|` of a frame-flex term (mm).
-pub const MAX_FRAME_FLEX_HOME_MM: f64 = 100.0;
-
-/// Least tension a sag term takes (N): below it the string is not a
-/// catenary and `1 / T^2` would grow without bound.
-pub const SAG_MIN_TENSION_N: f64 = 0.25;
-
-/// [`MAX_SAG_MM`] in Q31.32 mm.
-const MAX_SAG_Q32: i128 = (MAX_SAG_MM as i128) << 32;
-
-/// [`SAG_MIN_TENSION_N`] in the device's unit (mN).
-const SAG_MIN_TENSION_MN: u16 = (SAG_MIN_TENSION_N * 1000.0) as u16;
-
-/// Longest free length a sag term takes (mm): the fixed-point cube is taken
-/// of `l / 4096 mm < 2` ([`CompiledEffect::Sag`]).
-pub const MAX_SAG_LENGTH_MM: f64 = 8192.0 - 1.0 / 65536.0;
-
-/// Largest `|mm_at_1m_1n|` of a sag term: 1.6 mm is a 20 g/m string, 100 mm a
-/// 160 g/m one; beyond it the compiled coefficient could overflow.
-pub const MAX_SAG_MM_AT_1M_1N: f64 = 100.0;
-
-/// Largest sag a term gives (mm): a string sagging more is not taut, the
-/// parabolic law does not hold, and its slope (`3 sag / l`) would amplify
-/// any error of the length it is evaluated at.
-pub const MAX_SAG_MM: f64 = 100.0;
-
-/// A sag term's contribution (mm): `- mm_at_1m_1n * sag_variable +
-/// home_mm_at_1m * sag_home_variable`, each part clamped to
-/// `+-`[`MAX_SAG_MM`] ([`Effect::Sag`]).
-pub fn sag_mm(mm_at_1m_1n: f64, home_mm_at_1m: f64, ctx: &EffectContext) -> f64 {
-    let now = (mm_at_1m_1n * sag_variable(ctx)).clamp(-MAX_SAG_MM, MAX_SAG_MM);
-    let home = (home_mm_at_1m * sag_home_variable(ctx)).clamp(-MAX_SAG_MM, MAX_SAG_MM);
-    home - now
-}
-
-/// d(contribution)/d(free length) of a sag term: `-3 sag / l`, 0 where the
-/// length or the sag is clamped (what the identification's payout and home
-/// length derivatives carry).
-pub fn sag_slope(mm_at_1m_1n: f64, ctx: &EffectContext) -> f64 {
-    -cube_slope(
-        mm_at_1m_1n * sag_variable(ctx),
-        ctx.home_length_mm + ctx.payout_mm,
-    )
-}
-
-/// d(contribution)/d(home length) of a sag term's home part: `3 home_sag /
-/// home_length`, 0 where clamped (the identification adds it to the home
-/// length's derivative, beside [`sag_slope`]).
-pub fn sag_home_slope(home_mm_at_1m: f64, ctx: &EffectContext) -> f64 {
-    cube_slope(home_mm_at_1m * sag_home_variable(ctx), ctx.home_length_mm)
-}
-
-/// d(sag)/d(l) of a sag in `l^3`: `3 sag / l`, 0 where the length or the
-/// sag is clamped.
-fn cube_slope(sag: f64, l: f64) -> f64 {
-    if l <= 0.0 || l >= MAX_SAG_LENGTH_MM || sag.abs() >= MAX_SAG_MM {
-        0.0
-    } else {
-        3.0 * sag / l
-    }
-}
-
-/// `cos^2(a_home) (home_length / 1 m)^3` of a sag term: the home capture's
-/// sag variable without its tension ([`Effect::Sag`]).
-pub fn sag_home_variable(ctx: &EffectContext) -> f64 {
-    let l = ctx.home_length_mm.clamp(0.0, MAX_SAG_LENGTH_MM) / 1000.0;
-    ctx.home_cos2_inclination * l * l * l
-}
-
-/// `cos^2(a) (l / 1 m)^3 / (T / 1 N)^2` of a sag term, with `l` and `T`
-/// clamped as [`Effect::Sag`] says.
-pub fn sag_variable(ctx: &EffectContext) -> f64 {
-    let l = (ctx.home_length_mm + ctx.payout_mm).clamp(0.0, MAX_SAG_LENGTH_MM) / 1000.0;
-    let t = ctx.tension_n.max(SAG_MIN_TENSION_N);
-    ctx.cos2_inclination * l * l * l / (t * t)
-}
-
-/// `cos^2` of the inclination from the horizontal of the chord from
-/// `anchor` to `position` (device frame, z up), Q0.16, saturating at 65535
-/// (a level chord); 0 for a plumb chord, a chord of no length or a non-finite
-/// input. What [`StringInputs::cos2_inclination_q16`] carries: the device
-/// takes it at the position its loop holds (the last forward kinematics, a
-/// tick old), the host at the tracker's position (identification) or at the
-/// row's solved position (prediction).
-pub fn cos2_inclination_q16<F: Real>(anchor: &Vec3<F>, position: &Vec3<F>) -> u16 {
-    let d = [
-        position[0] - anchor[0],
-        position[1] - anchor[1],
-        position[2] - anchor[2],
-    ];
-    let level = d[0] * d[0] + d[1] * d[1];
-    let squared = level + d[2] * d[2];
-    if squared.partial_cmp(&F::zero()) != Some(core::cmp::Ordering::Greater) {
-        return 0; // no chord, or NaN
-    }
-    // In f32 on both sides (the device's type; a Q0.16 step is 1.5e-5): the
-    // `as` cast truncates the non-negative value (so rounds half up),
-    // saturates the level chord's 65536 and takes NaN (an infinite input) to 0.
-    let ratio = (level / squared).to_f32().unwrap_or(f32::NAN);
-    (ratio * 65536.0 + 0.5) as u16
-}
-
-/// [`cos2_inclination_q16`] of every string of `anchors` at `position`.
-pub fn cos2_inclinations<F: Real>(
-    anchors: &[Vec3<F>; STRINGS],
-    position: &Vec3<F>,
-) -> [u16; STRINGS] {
-    core::array::from_fn(|i| cos2_inclination_q16(&anchors[i], position))
-}
 
 // ---------------------------------------------------------------------------
 // f64 reference
@@ -265,6 +163,13 @@ pub struct EffectContext {
     /// The payout's rate of change (mm/s) at the string's count rate,
     /// [`payout_rate_mm_s`]: what a latency term scales with.
     pub payout_rate_mm_s: f64,
+    /// The elevation of the string's chord out of the plane across its
+    /// guide's swivel axis (rad), [`guide_elevation_rad`] of
+    /// [`StringInputs::guide_elevation_q32`]: what a guide term reads.
+    pub guide_elevation_rad: f64,
+    /// The elevation of the string's chord at home (rad), from the frame,
+    /// quantized as the device's ([`guide_elevation_q32`] at the frame's home).
+    pub home_guide_elevation_rad: f64,
 }
 
 impl EffectContext {
@@ -305,6 +210,12 @@ impl EffectContext {
                 &frame.home,
             )) / 65536.0,
             payout_rate_mm_s: payout_rate_mm_s(law, counts, *inputs.count_rate_cps.get(string)?),
+            guide_elevation_rad: guide_elevation_rad(*inputs.guide_elevation_q32.get(string)?),
+            home_guide_elevation_rad: guide_elevation_rad(guide_elevation_q32(
+                frame.anchors.get(string)?,
+                &frame.home,
+                &frame.home,
+            )),
         })
     }
 }
@@ -337,11 +248,12 @@ fn values(v: &[f64]) -> heapless::Vec<f64, 3> {
 }
 
 impl Effect {
-    /// Whether the term reads the string's inclination (a sag): forward
-    /// kinematics over sparse rows then solves twice, the second time at the
-    /// inclination of the first solution (`spidar::predict`).
+    /// Whether the term reads the string's direction from the position (a
+    /// sag its inclination, a guide its elevation): forward kinematics over
+    /// sparse rows then solves twice, the second time at the direction of
+    /// the first solution (`spidar::predict`).
     pub fn reads_inclination(&self) -> bool {
-        matches!(self, Effect::Sag { .. })
+        matches!(self, Effect::Sag { .. } | Effect::Guide { .. })
     }
 
     /// Whether the term reads the strings' count rate (a latency).
@@ -387,6 +299,7 @@ impl Effect {
                 home_mm_at_1m,
             } => sag_mm(mm_at_1m_1n, home_mm_at_1m, ctx),
             Effect::Latency { latency_s } => latency_s * ctx.payout_rate_mm_s,
+            Effect::Guide { radius_mm } => guide_mm(radius_mm, ctx),
         }
     }
 
@@ -407,6 +320,7 @@ impl Effect {
     /// | FrameFlex | `mm_per_newton, home_mm` | `[sum_j T_j, -1]` |
     /// | Stretch | `per_newton, mm_per_newton, home_tension_n` | `[T (home_length + payout) - T_home home_length, T - T_home, -(per_newton home_length + mm_per_newton)]` |
     /// | Latency | `latency_s` | `[payout rate]` |
+    /// | Guide | `radius_mm` | `[(beta - sin(beta))(home) - (beta - sin(beta))(now)]` (the wrap angle) |
     pub fn gradient_f64(&self, ctx: &EffectContext) -> heapless::Vec<f64, 3> {
         match *self {
             Effect::Offset { .. } => values(&[1.0]),
@@ -452,6 +366,7 @@ impl Effect {
                 ])
             }
             Effect::Latency { .. } => values(&[ctx.payout_rate_mm_s]),
+            Effect::Guide { radius_mm } => values(&[guide_slope(radius_mm, ctx)]),
         }
     }
 
@@ -480,6 +395,7 @@ impl Effect {
                 home_mm_at_1m,
             } => values(&[mm_at_1m_1n, home_mm_at_1m]),
             Effect::Latency { latency_s } => values(&[latency_s]),
+            Effect::Guide { radius_mm } => values(&[radius_mm]),
         }
     }
 
@@ -521,6 +437,7 @@ impl Effect {
                 home_mm_at_1m: p[1],
             },
             Effect::Latency { .. } => Effect::Latency { latency_s: p[0] },
+            Effect::Guide { .. } => Effect::Guide { radius_mm: p[0] },
         })
     }
 }
@@ -1142,6 +1059,16 @@ pub enum CompiledEffect {
     /// `+ latency_q31 * payout_rate` (Q0.31 s times the context's
     /// [`FixedContext::payout_rate_q14`], Q17.14 mm/s; module `latency`).
     Latency { string: u8, latency_q31: i32 },
+    /// `+ home_q20[string] - radius_q24 * bracket(elevation, radius / free
+    /// length)`: the path's excess over the chord at home (Q11.20 mm per
+    /// string, computed when compiled: 0 on the strings the term is not
+    /// on), less the series of module `guide` (radius Q7.24 mm) at the
+    /// context's [`FixedContext::guide_elevation_q32`].
+    Guide {
+        string: u8,
+        radius_q24: i32,
+        home_q20: [i32; STRINGS],
+    },
 }
 
 /// What a compiled effect of one string depends on, in device units.
@@ -1169,12 +1096,19 @@ pub struct FixedContext {
     /// ([`CompiledStringLaw::payout_rate_q14`] at the string's count rate;
     /// 0 at a rate of 0).
     pub payout_rate_q14: i32,
+    /// The elevation of the string's chord, Q0.32 turns
+    /// ([`StringInputs::guide_elevation_q32`]).
+    pub guide_elevation_q32: i32,
+    /// The string's encoder index (a shared term's per-string constants).
+    pub string: u8,
 }
 
 /// Compiles one effect term; `laws` gives the counts per revolution of its
-/// string (winding and eccentricity terms).
+/// string (winding and eccentricity terms), `frame` the anchors and home
+/// (a guide's home part).
 pub fn compile_effect(
     term: &EffectTerm,
+    frame: &Frame<f64>,
     laws: &[StringLaw; STRINGS],
 ) -> Result<CompiledEffect, StringLawCompileError> {
     let s = usize::from(term.string);
@@ -1214,11 +1148,11 @@ pub fn compile_effect(
         Effect::Sag {
             mm_at_1m_1n,
             home_mm_at_1m,
-        } => compile_sag(s, string, mm_at_1m_1n, home_mm_at_1m)?,
+        } => sag::compile_sag(s, string, mm_at_1m_1n, home_mm_at_1m)?,
         Effect::FrameFlex {
             mm_per_newton,
             home_mm,
-        } => compile_frame_flex(s, string, mm_per_newton, home_mm)?,
+        } => frame_flex::compile_frame_flex(s, string, mm_per_newton, home_mm)?,
         Effect::Backlash { half_width_mm } => CompiledEffect::Backlash {
             string,
             half_width_q16: to_fixed(s, "half_width_mm", half_width_mm, 16, "Q47.16 mm")?,
@@ -1229,6 +1163,7 @@ pub fn compile_effect(
         },
         Effect::Slip { at_s, mm } => compile_slip(s, string, at_s, mm)?,
         Effect::Latency { latency_s } => latency::compile_latency(s, string, latency_s)?,
+        Effect::Guide { radius_mm } => guide::compile_guide(s, string, radius_mm, frame)?,
     })
 }
 
@@ -1284,60 +1219,6 @@ fn compile_winding(
     })
 }
 
-/// A sag term: both coefficients within `+-`[`MAX_SAG_MM_AT_1M_1N`], in
-/// the units of [`CompiledEffect::Sag`].
-fn compile_sag(
-    s: usize,
-    string: u8,
-    mm_at_1m_1n: f64,
-    home_mm_at_1m: f64,
-) -> Result<CompiledEffect, StringLawCompileError> {
-    let bounded = |field, v| in_range(s, field, v, -MAX_SAG_MM_AT_1M_1N, MAX_SAG_MM_AT_1M_1N);
-    let m = bounded("mm_at_1m_1n", mm_at_1m_1n)?;
-    let h = bounded("home_mm_at_1m", home_mm_at_1m)?;
-    Ok(CompiledEffect::Sag {
-        string,
-        coeff_q32: to_fixed(s, "mm_at_1m_1n", -m * 65.536, 32, "Q31.32 mm")?,
-        home_coeff_q32: to_fixed(
-            s,
-            "home_mm_at_1m",
-            h * 4.096 * 4.096 * 4.096,
-            32,
-            "Q31.32 mm",
-        )?,
-    })
-}
-
-/// A frame-flex term: compliance within `+-`[`MAX_FRAME_FLEX_MM_PER_NEWTON`]
-/// (per millinewton on the device), home part within
-/// `+-`[`MAX_FRAME_FLEX_HOME_MM`].
-fn compile_frame_flex(
-    s: usize,
-    string: u8,
-    mm_per_newton: f64,
-    home_mm: f64,
-) -> Result<CompiledEffect, StringLawCompileError> {
-    let k = in_range(
-        s,
-        "mm_per_newton",
-        mm_per_newton,
-        -MAX_FRAME_FLEX_MM_PER_NEWTON,
-        MAX_FRAME_FLEX_MM_PER_NEWTON,
-    )?;
-    let h = in_range(
-        s,
-        "home_mm",
-        home_mm,
-        -MAX_FRAME_FLEX_HOME_MM,
-        MAX_FRAME_FLEX_HOME_MM,
-    )?;
-    Ok(CompiledEffect::FrameFlex {
-        string,
-        per_mn_q48: to_fixed(s, "mm_per_newton", k / 1000.0, 48, "Q15.48 mm per mN")?,
-        home_q32: to_fixed(s, "home_mm", h, 32, "Q31.32 mm")?,
-    })
-}
-
 /// A slip term: its time rounded up to whole milliseconds since home (a
 /// `u32`).
 fn compile_slip(
@@ -1387,7 +1268,8 @@ impl CompiledEffect {
             | CompiledEffect::Slip { string, .. }
             | CompiledEffect::Sag { string, .. }
             | CompiledEffect::FrameFlex { string, .. }
-            | CompiledEffect::Latency { string, .. } => string,
+            | CompiledEffect::Latency { string, .. }
+            | CompiledEffect::Guide { string, .. } => string,
         }
     }
 
@@ -1443,18 +1325,39 @@ impl CompiledEffect {
                     max: MAX_LATENCY_S,
                 })
             }
+            CompiledEffect::Guide { radius_q24, .. }
+                if !(-guide::MAX_GUIDE_RADIUS_Q24..=guide::MAX_GUIDE_RADIUS_Q24)
+                    .contains(&radius_q24) =>
+            {
+                Err(StringLawCompileError::OutOfRange {
+                    string: s,
+                    field: "radius_mm",
+                    value: f64::from(radius_q24) / 16_777_216.0,
+                    min: -MAX_GUIDE_RADIUS_MM,
+                    max: MAX_GUIDE_RADIUS_MM,
+                })
+            }
             _ => Ok(()),
         }
     }
 
     /// Whether the term reads the string's inclination ([`Effect::reads_inclination`]).
     pub fn reads_inclination(&self) -> bool {
-        matches!(self, CompiledEffect::Sag { .. })
+        matches!(
+            self,
+            CompiledEffect::Sag { .. } | CompiledEffect::Guide { .. }
+        )
     }
 
     /// Whether the term reads the strings' count rate ([`Effect::reads_speed`]).
     pub fn reads_speed(&self) -> bool {
         matches!(self, CompiledEffect::Latency { .. })
+    }
+
+    /// Whether the term reads the strings' elevation from their guides'
+    /// swivel planes (a guide; a sag reads `cos^2` of the inclination).
+    pub fn reads_elevation(&self) -> bool {
+        matches!(self, CompiledEffect::Guide { .. })
     }
 
     /// Contribution of this term (Q31.32 mm), integer only, saturating.
@@ -1519,42 +1422,18 @@ impl CompiledEffect {
                 coeff_q32,
                 home_coeff_q32,
                 ..
-            } => {
-                // Written out here: in a helper, even always inlined, it
-                // changes the code of `string_lengths` (2 % more or fewer
-                // instructions for N = 4, under `scripts/qemu-bench`).
-                let free_q32 = q16_to_q32(ctx.home_length_q16).saturating_add(ctx.payout_q32);
-                // a = l / 4096 mm in Q.30 is l in Q.18 mm; 0 <= a < 2, so
-                // a^2 < 2^62 and a^2 a < 2^63 (rounded at each step).
-                let round_q30 = |x: i64| (x + (1 << 29)) >> 30;
-                let a_q30 = (free_q32 >> 14).clamp(0, (1 << 31) - 1);
-                let a2_q30 = round_q30(a_q30 * a_q30);
-                let a3_q30 = round_q30(a2_q30 * a_q30);
-                let t = i64::from(ctx.tension_mn.max(SAG_MIN_TENSION_MN));
-                let t2 = t * t;
-                // a^3 / tau^2 in Q.30 (a^3 << 20 < 2^54), rounded.
-                let r_q30 = ((a3_q30 << 20) + t2 / 2) / t2;
-                // coeff cos^2 a^3 / tau^2 in Q.46: |coeff| < 2^45, r < 2^38
-                // (tau >= 250 mN) and cos^2 < 2^16, so below 2^99.
-                let scaled = i128::from(coeff_q32) * i128::from(r_q30);
-                let now = (scaled * i128::from(ctx.cos2_inclination_q16) + (1 << 45)) >> 46;
-                // |home_coeff| < 2^45, home_sag < 2^33.
-                let home =
-                    (i128::from(home_coeff_q32) * i128::from(ctx.home_sag_q30) + (1 << 29)) >> 30;
-                (now.clamp(-MAX_SAG_Q32, MAX_SAG_Q32) + home.clamp(-MAX_SAG_Q32, MAX_SAG_Q32))
-                    as i64
-            }
+            } => sag::sag_q32(coeff_q32, home_coeff_q32, ctx),
             CompiledEffect::FrameFlex {
                 per_mn_q48,
                 home_q32,
                 ..
-            } => {
-                // |per| <= 2^44 and total < 2^19: the product fits i64.
-                let per = per_mn_q48.clamp(-(1 << 44), 1 << 44);
-                let flex = (per * i64::from(ctx.total_tension_mn) + (1 << 15)) >> 16;
-                flex.saturating_sub(home_q32)
-            }
+            } => frame_flex::frame_flex_q32(per_mn_q48, home_q32, ctx),
             CompiledEffect::Latency { latency_q31, .. } => latency::latency_q32(latency_q31, ctx),
+            CompiledEffect::Guide {
+                radius_q24,
+                ref home_q20,
+                ..
+            } => guide::guide_q32(radius_q24, home_q20, ctx),
         }
     }
 }
@@ -1643,6 +1522,8 @@ fn lengths_of<const ALL: bool>(
         // 0 at once where the string's count rate is 0: the device's loop
         // gives a rate only to a model with a term that reads it.
         payout_rate_q14: laws[s].payout_rate_q14(inputs.counts[s], inputs.count_rate_cps[s]),
+        guide_elevation_q32: inputs.guide_elevation_q32[s],
+        string: s as u8,
     });
     for e in effects {
         let s = usize::from(e.string());

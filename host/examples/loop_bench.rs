@@ -126,8 +126,9 @@ fn clean_loop(
 /// The shared terms and the marker offset the loop found on a clean
 /// independent `device`, each against the size of the physics it names
 /// (the strings' mean `1/EA`, sag `w^2/24`, the guides' mean compliance,
-/// the marker's distance from the meeting point): `(name, recovered /
-/// truth)`. A term counts as the device's own physics only within 2x of
+/// the guide pulleys' mean radius, or a string's own for one string's
+/// guide, the marker's distance from the meeting point): `(name,
+/// recovered / truth)`. A term counts as the device's own physics only within 2x of
 /// its truth; a term of another size stands in for something else.
 fn sizes_against_truth(device: &PhysicsDevice, r: &LoopResult) -> Vec<(&'static str, f64)> {
     let n = device.strings.len() as f64;
@@ -136,7 +137,15 @@ fn sizes_against_truth(device: &PhysicsDevice, r: &LoopResult) -> Vec<(&'static 
     let stretch = mean(&|s| 1.0 / s.stiffness_n);
     let sag_mm = mean(&|s| (s.mass_g_per_m * 1e-3 * 9.81).powi(2) / 24.0 * 1000.0);
     let flex = mean(&|s| s.compliance_mm_per_n);
+    let radius = mean(&|s| s.guide.radius_mm);
     let mut sizes = Vec::new();
+    for t in &r.identification.effects {
+        if let (Effect::Guide { radius_mm }, Some(s)) =
+            (t.effect, device.strings.get(usize::from(t.string)))
+        {
+            sizes.push(("guide pulley (one string)", radius_mm / s.guide.radius_mm));
+        }
+    }
     for t in r
         .identification
         .effects
@@ -144,6 +153,9 @@ fn sizes_against_truth(device: &PhysicsDevice, r: &LoopResult) -> Vec<(&'static 
         .filter(|t| t.string == EVERY_STRING)
     {
         match t.effect {
+            Effect::Guide { radius_mm } => {
+                sizes.push(("guide pulley (every string)", radius_mm / radius))
+            }
             Effect::Stretch { per_newton, .. } | Effect::Elasticity { per_newton } => {
                 sizes.push(("elasticity (every string)", per_newton.abs() / stretch))
             }
@@ -176,10 +188,11 @@ fn clean_only(seeds: u64) {
     let is_table = |name: &String| name.starts_with("layers") || name.starts_with("spool rates");
     // The independent clean device's strings stretch (EA 10-30 kN, from a
     // home captured at 1.1 N), weigh 0.3-1 g/m and pull on a frame that
-    // gives 0.005-0.02 mm/N, and its tracker sees a body whose origin is
-    // 8-15 mm from the strings' meeting point: a shared stretch, sag or
-    // frame flex, or a marker offset, names physics it has; any other
-    // family (an offset, a drift, a slip, ...) does not.
+    // gives 0.005-0.02 mm/N over guide pulleys of 6-12 mm, and its tracker
+    // sees a body whose origin is 8-15 mm from the strings' meeting point: a
+    // shared stretch, sag or frame flex, a guide pulley, or a marker
+    // offset, names physics it has; any other family (an offset, a drift,
+    // a slip, ...) does not.
     let within_2x = |ratio: f64| (0.5..=2.0).contains(&ratio);
     let mut physics_named = 0usize;
     for seed in 1..=seeds {
@@ -225,8 +238,9 @@ fn clean_only(seeds: u64) {
     }
     println!(
         "\nclean sessions, {seeds} seeds: effect families added {} (model simulator), {} \
-         (independent: {physics_named} a shared stretch, sag, frame flex or marker offset within 2x of the size of \
-         that physics, which the device has; {} stand-ins: of other families, or of those four at another size); \
+         (independent: {physics_named} a shared stretch, sag, frame flex, a guide pulley or a marker offset within 2x \
+         of the size of that physics, which the device has; {} stand-ins: of other families, or of those five at \
+         another size); \
          layer tables or spool rates added {} and {} times",
         totals[0],
         totals[1],

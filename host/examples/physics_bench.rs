@@ -33,6 +33,8 @@
 //! an effect `NAME-continuing`, e.g. `slip-continuing`: the test session
 //! continues the training's home capture instead of following a new one)
 //! (`--only=independent:slip,model:clean`: just those cases;
+//! `--only=independent:guides-12,independent:point-guides`: the guide
+//! pulleys at 12 mm on every string, and at 0.001 mm;
 //! `--only=independent:wall-robot`: the wall robot alone)
 //! (default 3 seeds).
 
@@ -82,11 +84,18 @@ fn model_run(seed: u64, effect: Option<&str>) -> Run {
     }
 }
 
+/// The independent device of `seed` with `effect`: an undeclared effect
+/// of the simulator, or its guide pulleys' radius set (`guides-12`: 12 mm
+/// on every string, as issue 33's hidden simulator has them; `point-guides`:
+/// 0.001 mm, the fixed anchors the model had before the guide family).
 fn physics_device(seed: u64, effect: Option<&str>) -> PhysicsDevice {
-    let config = PhysicsConfig {
-        effects: effect.map(|e| vec![e.to_string()]).unwrap_or_default(),
-        ..PhysicsConfig::default()
-    };
+    let mut config = PhysicsConfig::default();
+    match effect {
+        Some("guides-12") => config.as_built.guide_radius_mm = [12.0, 12.0],
+        Some("point-guides") => config.as_built.guide_radius_mm = [0.001, 0.001],
+        Some(e) => config.effects = vec![e.to_string()],
+        None => {}
+    }
     PhysicsDevice::new(&config, seed).expect("independent device")
 }
 
@@ -572,6 +581,10 @@ fn physics_cases(
         // The same slips, the test session continuing the training's home.
         Some("slip-continuing"),
         Some("heavy-string"),
+        // Guide pulleys of 12 mm on every string, and of none (the clean
+        // device's are 6-12 mm).
+        Some("guides-12"),
+        Some("point-guides"),
     ] {
         if !options.wanted("independent", effect) {
             continue;

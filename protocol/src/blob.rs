@@ -26,8 +26,10 @@ use serde::{Deserialize, Serialize};
 
 /// Magic bytes at the start of every model blob.
 pub const MAGIC: [u8; 4] = *b"SPDM";
-/// Blob format this crate reads and writes. Version 10 (any other is refused
-/// with [`BlobError::UnsupportedVersion`]): an effect term may be a latency,
+/// Blob format this crate reads and writes. Version 11 (any other is refused
+/// with [`BlobError::UnsupportedVersion`]): an effect term may be a guide
+/// pulley, read against each string's elevation from its swivel axis
+/// (`spidar-core::model::Effect::Guide`). Version 10: an effect term may be a latency,
 /// read against each string's count rate
 /// (`spidar-core::model::Effect::Latency`). Version 9: the string model carries the
 /// forward kinematics' exclusion and fault thresholds the calibration chose
@@ -47,7 +49,7 @@ pub const MAGIC: [u8; 4] = *b"SPDM";
 /// zero padding after the string model so that the correction starts at a
 /// multiple of 4 bytes from the blob start (`spidar-core::blob`), which lets
 /// the device read the SVR records as aligned words; version 1 had none.
-pub const FORMAT_VERSION: u16 = 10;
+pub const FORMAT_VERSION: u16 = 11;
 /// Size of the header in bytes.
 pub const HEADER_LEN: usize = 40;
 

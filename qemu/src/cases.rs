@@ -282,6 +282,8 @@ pub fn string_inputs(rng: &mut Rng) -> spidar_core::model::StringInputs {
         s.cos2_inclination_q16[i] = rng.i32_in(0, 65535) as u16;
         // Up to about 2 m/s of string (0.0184 mm per count).
         s.count_rate_cps[i] = rng.i32_in(-110_000, 110_000);
+        // Any elevation from the swivel plane (Q0.32 turns, +-1/4 turn).
+        s.guide_elevation_q32[i] = rng.i32_in(-(1 << 30), 1 << 30);
     }
     s.time_ms = rng.next_u32() % 3_600_000;
     s

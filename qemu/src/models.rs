@@ -65,6 +65,10 @@ fn calibration(correction: CorrectionModel) -> Calibration {
         // An encoder read 6 ms late, and the loop's shared delay (issue 33).
         EffectTerm { string: 2, effect: Effect::Latency { latency_s: 0.006 } },
         EffectTerm { string: EVERY_STRING, effect: Effect::Latency { latency_s: 0.0015 } },
+        // A 12 mm guide pulley on one string, and guides of one radius on
+        // every string (issue 33).
+        EffectTerm { string: 1, effect: Effect::Guide { radius_mm: 12.0 } },
+        EffectTerm { string: EVERY_STRING, effect: Effect::Guide { radius_mm: 8.5 } },
     ];
     Calibration {
         frame: Frame {

@@ -113,7 +113,7 @@ fn latency_terms_round_trip_and_out_of_range_ones_are_refused() {
     let expected: alloc::vec::Vec<CompiledEffect> = cal
         .effects
         .iter()
-        .map(|t| crate::string_law::compile_effect(t, laws).unwrap())
+        .map(|t| crate::string_law::compile_effect(t, &cal.frame, laws).unwrap())
         .collect();
     assert_eq!(c.head.effects.as_slice(), expected.as_slice());
     assert_eq!(
@@ -129,6 +129,66 @@ fn latency_terms_round_trip_and_out_of_range_ones_are_refused() {
     h.effects[2] = CompiledEffect::Latency {
         string: 2,
         latency_q31: i32::MIN,
+    };
+    assert!(matches!(
+        CompiledCalibration::from_blob(&with_head(&blob, &h, rest)),
+        Err(BlobError::Body { .. })
+    ));
+}
+
+/// Guide terms (one string's, one shared) go through the blob bit for bit;
+/// a radius beyond the format's range from another tool is refused, naming
+/// the field.
+#[test]
+fn guide_terms_round_trip_and_out_of_range_ones_are_refused() {
+    let mut cal = calibration();
+    cal.effects.push(EffectTerm {
+        string: 1,
+        effect: Effect::Guide { radius_mm: 12.0 },
+    });
+    cal.effects.push(EffectTerm {
+        string: crate::model::EVERY_STRING,
+        effect: Effect::Guide { radius_mm: 7.25 },
+    });
+    let blob = compile(&cal, 7, 0).unwrap();
+    let c = CompiledCalibration::from_blob(&blob).unwrap();
+    assert_eq!(c.header.effects, 4);
+    let expected: alloc::vec::Vec<CompiledEffect> = cal
+        .effects
+        .iter()
+        .map(|t| crate::string_law::compile_effect(t, &cal.frame, &cal.strings).unwrap())
+        .collect();
+    assert_eq!(c.head.effects.as_slice(), expected.as_slice());
+    assert_eq!(
+        expected[2],
+        CompiledEffect::Guide {
+            string: 1,
+            radius_q24: 12 << 24,
+            home_q20: match expected[2] {
+                CompiledEffect::Guide { home_q20, .. } => home_q20,
+                _ => [0; 8],
+            },
+        }
+    );
+    // The home part on its string only (a shared term's on every string).
+    let CompiledEffect::Guide { home_q20, .. } = expected[2] else {
+        panic!("{:?}", expected[2]);
+    };
+    assert!(home_q20
+        .iter()
+        .enumerate()
+        .all(|(i, &h)| (h != 0) == (i == 1)));
+    let CompiledEffect::Guide { home_q20, .. } = expected[3] else {
+        panic!("{:?}", expected[3]);
+    };
+    assert!(home_q20.iter().all(|&h| h > 0));
+    let (_, body) = split_blob(&blob).unwrap();
+    let (head, rest) = split_body(body).unwrap();
+    let mut h = head.clone();
+    h.effects[3] = CompiledEffect::Guide {
+        string: crate::model::EVERY_STRING,
+        radius_q24: 51 << 24,
+        home_q20: [0; 8],
     };
     assert!(matches!(
         CompiledCalibration::from_blob(&with_head(&blob, &h, rest)),

@@ -33,15 +33,15 @@ fn a_row_whose_lengths_read_the_inclination_is_solved_at_its_own() {
     };
     let inputs = StringInputs::default();
     let solve = |inclined| {
-        let fk = forward_kinematics_inclined(
-            &a,
-            StringLayout::ALL,
-            &inputs,
-            [0.0; 3],
-            &config,
-            inclined,
-            lengths,
-        );
+        let frame = Frame {
+            anchors: a,
+            layout: StringLayout::ALL,
+            home: [0.0; 3],
+            room_rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            room_translation: [0.0; 3],
+            room_scale: 1.0,
+        };
+        let fk = forward_kinematics_inclined(&frame, &inputs, [0.0; 3], &config, inclined, lengths);
         dist(fk.position, truth)
     };
     let (once, twice) = (solve(false), solve(true));

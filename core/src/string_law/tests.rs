@@ -32,7 +32,7 @@ fn compile_all(
     }
     let ce = effects
         .iter()
-        .map(|e| compile_effect(e, laws).expect("effect compiles"))
+        .map(|e| compile_effect(e, frame, laws).expect("effect compiles"))
         .collect();
     (cl, ce)
 }
@@ -146,7 +146,7 @@ fn a_shared_term_is_one_term_on_every_string() {
             effect,
         };
         assert_eq!(
-            compile_effect(&term, &laws),
+            compile_effect(&term, &f, &laws),
             Err(StringLawCompileError::StringOutOfRange { string: 255 })
         );
     }
@@ -374,6 +374,9 @@ fn realistic(rng: &mut Rng) -> (Frame<f64>, [StringLaw; STRINGS], Vec<EffectTerm
         push(Effect::Latency {
             latency_s: rng.uniform(-0.05, 0.05),
         });
+        push(Effect::Guide {
+            radius_mm: rng.uniform(0.0, 15.0),
+        });
     }
     // Terms shared by every string.
     effects.push(EffectTerm {
@@ -409,6 +412,12 @@ fn realistic(rng: &mut Rng) -> (Frame<f64>, [StringLaw; STRINGS], Vec<EffectTerm
             latency_s: rng.uniform(-0.02, 0.02),
         },
     });
+    effects.push(EffectTerm {
+        string: EVERY_STRING,
+        effect: Effect::Guide {
+            radius_mm: rng.uniform(-5.0, 15.0),
+        },
+    });
     (f, laws, effects)
 }
 
@@ -422,6 +431,8 @@ fn random_inputs(rng: &mut Rng) -> StringInputs {
         // Up to 0.5 to 12 m/s of string (the pulleys' 2.4e-3 to 6.3e-2
         // mm per count).
         inputs.count_rate_cps[i] = rng.int(-200_000, 200_000) as i32;
+        // Any elevation, the poles and beyond them (clamped) included.
+        inputs.guide_elevation_q32[i] = rng.int(-(1 << 30) - 1000, (1 << 30) + 1000) as i32;
     }
     inputs.time_ms = rng.int(0, 7_200_000) as u32;
     inputs
@@ -463,7 +474,7 @@ fn fixed_point_error_budget() {
     let max_err = measure(0x5EED_0001, 400, 500, |_| true);
     println!("string law: max |fixed - f64| = {max_err:.3e} mm (400 calibrations x 500 inputs x 8 strings)");
     type Keep = fn(&Effect) -> bool;
-    let families: [(&str, Keep); 13] = [
+    let families: [(&str, Keep); 14] = [
         ("no effect", |_| false),
         ("offset", |e| matches!(e, Effect::Offset { .. })),
         ("scale", |e| matches!(e, Effect::Scale { .. })),
@@ -477,6 +488,7 @@ fn fixed_point_error_budget() {
         ("stretch", |e| matches!(e, Effect::Stretch { .. })),
         ("frame flex", |e| matches!(e, Effect::FrameFlex { .. })),
         ("latency", |e| matches!(e, Effect::Latency { .. })),
+        ("guide", |e| matches!(e, Effect::Guide { .. })),
     ];
     for (name, keep) in families {
         let e = measure(0x5EED_0002, 100, 200, keep);
@@ -600,11 +612,12 @@ fn kind_and_field(e: StringLawCompileError) -> (&'static str, &'static str) {
 
 #[test]
 fn effect_compile_errors_name_the_field() {
+    let f = cube_frame([0.0; 3]);
     let law = StringLaw::polynomial(4096, [10.0, -0.02, 0.0, 0.0]);
     let laws = [law; STRINGS];
     let term = |string, effect| EffectTerm { string, effect };
     assert_eq!(
-        compile_effect(&term(8, Effect::Offset { mm: 1.0 }), &laws),
+        compile_effect(&term(8, Effect::Offset { mm: 1.0 }), &f, &laws),
         Err(StringLawCompileError::StringOutOfRange { string: 8 })
     );
     let sag = |mm_at_1m_1n, home_mm_at_1m| Effect::Sag {
@@ -658,9 +671,17 @@ fn effect_compile_errors_name_the_field() {
             "NotFinite",
             "latency_s",
         ),
+        (Effect::Guide { radius_mm: 51.0 }, "OutOfRange", "radius_mm"),
+        (
+            Effect::Guide {
+                radius_mm: f64::NAN,
+            },
+            "NotFinite",
+            "radius_mm",
+        ),
     ];
     for (effect, kind, field) in cases {
-        let got = compile_effect(&term(0, effect), &laws).map(|_| ());
+        let got = compile_effect(&term(0, effect), &f, &laws).map(|_| ());
         assert_eq!(
             got.map_err(kind_and_field),
             Err((kind, field)),
@@ -676,7 +697,7 @@ fn effect_compile_errors_name_the_field() {
         cos_mm: 0.0,
     };
     assert_eq!(
-        compile_effect(&term(0, eccentricity), &zero)
+        compile_effect(&term(0, eccentricity), &f, &zero)
             .map(|_| ())
             .map_err(kind_and_field),
         Err(("OutOfRange", "counts_per_rev"))
@@ -686,9 +707,9 @@ fn effect_compile_errors_name_the_field() {
 #[test]
 fn compiled_effects_validate() {
     let mut rng = Rng(11);
-    let (_, laws, effects) = realistic(&mut rng);
+    let (f, laws, effects) = realistic(&mut rng);
     for e in &effects {
-        compile_effect(e, &laws).unwrap().validate().unwrap();
+        compile_effect(e, &f, &laws).unwrap().validate().unwrap();
     }
     assert!(CompiledEffect::Offset {
         string: 9,
@@ -715,6 +736,13 @@ fn compiled_effects_validate() {
     assert!(CompiledEffect::Latency {
         string: EVERY_STRING,
         latency_q31: i32::MAX,
+    }
+    .validate()
+    .is_err());
+    assert!(CompiledEffect::Guide {
+        string: EVERY_STRING,
+        radius_q24: i32::MIN,
+        home_q20: [0; STRINGS],
     }
     .validate()
     .is_err());
@@ -1009,6 +1037,8 @@ fn a_frame_flex_reads_the_total_tension_of_the_active_strings() {
         home_sag_q30: 0,
         total_tension_mn: 8 * u32::from(u16::MAX),
         payout_rate_q14: 0,
+        guide_elevation_q32: 0,
+        string: 0,
     };
     assert_eq!(worst.contribution_q32(&ctx), i64::MAX);
 }
@@ -1101,6 +1131,11 @@ fn arb_effect() -> impl Strategy<Value = CompiledEffect> {
             string,
             latency_q31
         }),
+        (s, any::<i32>()).prop_map(|(string, radius_q24)| CompiledEffect::Guide {
+            string,
+            radius_q24,
+            home_q20: [1 << 30; STRINGS],
+        }),
     ]
 }
 
@@ -1146,9 +1181,18 @@ fn arb_inputs() -> impl Strategy<Value = StringInputs> {
         any::<u32>(),
         any::<[u16; STRINGS]>(),
         any::<[i32; STRINGS]>(),
+        any::<[i32; STRINGS]>(),
     )
         .prop_map(
-            |(counts, direction, tension_mn, time_ms, cos2_inclination_q16, count_rate_cps)| {
+            |(
+                counts,
+                direction,
+                tension_mn,
+                time_ms,
+                cos2_inclination_q16,
+                count_rate_cps,
+                guide_elevation_q32,
+            )| {
                 StringInputs {
                     counts,
                     direction,
@@ -1156,6 +1200,7 @@ fn arb_inputs() -> impl Strategy<Value = StringInputs> {
                     time_ms,
                     cos2_inclination_q16,
                     count_rate_cps,
+                    guide_elevation_q32,
                 }
             },
         )
@@ -1212,8 +1257,9 @@ proptest! {
                 home_mm_at_1m: w,
             },
             Effect::Latency { latency_s: v },
+            Effect::Guide { radius_mm: v },
         ] {
-            if let Ok(c) = compile_effect(&EffectTerm { string, effect }, &laws) {
+            if let Ok(c) = compile_effect(&EffectTerm { string, effect }, &f, &laws) {
                 prop_assert!(c.validate().is_ok());
             }
         }

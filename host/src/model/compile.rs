@@ -115,13 +115,7 @@ pub fn device_positions(
         .iter()
         .map(|o| {
             let fk = forward_kinematics_inclined(
-                &frame.anchors,
-                frame.layout,
-                &o.inputs,
-                position,
-                &fk_config,
-                inclined,
-                lengths,
+                frame, &o.inputs, position, &fk_config, inclined, lengths,
             );
             if matches!(fk.status, FkStatus::Ok | FkStatus::FaultyStringExcluded) {
                 position = fk.position;

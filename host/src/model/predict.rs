@@ -105,15 +105,8 @@ pub fn predict_with<O: Borrow<Observation>>(
         .iter()
         .map(|o| {
             let o = o.borrow();
-            let fk = forward_kinematics_inclined(
-                &frame.anchors,
-                frame.layout,
-                &o.inputs,
-                start,
-                config,
-                inclined,
-                lengths,
-            );
+            let fk =
+                forward_kinematics_inclined(frame, &o.inputs, start, config, inclined, lengths);
             if matches!(fk.status, FkStatus::Ok | FkStatus::FaultyStringExcluded) {
                 start = fk.position;
             }

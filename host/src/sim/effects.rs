@@ -32,6 +32,7 @@
 //! | `sag` | `mm_at_1m_1n`, `home_mm_at_1m` (default 0) | `- mm_at_1m_1n * cos^2(a) (l / 1 m)^3 / (T / 1 N)^2 + home_mm_at_1m * cos^2(a_home) (home_length / 1 m)^3`, `l = home_length + payout` |
 //! | `stretch` | `per_newton`, `mm_per_newton` (default 0), `home_tension_n` | `+ per_newton (T (home_length + payout) - T_home home_length) + mm_per_newton (T - T_home)` |
 //! | `frame_flex` | `mm_per_newton`, `home_mm` (default 0) | `+ mm_per_newton * sum_j T_j - home_mm` (the total over the active strings) |
+//! | `guide` | `radius_mm` | `+` the path over a guide pulley of that radius swivelling about the frame edge, less the chord (`spidar_core::string_law::guide_mm`) |
 //! | `speed` (unexplained) | `latency_s` | `+ latency_s * dL/dt` (encoder latency) |
 //! | `anchor` (geometry) | `dx`, `dy`, `dz` (each default 0) | anchor moved by `[dx, dy, dz]` mm |
 //! | `tracker_scale` (geometry) | `relative` | tracker scale times `1 + relative` |
@@ -124,7 +125,7 @@ impl<'a> Params<'a> {
     }
 }
 
-const KINDS: &str = "offset, scale, winding, eccentricity, elasticity, backlash, drift, slip, sag, stretch, frame_flex, speed, anchor, tracker_scale";
+const KINDS: &str = "offset, scale, winding, eccentricity, elasticity, backlash, drift, slip, sag, stretch, frame_flex, guide, speed, anchor, tracker_scale";
 
 /// Parse one effect spec (see the module documentation for the syntax).
 pub fn parse_effect(spec: &str) -> Result<Vec<InjectedEffect>, SimError> {
@@ -251,6 +252,10 @@ fn per_string_effect(
                 mm_per_newton,
                 home_mm,
             }))
+        }
+        "guide" => {
+            let radius_mm = p.required("radius_mm")?;
+            Ok(model(Effect::Guide { radius_mm }))
         }
         "speed" => {
             let latency_s = p.required("latency_s")?;

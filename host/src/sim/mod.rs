@@ -37,7 +37,7 @@ use std::path::PathBuf;
 
 use rand::RngExt;
 use spidar_core::model::{StringInputs, Vec3};
-use spidar_core::string_law::cos2_inclinations;
+use spidar_core::string_law::{cos2_inclinations, guide_elevations};
 use spidar_core::STRINGS;
 
 pub use config::SimConfig;
@@ -392,6 +392,11 @@ impl<'a> ModelSession<'a> {
                 tension_mn,
                 time_ms: c.t_ms,
                 cos2_inclination_q16: cos2_inclinations(&device.frame.anchors, &p),
+                guide_elevation_q32: guide_elevations(
+                    &device.frame.anchors,
+                    &device.frame.home,
+                    &p,
+                ),
                 // The truth has the string speeds (`string_speed_mm_s`); a
                 // count rate is what the device or the host estimates.
                 count_rate_cps: [0; STRINGS],

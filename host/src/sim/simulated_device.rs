@@ -11,7 +11,9 @@ use spidar_core::model::{EffectTerm, Frame, StringLaw, StringLayout, Vec3, WINDI
 use spidar_core::STRINGS;
 
 use super::config::{AsBuiltConfig, SimConfig, TrackerConfig};
-use spidar_core::string_law::{cos2_inclination_q16, EffectContext};
+use spidar_core::string_law::{
+    cos2_inclination_q16, guide_elevation_q32, guide_elevation_rad, EffectContext,
+};
 
 use super::effects::{parse_effects, InjectedEffect};
 use super::SimError;
@@ -366,8 +368,8 @@ impl SimulatedDevice {
     /// The run-time inputs of `string` at `position` that the model's terms
     /// read ([`Self::counts_for_length`]): direction, tension, the total
     /// tension of the active strings, time, and the
-    /// inclination quantized as the device reads it
-    /// ([`cos2_inclination_q16`]).
+    /// inclination and elevation quantized as the device reads them
+    /// ([`cos2_inclination_q16`], [`guide_elevation_q32`]).
     pub(crate) fn conditions(
         &self,
         string: usize,
@@ -393,6 +395,16 @@ impl SimulatedDevice {
             // The simulators inject a latency as `speed` (the true length's
             // rate), not as a model term.
             payout_rate_mm_s: 0.0,
+            guide_elevation_rad: guide_elevation_rad(guide_elevation_q32(
+                anchor,
+                &self.frame.home,
+                position,
+            )),
+            home_guide_elevation_rad: guide_elevation_rad(guide_elevation_q32(
+                anchor,
+                &self.frame.home,
+                &self.frame.home,
+            )),
         }
     }
 

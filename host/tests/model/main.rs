@@ -4,6 +4,7 @@
 //! test binary (issue 14, point 7: a few links, not twelve).
 
 mod dataset;
+mod guide;
 mod home_epochs;
 mod identify;
 mod latency;

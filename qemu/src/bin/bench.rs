@@ -383,6 +383,8 @@ impl Loop {
         let frame = &cal.head.frame;
         let mut inputs = self.inputs(raw, now_ms);
         inputs.cos2_inclination_q16 = spidar_core::string_law::cos2_inclinations(&frame.anchors, &self.position);
+        inputs.guide_elevation_q32 =
+            spidar_core::string_law::guide_elevations(&frame.anchors, &frame.home, &self.position);
         let lengths_q16 =
             spidar_core::string_law::string_lengths(frame.layout, &cal.head.laws, &cal.head.effects, &inputs);
         let lengths: [f32; STRINGS] = core::array::from_fn(|s| lengths_q16[s] as f32 / 65536.0);
@@ -428,6 +430,11 @@ impl Loop {
             let mut inputs = self.clone().inputs(counts.map(|c| c as u16), 0);
             inputs.cos2_inclination_q16 =
                 spidar_core::string_law::cos2_inclinations(&cal.head.frame.anchors, &self.position);
+            inputs.guide_elevation_q32 = spidar_core::string_law::guide_elevations(
+                &cal.head.frame.anchors,
+                &cal.head.frame.home,
+                &self.position,
+            );
             let got = spidar_core::string_law::string_lengths(
                 cal.head.frame.layout,
                 &cal.head.laws,

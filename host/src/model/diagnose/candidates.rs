@@ -4,7 +4,7 @@
 //! residual beyond, and the anchors the data pull beyond their tolerance.
 
 use spidar_core::model::{Effect, EffectTerm, Frame, StringLayout, EVERY_STRING};
-use spidar_core::string_law::{sag_home_variable, sag_variable};
+use spidar_core::string_law::{guide_slope, sag_home_variable, sag_variable};
 use spidar_core::STRINGS;
 
 use crate::data::observe::{
@@ -91,7 +91,8 @@ pub(super) fn candidates(
         if !strings.is_active(i) {
             continue;
         }
-        for term in string_terms(ev.rows_of_string(i), i, *split, ev.speed_observed) {
+        let rows = ev.rows_of_string(i);
+        for term in string_terms(rows, i, *split, ev.speed_observed, !strings.planar) {
             if !has_effect(i, term.is_term) {
                 out.push(term.candidate(i));
             }
@@ -123,6 +124,12 @@ pub(super) fn candidates(
     // speed at the capture (the loop says so, `latency_not_tested`).
     if ev.speed_observed && !has_effect(shared, |e| matches!(e, Effect::Latency { .. })) {
         out.push(shared_latency_candidate(strings));
+    }
+    // Guides where the strings leave the frame in space: in a plane every
+    // chord is level with its swivel axis's normal plane, and the term is a
+    // constant on each string (an offset's).
+    if !strings.planar && !has_effect(shared, |e| matches!(e, Effect::Guide { .. })) {
+        out.push(shared_guide_candidate(strings));
     }
     // The tracked body's origin off the strings' meeting point, seen through
     // the body's orientation (a tracker of rigid bodies gives it): the
@@ -204,13 +211,15 @@ impl StringTerm {
 }
 
 /// The terms one string `i` (of `rows` rows) can gain, in the order they
-/// are tried; a latency when the rows observe the speed; a slip when the
-/// string's residual steps at `split` (its most likely slip time).
+/// are tried; a latency when the rows observe the speed; a guide on a
+/// device in space (`guides`); a slip when the string's residual steps at
+/// `split` (its most likely slip time).
 fn string_terms(
     rows: usize,
     i: usize,
     split: Option<f64>,
     speed_observed: bool,
+    guides: bool,
 ) -> Vec<StringTerm> {
     let mut terms = vec![
         StringTerm {
@@ -320,10 +329,64 @@ fn string_terms(
             ),
         });
     }
+    if guides {
+        terms.push(guide_term(i));
+    }
     if let Some(at_s) = split {
         terms.push(slip_term(rows, i, at_s));
     }
     terms
+}
+
+/// The guide a candidate proposes, refitted from a radius of 0: the
+/// guide's entry point (the model's anchor) is about 1.6 radii from the
+/// exit point the anchor held without it, so a start at the linear
+/// estimate's radius with the anchors where they are lies across the
+/// valley, and a fold's refit from there stopped short (a 20 mm guide on
+/// every string of an independent device: its blocked folds 0.501 mm from
+/// 0, 0.583 from 20 mm, 0.571 without the guide).
+const GUIDE_START: Effect = Effect::Guide { radius_mm: 0.0 };
+
+/// A guide pulley on string `i`.
+fn guide_term(i: usize) -> StringTerm {
+    StringTerm {
+        family: Family::Guide,
+        variable: Variable::Elevation,
+        is_term: |e| matches!(e, Effect::Guide { .. }),
+        columns: vec![guide_column()],
+        rival: Vec::new(),
+        search_penalty: 0.0,
+        effect: Box::new(|_| GUIDE_START),
+        describe: format!(
+            "string {i}'s error follows its elevation from the frame edge: it wraps on a guide \
+             pulley swivelling toward the end-effector"
+        ),
+    }
+}
+
+/// A guide's column: the term's slope in its radius at 0, the wrap on a
+/// pulley of 1 mm less the chord's saving, `pi/2 - a - cos a`, at the
+/// home's elevation less at the row's.
+fn guide_column() -> RowColumn {
+    Box::new(|r| guide_slope(0.0, &r.ctx))
+}
+
+/// One guide radius shared by every string (the frame's corners built
+/// alike), each string at its own elevation.
+fn shared_guide_candidate(strings: StringLayout) -> Candidate {
+    Candidate {
+        family: Family::Guide,
+        strings: Vec::new(),
+        variable: Variable::Elevation,
+        columns: vec![shared_column(strings, |r| guide_slope(0.0, &r.ctx))],
+        on_string: None,
+        search_penalty: 0.0,
+        rival: Vec::new(),
+        build: Box::new(|_| every_string(GUIDE_START)),
+        describe: "every string's error follows its elevation from the frame edge alike: the \
+                   strings wrap on guide pulleys of one radius swivelling toward the end-effector"
+            .into(),
+    }
 }
 
 /// A backlash's column: the sign of the string's direction of motion.

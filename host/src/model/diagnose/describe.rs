@@ -20,6 +20,7 @@ pub fn variable_name(v: Variable) -> &'static str {
         Variable::Time => "time",
         Variable::Order => "order",
         Variable::Orientation => "orientation",
+        Variable::Elevation => "elevation",
     }
 }
 
@@ -37,6 +38,7 @@ pub fn family_name(f: Family) -> &'static str {
         Family::Sag => "sag",
         Family::FrameFlex => "frame flex",
         Family::Latency => "latency",
+        Family::Guide => "guide pulley",
         Family::Layers => "layers",
         Family::Geometry => "geometry",
         Family::Marker => "marker offset",
@@ -129,6 +131,15 @@ fn in_physical_terms(effect: &Effect) -> Option<String> {
             " (fitted: the encoder read {:.2} ms {})",
             1000.0 * latency_s.abs(),
             if latency_s >= 0.0 { "late" } else { "early" }
+        )),
+        Effect::Guide { radius_mm } => Some(format!(
+            " (fitted: a guide pulley of radius {radius_mm:.1} mm{})",
+            if radius_mm < 0.0 {
+                ", not a radius: it takes a length that falls as the string rises toward its \
+                 guide's axis"
+            } else {
+                ""
+            }
         )),
         _ => None,
     }

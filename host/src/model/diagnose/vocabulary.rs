@@ -34,6 +34,9 @@ pub enum Family {
     /// ([`Effect::Latency`]); tested only where the rows observe the speed
     /// (a stream).
     Latency,
+    /// A guide pulley swivelling toward the end-effector: the string wraps
+    /// on it by its elevation from the swivel axis ([`Effect::Guide`]).
+    Guide,
     /// Layer tables ([`crate::model::layers`]): the spool's departure from the
     /// smooth winding law, per string.
     Layers,
@@ -59,6 +62,8 @@ pub enum Variable {
     Order,
     /// The tracked body's orientation.
     Orientation,
+    /// A string's elevation from its guide's swivel axis (the frame edge).
+    Elevation,
 }
 
 /// A structural change to the model that a finding proposes.

@@ -5,7 +5,7 @@ use std::borrow::Borrow;
 
 use spidar_core::geometry::{device_from_room, distance};
 use spidar_core::model::{EffectTerm, Frame, StringInputs, StringLaw};
-use spidar_core::string_law::{cos2_inclinations, string_lengths_f64};
+use spidar_core::string_law::{cos2_inclinations, guide_elevations, string_lengths_f64};
 use spidar_core::STRINGS;
 
 use crate::data::observe::Observation;
@@ -20,11 +20,13 @@ pub fn device_position(frame: &Frame<f64>, o: &Observation) -> [f64; 3] {
     p
 }
 
-/// `o`'s inputs with each string's inclination (what a sag term reads) at
+/// `o`'s inputs with each string's inclination and elevation (what a sag
+/// and a guide term read) at
 /// `p`, the tracker's position in the device frame ([`device_position`]).
 pub fn inputs_at(frame: &Frame<f64>, o: &Observation, p: &[f64; 3]) -> StringInputs {
     StringInputs {
         cos2_inclination_q16: cos2_inclinations(&frame.anchors, p),
+        guide_elevation_q32: guide_elevations(&frame.anchors, &frame.home, p),
         ..o.inputs
     }
 }

@@ -158,6 +158,7 @@ pub fn effect_parameter_info(effect: &Effect) -> &'static [(&'static str, f64, &
         ],
         Effect::FrameFlex { .. } => &[("frame_flex", 1e-2, "mm/N"), ("frame_flex_home", 0.1, "mm")],
         Effect::Latency { .. } => &[("latency", 1e-3, "s")],
+        Effect::Guide { .. } => &[("guide_radius", 1.0, "mm")],
     }
 }
 

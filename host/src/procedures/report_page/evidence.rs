@@ -12,7 +12,7 @@ use std::f64::consts::TAU;
 use serde::{Deserialize, Serialize};
 use spidar_core::geometry::distance;
 use spidar_core::model::{Effect, EffectTerm, LayerTable, StringLaw};
-use spidar_core::string_law::{payout_f64, pulley_angle};
+use spidar_core::string_law::{guide_elevation_q32, guide_elevation_rad, payout_f64, pulley_angle};
 use spidar_core::STRINGS;
 
 use crate::data::observe::Observation;
@@ -148,6 +148,7 @@ fn x_label(v: Variable) -> &'static str {
         Variable::Time => "time since home, s",
         Variable::Order => "row of the training session",
         Variable::Orientation => "tracked body's rotation, degrees",
+        Variable::Elevation => "string's elevation from its guide's swivel plane, degrees",
     }
 }
 
@@ -253,6 +254,12 @@ impl<'a> RowVariables<'a> {
                 let trace = r[0][0] + r[1][1] + r[2][2];
                 ((trace - 1.0) / 2.0).clamp(-1.0, 1.0).acos().to_degrees()
             }),
+            Variable::Elevation => {
+                let frame = &self.fin.frame;
+                let q =
+                    guide_elevation_q32(&frame.anchors[s], &frame.home, &device_position(frame, o));
+                guide_elevation_rad(q).to_degrees()
+            }
         }
     }
 }

@@ -25,6 +25,8 @@ fn lattice_evidence(error: impl Fn([f64; 3], f64) -> f64) -> Evidence<'static> {
         time_s: 0.0,
         cos2_inclination: 1.0,
         home_cos2_inclination: 1.0,
+        guide_elevation_rad: 0.0,
+        home_guide_elevation_rad: 0.0,
         payout_rate_mm_s: 0.0,
     };
     let mut t = 0.0;
@@ -63,7 +65,7 @@ fn lattice_evidence(error: impl Fn([f64; 3], f64) -> f64) -> Evidence<'static> {
 fn a_drift_must_explain_what_the_position_does_not() {
     let config = LoopConfig::default();
     let drift_on = |ev: &Evidence| {
-        let term = string_terms(ev.rows_of_string(0), 0, None, false)
+        let term = string_terms(ev.rows_of_string(0), 0, None, false, true)
             .into_iter()
             .find(|t| t.family == Family::Drift)
             .unwrap();
