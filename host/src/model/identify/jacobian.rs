@@ -10,7 +10,7 @@ use spidar_core::STRINGS;
 
 use super::layout::{encode, Layout, State, HOME, ROTATION, TRANSLATION};
 use super::problem::Problem;
-use super::residuals::{device_position, inputs_at, GROSS_RESIDUAL_MM};
+use super::residuals::{device_position, inputs_for, GROSS_RESIDUAL_MM};
 use super::result::Identification;
 use super::structure::Structure;
 use super::winding::WindingPhysics;
@@ -201,7 +201,7 @@ impl RowPass {
         let (own, shared) = (&mut self.own, &mut self.shared);
         let mut finite = true;
         let p = device_position(frame, o);
-        let inputs = inputs_at(frame, o, &p);
+        let inputs = inputs_for(frame, &state.effects, o, &p);
         // Each string's context once per row, not once per column.
         let contexts: [Option<EffectContext>; STRINGS] =
             core::array::from_fn(|s| EffectContext::for_string(frame, &self.laws, &inputs, s));

@@ -31,6 +31,23 @@ pub fn inputs_at(frame: &Frame<f64>, o: &Observation, p: &[f64; 3]) -> StringInp
     }
 }
 
+/// [`inputs_at`] when one of `effects` reads the strings' inclination or
+/// elevation (a sag, a guide), else `o`'s inputs as they are: no other term
+/// reads those two, and working them out is a tenth of a long
+/// identification's time.
+pub(crate) fn inputs_for(
+    frame: &Frame<f64>,
+    effects: &[EffectTerm],
+    o: &Observation,
+    p: &[f64; 3],
+) -> StringInputs {
+    if effects.iter().any(|t| t.effect.reads_inclination()) {
+        inputs_at(frame, o, p)
+    } else {
+        o.inputs
+    }
+}
+
 /// String-space residuals (geometric minus model, mm) of one observation; 0
 /// on channels without a string.
 pub(crate) fn residuals_at(
@@ -40,7 +57,7 @@ pub(crate) fn residuals_at(
     o: &Observation,
 ) -> [f64; STRINGS] {
     let p = device_position(frame, o);
-    let lengths = string_lengths_f64(frame, laws, effects, &inputs_at(frame, o, &p));
+    let lengths = string_lengths_f64(frame, laws, effects, &inputs_for(frame, effects, o, &p));
     let mut r = [0.0; STRINGS];
     for i in frame.layout.indices() {
         r[i] = distance(p, frame.anchors[i]) - lengths[i];
