@@ -194,29 +194,78 @@ impl EffectContext {
         string: usize,
         total_tension_n: f64,
     ) -> Option<Self> {
+        Self::at_home(
+            &StringHome::of(frame, string)?,
+            laws,
+            inputs,
+            string,
+            total_tension_n,
+        )
+    }
+
+    /// [`for_string`](Self::for_string) with the string's home terms
+    /// already worked out ([`StringHome::of`], once per frame) and the
+    /// active strings' total tension already summed (once per row): the
+    /// same context.
+    pub fn at_home(
+        home: &StringHome,
+        laws: &[StringLaw; STRINGS],
+        inputs: &StringInputs,
+        string: usize,
+        total_tension_n: f64,
+    ) -> Option<Self> {
         let law = laws.get(string)?;
         let counts = *inputs.counts.get(string)?;
         Some(Self {
             theta: pulley_angle(law, counts),
             payout_mm: payout_f64(law, counts),
-            home_length_mm: home_length_f64(frame, string)?,
+            home_length_mm: home.length_mm,
             tension_n: f64::from(*inputs.tension_mn.get(string)?) / 1000.0,
             total_tension_n,
             direction: *inputs.direction.get(string)?,
             time_s: f64::from(inputs.time_ms) / 1000.0,
             cos2_inclination: f64::from(*inputs.cos2_inclination_q16.get(string)?) / 65536.0,
-            home_cos2_inclination: f64::from(cos2_inclination_q16(
-                frame.anchors.get(string)?,
-                &frame.home,
-            )) / 65536.0,
+            home_cos2_inclination: home.cos2_inclination,
             payout_rate_mm_s: payout_rate_mm_s(law, counts, *inputs.count_rate_cps.get(string)?),
             guide_elevation_rad: guide_elevation_rad(*inputs.guide_elevation_q32.get(string)?),
-            home_guide_elevation_rad: guide_elevation_rad(guide_elevation_q32(
-                frame.anchors.get(string)?,
+            home_guide_elevation_rad: home.guide_elevation_rad,
+        })
+    }
+}
+
+/// What a string's [`EffectContext`] takes from the frame alone: the
+/// string's length at home and its chord's inclination and elevation there
+/// (quantized as the device's). The same for every row of a frame: worked
+/// out once per frame instead of once per row and string.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct StringHome {
+    /// [`EffectContext::home_length_mm`].
+    pub length_mm: f64,
+    /// [`EffectContext::home_cos2_inclination`].
+    pub cos2_inclination: f64,
+    /// [`EffectContext::home_guide_elevation_rad`].
+    pub guide_elevation_rad: f64,
+}
+
+impl StringHome {
+    /// String `string`'s home terms in `frame`; `None` when `string >=
+    /// STRINGS`.
+    pub fn of(frame: &Frame<f64>, string: usize) -> Option<StringHome> {
+        let anchor = frame.anchors.get(string)?;
+        Some(StringHome {
+            length_mm: home_length_f64(frame, string)?,
+            cos2_inclination: f64::from(cos2_inclination_q16(anchor, &frame.home)) / 65536.0,
+            guide_elevation_rad: guide_elevation_rad(guide_elevation_q32(
+                anchor,
                 &frame.home,
                 &frame.home,
             )),
         })
+    }
+
+    /// Every channel's home terms in `frame`.
+    pub fn of_every_string(frame: &Frame<f64>) -> [Option<StringHome>; STRINGS] {
+        core::array::from_fn(|i| StringHome::of(frame, i))
     }
 }
 
@@ -450,12 +499,33 @@ pub fn string_lengths_f64(
     effects: &[EffectTerm],
     inputs: &StringInputs,
 ) -> [f64; STRINGS] {
+    string_lengths_at_homes(
+        &StringHome::of_every_string(frame),
+        frame.layout.active,
+        laws,
+        effects,
+        inputs,
+    )
+}
+
+/// [`string_lengths_f64`] with the frame's home terms already worked out
+/// ([`StringHome::of_every_string`]) and its active strings
+/// ([`StringLayout::active`](crate::model::StringLayout::active)): the same
+/// lengths, for a caller that evaluates many rows of one frame.
+pub fn string_lengths_at_homes(
+    homes: &[Option<StringHome>; STRINGS],
+    active: u8,
+    laws: &[StringLaw; STRINGS],
+    effects: &[EffectTerm],
+    inputs: &StringInputs,
+) -> [f64; STRINGS] {
     let mut ctx = [None; STRINGS];
     let mut out = [0.0; STRINGS];
-    let total_tension_n =
-        f64::from(total_tension_mn(frame.layout.active, &inputs.tension_mn)) / 1000.0;
+    let total_tension_n = f64::from(total_tension_mn(active, &inputs.tension_mn)) / 1000.0;
     for i in 0..STRINGS {
-        ctx[i] = EffectContext::with_total_tension(frame, laws, inputs, i, total_tension_n);
+        ctx[i] = homes[i]
+            .as_ref()
+            .and_then(|home| EffectContext::at_home(home, laws, inputs, i, total_tension_n));
         if let Some(c) = &ctx[i] {
             out[i] = c.home_length_mm + c.payout_mm;
         }

@@ -16,7 +16,7 @@ use spidar_core::kinematics::{
     forward_kinematics_inclined, residual_weights, FkConfig, FkStatus, KinematicsRule,
 };
 use spidar_core::model::{Calibration, EffectTerm, Frame, StringInputs, StringLaw};
-use spidar_core::string_law::string_lengths_f64;
+use spidar_core::string_law::{string_lengths_at_homes, StringHome};
 use spidar_core::STRINGS;
 
 use crate::data::observe::Observation;
@@ -94,8 +94,16 @@ pub fn predict_with<O: Borrow<Observation>>(
 ) -> Vec<Prediction> {
     let frame = model.frame;
     let inclined = model.effects.iter().any(|t| t.effect.reads_inclination());
-    let lengths =
-        |inputs: &StringInputs| string_lengths_f64(frame, model.laws, model.effects, inputs);
+    let homes = StringHome::of_every_string(frame);
+    let lengths = |inputs: &StringInputs| {
+        string_lengths_at_homes(
+            &homes,
+            frame.layout.active,
+            model.laws,
+            model.effects,
+            inputs,
+        )
+    };
     let config = &FkConfig {
         residual_weight: residual_weights(frame.layout, model.length_scale_mm),
         ..*config

@@ -2,6 +2,7 @@
 //! reweigh the rows and refit, each a problem minimized.
 
 use spidar_core::model::{Frame, StringLaw};
+use spidar_core::string_law::StringHome;
 use spidar_core::STRINGS;
 
 use super::layout::{encode, Layout, State};
@@ -60,9 +61,10 @@ impl Fit<'_> {
         state: &State,
         laws: &[StringLaw; STRINGS],
     ) -> Vec<[f64; STRINGS]> {
+        let homes = StringHome::of_every_string(&state.frame);
         self.used
             .iter()
-            .map(|o| Problem::string_residuals(state, laws, o))
+            .map(|o| Problem::string_residuals(state, &homes, laws, o))
             .collect()
     }
 

@@ -5,7 +5,9 @@
 use nalgebra::{DMatrix, DVector};
 use spidar_core::geometry::{cross, distance, mat_vec, sub};
 use spidar_core::model::{Effect, EffectTerm, Frame, StringLaw, EVERY_STRING};
-use spidar_core::string_law::{sag_home_slope, sag_slope, EffectContext};
+use spidar_core::string_law::{
+    sag_home_slope, sag_slope, total_tension_mn, EffectContext, StringHome,
+};
 use spidar_core::STRINGS;
 
 use super::layout::{encode, Layout, State, HOME, ROTATION, TRANSLATION};
@@ -158,6 +160,8 @@ pub(super) struct RowPass {
     shared_terms: Vec<usize>,
     own_terms: [Vec<usize>; STRINGS],
     home_lengths: [f64; STRINGS],
+    /// The frame's home terms of each string's context.
+    homes: [Option<StringHome>; STRINGS],
     own: Vec<f64>,
     shared: Vec<f64>,
 }
@@ -175,6 +179,7 @@ impl RowPass {
                 layout.term_columns(problem.structure, i as u8).collect()
             }),
             home_lengths: core::array::from_fn(|i| distance(frame.home, frame.anchors[i])),
+            homes: StringHome::of_every_string(frame),
             own: Vec::with_capacity(layout.arrow.n),
             shared: Vec::with_capacity(layout.arrow.n),
             state,
@@ -203,8 +208,13 @@ impl RowPass {
         let p = device_position(frame, o);
         let inputs = inputs_for(frame, &state.effects, o, &p);
         // Each string's context once per row, not once per column.
-        let contexts: [Option<EffectContext>; STRINGS] =
-            core::array::from_fn(|s| EffectContext::for_string(frame, &self.laws, &inputs, s));
+        let total_tension_n =
+            f64::from(total_tension_mn(frame.layout.active, &inputs.tension_mn)) / 1000.0;
+        let contexts: [Option<EffectContext>; STRINGS] = core::array::from_fn(|s| {
+            self.homes[s].as_ref().and_then(|home| {
+                EffectContext::at_home(home, &self.laws, &inputs, s, total_tension_n)
+            })
+        });
         let effect_grad = problem.effect_gradients(state, &contexts);
         for i in 0..STRINGS {
             let row = k * STRINGS + i;
@@ -360,10 +370,11 @@ impl<'a> DataJacobian<'a> {
             effects: id.effects.clone(),
         };
         let laws = state.winding.laws();
+        let homes = StringHome::of_every_string(&state.frame);
         let weights: Vec<[f64; STRINGS]> = used
             .iter()
             .map(|o| {
-                let r = Problem::string_residuals(&state, &laws, o);
+                let r = Problem::string_residuals(&state, &homes, &laws, o);
                 core::array::from_fn(|i| {
                     if nominal.layout.is_active(i) && r[i].abs() <= GROSS_RESIDUAL_MM {
                         1.0

@@ -5,10 +5,11 @@
 use nalgebra::{DMatrix, DVector, Dyn, Owned};
 use spidar_core::geometry::{mat_mul, rotation_from_vector};
 use spidar_core::model::{Frame, StringLaw};
+use spidar_core::string_law::StringHome;
 use spidar_core::STRINGS;
 
 use super::layout::{Layout, State, ANCHORS, HOME, ROTATION, SCALE, TRANSLATION};
-use super::residuals::residuals_at;
+use super::residuals::residuals_at_homes;
 use super::structure::{effect_prior, Structure};
 use super::winding::WindingPhysics;
 use crate::data::observe::Observation;
@@ -112,12 +113,14 @@ impl Problem<'_> {
 
     /// String-space residuals of one observation (geometric minus model; 0
     /// on channels without a string).
+    /// `homes`: the state's frame's ([`StringHome::of_every_string`]).
     pub(super) fn string_residuals(
         state: &State,
+        homes: &[Option<StringHome>; STRINGS],
         laws: &[StringLaw; STRINGS],
         o: &Observation,
     ) -> [f64; 8] {
-        residuals_at(&state.frame, laws, &state.effects, o)
+        residuals_at_homes(&state.frame, homes, laws, &state.effects, o)
     }
 }
 
@@ -137,13 +140,14 @@ impl levenberg_marquardt::LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
     fn residuals(&self) -> Option<DVector<f64>> {
         let state = self.state();
         let laws = state.winding.laws();
+        let homes = StringHome::of_every_string(&state.frame);
         let mut r = DVector::zeros(self.n_rows());
         // Each row on its own, on every core: the same figures in any order.
         let string_residuals: Vec<[f64; STRINGS]> = {
             use rayon::prelude::*;
             self.observations
                 .par_iter()
-                .map(|o| Problem::string_residuals(&state, &laws, o))
+                .map(|o| Problem::string_residuals(&state, &homes, &laws, o))
                 .collect()
         };
         for (k, res) in string_residuals.iter().enumerate() {

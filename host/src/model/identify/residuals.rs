@@ -5,7 +5,9 @@ use std::borrow::Borrow;
 
 use spidar_core::geometry::{device_from_room, distance};
 use spidar_core::model::{EffectTerm, Frame, StringInputs, StringLaw};
-use spidar_core::string_law::{cos2_inclinations, guide_elevations, string_lengths_f64};
+use spidar_core::string_law::{
+    cos2_inclinations, guide_elevations, string_lengths_at_homes, StringHome,
+};
 use spidar_core::STRINGS;
 
 use crate::data::observe::Observation;
@@ -56,8 +58,21 @@ pub(crate) fn residuals_at(
     effects: &[EffectTerm],
     o: &Observation,
 ) -> [f64; STRINGS] {
+    residuals_at_homes(frame, &StringHome::of_every_string(frame), laws, effects, o)
+}
+
+/// [`residuals_at`] with the frame's home terms already worked out
+/// ([`StringHome::of_every_string`], once per frame): the same residuals.
+pub(crate) fn residuals_at_homes(
+    frame: &Frame<f64>,
+    homes: &[Option<StringHome>; STRINGS],
+    laws: &[StringLaw; STRINGS],
+    effects: &[EffectTerm],
+    o: &Observation,
+) -> [f64; STRINGS] {
     let p = device_position(frame, o);
-    let lengths = string_lengths_f64(frame, laws, effects, &inputs_for(frame, effects, o, &p));
+    let inputs = inputs_for(frame, effects, o, &p);
+    let lengths = string_lengths_at_homes(homes, frame.layout.active, laws, effects, &inputs);
     let mut r = [0.0; STRINGS];
     for i in frame.layout.indices() {
         r[i] = distance(p, frame.anchors[i]) - lengths[i];
@@ -73,12 +88,13 @@ pub fn string_residuals<O: Borrow<Observation>>(
     effects: &[EffectTerm],
     observations: &[O],
 ) -> Vec<Option<[f64; STRINGS]>> {
+    let homes = StringHome::of_every_string(frame);
     observations
         .iter()
         .map(|o| {
             let o = o.borrow();
             o.tracker?;
-            Some(residuals_at(frame, laws, effects, o))
+            Some(residuals_at_homes(frame, &homes, laws, effects, o))
         })
         .collect()
 }
