@@ -64,12 +64,9 @@ pub(crate) struct NormalEquations<'a> {
     fused: bool,
     /// `J^T J` over the blocks done.
     total: DMatrix<f64>,
-    /// The current block (its index), while string rows come: the shared
-    /// columns' products (shared x shared, row-major) and each string's
-    /// (own x (own, shared), row-major).
+    /// The current block (its index) and its sums, while string rows come.
     block: usize,
-    block_shared: Vec<f64>,
-    block_own: [Vec<f64>; STRINGS],
+    block_sums: ArrowBlock,
     /// The current block's sums as a full matrix, once general rows come.
     block_full: Option<DMatrix<f64>>,
     /// `J^T r` on the shared columns and on each string's own, while string
@@ -77,8 +74,6 @@ pub(crate) struct NormalEquations<'a> {
     gradient_shared: Vec<f64>,
     gradient_own: [Vec<f64>; STRINGS],
     gradient: DVector<f64>,
-    /// One row's values on (own, shared), reused.
-    row: Vec<f64>,
 }
 
 impl<'a> NormalEquations<'a> {
@@ -89,16 +84,11 @@ impl<'a> NormalEquations<'a> {
             fused: dense_product_fuses(),
             total: DMatrix::zeros(columns.n, columns.n),
             block: 0,
-            block_shared: vec![0.0; s * s],
-            block_own: core::array::from_fn(|i| {
-                let t = columns.own[i].len();
-                vec![0.0; t * (t + s)]
-            }),
+            block_sums: ArrowBlock::zeros(columns),
             block_full: None,
             gradient_shared: vec![0.0; s],
             gradient_own: core::array::from_fn(|i| vec![0.0; columns.own[i].len()]),
             gradient: DVector::zeros(columns.n),
-            row: Vec::with_capacity(columns.n),
         }
     }
 
@@ -118,14 +108,7 @@ impl<'a> NormalEquations<'a> {
             self.flush_arrow();
             self.block = row / DENSE_BLOCK_ROWS;
         }
-        add_string_products(
-            self.fused,
-            &mut self.row,
-            &mut self.block_shared,
-            &mut self.block_own[string],
-            own,
-            shared,
-        );
+        self.block_sums.add(self.fused, string, own, shared);
         // nalgebra's gemv: each product rounded, then added.
         for (g, &v) in self.gradient_shared.iter_mut().zip(shared) {
             *g += v * residual;
@@ -149,9 +132,8 @@ impl<'a> NormalEquations<'a> {
         }
         // The current block's sums are zero here (a new block, or the
         // first), and the block's own sums started from zero.
-        debug_assert!(self.block_shared.iter().all(|&v| v == 0.0));
-        self.block_shared = sums.shared;
-        self.block_own = sums.own;
+        debug_assert!(self.block_sums.shared.iter().all(|&v| v == 0.0));
+        self.block_sums = sums.arrow;
         let mut products = sums.products.iter();
         for &string in &sums.rows {
             let string = usize::from(string);
@@ -220,8 +202,8 @@ impl<'a> NormalEquations<'a> {
         let mut total = core::mem::replace(&mut self.total, DMatrix::zeros(0, 0));
         self.scatter_arrow(&mut total);
         self.total = total;
-        self.block_shared.fill(0.0);
-        for sums in &mut self.block_own {
+        self.block_sums.shared.fill(0.0);
+        for sums in &mut self.block_sums.own {
             sums.fill(0.0);
         }
     }
@@ -233,10 +215,10 @@ impl<'a> NormalEquations<'a> {
         let s = shared.len();
         for (ai, &a) in shared.iter().enumerate() {
             for (bi, &b) in shared.iter().enumerate() {
-                into[(a, b)] += self.block_shared[ai * s + bi];
+                into[(a, b)] += self.block_sums.shared[ai * s + bi];
             }
         }
-        for (own, sums) in self.columns.own.iter().zip(&self.block_own) {
+        for (own, sums) in self.columns.own.iter().zip(&self.block_sums.own) {
             let width = own.len() + s;
             for (ai, &a) in own.iter().enumerate() {
                 for (bi, &b) in own.iter().chain(shared).enumerate() {
@@ -265,6 +247,40 @@ impl<'a> NormalEquations<'a> {
     }
 }
 
+/// One block's sums of string rows from zero: the shared columns' products
+/// (shared x shared, row-major) and each string's (own x (own, shared),
+/// row-major).
+pub(crate) struct ArrowBlock {
+    shared: Vec<f64>,
+    own: [Vec<f64>; STRINGS],
+    /// One row's values on (own, shared), reused.
+    row: Vec<f64>,
+}
+
+impl ArrowBlock {
+    fn zeros(columns: &ArrowColumns) -> Self {
+        let s = columns.shared.len();
+        ArrowBlock {
+            shared: vec![0.0; s * s],
+            own: core::array::from_fn(|i| {
+                let t = columns.own[i].len();
+                vec![0.0; t * (t + s)]
+            }),
+            row: Vec::with_capacity(columns.n),
+        }
+    }
+
+    /// Adds string `string`'s row (`own` on its own columns, `shared` on
+    /// the shared ones): shared x shared, and own x (own, shared).
+    fn add(&mut self, fused: bool, string: usize, own: &[f64], shared: &[f64]) {
+        self.row.clear();
+        self.row.extend_from_slice(own);
+        self.row.extend_from_slice(shared);
+        add_outer_products(fused, &mut self.shared, shared, shared);
+        add_outer_products(fused, &mut self.own[string], own, &self.row);
+    }
+}
+
 /// One block's string rows (block `block`: rows `block *
 /// DENSE_BLOCK_ROWS ..`), summed from zero on their own: a thread's share
 /// of [`NormalEquations`], added to it with
@@ -272,67 +288,32 @@ impl<'a> NormalEquations<'a> {
 pub(crate) struct BlockSums {
     block: usize,
     fused: bool,
-    /// The shared columns' products and each string's, as
-    /// [`NormalEquations`] keeps its current block's.
-    shared: Vec<f64>,
-    own: [Vec<f64>; STRINGS],
+    arrow: ArrowBlock,
     /// Each row's string, in row order.
     rows: Vec<u8>,
     /// Each row's `J^T r` products, rounded: its own columns', then the
     /// shared ones'.
     products: Vec<f64>,
-    /// One row's values on (own, shared), reused.
-    row: Vec<f64>,
 }
 
 impl BlockSums {
     pub fn new(columns: &ArrowColumns, block: usize) -> Self {
-        let s = columns.shared.len();
         BlockSums {
             block,
             fused: dense_product_fuses(),
-            shared: vec![0.0; s * s],
-            own: core::array::from_fn(|i| {
-                let t = columns.own[i].len();
-                vec![0.0; t * (t + s)]
-            }),
+            arrow: ArrowBlock::zeros(columns),
             rows: Vec::with_capacity(DENSE_BLOCK_ROWS),
             products: Vec::new(),
-            row: Vec::with_capacity(columns.n),
         }
     }
 
     /// Adds a row of this block, as [`NormalEquations::add_string_row`].
     pub fn add_string_row(&mut self, string: usize, own: &[f64], shared: &[f64], residual: f64) {
-        add_string_products(
-            self.fused,
-            &mut self.row,
-            &mut self.shared,
-            &mut self.own[string],
-            own,
-            shared,
-        );
+        self.arrow.add(self.fused, string, own, shared);
         self.rows.push(string as u8);
         self.products.extend(own.iter().map(|&v| v * residual));
         self.products.extend(shared.iter().map(|&v| v * residual));
     }
-}
-
-/// One string row's products into a block's sums: shared x shared, and
-/// own x (own, shared) into its string's (`row`: scratch).
-fn add_string_products(
-    fused: bool,
-    row: &mut Vec<f64>,
-    block_shared: &mut [f64],
-    block_own: &mut [f64],
-    own: &[f64],
-    shared: &[f64],
-) {
-    row.clear();
-    row.extend_from_slice(own);
-    row.extend_from_slice(shared);
-    add_outer_products(fused, block_shared, shared, shared);
-    add_outer_products(fused, block_own, own, row);
 }
 
 /// Whether matrixmultiply's f64 kernel on this CPU fuses its multiply-adds:
@@ -394,6 +375,17 @@ fn add_outer_fma(sums: &mut [f64], u: &[f64], v: &[f64]) {
 mod tests {
     use super::*;
 
+    /// Uniform values in [-1, 1) from `seed` (a linear congruential
+    /// sequence: the tests' rows, the same on every machine).
+    fn uniform(mut seed: u64) -> impl FnMut() -> f64 {
+        move || {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((seed >> 11) as f64 / (1u64 << 53) as f64) * 2.0 - 1.0
+        }
+    }
+
     /// Random block-arrow rows (string rows then general rows) give the
     /// dense products' `J^T J` and `J^T r` to the bit, whether the general
     /// rows begin in the string rows' last block or in a block of their own.
@@ -406,13 +398,7 @@ mod tests {
     }
 
     fn sums_as_the_dense_products_with(observations: usize) {
-        let mut seed = 12345u64;
-        let mut next = || {
-            seed = seed
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            ((seed >> 11) as f64 / (1u64 << 53) as f64) * 2.0 - 1.0
-        };
+        let mut next = uniform(12345);
         // 3 shared columns, string i owns columns 3 + 2i and 4 + 2i.
         let n = 3 + 2 * STRINGS;
         let columns = ArrowColumns {
@@ -460,13 +446,7 @@ mod tests {
     /// out (a whole block of them too) and general rows after.
     #[test]
     fn blocks_sum_as_rows_one_by_one() {
-        let mut seed = 987u64;
-        let mut next = || {
-            seed = seed
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            ((seed >> 11) as f64 / (1u64 << 53) as f64) * 2.0 - 1.0
-        };
+        let mut next = uniform(987);
         let n = 4 + 3 * STRINGS;
         let columns = ArrowColumns {
             n,
