@@ -182,18 +182,6 @@ impl EffectContext {
     ) -> Option<Self> {
         let total_tension_n =
             f64::from(total_tension_mn(frame.layout.active, &inputs.tension_mn)) / 1000.0;
-        Self::with_total_tension(frame, laws, inputs, string, total_tension_n)
-    }
-
-    /// [`for_string`](Self::for_string) with the total tension of the
-    /// active strings already summed (once for a row's eight strings).
-    fn with_total_tension(
-        frame: &Frame<f64>,
-        laws: &[StringLaw; STRINGS],
-        inputs: &StringInputs,
-        string: usize,
-        total_tension_n: f64,
-    ) -> Option<Self> {
         Self::at_home(
             &StringHome::of(frame, string)?,
             laws,

@@ -20,7 +20,7 @@ mod span;
 use nalgebra::DMatrix;
 use nalgebra::DVector;
 use spidar_core::model::{Frame, StringInputs, StringLayout};
-use spidar_core::string_law::{payout_f64, EffectContext};
+use spidar_core::string_law::{payout_f64, total_tension_mn, EffectContext, StringHome};
 use spidar_core::STRINGS;
 
 use crate::data::observe::Observation;
@@ -98,6 +98,8 @@ struct FitRows<'a> {
     used: Vec<usize>,
     jacobian: DataJacobian<'a>,
     span: Span,
+    /// Each string's home terms in the model's frame (once, not per row).
+    homes: [Option<StringHome>; STRINGS],
 }
 
 /// What a row's strings share: its observation as the fit reads it.
@@ -158,6 +160,7 @@ impl<'a> Evidence<'a> {
                 used,
                 jacobian,
                 span,
+                homes: StringHome::of_every_string(&id.frame),
             }),
             residual: DVector::zeros(0),
             sigma2: 0.0,
@@ -478,7 +481,12 @@ impl FitRows<'_> {
     fn row(&self, u: usize, at: &Observed<'_>, i: usize) -> Option<Row> {
         let id = self.id;
         let p = at.p;
-        let ctx = EffectContext::for_string(&id.frame, &id.laws, &at.inputs, i)?;
+        let total_tension_n = f64::from(total_tension_mn(
+            id.frame.layout.active,
+            &at.inputs.tension_mn,
+        )) / 1000.0;
+        let home = self.homes.get(i)?.as_ref()?;
+        let ctx = EffectContext::at_home(home, &id.laws, &at.inputs, i, total_tension_n)?;
         let d = [
             p[0] - id.frame.anchors[i][0],
             p[1] - id.frame.anchors[i][1],

@@ -6,7 +6,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::data::observe::Observation;
 use crate::data::stats::median;
-use crate::model::identify::{residuals_at, Identification};
+use spidar_core::string_law::StringHome;
+
+use crate::model::identify::{residuals_at_homes, Identification};
 
 /// A training row's tracker may be this many times the median
 /// disagreement of the rows' tracker with their strings (see
@@ -136,6 +138,7 @@ fn tracker_disagreement(id: &Identification, session: &[Observation]) -> Vec<(us
     let strings = id.frame.layout;
     // A row after a new home capture reads without the training's slips.
     let new_home = id.for_a_new_session();
+    let homes = StringHome::of_every_string(&id.frame);
     session
         .iter()
         .enumerate()
@@ -146,7 +149,7 @@ fn tracker_disagreement(id: &Identification, session: &[Observation]) -> Vec<(us
             } else {
                 &id.effects
             };
-            let r = residuals_at(&id.frame, &id.laws, effects, o);
+            let r = residuals_at_homes(&id.frame, &homes, &id.laws, effects, o);
             let mut abs: Vec<f64> = strings.indices().map(|i| r[i].abs()).collect();
             (k, median(&mut abs))
         })

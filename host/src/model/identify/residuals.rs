@@ -51,18 +51,8 @@ pub(crate) fn inputs_for(
 }
 
 /// String-space residuals (geometric minus model, mm) of one observation; 0
-/// on channels without a string.
-pub(crate) fn residuals_at(
-    frame: &Frame<f64>,
-    laws: &[StringLaw; STRINGS],
-    effects: &[EffectTerm],
-    o: &Observation,
-) -> [f64; STRINGS] {
-    residuals_at_homes(frame, &StringHome::of_every_string(frame), laws, effects, o)
-}
-
-/// [`residuals_at`] with the frame's home terms already worked out
-/// ([`StringHome::of_every_string`], once per frame): the same residuals.
+/// on channels without a string. `homes`: the frame's home terms
+/// ([`StringHome::of_every_string`], worked out once per frame).
 pub(crate) fn residuals_at_homes(
     frame: &Frame<f64>,
     homes: &[Option<StringHome>; STRINGS],
