@@ -180,8 +180,7 @@ impl EffectContext {
         inputs: &StringInputs,
         string: usize,
     ) -> Option<Self> {
-        let total_tension_n =
-            f64::from(total_tension_mn(frame.layout.active, &inputs.tension_mn)) / 1000.0;
+        let total_tension_n = total_tension_n(frame.layout.active, &inputs.tension_mn);
         Self::at_home(
             &StringHome::of(frame, string)?,
             laws,
@@ -255,6 +254,12 @@ impl StringHome {
     pub fn of_every_string(frame: &Frame<f64>) -> [Option<StringHome>; STRINGS] {
         core::array::from_fn(|i| StringHome::of(frame, i))
     }
+}
+
+/// [`total_tension_mn`] in N: what an [`EffectContext`] holds as
+/// `total_tension_n`.
+pub fn total_tension_n(active: u8, tension_mn: &[u16; STRINGS]) -> f64 {
+    f64::from(total_tension_mn(active, tension_mn)) / 1000.0
 }
 
 /// Sum of the commanded tensions (mN) of the strings whose bit is set in
@@ -509,7 +514,7 @@ pub fn string_lengths_at_homes(
 ) -> [f64; STRINGS] {
     let mut ctx = [None; STRINGS];
     let mut out = [0.0; STRINGS];
-    let total_tension_n = f64::from(total_tension_mn(active, &inputs.tension_mn)) / 1000.0;
+    let total_tension_n = total_tension_n(active, &inputs.tension_mn);
     for i in 0..STRINGS {
         ctx[i] = homes[i]
             .as_ref()

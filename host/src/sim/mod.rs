@@ -434,10 +434,7 @@ impl<'a> ModelSession<'a> {
         let device = self.device;
         let cfg = &device.config;
         let layout = device.frame.layout;
-        let total_tension_n = f64::from(spidar_core::string_law::total_tension_mn(
-            layout.active,
-            tension_mn,
-        )) / 1000.0;
+        let total_tension_n = spidar_core::string_law::total_tension_n(layout.active, tension_mn);
         let mut r = StringReadings {
             counts: [0i32; STRINGS],
             lengths: [0.0; STRINGS],

@@ -20,7 +20,7 @@ mod span;
 use nalgebra::DMatrix;
 use nalgebra::DVector;
 use spidar_core::model::{Frame, StringInputs, StringLayout};
-use spidar_core::string_law::{payout_f64, total_tension_mn, EffectContext, StringHome};
+use spidar_core::string_law::{payout_f64, total_tension_n, EffectContext, StringHome};
 use spidar_core::STRINGS;
 
 use crate::data::observe::Observation;
@@ -109,6 +109,8 @@ struct Observed<'o> {
     previous: Option<&'o Observation>,
     p: [f64; 3],
     inputs: StringInputs,
+    /// The active strings' total tension (N), once per row.
+    total_tension_n: f64,
     body_in_device: Option<[[f64; 3]; 3]>,
 }
 
@@ -470,6 +472,7 @@ impl FitRows<'_> {
             o,
             previous: k.checked_sub(1).map(|j| &self.observations[j]),
             p,
+            total_tension_n: total_tension_n(frame.layout.active, &inputs.tension_mn),
             inputs,
             // The body's turn as the device frame sees it, once per row.
             body_in_device: o.tracker_rotation.map(|body| body_in_device(frame, &body)),
@@ -481,12 +484,8 @@ impl FitRows<'_> {
     fn row(&self, u: usize, at: &Observed<'_>, i: usize) -> Option<Row> {
         let id = self.id;
         let p = at.p;
-        let total_tension_n = f64::from(total_tension_mn(
-            id.frame.layout.active,
-            &at.inputs.tension_mn,
-        )) / 1000.0;
         let home = self.homes.get(i)?.as_ref()?;
-        let ctx = EffectContext::at_home(home, &id.laws, &at.inputs, i, total_tension_n)?;
+        let ctx = EffectContext::at_home(home, &id.laws, &at.inputs, i, at.total_tension_n)?;
         let d = [
             p[0] - id.frame.anchors[i][0],
             p[1] - id.frame.anchors[i][1],

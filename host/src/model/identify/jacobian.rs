@@ -6,7 +6,7 @@ use nalgebra::{DMatrix, DVector};
 use spidar_core::geometry::{cross, distance, mat_vec, sub};
 use spidar_core::model::{Effect, EffectTerm, Frame, StringLaw, EVERY_STRING};
 use spidar_core::string_law::{
-    sag_home_slope, sag_slope, total_tension_mn, EffectContext, StringHome,
+    sag_home_slope, sag_slope, total_tension_n, EffectContext, StringHome,
 };
 use spidar_core::STRINGS;
 
@@ -208,8 +208,7 @@ impl RowPass {
         let p = device_position(frame, o);
         let inputs = inputs_for(frame, &state.effects, o, &p);
         // Each string's context once per row, not once per column.
-        let total_tension_n =
-            f64::from(total_tension_mn(frame.layout.active, &inputs.tension_mn)) / 1000.0;
+        let total_tension_n = total_tension_n(frame.layout.active, &inputs.tension_mn);
         let contexts: [Option<EffectContext>; STRINGS] = core::array::from_fn(|s| {
             self.homes[s].as_ref().and_then(|home| {
                 EffectContext::at_home(home, &self.laws, &inputs, s, total_tension_n)
