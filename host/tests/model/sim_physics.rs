@@ -426,7 +426,7 @@ fn loop_with(
 #[test]
 fn the_change_after_the_layer_tables_is_judged_against_them_validated_as_it_is() {
     use spidar::model::diagnose::LoopConfig;
-    use spidar::model::validate::validate;
+    use spidar::model::validate::{validate, FoldScope};
     let (full, train, nominal) = loop_with(1, &[], &LoopConfig::default());
     let (tables, _, _) = loop_with(
         1,
@@ -441,7 +441,14 @@ fn the_change_after_the_layer_tables_is_judged_against_them_validated_as_it_is()
         tables.stages[1].name,
         "layers strings [0, 1, 2, 3, 4, 5, 6, 7]"
     );
-    let held = validate(&train, &nominal, &tables.identification, &tables.structure).unwrap();
+    let held = validate(
+        &train,
+        &nominal,
+        &tables.identification,
+        &tables.structure,
+        FoldScope::Judged,
+    )
+    .unwrap();
     let next = full.findings.iter().find(|f| {
         f.family != spidar::model::diagnose::Family::Layers
             && f.family != spidar::model::diagnose::Family::Winding
@@ -523,7 +530,15 @@ fn a_clean_independent_device_gets_spool_rates_and_layer_tables_first_and_each_d
         assert!(!f.added && !check.accepted, "{f:#?}");
         assert!(check.reason.starts_with("not added: "), "{}", check.reason);
         assert_eq!(check.after.folds, Folds::Blocked);
-        assert!(check.before.held.n > check.before.interleaved.n / 2);
+        // The blocked folds hold out every row once in time and the outer
+        // shell once more; the interleaved folds are fitted only for a
+        // step in time.
+        assert!(check.before.held.n > r.base_train.n, "{check:#?}");
+        assert_eq!(
+            check.after.interleaved.is_some(),
+            f.family == Family::Slip,
+            "{f:#?}"
+        );
     }
     // In the JSON report: `validation` with its reason.
     let json = serde_json::to_value(tested[0]).unwrap();
@@ -921,7 +936,7 @@ fn a_clean_model_device_gets_no_layer_table() {
 fn a_small_session_falls_back_to_interleaved_folds() {
     use spidar::data::observe::observations;
     use spidar::model::identify::{identify, Start, Structure};
-    use spidar::model::validate::{validate, Folds, MIN_BLOCKED_ROWS};
+    use spidar::model::validate::{validate, FoldScope, Folds, MIN_BLOCKED_ROWS};
     let device = PhysicsDevice::new(&quiet_config(), 2).unwrap();
     let (train, _) = simulate_session(&device, SessionKind::Random { points: 150 }, 3).unwrap();
     let obs = observations(&train.samples);
@@ -935,9 +950,9 @@ fn a_small_session_falls_back_to_interleaved_folds() {
         &structure,
     )
     .unwrap();
-    let v = validate(&obs, &nominal, &id, &structure).unwrap();
+    let v = validate(&obs, &nominal, &id, &structure, FoldScope::WithInterleaved).unwrap();
     assert_eq!(v.folds, Folds::Interleaved);
-    assert_eq!(v.held, v.interleaved);
+    assert_eq!(Some(v.held), v.interleaved);
     assert!(v.noise_p95_mm > 0.0 && v.noise_max_mm > 0.0);
 }
 

@@ -37,9 +37,9 @@ use crate::data::stats::ErrorStats;
 use crate::model::identify::{identify, Identification, IdentifyError, Start, Structure};
 use crate::model::layers::{self, StringLayers, TableLevel};
 use crate::model::validate::{
-    held_out_error_list, judge, judge_step, judgeable_folds, refuse_a_fold_repair,
-    refuse_on_fold_rise, refused, stability, validate, validate_fits, validate_forward,
-    IN_SAMPLE_SHARE_OF_GAIN,
+    held_out_error_list, interleaved_fold_errors, judge, judge_step, judgeable_folds,
+    refuse_a_fold_repair, refuse_on_fold_rise, refused, stability, validate, validate_fits,
+    validate_forward, FoldScope, IN_SAMPLE_SHARE_OF_GAIN,
 };
 
 use candidates::{
@@ -188,12 +188,13 @@ pub fn close_loop(
         });
     }
     let id = base.clone();
-    let validation = validate(train, nominal, &id, &structure)?;
+    let validation = validate(train, nominal, &id, &structure, FoldScope::Judged)?;
     let mut state = LoopState {
         train,
         test,
         nominal,
         config,
+        validated_from: id.clone(),
         id,
         structure,
         validation,
@@ -301,6 +302,12 @@ fn weigh_what_follows_speed(id: &mut Identification, findings: &[Finding]) -> bo
     changed
 }
 
+/// A validation, and the model its folds' fits started from.
+struct Validated {
+    validation: Validation,
+    from: Identification,
+}
+
 /// What [`close_loop`] carries from step to step: the model so far, its
 /// validation, the stages and findings reported, and the sessions.
 struct LoopState<'a> {
@@ -311,6 +318,9 @@ struct LoopState<'a> {
     id: Identification,
     structure: Structure,
     validation: Validation,
+    /// The model `validation`'s fold fits started from: its interleaved
+    /// folds are fitted from it when a step in time is judged.
+    validated_from: Identification,
     stages: Vec<LoopStage>,
     findings: Vec<Finding>,
     /// The sessions as the model reads them: at the strings' meeting point
@@ -334,7 +344,11 @@ impl LoopState<'_> {
         match added {
             Some((refit, free, after)) => {
                 let name = format!("spool rates strings {:?}", finding.strings);
-                self.accept(name, finding, refit, free, after, None);
+                let validated = Validated {
+                    validation: after,
+                    from: self.id.clone(),
+                };
+                self.accept(name, finding, refit, free, validated, None);
             }
             None => self.findings.push(finding),
         }
@@ -369,7 +383,13 @@ impl LoopState<'_> {
                 // gain it does not make, and an offset or a drift would
                 // stand in on that (decision record 0025,
                 // `docs/decisions/0025-one-baseline-after-tables.md`).
-                let held = validate(&self.seen_train, self.nominal, &refit, &self.structure)?;
+                let held = validate(
+                    &self.seen_train,
+                    self.nominal,
+                    &refit,
+                    &self.structure,
+                    FoldScope::Judged,
+                )?;
                 finding.description += &format!(
                     " (the changes after the tables are judged against {:.3} mm: the same \
                      held-out folds with the tables held, as those changes are validated)",
@@ -379,7 +399,11 @@ impl LoopState<'_> {
                 // The tables are the refit's string laws: the structure
                 // stays.
                 let structure = self.structure.clone();
-                self.accept(name, finding, refit, structure, held, None);
+                let validated = Validated {
+                    validation: held,
+                    from: refit.clone(),
+                };
+                self.accept(name, finding, refit, structure, validated, None);
             }
             None => self.findings.push(finding),
         }
@@ -481,7 +505,23 @@ impl LoopState<'_> {
         let train: &[Observation] = moved.as_deref().unwrap_or(&self.seen_train);
         let retabled = self.with_step_in_the_tables(change, train, &candidate)?;
         let from = retabled.as_ref().unwrap_or(&self.id);
-        let (after, fits) = validate_fits(train, self.nominal, from, &candidate)?;
+        let scope = if steps_of(change).is_some() {
+            // A step in time is judged on the interleaved folds too, the
+            // model's as well as the candidate's.
+            if self.validation.lacks_interleaved() {
+                let (errors, inconsistent) = interleaved_fold_errors(
+                    train,
+                    self.nominal,
+                    &self.validated_from,
+                    &self.structure,
+                )?;
+                self.validation.add_interleaved(errors, inconsistent);
+            }
+            FoldScope::WithInterleaved
+        } else {
+            FoldScope::Judged
+        };
+        let (after, fits) = validate_fits(train, self.nominal, from, &candidate, scope)?;
         let mut check = self.judge_change(change, train, &after, &fits);
         if check.accepted && adds_a_drift(change) && self.config.time_terms_forward {
             check = self.judge_forward(check, train, from, &candidate)?;
@@ -522,6 +562,10 @@ impl LoopState<'_> {
             self.findings.push(finding);
             return Ok(false);
         }
+        let validated = Validated {
+            validation: after,
+            from: from.clone(),
+        };
         let refit = match retabled.or(refit_now) {
             Some(refit) => refit,
             None => identify(
@@ -535,7 +579,7 @@ impl LoopState<'_> {
             finding.description += &fitted;
         }
         let name = stage_name(&finding);
-        self.accept(name, finding, refit, candidate, after, moved);
+        self.accept(name, finding, refit, candidate, validated, moved);
         Ok(true)
     }
 
@@ -544,14 +588,14 @@ impl LoopState<'_> {
     /// meeting point, when the change is a marker offset; the test session
     /// is moved alike), the stage `name` with the refit's errors on them,
     /// the finding (added), and the model (`refit`, its `structure` and
-    /// `validation`) every later change is judged against.
+    /// `validated`) every later change is judged against.
     fn accept(
         &mut self,
         name: String,
         mut finding: Finding,
         refit: Identification,
         structure: Structure,
-        validation: Validation,
+        validated: Validated,
         moved: Option<Vec<Observation>>,
     ) {
         if let Some(moved) = moved {
@@ -569,7 +613,8 @@ impl LoopState<'_> {
             self.seen_test.as_deref(),
         ));
         self.findings.push(finding);
-        self.validation = validation;
+        self.validation = validated.validation;
+        self.validated_from = validated.from;
         self.structure = structure;
         self.id = refit;
     }

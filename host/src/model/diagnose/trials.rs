@@ -8,7 +8,9 @@ use spidar_core::STRINGS;
 use crate::data::observe::Observation;
 use crate::model::identify::{identify, Identification, IdentifyError, Start, Structure};
 use crate::model::layers::{self, StringLayers, TableLevel};
-use crate::model::validate::{folds, judge, validate_by, validate_fits, Check, Folds, Validation};
+use crate::model::validate::{
+    folds, judge, validate_by, validate_fits, Check, FoldScope, Folds, Validation,
+};
 
 use super::vocabulary::{Family, Finding, LoopConfig, Variable};
 
@@ -49,7 +51,7 @@ pub(super) fn add_layer_tables(
     }
     let cold = layers::without_layers(id);
     let validate_steps = |steps: &[Option<u8>; STRINGS]| {
-        validate_by(train, |rows| {
+        validate_by(train, FoldScope::Judged, |rows| {
             let plain = identify(rows, nominal, &cold, structure)?;
             layers::identify_with_layers(
                 rows,
@@ -232,7 +234,7 @@ pub(super) fn free_spool_rates(
         validation,
         change: None,
     };
-    let (after, _) = match validate_fits(train, nominal, id, &free) {
+    let (after, _) = match validate_fits(train, nominal, id, &free, FoldScope::Judged) {
         Ok(v) => v,
         // A session just large enough for the base model's folds: the
         // shared rate stays, and the finding says why.

@@ -5,7 +5,7 @@ use serde::{Deserialize, Serialize};
 use spidar_core::model::Frame;
 
 use super::errors::{held_out_error_list, held_out_errors, tail_noise};
-use super::folds::{folds, judged_folds, Folds};
+use super::folds::{folds, judged_folds, Fold, Folds};
 use crate::data::observe::Observation;
 use crate::data::stats::ErrorStats;
 use crate::model::identify::{identify, Identification, IdentifyError, Start, Structure};
@@ -22,8 +22,10 @@ pub struct Validation {
     /// and earlier half once, the outer shell once), or the interleaved ones
     /// when `folds` is `interleaved`.
     pub held: ErrorStats,
-    /// The two interleaved folds pooled (every row once).
-    pub interleaved: ErrorStats,
+    /// The two interleaved folds pooled (every row once): `None` where
+    /// blocked folds judge and the interleaved ones were not fitted (they
+    /// judge only steps in time, [`Validation::for_step`]).
+    pub interleaved: Option<ErrorStats>,
     /// Sampling noise (two standard errors) of `held`'s p95 and max, see
     /// [`tail_noise`](super::tail_noise).
     pub noise_p95_mm: f64,
@@ -69,11 +71,32 @@ impl Validation {
         }
     }
 
+    /// Whether a blocked validation lacks its interleaved folds (fitted with
+    /// [`FoldScope::WithInterleaved`] or added by `add_interleaved`), which
+    /// [`for_step`](Self::for_step) needs.
+    pub fn lacks_interleaved(&self) -> bool {
+        self.folds == Folds::Blocked && self.interleaved.is_none()
+    }
+
+    /// Adds its interleaved folds' errors and kinematics statuses
+    /// ([`interleaved_fold_errors`]).
+    pub(crate) fn add_interleaved(&mut self, errors: Vec<f64>, inconsistent: Vec<bool>) {
+        self.interleaved = Some(ErrorStats::of(&errors));
+        self.interleaved_errors = errors;
+        self.interleaved_inconsistent = inconsistent;
+    }
+
     /// What a step in time (a slip) is judged on: the interleaved folds
     /// (every fit straddles the step and every held-out set has rows on
     /// both sides of it) and, of the blocked folds, those `keep` says (their
-    /// fit rows reach both sides of the step, `judgeable_folds`).
+    /// fit rows reach both sides of the step, `judgeable_folds`). A blocked
+    /// validation must have its interleaved folds
+    /// ([`lacks_interleaved`](Self::lacks_interleaved)).
     pub fn for_step(&self, keep: &[bool]) -> Validation {
+        debug_assert!(
+            !self.lacks_interleaved(),
+            "a step judged without interleaved folds"
+        );
         let mut held_errors = Vec::with_capacity(self.held_errors.len());
         let mut held_inconsistent = Vec::with_capacity(self.held_errors.len());
         let mut fold_sizes = Vec::with_capacity(self.fold_sizes.len());
@@ -125,27 +148,88 @@ pub(super) fn fold_means(v: &Validation) -> impl Iterator<Item = f64> + '_ {
     fold_errors(v).map(|errors| errors.iter().sum::<f64>() / errors.len().max(1) as f64)
 }
 
-/// Held-out errors of `structure` on the folds of `train` (see [`Folds`]),
-/// each fold's fit warm from `from`, the fits in parallel.
+/// Which folds a validation fits where the session has blocked ones.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FoldScope {
+    /// The blocked folds, which judge every change but a step in time.
+    Judged,
+    /// The interleaved folds as well, which a step in time (a slip) is
+    /// also judged on ([`Validation::for_step`]).
+    WithInterleaved,
+}
+
+/// Held-out errors of `structure` on the folds of `train` (see [`Folds`];
+/// `scope`: with the interleaved ones or not), each fold's fit warm from
+/// `from`, the fits in parallel.
 pub fn validate(
     train: &[Observation],
     nominal: &Frame<f64>,
     from: &Identification,
     structure: &Structure,
+    scope: FoldScope,
 ) -> Result<Validation, IdentifyError> {
-    validate_fits(train, nominal, from, structure).map(|v| v.0)
+    validate_fits(train, nominal, from, structure, scope).map(|v| v.0)
 }
 
-/// [`validate`], with the fold fits (interleaved, then time: earlier, later;
-/// then space).
+/// [`validate`], with the fold fits in the folds' order (interleaved when
+/// fitted, then time: the later half's, fitted on the earlier, the earlier
+/// half's; then space).
 pub(crate) fn validate_fits(
     train: &[Observation],
     nominal: &Frame<f64>,
     from: &Identification,
     structure: &Structure,
+    scope: FoldScope,
 ) -> Result<(Validation, Vec<Identification>), IdentifyError> {
     let start = Start::from_identification(from);
-    validate_by(train, |rows| identify(rows, nominal, &start, structure))
+    validate_by(train, scope, |rows| {
+        identify(rows, nominal, &start, structure)
+    })
+}
+
+/// A fold's model, with its position errors and kinematics statuses
+/// (inconsistent or not) on the rows the fold holds out.
+type FoldFit = (Identification, Vec<f64>, Vec<bool>);
+
+/// The models fitted on `folds` of `tracked` by `fit`, with their errors
+/// and kinematics statuses on the rows each holds out, the fits in
+/// parallel.
+fn fit_folds(
+    tracked: &[&Observation],
+    folds: &[Fold],
+    fit: impl Fn(&[&Observation]) -> Result<Identification, IdentifyError> + Sync,
+) -> Result<Vec<FoldFit>, IdentifyError> {
+    use rayon::prelude::*;
+    let pick = |rows: &[usize]| -> Vec<&Observation> { rows.iter().map(|&k| tracked[k]).collect() };
+    folds
+        .par_iter()
+        .map(|(rows, held)| {
+            let id = fit(&pick(rows))?;
+            let (errors, inconsistent) = held_out_errors(&id, &pick(held));
+            Ok((id, errors, inconsistent))
+        })
+        .collect()
+}
+
+/// The interleaved folds' held-out errors and kinematics statuses of
+/// `structure` on `train`, each fold's fit warm from `from`: what
+/// `Validation::add_interleaved` adds to a validation fitted without
+/// them.
+pub(crate) fn interleaved_fold_errors(
+    train: &[Observation],
+    nominal: &Frame<f64>,
+    from: &Identification,
+    structure: &Structure,
+) -> Result<(Vec<f64>, Vec<bool>), IdentifyError> {
+    let tracked: Vec<&Observation> = train.iter().filter(|o| o.tracker.is_some()).collect();
+    let (_, folds) = folds(&tracked);
+    let start = Start::from_identification(from);
+    let fits = fit_folds(&tracked, &folds[..2], |rows| {
+        identify(rows, nominal, &start, structure)
+    })?;
+    let errors = fits.iter().flat_map(|f| f.1.iter().copied()).collect();
+    let statuses = fits.iter().flat_map(|f| f.2.iter().copied()).collect();
+    Ok((errors, statuses))
 }
 
 /// [`validate_fits`] with each fold's model made by `fit` from the fold's
@@ -153,33 +237,29 @@ pub(crate) fn validate_fits(
 /// took the session's size again per fold in flight).
 pub(crate) fn validate_by(
     train: &[Observation],
+    scope: FoldScope,
     fit: impl Fn(&[&Observation]) -> Result<Identification, IdentifyError> + Sync,
 ) -> Result<(Validation, Vec<Identification>), IdentifyError> {
-    use rayon::prelude::*;
     let tracked: Vec<&Observation> = train.iter().filter(|o| o.tracker.is_some()).collect();
     let (kind, folds) = folds(&tracked);
-    let pick = |rows: &[usize]| -> Vec<&Observation> { rows.iter().map(|&k| tracked[k]).collect() };
-    let fits: Vec<(Identification, Vec<f64>, Vec<bool>)> = folds
-        .par_iter()
-        .map(|(rows, held)| {
-            let id = fit(&pick(rows))?;
-            let (errors, inconsistent) = held_out_errors(&id, &pick(held));
-            Ok((id, errors, inconsistent))
-        })
-        .collect::<Result<_, IdentifyError>>()?;
+    // The interleaved folds come first; blocked folds judge without them.
+    let interleaved_fitted = kind == Folds::Interleaved || scope == FoldScope::WithInterleaved;
+    let first = if interleaved_fitted { 0 } else { 2 };
+    let fits = fit_folds(&tracked, &folds[first..], fit)?;
     let errors: Vec<&[f64]> = fits.iter().map(|f| f.1.as_slice()).collect();
     let statuses: Vec<&[bool]> = fits.iter().map(|f| f.2.as_slice()).collect();
-    let interleaved_inconsistent = statuses[..2].concat();
-    let held_inconsistent = match kind {
-        Folds::Blocked => statuses[2..].concat(),
-        Folds::Interleaved => statuses[..2].concat(),
+    let (interleaved_errors, interleaved_inconsistent) = if interleaved_fitted {
+        (errors[..2].concat(), statuses[..2].concat())
+    } else {
+        (Vec::new(), Vec::new())
     };
-    let interleaved_errors = errors[..2].concat();
-    let interleaved = ErrorStats::of(&interleaved_errors);
-    let pooled = match kind {
-        Folds::Blocked => &errors[2..],
-        Folds::Interleaved => &errors[..2],
+    let interleaved = interleaved_fitted.then(|| ErrorStats::of(&interleaved_errors));
+    let judged = match kind {
+        Folds::Blocked => 2 - first..,
+        Folds::Interleaved => 0..,
     };
+    let held_inconsistent = statuses[judged.clone()].concat();
+    let pooled = &errors[judged];
     let held_errors = pooled.concat();
     let fold_sizes = pooled.iter().map(|e| e.len()).collect();
     let held = ErrorStats::of(&held_errors);

@@ -277,7 +277,8 @@ const STABILITY_RELATIVE_SD: f64 = 0.03;
 
 /// How far apart the added `effect`'s parameters (the last term of the
 /// structure) come out of the fits on the earlier and on the later half
-/// (`fits` in [`validate_fits`](super::validate_fits)' order): chi-square of
+/// (`fits` in [`validate_fits`](super::validate_fits)' order, the blocked
+/// folds last: the later half's, the earlier half's, the outer shell's): chi-square of
 /// the difference over the two fits' standard deviations, and its dof. A
 /// physical effect has one value; a term that stands in for something else
 /// (a drift standing in for position on a lattice collected plane by plane)
@@ -285,7 +286,8 @@ const STABILITY_RELATIVE_SD: f64 = 0.03;
 /// `None` without time folds.
 pub(crate) fn stability(effect: &Effect, fits: &[Identification]) -> Option<(f64, usize)> {
     let k = effect_parameter_info(effect).len();
-    let (early, late) = (fits.get(2)?, fits.get(3)?);
+    let later_half = fits.len().checked_sub(3)?;
+    let (early, late) = (fits.get(later_half)?, fits.get(later_half + 1)?);
     let tail = |id: &Identification| {
         let from = id.parameters.len().checked_sub(k)?;
         Some(id.parameters[from..].to_vec())

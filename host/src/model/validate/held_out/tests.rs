@@ -6,7 +6,7 @@ fn a_step_is_judged_on_the_interleaved_folds_and_the_folds_that_straddle_it() {
     let v = Validation {
         folds: Folds::Blocked,
         held: ErrorStats::of(&[1.0, 2.0, 3.0, 4.0, 5.0, 6.0]),
-        interleaved: ErrorStats::of(&[0.5, 0.5]),
+        interleaved: Some(ErrorStats::of(&[0.5, 0.5])),
         noise_p95_mm: 0.0,
         noise_max_mm: 0.0,
         held_errors: vec![1.0, 2.0, 3.0, 4.0, 5.0, 6.0],

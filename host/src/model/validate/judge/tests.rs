@@ -7,7 +7,7 @@ fn blocked(folds: [&[f64]; 3]) -> Validation {
     Validation {
         folds: Folds::Blocked,
         held: ErrorStats::of(&held_errors),
-        interleaved: ErrorStats::of(&held_errors),
+        interleaved: Some(ErrorStats::of(&held_errors)),
         noise_p95_mm,
         noise_max_mm,
         fold_sizes: folds.iter().map(|f| f.len()).collect(),
