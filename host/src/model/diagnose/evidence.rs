@@ -356,14 +356,18 @@ impl<'a> Evidence<'a> {
                     .collect();
                 order.sort_by(|a, b| a.0.total_cmp(&b.0));
                 let dims = fit.span.dims();
-                let mut pass = fit.jacobian.pass();
-                let mut basis = vec![0.0; STRINGS * dims];
-                for &(time, u) in order.iter().rev() {
-                    fit.basis_rows(&mut pass, u, &mut basis);
-                    for i in (0..STRINGS).rev() {
-                        let k = u * STRINGS + i;
-                        if self.weight(k) > 0.0 {
-                            visit(k, time, &basis[i * dims..(i + 1) * dims]);
+                order.reverse();
+                let mut basis = Vec::new();
+                for chunk in order.chunks(BASIS_CHUNK) {
+                    let us: Vec<usize> = chunk.iter().map(|&(_, u)| u).collect();
+                    fit.basis_rows_of(&us, &mut basis);
+                    for (j, &(time, u)) in chunk.iter().enumerate() {
+                        for i in (0..STRINGS).rev() {
+                            let k = u * STRINGS + i;
+                            if self.weight(k) > 0.0 {
+                                let at = (j * STRINGS + i) * dims;
+                                visit(k, time, &basis[at..at + dims]);
+                            }
                         }
                     }
                 }
@@ -406,6 +410,14 @@ impl<'a> Evidence<'a> {
     }
 }
 
+/// Observations whose basis rows are worked out at once (in parallel, then
+/// visited in order): a few hundred kB of rows at a time.
+const BASIS_CHUNK: usize = 512;
+
+/// Fewest observations per task of [`FitRows::basis_rows_of`]: each task
+/// sets up its own pass over the Jacobian.
+const BASIS_MIN_TASK: usize = 64;
+
 /// What a pass over the rows makes.
 #[derive(Clone, Copy, PartialEq)]
 enum Visit {
@@ -422,25 +434,52 @@ impl FitRows<'_> {
         visit: &mut impl FnMut(usize, Option<&Row>, &[f64]),
     ) {
         let dims = self.span.dims();
-        let mut pass = (what != Visit::Rows).then(|| self.jacobian.pass());
-        let mut basis = vec![0.0; STRINGS * dims];
-        for u in 0..self.used.len() {
-            if let Some(pass) = pass.as_mut() {
-                self.basis_rows(pass, u, &mut basis);
+        let all: Vec<usize> = (0..self.used.len()).collect();
+        let mut basis = Vec::new();
+        for chunk in all.chunks(BASIS_CHUNK) {
+            if what != Visit::Rows {
+                self.basis_rows_of(chunk, &mut basis);
             }
-            let observed = (what != Visit::Basis).then(|| self.observed(u));
-            for i in 0..STRINGS {
-                if string.is_some_and(|s| s != i) {
-                    continue;
+            for (j, &u) in chunk.iter().enumerate() {
+                let observed = (what != Visit::Basis).then(|| self.observed(u));
+                for i in 0..STRINGS {
+                    if string.is_some_and(|s| s != i) {
+                        continue;
+                    }
+                    let row = observed.as_ref().and_then(|at| self.row(u, at, i));
+                    let b = match what {
+                        Visit::Rows => &[][..],
+                        Visit::Basis | Visit::Both => {
+                            let at = (j * STRINGS + i) * dims;
+                            &basis[at..at + dims]
+                        }
+                    };
+                    visit(u * STRINGS + i, row.as_ref(), b);
                 }
-                let row = observed.as_ref().and_then(|at| self.row(u, at, i));
-                let b = match what {
-                    Visit::Rows => &[][..],
-                    Visit::Basis | Visit::Both => &basis[i * dims..(i + 1) * dims],
-                };
-                visit(u * STRINGS + i, row.as_ref(), b);
             }
         }
+    }
+
+    /// The basis rows ([`basis_rows`](Self::basis_rows)) of the tracked
+    /// observations `us` into `basis`, one observation's after another's,
+    /// worked out on every core: each row is its own, so the values are
+    /// those of one pass after the other.
+    fn basis_rows_of(&self, us: &[usize], basis: &mut Vec<f64>) {
+        use rayon::prelude::*;
+        let width = STRINGS * self.span.dims();
+        basis.clear();
+        basis.resize(us.len() * width, 0.0);
+        if width == 0 {
+            return;
+        }
+        basis
+            .par_chunks_mut(width)
+            .zip(us)
+            .with_min_len(BASIS_MIN_TASK)
+            .for_each_init(
+                || self.jacobian.pass(),
+                |pass, (out, &u)| self.basis_rows(pass, u, out),
+            );
     }
 
     /// The rows of the span's basis of the `u`-th tracked observation's
