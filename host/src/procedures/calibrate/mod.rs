@@ -663,6 +663,7 @@ fn final_model(
         correction: final_corr,
         length_scale_mm: fin_new.length_scale_mm,
         kinematics: fin_new.kinematics,
+        home: None,
     };
     let rule = if fall_back {
         report::KinematicsReport::of(Err(format!(

@@ -109,6 +109,7 @@ impl Monitor<'_> {
                 id.length_scale_mm
             },
             kinematics: self.calibration.kinematics,
+            home: None,
         };
         let model_id = model_id_of(&calibration);
         let flashed = self.flash_calibration(client, &calibration, model_id)?;
