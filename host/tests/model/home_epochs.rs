@@ -15,6 +15,12 @@ use spidar::sim::{
 const SLIP: &str = "slip:2:at_s=2000,mm=8";
 
 fn calibrated(effects: &[&str], continuing: bool) -> Calibrated {
+    calibrated_under(effects, continuing, None)
+}
+
+/// `calibrated`, the sessions recording `home_id` as their home capture
+/// (and their `t_s` as the time since it), as `spidar collect` writes them.
+fn calibrated_under(effects: &[&str], continuing: bool, home_id: Option<u64>) -> Calibrated {
     let seed = 1;
     let config = SimConfig {
         effects: effects.iter().map(|s| s.to_string()).collect(),
@@ -30,6 +36,14 @@ fn calibrated(effects: &[&str], continuing: bool) -> Calibrated {
     } else {
         simulate_session(&device, kind, seed + 200).expect("re-homed test")
     };
+    let with_home = |mut s: spidar::data::dataset::Session| {
+        for row in s.samples.iter_mut().filter(|_| home_id.is_some()) {
+            row.since_home_s = Some(row.t_s);
+            row.home = home_id;
+        }
+        s
+    };
+    let (train, test) = (with_home(train), with_home(test));
     let mut cfg = CalibrateConfig::quick();
     cfg.quiet = true;
     crate::calibrate_in_memory(&device.nominal, &train, &test, &cfg)
@@ -72,4 +86,48 @@ fn a_slip_carries_into_a_session_of_the_same_home_and_not_past_a_new_one() {
             "continuing {continuing}: held-out {after:.3} mm, clean device {clean:.3} mm"
         );
     }
+}
+
+/// The device's side: the calibration carries the training's slips and
+/// its home capture when the training session records it (`home`), for
+/// the device to apply while it stays under that capture; without a `home`
+/// column it carries none (the model for the next home capture alone).
+#[test]
+fn the_calibration_carries_the_training_slips_under_its_home_capture() {
+    use spidar_core::model::Effect;
+    let home_id = 0x5eed_0000_0003;
+    let c = calibrated_under(&[SLIP], true, Some(home_id));
+    let home = c.calibration.home.as_ref().expect("the training's slips");
+    assert_eq!(home.home_id, home_id);
+    assert!(
+        home.slips.iter().any(|t| t.string == 2
+            && matches!(t.effect, Effect::Slip { mm, .. } if (mm - 8.0).abs() < 1.0)),
+        "{:?}",
+        home.slips
+    );
+    assert!(
+        !c.calibration
+            .effects
+            .iter()
+            .any(|t| matches!(t.effect, Effect::Slip { .. })),
+        "the effects stay the model for the next home capture"
+    );
+    let d = &c.report.device_slips;
+    assert_eq!((d.home_id, &d.slips), (Some(home_id), &home.slips));
+    assert!(c.report.summary().contains(&d.reason), "{}", d.reason);
+    // The blob carries them, checked as the device checks it.
+    let blob = spidar_core::blob::compile(&c.calibration, 1, 0).expect("compiles");
+    let parsed = spidar_core::blob::CompiledCalibration::from_blob(&blob).expect("parses");
+    let carried = parsed.head.home.expect("in the blob");
+    assert_eq!(
+        (carried.home_id, carried.slips.len()),
+        (home_id, home.slips.len())
+    );
+
+    let c = calibrated(&[SLIP], true);
+    assert!(!crate::slips_of(&c.loop_result).is_empty());
+    assert_eq!(c.calibration.home, None);
+    let d = &c.report.device_slips;
+    assert_eq!(d.home_id, None);
+    assert!(d.reason.contains("`home`"), "{}", d.reason);
 }
