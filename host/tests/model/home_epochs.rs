@@ -118,6 +118,8 @@ fn the_calibration_carries_the_training_slips_under_its_home_capture() {
     // The blob carries them, checked as the device checks it.
     let blob = spidar_core::blob::compile(&c.calibration, 1, 0).expect("compiles");
     let parsed = spidar_core::blob::CompiledCalibration::from_blob(&blob).expect("parses");
+    let said = spidar::model::compile::describe_home_slips(&parsed).expect("flash says it");
+    assert!(said.contains(&home_id.to_string()), "{said}");
     let carried = parsed.head.home.expect("in the blob");
     assert_eq!(
         (carried.home_id, carried.slips.len()),
