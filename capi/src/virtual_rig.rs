@@ -59,6 +59,7 @@ pub fn spawn_virtual(
         correction: CorrectionModel::None,
         length_scale_mm: [0.0; spidar_core::STRINGS],
         kinematics: Default::default(),
+        home: None,
     };
     let blob = compile(&calibration, SPIDAR_VIRTUAL_MODEL_ID, 0)
         .map_err(|e| fail("compile its calibration", &e))?;

@@ -174,6 +174,7 @@ fn virtual_blob(seed: u64, model_id: u32) -> Vec<u8> {
         correction: spidar_core::correction::CorrectionModel::None,
         length_scale_mm: [0.0; spidar_core::STRINGS],
         kinematics: Default::default(),
+        home: None,
     };
     spidar_core::blob::compile(&calibration, model_id, 0).unwrap()
 }

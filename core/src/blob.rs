@@ -6,7 +6,8 @@
 //! body = postcard(BlobHead { frame: Frame<f32>, laws: [CompiledStringLaw; 8],
 //!                            effects: heapless::Vec<CompiledEffect, MAX_EFFECTS>,
 //!                            residual_weight: [f32; 8],
-//!                            exclusion_threshold_mm: f32, fault_threshold_mm: f32 })
+//!                            exclusion_threshold_mm: f32, fault_threshold_mm: f32,
+//!                            home: Option<CompiledHomeSlips> })
 //!      + 0 to 3 zero bytes, so that the correction starts at a multiple of
 //!        CORRECTION_ALIGN = 4 bytes from the blob start (format version 2)
 //!      + correction bytes (layout in `correction`, read in place, zero-copy)
@@ -27,8 +28,8 @@ use serde::{Deserialize, Serialize};
 use spidar_protocol::blob::{split_blob, BlobError, ModelHeader, HEADER_LEN};
 
 use crate::correction::{check_header_formats, Correction, POSITION_FRAC};
-use crate::model::{Frame, MAX_EFFECTS};
-use crate::string_law::{CompiledEffect, CompiledStringLaw};
+use crate::model::{Frame, StringInputs, MAX_EFFECTS, MAX_HOME_SLIPS};
+use crate::string_law::{string_lengths, CompiledEffect, CompiledStringLaw};
 use crate::STRINGS;
 
 /// Fractional bits of string lengths in the blob (header `q_length`): Q47.16 mm.
@@ -78,9 +79,70 @@ pub struct BlobHead {
     pub exclusion_threshold_mm: f32,
     /// [`crate::kinematics::FkConfig::fault_threshold_mm`], mm. Format 9.
     pub fault_threshold_mm: f32,
+    /// The training session's slips and its home capture's id
+    /// ([`crate::model::HomeSlips`]): applied while the device's home
+    /// capture is that one. Format 12.
+    pub home: Option<CompiledHomeSlips>,
+}
+
+/// One training slip in the blob: `+ mm_q16` (Q47.16 mm) on `string` from
+/// `at_ms` (ms since the home capture) on, what a
+/// [`CompiledEffect::Slip`] of the same string adds.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CompiledSlip {
+    pub string: u8,
+    pub at_ms: u32,
+    pub mm_q16: i64,
+}
+
+/// The training session's slips ([`crate::model::HomeSlips`]) in the blob,
+/// each on one active string: what the device adds to the string lengths
+/// while its home capture's id (`State::home_id`) is `home_id`.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CompiledHomeSlips {
+    pub home_id: u64,
+    pub slips: heapless::Vec<CompiledSlip, MAX_HOME_SLIPS>,
+}
+
+impl CompiledHomeSlips {
+    /// Adds the slips due at `time_ms` (ms since the home capture) to
+    /// `lengths_q16` (Q47.16 mm), saturating. The same bits as the slips
+    /// among the effect terms of [`string_lengths`] (a whole number of
+    /// Q47.16 steps added before or after its Q31.32 -> Q47.16 rounding
+    /// gives the same result), short of saturation, which lengths of
+    /// +-2^31 mm do not reach. Slips on a string out of range are skipped
+    /// (the parser refuses them).
+    #[inline]
+    pub fn add_to(&self, lengths_q16: &mut [i64; STRINGS], time_ms: u32) {
+        for slip in self.slips.iter().filter(|s| time_ms >= s.at_ms) {
+            if let Some(l) = lengths_q16.get_mut(usize::from(slip.string)) {
+                *l = l.saturating_add(slip.mm_q16);
+            }
+        }
+    }
 }
 
 impl BlobHead {
+    /// The training's slips when `home_id` is their home capture's, else
+    /// `None` (a new home capture, or a blob without slips).
+    #[inline]
+    pub fn home_slips(&self, home_id: u64) -> Option<&CompiledHomeSlips> {
+        self.home.as_ref().filter(|h| h.home_id == home_id)
+    }
+
+    /// The string lengths (Q47.16 mm) the device computes under home
+    /// capture `home_id`: [`string_lengths`] of the laws and effects, plus
+    /// the training's slips when `home_id` is theirs
+    /// ([`BlobHead::home_slips`]; never under `None`, an unknown capture).
+    #[inline]
+    pub fn string_lengths(&self, inputs: &StringInputs, home_id: Option<u64>) -> [i64; STRINGS] {
+        let mut lengths = string_lengths(self.frame.layout, &self.laws, &self.effects, inputs);
+        if let Some(home) = home_id.and_then(|id| self.home_slips(id)) {
+            home.add_to(&mut lengths, inputs.time_ms);
+        }
+        lengths
+    }
+
     /// `config` with the blob's residual weights and thresholds.
     pub fn fk_config(
         &self,
@@ -149,6 +211,15 @@ fn check_layout(header: &ModelHeader, head: &BlobHead) -> Result<(), BlobError> 
             return Err(BlobError::InactiveString {
                 field: "effects",
                 string: s,
+            });
+        }
+    }
+    // A training slip is on one active string (never shared).
+    for slip in head.home.iter().flat_map(|h| h.slips.iter()) {
+        if !layout.is_active(usize::from(slip.string)) {
+            return Err(BlobError::InactiveString {
+                field: "home.slips",
+                string: slip.string,
             });
         }
     }
@@ -229,7 +300,7 @@ impl<'a> CompiledCalibration<'a> {
 }
 
 #[cfg(feature = "alloc")]
-pub use compiler::{compile, BlobCompileError};
+pub use compiler::{compile, BlobCompileError, HomeSlipProblem};
 
 #[cfg(feature = "alloc")]
 mod compiler {
@@ -276,8 +347,46 @@ mod compiler {
         /// The calibration cannot be a device (a rotation that is not one,
         /// coincident or far-flung anchors, a payout that falls).
         Implausible(crate::plausible::Implausible),
+        /// More training slips (`home.slips`) than a blob carries.
+        TooManyHomeSlips {
+            found: usize,
+            max: usize,
+        },
+        /// Training slip `home.slips[index]` does not fit the blob.
+        HomeSlip {
+            index: usize,
+            problem: HomeSlipProblem,
+        },
         /// The body could not be encoded (should not happen).
         Encode,
+    }
+
+    /// Why a training slip (`home.slips[index]`) does not fit the blob.
+    #[cfg_attr(feature = "defmt", derive(defmt::Format))]
+    #[derive(Clone, Copy, Debug, PartialEq)]
+    pub enum HomeSlipProblem {
+        /// The term is not a slip (`Effect::Slip`).
+        NotASlip,
+        /// Its string is out of range, shared ([`crate::model::EVERY_STRING`])
+        /// or a channel `frame.layout` marks inactive: a training slip is on
+        /// one string.
+        String { string: u8 },
+        /// Its time or size does not fit the slip's fixed point.
+        Value(crate::string_law::StringLawCompileError),
+    }
+
+    impl core::fmt::Display for HomeSlipProblem {
+        fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+            match self {
+                HomeSlipProblem::NotASlip => write!(f, "is not a slip term"),
+                HomeSlipProblem::String { string } => write!(
+                    f,
+                    "is on string {string}, not one of the strings `frame.layout` marks active \
+                     (a training slip is on one string)"
+                ),
+                HomeSlipProblem::Value(e) => write!(f, "{e}"),
+            }
+        }
     }
 
     impl core::fmt::Display for BlobCompileError {
@@ -320,6 +429,13 @@ mod compiler {
                      (zeros on every string: not measured)"
                 ),
                 BlobCompileError::Implausible(e) => write!(f, "not a device: {e}"),
+                BlobCompileError::TooManyHomeSlips { found, max } => write!(
+                    f,
+                    "`home.slips` has {found} training slips, a blob carries at most {max}"
+                ),
+                BlobCompileError::HomeSlip { index, problem } => {
+                    write!(f, "`home.slips[{index}]` {problem}")
+                }
                 BlobCompileError::Encode => write!(f, "blob body could not be encoded"),
             }
         }
@@ -366,6 +482,59 @@ mod compiler {
             });
         }
         Ok(out)
+    }
+
+    /// The calibration's training slips ([`crate::model::HomeSlips`]) in
+    /// fixed point, each checked: a slip, on one active string, its time
+    /// and size within the slip's formats.
+    fn compile_home(
+        calibration: &Calibration,
+    ) -> Result<Option<CompiledHomeSlips>, BlobCompileError> {
+        let Some(home) = &calibration.home else {
+            return Ok(None);
+        };
+        if home.slips.len() > MAX_HOME_SLIPS {
+            return Err(BlobCompileError::TooManyHomeSlips {
+                found: home.slips.len(),
+                max: MAX_HOME_SLIPS,
+            });
+        }
+        let mut slips = heapless::Vec::new();
+        for (index, term) in home.slips.iter().enumerate() {
+            let problem = |problem| BlobCompileError::HomeSlip { index, problem };
+            if !matches!(term.effect, crate::model::Effect::Slip { .. }) {
+                return Err(problem(HomeSlipProblem::NotASlip));
+            }
+            if !calibration.frame.layout.is_active(usize::from(term.string)) {
+                return Err(problem(HomeSlipProblem::String {
+                    string: term.string,
+                }));
+            }
+            let compiled = compile_effect(term, &calibration.frame, &calibration.strings)
+                .map_err(|e| problem(HomeSlipProblem::Value(e)))?;
+            let crate::string_law::CompiledEffect::Slip {
+                string,
+                at_ms,
+                mm_q16,
+            } = compiled
+            else {
+                return Err(problem(HomeSlipProblem::NotASlip));
+            };
+            slips
+                .push(CompiledSlip {
+                    string,
+                    at_ms,
+                    mm_q16,
+                })
+                .map_err(|_| BlobCompileError::TooManyHomeSlips {
+                    found: home.slips.len(),
+                    max: MAX_HOME_SLIPS,
+                })?;
+        }
+        Ok(Some(CompiledHomeSlips {
+            home_id: home.home_id,
+            slips,
+        }))
     }
 
     /// Compiles a calibration into a model blob (header + body).
@@ -442,6 +611,7 @@ mod compiler {
             residual_weight,
             exclusion_threshold_mm: rule.exclusion_threshold_mm as f32,
             fault_threshold_mm: rule.fault_threshold_mm as f32,
+            home: compile_home(calibration)?,
         };
         let correction = calibration
             .correction

@@ -23,7 +23,7 @@ use crate::guidance::guidance_force;
 use crate::kinematics::{forward_kinematics, inverse_kinematics, FkConfig, FkStatus};
 use crate::model::{Frame, StringInputs};
 use crate::safety::{SafetyConfig, SafetyConfigError, SafetyFaults, SafetyMonitor};
-use crate::string_law::{cos2_inclinations, guide_elevations, string_lengths, CompiledEffect};
+use crate::string_law::{cos2_inclinations, guide_elevations, CompiledEffect};
 use crate::tension::{
     distribute_warm, TensionConfig, TensionLimits, TensionSolution, TensionStatus,
 };
@@ -154,6 +154,8 @@ pub struct Controller {
     target: Target,
     /// See [`Controller::set_lengths_calibrated`].
     lengths_calibrated: bool,
+    /// See [`Controller::set_home_id`].
+    home_id: Option<u64>,
 }
 
 impl Controller {
@@ -179,6 +181,7 @@ impl Controller {
             safety,
             target: Target::Idle,
             lengths_calibrated: true,
+            home_id: None,
         };
         c.home(calibration, raw_counts, now_ms);
         Ok(c)
@@ -209,6 +212,14 @@ impl Controller {
     /// ([`SafetyMonitor::set_lengths_calibrated`] says why).
     pub fn set_lengths_calibrated(&mut self, calibrated: bool) {
         self.lengths_calibrated = calibrated;
+    }
+
+    /// The id of the home capture the counts are from (the device's
+    /// `State::home_id`, set at each home capture): the blob's training
+    /// slips apply while it is theirs ([`BlobHead::home_slips`]), never
+    /// while it is `None` (the default).
+    pub fn set_home_id(&mut self, home_id: Option<u64>) {
+        self.home_id = home_id;
     }
 
     pub fn set_target(&mut self, target: Target) {
@@ -295,7 +306,8 @@ impl Controller {
         if head.effects.iter().any(CompiledEffect::reads_speed) {
             inputs.count_rate_cps = self.rates.rates(&inputs.counts, input.now_us);
         }
-        let lengths_q16 = string_lengths(frame.layout, &head.laws, &head.effects, &inputs);
+        // The training's slips too while the home capture is theirs.
+        let lengths_q16 = head.string_lengths(&inputs, self.home_id);
         let lengths = lengths_q16.map(|l| l as f32 / 65536.0);
 
         let fk_config = if self.lengths_calibrated {

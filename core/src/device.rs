@@ -24,9 +24,17 @@
 //! declared when the controller is created: at boot if a stored model loads,
 //! else when the first geometry arrives (`SetNominalGeometry` or a commit), and
 //! again at each `Home` request (the host's guided initialization). A
-//! later change of calibration keeps the counts (same physical home);
-//! `ClearModel` without a nominal model drops the geometry, and the next one
-//! homes again.
+//! later change of calibration keeps the counts (same physical home) and
+//! the home capture's id; `ClearModel` without a nominal model drops the
+//! geometry, and the next one homes again.
+//!
+//! A blob may carry the training session's slips with the id of their home
+//! capture ([`crate::blob::CompiledHomeSlips`]): the loop adds them while
+//! the device's [`Device::home_id`] is that one, so a model flashed under
+//! the training's home capture keeps its slipped strings slipped, and a
+//! `Home` or a reboot (a new boot id) ends them. Drifts and every other
+//! term that reads time read the time since home, which starts again at
+//! each capture.
 //!
 //! # The model bytes and their borrow
 //!
@@ -281,6 +289,7 @@ pub fn nominal_calibration(
             residual_weight: [1.0; STRINGS],
             exclusion_threshold_mm: nominal_rule.exclusion_threshold_mm as f32,
             fault_threshold_mm: nominal_rule.fault_threshold_mm as f32,
+            home: None,
         },
         correction: Correction::None,
     })
@@ -631,6 +640,7 @@ impl<'m, F: ModelFlash> Device<'m, F> {
         let now_ms = ms(self.last_now_us);
         if let Ok(mut c) = Controller::new(self.config.control, cal, self.last_raw, now_ms) {
             self.declare_home(self.last_now_us);
+            c.set_home_id(Some(self.home_id()));
             if let Some(t) = self.last_heartbeat_ms {
                 c.safety().heartbeat(t);
             }
@@ -927,6 +937,12 @@ impl<'m, F: ModelFlash> Device<'m, F> {
         c.home(cal, self.last_raw, ms(now_us));
         c.set_target(Target::Idle);
         self.declare_home(now_us);
+        // A new capture: the blob's training slips (of the previous one)
+        // no longer apply.
+        let home_id = self.home_id();
+        if let Some(c) = self.controller.as_mut() {
+            c.set_home_id(Some(home_id));
+        }
         self.target = Target::Idle;
         self.push_event(Event::Homed);
         Ok(Response::Ack)

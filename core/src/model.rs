@@ -527,14 +527,41 @@ impl EffectTerm {
 /// Most effect terms a calibration may carry (the blob's fixed capacity).
 pub const MAX_EFFECTS: usize = 32;
 
+/// Most training slips a calibration's [`HomeSlips`] may carry (the blob's
+/// fixed capacity).
+pub const MAX_HOME_SLIPS: usize = 8;
+
 #[cfg(feature = "alloc")]
-pub use whole::Calibration;
+pub use whole::{Calibration, HomeSlips};
 
 #[cfg(feature = "alloc")]
 mod whole {
     use super::*;
     use crate::correction::CorrectionModel;
     use alloc::vec::Vec;
+
+    /// The training session's slips and the home capture they belong to:
+    /// what the device applies, besides the calibration's effects, while
+    /// its home capture is still that one (decision record 0049, "Device
+    /// side").
+    ///
+    /// A slip is an event of its home capture: the string slid on its spool
+    /// after the counts were zeroed, so until the next home capture the
+    /// counts stay short by the step. The device applies these slips while
+    /// its [`home_id`](HomeSlips::home_id) is the one its states report
+    /// (`State::home_id`), and not after a new `Home` or a reboot (a new
+    /// capture counts the string as it is).
+    #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+    pub struct HomeSlips {
+        /// The home capture's id (`State::home_id`: the boot's id in the
+        /// upper 32 bits, the captures since boot in the lower 32), that of
+        /// the training session's last row.
+        pub home_id: u64,
+        /// Slip terms ([`Effect::Slip`], `at_s` in seconds since that home
+        /// capture), each on one active string; at most
+        /// [`MAX_HOME_SLIPS`].
+        pub slips: Vec<EffectTerm>,
+    }
 
     /// A whole calibration in physical units: what `spidar calibrate` writes
     /// and `blob::compile` turns into the device's fixed-point blob.
@@ -558,5 +585,13 @@ mod whole {
         /// data; the default is the device's fixed 1 mm / 2 mm).
         #[serde(default)]
         pub kinematics: crate::kinematics::KinematicsRule,
+        /// The training session's slips, applied on the device only under
+        /// the home capture they happened in ([`HomeSlips`]); `effects` is
+        /// the model for the next home capture, without them. Absent (no
+        /// slips to carry: none found, or the training session did not
+        /// record its home capture) in calibrations written before it
+        /// existed and whenever there are none.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        pub home: Option<HomeSlips>,
     }
 }

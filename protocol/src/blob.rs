@@ -26,8 +26,11 @@ use serde::{Deserialize, Serialize};
 
 /// Magic bytes at the start of every model blob.
 pub const MAGIC: [u8; 4] = *b"SPDM";
-/// Blob format this crate reads and writes. Version 11 (any other is refused
-/// with [`BlobError::UnsupportedVersion`]): an effect term may be a guide
+/// Blob format this crate reads and writes. Version 12 (any other is refused
+/// with [`BlobError::UnsupportedVersion`]): the string model may carry the
+/// training session's slips and the id of their home capture, applied while
+/// the device's home capture is that one
+/// (`spidar-core::blob::CompiledHomeSlips`). Version 11: an effect term may be a guide
 /// pulley, read against each string's elevation from its swivel axis
 /// (`spidar-core::model::Effect::Guide`). Version 10: an effect term may be a latency,
 /// read against each string's count rate
@@ -49,7 +52,7 @@ pub const MAGIC: [u8; 4] = *b"SPDM";
 /// zero padding after the string model so that the correction starts at a
 /// multiple of 4 bytes from the blob start (`spidar-core::blob`), which lets
 /// the device read the SVR records as aligned words; version 1 had none.
-pub const FORMAT_VERSION: u16 = 11;
+pub const FORMAT_VERSION: u16 = 12;
 /// Size of the header in bytes.
 pub const HEADER_LEN: usize = 40;
 

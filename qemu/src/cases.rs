@@ -185,6 +185,8 @@ pub const CASES: &[Case] = &[
     case("correction::SvrView::evaluate (1000 SV, words/bytes, near/far)", 24, svr_paths),
     case("control::Controller::step (NN, 8 steps)", 6, control_nn),
     case("control::Controller::step (SVR, 8 steps)", 4, control_svr),
+    case("blob::BlobHead::string_lengths (training slips: their home, another, none)", 48, home_string_lengths),
+    case("control::Controller::step (NN, training slips, a new Home after 4 steps)", 6, control_home),
     case("N=4: blob::CompiledCalibration::from_blob (4-line, planar)", 1, layout_blob_parse),
     case("N=4: string_law::string_lengths (4-line)", 24, string_lengths_four),
     case("N=4: string_law::string_lengths (planar)", 24, string_lengths_planar),
@@ -584,13 +586,22 @@ fn svr_paths(fx: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
 /// field of every step.
 fn control_case(fx: &Fixtures, svr: bool, rng: &mut Rng, out: &mut dyn Out) {
     let Some(cal) = calibration(fx, svr) else { return out.u32(u32::MAX) };
-    control_steps(&cal, rng, out)
+    control_steps(&cal, rng, out, None)
 }
 
-fn control_steps(cal: &spidar_core::blob::CompiledCalibration, rng: &mut Rng, out: &mut dyn Out) {
+/// Eight steps as [`control_case`]'s; with `homes`, the controller starts
+/// under home capture `homes[0]` and is homed again (a `Home`) under
+/// `homes[1]` before step 4.
+fn control_steps(
+    cal: &spidar_core::blob::CompiledCalibration,
+    rng: &mut Rng,
+    out: &mut dyn Out,
+    homes: Option<[u64; 2]>,
+) {
     use spidar_core::control::{ControlConfig, Controller, LoopInput, Target};
     let mut raw: [u16; spidar_core::STRINGS] = core::array::from_fn(|_| rng.next_u32() as u16);
     let Ok(mut ctl) = Controller::new(ControlConfig::default(), cal, raw, 5) else { return out.u32(u32::MAX - 1) };
+    ctl.set_home_id(homes.map(|h| h[0]));
     ctl.set_target(match rng.i32_in(0, 2) {
         0 => Target::Idle,
         1 => Target::Force(force(rng, 20.0)),
@@ -603,6 +614,10 @@ fn control_steps(cal: &spidar_core::blob::CompiledCalibration, rng: &mut Rng, ou
             *r = r.wrapping_add(rng.i32_in(-400, 400) as u16);
         }
         let now = 5 + step;
+        if let (4, Some(h)) = (step, homes) {
+            ctl.home(cal, raw, now);
+            ctl.set_home_id(Some(h[1]));
+        }
         if rng.i32_in(0, 3) != 0 {
             ctl.safety().heartbeat(now);
         }
@@ -623,6 +638,36 @@ fn control_nn(fx: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
 
 fn control_svr(fx: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
     control_case(fx, true, rng, out)
+}
+
+/// The id of the home capture of a blob's training slips (0 without).
+fn training_home(cal: &spidar_core::blob::CompiledCalibration) -> u64 {
+    cal.head.home.as_ref().map_or(0, |h| h.home_id)
+}
+
+/// The string lengths of the three models with training slips under their
+/// home capture, another one and none, at times near the slips' (up to
+/// 1.2 s) or anywhere in an hour.
+fn home_string_lengths(fx: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    for cal in [calibration(fx, false), layout_calibration(fx, false), layout_calibration(fx, true)] {
+        let Some(cal) = cal else { return out.u32(u32::MAX) };
+        let mut inputs = string_inputs(rng);
+        if rng.i32_in(0, 1) == 0 {
+            inputs.time_ms %= 1200;
+        }
+        let home = training_home(&cal);
+        for id in [Some(home), Some(home ^ rng.i32_in(1, 3) as u64), None] {
+            out.i64s(&cal.head.string_lengths(&inputs, id));
+        }
+    }
+}
+
+/// [`control_case`]'s eight steps under the NN blob's training home
+/// capture, then a new one from step 4 (its slips no longer apply).
+fn control_home(fx: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
+    let Some(cal) = calibration(fx, false) else { return out.u32(u32::MAX) };
+    let home = training_home(&cal);
+    control_steps(&cal, rng, out, Some([home, home + 1]))
 }
 
 // ---------------------------------------------------------------------------
@@ -705,10 +750,10 @@ fn tension_planar(fx: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
 
 fn control_four(fx: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
     let Some(c) = layout_calibration(fx, false) else { return out.u32(u32::MAX) };
-    control_steps(&c, rng, out)
+    control_steps(&c, rng, out, None)
 }
 
 fn control_planar(fx: &Fixtures, rng: &mut Rng, out: &mut dyn Out) {
     let Some(c) = layout_calibration(fx, true) else { return out.u32(u32::MAX) };
-    control_steps(&c, rng, out)
+    control_steps(&c, rng, out, None)
 }

@@ -6,11 +6,19 @@
 //! issue's benchmark sizes). Weights are shaped like trained ones (see
 //! `spidar_core::correction`'s tests): realistic magnitudes, random values.
 //! Two more use 4 of the 8 channels (issue 11): a 4-line cable robot in
-//! space and a planar device, both with the NN.
+//! space and a planar device, both with the NN. Every one carries the most
+//! training slips a blob takes (issue 33, point 1), one per string, under
+//! [`TRAINING_HOME_ID`]: the benchmark device's first home capture, so that
+//! `Device::tick` is measured applying them.
+
+/// The home capture of the models' training slips: the benchmark device's
+/// first (boot id 1, first capture).
+pub const TRAINING_HOME_ID: u64 = 1 << 32 | 1;
 
 use spidar_core::correction::{CorrectionModel, NnModel, OutputMode, Standardization, SvrModel};
 use spidar_core::model::{
-    Calibration, Effect, EffectTerm, Frame, Knots, LayerTable, StringLaw, StringLayout, EVERY_STRING, LAYER_KNOTS,
+    Calibration, Effect, EffectTerm, Frame, HomeSlips, Knots, LayerTable, StringLaw, StringLayout, EVERY_STRING,
+    LAYER_KNOTS, MAX_HOME_SLIPS,
 };
 use spidar_core::STRINGS;
 
@@ -86,6 +94,26 @@ fn calibration(correction: CorrectionModel) -> Calibration {
         // 5 less (weights 1/3 and 2/3 of the others').
         length_scale_mm: [0.2, 0.2, 0.2, 0.6, 0.2, 0.3, 0.2, 0.2],
         kinematics: Default::default(),
+        home: Some(home_slips(|k| k as u8)),
+    }
+}
+
+/// [`spidar_core::model::MAX_HOME_SLIPS`] training slips under
+/// [`TRAINING_HOME_ID`], slip `k` on string `string(k)`: half of them from
+/// the home capture on, the others 2 ms to 1 s after it (the cases' times
+/// reach an hour), of -3 to +3.5 mm.
+fn home_slips(string: impl Fn(usize) -> u8) -> HomeSlips {
+    HomeSlips {
+        home_id: TRAINING_HOME_ID,
+        slips: (0..MAX_HOME_SLIPS)
+            .map(|k| EffectTerm {
+                string: string(k),
+                effect: Effect::Slip {
+                    at_s: if k % 2 == 0 { 0.0 } else { [0.002, 0.4, 1.0, 0.25][k / 2 % 4] },
+                    mm: -3.0 + 0.93 * k as f64,
+                },
+            })
+            .collect(),
     }
 }
 
@@ -116,6 +144,7 @@ fn four_line(correction: CorrectionModel) -> Calibration {
     for (k, t) in c.effects.iter_mut().enumerate().filter(|(_, t)| t.string != EVERY_STRING) {
         t.string = (k % 4) as u8;
     }
+    c.home = Some(home_slips(|k| (k % 4) as u8));
     c
 }
 
@@ -134,6 +163,7 @@ fn planar(correction: CorrectionModel) -> Calibration {
     for (k, t) in c.effects.iter_mut().enumerate() {
         t.string = channels[k % 4] as u8;
     }
+    c.home = Some(home_slips(|k| channels[k % 4] as u8));
     c
 }
 

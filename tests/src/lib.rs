@@ -60,6 +60,7 @@ pub fn calibration(device: &sim::SimulatedDevice, correction: CorrectionModel) -
         // The true model: no string noisier than another.
         length_scale_mm: [0.0; spidar_core::STRINGS],
         kinematics: Default::default(),
+        home: None,
     }
 }
 

@@ -235,6 +235,13 @@ pub fn run_flash(args: &FlashArgs) -> anyhow::Result<String> {
         report.model_id,
         report.slot
     );
+    if let Some(h) = spidar_core::blob::CompiledCalibration::from_blob(&blob)
+        .ok()
+        .as_ref()
+        .and_then(spidar::model::compile::describe_home_slips)
+    {
+        let _ = writeln!(out, "{h}");
+    }
     let _ = writeln!(
         out,
         "upload {:.1} ms ({} chunks, {} resent, resumed at byte {}), commit {:.1} ms, read-back {:.1} ms: verified",

@@ -48,6 +48,7 @@ fn cube() -> Calibration {
         correction: CorrectionModel::None,
         length_scale_mm: [0.0; STRINGS],
         kinematics: Default::default(),
+        home: None,
     }
 }
 

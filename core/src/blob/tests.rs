@@ -34,6 +34,7 @@ fn calibration() -> Calibration {
         // String 3 four times noisier than the others.
         length_scale_mm: [0.2, 0.2, 0.2, 0.8, 0.2, 0.2, 0.2, 0.2],
         kinematics: Default::default(),
+        home: None,
     }
 }
 
@@ -462,4 +463,189 @@ fn the_kinematics_rule_is_carried_checked_and_run() {
             field: "fault_threshold_mm"
         })
     );
+}
+
+/// `calibration()` with the training's slips: 6 mm on string 2 from 2 s
+/// after home capture `0x5eed_0000_0001`, -1.5 mm on string 5 from 0 s.
+fn with_home_slips() -> Calibration {
+    let mut cal = calibration();
+    cal.home = Some(crate::model::HomeSlips {
+        home_id: 0x5eed << 32 | 1,
+        slips: alloc::vec![
+            EffectTerm {
+                string: 2,
+                effect: Effect::Slip { at_s: 2.0, mm: 6.0 },
+            },
+            EffectTerm {
+                string: 5,
+                effect: Effect::Slip {
+                    at_s: 0.0,
+                    mm: -1.5,
+                },
+            },
+        ],
+    });
+    cal
+}
+
+#[test]
+fn home_slips_round_trip_and_apply_only_under_their_home_capture() {
+    let cal = with_home_slips();
+    let blob = compile(&cal, 7, 0).unwrap();
+    let c = CompiledCalibration::from_blob(&blob).unwrap();
+    let home = c.head.home.as_ref().expect("the blob carries the slips");
+    assert_eq!(home.home_id, 0x5eed << 32 | 1);
+    assert_eq!(
+        home.slips.as_slice(),
+        &[
+            CompiledSlip {
+                string: 2,
+                at_ms: 2000,
+                mm_q16: 6 << 16
+            },
+            CompiledSlip {
+                string: 5,
+                at_ms: 0,
+                mm_q16: -3 << 15
+            },
+        ]
+    );
+    // The effects stay the model for a new home capture.
+    assert_eq!(c.header.effects, 2);
+    assert_eq!(c.head.effects.len(), 2);
+    let plain = compile(&calibration(), 7, 0).unwrap();
+    let plain = CompiledCalibration::from_blob(&plain).unwrap();
+    assert_eq!(plain.head.home, None);
+    let inputs = |time_ms| StringInputs {
+        counts: [1000, -2000, 3000, 500, 0, 7000, -300, 40],
+        time_ms,
+        ..StringInputs::default()
+    };
+    for time_ms in [0, 1999, 2000, 60_000] {
+        let without = plain
+            .head
+            .string_lengths(&inputs(time_ms), Some(home.home_id));
+        let under = c.head.string_lengths(&inputs(time_ms), Some(home.home_id));
+        // The same bits as the slips among the effect terms.
+        let mut as_effects = cal.clone();
+        as_effects
+            .effects
+            .extend(cal.home.as_ref().unwrap().slips.iter().copied());
+        as_effects.home = None;
+        let e = CompiledCalibration::from_blob(&compile(&as_effects, 7, 0).unwrap())
+            .unwrap()
+            .head;
+        assert_eq!(under, e.string_lengths(&inputs(time_ms), None), "{time_ms}");
+        for i in 0..STRINGS {
+            let step = match i {
+                2 if time_ms >= 2000 => 6 << 16,
+                5 => -3 << 15,
+                _ => 0,
+            };
+            assert_eq!(under[i] - without[i], step, "string {i} at {time_ms} ms");
+        }
+        // Another home capture (a `Home`, a reboot), or none known: no slip.
+        for other in [Some(home.home_id + 1), Some(0x1234 << 32 | 1), None] {
+            assert_eq!(c.head.string_lengths(&inputs(time_ms), other), without);
+        }
+    }
+}
+
+#[test]
+fn home_slips_that_do_not_fit_are_refused_naming_them() {
+    let refused = |edit: &dyn Fn(&mut crate::model::HomeSlips)| {
+        let mut cal = with_home_slips();
+        edit(cal.home.as_mut().unwrap());
+        compile(&cal, 7, 0).unwrap_err()
+    };
+    let slip = |string, at_s, mm| EffectTerm {
+        string,
+        effect: Effect::Slip { at_s, mm },
+    };
+    let problem = |index, problem| BlobCompileError::HomeSlip { index, problem };
+    assert_eq!(
+        refused(&|h| h.slips[1] = slip(8, 1.0, 1.0)),
+        problem(1, HomeSlipProblem::String { string: 8 })
+    );
+    assert_eq!(
+        refused(&|h| h.slips[0].string = crate::model::EVERY_STRING),
+        problem(0, HomeSlipProblem::String { string: u8::MAX })
+    );
+    assert_eq!(
+        refused(&|h| h.slips[0].effect = Effect::Offset { mm: 1.0 }),
+        problem(0, HomeSlipProblem::NotASlip)
+    );
+    assert!(matches!(
+        refused(&|h| h.slips[0] = slip(2, -1.0, 1.0)),
+        BlobCompileError::HomeSlip {
+            index: 0,
+            problem: HomeSlipProblem::Value(crate::string_law::StringLawCompileError::OutOfRange {
+                field: "at_s",
+                ..
+            })
+        }
+    ));
+    assert!(matches!(
+        refused(&|h| h.slips[1] = slip(2, 1.0, f64::NAN)),
+        BlobCompileError::HomeSlip {
+            index: 1,
+            problem: HomeSlipProblem::Value(crate::string_law::StringLawCompileError::NotFinite {
+                field: "mm",
+                ..
+            })
+        }
+    ));
+    assert_eq!(
+        refused(&|h| h.slips = alloc::vec![slip(1, 1.0, 1.0); MAX_HOME_SLIPS + 1]),
+        BlobCompileError::TooManyHomeSlips {
+            found: MAX_HOME_SLIPS + 1,
+            max: MAX_HOME_SLIPS
+        }
+    );
+    let e = problem(1, HomeSlipProblem::String { string: 8 }).to_string();
+    assert!(
+        e.contains("`home.slips[1]`") && e.contains("string 8"),
+        "{e}"
+    );
+    // On a channel the layout marks inactive.
+    let mut four = four_strings();
+    four.home = Some(crate::model::HomeSlips {
+        home_id: 1,
+        slips: alloc::vec![slip(6, 1.0, 1.0)],
+    });
+    assert_eq!(
+        compile(&four, 7, 0),
+        Err(problem(0, HomeSlipProblem::String { string: 6 }))
+    );
+    // From another tool: a slip on an inactive or out-of-range string is
+    // refused by the parser, naming the field.
+    let blob = compile(&with_home_slips(), 7, 0).unwrap();
+    let (_, body) = split_blob(&blob).unwrap();
+    let (head, rest) = split_body(body).unwrap();
+    for string in [8, u8::MAX] {
+        let mut h = head.clone();
+        h.home.as_mut().unwrap().slips[0].string = string;
+        assert_eq!(
+            CompiledCalibration::from_blob(&with_head(&blob, &h, rest)),
+            Err(BlobError::InactiveString {
+                field: "home.slips",
+                string
+            })
+        );
+    }
+}
+
+#[test]
+fn a_calibration_without_home_slips_reads_and_writes_as_before() {
+    // Old calibrations (no `home`) still load; one without slips writes no
+    // `home` (its JSON, and so its model id, as before).
+    let cal = calibration();
+    let json = serde_json::to_string(&cal).unwrap();
+    assert!(!json.contains("home_id"), "{json}");
+    let back: Calibration = serde_json::from_str(&json).unwrap();
+    assert_eq!(back, cal);
+    let with = with_home_slips();
+    let json = serde_json::to_string(&with).unwrap();
+    assert!(json.contains("\"home\":{\"home_id\":"), "{json}");
+    assert_eq!(serde_json::from_str::<Calibration>(&json).unwrap(), with);
 }

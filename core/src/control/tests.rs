@@ -15,6 +15,7 @@ fn calibration() -> Calibration {
         correction: CorrectionModel::None,
         length_scale_mm: [0.0; STRINGS],
         kinematics: Default::default(),
+        home: None,
     }
 }
 

@@ -39,6 +39,7 @@ fn calibration(correction: CorrectionModel) -> Calibration {
         correction,
         length_scale_mm: [0.0; STRINGS],
         kinematics: Default::default(),
+        home: None,
     }
 }
 
@@ -1236,4 +1237,121 @@ fn every_loop_fault_combination_reaches_the_wire_by_name() {
         };
         assert_eq!(loop_side.bits(), f.0, "{name}");
     }
+}
+
+/// The training's slips in a blob flashed under their home capture: the
+/// device applies them until the next `Home` (or a reboot), not after.
+#[test]
+fn training_slips_apply_under_their_home_capture_until_the_next_home() {
+    let (mut ram, mut spare) = (ModelBuffer::<SLOT>::new(), ModelBuffer::<SLOT>::new());
+    let mut b = Bench::new(Flash::new(), ram.bytes(), spare.bytes());
+    b.tick_at(raw_at([0.0; 3]));
+    assert_eq!(
+        b.request(&Request::SetNominalGeometry(string_model())),
+        Response::Ack
+    );
+    let training_home = b.dev.home_id();
+    // Slips that lengthen each string as a move of `d` would: under them
+    // the strings at home read as the end-effector at `d`.
+    let d = [6.0, -4.0, 3.0];
+    let at_d = inverse_kinematics(&cube_anchors(), d);
+    let at_home = inverse_kinematics(&cube_anchors(), [0.0; 3]);
+    let mut cal = calibration(CorrectionModel::None);
+    cal.home = Some(crate::model::HomeSlips {
+        home_id: training_home,
+        slips: (0..STRINGS)
+            .map(|i| crate::model::EffectTerm {
+                string: i as u8,
+                effect: crate::model::Effect::Slip {
+                    at_s: 0.0,
+                    mm: at_d[i] - at_home[i],
+                },
+            })
+            .collect(),
+    });
+    let blob = compile(&cal, 9, 0).unwrap();
+    for _ in 0..3 {
+        b.tick_at(raw_at([0.0; 3]));
+    }
+    assert_eq!(b.upload(&blob, 9, 256), Response::Committed { model_id: 9 });
+    assert_eq!(b.dev.home_id(), training_home, "a flash keeps the home");
+    // The room position less the frame's translation (its rotation and
+    // scale are the identity): the device-frame position, corrected.
+    let t = cal.frame.room_translation;
+    let corrected = |out: &LoopOutput| {
+        let p = out.corrected_q16.map(|v| f64::from(v) / 65536.0);
+        [p[0] - t[0], p[1] - t[1], p[2] - t[2]]
+    };
+    let near = |p: [f64; 3], q: [f64; 3]| (0..3).all(|k| (p[k] - q[k]).abs() < 0.05);
+    let mut out = b.tick_at(raw_at([0.0; 3]));
+    for _ in 0..20 {
+        out = b.tick_at(raw_at([0.0; 3]));
+    }
+    assert!(near(corrected(&out), d), "{:?}", corrected(&out));
+    for i in 0..STRINGS {
+        let slip = (at_d[i] - at_home[i]) as f32;
+        assert!(
+            (out.string_lengths_mm[i] - at_home[i] as f32 - slip).abs() < 1e-3,
+            "string {i}: {} mm",
+            out.string_lengths_mm[i]
+        );
+    }
+    // A new home capture: the strings are counted as they are, no slip.
+    assert_eq!(b.request(&Request::Home), Response::Ack);
+    assert_ne!(b.dev.home_id(), training_home);
+    for _ in 0..20 {
+        out = b.tick_at(raw_at([0.0; 3]));
+    }
+    assert!(near(corrected(&out), [0.0; 3]), "{:?}", corrected(&out));
+    // A reboot (another boot id): a new home capture too.
+    let flash = b.dev.into_flash();
+    let (mut ram, mut spare) = (ModelBuffer::<SLOT>::new(), ModelBuffer::<SLOT>::new());
+    let config = DeviceConfig {
+        boot_id: 0x5eee,
+        ..config()
+    };
+    let mut dev = Device::new(
+        config,
+        flash,
+        ram.bytes(),
+        spare.bytes(),
+        raw_at([0.0; 3]),
+        0,
+    )
+    .unwrap();
+    assert_eq!(dev.home_id(), 0x5eee << 32 | 1);
+    for k in 1..=20 {
+        out = dev.tick(&TickInput {
+            raw_counts: raw_at([0.0; 3]),
+            now_us: k * 1000,
+            estop: false,
+        });
+    }
+    assert!(near(corrected(&out), [0.0; 3]), "{:?}", corrected(&out));
+}
+
+/// A drift reads the time since home: it starts again from 0 at a new home
+/// capture by itself (decision record 0049, "Device side").
+#[test]
+fn a_drift_starts_again_at_a_new_home_capture() {
+    let (mut ram, mut spare) = (ModelBuffer::<SLOT>::new(), ModelBuffer::<SLOT>::new());
+    let mut b = Bench::new(Flash::new(), ram.bytes(), spare.bytes());
+    let mut cal = calibration(CorrectionModel::None);
+    cal.effects.push(crate::model::EffectTerm {
+        string: 4,
+        effect: crate::model::Effect::Drift { mm_per_s: 0.5 },
+    });
+    let blob = compile(&cal, 3, 0).unwrap();
+    assert_eq!(b.upload(&blob, 3, 256), Response::Committed { model_id: 3 });
+    let home_length = inverse_kinematics(&cube_anchors(), [0.0; 3])[4] as f32;
+    let drift_at =
+        |b: &mut Bench<'_>| b.tick_at(raw_at([0.0; 3])).string_lengths_mm[4] - home_length;
+    for _ in 0..1999 {
+        b.tick_at(raw_at([0.0; 3]));
+    }
+    // 2 s after the boot's home capture: 1 mm.
+    assert!((drift_at(&mut b) - 1.0).abs() < 2e-3);
+    assert_eq!(b.request(&Request::Home), Response::Ack);
+    // 1 ms after the new one: 0.5 um.
+    assert!(drift_at(&mut b).abs() < 2e-3);
 }

@@ -343,6 +343,7 @@ fn blob() -> Vec<u8> {
         correction: CorrectionModel::None,
         length_scale_mm: [0.0; crate::STRINGS],
         kinematics: Default::default(),
+        home: None,
     };
     crate::blob::compile(&calibration, 7, 1_700_000_000).unwrap()
 }

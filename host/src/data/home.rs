@@ -157,5 +157,63 @@ fn by_clock(last: &Sample, first: &Sample, rows: usize) -> (usize, HomeBasis, St
     (k, HomeBasis::Clock, reason)
 }
 
+/// The home capture a training session ends under, as a device can match
+/// it: the `home` id of its last row, when every row records both its
+/// `home` and its `since_home_s` and all share that id. The training's
+/// slips are times since that capture; a device still under it applies
+/// them (decision record 0049, "Device side").
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TrainingHome {
+    /// The capture's id (`State::home_id`); `None` when the session does
+    /// not tell one a device can match.
+    pub home_id: Option<u64>,
+    /// Why, in words the report prints.
+    pub reason: String,
+}
+
+impl TrainingHome {
+    /// The home capture `training` ends under, or why none.
+    pub fn of(training: &Session) -> TrainingHome {
+        let none = |reason: &str| TrainingHome {
+            home_id: None,
+            reason: reason.into(),
+        };
+        let Some(last) = training.samples.last() else {
+            return none("the training session has no rows");
+        };
+        let samples = &training.samples;
+        if !samples.iter().all(|s| s.home.is_some()) {
+            return none(
+                "the training session does not record its home capture (no `home` column): no \
+                 device state can be matched to it",
+            );
+        }
+        if !samples.iter().all(|s| s.since_home_s.is_some()) {
+            return none(
+                "the training session has no `since_home_s` column: its slips' times are not \
+                 times since its home capture",
+            );
+        }
+        let home = last.home.unwrap_or_default();
+        let captures = 1 + samples
+            .windows(2)
+            .filter(|w| w[0].home != w[1].home)
+            .count();
+        if captures > 1 {
+            return TrainingHome {
+                home_id: None,
+                reason: format!(
+                    "the training session spans {captures} home captures (`home`), and its \
+                     slips were fitted across them"
+                ),
+            };
+        }
+        TrainingHome {
+            home_id: Some(home),
+            reason: format!("the training session is under home capture {home} (`home`)"),
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests;

@@ -241,6 +241,8 @@ pub struct CompileReport {
     pub header: spidar_protocol::blob::ModelHeader,
     pub error: Option<FixedPointError>,
     pub budget_mm: f64,
+    /// [`describe_home_slips`] of the blob.
+    pub home_slips: Option<String>,
 }
 
 impl std::fmt::Display for CompileReport {
@@ -268,6 +270,9 @@ impl std::fmt::Display for CompileReport {
                 "TOO LARGE for the firmware"
             }
         )?;
+        if let Some(h) = &self.home_slips {
+            writeln!(f, "{h}")?;
+        }
         if let Some(e) = &self.error {
             writeln!(
                 f,
@@ -287,6 +292,24 @@ impl std::fmt::Display for CompileReport {
         }
         Ok(())
     }
+}
+
+/// What a blob says of the training session's slips it carries
+/// (`spidar compile`, `spidar flash`): under which home capture the device
+/// applies them; `None` for a blob without.
+pub fn describe_home_slips(blob: &CompiledCalibration<'_>) -> Option<String> {
+    let home = blob.head.home.as_ref()?;
+    let strings: Vec<String> = home.slips.iter().map(|s| s.string.to_string()).collect();
+    Some(format!(
+        "the model applies the training session's {} slip{} (string{} {}) while the device stays \
+         under home capture {} ({:#018x}); from its next `Home` or a reboot it runs without them",
+        home.slips.len(),
+        if home.slips.len() == 1 { "" } else { "s" },
+        if home.slips.len() == 1 { "" } else { "s" },
+        strings.join(", "),
+        home.home_id,
+        home.home_id
+    ))
 }
 
 /// The blob's creation time (Unix seconds): `SOURCE_DATE_EPOCH` when set to
@@ -343,6 +366,7 @@ pub fn run_compile(args: &CompileRequest) -> Result<CompileReport, CompileCmdErr
         header: parsed.header,
         error,
         budget_mm: args.budget_mm,
+        home_slips: describe_home_slips(&parsed),
     };
     let refusal = over_budget(&report);
     if refusal.is_none() || args.write_over_budget {

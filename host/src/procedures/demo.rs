@@ -168,6 +168,7 @@ fn run_on_virtual_device(
         correction: CorrectionModel::None,
         length_scale_mm: [0.0; spidar_core::STRINGS],
         kinematics: Default::default(),
+        home: None,
     };
     let calibrated =
         crate::model::compile::load_calibration(&calibration_dir.join("calibration.json"))?;

@@ -15,6 +15,12 @@ use spidar::sim::{
 const SLIP: &str = "slip:2:at_s=2000,mm=8";
 
 fn calibrated(effects: &[&str], continuing: bool) -> Calibrated {
+    calibrated_under(effects, continuing, None)
+}
+
+/// `calibrated`, the sessions recording `home_id` as their home capture
+/// (and their `t_s` as the time since it), as `spidar collect` writes them.
+fn calibrated_under(effects: &[&str], continuing: bool, home_id: Option<u64>) -> Calibrated {
     let seed = 1;
     let config = SimConfig {
         effects: effects.iter().map(|s| s.to_string()).collect(),
@@ -30,6 +36,14 @@ fn calibrated(effects: &[&str], continuing: bool) -> Calibrated {
     } else {
         simulate_session(&device, kind, seed + 200).expect("re-homed test")
     };
+    let with_home = |mut s: spidar::data::dataset::Session| {
+        for row in s.samples.iter_mut().filter(|_| home_id.is_some()) {
+            row.since_home_s = Some(row.t_s);
+            row.home = home_id;
+        }
+        s
+    };
+    let (train, test) = (with_home(train), with_home(test));
     let mut cfg = CalibrateConfig::quick();
     cfg.quiet = true;
     crate::calibrate_in_memory(&device.nominal, &train, &test, &cfg)
@@ -72,4 +86,145 @@ fn a_slip_carries_into_a_session_of_the_same_home_and_not_past_a_new_one() {
             "continuing {continuing}: held-out {after:.3} mm, clean device {clean:.3} mm"
         );
     }
+}
+
+/// The device's side: the calibration carries the training's slips and
+/// its home capture when the training session records it (`home`), for
+/// the device to apply while it stays under that capture; without a `home`
+/// column it carries none (the model for the next home capture alone).
+#[test]
+fn the_calibration_carries_the_training_slips_under_its_home_capture() {
+    use spidar_core::model::Effect;
+    let home_id = 0x5eed_0000_0003;
+    let c = calibrated_under(&[SLIP], true, Some(home_id));
+    let home = c.calibration.home.as_ref().expect("the training's slips");
+    assert_eq!(home.home_id, home_id);
+    assert!(
+        home.slips.iter().any(|t| t.string == 2
+            && matches!(t.effect, Effect::Slip { mm, .. } if (mm - 8.0).abs() < 1.0)),
+        "{:?}",
+        home.slips
+    );
+    assert!(
+        !c.calibration
+            .effects
+            .iter()
+            .any(|t| matches!(t.effect, Effect::Slip { .. })),
+        "the effects stay the model for the next home capture"
+    );
+    let d = &c.report.device_slips;
+    assert_eq!((d.home_id, &d.slips), (Some(home_id), &home.slips));
+    assert!(c.report.summary().contains(&d.reason), "{}", d.reason);
+    // The blob carries them, checked as the device checks it.
+    let blob = spidar_core::blob::compile(&c.calibration, 1, 0).expect("compiles");
+    let parsed = spidar_core::blob::CompiledCalibration::from_blob(&blob).expect("parses");
+    let said = spidar::model::compile::describe_home_slips(&parsed).expect("flash says it");
+    assert!(said.contains(&home_id.to_string()), "{said}");
+    let carried = parsed.head.home.expect("in the blob");
+    assert_eq!(
+        (carried.home_id, carried.slips.len()),
+        (home_id, home.slips.len())
+    );
+
+    let c = calibrated(&[SLIP], true);
+    assert!(!crate::slips_of(&c.loop_result).is_empty());
+    assert_eq!(c.calibration.home, None);
+    let d = &c.report.device_slips;
+    assert_eq!(d.home_id, None);
+    assert!(d.reason.contains("`home`"), "{}", d.reason);
+}
+
+/// The drift families' findings the monitor would report on `rows` judged
+/// with `calibration` as the device runs it under home capture `home_id`
+/// (the monitor's rule: a drift family, large enough, explaining enough).
+/// Findings, not the position error: forward kinematics leaves a string
+/// 6 mm off out, so the position hardly shows it.
+fn monitor_findings(
+    device: &SimulatedDevice,
+    calibration: &spidar_core::model::Calibration,
+    rows: &spidar::data::dataset::Session,
+    home_id: Option<u64>,
+) -> Vec<spidar::model::diagnose::Finding> {
+    use spidar::procedures::monitor::{identification_of, structure_of, under_home, MonitorConfig};
+    let config = MonitorConfig::default();
+    let c = under_home(calibration, home_id);
+    let id = identification_of(&c, &device.nominal.mechanical_advantage);
+    let obs = spidar::data::observe::observations(&rows.samples);
+    spidar::model::diagnose::diagnose(
+        &id,
+        &obs,
+        &device.nominal.nominal_frame(),
+        &structure_of(&c),
+        &config.loop_config,
+    )
+    .into_iter()
+    .filter(|f| {
+        config.drift_families.contains(&f.family)
+            && f.amplitude_mm >= config.min_amplitude_mm
+            && f.explained >= config.min_explained
+    })
+    .collect()
+}
+
+/// `spidar monitor` judges states as the device runs them: under the
+/// calibration's home capture with the training's slips (a string slipped
+/// in training is no drift; judged without it, it would read as one), after
+/// a new capture without them (the string is counted as it is).
+#[test]
+fn the_monitor_judges_states_with_the_training_slips_only_under_their_home_capture() {
+    use spidar_core::model::{Effect, HomeSlips};
+    let home_id = 0x5eed_0000_0001;
+    let mut config = SimConfig {
+        effects: vec!["slip:2:at_s=0,mm=6".into()],
+        ..SimConfig::default()
+    };
+    config.abnormal_motor.enabled = false;
+    let slipped = SimulatedDevice::new(&config, 2).expect("device");
+    // The same device, its strings counted as they are (a new home).
+    let mut clean = slipped.clone();
+    clean
+        .effects
+        .retain(|t| !matches!(t.effect, Effect::Slip { .. }));
+    // The true calibration of the device before the slip, with the slip
+    // carried under the training's home capture.
+    let (slips, effects): (Vec<_>, Vec<_>) = slipped
+        .effects
+        .iter()
+        .partition(|t| matches!(t.effect, Effect::Slip { .. }));
+    assert_eq!(slips.len(), 1, "{slips:?}");
+    let calibration = spidar_core::model::Calibration {
+        frame: slipped.frame,
+        strings: slipped.laws,
+        effects,
+        correction: spidar_core::correction::CorrectionModel::None,
+        length_scale_mm: [0.0; spidar_core::STRINGS],
+        kinematics: Default::default(),
+        home: Some(HomeSlips { home_id, slips }),
+    };
+    let kind = SessionKind::Random { points: 400 };
+    let under_training = simulate_session(&slipped, kind, 7).expect("states");
+    let after_new_home = simulate_session(&clean, kind, 7).expect("states");
+    let named = |f: &[spidar::model::diagnose::Finding]| f.iter().any(|f| f.strings == [2]);
+
+    // Under the training's home capture: the slip is the model's, no drift.
+    let found = monitor_findings(&slipped, &calibration, &under_training, Some(home_id));
+    assert!(found.is_empty(), "{found:?}");
+    // Without the slip (the calibration as it was before: effects alone)
+    // the same states read as a drift on string 2.
+    let found = monitor_findings(&slipped, &calibration, &under_training, None);
+    assert!(named(&found), "{found:?}");
+
+    // After a new home capture the string is counted as it is: the slip is
+    // not applied, and nothing is found.
+    let found = monitor_findings(&clean, &calibration, &after_new_home, Some(home_id + 1));
+    assert!(found.is_empty(), "{found:?}");
+    // The model judged is the device's: the slip only under its capture.
+    let applied = |home| {
+        spidar::procedures::monitor::under_home(&calibration, home)
+            .effects
+            .iter()
+            .any(|t| matches!(t.effect, Effect::Slip { .. }))
+    };
+    assert!(applied(Some(home_id)));
+    assert!(!applied(Some(home_id + 1)) && !applied(None));
 }

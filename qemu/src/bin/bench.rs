@@ -162,6 +162,7 @@ fn main() -> ! {
     {
         let raw = controller_path(cal);
         let Ok(mut ctl) = Controller::new(ControlConfig::default(), cal, [0; STRINGS], 0) else { exit(false) };
+        ctl.set_home_id(training_home(cal));
         ctl.set_target(Target::Guidance { target_mm: [100.0, -50.0, 1600.0], d_min_mm: 150.0, f_max_n: 5.0 });
         ctl.safety().heartbeat(0);
         let armed = ctl.safety().arm().is_ok();
@@ -284,6 +285,7 @@ fn main() -> ! {
         });
         let raw = controller_path(cal);
         let Ok(mut ctl) = Controller::new(ControlConfig::default(), cal, [0; STRINGS], 0) else { exit(false) };
+        ctl.set_home_id(training_home(cal));
         ctl.set_target(Target::Force([1.0, -0.5, 0.25]));
         ctl.safety().heartbeat(0);
         let armed = ctl.safety().arm().is_ok();
@@ -451,12 +453,20 @@ impl Loop {
     }
 }
 
+/// The home capture of the blob's training slips: the controllers run
+/// under it (the benchmark device's first capture is it), so that every
+/// loop benchmark pays for adding them.
+fn training_home(cal: &spidar_core::blob::CompiledCalibration) -> Option<u64> {
+    cal.head.home.as_ref().map(|h| h.home_id)
+}
+
 /// Raw encoder readings along a path from home (0.1 mm per iteration) for
 /// which `Controller::step` itself, with the state it will have, computes
 /// the path's string lengths: each reading is refined on a clone of a dry-run
 /// controller (setup, not measured).
 fn controller_path(cal: &spidar_core::blob::CompiledCalibration) -> [[u16; STRINGS]; WARM + N] {
     let Ok(mut ctl) = Controller::new(ControlConfig::default(), cal, [0; STRINGS], 0) else { exit(false) };
+    ctl.set_home_id(training_home(cal));
     ctl.set_target(Target::Guidance { target_mm: [100.0, -50.0, 1600.0], d_min_mm: 150.0, f_max_n: 5.0 });
     ctl.safety().heartbeat(0);
     let _ = ctl.safety().arm();

@@ -74,3 +74,26 @@ fn time_since_home_tells_without_ids() {
     let new = session(&[(200.0, Some(3.0), None)]);
     assert_eq!(LaterHome::of(&training, &new).first_new_home_row, 0);
 }
+
+#[test]
+fn a_training_session_tells_its_home_capture_only_with_both_columns_and_one_id() {
+    let whole = TrainingHome::of(&session(&[
+        (0.0, Some(5.0), Some(7)),
+        (1.0, Some(6.0), Some(7)),
+    ]));
+    assert_eq!(whole.home_id, Some(7), "{}", whole.reason);
+    for rows in [
+        // No `home`, or not on every row.
+        &[(0.0, Some(5.0), None), (1.0, Some(6.0), None)][..],
+        &[(0.0, Some(5.0), Some(7)), (1.0, Some(6.0), None)],
+        // No time since home.
+        &[(0.0, None, Some(7)), (1.0, None, Some(7))],
+        // Two captures.
+        &[(0.0, Some(5.0), Some(7)), (1.0, Some(0.1), Some(8))],
+        &[],
+    ] {
+        let h = TrainingHome::of(&session(rows));
+        assert_eq!(h.home_id, None, "{rows:?}: {}", h.reason);
+        assert!(!h.reason.is_empty());
+    }
+}

@@ -341,6 +341,7 @@ struct Findings<'a> {
     anchor_tolerance: crate::model::tolerance::ToleranceChoice,
     loop_rows: loop_rows::LoopRows,
     blackbox: Option<report::Blackbox>,
+    device_slips: report::DeviceSlips,
 }
 
 /// What stages 4-5 left: the learners' data, the learned corrections (none
@@ -493,6 +494,7 @@ impl Run<'_> {
             corrections: f.corrections,
             kinematics: f.kinematics,
             anchor_tolerance: f.anchor_tolerance,
+            device_slips: f.device_slips,
             blackbox: f.blackbox,
             warnings: self.warnings,
             notes: Vec::new(),
@@ -582,8 +584,18 @@ pub fn calibrate(
         train: &tr[..],
         test: &te[..],
     };
+    // The final identified model's slips go to the device under the
+    // training's home capture (none when the reference is the final model).
+    let device_slips = report::DeviceSlips::of(
+        &crate::data::home::TrainingHome::of(train.session),
+        if corrected.fall_back {
+            &[]
+        } else {
+            &loop_result.identification.effects
+        },
+    );
     let FinalModel {
-        calibration,
+        mut calibration,
         rejections,
         rule,
     } = final_model(
@@ -594,6 +606,7 @@ pub fn calibrate(
         corrected.final_corr,
         corrected.fall_back,
     );
+    calibration.home = device_slips.home_slips();
     run.timings.calibration_s = t_start.elapsed().as_secs_f64();
     let report = run.report(Findings {
         timing,
@@ -606,6 +619,7 @@ pub fn calibrate(
         anchor_tolerance: tolerance,
         loop_rows,
         blackbox,
+        device_slips,
     });
     let pairs = Pairs {
         residual: corrected.data.pairs,
@@ -622,7 +636,8 @@ pub fn calibrate(
     })
 }
 
-/// The calibration the device runs from its next home capture, the rows
+/// The calibration the device runs from its next home capture (the
+/// training's slips, for its home capture, are added beside it), the rows
 /// its kinematics flag on each session, and the report's account of its
 /// rule.
 struct FinalModel {
@@ -663,6 +678,7 @@ fn final_model(
         correction: final_corr,
         length_scale_mm: fin_new.length_scale_mm,
         kinematics: fin_new.kinematics,
+        home: None,
     };
     let rule = if fall_back {
         report::KinematicsReport::of(Err(format!(

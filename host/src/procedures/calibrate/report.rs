@@ -44,6 +44,9 @@ pub struct Report {
     /// The anchors' tolerance (the identification's prior), given by the
     /// geometry or chosen on held-out rows ([`crate::model::tolerance`]).
     pub anchor_tolerance: crate::model::tolerance::ToleranceChoice,
+    /// Whether the flashed model applies the training session's slips, and
+    /// under which home capture.
+    pub device_slips: DeviceSlips,
     /// The paper's black-box procedure, when run (`null` otherwise).
     pub blackbox: Option<Blackbox>,
     pub warnings: Vec<String>,
@@ -351,6 +354,89 @@ impl Tool {
             name: "spidar",
             version: env!("CARGO_PKG_VERSION"),
         }
+    }
+}
+
+/// Whether the model flashed from the calibration applies the training
+/// session's slips (`calibration.json`'s `home`), and under which home
+/// capture: while the device's `State::home_id` is `home_id`, until its
+/// next `Home` or a reboot (decision record 0049, "Device side").
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct DeviceSlips {
+    /// The home capture the slips apply under; `null` when the model
+    /// carries none.
+    pub home_id: Option<u64>,
+    /// The slips carried (each on one string, `at_s` since the capture).
+    pub slips: Vec<EffectTerm>,
+    /// Why, in a sentence (the summary prints it).
+    pub reason: String,
+}
+
+impl DeviceSlips {
+    /// The slips among the final identified model's `effects` that the
+    /// device can apply under `training`'s home capture: each on one string,
+    /// at most [`spidar_core::model::MAX_HOME_SLIPS`].
+    pub fn of(training: &crate::data::home::TrainingHome, effects: &[EffectTerm]) -> DeviceSlips {
+        use spidar_core::model::{Effect, MAX_HOME_SLIPS};
+        let slips: Vec<EffectTerm> = effects
+            .iter()
+            .filter(|t| matches!(t.effect, Effect::Slip { .. }))
+            .copied()
+            .collect();
+        let listed = slips
+            .iter()
+            .map(|t| match t.effect {
+                Effect::Slip { at_s, mm } => {
+                    format!("string {} {mm:+.2} mm from {at_s:.1} s", t.string)
+                }
+                _ => String::new(),
+            })
+            .collect::<Vec<_>>()
+            .join(", ");
+        let none = |reason: String| DeviceSlips {
+            home_id: None,
+            slips: Vec::new(),
+            reason,
+        };
+        if slips.is_empty() {
+            return none("the training session has no slip to carry".into());
+        }
+        let not_carried = |why: &str| {
+            none(format!(
+                "the training session's slips ({listed}) are not carried to the device: {why}; \
+                 it runs the model for its next home capture"
+            ))
+        };
+        let Some(home_id) = training.home_id else {
+            return not_carried(&training.reason);
+        };
+        if slips
+            .iter()
+            .any(|t| usize::from(t.string) >= spidar_core::STRINGS)
+        {
+            return not_carried("a slip shared by every string is not a slip of one string");
+        }
+        if slips.len() > MAX_HOME_SLIPS {
+            return not_carried(&format!("a blob carries at most {MAX_HOME_SLIPS}"));
+        }
+        DeviceSlips {
+            home_id: Some(home_id),
+            reason: format!(
+                "the flashed model applies the training session's slips ({listed}) while the \
+                 device stays under home capture {home_id}, the training session's; from its \
+                 next `Home` or a reboot it runs without them"
+            ),
+            slips,
+        }
+    }
+
+    /// What `calibration.json` carries: the slips and their capture, or
+    /// nothing.
+    pub fn home_slips(&self) -> Option<spidar_core::model::HomeSlips> {
+        self.home_id.map(|home_id| spidar_core::model::HomeSlips {
+            home_id,
+            slips: self.slips.clone(),
+        })
     }
 }
 
@@ -875,6 +961,11 @@ impl Report {
         if let Some(h) = &i.test.home {
             let _ = writeln!(o, "test session's home capture: {}", h.reason);
         }
+        let _ = writeln!(
+            o,
+            "training slips on the device: {}",
+            self.device_slips.reason
+        );
         let d = &self.device;
         let _ = writeln!(
             o,

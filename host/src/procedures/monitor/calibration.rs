@@ -4,7 +4,7 @@
 
 use std::path::Path;
 
-use spidar_core::model::{Calibration, WINDING_ORDER};
+use spidar_core::model::{Calibration, Effect, EffectTerm, HomeSlips, WINDING_ORDER};
 use spidar_core::STRINGS;
 
 use crate::data::dataset::Geometry;
@@ -140,4 +140,53 @@ pub fn structure_of(calibration: &Calibration) -> Structure {
         // from a step or a drift: the calibration's are held (the default).
         ..Structure::default()
     }
+}
+
+/// The calibration as the device runs it under home capture `home_id`
+/// (`State::home_id`; `None`: not known yet): its effects, and the training
+/// session's slips ([`Calibration::home`]) while `home_id` is theirs, as
+/// effect terms; never after a new home capture (decision record 0049,
+/// "Device side").
+pub fn under_home(calibration: &Calibration, home_id: Option<u64>) -> Calibration {
+    let mut c = calibration.clone();
+    if let Some(home) = c.home.take().filter(|h| Some(h.home_id) == home_id) {
+        c.effects.extend(home.slips);
+    }
+    c
+}
+
+/// A refitted model's effect terms (of [`under_home`]'s calibration) split
+/// back: the training slips of `previous` (same string and time) into its
+/// home section, refitted, while the device is still under their capture
+/// (`home_id`), the rest into the effects. After a new capture the
+/// training's slips are over, and the refitted calibration has none.
+pub(super) fn split_home_slips(
+    effects: &[EffectTerm],
+    previous: &Calibration,
+    home_id: Option<u64>,
+) -> (Vec<EffectTerm>, Option<HomeSlips>) {
+    let Some(home) = previous
+        .home
+        .as_ref()
+        .filter(|h| Some(h.home_id) == home_id)
+    else {
+        return (effects.to_vec(), None);
+    };
+    let is_training_slip = |t: &EffectTerm| {
+        home.slips.iter().any(|h| match (h.effect, t.effect) {
+            (Effect::Slip { at_s: a, .. }, Effect::Slip { at_s: b, .. }) => {
+                h.string == t.string && a == b
+            }
+            _ => false,
+        })
+    };
+    let (slips, rest): (Vec<EffectTerm>, Vec<EffectTerm>) =
+        effects.iter().partition(|t| is_training_slip(t));
+    (
+        rest,
+        Some(HomeSlips {
+            home_id: home.home_id,
+            slips,
+        }),
+    )
 }

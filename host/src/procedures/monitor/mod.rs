@@ -48,6 +48,11 @@
 //!    on: the first full window after the reflash is the error *after*, the
 //!    window at detection the error *before*, both with the same statistic.
 //!
+//! The model the window is judged and refitted with is the calibration as
+//! the device runs it under its current home capture ([`under_home`]):
+//! with the training session's slips while the states' `home_id` is the
+//! calibration's (`home`), without them after a new `Home` or a reboot.
+//!
 //! The monitor never arms the device. Device time since home is device
 //! time since boot (a device with a stored model homes at boot) unless a
 //! `Homed` event is seen, after which it counts from that state on.
@@ -80,7 +85,7 @@ use crate::model::compile::{model_id_of, CompileCmdError};
 use crate::model::diagnose::{Family, GROSS_TRACKER_MAX_SHARE};
 use crate::model::identify::{Identification, IdentifyError, Structure};
 
-pub use calibration::{check_calibration, identification_of, structure_of};
+pub use calibration::{check_calibration, identification_of, structure_of, under_home};
 pub use check::Check;
 pub use config::{MonitorConfig, RefitPolicy};
 pub use pairing::{tracked_point, ArrivalClock, GlitchGate, Pair};
@@ -234,6 +239,10 @@ struct Monitor<'a> {
     /// Device time (since boot) of the newest home: `time_us -
     /// since_home_us` of the newest state.
     home_us: u64,
+    /// The newest state's home capture (`State::home_id`): the
+    /// calibration's training slips are part of the model the window is
+    /// judged and refitted with while it is theirs ([`under_home`]).
+    home_id: Option<u64>,
     report: MonitorReport,
     /// Index into `report.refits` waiting for its after-window.
     awaiting_after: Option<usize>,
@@ -300,6 +309,7 @@ pub fn monitor(
         gate: GlitchGate::new(config.window),
         since_check: 0,
         home_us: 0,
+        home_id: None,
         report: MonitorReport::default(),
         awaiting_after: None,
         settling: false,
@@ -316,6 +326,14 @@ pub fn monitor(
 }
 
 impl Monitor<'_> {
+    /// The model to judge and refit with: the calibration as the device
+    /// runs it under the newest state's home capture ([`under_home`]).
+    fn model_under_home(&mut self) {
+        let c = under_home(&self.calibration, self.home_id);
+        self.identification = identification_of(&c, &self.geometry.mechanical_advantage);
+        self.structure = structure_of(&c);
+    }
+
     fn now_s(&self) -> f64 {
         self.base.elapsed().as_secs_f64()
     }

@@ -205,6 +205,10 @@ impl Monitor<'_> {
         for s in states {
             self.report.states += 1;
             self.home_us = s.time_us.saturating_sub(s.since_home_us);
+            if self.home_id != Some(s.home_id) {
+                self.home_id = Some(s.home_id);
+                self.model_under_home();
+            }
             self.sync.device_state(s.time_us, read_s);
             self.states.push(s);
         }

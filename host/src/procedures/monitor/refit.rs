@@ -96,10 +96,13 @@ impl Monitor<'_> {
                 "the refit does not lower the window error ({host_before_mm:.3} mm -> {host_after_mm:.3} mm); nothing flashed"
             ))));
         }
+        // The training's slips, refitted, stay under their home capture.
+        let (effects, home) =
+            super::calibration::split_home_slips(&id.effects, &self.calibration, self.home_id);
         let calibration = Calibration {
             frame: id.frame,
             strings: id.laws,
-            effects: id.effects.clone(),
+            effects,
             correction: self.calibration.correction.clone(),
             // A calibration whose strings weigh alike (its rule, chosen on
             // held-out folds) keeps them alike.
@@ -109,6 +112,7 @@ impl Monitor<'_> {
                 id.length_scale_mm
             },
             kinematics: self.calibration.kinematics,
+            home,
         };
         let model_id = model_id_of(&calibration);
         let flashed = self.flash_calibration(client, &calibration, model_id)?;
