@@ -31,6 +31,17 @@ pub(super) fn minimize(mut problem: Problem<'_>) -> Result<(Problem<'_>, usize),
     let mut lambda = 1e-3;
     for _ in 0..MAX_ITERATIONS {
         let (normal, gradient) = problem.normal_equations(&r).ok_or("Jacobian not finite")?;
+        // Settled, too, when the full Gauss-Newton step promises less than
+        // that: the linearized cost falls by `g^T (J^T J)^-1 g` at most.
+        // Near the minimum the cost's own rounding (the inputs are the
+        // device's quantized values) is of that size, and damped steps
+        // tried there are refused one after another, each a pass over the
+        // rows; a warm fit whose weights barely moved stops here at once.
+        if let Some(chol) = normal.clone().cholesky() {
+            if gradient.dot(&chol.solve(&gradient)) < settled * cost {
+                return Ok((problem, evaluations));
+            }
+        }
         let mut improved = false;
         while lambda < 1e12 {
             let mut damped = normal.clone();
