@@ -50,9 +50,9 @@ pub struct CalibrateArgs {
     pub quiet: bool,
     /// Most training rows the identification loop decides on (which
     /// effects, tolerance and kinematics' rule): a longer session is read
-    /// one row in every k, in time order, and the model it chose is then
-    /// refitted on every row. 0: every row (a 30,000-row session then
-    /// takes ~10 times as long).
+    /// one row in every k, in time order, and the model is identified on
+    /// those rows; every row enters the error figures. 0: every row (a
+    /// 30,000-row session then takes ~10 times as long).
     #[arg(long, value_name = "ROWS", default_value_t = CalibrateConfig::full().max_loop_rows)]
     pub loop_rows: usize,
     /// Write the learners' data to DIR as `x,y,z,tx,ty,tz` CSVs (input and

@@ -456,11 +456,6 @@ impl Run<'_> {
             train: &tr[..],
             test: &te[..],
         };
-        if loop_rows.thinned() {
-            let t = Instant::now();
-            loop_result.identification = on_every_row(&loop_result, obs.train, &nominal)?;
-            self.timings.identification_s += t.elapsed().as_secs_f64();
-        }
         let t = Instant::now();
         let rule = self.choose_rule(&loop_result, &loop_rows.pick(obs.train), &nominal, &regime);
         self.timings.rule_s = t.elapsed().as_secs_f64();
@@ -586,22 +581,6 @@ impl Run<'_> {
         pb.finish_and_clear();
         choice
     }
-}
-
-/// The structure the loop chose on its thinned rows, fitted on every
-/// training row (the glitches set aside, read at the strings' meeting point
-/// when the loop found the marker off it), from where the loop left it.
-fn on_every_row(
-    loop_result: &LoopResult,
-    train: &[Observation],
-    nominal: &spidar_core::model::Frame<f64>,
-) -> Result<crate::model::identify::Identification, crate::model::identify::IdentifyError> {
-    identify(
-        train,
-        nominal,
-        &Start::from_identification(&loop_result.identification),
-        &loop_result.structure,
-    )
 }
 
 /// `observations` read at the strings' meeting point

@@ -6,8 +6,10 @@
 //! on every row it is given: its time grows with the session while what it
 //! decides (which terms the device has) is settled long before. It decides
 //! on an even thinning in time, which keeps the session's time order and
-//! its span (slips and drifts are read in time), and the structure it chose
-//! is refitted once on every row.
+//! its span (slips and drifts are read in time). The model is the loop's,
+//! identified on those rows, and every row enters the error figures: a
+//! refit on every row cost a third of a 30,000-row calibration and moved
+//! the held-out figures by -1.2 to +0.3 % (record 0052).
 
 use std::borrow::Cow;
 

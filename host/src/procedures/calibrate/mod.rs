@@ -153,8 +153,8 @@ pub struct CalibrateConfig {
     /// Most training rows the identification loop decides on (the anchors'
     /// tolerance, which effects to add, the kinematics' rule): a longer
     /// session is read one row in every k, in time order
-    /// ([`LoopRows`](loop_rows::LoopRows)), and the structure the loop chose
-    /// is refitted on every row. Every error figure counts every row but
+    /// ([`LoopRows`](loop_rows::LoopRows)), and the model is the loop's,
+    /// identified on those rows. Every error figure counts every row but
     /// the training figures of the effect stages before the last (the
     /// loop's, over its rows: their `n` says so). 0: every row. The
     /// default, 4000, leaves a 13^3 lattice (2,197 rows) and sessions up to

@@ -797,7 +797,7 @@ pub struct IdentificationReport {
     /// The training rows the loop decided on (the anchors' tolerance, the
     /// effects, the kinematics' rule): one in every `stride` of a session
     /// longer than the calibration's `max_loop_rows`; the parameters above
-    /// are then those of the chosen structure refitted on every row.
+    /// are then identified on those rows (their sds say so).
     pub loop_rows: super::loop_rows::LoopRows,
 }
 
@@ -1116,7 +1116,7 @@ impl Report {
         if r.stride > 1 {
             let _ = writeln!(
                 o,
-                "Identification loop: decided on {} of the {} training rows (one in every {}, in time order); the model it chose refitted on every row",
+                "Identification loop: decided on {} of the {} training rows (one in every {}, in time order); the model identified on those rows, every row in the figures",
                 r.rows, r.of, r.stride
             );
         }
