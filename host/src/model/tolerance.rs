@@ -23,7 +23,7 @@ use spidar_core::STRINGS;
 use crate::data::observe::Observation;
 use crate::data::stats::ErrorStats;
 use crate::model::diagnose::LoopConfig;
-use crate::model::identify::{identify, rows_needed_for, Priors, Start};
+use crate::model::identify::{identify, rows_needed_for, Identification, Priors, Start};
 use crate::model::validate::{
     held_out_error_list, judged_folds, preferred, Fold, Preferred, MIN_BLOCKED_ROWS,
 };
@@ -34,6 +34,17 @@ pub fn candidates_mm() -> [f64; 3] {
     let drawing = Priors::default().anchor_sd_mm;
     [drawing, 4.0 * drawing, 10.0 * drawing]
 }
+
+/// The share of its sd below which the drawing's tolerance pulls every
+/// anchor coordinate of every fold's model toward the drawing for the
+/// looser tolerances not to be tried: none could then move an anchor by
+/// more than this. Measured (record 0052): where the largest pull was
+/// 0.006-0.13 sd (the 30,000-row sessions, the 6,000-row wall robot) the
+/// candidates' held-out means agreed within 0.15 %; at 0.86 sd (500 rows of
+/// the model simulator) the looser ones held out 8 % worse. The difference
+/// grows as the pull squared: about 0.4 % at 0.2 sd, a fifth of the loop's
+/// 2 % margin.
+const DETERMINED_PULL_SHARE: f64 = 0.2;
 
 /// Folds of a session too small for the blocked ones: each holds out a
 /// tenth.
@@ -123,20 +134,30 @@ pub fn choose(
     let needed = rows_needed_for(&structure, nominal.layout);
     let (folds_name, folds) = tolerance_folds(&tracked, needed);
     let pick = |rows: &[usize]| -> Vec<&Observation> { rows.iter().map(|&k| tracked[k]).collect() };
-    let held_out = |sd: [f64; STRINGS], robust: bool| -> ErrorStats {
+    // Each fold's model at a tolerance, with its errors on the rows the
+    // fold holds out.
+    let fold_fits = |sd: [f64; STRINGS], robust: bool| -> Option<Vec<(Identification, Vec<f64>)>> {
         let mut s = structure.clone();
         s.priors.anchor_sd_each_mm = Some(sd);
         s.robust = robust;
-        let errors: Option<Vec<f64>> = folds
+        folds
             .iter()
             .map(|(fit, held)| {
                 let id = identify(&pick(fit), nominal, start, &s).ok()?;
-                Some(held_out_error_list(&id, &pick(held)))
+                let errors = held_out_error_list(&id, &pick(held));
+                Some((id, errors))
             })
-            .collect::<Option<Vec<Vec<f64>>>>()
-            .map(|e| e.concat());
-        ErrorStats::of(&errors.unwrap_or_default())
+            .collect()
     };
+    let pooled = |fits: &Option<Vec<(Identification, Vec<f64>)>>| -> ErrorStats {
+        let errors: Vec<f64> = fits
+            .iter()
+            .flatten()
+            .flat_map(|f| f.1.iter().copied())
+            .collect();
+        ErrorStats::of(&errors)
+    };
+    let held_out = |sd: [f64; STRINGS], robust: bool| pooled(&fold_fits(sd, robust));
     let mut choice = match config.anchor_sd_mm {
         Some(given) => ToleranceChoice {
             anchor_sd_mm: given,
@@ -147,19 +168,54 @@ pub fn choose(
             unweighted: None,
         },
         None => {
-            let scores: Vec<ToleranceScore> = candidates_mm()
-                .par_iter()
-                .map(|&sd| ToleranceScore {
-                    anchor_sd_mm: sd,
-                    held_out: held_out([sd; STRINGS], true),
-                })
-                .collect();
-            decide(
-                scores,
-                drawing,
-                folds_name.clone(),
-                config.min_relative_gain,
-            )
+            let at_drawing = fold_fits([drawing; STRINGS], true);
+            let mut scores = vec![ToleranceScore {
+                anchor_sd_mm: drawing,
+                held_out: pooled(&at_drawing),
+            }];
+            // The drawing's prior pulls no anchor of any fold's model by
+            // DETERMINED_PULL_SHARE of its sd: a looser one would move none
+            // by more, and the models would hold out alike.
+            let pull = at_drawing
+                .as_ref()
+                .filter(|f| !f.is_empty())
+                .and_then(|fits| {
+                    fits.iter()
+                        .map(|(id, _)| largest_prior_pull(id, nominal))
+                        .try_fold(0.0_f64, |a, p| p.map(|p| a.max(p)))
+                });
+            match pull.filter(|&p| p < DETERMINED_PULL_SHARE) {
+                Some(pull) => ToleranceChoice {
+                    anchor_sd_mm: [drawing; STRINGS],
+                    scores,
+                    folds: folds_name.clone(),
+                    reason: format!(
+                        "the drawing's {drawing} mm: the folds' data determine every anchor, and \
+                         its prior moves none by {:.0} % of its sd (at most {:.1} %), so no \
+                         looser tolerance was tried ({folds_name})",
+                        100.0 * DETERMINED_PULL_SHARE,
+                        100.0 * pull
+                    ),
+                    robust: true,
+                    unweighted: None,
+                },
+                None => {
+                    let looser: Vec<ToleranceScore> = candidates_mm()[1..]
+                        .par_iter()
+                        .map(|&sd| ToleranceScore {
+                            anchor_sd_mm: sd,
+                            held_out: held_out([sd; STRINGS], true),
+                        })
+                        .collect();
+                    scores.extend(looser);
+                    decide(
+                        scores,
+                        drawing,
+                        folds_name.clone(),
+                        config.min_relative_gain,
+                    )
+                }
+            }
         }
     };
     if folds.is_empty() || !structure.robust {
@@ -190,6 +246,32 @@ pub fn choose(
     }
     choice.unweighted = Some(plain);
     choice
+}
+
+/// The largest pull of the anchors' prior of `id` on one of their
+/// coordinates, in that coordinate's sd: how far the prior moves the
+/// estimate from where the data alone put it (`|estimate - drawing| *
+/// sd_data^2 / sd_prior^2` for a Gaussian prior), over its sd. `None` when
+/// a coordinate is not determined or the prior dominates it.
+fn largest_prior_pull(id: &Identification, nominal: &Frame<f64>) -> Option<f64> {
+    let mut largest: f64 = 0.0;
+    for p in &id.parameters {
+        let Some(coordinate) = p.name.strip_prefix("anchor") else {
+            continue;
+        };
+        let (i, c) = coordinate.split_once('.')?;
+        let i: usize = i.parse().ok()?;
+        let c = ["x", "y", "z"].iter().position(|&n| n == c)?;
+        let prior = p.prior_sd?;
+        if !p.determined || !p.sd.is_finite() || p.sd <= 0.0 || p.sd >= prior {
+            return None;
+        }
+        let data_variance = 1.0 / (1.0 / (p.sd * p.sd) - 1.0 / (prior * prior));
+        let drawing = nominal.anchors.get(i)?[c];
+        let pull = (p.value - drawing).abs() * data_variance / (prior * prior);
+        largest = largest.max(pull / p.sd);
+    }
+    Some(largest)
 }
 
 /// The tightest tolerance unless a looser one lowers the held-out mean by
