@@ -337,13 +337,15 @@ pub(super) struct ReferenceModel {
 }
 
 impl ReferenceModel {
+    /// The reference identified on `fit_rows` (the loop's training rows),
+    /// its positions on both sessions `obs`.
     pub(super) fn of(
         geometry: &Geometry,
         nominal: &spidar_core::model::Frame<f64>,
+        fit_rows: &[Observation],
         obs: PerSession<&[Observation]>,
     ) -> Result<ReferenceModel, CalibrateError> {
-        let id =
-            reference::identify_reference(obs.train, nominal, &Start::from_geometry(geometry))?;
+        let id = reference::identify_reference(fit_rows, nominal, &Start::from_geometry(geometry))?;
         let positions = PerSession {
             train: room_positions(id.kinematic_model(), obs.train),
             test: room_positions(id.kinematic_model(), obs.test),
@@ -444,7 +446,7 @@ impl Run<'_> {
             report::StageKind::Identified,
             identified,
         );
-        let reference = self.reference(obs, &nominal, &mut list)?;
+        let reference = self.reference(obs, &loop_rows.pick(obs.train), &nominal, &mut list)?;
 
         // From here on the sessions are read at the strings' meeting point when
         // the loop found the tracked body's origin off it (the errors are then
@@ -504,16 +506,18 @@ impl Run<'_> {
         Ok((tr, te, timing))
     }
 
-    /// The plain least-squares reference, on the same rows as the base
-    /// identification; its stage goes second in `list` (after `raw`).
+    /// The plain least-squares reference, identified on the same rows as
+    /// the base identification (`fit_rows`: the loop's), its figures on
+    /// every row; its stage goes second in `list` (after `raw`).
     fn reference(
         &mut self,
         obs: PerSession<&[Observation]>,
+        fit_rows: &[Observation],
         nominal: &spidar_core::model::Frame<f64>,
         list: &mut StageList,
     ) -> Result<ReferenceModel, CalibrateError> {
         let t = Instant::now();
-        let reference = ReferenceModel::of(self.geometry, nominal, obs)?;
+        let reference = ReferenceModel::of(self.geometry, nominal, fit_rows, obs)?;
         self.timings.reference_s = t.elapsed().as_secs_f64();
         list.insert(
             1,
