@@ -64,7 +64,10 @@ fn string_column(string: usize, f: RowColumn) -> RowColumn {
 
 /// The column of a term shared by every string: `f` on the active
 /// strings' rows.
-fn shared_column(strings: StringLayout, f: impl Fn(&Row) -> f64 + 'static) -> RowColumn {
+fn shared_column(
+    strings: StringLayout,
+    f: impl Fn(&Row) -> f64 + Send + Sync + 'static,
+) -> RowColumn {
     Box::new(move |r| {
         if strings.is_active(r.string) {
             f(r)

@@ -53,7 +53,7 @@ pub(super) struct Row {
 }
 
 /// A column's value on one row (a candidate effect's regressor).
-pub(super) type RowColumn = Box<dyn Fn(&Row) -> f64>;
+pub(super) type RowColumn = Box<dyn Fn(&Row) -> f64 + Send + Sync>;
 
 /// Everything diagnosis needs about the current fit.
 pub(super) struct Evidence<'a> {

@@ -110,6 +110,10 @@ impl Span {
     }
 }
 
+/// Rows whose sets of columns are worked out at once, each set on its own
+/// core ([`Evidence::off_span`]).
+const OFF_SPAN_CHUNK: usize = 2048;
+
 /// `b . c` with the products added one after another from the first, as a
 /// row of the matrix-vector product `B c` sums them (0 when empty).
 pub(super) fn dot_in_turn(b: &[f64], c: &[f64]) -> f64 {
@@ -318,49 +322,80 @@ impl Evidence<'_> {
     /// the sums that test it ([`OffSpan`]): two passes over the rows
     /// (`B^T X` of every set, then `P X = X - B (B^T X)` row by row).
     pub(in crate::model::diagnose) fn off_span(&self, sets: &[Columns<'_>]) -> Vec<OffSpan> {
+        use rayon::prelude::*;
         let dims = self.dims();
         let mut coefs: Vec<Vec<Vec<f64>>> = sets
             .iter()
             .map(|s| vec![vec![0.0; dims]; s.columns.len()])
             .collect();
-        self.for_each_row_with_basis(|_, row, b| {
-            let sw = row.weight.sqrt();
-            for (set, coef) in sets.iter().zip(&mut coefs) {
-                if !set.on(row) {
-                    continue;
-                }
-                for (f, coef) in set.columns.iter().zip(coef.iter_mut()) {
-                    let x = f(row) * sw;
-                    if x != 0.0 {
-                        for (c, &bc) in coef.iter_mut().zip(b) {
-                            *c += bc * x;
+        self.for_each_chunk_with_basis(|chunk, basis| {
+            coefs.par_iter_mut().zip(sets).for_each(|(coef, set)| {
+                for (j, (_, row)) in chunk.iter().enumerate() {
+                    if !set.on(row) {
+                        continue;
+                    }
+                    let b = &basis[j * dims..(j + 1) * dims];
+                    let sw = row.weight.sqrt();
+                    for (f, coef) in set.columns.iter().zip(coef.iter_mut()) {
+                        let x = f(row) * sw;
+                        if x != 0.0 {
+                            for (c, &bc) in coef.iter_mut().zip(b) {
+                                *c += bc * x;
+                            }
                         }
                     }
                 }
-            }
+            });
         });
         let rows = self.rows();
         let mut sums: Vec<OffSpanSums> = sets
             .iter()
             .map(|s| OffSpanSums::new(s.columns.len(), rows))
             .collect();
-        let (mut x, mut p) = (Vec::new(), Vec::new());
-        self.for_each_row_with_basis(|k, row, b| {
-            let sw = row.weight.sqrt();
-            let r = self.residual[k];
-            for ((set, coef), sums) in sets.iter().zip(&coefs).zip(&mut sums) {
-                let on = set.on(row);
-                x.clear();
-                p.clear();
-                for (f, coef) in set.columns.iter().zip(coef) {
-                    let value = if on { f(row) * sw } else { 0.0 };
-                    x.push(value);
-                    p.push(value - dot_in_turn(b, coef));
-                }
-                sums.add(k, &x, &p, r);
-            }
+        self.for_each_chunk_with_basis(|chunk, basis| {
+            sums.par_iter_mut()
+                .zip(sets)
+                .zip(&coefs)
+                .for_each(|((sums, set), coef)| {
+                    let (mut x, mut p) = (Vec::new(), Vec::new());
+                    for (j, (k, row)) in chunk.iter().enumerate() {
+                        let b = &basis[j * dims..(j + 1) * dims];
+                        let sw = row.weight.sqrt();
+                        let on = set.on(row);
+                        x.clear();
+                        p.clear();
+                        for (f, coef) in set.columns.iter().zip(coef) {
+                            let value = if on { f(row) * sw } else { 0.0 };
+                            x.push(value);
+                            p.push(value - dot_in_turn(b, coef));
+                        }
+                        sums.add(*k, &x, &p, self.residual[*k]);
+                    }
+                });
         });
         sums.into_iter().map(OffSpanSums::finish).collect()
+    }
+
+    /// Calls `visit(rows, basis)` on the rows in order, a chunk of
+    /// [`OFF_SPAN_CHUNK`] at a time: each `(k, row)` with its row of the
+    /// span's basis at `basis[j * dims..]` for the `j`-th of the chunk (so
+    /// that the sets of columns can take a chunk on every core, each set's
+    /// sums over the rows in order).
+    fn for_each_chunk_with_basis(&self, mut visit: impl FnMut(&[(usize, Row)], &[f64])) {
+        let mut rows: Vec<(usize, Row)> = Vec::with_capacity(OFF_SPAN_CHUNK);
+        let mut basis: Vec<f64> = Vec::with_capacity(OFF_SPAN_CHUNK * self.dims());
+        self.for_each_row_with_basis(|k, row, b| {
+            rows.push((k, *row));
+            basis.extend_from_slice(b);
+            if rows.len() == OFF_SPAN_CHUNK {
+                visit(&rows, &basis);
+                rows.clear();
+                basis.clear();
+            }
+        });
+        if !rows.is_empty() {
+            visit(&rows, &basis);
+        }
     }
 
     /// Each set's largest contribution `|sum_j beta_j x_j|` (unweighted)
