@@ -159,7 +159,7 @@ pub struct CalibrateConfig {
     /// loop's, over its rows: their `n` says so). 0: every row. The
     /// default, 4000, leaves a 13^3 lattice (2,197 rows) and sessions up to
     /// 4,000 rows whole and bounds what the loop costs on a longer one (a
-    /// 30,000-row stream: 17 s on 2 cores, 104 s on every row); on the
+    /// 30,000-row stream: 12-14 s on 2 cores, 104 s on every row); on the
     /// 30,000-row sessions and the 6,000-row wall
     /// robot it was measured held out within 3 % of every row (record
     /// 0051, docs/benchmarks.md "Speed of a calibration").
