@@ -520,53 +520,95 @@ pub fn estimate_time_shift(
     tracker: &[TimedPosition],
     config: &ShiftConfig,
 ) -> Result<TimeShift, SyncError> {
-    check_stream("device", device)?;
-    check_stream("tracker", tracker)?;
-    let h = grid_step(device, tracker, config)?;
-    let device_series = Series {
-        s: device,
-        max_gap: config.max_gap_s,
-    };
-    let tracker_series = Series {
-        s: tracker,
-        max_gap: config.max_gap_s,
-    };
-    let (coarse_offset_s, correlation) = coarse(&device_series, &tracker_series, config, h)?;
+    let coarse = CoarseShift::of(device, tracker, config)?;
+    coarse.refined(config.estimate_drift)
+}
 
-    let fine = Fine {
-        device,
-        tracker: tracker_series,
-        reference: 0.5 * (device[0].t_s + device[device.len() - 1].t_s),
-    };
-    let p = if config.estimate_drift { 2 } else { 1 };
-    let (theta, lin) = refine(&fine, [coarse_offset_s, 0.0], config, h, p);
-    let n = lin.used.len();
-    if n < MIN_SAMPLES {
-        return Err(SyncError::NoOverlap {
-            pairs: n,
-            need: MIN_SAMPLES,
-        });
+/// The coarse search of [`estimate_time_shift`] (the speed profiles'
+/// correlation peak), which the fine fit with a drift and the one without
+/// share: [`CoarseShift::refined`] gives each.
+pub struct CoarseShift<'a> {
+    device: &'a [TimedPosition],
+    tracker: Series<'a>,
+    config: ShiftConfig,
+    grid_step_s: f64,
+    offset_s: f64,
+    correlation: f64,
+}
+
+impl<'a> CoarseShift<'a> {
+    /// The coarse search on `device` and `tracker` (as
+    /// [`estimate_time_shift`] reads them) with `config` (its
+    /// `estimate_drift` is [`refined`](Self::refined)'s to say).
+    pub fn of(
+        device: &'a [TimedPosition],
+        tracker: &'a [TimedPosition],
+        config: &ShiftConfig,
+    ) -> Result<CoarseShift<'a>, SyncError> {
+        check_stream("device", device)?;
+        check_stream("tracker", tracker)?;
+        let h = grid_step(device, tracker, config)?;
+        let device_series = Series {
+            s: device,
+            max_gap: config.max_gap_s,
+        };
+        let tracker_series = Series {
+            s: tracker,
+            max_gap: config.max_gap_s,
+        };
+        let (offset_s, correlation) = coarse(&device_series, &tracker_series, config, h)?;
+        Ok(CoarseShift {
+            device,
+            tracker: tracker_series,
+            config: config.clone(),
+            grid_step_s: h,
+            offset_s,
+            correlation,
+        })
     }
-    let (a, _) = normal(&lin, p);
-    let dof = (3 * n).saturating_sub(3 + p).max(1) as f64;
-    let sigma2 = lin.rss / dof;
-    let rho = residual_correlation(&lin);
-    let inflation = (1.0 + rho) / (1.0 - rho);
-    let cov = invert(a, p).ok_or(SyncError::NoMotion { stream: "tracker" })?;
-    let std = |k: usize| (sigma2 * cov[k][k].max(0.0) * inflation).sqrt();
-    Ok(TimeShift {
-        offset_s: theta[0],
-        offset_std_s: std(0),
-        drift: theta[1],
-        drift_std: if p == 2 { std(1) } else { 0.0 },
-        reference_t_s: fine.reference,
-        coarse_offset_s,
-        correlation,
-        bias_mm: lin.bias,
-        rms_residual_mm: (lin.rss / n as f64).sqrt(),
-        pairs: n,
-        effective_pairs: n as f64 / inflation,
-    })
+
+    /// The fine fit from the coarse peak: the offset, and the clocks' rate
+    /// difference with `drift`.
+    pub fn refined(&self, drift: bool) -> Result<TimeShift, SyncError> {
+        let (device, config, h) = (self.device, &self.config, self.grid_step_s);
+        let fine = Fine {
+            device,
+            tracker: Series {
+                s: self.tracker.s,
+                max_gap: self.tracker.max_gap,
+            },
+            reference: 0.5 * (device[0].t_s + device[device.len() - 1].t_s),
+        };
+        let p = if drift { 2 } else { 1 };
+        let (theta, lin) = refine(&fine, [self.offset_s, 0.0], config, h, p);
+        let n = lin.used.len();
+        if n < MIN_SAMPLES {
+            return Err(SyncError::NoOverlap {
+                pairs: n,
+                need: MIN_SAMPLES,
+            });
+        }
+        let (a, _) = normal(&lin, p);
+        let dof = (3 * n).saturating_sub(3 + p).max(1) as f64;
+        let sigma2 = lin.rss / dof;
+        let rho = residual_correlation(&lin);
+        let inflation = (1.0 + rho) / (1.0 - rho);
+        let cov = invert(a, p).ok_or(SyncError::NoMotion { stream: "tracker" })?;
+        let std = |k: usize| (sigma2 * cov[k][k].max(0.0) * inflation).sqrt();
+        Ok(TimeShift {
+            offset_s: theta[0],
+            offset_std_s: std(0),
+            drift: theta[1],
+            drift_std: if p == 2 { std(1) } else { 0.0 },
+            reference_t_s: fine.reference,
+            coarse_offset_s: self.offset_s,
+            correlation: self.correlation,
+            bias_mm: lin.bias,
+            rms_residual_mm: (lin.rss / n as f64).sqrt(),
+            pairs: n,
+            effective_pairs: n as f64 / inflation,
+        })
+    }
 }
 
 /// The coarse search's grid step (`grid_step_s`, else the tracker's median

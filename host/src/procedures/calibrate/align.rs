@@ -27,7 +27,7 @@
 use serde::Serialize;
 
 use crate::data::observe::Observation;
-use crate::device::tracker::sync::{estimate_time_shift, ShiftConfig, TimeShift, TimedPosition};
+use crate::device::tracker::sync::{CoarseShift, ShiftConfig, SyncError, TimeShift, TimedPosition};
 
 /// Rows further apart than this (median, s) make a static session.
 pub const MAX_STREAM_INTERVAL_S: f64 = 0.1;
@@ -150,6 +150,18 @@ pub fn estimate_offset(
     prior_offset_s: f64,
     drift: bool,
 ) -> Result<TimeShift, AlignError> {
+    with_coarse_shift(obs, positions, prior_offset_s, |c| c.refined(drift))
+}
+
+/// `fit` on the speed profiles' coarse search between the tracker
+/// positions of `obs` and `positions` (as [`estimate_offset`] reads them),
+/// made once for the fine fits `fit` asks of it (with a drift and without).
+fn with_coarse_shift(
+    obs: &[Observation],
+    positions: &[Option<[f64; 3]>],
+    prior_offset_s: f64,
+    fit: impl FnOnce(&CoarseShift<'_>) -> Result<TimeShift, SyncError>,
+) -> Result<TimeShift, AlignError> {
     let device: Vec<TimedPosition> = obs
         .iter()
         .zip(positions)
@@ -176,10 +188,10 @@ pub fn estimate_offset(
         grid_step_s: None,
         // A gap of a few missing rows (an occlusion) is not bridged.
         max_gap_s: 4.0 * interval,
-        estimate_drift: drift,
+        estimate_drift: false,
         max_iterations: 50,
     };
-    Ok(estimate_time_shift(&device, &tracker, &config)?)
+    Ok(fit(&CoarseShift::of(&device, &tracker, &config)?)?)
 }
 
 /// `obs` re-paired by `offset_s`: each row's tracker position is the
@@ -271,22 +283,24 @@ pub fn align(
     // stream the model's own position errors, which follow the hand's path
     // and so its time, pass for a drift: a 10 s stream with none found
     // 428 +- 36 ppm, a 30 s one up to 70 ppm.
-    let offset_only = || estimate_offset(obs, model_positions, prior_offset_s, false);
     let span_s = obs
         .first()
         .zip(obs.last())
         .map_or(0.0, |(a, b)| b.t_s - a.t_s);
     let shift = if drift && span_s >= DRIFT_MIN_SPAN_S {
-        let with_drift = estimate_offset(obs, model_positions, prior_offset_s, true)?;
-        if with_drift.drift.abs() > DRIFT_SIGNIFICANCE * with_drift.drift_std
-            && with_drift.drift.abs() * 0.5 * span_s >= DRIFT_MIN_EFFECT_S
-        {
-            with_drift
-        } else {
-            offset_only()?
-        }
+        // One coarse search for both fine fits.
+        with_coarse_shift(obs, model_positions, prior_offset_s, |coarse| {
+            let with_drift = coarse.refined(true)?;
+            if with_drift.drift.abs() > DRIFT_SIGNIFICANCE * with_drift.drift_std
+                && with_drift.drift.abs() * 0.5 * span_s >= DRIFT_MIN_EFFECT_S
+            {
+                Ok(with_drift)
+            } else {
+                coarse.refined(false)
+            }
+        })?
     } else {
-        offset_only()?
+        estimate_offset(obs, model_positions, prior_offset_s, false)?
     };
     let interval = tracked_interval_s(obs).unwrap_or(MAX_STREAM_INTERVAL_S);
     // The fine fit compares positions: with a model far from the tracker
