@@ -187,24 +187,26 @@ fn guide_geometry(r: f64, chord_mm: f64, elevation_rad: f64) -> (f64, f64, f64, 
 /// and the home's elevation less the one at the context's free length and
 /// elevation.
 pub fn guide_mm(radius_mm: f64, ctx: &EffectContext) -> f64 {
-    guide_path_mm(radius_mm, ctx.home_length_mm, ctx.home_guide_elevation_rad)
-        - guide_path_mm(
-            radius_mm,
-            ctx.home_length_mm + ctx.payout_mm,
-            ctx.guide_elevation_rad,
-        )
+    at_home_less_now(ctx, |chord, elevation| {
+        guide_path_mm(radius_mm, chord, elevation)
+    })
 }
 
 /// `d(contribution)/d(radius)` of a guide term: the path's slope in `r`
 /// at home less the one now (`(pi/2 - a - cos a)` at home less now at `r = 0`, the
 /// column the loop tests).
 pub fn guide_slope(radius_mm: f64, ctx: &EffectContext) -> f64 {
-    path_slope(radius_mm, ctx.home_length_mm, ctx.home_guide_elevation_rad)
-        - path_slope(
-            radius_mm,
-            ctx.home_length_mm + ctx.payout_mm,
-            ctx.guide_elevation_rad,
-        )
+    at_home_less_now(ctx, |chord, elevation| {
+        path_slope(radius_mm, chord, elevation)
+    })
+}
+
+/// `f(chord, elevation)` at the home capture (the home length, the home's
+/// elevation) less at the context (its free length and elevation): what
+/// the encoders, zeroed at home, read of a path term.
+fn at_home_less_now(ctx: &EffectContext, f: impl Fn(f64, f64) -> f64) -> f64 {
+    f(ctx.home_length_mm, ctx.home_guide_elevation_rad)
+        - f(ctx.home_length_mm + ctx.payout_mm, ctx.guide_elevation_rad)
 }
 
 /// `d(guide_path_mm)/d(radius)`: `beta - sin(beta)` (the wrap angle less
