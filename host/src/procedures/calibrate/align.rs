@@ -188,6 +188,8 @@ fn with_coarse_shift(
         grid_step_s: None,
         // A gap of a few missing rows (an occlusion) is not bridged.
         max_gap_s: 4.0 * interval,
+        // Not read by the coarse search: `fit` says, through
+        // `CoarseShift::refined`.
         estimate_drift: false,
         max_iterations: 50,
     };
