@@ -16,6 +16,8 @@
 
 mod span;
 
+use std::sync::OnceLock;
+
 #[cfg(test)]
 use nalgebra::DMatrix;
 use nalgebra::DVector;
@@ -100,6 +102,11 @@ struct FitRows<'a> {
     span: Span,
     /// Each string's home terms in the model's frame (once, not per row).
     homes: [Option<StringHome>; STRINGS],
+    /// Every observation's basis rows, worked out at the first pass that
+    /// reads them and kept for the diagnosis's other passes (a test and
+    /// its rivals' read them four to six times), when they take at most
+    /// [`BASIS_KEPT_VALUES`]; `None` inside: recomputed at every pass.
+    basis_kept: OnceLock<Option<Vec<f64>>>,
 }
 
 /// What a row's strings share: its observation as the fit reads it.
@@ -163,6 +170,7 @@ impl<'a> Evidence<'a> {
                 jacobian,
                 span,
                 homes: StringHome::of_every_string(&id.frame),
+                basis_kept: OnceLock::new(),
             }),
             residual: DVector::zeros(0),
             sigma2: 0.0,
@@ -414,6 +422,11 @@ impl<'a> Evidence<'a> {
 /// visited in order): a few hundred kB of rows at a time.
 const BASIS_CHUNK: usize = 512;
 
+/// Most values of the basis rows a diagnosis keeps between its passes
+/// (32 MB: a 4000-row loop's with 80 directions; a longer session's rows
+/// are worked out again at each pass).
+const BASIS_KEPT_VALUES: usize = 4 << 20;
+
 /// Fewest observations per task of [`FitRows::basis_rows_of`]: each task
 /// sets up its own pass over the Jacobian.
 const BASIS_MIN_TASK: usize = 64;
@@ -465,6 +478,35 @@ impl FitRows<'_> {
     /// worked out on every core: each row is its own, so the values are
     /// those of one pass after the other.
     fn basis_rows_of(&self, us: &[usize], basis: &mut Vec<f64>) {
+        let width = STRINGS * self.span.dims();
+        basis.clear();
+        if let Some(kept) = self.basis_kept() {
+            for &u in us {
+                basis.extend_from_slice(&kept[u * width..(u + 1) * width]);
+            }
+            return;
+        }
+        self.work_out_basis_rows(us, basis);
+    }
+
+    /// Every observation's basis rows, once worked out, when they are few
+    /// enough to keep ([`BASIS_KEPT_VALUES`]).
+    fn basis_kept(&self) -> Option<&[f64]> {
+        self.basis_kept
+            .get_or_init(|| {
+                let width = STRINGS * self.span.dims();
+                (self.used.len() * width <= BASIS_KEPT_VALUES).then(|| {
+                    let all: Vec<usize> = (0..self.used.len()).collect();
+                    let mut basis = Vec::new();
+                    self.work_out_basis_rows(&all, &mut basis);
+                    basis
+                })
+            })
+            .as_deref()
+    }
+
+    /// [`basis_rows_of`](Self::basis_rows_of) from the Jacobian.
+    fn work_out_basis_rows(&self, us: &[usize], basis: &mut Vec<f64>) {
         use rayon::prelude::*;
         let width = STRINGS * self.span.dims();
         basis.clear();
