@@ -32,6 +32,7 @@
 //! noise; it widens the residuals and with them the reported uncertainty.
 
 use super::TrackerFrame;
+use rayon::prelude::*;
 use spidar_core::geometry::{dot, norm, scale, sub};
 
 /// A position at a time on one stream's clock.
@@ -163,6 +164,8 @@ pub enum SyncError {
 const MIN_SAMPLES: usize = 10;
 const MIN_LAG_PAIRS: usize = 20;
 const MAX_GRID: usize = 4_000_000;
+/// Fewest samples per task when samples are interpolated on every core.
+const EVAL_MIN_TASK: usize = 1024;
 
 fn check_stream(stream: &'static str, s: &[TimedPosition]) -> Result<(), SyncError> {
     if s.len() < MIN_SAMPLES {
@@ -328,9 +331,15 @@ fn coarse(
     let span = d[d.len() - 1].t_s - t0;
     let n = (span / h).floor() as usize + 1;
     let lmax = (cfg.max_shift_s / h).ceil() as usize;
-    let sd: Vec<Option<f64>> = (0..n).map(|j| device.speed(t0 + j as f64 * h, h)).collect();
+    let sd: Vec<Option<f64>> = (0..n)
+        .into_par_iter()
+        .with_min_len(EVAL_MIN_TASK)
+        .map(|j| device.speed(t0 + j as f64 * h, h))
+        .collect();
     let base = t0 + cfg.prior_offset_s;
     let st: Vec<Option<f64>> = (0..n + 2 * lmax)
+        .into_par_iter()
+        .with_min_len(EVAL_MIN_TASK)
         .map(|k| tracker.speed(base + (k as f64 - lmax as f64) * h, h))
         .collect();
     let valid = |v: &[Option<f64>]| v.iter().flatten().count();
@@ -348,23 +357,28 @@ fn coarse(
     if variance(st.iter().flatten().copied()) <= 1e-12 {
         return Err(SyncError::NoMotion { stream: "tracker" });
     }
-    let mut corr: Vec<Option<f64>> = Vec::with_capacity(2 * lmax + 1);
-    let mut counts: Vec<usize> = Vec::with_capacity(2 * lmax + 1);
-    let mut pairs = Vec::with_capacity(n);
-    for lag in 0..=2 * lmax {
-        pairs.clear();
-        pairs.extend(
-            sd.iter()
-                .zip(&st[lag..lag + n])
-                .filter_map(|(a, b)| Some(((*a)?, (*b)?))),
-        );
-        counts.push(pairs.len());
-        corr.push(if pairs.len() >= MIN_LAG_PAIRS {
-            pearson(&pairs)
-        } else {
-            None
-        });
-    }
+    // Each lag's correlation is its own: the lags are worked out on every
+    // core.
+    let (mut corr, counts): (Vec<Option<f64>>, Vec<usize>) = (0..=2 * lmax)
+        .into_par_iter()
+        .map_init(
+            || Vec::with_capacity(n),
+            |pairs, lag| {
+                pairs.clear();
+                pairs.extend(
+                    sd.iter()
+                        .zip(&st[lag..lag + n])
+                        .filter_map(|(a, b)| Some(((*a)?, (*b)?))),
+                );
+                let corr = if pairs.len() >= MIN_LAG_PAIRS {
+                    pearson(pairs)
+                } else {
+                    None
+                };
+                (corr, pairs.len())
+            },
+        )
+        .unzip();
     // A lag whose overlap is a sliver of the streams correlates by chance:
     // only lags pairing at least half as many samples as the best-paired
     // one compete (a 10 s stream 4.5 s off, centred on its true offset,
@@ -428,15 +442,26 @@ impl Fine<'_> {
                 &all
             }
         };
+        // Each sample's interpolation is its own (on every core); the sums
+        // below go over them in order, so the fit is the same to the bit.
+        let evaluated: Vec<Option<(V3, V3, f64)>> = indices
+            .par_iter()
+            .with_min_len(EVAL_MIN_TASK)
+            .map(|&i| {
+                let d = &self.device[i];
+                let u = d.t_s - self.reference;
+                let s = d.t_s + theta[0] + theta[1] * u;
+                self.tracker
+                    .eval(s)
+                    .map(|(p, v)| (sub(p, d.position_mm), v, u))
+            })
+            .collect();
         let mut used = Vec::with_capacity(indices.len());
         let mut raw: Vec<(V3, V3, f64)> = Vec::with_capacity(indices.len());
-        for &i in indices {
-            let d = &self.device[i];
-            let u = d.t_s - self.reference;
-            let s = d.t_s + theta[0] + theta[1] * u;
-            if let Some((p, v)) = self.tracker.eval(s) {
+        for (&i, e) in indices.iter().zip(evaluated) {
+            if let Some(e) = e {
                 used.push(i);
-                raw.push((sub(p, d.position_mm), v, u));
+                raw.push(e);
             }
         }
         let n = raw.len().max(1) as f64;
