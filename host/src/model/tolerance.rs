@@ -140,8 +140,9 @@ pub fn choose(
         let mut s = structure.clone();
         s.priors.anchor_sd_each_mm = Some(sd);
         s.robust = robust;
+        // Each fold's fit on its own core, as the loop's folds are.
         folds
-            .iter()
+            .par_iter()
             .map(|(fit, held)| {
                 let id = identify(&pick(fit), nominal, start, &s).ok()?;
                 let errors = held_out_error_list(&id, &pick(held));
