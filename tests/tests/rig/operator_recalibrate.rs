@@ -204,6 +204,28 @@ fn a_slipped_string_is_reported_named_refitted_and_reflashed() {
     let info = client.info().unwrap().expect("a model on the device");
     assert_eq!(info.header.model_id, r.model_id);
     assert_ne!(r.model_id, rig.model_id);
+    // The slip is the current home capture's (the device's boot), not the
+    // model for the next one: a `Home` ends it.
+    let home = r
+        .calibration
+        .home
+        .as_ref()
+        .expect("the slip's home capture");
+    let (_, last_pair) = report.recorded.last().expect("pairs");
+    assert_eq!(Some(home.home_id), last_pair.sample.home);
+    assert!(
+        home.slips.iter().any(|t| t.string == SLIP_STRING),
+        "{:?}",
+        home.slips
+    );
+    assert!(
+        !r.calibration
+            .effects
+            .iter()
+            .any(|t| matches!(t.effect, Effect::Slip { .. })),
+        "{:?}",
+        r.calibration.effects
+    );
 
     // The error the device reports: near the baseline at detection (its
     // kinematics leave the slipped string out: a 6 mm slip lifts the RMS

@@ -51,7 +51,11 @@
 //! The model the window is judged and refitted with is the calibration as
 //! the device runs it under its current home capture ([`under_home`]):
 //! with the training session's slips while the states' `home_id` is the
-//! calibration's (`home`), without them after a new `Home` or a reboot.
+//! calibration's (`home`), without them after a new `Home` or a reboot. A
+//! refit writes the slips back under the capture the states are under: the
+//! training's (refitted) while it is theirs, and every slip it found at run
+//! time, so that the next `Home` ends them on the device and here alike;
+//! `effects` stays the model for the next home capture.
 //!
 //! The monitor never arms the device. Device time since home is device
 //! time since boot (a device with a stored model homes at boot) unless a

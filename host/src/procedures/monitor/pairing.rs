@@ -19,8 +19,9 @@ use super::{Monitor, MonitorError, MonitorEvent};
 /// One tracker frame paired with a device state.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Pair {
-    /// As a session row: `t_s` = device time since home, counts, tracker
-    /// (room frame), commanded tensions.
+    /// As a session row: `t_s` = `since_home_s` = device time since home,
+    /// its capture (`home`), counts, tracker (room frame), commanded
+    /// tensions.
     pub sample: Sample,
     /// Device time since boot, s.
     pub device_time_s: f64,
@@ -258,8 +259,8 @@ impl Monitor<'_> {
                     orientation: None,
                     legacy: None,
                     tension_n: Some(state.tensions_n.map(f64::from)),
-                    since_home_s: None,
-                    home: None,
+                    since_home_s: Some(state.since_home_us as f64 / 1e6),
+                    home: Some(state.home_id),
                 },
                 device_time_s: t.round() / 1e6,
                 device_room_mm,

@@ -5,7 +5,7 @@
 use std::path::Path;
 use std::time::Instant;
 
-use spidar_core::model::{Calibration, Effect};
+use spidar_core::model::{Calibration, Effect, MAX_HOME_SLIPS};
 
 use crate::data::dataset::Sample;
 use crate::data::observe::{observations, Observation};
@@ -96,9 +96,18 @@ impl Monitor<'_> {
                 "the refit does not lower the window error ({host_before_mm:.3} mm -> {host_after_mm:.3} mm); nothing flashed"
             ))));
         }
-        // The training's slips, refitted, stay under their home capture.
+        // Slips are the current home capture's: the training's, refitted,
+        // while it is theirs, and those found now.
         let (effects, home) =
             super::calibration::split_home_slips(&id.effects, &self.calibration, self.home_id);
+        if let Some(h) = home.as_ref().filter(|h| h.slips.len() > MAX_HOME_SLIPS) {
+            return Err(MonitorError::Identify(IdentifyError::Diverged(format!(
+                "{} slips under home capture {}, a blob carries at most {MAX_HOME_SLIPS}; nothing \
+                 flashed (home the device again: a new capture counts the strings as they are)",
+                h.slips.len(),
+                h.home_id
+            ))));
+        }
         let calibration = Calibration {
             frame: id.frame,
             strings: id.laws,
