@@ -30,7 +30,9 @@ pub enum HomeBasis {
     SinceHome,
     /// The sessions' `t_s` clocks.
     Clock,
-    /// The training session has no rows to compare with.
+    /// Nothing to compare with: the training session has no rows, or
+    /// (a calibration's home capture, [`LaterHome::under`]) the later
+    /// session does not record `home`.
     Unknown,
 }
 
@@ -68,7 +70,7 @@ impl LaterHome {
         let every = |s: &Session, has: fn(&Sample) -> bool| s.samples.iter().all(has);
         let (k, basis, reason) =
             if every(training, |s| s.home.is_some()) && every(later, |s| s.home.is_some()) {
-                by_home_id(last, later)
+                by_home_id(last.home.unwrap_or_default(), later)
             } else if every(training, |s| s.since_home_s.is_some())
                 && every(later, |s| s.since_home_s.is_some())
             {
@@ -78,6 +80,35 @@ impl LaterHome {
             };
         LaterHome {
             first_new_home_row: k,
+            rows,
+            basis,
+            reason,
+        }
+    }
+
+    /// Which of `later`'s rows are under home capture `home_id`, the one a
+    /// calibration's training slips belong to (`calibration.json`'s
+    /// `home`, a blob's), when the training session is not at hand: the
+    /// `home` ids alone, by rule 1. A session that does not record `home`
+    /// on every row cannot be matched to the capture: every row is taken
+    /// as after a new one.
+    pub fn under(home_id: u64, later: &Session) -> LaterHome {
+        let rows = later.samples.len();
+        if rows == 0 || !later.samples.iter().all(|s| s.home.is_some()) {
+            return LaterHome {
+                first_new_home_row: 0,
+                rows,
+                basis: HomeBasis::Unknown,
+                reason: format!(
+                    "the session does not record its home capture on every row (`home`), so no \
+                     row can be matched to home capture {home_id}: every row is taken as after a \
+                     new one"
+                ),
+            };
+        }
+        let (first_new_home_row, basis, reason) = by_home_id(home_id, later);
+        LaterHome {
+            first_new_home_row,
             rows,
             basis,
             reason,
@@ -100,8 +131,7 @@ fn share_sentence(k: usize, rows: usize) -> String {
     }
 }
 
-fn by_home_id(last: &Sample, later: &Session) -> (usize, HomeBasis, String) {
-    let home = last.home.unwrap_or_default();
+fn by_home_id(home: u64, later: &Session) -> (usize, HomeBasis, String) {
     let rows = later.samples.len();
     let k = later
         .samples
