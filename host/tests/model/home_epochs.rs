@@ -327,3 +327,88 @@ fn the_fixed_point_error_covers_the_training_slips_under_their_home_capture() {
     );
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// The lattice of `calibrated_under`'s device with a slip of string 2 at
+/// `slip_at_s` of its clock, recorded as homed again at `rehome_at_s`: its
+/// rows before under capture `CARRIED_HOME`, the rest under the next
+/// (`since_home_s` from it), and the test session continuing the last. A
+/// slip before the new capture is over after it (the strings are counted
+/// from where they are): those rows are the clean device's.
+fn calibrated_over_two_captures(slip_at_s: f64, rehome_at_s: f64) -> Calibrated {
+    let slip = format!("slip:2:at_s={slip_at_s},mm=8");
+    let (device, mut train, mut test) = sessions_under(&[&slip], true, Some(CARRIED_HOME));
+    let (_, clean_train, clean_test) = sessions_under(&[], true, Some(CARRIED_HOME));
+    let next = CARRIED_HOME + 1;
+    for (row, clean) in train
+        .samples
+        .iter_mut()
+        .zip(&clean_train.samples)
+        .chain(test.samples.iter_mut().zip(&clean_test.samples))
+    {
+        assert_eq!((row.t_s, row.tracker), (clean.t_s, clean.tracker));
+        if row.t_s >= rehome_at_s {
+            row.home = Some(next);
+            row.since_home_s = Some(row.t_s - rehome_at_s);
+            if slip_at_s < rehome_at_s {
+                row.counts = clean.counts;
+            }
+        }
+    }
+    let mut cfg = CalibrateConfig::quick();
+    cfg.quiet = true;
+    crate::calibrate_in_memory(&device.nominal, &train, &test, &cfg)
+}
+
+/// A training session homed again midway (issue 33 point 1, record 0049's
+/// "Left"; the lattice runs from 16 to 4800 s): a slip after its last home
+/// capture, later after it than any row of the earlier capture is after
+/// its own, was fitted on the last capture's rows alone and is carried
+/// under that capture; a slip of the earlier capture is over and is not
+/// carried (the report says which and why).
+#[test]
+fn a_training_over_two_home_captures_carries_the_slips_of_its_last() {
+    use spidar_core::model::Effect;
+    let slip_of_8_mm = |t: &spidar_core::model::EffectTerm, since_s: f64| {
+        t.string == 2
+            && matches!(t.effect, Effect::Slip { at_s, mm }
+                if (mm - 8.0).abs() < 1.0 && (at_s - since_s).abs() < 100.0)
+    };
+    // Homed again at 500 s: the slip, 1500 s after the new capture, is
+    // later than any row of the first (500 s).
+    let c = calibrated_over_two_captures(2000.0, 500.0);
+    let d = &c.report.device_slips;
+    eprintln!("{}", d.reason);
+    assert_eq!(d.home_id, Some(CARRIED_HOME + 1), "{}", d.reason);
+    assert!(d.not_carried.is_empty(), "{d:?}");
+    assert!(d.slips.iter().any(|t| slip_of_8_mm(t, 1500.0)), "{d:?}");
+    assert_eq!(c.calibration.home, d.home_slips());
+    assert!(c.report.summary().contains(&d.reason));
+    assert!(
+        d.reason.contains("the last of the training session's 2"),
+        "{}",
+        d.reason
+    );
+
+    // A slip at 1000 s, homed again at 4000 s: the slip is the first
+    // capture's, and the last one's rows (up to 800 s after it) never
+    // reach its time since home.
+    let c = calibrated_over_two_captures(1000.0, 4000.0);
+    let d = &c.report.device_slips;
+    eprintln!("{}", d.reason);
+    assert_eq!(
+        (d.home_id, &c.calibration.home),
+        (None, &None),
+        "{}",
+        d.reason
+    );
+    assert!(
+        d.not_carried.iter().any(|t| slip_of_8_mm(t, 1000.0)),
+        "{d:?}"
+    );
+    assert!(
+        d.reason
+            .contains("a slip of an earlier capture, over with it"),
+        "{}",
+        d.reason
+    );
+}
