@@ -29,6 +29,10 @@ pub struct Pair {
     pub device_room_mm: [f64; 3],
     /// Its error against the tracker, mm.
     pub error_mm: f64,
+    /// The string the device's kinematics left out (`State::excluded` of
+    /// the state after the instant): one whose modelled length disagrees
+    /// with the others.
+    pub excluded: Option<u8>,
     /// Device time from the capture instant to the nearest state streamed, ms
     /// (the state is interpolated across it).
     pub gap_ms: f64,
@@ -265,6 +269,7 @@ impl Monitor<'_> {
                 device_time_s: t.round() / 1e6,
                 device_room_mm,
                 error_mm: position_error(device_room_mm, marker),
+                excluded: state.excluded,
                 gap_ms: nearest_ms,
             };
             if !self.gate.admit(pair.error_mm) {
