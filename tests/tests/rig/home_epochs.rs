@@ -14,7 +14,7 @@ use spidar::device::cues::SharedCues;
 use spidar::device::link::{Client, ClientOptions};
 use spidar::device::tracker::{DtrackReceiver, ReceiverConfig};
 use spidar::model::compile::{compile_checked, device_positions, model_id_of};
-use spidar::procedures::monitor::{MonitorError, MonitorReport, SimulatedMonitorRig};
+use spidar::procedures::monitor::{MonitorError, MonitorReport, SimRigConfig, SimulatedMonitorRig};
 use spidar::sim::operator::{FreeMotion, SimOperator, SimOperatorConfig, SimulatedRig};
 use spidar::sim::{SimConfig, SimulatedDevice};
 use spidar_core::blob::CompiledCalibration;
@@ -32,14 +32,14 @@ const SLIP_AT_S: f64 = 1.0;
 const SECONDS: f64 = 10.0;
 
 /// The operator wandering about home, as `spidar monitor --simulate` has it.
-fn wander(op: &mut SimOperatorConfig, home: [f64; 3], seed: u64) {
+fn wander(op: &mut SimOperatorConfig, home: [f64; 3], seed: u64, seconds: f64) {
     op.free_motion = FreeMotion::Wander {
         centre_mm: home,
         half_size_mm: 120.0,
         speed_mm_s: 60.0,
     };
     op.seed = seed;
-    op.max_duration = Duration::from_secs_f64(SECONDS + 5.0);
+    op.max_duration = Duration::from_secs_f64(seconds + 5.0);
 }
 
 fn blob(calibration: &Calibration) -> Vec<u8> {
@@ -101,6 +101,60 @@ fn host_exclusions(report: &MonitorReport, blob: &[u8], from_s: f64) -> (usize, 
     (excluded(obs.len()), excluded(0), obs.len())
 }
 
+/// The rig's operator lets go, the hand is brought back to the device's
+/// true home, the host sends `Home` there, and a new operator (another
+/// path) wanders for `seconds` more, its tracker on a new receiver.
+fn homed_again(rig: SimulatedMonitorRig, seconds: f64) -> SimulatedMonitorRig {
+    let model_id = rig.model_id;
+    let SimulatedRig {
+        device,
+        hand,
+        virtual_device,
+        operator,
+        ..
+    } = rig.rig;
+    operator.stop().expect("operator");
+    let home = device.frame.home;
+    let t_us = hand.attach();
+    let at_home_us = t_us + 2_000_000;
+    hand.commit(t_us, at_home_us, home);
+    hand.wait_plant(at_home_us, &AtomicBool::new(false))
+        .expect("the hand at home");
+    Client::open_with(
+        virtual_device.port_path(),
+        ClientOptions::for_simulated_device(),
+    )
+    .and_then(|mut c| c.home())
+    .expect("Home");
+    let receiver = DtrackReceiver::bind(ReceiverConfig::new(std::net::SocketAddr::from((
+        [127, 0, 0, 1],
+        0,
+    ))))
+    .expect("receiver");
+    let mut op = SimOperatorConfig::new(receiver.local_addr());
+    wander(&mut op, home, 2, seconds);
+    let cues = SharedCues::stamped_by(receiver.progress());
+    let operator = SimOperator::spawn_in_step(
+        op,
+        device.clone(),
+        hand.clone(),
+        cues.clone(),
+        Some(receiver.progress()),
+    )
+    .expect("operator");
+    SimulatedMonitorRig {
+        rig: SimulatedRig {
+            device,
+            hand,
+            cues,
+            virtual_device,
+            receiver,
+            operator,
+        },
+        model_id,
+    }
+}
+
 #[test]
 fn a_training_slip_applies_on_the_device_until_the_next_home_and_the_monitor_agrees() {
     let cal = calibrated();
@@ -141,7 +195,7 @@ fn a_training_slip_applies_on_the_device_until_the_next_home_and_the_monitor_agr
             open()?.flash(&carried_blob, |_| {})?;
             Ok(())
         },
-        |op| wander(op, home, 1),
+        |op| wander(op, home, 1, SECONDS),
     )
     .expect("rig");
     let model_id = model_id_of(&carried);
@@ -166,52 +220,7 @@ fn a_training_slip_applies_on_the_device_until_the_next_home_and_the_monitor_agr
     );
 
     // A new home capture, the hand at home.
-    let SimulatedRig {
-        device,
-        hand,
-        virtual_device,
-        operator,
-        ..
-    } = rig.rig;
-    operator.stop().expect("operator");
-    let t_us = hand.attach();
-    let at_home_us = t_us + 2_000_000;
-    hand.commit(t_us, at_home_us, device.frame.home);
-    hand.wait_plant(at_home_us, &AtomicBool::new(false))
-        .expect("the hand at home");
-    Client::open_with(
-        virtual_device.port_path(),
-        ClientOptions::for_simulated_device(),
-    )
-    .and_then(|mut c| c.home())
-    .expect("Home");
-    let receiver = DtrackReceiver::bind(ReceiverConfig::new(std::net::SocketAddr::from((
-        [127, 0, 0, 1],
-        0,
-    ))))
-    .expect("receiver");
-    let mut op = SimOperatorConfig::new(receiver.local_addr());
-    wander(&mut op, home, 2);
-    let cues = SharedCues::stamped_by(receiver.progress());
-    let operator = SimOperator::spawn_in_step(
-        op,
-        device.clone(),
-        hand.clone(),
-        cues.clone(),
-        Some(receiver.progress()),
-    )
-    .expect("operator");
-    let mut rig = SimulatedMonitorRig {
-        rig: SimulatedRig {
-            device,
-            hand,
-            cues,
-            virtual_device,
-            receiver,
-            operator,
-        },
-        model_id,
-    };
+    let mut rig = homed_again(rig, SECONDS);
 
     // After it: the string is counted as it is, the device no longer
     // applies the slip, and the monitor judges it without.
@@ -230,4 +239,45 @@ fn a_training_slip_applies_on_the_device_until_the_next_home_and_the_monitor_agr
         without * 50 <= rows && with * 2 >= rows,
         "{with} {without} {rows}"
     );
+}
+
+/// A slip the monitor finds and refits at run time is the current home
+/// capture's (record 0049, "Left", now done): the refitted calibration
+/// carries it under that capture, the device applies it until the next
+/// `Home`, and after it the device and the monitor run without it. Were
+/// it in the effects, the device would apply it again 9 s after the new
+/// capture, to a string counted afresh: string 2 6 mm off, left out of the
+/// kinematics for the last 5 s of the run.
+#[test]
+fn a_slip_refitted_at_run_time_ends_at_the_next_home() {
+    let cal = calibrated();
+    let seconds = 18.0;
+    let slip_at_s = 9.0;
+    let mut rig = SimulatedMonitorRig::start(
+        cal,
+        &SimRigConfig {
+            effects: vec![format!("slip:{SLIP_STRING}:at_s={slip_at_s},mm={SLIP_MM}")],
+            max_duration: Duration::from_secs_f64(seconds + 5.0),
+            ..SimRigConfig::default()
+        },
+    )
+    .expect("rig");
+    let (report, _) = run_on(cal, &cal.calibration, &mut rig, &config(seconds));
+    let report = report.expect("monitor");
+    assert_eq!(report.refits.len(), 1, "{} refits", report.refits.len());
+    let refit = &report.refits[0];
+    let home = refit.calibration.home.as_ref().expect("the slip's capture");
+    assert_eq!(home.home_id, HOME);
+    assert!(
+        home.slips.iter().any(|t| t.string == SLIP_STRING),
+        "{home:?}"
+    );
+    let refitted = refit.calibration.clone();
+    rig.model_id = refit.model_id;
+
+    let mut rig = homed_again(rig, 14.0);
+    let (report, _) = run_on(cal, &refitted, &mut rig, &config(14.0));
+    let after = report.expect("monitor after the new capture");
+    let left_out = judged_without_alarm(&after, HOME + 1, "after a new capture");
+    assert!(left_out * 50 <= after.recorded.len(), "{left_out}");
 }
