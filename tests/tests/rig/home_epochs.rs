@@ -14,7 +14,9 @@ use spidar::device::cues::SharedCues;
 use spidar::device::link::{Client, ClientOptions};
 use spidar::device::tracker::{DtrackReceiver, ReceiverConfig};
 use spidar::model::compile::{compile_checked, device_positions, model_id_of};
-use spidar::procedures::monitor::{MonitorError, MonitorReport, SimRigConfig, SimulatedMonitorRig};
+use spidar::procedures::monitor::{
+    event_line, MonitorError, MonitorEvent, MonitorReport, SimRigConfig, SimulatedMonitorRig,
+};
 use spidar::sim::operator::{FreeMotion, SimOperator, SimOperatorConfig, SimulatedRig};
 use spidar::sim::{SimConfig, SimulatedDevice};
 use spidar_core::blob::CompiledCalibration;
@@ -262,8 +264,13 @@ fn a_slip_refitted_at_run_time_ends_at_the_next_home() {
         },
     )
     .expect("rig");
-    let (report, _) = run_on(cal, &cal.calibration, &mut rig, &config(seconds));
+    let (report, events) = run_on(cal, &cal.calibration, &mut rig, &config(seconds));
     let report = report.expect("monitor");
+    assert!(
+        events.iter().any(|e| matches!(e, MonitorEvent::Refitted(_))
+            && event_line(e).contains(&format!("under home capture {HOME} until"))),
+        "the refit says under which capture its slip applies"
+    );
     assert_eq!(report.refits.len(), 1, "{} refits", report.refits.len());
     let refit = &report.refits[0];
     let home = refit.calibration.home.as_ref().expect("the slip's capture");
