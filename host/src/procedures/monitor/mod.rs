@@ -40,8 +40,9 @@
 //!    diagnosis loop's rule, [`crate::model::diagnose::cross_validated_error`]);
 //!    the model is identified again (warm, from the current calibration) on
 //!    the window, plus the training session when given (its rows count as
-//!    before anything that happened at run time: time since home 0; left
-//!    out when the model has a time drift term). The learned position
+//!    before anything that happened at run time: at their own time since
+//!    home when they are of the window's home capture, else at time since
+//!    home 0; left out when the model has a time drift term). The learned position
 //!    correction, if any, is kept. The new calibration is compiled
 //!    ([`crate::model::compile::compile_checked`]), the device disarmed and
 //!    flashed ([`Client::flash`], verified with `info`), and monitoring goes
