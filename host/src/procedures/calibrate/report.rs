@@ -438,7 +438,7 @@ impl DeviceSlips {
                 _ => false,
             });
         // Why each slip left out is not the last capture's.
-        let fitted_across = || {
+        let why_left = || {
             earlier
                 .iter()
                 .map(|t| {
@@ -462,7 +462,7 @@ impl DeviceSlips {
                 .join("; ")
         };
         if slips.is_empty() {
-            return not_carried(&format!("{}; {}", training.reason, fitted_across()));
+            return not_carried(&format!("{}; {}", training.reason, why_left()));
         }
         if slips.len() > MAX_HOME_SLIPS {
             return not_carried(&format!("a blob carries at most {MAX_HOME_SLIPS}"));
@@ -479,7 +479,7 @@ impl DeviceSlips {
         let left = if earlier.is_empty() {
             String::new()
         } else {
-            format!("; not carried: {}", fitted_across())
+            format!("; not carried: {}", why_left())
         };
         DeviceSlips {
             home_id: Some(home_id),
