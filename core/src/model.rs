@@ -594,4 +594,19 @@ mod whole {
         #[serde(default, skip_serializing_if = "Option::is_none")]
         pub home: Option<HomeSlips>,
     }
+
+    impl Calibration {
+        /// The calibration as the device runs it under home capture
+        /// `home_id` (`State::home_id`; `None`: not known): its effects,
+        /// and the slips of [`Calibration::home`] among them while
+        /// `home_id` is theirs; the f64 twin of
+        /// [`crate::blob::BlobHead::string_lengths`]'s rule.
+        pub fn under_home(&self, home_id: Option<u64>) -> Calibration {
+            let mut c = self.clone();
+            if let Some(home) = c.home.take().filter(|h| Some(h.home_id) == home_id) {
+                c.effects.extend(home.slips);
+            }
+            c
+        }
+    }
 }

@@ -30,7 +30,9 @@ pub enum HomeBasis {
     SinceHome,
     /// The sessions' `t_s` clocks.
     Clock,
-    /// The training session has no rows to compare with.
+    /// Nothing to compare with: the training session has no rows, or
+    /// (a calibration's home capture, [`LaterHome::under`]) the later
+    /// session does not record `home`.
     Unknown,
 }
 
@@ -68,7 +70,7 @@ impl LaterHome {
         let every = |s: &Session, has: fn(&Sample) -> bool| s.samples.iter().all(has);
         let (k, basis, reason) =
             if every(training, |s| s.home.is_some()) && every(later, |s| s.home.is_some()) {
-                by_home_id(last, later)
+                by_home_id(last.home.unwrap_or_default(), later)
             } else if every(training, |s| s.since_home_s.is_some())
                 && every(later, |s| s.since_home_s.is_some())
             {
@@ -78,6 +80,35 @@ impl LaterHome {
             };
         LaterHome {
             first_new_home_row: k,
+            rows,
+            basis,
+            reason,
+        }
+    }
+
+    /// Which of `later`'s rows are under home capture `home_id`, the one a
+    /// calibration's training slips belong to (`calibration.json`'s
+    /// `home`, a blob's), when the training session is not at hand: the
+    /// `home` ids alone, by rule 1. A session that does not record `home`
+    /// on every row cannot be matched to the capture: every row is taken
+    /// as after a new one.
+    pub fn under(home_id: u64, later: &Session) -> LaterHome {
+        let rows = later.samples.len();
+        if rows == 0 || !later.samples.iter().all(|s| s.home.is_some()) {
+            return LaterHome {
+                first_new_home_row: 0,
+                rows,
+                basis: HomeBasis::Unknown,
+                reason: format!(
+                    "the session does not record its home capture on every row (`home`), so no \
+                     row can be matched to home capture {home_id}: every row is taken as after a \
+                     new one"
+                ),
+            };
+        }
+        let (first_new_home_row, basis, reason) = by_home_id(home_id, later);
+        LaterHome {
+            first_new_home_row,
             rows,
             basis,
             reason,
@@ -100,8 +131,7 @@ fn share_sentence(k: usize, rows: usize) -> String {
     }
 }
 
-fn by_home_id(last: &Sample, later: &Session) -> (usize, HomeBasis, String) {
-    let home = last.home.unwrap_or_default();
+fn by_home_id(home: u64, later: &Session) -> (usize, HomeBasis, String) {
     let rows = later.samples.len();
     let k = later
         .samples
@@ -158,15 +188,38 @@ fn by_clock(last: &Sample, first: &Sample, rows: usize) -> (usize, HomeBasis, St
 }
 
 /// The home capture a training session ends under, as a device can match
-/// it: the `home` id of its last row, when every row records both its
-/// `home` and its `since_home_s` and all share that id. The training's
-/// slips are times since that capture; a device still under it applies
-/// them (decision record 0049, "Device side").
+/// it: the `home` id of its last row, when the rows of that capture (the
+/// session's last rows sharing the id) record both their `home` and their
+/// `since_home_s`. The training's slips are times since a capture; a
+/// device still under the last one applies those of it (decision record
+/// 0049, "Device side").
+///
+/// A session that spans several captures is fitted as one: every time
+/// term reads each row's own time since its capture
+/// ([`crate::data::observe::time_since_home_ms`]), so a slip term at `at_s`
+/// shifts every row, of any capture, at least `at_s` after its own. A
+/// slip is the last capture's ([`TrainingHome::slip_is_of_last_capture`])
+/// when no row of an earlier capture is that late: it was fitted on the
+/// last capture's rows alone, its `at_s` a time since that capture.
+/// Otherwise it is an earlier capture's (no row of the last one is that
+/// late: the slip is over with its capture) or was fitted across captures
+/// (it shifted rows of both, so its size and time are those of neither).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct TrainingHome {
     /// The capture's id (`State::home_id`); `None` when the session does
     /// not tell one a device can match.
     pub home_id: Option<u64>,
+    /// Home captures the session spans (its `home` ids in row order; 1
+    /// without a `home` column).
+    pub captures: usize,
+    /// The session's first row (index) under the last capture.
+    pub first_row: usize,
+    /// The latest time since its own capture of a row before `first_row`
+    /// (as the time terms read it, s); `None` when the session is under
+    /// one capture.
+    pub earlier_until_s: Option<f64>,
+    /// The latest time since the last capture of a row under it, s.
+    pub last_until_s: f64,
     /// Why, in words the report prints.
     pub reason: String,
 }
@@ -174,45 +227,112 @@ pub struct TrainingHome {
 impl TrainingHome {
     /// The home capture `training` ends under, or why none.
     pub fn of(training: &Session) -> TrainingHome {
-        let none = |reason: &str| TrainingHome {
-            home_id: None,
-            reason: reason.into(),
-        };
-        let Some(last) = training.samples.last() else {
-            return none("the training session has no rows");
-        };
         let samples = &training.samples;
-        if !samples.iter().all(|s| s.home.is_some()) {
+        let captures = if samples.is_empty() {
+            0
+        } else {
+            1 + samples
+                .windows(2)
+                .filter(|w| w[0].home != w[1].home)
+                .count()
+        };
+        let none = |reason: String| TrainingHome {
+            home_id: None,
+            captures,
+            first_row: 0,
+            earlier_until_s: None,
+            last_until_s: 0.0,
+            reason,
+        };
+        let Some(home) = samples.last().map(|s| s.home) else {
+            return none("the training session has no rows".into());
+        };
+        let Some(home) = home else {
             return none(
-                "the training session does not record its home capture (no `home` column): no \
-                 device state can be matched to it",
+                "the training session does not record its home capture (no `home` column, or \
+                 none on its last row): no device state can be matched to it"
+                    .into(),
             );
-        }
-        if !samples.iter().all(|s| s.since_home_s.is_some()) {
-            return none(
-                "the training session has no `since_home_s` column: its slips' times are not \
+        };
+        let first_row = samples
+            .iter()
+            .rposition(|s| s.home != Some(home))
+            .map_or(0, |k| k + 1);
+        let (earlier, last) = samples.split_at(first_row);
+        if !last.iter().all(|s| s.since_home_s.is_some()) {
+            return none(format!(
+                "the training session has no `since_home_s` column{}: its slips' times are not \
                  times since its home capture",
-            );
+                if first_row > 0 {
+                    " on the rows of its last home capture"
+                } else {
+                    ""
+                }
+            ));
         }
-        let home = last.home.unwrap_or_default();
-        let captures = 1 + samples
-            .windows(2)
-            .filter(|w| w[0].home != w[1].home)
-            .count();
-        if captures > 1 {
-            return TrainingHome {
-                home_id: None,
-                reason: format!(
-                    "the training session spans {captures} home captures (`home`), and its \
-                     slips were fitted across them"
-                ),
-            };
+        if earlier.iter().any(|s| s.home == Some(home)) {
+            return none(format!(
+                "the rows of home capture {home} are not consecutive in the training session \
+                 (`home`): it cannot tell which capture it ends under"
+            ));
         }
+        let until_s = |rows: &[Sample]| {
+            rows.iter()
+                .map(crate::data::observe::time_since_home_ms)
+                .max()
+                .map(|ms| f64::from(ms) / 1000.0)
+        };
+        let earlier_until_s = until_s(earlier);
+        let last_until_s = until_s(last).unwrap_or_default();
+        let reason = match earlier_until_s {
+            None => format!("the training session is under home capture {home} (`home`)"),
+            Some(until) => format!(
+                "the training session spans {captures} home captures (`home`) and ends under \
+                 {home}, from line {} on; the rows of the earlier ones run to {until} s after \
+                 their own capture",
+                first_row + 2
+            ),
+        };
         TrainingHome {
             home_id: Some(home),
-            reason: format!("the training session is under home capture {home} (`home`)"),
+            captures,
+            first_row,
+            earlier_until_s,
+            last_until_s,
+            reason,
         }
     }
+
+    /// Which captures' rows a slip term from `at_s` (time since home)
+    /// shifted in the fit: the rows `at_s` or more after their own capture
+    /// (what every time term reads). Always [`SlipRows::Last`] for a
+    /// session under one capture.
+    pub fn rows_of_slip(&self, at_s: f64) -> SlipRows {
+        let earlier = self.earlier_until_s.is_some_and(|until| until >= at_s);
+        match (earlier, self.last_until_s >= at_s) {
+            (false, _) => SlipRows::Last,
+            (true, false) => SlipRows::Earlier,
+            (true, true) => SlipRows::Both,
+        }
+    }
+
+    /// Whether a slip term from `at_s` is the last capture's
+    /// ([`TrainingHome::rows_of_slip`]): a device under it can apply it.
+    pub fn slip_is_of_last_capture(&self, at_s: f64) -> bool {
+        self.rows_of_slip(at_s) == SlipRows::Last
+    }
+}
+
+/// Which of a training session's home captures a slip term shifted
+/// ([`TrainingHome::rows_of_slip`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SlipRows {
+    /// The last capture's rows alone (or none of an earlier one).
+    Last,
+    /// Rows of earlier captures alone: a slip of a capture that is over.
+    Earlier,
+    /// Rows of an earlier capture and of the last: fitted across them.
+    Both,
 }
 
 #[cfg(test)]

@@ -45,6 +45,14 @@ pub struct Observation {
     pub new_home: bool,
 }
 
+/// The time since home a row's time terms read (the string law's input):
+/// its `since_home_s`, else its `t_s`, in whole ms.
+pub fn time_since_home_ms(s: &Sample) -> u32 {
+    (s.since_home_s.unwrap_or(s.t_s) * 1000.0)
+        .round()
+        .clamp(0.0, u32::MAX as f64) as u32
+}
+
 /// The observations of a session's rows, in order.
 pub fn observations(samples: &[Sample]) -> Vec<Observation> {
     observations_skipping(samples, &[])
@@ -70,9 +78,7 @@ pub fn observations_skipping(samples: &[Sample], skipped: &[usize]) -> Vec<Obser
             let tension_n = s.tension_n.unwrap_or([0.0; STRINGS]);
             let mut inputs = StringInputs {
                 counts: s.counts,
-                time_ms: (s.since_home_s.unwrap_or(s.t_s) * 1000.0)
-                    .round()
-                    .clamp(0.0, u32::MAX as f64) as u32,
+                time_ms: time_since_home_ms(s),
                 ..StringInputs::default()
             };
             for i in 0..STRINGS {

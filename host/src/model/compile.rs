@@ -10,7 +10,11 @@
 //! Q15.16 rounding and the fixed-point correction. The reference
 //! ([`crate::model::predict`]) is the same pipeline in f64 with the f64 correction.
 //! The inputs are the session's own (counts, direction, recorded commanded
-//! tensions, time), so the difference is the arithmetic alone.
+//! tensions, time), so the difference is the arithmetic alone. The rows a
+//! session records under the calibration's home capture (`home`,
+//! [`LaterHome::under`]) are evaluated as the device evaluates them there:
+//! with the training's slips on both sides, so that the budget covers the
+//! blob's home section too.
 
 use std::path::{Path, PathBuf};
 
@@ -19,10 +23,10 @@ use spidar_core::control::ControlConfig;
 use spidar_core::geometry::{distance, room_from_device};
 use spidar_core::kinematics::{forward_kinematics_inclined, FkStatus};
 use spidar_core::model::{Calibration, StringInputs};
-use spidar_core::string_law::string_lengths;
 use spidar_protocol::blob::{BlobError, CRC32};
 
 use crate::data::dataset::{DatasetError, Geometry, Session};
+use crate::data::home::LaterHome;
 use crate::data::observe::{observations, Observation};
 use crate::data::output::{refuse_output_over_input, write_atomically};
 use crate::data::stats::ErrorStats;
@@ -95,25 +99,38 @@ pub struct FixedPointError {
     pub string_model: ErrorStats,
     /// Corrected room position (everything), blob vs f64.
     pub corrected: ErrorStats,
+    /// Of `rows`, those under the calibration's home capture, compared with
+    /// its training slips applied on both sides.
+    pub home_rows: usize,
 }
 
 /// Positions the device computes from a session's inputs with `blob`:
 /// (device-frame FK position, corrected room position Q15.16 -> mm, FK status).
+/// The first `home_rows` observations are under the blob's home capture
+/// (its training slips applied, [`BlobHead::string_lengths`]), the others
+/// after a new one.
+///
+/// [`BlobHead::string_lengths`]: spidar_core::blob::BlobHead::string_lengths
 pub fn device_positions(
     blob: &CompiledCalibration<'_>,
     observations: &[Observation],
+    home_rows: usize,
 ) -> Vec<([f64; 3], [f64; 3], FkStatus)> {
     let fk_config = ControlConfig::default().fk;
     let frame = &blob.head.frame;
     let inclined = blob.head.effects.iter().any(|e| e.reads_inclination());
-    let lengths = |inputs: &StringInputs| {
-        string_lengths(frame.layout, &blob.head.laws, &blob.head.effects, inputs)
-            .map(|l| l as f32 / 65536.0)
-    };
+    let training_home = blob.head.home.as_ref().map(|h| h.home_id);
     let mut position = frame.home;
     observations
         .iter()
-        .map(|o| {
+        .enumerate()
+        .map(|(k, o)| {
+            let home_id = training_home.filter(|_| k < home_rows);
+            let lengths = |inputs: &StringInputs| {
+                blob.head
+                    .string_lengths(inputs, home_id)
+                    .map(|l| l as f32 / 65536.0)
+            };
             let fk = forward_kinematics_inclined(
                 frame, &o.inputs, position, &fk_config, inclined, lengths,
             );
@@ -132,24 +149,45 @@ pub fn device_positions(
 }
 
 /// Compares the blob (the device way) with the f64 calibration on every row.
-/// `None` if no row converged on both sides.
+/// The session rows before `first_new_home_row` (its
+/// [`LaterHome::first_new_home_row`] from the calibration's home capture;
+/// 0: none) are under that capture, and both sides apply the training's
+/// slips there ([`Calibration::under_home`]). `None` if no row converged on
+/// both sides.
 pub fn fixed_point_error(
     calibration: &Calibration,
     blob: &CompiledCalibration<'_>,
     observations: &[Observation],
+    first_new_home_row: usize,
 ) -> Option<FixedPointError> {
-    let reference = predict(KinematicModel::of(calibration), observations);
+    let training_home = calibration.home.as_ref().map(|h| h.home_id);
+    let home_rows = if training_home.is_some() {
+        observations.partition_point(|o| o.row < first_new_home_row)
+    } else {
+        0
+    };
+    let (under, after) = observations.split_at(home_rows);
+    let under_model = calibration.under_home(training_home);
+    let mut reference = predict(KinematicModel::of(&under_model), under);
+    reference.extend(predict(KinematicModel::of(calibration), after));
     let reference_corrected = corrected(&calibration.correction, &reference);
-    let device = device_positions(blob, observations);
+    let device = device_positions(blob, observations, home_rows);
     let ok = |s: FkStatus| matches!(s, FkStatus::Ok | FkStatus::FaultyStringExcluded);
     let mut model = Vec::new();
     let mut all = Vec::new();
     let mut mismatches = 0;
-    for ((r, rc), (d, dc, ds)) in reference.iter().zip(&reference_corrected).zip(&device) {
+    let mut compared_under_home = 0;
+    for (k, ((r, rc), (d, dc, ds))) in reference
+        .iter()
+        .zip(&reference_corrected)
+        .zip(&device)
+        .enumerate()
+    {
         match (ok(r.status), ok(*ds)) {
             (true, true) => {
                 model.push(distance(r.device, *d));
                 all.push(distance(*rc, *dc));
+                compared_under_home += usize::from(k < home_rows);
             }
             (false, false) => {}
             _ => mismatches += 1,
@@ -160,6 +198,7 @@ pub fn fixed_point_error(
         status_mismatches: mismatches,
         string_model: ErrorStats::of(&model),
         corrected: ErrorStats::of(&all),
+        home_rows: compared_under_home,
     })
 }
 
@@ -243,6 +282,10 @@ pub struct CompileReport {
     pub budget_mm: f64,
     /// [`describe_home_slips`] of the blob.
     pub home_slips: Option<String>,
+    /// Which rows of the test session are under the blob's home capture,
+    /// and why ([`LaterHome::under`]); `None` without a test session or
+    /// without home slips.
+    pub test_home: Option<LaterHome>,
 }
 
 impl std::fmt::Display for CompileReport {
@@ -273,11 +316,19 @@ impl std::fmt::Display for CompileReport {
         if let Some(h) = &self.home_slips {
             writeln!(f, "{h}")?;
         }
+        if let Some(h) = &self.test_home {
+            writeln!(f, "test session's home capture: {}", h.reason)?;
+        }
         if let Some(e) = &self.error {
             writeln!(
                 f,
-                "fixed-point error vs f64 over {} rows: string model mean {:.5} mm max {:.5} mm; corrected mean {:.5} mm max {:.5} mm (budget {} mm mean){}",
+                "fixed-point error vs f64 over {} rows{}: string model mean {:.5} mm max {:.5} mm; corrected mean {:.5} mm max {:.5} mm (budget {} mm mean){}",
                 e.rows,
+                if self.test_home.is_some() {
+                    format!(" ({} with the training's slips, under their home capture)", e.home_rows)
+                } else {
+                    String::new()
+                },
                 e.string_model.mean_mm,
                 e.string_model.max_mm,
                 e.corrected.mean_mm,
@@ -348,12 +399,19 @@ pub fn run_compile(args: &CompileRequest) -> Result<CompileReport, CompileCmdErr
     if let Some(g) = &args.geometry {
         check_counts_per_rev(&calibration, g)?;
     }
+    let mut test_home = None;
     let error = match &args.test {
         Some(test) => {
             let session = Session::load(test)?;
             let obs = observations(&session.samples);
+            let home = calibration
+                .home
+                .as_ref()
+                .map(|h| LaterHome::under(h.home_id, &session));
+            let first_new_home_row = home.as_ref().map_or(0, |h| h.first_new_home_row);
+            test_home = home;
             Some(
-                fixed_point_error(&calibration, &parsed, &obs)
+                fixed_point_error(&calibration, &parsed, &obs, first_new_home_row)
                     .ok_or_else(|| CompileCmdError::NoRows { file: test.clone() })?,
             )
         }
@@ -367,6 +425,7 @@ pub fn run_compile(args: &CompileRequest) -> Result<CompileReport, CompileCmdErr
         error,
         budget_mm: args.budget_mm,
         home_slips: describe_home_slips(&parsed),
+        test_home,
     };
     let refusal = over_budget(&report);
     if refusal.is_none() || args.write_over_budget {

@@ -5,6 +5,7 @@
 //! on from the training's, the re-homed one's starts again) and judges the
 //! test session with the slips of its home.
 
+use spidar::data::dataset::Session;
 use spidar::data::home::HomeBasis;
 use spidar::procedures::calibrate::report::StageKind;
 use spidar::procedures::calibrate::{CalibrateConfig, Calibrated};
@@ -21,6 +22,18 @@ fn calibrated(effects: &[&str], continuing: bool) -> Calibrated {
 /// `calibrated`, the sessions recording `home_id` as their home capture
 /// (and their `t_s` as the time since it), as `spidar collect` writes them.
 fn calibrated_under(effects: &[&str], continuing: bool, home_id: Option<u64>) -> Calibrated {
+    let (device, train, test) = sessions_under(effects, continuing, home_id);
+    let mut cfg = CalibrateConfig::quick();
+    cfg.quiet = true;
+    crate::calibrate_in_memory(&device.nominal, &train, &test, &cfg)
+}
+
+/// The device of `calibrated_under`, its lattice and its test session.
+fn sessions_under(
+    effects: &[&str],
+    continuing: bool,
+    home_id: Option<u64>,
+) -> (SimulatedDevice, Session, Session) {
     let seed = 1;
     let config = SimConfig {
         effects: effects.iter().map(|s| s.to_string()).collect(),
@@ -36,7 +49,7 @@ fn calibrated_under(effects: &[&str], continuing: bool, home_id: Option<u64>) ->
     } else {
         simulate_session(&device, kind, seed + 200).expect("re-homed test")
     };
-    let with_home = |mut s: spidar::data::dataset::Session| {
+    let with_home = |mut s: Session| {
         for row in s.samples.iter_mut().filter(|_| home_id.is_some()) {
             row.since_home_s = Some(row.t_s);
             row.home = home_id;
@@ -44,10 +57,17 @@ fn calibrated_under(effects: &[&str], continuing: bool, home_id: Option<u64>) ->
         s
     };
     let (train, test) = (with_home(train), with_home(test));
-    let mut cfg = CalibrateConfig::quick();
-    cfg.quiet = true;
-    crate::calibrate_in_memory(&device.nominal, &train, &test, &cfg)
+    (device, train, test)
 }
+
+/// [`calibrated_under`] of the slip, continuing, under [`CARRIED_HOME`]:
+/// one calibration for the tests that read it.
+fn carried() -> &'static Calibrated {
+    static C: std::sync::OnceLock<Calibrated> = std::sync::OnceLock::new();
+    C.get_or_init(|| calibrated_under(&[SLIP], true, Some(CARRIED_HOME)))
+}
+
+const CARRIED_HOME: u64 = 0x5eed_0000_0003;
 
 /// The identified model's (with its effects) held-out mean, mm.
 fn identified_test_mean_mm(c: &Calibrated) -> f64 {
@@ -95,8 +115,8 @@ fn a_slip_carries_into_a_session_of_the_same_home_and_not_past_a_new_one() {
 #[test]
 fn the_calibration_carries_the_training_slips_under_its_home_capture() {
     use spidar_core::model::Effect;
-    let home_id = 0x5eed_0000_0003;
-    let c = calibrated_under(&[SLIP], true, Some(home_id));
+    let home_id = CARRIED_HOME;
+    let c = carried();
     let home = c.calibration.home.as_ref().expect("the training's slips");
     assert_eq!(home.home_id, home_id);
     assert!(
@@ -227,4 +247,168 @@ fn the_monitor_judges_states_with_the_training_slips_only_under_their_home_captu
     };
     assert!(applied(Some(home_id)));
     assert!(!applied(Some(home_id + 1)) && !applied(None));
+}
+
+/// `spidar compile --test` measures the blob against the f64 model as the
+/// device runs it: the test rows under the blob's home capture (`home`)
+/// with the training's slips on both sides, the rows after a new capture
+/// without, so that the budget covers the home section's path too.
+#[test]
+fn the_fixed_point_error_covers_the_training_slips_under_their_home_capture() {
+    use spidar::data::home::LaterHome;
+    use spidar::data::observe::observations;
+    use spidar::model::compile::{
+        device_positions, fixed_point_error, run_compile, CompileRequest, FIXED_POINT_BUDGET_MM,
+    };
+    use spidar_core::blob::CompiledCalibration;
+    let c = carried();
+    assert!(c.calibration.home.is_some());
+    let (_, _, mut test) = sessions_under(&[SLIP], true, Some(CARRIED_HOME));
+    // The device is homed again at the test session's row 250.
+    let rehomed = 250;
+    let t0 = test.samples[rehomed].t_s;
+    for row in &mut test.samples[rehomed..] {
+        row.home = Some(CARRIED_HOME + 1);
+        row.since_home_s = Some(row.t_s - t0);
+    }
+    let home = LaterHome::under(CARRIED_HOME, &test);
+    assert_eq!(home.first_new_home_row, rehomed, "{}", home.reason);
+
+    let blob = spidar_core::blob::compile(&c.calibration, 1, 0).expect("compiles");
+    let parsed = CompiledCalibration::from_blob(&blob).expect("parses");
+    let obs = observations(&test.samples);
+    let e = fixed_point_error(&c.calibration, &parsed, &obs, rehomed).expect("rows");
+    assert!(
+        e.home_rows > rehomed * 9 / 10 && e.home_rows <= rehomed && e.rows > e.home_rows,
+        "{e:?}"
+    );
+    assert!(e.corrected.mean_mm <= FIXED_POINT_BUDGET_MM, "{e:?}");
+    // The rows under the capture took the slips' path: the device's
+    // positions there are not those after a new capture, and the rows
+    // after it are.
+    let with = device_positions(&parsed, &obs, rehomed);
+    let without = device_positions(&parsed, &obs, 0);
+    let moved = |r: std::ops::Range<usize>| {
+        r.filter(|&k| spidar_core::geometry::distance(with[k].0, without[k].0) > 1e-3)
+            .count()
+    };
+    assert!(moved(0..rehomed) > rehomed / 2, "{}", moved(0..rehomed));
+    assert_eq!(moved(rehomed + 20..obs.len()), 0);
+
+    // The command says which rows it measured so, and why.
+    let dir = std::env::temp_dir().join(format!("spidar-compile-home-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let calibration = dir.join("calibration.json");
+    std::fs::write(&calibration, serde_json::to_string(&c.calibration).unwrap()).unwrap();
+    let test_csv = dir.join("test.csv");
+    test.write(&test_csv).unwrap();
+    let report = run_compile(&CompileRequest {
+        calibration,
+        out: dir.join("model.bin"),
+        test: Some(test_csv),
+        geometry: None,
+        model_id: None,
+        budget_mm: FIXED_POINT_BUDGET_MM,
+        write_over_budget: false,
+    })
+    .expect("compiles within the budget");
+    assert_eq!(
+        report.error.as_ref().map(|e| e.home_rows),
+        Some(e.home_rows)
+    );
+    let text = report.to_string();
+    eprintln!("{text}");
+    assert!(
+        text.contains(&format!(
+            "({} with the training's slips, under their home capture)",
+            e.home_rows
+        )) && text.contains(&home.reason),
+        "{text}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The lattice of `calibrated_under`'s device with a slip of string 2 at
+/// `slip_at_s` of its clock, recorded as homed again at `rehome_at_s`: its
+/// rows before under capture `CARRIED_HOME`, the rest under the next
+/// (`since_home_s` from it), and the test session continuing the last. A
+/// slip before the new capture is over after it (the strings are counted
+/// from where they are): those rows are the clean device's.
+fn calibrated_over_two_captures(slip_at_s: f64, rehome_at_s: f64) -> Calibrated {
+    let slip = format!("slip:2:at_s={slip_at_s},mm=8");
+    let (device, mut train, mut test) = sessions_under(&[&slip], true, Some(CARRIED_HOME));
+    let (_, clean_train, clean_test) = sessions_under(&[], true, Some(CARRIED_HOME));
+    let next = CARRIED_HOME + 1;
+    for (row, clean) in train
+        .samples
+        .iter_mut()
+        .zip(&clean_train.samples)
+        .chain(test.samples.iter_mut().zip(&clean_test.samples))
+    {
+        assert_eq!((row.t_s, row.tracker), (clean.t_s, clean.tracker));
+        if row.t_s >= rehome_at_s {
+            row.home = Some(next);
+            row.since_home_s = Some(row.t_s - rehome_at_s);
+            if slip_at_s < rehome_at_s {
+                row.counts = clean.counts;
+            }
+        }
+    }
+    let mut cfg = CalibrateConfig::quick();
+    cfg.quiet = true;
+    crate::calibrate_in_memory(&device.nominal, &train, &test, &cfg)
+}
+
+/// A training session homed again midway (issue 33 point 1, record 0049's
+/// "Left"; the lattice runs from 16 to 4800 s): a slip after its last home
+/// capture, later after it than any row of the earlier capture is after
+/// its own, was fitted on the last capture's rows alone and is carried
+/// under that capture; a slip of the earlier capture is over and is not
+/// carried (the report says which and why).
+#[test]
+fn a_training_over_two_home_captures_carries_the_slips_of_its_last() {
+    use spidar_core::model::Effect;
+    let slip_of_8_mm = |t: &spidar_core::model::EffectTerm, since_s: f64| {
+        t.string == 2
+            && matches!(t.effect, Effect::Slip { at_s, mm }
+                if (mm - 8.0).abs() < 1.0 && (at_s - since_s).abs() < 100.0)
+    };
+    // Homed again at 500 s: the slip, 1500 s after the new capture, is
+    // later than any row of the first (500 s).
+    let c = calibrated_over_two_captures(2000.0, 500.0);
+    let d = &c.report.device_slips;
+    eprintln!("{}", d.reason);
+    assert_eq!(d.home_id, Some(CARRIED_HOME + 1), "{}", d.reason);
+    assert!(d.not_carried.is_empty(), "{d:?}");
+    assert!(d.slips.iter().any(|t| slip_of_8_mm(t, 1500.0)), "{d:?}");
+    assert_eq!(c.calibration.home, d.home_slips());
+    assert!(c.report.summary().contains(&d.reason));
+    assert!(
+        d.reason.contains("the last of the training session's 2"),
+        "{}",
+        d.reason
+    );
+
+    // A slip at 1000 s, homed again at 4000 s: the slip is the first
+    // capture's, and the last one's rows (up to 800 s after it) never
+    // reach its time since home.
+    let c = calibrated_over_two_captures(1000.0, 4000.0);
+    let d = &c.report.device_slips;
+    eprintln!("{}", d.reason);
+    assert_eq!(
+        (d.home_id, &c.calibration.home),
+        (None, &None),
+        "{}",
+        d.reason
+    );
+    assert!(
+        d.not_carried.iter().any(|t| slip_of_8_mm(t, 1000.0)),
+        "{d:?}"
+    );
+    assert!(
+        d.reason
+            .contains("a slip of an earlier capture, over with it"),
+        "{}",
+        d.reason
+    );
 }

@@ -4,6 +4,7 @@
 //! rig, and the tracker input. One test binary: these are the timing-sensitive
 //! tests `scripts/load-test` runs with every core busy.
 
+mod home_epochs;
 mod link;
 mod operator_collect;
 mod operator_init;

@@ -23,11 +23,11 @@ use spidar_core::model::{Effect, EffectTerm};
 
 const SEED: u64 = 3;
 const SLIP_AT_S: f64 = 9.0;
-const SLIP_MM: f64 = 6.0;
-const SLIP_STRING: u8 = 2;
+pub(crate) const SLIP_MM: f64 = 6.0;
+pub(crate) const SLIP_STRING: u8 = 2;
 
 /// The calibration of the simulated device, shared by the tests.
-fn calibrated() -> &'static SimCalibration {
+pub(crate) fn calibrated() -> &'static SimCalibration {
     static CAL: OnceLock<SimCalibration> = OnceLock::new();
     CAL.get_or_init(|| {
         let c = calibrate_simulated(SEED).expect("calibration of the simulated device");
@@ -36,7 +36,7 @@ fn calibrated() -> &'static SimCalibration {
     })
 }
 
-fn config(seconds: f64) -> MonitorConfig {
+pub(crate) fn config(seconds: f64) -> MonitorConfig {
     MonitorConfig {
         window: 400,
         check_every: 100,
@@ -77,6 +77,16 @@ fn run_with(
     rig: &mut SimulatedMonitorRig,
     config: &MonitorConfig,
 ) -> (Result<MonitorReport, MonitorError>, Vec<MonitorEvent>) {
+    run_on(cal, &cal.calibration, rig, config)
+}
+
+/// [`run_with`] for a device running `calibration` (of `cal`'s device).
+pub(crate) fn run_on(
+    cal: &SimCalibration,
+    calibration: &spidar_core::model::Calibration,
+    rig: &mut SimulatedMonitorRig,
+    config: &MonitorConfig,
+) -> (Result<MonitorReport, MonitorError>, Vec<MonitorEvent>) {
     let mut client = rig.client().expect("open the virtual device");
     let mut events = Vec::new();
     // Arrivals on the simulated rig's clock.
@@ -92,7 +102,7 @@ fn run_with(
         &mut rig.receiver,
         MonitorInputs {
             geometry: &cal.geometry,
-            calibration: &cal.calibration,
+            calibration,
             calibration_file: Path::new("calibration.json"),
             training: Some(&cal.training),
         },
@@ -204,6 +214,28 @@ fn a_slipped_string_is_reported_named_refitted_and_reflashed() {
     let info = client.info().unwrap().expect("a model on the device");
     assert_eq!(info.header.model_id, r.model_id);
     assert_ne!(r.model_id, rig.model_id);
+    // The slip is the current home capture's (the device's boot), not the
+    // model for the next one: a `Home` ends it.
+    let home = r
+        .calibration
+        .home
+        .as_ref()
+        .expect("the slip's home capture");
+    let (_, last_pair) = report.recorded.last().expect("pairs");
+    assert_eq!(Some(home.home_id), last_pair.sample.home);
+    assert!(
+        home.slips.iter().any(|t| t.string == SLIP_STRING),
+        "{:?}",
+        home.slips
+    );
+    assert!(
+        !r.calibration
+            .effects
+            .iter()
+            .any(|t| matches!(t.effect, Effect::Slip { .. })),
+        "{:?}",
+        r.calibration.effects
+    );
 
     // The error the device reports: near the baseline at detection (its
     // kinematics leave the slipped string out: a 6 mm slip lifts the RMS

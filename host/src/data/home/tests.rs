@@ -76,7 +76,7 @@ fn time_since_home_tells_without_ids() {
 }
 
 #[test]
-fn a_training_session_tells_its_home_capture_only_with_both_columns_and_one_id() {
+fn a_training_session_tells_its_home_capture_only_with_both_columns_on_its_last_capture() {
     let whole = TrainingHome::of(&session(&[
         (0.0, Some(5.0), Some(7)),
         (1.0, Some(6.0), Some(7)),
@@ -88,12 +88,54 @@ fn a_training_session_tells_its_home_capture_only_with_both_columns_and_one_id()
         &[(0.0, Some(5.0), Some(7)), (1.0, Some(6.0), None)],
         // No time since home.
         &[(0.0, None, Some(7)), (1.0, None, Some(7))],
-        // Two captures.
-        &[(0.0, Some(5.0), Some(7)), (1.0, Some(0.1), Some(8))],
+        // Not on the last capture's rows.
+        &[(0.0, Some(5.0), Some(7)), (1.0, None, Some(8))],
+        // A capture's rows apart.
+        &[
+            (0.0, Some(5.0), Some(7)),
+            (1.0, Some(0.1), Some(8)),
+            (2.0, Some(0.2), Some(7)),
+        ],
         &[],
     ] {
         let h = TrainingHome::of(&session(rows));
         assert_eq!(h.home_id, None, "{rows:?}: {}", h.reason);
         assert!(!h.reason.is_empty());
     }
+}
+
+/// A training session homed again midway ends under its last capture; a
+/// slip term is that capture's when no row of the earlier ones is as long
+/// after its own capture (the fit applied it to the last capture's rows
+/// alone), else it was fitted across them.
+#[test]
+fn a_training_session_over_two_captures_ends_under_the_last() {
+    let h = TrainingHome::of(&session(&[
+        (0.0, None, None),
+        (40.0, None, None),
+        (50.0, Some(2.0), Some(8)),
+        (90.0, Some(42.0), Some(8)),
+        (130.0, Some(82.0), Some(8)),
+    ]));
+    assert_eq!(
+        (h.home_id, h.captures, h.first_row, h.earlier_until_s),
+        (Some(8), 2, 2, Some(40.0)),
+        "{}",
+        h.reason
+    );
+    assert!(h.reason.contains("spans 2 home captures"), "{}", h.reason);
+    assert!(h.slip_is_of_last_capture(60.0));
+    assert!(h.slip_is_of_last_capture(40.001));
+    assert_eq!(h.rows_of_slip(40.0), SlipRows::Both);
+    assert_eq!(h.rows_of_slip(10.0), SlipRows::Both);
+    let short_last = TrainingHome::of(&session(&[
+        (0.0, Some(0.0), Some(7)),
+        (40.0, Some(40.0), Some(7)),
+        (50.0, Some(2.0), Some(8)),
+    ]));
+    assert_eq!(short_last.rows_of_slip(30.0), SlipRows::Earlier);
+    assert_eq!(short_last.rows_of_slip(2.0), SlipRows::Both);
+    let one = TrainingHome::of(&session(&[(0.0, Some(5.0), Some(7))]));
+    assert_eq!((one.captures, one.earlier_until_s), (1, None));
+    assert!(one.slip_is_of_last_capture(0.0));
 }

@@ -148,45 +148,45 @@ pub fn structure_of(calibration: &Calibration) -> Structure {
 /// effect terms; never after a new home capture (decision record 0049,
 /// "Device side").
 pub fn under_home(calibration: &Calibration, home_id: Option<u64>) -> Calibration {
-    let mut c = calibration.clone();
-    if let Some(home) = c.home.take().filter(|h| Some(h.home_id) == home_id) {
-        c.effects.extend(home.slips);
-    }
-    c
+    calibration.under_home(home_id)
 }
 
 /// A refitted model's effect terms (of [`under_home`]'s calibration) split
-/// back: the training slips of `previous` (same string and time) into its
-/// home section, refitted, while the device is still under their capture
-/// (`home_id`), the rest into the effects. After a new capture the
-/// training's slips are over, and the refitted calibration has none.
+/// back into the model for the next home capture (`effects`) and the slips
+/// of the current one (`home`, under `home_id`): the training's slips,
+/// refitted, while `home_id` is still theirs, and every slip on one string
+/// the refit added at run time. A slip is an event of the home capture it
+/// happened in: the next `Home` counts the string as it is, so a run-time
+/// slip in `effects` would put its step on every later capture. After a
+/// new capture the training's slips are over and are not carried. A slip
+/// `previous.effects` already holds stays there (a calibration written
+/// before run-time slips had a capture); a slip shared by every string
+/// is no slip of one string, which is all a blob's home section carries.
+/// Without a known capture (`None`, no state read yet) nothing moves.
 pub(super) fn split_home_slips(
     effects: &[EffectTerm],
     previous: &Calibration,
     home_id: Option<u64>,
 ) -> (Vec<EffectTerm>, Option<HomeSlips>) {
-    let Some(home) = previous
-        .home
-        .as_ref()
-        .filter(|h| Some(h.home_id) == home_id)
-    else {
+    let Some(home_id) = home_id else {
         return (effects.to_vec(), None);
     };
-    let is_training_slip = |t: &EffectTerm| {
-        home.slips.iter().any(|h| match (h.effect, t.effect) {
-            (Effect::Slip { at_s: a, .. }, Effect::Slip { at_s: b, .. }) => {
-                h.string == t.string && a == b
-            }
-            _ => false,
-        })
+    let same_slip = |h: &EffectTerm, t: &EffectTerm| match (h.effect, t.effect) {
+        (Effect::Slip { at_s: a, .. }, Effect::Slip { at_s: b, .. }) => {
+            h.string == t.string && a == b
+        }
+        _ => false,
+    };
+    let of_this_home = |t: &EffectTerm| {
+        matches!(t.effect, Effect::Slip { .. })
+            && usize::from(t.string) < STRINGS
+            && !previous.effects.iter().any(|e| same_slip(e, t))
     };
     let (slips, rest): (Vec<EffectTerm>, Vec<EffectTerm>) =
-        effects.iter().partition(|t| is_training_slip(t));
-    (
-        rest,
-        Some(HomeSlips {
-            home_id: home.home_id,
-            slips,
-        }),
-    )
+        effects.iter().partition(|t| of_this_home(t));
+    let home = (!slips.is_empty()).then_some(HomeSlips { home_id, slips });
+    (rest, home)
 }
+
+#[cfg(test)]
+mod tests;

@@ -40,8 +40,9 @@
 //!    diagnosis loop's rule, [`crate::model::diagnose::cross_validated_error`]);
 //!    the model is identified again (warm, from the current calibration) on
 //!    the window, plus the training session when given (its rows count as
-//!    before anything that happened at run time: time since home 0; left
-//!    out when the model has a time drift term). The learned position
+//!    before anything that happened at run time: at their own time since
+//!    home when they are of the window's home capture, else at time since
+//!    home 0; left out when the model has a time drift term). The learned position
 //!    correction, if any, is kept. The new calibration is compiled
 //!    ([`crate::model::compile::compile_checked`]), the device disarmed and
 //!    flashed ([`Client::flash`], verified with `info`), and monitoring goes
@@ -51,7 +52,11 @@
 //! The model the window is judged and refitted with is the calibration as
 //! the device runs it under its current home capture ([`under_home`]):
 //! with the training session's slips while the states' `home_id` is the
-//! calibration's (`home`), without them after a new `Home` or a reboot.
+//! calibration's (`home`), without them after a new `Home` or a reboot. A
+//! refit writes the slips back under the capture the states are under: the
+//! training's (refitted) while it is theirs, and every slip it found at run
+//! time, so that the next `Home` ends them on the device and here alike;
+//! `effects` stays the model for the next home capture.
 //!
 //! The monitor never arms the device. Device time since home is device
 //! time since boot (a device with a stored model homes at boot) unless a

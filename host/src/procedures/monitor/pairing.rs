@@ -19,8 +19,9 @@ use super::{Monitor, MonitorError, MonitorEvent};
 /// One tracker frame paired with a device state.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Pair {
-    /// As a session row: `t_s` = device time since home, counts, tracker
-    /// (room frame), commanded tensions.
+    /// As a session row: `t_s` = `since_home_s` = device time since home,
+    /// its capture (`home`), counts, tracker (room frame), commanded
+    /// tensions.
     pub sample: Sample,
     /// Device time since boot, s.
     pub device_time_s: f64,
@@ -28,6 +29,10 @@ pub struct Pair {
     pub device_room_mm: [f64; 3],
     /// Its error against the tracker, mm.
     pub error_mm: f64,
+    /// The string the device's kinematics left out (`State::excluded` of
+    /// the state after the instant): one whose modelled length disagrees
+    /// with the others.
+    pub excluded: Option<u8>,
     /// Device time from the capture instant to the nearest state streamed, ms
     /// (the state is interpolated across it).
     pub gap_ms: f64,
@@ -258,12 +263,13 @@ impl Monitor<'_> {
                     orientation: None,
                     legacy: None,
                     tension_n: Some(state.tensions_n.map(f64::from)),
-                    since_home_s: None,
-                    home: None,
+                    since_home_s: Some(state.since_home_us as f64 / 1e6),
+                    home: Some(state.home_id),
                 },
                 device_time_s: t.round() / 1e6,
                 device_room_mm,
                 error_mm: position_error(device_room_mm, marker),
+                excluded: state.excluded,
                 gap_ms: nearest_ms,
             };
             if !self.gate.admit(pair.error_mm) {

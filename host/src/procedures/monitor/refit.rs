@@ -5,9 +5,9 @@
 use std::path::Path;
 use std::time::Instant;
 
-use spidar_core::model::{Calibration, Effect};
+use spidar_core::model::{Calibration, Effect, MAX_HOME_SLIPS};
 
-use crate::data::dataset::Sample;
+use crate::data::dataset::{Sample, Session};
 use crate::data::observe::{observations, Observation};
 use crate::data::stats::ErrorStats;
 use crate::device::link::Client;
@@ -51,9 +51,34 @@ struct RefitModel {
     added: Vec<String>,
 }
 
+/// The training session's rows as the refit reads them beside a window of
+/// home capture `home_id`: at their own time since home when they are of
+/// that capture (the run goes on from the training under it: the
+/// training's slips are in them, and what happened at run time came
+/// after), else at time since home 0, before anything of the window's
+/// capture (a slip found after a new `Home`, at a time since it, is not
+/// in them whatever their own time since their capture).
+fn training_rows(training: &Session, home_id: Option<u64>) -> Vec<Sample> {
+    training
+        .samples
+        .iter()
+        .map(|s| {
+            if s.home.is_some() && s.home == home_id && s.since_home_s.is_some() {
+                s.clone()
+            } else {
+                Sample {
+                    t_s: 0.0,
+                    since_home_s: None,
+                    ..s.clone()
+                }
+            }
+        })
+        .collect()
+}
+
 impl Monitor<'_> {
-    /// The refit's data: the window, plus the training session (time since
-    /// home 0) when given and the model has no time drift term.
+    /// The refit's data: the window, plus the training session
+    /// ([`training_rows`]) when given and the model has no time drift term.
     fn refit_data(&self, structure: &Structure) -> Vec<Observation> {
         let has_drift = structure
             .effects
@@ -61,10 +86,7 @@ impl Monitor<'_> {
             .any(|t| matches!(t.effect, Effect::Drift { .. }));
         let mut samples: Vec<Sample> = Vec::new();
         if let (Some(train), false) = (self.training, has_drift) {
-            samples.extend(train.samples.iter().map(|s| Sample {
-                t_s: 0.0,
-                ..s.clone()
-            }));
+            samples.extend(training_rows(train, self.home_id));
         }
         samples.extend(self.window.iter().map(|p| p.sample.clone()));
         // The training rows as the calibration read them (the window's are
@@ -96,9 +118,18 @@ impl Monitor<'_> {
                 "the refit does not lower the window error ({host_before_mm:.3} mm -> {host_after_mm:.3} mm); nothing flashed"
             ))));
         }
-        // The training's slips, refitted, stay under their home capture.
+        // Slips are the current home capture's: the training's, refitted,
+        // while it is theirs, and those found now.
         let (effects, home) =
             super::calibration::split_home_slips(&id.effects, &self.calibration, self.home_id);
+        if let Some(h) = home.as_ref().filter(|h| h.slips.len() > MAX_HOME_SLIPS) {
+            return Err(MonitorError::Identify(IdentifyError::Diverged(format!(
+                "{} slips under home capture {}, a blob carries at most {MAX_HOME_SLIPS}; nothing \
+                 flashed (home the device again: a new capture counts the strings as they are)",
+                h.slips.len(),
+                h.home_id
+            ))));
+        }
         let calibration = Calibration {
             frame: id.frame,
             strings: id.laws,
@@ -237,5 +268,48 @@ impl Monitor<'_> {
         }
         client.stream_on(self.config.decimation)?;
         Ok(flashed)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Training rows of the window's capture keep their time since home;
+    /// rows of another capture (or that do not say) read as time 0, so that
+    /// a slip found after a new `Home` is not in them.
+    #[test]
+    fn training_rows_keep_their_time_only_under_the_window_s_capture() {
+        let row = |t_s: f64, since_home_s: Option<f64>, home: Option<u64>| Sample {
+            t_s,
+            counts: [0; spidar_core::STRINGS],
+            tracker: None,
+            orientation: None,
+            legacy: None,
+            tension_n: None,
+            since_home_s,
+            home,
+        };
+        let training = Session {
+            samples: vec![
+                row(10.0, Some(12.0), Some(7)),
+                row(20.0, Some(22.0), Some(7)),
+            ],
+            ..Session::default()
+        };
+        let time = |rows: Vec<Sample>| {
+            crate::data::observe::observations(&rows)
+                .iter()
+                .map(|o| o.inputs.time_ms)
+                .collect::<Vec<_>>()
+        };
+        assert_eq!(time(training_rows(&training, Some(7))), [12_000, 22_000]);
+        assert_eq!(time(training_rows(&training, Some(8))), [0, 0]);
+        assert_eq!(time(training_rows(&training, None)), [0, 0]);
+        let untold = Session {
+            samples: vec![row(10.0, None, None)],
+            ..Session::default()
+        };
+        assert_eq!(time(training_rows(&untold, None)), [0]);
     }
 }

@@ -78,14 +78,26 @@ pub fn event_line(e: &MonitorEvent) -> String {
             s
         }
         MonitorEvent::Refitted(r) => format!(
-            "refit on {} pairs: {}; window error on the host {:.3} -> {:.3} mm; flashed model {:#010x} ({} bytes) in {:.1} s",
+            "refit on {} pairs: {}; window error on the host {:.3} -> {:.3} mm; flashed model {:#010x} ({} bytes) in {:.1} s{}",
             r.rows,
             r.added.join("; "),
             r.host_before_mm,
             r.host_after_mm,
             r.model_id,
             r.blob_len,
-            r.seconds
+            r.seconds,
+            match &r.calibration.home {
+                Some(h) => format!(
+                    "; its {} under home capture {} until the device's next `Home`",
+                    if h.slips.len() == 1 {
+                        "slip applies".to_string()
+                    } else {
+                        format!("{} slips apply", h.slips.len())
+                    },
+                    h.home_id
+                ),
+                None => String::new(),
+            }
         ),
         MonitorEvent::RefitFailed(why) => format!("refit failed: {why}"),
         MonitorEvent::After { before, after } => format!(
