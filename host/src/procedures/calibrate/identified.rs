@@ -66,6 +66,17 @@ fn session_observations(
 /// came out within 0.01 ms of those from every row (record 0051).
 const ALIGNMENT_MODEL_ROWS: usize = 3000;
 
+/// The sessions with their clocks aligned, and the nominal geometry's room
+/// positions of the training rows when the alignment worked them out (the
+/// raw stage's: the kinematics read the strings alone, which re-pairing the
+/// tracker leaves as they were).
+type Aligned = (
+    Vec<Observation>,
+    Vec<Observation>,
+    report::Timing,
+    Option<Vec<[f64; 3]>>,
+);
+
 /// Aligns the tracker's clock of dynamic sessions (see [`align`]): twice
 /// for the training session (nominal model, then a model identified from
 /// the first alignment), once for the test session with that model.
@@ -75,9 +86,9 @@ fn align_clocks(
     geometry: &Geometry,
     nominal: &spidar_core::model::Frame<f64>,
     nominal_laws: &[spidar_core::model::StringLaw; spidar_core::STRINGS],
-) -> Result<(Vec<Observation>, Vec<Observation>, report::Timing), CalibrateError> {
-    let positions = |model: KinematicModel<'_>, obs: &[Observation]| -> Vec<Option<[f64; 3]>> {
-        predict(model, obs)
+) -> Result<Aligned, CalibrateError> {
+    let placed = |predictions: &[crate::model::predict::Prediction]| -> Vec<Option<[f64; 3]>> {
+        predictions
             .iter()
             .map(|p| {
                 matches!(
@@ -88,6 +99,9 @@ fn align_clocks(
             })
             .collect()
     };
+    let positions = |model: KinematicModel<'_>, obs: &[Observation]| -> Vec<Option<[f64; 3]>> {
+        placed(&predict(model, obs))
+    };
     let nominal_model = KinematicModel {
         frame: nominal,
         laws: nominal_laws,
@@ -96,13 +110,16 @@ fn align_clocks(
         kinematics: KinematicsRule::default(),
     };
     let mut id = None;
+    let mut raw_train = None;
     let (tr, train_timing) = match align::static_timing(&tr) {
         Some(s) => (tr, s),
         None => {
+            let nominal_tr = predict(nominal_model, &tr);
             // The model identified on rows paired a little off takes up part
             // of the offset, and the next pass with it finds the rest: the
             // two are alternated until the offset holds.
-            let (mut a, mut rows) = align::align(&tr, &positions(nominal_model, &tr), 0.0, false)?;
+            let (mut a, mut rows) = align::align(&tr, &placed(&nominal_tr), 0.0, false)?;
+            raw_train = Some(nominal_tr.iter().map(|p| p.room).collect());
             let mut quick;
             let mut rounds = 0;
             loop {
@@ -163,14 +180,17 @@ fn align_clocks(
             train: train_timing,
             test: test_timing,
         },
+        raw_train,
     ))
 }
 
-/// Stage 1, raw: the nominal geometry through the device pipeline.
+/// Stage 1, raw: the nominal geometry through the device pipeline (the
+/// training rows' positions `raw_train` when the alignment worked them out).
 fn raw_errors(
     obs: PerSession<&[Observation]>,
     nominal: &spidar_core::model::Frame<f64>,
     nominal_laws: &[spidar_core::model::StringLaw; spidar_core::STRINGS],
+    raw_train: Option<Vec<[f64; 3]>>,
 ) -> Result<(StageErrors, Vec<[f64; 3]>), StatsError> {
     let raw_model = KinematicModel {
         frame: nominal,
@@ -179,7 +199,7 @@ fn raw_errors(
         length_scale_mm: &UNMEASURED_SCALES,
         kinematics: KinematicsRule::default(),
     };
-    let raw_tr = room_positions(raw_model, obs.train);
+    let raw_tr = raw_train.unwrap_or_else(|| room_positions(raw_model, obs.train));
     let raw_te = room_positions(raw_model, obs.test);
     let errors = StageErrors::of(
         "raw",
@@ -393,7 +413,8 @@ impl Run<'_> {
         let nominal_laws = geometry.nominal_string_laws();
 
         // 0. The tracker's clock against the device's (dynamic sessions only).
-        let (tr, te, timing) = self.aligned_observations(train, test, &nominal, &nominal_laws)?;
+        let (tr, te, timing, raw_train) =
+            self.aligned_observations(train, test, &nominal, &nominal_laws)?;
         let obs = PerSession {
             train: &tr[..],
             test: &te[..],
@@ -401,7 +422,7 @@ impl Run<'_> {
 
         // 1. Raw: nominal geometry through the device pipeline.
         let t = Instant::now();
-        let (raw, raw_tr) = raw_errors(obs, &nominal, &nominal_laws)?;
+        let (raw, raw_tr) = raw_errors(obs, &nominal, &nominal_laws, raw_train)?;
         self.timings.raw_s = t.elapsed().as_secs_f64();
         if let Some(w) = check_tracker_scale(train.path, self.geometry_path, &tr, &raw_tr)? {
             self.warnings.push(w);
@@ -487,7 +508,7 @@ impl Run<'_> {
         test: NamedSession<'_>,
         nominal: &spidar_core::model::Frame<f64>,
         nominal_laws: &[spidar_core::model::StringLaw; spidar_core::STRINGS],
-    ) -> Result<(Vec<Observation>, Vec<Observation>, report::Timing), CalibrateError> {
+    ) -> Result<Aligned, CalibrateError> {
         let skipped = [&self.train_info, &self.test_info].map(|info| info.rows_set_aside());
         let (tr, te) = session_observations(
             nominal,
@@ -497,13 +518,14 @@ impl Run<'_> {
             self.test_info.home.as_ref(),
         );
         let t = Instant::now();
-        let (tr, te, timing) = align_clocks(tr, te, self.geometry, nominal, nominal_laws)?;
+        let (tr, te, timing, raw_train) =
+            align_clocks(tr, te, self.geometry, nominal, nominal_laws)?;
         for (path, t) in [(train.path, &timing.train), (test.path, &timing.test)] {
             check_alignment(path, t)?;
         }
         self.timings.alignment_s = t.elapsed().as_secs_f64();
         self.warnings.extend(unpaired_rows_warnings(&timing));
-        Ok((tr, te, timing))
+        Ok((tr, te, timing, raw_train))
     }
 
     /// The plain least-squares reference, identified on the same rows as
