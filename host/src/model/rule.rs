@@ -17,6 +17,7 @@
 //! rule stays unless another lowers the held-out mean by the loop's
 //! [`LoopConfig::min_relative_gain`].
 
+use rayon::prelude::*;
 use serde::Serialize;
 use spidar_core::kinematics::KinematicsRule;
 
@@ -180,8 +181,9 @@ pub fn choose(
     let tried = candidates(scaled);
     let start = Start::from_identification(id);
     let fits = judged_fold_fits(train, |rows| identify(rows, nominal, &start, structure))?;
+    // Each rule's kinematics over the held-out rows on its own core.
     let scores: Vec<RuleScore> = tried
-        .iter()
+        .par_iter()
         .map(|c| {
             let errors: Vec<f64> = fits
                 .iter()

@@ -328,44 +328,60 @@ impl Evidence<'_> {
             .iter()
             .map(|s| vec![vec![0.0; dims]; s.columns.len()])
             .collect();
+        // Each set's weighted values on the rows it is on, in row order:
+        // worked out in the first pass and read again in the second (a
+        // column can cost a few transcendental functions a row).
+        let mut values: Vec<Vec<f64>> = vec![Vec::new(); sets.len()];
         self.for_each_chunk_with_basis(|chunk, basis| {
-            coefs.par_iter_mut().zip(sets).for_each(|(coef, set)| {
-                for (j, (_, row)) in chunk.iter().enumerate() {
-                    if !set.on(row) {
-                        continue;
-                    }
-                    let b = &basis[j * dims..(j + 1) * dims];
-                    let sw = row.weight.sqrt();
-                    for (f, coef) in set.columns.iter().zip(coef.iter_mut()) {
-                        let x = f(row) * sw;
-                        if x != 0.0 {
-                            for (c, &bc) in coef.iter_mut().zip(b) {
-                                *c += bc * x;
+            coefs
+                .par_iter_mut()
+                .zip(&mut values)
+                .zip(sets)
+                .for_each(|((coef, values), set)| {
+                    for (j, (_, row)) in chunk.iter().enumerate() {
+                        if !set.on(row) {
+                            continue;
+                        }
+                        let b = &basis[j * dims..(j + 1) * dims];
+                        let sw = row.weight.sqrt();
+                        for (f, coef) in set.columns.iter().zip(coef.iter_mut()) {
+                            let x = f(row) * sw;
+                            values.push(x);
+                            if x != 0.0 {
+                                for (c, &bc) in coef.iter_mut().zip(b) {
+                                    *c += bc * x;
+                                }
                             }
                         }
                     }
-                }
-            });
+                });
         });
         let rows = self.rows();
         let mut sums: Vec<OffSpanSums> = sets
             .iter()
             .map(|s| OffSpanSums::new(s.columns.len(), rows))
             .collect();
+        let mut read: Vec<usize> = vec![0; sets.len()];
         self.for_each_chunk_with_basis(|chunk, basis| {
             sums.par_iter_mut()
+                .zip(&mut read)
                 .zip(sets)
                 .zip(&coefs)
-                .for_each(|((sums, set), coef)| {
+                .zip(&values)
+                .for_each(|((((sums, read), set), coef), values)| {
                     let (mut x, mut p) = (Vec::new(), Vec::new());
                     for (j, (k, row)) in chunk.iter().enumerate() {
                         let b = &basis[j * dims..(j + 1) * dims];
-                        let sw = row.weight.sqrt();
                         let on = set.on(row);
                         x.clear();
                         p.clear();
-                        for (f, coef) in set.columns.iter().zip(coef) {
-                            let value = if on { f(row) * sw } else { 0.0 };
+                        for coef in coef {
+                            let value = if on {
+                                *read += 1;
+                                values[*read - 1]
+                            } else {
+                                0.0
+                            };
                             x.push(value);
                             p.push(value - dot_in_turn(b, coef));
                         }
