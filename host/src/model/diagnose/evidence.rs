@@ -104,8 +104,9 @@ struct FitRows<'a> {
     homes: [Option<StringHome>; STRINGS],
     /// Every observation's basis rows, worked out at the first pass that
     /// reads them and kept for the diagnosis's other passes (a test and
-    /// its rivals' read them four to six times), when they take at most
-    /// [`BASIS_KEPT_VALUES`]; `None` inside: recomputed at every pass.
+    /// its rivals' read them four to six times), when the diagnosis reads
+    /// at most [`KEPT_OBSERVATIONS`]; `None` inside: recomputed at every
+    /// pass.
     basis_kept: OnceLock<Option<Vec<f64>>>,
 }
 
@@ -235,6 +236,12 @@ impl<'a> Evidence<'a> {
     }
 
     /// Number of rows.
+    /// Whether the rows are few enough that a test keeps what its first
+    /// pass works out for its second ([`KEPT_OBSERVATIONS`]).
+    pub(super) fn keeps_passes(&self) -> bool {
+        self.rows() <= KEPT_OBSERVATIONS * STRINGS
+    }
+
     pub(super) fn rows(&self) -> usize {
         match &self.source {
             Source::Fit(fit) => fit.jacobian.rows(),
@@ -422,10 +429,13 @@ impl<'a> Evidence<'a> {
 /// visited in order): a few hundred kB of rows at a time.
 const BASIS_CHUNK: usize = 512;
 
-/// Most values of the basis rows a diagnosis keeps between its passes
-/// (32 MB: a 4000-row loop's with 80 directions; a longer session's rows
-/// are worked out again at each pass).
-const BASIS_KEPT_VALUES: usize = 4 << 20;
+/// Most observations whose basis rows and candidates' values a diagnosis
+/// keeps between its passes: the loop's default bound on the rows it reads
+/// (`CalibrateConfig::max_loop_rows`), about 3 kB an observation, 12-20 MB
+/// in all. A loop that reads more (every row of a long session, when asked)
+/// works them out at each pass: kept, they would grow with the session at
+/// twenty times its file's size.
+pub(super) const KEPT_OBSERVATIONS: usize = 4000;
 
 /// Fewest observations per task of [`FitRows::basis_rows_of`]: each task
 /// sets up its own pass over the Jacobian.
@@ -490,12 +500,11 @@ impl FitRows<'_> {
     }
 
     /// Every observation's basis rows, once worked out, when they are few
-    /// enough to keep ([`BASIS_KEPT_VALUES`]).
+    /// enough to keep ([`KEPT_OBSERVATIONS`]).
     fn basis_kept(&self) -> Option<&[f64]> {
         self.basis_kept
             .get_or_init(|| {
-                let width = STRINGS * self.span.dims();
-                (self.used.len() * width <= BASIS_KEPT_VALUES).then(|| {
+                (self.used.len() <= KEPT_OBSERVATIONS).then(|| {
                     let all: Vec<usize> = (0..self.used.len()).collect();
                     let mut basis = Vec::new();
                     self.work_out_basis_rows(&all, &mut basis);

@@ -330,7 +330,9 @@ impl Evidence<'_> {
             .collect();
         // Each set's weighted values on the rows it is on, in row order:
         // worked out in the first pass and read again in the second (a
-        // column can cost a few transcendental functions a row).
+        // column can cost a few transcendental functions a row), when the
+        // rows are few enough to keep them.
+        let keep = self.keeps_passes();
         let mut values: Vec<Vec<f64>> = vec![Vec::new(); sets.len()];
         self.for_each_chunk_with_basis(|chunk, basis| {
             coefs
@@ -346,7 +348,9 @@ impl Evidence<'_> {
                         let sw = row.weight.sqrt();
                         for (f, coef) in set.columns.iter().zip(coef.iter_mut()) {
                             let x = f(row) * sw;
-                            values.push(x);
+                            if keep {
+                                values.push(x);
+                            }
                             if x != 0.0 {
                                 for (c, &bc) in coef.iter_mut().zip(b) {
                                     *c += bc * x;
@@ -372,15 +376,18 @@ impl Evidence<'_> {
                     let (mut x, mut p) = (Vec::new(), Vec::new());
                     for (j, (k, row)) in chunk.iter().enumerate() {
                         let b = &basis[j * dims..(j + 1) * dims];
+                        let sw = row.weight.sqrt();
                         let on = set.on(row);
                         x.clear();
                         p.clear();
-                        for coef in coef {
-                            let value = if on {
-                                *read += 1;
-                                values[*read - 1]
-                            } else {
-                                0.0
+                        for (f, coef) in set.columns.iter().zip(coef) {
+                            let value = match (on, keep) {
+                                (false, _) => 0.0,
+                                (true, true) => {
+                                    *read += 1;
+                                    values[*read - 1]
+                                }
+                                (true, false) => f(row) * sw,
                             };
                             x.push(value);
                             p.push(value - dot_in_turn(b, coef));
