@@ -42,6 +42,24 @@ pub struct Sample {
     pub home: Option<u64>,
 }
 
+#[cfg(test)]
+impl Sample {
+    /// A row with its times and home capture only (no counts, no tracker):
+    /// the home epochs' tests read nothing else.
+    pub(crate) fn at_home(t_s: f64, since_home_s: Option<f64>, home: Option<u64>) -> Sample {
+        Sample {
+            t_s,
+            counts: [0; STRINGS],
+            tracker: None,
+            orientation: None,
+            legacy: None,
+            tension_n: None,
+            since_home_s,
+            home,
+        }
+    }
+}
+
 /// A recorded (or simulated) session: captures in time order.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Session {

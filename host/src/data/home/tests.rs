@@ -4,16 +4,7 @@ fn session(rows: &[(f64, Option<f64>, Option<u64>)]) -> Session {
     Session {
         samples: rows
             .iter()
-            .map(|&(t_s, since_home_s, home)| Sample {
-                t_s,
-                counts: [0; spidar_core::STRINGS],
-                tracker: None,
-                orientation: None,
-                legacy: None,
-                tension_n: None,
-                since_home_s,
-                home,
-            })
+            .map(|&(t_s, since_home_s, home)| Sample::at_home(t_s, since_home_s, home))
             .collect(),
         ..Session::default()
     }

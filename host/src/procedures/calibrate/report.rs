@@ -1360,15 +1360,8 @@ mod tests {
     fn only_the_slips_of_the_training_s_last_home_capture_are_carried() {
         use crate::data::dataset::{Sample, Session};
         use crate::data::home::TrainingHome;
-        let row = |t_s: f64, since_home_s: f64, home: u64| Sample {
-            t_s,
-            counts: [0; spidar_core::STRINGS],
-            tracker: None,
-            orientation: None,
-            legacy: None,
-            tension_n: None,
-            since_home_s: Some(since_home_s),
-            home: Some(home),
+        let row = |t_s: f64, since_home_s: f64, home: u64| {
+            Sample::at_home(t_s, Some(since_home_s), Some(home))
         };
         let training = TrainingHome::of(&Session {
             samples: vec![

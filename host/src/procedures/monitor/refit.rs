@@ -280,16 +280,7 @@ mod tests {
     /// a slip found after a new `Home` is not in them.
     #[test]
     fn training_rows_keep_their_time_only_under_the_window_s_capture() {
-        let row = |t_s: f64, since_home_s: Option<f64>, home: Option<u64>| Sample {
-            t_s,
-            counts: [0; spidar_core::STRINGS],
-            tracker: None,
-            orientation: None,
-            legacy: None,
-            tension_n: None,
-            since_home_s,
-            home,
-        };
+        let row = Sample::at_home;
         let training = Session {
             samples: vec![
                 row(10.0, Some(12.0), Some(7)),
