@@ -69,11 +69,30 @@ impl Identification {
     /// session's early slip would put its step on one string of every test
     /// row after it.
     pub fn for_a_new_session(&self) -> Identification {
+        self.with_slips_where(|_| false)
+    }
+
+    /// The model as it holds for a later session under the training's last
+    /// home capture: the slips of that capture kept (`of_last_capture`
+    /// tells them by their time since home, as
+    /// [`crate::data::home::TrainingHome::slip_is_of_last_capture`] does),
+    /// the slips of an earlier capture (over with it) or fitted across
+    /// captures left out, as the device leaves them out.
+    pub fn under_the_last_home(&self, of_last_capture: impl Fn(f64) -> bool) -> Identification {
+        self.with_slips_where(of_last_capture)
+    }
+
+    /// The model with the slips whose `at_s` `keep` keeps (every other
+    /// effect kept).
+    fn with_slips_where(&self, keep: impl Fn(f64) -> bool) -> Identification {
         Identification {
             effects: self
                 .effects
                 .iter()
-                .filter(|t| !matches!(t.effect, Effect::Slip { .. }))
+                .filter(|t| match t.effect {
+                    Effect::Slip { at_s, .. } => keep(at_s),
+                    _ => true,
+                })
                 .copied()
                 .collect(),
             ..self.clone()

@@ -10,7 +10,7 @@ use spidar_core::geometry::room_from_device;
 use spidar_core::kinematics::{FkStatus, KinematicsRule};
 
 use crate::data::dataset::{Geometry, Session};
-use crate::data::home::LaterHome;
+use crate::data::home::{LaterHome, TrainingHome};
 use crate::data::observe::{observations_skipping, Observation};
 use crate::data::stats::{ErrorStats, StatsError};
 use crate::model::diagnose::{close_loop, LoopConfig, LoopResult};
@@ -271,15 +271,18 @@ pub(super) struct FinalIdentified {
 }
 
 impl FinalIdentified {
-    /// The model's predictions on both sessions, and their errors.
+    /// The model's predictions on both sessions, and their errors: `fin` on
+    /// the training rows, `later` (`fin` with the slips the training's last
+    /// home capture still has, [`under_the_training_home`]) on the test rows.
     pub(super) fn of(
         fin: &crate::model::identify::Identification,
+        later: &crate::model::identify::Identification,
         obs: PerSession<&[Observation]>,
     ) -> Result<(FinalIdentified, StageErrors), StatsError> {
         let fin_new = fin.for_a_new_session();
         let fin_tr_pred = predict(fin.kinematic_model(), obs.train);
         // Test rows under the training's home capture keep its slips.
-        let fin_te_pred = crate::model::validate::predict_later(fin, obs.test);
+        let fin_te_pred = crate::model::validate::predict_later(later, obs.test);
         let rejections = report::SessionRejections {
             train: report::Rejections::of(&fin_tr_pred),
             test: report::Rejections::of(&fin_te_pred),
@@ -326,6 +329,16 @@ fn effect_stages(loop_result: &LoopResult, fin: &StageErrors) -> Vec<report::Sta
     stages
 }
 
+/// `id` as it holds for the test rows under the training's last home
+/// capture (and for the device under it): the slips of that capture, not
+/// those of an earlier one or fitted across captures.
+pub(super) fn under_the_training_home(
+    id: &crate::model::identify::Identification,
+    training_home: &TrainingHome,
+) -> crate::model::identify::Identification {
+    id.under_the_last_home(|at_s| training_home.slip_is_of_last_capture(at_s))
+}
+
 /// Stages 0-3: the identified model and its stages, with the sessions'
 /// observations it leaves for the corrections.
 pub(super) struct IdentifiedModel {
@@ -345,6 +358,9 @@ pub(super) struct IdentifiedModel {
     pub(super) tolerance: crate::model::tolerance::ToleranceChoice,
     /// The training rows the loop decided on.
     pub(super) loop_rows: LoopRows,
+    /// The home capture the training session ends under: which of its
+    /// slips a later session under it, and the device, still have.
+    pub(super) training_home: TrainingHome,
 }
 
 /// The plain least-squares reference ([`crate::model::reference`]) and its
@@ -482,8 +498,15 @@ impl Run<'_> {
         let t = Instant::now();
         let rule = self.choose_rule(&loop_result, &loop_rows.pick(obs.train), &nominal, &regime);
         self.timings.rule_s = t.elapsed().as_secs_f64();
-        let final_identified =
-            self.final_identified(&mut loop_result, obs, &rule, test.path, &mut list)?;
+        let training_home = TrainingHome::of(train.session);
+        let final_identified = self.final_identified(
+            &mut loop_result,
+            obs,
+            &rule,
+            &training_home,
+            test.path,
+            &mut list,
+        )?;
         Ok(IdentifiedModel {
             timing,
             tr,
@@ -496,6 +519,7 @@ impl Run<'_> {
             rule: report::KinematicsReport::of(rule),
             tolerance,
             loop_rows,
+            training_home,
         })
     }
 
@@ -559,17 +583,20 @@ impl Run<'_> {
         loop_result: &mut LoopResult,
         obs: PerSession<&[Observation]>,
         rule: &Result<RuleChoice, String>,
+        training_home: &TrainingHome,
         test_path: &Path,
         list: &mut StageList,
     ) -> Result<FinalIdentified, CalibrateError> {
         if let Ok(choice) = rule {
             loop_result.identification = choice.apply(&loop_result.identification);
         }
-        let (final_identified, errors) = FinalIdentified::of(&loop_result.identification, obs)?;
+        let later = under_the_training_home(&loop_result.identification, training_home);
+        let (final_identified, errors) =
+            FinalIdentified::of(&loop_result.identification, &later, obs)?;
         self.warnings.extend(test_outlier_warning(
             test_path,
             &crate::model::diagnose::TrackerOutliers::of_session(
-                &loop_result.identification,
+                &later,
                 obs.test,
                 loop_result.tracker_outliers.threshold_mm,
             ),

@@ -443,7 +443,7 @@ impl Run<'_> {
         };
         list.push(final_name.into(), report::StageKind::Final, final_errors);
         let plain_rule = crate::model::rule::with_rule(
-            fin,
+            &identified::under_the_training_home(fin, &model.training_home),
             &crate::model::rule::all_strings_alike(reference.id.kinematics.fault_threshold_mm),
         );
         let plain_rule_te: Vec<[f64; 3]> = crate::model::validate::predict_later(&plain_rule, te)
@@ -579,6 +579,7 @@ pub fn calibrate(
         rule,
         tolerance,
         loop_rows,
+        training_home,
     } = model;
     let obs = PerSession {
         train: &tr[..],
@@ -587,7 +588,7 @@ pub fn calibrate(
     // The final identified model's slips go to the device under the
     // training's home capture (none when the reference is the final model).
     let device_slips = report::DeviceSlips::of(
-        &crate::data::home::TrainingHome::of(train.session),
+        &training_home,
         if corrected.fall_back {
             &[]
         } else {
