@@ -703,10 +703,23 @@ impl SimulatedRig {
         )
         .map_err(RigError::from)?;
         prepare(&virtual_device)?;
+        Ok(Self::operate(device, hand, virtual_device, configure)?)
+    }
+
+    /// The rig of `device` in `hand` on `virtual_device`, taken by a new
+    /// operator configured by `configure` (its tracker address is a new
+    /// receiver's): how [`SimulatedRig::start_prepared`] ends, and how a
+    /// test goes on after stopping an operator (the hand brought home, a
+    /// `Home` sent) with another.
+    pub fn operate(
+        device: SimulatedDevice,
+        hand: Hand,
+        virtual_device: crate::sim::virtual_device::VirtualDevice,
+        configure: impl FnOnce(&mut SimOperatorConfig),
+    ) -> Result<SimulatedRig, RigError> {
         let receiver = crate::device::tracker::DtrackReceiver::bind(
             crate::device::tracker::ReceiverConfig::new(SocketAddr::from(([127, 0, 0, 1], 0))),
-        )
-        .map_err(RigError::from)?;
+        )?;
         let mut config = SimOperatorConfig::new(receiver.local_addr());
         configure(&mut config);
         config.tracker = receiver.local_addr();
@@ -718,8 +731,7 @@ impl SimulatedRig {
             return Err(RigError::from(TrackerError::Config(crate::ConfigError::new("frame_rate_hz", format!(
                     "{} Hz: in a simulated rig the tracker's frame period must be a whole number of the device's {tick_us} µs ticks (e.g. 100, 125, 200, 250 Hz)",
                     config.frame_rate_hz
-                ))))
-            .into());
+                )))));
         }
         let cues = SharedCues::stamped_by(receiver.progress());
         let operator = SimOperator::spawn_in_step(
@@ -728,8 +740,7 @@ impl SimulatedRig {
             hand.clone(),
             cues.clone(),
             Some(receiver.progress()),
-        )
-        .map_err(RigError::from)?;
+        )?;
         Ok(SimulatedRig {
             device,
             hand,

@@ -10,14 +10,12 @@ use std::sync::atomic::AtomicBool;
 use std::time::Duration;
 
 use spidar::data::observe::observations;
-use spidar::device::cues::SharedCues;
 use spidar::device::link::{Client, ClientOptions};
-use spidar::device::tracker::{DtrackReceiver, ReceiverConfig};
 use spidar::model::compile::{compile_checked, device_positions, model_id_of};
 use spidar::procedures::monitor::{
     event_line, MonitorError, MonitorEvent, MonitorReport, SimRigConfig, SimulatedMonitorRig,
 };
-use spidar::sim::operator::{FreeMotion, SimOperator, SimOperatorConfig, SimulatedRig};
+use spidar::sim::operator::{FreeMotion, SimOperatorConfig, SimulatedRig};
 use spidar::sim::{SimConfig, SimulatedDevice};
 use spidar_core::blob::CompiledCalibration;
 use spidar_core::kinematics::FkStatus;
@@ -128,33 +126,11 @@ fn homed_again(rig: SimulatedMonitorRig, seconds: f64) -> SimulatedMonitorRig {
     )
     .and_then(|mut c| c.home())
     .expect("Home");
-    let receiver = DtrackReceiver::bind(ReceiverConfig::new(std::net::SocketAddr::from((
-        [127, 0, 0, 1],
-        0,
-    ))))
-    .expect("receiver");
-    let mut op = SimOperatorConfig::new(receiver.local_addr());
-    wander(&mut op, home, 2, seconds);
-    let cues = SharedCues::stamped_by(receiver.progress());
-    let operator = SimOperator::spawn_in_step(
-        op,
-        device.clone(),
-        hand.clone(),
-        cues.clone(),
-        Some(receiver.progress()),
-    )
-    .expect("operator");
-    SimulatedMonitorRig {
-        rig: SimulatedRig {
-            device,
-            hand,
-            cues,
-            virtual_device,
-            receiver,
-            operator,
-        },
-        model_id,
-    }
+    let rig = SimulatedRig::operate(device, hand, virtual_device, |op| {
+        wander(op, home, 2, seconds)
+    })
+    .expect("a new operator");
+    SimulatedMonitorRig { rig, model_id }
 }
 
 #[test]
