@@ -235,13 +235,13 @@ impl<'a> Evidence<'a> {
         self.rss = squares.total();
     }
 
-    /// Number of rows.
     /// Whether the rows are few enough that a test keeps what its first
     /// pass works out for its second ([`KEPT_OBSERVATIONS`]).
     pub(super) fn keeps_passes(&self) -> bool {
         self.rows() <= KEPT_OBSERVATIONS * STRINGS
     }
 
+    /// Number of rows.
     pub(super) fn rows(&self) -> usize {
         match &self.source {
             Source::Fit(fit) => fit.jacobian.rows(),

@@ -72,19 +72,12 @@ impl Identification {
         self.with_slips_where(|_| false)
     }
 
-    /// The model as it holds for a later session under the training's last
-    /// home capture: the slips of that capture kept (`of_last_capture`
-    /// tells them by their time since home, as
-    /// [`crate::data::home::TrainingHome::slip_is_of_last_capture`] does),
-    /// the slips of an earlier capture (over with it) or fitted across
-    /// captures left out, as the device leaves them out.
-    pub fn under_the_last_home(&self, of_last_capture: impl Fn(f64) -> bool) -> Identification {
-        self.with_slips_where(of_last_capture)
-    }
-
-    /// The model with the slips whose `at_s` `keep` keeps (every other
-    /// effect kept).
-    fn with_slips_where(&self, keep: impl Fn(f64) -> bool) -> Identification {
+    /// The model with the slips whose `at_s` `keep` keeps, every other
+    /// effect kept: under the training's last home capture, the slips of
+    /// that capture
+    /// ([`crate::data::home::TrainingHome::slip_is_of_last_capture`]), as
+    /// the device keeps them.
+    pub fn with_slips_where(&self, keep: impl Fn(f64) -> bool) -> Identification {
         Identification {
             effects: self
                 .effects

@@ -336,7 +336,7 @@ pub(super) fn under_the_training_home(
     id: &crate::model::identify::Identification,
     training_home: &TrainingHome,
 ) -> crate::model::identify::Identification {
-    id.under_the_last_home(|at_s| training_home.slip_is_of_last_capture(at_s))
+    id.with_slips_where(|at_s| training_home.slip_is_of_last_capture(at_s))
 }
 
 /// Stages 0-3: the identified model and its stages, with the sessions'
