@@ -44,7 +44,8 @@ pub struct SimulateArgs {
     /// `tracker_scale:relative=VALUE` (no string); e.g.
     /// `offset:3:mm=10`, `slip:2:at_s=2000,mm=5`. Independent physics
     /// (`NAME[:KEY=VALUE,...]`): drift-all, frame-flex, marker-offset, slip,
-    /// heavy-string.
+    /// heavy-string, latency (`ms`, `string`: one string's index, or every
+    /// string without it); e.g. `latency:string=2,ms=6`.
     #[arg(long = "effect", value_name = "SPEC")]
     pub effects: Vec<String>,
     /// File stem of the session CSV (default: `lattice` or `random`).

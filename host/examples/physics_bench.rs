@@ -35,6 +35,9 @@
 //! (`--only=independent:slip,model:clean`: just those cases;
 //! `--only=independent:guides-12,independent:point-guides`: the guide
 //! pulleys at 12 mm on every string, and at 0.001 mm;
+//! `--only=independent:stream,independent:stream-latency`: a 6000-row
+//! training stream and a 3000-row test stream of the clean device, and of
+//! the device with 6 ms of encoder latency on strings 2 and 5;
 //! `--only=independent:wall-robot`: the wall robot alone)
 //! (default 3 seeds).
 
@@ -57,6 +60,15 @@ use spidar_core::string_law::string_lengths_f64;
 use spidar_core::STRINGS;
 
 const TEST_POINTS: usize = 500;
+
+/// The `stream` cases' sessions: a training stream of the simulator's
+/// default 6000 rows (60 s at 100 Hz) over the central part of the
+/// workspace, a test stream of this many rows over the whole of it.
+const STREAM_TEST_ROWS: usize = 3000;
+
+/// The `stream-latency` case: 6 ms of encoder latency on two strings, as
+/// issue 33's hidden simulator has it.
+const STREAM_LATENCY: [&str; 2] = ["latency:string=2,ms=6", "latency:string=5,ms=6"];
 
 struct Run {
     geometry: Geometry,
@@ -93,26 +105,53 @@ fn physics_device(seed: u64, effect: Option<&str>) -> PhysicsDevice {
     match effect {
         Some("guides-12") => config.as_built.guide_radius_mm = [12.0, 12.0],
         Some("point-guides") => config.as_built.guide_radius_mm = [0.001, 0.001],
+        Some("stream") => {}
+        Some("stream-latency") => {
+            config.effects = STREAM_LATENCY.iter().map(|e| e.to_string()).collect()
+        }
         Some(e) => config.effects = vec![e.to_string()],
         None => {}
     }
     PhysicsDevice::new(&config, seed).expect("independent device")
 }
 
-/// A run of `device` and the truths of its training and test sessions;
-/// with `continuing`, the test session goes on under the training
-/// session's home capture (its clock, slips and drift go on), else it
-/// follows a new home capture.
+/// How a case's sessions are made: the lattice and a random test session
+/// after a new home capture, the same with the test session continuing the
+/// training's home capture (its clock, slips and drift go on), or two
+/// streams (the CLI's seeds: + 3 and + 4).
+#[derive(Clone, Copy, PartialEq)]
+enum Sessions {
+    Lattice,
+    LatticeContinuing,
+    Streams,
+}
+
+/// A run of `device` and the truths of its training and test sessions.
 fn physics_run(
     device: &PhysicsDevice,
     seed: u64,
-    continuing: bool,
+    sessions: Sessions,
 ) -> (Run, Vec<PhysicsTruth>, Vec<PhysicsTruth>) {
+    if sessions == Sessions::Streams {
+        let stream = |rows, area, session_seed| {
+            physics::simulate_session(device, SessionKind::Stream { rows, area }, session_seed)
+                .expect("stream")
+        };
+        let (train, truths) = stream(device.config.stream.rows, StreamArea::Training, seed + 3);
+        let (test, test_truths) = stream(STREAM_TEST_ROWS, StreamArea::Whole, seed + 4);
+        let run = Run {
+            geometry: device.nominal.clone(),
+            train,
+            test,
+        };
+        return (run, truths, test_truths);
+    }
     let (train, truths) =
         physics::simulate_session(device, SessionKind::Lattice, seed + 1).expect("lattice");
     let kind = SessionKind::Random {
         points: TEST_POINTS,
     };
+    let continuing = sessions == Sessions::LatticeContinuing;
     let (test, test_truths) = if continuing {
         let earlier = physics::EarlierSession {
             seed: seed + 1,
@@ -458,7 +497,7 @@ fn ablation(quick: bool) {
         let mut c = PhysicsConfig::default();
         switch(&mut c);
         let device = PhysicsDevice::new(&c, 1).expect("independent device");
-        let (run, _, _) = physics_run(&device, 1, false);
+        let (run, _, _) = physics_run(&device, 1, Sessions::Lattice);
         let cal = run_calibration(&run, &config);
         let stages = &cal.report.stages;
         let added: Vec<&str> = stages
@@ -585,16 +624,27 @@ fn physics_cases(
         // device's are 6-12 mm).
         Some("guides-12"),
         Some("point-guides"),
+        // Streams (100 Hz) of the clean device, and with 6 ms of encoder
+        // latency on two strings.
+        Some("stream"),
+        Some("stream-latency"),
     ] {
         if !options.wanted("independent", effect) {
             continue;
         }
         let name = effect.unwrap_or("clean");
         let continuing = effect.is_some_and(|e| e.ends_with("-continuing"));
+        let sessions = if continuing {
+            Sessions::LatticeContinuing
+        } else if effect.is_some_and(|e| e.starts_with("stream")) {
+            Sessions::Streams
+        } else {
+            Sessions::Lattice
+        };
         let mut rows = Vec::new();
         for seed in 1..=options.seeds {
             let device = physics_device(seed, effect.map(|e| e.trim_end_matches("-continuing")));
-            let (run, truths, test_truths) = physics_run(&device, seed, continuing);
+            let (run, truths, test_truths) = physics_run(&device, seed, sessions);
             let c = run_calibration(&run, config);
             let steps = slip_steps(&truths);
             if !steps.is_empty() {

@@ -31,6 +31,7 @@ fn help_texts_list_effects_units_and_the_firmware_capacity() {
         "frame-flex",
         "marker-offset",
         "heavy-string",
+        "latency:string=2,ms=6",
     ] {
         assert!(simulate.contains(kind), "simulate --help lacks {kind}");
     }

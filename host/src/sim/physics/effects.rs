@@ -11,6 +11,7 @@
 //! | `marker-offset` | `mm` (40), `deg` (6) | the marker `mm` from the strings' meeting point, the hand's posture rotation amplitude `deg` |
 //! | `slip` | `per_h` (2), `mm` (5) | one string at a time slips on its spool: events at Poisson times (`per_h` an hour), each on a random string, by `mm` times a uniform 0.5..1 and a random sign; slips add up |
 //! | `heavy-string` | `g_per_m` (20) | every string this heavy: sag `w^2 cos^2(a) l^3 / (24 T^2)` (inverse square of the tension, cube of the free length: no model family) |
+//! | `latency` | `ms` (6), `string` (every string) | encoder latency: the counts of string `string` (or of every string) reach the controller `ms` late, so each row holds that string as it was `ms` earlier: the hand's position then, back along its velocity |
 
 use serde::{Deserialize, Serialize};
 
@@ -20,20 +21,38 @@ use crate::sim::SimError;
 /// One undeclared effect.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub enum PhysicsEffect {
-    DriftAll { ppm_per_h: f64 },
-    FrameFlex { factor: f64 },
-    MarkerOffset { mm: f64, deg: f64 },
-    Slip { per_h: f64, mm: f64 },
-    HeavyString { g_per_m: f64 },
+    DriftAll {
+        ppm_per_h: f64,
+    },
+    FrameFlex {
+        factor: f64,
+    },
+    MarkerOffset {
+        mm: f64,
+        deg: f64,
+    },
+    Slip {
+        per_h: f64,
+        mm: f64,
+    },
+    HeavyString {
+        g_per_m: f64,
+    },
+    /// `string` None: every string.
+    Latency {
+        string: Option<usize>,
+        ms: f64,
+    },
 }
 
 /// The names `--effect` accepts.
-pub const EFFECT_NAMES: [&str; 5] = [
+pub const EFFECT_NAMES: [&str; 6] = [
     "drift-all",
     "frame-flex",
     "marker-offset",
     "slip",
     "heavy-string",
+    "latency",
 ];
 
 fn spec_error(spec: &str, problem: impl Into<String>) -> SimError {
@@ -69,6 +88,20 @@ pub fn parse_effect(spec: &str) -> Result<PhysicsEffect, SimError> {
         "heavy-string" => PhysicsEffect::HeavyString {
             g_per_m: get("g_per_m", 20.0),
         },
+        "latency" => {
+            let ms = get("ms", 6.0);
+            let string = match p.take("string") {
+                None => None,
+                Some(s) if s >= 0.0 && s.fract() == 0.0 && s < 256.0 => Some(s as usize),
+                Some(s) => {
+                    return Err(spec_error(
+                        spec,
+                        format!("`string` must be a string's index (0, 1, ...), not {s}"),
+                    ))
+                }
+            };
+            PhysicsEffect::Latency { string, ms }
+        }
         other => {
             return Err(spec_error(
                 spec,
@@ -103,6 +136,12 @@ pub fn parse_effect(spec: &str) -> Result<PhysicsEffect, SimError> {
             negative("mm", mm)?;
         }
         PhysicsEffect::HeavyString { g_per_m } => negative("g_per_m", g_per_m)?,
+        PhysicsEffect::Latency { ms, .. } => {
+            negative("ms", ms)?;
+            if ms > 1000.0 {
+                return Err(spec_error(spec, "`ms` must be at most 1000"));
+            }
+        }
     }
     Ok(effect)
 }
@@ -134,5 +173,22 @@ mod tests {
         let e = parse_effect("slip:size=3").unwrap_err().to_string();
         assert!(e.contains("unknown parameter `size`"), "{e}");
         assert!(parse_effect("heavy-string:g_per_m=-1").is_err());
+        assert_eq!(
+            parse_effect("latency:string=2").unwrap(),
+            PhysicsEffect::Latency {
+                string: Some(2),
+                ms: 6.0
+            }
+        );
+        assert_eq!(
+            parse_effect("latency:ms=4").unwrap(),
+            PhysicsEffect::Latency {
+                string: None,
+                ms: 4.0
+            }
+        );
+        let e = parse_effect("latency:string=1.5").unwrap_err().to_string();
+        assert!(e.contains("`string` must be a string's index"), "{e}");
+        assert!(parse_effect("latency:ms=-1").is_err());
     }
 }

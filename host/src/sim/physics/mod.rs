@@ -95,7 +95,7 @@
 //! 60 s streams at 100 Hz).
 //!
 //! Undeclared effects ([`effects`]): `drift-all`, `frame-flex`,
-//! `marker-offset`, `slip`, `heavy-string`.
+//! `marker-offset`, `slip`, `heavy-string`, `latency`.
 
 pub mod config;
 pub mod effects;
@@ -697,6 +697,21 @@ impl PhysicsDevice {
                 .product(),
         };
         let (strings, spools) = build.strings(guides, seed)?;
+        if let Some(i) = effects.iter().find_map(|e| match e {
+            PhysicsEffect::Latency {
+                string: Some(i), ..
+            } if *i >= strings.len() => Some(*i),
+            _ => None,
+        }) {
+            return Err(SimError::EffectSpec {
+                spec: format!("latency:string={i}"),
+                problem: format!(
+                    "the device has {} strings (0..{})",
+                    strings.len(),
+                    strings.len()
+                ),
+            });
+        }
 
         let (room_rotation, room_translation_mm) =
             draw_room_transform(&nominal, &config.tracker, seed)?;
@@ -745,6 +760,11 @@ impl PhysicsDevice {
     pub fn device_from_room(&self, p: &Vec3<f64>) -> Vec3<f64> {
         let d = sub(*p, self.room_translation_mm);
         mat_t_vec(&self.room_rotation, d).map(|x| x / self.room_scale)
+    }
+
+    /// Device-frame velocity of a room velocity.
+    pub fn device_from_room_velocity(&self, v: &Vec3<f64>) -> Vec3<f64> {
+        mat_t_vec(&self.room_rotation, *v).map(|x| x / self.room_scale)
     }
 
     /// The marker (device frame) when the meeting point is `p` and the
@@ -1062,6 +1082,8 @@ struct PhysicsSession<'a> {
     slips: Vec<(f64, usize, f64)>,
     /// Thermal strain per second (`drift-all`).
     drift_per_s: f64,
+    /// Each string's encoder latency, s (`latency`).
+    latency_s: Vec<f64>,
     abnormal: AbnormalMotor<'a>,
     occluded: bool,
 }
@@ -1088,6 +1110,9 @@ struct HandPose {
     marker_room: Vec3<f64>,
     /// The end-effector's turn (rotation vector, device frame).
     omega: Vec3<f64>,
+    /// The meeting point's velocity (device frame, mm/s): the marker's,
+    /// the turn's rate left out.
+    velocity: Vec3<f64>,
 }
 
 impl<'a> PhysicsSession<'a> {
@@ -1122,6 +1147,20 @@ impl<'a> PhysicsSession<'a> {
                 _ => 0.0,
             })
             .sum();
+        let latency_s = (0..n)
+            .map(|i| {
+                device
+                    .effects
+                    .iter()
+                    .map(|e| match e {
+                        PhysicsEffect::Latency { string, ms } if string.is_none_or(|s| s == i) => {
+                            ms / 1000.0
+                        }
+                        _ => 0.0,
+                    })
+                    .sum()
+            })
+            .collect();
         let am = &cfg.abnormal_motor;
         let abnormal = AbnormalMotor {
             config: am,
@@ -1143,6 +1182,7 @@ impl<'a> PhysicsSession<'a> {
             jitter,
             slips,
             drift_per_s,
+            latency_s,
             abnormal,
             occluded: false,
         })
@@ -1230,10 +1270,15 @@ impl<'a> PhysicsSession<'a> {
         } else {
             c.room
         };
+        let mut velocity = device.device_from_room_velocity(&c.velocity);
+        if planar {
+            velocity[2] = 0.0;
+        }
         HandPose {
             meeting,
             marker_room,
             omega,
+            velocity,
         }
     }
 
@@ -1270,7 +1315,13 @@ impl<'a> PhysicsSession<'a> {
         let strain = self.drift_per_s * t_s;
         let mut counts = Vec::with_capacity(n);
         for (i, &tension) in tension_n.iter().enumerate() {
-            let end = device.string_end(i, &pose.meeting, &pose.omega);
+            // An encoder read late holds its string as it was then: the
+            // meeting point back along its velocity (the tension and the
+            // turn as now).
+            let tau = self.latency_s[i];
+            let meeting: Vec3<f64> =
+                core::array::from_fn(|k| pose.meeting[k] - tau * pose.velocity[k]);
+            let end = device.string_end(i, &meeting, &pose.omega);
             let state = device.natural_length(i, &end, tension, total_tension, strain)?;
             truth.attachment_mm.push(end);
             let slipped: f64 = self
