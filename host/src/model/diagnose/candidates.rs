@@ -81,6 +81,7 @@ pub(super) fn candidates(
     ev: &Evidence,
     structure: &Structure,
     time_split: &[Option<f64>],
+    config: &LoopConfig,
 ) -> Vec<Candidate> {
     let mut out = Vec::new();
     let has_effect = |string: usize, f: fn(&Effect) -> bool| {
@@ -126,7 +127,7 @@ pub(super) fn candidates(
     // are captured seconds apart, and a difference between them is not the
     // speed at the capture (the loop says so, `latency_not_tested`).
     if ev.speed_observed && !has_effect(shared, |e| matches!(e, Effect::Latency { .. })) {
-        out.push(shared_latency_candidate(strings));
+        out.push(shared_latency_candidate(strings, config.clock_aligned));
     }
     // Guides where the strings leave the frame in space: in a plane every
     // chord is level with its swivel axis's normal plane, and the term is a
@@ -405,7 +406,17 @@ fn speed_column() -> RowColumn {
 
 /// One latency shared by every string (encoders of one kind read by one
 /// loop), where the rows observe the speed.
-fn shared_latency_candidate(strings: StringLayout) -> Candidate {
+/// A latency shared by every string; `clock_aligned`: the tracker's clock
+/// was found from the rows, so the term is that clock's offset refined
+/// ([`LoopConfig::clock_aligned`]) and says so.
+fn shared_latency_candidate(strings: StringLayout, clock_aligned: bool) -> Candidate {
+    let describe = if clock_aligned {
+        "every string's error follows its speed alike: the tracker's clock, found from these \
+         rows, is off by the fitted time (a latency every string shares cannot be told from \
+         the clock's offset: each row is paired with the marker as far off as the strings lag)"
+    } else {
+        "every string's error follows its speed alike (the encoders are read late)"
+    };
     Candidate {
         family: Family::Latency,
         strings: Vec::new(),
@@ -415,8 +426,7 @@ fn shared_latency_candidate(strings: StringLayout) -> Candidate {
         search_penalty: 0.0,
         rival: Vec::new(),
         build: Box::new(|b| every_string(Effect::Latency { latency_s: b[0] })),
-        describe: "every string's error follows its speed alike (the encoders are read late)"
-            .into(),
+        describe: describe.into(),
     }
 }
 

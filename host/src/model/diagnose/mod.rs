@@ -79,7 +79,7 @@ pub fn diagnose(
         return Vec::new();
     };
     let splits = slip_times(&ev);
-    let candidates = candidates(&ev, structure, &splits);
+    let candidates = candidates(&ev, structure, &splits, config);
     let mut findings = significant(&ev, &candidates, config);
     findings.extend(anchors_beyond_tolerance(id, nominal, structure));
     findings.sort_by(|a, b| b.chi2.total_cmp(&a.chi2));

@@ -200,6 +200,16 @@ pub struct LoopConfig {
     /// what the rule does (`physics_bench`).
     #[serde(default = "yes")]
     pub time_terms_forward: bool,
+    /// The tracker's clock was found from these rows (a stream's
+    /// alignment, `procedures::calibrate::align`). A latency shared by
+    /// every string reads each string `tau` late, and a tracker clock
+    /// `tau` off pairs each row with the marker `tau` away: the same
+    /// change of every row. The alignment fitted the clock's offset with a
+    /// quick model (no latency of one string), so a shared latency found
+    /// after one string's is that offset refined, and the report says so;
+    /// one string's latency is its lag behind the others.
+    #[serde(default)]
+    pub clock_aligned: bool,
 }
 
 impl LoopConfig {
@@ -257,6 +267,7 @@ impl Default for LoopConfig {
             home_sd_mm: None,
             robust: true,
             time_terms_forward: true,
+            clock_aligned: false,
         }
     }
 }

@@ -214,18 +214,21 @@ fn raw_errors(
 }
 
 /// Stages 2-3: the base identification and the diagnosis loop, from the
-/// geometry file's start (and its home tension when it gives one).
+/// geometry file's start (and its home tension when it gives one);
+/// `clock_aligned`: the training's tracker clock was found from its rows.
 fn identify_and_diagnose(
     geometry: &Geometry,
     obs: PerSession<&[Observation]>,
     nominal: &spidar_core::model::Frame<f64>,
     cfg: &CalibrateConfig,
     regime: &Regime,
+    clock_aligned: bool,
 ) -> Result<(LoopResult, crate::model::tolerance::ToleranceChoice), CalibrateError> {
     let pb = spinner("identification and diagnosis", cfg.quiet);
     let start = Start::from_geometry(geometry);
     let loop_config = LoopConfig {
         diagnose: cfg.loop_config.diagnose && regime.full,
+        clock_aligned,
         ..cfg.loop_config.with_geometry(geometry)
     };
     let tolerance = crate::model::tolerance::choose(obs.train, nominal, &start, &loop_config);
@@ -457,7 +460,8 @@ impl Run<'_> {
                 train: &read[..],
                 test: obs.test,
             };
-            identify_and_diagnose(geometry, obs, &nominal, &self.cfg, &regime)?
+            let clock_aligned = matches!(timing.train, align::SessionTiming::Aligned(_));
+            identify_and_diagnose(geometry, obs, &nominal, &self.cfg, &regime, clock_aligned)?
         };
         if loop_rows.thinned() {
             // The glitches the loop found are among the rows it read: every
