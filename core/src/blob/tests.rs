@@ -137,6 +137,37 @@ fn latency_terms_round_trip_and_out_of_range_ones_are_refused() {
     ));
 }
 
+/// Creep terms (one string's, one shared) go through the blob bit for bit
+/// (a rate of 300 ppm/h in Q0.63 per ms).
+#[test]
+fn creep_terms_round_trip() {
+    let mut cal = calibration();
+    cal.effects.push(EffectTerm {
+        string: 6,
+        effect: Effect::Creep { per_s: 8.3e-8 },
+    });
+    cal.effects.push(EffectTerm {
+        string: crate::model::EVERY_STRING,
+        effect: Effect::Creep { per_s: -2e-6 },
+    });
+    let blob = compile(&cal, 7, 0).unwrap();
+    let c = CompiledCalibration::from_blob(&blob).unwrap();
+    assert_eq!(c.header.effects, 4);
+    let expected: alloc::vec::Vec<CompiledEffect> = cal
+        .effects
+        .iter()
+        .map(|t| crate::string_law::compile_effect(t, &cal.frame, &cal.strings).unwrap())
+        .collect();
+    assert_eq!(c.head.effects.as_slice(), expected.as_slice());
+    assert_eq!(
+        expected[2],
+        CompiledEffect::Creep {
+            string: 6,
+            per_ms_q63: 765_539_879,
+        }
+    );
+}
+
 /// Guide terms (one string's, one shared) go through the blob bit for bit;
 /// a radius beyond the format's range from another tool is refused, naming
 /// the field.
