@@ -3,6 +3,7 @@
 //! that finds effects (on both simulators), devices of 3 to 8 strings. One
 //! test binary (issue 14, point 7: a few links, not twelve).
 
+mod creep;
 mod dataset;
 mod guide;
 mod home_epochs;
