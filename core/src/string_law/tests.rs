@@ -418,9 +418,14 @@ fn realistic(rng: &mut Rng) -> (Frame<f64>, [StringLaw; STRINGS], Vec<EffectTerm
             radius_mm: rng.uniform(-5.0, 15.0),
         },
     });
-    // Creep last, one string's on each and a shared one (up to 7,200
-    // ppm/h, 24 times the independent simulator's thermal creep), so the
-    // other families' draws are as they were.
+    push_creeps(rng, &mut effects);
+    (f, laws, effects)
+}
+
+/// Creep terms, drawn after every other term so that the others' draws
+/// are as they were: one string's on each and a shared one, up to 7,200
+/// ppm/h (24 times the independent simulator's thermal creep).
+fn push_creeps(rng: &mut Rng, effects: &mut Vec<EffectTerm>) {
     for i in 0..STRINGS {
         effects.push(EffectTerm {
             string: i as u8,
@@ -435,7 +440,6 @@ fn realistic(rng: &mut Rng) -> (Frame<f64>, [StringLaw; STRINGS], Vec<EffectTerm
             per_s: rng.uniform(-2e-6, 2e-6),
         },
     });
-    (f, laws, effects)
 }
 
 fn random_inputs(rng: &mut Rng) -> StringInputs {

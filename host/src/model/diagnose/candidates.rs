@@ -322,20 +322,7 @@ fn string_terms(
             effect: Box::new(|b| Effect::Drift { mm_per_s: b[0] }),
             describe: format!("string {i}'s length drifts with time since initialization"),
         },
-        StringTerm {
-            family: Family::Creep,
-            variable: Variable::Time,
-            is_term: |e| matches!(e, Effect::Creep { .. }),
-            columns: vec![Box::new(|r| creep_variable(&r.ctx))],
-            // A time term, judged as a drift is: beyond an error
-            // quadratic in the position, where time goes with it.
-            rival: position_columns(),
-            search_penalty: 0.0,
-            effect: Box::new(|b| Effect::Creep { per_s: b[0] }),
-            describe: format!(
-                "string {i}'s length grows with time since home in proportion to itself (creep)"
-            ),
-        },
+        creep_term(i),
     ];
     if speed_observed {
         terms.push(StringTerm {
@@ -358,6 +345,24 @@ fn string_terms(
         terms.push(slip_term(rows, i, at_s));
     }
     terms
+}
+
+/// A creep of string `i`: its length growing with time since home in
+/// proportion to itself. A time term, judged as a drift is: beyond an
+/// error quadratic in the position, where time goes with it.
+fn creep_term(i: usize) -> StringTerm {
+    StringTerm {
+        family: Family::Creep,
+        variable: Variable::Time,
+        is_term: |e| matches!(e, Effect::Creep { .. }),
+        columns: vec![Box::new(|r| creep_variable(&r.ctx))],
+        rival: position_columns(),
+        search_penalty: 0.0,
+        effect: Box::new(|b| Effect::Creep { per_s: b[0] }),
+        describe: format!(
+            "string {i}'s length grows with time since home in proportion to itself (creep)"
+        ),
+    }
 }
 
 /// The guide a candidate proposes, refitted from a radius of 0: the
