@@ -5,15 +5,9 @@
 //! rate on every string), at its size, closes the held-out error, and adds
 //! none to a clean device.
 
+use crate::{added, lattice_loop as run};
 use spidar::model::diagnose::{Family, LoopResult, Variable};
-use spidar::sim::device_with_lattice_and_test;
 use spidar_core::model::{Effect, EVERY_STRING};
-
-fn run(seed: u64, effects: &[&str]) -> (LoopResult, f64) {
-    let (device, train, test) =
-        device_with_lattice_and_test(seed, effects, 500).expect("simulated sessions");
-    crate::loop_on(&device.nominal, &train, &test)
-}
 
 fn creeps_of(result: &LoopResult) -> Vec<(u8, f64)> {
     result
@@ -24,15 +18,6 @@ fn creeps_of(result: &LoopResult) -> Vec<(u8, f64)> {
             Effect::Creep { per_s } => Some((t.string, per_s)),
             _ => None,
         })
-        .collect()
-}
-
-fn added(result: &LoopResult) -> Vec<(Family, Vec<u8>, Variable)> {
-    result
-        .findings
-        .iter()
-        .filter(|f| f.added)
-        .map(|f| (f.family, f.strings.clone(), f.variable))
         .collect()
 }
 

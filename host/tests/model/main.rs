@@ -31,6 +31,33 @@ fn slips_of(r: &spidar::model::diagnose::LoopResult) -> Vec<(u8, f64, f64)> {
         .collect()
 }
 
+/// Runs the loop on a model-simulator device of `seed` with `effects`
+/// injected (its lattice and a 500-point test session); returns the result
+/// and the held-out (test session) mean error of the final model
+/// (loop_closing, guide, creep).
+fn lattice_loop(seed: u64, effects: &[&str]) -> (spidar::model::diagnose::LoopResult, f64) {
+    let (device, train, test) =
+        spidar::sim::device_with_lattice_and_test(seed, effects, 500).expect("simulated sessions");
+    loop_on(&device.nominal, &train, &test)
+}
+
+/// The findings `result` added: family, strings and variable (guide,
+/// creep).
+fn added(
+    result: &spidar::model::diagnose::LoopResult,
+) -> Vec<(
+    spidar::model::diagnose::Family,
+    Vec<u8>,
+    spidar::model::diagnose::Variable,
+)> {
+    result
+        .findings
+        .iter()
+        .filter(|f| f.added)
+        .map(|f| (f.family, f.strings.clone(), f.variable))
+        .collect()
+}
+
 /// The loop on the observations of `train` (held out: `test`) of a device
 /// of `geometry`: its result and the test session's mean error after it
 /// (loop_closing, latency).
