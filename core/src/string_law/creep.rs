@@ -37,7 +37,7 @@ use super::{
 pub const MAX_CREEP_PER_S: f64 = 1e-5;
 
 /// A creep term's contribution (mm): `per_s * t * (home_length + payout)`
-/// (f64 reference of [`creep_q32`]).
+/// (f64 reference of the compiled term, `creep_q32`).
 pub fn creep_mm(per_s: f64, ctx: &EffectContext) -> f64 {
     per_s * creep_variable(ctx)
 }
