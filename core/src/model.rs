@@ -429,6 +429,14 @@ pub enum Effect {
     Backlash { half_width_mm: f64 },
     /// Drift with time since initialization (creep, temperature): `+ mm_per_s * t`.
     Drift { mm_per_s: f64 },
+    /// Creep (thermal or plastic) of the whole string: its natural length
+    /// grows by `per_s * t` of itself, `t` the time since home (s), so the
+    /// counts fall short of the string by that much of its whole length:
+    /// `+ per_s * t * (home_length + payout)`. The time analogue of
+    /// [`Elasticity`](Effect::Elasticity); a [`Drift`](Effect::Drift) is
+    /// the same on every length. `|per_s| <=`
+    /// [`MAX_CREEP_PER_S`](crate::string_law::MAX_CREEP_PER_S).
+    Creep { per_s: f64 },
     /// String slip: a step at a time since initialization: `+ mm * [t >= at_s]`.
     Slip { at_s: f64, mm: f64 },
     /// Sag of a heavy string: a span of length `l` and linear weight `w`

@@ -29,6 +29,7 @@
 //! | extra winding term | `i64` | Q31.32 mm per `x^power`, like the base law |
 //! | elasticity | `i64` | Q16.47 per millinewton; strain `per_mn * tension_mn` in Q0.31 |
 //! | drift | `i64` | Q15.48 mm per millisecond |
+//! | creep | `i64` | Q0.63 per millisecond; strain `per_ms * time_ms` in Q0.31 (module `creep`) |
 //! | slip time | `u32` | ms since home |
 //! | pulley phase (eccentricity) | `u32` | Q0.32 turns, from `counts mod counts_per_rev` |
 //! | sine table | `i32` | Q1.30, 512 segments per quarter turn, linear interpolation |
@@ -52,12 +53,14 @@ use crate::model::{
 };
 use crate::STRINGS;
 
+mod creep;
 mod frame_flex;
 mod guide;
 mod latency;
 mod sag;
 mod stretch;
 
+pub use creep::{creep_mm, creep_variable, MAX_CREEP_PER_S};
 pub use frame_flex::{MAX_FRAME_FLEX_HOME_MM, MAX_FRAME_FLEX_MM_PER_NEWTON};
 pub use guide::{
     guide_elevation_q32, guide_elevation_rad, guide_elevations, guide_mm, guide_path_mm,
@@ -329,6 +332,7 @@ impl Effect {
             } => mm_per_newton * ctx.total_tension_n - home_mm,
             Effect::Backlash { half_width_mm } => half_width_mm * direction_sign(ctx.direction),
             Effect::Drift { mm_per_s } => mm_per_s * ctx.time_s,
+            Effect::Creep { per_s } => creep_mm(per_s, ctx),
             Effect::Slip { at_s, mm } => {
                 if ctx.time_s >= at_s {
                     mm
@@ -357,6 +361,7 @@ impl Effect {
     /// | Elasticity | `per_newton` | `[tension_N (home_length + payout)]` |
     /// | Backlash | `half_width_mm` | `[sign(direction)]` |
     /// | Drift | `mm_per_s` | `[t]` |
+    /// | Creep | `per_s` | `[t (home_length + payout)]` |
     /// | Slip | `mm` (`at_s` is held fixed: a step is not differentiable in its time; search it separately) | `[t >= at_s ? 1 : 0]` |
     /// | Sag | `mm_at_1m_1n, home_mm_at_1m` | `[-cos^2(a) (l / 1 m)^3 / (T / 1 N)^2, cos^2(a_home) (home_length / 1 m)^3]` (0 where a part is clamped) |
     /// | FrameFlex | `mm_per_newton, home_mm` | `[sum_j T_j, -1]` |
@@ -387,6 +392,7 @@ impl Effect {
             Effect::FrameFlex { .. } => values(&[ctx.total_tension_n, -1.0]),
             Effect::Backlash { .. } => values(&[direction_sign(ctx.direction)]),
             Effect::Drift { .. } => values(&[ctx.time_s]),
+            Effect::Creep { .. } => values(&[creep_variable(ctx)]),
             Effect::Slip { at_s, .. } => values(&[if ctx.time_s >= at_s { 1.0 } else { 0.0 }]),
             Effect::Sag {
                 mm_at_1m_1n,
@@ -431,6 +437,7 @@ impl Effect {
             } => values(&[mm_per_newton, home_mm]),
             Effect::Backlash { half_width_mm } => values(&[half_width_mm]),
             Effect::Drift { mm_per_s } => values(&[mm_per_s]),
+            Effect::Creep { per_s } => values(&[per_s]),
             Effect::Slip { mm, .. } => values(&[mm]),
             Effect::Sag {
                 mm_at_1m_1n,
@@ -473,6 +480,7 @@ impl Effect {
                 half_width_mm: p[0],
             },
             Effect::Drift { .. } => Effect::Drift { mm_per_s: p[0] },
+            Effect::Creep { .. } => Effect::Creep { per_s: p[0] },
             Effect::Slip { at_s, .. } => Effect::Slip { at_s, mm: p[0] },
             Effect::Sag { .. } => Effect::Sag {
                 mm_at_1m_1n: p[0],
@@ -1093,6 +1101,10 @@ pub enum CompiledEffect {
     Backlash { string: u8, half_width_q16: i64 },
     /// `+ mm_per_ms_q48 * time_ms` (Q15.48 mm per ms).
     Drift { string: u8, mm_per_ms_q48: i64 },
+    /// `+ strain * (home_length + payout)`, strain = `per_ms_q63 * time_ms`
+    /// rounded to Q0.31 and saturated (Q0.63 per millisecond; module
+    /// `creep`).
+    Creep { string: u8, per_ms_q63: i64 },
     /// `+ mm_q16` when `time_ms >= at_ms` (Q47.16 mm, ms since home).
     Slip { string: u8, at_ms: u32, mm_q16: i64 },
     /// `+ coeff_q32 * cos^2 * a^3 / tau^2 + home_coeff_q32 * home_sag`
@@ -1224,6 +1236,7 @@ pub fn compile_effect(
             string,
             mm_per_ms_q48: to_fixed(s, "mm_per_s", mm_per_s / 1000.0, 48, "Q15.48 mm per ms")?,
         },
+        Effect::Creep { per_s } => creep::compile_creep(s, string, per_s)?,
         Effect::Slip { at_s, mm } => compile_slip(s, string, at_s, mm)?,
         Effect::Latency { latency_s } => latency::compile_latency(s, string, latency_s)?,
         Effect::Guide { radius_mm } => guide::compile_guide(s, string, radius_mm, frame)?,
@@ -1328,6 +1341,7 @@ impl CompiledEffect {
             | CompiledEffect::Elasticity { string, .. }
             | CompiledEffect::Backlash { string, .. }
             | CompiledEffect::Drift { string, .. }
+            | CompiledEffect::Creep { string, .. }
             | CompiledEffect::Slip { string, .. }
             | CompiledEffect::Sag { string, .. }
             | CompiledEffect::FrameFlex { string, .. }
@@ -1474,6 +1488,7 @@ impl CompiledEffect {
             CompiledEffect::Drift { mm_per_ms_q48, .. } => {
                 mul_u32_shr(mm_per_ms_q48, ctx.time_ms, 16)
             }
+            CompiledEffect::Creep { per_ms_q63, .. } => creep::creep_q32(per_ms_q63, ctx),
             CompiledEffect::Slip { at_ms, mm_q16, .. } => {
                 if ctx.time_ms >= at_ms {
                     q16_to_q32(mm_q16)

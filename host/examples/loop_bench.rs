@@ -127,7 +127,9 @@ fn clean_loop(
 /// independent `device`, each against the size of the physics it names
 /// (the strings' mean `1/EA`, sag `w^2/24`, the guides' mean compliance,
 /// the guide pulleys' mean radius, or a string's own for one string's
-/// guide, the marker's distance from the meeting point): `(name,
+/// guide, the marker's distance from the meeting point, the strings'
+/// thermal strain per second for a shared creep, 0 on a clean device, so a
+/// creep there is a stand-in at any size): `(name,
 /// recovered / truth)`. A term counts as the device's own physics only within 2x of
 /// its truth; a term of another size stands in for something else.
 fn sizes_against_truth(device: &PhysicsDevice, r: &LoopResult) -> Vec<(&'static str, f64)> {
@@ -164,6 +166,9 @@ fn sizes_against_truth(device: &PhysicsDevice, r: &LoopResult) -> Vec<(&'static 
             }
             Effect::FrameFlex { mm_per_newton, .. } => {
                 sizes.push(("frame flex (every string)", mm_per_newton.abs() / flex))
+            }
+            Effect::Creep { per_s } => {
+                sizes.push(("creep (every string)", per_s / device.creep_per_s()))
             }
             _ => {}
         }
@@ -260,7 +265,7 @@ fn show(added: &[String]) -> String {
 
 /// The injected effects of the table: spec, the family and strings the loop
 /// must name, and the variable the residual follows.
-const CASES: [(&str, Family, &[u8], Variable); 13] = [
+const CASES: [(&str, Family, &[u8], Variable); 15] = [
     ("offset:3:mm=8", Family::Offset, &[3], Variable::Length),
     (
         "scale:5:relative=0.03",
@@ -299,6 +304,8 @@ const CASES: [(&str, Family, &[u8], Variable); 13] = [
         Variable::Time,
     ),
     ("slip:2:at_s=2000,mm=5", Family::Slip, &[2], Variable::Time),
+    ("creep:4:per_s=2e-7", Family::Creep, &[4], Variable::Time),
+    ("creep:*:per_s=1.5e-7", Family::Creep, &[], Variable::Time),
     (
         "sag:*:mm_at_1m_1n=1.6,home_mm_at_1m=1.32",
         Family::Sag,

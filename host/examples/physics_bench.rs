@@ -47,7 +47,7 @@ use spidar::data::dataset::{Geometry, Session};
 use spidar::data::observe::observations;
 use spidar::data::observe::Observation;
 use spidar::data::stats::{position_error, ErrorStats};
-use spidar::model::diagnose::{family_name, variable_name};
+use spidar::model::diagnose::{family_name, variable_name, Family};
 use spidar::model::identify::inputs_at;
 use spidar::model::validate::{later_session_errors, model_errors};
 use spidar::procedures::calibrate::align::{repaired_at, tracked_interval_s, SessionTiming};
@@ -56,6 +56,7 @@ use spidar::procedures::calibrate::{calibrate, CalibrateConfig, Calibrated, Name
 use spidar::sim::physics::{self, PhysicsConfig, PhysicsDevice, PhysicsTruth};
 use spidar::sim::{simulate_session, SessionKind, SimConfig, SimulatedDevice, StreamArea};
 use spidar_core::geometry::device_from_room;
+use spidar_core::model::{Effect, EVERY_STRING};
 use spidar_core::string_law::string_lengths_f64;
 use spidar_core::STRINGS;
 
@@ -243,6 +244,60 @@ fn home_judged(c: &Calibrated) -> String {
                 "not shared"
             })
     )
+}
+
+/// On a device whose strings creep (`drift-all`): the creep terms of the
+/// final model against the strings' thermal strain per second (a shared
+/// one names that physics within 2x of it), or why the loop added none;
+/// `None` on a device without creep.
+fn creep_against_truth(device: &PhysicsDevice, c: &Calibrated) -> Option<String> {
+    let truth = device.creep_per_s();
+    if truth == 0.0 {
+        return None;
+    }
+    let found: Vec<String> = c
+        .loop_result
+        .identification
+        .effects
+        .iter()
+        .filter_map(|t| match t.effect {
+            Effect::Creep { per_s } if t.string == EVERY_STRING => {
+                Some(format!("every string x{:.2}", per_s / truth))
+            }
+            Effect::Creep { per_s } => Some(format!("string {} x{:.2}", t.string, per_s / truth)),
+            _ => None,
+        })
+        .collect();
+    let truth_ppm_h = truth * 3.6e9;
+    if !found.is_empty() {
+        return Some(format!(
+            "creep (size / the strings' {truth_ppm_h:.0} ppm/h): {}",
+            found.join(", ")
+        ));
+    }
+    let why: Vec<String> = c
+        .report
+        .effects
+        .iter()
+        .filter(|f| f.family == Family::Creep)
+        .map(|f| {
+            format!(
+                "{:?}: {}",
+                f.strings,
+                f.validation
+                    .as_ref()
+                    .map_or("not tested", |v| v.reason.as_str())
+            )
+        })
+        .collect();
+    Some(format!(
+        "no creep term (the strings creep {truth_ppm_h:.0} ppm/h); proposed: {}",
+        if why.is_empty() {
+            "none".to_string()
+        } else {
+            why.join("; ")
+        }
+    ))
 }
 
 fn run_calibration(run: &Run, config: &CalibrateConfig) -> Calibrated {
@@ -663,6 +718,9 @@ fn physics_cases(
                 ));
             }
             rows.push(print_row("independent", name, seed, &c));
+            if let Some(creep) = creep_against_truth(&device, &c) {
+                notes.push(format!("independent {name} seed {seed}: {creep}"));
+            }
             let n = not_added(&c);
             if !n.is_empty() {
                 notes.push(format!("independent {name} seed {seed}: {n}"));

@@ -26,8 +26,10 @@ use serde::{Deserialize, Serialize};
 
 /// Magic bytes at the start of every model blob.
 pub const MAGIC: [u8; 4] = *b"SPDM";
-/// Blob format this crate reads and writes. Version 12 (any other is refused
-/// with [`BlobError::UnsupportedVersion`]): the string model may carry the
+/// Blob format this crate reads and writes. Version 13 (any other is refused
+/// with [`BlobError::UnsupportedVersion`]): an effect term may be a creep,
+/// read against the time since home and each string's length
+/// (`spidar-core::model::Effect::Creep`). Version 12: the string model may carry the
 /// training session's slips and the id of their home capture, applied while
 /// the device's home capture is that one
 /// (`spidar-core::blob::CompiledHomeSlips`). Version 11: an effect term may be a guide
@@ -52,7 +54,7 @@ pub const MAGIC: [u8; 4] = *b"SPDM";
 /// zero padding after the string model so that the correction starts at a
 /// multiple of 4 bytes from the blob start (`spidar-core::blob`), which lets
 /// the device read the SVR records as aligned words; version 1 had none.
-pub const FORMAT_VERSION: u16 = 12;
+pub const FORMAT_VERSION: u16 = 13;
 /// Size of the header in bytes.
 pub const HEADER_LEN: usize = 40;
 

@@ -287,7 +287,9 @@ pub fn string_inputs(rng: &mut Rng) -> spidar_core::model::StringInputs {
         // Any elevation from the swivel plane (Q0.32 turns, +-1/4 turn).
         s.guide_elevation_q32[i] = rng.i32_in(-(1 << 30), 1 << 30);
     }
-    s.time_ms = rng.next_u32() % 3_600_000;
+    // Up to 10 h since home: a creep's strain over a long session (and
+    // the model's slip at 600 s on either side).
+    s.time_ms = rng.next_u32() % 36_000_000;
     s
 }
 

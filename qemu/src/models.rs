@@ -77,6 +77,10 @@ fn calibration(correction: CorrectionModel) -> Calibration {
         // every string (issue 33).
         EffectTerm { string: 1, effect: Effect::Guide { radius_mm: 12.0 } },
         EffectTerm { string: EVERY_STRING, effect: Effect::Guide { radius_mm: 8.5 } },
+        // Creep: one string's natural length growing 1,000 ppm an hour, and
+        // every string's 300 ppm an hour (issue 33).
+        EffectTerm { string: 3, effect: Effect::Creep { per_s: 2.8e-7 } },
+        EffectTerm { string: EVERY_STRING, effect: Effect::Creep { per_s: 8.3e-8 } },
     ];
     Calibration {
         frame: Frame {

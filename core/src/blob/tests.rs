@@ -93,6 +93,22 @@ fn compiled_blob_parses_back() {
     assert_eq!(c.correction.kind(), CorrectionKind::None);
 }
 
+/// `cal` compiled to a blob and read back: the blob and its effect terms
+/// compiled one by one, which the blob carries bit for bit (four: the
+/// calibration's two and the two a test adds).
+fn round_trip(cal: &Calibration) -> (alloc::vec::Vec<u8>, alloc::vec::Vec<CompiledEffect>) {
+    let blob = compile(cal, 7, 0).unwrap();
+    let c = CompiledCalibration::from_blob(&blob).unwrap();
+    assert_eq!(c.header.effects, 4);
+    let expected: alloc::vec::Vec<CompiledEffect> = cal
+        .effects
+        .iter()
+        .map(|t| crate::string_law::compile_effect(t, &cal.frame, &cal.strings).unwrap())
+        .collect();
+    assert_eq!(c.head.effects.as_slice(), expected.as_slice());
+    (blob, expected)
+}
+
 /// Latency terms (one string's, one shared) go through the blob bit for
 /// bit and evaluate as compiled; a latency beyond the format's range from
 /// another tool is refused, naming the field.
@@ -107,16 +123,7 @@ fn latency_terms_round_trip_and_out_of_range_ones_are_refused() {
         string: crate::model::EVERY_STRING,
         effect: Effect::Latency { latency_s: -0.0015 },
     });
-    let blob = compile(&cal, 7, 0).unwrap();
-    let c = CompiledCalibration::from_blob(&blob).unwrap();
-    assert_eq!(c.header.effects, 4);
-    let laws = &cal.strings;
-    let expected: alloc::vec::Vec<CompiledEffect> = cal
-        .effects
-        .iter()
-        .map(|t| crate::string_law::compile_effect(t, &cal.frame, laws).unwrap())
-        .collect();
-    assert_eq!(c.head.effects.as_slice(), expected.as_slice());
+    let (blob, expected) = round_trip(&cal);
     assert_eq!(
         expected[2],
         CompiledEffect::Latency {
@@ -137,6 +144,29 @@ fn latency_terms_round_trip_and_out_of_range_ones_are_refused() {
     ));
 }
 
+/// Creep terms (one string's, one shared) go through the blob bit for bit
+/// (a rate of 300 ppm/h in Q0.63 per ms).
+#[test]
+fn creep_terms_round_trip() {
+    let mut cal = calibration();
+    cal.effects.push(EffectTerm {
+        string: 6,
+        effect: Effect::Creep { per_s: 8.3e-8 },
+    });
+    cal.effects.push(EffectTerm {
+        string: crate::model::EVERY_STRING,
+        effect: Effect::Creep { per_s: -2e-6 },
+    });
+    let (_, expected) = round_trip(&cal);
+    assert_eq!(
+        expected[2],
+        CompiledEffect::Creep {
+            string: 6,
+            per_ms_q63: 765_539_879,
+        }
+    );
+}
+
 /// Guide terms (one string's, one shared) go through the blob bit for bit;
 /// a radius beyond the format's range from another tool is refused, naming
 /// the field.
@@ -151,15 +181,7 @@ fn guide_terms_round_trip_and_out_of_range_ones_are_refused() {
         string: crate::model::EVERY_STRING,
         effect: Effect::Guide { radius_mm: 7.25 },
     });
-    let blob = compile(&cal, 7, 0).unwrap();
-    let c = CompiledCalibration::from_blob(&blob).unwrap();
-    assert_eq!(c.header.effects, 4);
-    let expected: alloc::vec::Vec<CompiledEffect> = cal
-        .effects
-        .iter()
-        .map(|t| crate::string_law::compile_effect(t, &cal.frame, &cal.strings).unwrap())
-        .collect();
-    assert_eq!(c.head.effects.as_slice(), expected.as_slice());
+    let (blob, expected) = round_trip(&cal);
     assert_eq!(
         expected[2],
         CompiledEffect::Guide {

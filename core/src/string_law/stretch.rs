@@ -83,12 +83,9 @@ pub(super) fn elasticity_q32(
     // Q.47 (the payout rounded to Q16 first: 8e-6 mm times the
     // strain). The home part is skipped by an elasticity of one
     // string, which has none.
-    let to_i32 = |v: i64| v.clamp(i64::from(i32::MIN), i64::from(i32::MAX));
-    let home_q16 = to_i32(ctx.home_length_q16);
-    let free_q16 = to_i32(home_q16 + q32_to_q16(ctx.payout_q32).clamp(-(1 << 40), 1 << 40));
-    let mut stretch_q47 = free_q16 * i64::from(strain_q31);
+    let mut stretch_q47 = free_length_q16(ctx) * i64::from(strain_q31);
     if home_strain_q31 != 0 {
-        stretch_q47 -= home_q16 * i64::from(home_strain_q31);
+        stretch_q47 -= to_i32(ctx.home_length_q16) * i64::from(home_strain_q31);
     }
     let stretch = (stretch_q47 + (1 << 14)) >> 15;
     // The lead part: |mm_per_mn_q47| <= 2^47 (a compiled
@@ -100,4 +97,20 @@ pub(super) fn elasticity_q32(
         let lead = (m * i64::from(ctx.tension_mn) + (1 << 14)) >> 15;
         stretch.saturating_add(lead.saturating_sub(home_lead_q32))
     }
+}
+
+/// `v` clamped to the `i32` range (kept as `i64`).
+#[inline(always)]
+fn to_i32(v: i64) -> i64 {
+    v.clamp(i64::from(i32::MIN), i64::from(i32::MAX))
+}
+
+/// The string's free length `home_length + payout` in Q15.16 mm (the
+/// payout rounded from Q31.32), clamped to the `i32` range: what an
+/// elasticity's and a creep's strain multiply (one 32 x 32 -> 64 bit
+/// product each).
+#[inline(always)]
+pub(super) fn free_length_q16(ctx: &FixedContext) -> i64 {
+    let home_q16 = to_i32(ctx.home_length_q16);
+    to_i32(home_q16 + q32_to_q16(ctx.payout_q32).clamp(-(1 << 40), 1 << 40))
 }

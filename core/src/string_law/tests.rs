@@ -418,7 +418,28 @@ fn realistic(rng: &mut Rng) -> (Frame<f64>, [StringLaw; STRINGS], Vec<EffectTerm
             radius_mm: rng.uniform(-5.0, 15.0),
         },
     });
+    push_creeps(rng, &mut effects);
     (f, laws, effects)
+}
+
+/// Creep terms, drawn after every other term so that the others' draws
+/// are as they were: one string's on each and a shared one, up to 7,200
+/// ppm/h (24 times the independent simulator's thermal creep).
+fn push_creeps(rng: &mut Rng, effects: &mut Vec<EffectTerm>) {
+    for i in 0..STRINGS {
+        effects.push(EffectTerm {
+            string: i as u8,
+            effect: Effect::Creep {
+                per_s: rng.uniform(-2e-6, 2e-6),
+            },
+        });
+    }
+    effects.push(EffectTerm {
+        string: EVERY_STRING,
+        effect: Effect::Creep {
+            per_s: rng.uniform(-2e-6, 2e-6),
+        },
+    });
 }
 
 fn random_inputs(rng: &mut Rng) -> StringInputs {
@@ -474,7 +495,7 @@ fn fixed_point_error_budget() {
     let max_err = measure(0x5EED_0001, 400, 500, |_| true);
     println!("string law: max |fixed - f64| = {max_err:.3e} mm (400 calibrations x 500 inputs x 8 strings)");
     type Keep = fn(&Effect) -> bool;
-    let families: [(&str, Keep); 14] = [
+    let families: [(&str, Keep); 15] = [
         ("no effect", |_| false),
         ("offset", |e| matches!(e, Effect::Offset { .. })),
         ("scale", |e| matches!(e, Effect::Scale { .. })),
@@ -489,6 +510,7 @@ fn fixed_point_error_budget() {
         ("frame flex", |e| matches!(e, Effect::FrameFlex { .. })),
         ("latency", |e| matches!(e, Effect::Latency { .. })),
         ("guide", |e| matches!(e, Effect::Guide { .. })),
+        ("creep", |e| matches!(e, Effect::Creep { .. })),
     ];
     for (name, keep) in families {
         let e = measure(0x5EED_0002, 100, 200, keep);
@@ -672,6 +694,8 @@ fn effect_compile_errors_name_the_field() {
             "latency_s",
         ),
         (Effect::Guide { radius_mm: 51.0 }, "OutOfRange", "radius_mm"),
+        (Effect::Creep { per_s: 2e-5 }, "OutOfRange", "per_s"),
+        (Effect::Creep { per_s: f64::NAN }, "NotFinite", "per_s"),
         (
             Effect::Guide {
                 radius_mm: f64::NAN,
@@ -797,6 +821,87 @@ fn a_latency_adds_the_motion_over_its_delay_in_both_paths() {
             }
         }
     }
+}
+
+/// A creep term adds `per_s t` of the string's whole length, the same in
+/// both paths: nothing at the home capture, each string's own length times
+/// the strain since (one string's term or one shared), its sign with the
+/// rate's; at the largest rate the fixed point follows f64 over 10 h (the
+/// strain 0.36, within Q0.31) and saturates, without overflow, past 27 h.
+/// The term's own error (beside the base law's, both rounded to Q47.16)
+/// is printed (`docs/fixed-point.md`, "Creep"):
+/// `cargo test -p spidar-core --release creep_ -- --nocapture`.
+#[test]
+fn a_creep_adds_its_strain_of_the_whole_length_in_both_paths() {
+    let f = cube_frame([30.0, -20.0, 10.0]);
+    let laws = [StringLaw::polynomial(4096, [12.0, -0.004, 0.0, 0.0]); STRINGS];
+    let mut worst = 0.0f64;
+    for (string, per_s) in [
+        (3, 8.3e-8),
+        (EVERY_STRING, -8.3e-8),
+        (5, MAX_CREEP_PER_S),
+        (EVERY_STRING, -MAX_CREEP_PER_S),
+    ] {
+        let terms = [EffectTerm {
+            string,
+            effect: Effect::Creep { per_s },
+        }];
+        let (cl, ce) = compile_all(&f, &laws, &terms);
+        for (counts, time_ms) in [
+            (20_000, 0),
+            (0, 60_000),
+            (20_000, 4_800_000),
+            (-50_000, 36_000_000),
+            (90_000, 36_000_000),
+        ] {
+            let inputs = StringInputs {
+                counts: [counts; STRINGS],
+                time_ms,
+                ..StringInputs::default()
+            };
+            let bare = string_lengths_f64(&f, &laws, &[], &inputs);
+            let want = string_lengths_f64(&f, &laws, &terms, &inputs);
+            let got = string_lengths(StringLayout::ALL, &cl, &ce, &inputs);
+            let got_bare = string_lengths(StringLayout::ALL, &cl, &[], &inputs);
+            for i in 0..STRINGS {
+                let crept = if string == EVERY_STRING || usize::from(string) == i {
+                    per_s * f64::from(time_ms) / 1000.0 * bare[i]
+                } else {
+                    0.0
+                };
+                assert!((want[i] - bare[i] - crept).abs() < 1e-9, "string {i}");
+                // The term's own error, beside the base law's.
+                let err = ((got[i] - got_bare[i]) as f64 / 65536.0 - (want[i] - bare[i])).abs();
+                assert!(err < 2e-5, "string {i} at {time_ms} ms: {err} mm");
+                worst = worst.max(err);
+                if time_ms == 0 {
+                    assert_eq!(want[i], bare[i]);
+                } else if crept != 0.0 {
+                    assert_eq!(crept > 0.0, per_s > 0.0, "string {i}");
+                }
+            }
+        }
+    }
+    println!(
+        "creep: the term's max |fixed - f64| = {worst:.3e} mm (up to 10 h, up to MAX_CREEP_PER_S)"
+    );
+    // Past 27 h at the largest rate the strain saturates at -1 (the string
+    // is no string), and 49 days of a rate from another tool do not overflow.
+    let at = |per_ms_q63: i64, time_ms: u32| {
+        let inputs = StringInputs {
+            counts: [0; STRINGS],
+            time_ms,
+            ..StringInputs::default()
+        };
+        let (cl, _) = compile_all(&f, &laws, &[]);
+        let ce = [CompiledEffect::Creep {
+            string: 0,
+            per_ms_q63,
+        }];
+        string_lengths(StringLayout::ALL, &cl, &ce, &inputs)[0]
+    };
+    assert_eq!(at(i64::MIN, u32::MAX), 0);
+    assert!((at(i64::MAX, u32::MAX) - 2 * at(0, 0)).abs() <= 1);
 }
 
 #[test]
@@ -1131,6 +1236,8 @@ fn arb_effect() -> impl Strategy<Value = CompiledEffect> {
             string,
             latency_q31
         }),
+        (s, any::<i64>())
+            .prop_map(|(string, per_ms_q63)| CompiledEffect::Creep { string, per_ms_q63 }),
         (s, any::<i32>()).prop_map(|(string, radius_q24)| CompiledEffect::Guide {
             string,
             radius_q24,
@@ -1258,6 +1365,7 @@ proptest! {
             },
             Effect::Latency { latency_s: v },
             Effect::Guide { radius_mm: v },
+            Effect::Creep { per_s: v },
         ] {
             if let Ok(c) = compile_effect(&EffectTerm { string, effect }, &f, &laws) {
                 prop_assert!(c.validate().is_ok());

@@ -28,6 +28,7 @@
 //! | `elasticity` | `per_newton` | `+ per_newton * T * (home_length + payout)` |
 //! | `backlash` | `half_width_mm` | `+ half_width_mm * direction` |
 //! | `drift` | `mm_per_s` | `+ mm_per_s * t` |
+//! | `creep` | `per_s` | `+ per_s * t * (home_length + payout)` (the string's natural length grows by `per_s t` of itself) |
 //! | `slip` | `at_s`, `mm` | `+ mm * [t >= at_s]` |
 //! | `sag` | `mm_at_1m_1n`, `home_mm_at_1m` (default 0) | `- mm_at_1m_1n * cos^2(a) (l / 1 m)^3 / (T / 1 N)^2 + home_mm_at_1m * cos^2(a_home) (home_length / 1 m)^3`, `l = home_length + payout` |
 //! | `stretch` | `per_newton`, `mm_per_newton` (default 0), `home_tension_n` | `+ per_newton (T (home_length + payout) - T_home home_length) + mm_per_newton (T - T_home)` |
@@ -125,7 +126,7 @@ impl<'a> Params<'a> {
     }
 }
 
-const KINDS: &str = "offset, scale, winding, eccentricity, elasticity, backlash, drift, slip, sag, stretch, frame_flex, guide, speed, anchor, tracker_scale";
+const KINDS: &str = "offset, scale, winding, eccentricity, elasticity, backlash, drift, creep, slip, sag, stretch, frame_flex, guide, speed, anchor, tracker_scale";
 
 /// Parse one effect spec (see the module documentation for the syntax).
 pub fn parse_effect(spec: &str) -> Result<Vec<InjectedEffect>, SimError> {
@@ -221,6 +222,10 @@ fn per_string_effect(
         "drift" => {
             let mm_per_s = p.required("mm_per_s")?;
             Ok(model(Effect::Drift { mm_per_s }))
+        }
+        "creep" => {
+            let per_s = p.required("per_s")?;
+            Ok(model(Effect::Creep { per_s }))
         }
         "slip" => {
             let at_s = p.required("at_s")?;

@@ -7,8 +7,8 @@
 //! at its radius, closes the held-out error, and adds none to a clean
 //! device.
 
+use crate::{added, lattice_loop as run};
 use spidar::model::diagnose::{Family, LoopResult, Variable};
-use spidar::sim::device_with_lattice_and_test;
 use spidar::sim::physics::Guide;
 use spidar_core::geometry::{dot, norm, sub};
 use spidar_core::model::{Effect, EVERY_STRING};
@@ -52,12 +52,6 @@ fn the_term_is_the_independent_simulators_path() {
     }
 }
 
-fn run(seed: u64, effects: &[&str]) -> (LoopResult, f64) {
-    let (device, train, test) =
-        device_with_lattice_and_test(seed, effects, 500).expect("simulated sessions");
-    crate::loop_on(&device.nominal, &train, &test)
-}
-
 fn guides_of(result: &LoopResult) -> Vec<(u8, f64)> {
     result
         .identification
@@ -67,15 +61,6 @@ fn guides_of(result: &LoopResult) -> Vec<(u8, f64)> {
             Effect::Guide { radius_mm } => Some((t.string, radius_mm)),
             _ => None,
         })
-        .collect()
-}
-
-fn added(result: &LoopResult) -> Vec<(Family, Vec<u8>, Variable)> {
-    result
-        .findings
-        .iter()
-        .filter(|f| f.added)
-        .map(|f| (f.family, f.strings.clone(), f.variable))
         .collect()
 }
 

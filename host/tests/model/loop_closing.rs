@@ -4,17 +4,10 @@
 //! fall to within 1.3 times that of the same device without the effect.
 
 use spidar::model::diagnose::{Family, LoopResult, Variable};
-use spidar::sim::device_with_lattice_and_test;
 use spidar_core::kinematics::residual_weights;
 use spidar_core::model::{Effect, EVERY_STRING};
 
-/// Runs the loop on a device of `seed` with `effects` injected; returns the
-/// result and the held-out (test session) mean error of the final model.
-fn run(seed: u64, effects: &[&str]) -> (LoopResult, f64) {
-    let (device, train, test) =
-        device_with_lattice_and_test(seed, effects, 500).expect("simulated sessions");
-    crate::loop_on(&device.nominal, &train, &test)
-}
+use crate::lattice_loop as run;
 
 /// The held-out error of the same device without any injected effect.
 fn baseline(seed: u64) -> f64 {

@@ -3,6 +3,7 @@
 //! that finds effects (on both simulators), devices of 3 to 8 strings. One
 //! test binary (issue 14, point 7: a few links, not twelve).
 
+mod creep;
 mod dataset;
 mod guide;
 mod home_epochs;
@@ -27,6 +28,33 @@ fn slips_of(r: &spidar::model::diagnose::LoopResult) -> Vec<(u8, f64, f64)> {
             Effect::Slip { at_s, mm } => Some((t.string, at_s, mm)),
             _ => None,
         })
+        .collect()
+}
+
+/// Runs the loop on a model-simulator device of `seed` with `effects`
+/// injected (its lattice and a 500-point test session); returns the result
+/// and the held-out (test session) mean error of the final model
+/// (loop_closing, guide, creep).
+fn lattice_loop(seed: u64, effects: &[&str]) -> (spidar::model::diagnose::LoopResult, f64) {
+    let (device, train, test) =
+        spidar::sim::device_with_lattice_and_test(seed, effects, 500).expect("simulated sessions");
+    loop_on(&device.nominal, &train, &test)
+}
+
+/// The findings `result` added: family, strings and variable (guide,
+/// creep).
+fn added(
+    result: &spidar::model::diagnose::LoopResult,
+) -> Vec<(
+    spidar::model::diagnose::Family,
+    Vec<u8>,
+    spidar::model::diagnose::Variable,
+)> {
+    result
+        .findings
+        .iter()
+        .filter(|f| f.added)
+        .map(|f| (f.family, f.strings.clone(), f.variable))
         .collect()
 }
 

@@ -75,7 +75,7 @@ fn main() -> ! {
 
     // Pipeline stages.
     let inputs: [spidar_core::model::StringInputs; N] = core::array::from_fn(|_| string_inputs(&mut rng));
-    measure("string_law::string_lengths (8 strings, 10 effects + 4 shared)", None, N as u32, |i| {
+    measure("string_law::string_lengths (8 strings, 12 terms + 6 shared)", None, N as u32, |i| {
         spidar_core::string_law::string_lengths(StringLayout::ALL, laws, effects, &inputs[at(i)])
     });
     measure("kinematics::inverse_kinematics f32", None, N as u32, |i| inverse_kinematics(&anchors, positions[at(i)]));
@@ -248,7 +248,7 @@ fn main() -> ! {
     for (names, cal) in [
         (
             [
-                "N=4 4-line: string_law::string_lengths (4 strings, 10 effects + 4 shared)",
+                "N=4 4-line: string_law::string_lengths (4 strings, the test model's terms on them)",
                 "N=4 4-line: kinematics::forward_kinematics f32 (warm)",
                 "N=4 4-line: tension::distribute f32 (|F_i| <= 3 N)",
                 "N=4 4-line: control::Controller::step (NN 3-20-3)",
@@ -257,7 +257,7 @@ fn main() -> ! {
         ),
         (
             [
-                "N=4 planar: string_law::string_lengths (4 strings, 10 effects + 4 shared)",
+                "N=4 planar: string_law::string_lengths (4 strings, the test model's terms on them)",
                 "N=4 planar: kinematics::forward_kinematics f32 (warm)",
                 "N=4 planar: tension::distribute f32 (|F_i| <= 3 N)",
                 "N=4 planar: control::Controller::step (NN 3-20-3)",

@@ -4,7 +4,7 @@
 //! residual beyond, and the anchors the data pull beyond their tolerance.
 
 use spidar_core::model::{Effect, EffectTerm, Frame, StringLayout, EVERY_STRING};
-use spidar_core::string_law::{guide_slope, sag_home_variable, sag_variable};
+use spidar_core::string_law::{creep_variable, guide_slope, sag_home_variable, sag_variable};
 use spidar_core::STRINGS;
 
 use crate::data::observe::{
@@ -109,6 +109,11 @@ pub(super) fn candidates(
     let shared = usize::from(EVERY_STRING);
     if !has_effect(shared, |e| matches!(e, Effect::Drift { .. })) {
         out.push(shared_drift_candidate(strings));
+    }
+    // One creep shared by every string (strings of one kind warming
+    // alike): the drift of each string in proportion to its length.
+    if !has_effect(shared, |e| matches!(e, Effect::Creep { .. })) {
+        out.push(shared_creep_candidate(strings));
     }
     if !has_effect(shared, |e| matches!(e, Effect::Stretch { .. })) {
         out.push(shared_stretch_candidate(
@@ -318,6 +323,7 @@ fn string_terms(
             effect: Box::new(|b| Effect::Drift { mm_per_s: b[0] }),
             describe: format!("string {i}'s length drifts with time since initialization"),
         },
+        creep_term(i),
     ];
     if speed_observed {
         terms.push(StringTerm {
@@ -340,6 +346,24 @@ fn string_terms(
         terms.push(slip_term(rows, i, at_s));
     }
     terms
+}
+
+/// A creep of string `i`: its length growing with time since home in
+/// proportion to itself. A time term, judged as a drift is: beyond an
+/// error quadratic in the position, where time goes with it.
+fn creep_term(i: usize) -> StringTerm {
+    StringTerm {
+        family: Family::Creep,
+        variable: Variable::Time,
+        is_term: |e| matches!(e, Effect::Creep { .. }),
+        columns: vec![Box::new(|r| creep_variable(&r.ctx))],
+        rival: position_columns(),
+        search_penalty: 0.0,
+        effect: Box::new(|b| Effect::Creep { per_s: b[0] }),
+        describe: format!(
+            "string {i}'s length grows with time since home in proportion to itself (creep)"
+        ),
+    }
 }
 
 /// The guide a candidate proposes, refitted from a radius of 0: the
@@ -500,6 +524,24 @@ fn shared_drift_candidate(strings: StringLayout) -> Candidate {
         build: Box::new(|b| every_string(Effect::Drift { mm_per_s: b[0] })),
         describe: "every string's length drifts alike with time since initialization (creep, \
                    temperature of the whole device)"
+            .into(),
+    }
+}
+
+/// One creep shared by every string: each string's natural length grows
+/// by one share of itself with time since home ([`Effect::Creep`]).
+fn shared_creep_candidate(strings: StringLayout) -> Candidate {
+    Candidate {
+        family: Family::Creep,
+        strings: Vec::new(),
+        variable: Variable::Time,
+        columns: vec![shared_column(strings, |r| creep_variable(&r.ctx))],
+        on_string: None,
+        search_penalty: 0.0,
+        rival: Vec::new(),
+        build: Box::new(|b| every_string(Effect::Creep { per_s: b[0] })),
+        describe: "every string's length grows with time since home in proportion to itself \
+                   alike (thermal creep of strings of one kind)"
             .into(),
     }
 }

@@ -34,6 +34,7 @@ pub fn family_name(f: Family) -> &'static str {
         Family::Elasticity => "elasticity",
         Family::Backlash => "backlash",
         Family::Drift => "drift",
+        Family::Creep => "creep",
         Family::Slip => "slip",
         Family::Sag => "sag",
         Family::FrameFlex => "frame flex",
@@ -131,6 +132,13 @@ fn in_physical_terms(effect: &Effect) -> Option<String> {
             " (fitted: the encoder read {:.2} ms {})",
             1000.0 * latency_s.abs(),
             if latency_s >= 0.0 { "late" } else { "early" }
+        )),
+        Effect::Creep { per_s } => Some(format!(
+            " (fitted: the string's natural length {} by {:.0} ppm of itself an hour, {:.3} mm \
+             a metre after an hour)",
+            if per_s >= 0.0 { "grows" } else { "shrinks" },
+            per_s.abs() * 3.6e9,
+            per_s.abs() * 3.6e6
         )),
         Effect::Guide { radius_mm } => Some(format!(
             " (fitted: a guide pulley of radius {radius_mm:.1} mm{})",

@@ -744,12 +744,13 @@ fn steps_of(change: Change) -> Option<Vec<f64>> {
     }
 }
 
-/// Whether `change` adds a drift (of one string or of every string).
+/// Whether `change` adds a drift or a creep (of one string or of every
+/// string): a time term, judged forward and on its own rows as a drift.
 fn adds_a_drift(change: Change) -> bool {
     matches!(
         change,
         Change::Effect(EffectTerm {
-            effect: Effect::Drift { .. },
+            effect: Effect::Drift { .. } | Effect::Creep { .. },
             ..
         })
     )

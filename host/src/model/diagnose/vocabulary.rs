@@ -25,6 +25,9 @@ pub enum Family {
     Elasticity,
     Backlash,
     Drift,
+    /// A string's natural length growing by a share of itself with time
+    /// since home (thermal creep, [`Effect::Creep`]).
+    Creep,
     Slip,
     /// A heavy string's sag, `l^3 / T^2` ([`Effect::Sag`]).
     Sag,

@@ -282,7 +282,7 @@ impl RowPass {
 
 /// The derivatives of string `i`'s model length over its payout and over
 /// its home length at `o` (1 each without effects): effects that scale with
-/// the payout or the home length (scale, elasticity, stretch, sag) carry
+/// the payout or the home length (scale, elasticity, stretch, creep, sag) carry
 /// those derivatives along. `context`: the string's, for the sag.
 fn length_derivatives(
     effects: &[EffectTerm],
@@ -298,6 +298,11 @@ fn length_derivatives(
                 let t = f64::from(o.inputs.tension_mn[i]) / 1000.0;
                 d_payout += per_newton * t;
                 d_home += per_newton * t;
+            }
+            Effect::Creep { per_s } => {
+                let strain = per_s * f64::from(o.inputs.time_ms) / 1000.0;
+                d_payout += strain;
+                d_home += strain;
             }
             Effect::Stretch {
                 per_newton,

@@ -146,6 +146,7 @@ pub fn effect_parameter_info(effect: &Effect) -> &'static [(&'static str, f64, &
         Effect::Elasticity { .. } => &[("elasticity", 1e-5, "1/N")],
         Effect::Backlash { .. } => &[("backlash", 0.1, "mm")],
         Effect::Drift { .. } => &[("drift", 1e-4, "mm/s")],
+        Effect::Creep { .. } => &[("creep", 1e-7, "1/s")],
         Effect::Slip { .. } => &[("slip", 1.0, "mm")],
         Effect::Sag { .. } => &[
             ("sag", 0.1, "mm at 1 m and 1 N"),

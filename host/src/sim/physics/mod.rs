@@ -656,6 +656,18 @@ fn string_end(carriage: &CarriageConfig, i: usize, p: &Vec3<f64>, turn: &Vec3<f6
 }
 
 impl PhysicsDevice {
+    /// The strings' thermal strain per second (`drift-all`'s `ppm_per_h`
+    /// in 1/s; 0 without it): what a creep term's `per_s` is.
+    pub fn creep_per_s(&self) -> f64 {
+        self.effects
+            .iter()
+            .map(|e| match e {
+                PhysicsEffect::DriftAll { ppm_per_h } => ppm_per_h * 1e-6 / 3600.0,
+                _ => 0.0,
+            })
+            .sum()
+    }
+
     /// Build the device: draw its as-built physics from `seed`, apply the
     /// configured undeclared effects.
     pub fn new(config: &PhysicsConfig, seed: u64) -> Result<PhysicsDevice, SimError> {
@@ -1139,14 +1151,7 @@ impl<'a> PhysicsSession<'a> {
         let noise = normal("tracker.noise_sigma_mm", cfg.tracker.noise_sigma_mm)?;
         let jitter = normal("as_built.posture_jitter_deg", device.posture.jitter_rad)?;
         let slips = slip_events(&device.effects, n, duration_s, &mut slip_rng);
-        let drift_per_s: f64 = device
-            .effects
-            .iter()
-            .map(|e| match e {
-                PhysicsEffect::DriftAll { ppm_per_h } => ppm_per_h * 1e-6 / 3600.0,
-                _ => 0.0,
-            })
-            .sum();
+        let drift_per_s = device.creep_per_s();
         let latency_s = (0..n)
             .map(|i| {
                 device
