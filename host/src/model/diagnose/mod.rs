@@ -20,6 +20,7 @@ mod candidates;
 mod describe;
 mod evidence;
 mod outliers;
+mod revisits;
 mod slips;
 mod trials;
 mod unexplained;
@@ -67,7 +68,10 @@ pub use vocabulary::{
     Change, Family, Finding, LoopConfig, LoopResult, LoopStage, Variable, RELEASED_ANCHOR_SD_MM,
 };
 
-/// Significant candidate effects of the current fit, strongest first.
+/// Significant candidate effects of the current fit, strongest first; one
+/// without a change is reported, not proposed (an anchor beyond its
+/// tolerance is proposed released; a term on time that the session's
+/// revisits of a place do not show is not).
 pub fn diagnose(
     id: &Identification,
     observations: &[Observation],
@@ -88,8 +92,9 @@ pub fn diagnose(
 
 /// The candidates that explain the residual significantly off the model's
 /// span (and beyond their rival's columns), in order, as findings; a slip
-/// only where the residual jumps. Each test's passes over the rows serve
-/// every candidate at once.
+/// only where the residual jumps; a term on time that the session's
+/// revisits of a place do not show ([`revisits`]) without a change, saying
+/// why. Each test's passes over the rows serve every candidate at once.
 fn significant(ev: &Evidence, candidates: &[Candidate], config: &LoopConfig) -> Vec<Finding> {
     let own: Vec<Columns> = candidates.iter().map(Candidate::own).collect();
     let fitted: Vec<(&Candidate, Vec<f64>, f64)> = ev
@@ -134,6 +139,11 @@ fn significant(ev: &Evidence, candidates: &[Candidate], config: &LoopConfig) -> 
                     return None;
                 }
             }
+            // A term on time must show where the session comes back to a
+            // place (a slip has its own local test, the jump above).
+            let not_shown = (c.variable == Variable::Time && c.family != Family::Slip)
+                .then(|| revisits::not_shown_where_revisited(ev, c, &beta, config))
+                .flatten();
             Some(Finding {
                 family: c.family,
                 strings: c.strings.clone(),
@@ -142,9 +152,12 @@ fn significant(ev: &Evidence, candidates: &[Candidate], config: &LoopConfig) -> 
                 explained: explained / ev.rss.max(1e-12),
                 added: false,
                 chi2: explained / ev.sigma2,
-                description: c.describe.clone(),
+                description: match &not_shown {
+                    Some(why) => format!("{}; {why}", c.describe),
+                    None => c.describe.clone(),
+                },
                 validation: None,
-                change: Some(change),
+                change: not_shown.is_none().then_some(change),
             })
         })
         .collect()
@@ -422,6 +435,13 @@ impl LoopState<'_> {
                 &self.structure,
                 self.config,
             );
+            // Findings without a change (a term on time the revisits do not
+            // show) are reported, and take no place among the strongest.
+            let (proposals, reported): (Vec<Finding>, Vec<Finding>) =
+                proposals.into_iter().partition(|f| f.change.is_some());
+            for finding in reported {
+                self.report_unchanged(finding);
+            }
             let slips: Vec<&Finding> = proposals
                 .iter()
                 .filter(|f| f.family == Family::Slip && f.strings.len() == 1)
@@ -463,6 +483,14 @@ impl LoopState<'_> {
             break;
         }
         Ok(())
+    }
+
+    /// A finding without a change, in the report in place of an earlier
+    /// one of the same family and strings that was not added.
+    fn report_unchanged(&mut self, finding: Finding) {
+        let same = |f: &Finding| f.family == finding.family && f.strings == finding.strings;
+        self.findings.retain(|f| f.added || !same(f));
+        self.findings.push(finding);
     }
 
     /// [`try_change`](Self::try_change) with the finding's own change;
