@@ -440,7 +440,7 @@ impl LoopState<'_> {
             let (proposals, reported): (Vec<Finding>, Vec<Finding>) =
                 proposals.into_iter().partition(|f| f.change.is_some());
             for finding in reported {
-                self.report_unchanged(finding);
+                self.report(finding);
             }
             let slips: Vec<&Finding> = proposals
                 .iter()
@@ -485,11 +485,12 @@ impl LoopState<'_> {
         Ok(())
     }
 
-    /// A finding without a change, in the report in place of an earlier
-    /// one of the same family and strings that was not added.
-    fn report_unchanged(&mut self, finding: Finding) {
-        let same = |f: &Finding| f.family == finding.family && f.strings == finding.strings;
-        self.findings.retain(|f| f.added || !same(f));
+    /// A finding not added, in the report in place of an earlier one of
+    /// the same family and strings that was not added either (an added one
+    /// is a stage of the model: a string's second slip must not take its
+    /// first out of the report).
+    fn report(&mut self, finding: Finding) {
+        self.findings.retain(|f| f.added || !same_term(f, &finding));
         self.findings.push(finding);
     }
 
@@ -510,7 +511,6 @@ impl LoopState<'_> {
     /// added.
     fn try_change(&mut self, mut finding: Finding, change: Change) -> Result<bool, IdentifyError> {
         let candidate = self.structure.with(change);
-        let same = |a: &Finding, b: &Finding| a.family == b.family && a.strings == b.strings;
         if let Some(reason) = beyond_the_device(&candidate) {
             finding.validation = Some(Check {
                 before: self.validation.summary(),
@@ -519,8 +519,7 @@ impl LoopState<'_> {
                 accepted: false,
                 reason,
             });
-            self.findings.retain(|f| f.added || !same(f, &finding));
-            self.findings.push(finding);
+            self.report(finding);
             return Ok(false);
         }
         let moved = (candidate.marker_body_mm != self.structure.marker_body_mm).then(|| {
@@ -582,14 +581,14 @@ impl LoopState<'_> {
         }
         let accepted = check.accepted;
         finding.validation = Some(check.summarized());
-        self.findings.retain(|f| f.added || !same(f, &finding));
         if !accepted {
             if moved.is_some() {
                 self.seen_train = at_meeting_points(self.train, self.structure.marker_body_mm);
             }
-            self.findings.push(finding);
+            self.report(finding);
             return Ok(false);
         }
+        self.findings.retain(|f| f.added || !same_term(f, &finding));
         let validated = Validated {
             validation: after,
             from: from.clone(),
@@ -770,6 +769,11 @@ fn steps_of(change: Change) -> Option<Vec<f64>> {
         Change::Slips(slips) => Some(slips.iter().flatten().map(|s| s.0).collect()),
         _ => None,
     }
+}
+
+/// Whether two findings are of one family on the same strings.
+fn same_term(a: &Finding, b: &Finding) -> bool {
+    a.family == b.family && a.strings == b.strings
 }
 
 /// Whether `change` adds a drift (of one string or of every string).
