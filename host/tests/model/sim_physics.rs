@@ -1026,17 +1026,17 @@ fn a_planar_device_of_other_physics_calibrates() {
 
 /// A planar device whose string 1 rides out of its groove (the abnormal
 /// motor, two spare strings): the model knows the other strings to ~0.8 mm
-/// only, and a drift on string 3 gained 5.6 % on the blocked folds while it
-/// raised the error of the rows it was fitted on by 0.5 %. Added, it raised
-/// the test error 1.08 -> 1.55 mm (the test session starts its own time
-/// from home); a drift must not raise the in-sample error. Since the
-/// kinematics give an inconsistent row of a 2-spare device the exclusion
-/// that fits clearly best, the drift's later half fold also gets worse
-/// (1.43 -> 1.55 mm), which refuses it first; either refusal will do (the
-/// in-sample rule alone: `a_gain_only_the_folds_show_is_refused`). Since
-/// the creep family (decision record 0053) a creep on string 3 is the
-/// strongest time term there (chi-square 685) and is judged as a drift:
-/// refused by the later half fold (1.465 -> 1.592 mm).
+/// only, and a drift on string 3 (-0.0016 mm/s, beyond the quadratic
+/// position rival) gained 5.6 % on the blocked folds while it raised the
+/// error of the rows it was fitted on by 0.5 %. Added, it raised the test
+/// error 1.08 -> 1.55 mm (the test session starts its own time from home).
+/// Within the small cells of the lattice that the walk comes back to, the
+/// rows differ by -0.00016 mm/s of their time apart (chi-square 8.7; the
+/// drift as proposed would explain 898 there): it is no change with time
+/// and is reported, not proposed (decision record 0054); before, the folds
+/// refused it (`a_gain_only_the_folds_show_is_refused` holds the in-sample
+/// rule). A creep on string 3 (decision record 0053) is a time term too
+/// and is held to the same revisits.
 #[test]
 fn a_drift_that_raises_the_error_of_its_own_rows_is_not_added() {
     let mut config = PhysicsConfig::default();
@@ -1053,18 +1053,17 @@ fn a_drift_that_raises_the_error_of_its_own_rows_is_not_added() {
         .iter()
         .filter(|f| matches!(f.family, Family::Drift | Family::Creep))
         .collect();
-    assert!(!drifts.is_empty(), "the drift is proposed");
     for d in &drifts {
         assert!(!d.added, "{d:?}");
     }
-    let refused = drifts
+    let on_3 = drifts
         .iter()
-        .filter_map(|d| d.validation.as_ref())
-        .any(|v| {
-            v.reason.contains("repairs how the folds were fitted")
-                || v.reason.contains("fold gets worse")
-        });
-    assert!(refused, "{drifts:#?}");
+        .find(|d| d.strings == [3])
+        .expect("drift string 3");
+    assert!(
+        on_3.change.is_none() && on_3.description.contains("not proposed"),
+        "{on_3:?}"
+    );
     let identified = c
         .report
         .stages

@@ -20,6 +20,7 @@ mod candidates;
 mod describe;
 mod evidence;
 mod outliers;
+mod revisits;
 mod slips;
 mod trials;
 mod unexplained;
@@ -67,7 +68,10 @@ pub use vocabulary::{
     Change, Family, Finding, LoopConfig, LoopResult, LoopStage, Variable, RELEASED_ANCHOR_SD_MM,
 };
 
-/// Significant candidate effects of the current fit, strongest first.
+/// Significant candidate effects of the current fit, strongest first; one
+/// without a change is reported, not proposed (an anchor beyond its
+/// tolerance is proposed released; a term on time that the session's
+/// revisits of a place do not show is not).
 pub fn diagnose(
     id: &Identification,
     observations: &[Observation],
@@ -88,8 +92,9 @@ pub fn diagnose(
 
 /// The candidates that explain the residual significantly off the model's
 /// span (and beyond their rival's columns), in order, as findings; a slip
-/// only where the residual jumps. Each test's passes over the rows serve
-/// every candidate at once.
+/// only where the residual jumps; a term on time that the session's
+/// revisits of a place do not show ([`revisits`]) without a change, saying
+/// why. Each test's passes over the rows serve every candidate at once.
 fn significant(ev: &Evidence, candidates: &[Candidate], config: &LoopConfig) -> Vec<Finding> {
     let own: Vec<Columns> = candidates.iter().map(Candidate::own).collect();
     let fitted: Vec<(&Candidate, Vec<f64>, f64)> = ev
@@ -134,6 +139,11 @@ fn significant(ev: &Evidence, candidates: &[Candidate], config: &LoopConfig) -> 
                     return None;
                 }
             }
+            // A term on time must show where the session comes back to a
+            // place (a slip has its own local test, the jump above).
+            let not_shown = (c.variable == Variable::Time && c.family != Family::Slip)
+                .then(|| revisits::not_shown_where_revisited(ev, c, &beta, config))
+                .flatten();
             Some(Finding {
                 family: c.family,
                 strings: c.strings.clone(),
@@ -142,9 +152,12 @@ fn significant(ev: &Evidence, candidates: &[Candidate], config: &LoopConfig) -> 
                 explained: explained / ev.rss.max(1e-12),
                 added: false,
                 chi2: explained / ev.sigma2,
-                description: c.describe.clone(),
+                description: match &not_shown {
+                    Some(why) => format!("{}; {why}", c.describe),
+                    None => c.describe.clone(),
+                },
                 validation: None,
-                change: Some(change),
+                change: not_shown.is_none().then_some(change),
             })
         })
         .collect()
@@ -422,6 +435,13 @@ impl LoopState<'_> {
                 &self.structure,
                 self.config,
             );
+            // Findings without a change (a term on time the revisits do not
+            // show) are reported, and take no place among the strongest.
+            let (proposals, reported): (Vec<Finding>, Vec<Finding>) =
+                proposals.into_iter().partition(|f| f.change.is_some());
+            for finding in reported {
+                self.report(finding);
+            }
             let slips: Vec<&Finding> = proposals
                 .iter()
                 .filter(|f| f.family == Family::Slip && f.strings.len() == 1)
@@ -465,6 +485,15 @@ impl LoopState<'_> {
         Ok(())
     }
 
+    /// A finding not added, in the report in place of an earlier one of
+    /// the same family and strings that was not added either (an added one
+    /// is a stage of the model: a string's second slip must not take its
+    /// first out of the report).
+    fn report(&mut self, finding: Finding) {
+        self.findings.retain(|f| f.added || !same_term(f, &finding));
+        self.findings.push(finding);
+    }
+
     /// [`try_change`](Self::try_change) with the finding's own change;
     /// `false` for a finding without one (an anchor to inspect).
     fn try_finding(&mut self, finding: Finding) -> Result<bool, IdentifyError> {
@@ -482,7 +511,6 @@ impl LoopState<'_> {
     /// added.
     fn try_change(&mut self, mut finding: Finding, change: Change) -> Result<bool, IdentifyError> {
         let candidate = self.structure.with(change);
-        let same = |a: &Finding, b: &Finding| a.family == b.family && a.strings == b.strings;
         if let Some(reason) = beyond_the_device(&candidate) {
             finding.validation = Some(Check {
                 before: self.validation.summary(),
@@ -491,8 +519,7 @@ impl LoopState<'_> {
                 accepted: false,
                 reason,
             });
-            self.findings.retain(|f| f.added || !same(f, &finding));
-            self.findings.push(finding);
+            self.report(finding);
             return Ok(false);
         }
         let moved = (candidate.marker_body_mm != self.structure.marker_body_mm).then(|| {
@@ -554,14 +581,14 @@ impl LoopState<'_> {
         }
         let accepted = check.accepted;
         finding.validation = Some(check.summarized());
-        self.findings.retain(|f| f.added || !same(f, &finding));
         if !accepted {
             if moved.is_some() {
                 self.seen_train = at_meeting_points(self.train, self.structure.marker_body_mm);
             }
-            self.findings.push(finding);
+            self.report(finding);
             return Ok(false);
         }
+        self.findings.retain(|f| f.added || !same_term(f, &finding));
         let validated = Validated {
             validation: after,
             from: from.clone(),
@@ -742,6 +769,11 @@ fn steps_of(change: Change) -> Option<Vec<f64>> {
         Change::Slips(slips) => Some(slips.iter().flatten().map(|s| s.0).collect()),
         _ => None,
     }
+}
+
+/// Whether two findings are of one family on the same strings.
+fn same_term(a: &Finding, b: &Finding) -> bool {
+    a.family == b.family && a.strings == b.strings
 }
 
 /// Whether `change` adds a drift or a creep (of one string or of every

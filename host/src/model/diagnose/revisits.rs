@@ -1,0 +1,228 @@
+//! A term on time judged where the session revisits a place. On a lattice
+//! walked plane by plane (a stream's passes alike) time goes with position,
+//! and a term on time fitted on every row can take an error of the places
+//! the walk reaches at those times: the abnormal motor's string off its
+//! groove near its corner, visit by visit, which no smooth function of the
+//! position (the quadratic rival, `candidates::position_columns`) takes.
+//! Within small cells of space the rows of one string at different times
+//! (the next plane, the next row of cells) differ by what the term says
+//! when it is a change with time, a drift by its rate times their time
+//! apart; an error of the place leaves them alike, or scattered by visit.
+//!
+//! The test ([`revisits`]): the term's columns (off the model's span, as
+//! the candidate is tested) and the residual, each (string, cell) group's
+//! weighted mean taken out (a constant per string and place: any error of
+//! the position at the cells' scale), the term fitted to what is left, its
+//! chi-square by the scatter left there (the string's own: an error that
+//! comes and goes by visit is scatter, not time). The revisits must show
+//! the term at the chi-square its columns are held to on every row, its
+//! way ([`Revisits::keep`]). Every term on time but a slip (a step, which
+//! has its own local test, `slips`) takes it: `Variable::Time` makes a
+//! family one.
+
+use std::collections::HashMap;
+
+use nalgebra::{DMatrix, DVector};
+use spidar_core::STRINGS;
+
+use super::candidates::{chi2_threshold, Candidate};
+use super::evidence::{Evidence, Row};
+use super::vocabulary::LoopConfig;
+
+/// What the revisits of a session say of a term on time: its columns
+/// within the cells (each (string, cell) group's weighted mean taken out:
+/// a constant per string and place, any error of the position at the
+/// cells' scale) against the residual within them.
+#[derive(Clone, Debug, PartialEq)]
+pub(super) struct Revisits {
+    /// Chi-square of the term's fit to the residual within the cells, by
+    /// the scatter left within them.
+    pub(super) chi2: f64,
+    /// Chi-square the term as proposed would explain within the cells
+    /// (its columns within them times the proposed coefficients), by the
+    /// same scatter: how well the revisits can show it.
+    pub(super) power: f64,
+    /// Whether the residual within the cells leans the way the proposed
+    /// term does (the term's values within them dotted with it is above 0).
+    pub(super) agrees: bool,
+    /// The term's coefficients fitted within the cells.
+    pub(super) within: Vec<f64>,
+}
+
+impl Revisits {
+    /// Whether the revisits show the term: their own chi-square reaches
+    /// `threshold` (the one its columns are held to on every row), leaning
+    /// its way.
+    pub(super) fn keep(&self, threshold: f64) -> bool {
+        self.chi2 >= threshold && self.agrees
+    }
+}
+
+/// Why candidate `c`, a term on time with the coefficients `beta` fitted
+/// on every row, is no change with time where the session revisits a
+/// place ([`revisits`] of it, [`Revisits::keep`] at its own chi-square
+/// threshold); `None` when the revisits show it, or the session revisits
+/// no place.
+pub(super) fn not_shown_where_revisited(
+    ev: &Evidence,
+    c: &Candidate,
+    beta: &[f64],
+    config: &LoopConfig,
+) -> Option<String> {
+    let r = revisits(ev, c, beta)?;
+    let threshold = chi2_threshold(config, c.columns.len(), c.search_penalty);
+    (!r.keep(threshold)).then(|| {
+        let fitted = |b: &[f64]| {
+            let b: Vec<String> = b.iter().map(|v| format!("{v:.3e}")).collect();
+            b.join(", ")
+        };
+        format!(
+            "not proposed: where the session comes back to a place (small cells of its \
+             space, each string's rows there at other times) the term fits {} (chi-square \
+             {:.1}, threshold {threshold:.0}{}) against {} on every row, which would explain \
+             {:.1} there: an error of the places the session reached at those times, not a \
+             change with time",
+            fitted(&r.within),
+            r.chi2,
+            if r.agrees { "" } else { ", the other way" },
+            fitted(beta),
+            r.power
+        )
+    })
+}
+
+/// The revisit test of candidate `c` with coefficients `beta`: `None` when
+/// the session has no cell holding two rows of its strings (nothing is
+/// revisited).
+pub(super) fn revisits(ev: &Evidence, c: &Candidate, beta: &[f64]) -> Option<Revisits> {
+    let edge = cell_edge(ev)?;
+    let m = c.columns.len();
+    let on = |row: &Row| {
+        row.weight > 0.0
+            && ev.layout.is_active(row.string)
+            && c.on_string.is_none_or(|s| s == row.string)
+    };
+    // The columns weighted as the residual is and projected off the
+    // model's span (`P X`, as the candidate is tested): what the model's
+    // terms would take of them is not the term's to show.
+    let mut coef = vec![Vec::<f64>::new(); m];
+    ev.for_each_row_with_basis(|_, row, b| {
+        if !on(row) {
+            return;
+        }
+        let sw = row.weight.sqrt();
+        for (f, coef) in c.columns.iter().zip(coef.iter_mut()) {
+            coef.resize(b.len(), 0.0);
+            let x = f(row) * sw;
+            for (a, &bc) in coef.iter_mut().zip(b) {
+                *a += bc * x;
+            }
+        }
+    });
+    // Each row on the candidate's strings: its group, sqrt(weight), the
+    // projected weighted columns and the projected weighted residual.
+    let mut groups: HashMap<(usize, [i64; 3]), usize> = HashMap::new();
+    let mut rows: Vec<(usize, f64, Vec<f64>, f64)> = Vec::new();
+    ev.for_each_row_with_basis(|k, row, b| {
+        if !on(row) {
+            return;
+        }
+        let cell: [i64; 3] = core::array::from_fn(|a| (row.position[a] / edge[a]).floor() as i64);
+        let next = groups.len();
+        let g = *groups.entry((row.string, cell)).or_insert(next);
+        let sw = row.weight.sqrt();
+        let x: Vec<f64> = c
+            .columns
+            .iter()
+            .zip(&coef)
+            .map(|(f, coef)| f(row) * sw - coef.iter().zip(b).map(|(a, bc)| a * bc).sum::<f64>())
+            .collect();
+        rows.push((g, sw, x, ev.residual[k]));
+    });
+    // Each group's weighted means (the fixed effect's column is sqrt(w)).
+    let mut sums = vec![(0.0, vec![0.0; m], 0.0, 0usize); groups.len()];
+    for (g, sw, x, r) in &rows {
+        let s = &mut sums[*g];
+        s.0 += sw * sw;
+        for (a, v) in s.1.iter_mut().zip(x) {
+            *a += sw * v;
+        }
+        s.2 += sw * r;
+        s.3 += 1;
+    }
+    let revisited = sums.iter().filter(|s| s.3 >= 2).count();
+    if revisited == 0 {
+        return None;
+    }
+    let mut gram = DMatrix::<f64>::zeros(m, m);
+    let mut rhs = DVector::<f64>::zeros(m);
+    let (mut rr, mut n) = (0.0, 0usize);
+    for (g, sw, x, r) in &rows {
+        let s = &sums[*g];
+        if s.3 < 2 || s.0 <= 0.0 {
+            continue;
+        }
+        let xt: Vec<f64> = x
+            .iter()
+            .zip(&s.1)
+            .map(|(v, sx)| v - sw * sx / s.0)
+            .collect();
+        let rt = r - sw * s.2 / s.0;
+        for a in 0..m {
+            rhs[a] += xt[a] * rt;
+            for b in 0..m {
+                gram[(a, b)] += xt[a] * xt[b];
+            }
+        }
+        rr += rt * rt;
+        n += 1;
+    }
+    let dof = n.checked_sub(revisited + m).filter(|&d| d > 0)? as f64;
+    let within = gram.clone().pseudo_inverse(1e-12).ok()? * &rhs;
+    let explained = rhs.dot(&within);
+    let s2 = ((rr - explained) / dof).max(f64::MIN_POSITIVE);
+    let proposed = DVector::from_row_slice(beta);
+    Some(Revisits {
+        chi2: explained / s2,
+        power: proposed.dot(&(&gram * &proposed)) / s2,
+        agrees: rhs.dot(&proposed) > 0.0,
+        within: within.iter().copied().collect(),
+    })
+}
+
+/// The edge of the cells along each axis (mm): twice the spacing the
+/// session's rows would have if they filled its box evenly, so that a
+/// cell holds about two rows along each axis the rows span, a row and a
+/// neighbour on either side; `None` for a session spanning no axis. An
+/// axis the rows do not move along (a planar device's height) is one cell.
+fn cell_edge(ev: &Evidence) -> Option<[f64; 3]> {
+    let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
+    let mut n = 0usize;
+    let first = (0..STRINGS).find(|&i| ev.layout.is_active(i))?;
+    ev.for_each_row(Some(first), |_, row| {
+        for a in 0..3 {
+            lo[a] = lo[a].min(row.position[a]);
+            hi[a] = hi[a].max(row.position[a]);
+        }
+        n += 1;
+    });
+    let extent: [f64; 3] = core::array::from_fn(|a| (hi[a] - lo[a]).max(0.0));
+    let widest = extent.iter().copied().fold(0.0, f64::max);
+    let spanned: Vec<f64> = extent
+        .iter()
+        .copied()
+        .filter(|&e| e > 1e-3 * widest)
+        .collect();
+    if spanned.is_empty() || n < 2 {
+        return None;
+    }
+    let volume: f64 = spanned.iter().product();
+    let spacing = (volume / n as f64).powf(1.0 / spanned.len() as f64);
+    Some(core::array::from_fn(|a| {
+        if extent[a] > 1e-3 * widest {
+            2.0 * spacing
+        } else {
+            f64::INFINITY
+        }
+    }))
+}
