@@ -159,8 +159,8 @@ pub(super) struct RowPass {
     /// terms and of each string's own.
     shared_terms: Vec<usize>,
     own_terms: [Vec<usize>; STRINGS],
-    home_lengths: [f64; STRINGS],
-    /// The frame's home terms of each string's context.
+    /// The frame's home terms of each string's context (its length at home
+    /// too).
     homes: [Option<StringHome>; STRINGS],
     own: Vec<f64>,
     shared: Vec<f64>,
@@ -178,7 +178,6 @@ impl RowPass {
             own_terms: core::array::from_fn(|i| {
                 layout.term_columns(problem.structure, i as u8).collect()
             }),
-            home_lengths: core::array::from_fn(|i| distance(frame.home, frame.anchors[i])),
             homes: StringHome::of_every_string(frame),
             own: Vec::with_capacity(layout.arrow.n),
             shared: Vec::with_capacity(layout.arrow.n),
@@ -227,7 +226,9 @@ impl RowPass {
                 let d = sub(p, a);
                 [d[0] / geo, d[1] / geo, d[2] / geo]
             };
-            let lh = self.home_lengths[i];
+            // Every string below STRINGS has its home terms; NaN (a row not
+            // finite) otherwise.
+            let lh = self.homes[i].as_ref().map_or(f64::NAN, |h| h.length_mm);
             let uh = {
                 let d = sub(frame.home, a);
                 [d[0] / lh, d[1] / lh, d[2] / lh]
