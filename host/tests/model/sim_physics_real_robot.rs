@@ -288,3 +288,53 @@ fn devices_without_the_new_parts_are_unchanged() {
     }
     let _ = std::fs::remove_dir_all(dir);
 }
+
+/// A user who declares the anchors' tolerance too tight (`anchor_sd_mm =
+/// 0.5` on a wall robot whose cables leave tens of mm off the drawn
+/// corners) is told so by name: the plain least-squares reference places
+/// an anchor hundreds of sds from the drawing and beats the identified
+/// model held to the declared tolerance. Without the declaration, no such
+/// warning.
+#[test]
+fn a_declared_anchor_tolerance_the_wall_robot_contradicts_is_named() {
+    use spidar::procedures::calibrate::{calibrate, CalibrateConfig, NamedSession};
+    use std::path::Path;
+    let device = wall_robot(1);
+    let session = |area, seed| {
+        simulate_session(&device, SessionKind::Stream { rows: 3000, area }, seed)
+            .unwrap()
+            .0
+    };
+    let (train, test) = (
+        session(StreamArea::Training, 4),
+        session(StreamArea::Whole, 5),
+    );
+    let mut cfg = CalibrateConfig::quick();
+    cfg.quiet = true;
+    let warning = |geometry: &spidar::data::dataset::Geometry| {
+        let c = calibrate(
+            geometry,
+            Path::new("geometry.toml"),
+            NamedSession {
+                path: Path::new("train.csv"),
+                session: &train,
+            },
+            NamedSession {
+                path: Path::new("test.csv"),
+                session: &test,
+            },
+            &cfg,
+        )
+        .unwrap();
+        c.report
+            .warnings
+            .iter()
+            .find(|w| w.contains("`anchor_sd_mm`"))
+            .cloned()
+    };
+    assert_eq!(warning(&device.nominal), None);
+    let mut tight = device.nominal.clone();
+    tight.anchor_sd_mm = Some([0.5; spidar_core::STRINGS]);
+    let w = warning(&tight).expect("the declared tolerance named");
+    assert!(w.contains("is contradicted by the data"), "{w}");
+}

@@ -8,6 +8,7 @@
 use std::path::Path;
 
 use spidar_core::geometry::device_from_room;
+use spidar_core::STRINGS;
 
 use crate::data::dataset::Geometry;
 use crate::data::impossible::{SetAside, NOMINAL_SCALE_LIMIT};
@@ -494,6 +495,55 @@ pub(super) fn trust_warnings(
         }
     }
     warnings
+}
+
+/// Chi-square a fitted anchor's distance from the drawing, in declared sds,
+/// exceeds with probability 0.001 when the tolerance is right: 2 degrees
+/// of freedom in a plane, 3 in space.
+const DECLARED_TOLERANCE_CHI2: [f64; 2] = [13.82, 16.27];
+
+/// A warning when the geometry declares the anchors' tolerance
+/// (`anchor_sd_mm`) and the data contradict it: the plain least-squares
+/// reference, which has no prior, places an anchor beyond the 0.1 %
+/// chi-square of that tolerance from the drawing, and the identified model
+/// (held to the tolerance) is worse than the reference on the test session.
+/// The warning names the anchor, how far, in sds, and both figures.
+pub(super) fn declared_tolerance_warning(
+    declared_sd_mm: Option<&[f64; STRINGS]>,
+    drawing: &spidar_core::model::Frame<f64>,
+    reference: &spidar_core::model::Frame<f64>,
+    stages: &[report::Stage],
+) -> Option<String> {
+    let sd = declared_sd_mm?;
+    let test_mean = |kind| {
+        stages
+            .iter()
+            .find(|s: &&report::Stage| s.kind == kind)
+            .map(|s| s.test.mean_mm)
+    };
+    let identified = test_mean(report::StageKind::Identified)?;
+    let plain = test_mean(report::StageKind::Reference)?;
+    // Not where the identified model is as good, nor on figures not finite.
+    if identified.partial_cmp(&plain) != Some(std::cmp::Ordering::Greater) {
+        return None;
+    }
+    let limit = DECLARED_TOLERANCE_CHI2[usize::from(!drawing.layout.planar)];
+    let (string, distance_mm, sds) = (0..STRINGS)
+        .filter(|&i| drawing.layout.is_active(i) && sd[i] > 0.0)
+        .map(|i| {
+            let d = spidar_core::geometry::distance(reference.anchors[i], drawing.anchors[i]);
+            (i, d, d / sd[i])
+        })
+        .filter(|&(_, _, k)| k * k > limit)
+        .max_by(|a, b| a.2.total_cmp(&b.2))?;
+    Some(format!(
+        "the geometry's `anchor_sd_mm` ({:.3} mm for string {string}) is contradicted by the \
+         data: the plain least-squares reference places anchor {string} {distance_mm:.1} mm from \
+         the drawing ({sds:.0} sds), and the identified model, held to the declared tolerance, \
+         has a held-out mean of {identified:.3} mm against the reference's {plain:.3}; widen \
+         `anchor_sd_mm`, or leave it out and the calibration chooses the tolerance on its folds",
+        sd[string]
+    ))
 }
 
 /// A warning when the final model's held-out mean is above the plain

@@ -76,7 +76,7 @@ use crate::model::learn::search::{SvrSearchConfig, SweepConfig};
 use crate::model::learn::{LearnError, OutputMode};
 use crate::model::predict::predict;
 
-use checks::{checked_sessions, reference_warning, trust_warnings};
+use checks::{checked_sessions, declared_tolerance_warning, reference_warning, trust_warnings};
 use corrections::{
     hold_to_reference, identification_only, learner_warnings, residual_report, selection_report,
     train_corrections, Learned, ResidualData,
@@ -454,6 +454,12 @@ impl Run<'_> {
         let plain_rule_test = ErrorStats::of(&point_error_list(|p| p, &x, &t));
         self.warnings
             .extend(reference_warning(&list.stages, plain_rule_test.mean_mm));
+        self.warnings.extend(declared_tolerance_warning(
+            self.geometry.anchor_sd_mm.as_ref(),
+            &self.geometry.nominal_frame(),
+            &reference.id.frame,
+            &list.stages,
+        ));
         let final_points = list.points.iter().find(|p| p.name == final_name);
         self.warnings
             .extend(trust_warnings(&fin.frame, tr, final_points));

@@ -38,6 +38,50 @@ fn a_final_model_worse_than_the_reference_names_what_lost() {
     assert!(w(stages(1.2, 1.1, 1.1), 2.0).contains("robust weights and priors"));
 }
 
+/// A declared anchor tolerance the data contradict is named with the
+/// anchor, its distance from the drawing in sds and both figures; not
+/// when the identified model beats the reference, when the anchor is
+/// within the tolerance's 0.1 % chi-square, or when nothing is declared.
+#[test]
+fn a_declared_anchor_tolerance_the_data_contradict_is_named() {
+    use report::StageKind::*;
+    let drawing = crate::sim::SimConfig::default()
+        .nominal
+        .geometry()
+        .nominal_frame();
+    let mut fitted = drawing;
+    fitted.anchors[2][0] += 4.5;
+    let stages = |identified| {
+        vec![
+            stage_at(Reference, reference::STAGE_NAME, 0.5),
+            stage_at(Identified, "identified", identified),
+        ]
+    };
+    let one = [1.0; STRINGS];
+    let w =
+        declared_tolerance_warning(Some(&one), &drawing, &fitted, &stages(3.0)).expect("a warning");
+    assert!(
+        w.contains("anchor 2 4.5 mm from the drawing (4 sds)") && w.contains("3.000 mm"),
+        "{w}"
+    );
+    // 4.5 sds in space is beyond the 0.1 % chi-square (16.27, 4.03 sds);
+    // 3.9 is not.
+    fitted.anchors[2][0] = drawing.anchors[2][0] + 3.9;
+    assert_eq!(
+        declared_tolerance_warning(Some(&one), &drawing, &fitted, &stages(3.0)),
+        None
+    );
+    fitted.anchors[2][0] = drawing.anchors[2][0] + 4.5;
+    assert_eq!(
+        declared_tolerance_warning(Some(&one), &drawing, &fitted, &stages(0.4)),
+        None
+    );
+    assert_eq!(
+        declared_tolerance_warning(None, &drawing, &fitted, &stages(3.0)),
+        None
+    );
+}
+
 /// The warnings name the lines (CSV line = row + 2) with their
 /// disagreement, the first 12 and how many more.
 #[test]
