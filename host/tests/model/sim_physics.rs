@@ -3,11 +3,11 @@
 //! spool winds in layers), its effects selectable by name, bad input named,
 //! and what today's calibration pipeline reaches on it.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use super::slips_of;
 use spidar::data::dataset::Session;
-use spidar::procedures::calibrate::{calibrate, CalibrateConfig, NamedSession};
+use spidar::procedures::calibrate::CalibrateConfig;
 use spidar::sim::physics::{
     rows_to_session, simulate_rows, simulate_session, PhysicsConfig, PhysicsDevice, PhysicsRow,
     EFFECT_NAMES,
@@ -296,20 +296,7 @@ fn calibrate_quick(
 ) -> spidar::procedures::calibrate::Calibrated {
     let mut cfg = CalibrateConfig::quick();
     cfg.quiet = true;
-    calibrate(
-        &device.nominal,
-        Path::new("geometry.toml"),
-        NamedSession {
-            path: Path::new("lattice.csv"),
-            session: train,
-        },
-        NamedSession {
-            path: Path::new("test.csv"),
-            session: test,
-        },
-        &cfg,
-    )
-    .unwrap()
+    crate::calibrate_in_memory(&device.nominal, train, test, &cfg)
 }
 
 #[test]

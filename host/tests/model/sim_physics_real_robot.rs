@@ -297,8 +297,6 @@ fn devices_without_the_new_parts_are_unchanged() {
 /// warning.
 #[test]
 fn a_declared_anchor_tolerance_the_wall_robot_contradicts_is_named() {
-    use spidar::procedures::calibrate::{calibrate, CalibrateConfig, NamedSession};
-    use std::path::Path;
     let device = wall_robot(1);
     let session = |area, seed| {
         simulate_session(&device, SessionKind::Stream { rows: 3000, area }, seed)
@@ -309,28 +307,14 @@ fn a_declared_anchor_tolerance_the_wall_robot_contradicts_is_named() {
         session(StreamArea::Training, 4),
         session(StreamArea::Whole, 5),
     );
-    let mut cfg = CalibrateConfig::quick();
+    let mut cfg = spidar::procedures::calibrate::CalibrateConfig::quick();
     cfg.quiet = true;
     let warning = |geometry: &spidar::data::dataset::Geometry| {
-        let c = calibrate(
-            geometry,
-            Path::new("geometry.toml"),
-            NamedSession {
-                path: Path::new("train.csv"),
-                session: &train,
-            },
-            NamedSession {
-                path: Path::new("test.csv"),
-                session: &test,
-            },
-            &cfg,
-        )
-        .unwrap();
-        c.report
+        crate::calibrate_in_memory(geometry, &train, &test, &cfg)
+            .report
             .warnings
-            .iter()
+            .into_iter()
             .find(|w| w.contains("`anchor_sd_mm`"))
-            .cloned()
     };
     assert_eq!(warning(&device.nominal), None);
     let mut tight = device.nominal.clone();

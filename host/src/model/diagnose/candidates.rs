@@ -429,10 +429,9 @@ fn speed_column() -> RowColumn {
 }
 
 /// One latency shared by every string (encoders of one kind read by one
-/// loop), where the rows observe the speed.
-/// A latency shared by every string; `clock_aligned`: the tracker's clock
-/// was found from the rows, so the term is that clock's offset refined
-/// ([`LoopConfig::clock_aligned`]) and says so.
+/// loop), where the rows observe the speed; `clock_aligned`: the tracker's
+/// clock was found from the rows, so the term is that clock's offset
+/// refined ([`LoopConfig::clock_aligned`]) and says so.
 fn shared_latency_candidate(strings: StringLayout, clock_aligned: bool) -> Candidate {
     let describe = if clock_aligned {
         "every string's error follows its speed alike: the tracker's clock, found from these \

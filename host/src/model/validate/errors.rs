@@ -124,13 +124,6 @@ fn errors_and_inconsistency<O: Borrow<Observation>>(
     (position_errors(&p, &t), inconsistent)
 }
 
-/// Sampling noise (two standard errors) of the p95 and the max of a set of
-/// errors, from the set itself. p95: half the spread between the errors at
-/// ranks `n (0.95 -+ 2 sqrt(0.95 0.05 / n_eff))` (the binomial uncertainty
-/// of the rank among the [`independent_rows`] the errors are worth, in the
-/// order given). Max: the errors' tail beyond the p95 is taken as exponential with
-/// the mean excess `beta`; the maximum of such a sample is Gumbel-distributed
-/// with standard deviation `pi / sqrt(6) beta`.
 /// How many independent rows `errors` (at least 2 of them) are worth:
 /// `n (1 - rho) / (1 + rho)`, `rho` the correlation of each error with the
 /// next (the effective sample size of a first-order autoregressive
@@ -154,6 +147,14 @@ fn independent_rows(errors: &[f64]) -> f64 {
     (n * (1.0 - rho) / (1.0 + rho)).max(2.0)
 }
 
+/// Sampling noise (two standard errors) of the p95 and the max of a set of
+/// errors, from the set itself. p95: half the spread between the errors at
+/// ranks `n (0.95 -+ 2 sqrt(0.95 0.05 / n_eff))` (the binomial uncertainty
+/// of the rank among the independent rows the errors are worth, in the order
+/// given: `independent_rows`). Max: the errors' tail beyond the p95 is
+/// taken as exponential with the mean excess `beta`; the maximum of such a
+/// sample is Gumbel-distributed with standard deviation `pi / sqrt(6)
+/// beta`.
 pub fn tail_noise(errors: &[f64]) -> (f64, f64) {
     let n = errors.len();
     if n < 2 {

@@ -656,6 +656,20 @@ fn string_end(carriage: &CarriageConfig, i: usize, p: &Vec3<f64>, turn: &Vec3<f6
 }
 
 impl PhysicsDevice {
+    /// How late string `string`'s encoder is read, s (`latency`'s `ms`
+    /// on that string or on every string; 0 without it).
+    pub fn encoder_latency_s(&self, string: usize) -> f64 {
+        self.effects
+            .iter()
+            .map(|e| match e {
+                PhysicsEffect::Latency { string: s, ms } if s.is_none_or(|s| s == string) => {
+                    ms / 1000.0
+                }
+                _ => 0.0,
+            })
+            .sum()
+    }
+
     /// The strings' thermal strain per second (`drift-all`'s `ppm_per_h`
     /// in 1/s; 0 without it): what a creep term's `per_s` is.
     pub fn creep_per_s(&self) -> f64 {
@@ -1152,20 +1166,7 @@ impl<'a> PhysicsSession<'a> {
         let jitter = normal("as_built.posture_jitter_deg", device.posture.jitter_rad)?;
         let slips = slip_events(&device.effects, n, duration_s, &mut slip_rng);
         let drift_per_s = device.creep_per_s();
-        let latency_s = (0..n)
-            .map(|i| {
-                device
-                    .effects
-                    .iter()
-                    .map(|e| match e {
-                        PhysicsEffect::Latency { string, ms } if string.is_none_or(|s| s == i) => {
-                            ms / 1000.0
-                        }
-                        _ => 0.0,
-                    })
-                    .sum()
-            })
-            .collect();
+        let latency_s = (0..n).map(|i| device.encoder_latency_s(i)).collect();
         let am = &cfg.abnormal_motor;
         let abnormal = AbnormalMotor {
             config: am,
