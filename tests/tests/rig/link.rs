@@ -530,7 +530,14 @@ fn missing_busy_silent_and_mismatched_ports_are_named() {
         }
         None
     });
-    match Client::open_with(&path, quick()) {
+    // The responder answers when it is scheduled: no deadline a busy
+    // machine could miss (the silent port above is the timeout's case).
+    let patient = ClientOptions {
+        timeout: Duration::from_secs(10),
+        retries: 0,
+        ..ClientOptions::default()
+    };
+    match Client::open_with(&path, patient) {
         Err(LinkError::VersionMismatch { device, host, .. }) => {
             assert_eq!(device, 99);
             assert_eq!(host, spidar_protocol::PROTOCOL_VERSION);
