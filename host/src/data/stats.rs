@@ -161,6 +161,29 @@ pub fn quantile(values: &[f64], q: f64) -> f64 {
     sorted[(((q * n as f64).ceil() as usize).max(1) - 1).min(n - 1)]
 }
 
+/// The chi-square that `dof` independent standard normals exceed with
+/// probability 0.001: the level at which every test of the calibration
+/// that is not a search over many columns (a term's halves, a declared
+/// tolerance, an anchor beyond its tolerance) calls a difference real.
+/// Exact to the table's digits up to 10 dof; beyond, the Wilson-Hilferty
+/// approximation (within 1 % from 10 dof).
+pub fn chi_square_p001(dof: usize) -> f64 {
+    const TABLE: [f64; 10] = [
+        10.828, 13.816, 16.266, 18.467, 20.515, 22.458, 24.322, 26.124, 27.877, 29.588,
+    ];
+    match dof {
+        0 => 0.0,
+        1..=10 => TABLE[dof - 1],
+        _ => {
+            // The normal's 0.999 quantile.
+            const Z: f64 = 3.090_232;
+            let k = dof as f64;
+            let a = 2.0 / (9.0 * k);
+            k * (1.0 - a + Z * a.sqrt()).powi(3)
+        }
+    }
+}
+
 /// Errors that make statistics meaningless.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum StatsError {
@@ -195,6 +218,29 @@ pub fn error_stats_checked(what: &str, errors: &[f64]) -> Result<ErrorStats, Sta
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_chi_square_level_runs_on_smoothly_past_its_table() {
+        // Wilson-Hilferty at 10 dof against the table's 29.588, and the
+        // published 0.999 quantiles at 20 and 40 dof.
+        let k10 = {
+            let a = 2.0 / 90.0;
+            10.0 * (1.0 - a + 3.090_232 * f64::sqrt(a)).powi(3)
+        };
+        assert!((k10 / chi_square_p001(10) - 1.0).abs() < 0.01, "{k10}");
+        assert!(
+            (chi_square_p001(20) - 45.315).abs() < 0.2,
+            "{}",
+            chi_square_p001(20)
+        );
+        assert!(
+            (chi_square_p001(40) - 73.402).abs() < 0.3,
+            "{}",
+            chi_square_p001(40)
+        );
+        let levels: Vec<f64> = (1..30).map(chi_square_p001).collect();
+        assert!(levels.windows(2).all(|w| w[1] > w[0]));
+    }
 
     #[test]
     fn running_median_is_the_median_of_each_window() {

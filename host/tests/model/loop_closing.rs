@@ -323,3 +323,124 @@ fn clean_sessions_add_nothing() {
         );
     }
 }
+
+/// The loop on the lattice of the model simulator's device of `seed` with
+/// `effects`, judged on a test session that continues the lattice's home
+/// (its clock goes on, the drifts with it): the result and the test mean.
+fn continuing_loop(seed: u64, effects: &[&str]) -> (LoopResult, f64) {
+    use spidar::sim::{simulate_session, simulate_session_after, SessionKind, SimConfig};
+    let config = SimConfig {
+        effects: effects.iter().map(|s| s.to_string()).collect(),
+        ..SimConfig::default()
+    };
+    let device = spidar::sim::SimulatedDevice::new(&config, seed).expect("device");
+    // The session seeds of `physics_bench`'s model cases.
+    let lattice = simulate_session(&device, SessionKind::Lattice, seed + 1).expect("lattice");
+    let kind = SessionKind::Random { points: 500 };
+    let (test, _) = simulate_session_after(&device, kind, seed + 2, &lattice).expect("test");
+    crate::loop_on(&device.nominal, &lattice, &test)
+}
+
+/// Each string's drift (mm/s) of `result`'s model, `None` where it has none.
+fn drift_rates(result: &LoopResult) -> [Option<f64>; 8] {
+    let mut rates = [None; 8];
+    for t in &result.identification.effects {
+        if let Effect::Drift { mm_per_s } = t.effect {
+            if let Some(r) = rates.get_mut(usize::from(t.string)) {
+                *r = Some(mm_per_s);
+            }
+        }
+    }
+    rates
+}
+
+/// `drift:i:mm_per_s=rate` for every string.
+fn drifts_of(rates: &[f64; 8]) -> Vec<String> {
+    rates
+        .iter()
+        .enumerate()
+        .map(|(i, r)| format!("drift:{i}:mm_per_s={r}"))
+        .collect()
+}
+
+/// Every string drifting at its own rate, two of them shortening, the test
+/// session continuing the lattice's home (issue 33's hidden simulator has
+/// drifts of every string, and a test session later than the lattice).
+/// Added one string at a time, each drift took the others' share of what
+/// time and position share on the lattice, and an offset, a spool's rate
+/// and creeps stood in (test 1.4 mm against the clean device's 0.32). Now
+/// one change adds a drift on every string at its rate; a term added before
+/// it for what it explains is judged again without it; the test mean is
+/// back within 1.3x the clean device's.
+#[test]
+fn drifts_of_every_string_at_their_own_rates_are_one_change() {
+    let truth = [
+        0.0008, -0.0005, 0.0012, 0.0003, 0.0009, -0.0002, 0.0006, 0.001,
+    ];
+    let specs = drifts_of(&truth);
+    let specs: Vec<&str> = specs.iter().map(String::as_str).collect();
+    let (result, after) = continuing_loop(1, &specs);
+    let names: Vec<&str> = result.stages.iter().map(|s| s.name.as_str()).collect();
+    assert!(
+        names.contains(&"drift strings [0, 1, 2, 3, 4, 5, 6, 7]"),
+        "{names:?}"
+    );
+    for (i, (found, truth)) in drift_rates(&result).iter().zip(truth).enumerate() {
+        let found = found.unwrap_or_else(|| panic!("no drift on string {i}: {names:?}"));
+        assert!(
+            (found - truth).abs() < 0.1 * truth.abs() + 0.00005,
+            "string {i}: {found:.6} mm/s against {truth}"
+        );
+    }
+    let stand_ins: Vec<&&str> = names
+        .iter()
+        .filter(|n| n.starts_with("offset") || n.starts_with("creep"))
+        .collect();
+    assert!(stand_ins.is_empty(), "{names:?}");
+    // Each spool's own thinning rate, taken before the drift (the model
+    // with them predicts the test at 0.370 mm), judged again and dropped.
+    assert_eq!(
+        names.first(),
+        Some(&"spool rates strings [0, 1, 2, 3, 4, 5, 6, 7]")
+    );
+    assert_eq!(
+        names.last(),
+        Some(&"without spool rates strings [0, 1, 2, 3, 4, 5, 6, 7]")
+    );
+    assert!(result.structure.hold_kappa_each, "{names:?}");
+    let base = baseline(1);
+    assert!(after <= 1.3 * base, "{after:.3} mm after, {base:.3} clean");
+}
+
+/// Every string drifting at its own rate around a shared one (0.0004-0.0008
+/// mm/s): the strings' own rates beat the one shared rate, their rival.
+/// Layer tables taken before the drift (a string's payout goes with time on
+/// the lattice) are judged again from the model without them, and whatever
+/// stays, the test mean is within 1.3x the clean device's.
+#[test]
+fn drifts_around_a_shared_rate_are_each_string_s_own() {
+    let truth = [
+        0.0006, 0.0004, 0.0008, 0.0005, 0.0007, 0.0004, 0.0006, 0.0008,
+    ];
+    let specs = drifts_of(&truth);
+    let specs: Vec<&str> = specs.iter().map(String::as_str).collect();
+    let (result, after) = continuing_loop(1, &specs);
+    let names: Vec<&str> = result.stages.iter().map(|s| s.name.as_str()).collect();
+    assert!(
+        names.contains(&"drift strings [0, 1, 2, 3, 4, 5, 6, 7]"),
+        "{names:?}"
+    );
+    assert!(!names.contains(&"drift (every string)"), "{names:?}");
+    // The tables on strings 1 and 3, taken before the drift (the model with
+    // them predicts the test at 0.424 mm), judged again and dropped.
+    assert_eq!(names.first(), Some(&"layers strings [1, 3]"));
+    assert_eq!(names.last(), Some(&"without layer tables strings [1, 3]"));
+    assert!(
+        spidar::model::layers::steps_in(&result.identification)
+            .iter()
+            .all(Option::is_none),
+        "{names:?}"
+    );
+    let base = baseline(1);
+    assert!(after <= 1.3 * base, "{after:.3} mm after, {base:.3} clean");
+}

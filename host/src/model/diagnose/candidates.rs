@@ -10,6 +10,7 @@ use spidar_core::STRINGS;
 use crate::data::observe::{
     observes_speed, speed_observation, Observation, MAX_STREAM_SPEED_CHANGE,
 };
+use crate::data::stats::chi_square_p001;
 use crate::model::identify::{Identification, Structure};
 
 use super::evidence::{Columns, Evidence, OffSpan, Row, RowColumn};
@@ -109,6 +110,18 @@ pub(super) fn candidates(
     let shared = usize::from(EVERY_STRING);
     if !has_effect(shared, |e| matches!(e, Effect::Drift { .. })) {
         out.push(shared_drift_candidate(strings));
+    }
+    // A drift on every string, each its own rate (spools or strings that
+    // warm and creep each their own way): added one string at a time, on a
+    // lattice whose time goes with position, each string's term takes the
+    // others' share of what the model's position terms take too, and the
+    // shared drift the strings' mean rate. Offered while no string drifts.
+    let drifting = structure
+        .effects
+        .iter()
+        .any(|t| matches!(t.effect, Effect::Drift { .. }));
+    if !drifting && strings.count() > 1 {
+        out.push(each_string_drift_candidate(strings));
     }
     // One creep shared by every string (strings of one kind warming
     // alike): the drift of each string in proportion to its length.
@@ -527,6 +540,44 @@ fn shared_drift_candidate(strings: StringLayout) -> Candidate {
     }
 }
 
+/// A drift on each active string, each its own rate ([`Change::Drifts`]):
+/// one column per string, its time since home on its own rows, beyond the
+/// shared drift.
+fn each_string_drift_candidate(strings: StringLayout) -> Candidate {
+    let active: Vec<usize> = strings.indices().collect();
+    let columns = active
+        .iter()
+        .map(|&i| string_column(i, Box::new(|r| r.ctx.time_s)))
+        .collect();
+    // One rate shared by every string, which the strings' own rates must
+    // explain the residual beyond: where they drift alike, one parameter,
+    // not one per string. Not each string's position error (a one-string
+    // drift's rival, [`position_columns`]): past those 73 columns the
+    // model simulator's drifts around a shared rate are left at a
+    // chi-square of 35 while the revisits show them at 10,000.
+    let rival = vec![shared_column(strings, |r| r.ctx.time_s)];
+    let on = active.clone();
+    Candidate {
+        family: Family::Drift,
+        strings: active.iter().map(|&i| i as u8).collect(),
+        variable: Variable::Time,
+        columns,
+        on_string: None,
+        search_penalty: 0.0,
+        rival,
+        build: Box::new(move |b| {
+            let mut drifts = [None; STRINGS];
+            for (&i, &mm_per_s) in on.iter().zip(b) {
+                drifts[i] = Some(mm_per_s);
+            }
+            Change::Drifts(drifts)
+        }),
+        describe: "every string's length drifts with time since home, each string at its own \
+                   rate (spools or strings that warm or creep each their own way)"
+            .into(),
+    }
+}
+
 /// One creep shared by every string: each string's natural length grows
 /// by one share of itself with time since home ([`Effect::Creep`]).
 fn shared_creep_candidate(strings: StringLayout) -> Candidate {
@@ -772,8 +823,7 @@ pub(super) fn anchors_beyond_tolerance(
             let chi2 = d.iter().map(|v| (v / sd).powi(2)).sum::<f64>();
             // Mahalanobis distance under the prior beyond chi-square(3 dof)
             // at p = 0.001: the as-built tolerance does not explain it.
-            const CHI2_3DOF_P001: f64 = 16.27;
-            (chi2 > CHI2_3DOF_P001).then(|| Finding {
+            (chi2 > chi_square_p001(3)).then(|| Finding {
                 family: Family::Geometry,
                 strings: vec![i as u8],
                 variable: Variable::Position,

@@ -172,6 +172,21 @@ pub(super) fn fitted_in_physical_terms(change: Change, refit: &Identification) -
             .last()
             .and_then(|t| in_physical_terms(&t.effect)),
         Change::MarkerOffset(d) => Some(marker_in_physical_terms(&d)),
+        Change::Drifts(drifts) => {
+            // The refit's drifts, in the order the change added them.
+            let n = drifts.iter().flatten().count();
+            let added = refit.effects.get(refit.effects.len().checked_sub(n)?..)?;
+            let each: Vec<String> = added
+                .iter()
+                .filter_map(|t| match t.effect {
+                    Effect::Drift { mm_per_s } => {
+                        Some(format!("{}: {:+.3}", t.string, mm_per_s * 60.0))
+                    }
+                    _ => None,
+                })
+                .collect();
+            Some(format!(" (fitted, mm/min: {})", each.join(", ")))
+        }
         _ => None,
     }
 }

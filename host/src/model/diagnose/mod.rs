@@ -7,6 +7,8 @@
 //! - `vocabulary`: the families, variables, changes and findings, the
 //!   loop's settings and what it reports;
 //! - `outliers`: the training rows whose tracker the loop sets aside;
+//! - `rejudge`: a term judged again once another that takes the same error
+//!   came after it (tables and a drift, either way round);
 //! - `trials`: each spool's own thinning rate and the layer tables, tried
 //!   before the effect families;
 //! - `evidence`: the residual rows and the model's span diagnosis reads;
@@ -20,6 +22,7 @@ mod candidates;
 mod describe;
 mod evidence;
 mod outliers;
+mod rejudge;
 mod revisits;
 mod slips;
 mod trials;
@@ -35,7 +38,9 @@ use spidar_core::model::{Effect, EffectTerm, Frame, EVERY_STRING, MAX_EFFECTS};
 
 use crate::data::observe::{at_meeting_points, Observation};
 use crate::data::stats::ErrorStats;
-use crate::model::identify::{identify, Identification, IdentifyError, Start, Structure};
+use crate::model::identify::{
+    effect_parameter_info, identify, Identification, IdentifyError, Start, Structure,
+};
 use crate::model::layers::{self, StringLayers, TableLevel};
 use crate::model::validate::{
     held_out_error_list, interleaved_fold_errors, judge, judge_step, judgeable_folds,
@@ -97,17 +102,31 @@ pub fn diagnose(
 /// why. Each test's passes over the rows serve every candidate at once.
 fn significant(ev: &Evidence, candidates: &[Candidate], config: &LoopConfig) -> Vec<Finding> {
     let own: Vec<Columns> = candidates.iter().map(Candidate::own).collect();
-    let fitted: Vec<(&Candidate, Vec<f64>, f64)> = ev
+    let fits: Vec<Option<(Vec<f64>, f64)>> = ev
         .off_span(&own)
         .iter()
+        .map(|off| off.outside().then(|| off.fit()).flatten())
+        .collect();
+    // Drifts of several strings, each its own rate, must explain beyond
+    // the strongest one string's drift (its column is among theirs: a
+    // nested test at the extra dof), so that one drifting string takes one
+    // parameter, not one per string.
+    let one_string_drift = candidates
+        .iter()
+        .zip(&fits)
+        .filter(|(c, _)| c.family == Family::Drift && c.on_string.is_some())
+        .filter_map(|(_, f)| f.as_ref().map(|f| f.1))
+        .fold(0.0, f64::max);
+    let fitted: Vec<(&Candidate, Vec<f64>, f64)> = fits
+        .into_iter()
         .zip(candidates)
-        .filter_map(|(off, c)| {
-            if !off.outside() {
-                return None;
-            }
-            let (beta, explained) = off.fit()?;
+        .filter_map(|(fit, c)| {
+            let (beta, explained) = fit?;
             let chi2 = explained / ev.sigma2;
-            (chi2 >= chi2_threshold(config, c.columns.len(), c.search_penalty))
+            let beyond_one = !drifts_of_several_strings(c)
+                || (explained - one_string_drift) / ev.sigma2
+                    >= chi2_threshold(config, c.columns.len() - 1, 0.0);
+            (beyond_one && chi2 >= chi2_threshold(config, c.columns.len(), c.search_penalty))
                 .then_some((c, beta, explained))
         })
         .collect();
@@ -161,6 +180,12 @@ fn significant(ev: &Evidence, candidates: &[Candidate], config: &LoopConfig) -> 
             })
         })
         .collect()
+}
+
+/// Whether `c` adds drifts of several strings, each its own rate
+/// ([`Change::Drifts`]).
+fn drifts_of_several_strings(c: &Candidate) -> bool {
+    c.family == Family::Drift && c.on_string.is_none() && c.strings.len() > 1
 }
 
 /// Runs the loop: identify, diagnose, add the strongest significant effect,
@@ -217,27 +242,60 @@ pub fn close_loop(
         seen_test: test.map(Cow::Borrowed),
     };
     let mut layers = Vec::new();
+    let mut rates_added = false;
     if state.structure.hold_kappa_each && nominal.layout.count() > 1 {
         state.try_spool_rates()?;
+        rates_added = !state.structure.hold_kappa_each;
     }
     // Layer tables first; refused ones are tried once more after the
     // effects (an effect the model lacked, a heavy string's sag, can hide
     // what the tables gain until it is in).
     let mut layers_refused = false;
+    let mut layers_added = false;
     if config.layer_tables {
         let (added, choice) = state.try_layer_tables()?;
         layers = choice;
         layers_refused = added == Some(false);
+        layers_added = added == Some(true);
     }
     let effects_before = state.stages.len();
     state.add_effects()?;
     if layers_refused && state.stages.len() > effects_before {
+        let tables_at = state.stages.len();
         let (added, choice) = state.try_layer_tables()?;
         if added == Some(true) {
             layers = choice;
+            // Terms on time added before the tables: on a lattice walked
+            // plane by plane each string's payout goes with time, and a
+            // drift took what the tables now take. Each is judged again
+            // from the model without it.
+            let before: Vec<Finding> = state.stages[effects_before..tables_at]
+                .iter()
+                .filter(|s| s.finding.change.is_some_and(adds_a_drift))
+                .map(|s| s.finding.clone())
+                .collect();
+            for finding in before {
+                state.rejudge_time_term(finding)?;
+            }
             // What the tables' staircase hid (a slip's jump among the
             // layers' jumps) is looked for again with them in.
             state.add_effects()?;
+        }
+    }
+    // Spool rates and tables taken before a term on time that the model
+    // keeps: the same, the other way round. They are judged again from the
+    // model without them, as if the drift had come first.
+    let time_term_kept = state
+        .structure
+        .effects
+        .iter()
+        .any(|t| matches!(t.effect, Effect::Drift { .. } | Effect::Creep { .. }));
+    if rates_added && time_term_kept {
+        state.rejudge_spool_rates()?;
+    }
+    if layers_added && time_term_kept {
+        if let Some(choice) = state.rejudge_layer_tables()? {
+            layers = choice;
         }
     }
     let LoopState {
@@ -380,11 +438,22 @@ impl LoopState<'_> {
             &self.validation,
             self.config,
         )?;
+        self.take_layer_try(tried)
+    }
+
+    /// A try of the layer tables into the model (accepted) or the report.
+    fn take_layer_try(
+        &mut self,
+        tried: trials::LayerTry,
+    ) -> Result<(Option<bool>, Vec<StringLayers>), IdentifyError> {
         let Some(mut finding) = tried.finding else {
             return Ok((None, tried.choice));
         };
         let added = tried.added.is_some();
-        self.findings.retain(|f| f.family != Family::Layers);
+        // A refused try's finding gives way to this one; tables added
+        // earlier (judged again after a term on time) stay in the story.
+        self.findings
+            .retain(|f| f.family != Family::Layers || f.added);
         match tried.added {
             Some((refit, _)) => {
                 // The tables' own check fits each fold's tables on the
@@ -448,13 +517,20 @@ impl LoopState<'_> {
                 .collect();
             let together = slips_together(&slips);
             let mut frame_wide_below = Vec::new();
-            for (rank, finding) in proposals.into_iter().enumerate() {
-                if rank >= STRONGEST_TRIED {
+            let mut rank = 0;
+            for finding in proposals {
+                // Drifts of several strings are tried beside the strongest,
+                // not in the place of one: where slips of several strings
+                // are what changes with time, they stand in for them and
+                // are refused, and must not push a slip out.
+                let beside = matches!(finding.change, Some(Change::Drifts(_)));
+                if rank >= STRONGEST_TRIED && !beside {
                     if finding.strings.is_empty() {
                         frame_wide_below.push(finding);
                     }
                     continue;
                 }
+                rank += usize::from(!beside);
                 if self.try_finding(finding)? {
                     continue 'outer;
                 }
@@ -734,7 +810,10 @@ impl LoopState<'_> {
         let check = match steps_of(change) {
             None => {
                 let stable = match change {
-                    Change::Effect(term) => stability(&term.effect, fits),
+                    Change::Effect(term) => {
+                        stability(effect_parameter_info(&term.effect).len(), fits)
+                    }
+                    Change::Drifts(drifts) => stability(drifts.iter().flatten().count(), fits),
                     _ => None,
                 };
                 judge(&self.validation, after, stable, min_gain)
@@ -784,7 +863,7 @@ fn adds_a_drift(change: Change) -> bool {
         Change::Effect(EffectTerm {
             effect: Effect::Drift { .. } | Effect::Creep { .. },
             ..
-        })
+        }) | Change::Drifts(_)
     )
 }
 

@@ -87,6 +87,11 @@ pub enum Change {
     /// during one session, none of whose steps helps alone while the others
     /// are missing (`slips_together`, tried when no single change helps).
     Slips([Option<(f64, f64)>; STRINGS]),
+    /// Add a drift on each of several strings at once, each its own rate
+    /// (mm/s per encoder index, `None`: no drift): strings that drift at
+    /// different rates, whose terms added one at a time each take the
+    /// others' share of what time and position share on a lattice.
+    Drifts([Option<f64>; STRINGS]),
 }
 
 impl Structure {
@@ -108,6 +113,16 @@ impl Structure {
                         s.effects.push(EffectTerm {
                             string: i as u8,
                             effect: Effect::Slip { at_s, mm },
+                        });
+                    }
+                }
+            }
+            Change::Drifts(drifts) => {
+                for (i, drift) in drifts.iter().enumerate() {
+                    if let Some(mm_per_s) = *drift {
+                        s.effects.push(EffectTerm {
+                            string: i as u8,
+                            effect: Effect::Drift { mm_per_s },
                         });
                     }
                 }

@@ -6,12 +6,11 @@
 //! stability of an added term ([`stability`]).
 
 use serde::{Deserialize, Serialize};
-use spidar_core::model::Effect;
 
 use super::folds::{Folds, FOLD_NAMES, MIN_BLOCKED_ROWS};
 use super::held_out::{fold_errors, fold_means, Validation};
-use crate::data::stats::ErrorStats;
-use crate::model::identify::{effect_parameter_info, Identification};
+use crate::data::stats::{chi_square_p001, ErrorStats};
+use crate::model::identify::Identification;
 
 #[cfg(test)]
 mod tests;
@@ -189,7 +188,7 @@ fn verdict(
         worst_failing,
     } = maxima(before, after);
     let (became, recovered) = inconsistency_changes(before, after);
-    let limit = |k: usize| STABLE_CHI2[k.clamp(1, 2) - 1];
+    let limit = chi_square_p001;
     if let Some((chi2, k)) = stable.filter(|s| s.0 > limit(s.1)) {
         (
             false,
@@ -265,27 +264,24 @@ fn inconsistency_changes(before: &Validation, after: &Validation) -> (usize, usi
     })
 }
 
-/// Chi-square (p = 0.001) an added effect's parameters may differ by between
-/// the fits on the earlier and the later half, by their number.
-const STABLE_CHI2: [f64; 2] = [10.83, 13.82];
-
 /// Least relative sd of a half's value in the halves test ([`stability`]):
 /// each half's sd is that of white residuals, and a model that misses
 /// something leaves residuals correlated along the lattice, so that two
 /// halves that agree to 1-2 % would be refused at sds of 0.3 %.
 const STABILITY_RELATIVE_SD: f64 = 0.03;
 
-/// How far apart the added `effect`'s parameters (the last term of the
-/// structure) come out of the fits on the earlier and on the later half
+/// How far apart the added change's `k` parameters (the last of the
+/// structure: an effect's, or several strings' drifts added together) come
+/// out of the fits on the earlier and on the later half
 /// (`fits` in [`validate_fits`](super::validate_fits)' order, the blocked
 /// folds last: the later half's, the earlier half's, the outer shell's): chi-square of
 /// the difference over the two fits' standard deviations, and its dof. A
 /// physical effect has one value; a term that stands in for something else
 /// (a drift standing in for position on a lattice collected plane by plane)
 /// takes the local slope of what it replaces, different in each half.
-/// `None` without time folds.
-pub(crate) fn stability(effect: &Effect, fits: &[Identification]) -> Option<(f64, usize)> {
-    let k = effect_parameter_info(effect).len();
+/// `None` without time folds. [`judge`] holds the chi-square to the level
+/// `k` standard normals exceed with probability 0.001.
+pub(crate) fn stability(k: usize, fits: &[Identification]) -> Option<(f64, usize)> {
     let later_half = fits.len().checked_sub(3)?;
     let (early, late) = (fits.get(later_half)?, fits.get(later_half + 1)?);
     let tail = |id: &Identification| {

@@ -497,11 +497,6 @@ pub(super) fn trust_warnings(
     warnings
 }
 
-/// Chi-square a fitted anchor's distance from the drawing, in declared sds,
-/// exceeds with probability 0.001 when the tolerance is right: 2 degrees
-/// of freedom in a plane, 3 in space.
-const DECLARED_TOLERANCE_CHI2: [f64; 2] = [13.82, 16.27];
-
 /// A warning when the geometry declares the anchors' tolerance
 /// (`anchor_sd_mm`) and the data contradict it: the plain least-squares
 /// reference, which has no prior, places an anchor beyond the 0.1 %
@@ -527,7 +522,9 @@ pub(super) fn declared_tolerance_warning(
     if identified.partial_cmp(&plain) != Some(std::cmp::Ordering::Greater) {
         return None;
     }
-    let limit = DECLARED_TOLERANCE_CHI2[usize::from(!drawing.layout.planar)];
+    // Exceeded with probability 0.001 when the tolerance is right: 2
+    // degrees of freedom in a plane, 3 in space.
+    let limit = crate::data::stats::chi_square_p001(if drawing.layout.planar { 2 } else { 3 });
     let (string, distance_mm, sds) = (0..STRINGS)
         .filter(|&i| drawing.layout.is_active(i) && sd[i] > 0.0)
         .map(|i| {

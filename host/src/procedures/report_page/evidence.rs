@@ -173,6 +173,17 @@ fn without_finding(
                 }
             }
         }
+        Change::Drifts(drifts) => {
+            for (string, drift) in drifts.iter().enumerate() {
+                if let Some(mm_per_s) = *drift {
+                    let term = EffectTerm {
+                        string: string as u8,
+                        effect: Effect::Drift { mm_per_s },
+                    };
+                    remove_term(&mut effects, &term)?;
+                }
+            }
+        }
         _ if finding.family == Family::Layers => {
             for &s in &finding.strings {
                 laws.get_mut(usize::from(s))?.layers = LayerTable::NONE;

@@ -1,0 +1,286 @@
+//! A term judged again once another that takes the same error came after
+//! it. On a lattice walked plane by plane each string's payout goes with
+//! time, so layer tables and each spool's own rate can take a drift's
+//! error, and a drift the tables': whichever the loop takes first stands
+//! in for the other. When the other comes, the first is judged again from
+//! the model without it, as the loop judges a proposal, and dropped (a
+//! stage saying so) when the judge refuses it there.
+
+use spidar_core::model::{Effect, EffectTerm};
+use spidar_core::STRINGS;
+
+use super::describe::stage_name;
+use super::trials::{add_layer_tables, free_spool_rates};
+use super::{Check, Family, Finding, LoopState, Validated, Variable};
+use crate::model::identify::{identify, IdentifyError, Start, Structure};
+use crate::model::layers::{self, StringLayers};
+use crate::model::validate::{validate, FoldScope};
+
+impl LoopState<'_> {
+    /// A term on time (`finding`, added) judged again from the current
+    /// model without it, as [`try_change`](Self::try_change) judges a
+    /// proposal: the model stays as it is when the term is taken again;
+    /// when refused, the model without it (a stage saying so).
+    pub(super) fn rejudge_time_term(&mut self, finding: Finding) -> Result<(), IdentifyError> {
+        let Some(change) = finding.change else {
+            return Ok(());
+        };
+        let added = self.structure.with(change);
+        let fresh: Vec<&EffectTerm> = added.effects[self.structure.effects.len()..]
+            .iter()
+            .collect();
+        let without = Structure {
+            effects: self
+                .structure
+                .effects
+                .iter()
+                .filter(|t| !fresh.iter().any(|f| same_effect_term(f, t)))
+                .copied()
+                .collect(),
+            ..self.structure.clone()
+        };
+        if without.effects.len() == self.structure.effects.len() {
+            return Ok(());
+        }
+        let reduced = identify(
+            &self.seen_train,
+            self.nominal,
+            &Start::from_identification(&self.id),
+            &without,
+        )?;
+        let reduced_validation = validate(
+            &self.seen_train,
+            self.nominal,
+            &reduced,
+            &without,
+            FoldScope::Judged,
+        )?;
+        let kept = (
+            std::mem::replace(&mut self.id, reduced.clone()),
+            std::mem::replace(&mut self.structure, without),
+            std::mem::replace(&mut self.validation, reduced_validation),
+            std::mem::replace(&mut self.validated_from, reduced.clone()),
+            self.stages.len(),
+            self.findings.clone(),
+        );
+        let again = Finding {
+            added: false,
+            validation: None,
+            ..finding.clone()
+        };
+        if self.try_change(again, change)? {
+            // Taken again: the model as it was (the same terms).
+            let (id, structure, validation, from, stages, findings) = kept;
+            self.id = id;
+            self.structure = structure;
+            self.validation = validation;
+            self.validated_from = from;
+            self.stages.truncate(stages);
+            self.findings = findings;
+            return Ok(());
+        }
+        let why = self
+            .findings
+            .last()
+            .and_then(|f| f.validation.as_ref())
+            .map_or_else(String::new, |c| c.reason.clone());
+        self.findings.pop();
+        let name = format!("without {}", stage_name(&finding));
+        let dropped = Finding {
+            description: format!(
+                "{}, added before the layer tables, judged again from the model with them and \
+                 without it: {why}; dropped (the tables take what it took)",
+                finding.description
+            ),
+            validation: Some(Check {
+                before: kept.2.summary(),
+                after: self.validation.summary(),
+                stability_chi2: None,
+                accepted: true,
+                reason: format!(
+                    "dropped: held-out mean {:.3} -> {:.3} mm without it",
+                    kept.2.held.mean_mm, self.validation.held.mean_mm
+                ),
+            }),
+            change: None,
+            ..finding
+        };
+        let validated = Validated {
+            validation: self.validation.clone(),
+            from: reduced.clone(),
+        };
+        let structure = self.structure.clone();
+        self.accept(name, dropped, reduced, structure, validated, None);
+        Ok(())
+    }
+
+    /// Each spool's own rate judged again from the current model with the
+    /// rates held to the shared one ([`free_spool_rates`] on that model's
+    /// validation): kept when taken again, else dropped (the model with the
+    /// shared rate, a stage saying so).
+    pub(super) fn rejudge_spool_rates(&mut self) -> Result<(), IdentifyError> {
+        let held = Structure {
+            hold_kappa_each: true,
+            ..self.structure.clone()
+        };
+        let shared = identify(
+            &self.seen_train,
+            self.nominal,
+            &Start::from_identification(&self.id),
+            &held,
+        )?;
+        let without = validate(
+            &self.seen_train,
+            self.nominal,
+            &shared,
+            &held,
+            FoldScope::Judged,
+        )?;
+        let (finding, again) = free_spool_rates(
+            &self.seen_train,
+            self.nominal,
+            &shared,
+            &held,
+            &without,
+            self.config,
+        )?;
+        if again.is_some() {
+            return Ok(());
+        }
+        let why = finding
+            .validation
+            .as_ref()
+            .map_or_else(|| finding.description.clone(), |c| c.reason.clone());
+        let finding = Finding {
+            description: format!(
+                "each spool's own thinning rate, added before a term on time, judged again from \
+                 the model with the shared rate: {why}; dropped (the term on time takes what \
+                 they took)"
+            ),
+            validation: Some(Check {
+                before: self.validation.summary(),
+                after: without.summary(),
+                stability_chi2: None,
+                accepted: true,
+                reason: format!(
+                    "dropped: held-out mean {:.3} -> {:.3} mm with the shared rate",
+                    self.validation.held.mean_mm, without.held.mean_mm
+                ),
+            }),
+            added: true,
+            ..finding
+        };
+        let name = format!("without spool rates strings {:?}", finding.strings);
+        let validated = Validated {
+            validation: without,
+            from: shared.clone(),
+        };
+        self.accept(name, finding, shared, held, validated, None);
+        Ok(())
+    }
+
+    /// The layer tables judged again from the current model without them
+    /// ([`add_layer_tables`] on that model's validation): kept as they are
+    /// when the same strings and spacings are taken again, replaced when
+    /// others are, dropped (the model without them, a stage saying so) when
+    /// none are. The strings' new choice when it changed.
+    pub(super) fn rejudge_layer_tables(
+        &mut self,
+    ) -> Result<Option<Vec<StringLayers>>, IdentifyError> {
+        let before_steps = layers::steps_in(&self.id);
+        let plain = identify(
+            &self.seen_train,
+            self.nominal,
+            &layers::without_layers(&self.id),
+            &self.structure,
+        )?;
+        let without = validate(
+            &self.seen_train,
+            self.nominal,
+            &plain,
+            &self.structure,
+            FoldScope::Judged,
+        )?;
+        let tried = add_layer_tables(
+            &self.seen_train,
+            self.nominal,
+            &plain,
+            &self.structure,
+            &without,
+            self.config,
+        )?;
+        let again = tried.added.is_some();
+        if again && layers::steps_of(&tried.choice) == before_steps {
+            return Ok(None);
+        }
+        let tabled: Vec<u8> = (0..STRINGS)
+            .filter(|&i| before_steps[i].is_some())
+            .map(|i| i as u8)
+            .collect();
+        let why = tried
+            .finding
+            .as_ref()
+            .and_then(|f| f.validation.as_ref())
+            .map_or_else(
+                || "no string's table lowers its held-out residual".to_string(),
+                |c| c.reason.clone(),
+            );
+        self.findings
+            .retain(|f| f.family != Family::Layers || f.added);
+        if again {
+            // Other strings or spacings: the tables as tried again.
+            let (added, choice) = self.take_layer_try(tried)?;
+            debug_assert_eq!(added, Some(true));
+            return Ok(Some(choice));
+        }
+        let finding = Finding {
+            family: Family::Layers,
+            strings: tabled.clone(),
+            variable: Variable::WoundLength,
+            amplitude_mm: 0.0,
+            explained: 0.0,
+            added: true,
+            chi2: 0.0,
+            description: format!(
+                "the layer tables on strings {tabled:?}, added before a term on time, judged \
+                 again from the model without them: {why}; dropped (the term on time takes \
+                 what they took)"
+            ),
+            validation: Some(Check {
+                before: self.validation.summary(),
+                after: without.summary(),
+                stability_chi2: None,
+                accepted: true,
+                reason: format!(
+                    "dropped: held-out mean {:.3} -> {:.3} mm without them",
+                    self.validation.held.mean_mm, without.held.mean_mm
+                ),
+            }),
+            change: None,
+        };
+        let validated = Validated {
+            validation: without,
+            from: plain.clone(),
+        };
+        let structure = self.structure.clone();
+        self.accept(
+            format!("without layer tables strings {tabled:?}"),
+            finding,
+            plain,
+            structure,
+            validated,
+            None,
+        );
+        Ok(Some(tried.choice))
+    }
+}
+
+/// Whether two effect terms are one term of the model (the same kind on
+/// the same string, a slip at the same time), whatever their values.
+fn same_effect_term(a: &EffectTerm, b: &EffectTerm) -> bool {
+    a.string == b.string
+        && match (&a.effect, &b.effect) {
+            (Effect::Slip { at_s: x, .. }, Effect::Slip { at_s: y, .. }) => x == y,
+            (x, y) => std::mem::discriminant(x) == std::mem::discriminant(y),
+        }
+}
