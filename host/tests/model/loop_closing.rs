@@ -354,13 +354,18 @@ fn drift_rates(result: &LoopResult) -> [Option<f64>; 8] {
     rates
 }
 
-/// `drift:i:mm_per_s=rate` for every string.
-fn drifts_of(rates: &[f64; 8]) -> Vec<String> {
-    rates
+/// [`continuing_loop`] of seed 1 with a drift on every string at `rates`
+/// (mm/s): the result, the test mean and the names of its stages.
+fn drifting_strings(rates: &[f64; 8]) -> (LoopResult, f64, Vec<String>) {
+    let specs: Vec<String> = rates
         .iter()
         .enumerate()
         .map(|(i, r)| format!("drift:{i}:mm_per_s={r}"))
-        .collect()
+        .collect();
+    let specs: Vec<&str> = specs.iter().map(String::as_str).collect();
+    let (result, after) = continuing_loop(1, &specs);
+    let names = result.stages.iter().map(|s| s.name.clone()).collect();
+    (result, after, names)
 }
 
 /// Every string drifting at its own rate, two of them shortening, the test
@@ -377,10 +382,8 @@ fn drifts_of_every_string_at_their_own_rates_are_one_change() {
     let truth = [
         0.0008, -0.0005, 0.0012, 0.0003, 0.0009, -0.0002, 0.0006, 0.001,
     ];
-    let specs = drifts_of(&truth);
-    let specs: Vec<&str> = specs.iter().map(String::as_str).collect();
-    let (result, after) = continuing_loop(1, &specs);
-    let names: Vec<&str> = result.stages.iter().map(|s| s.name.as_str()).collect();
+    let (result, after, names) = drifting_strings(&truth);
+    let names: Vec<&str> = names.iter().map(String::as_str).collect();
     assert!(
         names.contains(&"drift strings [0, 1, 2, 3, 4, 5, 6, 7]"),
         "{names:?}"
@@ -422,10 +425,8 @@ fn drifts_around_a_shared_rate_are_each_string_s_own() {
     let truth = [
         0.0006, 0.0004, 0.0008, 0.0005, 0.0007, 0.0004, 0.0006, 0.0008,
     ];
-    let specs = drifts_of(&truth);
-    let specs: Vec<&str> = specs.iter().map(String::as_str).collect();
-    let (result, after) = continuing_loop(1, &specs);
-    let names: Vec<&str> = result.stages.iter().map(|s| s.name.as_str()).collect();
+    let (result, after, names) = drifting_strings(&truth);
+    let names: Vec<&str> = names.iter().map(String::as_str).collect();
     assert!(
         names.contains(&"drift strings [0, 1, 2, 3, 4, 5, 6, 7]"),
         "{names:?}"

@@ -12,9 +12,9 @@ use spidar_core::STRINGS;
 use super::describe::stage_name;
 use super::trials::{add_layer_tables, free_spool_rates};
 use super::{Check, Family, Finding, LoopState, Validated, Variable};
-use crate::model::identify::{identify, IdentifyError, Start, Structure};
+use crate::model::identify::{identify, Identification, IdentifyError, Start, Structure};
 use crate::model::layers::{self, StringLayers};
-use crate::model::validate::{validate, FoldScope};
+use crate::model::validate::{validate, FoldScope, Validation};
 
 impl LoopState<'_> {
     /// A term on time (`finding`, added) judged again from the current
@@ -42,19 +42,8 @@ impl LoopState<'_> {
         if without.effects.len() == self.structure.effects.len() {
             return Ok(());
         }
-        let reduced = identify(
-            &self.seen_train,
-            self.nominal,
-            &Start::from_identification(&self.id),
-            &without,
-        )?;
-        let reduced_validation = validate(
-            &self.seen_train,
-            self.nominal,
-            &reduced,
-            &without,
-            FoldScope::Judged,
-        )?;
+        let (reduced, reduced_validation) =
+            self.refit_and_validate(&Start::from_identification(&self.id), &without)?;
         let kept = (
             std::mem::replace(&mut self.id, reduced.clone()),
             std::mem::replace(&mut self.structure, without),
@@ -86,31 +75,18 @@ impl LoopState<'_> {
             .map_or_else(String::new, |c| c.reason.clone());
         self.findings.pop();
         let name = format!("without {}", stage_name(&finding));
+        let description = format!(
+            "{}, added before the layer tables, judged again from the model with them and \
+             without it: {why}; dropped (the tables take what it took)",
+            finding.description
+        );
+        let structure = self.structure.clone();
+        let validation = self.validation.clone();
         let dropped = Finding {
-            description: format!(
-                "{}, added before the layer tables, judged again from the model with them and \
-                 without it: {why}; dropped (the tables take what it took)",
-                finding.description
-            ),
-            validation: Some(Check {
-                before: kept.2.summary(),
-                after: self.validation.summary(),
-                stability_chi2: None,
-                accepted: true,
-                reason: format!(
-                    "dropped: held-out mean {:.3} -> {:.3} mm without it",
-                    kept.2.held.mean_mm, self.validation.held.mean_mm
-                ),
-            }),
-            change: None,
+            description,
             ..finding
         };
-        let validated = Validated {
-            validation: self.validation.clone(),
-            from: reduced.clone(),
-        };
-        let structure = self.structure.clone();
-        self.accept(name, dropped, reduced, structure, validated, None);
+        self.drop_term(name, dropped, &kept.2, reduced, structure, validation);
         Ok(())
     }
 
@@ -123,19 +99,8 @@ impl LoopState<'_> {
             hold_kappa_each: true,
             ..self.structure.clone()
         };
-        let shared = identify(
-            &self.seen_train,
-            self.nominal,
-            &Start::from_identification(&self.id),
-            &held,
-        )?;
-        let without = validate(
-            &self.seen_train,
-            self.nominal,
-            &shared,
-            &held,
-            FoldScope::Judged,
-        )?;
+        let (shared, without) =
+            self.refit_and_validate(&Start::from_identification(&self.id), &held)?;
         let (finding, again) = free_spool_rates(
             &self.seen_train,
             self.nominal,
@@ -157,25 +122,11 @@ impl LoopState<'_> {
                  the model with the shared rate: {why}; dropped (the term on time takes what \
                  they took)"
             ),
-            validation: Some(Check {
-                before: self.validation.summary(),
-                after: without.summary(),
-                stability_chi2: None,
-                accepted: true,
-                reason: format!(
-                    "dropped: held-out mean {:.3} -> {:.3} mm with the shared rate",
-                    self.validation.held.mean_mm, without.held.mean_mm
-                ),
-            }),
-            added: true,
             ..finding
         };
         let name = format!("without spool rates strings {:?}", finding.strings);
-        let validated = Validated {
-            validation: without,
-            from: shared.clone(),
-        };
-        self.accept(name, finding, shared, held, validated, None);
+        let before = self.validation.clone();
+        self.drop_term(name, finding, &before, shared, held, without);
         Ok(())
     }
 
@@ -188,19 +139,8 @@ impl LoopState<'_> {
         &mut self,
     ) -> Result<Option<Vec<StringLayers>>, IdentifyError> {
         let before_steps = layers::steps_in(&self.id);
-        let plain = identify(
-            &self.seen_train,
-            self.nominal,
-            &layers::without_layers(&self.id),
-            &self.structure,
-        )?;
-        let without = validate(
-            &self.seen_train,
-            self.nominal,
-            &plain,
-            &self.structure,
-            FoldScope::Judged,
-        )?;
+        let (plain, without) =
+            self.refit_and_validate(&layers::without_layers(&self.id), &self.structure)?;
         let tried = add_layer_tables(
             &self.seen_train,
             self.nominal,
@@ -246,32 +186,65 @@ impl LoopState<'_> {
                  again from the model without them: {why}; dropped (the term on time takes \
                  what they took)"
             ),
+            validation: None,
+            change: None,
+        };
+        let name = format!("without layer tables strings {tabled:?}");
+        let (before, structure) = (self.validation.clone(), self.structure.clone());
+        self.drop_term(name, finding, &before, plain, structure, without);
+        Ok(Some(tried.choice))
+    }
+
+    /// The model refitted from `start` with `structure`, and its
+    /// validation on the folds every change is judged on.
+    fn refit_and_validate(
+        &self,
+        start: &Start,
+        structure: &Structure,
+    ) -> Result<(Identification, Validation), IdentifyError> {
+        let refit = identify(&self.seen_train, self.nominal, start, structure)?;
+        let validation = validate(
+            &self.seen_train,
+            self.nominal,
+            &refit,
+            structure,
+            FoldScope::Judged,
+        )?;
+        Ok((refit, validation))
+    }
+
+    /// Takes the model without a term judged again and refused (`reduced`,
+    /// its `structure` and `validation`): a stage `name` whose finding says
+    /// why and carries the held-out means from the model `before`.
+    fn drop_term(
+        &mut self,
+        name: String,
+        finding: Finding,
+        before: &Validation,
+        reduced: Identification,
+        structure: Structure,
+        validation: Validation,
+    ) {
+        let finding = Finding {
             validation: Some(Check {
-                before: self.validation.summary(),
-                after: without.summary(),
+                before: before.summary(),
+                after: validation.summary(),
                 stability_chi2: None,
                 accepted: true,
                 reason: format!(
-                    "dropped: held-out mean {:.3} -> {:.3} mm without them",
-                    self.validation.held.mean_mm, without.held.mean_mm
+                    "dropped: held-out mean {:.3} -> {:.3} mm without it",
+                    before.held.mean_mm, validation.held.mean_mm
                 ),
             }),
+            added: true,
             change: None,
+            ..finding
         };
         let validated = Validated {
-            validation: without,
-            from: plain.clone(),
+            validation,
+            from: reduced.clone(),
         };
-        let structure = self.structure.clone();
-        self.accept(
-            format!("without layer tables strings {tabled:?}"),
-            finding,
-            plain,
-            structure,
-            validated,
-            None,
-        );
-        Ok(Some(tried.choice))
+        self.accept(name, finding, reduced, structure, validated, None);
     }
 }
 
