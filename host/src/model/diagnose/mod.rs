@@ -7,8 +7,8 @@
 //! - `vocabulary`: the families, variables, changes and findings, the
 //!   loop's settings and what it reports;
 //! - `outliers`: the training rows whose tracker the loop sets aside;
-//! - `rejudge`: a term judged again once another that takes the same error
-//!   came after it (tables and a drift, either way round);
+//! - `rejudge`: spool rates and tables judged again once a term on time
+//!   came after them;
 //! - `trials`: each spool's own thinning rate and the layer tables, tried
 //!   before the effect families;
 //! - `evidence`: the residual rows and the model's span diagnosis reads;
@@ -261,30 +261,19 @@ pub fn close_loop(
     let effects_before = state.stages.len();
     state.add_effects()?;
     if layers_refused && state.stages.len() > effects_before {
-        let tables_at = state.stages.len();
         let (added, choice) = state.try_layer_tables()?;
         if added == Some(true) {
             layers = choice;
-            // Terms on time added before the tables: on a lattice walked
-            // plane by plane each string's payout goes with time, and a
-            // drift took what the tables now take. Each is judged again
-            // from the model without it.
-            let before: Vec<Finding> = state.stages[effects_before..tables_at]
-                .iter()
-                .filter(|s| s.finding.change.is_some_and(adds_a_drift))
-                .map(|s| s.finding.clone())
-                .collect();
-            for finding in before {
-                state.rejudge_time_term(finding)?;
-            }
             // What the tables' staircase hid (a slip's jump among the
             // layers' jumps) is looked for again with them in.
             state.add_effects()?;
         }
     }
     // Spool rates and tables taken before a term on time that the model
-    // keeps: the same, the other way round. They are judged again from the
-    // model without them, as if the drift had come first.
+    // keeps: on a lattice walked plane by plane each string's payout goes
+    // with time, and they took part of what the drift now takes. They are
+    // judged again from the model without them, as if the drift had come
+    // first (`rejudge`).
     let time_term_kept = state
         .structure
         .effects

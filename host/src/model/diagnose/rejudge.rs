@@ -1,15 +1,12 @@
-//! A term judged again once another that takes the same error came after
-//! it. On a lattice walked plane by plane each string's payout goes with
-//! time, so layer tables and each spool's own rate can take a drift's
-//! error, and a drift the tables': whichever the loop takes first stands
-//! in for the other. When the other comes, the first is judged again from
-//! the model without it, as the loop judges a proposal, and dropped (a
-//! stage saying so) when the judge refuses it there.
+//! Terms judged again once a term on time came after them. On a lattice
+//! walked plane by plane each string's payout goes with time, so layer
+//! tables and each spool's own rate, which the loop tries before any
+//! effect, can take a drift's error. When the model keeps a term on time,
+//! they are judged again from the model without them, as they were judged
+//! when first tried, and dropped (a stage saying so) when refused there.
 
-use spidar_core::model::{Effect, EffectTerm};
 use spidar_core::STRINGS;
 
-use super::describe::stage_name;
 use super::trials::{add_layer_tables, free_spool_rates};
 use super::{Check, Family, Finding, LoopState, Validated, Variable};
 use crate::model::identify::{identify, Identification, IdentifyError, Start, Structure};
@@ -17,79 +14,6 @@ use crate::model::layers::{self, StringLayers};
 use crate::model::validate::{validate, FoldScope, Validation};
 
 impl LoopState<'_> {
-    /// A term on time (`finding`, added) judged again from the current
-    /// model without it, as [`try_change`](Self::try_change) judges a
-    /// proposal: the model stays as it is when the term is taken again;
-    /// when refused, the model without it (a stage saying so).
-    pub(super) fn rejudge_time_term(&mut self, finding: Finding) -> Result<(), IdentifyError> {
-        let Some(change) = finding.change else {
-            return Ok(());
-        };
-        let added = self.structure.with(change);
-        let fresh: Vec<&EffectTerm> = added.effects[self.structure.effects.len()..]
-            .iter()
-            .collect();
-        let without = Structure {
-            effects: self
-                .structure
-                .effects
-                .iter()
-                .filter(|t| !fresh.iter().any(|f| same_effect_term(f, t)))
-                .copied()
-                .collect(),
-            ..self.structure.clone()
-        };
-        if without.effects.len() == self.structure.effects.len() {
-            return Ok(());
-        }
-        let (reduced, reduced_validation) =
-            self.refit_and_validate(&Start::from_identification(&self.id), &without)?;
-        let kept = (
-            std::mem::replace(&mut self.id, reduced.clone()),
-            std::mem::replace(&mut self.structure, without),
-            std::mem::replace(&mut self.validation, reduced_validation),
-            std::mem::replace(&mut self.validated_from, reduced.clone()),
-            self.stages.len(),
-            self.findings.clone(),
-        );
-        let again = Finding {
-            added: false,
-            validation: None,
-            ..finding.clone()
-        };
-        if self.try_change(again, change)? {
-            // Taken again: the model as it was (the same terms).
-            let (id, structure, validation, from, stages, findings) = kept;
-            self.id = id;
-            self.structure = structure;
-            self.validation = validation;
-            self.validated_from = from;
-            self.stages.truncate(stages);
-            self.findings = findings;
-            return Ok(());
-        }
-        let why = self
-            .findings
-            .last()
-            .and_then(|f| f.validation.as_ref())
-            .map_or_else(String::new, |c| c.reason.clone());
-        self.findings.pop();
-        let name = format!("without {}", stage_name(&finding));
-        let description = format!(
-            "{}, added before the layer tables, judged again from the model with them and \
-             without it: {why}; dropped (the tables take what it took)",
-            finding.description
-        );
-        let structure = self.structure.clone();
-        let validation = self.validation.clone();
-        let dropped = Finding {
-            description,
-            ..finding
-        };
-        self.drop_term(name, dropped, &kept.2, reduced, structure, validation);
-        Ok(())
-    }
-
     /// Each spool's own rate judged again from the current model with the
     /// rates held to the shared one ([`free_spool_rates`] on that model's
     /// validation): kept when taken again, else dropped (the model with the
@@ -246,14 +170,4 @@ impl LoopState<'_> {
         };
         self.accept(name, finding, reduced, structure, validated, None);
     }
-}
-
-/// Whether two effect terms are one term of the model (the same kind on
-/// the same string, a slip at the same time), whatever their values.
-fn same_effect_term(a: &EffectTerm, b: &EffectTerm) -> bool {
-    a.string == b.string
-        && match (&a.effect, &b.effect) {
-            (Effect::Slip { at_s: x, .. }, Effect::Slip { at_s: y, .. }) => x == y,
-            (x, y) => std::mem::discriminant(x) == std::mem::discriminant(y),
-        }
 }
