@@ -43,9 +43,11 @@ pub struct SimulateArgs {
     /// mm), speed (latency_s), anchor (dx, dy, dz, mm), and
     /// `tracker_scale:relative=VALUE` (no string); e.g.
     /// `offset:3:mm=10`, `slip:2:at_s=2000,mm=5`. Independent physics
-    /// (`NAME[:KEY=VALUE,...]`): drift-all, frame-flex, marker-offset, slip,
-    /// heavy-string, latency (`ms`, `string`: one string's index, or every
-    /// string without it); e.g. `latency:string=2,ms=6`.
+    /// (`NAME[:KEY=VALUE,...]`): drift-all, drift-each (`ppm_per_h`,
+    /// `spread_ppm_per_h`: each string its own creep), frame-flex,
+    /// marker-offset, slip, heavy-string, latency (`ms`, `string`: one
+    /// string's index, or every string without it); e.g.
+    /// `latency:string=2,ms=6`.
     #[arg(long = "effect", value_name = "SPEC")]
     pub effects: Vec<String>,
     /// File stem of the session CSV (default: `lattice` or `random`).

@@ -722,6 +722,10 @@ fn physics_cases(
         // The test session continuing the training's home: the drift goes
         // on into it.
         Some("drift-all-continuing"),
+        // Every string creeping at its own rate (100-500 ppm/h), and the
+        // same with the test session continuing the training's home.
+        Some("drift-each"),
+        Some("drift-each-continuing"),
         Some("frame-flex"),
         Some("marker-offset"),
         Some("slip"),

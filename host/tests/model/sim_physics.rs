@@ -1299,3 +1299,34 @@ fn encoder_latency_on_an_independent_stream_is_named_on_its_strings() {
         }
     }
 }
+
+/// `drift-each`: every string creeps at its own rate, the configured one
+/// plus a draw within the spread, the same for the device whatever the
+/// session; `drift-all` gives every string one rate.
+#[test]
+fn drift_each_gives_every_string_its_own_creep() {
+    let device = |effect: &str| {
+        let config = PhysicsConfig {
+            effects: vec![effect.to_string()],
+            ..PhysicsConfig::default()
+        };
+        PhysicsDevice::new(&config, 2).unwrap()
+    };
+    let ppm_per_h = |d: &PhysicsDevice| -> Vec<f64> {
+        (0..d.string_count())
+            .map(|i| d.string_creep_per_s(i) * 3.6e9)
+            .collect()
+    };
+    let each = ppm_per_h(&device("drift-each:ppm_per_h=300,spread_ppm_per_h=200"));
+    assert!(each.iter().all(|r| (100.0..=500.0).contains(r)), "{each:?}");
+    let (lo, hi) = each.iter().fold((f64::INFINITY, 0.0f64), |(lo, hi), &r| {
+        (lo.min(r), hi.max(r))
+    });
+    assert!(hi - lo > 100.0, "{each:?}");
+    assert_eq!(
+        each,
+        ppm_per_h(&device("drift-each:ppm_per_h=300,spread_ppm_per_h=200"))
+    );
+    let all = ppm_per_h(&device("drift-all"));
+    assert!(all.iter().all(|r| (r - 300.0).abs() < 1e-9), "{all:?}");
+}

@@ -7,6 +7,7 @@
 //! | name | parameters (default) | physics |
 //! |---|---|---|
 //! | `drift-all` | `ppm_per_h` (300) | thermal creep: every string's natural length grows by `ppm_per_h * 1e-6 * t / 3600` of itself (common to all strings, proportional to each one's length) |
+//! | `drift-each` | `ppm_per_h` (300), `spread_ppm_per_h` (200) | thermal creep of strings of different batches: each string's natural length grows by its own rate, `ppm_per_h` plus a uniform `-spread..spread` drawn per string from the device's seed, `* 1e-6 * t / 3600` of itself |
 //! | `frame-flex` | `factor` (10) | the frame compliance of every corner times `factor` |
 //! | `marker-offset` | `mm` (40), `deg` (6) | the marker `mm` from the strings' meeting point, the hand's posture rotation amplitude `deg` |
 //! | `slip` | `per_h` (2), `mm` (5) | one string at a time slips on its spool: events at Poisson times (`per_h` an hour), each on a random string, by `mm` times a uniform 0.5..1 and a random sign; slips add up |
@@ -23,6 +24,10 @@ use crate::sim::SimError;
 pub enum PhysicsEffect {
     DriftAll {
         ppm_per_h: f64,
+    },
+    DriftEach {
+        ppm_per_h: f64,
+        spread_ppm_per_h: f64,
     },
     FrameFlex {
         factor: f64,
@@ -46,8 +51,9 @@ pub enum PhysicsEffect {
 }
 
 /// The names `--effect` accepts.
-pub const EFFECT_NAMES: [&str; 6] = [
+pub const EFFECT_NAMES: [&str; 7] = [
     "drift-all",
+    "drift-each",
     "frame-flex",
     "marker-offset",
     "slip",
@@ -73,6 +79,10 @@ pub fn parse_effect(spec: &str) -> Result<PhysicsEffect, SimError> {
     let effect = match name {
         "drift-all" => PhysicsEffect::DriftAll {
             ppm_per_h: get("ppm_per_h", 300.0),
+        },
+        "drift-each" => PhysicsEffect::DriftEach {
+            ppm_per_h: get("ppm_per_h", 300.0),
+            spread_ppm_per_h: get("spread_ppm_per_h", 200.0),
         },
         "frame-flex" => PhysicsEffect::FrameFlex {
             factor: get("factor", 10.0),
@@ -123,6 +133,9 @@ pub fn parse_effect(spec: &str) -> Result<PhysicsEffect, SimError> {
     match effect {
         // A negative rate is a cooling device.
         PhysicsEffect::DriftAll { .. } => {}
+        PhysicsEffect::DriftEach {
+            spread_ppm_per_h, ..
+        } => negative("spread_ppm_per_h", spread_ppm_per_h)?,
         PhysicsEffect::FrameFlex { factor } => negative("factor", factor)?,
         PhysicsEffect::MarkerOffset { mm, deg } => {
             negative("mm", mm)?;

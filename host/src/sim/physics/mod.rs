@@ -94,7 +94,7 @@
 //! above, a position-only tracker 0.3 mm sd whose clock is 1.8 s ahead,
 //! 60 s streams at 100 Hz).
 //!
-//! Undeclared effects ([`effects`]): `drift-all`, `frame-flex`,
+//! Undeclared effects ([`effects`]): `drift-all`, `drift-each`, `frame-flex`,
 //! `marker-offset`, `slip`, `heavy-string`, `latency`.
 
 pub mod config;
@@ -682,6 +682,30 @@ impl PhysicsDevice {
             .sum()
     }
 
+    /// String `string`'s thermal strain per second: the shared
+    /// `drift-all`'s and its own `drift-each` rate (the rate plus a uniform
+    /// draw in `-spread..spread` per string from the device's seed; the
+    /// same for the string whatever the session).
+    pub fn string_creep_per_s(&self, string: usize) -> f64 {
+        let mut draws = crate::sim::simulated_device::stream(self.seed, 131);
+        let own: f64 = (0..=string)
+            .map(|_| draws.random_range(-1.0..1.0))
+            .last()
+            .unwrap_or(0.0);
+        self.creep_per_s()
+            + self
+                .effects
+                .iter()
+                .map(|e| match e {
+                    PhysicsEffect::DriftEach {
+                        ppm_per_h,
+                        spread_ppm_per_h,
+                    } => (ppm_per_h + spread_ppm_per_h * own) * 1e-6 / 3600.0,
+                    _ => 0.0,
+                })
+                .sum::<f64>()
+    }
+
     /// Build the device: draw its as-built physics from `seed`, apply the
     /// configured undeclared effects.
     pub fn new(config: &PhysicsConfig, seed: u64) -> Result<PhysicsDevice, SimError> {
@@ -1106,8 +1130,8 @@ struct PhysicsSession<'a> {
     jitter: rand_distr::Normal<f64>,
     /// `(time s, string, mm)`.
     slips: Vec<(f64, usize, f64)>,
-    /// Thermal strain per second (`drift-all`).
-    drift_per_s: f64,
+    /// Each string's thermal strain per second (`drift-all`, `drift-each`).
+    strain_per_s: Vec<f64>,
     /// Each string's encoder latency, s (`latency`).
     latency_s: Vec<f64>,
     abnormal: AbnormalMotor<'a>,
@@ -1165,7 +1189,7 @@ impl<'a> PhysicsSession<'a> {
         let noise = normal("tracker.noise_sigma_mm", cfg.tracker.noise_sigma_mm)?;
         let jitter = normal("as_built.posture_jitter_deg", device.posture.jitter_rad)?;
         let slips = slip_events(&device.effects, n, duration_s, &mut slip_rng);
-        let drift_per_s = device.creep_per_s();
+        let strain_per_s = (0..n).map(|i| device.string_creep_per_s(i)).collect();
         let latency_s = (0..n).map(|i| device.encoder_latency_s(i)).collect();
         let am = &cfg.abnormal_motor;
         let abnormal = AbnormalMotor {
@@ -1187,7 +1211,7 @@ impl<'a> PhysicsSession<'a> {
             noise,
             jitter,
             slips,
-            drift_per_s,
+            strain_per_s,
             latency_s,
             abnormal,
             occluded: false,
@@ -1318,7 +1342,6 @@ impl<'a> PhysicsSession<'a> {
         let device = self.device;
         let n = device.string_count();
         let total_tension: f64 = tension_n.iter().sum();
-        let strain = self.drift_per_s * t_s;
         let mut counts = Vec::with_capacity(n);
         for (i, &tension) in tension_n.iter().enumerate() {
             // An encoder read late holds its string as it was then: the
@@ -1328,6 +1351,7 @@ impl<'a> PhysicsSession<'a> {
             let meeting: Vec3<f64> =
                 core::array::from_fn(|k| pose.meeting[k] - tau * pose.velocity[k]);
             let end = device.string_end(i, &meeting, &pose.omega);
+            let strain = self.strain_per_s[i] * t_s;
             let state = device.natural_length(i, &end, tension, total_tension, strain)?;
             truth.attachment_mm.push(end);
             let slipped: f64 = self
