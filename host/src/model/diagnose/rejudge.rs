@@ -33,7 +33,9 @@ impl LoopState<'_> {
             &without,
             self.config,
         )?;
-        if again.is_some() {
+        // Taken again, or not tried (a fold too small for the freed rates
+        // beside the terms added since): the model stays as it is.
+        if again.is_some() || finding.validation.is_none() {
             return Ok(());
         }
         let why = finding
