@@ -652,7 +652,7 @@ type CaseRows = (&'static str, &'static str, Vec<(f64, f64, f64, f64)>);
 type CleanPhysics = (PhysicsDevice, Run, Vec<PhysicsTruth>, Calibrated);
 
 /// The model simulator's `drift-each` case: every string drifts at its
-/// own rate around a shared one (0.0005-0.0008 mm/s), as issue 33's hidden
+/// own rate around a shared one (0.0004-0.0008 mm/s), as issue 33's hidden
 /// simulator's strings do (its shared drift took most, a string's own
 /// took the rest).
 const DRIFT_EACH: [&str; 8] = [

@@ -174,7 +174,7 @@ pub(super) fn fitted_in_physical_terms(change: Change, refit: &Identification) -
         Change::MarkerOffset(d) => Some(marker_in_physical_terms(&d)),
         Change::Drifts(drifts) => {
             // The refit's drifts, in the order the change added them.
-            let n = drifts.iter().flatten().count();
+            let n = Change::Drifts(drifts).effect_terms().len();
             let added = refit.effects.get(refit.effects.len().checked_sub(n)?..)?;
             let each: Vec<String> = added
                 .iter()

@@ -278,7 +278,7 @@ pub fn close_loop(
         .structure
         .effects
         .iter()
-        .any(|t| matches!(t.effect, Effect::Drift { .. } | Effect::Creep { .. }));
+        .any(|t| drifts_with_time(&t.effect));
     if rates_added && time_term_kept {
         state.rejudge_spool_rates()?;
     }
@@ -798,13 +798,15 @@ impl LoopState<'_> {
         };
         let check = match steps_of(change) {
             None => {
-                let stable = match change {
-                    Change::Effect(term) => {
-                        stability(effect_parameter_info(&term.effect).len(), fits)
-                    }
-                    Change::Drifts(drifts) => stability(drifts.iter().flatten().count(), fits),
-                    _ => None,
-                };
+                // The parameters of the terms the change adds (none: a
+                // change of the geometry or the tracked body, no halves
+                // test).
+                let added: usize = change
+                    .effect_terms()
+                    .iter()
+                    .map(|t| effect_parameter_info(&t.effect).len())
+                    .sum();
+                let stable = (added > 0).then(|| stability(added, fits)).flatten();
                 judge(&self.validation, after, stable, min_gain)
             }
             Some(steps_at_s) => {
@@ -847,13 +849,16 @@ fn same_term(a: &Finding, b: &Finding) -> bool {
 /// Whether `change` adds a drift or a creep (of one string or of every
 /// string): a time term, judged forward and on its own rows as a drift.
 fn adds_a_drift(change: Change) -> bool {
-    matches!(
-        change,
-        Change::Effect(EffectTerm {
-            effect: Effect::Drift { .. } | Effect::Creep { .. },
-            ..
-        }) | Change::Drifts(_)
-    )
+    change
+        .effect_terms()
+        .iter()
+        .any(|t| drifts_with_time(&t.effect))
+}
+
+/// Whether `effect` is a drift or a creep: a length that changes steadily
+/// with the time since home (a slip is a step).
+fn drifts_with_time(effect: &Effect) -> bool {
+    matches!(effect, Effect::Drift { .. } | Effect::Creep { .. })
 }
 
 /// How many of a diagnosis's strongest proposals the loop tries before

@@ -94,12 +94,38 @@ pub enum Change {
     Drifts([Option<f64>; STRINGS]),
 }
 
+impl Change {
+    /// The effect terms the change adds to the structure, in the order it
+    /// adds them (a slip or a drift on each of several strings in encoder
+    /// order); none for a change of the geometry or the tracked body.
+    pub fn effect_terms(&self) -> Vec<EffectTerm> {
+        let each = |effect: &dyn Fn(usize) -> Option<Effect>| {
+            (0..STRINGS)
+                .filter_map(|i| {
+                    effect(i).map(|effect| EffectTerm {
+                        string: i as u8,
+                        effect,
+                    })
+                })
+                .collect()
+        };
+        match *self {
+            Change::Effect(term) => vec![term],
+            Change::Slips(slips) => each(&|i| slips[i].map(|(at_s, mm)| Effect::Slip { at_s, mm })),
+            Change::Drifts(drifts) => {
+                each(&|i| drifts[i].map(|mm_per_s| Effect::Drift { mm_per_s }))
+            }
+            Change::RoomScale | Change::ReleaseAnchor(_) | Change::MarkerOffset(_) => Vec::new(),
+        }
+    }
+}
+
 impl Structure {
     /// This structure with `change` applied.
     pub fn with(&self, change: Change) -> Structure {
         let mut s = self.clone();
+        s.effects.extend(change.effect_terms());
         match change {
-            Change::Effect(term) => s.effects.push(term),
             Change::RoomScale => s.fit_room_scale = true,
             Change::ReleaseAnchor(i) => {
                 if let Some(sd) = s.anchor_sd_override_mm.get_mut(i as usize) {
@@ -107,26 +133,7 @@ impl Structure {
                 }
             }
             Change::MarkerOffset(d) => s.marker_body_mm = Some(d),
-            Change::Slips(slips) => {
-                for (i, slip) in slips.iter().enumerate() {
-                    if let Some((at_s, mm)) = *slip {
-                        s.effects.push(EffectTerm {
-                            string: i as u8,
-                            effect: Effect::Slip { at_s, mm },
-                        });
-                    }
-                }
-            }
-            Change::Drifts(drifts) => {
-                for (i, drift) in drifts.iter().enumerate() {
-                    if let Some(mm_per_s) = *drift {
-                        s.effects.push(EffectTerm {
-                            string: i as u8,
-                            effect: Effect::Drift { mm_per_s },
-                        });
-                    }
-                }
-            }
+            Change::Effect(_) | Change::Slips(_) | Change::Drifts(_) => {}
         }
         s
     }

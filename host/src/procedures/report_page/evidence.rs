@@ -16,7 +16,7 @@ use spidar_core::string_law::{guide_elevation_q32, guide_elevation_rad, payout_f
 use spidar_core::STRINGS;
 
 use crate::data::observe::Observation;
-use crate::model::diagnose::{Change, Family, Finding, Variable};
+use crate::model::diagnose::{Family, Finding, Variable};
 use crate::model::identify::{
     device_position, string_residuals, Identification, GROSS_RESIDUAL_MM,
 };
@@ -160,36 +160,18 @@ fn without_finding(
 ) -> Option<([StringLaw; STRINGS], Vec<EffectTerm>)> {
     let mut effects = fin.effects.clone();
     let mut laws = fin.laws;
-    match finding.change? {
-        Change::Effect(term) => remove_term(&mut effects, &term)?,
-        Change::Slips(slips) => {
-            for (string, slip) in slips.iter().enumerate() {
-                if let Some((at_s, mm)) = *slip {
-                    let term = EffectTerm {
-                        string: string as u8,
-                        effect: Effect::Slip { at_s, mm },
-                    };
-                    remove_term(&mut effects, &term)?;
-                }
-            }
+    let change = finding.change?;
+    let terms = change.effect_terms();
+    if !terms.is_empty() {
+        for term in &terms {
+            remove_term(&mut effects, term)?;
         }
-        Change::Drifts(drifts) => {
-            for (string, drift) in drifts.iter().enumerate() {
-                if let Some(mm_per_s) = *drift {
-                    let term = EffectTerm {
-                        string: string as u8,
-                        effect: Effect::Drift { mm_per_s },
-                    };
-                    remove_term(&mut effects, &term)?;
-                }
-            }
+    } else if finding.family == Family::Layers {
+        for &s in &finding.strings {
+            laws.get_mut(usize::from(s))?.layers = LayerTable::NONE;
         }
-        _ if finding.family == Family::Layers => {
-            for &s in &finding.strings {
-                laws.get_mut(usize::from(s))?.layers = LayerTable::NONE;
-            }
-        }
-        _ => return None,
+    } else {
+        return None;
     }
     Some((laws, effects))
 }

@@ -808,12 +808,12 @@ impl PhysicsDevice {
 
     /// Device-frame position of a room position.
     pub fn device_from_room(&self, p: &Vec3<f64>) -> Vec3<f64> {
-        let d = sub(*p, self.room_translation_mm);
-        mat_t_vec(&self.room_rotation, d).map(|x| x / self.room_scale)
+        self.device_from_room_vector(&sub(*p, self.room_translation_mm))
     }
 
-    /// Device-frame velocity of a room velocity.
-    pub fn device_from_room_velocity(&self, v: &Vec3<f64>) -> Vec3<f64> {
+    /// Device-frame vector (a displacement, a velocity) of a room vector:
+    /// turned and scaled, not moved.
+    pub fn device_from_room_vector(&self, v: &Vec3<f64>) -> Vec3<f64> {
         mat_t_vec(&self.room_rotation, *v).map(|x| x / self.room_scale)
     }
 
@@ -1300,7 +1300,7 @@ impl<'a> PhysicsSession<'a> {
         } else {
             c.room
         };
-        let mut velocity = device.device_from_room_velocity(&c.velocity);
+        let mut velocity = device.device_from_room_vector(&c.velocity);
         if planar {
             velocity[2] = 0.0;
         }
