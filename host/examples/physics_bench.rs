@@ -36,6 +36,9 @@
 //! simulator's: `clean`, `drift` (every string alike), `slip`, and
 //! `drift-each` (every string its own rate around a shared one),
 //! `drift-mixed` (rates of either sign), with `-continuing` forms;
+//! `--only=independent:drift-each-fast`: every string creeping at its own
+//! rate, 900 +- 600 ppm/h, three times `drift-each`'s (and its
+//! `-continuing` form);
 //! `--only=independent:guides-12,independent:point-guides`: the guide
 //! pulleys at 12 mm on every string, and at 0.001 mm;
 //! `--only=independent:stream,independent:stream-latency`: a 6000-row
@@ -111,13 +114,18 @@ fn model_run(seed: u64, effects: &[&str], continuing: bool) -> Run {
 /// The independent device of `seed` with `effect`: an undeclared effect
 /// of the simulator, or its guide pulleys' radius set (`guides-12`: 12 mm
 /// on every string, as issue 33's hidden simulator has them; `point-guides`:
-/// 0.001 mm, the fixed anchors the model had before the guide family).
+/// 0.001 mm, the fixed anchors the model had before the guide family;
+/// `drift-each-fast`: `drift-each` at three times its rates, 900 +- 600
+/// ppm/h, about 1 mm a metre over the lattice's 80 minutes).
 fn physics_device(seed: u64, effect: Option<&str>) -> PhysicsDevice {
     let mut config = PhysicsConfig::default();
     match effect {
         Some("guides-12") => config.as_built.guide_radius_mm = [12.0, 12.0],
         Some("point-guides") => config.as_built.guide_radius_mm = [0.001, 0.001],
         Some("stream") => {}
+        Some("drift-each-fast") => {
+            config.effects = vec!["drift-each:ppm_per_h=900,spread_ppm_per_h=600".into()]
+        }
         Some("stream-latency") => {
             config.effects = STREAM_LATENCY.iter().map(|e| e.to_string()).collect()
         }
@@ -726,6 +734,9 @@ fn physics_cases(
         // same with the test session continuing the training's home.
         Some("drift-each"),
         Some("drift-each-continuing"),
+        // The same at three times the rates (900 +- 600 ppm/h).
+        Some("drift-each-fast"),
+        Some("drift-each-fast-continuing"),
         Some("frame-flex"),
         Some("marker-offset"),
         Some("slip"),

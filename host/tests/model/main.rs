@@ -16,6 +16,7 @@ mod n_strings;
 mod sim;
 mod sim_physics;
 mod sim_physics_real_robot;
+mod time_before_tables;
 
 /// The slips of `r`'s model: (string, time, mm), in the model's order
 /// (sim_physics, loop_closing).

@@ -367,7 +367,7 @@ fn loop_on(seed: u64, effects: &[&str]) -> spidar::model::diagnose::LoopResult {
 
 /// [`loop_on`] with `loop_config`, and the training session and the nominal
 /// frame it ran on.
-fn loop_with(
+pub(crate) fn loop_with(
     seed: u64,
     effects: &[&str],
     loop_config: &spidar::model::diagnose::LoopConfig,

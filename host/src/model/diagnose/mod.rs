@@ -21,6 +21,7 @@
 mod candidates;
 mod describe;
 mod evidence;
+mod order;
 mod outliers;
 mod rejudge;
 mod revisits;
@@ -225,15 +226,14 @@ pub fn close_loop(
             tracker_outliers,
         });
     }
-    let id = base.clone();
-    let validation = validate(train, nominal, &id, &structure, FoldScope::Judged)?;
-    let mut state = LoopState {
+    let validation = validate(train, nominal, &base, &structure, FoldScope::Judged)?;
+    let fresh = LoopState {
         train,
         test,
         nominal,
         config,
-        validated_from: id.clone(),
-        id,
+        validated_from: base.clone(),
+        id: base.clone(),
         structure,
         validation,
         stages: Vec::new(),
@@ -241,50 +241,12 @@ pub fn close_loop(
         seen_train: Cow::Borrowed(train),
         seen_test: test.map(Cow::Borrowed),
     };
-    let mut layers = Vec::new();
-    let mut rates_added = false;
-    if state.structure.hold_kappa_each && nominal.layout.count() > 1 {
-        state.try_spool_rates()?;
-        rates_added = !state.structure.hold_kappa_each;
-    }
-    // Layer tables first; refused ones are tried once more after the
-    // effects (an effect the model lacked, a heavy string's sag, can hide
-    // what the tables gain until it is in).
-    let mut layers_refused = false;
-    let mut layers_added = false;
-    if config.layer_tables {
-        let (added, choice) = state.try_layer_tables()?;
-        layers = choice;
-        layers_refused = added == Some(false);
-        layers_added = added == Some(true);
-    }
-    let effects_before = state.stages.len();
-    state.add_effects()?;
-    if layers_refused && state.stages.len() > effects_before {
-        let (added, choice) = state.try_layer_tables()?;
-        if added == Some(true) {
-            layers = choice;
-            // What the tables' staircase hid (a slip's jump among the
-            // layers' jumps) is looked for again with them in.
-            state.add_effects()?;
-        }
-    }
-    // Spool rates and tables taken before a term on time that the model
-    // keeps: on a lattice walked plane by plane each string's payout goes
-    // with time, and they took part of what the drift now takes. They are
-    // judged again from the model without them, as if the drift had come
-    // first (`rejudge`).
-    let time_term_kept = state
-        .structure
-        .effects
-        .iter()
-        .any(|t| drifts_with_time(&t.effect));
-    if rates_added && time_term_kept {
-        state.rejudge_spool_rates()?;
-    }
-    if layers_added && time_term_kept {
-        if let Some(choice) = state.rejudge_layer_tables()? {
-            layers = choice;
+    let mut state = fresh.clone();
+    let sequence = state.rates_tables_and_effects()?;
+    let mut layers = sequence.layers;
+    if config.time_terms_before_tables && sequence.took_before_effects && !state.keeps_time_term() {
+        if let Some(first) = fresh.time_terms_first()? {
+            layers = state.the_better_order(first, layers);
         }
     }
     let LoopState {
@@ -362,6 +324,14 @@ fn weigh_what_follows_speed(id: &mut Identification, findings: &[Finding]) -> bo
     changed
 }
 
+/// What [`LoopState::rates_tables_and_effects`] chose: each string's layer
+/// spacing, and whether spool rates or tables were taken before the
+/// effects.
+struct Sequence {
+    layers: Vec<StringLayers>,
+    took_before_effects: bool,
+}
+
 /// A validation, and the model its folds' fits started from.
 struct Validated {
     validation: Validation,
@@ -370,6 +340,7 @@ struct Validated {
 
 /// What [`close_loop`] carries from step to step: the model so far, its
 /// validation, the stages and findings reported, and the sessions.
+#[derive(Clone)]
 struct LoopState<'a> {
     train: &'a [Observation],
     test: Option<&'a [Observation]>,
@@ -390,6 +361,68 @@ struct LoopState<'a> {
 }
 
 impl LoopState<'_> {
+    /// The loop's steps from the current model: each spool's own rate, the
+    /// layer tables, the effects, the tables again when refused and an
+    /// effect came, and the rates and tables judged again when a term on
+    /// time came after them.
+    fn rates_tables_and_effects(&mut self) -> Result<Sequence, IdentifyError> {
+        let time_term_before = self.keeps_time_term();
+        let mut layers = Vec::new();
+        let mut rates_added = false;
+        if self.structure.hold_kappa_each && self.nominal.layout.count() > 1 {
+            self.try_spool_rates()?;
+            rates_added = !self.structure.hold_kappa_each;
+        }
+        // Layer tables first; refused ones are tried once more after the
+        // effects (an effect the model lacked, a heavy string's sag, can hide
+        // what the tables gain until it is in).
+        let mut layers_refused = false;
+        let mut layers_added = false;
+        if self.config.layer_tables {
+            let (added, choice) = self.try_layer_tables()?;
+            layers = choice;
+            layers_refused = added == Some(false);
+            layers_added = added == Some(true);
+        }
+        let effects_before = self.stages.len();
+        self.add_effects(Proposals::All)?;
+        if layers_refused && self.stages.len() > effects_before {
+            let (added, choice) = self.try_layer_tables()?;
+            if added == Some(true) {
+                layers = choice;
+                // What the tables' staircase hid (a slip's jump among the
+                // layers' jumps) is looked for again with them in.
+                self.add_effects(Proposals::All)?;
+            }
+        }
+        // Spool rates and tables taken before a term on time that the model
+        // keeps: on a lattice walked plane by plane each string's payout goes
+        // with time, and they took part of what the drift now takes. They are
+        // judged again from the model without them, as if the drift had come
+        // first (`rejudge`).
+        let time_term_after = !time_term_before && self.keeps_time_term();
+        if rates_added && time_term_after {
+            self.rejudge_spool_rates()?;
+        }
+        if layers_added && time_term_after {
+            if let Some(choice) = self.rejudge_layer_tables()? {
+                layers = choice;
+            }
+        }
+        Ok(Sequence {
+            layers,
+            took_before_effects: rates_added || layers_added,
+        })
+    }
+
+    /// Whether the model holds a term on time (a drift or a creep).
+    fn keeps_time_term(&self) -> bool {
+        self.structure
+            .effects
+            .iter()
+            .any(|t| drifts_with_time(&t.effect))
+    }
+
     /// Each spool's own thinning rate ([`free_spool_rates`]): its finding,
     /// and the refit when accepted.
     fn try_spool_rates(&mut self) -> Result<(), IdentifyError> {
@@ -483,8 +516,9 @@ impl LoopState<'_> {
 
     /// Diagnose, add the first of the three strongest proposals (then the
     /// slips of several strings together) that helps on held-out data,
-    /// repeat until none helps or the loop holds its most effects.
-    fn add_effects(&mut self) -> Result<(), IdentifyError> {
+    /// repeat until none helps or the loop holds its most effects; only
+    /// the terms on time with [`Proposals::TimeTerms`].
+    fn add_effects(&mut self, which: Proposals) -> Result<(), IdentifyError> {
         'outer: while self.stages.len() < self.config.max_effects {
             let proposals = diagnose(
                 &self.id,
@@ -495,8 +529,10 @@ impl LoopState<'_> {
             );
             // Findings without a change (a term on time the revisits do not
             // show) are reported, and take no place among the strongest.
-            let (proposals, reported): (Vec<Finding>, Vec<Finding>) =
-                proposals.into_iter().partition(|f| f.change.is_some());
+            let (proposals, reported): (Vec<Finding>, Vec<Finding>) = proposals
+                .into_iter()
+                .filter(|f| which.takes(f))
+                .partition(|f| f.change.is_some());
             for finding in reported {
                 self.report(finding);
             }
@@ -529,7 +565,7 @@ impl LoopState<'_> {
             // tables, which a step in time bends, were refused), so none
             // helps alone. Tried together, as one change, when none of the
             // strongest helped alone.
-            if let Some((finding, change)) = together {
+            if let Some((finding, change)) = together.filter(|_| which == Proposals::All) {
                 if self.try_change(finding, change)? {
                     continue 'outer;
                 }
@@ -824,6 +860,38 @@ impl LoopState<'_> {
             refuse_on_fold_rise(check)
         } else {
             check
+        }
+    }
+}
+
+/// Whether `change`'s terms are on every string: one shared term, or one
+/// term of each string ([`Change::Drifts`]).
+fn on_every_string(change: Change) -> bool {
+    matches!(change, Change::Drifts(_))
+        || change
+            .effect_terms()
+            .iter()
+            .all(|t| t.string == EVERY_STRING)
+}
+
+/// Which proposals [`LoopState::add_effects`] tries.
+#[derive(Clone, Copy, PartialEq)]
+enum Proposals {
+    All,
+    /// Terms on time of every string only (a shared drift or creep, the
+    /// drifts of every string at their own rates; findings without a
+    /// change, such a term the revisits do not show, are reported).
+    TimeTerms,
+}
+
+impl Proposals {
+    fn takes(self, finding: &Finding) -> bool {
+        match self {
+            Proposals::All => true,
+            Proposals::TimeTerms => finding.change.map_or(
+                finding.variable == Variable::Time && finding.strings.len() != 1,
+                |change| adds_a_drift(change) && on_every_string(change),
+            ),
         }
     }
 }

@@ -225,6 +225,13 @@ pub struct LoopConfig {
     /// what the rule does (`physics_bench`).
     #[serde(default = "yes")]
     pub time_terms_forward: bool,
+    /// Where the model took spool rates or layer tables and kept no term
+    /// on time, try the terms on time first, from the base model, then the
+    /// rates, the tables and the effects; the model of the order that
+    /// gains on the blocked folds is kept (`order`, decision record 0057).
+    /// Off only to measure what it does (`physics_bench`).
+    #[serde(default = "yes")]
+    pub time_terms_before_tables: bool,
     /// The tracker's clock was found from these rows (a stream's
     /// alignment, `procedures::calibrate::align`). A latency shared by
     /// every string reads each string `tau` late, and a tracker clock
@@ -292,6 +299,7 @@ impl Default for LoopConfig {
             home_sd_mm: None,
             robust: true,
             time_terms_forward: true,
+            time_terms_before_tables: true,
             clock_aligned: false,
         }
     }
