@@ -17,6 +17,24 @@ mod sim;
 mod sim_physics;
 mod sim_physics_real_robot;
 mod time_before_tables;
+mod whole_device_first;
+
+/// The names of `r`'s stages, in order (time_before_tables,
+/// whole_device_first).
+fn stage_names(r: &spidar::model::diagnose::LoopResult) -> Vec<&str> {
+    r.stages.iter().map(|s| s.name.as_str()).collect()
+}
+
+/// The test session's mean error of `r`'s last model (time_before_tables,
+/// whole_device_first).
+fn last_test_mean(r: &spidar::model::diagnose::LoopResult) -> f64 {
+    r.stages
+        .last()
+        .and_then(|s| s.test.as_ref())
+        .or(r.base_test.as_ref())
+        .map(|t| t.mean_mm)
+        .expect("a test session")
+}
 
 /// The slips of `r`'s model: (string, time, mm), in the model's order
 /// (sim_physics, loop_closing).

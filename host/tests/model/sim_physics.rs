@@ -376,14 +376,27 @@ pub(crate) fn loop_with(
     Vec<spidar::data::observe::Observation>,
     spidar_core::model::Frame<f64>,
 ) {
-    use spidar::data::observe::observations;
-    use spidar::model::diagnose::close_loop;
-    use spidar::model::identify::Start;
     let config = PhysicsConfig {
         effects: effects.iter().map(|e| e.to_string()).collect(),
         ..PhysicsConfig::default()
     };
-    let device = PhysicsDevice::new(&config, seed).unwrap();
+    loop_of_device(seed, &config, loop_config)
+}
+
+/// [`loop_with`] on the device `config` makes.
+pub(crate) fn loop_of_device(
+    seed: u64,
+    config: &PhysicsConfig,
+    loop_config: &spidar::model::diagnose::LoopConfig,
+) -> (
+    spidar::model::diagnose::LoopResult,
+    Vec<spidar::data::observe::Observation>,
+    spidar_core::model::Frame<f64>,
+) {
+    use spidar::data::observe::observations;
+    use spidar::model::diagnose::close_loop;
+    use spidar::model::identify::Start;
+    let device = PhysicsDevice::new(config, seed).unwrap();
     let (train, _) = simulate_session(&device, SessionKind::Lattice, seed + 1).unwrap();
     let (test, _) =
         simulate_session(&device, SessionKind::Random { points: 500 }, seed + 2).unwrap();

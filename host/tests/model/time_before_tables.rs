@@ -6,7 +6,8 @@
 //! they are taken, and the blocked folds prefer that model.
 
 use crate::sim_physics::loop_with;
-use spidar::model::diagnose::{LoopConfig, LoopResult};
+use crate::{last_test_mean, stage_names};
+use spidar::model::diagnose::LoopConfig;
 
 /// Strings of different batches creeping fast: 900 +- 600 ppm/h each,
 /// about 1 mm a metre over the lattice's 80 minutes.
@@ -14,20 +15,6 @@ const CREEP_EACH: &str = "drift-each:ppm_per_h=900,spread_ppm_per_h=600";
 
 const DRIFTS: &str = "drift strings [0, 1, 2, 3, 4, 5, 6, 7]";
 const TABLES: &str = "layers strings [0, 1, 2, 3, 4, 5, 6, 7]";
-
-fn names(r: &LoopResult) -> Vec<&str> {
-    r.stages.iter().map(|s| s.name.as_str()).collect()
-}
-
-/// The test session's mean error of the loop's last model.
-fn test_mean(r: &LoopResult) -> f64 {
-    r.stages
-        .last()
-        .and_then(|s| s.test.as_ref())
-        .or(r.base_test.as_ref())
-        .map(|t| t.mean_mm)
-        .expect("a test session")
-}
 
 /// Seed 1: with the tables first the drifts are not taken and the test
 /// session ends at 1.00 mm; tried first they are (before the tables,
@@ -44,18 +31,18 @@ fn strings_creeping_at_their_own_rates_are_taken_before_the_layer_tables() {
             ..LoopConfig::default()
         },
     );
-    let (after, before) = (test_mean(&first), test_mean(&tables_first));
+    let (after, before) = (last_test_mean(&first), last_test_mean(&tables_first));
     println!(
         "time terms first: {:?} ({after:.3} mm); tables first: {:?} ({before:.3} mm)",
-        names(&first),
-        names(&tables_first)
+        stage_names(&first),
+        stage_names(&tables_first)
     );
-    assert!(!names(&tables_first).contains(&DRIFTS));
-    let at = |name: &str| names(&first).iter().position(|n| *n == name);
+    assert!(!stage_names(&tables_first).contains(&DRIFTS));
+    let at = |name: &str| stage_names(&first).iter().position(|n| *n == name);
     assert!(
         matches!((at(DRIFTS), at(TABLES)), (Some(d), Some(t)) if d < t),
         "{:?}",
-        names(&first)
+        stage_names(&first)
     );
     let drifts = first
         .stages
@@ -89,6 +76,6 @@ fn a_clean_device_keeps_the_tables_first() {
             ..LoopConfig::default()
         },
     );
-    assert_eq!(names(&on), names(&off));
-    assert_eq!(test_mean(&on), test_mean(&off));
+    assert_eq!(stage_names(&on), stage_names(&off));
+    assert_eq!(last_test_mean(&on), last_test_mean(&off));
 }

@@ -541,6 +541,12 @@ impl LoopState<'_> {
                 .filter(|f| f.family == Family::Slip && f.strings.len() == 1)
                 .collect();
             let together = slips_together(&slips);
+            let frame_wide: Vec<Finding> = proposals
+                .iter()
+                .filter(|f| f.strings.is_empty() && f.change.is_some())
+                .cloned()
+                .collect();
+            let mut tried: Vec<(Family, Vec<u8>)> = Vec::new();
             let mut frame_wide_below = Vec::new();
             let mut rank = 0;
             for finding in proposals {
@@ -556,7 +562,15 @@ impl LoopState<'_> {
                     continue;
                 }
                 rank += usize::from(!beside);
+                tried.push((finding.family, finding.strings.clone()));
+                let before = finding
+                    .change
+                    .is_some_and(one_string_term)
+                    .then(|| self.clone());
                 if self.try_finding(finding)? {
+                    if let Some(before) = before {
+                        self.prefer_frame_wide(before, &frame_wide, &tried)?;
+                    }
                     continue 'outer;
                 }
             }
@@ -582,6 +596,36 @@ impl LoopState<'_> {
                 }
             }
             break;
+        }
+        Ok(())
+    }
+
+    /// After a term of one string was taken (this state; `before`: the
+    /// model without it), the terms of the whole frame or the tracked body
+    /// the same diagnosis proposed and the round has not tried: the first
+    /// taken from `before` whose blocked folds reach a lower mean than the
+    /// one-string term's replaces it (the one-string term is proposed
+    /// again, or not, by the next diagnosis). A term of one string stands
+    /// in more often; one that takes what a term of the whole device
+    /// explains better must not come first (decision record 0058).
+    fn prefer_frame_wide(
+        &mut self,
+        before: Self,
+        frame_wide: &[Finding],
+        tried: &[(Family, Vec<u8>)],
+    ) -> Result<(), IdentifyError> {
+        for f in frame_wide.iter().filter(|f| {
+            !tried
+                .iter()
+                .any(|(family, strings)| *family == f.family && *strings == f.strings)
+        }) {
+            let mut alternative = before.clone();
+            if alternative.try_finding(f.clone())?
+                && alternative.validation.held.mean_mm < self.validation.held.mean_mm
+            {
+                *self = alternative;
+                return Ok(());
+            }
         }
         Ok(())
     }
@@ -842,7 +886,16 @@ impl LoopState<'_> {
                     .iter()
                     .map(|t| effect_parameter_info(&t.effect).len())
                     .sum();
-                let stable = (added > 0).then(|| stability(added, fits)).flatten();
+                // A term of one string is held to white residuals' sds:
+                // searched on every string, it stands in more often
+                // (record 0032), and its halves are what refuse it
+                // (record 0058).
+                let held: &[f64] = if one_string_term(change) {
+                    &[]
+                } else {
+                    &after.held_errors
+                };
+                let stable = (added > 0).then(|| stability(added, fits, held)).flatten();
                 judge(&self.validation, after, stable, min_gain)
             }
             Some(steps_at_s) => {

@@ -132,7 +132,7 @@ fn errors_and_inconsistency<O: Borrow<Observation>>(
 /// 0.7-0.8 on the independent simulator's 60 s streams), a lattice's
 /// walked plane by plane (0.2-0.65); errors in no order give `rho` near 0
 /// and count as `n`. A negative `rho` counts as 0.
-fn independent_rows(errors: &[f64]) -> f64 {
+pub(crate) fn independent_rows(errors: &[f64]) -> f64 {
     let n = errors.len() as f64;
     let mean = errors.iter().sum::<f64>() / n;
     let var: f64 = errors.iter().map(|e| (e - mean) * (e - mean)).sum();

@@ -280,8 +280,26 @@ const STABILITY_RELATIVE_SD: f64 = 0.03;
 /// (a drift standing in for position on a lattice collected plane by plane)
 /// takes the local slope of what it replaces, different in each half.
 /// `None` without time folds. [`judge`] holds the chi-square to the level
-/// `k` standard normals exceed with probability 0.001.
-pub(crate) fn stability(k: usize, fits: &[Identification]) -> Option<(f64, usize)> {
+/// `k` standard normals exceed with probability 0.001. Each half's sd is
+/// that of white residuals times `sqrt(n / n_eff)` of `held_errors` (the
+/// candidate's held-out errors in session order, [`independent_rows`]:
+/// the rows they are worth, decision record 0058); empty: white.
+///
+/// [`independent_rows`]: super::errors::independent_rows
+pub(crate) fn stability(
+    k: usize,
+    fits: &[Identification],
+    held_errors: &[f64],
+) -> Option<(f64, usize)> {
+    // The rows' errors correlate along the session (a stream's neighbours
+    // see nearly the same pose): a half's estimate is worth the rows they
+    // make, not their count.
+    let n = held_errors.len() as f64;
+    let inflation = if held_errors.len() >= 3 {
+        (n / super::errors::independent_rows(held_errors)).sqrt()
+    } else {
+        1.0
+    };
     let later_half = fits.len().checked_sub(3)?;
     let (early, late) = (fits.get(later_half)?, fits.get(later_half + 1)?);
     let tail = |id: &Identification| {
@@ -294,7 +312,10 @@ pub(crate) fn stability(k: usize, fits: &[Identification]) -> Option<(f64, usize
         .zip(&b)
         .map(|(x, y)| {
             let floor = |v: f64, sd: f64| sd.max(STABILITY_RELATIVE_SD * v.abs());
-            let (sx, sy) = (floor(x.value, x.sd), floor(y.value, y.sd));
+            let (sx, sy) = (
+                floor(x.value, inflation * x.sd),
+                floor(y.value, inflation * y.sd),
+            );
             let v = sx * sx + sy * sy;
             if v > 0.0 && v.is_finite() {
                 (x.value - y.value).powi(2) / v

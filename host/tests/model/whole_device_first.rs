@@ -1,0 +1,74 @@
+//! Clean independent devices (decision record 0058): a term of one string
+//! taken where a term of the whole device explains the rows better is
+//! replaced by it, and a shared term's halves are judged by the rows the
+//! session's errors are worth. What the loop names on these devices is
+//! the physics they have: no term on time, the strings' stretch at its
+//! size rather than a sag thirty times the strings' weight.
+
+use crate::sim_physics::{loop_of_device, loop_with};
+use crate::{last_test_mean, stage_names};
+use spidar::model::diagnose::{LoopConfig, LoopResult};
+use spidar::sim::physics::PhysicsConfig;
+use spidar_core::model::Effect;
+
+/// Whether the model holds a term on time (a drift or a creep).
+fn has_time_term(r: &LoopResult) -> bool {
+    r.identification
+        .effects
+        .iter()
+        .any(|t| matches!(t.effect, Effect::Drift { .. } | Effect::Creep { .. }))
+}
+
+/// Device 6: a creep on string 6 passed every check just before the
+/// marker offset (test 0.354 -> 0.476 mm); tried from the model without
+/// it, the marker offset gains more on the blocked folds (0.569 -> 0.373
+/// against the creep's 0.524), and takes its place. No term on time is
+/// left, and the test ends below the 0.365 mm the device reached before
+/// either rule.
+#[test]
+fn a_clean_device_s_marker_offset_is_taken_before_a_creep_of_one_string() {
+    let (r, _, _) = loop_with(6, &[], &LoopConfig::default());
+    let after = last_test_mean(&r);
+    println!("{:?}: {after:.3} mm", stage_names(&r));
+    assert!(!has_time_term(&r), "{:?}", stage_names(&r));
+    assert!(stage_names(&r).contains(&"marker offset (tracked body)"));
+    assert!(after < 0.35, "{after:.3} mm");
+}
+
+/// Device 11 without the abnormal motor: a drift on string 5 before the
+/// marker offset took the test session from 0.335 mm to 0.490; the marker
+/// offset comes first now, and no term of one string on time is taken (a
+/// drift of every string may be: 0.332 -> 0.339 mm, record 0058's limit).
+#[test]
+fn no_drift_of_one_string_stands_in_for_the_marker_offset() {
+    let mut config = PhysicsConfig::default();
+    config.abnormal_motor.enabled = false;
+    let (r, _, _) = loop_of_device(11, &config, &LoopConfig::default());
+    let after = last_test_mean(&r);
+    println!("{:?}: {after:.3} mm", stage_names(&r));
+    assert!(
+        !stage_names(&r)
+            .iter()
+            .any(|n| n.starts_with("drift string ") || n.starts_with("creep string ")),
+        "{:?}",
+        stage_names(&r)
+    );
+    assert!(after < 0.36, "{after:.3} mm");
+}
+
+/// Devices 7 and 20: the strings' stretch (refused before by its halves,
+/// whose sds counted every row as independent) is named at its size,
+/// where a sag of 27 and 43 times the strings' weight stood in.
+#[test]
+fn a_clean_device_s_stretch_is_named_and_no_sag_stands_in() {
+    for seed in [7, 20] {
+        let (r, _, _) = loop_with(seed, &[], &LoopConfig::default());
+        println!(
+            "device {seed}: {:?}: {:.3} mm",
+            stage_names(&r),
+            last_test_mean(&r)
+        );
+        assert!(stage_names(&r).contains(&"elasticity (every string)"));
+        assert!(!stage_names(&r).contains(&"sag (every string)"));
+    }
+}
