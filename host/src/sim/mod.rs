@@ -573,6 +573,9 @@ pub struct SimulateReport {
     /// Eq. 7 error of the legacy position (mapped to the room by eq. 6) against
     /// the tracker, over rows with both.
     pub legacy_raw_error: Option<crate::data::stats::ErrorStats>,
+    /// What the user should know of the session written (a static session
+    /// whose tracker clock is further off than its captures are apart).
+    pub warnings: Vec<String>,
 }
 
 impl std::fmt::Display for SimulateReport {
@@ -597,8 +600,44 @@ impl std::fmt::Display for SimulateReport {
                 s.mean_mm, s.sd_mm, s.max_mm, s.n
             )?;
         }
+        for w in &self.warnings {
+            writeln!(f, "warning: {w}")?;
+        }
         Ok(())
     }
+}
+
+/// Why a static session (a lattice, random points: one pose per row) of a
+/// tracker whose clock is `tracker.clock_offset_s` (and its drift) off the
+/// device's is not one to calibrate on, when that offset is more than half
+/// the time between its captures: each row holds the marker where it was
+/// that long before, at another pose, and `calibrate` aligns the clock of
+/// streams only (a static session has no motion to align by).
+fn static_clock_warning(
+    kind: SessionKind,
+    session: &Session,
+    tracker: &config::TrackerConfig,
+) -> Option<String> {
+    if matches!(kind, SessionKind::Stream { .. }) {
+        return None;
+    }
+    let end_s = session.samples.last()?.t_s;
+    let offset_s = tracker
+        .clock_offset_s
+        .abs()
+        .max((tracker.clock_offset_s + 1e-6 * tracker.clock_drift_ppm * end_s).abs());
+    let interval_s =
+        crate::procedures::calibrate::align::median_step_s(session.samples.iter().map(|s| s.t_s))?;
+    (offset_s > interval_s / 2.0).then(|| {
+        format!(
+            "the tracker's clock is {offset_s:.2} s off the device's (`tracker.clock_offset_s`, \
+             `clock_drift_ppm`), more than half the {interval_s:.2} s between this {} \
+             session's captures: each row holds the marker where it was at another capture, and \
+             `calibrate` aligns the clock of streams only; simulate a stream (`--kind stream` \
+             or `wide-stream`), or a tracker whose clock agrees (`clock_offset_s = 0`)",
+            kind.name()
+        )
+    })
 }
 
 /// Eq. 7 error of the legacy positions (eq. 6 to the room with the nominal
@@ -681,6 +720,7 @@ pub(crate) fn write_outputs(
     session: &Session,
     write_truth: impl FnOnce(&std::path::Path) -> Result<(), SimError>,
     legacy_raw_error: Option<crate::data::stats::ErrorStats>,
+    tracker: &config::TrackerConfig,
 ) -> Result<SimulateReport, SimError> {
     std::fs::create_dir_all(&args.out).map_err(|source| SimError::Io {
         file: args.out.clone(),
@@ -705,6 +745,9 @@ pub(crate) fn write_outputs(
             .filter(|s| s.tracker.is_none())
             .count(),
         legacy_raw_error,
+        warnings: static_clock_warning(kind, session, tracker)
+            .into_iter()
+            .collect(),
     })
 }
 
@@ -735,5 +778,6 @@ pub fn run_simulate(args: &SimulateRequest) -> Result<SimulateReport, SimError> 
         &session,
         |truth| Truth::of(&device).write(truth),
         (!errors.is_empty()).then(|| crate::data::stats::ErrorStats::of(&errors)),
+        &config.tracker,
     )
 }

@@ -322,3 +322,34 @@ fn a_declared_anchor_tolerance_the_wall_robot_contradicts_is_named() {
     let w = warning(&tight).expect("the declared tolerance named");
     assert!(w.contains("is contradicted by the data"), "{w}");
 }
+
+/// A static session of the wall robot, whose tracker clock is 1.8 s off
+/// the device's, pairs each capture with the marker at another one, which
+/// `calibrate` cannot re-align (it aligns streams): `simulate` says so,
+/// and says nothing of its streams or of a device whose clock agrees.
+#[test]
+fn a_static_session_under_a_clock_seconds_off_is_named() {
+    let random = run_simulate(&SimulateRequest {
+        points: Some(40),
+        ..request(tmp("clock-random"), SessionPath::Random)
+    })
+    .unwrap();
+    let shown = random.to_string();
+    assert!(
+        shown.contains("warning: the tracker's clock is 1.80 s off the device's"),
+        "{shown}"
+    );
+    let streamed = run_simulate(&SimulateRequest {
+        points: Some(400),
+        ..request(tmp("clock-stream"), SessionPath::Stream)
+    })
+    .unwrap();
+    assert!(streamed.warnings.is_empty(), "{:?}", streamed.warnings);
+    let agreeing = run_simulate(&SimulateRequest {
+        preset: None,
+        points: Some(40),
+        ..request(tmp("clock-agrees"), SessionPath::Random)
+    })
+    .unwrap();
+    assert!(agreeing.warnings.is_empty(), "{:?}", agreeing.warnings);
+}

@@ -115,7 +115,7 @@ pub fn tracked_interval_s(obs: &[Observation]) -> Option<f64> {
 }
 
 /// The median of the positive steps between consecutive `times` (s).
-fn median_step_s(times: impl Iterator<Item = f64>) -> Option<f64> {
+pub(crate) fn median_step_s(times: impl Iterator<Item = f64>) -> Option<f64> {
     let times: Vec<f64> = times.collect();
     let mut d: Vec<f64> = times
         .windows(2)

@@ -1536,5 +1536,6 @@ pub fn run_simulate(args: &SimulateRequest) -> Result<SimulateReport, SimError> 
         &session,
         |truth| write_truth(&device, truth),
         None,
+        &device.config.tracker,
     )
 }
