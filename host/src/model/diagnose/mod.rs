@@ -7,6 +7,9 @@
 //! - `vocabulary`: the families, variables, changes and findings, the
 //!   loop's settings and what it reports;
 //! - `outliers`: the training rows whose tracker the loop sets aside;
+//! - `order`: the order of the steps (rates, tables, effects), a term on
+//!   time of every string tried before the tables, a term of the whole
+//!   device before one string's;
 //! - `rejudge`: spool rates and tables judged again once a term on time
 //!   came after them;
 //! - `trials`: each spool's own thinning rate and the layer tables, tried
@@ -324,14 +327,6 @@ fn weigh_what_follows_speed(id: &mut Identification, findings: &[Finding]) -> bo
     changed
 }
 
-/// What [`LoopState::rates_tables_and_effects`] chose: each string's layer
-/// spacing, and whether spool rates or tables were taken before the
-/// effects.
-struct Sequence {
-    layers: Vec<StringLayers>,
-    took_before_effects: bool,
-}
-
 /// A validation, and the model its folds' fits started from.
 struct Validated {
     validation: Validation,
@@ -361,68 +356,6 @@ struct LoopState<'a> {
 }
 
 impl LoopState<'_> {
-    /// The loop's steps from the current model: each spool's own rate, the
-    /// layer tables, the effects, the tables again when refused and an
-    /// effect came, and the rates and tables judged again when a term on
-    /// time came after them.
-    fn rates_tables_and_effects(&mut self) -> Result<Sequence, IdentifyError> {
-        let time_term_before = self.keeps_time_term();
-        let mut layers = Vec::new();
-        let mut rates_added = false;
-        if self.structure.hold_kappa_each && self.nominal.layout.count() > 1 {
-            self.try_spool_rates()?;
-            rates_added = !self.structure.hold_kappa_each;
-        }
-        // Layer tables first; refused ones are tried once more after the
-        // effects (an effect the model lacked, a heavy string's sag, can hide
-        // what the tables gain until it is in).
-        let mut layers_refused = false;
-        let mut layers_added = false;
-        if self.config.layer_tables {
-            let (added, choice) = self.try_layer_tables()?;
-            layers = choice;
-            layers_refused = added == Some(false);
-            layers_added = added == Some(true);
-        }
-        let effects_before = self.stages.len();
-        self.add_effects(Proposals::All)?;
-        if layers_refused && self.stages.len() > effects_before {
-            let (added, choice) = self.try_layer_tables()?;
-            if added == Some(true) {
-                layers = choice;
-                // What the tables' staircase hid (a slip's jump among the
-                // layers' jumps) is looked for again with them in.
-                self.add_effects(Proposals::All)?;
-            }
-        }
-        // Spool rates and tables taken before a term on time that the model
-        // keeps: on a lattice walked plane by plane each string's payout goes
-        // with time, and they took part of what the drift now takes. They are
-        // judged again from the model without them, as if the drift had come
-        // first (`rejudge`).
-        let time_term_after = !time_term_before && self.keeps_time_term();
-        if rates_added && time_term_after {
-            self.rejudge_spool_rates()?;
-        }
-        if layers_added && time_term_after {
-            if let Some(choice) = self.rejudge_layer_tables()? {
-                layers = choice;
-            }
-        }
-        Ok(Sequence {
-            layers,
-            took_before_effects: rates_added || layers_added,
-        })
-    }
-
-    /// Whether the model holds a term on time (a drift or a creep).
-    fn keeps_time_term(&self) -> bool {
-        self.structure
-            .effects
-            .iter()
-            .any(|t| drifts_with_time(&t.effect))
-    }
-
     /// Each spool's own thinning rate ([`free_spool_rates`]): its finding,
     /// and the refit when accepted.
     fn try_spool_rates(&mut self) -> Result<(), IdentifyError> {
@@ -596,36 +529,6 @@ impl LoopState<'_> {
                 }
             }
             break;
-        }
-        Ok(())
-    }
-
-    /// After a term of one string was taken (this state; `before`: the
-    /// model without it), the terms of the whole frame or the tracked body
-    /// the same diagnosis proposed and the round has not tried: the first
-    /// taken from `before` whose blocked folds reach a lower mean than the
-    /// one-string term's replaces it (the one-string term is proposed
-    /// again, or not, by the next diagnosis). A term of one string stands
-    /// in more often; one that takes what a term of the whole device
-    /// explains better must not come first (decision record 0058).
-    fn prefer_frame_wide(
-        &mut self,
-        before: Self,
-        frame_wide: &[Finding],
-        tried: &[(Family, Vec<u8>)],
-    ) -> Result<(), IdentifyError> {
-        for f in frame_wide.iter().filter(|f| {
-            !tried
-                .iter()
-                .any(|(family, strings)| *family == f.family && *strings == f.strings)
-        }) {
-            let mut alternative = before.clone();
-            if alternative.try_finding(f.clone())?
-                && alternative.validation.held.mean_mm < self.validation.held.mean_mm
-            {
-                *self = alternative;
-                return Ok(());
-            }
         }
         Ok(())
     }
