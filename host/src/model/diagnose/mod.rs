@@ -479,7 +479,7 @@ impl LoopState<'_> {
                 .filter(|f| f.strings.is_empty() && f.change.is_some())
                 .cloned()
                 .collect();
-            let mut tried: Vec<(Family, Vec<u8>)> = Vec::new();
+            let mut tried: Vec<Finding> = Vec::new();
             let mut frame_wide_below = Vec::new();
             let mut rank = 0;
             for finding in proposals {
@@ -495,7 +495,7 @@ impl LoopState<'_> {
                     continue;
                 }
                 rank += usize::from(!beside);
-                tried.push((finding.family, finding.strings.clone()));
+                tried.push(finding.clone());
                 let before = finding
                     .change
                     .is_some_and(one_string_term)

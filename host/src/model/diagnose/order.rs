@@ -23,7 +23,8 @@
 //! **A term of the whole device, or one string's**
 //! ([`LoopState::prefer_frame_wide`], decision record 0058).
 
-use super::{drifts_with_time, Family, Finding, LoopState, StringLayers, Variable};
+use super::describe::stage_name;
+use super::{drifts_with_time, same_term, Finding, LoopState, StringLayers, Variable};
 use crate::model::identify::IdentifyError;
 use crate::model::validate::judge;
 
@@ -46,7 +47,7 @@ impl LoopState<'_> {
         let time_term_before = self.keeps_time_term();
         let mut layers = Vec::new();
         let mut rates_added = false;
-        if self.structure.hold_kappa_each && self.nominal.layout.count() > 1 {
+        if self.spool_rates_held() {
             self.try_spool_rates()?;
             rates_added = !self.structure.hold_kappa_each;
         }
@@ -100,6 +101,12 @@ impl LoopState<'_> {
             .any(|t| drifts_with_time(&t.effect))
     }
 
+    /// Whether each spool's own rate is held to the shared one on a device
+    /// of several strings: whether it can be tried.
+    fn spool_rates_held(&self) -> bool {
+        self.structure.hold_kappa_each && self.nominal.layout.count() > 1
+    }
+
     /// After a term of one string was taken (this state; `before`: the
     /// model without it), the terms of the whole frame or the tracked body
     /// the same diagnosis proposed and the round has not tried: the first
@@ -112,13 +119,12 @@ impl LoopState<'_> {
         &mut self,
         before: Self,
         frame_wide: &[Finding],
-        tried: &[(Family, Vec<u8>)],
+        tried: &[Finding],
     ) -> Result<(), IdentifyError> {
-        for f in frame_wide.iter().filter(|f| {
-            !tried
-                .iter()
-                .any(|(family, strings)| *family == f.family && *strings == f.strings)
-        }) {
+        for f in frame_wide
+            .iter()
+            .filter(|f| !tried.iter().any(|t| same_term(t, f)))
+        {
             let mut alternative = before.clone();
             if alternative.try_finding(f.clone())?
                 && alternative.validation.held.mean_mm < self.validation.held.mean_mm
@@ -137,11 +143,11 @@ impl LoopState<'_> {
     pub(super) fn time_terms_first(
         mut self,
     ) -> Result<Option<(Self, Vec<StringLayers>)>, IdentifyError> {
-        let rates_free = self.structure.hold_kappa_each && self.nominal.layout.count() > 1;
-        if rates_free {
+        let rates_held = self.spool_rates_held();
+        if rates_held {
             self.try_spool_rates()?;
         }
-        let rates_added = rates_free && !self.structure.hold_kappa_each;
+        let rates_added = rates_held && !self.structure.hold_kappa_each;
         self.add_effects(Proposals::TimeTerms)?;
         if !self.keeps_time_term() {
             return Ok(None);
@@ -169,12 +175,12 @@ impl LoopState<'_> {
             None,
             self.config.min_relative_gain,
         );
-        let time_terms: Vec<&Finding> = first
+        let names: Vec<String> = first
             .findings
             .iter()
             .filter(|f| f.added && f.change.is_some_and(adds_a_drift))
+            .map(stage_name)
             .collect();
-        let names: Vec<String> = time_terms.iter().map(|f| order_name(f)).collect();
         let names = names.join(", ");
         if !check.accepted {
             // The term on time stays in this order's report: refused here
@@ -218,9 +224,4 @@ impl LoopState<'_> {
         *self = first;
         first_layers
     }
-}
-
-/// A time term's family and strings, for the report.
-fn order_name(f: &Finding) -> String {
-    format!("{} strings {:?}", super::family_name(f.family), f.strings)
 }
