@@ -14,8 +14,9 @@
 //!
 //! With `--clean-only [CLEAN_SEEDS]`: only the false findings, on clean
 //! sessions of both simulators (the model simulator and the independent
-//! physics, `sim::physics`), each effect added named per seed. The loop
-//! does not depend on the NN/SVR settings, so this is the full loop.
+//! physics, `sim::physics`, and its devices without the abnormal motor),
+//! each effect added named per seed. The loop does not depend on the
+//! NN/SVR settings, so this is the full loop.
 
 use spidar::data::observe::observations;
 use spidar::data::observe::Observation;
@@ -199,7 +200,6 @@ fn clean_only(seeds: u64) {
     // offset, names physics it has; any other family (an offset, a drift,
     // a slip, ...) does not.
     let within_2x = |ratio: f64| (0.5..=2.0).contains(&ratio);
-    let mut physics_named = 0usize;
     for seed in 1..=seeds {
         let config = SimConfig::default();
         let device = SimulatedDevice::new(&config, seed).expect("device");
@@ -215,44 +215,72 @@ fn clean_only(seeds: u64) {
         tables[0] += added.iter().filter(|n| is_table(n)).count();
         println!("| model | {seed} | {} | {after} | {s:.1} |", show(&added));
     }
-    for seed in 1..=seeds {
-        let device = PhysicsDevice::new(&PhysicsConfig::default(), seed).expect("device");
-        let (train, _) =
-            physics::simulate_session(&device, SessionKind::Lattice, seed + 1).expect("lattice");
-        let (test, _) =
-            physics::simulate_session(&device, SessionKind::Random { points: 500 }, seed + 2)
-                .expect("test session");
-        let (added, after, s, r) = clean_loop(
-            &device.nominal,
-            &observations(&train.samples),
-            &observations(&test.samples),
-        );
-        totals[1] += added.iter().filter(|n| !is_table(n)).count();
-        tables[1] += added.iter().filter(|n| is_table(n)).count();
-        let sizes = sizes_against_truth(&device, &r);
-        physics_named += sizes.iter().filter(|(_, x)| within_2x(*x)).count();
-        let sizes: Vec<String> = sizes
-            .iter()
-            .map(|(name, x)| format!("{name} x{x:.2}"))
-            .collect();
-        println!(
-            "| independent | {seed} | {} (size / truth: {}) | {after} | {s:.1} |",
-            show(&added),
-            show(&sizes)
-        );
+    let mut physics_named = 0usize;
+    let mut time_terms = [0usize; 2];
+    for (row, config) in independent_clean_configs().iter().enumerate() {
+        for seed in 1..=seeds {
+            let device = PhysicsDevice::new(config, seed).expect("device");
+            let (train, _) = physics::simulate_session(&device, SessionKind::Lattice, seed + 1)
+                .expect("lattice");
+            let (test, _) =
+                physics::simulate_session(&device, SessionKind::Random { points: 500 }, seed + 2)
+                    .expect("test session");
+            let (added, after, s, r) = clean_loop(
+                &device.nominal,
+                &observations(&train.samples),
+                &observations(&test.samples),
+            );
+            time_terms[row] += added.iter().filter(|n| is_time_term(n)).count();
+            let sizes = sizes_against_truth(&device, &r);
+            if row == 0 {
+                totals[1] += added.iter().filter(|n| !is_table(n)).count();
+                tables[1] += added.iter().filter(|n| is_table(n)).count();
+                physics_named += sizes.iter().filter(|(_, x)| within_2x(*x)).count();
+            }
+            let sizes: Vec<String> = sizes
+                .iter()
+                .map(|(name, x)| format!("{name} x{x:.2}"))
+                .collect();
+            let simulator = ["independent", "independent, no abnormal motor"][row];
+            println!(
+                "| {simulator} | {seed} | {} (size / truth: {}) | {after} | {s:.1} |",
+                show(&added),
+                show(&sizes)
+            );
+        }
     }
     println!(
         "\nclean sessions, {seeds} seeds: effect families added {} (model simulator), {} \
          (independent: {physics_named} a shared stretch, sag, frame flex, a guide pulley or a marker offset within 2x \
          of the size of that physics, which the device has; {} stand-ins: of other families, or of those five at \
          another size); \
-         layer tables or spool rates added {} and {} times",
+         layer tables or spool rates added {} and {} times; terms on time (drift, creep, slip) \
+         added {} times on the independent devices, {} on the same devices without the abnormal \
+         motor",
         totals[0],
         totals[1],
         totals[1] - physics_named,
         tables[0],
-        tables[1]
+        tables[1],
+        time_terms[0],
+        time_terms[1]
     );
+}
+
+/// The independent devices of the clean rows: as declared, and the same
+/// without the abnormal motor (a device whose physics has no time in it
+/// and no error that comes and goes by visit: decision record 0059).
+fn independent_clean_configs() -> [PhysicsConfig; 2] {
+    let mut without = PhysicsConfig::default();
+    without.abnormal_motor.enabled = false;
+    [PhysicsConfig::default(), without]
+}
+
+/// Whether the stage `name` is a term on time.
+fn is_time_term(name: &str) -> bool {
+    ["drift", "creep", "slip"]
+        .iter()
+        .any(|f| name.starts_with(f))
 }
 
 fn show(added: &[String]) -> String {

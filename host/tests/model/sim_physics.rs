@@ -1073,6 +1073,30 @@ fn a_drift_that_raises_the_error_of_its_own_rows_is_not_added() {
     assert!(identified.test.mean_mm < 1.2, "{:?}", identified.test);
 }
 
+/// A device whose physics has no time in it (the independent simulator's
+/// without the abnormal motor): the drifts of every string explain the
+/// lattice's rows beyond the quadratic position rival (chi-square ~1,800
+/// on every row), and within the small cells the walk comes back to they
+/// showed at 210-320 against the 320 they must reach with each cell's
+/// constant alone taken out: added before the layer tables, they took the
+/// test session to 0.54 mm. Within the cells the rival is taken out too
+/// (its slope changes from cell to cell), and there they show at 2-18:
+/// no term on time (decision record 0059; 0.37 mm).
+#[test]
+fn a_device_whose_physics_has_no_time_takes_no_term_on_time() {
+    let mut config = PhysicsConfig::default();
+    config.abnormal_motor.enabled = false;
+    let (device, train, _, test) = device_and_sessions(&config, 3, 500);
+    let c = calibrate_quick(&device, &train, &test);
+    use spidar::model::diagnose::Family;
+    for f in &c.report.effects {
+        if matches!(f.family, Family::Drift | Family::Creep) {
+            assert!(!f.added, "{f:?}");
+        }
+    }
+    assert_final_test_below(&c, 0.45, 3.0);
+}
+
 /// Device `seed` of `config`, its lattice (session seed + 1, with the
 /// truth of each row) and a test session of `points` random points (+ 2),
 /// as `spidar simulate` makes them.

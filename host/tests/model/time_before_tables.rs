@@ -1,9 +1,9 @@
 //! Terms on time tried before the layer tables (decision record 0057): on
 //! the independent simulator's lattice, walked plane by plane, each
 //! string's payout goes with time, and the layer tables, tried first, take
-//! part of what strings creeping each at its own rate make; the drifts of
-//! every string are then refused after them. Tried before the tables,
-//! they are taken, and the blocked folds prefer that model.
+//! part of what strings creeping each at its own rate make; the terms on
+//! time of every string are then refused after them. Tried before the
+//! tables, one is taken, and the blocked folds prefer that model.
 
 use crate::sim_physics::loop_with;
 use crate::{last_test_mean, stage_names};
@@ -13,13 +13,22 @@ use spidar::model::diagnose::LoopConfig;
 /// about 1 mm a metre over the lattice's 80 minutes.
 const CREEP_EACH: &str = "drift-each:ppm_per_h=900,spread_ppm_per_h=600";
 
-const DRIFTS: &str = "drift strings [0, 1, 2, 3, 4, 5, 6, 7]";
+/// The terms on time of every string: the drifts of every string, the
+/// shared drift, the shared creep.
+const TIME_TERMS: [&str; 3] = [
+    "drift strings [0, 1, 2, 3, 4, 5, 6, 7]",
+    "drift (every string)",
+    "creep (every string)",
+];
 const TABLES: &str = "layers strings [0, 1, 2, 3, 4, 5, 6, 7]";
 
-/// Seed 1: with the tables first the drifts are not taken and the test
-/// session ends at 1.00 mm; tried first they are (before the tables,
-/// which are taken after them), the report says why, and the test ends
-/// at 0.55 (the clean device: 0.37).
+/// Seed 1: with the tables first no term on time is taken and the test
+/// session ends at 1.00 mm; tried first, the strings' shared creep (their
+/// common 900 ppm/h) is (before the tables, which are taken after it), the
+/// report says why, and the test ends at 0.87 (the clean device: 0.37).
+/// Before decision record 0059 the drifts of every string were taken there
+/// (0.55): beyond the quadratic rival within the cells the walk comes back
+/// to, they no longer show.
 #[test]
 fn strings_creeping_at_their_own_rates_are_taken_before_the_layer_tables() {
     let (first, _, _) = loop_with(1, &[CREEP_EACH], &LoopConfig::default());
@@ -37,28 +46,26 @@ fn strings_creeping_at_their_own_rates_are_taken_before_the_layer_tables() {
         stage_names(&first),
         stage_names(&tables_first)
     );
-    assert!(!stage_names(&tables_first).contains(&DRIFTS));
-    let at = |name: &str| stage_names(&first).iter().position(|n| *n == name);
+    let is_time_term = |name: &&str| TIME_TERMS.contains(name);
+    assert!(!stage_names(&tables_first).iter().any(is_time_term));
+    let names = stage_names(&first);
+    let time_term = names.iter().position(is_time_term);
+    let tables = names.iter().position(|n| *n == TABLES);
     assert!(
-        matches!((at(DRIFTS), at(TABLES)), (Some(d), Some(t)) if d < t),
-        "{:?}",
-        stage_names(&first)
+        matches!((time_term, tables), (Some(d), Some(t)) if d < t),
+        "{names:?}"
     );
-    let drifts = first
-        .stages
-        .iter()
-        .find(|s| s.name == DRIFTS)
-        .expect("the drifts' stage");
+    let taken = &first.stages[time_term.unwrap()];
     assert!(
-        drifts
+        taken
             .finding
             .description
             .contains("taken before the layer tables"),
         "{}",
-        drifts.finding.description
+        taken.finding.description
     );
     assert!(
-        after < 0.8 * before,
+        after < 0.9 * before,
         "time terms first {after:.3} mm, tables first {before:.3} mm"
     );
 }

@@ -503,7 +503,7 @@ fn slip_term(rows: usize, i: usize, at_s: f64) -> StringTerm {
 /// offset explains, and the model simulator's drifts are found past the
 /// quadratic one (decision record 0035,
 /// `docs/decisions/0035-drift-beyond-position.md`).
-fn position_columns() -> Vec<RowColumn> {
+pub(super) fn position_columns() -> Vec<RowColumn> {
     let mut out: Vec<RowColumn> = (0..3)
         .map(|k| Box::new(move |r: &Row| r.position[k] / 1000.0) as RowColumn)
         .collect();
