@@ -19,6 +19,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::data::dataset::{Sample, Session};
+use crate::data::observe::Observation;
 
 /// What told which home a later session follows.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -54,6 +55,17 @@ impl LaterHome {
     /// Every row of the later session shares the training session's home.
     pub fn shares_home(&self) -> bool {
         self.first_new_home_row == self.rows
+    }
+
+    /// Marks the rows of `observations` (this later session's, set-aside
+    /// rows left out) that follow a new home capture
+    /// ([`Observation::new_home`]); the others share the training
+    /// session's ([`rows_under_the_training_home`](crate::data::observe::rows_under_the_training_home)
+    /// counts them).
+    pub fn mark(&self, observations: &mut [Observation]) {
+        for o in observations {
+            o.new_home = o.row >= self.first_new_home_row;
+        }
     }
 
     /// Which home `later`'s rows follow, after `training`.

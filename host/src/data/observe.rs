@@ -45,6 +45,16 @@ pub struct Observation {
     pub new_home: bool,
 }
 
+/// How many of a later session's first rows share the training session's
+/// home capture: those before its first row after a new one
+/// ([`Observation::new_home`]; a home capture is not undone).
+pub fn rows_under_the_training_home(observations: &[Observation]) -> usize {
+    observations
+        .iter()
+        .position(|o| o.new_home)
+        .unwrap_or(observations.len())
+}
+
 /// The time since home a row's time terms read (the string law's input):
 /// its `since_home_s`, else its `t_s`, in whole ms.
 pub fn time_since_home_ms(s: &Sample) -> u32 {

@@ -27,7 +27,7 @@ use spidar_protocol::blob::{BlobError, CRC32};
 
 use crate::data::dataset::{DatasetError, Geometry, Session};
 use crate::data::home::LaterHome;
-use crate::data::observe::{observations, Observation};
+use crate::data::observe::{observations, rows_under_the_training_home, Observation};
 use crate::data::output::{refuse_output_over_input, write_atomically};
 use crate::data::stats::ErrorStats;
 use crate::model::predict::{corrected, predict, KinematicModel};
@@ -149,20 +149,19 @@ pub fn device_positions(
 }
 
 /// Compares the blob (the device way) with the f64 calibration on every row.
-/// The session rows before `first_new_home_row` (its
-/// [`LaterHome::first_new_home_row`] from the calibration's home capture;
-/// 0: none) are under that capture, and both sides apply the training's
-/// slips there ([`Calibration::under_home`]). `None` if no row converged on
-/// both sides.
+/// The rows before the first marked as after a new home capture
+/// ([`LaterHome::mark`] from the calibration's home capture) are under
+/// that capture when the calibration has one, and both sides apply the
+/// training's slips there ([`Calibration::under_home`]). `None` if no row
+/// converged on both sides.
 pub fn fixed_point_error(
     calibration: &Calibration,
     blob: &CompiledCalibration<'_>,
     observations: &[Observation],
-    first_new_home_row: usize,
 ) -> Option<FixedPointError> {
     let training_home = calibration.home.as_ref().map(|h| h.home_id);
     let home_rows = if training_home.is_some() {
-        observations.partition_point(|o| o.row < first_new_home_row)
+        rows_under_the_training_home(observations)
     } else {
         0
     };
@@ -403,15 +402,17 @@ pub fn run_compile(args: &CompileRequest) -> Result<CompileReport, CompileCmdErr
     let error = match &args.test {
         Some(test) => {
             let session = Session::load(test)?;
-            let obs = observations(&session.samples);
+            let mut obs = observations(&session.samples);
             let home = calibration
                 .home
                 .as_ref()
                 .map(|h| LaterHome::under(h.home_id, &session));
-            let first_new_home_row = home.as_ref().map_or(0, |h| h.first_new_home_row);
+            if let Some(h) = &home {
+                h.mark(&mut obs);
+            }
             test_home = home;
             Some(
-                fixed_point_error(&calibration, &parsed, &obs, first_new_home_row)
+                fixed_point_error(&calibration, &parsed, &obs)
                     .ok_or_else(|| CompileCmdError::NoRows { file: test.clone() })?,
             )
         }

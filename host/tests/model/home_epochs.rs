@@ -276,8 +276,9 @@ fn the_fixed_point_error_covers_the_training_slips_under_their_home_capture() {
 
     let blob = spidar_core::blob::compile(&c.calibration, 1, 0).expect("compiles");
     let parsed = CompiledCalibration::from_blob(&blob).expect("parses");
-    let obs = observations(&test.samples);
-    let e = fixed_point_error(&c.calibration, &parsed, &obs, rehomed).expect("rows");
+    let mut obs = observations(&test.samples);
+    home.mark(&mut obs);
+    let e = fixed_point_error(&c.calibration, &parsed, &obs).expect("rows");
     assert!(
         e.home_rows > rehomed * 9 / 10 && e.home_rows <= rehomed && e.rows > e.home_rows,
         "{e:?}"

@@ -193,7 +193,7 @@ fn fixed_point_error_is_within_budget_on_a_test_session() {
         let cal = spidar_tests::calibration(&dev, correction);
         let blob = compile(&cal, 1, 0).unwrap();
         let parsed = CompiledCalibration::from_blob(&blob).unwrap();
-        let e = fixed_point_error(&cal, &parsed, &obs, 0).unwrap();
+        let e = fixed_point_error(&cal, &parsed, &obs).unwrap();
         assert!(e.rows > obs.len() / 2, "{e:?}");
         assert!(
             e.corrected.mean_mm <= FIXED_POINT_BUDGET_MM,

@@ -5,7 +5,7 @@ use std::borrow::Borrow;
 
 use spidar_core::kinematics::{FkConfig, FkStatus};
 
-use crate::data::observe::Observation;
+use crate::data::observe::{rows_under_the_training_home, Observation};
 use crate::data::stats::{position_errors, ErrorStats};
 use crate::model::identify::Identification;
 use crate::model::predict::{
@@ -19,10 +19,7 @@ use crate::model::predict::{
 /// The rows after a new home capture are the session's last (a home
 /// capture is not undone).
 pub fn predict_later(id: &Identification, observations: &[Observation]) -> Vec<Prediction> {
-    let k = observations
-        .iter()
-        .position(|o| o.new_home)
-        .unwrap_or(observations.len());
+    let k = rows_under_the_training_home(observations);
     let mut predictions = predict(id.kinematic_model(), &observations[..k]);
     if k < observations.len() {
         let new_home = id.for_a_new_session();

@@ -41,9 +41,7 @@ fn session_observations(
     let mut tr = observations_skipping(&train.samples, skipped[0]);
     let mut te = observations_skipping(&test.samples, skipped[1]);
     if let Some(home) = test_home {
-        for o in &mut te {
-            o.new_home = o.row >= home.first_new_home_row;
-        }
+        home.mark(&mut te);
     }
     if nominal.layout.planar {
         // A planar device's tracker gives the position in the plane; its z

@@ -209,26 +209,18 @@ impl DeviceData {
         d.effects = Some(h.effects);
         d.hidden = Some(h.hidden);
         d.support_vectors = Some(h.support_vectors);
-        // The test rows of the training's home capture are judged with its
-        // slips, and the device runs them so there.
-        let first_new_home_row = c
-            .report
-            .inputs
-            .test
-            .home
-            .as_ref()
-            .map_or(0, |h| h.first_new_home_row);
+        // The test rows of the training's home capture (marked by the
+        // calibration) are judged with its slips, and the device runs them
+        // so there.
         d.fixed_point =
-            fixed_point_error(&c.calibration, &parsed, &c.test_rows, first_new_home_row).map(|e| {
-                FixedPoint {
-                    rows: e.rows,
-                    status_mismatches: e.status_mismatches,
-                    string_model_mean_mm: e.string_model.mean_mm,
-                    string_model_max_mm: e.string_model.max_mm,
-                    corrected_mean_mm: e.corrected.mean_mm,
-                    corrected_max_mm: e.corrected.max_mm,
-                    budget_mm: FIXED_POINT_BUDGET_MM,
-                }
+            fixed_point_error(&c.calibration, &parsed, &c.test_rows).map(|e| FixedPoint {
+                rows: e.rows,
+                status_mismatches: e.status_mismatches,
+                string_model_mean_mm: e.string_model.mean_mm,
+                string_model_max_mm: e.string_model.max_mm,
+                corrected_mean_mm: e.corrected.mean_mm,
+                corrected_max_mm: e.corrected.max_mm,
+                budget_mm: FIXED_POINT_BUDGET_MM,
             });
         d
     }
