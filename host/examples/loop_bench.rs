@@ -230,7 +230,11 @@ fn clean_only(seeds: u64) {
                 &observations(&train.samples),
                 &observations(&test.samples),
             );
-            time_terms[row] += added.iter().filter(|n| is_time_term(n)).count();
+            time_terms[row] += r
+                .stages
+                .iter()
+                .filter(|s| s.finding.variable == Variable::Time)
+                .count();
             let sizes = sizes_against_truth(&device, &r);
             if row == 0 {
                 totals[1] += added.iter().filter(|n| !is_table(n)).count();
@@ -274,13 +278,6 @@ fn independent_clean_configs() -> [PhysicsConfig; 2] {
     let mut without = PhysicsConfig::default();
     without.abnormal_motor.enabled = false;
     [PhysicsConfig::default(), without]
-}
-
-/// Whether the stage `name` is a term on time.
-fn is_time_term(name: &str) -> bool {
-    ["drift", "creep", "slip"]
-        .iter()
-        .any(|f| name.starts_with(f))
 }
 
 fn show(added: &[String]) -> String {

@@ -183,21 +183,17 @@ pub(super) fn revisits(ev: &Evidence, c: &Candidate, beta: &[f64]) -> Option<Rev
     }
     // Cross products within the cells of [term | each string's place | r]:
     // a string's place columns are its own (a block per string), so each
-    // row adds to its string's block only.
-    let strings: Vec<usize> = (0..STRINGS)
-        .filter(|&i| rows.iter().any(|r| r.1 == i))
-        .collect();
-    let all = m + p * strings.len() + 1;
-    let index = |string: usize, a: usize| -> usize {
-        if a < m {
-            a
-        } else if a < m + p {
-            let block = strings.iter().position(|&i| i == string).unwrap_or(0);
-            m + p * block + (a - m)
-        } else {
-            all - 1
+    // row adds to its string's block only (`at[string]`: where the block
+    // starts).
+    let mut at = [None; STRINGS];
+    let mut blocks = 0;
+    for (_, string, _, _) in &rows {
+        if at[*string].is_none() {
+            at[*string] = Some(blocks);
+            blocks += 1;
         }
-    };
+    }
+    let all = m + p * blocks + 1;
     let mut cross = DMatrix::<f64>::zeros(all, all);
     let mut n = 0usize;
     for (g, string, sw, v) in &rows {
@@ -205,23 +201,25 @@ pub(super) fn revisits(ev: &Evidence, c: &Candidate, beta: &[f64]) -> Option<Rev
         if s.2 < 2 || s.0 <= 0.0 {
             continue;
         }
+        let block = m + p * at[*string].unwrap_or(0);
+        let index: Vec<usize> = (0..m)
+            .chain(block..block + p)
+            .chain(std::iter::once(all - 1))
+            .collect();
         let within: Vec<f64> = v
             .iter()
             .zip(&s.1)
             .map(|(x, sx)| x - sw * sx / s.0)
             .collect();
-        for (a, xa) in within.iter().enumerate() {
-            let ia = index(*string, a);
-            for (b, xb) in within.iter().enumerate() {
-                cross[(ia, index(*string, b))] += xa * xb;
+        for (&ia, xa) in index.iter().zip(&within) {
+            for (&ib, xb) in index.iter().zip(&within) {
+                cross[(ia, ib)] += xa * xb;
             }
         }
         n += 1;
     }
-    // The term and the residual with the places' own error taken out (the
-    // Schur complement of the place block).
-    let (term_and_r, place_block) = split_off_place(&cross, m);
-    let (reduced, place_rank) = beyond_place(term_and_r, place_block)?;
+    // The term and the residual with the places' own error taken out.
+    let (reduced, place_rank) = beyond_place(&cross, m)?;
     let gram = reduced.view((0, 0), (m, m)).clone_owned();
     let rhs = DVector::from_iterator(m, (0..m).map(|a| reduced[(a, m)]));
     let rr = reduced[(m, m)];
@@ -240,31 +238,21 @@ pub(super) fn revisits(ev: &Evidence, c: &Candidate, beta: &[f64]) -> Option<Rev
     })
 }
 
-/// `cross` ([term | place | r] within the cells, `m` term columns) as
-/// the [term | r] block with its place cross products, and the place
-/// block: `([[tt, tr], [rt, rr]], [tp; rp], pp)`.
-fn split_off_place(cross: &DMatrix<f64>, m: usize) -> (DMatrix<f64>, (DMatrix<f64>, DMatrix<f64>)) {
+/// The [term | r] block of `cross` ([term | place | r] within the cells,
+/// `m` term columns) beyond the place's columns (the Schur complement
+/// `kept - with_place place^+ with_place'`), and the place block's rank
+/// (its singular values above 1e-10 of the largest). `None` when the place
+/// block has no finite decomposition.
+fn beyond_place(cross: &DMatrix<f64>, m: usize) -> Option<(DMatrix<f64>, usize)> {
     let all = cross.nrows();
     let q = all - m - 1;
     let keep: Vec<usize> = (0..m).chain(std::iter::once(all - 1)).collect();
     let kept = DMatrix::from_fn(m + 1, m + 1, |i, j| cross[(keep[i], keep[j])]);
-    let with_place = DMatrix::from_fn(m + 1, q, |i, j| cross[(keep[i], m + j)]);
-    let place = cross.view((m, m), (q, q)).clone_owned();
-    (kept, (with_place, place))
-}
-
-/// `kept - with_place place^+ with_place'` and the place block's rank
-/// (its singular values above 1e-10 of the largest): the term and the
-/// residual beyond the place's columns. `None` when the place block has
-/// no finite decomposition.
-fn beyond_place(
-    kept: DMatrix<f64>,
-    (with_place, place): (DMatrix<f64>, DMatrix<f64>),
-) -> Option<(DMatrix<f64>, usize)> {
-    if place.nrows() == 0 {
+    if q == 0 {
         return Some((kept, 0));
     }
-    let svd = place.svd(true, true);
+    let with_place = DMatrix::from_fn(m + 1, q, |i, j| cross[(keep[i], m + j)]);
+    let svd = cross.view((m, m), (q, q)).clone_owned().svd(true, true);
     let largest = svd.singular_values.max();
     if !largest.is_finite() {
         return None;
