@@ -126,7 +126,8 @@ fn clean_loop(
 
 /// The shared terms and the marker offset the loop found on a clean
 /// independent `device`, each against the size of the physics it names
-/// (the strings' mean `1/EA`, sag `w^2/24`, the guides' mean compliance,
+/// (the strings' mean `1/EA`, against the mean of each string's own for a
+/// stretch of each string, sag `w^2/24`, the guides' mean compliance,
 /// the guide pulleys' mean radius, or a string's own for one string's
 /// guide, the marker's distance from the meeting point, the strings'
 /// thermal strain per second for a shared creep, 0 on a clean device, so a
@@ -142,12 +143,28 @@ fn sizes_against_truth(device: &PhysicsDevice, r: &LoopResult) -> Vec<(&'static 
     let flex = mean(&|s| s.compliance_mm_per_n);
     let radius = mean(&|s| s.guide.radius_mm);
     let mut sizes = Vec::new();
+    // Each string's own stretch, as the shared one is measured: the mean
+    // of the strings' fitted `per_newton` against the mean of their `1/EA`
+    // (one string's alone can be far off where its rows say little).
+    let mut each_stretch = (0.0, 0.0, 0usize);
     for t in &r.identification.effects {
-        if let (Effect::Guide { radius_mm }, Some(s)) =
-            (t.effect, device.strings.get(usize::from(t.string)))
-        {
-            sizes.push(("guide pulley (one string)", radius_mm / s.guide.radius_mm));
+        match (t.effect, device.strings.get(usize::from(t.string))) {
+            (Effect::Guide { radius_mm }, Some(s)) => {
+                sizes.push(("guide pulley (one string)", radius_mm / s.guide.radius_mm))
+            }
+            (Effect::Stretch { per_newton, .. }, Some(s)) => {
+                each_stretch.0 += per_newton;
+                each_stretch.1 += 1.0 / s.stiffness_n;
+                each_stretch.2 += 1;
+            }
+            _ => {}
         }
+    }
+    if each_stretch.2 > 0 {
+        sizes.push((
+            "elasticity (each string)",
+            each_stretch.0.abs() / each_stretch.1,
+        ));
     }
     for t in r
         .identification

@@ -22,22 +22,30 @@ const TIME_TERMS: [&str; 3] = [
 ];
 const TABLES: &str = "layers strings [0, 1, 2, 3, 4, 5, 6, 7]";
 
-/// Seed 1: with the tables first no term on time is taken and the test
-/// session ends at 1.00 mm; tried first, the strings' shared creep (their
-/// common 900 ppm/h) is (before the tables, which are taken after it), the
-/// report says why, and the test ends at 0.87 (the clean device: 0.37).
-/// Before decision record 0059 the drifts of every string were taken there
-/// (0.55): beyond the quadratic rival within the cells the walk comes back
-/// to, they no longer show.
+/// Seed 1, without the stretches of each string: with the tables first no
+/// term on time is taken and the test session ends at 1.00 mm; tried
+/// first, the strings' shared creep (their common 900 ppm/h) is (before
+/// the tables, which are taken after it), the report says why, and the
+/// test ends at 0.87 (the clean device: 0.37). Before decision record 0059
+/// the drifts of every string were taken there (0.55): beyond the
+/// quadratic rival within the cells the walk comes back to, they no longer
+/// show. With the stretches of each string (record 0061) the tables-first
+/// order takes a term on time itself on seeds 1-10, so the rule is idle
+/// there; it stays for a device whose tables hide a term on time that no
+/// stretch explains, and this case is kept without them.
 #[test]
 fn strings_creeping_at_their_own_rates_are_taken_before_the_layer_tables() {
-    let (first, _, _) = loop_with(1, &[CREEP_EACH], &LoopConfig::default());
+    let without_stretches = LoopConfig {
+        stretches_of_each_string: false,
+        ..LoopConfig::default()
+    };
+    let (first, _, _) = loop_with(1, &[CREEP_EACH], &without_stretches);
     let (tables_first, _, _) = loop_with(
         1,
         &[CREEP_EACH],
         &LoopConfig {
             time_terms_before_tables: false,
-            ..LoopConfig::default()
+            ..without_stretches
         },
     );
     let (after, before) = (last_test_mean(&first), last_test_mean(&tables_first));

@@ -135,6 +135,20 @@ pub(super) fn candidates(
             structure.priors.home_tension_n,
         ));
     }
+    // A stretch of each string, its own stiffness and lead (strings cut
+    // from other reels, leads of other lengths): where one stiffness for
+    // every string differs between the session's halves, a sag many times
+    // what the strings weigh stood in for it (decision record 0061).
+    let stretched = structure
+        .effects
+        .iter()
+        .any(|t| matches!(t.effect, Effect::Stretch { .. }));
+    if config.stretches_of_each_string && !stretched && strings.count() > 1 {
+        out.push(each_string_stretch_candidate(
+            strings,
+            structure.priors.home_tension_n,
+        ));
+    }
     if !has_effect(shared, |e| matches!(e, Effect::FrameFlex { .. })) {
         out.push(frame_flex_candidate(strings));
     }
@@ -634,6 +648,42 @@ fn shared_stretch_candidate(ev: &Evidence, strings: StringLayout, pretension: f6
         }),
         describe: "every string stretches with its tension, over its free span and its \
                    lead, less its stretch at the home capture (elastic strings of one kind)"
+            .into(),
+    }
+}
+
+/// A stretch on each active string, each its own stiffness and lead
+/// ([`Change::Stretches`]): `T l` and `T` on each string's rows (its
+/// constant, the home part, is the string's home length's); beyond the
+/// shared stretch's columns.
+fn each_string_stretch_candidate(strings: StringLayout, pretension: f64) -> Candidate {
+    let active: Vec<usize> = strings.indices().collect();
+    let mut columns: Vec<RowColumn> = Vec::new();
+    for &i in &active {
+        columns.push(string_column(
+            i,
+            Box::new(|r| r.ctx.tension_n * (r.ctx.home_length_mm + r.ctx.payout_mm)),
+        ));
+        columns.push(string_column(i, Box::new(|r| r.ctx.tension_n)));
+    }
+    let on = active.clone();
+    Candidate {
+        family: Family::Elasticity,
+        strings: active.iter().map(|&i| i as u8).collect(),
+        variable: Variable::Tension,
+        columns,
+        on_string: None,
+        search_penalty: 0.0,
+        rival: stretch_columns(strings),
+        build: Box::new(move |b| {
+            let mut each = [None; STRINGS];
+            for (k, &i) in on.iter().enumerate() {
+                each[i] = Some((b[2 * k], b[2 * k + 1]));
+            }
+            Change::Stretches(each, pretension)
+        }),
+        describe: "every string stretches with its tension, each its own stiffness and lead \
+                   (strings of other kinds or lengths of lead)"
             .into(),
     }
 }

@@ -187,6 +187,46 @@ pub(super) fn fitted_in_physical_terms(change: Change, refit: &Identification) -
                 .collect();
             Some(format!(" (fitted, mm/min: {})", each.join(", ")))
         }
+        Change::Stretches(..) => {
+            // The refit's stretches, in the order the change added them:
+            // each string's stiffness EA = 1 / per_newton and its tension
+            // at the home capture, which, free on each string, also takes
+            // a constant length of that string (as the shared stretch's
+            // takes one of every string).
+            let n = change.effect_terms().len();
+            let added = refit.effects.get(refit.effects.len().checked_sub(n)?..)?;
+            let (mut each, mut home) = (Vec::new(), Vec::new());
+            for t in added {
+                if let Effect::Stretch {
+                    per_newton,
+                    home_tension_n,
+                    ..
+                } = t.effect
+                {
+                    if per_newton != 0.0 {
+                        each.push(format!("{}: {:.1}", t.string, 1e-3 / per_newton));
+                    }
+                    home.push(home_tension_n);
+                }
+            }
+            let (low, high) = home
+                .iter()
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &t| {
+                    (l.min(t), h.max(t))
+                });
+            let home = if low > 0.0 {
+                format!("{low:.2} to {high:.2} N")
+            } else {
+                format!(
+                    "{low:.2} to {high:.2} N, not all tensions: each string's home part also \
+                     takes a constant length of its string"
+                )
+            };
+            Some(format!(
+                " (fitted stiffness EA, kN: {}; tensions at the home capture {home})",
+                each.join(", ")
+            ))
+        }
         _ => None,
     }
 }

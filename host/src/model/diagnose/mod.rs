@@ -111,25 +111,43 @@ fn significant(ev: &Evidence, candidates: &[Candidate], config: &LoopConfig) -> 
         .iter()
         .map(|off| off.outside().then(|| off.fit()).flatten())
         .collect();
-    // Drifts of several strings, each its own rate, must explain beyond
-    // the strongest one string's drift (its column is among theirs: a
-    // nested test at the extra dof), so that one drifting string takes one
-    // parameter, not one per string.
-    let one_string_drift = candidates
-        .iter()
-        .zip(&fits)
-        .filter(|(c, _)| c.family == Family::Drift && c.on_string.is_some())
-        .filter_map(|(_, f)| f.as_ref().map(|f| f.1))
-        .fold(0.0, f64::max);
+    // Terms of several strings, each its own coefficients (the drifts or
+    // the stretches of every string), must explain beyond the strongest
+    // one string's term of their family (its columns are among theirs: a
+    // nested test at the extra dof), so that one drifting or stretching
+    // string takes its own parameters, not every string's.
+    let mut strongest: Vec<(Family, f64, usize)> = Vec::new();
+    for (c, f) in candidates.iter().zip(&fits) {
+        let (Some(f), Some(_)) = (f, c.on_string) else {
+            continue;
+        };
+        match strongest.iter_mut().find(|s| s.0 == c.family) {
+            Some(s) if f.1 > s.1 => *s = (c.family, f.1, c.columns.len()),
+            Some(_) => {}
+            None => strongest.push((c.family, f.1, c.columns.len())),
+        }
+    }
+    let strongest_one = |family: Family| {
+        strongest
+            .iter()
+            .find(|s| s.0 == family)
+            .map_or((0.0, 0), |s| (s.1, s.2))
+    };
     let fitted: Vec<(&Candidate, Vec<f64>, f64)> = fits
         .into_iter()
         .zip(candidates)
         .filter_map(|(fit, c)| {
             let (beta, explained) = fit?;
             let chi2 = explained / ev.sigma2;
-            let beyond_one = !drifts_of_several_strings(c)
-                || (explained - one_string_drift) / ev.sigma2
-                    >= chi2_threshold(config, c.columns.len() - 1, 0.0);
+            let beyond_one = !terms_of_several_strings(c) || {
+                let (one, one_columns) = strongest_one(c.family);
+                (explained - one) / ev.sigma2
+                    >= chi2_threshold(
+                        config,
+                        c.columns.len().saturating_sub(one_columns).max(1),
+                        0.0,
+                    )
+            };
             (beyond_one && chi2 >= chi2_threshold(config, c.columns.len(), c.search_penalty))
                 .then_some((c, beta, explained))
         })
@@ -189,7 +207,13 @@ fn significant(ev: &Evidence, candidates: &[Candidate], config: &LoopConfig) -> 
 /// Whether `c` adds drifts of several strings, each its own rate
 /// ([`Change::Drifts`]).
 fn drifts_of_several_strings(c: &Candidate) -> bool {
-    c.family == Family::Drift && c.on_string.is_none() && c.strings.len() > 1
+    c.family == Family::Drift && terms_of_several_strings(c)
+}
+
+/// Whether `c` adds a term on each of several strings, each its own
+/// coefficients ([`Change::Drifts`], [`Change::Stretches`]).
+fn terms_of_several_strings(c: &Candidate) -> bool {
+    c.on_string.is_none() && c.strings.len() > 1
 }
 
 /// Runs the loop: identify, diagnose, add the strongest significant effect,

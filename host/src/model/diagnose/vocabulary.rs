@@ -92,6 +92,10 @@ pub enum Change {
     /// different rates, whose terms added one at a time each take the
     /// others' share of what time and position share on a lattice.
     Drifts([Option<f64>; STRINGS]),
+    /// Add a stretch on each of several strings at once, each its own
+    /// (`per_newton`, `mm_per_newton`) (strings of other stiffness and
+    /// leads), all from one home tension ([`Effect::Stretch`]).
+    Stretches([Option<(f64, f64)>; STRINGS], f64),
 }
 
 impl Change {
@@ -115,6 +119,13 @@ impl Change {
             Change::Drifts(drifts) => {
                 each(&|i| drifts[i].map(|mm_per_s| Effect::Drift { mm_per_s }))
             }
+            Change::Stretches(each_string, home_tension_n) => each(&|i| {
+                each_string[i].map(|(per_newton, mm_per_newton)| Effect::Stretch {
+                    per_newton,
+                    mm_per_newton,
+                    home_tension_n,
+                })
+            }),
             Change::RoomScale | Change::ReleaseAnchor(_) | Change::MarkerOffset(_) => Vec::new(),
         }
     }
@@ -133,7 +144,7 @@ impl Structure {
                 }
             }
             Change::MarkerOffset(d) => s.marker_body_mm = Some(d),
-            Change::Effect(_) | Change::Slips(_) | Change::Drifts(_) => {}
+            Change::Effect(_) | Change::Slips(_) | Change::Drifts(_) | Change::Stretches(..) => {}
         }
         s
     }
@@ -232,6 +243,12 @@ pub struct LoopConfig {
     /// Off only to measure what it does (`physics_bench`).
     #[serde(default = "yes")]
     pub time_terms_before_tables: bool,
+    /// Offer a stretch of each string, each its own stiffness and lead
+    /// ([`Change::Stretches`], decision record 0061). Off only to measure
+    /// what it does (`loop_bench`) and to keep the cases of the rules made
+    /// before it (record 0057's test).
+    #[serde(default = "yes")]
+    pub stretches_of_each_string: bool,
     /// The tracker's clock was found from these rows (a stream's
     /// alignment, `procedures::calibrate::align`). A latency shared by
     /// every string reads each string `tau` late, and a tracker clock
@@ -300,6 +317,7 @@ impl Default for LoopConfig {
             robust: true,
             time_terms_forward: true,
             time_terms_before_tables: true,
+            stretches_of_each_string: true,
             clock_aligned: false,
         }
     }
