@@ -182,9 +182,10 @@ fn significant(ev: &Evidence, candidates: &[Candidate], config: &LoopConfig) -> 
             }
             // A term on time must show where the session comes back to a
             // place (a slip has its own local test, the jump above).
-            let not_shown = (c.variable == Variable::Time && c.family != Family::Slip)
-                .then(|| revisits::not_shown_where_revisited(ev, c, &beta, config))
+            let revisited = (c.variable == Variable::Time && c.family != Family::Slip)
+                .then(|| revisits::where_revisited(ev, c, &beta, config))
                 .flatten();
+            let shown = !matches!(revisited, Some(revisits::Revisited::NotShown(_)));
             Some(Finding {
                 family: c.family,
                 strings: c.strings.clone(),
@@ -193,12 +194,14 @@ fn significant(ev: &Evidence, candidates: &[Candidate], config: &LoopConfig) -> 
                 explained: explained / ev.rss.max(1e-12),
                 added: false,
                 chi2: explained / ev.sigma2,
-                description: match &not_shown {
-                    Some(why) => format!("{}; {why}", c.describe),
+                description: match &revisited {
+                    Some(
+                        revisits::Revisited::NotShown(why) | revisits::Revisited::Confirmed(why),
+                    ) => format!("{}; {why}", c.describe),
                     None => c.describe.clone(),
                 },
                 validation: None,
-                change: not_shown.is_none().then_some(change),
+                change: shown.then_some(change),
             })
         })
         .collect()

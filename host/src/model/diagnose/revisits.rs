@@ -35,6 +35,7 @@ use spidar_core::STRINGS;
 use super::candidates::{chi2_threshold, position_columns, Candidate};
 use super::evidence::{Evidence, Row};
 use super::vocabulary::LoopConfig;
+use crate::data::stats::chi_square_p001;
 
 /// What the revisits of a session say of a term on time: its columns
 /// within the cells (each (string, cell) group's weighted mean taken out:
@@ -63,19 +64,60 @@ impl Revisits {
     pub(super) fn keep(&self, threshold: f64) -> bool {
         self.chi2 >= threshold && self.agrees
     }
+
+    /// Whether the revisits confirm a term shared by every string (one
+    /// coefficient, fitted at `beta` on every row) that they
+    /// cannot show at `threshold` even as proposed (their power below it:
+    /// a creep of 0.1-0.5 mm over a lattice, whose walk comes back to a
+    /// place minutes later): they fit it at one test's level (chi-square
+    /// p 0.001 at one degree of freedom, as this test is one of a term
+    /// already found on every row), leaning its way, and their coefficient
+    /// agrees with the every-row one within their own scatter (p 0.05).
+    /// A term they fit several times larger than proposed is an error of
+    /// the places, not the term (a clean independent device's shared
+    /// drift: 4x, 2.9 sds off).
+    pub(super) fn confirms_one_shared(&self, beta: &[f64], threshold: f64) -> bool {
+        let ([within], [every_row]) = (self.within.as_slice(), beta) else {
+            return false;
+        };
+        if !self.agrees || self.power >= threshold {
+            return false;
+        }
+        if !(self.chi2 >= chi_square_p001(1) && *within != 0.0) {
+            return false;
+        }
+        // The revisits' sd of their coefficient is |within| / sqrt(chi2).
+        let apart = self.chi2 * (1.0 - every_row / within).powi(2);
+        apart < CHI2_1_P05
+    }
 }
 
-/// Why candidate `c`, a term on time with the coefficients `beta` fitted
-/// on every row, is no change with time where the session revisits a
-/// place ([`revisits`] of it, [`Revisits::keep`] at its own chi-square
-/// threshold); `None` when the revisits show it, or the session revisits
-/// no place.
-pub(super) fn not_shown_where_revisited(
+/// Chi-square at one degree of freedom, p 0.05: two fits of one
+/// coefficient agree below it.
+const CHI2_1_P05: f64 = 3.841;
+
+/// What the revisits say of a term on time they do not simply show
+/// ([`Revisits::keep`]).
+#[derive(Clone, Debug, PartialEq)]
+pub(super) enum Revisited {
+    /// Shown at one test's level where they could not show it at its
+    /// threshold ([`Revisits::confirms_one_shared`]): the term is
+    /// proposed, and the report says how.
+    Confirmed(String),
+    /// Not shown: an error of the places; the term is not proposed.
+    NotShown(String),
+}
+
+/// What candidate `c`, a term on time with the coefficients `beta` fitted
+/// on every row, is where the session revisits a place ([`revisits`] of
+/// it, [`Revisits::keep`] at its own chi-square threshold); `None` when
+/// the revisits show it, or the session revisits no place.
+pub(super) fn where_revisited(
     ev: &Evidence,
     c: &Candidate,
     beta: &[f64],
     config: &LoopConfig,
-) -> Option<String> {
+) -> Option<Revisited> {
     let r = revisits(ev, c, beta)?;
     // Drifts of several strings added together must show as strongly as
     // each would alone: their chi-square here at least one string's
@@ -92,24 +134,38 @@ pub(super) fn not_shown_where_revisited(
     } else {
         chi2_threshold(config, c.columns.len(), c.search_penalty)
     };
-    (!r.keep(threshold)).then(|| {
-        let fitted = |b: &[f64]| {
-            let b: Vec<String> = b.iter().map(|v| format!("{v:.3e}")).collect();
-            b.join(", ")
-        };
-        format!(
-            "not proposed: where the session comes back to a place (small cells of its \
-             space, each string's rows there at other times) the term fits {} (chi-square \
-             {:.1}, threshold {threshold:.0}{}) against {} on every row, which would explain \
-             {:.1} there: an error of the places the session reached at those times, not a \
-             change with time",
+    if r.keep(threshold) {
+        return None;
+    }
+    let fitted = |b: &[f64]| {
+        let b: Vec<String> = b.iter().map(|v| format!("{v:.3e}")).collect();
+        b.join(", ")
+    };
+    if c.strings.is_empty() && r.confirms_one_shared(beta, threshold) {
+        return Some(Revisited::Confirmed(format!(
+            "where the session comes back to a place the term as fitted on every row would \
+             explain {:.1} (chi-square), under the threshold of {threshold:.0}; it fits {} \
+             there (chi-square {:.1}, above one test's {:.1}) against {} on every row, the two \
+             within the revisits' scatter: a change with time",
+            r.power,
             fitted(&r.within),
             r.chi2,
-            if r.agrees { "" } else { ", the other way" },
-            fitted(beta),
-            r.power
-        )
-    })
+            chi_square_p001(1),
+            fitted(beta)
+        )));
+    }
+    Some(Revisited::NotShown(format!(
+        "not proposed: where the session comes back to a place (small cells of its space, \
+         each string's rows there at other times) the term fits {} (chi-square {:.1}, \
+         threshold {threshold:.0}{}) against {} on every row, which would explain {:.1} \
+         there: an error of the places the session reached at those times, not a change \
+         with time",
+        fitted(&r.within),
+        r.chi2,
+        if r.agrees { "" } else { ", the other way" },
+        fitted(beta),
+        r.power
+    )))
 }
 
 /// The revisit test of candidate `c` with coefficients `beta`: `None` when
@@ -298,4 +354,47 @@ fn cell_edge(ev: &Evidence) -> Option<[f64; 3]> {
             f64::INFINITY
         }
     }))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Revisits;
+
+    /// Revisits of one shared coefficient: fitted at `within` with
+    /// chi-square `chi2` there, the every-row fit explaining `power` there.
+    fn revisits(within: f64, chi2: f64, power: f64) -> Revisits {
+        Revisits {
+            chi2,
+            power,
+            agrees: true,
+            within: vec![within],
+        }
+    }
+
+    /// The cases measured on the independent simulator (`drift-all` seed
+    /// 2's shared creep; clean device 16's shared drift) and the edges of
+    /// the rule.
+    #[test]
+    fn a_shared_term_the_revisits_cannot_show_is_confirmed_where_they_agree_with_it() {
+        let threshold = 40.0;
+        // The shared creep of drift-all seed 2: 1.019e-7 /s within the
+        // cells (chi-square 12.2), 1.077e-7 on every row (power 13.6).
+        assert!(revisits(1.019e-7, 12.2, 13.6).confirms_one_shared(&[1.077e-7], threshold));
+        // Clean device 16's shared drift: -2.32e-4 mm/s within (15.1),
+        // -5.9e-5 on every row (power 1.0): four times what was proposed,
+        // 2.9 sds off.
+        assert!(!revisits(-2.32e-4, 15.1, 1.0).confirms_one_shared(&[-5.9e-5], threshold));
+        // Below one test's level within the cells.
+        assert!(!revisits(1.0e-7, 9.0, 9.5).confirms_one_shared(&[1.0e-7], threshold));
+        // Revisits that could show it at the threshold must (`keep`).
+        assert!(!revisits(1.0e-7, 30.0, 45.0).confirms_one_shared(&[1.0e-7], threshold));
+        // Leaning the other way.
+        let mut other_way = revisits(1.0e-7, 20.0, 20.0);
+        other_way.agrees = false;
+        assert!(!other_way.confirms_one_shared(&[1.0e-7], threshold));
+        // Not one coefficient.
+        let mut two = revisits(1.0e-7, 20.0, 20.0);
+        two.within.push(1.0e-7);
+        assert!(!two.confirms_one_shared(&[1.0e-7, 1.0e-7], threshold));
+    }
 }
