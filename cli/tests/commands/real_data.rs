@@ -182,6 +182,28 @@ fn a_model_fitted_on_train_meets_the_held_out_target() {
     );
 }
 
+/// `spidar calibrate --quick` of the Hangprinter's geometry on `train` and
+/// `test`, written to `out`.
+fn calibrate_cli(train: &Path, test: &Path, out: &Path) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_spidar"))
+        .args([
+            "calibrate",
+            "--quick",
+            "--quiet",
+            "--no-figures",
+            "--geometry",
+        ])
+        .arg(data_dir().join("geometry.toml"))
+        .arg("--train")
+        .arg(train)
+        .arg("--test")
+        .arg(test)
+        .arg("--out")
+        .arg(out)
+        .output()
+        .unwrap()
+}
+
 /// `n` of the training session's tracked rows, spread evenly over it (a
 /// smaller session of the same robot).
 fn every_kth_tracked(train: &Session, n: usize) -> Session {
@@ -272,23 +294,7 @@ fn a_small_session_whose_identified_model_loses_to_the_plain_fit_falls_back_to_i
     let train = write("train-12.csv", &|i| PICKED.contains(&i));
     let test = write("test-29.csv", &|i| !PICKED.contains(&i));
     let out = dir.join("cal");
-    let o = Command::new(env!("CARGO_BIN_EXE_spidar"))
-        .args([
-            "calibrate",
-            "--quick",
-            "--quiet",
-            "--no-figures",
-            "--geometry",
-        ])
-        .arg(d.join("geometry.toml"))
-        .arg("--train")
-        .arg(&train)
-        .arg("--test")
-        .arg(&test)
-        .arg("--out")
-        .arg(&out)
-        .output()
-        .unwrap();
+    let o = calibrate_cli(&train, &test, &out);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let summary =
         String::from_utf8_lossy(&o.stdout).into_owned() + &String::from_utf8_lossy(&o.stderr);
@@ -451,23 +457,7 @@ fn a_tracker_in_metres_is_refused_naming_the_unit() {
         path
     };
     let (train, test) = (in_metres("train.csv"), in_metres("test.csv"));
-    let o = Command::new(env!("CARGO_BIN_EXE_spidar"))
-        .args([
-            "calibrate",
-            "--quick",
-            "--quiet",
-            "--no-figures",
-            "--geometry",
-        ])
-        .arg(d.join("geometry.toml"))
-        .arg("--train")
-        .arg(&train)
-        .arg("--test")
-        .arg(&test)
-        .arg("--out")
-        .arg(dir.join("out"))
-        .output()
-        .unwrap();
+    let o = calibrate_cli(&train, &test, &dir.join("out"));
     assert!(!o.status.success());
     let e = String::from_utf8_lossy(&o.stderr);
     assert!(
