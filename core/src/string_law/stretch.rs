@@ -49,8 +49,12 @@ pub(super) fn compile_stretch(
         -MAX_ELASTICITY_MM_PER_NEWTON,
         MAX_ELASTICITY_MM_PER_NEWTON,
     )?;
-    // A commanded tension is at most 65.535 N (u16 mN).
-    let th = in_range(s, "home_tension_n", home_tension_n, 0.0, 65.535)?;
+    // A commanded tension is at most 65.535 N (u16 mN). The home tension
+    // is a fitted parameter: where the data make it negative (its home
+    // part then also takes a constant length of the string, decision
+    // record 0061) the device runs it as fitted; it is stored only as the
+    // products below, signed, which fit at either sign.
+    let th = in_range(s, "home_tension_n", home_tension_n, -65.535, 65.535)?;
     Ok(CompiledEffect::Elasticity {
         string,
         per_mn_q47: to_fixed(s, "per_newton", e / 1000.0, 47, "Q16.47 per mN")?,

@@ -419,7 +419,25 @@ fn realistic(rng: &mut Rng) -> (Frame<f64>, [StringLaw; STRINGS], Vec<EffectTerm
         },
     });
     push_creeps(rng, &mut effects);
+    push_stretches(rng, &mut effects);
     (f, laws, effects)
+}
+
+/// A stretch on each string, each its own stiffness, lead and home
+/// tension (the loop's stretches of each string, decision record 0061),
+/// drawn after every other term so that the others' draws are as they
+/// were; home tensions -5 to 5 N, as those terms' free home tensions reach.
+fn push_stretches(rng: &mut Rng, effects: &mut Vec<EffectTerm>) {
+    for i in 0..STRINGS {
+        effects.push(EffectTerm {
+            string: i as u8,
+            effect: Effect::Stretch {
+                per_newton: rng.uniform(0.0, 2e-4),
+                mm_per_newton: rng.uniform(0.0, 0.03),
+                home_tension_n: rng.uniform(-5.0, 5.0),
+            },
+        });
+    }
 }
 
 /// Creep terms, drawn after every other term so that the others' draws
