@@ -116,7 +116,9 @@ pub fn device_positions(
     observations: &[Observation],
     home_rows: usize,
 ) -> Vec<([f64; 3], [f64; 3], FkStatus)> {
-    let fk_config = ControlConfig::default().fk;
+    // The device's kinematics: the blob's string weights and thresholds
+    // (`Control` runs `head.fk_config` once the lengths are calibrated).
+    let fk_config = blob.head.fk_config(&ControlConfig::default().fk);
     let frame = &blob.head.frame;
     let inclined = blob.head.effects.iter().any(|e| e.reads_inclination());
     let training_home = blob.head.home.as_ref().map(|h| h.home_id);

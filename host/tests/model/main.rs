@@ -5,6 +5,7 @@
 
 mod creep;
 mod dataset;
+mod device_way;
 mod guide;
 mod home_epochs;
 mod identify;
