@@ -38,4 +38,8 @@ fn the_blob_is_judged_with_its_own_string_weights() {
         e.string_model.mean_mm <= FIXED_POINT_BUDGET_MM / 10.0 && e.status_mismatches == 0,
         "{e:?}"
     );
+    // And the calibration's report page (what `calibrate` warns of) sees
+    // the device run it as reported.
+    let device = spidar::procedures::report_page::FigureData::of(&c).device;
+    assert!(device.warnings().is_empty(), "{:?}", device.warnings());
 }

@@ -93,6 +93,14 @@ pub fn write_outputs(
         calibrated.report.figures = drawn?;
     }
     calibrated.report.timings_s.figures_s = Some(t.elapsed().as_secs_f64());
+    // The device's view (compiled, its fixed point on the test rows) for
+    // the page, and what stops the device from running the calibration
+    // as reported for the warnings.
+    let figure_data = report_page::FigureData::of(calibrated);
+    calibrated
+        .report
+        .warnings
+        .extend(figure_data.device.warnings());
     let calibration_path = out.join("calibration.json");
     write_json(&calibration_path, &calibrated.calibration)?;
     let report_path = out.join("report.json");
@@ -118,7 +126,7 @@ pub fn write_outputs(
         }
         write_json(r, &calibrated.report)?;
     }
-    let page = write_page(calibrated, out)?;
+    let page = write_page(calibrated, &figure_data, out)?;
     Ok(Written {
         calibration: calibration_path,
         report: reports,
@@ -135,13 +143,16 @@ pub fn write_outputs(
 /// `DIR/report.html` and the data of its figures, from the report as
 /// `report.json` holds it: its JSON text read back, as `spidar report DIR`
 /// reads it, so that both draw the same page.
-fn write_page(calibrated: &Calibrated, out: &Path) -> Result<PathBuf, CalibrateError> {
+fn write_page(
+    calibrated: &Calibrated,
+    figures: &report_page::FigureData,
+    out: &Path,
+) -> Result<PathBuf, CalibrateError> {
     let file = out.join(report_page::REPORT_FILE);
     let report = serde_json::to_string(&calibrated.report)
         .and_then(|text| serde_json::from_str(&text))
         .map_err(|source| CalibrateError::Json { file, source })?;
-    let figures = report_page::FigureData::of(calibrated);
-    Ok(report_page::write_page(out, &report, &figures)?)
+    Ok(report_page::write_page(out, &report, figures)?)
 }
 
 fn write_json<T: serde::Serialize>(path: &Path, value: &T) -> Result<(), CalibrateError> {

@@ -177,6 +177,41 @@ impl FigureData {
 }
 
 impl DeviceData {
+    /// What stops the device from running the calibration as reported,
+    /// for the report's warnings: the compiler refused it, its blob is
+    /// larger than the firmware's model slot, or its fixed point is further
+    /// from the f64 model on the test rows than the budget `spidar compile`
+    /// holds it to. Empty when the device runs it as reported.
+    pub fn warnings(&self) -> Vec<String> {
+        let mut out = Vec::new();
+        if let Some(why) = &self.refused {
+            out.push(format!(
+                "the calibration does not compile for the device ({why}): `spidar compile` \
+                 refuses it"
+            ));
+        }
+        if let Some(bytes) = self.bytes.filter(|&b| b > self.capacity) {
+            out.push(format!(
+                "the device's model blob is {bytes} bytes, more than the firmware's model slot \
+                 holds ({} bytes): `spidar compile` refuses it",
+                self.capacity
+            ));
+        }
+        if let Some(f) = self
+            .fixed_point
+            .as_ref()
+            .filter(|f| f.corrected_mean_mm > f.budget_mm)
+        {
+            out.push(format!(
+                "the device's fixed point is {:.4} mm (mean; max {:.4}) from the f64 model on \
+                 the {} test rows, over the {} mm budget: `spidar compile` refuses the blob \
+                 unless `--write-over-budget`",
+                f.corrected_mean_mm, f.corrected_max_mm, f.rows, f.budget_mm
+            ));
+        }
+        out
+    }
+
     fn of(c: &Calibrated) -> DeviceData {
         let capacity = spidar_protocol::blob::REFERENCE_FIRMWARE_BLOB_CAPACITY;
         let model_id = model_id_of(&c.calibration);

@@ -114,3 +114,56 @@ fn a_missing_or_malformed_report_is_an_error_naming_the_file() {
         .contains(FIGURE_DATA_FILE));
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// What stops the device from running a calibration as reported goes to
+/// the report's warnings, naming the reason and the command that refuses
+/// it; a blob the device runs within the budget gives none.
+#[test]
+fn a_calibration_the_device_cannot_run_as_reported_is_a_warning() {
+    let fine = DeviceData {
+        refused: None,
+        bytes: Some(1296),
+        capacity: 98_304,
+        model_id: 1,
+        correction: Some("none".into()),
+        effects: Some(10),
+        hidden: Some(0),
+        support_vectors: Some(0),
+        fixed_point: Some(FixedPoint {
+            rows: 500,
+            status_mismatches: 0,
+            string_model_mean_mm: 1e-4,
+            string_model_max_mm: 3e-4,
+            corrected_mean_mm: 1e-4,
+            corrected_max_mm: 3e-4,
+            budget_mm: 0.02,
+        }),
+    };
+    assert!(fine.warnings().is_empty());
+    let refused = DeviceData {
+        refused: Some("string 1: home_tension_n = -0.5 is outside [0, 65.535]".into()),
+        bytes: None,
+        fixed_point: None,
+        ..fine.clone()
+    };
+    let w = refused.warnings();
+    assert!(
+        w.len() == 1 && w[0].contains("does not compile") && w[0].contains("home_tension_n"),
+        "{w:?}"
+    );
+    let large = DeviceData {
+        bytes: Some(100_000),
+        ..fine.clone()
+    };
+    let w = large.warnings();
+    assert!(w.len() == 1 && w[0].contains("100000 bytes"), "{w:?}");
+    let mut over = fine.clone();
+    if let Some(f) = over.fixed_point.as_mut() {
+        f.corrected_mean_mm = 0.143;
+    }
+    let w = over.warnings();
+    assert!(
+        w.len() == 1 && w[0].contains("0.1430 mm") && w[0].contains("--write-over-budget"),
+        "{w:?}"
+    );
+}
