@@ -59,6 +59,7 @@ use spidar::model::validate::{later_session_errors, model_errors};
 use spidar::procedures::calibrate::align::{repaired_at, tracked_interval_s, SessionTiming};
 use spidar::procedures::calibrate::report::{Stage, StageKind};
 use spidar::procedures::calibrate::{calibrate, CalibrateConfig, Calibrated, NamedSession};
+use spidar::procedures::report_page::DeviceData;
 use spidar::sim::physics::{self, PhysicsConfig, PhysicsDevice, PhysicsTruth};
 use spidar::sim::{
     simulate_session, simulate_session_after, SessionKind, SimConfig, SimulatedDevice, StreamArea,
@@ -324,8 +325,11 @@ fn creep_against_truth(device: &PhysicsDevice, c: &Calibrated) -> Option<String>
     ))
 }
 
+/// The calibration of `run`; a line says so when the device cannot run it
+/// as reported (it does not compile, its blob does not fit, or its fixed
+/// point is over the budget on the test session).
 fn run_calibration(run: &Run, config: &CalibrateConfig) -> Calibrated {
-    calibrate(
+    let c = calibrate(
         &run.geometry,
         Path::new("geometry.toml"),
         NamedSession {
@@ -338,7 +342,11 @@ fn run_calibration(run: &Run, config: &CalibrateConfig) -> Calibrated {
         },
         config,
     )
-    .expect("calibrate")
+    .expect("calibrate");
+    for w in DeviceData::of(&c).warnings() {
+        println!("DEVICE: {w}");
+    }
+    c
 }
 
 fn three(s: &ErrorStats) -> String {

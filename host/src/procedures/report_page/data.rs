@@ -212,7 +212,9 @@ impl DeviceData {
         out
     }
 
-    fn of(c: &Calibrated) -> DeviceData {
+    /// The device's view of a calibration: compiled and checked, its
+    /// fixed point against the f64 model on the test rows.
+    pub fn of(c: &Calibrated) -> DeviceData {
         let capacity = spidar_protocol::blob::REFERENCE_FIRMWARE_BLOB_CAPACITY;
         let model_id = model_id_of(&c.calibration);
         let mut d = DeviceData {
