@@ -461,6 +461,13 @@ fn check_counts_per_rev(calibration: &Calibration, g: &Path) -> Result<(), Compi
     Ok(())
 }
 
+/// Whether a mean fixed-point error of `mean_mm` is over `budget_mm` (one
+/// not measured, NaN, is): the rule `spidar compile` refuses a blob by and
+/// `calibrate` warns by.
+pub fn over_the_budget(mean_mm: f64, budget_mm: f64) -> bool {
+    mean_mm.is_nan() || mean_mm > budget_mm
+}
+
 /// Why a compiled blob must not be written: too large for the firmware, or
 /// its fixed-point error over the budget.
 fn over_budget(report: &CompileReport) -> Option<String> {
@@ -472,7 +479,7 @@ fn over_budget(report: &CompileReport) -> Option<String> {
         ));
     }
     let e = report.error.as_ref()?;
-    if e.corrected.mean_mm.is_nan() || e.corrected.mean_mm > report.budget_mm {
+    if over_the_budget(e.corrected.mean_mm, report.budget_mm) {
         return Some(format!(
             "fixed-point error {:.5} mm mean exceeds the budget of {} mm",
             e.corrected.mean_mm, report.budget_mm

@@ -9,7 +9,7 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 use crate::model::compile::{
-    compile_checked, fixed_point_error, model_id_of, FIXED_POINT_BUDGET_MM,
+    compile_checked, fixed_point_error, model_id_of, over_the_budget, FIXED_POINT_BUDGET_MM,
 };
 use crate::procedures::calibrate::{Calibrated, PointErrors};
 
@@ -200,7 +200,7 @@ impl DeviceData {
         if let Some(f) = self
             .fixed_point
             .as_ref()
-            .filter(|f| f.corrected_mean_mm > f.budget_mm)
+            .filter(|f| over_the_budget(f.corrected_mean_mm, f.budget_mm))
         {
             out.push(format!(
                 "the device's fixed point is {:.4} mm (mean; max {:.4}) from the f64 model on \
