@@ -506,6 +506,11 @@ impl LoopState<'_> {
                 .filter(|f| f.strings.is_empty() && f.change.is_some())
                 .cloned()
                 .collect();
+            let each_string: Vec<Finding> = proposals
+                .iter()
+                .filter(|f| matches!(f.change, Some(Change::Stretches(..))))
+                .cloned()
+                .collect();
             let mut tried: Vec<Finding> = Vec::new();
             let mut frame_wide_below = Vec::new();
             let mut rank = 0;
@@ -523,13 +528,17 @@ impl LoopState<'_> {
                 }
                 rank += usize::from(!beside);
                 tried.push(finding.clone());
-                let before = finding
-                    .change
-                    .is_some_and(one_string_term)
-                    .then(|| self.clone());
+                let before = (finding.change.is_some_and(one_string_term)
+                    || (finding.strings.is_empty() && !each_string.is_empty()))
+                .then(|| self.clone());
+                let shared = finding.strings.is_empty();
                 if self.try_finding(finding)? {
-                    if let Some(before) = before {
-                        self.prefer_frame_wide(before, &frame_wide, &tried)?;
+                    match before {
+                        Some(before) if shared => {
+                            self.prefer_each_string(before, &each_string, &tried)?
+                        }
+                        Some(before) => self.prefer_frame_wide(before, &frame_wide, &tried)?,
+                        None => {}
                     }
                     continue 'outer;
                 }
@@ -551,7 +560,11 @@ impl LoopState<'_> {
             // the strongest; the per-string proposals below stay untried
             // (about 50 of them, the ones that stand in for other physics).
             for finding in frame_wide_below {
+                let before = (!each_string.is_empty()).then(|| self.clone());
                 if self.try_finding(finding)? {
+                    if let Some(before) = before {
+                        self.prefer_each_string(before, &each_string, &tried)?;
+                    }
                     continue 'outer;
                 }
             }

@@ -136,6 +136,60 @@ impl LoopState<'_> {
         Ok(())
     }
 
+    /// After a term shared by every string was taken (this state;
+    /// `before`: the model without it), the terms of every string, each its
+    /// own coefficients, on the same variable, that the same diagnosis
+    /// proposed and the round has not tried: the first taken from `before`
+    /// whose blocked folds gain on the shared term's as a change must
+    /// ([`judge`], the loop's `min_relative_gain`) replaces it, and the
+    /// shared term is reported with the comparison. The proposals are
+    /// ranked by chi-square, and a group of every string ranks below a
+    /// shared term of two columns that explains less beyond the model's
+    /// span per column (a sag many times what the strings weigh standing
+    /// in for strings of other stiffnesses, decision record 0063).
+    pub(super) fn prefer_each_string(
+        &mut self,
+        before: Self,
+        each_string: &[Finding],
+        tried: &[Finding],
+    ) -> Result<(), IdentifyError> {
+        let Some(shared) = self.findings.last().filter(|f| f.added).cloned() else {
+            return Ok(());
+        };
+        for f in each_string
+            .iter()
+            .filter(|f| f.variable == shared.variable && !tried.iter().any(|t| same_term(t, f)))
+        {
+            let mut alternative = before.clone();
+            if !alternative.try_finding(f.clone())? {
+                continue;
+            }
+            let check = judge(
+                &self.validation,
+                &alternative.validation,
+                None,
+                self.config.min_relative_gain,
+            );
+            if check.accepted {
+                let mut replaced = shared;
+                replaced.added = false;
+                if let Some(v) = replaced.validation.as_mut() {
+                    v.accepted = false;
+                    v.reason = format!(
+                        "replaced by {}, proposed by the same diagnosis and tried from the \
+                         model without it: {}",
+                        stage_name(f),
+                        check.reason.trim_start_matches("added: ")
+                    );
+                }
+                *self = alternative;
+                self.report(replaced);
+                return Ok(());
+            }
+        }
+        Ok(())
+    }
+
     /// The loop from this (the base) model with the terms on time of every
     /// string tried before the tables: `None` when none is taken there,
     /// else the model after the tables and effects that follow it, and its
