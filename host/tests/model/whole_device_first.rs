@@ -139,7 +139,8 @@ fn each_string_s_stretch_replaces_a_sag_that_ranked_above_it() {
         .and_then(|f| f.validation.as_ref())
         .expect("the sag reported");
     assert!(
-        sag.reason.starts_with("replaced by elasticity strings"),
+        sag.reason
+            .starts_with("not added: replaced by elasticity strings"),
         "{}",
         sag.reason
     );

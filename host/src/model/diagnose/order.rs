@@ -176,8 +176,8 @@ impl LoopState<'_> {
                 if let Some(v) = replaced.validation.as_mut() {
                     v.accepted = false;
                     v.reason = format!(
-                        "replaced by {}, proposed by the same diagnosis and tried from the \
-                         model without it: {}",
+                        "not added: replaced by {}, proposed by the same diagnosis and tried \
+                         from the model without it: {}",
                         stage_name(f),
                         check.reason.trim_start_matches("added: ")
                     );
