@@ -1277,8 +1277,11 @@ fn an_encoder_read_late_holds_its_string_as_it_was_then() {
 /// Issue 33 point 3 on the independent simulator: 6 ms of encoder latency
 /// on strings 2 and 5 of a 100 Hz stream, through `calibrate` (the
 /// tracker's clock found by the alignment): a latency on each of the two
-/// strings of about 6 ms, none on any other one string; a latency shared
-/// by every string, where added, is reported as the clock's offset refined.
+/// strings of about 6 ms and on no other string. The alignment's quick
+/// model has no latency of one string and finds the clock 0.2-0.5 ms off;
+/// the loop takes that as a latency every string shares, which the device
+/// would apply in use. It goes into the clocks' offsets, found within
+/// 0.05 ms, and the model holds no such term (decision record 0064).
 #[test]
 fn encoder_latency_on_an_independent_stream_is_named_on_its_strings() {
     let device = PhysicsDevice::new(
@@ -1325,11 +1328,20 @@ fn encoder_latency_on_an_independent_stream_is_named_on_its_strings() {
         );
     }
     assert!(
-        terms
-            .iter()
-            .all(|t| [2, 5, spidar_core::model::EVERY_STRING].contains(&t.0)),
-        "a latency on another string: {terms:?}"
+        terms.iter().all(|t| [2, 5].contains(&t.0)),
+        "a latency on another string, or every string's: {terms:?}"
     );
+    let truth = device.config.tracker.clock_offset_s;
+    for (name, timing) in [
+        ("train", &c.report.timing.train),
+        ("test", &c.report.timing.test),
+    ] {
+        let spidar::procedures::calibrate::align::SessionTiming::Aligned(a) = timing else {
+            panic!("{name}: {timing:?}");
+        };
+        println!("{name}: {a:?}");
+        assert!((a.offset_s - truth).abs() < 5e-5, "{name}: {a:?}");
+    }
     for (strings, _, description) in &latencies {
         if strings.is_empty() {
             assert!(description.contains("tracker's clock"), "{description}");

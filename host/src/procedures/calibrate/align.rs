@@ -89,6 +89,13 @@ pub struct ClockAlignment {
     /// fit was determined to within the row interval); `false`: the offset
     /// is the peak's, to the row interval.
     pub refined: bool,
+    /// The offset the alignment found (s), when the loop then found a
+    /// latency every string shares and `offset_s` is that offset moved by
+    /// it: the alignment's quick model had no latency of one string, and
+    /// the shared latency is the offset's error (decision record 0064).
+    /// Absent when the alignment's offset stands.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub first_offset_s: Option<f64>,
 }
 
 /// Why a dynamic session could not be aligned.
@@ -336,9 +343,37 @@ pub fn align(
             pairs: used.pairs,
             rows_unpaired: lost,
             refined,
+            first_offset_s: None,
         },
         rows,
     ))
+}
+
+/// `obs` (as recorded) re-paired by `a` with its offset moved by
+/// `shift_s`, its rate kept; the alignment keeps `a`'s first offset
+/// (`first_offset_s`) and counts the rows the new pairing lost.
+pub fn shifted(
+    obs: &[Observation],
+    a: &ClockAlignment,
+    shift_s: f64,
+) -> (ClockAlignment, Vec<Observation>) {
+    let offset_s = a.offset_s + shift_s;
+    let rate = 1e-6 * a.drift_ppm;
+    let interval = tracked_interval_s(obs).unwrap_or(MAX_STREAM_INTERVAL_S);
+    let (rows, lost) = repaired_at(
+        obs,
+        |t| t + offset_s + rate * (t - a.reference_t_s),
+        4.0 * interval,
+    );
+    (
+        ClockAlignment {
+            offset_s,
+            rows_unpaired: lost,
+            first_offset_s: Some(a.first_offset_s.unwrap_or(a.offset_s)),
+            ..a.clone()
+        },
+        rows,
+    )
 }
 
 #[cfg(test)]
@@ -364,6 +399,39 @@ mod tests {
             legacy: None,
             new_home: false,
         }
+    }
+
+    /// An alignment moved by a shift pairs the rows as the offset plus
+    /// the shift does, its rate kept, and remembers the offset it was
+    /// found at (moved twice: the first one).
+    #[test]
+    fn a_shifted_alignment_pairs_at_the_moved_offset_and_keeps_the_first() {
+        let obs: Vec<Observation> = (0..50)
+            .map(|k| row(k as f64 * 0.01, k as f64, None))
+            .collect();
+        let found = ClockAlignment {
+            offset_s: 0.002,
+            offset_sd_s: 1e-5,
+            drift_ppm: 0.0,
+            drift_sd_ppm: 0.0,
+            reference_t_s: 0.25,
+            correlation: 0.99,
+            pairs: 50,
+            rows_unpaired: 0,
+            refined: true,
+            first_offset_s: None,
+        };
+        let (moved, rows) = shifted(&obs, &found, 0.003);
+        assert!((moved.offset_s - 0.005).abs() < 1e-15);
+        assert_eq!(moved.first_offset_s, Some(0.002));
+        let (expected, lost) = repaired(&obs, 0.005, 0.04);
+        assert_eq!(moved.rows_unpaired, lost);
+        for (a, b) in rows.iter().zip(&expected) {
+            assert_eq!(a.tracker, b.tracker);
+        }
+        assert_eq!(rows[10].tracker.map(|p| (p[0] * 1e6).round()), Some(10.5e6));
+        let (twice, _) = shifted(&obs, &moved, -0.001);
+        assert_eq!(twice.first_offset_s, Some(0.002));
     }
 
     /// Rows written twice (one instant) do not make the interval 0.

@@ -8,13 +8,14 @@ use std::time::Instant;
 
 use spidar_core::geometry::room_from_device;
 use spidar_core::kinematics::{FkStatus, KinematicsRule};
+use spidar_core::model::{Effect, EffectTerm, EVERY_STRING};
 
 use crate::data::dataset::{Geometry, Session};
 use crate::data::home::{LaterHome, TrainingHome};
 use crate::data::observe::{observations_skipping, Observation};
 use crate::data::stats::{ErrorStats, StatsError};
-use crate::model::diagnose::{close_loop, LoopConfig, LoopResult};
-use crate::model::identify::{identify, Start, Structure};
+use crate::model::diagnose::{close_loop, Family, Finding, LoopConfig, LoopResult};
+use crate::model::identify::{identify, Identification, Start, Structure};
 use crate::model::predict::{predict, KinematicModel, UNMEASURED_SCALES};
 use crate::model::reference;
 use crate::model::rule::RuleChoice;
@@ -57,6 +58,26 @@ fn session_observations(
     (tr, te)
 }
 
+/// The room positions of `predictions` where the kinematics placed the
+/// row at all (what the alignment compares the tracker with).
+fn placed(predictions: &[crate::model::predict::Prediction]) -> Vec<Option<[f64; 3]>> {
+    predictions
+        .iter()
+        .map(|p| {
+            matches!(
+                p.status,
+                FkStatus::Ok | FkStatus::FaultyStringExcluded | FkStatus::Inconsistent
+            )
+            .then_some(p.room)
+        })
+        .collect()
+}
+
+/// [`placed`] of `model`'s predictions of `obs`.
+fn placed_positions(model: KinematicModel<'_>, obs: &[Observation]) -> Vec<Option<[f64; 3]>> {
+    placed(&predict(model, obs))
+}
+
 /// Most rows the alignment's quick model is identified from (a 13^3
 /// lattice has 2,197): a longer session is read one row in every few.
 /// The model only places the end-effector for the speed profiles, whose
@@ -85,21 +106,6 @@ fn align_clocks(
     nominal: &spidar_core::model::Frame<f64>,
     nominal_laws: &[spidar_core::model::StringLaw; spidar_core::STRINGS],
 ) -> Result<Aligned, CalibrateError> {
-    let placed = |predictions: &[crate::model::predict::Prediction]| -> Vec<Option<[f64; 3]>> {
-        predictions
-            .iter()
-            .map(|p| {
-                matches!(
-                    p.status,
-                    FkStatus::Ok | FkStatus::FaultyStringExcluded | FkStatus::Inconsistent
-                )
-                .then_some(p.room)
-            })
-            .collect()
-    };
-    let positions = |model: KinematicModel<'_>, obs: &[Observation]| -> Vec<Option<[f64; 3]>> {
-        placed(&predict(model, obs))
-    };
     let nominal_model = KinematicModel {
         frame: nominal,
         laws: nominal_laws,
@@ -133,7 +139,7 @@ fn align_clocks(
                 )?;
                 let (next, next_rows) = align::align(
                     &tr,
-                    &positions(quick.kinematic_model(), &tr),
+                    &placed_positions(quick.kinematic_model(), &tr),
                     a.offset_s,
                     true,
                 )?;
@@ -167,7 +173,7 @@ fn align_clocks(
             };
             // The offset alone: a test stream is most often too short to
             // tell a drift from the model's own errors.
-            let (a, te1) = align::align(&te, &positions(model, &te), prior, false)?;
+            let (a, te1) = align::align(&te, &placed_positions(model, &te), prior, false)?;
             (te1, align::SessionTiming::Aligned(a))
         }
     };
@@ -210,6 +216,63 @@ fn raw_errors(
     )?;
     Ok((errors, raw_tr))
 }
+
+/// The latency every string shares in `id` (s), if it holds one.
+fn shared_latency_s(id: &Identification) -> Option<f64> {
+    id.effects.iter().find_map(|t| match t.effect {
+        Effect::Latency { latency_s } if t.string == EVERY_STRING => Some(latency_s),
+        _ => None,
+    })
+}
+
+/// `loop_result` without its latency every string shares. Moving the
+/// clocks' pairing by the latency changes every row as the term did, to
+/// first order in the motion, so the model's other parameters and the
+/// loop's figures stand: refitted on the rows paired anew, the model held
+/// out worse (decision record 0064).
+fn fold_shared_latency(loop_result: &mut LoopResult) {
+    let shared =
+        |t: &EffectTerm| t.string == EVERY_STRING && matches!(t.effect, Effect::Latency { .. });
+    loop_result.structure.effects.retain(|t| !shared(t));
+    let id = &mut loop_result.identification;
+    id.effects.retain(|t| !shared(t));
+    id.parameters.retain(|p| p.name != SHARED_LATENCY_PARAMETER);
+}
+
+/// The stage and finding of the latency every string shares, once the
+/// clocks' offsets (`timing`) hold it, named for what they are.
+fn name_the_clock_stage(loop_result: &mut LoopResult, timing: &report::Timing) {
+    let offsets = |t: &align::SessionTiming| match t {
+        align::SessionTiming::Aligned(a) => format!(
+            "{:+.2} -> {:+.2} ms",
+            a.first_offset_s.unwrap_or(a.offset_s) * 1e3,
+            a.offset_s * 1e3
+        ),
+        align::SessionTiming::Static { .. } => "static".into(),
+    };
+    let note = format!(
+        "; moved into the tracker clocks' offsets (training {}, test {}): the model holds no \
+         latency every string shares, which the device would apply in use",
+        offsets(&timing.train),
+        offsets(&timing.test)
+    );
+    let is_it = |f: &Finding| f.family == Family::Latency && f.strings.is_empty() && f.added;
+    for stage in loop_result.stages.iter_mut().filter(|s| is_it(&s.finding)) {
+        stage.name = CLOCK_STAGE.into();
+        stage.finding.description += &note;
+    }
+    for f in loop_result.findings.iter_mut().filter(|f| is_it(f)) {
+        f.description += &note;
+    }
+}
+
+/// The identification's name of the latency every string shares
+/// (`identify::layout`).
+const SHARED_LATENCY_PARAMETER: &str = "every_string.latency";
+
+/// The stage of a latency every string shares once it is in the clocks'
+/// offsets.
+const CLOCK_STAGE: &str = "tracker clock offset refined";
 
 /// Stages 2-3: the base identification and the diagnosis loop, from the
 /// geometry file's start (and its home tension when it gives one);
@@ -430,7 +493,7 @@ impl Run<'_> {
         let nominal_laws = geometry.nominal_string_laws();
 
         // 0. The tracker's clock against the device's (dynamic sessions only).
-        let (tr, te, timing, raw_train) =
+        let (mut tr, mut te, mut timing, raw_train) =
             self.aligned_observations(train, test, &nominal, &nominal_laws)?;
         let obs = PerSession {
             train: &tr[..],
@@ -439,28 +502,60 @@ impl Run<'_> {
 
         // 1. Raw: nominal geometry through the device pipeline.
         let t = Instant::now();
-        let (raw, raw_tr) = raw_errors(obs, &nominal, &nominal_laws, raw_train)?;
+        let (mut raw, raw_tr) = raw_errors(obs, &nominal, &nominal_laws, raw_train)?;
         self.timings.raw_s = t.elapsed().as_secs_f64();
         if let Some(w) = check_tracker_scale(train.path, self.geometry_path, &tr, &raw_tr)? {
             self.warnings.push(w);
         }
-        let mut list = StageList::default();
-        list.push("raw".into(), report::StageKind::Raw, raw);
-
         // 2-3. Identification and the diagnosis loop.
         let regime = check_enough_tracked_rows(train.path, &tr, &nominal)?;
         self.warnings.extend(regime.reason.clone());
         let loop_rows = LoopRows::of(tr.len(), self.cfg.max_loop_rows);
         let t = Instant::now();
+        let clock_aligned = matches!(timing.train, align::SessionTiming::Aligned(_));
         let (mut loop_result, tolerance) = {
             let read = loop_rows.pick(&tr);
             let obs = PerSession {
                 train: &read[..],
                 test: obs.test,
             };
-            let clock_aligned = matches!(timing.train, align::SessionTiming::Aligned(_));
             identify_and_diagnose(geometry, obs, &nominal, &self.cfg, &regime, clock_aligned)?
         };
+        // A latency every string shares, on clocks found from the rows, is
+        // those clocks' offset refined (the alignment's quick model had no
+        // latency of one string): it goes into the offsets, where the
+        // device does not apply it in use (decision record 0064).
+        if let Some(latency_s) =
+            shared_latency_s(&loop_result.identification).filter(|_| clock_aligned)
+        {
+            let t = Instant::now();
+            fold_shared_latency(&mut loop_result);
+            let (tr_moved, te_moved, timing_moved) = self.clocks_without_the_shared_latency(
+                latency_s,
+                &loop_result.identification,
+                [train, test],
+                &nominal,
+                &timing,
+            )?;
+            name_the_clock_stage(&mut loop_result, &timing_moved);
+            let stale = unpaired_rows_warnings(&timing);
+            self.warnings.retain(|w| !stale.contains(w));
+            self.warnings.extend(unpaired_rows_warnings(&timing_moved));
+            (tr, te, timing) = (tr_moved, te_moved, timing_moved);
+            raw = raw_errors(
+                PerSession {
+                    train: &tr[..],
+                    test: &te[..],
+                },
+                &nominal,
+                &nominal_laws,
+                None,
+            )?
+            .0;
+            self.timings.alignment_s += t.elapsed().as_secs_f64();
+        }
+        let mut list = StageList::default();
+        list.push("raw".into(), report::StageKind::Raw, raw);
         if loop_rows.thinned() {
             // The glitches the loop found are among the rows it read: every
             // row is judged by its base model, on the same threshold rule.
@@ -523,6 +618,57 @@ impl Run<'_> {
             loop_rows,
             training_home,
         })
+    }
+
+    /// Both sessions, as recorded, paired anew once the loop's latency
+    /// every string shares (`latency_s`) is out of `model`: the training
+    /// session by its offset moved by the latency (the model was fitted
+    /// on that pairing, [`align::shifted`]), the test session aligned
+    /// again with the model (its own offset, which the alignment's quick
+    /// model left off by its own amount). A static session as it is.
+    fn clocks_without_the_shared_latency(
+        &self,
+        latency_s: f64,
+        model: &Identification,
+        [train, test]: [NamedSession<'_>; 2],
+        nominal: &spidar_core::model::Frame<f64>,
+        timing: &report::Timing,
+    ) -> Result<(Vec<Observation>, Vec<Observation>, report::Timing), CalibrateError> {
+        let skipped = [&self.train_info, &self.test_info].map(|info| info.rows_set_aside());
+        let (tr, te) = session_observations(
+            nominal,
+            train.session,
+            test.session,
+            [&skipped[0], &skipped[1]],
+            self.test_info.home.as_ref(),
+        );
+        let (tr, train_timing) = match &timing.train {
+            align::SessionTiming::Aligned(a) => {
+                let (a, rows) = align::shifted(&tr, a, -latency_s);
+                (rows, align::SessionTiming::Aligned(a))
+            }
+            first => (tr, first.clone()),
+        };
+        let (te, test_timing) = match &timing.test {
+            align::SessionTiming::Aligned(first) => {
+                let positions = placed_positions(model.kinematic_model(), &te);
+                let (mut a, rows) =
+                    align::align(&te, &positions, first.offset_s - latency_s, false)?;
+                a.first_offset_s = Some(first.offset_s);
+                let a = align::SessionTiming::Aligned(a);
+                check_alignment(test.path, &a)?;
+                (rows, a)
+            }
+            first => (te, first.clone()),
+        };
+        Ok((
+            tr,
+            te,
+            report::Timing {
+                train: train_timing,
+                test: test_timing,
+            },
+        ))
     }
 
     /// Stage 0: both sessions' observations, their tracker's clock aligned

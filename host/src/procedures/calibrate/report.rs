@@ -1068,11 +1068,19 @@ impl Report {
                 } else {
                     String::new()
                 };
+                let again = a.first_offset_s.map_or(String::new(), |first| {
+                    format!(
+                        ", moved by the latency every string shares that the loop found (the \
+                         alignment's quick model, without one string's latencies, found {:+.2} \
+                         ms)",
+                        first * 1e3
+                    )
+                });
                 let _ = writeln!(
                     o,
                     "{name} session: tracker clock {:+.2} ms (sd {:.3} ms){drift} from the \
-                     device's, found from the motion ({} pairs, speed correlation {:.3}); rows \
-                     re-paired",
+                     device's, found from the motion ({} pairs, speed correlation {:.3}){again}; \
+                     rows re-paired",
                     a.offset_s * 1e3,
                     a.offset_sd_s * 1e3,
                     a.pairs,

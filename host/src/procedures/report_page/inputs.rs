@@ -172,10 +172,18 @@ fn clocks(timing: &Value) -> Html {
                     ),
                     _ => String::new(),
                 };
+                let again = match f(&t["first_offset_s"]) {
+                    Some(first) => format!(
+                        " Moved by the latency every string shares that the loop found: the \
+                         alignment's quick model, without one string's latencies, found {} ms.",
+                        html::fixed(Some(first * 1e3), 2)
+                    ),
+                    None => String::new(),
+                };
                 format!(
                     "{name} session: the tracker's clock is {} ms off the device's (sd {} ms){drift}, \
                      found from the motion: {} pairs, speed correlation {}; {} rows left unpaired; \
-                     every row re-paired.",
+                     every row re-paired.{again}",
                     html::fixed(f(&t["offset_s"]).map(|v| v * 1e3), 2),
                     html::fixed(f(&t["offset_sd_s"]).map(|v| v * 1e3), 3),
                     count(u(&t["pairs"])),
