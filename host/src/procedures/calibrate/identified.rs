@@ -634,14 +634,7 @@ impl Run<'_> {
         nominal: &spidar_core::model::Frame<f64>,
         timing: &report::Timing,
     ) -> Result<(Vec<Observation>, Vec<Observation>, report::Timing), CalibrateError> {
-        let skipped = [&self.train_info, &self.test_info].map(|info| info.rows_set_aside());
-        let (tr, te) = session_observations(
-            nominal,
-            train.session,
-            test.session,
-            [&skipped[0], &skipped[1]],
-            self.test_info.home.as_ref(),
-        );
+        let (tr, te) = self.as_recorded(train, test, nominal);
         let (tr, train_timing) = match &timing.train {
             align::SessionTiming::Aligned(a) => {
                 let (a, rows) = align::shifted(&tr, a, -latency_s);
@@ -671,6 +664,24 @@ impl Run<'_> {
         ))
     }
 
+    /// Both sessions' observations as recorded (their tracker as the
+    /// rows pair it), but their rows set aside whole ([`session_observations`]).
+    fn as_recorded(
+        &self,
+        train: NamedSession<'_>,
+        test: NamedSession<'_>,
+        nominal: &spidar_core::model::Frame<f64>,
+    ) -> (Vec<Observation>, Vec<Observation>) {
+        let skipped = [&self.train_info, &self.test_info].map(|info| info.rows_set_aside());
+        session_observations(
+            nominal,
+            train.session,
+            test.session,
+            [&skipped[0], &skipped[1]],
+            self.test_info.home.as_ref(),
+        )
+    }
+
     /// Stage 0: both sessions' observations, their tracker's clock aligned
     /// with the device's (its time into `alignment_s`); refuses a clock the
     /// motion could not align, warns of rows the alignment left unpaired.
@@ -681,14 +692,7 @@ impl Run<'_> {
         nominal: &spidar_core::model::Frame<f64>,
         nominal_laws: &[spidar_core::model::StringLaw; spidar_core::STRINGS],
     ) -> Result<Aligned, CalibrateError> {
-        let skipped = [&self.train_info, &self.test_info].map(|info| info.rows_set_aside());
-        let (tr, te) = session_observations(
-            nominal,
-            train.session,
-            test.session,
-            [&skipped[0], &skipped[1]],
-            self.test_info.home.as_ref(),
-        );
+        let (tr, te) = self.as_recorded(train, test, nominal);
         let t = Instant::now();
         let (tr, te, timing, raw_train) =
             align_clocks(tr, te, self.geometry, nominal, nominal_laws)?;
