@@ -174,9 +174,10 @@ pub(super) fn unpaired_rows_warnings(timing: &report::Timing) -> Vec<String> {
             if a.rows_unpaired > 0 {
                 warnings.push(format!(
                     "{name} session: {} rows lost their tracker position when re-paired by the \
-                     {:+.4} s clock offset (before the tracker's first or after its last frame, \
+                     {:+.2} ms clock offset (before the tracker's first or after its last frame, \
                      or across a gap)",
-                    a.rows_unpaired, a.offset_s
+                    a.rows_unpaired,
+                    a.offset_s * 1e3
                 ));
             }
         }
