@@ -21,7 +21,9 @@
 //! other reached (decision record 0057).
 //!
 //! **A term of the whole device, or one string's**
-//! ([`LoopState::prefer_frame_wide`], decision record 0058).
+//! ([`LoopState::prefer_frame_wide`], decision record 0058); **a term
+//! shared by every string, or each string its own**
+//! ([`LoopState::prefer_each_string`], decision record 0063).
 
 use super::describe::stage_name;
 use super::{drifts_with_time, same_term, Finding, LoopState, StringLayers, Variable};
