@@ -271,15 +271,31 @@ pub(super) fn parameter_names(
         ));
     }
     for term in &structure.effects {
-        for (k, (pname, _, unit)) in effect_parameter_info(&term.effect).iter().enumerate() {
-            let owner = if term.string == EVERY_STRING {
-                "every_string".to_string()
-            } else {
-                format!("string{}", term.string)
-            };
+        let info = effect_parameter_info(&term.effect);
+        for (k, (name, (_, _, unit))) in effect_parameter_names(term)
+            .into_iter()
+            .zip(info)
+            .enumerate()
+        {
             let prior = effect_prior(&term.effect, k, p).map(|(_, sd)| sd);
-            names.push((format!("{owner}.{pname}"), *unit, prior));
+            names.push((name, *unit, prior));
         }
     }
     names
+}
+
+/// The names of `term`'s parameters in an identification
+/// ([`ParameterEstimate::name`](super::ParameterEstimate)): its owner
+/// (`stringN`, or `every_string`) and the parameter, e.g.
+/// `every_string.latency`.
+pub fn effect_parameter_names(term: &EffectTerm) -> Vec<String> {
+    let owner = if term.string == EVERY_STRING {
+        "every_string".to_string()
+    } else {
+        format!("string{}", term.string)
+    };
+    effect_parameter_info(&term.effect)
+        .iter()
+        .map(|(name, _, _)| format!("{owner}.{name}"))
+        .collect()
 }

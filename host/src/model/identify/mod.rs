@@ -111,6 +111,7 @@ use spidar_core::model::{Frame, StringLayout};
 use crate::data::observe::Observation;
 
 pub use jacobian::{DataJacobian, DataJacobianPass};
+pub use layout::effect_parameter_names;
 pub(crate) use residuals::residuals_at_homes;
 pub use residuals::{device_position, inputs_at, string_residuals, GROSS_RESIDUAL_MM};
 pub use result::{Identification, IdentifyError, ParameterEstimate};

@@ -98,6 +98,20 @@ pub struct ClockAlignment {
     pub first_offset_s: Option<f64>,
 }
 
+impl ClockAlignment {
+    /// The tracker's time of device time `t_s`: the offset there, the
+    /// clocks' rate difference included.
+    pub fn tracker_time(&self, t_s: f64) -> f64 {
+        t_s + self.offset_s + 1e-6 * self.drift_ppm * (t_s - self.reference_t_s)
+    }
+}
+
+/// The longest gap in `obs`'s tracker stream a re-paired row is
+/// interpolated across: four of its tracked intervals.
+fn max_gap_s(obs: &[Observation]) -> f64 {
+    4.0 * tracked_interval_s(obs).unwrap_or(MAX_STREAM_INTERVAL_S)
+}
+
 /// Why a dynamic session could not be aligned.
 #[derive(Debug, thiserror::Error)]
 #[error("tracker clock alignment: {0}")]
@@ -331,7 +345,7 @@ pub fn align(
             ..shift
         }
     };
-    let (rows, lost) = repaired_at(obs, |t| used.tracker_time(t), 4.0 * interval);
+    let (rows, lost) = repaired_at(obs, |t| used.tracker_time(t), max_gap_s(obs));
     Ok((
         ClockAlignment {
             offset_s: used.offset_s,
@@ -357,20 +371,16 @@ pub fn shifted(
     a: &ClockAlignment,
     shift_s: f64,
 ) -> (ClockAlignment, Vec<Observation>) {
-    let offset_s = a.offset_s + shift_s;
-    let rate = 1e-6 * a.drift_ppm;
-    let interval = tracked_interval_s(obs).unwrap_or(MAX_STREAM_INTERVAL_S);
-    let (rows, lost) = repaired_at(
-        obs,
-        |t| t + offset_s + rate * (t - a.reference_t_s),
-        4.0 * interval,
-    );
+    let moved = ClockAlignment {
+        offset_s: a.offset_s + shift_s,
+        first_offset_s: Some(a.first_offset_s.unwrap_or(a.offset_s)),
+        ..a.clone()
+    };
+    let (rows, lost) = repaired_at(obs, |t| moved.tracker_time(t), max_gap_s(obs));
     (
         ClockAlignment {
-            offset_s,
             rows_unpaired: lost,
-            first_offset_s: Some(a.first_offset_s.unwrap_or(a.offset_s)),
-            ..a.clone()
+            ..moved
         },
         rows,
     )

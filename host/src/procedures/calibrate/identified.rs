@@ -15,7 +15,7 @@ use crate::data::home::{LaterHome, TrainingHome};
 use crate::data::observe::{observations_skipping, Observation};
 use crate::data::stats::{ErrorStats, StatsError};
 use crate::model::diagnose::{close_loop, Family, Finding, LoopConfig, LoopResult};
-use crate::model::identify::{identify, Identification, Start, Structure};
+use crate::model::identify::{effect_parameter_names, identify, Identification, Start, Structure};
 use crate::model::predict::{predict, KinematicModel, UNMEASURED_SCALES};
 use crate::model::reference;
 use crate::model::rule::RuleChoice;
@@ -217,12 +217,17 @@ fn raw_errors(
     Ok((errors, raw_tr))
 }
 
-/// The latency every string shares in `id` (s), if it holds one.
-fn shared_latency_s(id: &Identification) -> Option<f64> {
-    id.effects.iter().find_map(|t| match t.effect {
+/// The latency every string shares that `t` is, s.
+fn shared_latency_of(t: &EffectTerm) -> Option<f64> {
+    match t.effect {
         Effect::Latency { latency_s } if t.string == EVERY_STRING => Some(latency_s),
         _ => None,
-    })
+    }
+}
+
+/// The latency every string shares in `id` (s), if it holds one.
+fn shared_latency_s(id: &Identification) -> Option<f64> {
+    id.effects.iter().find_map(shared_latency_of)
 }
 
 /// `loop_result` without its latency every string shares. Moving the
@@ -231,12 +236,17 @@ fn shared_latency_s(id: &Identification) -> Option<f64> {
 /// loop's figures stand: refitted on the rows paired anew, the model held
 /// out worse (decision record 0064).
 fn fold_shared_latency(loop_result: &mut LoopResult) {
-    let shared =
-        |t: &EffectTerm| t.string == EVERY_STRING && matches!(t.effect, Effect::Latency { .. });
+    let shared = |t: &EffectTerm| shared_latency_of(t).is_some();
     loop_result.structure.effects.retain(|t| !shared(t));
     let id = &mut loop_result.identification;
+    let names: Vec<String> = id
+        .effects
+        .iter()
+        .filter(|t| shared(t))
+        .flat_map(effect_parameter_names)
+        .collect();
     id.effects.retain(|t| !shared(t));
-    id.parameters.retain(|p| p.name != SHARED_LATENCY_PARAMETER);
+    id.parameters.retain(|p| !names.contains(&p.name));
 }
 
 /// The stage and finding of the latency every string shares, once the
@@ -265,10 +275,6 @@ fn name_the_clock_stage(loop_result: &mut LoopResult, timing: &report::Timing) {
         f.description += &note;
     }
 }
-
-/// The identification's name of the latency every string shares
-/// (`identify::layout`).
-const SHARED_LATENCY_PARAMETER: &str = "every_string.latency";
 
 /// The stage of a latency every string shares once it is in the clocks'
 /// offsets.
