@@ -1349,6 +1349,50 @@ fn encoder_latency_on_an_independent_stream_is_named_on_its_strings() {
     }
 }
 
+/// A clean independent device's 60 s training stream over the central part
+/// of its workspace (seed 2, as `physics_bench`'s `stream` case). Its
+/// spools thin at their own rates (their layers hold 5.6 to 10.5 turns),
+/// but tried first, before the layer tables, the rates are refused: the
+/// outer shell's fold, fitted on the inner region, extrapolates them by
+/// mm (its max 3.53 -> 5.50 mm). Tried again once the tables and the
+/// effects are in, they are taken, and the finding says why they were
+/// refused at first (decision record 0065).
+#[test]
+fn spool_rates_refused_before_the_tables_are_tried_again_after_them() {
+    let device = PhysicsDevice::new(&PhysicsConfig::default(), 2).unwrap();
+    let stream = |rows, area, seed| {
+        simulate_session(&device, SessionKind::Stream { rows, area }, seed)
+            .unwrap()
+            .0
+    };
+    let train = stream(
+        device.config.stream.rows,
+        spidar::sim::StreamArea::Training,
+        5,
+    );
+    let test = stream(1000, spidar::sim::StreamArea::Whole, 6);
+    let c = calibrate_quick(&device, &train, &test);
+    let rates: Vec<&spidar::model::diagnose::Finding> = c
+        .report
+        .effects
+        .iter()
+        .filter(|f| f.family == spidar::model::diagnose::Family::Winding && f.strings.len() == 8)
+        .collect();
+    for f in &rates {
+        println!("{}: {}", f.added, f.description);
+    }
+    assert_eq!(rates.len(), 1, "one finding of the spool rates");
+    assert!(rates[0].added, "{}", rates[0].description);
+    assert!(
+        rates[0].description.contains("tried again")
+            && rates[0]
+                .description
+                .contains("first try, before them: not added"),
+        "{}",
+        rates[0].description
+    );
+}
+
 /// `drift-each`: every string creeps at its own rate, the configured one
 /// plus a draw within the spread, the same for the device whatever the
 /// session; `drift-all` gives every string one rate.

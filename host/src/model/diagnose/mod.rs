@@ -387,7 +387,7 @@ impl LoopState<'_> {
     /// and the refit when accepted.
     fn try_spool_rates(&mut self) -> Result<(), IdentifyError> {
         let (finding, added) = free_spool_rates(
-            self.train,
+            &self.seen_train,
             self.nominal,
             &self.id,
             &self.structure,

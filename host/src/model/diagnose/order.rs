@@ -26,7 +26,7 @@
 //! ([`LoopState::prefer_each_string`], decision record 0063).
 
 use super::describe::stage_name;
-use super::{drifts_with_time, same_term, Finding, LoopState, StringLayers, Variable};
+use super::{drifts_with_time, same_term, Family, Finding, LoopState, StringLayers, Variable};
 use crate::model::identify::IdentifyError;
 use crate::model::validate::judge;
 
@@ -42,17 +42,19 @@ pub(super) struct Sequence {
 
 impl LoopState<'_> {
     /// The loop's steps from the current model: each spool's own rate, the
-    /// layer tables, the effects, the tables again when refused and an
-    /// effect came, and the rates and tables judged again when a term on
-    /// time came after them.
+    /// layer tables, the effects, the tables and then the rates again when
+    /// refused and a term came after them, and the rates and tables judged
+    /// again when a term on time came after them.
     pub(super) fn rates_tables_and_effects(&mut self) -> Result<Sequence, IdentifyError> {
         let time_term_before = self.keeps_time_term();
         let mut layers = Vec::new();
         let mut rates_added = false;
-        if self.spool_rates_held() {
+        let rates_tried = self.spool_rates_held();
+        if rates_tried {
             self.try_spool_rates()?;
             rates_added = !self.structure.hold_kappa_each;
         }
+        let stages_after_rates = self.stages.len();
         // Layer tables first; refused ones are tried once more after the
         // effects (an effect the model lacked, a heavy string's sag, can hide
         // what the tables gain until it is in).
@@ -75,6 +77,15 @@ impl LoopState<'_> {
                 self.add_effects(Proposals::All)?;
             }
         }
+        // Spool rates refused at first are tried once more when terms came
+        // after them, as the tables are (record 0065).
+        if rates_tried
+            && !rates_added
+            && self.stages.len() > stages_after_rates
+            && self.try_spool_rates_again()?
+        {
+            self.add_effects(Proposals::All)?;
+        }
         // Spool rates and tables taken before a term on time that the model
         // keeps: on a lattice walked plane by plane each string's payout goes
         // with time, and they took part of what the drift now takes. They are
@@ -93,6 +104,40 @@ impl LoopState<'_> {
             layers,
             took_before_effects: rates_added || layers_added,
         })
+    }
+
+    /// Each spool's own rate, refused when first tried, tried again from
+    /// the model the terms taken since then built: whether it is taken.
+    /// Before the layer tables and the effects, the residual a spool's own
+    /// rate is fitted to holds the layers' staircase and what the effects
+    /// take; a fold that sees a smaller part of the workspace (a stream's
+    /// outer shell, fitted on its inner region) then extrapolates the rates
+    /// by mm where the whole session does not, and the rates are refused
+    /// for what the model lacked (decision record 0065). One finding stays,
+    /// the second try's, saying why the first refused them.
+    fn try_spool_rates_again(&mut self) -> Result<bool, IdentifyError> {
+        let first = self.findings.iter().rposition(|f| {
+            f.family == Family::Winding && !f.added && f.change.is_none() && f.validation.is_some()
+        });
+        // Not judged at first (a fold too small for the freed rates): the
+        // folds are no larger now.
+        let Some(first) = first.map(|k| self.findings.remove(k)) else {
+            return Ok(false);
+        };
+        self.try_spool_rates()?;
+        let taken = !self.structure.hold_kappa_each;
+        if let Some(again) = self.findings.last_mut() {
+            let why = first
+                .validation
+                .as_ref()
+                .map_or_else(String::new, |c| c.reason.clone());
+            again.description = format!(
+                "{}; tried again once the terms taken after the first try were in (first try, \
+                 before them: {why})",
+                again.description
+            );
+        }
+        Ok(taken)
     }
 
     /// Whether the model holds a term on time (a drift or a creep).
