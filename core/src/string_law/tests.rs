@@ -1,5 +1,7 @@
 use super::*;
+use crate::model::{Effect, EffectTerm, Frame, Knots, StringLaw, LAYER_KNOTS, WINDING_ORDER};
 use crate::test_fixtures::cube_frame;
+use core::f64::consts::TAU;
 use proptest::prelude::*;
 
 /// Deterministic xorshift64* so that the measured error is reproducible.
