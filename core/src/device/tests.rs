@@ -1,12 +1,20 @@
 use super::*;
-use crate::blob::compile;
+use crate::blob::{compile, BlobHead};
+use crate::control::LoopInput;
 use crate::correction::{CorrectionModel, NnModel, OutputMode, Standardization};
 use crate::kinematics::inverse_kinematics;
-use crate::model::Calibration;
+use crate::model::{Calibration, StringLaw};
 use crate::model_store::RamFlash;
+use crate::safety::SafetyFaults;
+use crate::tension::TensionStatus;
 use crate::test_fixtures::{cube_anchors, cube_frame};
-use spidar_protocol::blob::CRC32;
-use spidar_protocol::{encode, encode_request, BlobRejection, Message, SeqTracker};
+use spidar_protocol::blob::{CorrectionKind, CRC32};
+use spidar_protocol::messages::name;
+use spidar_protocol::{
+    encode, encode_request, BadState, BlobRejection, DeviceError, DeviceMessage, FrameDecoder,
+    Limits, Message, NominalGeometry, Packet, Request, Response, SeqTracker, State, UploadState,
+    MAX_FRAME,
+};
 use std::vec::Vec;
 
 const SLOT: usize = 16 * 1024;
