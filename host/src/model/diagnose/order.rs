@@ -77,15 +77,6 @@ impl LoopState<'_> {
                 self.add_effects(Proposals::All)?;
             }
         }
-        // Spool rates refused at first are tried once more when terms came
-        // after them, as the tables are (record 0065).
-        if rates_tried
-            && !rates_added
-            && self.stages.len() > stages_after_rates
-            && self.try_spool_rates_again()?
-        {
-            self.add_effects(Proposals::All)?;
-        }
         // Spool rates and tables taken before a term on time that the model
         // keeps: on a lattice walked plane by plane each string's payout goes
         // with time, and they took part of what the drift now takes. They are
@@ -99,6 +90,16 @@ impl LoopState<'_> {
             if let Some(choice) = self.rejudge_layer_tables()? {
                 layers = choice;
             }
+        }
+        // Spool rates refused at first are tried once more from the model
+        // the steps since have built, when they took or dropped a term, as
+        // the tables are after the effects (record 0065).
+        if rates_tried
+            && !rates_added
+            && self.stages.len() > stages_after_rates
+            && self.try_spool_rates_again()?
+        {
+            self.add_effects(Proposals::All)?;
         }
         Ok(Sequence {
             layers,
