@@ -16,18 +16,29 @@
 //! fold's rows, places its held-out rows under each candidate. The device's
 //! rule stays unless another lowers the held-out mean by the loop's
 //! [`LoopConfig::min_relative_gain`].
+//!
+//! Where the loop counted a string's structure that follows speed once more
+//! in its scale (a device in use moves faster than a lattice's captures,
+//! [`LoopResult::speed_counted_again_mm`]) and the training rows observe
+//! speed (a stream, which moves in training as in use), the folds see the
+//! speeds of use: each weighed rule is tried with the scales the training
+//! measured as well, and the device keeps the structure counted again
+//! unless they gain as any other rule must (decision record 0066). On a
+//! static session the folds hold out slow rows only, and the structure
+//! stays counted.
 
 use rayon::prelude::*;
 use serde::Serialize;
 use spidar_core::kinematics::KinematicsRule;
 
-use crate::data::observe::Observation;
+use crate::data::observe::{observes_speed, Observation};
 use crate::data::stats::{position_errors, quantile, ErrorStats};
-use crate::model::diagnose::LoopConfig;
-use crate::model::identify::{identify, Identification, IdentifyError, Start, Structure};
+use crate::model::diagnose::{LoopConfig, LoopResult};
+use crate::model::identify::{identify, Identification, IdentifyError, Start};
 use crate::model::predict::{paired_with_tracker, predict, KinematicModel, UNMEASURED_SCALES};
 use crate::model::validate::{judged_fold_fits, preferred, Preferred};
 use spidar_core::model::Frame;
+use spidar_core::STRINGS;
 
 /// The quantile of the training rows' string disagreement (the RMS of the
 /// string-length residuals at the all-string position) that the scaled
@@ -46,6 +57,11 @@ pub struct RuleCandidate {
     pub rule: KinematicsRule,
     /// The strings weigh by their measured scales (else alike).
     pub weighted: bool,
+    /// Weighed, the scales count the structure that follows speed once
+    /// more ([`LoopResult::speed_counted_again_mm`]); false: the scales
+    /// the training rows measured.
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub speed_counted_again: bool,
 }
 
 /// A candidate and its held-out error.
@@ -67,6 +83,10 @@ pub struct RuleChoice {
     /// thresholds read, mm.
     pub disagreement_q99_mm: f64,
     pub reason: String,
+    /// The structure that follows speed counted once more in each string's
+    /// scale by the loop (the identification's scales hold it), mm.
+    #[serde(skip)]
+    pub speed_counted_again_mm: [f64; STRINGS],
 }
 
 impl RuleChoice {
@@ -75,11 +95,46 @@ impl RuleChoice {
         self.scores[self.chosen].candidate
     }
 
-    /// `id` running the chosen rule: its thresholds, and its scales zeroed
-    /// when the strings weigh alike.
+    /// `id` (whose scales hold the structure counted again) running the
+    /// chosen rule: its thresholds, and its scales zeroed when the strings
+    /// weigh alike, or without the structure counted again when the rule
+    /// weighs by the scales the training measured.
     pub fn apply(&self, id: &Identification) -> Identification {
-        with_rule(id, &self.candidate())
+        let candidate = self.candidate();
+        let mut out = with_rule(id, &candidate);
+        let counted = self.speed_counted_again_mm.iter().any(|c| *c > 0.0);
+        if counted && candidate.weighted && !candidate.speed_counted_again {
+            for (scale, counted) in out
+                .length_scale_mm
+                .iter_mut()
+                .zip(self.speed_counted_again_mm)
+            {
+                if counted > 0.0 {
+                    *scale = (*scale * *scale - counted * counted).max(0.0).sqrt();
+                }
+            }
+            out.warnings
+                .retain(|w| !w.contains("residual follows speed"));
+            out.warnings.push(format!(
+                "the structure that follows speed is not counted again in the strings' scales: \
+                 {}",
+                self.reason
+            ));
+        }
+        out
     }
+}
+
+/// `id`'s scales (measured on the training rows) with the structure that
+/// follows speed counted once more, as the loop counts it.
+fn with_speed_counted_again(id: &Identification, counted_mm: &[f64; STRINGS]) -> Identification {
+    let mut out = id.clone();
+    for (scale, counted) in out.length_scale_mm.iter_mut().zip(counted_mm) {
+        if *counted > 0.0 && *scale > 0.0 {
+            *scale = scale.hypot(*counted);
+        }
+    }
+    out
 }
 
 /// `id` with `candidate`'s thresholds, and its scales zeroed (every string
@@ -126,6 +181,7 @@ pub fn all_strings_alike(fault_mm: f64) -> RuleCandidate {
             fault_threshold_mm: fault_mm,
         },
         weighted: false,
+        speed_counted_again: false,
     }
 }
 
@@ -137,26 +193,47 @@ fn all_strings_model(id: &Identification, fault_mm: f64) -> Identification {
 /// The rules tried, the device's first: the device's thresholds; the
 /// thresholds scaled to the training rows; and every string in every row
 /// that agrees within the scaled fault threshold, weighed by scale and
-/// alike.
-pub fn candidates(scaled: KinematicsRule) -> Vec<RuleCandidate> {
+/// alike. Weighed, the scales count the structure that follows speed once
+/// more where the loop `counted` it; with `speed_twins` (and `counted`),
+/// each weighed rule also by the scales the training measured, after it.
+pub fn candidates(scaled: KinematicsRule, counted: bool, speed_twins: bool) -> Vec<RuleCandidate> {
     let alike = all_strings_alike(scaled.fault_threshold_mm);
-    let mut out = vec![RuleCandidate {
-        name: "device thresholds, strings weighed",
-        rule: KinematicsRule::default(),
+    let speed_twins = counted && speed_twins;
+    let weighed = |name, rule| RuleCandidate {
+        name,
+        rule,
         weighted: true,
-    }];
-    if scaled != KinematicsRule::default() {
+        speed_counted_again: counted,
+    };
+    let mut out = vec![weighed(
+        "device thresholds, strings weighed",
+        KinematicsRule::default(),
+    )];
+    if speed_twins {
         out.push(RuleCandidate {
-            name: "scaled thresholds, strings weighed",
-            rule: scaled,
-            weighted: true,
+            name: "device thresholds, strings weighed, speed not counted again",
+            speed_counted_again: false,
+            ..out[0]
         });
     }
-    out.push(RuleCandidate {
-        name: "all strings, weighed",
-        weighted: true,
-        ..alike
-    });
+    if scaled != KinematicsRule::default() {
+        out.push(weighed("scaled thresholds, strings weighed", scaled));
+        if speed_twins {
+            out.push(RuleCandidate {
+                name: "scaled thresholds, strings weighed, speed not counted again",
+                speed_counted_again: false,
+                ..weighed("", scaled)
+            });
+        }
+    }
+    out.push(weighed("all strings, weighed", alike.rule));
+    if speed_twins {
+        out.push(RuleCandidate {
+            name: "all strings, weighed, speed not counted again",
+            speed_counted_again: false,
+            ..weighed("", alike.rule)
+        });
+    }
     out.push(alike);
     out
 }
@@ -168,26 +245,38 @@ fn held_out(model: KinematicModel<'_>, rows: &[&Observation]) -> Vec<f64> {
     position_errors(&p, &t)
 }
 
-/// Chooses the rule for `id` (of `structure`, identified on `train`) on
-/// the held-out rows of the judged folds.
+/// Chooses the rule for the loop's model (its identification, of its
+/// structure, identified on `train`) on the held-out rows of the judged
+/// folds.
 pub fn choose(
     train: &[Observation],
     nominal: &Frame<f64>,
-    id: &Identification,
-    structure: &Structure,
+    loop_result: &LoopResult,
     config: &LoopConfig,
 ) -> Result<RuleChoice, IdentifyError> {
+    let id = &loop_result.identification;
+    let counted = loop_result.speed_counted_again_mm;
     let (scaled, q99) = scaled_thresholds(id, train);
-    let tried = candidates(scaled);
+    let any_counted = counted.iter().any(|c| *c > 0.0);
+    let tried = candidates(scaled, any_counted, observes_speed(train));
     let start = Start::from_identification(id);
+    let structure = &loop_result.structure;
     let fits = judged_fold_fits(train, |rows| identify(rows, nominal, &start, structure))?;
-    // Each rule's kinematics over the held-out rows on its own core.
+    // Each rule's kinematics over the held-out rows on its own core; the
+    // folds' scales are those their rows measured.
     let scores: Vec<RuleScore> = tried
         .par_iter()
         .map(|c| {
             let errors: Vec<f64> = fits
                 .iter()
-                .flat_map(|(fold, held)| held_out(with_rule(fold, c).kinematic_model(), held))
+                .flat_map(|(fold, held)| {
+                    let fold = if c.weighted && c.speed_counted_again {
+                        with_speed_counted_again(fold, &counted)
+                    } else {
+                        fold.clone()
+                    };
+                    held_out(with_rule(&fold, c).kinematic_model(), held)
+                })
                 .collect();
             RuleScore {
                 candidate: *c,
@@ -195,7 +284,9 @@ pub fn choose(
             }
         })
         .collect();
-    Ok(decide(scores, q99, config.min_relative_gain))
+    let mut choice = decide(scores, q99, config.min_relative_gain);
+    choice.speed_counted_again_mm = counted;
+    Ok(choice)
 }
 
 /// The device's rule (the first score) unless another lowers the held-out
@@ -231,6 +322,7 @@ fn decide(scores: Vec<RuleScore>, q99: f64, min_gain: f64) -> RuleChoice {
         scores,
         disagreement_q99_mm: q99,
         reason,
+        speed_counted_again_mm: [0.0; STRINGS],
     }
 }
 
@@ -246,6 +338,7 @@ mod tests {
                 name,
                 rule: KinematicsRule::default(),
                 weighted: true,
+                speed_counted_again: true,
             },
             held_out,
         }
@@ -276,11 +369,26 @@ mod tests {
             exclusion_threshold_mm: 3.0,
             fault_threshold_mm: 6.0,
         };
-        for c in candidates(scaled) {
+        for c in candidates(scaled, true, true) {
             assert!(c.rule.is_valid(), "{c:?}");
             assert!(c.rule.exclusion_threshold_mm >= 1.0, "{c:?}");
         }
-        let same = candidates(KinematicsRule::default());
+        let same = candidates(KinematicsRule::default(), false, true);
         assert_eq!(same.len(), 3, "no scaled duplicate of the device's rule");
+        assert!(
+            same.iter().all(|c| !c.speed_counted_again),
+            "nothing counted"
+        );
+        let twins = candidates(KinematicsRule::default(), true, true);
+        assert_eq!(
+            twins.len(),
+            5,
+            "each weighed rule without the speed counted again"
+        );
+        assert_eq!(
+            candidates(scaled, true, false).len(),
+            4,
+            "a static session: no twin"
+        );
     }
 }

@@ -167,3 +167,104 @@ fn a_static_lattice_does_not_test_latency_and_says_so() {
         .iter()
         .any(|t| t.effect.reads_speed()));
 }
+
+/// The loop counts a string's structure that follows speed once more in its
+/// scale, for a device in use moves faster than a lattice's captures. On a
+/// stream the folds see the speeds of use: the kinematics' rule tries each
+/// weighed rule with the scales the training measured as well, and when one
+/// of those is chosen the device runs with the measured scales, its
+/// warnings saying why. On a lattice the folds hold out slow rows only: no
+/// such rule is tried, and the structure stays counted (decision record
+/// 0066). (On these devices the strings agree to hundredths of a mm and
+/// their weights move no position; the folds' choice is `rule`'s unit
+/// tests'.)
+#[test]
+fn the_speed_structure_counted_again_is_judged_on_a_stream_s_folds_only() {
+    use spidar::model::rule;
+    let twin = "speed not counted again";
+    let counted_on_strings_2_and_5 = |result: &mut LoopResult| {
+        let measured = result.identification.length_scale_mm;
+        for k in [2, 5] {
+            let scale = &mut result.identification.length_scale_mm[k];
+            *scale = scale.hypot(3.0);
+            result.speed_counted_again_mm[k] = 3.0;
+            result.identification.warnings.push(format!(
+                "string {k}'s residual follows speed, which no term of the model reads"
+            ));
+        }
+        measured
+    };
+    let (c, train, test) = streams(1, &[], (3000, 1000));
+    let (mut result, _) = run(&c, &train, &test);
+    let measured = counted_on_strings_2_and_5(&mut result);
+    let geometry = c.nominal.geometry();
+    let config = LoopConfig::for_geometry(&geometry);
+    let rows = observations(&train.samples);
+    let choice = rule::choose(&rows, &geometry.nominal_frame(), &result, &config).unwrap();
+    let names: Vec<&str> = choice.scores.iter().map(|s| s.candidate.name).collect();
+    println!("{names:?}\n{}", choice.reason);
+    let weighed = choice.scores.iter().filter(|s| s.candidate.weighted);
+    assert_eq!(
+        weighed
+            .clone()
+            .filter(|s| s.candidate.speed_counted_again)
+            .count(),
+        weighed
+            .clone()
+            .filter(|s| !s.candidate.speed_counted_again)
+            .count(),
+        "each weighed rule and its twin: {names:?}"
+    );
+    assert!(names.iter().any(|n| n.ends_with(twin)), "{names:?}");
+    // The device runs a twin: its scales as measured, no warning that
+    // they count the structure.
+    let twin_at = choice
+        .scores
+        .iter()
+        .position(|s| s.candidate.weighted && !s.candidate.speed_counted_again)
+        .unwrap();
+    let run_twin = rule::RuleChoice {
+        chosen: twin_at,
+        ..choice.clone()
+    };
+    let device = run_twin.apply(&result.identification);
+    for k in 0..8 {
+        assert!(
+            (device.length_scale_mm[k] - measured[k]).abs() < 1e-9,
+            "string {k}: {:?} against {measured:?}",
+            device.length_scale_mm
+        );
+    }
+    assert!(
+        !device
+            .warnings
+            .iter()
+            .any(|w| w.contains("residual follows speed"))
+            && device
+                .warnings
+                .iter()
+                .any(|w| w.contains("not counted again")),
+        "{:?}",
+        device.warnings
+    );
+    // The device's rule keeps them.
+    let kept = choice.apply(&result.identification);
+    if choice.candidate().speed_counted_again {
+        assert_eq!(kept.length_scale_mm, result.identification.length_scale_mm);
+    }
+
+    let lattice = SimulatedDevice::new(&c, 1).expect("device");
+    let lattice = simulate_session(&lattice, SessionKind::Lattice, 3).expect("lattice");
+    let (mut result, _) = run(&c, &lattice, &test);
+    counted_on_strings_2_and_5(&mut result);
+    let rows = observations(&lattice.samples);
+    let choice = rule::choose(&rows, &geometry.nominal_frame(), &result, &config).unwrap();
+    assert!(
+        choice
+            .scores
+            .iter()
+            .all(|s| !s.candidate.weighted || s.candidate.speed_counted_again),
+        "{:?}",
+        choice.scores
+    );
+}

@@ -39,6 +39,7 @@ mod tests;
 use std::borrow::Cow;
 
 use spidar_core::model::{Effect, EffectTerm, Frame, EVERY_STRING, MAX_EFFECTS};
+use spidar_core::STRINGS;
 
 use crate::data::observe::{at_meeting_points, Observation};
 use crate::data::stats::ErrorStats;
@@ -254,6 +255,7 @@ pub fn close_loop(
             findings: Vec::new(),
             layers: Vec::new(),
             tracker_outliers,
+            speed_counted_again_mm: [0.0; STRINGS],
         });
     }
     let validation = validate(train, nominal, &base, &structure, FoldScope::Judged)?;
@@ -290,7 +292,8 @@ pub fn close_loop(
     } = state;
     findings.extend(unexplained(&id, &seen_train, nominal, &structure, config));
     findings.extend(latency_not_tested(&seen_train));
-    if weigh_what_follows_speed(&mut id, &findings) {
+    let speed_counted_again_mm = weigh_what_follows_speed(&mut id, &findings);
+    if speed_counted_again_mm.iter().any(|a| *a > 0.0) {
         // The last stage is the final model: its errors with the weights it
         // now has.
         if let Some(last) = stages.last_mut() {
@@ -313,6 +316,7 @@ pub fn close_loop(
         stages,
         findings,
         tracker_outliers,
+        speed_counted_again_mm,
     })
 }
 
@@ -326,10 +330,12 @@ pub fn close_loop(
 /// `backlash`) and scatters in use (decision record 0036,
 /// `docs/decisions/0036-strings-weighed-by-scale.md`). Other variables are
 /// read by a term or do not range wider in use than on the lattice (time
-/// restarts at home, positions stay in the frame).
-/// Whether a scale changed.
-fn weigh_what_follows_speed(id: &mut Identification, findings: &[Finding]) -> bool {
-    let mut changed = false;
+/// restarts at home, positions stay in the frame). Whether the device runs
+/// with these scales is the kinematics' rule's to choose on the held-out
+/// folds (a stream moves in training as in use; decision record 0066).
+/// The amplitude counted again on each string (0 where none).
+fn weigh_what_follows_speed(id: &mut Identification, findings: &[Finding]) -> [f64; STRINGS] {
+    let mut counted = [0.0f64; STRINGS];
     for f in findings
         .iter()
         .filter(|f| f.family == Family::Unexplained && f.variable == Variable::Speed)
@@ -341,7 +347,7 @@ fn weigh_what_follows_speed(id: &mut Identification, findings: &[Finding]) -> bo
                 continue;
             }
             id.length_scale_mm[k] = before.hypot(f.amplitude_mm);
-            changed = true;
+            counted[k] = counted[k].hypot(f.amplitude_mm);
             id.warnings.push(format!(
                 "string {k}'s residual follows speed, which no term of the model reads (an \
                  encoder that lags its string?), and the device moves faster in use than at \
@@ -351,7 +357,7 @@ fn weigh_what_follows_speed(id: &mut Identification, findings: &[Finding]) -> bo
             ));
         }
     }
-    changed
+    counted
 }
 
 /// A validation, and the model its folds' fits started from.

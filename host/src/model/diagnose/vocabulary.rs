@@ -392,4 +392,10 @@ pub struct LoopResult {
     /// `base_train` and the stages are those of the rows left).
     #[serde(default)]
     pub tracker_outliers: TrackerOutliers,
+    /// Each string's structure that follows speed and no term reads,
+    /// counted once more in its scale (`identification.length_scale_mm`
+    /// holds it), mm; 0 where none. The kinematics' rule keeps it or not
+    /// on the held-out folds ([`crate::model::rule::choose`]).
+    #[serde(default)]
+    pub speed_counted_again_mm: [f64; STRINGS],
 }

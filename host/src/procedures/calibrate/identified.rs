@@ -781,14 +781,8 @@ impl Run<'_> {
             return Err("the device's rule: the session is too small for held-out folds".into());
         }
         let pb = spinner("choosing the kinematics' rule", self.cfg.quiet);
-        let choice = crate::model::rule::choose(
-            train,
-            nominal,
-            &loop_result.identification,
-            &loop_result.structure,
-            &self.cfg.loop_config,
-        )
-        .map_err(|e| format!("the device's rule: the folds could not be fitted ({e})"));
+        let choice = crate::model::rule::choose(train, nominal, loop_result, &self.cfg.loop_config)
+            .map_err(|e| format!("the device's rule: the folds could not be fitted ({e})"));
         pb.finish_and_clear();
         choice
     }
