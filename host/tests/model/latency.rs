@@ -91,6 +91,48 @@ fn latency_on_two_strings_of_a_stream_is_found_and_closed() {
     );
 }
 
+/// Seed 4 of the same device: each string's latency alone, fitted at 6 ms
+/// on every fold, is refused (the earlier half's fold worsens with the
+/// other string's lag left to the geometry), and a latency every string
+/// shares stood in. Tried together, the two are taken: the latencies on
+/// strings 2 and 5 alone, and the held-out error within 1.3 times the
+/// clean device's (decision record 0067).
+#[test]
+fn two_lagging_strings_each_refused_alone_are_taken_together() {
+    let seed = 4;
+    let (result, after) = streamed(
+        seed,
+        &["speed:2:latency_s=0.006", "speed:5:latency_s=0.006"],
+    );
+    let (_, clean) = streamed(seed, &[]);
+    println!(
+        "added {:?}; after {after:.3} mm, clean {clean:.3} mm",
+        added(&result)
+    );
+    let lags: Vec<(u8, f64)> = result
+        .identification
+        .effects
+        .iter()
+        .filter_map(|t| match t.effect {
+            Effect::Latency { latency_s } => Some((t.string, latency_s)),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(
+        lags.iter().map(|l| l.0).collect::<Vec<_>>(),
+        [2, 5],
+        "{lags:?}"
+    );
+    assert!(
+        lags.iter().all(|l| (l.1 - 0.006).abs() < 0.0015),
+        "{lags:?}"
+    );
+    assert!(
+        after <= 1.3 * clean,
+        "after {after:.3} mm, clean {clean:.3} mm"
+    );
+}
+
 /// A clean streamed device: the latency family is tested (the rows
 /// observe the speed) and nothing is found.
 #[test]

@@ -227,6 +227,21 @@ pub(super) fn fitted_in_physical_terms(change: Change, refit: &Identification) -
                 each.join(", ")
             ))
         }
+        Change::Latencies(_) => {
+            // The refit's latencies, in the order the change added them.
+            let n = change.effect_terms().len();
+            let added = refit.effects.get(refit.effects.len().checked_sub(n)?..)?;
+            let each: Vec<String> = added
+                .iter()
+                .filter_map(|t| match t.effect {
+                    Effect::Latency { latency_s } => {
+                        Some(format!("{}: {:.2}", t.string, 1e3 * latency_s))
+                    }
+                    _ => None,
+                })
+                .collect();
+            Some(format!(" (fitted, ms: {})", each.join(", ")))
+        }
         _ => None,
     }
 }

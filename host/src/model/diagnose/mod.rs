@@ -29,6 +29,7 @@ mod outliers;
 mod rejudge;
 mod revisits;
 mod slips;
+mod together;
 mod trials;
 mod unexplained;
 mod vocabulary;
@@ -59,7 +60,8 @@ use candidates::{
 };
 use describe::{fitted_in_physical_terms, stage_name};
 use evidence::{Columns, Evidence};
-use slips::{slip_times, slips_together, steps_where_it_slipped};
+use slips::{slip_times, steps_where_it_slipped};
+use together::{latencies_together, slips_together};
 use trials::{add_layer_tables, free_spool_rates};
 
 /// The held-out validation's figures and verdict, which the loop's findings
@@ -507,6 +509,11 @@ impl LoopState<'_> {
                 .filter(|f| f.family == Family::Slip && f.strings.len() == 1)
                 .collect();
             let together = slips_together(&slips);
+            let latencies: Vec<&Finding> = proposals
+                .iter()
+                .filter(|f| f.family == Family::Latency && f.strings.len() == 1)
+                .collect();
+            let lagging = latencies_together(&latencies);
             let frame_wide: Vec<Finding> = proposals
                 .iter()
                 .filter(|f| f.strings.is_empty() && f.change.is_some())
@@ -555,6 +562,14 @@ impl LoopState<'_> {
             // helps alone. Tried together, as one change, when none of the
             // strongest helped alone.
             if let Some((finding, change)) = together.filter(|_| which == Proposals::All) {
+                if self.try_change(finding, change)? {
+                    continue 'outer;
+                }
+            }
+            // Strings read late, each of whose latencies was refused alone:
+            // tried together, before a latency every string shares stands
+            // in for them (decision record 0067).
+            if let Some((finding, change)) = lagging.filter(|_| which == Proposals::All) {
                 if self.try_change(finding, change)? {
                     continue 'outer;
                 }
@@ -820,7 +835,7 @@ impl LoopState<'_> {
         after: &Validation,
         fits: &[Identification],
     ) -> Check {
-        let min_gain = if one_string_term(change) {
+        let min_gain = if one_string_term(change) || matches!(change, Change::Latencies(_)) {
             self.config.min_relative_gain_one_string
         } else {
             self.config.min_relative_gain

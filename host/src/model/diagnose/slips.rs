@@ -1,14 +1,12 @@
 //! The slip search: each string's most likely slip time (the best step in
-//! its residual off the model), whether the residual really jumps there,
-//! and the slips of several strings tried together.
+//! its residual off the model) and whether the residual really jumps
+//! there (the slips of several strings tried together: `together`).
 
-use spidar_core::model::{Effect, EffectTerm};
 use spidar_core::STRINGS;
 
 use crate::data::stats::{median, robust_centre_and_sd};
 
 use super::evidence::{Evidence, MIN_OUTSIDE_SPAN};
-use super::vocabulary::{Change, Family, Finding, Variable};
 
 #[cfg(test)]
 mod tests;
@@ -239,50 +237,4 @@ impl StepSearch {
         let (j, at) = self.best.1?;
         (j > MIN_SIDE && self.n - j > MIN_SIDE).then_some((self.best.0, at))
     }
-}
-
-/// The significant slips of several strings as one finding and change
-/// ([`Change::Slips`]): its chi-square and share explained the sums of the
-/// strings' own (their steps lie on different strings, nearly orthogonal);
-/// `None` for fewer than two strings.
-pub(super) fn slips_together(slips: &[&Finding]) -> Option<(Finding, Change)> {
-    if slips.len() < 2 {
-        return None;
-    }
-    let mut steps = [None; STRINGS];
-    let mut strings = Vec::new();
-    let mut times = Vec::new();
-    for f in slips {
-        if let Some(Change::Effect(EffectTerm {
-            string,
-            effect: Effect::Slip { at_s, mm },
-        })) = f.change
-        {
-            steps[usize::from(string)] = Some((at_s, mm));
-            strings.push(string);
-            times.push(format!("string {string} at {at_s:.1} s"));
-        }
-    }
-    if strings.len() < 2 {
-        return None;
-    }
-    strings.sort_unstable();
-    let change = Change::Slips(steps);
-    let finding = Finding {
-        family: Family::Slip,
-        strings,
-        variable: Variable::Time,
-        amplitude_mm: slips.iter().map(|f| f.amplitude_mm).fold(0.0, f64::max),
-        explained: slips.iter().map(|f| f.explained).sum(),
-        added: false,
-        chi2: slips.iter().map(|f| f.chi2).sum(),
-        description: format!(
-            "several strings slipped ({}; steps in their lengths), tried together: none of the \
-             steps helped alone while the others were missing",
-            times.join(", ")
-        ),
-        validation: None,
-        change: Some(change),
-    };
-    Some((finding, change))
 }

@@ -92,6 +92,11 @@ pub enum Change {
     /// different rates, whose terms added one at a time each take the
     /// others' share of what time and position share on a lattice.
     Drifts([Option<f64>; STRINGS]),
+    /// Add a latency on each of several strings at once (s per encoder
+    /// index, `None`: none): strings that lag, none of whose latencies
+    /// helps alone while the others are missing (`latencies_together`,
+    /// tried when no single change helps).
+    Latencies([Option<f64>; STRINGS]),
     /// Add a stretch on each of several strings at once, each its own
     /// (`per_newton`, `mm_per_newton`) (strings of other stiffness and
     /// leads), all from one home tension ([`Effect::Stretch`]).
@@ -119,6 +124,9 @@ impl Change {
             Change::Drifts(drifts) => {
                 each(&|i| drifts[i].map(|mm_per_s| Effect::Drift { mm_per_s }))
             }
+            Change::Latencies(lags) => {
+                each(&|i| lags[i].map(|latency_s| Effect::Latency { latency_s }))
+            }
             Change::Stretches(each_string, home_tension_n) => each(&|i| {
                 each_string[i].map(|(per_newton, mm_per_newton)| Effect::Stretch {
                     per_newton,
@@ -144,7 +152,11 @@ impl Structure {
                 }
             }
             Change::MarkerOffset(d) => s.marker_body_mm = Some(d),
-            Change::Effect(_) | Change::Slips(_) | Change::Drifts(_) | Change::Stretches(..) => {}
+            Change::Effect(_)
+            | Change::Slips(_)
+            | Change::Drifts(_)
+            | Change::Latencies(_)
+            | Change::Stretches(..) => {}
         }
         s
     }
