@@ -12,9 +12,7 @@ use spidar_core::STRINGS;
 use super::vocabulary::{Change, Family, Finding, Variable};
 
 /// The significant slips of several strings as one finding and change
-/// ([`Change::Slips`]): its chi-square and share explained the sums of the
-/// strings' own (their steps lie on different strings, nearly orthogonal);
-/// `None` for fewer than two strings.
+/// ([`Change::Slips`], [`group`]); `None` for fewer than two strings.
 pub(super) fn slips_together(slips: &[&Finding]) -> Option<(Finding, Change)> {
     if slips.len() < 2 {
         return None;
@@ -36,30 +34,23 @@ pub(super) fn slips_together(slips: &[&Finding]) -> Option<(Finding, Change)> {
     if strings.len() < 2 {
         return None;
     }
-    strings.sort_unstable();
+    let description = format!(
+        "several strings slipped ({}; steps in their lengths), tried together: none of the \
+         steps helped alone while the others were missing",
+        times.join(", ")
+    );
     let change = Change::Slips(steps);
-    let finding = Finding {
-        family: Family::Slip,
-        strings,
-        variable: Variable::Time,
-        amplitude_mm: slips.iter().map(|f| f.amplitude_mm).fold(0.0, f64::max),
-        explained: slips.iter().map(|f| f.explained).sum(),
-        added: false,
-        chi2: slips.iter().map(|f| f.chi2).sum(),
-        description: format!(
-            "several strings slipped ({}; steps in their lengths), tried together: none of the \
-             steps helped alone while the others were missing",
-            times.join(", ")
-        ),
-        validation: None,
-        change: Some(change),
-    };
-    Some((finding, change))
+    Some(group(
+        slips,
+        (Family::Slip, strings),
+        Variable::Time,
+        description,
+        change,
+    ))
 }
 
 /// The significant latencies of several strings as one finding and change
-/// ([`Change::Latencies`]), its chi-square and share explained the sums of
-/// the strings' own; `None` for fewer than two strings. Two strings read 6
+/// ([`Change::Latencies`], [`group`]); `None` for fewer than two strings. Two strings read 6
 /// ms late on the model simulator's stream of seed 4: each latency alone,
 /// fitted at 6 ms on every fold, is refused (the earlier half's fold
 /// 1.05 -> 1.14 mm with the other string's lag in the model's geometry),
@@ -84,23 +75,44 @@ pub(super) fn latencies_together(latencies: &[&Finding]) -> Option<(Finding, Cha
     if strings.len() < 2 {
         return None;
     }
-    strings.sort_unstable();
+    let description = format!(
+        "several strings are read late ({}; their lengths lag their speed), tried together: \
+         none of the latencies helped alone while the others were missing",
+        each.join(", ")
+    );
     let change = Change::Latencies(lags);
+    Some(group(
+        latencies,
+        (Family::Latency, strings),
+        Variable::Speed,
+        description,
+        change,
+    ))
+}
+
+/// The finding of `members`' terms (one family's, on `strings`) tried as
+/// one `change`: its largest amplitude, and its chi-square and share
+/// explained the sums of the members' own (their terms lie on different
+/// strings, nearly orthogonal).
+fn group(
+    members: &[&Finding],
+    (family, mut strings): (Family, Vec<u8>),
+    variable: Variable,
+    description: String,
+    change: Change,
+) -> (Finding, Change) {
+    strings.sort_unstable();
     let finding = Finding {
-        family: Family::Latency,
+        family,
         strings,
-        variable: Variable::Speed,
-        amplitude_mm: latencies.iter().map(|f| f.amplitude_mm).fold(0.0, f64::max),
-        explained: latencies.iter().map(|f| f.explained).sum(),
+        variable,
+        amplitude_mm: members.iter().map(|f| f.amplitude_mm).fold(0.0, f64::max),
+        explained: members.iter().map(|f| f.explained).sum(),
         added: false,
-        chi2: latencies.iter().map(|f| f.chi2).sum(),
-        description: format!(
-            "several strings are read late ({}; their lengths lag their speed), tried together: \
-             none of the latencies helped alone while the others were missing",
-            each.join(", ")
-        ),
+        chi2: members.iter().map(|f| f.chi2).sum(),
+        description,
         validation: None,
         change: Some(change),
     };
-    Some((finding, change))
+    (finding, change)
 }
