@@ -1,7 +1,7 @@
 //! The report's words: the names of variables, families and stages, and
 //! fitted values in physical terms.
 
-use spidar_core::model::Effect;
+use spidar_core::model::{Effect, EffectTerm};
 
 use crate::model::identify::Identification;
 
@@ -172,19 +172,11 @@ pub(super) fn fitted_in_physical_terms(change: Change, refit: &Identification) -
             .last()
             .and_then(|t| in_physical_terms(&t.effect)),
         Change::MarkerOffset(d) => Some(marker_in_physical_terms(&d)),
-        Change::Drifts(drifts) => {
-            // The refit's drifts, in the order the change added them.
-            let n = Change::Drifts(drifts).effect_terms().len();
-            let added = refit.effects.get(refit.effects.len().checked_sub(n)?..)?;
-            let each: Vec<String> = added
-                .iter()
-                .filter_map(|t| match t.effect {
-                    Effect::Drift { mm_per_s } => {
-                        Some(format!("{}: {:+.3}", t.string, mm_per_s * 60.0))
-                    }
-                    _ => None,
-                })
-                .collect();
+        Change::Drifts(_) => {
+            let each = each_added(change, refit, |e| match e {
+                Effect::Drift { mm_per_s } => Some(format!("{:+.3}", mm_per_s * 60.0)),
+                _ => None,
+            })?;
             Some(format!(" (fitted, mm/min: {})", each.join(", ")))
         }
         Change::Stretches(..) => {
@@ -193,8 +185,7 @@ pub(super) fn fitted_in_physical_terms(change: Change, refit: &Identification) -
             // at the home capture, which, free on each string, also takes
             // a constant length of that string (as the shared stretch's
             // takes one of every string).
-            let n = change.effect_terms().len();
-            let added = refit.effects.get(refit.effects.len().checked_sub(n)?..)?;
+            let added = added_terms(change, refit)?;
             let (mut each, mut home) = (Vec::new(), Vec::new());
             for t in added {
                 if let Effect::Stretch {
@@ -228,20 +219,34 @@ pub(super) fn fitted_in_physical_terms(change: Change, refit: &Identification) -
             ))
         }
         Change::Latencies(_) => {
-            // The refit's latencies, in the order the change added them.
-            let n = change.effect_terms().len();
-            let added = refit.effects.get(refit.effects.len().checked_sub(n)?..)?;
-            let each: Vec<String> = added
-                .iter()
-                .filter_map(|t| match t.effect {
-                    Effect::Latency { latency_s } => {
-                        Some(format!("{}: {:.2}", t.string, 1e3 * latency_s))
-                    }
-                    _ => None,
-                })
-                .collect();
+            let each = each_added(change, refit, |e| match e {
+                Effect::Latency { latency_s } => Some(format!("{:.2}", 1e3 * latency_s)),
+                _ => None,
+            })?;
             Some(format!(" (fitted, ms: {})", each.join(", ")))
         }
         _ => None,
     }
+}
+
+/// The refit's terms `change` added: its last ones, in the order the change
+/// added them.
+fn added_terms(change: Change, refit: &Identification) -> Option<&[EffectTerm]> {
+    let n = change.effect_terms().len();
+    refit.effects.get(refit.effects.len().checked_sub(n)?..)
+}
+
+/// Each of `change`'s added terms as `string: value`, `value` as the term's
+/// effect writes it (terms it does not write are left out).
+fn each_added(
+    change: Change,
+    refit: &Identification,
+    value: impl Fn(&Effect) -> Option<String>,
+) -> Option<Vec<String>> {
+    Some(
+        added_terms(change, refit)?
+            .iter()
+            .filter_map(|t| value(&t.effect).map(|v| format!("{}: {v}", t.string)))
+            .collect(),
+    )
 }
