@@ -33,7 +33,9 @@ use spidar_core::kinematics::KinematicsRule;
 
 use crate::data::observe::{observes_speed, Observation};
 use crate::data::stats::{position_errors, quantile, ErrorStats};
-use crate::model::diagnose::{LoopConfig, LoopResult};
+use crate::model::diagnose::{
+    count_speed_again, uncount_speed, LoopConfig, LoopResult, FOLLOWS_SPEED,
+};
 use crate::model::identify::{identify, Identification, IdentifyError, Start};
 use crate::model::predict::{paired_with_tracker, predict, KinematicModel, UNMEASURED_SCALES};
 use crate::model::validate::{judged_fold_fits, preferred, Preferred};
@@ -104,17 +106,8 @@ impl RuleChoice {
         let mut out = with_rule(id, &candidate);
         let counted = self.speed_counted_again_mm.iter().any(|c| *c > 0.0);
         if counted && candidate.weighted && !candidate.speed_counted_again {
-            for (scale, counted) in out
-                .length_scale_mm
-                .iter_mut()
-                .zip(self.speed_counted_again_mm)
-            {
-                if counted > 0.0 {
-                    *scale = (*scale * *scale - counted * counted).max(0.0).sqrt();
-                }
-            }
-            out.warnings
-                .retain(|w| !w.contains("residual follows speed"));
+            uncount_speed(&mut out.length_scale_mm, &self.speed_counted_again_mm);
+            out.warnings.retain(|w| !w.contains(FOLLOWS_SPEED));
             out.warnings.push(format!(
                 "the structure that follows speed is not counted again in the strings' scales: \
                  {}",
@@ -123,18 +116,6 @@ impl RuleChoice {
         }
         out
     }
-}
-
-/// `id`'s scales (measured on the training rows) with the structure that
-/// follows speed counted once more, as the loop counts it.
-fn with_speed_counted_again(id: &Identification, counted_mm: &[f64; STRINGS]) -> Identification {
-    let mut out = id.clone();
-    for (scale, counted) in out.length_scale_mm.iter_mut().zip(counted_mm) {
-        if *counted > 0.0 && *scale > 0.0 {
-            *scale = scale.hypot(*counted);
-        }
-    }
-    out
 }
 
 /// `id` with `candidate`'s thresholds, and its scales zeroed (every string
@@ -198,41 +179,40 @@ fn all_strings_model(id: &Identification, fault_mm: f64) -> Identification {
 /// each weighed rule also by the scales the training measured, after it.
 pub fn candidates(scaled: KinematicsRule, counted: bool, speed_twins: bool) -> Vec<RuleCandidate> {
     let alike = all_strings_alike(scaled.fault_threshold_mm);
-    let speed_twins = counted && speed_twins;
-    let weighed = |name, rule| RuleCandidate {
-        name,
-        rule,
-        weighted: true,
-        speed_counted_again: counted,
-    };
-    let mut out = vec![weighed(
+    // Each weighed rule: its name, its twin's, its thresholds.
+    let mut weighed = vec![(
         "device thresholds, strings weighed",
+        "device thresholds, strings weighed, speed not counted again",
         KinematicsRule::default(),
     )];
-    if speed_twins {
-        out.push(RuleCandidate {
-            name: "device thresholds, strings weighed, speed not counted again",
-            speed_counted_again: false,
-            ..out[0]
-        });
-    }
     if scaled != KinematicsRule::default() {
-        out.push(weighed("scaled thresholds, strings weighed", scaled));
-        if speed_twins {
+        weighed.push((
+            "scaled thresholds, strings weighed",
+            "scaled thresholds, strings weighed, speed not counted again",
+            scaled,
+        ));
+    }
+    weighed.push((
+        "all strings, weighed",
+        "all strings, weighed, speed not counted again",
+        alike.rule,
+    ));
+    let mut out = Vec::new();
+    for (name, twin, rule) in weighed {
+        let candidate = RuleCandidate {
+            name,
+            rule,
+            weighted: true,
+            speed_counted_again: counted,
+        };
+        out.push(candidate);
+        if counted && speed_twins {
             out.push(RuleCandidate {
-                name: "scaled thresholds, strings weighed, speed not counted again",
+                name: twin,
                 speed_counted_again: false,
-                ..weighed("", scaled)
+                ..candidate
             });
         }
-    }
-    out.push(weighed("all strings, weighed", alike.rule));
-    if speed_twins {
-        out.push(RuleCandidate {
-            name: "all strings, weighed, speed not counted again",
-            speed_counted_again: false,
-            ..weighed("", alike.rule)
-        });
     }
     out.push(alike);
     out
@@ -270,12 +250,11 @@ pub fn choose(
             let errors: Vec<f64> = fits
                 .iter()
                 .flat_map(|(fold, held)| {
-                    let fold = if c.weighted && c.speed_counted_again {
-                        with_speed_counted_again(fold, &counted)
-                    } else {
-                        fold.clone()
-                    };
-                    held_out(with_rule(&fold, c).kinematic_model(), held)
+                    let mut fold = with_rule(fold, c);
+                    if c.weighted && c.speed_counted_again {
+                        count_speed_again(&mut fold.length_scale_mm, &counted);
+                    }
+                    held_out(fold.kinematic_model(), held)
                 })
                 .collect();
             RuleScore {

@@ -344,22 +344,46 @@ fn weigh_what_follows_speed(id: &mut Identification, findings: &[Finding]) -> [f
     {
         for &k in &f.strings {
             let k = usize::from(k);
-            let before = id.length_scale_mm[k];
-            if before <= 0.0 || !f.amplitude_mm.is_finite() {
-                continue;
+            if id.length_scale_mm[k] > 0.0 && f.amplitude_mm.is_finite() {
+                counted[k] = counted[k].hypot(f.amplitude_mm);
             }
-            id.length_scale_mm[k] = before.hypot(f.amplitude_mm);
-            counted[k] = counted[k].hypot(f.amplitude_mm);
-            id.warnings.push(format!(
-                "string {k}'s residual follows speed, which no term of the model reads (an \
-                 encoder that lags its string?), and the device moves faster in use than at \
-                 the lattice's captures: its scale counts that structure's {:.2} mm once more \
-                 ({before:.2} -> {:.2} mm), so forward kinematics weighs it less",
-                f.amplitude_mm, id.length_scale_mm[k]
-            ));
         }
     }
+    let before = id.length_scale_mm;
+    count_speed_again(&mut id.length_scale_mm, &counted);
+    for k in (0..STRINGS).filter(|&k| counted[k] > 0.0) {
+        id.warnings.push(format!(
+            "string {k}'s {FOLLOWS_SPEED}, which no term of the model reads (an encoder that \
+             lags its string?), and the device moves faster in use than at the lattice's \
+             captures: its scale counts that structure's {:.2} mm once more ({:.2} -> {:.2} \
+             mm), so forward kinematics weighs it less",
+            counted[k], before[k], id.length_scale_mm[k]
+        ));
+    }
     counted
+}
+
+/// What the warning of a string whose scale counts the structure that
+/// follows speed says of it ([`weigh_what_follows_speed`]).
+pub(crate) const FOLLOWS_SPEED: &str = "residual follows speed";
+
+/// Each measured scale with the structure that follows speed (`counted`,
+/// mm) counted once more, in quadrature; a scale of 0 (not measured) stays.
+pub(crate) fn count_speed_again(scales: &mut [f64; STRINGS], counted: &[f64; STRINGS]) {
+    for (scale, c) in scales.iter_mut().zip(counted) {
+        if *c > 0.0 && *scale > 0.0 {
+            *scale = scale.hypot(*c);
+        }
+    }
+}
+
+/// [`count_speed_again`] undone: the scales the training rows measured.
+pub(crate) fn uncount_speed(scales: &mut [f64; STRINGS], counted: &[f64; STRINGS]) {
+    for (scale, c) in scales.iter_mut().zip(counted) {
+        if *c > 0.0 && *scale > 0.0 {
+            *scale = (*scale * *scale - c * c).max(0.0).sqrt();
+        }
+    }
 }
 
 /// A validation, and the model its folds' fits started from.
@@ -835,7 +859,7 @@ impl LoopState<'_> {
         after: &Validation,
         fits: &[Identification],
     ) -> Check {
-        let min_gain = if one_string_term(change) || matches!(change, Change::Latencies(_)) {
+        let min_gain = if held_to_one_string_gain(change) {
             self.config.min_relative_gain_one_string
         } else {
             self.config.min_relative_gain
@@ -958,6 +982,14 @@ fn one_string_term(change: Change) -> bool {
         Change::Effect(EffectTerm { string, effect })
             if string != EVERY_STRING && !matches!(effect, Effect::Slip { .. })
     )
+}
+
+/// Whether `change` must gain what a term of one string must
+/// ([`LoopConfig::min_relative_gain_one_string`]): a term of one string, or
+/// several such terms tried together (the latencies of several strings,
+/// decision record 0067).
+fn held_to_one_string_gain(change: Change) -> bool {
+    one_string_term(change) || matches!(change, Change::Latencies(_))
 }
 
 /// Why `structure` cannot run on the device, if it cannot: its blob holds at
