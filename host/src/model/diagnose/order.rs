@@ -26,7 +26,8 @@
 //! ([`LoopState::prefer_each_string`], decision record 0063).
 
 use super::describe::stage_name;
-use super::{drifts_with_time, same_term, Family, Finding, LoopState, StringLayers, Variable};
+use super::trials::is_spool_rates;
+use super::{drifts_with_time, same_term, Finding, LoopState, StringLayers, Variable};
 use crate::model::identify::IdentifyError;
 use crate::model::validate::judge;
 
@@ -117,9 +118,10 @@ impl LoopState<'_> {
     /// for what the model lacked (decision record 0065). One finding stays,
     /// the second try's, saying why the first refused them.
     fn try_spool_rates_again(&mut self) -> Result<bool, IdentifyError> {
-        let first = self.findings.iter().rposition(|f| {
-            f.family == Family::Winding && !f.added && f.change.is_none() && f.validation.is_some()
-        });
+        let first = self
+            .findings
+            .iter()
+            .rposition(|f| is_spool_rates(f, self.nominal) && !f.added && f.validation.is_some());
         // Not judged at first (a fold too small for the freed rates): the
         // folds are no larger now.
         let Some(first) = first.map(|k| self.findings.remove(k)) else {

@@ -205,6 +205,17 @@ fn layers_finding(
     }
 }
 
+/// Whether `f` is [`free_spool_rates`]' finding on `nominal`'s strings (a
+/// `winding` of every active string without a change of its own).
+pub(super) fn is_spool_rates(f: &Finding, nominal: &Frame<f64>) -> bool {
+    f.family == Family::Winding
+        && f.change.is_none()
+        && f.strings
+            .iter()
+            .copied()
+            .eq(nominal.layout.indices().map(|i| i as u8))
+}
+
 /// Each spool's own thinning rate ([`Structure::hold_kappa_each`] off),
 /// kept when [`judge`] accepts it on the validation folds: the finding (a
 /// `winding` on every active string, `added` as judged) and, when
