@@ -163,6 +163,14 @@ pub enum BlobError<F = &'static str> {
         field: F,
         string: u8,
     },
+    /// A correction larger than the device evaluates within its control
+    /// tick (`field` is `svr.support_vectors` or `nn.hidden`): it would
+    /// overrun the 10 kHz loop.
+    OverBudget {
+        field: F,
+        found: u32,
+        most: u32,
+    },
 }
 
 impl<F: core::fmt::Display> core::fmt::Display for BlobError<F> {
@@ -208,6 +216,10 @@ impl<F: core::fmt::Display> core::fmt::Display for BlobError<F> {
             Self::InactiveString { field, string } => write!(
                 f,
                 "model blob field `{field}` refers to string {string}, which `frame.layout` marks inactive"
+            ),
+            Self::OverBudget { field, found, most } => write!(
+                f,
+                "model blob field `{field}` is {found}: the device evaluates a correction of at most {most} within its control loop's tick"
             ),
         }
     }

@@ -143,7 +143,8 @@ const _: () = {
 };
 
 /// Version of this protocol. Bumped whenever a message's layout changes.
-/// Version 7: `State` names the home capture its counts are from
+/// Version 8: `BlobRejection::OverBudget`, a correction larger than the
+/// device evaluates within its control loop's tick. Version 7: `State` names the home capture its counts are from
 /// (`home_id`), so that sessions recorded under one home (a slip found in
 /// one is still in the other) are told from sessions after a new one.
 /// Version 6: `State` says whether the motors are on (`motors_on`): after a
@@ -156,7 +157,7 @@ const _: () = {
 /// sample time. Version 3: `NominalGeometry` carries the string layout
 /// (`active_strings`, `planar`); `DeviceError::NotForceClosed`;
 /// `BlobRejection::TooFewStrings` and `InactiveString`.
-pub const PROTOCOL_VERSION: u16 = 7;
+pub const PROTOCOL_VERSION: u16 = 8;
 
 /// Number of strings (and motors, and encoders) of the device.
 pub const STRINGS: usize = 8;

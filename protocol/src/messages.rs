@@ -452,6 +452,11 @@ impl From<BlobError> for BlobRejection {
                 field: name(field),
                 string,
             },
+            BlobError::OverBudget { field, found, most } => Self::OverBudget {
+                field: name(field),
+                found,
+                most,
+            },
         }
     }
 }

@@ -26,8 +26,9 @@ use crate::cases::Rng;
 
 /// Hidden neurons of the benchmark NN.
 pub const NN_HIDDEN: usize = 20;
-/// Support vectors of the benchmark SVR.
-pub const SVR_SUPPORT: usize = 1000;
+/// Support vectors of the benchmark SVR: the most a blob may carry, so that
+/// the tick is measured with the largest correction the device takes.
+pub const SVR_SUPPORT: usize = spidar_core::correction::MAX_SUPPORT_VECTORS as usize;
 
 fn normal(rng: &mut Rng) -> f64 {
     // Box-Muller; host only, the blob (not this) is what both sides share.

@@ -10,6 +10,7 @@ use serde_json::Value;
 use spidar::procedures::calibrate::report::StageKind;
 use spidar::procedures::calibrate::{calibrate, CalibrateConfig, NamedSession, SCHEMA};
 use spidar::sim::{simulate_session, SessionKind, SimConfig, SimulatedDevice};
+use spidar_core::correction::MAX_SUPPORT_VECTORS;
 
 /// Held-out targets of the issue (test session, mm).
 const TEST_MEAN_MAX_MM: f64 = 0.45;
@@ -580,15 +581,9 @@ fn a_chosen_correction_is_refitted_and_stored() {
     match &c.calibration.correction {
         spidar_core::correction::CorrectionModel::Svr(m) => {
             assert_eq!(Some(m.support.len()), r.selection.final_support_vectors);
-            // Refitted on all kept points, not only the fit split.
-            assert!(
-                m.support.len()
-                    > r.corrections
-                        .as_ref()
-                        .expect("learned corrections")
-                        .svr
-                        .support_vectors
-            );
+            // Refitted on the fit part and the selection split, thinned to
+            // the support vectors the device evaluates within its tick.
+            assert!(m.support.len() <= MAX_SUPPORT_VECTORS as usize);
         }
         spidar_core::correction::CorrectionModel::Nn(m) => {
             assert_eq!(Some(m.w1.len()), r.selection.final_hidden);
@@ -603,6 +598,24 @@ fn a_chosen_correction_is_refitted_and_stored() {
         }
         spidar_core::correction::CorrectionModel::None => panic!("a correction was chosen"),
     }
+    // The lattice's 2,197 rows are more points than the device's SVR may
+    // have support vectors: the SVR learned from an even thinning of them,
+    // the summary says why, and whichever correction was chosen compiles.
+    let learned = r.corrections.as_ref().expect("learned corrections");
+    let svr_points = &learned.svr_learning_points;
+    assert_eq!(svr_points.kept, r.selection.fit_points);
+    assert!(
+        svr_points.used <= MAX_SUPPORT_VECTORS as usize
+            && svr_points.used >= MAX_SUPPORT_VECTORS as usize * 3 / 4
+            && svr_points.cell_mm.is_some(),
+        "{svr_points:?}"
+    );
+    assert!(learned.svr.support_vectors <= svr_points.used);
+    assert!(r.summary().contains(&format!(
+        "svr: learned from {} of the {} fit points",
+        svr_points.used, svr_points.kept
+    )));
+    spidar_core::blob::compile(&c.calibration, 1, 0).expect("the calibration compiles");
     let last = r.stages.last().unwrap();
     assert!(last.test.mean_mm <= TEST_MEAN_MAX_MM && last.test.max_mm <= TEST_MAX_MAX_MM);
 }

@@ -203,3 +203,65 @@ fn budgets_that_are_not_numbers_are_refused_and_over_budget_blobs_not_written() 
     assert!(blob.exists());
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// An SVR correction with more support vectors than the device evaluates
+/// within its control loop's tick (an older calibration's, say) does not
+/// compile: the error names the file, the count and the most the device
+/// takes, and says what to do; no blob is written. One fewer compiles.
+#[test]
+fn a_correction_the_device_cannot_evaluate_within_its_tick_does_not_compile() {
+    use spidar_core::correction::{OutputMode, Standardization, SvrModel, MAX_SUPPORT_VECTORS};
+    let dir = temp_dir("svr-budget");
+    let svr = |n: usize| {
+        let mut c = cube();
+        c.correction = CorrectionModel::Svr(SvrModel {
+            input: Standardization {
+                mean: [0.0; 3],
+                std: [500.0; 3],
+            },
+            output: Standardization {
+                mean: [0.0; 3],
+                std: [1.0; 3],
+            },
+            gamma: 1.0,
+            support: (0..n)
+                .map(|j| {
+                    [
+                        (j % 10) as f64 * 0.2 - 1.0,
+                        (j / 10 % 10) as f64 * 0.2 - 1.0,
+                        (j / 100) as f64 * 0.2 - 1.0,
+                    ]
+                })
+                .collect(),
+            coef: core::array::from_fn(|a| {
+                (0..n).map(|j| 1e-3 * ((j + a) % 7) as f64 - 3e-3).collect()
+            }),
+            bias: [0.0; 3],
+            mode: OutputMode::Residual,
+        });
+        c
+    };
+    let most = MAX_SUPPORT_VECTORS as usize;
+    let cal = write(&dir, "over.json", &svr(most + 1));
+    let blob = dir.join("over.blob");
+    let err = failure(&spidar(&[
+        "compile",
+        "--calibration",
+        s(&cal),
+        "--out",
+        s(&blob),
+    ]));
+    assert!(
+        err.contains("over.json")
+            && err.contains(&format!("`support` has {} entries", most + 1))
+            && err.contains(&format!("at most {most}"))
+            && err.contains("calibrate again"),
+        "{err}"
+    );
+    assert!(!blob.exists(), "a blob was written");
+    let cal = write(&dir, "most.json", &svr(most));
+    let blob = dir.join("most.blob");
+    let o = spidar(&["compile", "--calibration", s(&cal), "--out", s(&blob)]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    std::fs::remove_dir_all(&dir).ok();
+}

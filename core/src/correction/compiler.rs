@@ -24,6 +24,13 @@ pub enum CorrectionCompileError {
         index: usize,
         value: f64,
     },
+    /// More neurons or support vectors than the device evaluates within its
+    /// control loop's tick ([`MAX_HIDDEN_NEURONS`], [`MAX_SUPPORT_VECTORS`]).
+    OverBudget {
+        field: &'static str,
+        found: usize,
+        most: usize,
+    },
     /// A parameter (after folding the standardization into it) that does
     /// not fit its Q format.
     OutOfRange {
@@ -44,6 +51,10 @@ impl core::fmt::Display for CorrectionCompileError {
             } => write!(
                 f,
                 "correction parameter `{field}` has {found} entries, expected {expected}"
+            ),
+            CorrectionCompileError::OverBudget { field, found, most } => write!(
+                f,
+                "correction parameter `{field}` has {found} entries: the device evaluates at most {most} within its control loop's tick"
             ),
             CorrectionCompileError::NotFinite { field, index } => {
                 write!(f, "correction parameter `{field}`[{index}] is not finite")
@@ -400,16 +411,23 @@ impl NnModel {
         Ok(out)
     }
 
-    /// The parameters' counts (1 to `u16::MAX` neurons, the same in every
+    /// The parameters' counts (1 to [`MAX_HIDDEN_NEURONS`], the same in every
     /// vector) and that they are finite, standard deviations positive;
     /// the neuron count.
     fn check_parameters(&self) -> Result<usize, CorrectionCompileError> {
         let hidden = self.w1.len();
-        if hidden == 0 || hidden > u16::MAX as usize {
+        if hidden == 0 {
             return Err(CorrectionCompileError::Dimension {
                 field: "w1",
                 found: hidden,
-                expected: if hidden == 0 { 1 } else { u16::MAX as usize },
+                expected: 1,
+            });
+        }
+        if hidden > MAX_HIDDEN_NEURONS as usize {
+            return Err(CorrectionCompileError::OverBudget {
+                field: "w1",
+                found: hidden,
+                most: MAX_HIDDEN_NEURONS as usize,
             });
         }
         if self.b1.len() != hidden {
@@ -523,15 +541,15 @@ impl SvrModel {
     }
 
     /// The parameters' counts (as many coefficients per axis as support
-    /// vectors, no more than a blob carries) and that they are finite,
+    /// vectors, at most [`MAX_SUPPORT_VECTORS`]) and that they are finite,
     /// standard deviations and `gamma` positive; the support-vector count.
     fn check_parameters(&self) -> Result<usize, CorrectionCompileError> {
         let n = self.support.len();
-        if n > (u32::MAX as usize - SVR_HEADER_LEN) / SVR_RECORD_LEN {
-            return Err(CorrectionCompileError::Dimension {
+        if n > MAX_SUPPORT_VECTORS as usize {
+            return Err(CorrectionCompileError::OverBudget {
                 field: "support",
                 found: n,
-                expected: (u32::MAX as usize - SVR_HEADER_LEN) / SVR_RECORD_LEN,
+                most: MAX_SUPPORT_VECTORS as usize,
             });
         }
         check_axes(COEF, &self.coef, n)?;

@@ -156,6 +156,21 @@ pub const OUTPUT_FRAC_RANGE: core::ops::RangeInclusive<u8> = 0..=48;
 /// 8 away from every support vector, whose kernel then underflows as it should.
 pub const SUPPORT_MAX: i32 = 1 << 30;
 
+/// Most support vectors of an SVR correction the device takes. The device
+/// evaluates its correction in every 100 µs tick of its 10 kHz control
+/// loop: with 1,000 support vectors the tick measures 52,597 instructions
+/// under QEMU against its budget of 55,000 (`scripts/qemu-bench`, decision
+/// record 0002), and each support vector costs 24 more. The host's SVR
+/// learns from at most this many points, so it never has more; a blob with
+/// more is refused ([`BlobError::OverBudget`]).
+pub const MAX_SUPPORT_VECTORS: u32 = 1000;
+
+/// Most hidden neurons of an NN correction the device takes: at the
+/// measured 61 instructions a neuron (`docs/fixed-point.md`), 400 cost what
+/// the largest SVR does ([`MAX_SUPPORT_VECTORS`]), the correction's share
+/// of the tick. The host's sweep goes to 24.
+pub const MAX_HIDDEN_NEURONS: u16 = 400;
+
 /// Bytes of the NN body before the neurons.
 ///
 /// ```text

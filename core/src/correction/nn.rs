@@ -42,7 +42,8 @@ pub struct NnSummary {
 }
 
 impl<'a> NnView<'a> {
-    /// Checks and wraps a compiled network of `hidden` neurons: exact length,
+    /// Checks and wraps a compiled network of `hidden` neurons (1 to
+    /// [`MAX_HIDDEN_NEURONS`]): exact length,
     /// mode, Q formats in range, every first-layer weight within [`W1_MAX`],
     /// every axis' output weights within [`OUTPUT_ABS_SUM_MAX`] (so that the
     /// evaluation cannot overflow). O(hidden), done once at load.
@@ -52,6 +53,13 @@ impl<'a> NnView<'a> {
                 field: "hidden",
                 found: 0,
                 expected: 1,
+            });
+        }
+        if hidden > MAX_HIDDEN_NEURONS {
+            return Err(BlobError::OverBudget {
+                field: "nn.hidden",
+                found: hidden as u32,
+                most: MAX_HIDDEN_NEURONS as u32,
             });
         }
         nn_body_len(bytes, hidden)?;

@@ -70,13 +70,21 @@ pub struct SvrView<'a> {
 
 impl<'a> SvrView<'a> {
     /// Checks and wraps a compiled SVR of `support_vectors` support vectors
-    /// (the blob header's count): exact length, mode, Q formats in range,
+    /// (the blob header's count): no more than [`MAX_SUPPORT_VECTORS`],
+    /// exact length, mode, Q formats in range,
     /// support vectors within [`SUPPORT_MAX`], every axis' coefficients
     /// within [`SVR_BLOCK_ABS_SUM_MAX`] per block of [`SVR_BLOCK`].
     /// O(support_vectors), done once at load. The records are read as words
     /// when they start at a 4-byte aligned address (see `docs/fixed-point.md`),
     /// else as bytes; the results are the same.
     pub fn parse(bytes: &'a [u8], support_vectors: u32) -> Result<SvrView<'a>, BlobError> {
+        if support_vectors > MAX_SUPPORT_VECTORS {
+            return Err(BlobError::OverBudget {
+                field: "svr.support_vectors",
+                found: support_vectors,
+                most: MAX_SUPPORT_VECTORS,
+            });
+        }
         let expected = (SVR_HEADER_LEN as u64)
             .saturating_add((SVR_RECORD_LEN as u64).saturating_mul(support_vectors as u64));
         if bytes.len() as u64 != expected {

@@ -693,3 +693,63 @@ proptest! {
         }
     }
 }
+
+/// A correction the device cannot evaluate within its tick neither compiles
+/// nor loads: the largest that does is taken, one more is refused, naming
+/// the count and the most the device takes.
+#[test]
+fn corrections_beyond_the_tick_budget_are_refused_at_compile_and_at_load() {
+    let most = MAX_SUPPORT_VECTORS as usize;
+    let largest = svr_model(most, 7, OutputMode::Residual);
+    let bytes = largest
+        .compile()
+        .expect("the largest SVR the device takes compiles");
+    SvrView::parse(&bytes, most as u32).expect("and loads");
+    let over = svr_model(most + 1, 7, OutputMode::Residual);
+    let e = over.compile().unwrap_err();
+    assert_eq!(
+        e,
+        CorrectionCompileError::OverBudget {
+            field: "support",
+            found: most + 1,
+            most
+        }
+    );
+    assert!(e.to_string().contains("1001 entries"), "{e}");
+    assert!(e.to_string().contains("at most 1000"), "{e}");
+    // A blob that says it carries more (whatever its body) is refused by
+    // its count, before its length is read.
+    assert_eq!(
+        SvrView::parse(&bytes, most as u32 + 1),
+        Err(BlobError::OverBudget {
+            field: "svr.support_vectors",
+            found: most as u32 + 1,
+            most: most as u32
+        })
+    );
+
+    let most = MAX_HIDDEN_NEURONS as usize;
+    let largest = nn_model(most, 8, OutputMode::Residual);
+    let bytes = largest
+        .compile()
+        .expect("the largest NN the device takes compiles");
+    NnView::parse(&bytes, most as u16).expect("and loads");
+    assert_eq!(
+        nn_model(most + 1, 8, OutputMode::Residual).compile(),
+        Err(CorrectionCompileError::OverBudget {
+            field: "w1",
+            found: most + 1,
+            most
+        })
+    );
+    let e = NnView::parse(&bytes, most as u16 + 1).unwrap_err();
+    assert_eq!(
+        e,
+        BlobError::OverBudget {
+            field: "nn.hidden",
+            found: most as u32 + 1,
+            most: most as u32
+        }
+    );
+    assert!(e.to_string().contains("`nn.hidden` is 401"), "{e}");
+}

@@ -659,6 +659,46 @@ fn models_survive_power_cycles_and_uploads_never_disturb_the_active_one() {
     assert_eq!(b.request(&Request::GetInfo), Response::Info(None));
 }
 
+/// A model whose correction is larger than the device evaluates within its
+/// tick is refused on commit by name, and the model before it stays active:
+/// the largest it takes commits, one neuron more does not (a hand-made blob,
+/// since the compiler refuses to make one).
+#[test]
+fn a_correction_over_the_tick_budget_is_refused_on_commit() {
+    use crate::correction::{MAX_HIDDEN_NEURONS, NN_NEURON_LEN};
+    use spidar_protocol::blob::{ModelHeader, HEADER_LEN};
+    let most = MAX_HIDDEN_NEURONS as usize;
+    let (mut ram, mut spare) = (ModelBuffer::<SLOT>::new(), ModelBuffer::<SLOT>::new());
+    let mut b = Bench::new(Flash::new(), ram.bytes(), spare.bytes());
+    let largest = compile(&calibration(nn(most)), 5, 0).unwrap();
+    assert_eq!(
+        b.upload(&largest, 5, 256),
+        Response::Committed { model_id: 5 }
+    );
+    // The same network with one more neuron: its bytes appended, the
+    // header's count, length and checksums made to agree.
+    let mut over = largest.clone();
+    over.extend_from_within(over.len() - NN_NEURON_LEN..);
+    let mut header = ModelHeader::parse(&over).unwrap();
+    header.hidden += 1;
+    header.model_id = 6;
+    header.body_len = (over.len() - HEADER_LEN) as u32;
+    header.body_crc32 = CRC32.checksum(&over[HEADER_LEN..]);
+    over[..HEADER_LEN].copy_from_slice(&header.to_bytes());
+    assert_eq!(
+        b.upload(&over, 6, 256),
+        Response::Error(DeviceError::BlobRejected(BlobRejection::OverBudget {
+            field: name("nn.hidden"),
+            found: most as u32 + 1,
+            most: most as u32,
+        }))
+    );
+    match b.request(&Request::GetInfo) {
+        Response::Info(Some(info)) => assert_eq!(info.header.model_id, 5),
+        other => panic!("{other:?}"),
+    }
+}
+
 #[test]
 fn bad_uploads_are_refused_with_the_reason() {
     let (mut ram, mut spare) = (ModelBuffer::<SLOT>::new(), ModelBuffer::<SLOT>::new());

@@ -57,6 +57,16 @@ pub enum CompileCmdError {
         #[source]
         error: spidar_core::blob::BlobCompileError,
     },
+    #[error(
+        "{}: does not compile: {error}; calibrate again: `spidar calibrate` keeps a correction within it \
+         (its SVR learns from at most that many points)",
+        file.display()
+    )]
+    CorrectionOverBudget {
+        file: PathBuf,
+        #[source]
+        error: spidar_core::blob::BlobCompileError,
+    },
     #[error("compiled blob does not parse back: {0}")]
     ParseBack(#[source] BlobError),
     #[error("compiled blob is not reproducible: two compilations differ at byte {at}")]
@@ -232,9 +242,17 @@ pub fn compile_checked(
     created_unix_s: u32,
     file: &Path,
 ) -> Result<Vec<u8>, CompileCmdError> {
-    let err = |error| CompileCmdError::Compile {
-        file: file.to_path_buf(),
-        error,
+    let err = |error| match error {
+        spidar_core::blob::BlobCompileError::Correction(
+            spidar_core::correction::CorrectionCompileError::OverBudget { .. },
+        ) => CompileCmdError::CorrectionOverBudget {
+            file: file.to_path_buf(),
+            error,
+        },
+        _ => CompileCmdError::Compile {
+            file: file.to_path_buf(),
+            error,
+        },
     };
     let blob = compile(calibration, model_id, created_unix_s).map_err(err)?;
     let again = compile(calibration, model_id, created_unix_s).map_err(err)?;

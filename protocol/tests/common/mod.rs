@@ -218,8 +218,13 @@ pub fn device_errors(max: bool) -> Vec<DeviceError> {
             dof: 3,
         }),
         DeviceError::BlobRejected(BlobRejection::InactiveString {
-            field,
+            field: field.clone(),
             string: if max { u8::MAX } else { 5 },
+        }),
+        DeviceError::BlobRejected(BlobRejection::OverBudget {
+            field,
+            found: w,
+            most: w,
         }),
         DeviceError::NotForceClosed {
             strings: if max { u8::MAX } else { 4 },
@@ -333,6 +338,7 @@ pub fn device_message_name(m: &DeviceMessage) -> &'static str {
                     BlobRejection::Body { .. } => "Error(Blob(Body))",
                     BlobRejection::TooFewStrings { .. } => "Error(Blob(TooFewStrings))",
                     BlobRejection::InactiveString { .. } => "Error(Blob(InactiveString))",
+                    BlobRejection::OverBudget { .. } => "Error(Blob(OverBudget))",
                 },
                 DeviceError::NotForceClosed { .. } => "Error(NotForceClosed)",
                 DeviceError::Storage { .. } => "Error(Storage)",
@@ -348,7 +354,7 @@ pub fn device_message_name(m: &DeviceMessage) -> &'static str {
     }
 }
 /// Distinct names `device_message_name` returns (BadState counted once).
-pub const DEVICE_MESSAGE_VARIANTS: usize = 36;
+pub const DEVICE_MESSAGE_VARIANTS: usize = 37;
 
 /// Encodes a raw postcard payload (seq + message bytes) into a frame, CRC and
 /// COBS included, bypassing the typed encoder (to build frames a correct

@@ -86,10 +86,28 @@ impl ResidualData {
     }
 }
 
-/// The residual NN and SVR, searched and trained on the fit part.
+/// The points of `inputs` (and their `targets`) the SVR learns from: at
+/// most [`CalibrateConfig::max_support_vectors`], spread evenly through the
+/// volume, so that its support vectors (a subset of them) fit the device's
+/// tick.
+fn svr_points(
+    inputs: &[[f64; 3]],
+    targets: &[[f64; 3]],
+    cfg: &CalibrateConfig,
+) -> (Thinning, Vec<[f64; 3]>, Vec<[f64; 3]>) {
+    let thinning = thin_evenly(inputs, cfg.max_support_vectors);
+    let x = subset(inputs, &thinning.indices);
+    let t = subset(targets, &thinning.indices);
+    (thinning, x, t)
+}
+
+/// The residual NN and SVR, searched and trained on the fit part (the SVR
+/// on at most [`CalibrateConfig::max_support_vectors`] of its points).
 pub(super) struct Learned {
     sweep: search::SweepResult,
     svr_search: search::SvrSearchResult,
+    /// The fit part's points the SVR learned from.
+    svr_thinning: Thinning,
     pub(super) nn: CorrectionModel,
     pub(super) svr: CorrectionModel,
 }
@@ -106,14 +124,15 @@ pub(super) fn train_corrections(
         .map_err(learn("NN hidden-size sweep"))?;
     timings.nn_s = t.elapsed().as_secs_f64();
     let t = Instant::now();
-    let svr_search =
-        search::svr_search(&data.x_fit, &data.t_fit, &cfg.svr).map_err(learn("SVR search"))?;
+    let (svr_thinning, x_svr, t_svr) = svr_points(&data.x_fit, &data.t_fit, cfg);
+    let svr_search = search::svr_search(&x_svr, &t_svr, &cfg.svr).map_err(learn("SVR search"))?;
     timings.svr_s = t.elapsed().as_secs_f64();
     let nn = CorrectionModel::Nn(sweep.fit.model.clone());
     let svr = CorrectionModel::Svr(svr_search.fit.model.clone());
     Ok(Learned {
         sweep,
         svr_search,
+        svr_thinning,
         nn,
         svr,
     })
@@ -296,7 +315,8 @@ pub(super) fn hold_to_reference(
 /// The chosen correction refitted on all the training points it learns
 /// from (the kept ones, thinned when there are more than
 /// [`CalibrateConfig::max_learning_points`]) with the hyperparameters the
-/// search found (none for the identified model).
+/// search found (none for the identified model); the SVR on at most
+/// [`CalibrateConfig::max_support_vectors`] of them.
 fn refit_chosen(
     choice: report::Choice,
     data: &ResidualData,
@@ -326,9 +346,10 @@ fn refit_chosen(
             CorrectionModel::Nn(fit?.model)
         }
         report::Choice::Svr => {
+            let (_, x_svr, t_svr) = svr_points(x_kept, t_kept, cfg);
             let fit = svr::train(
-                x_kept,
-                t_kept,
+                &x_svr,
+                &t_svr,
                 &SvrConfig {
                     params: learned.svr_search.best,
                     solver: cfg.svr.solver,
@@ -415,6 +436,7 @@ pub(super) fn residual_report(data: &ResidualData, learned: &Learned) -> report:
         learning_points: report::LearningPoints::of(&data.thinning, data.pairs.train_inputs.len()),
         nn: report::NnReport::of(&learned.sweep),
         svr: report::SvrReport::of(&learned.svr_search),
+        svr_learning_points: report::LearningPoints::of(&learned.svr_thinning, data.x_fit.len()),
     }
 }
 

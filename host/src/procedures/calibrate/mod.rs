@@ -150,6 +150,13 @@ pub struct CalibrateConfig {
     /// the NN's steps stay as measured on it, and the learners' time stays
     /// bounded however long the session.
     pub max_learning_points: usize,
+    /// Most points the SVR learns from, of the fit part in the search and of
+    /// the fit part and the selection split together in the final refit,
+    /// thinned evenly like the learning points: its support vectors are
+    /// among them, and the device evaluates at most
+    /// [`MAX_SUPPORT_VECTORS`](spidar_core::correction::MAX_SUPPORT_VECTORS)
+    /// within its control loop's tick (the default).
+    pub max_support_vectors: usize,
     /// Most training rows the identification loop decides on (the anchors'
     /// tolerance, which effects to add, the kinematics' rule): a longer
     /// session is read one row in every k, in time order
@@ -206,6 +213,7 @@ impl CalibrateConfig {
             nn,
             svr,
             max_learning_points: 2500,
+            max_support_vectors: spidar_core::correction::MAX_SUPPORT_VECTORS as usize,
             max_loop_rows: 4000,
             selection_fraction: 0.2,
             min_correction_gain: 0.01,

@@ -377,6 +377,12 @@ pub struct Corrections {
     pub learning_points: LearningPoints,
     pub nn: NnReport,
     pub svr: SvrReport,
+    /// The fit part's points the SVR's search learned from: at most the
+    /// support vectors the device evaluates within its tick
+    /// (`spidar_core::correction::MAX_SUPPORT_VECTORS`), thinned evenly like
+    /// the learning points; the final refit thins the fit part and the
+    /// selection split together the same way.
+    pub svr_learning_points: LearningPoints,
 }
 
 /// How many of the kept training points a correction learns from: all of

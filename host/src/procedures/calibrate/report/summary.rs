@@ -229,9 +229,9 @@ impl Report {
         }
     }
 
-    /// The residual corrections and the choice of the final stage.
-    fn write_corrections(&self, o: &mut String) {
-        let s = &self.selection;
+    /// The rules the identification chose: the kinematics', the loop's
+    /// rows, the anchors' tolerance.
+    fn write_identification_rules(&self, o: &mut String) {
         let k = &self.kinematics;
         let _ = writeln!(
             o,
@@ -270,6 +270,12 @@ impl Report {
             num(t.anchor_sd_mm[0]),
             t.reason
         );
+    }
+
+    /// The residual corrections and the choice of the final stage.
+    fn write_corrections(&self, o: &mut String) {
+        self.write_identification_rules(o);
+        let s = &self.selection;
         let Some(c) = &self.corrections else {
             let _ = writeln!(
                 o,
@@ -310,6 +316,16 @@ impl Report {
             c.svr.best.gamma,
             c.svr.support_vectors
         );
+        if let Some(cell) = c.svr_learning_points.cell_mm {
+            let _ = writeln!(
+                o,
+                "  svr: learned from {} of the {} fit points, one per {:.1} mm cell: the device evaluates at most {} support vectors within its control loop's tick",
+                c.svr_learning_points.used,
+                c.svr_learning_points.kept,
+                cell,
+                spidar_core::correction::MAX_SUPPORT_VECTORS
+            );
+        }
         let why = match s.choice {
             Choice::Identified if s.selection_points < MIN_SELECTION_POINTS => format!(
                 "the identified model alone: corrections are not chosen on fewer than {} points, \
