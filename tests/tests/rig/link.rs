@@ -245,19 +245,26 @@ fn a_blob_the_device_refuses_leaves_the_old_model() {
 }
 
 #[test]
-fn a_blob_larger_than_the_firmware_capacity_is_refused() {
+fn a_blob_larger_than_the_device_s_capacity_is_refused() {
+    // Every blob within the correction's tick budget (decision record 0068)
+    // fits the reference firmware's 96 KiB, so the refusal is shown on a
+    // device that takes less: 8 KiB, and a 400-neuron network (11 KiB).
     let dev = sim_device();
+    let capacity = 8 * 1024;
     let vd = spawn(
         VirtualDeviceConfig {
-            blob_capacity: spidar::sim::virtual_device::FIRMWARE_BLOB_CAPACITY,
+            blob_capacity: capacity,
             ..VirtualDeviceConfig::default()
         },
         Plant::new(dev.clone(), Trajectory::Hold),
     )
     .unwrap();
     let mut c = Client::open_with(vd.port_path(), ClientOptions::for_simulated_device()).unwrap();
-    let capacity = spidar::sim::virtual_device::FIRMWARE_BLOB_CAPACITY;
-    let big = blob(&dev, nn(3600), 3);
+    let big = blob(
+        &dev,
+        nn(spidar_core::correction::MAX_HIDDEN_NEURONS as usize),
+        3,
+    );
     assert!(big.len() > capacity);
     let e = c.flash(&big, |_| {}).unwrap_err();
     assert!(
