@@ -285,6 +285,19 @@ impl<'a> CompiledCalibration<'a> {
                     .map_err(|_| BlobError::Body { field: "laws" })?;
             }
         }
+        let tick = crate::tick_cost::tick_instructions(
+            &head,
+            header.kind,
+            header.hidden,
+            header.support_vectors,
+        );
+        if tick > crate::tick_cost::TICK_BUDGET {
+            return Err(BlobError::OverBudget {
+                field: "tick",
+                found: tick,
+                most: crate::tick_cost::TICK_BUDGET,
+            });
+        }
         let correction = Correction::parse(
             header.kind,
             header.hidden,
@@ -356,6 +369,13 @@ mod compiler {
         HomeSlip {
             index: usize,
             problem: HomeSlipProblem,
+        },
+        /// The model's tick is estimated to take more instructions than the
+        /// device has in one ([`crate::tick_cost`]): its effect terms, slips
+        /// and correction together.
+        TickOverBudget {
+            instructions: u32,
+            most: u32,
         },
         /// The body could not be encoded (should not happen).
         Encode,
@@ -436,6 +456,12 @@ mod compiler {
                 BlobCompileError::HomeSlip { index, problem } => {
                     write!(f, "`home.slips[{index}]` {problem}")
                 }
+                BlobCompileError::TickOverBudget { instructions, most } => write!(
+                    f,
+                    "the device's control loop would take an estimated {instructions} \
+                     instructions a tick with this model, over the {most} it has: fewer effect \
+                     terms or a smaller correction"
+                ),
                 BlobCompileError::Encode => write!(f, "blob body could not be encoded"),
             }
         }
@@ -617,6 +643,18 @@ mod compiler {
             .correction
             .compile()
             .map_err(BlobCompileError::Correction)?;
+        let tick = crate::tick_cost::tick_instructions(
+            &head,
+            correction.kind,
+            correction.hidden,
+            correction.support_vectors,
+        );
+        if tick > crate::tick_cost::TICK_BUDGET {
+            return Err(BlobCompileError::TickOverBudget {
+                instructions: tick,
+                most: crate::tick_cost::TICK_BUDGET,
+            });
+        }
         let mut body = postcard::to_allocvec(&head).map_err(|_| BlobCompileError::Encode)?;
         body.resize(body.len() + correction_padding(HEADER_LEN + body.len()), 0);
         body.extend_from_slice(&correction.bytes);

@@ -44,6 +44,7 @@ pub mod string_law;
 pub mod tension;
 #[cfg(test)]
 pub(crate) mod test_fixtures;
+pub mod tick_cost;
 pub mod time_base;
 
 // With the `defmt` feature, the errors a firmware may log are defmt::Format,

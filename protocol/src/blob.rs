@@ -163,8 +163,10 @@ pub enum BlobError<F = &'static str> {
         field: F,
         string: u8,
     },
-    /// A correction larger than the device evaluates within its control
-    /// tick (`field` is `svr.support_vectors` or `nn.hidden`): it would
+    /// A model larger than the device runs within its control loop's tick:
+    /// `field` is `svr.support_vectors` or `nn.hidden` (a correction beyond
+    /// the most the device takes), or `tick` (the instructions the model's
+    /// tick is estimated to take, `spidar-core::tick_cost`). It would
     /// overrun the 10 kHz loop.
     OverBudget {
         field: F,
@@ -219,7 +221,7 @@ impl<F: core::fmt::Display> core::fmt::Display for BlobError<F> {
             ),
             Self::OverBudget { field, found, most } => write!(
                 f,
-                "model blob field `{field}` is {found}: the device evaluates a correction of at most {most} within its control loop's tick"
+                "model blob field `{field}` is {found}, over the {most} the device runs within its control loop's tick"
             ),
         }
     }

@@ -26,3 +26,6 @@ pub fn fixtures() -> Fixtures<'static> {
         planar_blob: out_bytes!("planar.blob"),
     }
 }
+
+// The tick's cost models (`models::cost_models`), `COST_MODELS`.
+include!(concat!(env!("OUT_DIR"), "/cost_models.rs"));

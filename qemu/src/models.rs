@@ -247,3 +247,44 @@ pub fn four_line_blob() -> Vec<u8> {
 pub fn planar_blob() -> Vec<u8> {
     compile(&planar(CorrectionModel::Nn(nn_model())), 4)
 }
+
+/// The tick's cost model (`spidar_core::tick_cost`): what a tick costs with
+/// the benchmark's frame and layered laws and nothing else (`bare`: no
+/// effect term, no slip, no correction), and what each family of effect
+/// terms and the training slips add to it. One model per line: the bare
+/// one; the bare one with the benchmark model's term of a family on each of
+/// the 8 strings, or as one term every string shares (the families that
+/// take it); with the most training slips a blob takes. Names and blobs.
+pub fn cost_models() -> Vec<(String, Vec<u8>)> {
+    let mut bare = calibration(CorrectionModel::None);
+    let terms = std::mem::take(&mut bare.effects);
+    bare.home = None;
+    let named = |what: &str| format!("tick cost, Controller::step: {what}");
+    let mut out = vec![(named("bare model"), compile(&bare, 100))];
+    let mut seen: Vec<String> = Vec::new();
+    for term in &terms {
+        let debug = format!("{:?}", term.effect);
+        let family = debug.split([' ', '{']).next().unwrap_or("?").to_string();
+        if seen.contains(&family) {
+            continue;
+        }
+        seen.push(family.clone());
+        // A family that does not take a shared term (or one per string)
+        // does not compile so: that line is left out.
+        let on = |strings: Vec<u8>, id: usize| {
+            let mut c = bare.clone();
+            c.effects = strings.into_iter().map(|string| EffectTerm { string, effect: term.effect }).collect();
+            spidar_core::blob::compile(&c, 100 + id as u32, 0).ok()
+        };
+        if let Some(blob) = on((0..STRINGS as u8).collect(), out.len()) {
+            out.push((named(&format!("{family} on each of 8 strings")), blob));
+        }
+        if let Some(blob) = on(vec![EVERY_STRING], out.len()) {
+            out.push((named(&format!("{family} shared")), blob));
+        }
+    }
+    let mut slips = bare.clone();
+    slips.home = Some(home_slips(|k| k as u8));
+    out.push((named(&format!("{MAX_HOME_SLIPS} training slips")), compile(&slips, 99)));
+    out
+}

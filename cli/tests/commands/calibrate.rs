@@ -616,6 +616,15 @@ fn a_chosen_correction_is_refitted_and_stored() {
         svr_points.used, svr_points.kept
     )));
     spidar_core::blob::compile(&c.calibration, 1, 0).expect("the calibration compiles");
+    // The report says what the device's tick takes with it, within budget.
+    let tick = r.selection.device_tick.expect("the tick estimated");
+    assert_eq!(tick.room.budget, spidar_core::tick_cost::TICK_BUDGET);
+    assert!(svr_points.used <= tick.room.support_vectors as usize);
+    let final_tick = tick.final_instructions.expect("compiles");
+    assert!(tick.room.model_instructions < final_tick && final_tick <= tick.room.budget);
+    assert!(r
+        .summary()
+        .contains(&format!("an estimated {final_tick} of the")));
     let last = r.stages.last().unwrap();
     assert!(last.test.mean_mm <= TEST_MEAN_MAX_MM && last.test.max_mm <= TEST_MAX_MAX_MM);
 }

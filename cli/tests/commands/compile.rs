@@ -265,3 +265,54 @@ fn a_correction_the_device_cannot_evaluate_within_its_tick_does_not_compile() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// A model whose effect terms alone would overrun the device's tick (eight
+/// guide pulleys every string shares) does not compile: the error names the
+/// file and the estimated instructions against the budget; seven compile,
+/// and `spidar compile` says what their tick takes.
+#[test]
+fn a_model_whose_tick_would_overrun_does_not_compile() {
+    use spidar_core::model::{Effect, EffectTerm, EVERY_STRING};
+    use spidar_core::tick_cost::TICK_BUDGET;
+    let dir = temp_dir("tick-budget");
+    let guides = |n: usize| {
+        let mut c = cube();
+        c.effects = vec![
+            EffectTerm {
+                string: EVERY_STRING,
+                effect: Effect::Guide { radius_mm: 10.0 },
+            };
+            n
+        ];
+        c
+    };
+    let cal = write(&dir, "eight.json", &guides(8));
+    let blob = dir.join("eight.blob");
+    let err = failure(&spidar(&[
+        "compile",
+        "--calibration",
+        s(&cal),
+        "--out",
+        s(&blob),
+    ]));
+    assert!(
+        err.contains("eight.json")
+            && err.contains("instructions a tick")
+            && err.contains(&format!("over the {TICK_BUDGET}")),
+        "{err}"
+    );
+    assert!(!blob.exists(), "a blob was written");
+    let cal = write(&dir, "seven.json", &guides(7));
+    let blob = dir.join("seven.blob");
+    let o = spidar(&["compile", "--calibration", s(&cal), "--out", s(&blob)]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        out.contains(&format!(
+            "an estimated {} of the {TICK_BUDGET}",
+            16_270 + 7 * 5_340
+        )),
+        "{out}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}

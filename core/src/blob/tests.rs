@@ -671,3 +671,43 @@ fn a_calibration_without_home_slips_reads_and_writes_as_before() {
     assert!(json.contains("\"home\":{\"home_id\":"), "{json}");
     assert_eq!(serde_json::from_str::<Calibration>(&json).unwrap(), with);
 }
+
+/// A model whose tick the device could not run within its budget neither
+/// compiles nor loads (`tick_cost`): seven guides every string shares fit
+/// (16,270 + 7 x 5,340 instructions), an eighth does not; the same blob
+/// from another tool is refused at load, by the estimate.
+#[test]
+fn a_model_over_the_tick_budget_neither_compiles_nor_loads() {
+    use crate::tick_cost::{tick_instructions, TICK_BUDGET};
+    let guide = EffectTerm {
+        string: crate::model::EVERY_STRING,
+        effect: Effect::Guide { radius_mm: 10.0 },
+    };
+    let mut cal = calibration();
+    cal.effects = alloc::vec![guide; 7];
+    let blob = compile(&cal, 7, 0).unwrap();
+    let c = CompiledCalibration::from_blob(&blob).unwrap();
+    let fits = tick_instructions(&c.head, CorrectionKind::None, 0, 0);
+    assert_eq!(fits, 16_270 + 7 * 5_340);
+    cal.effects.push(guide);
+    assert_eq!(
+        compile(&cal, 7, 0),
+        Err(BlobCompileError::TickOverBudget {
+            instructions: fits + 5_340,
+            most: TICK_BUDGET
+        })
+    );
+    let (_, body) = split_blob(&blob).unwrap();
+    let (head, rest) = split_body(body).unwrap();
+    let mut h = head.clone();
+    h.effects.push(h.effects[0]).unwrap();
+    let over = with_header(&with_head(&blob, &h, rest), |m| m.effects += 1);
+    assert_eq!(
+        CompiledCalibration::from_blob(&over),
+        Err(BlobError::OverBudget {
+            field: "tick",
+            found: fits + 5_340,
+            most: TICK_BUDGET
+        })
+    );
+}

@@ -58,11 +58,11 @@ pub enum CompileCmdError {
         error: spidar_core::blob::BlobCompileError,
     },
     #[error(
-        "{}: does not compile: {error}; calibrate again: `spidar calibrate` keeps a correction within it \
-         (its SVR learns from at most that many points)",
+        "{}: does not compile: {error}; calibrate again: `spidar calibrate` sizes its correction to \
+         what the model leaves of the device's tick",
         file.display()
     )]
-    CorrectionOverBudget {
+    TickBudget {
         file: PathBuf,
         #[source]
         error: spidar_core::blob::BlobCompileError,
@@ -234,6 +234,64 @@ pub fn model_id_of(calibration: &Calibration) -> u32 {
     CRC32.checksum(&json)
 }
 
+/// What the device's tick leaves a position correction beside a model
+/// (`spidar_core::tick_cost`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+pub struct TickRoom {
+    /// The model's tick without a correction, with the most training slips
+    /// a blob takes (the calibration's are found after the corrections),
+    /// estimated instructions.
+    pub model_instructions: u32,
+    /// The device's budget (instructions a tick).
+    pub budget: u32,
+    /// The most support vectors an SVR may have beside it.
+    pub support_vectors: u32,
+    /// The most hidden neurons an NN may have beside it.
+    pub neurons: u16,
+}
+
+impl TickRoom {
+    /// The room beside `calibration`'s frame, laws and effect terms (its
+    /// correction and slips are not read); `None` when they do not compile
+    /// for another reason than the budget.
+    pub fn beside(calibration: &Calibration) -> Option<TickRoom> {
+        use spidar_core::tick_cost;
+        let mut model = calibration.clone();
+        model.correction = spidar_core::correction::CorrectionModel::None;
+        model.home = None;
+        let terms = tick_instructions(&model)?;
+        let slips = tick_cost::PER_SLIP * spidar_core::model::MAX_HOME_SLIPS as u32;
+        let model_instructions = terms.saturating_add(slips);
+        Some(TickRoom {
+            model_instructions,
+            budget: tick_cost::TICK_BUDGET,
+            support_vectors: tick_cost::support_vectors_left(model_instructions),
+            neurons: tick_cost::neurons_left(model_instructions),
+        })
+    }
+}
+
+/// The instructions the device's tick is estimated to take with
+/// `calibration` (`spidar_core::tick_cost`): also when over the budget;
+/// `None` when it does not compile for another reason.
+pub fn tick_instructions(calibration: &Calibration) -> Option<u32> {
+    match compile(calibration, 0, 0) {
+        Ok(blob) => {
+            let c = CompiledCalibration::from_blob(&blob).ok()?;
+            Some(spidar_core::tick_cost::tick_instructions(
+                &c.head,
+                c.header.kind,
+                c.header.hidden,
+                c.header.support_vectors,
+            ))
+        }
+        Err(spidar_core::blob::BlobCompileError::TickOverBudget { instructions, .. }) => {
+            Some(instructions)
+        }
+        Err(_) => None,
+    }
+}
+
 /// Compiles `calibration` and checks the blob with the device's parser and
 /// a second compilation (bit for bit).
 pub fn compile_checked(
@@ -242,10 +300,12 @@ pub fn compile_checked(
     created_unix_s: u32,
     file: &Path,
 ) -> Result<Vec<u8>, CompileCmdError> {
+    use spidar_core::blob::BlobCompileError;
     let err = |error| match error {
-        spidar_core::blob::BlobCompileError::Correction(
+        BlobCompileError::Correction(
             spidar_core::correction::CorrectionCompileError::OverBudget { .. },
-        ) => CompileCmdError::CorrectionOverBudget {
+        )
+        | BlobCompileError::TickOverBudget { .. } => CompileCmdError::TickBudget {
             file: file.to_path_buf(),
             error,
         },
@@ -305,6 +365,9 @@ pub struct CompileReport {
     /// and why ([`LaterHome::under`]); `None` without a test session or
     /// without home slips.
     pub test_home: Option<LaterHome>,
+    /// The device's tick with the blob, estimated instructions
+    /// (`spidar_core::tick_cost`, within its budget or it would not compile).
+    pub tick_instructions: u32,
 }
 
 impl std::fmt::Display for CompileReport {
@@ -331,6 +394,12 @@ impl std::fmt::Display for CompileReport {
             } else {
                 "TOO LARGE for the firmware"
             }
+        )?;
+        writeln!(
+            f,
+            "device control loop: an estimated {} of the {} instructions it has a tick",
+            self.tick_instructions,
+            spidar_core::tick_cost::TICK_BUDGET
         )?;
         if let Some(h) = &self.home_slips {
             writeln!(f, "{h}")?;
@@ -447,6 +516,12 @@ pub fn run_compile(args: &CompileRequest) -> Result<CompileReport, CompileCmdErr
         budget_mm: args.budget_mm,
         home_slips: describe_home_slips(&parsed),
         test_home,
+        tick_instructions: spidar_core::tick_cost::tick_instructions(
+            &parsed.head,
+            parsed.header.kind,
+            parsed.header.hidden,
+            parsed.header.support_vectors,
+        ),
     };
     let refusal = over_budget(&report);
     if refusal.is_none() || args.write_over_budget {

@@ -215,7 +215,22 @@ fn main() -> ! {
         for (i, r) in raw.iter().take(WARM).enumerate() {
             dev.tick(&TickInput { raw_counts: *r, now_us: i as u64 * 100, estop: false });
         }
-        measure(name, Some(55_000), N as u32, |i| {
+        // The target is the tick the cost model estimates for this blob (at
+        // most the budget, or the device would have refused it): the
+        // measured tick must not exceed it.
+        let estimate = spidar_core::tick_cost::tick_instructions(
+            &cal.head,
+            cal.header.kind,
+            cal.header.hidden,
+            cal.header.support_vectors,
+        );
+        hprintln!(
+            "INFO\t{}: estimated {} instructions a tick (spidar_core::tick_cost), budget {}",
+            name,
+            estimate,
+            spidar_core::tick_cost::TICK_BUDGET
+        );
+        measure(name, Some(estimate), N as u32, |i| {
             let i = WARM as u32 + i;
             let out = dev.tick(&TickInput { raw_counts: raw[i as usize], now_us: u64::from(i) * 100, estop: false });
             fk_ok += (out.fk_status == spidar_core::kinematics::FkStatus::Ok) as u32;
@@ -338,6 +353,31 @@ fn main() -> ! {
             lp.tensions
         });
         hprintln!("INFO\t{}: FK status Ok in {} of {} iterations", name, fk_ok, N);
+    }
+
+    // The tick's cost model (`spidar_core::tick_cost`): Controller::step
+    // on the path above with the bare model and with each family's terms
+    // (`models::cost_models`); a family's cost is its row's max less the
+    // bare row's. Informative rows: the Device::tick rows above check the
+    // estimate these figures make.
+    for (name, blob) in spidar_qemu::fixtures::COST_MODELS {
+        let Ok(cal) = spidar_core::blob::CompiledCalibration::from_blob(blob) else {
+            hprintln!("FAIL: cost model {} does not parse", name);
+            exit(false)
+        };
+        let raw = controller_path(&cal);
+        let Ok(mut ctl) = Controller::new(ControlConfig::default(), &cal, [0; STRINGS], 0) else { exit(false) };
+        ctl.set_home_id(training_home(&cal));
+        ctl.set_target(Target::Guidance { target_mm: [100.0, -50.0, 1600.0], d_min_mm: 150.0, f_max_n: 5.0 });
+        ctl.safety().heartbeat(0);
+        let _ = ctl.safety().arm();
+        warm_up(&mut ctl, &cal, &raw);
+        measure(name, None, N as u32, |i| {
+            let i = WARM as u32 + i;
+            ctl.safety().heartbeat(i / 10);
+            ctl.step(&cal, &LoopInput { raw_counts: raw[i as usize], now_ms: i / 10, now_us: i * 100, estop: false })
+                .tensions_n
+        });
     }
 
     hprintln!("BENCH_DONE");

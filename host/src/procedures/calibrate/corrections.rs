@@ -9,6 +9,7 @@ use spidar_core::correction::CorrectionModel;
 
 use crate::data::observe::Observation;
 use crate::data::stats::ErrorStats;
+use crate::model::compile::TickRoom;
 use crate::model::diagnose::tail_noise;
 use crate::model::learn::nn::{self, NnConfig};
 use crate::model::learn::outliers;
@@ -86,45 +87,96 @@ impl ResidualData {
     }
 }
 
+/// How large the learned corrections may be: what the device's tick leaves
+/// beside the identified model ([`TickRoom`]), and at most
+/// [`CalibrateConfig::max_support_vectors`] support vectors.
+#[derive(Clone, Copy, Debug)]
+pub(super) struct CorrectionLimits {
+    /// Most points the SVR learns from (its support vectors are among them).
+    pub(super) support_vectors: usize,
+    /// Largest hidden size the NN sweep tries.
+    pub(super) neurons: usize,
+    pub(super) room: Option<TickRoom>,
+}
+
+/// Fewest points the SVR search takes (`validate_pairs` in the learners).
+const MIN_SVR_POINTS: usize = 10;
+
+impl CorrectionLimits {
+    /// The limits beside the model `room` describes (`None`: a model that
+    /// does not compile, which `spidar compile` will name; only the
+    /// configured cap then).
+    pub(super) fn of(room: Option<TickRoom>, cfg: &CalibrateConfig) -> CorrectionLimits {
+        CorrectionLimits {
+            support_vectors: room.map_or(cfg.max_support_vectors, |r| {
+                cfg.max_support_vectors.min(r.support_vectors as usize)
+            }),
+            neurons: room.map_or(usize::MAX, |r| usize::from(r.neurons)),
+            room,
+        }
+    }
+
+    /// Why no correction can be learned beside this model: the tick has no
+    /// room for the smallest NN of the sweep or for an SVR.
+    pub(super) fn no_room(&self, cfg: &CalibrateConfig) -> Option<String> {
+        let room = self.room?;
+        let smallest = cfg.nn.sizes.iter().copied().min().unwrap_or(1);
+        (smallest > self.neurons || self.support_vectors < MIN_SVR_POINTS).then(|| {
+            format!(
+                "identification only: the model's tick is estimated at {} of the device's {} \
+                 instructions, which leaves room for {} hidden neurons and {} support vectors, \
+                 too few for a correction (the smallest NN has {smallest} neurons, an SVR needs \
+                 {MIN_SVR_POINTS} points)",
+                room.model_instructions, room.budget, room.neurons, room.support_vectors
+            )
+        })
+    }
+}
+
 /// The points of `inputs` (and their `targets`) the SVR learns from: at
-/// most [`CalibrateConfig::max_support_vectors`], spread evenly through the
-/// volume, so that its support vectors (a subset of them) fit the device's
-/// tick.
+/// most `limits.support_vectors`, spread evenly through the volume, so that
+/// its support vectors (a subset of them) fit the device's tick.
 fn svr_points(
     inputs: &[[f64; 3]],
     targets: &[[f64; 3]],
-    cfg: &CalibrateConfig,
+    limits: &CorrectionLimits,
 ) -> (Thinning, Vec<[f64; 3]>, Vec<[f64; 3]>) {
-    let thinning = thin_evenly(inputs, cfg.max_support_vectors);
+    let thinning = thin_evenly(inputs, limits.support_vectors);
     let x = subset(inputs, &thinning.indices);
     let t = subset(targets, &thinning.indices);
     (thinning, x, t)
 }
 
-/// The residual NN and SVR, searched and trained on the fit part (the SVR
-/// on at most [`CalibrateConfig::max_support_vectors`] of its points).
+/// The residual NN and SVR, searched and trained on the fit part within
+/// the [`CorrectionLimits`] (the SVR on at most their support vectors of
+/// its points, the NN's sweep up to their neurons).
 pub(super) struct Learned {
     sweep: search::SweepResult,
     svr_search: search::SvrSearchResult,
     /// The fit part's points the SVR learned from.
     svr_thinning: Thinning,
+    limits: CorrectionLimits,
     pub(super) nn: CorrectionModel,
     pub(super) svr: CorrectionModel,
 }
 
 /// Stage 4: the NN hidden-size sweep and the SVR search on the fit part
-/// (their times into `timings`).
+/// (their times into `timings`), within `limits` (which
+/// [`CorrectionLimits::no_room`] found room in).
 pub(super) fn train_corrections(
     data: &ResidualData,
     cfg: &CalibrateConfig,
+    limits: CorrectionLimits,
     timings: &mut report::Timings,
 ) -> Result<Learned, CalibrateError> {
     let t = Instant::now();
-    let sweep = search::nn_sweep(&data.x_fit, &data.t_fit, &cfg.nn)
+    let mut nn_cfg = cfg.nn.clone();
+    nn_cfg.sizes.retain(|&h| h <= limits.neurons);
+    let sweep = search::nn_sweep(&data.x_fit, &data.t_fit, &nn_cfg)
         .map_err(learn("NN hidden-size sweep"))?;
     timings.nn_s = t.elapsed().as_secs_f64();
     let t = Instant::now();
-    let (svr_thinning, x_svr, t_svr) = svr_points(&data.x_fit, &data.t_fit, cfg);
+    let (svr_thinning, x_svr, t_svr) = svr_points(&data.x_fit, &data.t_fit, &limits);
     let svr_search = search::svr_search(&x_svr, &t_svr, &cfg.svr).map_err(learn("SVR search"))?;
     timings.svr_s = t.elapsed().as_secs_f64();
     let nn = CorrectionModel::Nn(sweep.fit.model.clone());
@@ -133,6 +185,7 @@ pub(super) fn train_corrections(
         sweep,
         svr_search,
         svr_thinning,
+        limits,
         nn,
         svr,
     })
@@ -315,8 +368,8 @@ pub(super) fn hold_to_reference(
 /// The chosen correction refitted on all the training points it learns
 /// from (the kept ones, thinned when there are more than
 /// [`CalibrateConfig::max_learning_points`]) with the hyperparameters the
-/// search found (none for the identified model); the SVR on at most
-/// [`CalibrateConfig::max_support_vectors`] of them.
+/// search found (none for the identified model); the SVR on at most the
+/// [`CorrectionLimits`]' support vectors of them.
 fn refit_chosen(
     choice: report::Choice,
     data: &ResidualData,
@@ -346,7 +399,7 @@ fn refit_chosen(
             CorrectionModel::Nn(fit?.model)
         }
         report::Choice::Svr => {
-            let (_, x_svr, t_svr) = svr_points(x_kept, t_kept, cfg);
+            let (_, x_svr, t_svr) = svr_points(x_kept, t_kept, &learned.limits);
             let fit = svr::train(
                 &x_svr,
                 &t_svr,
@@ -421,6 +474,7 @@ pub(super) fn selection_report(
             CorrectionModel::Nn(m) => Some(m.w1.len()),
             _ => None,
         },
+        device_tick: None,
     }
 }
 
@@ -498,5 +552,47 @@ impl Run<'_> {
         let final_corr = refit_chosen(judgement.choice, data, learned, &self.cfg)?;
         self.timings.selection_s = t.elapsed().as_secs_f64();
         Ok((judgement, final_corr))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn room(model_instructions: u32) -> TickRoom {
+        TickRoom {
+            model_instructions,
+            budget: spidar_core::tick_cost::TICK_BUDGET,
+            support_vectors: spidar_core::tick_cost::support_vectors_left(model_instructions),
+            neurons: spidar_core::tick_cost::neurons_left(model_instructions),
+        }
+    }
+
+    /// The learned corrections are as large as the tick leaves them beside
+    /// the model, and not learned at all where it leaves too little: the
+    /// reason says how much there was.
+    #[test]
+    fn corrections_are_sized_to_the_room_the_tick_leaves() {
+        let cfg = CalibrateConfig::full();
+        let roomy = CorrectionLimits::of(Some(room(20_000)), &cfg);
+        assert_eq!(roomy.support_vectors, cfg.max_support_vectors);
+        assert_eq!(roomy.neurons, 400);
+        assert_eq!(roomy.no_room(&cfg), None);
+        let tight = CorrectionLimits::of(Some(room(50_000)), &cfg);
+        assert_eq!(tight.support_vectors, 200);
+        assert_eq!(tight.neurons, 77);
+        assert_eq!(tight.no_room(&cfg), None);
+        // Room for two neurons: the sweep's smallest has three.
+        let full = CorrectionLimits::of(Some(room(54_700)), &cfg);
+        let why = full.no_room(&cfg).expect("no room");
+        assert!(
+            why.contains("54700 of the device's 55000")
+                && why.contains("room for 1 hidden neurons"),
+            "{why}"
+        );
+        // A model that does not compile: only the configured cap.
+        let unknown = CorrectionLimits::of(None, &cfg);
+        assert_eq!(unknown.support_vectors, cfg.max_support_vectors);
+        assert_eq!(unknown.no_room(&cfg), None);
     }
 }

@@ -70,6 +70,7 @@ use crate::data::dataset::{DatasetError, Geometry, Session};
 use crate::data::impossible::SetAside;
 use crate::data::observe::Observation;
 use crate::data::stats::{ErrorStats, StatsError};
+use crate::model::compile::TickRoom;
 use crate::model::diagnose::{LoopConfig, LoopResult};
 use crate::model::identify::IdentifyError;
 use crate::model::learn::search::{SvrSearchConfig, SweepConfig};
@@ -79,7 +80,7 @@ use crate::model::predict::predict;
 use checks::{checked_sessions, declared_tolerance_warning, reference_warning, trust_warnings};
 use corrections::{
     hold_to_reference, identification_only, learner_warnings, residual_report, selection_report,
-    train_corrections, Learned, ResidualData,
+    train_corrections, CorrectionLimits, Learned, ResidualData,
 };
 use evaluate::{correction_errors, point_error_list, tracked_pairs, PerSession};
 use identified::{FinalIdentified, IdentifiedModel, ReferenceModel};
@@ -363,6 +364,8 @@ struct Corrected {
     fall_back: bool,
     selection: report::Selection,
     corrections: Option<report::Corrections>,
+    /// What the device's tick left a correction beside the identified model.
+    room: Option<TickRoom>,
 }
 
 impl Run<'_> {
@@ -381,9 +384,29 @@ impl Run<'_> {
 
         // 4. Residual corrections on top of the final identified model (a
         // session too small for the loop is too small for them).
+        // No larger than the device's tick leaves them beside the model.
         let data = ResidualData::of(obs, positions, &self.cfg)?;
-        let learned = if model.regime.full {
-            Some(train_corrections(&data, &self.cfg, &mut self.timings)?)
+        let room = TickRoom::beside(&calibration_of(
+            &model.final_identified.new_session,
+            CorrectionModel::None,
+        ));
+        let limits = CorrectionLimits::of(room, &self.cfg);
+        let no_room = limits.no_room(&self.cfg);
+        if let Some(r) = room.filter(|r| r.model_instructions > r.budget) {
+            self.warnings.push(format!(
+                "the device's control loop would take an estimated {} instructions a tick with \
+                 this model's effect terms alone, over the {} it has: `spidar compile` will \
+                 refuse it (fewer terms: a simpler model)",
+                r.model_instructions, r.budget
+            ));
+        }
+        let learned = if model.regime.full && no_room.is_none() {
+            Some(train_corrections(
+                &data,
+                &self.cfg,
+                limits,
+                &mut self.timings,
+            )?)
         } else {
             None
         };
@@ -392,7 +415,10 @@ impl Run<'_> {
         let (mut judgement, mut final_corr) = match &learned {
             Some(learned) => self.choose_final_model(&data, learned)?,
             None => (
-                identification_only(&data, model.regime.reason.clone().unwrap_or_default()),
+                identification_only(
+                    &data,
+                    model.regime.reason.clone().or(no_room).unwrap_or_default(),
+                ),
                 CorrectionModel::None,
             ),
         };
@@ -413,6 +439,7 @@ impl Run<'_> {
             fall_back,
             selection,
             corrections,
+            room,
         })
     }
 
@@ -622,13 +649,17 @@ pub fn calibrate(
         corrected.fall_back,
     );
     calibration.home = device_slips.home_slips();
+    let mut selection = corrected.selection;
+    selection.device_tick = corrected
+        .room
+        .map(|room| report::DeviceTick::of(room, &calibration));
     run.timings.calibration_s = t_start.elapsed().as_secs_f64();
     let report = run.report(Findings {
         timing,
         stages: list.stages,
         loop_result: &loop_result,
         rejections,
-        selection: corrected.selection,
+        selection,
         corrections: corrected.corrections,
         kinematics: rule,
         anchor_tolerance: tolerance,
@@ -686,15 +717,7 @@ fn final_model(
     } else {
         (final_identified.new_session, final_identified.rejections)
     };
-    let calibration = Calibration {
-        frame: fin_new.frame,
-        strings: fin_new.laws,
-        effects: fin_new.effects.clone(),
-        correction: final_corr,
-        length_scale_mm: fin_new.length_scale_mm,
-        kinematics: fin_new.kinematics,
-        home: None,
-    };
+    let calibration = calibration_of(&fin_new, final_corr);
     let rule = if fall_back {
         report::KinematicsReport::of(Err(format!(
             "the plain least-squares reference's: every string alike, up to {:.2} mm RMS",
@@ -708,5 +731,22 @@ fn final_model(
         calibration,
         rejections,
         rule,
+    }
+}
+
+/// The calibration of the identified model `id` with `correction` (the
+/// training slips, found after the corrections, not yet in it).
+fn calibration_of(
+    id: &crate::model::identify::Identification,
+    correction: CorrectionModel,
+) -> Calibration {
+    Calibration {
+        frame: id.frame,
+        strings: id.laws,
+        effects: id.effects.clone(),
+        correction,
+        length_scale_mm: id.length_scale_mm,
+        kinematics: id.kinematics,
+        home: None,
     }
 }

@@ -275,6 +275,35 @@ pub struct Selection {
     /// Of the final correction refitted on all kept training points.
     pub final_support_vectors: Option<usize>,
     pub final_hidden: Option<usize>,
+    /// The device's control-loop tick, estimated (`spidar_core::tick_cost`);
+    /// `null` when the model does not compile (`spidar compile` says why).
+    pub device_tick: Option<DeviceTick>,
+}
+
+/// What the device's control loop takes a tick with the calibration, and
+/// what it left the learned correction (decision record 0068).
+#[derive(Clone, Copy, Debug, Serialize)]
+pub struct DeviceTick {
+    /// The identified model without a correction, with the most training
+    /// slips a blob takes, and the room it left: the correction was learned
+    /// within `support_vectors` and `neurons`.
+    #[serde(flatten)]
+    pub room: crate::model::compile::TickRoom,
+    /// The final calibration with its correction and slips, estimated
+    /// instructions; `null` when it does not compile.
+    pub final_instructions: Option<u32>,
+}
+
+impl DeviceTick {
+    pub fn of(
+        room: crate::model::compile::TickRoom,
+        calibration: &spidar_core::model::Calibration,
+    ) -> DeviceTick {
+        DeviceTick {
+            room,
+            final_instructions: crate::model::compile::tick_instructions(calibration),
+        }
+    }
 }
 
 /// Tukey's box plot on the absolute position errors of the training pairs.

@@ -317,13 +317,18 @@ impl Report {
             c.svr.support_vectors
         );
         if let Some(cell) = c.svr_learning_points.cell_mm {
+            let room = s
+                .device_tick
+                .map_or(spidar_core::correction::MAX_SUPPORT_VECTORS, |t| {
+                    t.room.support_vectors
+                });
             let _ = writeln!(
                 o,
-                "  svr: learned from {} of the {} fit points, one per {:.1} mm cell: the device evaluates at most {} support vectors within its control loop's tick",
+                "  svr: learned from {} of the {} fit points, one per {:.1} mm cell: the device's control loop has room for {} support vectors a tick beside this model",
                 c.svr_learning_points.used,
                 c.svr_learning_points.kept,
                 cell,
-                spidar_core::correction::MAX_SUPPORT_VECTORS
+                room
             );
         }
         let why = match s.choice {
@@ -361,6 +366,16 @@ impl Report {
             num(s.validation_mean_mm.reference)
         );
         let _ = writeln!(o, "    why: {}", s.reason);
+        if let Some(t) = s.device_tick {
+            let _ = writeln!(
+                o,
+                "  device: an estimated {} of the {} instructions its control loop has a tick ({} without the correction)",
+                t.final_instructions
+                    .map_or("?".to_string(), |n| n.to_string()),
+                t.room.budget,
+                t.room.model_instructions
+            );
+        }
     }
 
     /// Warnings and notes.
