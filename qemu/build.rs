@@ -50,7 +50,8 @@ fn main() {
     for (k, (name, blob)) in models::cost_models().iter().enumerate() {
         let file = format!("cost{k}.blob");
         std::fs::write(out_dir.join(&file), blob).expect("write a cost model");
-        writeln!(list, "    ({name:?}, &Aligned(*include_bytes!(concat!(env!(\"OUT_DIR\"), \"/{file}\"))).0),").unwrap();
+        writeln!(list, "    ({name:?}, &Aligned(*include_bytes!(concat!(env!(\"OUT_DIR\"), \"/{file}\"))).0),")
+            .unwrap();
     }
     list.push_str("];\n");
     std::fs::write(out_dir.join("cost_models.rs"), list).expect("write cost_models.rs");

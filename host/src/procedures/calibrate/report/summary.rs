@@ -287,6 +287,7 @@ impl Report {
                 num(s.validation_mean_mm.identified),
                 num(s.validation_mean_mm.reference)
             );
+            self.write_device_tick(o);
             return;
         };
         let _ = writeln!(
@@ -366,7 +367,12 @@ impl Report {
             num(s.validation_mean_mm.reference)
         );
         let _ = writeln!(o, "    why: {}", s.reason);
-        if let Some(t) = s.device_tick {
+        self.write_device_tick(o);
+    }
+
+    /// What the device's control loop takes a tick with the calibration.
+    fn write_device_tick(&self, o: &mut String) {
+        if let Some(t) = self.selection.device_tick {
             let _ = writeln!(
                 o,
                 "  device: an estimated {} of the {} instructions its control loop has a tick ({} without the correction)",
