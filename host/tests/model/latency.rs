@@ -310,3 +310,39 @@ fn the_speed_structure_counted_again_is_judged_on_a_stream_s_folds_only() {
         choice.scores
     );
 }
+
+/// A backlash that a layer table of its string stood in for on a stream
+/// (seed 4: the table, each spool's rate and a slip took its place and the
+/// backlash was refused by its halves): the loop tries the terms that
+/// follow the motion before the tables, and the blocked folds prefer that
+/// order. The backlash is found on its string, at its size, and the
+/// held-out error is the clean stream's (decision record 0070).
+#[test]
+fn a_backlash_a_layer_table_stood_in_for_is_taken_before_the_tables() {
+    let seed = 4;
+    let (result, after) = streamed(seed, &["backlash:4:half_width_mm=0.8"]);
+    let (_, clean) = streamed(seed, &[]);
+    let found = added(&result);
+    let widths: Vec<(u8, f64)> = result
+        .identification
+        .effects
+        .iter()
+        .filter_map(|t| match t.effect {
+            Effect::Backlash { half_width_mm } => Some((t.string, half_width_mm)),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(widths.len(), 1, "{found:?}");
+    assert_eq!(widths[0].0, 4, "{found:?}");
+    assert!((widths[0].1 - 0.8).abs() < 0.2, "{widths:?}");
+    assert!(
+        result.findings.iter().any(|f| f.added
+            && f.family == Family::Backlash
+            && f.description.contains("taken before the layer tables")),
+        "{found:?}"
+    );
+    assert!(
+        after <= 1.3 * clean,
+        "after {after:.3} mm, clean {clean:.3} mm"
+    );
+}

@@ -25,6 +25,7 @@ mod candidates;
 mod describe;
 mod evidence;
 mod order;
+use order::FirstStep;
 mod outliers;
 mod rejudge;
 mod revisits;
@@ -279,8 +280,13 @@ pub fn close_loop(
     let sequence = state.rates_tables_and_effects()?;
     let mut layers = sequence.layers;
     if config.time_terms_before_tables && sequence.took_before_effects && !state.keeps_time_term() {
-        if let Some(first) = fresh.time_terms_first()? {
-            layers = state.the_better_order(first, layers);
+        if let Some(first) = fresh.clone().time_terms_first()? {
+            layers = state.the_better_order(first, layers, FirstStep::TimeTerms);
+        }
+    }
+    if config.motion_terms_before_tables && state.refused_a_motion_term_on_a_table(&layers) {
+        if let Some(first) = fresh.motion_terms_first()? {
+            layers = state.the_better_order(first, layers, FirstStep::MotionTerms);
         }
     }
     let LoopState {
@@ -923,6 +929,8 @@ enum Proposals {
     /// drifts of every string at their own rates; findings without a
     /// change, such a term the revisits do not show, are reported).
     TimeTerms,
+    /// Terms that follow the string's motion (a backlash, a latency).
+    MotionTerms,
 }
 
 impl Proposals {
@@ -933,6 +941,7 @@ impl Proposals {
                 finding.variable == Variable::Time && finding.strings.len() != 1,
                 |change| adds_a_drift(change) && on_every_string(change),
             ),
+            Proposals::MotionTerms => finding.change.is_some_and(adds_a_motion_term),
         }
     }
 }
@@ -957,6 +966,15 @@ fn same_term(a: &Finding, b: &Finding) -> bool {
 
 /// Whether `change` adds a drift or a creep (of one string or of every
 /// string): a time term, judged forward and on its own rows as a drift.
+/// Whether `change` adds a term that follows the string's motion: a
+/// backlash (its direction) or a latency (its speed).
+fn adds_a_motion_term(change: Change) -> bool {
+    change
+        .effect_terms()
+        .iter()
+        .any(|t| matches!(t.effect, Effect::Backlash { .. } | Effect::Latency { .. }))
+}
+
 fn adds_a_drift(change: Change) -> bool {
     change
         .effect_terms()

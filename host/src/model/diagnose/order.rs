@@ -20,6 +20,15 @@
 //! must make), and the report says which order was taken and what the
 //! other reached (decision record 0057).
 //!
+//! **A term that follows a string's motion, or the layer tables.**
+//! On a stream the strings move back and forth; where a string's motion
+//! goes with its payout along the session, a table of its payout takes
+//! part of a backlash or a latency of that string, which is then refused.
+//! When such a term was refused on a string that took a table, the loop is
+//! run once more from the base model with the terms that follow the
+//! motion first ([`LoopState::motion_terms_first`]), and the two models
+//! are judged as the orders above (decision record 0070).
+//!
 //! **A term of the whole device, or one string's**
 //! ([`LoopState::prefer_frame_wide`], decision record 0058); **a term
 //! shared by every string, or each string its own**
@@ -31,7 +40,47 @@ use super::{drifts_with_time, same_term, Finding, LoopState, StringLayers, Varia
 use crate::model::identify::IdentifyError;
 use crate::model::validate::judge;
 
-use super::{adds_a_drift, Proposals};
+use super::{adds_a_drift, adds_a_motion_term, Change, Proposals};
+
+/// What an order other than the tables first tries before them.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) enum FirstStep {
+    /// A term on time of every string (decision record 0057).
+    TimeTerms,
+    /// A term that follows a string's motion, a backlash or a latency,
+    /// refused on a string that took a table (decision record 0070).
+    MotionTerms,
+}
+
+impl FirstStep {
+    /// Whether `change` adds a term of this step.
+    fn adds(self, change: Change) -> bool {
+        match self {
+            FirstStep::TimeTerms => adds_a_drift(change),
+            FirstStep::MotionTerms => adds_a_motion_term(change),
+        }
+    }
+
+    /// The findings of this step's kind in the order with the tables
+    /// first.
+    fn reads(self, variable: Variable) -> bool {
+        match self {
+            FirstStep::TimeTerms => variable == Variable::Time,
+            FirstStep::MotionTerms => matches!(variable, Variable::Direction | Variable::Speed),
+        }
+    }
+
+    /// Why the tables took part of it.
+    fn why_the_tables_took_it(self) -> &'static str {
+        match self {
+            FirstStep::TimeTerms => "on a session whose payout goes with time they took part of it",
+            FirstStep::MotionTerms => {
+                "a table of the payout took part of it where the string's motion goes with \
+                 its payout along the session"
+            }
+        }
+    }
+}
 
 /// What [`LoopState::rates_tables_and_effects`] chose: each string's layer
 /// spacing, and whether spool rates or tables were taken before the
@@ -263,8 +312,44 @@ impl LoopState<'_> {
         Ok(Some((self, sequence.layers)))
     }
 
-    /// The better of this model (tables first) and `first`'s (terms on
-    /// time first, with `first_layers`): `first` is taken when its
+    /// Whether a term that follows a string's motion (a backlash, a
+    /// latency) was proposed and refused on a string that took a layer
+    /// table (`layers`, the tables this model took).
+    pub(super) fn refused_a_motion_term_on_a_table(&self, layers: &[StringLayers]) -> bool {
+        let tabled: Vec<u8> = layers
+            .iter()
+            .filter(|l| l.step_counts.is_some())
+            .map(|l| l.string)
+            .collect();
+        self.findings.iter().any(|f| {
+            !f.added
+                && f.change.is_some_and(adds_a_motion_term)
+                && f.strings.iter().any(|s| tabled.contains(s))
+        })
+    }
+
+    /// The loop from this (the base) model with the terms that follow the
+    /// strings' motion (a backlash, a latency) tried before the tables:
+    /// `None` when none is taken there, else the model after the tables
+    /// and effects that follow it, and its layer choice.
+    pub(super) fn motion_terms_first(
+        mut self,
+    ) -> Result<Option<(Self, Vec<StringLayers>)>, IdentifyError> {
+        let rates_held = self.spool_rates_held();
+        if rates_held {
+            self.try_spool_rates()?;
+        }
+        let before = self.stages.len();
+        self.add_effects(Proposals::MotionTerms)?;
+        if self.stages.len() == before {
+            return Ok(None);
+        }
+        let sequence = self.rates_tables_and_effects()?;
+        Ok(Some((self, sequence.layers)))
+    }
+
+    /// The better of this model (tables first) and `first`'s (`step`'s
+    /// terms first, with `first_layers`): `first` is taken when its
     /// blocked folds gain on this one's as a change must; this state
     /// becomes the one taken, its report saying why. The layer choice of
     /// the one taken.
@@ -272,6 +357,7 @@ impl LoopState<'_> {
         &mut self,
         (first, first_layers): (Self, Vec<StringLayers>),
         layers: Vec<StringLayers>,
+        step: FirstStep,
     ) -> Vec<StringLayers> {
         let check = judge(
             &self.validation,
@@ -282,14 +368,14 @@ impl LoopState<'_> {
         let names: Vec<String> = first
             .findings
             .iter()
-            .filter(|f| f.added && f.change.is_some_and(adds_a_drift))
+            .filter(|f| f.added && f.change.is_some_and(|c| step.adds(c)))
             .map(stage_name)
             .collect();
         let names = names.join(", ");
         if !check.accepted {
-            // The term on time stays in this order's report: refused here
-            // where the rates and tables came first, and as the first step
-            // it did not lead to a better model.
+            // The term stays in this order's report: refused here where the
+            // rates and tables came first, and as the first step it did not
+            // lead to a better model.
             let why = format!(
                 "tried before the layer tables ({names}), it leads to a model the blocked \
                  folds do not prefer to this one ({})",
@@ -298,7 +384,7 @@ impl LoopState<'_> {
             for f in self
                 .findings
                 .iter_mut()
-                .filter(|f| !f.added && f.variable == Variable::Time && f.change.is_some())
+                .filter(|f| !f.added && step.reads(f.variable) && f.change.is_some())
             {
                 f.description += &format!("; {why}");
             }
@@ -306,22 +392,23 @@ impl LoopState<'_> {
         }
         let mut first = first;
         let why = format!(
-            "; taken before the layer tables: on a session whose payout goes with time they \
-             took part of it, and it was not taken after them; the model with it first is \
-             preferred on the blocked folds to the one with the tables first ({})",
+            "; taken before the layer tables: {}, and it was not taken after them; the model \
+             with it first is preferred on the blocked folds to the one with the tables first \
+             ({})",
+            step.why_the_tables_took_it(),
             check.reason
         );
         if let Some(stage) = first
             .stages
             .iter_mut()
-            .find(|s| s.finding.change.is_some_and(adds_a_drift))
+            .find(|s| s.finding.change.is_some_and(|c| step.adds(c)))
         {
             stage.finding.description += &why;
         }
         if let Some(f) = first
             .findings
             .iter_mut()
-            .find(|f| f.added && f.change.is_some_and(adds_a_drift))
+            .find(|f| f.added && f.change.is_some_and(|c| step.adds(c)))
         {
             f.description += &why;
         }

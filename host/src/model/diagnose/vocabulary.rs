@@ -255,6 +255,12 @@ pub struct LoopConfig {
     /// Off only to measure what it does (`physics_bench`).
     #[serde(default = "yes")]
     pub time_terms_before_tables: bool,
+    /// When a backlash or a latency was refused on a string that took a
+    /// layer table, try the terms that follow the strings' motion first,
+    /// from the base model, and keep the order the blocked folds prefer
+    /// (`order`, decision record 0070). Off only to measure what it does.
+    #[serde(default = "yes")]
+    pub motion_terms_before_tables: bool,
     /// Offer a stretch of each string, each its own stiffness and lead
     /// ([`Change::Stretches`], decision record 0061). Off only to measure
     /// what it does (`loop_bench`) and to keep the cases of the rules made
@@ -329,6 +335,7 @@ impl Default for LoopConfig {
             robust: true,
             time_terms_forward: true,
             time_terms_before_tables: true,
+            motion_terms_before_tables: true,
             stretches_of_each_string: true,
             clock_aligned: false,
         }
