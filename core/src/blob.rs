@@ -285,13 +285,9 @@ impl<'a> CompiledCalibration<'a> {
                     .map_err(|_| BlobError::Body { field: "laws" })?;
             }
         }
-        let tick = crate::tick_cost::tick_instructions(
-            &head,
-            header.kind,
-            header.hidden,
-            header.support_vectors,
-        );
-        if tick > crate::tick_cost::TICK_BUDGET {
+        if let Some(tick) =
+            crate::tick_cost::over_budget(&head, header.kind, header.hidden, header.support_vectors)
+        {
             return Err(BlobError::OverBudget {
                 field: "tick",
                 found: tick,
@@ -643,13 +639,12 @@ mod compiler {
             .correction
             .compile()
             .map_err(BlobCompileError::Correction)?;
-        let tick = crate::tick_cost::tick_instructions(
+        if let Some(tick) = crate::tick_cost::over_budget(
             &head,
             correction.kind,
             correction.hidden,
             correction.support_vectors,
-        );
-        if tick > crate::tick_cost::TICK_BUDGET {
+        ) {
             return Err(BlobCompileError::TickOverBudget {
                 instructions: tick,
                 most: crate::tick_cost::TICK_BUDGET,

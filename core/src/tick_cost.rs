@@ -113,6 +113,18 @@ pub fn tick_instructions(
     model_instructions(head).saturating_add(correction_instructions(kind, hidden, support_vectors))
 }
 
+/// The estimate of [`tick_instructions`] when it is over [`TICK_BUDGET`]:
+/// a model the device must not run.
+pub fn over_budget(
+    head: &BlobHead,
+    kind: CorrectionKind,
+    hidden: u16,
+    support_vectors: u32,
+) -> Option<u32> {
+    let tick = tick_instructions(head, kind, hidden, support_vectors);
+    (tick > TICK_BUDGET).then_some(tick)
+}
+
 /// The most support vectors an SVR may have beside a model whose tick
 /// takes `model` instructions without a correction, within
 /// [`TICK_BUDGET`] (and at most

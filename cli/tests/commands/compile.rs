@@ -58,6 +58,15 @@ fn write(dir: &Path, name: &str, c: &Calibration) -> PathBuf {
     path
 }
 
+/// `spidar compile` of `calibration`, written as `{name}.json` in `dir`,
+/// to `{name}.blob`: its output and the blob's path.
+fn compile_in(dir: &Path, name: &str, calibration: &Calibration) -> (Output, PathBuf) {
+    let cal = write(dir, &format!("{name}.json"), calibration);
+    let blob = dir.join(format!("{name}.blob"));
+    let o = spidar(&["compile", "--calibration", s(&cal), "--out", s(&blob)]);
+    (o, blob)
+}
+
 fn failure(o: &Output) -> String {
     assert!(
         !o.status.success(),
@@ -242,15 +251,8 @@ fn a_correction_the_device_cannot_evaluate_within_its_tick_does_not_compile() {
         c
     };
     let most = MAX_SUPPORT_VECTORS as usize;
-    let cal = write(&dir, "over.json", &svr(most + 1));
-    let blob = dir.join("over.blob");
-    let err = failure(&spidar(&[
-        "compile",
-        "--calibration",
-        s(&cal),
-        "--out",
-        s(&blob),
-    ]));
+    let (o, blob) = compile_in(&dir, "over", &svr(most + 1));
+    let err = failure(&o);
     assert!(
         err.contains("over.json")
             && err.contains(&format!("`support` has {} entries", most + 1))
@@ -259,9 +261,7 @@ fn a_correction_the_device_cannot_evaluate_within_its_tick_does_not_compile() {
         "{err}"
     );
     assert!(!blob.exists(), "a blob was written");
-    let cal = write(&dir, "most.json", &svr(most));
-    let blob = dir.join("most.blob");
-    let o = spidar(&["compile", "--calibration", s(&cal), "--out", s(&blob)]);
+    let (o, _) = compile_in(&dir, "most", &svr(most));
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     std::fs::remove_dir_all(&dir).ok();
 }
@@ -286,15 +286,8 @@ fn a_model_whose_tick_would_overrun_does_not_compile() {
         ];
         c
     };
-    let cal = write(&dir, "eight.json", &guides(8));
-    let blob = dir.join("eight.blob");
-    let err = failure(&spidar(&[
-        "compile",
-        "--calibration",
-        s(&cal),
-        "--out",
-        s(&blob),
-    ]));
+    let (o, blob) = compile_in(&dir, "eight", &guides(8));
+    let err = failure(&o);
     assert!(
         err.contains("eight.json")
             && err.contains("instructions a tick")
@@ -302,9 +295,7 @@ fn a_model_whose_tick_would_overrun_does_not_compile() {
         "{err}"
     );
     assert!(!blob.exists(), "a blob was written");
-    let cal = write(&dir, "seven.json", &guides(7));
-    let blob = dir.join("seven.blob");
-    let o = spidar(&["compile", "--calibration", s(&cal), "--out", s(&blob)]);
+    let (o, _) = compile_in(&dir, "seven", &guides(7));
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let out = String::from_utf8_lossy(&o.stdout);
     assert!(
