@@ -375,11 +375,12 @@ impl Report {
         if let Some(t) = self.selection.device_tick {
             let _ = writeln!(
                 o,
-                "  device: an estimated {} of the {} instructions its control loop has a tick ({} without the correction)",
+                "  device: an estimated {} of the {} instructions its control loop has a tick; beside this model a correction may have {} hidden neurons or {} support vectors",
                 t.final_instructions
                     .map_or("?".to_string(), |n| n.to_string()),
                 t.room.budget,
-                t.room.model_instructions
+                t.room.neurons,
+                t.room.support_vectors
             );
         }
     }
