@@ -12,6 +12,7 @@ pub(super) fn section(r: &Value, figures: Option<&FigureData>) -> Html {
         None => super::without_figure_data(),
         Some(d) => blob(d),
     };
+    h.push(tick(&r["selection"]["device_tick"]));
     h.push(rule(&r["kinematics"]));
     h.push(weights(&r["device"]));
     h.push(p(
@@ -96,6 +97,27 @@ fn blob(d: &super::data::DeviceData) -> Html {
         )),
     }
     h
+}
+
+/// What the device's control loop takes a tick with the calibration, and
+/// the room a correction had beside its model (`selection.device_tick`).
+fn tick(t: &Value) -> Html {
+    if t.is_null() {
+        return Html::default();
+    }
+    let n = |k: &str| {
+        t[k].as_u64()
+            .map_or_else(|| html::NONE.to_string(), |v| v.to_string())
+    };
+    p(&format!(
+        "The device's control loop runs every 100 µs: with this calibration a tick takes an \
+         estimated {} of the {} instructions it has. Beside the model a correction may have {} \
+         hidden neurons or {} support vectors; the learned ones were held to that.",
+        n("final_instructions"),
+        n("budget"),
+        n("neurons"),
+        n("support_vectors")
+    ))
 }
 
 /// The forward kinematics' rule the blob carries, and the candidates.

@@ -33,7 +33,10 @@ fn small_report() -> Value {
                      "amplitude_mm": 8.0, "explained": 0.5, "added": true, "chi2": 800.0,
                      "description": "<b>bold</b>"}],
         "warnings": ["look <here>"],
-        "selection": {"stage": "final (string model)", "reason": "because"}
+        "selection": {"stage": "final (string model)", "reason": "because",
+                      "device_tick": {"model_instructions": 23530, "budget": 55000,
+                                      "support_vectors": 1000, "neurons": 400,
+                                      "final_instructions": 24296}}
     })
 }
 
@@ -65,6 +68,9 @@ fn a_report_renders_whole_with_its_text_escaped() {
         "timings",
     ];
     assert!(ids.windows(2).all(|w| at(w[0]) < at(w[1])));
+    // The device's tick with the calibration, and the room a correction had.
+    assert!(page.contains("an estimated 24296 of the 55000 instructions"));
+    assert!(page.contains("400 hidden neurons or 1000 support vectors"));
 }
 
 #[test]
