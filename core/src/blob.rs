@@ -226,6 +226,20 @@ fn check_layout(header: &ModelHeader, head: &BlobHead) -> Result<(), BlobError> 
     Ok(())
 }
 
+impl CompiledCalibration<'_> {
+    /// The instructions the device's tick is estimated to take with this
+    /// model and its correction ([`crate::tick_cost::tick_instructions`]);
+    /// within [`crate::tick_cost::TICK_BUDGET`], or the blob was refused.
+    pub fn tick_instructions(&self) -> u32 {
+        crate::tick_cost::tick_instructions(
+            &self.head,
+            self.header.kind,
+            self.header.hidden,
+            self.header.support_vectors,
+        )
+    }
+}
+
 impl<'a> CompiledCalibration<'a> {
     /// Checks and parses a whole blob (header, CRCs, dimensions, Q formats,
     /// every parameter). Never panics, whatever the bytes.

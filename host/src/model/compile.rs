@@ -276,15 +276,11 @@ impl TickRoom {
 /// `None` when it does not compile for another reason.
 pub fn tick_instructions(calibration: &Calibration) -> Option<u32> {
     match compile(calibration, 0, 0) {
-        Ok(blob) => {
-            let c = CompiledCalibration::from_blob(&blob).ok()?;
-            Some(spidar_core::tick_cost::tick_instructions(
-                &c.head,
-                c.header.kind,
-                c.header.hidden,
-                c.header.support_vectors,
-            ))
-        }
+        Ok(blob) => Some(
+            CompiledCalibration::from_blob(&blob)
+                .ok()?
+                .tick_instructions(),
+        ),
         Err(spidar_core::blob::BlobCompileError::TickOverBudget { instructions, .. }) => {
             Some(instructions)
         }
@@ -516,12 +512,7 @@ pub fn run_compile(args: &CompileRequest) -> Result<CompileReport, CompileCmdErr
         budget_mm: args.budget_mm,
         home_slips: describe_home_slips(&parsed),
         test_home,
-        tick_instructions: spidar_core::tick_cost::tick_instructions(
-            &parsed.head,
-            parsed.header.kind,
-            parsed.header.hidden,
-            parsed.header.support_vectors,
-        ),
+        tick_instructions: parsed.tick_instructions(),
     };
     let refusal = over_budget(&report);
     if refusal.is_none() || args.write_over_budget {

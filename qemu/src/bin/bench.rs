@@ -218,12 +218,7 @@ fn main() -> ! {
         // The target is the tick the cost model estimates for this blob (at
         // most the budget, or the device would have refused it): the
         // measured tick must not exceed it.
-        let estimate = spidar_core::tick_cost::tick_instructions(
-            &cal.head,
-            cal.header.kind,
-            cal.header.hidden,
-            cal.header.support_vectors,
-        );
+        let estimate = cal.tick_instructions();
         hprintln!(
             "INFO\t{}: estimated {} instructions a tick (spidar_core::tick_cost), budget {}",
             name,

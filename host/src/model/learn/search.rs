@@ -422,6 +422,9 @@ pub fn svr_search(
     })
 }
 
+/// Fewest points the SVR search takes.
+pub const MIN_SEARCH_POINTS: usize = 10;
+
 /// The grid, the solver tolerance and the data in range; the kernel within
 /// its size cap.
 fn check_search(
@@ -433,7 +436,7 @@ fn check_search(
     check_grid("epsilon", &cfg.epsilon, 0.0, "0 <= epsilon <= 1e12")?;
     check_grid("gamma", &cfg.gamma, 1e-12, "0 < gamma <= 1e12")?;
     check_range("tol", cfg.solver.tol, 1e-15, 1e3, "0 < tol <= 1000")?;
-    validate_pairs("SVR search data", inputs, targets, 10)?;
+    validate_pairs("SVR search data", inputs, targets, MIN_SEARCH_POINTS)?;
     let n = inputs.len();
     if n > cfg.max_dense_points {
         return Err(LearnError::TooLarge {

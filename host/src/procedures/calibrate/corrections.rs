@@ -99,9 +99,6 @@ pub(super) struct CorrectionLimits {
     pub(super) room: Option<TickRoom>,
 }
 
-/// Fewest points the SVR search takes (`validate_pairs` in the learners).
-const MIN_SVR_POINTS: usize = 10;
-
 impl CorrectionLimits {
     /// The limits beside the model `room` describes (`None`: a model that
     /// does not compile, which `spidar compile` will name; only the
@@ -121,12 +118,13 @@ impl CorrectionLimits {
     pub(super) fn no_room(&self, cfg: &CalibrateConfig) -> Option<String> {
         let room = self.room?;
         let smallest = cfg.nn.sizes.iter().copied().min().unwrap_or(1);
-        (smallest > self.neurons || self.support_vectors < MIN_SVR_POINTS).then(|| {
+        let fewest = search::MIN_SEARCH_POINTS;
+        (smallest > self.neurons || self.support_vectors < fewest).then(|| {
             format!(
                 "identification only: the model's tick is estimated at {} of the device's {} \
                  instructions, which leaves room for {} hidden neurons and {} support vectors, \
                  too few for a correction (the smallest NN has {smallest} neurons, an SVR needs \
-                 {MIN_SVR_POINTS} points)",
+                 {fewest} points)",
                 room.model_instructions, room.budget, room.neurons, room.support_vectors
             )
         })
