@@ -215,8 +215,9 @@ typedef struct spidar_link_stats {
   // Frames the library's decoder rejected (CRC, framing).
   uint64_t rejected;
   // Stream frames the device dropped because its link was full (the
-  // host did not read in time): each is also one of `lost`; the rest of
-  // `lost` went missing on the way.
+  // host did not read in time). Read after `lost`, it may count a few
+  // more the stream dropped meanwhile; `lost` beyond it went missing on
+  // the way.
   uint64_t device_dropped;
   // Times the device's heartbeat watchdog tripped.
   uint32_t heartbeat_losses;

@@ -129,8 +129,9 @@ pub struct spidar_link_stats {
     /// Frames the library's decoder rejected (CRC, framing).
     pub rejected: u64,
     /// Stream frames the device dropped because its link was full (the
-    /// host did not read in time): each is also one of `lost`; the rest of
-    /// `lost` went missing on the way.
+    /// host did not read in time). Read after `lost`, it may count a few
+    /// more the stream dropped meanwhile; `lost` beyond it went missing on
+    /// the way.
     pub device_dropped: u64,
     /// Times the device's heartbeat watchdog tripped.
     pub heartbeat_losses: u32,

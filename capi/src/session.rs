@@ -272,9 +272,14 @@ impl Session {
     }
 
     /// The stream's counters since the session started (`GetStats` for
-    /// the device's).
+    /// the device's). The host's `lost` is read before the device's
+    /// counters: the stream goes on while the request is answered, and a
+    /// gap the host sees later may be a frame the device drops after it
+    /// answered. So every frame `lost` counts that the device dropped is
+    /// among `device_dropped`, however busy the host.
     pub fn link_stats(&self) -> Result<spidar_link_stats, Error> {
         self.with_link(|link| {
+            let lost = Self::lost(link);
             let device = match link.request(&Request::GetStats)? {
                 Response::Stats(s) => s,
                 got => {
@@ -289,7 +294,7 @@ impl Session {
             let since = |now: u32, then: u32| now.wrapping_sub(then);
             Ok(spidar_link_stats {
                 states: link.latest().map_or(0, |r| r.index),
-                lost: Self::lost(link),
+                lost,
                 rejected: u64::from(link.rejected()),
                 device_dropped: u64::from(since(device.tx_dropped, self.stats0.tx_dropped)),
                 heartbeat_losses: since(device.heartbeat_losses, self.stats0.heartbeat_losses),

@@ -91,7 +91,9 @@ fn check_spring(out: &Output) {
     // No frame lost on the way: every gap in the sequence numbers is a
     // frame the device itself dropped because the host had not read the
     // link in time (it does not wait for a slow reader, as on USB), which
-    // a loaded machine may cause; none rejected.
+    // a loaded machine may cause; none rejected. The device's count is
+    // read after the host's and may hold drops since (`link_stats`), so
+    // the gaps are at most the drops: equal only on an idle machine.
     let link = lines
         .iter()
         .find_map(|l| l.strip_prefix("link "))
@@ -102,9 +104,8 @@ fn check_spring(out: &Output) {
         words[i + 1].parse().unwrap()
     };
     assert!(field("states") > 100, "{stdout}");
-    assert_eq!(
-        field("lost"),
-        field("device_dropped"),
+    assert!(
+        field("lost") <= field("device_dropped"),
         "frames lost on the link: {stdout}"
     );
     assert_eq!(field("rejected"), 0, "{stdout}");
