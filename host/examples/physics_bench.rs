@@ -28,7 +28,9 @@
 //! with one part of its physics switched off at a time (the identified and
 //! final held-out error tell what each part costs the model).
 //!
-//! `cargo run --release -p spidar --example physics_bench -- [SEEDS] [--quick] [--no-analysis] [--ablation] [--no-forward] [--only=SIM:EFFECT,..]`
+//! `cargo run --release -p spidar --example physics_bench -- [SEEDS] [--quick] [--no-analysis] [--ablation] [--no-forward] [--only=SIM:EFFECT,..] [--write=DIR]`
+//! (`--write=DIR`: each case's geometry and sessions in
+//! `DIR/SIM-EFFECT-SEED/`, which `spidar calibrate` reproduces the row from)
 //! (`--no-forward`: drifts judged without forward chaining, to measure it;
 //! an effect `NAME-continuing`, e.g. `slip-continuing`: the test session
 //! continues the training's home capture instead of following a new one)
@@ -618,6 +620,9 @@ struct Options {
     /// `--no-forward`: drifts judged on the blocked folds alone (to
     /// measure what forward chaining does).
     no_forward: bool,
+    /// `--write=DIR`: each case's geometry and sessions written to
+    /// `DIR/SIM-EFFECT-SEED/`, for `spidar calibrate` to reproduce a row.
+    write: Option<std::path::PathBuf>,
 }
 
 impl Options {
@@ -629,10 +634,15 @@ impl Options {
             only: None,
             ablation: false,
             no_forward: false,
+            write: None,
         };
         for a in std::env::args().skip(1) {
             if let Some(list) = a.strip_prefix("--only=") {
                 o.only = Some(list.split(',').map(str::to_string).collect());
+                continue;
+            }
+            if let Some(dir) = a.strip_prefix("--write=") {
+                o.write = Some(dir.into());
                 continue;
             }
             match a.as_str() {
@@ -643,12 +653,24 @@ impl Options {
                 s => {
                     o.seeds = s.parse().expect(
                         "usage: physics_bench [SEEDS] [--quick] [--no-analysis] [--no-forward] \
-                     [--only=SIM:EFFECT,..]",
+                     [--only=SIM:EFFECT,..] [--write=DIR]",
                     )
                 }
             }
         }
         o
+    }
+
+    /// Writes `run`'s geometry and sessions to `--write`'s
+    /// `DIR/SIMULATOR-EFFECT-SEED/` (`geometry.toml`, `train.csv`,
+    /// `test.csv`), when asked for.
+    fn write_run(&self, simulator: &str, effect: &str, seed: u64, run: &Run) {
+        let Some(dir) = &self.write else { return };
+        let dir = dir.join(format!("{simulator}-{effect}-{seed}"));
+        std::fs::create_dir_all(&dir).expect("--write: the case's folder");
+        run.geometry.write(dir.join("geometry.toml")).expect("--write: geometry");
+        run.train.write(dir.join("train.csv")).expect("--write: training session");
+        run.test.write(dir.join("test.csv")).expect("--write: test session");
     }
 
     /// Whether the case `simulator:effect` is to run.
@@ -716,7 +738,9 @@ fn model_cases(options: &Options, config: &CalibrateConfig, summary: &mut Vec<Ca
         let continuing = name.ends_with("-continuing");
         let mut rows = Vec::new();
         for seed in 1..=options.seeds {
-            let c = run_calibration(&model_run(seed, effects, continuing), config);
+            let run = model_run(seed, effects, continuing);
+            options.write_run("model", name, seed, &run);
+            let c = run_calibration(&run, config);
             rows.push(print_row("model", name, seed, &c));
         }
         summary.push(("model", name, rows));
@@ -776,6 +800,7 @@ fn physics_cases(
         for seed in 1..=options.seeds {
             let device = physics_device(seed, effect.map(|e| e.trim_end_matches("-continuing")));
             let (run, truths, test_truths) = physics_run(&device, seed, sessions);
+            options.write_run("independent", name, seed, &run);
             let c = run_calibration(&run, config);
             let steps = slip_steps(&truths);
             if !steps.is_empty() {
