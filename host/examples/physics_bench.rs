@@ -668,9 +668,15 @@ impl Options {
         let Some(dir) = &self.write else { return };
         let dir = dir.join(format!("{simulator}-{effect}-{seed}"));
         std::fs::create_dir_all(&dir).expect("--write: the case's folder");
-        run.geometry.write(dir.join("geometry.toml")).expect("--write: geometry");
-        run.train.write(dir.join("train.csv")).expect("--write: training session");
-        run.test.write(dir.join("test.csv")).expect("--write: test session");
+        run.geometry
+            .write(dir.join("geometry.toml"))
+            .expect("--write: geometry");
+        run.train
+            .write(dir.join("train.csv"))
+            .expect("--write: training session");
+        run.test
+            .write(dir.join("test.csv"))
+            .expect("--write: test session");
     }
 
     /// Whether the case `simulator:effect` is to run.

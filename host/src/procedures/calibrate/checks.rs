@@ -457,6 +457,7 @@ pub(super) fn trust_warnings(
     frame: &spidar_core::model::Frame<f64>,
     tr: &[Observation],
     final_points: Option<&StagePoints>,
+    reference_points: Option<&StagePoints>,
 ) -> Vec<String> {
     let mut warnings = Vec::new();
     let train_room: Vec<[f64; 3]> = tr.iter().filter_map(|o| o.tracker).collect();
@@ -467,10 +468,21 @@ pub(super) fn trust_warnings(
     ) {
         let x = trust::extrapolation(frame, &bx, &fp.test.tracker, &fp.test.errors);
         if x.outside.n > 0 {
+            // The floor beside it: the plain least-squares reference on the
+            // same points, where the final model is another.
+            let plain = reference_points
+                .filter(|r| r.name != fp.name)
+                .map(|r| trust::extrapolation(frame, &bx, &r.test.tracker, &r.test.errors))
+                .map_or(String::new(), |r| {
+                    format!(
+                        " (the plain least-squares reference: outside {:.3} mean, inside {:.3})",
+                        r.outside.mean_mm, r.inside.mean_mm
+                    )
+                });
             warnings.push(format!(
                 "{} of {} test points lie outside the volume the training session covers (its \
                  box, {BOX_MARGIN_MM} mm margin): the model extrapolates there; final error \
-                 outside {:.3} mm mean, {:.3} max, inside {:.3} mean, {:.3} max",
+                 outside {:.3} mm mean, {:.3} max, inside {:.3} mean, {:.3} max{plain}",
                 x.outside.n,
                 x.outside.n + x.inside.n,
                 x.outside.mean_mm,

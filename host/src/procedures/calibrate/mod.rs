@@ -496,8 +496,17 @@ impl Run<'_> {
             &list.stages,
         ));
         let final_points = list.points.iter().find(|p| p.name == final_name);
-        self.warnings
-            .extend(trust_warnings(&fin.frame, tr, final_points));
+        let reference_points = list
+            .stages
+            .iter()
+            .find(|s| s.kind == report::StageKind::Reference)
+            .and_then(|s| list.points.iter().find(|p| p.name == s.name));
+        self.warnings.extend(trust_warnings(
+            &fin.frame,
+            tr,
+            final_points,
+            reference_points,
+        ));
         Ok(())
     }
 

@@ -186,3 +186,92 @@ fn a_tracker_spread_off_the_nominal_model_is_warned_or_refused() {
         Ok(None)
     ));
 }
+
+/// Test points beyond the training box are counted, with the final
+/// model's error outside and inside, and the plain least-squares
+/// reference's on the same points beside it (not when the reference is
+/// the final model); none outside, no warning.
+#[test]
+fn test_points_beyond_the_training_box_are_warned_with_the_plain_fit_beside() {
+    use crate::procedures::calibrate::evaluate::PointErrors;
+    let frame = crate::sim::SimConfig::default()
+        .nominal
+        .geometry()
+        .nominal_frame();
+    let room = |p: [f64; 3]| spidar_core::geometry::room_from_device(&frame, p);
+    let samples: Vec<Sample> = (0..8)
+        .map(|k| Sample {
+            t_s: k as f64,
+            counts: [0; STRINGS],
+            tracker: Some(room([
+                (k & 1) as f64 * 100.0,
+                (k >> 1 & 1) as f64 * 100.0,
+                (k >> 2) as f64 * 100.0,
+            ])),
+            orientation: None,
+            legacy: None,
+            tension_n: None,
+            since_home_s: None,
+            home: None,
+        })
+        .collect();
+    let train = observations(&samples);
+    // Two test points inside the training box, one 50 mm beyond it.
+    let tracker = vec![
+        room([50.0, 50.0, 50.0]),
+        room([10.0, 90.0, 20.0]),
+        room([150.0, 50.0, 50.0]),
+    ];
+    let points = |name: &str, errors: Vec<f64>| StagePoints {
+        name: name.into(),
+        train: PointErrors {
+            rows: Vec::new(),
+            tracker: Vec::new(),
+            distance_mm: Vec::new(),
+            errors: Vec::new(),
+        },
+        test: PointErrors {
+            rows: vec![0, 1, 2],
+            tracker: tracker.clone(),
+            distance_mm: vec![0.0; 3],
+            errors,
+        },
+    };
+    let fin = points("final (nn)", vec![0.2, 0.4, 1.5]);
+    let plain = points(reference::STAGE_NAME, vec![0.5, 0.7, 2.5]);
+    let warnings = trust_warnings(&frame, &train, Some(&fin), Some(&plain));
+    let w = warnings
+        .iter()
+        .find(|w| w.contains("outside the volume"))
+        .expect("an extrapolation warning");
+    assert!(w.starts_with("1 of 3 test points"), "{w}");
+    assert!(
+        w.contains("final error outside 1.500 mm mean, 1.500 max, inside 0.300 mean, 0.400 max"),
+        "{w}"
+    );
+    assert!(
+        w.ends_with("(the plain least-squares reference: outside 2.500 mean, inside 0.600)"),
+        "{w}"
+    );
+    // The reference as the final model: no figure beside itself.
+    let alone = trust_warnings(&frame, &train, Some(&plain), Some(&plain));
+    let w = alone
+        .iter()
+        .find(|w| w.contains("outside the volume"))
+        .unwrap();
+    assert!(!w.contains("the plain least-squares reference:"), "{w}");
+    // Every test point inside: no warning.
+    let inside = points("final (nn)", vec![0.2, 0.4, 1.5]);
+    let inside = StagePoints {
+        test: PointErrors {
+            tracker: vec![tracker[0]; 3],
+            ..inside.test
+        },
+        ..inside
+    };
+    let none = trust_warnings(&frame, &train, Some(&inside), Some(&plain));
+    assert!(
+        !none.iter().any(|w| w.contains("outside the volume")),
+        "{none:?}"
+    );
+}
