@@ -53,6 +53,13 @@ pub struct NominalConfig {
     /// wall robot's rectangle). Empty: the corners above.
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub anchors_mm: Vec<Vec3<f64>>,
+    /// Each string's line runs this many times between a pulley block at
+    /// its anchor and one at the end-effector (a Hangprinter's doubled
+    /// lines), one per string in encoder order: the spool pays out this
+    /// many mm per mm of the anchor's distance. Empty: 1 (a line straight
+    /// to the end-effector). The independent simulator's only.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub mechanical_advantage: Vec<f64>,
 }
 
 impl Default for NominalConfig {
@@ -66,11 +73,39 @@ impl Default for NominalConfig {
             home_mm: [0.0; 3],
             room_from_device_translation_mm: [0.0, 0.0, 1500.0],
             anchors_mm: Vec::new(),
+            mechanical_advantage: Vec::new(),
         }
     }
 }
 
 impl NominalConfig {
+    /// `mechanical_advantage`: one positive ratio per string, or none.
+    pub(crate) fn validate_pulley_blocks(&self) -> Result<(), SimError> {
+        let m = &self.mechanical_advantage;
+        if !m.is_empty() && m.len() != self.strings {
+            return Err(bad(
+                "nominal.mechanical_advantage",
+                format!(
+                    "{} values for {} strings: give one per string, or none for lines straight \
+                     to the end-effector",
+                    m.len(),
+                    self.strings
+                ),
+            ));
+        }
+        if let Some((i, v)) = m
+            .iter()
+            .enumerate()
+            .find(|(_, v)| !(v.is_finite() && **v >= 1.0))
+        {
+            return Err(bad(
+                &format!("nominal.mechanical_advantage[{i}]"),
+                format!("{v} is not a ratio of at least 1 (the times the line runs to the end-effector)"),
+            ));
+        }
+        Ok(())
+    }
+
     /// The nominal geometry, anchors in encoder order. Eight strings: the
     /// lower square (`z = -h`) counter-clockwise from `(-h, -h)`, then the
     /// upper square. Fewer in 3-D: the cube corners in the order 0, 2, 5, 7
@@ -113,7 +148,9 @@ impl NominalConfig {
             layout: spidar_core::model::StringLayout::first(n, self.planar),
             counts_per_rev: [self.counts_per_rev; STRINGS],
             pulley_radius_mm: [self.pulley_radius_mm; STRINGS],
-            mechanical_advantage: [1.0; STRINGS],
+            mechanical_advantage: core::array::from_fn(|i| {
+                self.mechanical_advantage.get(i).copied().unwrap_or(1.0)
+            }),
             home_mm,
             anchors_mm: core::array::from_fn(anchor),
             room_from_device_translation_mm: self.room_from_device_translation_mm,
@@ -409,6 +446,14 @@ impl SimConfig {
 
     /// Check every parameter; errors name the field (`section.key`).
     pub fn validate(&self) -> Result<(), SimError> {
+        if self.nominal.mechanical_advantage.iter().any(|&m| m != 1.0) {
+            return Err(bad(
+                "nominal.mechanical_advantage",
+                "the model simulator's lines run straight from the spool to the end-effector; \
+                 lines through pulley blocks are the independent simulator's (`--physics \
+                 independent`)",
+            ));
+        }
         self.validate_device()?;
         self.validate_tracker()?;
         self.validate_motor_and_tension()?;
@@ -450,6 +495,7 @@ impl SimConfig {
         if n.anchors_mm.iter().flatten().any(|x| !x.is_finite()) {
             return Err(bad("nominal.anchors_mm", "must be finite numbers (mm)"));
         }
+
         n.geometry()
             .validate(Path::new("[nominal] of the simulator configuration"))
             .map_err(|e| bad("nominal", e.to_string()))?;

@@ -15,6 +15,7 @@ mod loop_closing;
 mod loop_rows;
 mod n_strings;
 mod sim;
+mod sim_hangprinter;
 mod sim_physics;
 mod sim_physics_real_robot;
 mod time_before_tables;

@@ -235,6 +235,7 @@ impl StringBuild<'_> {
             compliance_mm_per_n: self.flex * uniform(flex_rng, ab.frame_compliance_mm_per_n),
             flex_direction: tilted(towards_centre, 0.5, flex_rng),
             home_spool_rad: 0.0,
+            line_runs: self.nominal.mechanical_advantage[i],
         };
         let home = s
             .natural_length(

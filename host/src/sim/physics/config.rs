@@ -137,12 +137,13 @@ pub(crate) fn stream_rows(field: &str, rows: usize) -> Result<(), SimError> {
 /// The named devices of the independent simulator (`spidar simulate
 /// --physics independent --preset NAME`), each a configuration file of
 /// this directory: copy one to change it and pass it as `--config`.
-pub const PRESET_NAMES: [&str; 1] = ["wall-robot"];
+pub const PRESET_NAMES: [&str; 2] = ["wall-robot", "hangprinter"];
 
 /// The configuration text of preset `name`.
 fn preset_text(name: &str) -> Option<&'static str> {
     match name {
         "wall-robot" => Some(include_str!("presets/wall-robot.toml")),
+        "hangprinter" => Some(include_str!("presets/hangprinter.toml")),
         _ => None,
     }
 }
@@ -335,8 +336,14 @@ impl PhysicsConfig {
     /// Check every parameter; errors name the field (`section.key`). The
     /// sections shared with the model simulator are checked by its own rules.
     pub fn validate(&self) -> Result<(), SimError> {
+        // The pulley blocks are this simulator's: the shared rules check
+        // the rest of `[nominal]`.
+        self.nominal.validate_pulley_blocks()?;
         crate::sim::SimConfig {
-            nominal: self.nominal.clone(),
+            nominal: crate::sim::config::NominalConfig {
+                mechanical_advantage: Vec::new(),
+                ..self.nominal.clone()
+            },
             tracker: self.tracker.clone(),
             tension: self.tension.clone(),
             lattice: self.lattice.clone(),

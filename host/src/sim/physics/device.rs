@@ -155,7 +155,7 @@ pub struct StringState {
     pub path: GuidePath,
     /// Sag: arc minus chord of the free span, mm.
     pub sag_mm: f64,
-    /// Lead + arc + free + sag, mm.
+    /// Lead + (arc + free + sag) times the line's runs, mm.
     pub geometric_mm: f64,
     /// Unstretched length beyond the spool, mm.
     pub natural_mm: f64,
@@ -178,7 +178,9 @@ impl PhysicsString {
         let cos2 = 1.0 - path.direction[2] * path.direction[2];
         let t = tension_n.max(0.05);
         let sag_mm = w * w * cos2 * path.free_mm.powi(3) / (24.0 * t * t);
-        let geometric_mm = self.lead_mm + path.length_mm + sag_mm;
+        // Through pulley blocks the line runs the path (and sags) this many
+        // times, at the one tension of the line.
+        let geometric_mm = self.lead_mm + self.line_runs * (path.length_mm + sag_mm);
         let natural_mm = geometric_mm / (1.0 + tension_n / self.stiffness_n) / (1.0 + strain);
         Ok(StringState {
             path,

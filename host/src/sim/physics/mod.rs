@@ -143,6 +143,21 @@ pub struct PhysicsString {
     pub flex_direction: Vec3<f64>,
     /// Spool angle at the home capture, rad.
     pub home_spool_rad: f64,
+    /// Times the line runs between the pulley blocks at its guide and at
+    /// the end-effector (the nominal `mechanical_advantage`): each run is
+    /// the guide's path, so the spool pays out this many mm per mm of it.
+    #[serde(default = "one_run", skip_serializing_if = "is_one_run")]
+    pub line_runs: f64,
+}
+
+/// A line straight from its guide to the end-effector.
+fn one_run() -> f64 {
+    1.0
+}
+
+/// Whether `runs` is [`one_run`] (not written to the truth).
+fn is_one_run(runs: &f64) -> bool {
+    *runs == 1.0
 }
 
 /// The end-effector's rotation with the hand's posture: rotation vector

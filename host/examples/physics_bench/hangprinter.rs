@@ -1,0 +1,84 @@
+//! The Hangprinter-like robot (the `hangprinter` preset): small static
+//! sessions, as real cable robots are calibrated, beside the plain
+//! least-squares reference stage.
+
+use super::runs::{run_calibration, Run};
+use super::table::stage_of;
+use spidar::procedures::calibrate::report::StageKind;
+use spidar::procedures::calibrate::CalibrateConfig;
+use spidar::sim::physics::{self, PhysicsConfig, PhysicsDevice};
+use spidar::sim::SessionKind;
+
+/// The training sessions' sizes (poses): the real robot's sessions of 12,
+/// 16, 19, 25 and 31 tracked training rows (`docs/benchmarks.md`, "Real
+/// data").
+const TRAINING_POSES: [usize; 5] = [12, 16, 19, 25, 31];
+
+/// The test session's poses: enough that its mean is worth comparing
+/// under the camera's 1.5 mm of scatter.
+const TEST_POSES: usize = 300;
+
+/// Each seed's device, one training session of every size and one test
+/// session (session seeds `seed * 1000 + poses` and `seed * 1000 + 999`):
+/// the held-out means of the reference, identified and final stages, and
+/// over the seeds how often the final model holds out worse than the
+/// reference.
+pub(super) fn hangprinter(seeds: u64, config: &CalibrateConfig) {
+    let preset = PhysicsConfig::preset("hangprinter").expect("the hangprinter preset");
+    let noise = preset.tracker.noise_sigma_mm;
+    println!();
+    println!(
+        "Hangprinter-like robot (preset `hangprinter`): static poses spread through a {} mm cube, \
+         a camera of {noise} mm per axis (held-out floor ~{:.2} mm mean); test {TEST_POSES} poses; \
+         held-out mean, mm: reference / identified / final (stage)",
+        preset.lattice.size_mm,
+        2.0 * noise * (2.0 / std::f64::consts::PI).sqrt()
+    );
+    println!();
+    println!(
+        "| seed | raw | {} |",
+        TRAINING_POSES.map(|n| format!("{n} poses")).join(" | ")
+    );
+    println!("|---:|---:|{}", "---|".repeat(TRAINING_POSES.len()));
+    let mut ratios: Vec<Vec<f64>> = vec![Vec::new(); TRAINING_POSES.len()];
+    for seed in 1..=seeds {
+        let device = PhysicsDevice::new(&preset, seed).expect("hangprinter");
+        let poses = |points, session_seed| {
+            physics::simulate_session(&device, SessionKind::Random { points }, session_seed)
+                .expect("poses")
+                .0
+        };
+        let test = poses(TEST_POSES, seed * 1000 + 999);
+        let mut cells = Vec::new();
+        let mut raw = f64::NAN;
+        for (k, &n) in TRAINING_POSES.iter().enumerate() {
+            let run = Run {
+                geometry: device.nominal.clone(),
+                train: poses(n, seed * 1000 + n as u64),
+                test: test.clone(),
+            };
+            let c = run_calibration(&run, config);
+            let mean = |kind| stage_of(&c, kind).test.mean_mm;
+            let (reference, fin) = (mean(StageKind::Reference), mean(StageKind::Final));
+            raw = mean(StageKind::Raw);
+            ratios[k].push(fin / reference);
+            let chosen = &stage_of(&c, StageKind::Final).name;
+            cells.push(format!(
+                "{reference:.3} / {:.3} / **{fin:.3}** ({})",
+                mean(StageKind::Identified),
+                chosen.trim_start_matches("final ").trim_matches(['(', ')'])
+            ));
+        }
+        println!("| {seed} | {raw:.2} | {} |", cells.join(" | "));
+    }
+    let over: Vec<String> = ratios
+        .iter()
+        .map(|r| {
+            let worse = r.iter().filter(|&&x| x > 1.0).count();
+            let mean = r.iter().sum::<f64>() / r.len() as f64;
+            let worst = r.iter().copied().fold(f64::NAN, f64::max);
+            format!("{mean:.3}, worst {worst:.3}, {worse} of {} worse", r.len())
+        })
+        .collect();
+    println!("| final / reference | | {} |", over.join(" | "));
+}
