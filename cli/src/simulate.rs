@@ -22,8 +22,12 @@ pub struct SimulateArgs {
     /// A named device of the independent simulator instead of `--config`:
     /// `wall-robot` (a planar 4-cable wall robot: 2 m x 1.5 m frame, cable
     /// exits tens of mm off its corners, 30 mm spools, a 100 mm carriage
-    /// that yaws, a tracker clock 1.8 s ahead; its sessions are streams).
-    /// The presets are configuration files in `host/src/sim/physics/presets/`.
+    /// that yaws, a tracker clock 1.8 s ahead; its sessions are streams);
+    /// `hangprinter` (a 3-D 4-line robot whose lines run through pulley
+    /// blocks 2, 2, 2 and 4 times, 75 mm spools that build up in layers,
+    /// anchors tens of mm off the tape's, a camera of 1.5 mm; static poses:
+    /// `--kind random --points 25`). The presets are configuration files in
+    /// `host/src/sim/physics/presets/`.
     #[arg(long)]
     pub preset: Option<String>,
     /// Path of the end-effector: the paper's lattice, random test points,
