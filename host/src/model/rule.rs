@@ -13,7 +13,9 @@
 //! ([`scaled_thresholds`]), and the rule is one of a few candidates
 //! ([`candidates`]) chosen by the held-out error of the blocked folds, as
 //! the diagnosis loop chooses its changes: each fold's model, fitted on the
-//! fold's rows, places its held-out rows under each candidate. The device's
+//! fold's rows, places its held-out rows under each candidate (a session
+//! too small for the loop: ten interleaved folds that each hold out a
+//! tenth, as its anchors' tolerance is chosen on). The device's
 //! rule stays unless another lowers the held-out mean by the loop's
 //! [`LoopConfig::min_relative_gain`].
 //!
@@ -36,9 +38,11 @@ use crate::data::stats::{position_errors, quantile, ErrorStats};
 use crate::model::diagnose::{
     count_speed_again, uncount_speed, LoopConfig, LoopResult, FOLLOWS_SPEED,
 };
-use crate::model::identify::{identify, Identification, IdentifyError, Start};
+use crate::model::identify::{identify, rows_needed_for, Identification, IdentifyError, Start};
 use crate::model::predict::{paired_with_tracker, predict, KinematicModel, UNMEASURED_SCALES};
-use crate::model::validate::{judged_fold_fits, preferred, Preferred};
+use crate::model::validate::{
+    fold_fits, judged_fold_fits, preferred, small_session_folds, Preferred,
+};
 use spidar_core::model::Frame;
 use spidar_core::STRINGS;
 
@@ -225,15 +229,29 @@ fn held_out(model: KinematicModel<'_>, rows: &[&Observation]) -> Vec<f64> {
     position_errors(&p, &t)
 }
 
+/// The folds a rule is chosen on.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum RuleFolds {
+    /// The folds the diagnosis loop judges by (blocked, or two interleaved
+    /// ones).
+    Judged,
+    /// A session too small for those (each half cannot identify the model):
+    /// ten interleaved folds that each hold out a tenth, as the anchors'
+    /// tolerance is chosen on ([`small_session_folds`]).
+    SmallSession,
+}
+
 /// Chooses the rule for the loop's model (its identification, of its
-/// structure, identified on `train`) on the held-out rows of the judged
-/// folds.
+/// structure, identified on `train`) on the held-out rows of `folds`;
+/// `None` when the session has no such folds (a small session without a
+/// row to spare).
 pub fn choose(
     train: &[Observation],
     nominal: &Frame<f64>,
     loop_result: &LoopResult,
     config: &LoopConfig,
-) -> Result<RuleChoice, IdentifyError> {
+    folds: RuleFolds,
+) -> Result<Option<RuleChoice>, IdentifyError> {
     let id = &loop_result.identification;
     let counted = loop_result.speed_counted_again_mm;
     let (scaled, q99) = scaled_thresholds(id, train);
@@ -241,7 +259,19 @@ pub fn choose(
     let tried = candidates(scaled, any_counted, observes_speed(train));
     let start = Start::from_identification(id);
     let structure = &loop_result.structure;
-    let fits = judged_fold_fits(train, |rows| identify(rows, nominal, &start, structure))?;
+    let fit = |rows: &[&Observation]| identify(rows, nominal, &start, structure);
+    let (fits, folds_name) = match folds {
+        RuleFolds::Judged => (judged_fold_fits(train, fit)?, None),
+        RuleFolds::SmallSession => {
+            let tracked: Vec<&Observation> = train.iter().filter(|o| o.tracker.is_some()).collect();
+            let needed = rows_needed_for(structure, nominal.layout);
+            let Some(small) = small_session_folds(tracked.len(), needed) else {
+                return Ok(None);
+            };
+            let name = format!("{} interleaved folds", small.len());
+            (fold_fits(&tracked, &small, fit)?, Some(name))
+        }
+    };
     // Each rule's kinematics over the held-out rows on its own core; the
     // folds' scales are those their rows measured.
     let scores: Vec<RuleScore> = tried
@@ -265,7 +295,10 @@ pub fn choose(
         .collect();
     let mut choice = decide(scores, q99, config.min_relative_gain);
     choice.speed_counted_again_mm = counted;
-    Ok(choice)
+    if let Some(name) = folds_name {
+        choice.reason += &format!(" ({name})");
+    }
+    Ok(Some(choice))
 }
 
 /// The device's rule (the first score) unless another lowers the held-out

@@ -25,7 +25,8 @@ use crate::data::stats::ErrorStats;
 use crate::model::diagnose::LoopConfig;
 use crate::model::identify::{identify, rows_needed_for, Identification, Priors, Start};
 use crate::model::validate::{
-    held_out_error_list, judged_folds, preferred, Fold, Preferred, MIN_BLOCKED_ROWS,
+    held_out_error_list, judged_folds, preferred, small_session_folds, Fold, Preferred,
+    MIN_BLOCKED_ROWS,
 };
 
 /// The tolerances tried (mm, one sd per coordinate): the drawing's
@@ -45,10 +46,6 @@ pub fn candidates_mm() -> [f64; 3] {
 /// grows as the pull squared: about 0.4 % at 0.2 sd, a fifth of the loop's
 /// 2 % margin.
 const DETERMINED_PULL_SHARE: f64 = 0.2;
-
-/// Folds of a session too small for the blocked ones: each holds out a
-/// tenth.
-const SMALL_SESSION_FOLDS: usize = 10;
 
 /// One tolerance and its held-out error.
 #[derive(Clone, Debug, Serialize)]
@@ -93,24 +90,6 @@ fn tolerance_folds(tracked: &[&Observation], needed: usize) -> (String, Vec<Fold
         Some(f) => (format!("{} interleaved folds", f.len()), f),
         None => ("none".into(), Vec::new()),
     }
-}
-
-/// `k` interleaved folds of `n` rows: each fits on all but a tenth of the
-/// rows (or all but one, leave-one-out, below ten rows), so that a fold's
-/// model is determined almost as the session's is; `None` when no fold can
-/// hold a row out and keep `needed` rows to fit.
-fn small_session_folds(n: usize, needed: usize) -> Option<Vec<Fold>> {
-    let k = n.min(SMALL_SESSION_FOLDS);
-    if k < 2 || n - n.div_ceil(k) < needed {
-        return None;
-    }
-    let fold = |p: usize| {
-        (
-            (0..n).filter(|r| r % k != p).collect(),
-            (0..n).filter(|r| r % k == p).collect(),
-        )
-    };
-    Some((0..k).map(fold).collect())
 }
 
 /// Chooses the anchors' tolerance for `train` (see the module doc), or

@@ -242,7 +242,15 @@ fn the_speed_structure_counted_again_is_judged_on_a_stream_s_folds_only() {
     let geometry = c.nominal.geometry();
     let config = LoopConfig::for_geometry(&geometry);
     let rows = observations(&train.samples);
-    let choice = rule::choose(&rows, &geometry.nominal_frame(), &result, &config).unwrap();
+    let choice = rule::choose(
+        &rows,
+        &geometry.nominal_frame(),
+        &result,
+        &config,
+        rule::RuleFolds::Judged,
+    )
+    .unwrap()
+    .expect("folds");
     let names: Vec<&str> = choice.scores.iter().map(|s| s.candidate.name).collect();
     println!("{names:?}\n{}", choice.reason);
     let weighed = choice.scores.iter().filter(|s| s.candidate.weighted);
@@ -300,7 +308,15 @@ fn the_speed_structure_counted_again_is_judged_on_a_stream_s_folds_only() {
     let (mut result, _) = run(&c, &lattice, &test);
     counted_on_strings_2_and_5(&mut result);
     let rows = observations(&lattice.samples);
-    let choice = rule::choose(&rows, &geometry.nominal_frame(), &result, &config).unwrap();
+    let choice = rule::choose(
+        &rows,
+        &geometry.nominal_frame(),
+        &result,
+        &config,
+        rule::RuleFolds::Judged,
+    )
+    .unwrap()
+    .expect("folds");
     assert!(
         choice
             .scores

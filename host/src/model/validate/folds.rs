@@ -97,6 +97,28 @@ pub(crate) fn folds(tracked: &[&Observation]) -> (Folds, Vec<Fold>) {
     (Folds::Blocked, out)
 }
 
+/// Folds of a session too small for the blocked ones: each holds out a
+/// tenth.
+pub const SMALL_SESSION_FOLDS: usize = 10;
+
+/// `k` interleaved folds of `n` rows: each fits on all but a tenth of the
+/// rows (or all but one, leave-one-out, below ten rows), so that a fold's
+/// model is determined almost as the session's is; `None` when no fold can
+/// hold a row out and keep `needed` rows to fit.
+pub(crate) fn small_session_folds(n: usize, needed: usize) -> Option<Vec<Fold>> {
+    let k = n.min(SMALL_SESSION_FOLDS);
+    if k < 2 || n - n.div_ceil(k) < needed {
+        return None;
+    }
+    let fold = |p: usize| {
+        (
+            (0..n).filter(|r| r % k != p).collect(),
+            (0..n).filter(|r| r % k == p).collect(),
+        )
+    };
+    Some((0..k).map(fold).collect())
+}
+
 /// The folds [`validate_by`](super::validate_by) judges by: the blocked ones when the session
 /// has them, else the two interleaved ones.
 pub(crate) fn judged_folds(tracked: &[&Observation]) -> (Folds, Vec<Fold>) {

@@ -317,11 +317,23 @@ pub(crate) fn judged_fold_fits(
     train: &[Observation],
     fit: impl Fn(&[&Observation]) -> Result<Identification, IdentifyError> + Sync,
 ) -> Result<Vec<(Identification, Vec<&Observation>)>, IdentifyError> {
-    use rayon::prelude::*;
     let tracked: Vec<&Observation> = train.iter().filter(|o| o.tracker.is_some()).collect();
     let (_, judged) = judged_folds(&tracked);
-    let pick = |rows: &[usize]| -> Vec<&Observation> { rows.iter().map(|&k| tracked[k]).collect() };
-    judged
+    fold_fits(&tracked, &judged, fit)
+}
+
+/// The models of `folds` (by index into `tracked`), each made by `fit`
+/// from its fold's fitting rows on its own core, with the rows it holds
+/// out.
+pub(crate) fn fold_fits<'a>(
+    tracked: &[&'a Observation],
+    folds: &[Fold],
+    fit: impl Fn(&[&Observation]) -> Result<Identification, IdentifyError> + Sync,
+) -> Result<Vec<(Identification, Vec<&'a Observation>)>, IdentifyError> {
+    use rayon::prelude::*;
+    let pick =
+        |rows: &[usize]| -> Vec<&'a Observation> { rows.iter().map(|&k| tracked[k]).collect() };
+    folds
         .par_iter()
         .map(|(rows, held)| Ok((fit(&pick(rows))?, pick(held))))
         .collect()

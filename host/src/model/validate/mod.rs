@@ -24,10 +24,12 @@ mod preferred;
 
 pub(crate) use errors::held_out_error_list;
 pub use errors::{later_session_errors, model_errors, predict_later, tail_noise};
-pub(crate) use folds::{folds, judgeable_folds, judged_folds, Fold};
-pub use folds::{Folds, MIN_BLOCKED_ROWS, MIN_STEP_SIDE_ROWS};
+pub(crate) use folds::{folds, judgeable_folds, judged_folds, small_session_folds, Fold};
+pub use folds::{Folds, MIN_BLOCKED_ROWS, MIN_STEP_SIDE_ROWS, SMALL_SESSION_FOLDS};
 pub use held_out::{cross_validated_error, validate, validate_forward, FoldScope, Validation};
-pub(crate) use held_out::{interleaved_fold_errors, judged_fold_fits, validate_by, validate_fits};
+pub(crate) use held_out::{
+    fold_fits, interleaved_fold_errors, judged_fold_fits, validate_by, validate_fits,
+};
 pub use judge::{judge, Check, FAILING_ROW_FACTOR, FAILING_ROW_RISE};
 pub(crate) use judge::{
     judge_step, refuse_a_fold_repair, refuse_on_fold_rise, refused, stability,

@@ -777,14 +777,23 @@ impl Run<'_> {
         nominal: &spidar_core::model::Frame<f64>,
         regime: &Regime,
     ) -> Result<RuleChoice, String> {
-        if !regime.full {
-            return Err("the device's rule: the session is too small for held-out folds".into());
-        }
+        use crate::model::rule::RuleFolds;
+        // Below what the loop needs, the folds the anchors' tolerance is
+        // chosen on: each holds out a tenth.
+        let folds = if regime.full {
+            RuleFolds::Judged
+        } else {
+            RuleFolds::SmallSession
+        };
         let pb = spinner("choosing the kinematics' rule", self.cfg.quiet);
-        let choice = crate::model::rule::choose(train, nominal, loop_result, &self.cfg.loop_config)
-            .map_err(|e| format!("the device's rule: the folds could not be fitted ({e})"));
+        let choice =
+            crate::model::rule::choose(train, nominal, loop_result, &self.cfg.loop_config, folds)
+                .map_err(|e| format!("the device's rule: the folds could not be fitted ({e})"));
         pb.finish_and_clear();
-        choice
+        choice?.ok_or_else(|| {
+            "the device's rule: the session is too small for held-out folds (no row to spare)"
+                .into()
+        })
     }
 }
 
