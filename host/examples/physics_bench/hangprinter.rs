@@ -41,6 +41,8 @@ pub(super) fn hangprinter(seeds: u64, config: &CalibrateConfig) {
     );
     println!("|---:|---:|{}", "---|".repeat(TRAINING_POSES.len()));
     let mut ratios: Vec<Vec<f64>> = vec![Vec::new(); TRAINING_POSES.len()];
+    // Each size's (reference, identified, final) test means, summed.
+    let mut sums = vec![[0.0f64; 3]; TRAINING_POSES.len()];
     for seed in 1..=seeds {
         let device = PhysicsDevice::new(&preset, seed).expect("hangprinter");
         let poses = |points, session_seed| {
@@ -62,10 +64,13 @@ pub(super) fn hangprinter(seeds: u64, config: &CalibrateConfig) {
             let (reference, fin) = (mean(StageKind::Reference), mean(StageKind::Final));
             raw = mean(StageKind::Raw);
             ratios[k].push(fin / reference);
+            let identified = mean(StageKind::Identified);
+            for (sum, x) in sums[k].iter_mut().zip([reference, identified, fin]) {
+                *sum += x;
+            }
             let chosen = &stage_of(&c, StageKind::Final).name;
             cells.push(format!(
-                "{reference:.3} / {:.3} / **{fin:.3}** ({})",
-                mean(StageKind::Identified),
+                "{reference:.3} / {identified:.3} / **{fin:.3}** ({})",
                 chosen.trim_start_matches("final ").trim_matches(['(', ')'])
             ));
         }
@@ -80,5 +85,13 @@ pub(super) fn hangprinter(seeds: u64, config: &CalibrateConfig) {
             format!("{mean:.3}, worst {worst:.3}, {worse} of {} worse", r.len())
         })
         .collect();
+    let means: Vec<String> = sums
+        .iter()
+        .map(|[r, i, f]| {
+            let n = seeds as f64;
+            format!("{:.3} / {:.3} / **{:.3}**", r / n, i / n, f / n)
+        })
+        .collect();
+    println!("| mean | | {} |", means.join(" | "));
     println!("| final / reference | | {} |", over.join(" | "));
 }
