@@ -237,7 +237,7 @@ pub enum RuleFolds {
     Judged,
     /// A session too small for those (each half cannot identify the model):
     /// ten interleaved folds that each hold out a tenth, as the anchors'
-    /// tolerance is chosen on ([`small_session_folds`]).
+    /// tolerance is chosen on (`validate::small_session_folds`).
     SmallSession,
 }
 
