@@ -25,7 +25,8 @@ pub struct SimulateArgs {
     /// that yaws, a tracker clock 1.8 s ahead; its sessions are streams);
     /// `hangprinter` (a 3-D 4-line robot whose lines run through pulley
     /// blocks 2, 2, 2 and 4 times, 75 mm spools that build up in layers,
-    /// anchors tens of mm off the tape's, a camera of 1.5 mm; static poses:
+    /// anchors tens of mm off the tape's, a camera of 0.8 mm that places one
+    /// pose in five 3 mm further off; static poses:
     /// `--kind random --points 25`). The presets are configuration files in
     /// `host/src/sim/physics/presets/`.
     #[arg(long)]

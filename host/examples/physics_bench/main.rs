@@ -26,7 +26,7 @@
 //!
 //! Then the `hangprinter` preset (a Hangprinter-like 3-D robot: lines
 //! through pulley blocks, layered spools, anchors tens of mm off the
-//! tape's, a camera of 1.5 mm, static poses): per seed, training sessions
+//! tape's, a camera whose scatter has heavy tails, static poses): per seed, training sessions
 //! of 12 to 31 poses against one 300-pose test session, the reference,
 //! identified and final stages held out.
 //!

@@ -204,12 +204,27 @@ impl Default for AsBuiltConfig {
     }
 }
 
+/// Whether `x` is 0 (a key left out of a written configuration, as it was
+/// before the key existed).
+fn is_zero(x: &f64) -> bool {
+    *x == 0.0
+}
+
 /// The optical tracker (ARTrack/DTrack in the paper) and its room frame.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct TrackerConfig {
     /// Per-axis standard deviation of the tracker noise, mm.
     pub noise_sigma_mm: f64,
+    /// The share of the captures located poorly (0: none): a marker partly
+    /// hidden, a reflection beside it. On those a further normal noise of
+    /// [`TrackerConfig::tail_sigma_mm`] per axis.
+    #[serde(skip_serializing_if = "is_zero")]
+    pub tail_share: f64,
+    /// Per-axis standard deviation of the poorly located captures' further
+    /// noise, mm.
+    #[serde(skip_serializing_if = "is_zero")]
+    pub tail_sigma_mm: f64,
     /// Angle of the true room-from-device rotation (random axis), degrees.
     pub rotation_deg: f64,
     /// Standard deviation of each coordinate of the true translation around
@@ -242,6 +257,8 @@ impl Default for TrackerConfig {
     fn default() -> Self {
         TrackerConfig {
             noise_sigma_mm: 0.2,
+            tail_share: 0.0,
+            tail_sigma_mm: 0.0,
             rotation_deg: 1.0,
             translation_sigma_mm: 3.0,
             scale: 1.0,
@@ -519,6 +536,13 @@ impl SimConfig {
     fn validate_tracker(&self) -> Result<(), SimError> {
         let t = &self.tracker;
         non_negative("tracker.noise_sigma_mm", t.noise_sigma_mm)?;
+        if !(0.0..=1.0).contains(&t.tail_share) {
+            return Err(bad(
+                "tracker.tail_share",
+                format!("{} is not a share of the captures (0 to 1)", t.tail_share),
+            ));
+        }
+        non_negative("tracker.tail_sigma_mm", t.tail_sigma_mm)?;
         non_negative("tracker.rotation_deg", t.rotation_deg)?;
         non_negative("tracker.translation_sigma_mm", t.translation_sigma_mm)?;
         positive("tracker.scale", t.scale)?;

@@ -29,6 +29,7 @@ pub mod physics;
 pub mod plant;
 pub mod simulated_device;
 pub mod tracker;
+mod tracker_noise;
 mod trajectory;
 pub mod truth;
 pub mod virtual_device;
@@ -47,8 +48,7 @@ pub use simulated_device::SimulatedDevice;
 pub use truth::Truth;
 
 use crate::data::dataset::{DatasetError, Sample, Session};
-use rand_distr::Distribution;
-use simulated_device::{normal, stream};
+use simulated_device::stream;
 use spidar_core::geometry::{dot, norm, sub};
 
 /// Any failure of the simulator; each names the file, field or string concerned.
@@ -305,7 +305,7 @@ struct ModelSession<'a> {
     noise_rng: rand::rngs::ChaCha8Rng,
     occlusion_rng: rand::rngs::ChaCha8Rng,
     abnormal_rng: rand::rngs::ChaCha8Rng,
-    noise: rand_distr::Normal<f64>,
+    noise: tracker_noise::TrackerNoise,
     legacy: legacy::LegacyController,
     direction: [i8; STRINGS],
     occluded: bool,
@@ -330,7 +330,7 @@ impl<'a> ModelSession<'a> {
         let noise_rng = stream(seed, 12);
         let occlusion_rng = stream(seed, 13);
         let abnormal_rng = stream(seed, 14);
-        let noise = normal("tracker.noise_sigma_mm", cfg.tracker.noise_sigma_mm)?;
+        let noise = tracker_noise::TrackerNoise::new(&cfg.tracker, stream(seed, 15))?;
         let legacy = legacy::LegacyController::new(&device.nominal);
         Ok(ModelSession {
             device,
@@ -497,9 +497,10 @@ impl<'a> ModelSession<'a> {
         } else {
             marker_at(captures, offset_s, t_s)
         };
-        let (noise, noise_rng) = (&self.noise, &mut self.noise_rng);
+        let (noise, noise_rng) = (&mut self.noise, &mut self.noise_rng);
         let measured = marker.map(|m| -> Vec3<f64> {
-            core::array::from_fn(|k| round_to(m[k] + noise.sample(noise_rng), 1000.0))
+            let offset = noise.offset(noise_rng);
+            core::array::from_fn(|k| round_to(m[k] + offset[k], 1000.0))
         });
         measured.filter(|_| !self.occluded)
     }

@@ -434,6 +434,57 @@ fn abnormal_motor_gives_large_errors_in_one_corner() {
         .all(|(r, t)| (r - t.abnormal_mm).abs() <= QUANTIZATION_MM));
 }
 
+/// A tracker with a tail locates its share of the captures poorly, by a
+/// further normal of the tail's sd; every other capture's noise is the
+/// same draw as without the tail, and a tail of no captures is no tail.
+#[test]
+fn a_tracker_with_a_tail_locates_its_share_of_the_captures_poorly() {
+    let session = |share: f64, sigma: f64| {
+        let mut config = SimConfig::default();
+        config.tracker.tail_share = share;
+        config.tracker.tail_sigma_mm = sigma;
+        let device = SimulatedDevice::new(&config, 12).unwrap();
+        simulate_session_with_truth(&device, SessionKind::Random { points: 1000 }, 14).unwrap()
+    };
+    let offsets = |(s, truth): &(Session, Vec<spidar::sim::SampleTruth>)| -> Vec<[f64; 3]> {
+        s.samples
+            .iter()
+            .zip(truth)
+            .filter_map(|(s, t)| {
+                s.tracker
+                    .map(|o| core::array::from_fn(|k| o[k] - t.room_mm[k]))
+            })
+            .collect()
+    };
+    let plain = offsets(&session(0.0, 0.0));
+    assert_eq!(offsets(&session(0.0, 3.0)), plain);
+    let tailed = offsets(&session(0.2, 3.0));
+    assert_eq!(tailed.len(), plain.len());
+    let moved: Vec<f64> = tailed
+        .iter()
+        .zip(&plain)
+        .map(|(a, b)| (0..3).map(|k| (a[k] - b[k]).powi(2)).sum::<f64>().sqrt())
+        .collect();
+    // Rows without the tail: the very same noise (to the tracker's
+    // micrometre); rows with it: 3 mm sd per axis more.
+    let poor: Vec<f64> = moved.iter().copied().filter(|&d| d > 0.002).collect();
+    let share = poor.len() as f64 / moved.len() as f64;
+    assert!((0.16..0.24).contains(&share), "{share}");
+    let sd = (poor.iter().map(|d| d * d).sum::<f64>() / (3.0 * poor.len() as f64)).sqrt();
+    assert!((2.6..3.4).contains(&sd), "{sd}");
+
+    let dir = tmp("tail");
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("sim.toml");
+    std::fs::write(&path, "[tracker]\ntail_share = 1.5\ntail_sigma_mm = 3.0\n").unwrap();
+    let msg = SimConfig::load(&path).unwrap_err().to_string();
+    assert!(msg.contains("tracker.tail_share"), "{msg}");
+    std::fs::write(&path, "[tracker]\ntail_share = 0.1\ntail_sigma_mm = -1.0\n").unwrap();
+    let msg = SimConfig::load(&path).unwrap_err().to_string();
+    assert!(msg.contains("tracker.tail_sigma_mm"), "{msg}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 #[test]
 fn tracker_noise_is_as_configured() {
     let device = SimulatedDevice::new(&SimConfig::default(), 12).unwrap();

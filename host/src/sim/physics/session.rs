@@ -260,7 +260,7 @@ struct PhysicsSession<'a> {
     posture_rng: ChaCha8Rng,
     orientation_rng: ChaCha8Rng,
     orientation_noise: rand_distr::Normal<f64>,
-    noise: rand_distr::Normal<f64>,
+    noise: crate::sim::tracker_noise::TrackerNoise,
     jitter: rand_distr::Normal<f64>,
     /// `(time s, string, mm)`.
     slips: Vec<(f64, usize, f64)>,
@@ -320,7 +320,7 @@ impl<'a> PhysicsSession<'a> {
             "orientation.sigma_deg",
             cfg.orientation.sigma_deg.to_radians(),
         )?;
-        let noise = normal("tracker.noise_sigma_mm", cfg.tracker.noise_sigma_mm)?;
+        let noise = crate::sim::tracker_noise::TrackerNoise::new(&cfg.tracker, stream(seed, 118))?;
         let jitter = normal("as_built.posture_jitter_deg", device.posture.jitter_rad)?;
         let slips = slip_events(&device.effects, n, duration_s, &mut slip_rng);
         let strain_per_s = (0..n).map(|i| device.string_creep_per_s(i)).collect();
@@ -538,9 +538,9 @@ impl<'a> PhysicsSession<'a> {
         // Every draw is made whatever the tracker sees, so that the clock
         // changes nothing else.
         let (marker_room, omega) = seen.unwrap_or(([0.0; 3], [0.0; 3]));
-        let (noise, noise_rng) = (&self.noise, &mut self.noise_rng);
+        let offset = self.noise.offset(&mut self.noise_rng);
         let measured: Vec3<f64> =
-            core::array::from_fn(|k| round_to(marker_room[k] + noise.sample(noise_rng), 1000.0));
+            core::array::from_fn(|k| round_to(marker_room[k] + offset[k], 1000.0));
         // The body turns with the hand (`omega`, device frame); the tracker
         // reads its orientation in the room, with its own noise.
         let (orientation_noise, orientation_rng) =
