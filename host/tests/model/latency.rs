@@ -241,16 +241,7 @@ fn the_speed_structure_counted_again_is_judged_on_a_stream_s_folds_only() {
     let measured = counted_on_strings_2_and_5(&mut result);
     let geometry = c.nominal.geometry();
     let config = LoopConfig::for_geometry(&geometry);
-    let rows = observations(&train.samples);
-    let choice = rule::choose(
-        &rows,
-        &geometry.nominal_frame(),
-        &result,
-        &config,
-        rule::RuleFolds::Judged,
-    )
-    .unwrap()
-    .expect("folds");
+    let choice = rule_on_judged_folds(&train, &geometry, &result, &config);
     let names: Vec<&str> = choice.scores.iter().map(|s| s.candidate.name).collect();
     println!("{names:?}\n{}", choice.reason);
     let weighed = choice.scores.iter().filter(|s| s.candidate.weighted);
@@ -307,16 +298,7 @@ fn the_speed_structure_counted_again_is_judged_on_a_stream_s_folds_only() {
     let lattice = simulate_session(&lattice, SessionKind::Lattice, 3).expect("lattice");
     let (mut result, _) = run(&c, &lattice, &test);
     counted_on_strings_2_and_5(&mut result);
-    let rows = observations(&lattice.samples);
-    let choice = rule::choose(
-        &rows,
-        &geometry.nominal_frame(),
-        &result,
-        &config,
-        rule::RuleFolds::Judged,
-    )
-    .unwrap()
-    .expect("folds");
+    let choice = rule_on_judged_folds(&lattice, &geometry, &result, &config);
     assert!(
         choice
             .scores
@@ -361,4 +343,24 @@ fn a_backlash_a_layer_table_stood_in_for_is_taken_before_the_tables() {
         after <= 1.3 * clean,
         "after {after:.3} mm, clean {clean:.3} mm"
     );
+}
+
+/// The kinematics' rule chosen for `result` on the judged folds of
+/// `session`.
+fn rule_on_judged_folds(
+    session: &spidar::data::dataset::Session,
+    geometry: &spidar::data::dataset::Geometry,
+    result: &spidar::model::diagnose::LoopResult,
+    config: &LoopConfig,
+) -> spidar::model::rule::RuleChoice {
+    let rows = observations(&session.samples);
+    spidar::model::rule::choose(
+        &rows,
+        &geometry.nominal_frame(),
+        result,
+        config,
+        spidar::model::rule::RuleFolds::Judged,
+    )
+    .unwrap()
+    .expect("folds")
 }

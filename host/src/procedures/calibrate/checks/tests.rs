@@ -10,6 +10,20 @@ use crate::model::reference;
 use crate::procedures::calibrate::evaluate::stage;
 use spidar_core::STRINGS;
 
+/// A row at `t_s` whose tracker reads `tracker` (room frame), counts 0.
+fn tracked_at(t_s: f64, tracker: [f64; 3]) -> Sample {
+    Sample {
+        t_s,
+        counts: [0; STRINGS],
+        tracker: Some(tracker),
+        orientation: None,
+        legacy: None,
+        tension_n: None,
+        since_home_s: None,
+        home: None,
+    }
+}
+
 fn stage_at(kind: report::StageKind, name: &str, test_mean: f64) -> report::Stage {
     let mut test = ErrorStats::of(&[test_mean]);
     test.mean_mm = test_mean;
@@ -136,16 +150,7 @@ fn a_tracker_spread_off_the_nominal_model_is_warned_or_refused() {
     let obs = |scale: f64| -> Vec<Observation> {
         let samples: Vec<Sample> = nominal
             .iter()
-            .map(|p| Sample {
-                t_s: 0.0,
-                counts: [0; STRINGS],
-                tracker: Some(p.map(|x| x * scale + 5.0)),
-                orientation: None,
-                legacy: None,
-                tension_n: None,
-                since_home_s: None,
-                home: None,
-            })
+            .map(|p| tracked_at(0.0, p.map(|x| x * scale + 5.0)))
             .collect();
         observations(&samples)
     };
@@ -200,19 +205,9 @@ fn test_points_beyond_the_training_box_are_warned_with_the_plain_fit_beside() {
         .nominal_frame();
     let room = |p: [f64; 3]| spidar_core::geometry::room_from_device(&frame, p);
     let samples: Vec<Sample> = (0..8)
-        .map(|k| Sample {
-            t_s: k as f64,
-            counts: [0; STRINGS],
-            tracker: Some(room([
-                (k & 1) as f64 * 100.0,
-                (k >> 1 & 1) as f64 * 100.0,
-                (k >> 2) as f64 * 100.0,
-            ])),
-            orientation: None,
-            legacy: None,
-            tension_n: None,
-            since_home_s: None,
-            home: None,
+        .map(|k| {
+            let corner = [k & 1, k >> 1 & 1, k >> 2].map(|b| b as f64 * 100.0);
+            tracked_at(k as f64, room(corner))
         })
         .collect();
     let train = observations(&samples);
