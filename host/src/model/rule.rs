@@ -40,9 +40,7 @@ use crate::model::diagnose::{
 };
 use crate::model::identify::{identify, rows_needed_for, Identification, IdentifyError, Start};
 use crate::model::predict::{paired_with_tracker, predict, KinematicModel, UNMEASURED_SCALES};
-use crate::model::validate::{
-    fold_fits, judged_fold_fits, preferred, small_session_folds, Preferred,
-};
+use crate::model::validate::{choice_folds, fold_fits, judged_fold_fits, preferred, Preferred};
 use spidar_core::model::Frame;
 use spidar_core::STRINGS;
 
@@ -237,7 +235,7 @@ pub enum RuleFolds {
     Judged,
     /// A session too small for those (each half cannot identify the model):
     /// ten interleaved folds that each hold out a tenth, as the anchors'
-    /// tolerance is chosen on (`validate::small_session_folds`).
+    /// tolerance is chosen on (`validate::choice_folds`).
     SmallSession,
 }
 
@@ -264,11 +262,10 @@ pub fn choose(
         RuleFolds::Judged => (judged_fold_fits(train, fit)?, None),
         RuleFolds::SmallSession => {
             let tracked: Vec<&Observation> = train.iter().filter(|o| o.tracker.is_some()).collect();
-            let needed = rows_needed_for(structure, nominal.layout);
-            let Some(small) = small_session_folds(tracked.len(), needed) else {
+            let (name, small) = choice_folds(&tracked, rows_needed_for(structure, nominal.layout));
+            if small.is_empty() {
                 return Ok(None);
-            };
-            let name = format!("{} interleaved folds", small.len());
+            }
             (fold_fits(&tracked, &small, fit)?, Some(name))
         }
     };

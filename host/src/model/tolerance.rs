@@ -24,10 +24,7 @@ use crate::data::observe::Observation;
 use crate::data::stats::ErrorStats;
 use crate::model::diagnose::LoopConfig;
 use crate::model::identify::{identify, rows_needed_for, Identification, Priors, Start};
-use crate::model::validate::{
-    held_out_error_list, judged_folds, preferred, small_session_folds, Fold, Preferred,
-    MIN_BLOCKED_ROWS,
-};
+use crate::model::validate::{choice_folds, held_out_error_list, preferred, Preferred};
 
 /// The tolerances tried (mm, one sd per coordinate): the drawing's
 /// ([`Priors::default`]), four and ten times it (a hand-measured rig).
@@ -73,25 +70,6 @@ pub struct ToleranceChoice {
     pub unweighted: Option<ErrorStats>,
 }
 
-/// Folds whose fitting rows each identify the base model (`needed` rows),
-/// and their name: the loop's blocked folds from [`MIN_BLOCKED_ROWS`]
-/// tracked rows, else ten interleaved ones ([`small_session_folds`]); none
-/// when the session cannot spare a row.
-fn tolerance_folds(tracked: &[&Observation], needed: usize) -> (String, Vec<Fold>) {
-    let n = tracked.len();
-    if n >= MIN_BLOCKED_ROWS {
-        let (_, blocked) = judged_folds(tracked);
-        return (
-            "blocked folds (later, earlier half, outer shell)".into(),
-            blocked,
-        );
-    }
-    match small_session_folds(n, needed) {
-        Some(f) => (format!("{} interleaved folds", f.len()), f),
-        None => ("none".into(), Vec::new()),
-    }
-}
-
 /// Chooses the anchors' tolerance for `train` (see the module doc), or
 /// takes the geometry's (`config.anchor_sd_mm`); then whether the rows are
 /// reweighed robustly, on the same folds: the plain least-squares weights
@@ -111,7 +89,7 @@ pub fn choose(
     let tracked: Vec<&Observation> = train.iter().filter(|o| o.tracker.is_some()).collect();
     let structure = config.base_structure();
     let needed = rows_needed_for(&structure, nominal.layout);
-    let (folds_name, folds) = tolerance_folds(&tracked, needed);
+    let (folds_name, folds) = choice_folds(&tracked, needed);
     let pick = |rows: &[usize]| -> Vec<&Observation> { rows.iter().map(|&k| tracked[k]).collect() };
     // Each fold's model at a tolerance, with its errors on the rows the
     // fold holds out.
@@ -324,26 +302,5 @@ mod tests {
             0.02,
         );
         assert_eq!(loose.anchor_sd_mm[0], 60.0, "{}", loose.reason);
-    }
-
-    #[test]
-    fn small_sessions_hold_out_a_tenth_and_leave_enough_to_fit() {
-        // 12 rows, 10 to fit: 10 folds of 1 or 2 held-out rows, every row
-        // held out once.
-        let f = small_session_folds(12, 10).unwrap();
-        assert_eq!(f.len(), 10);
-        for (fit, held) in &f {
-            assert!(
-                fit.len() >= 10 && (1..=2).contains(&held.len()),
-                "{fit:?} {held:?}"
-            );
-        }
-        let mut held: Vec<usize> = f.iter().flat_map(|(_, h)| h.clone()).collect();
-        held.sort_unstable();
-        assert_eq!(held, (0..12).collect::<Vec<_>>());
-        // Below ten rows, leave-one-out.
-        assert_eq!(small_session_folds(9, 8).unwrap().len(), 9);
-        // As many rows as the fit needs: nothing can be held out.
-        assert!(small_session_folds(10, 10).is_none());
     }
 }

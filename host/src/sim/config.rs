@@ -79,7 +79,7 @@ impl Default for NominalConfig {
 }
 
 impl NominalConfig {
-    /// `mechanical_advantage`: one positive ratio per string, or none.
+    /// `mechanical_advantage`: one ratio of at least 1 per string, or none.
     pub(crate) fn validate_pulley_blocks(&self) -> Result<(), SimError> {
         let m = &self.mechanical_advantage;
         if !m.is_empty() && m.len() != self.strings {

@@ -105,7 +105,7 @@ pub const SMALL_SESSION_FOLDS: usize = 10;
 /// rows (or all but one, leave-one-out, below ten rows), so that a fold's
 /// model is determined almost as the session's is; `None` when no fold can
 /// hold a row out and keep `needed` rows to fit.
-pub(crate) fn small_session_folds(n: usize, needed: usize) -> Option<Vec<Fold>> {
+fn small_session_folds(n: usize, needed: usize) -> Option<Vec<Fold>> {
     let k = n.min(SMALL_SESSION_FOLDS);
     if k < 2 || n - n.div_ceil(k) < needed {
         return None;
@@ -117,6 +117,27 @@ pub(crate) fn small_session_folds(n: usize, needed: usize) -> Option<Vec<Fold>> 
         )
     };
     Some((0..k).map(fold).collect())
+}
+
+/// The folds a choice made beside the model (the anchors' tolerance, the
+/// robust weights, a small session's kinematics' rule) is judged on, each
+/// fold's fitting rows identifying the model (`needed` rows), and their
+/// name: the loop's blocked folds from [`MIN_BLOCKED_ROWS`]
+/// tracked rows, else ten interleaved ones ([`small_session_folds`]); none
+/// when the session cannot spare a row.
+pub(crate) fn choice_folds(tracked: &[&Observation], needed: usize) -> (String, Vec<Fold>) {
+    let n = tracked.len();
+    if n >= MIN_BLOCKED_ROWS {
+        let (_, blocked) = judged_folds(tracked);
+        return (
+            "blocked folds (later, earlier half, outer shell)".into(),
+            blocked,
+        );
+    }
+    match small_session_folds(n, needed) {
+        Some(f) => (format!("{} interleaved folds", f.len()), f),
+        None => ("none".into(), Vec::new()),
+    }
 }
 
 /// The folds [`validate_by`](super::validate_by) judges by: the blocked ones when the session
@@ -205,3 +226,6 @@ pub(crate) fn judgeable_folds(
         .collect();
     (keep, left_out)
 }
+
+#[cfg(test)]
+mod tests;

@@ -24,7 +24,7 @@ mod preferred;
 
 pub(crate) use errors::held_out_error_list;
 pub use errors::{later_session_errors, model_errors, predict_later, tail_noise};
-pub(crate) use folds::{folds, judgeable_folds, judged_folds, small_session_folds, Fold};
+pub(crate) use folds::{choice_folds, folds, judgeable_folds};
 pub use folds::{Folds, MIN_BLOCKED_ROWS, MIN_STEP_SIDE_ROWS, SMALL_SESSION_FOLDS};
 pub use held_out::{cross_validated_error, validate, validate_forward, FoldScope, Validation};
 pub(crate) use held_out::{

@@ -497,10 +497,9 @@ impl Run<'_> {
         ));
         let final_points = list.points.iter().find(|p| p.name == final_name);
         let reference_points = list
-            .stages
+            .points
             .iter()
-            .find(|s| s.kind == report::StageKind::Reference)
-            .and_then(|s| list.points.iter().find(|p| p.name == s.name));
+            .find(|p| p.name == crate::model::reference::STAGE_NAME);
         self.warnings.extend(trust_warnings(
             &fin.frame,
             tr,
