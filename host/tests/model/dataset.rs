@@ -478,6 +478,12 @@ fn n_string_geometry_errors_name_the_key() {
             "positive",
         ),
         (
+            "room_from_device_translation_mm = [",
+            "room_from_device_translation_mm = [1, ",
+            "room_from_device_translation_mm",
+            "4 values: [x, y, z]",
+        ),
+        (
             "counts_per_rev = [459000, 459000, 459000, 1000]",
             "counts_per_rev = [1, 2, 3]",
             "counts_per_rev",

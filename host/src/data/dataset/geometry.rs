@@ -116,7 +116,9 @@ struct GeometryFile {
     planar: bool,
     home_mm: Vec<f64>,
     anchors_mm: Vec<Vec<f64>>,
-    room_from_device_translation_mm: Vec3<f64>,
+    // Read as a list, its length checked: serde reads the first 3 values
+    // of a longer TOML array into `[f64; 3]` and drops the rest unsaid.
+    room_from_device_translation_mm: Vec<f64>,
     #[serde(default)]
     home_tension_n: Option<f64>,
     #[serde(default)]
@@ -194,6 +196,16 @@ impl Geometry {
             given.push(point(format!("anchors_mm[{i}]"), a)?);
         }
         let mut home_mm = point("home_mm".to_string(), &raw.home_mm)?;
+        let room_from_device_translation_mm = match raw.room_from_device_translation_mm[..] {
+            [x, y, z] => [x, y, z],
+            ref v => {
+                return Err(field_error(
+                    file,
+                    "room_from_device_translation_mm",
+                    format!("{} values: [x, y, z] (mm) expected", v.len()),
+                ))
+            }
+        };
         if planar && raw.home_mm.len() == 2 {
             // A 2-D home lies in the anchors' plane.
             home_mm[2] = given[0][2];
@@ -233,7 +245,7 @@ impl Geometry {
             mechanical_advantage,
             home_mm,
             anchors_mm,
-            room_from_device_translation_mm: raw.room_from_device_translation_mm,
+            room_from_device_translation_mm,
             home_tension_n: raw.home_tension_n,
             anchor_sd_mm,
             home_sd_mm: raw.home_sd_mm,

@@ -31,8 +31,6 @@ use crate::device::tracker::sync::{CoarseShift, ShiftConfig, SyncError, TimeShif
 
 /// Rows further apart than this (median, s) make a static session.
 pub const MAX_STREAM_INTERVAL_S: f64 = 0.1;
-/// Fewest tracked rows a stream needs to be aligned.
-pub const MIN_STREAM_ROWS: usize = 200;
 /// Largest clock offset searched (s).
 pub const MAX_OFFSET_S: f64 = 5.0;
 /// The identification and the alignment are alternated until the offset
@@ -150,16 +148,17 @@ pub(crate) fn median_step_s(times: impl Iterator<Item = f64>) -> Option<f64> {
     Some(d[d.len() / 2])
 }
 
-/// `Some(static timing)` when `obs` is not a stream to align.
+/// `Some(static timing)` when `obs` is not a stream to align: its rows are
+/// further apart than a stream's. A stream however short is aligned (its
+/// tracker's clock may be seconds off), or refused when that fails: read
+/// as poses, its rows would pair the strings with the marker from
+/// elsewhere.
 pub fn static_timing(obs: &[Observation]) -> Option<SessionTiming> {
-    let tracked = obs.iter().filter(|o| o.tracker.is_some()).count();
     let interval = median_interval_s(obs).unwrap_or(f64::INFINITY);
-    (interval > MAX_STREAM_INTERVAL_S || tracked < MIN_STREAM_ROWS).then_some(
-        SessionTiming::Static {
-            median_interval_s: interval,
-            rows: obs.len(),
-        },
-    )
+    (interval > MAX_STREAM_INTERVAL_S).then_some(SessionTiming::Static {
+        median_interval_s: interval,
+        rows: obs.len(),
+    })
 }
 
 /// The clock offset between the tracker positions of `obs` and `positions`

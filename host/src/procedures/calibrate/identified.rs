@@ -22,7 +22,7 @@ use crate::model::rule::RuleChoice;
 
 use super::checks::{
     check_alignment, check_enough_tracked_rows, check_tracker_scale, test_outlier_warning,
-    tracker_outlier_warning, unpaired_rows_warnings, Regime,
+    tracker_outlier_warning, unfitted_warning, unpaired_rows_warnings, Regime,
 };
 use super::evaluate::{room_positions, stage, PerSession, StageErrors, StageList};
 use super::loop_rows::LoopRows;
@@ -100,8 +100,8 @@ type Aligned = (
 /// for the training session (nominal model, then a model identified from
 /// the first alignment), once for the test session with that model.
 fn align_clocks(
-    tr: Vec<Observation>,
-    te: Vec<Observation>,
+    (tr, tr_path): (Vec<Observation>, &Path),
+    (te, te_path): (Vec<Observation>, &Path),
     geometry: &Geometry,
     nominal: &spidar_core::model::Frame<f64>,
     nominal_laws: &[spidar_core::model::StringLaw; spidar_core::STRINGS],
@@ -122,7 +122,8 @@ fn align_clocks(
             // The model identified on rows paired a little off takes up part
             // of the offset, and the next pass with it finds the rest: the
             // two are alternated until the offset holds.
-            let (mut a, mut rows) = align::align(&tr, &placed(&nominal_tr), 0.0, false)?;
+            let (mut a, mut rows) = align::align(&tr, &placed(&nominal_tr), 0.0, false)
+                .map_err(|e| alignment_failed(tr_path, &tr, e))?;
             raw_train = Some(nominal_tr.iter().map(|p| p.room).collect());
             let mut quick;
             let mut rounds = 0;
@@ -142,7 +143,8 @@ fn align_clocks(
                     &placed_positions(quick.kinematic_model(), &tr),
                     a.offset_s,
                     true,
-                )?;
+                )
+                .map_err(|e| alignment_failed(tr_path, &tr, e))?;
                 let step = (next.offset_s - a.offset_s).abs();
                 (a, rows) = (next, next_rows);
                 rounds += 1;
@@ -173,7 +175,8 @@ fn align_clocks(
             };
             // The offset alone: a test stream is most often too short to
             // tell a drift from the model's own errors.
-            let (a, te1) = align::align(&te, &placed_positions(model, &te), prior, false)?;
+            let (a, te1) = align::align(&te, &placed_positions(model, &te), prior, false)
+                .map_err(|e| alignment_failed(te_path, &te, e))?;
             (te1, align::SessionTiming::Aligned(a))
         }
     };
@@ -186,6 +189,33 @@ fn align_clocks(
         },
         raw_train,
     ))
+}
+
+/// The refusal of a stream (`rows`, read from `path`) whose tracker clock
+/// the alignment could not find: what failed, on how many tracked rows
+/// over how long, and what to record instead.
+fn alignment_failed(path: &Path, rows: &[Observation], e: align::AlignError) -> CalibrateError {
+    let tracked: Vec<f64> = rows
+        .iter()
+        .filter(|o| o.tracker.is_some())
+        .map(|o| o.t_s)
+        .collect();
+    let span_s = match (tracked.first(), tracked.last()) {
+        (Some(a), Some(b)) => b - a,
+        _ => 0.0,
+    };
+    CalibrateError::Session {
+        file: path.to_path_buf(),
+        problem: format!(
+            "a stream (rows {:.3} s apart): its tracker's clock must be found from the motion \
+             before the rows can be paired, and that failed on its {} tracked rows over {:.1} s \
+             ({e}). Record a longer stream that moves the end-effector, or pair the device's \
+             and the tracker's rows by a common clock",
+            align::median_interval_s(rows).unwrap_or(f64::NAN),
+            tracked.len(),
+            span_s
+        ),
+    }
 }
 
 /// Stage 1, raw: the nominal geometry through the device pipeline (the
@@ -587,6 +617,8 @@ impl Run<'_> {
             identified,
         );
         let reference = self.reference(obs, &loop_rows.pick(obs.train), &nominal, &mut list)?;
+        self.warnings
+            .extend(unfitted_warning(train.path, &tr, &list.stages));
 
         // From here on the sessions are read at the strings' meeting point when
         // the loop found the tracked body's origin off it (the errors are then
@@ -700,8 +732,13 @@ impl Run<'_> {
     ) -> Result<Aligned, CalibrateError> {
         let (tr, te) = self.as_recorded(train, test, nominal);
         let t = Instant::now();
-        let (tr, te, timing, raw_train) =
-            align_clocks(tr, te, self.geometry, nominal, nominal_laws)?;
+        let (tr, te, timing, raw_train) = align_clocks(
+            (tr, train.path),
+            (te, test.path),
+            self.geometry,
+            nominal,
+            nominal_laws,
+        )?;
         for (path, t) in [(train.path, &timing.train), (test.path, &timing.test)] {
             check_alignment(path, t)?;
         }
