@@ -55,6 +55,13 @@ pub struct CalibrateArgs {
     /// 30,000-row session then takes ~10 times as long).
     #[arg(long, value_name = "ROWS", default_value_t = CalibrateConfig::full().max_loop_rows)]
     pub loop_rows: usize,
+    /// The tracker's clock is about this far ahead of the device's (s;
+    /// negative: behind): the alignment of streams searches 5 s around it
+    /// instead of around 0. Only for a rig known to be further off; the
+    /// offset is still found from the motion and reported.
+    #[arg(long, value_name = "S", default_value_t = 0.0, allow_hyphen_values = true,
+          value_parser = finite_seconds)]
+    pub clock_offset_s: f64,
     /// Write the learners' data to DIR as `x,y,z,tx,ty,tz` CSVs (input and
     /// tracker, mm), for `scripts/reference/reference.py`:
     /// residual_{train,test}.csv and, when the sessions have dev_* columns
@@ -86,6 +93,7 @@ impl CalibrateArgs {
         c.quiet = self.quiet;
         c.loop_config.layer_tables = !self.no_layer_tables;
         c.max_loop_rows = self.loop_rows;
+        c.clock_offset_s = self.clock_offset_s;
         c
     }
 
@@ -174,6 +182,15 @@ impl DemoArgs {
 /// Run `spidar demo`; returns the text to print.
 pub fn run_demo(args: &DemoArgs) -> Result<String, DemoError> {
     Ok(spidar::procedures::demo::run_demo(&args.request())?.to_string())
+}
+
+/// A finite number of seconds (`--clock-offset-s`).
+fn finite_seconds(text: &str) -> Result<f64, String> {
+    match text.trim().parse::<f64>() {
+        Ok(v) if v.is_finite() => Ok(v),
+        Ok(v) => Err(format!("{v} is not a finite number of seconds")),
+        Err(e) => Err(format!("`{text}` is not a number of seconds ({e})")),
+    }
 }
 
 #[cfg(test)]

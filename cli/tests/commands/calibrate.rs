@@ -516,6 +516,29 @@ fn malformed_inputs_fail_with_file_and_line_and_a_non_zero_exit() {
         err.contains("blind.csv") && err.contains("tracker"),
         "{err}"
     );
+
+    // A clock offset that is not a number of seconds.
+    for bad in ["nan", "inf", "12s"] {
+        let o = spidar(&[
+            "calibrate",
+            "--geometry",
+            s(&geometry),
+            "--train",
+            s(&train),
+            "--test",
+            s(&test),
+            "--out",
+            s(&dir.join("cal")),
+            "--clock-offset-s",
+            bad,
+        ]);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{err}");
+        assert!(
+            err.contains("--clock-offset-s") && err.contains("seconds"),
+            "{err}"
+        );
+    }
     std::fs::remove_dir_all(&dir).ok();
 }
 

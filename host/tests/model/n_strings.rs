@@ -142,7 +142,8 @@ fn a_stream_with_no_or_a_negative_clock_offset_is_aligned_to_the_millisecond() {
 /// centred on the training stream's offset, and lags that pair a sliver of
 /// the streams do not compete (centred on 0 it found -5.0 s, then +9.2 s
 /// on 76 pairs; 58.8 mm held out). A stream 12 s off, beyond the search,
-/// is refused naming the file, where it was calibrated to 536 mm.
+/// is refused naming the file, where it was calibrated to 536 mm; told the
+/// rig's clock is about 10 s off, the search finds it.
 #[test]
 fn a_short_stream_far_off_is_aligned_and_one_beyond_the_search_is_refused() {
     let (c, train, test) = clock_streams(4, true, 5, (4.5, 0.0), (3000, 1000));
@@ -177,6 +178,15 @@ fn a_short_stream_far_off_is_aligned_and_one_beyond_the_search_is_refused() {
         e.starts_with("stream-12s.csv: the tracker's clock could not be aligned"),
         "{e}"
     );
+    assert!(e.contains("--clock-offset-s"), "{e}");
+    // Told the rig's clock is about 10 s off, the search reaches it.
+    cfg.clock_offset_s = 10.0;
+    let r = crate::calibrate_in_memory(&c.nominal.geometry(), &train, &test, &cfg);
+    let SessionTiming::Aligned(a) = &r.report.timing.train else {
+        panic!("{:?}", r.report.timing.train);
+    };
+    assert!((a.offset_s - 12.0).abs() < 0.001, "{a:?}");
+    assert!(final_test_mean(&r) < 0.4, "{}", final_test_mean(&r));
 }
 
 /// A 120 s training stream whose tracker clock runs 100 ppm fast (12 ms

@@ -33,6 +33,7 @@ pub(super) fn checked_sessions(
     for s in [&train, &test] {
         s.session.check_strings(s.path, geometry, geometry_path)?;
     }
+    warnings.extend(one_point_anchors_warning(geometry, geometry_path));
     for (s, found) in [&train, &test].into_iter().zip(set_aside) {
         check_set_aside(s, found, geometry_path)?;
     }
@@ -334,6 +335,29 @@ pub(super) fn unfitted_warning(
     })
 }
 
+/// The warning for anchors of the geometry that are one point: two
+/// strings may leave one exit point (devices with paired anchors exist),
+/// but an anchor copied over another is the likelier, and the fit then
+/// moves both by as much as they are apart.
+fn one_point_anchors_warning(geometry: &Geometry, geometry_path: &Path) -> Option<String> {
+    let active: Vec<usize> = geometry.layout.indices().collect();
+    let pairs: Vec<String> = active
+        .iter()
+        .enumerate()
+        .flat_map(|(k, &i)| active[k + 1..].iter().map(move |&j| (i, j)))
+        .filter(|&(i, j)| geometry.anchors_mm[i] == geometry.anchors_mm[j])
+        .map(|(i, j)| format!("anchors_mm[{i}] and anchors_mm[{j}]"))
+        .collect();
+    (!pairs.is_empty()).then(|| {
+        format!(
+            "{}: {} are one point: strings that leave one exit point, or an anchor copied \
+             over another? The fit moves a wrong one as far as it is off",
+            geometry_path.display(),
+            pairs.join(", ")
+        )
+    })
+}
+
 /// Refuses a session whose tracker clock the motion could not align: with
 /// the model identified from the data (the last round of the training
 /// session's alignment, the test session's), the positions did not confirm
@@ -358,9 +382,9 @@ pub(super) fn check_alignment(
             "the tracker's clock could not be aligned with the device's from the motion: the \
              speed profiles peak at {:+.3} s (correlation {:.2}), but the positions the \
              identified model gives do not confirm it. The search reaches {} s around the \
-             offset it starts from: is the tracker's clock further off, or did the hand hardly \
-             move? Record the session with the tracker's and the device's clocks paired by a \
-             common time",
+             offset it starts from: is the tracker's clock further off (`calibrate \
+             --clock-offset-s` starts it elsewhere), or did the hand hardly move? Record the \
+             session with the tracker's and the device's clocks paired by a common time",
             a.offset_s,
             a.correlation,
             align::MAX_OFFSET_S

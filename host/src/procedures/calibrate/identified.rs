@@ -105,6 +105,7 @@ fn align_clocks(
     geometry: &Geometry,
     nominal: &spidar_core::model::Frame<f64>,
     nominal_laws: &[spidar_core::model::StringLaw; spidar_core::STRINGS],
+    clock_offset_s: f64,
 ) -> Result<Aligned, CalibrateError> {
     let nominal_model = KinematicModel {
         frame: nominal,
@@ -122,7 +123,7 @@ fn align_clocks(
             // The model identified on rows paired a little off takes up part
             // of the offset, and the next pass with it finds the rest: the
             // two are alternated until the offset holds.
-            let (mut a, mut rows) = align::align(&tr, &placed(&nominal_tr), 0.0, false)
+            let (mut a, mut rows) = align::align(&tr, &placed(&nominal_tr), clock_offset_s, false)
                 .map_err(|e| alignment_failed(tr_path, &tr, e))?;
             raw_train = Some(nominal_tr.iter().map(|p| p.room).collect());
             let mut quick;
@@ -171,7 +172,7 @@ fn align_clocks(
             // centred on 0 can find an edge of itself instead of the offset).
             let prior = match &train_timing {
                 align::SessionTiming::Aligned(a) => a.offset_s,
-                align::SessionTiming::Static { .. } => 0.0,
+                align::SessionTiming::Static { .. } => clock_offset_s,
             };
             // The offset alone: a test stream is most often too short to
             // tell a drift from the model's own errors.
@@ -738,6 +739,7 @@ impl Run<'_> {
             self.geometry,
             nominal,
             nominal_laws,
+            self.cfg.clock_offset_s,
         )?;
         for (path, t) in [(train.path, &timing.train), (test.path, &timing.test)] {
             check_alignment(path, t)?;

@@ -183,6 +183,10 @@ pub struct CalibrateConfig {
     pub blackbox_svr: SvrSearchConfig,
     /// Hide progress bars.
     pub quiet: bool,
+    /// Where the alignment of a stream's clocks starts its search (s,
+    /// tracker minus device; it reaches [`align::MAX_OFFSET_S`] around
+    /// it): 0, unless the rig's tracker clock is known to be further off.
+    pub clock_offset_s: f64,
 }
 
 impl CalibrateConfig {
@@ -219,6 +223,7 @@ impl CalibrateConfig {
             selection_fraction: 0.2,
             min_correction_gain: 0.01,
             blackbox: false,
+            clock_offset_s: 0.0,
             // The paper's grid (C 30..100, epsilon 0.01), as
             // `scripts/reference/reference.py --grid paper` searches it.
             blackbox_nn: SweepConfig {

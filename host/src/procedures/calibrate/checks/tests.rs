@@ -270,3 +270,64 @@ fn test_points_beyond_the_training_box_are_warned_with_the_plain_fit_beside() {
         "{none:?}"
     );
 }
+
+/// Anchors of the geometry at one point are named, each pair once; a
+/// geometry whose anchors are apart has no such warning.
+#[test]
+fn anchors_at_one_point_are_named() {
+    let mut geometry = crate::sim::SimConfig::default().nominal.geometry();
+    let path = Path::new("geometry.toml");
+    assert_eq!(one_point_anchors_warning(&geometry, path), None);
+    geometry.anchors_mm[2] = geometry.anchors_mm[1];
+    geometry.anchors_mm[7] = geometry.anchors_mm[1];
+    let w = one_point_anchors_warning(&geometry, path).expect("a warning");
+    assert!(
+        w.starts_with(
+            "geometry.toml: anchors_mm[1] and anchors_mm[2], anchors_mm[1] and anchors_mm[7], \
+             anchors_mm[2] and anchors_mm[7] are one point"
+        ),
+        "{w}"
+    );
+}
+
+/// A session whose best fit leaves more than a twentieth of its tracked
+/// positions' spread is one no geometry fits; under it, no warning.
+#[test]
+fn a_session_no_geometry_fits_is_named() {
+    use report::StageKind::*;
+    let samples: Vec<Sample> = (0..4)
+        .map(|k| {
+            tracked_at(
+                k as f64,
+                [if k % 2 == 0 { -100.0 } else { 100.0 }, 0.0, 0.0],
+            )
+        })
+        .collect();
+    let tr = observations(&samples);
+    // Spread: 100 mm from the centroid; the bar 5 mm.
+    let stages = |reference_mm, identified_mm| {
+        let train = |mean: f64| {
+            let mut s = ErrorStats::of(&[mean]);
+            s.mean_mm = mean;
+            s
+        };
+        vec![
+            stage(
+                reference::STAGE_NAME,
+                Reference,
+                train(reference_mm),
+                train(0.0),
+            ),
+            stage("identified", Identified, train(identified_mm), train(0.0)),
+        ]
+    };
+    let path = Path::new("train.csv");
+    let w = unfitted_warning(path, &tr, &stages(6.0, 7.0)).expect("a warning");
+    assert!(
+        w.starts_with("train.csv: no geometry fits this session")
+            && w.contains("6.000 mm")
+            && w.contains("6.0 % of their spread (100.0 mm"),
+        "{w}"
+    );
+    assert_eq!(unfitted_warning(path, &tr, &stages(6.0, 4.9)), None);
+}
