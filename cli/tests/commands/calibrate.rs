@@ -435,8 +435,9 @@ fn malformed_inputs_fail_with_file_and_line_and_a_non_zero_exit() {
     let bad = dir.join("bad.csv");
     std::fs::write(&bad, lines.join("\n") + "\n").unwrap();
 
-    let run = |train: &Path, test: &Path, geometry: &Path| {
-        spidar(&[
+    let cal = dir.join("cal");
+    let run_with = |train: &Path, test: &Path, geometry: &Path, more: &[&str]| {
+        let mut args = vec![
             "calibrate",
             "--geometry",
             s(geometry),
@@ -445,11 +446,14 @@ fn malformed_inputs_fail_with_file_and_line_and_a_non_zero_exit() {
             "--test",
             s(test),
             "--out",
-            s(&dir.join("cal")),
+            s(&cal),
             "--quick",
             "--quiet",
-        ])
+        ];
+        args.extend_from_slice(more);
+        spidar(&args)
     };
+    let run = |train: &Path, test: &Path, geometry: &Path| run_with(train, test, geometry, &[]);
     let o = run(&train, &bad, &geometry);
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(1), "{err}");
@@ -519,19 +523,7 @@ fn malformed_inputs_fail_with_file_and_line_and_a_non_zero_exit() {
 
     // A clock offset that is not a number of seconds.
     for bad in ["nan", "inf", "12s"] {
-        let o = spidar(&[
-            "calibrate",
-            "--geometry",
-            s(&geometry),
-            "--train",
-            s(&train),
-            "--test",
-            s(&test),
-            "--out",
-            s(&dir.join("cal")),
-            "--clock-offset-s",
-            bad,
-        ]);
+        let o = run_with(&train, &test, &geometry, &["--clock-offset-s", bad]);
         let err = String::from_utf8_lossy(&o.stderr);
         assert_eq!(o.status.code(), Some(2), "{err}");
         assert!(

@@ -289,11 +289,14 @@ fn rms_spread(points: &[[f64; 3]]) -> f64 {
 /// identification's, the better) whose training error is above this share
 /// of the tracked positions' spread have found no geometry that puts the
 /// strings where the tracker saw the end-effector. Measured on 143
-/// calibrations of simulated 3- to 8-string devices (3-D and planar,
-/// lattices, spread poses and streams, 10 to 30,000 rows) and the
-/// Hangprinter 2022's subsets: at most 0.9 % where the rows were paired
-/// right, 37 % and more where they were not (static captures of a moving
-/// marker with the tracker's clock 3 s off, streams read as poses).
+/// calibrations of simulated 3- to 6-string devices (3-D and planar,
+/// spread poses and streams, 10 to 1,000 rows) and of the Hangprinter
+/// 2022's subsets, on the model simulator's lattice and two 30,000-row
+/// sessions of the independent one: at most 0.9 % where the rows were
+/// paired right, 30 % and more where they were not (static captures of a
+/// moving marker with the tracker's clock 3 s off, streams read as poses,
+/// a planar geometry for a 3-D device; decision record 0073,
+/// `docs/decisions/0073-short-streams-aligned-and-unfitted-sessions-named.md`).
 pub(super) const UNFITTED_SHARE: f64 = 0.05;
 
 /// The warning for a training session `tr` that no geometry fits: the
@@ -319,7 +322,7 @@ pub(super) fn unfitted_warning(
         .reduce(f64::min)?;
     let tracked: Vec<[f64; 3]> = tr.iter().filter_map(|o| o.tracker).collect();
     let spread = rms_spread(&tracked);
-    (best_fit_mm > UNFITTED_SHARE * spread).then(|| {
+    (spread > 0.0 && best_fit_mm > UNFITTED_SHARE * spread).then(|| {
         format!(
             "{}: no geometry fits this session: the best fit of the geometry leaves {:.3} mm on \
              its own training rows, {:.1} % of their spread ({:.1} mm, root mean square from \

@@ -211,7 +211,8 @@ fn alignment_failed(path: &Path, rows: &[Observation], e: align::AlignError) -> 
             "a stream (rows {:.3} s apart): its tracker's clock must be found from the motion \
              before the rows can be paired, and that failed on its {} tracked rows over {:.1} s \
              ({e}). Record a longer stream that moves the end-effector, or pair the device's \
-             and the tracker's rows by a common clock",
+             and the tracker's rows by a common clock (a clock more than 5 s off: \
+             `--clock-offset-s`)",
             align::median_interval_s(rows).unwrap_or(f64::NAN),
             tracked.len(),
             span_s
