@@ -13,8 +13,10 @@
 
 use std::sync::atomic::{AtomicBool, AtomicI32, Ordering};
 use std::sync::{Arc, OnceLock};
+use std::time::Duration;
 
 use nix::sys::signal::Signal;
+use spidar::device::tracker::{Next, SourceStats, TrackerError, TrackerSource};
 
 /// The first signal handled (its number), 0 before any.
 static SIGNAL: AtomicI32 = AtomicI32::new(0);
@@ -112,5 +114,27 @@ pub fn signal_name(signal: Signal) -> &'static str {
     match signal {
         Signal::SIGINT => "SIGINT (Ctrl-C)",
         other => other.as_str(),
+    }
+}
+
+/// A tracker source that ends once a signal came: a procedure that stops
+/// when its tracker ends (`monitor`, `init`) then stops there, through its
+/// own cleanup (force off, disarmed, stream off).
+pub struct EndOnInterrupt<'a>(pub &'a mut dyn TrackerSource);
+
+impl TrackerSource for EndOnInterrupt<'_> {
+    fn next_frame(&mut self, timeout: Duration) -> Result<Next, TrackerError> {
+        if raised() {
+            return Ok(Next::End);
+        }
+        self.0.next_frame(timeout)
+    }
+
+    fn stats(&self) -> SourceStats {
+        self.0.stats()
+    }
+
+    fn busy(&mut self) {
+        self.0.busy();
     }
 }

@@ -54,6 +54,10 @@ enum Command {
     Report(report::ReportArgs),
     /// Guided initialization: haptic and audio cues bring the marker to the
     /// frame centre, home is declared there, the room transform recorded.
+    ///
+    /// SIGINT (Ctrl-C) or SIGTERM before home is declared stops it with
+    /// the force off and the device disarmed, writes nothing, and exits
+    /// 130 (SIGINT) or 143 (SIGTERM).
     Init(init::InitArgs),
     /// Lattice data collection: the operator brings the marker into each
     /// cell in turn; tracker and device state are captured there, appended
@@ -66,6 +70,12 @@ enum Command {
     /// Runtime recalibration: pair device states with tracker frames while
     /// the device is used, report drift (a slipped string, ...) and refit
     /// and reflash the calibration.
+    ///
+    /// It runs until interrupted, or for --seconds. SIGINT (Ctrl-C) or
+    /// SIGTERM stops it (a refit under way finishes first), leaves the device
+    /// disarmed and prints the summary; without --seconds that is its
+    /// normal end (exit 0), with --seconds it ends the run short of what
+    /// was asked (exit 130 for SIGINT, 143 for SIGTERM).
     Monitor(monitor::MonitorArgs),
 }
 
