@@ -1,19 +1,18 @@
 //! `spidar collect`: lattice data collection on a rig or a simulated one.
 
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Arc;
 use std::time::Duration;
 
 use spidar::data::dataset::Geometry;
 use spidar::device::cues::Tee;
 use spidar::procedures::collect::{
-    collect, load_init_record, summary, CollectConfig, CollectError,
+    collect, load_init_record, summary, CollectConfig, CollectError, Stop,
 };
 use spidar::sim::lattice::Lattice;
 use spidar::sim::operator::SimulatedRig;
 
 use crate::audio::{AudioChoice, AudioOut};
+use crate::interrupt::{self, Interrupted};
 use crate::rig::RigArgs;
 use crate::view::TerminalView;
 
@@ -54,43 +53,9 @@ pub struct CollectArgs {
     pub audio: AudioChoice,
 }
 
-/// Raised by the first Ctrl-C (SIGINT) once [`cancel_on_ctrl_c`] ran.
-static INTERRUPTED: AtomicBool = AtomicBool::new(false);
-
-extern "C" fn on_sigint(_: nix::libc::c_int) {
-    // Async-signal-safe: one atomic store.
-    INTERRUPTED.store(true, Ordering::SeqCst);
-}
-
-/// A cancel flag raised by the first Ctrl-C: collection then stops between
-/// two frames, disarms and reports; a second Ctrl-C kills the process as
-/// usual (the handler resets itself). `None` if the handler cannot be
-/// installed (collection then runs without it).
-pub fn cancel_on_ctrl_c() -> Option<Arc<AtomicBool>> {
-    use nix::sys::signal::{sigaction, SaFlags, SigAction, SigHandler, SigSet, Signal};
-    let action = SigAction::new(
-        SigHandler::Handler(on_sigint),
-        SaFlags::SA_RESETHAND | SaFlags::SA_RESTART,
-        SigSet::empty(),
-    );
-    // SAFETY: the handler only stores to an atomic.
-    unsafe { sigaction(Signal::SIGINT, &action) }.ok()?;
-    let flag = Arc::new(AtomicBool::new(false));
-    let watched = flag.clone();
-    std::thread::Builder::new()
-        .name("ctrl-c".into())
-        .spawn(move || loop {
-            if INTERRUPTED.load(Ordering::SeqCst) {
-                watched.store(true, Ordering::SeqCst);
-                return;
-            }
-            std::thread::sleep(Duration::from_millis(20));
-        })
-        .ok()?;
-    Some(flag)
-}
-
-/// Runs `spidar collect`; returns the summary for standard output.
+/// Runs `spidar collect`; returns the summary for standard output, or,
+/// when SIGINT or SIGTERM stopped the run (between two frames: motors off,
+/// every captured cell on disk), [`Interrupted`] with that summary.
 pub fn run(args: &CollectArgs) -> anyhow::Result<String> {
     let audio = AudioOut::open(args.audio)?;
     let mut view = TerminalView::new(audio, 10.0);
@@ -102,8 +67,9 @@ pub fn run(args: &CollectArgs) -> anyhow::Result<String> {
         body_id: args.rig.body,
         tracker_timeout: Duration::from_secs_f64(args.tracker_timeout_s.clamp(0.1, 3600.0)),
         max_cells: args.max_cells,
-        // Ctrl-C stops between two frames: motors off, the count, how to resume.
-        cancel: cancel_on_ctrl_c(),
+        // SIGINT or SIGTERM stops between two frames: motors off, the
+        // count, how to resume.
+        cancel: interrupt::install(),
         ..CollectConfig::default()
     };
     let centre_of = |geometry: &Geometry| -> [f64; 3] {
@@ -161,5 +127,12 @@ pub fn run(args: &CollectArgs) -> anyhow::Result<String> {
             )?
         }
     };
+    if report.stop == Stop::Cancelled {
+        if let Some(i) = Interrupted::if_received(summary(&report), |signal| {
+            format!("collect: interrupted by {signal}")
+        }) {
+            return Err(i.into());
+        }
+    }
     Ok(summary(&report))
 }

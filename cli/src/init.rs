@@ -9,6 +9,7 @@ use spidar::procedures::init::{initialize, InitConfig, InitError};
 use spidar::sim::operator::SimulatedRig;
 
 use crate::audio::{AudioChoice, AudioOut};
+use crate::interrupt::{self, EndOnInterrupt, Interrupted};
 use crate::rig::RigArgs;
 use crate::view::TerminalView;
 
@@ -61,8 +62,13 @@ pub fn parse_point(s: &str) -> Result<[f64; 3], String> {
     }
 }
 
-/// Runs `spidar init`; returns the summary for standard output.
+/// Runs `spidar init`; returns the summary for standard output, or, when
+/// SIGINT or SIGTERM stopped it before home was declared (the force off,
+/// the device disarmed, nothing written), [`Interrupted`].
 pub fn run(args: &InitArgs) -> anyhow::Result<String> {
+    // SIGINT or SIGTERM ends the guidance as the tracker's end would: the
+    // library turns the force off and disarms on every exit path.
+    interrupt::install();
     let audio = AudioOut::open(args.audio)?;
     let mut view = TerminalView::new(audio, 10.0);
     let mut rig = None;
@@ -100,14 +106,34 @@ pub fn run(args: &InitArgs) -> anyhow::Result<String> {
     config.hold = Duration::from_secs_f64(args.hold_s.max(0.0));
     config.timeout = Duration::from_secs_f64(args.timeout_s.max(0.0));
     config.body_id = args.rig.body;
-    let record = if let Some(r) = &mut rig {
+    let result = if let Some(r) = &mut rig {
         let mut to_operator = r.cues.clone();
         let mut sinks = Tee(vec![&mut view, &mut to_operator]);
-        initialize(&mut client, &mut r.receiver, &geometry, &config, &mut sinks)?
+        let mut tracker = EndOnInterrupt(&mut r.receiver);
+        initialize(&mut client, &mut tracker, &geometry, &config, &mut sinks)
     } else if let Some(rx) = &mut receiver {
-        initialize(&mut client, rx, &geometry, &config, &mut view)?
+        initialize(
+            &mut client,
+            &mut EndOnInterrupt(rx),
+            &geometry,
+            &config,
+            &mut view,
+        )
     } else {
         return Err(InitError::TrackerEnded.into());
+    };
+    let record = match result {
+        Err(InitError::TrackerEnded) if interrupt::raised() => {
+            let i = Interrupted::if_received(String::new(), |signal| {
+                format!(
+                    "init: interrupted by {signal} before home was declared; the force is off and \
+                     the device disarmed; {} not written",
+                    args.out.display()
+                )
+            });
+            return Err(i.map_or(InitError::TrackerEnded.into(), anyhow::Error::from));
+        }
+        other => other?,
     };
     record.write(&args.out)?;
     let mut out = format!(

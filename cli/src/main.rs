@@ -9,6 +9,7 @@ mod collect;
 mod compile;
 mod device;
 mod init;
+mod interrupt;
 mod monitor;
 mod progress;
 mod report;
@@ -53,20 +54,42 @@ enum Command {
     Report(report::ReportArgs),
     /// Guided initialization: haptic and audio cues bring the marker to the
     /// frame centre, home is declared there, the room transform recorded.
+    ///
+    /// SIGINT (Ctrl-C) or SIGTERM before home is declared stops it with
+    /// the force off and the device disarmed, writes nothing, and exits
+    /// 130 (SIGINT) or 143 (SIGTERM).
     Init(init::InitArgs),
     /// Lattice data collection: the operator brings the marker into each
     /// cell in turn; tracker and device state are captured there, appended
     /// to the session CSV as they come; a stopped run resumes.
+    ///
+    /// SIGINT (Ctrl-C) or SIGTERM stops the run between two frames: the
+    /// motors off, the summary printed, exit 130 (SIGINT) or 143 (SIGTERM),
+    /// not 0 as a completed run or one stopped by --max-cells.
     Collect(collect::CollectArgs),
     /// Runtime recalibration: pair device states with tracker frames while
     /// the device is used, report drift (a slipped string, ...) and refit
     /// and reflash the calibration.
+    ///
+    /// It runs until interrupted, or for --seconds. SIGINT (Ctrl-C) or
+    /// SIGTERM stops it (a refit under way finishes first), leaves the device
+    /// disarmed and prints the summary; without --seconds that is its
+    /// normal end (exit 0), with --seconds it ends the run short of what
+    /// was asked (exit 130 for SIGINT, 143 for SIGTERM).
     Monitor(monitor::MonitorArgs),
 }
 
 /// Prints an error (the library's messages name the file, line or field) and
-/// exits 1.
+/// exits 1; a command a signal stopped after its cleanup
+/// ([`interrupt::Interrupted`]) prints what a normal end would have on
+/// standard output first, and exits 128 + the signal's number.
 fn fail(e: anyhow::Error) -> ! {
+    if let Some(i) = e.downcast_ref::<interrupt::Interrupted>() {
+        print!("{}", i.output);
+        let _ = std::io::Write::flush(&mut std::io::stdout());
+        eprintln!("spidar: {i}");
+        std::process::exit(i.exit_code());
+    }
     eprintln!("spidar: {e}");
     std::process::exit(1);
 }

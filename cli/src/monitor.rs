@@ -10,6 +10,7 @@ use spidar::procedures::monitor::{
     MonitorEvent, MonitorInputs, RefitPolicy, SimRigConfig, SimulatedMonitorRig,
 };
 
+use crate::interrupt::{self, EndOnInterrupt, Interrupted};
 use crate::rig::RigArgs;
 
 /// `spidar monitor`.
@@ -50,7 +51,9 @@ pub struct MonitorArgs {
     /// Model id the device runs, when the blob was compiled with `--model-id`.
     #[arg(long)]
     pub model_id: Option<u32>,
-    /// Stop after this long, s (default: until interrupted).
+    /// Stop after this long, s (default: until interrupted: SIGINT or
+    /// SIGTERM then ends the run normally, with the summary and exit 0; with
+    /// --seconds they end it early, with the summary and exit 130 or 143).
     #[arg(long)]
     pub seconds: Option<f64>,
     /// Injected effect of the simulated device at run time, e.g.
@@ -144,13 +147,17 @@ fn ask_on_terminal(check: &Check) -> bool {
     let _ = std::io::stderr().flush();
     let mut line = String::new();
     match std::io::stdin().read_line(&mut line) {
+        // Interrupted meanwhile: no refit, the monitor stops.
+        Ok(_) if interrupt::raised() => false,
         Ok(_) => matches!(line.trim(), "y" | "Y" | "yes" | "Yes"),
         Err(_) => false,
     }
 }
 
 /// Runs `spidar monitor`; events are printed as they come, the summary is
-/// returned.
+/// returned. SIGINT or SIGTERM ends the run (the tracker is read as ended:
+/// the library stops, disarms and reports): without `--seconds` that is the
+/// normal end, with it the summary comes back as [`Interrupted`].
 pub fn run(args: &MonitorArgs) -> anyhow::Result<String> {
     let mut config = MonitorConfig {
         body_id: args.rig.body,
@@ -200,9 +207,11 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<String> {
             )?;
             let mut client = rig.client()?;
             config.host_clock = rig.host_clock();
+            let mut tracker = EndOnInterrupt(&mut rig.receiver);
+            announce(&config);
             monitor(
                 &mut client,
-                &mut rig.receiver,
+                &mut tracker,
                 MonitorInputs {
                     geometry: &calibrated.geometry,
                     calibration: &calibrated.calibration,
@@ -226,9 +235,11 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<String> {
                 .map_err(MonitorError::from)?;
             let mut client = args.rig.client().map_err(MonitorError::from)?;
             let mut receiver = args.rig.receiver().map_err(MonitorError::from)?;
+            let mut tracker = EndOnInterrupt(&mut receiver);
+            announce(&config);
             monitor(
                 &mut client,
-                &mut receiver,
+                &mut tracker,
                 MonitorInputs {
                     geometry: &geometry,
                     calibration: &calibration,
@@ -241,7 +252,37 @@ pub fn run(args: &MonitorArgs) -> anyhow::Result<String> {
             )?
         }
     };
+    if let Some(signal) = interrupt::received() {
+        if config.duration.is_some() {
+            return Err(Interrupted {
+                signal,
+                output: summary(&report),
+                message: format!(
+                    "monitor: interrupted by {} before --seconds was up",
+                    interrupt::signal_name(signal)
+                ),
+            }
+            .into());
+        }
+        eprintln!("stopped by {}", interrupt::signal_name(signal));
+    }
     Ok(summary(&report))
+}
+
+/// Installs the SIGINT and SIGTERM handlers and says on standard error how
+/// the run ends. Only now: before, a signal ends the command at once (the
+/// simulated device's calibration has nothing to clean up).
+fn announce(config: &MonitorConfig) {
+    interrupt::install();
+    match config.duration {
+        None => eprintln!(
+            "monitoring until interrupted (Ctrl-C or SIGTERM: the summary, the device disarmed)"
+        ),
+        Some(d) => eprintln!(
+            "monitoring for {:.1} s (Ctrl-C or SIGTERM ends it early: the summary, the device disarmed, exit 130 or 143)",
+            d.as_secs_f64()
+        ),
+    }
 }
 
 #[cfg(test)]

@@ -11,6 +11,8 @@ use spidar_protocol::State;
 
 use spidar::device::link::{Client, ClientOptions, FlashPhase, LinkError, StreamOptions};
 
+use crate::interrupt::{self, Interrupted};
+
 mod report;
 
 use report::{force_report, state_line, Hold};
@@ -96,7 +98,9 @@ pub enum DeviceCommand {
     /// until `disarm`) and latches HEARTBEAT_LOST until the next `arm`
     /// clears it (`disarm` turns the motors off and leaves it latched).
     /// Fails, naming the faults, if the device did not stay armed through
-    /// the hold (a heartbeat lost, a fault).
+    /// the hold (a heartbeat lost, a fault). SIGINT (Ctrl-C) or SIGTERM
+    /// during the hold disarms the device (motors off) and exits 130
+    /// (SIGINT) or 143 (SIGTERM).
     Arm {
         #[arg(long, default_value_t = 0.0, value_parser = crate::args::non_negative)]
         hold: f64,
@@ -106,6 +110,8 @@ pub enum DeviceCommand {
     /// Arm and render a force (device frame, N) for --hold seconds, then
     /// go back to no force and disarm. Fails, naming the faults, if the
     /// device did not stay armed to render it (a heartbeat lost, a fault).
+    /// SIGINT (Ctrl-C) or SIGTERM during the hold ends it the same way (no
+    /// force, disarmed) and exits 130 (SIGINT) or 143 (SIGTERM).
     Force {
         /// Force along x, N.
         #[arg(allow_hyphen_values = true, value_parser = finite_newtons)]
@@ -438,16 +444,43 @@ fn arm_and_hold(client: &mut Client, hold: Duration, out: &mut String) -> anyhow
         let _ = writeln!(out, "armed");
         return Ok(());
     }
+    // SIGINT or SIGTERM ends the hold early: disarmed, then said.
+    interrupt::install();
     let losses = client.stats()?.heartbeat_losses;
+    if let Some(i) = interrupted_before_arming(client.port_name()) {
+        return Err(i.into());
+    }
     client.arm()?;
     // State frames (every 10th loop iteration) tell whether it stays armed.
     client.stream_on(10)?;
+    eprintln!(
+        "armed, holding {:.1} s (Ctrl-C or SIGTERM: disarm now)",
+        hold.as_secs_f64()
+    );
+    let t0 = Instant::now();
     let last = hold_heartbeat(client, hold, true)?;
+    let held_for = t0.elapsed();
     let held = Hold {
         last,
         heartbeat_losses: client.stats()?.heartbeat_losses.wrapping_sub(losses),
     };
     client.stream_off()?;
+    if interrupt::raised() {
+        client.set_force([0.0; 3])?;
+        client.disarm()?;
+        let i = Interrupted::if_received(String::new(), |signal| {
+            format!(
+                "{}: armed, held {:.1} of {:.1} s: interrupted by {signal}{}; the device is disarmed, motors off",
+                client.port_name(),
+                held_for.as_secs_f64().min(hold.as_secs_f64()),
+                hold.as_secs_f64(),
+                held.shortfall_before_interrupt().map_or(String::new(), |why| format!(" (before that, {why})"))
+            )
+        });
+        if let Some(i) = i {
+            return Err(i.into());
+        }
+    }
     if let Some(why) = held.shortfall() {
         bail!(
             "{}: armed, then {why}; its motors hold pre-tension until `spidar device disarm`, \
@@ -468,7 +501,12 @@ fn render_force(
     hold: Duration,
     out: &mut String,
 ) -> anyhow::Result<()> {
+    // SIGINT or SIGTERM ends the hold early: no force, disarmed, then said.
+    interrupt::install();
     let losses = client.stats()?.heartbeat_losses;
+    if let Some(i) = interrupted_before_arming(client.port_name()) {
+        return Err(i.into());
+    }
     client.arm()?;
     // State frames (every 10th loop iteration) tell what the device
     // renders; the last one taken while holding is reported.
@@ -477,7 +515,16 @@ fn render_force(
     // Frames that came before the force was acknowledged may be
     // from before it was applied.
     client.take_states();
+    eprintln!(
+        "holding [{}, {}, {}] N for {:.1} s (Ctrl-C or SIGTERM: no force and disarm now)",
+        requested[0],
+        requested[1],
+        requested[2],
+        hold.as_secs_f64()
+    );
+    let t0 = Instant::now();
     let last = hold_heartbeat(client, hold, true)?;
+    let held_for = t0.elapsed();
     let held = Hold {
         last,
         heartbeat_losses: client.stats()?.heartbeat_losses.wrapping_sub(losses),
@@ -485,6 +532,19 @@ fn render_force(
     client.set_force([0.0; 3])?;
     client.stream_off()?;
     client.disarm()?;
+    let interrupted = Interrupted::if_received(String::new(), |signal| {
+        format!(
+            "{}: {} (held {:.1} of {:.1} s): interrupted by {signal}{}; the force is off and the device disarmed",
+            client.port_name(),
+            force_report(requested, held.last.as_ref()),
+            held_for.as_secs_f64().min(hold.as_secs_f64()),
+            hold.as_secs_f64(),
+            held.shortfall_before_interrupt().map_or(String::new(), |why| format!(" (before that, {why})"))
+        )
+    });
+    if let Some(i) = interrupted {
+        return Err(i.into());
+    }
     let report = format!(
         "{} (held {:.1} s)",
         force_report(requested, held.last.as_ref()),
@@ -500,8 +560,17 @@ fn render_force(
     Ok(())
 }
 
+/// A signal that came before the device was armed: nothing to undo.
+fn interrupted_before_arming(port: &str) -> Option<Interrupted> {
+    Interrupted::if_received(String::new(), |signal| {
+        format!("{port}: interrupted by {signal} before arming; the device was not armed")
+    })
+}
+
 /// Keeps the device armed for `hold` with heartbeats; when streaming, the
-/// last state frame that came meanwhile. A state frame is only trusted when
+/// last state frame that came meanwhile. Stops at once when SIGINT or
+/// SIGTERM came ([`interrupt::raised`]; no handler is installed for
+/// commands that hold nothing). A state frame is only trusted when
 /// another came before it in the hold (the first may have been computed in
 /// the loop iteration before the last request took effect): if fewer came
 /// (a slow host), the heartbeats go on until two did, for up to
@@ -515,6 +584,9 @@ fn hold_heartbeat(
     let mut last = None;
     let mut seen = 0usize;
     loop {
+        if interrupt::raised() {
+            break;
+        }
         let elapsed = t0.elapsed();
         let short = want_states && seen < 2;
         if elapsed >= hold && !(short && elapsed < hold + STATE_WAIT) {

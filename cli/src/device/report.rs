@@ -21,6 +21,16 @@ pub struct Hold {
 }
 
 impl Hold {
+    /// What went wrong in a hold a signal cut short: [`Hold::shortfall`],
+    /// but no state frame is no news then (the hold may have lasted less
+    /// than two frames).
+    pub fn shortfall_before_interrupt(&self) -> Option<String> {
+        if self.last.is_none() && self.heartbeat_losses == 0 {
+            return None;
+        }
+        self.shortfall()
+    }
+
     /// Why the device did not stay armed through the hold, or `None`.
     pub fn shortfall(&self) -> Option<String> {
         if self.heartbeat_losses > 0 {
