@@ -197,7 +197,15 @@ pub struct MonitorReport {
     pub refits: Vec<Refit>,
     /// The last full window.
     pub last_window: Option<ErrorStats>,
-    pub seconds: f64,
+    /// The stamps (`ts`, s of the tracker's clock) of the first and the
+    /// last tracker frame taken: the monitored span on the session's clock,
+    /// the one [`MonitorConfig::duration`] counts.
+    pub tracker_span_s: Option<(f64, f64)>,
+    /// Device time since boot (s) of the first and the last pair.
+    pub device_span_s: Option<(f64, f64)>,
+    /// Wall-clock time the run took, s: on a simulated rig (virtual time)
+    /// the machine's, not the session's.
+    pub wall_seconds: f64,
     /// Every pair with its tracker frame's stamp (`ts`, s), in the order
     /// made, when [`MonitorConfig::record_pairs`].
     pub recorded: Vec<(f64, Pair)>,
@@ -207,6 +215,12 @@ impl MonitorReport {
     /// Checks that reported drift.
     pub fn drifts(&self) -> impl Iterator<Item = &Check> {
         self.checks.iter().filter(|c| c.drift)
+    }
+
+    /// Tracker time from the first frame taken to the last, s (0 before
+    /// two frames).
+    pub fn tracker_seconds(&self) -> f64 {
+        self.tracker_span_s.map_or(0.0, |(first, last)| last - first)
     }
 }
 
@@ -373,6 +387,7 @@ impl Monitor<'_> {
                     {
                         return Ok(());
                     }
+                    self.report.tracker_span_s = Some((first, f.ts_s));
                     self.take_frame(&f);
                 }
             }
@@ -528,6 +543,6 @@ impl Monitor<'_> {
                 self.report.refits[k].after_partial = Some(self.window_stats());
             }
         }
-        self.report.seconds = self.now_s();
+        self.report.wall_seconds = self.now_s();
     }
 }

@@ -38,7 +38,8 @@ pub struct Refit {
     /// Pairs in the refit (window, plus training rows).
     pub rows: usize,
     pub calibration: Calibration,
-    /// Refit, compile and flash, s.
+    /// Refit, compile and flash, s of wall time (a simulated rig's world
+    /// waits meanwhile).
     pub seconds: f64,
 }
 

@@ -54,7 +54,7 @@ pub fn event_line(e: &MonitorEvent) -> String {
     match e {
         MonitorEvent::Baseline(s) => format!("baseline window: {}", stats(s)),
         MonitorEvent::Check(c) => format!(
-            "check at t = {:.1} s: window {} ({:.2} x baseline); no drift",
+            "check at t = {:.1} s (device time since home): window {} ({:.2} x baseline); no drift",
             c.device_time_s,
             stats(&c.window),
             c.error_ratio
@@ -78,7 +78,7 @@ pub fn event_line(e: &MonitorEvent) -> String {
             s
         }
         MonitorEvent::Refitted(r) => format!(
-            "refit on {} pairs: {}; window error on the host {:.3} -> {:.3} mm; flashed model {:#010x} ({} bytes) in {:.1} s{}",
+            "refit on {} pairs: {}; window error on the host {:.3} -> {:.3} mm; flashed model {:#010x} ({} bytes) in {:.1} s of wall time{}",
             r.rows,
             r.added.join("; "),
             r.host_before_mm,
@@ -112,8 +112,15 @@ pub fn event_line(e: &MonitorEvent) -> String {
 /// The run's summary.
 pub fn summary(r: &MonitorReport) -> String {
     let mut s = format!(
-        "monitored {:.1} s: {} tracker frames ({} occluded, {} unpaired, {} before a reflash or home, {} glitches set aside), {} device states, {} pairs, {} checks, {} drift reports, {} refits\n",
-        r.seconds,
+        "monitored {:.1} s of tracker time{} in {:.1} s of wall time\n",
+        r.tracker_seconds(),
+        r.device_span_s.map_or(String::new(), |(first, last)| format!(
+            " (pairs from {first:.1} to {last:.1} s of device time since boot)"
+        )),
+        r.wall_seconds
+    );
+    s.push_str(&format!(
+        "{} tracker frames ({} occluded, {} unpaired, {} before a reflash or home, {} glitches set aside), {} device states, {} pairs, {} checks, {} drift reports, {} refits\n",
         r.frames,
         r.occluded,
         r.unpaired,
@@ -124,7 +131,7 @@ pub fn summary(r: &MonitorReport) -> String {
         r.checks.len(),
         r.drifts().count(),
         r.refits.len()
-    );
+    ));
     if let Some(b) = &r.baseline {
         s.push_str(&format!("baseline: mean {:.3} mm (n {})", b.mean_mm, b.n));
         if let Some(t) = r.glitch_threshold_mm {
