@@ -186,7 +186,13 @@ pub struct MonitorReport {
     /// set: their meeting point is unknown, not paired.
     pub unoriented: usize,
     pub states: usize,
+    /// Frames paired (the window's pairs are the last of them).
     pub pairs: usize,
+    /// Visible frames still waiting for the state after their instant
+    /// when the run stopped: not paired. With it, `frames` is `pairs +
+    /// occluded + unoriented + unpaired + superseded + glitches + waiting`
+    /// ([`MonitorReport::unaccounted_frames`]).
+    pub waiting: usize,
     /// Pairs set aside as the tracker's glitches ([`GlitchGate`]): not in
     /// the window, nor in `pairs`.
     pub glitches: usize,
@@ -215,6 +221,19 @@ impl MonitorReport {
     /// Checks that reported drift.
     pub fn drifts(&self) -> impl Iterator<Item = &Check> {
         self.checks.iter().filter(|c| c.drift)
+    }
+
+    /// Tracker frames in none of the counts that split `frames` (0: every
+    /// frame was paired, or counted where it was not).
+    pub fn unaccounted_frames(&self) -> isize {
+        self.frames as isize
+            - (self.pairs
+                + self.occluded
+                + self.unoriented
+                + self.unpaired
+                + self.superseded
+                + self.glitches
+                + self.waiting) as isize
     }
 
     /// Tracker time from the first frame taken to the last, s (0 before
@@ -543,6 +562,7 @@ impl Monitor<'_> {
                 self.report.refits[k].after_partial = Some(self.window_stats());
             }
         }
+        self.report.waiting = self.pending.len();
         self.report.wall_seconds = self.now_s();
     }
 }

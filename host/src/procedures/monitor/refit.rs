@@ -35,8 +35,14 @@ pub struct Refit {
     pub host_after_mm: f64,
     pub model_id: u32,
     pub blob_len: u32,
-    /// Pairs in the refit (window, plus training rows).
+    /// Tracked rows the refit was fitted on: `window_pairs +
+    /// training_rows`.
     pub rows: usize,
+    /// The window's pairs among them (the last of the run's pairs).
+    pub window_pairs: usize,
+    /// The training session's tracked rows among them (0 without a
+    /// training session, or when the model has a time drift term).
+    pub training_rows: usize,
     pub calibration: Calibration,
     /// Refit, compile and flash, s of wall time (a simulated rig's world
     /// waits meanwhile).
@@ -146,6 +152,8 @@ impl Monitor<'_> {
             kinematics: self.calibration.kinematics,
             home,
         };
+        let rows = data.iter().filter(|o| o.tracker.is_some()).count();
+        let window_pairs = window_obs.iter().filter(|o| o.tracker.is_some()).count();
         let model_id = model_id_of(&calibration);
         let flashed = self.flash_calibration(client, &calibration, model_id)?;
         self.calibration = calibration.clone();
@@ -160,7 +168,9 @@ impl Monitor<'_> {
             host_after_mm,
             model_id,
             blob_len: flashed.blob_len,
-            rows: data.iter().filter(|o| o.tracker.is_some()).count(),
+            rows,
+            window_pairs,
+            training_rows: rows - window_pairs,
             calibration,
             seconds: t0.elapsed().as_secs_f64(),
         })

@@ -78,8 +78,10 @@ pub fn event_line(e: &MonitorEvent) -> String {
             s
         }
         MonitorEvent::Refitted(r) => format!(
-            "refit on {} pairs: {}; window error on the host {:.3} -> {:.3} mm; flashed model {:#010x} ({} bytes) in {:.1} s of wall time{}",
+            "refit on {} rows (the window's {} pairs and {} rows of the training session): {}; window error on the host {:.3} -> {:.3} mm; flashed model {:#010x} ({} bytes) in {:.1} s of wall time{}",
             r.rows,
+            r.window_pairs,
+            r.training_rows,
             r.added.join("; "),
             r.host_before_mm,
             r.host_after_mm,
@@ -119,15 +121,29 @@ pub fn summary(r: &MonitorReport) -> String {
         )),
         r.wall_seconds
     );
+    // Every frame in one count: they add up to `frames`.
+    let mut not_paired = vec![format!("{} occluded", r.occluded)];
+    if r.unoriented > 0 {
+        not_paired.push(format!("{} without the body's rotation", r.unoriented));
+    }
+    not_paired.push(format!(
+        "{} without a device state around their instant",
+        r.unpaired
+    ));
+    not_paired.push(format!(
+        "{} of a model or home since replaced",
+        r.superseded
+    ));
+    not_paired.push(format!("{} glitches set aside", r.glitches));
+    if r.waiting > 0 {
+        not_paired.push(format!("{} waiting for their state at the stop", r.waiting));
+    }
     s.push_str(&format!(
-        "{} tracker frames ({} occluded, {} unpaired, {} before a reflash or home, {} glitches set aside), {} device states, {} pairs, {} checks, {} drift reports, {} refits\n",
+        "{} tracker frames: {} paired, {}; {} device states; {} checks, {} drift reports, {} refits\n",
         r.frames,
-        r.occluded,
-        r.unpaired,
-        r.superseded,
-        r.glitches,
-        r.states,
         r.pairs,
+        not_paired.join(", "),
+        r.states,
         r.checks.len(),
         r.drifts().count(),
         r.refits.len()
