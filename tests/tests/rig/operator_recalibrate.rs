@@ -203,61 +203,10 @@ fn a_slipped_string_is_reported_named_refitted_and_reflashed() {
     assert!((at_s - SLIP_AT_S).abs() < 0.1, "slip at {at_s} s");
     assert!((mm - SLIP_MM).abs() < 0.6, "slip of {mm} mm");
 
-    // The slip shows in the window's figures once it happened: the device
-    // leaves the slipped string out (its own error stays at the baseline,
-    // below), and the position every string gives is off.
-    let strings_baseline = report
-        .baseline_strings
-        .as_ref()
-        .expect("the baseline's strings")
-        .every_string
-        .mean_mm;
-    assert!(strings_baseline < 1.3 * baseline.mean_mm);
-    assert_eq!(
-        drift.strings.left_out.first().map(|l| l.0),
-        Some(SLIP_STRING)
-    );
-    assert!(
-        drift.strings.every_string.mean_mm > strings_baseline + 0.5,
-        "every string in: {:.3} mm at detection, baseline {strings_baseline:.3} mm",
-        drift.strings.every_string.mean_mm
-    );
-
     // Refitted, reflashed, and the device runs the new model.
     assert_eq!(report.refits.len(), 1, "{} refits", report.refits.len());
     let r = &report.refits[0];
-    // The refit restores the error with every string in: judged so on the
-    // window (as the device solves it, the old model's error is the
-    // baseline's already), and on the first window after the reflash.
-    assert!(
-        r.host_before_mm > strings_baseline + 0.5 && r.host_after_mm < 1.3 * strings_baseline,
-        "every string in on the window: {:.3} -> {:.3} mm, baseline {strings_baseline:.3} mm",
-        r.host_before_mm,
-        r.host_after_mm
-    );
-    let after_strings = r.after_strings.as_ref().expect("the strings after");
-    assert!(
-        after_strings.every_string.mean_mm < 1.3 * strings_baseline,
-        "every string in after the reflash: {:.3} mm",
-        after_strings.every_string.mean_mm
-    );
-    assert!(after_strings.left_out.is_empty(), "{after_strings:?}");
-    // The refit's rows are the window's pairs and the training session's.
-    let training = calibrated()
-        .training
-        .samples
-        .iter()
-        .filter(|s| s.tracker.is_some())
-        .count();
-    assert_eq!(
-        (r.window_pairs, r.training_rows, r.rows),
-        (400, training, 400 + training)
-    );
-    assert!(
-        r.added.iter().any(|a| a.starts_with("slip")),
-        "{:?}",
-        r.added
-    );
+    slip_seen_with_every_string_and_refitted_away(&report, drift, r);
     let mut client = rig.client().unwrap();
     let info = client.info().unwrap().expect("a model on the device");
     assert_eq!(info.header.model_id, r.model_id);
@@ -362,6 +311,65 @@ fn a_four_string_rig_is_monitored_and_its_slip_refitted_alone() {
         "after {:.3} mm, baseline {:.3} mm",
         after.mean_mm,
         baseline.mean_mm
+    );
+}
+
+/// The slip shows in the window's figures once it happened, and the refit
+/// takes it away: with every string in, the error at detection is above
+/// the baseline's and the string the device left out is named; the refit
+/// lowers it on the window (as the device solves it, the old model's error
+/// is the baseline's already) and the first window after the reflash
+/// keeps it there. The refit's rows are the window's pairs and the
+/// training session's.
+fn slip_seen_with_every_string_and_refitted_away(
+    report: &MonitorReport,
+    drift: &spidar::procedures::monitor::Check,
+    r: &spidar::procedures::monitor::Refit,
+) {
+    let baseline = report.baseline.expect("a baseline window");
+    let strings_baseline = report
+        .baseline_strings
+        .as_ref()
+        .expect("the baseline's strings")
+        .every_string
+        .mean_mm;
+    assert!(strings_baseline < 1.3 * baseline.mean_mm);
+    assert_eq!(
+        drift.strings.left_out.first().map(|l| l.0),
+        Some(SLIP_STRING)
+    );
+    assert!(
+        drift.strings.every_string.mean_mm > strings_baseline + 0.5,
+        "every string in: {:.3} mm at detection, baseline {strings_baseline:.3} mm",
+        drift.strings.every_string.mean_mm
+    );
+    assert!(
+        r.host_before_mm > strings_baseline + 0.5 && r.host_after_mm < 1.3 * strings_baseline,
+        "every string in on the window: {:.3} -> {:.3} mm, baseline {strings_baseline:.3} mm",
+        r.host_before_mm,
+        r.host_after_mm
+    );
+    let after_strings = r.after_strings.as_ref().expect("the strings after");
+    assert!(
+        after_strings.every_string.mean_mm < 1.3 * strings_baseline,
+        "every string in after the reflash: {:.3} mm",
+        after_strings.every_string.mean_mm
+    );
+    assert!(after_strings.left_out.is_empty(), "{after_strings:?}");
+    let training = calibrated()
+        .training
+        .samples
+        .iter()
+        .filter(|s| s.tracker.is_some())
+        .count();
+    assert_eq!(
+        (r.window_pairs, r.training_rows, r.rows),
+        (400, training, 400 + training)
+    );
+    assert!(
+        r.added.iter().any(|a| a.starts_with("slip")),
+        "{:?}",
+        r.added
     );
 }
 
