@@ -166,6 +166,7 @@ fn a_slipped_string_is_reported_named_refitted_and_reflashed() {
     );
     let baseline = report.baseline.expect("a baseline window");
     pairing_error(&rig, &report);
+    spans_and_counts_add_up(&report, seconds);
 
     // No false alarm in the clean part; checks did run there.
     let clean: Vec<_> = report
@@ -205,11 +206,7 @@ fn a_slipped_string_is_reported_named_refitted_and_reflashed() {
     // Refitted, reflashed, and the device runs the new model.
     assert_eq!(report.refits.len(), 1, "{} refits", report.refits.len());
     let r = &report.refits[0];
-    assert!(
-        r.added.iter().any(|a| a.starts_with("slip")),
-        "{:?}",
-        r.added
-    );
+    slip_seen_with_every_string_and_refitted_away(&report, drift, r);
     let mut client = rig.client().unwrap();
     let info = client.info().unwrap().expect("a model on the device");
     assert_eq!(info.header.model_id, r.model_id);
@@ -317,6 +314,85 @@ fn a_four_string_rig_is_monitored_and_its_slip_refitted_alone() {
     );
 }
 
+/// The slip shows in the window's figures once it happened, and the refit
+/// takes it away: with every string in, the error at detection is above
+/// the baseline's and the string the device left out is named; the refit
+/// lowers it on the window (as the device solves it, the old model's error
+/// is the baseline's already) and the first window after the reflash
+/// keeps it there. The refit's rows are the window's pairs and the
+/// training session's.
+fn slip_seen_with_every_string_and_refitted_away(
+    report: &MonitorReport,
+    drift: &spidar::procedures::monitor::Check,
+    r: &spidar::procedures::monitor::Refit,
+) {
+    let baseline = report.baseline.expect("a baseline window");
+    let strings_baseline = report
+        .baseline_strings
+        .as_ref()
+        .expect("the baseline's strings")
+        .every_string
+        .mean_mm;
+    assert!(strings_baseline < 1.3 * baseline.mean_mm);
+    assert_eq!(
+        drift.strings.left_out.first().map(|l| l.0),
+        Some(SLIP_STRING)
+    );
+    assert!(
+        drift.strings.every_string.mean_mm > strings_baseline + 0.5,
+        "every string in: {:.3} mm at detection, baseline {strings_baseline:.3} mm",
+        drift.strings.every_string.mean_mm
+    );
+    assert!(
+        r.host_before_mm > strings_baseline + 0.5 && r.host_after_mm < 1.3 * strings_baseline,
+        "every string in on the window: {:.3} -> {:.3} mm, baseline {strings_baseline:.3} mm",
+        r.host_before_mm,
+        r.host_after_mm
+    );
+    let after_strings = r.after_strings.as_ref().expect("the strings after");
+    assert!(
+        after_strings.every_string.mean_mm < 1.3 * strings_baseline,
+        "every string in after the reflash: {:.3} mm",
+        after_strings.every_string.mean_mm
+    );
+    assert!(after_strings.left_out.is_empty(), "{after_strings:?}");
+    let training = calibrated()
+        .training
+        .samples
+        .iter()
+        .filter(|s| s.tracker.is_some())
+        .count();
+    assert_eq!(
+        (r.window_pairs, r.training_rows, r.rows),
+        (400, training, 400 + training)
+    );
+    assert!(
+        r.added.iter().any(|a| a.starts_with("slip")),
+        "{:?}",
+        r.added
+    );
+}
+
+/// The run's span is on the session's clocks (tracker and device time,
+/// not the wall clock: the rig runs in virtual time), and its tracker
+/// frames are each in one count.
+fn spans_and_counts_add_up(report: &MonitorReport, seconds: f64) {
+    let frame_s = 1.0 / SimRigConfig::default().frame_rate_hz;
+    let span = report.tracker_seconds();
+    assert!(
+        span <= seconds && span > seconds - 2.0 * frame_s,
+        "tracker span {span} s for {seconds} s"
+    );
+    let (first, last) = report.device_span_s.expect("pairs");
+    assert!(first < 0.5 && last > seconds - 0.5, "{first}..{last} s");
+    let summary = spidar::procedures::monitor::summary(report);
+    assert!(
+        summary.starts_with(&format!("monitored {seconds:.1} s of tracker time")),
+        "{summary}"
+    );
+    assert_eq!(report.unaccounted_frames(), 0, "{summary}");
+}
+
 /// Runs the monitor on `rig` for `seconds` of a device that does not
 /// drift: at least 6 checks, none reporting drift, nothing refitted.
 fn run_without_drift(rig: &mut SimulatedMonitorRig, seconds: f64) -> MonitorReport {
@@ -346,6 +422,7 @@ fn a_clean_run_reports_no_drift() {
     assert!(report.pairs > 1000, "{} pairs", report.pairs);
     let (_, _, recorded) = pairing_error(&rig, &report);
     assert_eq!(recorded, report.pairs);
+    spans_and_counts_add_up(&report, seconds);
 }
 
 /// A tracker that glitches (1 % of its frames thrown 50 to 300 mm, as a

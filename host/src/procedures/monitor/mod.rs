@@ -91,7 +91,7 @@ use crate::model::diagnose::{Family, GROSS_TRACKER_MAX_SHARE};
 use crate::model::identify::{Identification, IdentifyError, Structure};
 
 pub use calibration::{check_calibration, identification_of, structure_of, under_home};
-pub use check::Check;
+pub use check::{Check, StringsSeen};
 pub use config::{MonitorConfig, RefitPolicy};
 pub use pairing::{tracked_point, ArrivalClock, GlitchGate, Pair};
 pub use refit::Refit;
@@ -155,7 +155,9 @@ pub enum MonitorError {
 /// What the monitor reports as it goes.
 #[derive(Clone, Debug)]
 pub enum MonitorEvent {
-    Baseline(ErrorStats),
+    /// The first full window: the device's error, and what its strings
+    /// show.
+    Baseline(ErrorStats, StringsSeen),
     Check(Check),
     /// Drift found; `refit` says what the policy decided.
     Drift {
@@ -164,10 +166,13 @@ pub enum MonitorEvent {
     },
     Refitted(Box<Refit>),
     RefitFailed(String),
-    /// The first full window after a reflash.
+    /// The first full window after a reflash: the device's error and what
+    /// the strings show, before (the window at detection) and after.
     After {
         before: ErrorStats,
         after: ErrorStats,
+        strings_before: StringsSeen,
+        strings_after: StringsSeen,
     },
     Note(String),
 }
@@ -186,18 +191,34 @@ pub struct MonitorReport {
     /// set: their meeting point is unknown, not paired.
     pub unoriented: usize,
     pub states: usize,
+    /// Frames paired (the window's pairs are the last of them).
     pub pairs: usize,
+    /// Visible frames still waiting for the state after their instant
+    /// when the run stopped: not paired. With it, `frames` is `pairs +
+    /// occluded + unoriented + unpaired + superseded + glitches + waiting`
+    /// ([`MonitorReport::unaccounted_frames`]).
+    pub waiting: usize,
     /// Pairs set aside as the tracker's glitches ([`GlitchGate`]): not in
     /// the window, nor in `pairs`.
     pub glitches: usize,
     /// The error beyond which a pair is a glitch (set with the baseline), mm.
     pub glitch_threshold_mm: Option<f64>,
     pub baseline: Option<ErrorStats>,
+    /// What the baseline window's strings show.
+    pub baseline_strings: Option<StringsSeen>,
     pub checks: Vec<Check>,
     pub refits: Vec<Refit>,
     /// The last full window.
     pub last_window: Option<ErrorStats>,
-    pub seconds: f64,
+    /// The stamps (`ts`, s of the tracker's clock) of the first and the
+    /// last tracker frame taken: the monitored span on the session's clock,
+    /// the one [`MonitorConfig::duration`] counts.
+    pub tracker_span_s: Option<(f64, f64)>,
+    /// Device time since boot (s) of the first and the last pair.
+    pub device_span_s: Option<(f64, f64)>,
+    /// Wall-clock time the run took, s: on a simulated rig (virtual time)
+    /// the machine's, not the session's.
+    pub wall_seconds: f64,
     /// Every pair with its tracker frame's stamp (`ts`, s), in the order
     /// made, when [`MonitorConfig::record_pairs`].
     pub recorded: Vec<(f64, Pair)>,
@@ -207,6 +228,26 @@ impl MonitorReport {
     /// Checks that reported drift.
     pub fn drifts(&self) -> impl Iterator<Item = &Check> {
         self.checks.iter().filter(|c| c.drift)
+    }
+
+    /// Tracker frames in none of the counts that split `frames` (0: every
+    /// frame was paired, or counted where it was not).
+    pub fn unaccounted_frames(&self) -> isize {
+        self.frames as isize
+            - (self.pairs
+                + self.occluded
+                + self.unoriented
+                + self.unpaired
+                + self.superseded
+                + self.glitches
+                + self.waiting) as isize
+    }
+
+    /// Tracker time from the first frame taken to the last, s (0 before
+    /// two frames).
+    pub fn tracker_seconds(&self) -> f64 {
+        self.tracker_span_s
+            .map_or(0.0, |(first, last)| last - first)
     }
 }
 
@@ -373,6 +414,7 @@ impl Monitor<'_> {
                     {
                         return Ok(());
                     }
+                    self.report.tracker_span_s = Some((first, f.ts_s));
                     self.take_frame(&f);
                 }
             }
@@ -415,19 +457,26 @@ impl Monitor<'_> {
                 self.window = kept;
             }
             let b = self.window_stats();
+            let strings = self.strings_seen();
             self.report.baseline = Some(b);
+            self.report.baseline_strings = Some(strings.clone());
             self.since_check = 0;
-            on_event(&MonitorEvent::Baseline(b));
+            on_event(&MonitorEvent::Baseline(b, strings));
         }
         if let Some(k) = self.awaiting_after {
             if self.window.len() >= self.config.window {
                 let after = self.window_stats();
-                self.report.refits[k].after = Some(after);
+                let strings_after = self.strings_seen();
+                let refit = &mut self.report.refits[k];
+                refit.after = Some(after);
+                refit.after_strings = Some(strings_after.clone());
                 self.awaiting_after = None;
                 self.since_check = 0;
                 on_event(&MonitorEvent::After {
-                    before: self.report.refits[k].before,
+                    before: refit.before,
                     after,
+                    strings_before: refit.before_strings.clone(),
+                    strings_after,
                 });
             }
         }
@@ -526,8 +575,10 @@ impl Monitor<'_> {
         if let Some(k) = self.awaiting_after {
             if !self.window.is_empty() {
                 self.report.refits[k].after_partial = Some(self.window_stats());
+                self.report.refits[k].after_strings = Some(self.strings_seen());
             }
         }
-        self.report.seconds = self.now_s();
+        self.report.waiting = self.pending.len();
+        self.report.wall_seconds = self.now_s();
     }
 }

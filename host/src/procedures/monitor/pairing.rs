@@ -279,6 +279,11 @@ impl Monitor<'_> {
             if self.config.record_pairs {
                 self.report.recorded.push((ts_s, pair.clone()));
             }
+            let first = self
+                .report
+                .device_span_s
+                .map_or(pair.device_time_s, |(first, _)| first);
+            self.report.device_span_s = Some((first, pair.device_time_s));
             self.window.push_back(pair);
             while self.window.len() > self.config.window {
                 self.window.pop_front();

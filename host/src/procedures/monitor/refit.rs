@@ -15,30 +15,50 @@ use crate::model::compile::{compile_checked, model_id_of};
 use crate::model::diagnose::{cross_validated_error, model_errors};
 use crate::model::identify::{identify, Identification, IdentifyError, Start, Structure};
 
-use super::{describe_finding, Check, Monitor, MonitorError};
+use super::check::every_string_errors;
+use super::{describe_finding, Check, Monitor, MonitorError, StringsSeen};
 
 /// A refit and reflash.
 #[derive(Clone, Debug)]
 pub struct Refit {
-    /// The window at detection (the error before).
+    /// The window at detection (the device's error before).
     pub before: ErrorStats,
+    /// What the strings showed then.
+    pub before_strings: StringsSeen,
     /// The first full window after the reflash (the error after); `None`
     /// when the run ended first (see `after_partial`).
     pub after: Option<ErrorStats>,
     /// The pairs after the reflash when the run ended before a full window.
     pub after_partial: Option<ErrorStats>,
+    /// What the strings show on the window of `after` (or
+    /// `after_partial`).
+    pub after_strings: Option<StringsSeen>,
     /// What was added, in the device's terms.
     pub added: Vec<String>,
-    /// Host (f64, before the learned correction) mean error on the window
-    /// of the old and the new model, mm.
+    /// Host (f64) mean error on the window of the old and the new model,
+    /// every string in the position ([`StringsSeen::every_string`]), mm:
+    /// what the refit is judged by (a refit that does not lower it is not
+    /// flashed).
     pub host_before_mm: f64,
     pub host_after_mm: f64,
+    /// The same as the device solves the position (a string that
+    /// disagrees left out, before the learned correction), mm: blind to a
+    /// slip of one string the device leaves out.
+    pub device_kinematics_before_mm: f64,
+    pub device_kinematics_after_mm: f64,
     pub model_id: u32,
     pub blob_len: u32,
-    /// Pairs in the refit (window, plus training rows).
+    /// Tracked rows the refit was fitted on: `window_pairs +
+    /// training_rows`.
     pub rows: usize,
+    /// The window's pairs among them (the last of the run's pairs).
+    pub window_pairs: usize,
+    /// The training session's tracked rows among them (0 without a
+    /// training session, or when the model has a time drift term).
+    pub training_rows: usize,
     pub calibration: Calibration,
-    /// Refit, compile and flash, s.
+    /// Refit, compile and flash, s of wall time (a simulated rig's world
+    /// waits meanwhile).
     pub seconds: f64,
 }
 
@@ -111,11 +131,21 @@ impl Monitor<'_> {
         // A window of a few seconds does not measure each string's scale as
         // the calibration's session did: the strings keep their weights.
         id.length_scale_mm = self.calibration.length_scale_mm;
-        let host_before_mm = model_errors(&self.identification, &window_obs).mean_mm;
-        let host_after_mm = model_errors(&id, &window_obs).mean_mm;
+        // Judged with every string in: as the device solves it, the old
+        // model leaves a slipped string out and its error is the baseline's
+        // already (0.158 -> 0.158 mm on `spidar monitor --simulate 5
+        // --effect slip:3:at_s=8,mm=7`, with every string in 2.7 -> 0.16).
+        let correction = &self.calibration.correction;
+        let every_string_mean = |id: &Identification| {
+            ErrorStats::of(&every_string_errors(id, correction, &window_obs)).mean_mm
+        };
+        let host_before_mm = every_string_mean(&self.identification);
+        let host_after_mm = every_string_mean(&id);
+        let device_kinematics_before_mm = model_errors(&self.identification, &window_obs).mean_mm;
+        let device_kinematics_after_mm = model_errors(&id, &window_obs).mean_mm;
         if host_after_mm.partial_cmp(&host_before_mm) != Some(std::cmp::Ordering::Less) {
             return Err(MonitorError::Identify(IdentifyError::Diverged(format!(
-                "the refit does not lower the window error ({host_before_mm:.3} mm -> {host_after_mm:.3} mm); nothing flashed"
+                "the refit does not lower the window error with every string in ({host_before_mm:.3} mm -> {host_after_mm:.3} mm); nothing flashed"
             ))));
         }
         // Slips are the current home capture's: the training's, refitted,
@@ -145,6 +175,8 @@ impl Monitor<'_> {
             kinematics: self.calibration.kinematics,
             home,
         };
+        let rows = data.iter().filter(|o| o.tracker.is_some()).count();
+        let window_pairs = window_obs.iter().filter(|o| o.tracker.is_some()).count();
         let model_id = model_id_of(&calibration);
         let flashed = self.flash_calibration(client, &calibration, model_id)?;
         self.calibration = calibration.clone();
@@ -152,14 +184,20 @@ impl Monitor<'_> {
         self.structure = structure;
         Ok(Refit {
             before: check.window,
+            before_strings: check.strings.clone(),
             after: None,
             after_partial: None,
+            after_strings: None,
             added,
             host_before_mm,
             host_after_mm,
+            device_kinematics_before_mm,
+            device_kinematics_after_mm,
             model_id,
             blob_len: flashed.blob_len,
-            rows: data.iter().filter(|o| o.tracker.is_some()).count(),
+            rows,
+            window_pairs,
+            training_rows: rows - window_pairs,
             calibration,
             seconds: t0.elapsed().as_secs_f64(),
         })
