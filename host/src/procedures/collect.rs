@@ -275,6 +275,17 @@ pub enum CollectError {
         previous_s: f64,
         now_s: f64,
     },
+    #[error(
+        "collect: {}: line {line} was captured {file_s} s after home capture {home}, and the device now reports the same capture only {device_s} s after it: its id names another capture (a boot id drawn twice); nothing was captured: run `spidar init` (a new home capture has an id of its own), then collect again to resume",
+        file.display()
+    )]
+    HomeIdReused {
+        file: PathBuf,
+        line: u64,
+        home: u64,
+        file_s: f64,
+        device_s: f64,
+    },
     #[error("collect: {}: line {line}: the row has no tracker position (not a collected session?)", file.display())]
     RowWithoutTracker { file: PathBuf, line: u64 },
     #[error(

@@ -875,3 +875,42 @@ fn a_stopped_collection_resumed_on_a_rig_started_again_completes_and_reads_back(
     // t_s goes on from the last row of the first run.
     assert!(new[0].t_s >= old[9].t_s && new[0].t_s < old[9].t_s + 1.0);
 }
+
+/// A file whose last row is later under the device's home capture than the
+/// device now is: the id names two captures. Refused before a capture.
+#[test]
+fn a_home_id_the_file_has_later_than_the_device_is_refused_before_any_capture() {
+    let mut rig = rig(19);
+    let path = temp_csv("home-reused.csv");
+    collect_cells(&mut rig, &path, 2);
+    // The last row 1000 s after the same capture.
+    let text = std::fs::read_to_string(&path).unwrap();
+    let mut lines: Vec<String> = text.lines().map(String::from).collect();
+    let last = lines.pop().unwrap();
+    let mut fields: Vec<&str> = last.split(',').collect();
+    let since = fields.len() - 2;
+    fields[since] = "1000";
+    lines.push(fields.join(","));
+    let edited = format!("{}\n", lines.join("\n"));
+    std::fs::write(&path, &edited).unwrap();
+
+    let lattice = small_lattice(&rig);
+    let mut client = rig.client().unwrap();
+    let cfg = config(&rig);
+    let e = collect(
+        &mut client,
+        &mut rig.receiver,
+        &lattice,
+        &cfg,
+        &path,
+        &mut Recorder::new(&rig.cues),
+    )
+    .unwrap_err();
+    assert!(
+        matches!(e, CollectError::HomeIdReused { line: 3, .. }),
+        "{e}"
+    );
+    assert!(e.to_string().contains("spidar init"), "{e}");
+    assert_eq!(std::fs::read_to_string(&path).unwrap(), edited);
+    assert!(disarmed(&rig));
+}
