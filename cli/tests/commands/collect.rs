@@ -1,5 +1,6 @@
 //! `spidar collect --simulate` as a user runs it: a collection stopped and
-//! run again (a new process, so a new simulated device) goes on to the end.
+//! run again (a new process, so a new simulated device) goes on to the end,
+//! and a lattice the strings cannot reach is refused naming the option.
 
 use std::path::PathBuf;
 use std::process::{Command, Output};
@@ -84,4 +85,32 @@ fn a_simulated_collection_stopped_twice_resumes_to_the_end_and_reads_back() {
     for w in session.samples.windows(2) {
         assert!(w[1].t_s >= w[0].t_s, "t_s {} -> {}", w[0].t_s, w[1].t_s);
     }
+}
+
+#[test]
+fn a_lattice_beyond_the_anchors_is_refused_naming_size_mm_and_the_largest_that_fits() {
+    let dir = temp_dir("too-big");
+    let out = dir.join("c5000.csv");
+    let o = spidar(&[
+        "collect",
+        "--simulate",
+        "3",
+        "--cells",
+        "3",
+        "--size-mm",
+        "5000",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(!o.status.success(), "{}", said(&o));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("--size-mm 5000 is too large"), "{err}");
+    assert!(err.contains("convex hull"), "{err}");
+    // The frame's anchors are 2200 mm apart; the lattice is centred 1.1 m
+    // from each face.
+    assert!(
+        err.contains("the largest that fits around this centre is --size-mm 2200.0"),
+        "{err}"
+    );
+    assert!(!out.exists(), "no file is started");
 }

@@ -914,3 +914,52 @@ fn a_home_id_the_file_has_later_than_the_device_is_refused_before_any_capture() 
     assert_eq!(std::fs::read_to_string(&path).unwrap(), edited);
     assert!(disarmed(&rig));
 }
+
+#[test]
+fn a_lattice_reaching_outside_the_anchors_is_refused_before_the_device_is_armed() {
+    let mut rig = rig(20);
+    let path = temp_csv("too-big.csv");
+    let centre = rig.device.volume_centre_room();
+    let lattice = Lattice::new(centre, 5000.0, 3).unwrap();
+    let mut client = rig.client().unwrap();
+    let cfg = config(&rig);
+    let e = collect(
+        &mut client,
+        &mut rig.receiver,
+        &lattice,
+        &cfg,
+        &path,
+        &mut Recorder::new(&rig.cues),
+    )
+    .unwrap_err();
+    let largest_mm = match &e {
+        CollectError::LatticeBeyondReach { largest_mm, .. } => *largest_mm,
+        other => panic!("{other}"),
+    };
+    let text = e.to_string();
+    assert!(text.contains("--size-mm 5000 is too large"), "{text}");
+    assert!(
+        text.contains(&format!(
+            "the largest that fits around this centre is --size-mm {largest_mm:.1}"
+        )),
+        "{text}"
+    );
+    assert!(!path.exists(), "no file was started");
+    assert!(!rig.virtual_device.status().armed, "never armed");
+    // The largest that fits is taken, and collected.
+    let fits = Lattice::new(centre, largest_mm, 3).unwrap();
+    let cfg = CollectConfig {
+        max_cells: Some(1),
+        ..config(&rig)
+    };
+    let report = collect(
+        &mut client,
+        &mut rig.receiver,
+        &fits,
+        &cfg,
+        &path,
+        &mut Recorder::new(&rig.cues),
+    )
+    .unwrap_or_else(|e| panic!("collect: {e}; {}", rig.describe()));
+    assert_eq!(report.captured, 1);
+}

@@ -126,6 +126,8 @@ pub fn collect(
     sink: &mut dyn CueSink,
 ) -> Result<CollectReport, CollectError> {
     config.validate()?;
+    // Before the file is touched or the device armed.
+    config.check_reach(lattice)?;
     // The session has the device's strings (enc0..enc{N-1}): those of the
     // nominal string model it is given, else a Scalable-SPIDAR's 8.
     let strings = config.string_model.map_or(spidar_core::STRINGS, |m| {
