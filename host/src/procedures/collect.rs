@@ -55,6 +55,23 @@
 //! home: run `spidar init` again before resuming. The clock going back
 //! *during* a run is an error.
 //!
+//! **Home capture.** Each row records the device's home capture (`home`,
+//! `State::home_id`) and the time since it (`since_home_s`). A resumed
+//! session goes on under the device's capture as it is now: the file's own
+//! (no reboot, no `spidar init` between the runs), whose time since home
+//! goes on from the file's last row, or a new one (a reboot, a new `Home`,
+//! and every `--simulate` run, whose simulated device boots anew), whose id
+//! is new and whose time since home starts again. A device that reports
+//! the file's last capture but an earlier time since it than that row has
+//! an id naming two captures (a boot id drawn twice): refused before the
+//! first capture ([`CollectError::HomeIdReused`]).
+//!
+//! **Reach.** A lattice that reaches outside the anchors' convex hull
+//! ([`CollectConfig::reach`]; a planar device's polygon), where the strings
+//! cannot hold the end-effector, is refused before the file is opened or
+//! the device armed, naming the largest `--size-mm` that fits around its
+//! centre ([`CollectError::LatticeBeyondReach`]).
+//!
 //! The device is disarmed and its stream stopped on every exit.
 
 use std::path::{Path, PathBuf};
