@@ -90,7 +90,7 @@ pub fn run(args: &CollectArgs) -> anyhow::Result<String> {
             })?;
             let mut client = rig.client().map_err(CollectError::from)?;
             let geometry = rig.device.nominal.clone();
-            config.string_model = Some(geometry.string_model());
+            config.use_geometry(&geometry);
             config.tracker_label = format!("the simulated tracker ({})", rig.receiver.local_addr());
             config.host_clock = rig.host_clock();
             // A busy machine may not run the simulated device's thread for
@@ -111,7 +111,7 @@ pub fn run(args: &CollectArgs) -> anyhow::Result<String> {
         }
         None => {
             let geometry = args.rig.geometry().map_err(CollectError::from)?;
-            config.string_model = Some(geometry.string_model());
+            config.use_geometry(&geometry);
             config.tracker_label = format!("the tracker (UDP {})", args.rig.tracker);
             let lattice = Lattice::new(centre_of(&geometry), args.size_mm, args.cells)
                 .map_err(CollectError::from)?;

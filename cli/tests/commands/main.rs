@@ -5,6 +5,7 @@
 
 mod bad_rows;
 mod calibrate;
+mod collect;
 mod compile;
 mod device;
 mod help;

@@ -55,6 +55,23 @@
 //! home: run `spidar init` again before resuming. The clock going back
 //! *during* a run is an error.
 //!
+//! **Home capture.** Each row records the device's home capture (`home`,
+//! `State::home_id`) and the time since it (`since_home_s`). A resumed
+//! session goes on under the device's capture as it is now: the file's own
+//! (no reboot, no `spidar init` between the runs), whose time since home
+//! goes on from the file's last row, or a new one (a reboot, a new `Home`,
+//! and every `--simulate` run, whose simulated device boots anew), whose id
+//! is new and whose time since home starts again. A device that reports
+//! the file's last capture but an earlier time since it than that row has
+//! an id naming two captures (a boot id drawn twice): refused before the
+//! first capture ([`CollectError::HomeIdReused`]).
+//!
+//! **Reach.** A lattice that reaches outside the anchors' convex hull
+//! ([`CollectConfig::reach`]; a planar device's polygon), where the strings
+//! cannot hold the end-effector, is refused before the file is opened or
+//! the device armed, naming the largest `--size-mm` that fits around its
+//! centre ([`CollectError::LatticeBeyondReach`]).
+//!
 //! The device is disarmed and its stream stopped on every exit.
 
 use std::path::{Path, PathBuf};
@@ -70,9 +87,11 @@ use crate::device::link::LinkError;
 use crate::device::tracker::{HostClock, TrackerError};
 
 mod collection;
+mod reach;
 
 pub use crate::sim::lattice::{Lattice, LatticeError};
 pub use collection::collect;
+pub use reach::Reach;
 
 /// Settings of lattice collection.
 #[derive(Clone, Debug)]
@@ -85,6 +104,11 @@ pub struct CollectConfig {
     pub tracker_timeout: Duration,
     /// Sent to a device that has no calibration blob.
     pub string_model: Option<NominalGeometry>,
+    /// Where the strings can hold the end-effector (the anchors' convex
+    /// hull, room frame): a lattice reaching outside it is refused before
+    /// the device is armed ([`CollectError::LatticeBeyondReach`]). `None`:
+    /// not checked.
+    pub reach: Option<Reach>,
     /// Safety limits: pre-tension while armed; the heartbeat timeout must
     /// exceed `heartbeat_every` (and the tracker's frame period).
     pub limits: Limits,
@@ -120,6 +144,7 @@ impl Default for CollectConfig {
             tracker_label: "the tracker".into(),
             tracker_timeout: Duration::from_secs(2),
             string_model: None,
+            reach: None,
             limits: Limits {
                 pre_tension_n: 1.0,
                 max_tension_n: 20.0,
@@ -139,12 +164,37 @@ impl Default for CollectConfig {
 }
 
 impl CollectConfig {
-    /// Defaults, with the nominal string model of `geometry`.
+    /// Defaults, with the nominal string model of `geometry` and the
+    /// reach of its anchors.
     pub fn for_geometry(geometry: &Geometry) -> CollectConfig {
-        CollectConfig {
-            string_model: Some(geometry.string_model()),
-            ..CollectConfig::default()
+        let mut config = CollectConfig::default();
+        config.use_geometry(geometry);
+        config
+    }
+
+    /// Takes the nominal string model of `geometry` and the reach of its
+    /// anchors ([`CollectConfig::string_model`], [`CollectConfig::reach`]).
+    pub fn use_geometry(&mut self, geometry: &Geometry) {
+        self.string_model = Some(geometry.string_model());
+        self.reach = Some(Reach::of(geometry));
+    }
+
+    /// Refuses a lattice that reaches outside [`CollectConfig::reach`].
+    fn check_reach(&self, lattice: &Lattice) -> Result<(), CollectError> {
+        let Some(reach) = &self.reach else {
+            return Ok(());
+        };
+        let largest_mm = reach.largest_cube_mm(lattice.centre_mm());
+        if lattice.size_mm() <= largest_mm {
+            return Ok(());
         }
+        Err(CollectError::LatticeBeyondReach {
+            lattice: describe(lattice),
+            size_mm: lattice.size_mm(),
+            // Whole tenths of a millimetre, down: a size that fits.
+            largest_mm: (largest_mm * 10.0).floor() / 10.0,
+            planar: reach.is_planar(),
+        })
     }
 
     fn validate(&self) -> Result<(), CollectError> {
@@ -275,6 +325,17 @@ pub enum CollectError {
         previous_s: f64,
         now_s: f64,
     },
+    #[error(
+        "collect: {}: line {line} was captured {file_s} s after home capture {home}, and the device now reports the same capture only {device_s} s after it: its id names another capture (a boot id drawn twice); nothing was captured: run `spidar init` (a new home capture has an id of its own), then collect again to resume",
+        file.display()
+    )]
+    HomeIdReused {
+        file: PathBuf,
+        line: u64,
+        home: u64,
+        file_s: f64,
+        device_s: f64,
+    },
     #[error("collect: {}: line {line}: the row has no tracker position (not a collected session?)", file.display())]
     RowWithoutTracker { file: PathBuf, line: u64 },
     #[error(
@@ -299,6 +360,34 @@ pub enum CollectError {
     },
     #[error("collect: {}: {message}", file.display())]
     InitRecord { file: PathBuf, message: String },
+    #[error("collect: {}", beyond_reach(lattice, *size_mm, *largest_mm, *planar))]
+    LatticeBeyondReach {
+        /// [`describe`] of the lattice.
+        lattice: String,
+        size_mm: f64,
+        /// The largest edge that fits around the lattice's centre (not
+        /// above 0: the centre itself is outside).
+        largest_mm: f64,
+        planar: bool,
+    },
+}
+
+fn beyond_reach(lattice: &str, size_mm: f64, largest_mm: f64, planar: bool) -> String {
+    let hull = if planar {
+        "the anchors' polygon (the strings' convex hull in their plane)"
+    } else {
+        "the anchors' convex hull"
+    };
+    let why = "(outside it the strings all pull one way and cannot hold the end-effector)";
+    if largest_mm > 0.0 {
+        format!(
+            "the lattice ({lattice}) reaches outside {hull} {why}: --size-mm {size_mm} is too large; the largest that fits around this centre is --size-mm {largest_mm:.1} (or move --centre)"
+        )
+    } else {
+        format!(
+            "the lattice ({lattice}) is centred outside {hull} {why}: no --size-mm fits around it; move --centre (or check --init, the geometry's home and room translation)"
+        )
+    }
 }
 
 /// What a device that keeps disarming itself with `faults` means, and what

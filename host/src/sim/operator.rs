@@ -667,21 +667,52 @@ impl SimulatedRig {
     /// the world goes as far as the operator has moved the hand, and the
     /// operator waits for the procedure to take each tracker frame).
     ///
+    /// The device boots as one switched on: with a boot id of its own,
+    /// random as the firmware's RNG draws it ([`DeviceConfig::boot_id`]), so
+    /// that the home captures of two rigs (two runs of a `--simulate`
+    /// command: a collection stopped and resumed) never share an id. With
+    /// the configured id of every virtual device (1) they did: the resumed
+    /// run's rows named the first run's home capture while their time since
+    /// home started again at 0.
+    ///
     /// [`Pace::Virtual`]: crate::sim::virtual_device::Pace::Virtual
+    /// [`DeviceConfig::boot_id`]: spidar_core::device::DeviceConfig::boot_id
     pub fn start(
         device: SimulatedDevice,
         offset_mm: [f64; 3],
         configure: impl FnOnce(&mut SimOperatorConfig),
     ) -> Result<SimulatedRig, RigError> {
-        Self::start_prepared(device, offset_mm, |_| Ok::<(), RigError>(()), configure)
+        Self::boot(
+            device,
+            offset_mm,
+            rand::random::<u32>(),
+            |_| Ok::<(), RigError>(()),
+            configure,
+        )
     }
 
     /// [`SimulatedRig::start`], with `prepare` run on the virtual device
     /// before the operator takes the hand (flash a model and power-cycle
-    /// it, so that it homes where the hand is).
+    /// it, so that it homes where the hand is). The device boots with the
+    /// virtual device's configured id (1, then one more at each power
+    /// cycle), which a test that prepares a calibration under a home
+    /// capture names.
     pub fn start_prepared<E: From<RigError>>(
         device: SimulatedDevice,
         offset_mm: [f64; 3],
+        prepare: impl FnOnce(&crate::sim::virtual_device::VirtualDevice) -> Result<(), E>,
+        configure: impl FnOnce(&mut SimOperatorConfig),
+    ) -> Result<SimulatedRig, E> {
+        let boot_id = crate::sim::virtual_device::VirtualDeviceConfig::default()
+            .device
+            .boot_id;
+        Self::boot(device, offset_mm, boot_id, prepare, configure)
+    }
+
+    fn boot<E: From<RigError>>(
+        device: SimulatedDevice,
+        offset_mm: [f64; 3],
+        boot_id: u32,
         prepare: impl FnOnce(&crate::sim::virtual_device::VirtualDevice) -> Result<(), E>,
         configure: impl FnOnce(&mut SimOperatorConfig),
     ) -> Result<SimulatedRig, E> {
@@ -694,10 +725,15 @@ impl SimulatedRig {
         // machine's doing).
         hand.attach();
         let plant = Plant::new(device.clone(), Trajectory::Held(hand.clone()));
+        let defaults = VirtualDeviceConfig::default();
         let virtual_device = spawn(
             VirtualDeviceConfig {
                 pace: Pace::Virtual,
-                ..VirtualDeviceConfig::default()
+                device: spidar_core::device::DeviceConfig {
+                    boot_id,
+                    ..defaults.device
+                },
+                ..defaults
             },
             plant,
         )

@@ -820,3 +820,146 @@ fn a_reboot_during_the_collection_stops_it_naming_the_lost_home() {
     let session = Session::load(&path).unwrap();
     assert!(session.samples.len() >= 3, "{} rows", session.samples.len());
 }
+
+/// `spidar collect --simulate` run again: each run starts a rig of its own
+/// (a new boot of the simulated device), and the file goes on under the new
+/// run's home capture.
+#[test]
+fn a_stopped_collection_resumed_on_a_rig_started_again_completes_and_reads_back() {
+    let path = temp_csv("resume-new-rig.csv");
+    let mut first = rig(18);
+    let report = collect_cells(&mut first, &path, 10);
+    assert_eq!((report.captured, report.done), (10, 10));
+    let before = Session::load(&path).unwrap();
+    drop(first);
+
+    // The same command again: a new rig, its device booted anew (before,
+    // with the same boot id as the first: refused on the first new row,
+    // "time since home goes backwards ... under the same home capture").
+    let mut second = rig(18);
+    let lattice = small_lattice(&second);
+    let mut client = second.client().unwrap();
+    let cfg = config(&second);
+    let report = collect(
+        &mut client,
+        &mut second.receiver,
+        &lattice,
+        &cfg,
+        &path,
+        &mut Recorder::new(&second.cues),
+    )
+    .unwrap_or_else(|e| panic!("collect: {e}; {}", second.describe()));
+    assert_eq!(report.stop, Stop::Complete);
+    assert_eq!((report.resumed_from, report.captured), (10, 17));
+    assert!(report.clock_offset_s > 0.0, "a new boot: {report:?}");
+
+    // Every cell once, in order, read back by the dataset reader.
+    let session = Session::load(&path).unwrap();
+    assert_rows_in_order(&lattice, &session);
+    assert_eq!(session.samples[..10], before.samples[..]);
+    let (old, new) = session.samples.split_at(10);
+    // Two home captures, each's time since home going on with t_s.
+    assert_ne!(old[0].home, new[0].home);
+    for part in [old, new] {
+        assert!(part.iter().all(|s| s.home == part[0].home));
+        for w in part.windows(2) {
+            let (a, b) = (w[0].since_home_s.unwrap(), w[1].since_home_s.unwrap());
+            assert!(
+                ((b - a) - (w[1].t_s - w[0].t_s)).abs() < 1e-6,
+                "since_home_s {a} -> {b} against t_s {} -> {}",
+                w[0].t_s,
+                w[1].t_s
+            );
+        }
+    }
+    // t_s goes on from the last row of the first run.
+    assert!(new[0].t_s >= old[9].t_s && new[0].t_s < old[9].t_s + 1.0);
+}
+
+/// A file whose last row is later under the device's home capture than the
+/// device now is: the id names two captures. Refused before a capture.
+#[test]
+fn a_home_id_the_file_has_later_than_the_device_is_refused_before_any_capture() {
+    let mut rig = rig(19);
+    let path = temp_csv("home-reused.csv");
+    collect_cells(&mut rig, &path, 2);
+    // The last row 1000 s after the same capture.
+    let text = std::fs::read_to_string(&path).unwrap();
+    let mut lines: Vec<String> = text.lines().map(String::from).collect();
+    let last = lines.pop().unwrap();
+    let mut fields: Vec<&str> = last.split(',').collect();
+    let since = fields.len() - 2;
+    fields[since] = "1000";
+    lines.push(fields.join(","));
+    let edited = format!("{}\n", lines.join("\n"));
+    std::fs::write(&path, &edited).unwrap();
+
+    let lattice = small_lattice(&rig);
+    let mut client = rig.client().unwrap();
+    let cfg = config(&rig);
+    let e = collect(
+        &mut client,
+        &mut rig.receiver,
+        &lattice,
+        &cfg,
+        &path,
+        &mut Recorder::new(&rig.cues),
+    )
+    .unwrap_err();
+    assert!(
+        matches!(e, CollectError::HomeIdReused { line: 3, .. }),
+        "{e}"
+    );
+    assert!(e.to_string().contains("spidar init"), "{e}");
+    assert_eq!(std::fs::read_to_string(&path).unwrap(), edited);
+    assert!(disarmed(&rig));
+}
+
+#[test]
+fn a_lattice_reaching_outside_the_anchors_is_refused_before_the_device_is_armed() {
+    let mut rig = rig(20);
+    let path = temp_csv("too-big.csv");
+    let centre = rig.device.volume_centre_room();
+    let lattice = Lattice::new(centre, 5000.0, 3).unwrap();
+    let mut client = rig.client().unwrap();
+    let cfg = config(&rig);
+    let e = collect(
+        &mut client,
+        &mut rig.receiver,
+        &lattice,
+        &cfg,
+        &path,
+        &mut Recorder::new(&rig.cues),
+    )
+    .unwrap_err();
+    let largest_mm = match &e {
+        CollectError::LatticeBeyondReach { largest_mm, .. } => *largest_mm,
+        other => panic!("{other}"),
+    };
+    let text = e.to_string();
+    assert!(text.contains("--size-mm 5000 is too large"), "{text}");
+    assert!(
+        text.contains(&format!(
+            "the largest that fits around this centre is --size-mm {largest_mm:.1}"
+        )),
+        "{text}"
+    );
+    assert!(!path.exists(), "no file was started");
+    assert!(!rig.virtual_device.status().armed, "never armed");
+    // The largest that fits is taken, and collected.
+    let fits = Lattice::new(centre, largest_mm, 3).unwrap();
+    let cfg = CollectConfig {
+        max_cells: Some(1),
+        ..config(&rig)
+    };
+    let report = collect(
+        &mut client,
+        &mut rig.receiver,
+        &fits,
+        &cfg,
+        &path,
+        &mut Recorder::new(&rig.cues),
+    )
+    .unwrap_or_else(|e| panic!("collect: {e}; {}", rig.describe()));
+    assert_eq!(report.captured, 1);
+}

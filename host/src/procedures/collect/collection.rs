@@ -126,6 +126,8 @@ pub fn collect(
     sink: &mut dyn CueSink,
 ) -> Result<CollectReport, CollectError> {
     config.validate()?;
+    // Before the file is touched or the device armed.
+    config.check_reach(lattice)?;
     // The session has the device's strings (enc0..enc{N-1}): those of the
     // nominal string model it is given, else a Scalable-SPIDAR's 8.
     let strings = config.string_model.map_or(spidar_core::STRINGS, |m| {
@@ -133,6 +135,14 @@ pub fn collect(
     });
     let opened = SessionAppender::open_for(path, strings)?;
     let done = done_cells(lattice, &opened.existing, path)?;
+    let rows = opened.existing.samples.len();
+    let last_home = opened.existing.samples.last().and_then(|s| {
+        Some(LastHome {
+            line: rows as u64 + 1,
+            home: s.home?,
+            since_home_s: s.since_home_s?,
+        })
+    });
     let mut report = CollectReport {
         path: path.to_path_buf(),
         total: lattice.len(),
@@ -173,6 +183,7 @@ pub fn collect(
             config,
             appender: &mut appender,
             done,
+            last_home,
         },
         &mut report,
     );
@@ -215,6 +226,15 @@ struct Plan<'a> {
     /// The line of the row that captured each cell, by position in
     /// [`Lattice::order`] (see [`done_cells`]).
     done: Vec<Option<u64>>,
+    /// The file's last row's home capture, when it records one.
+    last_home: Option<LastHome>,
+}
+
+/// The home capture of a file's last row, and the time since it there.
+struct LastHome {
+    line: u64,
+    home: u64,
+    since_home_s: f64,
 }
 
 /// One collection under way: the rig, the plan, and what the steps share.
@@ -231,9 +251,11 @@ struct Collection<'r, 'p> {
     arm_watch: ArmWatch,
 }
 
-fn run(rig: Rig<'_>, plan: Plan<'_>, report: &mut CollectReport) -> Result<(), CollectError> {
+fn run(rig: Rig<'_>, mut plan: Plan<'_>, report: &mut CollectReport) -> Result<(), CollectError> {
     let port = rig.client.port_name().to_string();
     let last_request = start_device(rig.client, plan.config)?;
+    let path = plan.appender.path().to_path_buf();
+    let last_home = plan.last_home.take();
     let mut c = Collection {
         states: States::new(plan.config.host_clock.clone()),
         arm_watch: ArmWatch::new(plan.config.max_rearms),
@@ -245,6 +267,7 @@ fn run(rig: Rig<'_>, plan: Plan<'_>, report: &mut CollectReport) -> Result<(), C
         last_frame_at: Instant::now(),
     };
     c.wait_for_first_state()?;
+    c.check_the_file_home(&path, last_home)?;
     c.continue_the_file_clock();
     c.last_frame_at = Instant::now();
     c.fill_cells()
@@ -303,6 +326,27 @@ impl Collection<'_, '_> {
                 self.rig.client.heartbeat()?;
                 self.last_request = Instant::now();
             }
+        }
+        Ok(())
+    }
+
+    /// A device under the file's last home capture (the same id) must be
+    /// at least as long after it as that row was: else the id names two
+    /// captures (a boot id drawn twice) and the new rows would read as the
+    /// old capture's time going back. Refused before the first capture.
+    fn check_the_file_home(&self, file: &Path, last: Option<LastHome>) -> Result<(), CollectError> {
+        let (Some(last), Some(first)) = (last, self.states.first) else {
+            return Ok(());
+        };
+        let device_s = first.since_home_us as f64 / 1e6;
+        if first.home_id == last.home && device_s < last.since_home_s {
+            return Err(CollectError::HomeIdReused {
+                file: file.to_path_buf(),
+                line: last.line,
+                home: last.home,
+                file_s: last.since_home_s,
+                device_s,
+            });
         }
         Ok(())
     }
