@@ -113,7 +113,9 @@ impl From<LinkError> for Error {
             LinkError::PortMissing { .. } | LinkError::PortBusy { .. } | LinkError::Open { .. } => {
                 SPIDAR_E_PORT
             }
-            LinkError::Timeout { .. } => SPIDAR_E_TIMEOUT,
+            LinkError::Timeout { .. }
+            | LinkError::StreamStopped { .. }
+            | LinkError::CommitUnanswered { .. } => SPIDAR_E_TIMEOUT,
             LinkError::VersionMismatch { .. } => SPIDAR_E_VERSION,
             LinkError::Rejected { .. } => SPIDAR_E_REFUSED,
             LinkError::InvalidBlob(_) | LinkError::Verify { .. } => SPIDAR_E_BLOB,

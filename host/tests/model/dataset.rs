@@ -478,6 +478,12 @@ fn n_string_geometry_errors_name_the_key() {
             "positive",
         ),
         (
+            "[0.0, 0.0, 2350.0],",
+            "[-1402.961, 810.0, -150.0],",
+            "anchors_mm[3]",
+            "0.000 mm from anchors_mm[2]: two strings cannot leave one point",
+        ),
+        (
             "room_from_device_translation_mm = [",
             "room_from_device_translation_mm = [1, ",
             "room_from_device_translation_mm",

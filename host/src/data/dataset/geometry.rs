@@ -9,6 +9,7 @@ use serde::de::{self, Deserializer, SeqAccess, Visitor};
 use serde::Deserialize;
 use spidar_core::geometry::distance;
 use spidar_core::model::{Frame, StringLaw, StringLayout, Vec3, WINDING_ORDER};
+use spidar_core::plausible::MIN_ANCHOR_SEPARATION_MM;
 use spidar_core::STRINGS;
 
 use super::{io_error, DatasetError, MIN_STRINGS};
@@ -380,6 +381,22 @@ impl Geometry {
                         a[2], self.anchors_mm[0][2]
                     ),
                 ));
+            }
+        }
+        let active: Vec<usize> = self.layout.indices().collect();
+        for (k, &a) in active.iter().enumerate() {
+            for &b in &active[k + 1..] {
+                let apart_mm = distance(self.anchors_mm[a], self.anchors_mm[b]);
+                if apart_mm < MIN_ANCHOR_SEPARATION_MM {
+                    return Err(field_error(
+                        file,
+                        format!("anchors_mm[{b}]"),
+                        format!(
+                            "{apart_mm:.3} mm from anchors_mm[{a}]: two strings cannot leave \
+                             one point (one anchor copied over another?)"
+                        ),
+                    ));
+                }
             }
         }
         if let Some(why) = self.degenerate_anchors() {

@@ -57,6 +57,26 @@ pub enum LinkError {
         attempts: u32,
         timeout_ms: u64,
     },
+    #[error(
+        "serial port {port}: the device's state stream stopped: no frame for {silent_ms} ms after \
+         {frames} frames (unplugged, powered off or hung?)"
+    )]
+    StreamStopped {
+        port: String,
+        frames: u64,
+        silent_ms: u64,
+    },
+    #[error(
+        "serial port {port}: the device did not answer `UploadCommit` ({attempts} tries, \
+         {timeout_ms} ms each) after the whole model was sent: the commit may have taken effect; \
+         `spidar device info` shows the model the device runs (its id and CRC), and flashing \
+         again is safe"
+    )]
+    CommitUnanswered {
+        port: String,
+        attempts: u32,
+        timeout_ms: u64,
+    },
     #[error("serial port {port}: protocol version mismatch: the device speaks {device}, this host speaks {host}")]
     VersionMismatch {
         port: String,
@@ -663,7 +683,22 @@ impl Client {
         let (chunks, resends) = self.upload_chunks(blob, resumed_at, chunk_len, &mut progress)?;
         let upload = t0.elapsed();
         let t1 = Instant::now();
-        let model_id = match self.request(&Request::UploadCommit { crc32 })? {
+        let committed = self
+            .request(&Request::UploadCommit { crc32 })
+            .map_err(|e| match e {
+                LinkError::Timeout {
+                    port,
+                    attempts,
+                    timeout_ms,
+                    ..
+                } => LinkError::CommitUnanswered {
+                    port,
+                    attempts,
+                    timeout_ms,
+                },
+                e => e,
+            })?;
+        let model_id = match committed {
             Response::Committed { model_id } => model_id,
             r => return Err(self.unexpected("UploadCommit", &r)),
         };
@@ -826,11 +861,10 @@ impl Client {
             let got = self.poll_frames()?;
             if got.is_empty() {
                 if last_frame.elapsed() > options.idle_timeout {
-                    result = Err(LinkError::Timeout {
+                    result = Err(LinkError::StreamStopped {
                         port: self.name.clone(),
-                        request: "StreamOn",
-                        attempts: 1,
-                        timeout_ms: options.idle_timeout.as_millis() as u64,
+                        frames,
+                        silent_ms: options.idle_timeout.as_millis() as u64,
                     });
                     break;
                 }

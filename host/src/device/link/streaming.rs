@@ -404,15 +404,14 @@ impl StreamingClient {
     /// The newest state frame, once it is newer than the `after`-th (its
     /// [`Received::index`]; 0: any), waiting at most `timeout` for that.
     /// Frames between are not returned (their count is in the index). A
-    /// stream silent that long is [`LinkError::Timeout`].
+    /// stream silent that long is [`LinkError::StreamStopped`].
     pub fn wait_newer(&self, after: u64, timeout: Duration) -> Result<Received, LinkError> {
         let deadline = Instant::now() + timeout;
         self.wait_for(deadline, |inbox| inbox.latest.filter(|r| r.index > after))?
-            .ok_or_else(|| LinkError::Timeout {
+            .ok_or_else(|| LinkError::StreamStopped {
                 port: self.name.clone(),
-                request: "StreamOn",
-                attempts: 1,
-                timeout_ms: timeout.as_millis() as u64,
+                frames: after,
+                silent_ms: timeout.as_millis() as u64,
             })
     }
 

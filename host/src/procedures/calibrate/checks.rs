@@ -33,7 +33,6 @@ pub(super) fn checked_sessions(
     for s in [&train, &test] {
         s.session.check_strings(s.path, geometry, geometry_path)?;
     }
-    warnings.extend(one_point_anchors_warning(geometry, geometry_path));
     for (s, found) in [&train, &test].into_iter().zip(set_aside) {
         check_set_aside(s, found, geometry_path)?;
     }
@@ -334,29 +333,6 @@ pub(super) fn unfitted_warning(
             best_fit_mm,
             100.0 * best_fit_mm / spread,
             spread
-        )
-    })
-}
-
-/// The warning for anchors of the geometry that are one point: two
-/// strings may leave one exit point (devices with paired anchors exist),
-/// but an anchor copied over another is the likelier, and the fit then
-/// moves both by as much as they are apart.
-fn one_point_anchors_warning(geometry: &Geometry, geometry_path: &Path) -> Option<String> {
-    let active: Vec<usize> = geometry.layout.indices().collect();
-    let pairs: Vec<String> = active
-        .iter()
-        .enumerate()
-        .flat_map(|(k, &i)| active[k + 1..].iter().map(move |&j| (i, j)))
-        .filter(|&(i, j)| geometry.anchors_mm[i] == geometry.anchors_mm[j])
-        .map(|(i, j)| format!("anchors_mm[{i}] and anchors_mm[{j}]"))
-        .collect();
-    (!pairs.is_empty()).then(|| {
-        format!(
-            "{}: {} are one point: strings that leave one exit point, or an anchor copied \
-             over another? The fit moves a wrong one as far as it is off",
-            geometry_path.display(),
-            pairs.join(", ")
         )
     })
 }

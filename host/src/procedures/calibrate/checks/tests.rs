@@ -271,25 +271,6 @@ fn test_points_beyond_the_training_box_are_warned_with_the_plain_fit_beside() {
     );
 }
 
-/// Anchors of the geometry at one point are named, each pair once; a
-/// geometry whose anchors are apart has no such warning.
-#[test]
-fn anchors_at_one_point_are_named() {
-    let mut geometry = crate::sim::SimConfig::default().nominal.geometry();
-    let path = Path::new("geometry.toml");
-    assert_eq!(one_point_anchors_warning(&geometry, path), None);
-    geometry.anchors_mm[2] = geometry.anchors_mm[1];
-    geometry.anchors_mm[7] = geometry.anchors_mm[1];
-    let w = one_point_anchors_warning(&geometry, path).expect("a warning");
-    assert!(
-        w.starts_with(
-            "geometry.toml: anchors_mm[1] and anchors_mm[2], anchors_mm[1] and anchors_mm[7], \
-             anchors_mm[2] and anchors_mm[7] are one point"
-        ),
-        "{w}"
-    );
-}
-
 /// A session whose best fit leaves more than a twentieth of its tracked
 /// positions' spread is one no geometry fits; under it, no warning.
 #[test]
