@@ -2,7 +2,7 @@
 //! run again (a new process, so a new simulated device) goes on to the end,
 //! and a lattice the strings cannot reach is refused naming the option.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 use spidar::data::dataset::Session;
@@ -37,25 +37,29 @@ fn said(o: &Output) -> String {
     )
 }
 
+/// `spidar collect --simulate 3 --cells 3 --size-mm SIZE --out OUT`, then
+/// `extra`.
+fn collect_simulated(out: &Path, size_mm: &str, extra: &[&str]) -> Output {
+    let mut args = vec![
+        "collect",
+        "--simulate",
+        "3",
+        "--cells",
+        "3",
+        "--size-mm",
+        size_mm,
+        "--out",
+        out.to_str().unwrap(),
+    ];
+    args.extend_from_slice(extra);
+    spidar(&args)
+}
+
 #[test]
 fn a_simulated_collection_stopped_twice_resumes_to_the_end_and_reads_back() {
     let dir = temp_dir("resume");
     let out = dir.join("lat3b.csv");
-    let run = |extra: &[&str]| {
-        let mut args = vec![
-            "collect",
-            "--simulate",
-            "3",
-            "--cells",
-            "3",
-            "--size-mm",
-            "300",
-            "--out",
-            out.to_str().unwrap(),
-        ];
-        args.extend_from_slice(extra);
-        spidar(&args)
-    };
+    let run = |extra: &[&str]| collect_simulated(&out, "300", extra);
     let first = run(&["--max-cells", "10"]);
     assert!(first.status.success(), "{}", said(&first));
     // The survey's case: the same command again (it exited 1 on line 12,
@@ -91,17 +95,7 @@ fn a_simulated_collection_stopped_twice_resumes_to_the_end_and_reads_back() {
 fn a_lattice_beyond_the_anchors_is_refused_naming_size_mm_and_the_largest_that_fits() {
     let dir = temp_dir("too-big");
     let out = dir.join("c5000.csv");
-    let o = spidar(&[
-        "collect",
-        "--simulate",
-        "3",
-        "--cells",
-        "3",
-        "--size-mm",
-        "5000",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    let o = collect_simulated(&out, "5000", &[]);
     assert!(!o.status.success(), "{}", said(&o));
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("--size-mm 5000 is too large"), "{err}");

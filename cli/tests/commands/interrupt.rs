@@ -111,6 +111,11 @@ impl Running {
 }
 
 /// The two signals and the exit status each gives.
+/// A file of this process in the temporary folder (`spidar-interrupt-PID-what`).
+fn temp_file(what: &str) -> std::path::PathBuf {
+    std::env::temp_dir().join(format!("spidar-interrupt-{}-{what}", std::process::id()))
+}
+
 const SIGNALS: [(libc::c_int, &str, i32); 2] = [
     (libc::SIGINT, "SIGINT", 130),
     (libc::SIGTERM, "SIGTERM", 143),
@@ -142,7 +147,7 @@ fn device_holds_end_on_sigint_and_sigterm_disarmed_with_no_force() {
     let port = vd.port_path().to_string();
     // Flashed by `spidar flash`: a port this process held could be
     // inherited by a `spidar` another test starts (see device.rs).
-    let model = std::env::temp_dir().join(format!("spidar-interrupt-{}.blob", std::process::id()));
+    let model = temp_file("model.blob");
     std::fs::write(&model, blob(&dev, CorrectionModel::None, 0x51)).unwrap();
     let (ok, _, err) = spidar(&["flash", "--port", &port, model.to_str().unwrap()]);
     let _ = std::fs::remove_file(&model);
@@ -215,10 +220,7 @@ fn device_holds_end_on_sigint_and_sigterm_disarmed_with_no_force() {
 #[test]
 fn collect_stops_on_sigint_and_sigterm_with_the_motors_off_and_exits_non_zero() {
     for (signal, name, code) in SIGNALS {
-        let out_csv = std::env::temp_dir().join(format!(
-            "spidar-interrupt-collect-{name}-{}.csv",
-            std::process::id()
-        ));
+        let out_csv = temp_file(&format!("collect-{name}.csv"));
         let _ = std::fs::remove_file(&out_csv);
         let mut collect = Running::start(&[
             "collect",
@@ -255,10 +257,7 @@ fn collect_stops_on_sigint_and_sigterm_with_the_motors_off_and_exits_non_zero() 
 #[test]
 fn init_stops_on_sigint_and_sigterm_before_home_and_writes_nothing() {
     for (signal, name, code) in SIGNALS {
-        let record = std::env::temp_dir().join(format!(
-            "spidar-interrupt-init-{name}-{}.toml",
-            std::process::id()
-        ));
+        let record = temp_file(&format!("init-{name}.toml"));
         let _ = std::fs::remove_file(&record);
         let mut init = Running::start(&[
             "init",

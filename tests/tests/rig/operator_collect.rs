@@ -95,6 +95,49 @@ fn config(rig: &SimulatedRig) -> CollectConfig {
     }
 }
 
+/// A collection on `rig` into `path` (what the operator is shown recorded
+/// as in every run).
+fn collect_on(
+    rig: &mut SimulatedRig,
+    client: &mut Client,
+    lattice: &Lattice,
+    cfg: &CollectConfig,
+    path: &std::path::Path,
+) -> Result<CollectReport, CollectError> {
+    collect(
+        client,
+        &mut rig.receiver,
+        lattice,
+        cfg,
+        path,
+        &mut Recorder::new(&rig.cues),
+    )
+}
+
+/// The report of a collection that must complete its part (the rig's
+/// state in the message when it fails).
+fn collected(
+    rig: &mut SimulatedRig,
+    client: &mut Client,
+    lattice: &Lattice,
+    cfg: &CollectConfig,
+    path: &std::path::Path,
+) -> CollectReport {
+    let result = collect_on(rig, client, lattice, cfg, path);
+    result.unwrap_or_else(|e| panic!("collect: {e}; {}", rig.describe()))
+}
+
+/// The error of a collection that must fail.
+fn refused(
+    rig: &mut SimulatedRig,
+    client: &mut Client,
+    lattice: &Lattice,
+    cfg: &CollectConfig,
+    path: &std::path::Path,
+) -> CollectError {
+    collect_on(rig, client, lattice, cfg, path).unwrap_err()
+}
+
 /// Every row lies in its cell, in lattice order, each cell once; time never
 /// goes back.
 fn assert_rows_in_order(lattice: &Lattice, session: &Session) {
@@ -537,15 +580,7 @@ fn a_stopped_or_cancelled_collection_resumes_and_every_cell_is_captured_once() {
 
     // Nothing left: a fourth run does nothing.
     let cfg_here = config(&rig);
-    let fourth = collect(
-        &mut client,
-        &mut rig.receiver,
-        &lattice,
-        &cfg_here,
-        &path,
-        &mut Recorder::new(&rig.cues),
-    )
-    .unwrap_or_else(|e| panic!("{e}; {}", rig.describe()));
+    let fourth = collected(&mut rig, &mut client, &lattice, &cfg_here, &path);
     assert_eq!((fourth.captured, fourth.done), (0, 27));
 }
 
@@ -558,15 +593,7 @@ fn a_torn_last_line_is_cut_off_and_after_a_reboot_time_continues_from_the_last_r
     let mut cfg = config(&rig);
     cfg.max_cells = Some(5);
     let cfg_here = config(&rig);
-    collect(
-        &mut client,
-        &mut rig.receiver,
-        &lattice,
-        &cfg,
-        &path,
-        &mut Recorder::new(&rig.cues),
-    )
-    .unwrap_or_else(|e| panic!("{e}; {}", rig.describe()));
+    collected(&mut rig, &mut client, &lattice, &cfg, &path);
     let whole = std::fs::read_to_string(&path).unwrap();
     let last_t_s = Session::load(&path).unwrap().samples[4].t_s;
     // A crash mid-write: half a row, no newline.
@@ -613,15 +640,7 @@ fn a_file_of_another_layout_or_volume_is_refused_naming_it() {
     let other = temp_csv("other-layout.csv");
     std::fs::write(&other, "t_s,enc0,enc1\n0,1,2\n").unwrap();
     let cfg_here = config(&rig);
-    let e = collect(
-        &mut client,
-        &mut rig.receiver,
-        &lattice,
-        &cfg_here,
-        &other,
-        &mut Recorder::new(&rig.cues),
-    )
-    .unwrap_err();
+    let e = refused(&mut rig, &mut client, &lattice, &cfg_here, &other);
     let text = e.to_string();
     assert!(text.contains("other-layout.csv: line 1"), "{text}");
     assert!(text.contains("header"), "{text}");
@@ -643,15 +662,7 @@ fn a_file_of_another_layout_or_volume_is_refused_naming_it() {
     );
     std::fs::write(&elsewhere, format!("{header}\n{far}")).unwrap();
     let cfg_here = config(&rig);
-    let e = collect(
-        &mut client,
-        &mut rig.receiver,
-        &lattice,
-        &cfg_here,
-        &elsewhere,
-        &mut Recorder::new(&rig.cues),
-    )
-    .unwrap_err();
+    let e = refused(&mut rig, &mut client, &lattice, &cfg_here, &elsewhere);
     assert!(
         matches!(e, CollectError::RowOutsideLattice { line: 2, .. }),
         "{e}"
@@ -840,15 +851,7 @@ fn a_stopped_collection_resumed_on_a_rig_started_again_completes_and_reads_back(
     let lattice = small_lattice(&second);
     let mut client = second.client().unwrap();
     let cfg = config(&second);
-    let report = collect(
-        &mut client,
-        &mut second.receiver,
-        &lattice,
-        &cfg,
-        &path,
-        &mut Recorder::new(&second.cues),
-    )
-    .unwrap_or_else(|e| panic!("collect: {e}; {}", second.describe()));
+    let report = collected(&mut second, &mut client, &lattice, &cfg, &path);
     assert_eq!(report.stop, Stop::Complete);
     assert_eq!((report.resumed_from, report.captured), (10, 17));
     assert!(report.clock_offset_s > 0.0, "a new boot: {report:?}");
@@ -897,15 +900,7 @@ fn a_home_id_the_file_has_later_than_the_device_is_refused_before_any_capture() 
     let lattice = small_lattice(&rig);
     let mut client = rig.client().unwrap();
     let cfg = config(&rig);
-    let e = collect(
-        &mut client,
-        &mut rig.receiver,
-        &lattice,
-        &cfg,
-        &path,
-        &mut Recorder::new(&rig.cues),
-    )
-    .unwrap_err();
+    let e = refused(&mut rig, &mut client, &lattice, &cfg, &path);
     assert!(
         matches!(e, CollectError::HomeIdReused { line: 3, .. }),
         "{e}"
@@ -923,15 +918,7 @@ fn a_lattice_reaching_outside_the_anchors_is_refused_before_the_device_is_armed(
     let lattice = Lattice::new(centre, 5000.0, 3).unwrap();
     let mut client = rig.client().unwrap();
     let cfg = config(&rig);
-    let e = collect(
-        &mut client,
-        &mut rig.receiver,
-        &lattice,
-        &cfg,
-        &path,
-        &mut Recorder::new(&rig.cues),
-    )
-    .unwrap_err();
+    let e = refused(&mut rig, &mut client, &lattice, &cfg, &path);
     let largest_mm = match &e {
         CollectError::LatticeBeyondReach { largest_mm, .. } => *largest_mm,
         other => panic!("{other}"),
@@ -952,14 +939,6 @@ fn a_lattice_reaching_outside_the_anchors_is_refused_before_the_device_is_armed(
         max_cells: Some(1),
         ..config(&rig)
     };
-    let report = collect(
-        &mut client,
-        &mut rig.receiver,
-        &fits,
-        &cfg,
-        &path,
-        &mut Recorder::new(&rig.cues),
-    )
-    .unwrap_or_else(|e| panic!("collect: {e}; {}", rig.describe()));
+    let report = collected(&mut rig, &mut client, &fits, &cfg, &path);
     assert_eq!(report.captured, 1);
 }
