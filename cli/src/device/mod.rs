@@ -61,6 +61,12 @@ pub struct FlashArgs {
     pub port: PortArgs,
     /// Model blob written by `spidar compile`.
     pub model: PathBuf,
+    /// Flash a model of another string count than the one the device runs
+    /// (a rig rebuilt with more or fewer strings). Without it such a blob
+    /// is refused before the upload: on the rig as it is, the strings the
+    /// model lacks would go slack and the ones it adds would pull nothing.
+    #[arg(long)]
+    pub string_count_change: bool,
 }
 
 /// `spidar device ...`.
@@ -208,6 +214,23 @@ pub fn run_flash(args: &FlashArgs) -> anyhow::Result<String> {
     })?;
     let mut client = args.port.open()?;
     let hello = client.device().copied();
+    if let (Ok(new), Some(running)) = (
+        spidar_protocol::blob::ModelHeader::parse(&blob),
+        client.info()?,
+    ) {
+        if new.strings != running.header.strings && !args.string_count_change {
+            anyhow::bail!(
+                "{}: a model of {} strings, and the device runs one of {} (model id {:#010x}): \
+                 flashed on the rig as it is, the strings the model lacks go slack and the ones \
+                 it adds pull nothing. Compile the calibration of this rig, or pass \
+                 --string-count-change if the rig was rebuilt",
+                args.model.display(),
+                new.strings,
+                running.header.strings,
+                running.header.model_id
+            );
+        }
+    }
     let mut last = Instant::now();
     let report = client.flash(&blob, |p| {
         let now = Instant::now();
@@ -224,7 +247,7 @@ pub fn run_flash(args: &FlashArgs) -> anyhow::Result<String> {
         let _ = writeln!(
             out,
             "device {} firmware {}.{}.{}, protocol {}, blob capacity {} bytes",
-            hex(&h.device_id),
+            device_name(&h.device_id),
             h.firmware_version[0],
             h.firmware_version[1],
             h.firmware_version[2],
@@ -359,9 +382,10 @@ fn device_info(client: &mut Client, out: &mut String) -> anyhow::Result<()> {
         Some(i) => {
             let _ = writeln!(
                 out,
-                "model id {:#010x} in slot {}: {}, {} effects, blob {} bytes, CRC {:#010x}, created {}",
+                "model id {:#010x} in slot {}: {} strings, {}, {} effects, blob {} bytes, CRC {:#010x}, created {}",
                 i.header.model_id,
                 i.slot,
+                i.header.strings,
                 match i.header.kind {
                     spidar_protocol::blob::CorrectionKind::None => "no position correction",
                     spidar_protocol::blob::CorrectionKind::Nn => "NN position correction",

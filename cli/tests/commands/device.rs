@@ -371,3 +371,47 @@ fn device_commands_fail_when_the_heartbeat_is_lost_and_info_says_the_motors_are_
     let (ok, _, err) = flash(&vd, "heartbeat-after", &model);
     assert!(ok, "{err}");
 }
+
+/// A blob of another string count than the model the device runs is
+/// refused before the upload, naming both counts and the option (the
+/// survey's 4-string blob on an 8-string device flashed "verified", and
+/// the first sign was a KINEMATICS fault on arming); with
+/// `--string-count-change` it goes, and `device info` says the count.
+#[test]
+fn a_model_of_another_string_count_is_refused_unless_the_rig_was_rebuilt() {
+    let vd = default_virtual_device(2000);
+    let eight = blob(&vd.plant().device, CorrectionModel::None, 0x81);
+    let (ok, _, err) = flash(&vd, "eight-strings", &eight);
+    assert!(ok, "{err}");
+    let mut four = spidar::sim::SimConfig::default();
+    four.nominal.strings = 4;
+    four.abnormal_motor.enabled = false;
+    let four = spidar::sim::SimulatedDevice::new(&four, 3).unwrap();
+    let four_blob = blob(&four, CorrectionModel::None, 0x82);
+    let (ok, _, err) = flash(&vd, "four-strings", &four_blob);
+    assert!(!ok, "a 4-string model flashed over an 8-string one");
+    assert!(
+        err.contains("a model of 4 strings, and the device runs one of 8 (model id 0x00000081)")
+            && err.contains("--string-count-change"),
+        "{err}"
+    );
+    let (ok, info, err) = spidar(&["device", "info", "--port", vd.port_path()]);
+    assert!(ok, "{err}");
+    assert!(info.contains("model id 0x00000081 in slot"), "{info}");
+    assert!(info.contains(": 8 strings, "), "{info}");
+
+    let model = std::env::temp_dir().join(format!("spidar-rebuilt-{}.blob", std::process::id()));
+    std::fs::write(&model, &four_blob).unwrap();
+    let (ok, _, err) = spidar(&[
+        "flash",
+        "--port",
+        vd.port_path(),
+        model.to_str().unwrap(),
+        "--string-count-change",
+    ]);
+    let _ = std::fs::remove_file(&model);
+    assert!(ok, "{err}");
+    let (ok, info, err) = spidar(&["device", "info", "--port", vd.port_path()]);
+    assert!(ok, "{err}");
+    assert!(info.contains(": 4 strings, "), "{info}");
+}
