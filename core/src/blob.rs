@@ -512,11 +512,8 @@ mod compiler {
                 out.room_rotation[r][c] = to_f32(frame.room_rotation[r][c], "room_rotation")?;
             }
         }
-        if out.room_scale <= 0.0 {
-            return Err(BlobCompileError::Frame {
-                field: "room_scale",
-            });
-        }
+        // A room scale that is not positive, or is another unit's, is
+        // `plausible::check_device`'s to refuse, by what it is.
         Ok(out)
     }
 

@@ -9,6 +9,9 @@
 //!
 //! - the room rotation is a rotation (`R R^T = I` to 1e-3: a rotation
 //!   written with four decimals passes, a skewed or scaled matrix does not);
+//! - the room scale (the tracker's millimetre in the device's) is within a
+//!   factor of [`MAX_ROOM_SCALE_FACTOR`] of 1: beyond it the tracker is in
+//!   another unit, which the calibration refuses in a session too;
 //! - no two active anchors closer than [`MIN_ANCHOR_SEPARATION_MM`]: two
 //!   strings leaving one point cannot be told apart;
 //! - no anchor [`FAR_BEYOND_FACTOR`] times further from home than the
@@ -36,6 +39,12 @@ pub const MAX_ANCHOR_DISTANCE_MM: f64 = 1e7;
 /// rounded to four decimals deviates by ~1e-4 (the QEMU benchmarks' own
 /// calibration does), an identified one by ~1e-15.
 pub const ROTATION_TOLERANCE: f64 = 1e-3;
+/// The room scale is within this factor of 1 either way: a tracker and a
+/// device that both give millimetres agree to a fraction of a percent; at
+/// this factor the tracker gives another unit (the calibration refuses a
+/// session whose tracker spreads this many times the nominal model's
+/// positions, `data::impossible::NOMINAL_SCALE_LIMIT` on the host).
+pub const MAX_ROOM_SCALE_FACTOR: f64 = 5.0;
 /// Steps of the march along the pulley angle on either side of home.
 const PAYOUT_STEPS: usize = 1024;
 
@@ -45,6 +54,9 @@ const PAYOUT_STEPS: usize = 1024;
 pub enum Implausible {
     /// `frame.room_rotation` is not orthonormal.
     RoomRotation { deviation: f64 },
+    /// `frame.room_scale` is not positive, or beyond
+    /// [`MAX_ROOM_SCALE_FACTOR`] of 1.
+    RoomScale { scale: f64 },
     /// `frame.anchors[a]` and `frame.anchors[b]` coincide.
     CoincidentAnchors { a: u8, b: u8, apart_mm: f64 },
     /// `frame.anchors[string]` lies orders of magnitude beyond the others.
@@ -69,6 +81,12 @@ impl fmt::Display for Implausible {
             Implausible::RoomRotation { deviation } => write!(
                 f,
                 "frame.room_rotation is not a rotation: R R^T differs from the identity by {deviation:.3e}"
+            ),
+            Implausible::RoomScale { scale } => write!(
+                f,
+                "frame.room_scale is {scale:e}: a tracker and a device that both give \
+                 millimetres agree within a factor of {MAX_ROOM_SCALE_FACTOR} (beyond it, one \
+                 of them gives another unit)"
             ),
             Implausible::CoincidentAnchors { a, b, apart_mm } => write!(
                 f,
@@ -104,6 +122,11 @@ impl core::error::Error for Implausible {}
 /// documentation); the first problem found.
 pub fn check_device(frame: &Frame<f64>, strings: &[StringLaw; STRINGS]) -> Result<(), Implausible> {
     check_rotation(&frame.room_rotation)?;
+    let scale = frame.room_scale;
+    // A NaN compares false: refused too.
+    if !(scale >= 1.0 / MAX_ROOM_SCALE_FACTOR && scale <= MAX_ROOM_SCALE_FACTOR) {
+        return Err(Implausible::RoomScale { scale });
+    }
     check_anchors(frame)?;
     for i in frame.layout.indices() {
         check_payout(frame, i, &strings[i])?;

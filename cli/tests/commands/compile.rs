@@ -127,6 +127,15 @@ fn calibrations_that_cannot_be_a_device_do_not_compile() {
     let mut c = cube();
     c.strings[4].winding_mm[0] = -10.0;
     cases.push(("negative-winding", c, "strings[4].winding_mm"));
+    for (name, scale) in [
+        ("scale-1000", 1000.0),
+        ("scale-tiny", 1e-30),
+        ("scale-0", 0.0),
+    ] {
+        let mut c = cube();
+        c.frame.room_scale = scale;
+        cases.push((name, c, "frame.room_scale"));
+    }
     for (name, calibration, field) in cases {
         let cal = write(&dir, &format!("{name}.json"), &calibration);
         let blob = dir.join(format!("{name}.blob"));

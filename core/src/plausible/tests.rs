@@ -108,3 +108,21 @@ fn inactive_channels_are_not_checked() {
     strings[6].winding_mm = [-1.0, 0.0, 0.0, 0.0];
     assert_eq!(check_device(&frame, &strings), Ok(()));
 }
+
+/// A room scale of another unit, or not positive, is refused by name; the
+/// scales of a tracker in millimetres pass.
+#[test]
+fn a_room_scale_of_another_unit_is_refused() {
+    let mut frame = cube_frame([0.0; 3]);
+    frame.room_rotation = IDENTITY;
+    for scale in [1.0, 1.003, 0.2, 5.0] {
+        frame.room_scale = scale;
+        assert_eq!(check_device(&frame, &laws()), Ok(()), "{scale}");
+    }
+    for scale in [1000.0, 25.4, 1e-30, 0.0, -1.0, f64::NAN] {
+        frame.room_scale = scale;
+        let e = check_device(&frame, &laws()).unwrap_err();
+        assert!(matches!(e, Implausible::RoomScale { .. }), "{scale}: {e}");
+        assert!(e.to_string().contains("frame.room_scale"), "{e}");
+    }
+}

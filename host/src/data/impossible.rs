@@ -33,7 +33,7 @@ use crate::data::dataset::{Geometry, Session, ENCODER_COLUMNS, LEGACY_COLUMNS, T
 /// the calibration refuses a tracker spread this many times the nominal
 /// model's as a unit mistake, and a row this many frame spans from its
 /// session's median is impossible.
-pub const NOMINAL_SCALE_LIMIT: f64 = 5.0;
+pub const NOMINAL_SCALE_LIMIT: f64 = spidar_core::plausible::MAX_ROOM_SCALE_FACTOR;
 
 /// What of a row is set aside.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
