@@ -123,8 +123,8 @@ impl core::error::Error for Implausible {}
 pub fn check_device(frame: &Frame<f64>, strings: &[StringLaw; STRINGS]) -> Result<(), Implausible> {
     check_rotation(&frame.room_rotation)?;
     let scale = frame.room_scale;
-    // A NaN compares false: refused too.
-    if !(scale >= 1.0 / MAX_ROOM_SCALE_FACTOR && scale <= MAX_ROOM_SCALE_FACTOR) {
+    // A NaN is in no range: refused too.
+    if !(1.0 / MAX_ROOM_SCALE_FACTOR..=MAX_ROOM_SCALE_FACTOR).contains(&scale) {
         return Err(Implausible::RoomScale { scale });
     }
     check_anchors(frame)?;
