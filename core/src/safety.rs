@@ -323,8 +323,10 @@ impl SafetyMonitor {
     /// string lengths from the encoders (mm), `geometric_lengths_mm` the
     /// distances from the estimated position to the anchors (mm), `fk_ok`
     /// whether forward kinematics found a consistent position. Latches:
-    /// `HEARTBEAT_LOST` if the last heartbeat is older than the timeout (or,
-    /// while armed, if there never was one); `NON_FINITE` for any NaN or
+    /// `HEARTBEAT_LOST` while armed, if the last heartbeat is older than
+    /// the timeout or there never was one (as the wire's bit says: a
+    /// disarmed device renders no force, and a host that went away after
+    /// a command is not a fault); `NON_FINITE` for any NaN or
     /// infinite length; `FK_FAULT` if `!fk_ok`; `SLACK` with the strings'
     /// bits in the slack mask for `measured - geometric > slack_threshold_mm`
     /// (checked only when `fk_ok`: otherwise the geometric lengths are
@@ -337,19 +339,17 @@ impl SafetyMonitor {
         geometric_lengths_mm: &[f32; STRINGS],
         fk_ok: bool,
     ) -> SafetyFaults {
-        match self.last_heartbeat_ms {
-            Some(last) => {
-                // Wrapping difference; a heartbeat stamped after `now_ms`
-                // (negative age) counts as fresh.
-                let age = now_ms.wrapping_sub(last) as i32;
-                if age > self.config.heartbeat_timeout_ms as i32 {
-                    self.latch(SafetyFaults::HEARTBEAT_LOST);
+        if self.armed {
+            match self.last_heartbeat_ms {
+                Some(last) => {
+                    // Wrapping difference; a heartbeat stamped after `now_ms`
+                    // (negative age) counts as fresh.
+                    let age = now_ms.wrapping_sub(last) as i32;
+                    if age > self.config.heartbeat_timeout_ms as i32 {
+                        self.latch(SafetyFaults::HEARTBEAT_LOST);
+                    }
                 }
-            }
-            None => {
-                if self.armed {
-                    self.latch(SafetyFaults::HEARTBEAT_LOST);
-                }
+                None => self.latch(SafetyFaults::HEARTBEAT_LOST),
             }
         }
         if !fk_ok && self.lengths_calibrated {

@@ -229,3 +229,22 @@ fn invalid_config_is_rejected() {
     );
     assert_eq!(bad(|_| ()), None);
 }
+
+/// A host that sent a command and went away leaves a disarmed device
+/// without a fault (the wire's `HEARTBEAT_LOST` is "no request while
+/// armed": a flash, then `info` 3 s later, showed it on a device never
+/// armed); armed, the same silence latches it.
+#[test]
+fn a_silent_host_is_a_fault_only_while_armed() {
+    let mut m = SafetyMonitor::new(CONFIG).unwrap();
+    m.heartbeat(10);
+    assert_eq!(m.check(5_000, &LENGTHS, &LENGTHS, true), SafetyFaults::NONE);
+    m.heartbeat(5_000);
+    m.arm().unwrap();
+    assert_eq!(m.check(5_100, &LENGTHS, &LENGTHS, true), SafetyFaults::NONE);
+    assert_eq!(
+        m.check(5_101, &LENGTHS, &LENGTHS, true),
+        SafetyFaults::HEARTBEAT_LOST
+    );
+    assert!(!m.is_armed());
+}
