@@ -841,7 +841,12 @@ impl Boot<'_> {
                     Duration::from_millis(5),
                     &mut self.resync,
                 ) {
+                    // Counted on the device too, as a state frame's and as
+                    // the firmware counts an event it cannot queue: its
+                    // sequence number is spent, and the host's count of
+                    // lost frames is held to the device's.
                     self.tx_dropped = self.tx_dropped.wrapping_add(1);
+                    self.dev.count_stream_dropped();
                 }
             }
         }
