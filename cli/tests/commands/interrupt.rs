@@ -111,6 +111,18 @@ impl Running {
 }
 
 /// The two signals and the exit status each gives.
+/// Runs `spidar args`, waits for the line `ready` says the run is under
+/// way with, then sends `signal`: how the command ended and what it said.
+fn interrupted(
+    args: &[&str],
+    ready: impl Fn(&str) -> bool,
+    signal: libc::c_int,
+) -> (ExitStatus, String, String) {
+    let mut running = Running::start(args);
+    running.wait_for_line(ready);
+    running.signal_and_wait(signal)
+}
+
 /// A file of this process in the temporary folder (`spidar-interrupt-PID-what`).
 fn temp_file(what: &str) -> std::path::PathBuf {
     std::env::temp_dir().join(format!("spidar-interrupt-{}-{what}", std::process::id()))
@@ -153,21 +165,23 @@ fn device_holds_end_on_sigint_and_sigterm_disarmed_with_no_force() {
     let _ = std::fs::remove_file(&model);
     assert!(ok, "{err}");
     for (signal, name, code) in SIGNALS {
-        let mut force = Running::start(&[
-            "device",
-            "force",
-            "--port",
-            &port,
-            "--timeout-ms",
-            "5000",
-            "--hold",
-            "600",
-            "2",
-            "0",
-            "0",
-        ]);
-        force.wait_for_line(|l| l.starts_with("holding [2, 0, 0] N for 600.0 s"));
-        let (status, out, err) = force.signal_and_wait(signal);
+        let (status, out, err) = interrupted(
+            &[
+                "device",
+                "force",
+                "--port",
+                &port,
+                "--timeout-ms",
+                "5000",
+                "--hold",
+                "600",
+                "2",
+                "0",
+                "0",
+            ],
+            |l| l.starts_with("holding [2, 0, 0] N for 600.0 s"),
+            signal,
+        );
         assert_eq!(status.code(), Some(code), "{name}: {out}{err}");
         assert!(out.is_empty(), "{name}: {out}");
         assert!(
@@ -184,18 +198,20 @@ fn device_holds_end_on_sigint_and_sigterm_disarmed_with_no_force() {
             "after {name}: {info}"
         );
 
-        let mut arm = Running::start(&[
-            "device",
-            "arm",
-            "--port",
-            &port,
-            "--timeout-ms",
-            "5000",
-            "--hold",
-            "600",
-        ]);
-        arm.wait_for_line(|l| l.starts_with("armed, holding 600.0 s"));
-        let (status, out, err) = arm.signal_and_wait(signal);
+        let (status, out, err) = interrupted(
+            &[
+                "device",
+                "arm",
+                "--port",
+                &port,
+                "--timeout-ms",
+                "5000",
+                "--hold",
+                "600",
+            ],
+            |l| l.starts_with("armed, holding 600.0 s"),
+            signal,
+        );
         assert_eq!(status.code(), Some(code), "{name}: {out}{err}");
         assert!(
             err.contains(&format!("spidar: {port}: armed, held "))
@@ -222,20 +238,22 @@ fn collect_stops_on_sigint_and_sigterm_with_the_motors_off_and_exits_non_zero() 
     for (signal, name, code) in SIGNALS {
         let out_csv = temp_file(&format!("collect-{name}.csv"));
         let _ = std::fs::remove_file(&out_csv);
-        let mut collect = Running::start(&[
-            "collect",
-            "--simulate",
-            "3",
-            "--size-mm",
-            "300",
-            "--audio",
-            "off",
-            "--out",
-            out_csv.to_str().unwrap(),
-        ]);
         // The live view's first line: the device is armed, the run under way.
-        collect.wait_for_line(|l| l.starts_with("cell "));
-        let (status, out, err) = collect.signal_and_wait(signal);
+        let (status, out, err) = interrupted(
+            &[
+                "collect",
+                "--simulate",
+                "3",
+                "--size-mm",
+                "300",
+                "--audio",
+                "off",
+                "--out",
+                out_csv.to_str().unwrap(),
+            ],
+            |l| l.starts_with("cell "),
+            signal,
+        );
         let _ = std::fs::remove_file(&out_csv);
         assert_eq!(status.code(), Some(code), "{name}: {out}{err}");
         assert!(
@@ -259,22 +277,24 @@ fn init_stops_on_sigint_and_sigterm_before_home_and_writes_nothing() {
     for (signal, name, code) in SIGNALS {
         let record = temp_file(&format!("init-{name}.toml"));
         let _ = std::fs::remove_file(&record);
-        let mut init = Running::start(&[
-            "init",
-            "--simulate",
-            "3",
-            "--audio",
-            "off",
-            "--tolerance-mm",
-            "0.001",
-            "--timeout-s",
-            "3000",
-            "--out",
-            record.to_str().unwrap(),
-        ]);
         // The live view's first line: guidance under way.
-        init.wait_for_line(|l| l.contains("beep "));
-        let (status, out, err) = init.signal_and_wait(signal);
+        let (status, out, err) = interrupted(
+            &[
+                "init",
+                "--simulate",
+                "3",
+                "--audio",
+                "off",
+                "--tolerance-mm",
+                "0.001",
+                "--timeout-s",
+                "3000",
+                "--out",
+                record.to_str().unwrap(),
+            ],
+            |l| l.contains("beep "),
+            signal,
+        );
         assert_eq!(status.code(), Some(code), "{name}: {out}{err}");
         assert!(
             err.contains(&format!("spidar: init: interrupted by {name}"))
@@ -295,9 +315,7 @@ fn monitor_prints_its_summary_on_sigint_and_sigterm() {
         for seconds in [None, Some("3000")] {
             let mut args = vec!["monitor", "--simulate", "5", "--refit", "no"];
             args.extend(seconds.map(|s| ["--seconds", s]).into_iter().flatten());
-            let mut monitor = Running::start(&args);
-            monitor.wait_for_line(|l| l.starts_with("monitoring "));
-            let (status, out, err) = monitor.signal_and_wait(signal);
+            let (status, out, err) = interrupted(&args, |l| l.starts_with("monitoring "), signal);
             let what = format!("{name}, --seconds {seconds:?}");
             assert!(
                 out.contains("monitored ") && out.contains(" tracker frames"),
