@@ -432,6 +432,10 @@ fn stream_csv(
     let stdout = std::io::stdout();
     let mut lock = stdout.lock();
     let _ = writeln!(lock, "{STREAM_HEADER}");
+    // A device with neither a model blob nor a nominal geometry computes no
+    // position: its idle loop reports every coordinate as exactly 0.0, which
+    // forward kinematics on a real geometry never gives in all three.
+    let mut without_geometry = true;
     let report = client.stream(
         StreamOptions {
             decimation,
@@ -439,7 +443,10 @@ fn stream_csv(
             max_frames: frames,
             ..StreamOptions::default()
         },
-        |s| writeln!(lock, "{}", state_csv(s)).is_ok(),
+        |s| {
+            without_geometry &= s.model_id.is_none() && s.position_mm == [0.0; 3];
+            writeln!(lock, "{}", state_csv(s)).is_ok()
+        },
     )?;
     // On stderr: stdout is the CSV (and may be a closed pipe).
     eprintln!(
@@ -450,6 +457,15 @@ fn stream_csv(
         report.rejected,
         report.bytes
     );
+    if report.frames > 0 && without_geometry {
+        eprintln!(
+            "# {}: the device has no geometry (no model blob, no nominal geometry): it computes \
+             no position, every position column is 0 and no tension is rendered; \
+             `spidar flash --port {} MODEL` loads a calibration (`spidar compile` makes one)",
+            client.port_name(),
+            client.port_name()
+        );
+    }
     if report.frames == 0 {
         bail!(
             "{}: the device sent no state frame in {:.2} s of streaming",

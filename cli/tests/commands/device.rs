@@ -197,6 +197,48 @@ fn device_force_reports_the_rendered_force() {
     assert!(huge.contains("disarmed"), "{huge}");
 }
 
+/// `spidar device stream` on a device that has no geometry says why every
+/// position is 0, and says nothing of it once a model is flashed.
+#[test]
+fn device_stream_without_geometry_says_why_positions_are_zero() {
+    let vd = patient_virtual_device(Trajectory::Hold);
+    let stream = || {
+        spidar(&[
+            "device",
+            "stream",
+            "--frames",
+            "3",
+            "--port",
+            vd.port_path(),
+        ])
+    };
+    let (ok, csv, err) = stream();
+    assert!(ok, "{err}");
+    let rows: Vec<&str> = csv.lines().skip(1).collect();
+    assert_eq!(rows.len(), 3, "{csv}");
+    assert!(
+        rows.iter().all(|r| r.split(',').nth(1) == Some("0")),
+        "{csv}"
+    );
+    assert!(
+        err.contains("the device has no geometry") && err.contains("spidar flash"),
+        "{err}"
+    );
+    let (ok, _, err) = flash(
+        &vd,
+        "stream-geometry",
+        &blob(&sim_device(), CorrectionModel::None, 12),
+    );
+    assert!(ok, "{err}");
+    let (ok, csv, err) = stream();
+    assert!(ok, "{err}");
+    assert!(!err.contains("no geometry"), "{err}");
+    assert!(
+        csv.lines().skip(1).all(|r| r.ends_with("0x0000000c")),
+        "{csv}"
+    );
+}
+
 /// Runs `spidar` with a patient client: (success, stdout, stderr).
 fn spidar(args: &[&str]) -> (bool, String, String) {
     let out = std::process::Command::new(env!("CARGO_BIN_EXE_spidar"))
