@@ -16,6 +16,10 @@
 //!   strings leaving one point cannot be told apart;
 //! - no anchor [`FAR_BEYOND_FACTOR`] times further from home than the
 //!   anchors' median, nor beyond [`MAX_ANCHOR_DISTANCE_MM`];
+//! - home no further from the anchors' centre than [`FAR_BEYOND_FACTOR`]
+//!   times the anchors' own extent (the farthest anchor from that centre):
+//!   a suspended robot's home may lie outside the anchors' hull, not
+//!   orders of magnitude beyond the frame;
 //! - each string's winding polynomial pays out more string as the counts
 //!   rise over the whole range the frame allows: from wound up to its
 //!   anchor (`-|home - anchor|`) to paid out across the frame (the farthest
@@ -65,6 +69,8 @@ pub enum Implausible {
         distance_mm: f64,
         median_mm: f64,
     },
+    /// `frame.home` lies orders of magnitude beyond the anchors' frame.
+    HomeFarBeyond { distance_mm: f64, extent_mm: f64 },
     /// `strings[string].winding_mm`: the payout stops rising (falls as the
     /// counts rise) at `paid_out_mm` from home, inside the range the frame
     /// needs (`needed_mm`, negative: winding up toward the anchor).
@@ -101,6 +107,14 @@ impl fmt::Display for Implausible {
                 f,
                 "frame.anchors[{string}] is {distance_mm:.4e} mm from home, orders of magnitude \
                  beyond the anchors' median of {median_mm:.1} mm"
+            ),
+            Implausible::HomeFarBeyond {
+                distance_mm,
+                extent_mm,
+            } => write!(
+                f,
+                "frame.home is {distance_mm:.4e} mm from the anchors' centre, orders of magnitude \
+                 beyond the frame they span ({extent_mm:.1} mm from that centre to the farthest)"
             ),
             Implausible::PayoutFalls {
                 string,
@@ -174,6 +188,7 @@ fn check_anchors(frame: &Frame<f64>) -> Result<(), Implausible> {
             }
         }
     }
+    check_home(frame)?;
     let mut from_home = [0.0f64; STRINGS];
     let mut n = 0;
     for i in active.indices() {
@@ -194,6 +209,37 @@ fn check_anchors(frame: &Frame<f64>) -> Result<(), Implausible> {
                 median_mm,
             });
         }
+    }
+    Ok(())
+}
+
+/// Refuses a home [`FAR_BEYOND_FACTOR`] times the anchors' extent from
+/// their centre (after the anchors are known to be apart).
+fn check_home(frame: &Frame<f64>) -> Result<(), Implausible> {
+    let mut centre = [0.0f64; 3];
+    let mut n = 0.0;
+    for i in frame.layout.indices() {
+        for (c, a) in centre.iter_mut().zip(&frame.anchors[i]) {
+            *c += a;
+        }
+        n += 1.0;
+    }
+    if n == 0.0 {
+        return Ok(());
+    }
+    let centre = centre.map(|c| c / n);
+    let extent_mm = frame
+        .layout
+        .indices()
+        .map(|i| distance(&frame.anchors[i], &centre))
+        .fold(0.0, f64::max);
+    let distance_mm = distance(&frame.home, &centre);
+    // A NaN home is in no range: refused too.
+    if !(distance_mm <= FAR_BEYOND_FACTOR * extent_mm.max(MIN_ANCHOR_SEPARATION_MM)) {
+        return Err(Implausible::HomeFarBeyond {
+            distance_mm,
+            extent_mm,
+        });
     }
     Ok(())
 }

@@ -63,6 +63,28 @@ fn an_anchor_orders_of_magnitude_away_is_refused() {
 }
 
 #[test]
+fn a_home_orders_of_magnitude_beyond_the_frame_is_refused() {
+    // Below and beside the anchors (a suspended robot's home): a device.
+    let mut frame = cube_frame([0.0; 3]);
+    let extent = frame
+        .anchors
+        .iter()
+        .map(|a| distance(a, &[0.0; 3]))
+        .fold(0.0, f64::max);
+    frame.home = [0.0, 0.0, -3.0 * extent];
+    assert_eq!(check_device(&frame, &laws()), Ok(()));
+    frame.home = [0.0, 200.0 * extent, 0.0];
+    let e = check_device(&frame, &laws()).unwrap_err();
+    assert!(matches!(e, Implausible::HomeFarBeyond { .. }), "{e}");
+    assert!(e.to_string().contains("frame.home"), "{e}");
+    frame.home = [f64::NAN, 0.0, 0.0];
+    assert!(matches!(
+        check_device(&frame, &laws()),
+        Err(Implausible::HomeFarBeyond { .. })
+    ));
+}
+
+#[test]
 fn a_payout_that_falls_is_refused() {
     let frame = cube_frame([0.0; 3]);
     // A negative winding rate: the payout falls as the counts rise.
