@@ -31,6 +31,9 @@ use crate::device::tracker::sync::{CoarseShift, ShiftConfig, SyncError, TimeShif
 
 /// Rows further apart than this (median, s) make a static session.
 pub const MAX_STREAM_INTERVAL_S: f64 = 0.1;
+/// How far a row interval read from decimal times may exceed the stream
+/// interval it was written at (s).
+const STEP_ROUNDING_S: f64 = 1e-6;
 /// Largest clock offset searched (s).
 pub const MAX_OFFSET_S: f64 = 5.0;
 /// The identification and the alignment are alternated until the offset
@@ -45,6 +48,33 @@ pub const DRIFT_SIGNIFICANCE: f64 = 3.0;
 pub const DRIFT_MIN_EFFECT_S: f64 = 0.001;
 /// ... on a stream at least this long (s); else the offset is fitted alone.
 pub const DRIFT_MIN_SPAN_S: f64 = 60.0;
+
+/// How an alignment takes the clocks' rate difference.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum ClockRate {
+    /// The offset alone: one rate assumed.
+    Same,
+    /// Fitted with the offset where the data tell it (`DRIFT_*`).
+    Fitted,
+    /// Known from another session of the same two clocks (the training
+    /// stream's): the rate of two oscillators holds from one recording to
+    /// the next, the offset does not (a logger restarted).
+    Known { drift_ppm: f64, drift_sd_ppm: f64 },
+}
+
+impl ClockRate {
+    /// The rate `timing` found, for a later session of the same clocks:
+    /// `Same` where it found none.
+    pub fn of(timing: &SessionTiming) -> ClockRate {
+        match timing {
+            SessionTiming::Aligned(a) if a.drift_ppm != 0.0 => ClockRate::Known {
+                drift_ppm: a.drift_ppm,
+                drift_sd_ppm: a.drift_sd_ppm,
+            },
+            _ => ClockRate::Same,
+        }
+    }
+}
 
 /// What the calibration did about the clocks of one session.
 #[derive(Clone, Debug, PartialEq, Serialize)]
@@ -155,7 +185,10 @@ pub(crate) fn median_step_s(times: impl Iterator<Item = f64>) -> Option<f64> {
 /// elsewhere.
 pub fn static_timing(obs: &[Observation]) -> Option<SessionTiming> {
     let interval = median_interval_s(obs).unwrap_or(f64::INFINITY);
-    (interval > MAX_STREAM_INTERVAL_S).then_some(SessionTiming::Static {
+    // Times written in decimal differ by a little more than their step
+    // (0.30000000000000004 - 0.2): a 10 Hz stream is a stream to a
+    // microsecond.
+    (interval > MAX_STREAM_INTERVAL_S + STEP_ROUNDING_S).then_some(SessionTiming::Static {
         median_interval_s: interval,
         rows: obs.len(),
     })
@@ -170,7 +203,7 @@ pub fn estimate_offset(
     prior_offset_s: f64,
     drift: bool,
 ) -> Result<TimeShift, AlignError> {
-    with_coarse_shift(obs, positions, prior_offset_s, |c| c.refined(drift))
+    with_coarse_shift(obs, positions, prior_offset_s, None, |c| c.refined(drift))
 }
 
 /// `fit` on the speed profiles' coarse search between the tracker
@@ -180,14 +213,21 @@ fn with_coarse_shift(
     obs: &[Observation],
     positions: &[Option<[f64; 3]>],
     prior_offset_s: f64,
+    known_rate: Option<(f64, f64)>,
     fit: impl FnOnce(&CoarseShift<'_>) -> Result<TimeShift, SyncError>,
 ) -> Result<TimeShift, AlignError> {
+    // A known rate (s per s, about device time `reference`) moves each
+    // device time to the tracker's rate before the offset is searched.
+    let on_tracker_rate = |t_s: f64| match known_rate {
+        Some((rate, reference)) => t_s + rate * (t_s - reference),
+        None => t_s,
+    };
     let device: Vec<TimedPosition> = obs
         .iter()
         .zip(positions)
         .filter_map(|(o, p)| {
             p.map(|position_mm| TimedPosition {
-                t_s: o.t_s,
+                t_s: on_tracker_rate(o.t_s),
                 position_mm,
             })
         })
@@ -288,13 +328,25 @@ fn slerp(a: &[[f64; 3]; 3], b: &[[f64; 3]; 3], f: f64) -> [[f64; 3]; 3] {
     core::array::from_fn(|r| core::array::from_fn(|c| m[(r, c)]))
 }
 
+/// Whether `obs` spans long enough for its own clocks' rate to be told
+/// from the model's errors ([`DRIFT_MIN_SPAN_S`]).
+pub fn tells_a_rate(obs: &[Observation]) -> bool {
+    span_s(obs) >= DRIFT_MIN_SPAN_S
+}
+
+fn span_s(obs: &[Observation]) -> f64 {
+    obs.first()
+        .zip(obs.last())
+        .map_or(0.0, |(a, b)| b.t_s - a.t_s)
+}
+
 /// Aligns `obs` with positions from `model_positions` (room frame, one per
 /// row): the offset, its uncertainty, and the re-paired rows.
 pub fn align(
     obs: &[Observation],
     model_positions: &[Option<[f64; 3]>],
     prior_offset_s: f64,
-    drift: bool,
+    rate: ClockRate,
 ) -> Result<(ClockAlignment, Vec<Observation>), AlignError> {
     // With `drift`, the clocks' rate difference is kept where it matters
     // and the data tell it from nothing: beyond DRIFT_SIGNIFICANCE standard
@@ -305,13 +357,41 @@ pub fn align(
     // stream the model's own position errors, which follow the hand's path
     // and so its time, pass for a drift: a 10 s stream with none found
     // 428 +- 36 ppm, a 30 s one up to 70 ppm.
-    let span_s = obs
-        .first()
-        .zip(obs.last())
-        .map_or(0.0, |(a, b)| b.t_s - a.t_s);
-    let shift = if drift && span_s >= DRIFT_MIN_SPAN_S {
+    let span_s = span_s(obs);
+    let shift = if let ClockRate::Known {
+        drift_ppm,
+        drift_sd_ppm,
+    } = rate
+    {
+        // The middle of the rows the model places: where the fine fit's
+        // offset refers to on the moved times too.
+        let placed: Vec<f64> = obs
+            .iter()
+            .zip(model_positions)
+            .filter(|(_, p)| p.is_some())
+            .map(|(o, _)| o.t_s)
+            .collect();
+        let reference = placed
+            .first()
+            .zip(placed.last())
+            .map_or(0.0, |(a, b)| 0.5 * (a + b));
+        let rate = 1e-6 * drift_ppm;
+        let shift = with_coarse_shift(
+            obs,
+            model_positions,
+            prior_offset_s,
+            Some((rate, reference)),
+            |coarse| coarse.refined(false),
+        )?;
+        TimeShift {
+            drift: rate,
+            drift_std: 1e-6 * drift_sd_ppm,
+            reference_t_s: reference,
+            ..shift
+        }
+    } else if rate == ClockRate::Fitted && span_s >= DRIFT_MIN_SPAN_S {
         // One coarse search for both fine fits.
-        with_coarse_shift(obs, model_positions, prior_offset_s, |coarse| {
+        with_coarse_shift(obs, model_positions, prior_offset_s, None, |coarse| {
             let with_drift = coarse.refined(true)?;
             if with_drift.drift.abs() > DRIFT_SIGNIFICANCE * with_drift.drift_std
                 && with_drift.drift.abs() * 0.5 * span_s >= DRIFT_MIN_EFFECT_S
@@ -336,11 +416,13 @@ pub fn align(
     let used = if refined {
         shift
     } else {
+        // A known rate stays: the coarse search was made on its times.
+        let known = matches!(rate, ClockRate::Known { .. });
         TimeShift {
             offset_s: shift.coarse_offset_s,
             offset_std_s: interval / 12f64.sqrt(),
-            drift: 0.0,
-            drift_std: 0.0,
+            drift: if known { shift.drift } else { 0.0 },
+            drift_std: if known { shift.drift_std } else { 0.0 },
             ..shift
         }
     };

@@ -123,8 +123,13 @@ fn align_clocks(
             // The model identified on rows paired a little off takes up part
             // of the offset, and the next pass with it finds the rest: the
             // two are alternated until the offset holds.
-            let (mut a, mut rows) = align::align(&tr, &placed(&nominal_tr), clock_offset_s, false)
-                .map_err(|e| alignment_failed(tr_path, &tr, e))?;
+            let (mut a, mut rows) = align::align(
+                &tr,
+                &placed(&nominal_tr),
+                clock_offset_s,
+                align::ClockRate::Same,
+            )
+            .map_err(|e| alignment_failed(tr_path, &tr, e))?;
             raw_train = Some(nominal_tr.iter().map(|p| p.room).collect());
             let mut quick;
             let mut rounds = 0;
@@ -143,7 +148,7 @@ fn align_clocks(
                     &tr,
                     &placed_positions(quick.kinematic_model(), &tr),
                     a.offset_s,
-                    true,
+                    align::ClockRate::Fitted,
                 )
                 .map_err(|e| alignment_failed(tr_path, &tr, e))?;
                 let step = (next.offset_s - a.offset_s).abs();
@@ -168,16 +173,37 @@ fn align_clocks(
             };
             // The rig that recorded the training stream most likely kept its
             // clocks: the search is centred on the training session's
-            // offset (its +-5 s window then holds it whole, where a window
-            // centred on 0 can find an edge of itself instead of the offset).
-            let prior = match &train_timing {
-                align::SessionTiming::Aligned(a) => a.offset_s,
-                align::SessionTiming::Static { .. } => clock_offset_s,
+            // offset first (its +-5 s window then holds it whole, where a
+            // window centred on 0 can find an edge of itself instead of the
+            // offset); a tracker restarted between the two recordings has
+            // another offset, searched around the user's hint and 0.
+            let mut priors = vec![clock_offset_s, 0.0];
+            if let align::SessionTiming::Aligned(a) = &train_timing {
+                priors.insert(0, a.offset_s);
+            }
+            priors.dedup();
+            // The clocks' rate: the test stream's own where it is long
+            // enough to tell it from the model's errors, else the training
+            // stream's (two oscillators keep their rate; a short stream
+            // paired without it drifted 100 ppm x its length off).
+            let rate = match align::ClockRate::of(&train_timing) {
+                known @ align::ClockRate::Known { .. } if !align::tells_a_rate(&te) => known,
+                _ => align::ClockRate::Fitted,
             };
-            // The offset alone: a test stream is most often too short to
-            // tell a drift from the model's own errors.
-            let (a, te1) = align::align(&te, &placed_positions(model, &te), prior, false)
-                .map_err(|e| alignment_failed(te_path, &te, e))?;
+            // The first search whose fine fit confirms its peak; with none,
+            // the first search's result, which the checks then refuse.
+            let positions = placed_positions(model, &te);
+            let mut tried = priors
+                .iter()
+                .map(|&prior| align::align(&te, &positions, prior, rate));
+            let first = tried.next().expect("one prior at least");
+            let (a, te1) = match first {
+                Ok(found) if found.0.refined => found,
+                first => match tried.find_map(|r| r.ok().filter(|found| found.0.refined)) {
+                    Some(found) => found,
+                    None => first.map_err(|e| alignment_failed(te_path, &te, e))?,
+                },
+            };
             (te1, align::SessionTiming::Aligned(a))
         }
     };
@@ -685,8 +711,17 @@ impl Run<'_> {
         let (te, test_timing) = match &timing.test {
             align::SessionTiming::Aligned(first) => {
                 let positions = placed_positions(model.kinematic_model(), &te);
+                // The rate the first alignment took stays.
+                let rate = if first.drift_ppm != 0.0 {
+                    align::ClockRate::Known {
+                        drift_ppm: first.drift_ppm,
+                        drift_sd_ppm: first.drift_sd_ppm,
+                    }
+                } else {
+                    align::ClockRate::Same
+                };
                 let (mut a, rows) =
-                    align::align(&te, &positions, first.offset_s - latency_s, false)?;
+                    align::align(&te, &positions, first.offset_s - latency_s, rate)?;
                 a.first_offset_s = Some(first.offset_s);
                 let a = align::SessionTiming::Aligned(a);
                 check_alignment(test.path, &a)?;

@@ -148,7 +148,13 @@ fn a_calibration_read_back_is_the_model_written() {
         crate::model::compile::model_id_of(&back),
         crate::model::compile::model_id_of(&c)
     );
-    for (a, b) in back.frame.anchors.iter().flatten().zip(c.frame.anchors.iter().flatten()) {
+    for (a, b) in back
+        .frame
+        .anchors
+        .iter()
+        .flatten()
+        .zip(c.frame.anchors.iter().flatten())
+    {
         assert_eq!(a.to_bits(), b.to_bits());
     }
 }
