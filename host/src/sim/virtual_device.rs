@@ -77,6 +77,11 @@ pub const SLOT_LEN: usize = 128 * 1024 + RECORD_LEN;
 /// [`VirtualDeviceConfig::blob_capacity`].
 pub const FIRMWARE_BLOB_CAPACITY: usize = spidar_protocol::blob::REFERENCE_FIRMWARE_BLOB_CAPACITY;
 
+/// How long [`VirtualDevice::power_cycle`] waits for the new boot: a wait,
+/// not a measure (a boot takes milliseconds; a machine with every core
+/// busy several times over stalled one past 5 s in the load test).
+pub const REBOOT_WAIT: Duration = Duration::from_secs(30);
+
 /// Why the virtual device could not start.
 #[derive(Debug, thiserror::Error)]
 pub enum VirtualDeviceError {
@@ -368,13 +373,14 @@ impl VirtualDevice {
     }
 
     /// Power off and on: a new `Device` boots on the same flash, the plant
-    /// is back at home, device time restarts at 0. Returns when it booted.
+    /// is back at home, device time restarts at 0. Returns when it booted;
+    /// waits up to [`REBOOT_WAIT`] for it.
     pub fn power_cycle(&self) -> Result<(), VirtualDeviceError> {
         let boots = self.status().boots;
         self.control
             .send(Control::PowerCycle)
             .map_err(|_| VirtualDeviceError::Stopped)?;
-        self.wait_boots(boots + 1, Duration::from_secs(5))
+        self.wait_boots(boots + 1, REBOOT_WAIT)
     }
 
     fn wait_boots(&self, boots: u32, timeout: Duration) -> Result<(), VirtualDeviceError> {
