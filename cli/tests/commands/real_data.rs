@@ -474,6 +474,16 @@ fn a_tracker_in_metres_is_refused_naming_the_unit() {
     );
     assert!(e.contains("look like metres"), "{e}");
     assert!(!dir.join("out").join("calibration.json").exists());
+    // The test session alone in metres: refused naming it (it held out
+    // 670 mm, exit 0, blamed on the priors).
+    let o = calibrate_cli(&d.join("train.csv"), &test, &dir.join("out-test"));
+    assert!(!o.status.success());
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        e.contains(&format!("{}: ", test.display())) && e.contains("look like metres"),
+        "{e}"
+    );
+    assert!(!dir.join("out-test").join("calibration.json").exists());
 }
 
 /// The Hangprinter's line B (string 1) with its counts negated, as an

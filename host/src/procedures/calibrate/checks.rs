@@ -8,6 +8,7 @@
 use std::path::Path;
 
 use spidar_core::geometry::device_from_room;
+use spidar_core::model::StringLaw;
 use spidar_core::STRINGS;
 
 use crate::data::dataset::Geometry;
@@ -199,17 +200,17 @@ const TRACKER_SCALE_REFUSED: f64 = NOMINAL_SCALE_LIMIT;
 /// warns.
 const TRACKER_SCALE_WARNED: f64 = 3.0;
 
-/// Refuses a training session whose tracker positions spread a factor of
-/// [`TRACKER_SCALE_REFUSED`] or more off the nominal model's positions of
-/// the same rows, naming the likely unit; beyond [`TRACKER_SCALE_WARNED`],
-/// a warning.
+/// Refuses a session (training or test, read from `path`) whose tracker
+/// positions spread a factor of [`TRACKER_SCALE_REFUSED`] or more off the
+/// nominal model's positions of the same rows, naming the likely unit;
+/// beyond [`TRACKER_SCALE_WARNED`], a warning.
 pub(super) fn check_tracker_scale(
-    train_path: &Path,
+    path: &Path,
     geometry_path: &Path,
-    tr: &[Observation],
-    raw_tr: &[[f64; 3]],
+    rows: &[Observation],
+    raw: &[[f64; 3]],
 ) -> Result<Option<String>, CalibrateError> {
-    let Some((tracker_mm, nominal_mm)) = tracker_spread_ratio(tr, raw_tr) else {
+    let Some((tracker_mm, nominal_mm)) = tracker_spread_ratio(rows, raw) else {
         return Ok(None);
     };
     let ratio = tracker_mm / nominal_mm;
@@ -242,11 +243,11 @@ pub(super) fn check_tracker_scale(
     };
     if factor >= TRACKER_SCALE_REFUSED {
         return Err(CalibrateError::Session {
-            file: train_path.to_path_buf(),
+            file: path.to_path_buf(),
             problem: format!("{what}: {hint}"),
         });
     }
-    Ok(Some(format!("{}: {what}: {hint}", train_path.display())))
+    Ok(Some(format!("{}: {what}: {hint}", path.display())))
 }
 
 /// The tracker's spread over the training session against the nominal
@@ -666,3 +667,58 @@ pub(super) fn reference_warning(
 
 #[cfg(test)]
 mod tests;
+
+/// A string's effective radius this many times the other strings' (each
+/// over its own `pulley_radius_mm / mechanical_advantage`), either way, is
+/// named: the log-midpoint of 1 and 2, nearer a line doubled through a
+/// pulley block (or a block left out) than the spread of spools wound
+/// alike. Relative to the strings' median, so a device whose every spool
+/// winds wider than its bare pulley (the paper's, about 2x) is not named.
+const RADIUS_APART_FACTOR: f64 = core::f64::consts::SQRT_2;
+
+/// Warnings for strings whose identified radius at home (`laws`) departs
+/// from the geometry's by a factor the other strings do not share: a
+/// `mechanical_advantage` (or `pulley_radius_mm`) written for another
+/// string. The identification absorbs it into the radius, so nothing else
+/// says so (two strings' mechanical advantages swapped held out 44 % worse
+/// than the plain fit, the warning blaming the kinematics' rule).
+pub(super) fn radius_warnings(
+    geometry_path: &Path,
+    geometry: &Geometry,
+    laws: &[StringLaw; STRINGS],
+) -> Vec<String> {
+    let nominal = geometry.nominal_string_laws();
+    let layout = geometry.nominal_frame().layout;
+    let ratios: Vec<(usize, f64)> = layout
+        .indices()
+        .map(|i| (i, laws[i].winding_mm[0] / nominal[i].winding_mm[0]))
+        // A string that counts down (a negative radius) is named elsewhere.
+        .filter(|(_, r)| r.is_finite() && *r > 0.0)
+        .collect();
+    if ratios.len() < 2 {
+        return Vec::new();
+    }
+    let mut sorted: Vec<f64> = ratios.iter().map(|(_, r)| *r).collect();
+    let median = crate::data::stats::median(&mut sorted);
+    ratios
+        .iter()
+        .filter_map(|&(i, r)| {
+            let apart = r / median;
+            if apart.max(1.0 / apart) < RADIUS_APART_FACTOR {
+                return None;
+            }
+            Some(format!(
+                "string {i}'s radius at home is identified at {:.3} mm, {apart:.2} times the other \
+                 strings' against the geometry ({}: pulley_radius_mm {} / mechanical_advantage {} \
+                 = {:.3} mm, the others {median:.2} times theirs): is string {i}'s \
+                 mechanical_advantage (lines through a pulley block) or pulley_radius_mm another \
+                 string's?",
+                laws[i].winding_mm[0],
+                geometry_path.display(),
+                geometry.pulley_radius_mm[i],
+                geometry.mechanical_advantage[i],
+                nominal[i].winding_mm[0],
+            ))
+        })
+        .collect()
+}

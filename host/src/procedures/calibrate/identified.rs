@@ -21,8 +21,9 @@ use crate::model::reference;
 use crate::model::rule::RuleChoice;
 
 use super::checks::{
-    check_alignment, check_enough_tracked_rows, check_tracker_scale, test_outlier_warning,
-    tracker_outlier_warning, unfitted_warning, unpaired_rows_warnings, Regime,
+    check_alignment, check_enough_tracked_rows, check_tracker_scale, radius_warnings,
+    test_outlier_warning, tracker_outlier_warning, unfitted_warning, unpaired_rows_warnings,
+    Regime,
 };
 use super::evaluate::{room_positions, stage, PerSession, StageErrors, StageList};
 use super::loop_rows::LoopRows;
@@ -253,7 +254,7 @@ fn raw_errors(
     nominal: &spidar_core::model::Frame<f64>,
     nominal_laws: &[spidar_core::model::StringLaw; spidar_core::STRINGS],
     raw_train: Option<Vec<[f64; 3]>>,
-) -> Result<(StageErrors, Vec<[f64; 3]>), StatsError> {
+) -> Result<(StageErrors, PerSession<Vec<[f64; 3]>>), StatsError> {
     let raw_model = KinematicModel {
         frame: nominal,
         laws: nominal_laws,
@@ -272,7 +273,13 @@ fn raw_errors(
         },
         nominal,
     )?;
-    Ok((errors, raw_tr))
+    Ok((
+        errors,
+        PerSession {
+            train: raw_tr,
+            test: raw_te,
+        },
+    ))
 }
 
 /// The latency every string shares that `t` is, s.
@@ -566,10 +573,17 @@ impl Run<'_> {
 
         // 1. Raw: nominal geometry through the device pipeline.
         let t = Instant::now();
-        let (mut raw, raw_tr) = raw_errors(obs, &nominal, &nominal_laws, raw_train)?;
+        let (mut raw, raw_positions) = raw_errors(obs, &nominal, &nominal_laws, raw_train)?;
         self.timings.raw_s = t.elapsed().as_secs_f64();
-        if let Some(w) = check_tracker_scale(train.path, self.geometry_path, &tr, &raw_tr)? {
-            self.warnings.push(w);
+        // Each session's tracker in the geometry's unit: a test session in
+        // metres held out 670 mm, blamed on the priors.
+        for (path, rows, raw_rows) in [
+            (train.path, &tr, &raw_positions.train),
+            (test.path, &te, &raw_positions.test),
+        ] {
+            if let Some(w) = check_tracker_scale(path, self.geometry_path, rows, raw_rows)? {
+                self.warnings.push(w);
+            }
         }
         // 2-3. Identification and the diagnosis loop.
         let regime = check_enough_tracked_rows(train.path, &tr, &nominal)?;
@@ -647,6 +661,11 @@ impl Run<'_> {
         let reference = self.reference(obs, &loop_rows.pick(obs.train), &nominal, &mut list)?;
         self.warnings
             .extend(unfitted_warning(train.path, &tr, &list.stages));
+        self.warnings.extend(radius_warnings(
+            self.geometry_path,
+            geometry,
+            &loop_result.base.laws,
+        ));
 
         // From here on the sessions are read at the strings' meeting point when
         // the loop found the tracked body's origin off it (the errors are then
