@@ -480,6 +480,14 @@ pub struct IdentificationReport {
     /// longer than the calibration's `max_loop_rows`; the parameters above
     /// are then identified on those rows (their sds say so).
     pub loop_rows: super::loop_rows::LoopRows,
+    /// Why the diagnosis loop did not run (`null` when it ran): the
+    /// training session is too small for it, and the reason says how many
+    /// more tracked rows enable it. No effect was then tried.
+    pub loop_not_run: Option<String>,
+    /// Each string's mechanical advantage, in the device's channel order
+    /// (`device.channels`): a `string{k}.r_home` is the effective radius,
+    /// the spool's radius over it.
+    pub mechanical_advantage: Vec<f64>,
 }
 
 impl IdentificationReport {
@@ -490,6 +498,7 @@ impl IdentificationReport {
         marker_body_mm: Option<[f64; 3]>,
         outliers: &crate::model::diagnose::TrackerOutliers,
         loop_rows: super::loop_rows::LoopRows,
+        loop_not_run: Option<String>,
     ) -> IdentificationReport {
         IdentificationReport {
             parameters: fin.parameters.clone(),
@@ -503,7 +512,24 @@ impl IdentificationReport {
             marker_body_mm,
             tracker_outliers: outliers.clone(),
             loop_rows,
+            loop_not_run,
+            mechanical_advantage: fin
+                .frame
+                .layout
+                .indices()
+                .map(|c| fin.winding.mechanical_advantage[c])
+                .collect(),
         }
+    }
+
+    /// String `channel`'s mechanical advantage when it is not 1 (its
+    /// `r_home` is then the spool's radius over it).
+    pub fn advantage_of(&self, channels: &[usize], channel: usize) -> Option<f64> {
+        let k = channels.iter().position(|&c| c == channel)?;
+        self.mechanical_advantage
+            .get(k)
+            .copied()
+            .filter(|ma| *ma != 1.0)
     }
 }
 
