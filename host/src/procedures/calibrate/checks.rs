@@ -16,6 +16,7 @@ use crate::data::observe::Observation;
 use crate::model::identify::Structure;
 
 use super::{align, report, trust, CalibrateError, NamedSession, StagePoints};
+use crate::procedures::plural;
 
 /// Both sessions' facts for the report, after checking their strings
 /// against the geometry, and the warnings they call for: test rows that are
@@ -380,11 +381,12 @@ pub(super) fn tracker_outlier_warning(
 ) -> Option<String> {
     if outliers.kept_too_many > 0 {
         return Some(format!(
-            "{}: the tracker of {} rows disagrees with most of their strings by more than {:.1} \
+            "{}: the tracker of {} disagrees with most of {} strings by more than {:.1} \
              mm ({}x the median {:.3} mm) under the identified model: too many to be the \
              tracker's glitches, so all are kept; the model does not fit this session",
             train_path.display(),
-            outliers.kept_too_many,
+            plural(outliers.kept_too_many, "row", "rows"),
+            their(outliers.kept_too_many),
             outliers.threshold_mm,
             crate::model::diagnose::GROSS_TRACKER_MEDIANS,
             outliers.median_mm
@@ -394,16 +396,27 @@ pub(super) fn tracker_outlier_warning(
         return None;
     }
     Some(format!(
-        "{}: the tracker of {} rows disagrees with most of their strings by more than {:.1} mm \
+        "{}: the tracker of {} disagrees with most of {} strings by more than {:.1} mm \
          ({}x the median {:.3} mm) under the identified model: a tracker's glitch (a reflection, \
-         a swapped or lost marker), not a position; they are read as occluded rows (out of the \
+         a swapped or lost marker), not a position; {} (out of the \
          fit, the loop's judgement and the training figures; the raw stage still has them): \
-         lines {}",
+         {} {}",
         train_path.display(),
-        outliers.rows.len(),
+        plural(outliers.rows.len(), "row", "rows"),
+        their(outliers.rows.len()),
         outliers.threshold_mm,
         crate::model::diagnose::GROSS_TRACKER_MEDIANS,
         outliers.median_mm,
+        if outliers.rows.len() == 1 {
+            "it is read as an occluded row"
+        } else {
+            "they are read as occluded rows"
+        },
+        if outliers.rows.len() == 1 {
+            "line"
+        } else {
+            "lines"
+        },
         outlier_lines(
             outliers,
             Some("the JSON report's `identification.tracker_outliers`")
@@ -424,17 +437,46 @@ pub(super) fn test_outlier_warning(
     }
     let count = outliers.rows.len().max(outliers.kept_too_many);
     Some(format!(
-        "{}: the tracker of {count} rows disagrees with most of their strings by more than \
-         {:.1} mm (the training session's threshold) under the final model: a tracker's \
-         glitch, or a model that does not hold there; the held-out figures include them{}",
+        "{}: the tracker of {} disagrees with most of {} strings by more than {:.1} mm (the \
+         training session's threshold) under the final model: a tracker's glitch, or a model \
+         that does not hold there; the held-out figures include {}{}",
         test_path.display(),
+        plural(count, "row", "rows"),
+        their(count),
         outliers.threshold_mm,
+        if count == 1 { "it" } else { "them" },
         if outliers.rows.is_empty() {
             String::new()
         } else {
-            format!(": lines {}", outlier_lines(outliers, None))
+            format!(
+                ": {} {}",
+                if outliers.rows.len() == 1 {
+                    "line"
+                } else {
+                    "lines"
+                },
+                outlier_lines(outliers, None)
+            )
         }
     ))
+}
+
+/// "tracked pose" for one, "tracked poses" for more.
+fn poses(n: usize) -> &'static str {
+    if n == 1 {
+        "tracked pose"
+    } else {
+        "tracked poses"
+    }
+}
+
+/// "its" for one row's strings, "their" for more.
+fn their(rows: usize) -> &'static str {
+    if rows == 1 {
+        "its"
+    } else {
+        "their"
+    }
 }
 
 /// The first lines of `outliers` with their disagreement, and how many
@@ -485,9 +527,10 @@ pub(super) fn check_enough_tracked_rows(
             problem: format!(
                 "{tracked} rows with tracker positions; identifying the model of {} strings \
                  needs at least {needed} (twice as many string lengths as free parameters): \
-                 collect {} more tracked poses spread through the volume",
+                 collect {} more {} spread through the volume",
                 nominal.layout.count(),
-                needed - tracked
+                needed - tracked,
+                poses(needed - tracked)
             ),
         });
     }
@@ -498,9 +541,10 @@ pub(super) fn check_enough_tracked_rows(
                 "identification only: the training session has {tracked} tracked rows; the \
                  diagnosis loop and the learned corrections need {} ({needed} to identify the \
                  model in each half of the 2-fold validation that judges every change): collect \
-                 {} more tracked poses to enable them",
+                 {} more {} to enable them",
                 2 * needed,
-                2 * needed - tracked
+                2 * needed - tracked,
+                poses(2 * needed - tracked)
             )),
         });
     }
