@@ -777,7 +777,8 @@ fn a_pilot_session_too_small_says_how_many_rows_and_why() {
         err.contains("pilot.csv")
             && err.contains("rows with tracker positions")
             && err.contains("needs at least 10")
-            && err.contains("more tracked poses"),
+            // 9 tracked rows: one pose short, in the singular.
+            && err.contains("collect 1 more tracked pose spread"),
         "{err}"
     );
     let (o, out) = calibrate_pilot(&dir, 15);
