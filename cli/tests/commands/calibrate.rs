@@ -895,7 +895,7 @@ fn a_session_identified_alone_says_the_loop_did_not_run_and_lists_its_parameters
                 .lines()
                 .any(|l| l.trim_start().starts_with("anchor0 ")
                     && l.contains(" ± ")
-                    && l.ends_with(" mm")),
+                    && l.contains(" mm")),
         "{summary}"
     );
     let report: serde_json::Value =
