@@ -73,6 +73,7 @@ pub(super) fn checked_sessions(
         .zip(["training", "test"])
     {
         warnings.extend(set_aside_warning(s.path, found, name));
+        warnings.extend(repeated_rows_warning(s.path, found, name));
     }
     Ok((train_info, test_info, warnings))
 }
@@ -98,7 +99,7 @@ fn check_set_aside(
              many to be bad rows: check the geometry's anchors, pulley_radius_mm, \
              counts_per_rev and mechanical_advantage against the device, and that the tracker \
              gives millimetres. {}",
-            found.values.len(),
+            found.impossible().count(),
             geometry_path.display(),
             found.lines(SET_ASIDE_SHOWN)
         ),
@@ -108,10 +109,10 @@ fn check_set_aside(
 /// The warning that names the rows of a session set aside as impossible
 /// (`key`: the session's name in the JSON report's `inputs`).
 fn set_aside_warning(path: &Path, found: &SetAside, key: &str) -> Option<String> {
-    if found.is_empty() {
+    let count = found.impossible().count();
+    if count == 0 {
         return None;
     }
-    let count = found.values.len();
     Some(format!(
         "{}: {count} row{} set aside, holding values no device of this geometry could produce \
          (a row whose counts cannot be is left out of the calibration and its figures; one \
@@ -120,6 +121,25 @@ fn set_aside_warning(path: &Path, found: &SetAside, key: &str) -> Option<String>
         path.display(),
         if count == 1 { "" } else { "s" },
         found.lines(SET_ASIDE_SHOWN)
+    ))
+}
+
+/// The warning that names the rows of a session that repeat the row
+/// before them exactly, set aside whole (`key`: the session's name in the
+/// JSON report's `inputs`).
+fn repeated_rows_warning(path: &Path, found: &SetAside, key: &str) -> Option<String> {
+    let count = found.repeats().count();
+    if count == 0 {
+        return None;
+    }
+    Some(format!(
+        "{}: {} set aside: {} (the same `t_s` and every value): a row duplicated on its way to \
+         the file, which would weigh its pose twice, is left out of the calibration and its \
+         figures; the JSON report's `inputs.{key}.set_aside` lists {}",
+        path.display(),
+        plural(count, "row", "rows"),
+        found.repeat_lines(SET_ASIDE_SHOWN),
+        if count == 1 { "it" } else { "them all" }
     ))
 }
 
