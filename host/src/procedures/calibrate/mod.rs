@@ -556,7 +556,7 @@ impl Run<'_> {
             selection: f.selection,
             corrections: f.corrections,
             kinematics: f.kinematics,
-            anchor_tolerance: f.anchor_tolerance,
+            anchor_tolerance: report::AnchorTolerance::of(f.anchor_tolerance, self.geometry.layout),
             device_slips: f.device_slips,
             blackbox: f.blackbox,
             warnings: self.warnings,
