@@ -293,7 +293,11 @@ fn a_row_repeated_exactly_is_set_aside_naming_both_lines() {
     assert!(
         warned(
             &report,
-            &["train-repeat.csv", "1 row set aside: line 8 repeats line 7"]
+            &[
+                "train-repeat.csv",
+                "1 row set aside: line 8 repeats line 7",
+                "`inputs.train.set_aside`"
+            ]
         ),
         "{}",
         report["warnings"]

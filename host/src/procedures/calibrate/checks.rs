@@ -67,10 +67,11 @@ pub(super) fn checked_sessions(
             ));
         }
     }
+    // Named by their keys in the JSON report's `inputs`.
     for ((s, found), name) in [&train, &test]
         .into_iter()
         .zip(set_aside)
-        .zip(["training", "test"])
+        .zip(["train", "test"])
     {
         warnings.extend(set_aside_warning(s.path, found, name));
         warnings.extend(repeated_rows_warning(s.path, found, name));
