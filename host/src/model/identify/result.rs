@@ -27,7 +27,8 @@ pub struct ParameterEstimate {
 /// go by (the value alone is then written as it comes). The one way the
 /// summary and the page write an estimate.
 pub fn value_with_sd(value: f64, sd: f64) -> Option<String> {
-    if !(sd > 0.0 && sd.is_finite() && value.is_finite() && value.abs() < 1e9) {
+    let usable = sd > 0.0 && sd.is_finite() && value.is_finite() && value.abs() < 1e9;
+    if !usable {
         return None;
     }
     let decimals = (1 - sd.log10().floor() as i32).clamp(0, 9) as usize;
