@@ -86,6 +86,16 @@ impl CorrectionKind {
             _ => None,
         }
     }
+
+    /// What the model corrects the position with, in words: what `spidar
+    /// compile` and `spidar device info` print.
+    pub fn describe(self) -> &'static str {
+        match self {
+            Self::None => "no position correction",
+            Self::Nn => "NN position correction",
+            Self::Svr => "SVR position correction",
+        }
+    }
 }
 
 /// Decoded blob header.

@@ -386,11 +386,7 @@ fn device_info(client: &mut Client, out: &mut String) -> anyhow::Result<()> {
                 i.header.model_id,
                 i.slot,
                 i.header.strings,
-                match i.header.kind {
-                    spidar_protocol::blob::CorrectionKind::None => "no position correction",
-                    spidar_protocol::blob::CorrectionKind::Nn => "NN position correction",
-                    spidar_protocol::blob::CorrectionKind::Svr => "SVR position correction",
-                },
+                i.header.kind.describe(),
                 i.header.effects,
                 i.header.blob_len(),
                 i.blob_crc32,

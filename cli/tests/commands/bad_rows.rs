@@ -268,3 +268,46 @@ fn most_rows_impossible_refuses_the_geometry_not_the_rows() {
     );
     std::fs::remove_dir_all(&rig.dir).ok();
 }
+
+/// A row that repeats the row before it exactly (the same `t_s` and every
+/// value) is a row duplicated on its way to the file: it is set aside
+/// whole, and a warning names both lines ("line 8 repeats line 7"), so the
+/// calibration is the one without it (a survey's finding F6: it was read
+/// silently, weighing its pose twice, and changed the result).
+#[test]
+fn a_row_repeated_exactly_is_set_aside_naming_both_lines() {
+    let rig = rig("repeat");
+    let (o, clean) = rig.calibrate(&rig.train, &rig.test, "clean", &[]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let text = std::fs::read_to_string(&rig.train).unwrap();
+    let mut lines: Vec<&str> = text.lines().collect();
+    lines.insert(7, lines[6]);
+    let train = rig.dir.join("train-repeat.csv");
+    std::fs::write(&train, lines.join("\n") + "\n").unwrap();
+    let (o, report) = rig.calibrate(&train, &rig.test, "repeat", &[]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(
+        set_aside(&report, "train"),
+        vec![(8, "t_s".to_string(), "row".to_string())]
+    );
+    assert!(
+        warned(
+            &report,
+            &[
+                "train-repeat.csv",
+                "1 row set aside: line 8 repeats line 7",
+                "`inputs.train.set_aside`"
+            ]
+        ),
+        "{}",
+        report["warnings"]
+    );
+    assert_eq!(report["inputs"]["train"]["rows"], 61);
+    assert_eq!(
+        report["inputs"]["train"]["tracked"],
+        clean["inputs"]["train"]["tracked"]
+    );
+    // The same calibration as without the copy, to the bit.
+    assert_eq!(report["stages"], clean["stages"]);
+    std::fs::remove_dir_all(&rig.dir).ok();
+}

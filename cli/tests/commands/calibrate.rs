@@ -777,7 +777,8 @@ fn a_pilot_session_too_small_says_how_many_rows_and_why() {
         err.contains("pilot.csv")
             && err.contains("rows with tracker positions")
             && err.contains("needs at least 10")
-            && err.contains("more tracked poses"),
+            // 9 tracked rows: one pose short, in the singular.
+            && err.contains("collect 1 more tracked pose spread"),
         "{err}"
     );
     let (o, out) = calibrate_pilot(&dir, 15);
@@ -869,5 +870,56 @@ fn calibrate_refuses_an_output_over_an_input() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && err.contains("`--train`"), "{err}");
     assert_eq!(std::fs::read_to_string(&inside).unwrap(), "t_s,enc0\n");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// A session identified alone says so everywhere a reader looks: the
+/// summary and the page say the diagnosis loop did not run and why (not
+/// "none significant", as if it had run and found nothing), the summary
+/// lists the parameters with their sds, and the page prints no unmeasured
+/// scale or noise as "0.000 mm" (a survey's findings F5b, F5d, F5e).
+#[test]
+fn a_session_identified_alone_says_the_loop_did_not_run_and_lists_its_parameters() {
+    let dir = temp_dir("pilot-alone");
+    let (o, out) = calibrate_pilot(&dir, 15);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let summary = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        summary.contains("none tried: the diagnosis loop did not run (identification only: ")
+            && !summary.contains("none significant"),
+        "{summary}"
+    );
+    assert!(
+        summary.contains("Identified parameters (value ± sd):")
+            && summary
+                .lines()
+                .any(|l| l.trim_start().starts_with("anchor0 ")
+                    && l.contains(" ± ")
+                    && l.contains(" mm")),
+        "{summary}"
+    );
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
+    assert!(
+        report["identification"]["loop_not_run"]
+            .as_str()
+            .is_some_and(|w| w.starts_with("identification only")),
+        "{}",
+        report["identification"]
+    );
+    let page = std::fs::read_to_string(out.join("report.html")).unwrap();
+    assert!(
+        page.contains("None tried: the diagnosis loop did not run (identification only: ")
+            && !page.contains("None significant"),
+        "the page's effects section"
+    );
+    assert!(
+        !page.contains("(0.000 mm)"),
+        "an unmeasured scale shown as 0"
+    );
+    assert!(
+        !page.contains("by more than 0.000 mm"),
+        "an unmeasured noise shown as 0"
+    );
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -108,6 +108,12 @@ fn an_output_over_its_input_is_refused_and_the_input_kept() {
     let o = spidar(&["compile", "--calibration", s(&cal), "--out", s(&blob)]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     assert!(blob.exists());
+    // Its correction in words, not a Rust debug print ("None correction").
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        out.contains("bytes: no position correction, ") && !out.contains("None correction"),
+        "{out}"
+    );
     std::fs::remove_dir_all(&dir).ok();
 }
 

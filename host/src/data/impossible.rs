@@ -60,6 +60,10 @@ pub struct ImpossibleValue {
     pub part: SetAsidePart,
     /// Why it cannot be, in millimetres of the device.
     pub why: String,
+    /// The line this row repeats exactly ([`Session::repeated_rows`]):
+    /// set aside as a duplicate, not as a value no device could produce.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub repeats_line: Option<u64>,
 }
 
 /// The impossible values of one session, at most one per row (the whole
@@ -84,8 +88,25 @@ impl SetAside {
         let tracker_median = median_position(session.samples.iter().filter_map(|s| s.tracker));
         let legacy_median = median_position(session.samples.iter().filter_map(|s| s.legacy));
         let mut values = Vec::new();
+        let repeated = session.repeated_rows();
         for (row, s) in session.samples.iter().enumerate() {
             let line = row as u64 + 2;
+            if let Some(&(_, of)) = repeated.iter().find(|r| r.0 == row) {
+                let of_line = of as u64 + 2;
+                values.push(ImpossibleValue {
+                    row,
+                    line,
+                    column: crate::data::dataset::TIME_COLUMN.to_string(),
+                    value: s.t_s,
+                    part: SetAsidePart::Row,
+                    why: format!(
+                        "line {line} repeats line {of_line} (the same time and every value): \
+                         a row duplicated on its way to the file, not a second pose"
+                    ),
+                    repeats_line: Some(of_line),
+                });
+                continue;
+            }
             let count = (0..strings).find_map(|i| {
                 let payout = (f64::from(s.counts[i]) - median_counts[i]) * mm_per_count[i].abs();
                 (payout.abs() > limit).then(|| ImpossibleValue {
@@ -98,6 +119,7 @@ impl SetAside {
                         "string {i} would pay out {payout:.0} mm from its median length in \
                          this session, where the frame spans {span:.0} mm"
                     ),
+                    repeats_line: None,
                 })
             });
             let position = |p: Option<[f64; 3]>, median: Option<[f64; 3]>, columns, part, what| {
@@ -109,6 +131,7 @@ impl SetAside {
                         value: v,
                         part,
                         why,
+                        repeats_line: None,
                     }
                 })
             };
@@ -144,7 +167,17 @@ impl SetAside {
     /// More than half of `rows` set aside: not bad rows but a geometry or a
     /// unit that does not fit the session.
     pub fn is_most_of(&self, rows: usize) -> bool {
-        2 * self.values.len() > rows
+        2 * self.impossible().count() > rows
+    }
+
+    /// The values no device could produce (not the repeated rows).
+    pub fn impossible(&self) -> impl Iterator<Item = &ImpossibleValue> + '_ {
+        self.values.iter().filter(|v| v.repeats_line.is_none())
+    }
+
+    /// The rows that repeat the row before them, set aside whole.
+    pub fn repeats(&self) -> impl Iterator<Item = &ImpossibleValue> + '_ {
+        self.values.iter().filter(|v| v.repeats_line.is_some())
     }
 
     /// The rows set aside whole, in order.
@@ -176,13 +209,11 @@ impl SetAside {
         out
     }
 
-    /// The first lines with their column and value, and how many more.
+    /// The first impossible values' lines with their column and value, and
+    /// how many more.
     pub fn lines(&self, first: usize) -> String {
-        let mut text: Vec<String> = self
-            .values
-            .iter()
-            .take(first)
-            .map(|v| {
+        first_of(
+            self.impossible().map(|v| {
                 format!(
                     "line {} (`{}` = {}: {})",
                     v.line,
@@ -190,14 +221,36 @@ impl SetAside {
                     shown(v.value),
                     v.why
                 )
-            })
-            .collect();
-        let more = self.values.len().saturating_sub(first);
-        if more > 0 {
-            text.push(format!("and {more} more"));
-        }
-        text.join("; ")
+            }),
+            first,
+        )
     }
+
+    /// The first repeated rows ("line 7 repeats line 6"), and how many
+    /// more.
+    pub fn repeat_lines(&self, first: usize) -> String {
+        first_of(
+            self.repeats().map(|v| {
+                format!(
+                    "line {} repeats line {}",
+                    v.line,
+                    v.repeats_line.unwrap_or_default()
+                )
+            }),
+            first,
+        )
+    }
+}
+
+/// The first `first` of `texts` and how many more, joined by "; ".
+fn first_of(texts: impl Iterator<Item = String>, first: usize) -> String {
+    let all: Vec<String> = texts.collect();
+    let more = all.len().saturating_sub(first);
+    let mut text: Vec<String> = all.into_iter().take(first).collect();
+    if more > 0 {
+        text.push(format!("and {more} more"));
+    }
+    text.join("; ")
 }
 
 /// A value as a person reads it: whole numbers (counts) in full up to 1e9,

@@ -371,10 +371,10 @@ impl std::fmt::Display for CompileReport {
         let h = &self.header;
         writeln!(
             f,
-            "wrote {} ({} bytes: {:?} correction, {} effects, hidden {}, support vectors {}; model id {:#010x})",
+            "wrote {} ({} bytes: {}, {} effects, hidden {}, support vectors {}; model id {:#010x})",
             self.out.display(),
             self.bytes,
-            h.kind,
+            h.kind.describe(),
             h.effects,
             h.hidden,
             h.support_vectors,

@@ -16,6 +16,12 @@
 //!
 //! A simulated operator for tests and demos is [`crate::sim::operator`].
 
+/// "1 row", "3 rows": a count and its noun, for every message a
+/// procedure writes (the report page's too).
+pub(crate) fn plural(n: usize, one: &str, many: &str) -> String {
+    format!("{n} {}", if n == 1 { one } else { many })
+}
+
 mod arm_watch;
 pub mod calibrate;
 pub mod collect;

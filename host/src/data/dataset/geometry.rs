@@ -124,8 +124,9 @@ struct GeometryFile {
     home_tension_n: Option<f64>,
     #[serde(default)]
     anchor_sd_mm: Option<PerString<f64>>,
+    // Read as a number or a list, so a list is refused in words.
     #[serde(default)]
-    home_sd_mm: Option<f64>,
+    home_sd_mm: Option<PerString<f64>>,
 }
 
 fn field_error(file: &Path, field: impl Into<String>, problem: impl Into<String>) -> DatasetError {
@@ -239,6 +240,21 @@ impl Geometry {
             .map(|sd| sd.per_channel(n))
             .transpose()
             .map_err(|len| per_string("anchor_sd_mm", len))?;
+        let home_sd_mm = match &raw.home_sd_mm {
+            None => None,
+            Some(PerString::One(sd)) => Some(*sd),
+            Some(PerString::Each(sds)) => {
+                return Err(field_error(
+                    file,
+                    "home_sd_mm",
+                    format!(
+                        "{} values given, one number expected (the sd of each of the home's \
+                         coordinates, e.g. `home_sd_mm = 5`)",
+                        sds.len()
+                    ),
+                ))
+            }
+        };
         let geometry = Geometry {
             layout: StringLayout::first(n, planar),
             counts_per_rev,
@@ -249,7 +265,7 @@ impl Geometry {
             room_from_device_translation_mm,
             home_tension_n: raw.home_tension_n,
             anchor_sd_mm,
-            home_sd_mm: raw.home_sd_mm,
+            home_sd_mm,
         };
         geometry.validate(file)?;
         Ok(geometry)
@@ -558,5 +574,39 @@ impl Geometry {
     /// Nominal string length of each string at home (mm).
     pub fn home_lengths_mm(&self) -> [f64; STRINGS] {
         core::array::from_fn(|i| distance(self.anchors_mm[i], self.home_mm))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const GEOMETRY: &str = "counts_per_rev = 4096\npulley_radius_mm = 7.5\nhome_mm = [0, 0, 0]\n\
+        anchors_mm = [[-1100, -1100, -1100], [1100, -1100, -1100], [0, 1100, -1100], [0, 0, 1100]]\n\
+        room_from_device_translation_mm = [0, 0, 1500]\n";
+
+    fn geometry(extra: &str) -> Result<Geometry, DatasetError> {
+        Geometry::from_toml_str(
+            &format!("{GEOMETRY}{extra}"),
+            Path::new("mem/geometry.toml"),
+        )
+    }
+
+    /// `home_sd_mm` is one number, the sd of each of the home's
+    /// coordinates; an array (a survey's user read the README's "one sd per
+    /// coordinate" as one) is refused naming the key and what it takes, as
+    /// `anchor_sd_mm`'s wrong lengths are, not with serde's "invalid type:
+    /// sequence, expected f64".
+    #[test]
+    fn home_sd_mm_is_one_number_and_an_array_is_refused_in_words() {
+        assert_eq!(geometry("home_sd_mm = 5\n").unwrap().home_sd_mm, Some(5.0));
+        let err = geometry("home_sd_mm = [5, 5, 5]\n").unwrap_err();
+        let msg = err.to_string();
+        assert!(
+            matches!(err, DatasetError::GeometryField { ref field, .. } if field == "home_sd_mm")
+                && msg.contains("3 values given, one number expected")
+                && !msg.contains("invalid type"),
+            "{msg}"
+        );
     }
 }

@@ -250,6 +250,17 @@ impl Session {
         })
     }
 
+    /// The rows that repeat the row before them exactly (the same `t_s`
+    /// and every value), each with that row: a row duplicated on its way to
+    /// the file, never a second pose (the reader refuses a time that goes
+    /// back; the same time with the same values is the same sample twice).
+    pub fn repeated_rows(&self) -> Vec<(usize, usize)> {
+        (1..self.samples.len())
+            .filter(|&k| self.samples[k] == self.samples[k - 1])
+            .map(|k| (k, k - 1))
+            .collect()
+    }
+
     /// Checks that this session has `geometry`'s number of strings, and
     /// tracker z positions unless the geometry is planar; the error names
     /// both files.

@@ -123,3 +123,26 @@ fn the_span_is_the_largest_distance_across_the_frame() {
     let (g, _) = rig(1);
     assert!((frame_span_mm(&g) - 1000.0 * 2f64.sqrt()).abs() < 1e-9);
 }
+
+/// A row that repeats the row before it exactly is set aside whole, named
+/// with the line it repeats; it is not counted among the values no device
+/// could produce (nor towards refusing the geometry).
+#[test]
+fn a_repeated_row_is_set_aside_naming_the_line_it_repeats() {
+    let (g, mut s) = rig(50);
+    let copy = s.samples[5].clone();
+    s.samples.insert(6, copy);
+    assert_eq!(s.repeated_rows(), vec![(6, 5)]);
+    let found = SetAside::find(&s, &g);
+    assert_eq!(found.rows(), vec![6], "{found:?}");
+    let v = &found.values[0];
+    assert_eq!(
+        (v.line, v.column.as_str(), v.part),
+        (8, "t_s", SetAsidePart::Row)
+    );
+    assert_eq!(v.repeats_line, Some(7));
+    assert_eq!(found.repeat_lines(12), "line 8 repeats line 7");
+    assert_eq!(found.lines(12), "");
+    assert_eq!(found.impossible().count(), 0);
+    assert!(!found.is_most_of(2));
+}

@@ -114,7 +114,9 @@ pub use jacobian::{DataJacobian, DataJacobianPass};
 pub use layout::effect_parameter_names;
 pub(crate) use residuals::residuals_at_homes;
 pub use residuals::{device_position, inputs_at, string_residuals, GROSS_RESIDUAL_MM};
-pub use result::{Identification, IdentifyError, ParameterEstimate};
+pub use result::{
+    radius_string, value_with_sd, xyz_stem, Identification, IdentifyError, ParameterEstimate,
+};
 pub use start::Start;
 pub use structure::{effect_parameter_info, Priors, Structure, KAPPA_EACH_SD_MM};
 pub use winding::WindingPhysics;

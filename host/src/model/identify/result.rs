@@ -22,6 +22,40 @@ pub struct ParameterEstimate {
     pub determined: bool,
 }
 
+/// A parameter's value and its sd to the decimals the sd warrants (two
+/// significant digits of the sd): `None` when there is no positive sd to
+/// go by (the value alone is then written as it comes). The one way the
+/// summary and the page write an estimate.
+pub fn value_with_sd(value: f64, sd: f64) -> Option<String> {
+    let usable = sd > 0.0 && sd.is_finite() && value.is_finite() && value.abs() < 1e9;
+    if !usable {
+        return None;
+    }
+    let decimals = (1 - sd.log10().floor() as i32).clamp(0, 9) as usize;
+    Some(format!("{value:.decimals$} ± {sd:.decimals$}"))
+}
+
+/// The stem of three parameters `stem.x`, `stem.y`, `stem.z` of one unit
+/// (an anchor, the home, the tracker's frame): they are shown as one point.
+pub fn xyz_stem<'a>(names: [&'a str; 3], units: [&str; 3]) -> Option<&'a str> {
+    let stem = names[0].strip_suffix(".x")?;
+    (names[1].strip_suffix(".y") == Some(stem)
+        && names[2].strip_suffix(".z") == Some(stem)
+        && units[1] == units[0]
+        && units[2] == units[0])
+        .then_some(stem)
+}
+
+/// The string of a per-string winding parameter `string{k}.r_home`: its
+/// value is the effective radius, the spool's radius over the string's
+/// mechanical advantage.
+pub fn radius_string(name: &str) -> Option<usize> {
+    name.strip_prefix("string")?
+        .strip_suffix(".r_home")?
+        .parse()
+        .ok()
+}
+
 /// Result of an identification.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct Identification {

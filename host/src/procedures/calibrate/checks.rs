@@ -17,6 +17,7 @@ use crate::data::observe::Observation;
 use crate::model::identify::Structure;
 
 use super::{align, report, trust, CalibrateError, NamedSession, StagePoints};
+use crate::procedures::plural;
 
 /// Both sessions' facts for the report, after checking their strings
 /// against the geometry, and the warnings they call for: test rows that are
@@ -67,12 +68,14 @@ pub(super) fn checked_sessions(
             ));
         }
     }
+    // Named by their keys in the JSON report's `inputs`.
     for ((s, found), name) in [&train, &test]
         .into_iter()
         .zip(set_aside)
-        .zip(["training", "test"])
+        .zip(["train", "test"])
     {
         warnings.extend(set_aside_warning(s.path, found, name));
+        warnings.extend(repeated_rows_warning(s.path, found, name));
     }
     Ok((train_info, test_info, warnings))
 }
@@ -98,7 +101,7 @@ fn check_set_aside(
              many to be bad rows: check the geometry's anchors, pulley_radius_mm, \
              counts_per_rev and mechanical_advantage against the device, and that the tracker \
              gives millimetres. {}",
-            found.values.len(),
+            found.impossible().count(),
             geometry_path.display(),
             found.lines(SET_ASIDE_SHOWN)
         ),
@@ -108,10 +111,10 @@ fn check_set_aside(
 /// The warning that names the rows of a session set aside as impossible
 /// (`key`: the session's name in the JSON report's `inputs`).
 fn set_aside_warning(path: &Path, found: &SetAside, key: &str) -> Option<String> {
-    if found.is_empty() {
+    let count = found.impossible().count();
+    if count == 0 {
         return None;
     }
-    let count = found.values.len();
     Some(format!(
         "{}: {count} row{} set aside, holding values no device of this geometry could produce \
          (a row whose counts cannot be is left out of the calibration and its figures; one \
@@ -120,6 +123,25 @@ fn set_aside_warning(path: &Path, found: &SetAside, key: &str) -> Option<String>
         path.display(),
         if count == 1 { "" } else { "s" },
         found.lines(SET_ASIDE_SHOWN)
+    ))
+}
+
+/// The warning that names the rows of a session that repeat the row
+/// before them exactly, set aside whole (`key`: the session's name in the
+/// JSON report's `inputs`).
+fn repeated_rows_warning(path: &Path, found: &SetAside, key: &str) -> Option<String> {
+    let count = found.repeats().count();
+    if count == 0 {
+        return None;
+    }
+    Some(format!(
+        "{}: {} set aside: {} (the same `t_s` and every value): a row duplicated on its way to \
+         the file, which would weigh its pose twice, is left out of the calibration and its \
+         figures; the JSON report's `inputs.{key}.set_aside` lists {}",
+        path.display(),
+        plural(count, "row", "rows"),
+        found.repeat_lines(SET_ASIDE_SHOWN),
+        if count == 1 { "it" } else { "them all" }
     ))
 }
 
@@ -381,11 +403,12 @@ pub(super) fn tracker_outlier_warning(
 ) -> Option<String> {
     if outliers.kept_too_many > 0 {
         return Some(format!(
-            "{}: the tracker of {} rows disagrees with most of their strings by more than {:.1} \
+            "{}: the tracker of {} disagrees with most of {} strings by more than {:.1} \
              mm ({}x the median {:.3} mm) under the identified model: too many to be the \
              tracker's glitches, so all are kept; the model does not fit this session",
             train_path.display(),
-            outliers.kept_too_many,
+            plural(outliers.kept_too_many, "row", "rows"),
+            their(outliers.kept_too_many),
             outliers.threshold_mm,
             crate::model::diagnose::GROSS_TRACKER_MEDIANS,
             outliers.median_mm
@@ -395,16 +418,27 @@ pub(super) fn tracker_outlier_warning(
         return None;
     }
     Some(format!(
-        "{}: the tracker of {} rows disagrees with most of their strings by more than {:.1} mm \
+        "{}: the tracker of {} disagrees with most of {} strings by more than {:.1} mm \
          ({}x the median {:.3} mm) under the identified model: a tracker's glitch (a reflection, \
-         a swapped or lost marker), not a position; they are read as occluded rows (out of the \
+         a swapped or lost marker), not a position; {} (out of the \
          fit, the loop's judgement and the training figures; the raw stage still has them): \
-         lines {}",
+         {} {}",
         train_path.display(),
-        outliers.rows.len(),
+        plural(outliers.rows.len(), "row", "rows"),
+        their(outliers.rows.len()),
         outliers.threshold_mm,
         crate::model::diagnose::GROSS_TRACKER_MEDIANS,
         outliers.median_mm,
+        if outliers.rows.len() == 1 {
+            "it is read as an occluded row"
+        } else {
+            "they are read as occluded rows"
+        },
+        if outliers.rows.len() == 1 {
+            "line"
+        } else {
+            "lines"
+        },
         outlier_lines(
             outliers,
             Some("the JSON report's `identification.tracker_outliers`")
@@ -425,17 +459,46 @@ pub(super) fn test_outlier_warning(
     }
     let count = outliers.rows.len().max(outliers.kept_too_many);
     Some(format!(
-        "{}: the tracker of {count} rows disagrees with most of their strings by more than \
-         {:.1} mm (the training session's threshold) under the final model: a tracker's \
-         glitch, or a model that does not hold there; the held-out figures include them{}",
+        "{}: the tracker of {} disagrees with most of {} strings by more than {:.1} mm (the \
+         training session's threshold) under the final model: a tracker's glitch, or a model \
+         that does not hold there; the held-out figures include {}{}",
         test_path.display(),
+        plural(count, "row", "rows"),
+        their(count),
         outliers.threshold_mm,
+        if count == 1 { "it" } else { "them" },
         if outliers.rows.is_empty() {
             String::new()
         } else {
-            format!(": lines {}", outlier_lines(outliers, None))
+            format!(
+                ": {} {}",
+                if outliers.rows.len() == 1 {
+                    "line"
+                } else {
+                    "lines"
+                },
+                outlier_lines(outliers, None)
+            )
         }
     ))
+}
+
+/// "tracked pose" for one, "tracked poses" for more.
+fn poses(n: usize) -> &'static str {
+    if n == 1 {
+        "tracked pose"
+    } else {
+        "tracked poses"
+    }
+}
+
+/// "its" for one row's strings, "their" for more.
+fn their(rows: usize) -> &'static str {
+    if rows == 1 {
+        "its"
+    } else {
+        "their"
+    }
 }
 
 /// The first lines of `outliers` with their disagreement, and how many
@@ -486,9 +549,10 @@ pub(super) fn check_enough_tracked_rows(
             problem: format!(
                 "{tracked} rows with tracker positions; identifying the model of {} strings \
                  needs at least {needed} (twice as many string lengths as free parameters): \
-                 collect {} more tracked poses spread through the volume",
+                 collect {} more {} spread through the volume",
                 nominal.layout.count(),
-                needed - tracked
+                needed - tracked,
+                poses(needed - tracked)
             ),
         });
     }
@@ -499,9 +563,10 @@ pub(super) fn check_enough_tracked_rows(
                 "identification only: the training session has {tracked} tracked rows; the \
                  diagnosis loop and the learned corrections need {} ({needed} to identify the \
                  model in each half of the 2-fold validation that judges every change): collect \
-                 {} more tracked poses to enable them",
+                 {} more {} to enable them",
                 2 * needed,
-                2 * needed - tracked
+                2 * needed - tracked,
+                poses(2 * needed - tracked)
             )),
         });
     }

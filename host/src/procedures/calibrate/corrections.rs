@@ -45,6 +45,11 @@ pub(super) struct ResidualData {
 }
 
 impl ResidualData {
+    /// The points of the selection split.
+    pub(super) fn selection_points(&self) -> usize {
+        self.x_sel.len()
+    }
+
     pub(super) fn of(
         obs: PerSession<&[Observation]>,
         positions: PerSession<&[[f64; 3]]>,
@@ -372,6 +377,35 @@ pub(super) fn hold_to_reference(
     fall_back
 }
 
+/// Why the learned corrections were reported but not chosen, when the
+/// selection split was too small to choose one: it names the final model
+/// as `judgement` has it after [`hold_to_reference`] (the string model, or
+/// the plain least-squares reference when that beat it on the split).
+/// `None` when the split (of `selection_points`) was large enough to choose.
+pub(super) fn unchosen_corrections_warning(
+    judgement: &Judgement,
+    selection_points: usize,
+) -> Option<String> {
+    if judgement.enough_to_choose {
+        return None;
+    }
+    let final_model = match judgement.choice {
+        report::Choice::Reference => {
+            "the plain least-squares reference, which beat the string model on that split"
+        }
+        report::Choice::Identified => "the string model without a learned correction",
+        report::Choice::Nn => "the NN correction",
+        report::Choice::Svr => "the SVR correction",
+    };
+    Some(format!(
+        "the NN and SVR corrections are reported but not chosen: the selection split of the \
+         training session has {selection_points} points, at least {MIN_SELECTION_POINTS} are \
+         needed to tell a correction from noise (the final model is {final_model}, `final ({})`; \
+         collect a larger training session to use a learned correction)",
+        judgement.choice.name()
+    ))
+}
+
 /// The chosen correction refitted on all the training points it learns
 /// from (the kept ones, thinned when there are more than
 /// [`CalibrateConfig::max_learning_points`]) with the hyperparameters the
@@ -547,15 +581,6 @@ impl Run<'_> {
     ) -> Result<(Judgement, CorrectionModel), CalibrateError> {
         let t = Instant::now();
         let judgement = judge_on_selection_split(data, learned, &self.cfg);
-        if !judgement.enough_to_choose {
-            self.warnings.push(format!(
-                "the NN and SVR corrections are reported but not chosen: the selection split of \
-                 the training session has {} points, at least {MIN_SELECTION_POINTS} are needed \
-                 to tell a correction from noise (the final model is the identified one; collect \
-                 a larger training session to use a learned correction)",
-                data.x_sel.len()
-            ));
-        }
         let final_corr = refit_chosen(judgement.choice, data, learned, &self.cfg)?;
         self.timings.selection_s = t.elapsed().as_secs_f64();
         Ok((judgement, final_corr))
@@ -565,6 +590,48 @@ impl Run<'_> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A judgement on a selection split too small to choose a correction,
+    /// whose final model is `choice`.
+    fn too_small(choice: report::Choice) -> Judgement {
+        Judgement {
+            identified: ErrorStats::of(&[1.0, 2.0]),
+            nn: ErrorStats::of(&[1.0, 2.0]),
+            svr: ErrorStats::of(&[1.0, 2.0]),
+            reference: ErrorStats::of(&[0.5, 1.0]),
+            noise_p95: 0.1,
+            noise_max: 0.1,
+            enough_to_choose: false,
+            choice,
+            reason: String::new(),
+        }
+    }
+
+    /// The warning that the learned corrections were not chosen names the
+    /// final model the choice ended with: the plain least-squares reference
+    /// when it beat the string model on the split (a survey's run said "the
+    /// final model is the identified one" under a table whose final stage
+    /// was the reference), and nothing when the split could choose.
+    #[test]
+    fn the_unchosen_corrections_warning_names_the_final_model() {
+        let w = unchosen_corrections_warning(&too_small(report::Choice::Reference), 3).unwrap();
+        assert!(
+            w.contains("has 3 points")
+                && w.contains("the final model is the plain least-squares reference")
+                && w.contains("`final (plain least squares)`")
+                && !w.contains("identified one"),
+            "{w}"
+        );
+        let w = unchosen_corrections_warning(&too_small(report::Choice::Identified), 3).unwrap();
+        assert!(
+            w.contains("the final model is the string model without a learned correction")
+                && w.contains("`final (string model)`"),
+            "{w}"
+        );
+        let mut enough = too_small(report::Choice::Identified);
+        enough.enough_to_choose = true;
+        assert_eq!(unchosen_corrections_warning(&enough, 40), None);
+    }
 
     fn room(model_instructions: u32) -> TickRoom {
         TickRoom {

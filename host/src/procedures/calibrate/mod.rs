@@ -80,7 +80,7 @@ use crate::model::predict::predict;
 use checks::{checked_sessions, declared_tolerance_warning, reference_warning, trust_warnings};
 use corrections::{
     hold_to_reference, identification_only, learner_warnings, residual_report, selection_report,
-    train_corrections, CorrectionLimits, Learned, ResidualData,
+    train_corrections, unchosen_corrections_warning, CorrectionLimits, Learned, ResidualData,
 };
 use evaluate::{correction_errors, point_error_list, tracked_pairs, PerSession};
 use identified::{FinalIdentified, IdentifiedModel, ReferenceModel};
@@ -356,6 +356,8 @@ struct Findings<'a> {
     loop_rows: loop_rows::LoopRows,
     blackbox: Option<report::Blackbox>,
     device_slips: report::DeviceSlips,
+    /// Why the diagnosis loop did not run (the session too small for it).
+    loop_not_run: Option<String>,
 }
 
 /// What stages 4-5 left: the learners' data, the learned corrections (none
@@ -433,6 +435,12 @@ impl Run<'_> {
             &data,
             &model.reference.train_errors_by_row,
         );
+        if learned.is_some() {
+            self.warnings.extend(unchosen_corrections_warning(
+                &judgement,
+                data.selection_points(),
+            ));
+        }
         let final_name = format!("final ({})", judgement.choice.name());
         self.final_stages(model, learned.as_ref(), &final_name, &final_corr, fall_back)?;
         let selection = selection_report(final_name, judgement, &final_corr, &data, &self.cfg);
@@ -543,11 +551,12 @@ impl Run<'_> {
                 f.loop_result.structure.marker_body_mm,
                 &f.loop_result.tracker_outliers,
                 f.loop_rows,
+                f.loop_not_run,
             ),
             selection: f.selection,
             corrections: f.corrections,
             kinematics: f.kinematics,
-            anchor_tolerance: f.anchor_tolerance,
+            anchor_tolerance: report::AnchorTolerance::of(f.anchor_tolerance, self.geometry.layout),
             device_slips: f.device_slips,
             blackbox: f.blackbox,
             warnings: self.warnings,
@@ -628,7 +637,7 @@ pub fn calibrate(
         loop_result,
         final_identified,
         list,
-        regime: _,
+        regime,
         reference,
         rule,
         tolerance,
@@ -679,6 +688,7 @@ pub fn calibrate(
         loop_rows,
         blackbox,
         device_slips,
+        loop_not_run: (!regime.full).then_some(regime.reason).flatten(),
     });
     let pairs = Pairs {
         residual: corrected.data.pairs,

@@ -48,7 +48,7 @@ pub struct Report {
     pub kinematics: KinematicsReport,
     /// The anchors' tolerance (the identification's prior), given by the
     /// geometry or chosen on held-out rows ([`crate::model::tolerance`]).
-    pub anchor_tolerance: crate::model::tolerance::ToleranceChoice,
+    pub anchor_tolerance: AnchorTolerance,
     /// Whether the flashed model applies the training session's slips, and
     /// under which home capture.
     pub device_slips: DeviceSlips,
@@ -480,6 +480,14 @@ pub struct IdentificationReport {
     /// longer than the calibration's `max_loop_rows`; the parameters above
     /// are then identified on those rows (their sds say so).
     pub loop_rows: super::loop_rows::LoopRows,
+    /// Why the diagnosis loop did not run (`null` when it ran): the
+    /// training session is too small for it, and the reason says how many
+    /// more tracked rows enable it. No effect was then tried.
+    pub loop_not_run: Option<String>,
+    /// Each string's mechanical advantage, in the device's channel order
+    /// (`device.channels`): a `string{k}.r_home` is the effective radius,
+    /// the spool's radius over it.
+    pub mechanical_advantage: Vec<f64>,
 }
 
 impl IdentificationReport {
@@ -490,6 +498,7 @@ impl IdentificationReport {
         marker_body_mm: Option<[f64; 3]>,
         outliers: &crate::model::diagnose::TrackerOutliers,
         loop_rows: super::loop_rows::LoopRows,
+        loop_not_run: Option<String>,
     ) -> IdentificationReport {
         IdentificationReport {
             parameters: fin.parameters.clone(),
@@ -503,6 +512,55 @@ impl IdentificationReport {
             marker_body_mm,
             tracker_outliers: outliers.clone(),
             loop_rows,
+            loop_not_run,
+            mechanical_advantage: fin
+                .frame
+                .layout
+                .indices()
+                .map(|c| fin.winding.mechanical_advantage[c])
+                .collect(),
+        }
+    }
+
+    /// String `channel`'s mechanical advantage when it is not 1 (its
+    /// `r_home` is then the spool's radius over it).
+    pub fn advantage_of(&self, channels: &[usize], channel: usize) -> Option<f64> {
+        let k = channels.iter().position(|&c| c == channel)?;
+        self.mechanical_advantage
+            .get(k)
+            .copied()
+            .filter(|ma| *ma != 1.0)
+    }
+}
+
+/// The anchors' tolerance as the report gives it: the choice
+/// ([`crate::model::tolerance::ToleranceChoice`]) with one sd per anchor of
+/// the device, in channel order (the choice holds one per channel the
+/// firmware has, the unused ones padded).
+#[derive(Clone, Debug, Serialize)]
+pub struct AnchorTolerance {
+    /// The tolerance the calibration used, mm, one per anchor.
+    pub anchor_sd_mm: Vec<f64>,
+    pub scores: Vec<crate::model::tolerance::ToleranceScore>,
+    pub folds: String,
+    pub reason: String,
+    pub robust: bool,
+    pub unweighted: Option<ErrorStats>,
+}
+
+impl AnchorTolerance {
+    /// `choice` for the anchors of `layout`.
+    pub fn of(
+        choice: crate::model::tolerance::ToleranceChoice,
+        layout: spidar_core::model::StringLayout,
+    ) -> AnchorTolerance {
+        AnchorTolerance {
+            anchor_sd_mm: layout.indices().map(|c| choice.anchor_sd_mm[c]).collect(),
+            scores: choice.scores,
+            folds: choice.folds,
+            reason: choice.reason,
+            robust: choice.robust,
+            unweighted: choice.unweighted,
         }
     }
 }
@@ -554,4 +612,32 @@ pub struct Files {
     /// The report as one page for people (`report.html`, beside
     /// `report.json`).
     pub page: String,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The report gives one anchor sd per anchor of the device: 4 for a
+    /// 4-string device, not the firmware's 8 channels padded (a survey's
+    /// `anchor_sd_mm = [30, 30, 30, 100]` came back with 8 entries).
+    #[test]
+    fn the_anchors_tolerance_has_one_sd_per_anchor_of_the_device() {
+        let choice = crate::model::tolerance::ToleranceChoice {
+            anchor_sd_mm: [30.0, 30.0, 30.0, 100.0, 100.0, 100.0, 100.0, 100.0],
+            scores: Vec::new(),
+            folds: String::new(),
+            reason: "the geometry's `anchor_sd_mm`".into(),
+            robust: true,
+            unweighted: None,
+        };
+        let layout = spidar_core::model::StringLayout::first(4, false);
+        let t = AnchorTolerance::of(choice, layout);
+        assert_eq!(t.anchor_sd_mm, vec![30.0, 30.0, 30.0, 100.0]);
+        let json = serde_json::to_value(&t).unwrap();
+        assert_eq!(
+            json["anchor_sd_mm"],
+            serde_json::json!([30.0, 30.0, 30.0, 100.0])
+        );
+    }
 }

@@ -29,8 +29,8 @@ pub(super) fn section(r: &Value) -> Html {
         },
         html::capitalized(s(&sel["reason"]).trim_end_matches('.'))
     ));
-    h.push(candidates(sel));
     let c = &r["corrections"];
+    h.push(candidates(sel, c.is_object()));
     if !c.is_object() {
         h.push(p(
             "No learned correction was trained: the training session is too small for them \
@@ -80,8 +80,9 @@ pub(super) fn section(r: &Value) -> Html {
     h
 }
 
-/// The candidates' errors on the selection split (never the test session).
-fn candidates(sel: &Value) -> Html {
+/// The candidates' errors on the selection split (never the test session);
+/// the thresholds a correction is held to when one was `learned`.
+fn candidates(sel: &Value, learned: bool) -> Html {
     let chosen = s(&sel["choice"]);
     let names: Vec<String> = CANDIDATES
         .iter()
@@ -114,15 +115,25 @@ fn candidates(sel: &Value) -> Html {
         ]);
     }
     let mut h = html::tag("h3", "The candidates on the selection split");
-    h.push(p(&format!(
+    let scored = format!(
         "Scored on the {} training points held out from fitting (the test session is never \
-         used to choose). A correction must lower the string model's mean by {} without \
-         raising its p95 by more than {} mm or its max by more than {} mm (their noise).",
-        html::count(u(&sel["selection_points"])),
-        html::percent(f(&sel["min_correction_gain"])),
-        mm(f(&sel["noise_p95_mm"])),
-        mm(f(&sel["noise_max_mm"]))
-    )));
+         used to choose).",
+        html::count(u(&sel["selection_points"]))
+    );
+    h.push(p(&if learned {
+        format!(
+            "{scored} A correction must lower the string model's mean by {} without raising \
+             its p95 by more than {} mm or its max by more than {} mm (their noise).",
+            html::percent(f(&sel["min_correction_gain"])),
+            mm(f(&sel["noise_p95_mm"])),
+            mm(f(&sel["noise_max_mm"]))
+        )
+    } else {
+        format!(
+            "{scored} No correction was learned, so none is held to the string model's p95 \
+             and max; the string model is held to the plain least-squares reference's mean."
+        )
+    }));
     h.push(t.html());
     let values: Vec<f64> = mean.iter().chain(&p95).flatten().copied().collect();
     if !values.is_empty() {

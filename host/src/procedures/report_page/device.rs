@@ -171,10 +171,20 @@ fn weights(d: &Value) -> Html {
         return Html::default();
     }
     let mut h = html::tag("h3", "The strings' weights");
+    // The report's typical scale is 0 when the strings' scatter was not
+    // measured: the kinematics' rule weighs every string alike.
+    let Some(typical) = f(&d["typical_scale_mm"]).filter(|s| *s > 0.0) else {
+        h.push(p(
+            "Every string pulls the position alike: the kinematics' rule does not weigh the \
+             strings by how much their lengths scatter, so no string's scatter is measured \
+             for the device.",
+        ));
+        return h;
+    };
     h.push(p(&format!(
         "A string whose length scatters more than the typical string's ({} mm) pulls the \
          position less.",
-        mm(f(&d["typical_scale_mm"]))
+        mm(Some(typical))
     )));
     let mut t = Table::new(&["string (channel)", "scale, mm", "weight"]);
     for w in weights {

@@ -15,6 +15,11 @@ pub(super) fn section(r: &Value, figures: Option<&FigureData>) -> Html {
         .iter()
         .filter(|e| e["added"].as_bool() == Some(true))
         .count();
+    if let Some(why) = r["identification"]["loop_not_run"].as_str() {
+        return p(&format!(
+            "None tried: the diagnosis loop did not run ({why})."
+        ));
+    }
     if effects.is_empty() {
         return p(&format!(
             "None significant: the identified model explains the residual of every string. A \

@@ -139,10 +139,7 @@ pub(super) fn count(v: Option<u64>) -> String {
     v.map_or_else(|| NONE.into(), |n| n.to_string())
 }
 
-/// "1 row", "3 rows".
-pub(super) fn plural(n: usize, one: &str, many: &str) -> String {
-    format!("{n} {}", if n == 1 { one } else { many })
-}
+pub(super) use crate::procedures::plural;
 
 /// A table cell: its content and whether it holds a number (right-aligned).
 pub(super) struct Cell {

@@ -4,6 +4,7 @@
 use serde_json::Value;
 
 use super::html::{self, f, list, mm, p, percent, s, sig, u, Cell, Html, Table};
+use crate::model::identify::{radius_string, value_with_sd, xyz_stem};
 
 /// Parameters listed one by one; beyond, the undetermined ones and a count.
 const LISTED: usize = 120;
@@ -51,7 +52,11 @@ pub(super) fn section(r: &Value) -> Html {
             html::bullets(warnings).0
         )));
     }
-    h.push(parameter_table(parameters));
+    h.push(parameter_table(
+        parameters,
+        &r["device"]["channels"],
+        &id["mechanical_advantage"],
+    ));
     h.push(tolerance(&r["anchor_tolerance"]));
     h
 }
@@ -59,7 +64,16 @@ pub(super) fn section(r: &Value) -> Html {
 /// The parameters in two tables: points and vectors (`name.x`, `.y`, `.z`
 /// of one unit, one row each) and scalars; the undetermined first when
 /// they are too many to list.
-fn parameter_table(parameters: &[Value]) -> Html {
+fn parameter_table(parameters: &[Value], channels: &Value, advantage: &Value) -> Html {
+    // A string's `r_home` is its effective radius: the spool's over its
+    // mechanical advantage (its position in `channels`).
+    let advantage_of = |name: &str| -> Option<f64> {
+        let string = radius_string(name)?;
+        let k = list(channels)
+            .iter()
+            .position(|c| c.as_u64() == Some(string as u64))?;
+        f(list(advantage).get(k)?).filter(|ma| *ma != 1.0)
+    };
     let listed: Vec<&Value> = if parameters.len() <= LISTED {
         parameters.iter().collect()
     } else {
@@ -94,8 +108,15 @@ fn parameter_table(parameters: &[Value]) -> Html {
             k += 3;
         } else {
             let v = listed[k];
+            let name = match advantage_of(s(&v["name"])) {
+                Some(ma) => format!(
+                    "{} (effective radius: the spool's / mechanical advantage {ma})",
+                    s(&v["name"])
+                ),
+                None => s(&v["name"]).to_string(),
+            };
             let cells = vec![
-                Cell::text(s(&v["name"])),
+                Cell::text(&name),
                 Cell::num(with_sd(v)),
                 Cell::text(s(&v["unit"])),
                 Cell::num(sig(f(&v["prior_sd"]))),
@@ -125,11 +146,11 @@ fn parameter_table(parameters: &[Value]) -> Html {
 /// `name.x`, `name.y`, `name.z` of one unit at the head of `rest`.
 fn xyz_group<'a>(rest: &[&'a Value]) -> Option<(&'a str, [&'a Value; 3])> {
     let [x, y, z]: [&'a Value; 3] = rest.get(..3)?.try_into().ok()?;
-    let stem = s(&x["name"]).strip_suffix(".x")?;
-    let same = |v: &Value, axis: &str| {
-        s(&v["name"]).strip_suffix(axis) == Some(stem) && v["unit"] == x["unit"]
-    };
-    (same(y, ".y") && same(z, ".z")).then_some((stem, [x, y, z]))
+    let stem = xyz_stem(
+        [x, y, z].map(|v| s(&v["name"])),
+        [x, y, z].map(|v| s(&v["unit"])),
+    )?;
+    Some((stem, [x, y, z]))
 }
 
 fn push_row(table: &mut Table, cells: Vec<Cell>, values: &[&Value]) {
@@ -170,11 +191,9 @@ fn shared(texts: [String; 3]) -> String {
 /// significant digits of the sd).
 fn with_sd(v: &Value) -> String {
     match (f(&v["value"]), f(&v["sd"])) {
-        (Some(value), Some(sd)) if sd > 0.0 && value.abs() < 1e9 => {
-            let decimals = (1 - sd.log10().floor() as i32).clamp(0, 9) as usize;
-            format!("{value:.decimals$} ± {sd:.decimals$}")
+        (Some(value), sd) => {
+            value_with_sd(value, sd.unwrap_or(f64::NAN)).unwrap_or_else(|| sig(Some(value)))
         }
-        (Some(value), _) => sig(Some(value)),
         (None, _) => html::NONE.into(),
     }
 }

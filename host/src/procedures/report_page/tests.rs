@@ -173,3 +173,31 @@ fn a_calibration_the_device_cannot_run_as_reported_is_a_warning() {
         "{w:?}"
     );
 }
+
+/// A string's `r_home` is named the effective radius (the spool's over its
+/// mechanical advantage) when that advantage is not 1: a Hangprinter user
+/// reading 37.9 mm expects the spool's 75 mm (a survey's finding F5e).
+#[test]
+fn a_radius_under_a_mechanical_advantage_is_named_the_effective_one() {
+    let mut r = small_report();
+    let radius = |k: usize, v: f64| {
+        json!({"name": format!("string{k}.r_home"), "unit": "mm", "value": v, "sd": 0.09,
+               "prior_sd": null, "determined": true})
+    };
+    r["device"] = json!({"channels": [0, 1]});
+    r["identification"] = json!({
+        "parameters": [radius(0, 37.94), radius(1, 7.5)],
+        "mechanical_advantage": [2.0, 1.0]
+    });
+    let page = render(&r, None);
+    assert!(
+        page.contains(
+            "string0.r_home (effective radius: the spool&#39;s / mechanical advantage 2)"
+        ),
+        "string 0"
+    );
+    assert!(
+        page.contains(">string1.r_home<"),
+        "string 1 has no advantage"
+    );
+}

@@ -133,6 +133,34 @@ fn tracker_outlier_warnings_name_their_lines() {
     assert!(w.contains("40 rows") && w.contains("all are kept"), "{w}");
 }
 
+/// One row is one row: "the tracker of 1 row disagrees with most of its
+/// strings ... line 7", never "1 rows" (a survey's finding).
+#[test]
+fn one_tracker_outlier_is_one_row() {
+    use crate::model::diagnose::TrackerOutliers;
+    let one = TrackerOutliers {
+        rows: vec![5],
+        lines: vec![7],
+        errors_mm: vec![50.0],
+        median_mm: 0.9,
+        threshold_mm: 18.0,
+        kept_too_many: 0,
+    };
+    let w = tracker_outlier_warning(Path::new("train.csv"), &one).unwrap();
+    assert!(
+        w.contains("the tracker of 1 row disagrees with most of its strings")
+            && w.contains("it is read as an occluded row")
+            && w.contains(": line 7 (50 mm)"),
+        "{w}"
+    );
+    let t = test_outlier_warning(Path::new("test.csv"), &one).unwrap();
+    assert!(
+        t.contains("the tracker of 1 row disagrees with most of its strings")
+            && t.contains("include it: line 7 (50 mm)"),
+        "{t}"
+    );
+}
+
 /// The tracker's spread against the nominal model's: at a factor of 3
 /// a warning, at 5 a refusal naming the unit it looks like, both ways;
 /// the paper-sized factor of 2 passes; too few rows say nothing.

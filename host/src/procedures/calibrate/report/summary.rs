@@ -8,6 +8,7 @@ use std::fmt::Write as _;
 use serde::Serialize;
 
 use super::{Choice, Report, Stage};
+use crate::model::identify::{radius_string, value_with_sd, xyz_stem, ParameterEstimate};
 use crate::procedures::calibrate::{align, MIN_SELECTION_POINTS};
 
 fn stage_table(out: &mut String, stages: &[Stage]) {
@@ -64,6 +65,14 @@ fn label<T: Serialize>(value: &T) -> String {
     }
 }
 
+/// Parameter lines in the summary; the rest are counted.
+const PARAMETER_LINES: usize = 24;
+
+/// A parameter's value and its sd (the value alone when it has none).
+fn estimate(p: &ParameterEstimate) -> String {
+    value_with_sd(p.value, p.sd).unwrap_or_else(|| format!("{:.4}", p.value))
+}
+
 fn pct(v: f64) -> String {
     format!("{:.0} %", 100.0 * v)
 }
@@ -77,6 +86,7 @@ impl Report {
         self.write_inputs(&mut o);
         self.write_error_tables(&mut o);
         self.write_effects(&mut o);
+        self.write_parameters(&mut o);
         self.write_corrections(&mut o);
         self.write_warnings(&mut o);
         self.write_time(&mut o);
@@ -194,7 +204,9 @@ impl Report {
     /// The effects diagnosis found (or the smallest it would have seen).
     fn write_effects(&self, o: &mut String) {
         let _ = writeln!(o, "\nEffects found by diagnosis:");
-        if self.effects.is_empty() {
+        if let Some(why) = &self.identification.loop_not_run {
+            let _ = writeln!(o, "  none tried: the diagnosis loop did not run ({why})");
+        } else if self.effects.is_empty() {
             let _ = writeln!(
                 o,
                 "  none significant: the identified model explains the residual (a constant \
@@ -226,6 +238,67 @@ impl Report {
             if let Some(check) = &f.validation {
                 let _ = writeln!(o, "            {}", check.reason);
             }
+        }
+    }
+
+    /// The identified parameters with their sds, one line per point (an
+    /// anchor, the home, the tracker's frame) or scalar, as the page groups
+    /// them; the first [`PARAMETER_LINES`], the rest counted.
+    fn write_parameters(&self, o: &mut String) {
+        let params = &self.identification.parameters;
+        if params.is_empty() {
+            return;
+        }
+        let _ = writeln!(o, "\nIdentified parameters (value ± sd):");
+        let mut lines: Vec<(String, String)> = Vec::new();
+        let mut k = 0;
+        while k < params.len() {
+            let group = params.get(k..k + 3).and_then(|g| {
+                xyz_stem(
+                    [0, 1, 2].map(|i| g[i].name.as_str()),
+                    [0, 1, 2].map(|i| g[i].unit.as_str()),
+                )
+                .map(|stem| (stem, g))
+            });
+            let (name, members) = match group {
+                Some((stem, g)) => (stem.to_string(), g),
+                None => (params[k].name.clone(), &params[k..k + 1]),
+            };
+            k += members.len();
+            let values: Vec<String> = members.iter().map(estimate).collect();
+            let mut line = format!("{} {}", values.join(", "), members[0].unit);
+            let undetermined: Vec<&str> = members
+                .iter()
+                .filter(|p| !p.determined)
+                .map(|p| p.name.rsplit('.').next().unwrap_or(""))
+                .collect();
+            if !undetermined.is_empty() {
+                let which = if members.len() == 1 {
+                    String::new()
+                } else {
+                    format!(" ({})", undetermined.join(", "))
+                };
+                line.push_str(&format!("; not determined{which}: about the prior"));
+            }
+            if let Some(ma) = radius_string(&name)
+                .and_then(|s| self.identification.advantage_of(&self.device.channels, s))
+            {
+                line.push_str(&format!(
+                    "; the effective radius: the spool's radius / mechanical advantage {ma}"
+                ));
+            }
+            lines.push((name, line));
+        }
+        let width = lines.iter().map(|l| l.0.chars().count()).max().unwrap_or(0);
+        for (name, line) in lines.iter().take(PARAMETER_LINES) {
+            let _ = writeln!(o, "  {name:width$}  {line}");
+        }
+        if lines.len() > PARAMETER_LINES {
+            let _ = writeln!(
+                o,
+                "  and {} more (report.json and report.html have them all)",
+                lines.len() - PARAMETER_LINES
+            );
         }
     }
 
