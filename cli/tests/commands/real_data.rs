@@ -486,6 +486,39 @@ fn a_tracker_in_metres_is_refused_naming_the_unit() {
     assert!(!dir.join("out-test").join("calibration.json").exists());
 }
 
+/// The Hangprinter's geometry with anchor B's x typed 500 mm off, and with
+/// anchor D's height: the anchor is named (the fit held it 220 mm off the
+/// truth with an sd of 9 mm, the held-out error ordinary, no warning); as
+/// written, none is.
+#[test]
+fn an_anchor_typed_500_mm_off_is_named() {
+    let (g, train, test) = load();
+    let d = data_dir();
+    let named = |g: &Geometry| -> Vec<String> {
+        let c = calibrate_quick(
+            g,
+            (&d.join("train.csv"), &train),
+            (&d.join("test.csv"), &test),
+        );
+        c.report
+            .warnings
+            .into_iter()
+            .filter(|w| w.contains("beyond what every anchor moved alike"))
+            .collect()
+    };
+    assert_eq!(named(&g), Vec::<String>::new());
+    for (anchor, axis) in [(1, 0), (3, 2)] {
+        let mut typo = g.clone();
+        typo.anchors_mm[anchor][axis] += 500.0;
+        let w = named(&typo);
+        assert_eq!(w.len(), 1, "{w:?}");
+        assert!(
+            w[0].starts_with(&format!("anchor {anchor} is identified")),
+            "{w:?}"
+        );
+    }
+}
+
 /// The Hangprinter's geometry with lines C and D's mechanical advantages
 /// swapped (`[2, 2, 4, 2]` for `[2, 2, 2, 4]`): the identification takes
 /// the factor into the two radii, and the report names both strings and

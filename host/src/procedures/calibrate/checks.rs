@@ -787,3 +787,92 @@ pub(super) fn radius_warnings(
         })
         .collect()
 }
+
+/// An anchor identified this many times further from the geometry's than
+/// the other anchors' median departure is named ...
+const ANCHOR_APART_FACTOR: f64 = 3.0;
+/// ... when its departure is also this many sds of its estimate.
+const ANCHOR_APART_SDS: f64 = 3.0;
+
+/// Warnings for anchors the identification places far from the geometry's
+/// where the other anchors stay near theirs: a coordinate mistyped (or an
+/// anchor moved). A prior around the typo holds the anchor part of the
+/// way and the rest of the model bends round it, so the held-out error
+/// stays ordinary and nothing else says so (the Hangprinter with one
+/// anchor's x typed 500 mm off: identified 286 mm from the geometry's with
+/// an sd of 9 mm, the others 61-169 mm; as written, 32-46 mm).
+pub(super) fn anchor_departure_warnings(
+    geometry_path: &Path,
+    geometry: &Geometry,
+    id: &crate::model::identify::Identification,
+) -> Vec<String> {
+    let nominal = geometry.nominal_frame();
+    let sd_of = |name: String| {
+        id.parameters
+            .iter()
+            .find(|p| p.name == name)
+            .map_or(0.0, |p| p.sd)
+    };
+    let moved = |k: usize, c: usize| id.frame.anchors[k][c] - nominal.anchors[k][c];
+    // What every anchor moved alike (the frame shifted: a typo in the top
+    // anchor's height lowered the three others 110-150 mm), the median of
+    // each coordinate's moves, is no anchor's own departure.
+    let common: [f64; 3] = core::array::from_fn(|c| {
+        let mut moves: Vec<f64> = nominal.layout.indices().map(|k| moved(k, c)).collect();
+        crate::data::stats::median(&mut moves)
+    });
+    let departures: Vec<(usize, f64, f64)> = nominal
+        .layout
+        .indices()
+        .map(|k| {
+            let d: [f64; 3] = core::array::from_fn(|c| moved(k, c) - common[c]);
+            let norm = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+            // The estimate's sd along the departure.
+            let along: f64 = ["x", "y", "z"]
+                .iter()
+                .zip(d)
+                .map(|(c, dc)| {
+                    let u = if norm > 0.0 { dc / norm } else { 0.0 };
+                    (u * sd_of(format!("anchor{k}.{c}"))).powi(2)
+                })
+                .sum::<f64>()
+                .sqrt();
+            (k, norm, along)
+        })
+        .collect();
+    if departures.len() < 3 {
+        return Vec::new();
+    }
+    // The one anchor furthest apart: the fit bends the others round a
+    // typo, and the next one out is then named for it (anchor 2, 112 mm
+    // beside the typo's 344).
+    let mut named: Vec<(f64, String)> = departures
+        .iter()
+        .filter_map(|&(k, norm, sd)| {
+            let mut others: Vec<f64> = departures
+                .iter()
+                .filter(|o| o.0 != k)
+                .map(|o| o.1)
+                .collect();
+            let median = crate::data::stats::median(&mut others);
+            let apart = norm / median.max(f64::MIN_POSITIVE);
+            (apart >= ANCHOR_APART_FACTOR && norm > ANCHOR_APART_SDS * sd).then(|| {
+                (
+                    apart,
+                    format!(
+                        "anchor {k} is identified {norm:.0} mm from the geometry's ({}: {:?}) \
+                         beyond what every anchor moved alike, {apart:.1} times the other \
+                         anchors' departures (median {median:.0} mm): check anchor {k}'s \
+                         coordinates (a typo, an anchor moved, or measured at another point of \
+                         its pulley). The estimate is held toward the geometry's by the anchors' \
+                         tolerance: with the geometry corrected, calibrate again",
+                        geometry_path.display(),
+                        nominal.anchors[k],
+                    ),
+                )
+            })
+        })
+        .collect();
+    named.sort_by(|a, b| b.0.total_cmp(&a.0));
+    named.into_iter().take(1).map(|(_, w)| w).collect()
+}

@@ -21,9 +21,9 @@ use crate::model::reference;
 use crate::model::rule::RuleChoice;
 
 use super::checks::{
-    check_alignment, check_enough_tracked_rows, check_tracker_scale, radius_warnings,
-    test_outlier_warning, tracker_outlier_warning, unfitted_warning, unpaired_rows_warnings,
-    Regime,
+    anchor_departure_warnings, check_alignment, check_enough_tracked_rows, check_tracker_scale,
+    radius_warnings, test_outlier_warning, tracker_outlier_warning, unfitted_warning,
+    unpaired_rows_warnings, Regime,
 };
 use super::evaluate::{room_positions, stage, PerSession, StageErrors, StageList};
 use super::loop_rows::LoopRows;
@@ -665,6 +665,11 @@ impl Run<'_> {
             self.geometry_path,
             geometry,
             &loop_result.base.laws,
+        ));
+        self.warnings.extend(anchor_departure_warnings(
+            self.geometry_path,
+            geometry,
+            &loop_result.base,
         ));
 
         // From here on the sessions are read at the strings' meeting point when
