@@ -248,7 +248,7 @@ fn check_home(frame: &Frame<f64>) -> Result<(), Implausible> {
         .fold(0.0, f64::max);
     let distance_mm = distance(&frame.home, &centre);
     // A NaN home is in no range: refused too.
-    if !(distance_mm <= FAR_BEYOND_FACTOR * extent_mm.max(MIN_ANCHOR_SEPARATION_MM)) {
+    if !(..=FAR_BEYOND_FACTOR * extent_mm.max(MIN_ANCHOR_SEPARATION_MM)).contains(&distance_mm) {
         return Err(Implausible::HomeFarBeyond {
             distance_mm,
             extent_mm,
