@@ -71,6 +71,12 @@ pub enum Implausible {
     },
     /// `frame.home` lies orders of magnitude beyond the anchors' frame.
     HomeFarBeyond { distance_mm: f64, extent_mm: f64 },
+    /// `strings[string].winding_mm`: the payout already falls (or stands
+    /// still) as the counts rise at home: the winding radius at home
+    /// (`radius_mm`, the slope there) is not positive. The string's counts
+    /// fall as it pays out: a reversed encoder, or two strings' encoder
+    /// channels swapped.
+    CountsFallAtHome { string: u8, radius_mm: f64 },
     /// `strings[string].winding_mm`: the payout stops rising (falls as the
     /// counts rise) at `paid_out_mm` from home, inside the range the frame
     /// needs (`needed_mm`, negative: winding up toward the anchor).
@@ -115,6 +121,13 @@ impl fmt::Display for Implausible {
                 f,
                 "frame.home is {distance_mm:.4e} mm from the anchors' centre, orders of magnitude \
                  beyond the frame they span ({extent_mm:.1} mm from that centre to the farthest)"
+            ),
+            Implausible::CountsFallAtHome { string, radius_mm } => write!(
+                f,
+                "strings[{string}].winding_mm: the winding radius at home is {radius_mm:.3} mm, \
+                 not positive: the string's counts fall as it pays out (a reversed encoder, or \
+                 two strings' encoder channels swapped); a device's counts rise as its string \
+                 pays out"
             ),
             Implausible::PayoutFalls {
                 string,
@@ -245,8 +258,10 @@ fn check_home(frame: &Frame<f64>) -> Result<(), Implausible> {
     Ok(())
 }
 
-/// Marches the pulley angle from home toward `needed_mm` of payout (either
-/// sign) and refuses a slope that is not positive before it is reached.
+/// Refuses a slope at home that is not positive (the counts fall as the
+/// string pays out), then marches the pulley angle from home toward
+/// `needed_mm` of payout (either sign) and refuses a slope that is not
+/// positive before it is reached.
 fn check_payout(frame: &Frame<f64>, i: usize, law: &StringLaw) -> Result<(), Implausible> {
     let anchor = &frame.anchors[i];
     let home_length = distance(anchor, &frame.home);
@@ -264,7 +279,10 @@ fn check_payout(frame: &Frame<f64>, i: usize, law: &StringLaw) -> Result<(), Imp
     let rises = |slope: f64| slope > 0.0;
     let slope_at_home = polynomial_slope_f64(law, 0.0);
     if !rises(slope_at_home) {
-        return Err(falls(0.0, 0.0));
+        return Err(Implausible::CountsFallAtHome {
+            string: i as u8,
+            radius_mm: slope_at_home,
+        });
     }
     for needed_mm in [(across - home_length).max(0.0), -home_length] {
         // At the slope at home the angle needed; a law whose slope shrinks

@@ -88,14 +88,31 @@ fn a_home_orders_of_magnitude_beyond_the_frame_is_refused() {
 fn a_payout_that_falls_is_refused() {
     let frame = cube_frame([0.0; 3]);
     // A negative winding rate: the payout falls as the counts rise.
+    // It falls from home on: the string's counts fall as it pays out, and
+    // the message says so (not "stops rising at 0.0 mm, inside 0.0 mm").
     let mut strings = laws();
     strings[5].winding_mm = [-12.0, 0.0, 0.0, 0.0];
     let e = check_device(&frame, &strings).unwrap_err();
-    assert!(
-        matches!(e, Implausible::PayoutFalls { string: 5, .. }),
-        "{e}"
+    assert_eq!(
+        e,
+        Implausible::CountsFallAtHome {
+            string: 5,
+            radius_mm: -12.0
+        }
     );
-    assert!(e.to_string().contains("strings[5].winding_mm"), "{e}");
+    let message = e.to_string();
+    assert!(message.contains("strings[5].winding_mm"), "{message}");
+    assert!(message.contains("-12.000 mm"), "{message}");
+    assert!(message.contains("counts fall as it pays out"), "{message}");
+    assert!(message.contains("reversed encoder"), "{message}");
+    assert!(message.contains("channels swapped"), "{message}");
+    assert!(!message.contains("0.0 mm this frame needs"), "{message}");
+    // A spool that stands still at home is no device either.
+    strings[5].winding_mm = [0.0, 0.0, 0.0, 0.0];
+    assert!(matches!(
+        check_device(&frame, &strings),
+        Err(Implausible::CountsFallAtHome { string: 5, .. })
+    ));
     // A spool that empties before the string crosses the frame: the
     // payout peaks at 12^2 / (4 x 0.1) = 360 mm.
     let mut strings = laws();

@@ -16,6 +16,7 @@ use crate::data::impossible::{SetAside, NOMINAL_SCALE_LIMIT};
 use crate::data::observe::Observation;
 use crate::model::identify::Structure;
 
+use super::corrections::shows_above;
 use super::{align, report, trust, CalibrateError, NamedSession, StagePoints};
 use crate::procedures::plural;
 
@@ -639,7 +640,8 @@ pub(super) fn trust_warnings(
 /// (`anchor_sd_mm`) and the data contradict it: the plain least-squares
 /// reference, which has no prior, places an anchor beyond the 0.1 %
 /// chi-square of that tolerance from the drawing, and the identified model
-/// (held to the tolerance) is worse than the reference on the test session.
+/// (held to the tolerance) is worse than the reference on the test session
+/// (by more than the report's micrometre, [`super::corrections::SELECTION_TIE_MM`]).
 /// The warning names the anchor, how far, in sds, and both figures.
 pub(super) fn declared_tolerance_warning(
     declared_sd_mm: Option<&[f64; STRINGS]>,
@@ -656,8 +658,9 @@ pub(super) fn declared_tolerance_warning(
     };
     let identified = test_mean(report::StageKind::Identified)?;
     let plain = test_mean(report::StageKind::Reference)?;
-    // Not where the identified model is as good, nor on figures not finite.
-    if identified.partial_cmp(&plain) != Some(std::cmp::Ordering::Greater) {
+    // Not where the identified model is as good as the report shows the
+    // two, nor on figures not finite.
+    if !shows_above(identified, plain) {
         return None;
     }
     // Exceeded with probability 0.001 when the tolerance is right: 2
@@ -682,7 +685,8 @@ pub(super) fn declared_tolerance_warning(
 }
 
 /// A warning when the final model's held-out mean is above the plain
-/// least-squares reference's, naming what the calibration adds to a plain
+/// least-squares reference's (by more than the report's micrometre,
+/// [`super::corrections::SELECTION_TIE_MM`]; each comparison below too), naming what the calibration adds to a plain
 /// fit that lost on this test session: the learned correction (the final
 /// stage above the model it corrects), the kinematics' rule (the final
 /// identified model placing the rows as the reference does beats the
@@ -701,21 +705,23 @@ pub(super) fn reference_warning(
     };
     let reference = of(report::StageKind::Reference).next()?.test.mean_mm;
     let fin = of(report::StageKind::Final).next()?;
-    if fin.test.mean_mm <= reference {
+    // Above as the report shows the figures: a difference it cannot show
+    // is no loss, here as in the selection.
+    if !shows_above(fin.test.mean_mm, reference) {
         return None;
     }
     let identified = of(report::StageKind::Identified).next()?.test.mean_mm;
     let model = of(report::StageKind::Effect)
         .next_back()
         .map_or(identified, |s| s.test.mean_mm);
-    let lost = if fin.test.mean_mm > model && model <= reference {
+    let lost = if shows_above(fin.test.mean_mm, model) && !shows_above(model, reference) {
         format!("the learned correction ({} on {model:.3} mm)", fin.name)
-    } else if plain_rule_test_mm <= reference {
+    } else if !shows_above(plain_rule_test_mm, reference) {
         format!(
             "the kinematics' rule (the same model placing every row with all its strings alike: \
              {plain_rule_test_mm:.3} mm)"
         )
-    } else if identified <= reference {
+    } else if !shows_above(identified, reference) {
         format!("the loop's terms (the base identification: {identified:.3} mm)")
     } else {
         format!(

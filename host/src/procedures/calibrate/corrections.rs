@@ -333,10 +333,19 @@ pub(super) fn identification_only(data: &ResidualData, reason: String) -> Judgem
     }
 }
 
-/// Means on the selection split closer than this (mm) are one figure: the
-/// report gives them to the micrometre, and a selection split of tens of
-/// points under a tracker of tenths of a millimetre cannot order them.
+/// Means closer than this (mm) are one figure: the report gives them to
+/// the micrometre, and a selection split of tens of points under a tracker
+/// of tenths of a millimetre cannot order them. The selection holds to the
+/// reference by it, and the warnings that compare held-out means with the
+/// reference's use it too ([`shows_above`]): a warning then names a
+/// difference the report can show.
 pub const SELECTION_TIE_MM: f64 = 0.0005;
+
+/// Whether `mean_mm` is above `other_mm` as the report shows them: by more
+/// than [`SELECTION_TIE_MM`]. A figure not finite is above nothing.
+pub(super) fn shows_above(mean_mm: f64, other_mm: f64) -> bool {
+    mean_mm > other_mm + SELECTION_TIE_MM
+}
 
 /// Holds the choice to the plain least-squares reference on the selection
 /// split: the reference's statistics on the same rows go into `judgement`
@@ -361,7 +370,7 @@ pub(super) fn hold_to_reference(
             .collect::<Vec<f64>>(),
     );
     let chosen_mean = judgement.chosen_stats().mean_mm;
-    let fall_back = judgement.reference.mean_mm < chosen_mean - SELECTION_TIE_MM;
+    let fall_back = shows_above(chosen_mean, judgement.reference.mean_mm);
     if fall_back {
         judgement.reason = format!(
             "the plain least-squares reference: {} has {:.3} mm on the selection split, the \
