@@ -239,9 +239,9 @@ fn a_test_stream_after_the_tracker_restarted_is_aligned_on_its_own() {
 }
 
 /// Rows at 10 Hz are a stream, as the session format says: their times,
-/// written in decimal, step by a hair more than 0.1 s (0.30000000000000004
-/// - 0.2), which read them as poses, never re-paired (a tracker 0.3 s
-/// ahead: 190 mm held out, and a room scale of 1e8).
+/// written in decimal, step by a hair more than 0.1 s (0.3 written
+/// 0.30000000000000004, less 0.2), which read them as poses, never
+/// re-paired (a tracker 0.3 s ahead: 190 mm held out, a room scale of 1e8).
 #[test]
 fn a_ten_hertz_stream_is_aligned() {
     let mut c = config(4, true);

@@ -247,6 +247,9 @@ fn alignment_failed(path: &Path, rows: &[Observation], e: align::AlignError) -> 
     }
 }
 
+/// The nominal model's room positions of each session's rows.
+type RawPositions = PerSession<Vec<[f64; 3]>>;
+
 /// Stage 1, raw: the nominal geometry through the device pipeline (the
 /// training rows' positions `raw_train` when the alignment worked them out).
 fn raw_errors(
@@ -254,7 +257,7 @@ fn raw_errors(
     nominal: &spidar_core::model::Frame<f64>,
     nominal_laws: &[spidar_core::model::StringLaw; spidar_core::STRINGS],
     raw_train: Option<Vec<[f64; 3]>>,
-) -> Result<(StageErrors, PerSession<Vec<[f64; 3]>>), StatsError> {
+) -> Result<(StageErrors, RawPositions), StatsError> {
     let raw_model = KinematicModel {
         frame: nominal,
         laws: nominal_laws,
@@ -575,16 +578,7 @@ impl Run<'_> {
         let t = Instant::now();
         let (mut raw, raw_positions) = raw_errors(obs, &nominal, &nominal_laws, raw_train)?;
         self.timings.raw_s = t.elapsed().as_secs_f64();
-        // Each session's tracker in the geometry's unit: a test session in
-        // metres held out 670 mm, blamed on the priors.
-        for (path, rows, raw_rows) in [
-            (train.path, &tr, &raw_positions.train),
-            (test.path, &te, &raw_positions.test),
-        ] {
-            if let Some(w) = check_tracker_scale(path, self.geometry_path, rows, raw_rows)? {
-                self.warnings.push(w);
-            }
-        }
+        self.check_tracker_units([(train.path, &tr), (test.path, &te)], &raw_positions)?;
         // 2-3. Identification and the diagnosis loop.
         let regime = check_enough_tracked_rows(train.path, &tr, &nominal)?;
         self.warnings.extend(regime.reason.clone());
@@ -661,16 +655,7 @@ impl Run<'_> {
         let reference = self.reference(obs, &loop_rows.pick(obs.train), &nominal, &mut list)?;
         self.warnings
             .extend(unfitted_warning(train.path, &tr, &list.stages));
-        self.warnings.extend(radius_warnings(
-            self.geometry_path,
-            geometry,
-            &loop_result.base.laws,
-        ));
-        self.warnings.extend(anchor_departure_warnings(
-            self.geometry_path,
-            geometry,
-            &loop_result.base,
-        ));
+        self.warn_of_the_geometry(&loop_result.base);
 
         // From here on the sessions are read at the strings' meeting point when
         // the loop found the tracked body's origin off it (the errors are then
@@ -708,6 +693,41 @@ impl Run<'_> {
             loop_rows,
             training_home,
         })
+    }
+
+    /// Each session's tracker in the geometry's unit (a test session in
+    /// metres held out 670 mm, blamed on the priors): refused far off,
+    /// warned of nearer.
+    fn check_tracker_units(
+        &mut self,
+        [train, test]: [(&Path, &[Observation]); 2],
+        raw: &RawPositions,
+    ) -> Result<(), CalibrateError> {
+        for ((path, rows), raw_rows) in [(train, &raw.train), (test, &raw.test)] {
+            self.warnings.extend(check_tracker_scale(
+                path,
+                self.geometry_path,
+                rows,
+                raw_rows,
+            )?);
+        }
+        Ok(())
+    }
+
+    /// What the identified model `base` says of the geometry as written:
+    /// a string's mechanical advantage or an anchor's coordinate that is
+    /// another's or mistyped.
+    fn warn_of_the_geometry(&mut self, base: &Identification) {
+        self.warnings.extend(radius_warnings(
+            self.geometry_path,
+            self.geometry,
+            &base.laws,
+        ));
+        self.warnings.extend(anchor_departure_warnings(
+            self.geometry_path,
+            self.geometry,
+            base,
+        ));
     }
 
     /// Both sessions, as recorded, paired anew once the loop's latency
