@@ -98,12 +98,14 @@ fn svr_matches_libsvm() {
         // The solutions agree to the accuracy the KKT tolerance buys. At the
         // default tol (1e-3) both solvers stop a little short of the optimum;
         // where their paths part (a one-ulp kernel difference is enough) they
-        // stop at different points of the tolerance region: measured 1.9e-3
+        // stop at different points of the tolerance region: measured 3.2e-3
         // on the ill-conditioned "paper" case (C = 100, coefficients up to C,
-        // large cancellations), 8e-4 on "bounded", and 4e-6 at tol 1e-6.
+        // large cancellations; 1.9e-3 when the fixture's numbers were read a
+        // unit in the last place off, while libsvm's own steps now agree
+        // with libsvm to 2e-13), 8e-4 on "bounded", and 4e-6 at tol 1e-6.
         let (pred_tol, obj_tol) = match case.name.as_str() {
             "tight" => (1e-5, 1e-8),
-            "paper" => (2.5e-3, 2e-4),
+            "paper" => (4e-3, 2e-4),
             _ => (1e-3, 1e-5),
         };
         for (a, ax) in case.axes.iter().enumerate() {

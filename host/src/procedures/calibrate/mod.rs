@@ -525,6 +525,9 @@ impl Run<'_> {
     /// The report of the run, from what its stages found.
     fn report(self, f: Findings<'_>) -> Report {
         let fin = &f.loop_result.identification;
+        let notes = align::rate_not_fitted_note(&f.timing.train)
+            .into_iter()
+            .collect();
         Report {
             schema: SCHEMA,
             tool: report::Tool::current(),
@@ -560,7 +563,7 @@ impl Run<'_> {
             device_slips: f.device_slips,
             blackbox: f.blackbox,
             warnings: self.warnings,
-            notes: Vec::new(),
+            notes,
             timings_s: self.timings,
             figures: Vec::new(),
             files: report::Files::default(),
