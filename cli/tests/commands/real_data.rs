@@ -486,26 +486,31 @@ fn a_tracker_in_metres_is_refused_naming_the_unit() {
     assert!(!dir.join("out-test").join("calibration.json").exists());
 }
 
+/// The warnings containing `text` of the quick calibration of the
+/// Hangprinter's sessions under geometry `g` (a variant of its own).
+fn warnings_of(g: &Geometry, text: &str) -> Vec<String> {
+    let (_, train, test) = load();
+    let d = data_dir();
+    let c = calibrate_quick(
+        g,
+        (&d.join("train.csv"), &train),
+        (&d.join("test.csv"), &test),
+    );
+    c.report
+        .warnings
+        .into_iter()
+        .filter(|w| w.contains(text))
+        .collect()
+}
+
 /// The Hangprinter's geometry with anchor B's x typed 500 mm off, and with
 /// anchor D's height: the anchor is named (the fit held it 220 mm off the
 /// truth with an sd of 9 mm, the held-out error ordinary, no warning); as
 /// written, none is.
 #[test]
 fn an_anchor_typed_500_mm_off_is_named() {
-    let (g, train, test) = load();
-    let d = data_dir();
-    let named = |g: &Geometry| -> Vec<String> {
-        let c = calibrate_quick(
-            g,
-            (&d.join("train.csv"), &train),
-            (&d.join("test.csv"), &test),
-        );
-        c.report
-            .warnings
-            .into_iter()
-            .filter(|w| w.contains("beyond what every anchor moved alike"))
-            .collect()
-    };
+    let g = load().0;
+    let named = |g: &Geometry| warnings_of(g, "beyond what every anchor moved alike");
     assert_eq!(named(&g), Vec::<String>::new());
     for (anchor, axis) in [(1, 0), (3, 2)] {
         let mut typo = g.clone();
@@ -527,20 +532,8 @@ fn an_anchor_typed_500_mm_off_is_named() {
 /// geometry as written names none.
 #[test]
 fn a_mechanical_advantage_written_for_another_line_is_named() {
-    let (mut g, train, test) = load();
-    let d = data_dir();
-    let named = |g: &Geometry| -> Vec<String> {
-        let c = calibrate_quick(
-            g,
-            (&d.join("train.csv"), &train),
-            (&d.join("test.csv"), &test),
-        );
-        c.report
-            .warnings
-            .into_iter()
-            .filter(|w| w.contains("radius at home"))
-            .collect()
-    };
+    let mut g = load().0;
+    let named = |g: &Geometry| warnings_of(g, "radius at home");
     assert_eq!(named(&g), Vec::<String>::new());
     g.mechanical_advantage.swap(2, 3);
     let w = named(&g);
