@@ -336,6 +336,9 @@ pub fn rate_not_fitted_note(timing: &SessionTiming) -> Option<String> {
     let SessionTiming::Aligned(a) = timing else {
         return None;
     };
+    // The offset refers to the middle of the stream's placed rows, and a
+    // session's `t_s` starts near 0 (the format refuses a clock's
+    // timestamp): twice it is the span the alignment saw.
     let span_s = 2.0 * a.reference_t_s;
     (a.drift_ppm == 0.0 && span_s < DRIFT_MIN_SPAN_S).then(|| {
         format!(
