@@ -311,3 +311,47 @@ fn a_row_repeated_exactly_is_set_aside_naming_both_lines() {
     assert_eq!(report["stages"], clean["stages"]);
     std::fs::remove_dir_all(&rig.dir).ok();
 }
+
+/// Rows stamped with the time of the row before though the strings moved
+/// (a log whose timestamps are coarser than its rows) are named with both
+/// lines in a warning; the rows stay in (they are not repeats), and a
+/// session without them has no such warning.
+#[test]
+fn rows_stamped_at_the_time_before_while_moving_are_named() {
+    let rig = rig("coarse");
+    let (o, clean) = rig.calibrate(&rig.train, &rig.test, "clean", &[]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(
+        !warned(&clean, &["the `t_s` of the row before"]),
+        "{}",
+        clean["warnings"]
+    );
+    let text = std::fs::read_to_string(&rig.train).unwrap();
+    let mut lines: Vec<String> = text.lines().map(str::to_string).collect();
+    // Line 8 stamped with line 7's time.
+    let t_before = lines[6].split(',').next().unwrap().to_string();
+    let mut fields: Vec<String> = lines[7].split(',').map(str::to_string).collect();
+    fields[0] = t_before;
+    lines[7] = fields.join(",");
+    let train = rig.dir.join("train-coarse.csv");
+    std::fs::write(&train, lines.join("\n") + "\n").unwrap();
+    let (o, report) = rig.calibrate(&train, &rig.test, "coarse", &[]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(
+        warned(
+            &report,
+            &[
+                "train-coarse.csv",
+                "1 row carries the `t_s` of the row before",
+                "Lines 7 and 8"
+            ]
+        ),
+        "{}",
+        report["warnings"]
+    );
+    assert_eq!(
+        report["inputs"]["train"]["tracked"],
+        clean["inputs"]["train"]["tracked"]
+    );
+    std::fs::remove_dir_all(&rig.dir).ok();
+}

@@ -261,6 +261,32 @@ impl Session {
             .collect()
     }
 
+    /// The rows whose `t_s` is the row before's while a string moved
+    /// between them by `min_counts` or more, each with that row and the
+    /// largest move (counts): a log whose timestamps are coarser than its
+    /// rows (a 100 Hz stream stamped to 20 ms has every second row at its
+    /// neighbour's time). Whatever reads time from `t_s` (a stream's speed
+    /// and latency, the clocks' alignment, drifts) sees such rows at one
+    /// instant. Exact repeats ([`Self::repeated_rows`]) are not among them.
+    pub fn rows_at_one_time_moving(&self, min_counts: u32) -> Vec<(usize, usize, u32)> {
+        (1..self.samples.len())
+            .filter_map(|k| {
+                let (a, b) = (&self.samples[k - 1], &self.samples[k]);
+                if b.t_s != a.t_s {
+                    return None;
+                }
+                let moved = a
+                    .counts
+                    .iter()
+                    .zip(&b.counts)
+                    .map(|(x, y)| x.abs_diff(*y))
+                    .max()
+                    .unwrap_or(0);
+                (moved >= min_counts).then_some((k, k - 1, moved))
+            })
+            .collect()
+    }
+
     /// Checks that this session has `geometry`'s number of strings, and
     /// tracker z positions unless the geometry is planar; the error names
     /// both files.

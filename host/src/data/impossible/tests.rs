@@ -146,3 +146,25 @@ fn a_repeated_row_is_set_aside_naming_the_line_it_repeats() {
     assert_eq!(found.impossible().count(), 0);
     assert!(!found.is_most_of(2));
 }
+
+/// Rows stamped with the time of the row before while a string moved are
+/// listed with the largest move; an exact repeat, and a row of one time
+/// whose counts moved less than asked, are not.
+#[test]
+fn rows_stamped_at_the_time_before_while_moving_are_found() {
+    let (_, mut s) = rig(20);
+    for k in [4, 9] {
+        s.samples[k].t_s = s.samples[k - 1].t_s;
+    }
+    let copy = s.samples[14].clone();
+    s.samples.insert(15, copy);
+    s.samples[17].t_s = s.samples[16].t_s;
+    s.samples[17].counts = s.samples[16].counts;
+    s.samples[17].counts[0] += 3;
+    // Row k moved k * (i + 1) counts on string i: 4 on the fourth string.
+    assert_eq!(s.rows_at_one_time_moving(4), vec![(4, 3, 4), (9, 8, 4)]);
+    assert_eq!(
+        s.rows_at_one_time_moving(3),
+        vec![(4, 3, 4), (9, 8, 4), (17, 16, 3)]
+    );
+}

@@ -11,9 +11,9 @@ use spidar_core::geometry::device_from_room;
 use spidar_core::model::StringLaw;
 use spidar_core::STRINGS;
 
-use crate::data::dataset::Geometry;
+use crate::data::dataset::{Geometry, Session};
 use crate::data::impossible::{SetAside, NOMINAL_SCALE_LIMIT};
-use crate::data::observe::Observation;
+use crate::data::observe::{Observation, DIRECTION_HYSTERESIS_COUNTS};
 use crate::model::identify::Structure;
 
 use super::corrections::shows_above;
@@ -77,6 +77,7 @@ pub(super) fn checked_sessions(
     {
         warnings.extend(set_aside_warning(s.path, found, name));
         warnings.extend(repeated_rows_warning(s.path, found, name));
+        warnings.extend(coarse_times_warning(s.path, s.session));
     }
     Ok((train_info, test_info, warnings))
 }
@@ -143,6 +144,40 @@ fn repeated_rows_warning(path: &Path, found: &SetAside, key: &str) -> Option<Str
         plural(count, "row", "rows"),
         found.repeat_lines(SET_ASIDE_SHOWN),
         if count == 1 { "it" } else { "them all" }
+    ))
+}
+
+/// The warning that names the rows of a session stamped with the time of
+/// the row before though its strings moved between them (by a tenth of a
+/// millimetre's counts or more, [`DIRECTION_HYSTERESIS_COUNTS`]): a 100 Hz
+/// stream stamped to 20 ms calibrated with its speed's structure blamed on
+/// lagging encoders (14 mm on every string) and 120 rows' tracker on
+/// glitches, and nothing said the times were coarse.
+fn coarse_times_warning(path: &Path, session: &Session) -> Option<String> {
+    let found = session.rows_at_one_time_moving(DIRECTION_HYSTERESIS_COUNTS);
+    if found.is_empty() {
+        return None;
+    }
+    let largest = found.iter().map(|f| f.2).max().unwrap_or(0);
+    let lines: Vec<String> = found
+        .iter()
+        .take(SET_ASIDE_SHOWN)
+        .map(|&(row, before, _)| format!("{} and {}", before + 2, row + 2))
+        .collect();
+    let more = found.len().saturating_sub(SET_ASIDE_SHOWN);
+    Some(format!(
+        "{}: {} the `t_s` of the row before though the strings moved between them (up to \
+         {largest} counts): the log's timestamps are coarser than its rows. A stream's speed, \
+         its strings' latency and the clocks' alignment read time from `t_s` and see such rows \
+         at one instant; log the time at the rows' own resolution. Lines {}{}",
+        path.display(),
+        plural(found.len(), "row carries", "rows carry"),
+        lines.join(", "),
+        if more > 0 {
+            format!(" and {more} more")
+        } else {
+            String::new()
+        }
     ))
 }
 
