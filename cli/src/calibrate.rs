@@ -62,6 +62,13 @@ pub struct CalibrateArgs {
     #[arg(long, value_name = "S", default_value_t = 0.0, allow_hyphen_values = true,
           value_parser = finite_seconds)]
     pub clock_offset_s: f64,
+    /// The tracker's and the device's rows were paired by one clock when
+    /// they were logged: streams are read as written, no clock offset is
+    /// searched (a stream too short or too still to align from its motion,
+    /// a tracker stamped by the device's logger). A latency every string
+    /// shares is then the strings' own, in the model.
+    #[arg(long, conflicts_with = "clock_offset_s")]
+    pub clocks_paired: bool,
     /// Write the learners' data to DIR as `x,y,z,tx,ty,tz` CSVs (input and
     /// tracker, mm), for `scripts/reference/reference.py`:
     /// residual_{train,test}.csv and, when the sessions have dev_* columns
@@ -94,6 +101,7 @@ impl CalibrateArgs {
         c.loop_config.layer_tables = !self.no_layer_tables;
         c.max_loop_rows = self.loop_rows;
         c.clock_offset_s = self.clock_offset_s;
+        c.clocks_paired = self.clocks_paired;
         c
     }
 

@@ -923,3 +923,81 @@ fn a_session_identified_alone_says_the_loop_did_not_run_and_lists_its_parameters
     );
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// A stream too short to align from its motion (12 rows, 0.11 s), logged
+/// with the tracker's and the device's rows on one clock: refused, the
+/// refusal naming `--clocks-paired`; with it, read as written and
+/// calibrated (identification only), the report's timing `paired`.
+#[test]
+fn a_short_stream_on_one_clock_calibrates_when_declared_paired() {
+    let dir = temp_dir("paired");
+    let config = dir.join("one-clock.toml");
+    std::fs::write(&config, "[tracker]\nclock_offset_s = 0.0\n").unwrap();
+    for (kind, points, name) in [("stream", "12", "train"), ("wide-stream", "300", "test")] {
+        let o = spidar(&[
+            "simulate",
+            "--physics",
+            "independent",
+            "--config",
+            s(&config),
+            "--out",
+            s(&dir),
+            "--kind",
+            kind,
+            "--points",
+            points,
+            "--name",
+            name,
+        ]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    }
+    let (geometry, train, test) = (
+        dir.join("geometry.toml"),
+        dir.join("train.csv"),
+        dir.join("test.csv"),
+    );
+    let calibrate = |extra: &[&str]| {
+        let out = dir.join(format!("calibration{}", extra.len()));
+        let mut args = vec![
+            "calibrate",
+            "--geometry",
+            s(&geometry),
+            "--train",
+            s(&train),
+            "--test",
+            s(&test),
+            "--quick",
+            "--no-figures",
+            "--quiet",
+            "--out",
+            s(&out),
+        ];
+        args.extend(extra);
+        let o = spidar(&args);
+        (o, out)
+    };
+    let (o, _) = calibrate(&[]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_ne!(o.status.code(), Some(0), "{err}");
+    assert!(
+        err.contains("train.csv") && err.contains("--clocks-paired"),
+        "{err}"
+    );
+    let (o, out) = calibrate(&["--clocks-paired"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let report: Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
+    for session in ["train", "test"] {
+        assert_eq!(report["timing"][session]["kind"], "paired", "{report}");
+    }
+    assert_eq!(report["timing"]["train"]["rows"], 12);
+    let summary = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        summary.contains("paired by one clock (--clocks-paired)"),
+        "{summary}"
+    );
+    // A clock offset to search from means nothing on one clock.
+    let (o, _) = calibrate(&["--clocks-paired", "--clock-offset-s", "2"]);
+    assert_eq!(o.status.code(), Some(2));
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -72,7 +72,7 @@ fn paired_rows(session: &Session, timing: &SessionTiming, plane_z: f64) -> Vec<O
             let at = |t: f64| t + a.offset_s + 1e-6 * a.drift_ppm * (t - a.reference_t_s);
             repaired_at(&obs, at, gap).0
         }
-        SessionTiming::Static { .. } => obs,
+        SessionTiming::Static { .. } | SessionTiming::Paired { .. } => obs,
     };
     for o in rows.iter_mut() {
         if let Some(t) = o.tracker.as_mut() {
@@ -236,6 +236,7 @@ pub(super) fn wall_robot(seeds: u64, config: &CalibrateConfig) {
                 format!("{:+.4} s (sd {:.1} ms)", a.offset_s, 1e3 * a.offset_sd_s)
             }
             SessionTiming::Static { .. } => "static".to_string(),
+            SessionTiming::Paired { .. } => "paired".to_string(),
         };
         println!();
         println!(

@@ -88,6 +88,13 @@ pub enum SessionTiming {
     },
     /// A stream whose tracker positions were re-paired by the found offset.
     Aligned(ClockAlignment),
+    /// A stream whose rows the user declared paired by one clock
+    /// (`calibrate --clocks-paired`): read as written, no offset searched.
+    Paired {
+        /// Median time between rows (s).
+        median_interval_s: f64,
+        rows: usize,
+    },
 }
 
 /// The tracker-minus-device clock offset of a dynamic session.
@@ -190,6 +197,16 @@ pub fn static_timing(obs: &[Observation]) -> Option<SessionTiming> {
     // microsecond.
     (interval > MAX_STREAM_INTERVAL_S + STEP_ROUNDING_S).then_some(SessionTiming::Static {
         median_interval_s: interval,
+        rows: obs.len(),
+    })
+}
+
+/// The timing of a session whose rows were paired by one clock when
+/// logged: a stream read as written ([`SessionTiming::Paired`]), or one
+/// pose per row ([`static_timing`]).
+pub fn paired_timing(obs: &[Observation]) -> SessionTiming {
+    static_timing(obs).unwrap_or(SessionTiming::Paired {
+        median_interval_s: median_interval_s(obs).unwrap_or(f64::NAN),
         rows: obs.len(),
     })
 }

@@ -422,7 +422,8 @@ pub(super) fn check_alignment(
              identified model gives do not confirm it. The search reaches {} s around the \
              offset it starts from: is the tracker's clock further off (`calibrate \
              --clock-offset-s` starts it elsewhere), or did the hand hardly move? Record the \
-             session with the tracker's and the device's clocks paired by a common time",
+             session with the tracker's and the device's clocks paired by a common time \
+             (`--clocks-paired`)",
             a.offset_s,
             a.correlation,
             align::MAX_OFFSET_S

@@ -238,8 +238,8 @@ fn alignment_failed(path: &Path, rows: &[Observation], e: align::AlignError) -> 
             "a stream (rows {:.3} s apart): its tracker's clock must be found from the motion \
              before the rows can be paired, and that failed on its {} tracked rows over {:.1} s \
              ({e}). Record a longer stream that moves the end-effector, or pair the device's \
-             and the tracker's rows by a common clock (a clock more than 5 s off: \
-             `--clock-offset-s`)",
+             and the tracker's rows by a common clock and say so (`--clocks-paired`; a clock \
+             more than 5 s off: `--clock-offset-s`)",
             align::median_interval_s(rows).unwrap_or(f64::NAN),
             tracked.len(),
             span_s
@@ -327,6 +327,7 @@ fn name_the_clock_stage(loop_result: &mut LoopResult, timing: &report::Timing) {
             a.offset_s * 1e3
         ),
         align::SessionTiming::Static { .. } => "static".into(),
+        align::SessionTiming::Paired { .. } => "paired".into(),
     };
     let note = format!(
         "; moved into the tracker clocks' offsets (training {}, test {}): the model holds no \
@@ -812,6 +813,13 @@ impl Run<'_> {
         nominal_laws: &[spidar_core::model::StringLaw; spidar_core::STRINGS],
     ) -> Result<Aligned, CalibrateError> {
         let (tr, te) = self.as_recorded(train, test, nominal);
+        if self.cfg.clocks_paired {
+            let timing = report::Timing {
+                train: align::paired_timing(&tr),
+                test: align::paired_timing(&te),
+            };
+            return Ok((tr, te, timing, None));
+        }
         let t = Instant::now();
         let (tr, te, timing, raw_train) = align_clocks(
             (tr, train.path),

@@ -187,6 +187,10 @@ pub struct CalibrateConfig {
     /// tracker minus device; it reaches [`align::MAX_OFFSET_S`] around
     /// it): 0, unless the rig's tracker clock is known to be further off.
     pub clock_offset_s: f64,
+    /// The sessions' tracker and device rows were paired by one clock when
+    /// logged: a stream is read as written, no offset searched
+    /// ([`align::SessionTiming::Paired`]).
+    pub clocks_paired: bool,
 }
 
 impl CalibrateConfig {
@@ -224,6 +228,7 @@ impl CalibrateConfig {
             min_correction_gain: 0.01,
             blackbox: false,
             clock_offset_s: 0.0,
+            clocks_paired: false,
             // The paper's grid (C 30..100, epsilon 0.01), as
             // `scripts/reference/reference.py --grid paper` searches it.
             blackbox_nn: SweepConfig {

@@ -163,6 +163,13 @@ fn clocks(timing: &Value) -> Html {
                 count(u(&t["rows"])),
                 html::sig(f(&t["median_interval_s"]))
             ),
+            "paired" => format!(
+                "{name} session: a stream ({} rows, {} s apart at the median) whose tracker and \
+                 device rows were paired by one clock when logged (--clocks-paired): \
+                 read as written, no offset searched.",
+                count(u(&t["rows"])),
+                html::sig(f(&t["median_interval_s"]))
+            ),
             "aligned" => {
                 let drift = match f(&t["drift_ppm"]) {
                     Some(d) if d != 0.0 => format!(

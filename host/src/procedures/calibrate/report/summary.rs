@@ -139,6 +139,18 @@ impl Report {
             ("training", &self.timing.train),
             ("test", &self.timing.test),
         ] {
+            if let align::SessionTiming::Paired {
+                median_interval_s,
+                rows,
+            } = t
+            {
+                let _ = writeln!(
+                    o,
+                    "{name} session: a stream of {rows} rows {median_interval_s:.3} s apart, its \
+                     tracker and device rows paired by one clock (--clocks-paired): read as \
+                     written, no offset searched"
+                );
+            }
             if let align::SessionTiming::Aligned(a) = t {
                 let drift = if a.drift_ppm != 0.0 {
                     format!(
