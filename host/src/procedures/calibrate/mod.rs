@@ -439,6 +439,7 @@ impl Run<'_> {
             &mut final_corr,
             &data,
             &model.reference.train_errors_by_row,
+            &model.reference.id,
         );
         if learned.is_some() {
             self.warnings.extend(unchosen_corrections_warning(
