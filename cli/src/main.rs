@@ -85,8 +85,11 @@ enum Command {
 /// standard output first, and exits 128 + the signal's number.
 fn fail(e: anyhow::Error) -> ! {
     if let Some(i) = e.downcast_ref::<interrupt::Interrupted>() {
-        print!("{}", i.output);
-        let _ = std::io::Write::flush(&mut std::io::stdout());
+        // What was done before the interrupt; a closed pipe takes none.
+        let mut out = std::io::stdout().lock();
+        let _ = std::io::Write::write_all(&mut out, i.output.as_bytes());
+        let _ = std::io::Write::flush(&mut out);
+        drop(out);
         eprintln!("spidar: {i}");
         std::process::exit(i.exit_code());
     }
@@ -126,8 +129,21 @@ fn main() {
     let cli = Cli::parse();
     spidar::progress::set_reporter(Box::new(progress::TerminalBars));
     match run(&cli.command) {
-        Ok(text) => print!("{text}"),
+        Ok(text) => write_out(&text),
         Err(e) => fail(e),
+    }
+}
+
+/// Writes a command's output on stdout. A reader that closed the pipe
+/// (`spidar device stream | head -5`) wants no more: the run ends quietly,
+/// where `print!` panicked with a backtrace.
+fn write_out(text: &str) {
+    use std::io::Write;
+    let mut out = std::io::stdout().lock();
+    if let Err(e) = out.write_all(text.as_bytes()).and_then(|()| out.flush()) {
+        if e.kind() != std::io::ErrorKind::BrokenPipe {
+            fail(anyhow::anyhow!("writing the output: {e}"));
+        }
     }
 }
 

@@ -44,3 +44,24 @@ fn help_texts_list_effects_units_and_the_firmware_capacity() {
         assert!(h.contains("[default: "), "{command}: {h}");
     }
 }
+
+/// Output to a reader that closed its pipe (`spidar ... | head -5`) ends
+/// the run quietly: exit 0, no panic and no backtrace (`print!` panicked
+/// on the broken pipe). The pipe's read end is closed before the command
+/// writes (a simulation takes longer than that); had it written first, the
+/// pipe would have taken it and the run passes the same.
+#[test]
+fn output_to_a_closed_pipe_ends_quietly() {
+    let dir = std::env::temp_dir().join(format!("spidar-closed-pipe-{}", std::process::id()));
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_spidar"))
+        .args(["simulate", "--out", dir.to_str().unwrap(), "--seed", "1"])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("run spidar");
+    drop(child.stdout.take());
+    let out = child.wait_with_output().expect("wait for spidar");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success() && !err.contains("panicked"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
