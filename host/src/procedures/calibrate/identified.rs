@@ -656,7 +656,7 @@ impl Run<'_> {
         let reference = self.reference(obs, &loop_rows.pick(obs.train), &nominal, &mut list)?;
         self.warnings
             .extend(unfitted_warning(train.path, &tr, &list.stages));
-        self.warn_of_the_geometry(&loop_result.base);
+        self.warn_of_the_geometry(&loop_result.identification);
 
         // From here on the sessions are read at the strings' meeting point when
         // the loop found the tracked body's origin off it (the errors are then
@@ -715,19 +715,22 @@ impl Run<'_> {
         Ok(())
     }
 
-    /// What the identified model `base` says of the geometry as written:
-    /// a string's mechanical advantage or an anchor's coordinate that is
-    /// another's or mistyped.
-    fn warn_of_the_geometry(&mut self, base: &Identification) {
+    /// What the loop's model `model` says of the geometry as written: a
+    /// string's mechanical advantage or an anchor's coordinate that is
+    /// another's or mistyped. The loop's model, whose parameters the
+    /// report prints: the base identification's anchors take up the
+    /// effects it lacks (a planar device's anchor 37 mm off in the base
+    /// model and 12 in the printed one was named as a typo).
+    fn warn_of_the_geometry(&mut self, model: &Identification) {
         self.warnings.extend(radius_warnings(
             self.geometry_path,
             self.geometry,
-            &base.laws,
+            &model.laws,
         ));
         self.warnings.extend(anchor_departure_warnings(
             self.geometry_path,
             self.geometry,
-            base,
+            model,
         ));
     }
 
