@@ -355,3 +355,30 @@ fn rows_stamped_at_the_time_before_while_moving_are_named() {
     );
     std::fs::remove_dir_all(&rig.dir).ok();
 }
+
+/// A session whose encoder column reads one value on every row while the
+/// others change (a dead encoder, an unplugged channel) is refused, naming
+/// the file and the column (it was calibrated with warnings on the
+/// string's radius and anchor, into a calibration that did not compile).
+#[test]
+fn a_dead_encoder_is_refused_naming_its_column() {
+    let rig = rig("dead");
+    let text = std::fs::read_to_string(&rig.train).unwrap();
+    let mut lines: Vec<String> = text.lines().map(str::to_string).collect();
+    let k = lines[0].split(',').position(|c| c == "enc2").unwrap();
+    for line in lines.iter_mut().skip(1) {
+        let mut fields: Vec<String> = line.split(',').map(str::to_string).collect();
+        fields[k] = "0".into();
+        *line = fields.join(",");
+    }
+    let train = rig.dir.join("train-dead.csv");
+    std::fs::write(&train, lines.join("\n") + "\n").unwrap();
+    let (o, _) = rig.calibrate(&train, &rig.test, "dead", &[]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("train-dead.csv") && err.contains("enc2 = 0 on every one of its 60 rows"),
+        "{err}"
+    );
+    std::fs::remove_dir_all(&rig.dir).ok();
+}

@@ -35,6 +35,7 @@ pub(super) fn checked_sessions(
     let mut warnings: Vec<String> = Vec::new();
     for s in [&train, &test] {
         s.session.check_strings(s.path, geometry, geometry_path)?;
+        check_dead_encoders(s)?;
     }
     for (s, found) in [&train, &test].into_iter().zip(set_aside) {
         check_set_aside(s, found, geometry_path)?;
@@ -80,6 +81,44 @@ pub(super) fn checked_sessions(
         warnings.extend(coarse_times_warning(s.path, s.session));
     }
     Ok((train_info, test_info, warnings))
+}
+
+/// Fewest rows over which an encoder that never changes while the others
+/// do is taken for a dead one (fewer rows may all sit at one length).
+const DEAD_ENCODER_ROWS: usize = 10;
+
+/// Refuses a session one of whose encoder columns reads one value on every
+/// row while another's changes: a dead encoder or an unplugged channel,
+/// which no string model can take (a 5-string lattice with `enc2` all 0
+/// was calibrated with warnings on string 2's radius and anchor, and the
+/// calibration did not compile).
+fn check_dead_encoders(s: &NamedSession<'_>) -> Result<(), CalibrateError> {
+    let samples = &s.session.samples;
+    if samples.len() < DEAD_ENCODER_ROWS {
+        return Ok(());
+    }
+    let changes = |i: usize| samples.iter().any(|r| r.counts[i] != samples[0].counts[i]);
+    let strings = 0..s.session.strings;
+    if !strings.clone().any(changes) {
+        return Ok(());
+    }
+    let dead: Vec<String> = strings
+        .filter(|&i| !changes(i))
+        .map(|i| format!("enc{i} = {}", samples[0].counts[i]))
+        .collect();
+    if dead.is_empty() {
+        return Ok(());
+    }
+    Err(CalibrateError::Session {
+        file: s.path.to_path_buf(),
+        problem: format!(
+            "{} on every one of its {} rows while the other encoders change: a dead encoder \
+             or an unplugged channel, whose string no calibration can place. Check the encoder \
+             and its wiring, and record the session again",
+            dead.join(", "),
+            samples.len()
+        ),
+    })
 }
 
 /// How many set-aside rows a message lists (the JSON report has them all).
