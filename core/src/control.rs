@@ -123,7 +123,10 @@ pub struct LoopOutput {
     pub room_q16: [i32; 3],
     /// Room-frame position after the learned correction, Q15.16 mm.
     pub corrected_q16: [i32; 3],
-    /// Force requested of the tension distribution (device frame, N).
+    /// Force requested of the tension distribution (device frame, N); on a
+    /// planar device its `x, y` only, as the distribution renders it (its
+    /// strings cannot pull along `z`: a requested `[0, 0, 5]` was reported
+    /// rendered whole).
     pub force_n: [f32; 3],
     pub tension_status: TensionStatus,
     /// Fraction of the requested force the tensions render.
@@ -369,7 +372,11 @@ impl Controller {
             excluded: fk.excluded,
             room_q16,
             corrected_q16,
-            force_n: force,
+            force_n: if frame.layout.planar {
+                [force[0], force[1], 0.0]
+            } else {
+                force
+            },
             tension_status: solution.status,
             rendered_fraction: solution.rendered_fraction,
             tensions_n: tensions,

@@ -214,6 +214,65 @@ fn four_strings_track_and_render_with_inactive_channels_at_zero() {
     assert_eq!(o.tensions_n, [pre, 0.0, pre, 0.0, 0.0, pre, 0.0, pre]);
 }
 
+/// A planar device asked for a force with a `z` component renders and
+/// reports its `x, y` only: its strings cannot pull along `z` (a requested
+/// `[0, 0, 5]` was reported rendered whole).
+#[test]
+fn a_planar_device_reports_no_force_along_z() {
+    let mut cal = calibration();
+    cal.frame.layout = crate::model::StringLayout {
+        active: 0b0000_1111,
+        planar: true,
+    };
+    for (i, a) in [
+        [-1000.0, -800.0, 0.0],
+        [1000.0, -800.0, 0.0],
+        [1000.0, 800.0, 0.0],
+        [-1000.0, 800.0, 0.0],
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        cal.frame.anchors[i] = a;
+    }
+    cal.frame.home = [0.0; 3];
+    let blob = compile(&cal, 1, 0).unwrap();
+    let compiled = CompiledCalibration::from_blob(&blob).unwrap();
+    let raw_at = |p: [f64; 3]| {
+        let mut c = cal.clone();
+        c.frame.layout = crate::model::StringLayout::ALL;
+        raw_counts_at(&c, p)
+    };
+    let mut ctl =
+        Controller::new(ControlConfig::default(), &compiled, raw_at([0.0; 3]), 0).unwrap();
+    ctl.safety().heartbeat(0);
+    ctl.safety().arm().unwrap();
+    ctl.set_target(Target::Force([1.0, 0.0, 5.0]));
+    let mut last = None;
+    for k in 1..=20 {
+        ctl.safety().heartbeat(k);
+        last = Some(ctl.step(
+            &compiled,
+            &LoopInput {
+                raw_counts: raw_at([50.0, -30.0, 0.0]),
+                now_ms: k,
+                now_us: k * 1000,
+                estop: false,
+            },
+        ));
+    }
+    let o = last.unwrap();
+    assert!(o.armed && o.faults.is_empty(), "{o:?}");
+    assert_eq!(o.force_n, [1.0, 0.0, 0.0], "{o:?}");
+    let f =
+        crate::tension::resultant_force(&compiled.head.frame.anchors, o.position_mm, &o.tensions_n);
+    let rendered = o.force_n.map(|c| c * o.rendered_fraction);
+    assert!(
+        (0..3).all(|c| (f[c] - rendered[c]).abs() < 1e-3),
+        "{f:?} {rendered:?}"
+    );
+}
+
 #[test]
 fn heartbeat_loss_drops_to_pretension() {
     let cal = calibration();
