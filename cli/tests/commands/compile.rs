@@ -322,3 +322,61 @@ fn a_model_whose_tick_would_overrun_does_not_compile() {
     );
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// A geometry or a test session of another device than the calibration's
+/// is refused, naming the file and what differs (a 3-string calibration
+/// compiled beside a 4-anchor geometry, and measured on a 4-encoder
+/// session's rows, without a word).
+#[test]
+fn a_geometry_or_session_of_another_device_is_refused() {
+    let dir = temp_dir("other-device");
+    let cal = write(&dir, "cube.json", &cube());
+    let geometry = dir.join("four.toml");
+    std::fs::write(
+        &geometry,
+        "anchors_mm = [[0, 0, 0], [1000, 0, 0], [0, 1000, 0], [0, 0, 1000]]\n\
+         counts_per_rev = 4096\npulley_radius_mm = 10\nhome_mm = [250, 250, 250]\n\
+         room_from_device_translation_mm = [0, 0, 0]\n",
+    )
+    .unwrap();
+    let session = dir.join("four.csv");
+    std::fs::write(
+        &session,
+        "t_s,enc0,enc1,enc2,enc3,ots_x,ots_y,ots_z\n0,0,0,0,0,250,250,250\n1,10,20,30,40,251,250,250\n",
+    )
+    .unwrap();
+    let blob = dir.join("cube.blob");
+    let o = spidar(&[
+        "compile",
+        "--calibration",
+        s(&cal),
+        "--geometry",
+        s(&geometry),
+        "--out",
+        s(&blob),
+    ]);
+    let err = failure(&o);
+    assert!(
+        err.contains("four.toml")
+            && err.contains("`anchors_mm` is 4 anchors but the calibration has 8 strings"),
+        "{err}"
+    );
+    let o = spidar(&[
+        "compile",
+        "--calibration",
+        s(&cal),
+        "--test",
+        s(&session),
+        "--out",
+        s(&blob),
+    ]);
+    let err = failure(&o);
+    assert!(
+        err.contains("four.csv")
+            && err.contains("4 encoder columns (enc0..enc3)")
+            && err.contains("a device of 8 strings"),
+        "{err}"
+    );
+    assert!(!blob.exists());
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -82,6 +82,20 @@ pub enum CompileCmdError {
     },
     #[error("{}: no row of the session has a usable position to compare", file.display())]
     NoRows { file: PathBuf },
+    #[error(
+        "{}: {problem}, but the calibration {} is of a device of {strings} strings{}: the session \
+         is another device's (compile with the calibration of the device that recorded it)",
+        file.display(),
+        calibration.display(),
+        if *planar { ", planar" } else { "" }
+    )]
+    SessionMismatch {
+        file: PathBuf,
+        problem: String,
+        calibration: PathBuf,
+        strings: usize,
+        planar: bool,
+    },
     #[error("{why} ({})", if *written {
         format!("blob written to {} as asked", out.display())
     } else {
@@ -103,6 +117,8 @@ pub enum CompileCmdError {
 pub struct FixedPointError {
     /// Rows compared (forward kinematics converged in both).
     pub rows: usize,
+    /// Rows of the session.
+    pub session_rows: usize,
     /// Rows where one side's forward kinematics failed and the other's did not.
     pub status_mismatches: usize,
     /// Device-frame position (string law + FK), blob vs f64.
@@ -206,6 +222,7 @@ pub fn fixed_point_error(
     }
     (!all.is_empty()).then(|| FixedPointError {
         rows: all.len(),
+        session_rows: observations.len(),
         status_mismatches: mismatches,
         string_model: ErrorStats::of(&model),
         corrected: ErrorStats::of(&all),
@@ -406,8 +423,8 @@ impl std::fmt::Display for CompileReport {
         if let Some(e) = &self.error {
             writeln!(
                 f,
-                "fixed-point error vs f64 over {} rows{}: string model mean {:.5} mm max {:.5} mm; corrected mean {:.5} mm max {:.5} mm (budget {} mm mean){}",
-                e.rows,
+                "fixed-point error vs f64 over {}{}: string model mean {:.5} mm max {:.5} mm; corrected mean {:.5} mm max {:.5} mm (budget {} mm mean){}",
+                compared_rows(e),
                 if self.test_home.is_some() {
                     format!(" ({} with the training's slips, under their home capture)", e.home_rows)
                 } else {
@@ -487,6 +504,7 @@ pub fn run_compile(args: &CompileRequest) -> Result<CompileReport, CompileCmdErr
     let error = match &args.test {
         Some(test) => {
             let session = Session::load(test)?;
+            check_session(&calibration, &args.calibration, test, &session)?;
             let mut obs = observations(&session.samples);
             let home = calibration
                 .home
@@ -528,9 +546,29 @@ pub fn run_compile(args: &CompileRequest) -> Result<CompileReport, CompileCmdErr
     }
 }
 
-/// The geometry's counts per revolution against the calibration's.
+/// The geometry's strings and counts per revolution against the
+/// calibration's (a 3-string calibration compiled beside a 4-anchor
+/// geometry was written without a word).
 fn check_counts_per_rev(calibration: &Calibration, g: &Path) -> Result<(), CompileCmdError> {
     let geometry = Geometry::load(g)?;
+    let layout = calibration.frame.layout;
+    if geometry.strings() != layout.count() {
+        return Err(CompileCmdError::GeometryMismatch {
+            file: g.to_path_buf(),
+            field: "anchors_mm",
+            found: format!("{} anchors", geometry.strings()),
+            expected: format!("{} strings", layout.count()),
+        });
+    }
+    if geometry.layout.planar != layout.planar {
+        let kind = |planar: bool| if planar { "planar" } else { "3-D" };
+        return Err(CompileCmdError::GeometryMismatch {
+            file: g.to_path_buf(),
+            field: "planar",
+            found: kind(geometry.layout.planar).into(),
+            expected: kind(layout.planar).into(),
+        });
+    }
     for i in geometry.layout.indices() {
         let law = &calibration.strings[i];
         if law.counts_per_rev != geometry.counts_per_rev[i] {
@@ -543,6 +581,56 @@ fn check_counts_per_rev(calibration: &Calibration, g: &Path) -> Result<(), Compi
         }
     }
     Ok(())
+}
+
+/// The test session's encoder columns and tracker z against the
+/// calibration's device (a 4-encoder session was measured on a 3-string
+/// calibration over the 500 rows the wrong strings gave; a planar session
+/// on a 3-D calibration kept 108 of its rows, and neither said why).
+fn check_session(
+    calibration: &Calibration,
+    calibration_file: &Path,
+    file: &Path,
+    session: &Session,
+) -> Result<(), CompileCmdError> {
+    let layout = calibration.frame.layout;
+    let problem = if session.strings != layout.count() {
+        format!(
+            "{} encoder columns (enc0..enc{})",
+            session.strings,
+            session.strings.saturating_sub(1)
+        )
+    } else if !session.tracker_z && !layout.planar {
+        "no tracker z (`ots_z`)".to_string()
+    } else {
+        return Ok(());
+    };
+    Err(CompileCmdError::SessionMismatch {
+        file: file.to_path_buf(),
+        problem,
+        calibration: calibration_file.to_path_buf(),
+        strings: layout.count(),
+        planar: layout.planar,
+    })
+}
+
+/// "N rows" compared, and of how many when the kinematics placed the
+/// end-effector on fewer than the session's (most of them missing: a
+/// planar session on a 3-D calibration kept 108 of 500 rows, unexplained).
+fn compared_rows(e: &FixedPointError) -> String {
+    if e.session_rows <= e.rows {
+        return format!("{} rows", e.rows);
+    }
+    let hint = if 2 * e.rows < e.session_rows {
+        "; is the session this device's?"
+    } else {
+        ""
+    };
+    format!(
+        "{} of the session's {} rows (the kinematics placed the end-effector on no other, in \
+         f64 as on the device{hint})",
+        e.rows, e.session_rows
+    )
 }
 
 /// Whether a mean fixed-point error of `mean_mm` is over `budget_mm` (one
