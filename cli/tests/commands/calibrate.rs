@@ -1011,19 +1011,22 @@ fn a_short_stream_on_one_clock_calibrates_when_declared_paired() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
-/// A 7-string device of the model simulator as built (seed 3: anchor 6
-/// about 9 mm off its drawing, the others about 2 mm, within the anchors'
-/// 15 mm tolerance) names no anchor as mistyped; the warning was given.
-#[test]
-fn an_anchor_within_the_tolerance_of_its_drawing_is_not_named() {
-    let dir = temp_dir("seven");
-    let config = dir.join("seven.toml");
+/// The warnings of a quick calibration of a model-simulator device of
+/// `strings` strings as built (seed 3, no abnormal motor), its geometry
+/// as `edit` writes it.
+fn warnings_of_a_device(
+    name: &str,
+    strings: usize,
+    edit: impl Fn(String) -> String,
+) -> Vec<String> {
+    let dir = temp_dir(name);
+    let config = dir.join("device.toml");
     std::fs::write(
         &config,
-        "[nominal]\nstrings = 7\n[abnormal_motor]\nenabled = false\n",
+        format!("[nominal]\nstrings = {strings}\n[abnormal_motor]\nenabled = false\n"),
     )
     .unwrap();
-    for (kind, name) in [("lattice", "lattice"), ("random", "test")] {
+    for (kind, file) in [("lattice", "lattice"), ("random", "test")] {
         let o = spidar(&[
             "simulate",
             "--config",
@@ -1035,15 +1038,17 @@ fn an_anchor_within_the_tolerance_of_its_drawing_is_not_named() {
             "--kind",
             kind,
             "--name",
-            name,
+            file,
         ]);
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     }
+    let geometry = dir.join("geometry.toml");
+    std::fs::write(&geometry, edit(std::fs::read_to_string(&geometry).unwrap())).unwrap();
     let out = dir.join("calibration");
     let o = spidar(&[
         "calibrate",
         "--geometry",
-        s(&dir.join("geometry.toml")),
+        s(&geometry),
         "--train",
         s(&dir.join("lattice.csv")),
         "--test",
@@ -1057,12 +1062,37 @@ fn an_anchor_within_the_tolerance_of_its_drawing_is_not_named() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let report: Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
-    let warnings = report["warnings"].as_array().unwrap();
+    std::fs::remove_dir_all(&dir).ok();
+    report["warnings"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|w| w.as_str().unwrap().to_string())
+        .collect()
+}
+
+/// A 7-string device of the model simulator as built (seed 3: anchor 6
+/// about 9 mm off its drawing, the others about 2 mm, within the anchors'
+/// 15 mm tolerance) names no anchor as mistyped; the warning was given.
+#[test]
+fn an_anchor_within_the_tolerance_of_its_drawing_is_not_named() {
+    let warnings = warnings_of_a_device("seven", 7, |g| g);
     assert!(
-        !warnings
-            .iter()
-            .any(|w| w.as_str().unwrap().contains("from the geometry's")),
+        !warnings.iter().any(|w| w.contains("from the geometry's")),
         "{warnings:?}"
     );
-    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// An anchor typed in metres among anchors in millimetres is named as
+/// metres (it was called a typo).
+#[test]
+fn an_anchor_typed_in_metres_is_named_as_metres() {
+    let warnings = warnings_of_a_device("metres", 4, |g| {
+        g.replace("[1100.0, 1100.0, -1100.0]", "[1.1, 1.1, -1.1]")
+    });
+    assert!(
+        warnings.iter().any(|w| w.contains("anchor 1 is identified")
+            && w.contains("they read as metres: `anchors_mm` is in millimetres")),
+        "{warnings:?}"
+    );
 }

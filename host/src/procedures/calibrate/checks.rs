@@ -470,6 +470,22 @@ pub(super) fn check_alignment(
     })
 }
 
+/// Whether an anchor written as `written` (mm) reads as metres beside the
+/// identified `identified` (mm, less what every anchor moved alike): a
+/// thousand times it lies nearer the identified anchor than it does, by a
+/// factor of ten (an anchor typed `[1.1, 1.1, -1.1]` among anchors in mm
+/// was called a typo).
+fn in_metres(written: [f64; 3], identified: [f64; 3]) -> bool {
+    let distance = |a: [f64; 3]| {
+        ((a[0] - identified[0]).powi(2)
+            + (a[1] - identified[1]).powi(2)
+            + (a[2] - identified[2]).powi(2))
+        .sqrt()
+    };
+    let as_metres = distance(written.map(|v| v * 1000.0));
+    10.0 * as_metres < distance(written)
+}
+
 /// The warning for the training rows whose tracker the loop set aside
 /// (or found far off in too great a number to set aside), naming their
 /// lines.
@@ -951,11 +967,20 @@ pub(super) fn anchor_departure_warnings(
                         "anchor {k} is identified {norm:.0} mm from the geometry's ({}: {:?}) \
                          beyond what every anchor moved alike, {apart:.1} times the other \
                          anchors' departures (median {median:.0} mm): check anchor {k}'s \
-                         coordinates (a typo, an anchor moved, or measured at another point of \
-                         its pulley). The estimate is held toward the geometry's by the anchors' \
-                         tolerance: with the geometry corrected, calibrate again",
+                         coordinates ({}). The estimate is held toward the geometry's by the \
+                         anchors' tolerance: with the geometry corrected, calibrate again",
                         geometry_path.display(),
                         nominal.anchors[k],
+                        if in_metres(
+                            nominal.anchors[k],
+                            core::array::from_fn(|c| id.frame.anchors[k][c] - common[c]),
+                        ) {
+                            "they read as metres: `anchors_mm` is in millimetres".to_string()
+                        } else {
+                            "a typo, an anchor moved, or measured at another point of its \
+                             pulley"
+                                .to_string()
+                        }
                     ),
                 )
             })
