@@ -243,7 +243,7 @@ impl SetAside {
 }
 
 /// The first `first` of `texts` and how many more, joined by "; ".
-fn first_of(texts: impl Iterator<Item = String>, first: usize) -> String {
+pub(crate) fn first_of(texts: impl Iterator<Item = String>, first: usize) -> String {
     let all: Vec<String> = texts.collect();
     let more = all.len().saturating_sub(first);
     let mut text: Vec<String> = all.into_iter().take(first).collect();

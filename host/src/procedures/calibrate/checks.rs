@@ -7,12 +7,12 @@
 
 use std::path::Path;
 
-use spidar_core::geometry::device_from_room;
+use spidar_core::geometry::{device_from_room, distance, norm};
 use spidar_core::model::StringLaw;
 use spidar_core::STRINGS;
 
 use crate::data::dataset::{Geometry, Session};
-use crate::data::impossible::{SetAside, NOMINAL_SCALE_LIMIT};
+use crate::data::impossible::{first_of, SetAside, NOMINAL_SCALE_LIMIT};
 use crate::data::observe::{Observation, DIRECTION_HYSTERESIS_COUNTS};
 use crate::model::identify::Structure;
 
@@ -198,25 +198,19 @@ fn coarse_times_warning(path: &Path, session: &Session) -> Option<String> {
         return None;
     }
     let largest = found.iter().map(|f| f.2).max().unwrap_or(0);
-    let lines: Vec<String> = found
-        .iter()
-        .take(SET_ASIDE_SHOWN)
-        .map(|&(row, before, _)| format!("{} and {}", before + 2, row + 2))
-        .collect();
-    let more = found.len().saturating_sub(SET_ASIDE_SHOWN);
+    let lines = first_of(
+        found
+            .iter()
+            .map(|&(row, before, _)| format!("{} and {}", before + 2, row + 2)),
+        SET_ASIDE_SHOWN,
+    );
     Some(format!(
         "{}: {} the `t_s` of the row before though the strings moved between them (up to \
          {largest} counts): the log's timestamps are coarser than its rows. A stream's speed, \
          its strings' latency and the clocks' alignment read time from `t_s` and see such rows \
-         at one instant; log the time at the rows' own resolution. Lines {}{}",
+         at one instant; log the time at the rows' own resolution. Lines {lines}",
         path.display(),
         plural(found.len(), "row carries", "rows carry"),
-        lines.join(", "),
-        if more > 0 {
-            format!(" and {more} more")
-        } else {
-            String::new()
-        }
     ))
 }
 
@@ -476,14 +470,7 @@ pub(super) fn check_alignment(
 /// factor of ten (an anchor typed `[1.1, 1.1, -1.1]` among anchors in mm
 /// was called a typo).
 fn in_metres(written: [f64; 3], identified: [f64; 3]) -> bool {
-    let distance = |a: [f64; 3]| {
-        ((a[0] - identified[0]).powi(2)
-            + (a[1] - identified[1]).powi(2)
-            + (a[2] - identified[2]).powi(2))
-        .sqrt()
-    };
-    let as_metres = distance(written.map(|v| v * 1000.0));
-    10.0 * as_metres < distance(written)
+    10.0 * distance(written.map(|v| v * 1000.0), identified) < distance(written, identified)
 }
 
 /// The warning for the training rows whose tracker the loop set aside
@@ -927,7 +914,7 @@ pub(super) fn anchor_departure_warnings(
         .indices()
         .map(|k| {
             let d: [f64; 3] = core::array::from_fn(|c| moved(k, c) - common[c]);
-            let norm = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+            let norm = norm(d);
             // The estimate's sd along the departure.
             let along: f64 = ["x", "y", "z"]
                 .iter()
@@ -975,11 +962,9 @@ pub(super) fn anchor_departure_warnings(
                             nominal.anchors[k],
                             core::array::from_fn(|c| id.frame.anchors[k][c] - common[c]),
                         ) {
-                            "they read as metres: `anchors_mm` is in millimetres".to_string()
+                            "they read as metres: `anchors_mm` is in millimetres"
                         } else {
-                            "a typo, an anchor moved, or measured at another point of its \
-                             pulley"
-                                .to_string()
+                            "a typo, an anchor moved, or measured at another point of its pulley"
                         }
                     ),
                 )

@@ -372,8 +372,8 @@ pub(super) fn hold_to_reference(
             .collect::<Vec<f64>>(),
     );
     let chosen_mean = judgement.chosen_stats().mean_mm;
-    let lower = shows_above(chosen_mean, judgement.reference.mean_mm);
-    if let Some(why) = undetermined_reference(reference).filter(|_| lower) {
+    let fall_back = shows_above(chosen_mean, judgement.reference.mean_mm);
+    if let Some(why) = undetermined_reference(reference).filter(|_| fall_back) {
         judgement.reason = format!(
             "{}; the plain least-squares reference, lower on the split ({:.3} mm), is not a \
              candidate: {why}",
@@ -381,7 +381,6 @@ pub(super) fn hold_to_reference(
         );
         return false;
     }
-    let fall_back = lower;
     if fall_back {
         judgement.reason = format!(
             "the plain least-squares reference: {} has {:.3} mm on the selection split, the \
