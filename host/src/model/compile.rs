@@ -25,7 +25,7 @@ use spidar_core::kinematics::{forward_kinematics_inclined, FkStatus};
 use spidar_core::model::{Calibration, StringInputs};
 use spidar_protocol::blob::{BlobError, CRC32};
 
-use crate::data::dataset::{DatasetError, Geometry, Session};
+use crate::data::dataset::{DatasetError, Geometry, LayoutMismatch, Session};
 use crate::data::home::LaterHome;
 use crate::data::observe::{observations, rows_under_the_training_home, Observation};
 use crate::data::output::{refuse_output_over_input, write_atomically};
@@ -498,7 +498,7 @@ pub fn run_compile(args: &CompileRequest) -> Result<CompileReport, CompileCmdErr
     let blob = compile_checked(&calibration, model_id, created_now(), &args.calibration)?;
     let parsed = CompiledCalibration::from_blob(&blob).map_err(CompileCmdError::ParseBack)?;
     if let Some(g) = &args.geometry {
-        check_counts_per_rev(&calibration, g)?;
+        check_geometry(&calibration, g)?;
     }
     let mut test_home = None;
     let error = match &args.test {
@@ -549,7 +549,7 @@ pub fn run_compile(args: &CompileRequest) -> Result<CompileReport, CompileCmdErr
 /// The geometry's strings and counts per revolution against the
 /// calibration's (a 3-string calibration compiled beside a 4-anchor
 /// geometry was written without a word).
-fn check_counts_per_rev(calibration: &Calibration, g: &Path) -> Result<(), CompileCmdError> {
+fn check_geometry(calibration: &Calibration, g: &Path) -> Result<(), CompileCmdError> {
     let geometry = Geometry::load(g)?;
     let layout = calibration.frame.layout;
     if geometry.strings() != layout.count() {
@@ -594,16 +594,13 @@ fn check_session(
     session: &Session,
 ) -> Result<(), CompileCmdError> {
     let layout = calibration.frame.layout;
-    let problem = if session.strings != layout.count() {
-        format!(
-            "{} encoder columns (enc0..enc{})",
-            session.strings,
-            session.strings.saturating_sub(1)
-        )
-    } else if !session.tracker_z && !layout.planar {
-        "no tracker z (`ots_z`)".to_string()
-    } else {
-        return Ok(());
+    let problem = match session.layout_mismatch(layout) {
+        None => return Ok(()),
+        Some(LayoutMismatch::Strings(strings)) => format!(
+            "{strings} encoder columns (enc0..enc{})",
+            strings.saturating_sub(1)
+        ),
+        Some(LayoutMismatch::NoTrackerZ) => "no tracker z (`ots_z`)".to_string(),
     };
     Err(CompileCmdError::SessionMismatch {
         file: file.to_path_buf(),

@@ -91,7 +91,7 @@ pub use columns::{
     TRACKER_COLUMNS,
 };
 pub use geometry::{Geometry, MAX_HOME_TENSION_N};
-pub use session::{ReadOptions, Sample, Session};
+pub use session::{LayoutMismatch, ReadOptions, Sample, Session};
 pub use values::MAX_SESSION_TIME_S;
 
 /// Fewest strings a device may have (3 hold a point in 3-D, with no spare).

@@ -6,7 +6,7 @@ use std::fs;
 use std::io;
 use std::path::Path;
 
-use spidar_core::model::Vec3;
+use spidar_core::model::{StringLayout, Vec3};
 use spidar_core::STRINGS;
 
 use super::columns::{
@@ -58,6 +58,15 @@ impl Sample {
             home,
         }
     }
+}
+
+/// Why a session is not a device's ([`Session::layout_mismatch`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LayoutMismatch {
+    /// The session has this many encoder columns.
+    Strings(usize),
+    /// The session has no tracker z and the device moves in 3-D.
+    NoTrackerZ,
 }
 
 /// A recorded (or simulated) session: captures in time order.
@@ -296,21 +305,32 @@ impl Session {
         geometry: &Geometry,
         geometry_file: &Path,
     ) -> Result<(), DatasetError> {
-        if self.strings != geometry.strings() {
-            return Err(DatasetError::StringCount {
+        match self.layout_mismatch(geometry.layout) {
+            None => Ok(()),
+            Some(LayoutMismatch::Strings(strings)) => Err(DatasetError::StringCount {
                 file: file.to_path_buf(),
-                strings: self.strings,
+                strings,
                 geometry_file: geometry_file.to_path_buf(),
                 geometry_strings: geometry.strings(),
-            });
-        }
-        if !self.tracker_z && !geometry.layout.planar {
-            return Err(DatasetError::NoTrackerZ {
+            }),
+            Some(LayoutMismatch::NoTrackerZ) => Err(DatasetError::NoTrackerZ {
                 file: file.to_path_buf(),
                 geometry_file: geometry_file.to_path_buf(),
-            });
+            }),
         }
-        Ok(())
+    }
+
+    /// What keeps this session from being a device of `layout`'s: another
+    /// number of encoder columns, or no tracker z for a device that moves
+    /// in 3-D. `None` when it fits.
+    pub fn layout_mismatch(&self, layout: StringLayout) -> Option<LayoutMismatch> {
+        if self.strings != layout.count() {
+            Some(LayoutMismatch::Strings(self.strings))
+        } else if !self.tracker_z && !layout.planar {
+            Some(LayoutMismatch::NoTrackerZ)
+        } else {
+            None
+        }
     }
 
     /// True if any sample has an orientation (the `ots_q*` columns are written).
