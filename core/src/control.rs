@@ -25,7 +25,7 @@ use crate::model::{Frame, StringInputs};
 use crate::safety::{SafetyConfig, SafetyConfigError, SafetyFaults, SafetyMonitor};
 use crate::string_law::{cos2_inclinations, guide_elevations, CompiledEffect};
 use crate::tension::{
-    distribute_warm, TensionConfig, TensionLimits, TensionSolution, TensionStatus,
+    distribute_warm, renderable_force, TensionConfig, TensionLimits, TensionSolution, TensionStatus,
 };
 use crate::STRINGS;
 
@@ -372,11 +372,7 @@ impl Controller {
             excluded: fk.excluded,
             room_q16,
             corrected_q16,
-            force_n: if frame.layout.planar {
-                [force[0], force[1], 0.0]
-            } else {
-                force
-            },
+            force_n: renderable_force(frame.layout, force),
             tension_status: solution.status,
             rendered_fraction: solution.rendered_fraction,
             tensions_n: tensions,

@@ -591,12 +591,24 @@ fn layout_geometry<F: Real>(
         u[i] = [d[0] / len, d[1] / len, d[2] / len];
     }
     if layout.planar {
-        let force = [force[0], force[1], F::zero()];
+        let force = renderable_force(layout, force);
         let alpha = feasible_fraction_planar(&u, layout, limits, force, config.hull_margin)?;
         Ok((u, alpha, force))
     } else {
         let alpha = feasible_fraction(&u, limits, force, config.hull_margin)?;
         Ok((u, alpha, force))
+    }
+}
+
+/// The part of `force` a device of `layout` renders: a planar device's
+/// strings pull in the anchors' plane, so its `x, y` only; the whole force
+/// otherwise. What [`distribute_warm`] renders, and what the controller
+/// reports as asked of it.
+pub fn renderable_force<F: Real>(layout: StringLayout, force: Vec3<F>) -> Vec3<F> {
+    if layout.planar {
+        [force[0], force[1], F::zero()]
+    } else {
+        force
     }
 }
 
