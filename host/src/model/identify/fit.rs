@@ -30,7 +30,7 @@ impl Fit<'_> {
     /// The start's state, with the structure's terms; the start's values of
     /// its leading terms that are the structure's (a refit carries them).
     /// Whether the structure gained terms beyond those.
-    fn start_state(&self) -> (State, bool) {
+    pub(super) fn start_state(&self) -> (State, bool) {
         let mut effects = self.structure.effects.clone();
         let mut carried = 0;
         for (term, known) in effects.iter_mut().zip(&self.start.effects) {

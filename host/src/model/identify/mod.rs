@@ -100,6 +100,8 @@ mod robust;
 mod solver;
 mod start;
 mod structure;
+#[cfg(test)]
+mod tests;
 mod winding;
 
 use std::borrow::Borrow;
