@@ -256,9 +256,15 @@ impl RowPass {
                 let dot = up[0] * p[0] + up[1] * p[1] + up[2] * p[2];
                 shared.push(f * (-dot / frame.room_scale));
             }
-            // The winding law: radius, shared and own thinning rates.
-            own.push(f * (-theta * d_payout));
-            let d_kappa = f * (theta * theta * d_payout / w.mechanical_advantage[i]);
+            // The winding law: radius, shared and own thinning rates. A
+            // latency reads the law's slope, `r_home - 2 kappa theta / m`,
+            // times the angle the pulley turns in it.
+            let lag_rad = latency_s(&state.effects, i)
+                * (two_pi / w.counts_per_rev[i] as f64)
+                * f64::from(o.inputs.count_rate_cps[i]);
+            own.push(f * (-(theta * d_payout + lag_rad)));
+            let d_kappa = f
+                * ((theta * theta * d_payout + 2.0 * theta * lag_rad) / w.mechanical_advantage[i]);
             shared.push(d_kappa);
             own.push(if problem.structure.hold_kappa_each {
                 0.0
@@ -279,6 +285,18 @@ impl RowPass {
         }
         finite
     }
+}
+
+/// The latency (s) of string `i`'s terms, its own and the shared ones.
+fn latency_s(effects: &[EffectTerm], i: usize) -> f64 {
+    effects
+        .iter()
+        .filter(|t| t.applies_to(i))
+        .map(|t| match t.effect {
+            Effect::Latency { latency_s } => latency_s,
+            _ => 0.0,
+        })
+        .sum()
 }
 
 /// The derivatives of string `i`'s model length over its payout and over

@@ -88,8 +88,7 @@ fn the_jacobian_is_the_residuals_derivative_with_the_loops_families() {
         home_tension_n: 3.0,
     };
     // Where the Jacobian is knowingly approximate: a held spool rate's
-    // string rows are left out (its tight prior holds it); a latency's
-    // slope is taken at the winding law it started from; a sag's and a
+    // string rows are left out (its tight prior holds it); a sag's and a
     // guide's terms are differentiated over their own parameters only,
     // not over the position they read (their inclination and elevation).
     let held_rates = Expect {
@@ -131,12 +130,12 @@ fn the_jacobian_is_the_residuals_derivative_with_the_loops_families() {
         ),
         (
             "latency",
-            vec![term(2, Effect::Latency { latency_s: 0.004 })],
+            vec![
+                term(2, Effect::Latency { latency_s: 0.004 }),
+                term(EVERY_STRING, Effect::Latency { latency_s: 0.002 }),
+            ],
             false,
-            Expect {
-                approximate: &["string2.r_home", "winding.kappa", "string2.kappa_each"],
-                loose: 1e-2,
-            },
+            EXACT,
         ),
         (
             "sag, guide",
