@@ -691,7 +691,9 @@ mod outliers;
 #[cfg(test)]
 mod tests;
 
-pub(in crate::procedures::calibrate) use geometry::{anchor_departure_warnings, radius_warnings};
+pub(in crate::procedures::calibrate) use geometry::{
+    anchor_departure_warnings, radius_warnings, tilted_plane_warning,
+};
 pub(in crate::procedures::calibrate) use outliers::{
     test_outlier_warning, tracker_outlier_warning,
 };

@@ -22,8 +22,8 @@ use crate::model::rule::RuleChoice;
 
 use super::checks::{
     anchor_departure_warnings, check_alignment, check_enough_tracked_rows, check_tracker_scale,
-    radius_warnings, test_outlier_warning, tracker_outlier_warning, unfitted_warning,
-    unpaired_rows_warnings, Regime,
+    radius_warnings, test_outlier_warning, tilted_plane_warning, tracker_outlier_warning,
+    unfitted_warning, unpaired_rows_warnings, Regime,
 };
 use super::evaluate::{room_positions, stage, PerSession, StageErrors, StageList};
 use super::loop_rows::LoopRows;
@@ -656,7 +656,7 @@ impl Run<'_> {
         let reference = self.reference(obs, &loop_rows.pick(obs.train), &nominal, &mut list)?;
         self.warnings
             .extend(unfitted_warning(train.path, &tr, &list.stages));
-        self.warn_of_the_geometry(&loop_result.identification);
+        self.warn_of_the_geometry(&loop_result.identification, (train.path, &tr));
 
         // From here on the sessions are read at the strings' meeting point when
         // the loop found the tracked body's origin off it (the errors are then
@@ -720,8 +720,10 @@ impl Run<'_> {
     /// another's or mistyped. The loop's model, whose parameters the
     /// report prints: the base identification's anchors take up the
     /// effects it lacks (a planar device's anchor 37 mm off in the base
-    /// model and 12 in the printed one was named as a typo).
-    fn warn_of_the_geometry(&mut self, model: &Identification) {
+    /// model and 12 in the printed one was named as a typo). A planar
+    /// device's tracked training rows (`train`) on a plane tilted from the
+    /// tracker's.
+    fn warn_of_the_geometry(&mut self, model: &Identification, train: (&Path, &[Observation])) {
         self.warnings.extend(radius_warnings(
             self.geometry_path,
             self.geometry,
@@ -732,6 +734,13 @@ impl Run<'_> {
             self.geometry,
             model,
         ));
+        if self.geometry.nominal_frame().layout.planar {
+            self.warnings.extend(tilted_plane_warning(
+                train.0,
+                train.1,
+                model.residual_scale_mm,
+            ));
+        }
     }
 
     /// Both sessions, as recorded, paired anew once the loop's latency

@@ -177,3 +177,67 @@ pub(in crate::procedures::calibrate) fn anchor_departure_warnings(
     named.sort_by(|a, b| b.0.total_cmp(&a.0));
     named.into_iter().take(1).map(|(_, w)| w).collect()
 }
+
+/// The warning for a planar device whose tracked positions lie on a plane
+/// tilted from the tracker's x-y plane. A planar calibration reads the
+/// tracker's `x, y` and holds the tracker frame's rotation about them (the
+/// strings pull in the plane, nothing determines a tilt), so distances
+/// along the tilt read `cos(tilt)` short of the device's. Named when that
+/// shortfall over the session's extent along the tilt exceeds
+/// `residual_scale_mm`, the identified model's string residual scale:
+/// beyond it the tilt is an error the model cannot take up (a survey's
+/// planar session whose `ots_z` varied by hundreds of millimetres was
+/// calibrated without a word).
+pub(in crate::procedures::calibrate) fn tilted_plane_warning(
+    path: &Path,
+    tracked: &[crate::data::observe::Observation],
+    residual_scale_mm: f64,
+) -> Option<String> {
+    let points: Vec<[f64; 3]> = tracked.iter().filter_map(|o| o.tracker).collect();
+    // A plane through fewer rows says nothing of a tilt.
+    if points.len() < 10 {
+        return None;
+    }
+    // Least squares of z on x, y about the centroid.
+    let n = points.len() as f64;
+    let centre: [f64; 3] = core::array::from_fn(|c| points.iter().map(|p| p[c]).sum::<f64>() / n);
+    let (mut xx, mut xy, mut yy, mut xz, mut yz) = (0.0, 0.0, 0.0, 0.0, 0.0);
+    for p in &points {
+        let (x, y, z) = (p[0] - centre[0], p[1] - centre[1], p[2] - centre[2]);
+        xx += x * x;
+        xy += x * y;
+        yy += y * y;
+        xz += x * z;
+        yz += y * z;
+    }
+    let det = xx * yy - xy * xy;
+    if det <= 0.0 || !det.is_finite() {
+        return None;
+    }
+    let slope = [(xz * yy - yz * xy) / det, (yz * xx - xz * xy) / det];
+    let gradient = norm([slope[0], slope[1], 0.0]);
+    if gradient == 0.0 || !gradient.is_finite() {
+        return None;
+    }
+    let tilt = gradient.atan();
+    let along = |p: &[f64; 3]| (p[0] * slope[0] + p[1] * slope[1]) / gradient;
+    let (low, high) = points
+        .iter()
+        .map(along)
+        .fold((f64::MAX, f64::MIN), |(lo, hi), v| (lo.min(v), hi.max(v)));
+    let extent_mm = high - low;
+    let short_mm = extent_mm * (1.0 / tilt.cos() - 1.0);
+    (short_mm > residual_scale_mm).then(|| {
+        format!(
+            "{}: the tracked positions lie on a plane tilted {:.1} degrees from the tracker's \
+             x-y plane (ots_z changes by {:.0} mm across them): a planar device's calibration \
+             reads the tracker's x and y only, so distances along the tilt read {short_mm:.2} mm \
+             short over the session's {extent_mm:.0} mm, beyond the strings' residual scale \
+             ({residual_scale_mm:.2} mm). Set the tracker's frame so the device's plane is its \
+             x-y plane, and record the sessions again",
+            path.display(),
+            tilt.to_degrees(),
+            gradient * extent_mm,
+        )
+    })
+}

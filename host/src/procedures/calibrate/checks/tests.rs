@@ -369,3 +369,39 @@ fn a_session_no_geometry_fits_is_named() {
     );
     assert_eq!(unfitted_warning(path, &tr, &stages(6.0, 4.9)), None);
 }
+
+#[test]
+fn a_planar_session_on_a_tilted_plane_is_named_with_its_tilt() {
+    // A 600 mm square walked in a grid; the tracker's x-y plane tilted 6
+    // degrees about its y axis from the device's, and level.
+    let rows = |tilt_deg: f64| -> Vec<Observation> {
+        let slope = tilt_deg.to_radians().tan();
+        let samples: Vec<Sample> = (0..100)
+            .map(|k| {
+                let (x, y) = (
+                    -300.0 + 60.0 * (k % 10) as f64,
+                    -300.0 + 60.0 * (k / 10) as f64,
+                );
+                tracked_at(k as f64 * 0.1, [x, y, 500.0 + slope * x])
+            })
+            .collect();
+        observations(&samples)
+    };
+    let w = tilted_plane_warning(Path::new("wall.csv"), &rows(6.0), 0.5).unwrap();
+    assert!(w.starts_with("wall.csv: "), "{w}");
+    assert!(w.contains("tilted 6.0 degrees"), "{w}");
+    // 540 mm along the tilt, 1 / cos(6 deg) - 1 of it.
+    assert!(
+        w.contains("read 2.97 mm short over the session's 540 mm"),
+        "{w}"
+    );
+    assert_eq!(
+        tilted_plane_warning(Path::new("wall.csv"), &rows(0.0), 0.5),
+        None
+    );
+    // A tilt whose shortfall stays within the strings' residual scale.
+    assert_eq!(
+        tilted_plane_warning(Path::new("wall.csv"), &rows(2.0), 0.5),
+        None
+    );
+}
