@@ -656,7 +656,7 @@ impl Run<'_> {
         let reference = self.reference(obs, &loop_rows.pick(obs.train), &nominal, &mut list)?;
         self.warnings
             .extend(unfitted_warning(train.path, &tr, &list.stages));
-        self.warn_of_the_geometry(&loop_result.identification, (train.path, &tr));
+        self.warn_of_the_geometry(&loop_result.identification, train);
 
         // From here on the sessions are read at the strings' meeting point when
         // the loop found the tracked body's origin off it (the errors are then
@@ -721,9 +721,9 @@ impl Run<'_> {
     /// report prints: the base identification's anchors take up the
     /// effects it lacks (a planar device's anchor 37 mm off in the base
     /// model and 12 in the printed one was named as a typo). A planar
-    /// device's tracked training rows (`train`) on a plane tilted from the
-    /// tracker's.
-    fn warn_of_the_geometry(&mut self, model: &Identification, train: (&Path, &[Observation])) {
+    /// device's training session (`train`) tracked on a plane tilted from
+    /// the tracker's.
+    fn warn_of_the_geometry(&mut self, model: &Identification, train: NamedSession<'_>) {
         self.warnings.extend(radius_warnings(
             self.geometry_path,
             self.geometry,
@@ -736,8 +736,8 @@ impl Run<'_> {
         ));
         if self.geometry.nominal_frame().layout.planar {
             self.warnings.extend(tilted_plane_warning(
-                train.0,
-                train.1,
+                train.path,
+                &train.session.samples,
                 model.residual_scale_mm,
             ));
         }

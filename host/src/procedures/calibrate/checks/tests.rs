@@ -374,9 +374,9 @@ fn a_session_no_geometry_fits_is_named() {
 fn a_planar_session_on_a_tilted_plane_is_named_with_its_tilt() {
     // A 600 mm square walked in a grid; the tracker's x-y plane tilted 6
     // degrees about its y axis from the device's, and level.
-    let rows = |tilt_deg: f64| -> Vec<Observation> {
+    let rows = |tilt_deg: f64| -> Vec<Sample> {
         let slope = tilt_deg.to_radians().tan();
-        let samples: Vec<Sample> = (0..100)
+        (0..100)
             .map(|k| {
                 let (x, y) = (
                     -300.0 + 60.0 * (k % 10) as f64,
@@ -384,8 +384,7 @@ fn a_planar_session_on_a_tilted_plane_is_named_with_its_tilt() {
                 );
                 tracked_at(k as f64 * 0.1, [x, y, 500.0 + slope * x])
             })
-            .collect();
-        observations(&samples)
+            .collect()
     };
     let w = tilted_plane_warning(Path::new("wall.csv"), &rows(6.0), 0.5).unwrap();
     assert!(w.starts_with("wall.csv: "), "{w}");
