@@ -269,6 +269,60 @@ fn most_rows_impossible_refuses_the_geometry_not_the_rows() {
     std::fs::remove_dir_all(&rig.dir).ok();
 }
 
+/// A geometry typed in metres makes every row impossible; the refusal says
+/// the geometry's lengths look like metres instead of naming the rows'
+/// and the tracker's unit (a survey's finding).
+#[test]
+fn a_geometry_in_metres_is_named_as_metres() {
+    let rig = rig("metres");
+    let text = std::fs::read_to_string(&rig.geometry).unwrap();
+    let in_metres: String = text
+        .lines()
+        .map(|line| {
+            if line.starts_with('#') || line.starts_with("counts_per_rev") {
+                return line.to_string();
+            }
+            // Every number of the lengths a thousand times smaller.
+            line.split_inclusive(|c: char| c == '[' || c == ',' || c == ' ' || c == '=')
+                .map(|part| {
+                    let trimmed = part.trim_end_matches(|c: char| c == ']' || c == ',' || c == ' ');
+                    match trimmed.parse::<f64>() {
+                        Ok(v) => part.replacen(trimmed, &(v / 1000.0).to_string(), 1),
+                        Err(_) => part.to_string(),
+                    }
+                })
+                .collect()
+        })
+        .collect::<Vec<_>>()
+        .join("\n");
+    assert!(in_metres.contains("1.1"), "{in_metres}");
+    let geometry = rig.dir.join("geometry-metres.toml");
+    std::fs::write(&geometry, in_metres + "\n").unwrap();
+    let o = spidar(&[
+        "calibrate",
+        "--geometry",
+        s(&geometry),
+        "--train",
+        s(&rig.train),
+        "--test",
+        s(&rig.test),
+        "--out",
+        s(&rig.dir.join("metres")),
+        "--quick",
+        "--no-figures",
+        "--quiet",
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success());
+    assert!(
+        err.contains("train.csv")
+            && err.contains("rows hold values no device of the geometry")
+            && err.contains("the geometry's lengths look like metres"),
+        "{err}"
+    );
+    std::fs::remove_dir_all(&rig.dir).ok();
+}
+
 /// A row that repeats the row before it exactly (the same `t_s` and every
 /// value) is a row duplicated on its way to the file: it is set aside
 /// whole, and a warning names both lines ("line 8 repeats line 7"), so the

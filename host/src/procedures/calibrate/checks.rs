@@ -9,11 +9,11 @@
 
 use std::path::Path;
 
-use spidar_core::geometry::device_from_room;
+use spidar_core::geometry::{device_from_room, distance};
 use spidar_core::STRINGS;
 
 use crate::data::dataset::{Geometry, Session};
-use crate::data::impossible::{first_of, SetAside, NOMINAL_SCALE_LIMIT};
+use crate::data::impossible::{first_of, frame_span_mm, SetAside, NOMINAL_SCALE_LIMIT};
 use crate::data::observe::{Observation, DIRECTION_HYSTERESIS_COUNTS};
 use crate::model::identify::Structure;
 
@@ -24,22 +24,24 @@ use crate::procedures::plural;
 /// Both sessions' facts for the report, after checking their strings
 /// against the geometry, and the warnings they call for: test rows that are
 /// training rows, columns nobody reads, rows set aside as impossible
-/// (`set_aside`, found on the sessions as read; a session most of whose
-/// rows are impossible is refused).
+/// (`set_aside`, found on the sessions `as_read`, whose positions
+/// `train` and `test` no longer hold; a session most of whose rows are
+/// impossible is refused).
 pub(super) fn checked_sessions(
     geometry: &Geometry,
     geometry_path: &Path,
     train: NamedSession<'_>,
     test: NamedSession<'_>,
     set_aside: [&SetAside; 2],
+    as_read: [&Session; 2],
 ) -> Result<(report::SessionInfo, report::SessionInfo, Vec<String>), CalibrateError> {
     let mut warnings: Vec<String> = Vec::new();
     for s in [&train, &test] {
         s.session.check_strings(s.path, geometry, geometry_path)?;
         check_dead_encoders(s)?;
     }
-    for (s, found) in [&train, &test].into_iter().zip(set_aside) {
-        check_set_aside(s, found, geometry_path)?;
+    for ((s, found), read) in [&train, &test].into_iter().zip(set_aside).zip(as_read) {
+        check_set_aside(s, found, geometry_in_metres(read, geometry), geometry_path)?;
     }
     let train_info = session_info(train, set_aside[0])?;
     let test_info = report::SessionInfo {
@@ -127,26 +129,67 @@ const SET_ASIDE_SHOWN: usize = 12;
 
 /// Refuses a session most of whose rows no device of the geometry could
 /// produce: not bad rows, but a geometry or a unit that does not fit it.
+/// `in_metres`: what [`geometry_in_metres`] found of the session as read.
 fn check_set_aside(
     s: &NamedSession<'_>,
     found: &SetAside,
+    in_metres: Option<String>,
     geometry_path: &Path,
 ) -> Result<(), CalibrateError> {
     let rows = s.session.samples.len();
     if !found.is_most_of(rows) {
         return Ok(());
     }
+    let check = in_metres.unwrap_or_else(|| {
+        "check the geometry's anchors, pulley_radius_mm, counts_per_rev and \
+         mechanical_advantage against the device, and that the tracker gives millimetres"
+            .to_string()
+    });
     Err(CalibrateError::Session {
         file: s.path.to_path_buf(),
         problem: format!(
             "{} of its {rows} rows hold values no device of the geometry {} could produce, too \
-             many to be bad rows: check the geometry's anchors, pulley_radius_mm, \
-             counts_per_rev and mechanical_advantage against the device, and that the tracker \
-             gives millimetres. {}",
+             many to be bad rows: {check}. {}",
             found.impossible().count(),
             geometry_path.display(),
             found.lines(SET_ASIDE_SHOWN)
         ),
+    })
+}
+
+/// What to check when the session's tracked positions spread over far more
+/// than the geometry's frame (a device's end-effector stays inside it) by
+/// about the factor of metres: the geometry's lengths read as metres (a
+/// geometry typed in metres was refused with the rows' message, which
+/// named the tracker's unit). `None` otherwise. `session`: as read (the
+/// rows set aside as impossible keep their positions).
+fn geometry_in_metres(session: &Session, geometry: &Geometry) -> Option<String> {
+    let span = frame_span_mm(geometry);
+    let tracked: Vec<[f64; 3]> = session.samples.iter().filter_map(|r| r.tracker).collect();
+    if tracked.is_empty() || span <= 0.0 || !span.is_finite() {
+        return None;
+    }
+    let centre: [f64; 3] = core::array::from_fn(|c| {
+        crate::data::stats::median(&mut tracked.iter().map(|p| p[c]).collect::<Vec<_>>())
+    });
+    // Twice the median distance from the median position: the extent of
+    // the positions, a tracker's glitches aside.
+    let spread = 2.0
+        * crate::data::stats::median(
+            &mut tracked
+                .iter()
+                .map(|p| distance(*p, centre))
+                .collect::<Vec<_>>(),
+        );
+    // A session spans a tenth of its frame to the whole of it; in metres,
+    // the frame reads a thousand times smaller.
+    let in_metres = (50.0..=20_000.0).contains(&(spread / span));
+    in_metres.then(|| {
+        format!(
+            "the geometry's anchors and home span {span:.3} mm where the tracked positions spread \
+             over {spread:.0} mm: the geometry's lengths look like metres (`anchors_mm`, \
+             `home_mm` and `pulley_radius_mm` are millimetres)"
+        )
     })
 }
 

@@ -593,6 +593,7 @@ pub fn calibrate(
     // anything reads the sessions: their positions emptied here, their
     // whole rows skipped where the sessions become observations.
     let set_aside = [train, test].map(|s| SetAside::find(s.session, geometry));
+    let as_read = [train.session, test.session];
     let kept = [(train, &set_aside[0]), (test, &set_aside[1])].map(|(s, found)| {
         if found.is_empty() {
             Cow::Borrowed(s.session)
@@ -614,6 +615,7 @@ pub fn calibrate(
         train,
         test,
         [&set_aside[0], &set_aside[1]],
+        as_read,
     )?;
     let mut run = Run {
         geometry,
