@@ -283,9 +283,9 @@ fn a_geometry_in_metres_is_named_as_metres() {
                 return line.to_string();
             }
             // Every number of the lengths a thousand times smaller.
-            line.split_inclusive(|c: char| c == '[' || c == ',' || c == ' ' || c == '=')
+            line.split_inclusive(['[', ',', ' ', '='])
                 .map(|part| {
-                    let trimmed = part.trim_end_matches(|c: char| c == ']' || c == ',' || c == ' ');
+                    let trimmed = part.trim_end_matches([']', ',', ' ']);
                     match trimmed.parse::<f64>() {
                         Ok(v) => part.replacen(trimmed, &(v / 1000.0).to_string(), 1),
                         Err(_) => part.to_string(),
