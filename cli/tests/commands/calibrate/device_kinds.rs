@@ -1,7 +1,8 @@
 //! `spidar calibrate` on sessions of devices and rigs other than the
 //! paper's 8-string one: a short stream logged on one clock, 4- and
 //! 7-string devices' geometries as written (anchors within their
-//! tolerance, an anchor typed in metres).
+//! tolerance, an anchor typed in metres), a 3-D session given a planar
+//! geometry.
 
 use serde_json::Value;
 
@@ -176,6 +177,77 @@ fn an_anchor_typed_in_metres_is_named_as_metres() {
     assert!(
         warnings.iter().any(|w| w.contains("anchor 1 is identified")
             && w.contains("they read as metres: `anchors_mm` is in millimetres")),
+        "{warnings:?}"
+    );
+}
+
+/// A 3-D 4-string device's sessions given a planar 4-string device's
+/// geometry: the report named only that no geometry fits the session; it
+/// now names the tracked positions leaving the plane (257 mm about their
+/// best plane over 592 mm in it) and asks whether the session is a 3-D
+/// device's.
+#[test]
+fn a_three_d_session_given_a_planar_geometry_is_named() {
+    let dir = temp_dir("off-plane");
+    for (planar, sub) in [("false", "solid"), ("true", "flat")] {
+        let config = dir.join(format!("{sub}.toml"));
+        std::fs::write(
+            &config,
+            format!(
+                "[nominal]\nstrings = 4\nplanar = {planar}\n[abnormal_motor]\nenabled = false\n"
+            ),
+        )
+        .unwrap();
+        for (seed, points, name) in [("11", "300", "train"), ("12", "200", "test")] {
+            let o = spidar(&[
+                "simulate",
+                "--config",
+                s(&config),
+                "--out",
+                s(&dir.join(sub)),
+                "--seed",
+                "1",
+                "--session-seed",
+                seed,
+                "--kind",
+                "random",
+                "--points",
+                points,
+                "--name",
+                name,
+            ]);
+            assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        }
+    }
+    let out = dir.join("calibration");
+    let o = spidar(&[
+        "calibrate",
+        "--geometry",
+        s(&dir.join("flat/geometry.toml")),
+        "--train",
+        s(&dir.join("solid/train.csv")),
+        "--test",
+        s(&dir.join("solid/test.csv")),
+        "--quick",
+        "--no-figures",
+        "--quiet",
+        "--out",
+        s(&out),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let report: Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
+    std::fs::remove_dir_all(&dir).ok();
+    let warnings: Vec<&str> = report["warnings"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter_map(|w| w.as_str())
+        .collect();
+    assert!(
+        warnings.iter().any(|w| w
+            .contains("solid/train.csv: the tracked positions leave their plane")
+            && w.contains("is this a 3-D device's session")),
         "{warnings:?}"
     );
 }

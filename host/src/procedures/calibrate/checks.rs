@@ -735,7 +735,7 @@ mod outliers;
 mod tests;
 
 pub(in crate::procedures::calibrate) use geometry::{
-    anchor_departure_warnings, radius_warnings, tilted_plane_warning,
+    anchor_departure_warnings, planar_session_warnings, radius_warnings,
 };
 pub(in crate::procedures::calibrate) use outliers::{
     test_outlier_warning, tracker_outlier_warning,

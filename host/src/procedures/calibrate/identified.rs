@@ -22,7 +22,7 @@ use crate::model::rule::RuleChoice;
 
 use super::checks::{
     anchor_departure_warnings, check_alignment, check_enough_tracked_rows, check_tracker_scale,
-    radius_warnings, test_outlier_warning, tilted_plane_warning, tracker_outlier_warning,
+    planar_session_warnings, radius_warnings, test_outlier_warning, tracker_outlier_warning,
     unfitted_warning, unpaired_rows_warnings, Regime,
 };
 use super::evaluate::{room_positions, stage, PerSession, StageErrors, StageList};
@@ -735,7 +735,7 @@ impl Run<'_> {
             model,
         ));
         if self.geometry.nominal_frame().layout.planar {
-            self.warnings.extend(tilted_plane_warning(
+            self.warnings.extend(planar_session_warnings(
                 train.path,
                 &train.session.samples,
                 model.residual_scale_mm,

@@ -178,29 +178,42 @@ pub(in crate::procedures::calibrate) fn anchor_departure_warnings(
     named.into_iter().take(1).map(|(_, w)| w).collect()
 }
 
-/// The warning for a planar device whose tracked positions lie on a plane
-/// tilted from the tracker's x-y plane. A planar calibration reads the
+/// The share of a planar session's in-plane extent its tracked positions
+/// may scatter off their plane before the session is named as not
+/// planar, whatever the model's residual scale.
+const OFF_PLANE_SHARE: f64 = 0.1;
+
+/// The warnings for a planar device's session whose tracked positions do
+/// not lie in the tracker's x-y plane. A planar calibration reads the
 /// tracker's `x, y` and holds the tracker frame's rotation about them (the
-/// strings pull in the plane, nothing determines a tilt), so it fits the
-/// device to the plane's projection, where distances along the tilt read
-/// `cos(tilt)` short of the device's (the wall robot's sessions tilted 6
-/// degrees: anchors moved in, held out 0.402 mm on a test session tilted
-/// alike, 0.405 level). Named when that
-/// shortfall over the session's extent along the tilt exceeds
-/// `residual_scale_mm`, the identified model's string residual scale:
-/// beyond it the tilt is an error the model cannot take up (a survey's
-/// planar session whose `ots_z` varied by hundreds of millimetres was
-/// calibrated without a word). `rows`: the session's rows as read (the
-/// observations have a planar device's tracker z set to the plane).
-pub(in crate::procedures::calibrate) fn tilted_plane_warning(
+/// strings pull in the plane, nothing determines a tilt):
+/// - on a plane tilted from it, the device is calibrated to the plane's
+///   projection, where distances along the tilt read `cos(tilt)` short of
+///   the device's (the wall robot's sessions tilted 6 degrees: anchors
+///   moved in, held out 0.402 mm on a test session tilted alike, 0.405
+///   level). Named when that shortfall over the session's extent along
+///   the tilt exceeds `residual_scale_mm`, the identified model's string
+///   residual scale: beyond it the tilt is an error the model takes up
+///   without a word (a survey's planar session whose `ots_z` varied by
+///   hundreds of millimetres);
+/// - off any plane (a 3-D session), a string to a point `h` off the plane
+///   is longer than its in-plane chord by about `h^2 / (2 L)`. Named when
+///   that, at the scatter about the best plane and over the in-plane
+///   extent, exceeds `residual_scale_mm`, or the scatter exceeds
+///   [`OFF_PLANE_SHARE`] of the extent (a 3-D session given a planar
+///   geometry was told only that no geometry fits it).
+///
+/// `rows`: the session's rows as read (the observations have a planar
+/// device's tracker z set to the plane).
+pub(in crate::procedures::calibrate) fn planar_session_warnings(
     path: &Path,
     rows: &[crate::data::dataset::Sample],
     residual_scale_mm: f64,
-) -> Option<String> {
+) -> Vec<String> {
     let points: Vec<[f64; 3]> = rows.iter().filter_map(|r| r.tracker).collect();
     // A plane through fewer rows says nothing of a tilt.
     if points.len() < 10 {
-        return None;
+        return Vec::new();
     }
     // Least squares of z on x, y about the centroid.
     let n = points.len() as f64;
@@ -216,12 +229,40 @@ pub(in crate::procedures::calibrate) fn tilted_plane_warning(
     }
     let det = xx * yy - xy * xy;
     if det <= 0.0 || !det.is_finite() {
-        return None;
+        return Vec::new();
     }
     let slope = [(xz * yy - yz * xy) / det, (yz * xx - xz * xy) / det];
+    let mut warnings = Vec::new();
+    // Off the plane: the scatter about it against the in-plane extent.
+    let off_plane_sd_mm = (points
+        .iter()
+        .map(|p| {
+            let (x, y) = (p[0] - centre[0], p[1] - centre[1]);
+            (p[2] - centre[2] - slope[0] * x - slope[1] * y).powi(2)
+        })
+        .sum::<f64>()
+        / n)
+        .sqrt();
+    let in_plane_mm = 2.0 * ((xx + yy) / n).sqrt();
+    let longer_mm = off_plane_sd_mm.powi(2) / (2.0 * in_plane_mm);
+    // A session that leaves its plane by a tenth of its extent is no
+    // planar device's (its end-effector stays in the plane; a marker's
+    // height wobbles by millimetres): the residual scale of a model fitted
+    // to it says nothing then (a 3-D session fitted to 125 mm).
+    if longer_mm > residual_scale_mm || off_plane_sd_mm > OFF_PLANE_SHARE * in_plane_mm {
+        warnings.push(format!(
+            "{}: the tracked positions leave their plane by {off_plane_sd_mm:.0} mm (sd about \
+             the best plane through them) over {in_plane_mm:.0} mm in it. A planar device's \
+             calibration reads the tracker's x and y only, and a string to a point that far off \
+             its plane is longer than in it by about {longer_mm:.1} mm (the identified model's \
+             string residual scale: {residual_scale_mm:.2} mm): is this a 3-D device's session, \
+             or the geometry's `planar = true` meant for another device?",
+            path.display()
+        ));
+    }
     let gradient = norm([slope[0], slope[1], 0.0]);
     if gradient == 0.0 || !gradient.is_finite() {
-        return None;
+        return warnings;
     }
     let tilt = gradient.atan();
     let along = |p: &[f64; 3]| (p[0] * slope[0] + p[1] * slope[1]) / gradient;
@@ -231,8 +272,8 @@ pub(in crate::procedures::calibrate) fn tilted_plane_warning(
         .fold((f64::MAX, f64::MIN), |(lo, hi), v| (lo.min(v), hi.max(v)));
     let extent_mm = high - low;
     let short_mm = extent_mm * (1.0 / tilt.cos() - 1.0);
-    (short_mm > residual_scale_mm).then(|| {
-        format!(
+    if short_mm > residual_scale_mm {
+        warnings.push(format!(
             "{}: the tracked positions lie on a plane tilted {:.1} degrees from the tracker's \
              x-y plane (ots_z changes by {:.0} mm across them). A planar device's calibration \
              reads the tracker's x and y only: it calibrates the device to the plane's \
@@ -244,6 +285,7 @@ pub(in crate::procedures::calibrate) fn tilted_plane_warning(
             path.display(),
             tilt.to_degrees(),
             gradient * extent_mm,
-        )
-    })
+        ));
+    }
+    warnings
 }

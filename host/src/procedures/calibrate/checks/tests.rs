@@ -371,10 +371,11 @@ fn a_session_no_geometry_fits_is_named() {
 }
 
 #[test]
-fn a_planar_session_on_a_tilted_plane_is_named_with_its_tilt() {
-    // A 600 mm square walked in a grid; the tracker's x-y plane tilted 6
-    // degrees about its y axis from the device's, and level.
-    let rows = |tilt_deg: f64| -> Vec<Sample> {
+fn a_planar_session_on_a_tilted_plane_or_off_any_plane_is_named() {
+    // A 600 mm square walked in a grid; the tracker's x-y plane tilted
+    // from the device's about its y axis, and `z_off` mm off the plane
+    // in a checkerboard (no slope).
+    let rows = |tilt_deg: f64, z_off: f64| -> Vec<Sample> {
         let slope = tilt_deg.to_radians().tan();
         (0..100)
             .map(|k| {
@@ -382,25 +383,30 @@ fn a_planar_session_on_a_tilted_plane_is_named_with_its_tilt() {
                     -300.0 + 60.0 * (k % 10) as f64,
                     -300.0 + 60.0 * (k / 10) as f64,
                 );
-                tracked_at(k as f64 * 0.1, [x, y, 500.0 + slope * x])
+                let off = if (k + k / 10) % 2 == 0 { z_off } else { -z_off };
+                tracked_at(k as f64 * 0.1, [x, y, 500.0 + slope * x + off])
             })
             .collect()
     };
-    let w = tilted_plane_warning(Path::new("wall.csv"), &rows(6.0), 0.5).unwrap();
-    assert!(w.starts_with("wall.csv: "), "{w}");
-    assert!(w.contains("tilted 6.0 degrees"), "{w}");
+    let warn = |tilt, off| planar_session_warnings(Path::new("wall.csv"), &rows(tilt, off), 0.5);
+    let w = warn(6.0, 0.0);
+    assert_eq!(w.len(), 1, "{w:?}");
+    assert!(w[0].starts_with("wall.csv: "), "{}", w[0]);
+    assert!(w[0].contains("tilted 6.0 degrees"), "{}", w[0]);
     // 540 mm along the tilt, 1 / cos(6 deg) - 1 of it.
     assert!(
-        w.contains("read 2.97 mm short over the session's 540 mm"),
-        "{w}"
+        w[0].contains("read 2.97 mm short over the session's 540 mm"),
+        "{}",
+        w[0]
     );
-    assert_eq!(
-        tilted_plane_warning(Path::new("wall.csv"), &rows(0.0), 0.5),
-        None
-    );
+    assert!(warn(0.0, 0.0).is_empty());
     // A tilt whose shortfall stays within the strings' residual scale.
-    assert_eq!(
-        tilted_plane_warning(Path::new("wall.csv"), &rows(2.0), 0.5),
-        None
-    );
+    assert!(warn(2.0, 0.0).is_empty());
+    // A 3-D session: 200 mm off the plane against 2 x 257 mm in it.
+    let w = warn(0.0, 200.0);
+    assert_eq!(w.len(), 1, "{w:?}");
+    assert!(w[0].contains("leave their plane by 200 mm"), "{}", w[0]);
+    assert!(w[0].contains("a 3-D device's session"), "{}", w[0]);
+    // A marker that wobbles a few mm off the plane is no 3-D session.
+    assert!(warn(0.0, 5.0).is_empty());
 }
