@@ -4,6 +4,8 @@
 //! tolerance, an anchor typed in metres), a 3-D session given a planar
 //! geometry.
 
+use std::path::Path;
+
 use serde_json::Value;
 
 use super::{s, spidar, temp_dir};
@@ -128,25 +130,41 @@ fn warnings_of_a_device(
     }
     let geometry = dir.join("geometry.toml");
     std::fs::write(&geometry, edit(std::fs::read_to_string(&geometry).unwrap())).unwrap();
-    let out = dir.join("calibration");
+    let warnings = quick_calibration_warnings(
+        &geometry,
+        &dir.join("lattice.csv"),
+        &dir.join("test.csv"),
+        &dir.join("calibration"),
+    );
+    std::fs::remove_dir_all(&dir).ok();
+    warnings
+}
+
+/// The warnings of a quick `calibrate` of `train` and `test` on
+/// `geometry`, written to `out`; it must run.
+fn quick_calibration_warnings(
+    geometry: &Path,
+    train: &Path,
+    test: &Path,
+    out: &Path,
+) -> Vec<String> {
     let o = spidar(&[
         "calibrate",
         "--geometry",
-        s(&geometry),
+        s(geometry),
         "--train",
-        s(&dir.join("lattice.csv")),
+        s(train),
         "--test",
-        s(&dir.join("test.csv")),
+        s(test),
         "--quick",
         "--no-figures",
         "--quiet",
         "--out",
-        s(&out),
+        s(out),
     ]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let report: Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
-    std::fs::remove_dir_all(&dir).ok();
     report["warnings"]
         .as_array()
         .unwrap()
@@ -219,31 +237,13 @@ fn a_three_d_session_given_a_planar_geometry_is_named() {
             assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
         }
     }
-    let out = dir.join("calibration");
-    let o = spidar(&[
-        "calibrate",
-        "--geometry",
-        s(&dir.join("flat/geometry.toml")),
-        "--train",
-        s(&dir.join("solid/train.csv")),
-        "--test",
-        s(&dir.join("solid/test.csv")),
-        "--quick",
-        "--no-figures",
-        "--quiet",
-        "--out",
-        s(&out),
-    ]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let report: Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
+    let warnings = quick_calibration_warnings(
+        &dir.join("flat/geometry.toml"),
+        &dir.join("solid/train.csv"),
+        &dir.join("solid/test.csv"),
+        &dir.join("calibration"),
+    );
     std::fs::remove_dir_all(&dir).ok();
-    let warnings: Vec<&str> = report["warnings"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .filter_map(|w| w.as_str())
-        .collect();
     assert!(
         warnings.iter().any(|w| w
             .contains("solid/train.csv: the tracked positions leave their plane")
