@@ -326,7 +326,7 @@ fn median(values: impl Iterator<Item = f64>) -> f64 {
 }
 
 /// The per-coordinate median of `points`; `None` without a point.
-fn median_position(points: impl Iterator<Item = [f64; 3]> + Clone) -> Option<[f64; 3]> {
+pub(crate) fn median_position(points: impl Iterator<Item = [f64; 3]> + Clone) -> Option<[f64; 3]> {
     points.clone().next()?;
     Some(core::array::from_fn(|k| {
         median(points.clone().map(|p| p[k]))

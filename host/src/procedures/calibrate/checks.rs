@@ -13,7 +13,9 @@ use spidar_core::geometry::{device_from_room, distance};
 use spidar_core::STRINGS;
 
 use crate::data::dataset::{Geometry, Session};
-use crate::data::impossible::{first_of, frame_span_mm, SetAside, NOMINAL_SCALE_LIMIT};
+use crate::data::impossible::{
+    first_of, frame_span_mm, median_position, SetAside, NOMINAL_SCALE_LIMIT,
+};
 use crate::data::observe::{Observation, DIRECTION_HYSTERESIS_COUNTS};
 use crate::model::identify::Structure;
 
@@ -165,22 +167,15 @@ fn check_set_aside(
 /// rows set aside as impossible keep their positions).
 fn geometry_in_metres(session: &Session, geometry: &Geometry) -> Option<String> {
     let span = frame_span_mm(geometry);
-    let tracked: Vec<[f64; 3]> = session.samples.iter().filter_map(|r| r.tracker).collect();
-    if tracked.is_empty() || span <= 0.0 || !span.is_finite() {
+    if span <= 0.0 || !span.is_finite() {
         return None;
     }
-    let centre: [f64; 3] = core::array::from_fn(|c| {
-        crate::data::stats::median(&mut tracked.iter().map(|p| p[c]).collect::<Vec<_>>())
-    });
+    let tracked = session.samples.iter().filter_map(|r| r.tracker);
+    let centre = median_position(tracked.clone())?;
     // Twice the median distance from the median position: the extent of
     // the positions, a tracker's glitches aside.
     let spread = 2.0
-        * crate::data::stats::median(
-            &mut tracked
-                .iter()
-                .map(|p| distance(*p, centre))
-                .collect::<Vec<_>>(),
-        );
+        * crate::data::stats::median(&mut tracked.map(|p| distance(p, centre)).collect::<Vec<_>>());
     // A session spans a tenth of its frame to the whole of it; in metres,
     // the frame reads a thousand times smaller.
     let in_metres = (50.0..=20_000.0).contains(&(spread / span));

@@ -734,7 +734,7 @@ impl Run<'_> {
             self.geometry,
             model,
         ));
-        if self.geometry.nominal_frame().layout.planar {
+        if self.geometry.layout.planar {
             self.warnings.extend(planar_session_warnings(
                 train.path,
                 &train.session.samples,

@@ -40,7 +40,7 @@ pub(in crate::procedures::calibrate) fn radius_warnings(
     laws: &[StringLaw; STRINGS],
 ) -> Vec<String> {
     let nominal = geometry.nominal_string_laws();
-    let layout = geometry.nominal_frame().layout;
+    let layout = geometry.layout;
     let ratios: Vec<(usize, f64)> = layout
         .indices()
         .map(|i| (i, laws[i].winding_mm[0] / nominal[i].winding_mm[0]))
