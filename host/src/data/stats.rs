@@ -25,17 +25,26 @@ pub fn position_errors(positions: &[[f64; 3]], references: &[[f64; 3]]) -> Vec<f
         .collect()
 }
 
-/// Median of `values` (sorts them in place; 0 when empty).
+/// Median of `values` (reorders them in place; 0 when empty): the middle
+/// value, or the mean of the two middle ones, in `f64::total_cmp`'s order.
+/// Selected, not sorted: the robust rounds take two medians of every
+/// residual of a session at each round.
 pub fn median(values: &mut [f64]) -> f64 {
-    values.sort_by(f64::total_cmp);
     let n = values.len();
     if n == 0 {
         return 0.0;
     }
+    let (below, &mut middle, _) = values.select_nth_unstable_by(n / 2, f64::total_cmp);
     if n % 2 == 1 {
-        values[n / 2]
+        middle
     } else {
-        0.5 * (values[n / 2 - 1] + values[n / 2])
+        // The lower middle value is the largest of those below.
+        let lower = below
+            .iter()
+            .copied()
+            .max_by(f64::total_cmp)
+            .unwrap_or(middle);
+        0.5 * (lower + middle)
     }
 }
 
@@ -240,6 +249,27 @@ mod tests {
         );
         let levels: Vec<f64> = (1..30).map(chi_square_p001).collect();
         assert!(levels.windows(2).all(|w| w[1] > w[0]));
+    }
+
+    proptest::proptest! {
+        /// The selected median is the sorted list's middle, to the bit,
+        /// with repeated values and both parities.
+        #[test]
+        fn median_is_the_sorted_middle(values in proptest::collection::vec(-4i32..4, 1..40),
+                                       spread in proptest::prelude::any::<f64>()) {
+            let spread = if spread.is_finite() { spread } else { 1.0 };
+            let mut v: Vec<f64> = values.iter().map(|&k| f64::from(k) * spread).collect();
+            let mut sorted = v.clone();
+            sorted.sort_by(f64::total_cmp);
+            let n = sorted.len();
+            let middle = if n % 2 == 1 {
+                sorted[n / 2]
+            } else {
+                0.5 * (sorted[n / 2 - 1] + sorted[n / 2])
+            };
+            let m = median(&mut v);
+            proptest::prop_assert!(m.to_bits() == middle.to_bits() || (m.is_nan() && middle.is_nan()));
+        }
     }
 
     #[test]
