@@ -9,7 +9,7 @@ use super::layout::{encode, Layout, State};
 use super::problem::Problem;
 use super::result::IdentifyError;
 use super::robust::{robust_scale, weight, Round};
-use super::solver::minimize;
+use super::solver::{minimize, DAMPING_FAR, DAMPING_NEAR};
 use super::start::same_term;
 use super::start::Start;
 use super::structure::Structure;
@@ -144,7 +144,14 @@ impl Fit<'_> {
             }
             weights = new_weights;
             let problem = self.problem(&state, &weights, scale);
-            let (problem, used_evaluations) = minimize(problem)
+            // The first round of a cold start begins at the design
+            // geometry; every other begins at a fitted state.
+            let damping = if n == 0 && !self.start.warm {
+                DAMPING_FAR
+            } else {
+                DAMPING_NEAR
+            };
+            let (problem, used_evaluations) = minimize(problem, damping)
                 .map_err(|why| IdentifyError::Diverged(format!("robust round {n}: {why}")))?;
             evaluations += used_evaluations;
             state = problem.state();
