@@ -250,6 +250,14 @@ impl StringTerm {
 /// are tried; a latency when the rows observe the speed; a guide on a
 /// device in space (`guides`); a slip when the string's residual steps at
 /// `split` (its most likely slip time).
+///
+/// No scale of the payout ([`Effect::Scale`]): the base model carries one
+/// in the string's radius, and in its own thinning rate once the spool
+/// rates are free (`scale_is_carried_by_the_base_model` in
+/// `host/tests/model/loop_closing.rs`). What a scale's column keeps off the
+/// radius's is its thinning part, so the loop proposed scales of -0.6 for
+/// a spool that thins at its own rate, and fitted them along the valley
+/// `(1 + s) r_home` (record 0078).
 fn string_terms(
     rows: usize,
     i: usize,
@@ -267,16 +275,6 @@ fn string_terms(
             search_penalty: 0.0,
             effect: Box::new(|b| Effect::Offset { mm: b[0] }),
             describe: format!("string {i} reads a constant length error (its home length is off)"),
-        },
-        StringTerm {
-            family: Family::Scale,
-            variable: Variable::WoundLength,
-            is_term: |e| matches!(e, Effect::Scale { .. }),
-            columns: vec![Box::new(|r| r.ctx.payout_mm)],
-            rival: Vec::new(),
-            search_penalty: 0.0,
-            effect: Box::new(|b| Effect::Scale { relative: b[0] }),
-            describe: format!("string {i}'s payout is off in proportion to the string wound out"),
         },
         StringTerm {
             family: Family::Winding,

@@ -99,7 +99,7 @@ impl Default for MonitorConfig {
             max_pair_gap: Duration::from_millis(15),
             error_factor: 1.5,
             min_error_rise_mm: 1.0,
-            drift_families: vec![Family::Slip, Family::Offset, Family::Drift, Family::Scale],
+            drift_families: vec![Family::Slip, Family::Offset, Family::Drift],
             min_amplitude_mm: 1.0,
             min_explained: 0.4,
             require_both: false,

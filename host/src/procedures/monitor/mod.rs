@@ -27,7 +27,7 @@
 //!    ([`crate::model::diagnose::diagnose`]: score tests of every effect family
 //!    the model lacks, with the slip's time search). Drift is reported when
 //!    it finds a significant effect of a family that can appear at run time
-//!    ([`MonitorConfig::drift_families`]; slip, offset, drift, scale by
+//!    ([`MonitorConfig::drift_families`]; slip, offset, drift by
 //!    default) at least [`MonitorConfig::min_amplitude_mm`] large, and/or
 //!    the window error exceeds the baseline by
 //!    [`MonitorConfig::error_factor`] (and by at least
