@@ -16,6 +16,15 @@ fn term(string: u8, effect: Effect) -> EffectTerm {
     EffectTerm { string, effect }
 }
 
+/// Device 3 of `config` and the observations of its session of `points`
+/// random points (session seed 5).
+fn random_session(config: &SimConfig, points: usize) -> (SimulatedDevice, Vec<Observation>) {
+    let device = SimulatedDevice::new(config, 3).unwrap();
+    let session = simulate_session(&device, SessionKind::Random { points }, 5).unwrap();
+    let obs = observations(&session.samples);
+    (device, obs)
+}
+
 /// Each column's disagreement between the analytic Jacobian and central
 /// differences of the residuals, relative to the column's size, at the
 /// start's state. The steps are a thousandth of each scaled variable: a
@@ -76,10 +85,7 @@ const EXACT: Expect = Expect {
 
 #[test]
 fn the_jacobian_is_the_residuals_derivative_with_the_loops_families() {
-    let config = SimConfig::default();
-    let device = SimulatedDevice::new(&config, 3).unwrap();
-    let session = simulate_session(&device, SessionKind::Random { points: 120 }, 5).unwrap();
-    let obs = observations(&session.samples);
+    let (device, obs) = random_session(&SimConfig::default(), 120);
     let used: Vec<&Observation> = obs.iter().filter(|o| o.tracker.is_some()).collect();
     let mut start = Start::from_geometry(&device.nominal);
     start.winding.kappa_mm = 0.004;
@@ -187,9 +193,7 @@ fn a_warm_refit_that_gains_a_stretch_takes_gauss_newtons_steps() {
         effects: vec!["stretch:*:per_newton=0.0003,mm_per_newton=0.06,home_tension_n=1.1".into()],
         ..SimConfig::default()
     };
-    let device = SimulatedDevice::new(&config, 3).unwrap();
-    let session = simulate_session(&device, SessionKind::Random { points: 400 }, 5).unwrap();
-    let obs = observations(&session.samples);
+    let (device, obs) = random_session(&config, 400);
     let nominal = device.nominal.nominal_frame();
     let base = super::identify(
         &obs,
