@@ -412,11 +412,15 @@ pub fn forward_kinematics_inclined<F: Real>(
     lengths: impl Fn(&StringInputs) -> [F; STRINGS],
 ) -> FkSolution<F> {
     let (anchors, home, layout) = (&frame.anchors, &frame.home, frame.layout);
+    if !inclined {
+        // No term reads the directions: the lengths are the inputs' own.
+        return forward_kinematics(anchors, layout, &lengths(inputs), start, config);
+    }
     let mut inputs = *inputs;
     inputs.cos2_inclination_q16 = cos2_inclinations(anchors, &start);
     inputs.guide_elevation_q32 = guide_elevations(anchors, home, &start);
     let fk = forward_kinematics(anchors, layout, &lengths(&inputs), start, config);
-    if !inclined || !finite3(&fk.position) {
+    if !finite3(&fk.position) {
         return fk;
     }
     inputs.cos2_inclination_q16 = cos2_inclinations(anchors, &fk.position);

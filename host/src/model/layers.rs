@@ -132,7 +132,7 @@ impl StringLayers {
 /// The residual points of every string over the tracked rows of `rows`
 /// (indexed as the folds index them: tracked rows only, in order), with
 /// each string's current table added back.
-fn points_by_string<O: Borrow<Observation>>(
+fn points_by_string<O: Borrow<Observation> + Sync>(
     id: &Identification,
     rows: &[O],
 ) -> Vec<Vec<Option<(i32, f64)>>> {
@@ -373,7 +373,7 @@ pub fn choose_spacings(
 /// Tables of every string with a spacing in `steps`, fitted on the
 /// residuals of `id` over the tracked rows of `rows`; a table the device would
 /// refuse (it makes the payout fall) is dropped.
-fn fit_all<O: Borrow<Observation>>(
+fn fit_all<O: Borrow<Observation> + Sync>(
     id: &Identification,
     rows: &[O],
     steps: &[Option<u8>; STRINGS],
@@ -452,7 +452,7 @@ fn fit_all<O: Borrow<Observation>>(
 /// The identification of `rows` with layer tables of the spacings `steps`:
 /// from `from` (whose tables are replaced), [`REFINE_ROUNDS`] times fit the
 /// tables on the residuals, then refit the geometry with them held.
-pub fn identify_with_layers<O: Borrow<Observation>>(
+pub fn identify_with_layers<O: Borrow<Observation> + Sync>(
     rows: &[O],
     nominal: &Frame<f64>,
     from: &Identification,

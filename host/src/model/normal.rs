@@ -123,6 +123,7 @@ impl<'a> NormalEquations<'a> {
     /// [`Self::add_string_row`]. Blocks come in block order.
     pub fn add_block(&mut self, sums: BlockSums) {
         debug_assert!(self.block_full.is_none(), "string rows come first");
+        let sums = sums.sum_rows();
         if sums.rows.is_empty() {
             return;
         }
@@ -285,6 +286,12 @@ impl ArrowBlock {
 /// DENSE_BLOCK_ROWS ..`), summed from zero on their own: a thread's share
 /// of [`NormalEquations`], added to it with
 /// [`NormalEquations::add_block`].
+///
+/// The rows are held until the block is summed ([`Self::sum_rows`]), so
+/// that each entry of `J^T J` takes four rows' products a pass
+/// ([`add_outer_pairs`]): one row at a time, each product's multiply-add
+/// loaded and stored its entry, and those loads and stores took most of
+/// the identification's sums.
 pub(crate) struct BlockSums {
     block: usize,
     fused: bool,
@@ -294,25 +301,77 @@ pub(crate) struct BlockSums {
     /// Each row's `J^T r` products, rounded: its own columns', then the
     /// shared ones'.
     products: Vec<f64>,
+    /// The rows not yet in `arrow`: each one's values on its own columns,
+    /// then on the shared ones, one row after another (`rows` says whose).
+    values: Vec<f64>,
+    /// Number of own columns of each string.
+    own_widths: [usize; STRINGS],
+    shared_width: usize,
 }
 
 impl BlockSums {
     pub fn new(columns: &ArrowColumns, block: usize) -> Self {
+        let s = columns.shared.len();
+        let block_values =
+            BLOCK_OBSERVATIONS * columns.own.iter().map(|own| own.len() + s).sum::<usize>();
         BlockSums {
             block,
             fused: dense_product_fuses(),
             arrow: ArrowBlock::zeros(columns),
             rows: Vec::with_capacity(DENSE_BLOCK_ROWS),
-            products: Vec::new(),
+            // Room for a block's rows at once (a row per string of each
+            // observation), not reallocated as they come.
+            products: Vec::with_capacity(block_values),
+            values: Vec::with_capacity(block_values),
+            own_widths: core::array::from_fn(|i| columns.own[i].len()),
+            shared_width: columns.shared.len(),
         }
     }
 
     /// Adds a row of this block, as [`NormalEquations::add_string_row`].
     pub fn add_string_row(&mut self, string: usize, own: &[f64], shared: &[f64], residual: f64) {
-        self.arrow.add(self.fused, string, own, shared);
+        debug_assert_eq!(own.len(), self.own_widths[string]);
+        debug_assert_eq!(shared.len(), self.shared_width);
         self.rows.push(string as u8);
+        self.values.extend_from_slice(own);
+        self.values.extend_from_slice(shared);
         self.products.extend(own.iter().map(|&v| v * residual));
         self.products.extend(shared.iter().map(|&v| v * residual));
+    }
+
+    /// Sums the rows held into the block's `J^T J` (on the thread that
+    /// made them, before [`NormalEquations::add_block`]): shared x shared
+    /// over every row, own x (own, shared) over each string's, each entry's
+    /// products in row order.
+    pub fn sum_rows(mut self) -> Self {
+        if self.values.is_empty() {
+            return self;
+        }
+        let s = self.shared_width;
+        let mut rows: Vec<(usize, &[f64])> = Vec::with_capacity(self.rows.len());
+        let mut at = 0;
+        for &string in &self.rows {
+            let string = usize::from(string);
+            let width = self.own_widths[string] + s;
+            rows.push((string, &self.values[at..at + width]));
+            at += width;
+        }
+        let shared = rows.iter().map(|(string, row)| {
+            (
+                &row[self.own_widths[*string]..],
+                &row[self.own_widths[*string]..],
+            )
+        });
+        add_outer_pairs(self.fused, &mut self.arrow.shared, shared);
+        for (string, sums) in self.arrow.own.iter_mut().enumerate() {
+            let own = rows
+                .iter()
+                .filter(|(i, _)| *i == string)
+                .map(|(_, row)| (&row[..self.own_widths[string]], *row));
+            add_outer_pairs(self.fused, sums, own);
+        }
+        self.values = Vec::new();
+        self
     }
 }
 
@@ -369,6 +428,71 @@ fn add_outer_products(fused: bool, sums: &mut [f64], u: &[f64], v: &[f64]) {
 #[target_feature(enable = "fma")]
 fn add_outer_fma(sums: &mut [f64], u: &[f64], v: &[f64]) {
     add_outer::<true>(sums, u, v);
+}
+
+/// Rows whose products [`add_outer_pairs`] adds to each entry a pass.
+const PAIRS_A_PASS: usize = 4;
+
+/// `sums[a][b] += u[a] v[b]` for each `(u, v)` of `pairs` in turn (`sums`
+/// row-major, `u.len()` x `v.len()`, the same lengths for every pair):
+/// each entry's multiply-adds in the pairs' order, as [`add_outer`] one
+/// pair after another adds them, four pairs a pass over `sums`.
+fn add_outer_pairs<'v>(
+    fused: bool,
+    sums: &mut [f64],
+    pairs: impl Iterator<Item = (&'v [f64], &'v [f64])>,
+) {
+    let mut pending: [(&[f64], &[f64]); PAIRS_A_PASS] = [(&[], &[]); PAIRS_A_PASS];
+    let mut held = 0;
+    for pair in pairs {
+        pending[held] = pair;
+        held += 1;
+        if held == PAIRS_A_PASS {
+            add_outer_four(fused, sums, &pending);
+            held = 0;
+        }
+    }
+    for &(u, v) in &pending[..held] {
+        add_outer_products(fused, sums, u, v);
+    }
+}
+
+/// [`add_outer_pairs`] of four pairs, with fused multiply-adds when
+/// `fused` (as [`add_outer_products`] chooses them).
+fn add_outer_four(fused: bool, sums: &mut [f64], pairs: &[(&[f64], &[f64]); PAIRS_A_PASS]) {
+    #[cfg(target_arch = "x86_64")]
+    if fused {
+        // SAFETY: as in `add_outer_products`: `fused` is true only when
+        // the CPU has FMA.
+        unsafe { add_outer_four_fma(sums, pairs) };
+        return;
+    }
+    add_outer_four_with::<{ cfg!(not(target_arch = "x86_64")) }>(sums, pairs);
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "fma")]
+fn add_outer_four_fma(sums: &mut [f64], pairs: &[(&[f64], &[f64]); PAIRS_A_PASS]) {
+    add_outer_four_with::<true>(sums, pairs);
+}
+
+#[inline(always)]
+fn add_outer_four_with<const FUSED: bool>(
+    sums: &mut [f64],
+    pairs: &[(&[f64], &[f64]); PAIRS_A_PASS],
+) {
+    let [(u0, v0), (u1, v1), (u2, v2), (u3, v3)] = pairs;
+    let n = v0.len();
+    let (v1, v2, v3) = (&v1[..n], &v2[..n], &v3[..n]);
+    for (a, row) in sums.chunks_exact_mut(n).enumerate() {
+        let (a0, a1, a2, a3) = (u0[a], u1[a], u2[a], u3[a]);
+        for ((((sum, &b0), &b1), &b2), &b3) in row.iter_mut().zip(*v0).zip(v1).zip(v2).zip(v3) {
+            let mut x = multiply_add(FUSED, a0, b0, *sum);
+            x = multiply_add(FUSED, a1, b1, x);
+            x = multiply_add(FUSED, a2, b2, x);
+            *sum = multiply_add(FUSED, a3, b3, x);
+        }
+    }
 }
 
 #[cfg(test)]

@@ -108,6 +108,9 @@ struct FitRows<'a> {
     /// at most [`KEPT_OBSERVATIONS`]; `None` inside: recomputed at every
     /// pass.
     basis_kept: OnceLock<Option<Vec<f64>>>,
+    /// Every observation's rows ([`Row`], a string's after another's),
+    /// kept as `basis_kept` is.
+    rows_kept: OnceLock<Option<Vec<Option<Row>>>>,
 }
 
 /// What a row's strings share: its observation as the fit reads it.
@@ -172,6 +175,7 @@ impl<'a> Evidence<'a> {
                 span,
                 homes: StringHome::of_every_string(&id.frame),
                 basis_kept: OnceLock::new(),
+                rows_kept: OnceLock::new(),
             }),
             residual: DVector::zeros(0),
             sigma2: 0.0,
@@ -429,10 +433,10 @@ impl<'a> Evidence<'a> {
 /// visited in order): a few hundred kB of rows at a time.
 const BASIS_CHUNK: usize = 512;
 
-/// Most observations whose basis rows and candidates' values a diagnosis
-/// keeps between its passes: the loop's default bound on the rows it reads
-/// (`CalibrateConfig::max_loop_rows`), about 3 kB an observation, 12-20 MB
-/// in all. A loop that reads more (every row of a long session, when asked)
+/// Most observations whose basis rows, rows ([`Row`]) and candidates'
+/// values a diagnosis keeps between its passes: the loop's default bound
+/// on the rows it reads (`CalibrateConfig::max_loop_rows`), about 5 kB an
+/// observation, 20-30 MB in all. A loop that reads more (every row of a long session, when asked)
 /// works them out at each pass: kept, they would grow with the session at
 /// twenty times its file's size.
 pub(super) const KEPT_OBSERVATIONS: usize = 4000;
@@ -457,19 +461,37 @@ impl FitRows<'_> {
         visit: &mut impl FnMut(usize, Option<&Row>, &[f64]),
     ) {
         let dims = self.span.dims();
-        let all: Vec<usize> = (0..self.used.len()).collect();
-        let mut basis = Vec::new();
-        for chunk in all.chunks(BASIS_CHUNK) {
-            if what != Visit::Rows {
-                self.basis_rows_of(chunk, &mut basis);
-            }
-            for (j, &u) in chunk.iter().enumerate() {
-                let observed = (what != Visit::Basis).then(|| self.observed(u));
+        let width = STRINGS * dims;
+        let observations = self.used.len();
+        // What is kept is read where it is, a chunk's slice of it.
+        let kept_basis = (what != Visit::Rows).then(|| self.basis_kept()).flatten();
+        let kept_rows = (what != Visit::Basis).then(|| self.rows_kept()).flatten();
+        let (mut basis_made, mut rows_made) = (Vec::new(), Vec::new());
+        for start in (0..observations).step_by(BASIS_CHUNK) {
+            let chunk = start..(start + BASIS_CHUNK).min(observations);
+            let us: Vec<usize> = chunk.clone().collect();
+            let basis: &[f64] = match (what, kept_basis) {
+                (Visit::Rows, _) => &[],
+                (_, Some(kept)) => &kept[chunk.start * width..chunk.end * width],
+                (_, None) => {
+                    self.work_out_basis_rows(&us, &mut basis_made);
+                    &basis_made
+                }
+            };
+            let rows: &[Option<Row>] = match (what, kept_rows) {
+                (Visit::Basis, _) => &[],
+                (_, Some(kept)) => &kept[chunk.start * STRINGS..chunk.end * STRINGS],
+                (_, None) => {
+                    self.work_out_rows(&us, &mut rows_made);
+                    &rows_made
+                }
+            };
+            for (j, u) in chunk.enumerate() {
                 for i in 0..STRINGS {
                     if string.is_some_and(|s| s != i) {
                         continue;
                     }
-                    let row = observed.as_ref().and_then(|at| self.row(u, at, i));
+                    let row = rows.get(j * STRINGS + i).and_then(Option::as_ref);
                     let b = match what {
                         Visit::Rows => &[][..],
                         Visit::Basis | Visit::Both => {
@@ -477,10 +499,42 @@ impl FitRows<'_> {
                             &basis[at..at + dims]
                         }
                     };
-                    visit(u * STRINGS + i, row.as_ref(), b);
+                    visit(u * STRINGS + i, row, b);
                 }
             }
         }
+    }
+
+    /// Every observation's rows, once worked out, when they are few enough
+    /// to keep ([`KEPT_OBSERVATIONS`]).
+    fn rows_kept(&self) -> Option<&[Option<Row>]> {
+        self.rows_kept
+            .get_or_init(|| {
+                (self.used.len() <= KEPT_OBSERVATIONS).then(|| {
+                    let all: Vec<usize> = (0..self.used.len()).collect();
+                    let mut rows = Vec::new();
+                    self.work_out_rows(&all, &mut rows);
+                    rows
+                })
+            })
+            .as_deref()
+    }
+
+    /// The rows ([`row`](Self::row)) of the tracked observations `us` into
+    /// `rows`, one observation's strings after another's, worked out on
+    /// every core (each row is its own, so they are those of one after the
+    /// other).
+    fn work_out_rows(&self, us: &[usize], rows: &mut Vec<Option<Row>>) {
+        use rayon::prelude::*;
+        rows.clear();
+        rows.par_extend(
+            us.par_iter()
+                .with_min_len(BASIS_MIN_TASK)
+                .flat_map_iter(|&u| {
+                    let at = self.observed(u);
+                    (0..STRINGS).map(move |i| self.row(u, &at, i))
+                }),
+        );
     }
 
     /// The basis rows ([`basis_rows`](Self::basis_rows)) of the tracked

@@ -204,7 +204,10 @@ pub(super) fn revisits(ev: &Evidence, c: &Candidate, beta: &[f64]) -> Option<Rev
     let p = place.len();
     let width = m + p + 1;
     let mut groups: HashMap<(usize, [i64; 3]), usize> = HashMap::new();
-    let mut rows: Vec<(usize, usize, f64, Vec<f64>)> = Vec::new();
+    // Each row's group, string and sqrt(weight), and its values (`width`
+    // of them) one row after another.
+    let mut rows: Vec<(usize, usize, f64)> = Vec::new();
+    let mut values: Vec<f64> = Vec::new();
     ev.for_each_row_with_basis(|k, row, b| {
         if !on(row) {
             return;
@@ -213,22 +216,22 @@ pub(super) fn revisits(ev: &Evidence, c: &Candidate, beta: &[f64]) -> Option<Rev
         let next = groups.len();
         let g = *groups.entry((row.string, cell)).or_insert(next);
         let sw = row.weight.sqrt();
-        let mut v: Vec<f64> = c
-            .columns
-            .iter()
-            .zip(&coef)
-            .map(|(f, coef)| f(row) * sw - coef.iter().zip(b).map(|(a, bc)| a * bc).sum::<f64>())
-            .collect();
-        v.extend(place.iter().map(|f| f(row) * sw));
-        v.push(ev.residual[k]);
-        rows.push((g, row.string, sw, v));
+        values.extend(
+            c.columns.iter().zip(&coef).map(|(f, coef)| {
+                f(row) * sw - coef.iter().zip(b).map(|(a, bc)| a * bc).sum::<f64>()
+            }),
+        );
+        values.extend(place.iter().map(|f| f(row) * sw));
+        values.push(ev.residual[k]);
+        rows.push((g, row.string, sw));
     });
+    let row_values = |j: usize| &values[j * width..(j + 1) * width];
     // Each group's weighted sums (the fixed effect's column is sqrt(w)).
     let mut sums = vec![(0.0, vec![0.0; width], 0usize); groups.len()];
-    for (g, _, sw, v) in &rows {
+    for (j, (g, _, sw)) in rows.iter().enumerate() {
         let s = &mut sums[*g];
         s.0 += sw * sw;
-        for (a, x) in s.1.iter_mut().zip(v) {
+        for (a, x) in s.1.iter_mut().zip(row_values(j)) {
             *a += sw * x;
         }
         s.2 += 1;
@@ -243,37 +246,45 @@ pub(super) fn revisits(ev: &Evidence, c: &Candidate, beta: &[f64]) -> Option<Rev
     // starts).
     let mut at = [None; STRINGS];
     let mut blocks = 0;
-    for (_, string, _, _) in &rows {
+    for (_, string, _) in &rows {
         if at[*string].is_none() {
             at[*string] = Some(blocks);
             blocks += 1;
         }
     }
     let all = m + p * blocks + 1;
-    let mut cross = DMatrix::<f64>::zeros(all, all);
+    // Row-major: entry (a, b) at a * all + b.
+    let mut cross = vec![0.0; all * all];
     let mut n = 0usize;
-    for (g, string, sw, v) in &rows {
+    let (mut index, mut within) = (Vec::with_capacity(width), Vec::with_capacity(width));
+    for (j, (g, string, sw)) in rows.iter().enumerate() {
         let s = &sums[*g];
         if s.2 < 2 || s.0 <= 0.0 {
             continue;
         }
         let block = m + p * at[*string].unwrap_or(0);
-        let index: Vec<usize> = (0..m)
-            .chain(block..block + p)
-            .chain(std::iter::once(all - 1))
-            .collect();
-        let within: Vec<f64> = v
-            .iter()
-            .zip(&s.1)
-            .map(|(x, sx)| x - sw * sx / s.0)
-            .collect();
+        index.clear();
+        index.extend(
+            (0..m)
+                .chain(block..block + p)
+                .chain(std::iter::once(all - 1)),
+        );
+        within.clear();
+        within.extend(
+            row_values(j)
+                .iter()
+                .zip(&s.1)
+                .map(|(x, sx)| x - sw * sx / s.0),
+        );
         for (&ia, xa) in index.iter().zip(&within) {
+            let cross_row = &mut cross[ia * all..(ia + 1) * all];
             for (&ib, xb) in index.iter().zip(&within) {
-                cross[(ia, ib)] += xa * xb;
+                cross_row[ib] += xa * xb;
             }
         }
         n += 1;
     }
+    let cross = DMatrix::from_row_slice(all, all, &cross);
     // The term and the residual with the places' own error taken out.
     let (reduced, place_rank) = beyond_place(&cross, m)?;
     let gram = reduced.view((0, 0), (m, m)).clone_owned();

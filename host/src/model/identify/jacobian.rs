@@ -20,15 +20,17 @@ use crate::data::observe::Observation;
 use crate::model::normal::{BlockSums, NormalEquations, BLOCK_OBSERVATIONS};
 
 impl Problem<'_> {
-    /// The effect columns of one observation, per column and string:
-    /// analytic gradients of the terms (each term touches only its own
-    /// string) at each string's `contexts`.
+    /// The effect columns of one observation, per column and string, into
+    /// `effect_grad`: analytic gradients of the terms (each term touches
+    /// only its own string) at each string's `contexts`.
     fn effect_gradients(
         &self,
         state: &State,
         contexts: &[Option<EffectContext>; STRINGS],
-    ) -> Vec<[f64; STRINGS]> {
-        let mut effect_grad = vec![[0.0; STRINGS]; self.layout.effect_columns.len()];
+        effect_grad: &mut Vec<[f64; STRINGS]>,
+    ) {
+        effect_grad.clear();
+        effect_grad.resize(self.layout.effect_columns.len(), [0.0; STRINGS]);
         for (c, &(e, pi)) in self.layout.effect_columns.iter().enumerate() {
             let term = &state.effects[e];
             for s in state.frame.layout.indices().filter(|&s| term.applies_to(s)) {
@@ -39,7 +41,6 @@ impl Problem<'_> {
                 }
             }
         }
-        effect_grad
     }
 
     /// Each string residual's row of the Jacobian (over the scaled LM
@@ -137,7 +138,7 @@ impl Problem<'_> {
                                     sums.add_string_row(i, own, shared, residuals[row]);
                                 });
                         }
-                        (sums, finite)
+                        (sums.sum_rows(), finite)
                     },
                 )
                 .collect();
@@ -164,6 +165,8 @@ pub(super) struct RowPass {
     homes: [Option<StringHome>; STRINGS],
     own: Vec<f64>,
     shared: Vec<f64>,
+    /// One observation's effect columns per string, reused.
+    effect_grad: Vec<[f64; STRINGS]>,
 }
 
 impl RowPass {
@@ -181,6 +184,7 @@ impl RowPass {
             homes: StringHome::of_every_string(frame),
             own: Vec::with_capacity(layout.arrow.n),
             shared: Vec::with_capacity(layout.arrow.n),
+            effect_grad: Vec::with_capacity(layout.effect_columns.len()),
             state,
         }
     }
@@ -213,7 +217,8 @@ impl RowPass {
                 EffectContext::at_home(home, &self.laws, &inputs, s, total_tension_n)
             })
         });
-        let effect_grad = problem.effect_gradients(state, &contexts);
+        let effect_grad = &mut self.effect_grad;
+        problem.effect_gradients(state, &contexts, effect_grad);
         for i in 0..STRINGS {
             let row = k * STRINGS + i;
             let f = problem.weights[k][i].sqrt() / problem.residual_sd;

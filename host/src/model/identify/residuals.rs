@@ -71,16 +71,18 @@ pub(crate) fn residuals_at_homes(
 }
 
 /// String-space residuals (geometric minus model, mm) of every observation
-/// with a tracker position under an identified model; `None` for occluded rows.
-pub fn string_residuals<O: Borrow<Observation>>(
+/// with a tracker position under an identified model; `None` for occluded
+/// rows. Each row on its own, on every core.
+pub fn string_residuals<O: Borrow<Observation> + Sync>(
     frame: &Frame<f64>,
     laws: &[StringLaw; STRINGS],
     effects: &[EffectTerm],
     observations: &[O],
 ) -> Vec<Option<[f64; STRINGS]>> {
+    use rayon::prelude::*;
     let homes = StringHome::of_every_string(frame);
     observations
-        .iter()
+        .par_iter()
         .map(|o| {
             let o = o.borrow();
             o.tracker?;

@@ -9,6 +9,7 @@
 
 use std::f64::consts::TAU;
 
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use spidar_core::geometry::distance;
 use spidar_core::model::{Effect, EffectTerm, LayerTable, StringLaw};
@@ -92,8 +93,10 @@ pub(super) fn effect_evidence(
 ) -> Vec<EffectEvidence> {
     let after = string_residuals(&fin.frame, &fin.laws, &fin.effects, rows);
     let variables = RowVariables::of(fin, rows);
+    // Each finding on its own core: a long session's residuals without it
+    // are a pass over every row.
     drawn_findings(findings)
-        .into_iter()
+        .into_par_iter()
         .map(|i| {
             let finding = &findings[i];
             let without = if finding.added {
