@@ -122,32 +122,37 @@ pub(super) fn dot_in_turn(b: &[f64], c: &[f64]) -> f64 {
     products.fold(first, |sum, p| p + sum)
 }
 
+/// Rows whose [`dots_in_turn`] are summed side by side: enough
+/// independent sums to keep the CPU's adders busy while each waits on its
+/// last addition (measured on 2048 rows of 110 values: 56 us at eight, 137
+/// at four, 102 one row after another).
+const DOTS_SIDE_BY_SIDE: usize = 8;
+
 /// [`dot_in_turn`] of each of `rows` rows of `basis` (one after another,
-/// `c.len()` values each) with `c`: four rows' sums at a time, each one's
-/// products added in its own order (the same figures as one row after
-/// another, without waiting on each addition in turn).
+/// `c.len()` values each) with `c`: [`DOTS_SIDE_BY_SIDE`] rows' sums at a
+/// time, each one's products added in its own order (the same figures as
+/// one row after another).
 pub(super) fn dots_in_turn(basis: &[f64], rows: usize, c: &[f64]) -> Vec<f64> {
+    const N: usize = DOTS_SIDE_BY_SIDE;
     let d = c.len();
     if d == 0 {
         return vec![0.0; rows];
     }
     let mut out = Vec::with_capacity(rows);
-    let mut quads = basis[..rows * d].chunks_exact(4 * d);
-    for quad in &mut quads {
-        let (b0, rest) = quad.split_at(d);
-        let (b1, rest) = rest.split_at(d);
-        let (b2, b3) = rest.split_at(d);
-        let mut sums = [b0[0] * c[0], b1[0] * c[0], b2[0] * c[0], b3[0] * c[0]];
-        let later = b0.iter().zip(b1).zip(b2).zip(b3).zip(c).skip(1);
-        for ((((&x0, &x1), &x2), &x3), &ct) in later {
-            sums[0] += x0 * ct;
-            sums[1] += x1 * ct;
-            sums[2] += x2 * ct;
-            sums[3] += x3 * ct;
+    let mut groups = basis[..rows * d].chunks_exact(N * d);
+    for group in &mut groups {
+        let row: [&[f64]; N] = core::array::from_fn(|r| &group[r * d..(r + 1) * d]);
+        let mut sums: [f64; N] = core::array::from_fn(|r| row[r][0] * c[0]);
+        // Indexed: measured faster than zipped iterators here (82 us).
+        for t in 1..d {
+            let ct = c[t];
+            for r in 0..N {
+                sums[r] += row[r][t] * ct;
+            }
         }
         out.extend_from_slice(&sums);
     }
-    out.extend(quads.remainder().chunks_exact(d).map(|b| dot_in_turn(b, c)));
+    out.extend(groups.remainder().chunks_exact(d).map(|b| dot_in_turn(b, c)));
     out
 }
 
@@ -486,12 +491,12 @@ mod tests {
     use super::{dot_in_turn, dots_in_turn};
 
     proptest::proptest! {
-        /// Four rows at a time give each row's [`dot_in_turn`] to the bit,
+        /// Rows side by side give each row's [`dot_in_turn`] to the bit,
         /// whatever the number of rows and of values a row.
         #[test]
-        fn dots_four_at_a_time_are_each_rows_dot(
+        fn dots_side_by_side_are_each_rows_dot(
             dims in 0usize..12,
-            rows in 0usize..11,
+            rows in 0usize..27,
             seed in proptest::prelude::any::<u64>(),
         ) {
             let mut state = seed;
