@@ -167,6 +167,11 @@ pub(super) struct RowPass {
     shared: Vec<f64>,
     /// One observation's effect columns per string, reused.
     effect_grad: Vec<[f64; STRINGS]>,
+    /// The terms (indices into the state's effects, in order) on each
+    /// string, its own and the shared ones.
+    string_terms: [Vec<usize>; STRINGS],
+    /// Each string's latency (s), [`latency_s`].
+    latency_s: [f64; STRINGS],
 }
 
 impl RowPass {
@@ -185,6 +190,12 @@ impl RowPass {
             own: Vec::with_capacity(layout.arrow.n),
             shared: Vec::with_capacity(layout.arrow.n),
             effect_grad: Vec::with_capacity(layout.effect_columns.len()),
+            string_terms: core::array::from_fn(|i| {
+                (0..state.effects.len())
+                    .filter(|&e| state.effects[e].applies_to(i))
+                    .collect()
+            }),
+            latency_s: core::array::from_fn(|i| latency_s(&state.effects, i)),
             state,
         }
     }
@@ -239,7 +250,8 @@ impl RowPass {
                 [d[0] / lh, d[1] / lh, d[2] / lh]
             };
             let theta = two_pi * o.inputs.counts[i] as f64 / w.counts_per_rev[i] as f64;
-            let (d_payout, d_home) = length_derivatives(&state.effects, i, o, contexts[i].as_ref());
+            let terms = self.string_terms[i].iter().map(|&e| &state.effects[e]);
+            let (d_payout, d_home) = length_derivatives(terms, i, o, contexts[i].as_ref());
             own.clear();
             shared.clear();
             // Anchor, then home.
@@ -264,7 +276,7 @@ impl RowPass {
             // The winding law: radius, shared and own thinning rates. A
             // latency reads the law's slope, `r_home - 2 kappa theta / m`,
             // times the angle the pulley turns in it.
-            let lag_rad = latency_s(&state.effects, i)
+            let lag_rad = self.latency_s[i]
                 * (two_pi / w.counts_per_rev[i] as f64)
                 * f64::from(o.inputs.count_rate_cps[i]);
             own.push(f * (-(theta * d_payout + lag_rad)));
@@ -285,7 +297,12 @@ impl RowPass {
             for (v, &c) in shared.iter_mut().zip(&columns.shared) {
                 *v *= layout.scale[c];
             }
-            finite &= own.iter().chain(shared.iter()).all(|v| v.is_finite());
+            // Every value read (no early stop): one pass the compiler
+            // can take several values at a time.
+            finite &= own
+                .iter()
+                .chain(shared.iter())
+                .fold(true, |all, v| all & v.is_finite());
             visit(row, i, own, shared);
         }
         finite
@@ -307,15 +324,16 @@ fn latency_s(effects: &[EffectTerm], i: usize) -> f64 {
 /// The derivatives of string `i`'s model length over its payout and over
 /// its home length at `o` (1 each without effects): effects that scale with
 /// the payout or the home length (scale, elasticity, stretch, creep, sag) carry
-/// those derivatives along. `context`: the string's, for the sag.
-fn length_derivatives(
-    effects: &[EffectTerm],
+/// those derivatives along. `terms`: the terms on the string, in the
+/// model's order; `context`: the string's, for the sag.
+fn length_derivatives<'t>(
+    terms: impl Iterator<Item = &'t EffectTerm>,
     i: usize,
     o: &Observation,
     context: Option<&EffectContext>,
 ) -> (f64, f64) {
     let (mut d_payout, mut d_home) = (1.0, 1.0);
-    for term in effects.iter().filter(|t| t.applies_to(i)) {
+    for term in terms {
         match term.effect {
             Effect::Scale { relative } => d_payout += relative,
             Effect::Elasticity { per_newton } => {
