@@ -62,8 +62,15 @@ pub(crate) struct NormalEquations<'a> {
     /// Whether the products are fused multiply-adds (those of the dense
     /// product on this CPU).
     fused: bool,
-    /// `J^T J` over the blocks done.
+    /// `J^T J` over the blocks done, once general rows come (or at the
+    /// end); zero before.
     total: DMatrix<f64>,
+    /// The string rows' `J^T J` over the blocks done, in the arrow's
+    /// layout ([`ArrowBlock`]), while string rows come: each entry of the
+    /// dense matrix is one of its entries (or that entry's mirror), so the
+    /// blocks add as they would there, a contiguous sum each instead of an
+    /// indexed one.
+    arrow_total: ArrowBlock,
     /// The current block (its index) and its sums, while string rows come.
     block: usize,
     block_sums: ArrowBlock,
@@ -83,6 +90,7 @@ impl<'a> NormalEquations<'a> {
             columns,
             fused: dense_product_fuses(),
             total: DMatrix::zeros(columns.n, columns.n),
+            arrow_total: ArrowBlock::zeros(columns),
             block: 0,
             block_sums: ArrowBlock::zeros(columns),
             block_full: None,
@@ -108,7 +116,7 @@ impl<'a> NormalEquations<'a> {
             self.flush_arrow();
             self.block = row / DENSE_BLOCK_ROWS;
         }
-        self.block_sums.add(self.fused, string, own, shared);
+        self.block_sums.add_row(self.fused, string, own, shared);
         // nalgebra's gemv: each product rounded, then added.
         for (g, &v) in self.gradient_shared.iter_mut().zip(shared) {
             *g += v * residual;
@@ -135,15 +143,19 @@ impl<'a> NormalEquations<'a> {
         // first), and the block's own sums started from zero.
         debug_assert!(self.block_sums.shared.iter().all(|&v| v == 0.0));
         self.block_sums = sums.arrow;
-        let mut products = sums.products.iter();
+        // Each row's products: its own columns', then the shared ones'.
+        let mut products = sums.products.as_slice();
         for &string in &sums.rows {
-            let string = usize::from(string);
-            for g in self.gradient_own[string].iter_mut() {
-                *g += products.next().copied().unwrap_or(0.0);
+            let own = &mut self.gradient_own[usize::from(string)];
+            let (row_own, rest) = products.split_at(own.len().min(products.len()));
+            let (row_shared, rest) = rest.split_at(self.gradient_shared.len().min(rest.len()));
+            for (g, p) in own.iter_mut().zip(row_own) {
+                *g += p;
             }
-            for g in self.gradient_shared.iter_mut() {
-                *g += products.next().copied().unwrap_or(0.0);
+            for (g, p) in self.gradient_shared.iter_mut().zip(row_shared) {
+                *g += p;
             }
+            products = rest;
         }
     }
 
@@ -157,10 +169,11 @@ impl<'a> NormalEquations<'a> {
             None => {
                 let mut full = DMatrix::zeros(self.columns.n, self.columns.n);
                 if block == self.block {
-                    self.scatter_arrow(&mut full);
+                    self.scatter(&self.block_sums, &mut full);
                 } else {
                     self.flush_arrow();
                 }
+                self.settle_total();
                 self.gradient = self.scatter_gradient();
                 full
             }
@@ -192,6 +205,7 @@ impl<'a> NormalEquations<'a> {
             }
             None => {
                 self.flush_arrow();
+                self.settle_total();
                 let gradient = self.scatter_gradient();
                 (self.total, gradient)
             }
@@ -200,26 +214,33 @@ impl<'a> NormalEquations<'a> {
 
     /// Adds the current block's string sums to the total and clears them.
     fn flush_arrow(&mut self) {
-        let mut total = core::mem::replace(&mut self.total, DMatrix::zeros(0, 0));
-        self.scatter_arrow(&mut total);
-        self.total = total;
+        self.arrow_total.add(&self.block_sums);
         self.block_sums.shared.fill(0.0);
         for sums in &mut self.block_sums.own {
             sums.fill(0.0);
         }
     }
 
-    /// Adds the current block's string sums to `into` (symmetric: the
-    /// dense product's entries `(a, b)` and `(b, a)` are the same sums).
-    fn scatter_arrow(&self, into: &mut DMatrix<f64>) {
+    /// Puts the string rows' sums over the blocks done into the dense
+    /// total (zero until then, and the sums never -0, so each entry is
+    /// the sum itself).
+    fn settle_total(&mut self) {
+        let mut total = core::mem::replace(&mut self.total, DMatrix::zeros(0, 0));
+        self.scatter(&self.arrow_total, &mut total);
+        self.total = total;
+    }
+
+    /// Adds string sums `block` to `into` (symmetric: the dense product's
+    /// entries `(a, b)` and `(b, a)` are the same sums).
+    fn scatter(&self, block: &ArrowBlock, into: &mut DMatrix<f64>) {
         let shared = &self.columns.shared;
         let s = shared.len();
         for (ai, &a) in shared.iter().enumerate() {
             for (bi, &b) in shared.iter().enumerate() {
-                into[(a, b)] += self.block_sums.shared[ai * s + bi];
+                into[(a, b)] += block.shared[ai * s + bi];
             }
         }
-        for (own, sums) in self.columns.own.iter().zip(&self.block_sums.own) {
+        for (own, sums) in self.columns.own.iter().zip(&block.own) {
             let width = own.len() + s;
             for (ai, &a) in own.iter().enumerate() {
                 for (bi, &b) in own.iter().chain(shared).enumerate() {
@@ -271,9 +292,21 @@ impl ArrowBlock {
         }
     }
 
+    /// Adds `other`'s sums, entry by entry.
+    fn add(&mut self, other: &ArrowBlock) {
+        for (sum, &v) in self.shared.iter_mut().zip(&other.shared) {
+            *sum += v;
+        }
+        for (sums, other) in self.own.iter_mut().zip(&other.own) {
+            for (sum, &v) in sums.iter_mut().zip(other) {
+                *sum += v;
+            }
+        }
+    }
+
     /// Adds string `string`'s row (`own` on its own columns, `shared` on
     /// the shared ones): shared x shared, and own x (own, shared).
-    fn add(&mut self, fused: bool, string: usize, own: &[f64], shared: &[f64]) {
+    fn add_row(&mut self, fused: bool, string: usize, own: &[f64], shared: &[f64]) {
         self.row.clear();
         self.row.extend_from_slice(own);
         self.row.extend_from_slice(shared);

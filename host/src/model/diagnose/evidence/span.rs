@@ -152,7 +152,12 @@ pub(super) fn dots_in_turn(basis: &[f64], rows: usize, c: &[f64]) -> Vec<f64> {
         }
         out.extend_from_slice(&sums);
     }
-    out.extend(groups.remainder().chunks_exact(d).map(|b| dot_in_turn(b, c)));
+    out.extend(
+        groups
+            .remainder()
+            .chunks_exact(d)
+            .map(|b| dot_in_turn(b, c)),
+    );
     out
 }
 
