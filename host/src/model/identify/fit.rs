@@ -14,6 +14,7 @@ use super::start::same_term;
 use super::start::Start;
 use super::structure::Structure;
 use crate::data::observe::Observation;
+use crate::model::normal::SpareBuffers;
 
 /// What the steps of [`identify`](super::identify) share: the observations with a tracker
 /// position, the structure and its parameter layout, the design geometry
@@ -24,6 +25,8 @@ pub(super) struct Fit<'a> {
     pub(super) nominal: &'a Frame<f64>,
     pub(super) layout: &'a Layout,
     pub(super) start: &'a Start,
+    /// Buffers of its problems' Jacobian passes ([`SpareBuffers`]).
+    pub(super) spare: SpareBuffers,
 }
 
 impl Fit<'_> {
@@ -88,6 +91,7 @@ impl Fit<'_> {
             base_rotation,
             winding_fixed: self.start.winding,
             x,
+            spare: &self.spare,
         }
     }
 

@@ -17,7 +17,7 @@ use super::result::Identification;
 use super::structure::Structure;
 use super::winding::WindingPhysics;
 use crate::data::observe::Observation;
-use crate::model::normal::{BlockSums, NormalEquations, BLOCK_OBSERVATIONS};
+use crate::model::normal::{BlockSums, NormalEquations, SpareBuffers, BLOCK_OBSERVATIONS};
 
 impl Problem<'_> {
     /// The effect columns of one observation, per column and string, into
@@ -122,6 +122,7 @@ impl Problem<'_> {
             .chunks(BLOCK_OBSERVATIONS)
             .enumerate()
             .collect();
+        let spare = self.spare;
         let mut finite = true;
         for batch in blocks.chunks(BATCH_BLOCKS) {
             let summed: Vec<(BlockSums, bool)> = batch
@@ -129,7 +130,8 @@ impl Problem<'_> {
                 .map_init(
                     || RowPass::new(self, state.clone()),
                     |pass, &(block, observations)| {
-                        let mut sums = BlockSums::new(columns, block);
+                        let buffers = [spare.take(), spare.take()];
+                        let mut sums = BlockSums::with_buffers(columns, block, buffers);
                         let mut finite = true;
                         for (j, o) in observations.iter().enumerate() {
                             let k = block * BLOCK_OBSERVATIONS + j;
@@ -138,13 +140,15 @@ impl Problem<'_> {
                                     sums.add_string_row(i, own, shared, residuals[row]);
                                 });
                         }
-                        (sums.sum_rows(), finite)
+                        let mut sums = sums.sum_rows();
+                        spare.give(sums.take_rows_buffer());
+                        (sums, finite)
                     },
                 )
                 .collect();
             for (sums, block_finite) in summed {
                 finite &= block_finite;
-                normal.add_block(sums);
+                spare.give(normal.add_block(sums));
             }
         }
         finite
@@ -393,6 +397,7 @@ pub struct DataJacobian<'a> {
     winding_fixed: WindingPhysics,
     /// The identified solution in the LM variables.
     x: DVector<f64>,
+    spare: SpareBuffers,
 }
 
 impl<'a> DataJacobian<'a> {
@@ -441,6 +446,7 @@ impl<'a> DataJacobian<'a> {
             base_rotation: state.frame.room_rotation,
             winding_fixed: state.winding,
             x,
+            spare: SpareBuffers::default(),
         };
         let problem = jacobian.problem();
         let residuals = problem.residuals()?;
@@ -469,6 +475,7 @@ impl<'a> DataJacobian<'a> {
             base_rotation: self.base_rotation,
             winding_fixed: self.winding_fixed,
             x: self.x.clone(),
+            spare: &self.spare,
         }
     }
 

@@ -157,6 +157,7 @@ pub fn identify<O: Borrow<Observation>>(
         nominal,
         layout: &layout,
         start,
+        spare: Default::default(),
     };
     let (state, weights, evaluations) = fit.robust_rounds()?;
 

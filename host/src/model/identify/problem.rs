@@ -13,6 +13,7 @@ use super::residuals::residuals_at_homes;
 use super::structure::{effect_prior, Structure};
 use super::winding::WindingPhysics;
 use crate::data::observe::Observation;
+use crate::model::normal::SpareBuffers;
 
 /// A prior row: its value and its gradient over the physical parameters as
 /// (column, d).
@@ -32,6 +33,8 @@ pub(super) struct Problem<'a> {
     pub(super) winding_fixed: WindingPhysics,
     /// Current LM variables (scaled).
     pub(super) x: DVector<f64>,
+    /// Buffers of the Jacobian passes' blocks, from one pass to the next.
+    pub(super) spare: &'a SpareBuffers,
 }
 
 impl Problem<'_> {

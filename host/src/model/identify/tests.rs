@@ -43,6 +43,7 @@ fn jacobian_disagreement(
         nominal: &nominal,
         layout: &layout,
         start,
+        spare: Default::default(),
     };
     let (state, _) = fit.start_state();
     let weights = vec![[1.0; STRINGS]; used.len()];
