@@ -46,11 +46,17 @@ pub const MAX_LATENCY_S: f64 = 0.25;
 /// times the count rate (f64 reference of
 /// [`CompiledStringLaw::payout_rate_q14`]).
 pub fn payout_rate_mm_s(law: &StringLaw, counts: i32, count_rate_cps: i32) -> f64 {
+    payout_rate_at_mm_s(law, pulley_angle(law, counts), count_rate_cps)
+}
+
+/// [`payout_rate_mm_s`] at the pulley angle `theta` of the counts
+/// ([`pulley_angle`]), for a caller that has it already.
+pub(crate) fn payout_rate_at_mm_s(law: &StringLaw, theta: f64, count_rate_cps: i32) -> f64 {
     if law.counts_per_rev == 0 {
         return 0.0;
     }
     let per_count = TAU / f64::from(law.counts_per_rev);
-    polynomial_slope_f64(law, pulley_angle(law, counts)) * per_count * f64::from(count_rate_cps)
+    polynomial_slope_f64(law, theta) * per_count * f64::from(count_rate_cps)
 }
 
 impl CompiledStringLaw {

@@ -9,8 +9,8 @@ use core::f64::consts::TAU;
 
 use super::{
     cos2_inclination_q16, creep_mm, creep_variable, guide_elevation_q32, guide_elevation_rad,
-    guide_mm, guide_slope, payout_rate_mm_s, sag_home_variable, sag_mm, sag_variable, stretch_mm,
-    MAX_SAG_MM,
+    guide_mm, guide_slope, latency::payout_rate_at_mm_s, sag_home_variable, sag_mm, sag_variable,
+    stretch_mm, MAX_SAG_MM,
 };
 use crate::model::{Effect, EffectTerm, Frame, StringInputs, StringLaw, WINDING_ORDER};
 use crate::STRINGS;
@@ -87,7 +87,7 @@ pub struct EffectContext {
     /// quantized as the device's ([`cos2_inclination_q16`]) / 65536.
     pub home_cos2_inclination: f64,
     /// The payout's rate of change (mm/s) at the string's count rate,
-    /// [`payout_rate_mm_s`]: what a latency term scales with.
+    /// [`payout_rate_mm_s`](super::payout_rate_mm_s): what a latency term scales with.
     pub payout_rate_mm_s: f64,
     /// The elevation of the string's chord out of the plane across its
     /// guide's swivel axis (rad), [`guide_elevation_rad`] of
@@ -129,9 +129,11 @@ impl EffectContext {
     ) -> Option<Self> {
         let law = laws.get(string)?;
         let counts = *inputs.counts.get(string)?;
+        // The angle once: the payout and its rate read it too.
+        let theta = pulley_angle(law, counts);
         Some(Self {
-            theta: pulley_angle(law, counts),
-            payout_mm: payout_f64(law, counts),
+            theta,
+            payout_mm: polynomial_payout_at_f64(law, theta) + law.layers.departure_mm(counts),
             home_length_mm: home.length_mm,
             tension_n: f64::from(*inputs.tension_mn.get(string)?) / 1000.0,
             total_tension_n,
@@ -139,7 +141,7 @@ impl EffectContext {
             time_s: f64::from(inputs.time_ms) / 1000.0,
             cos2_inclination: f64::from(*inputs.cos2_inclination_q16.get(string)?) / 65536.0,
             home_cos2_inclination: home.cos2_inclination,
-            payout_rate_mm_s: payout_rate_mm_s(law, counts, *inputs.count_rate_cps.get(string)?),
+            payout_rate_mm_s: payout_rate_at_mm_s(law, theta, *inputs.count_rate_cps.get(string)?),
             guide_elevation_rad: guide_elevation_rad(*inputs.guide_elevation_q32.get(string)?),
             home_guide_elevation_rad: home.guide_elevation_rad,
         })
