@@ -508,16 +508,26 @@ impl FitRows<'_> {
     /// Every observation's rows, once worked out, when they are few enough
     /// to keep ([`KEPT_OBSERVATIONS`]).
     fn rows_kept(&self) -> Option<&[Option<Row>]> {
-        self.rows_kept
-            .get_or_init(|| {
-                (self.used.len() <= KEPT_OBSERVATIONS).then(|| {
-                    let all: Vec<usize> = (0..self.used.len()).collect();
-                    let mut rows = Vec::new();
-                    self.work_out_rows(&all, &mut rows);
-                    rows
-                })
+        self.kept(&self.rows_kept, Self::work_out_rows)
+    }
+
+    /// What `work_out` makes of every observation, kept in `cell` the first
+    /// time, when the observations are few enough to keep
+    /// ([`KEPT_OBSERVATIONS`]).
+    fn kept<'s, T>(
+        &'s self,
+        cell: &'s OnceLock<Option<Vec<T>>>,
+        work_out: impl FnOnce(&Self, &[usize], &mut Vec<T>),
+    ) -> Option<&'s [T]> {
+        cell.get_or_init(|| {
+            (self.used.len() <= KEPT_OBSERVATIONS).then(|| {
+                let all: Vec<usize> = (0..self.used.len()).collect();
+                let mut kept = Vec::new();
+                work_out(self, &all, &mut kept);
+                kept
             })
-            .as_deref()
+        })
+        .as_deref()
     }
 
     /// The rows ([`row`](Self::row)) of the tracked observations `us` into
@@ -556,16 +566,7 @@ impl FitRows<'_> {
     /// Every observation's basis rows, once worked out, when they are few
     /// enough to keep ([`KEPT_OBSERVATIONS`]).
     fn basis_kept(&self) -> Option<&[f64]> {
-        self.basis_kept
-            .get_or_init(|| {
-                (self.used.len() <= KEPT_OBSERVATIONS).then(|| {
-                    let all: Vec<usize> = (0..self.used.len()).collect();
-                    let mut basis = Vec::new();
-                    self.work_out_basis_rows(&all, &mut basis);
-                    basis
-                })
-            })
-            .as_deref()
+        self.kept(&self.basis_kept, Self::work_out_basis_rows)
     }
 
     /// [`basis_rows_of`](Self::basis_rows_of) from the Jacobian.
