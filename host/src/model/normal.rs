@@ -329,9 +329,8 @@ impl ArrowBlock {
 ///
 /// The rows are held until the block is summed ([`Self::sum_rows`]), so
 /// that each entry of `J^T J` takes four rows' products a pass
-/// ([`add_outer_pairs`]): one row at a time, each product's multiply-add
-/// loaded and stored its entry, and those loads and stores took most of
-/// the identification's sums.
+/// ([`add_outer_pairs`]) where one row at a time loaded and stored the
+/// entry for each multiply-add: 1.8 times as fast (decision record 0079).
 pub(crate) struct BlockSums {
     block: usize,
     fused: bool,

@@ -301,8 +301,7 @@ impl RowPass {
             for (v, &c) in shared.iter_mut().zip(&columns.shared) {
                 *v *= layout.scale[c];
             }
-            // Every value read (no early stop): one pass the compiler
-            // can take several values at a time.
+            // Every value read, with no branch a value to stop early on.
             finite &= own
                 .iter()
                 .chain(shared.iter())
