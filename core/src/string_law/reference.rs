@@ -25,7 +25,13 @@ pub fn pulley_angle(law: &StringLaw, counts: i32) -> f64 {
 /// `sum_k winding_mm[k-1] theta^k` (Horner) plus the law's layer table
 /// ([`LayerTable::departure_mm`](crate::model::LayerTable::departure_mm)).
 pub fn payout_f64(law: &StringLaw, counts: i32) -> f64 {
-    polynomial_payout_f64(law, counts) + law.layers.departure_mm(counts)
+    payout_at_f64(law, counts, pulley_angle(law, counts))
+}
+
+/// [`payout_f64`] at `counts` whose pulley angle `theta` ([`pulley_angle`])
+/// the caller has already.
+fn payout_at_f64(law: &StringLaw, counts: i32, theta: f64) -> f64 {
+    polynomial_payout_at_f64(law, theta) + law.layers.departure_mm(counts)
 }
 
 /// The winding polynomial alone (mm), without the layer table.
@@ -133,7 +139,7 @@ impl EffectContext {
         let theta = pulley_angle(law, counts);
         Some(Self {
             theta,
-            payout_mm: polynomial_payout_at_f64(law, theta) + law.layers.departure_mm(counts),
+            payout_mm: payout_at_f64(law, counts, theta),
             home_length_mm: home.length_mm,
             tension_n: f64::from(*inputs.tension_mn.get(string)?) / 1000.0,
             total_tension_n,

@@ -436,9 +436,9 @@ const BASIS_CHUNK: usize = 512;
 /// Most observations whose basis rows, rows ([`Row`]) and candidates'
 /// values a diagnosis keeps between its passes: the loop's default bound
 /// on the rows it reads (`CalibrateConfig::max_loop_rows`), about 5 kB an
-/// observation, 20-30 MB in all. A loop that reads more (every row of a long session, when asked)
-/// works them out at each pass: kept, they would grow with the session at
-/// twenty times its file's size.
+/// observation, 20-30 MB in all. A loop that reads more (every row of a
+/// long session, when asked) works them out at each pass: kept, they would
+/// grow with the session at twenty times its file's size.
 pub(super) const KEPT_OBSERVATIONS: usize = 4000;
 
 /// Fewest observations per task of [`FitRows::basis_rows_of`]: each task
@@ -469,12 +469,12 @@ impl FitRows<'_> {
         let (mut basis_made, mut rows_made) = (Vec::new(), Vec::new());
         for start in (0..observations).step_by(BASIS_CHUNK) {
             let chunk = start..(start + BASIS_CHUNK).min(observations);
-            let us: Vec<usize> = chunk.clone().collect();
+            let us = || chunk.clone().collect::<Vec<usize>>();
             let basis: &[f64] = match (what, kept_basis) {
                 (Visit::Rows, _) => &[],
                 (_, Some(kept)) => &kept[chunk.start * width..chunk.end * width],
                 (_, None) => {
-                    self.work_out_basis_rows(&us, &mut basis_made);
+                    self.work_out_basis_rows(&us(), &mut basis_made);
                     &basis_made
                 }
             };
@@ -482,7 +482,7 @@ impl FitRows<'_> {
                 (Visit::Basis, _) => &[],
                 (_, Some(kept)) => &kept[chunk.start * STRINGS..chunk.end * STRINGS],
                 (_, None) => {
-                    self.work_out_rows(&us, &mut rows_made);
+                    self.work_out_rows(&us(), &mut rows_made);
                     &rows_made
                 }
             };
