@@ -604,9 +604,23 @@ impl LoopState<'_> {
             }
             // Strings read late, each of whose latencies was refused alone:
             // tried together, before a latency every string shares stands
-            // in for them (decision record 0067).
+            // in for them (decision record 0067). Lags are the strings'
+            // against the tracker's clock, whose offset the alignment found
+            // from the motion of every string, late ones too: the strings on
+            // time then read early alike. The latency every string shares,
+            // proposed beside them, is tried from the model without the
+            // group as a one-string term's frame-wide rivals are, and takes
+            // its place when its blocked folds reach a lower mean
+            // (decision record 0080).
             if let Some((finding, change)) = lagging.filter(|_| which == Proposals::All) {
+                let before = self.clone();
                 if self.try_change(finding, change)? {
+                    let shared_lag: Vec<Finding> = frame_wide
+                        .iter()
+                        .filter(|f| f.family == Family::Latency)
+                        .cloned()
+                        .collect();
+                    self.prefer_frame_wide(before, &shared_lag, &tried)?;
                     continue 'outer;
                 }
             }
