@@ -184,7 +184,7 @@ pub fn train(
         })
         .collect();
     pb.finish_and_clear();
-    let best = best_run(runs).ok_or(LearnError::OutOfTime {
+    let best = best_run(&data, runs).ok_or(LearnError::OutOfTime {
         what: "NN training",
         budget_s: cfg.time_limit.map_or(0.0, |d| d.as_secs_f64()),
     })?;
@@ -374,11 +374,21 @@ pub(crate) struct Run {
     pub stop: StopReason,
 }
 
-/// Lowest score; ties go to the earlier run so parallel order cannot matter.
-pub(crate) fn best_run(runs: Vec<Run>) -> Option<Run> {
-    runs.into_iter()
+/// Lowest score among the runs whose network the device can hold (its
+/// fixed-point form compiles: a first-layer bias beyond Q4.27's +-16, say,
+/// does not), else among every run; ties go to the earlier run so parallel
+/// order cannot matter. A run the device cannot hold is a calibration
+/// `spidar compile` refuses, however well it scores.
+pub(crate) fn best_run(data: &Prepared, runs: Vec<Run>) -> Option<Run> {
+    let (held, not_held): (Vec<Run>, Vec<Run>) = runs
+        .into_iter()
         .filter(|r| r.score.is_finite())
-        .reduce(|a, b| if b.score < a.score { b } else { a })
+        .partition(|r| data.model(r.h, &r.w).compile().is_ok());
+    let lowest = |runs: Vec<Run>| {
+        runs.into_iter()
+            .reduce(|a, b| if b.score < a.score { b } else { a })
+    };
+    lowest(held).or_else(|| lowest(not_held))
 }
 
 /// Nguyen-Widrow initialization for tanh, with the input range mapped as
@@ -797,5 +807,55 @@ mod tests {
         let g = jd.transpose() * DVector::from_column_slice(&work.e);
         assert!((jtj - &work.jtj).amax() < 1e-6, "J^T J mismatch at H = {h}");
         assert!((g - &work.g).amax() < 1e-6, "J^T e mismatch at H = {h}");
+    }
+
+    /// A run whose network the device cannot hold (a first-layer bias of
+    /// 18, beyond Q4.27's +-16: the independent simulator's stream of seed
+    /// 4 refitted such a net and `spidar compile` refused the calibration)
+    /// loses to one it can, whatever their scores; among runs alike the
+    /// lowest score wins, and the earlier on a tie.
+    #[test]
+    fn the_best_run_is_one_the_device_can_hold() {
+        let mut rng = Rng::new(5);
+        let x: Vec<[f64; 3]> = (0..40)
+            .map(|_| {
+                [
+                    100.0 * rng.normal(),
+                    100.0 * rng.normal(),
+                    100.0 * rng.normal(),
+                ]
+            })
+            .collect();
+        let y: Vec<[f64; 3]> = x
+            .iter()
+            .map(|p| {
+                [
+                    p[0] + rng.normal(),
+                    p[1] + rng.normal(),
+                    p[2] + rng.normal(),
+                ]
+            })
+            .collect();
+        let data = Prepared::new(&x, &y, OutputMode::Residual, 0.0, 1).unwrap();
+        let l = Layout { h: 2 };
+        let run = |bias: f64, score: f64| {
+            let mut w: Vec<f64> = (0..l.len()).map(|k| 0.1 * (k as f64 + 1.0)).collect();
+            w[l.b1(1)] = bias;
+            Run {
+                h: 2,
+                w,
+                score,
+                epochs: 1,
+                stop: StopReason::MaxEpochs,
+            }
+        };
+        let held = |r: &Run| data.model(r.h, &r.w).compile().is_ok();
+        assert!(!held(&run(18.0, 1.0)) && held(&run(0.5, 2.0)));
+        let best = best_run(&data, vec![run(18.0, 1.0), run(0.5, 2.0), run(0.7, 2.0)]).unwrap();
+        assert_eq!((best.score, best.w[l.b1(1)]), (2.0, 0.5));
+        // None held: the lowest score still, for the caller to refuse.
+        let best = best_run(&data, vec![run(19.0, 3.0), run(18.0, 1.0)]).unwrap();
+        assert_eq!(best.score, 1.0);
+        assert!(best_run(&data, vec![run(0.5, f64::NAN)]).is_none());
     }
 }

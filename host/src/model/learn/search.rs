@@ -222,7 +222,7 @@ fn sweep_curve(
             .map(|(_, r, run)| (*r, run.clone()))
             .collect();
         of_h.sort_by_key(|(r, _)| *r);
-        let Some(run) = best_run(of_h.into_iter().map(|(_, run)| run).collect()) else {
+        let Some(run) = best_run(data, of_h.into_iter().map(|(_, run)| run).collect()) else {
             continue;
         };
         let model = data.model(h, &run.w);
@@ -287,7 +287,7 @@ fn final_training(
     // before any epoch, we still return it.
     let mut all = vec![winner];
     all.extend(finals.into_iter().filter(|r| r.epochs > 0));
-    best_run(all).ok_or(LearnError::OutOfTime {
+    best_run(data, all).ok_or(LearnError::OutOfTime {
         what: "NN final training",
         budget_s: cfg.final_time_limit.map_or(0.0, |d| d.as_secs_f64()),
     })

@@ -229,6 +229,7 @@ fn judge_on_selection_split(
     data: &ResidualData,
     learned: &Learned,
     cfg: &CalibrateConfig,
+    not_held: &[(report::Choice, String)],
 ) -> Judgement {
     let (x_sel, t_sel) = (&data.x_sel, &data.t_sel);
     let e_id = point_error_list(|p| p, x_sel, t_sel);
@@ -241,8 +242,15 @@ fn judge_on_selection_split(
     // A correction is eligible when it lowers the mean by the configured gain
     // without raising the p95 or the max beyond their noise; the eligible one
     // with the lower mean is chosen.
-    let verdict = |name: &str, c: &ErrorStats| -> Result<(), String> {
-        if !c.mean_mm.is_finite() || c.mean_mm >= s_id.mean_mm * (1.0 - cfg.min_correction_gain) {
+    let verdict = |choice: report::Choice, c: &ErrorStats| -> Result<(), String> {
+        let name = choice.name();
+        if let Some((_, why)) = not_held.iter().find(|held| held.0 == choice) {
+            Err(format!(
+                "{name}'s refit does not fit the device's fixed point ({why})"
+            ))
+        } else if !c.mean_mm.is_finite()
+            || c.mean_mm >= s_id.mean_mm * (1.0 - cfg.min_correction_gain)
+        {
             Err(format!(
                 "{name} does not lower the mean by {:.0} % ({:.3} vs {:.3} mm)",
                 100.0 * cfg.min_correction_gain,
@@ -264,8 +272,16 @@ fn judge_on_selection_split(
         }
     };
     let judged = [
-        (report::Choice::Nn, &s_nn, verdict("nn", &s_nn)),
-        (report::Choice::Svr, &s_svr, verdict("svr", &s_svr)),
+        (
+            report::Choice::Nn,
+            &s_nn,
+            verdict(report::Choice::Nn, &s_nn),
+        ),
+        (
+            report::Choice::Svr,
+            &s_svr,
+            verdict(report::Choice::Svr, &s_svr),
+        ),
     ];
     let best = judged
         .iter()
@@ -614,6 +630,28 @@ pub(super) fn learner_warnings(
     warnings
 }
 
+/// The choice `judge` makes and the correction `refit` makes of it, the
+/// device holding it: a refit whose fixed-point form does not compile
+/// (every restart of its training beyond the blob's ranges) is refused,
+/// and the choice made again without it (`judge` is given the choices
+/// refused and why). The string model alone always compiles.
+fn choice_the_device_holds(
+    judge: impl Fn(&[(report::Choice, String)]) -> Judgement,
+    mut refit: impl FnMut(report::Choice) -> Result<CorrectionModel, CalibrateError>,
+) -> Result<(Judgement, CorrectionModel), CalibrateError> {
+    let mut not_held: Vec<(report::Choice, String)> = Vec::new();
+    loop {
+        let judgement = judge(&not_held);
+        let correction = refit(judgement.choice)?;
+        match correction.compile() {
+            Err(e) if !not_held.iter().any(|held| held.0 == judgement.choice) => {
+                not_held.push((judgement.choice, e.to_string()));
+            }
+            _ => return Ok((judgement, correction)),
+        }
+    }
+}
+
 impl Run<'_> {
     /// Stage 5: the choice on the selection split, and the chosen correction
     /// refitted (its time into `selection_s`).
@@ -623,10 +661,12 @@ impl Run<'_> {
         learned: &Learned,
     ) -> Result<(Judgement, CorrectionModel), CalibrateError> {
         let t = Instant::now();
-        let judgement = judge_on_selection_split(data, learned, &self.cfg);
-        let final_corr = refit_chosen(judgement.choice, data, learned, &self.cfg)?;
+        let chosen = choice_the_device_holds(
+            |not_held| judge_on_selection_split(data, learned, &self.cfg, not_held),
+            |choice| refit_chosen(choice, data, learned, &self.cfg),
+        );
         self.timings.selection_s = t.elapsed().as_secs_f64();
-        Ok((judgement, final_corr))
+        chosen
     }
 }
 
@@ -674,6 +714,79 @@ mod tests {
         let mut enough = too_small(report::Choice::Identified);
         enough.enough_to_choose = true;
         assert_eq!(unchosen_corrections_warning(&enough, 40), None);
+    }
+
+    /// A refit the device cannot hold (an NN whose first-layer bias, 20,
+    /// is beyond Q4.27's +-16) is refused and the choice made again
+    /// without it: the SVR when it is next, the string model when nothing
+    /// else is left.
+    #[test]
+    fn a_refit_the_device_cannot_hold_is_not_the_final_model() {
+        use spidar_core::correction::{NnModel, OutputMode, Standardization};
+        let unit = Standardization {
+            mean: [0.0; 3],
+            std: [100.0; 3],
+        };
+        let nn = |bias: f64| {
+            CorrectionModel::Nn(NnModel {
+                input: unit,
+                output: Standardization {
+                    mean: [0.0; 3],
+                    std: [1.0; 3],
+                },
+                w1: vec![[1.0, 0.0, 0.0]],
+                b1: vec![bias],
+                w2: [vec![0.1], vec![0.0], vec![0.0]],
+                b2: [0.0; 3],
+                mode: OutputMode::Residual,
+            })
+        };
+        assert!(nn(20.0).compile().is_err() && nn(2.0).compile().is_ok());
+        for (order, expected) in [
+            (
+                [
+                    report::Choice::Nn,
+                    report::Choice::Svr,
+                    report::Choice::Identified,
+                ],
+                report::Choice::Svr,
+            ),
+            (
+                [
+                    report::Choice::Nn,
+                    report::Choice::Identified,
+                    report::Choice::Svr,
+                ],
+                report::Choice::Identified,
+            ),
+        ] {
+            let mut refits = Vec::new();
+            let (judgement, correction) = choice_the_device_holds(
+                |not_held| {
+                    let next = order
+                        .iter()
+                        .find(|c| !not_held.iter().any(|h| h.0 == **c))
+                        .copied()
+                        .unwrap();
+                    if next != report::Choice::Nn {
+                        assert!(not_held[0].1.contains("b1"), "{not_held:?}");
+                    }
+                    too_small(next)
+                },
+                |choice| {
+                    refits.push(choice);
+                    Ok(match choice {
+                        report::Choice::Nn => nn(20.0),
+                        report::Choice::Svr => nn(2.0),
+                        _ => CorrectionModel::None,
+                    })
+                },
+            )
+            .unwrap();
+            assert_eq!(judgement.choice, expected);
+            assert_eq!(refits, [report::Choice::Nn, expected]);
+            assert!(correction.compile().is_ok());
+        }
     }
 
     fn room(model_instructions: u32) -> TickRoom {
