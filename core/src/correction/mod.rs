@@ -18,7 +18,9 @@
 //! chosen by the compiler to use the full `i32` range.
 //!
 //! NN, per hidden neuron `h`:
-//! `x_h = sat((sum_i (p_i - mean_i) * w1[h][i]) >> (w1_frac - 11)) + b1[h]` (saturating), with
+//! `x_h = 2 (sat((sum_i (p_i - mean_i) * w1[h][i]) >> (w1_frac - 10)) + (b1[h] >> 1))`
+//! (each step saturating: the sum in Q5.26, so that `w1 . d` saturated at
+//! +-32 stays beyond +-16 whatever the bias), with
 //! `p - mean` saturated to `i32` Q15.16, `w1 = W1 / std_in` in Q(`w1_frac`) per
 //! mm, an `i64` accumulator, `x_h` and `b1` in Q4.27 ([`PREACTIVATION_FRAC`]);
 //! `t_h = tanh(x_h)` in Q1.30 ([`crate::fixed::tanh_q27`]); output
@@ -143,9 +145,9 @@ pub const W1_MAX: i32 = 1 << 29;
 /// never overflows.
 pub const OUTPUT_ABS_SUM_MAX: u64 = (1 << 33) - 2;
 /// Range of `w1_frac` (fractional bits of NN first-layer weights, per mm): the
-/// pre-activation shift `w1_frac - 11` stays within `1..=31`, a cheap 32-bit
-/// shift pair on the device.
-pub const W1_FRAC_RANGE: core::ops::RangeInclusive<u8> = 12..=42;
+/// pre-activation shift `w1_frac - 10` (to Q5.26) stays within `2..=31`, a
+/// cheap 32-bit shift pair on the device.
+pub const W1_FRAC_RANGE: core::ops::RangeInclusive<u8> = 12..=41;
 /// Range of `scale_frac` (fractional bits of the SVR input scales, per mm).
 pub const INPUT_FRAC_RANGE: core::ops::RangeInclusive<u8> = 11..=60;
 /// Range of `w2_frac` / `coef_frac` (fractional bits of output weights and SVR
@@ -166,7 +168,7 @@ pub const SUPPORT_MAX: i32 = 1 << 30;
 pub const MAX_SUPPORT_VECTORS: u32 = 1000;
 
 /// Most hidden neurons of an NN correction the device takes: at the
-/// measured 61 instructions a neuron (`docs/fixed-point.md`), 400 cost what
+/// measured 63 instructions a neuron (`docs/fixed-point.md`), 400 cost what
 /// the largest SVR does ([`MAX_SUPPORT_VECTORS`]), the correction's share
 /// of the tick. The host's sweep goes to 24.
 pub const MAX_HIDDEN_NEURONS: u16 = 400;
@@ -176,7 +178,7 @@ pub const MAX_HIDDEN_NEURONS: u16 = 400;
 /// ```text
 /// offset size  field
 ///  0     1     mode          0 absolute, 1 residual
-///  1     1     w1_frac       fractional bits of w1 (per mm), 12..=42
+///  1     1     w1_frac       fractional bits of w1 (per mm), 12..=41
 ///  2     3     w2_frac[3]    fractional bits of w2 per output axis (mm), 0..=48
 ///  5     3     reserved      0
 ///  8     12    mean[3]       i32 Q15.16 mm: input mean

@@ -147,9 +147,10 @@ impl<'a> NnView<'a> {
         let d0 = p[0].saturating_sub(self.summary.mean[0]) as i64;
         let d1 = p[1].saturating_sub(self.summary.mean[1]) as i64;
         let d2 = p[2].saturating_sub(self.summary.mean[2]) as i64;
-        // Q(16 + w1_frac) -> Q27.
-        let sh =
-            (self.summary.w1_frac as u32).wrapping_sub(PREACTIVATION_FRAC - POSITION_FRAC as u32);
+        // Q(16 + w1_frac) -> Q5.26: half the pre-activation's scale (see
+        // below).
+        let sh = (self.summary.w1_frac as u32)
+            .wrapping_sub(PREACTIVATION_FRAC - 1 - POSITION_FRAC as u32);
         let mut acc = [0i64; 3];
         for rec in self.neurons.chunks_exact(NN_NEURON_LEN) {
             let Ok(rec) = <&[u8; NN_NEURON_LEN]>::try_from(rec) else {
@@ -158,7 +159,15 @@ impl<'a> NnView<'a> {
             let pre = (d0 * le_i32::<NN_NEURON_LEN, 0>(rec) as i64)
                 .wrapping_add(d1 * le_i32::<NN_NEURON_LEN, 4>(rec) as i64)
                 .wrapping_add(d2 * le_i32::<NN_NEURON_LEN, 8>(rec) as i64);
-            let x = shr_sat_i64_to_i32(pre, sh).saturating_add(le_i32::<NN_NEURON_LEN, 12>(rec));
+            // `w1 . d` saturates at +-32 (Q5.26), where a bias within +-16
+            // cannot bring it back below tanh's +-16, and the sum doubles
+            // to Q4.27, saturating. Saturated at +-16 before the bias, a
+            // steep neuron (`w1 . d` of 30, a bias of -14) sat at tanh(2)
+            // where it is at 1: 3.5 mm off the host's figure on a net the
+            // host had chosen.
+            let half =
+                shr_sat_i64_to_i32(pre, sh).saturating_add(le_i32::<NN_NEURON_LEN, 12>(rec) >> 1);
+            let x = half.saturating_add(half);
             let t = tanh_q27(x) as i64;
             acc[0] = acc[0].wrapping_add(le_i32::<NN_NEURON_LEN, 16>(rec) as i64 * t);
             acc[1] = acc[1].wrapping_add(le_i32::<NN_NEURON_LEN, 20>(rec) as i64 * t);

@@ -205,6 +205,47 @@ fn nn_error_budget() {
     }
 }
 
+/// A steep neuron (an LM-trained step, first-layer weights of tens per
+/// standard deviation) whose first-layer bias of -14 brings it back from
+/// beyond the pre-activation's +-16: at a point where `w1 . x` is 30 the
+/// neuron is at tanh(16), 1 to 13 digits. Saturating `w1 . x` to 16 before
+/// adding the bias read it at tanh(2), 0.036 off: with an output weight of
+/// 100 mm, 3.6 mm on the device where the host's figures have none.
+#[test]
+fn a_steep_neuron_adds_its_bias_before_it_saturates() {
+    let m = NnModel {
+        input: Standardization {
+            mean: [0.0; 3],
+            std: [100.0; 3],
+        },
+        output: Standardization {
+            mean: [0.0; 3],
+            std: [1.0; 3],
+        },
+        w1: vec![[30.0, 0.0, 0.0]],
+        b1: vec![-14.0],
+        w2: [vec![100.0], vec![0.0], vec![0.0]],
+        b2: [0.0; 3],
+        mode: OutputMode::Residual,
+    };
+    let bytes = m.compile().expect("compiles");
+    let v = nn_view(&bytes, &m);
+    // w1 . x from -60 to 60 along x: through the step (at x = 47 mm) and
+    // far past it on both sides.
+    for k in -20..=20 {
+        let p = [10.0 * f64::from(k), 3.0, -2.0];
+        let host = m.evaluate(p);
+        let device = v.evaluate(p.map(mm_to_q16)).map(q16_to_mm);
+        assert!(
+            (host[0] - device[0]).abs() < 0.002,
+            "x = {} mm: host {} mm, device {} mm",
+            p[0],
+            host[0],
+            device[0]
+        );
+    }
+}
+
 #[test]
 fn view_rebuilt_from_its_summary_evaluates_the_same() {
     for model in [
