@@ -810,7 +810,7 @@ mod tests {
         assert_eq!(roomy.no_room(&cfg), None);
         let tight = CorrectionLimits::of(Some(room(50_000)), &cfg);
         assert_eq!(tight.support_vectors, 200);
-        assert_eq!(tight.neurons, 77);
+        assert_eq!(tight.neurons, 75);
         assert_eq!(tight.no_room(&cfg), None);
         // Room for two neurons: the sweep's smallest has three.
         let full = CorrectionLimits::of(Some(room(54_700)), &cfg);
