@@ -305,6 +305,17 @@ pub fn tick_instructions(calibration: &Calibration) -> Option<u32> {
     }
 }
 
+/// Why the device cannot hold `calibration` (a parameter beyond its fixed
+/// point's range, say), or `None` when it compiles; a tick over the budget
+/// is not such a reason here (the corrections are sized to what the model
+/// leaves, and the report warns of a model over it).
+pub fn device_cannot_hold(calibration: &Calibration) -> Option<String> {
+    match compile(calibration, 0, 0) {
+        Ok(_) | Err(spidar_core::blob::BlobCompileError::TickOverBudget { .. }) => None,
+        Err(e) => Some(e.to_string()),
+    }
+}
+
 /// Compiles `calibration` and checks the blob with the device's parser and
 /// a second compilation (bit for bit).
 pub fn compile_checked(

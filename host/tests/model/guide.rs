@@ -131,3 +131,36 @@ fn a_clean_device_gains_no_guide() {
         );
     }
 }
+
+/// Guides of 70 mm on every string, beyond the 50 mm the device's fixed
+/// point holds (`MAX_GUIDE_RADIUS_MM`): the loop fitted one at 70.0 mm
+/// (held out 1.500 -> 0.398 mm) and wrote a model `spidar compile`
+/// refuses. A term the device cannot hold is not added, the finding says
+/// why, and the loop's model compiles (decision record 0082).
+#[test]
+fn guides_beyond_what_the_device_holds_are_not_added() {
+    let (result, after) = run(2, &["guide:*:radius_mm=70"]);
+    let calibration = result
+        .identification
+        .calibration(spidar_core::correction::CorrectionModel::None);
+    let compiled = spidar_core::blob::compile(&calibration, 0, 0);
+    println!(
+        "added {:?}; guides {:?}; after {after:.3} mm",
+        added(&result),
+        guides_of(&result)
+    );
+    assert!(compiled.is_ok(), "{:?}", compiled.err());
+    assert!(guides_of(&result).is_empty(), "{:?}", guides_of(&result));
+    let shared = result
+        .findings
+        .iter()
+        .find(|f| f.family == Family::Guide && f.strings.is_empty())
+        .expect("the shared guide is proposed");
+    let reason = &shared.validation.as_ref().expect("judged").reason;
+    assert!(
+        !shared.added
+            && reason.contains("the device cannot hold it")
+            && reason.contains("radius_mm"),
+        "{reason}"
+    );
+}

@@ -46,6 +46,7 @@ use order::FirstStep;
 
 use std::borrow::Cow;
 
+use spidar_core::correction::CorrectionModel;
 use spidar_core::model::{Effect, EffectTerm, Frame, MAX_EFFECTS};
 use spidar_core::STRINGS;
 
@@ -741,10 +742,7 @@ impl LoopState<'_> {
         let accepted = check.accepted;
         finding.validation = Some(check.summarized());
         if !accepted {
-            if moved.is_some() {
-                self.seen_train = at_meeting_points(self.train, self.structure.marker_body_mm);
-            }
-            self.report(finding);
+            self.refuse(finding, moved.is_some());
             return Ok(false);
         }
         self.findings.retain(|f| f.added || !same_term(f, &finding));
@@ -764,9 +762,36 @@ impl LoopState<'_> {
         if let Some(fitted) = fitted_in_physical_terms(change, &refit) {
             finding.description += &fitted;
         }
+        // A term the device cannot hold (fitted beyond its fixed point's
+        // range) would make a calibration `spidar compile` refuses; the
+        // model it would join must compile, or the term is no cause.
+        let holds = |id: &Identification| {
+            crate::model::compile::device_cannot_hold(&id.calibration(CorrectionModel::None))
+        };
+        if let Some(why) = holds(&refit).filter(|_| holds(&self.id).is_none()) {
+            if let Some(check) = finding.validation.as_mut() {
+                check.accepted = false;
+                check.reason = format!(
+                    "not added: the device cannot hold it ({why}), though {}",
+                    check.reason.trim_start_matches("added: ")
+                );
+            }
+            self.refuse(finding, moved.is_some());
+            return Ok(false);
+        }
         let name = stage_name(&finding);
         self.accept(name, finding, refit, candidate, validated, moved);
         Ok(true)
+    }
+
+    /// A change not taken: its finding in the report, and the training
+    /// session read again as the model's marker offset reads it when the
+    /// change had `moved` it.
+    fn refuse(&mut self, finding: Finding, moved: bool) {
+        if moved {
+            self.seen_train = at_meeting_points(self.train, self.structure.marker_body_mm);
+        }
+        self.report(finding);
     }
 
     /// Takes a change judged good into the model: the sessions as the new

@@ -2,8 +2,9 @@
 //! estimate, the warnings; or why it failed.
 
 use serde::{Deserialize, Serialize};
+use spidar_core::correction::CorrectionModel;
 use spidar_core::kinematics::KinematicsRule;
-use spidar_core::model::{Effect, EffectTerm, Frame, StringLaw};
+use spidar_core::model::{Calibration, Effect, EffectTerm, Frame, StringLaw};
 use spidar_core::STRINGS;
 
 use super::winding::WindingPhysics;
@@ -92,6 +93,20 @@ impl Identification {
             effects: &self.effects,
             length_scale_mm: &self.length_scale_mm,
             kinematics: self.kinematics,
+        }
+    }
+
+    /// The calibration of this model with `correction` on top of it, and
+    /// no home capture.
+    pub fn calibration(&self, correction: CorrectionModel) -> Calibration {
+        Calibration {
+            frame: self.frame,
+            strings: self.laws,
+            effects: self.effects.clone(),
+            correction,
+            length_scale_mm: self.length_scale_mm,
+            kinematics: self.kinematics,
+            home: None,
         }
     }
 

@@ -398,10 +398,12 @@ impl Run<'_> {
         // session too small for the loop is too small for them).
         // No larger than the device's tick leaves them beside the model.
         let data = ResidualData::of(obs, positions, &self.cfg)?;
-        let room = TickRoom::beside(&calibration_of(
-            &model.final_identified.new_session,
-            CorrectionModel::None,
-        ));
+        let room = TickRoom::beside(
+            &model
+                .final_identified
+                .new_session
+                .calibration(CorrectionModel::None),
+        );
         let limits = CorrectionLimits::of(room, &self.cfg);
         let no_room = limits.no_room(&self.cfg);
         if let Some(r) = room.filter(|r| r.model_instructions > r.budget) {
@@ -751,7 +753,7 @@ fn final_model(
     } else {
         (final_identified.new_session, final_identified.rejections)
     };
-    let calibration = calibration_of(&fin_new, final_corr);
+    let calibration = fin_new.calibration(final_corr);
     let rule = if fall_back {
         report::KinematicsReport::of(Err(format!(
             "the plain least-squares reference's: every string alike, up to {:.2} mm RMS",
@@ -765,22 +767,5 @@ fn final_model(
         calibration,
         rejections,
         rule,
-    }
-}
-
-/// The calibration of the identified model `id` with `correction` (the
-/// training slips, found after the corrections, not yet in it).
-fn calibration_of(
-    id: &crate::model::identify::Identification,
-    correction: CorrectionModel,
-) -> Calibration {
-    Calibration {
-        frame: id.frame,
-        strings: id.laws,
-        effects: id.effects.clone(),
-        correction,
-        length_scale_mm: id.length_scale_mm,
-        kinematics: id.kinematics,
-        home: None,
     }
 }
