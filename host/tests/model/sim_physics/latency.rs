@@ -59,25 +59,8 @@ fn an_encoder_read_late_holds_its_string_as_it_was_then() {
 /// 0.05 ms, and the model holds no such term (decision record 0064).
 #[test]
 fn encoder_latency_on_an_independent_stream_is_named_on_its_strings() {
-    let device = PhysicsDevice::new(
-        &PhysicsConfig {
-            effects: vec![
-                "latency:string=2,ms=6".into(),
-                "latency:string=5,ms=6".into(),
-            ],
-            ..PhysicsConfig::default()
-        },
-        1,
-    )
-    .unwrap();
-    let stream = |rows, area, seed| {
-        simulate_session(&device, SessionKind::Stream { rows, area }, seed)
-            .unwrap()
-            .0
-    };
-    let train = stream(3000, spidar::sim::StreamArea::Training, 4);
-    let test = stream(1000, spidar::sim::StreamArea::Whole, 5);
-    let c = calibrate_quick(&device, &train, &test);
+    let device = lagging_device(1);
+    let c = calibrated_streams(&device, (3000, 1000), (4, 5));
     let latencies: Vec<(Vec<u8>, f64, String)> = c
         .report
         .effects
@@ -85,15 +68,7 @@ fn encoder_latency_on_an_independent_stream_is_named_on_its_strings() {
         .filter(|f| f.added && f.family == spidar::model::diagnose::Family::Latency)
         .map(|f| (f.strings.clone(), f.amplitude_mm, f.description.clone()))
         .collect();
-    let terms: Vec<(u8, f64)> = c
-        .calibration
-        .effects
-        .iter()
-        .filter_map(|t| match t.effect {
-            spidar_core::model::Effect::Latency { latency_s } => Some((t.string, latency_s)),
-            _ => None,
-        })
-        .collect();
+    let terms = latency_terms(&c);
     println!("{latencies:?}\n{terms:?}");
     for s in [2u8, 5] {
         let own = terms.iter().find(|t| t.0 == s).map(|t| t.1);
@@ -106,16 +81,11 @@ fn encoder_latency_on_an_independent_stream_is_named_on_its_strings() {
         terms.iter().all(|t| [2, 5].contains(&t.0)),
         "a latency on another string, or every string's: {terms:?}"
     );
-    let truth = device.config.tracker.clock_offset_s;
     for (name, timing) in [
         ("train", &c.report.timing.train),
         ("test", &c.report.timing.test),
     ] {
-        let spidar::procedures::calibrate::align::SessionTiming::Aligned(a) = timing else {
-            panic!("{name}: {timing:?}");
-        };
-        println!("{name}: {a:?}");
-        assert!((a.offset_s - truth).abs() < 5e-5, "{name}: {a:?}");
+        assert_clock_found(&device, name, timing);
     }
     for (strings, _, description) in &latencies {
         if strings.is_empty() {
@@ -135,35 +105,10 @@ fn encoder_latency_on_an_independent_stream_is_named_on_its_strings() {
 /// the clocks' offsets, found at the truth (decision record 0080).
 #[test]
 fn strings_on_time_read_early_alike_are_the_clock_not_a_group() {
-    let device = PhysicsDevice::new(
-        &PhysicsConfig {
-            effects: vec![
-                "latency:string=2,ms=6".into(),
-                "latency:string=5,ms=6".into(),
-            ],
-            ..PhysicsConfig::default()
-        },
-        2,
-    )
-    .unwrap();
-    let stream = |rows, area, seed| {
-        simulate_session(&device, SessionKind::Stream { rows, area }, seed)
-            .unwrap()
-            .0
-    };
     // The session seeds `spidar simulate` gives streams of device 2.
-    let train = stream(30_000, spidar::sim::StreamArea::Training, 5);
-    let test = stream(3000, spidar::sim::StreamArea::Whole, 6);
-    let c = calibrate_quick(&device, &train, &test);
-    let terms: Vec<(u8, f64)> = c
-        .calibration
-        .effects
-        .iter()
-        .filter_map(|t| match t.effect {
-            spidar_core::model::Effect::Latency { latency_s } => Some((t.string, latency_s)),
-            _ => None,
-        })
-        .collect();
+    let device = lagging_device(2);
+    let c = calibrated_streams(&device, (30_000, 3000), (5, 6));
+    let terms = latency_terms(&c);
     println!("{terms:?}");
     assert_eq!(
         terms.iter().map(|t| t.0).collect::<Vec<_>>(),
@@ -174,12 +119,68 @@ fn strings_on_time_read_early_alike_are_the_clock_not_a_group() {
         terms.iter().all(|t| (0.0055..0.0065).contains(&t.1)),
         "{terms:?}"
     );
-    let spidar::procedures::calibrate::align::SessionTiming::Aligned(a) = &c.report.timing.train
-    else {
-        panic!("{:?}", c.report.timing.train);
+    assert_clock_found(&device, "train", &c.report.timing.train);
+}
+
+/// The independent device of `seed` with 6 ms of encoder latency on
+/// strings 2 and 5.
+fn lagging_device(seed: u64) -> PhysicsDevice {
+    PhysicsDevice::new(
+        &PhysicsConfig {
+            effects: vec![
+                "latency:string=2,ms=6".into(),
+                "latency:string=5,ms=6".into(),
+            ],
+            ..PhysicsConfig::default()
+        },
+        seed,
+    )
+    .unwrap()
+}
+
+/// `device` calibrated (quick) on a 100 Hz training stream over the
+/// training area and a test stream over the whole workspace, of `rows` rows
+/// and session `seeds`.
+fn calibrated_streams(
+    device: &PhysicsDevice,
+    rows: (usize, usize),
+    seeds: (u64, u64),
+) -> spidar::procedures::calibrate::Calibrated {
+    let stream = |rows, area, seed| {
+        simulate_session(device, SessionKind::Stream { rows, area }, seed)
+            .unwrap()
+            .0
     };
+    let train = stream(rows.0, spidar::sim::StreamArea::Training, seeds.0);
+    let test = stream(rows.1, spidar::sim::StreamArea::Whole, seeds.1);
+    calibrate_quick(device, &train, &test)
+}
+
+/// The calibration's latency terms: (string, seconds).
+fn latency_terms(c: &spidar::procedures::calibrate::Calibrated) -> Vec<(u8, f64)> {
+    c.calibration
+        .effects
+        .iter()
+        .filter_map(|t| match t.effect {
+            spidar_core::model::Effect::Latency { latency_s } => Some((t.string, latency_s)),
+            _ => None,
+        })
+        .collect()
+}
+
+/// Session `name`'s tracker clock was found from its motion within 0.05 ms
+/// of `device`'s.
+fn assert_clock_found(
+    device: &PhysicsDevice,
+    name: &str,
+    timing: &spidar::procedures::calibrate::align::SessionTiming,
+) {
+    let spidar::procedures::calibrate::align::SessionTiming::Aligned(a) = timing else {
+        panic!("{name}: {timing:?}");
+    };
+    println!("{name}: {a:?}");
     assert!(
         (a.offset_s - device.config.tracker.clock_offset_s).abs() < 5e-5,
-        "{a:?}"
+        "{name}: {a:?}"
     );
 }
