@@ -762,13 +762,14 @@ impl LoopState<'_> {
         if let Some(fitted) = fitted_in_physical_terms(change, &refit) {
             finding.description += &fitted;
         }
-        // A term the device cannot hold (fitted beyond its fixed point's
-        // range) would make a calibration `spidar compile` refuses; the
-        // model it would join must compile, or the term is no cause.
-        let holds = |id: &Identification| {
+        // A term fitted beyond its fixed point's range would make a
+        // calibration `spidar compile` refuses: a change must leave a model
+        // the device can hold, where the model before it could
+        // (decision record 0082).
+        let cannot_hold = |id: &Identification| {
             crate::model::compile::device_cannot_hold(&id.calibration(CorrectionModel::None))
         };
-        if let Some(why) = holds(&refit).filter(|_| holds(&self.id).is_none()) {
+        if let Some(why) = cannot_hold(&refit).filter(|_| cannot_hold(&self.id).is_none()) {
             if let Some(check) = finding.validation.as_mut() {
                 check.accepted = false;
                 check.reason = format!(
