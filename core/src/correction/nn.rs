@@ -161,10 +161,9 @@ impl<'a> NnView<'a> {
                 .wrapping_add(d2 * le_i32::<NN_NEURON_LEN, 8>(rec) as i64);
             // `w1 . d` saturates at +-32 (Q5.26), where a bias within +-16
             // cannot bring it back below tanh's +-16, and the sum doubles
-            // to Q4.27, saturating. Saturated at +-16 before the bias, a
-            // steep neuron (`w1 . d` of 30, a bias of -14) sat at tanh(2)
-            // where it is at 1: 3.5 mm off the host's figure on a net the
-            // host had chosen.
+            // to Q4.27, saturating: a steep neuron (`w1 . d` of 30, a bias
+            // of -14) is at tanh(16), as the host has it, not at tanh(2)
+            // (decision record 0081).
             let half =
                 shr_sat_i64_to_i32(pre, sh).saturating_add(le_i32::<NN_NEURON_LEN, 12>(rec) >> 1);
             let x = half.saturating_add(half);

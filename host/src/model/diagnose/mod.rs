@@ -614,14 +614,18 @@ impl LoopState<'_> {
             // its place when its blocked folds reach a lower mean
             // (decision record 0080).
             if let Some((finding, change)) = lagging.filter(|_| which == Proposals::All) {
-                let before = self.clone();
+                let shared_lag: Vec<Finding> = frame_wide
+                    .iter()
+                    .filter(|f| f.family == Family::Latency)
+                    .cloned()
+                    .collect();
+                // The state (a session moved by a marker offset among it)
+                // is kept only when there is a rival to try from it.
+                let before = (!shared_lag.is_empty()).then(|| self.clone());
                 if self.try_change(finding, change)? {
-                    let shared_lag: Vec<Finding> = frame_wide
-                        .iter()
-                        .filter(|f| f.family == Family::Latency)
-                        .cloned()
-                        .collect();
-                    self.prefer_frame_wide(before, &shared_lag, &tried)?;
+                    if let Some(before) = before {
+                        self.prefer_frame_wide(before, &shared_lag, &tried)?;
+                    }
                     continue 'outer;
                 }
             }
