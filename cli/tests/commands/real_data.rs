@@ -269,6 +269,42 @@ fn twelve_and_sixteen_training_rows_are_identified_alone_with_their_sds() {
     }
 }
 
+/// A session with no row to spare for held-out folds (11 tracked rows; the
+/// model needs 10 in every fold) places its rows with the rule that stays
+/// unless held-out data choose another, every string alike, not with the
+/// device's thresholds and the strings' weights, which are set on our
+/// simulators and which nothing here could judge (decision record 0083).
+#[test]
+fn a_session_without_folds_places_its_rows_with_every_string_alike() {
+    let (g, train, test) = load();
+    let d = data_dir();
+    let small = every_kth_tracked(&train, 11);
+    let c = calibrate_quick(
+        &g,
+        (&d.join("train-11-rows.csv"), &small),
+        (&d.join("test.csv"), &test),
+    );
+    // The identified model as the calibration finishes it (here the plain
+    // least-squares reference then holds lower on the selection split and
+    // is the final model: it too places every string alike).
+    let id = &c.loop_result.identification;
+    assert_eq!(
+        id.kinematics.exclusion_threshold_mm, id.kinematics.fault_threshold_mm,
+        "no string left out below the fault threshold"
+    );
+    assert_eq!(
+        id.length_scale_mm,
+        spidar::model::predict::UNMEASURED_SCALES,
+        "its strings weigh alike"
+    );
+    let k = c.calibration.kinematics;
+    assert_eq!(k.exclusion_threshold_mm, k.fault_threshold_mm);
+    assert_eq!(
+        c.calibration.length_scale_mm,
+        spidar::model::predict::UNMEASURED_SCALES
+    );
+}
+
 /// A small session on which the identified model loses to the plain
 /// least-squares reference on the selection split: the reference is the
 /// final model end to end. 12 of the 41 tracked poses of `all.csv` (the

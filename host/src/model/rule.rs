@@ -83,9 +83,14 @@ pub struct RuleScore {
 /// What the folds said, and the choice.
 #[derive(Clone, Debug, Serialize)]
 pub struct RuleChoice {
-    /// Index into `scores` of the chosen rule.
+    /// Index into `scores` of the chosen rule (0 when none was scored).
     pub chosen: usize,
+    /// The rules tried and their held-out errors; empty when the session
+    /// had no folds to judge them on ([`unjudged`]).
     pub scores: Vec<RuleScore>,
+    /// The rule chosen.
+    #[serde(skip)]
+    pub rule: RuleCandidate,
     /// The training rows' string disagreement at the quantile the scaled
     /// thresholds read, mm.
     pub disagreement_q99_mm: f64,
@@ -99,7 +104,7 @@ pub struct RuleChoice {
 impl RuleChoice {
     /// The chosen candidate.
     pub fn candidate(&self) -> RuleCandidate {
-        self.scores[self.chosen].candidate
+        self.rule
     }
 
     /// `id` (whose scales hold the structure counted again) running the
@@ -301,6 +306,29 @@ pub fn choose(
     Ok(Some(choice))
 }
 
+/// The rule that stays unless held-out data choose another (the first of
+/// [`candidates`]: every string, alike, up to the fault threshold the
+/// training rows' own disagreement scales), where no folds could judge
+/// the rules (`why`): a session with no row to spare. The device's
+/// thresholds and the strings' weights are rules set on our simulators; on
+/// a real robot's 11 rows (Hangprinter, one spare string) they held out
+/// 5.8 mm where every string alike held out 1.8 (decision record 0083).
+pub fn unjudged(id: &Identification, train: &[Observation], why: &str) -> RuleChoice {
+    let (scaled, q99) = scaled_thresholds(id, train);
+    let rule = all_strings_alike(scaled.fault_threshold_mm);
+    RuleChoice {
+        chosen: 0,
+        scores: Vec::new(),
+        rule,
+        disagreement_q99_mm: q99,
+        reason: format!(
+            "{}: the rule that stays unless held-out data choose another; {why}",
+            rule.name
+        ),
+        speed_counted_again_mm: [0.0; STRINGS],
+    }
+}
+
 /// The first score's rule (every string alike) unless another lowers the
 /// held-out mean by `min_gain` (relative); then the lowest.
 fn decide(scores: Vec<RuleScore>, q99: f64, min_gain: f64) -> RuleChoice {
@@ -332,6 +360,7 @@ fn decide(scores: Vec<RuleScore>, q99: f64, min_gain: f64) -> RuleChoice {
     };
     RuleChoice {
         chosen,
+        rule: scores[chosen].candidate,
         scores,
         disagreement_q99_mm: q99,
         reason,

@@ -879,14 +879,12 @@ impl Run<'_> {
         &mut self,
         loop_result: &mut LoopResult,
         obs: PerSession<&[Observation]>,
-        rule: &Result<RuleChoice, String>,
+        rule: &RuleChoice,
         training_home: &TrainingHome,
         test_path: &Path,
         list: &mut StageList,
     ) -> Result<FinalIdentified, CalibrateError> {
-        if let Ok(choice) = rule {
-            loop_result.identification = choice.apply(&loop_result.identification);
-        }
+        loop_result.identification = rule.apply(&loop_result.identification);
         let later = under_the_training_home(&loop_result.identification, training_home);
         let (final_identified, errors) =
             FinalIdentified::of(&loop_result.identification, &later, obs)?;
@@ -907,15 +905,16 @@ impl Run<'_> {
     }
 
     /// The forward kinematics' rule for the final identified model, chosen
-    /// on the held-out folds ([`crate::model::rule`]); why not, when the
-    /// session is too small for them (the device's rule then stays).
+    /// on the held-out folds ([`crate::model::rule`]); every string alike,
+    /// the rule that stays, with why not when the session is too small for
+    /// them or they could not be fitted ([`crate::model::rule::unjudged`]).
     fn choose_rule(
         &self,
         loop_result: &LoopResult,
         train: &[Observation],
         nominal: &spidar_core::model::Frame<f64>,
         regime: &Regime,
-    ) -> Result<RuleChoice, String> {
+    ) -> RuleChoice {
         use crate::model::rule::RuleFolds;
         // Below what the loop needs, the folds the anchors' tolerance is
         // chosen on: each holds out a tenth.
@@ -927,12 +926,17 @@ impl Run<'_> {
         let pb = spinner("choosing the kinematics' rule", self.cfg.quiet);
         let choice =
             crate::model::rule::choose(train, nominal, loop_result, &self.cfg.loop_config, folds)
-                .map_err(|e| format!("the device's rule: the folds could not be fitted ({e})"));
+                .map_err(|e| format!("the folds could not be fitted ({e})"));
         pb.finish_and_clear();
-        choice?.ok_or_else(|| {
-            "the device's rule: the session is too small for held-out folds (no row to spare)"
-                .into()
-        })
+        let unjudged =
+            |why: String| crate::model::rule::unjudged(&loop_result.identification, train, &why);
+        match choice {
+            Ok(Some(choice)) => choice,
+            Ok(None) => {
+                unjudged("the session is too small for held-out folds (no row to spare)".into())
+            }
+            Err(why) => unjudged(why),
+        }
     }
 }
 

@@ -755,11 +755,16 @@ fn final_model(
     };
     let calibration = fin_new.calibration(final_corr);
     let rule = if fall_back {
-        report::KinematicsReport::of(Err(format!(
-            "the plain least-squares reference's: every string alike, up to {:.2} mm RMS",
-            fin_new.kinematics.fault_threshold_mm
-        )))
-        .with_rule(fin_new.kinematics, false)
+        report::KinematicsReport {
+            rule: fin_new.kinematics,
+            weighted: false,
+            reason: format!(
+                "the plain least-squares reference's: every string alike, up to {:.2} mm RMS",
+                fin_new.kinematics.fault_threshold_mm
+            ),
+            candidates: Vec::new(),
+            disagreement_q99_mm: None,
+        }
     } else {
         rule
     };

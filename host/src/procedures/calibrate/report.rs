@@ -203,39 +203,14 @@ pub struct KinematicsReport {
 }
 
 impl KinematicsReport {
-    /// From the choice on the folds, or why there was none (the device's
-    /// rule then stays).
-    pub fn of(choice: Result<crate::model::rule::RuleChoice, String>) -> KinematicsReport {
-        match choice {
-            Ok(c) => KinematicsReport {
-                rule: c.candidate().rule,
-                weighted: c.candidate().weighted,
-                reason: c.reason.clone(),
-                disagreement_q99_mm: Some(c.disagreement_q99_mm),
-                candidates: c.scores,
-            },
-            Err(reason) => KinematicsReport {
-                rule: Default::default(),
-                weighted: true,
-                reason,
-                candidates: Vec::new(),
-                disagreement_q99_mm: None,
-            },
-        }
-    }
-}
-
-impl KinematicsReport {
-    /// The same account of another rule.
-    pub fn with_rule(
-        self,
-        rule: spidar_core::kinematics::KinematicsRule,
-        weighted: bool,
-    ) -> KinematicsReport {
+    /// From the choice (on the folds, or unjudged: its candidates empty).
+    pub fn of(c: crate::model::rule::RuleChoice) -> KinematicsReport {
         KinematicsReport {
-            rule,
-            weighted,
-            ..self
+            rule: c.candidate().rule,
+            weighted: c.candidate().weighted,
+            reason: c.reason.clone(),
+            disagreement_q99_mm: Some(c.disagreement_q99_mm),
+            candidates: c.scores,
         }
     }
 }
