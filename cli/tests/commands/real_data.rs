@@ -269,6 +269,60 @@ fn twelve_and_sixteen_training_rows_are_identified_alone_with_their_sds() {
     }
 }
 
+/// The other sessions of the same robot (`data/hangprinter-hp4-sessions/`,
+/// MIT licence, Torbjørn Ludvigsen; see that folder's README).
+fn sessions_dir() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/hangprinter-hp4-sessions")
+}
+
+/// The 35-pose session of the HP4pt2 configuration (the 18-pose and the
+/// bed sessions of one commit): issue 32's "35 poses" (2.89 mm held out,
+/// a careful fit 3.34). The loop runs on its 27 training rows and takes
+/// each spool's own rate; the final model holds out below the plain
+/// least-squares reference. Measured: reference 3.336, identified 2.936,
+/// final 2.824 mm.
+#[test]
+fn the_thirty_five_pose_session_holds_out_below_the_plain_fit() {
+    let d = sessions_dir().join("hp4pt2-session18-and-bed");
+    let g = Geometry::load(d.join("geometry.toml")).expect("geometry");
+    let train = Session::load(d.join("train.csv")).expect("train");
+    let test = Session::load(d.join("test.csv")).expect("test");
+    let mut cfg = CalibrateConfig::quick();
+    cfg.quiet = true;
+    let c = calibrate(
+        &g,
+        &d.join("geometry.toml"),
+        NamedSession {
+            path: &d.join("train.csv"),
+            session: &train,
+        },
+        NamedSession {
+            path: &d.join("test.csv"),
+            session: &test,
+        },
+        &cfg,
+    )
+    .expect("calibrate the 35-pose session");
+    let stage = |kind: StageKind| c.report.stages.iter().find(|s| s.kind == kind).unwrap();
+    let (fin, reference) = (stage(StageKind::Final), stage(StageKind::Reference));
+    assert!(fin.test.mean_mm <= 3.0, "final {}", fin.test.mean_mm);
+    assert!(
+        fin.test.mean_mm < reference.test.mean_mm,
+        "final {} against the reference {}",
+        fin.test.mean_mm,
+        reference.test.mean_mm
+    );
+    assert!(
+        c.report.effects.iter().any(|e| e.added),
+        "the loop ran and took a term: {:?}",
+        c.report
+            .effects
+            .iter()
+            .map(|e| &e.description)
+            .collect::<Vec<_>>()
+    );
+}
+
 /// A session with no row to spare for held-out folds (11 tracked rows; the
 /// model needs 10 in every fold) places its rows with the rule that stays
 /// unless held-out data choose another, every string alike, not with the
