@@ -88,7 +88,8 @@ pub struct RuleChoice {
     /// The rules tried and their held-out errors; empty when the session
     /// had no folds to judge them on ([`unjudged`]).
     pub scores: Vec<RuleScore>,
-    /// The rule chosen.
+    /// The rule chosen: `scores[chosen]`'s where the rules were scored
+    /// (another index: [`RuleChoice::choosing`]).
     #[serde(skip)]
     pub rule: RuleCandidate,
     /// The training rows' string disagreement at the quantile the scaled
@@ -105,6 +106,15 @@ impl RuleChoice {
     /// The chosen candidate.
     pub fn candidate(&self) -> RuleCandidate {
         self.rule
+    }
+
+    /// The same choice with `scores[k]`'s rule chosen instead.
+    pub fn choosing(&self, k: usize) -> RuleChoice {
+        RuleChoice {
+            chosen: k,
+            rule: self.scores[k].candidate,
+            ..self.clone()
+        }
     }
 
     /// `id` (whose scales hold the structure counted again) running the

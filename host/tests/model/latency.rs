@@ -222,7 +222,6 @@ fn a_static_lattice_does_not_test_latency_and_says_so() {
 /// tests'.)
 #[test]
 fn the_speed_structure_counted_again_is_judged_on_a_stream_s_folds_only() {
-    use spidar::model::rule;
     let twin = "speed not counted again";
     let counted_on_strings_2_and_5 = |result: &mut LoopResult| {
         let measured = result.identification.length_scale_mm;
@@ -264,10 +263,7 @@ fn the_speed_structure_counted_again_is_judged_on_a_stream_s_folds_only() {
         .iter()
         .position(|s| s.candidate.weighted && !s.candidate.speed_counted_again)
         .unwrap();
-    let run_twin = rule::RuleChoice {
-        chosen: twin_at,
-        ..choice.clone()
-    };
+    let run_twin = choice.choosing(twin_at);
     let device = run_twin.apply(&result.identification);
     for k in 0..8 {
         assert!(
