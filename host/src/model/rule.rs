@@ -320,9 +320,8 @@ pub fn choose(
 /// [`candidates`]: every string, alike, up to the fault threshold the
 /// training rows' own disagreement scales), where no folds could judge
 /// the rules (`why`): a session with no row to spare. The device's
-/// thresholds and the strings' weights are rules set on our simulators; on
-/// a real robot's 11 rows (Hangprinter, one spare string) they held out
-/// 5.8 mm where every string alike held out 1.8 (decision record 0083).
+/// thresholds and the strings' weights are rules set on our simulators,
+/// which such a session cannot judge (decision record 0083).
 pub fn unjudged(id: &Identification, train: &[Observation], why: &str) -> RuleChoice {
     let (scaled, q99) = scaled_thresholds(id, train);
     let rule = all_strings_alike(scaled.fault_threshold_mm);
