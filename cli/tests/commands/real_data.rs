@@ -41,11 +41,21 @@ fn load() -> (Geometry, Session, Session) {
 /// The quick calibration of the Hangprinter's geometry from a training and
 /// a test session (path, session).
 fn calibrate_quick(g: &Geometry, train: (&Path, &Session), test: (&Path, &Session)) -> Calibrated {
+    calibrate_quick_with(&data_dir().join("geometry.toml"), g, train, test)
+}
+
+/// [`calibrate_quick`] with the geometry read from `geometry_path`.
+fn calibrate_quick_with(
+    geometry_path: &Path,
+    g: &Geometry,
+    train: (&Path, &Session),
+    test: (&Path, &Session),
+) -> Calibrated {
     let mut cfg = CalibrateConfig::quick();
     cfg.quiet = true;
     calibrate(
         g,
-        &data_dir().join("geometry.toml"),
+        geometry_path,
         NamedSession {
             path: train.0,
             session: train.1,
@@ -287,22 +297,12 @@ fn the_thirty_five_pose_session_holds_out_below_the_plain_fit() {
     let g = Geometry::load(d.join("geometry.toml")).expect("geometry");
     let train = Session::load(d.join("train.csv")).expect("train");
     let test = Session::load(d.join("test.csv")).expect("test");
-    let mut cfg = CalibrateConfig::quick();
-    cfg.quiet = true;
-    let c = calibrate(
-        &g,
+    let c = calibrate_quick_with(
         &d.join("geometry.toml"),
-        NamedSession {
-            path: &d.join("train.csv"),
-            session: &train,
-        },
-        NamedSession {
-            path: &d.join("test.csv"),
-            session: &test,
-        },
-        &cfg,
-    )
-    .expect("calibrate the 35-pose session");
+        &g,
+        (&d.join("train.csv"), &train),
+        (&d.join("test.csv"), &test),
+    );
     let stage = |kind: StageKind| c.report.stages.iter().find(|s| s.kind == kind).unwrap();
     let (fin, reference) = (stage(StageKind::Final), stage(StageKind::Reference));
     assert!(fin.test.mean_mm <= 3.0, "final {}", fin.test.mean_mm);

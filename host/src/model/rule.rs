@@ -88,10 +88,10 @@ pub struct RuleChoice {
     /// The rules tried and their held-out errors; empty when the session
     /// had no folds to judge them on ([`unjudged`]).
     pub scores: Vec<RuleScore>,
-    /// The rule chosen: `scores[chosen]`'s where the rules were scored
-    /// (another index: [`RuleChoice::choosing`]).
+    /// The rule chosen ([`RuleChoice::candidate`]): `scores[chosen]`'s
+    /// where the rules were scored, kept in step by [`RuleChoice::choosing`].
     #[serde(skip)]
-    pub rule: RuleCandidate,
+    rule: RuleCandidate,
     /// The training rows' string disagreement at the quantile the scaled
     /// thresholds read, mm.
     pub disagreement_q99_mm: f64,
