@@ -243,8 +243,12 @@ impl<'a> NormalEquations<'a> {
         let shared = &self.columns.shared;
         let s = shared.len();
         for (ai, &a) in shared.iter().enumerate() {
-            for (bi, &b) in shared.iter().enumerate() {
-                into[(a, b)] += block.shared[ai * s + bi];
+            for (bi, &b) in shared.iter().enumerate().skip(ai) {
+                let sum = block.shared[ai * s + bi];
+                into[(a, b)] += sum;
+                if bi != ai {
+                    into[(b, a)] += sum;
+                }
             }
         }
         for (own, sums) in self.columns.own.iter().zip(&block.own) {
@@ -277,8 +281,9 @@ impl<'a> NormalEquations<'a> {
 }
 
 /// One block's sums of string rows from zero: the shared columns' products
-/// (shared x shared, row-major) and each string's (own x (own, shared),
-/// row-major).
+/// (shared x shared, row-major, the upper triangle only: an entry below the
+/// diagonal is its mirror's sum, the same products in the same order, and
+/// stays zero here) and each string's (own x (own, shared), row-major).
 pub(crate) struct ArrowBlock {
     shared: Vec<f64>,
     own: [Vec<f64>; STRINGS],
@@ -317,7 +322,7 @@ impl ArrowBlock {
         self.row.clear();
         self.row.extend_from_slice(own);
         self.row.extend_from_slice(shared);
-        add_outer_products(fused, &mut self.shared, shared, shared);
+        add_upper_squares(fused, &mut self.shared, core::iter::once(shared));
         add_outer_products(fused, &mut self.own[string], own, &self.row);
     }
 }
@@ -413,13 +418,10 @@ impl BlockSums {
             rows.push((string, &self.values[at..at + width]));
             at += width;
         }
-        let shared = rows.iter().map(|(string, row)| {
-            (
-                &row[self.own_widths[*string]..],
-                &row[self.own_widths[*string]..],
-            )
-        });
-        add_outer_pairs(self.fused, &mut self.arrow.shared, shared);
+        let shared = rows
+            .iter()
+            .map(|(string, row)| &row[self.own_widths[*string]..]);
+        add_upper_squares(self.fused, &mut self.arrow.shared, shared);
         for (string, sums) in self.arrow.own.iter_mut().enumerate() {
             let own = rows
                 .iter()
@@ -583,6 +585,99 @@ fn add_outer_four_with<const FUSED: bool>(
             x = multiply_add(FUSED, a1, b1, x);
             x = multiply_add(FUSED, a2, b2, x);
             *sum = multiply_add(FUSED, a3, b3, x);
+        }
+    }
+}
+
+/// `sums[a][b] += x[a] x[b]` for `b >= a` (the upper triangle of `sums`,
+/// row-major, `x.len()` square) for each row `x` of `rows` in turn: each
+/// entry's multiply-adds in the rows' order, as [`add_outer_pairs`] of the
+/// pairs `(x, x)` adds them, but half of them. A product is the same
+/// rounded (or fused) value whichever factor comes first, so the entry
+/// below the diagonal, left zero, would be the same sum.
+fn add_upper_squares<'v>(fused: bool, sums: &mut [f64], rows: impl Iterator<Item = &'v [f64]>) {
+    let mut pending: [&[f64]; PAIRS_A_PASS] = [&[]; PAIRS_A_PASS];
+    let mut held = 0;
+    for row in rows {
+        pending[held] = row;
+        held += 1;
+        if held == PAIRS_A_PASS {
+            add_upper_four(fused, sums, &pending);
+            held = 0;
+        }
+    }
+    for &x in &pending[..held] {
+        add_upper_one(fused, sums, x);
+    }
+}
+
+/// [`add_upper_squares`] of one row, with fused multiply-adds when `fused`
+/// (as [`add_outer_products`] chooses them).
+fn add_upper_one(fused: bool, sums: &mut [f64], x: &[f64]) {
+    #[cfg(target_arch = "x86_64")]
+    if fused {
+        // SAFETY: as in `add_outer_products`: `fused` is true only when
+        // the CPU has FMA.
+        unsafe { add_upper_one_fma(sums, x) };
+        return;
+    }
+    add_upper_one_with::<{ cfg!(not(target_arch = "x86_64")) }>(sums, x);
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "fma")]
+fn add_upper_one_fma(sums: &mut [f64], x: &[f64]) {
+    add_upper_one_with::<true>(sums, x);
+}
+
+#[inline(always)]
+fn add_upper_one_with<const FUSED: bool>(sums: &mut [f64], x: &[f64]) {
+    let n = x.len();
+    for (a, row) in sums.chunks_exact_mut(n).enumerate() {
+        let xa = x[a];
+        for (sum, &xb) in row[a..].iter_mut().zip(&x[a..]) {
+            *sum = multiply_add(FUSED, xa, xb, *sum);
+        }
+    }
+}
+
+/// [`add_upper_squares`] of four rows, with fused multiply-adds when
+/// `fused`.
+fn add_upper_four(fused: bool, sums: &mut [f64], rows: &[&[f64]; PAIRS_A_PASS]) {
+    #[cfg(target_arch = "x86_64")]
+    if fused {
+        // SAFETY: as in `add_outer_products`: `fused` is true only when
+        // the CPU has FMA.
+        unsafe { add_upper_four_fma(sums, rows) };
+        return;
+    }
+    add_upper_four_with::<{ cfg!(not(target_arch = "x86_64")) }>(sums, rows);
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "fma")]
+fn add_upper_four_fma(sums: &mut [f64], rows: &[&[f64]; PAIRS_A_PASS]) {
+    add_upper_four_with::<true>(sums, rows);
+}
+
+#[inline(always)]
+fn add_upper_four_with<const FUSED: bool>(sums: &mut [f64], rows: &[&[f64]; PAIRS_A_PASS]) {
+    let [x0, x1, x2, x3] = rows;
+    let n = x0.len();
+    let (x1, x2, x3) = (&x1[..n], &x2[..n], &x3[..n]);
+    for (a, row) in sums.chunks_exact_mut(n).enumerate() {
+        let (a0, a1, a2, a3) = (x0[a], x1[a], x2[a], x3[a]);
+        let upper = row[a..]
+            .iter_mut()
+            .zip(&x0[a..])
+            .zip(&x1[a..])
+            .zip(&x2[a..])
+            .zip(&x3[a..]);
+        for ((((sum, &b0), &b1), &b2), &b3) in upper {
+            let mut s = multiply_add(FUSED, a0, b0, *sum);
+            s = multiply_add(FUSED, a1, b1, s);
+            s = multiply_add(FUSED, a2, b2, s);
+            *sum = multiply_add(FUSED, a3, b3, s);
         }
     }
 }
