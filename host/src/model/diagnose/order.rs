@@ -225,7 +225,7 @@ impl LoopState<'_> {
             .filter(|f| !tried.iter().any(|t| same_term(t, f)))
         {
             let mut alternative = before.clone();
-            if alternative.try_finding(f.clone())?
+            if alternative.try_rival(f.clone(), self.validation.held.mean_mm)?
                 && alternative.validation.held.mean_mm < self.validation.held.mean_mm
             {
                 *self = alternative;
@@ -259,8 +259,9 @@ impl LoopState<'_> {
             .iter()
             .filter(|f| f.variable == shared.variable && !tried.iter().any(|t| same_term(t, f)))
         {
+            // The judge below takes a change only where the mean falls.
             let mut alternative = before.clone();
-            if !alternative.try_finding(f.clone())? {
+            if !alternative.try_rival(f.clone(), self.validation.held.mean_mm)? {
                 continue;
             }
             let check = judge(

@@ -129,7 +129,7 @@ pub(super) fn where_revisited(
     // cells too they still pass 61 where the abnormal motor's error comes
     // and goes by visit (clean seed 1 took them, 0.368 -> 0.460 mm;
     // decision record 0059).
-    let threshold = if super::drifts_of_several_strings(c) {
+    let threshold = if super::diagnosis::drifts_of_several_strings(c) {
         c.columns.len() as f64 * chi2_threshold(config, 1, 0.0)
     } else {
         chi2_threshold(config, c.columns.len(), c.search_penalty)

@@ -1,3 +1,4 @@
+use spidar_core::model::{Effect, EffectTerm};
 use spidar_core::STRINGS;
 
 use super::*;
