@@ -322,8 +322,8 @@ impl ArrowBlock {
         self.row.clear();
         self.row.extend_from_slice(own);
         self.row.extend_from_slice(shared);
-        add_upper_squares(fused, &mut self.shared, core::iter::once(shared));
-        add_outer_products(fused, &mut self.own[string], own, &self.row);
+        add_outer_products(fused, &mut self.shared, shared, shared, Entries::Upper);
+        add_outer_products(fused, &mut self.own[string], own, &self.row, Entries::All);
     }
 }
 
@@ -418,16 +418,17 @@ impl BlockSums {
             rows.push((string, &self.values[at..at + width]));
             at += width;
         }
-        let shared = rows
-            .iter()
-            .map(|(string, row)| &row[self.own_widths[*string]..]);
-        add_upper_squares(self.fused, &mut self.arrow.shared, shared);
+        let shared = rows.iter().map(|(string, row)| {
+            let shared = &row[self.own_widths[*string]..];
+            (shared, shared)
+        });
+        add_outer_pairs(self.fused, &mut self.arrow.shared, shared, Entries::Upper);
         for (string, sums) in self.arrow.own.iter_mut().enumerate() {
             let own = rows
                 .iter()
                 .filter(|(i, _)| *i == string)
                 .map(|(_, row)| (&row[..self.own_widths[string]], *row));
-            add_outer_pairs(self.fused, sums, own);
+            add_outer_pairs(self.fused, sums, own, Entries::All);
         }
         self.values.clear();
         self
@@ -492,18 +493,41 @@ fn multiply_add(fused: bool, a: f64, b: f64, sum: f64) -> f64 {
     }
 }
 
-/// `sums[a][b] += u[a] v[b]` (`sums` row-major, `u.len()` x `v.len()`).
+/// Which entries of a product's sums are taken.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Entries {
+    All,
+    /// `b >= a` only, of a square product of a row with itself: an entry
+    /// below the diagonal is its mirror's sum (a product rounds, or fuses,
+    /// alike whichever factor comes first) and is left as it is.
+    Upper,
+}
+
+impl Entries {
+    /// The first column of row `a` taken.
+    #[inline(always)]
+    fn first(self, a: usize) -> usize {
+        match self {
+            Entries::All => 0,
+            Entries::Upper => a,
+        }
+    }
+}
+
+/// `sums[a][b] += u[a] v[b]` (`sums` row-major, `u.len()` x `v.len()`) on
+/// the `entries` taken.
 #[inline(always)]
-fn add_outer<const FUSED: bool>(sums: &mut [f64], u: &[f64], v: &[f64]) {
-    for (row, &ua) in sums.chunks_exact_mut(v.len()).zip(u) {
-        for (sum, &vb) in row.iter_mut().zip(v) {
+fn add_outer<const FUSED: bool>(sums: &mut [f64], u: &[f64], v: &[f64], entries: Entries) {
+    for (a, (row, &ua)) in sums.chunks_exact_mut(v.len()).zip(u).enumerate() {
+        let first = entries.first(a);
+        for (sum, &vb) in row[first..].iter_mut().zip(&v[first..]) {
             *sum = multiply_add(FUSED, ua, vb, *sum);
         }
     }
 }
 
 /// [`add_outer`] with fused multiply-adds when `fused`.
-fn add_outer_products(fused: bool, sums: &mut [f64], u: &[f64], v: &[f64]) {
+fn add_outer_products(fused: bool, sums: &mut [f64], u: &[f64], v: &[f64], entries: Entries) {
     #[cfg(target_arch = "x86_64")]
     if fused {
         // SAFETY: `fused` comes from `dense_product_fuses`, true only when
@@ -512,16 +536,16 @@ fn add_outer_products(fused: bool, sums: &mut [f64], u: &[f64], v: &[f64]) {
         // slower than the dense product this replaces); compiling this one
         // loop for FMA and choosing it at run time is the only safe way
         // the language offers to the instruction in a portable binary.
-        unsafe { add_outer_fma(sums, u, v) };
+        unsafe { add_outer_fma(sums, u, v, entries) };
         return;
     }
-    add_outer::<{ cfg!(not(target_arch = "x86_64")) }>(sums, u, v);
+    add_outer::<{ cfg!(not(target_arch = "x86_64")) }>(sums, u, v, entries);
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "fma")]
-fn add_outer_fma(sums: &mut [f64], u: &[f64], v: &[f64]) {
-    add_outer::<true>(sums, u, v);
+fn add_outer_fma(sums: &mut [f64], u: &[f64], v: &[f64], entries: Entries) {
+    add_outer::<true>(sums, u, v, entries);
 }
 
 /// Rows whose products [`add_outer_pairs`] adds to each entry a pass.
@@ -530,11 +554,13 @@ const PAIRS_A_PASS: usize = 4;
 /// `sums[a][b] += u[a] v[b]` for each `(u, v)` of `pairs` in turn (`sums`
 /// row-major, `u.len()` x `v.len()`, the same lengths for every pair):
 /// each entry's multiply-adds in the pairs' order, as [`add_outer`] one
-/// pair after another adds them, four pairs a pass over `sums`.
+/// pair after another adds them, four pairs a pass over `sums`; on the
+/// `entries` taken.
 fn add_outer_pairs<'v>(
     fused: bool,
     sums: &mut [f64],
     pairs: impl Iterator<Item = (&'v [f64], &'v [f64])>,
+    entries: Entries,
 ) {
     let mut pending: [(&[f64], &[f64]); PAIRS_A_PASS] = [(&[], &[]); PAIRS_A_PASS];
     let mut held = 0;
@@ -542,142 +568,66 @@ fn add_outer_pairs<'v>(
         pending[held] = pair;
         held += 1;
         if held == PAIRS_A_PASS {
-            add_outer_four(fused, sums, &pending);
+            add_outer_four(fused, sums, &pending, entries);
             held = 0;
         }
     }
     for &(u, v) in &pending[..held] {
-        add_outer_products(fused, sums, u, v);
+        add_outer_products(fused, sums, u, v, entries);
     }
 }
 
 /// [`add_outer_pairs`] of four pairs, with fused multiply-adds when
 /// `fused` (as [`add_outer_products`] chooses them).
-fn add_outer_four(fused: bool, sums: &mut [f64], pairs: &[(&[f64], &[f64]); PAIRS_A_PASS]) {
+fn add_outer_four(
+    fused: bool,
+    sums: &mut [f64],
+    pairs: &[(&[f64], &[f64]); PAIRS_A_PASS],
+    entries: Entries,
+) {
     #[cfg(target_arch = "x86_64")]
     if fused {
         // SAFETY: as in `add_outer_products`: `fused` is true only when
         // the CPU has FMA.
-        unsafe { add_outer_four_fma(sums, pairs) };
+        unsafe { add_outer_four_fma(sums, pairs, entries) };
         return;
     }
-    add_outer_four_with::<{ cfg!(not(target_arch = "x86_64")) }>(sums, pairs);
+    add_outer_four_with::<{ cfg!(not(target_arch = "x86_64")) }>(sums, pairs, entries);
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "fma")]
-fn add_outer_four_fma(sums: &mut [f64], pairs: &[(&[f64], &[f64]); PAIRS_A_PASS]) {
-    add_outer_four_with::<true>(sums, pairs);
+fn add_outer_four_fma(
+    sums: &mut [f64],
+    pairs: &[(&[f64], &[f64]); PAIRS_A_PASS],
+    entries: Entries,
+) {
+    add_outer_four_with::<true>(sums, pairs, entries);
 }
 
 #[inline(always)]
 fn add_outer_four_with<const FUSED: bool>(
     sums: &mut [f64],
     pairs: &[(&[f64], &[f64]); PAIRS_A_PASS],
+    entries: Entries,
 ) {
     let [(u0, v0), (u1, v1), (u2, v2), (u3, v3)] = pairs;
     let n = v0.len();
     let (v1, v2, v3) = (&v1[..n], &v2[..n], &v3[..n]);
     for (a, row) in sums.chunks_exact_mut(n).enumerate() {
         let (a0, a1, a2, a3) = (u0[a], u1[a], u2[a], u3[a]);
-        for ((((sum, &b0), &b1), &b2), &b3) in row.iter_mut().zip(*v0).zip(v1).zip(v2).zip(v3) {
+        let f = entries.first(a);
+        let taken = row[f..]
+            .iter_mut()
+            .zip(&v0[f..])
+            .zip(&v1[f..])
+            .zip(&v2[f..])
+            .zip(&v3[f..]);
+        for ((((sum, &b0), &b1), &b2), &b3) in taken {
             let mut x = multiply_add(FUSED, a0, b0, *sum);
             x = multiply_add(FUSED, a1, b1, x);
             x = multiply_add(FUSED, a2, b2, x);
             *sum = multiply_add(FUSED, a3, b3, x);
-        }
-    }
-}
-
-/// `sums[a][b] += x[a] x[b]` for `b >= a` (the upper triangle of `sums`,
-/// row-major, `x.len()` square) for each row `x` of `rows` in turn: each
-/// entry's multiply-adds in the rows' order, as [`add_outer_pairs`] of the
-/// pairs `(x, x)` adds them, but half of them. A product is the same
-/// rounded (or fused) value whichever factor comes first, so the entry
-/// below the diagonal, left zero, would be the same sum.
-fn add_upper_squares<'v>(fused: bool, sums: &mut [f64], rows: impl Iterator<Item = &'v [f64]>) {
-    let mut pending: [&[f64]; PAIRS_A_PASS] = [&[]; PAIRS_A_PASS];
-    let mut held = 0;
-    for row in rows {
-        pending[held] = row;
-        held += 1;
-        if held == PAIRS_A_PASS {
-            add_upper_four(fused, sums, &pending);
-            held = 0;
-        }
-    }
-    for &x in &pending[..held] {
-        add_upper_one(fused, sums, x);
-    }
-}
-
-/// [`add_upper_squares`] of one row, with fused multiply-adds when `fused`
-/// (as [`add_outer_products`] chooses them).
-fn add_upper_one(fused: bool, sums: &mut [f64], x: &[f64]) {
-    #[cfg(target_arch = "x86_64")]
-    if fused {
-        // SAFETY: as in `add_outer_products`: `fused` is true only when
-        // the CPU has FMA.
-        unsafe { add_upper_one_fma(sums, x) };
-        return;
-    }
-    add_upper_one_with::<{ cfg!(not(target_arch = "x86_64")) }>(sums, x);
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "fma")]
-fn add_upper_one_fma(sums: &mut [f64], x: &[f64]) {
-    add_upper_one_with::<true>(sums, x);
-}
-
-#[inline(always)]
-fn add_upper_one_with<const FUSED: bool>(sums: &mut [f64], x: &[f64]) {
-    let n = x.len();
-    for (a, row) in sums.chunks_exact_mut(n).enumerate() {
-        let xa = x[a];
-        for (sum, &xb) in row[a..].iter_mut().zip(&x[a..]) {
-            *sum = multiply_add(FUSED, xa, xb, *sum);
-        }
-    }
-}
-
-/// [`add_upper_squares`] of four rows, with fused multiply-adds when
-/// `fused`.
-fn add_upper_four(fused: bool, sums: &mut [f64], rows: &[&[f64]; PAIRS_A_PASS]) {
-    #[cfg(target_arch = "x86_64")]
-    if fused {
-        // SAFETY: as in `add_outer_products`: `fused` is true only when
-        // the CPU has FMA.
-        unsafe { add_upper_four_fma(sums, rows) };
-        return;
-    }
-    add_upper_four_with::<{ cfg!(not(target_arch = "x86_64")) }>(sums, rows);
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "fma")]
-fn add_upper_four_fma(sums: &mut [f64], rows: &[&[f64]; PAIRS_A_PASS]) {
-    add_upper_four_with::<true>(sums, rows);
-}
-
-#[inline(always)]
-fn add_upper_four_with<const FUSED: bool>(sums: &mut [f64], rows: &[&[f64]; PAIRS_A_PASS]) {
-    let [x0, x1, x2, x3] = rows;
-    let n = x0.len();
-    let (x1, x2, x3) = (&x1[..n], &x2[..n], &x3[..n]);
-    for (a, row) in sums.chunks_exact_mut(n).enumerate() {
-        let (a0, a1, a2, a3) = (x0[a], x1[a], x2[a], x3[a]);
-        let upper = row[a..]
-            .iter_mut()
-            .zip(&x0[a..])
-            .zip(&x1[a..])
-            .zip(&x2[a..])
-            .zip(&x3[a..]);
-        for ((((sum, &b0), &b1), &b2), &b3) in upper {
-            let mut s = multiply_add(FUSED, a0, b0, *sum);
-            s = multiply_add(FUSED, a1, b1, s);
-            s = multiply_add(FUSED, a2, b2, s);
-            *sum = multiply_add(FUSED, a3, b3, s);
         }
     }
 }

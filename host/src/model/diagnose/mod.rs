@@ -541,9 +541,8 @@ impl LoopState<'_> {
         self.try_change_at_most(finding, change, f64::INFINITY)
     }
 
-    /// [`try_change`](Self::try_change), refused without a report as
-    /// soon as the blocked folds' mean is above `most_mm`
-    /// ([`try_rival`](Self::try_rival)).
+    /// [`try_change`](Self::try_change), refused as soon as the blocked
+    /// folds' mean is above `most_mm` ([`try_rival`](Self::try_rival)).
     fn try_change_at_most(
         &mut self,
         mut finding: Finding,
@@ -590,9 +589,7 @@ impl LoopState<'_> {
         };
         let (after, fits) = validate_fits(train, self.nominal, from, &candidate, scope)?;
         if after.held.mean_mm > most_mm {
-            if moved.is_some() {
-                self.seen_train = at_meeting_points(self.train, self.structure.marker_body_mm);
-            }
+            self.refuse(finding, moved.is_some());
             return Ok(false);
         }
         let mut check = self.judge_change(change, train, &after, &fits);
