@@ -464,6 +464,75 @@ fn a_small_session_whose_identified_model_loses_to_the_plain_fit_falls_back_to_i
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// Ten poses on a printer's bed (`hp4pt2-bed`, every tracked pose z near
+/// 0), the other seven to test, two of them 0.7 and 1.2 m above the bed:
+/// the plain least-squares reference fits the two rows of the selection
+/// split closer than the identified model and is the final model (issue
+/// 32: the final model is not worse than it there), but the bed does not
+/// determine the heights of its anchors, which the report says, naming the
+/// widest against the geometry's tolerance. Measured: the ceiling anchor's
+/// height 1736 +- 592 mm against the geometry's +- 15; held out 216 mm,
+/// the identified model 34.
+#[test]
+fn a_plain_fit_the_training_poses_hardly_determine_is_named_when_it_is_final() {
+    const BED_POSES: [usize; 10] = [0, 2, 5, 6, 7, 8, 9, 12, 13, 14];
+    let d = sessions_dir().join("hp4pt2-bed");
+    let g = Geometry::load(d.join("geometry.toml")).expect("geometry");
+    let all = Session::load(d.join("all.csv")).expect("all.csv");
+    assert_eq!(all.samples.len(), 17);
+    let part = |keep: &dyn Fn(usize) -> bool| {
+        let mut s = all.clone();
+        s.samples = (0..all.samples.len())
+            .filter(|&i| keep(i))
+            .map(|i| all.samples[i].clone())
+            .collect();
+        s
+    };
+    let train = part(&|i| BED_POSES.contains(&i));
+    let test = part(&|i| !BED_POSES.contains(&i));
+    assert!(train
+        .samples
+        .iter()
+        .all(|s| s.tracker.is_some_and(|p| p[2].abs() < 10.0)));
+    let c = calibrate_quick_with(
+        &d.join("geometry.toml"),
+        &g,
+        (&d.join("train-bed-10.csv"), &train),
+        (&d.join("test-7.csv"), &test),
+    );
+    assert_eq!(c.report.selection.choice, Choice::Reference);
+    let loose: Vec<&String> = c
+        .report
+        .warnings
+        .iter()
+        .filter(|w| w.contains("determine") && w.contains("less well than the geometry"))
+        .collect();
+    assert_eq!(loose.len(), 1, "{:?}", c.report.warnings);
+    assert!(
+        loose[0].contains("anchor3.z") && loose[0].contains("(the geometry: ± 15 mm)"),
+        "{}",
+        loose[0]
+    );
+    // The warning is the final plain fit's: a session whose final model is
+    // the identified one has none.
+    let (g, train, test) = load();
+    let d = data_dir();
+    let c = calibrate_quick(
+        &g,
+        (&d.join("train.csv"), &train),
+        (&d.join("test.csv"), &test),
+    );
+    assert_ne!(c.report.selection.choice, Choice::Reference);
+    assert!(
+        !c.report
+            .warnings
+            .iter()
+            .any(|w| w.contains("less well than the geometry")),
+        "{:?}",
+        c.report.warnings
+    );
+}
+
 #[test]
 fn fewer_rows_than_the_identification_needs_are_refused_saying_what_to_collect() {
     let (g, train, test) = load();

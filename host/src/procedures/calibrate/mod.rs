@@ -79,8 +79,9 @@ use crate::model::predict::predict;
 
 use checks::{checked_sessions, declared_tolerance_warning, reference_warning, trust_warnings};
 use corrections::{
-    hold_to_reference, identification_only, learner_warnings, residual_report, selection_report,
-    train_corrections, unchosen_corrections_warning, CorrectionLimits, Learned, ResidualData,
+    hold_to_reference, identification_only, learner_warnings, loose_reference_warning,
+    residual_report, selection_report, train_corrections, unchosen_corrections_warning,
+    CorrectionLimits, Learned, ResidualData,
 };
 use evaluate::{correction_errors, point_error_list, tracked_pairs, PerSession};
 use identified::{FinalIdentified, IdentifiedModel, ReferenceModel};
@@ -443,6 +444,12 @@ impl Run<'_> {
             &model.reference.train_errors_by_row,
             &model.reference.id,
         );
+        if fall_back {
+            self.warnings.extend(loose_reference_warning(
+                &model.reference.id,
+                &model.loop_result.identification,
+            ));
+        }
         if learned.is_some() {
             self.warnings.extend(unchosen_corrections_warning(
                 &judgement,
