@@ -513,6 +513,22 @@ fn a_plain_fit_the_training_poses_hardly_determine_is_named_when_it_is_final() {
         "{}",
         loose[0]
     );
+    // What the device runs is in the report beside the identified model:
+    // the reference's parameters with their sds from the data alone.
+    let reference = &c.report.identification.reference_parameters;
+    let ceiling = reference.iter().find(|p| p.name == "anchor3.z").unwrap();
+    assert!(ceiling.sd > 100.0, "{ceiling:?}");
+    let summary = c.report.summary();
+    assert!(
+        summary.contains("The final model's parameters: the plain least-squares reference's"),
+        "{summary}"
+    );
+    let page =
+        spidar::procedures::report_page::render(&serde_json::to_value(&c.report).unwrap(), None);
+    assert!(
+        page.contains("The final model is the plain least-squares reference"),
+        "the page shows the final model's parameters"
+    );
     // The warning is the final plain fit's: a session whose final model is
     // the identified one has none.
     let (g, train, test) = load();
@@ -531,6 +547,7 @@ fn a_plain_fit_the_training_poses_hardly_determine_is_named_when_it_is_final() {
         "{:?}",
         c.report.warnings
     );
+    assert!(!c.report.summary().contains("The final model's parameters"));
 }
 
 #[test]

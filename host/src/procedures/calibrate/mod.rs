@@ -364,6 +364,8 @@ struct Findings<'a> {
     device_slips: report::DeviceSlips,
     /// Why the diagnosis loop did not run (the session too small for it).
     loop_not_run: Option<String>,
+    /// The plain least-squares reference.
+    reference: &'a crate::model::identify::Identification,
 }
 
 /// What stages 4-5 left: the learners' data, the learned corrections (none
@@ -562,15 +564,18 @@ impl Run<'_> {
             },
             stages: f.stages,
             effects: f.loop_result.findings.clone(),
-            identification: report::IdentificationReport::of(
-                &f.loop_result.base,
-                fin,
-                &f.loop_result.layers,
-                f.loop_result.structure.marker_body_mm,
-                &f.loop_result.tracker_outliers,
-                f.loop_rows,
-                f.loop_not_run,
-            ),
+            identification: report::IdentificationReport {
+                reference_parameters: f.reference.parameters.clone(),
+                ..report::IdentificationReport::of(
+                    &f.loop_result.base,
+                    fin,
+                    &f.loop_result.layers,
+                    f.loop_result.structure.marker_body_mm,
+                    &f.loop_result.tracker_outliers,
+                    f.loop_rows,
+                    f.loop_not_run,
+                )
+            },
             selection: f.selection,
             corrections: f.corrections,
             kinematics: f.kinematics,
@@ -584,6 +589,22 @@ impl Run<'_> {
             files: report::Files::default(),
         }
     }
+}
+
+/// The final identified model's slips, which go to the device under the
+/// training's home capture: none when the plain least-squares reference is
+/// the final model (`fall_back`).
+fn device_slips(
+    training_home: &crate::data::home::TrainingHome,
+    loop_result: &LoopResult,
+    fall_back: bool,
+) -> report::DeviceSlips {
+    let effects: &[spidar_core::model::EffectTerm] = if fall_back {
+        &[]
+    } else {
+        &loop_result.identification.effects
+    };
+    report::DeviceSlips::of(training_home, effects)
 }
 
 /// Calibrate a device: identification and the diagnosis loop, residual NN
@@ -668,16 +689,7 @@ pub fn calibrate(
         train: &tr[..],
         test: &te[..],
     };
-    // The final identified model's slips go to the device under the
-    // training's home capture (none when the reference is the final model).
-    let device_slips = report::DeviceSlips::of(
-        &training_home,
-        if corrected.fall_back {
-            &[]
-        } else {
-            &loop_result.identification.effects
-        },
-    );
+    let device_slips = device_slips(&training_home, &loop_result, corrected.fall_back);
     let FinalModel {
         mut calibration,
         rejections,
@@ -709,6 +721,7 @@ pub fn calibrate(
         blackbox,
         device_slips,
         loop_not_run: (!regime.full).then_some(regime.reason).flatten(),
+        reference: &reference.id,
     });
     let pairs = Pairs {
         residual: corrected.data.pairs,

@@ -463,6 +463,11 @@ pub struct IdentificationReport {
     /// (`device.channels`): a `string{k}.r_home` is the effective radius,
     /// the spool's radius over it.
     pub mechanical_advantage: Vec<f64>,
+    /// The plain least-squares reference's parameters, each with its sd
+    /// from the data alone (no prior holds it): the final model's when the
+    /// selection holds to the reference (`selection.choice` `reference`),
+    /// which the device then runs.
+    pub reference_parameters: Vec<ParameterEstimate>,
 }
 
 impl IdentificationReport {
@@ -494,6 +499,7 @@ impl IdentificationReport {
                 .indices()
                 .map(|c| fin.winding.mechanical_advantage[c])
                 .collect(),
+            reference_parameters: Vec::new(),
         }
     }
 

@@ -57,6 +57,21 @@ pub(super) fn section(r: &Value) -> Html {
         &r["device"]["channels"],
         &id["mechanical_advantage"],
     ));
+    // The plain least-squares reference is what the device runs when the
+    // selection held to it.
+    let reference = list(&id["reference_parameters"]);
+    if r["selection"]["choice"].as_str() == Some("reference") && !reference.is_empty() {
+        h.push(p(
+            "The final model is the plain least-squares reference: its parameters, each with \
+             its standard deviation from the data alone (no prior holds it), are what the \
+             device runs.",
+        ));
+        h.push(parameter_table(
+            reference,
+            &r["device"]["channels"],
+            &id["mechanical_advantage"],
+        ));
+    }
     h.push(tolerance(&r["anchor_tolerance"]));
     h
 }

@@ -253,15 +253,33 @@ impl Report {
         }
     }
 
-    /// The identified parameters with their sds, one line per point (an
+    /// The identified parameters with their sds, and the plain
+    /// least-squares reference's when it is the final model (what the
+    /// device runs then).
+    fn write_parameters(&self, o: &mut String) {
+        self.write_parameter_table(
+            o,
+            "Identified parameters (value ± sd)",
+            &self.identification.parameters,
+        );
+        if self.selection.choice == Choice::Reference {
+            self.write_parameter_table(
+                o,
+                "The final model's parameters: the plain least-squares reference's (value ± sd \
+                 from the data alone)",
+                &self.identification.reference_parameters,
+            );
+        }
+    }
+
+    /// `params` with their sds under `title`, one line per point (an
     /// anchor, the home, the tracker's frame) or scalar, as the page groups
     /// them; the first [`PARAMETER_LINES`], the rest counted.
-    fn write_parameters(&self, o: &mut String) {
-        let params = &self.identification.parameters;
+    fn write_parameter_table(&self, o: &mut String, title: &str, params: &[ParameterEstimate]) {
         if params.is_empty() {
             return;
         }
-        let _ = writeln!(o, "\nIdentified parameters (value ± sd):");
+        let _ = writeln!(o, "\n{title}:");
         let mut lines: Vec<(String, String)> = Vec::new();
         let mut k = 0;
         while k < params.len() {
