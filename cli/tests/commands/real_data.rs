@@ -44,6 +44,19 @@ fn calibrate_quick(g: &Geometry, train: (&Path, &Session), test: (&Path, &Sessio
     calibrate_quick_with(&data_dir().join("geometry.toml"), g, train, test)
 }
 
+/// The Hangprinter's geometry and its quick calibration on its own split
+/// (`train.csv`, `test.csv`).
+fn calibrate_own_split() -> (Geometry, Calibrated) {
+    let (g, train, test) = load();
+    let d = data_dir();
+    let c = calibrate_quick(
+        &g,
+        (&d.join("train.csv"), &train),
+        (&d.join("test.csv"), &test),
+    );
+    (g, c)
+}
+
 /// [`calibrate_quick`] with the geometry read from `geometry_path`.
 fn calibrate_quick_with(
     geometry_path: &Path,
@@ -92,13 +105,8 @@ fn the_n_string_formats_read_the_hangprinter_files() {
 
 #[test]
 fn a_model_fitted_on_train_meets_the_held_out_target() {
-    let (g, train, test) = load();
+    let (g, c) = calibrate_own_split();
     let d = data_dir();
-    let c = calibrate_quick(
-        &g,
-        (&d.join("train.csv"), &train),
-        (&d.join("test.csv"), &test),
-    );
     let r = &c.report;
     let test_mean = |name: &str| {
         r.stages
@@ -531,13 +539,7 @@ fn a_plain_fit_the_training_poses_hardly_determine_is_named_when_it_is_final() {
     );
     // The warning is the final plain fit's: a session whose final model is
     // the identified one has none.
-    let (g, train, test) = load();
-    let d = data_dir();
-    let c = calibrate_quick(
-        &g,
-        (&d.join("train.csv"), &train),
-        (&d.join("test.csv"), &test),
-    );
+    let (_, c) = calibrate_own_split();
     assert_ne!(c.report.selection.choice, Choice::Reference);
     assert!(
         !c.report
