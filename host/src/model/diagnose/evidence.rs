@@ -239,12 +239,6 @@ impl<'a> Evidence<'a> {
         self.rss = squares.total();
     }
 
-    /// Whether the rows are few enough that a test keeps what its first
-    /// pass works out for its second ([`KEPT_OBSERVATIONS`]).
-    pub(super) fn keeps_passes(&self) -> bool {
-        self.rows() <= KEPT_OBSERVATIONS * STRINGS
-    }
-
     /// Number of rows.
     pub(super) fn rows(&self) -> usize {
         match &self.source {
@@ -433,8 +427,8 @@ impl<'a> Evidence<'a> {
 /// visited in order): a few hundred kB of rows at a time.
 const BASIS_CHUNK: usize = 512;
 
-/// Most observations whose basis rows, rows ([`Row`]) and candidates'
-/// values a diagnosis keeps between its passes: the loop's default bound
+/// Most observations whose basis rows and rows ([`Row`]) a diagnosis keeps
+/// between its passes: the loop's default bound
 /// on the rows it reads (`CalibrateConfig::max_loop_rows`), about 5 kB an
 /// observation, 20-30 MB in all. A loop that reads more (every row of a
 /// long session, when asked) works them out at each pass: kept, they would
