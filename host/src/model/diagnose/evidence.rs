@@ -187,6 +187,26 @@ impl<'a> Evidence<'a> {
         Some(ev)
     }
 
+    /// The context of a test's row at `time_s`: a string 1 m long at home,
+    /// still, pulling 1 N of the 8 its device's strings pull.
+    #[cfg(test)]
+    pub(super) fn still_context(time_s: f64) -> EffectContext {
+        EffectContext {
+            theta: 0.0,
+            payout_mm: 0.0,
+            home_length_mm: 1000.0,
+            tension_n: 1.0,
+            total_tension_n: 8.0,
+            direction: 0,
+            time_s,
+            cos2_inclination: 1.0,
+            home_cos2_inclination: 1.0,
+            guide_elevation_rad: 0.0,
+            home_guide_elevation_rad: 0.0,
+            payout_rate_mm_s: 0.0,
+        }
+    }
+
     /// Evidence of `rows` (their `weight` as the fit's), their
     /// `residuals` (unweighted), the model's span given by its orthonormal
     /// `basis` (a row per row), and the residual variance `sigma2`.

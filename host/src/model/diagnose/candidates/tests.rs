@@ -17,20 +17,7 @@ fn lattice_evidence(error: impl Fn([f64; 3], f64) -> f64) -> Evidence<'static> {
     let lattice = crate::sim::lattice::Lattice::paper([0.0; 3]).unwrap();
     let pause: Vec<f64> = (0..lattice.len()).map(|_| Exp1.sample(&mut rng)).collect();
     let per_pause = 4800.0 / pause.iter().sum::<f64>();
-    let ctx = EffectContext {
-        theta: 0.0,
-        payout_mm: 0.0,
-        home_length_mm: 1000.0,
-        tension_n: 1.0,
-        total_tension_n: 8.0,
-        direction: 0,
-        time_s: 0.0,
-        cos2_inclination: 1.0,
-        home_cos2_inclination: 1.0,
-        guide_elevation_rad: 0.0,
-        home_guide_elevation_rad: 0.0,
-        payout_rate_mm_s: 0.0,
-    };
+    let ctx = Evidence::still_context(0.0);
     let mut t = 0.0;
     let mut rows = Vec::new();
     let mut residuals = Vec::new();

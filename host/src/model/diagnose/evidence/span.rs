@@ -431,11 +431,9 @@ impl Evidence<'_> {
 
 #[cfg(test)]
 mod tests {
-    use nalgebra::{DMatrix, DVector};
-    use spidar_core::string_law::EffectContext;
-
     use super::super::{Evidence, Row, RowColumn};
     use super::Columns;
+    use nalgebra::{DMatrix, DVector};
 
     /// A row of string `string` at `position`, weighed `weight`.
     fn row(obs: usize, string: usize, weight: f64, position: [f64; 3]) -> Row {
@@ -443,20 +441,7 @@ mod tests {
             obs,
             string,
             weight,
-            ctx: EffectContext {
-                theta: 0.0,
-                payout_mm: 0.0,
-                home_length_mm: 1000.0,
-                tension_n: 1.0,
-                total_tension_n: 8.0,
-                direction: 0,
-                time_s: obs as f64,
-                cos2_inclination: 1.0,
-                home_cos2_inclination: 1.0,
-                guide_elevation_rad: 0.0,
-                home_guide_elevation_rad: 0.0,
-                payout_rate_mm_s: 0.0,
-            },
+            ctx: Evidence::still_context(obs as f64),
             length: 1000.0,
             speed: 0.0,
             position,
