@@ -445,11 +445,11 @@ const LOOSE_PARAMETERS_NAMED: usize = 3;
 /// identification's prior holds the same parameter of `identified` to (the
 /// anchors' tolerance, the home's, the tracker frame's), the widest against
 /// it first. Away from the training poses such a model places the
-/// end-effector on values the rows hardly hold (10 poses on a printer's bed:
-/// the ceiling anchor's height to +-590 mm, 216 mm held out at 0.7 and 1.2 m
-/// above the bed, the identified model 34), which the selection split,
-/// whose rows lie among the training poses, cannot show. `None` when every
-/// parameter with a prior is determined within it.
+/// end-effector on values the rows hardly hold (poses on a printer's bed
+/// leave its anchors' heights to hundreds of mm, decision record 0086),
+/// which the selection split, whose rows lie among the training poses,
+/// cannot show. `None` when every parameter with a prior is determined
+/// within it.
 pub(super) fn loose_reference_warning(
     reference: &Identification,
     identified: &Identification,
