@@ -564,18 +564,12 @@ impl Run<'_> {
             },
             stages: f.stages,
             effects: f.loop_result.findings.clone(),
-            identification: report::IdentificationReport {
-                reference_parameters: f.reference.parameters.clone(),
-                ..report::IdentificationReport::of(
-                    &f.loop_result.base,
-                    fin,
-                    &f.loop_result.layers,
-                    f.loop_result.structure.marker_body_mm,
-                    &f.loop_result.tracker_outliers,
-                    f.loop_rows,
-                    f.loop_not_run,
-                )
-            },
+            identification: report::IdentificationReport::of(
+                f.loop_result,
+                f.loop_rows,
+                f.loop_not_run,
+                f.reference,
+            ),
             selection: f.selection,
             corrections: f.corrections,
             kinematics: f.kinematics,

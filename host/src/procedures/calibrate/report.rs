@@ -471,15 +471,16 @@ pub struct IdentificationReport {
 }
 
 impl IdentificationReport {
+    /// The report of the loop's model (its final identification, its base,
+    /// layer tables, marker offset and tracker outliers), on `loop_rows`,
+    /// and of the plain least-squares `reference`.
     pub fn of(
-        base: &Identification,
-        fin: &Identification,
-        layer_tables: &[crate::model::layers::StringLayers],
-        marker_body_mm: Option<[f64; 3]>,
-        outliers: &crate::model::diagnose::TrackerOutliers,
+        loop_result: &crate::model::diagnose::LoopResult,
         loop_rows: super::loop_rows::LoopRows,
         loop_not_run: Option<String>,
+        reference: &Identification,
     ) -> IdentificationReport {
+        let fin = &loop_result.identification;
         IdentificationReport {
             parameters: fin.parameters.clone(),
             warnings: fin.warnings.clone(),
@@ -487,10 +488,10 @@ impl IdentificationReport {
             rejected_fraction: fin.rejected_fraction,
             evaluations: fin.evaluations,
             effect_terms: fin.effects.clone(),
-            base_residual_scale_mm: base.residual_scale_mm,
-            layer_tables: layer_tables.to_vec(),
-            marker_body_mm,
-            tracker_outliers: outliers.clone(),
+            base_residual_scale_mm: loop_result.base.residual_scale_mm,
+            layer_tables: loop_result.layers.clone(),
+            marker_body_mm: loop_result.structure.marker_body_mm,
+            tracker_outliers: loop_result.tracker_outliers.clone(),
             loop_rows,
             loop_not_run,
             mechanical_advantage: fin
@@ -499,7 +500,7 @@ impl IdentificationReport {
                 .indices()
                 .map(|c| fin.winding.mechanical_advantage[c])
                 .collect(),
-            reference_parameters: Vec::new(),
+            reference_parameters: reference.parameters.clone(),
         }
     }
 
